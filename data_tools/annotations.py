@@ -1,0 +1,423 @@
+"""Read tumour annotations (ASAP XML, GeoJSON) into shapely geometry.
+
+All coordinates are LEVEL-0 PIXELS of the slide: x grows to the right, y grows
+down, origin at the top-left corner of the level-0 image. Nothing here rescales.
+
+Each polygon carries one of four labels:
+
+* ``tumour``    - rewarded region;
+* ``exclusion`` - hole cut out of the tumour (e.g. CAMELYON16 group ``negative``
+  or ``_2``: normal tissue inside a metastasis);
+* ``tissue``    - tissue outline (kept, not used for reward);
+* ``ignore``    - read and dropped (background, artefacts, ...).
+
+A group/class name not in the label map gives the label ``unknown:<name>``; such
+polygons are dropped by :func:`load_annotations` with one warning per file.
+All bad input raises :class:`~data_tools.errors.AnnotationError` naming the file.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import warnings
+from dataclasses import dataclass
+from xml.etree.ElementTree import ParseError
+
+import defusedxml
+import defusedxml.ElementTree as SafeET
+import shapely
+from shapely.geometry import MultiPolygon, Polygon, box, mapping
+
+from data_tools.errors import AnnotationError
+
+__all__ = [
+    "DEFAULT_LABEL_MAP",
+    "LABELS",
+    "MAX_ANNOTATION_BYTES",
+    "Annotations",
+    "annotations_to_geojson",
+    "load_annotations",
+    "parse_asap_xml",
+    "parse_geojson",
+]
+
+LABELS = ("tumour", "exclusion", "tissue", "ignore")
+MAX_ANNOTATION_BYTES = 512 * 1024 * 1024  # refuse larger annotation files
+
+DEFAULT_LABEL_MAP: dict[str, str] = {
+    **{k: "tumour" for k in ("metastasis", "metastases", "tumor", "tumour", "_0", "_1", "carcinoma")},
+    **{k: "exclusion" for k in ("negative", "_2", "exclusion")},
+    "tissue": "tissue",
+    **{k: "ignore" for k in ("background", "artifact", "artefact", "trash", "ignore")},
+}
+
+_POLYGON_TYPES = {"polygon", "spline", "rectangle"}  # other ASAP types (PointSet, Dot, ...) are skipped
+_GEOMETRY_TYPES = {"Polygon", "MultiPolygon", "GeometryCollection", "Point", "MultiPoint", "LineString",
+                   "MultiLineString"}
+_EMPTY = MultiPolygon()
+
+
+@dataclass(frozen=True)
+class Annotations:
+    """Labelled annotation geometry of one slide, in level-0 pixels (x right, y down).
+
+    ``tumour`` is the union of tumour polygons minus the union of exclusion
+    polygons; ``exclusion`` and ``tissue`` are unions of their polygons. All three
+    are valid (possibly empty) MultiPolygons. ``n_polygons`` counts the polygons
+    in the file per label (``tumour``, ``exclusion``, ``tissue``, ``ignore``,
+    ``unknown``) before any union or clipping: one per ASAP annotation or
+    GeoJSON polygon, however many pieces a repair splits it into; zero-area
+    polygons (dropped) are not counted.
+    """
+
+    tumour: MultiPolygon
+    exclusion: MultiPolygon
+    tissue: MultiPolygon
+    n_polygons: dict[str, int]
+    unknown_groups: tuple[str, ...]
+    source: str
+
+    def bounds(self) -> tuple[float, float, float, float]:
+        """(min_x, min_y, max_x, max_y) of the tumour in level-0 pixels; ValueError if there is no tumour."""
+        if self.tumour.is_empty:
+            raise ValueError(f"{self.source}: no tumour geometry, bounds undefined")
+        return tuple(float(v) for v in self.tumour.bounds)
+
+
+def _resolve_label_map(label_map: dict[str, str] | None) -> dict[str, str]:
+    merged = {label: label for label in LABELS}
+    merged.update(DEFAULT_LABEL_MAP)
+    for key, value in (label_map or {}).items():
+        if value not in LABELS:
+            raise ValueError(f"label_map[{key!r}] = {value!r}; expected one of {LABELS}")
+        merged[str(key).strip().lower()] = value
+    return merged
+
+
+def _map_label(name: str, lmap: dict[str, str]) -> str:
+    return lmap.get(name.strip().lower(), f"unknown:{name}")
+
+
+def _read_bytes(path) -> bytes:
+    try:
+        size = os.path.getsize(path)
+        if size > MAX_ANNOTATION_BYTES:
+            raise AnnotationError(path, f"file is {size} bytes, over the {MAX_ANNOTATION_BYTES}-byte limit")
+        with open(path, "rb") as f:
+            data = f.read(MAX_ANNOTATION_BYTES + 1)
+    except OSError as e:
+        raise AnnotationError(path, f"cannot read annotation file ({e.strerror or e})") from e
+    if len(data) > MAX_ANNOTATION_BYTES:
+        raise AnnotationError(path, f"file is larger than the {MAX_ANNOTATION_BYTES}-byte limit")
+    if not data.strip():
+        raise AnnotationError(path, "empty file")
+    return data
+
+
+def _polygon(path, what: str, shell, holes, notes: dict[str, list[str]]) -> list[Polygon]:
+    """Check raw rings and build valid polygon piece(s); invalid ones are repaired, zero-area ones dropped.
+
+    Repairs and drops are recorded in ``notes`` and reported in one warning per file by :func:`_finish`.
+    """
+    rings = []
+    for ring in (shell, *holes):
+        if not isinstance(ring, (list, tuple)):
+            raise AnnotationError(path, f"{what}: a ring is not a list of coordinates")
+        pts = []
+        for p in ring:
+            if not isinstance(p, (list, tuple)) or len(p) < 2:
+                raise AnnotationError(path, f"{what}: coordinate {p!r} is not an (x, y) pair")
+            x, y = p[0], p[1]
+            if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (x, y)):
+                raise AnnotationError(path, f"{what}: non-numeric coordinate {p!r}")
+            if not (math.isfinite(x) and math.isfinite(y)):
+                raise AnnotationError(path, f"{what}: non-finite coordinate ({x}, {y})")
+            pts.append((float(x), float(y)))
+        if len(pts) > 1 and pts[0] == pts[-1]:
+            pts.pop()
+        if len(pts) < 3:
+            raise AnnotationError(path, f"{what}: a ring has {len(pts)} vertices, at least 3 needed")
+        rings.append(pts)
+    poly = Polygon(rings[0], rings[1:])
+    pieces = [poly] if poly.is_valid else _polygonal_parts(shapely.make_valid(poly))
+    pieces = [g for g in pieces if g.area > 0]
+    if not pieces:
+        notes["dropped"].append(what)
+    elif not poly.is_valid:
+        notes["repaired"].append(what)
+    return pieces
+
+
+def _finish(path, items: list[tuple[str, list[Polygon]]], notes: dict[str, list[str]]):
+    """Warn once per file about repaired / dropped polygons; refuse a file without any polygon."""
+    for key, problem in (("repaired", "invalid (self-intersecting) polygon(s) repaired with make_valid"),
+                         ("dropped", "zero-area polygon(s) dropped")):
+        if notes[key]:
+            names = ", ".join(notes[key][:10]) + (", ..." if len(notes[key]) > 10 else "")
+            warnings.warn(f"{path}: {len(notes[key])} {problem}: {names}", stacklevel=3)
+    items = [(label, pieces) for label, pieces in items if pieces]
+    if not items:
+        raise AnnotationError(path, "no polygons: nothing to reward")
+    return items
+
+
+def _flatten(items: list[tuple[str, list[Polygon]]]) -> list[tuple[str, Polygon]]:
+    return [(label, p) for label, pieces in items for p in pieces]
+
+
+def _polygonal_parts(geom) -> list[Polygon]:
+    if isinstance(geom, Polygon):
+        return [] if geom.is_empty else [geom]
+    if hasattr(geom, "geoms"):  # MultiPolygon, GeometryCollection
+        return [p for g in geom.geoms for p in _polygonal_parts(g)]
+    return []
+
+
+def parse_asap_xml(path, label_map: dict[str, str] | None = None) -> list[tuple[str, Polygon]]:
+    """Read an ASAP XML file into ``(label, polygon)`` pairs, coordinates in level-0 pixels (x right, y down).
+
+    Layout: ``<ASAP_Annotations><Annotations><Annotation Name Type PartOfGroup>
+    <Coordinates><Coordinate Order X Y/>``. Vertices are sorted by ``Order``.
+    Types ``Polygon``, ``Rectangle`` and ``Spline`` become polygons; a Spline's
+    control vertices are used as the polygon's vertices (ASAP's smooth curve
+    through them is not reproduced). ``PointSet``/``Dot`` and other types are
+    skipped. The label is ``PartOfGroup`` mapped through ``label_map`` (on top of
+    DEFAULT_LABEL_MAP, case-insensitive), else ``unknown:<group>``; a missing
+    group is the group ``None``. The XML is parsed with defusedxml: DTDs and
+    entities are refused. Raises AnnotationError for unsafe, malformed or
+    polygon-free files and for bad vertices.
+    """
+    return _flatten(_read_asap_xml(path, label_map))
+
+
+def _read_asap_xml(path, label_map) -> list[tuple[str, list[Polygon]]]:
+    """One (label, valid pieces) item per ASAP polygon annotation."""
+    lmap = _resolve_label_map(label_map)
+    data = _read_bytes(path)
+    try:
+        root = SafeET.fromstring(data, forbid_dtd=True, forbid_entities=True, forbid_external=True)
+    except defusedxml.DefusedXmlException as e:
+        raise AnnotationError(path, f"unsafe XML refused ({type(e).__name__})") from e
+    except ParseError as e:
+        raise AnnotationError(path, f"malformed XML ({e})") from e
+    if root.tag != "ASAP_Annotations":
+        raise AnnotationError(path, f"not ASAP XML (root element <{root.tag}>)")
+    items, notes = [], {"repaired": [], "dropped": []}
+    for i, ann in enumerate(root.iterfind("./Annotations/Annotation")):
+        if ann.get("Type", "").strip().lower() not in _POLYGON_TYPES:
+            continue
+        what = f"annotation {i} ({ann.get('Name', '?')!r})"
+        coords = []
+        for j, c in enumerate(ann.iterfind("./Coordinates/Coordinate")):
+            try:
+                order = int(c.get("Order", j))
+                xy = (float(c.get("X")), float(c.get("Y")))
+            except (TypeError, ValueError) as e:
+                raise AnnotationError(path, f"{what}: non-numeric coordinate {dict(c.attrib)}") from e
+            coords.append((order, xy))
+        shell = [xy for _, xy in sorted(coords, key=lambda t: t[0])]
+        if ann.get("Type").strip().lower() == "rectangle" and len(shell) == 2:
+            (x0, y0), (x1, y1) = shell
+            shell = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+        label = _map_label(ann.get("PartOfGroup") or "None", lmap)
+        items.append((label, _polygon(path, what, shell, (), notes)))
+    return _finish(path, items, notes)
+
+
+def _geojson_label(props: dict, lmap: dict[str, str], default_label: str | None) -> str:
+    if isinstance(props.get("label"), str):
+        return _map_label(props["label"], lmap)
+    cls = props.get("classification")
+    cls_name = cls.get("name") if isinstance(cls, dict) else cls
+    if isinstance(cls_name, str) and cls_name.strip():
+        return _map_label(cls_name, lmap)
+    name = props.get("name")
+    if isinstance(name, str) and name.strip().lower() in lmap:
+        return lmap[name.strip().lower()]
+    if default_label is not None:
+        return default_label
+    return f"unknown:{name if isinstance(name, str) else 'unclassified'}"
+
+
+def _features(path, doc) -> list[dict]:
+    if not isinstance(doc, dict):
+        raise AnnotationError(path, "GeoJSON must be an object")
+    kind = doc.get("type")
+    if kind == "FeatureCollection":
+        feats = doc.get("features")
+        if not isinstance(feats, list):
+            raise AnnotationError(path, "FeatureCollection without a 'features' list")
+        return feats
+    if kind == "Feature":
+        return [doc]
+    if kind in _GEOMETRY_TYPES:
+        return [{"type": "Feature", "geometry": doc, "properties": {}}]
+    raise AnnotationError(path, f"not GeoJSON (type {kind!r})")
+
+
+def _geometry_polygons(geom) -> list[list]:
+    """Polygon coordinate arrays ([shell, *holes]) in a GeoJSON geometry; other types skipped."""
+    if not isinstance(geom, dict):
+        return []
+    kind, coords = geom.get("type"), geom.get("coordinates")
+    if kind == "Polygon":
+        return [coords]
+    if kind == "MultiPolygon":
+        return list(coords) if isinstance(coords, list) else [coords]
+    if kind == "GeometryCollection":
+        return [p for g in geom.get("geometries") or [] for p in _geometry_polygons(g)]
+    return []
+
+
+def parse_geojson(
+    path, label_map: dict[str, str] | None = None, default_label: str | None = "tumour"
+) -> list[tuple[str, Polygon]]:
+    """Read GeoJSON into ``(label, polygon)`` pairs, coordinates in level-0 pixels (x right, y down).
+
+    Accepts a FeatureCollection, a Feature or a bare geometry. Polygon and
+    MultiPolygon (holes kept) are read; other geometry types are skipped. The
+    label of a feature, first match wins:
+
+    1. ``properties.label`` (what :func:`annotations_to_geojson` writes), mapped;
+    2. ``properties.classification.name`` (QuPath class), mapped;
+    3. ``properties.name`` if it is a key of the label map (e.g. ``"Tumor"``);
+    4. ``default_label`` (``"tumour"``: an unclassified QuPath annotation is
+       taken to outline tumour; pass ``None`` to make it ``unknown:<name>``).
+
+    Names are mapped through ``label_map`` on top of DEFAULT_LABEL_MAP
+    (case-insensitive); names not in it give ``unknown:<name>``.
+    """
+    return _flatten(_read_geojson(path, label_map, default_label))
+
+
+def _read_geojson(path, label_map, default_label) -> list[tuple[str, list[Polygon]]]:
+    """One (label, valid pieces) item per GeoJSON polygon (a MultiPolygon gives one item per member)."""
+    if default_label is not None and default_label not in LABELS:
+        raise ValueError(f"default_label {default_label!r}; expected one of {LABELS} or None")
+    lmap = _resolve_label_map(label_map)
+    data = _read_bytes(path)
+    try:
+        doc = json.loads(data)
+    except (ValueError, RecursionError) as e:
+        raise AnnotationError(path, f"malformed JSON ({e})") from e
+    items, notes = [], {"repaired": [], "dropped": []}
+    for i, feat in enumerate(_features(path, doc)):
+        if not isinstance(feat, dict):
+            raise AnnotationError(path, f"feature {i} is not an object")
+        props = feat.get("properties") or {}
+        what = f"feature {i}" + (f" ({props['name']!r})" if isinstance(props.get("name"), str) else "")
+        label = _geojson_label(props, lmap, default_label)
+        for rings in _geometry_polygons(feat.get("geometry")):
+            if not isinstance(rings, list) or not rings or not all(isinstance(r, list) for r in rings):
+                raise AnnotationError(path, f"{what}: polygon coordinates are not a list of rings")
+            items.append((label, _polygon(path, what, rings[0], rings[1:], notes)))
+    return _finish(path, items, notes)
+
+
+def _as_multipolygon(geom) -> MultiPolygon:
+    parts = _polygonal_parts(geom)
+    return MultiPolygon(parts) if parts else _EMPTY
+
+
+def _union(polys: list[Polygon]):
+    return shapely.union_all(polys) if polys else _EMPTY
+
+
+def _is_xml(path) -> bool:
+    """ASAP XML or GeoJSON? By extension, else by the first non-blank byte."""
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    if ext in (".xml", ".geojson", ".json"):
+        return ext == ".xml"
+    try:
+        with open(path, "rb") as f:
+            first = f.read(4096).lstrip(b"\xef\xbb\xbf \t\r\n")[:1]
+    except OSError as e:
+        raise AnnotationError(path, f"cannot read annotation file ({e.strerror or e})") from e
+    if first not in (b"<", b"{"):
+        raise AnnotationError(path, "unknown annotation format (expected ASAP XML or GeoJSON)")
+    return first == b"<"
+
+
+def load_annotations(
+    path,
+    label_map: dict[str, str] | None = None,
+    slide_size: tuple[int, int] | None = None,
+    default_label: str | None = "tumour",
+) -> Annotations:
+    """Load an ASAP XML or GeoJSON annotation file; all geometry in level-0 pixels (x right, y down).
+
+    The format is chosen by extension (``.xml`` / ``.geojson``, ``.json``), else
+    by the first byte. ``label_map`` entries override/extend DEFAULT_LABEL_MAP
+    (keys case-insensitive). ``default_label`` is the label of GeoJSON features
+    without a class (see :func:`parse_geojson`). Polygons of unknown groups are
+    dropped with one warning listing the groups.
+
+    ``slide_size=(width, height)`` in level-0 pixels clips every geometry to the
+    slide box, warning if any polygon extends beyond it; if the tumour is
+    non-empty before clipping and empty after, AnnotationError.
+    """
+    source = os.fspath(path)
+    if _is_xml(path):
+        items = _read_asap_xml(path, label_map)
+    else:
+        items = _read_geojson(path, label_map, default_label)
+
+    by_label: dict[str, list[Polygon]] = {label: [] for label in LABELS}
+    n_polygons = dict.fromkeys((*LABELS, "unknown"), 0)
+    unknown: list[str] = []
+    for label, pieces in items:
+        if label in by_label:
+            by_label[label].extend(pieces)
+            n_polygons[label] += 1
+        else:
+            n_polygons["unknown"] += 1
+            group = label.removeprefix("unknown:")
+            if group not in unknown:
+                unknown.append(group)
+    if unknown:
+        warnings.warn(
+            f"{source}: {n_polygons['unknown']} polygon(s) in unknown group(s) {unknown} ignored; "
+            "add them to label_map to use them",
+            stacklevel=2,
+        )
+
+    exclusion = _union(by_label["exclusion"])
+    tumour = shapely.difference(_union(by_label["tumour"]), exclusion)
+    tissue = _union(by_label["tissue"])
+    if slide_size is not None:
+        w, h = slide_size
+        frame = box(0, 0, w, h)
+        outside = sum(not frame.contains(p) for label in LABELS for p in by_label[label])
+        if outside:
+            warnings.warn(
+                f"{source}: {outside} polygon(s) extend beyond the slide {w}x{h}; clipped to it", stacklevel=2
+            )
+        had_tumour = not tumour.is_empty
+        tumour, exclusion, tissue = (shapely.intersection(g, frame) for g in (tumour, exclusion, tissue))
+        if had_tumour and _as_multipolygon(tumour).is_empty:
+            raise AnnotationError(path, f"annotation lies outside the slide {w}x{h}")
+    return Annotations(
+        tumour=_as_multipolygon(tumour),
+        exclusion=_as_multipolygon(exclusion),
+        tissue=_as_multipolygon(tissue),
+        n_polygons=n_polygons,
+        unknown_groups=tuple(unknown),
+        source=source,
+    )
+
+
+def annotations_to_geojson(ann: Annotations) -> dict:
+    """GeoJSON FeatureCollection of ``ann`` (level-0 pixels, x right, y down), one feature per label.
+
+    Each feature has ``properties.label`` in ``tumour``/``exclusion``/``tissue``
+    and a MultiPolygon geometry; empty labels are left out. Written to a
+    ``.geojson`` file, it loads back with :func:`load_annotations` to the same
+    geometry.
+    """
+    features = [
+        {"type": "Feature", "properties": {"label": label}, "geometry": mapping(geom)}
+        for label, geom in (("tumour", ann.tumour), ("exclusion", ann.exclusion), ("tissue", ann.tissue))
+        if not geom.is_empty
+    ]
+    return {"type": "FeatureCollection", "features": features}

@@ -1,0 +1,284 @@
+"""Slide bundles: one folder with ``metadata.json`` and ``.npy`` arrays, written atomically.
+
+A bundle holds, for each zoom level the environment may use (coarsest last in
+``metadata["levels"]`` order is *finest first*):
+  * ``pixels_KK.npy``  — ``(H, W, 3)`` uint8 RGB of that level,
+  * ``tumour_KK.npy``  — ``(H, W)`` uint8 0/1 tumour mask (exclusion holes removed),
+and ``tissue.npy`` (bool, coarsest level) and ``annotations.geojson`` (level-0 px).
+Levels are at downsamples ``R ** (k / (n - 1))`` for each requested level count
+``n`` (3 / 5 / 7) and magnification range ``R``, so one bundle serves Easy,
+Medium and Hard. Arrays are read with ``allow_pickle=False``; every file's
+SHA-256 is recorded and checked on load.
+"""
+from __future__ import annotations
+
+import hashlib
+import json
+import math
+import os
+import shutil
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+from PIL import Image
+from tqdm.auto import tqdm
+
+from data_tools.errors import BundleError
+
+FORMAT_VERSION = 1
+METADATA = "metadata.json"
+LEVEL_SETS = (3, 5, 7)
+MAX_FLAT_PIXELS = 2**31 // 2  # the env indexes pixels with int32
+
+
+def default_magnification_range(width: int, height: int, tile_size: int) -> float:
+    """Largest power of two ``R`` such that the slide's shorter side is still at least one view
+    (``tile_size`` px) at downsample ``R``: at the coarsest level one view shows most of the slide."""
+    shorter = min(width, height)
+    r = 1
+    while shorter / (r * 2) >= tile_size:
+        r *= 2
+    return float(r)
+
+
+def level_downsamples(n_levels: int, magnification_range: float) -> list[float]:
+    """Downsamples (level-0 px per level px) of an ``n_levels`` scenario, coarsest first.
+
+    Level ``z`` (0 = coarsest) has downsample ``R ** ((n - 1 - z) / (n - 1))``: the
+    same range ``R`` for every scenario, split into equal zoom steps in log scale.
+    """
+    if n_levels < 2:
+        raise ValueError(f"a scenario needs at least 2 zoom levels, got {n_levels}")
+    return [float(magnification_range ** ((n_levels - 1 - z) / (n_levels - 1))) for z in range(n_levels)]
+
+
+def bundle_downsamples(level_sets, magnification_range: float) -> list[float]:
+    """The union of the downsamples of all requested level counts, finest first (deduplicated)."""
+    found: list[float] = []
+    for n in level_sets:
+        for d in level_downsamples(n, magnification_range):
+            if not any(math.isclose(d, e, rel_tol=1e-9) for e in found):
+                found.append(d)
+    return sorted(found)
+
+
+def level_size(width0: int, height0: int, downsample: float) -> tuple[int, int]:
+    """(width, height) in px of a level at ``downsample`` of a level-0 ``width0 × height0`` slide."""
+    return max(1, int(width0 // downsample)), max(1, int(height0 // downsample))
+
+
+def _sha256(path: Path) -> str:
+    h = hashlib.sha256()
+    with open(path, "rb") as f:
+        for chunk in iter(lambda: f.read(1 << 20), b""):
+            h.update(chunk)
+    return h.hexdigest()
+
+
+def _resample(source: np.ndarray, source_downsample: float, downsample: float, size: tuple[int, int]) -> np.ndarray:
+    """Area-average ``source`` (a level at ``source_downsample``) to a level at ``downsample`` of ``size`` (W, H)."""
+    scale = downsample / source_downsample
+    width, height = size
+    if math.isclose(scale, 1.0) and source.shape[1] >= width and source.shape[0] >= height:
+        return np.ascontiguousarray(source[:height, :width])
+    box = (0.0, 0.0, min(width * scale, source.shape[1]), min(height * scale, source.shape[0]))
+    image = Image.fromarray(source).resize((width, height), resample=Image.Resampling.BOX, box=box)
+    return np.asarray(image, dtype=np.uint8)
+
+
+def _pad(array: np.ndarray, min_side: int, fill: int) -> np.ndarray:
+    """Pad at the bottom/right so both sides are at least ``min_side`` (a view must fit)."""
+    h, w = array.shape[:2]
+    ph, pw = max(0, min_side - h), max(0, min_side - w)
+    if ph == 0 and pw == 0:
+        return array
+    pad = ((0, ph), (0, pw)) + ((0, 0),) * (array.ndim - 2)
+    return np.pad(array, pad, constant_values=fill)
+
+
+def build_bundle(
+    slide_path,
+    out_dir,
+    annotations_path=None,
+    level_sets=LEVEL_SETS,
+    tile_size: int = 128,
+    magnification_range: float | None = None,
+    label_map: dict[str, str] | None = None,
+    overwrite: bool = False,
+    progress: bool = True,
+    max_decode_bytes: int | None = None,
+) -> Path:
+    """Build a slide bundle at ``out_dir`` from a slide file and an optional annotation file.
+
+    ``tile_size`` is the view size in px (the env observes ``tile_size × tile_size``
+    px of the current level). ``level_sets`` are the scenario level counts to
+    support (3 = Easy, 5 = Medium, 7 = Hard). ``magnification_range`` is the
+    coarsest downsample (default: :func:`default_magnification_range`).
+    Written to a temporary sibling folder and renamed into place, so a crash
+    leaves nothing that looks like a bundle. Returns the bundle path.
+    """
+    from data_tools.annotations import annotations_to_geojson, load_annotations
+    from data_tools.masks import rasterize, tissue_mask
+    from data_tools.slides import MAX_DECODE_BYTES, open_slide
+
+    slide_path, out_dir = Path(slide_path), Path(out_dir)
+    if out_dir.exists() and not overwrite:
+        raise BundleError(out_dir, "already exists; pass overwrite=True (--overwrite) to replace it")
+    if tile_size < 8:
+        raise BundleError(out_dir, f"tile size {tile_size} px is too small (minimum 8)")
+    level_sets = tuple(sorted(set(int(n) for n in level_sets)))
+    out_dir.parent.mkdir(parents=True, exist_ok=True)
+    tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
+    tmp.mkdir()
+    try:
+        with open_slide(slide_path) as reader:
+            width0, height0 = reader.dimensions
+            r = magnification_range or default_magnification_range(width0, height0, tile_size)
+            downsamples = bundle_downsamples(level_sets, r)
+            ann = None
+            if annotations_path is not None:
+                ann = load_annotations(annotations_path, label_map=label_map, slide_size=(width0, height0))
+            levels_meta = []
+            cache: tuple[int, np.ndarray] | None = None
+            bar = tqdm(downsamples, desc=f"building {out_dir.name}", unit="level", disable=not progress)
+            for k, d in enumerate(bar):
+                # the coarsest source level that is still at least as fine as the target
+                src = max((i for i, lv in enumerate(reader.levels) if lv.downsample <= d * (1 + 1e-6)),
+                          key=lambda i: reader.levels[i].downsample)
+                if cache is None or cache[0] != src:
+                    cache = None  # free the previous level before decoding the next
+                    cache = (src, reader.read_level(src, max_bytes=max_decode_bytes or MAX_DECODE_BYTES))
+                size = level_size(width0, height0, d)
+                pixels = _pad(_resample(cache[1], reader.levels[src].downsample, d, size), tile_size, 255)
+                tumour = np.zeros(size[::-1], dtype=bool)
+                if ann is not None:
+                    tumour = rasterize(ann.tumour, size[0], size[1], d)
+                tumour = _pad(tumour.astype(np.uint8), tile_size, 0)
+                names = {"pixels": f"pixels_{k:02d}.npy", "tumour": f"tumour_{k:02d}.npy"}
+                np.save(tmp / names["pixels"], pixels, allow_pickle=False)
+                np.save(tmp / names["tumour"], tumour, allow_pickle=False)
+                levels_meta.append({
+                    "downsample": d, "width": int(pixels.shape[1]), "height": int(pixels.shape[0]),
+                    "content_width": size[0], "content_height": size[1],
+                    "mpp": None if reader.mpp is None else reader.mpp * d,
+                    "tumour_pixels": int(tumour.sum()), **names,
+                })
+                if k == len(downsamples) - 1:
+                    np.save(tmp / "tissue.npy", _pad(tissue_mask(pixels[: size[1], : size[0]]), tile_size, False),
+                            allow_pickle=False)
+            cache = None
+            if sum(lv["width"] * lv["height"] for lv in levels_meta) > MAX_FLAT_PIXELS:
+                raise BundleError(out_dir, "the levels hold more than 2**30 px in all, too many for one device "
+                                  "array: use fewer levels (--levels), a larger tile size, or a coarser slide level")
+            geojson = annotations_to_geojson(ann) if ann is not None else {"type": "FeatureCollection", "features": []}
+            (tmp / "annotations.geojson").write_text(json.dumps(geojson))
+            files = sorted(p.name for p in tmp.iterdir())
+            metadata = {
+                "format_version": FORMAT_VERSION,
+                "source": {
+                    "file": slide_path.name, "sha256": _sha256(slide_path), "format": reader.format,
+                    "width": width0, "height": height0, "mpp": reader.mpp,
+                },
+                "annotations": None if annotations_path is None else {
+                    "file": Path(annotations_path).name, "sha256": _sha256(Path(annotations_path)),
+                    "unknown_groups": list(ann.unknown_groups), "n_polygons": dict(ann.n_polygons),
+                    "tumour_area_px": float(ann.tumour.area),
+                },
+                "label_map": label_map or {},
+                "tile_size": tile_size,
+                "magnification_range": r,
+                "level_sets": list(level_sets),
+                "levels": levels_meta,
+                "tissue": {"file": "tissue.npy", "level": len(levels_meta) - 1},
+                "checksums": {name: _sha256(tmp / name) for name in files},
+            }
+            with open(tmp / METADATA, "w") as f:
+                json.dump(metadata, f, indent=1)
+                f.flush()
+                os.fsync(f.fileno())
+        if out_dir.exists():
+            old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
+            out_dir.rename(old)
+            tmp.rename(out_dir)
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            tmp.rename(out_dir)
+        return out_dir
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+@dataclass(frozen=True)
+class Bundle:
+    """A loaded bundle (host numpy arrays). ``levels`` are finest first, as in the metadata."""
+
+    path: Path
+    metadata: dict
+    pixels: list[np.ndarray]   # (H, W, 3) uint8 per level
+    tumour: list[np.ndarray]   # (H, W) uint8 0/1 per level
+    tissue: np.ndarray         # (H, W) bool at the coarsest bundle level
+
+    @property
+    def downsamples(self) -> list[float]:
+        return [lv["downsample"] for lv in self.metadata["levels"]]
+
+    @property
+    def tile_size(self) -> int:
+        return int(self.metadata["tile_size"])
+
+
+def read_metadata(path) -> dict:
+    """Read and check ``metadata.json`` of the bundle at ``path`` (format version, fields)."""
+    path = Path(path)
+    meta_file = path / METADATA
+    if not meta_file.is_file():
+        raise BundleError(path, f"not a slide bundle (no {METADATA}); build one with "
+                          "`python -m data_tools build SLIDE --out DIR`")
+    try:
+        metadata = json.loads(meta_file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise BundleError(meta_file, f"unreadable metadata ({e}); rebuild the bundle") from None
+    if metadata.get("format_version") != FORMAT_VERSION:
+        raise BundleError(path, f"bundle format version {metadata.get('format_version')!r}, this histojax reads "
+                          f"version {FORMAT_VERSION}; rebuild it with `python -m data_tools build`")
+    for key in ("tile_size", "levels", "checksums", "magnification_range"):
+        if key not in metadata:
+            raise BundleError(meta_file, f"metadata lacks {key!r}; rebuild the bundle")
+    return metadata
+
+
+def _load_array(path: Path, name: str, metadata: dict, verify: bool) -> np.ndarray:
+    file = path / name
+    if not file.is_file():
+        raise BundleError(path, f"missing array {name}; rebuild the bundle")
+    if verify and _sha256(file) != metadata["checksums"].get(name):
+        raise BundleError(file, "checksum mismatch (the file changed or is corrupt); rebuild the bundle")
+    try:
+        return np.load(file, allow_pickle=False)
+    except (ValueError, OSError) as e:
+        raise BundleError(file, f"unreadable array ({e}); rebuild the bundle") from None
+
+
+def load_bundle(path, verify: bool = True, levels: list[int] | None = None) -> Bundle:
+    """Load the bundle at ``path`` (host numpy arrays); ``levels`` selects bundle level indices
+    (finest first, as in the metadata; default all). Checksums are verified unless ``verify=False``."""
+    path = Path(path)
+    metadata = read_metadata(path)
+    chosen = range(len(metadata["levels"])) if levels is None else levels
+    pixels, tumour = [], []
+    for k in chosen:
+        lv = metadata["levels"][k]
+        pixels.append(_load_array(path, lv["pixels"], metadata, verify))
+        tumour.append(_load_array(path, lv["tumour"], metadata, verify))
+        if pixels[-1].shape != (lv["height"], lv["width"], 3) or pixels[-1].dtype != np.uint8 \
+                or tumour[-1].shape != (lv["height"], lv["width"]):
+            raise BundleError(path / lv["pixels"], "array shape or dtype disagrees with metadata; rebuild the bundle")
+    tissue = _load_array(path, metadata["tissue"]["file"], metadata, verify)
+    return Bundle(path=path, metadata=metadata, pixels=pixels, tumour=tumour, tissue=tissue)
+
+
+__all__ = ["Bundle", "FORMAT_VERSION", "LEVEL_SETS", "build_bundle", "bundle_downsamples",
+           "default_magnification_range", "level_downsamples", "level_size", "load_bundle", "read_metadata"]

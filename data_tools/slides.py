@@ -1,0 +1,484 @@
+"""Read whole-slide image files (Aperio SVS, pyramidal TIFF, OME-TIFF) as 8-bit RGB.
+
+This module's one job: open a slide file with tifffile, list its pyramid levels,
+and decode whole levels or rectangular regions of a level into ``(H, W, 3)``
+``uint8`` RGB arrays. Tile decoding is done by tifffile + imagecodecs (JPEG,
+JPEG 2000 incl. Aperio's 33003/33005 variants, LZW, Deflate, ...).
+
+Units used throughout:
+  * sizes and coordinates are in pixels; ``x``/``y``/``width``/``height`` given to
+    :meth:`SlideReader.read_region` are pixels *of the level read*;
+  * ``downsample`` is level-0 pixels per pixel of the level (level 0 = 1.0);
+  * ``mpp`` is micrometres per level-0 pixel;
+  * byte budgets (``max_bytes``) are bytes of decoded RGB output (H * W * 3).
+
+Every problem with the file (not a TIFF, corrupt, truncated, unsupported pixel
+format, over the decode budget) raises :class:`data_tools.errors.SlideError`
+naming the file; mistakes in the arguments (level index out of range, negative
+region size) raise ``ValueError``.
+"""
+from __future__ import annotations
+
+import math
+import os
+import re
+from dataclasses import dataclass
+
+import numpy as np
+import tifffile
+
+from data_tools.errors import SlideError
+
+__all__ = ["MAX_DECODE_BYTES", "LevelInfo", "SlideReader", "describe", "open_slide"]
+
+MAX_DECODE_BYTES = 4 * 1024**3
+"""Default limit (bytes of decoded RGB, H * W * 3) for :meth:`SlideReader.read_level`."""
+
+MAX_SIDE = 1_000_000
+"""Largest accepted image width or height, in pixels."""
+
+_SUPPORTED = "histojax reads Aperio SVS, pyramidal TIFF and OME-TIFF"
+_TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
+_JPEG_COMPRESSIONS = {6, 7, 34892, 33007}  # need JPEGTables / header when decoding
+
+# TIFF Photometric values
+_MINISWHITE, _MINISBLACK, _RGB, _PALETTE, _YCBCR = 0, 1, 2, 3, 6
+# ExtraSamples values
+_ASSOC_ALPHA, _UNASSOC_ALPHA = 1, 2
+_RESUNIT_CENTIMETER = 3
+
+# micrometres per unit, for OME PhysicalSizeXUnit
+_OME_UNIT_UM = {
+    "µm": 1.0, "μm": 1.0, "um": 1.0, "micron": 1.0,
+    "nm": 1e-3, "pm": 1e-6, "Å": 1e-4, "mm": 1e3, "cm": 1e4, "m": 1e6,
+}
+
+
+@dataclass(frozen=True)
+class LevelInfo:
+    """One pyramid level of a slide.
+
+    Attributes:
+        width: width of this level in pixels.
+        height: height of this level in pixels.
+        downsample: level-0 pixels per pixel of this level (1.0 for level 0),
+            the mean of the width and height ratios (OpenSlide's convention).
+        tile_size: ``(tile width, tile height)`` in pixels, or ``None`` when the
+            level is stored in strips.
+        compression: TIFF compression name as tifffile spells it, e.g. ``"JPEG"``,
+            ``"JPEG2000"``, ``"APERIO_JPEG2000_RGB"``, ``"NONE"``, ``"LZW"``,
+            ``"ADOBE_DEFLATE"``.
+    """
+
+    width: int
+    height: int
+    downsample: float
+    tile_size: tuple[int, int] | None
+    compression: str
+
+
+class SlideReader:
+    """An open slide file; a context manager wrapping ``tifffile.TiffFile``.
+
+    Attributes:
+        path: the file path as given (``str``).
+        format: ``"aperio-svs"``, ``"ome-tiff"`` or ``"tiff"``.
+        levels: pyramid levels only, finest (level 0) first. SVS thumbnail,
+            label and macro images are not levels.
+        mpp: micrometres per level-0 pixel when the file says so, else ``None``.
+    """
+
+    def __init__(self, path: str | os.PathLike):
+        self.path = os.fspath(path)
+        self._tif: tifffile.TiffFile | None = None
+        _check_signature(self.path)
+        try:
+            self._tif = tifffile.TiffFile(self.path)
+            self.format = _detect_format(self._tif)
+            self._pages = _pyramid_pages(self.path, self._tif)
+            self.levels = _level_infos(self._pages)
+            self.mpp = _find_mpp(self._tif, self.format, self._pages[0])
+        except SlideError:
+            self.close()
+            raise
+        except Exception as exc:  # tifffile/imagecodecs/OS errors: never escape raw
+            self.close()
+            raise SlideError(
+                self.path,
+                f"format not recognised or file corrupt ({type(exc).__name__}: {exc}); "
+                f"{_SUPPORTED}",
+            ) from exc
+
+    # -- context manager -------------------------------------------------
+    def __enter__(self) -> SlideReader:
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def close(self) -> None:
+        """Close the underlying file. Safe to call more than once."""
+        if self._tif is not None:
+            try:
+                self._tif.close()
+            finally:
+                self._tif = None
+
+    def __repr__(self) -> str:
+        return f"SlideReader({self.path!r}, format={self.format!r}, levels={len(self.levels)})"
+
+    # -- geometry --------------------------------------------------------
+    @property
+    def dimensions(self) -> tuple[int, int]:
+        """Level-0 ``(width, height)`` in pixels."""
+        return self.levels[0].width, self.levels[0].height
+
+    # -- pixels ----------------------------------------------------------
+    def read_level(self, level: int, max_bytes: int = MAX_DECODE_BYTES) -> np.ndarray:
+        """Decode a whole level as an ``(height, width, 3)`` ``uint8`` RGB array.
+
+        Refuses (``SlideError``, before decoding anything) when the output would
+        need more than ``max_bytes`` bytes (height * width * 3).
+        """
+        info = self._level(level)
+        needed = info.width * info.height * 3
+        if needed > max_bytes:
+            raise SlideError(
+                self.path,
+                f"level {level} is {info.width}×{info.height} px = {needed} bytes as RGB, "
+                f"over the decode limit of {max_bytes} bytes; read a coarser level or regions",
+            )
+        return self.read_region(level, 0, 0, info.width, info.height)
+
+    def read_region(self, level: int, x: int, y: int, width: int, height: int) -> np.ndarray:
+        """Decode a rectangle of one level as a ``(height, width, 3)`` ``uint8`` RGB array.
+
+        ``x``, ``y`` (top-left corner) and ``width``, ``height`` are in pixels of
+        ``level``. Only the tiles (or strips) under the rectangle are read and
+        decoded. Parts of the rectangle outside the level are white (255).
+        """
+        info = self._level(level)
+        x, y, width, height = int(x), int(y), int(width), int(height)
+        if width < 0 or height < 0:
+            raise ValueError(f"region size must be >= 0, got width={width}, height={height}")
+        needed = width * height * 3
+        if needed > MAX_DECODE_BYTES:
+            raise SlideError(
+                self.path,
+                f"region {width}×{height} px = {needed} bytes as RGB, "
+                f"over the decode limit of {MAX_DECODE_BYTES} bytes",
+            )
+        out = np.full((height, width, 3), 255, dtype=np.uint8)
+        # intersection with the level, in level pixels
+        x0, y0 = max(x, 0), max(y, 0)
+        x1, y1 = min(x + width, info.width), min(y + height, info.height)
+        if x0 >= x1 or y0 >= y1:
+            return out
+        rgb = self._decode_window(level, x0, y0, x1, y1)
+        out[y0 - y : y1 - y, x0 - x : x1 - x] = rgb
+        return out
+
+    # -- internals -------------------------------------------------------
+    def _level(self, level: int) -> LevelInfo:
+        if self._tif is None:
+            raise ValueError(f"{self.path}: slide is closed")
+        if isinstance(level, bool) or not isinstance(level, (int, np.integer)):
+            raise ValueError(f"level must be an int, got {level!r}")
+        if not 0 <= level < len(self.levels):
+            raise ValueError(f"level {level} out of range: {self.path} has {len(self.levels)} level(s)")
+        return self.levels[int(level)]
+
+    def _decode_window(self, level: int, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+        """RGB pixels of the in-bounds window [y0:y1, x0:x1] of ``level``."""
+        page = self._pages[level]
+        info = self.levels[level]
+        nsep, _, _, _, ncontig = page.shaped
+        if page.is_tiled:
+            seg_w, seg_h = page.tilewidth, page.tilelength
+        else:
+            seg_w, seg_h = info.width, min(page.rowsperstrip, info.height)
+        across = math.ceil(info.width / seg_w)
+        down = math.ceil(info.height / seg_h)
+        offsets, bytecounts = page.dataoffsets, page.databytecounts
+        if len(offsets) != nsep * across * down or len(bytecounts) != len(offsets):
+            raise SlideError(
+                self.path,
+                f"level {level}: {len(offsets)} tile/strip offsets, expected {nsep * across * down}; "
+                "file is corrupt",
+            )
+        raw = np.zeros((nsep, y1 - y0, x1 - x0, ncontig), dtype=page.dtype)
+        missing = np.zeros((y1 - y0, x1 - x0), dtype=bool)  # tiles absent from the file
+        decode = page.decode
+        kwargs = {}
+        if page.compression in _JPEG_COMPRESSIONS:
+            kwargs = {"jpegtables": page.jpegtables, "jpegheader": page.jpegheader}
+        fh = self._tif.filehandle
+        filesize = fh.size
+        for s in range(nsep):
+            for ty in range(y0 // seg_h, (y1 - 1) // seg_h + 1):
+                for tx in range(x0 // seg_w, (x1 - 1) // seg_w + 1):
+                    index = (s * down + ty) * across + tx
+                    offset, count = int(offsets[index]), int(bytecounts[index])
+                    # destination window of this segment, clipped to the request
+                    sy0, sx0 = ty * seg_h, tx * seg_w
+                    cy0, cy1 = max(sy0, y0), min(sy0 + seg_h, y1)
+                    cx0, cx1 = max(sx0, x0), min(sx0 + seg_w, x1)
+                    if offset == 0 or count == 0:
+                        missing[cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0] = True
+                        continue
+                    if offset + count > filesize:
+                        raise SlideError(
+                            self.path,
+                            f"level {level} tile/strip {index} ends at byte {offset + count} "
+                            f"but the file has {filesize} bytes: file is truncated",
+                        )
+                    try:
+                        with fh.lock:
+                            fh.seek(offset)
+                            data = fh.read(count)
+                        seg, _, _ = decode(data, index, **kwargs)
+                    except Exception as exc:  # tifffile / imagecodecs errors
+                        raise SlideError(
+                            self.path,
+                            f"cannot decode level {level} tile/strip {index} "
+                            f"({info.compression}): {type(exc).__name__}: {exc}",
+                        ) from exc
+                    seg = np.asarray(seg)  # (depth=1, rows, cols, ncontig)
+                    if seg.ndim != 4 or seg.shape[1] < cy1 - sy0 or seg.shape[2] < cx1 - sx0:
+                        raise SlideError(
+                            self.path,
+                            f"level {level} tile/strip {index} decoded to shape {seg.shape}, "
+                            f"too small for its place in the image: file is corrupt",
+                        )
+                    raw[s, cy0 - y0 : cy1 - y0, cx0 - x0 : cx1 - x0, :] = seg[
+                        0, cy0 - sy0 : cy1 - sy0, cx0 - sx0 : cx1 - sx0, :
+                    ]
+        pixels = raw[0] if nsep == 1 else np.moveaxis(raw[..., 0], 0, -1)
+        rgb = _to_rgb(pixels, page)
+        if missing.any():
+            rgb[missing] = 255
+        return rgb
+
+
+def open_slide(path: str | os.PathLike) -> SlideReader:
+    """Open a slide file (SVS, pyramidal TIFF, OME-TIFF); raises SlideError if unreadable."""
+    return SlideReader(path)
+
+
+def describe(reader: SlideReader) -> str:
+    """Multi-line human-readable summary: file, format, µm/px, one line per level."""
+    mpp = "unknown" if reader.mpp is None else f"{reader.mpp:.4g} µm/px (level 0)"
+    lines = [
+        f"file: {reader.path}",
+        f"format: {reader.format}",
+        f"mpp: {mpp}",
+        f"levels: {len(reader.levels)}",
+    ]
+    for i, lv in enumerate(reader.levels):
+        tiles = "stripped" if lv.tile_size is None else f"tiles {lv.tile_size[0]}×{lv.tile_size[1]}"
+        lines.append(
+            f"  level {i}: {lv.width}×{lv.height} px, downsample {lv.downsample:.3f}, "
+            f"{tiles}, {lv.compression}"
+        )
+    return "\n".join(lines)
+
+
+# ---------------------------------------------------------------------------
+# opening
+
+
+def _check_signature(path: str) -> None:
+    """Reject missing files, directories and non-TIFF files with a helpful SlideError."""
+    if os.path.isdir(path):
+        raise SlideError(
+            path,
+            "is a directory, not a slide file (DICOM WSI is not supported: convert to "
+            f"pyramidal TIFF, e.g. with wsidicom / bfconvert); {_SUPPORTED}",
+        )
+    try:
+        with open(path, "rb") as f:
+            head = f.read(132)
+    except FileNotFoundError as exc:
+        raise SlideError(path, "file not found") from exc
+    except OSError as exc:
+        raise SlideError(path, f"cannot read file: {exc}") from exc
+    if head[128:132] == b"DICM":
+        raise SlideError(
+            path, "DICOM WSI is not supported: convert to pyramidal TIFF (e.g. with wsidicom / bfconvert)"
+        )
+    if head[:4] not in _TIFF_MAGICS:
+        raise SlideError(path, f"format not recognised (not a TIFF file); {_SUPPORTED}")
+
+
+def _detect_format(tif: tifffile.TiffFile) -> str:
+    if tif.is_svs:
+        return "aperio-svs"
+    if tif.is_ome:
+        return "ome-tiff"
+    return "tiff"
+
+
+def _pyramid_pages(path: str, tif: tifffile.TiffFile) -> list[tifffile.TiffPage]:
+    """First page of each level of the main series, validated, finest first."""
+    series = tif.series
+    if not series:
+        raise SlideError(path, f"no image found in the TIFF (file truncated or corrupt); {_SUPPORTED}")
+    pages = []
+    for i, level in enumerate(series[0].levels):
+        if len(level.pages) != 1:
+            raise SlideError(
+                path,
+                f"unsupported: level {i} has {len(level.pages)} image planes (channels / z / time "
+                "stored as separate pages); convert to 8-bit RGB first",
+            )
+        page = level.pages[0]
+        if page is None:
+            raise SlideError(path, f"level {i} has no image data: file is corrupt")
+        if not isinstance(page, tifffile.TiffPage):
+            page = page.aspage()
+        _validate_page(path, i, page)
+        pages.append(page)
+    if not pages:
+        raise SlideError(path, f"no image found in the TIFF (file truncated or corrupt); {_SUPPORTED}")
+    # finest first (tifffile already orders them so; make it a guarantee)
+    pages.sort(key=lambda p: p.imagewidth * p.imagelength, reverse=True)
+    return pages
+
+
+def _validate_page(path: str, level: int, page: tifffile.TiffPage) -> None:
+    """Refuse absurd sizes and pixel formats that do not map cleanly to 8-bit RGB."""
+    w, h = page.imagewidth, page.imagelength
+    if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE):
+        raise SlideError(path, f"level {level} has absurd size {w}×{h} px (allowed 1..{MAX_SIDE} a side)")
+    if page.imagedepth != 1:
+        raise SlideError(path, f"unsupported: level {level} is a volume (depth {page.imagedepth})")
+    if page.is_tiled:
+        tw, th = page.tilewidth, page.tilelength
+        if not (0 < tw <= MAX_SIDE and 0 < th <= MAX_SIDE) or page.tiledepth != 1:
+            raise SlideError(path, f"level {level} has absurd tile size {tw}×{th}")
+        seg_px = tw * th
+    else:
+        seg_px = w * min(page.rowsperstrip or h, h)
+    samples = page.samplesperpixel
+    dtype = page.dtype
+    what = f"level {level}: {samples} samples / dtype {dtype} / photometric {page.photometric.name}"
+    unsupported = f"unsupported: {what}; convert to 8-bit RGB first"
+    if dtype is None or samples > 4:
+        raise SlideError(path, unsupported)
+    photometric = int(page.photometric)
+    if photometric == _PALETTE:
+        ok = samples == 1 and dtype in (np.uint8, np.uint16) and page.colormap is not None
+    elif photometric in (_MINISBLACK, _MINISWHITE):
+        ok = samples in (1, 2) and dtype in (np.uint8, np.bool_)
+    elif photometric == _RGB:
+        ok = samples in (3, 4) and dtype == np.uint8
+    elif photometric == _YCBCR:  # tifffile converts JPEG YCbCr to RGB while decoding
+        ok = samples == 3 and dtype == np.uint8 and page.compression in _JPEG_COMPRESSIONS
+    else:
+        ok = False
+    if not ok:
+        raise SlideError(path, unsupported)
+    if seg_px * samples * dtype.itemsize > MAX_DECODE_BYTES:
+        raise SlideError(
+            path, f"level {level}: one tile/strip would decode to more than {MAX_DECODE_BYTES} bytes"
+        )
+
+
+def _level_infos(pages: list[tifffile.TiffPage]) -> list[LevelInfo]:
+    w0, h0 = pages[0].imagewidth, pages[0].imagelength
+    infos = []
+    for page in pages:
+        w, h = page.imagewidth, page.imagelength
+        infos.append(
+            LevelInfo(
+                width=int(w),
+                height=int(h),
+                downsample=1.0 if (w, h) == (w0, h0) else (w0 / w + h0 / h) / 2.0,
+                tile_size=(int(page.tilewidth), int(page.tilelength)) if page.is_tiled else None,
+                compression=page.compression.name,
+            )
+        )
+    return infos
+
+
+# ---------------------------------------------------------------------------
+# resolution
+
+
+def _positive(value: float) -> float | None:
+    return value if math.isfinite(value) and value > 0 else None
+
+
+def _find_mpp(tif: tifffile.TiffFile, fmt: str, page0: tifffile.TiffPage) -> float | None:
+    """µm per level-0 pixel from Aperio MPP, OME PhysicalSizeX, or XResolution in px/cm."""
+    if fmt == "aperio-svs":
+        m = re.search(r"\bMPP\s*=\s*([0-9]*\.?[0-9]+(?:[eE][-+]?[0-9]+)?)", page0.description or "")
+        if m and (mpp := _positive(float(m.group(1)))):
+            return mpp
+    if fmt == "ome-tiff":
+        mpp = _ome_mpp(tif.ome_metadata or "")
+        if mpp:
+            return mpp
+    xres = page0.tags.get("XResolution")
+    unit = page0.tags.get("ResolutionUnit")
+    if xres is not None and unit is not None and int(unit.value) == _RESUNIT_CENTIMETER:
+        num, den = xres.value
+        if num > 0 and den > 0:
+            return _positive(1e4 * den / num)  # px/cm -> µm/px
+    return None
+
+
+def _ome_mpp(xml: str) -> float | None:
+    """PhysicalSizeX of the first OME ``Pixels`` element, in µm (None if absent / unparseable)."""
+    m = re.search(r"<(?:\w+:)?Pixels\b([^>]*)>", xml)
+    if not m:
+        return None
+    attrs = dict(re.findall(r'(\w+)\s*=\s*"([^"]*)"', m.group(1)))
+    try:
+        size = float(attrs["PhysicalSizeX"])
+    except (KeyError, ValueError):
+        return None
+    scale = _OME_UNIT_UM.get(attrs.get("PhysicalSizeXUnit", "µm"))
+    return None if scale is None else _positive(size * scale)
+
+
+# ---------------------------------------------------------------------------
+# pixel conversion
+
+
+def _composite_on_white(color: np.ndarray, alpha: np.ndarray, associated: bool) -> np.ndarray:
+    """Blend ``color`` (H, W, C) over white using ``alpha`` (H, W); uint8 result."""
+    c = color.astype(np.float32)
+    a = alpha.astype(np.float32)[..., None] / 255.0
+    out = c + 255.0 * (1.0 - a) if associated else c * a + 255.0 * (1.0 - a)
+    return np.clip(np.rint(out), 0, 255).astype(np.uint8)
+
+
+def _to_rgb(pixels: np.ndarray, page: tifffile.TiffPage) -> np.ndarray:
+    """Convert decoded samples (H, W, S) of a validated page to (H, W, 3) uint8 RGB."""
+    photometric = int(page.photometric)
+    extras = tuple(int(e) for e in (page.extrasamples or ()))
+    alpha_kind = extras[0] if extras else 0
+    if photometric == _PALETTE:
+        cmap = np.asarray(page.colormap)  # (3, 2**bits) uint16
+        if cmap.max() > 255:
+            cmap = cmap / 257.0
+        lut = np.clip(np.rint(cmap.T), 0, 255).astype(np.uint8)  # (N, 3)
+        index = np.minimum(pixels[..., 0], len(lut) - 1)
+        return lut[index]
+    if photometric in (_MINISBLACK, _MINISWHITE):
+        gray = pixels[..., 0]
+        gray = gray.astype(np.uint8) * 255 if gray.dtype == np.bool_ else gray
+        if photometric == _MINISWHITE:
+            gray = 255 - gray
+        rgb = np.repeat(gray[..., None], 3, axis=-1)
+        if pixels.shape[-1] == 2 and alpha_kind in (_ASSOC_ALPHA, _UNASSOC_ALPHA):
+            alpha = pixels[..., 1]
+            alpha = alpha.astype(np.uint8) * 255 if alpha.dtype == np.bool_ else alpha
+            rgb = _composite_on_white(rgb, alpha, alpha_kind == _ASSOC_ALPHA)
+        return np.ascontiguousarray(rgb)
+    # RGB (or JPEG YCbCr, which tifffile already returns as RGB)
+    rgb = pixels[..., :3]
+    if pixels.shape[-1] == 4 and alpha_kind in (_ASSOC_ALPHA, _UNASSOC_ALPHA):
+        return _composite_on_white(rgb, pixels[..., 3], alpha_kind == _ASSOC_ALPHA)
+    return np.ascontiguousarray(rgb)

@@ -1,0 +1,18 @@
+"""histojax: whole-slide image navigation (pan, zoom in, zoom out) as a pure-JAX RL environment.
+
+    env, params = histojax.make("HistoJAX-Easy-v0")
+    obs, state = env.reset(key, params)
+    obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
+"""
+from histojax.actions import ACTION_NAMES, DOWN, LEFT, RIGHT, STAY, UP, ZOOM_IN, ZOOM_OUT
+from histojax.env import EnvParams, EnvState, HistoEnv
+from histojax.registry import make, register, registered_envs
+from histojax.slide import SlideArrays, load_slide
+from histojax.wrappers import GymnaxV0Wrapper, LogWrapper
+
+__version__ = "0.1.0"
+__all__ = [
+    "ACTION_NAMES", "DOWN", "EnvParams", "EnvState", "GymnaxV0Wrapper", "HistoEnv", "LEFT", "LogWrapper",
+    "RIGHT", "STAY", "SlideArrays", "UP", "ZOOM_IN", "ZOOM_OUT", "load_slide", "make", "register",
+    "registered_envs",
+]

@@ -1,0 +1,206 @@
+"""HistoEnv: a whole-slide image read like a microscope — pan, zoom in, zoom out — as pure JAX.
+
+gymnax 1.0 contract::
+
+    obs, state = env.reset(key, params)
+    obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
+
+**State** (``EnvState``, int32 scalars): level ``z`` (0 = coarsest, ``n_levels - 1`` = finest),
+``x, y`` the view's top-left corner in px of level ``z``, ``t`` steps taken this episode,
+``slide_index`` (0 for one slide).
+
+**Actions**: ``action_mode="discrete"`` — ``Discrete(7)`` with HistoGym's codes UP=0, DOWN=1,
+LEFT=2, RIGHT=3, ZOOM_IN=4, ZOOM_OUT=5, STAY=6 (moves go ``stride`` view widths; out-of-range codes
+act as STAY). ``action_mode="continuous"`` — ``Box(-1, 1, (3,))``: ``(dx, dy)`` in view widths
+(× ``stride``), ``dzoom`` > 0.5 zooms in, < −0.5 zooms out; NaN acts as 0. Zoom keeps the view's
+centre; positions are clamped inside the level after every move and zoom.
+
+**Observations**: ``obs_mode="pixels"`` — the view, ``(T, T, 3)`` uint8; ``"pixels_float"`` — the
+same as float32 in ``[0, 1]``. ``with_position=True`` gives a dict ``{"pixels": ..., "position":
+(x_centre / W_z, y_centre / H_z, z / (n_levels - 1))}`` with the position float32 in ``[0, 1]``.
+
+**Rewards**: see :mod:`histojax.rewards` (``"histogym"``, ``"sparse"``, ``"dense"``).
+
+**Episodes**: start at the coarsest level on a random tissue view (or top-left with
+``random_start=False``); terminate on success (not for ``"histogym"``); truncate when ``t``
+reaches ``max_steps_in_episode`` (never reported as termination). With ``auto_reset=True``
+(default) ``step`` starts a new episode after the last one, returning the first observation of the
+new episode and the last one of the old in ``info["final_observation"]``.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+from flax import struct
+
+from histojax import actions, rewards, spaces
+from histojax.slide import SlideArrays
+from histojax.views import view_pixels, view_tumour_fraction
+
+ACTION_MODES = ("discrete", "continuous")
+OBS_MODES = ("pixels", "pixels_float")
+
+
+@struct.dataclass
+class EnvState:
+    """The immutable state of one environment (all int32 scalars; units in the module doc)."""
+
+    z: jnp.ndarray
+    x: jnp.ndarray
+    y: jnp.ndarray
+    t: jnp.ndarray
+    slide_index: jnp.ndarray
+
+
+@struct.dataclass
+class EnvParams:
+    """Dynamic settings (vmappable). The slide's device arrays travel here, never closed over."""
+
+    slide: SlideArrays
+    max_steps_in_episode: int = 200      # truncation at this many steps
+    stride: float = 1.0                  # move length in view widths
+    success_threshold: float = 0.5       # tumour fraction of the finest view that counts as found
+    step_cost: float = 0.01              # paid every step
+    success_bonus: float = 10.0          # paid on success ("sparse", "dense")
+    histogym_scale: float = 1000.0       # "histogym": reward per unit tumour fraction at the finest level
+    dense_weight: float = 1.0            # "dense": weight of the potential difference
+    random_start: bool = True            # False: HistoGym's fixed start at the top-left, coarsest level
+
+
+@dataclasses.dataclass(frozen=True)
+class HistoEnv:
+    """A slide-navigation environment. Static (hashable) settings are fields; see the module doc."""
+
+    n_levels: int
+    tile_size: int = 128
+    action_mode: str = "discrete"
+    obs_mode: str = "pixels"
+    with_position: bool = False
+    reward: str = "dense"
+    auto_reset: bool = True
+    name: str = "HistoJAX-v0"
+    _default_params: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
+    _bundle: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
+
+    def __post_init__(self):
+        if self.action_mode not in ACTION_MODES:
+            raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {self.action_mode!r}")
+        if self.obs_mode not in OBS_MODES:
+            raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {self.obs_mode!r}")
+        if self.reward not in rewards.PRESETS:
+            raise ValueError(f"reward must be one of {rewards.PRESETS}, got {self.reward!r}")
+
+    # ----------------------------------------------------------------- gymnax API
+    @property
+    def default_params(self) -> EnvParams:
+        """The parameters ``make`` returned (slide arrays on the device, scenario defaults)."""
+        return self._default_params
+
+    @property
+    def num_actions(self) -> int:
+        return actions.NUM_DISCRETE_ACTIONS if self.action_mode == "discrete" else 3
+
+    def action_space(self, params: EnvParams | None = None):
+        """``Discrete(7)`` or ``Box(-1, 1, (3,), float32)`` (see the module doc)."""
+        if self.action_mode == "discrete":
+            return spaces.Discrete(actions.NUM_DISCRETE_ACTIONS)
+        return spaces.Box(-1.0, 1.0, (3,), jnp.float32)
+
+    def observation_space(self, params: EnvParams | None = None):
+        """Box of the view (uint8 in [0, 255] or float32 in [0, 1]), or a Dict with the position."""
+        t = self.tile_size
+        pixels = (spaces.Box(0, 255, (t, t, 3), jnp.uint8) if self.obs_mode == "pixels"
+                  else spaces.Box(0.0, 1.0, (t, t, 3), jnp.float32))
+        if not self.with_position:
+            return pixels
+        return spaces.Dict({"pixels": pixels, "position": spaces.Box(0.0, 1.0, (3,), jnp.float32)})
+
+    def reset(self, key: jax.Array, params: EnvParams | None = None):
+        """Start an episode: ``(obs, state)``."""
+        params = self.default_params if params is None else params
+        return self.reset_env(key, params)
+
+    def step(self, key: jax.Array, state: EnvState, action, params: EnvParams | None = None):
+        """One step with auto-reset (unless ``auto_reset=False``):
+        ``(obs, state, reward, terminated, truncated, info)``."""
+        params = self.default_params if params is None else params
+        key_reset, _ = jax.random.split(key)
+        obs_st, state_st, reward, terminated, truncated, info = self.step_env(key, state, action, params)
+        if not self.auto_reset:
+            return obs_st, state_st, reward, terminated, truncated, info
+        obs_re, state_re = self.reset_env(key_reset, params)
+        done = jnp.logical_or(terminated, truncated)
+        state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_re, state_st)
+        obs = jax.tree.map(lambda a, b: jnp.where(done, a, b), obs_re, obs_st)
+        info = {**info, "final_observation": obs_st}
+        return obs, state, reward, terminated, truncated, info
+
+    # ----------------------------------------------------------------- dynamics
+    def reset_env(self, key: jax.Array, params: EnvParams):
+        """A fresh episode at the coarsest level, on a random tissue view or the top-left corner."""
+        logits = params.slide.start_logits
+        index = jax.random.categorical(key, logits.reshape(-1))
+        y0, x0 = jnp.divmod(index, logits.shape[1])
+        start = jnp.asarray(params.random_start)
+        zero = jnp.zeros((), jnp.int32)
+        state = EnvState(
+            z=zero,
+            x=jnp.where(start, x0, 0).astype(jnp.int32),
+            y=jnp.where(start, y0, 0).astype(jnp.int32),
+            t=zero,
+            slide_index=zero,
+        )
+        return self.get_obs(state, params), state
+
+    def step_env(self, key: jax.Array, state: EnvState, action, params: EnvParams):
+        """One step without auto-reset: ``(obs, state, reward, terminated, truncated, info)``."""
+        slide, t = params.slide, self.tile_size
+        stride_px = jnp.round(params.stride * t).astype(jnp.int32)
+        if self.action_mode == "discrete":
+            dx, dy, dz = actions.discrete_deltas(action, stride_px)
+        else:
+            dx, dy, dz = actions.continuous_deltas(action, stride_px)
+        z, x, y = actions.move_and_zoom(slide, state.z, state.x, state.y, dx, dy, dz, t, self.n_levels)
+        fraction = view_tumour_fraction(slide, z, x, y, t)
+        prev_fraction = view_tumour_fraction(slide, state.z, state.x, state.y, t)
+        success = (z == self.n_levels - 1) & (fraction >= params.success_threshold)
+        reward = rewards.reward(self.reward, params, fraction, z, prev_fraction, state.z, success, self.n_levels)
+        terminated = success if rewards.terminates_on_success(self.reward) else jnp.zeros((), bool)
+        new_state = EnvState(z=z, x=x, y=y, t=state.t + 1, slide_index=state.slide_index)
+        truncated = jnp.logical_and(new_state.t >= params.max_steps_in_episode, jnp.logical_not(terminated))
+        info = {
+            "tumour_fraction": fraction,
+            "success": success,
+            "discount": 1.0 - terminated.astype(jnp.float32),
+        }
+        return self.get_obs(new_state, params), new_state, reward.astype(jnp.float32), terminated, truncated, info
+
+    def get_obs(self, state: EnvState, params: EnvParams):
+        """The observation of ``state`` (see the module doc for modes and units)."""
+        slide, t = params.slide, self.tile_size
+        pixels = view_pixels(slide, state.z, state.x, state.y, t)
+        if self.obs_mode == "pixels_float":
+            pixels = pixels.astype(jnp.float32) / 255.0
+        if not self.with_position:
+            return pixels
+        half = t / 2.0
+        position = jnp.stack([
+            (state.x + half) / slide.level_width[state.z],
+            (state.y + half) / slide.level_height[state.z],
+            state.z / max(self.n_levels - 1, 1),
+        ]).astype(jnp.float32)
+        return {"pixels": pixels, "position": position}
+
+    # ----------------------------------------------------------------- host-side helpers
+    def render(self, state: EnvState, params: EnvParams | None = None):
+        """RGB uint8 ``(H, W, 3)`` numpy picture: slide thumbnail, tumour outline, the current view box."""
+        from histojax.render import render_state
+
+        return render_state(self, state, self.default_params if params is None else params)
+
+    def reward_range(self, params: EnvParams | None = None) -> tuple[float, float]:
+        """Documented ``(min, max)`` reward for these parameters."""
+        return rewards.reward_range(self.reward, self.default_params if params is None else params)

@@ -1,0 +1,113 @@
+"""Pictures on the host (numpy + Pillow): the slide thumbnail, the tumour outline, view boxes,
+trajectories and GIFs. Not jittable and not meant to be: call with concrete states."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+from PIL import Image, ImageDraw
+
+TUMOUR_COLOUR = (0, 170, 0)
+START_COLOUR = (0, 200, 255)
+END_COLOUR = (255, 0, 0)
+
+
+def level_colour(z: int, n_levels: int) -> tuple[int, int, int]:
+    """Blue (coarsest) → red (finest)."""
+    f = z / max(n_levels - 1, 1)
+    return int(40 + 215 * f), int(60 * (1 - f)), int(255 * (1 - f))
+
+
+def _canvas(env, max_side: int):
+    bundle = env._bundle
+    thumb = bundle.pixels[0]
+    d0 = bundle.metadata["levels"][0]["downsample"]
+    up = max(1, max_side // max(thumb.shape[:2]))
+    image = Image.fromarray(np.asarray(thumb)).resize((thumb.shape[1] * up, thumb.shape[0] * up), Image.NEAREST)
+    return image, up / d0  # canvas px per level-0 px
+
+
+def _draw_tumour(draw: ImageDraw.ImageDraw, env, scale: float) -> None:
+    path = Path(env._bundle.path) / "annotations.geojson"
+    if not path.is_file():
+        return
+    import shapely.geometry
+
+    for feature in json.loads(path.read_text()).get("features", []):
+        if feature.get("properties", {}).get("label", "tumour") != "tumour":
+            continue
+        geom = shapely.geometry.shape(feature["geometry"])
+        for poly in getattr(geom, "geoms", [geom]):
+            for ring in [poly.exterior, *poly.interiors]:
+                pts = [(x * scale, y * scale) for x, y in ring.coords]
+                if len(pts) > 1:
+                    draw.line(pts, fill=TUMOUR_COLOUR, width=2)
+
+
+def view_box_level0(env, z: int, x: int, y: int) -> tuple[float, float, float, float]:
+    """The view at ``(z, x, y)`` as a level-0 px box ``(left, top, right, bottom)``."""
+    d = env._bundle.metadata["levels"][int(z)]["downsample"]
+    return x * d, y * d, (x + env.tile_size) * d, (y + env.tile_size) * d
+
+
+def render_state(env, state, params=None, max_side: int = 640) -> np.ndarray:
+    """RGB uint8 ``(H, W, 3)``: thumbnail of the env's slide, tumour outline, the current view box."""
+    image, scale = _canvas(env, max_side)
+    draw = ImageDraw.Draw(image)
+    _draw_tumour(draw, env, scale)
+    box = [v * scale for v in view_box_level0(env, int(state.z), int(state.x), int(state.y))]
+    draw.rectangle(box, outline=level_colour(int(state.z), env.n_levels), width=3)
+    return np.asarray(image)
+
+
+def render_trajectory(env, z, x, y, path=None, title: str = "", max_side: int = 640) -> np.ndarray:
+    """Draw a trajectory (sequences ``z, x, y`` of one episode) over the thumbnail.
+
+    Views are boxes coloured by level (blue coarsest → red finest), their centres joined by a
+    line; the start is a cyan dot, the end a red square. Saves a PNG to ``path`` when given.
+    Returns the RGB uint8 picture.
+    """
+    z, x, y = (np.asarray(a).astype(int).ravel() for a in (z, x, y))
+    image, scale = _canvas(env, max_side)
+    draw = ImageDraw.Draw(image)
+    _draw_tumour(draw, env, scale)
+    centres = []
+    for zi, xi, yi in zip(z, x, y):
+        box = [v * scale for v in view_box_level0(env, zi, xi, yi)]
+        draw.rectangle(box, outline=level_colour(zi, env.n_levels), width=2)
+        centres.append(((box[0] + box[2]) / 2, (box[1] + box[3]) / 2))
+    if len(centres) > 1:
+        draw.line(centres, fill=(255, 255, 0), width=1)
+    if centres:
+        (sx, sy), (ex, ey) = centres[0], centres[-1]
+        draw.ellipse([sx - 6, sy - 6, sx + 6, sy + 6], fill=START_COLOUR, outline=(0, 0, 0))
+        draw.rectangle([ex - 6, ey - 6, ex + 6, ey + 6], fill=END_COLOUR, outline=(0, 0, 0))
+    legend = " ".join(f"z{k}" for k in range(env.n_levels))
+    draw.text((6, 6), f"{title}  levels {legend} (blue coarse → red fine)".strip(), fill=(0, 0, 0))
+    if path is not None:
+        image.save(path)
+    return np.asarray(image)
+
+
+def animate(env, z, x, y, path, fps: int = 4, max_side: int = 480) -> Path:
+    """Write a GIF (Pillow, no ffmpeg) of the trajectory ``z, x, y``: each frame shows the
+    thumbnail with the current view box beside the view itself. Returns the path."""
+    bundle = env._bundle
+    frames = []
+    for zi, xi, yi in zip(*(np.asarray(a).astype(int).ravel() for a in (z, x, y))):
+        class _S:  # a concrete state for render_state
+            pass
+        s = _S()
+        s.z, s.x, s.y = zi, xi, yi
+        overview = Image.fromarray(render_state(env, s, max_side=max_side))
+        level = bundle.pixels[zi]
+        view = Image.fromarray(np.asarray(level[yi:yi + env.tile_size, xi:xi + env.tile_size]))
+        view = view.resize((overview.height, overview.height), Image.NEAREST)
+        frame = Image.new("RGB", (overview.width + view.width, overview.height), (255, 255, 255))
+        frame.paste(overview, (0, 0))
+        frame.paste(view, (overview.width, 0))
+        frames.append(frame)
+    path = Path(path)
+    frames[0].save(path, save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0)
+    return path

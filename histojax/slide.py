@@ -1,0 +1,119 @@
+"""``SlideArrays``: the device arrays of one slide for one scenario, and loading them from a bundle.
+
+All levels are packed into flat arrays with per-level offsets, so the view at any
+level is one gather whatever ``z`` is (no ``lax.switch`` over levels):
+  * ``pixels``  — ``(P, 3)`` uint8, level ``z`` row-major from ``level_offset[z]`` with row
+    stride ``level_width[z]``;
+  * ``tumour_sat`` — int32 summed-area table of the 0/1 tumour mask of each level,
+    ``(H+1) × (W+1)`` per level, row-major from ``sat_offset[z]``;
+  * ``start_logits`` — ``(Hc - T + 1, Wc - T + 1)`` float32 log-weights of start
+    positions (top-left corner, px of the coarsest level).
+Level ``z = 0`` is the coarsest, ``z = n_levels - 1`` the finest.
+"""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from data_tools.bundle import Bundle, level_downsamples, load_bundle, read_metadata
+from data_tools.errors import BundleError
+
+MIN_START_TISSUE = 0.25  # a random start view holds at least this tissue fraction (when any view does)
+
+
+@struct.dataclass
+class SlideArrays:
+    """Device arrays of one slide at the ``n_levels`` zoom levels of a scenario (see module doc)."""
+
+    pixels: jnp.ndarray        # (P, 3) uint8
+    level_offset: jnp.ndarray  # (n,) int32, first pixel row of each level in ``pixels``
+    level_width: jnp.ndarray   # (n,) int32, px
+    level_height: jnp.ndarray  # (n,) int32, px
+    downsample: jnp.ndarray    # (n,) float32, level-0 px per px of the level
+    tumour_sat: jnp.ndarray    # (S,) int32
+    sat_offset: jnp.ndarray    # (n,) int32
+    start_logits: jnp.ndarray  # (Hc - T + 1, Wc - T + 1) float32
+
+
+def summed_area_table(mask: np.ndarray) -> np.ndarray:
+    """Integral image ``S`` of a 2-D 0/1 mask with a zero first row and column: ``(H+1, W+1)`` int64,
+    ``S[i, j]`` = number of mask pixels in rows ``< i`` and columns ``< j``."""
+    sat = np.zeros((mask.shape[0] + 1, mask.shape[1] + 1), dtype=np.int64)
+    np.cumsum(np.cumsum(mask, axis=0, dtype=np.int64), axis=1, out=sat[1:, 1:])
+    return sat
+
+
+def box_sums(sat: np.ndarray, size: int) -> np.ndarray:
+    """Sums of every ``size × size`` window of the mask behind ``sat``: ``(H-size+1, W-size+1)``."""
+    return sat[size:, size:] - sat[:-size, size:] - sat[size:, :-size] + sat[:-size, :-size]
+
+
+def start_logits(tissue: np.ndarray, tile_size: int) -> np.ndarray:
+    """Log-weights of start views at the coarsest level: 0 where the view's tissue fraction is at
+    least ``MIN_START_TISSUE`` (or, if no view reaches it, where it is maximal), ``-inf`` elsewhere.
+    A slide with no tissue detected at all gets uniform starts."""
+    frac = box_sums(summed_area_table(tissue.astype(np.uint8)), tile_size) / float(tile_size * tile_size)
+    if frac.max() <= 0:
+        ok = np.ones_like(frac, dtype=bool)
+    else:
+        ok = frac >= min(MIN_START_TISSUE, frac.max())
+    return np.where(ok, 0.0, -np.inf).astype(np.float32)
+
+
+def select_levels(metadata: dict, n_levels: int, where="") -> list[int]:
+    """Bundle level indices (finest-first order in the metadata) of an ``n_levels`` scenario, coarsest first."""
+    available = [lv["downsample"] for lv in metadata["levels"]]
+    chosen = []
+    for d in level_downsamples(n_levels, metadata["magnification_range"]):
+        match = [k for k, a in enumerate(available) if math.isclose(a, d, rel_tol=1e-6)]
+        if not match:
+            raise BundleError(where or None, f"bundle has no level at downsample {d:.4g} needed for {n_levels} "
+                              f"zoom levels (it was built for {metadata.get('level_sets')}); rebuild with "
+                              f"`python -m data_tools build ... --levels {n_levels}`")
+        chosen.append(match[0])
+    return chosen
+
+
+def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
+    """Pack host arrays of a loaded bundle (levels already chosen, coarsest first) into ``SlideArrays``."""
+    widths = np.array([p.shape[1] for p in bundle.pixels], dtype=np.int64)
+    heights = np.array([p.shape[0] for p in bundle.pixels], dtype=np.int64)
+    offsets = np.concatenate([[0], np.cumsum(widths * heights)[:-1]])
+    sats = [summed_area_table(t) for t in bundle.tumour]
+    sat_sizes = np.array([s.size for s in sats], dtype=np.int64)
+    sat_offsets = np.concatenate([[0], np.cumsum(sat_sizes)[:-1]])
+    if widths @ heights >= 2**31 or sat_sizes.sum() >= 2**31 or max(int(s[-1, -1]) for s in sats) >= 2**31:
+        raise BundleError(bundle.path, "too many pixels for int32 indexing in one slide; use fewer or coarser levels")
+    downsample = [lv["downsample"] for lv in bundle.metadata["levels"]]
+    return SlideArrays(
+        pixels=jnp.asarray(np.concatenate([p.reshape(-1, 3) for p in bundle.pixels])),
+        level_offset=jnp.asarray(offsets, dtype=jnp.int32),
+        level_width=jnp.asarray(widths, dtype=jnp.int32),
+        level_height=jnp.asarray(heights, dtype=jnp.int32),
+        downsample=jnp.asarray(downsample, dtype=jnp.float32),
+        tumour_sat=jnp.asarray(np.concatenate([s.ravel() for s in sats]).astype(np.int32)),
+        sat_offset=jnp.asarray(sat_offsets, dtype=jnp.int32),
+        start_logits=jnp.asarray(start_logits(bundle.tissue, tile_size)),
+    )
+
+
+def load_slide(path, n_levels: int, verify: bool = True) -> tuple[SlideArrays, Bundle]:
+    """Load the ``n_levels`` zoom levels of the bundle at ``path`` onto the device.
+
+    Returns the ``SlideArrays`` (levels coarsest first) and the host ``Bundle``
+    (metadata and thumbnails for rendering, levels also coarsest first).
+    """
+    path = Path(path)
+    metadata = read_metadata(path)
+    chosen = select_levels(metadata, n_levels, path)
+    coarsest = len(metadata["levels"]) - 1
+    if chosen[0] != coarsest:
+        raise BundleError(path, "the scenario's coarsest level is not the bundle's coarsest; rebuild the bundle")
+    bundle = load_bundle(path, verify=verify, levels=chosen)
+    ordered = Bundle(path=bundle.path, metadata={**metadata, "levels": [metadata["levels"][k] for k in chosen]},
+                     pixels=bundle.pixels, tumour=bundle.tumour, tissue=bundle.tissue)
+    return slide_arrays_from_bundle(ordered, int(metadata["tile_size"])), ordered

@@ -20,12 +20,15 @@ def level_colour(z: int, n_levels: int) -> tuple[int, int, int]:
 
 
 def _canvas(env, max_side: int):
+    """The slide drawn at most ``max_side`` px a side from the coarsest env level that is at least
+    that large (else the finest). Returns ``(PIL image, canvas px per level-0 px)``."""
     bundle = env._bundle
-    thumb = bundle.pixels[0]
-    d0 = bundle.metadata["levels"][0]["downsample"]
-    up = max(1, max_side // max(thumb.shape[:2]))
-    image = Image.fromarray(np.asarray(thumb)).resize((thumb.shape[1] * up, thumb.shape[0] * up), Image.NEAREST)
-    return image, up / d0  # canvas px per level-0 px
+    k = next((i for i, p in enumerate(bundle.pixels) if max(p.shape[:2]) >= max_side), len(bundle.pixels) - 1)
+    level = np.asarray(bundle.pixels[k])
+    fit = min(1.0, max_side / max(level.shape[:2]))
+    size = (max(1, round(level.shape[1] * fit)), max(1, round(level.shape[0] * fit)))
+    image = Image.fromarray(level).resize(size, Image.Resampling.BOX)
+    return image, size[0] / (level.shape[1] * bundle.metadata["levels"][k]["downsample"])
 
 
 def _draw_tumour(draw: ImageDraw.ImageDraw, env, scale: float) -> None:
@@ -65,7 +68,7 @@ def render_trajectory(env, z, x, y, path=None, title: str = "", max_side: int = 
     """Draw a trajectory (sequences ``z, x, y`` of one episode) over the thumbnail.
 
     Views are boxes coloured by level (blue coarsest → red finest), their centres joined by a
-    line; the start is a cyan dot, the end a red square. Saves a PNG to ``path`` when given.
+    path coloured by the level it moved to; the start is a cyan dot, the end a red square and box. Saves a PNG to ``path`` when given.
     Returns the RGB uint8 picture.
     """
     z, x, y = (np.asarray(a).astype(int).ravel() for a in (z, x, y))
@@ -75,16 +78,19 @@ def render_trajectory(env, z, x, y, path=None, title: str = "", max_side: int = 
     centres = []
     for zi, xi, yi in zip(z, x, y):
         box = [v * scale for v in view_box_level0(env, zi, xi, yi)]
-        draw.rectangle(box, outline=level_colour(zi, env.n_levels), width=2)
+        draw.rectangle(box, outline=level_colour(zi, env.n_levels), width=1)
         centres.append(((box[0] + box[2]) / 2, (box[1] + box[3]) / 2))
-    if len(centres) > 1:
-        draw.line(centres, fill=(255, 255, 0), width=1)
+    for (a, b), zi in zip(zip(centres[:-1], centres[1:]), z[1:]):
+        draw.line([a, b], fill=level_colour(zi, env.n_levels), width=3)
+    if centres:
+        last = [v * scale for v in view_box_level0(env, z[-1], x[-1], y[-1])]
+        draw.rectangle(last, outline=END_COLOUR, width=3)
     if centres:
         (sx, sy), (ex, ey) = centres[0], centres[-1]
         draw.ellipse([sx - 6, sy - 6, sx + 6, sy + 6], fill=START_COLOUR, outline=(0, 0, 0))
         draw.rectangle([ex - 6, ey - 6, ex + 6, ey + 6], fill=END_COLOUR, outline=(0, 0, 0))
     legend = " ".join(f"z{k}" for k in range(env.n_levels))
-    draw.text((6, 6), f"{title}  levels {legend} (blue coarse → red fine)".strip(), fill=(0, 0, 0))
+    draw.text((6, 6), f"{title}  levels {legend} (blue coarse -> red fine)".strip(), fill=(0, 0, 0))
     if path is not None:
         image.save(path)
     return np.asarray(image)

@@ -1,0 +1,90 @@
+"""The data_tools command line: ``python -m data_tools info SLIDE`` and
+``python -m data_tools build SLIDE [--annotations FILE] --out DIR [--levels 3 5 7] [--tile-size 128]``.
+
+User errors (bad files, existing output) print one line and exit with status 2, no traceback.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+from pathlib import Path
+
+from data_tools.errors import HistojaxDataError
+
+
+def _levels(text: str) -> list[int]:
+    values = [int(v) for v in text.replace(",", " ").split()]
+    if any(v < 2 for v in values):
+        raise argparse.ArgumentTypeError("zoom level counts must be at least 2")
+    return values
+
+
+def _parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m data_tools", description=__doc__.split("\n\n")[0])
+    sub = p.add_subparsers(dest="command", required=True)
+    info = sub.add_parser("info", help="print a slide's pyramid (levels, sizes in px, tiles, compression, µm/px)")
+    info.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file, or a bundle folder")
+    build = sub.add_parser("build", help="write a slide bundle (levels, tumour masks, tissue mask, metadata)")
+    build.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file")
+    build.add_argument("--annotations", help="ASAP XML or QuPath GeoJSON in level-0 px (default: no tumour)")
+    build.add_argument("--out", required=True, help="bundle folder to create (written atomically)")
+    build.add_argument("--levels", type=_levels, action="extend", metavar="N",
+                       help="zoom level counts to support (repeatable, or comma-separated): 3 (Easy), 5 (Medium), 7 (Hard); default 3,5,7")
+    build.add_argument("--tile-size", type=int, default=128, help="view size in px (default 128)")
+    build.add_argument("--magnification-range", type=float, default=None,
+                       help="coarsest downsample R (default: largest power of 2 with the slide's shorter side "
+                            "still >= one view)")
+    build.add_argument("--label-map", help='JSON object mapping annotation group to tumour/exclusion/tissue/ignore, '
+                                           'e.g. \'{"Tumor": "tumour", "_2": "exclusion"}\'')
+    build.add_argument("--overwrite", action="store_true", help="replace an existing bundle")
+    build.add_argument("--quiet", action="store_true", help="no progress bar")
+    return p
+
+
+def _info(path: str) -> str:
+    if Path(path).is_dir():
+        from data_tools.bundle import read_metadata
+
+        meta = read_metadata(path)
+        lines = [f"bundle {path}: format v{meta['format_version']}, source {meta['source']['file']}, "
+                 f"tile {meta['tile_size']} px, magnification range {meta['magnification_range']:g}, "
+                 f"level sets {meta['level_sets']}"]
+        for k, lv in enumerate(meta["levels"]):
+            lines.append(f"  level {k}: {lv['width']}×{lv['height']} px, downsample {lv['downsample']:.4g}, "
+                         f"tumour {lv['tumour_pixels']} px")
+        return "\n".join(lines)
+    from data_tools.slides import describe, open_slide
+
+    with open_slide(path) as reader:
+        return describe(reader)
+
+
+def main(argv=None) -> int:
+    """Entry point; returns the process exit status."""
+    args = _parser().parse_args(argv)
+    try:
+        if args.command == "info":
+            print(_info(args.slide))
+        elif args.command == "build":
+            from data_tools.bundle import LEVEL_SETS, build_bundle, read_metadata
+
+            label_map = json.loads(args.label_map) if args.label_map else None
+            out = build_bundle(args.slide, args.out, annotations_path=args.annotations,
+                               level_sets=args.levels or LEVEL_SETS, tile_size=args.tile_size,
+                               magnification_range=args.magnification_range, label_map=label_map,
+                               overwrite=args.overwrite, progress=not args.quiet)
+            meta = read_metadata(out)
+            nbytes = sum(lv["width"] * lv["height"] * 4 for lv in meta["levels"])
+            print(f"wrote {out}: {len(meta['levels'])} levels, {nbytes / 2**20:.1f} MiB of pixels and masks")
+    except HistojaxDataError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    except json.JSONDecodeError as e:
+        print(f"error: --label-map is not valid JSON: {e}", file=sys.stderr)
+        return 2
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -60,6 +60,16 @@ def _info(path: str) -> str:
         return describe(reader)
 
 
+def _check_label_map(label_map) -> None:
+    from data_tools.annotations import LABELS
+
+    if not isinstance(label_map, dict):
+        raise HistojaxDataError(None, f"--label-map must be a JSON object mapping group names to one of {LABELS}")
+    for key, value in label_map.items():
+        if value not in LABELS:
+            raise HistojaxDataError(None, f"--label-map: {key!r} maps to {value!r}; expected one of {LABELS}")
+
+
 def main(argv=None) -> int:
     """Entry point; returns the process exit status."""
     args = _parser().parse_args(argv)
@@ -70,6 +80,8 @@ def main(argv=None) -> int:
             from data_tools.bundle import LEVEL_SETS, build_bundle, read_metadata
 
             label_map = json.loads(args.label_map) if args.label_map else None
+            if label_map is not None:
+                _check_label_map(label_map)
             out = build_bundle(args.slide, args.out, annotations_path=args.annotations,
                                level_sets=args.levels or LEVEL_SETS, tile_size=args.tile_size,
                                magnification_range=args.magnification_range, label_map=label_map,

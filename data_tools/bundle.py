@@ -128,6 +128,9 @@ def build_bundle(
         raise BundleError(out_dir, "already exists; pass overwrite=True (--overwrite) to replace it")
     if tile_size < 8:
         raise BundleError(out_dir, f"tile size {tile_size} px is too small (minimum 8)")
+    if magnification_range is not None and not (math.isfinite(magnification_range) and magnification_range >= 1):
+        raise BundleError(out_dir, f"magnification range {magnification_range} must be a finite number >= 1 "
+                          "(the coarsest downsample)")
     level_sets = tuple(sorted(set(int(n) for n in level_sets)))
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
@@ -241,10 +244,12 @@ def read_metadata(path) -> dict:
         metadata = json.loads(meta_file.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
         raise BundleError(meta_file, f"unreadable metadata ({e}); rebuild the bundle") from None
+    if not isinstance(metadata, dict):
+        raise BundleError(meta_file, "metadata is not a JSON object; rebuild the bundle")
     if metadata.get("format_version") != FORMAT_VERSION:
         raise BundleError(path, f"bundle format version {metadata.get('format_version')!r}, this histojax reads "
                           f"version {FORMAT_VERSION}; rebuild it with `python -m data_tools build`")
-    for key in ("tile_size", "levels", "checksums", "magnification_range"):
+    for key in ("tile_size", "levels", "checksums", "magnification_range", "tissue"):
         if key not in metadata:
             raise BundleError(meta_file, f"metadata lacks {key!r}; rebuild the bundle")
     return metadata

@@ -44,7 +44,7 @@ def _parser() -> argparse.ArgumentParser:
 
 def _info(path: str) -> str:
     if Path(path).is_dir():
-        from data_tools.bundle import read_metadata
+        from data_tools.bundle import device_bytes, read_metadata
 
         meta = read_metadata(path)
         lines = [f"bundle {path}: format v{meta['format_version']}, source {meta['source']['file']}, "
@@ -52,7 +52,8 @@ def _info(path: str) -> str:
                  f"level sets {meta['level_sets']}"]
         for k, lv in enumerate(meta["levels"]):
             lines.append(f"  level {k}: {lv['width']}×{lv['height']} px, downsample {lv['downsample']:.4g}, "
-                         f"tumour {lv['tumour_pixels']} px")
+                         f"tumour {lv['tumour_pixels']} px, "
+                         f"{device_bytes(lv['width'], lv['height']) / 2**20:.1f} MiB on the device")
         return "\n".join(lines)
     from data_tools.slides import describe, open_slide
 
@@ -87,8 +88,8 @@ def main(argv=None) -> int:
                                magnification_range=args.magnification_range, label_map=label_map,
                                overwrite=args.overwrite, progress=not args.quiet)
             meta = read_metadata(out)
-            nbytes = sum(lv["width"] * lv["height"] * 4 for lv in meta["levels"])
-            print(f"wrote {out}: {len(meta['levels'])} levels, {nbytes / 2**20:.1f} MiB of pixels and masks")
+            print(f"wrote {out}: {len(meta['levels'])} levels")
+            print(_info(str(out)))
     except HistojaxDataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

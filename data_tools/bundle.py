@@ -1,7 +1,7 @@
 """Slide bundles: one folder with ``metadata.json`` and ``.npy`` arrays, written atomically.
 
-A bundle holds, for each zoom level the environment may use (coarsest last in
-``metadata["levels"]`` order is *finest first*):
+A bundle holds, for each zoom level the environment may use (``metadata["levels"]``
+lists them finest first):
   * ``pixels_KK.npy``  — ``(H, W, 3)`` uint8 RGB of that level,
   * ``tumour_KK.npy``  — ``(H, W)`` uint8 0/1 tumour mask (exclusion holes removed),
 and ``tissue.npy`` (bool, coarsest level) and ``annotations.geojson`` (level-0 px).
@@ -67,6 +67,12 @@ def bundle_downsamples(level_sets, magnification_range: float) -> list[float]:
 def level_size(width0: int, height0: int, downsample: float) -> tuple[int, int]:
     """(width, height) in px of a level at ``downsample`` of a level-0 ``width0 × height0`` slide."""
     return max(1, int(width0 // downsample)), max(1, int(height0 // downsample))
+
+
+def device_bytes(width: int, height: int) -> int:
+    """Device bytes the env needs for one ``width × height`` px level: RGB uint8 pixels plus the
+    int32 summed-area table of its tumour mask."""
+    return 3 * width * height + 4 * (width + 1) * (height + 1)
 
 
 def _sha256(path: Path) -> str:
@@ -140,6 +146,13 @@ def build_bundle(
             width0, height0 = reader.dimensions
             r = magnification_range or default_magnification_range(width0, height0, tile_size)
             downsamples = bundle_downsamples(level_sets, r)
+            sizes = [level_size(width0, height0, d) for d in downsamples]
+            total = sum(max(w, tile_size) * max(h, tile_size) for w, h in sizes)
+            if total > MAX_FLAT_PIXELS:
+                raise BundleError(slide_path, f"the {len(sizes)} levels would hold {total:,} px "
+                                  f"({total * 7 / 2**30:.1f} GiB on the device with their masks), more than the "
+                                  f"{MAX_FLAT_PIXELS:,} px one dense slide array can index: use fewer levels "
+                                  "(--levels), a larger --magnification-range start, or a coarser slide")
             ann = None
             if annotations_path is not None:
                 ann = load_annotations(annotations_path, label_map=label_map, slide_size=(width0, height0))
@@ -172,9 +185,6 @@ def build_bundle(
                     np.save(tmp / "tissue.npy", _pad(tissue_mask(pixels[: size[1], : size[0]]), tile_size, False),
                             allow_pickle=False)
             cache = None
-            if sum(lv["width"] * lv["height"] for lv in levels_meta) > MAX_FLAT_PIXELS:
-                raise BundleError(out_dir, "the levels hold more than 2**30 px in all, too many for one device "
-                                  "array: use fewer levels (--levels), a larger tile size, or a coarser slide level")
             geojson = annotations_to_geojson(ann) if ann is not None else {"type": "FeatureCollection", "features": []}
             (tmp / "annotations.geojson").write_text(json.dumps(geojson))
             files = sorted(p.name for p in tmp.iterdir())
@@ -204,7 +214,11 @@ def build_bundle(
         if out_dir.exists():
             old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
             out_dir.rename(old)
-            tmp.rename(out_dir)
+            try:
+                tmp.rename(out_dir)
+            except BaseException:
+                old.rename(out_dir)  # put the previous bundle back
+                raise
             shutil.rmtree(old, ignore_errors=True)
         else:
             tmp.rename(out_dir)

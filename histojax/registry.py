@@ -15,7 +15,7 @@ from __future__ import annotations
 import dataclasses
 
 from histojax.env import EnvParams, HistoEnv
-from histojax.slide import load_slide
+from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide
 
 _REGISTRY: dict[str, dict] = {}
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels")
@@ -41,7 +41,8 @@ register("HistoJAX-Medium-v0", n_levels=5, max_steps_in_episode=200)
 register("HistoJAX-Hard-v0", n_levels=7, max_steps_in_episode=300)
 
 
-def make(env_id: str, slide=None, verify: bool = True, **overrides):
+def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES,
+         **overrides):
     """Make ``(env, params)`` for a registered id.
 
     ``slide``: a bundle folder (``python -m data_tools build``) or ``None`` for the embedded
@@ -50,7 +51,9 @@ def make(env_id: str, slide=None, verify: bool = True, **overrides):
     only for the sample slide, where it selects another cached bundle) or ``EnvParams`` field
     (``max_steps_in_episode``, ``stride``, ``success_threshold``, ``step_cost``,
     ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``).
-    The slide's arrays are put on the device once and returned inside ``params``.
+    The slide's arrays are put on the device once and returned inside ``params``; a slide
+    needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error.
+    ``verify`` checks every array's SHA-256 against the bundle metadata.
     """
     if env_id not in _REGISTRY:
         raise ValueError(f"unknown environment id {env_id!r}; registered: {', '.join(_REGISTRY)}")
@@ -63,7 +66,7 @@ def make(env_id: str, slide=None, verify: bool = True, **overrides):
         from histojax.sample import sample_bundle
 
         slide = sample_bundle(tile_size=spec.get("tile_size", 128))
-    arrays, bundle = load_slide(slide, spec["n_levels"], verify=verify)
+    arrays, bundle = load_slide(slide, spec["n_levels"], verify=verify, max_device_bytes=max_device_bytes)
     tile_size = int(bundle.metadata["tile_size"])
     if spec.get("tile_size", tile_size) != tile_size:
         raise ValueError(f"bundle {slide} was built with tile size {tile_size}; rebuild it with "

@@ -19,9 +19,10 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from data_tools.bundle import Bundle, level_downsamples, load_bundle, read_metadata
+from data_tools.bundle import Bundle, device_bytes, level_downsamples, load_bundle, read_metadata
 from data_tools.errors import BundleError
 
+DEFAULT_MAX_DEVICE_BYTES = 4 * 2**30  # the memory budget of one slide on the device
 MIN_START_TISSUE = 0.25  # a random start view holds at least this tissue fraction (when any view does)
 
 
@@ -101,8 +102,12 @@ def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
     )
 
 
-def load_slide(path, n_levels: int, verify: bool = True) -> tuple[SlideArrays, Bundle]:
+def load_slide(path, n_levels: int, verify: bool = True,
+               max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES) -> tuple[SlideArrays, Bundle]:
     """Load the ``n_levels`` zoom levels of the bundle at ``path`` onto the device.
+
+    Refuses, before reading any array, a slide whose levels need more than
+    ``max_device_bytes`` (pixels and summed-area tables, see ``device_bytes``).
 
     Returns the ``SlideArrays`` (levels coarsest first) and the host ``Bundle``
     (metadata and thumbnails for rendering, levels also coarsest first).
@@ -110,6 +115,13 @@ def load_slide(path, n_levels: int, verify: bool = True) -> tuple[SlideArrays, B
     path = Path(path)
     metadata = read_metadata(path)
     chosen = select_levels(metadata, n_levels, path)
+    needed = sum(device_bytes(metadata["levels"][k]["width"], metadata["levels"][k]["height"]) for k in chosen)
+    if needed > max_device_bytes:
+        finest = metadata["levels"][chosen[-1]]
+        raise BundleError(path, f"{n_levels} levels need {needed:,} bytes on the device (finest level "
+                          f"{finest['width']}×{finest['height']} px), more than max_device_bytes="
+                          f"{max_device_bytes:,}: use fewer levels, build from a coarser finest level, or raise "
+                          "max_device_bytes")
     coarsest = len(metadata["levels"]) - 1
     if chosen[0] != coarsest:
         raise BundleError(path, "the scenario's coarsest level is not the bundle's coarsest; rebuild the bundle")

@@ -195,3 +195,12 @@ def test_render_shows_the_view(easy):
     picture = env.render(s, params)
     assert picture.dtype == np.uint8 and picture.ndim == 3 and picture.shape[2] == 3
     assert max(picture.shape[:2]) <= 640 and picture.std() > 10
+
+
+def test_memory_budget_is_enforced_with_a_clear_error():
+    from data_tools.errors import BundleError
+
+    with pytest.raises(BundleError, match=r"need [\d,]+ bytes on the device.*max_device_bytes=1,000,000"):
+        histojax.make("HistoJAX-Hard-v0", max_device_bytes=1_000_000)
+    env, params = histojax.make("HistoJAX-Easy-v0", max_device_bytes=200_000_000)
+    assert env.n_levels == 3

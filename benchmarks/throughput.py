@@ -1,0 +1,116 @@
+"""Steps per second of the jitted, vmapped environment on the embedded sample slide.
+
+Prints, for batch sizes 1, 64, 1024, 4096 (``lax.scan`` over ``vmap(step)``, random actions,
+auto-reset on): the full step with pixel observations, and the reward path alone (actions,
+clamping and the summed-area-table reward, no observation). The machine's numpy memory-copy
+bandwidth is measured in the same run as the reference for the pixel path (which is
+memory-bound: each step copies a 128×128×3 view).
+
+    python benchmarks/throughput.py [--env HistoJAX-Hard-v0] [--batches 1 64 1024 4096] [--seconds 1.0]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+import histojax
+from histojax import actions as act
+from histojax.views import view_tumour_fraction
+
+
+def memcpy_bandwidth(nbytes: int = 256 * 2**20, repeats: int = 5) -> float:
+    """Best-of numpy copy bandwidth in bytes/s (read + write of ``nbytes``, counted once)."""
+    src = np.random.default_rng(0).integers(0, 255, nbytes, dtype=np.uint8)
+    dst = np.empty_like(src)
+    best = float("inf")
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        np.copyto(dst, src)
+        best = min(best, time.perf_counter() - t0)
+    return nbytes / best
+
+
+def full_step_rollout(env, batch: int, steps: int):
+    def run(key, params):
+        _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, batch), params)
+
+        def body(carry, key):
+            state, checksum = carry
+            a = jax.random.randint(key, (batch,), 0, 7)
+            obs, state, reward, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                jax.random.split(key, batch), state, a, params)
+            # consume the observation so XLA cannot drop the crop
+            return (state, checksum + obs[:, 0, 0, 0].astype(jnp.int32).sum() + reward.sum()), None
+
+        return jax.lax.scan(body, (state, jnp.float32(0)), jax.random.split(key, steps))[0][1]
+
+    return jax.jit(run)
+
+
+def reward_path_rollout(env, batch: int, steps: int):
+    t, n = env.tile_size, env.n_levels
+
+    def run(key, params):
+        _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, batch), params)
+        s = params.slide
+
+        def one(z, x, y, a):
+            dx, dy, dz = act.discrete_deltas(a, jnp.int32(t))
+            z, x, y = act.move_and_zoom(s, z, x, y, dx, dy, dz, t, n)
+            return z, x, y, view_tumour_fraction(s, z, x, y, t)
+
+        def body(carry, key):
+            (z, x, y), total = carry
+            a = jax.random.randint(key, (batch,), 0, 7)
+            z, x, y, f = jax.vmap(one)(z, x, y, a)
+            return ((z, x, y), total + f.sum()), None
+
+        return jax.lax.scan(body, ((state.z, state.x, state.y), jnp.float32(0)), jax.random.split(key, steps))[0][1]
+
+    return jax.jit(run)
+
+
+def measure(make_fn, env, params, batch: int, seconds: float) -> float:
+    steps = max(10, int(200_000 / batch))
+    fn = make_fn(env, batch, steps)
+    key = jax.random.PRNGKey(0)
+    jax.block_until_ready(fn(key, params))  # compile
+    calls, t0 = 0, time.perf_counter()
+    while True:
+        jax.block_until_ready(fn(jax.random.fold_in(key, calls), params))
+        calls += 1
+        elapsed = time.perf_counter() - t0
+        if elapsed >= seconds:
+            return calls * steps * batch / elapsed
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--env", default="HistoJAX-Hard-v0")
+    p.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024, 4096])
+    p.add_argument("--seconds", type=float, default=1.0, help="minimum timed seconds per measurement")
+    args = p.parse_args(argv)
+    env, params = histojax.make(args.env)
+    view_bytes = env.tile_size**2 * 3
+    bandwidth = memcpy_bandwidth()
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"JAX {jax.__version__} on {jax.devices()[0].platform}")
+    print(f"{args.env} on CMU-1-Small-Region ({env.n_levels} levels, {env.tile_size} px views)")
+    print(f"numpy memory copy: {bandwidth / 1e9:.2f} GB/s")
+    print(f"{'batch':>6} {'pixels steps/s':>15} {'view GB/s':>10} {'of memcpy':>10} {'reward-only steps/s':>20}")
+    for batch in args.batches:
+        sps = measure(full_step_rollout, env, params, batch, args.seconds)
+        rps = measure(reward_path_rollout, env, params, batch, args.seconds)
+        gbs = sps * view_bytes
+        print(f"{batch:>6} {sps:>15,.0f} {gbs / 1e9:>10.2f} {gbs / bandwidth:>10.1%} {rps:>20,.0f}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,5 +1,6 @@
-"""Wrappers: episode statistics (PureJaxRL's LogWrapper for the 6-value step) and the older
-gymnax 5-value step (``obs, state, reward, done, info``)."""
+"""Wrappers: episode statistics (PureJaxRL's LogWrapper for the 6-value step), the older
+gymnax 5-value step (``obs, state, reward, done, info``), and the Gymnasium bridges
+``GymnasiumEnv`` / ``GymnasiumVectorEnv`` (loaded lazily from ``histojax.gymnasium_bridge``)."""
 from __future__ import annotations
 
 import jax
@@ -74,3 +75,12 @@ class GymnaxV0Wrapper(Wrapper):
 def vmap_reset(env, num_envs: int):
     """``reset`` over ``num_envs`` keys split from one: ``fn(key, params) -> (obs, state)`` batched."""
     return lambda key, params: jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, num_envs), params)
+
+
+def __getattr__(name):
+    """``GymnasiumEnv`` and ``GymnasiumVectorEnv`` load on first use (gymnasium is optional)."""
+    if name in ("GymnasiumEnv", "GymnasiumVectorEnv"):
+        from histojax import gymnasium_bridge
+
+        return getattr(gymnasium_bridge, name)
+    raise AttributeError(f"module {__name__!r} has no attribute {name!r}")

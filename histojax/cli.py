@@ -1,0 +1,73 @@
+"""The ``histojax`` command: one entry point for the tools, each a thin wrapper of its module.
+
+    histojax info SLIDE|BUNDLE        pyramid of a slide (levels, px sizes, tiles, compression, µm/px)
+    histojax build SLIDE --out DIR    slide bundle (levels, masks; see `histojax build --help`)
+    histojax features BUNDLE          feature grid of a bundle (`python -m data_tools features`)
+    histojax demo                     random-agent table and trajectory picture on the sample slide
+    histojax train [--algo ppo|dqn]   pure-JAX baselines (`python -m baselines.ppo|dqn`)
+    histojax evaluate CHECKPOINT      success rate, return, steps to success, trajectory pictures
+    histojax bench                    environment throughput (steps/s) against memory bandwidth
+
+Units: positions and sizes are pixels (level-0 px for annotations and regions, px of the
+current level for views); `--tile-size` is the view side in px. User errors (bad files, unknown
+ids or settings) print one line and exit with status 2; HISTOJAX_DEBUG=1 shows tracebacks.
+"""
+from __future__ import annotations
+
+import importlib
+import os
+import sys
+
+from data_tools.errors import HistojaxDataError
+
+COMMANDS = {
+    "info": ("data_tools.__main__", ["info"]),
+    "build": ("data_tools.__main__", ["build"]),
+    "features": ("data_tools.__main__", ["features"]),
+    "demo": ("histojax.demo", []),
+    "evaluate": ("baselines.evaluate", []),
+    "bench": ("benchmarks.throughput", []),
+}
+
+
+def _run(module_name: str, argv: list[str]) -> int:
+    module = importlib.import_module(module_name)
+    result = module.main(argv)
+    return int(result or 0)
+
+
+def main(argv=None) -> int:
+    """Dispatch ``argv`` (default ``sys.argv[1:]``) to a subcommand; returns the exit status."""
+    argv = list(sys.argv[1:] if argv is None else argv)
+    if not argv or argv[0] in ("-h", "--help"):
+        print(__doc__)
+        return 0 if argv else 2
+    command, rest = argv[0], argv[1:]
+    try:
+        if command == "train":
+            algo = "ppo"
+            if "--algo" in rest:
+                i = rest.index("--algo")
+                algo = rest[i + 1] if i + 1 < len(rest) else ""
+                rest = rest[:i] + rest[i + 2:]
+            if algo not in ("ppo", "dqn"):
+                print(f"error: --algo must be ppo or dqn, got {algo!r}", file=sys.stderr)
+                return 2
+            return _run(f"baselines.{algo}", rest)
+        if command not in COMMANDS:
+            print(f"error: unknown command {command!r}; one of: {', '.join([*COMMANDS, 'train'])}", file=sys.stderr)
+            return 2
+        module_name, prefix = COMMANDS[command]
+        return _run(module_name, prefix + rest)
+    except KeyboardInterrupt:
+        print("interrupted", file=sys.stderr)
+        return 130
+    except (HistojaxDataError, FileNotFoundError, ValueError, TypeError) as e:
+        if os.environ.get("HISTOJAX_DEBUG"):
+            raise
+        print(f"error: {e} (HISTOJAX_DEBUG=1 shows the traceback)", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":
+    sys.exit(main())

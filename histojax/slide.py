@@ -4,7 +4,10 @@ All levels are packed into flat arrays with per-level offsets, so the view at an
 level is one gather whatever ``z`` is (no ``lax.switch`` over levels):
   * ``pixels``  — ``(P, 3)`` uint8, level ``z`` row-major from ``level_offset[z]`` with row
     stride ``level_width[z]``;
-  * ``tumour_sat`` — int32 summed-area table of the 0/1 tumour mask of each level,
+  * ``tumour_sat`` — uint32 summed-area table of the 0/1 tumour mask of each level, kept
+    modulo 2**32: a box sum ``S[d] - S[b] - S[c] + S[a]`` in wrapping uint32 arithmetic is
+    exact whenever the box holds fewer than 2**32 px (a view holds T² px), however large the
+    level — no overflow by construction;
     ``(H+1) × (W+1)`` per level, row-major from ``sat_offset[z]``;
   * ``start_logits`` — ``(Hc - T + 1, Wc - T + 1)`` float32 log-weights of start
     positions (top-left corner, px of the coarsest level).
@@ -35,7 +38,7 @@ class SlideArrays:
     level_width: jnp.ndarray   # (n,) int32, px
     level_height: jnp.ndarray  # (n,) int32, px
     downsample: jnp.ndarray    # (n,) float32, level-0 px per px of the level
-    tumour_sat: jnp.ndarray    # (S,) int32
+    tumour_sat: jnp.ndarray    # (S,) uint32, modulo 2**32
     sat_offset: jnp.ndarray    # (n,) int32
     start_logits: jnp.ndarray  # (Hc - T + 1, Wc - T + 1) float32
 
@@ -53,15 +56,23 @@ def box_sums(sat: np.ndarray, size: int) -> np.ndarray:
     return sat[size:, size:] - sat[:-size, size:] - sat[size:, :-size] + sat[:-size, :-size]
 
 
-def start_logits(tissue: np.ndarray, tile_size: int) -> np.ndarray:
+def start_logits(tissue: np.ndarray, tile_size: int, region: np.ndarray | None = None) -> np.ndarray:
     """Log-weights of start views at the coarsest level: 0 where the view's tissue fraction is at
     least ``MIN_START_TISSUE`` (or, if no view reaches it, where it is maximal), ``-inf`` elsewhere.
-    A slide with no tissue detected at all gets uniform starts."""
+    A slide with no tissue detected at all gets uniform starts. ``region`` (a region bundle's mask
+    at the coarsest level) further requires the view's centre pixel inside it."""
     frac = box_sums(summed_area_table(tissue.astype(np.uint8)), tile_size) / float(tile_size * tile_size)
     if frac.max() <= 0:
         ok = np.ones_like(frac, dtype=bool)
     else:
         ok = frac >= min(MIN_START_TISSUE, frac.max())
+    if region is not None:
+        c = tile_size // 2
+        centre = np.asarray(region, dtype=bool)[c:c + frac.shape[0], c:c + frac.shape[1]]
+        if (ok & centre).any():
+            ok = ok & centre
+        elif centre.any():
+            ok = centre
     return np.where(ok, 0.0, -np.inf).astype(np.float32)
 
 
@@ -87,7 +98,7 @@ def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
     sats = [summed_area_table(t) for t in bundle.tumour]
     sat_sizes = np.array([s.size for s in sats], dtype=np.int64)
     sat_offsets = np.concatenate([[0], np.cumsum(sat_sizes)[:-1]])
-    if widths @ heights >= 2**31 or sat_sizes.sum() >= 2**31 or max(int(s[-1, -1]) for s in sats) >= 2**31:
+    if widths @ heights >= 2**31 or sat_sizes.sum() >= 2**31:
         raise BundleError(bundle.path, "too many pixels for int32 indexing in one slide; use fewer or coarser levels")
     downsample = [lv["downsample"] for lv in bundle.metadata["levels"]]
     return SlideArrays(
@@ -96,9 +107,9 @@ def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
         level_width=jnp.asarray(widths, dtype=jnp.int32),
         level_height=jnp.asarray(heights, dtype=jnp.int32),
         downsample=jnp.asarray(downsample, dtype=jnp.float32),
-        tumour_sat=jnp.asarray(np.concatenate([s.ravel() for s in sats]).astype(np.int32)),
+        tumour_sat=jnp.asarray(np.concatenate([s.ravel() for s in sats]).astype(np.uint32)),  # wraps mod 2**32
         sat_offset=jnp.asarray(sat_offsets, dtype=jnp.int32),
-        start_logits=jnp.asarray(start_logits(bundle.tissue, tile_size)),
+        start_logits=jnp.asarray(start_logits(bundle.tissue, tile_size, getattr(bundle, "region", None))),
     )
 
 
@@ -127,5 +138,5 @@ def load_slide(path, n_levels: int, verify: bool = True,
         raise BundleError(path, "the scenario's coarsest level is not the bundle's coarsest; rebuild the bundle")
     bundle = load_bundle(path, verify=verify, levels=chosen)
     ordered = Bundle(path=bundle.path, metadata={**metadata, "levels": [metadata["levels"][k] for k in chosen]},
-                     pixels=bundle.pixels, tumour=bundle.tumour, tissue=bundle.tissue)
+                     pixels=bundle.pixels, tumour=bundle.tumour, tissue=bundle.tissue, region=bundle.region)
     return slide_arrays_from_bundle(ordered, int(metadata["tile_size"])), ordered

@@ -19,12 +19,22 @@ def view_pixels(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.Array, ti
 
 def view_tumour_fraction(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.Array, tile_size: int) -> jax.Array:
     """Fraction in ``[0, 1]`` (float32) of the view's pixels that are tumour, from the summed-area
-    table of level ``z``: four lookups, O(1) whatever the view size."""
+    table of level ``z``: four lookups, O(1) whatever the view size (uint32 arithmetic modulo
+    2**32, exact for any level size; see :mod:`histojax.slide`)."""
     stride = slide.level_width[z] + 1
     base = slide.sat_offset[z]
 
     def at(row, col):
         return slide.tumour_sat[base + row * stride + col]
 
-    count = at(y + tile_size, x + tile_size) - at(y, x + tile_size) - at(y + tile_size, x) + at(y, x)
-    return count.astype(jnp.float32) / float(tile_size * tile_size)
+    return box_fraction(at(y, x), at(y, x + tile_size), at(y + tile_size, x), at(y + tile_size, x + tile_size),
+                        tile_size * tile_size)
+
+
+def box_fraction(top_left, top_right, bottom_left, bottom_right, area: int) -> jax.Array:
+    """``(S[br] - S[tr] - S[bl] + S[tl]) / area`` from uint32 summed-area values kept modulo 2**32.
+
+    Wrapping subtraction gives the box sum modulo 2**32, which is the exact sum when the box
+    holds fewer than 2**32 px, whatever the (overflowed) corner values are."""
+    count = bottom_right - top_right - bottom_left + top_left  # uint32, wraps
+    return count.astype(jnp.float32) / float(area)

@@ -36,15 +36,21 @@ def reward(preset: str, params, fraction, z, prev_fraction, prev_z, success, n_l
     raise ValueError(f"unknown reward preset {preset!r}; choose one of {PRESETS}")
 
 
-def reward_range(preset: str, params) -> tuple[float, float]:
-    """Documented ``(min, max)`` of the reward under ``preset`` for these constants."""
-    c, b = float(params.step_cost), float(params.success_bonus)
+def reward_bounds(preset: str, params):
+    """Documented ``(min, max)`` of the reward under ``preset`` (traceable: works inside jit)."""
+    c, b = params.step_cost, params.success_bonus
     if preset == "histogym":
-        return -c, float(params.histogym_scale) - c
+        return -c, params.histogym_scale - c
     if preset == "sparse":
-        return min(-c, b), max(-c, b)
-    w = float(params.dense_weight)
+        return jnp.minimum(-c, b), jnp.maximum(-c, b)
+    w = params.dense_weight
     return -c - w, -c + w + b
+
+
+def reward_range(preset: str, params) -> tuple[float, float]:
+    """Documented ``(min, max)`` of the reward under ``preset`` for these constants, as floats."""
+    low, high = reward_bounds(preset, params)
+    return float(low), float(high)
 
 
 def terminates_on_success(preset: str) -> bool:

@@ -204,3 +204,19 @@ def test_memory_budget_is_enforced_with_a_clear_error():
         histojax.make("HistoJAX-Hard-v0", max_device_bytes=1_000_000)
     env, params = histojax.make("HistoJAX-Easy-v0", max_device_bytes=200_000_000)
     assert env.n_levels == 3
+
+
+def test_debug_checks_pass_on_valid_steps_and_catch_a_broken_state(easy):
+    from histojax.debug import checked
+
+    env, params = easy
+    reset, step = checked(env)
+    err, (obs, state) = reset(KEY, params)
+    err.throw()
+    for a in [4, 4, 0, 3, 5, 6, 9]:
+        err, (obs, state, *_rest) = step(KEY, state, a, params)
+        err.throw()
+    broken = state.replace(x=jnp.int32(10_000))
+    err, _ = step(KEY, broken.replace(z=jnp.int32(7)), 6, params)
+    with pytest.raises(Exception, match="outside"):
+        err.throw()

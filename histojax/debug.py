@@ -1,0 +1,59 @@
+"""Debug checks behind a flag: ``checkify``-wrapped ``reset`` / ``step`` that verify the
+environment's invariants at run time (off by default: the plain functions have no checks).
+
+    reset, step = histojax.debug.checked(env)          # jitted, checkified
+    err, (obs, state, reward, terminated, truncated, info) = step(key, state, action, params)
+    err.throw()                                          # raises on the first broken invariant
+
+Checked (on the input and the output state): the view lies inside its level, ``z`` is a valid level, ``t`` is non-negative, the
+reward is finite and inside the preset's documented range, float observations are finite.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+from jax.experimental import checkify
+
+from histojax.rewards import reward_bounds
+
+
+def _check_state(env, state, params):
+    s, t = params.slide, env.tile_size
+    checkify.check((state.z >= 0) & (state.z < env.n_levels), "level z={z} outside [0, n_levels)", z=state.z)
+    z = jnp.clip(state.z, 0, env.n_levels - 1)
+    checkify.check((state.x >= 0) & (state.x + t <= s.level_width[z]), "view x={x} leaves level {z}",
+                   x=state.x, z=z)
+    checkify.check((state.y >= 0) & (state.y + t <= s.level_height[z]), "view y={y} leaves level {z}",
+                   y=state.y, z=z)
+    checkify.check(state.t >= 0, "negative step count t={t}", t=state.t)
+
+
+def _check_obs(obs):
+    for leaf in jax.tree.leaves(obs):
+        if jnp.issubdtype(leaf.dtype, jnp.floating):
+            checkify.check(jnp.all(jnp.isfinite(leaf)), "non-finite observation")
+
+
+def checked(env):
+    """Jitted, checkified ``(reset, step)`` of ``env``; each returns ``(error, outputs)``."""
+
+    def reset(key, params):
+        obs, state = env.reset(key, params)
+        _check_state(env, state, params)
+        _check_obs(obs)
+        return obs, state
+
+    def step(key, state, action, params):
+        _check_state(env, state, params)  # a broken input state is a bug upstream: say so
+        out = env.step(key, state, action, params)
+        obs, new_state, reward, terminated, truncated, info = out
+        low, high = reward_bounds(env.reward, params)
+        checkify.check(jnp.isfinite(reward), "non-finite reward {r}", r=reward)
+        checkify.check((reward >= low - 1e-4) & (reward <= high + 1e-4), "reward {r} outside the documented range",
+                       r=reward)
+        _check_state(env, new_state, params)
+        _check_obs(obs)
+        return out
+
+    errors = checkify.user_checks
+    return jax.jit(checkify.checkify(reset, errors=errors)), jax.jit(checkify.checkify(step, errors=errors))

@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all bench contract clean
+.PHONY: demo test test-all bench contract fuzz clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (Python 3.11) on PATH, or run: make PYTHON=python3 ..."; exit 1; }
@@ -21,6 +21,9 @@ test: $(STAMP)
 
 test-all: $(STAMP)
 	$(PY) -m pytest -q -m ''
+
+fuzz: $(STAMP)
+	HISTOJAX_FUZZ_EXAMPLES=3400 $(PY) -m pytest -q -s tests/test_fuzz.py
 
 bench: $(STAMP)
 	$(PY) benchmarks/throughput.py

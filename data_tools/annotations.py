@@ -305,7 +305,8 @@ def _read_geojson(path, label_map, default_label) -> list[tuple[str, list[Polygo
     for i, feat in enumerate(_features(path, doc)):
         if not isinstance(feat, dict):
             raise AnnotationError(path, f"feature {i} is not an object")
-        props = feat.get("properties") or {}
+        props = feat.get("properties")
+        props = props if isinstance(props, dict) else {}  # GeoJSON allows null; anything else is ignored
         what = f"feature {i}" + (f" ({props['name']!r})" if isinstance(props.get("name"), str) else "")
         label = _geojson_label(props, lmap, default_label)
         for rings in _geometry_polygons(feat.get("geometry")):

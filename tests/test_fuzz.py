@@ -1,0 +1,155 @@
+"""Fuzzing the readers: malformed ASAP XML, GeoJSON and TIFF headers either load or raise the
+project's own exception types — never anything else, never a hang.
+
+`make fuzz` runs HISTOJAX_FUZZ_EXAMPLES=3400 per target (10,200 cases) and prints the counts;
+the default `make test` runs a small sample (HISTOJAX_FUZZ_EXAMPLES defaults to 60).
+"""
+from __future__ import annotations
+
+import collections
+import io
+import json
+import os
+import warnings
+
+import numpy as np
+import pytest
+import tifffile
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+from data_tools.annotations import load_annotations
+from data_tools.errors import AnnotationError, SlideError
+from data_tools.slides import open_slide
+
+EXAMPLES = int(os.environ.get("HISTOJAX_FUZZ_EXAMPLES", "60"))
+FUZZ = settings(max_examples=EXAMPLES, deadline=None, database=None,
+                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
+                                       HealthCheck.function_scoped_fixture])
+COUNTS: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
+
+
+@pytest.fixture(scope="module", autouse=True)
+def report():
+    yield
+    print("\nfuzz report (cases per target and outcome):")
+    for target, counts in sorted(COUNTS.items()):
+        total = sum(counts.values())
+        detail = ", ".join(f"{k}: {v}" for k, v in sorted(counts.items()))
+        print(f"  {target:<10} {total:>6} cases  {detail}")
+
+
+def outcome(target: str, fn):
+    """Run ``fn``; count 'loaded' or the project error type; anything else propagates (a crash)."""
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            fn()
+            COUNTS[target]["loaded"] += 1
+        except (AnnotationError, SlideError) as e:
+            COUNTS[target][type(e).__name__] += 1
+
+
+# ------------------------------------------------------------------ ASAP XML
+numbers = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-10**6, 10**7).map(str),
+                    st.sampled_from(["", "abc", "1e999", "-0", "0x10", "1,5", " 12 "]))
+coordinate = st.builds(lambda o, x, y: f'<Coordinate Order="{o}" X="{x}" Y="{y}" />',
+                       st.one_of(st.integers(-2, 40).map(str), st.just("x")), numbers, numbers)
+clean_annotation = st.builds(
+    lambda t, g, pts: f'<Annotation Name="c" Type="{t}" PartOfGroup="{g}"><Coordinates>'
+                      + "".join(f'<Coordinate Order="{i}" X="{x}" Y="{y}" />' for i, (x, y) in enumerate(pts))
+                      + "</Coordinates></Annotation>",
+    st.sampled_from(["Polygon", "Spline"]), st.sampled_from(["metastasis", "_0", "Tumor", "_2"]),
+    st.lists(st.tuples(st.integers(0, 5000), st.integers(0, 5000)), min_size=3, max_size=10))
+dirty_annotation = st.builds(
+    lambda t, g, cs: f'<Annotation Name="a" Type="{t}" PartOfGroup="{g}"><Coordinates>{"".join(cs)}'
+                     f'</Coordinates></Annotation>',
+    st.sampled_from(["Polygon", "Spline", "Rectangle", "PointSet", "Dot", "", "Weird"]),
+    st.sampled_from(["metastasis", "_0", "_2", "negative", "Tumor", "None", "", "tissue", "zz"]),
+    st.lists(coordinate, max_size=12))
+annotation = st.one_of(clean_annotation, clean_annotation, dirty_annotation)
+prologue = st.sampled_from([
+    '<?xml version="1.0"?>', "", '<!DOCTYPE x [<!ENTITY a "aaaaaaaa">]>',
+    '<!DOCTYPE x [<!ENTITY e SYSTEM "file:///etc/passwd">]>', "\ufeff"])
+
+
+@FUZZ
+@given(pro=prologue, anns=st.lists(annotation, max_size=6), cut=st.integers(0, 4000),
+       junk=st.binary(max_size=20), mode=st.sampled_from([0, 0, 1, 2]))
+def test_fuzz_asap_xml(tmp_path, pro, anns, cut, junk, mode):
+    text = f'{pro}<ASAP_Annotations><Annotations>{"".join(anns)}</Annotations></ASAP_Annotations>'
+    data = text.encode("utf-8", "surrogatepass")
+    if mode == 1:
+        data = data[:cut]  # truncated
+    elif mode == 2:
+        pos = cut % (len(data) + 1)
+        data = data[:pos] + junk + data[pos:]  # bytes spliced in
+    path = tmp_path / "fuzz.xml"
+    path.write_bytes(data)
+    outcome("asap-xml", lambda: load_annotations(path))
+
+
+# ------------------------------------------------------------------ GeoJSON
+json_values = st.recursive(
+    st.one_of(st.none(), st.booleans(), st.floats(allow_nan=False), st.integers(), st.text(max_size=8)),
+    lambda children: st.one_of(st.lists(children, max_size=5), st.dictionaries(st.text(max_size=8), children,
+                                                                                max_size=5)),
+    max_leaves=30)
+rings = st.one_of(
+    st.lists(st.lists(st.integers(0, 10**4), min_size=2, max_size=2), min_size=3, max_size=8).map(
+        lambda r: [r + [r[0]]]),  # a closed ring: often a valid polygon
+    st.lists(st.lists(st.one_of(st.floats(allow_nan=False, allow_infinity=False, width=32),
+                                st.integers(-10, 10**6)), min_size=0, max_size=3), max_size=8))
+geometry = st.fixed_dictionaries({"type": st.sampled_from(["Polygon", "MultiPolygon", "Point", "LineString", "x"]),
+                                  "coordinates": st.one_of(rings, st.lists(rings, max_size=3), json_values)})
+feature = st.fixed_dictionaries({"type": st.just("Feature"), "geometry": st.one_of(geometry, json_values),
+                                 "properties": st.one_of(json_values, st.fixed_dictionaries(
+                                     {"classification": st.fixed_dictionaries({"name": st.text(max_size=8)})}))})
+documents = st.one_of(json_values, geometry, feature,
+                      st.fixed_dictionaries({"type": st.just("FeatureCollection"),
+                                             "features": st.lists(st.one_of(feature, json_values), max_size=5)}))
+
+
+@FUZZ
+@given(doc=documents, cut=st.integers(0, 3000), truncate=st.booleans())
+def test_fuzz_geojson(tmp_path, doc, cut, truncate):
+    data = json.dumps(doc, allow_nan=True).encode()
+    if truncate:
+        data = data[:cut]
+    path = tmp_path / "fuzz.geojson"
+    path.write_bytes(data)
+    outcome("geojson", lambda: load_annotations(path))
+
+
+# ------------------------------------------------------------------ TIFF headers
+def _valid_tiff() -> bytes:
+    buffer = io.BytesIO()
+    rng = np.random.default_rng(0)
+    image = rng.integers(0, 255, (96, 80, 3), dtype=np.uint8)
+    with tifffile.TiffWriter(buffer) as tif:
+        tif.write(image, tile=(32, 32), compression="zlib", photometric="rgb", subifds=1)
+        tif.write(image[::2, ::2], tile=(32, 32), compression="zlib", photometric="rgb", subfiletype=1)
+    return buffer.getvalue()
+
+
+VALID_TIFF = _valid_tiff()
+
+
+@FUZZ
+@given(edits=st.lists(st.tuples(st.integers(0, 400), st.integers(0, 255)), min_size=1, max_size=8),
+       cut=st.one_of(st.none(), st.integers(0, len(VALID_TIFF))))
+def test_fuzz_tiff_header(tmp_path, edits, cut):
+    data = bytearray(VALID_TIFF)
+    header_end = min(len(data), 8 + 400)
+    for pos, value in edits:  # mutate the header and first IFD entries
+        data[pos % header_end] = value
+    if cut is not None:
+        data = data[:cut]
+    path = tmp_path / "fuzz.tif"
+    path.write_bytes(bytes(data))
+
+    def read():
+        with open_slide(path) as reader:
+            reader.read_level(len(reader.levels) - 1, max_bytes=64 * 2**20)
+
+    outcome("tiff", read)

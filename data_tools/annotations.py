@@ -216,7 +216,10 @@ def _read_asap_xml(path, label_map) -> list[tuple[str, list[Polygon]]]:
             except (TypeError, ValueError) as e:
                 raise AnnotationError(path, f"{what}: non-numeric coordinate {dict(c.attrib)}") from e
             coords.append((order, xy))
-        shell = [xy for _, xy in sorted(coords, key=lambda t: t[0])]
+        if len({order for order, _ in coords}) != len(coords):
+            warnings.warn(f"{path}: {what}: duplicate Order values; vertices with equal Order kept in file order",
+                          stacklevel=3)
+        shell = [xy for _, xy in sorted(coords, key=lambda t: t[0])]  # stable: ties stay in file order
         if ann.get("Type").strip().lower() == "rectangle" and len(shell) == 2:
             (x0, y0), (x1, y1) = shell
             shell = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]

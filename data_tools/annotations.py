@@ -254,7 +254,7 @@ def _features(path, doc) -> list[dict]:
         return feats
     if kind == "Feature":
         return [doc]
-    if kind in _GEOMETRY_TYPES:
+    if isinstance(kind, str) and kind in _GEOMETRY_TYPES:
         return [{"type": "Feature", "geometry": doc, "properties": {}}]
     raise AnnotationError(path, f"not GeoJSON (type {kind!r})")
 

@@ -64,14 +64,22 @@ def render_state(env, state, params=None, max_side: int = 640) -> np.ndarray:
     return np.asarray(image)
 
 
-def render_trajectory(env, z, x, y, path=None, title: str = "", max_side: int = 640) -> np.ndarray:
-    """Draw a trajectory (sequences ``z, x, y`` of one episode) over the thumbnail.
+def _zxy(z, x, y):
+    """Accept either three sequences or a stacked state (anything with ``.z``, ``.x``, ``.y``)."""
+    if x is None and y is None:
+        z, x, y = z.z, z.x, z.y
+    return tuple(np.asarray(a).astype(int).ravel() for a in (z, x, y))
+
+
+def render_trajectory(env, z, x=None, y=None, path=None, title: str = "", max_side: int = 640) -> np.ndarray:
+    """Draw a trajectory over the thumbnail: sequences ``z, x, y`` of one episode, or a stacked
+    ``EnvState`` (e.g. from ``lax.scan``) as the only positional argument after ``env``.
 
     Views are boxes coloured by level (blue coarsest → red finest), their centres joined by a
     path coloured by the level it moved to; the start is a cyan dot, the end a red square and box. Saves a PNG to ``path`` when given.
     Returns the RGB uint8 picture.
     """
-    z, x, y = (np.asarray(a).astype(int).ravel() for a in (z, x, y))
+    z, x, y = _zxy(z, x, y)
     image, scale = _canvas(env, max_side)
     draw = ImageDraw.Draw(image)
     _draw_tumour(draw, env, scale)
@@ -96,12 +104,13 @@ def render_trajectory(env, z, x, y, path=None, title: str = "", max_side: int = 
     return np.asarray(image)
 
 
-def animate(env, z, x, y, path, fps: int = 4, max_side: int = 480) -> Path:
-    """Write a GIF (Pillow, no ffmpeg) of the trajectory ``z, x, y``: each frame shows the
-    thumbnail with the current view box beside the view itself. Returns the path."""
+def animate(env, z, x=None, y=None, path="trajectory.gif", fps: int = 4, max_side: int = 480) -> Path:
+    """Write a GIF (Pillow, no ffmpeg) of a trajectory (``z, x, y`` sequences or a stacked
+    ``EnvState``): each frame shows the thumbnail with the current view box beside the view
+    itself. Returns the path."""
     bundle = env._bundle
     frames = []
-    for zi, xi, yi in zip(*(np.asarray(a).astype(int).ravel() for a in (z, x, y))):
+    for zi, xi, yi in zip(*_zxy(z, x, y)):
         class _S:  # a concrete state for render_state
             pass
         s = _S()

@@ -1,5 +1,6 @@
 """The data_tools command line: ``python -m data_tools info SLIDE`` and
-``python -m data_tools build SLIDE [--annotations FILE] --out DIR [--levels 3 5 7] [--tile-size 128]``.
+``python -m data_tools build SLIDE [--annotations FILE] --out DIR [--levels 3 5 7] [--tile-size 128]
+[--region x0,y0,x1,y1 | --region-group NAME] [--region-margin PX]``.
 
 User errors (bad files, existing output) print one line and exit with status 2, no traceback.
 """
@@ -20,6 +21,16 @@ def _levels(text: str) -> list[int]:
     return values
 
 
+def _box(text: str) -> tuple[float, float, float, float]:
+    try:
+        values = tuple(float(v) for v in text.replace(",", " ").split())
+    except ValueError:
+        values = ()
+    if len(values) != 4:
+        raise argparse.ArgumentTypeError("a region is four numbers x0,y0,x1,y1 (level-0 px)")
+    return values
+
+
 def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m data_tools", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
@@ -37,8 +48,29 @@ def _parser() -> argparse.ArgumentParser:
                             "still >= one view)")
     build.add_argument("--label-map", help='JSON object mapping annotation group to tumour/exclusion/tissue/ignore, '
                                            'e.g. \'{"Tumor": "tumour", "_2": "exclusion"}\'')
+    where = build.add_mutually_exclusive_group()
+    where.add_argument("--region", type=_box, metavar="x0,y0,x1,y1",
+                       help="build only this rectangle of the slide (level-0 px)")
+    where.add_argument("--region-group", metavar="NAME",
+                       help="build only the bounding box of an annotation group/label, e.g. tissue or tumour")
+    build.add_argument("--region-margin", type=float, default=0.0, metavar="PX",
+                       help="grow the region by this many level-0 px on every side (default 0)")
     build.add_argument("--overwrite", action="store_true", help="replace an existing bundle")
     build.add_argument("--quiet", action="store_true", help="no progress bar")
+    synth = sub.add_parser("synth", help="make semi-synthetic slides (synthetic pixels, real CAMELYON16 "
+                                         "tumour geometry) and their bundles, with a train/test split")
+    synth.add_argument("out_dir", help="output folder (slides/, bundles/, previews/, dataset.json)")
+    synth.add_argument("--slides", type=int, default=8, help="number of slides (default 8)")
+    synth.add_argument("--size", type=int, default=4096, help="canvas side in level-0 px (default 4096)")
+    synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--tile-size", type=int, default=128, help="view size in px of the bundles (default 128)")
+    synth.add_argument("--tissue", choices=("synthetic", "camelyon16"), default="synthetic",
+                       help="tissue region: a random blob around the tumour (default) or a CAMELYON16 tissue "
+                            "outline of another slide")
+    synth.add_argument("--quiet", action="store_true", help="no progress bar")
+    from data_tools.features.cli import add_subcommands as _add_feature_commands
+
+    _add_feature_commands(sub)  # features, import-features
     return p
 
 
@@ -86,10 +118,28 @@ def main(argv=None) -> int:
             out = build_bundle(args.slide, args.out, annotations_path=args.annotations,
                                level_sets=args.levels or LEVEL_SETS, tile_size=args.tile_size,
                                magnification_range=args.magnification_range, label_map=label_map,
-                               overwrite=args.overwrite, progress=not args.quiet)
+                               overwrite=args.overwrite, progress=not args.quiet,
+                               region=args.region if args.region is not None else args.region_group,
+                               region_margin=args.region_margin)
             meta = read_metadata(out)
-            print(f"wrote {out}: {len(meta['levels'])} levels")
+            print(f"wrote {out}: {len(meta['levels'])} levels"
+                  + (f", region {meta['region']['box']} of the slide" if meta.get("region") else ""))
             print(_info(str(out)))
+        elif args.command == "synth":
+            from data_tools.synth import make_dataset
+
+            ds = make_dataset(args.out_dir, n_slides=args.slides, size=(args.size, args.size), seed=args.seed,
+                              tile_size=args.tile_size, tissue=args.tissue, progress=not args.quiet)
+            print(f"wrote {Path(args.out_dir) / 'dataset.json'}: {len(ds['train'])} train, {len(ds['test'])} test "
+                  f"bundles in {ds['seconds']:.0f} s (pixels synthetic, geometry real CAMELYON16)")
+            for s in ds["slides"]:
+                print(f"  {s['name']}: tumour {100 * s['tumour_fraction']:.1f} % of the canvas, "
+                      f"{s['finest_views_ge50']}/{s['finest_views']} finest views >= 50 % tumour, "
+                      f"mean RGB tumour {s['tumour_mean_rgb']} vs normal {s['normal_tissue_mean_rgb']}")
+        elif args.command in ("features", "import-features"):
+            from data_tools.features.cli import run as _run_feature_command
+
+            _run_feature_command(args)
     except HistojaxDataError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

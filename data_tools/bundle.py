@@ -5,6 +5,10 @@ lists them finest first):
   * ``pixels_KK.npy``  — ``(H, W, 3)`` uint8 RGB of that level,
   * ``tumour_KK.npy``  — ``(H, W)`` uint8 0/1 tumour mask (exclusion holes removed),
 and ``tissue.npy`` (bool, coarsest level) and ``annotations.geojson`` (level-0 px).
+A *region* bundle (``build_bundle(..., region=...)``) covers one rectangle of the slide only:
+its level-0 px are the region's (annotations translated by ``(-x0, -y0)`` and clipped), and
+``region.npy`` (bool, coarsest level) marks where a view centre may start (inside a polygon
+region); ``metadata["region"]`` records the box in slide px and the kind.
 Levels are at downsamples ``R ** (k / (n - 1))`` for each requested level count
 ``n`` (3 / 5 / 7) and magnification range ``R``, so one bundle serves Easy,
 Medium and Hard. Arrays are read with ``allow_pickle=False``; every file's
@@ -18,6 +22,7 @@ import math
 import os
 import shutil
 import uuid
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -83,13 +88,17 @@ def _sha256(path: Path) -> str:
     return h.hexdigest()
 
 
-def _resample(source: np.ndarray, source_downsample: float, downsample: float, size: tuple[int, int]) -> np.ndarray:
-    """Area-average ``source`` (a level at ``source_downsample``) to a level at ``downsample`` of ``size`` (W, H)."""
+def _resample(source: np.ndarray, source_downsample: float, downsample: float, size: tuple[int, int],
+              offset: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+    """Area-average ``source`` (a level at ``source_downsample``) to a level at ``downsample`` of ``size`` (W, H);
+    ``offset`` is where the output's top-left corner lies in ``source`` (px of the source)."""
     scale = downsample / source_downsample
     width, height = size
-    if math.isclose(scale, 1.0) and source.shape[1] >= width and source.shape[0] >= height:
-        return np.ascontiguousarray(source[:height, :width])
-    box = (0.0, 0.0, min(width * scale, source.shape[1]), min(height * scale, source.shape[0]))
+    ox, oy = offset
+    if (math.isclose(scale, 1.0) and ox == int(ox) and oy == int(oy)
+            and source.shape[1] >= width + ox and source.shape[0] >= height + oy):
+        return np.ascontiguousarray(source[int(oy):int(oy) + height, int(ox):int(ox) + width])
+    box = (ox, oy, min(ox + width * scale, source.shape[1]), min(oy + height * scale, source.shape[0]))
     image = Image.fromarray(source).resize((width, height), resample=Image.Resampling.BOX, box=box)
     return np.asarray(image, dtype=np.uint8)
 
@@ -104,6 +113,113 @@ def _pad(array: np.ndarray, min_side: int, fill: int) -> np.ndarray:
     return np.pad(array, pad, constant_values=fill)
 
 
+@dataclass(frozen=True)
+class Region:
+    """A rectangle of the slide a bundle covers: ``box = (x0, y0, x1, y1)`` in level-0 slide px;
+    ``polygon`` (slide px) limits it further when ``kind == "polygon"``."""
+
+    box: tuple[int, int, int, int]
+    kind: str                    # "rectangle", "polygon" or "group"
+    polygon: object = None       # shapely (Multi)Polygon for kind "polygon"
+    group: str | None = None     # the annotation group/label of kind "group"
+    margin: float = 0.0
+
+    @property
+    def width(self) -> int:
+        return self.box[2] - self.box[0]
+
+    @property
+    def height(self) -> int:
+        return self.box[3] - self.box[1]
+
+
+def _group_geometry(name: str, annotations_path, label_map, ann):
+    """Union of the polygons of an annotation label (``tumour``/``exclusion``/``tissue``), a group that the
+    label map sends to one, or an unmapped group name (case-insensitive)."""
+    import shapely
+
+    from data_tools.annotations import LABELS, _is_xml, _resolve_label_map, parse_asap_xml, parse_geojson
+
+    if annotations_path is None:
+        raise BundleError(None, f"region group {name!r} needs an annotation file (--annotations)")
+    label = _resolve_label_map(label_map).get(name.strip().lower())
+    if label in ("tumour", "exclusion", "tissue") and ann is not None:
+        if getattr(ann, label).is_empty:
+            raise BundleError(annotations_path, f"region group {name!r}: the annotation has no {label} polygon "
+                              "inside the slide")
+        return getattr(ann, label)
+    parse = parse_asap_xml if _is_xml(annotations_path) else parse_geojson
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        items = parse(annotations_path, label_map)
+    wanted = {f"unknown:{name}".lower(), str(label).lower()} if label in LABELS else {f"unknown:{name}".lower()}
+    polys = [p for lab, p in items if lab.lower() in wanted]
+    if not polys:
+        raise BundleError(annotations_path, f"region group {name!r}: no polygon in that group or label")
+    return shapely.union_all(polys)
+
+
+def resolve_region(region, slide_size: tuple[int, int], annotations_path=None, label_map=None, ann=None,
+                   margin: float = 0.0, tile_size: int = 1, where=None) -> Region:
+    """Turn ``region`` into a :class:`Region` clipped to the slide.
+
+    ``region`` is ``(x0, y0, x1, y1)`` in level-0 px, a shapely (Multi)Polygon in level-0 px, or the
+    name of an annotation group/label (e.g. ``"tissue"``, ``"tumour"``) whose union's bounding box is
+    the region. ``margin`` (level-0 px) grows the box (and buffers a polygon). The region must hold
+    one ``tile_size`` view at level 0 after clipping.
+    """
+    import shapely
+    from shapely.geometry.base import BaseGeometry
+
+    polygon, group = None, None
+    if isinstance(region, str):
+        kind, group = "group", region
+        bounds = _group_geometry(region, annotations_path, label_map, ann).bounds
+    elif isinstance(region, BaseGeometry):
+        kind = "polygon"
+        polygon = shapely.make_valid(region) if not region.is_valid else region
+        if margin:
+            polygon = polygon.buffer(margin)
+        polygon = shapely.intersection(polygon, shapely.box(0, 0, *slide_size))
+        if polygon.is_empty or polygon.area <= 0:
+            raise BundleError(where, f"region polygon has no area inside the slide {slide_size[0]}×{slide_size[1]}")
+        bounds = polygon.bounds
+    else:
+        try:
+            bounds = tuple(float(v) for v in region)
+        except (TypeError, ValueError):
+            bounds = ()
+        if len(bounds) != 4 or not all(math.isfinite(v) for v in bounds) \
+                or bounds[2] <= bounds[0] or bounds[3] <= bounds[1]:
+            raise BundleError(where, f"region {region!r} must be (x0, y0, x1, y1) with x0 < x1 and y0 < y1 "
+                              "(level-0 px), a shapely polygon, or an annotation group name")
+        kind = "rectangle"
+    if kind != "polygon":
+        bounds = (bounds[0] - margin, bounds[1] - margin, bounds[2] + margin, bounds[3] + margin)
+    x0, y0 = max(0, math.floor(bounds[0])), max(0, math.floor(bounds[1]))
+    x1, y1 = min(slide_size[0], math.ceil(bounds[2])), min(slide_size[1], math.ceil(bounds[3]))
+    if x1 - x0 < tile_size or y1 - y0 < tile_size:
+        raise BundleError(where, f"region ({x0}, {y0}, {x1}, {y1}) inside the slide {slide_size[0]}×{slide_size[1]} "
+                          f"is smaller than one {tile_size}-px view; choose a larger region")
+    return Region(box=(x0, y0, x1, y1), kind=kind, polygon=polygon, group=group, margin=float(margin))
+
+
+def _crop_annotations(ann, region: Region):
+    """``ann`` translated into the region's px and clipped to it (and to its polygon)."""
+    import dataclasses as _dc
+
+    import shapely
+    from shapely.affinity import translate
+
+    from data_tools.annotations import _as_multipolygon
+
+    x0, y0, x1, y1 = region.box
+    clip = region.polygon if region.polygon is not None else shapely.box(x0, y0, x1, y1)
+    moved = {name: _as_multipolygon(translate(shapely.intersection(getattr(ann, name), clip), -x0, -y0))
+             for name in ("tumour", "exclusion", "tissue")}
+    return _dc.replace(ann, **moved)
+
+
 def build_bundle(
     slide_path,
     out_dir,
@@ -115,6 +231,8 @@ def build_bundle(
     overwrite: bool = False,
     progress: bool = True,
     max_decode_bytes: int | None = None,
+    region=None,
+    region_margin: float = 0.0,
 ) -> Path:
     """Build a slide bundle at ``out_dir`` from a slide file and an optional annotation file.
 
@@ -124,10 +242,17 @@ def build_bundle(
     coarsest downsample (default: :func:`default_magnification_range`).
     Written to a temporary sibling folder and renamed into place, so a crash
     leaves nothing that looks like a bundle. Returns the bundle path.
+
+    ``region`` restricts the bundle to part of the slide (see :func:`resolve_region`): a rectangle
+    ``(x0, y0, x1, y1)`` in level-0 px, a shapely polygon (pixels outside it painted white, tissue
+    and tumour masked, starts only with the view centre inside it), or an annotation group/label
+    name whose union's bounding box is the region; ``region_margin`` grows it (level-0 px). The
+    bundle's level-0 px are then the region's, its magnification range is computed for the region.
     """
     from data_tools.annotations import annotations_to_geojson, load_annotations
     from data_tools.masks import rasterize, tissue_mask
     from data_tools.slides import MAX_DECODE_BYTES, open_slide
+    import shapely.geometry
 
     slide_path, out_dir = Path(slide_path), Path(out_dir)
     if out_dir.exists() and not overwrite:
@@ -144,6 +269,16 @@ def build_bundle(
     try:
         with open_slide(slide_path) as reader:
             width0, height0 = reader.dimensions
+            ann = None
+            if annotations_path is not None:
+                ann = load_annotations(annotations_path, label_map=label_map, slide_size=(width0, height0))
+            reg = None
+            if region is not None:
+                reg = resolve_region(region, (width0, height0), annotations_path, label_map, ann,
+                                     margin=region_margin, tile_size=tile_size, where=slide_path)
+                width0, height0 = reg.width, reg.height
+                if ann is not None:
+                    ann = _crop_annotations(ann, reg)
             r = magnification_range or default_magnification_range(width0, height0, tile_size)
             downsamples = bundle_downsamples(level_sets, r)
             sizes = [level_size(width0, height0, d) for d in downsamples]
@@ -153,9 +288,6 @@ def build_bundle(
                                   f"({total * 7 / 2**30:.1f} GiB on the device with their masks), more than the "
                                   f"{MAX_FLAT_PIXELS:,} px one dense slide array can index: use fewer levels "
                                   "(--levels), a larger --magnification-range start, or a coarser slide")
-            ann = None
-            if annotations_path is not None:
-                ann = load_annotations(annotations_path, label_map=label_map, slide_size=(width0, height0))
             levels_meta = []
             cache: tuple[int, np.ndarray] | None = None
             bar = tqdm(downsamples, desc=f"building {out_dir.name}", unit="level", disable=not progress)
@@ -163,11 +295,31 @@ def build_bundle(
                 # the coarsest source level that is still at least as fine as the target
                 src = max((i for i, lv in enumerate(reader.levels) if lv.downsample <= d * (1 + 1e-6)),
                           key=lambda i: reader.levels[i].downsample)
+                ds = reader.levels[src].downsample
                 if cache is None or cache[0] != src:
                     cache = None  # free the previous level before decoding the next
-                    cache = (src, reader.read_level(src, max_bytes=max_decode_bytes or MAX_DECODE_BYTES))
+                    if reg is None:
+                        cache = (src, reader.read_level(src, max_bytes=max_decode_bytes or MAX_DECODE_BYTES))
+                    else:  # only the region's window of the source level
+                        win = (math.floor(reg.box[0] / ds), math.floor(reg.box[1] / ds),
+                               math.ceil(reg.box[2] / ds), math.ceil(reg.box[3] / ds))
+                        needed = (win[2] - win[0]) * (win[3] - win[1]) * 3
+                        if needed > (max_decode_bytes or MAX_DECODE_BYTES):
+                            raise BundleError(slide_path, f"region window of level {src} needs {needed:,} bytes, "
+                                              "over the decode limit; use a smaller region")
+                        cache = (src, reader.read_region(src, win[0], win[1], win[2] - win[0], win[3] - win[1]))
                 size = level_size(width0, height0, d)
-                pixels = _pad(_resample(cache[1], reader.levels[src].downsample, d, size), tile_size, 255)
+                offset = (0.0, 0.0) if reg is None else (reg.box[0] / ds - math.floor(reg.box[0] / ds),
+                                                         reg.box[1] / ds - math.floor(reg.box[1] / ds))
+                content = _resample(cache[1], ds, d, size, offset)
+                inside = None
+                if reg is not None and reg.polygon is not None:
+                    from shapely.affinity import translate
+
+                    inside = rasterize(translate(reg.polygon, -reg.box[0], -reg.box[1]), size[0], size[1], d)
+                    content = content.copy()
+                    content[~inside] = 255  # outside the polygon: glass
+                pixels = _pad(content, tile_size, 255)
                 tumour = np.zeros(size[::-1], dtype=bool)
                 if ann is not None:
                     tumour = rasterize(ann.tumour, size[0], size[1], d)
@@ -182,8 +334,13 @@ def build_bundle(
                     "tumour_pixels": int(tumour.sum()), **names,
                 })
                 if k == len(downsamples) - 1:
-                    np.save(tmp / "tissue.npy", _pad(tissue_mask(pixels[: size[1], : size[0]]), tile_size, False),
-                            allow_pickle=False)
+                    tissue = tissue_mask(pixels[: size[1], : size[0]])
+                    if inside is not None:
+                        tissue &= inside
+                    np.save(tmp / "tissue.npy", _pad(tissue, tile_size, False), allow_pickle=False)
+                    if reg is not None:  # where a view centre may start
+                        allowed = inside if inside is not None else np.ones(size[::-1], dtype=bool)
+                        np.save(tmp / "region.npy", _pad(allowed, tile_size, False), allow_pickle=False)
             cache = None
             geojson = annotations_to_geojson(ann) if ann is not None else {"type": "FeatureCollection", "features": []}
             (tmp / "annotations.geojson").write_text(json.dumps(geojson))
@@ -205,6 +362,11 @@ def build_bundle(
                 "level_sets": list(level_sets),
                 "levels": levels_meta,
                 "tissue": {"file": "tissue.npy", "level": len(levels_meta) - 1},
+                "region": None if reg is None else {
+                    "box": list(reg.box), "kind": reg.kind, "group": reg.group, "margin": reg.margin,
+                    "polygon": None if reg.polygon is None else shapely.geometry.mapping(reg.polygon),
+                    "mask": "region.npy", "level": len(levels_meta) - 1,
+                },
                 "checksums": {name: _sha256(tmp / name) for name in files},
             }
             with open(tmp / METADATA, "w") as f:
@@ -237,6 +399,7 @@ class Bundle:
     pixels: list[np.ndarray]   # (H, W, 3) uint8 per level
     tumour: list[np.ndarray]   # (H, W) uint8 0/1 per level
     tissue: np.ndarray         # (H, W) bool at the coarsest bundle level
+    region: np.ndarray | None = None  # (H, W) bool at the coarsest level: allowed view centres (region bundles)
 
     @property
     def downsamples(self) -> list[float]:
@@ -296,8 +459,11 @@ def load_bundle(path, verify: bool = True, levels: list[int] | None = None) -> B
                 or tumour[-1].shape != (lv["height"], lv["width"]):
             raise BundleError(path / lv["pixels"], "array shape or dtype disagrees with metadata; rebuild the bundle")
     tissue = _load_array(path, metadata["tissue"]["file"], metadata, verify)
-    return Bundle(path=path, metadata=metadata, pixels=pixels, tumour=tumour, tissue=tissue)
+    region = None
+    if metadata.get("region") and metadata["region"].get("mask"):
+        region = _load_array(path, metadata["region"]["mask"], metadata, verify).astype(bool)
+    return Bundle(path=path, metadata=metadata, pixels=pixels, tumour=tumour, tissue=tissue, region=region)
 
 
-__all__ = ["Bundle", "FORMAT_VERSION", "LEVEL_SETS", "build_bundle", "bundle_downsamples",
+__all__ = ["Bundle", "FORMAT_VERSION", "LEVEL_SETS", "Region", "build_bundle", "bundle_downsamples", "resolve_region",
            "default_magnification_range", "level_downsamples", "level_size", "load_bundle", "read_metadata"]

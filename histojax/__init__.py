@@ -7,6 +7,7 @@
 from histojax.actions import ACTION_NAMES, DOWN, LEFT, RIGHT, STAY, UP, ZOOM_IN, ZOOM_OUT
 from histojax.env import EnvParams, EnvState, HistoEnv
 from histojax.registry import make, register, registered_envs
+from histojax.scenarios import Scenario, load_scenario, register_scenario
 from histojax.slide import SlideArrays, load_slide
 from histojax.wrappers import GymnaxV0Wrapper, LogWrapper
 
@@ -15,4 +16,5 @@ __all__ = [
     "ACTION_NAMES", "DOWN", "EnvParams", "EnvState", "GymnaxV0Wrapper", "HistoEnv", "LEFT", "LogWrapper",
     "RIGHT", "STAY", "SlideArrays", "UP", "ZOOM_IN", "ZOOM_OUT", "load_slide", "make", "register",
     "registered_envs",
+    "Scenario", "load_scenario", "register_scenario",
 ]

@@ -16,8 +16,10 @@ act as STAY). ``action_mode="continuous"`` — ``Box(-1, 1, (3,))``: ``(dx, dy)`
 centre; positions are clamped inside the level after every move and zoom.
 
 **Observations**: ``obs_mode="pixels"`` — the view, ``(T, T, 3)`` uint8; ``"pixels_float"`` — the
-same as float32 in ``[0, 1]``. ``with_position=True`` gives a dict ``{"pixels": ..., "position":
-(x_centre / W_z, y_centre / H_z, z / (n_levels - 1))}`` with the position float32 in ``[0, 1]``.
+same as float32 in ``[0, 1]``; ``"features"`` — the ``(D,)`` float32 feature vector of the view,
+read from the bundle's feature grid (see :func:`view_features`). ``with_position=True`` gives a dict
+``{"pixels" (or "features"): ..., "position": (x_centre / W_z, y_centre / H_z, z / (n_levels - 1))}``
+with the position float32 in ``[0, 1]``.
 
 **Rewards**: see :mod:`histojax.rewards` (``"histogym"``, ``"sparse"``, ``"dense"``).
 
@@ -35,13 +37,28 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from flax import struct
+from jax import lax
 
 from histojax import actions, rewards, spaces
 from histojax.slide import SlideArrays
 from histojax.views import view_pixels, view_tumour_fraction
 
 ACTION_MODES = ("discrete", "continuous")
-OBS_MODES = ("pixels", "pixels_float")
+OBS_MODES = ("pixels", "pixels_float", "features")
+
+
+def view_features(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.Array) -> jax.Array:
+    """Feature vector ``(D,)`` float32 of the view at ``(z, x, y)``: the grid cell whose position is
+    nearest the view's top-left corner, ``gx = clip(round(x / stride), 0, gw - 1)`` (likewise
+    ``gy``). Exact for grid-aligned views; any other view gets the grid view at most
+    ``stride / 2`` px away on each axis (or, at the right/bottom edge, the last grid column/row).
+    One gather of ``D`` values."""
+    stride = slide.feature_stride
+    gw, gh = slide.feature_grid_width[z], slide.feature_grid_height[z]
+    gx = jnp.clip((x + stride // 2) // stride, 0, gw - 1)
+    gy = jnp.clip((y + stride // 2) // stride, 0, gh - 1)
+    row = slide.feature_offset[z] + gy * gw + gx
+    return lax.dynamic_index_in_dim(slide.features, row, axis=0, keepdims=False).astype(jnp.float32)
 
 
 @struct.dataclass
@@ -110,13 +127,19 @@ class HistoEnv:
         return spaces.Box(-1.0, 1.0, (3,), jnp.float32)
 
     def observation_space(self, params: EnvParams | None = None):
-        """Box of the view (uint8 in [0, 255] or float32 in [0, 1]), or a Dict with the position."""
+        """Box of the view (uint8 in [0, 255] or float32 in [0, 1]) or of its features (float32,
+        unbounded, ``(D,)``), or a Dict with the position."""
         t = self.tile_size
-        pixels = (spaces.Box(0, 255, (t, t, 3), jnp.uint8) if self.obs_mode == "pixels"
-                  else spaces.Box(0.0, 1.0, (t, t, 3), jnp.float32))
+        if self.obs_mode == "features":
+            slide = (self.default_params if params is None else params).slide
+            pixels = spaces.Box(-jnp.inf, jnp.inf, (slide.features.shape[-1],), jnp.float32)
+        else:
+            pixels = (spaces.Box(0, 255, (t, t, 3), jnp.uint8) if self.obs_mode == "pixels"
+                      else spaces.Box(0.0, 1.0, (t, t, 3), jnp.float32))
         if not self.with_position:
             return pixels
-        return spaces.Dict({"pixels": pixels, "position": spaces.Box(0.0, 1.0, (3,), jnp.float32)})
+        key = "features" if self.obs_mode == "features" else "pixels"
+        return spaces.Dict({key: pixels, "position": spaces.Box(0.0, 1.0, (3,), jnp.float32)})
 
     def reset(self, key: jax.Array, params: EnvParams | None = None):
         """Start an episode: ``(obs, state)``."""
@@ -181,18 +204,29 @@ class HistoEnv:
     def get_obs(self, state: EnvState, params: EnvParams):
         """The observation of ``state`` (see the module doc for modes and units)."""
         slide, t = params.slide, self.tile_size
+        if self.obs_mode == "features":
+            if slide.features is None:
+                raise ValueError("obs_mode='features' needs a slide with a feature grid: compute one with "
+                                 "`python -m data_tools features BUNDLE` and make the env from that bundle")
+            obs = view_features(slide, state.z, state.x, state.y)
+            if not self.with_position:
+                return obs
+            return {"features": obs, "position": self._position(state, slide)}
         pixels = view_pixels(slide, state.z, state.x, state.y, t)
         if self.obs_mode == "pixels_float":
             pixels = pixels.astype(jnp.float32) / 255.0
         if not self.with_position:
             return pixels
-        half = t / 2.0
-        position = jnp.stack([
+        return {"pixels": pixels, "position": self._position(state, slide)}
+
+    def _position(self, state: EnvState, slide: SlideArrays):
+        """``(x_centre / W_z, y_centre / H_z, z / (n_levels - 1))`` float32 in ``[0, 1]``."""
+        half = self.tile_size / 2.0
+        return jnp.stack([
             (state.x + half) / slide.level_width[state.z],
             (state.y + half) / slide.level_height[state.z],
             state.z / max(self.n_levels - 1, 1),
         ]).astype(jnp.float32)
-        return {"pixels": pixels, "position": position}
 
     # ----------------------------------------------------------------- host-side helpers
     def render(self, state: EnvState, params: EnvParams | None = None):

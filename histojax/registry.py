@@ -18,17 +18,24 @@ from histojax.env import EnvParams, HistoEnv
 from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide
 
 _REGISTRY: dict[str, dict] = {}
+_SLIDES: dict[str, object] = {}  # env id → default slide: a bundle path, or a recipe ``f(spec) -> bundle path``
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels")
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name != "slide")
 
 
-def register(env_id: str, **spec) -> None:
+def register(env_id: str, slide=None, **spec) -> None:
     """Register a scenario: ``spec`` holds static settings (``n_levels``, ``reward``, …) and
-    ``EnvParams`` defaults (``max_steps_in_episode``, …)."""
+    ``EnvParams`` defaults (``max_steps_in_episode``, …). ``slide`` is the id's default slide when
+    ``make`` gets none: a bundle path, or a recipe called with the merged settings that returns
+    one (e.g. builds it into the cache on first use); ``None`` means the embedded sample slide."""
     unknown = set(spec) - set(STATIC_FIELDS) - set(PARAM_FIELDS)
     if unknown:
         raise TypeError(f"unknown scenario settings {sorted(unknown)}")
     _REGISTRY[env_id] = dict(spec)
+    if slide is None:
+        _SLIDES.pop(env_id, None)
+    else:
+        _SLIDES[env_id] = slide
 
 
 def registered_envs() -> tuple[str, ...]:
@@ -45,8 +52,9 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
          **overrides):
     """Make ``(env, params)`` for a registered id.
 
-    ``slide``: a bundle folder (``python -m data_tools build``) or ``None`` for the embedded
-    sample slide (its bundle is built on first use). ``overrides``: any static setting
+    ``slide``: a bundle folder (``python -m data_tools build``) or ``None`` for the id's registered
+    slide (``register(..., slide=...)``, e.g. a scenario's recipe) or else the embedded sample slide
+    (bundles are built on first use). ``overrides``: any static setting
     (``action_mode``, ``obs_mode``, ``with_position``, ``reward``, ``auto_reset``; ``tile_size``
     only for the sample slide, where it selects another cached bundle) or ``EnvParams`` field
     (``max_steps_in_episode``, ``stride``, ``success_threshold``, ``step_cost``,
@@ -62,11 +70,15 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     if unknown:
         raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
                         f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
+    if slide is None and env_id in _SLIDES:
+        recipe = _SLIDES[env_id]
+        slide = recipe(spec) if callable(recipe) else recipe
     if slide is None:
         from histojax.sample import sample_bundle
 
         slide = sample_bundle(tile_size=spec.get("tile_size", 128))
-    arrays, bundle = load_slide(slide, spec["n_levels"], verify=verify, max_device_bytes=max_device_bytes)
+    arrays, bundle = load_slide(slide, spec["n_levels"], verify=verify, max_device_bytes=max_device_bytes,
+                                features=True if spec.get("obs_mode") == "features" else None)
     tile_size = int(bundle.metadata["tile_size"])
     if spec.get("tile_size", tile_size) != tile_size:
         raise ValueError(f"bundle {slide} was built with tile size {tile_size}; rebuild it with "

@@ -41,6 +41,12 @@ class SlideArrays:
     tumour_sat: jnp.ndarray    # (S,) uint32, modulo 2**32
     sat_offset: jnp.ndarray    # (n,) int32
     start_logits: jnp.ndarray  # (Hc - T + 1, Wc - T + 1) float32
+    # optional feature grid (``obs_mode="features"``; ``None`` when not loaded), see ``view_features``:
+    features: jnp.ndarray | None = None            # (F, D) float16/float32, level z's grid row-major from feature_offset[z]
+    feature_offset: jnp.ndarray | None = None      # (n,) int32, first row of each level in ``features``
+    feature_grid_width: jnp.ndarray | None = None  # (n,) int32, grid columns gw of each level
+    feature_grid_height: jnp.ndarray | None = None  # (n,) int32, grid rows gh of each level
+    feature_stride: jnp.ndarray | None = None      # () int32, px of a level between grid positions
 
 
 def summed_area_table(mask: np.ndarray) -> np.ndarray:
@@ -114,8 +120,12 @@ def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
 
 
 def load_slide(path, n_levels: int, verify: bool = True,
-               max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES) -> tuple[SlideArrays, Bundle]:
+               max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES, features=None) -> tuple[SlideArrays, Bundle]:
     """Load the ``n_levels`` zoom levels of the bundle at ``path`` onto the device.
+
+    ``features``: ``None`` loads the bundle's feature grid if it has one (``python -m data_tools
+    features``), ``True`` requires it (``BundleError`` naming the command to run otherwise),
+    ``False`` skips it.
 
     Refuses, before reading any array, a slide whose levels need more than
     ``max_device_bytes`` (pixels and summed-area tables, see ``device_bytes``).
@@ -127,6 +137,9 @@ def load_slide(path, n_levels: int, verify: bool = True,
     metadata = read_metadata(path)
     chosen = select_levels(metadata, n_levels, path)
     needed = sum(device_bytes(metadata["levels"][k]["width"], metadata["levels"][k]["height"]) for k in chosen)
+    load_features = bool(features) or (features is None and bool(metadata.get("features")))
+    if load_features:
+        needed += feature_bytes(metadata, chosen, path)
     if needed > max_device_bytes:
         finest = metadata["levels"][chosen[-1]]
         raise BundleError(path, f"{n_levels} levels need {needed:,} bytes on the device (finest level "
@@ -139,4 +152,39 @@ def load_slide(path, n_levels: int, verify: bool = True,
     bundle = load_bundle(path, verify=verify, levels=chosen)
     ordered = Bundle(path=bundle.path, metadata={**metadata, "levels": [metadata["levels"][k] for k in chosen]},
                      pixels=bundle.pixels, tumour=bundle.tumour, tissue=bundle.tissue, region=bundle.region)
-    return slide_arrays_from_bundle(ordered, int(metadata["tile_size"])), ordered
+    arrays = slide_arrays_from_bundle(ordered, int(metadata["tile_size"]))
+    if load_features:
+        arrays = with_features(arrays, path, metadata, chosen, verify)
+    return arrays, ordered
+
+
+def feature_bytes(metadata: dict, chosen: list[int], where=None) -> int:
+    """Device bytes of the feature grids of bundle levels ``chosen`` (0 if the bundle has none)."""
+    info = metadata.get("features")
+    if not info:
+        return 0
+    itemsize = np.dtype(info.get("dtype", "float32")).itemsize
+    try:
+        return sum(int(np.prod(info["levels"][k]["grid"])) * int(info["dim"]) * itemsize for k in chosen)
+    except (KeyError, IndexError, TypeError):
+        raise BundleError(where, "metadata['features'] is malformed; recompute with "
+                          "`python -m data_tools features BUNDLE`") from None
+
+
+def with_features(arrays: SlideArrays, path, metadata: dict, chosen: list[int], verify: bool = True) -> SlideArrays:
+    """``arrays`` with the feature grids of bundle levels ``chosen`` (coarsest first) packed in:
+    ``features`` ``(F, D)`` (dtype as stored) plus per-level offsets and grid sizes."""
+    from data_tools.features.store import load_feature_levels
+
+    grids, stride = load_feature_levels(path, metadata, chosen, verify=verify)
+    sizes = np.array([g.shape[0] * g.shape[1] for g in grids], dtype=np.int64)
+    if sizes.sum() >= 2**31:
+        raise BundleError(path, "feature grid too large for int32 indexing; use a larger --stride")
+    flat = np.concatenate([g.reshape(-1, g.shape[2]) for g in grids])
+    return arrays.replace(
+        features=jnp.asarray(flat),
+        feature_offset=jnp.asarray(np.concatenate([[0], np.cumsum(sizes)[:-1]]), dtype=jnp.int32),
+        feature_grid_width=jnp.asarray([g.shape[1] for g in grids], dtype=jnp.int32),
+        feature_grid_height=jnp.asarray([g.shape[0] for g in grids], dtype=jnp.int32),
+        feature_stride=jnp.asarray(stride, dtype=jnp.int32),
+    )

@@ -1,0 +1,102 @@
+"""Steps per second of the environment with feature observations (``obs_mode="features"``).
+
+``lax.scan`` over ``vmap(step)`` with random actions and auto-reset, on the embedded sample slide
+with its EfficientNet-Lite0 feature grid (computed once into a copy of the cached sample bundle,
+``<cache>/…-features``, about a minute and a half on 2 CPU cores), or on ``--bundle``. Prints
+steps/s per batch size and the ratio to HistoGym's 13–60 steps/s (one OpenSlide read and one
+polygon overlap per step, one Python env).
+
+    python benchmarks/features_throughput.py [--env HistoJAX-Hard-v0] [--batches 1024 4096] [--seconds 1.0]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import shutil
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+
+import histojax
+
+HISTOGYM_STEPS_PER_S = (13.0, 60.0)
+
+
+def sample_feature_bundle() -> Path:
+    """A copy of the cached sample bundle with a feature grid (built on first use)."""
+    from data_tools.bundle import read_metadata
+    from data_tools.features.grid import compute_features
+    from histojax.sample import sample_bundle
+
+    source = sample_bundle()
+    out = source.with_name(source.name + "-features")
+    if not (out.is_dir() and read_metadata(out).get("features")):
+        if not out.is_dir():
+            tmp = out.with_name(out.name + ".copy")
+            shutil.rmtree(tmp, ignore_errors=True)
+            shutil.copytree(source, tmp)
+            tmp.rename(out)
+        t0 = time.perf_counter()
+        compute_features(out)
+        print(f"computed the feature grid of {out} in {time.perf_counter() - t0:.1f} s")
+    return out
+
+
+def rollout(env, batch: int, steps: int):
+    def run(key, params):
+        _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, batch), params)
+
+        def body(carry, key):
+            state, checksum = carry
+            a = jax.random.randint(key, (batch,), 0, 7)
+            obs, state, reward, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                jax.random.split(key, batch), state, a, params)
+            # consume the whole observation so XLA cannot drop the lookup
+            return (state, checksum + obs.sum() + reward.sum()), None
+
+        return jax.lax.scan(body, (state, jnp.float32(0)), jax.random.split(key, steps))[0][1]
+
+    return jax.jit(run)
+
+
+def measure(env, params, batch: int, seconds: float) -> float:
+    steps = max(10, int(200_000 / batch))
+    fn = rollout(env, batch, steps)
+    key = jax.random.PRNGKey(0)
+    jax.block_until_ready(fn(key, params))  # compile
+    calls, t0 = 0, time.perf_counter()
+    while True:
+        jax.block_until_ready(fn(jax.random.fold_in(key, calls), params))
+        calls += 1
+        elapsed = time.perf_counter() - t0
+        if elapsed >= seconds:
+            return calls * steps * batch / elapsed
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--env", default="HistoJAX-Hard-v0")
+    p.add_argument("--bundle", default=None, help="bundle with a feature grid (default: the sample slide's)")
+    p.add_argument("--batches", type=int, nargs="+", default=[1024, 4096])
+    p.add_argument("--seconds", type=float, default=1.0, help="minimum timed seconds per measurement")
+    args = p.parse_args(argv)
+    bundle = Path(args.bundle) if args.bundle else sample_feature_bundle()
+    env, params = histojax.make(args.env, slide=bundle, obs_mode="features")
+    d, dtype = params.slide.features.shape[1], params.slide.features.dtype
+    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+          f"JAX {jax.__version__} on {jax.devices()[0].platform}")
+    print(f"{args.env} on {bundle.name} ({env.n_levels} levels), feature observations ({d},) "
+          f"stored as {jnp.dtype(dtype).name}")
+    lo, hi = HISTOGYM_STEPS_PER_S
+    print(f"{'batch':>6} {'features steps/s':>17} {'x HistoGym (13-60 steps/s)':>28}")
+    for batch in args.batches:
+        sps = measure(env, params, batch, args.seconds)
+        print(f"{batch:>6} {sps:>17,.0f} {f'{sps / hi:,.0f}-{sps / lo:,.0f}x':>28}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,166 @@
+"""Embed every view of a bundle's feature grid with a frozen encoder (``python -m data_tools features``).
+
+Views are taken on the grid of :mod:`data_tools.features.store` (every ``stride`` px of every bundle
+level), embedded in batches of ``batch`` by a jitted encoder (the last batch is padded, so one
+compiled shape serves all), and written as ``features_KK.npy`` with the metadata updated atomically.
+
+Resumable: the raw embeddings of each batch go to ``BUNDLE/features.partial/CCCCCC.npy`` (written
+atomically) as soon as they are computed; a restarted run with the same encoder, input size and
+stride skips every chunk already there, and the folder is removed once the grid is written.
+
+Optional reduction to ``dim`` < 1280: ``projection="random"`` — a seeded Gaussian matrix
+``(1280, dim) / √dim`` (Johnson–Lindenstrauss), or ``"pca"`` — the top ``dim`` principal
+directions of this slide's embeddings (centred with their mean); the matrix (and the PCA mean) are
+stored as ``features_projection.npy`` (``features_projection_mean.npy``).
+"""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from data_tools.bundle import load_bundle, read_metadata
+from data_tools.errors import BundleError
+from data_tools.features.store import level_grids, save_array, update_metadata
+
+PARTIAL = "features.partial"
+PROJECTIONS = ("random", "pca")
+
+
+def _settings(metadata: dict, encoder, stride: int, batch: int) -> dict:
+    return {"encoder": encoder.name, "image_size": encoder.image_size, "stride": stride, "batch": batch,
+            "tile_size": int(metadata["tile_size"]), "source_sha256": metadata["source"]["sha256"],
+            "levels": [[lv["width"], lv["height"], lv["downsample"]] for lv in metadata["levels"]]}
+
+
+def _projection(raw: np.ndarray, dim: int | None, kind: str, seed: int):
+    """``(matrix (E, dim) or None, mean (E,) or None)``."""
+    e = raw.shape[1]
+    if dim is None or (dim == e and kind == "random"):
+        return None, None
+    if kind == "random":
+        rng = np.random.default_rng(seed)
+        return (rng.standard_normal((e, dim)) / np.sqrt(dim)).astype(np.float32), None
+    mean = raw.mean(axis=0, dtype=np.float64)
+    centred = raw.astype(np.float64) - mean
+    if dim > min(centred.shape):
+        raise BundleError(None, f"PCA to {dim} dimensions needs at least {dim} views; this grid has {raw.shape[0]}")
+    _, _, vt = np.linalg.svd(centred, full_matrices=False)
+    components = vt[:dim].T
+    components *= np.where(components[np.abs(components).argmax(axis=0), np.arange(dim)] < 0, -1.0, 1.0)
+    return components.astype(np.float32), mean.astype(np.float32)
+
+
+def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int | None = None,
+                     projection: str = "random", seed: int = 0, stride: int | None = None, batch: int = 64,
+                     image_size: int | None = 224, dtype: str = "float16", progress: bool = True,
+                     max_chunks: int | None = None, verify: bool = True) -> dict | None:
+    """Compute the feature grid of the bundle at ``bundle`` (see the module doc) and return the new
+    ``metadata["features"]``. ``stride`` defaults to the tile size; ``image_size`` is the encoder's
+    input size (views are resized to it; None feeds them at their own size). ``max_chunks`` stops
+    after that many new chunks and returns None (for tests of resuming)."""
+    from data_tools.features.efficientnet import load_encoder
+
+    bundle = Path(bundle)
+    metadata = read_metadata(bundle)
+    tile = int(metadata["tile_size"])
+    stride = int(stride or tile)
+    if stride < 1 or batch < 1:
+        raise BundleError(bundle, f"stride ({stride}) and batch ({batch}) must be at least 1")
+    if projection not in PROJECTIONS:
+        raise BundleError(bundle, f"projection must be one of {PROJECTIONS}, got {projection!r}")
+    if dtype not in ("float16", "float32"):
+        raise BundleError(bundle, f"dtype must be float16 or float32, got {dtype!r}")
+    encoder = load_encoder(encoder_name, image_size=image_size)
+    if dim is not None and not 1 <= dim <= encoder.dim:
+        raise BundleError(bundle, f"--dim must be between 1 and the encoder's {encoder.dim}, got {dim}")
+    grids = level_grids(metadata, stride)
+
+    partial = bundle / PARTIAL
+    settings = _settings(metadata, encoder, stride, batch)
+    settings_file = partial / "settings.json"
+    if partial.exists():
+        try:
+            same = json.loads(settings_file.read_text()) == settings
+        except (OSError, json.JSONDecodeError):
+            same = False
+        if not same:  # another encoder, stride or slide: start over
+            shutil.rmtree(partial)
+    partial.mkdir(exist_ok=True)
+    settings_file.write_text(json.dumps(settings))
+
+    # one list of views over all levels (finest first, row-major), cut into batches of ``batch``:
+    # small coarse levels share batches instead of each padding its own
+    sizes = [gh * gw for gh, gw in grids]
+    starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
+    n_chunks = -(-int(starts[-1]) // batch)
+
+    def chunk_file(chunk):
+        return partial / f"{chunk:06d}.npy"
+
+    done = sum(chunk_file(c).is_file() for c in range(n_chunks))
+    bar = tqdm(total=n_chunks, initial=done, desc=f"embedding {bundle.name}", unit="batch", disable=not progress)
+    levels_cache: dict[int, np.ndarray] = {}
+    new = 0
+    try:
+        for c in range(n_chunks):
+            if chunk_file(c).is_file():
+                continue
+            if max_chunks is not None and new >= max_chunks:
+                return None
+            index = np.arange(c * batch, min((c + 1) * batch, int(starts[-1])))
+            level = np.searchsorted(starts, index, side="right") - 1
+            for k in [k for k in levels_cache if k not in set(level.tolist())]:
+                del levels_cache[k]  # one level (or the few small ones of a batch) in memory at a time
+            views = np.zeros((batch, tile, tile, 3), np.uint8)
+            for i, (k, j) in enumerate(zip(level, index - starts[level])):
+                if k not in levels_cache:
+                    levels_cache[k] = load_bundle(bundle, verify=verify, levels=[int(k)]).pixels[0]
+                gw = grids[k][1]
+                y, x = (j // gw) * stride, (j % gw) * stride
+                views[i] = levels_cache[k][y:y + tile, x:x + tile]
+            save_array(chunk_file(c), np.asarray(encoder.embed(views), dtype=np.float32)[:len(index)])
+            new += 1
+            bar.update(1)
+    finally:
+        bar.close()
+
+    flat = (np.concatenate([np.load(chunk_file(c), allow_pickle=False) for c in range(n_chunks)]) if n_chunks
+            else np.zeros((0, encoder.dim), np.float32))
+    raw = [flat[starts[k]:starts[k + 1]] for k in range(len(grids))]
+    matrix, mean = _projection(flat, dim, projection, seed)
+    written, levels = [], []
+    for k, (grid, emb) in enumerate(zip(grids, raw)):
+        if matrix is not None:
+            emb = (emb - mean if mean is not None else emb) @ matrix
+        name = f"features_{k:02d}.npy"
+        save_array(bundle / name, emb.reshape(*grid, -1).astype(dtype))
+        written.append(name)
+        levels.append({"file": name, "grid": list(grid)})
+    proj = None
+    if matrix is not None:
+        proj = {"kind": projection, "file": "features_projection.npy", "input_dim": encoder.dim}
+        save_array(bundle / proj["file"], matrix)
+        written.append(proj["file"])
+        if projection == "random":
+            proj["seed"] = seed
+        else:
+            proj["mean_file"] = "features_projection_mean.npy"
+            save_array(bundle / proj["mean_file"], mean)
+            written.append(proj["mean_file"])
+    features = {
+        "encoder": encoder.name, "encoder_dim": encoder.dim, "image_size": encoder.image_size,
+        "dim": int(matrix.shape[1]) if matrix is not None else encoder.dim, "stride": stride,
+        "dtype": dtype, "projection": proj, "source": "computed",
+        "grid": "cell (gy, gx) of level KK = the view with top-left (gx*stride, gy*stride) px of that level",
+        "levels": levels,
+    }
+    update_metadata(bundle, features, written)
+    shutil.rmtree(partial, ignore_errors=True)
+    return features
+
+
+__all__ = ["compute_features"]

@@ -28,11 +28,16 @@ def _without_autoreset(env: HistoEnv) -> HistoEnv:
 def single_spaces(env: HistoEnv, params):
     """Gymnasium ``(observation_space, action_space)`` of one environment."""
     t = env.tile_size
-    pixels = (gym_spaces.Box(0, 255, (t, t, 3), np.uint8) if env.obs_mode == "pixels"
-              else gym_spaces.Box(0.0, 1.0, (t, t, 3), np.float32))
-    obs_space = pixels
+    if env.obs_mode == "features":
+        view = gym_spaces.Box(-np.inf, np.inf, (params.slide.features.shape[-1],), np.float32)
+    elif env.obs_mode == "pixels":
+        view = gym_spaces.Box(0, 255, (t, t, 3), np.uint8)
+    else:
+        view = gym_spaces.Box(0.0, 1.0, (t, t, 3), np.float32)
+    obs_space = view
     if env.with_position:
-        obs_space = gym_spaces.Dict({"pixels": pixels, "position": gym_spaces.Box(0.0, 1.0, (3,), np.float32)})
+        key = "features" if env.obs_mode == "features" else "pixels"
+        obs_space = gym_spaces.Dict({key: view, "position": gym_spaces.Box(0.0, 1.0, (3,), np.float32)})
     if env.action_mode == "discrete":
         action_space = gym_spaces.Discrete(env.num_actions)
     else:

@@ -383,3 +383,16 @@ def test_import_clam_hdf5(tiny_bundle, tmp_path):
     with h5py.File(tmp_path / "bad.h5", "w") as f:
         f.create_dataset("coords", data=coords)
     assert main(["import-features", str(bundle), str(tmp_path / "bad.h5"), "--patch-size", "64"]) == 2
+
+
+def test_gymnasium_bridge_with_feature_observations(feature_bundle):
+    gymnasium = pytest.importorskip("gymnasium")
+    from gymnasium.utils.env_checker import check_env
+
+    import histojax.gymnasium_bridge  # noqa: F401
+
+    genv = gymnasium.make("histojax/HistoJAX-Easy-v0", slide=feature_bundle, obs_mode="features",
+                          with_position=True)
+    check_env(genv.unwrapped, skip_render_check=True)
+    obs, _ = genv.reset(seed=0)
+    assert obs["features"].shape == (1280,) and genv.observation_space.contains(obs)

@@ -8,7 +8,8 @@ import jax.numpy as jnp
 from histojax.slide import SlideArrays
 
 UP, DOWN, LEFT, RIGHT, ZOOM_IN, ZOOM_OUT, STAY = range(7)
-ACTION_NAMES = ("UP", "DOWN", "LEFT", "RIGHT", "ZOOM_IN", "ZOOM_OUT", "STAY")
+DECLARE_NO_TUMOUR, DECLARE_TUMOUR = 7, 8  # task="classification" only
+ACTION_NAMES = ("UP", "DOWN", "LEFT", "RIGHT", "ZOOM_IN", "ZOOM_OUT", "STAY", "DECLARE_NO_TUMOUR", "DECLARE_TUMOUR")
 NUM_DISCRETE_ACTIONS = 7
 ZOOM_THRESHOLD = 0.5  # continuous dzoom above +0.5 zooms in, below -0.5 zooms out
 
@@ -52,3 +53,17 @@ def continuous_deltas(action: jax.Array, stride_px: jax.Array):
     dy = jnp.round(a[1] * stride_px).astype(jnp.int32)
     dz = (a[2] > ZOOM_THRESHOLD).astype(jnp.int32) - (a[2] < -ZOOM_THRESHOLD).astype(jnp.int32)
     return dx, dy, dz
+
+
+def discrete_diagnosis(action: jax.Array) -> jax.Array:
+    """Diagnosis declared by a discrete action: 1 (DECLARE_TUMOUR=8), 0 (DECLARE_NO_TUMOUR=7), or
+    -1 (no diagnosis: any other action). int32."""
+    a = jnp.asarray(action, jnp.int32)
+    return jnp.where(a == DECLARE_TUMOUR, 1, jnp.where(a == DECLARE_NO_TUMOUR, 0, -1)).astype(jnp.int32)
+
+
+def continuous_diagnosis(action: jax.Array) -> jax.Array:
+    """Diagnosis in the 4th component of a continuous action: > 0.5 tumour (1), < -0.5 no tumour
+    (0), else (or NaN) none (-1). int32."""
+    d = jnp.nan_to_num(jnp.asarray(action, jnp.float32)[3], nan=0.0)
+    return jnp.where(d > ZOOM_THRESHOLD, 1, jnp.where(d < -ZOOM_THRESHOLD, 0, -1)).astype(jnp.int32)

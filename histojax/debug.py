@@ -14,11 +14,11 @@ import jax
 import jax.numpy as jnp
 from jax.experimental import checkify
 
-from histojax.rewards import reward_bounds
+from histojax.rewards import classification_bounds, reward_bounds
 
 
 def _check_state(env, state, params):
-    s, t = params.slide, env.tile_size
+    s, t = params.slide.select(state.slide_index), env.tile_size
     checkify.check((state.z >= 0) & (state.z < env.n_levels), "level z={z} outside [0, n_levels)", z=state.z)
     z = jnp.clip(state.z, 0, env.n_levels - 1)
     checkify.check((state.x >= 0) & (state.x + t <= s.level_width[z]), "view x={x} leaves level {z}",
@@ -47,7 +47,8 @@ def checked(env):
         _check_state(env, state, params)  # a broken input state is a bug upstream: say so
         out = env.step(key, state, action, params)
         obs, new_state, reward, terminated, truncated, info = out
-        low, high = reward_bounds(env.reward, params)
+        low, high = (classification_bounds(params) if env.task == "classification"
+                     else reward_bounds(env.reward, params))
         checkify.check(jnp.isfinite(reward), "non-finite reward {r}", r=reward)
         checkify.check((reward >= low - 1e-4) & (reward <= high + 1e-4), "reward {r} outside the documented range",
                        r=reward)

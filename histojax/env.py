@@ -23,6 +23,17 @@ with the position float32 in ``[0, 1]``.
 
 **Rewards**: see :mod:`histojax.rewards` (``"histogym"``, ``"sparse"``, ``"dense"``).
 
+**Tasks**: ``task="detection"`` (default) — find the tumour, as above. ``task="classification"`` —
+diagnose the slide: discrete actions add DECLARE_NO_TUMOUR=7 and DECLARE_TUMOUR=8 (continuous: a
+4th component, > 0.5 declares tumour, < −0.5 no tumour); declaring ends the episode with
+``+diagnosis_reward`` if it matches the slide label, ``−diagnosis_reward`` if not; every step costs
+``step_cost``; ``info["success"]`` is a right diagnosis. Slide labels come from the annotations
+(tumour annotated → 1) or ``make(..., labels=CSV or dict)``.
+
+**Datasets**: ``make(..., slides=[bundle, ...])`` (or ``dataset=FOLDER`` with a ``dataset.json``)
+stacks slides of any sizes into one ``SlideArrays``; ``reset`` draws a slide (uniformly or by
+``slide_weights``) and ``state.slide_index`` says which.
+
 **Episodes**: start at the coarsest level on a random tissue view (or top-left with
 ``random_start=False``); terminate on success (not for ``"histogym"``); truncate when ``t``
 reaches ``max_steps_in_episode`` (never reported as termination). With ``auto_reset=True``
@@ -45,6 +56,7 @@ from histojax.views import view_pixels, view_tumour_fraction
 
 ACTION_MODES = ("discrete", "continuous")
 OBS_MODES = ("pixels", "pixels_float", "features")
+TASKS = ("detection", "classification")
 
 
 def view_features(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.Array) -> jax.Array:
@@ -85,6 +97,7 @@ class EnvParams:
     histogym_scale: float = 1000.0       # "histogym": reward per unit tumour fraction at the finest level
     dense_weight: float = 1.0            # "dense": weight of the potential difference
     random_start: bool = True            # False: HistoGym's fixed start at the top-left, coarsest level
+    diagnosis_reward: float = 1.0        # task="classification": +this for a right diagnosis, -this for a wrong one
 
 
 @dataclasses.dataclass(frozen=True)
@@ -98,9 +111,11 @@ class HistoEnv:
     with_position: bool = False
     reward: str = "dense"
     auto_reset: bool = True
+    task: str = "detection"
     name: str = "HistoJAX-v0"
     _default_params: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
     _bundle: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
+    _bundles: Any = dataclasses.field(default=(), compare=False, hash=False, repr=False)  # one per slide
 
     def __post_init__(self):
         if self.action_mode not in ACTION_MODES:
@@ -109,6 +124,8 @@ class HistoEnv:
             raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {self.obs_mode!r}")
         if self.reward not in rewards.PRESETS:
             raise ValueError(f"reward must be one of {rewards.PRESETS}, got {self.reward!r}")
+        if self.task not in TASKS:
+            raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
 
     # ----------------------------------------------------------------- gymnax API
     @property
@@ -118,13 +135,17 @@ class HistoEnv:
 
     @property
     def num_actions(self) -> int:
-        return actions.NUM_DISCRETE_ACTIONS if self.action_mode == "discrete" else 3
+        """Discrete: 7 (+2 diagnosis actions for classification); continuous: the Box size 3 (or 4)."""
+        classify = self.task == "classification"
+        if self.action_mode == "discrete":
+            return actions.NUM_DISCRETE_ACTIONS + (2 if classify else 0)
+        return 3 + (1 if classify else 0)
 
     def action_space(self, params: EnvParams | None = None):
         """``Discrete(7)`` or ``Box(-1, 1, (3,), float32)`` (see the module doc)."""
         if self.action_mode == "discrete":
-            return spaces.Discrete(actions.NUM_DISCRETE_ACTIONS)
-        return spaces.Box(-1.0, 1.0, (3,), jnp.float32)
+            return spaces.Discrete(self.num_actions)
+        return spaces.Box(-1.0, 1.0, (self.num_actions,), jnp.float32)
 
     def observation_space(self, params: EnvParams | None = None):
         """Box of the view (uint8 in [0, 255] or float32 in [0, 1]) or of its features (float32,
@@ -163,8 +184,14 @@ class HistoEnv:
 
     # ----------------------------------------------------------------- dynamics
     def reset_env(self, key: jax.Array, params: EnvParams):
-        """A fresh episode at the coarsest level, on a random tissue view or the top-left corner."""
-        logits = params.slide.start_logits
+        """A fresh episode at the coarsest level, on a random tissue view or the top-left corner;
+        for a dataset, of a slide drawn by its weight."""
+        key_slide, key = jax.random.split(key)
+        if params.slide.num_slides > 1:
+            slide_index = jax.random.categorical(key_slide, params.slide.slide_logits).astype(jnp.int32)
+        else:
+            slide_index = jnp.zeros((), jnp.int32)
+        logits = params.slide.select(slide_index).start_logits
         index = jax.random.categorical(key, logits.reshape(-1))
         y0, x0 = jnp.divmod(index, logits.shape[1])
         start = jnp.asarray(params.random_start)
@@ -174,24 +201,32 @@ class HistoEnv:
             x=jnp.where(start, x0, 0).astype(jnp.int32),
             y=jnp.where(start, y0, 0).astype(jnp.int32),
             t=zero,
-            slide_index=zero,
+            slide_index=slide_index,
         )
         return self.get_obs(state, params), state
 
     def step_env(self, key: jax.Array, state: EnvState, action, params: EnvParams):
         """One step without auto-reset: ``(obs, state, reward, terminated, truncated, info)``."""
-        slide, t = params.slide, self.tile_size
+        slide, t = params.slide.select(state.slide_index), self.tile_size
         stride_px = jnp.round(params.stride * t).astype(jnp.int32)
         if self.action_mode == "discrete":
             dx, dy, dz = actions.discrete_deltas(action, stride_px)
+            diagnosis = actions.discrete_diagnosis(action) if self.task == "classification" else None
         else:
             dx, dy, dz = actions.continuous_deltas(action, stride_px)
+            diagnosis = actions.continuous_diagnosis(action) if self.task == "classification" else None
         z, x, y = actions.move_and_zoom(slide, state.z, state.x, state.y, dx, dy, dz, t, self.n_levels)
         fraction = view_tumour_fraction(slide, z, x, y, t)
-        prev_fraction = view_tumour_fraction(slide, state.z, state.x, state.y, t)
-        success = (z == self.n_levels - 1) & (fraction >= params.success_threshold)
-        reward = rewards.reward(self.reward, params, fraction, z, prev_fraction, state.z, success, self.n_levels)
-        terminated = success if rewards.terminates_on_success(self.reward) else jnp.zeros((), bool)
+        if diagnosis is None:  # detection: find the tumour
+            prev_fraction = view_tumour_fraction(slide, state.z, state.x, state.y, t)
+            success = (z == self.n_levels - 1) & (fraction >= params.success_threshold)
+            reward = rewards.reward(self.reward, params, fraction, z, prev_fraction, state.z, success, self.n_levels)
+            terminated = success if rewards.terminates_on_success(self.reward) else jnp.zeros((), bool)
+        else:  # classification: declaring a diagnosis ends the episode
+            declared = diagnosis >= 0
+            success = declared & (diagnosis == slide.slide_label)
+            reward = rewards.classification_reward(params, declared, success)
+            terminated = declared
         new_state = EnvState(z=z, x=x, y=y, t=state.t + 1, slide_index=state.slide_index)
         truncated = jnp.logical_and(new_state.t >= params.max_steps_in_episode, jnp.logical_not(terminated))
         info = {
@@ -203,7 +238,7 @@ class HistoEnv:
 
     def get_obs(self, state: EnvState, params: EnvParams):
         """The observation of ``state`` (see the module doc for modes and units)."""
-        slide, t = params.slide, self.tile_size
+        slide, t = params.slide.select(state.slide_index), self.tile_size
         if self.obs_mode == "features":
             if slide.features is None:
                 raise ValueError("obs_mode='features' needs a slide with a feature grid: compute one with "
@@ -237,4 +272,7 @@ class HistoEnv:
 
     def reward_range(self, params: EnvParams | None = None) -> tuple[float, float]:
         """Documented ``(min, max)`` reward for these parameters."""
-        return rewards.reward_range(self.reward, self.default_params if params is None else params)
+        params = self.default_params if params is None else params
+        if self.task == "classification":
+            return rewards.classification_range(params)
+        return rewards.reward_range(self.reward, params)

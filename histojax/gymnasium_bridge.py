@@ -41,7 +41,7 @@ def single_spaces(env: HistoEnv, params):
     if env.action_mode == "discrete":
         action_space = gym_spaces.Discrete(env.num_actions)
     else:
-        action_space = gym_spaces.Box(-1.0, 1.0, (3,), np.float32)
+        action_space = gym_spaces.Box(-1.0, 1.0, (env.num_actions,), np.float32)
     return obs_space, action_space
 
 

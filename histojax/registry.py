@@ -12,14 +12,21 @@ HistoJAX-Hard-v0    7         300                     1.59×
 """
 from __future__ import annotations
 
+import csv
 import dataclasses
+import json
+from pathlib import Path
 
+import jax
+import jax.numpy as jnp
+
+from data_tools.errors import BundleError
 from histojax.env import EnvParams, HistoEnv
-from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide
+from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide, stack_slides
 
 _REGISTRY: dict[str, dict] = {}
 _SLIDES: dict[str, object] = {}  # env id → default slide: a bundle path, or a recipe ``f(spec) -> bundle path``
-STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels")
+STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task")
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name != "slide")
 
 
@@ -49,7 +56,7 @@ register("HistoJAX-Hard-v0", n_levels=7, max_steps_in_episode=300)
 
 
 def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES,
-         **overrides):
+         slides=None, slide_weights=None, dataset=None, split: str = "train", labels=None, **overrides):
     """Make ``(env, params)`` for a registered id.
 
     ``slide``: a bundle folder (``python -m data_tools build``) or ``None`` for the id's registered
@@ -62,6 +69,13 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     The slide's arrays are put on the device once and returned inside ``params``; a slide
     needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error.
     ``verify`` checks every array's SHA-256 against the bundle metadata.
+
+    Datasets: ``slides=[bundle, ...]`` (any sizes, same tile size) or ``dataset=FOLDER`` holding a
+    ``dataset.json`` with ``"train"`` / ``"test"`` lists of bundle paths (``split`` picks one; e.g.
+    ``python -m data_tools synth``) give one env over all of them: ``reset`` draws a slide
+    (uniformly, or by ``slide_weights``). ``max_device_bytes`` then bounds the whole dataset.
+    ``labels`` (a dict bundle-name → 0/1 or a CSV file with columns ``slide,label``) overrides the
+    slide labels of ``task="classification"`` (default: 1 when the bundle has tumour annotated).
     """
     if env_id not in _REGISTRY:
         raise ValueError(f"unknown environment id {env_id!r}; registered: {', '.join(_REGISTRY)}")
@@ -70,21 +84,81 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     if unknown:
         raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
                         f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
-    if slide is None and env_id in _SLIDES:
-        recipe = _SLIDES[env_id]
-        slide = recipe(spec) if callable(recipe) else recipe
-    if slide is None:
-        from histojax.sample import sample_bundle
+    if dataset is not None:
+        slides = dataset_slides(dataset, split)
+    if slides is not None and slide is not None:
+        raise ValueError("give either slide= or slides=/dataset=, not both")
+    if slides is None:
+        if slide is None and env_id in _SLIDES:
+            recipe = _SLIDES[env_id]
+            slide = recipe(spec) if callable(recipe) else recipe
+        if slide is None:
+            from histojax.sample import sample_bundle
 
-        slide = sample_bundle(tile_size=spec.get("tile_size", 128))
-    arrays, bundle = load_slide(slide, spec["n_levels"], verify=verify, max_device_bytes=max_device_bytes,
-                                features=True if spec.get("obs_mode") == "features" else None)
-    tile_size = int(bundle.metadata["tile_size"])
+            slide = sample_bundle(tile_size=spec.get("tile_size", 128))
+        slides = [slide]
+    if not slides:
+        raise ValueError("slides= is empty")
+    features = True if spec.get("obs_mode") == "features" else None
+    loaded, budget = [], max_device_bytes
+    for path in slides:
+        arrays, bundle = load_slide(path, spec["n_levels"], verify=verify, max_device_bytes=budget, features=features)
+        budget -= sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
+        loaded.append((arrays, bundle))
+    tile_sizes = {int(b.metadata["tile_size"]) for _, b in loaded}
+    if len(tile_sizes) != 1:
+        raise ValueError(f"the slides were built with different tile sizes {sorted(tile_sizes)}; rebuild them alike")
+    tile_size = tile_sizes.pop()
     if spec.get("tile_size", tile_size) != tile_size:
-        raise ValueError(f"bundle {slide} was built with tile size {tile_size}; rebuild it with "
+        raise ValueError(f"bundle {slides[0]} was built with tile size {tile_size}; rebuild it with "
                          f"--tile-size {spec['tile_size']} or drop the override")
+    if labels is not None:
+        loaded = [(a.replace(slide_label=jnp.int32(_label_of(b, labels))), b) for a, b in loaded]
+    if len(loaded) == 1 and slide_weights is None:
+        arrays = loaded[0][0]
+    else:
+        arrays = stack_slides([a for a, _ in loaded], weights=slide_weights)
     static = {k: spec[k] for k in STATIC_FIELDS if k in spec}
     static["tile_size"] = tile_size
     params = EnvParams(slide=arrays, **{k: spec[k] for k in PARAM_FIELDS if k in spec})
-    env = HistoEnv(name=env_id, _default_params=params, _bundle=bundle, **static)
+    bundles = tuple(b for _, b in loaded)
+    env = HistoEnv(name=env_id, _default_params=params, _bundle=bundles[0], _bundles=bundles, **static)
     return env, params
+
+
+def dataset_slides(folder, split: str = "train") -> list[Path]:
+    """Bundle paths of ``split`` (``"train"``, ``"test"`` or ``"all"``) in ``FOLDER/dataset.json``."""
+    folder = Path(folder)
+    index = folder / "dataset.json"
+    try:
+        spec = json.loads(index.read_text())
+    except FileNotFoundError:
+        raise BundleError(folder, "not a dataset folder (no dataset.json); make one with "
+                          "`python -m data_tools synth` or pass slides=[...]") from None
+    except json.JSONDecodeError as e:
+        raise BundleError(index, f"malformed JSON ({e})") from None
+    if split == "all":
+        names = list(spec.get("train", [])) + list(spec.get("test", []))
+    elif split in ("train", "test"):
+        names = spec.get(split)
+    else:
+        raise ValueError(f"split must be 'train', 'test' or 'all', got {split!r}")
+    if not isinstance(names, list) or not names:
+        raise BundleError(index, f"no {split!r} list of bundles")
+    return [folder / n for n in names]
+
+
+def _label_of(bundle, labels) -> int:
+    """The slide label of ``bundle`` from a dict or CSV (``slide,label``), keyed by bundle folder
+    name or source file stem."""
+    if not isinstance(labels, dict):
+        with open(labels, newline="") as f:
+            rows = list(csv.DictReader(f))
+        try:
+            labels = {r["slide"]: int(r["label"]) for r in rows}
+        except (KeyError, ValueError):
+            raise BundleError(labels, "a labels CSV needs columns slide,label with label 0 or 1") from None
+    for key in (Path(bundle.path).name, Path(bundle.metadata["source"]["file"]).stem):
+        if key in labels:
+            return int(labels[key])
+    raise BundleError(bundle.path, "no label for this slide in labels= (keyed by bundle folder name or slide stem)")

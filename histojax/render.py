@@ -3,6 +3,7 @@ trajectories and GIFs. Not jittable and not meant to be: call with concrete stat
 from __future__ import annotations
 
 import json
+import types
 from pathlib import Path
 
 import numpy as np
@@ -19,10 +20,16 @@ def level_colour(z: int, n_levels: int) -> tuple[int, int, int]:
     return int(40 + 215 * f), int(60 * (1 - f)), int(255 * (1 - f))
 
 
-def _canvas(env, max_side: int):
+def bundle_of(env, slide_index: int = 0):
+    """The host bundle of slide ``slide_index`` of ``env`` (datasets have one per slide)."""
+    bundles = getattr(env, "_bundles", ()) or (env._bundle,)
+    return bundles[int(slide_index)]
+
+
+def _canvas(env, max_side: int, slide_index: int = 0):
     """The slide drawn at most ``max_side`` px a side from the coarsest env level that is at least
     that large (else the finest). Returns ``(PIL image, canvas px per level-0 px)``."""
-    bundle = env._bundle
+    bundle = bundle_of(env, slide_index)
     k = next((i for i, p in enumerate(bundle.pixels) if max(p.shape[:2]) >= max_side), len(bundle.pixels) - 1)
     level = np.asarray(bundle.pixels[k])
     fit = min(1.0, max_side / max(level.shape[:2]))
@@ -31,8 +38,8 @@ def _canvas(env, max_side: int):
     return image, size[0] / (level.shape[1] * bundle.metadata["levels"][k]["downsample"])
 
 
-def _draw_tumour(draw: ImageDraw.ImageDraw, env, scale: float) -> None:
-    path = Path(env._bundle.path) / "annotations.geojson"
+def _draw_tumour(draw: ImageDraw.ImageDraw, env, scale: float, slide_index: int = 0) -> None:
+    path = Path(bundle_of(env, slide_index).path) / "annotations.geojson"
     if not path.is_file():
         return
     import shapely.geometry
@@ -48,18 +55,19 @@ def _draw_tumour(draw: ImageDraw.ImageDraw, env, scale: float) -> None:
                     draw.line(pts, fill=TUMOUR_COLOUR, width=2)
 
 
-def view_box_level0(env, z: int, x: int, y: int) -> tuple[float, float, float, float]:
+def view_box_level0(env, z: int, x: int, y: int, slide_index: int = 0) -> tuple[float, float, float, float]:
     """The view at ``(z, x, y)`` as a level-0 px box ``(left, top, right, bottom)``."""
-    d = env._bundle.metadata["levels"][int(z)]["downsample"]
+    d = bundle_of(env, slide_index).metadata["levels"][int(z)]["downsample"]
     return x * d, y * d, (x + env.tile_size) * d, (y + env.tile_size) * d
 
 
 def render_state(env, state, params=None, max_side: int = 640) -> np.ndarray:
     """RGB uint8 ``(H, W, 3)``: thumbnail of the env's slide, tumour outline, the current view box."""
-    image, scale = _canvas(env, max_side)
+    index = int(getattr(state, "slide_index", 0))
+    image, scale = _canvas(env, max_side, index)
     draw = ImageDraw.Draw(image)
-    _draw_tumour(draw, env, scale)
-    box = [v * scale for v in view_box_level0(env, int(state.z), int(state.x), int(state.y))]
+    _draw_tumour(draw, env, scale, index)
+    box = [v * scale for v in view_box_level0(env, int(state.z), int(state.x), int(state.y), index)]
     draw.rectangle(box, outline=level_colour(int(state.z), env.n_levels), width=3)
     return np.asarray(image)
 
@@ -71,7 +79,8 @@ def _zxy(z, x, y):
     return tuple(np.asarray(a).astype(int).ravel() for a in (z, x, y))
 
 
-def render_trajectory(env, z, x=None, y=None, path=None, title: str = "", max_side: int = 640) -> np.ndarray:
+def render_trajectory(env, z, x=None, y=None, path=None, title: str = "", max_side: int = 640,
+                      slide_index: int | None = None) -> np.ndarray:
     """Draw a trajectory over the thumbnail: sequences ``z, x, y`` of one episode, or a stacked
     ``EnvState`` (e.g. from ``lax.scan``) as the only positional argument after ``env``.
 
@@ -79,19 +88,21 @@ def render_trajectory(env, z, x=None, y=None, path=None, title: str = "", max_si
     path coloured by the level it moved to; the start is a cyan dot, the end a red square and box. Saves a PNG to ``path`` when given.
     Returns the RGB uint8 picture.
     """
+    if slide_index is None:
+        slide_index = int(np.asarray(getattr(z, "slide_index", 0)).ravel()[0])
     z, x, y = _zxy(z, x, y)
-    image, scale = _canvas(env, max_side)
+    image, scale = _canvas(env, max_side, slide_index)
     draw = ImageDraw.Draw(image)
-    _draw_tumour(draw, env, scale)
+    _draw_tumour(draw, env, scale, slide_index)
     centres = []
     for zi, xi, yi in zip(z, x, y):
-        box = [v * scale for v in view_box_level0(env, zi, xi, yi)]
+        box = [v * scale for v in view_box_level0(env, zi, xi, yi, slide_index)]
         draw.rectangle(box, outline=level_colour(zi, env.n_levels), width=1)
         centres.append(((box[0] + box[2]) / 2, (box[1] + box[3]) / 2))
     for (a, b), zi in zip(zip(centres[:-1], centres[1:]), z[1:]):
         draw.line([a, b], fill=level_colour(zi, env.n_levels), width=3)
     if centres:
-        last = [v * scale for v in view_box_level0(env, z[-1], x[-1], y[-1])]
+        last = [v * scale for v in view_box_level0(env, z[-1], x[-1], y[-1], slide_index)]
         draw.rectangle(last, outline=END_COLOUR, width=3)
     if centres:
         (sx, sy), (ex, ey) = centres[0], centres[-1]
@@ -104,17 +115,17 @@ def render_trajectory(env, z, x=None, y=None, path=None, title: str = "", max_si
     return np.asarray(image)
 
 
-def animate(env, z, x=None, y=None, path="trajectory.gif", fps: int = 4, max_side: int = 480) -> Path:
+def animate(env, z, x=None, y=None, path="trajectory.gif", fps: int = 4, max_side: int = 480,
+            slide_index: int | None = None) -> Path:
     """Write a GIF (Pillow, no ffmpeg) of a trajectory (``z, x, y`` sequences or a stacked
     ``EnvState``): each frame shows the thumbnail with the current view box beside the view
     itself. Returns the path."""
-    bundle = env._bundle
+    if slide_index is None:
+        slide_index = int(np.asarray(getattr(z, "slide_index", 0)).ravel()[0])
+    bundle = bundle_of(env, slide_index)
     frames = []
     for zi, xi, yi in zip(*_zxy(z, x, y)):
-        class _S:  # a concrete state for render_state
-            pass
-        s = _S()
-        s.z, s.x, s.y = zi, xi, yi
+        s = types.SimpleNamespace(z=zi, x=xi, y=yi, slide_index=slide_index)  # a concrete state
         overview = Image.fromarray(render_state(env, s, max_side=max_side))
         level = bundle.pixels[zi]
         view = Image.fromarray(np.asarray(level[yi:yi + env.tile_size, xi:xi + env.tile_size]))

@@ -53,6 +53,24 @@ def reward_range(preset: str, params) -> tuple[float, float]:
     return float(low), float(high)
 
 
+def classification_reward(params, declared, correct):
+    """``task="classification"``: ``-step_cost``, plus ``±diagnosis_reward`` when a diagnosis is
+    declared (right / wrong). Range ``[-step_cost - d, d - step_cost]``; defaults ``[-1.01, 0.99]``."""
+    d = params.diagnosis_reward
+    return -params.step_cost + jnp.where(declared, jnp.where(correct, d, -d), 0.0)
+
+
+def classification_bounds(params):
+    """Documented ``(min, max)`` of :func:`classification_reward` (traceable)."""
+    return -params.step_cost - params.diagnosis_reward, params.diagnosis_reward - params.step_cost
+
+
+def classification_range(params) -> tuple[float, float]:
+    """:func:`classification_bounds` as floats."""
+    low, high = classification_bounds(params)
+    return float(low), float(high)
+
+
 def terminates_on_success(preset: str) -> bool:
     """Whether reaching the target ends the episode (all presets but ``"histogym"``)."""
     return preset != "histogym"

@@ -47,6 +47,80 @@ class SlideArrays:
     feature_grid_width: jnp.ndarray | None = None  # (n,) int32, grid columns gw of each level
     feature_grid_height: jnp.ndarray | None = None  # (n,) int32, grid rows gh of each level
     feature_stride: jnp.ndarray | None = None      # () int32, px of a level between grid positions
+    # slide-level data; for a dataset of S slides (``stack_slides``) every per-level array above gets
+    # a leading axis S (``(S, n)``, start_logits ``(S, Hmax, Wmax)``, feature_stride ``(S,)``):
+    slide_label: jnp.ndarray | None = None   # () or (S,) int32: 1 tumour, 0 no tumour (classification)
+    slide_logits: jnp.ndarray | None = None  # (S,) float32 log-weights of sampling each slide at reset
+
+    @property
+    def num_slides(self) -> int:
+        """1 for one slide, S for a stacked dataset (a static Python int)."""
+        return 1 if self.level_width.ndim == 1 else int(self.level_width.shape[0])
+
+    def select(self, index) -> "SlideArrays":
+        """The single-slide view of slide ``index`` (a traced int32 is fine): per-level arrays
+        ``(n,)``, ``start_logits`` 2-D; the shared flat arrays are returned as they are (their
+        offsets are absolute). For one slide, ``self`` unchanged."""
+        if self.level_width.ndim == 1:
+            return self
+        pick = lambda a: None if a is None else a[index]  # noqa: E731
+        return self.replace(
+            level_offset=pick(self.level_offset), level_width=pick(self.level_width),
+            level_height=pick(self.level_height), downsample=pick(self.downsample), sat_offset=pick(self.sat_offset),
+            start_logits=pick(self.start_logits), feature_offset=pick(self.feature_offset),
+            feature_grid_width=pick(self.feature_grid_width), feature_grid_height=pick(self.feature_grid_height),
+            feature_stride=pick(self.feature_stride), slide_label=pick(self.slide_label))
+
+
+def stack_slides(slides: list[SlideArrays], weights=None) -> SlideArrays:
+    """One ``SlideArrays`` for a dataset of slides of any sizes (same number of levels): flat arrays
+    concatenated with offsets shifted, per-level arrays stacked on a new leading axis, start
+    logits padded with ``-inf`` to the largest coarsest level. ``weights`` (default uniform) are
+    the relative probabilities of drawing each slide at reset."""
+    n_levels = {int(s.level_width.shape[0]) for s in slides}
+    if len(n_levels) != 1:
+        raise ValueError(f"slides of a dataset need the same number of levels, got {sorted(n_levels)}")
+    with_features = [s.features is not None for s in slides]
+    if any(with_features) and not all(with_features):
+        raise ValueError("either every slide of a dataset has a feature grid or none has")
+    if all(with_features) and len({int(s.features.shape[1]) for s in slides}) != 1:
+        raise ValueError("feature grids of a dataset's slides must have the same dimension")
+    pixel_base = np.cumsum([0] + [int(s.pixels.shape[0]) for s in slides[:-1]])
+    sat_base = np.cumsum([0] + [int(s.tumour_sat.shape[0]) for s in slides[:-1]])
+    if pixel_base[-1] + slides[-1].pixels.shape[0] >= 2**31 or sat_base[-1] + slides[-1].tumour_sat.shape[0] >= 2**31:
+        raise ValueError("the dataset holds too many pixels for int32 indexing; use fewer slides or levels")
+    h = max(int(s.start_logits.shape[0]) for s in slides)
+    w = max(int(s.start_logits.shape[1]) for s in slides)
+    logits = np.full((len(slides), h, w), -np.inf, np.float32)
+    for i, s in enumerate(slides):
+        logits[i, : s.start_logits.shape[0], : s.start_logits.shape[1]] = np.asarray(s.start_logits)
+    weights = np.ones(len(slides)) if weights is None else np.asarray(weights, dtype=np.float64)
+    if weights.shape != (len(slides),) or np.any(weights < 0) or weights.sum() <= 0:
+        raise ValueError(f"slide weights must be {len(slides)} non-negative numbers, not all zero")
+    stacked = dict(
+        pixels=jnp.concatenate([s.pixels for s in slides]),
+        level_offset=jnp.stack([s.level_offset + int(b) for s, b in zip(slides, pixel_base)]),
+        level_width=jnp.stack([s.level_width for s in slides]),
+        level_height=jnp.stack([s.level_height for s in slides]),
+        downsample=jnp.stack([s.downsample for s in slides]),
+        tumour_sat=jnp.concatenate([s.tumour_sat for s in slides]),
+        sat_offset=jnp.stack([s.sat_offset + int(b) for s, b in zip(slides, sat_base)]),
+        start_logits=jnp.asarray(logits),
+        slide_logits=jnp.asarray(np.log(weights / weights.sum()), dtype=jnp.float32),
+    )
+    if all(s.slide_label is not None for s in slides):
+        stacked["slide_label"] = jnp.stack([jnp.asarray(s.slide_label, jnp.int32) for s in slides])
+    if all(with_features):
+        feature_base = np.cumsum([0] + [int(s.features.shape[0]) for s in slides[:-1]])
+        dtype = jnp.result_type(*[s.features.dtype for s in slides])
+        stacked.update(
+            features=jnp.concatenate([s.features.astype(dtype) for s in slides]),
+            feature_offset=jnp.stack([s.feature_offset + int(b) for s, b in zip(slides, feature_base)]),
+            feature_grid_width=jnp.stack([s.feature_grid_width for s in slides]),
+            feature_grid_height=jnp.stack([s.feature_grid_height for s in slides]),
+            feature_stride=jnp.stack([jnp.asarray(s.feature_stride, jnp.int32) for s in slides]),
+        )
+    return SlideArrays(**stacked)
 
 
 def summed_area_table(mask: np.ndarray) -> np.ndarray:
@@ -116,7 +190,15 @@ def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
         tumour_sat=jnp.asarray(np.concatenate([s.ravel() for s in sats]).astype(np.uint32)),  # wraps mod 2**32
         sat_offset=jnp.asarray(sat_offsets, dtype=jnp.int32),
         start_logits=jnp.asarray(start_logits(bundle.tissue, tile_size, getattr(bundle, "region", None))),
+        slide_label=jnp.asarray(slide_label_from_metadata(bundle.metadata), dtype=jnp.int32),
     )
+
+
+def slide_label_from_metadata(metadata: dict) -> int:
+    """Slide-level label from a bundle's annotations: 1 (tumour) when any tumour was annotated,
+    else 0. Override with ``make(..., labels=...)`` (a CSV of slide, label) where that is wrong."""
+    ann = metadata.get("annotations") or {}
+    return int(float(ann.get("tumour_area_px") or 0.0) > 0.0)
 
 
 def load_slide(path, n_levels: int, verify: bool = True,

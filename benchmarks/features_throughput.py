@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 
 import histojax
+from benchmarks.throughput import full_step_rollout, measure
 
 HISTOGYM_STEPS_PER_S = (13.0, 60.0)
 
@@ -45,37 +46,6 @@ def sample_feature_bundle() -> Path:
     return out
 
 
-def rollout(env, batch: int, steps: int):
-    def run(key, params):
-        _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, batch), params)
-
-        def body(carry, key):
-            state, checksum = carry
-            a = jax.random.randint(key, (batch,), 0, 7)
-            obs, state, reward, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(key, batch), state, a, params)
-            # consume the whole observation so XLA cannot drop the lookup
-            return (state, checksum + obs.sum() + reward.sum()), None
-
-        return jax.lax.scan(body, (state, jnp.float32(0)), jax.random.split(key, steps))[0][1]
-
-    return jax.jit(run)
-
-
-def measure(env, params, batch: int, seconds: float) -> float:
-    steps = max(10, int(200_000 / batch))
-    fn = rollout(env, batch, steps)
-    key = jax.random.PRNGKey(0)
-    jax.block_until_ready(fn(key, params))  # compile
-    calls, t0 = 0, time.perf_counter()
-    while True:
-        jax.block_until_ready(fn(jax.random.fold_in(key, calls), params))
-        calls += 1
-        elapsed = time.perf_counter() - t0
-        if elapsed >= seconds:
-            return calls * steps * batch / elapsed
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="HistoJAX-Hard-v0")
@@ -93,7 +63,7 @@ def main(argv=None) -> int:
     lo, hi = HISTOGYM_STEPS_PER_S
     print(f"{'batch':>6} {'features steps/s':>17} {'x HistoGym (13-60 steps/s)':>28}")
     for batch in args.batches:
-        sps = measure(env, params, batch, args.seconds)
+        sps = measure(full_step_rollout, env, params, batch, args.seconds)
         print(f"{batch:>6} {sps:>17,.0f} {f'{sps / hi:,.0f}-{sps / lo:,.0f}x':>28}")
     return 0
 

@@ -37,6 +37,7 @@ def memcpy_bandwidth(nbytes: int = 256 * 2**20, repeats: int = 5) -> float:
 
 
 def full_step_rollout(env, batch: int, steps: int):
+    """A jitted ``(key, params) -> checksum`` running ``steps`` steps of ``batch`` envs (any obs mode)."""
     def run(key, params):
         _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, batch), params)
 
@@ -48,7 +49,8 @@ def full_step_rollout(env, batch: int, steps: int):
             # an optimisation barrier makes XLA materialise the whole observation batch (a policy
             # reads all of it); reading one pixel of it afterwards keeps the carry cheap
             obs = jax.lax.optimization_barrier(obs)
-            return (state, checksum + obs[:, 0, 0, 0].astype(jnp.float32).sum() + reward.sum()), None
+            first = jax.tree.leaves(obs)[0].reshape(batch, -1)[:, 0]
+            return (state, checksum + first.astype(jnp.float32).sum() + reward.sum()), None
 
         return jax.lax.scan(body, (state, jnp.float32(0)), jax.random.split(key, steps))[0][1]
 
@@ -79,6 +81,7 @@ def reward_path_rollout(env, batch: int, steps: int):
 
 
 def measure(make_fn, env, params, batch: int, seconds: float) -> float:
+    """Steps/s of ``make_fn(env, batch, steps)`` after compiling, timed for at least ``seconds``."""
     steps = max(10, int(200_000 / batch))
     fn = make_fn(env, batch, steps)
     key = jax.random.PRNGKey(0)

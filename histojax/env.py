@@ -38,7 +38,9 @@ stacks slides of any sizes into one ``SlideArrays``; ``reset`` draws a slide (un
 ``random_start=False``); terminate on success (not for ``"histogym"``); truncate when ``t``
 reaches ``max_steps_in_episode`` (never reported as termination). With ``auto_reset=True``
 (default) ``step`` starts a new episode after the last one, returning the first observation of the
-new episode and the last one of the old in ``info["final_observation"]``.
+new episode and the last one of the old in ``info["final_observation"]``; ``final_observation=False``
+drops that key and extracts one view per step instead of two (about twice as fast for pixels;
+PureJaxRL-style trainers that do not bootstrap from truncated episodes do not need it).
 """
 from __future__ import annotations
 
@@ -71,6 +73,16 @@ def view_features(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.Array) 
     gy = jnp.clip((y + stride // 2) // stride, 0, gh - 1)
     row = slide.feature_offset[z] + gy * gw + gx
     return lax.dynamic_index_in_dim(slide.features, row, axis=0, keepdims=False).astype(jnp.float32)
+
+
+def sample_index(key: jax.Array, logits: jax.Array) -> jax.Array:
+    """An index drawn with probability ``softmax(logits)`` by inverting the cumulative weights:
+    one uniform number and a binary search (``jax.random.categorical`` would draw one Gumbel
+    number per entry, which dominated the cost of the auto-reset done in every step)."""
+    weights = jnp.exp(logits - jnp.max(logits))
+    cdf = jnp.cumsum(weights)
+    u = jax.random.uniform(key, (), minval=0.0, maxval=cdf[-1])
+    return jnp.minimum(jnp.searchsorted(cdf, u, side="right"), logits.shape[0] - 1).astype(jnp.int32)
 
 
 @struct.dataclass
@@ -111,6 +123,7 @@ class HistoEnv:
     with_position: bool = False
     reward: str = "dense"
     auto_reset: bool = True
+    final_observation: bool = True
     task: str = "detection"
     name: str = "HistoJAX-v0"
     _default_params: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
@@ -172,6 +185,13 @@ class HistoEnv:
         ``(obs, state, reward, terminated, truncated, info)``."""
         params = self.default_params if params is None else params
         key_reset, _ = jax.random.split(key)
+        if self.auto_reset and not self.final_observation:
+            # one observation per step: pick the next state first, then look once
+            state_st, reward, terminated, truncated, info = self.transition(state, action, params)
+            state_re = self.reset_state(key_reset, params)
+            done = jnp.logical_or(terminated, truncated)
+            state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_re, state_st)
+            return self.get_obs(state, params), state, reward, terminated, truncated, info
         obs_st, state_st, reward, terminated, truncated, info = self.step_env(key, state, action, params)
         if not self.auto_reset:
             return obs_st, state_st, reward, terminated, truncated, info
@@ -185,14 +205,19 @@ class HistoEnv:
     # ----------------------------------------------------------------- dynamics
     def reset_env(self, key: jax.Array, params: EnvParams):
         """A fresh episode at the coarsest level, on a random tissue view or the top-left corner;
-        for a dataset, of a slide drawn by its weight."""
+        for a dataset, of a slide drawn by its weight: ``(obs, state)``."""
+        state = self.reset_state(key, params)
+        return self.get_obs(state, params), state
+
+    def reset_state(self, key: jax.Array, params: EnvParams) -> EnvState:
+        """The start state of :meth:`reset_env`, without the observation."""
         key_slide, key = jax.random.split(key)
         if params.slide.num_slides > 1:
-            slide_index = jax.random.categorical(key_slide, params.slide.slide_logits).astype(jnp.int32)
+            slide_index = sample_index(key_slide, params.slide.slide_logits)
         else:
             slide_index = jnp.zeros((), jnp.int32)
         logits = params.slide.select(slide_index).start_logits
-        index = jax.random.categorical(key, logits.reshape(-1))
+        index = sample_index(key, logits.reshape(-1))
         y0, x0 = jnp.divmod(index, logits.shape[1])
         start = jnp.asarray(params.random_start)
         zero = jnp.zeros((), jnp.int32)
@@ -203,10 +228,15 @@ class HistoEnv:
             t=zero,
             slide_index=slide_index,
         )
-        return self.get_obs(state, params), state
+        return state
 
     def step_env(self, key: jax.Array, state: EnvState, action, params: EnvParams):
         """One step without auto-reset: ``(obs, state, reward, terminated, truncated, info)``."""
+        new_state, reward, terminated, truncated, info = self.transition(state, action, params)
+        return self.get_obs(new_state, params), new_state, reward, terminated, truncated, info
+
+    def transition(self, state: EnvState, action, params: EnvParams):
+        """The dynamics without the observation: ``(state, reward, terminated, truncated, info)``."""
         slide, t = params.slide.select(state.slide_index), self.tile_size
         stride_px = jnp.round(params.stride * t).astype(jnp.int32)
         if self.action_mode == "discrete":
@@ -234,7 +264,7 @@ class HistoEnv:
             "success": success,
             "discount": 1.0 - terminated.astype(jnp.float32),
         }
-        return self.get_obs(new_state, params), new_state, reward.astype(jnp.float32), terminated, truncated, info
+        return new_state, reward.astype(jnp.float32), terminated, truncated, info
 
     def get_obs(self, state: EnvState, params: EnvParams):
         """The observation of ``state`` (see the module doc for modes and units)."""

@@ -26,7 +26,8 @@ from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide, stack_slides
 
 _REGISTRY: dict[str, dict] = {}
 _SLIDES: dict[str, object] = {}  # env id → default slide: a bundle path, or a recipe ``f(spec) -> bundle path``
-STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task")
+STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
+                 "final_observation")
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name != "slide")
 
 

@@ -220,3 +220,21 @@ def test_debug_checks_pass_on_valid_steps_and_catch_a_broken_state(easy):
     err, _ = step(KEY, broken.replace(z=jnp.int32(7)), 6, params)
     with pytest.raises(Exception, match="outside"):
         err.throw()
+
+
+def test_final_observation_off_gives_the_same_trajectory(easy):
+    import dataclasses
+
+    env, params = easy
+    params = params.replace(max_steps_in_episode=5)  # several auto-resets in 12 steps
+    lean = dataclasses.replace(env, final_observation=False)
+    _, s_full = env.reset(KEY, params)
+    s_lean = s_full
+    for i in range(12):
+        k = jax.random.fold_in(KEY, i)
+        o_full, s_full, r_full, te, tr, info_full = env.step(k, s_full, i % 7, params)
+        o_lean, s_lean, r_lean, te2, tr2, info_lean = lean.step(k, s_lean, i % 7, params)
+        np.testing.assert_array_equal(np.asarray(o_full), np.asarray(o_lean))
+        assert [int(a) for a in jax.tree.leaves(s_full)] == [int(a) for a in jax.tree.leaves(s_lean)]
+        assert float(r_full) == float(r_lean) and (bool(te), bool(tr)) == (bool(te2), bool(tr2))
+        assert "final_observation" in info_full and "final_observation" not in info_lean

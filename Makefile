@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all bench bench-histogym contract fuzz clean
+.PHONY: demo test test-all bench bench-histogym bench-large contract fuzz clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (Python 3.11) on PATH, or run: make PYTHON=python3 ..."; exit 1; }
@@ -31,6 +31,9 @@ bench: $(STAMP)
 bench-histogym: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]'
 	$(PY) benchmarks/vs_histogym.py
+
+bench-large: $(STAMP)
+	$(PY) benchmarks/large_slide.py --size 100000 --compare-sample
 
 contract: $(STAMP)
 	$(PY) ../shared/tools/check_contract.py

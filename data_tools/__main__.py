@@ -1,6 +1,7 @@
 """The data_tools command line: ``python -m data_tools info SLIDE`` and
 ``python -m data_tools build SLIDE [--annotations FILE] --out DIR [--levels 3 5 7] [--tile-size 128]
-[--region x0,y0,x1,y1 | --region-group NAME] [--region-margin PX]``.
+[--region x0,y0,x1,y1 | --region-group NAME] [--region-margin PX] [--storage dense|tiled|auto]``, and
+``python -m data_tools synth-large OUT.tif [--size 100000] [--tissue-fraction 0.1]`` (a gigapixel test slide).
 
 User errors (bad files, existing output) print one line and exit with status 2, no traceback.
 """
@@ -55,6 +56,13 @@ def _parser() -> argparse.ArgumentParser:
                        help="build only the bounding box of an annotation group/label, e.g. tissue or tumour")
     build.add_argument("--region-margin", type=float, default=0.0, metavar="PX",
                        help="grow the region by this many level-0 px on every side (default 0)")
+    build.add_argument("--storage", choices=("dense", "tiled", "auto"), default="dense",
+                       help="dense level arrays (default), tiled pools with background tiles shared (gigapixel "
+                            "slides; built streaming with bounded memory), or auto (tiled above 256 MiB)")
+    build.add_argument("--keep-all-tiles", action="store_true",
+                       help="tiled: keep every tile (no shared blank background tile)")
+    build.add_argument("--band-mb", type=float, default=None,
+                       help="tiled: MiB of RGB per band of a level read at a time (default 96)")
     build.add_argument("--overwrite", action="store_true", help="replace an existing bundle")
     build.add_argument("--quiet", action="store_true", help="no progress bar")
     synth = sub.add_parser("synth", help="make semi-synthetic slides (synthetic pixels, real CAMELYON16 "
@@ -68,6 +76,14 @@ def _parser() -> argparse.ArgumentParser:
                        help="tissue region: a random blob around the tumour (default) or a CAMELYON16 tissue "
                             "outline of another slide")
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
+    large = sub.add_parser("synth-large", help="write a gigapixel semi-synthetic pyramidal TIFF (mostly glass; real "
+                                              "CAMELYON16 tissue and tumour outlines, synthetic pixels), tile by tile")
+    large.add_argument("out", help="output .tif (a .geojson with tumour and tissue is written beside it)")
+    large.add_argument("--size", type=int, default=100_000, help="canvas side in level-0 px (default 100000)")
+    large.add_argument("--tissue-fraction", type=float, default=0.1,
+                       help="approximate fraction of the canvas covered by tissue (default 0.1)")
+    large.add_argument("--seed", type=int, default=0)
+    large.add_argument("--quiet", action="store_true", help="no progress bar")
     from data_tools.features.cli import add_subcommands as _add_feature_commands
 
     _add_feature_commands(sub)  # features, import-features
@@ -76,16 +92,20 @@ def _parser() -> argparse.ArgumentParser:
 
 def _info(path: str) -> str:
     if Path(path).is_dir():
-        from data_tools.bundle import device_bytes, read_metadata
+        from data_tools.bundle import level_device_bytes, read_metadata
 
         meta = read_metadata(path)
-        lines = [f"bundle {path}: format v{meta['format_version']}, source {meta['source']['file']}, "
+        lines = [f"bundle {path}: format v{meta['format_version']} ({meta.get('storage', 'dense')}), "
+                 f"source {meta['source']['file']}, "
                  f"tile {meta['tile_size']} px, magnification range {meta['magnification_range']:g}, "
                  f"level sets {meta['level_sets']}"]
         for k, lv in enumerate(meta["levels"]):
             lines.append(f"  level {k}: {lv['width']}×{lv['height']} px, downsample {lv['downsample']:.4g}, "
                          f"tumour {lv['tumour_pixels']} px, "
-                         f"{device_bytes(lv['width'], lv['height']) / 2**20:.1f} MiB on the device")
+                         f"{level_device_bytes(lv) / 2**20:.1f} MiB on the device"
+                         + (f" ({lv['pool_tiles']:,} pool tiles for a {lv['grid'][0]}×{lv['grid'][1]} grid, "
+                            f"{lv['sat_pool_tiles']:,} SAT tiles; dense would be "
+                            f"{lv['dense_device_bytes'] / 2**20:.1f} MiB)" if lv.get("storage") == "tiled" else ""))
         return "\n".join(lines)
     from data_tools.slides import describe, open_slide
 
@@ -120,7 +140,9 @@ def main(argv=None) -> int:
                                magnification_range=args.magnification_range, label_map=label_map,
                                overwrite=args.overwrite, progress=not args.quiet,
                                region=args.region if args.region is not None else args.region_group,
-                               region_margin=args.region_margin)
+                               region_margin=args.region_margin, storage=args.storage,
+                               share_background=not args.keep_all_tiles,
+                               band_bytes=None if args.band_mb is None else int(args.band_mb * 2**20))
             meta = read_metadata(out)
             print(f"wrote {out}: {len(meta['levels'])} levels"
                   + (f", region {meta['region']['box']} of the slide" if meta.get("region") else ""))
@@ -136,6 +158,14 @@ def main(argv=None) -> int:
                 print(f"  {s['name']}: tumour {100 * s['tumour_fraction']:.1f} % of the canvas, "
                       f"{s['finest_views_ge50']}/{s['finest_views']} finest views >= 50 % tumour, "
                       f"mean RGB tumour {s['tumour_mean_rgb']} vs normal {s['normal_tissue_mean_rgb']}")
+        elif args.command == "synth-large":
+            from data_tools.synth_large import make_large_slide
+
+            prov = make_large_slide(args.out, size=args.size, tissue_fraction=args.tissue_fraction, seed=args.seed,
+                                    progress=not args.quiet)
+            print(f"wrote {args.out}: {args.size}×{args.size} px, {prov['tiff_bytes'] / 2**20:.1f} MiB, "
+                  f"tissue {100 * prov['tissue_fraction']:.1f} %, tumour {100 * prov['tumour_fraction']:.2f} % "
+                  f"of the canvas, in {prov['seconds']:.0f} s (pixels synthetic, geometry real CAMELYON16)")
         elif args.command in ("features", "import-features"):
             from data_tools.features.cli import run as _run_feature_command
 

@@ -9,6 +9,8 @@ A *region* bundle (``build_bundle(..., region=...)``) covers one rectangle of th
 its level-0 px are the region's (annotations translated by ``(-x0, -y0)`` and clipped), and
 ``region.npy`` (bool, coarsest level) marks where a view centre may start (inside a polygon
 region); ``metadata["region"]`` records the box in slide px and the kind.
+A *tiled* bundle (``storage="tiled"``, format version 2, for gigapixel slides) stores each level as a
+pool of tiles with an index grid instead (see :mod:`data_tools.tiled`); ``metadata["storage"]`` says which.
 Levels are at downsamples ``R ** (k / (n - 1))`` for each requested level count
 ``n`` (3 / 5 / 7) and magnification range ``R``, so one bundle serves Easy,
 Medium and Hard. Arrays are read with ``allow_pickle=False``; every file's
@@ -32,7 +34,10 @@ from tqdm.auto import tqdm
 
 from data_tools.errors import BundleError
 
-FORMAT_VERSION = 1
+FORMAT_VERSION = 1        # dense bundles (pixels_KK.npy / tumour_KK.npy)
+TILED_FORMAT_VERSION = 2  # tiled bundles (tile pools + index grids, see data_tools.tiled)
+READ_VERSIONS = (FORMAT_VERSION, TILED_FORMAT_VERSION)
+STORAGES = ("dense", "tiled", "auto")
 METADATA = "metadata.json"
 LEVEL_SETS = (3, 5, 7)
 MAX_FLAT_PIXELS = 2**31 // 2  # the env indexes pixels with int32
@@ -78,6 +83,14 @@ def device_bytes(width: int, height: int) -> int:
     """Device bytes the env needs for one ``width × height`` px level: RGB uint8 pixels plus the
     int32 summed-area table of its tumour mask."""
     return 3 * width * height + 4 * (width + 1) * (height + 1)
+
+
+def level_device_bytes(level: dict) -> int:
+    """Device bytes of one bundle level from its metadata: dense (:func:`device_bytes`) or tiled (the
+    recorded pool and index bytes, see :mod:`data_tools.tiled`)."""
+    if level.get("storage") == "tiled":
+        return int(level["device_bytes"])
+    return device_bytes(level["width"], level["height"])
 
 
 def _sha256(path: Path) -> str:
@@ -233,6 +246,9 @@ def build_bundle(
     max_decode_bytes: int | None = None,
     region=None,
     region_margin: float = 0.0,
+    storage: str = "dense",
+    share_background: bool = True,
+    band_bytes: int | None = None,
 ) -> Path:
     """Build a slide bundle at ``out_dir`` from a slide file and an optional annotation file.
 
@@ -248,6 +264,12 @@ def build_bundle(
     and tumour masked, starts only with the view centre inside it), or an annotation group/label
     name whose union's bounding box is the region; ``region_margin`` grows it (level-0 px). The
     bundle's level-0 px are then the region's, its magnification range is computed for the region.
+
+    ``storage``: ``"dense"`` (default; whole levels as arrays), ``"tiled"`` (tile pools with index grids,
+    background tiles sharing one blank tile, built streaming in bands with bounded memory; format
+    version 2, see :mod:`data_tools.tiled`) or ``"auto"`` (tiled when the dense levels would need more
+    than 256 MiB on the device). ``share_background=False`` keeps every tile of a tiled bundle (exactly
+    the dense pixels); ``band_bytes`` bounds the RGB bytes of one band (default 96 MiB).
     """
     from data_tools.annotations import annotations_to_geojson, load_annotations
     from data_tools.masks import rasterize, tissue_mask
@@ -263,6 +285,8 @@ def build_bundle(
         raise BundleError(out_dir, f"magnification range {magnification_range} must be a finite number >= 1 "
                           "(the coarsest downsample)")
     level_sets = tuple(sorted(set(int(n) for n in level_sets)))
+    if storage not in STORAGES:
+        raise BundleError(out_dir, f"storage must be one of {STORAGES}, got {storage!r}")
     out_dir.parent.mkdir(parents=True, exist_ok=True)
     tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
     tmp.mkdir()
@@ -283,14 +307,28 @@ def build_bundle(
             downsamples = bundle_downsamples(level_sets, r)
             sizes = [level_size(width0, height0, d) for d in downsamples]
             total = sum(max(w, tile_size) * max(h, tile_size) for w, h in sizes)
-            if total > MAX_FLAT_PIXELS:
+            if storage == "auto":
+                from data_tools.tiled import AUTO_TILED_BYTES
+
+                dense_bytes = sum(device_bytes(max(w, tile_size), max(h, tile_size)) for w, h in sizes)
+                storage = "tiled" if dense_bytes > AUTO_TILED_BYTES else "dense"
+            build_stats = None
+            if storage == "tiled":
+                from data_tools.tiled import BAND_BYTES, build_tiled_levels
+
+                levels_meta, build_stats = build_tiled_levels(
+                    reader, tmp, downsamples, sizes, tile_size, ann=ann, reg=reg, share_background=share_background,
+                    band_bytes=band_bytes or BAND_BYTES, progress=progress, mpp=reader.mpp)
+            elif total > MAX_FLAT_PIXELS:
                 raise BundleError(slide_path, f"the {len(sizes)} levels would hold {total:,} px "
                                   f"({total * 7 / 2**30:.1f} GiB on the device with their masks), more than the "
                                   f"{MAX_FLAT_PIXELS:,} px one dense slide array can index: use fewer levels "
                                   "(--levels), a larger --magnification-range start, or a coarser slide")
-            levels_meta = []
+            if storage == "dense":
+                levels_meta = []
             cache: tuple[int, np.ndarray] | None = None
-            bar = tqdm(downsamples, desc=f"building {out_dir.name}", unit="level", disable=not progress)
+            bar = tqdm(downsamples if storage == "dense" else [], desc=f"building {out_dir.name}", unit="level",
+                       disable=not progress or storage != "dense")
             for k, d in enumerate(bar):
                 # the coarsest source level that is still at least as fine as the target
                 src = max((i for i, lv in enumerate(reader.levels) if lv.downsample <= d * (1 + 1e-6)),
@@ -346,7 +384,10 @@ def build_bundle(
             (tmp / "annotations.geojson").write_text(json.dumps(geojson))
             files = sorted(p.name for p in tmp.iterdir())
             metadata = {
-                "format_version": FORMAT_VERSION,
+                "format_version": FORMAT_VERSION if storage == "dense" else TILED_FORMAT_VERSION,
+                "storage": storage,
+                "device_bytes": sum(level_device_bytes(lv) for lv in levels_meta),
+                **({} if build_stats is None else {"build": build_stats}),
                 "source": {
                     "file": slide_path.name, "sha256": _sha256(slide_path), "format": reader.format,
                     "width": width0, "height": height0, "mpp": reader.mpp,
@@ -396,8 +437,8 @@ class Bundle:
 
     path: Path
     metadata: dict
-    pixels: list[np.ndarray]   # (H, W, 3) uint8 per level
-    tumour: list[np.ndarray]   # (H, W) uint8 0/1 per level
+    pixels: list[np.ndarray]   # (H, W, 3) uint8 per level (tiled bundles: lazy data_tools.tiled.TiledLevel)
+    tumour: list[np.ndarray]   # (H, W) uint8 0/1 per level (tiled bundles: TiledLevel of local SATs)
     tissue: np.ndarray         # (H, W) bool at the coarsest bundle level
     region: np.ndarray | None = None  # (H, W) bool at the coarsest level: allowed view centres (region bundles)
 
@@ -408,6 +449,10 @@ class Bundle:
     @property
     def tile_size(self) -> int:
         return int(self.metadata["tile_size"])
+
+    @property
+    def storage(self) -> str:
+        return self.metadata.get("storage", "dense")
 
 
 def read_metadata(path) -> dict:
@@ -423,25 +468,44 @@ def read_metadata(path) -> dict:
         raise BundleError(meta_file, f"unreadable metadata ({e}); rebuild the bundle") from None
     if not isinstance(metadata, dict):
         raise BundleError(meta_file, "metadata is not a JSON object; rebuild the bundle")
-    if metadata.get("format_version") != FORMAT_VERSION:
+    if metadata.get("format_version") not in READ_VERSIONS:
         raise BundleError(path, f"bundle format version {metadata.get('format_version')!r}, this histojax reads "
-                          f"version {FORMAT_VERSION}; rebuild it with `python -m data_tools build`")
+                          f"versions {READ_VERSIONS}; rebuild it with `python -m data_tools build`")
+    if (metadata.get("storage", "dense") == "tiled") != (metadata["format_version"] == TILED_FORMAT_VERSION):
+        raise BundleError(meta_file, "storage and format version disagree; rebuild the bundle")
     for key in ("tile_size", "levels", "checksums", "magnification_range", "tissue"):
         if key not in metadata:
             raise BundleError(meta_file, f"metadata lacks {key!r}; rebuild the bundle")
     return metadata
 
 
-def _load_array(path: Path, name: str, metadata: dict, verify: bool) -> np.ndarray:
+def _load_array(path: Path, name: str, metadata: dict, verify: bool, mmap: bool = False) -> np.ndarray:
     file = path / name
     if not file.is_file():
         raise BundleError(path, f"missing array {name}; rebuild the bundle")
     if verify and _sha256(file) != metadata["checksums"].get(name):
         raise BundleError(file, "checksum mismatch (the file changed or is corrupt); rebuild the bundle")
     try:
-        return np.load(file, allow_pickle=False)
+        return np.load(file, allow_pickle=False, mmap_mode="r" if mmap else None)
     except (ValueError, OSError) as e:
         raise BundleError(file, f"unreadable array ({e}); rebuild the bundle") from None
+
+
+def _load_tiled(path: Path, lv: dict, metadata: dict, verify: bool, kind: str):
+    """One tiled level as a lazy :class:`data_tools.tiled.TiledLevel` (pools memory-mapped)."""
+    from data_tools.tiled import TiledLevel
+
+    t = int(metadata["tile_size"])
+    pool_name, index_name = ("tiles", "tile_index") if kind == "pixels" else ("sat_tiles", "sat_index")
+    pool = _load_array(path, lv[pool_name], metadata, verify, mmap=True)
+    index = _load_array(path, lv[index_name], metadata, verify)
+    item = (t, t, 3) if kind == "pixels" else (t + 1, t + 1)
+    dtype = np.uint8 if kind == "pixels" else np.uint32
+    grid = (-(-lv["height"] // t), -(-lv["width"] // t))
+    if pool.shape[1:] != item or pool.dtype != dtype or pool.shape[0] < 1 or index.shape != grid \
+            or index.dtype != np.int32 or (index.size and (index.min() < 0 or index.max() >= pool.shape[0])):
+        raise BundleError(path / lv[pool_name], "tile pool or index disagrees with metadata; rebuild the bundle")
+    return TiledLevel(pool=pool, index=index, height=int(lv["height"]), width=int(lv["width"]), kind=kind)
 
 
 def load_bundle(path, verify: bool = True, levels: list[int] | None = None) -> Bundle:
@@ -453,6 +517,10 @@ def load_bundle(path, verify: bool = True, levels: list[int] | None = None) -> B
     pixels, tumour = [], []
     for k in chosen:
         lv = metadata["levels"][k]
+        if lv.get("storage") == "tiled":
+            pixels.append(_load_tiled(path, lv, metadata, verify, "pixels"))
+            tumour.append(_load_tiled(path, lv, metadata, verify, "tumour"))
+            continue
         pixels.append(_load_array(path, lv["pixels"], metadata, verify))
         tumour.append(_load_array(path, lv["tumour"], metadata, verify))
         if pixels[-1].shape != (lv["height"], lv["width"], 3) or pixels[-1].dtype != np.uint8 \
@@ -465,5 +533,5 @@ def load_bundle(path, verify: bool = True, levels: list[int] | None = None) -> B
     return Bundle(path=path, metadata=metadata, pixels=pixels, tumour=tumour, tissue=tissue, region=region)
 
 
-__all__ = ["Bundle", "FORMAT_VERSION", "LEVEL_SETS", "Region", "build_bundle", "bundle_downsamples", "resolve_region",
+__all__ = ["Bundle", "FORMAT_VERSION", "LEVEL_SETS", "STORAGES", "TILED_FORMAT_VERSION", "level_device_bytes", "Region", "build_bundle", "bundle_downsamples", "resolve_region",
            "default_magnification_range", "level_downsamples", "level_size", "load_bundle", "read_metadata"]

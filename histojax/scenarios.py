@@ -297,6 +297,7 @@ def cached_bundle(slide, annotations=None, tile_size: int = 128, level_sets=None
         "slide": file_digest(slide), "annotations": None if annotations is None else file_digest(annotations),
         "tile_size": tile_size, "levels": level_sets, "label_map": label_map,
         "region": None if region is None else dataclasses.asdict(region), "format": FORMAT_VERSION,
+        "storage": "auto",
     }, sort_keys=True)
     out = cache_dir() / f"{prefix}-{hashlib.sha256(key.encode()).hexdigest()[:16]}"
     if not (out / "metadata.json").is_file():
@@ -304,7 +305,8 @@ def cached_bundle(slide, annotations=None, tile_size: int = 128, level_sets=None
             build_bundle(slide, out, annotations_path=annotations, level_sets=level_sets, tile_size=tile_size,
                          label_map=label_map, progress=progress,
                          region=None if region is None else region.build_argument(),
-                         region_margin=0.0 if region is None else region.margin)
+                         region_margin=0.0 if region is None else region.margin,
+                         storage="auto")  # tiled (gigapixel) when the dense levels would exceed 256 MiB
         except BundleError:
             if not (out / "metadata.json").is_file():  # another process may have just built it
                 raise

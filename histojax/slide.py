@@ -12,6 +12,17 @@ level is one gather whatever ``z`` is (no ``lax.switch`` over levels):
   * ``start_logits`` — ``(Hc - T + 1, Wc - T + 1)`` float32 log-weights of start
     positions (top-left corner, px of the coarsest level).
 Level ``z = 0`` is the coarsest, ``z = n_levels - 1`` the finest.
+
+A *tiled* slide (a bundle built with ``storage="tiled"``, for gigapixel slides) has ``pixels`` and
+``tumour_sat`` ``None`` and instead:
+  * ``tile_pool`` — ``(N, T, T, 3)`` uint8 RGB tiles of all levels (each level's tile 0 is blank white,
+    shared by its background tiles; pool tile 0 is uniform and the last tile is a spare blank one,
+    which the view's row slices rely on, see :func:`histojax.views.view_pixels`);
+  * ``tile_index`` — ``(G,)`` int32, level ``z``'s ``gh × gw`` grid of pool indices row-major from
+    ``tile_offset[z]`` with ``gw = tile_grid_width[z]``;
+  * ``sat_pool`` — ``(M, T+1, T+1)`` uint32 local summed-area tables of each tile's tumour mask, and
+    ``sat_index`` ``(G,)`` int32 laid out like ``tile_index``.
+A view then covers at most 2 × 2 tiles (see :mod:`histojax.views`).
 """
 from __future__ import annotations
 
@@ -22,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from data_tools.bundle import Bundle, device_bytes, level_downsamples, load_bundle, read_metadata
+from data_tools.bundle import Bundle, level_device_bytes, level_downsamples, load_bundle, read_metadata
 from data_tools.errors import BundleError
 
 DEFAULT_MAX_DEVICE_BYTES = 4 * 2**30  # the memory budget of one slide on the device
@@ -33,12 +44,12 @@ MIN_START_TISSUE = 0.25  # a random start view holds at least this tissue fracti
 class SlideArrays:
     """Device arrays of one slide at the ``n_levels`` zoom levels of a scenario (see module doc)."""
 
-    pixels: jnp.ndarray        # (P, 3) uint8
+    pixels: jnp.ndarray | None  # (P, 3) uint8; None for a tiled slide
     level_offset: jnp.ndarray  # (n,) int32, first pixel row of each level in ``pixels``
     level_width: jnp.ndarray   # (n,) int32, px
     level_height: jnp.ndarray  # (n,) int32, px
     downsample: jnp.ndarray    # (n,) float32, level-0 px per px of the level
-    tumour_sat: jnp.ndarray    # (S,) uint32, modulo 2**32
+    tumour_sat: jnp.ndarray | None  # (S,) uint32, modulo 2**32; None for a tiled slide
     sat_offset: jnp.ndarray    # (n,) int32
     start_logits: jnp.ndarray  # (Hc - T + 1, Wc - T + 1) float32
     # optional feature grid (``obs_mode="features"``; ``None`` when not loaded), see ``view_features``:
@@ -51,6 +62,18 @@ class SlideArrays:
     # a leading axis S (``(S, n)``, start_logits ``(S, Hmax, Wmax)``, feature_stride ``(S,)``):
     slide_label: jnp.ndarray | None = None   # () or (S,) int32: 1 tumour, 0 no tumour (classification)
     slide_logits: jnp.ndarray | None = None  # (S,) float32 log-weights of sampling each slide at reset
+    # tiled slides (``pixels`` / ``tumour_sat`` None), see the module doc:
+    tile_pool: jnp.ndarray | None = None        # (N, T, T, 3) uint8
+    tile_index: jnp.ndarray | None = None       # (G,) int32 pool index per grid cell, all levels
+    tile_offset: jnp.ndarray | None = None      # (n,) int32 first grid cell of each level in tile_index / sat_index
+    tile_grid_width: jnp.ndarray | None = None  # (n,) int32 grid columns gw of each level
+    sat_pool: jnp.ndarray | None = None         # (M, T+1, T+1) uint32 local summed-area tables
+    sat_index: jnp.ndarray | None = None        # (G,) int32 SAT pool index per grid cell
+
+    @property
+    def is_tiled(self) -> bool:
+        """True for a tiled slide (a static Python bool)."""
+        return self.tile_pool is not None
 
     @property
     def num_slides(self) -> int:
@@ -69,7 +92,8 @@ class SlideArrays:
             level_height=pick(self.level_height), downsample=pick(self.downsample), sat_offset=pick(self.sat_offset),
             start_logits=pick(self.start_logits), feature_offset=pick(self.feature_offset),
             feature_grid_width=pick(self.feature_grid_width), feature_grid_height=pick(self.feature_grid_height),
-            feature_stride=pick(self.feature_stride), slide_label=pick(self.slide_label))
+            feature_stride=pick(self.feature_stride), slide_label=pick(self.slide_label),
+            tile_offset=pick(self.tile_offset), tile_grid_width=pick(self.tile_grid_width))
 
 
 def stack_slides(slides: list[SlideArrays], weights=None) -> SlideArrays:
@@ -85,10 +109,27 @@ def stack_slides(slides: list[SlideArrays], weights=None) -> SlideArrays:
         raise ValueError("either every slide of a dataset has a feature grid or none has")
     if all(with_features) and len({int(s.features.shape[1]) for s in slides}) != 1:
         raise ValueError("feature grids of a dataset's slides must have the same dimension")
-    pixel_base = np.cumsum([0] + [int(s.pixels.shape[0]) for s in slides[:-1]])
-    sat_base = np.cumsum([0] + [int(s.tumour_sat.shape[0]) for s in slides[:-1]])
-    if pixel_base[-1] + slides[-1].pixels.shape[0] >= 2**31 or sat_base[-1] + slides[-1].tumour_sat.shape[0] >= 2**31:
-        raise ValueError("the dataset holds too many pixels for int32 indexing; use fewer slides or levels")
+    tiled = [s.is_tiled for s in slides]
+    if any(tiled) and not all(tiled):
+        raise ValueError("a dataset cannot mix dense and tiled slides: rebuild them all with the same "
+                         "--storage (dense or tiled)")
+    if all(tiled):
+        pixel_base = sat_base = np.zeros(len(slides), np.int64)  # level_offset / sat_offset unused
+        tile_base = np.cumsum([0] + [int(s.tile_pool.shape[0]) for s in slides[:-1]])
+        satp_base = np.cumsum([0] + [int(s.sat_pool.shape[0]) for s in slides[:-1]])
+        index_base = np.cumsum([0] + [int(s.tile_index.shape[0]) for s in slides[:-1]])
+        t = int(slides[0].tile_pool.shape[1])
+        n_tiles = tile_base[-1] + slides[-1].tile_pool.shape[0]
+        n_sats = satp_base[-1] + slides[-1].sat_pool.shape[0]
+        if any(int(s.tile_pool.shape[1]) != t for s in slides):
+            raise ValueError("tiled slides of a dataset need the same tile size")
+        if n_tiles * t * t >= 2**31 or n_sats * (t + 1) ** 2 >= 2**31 or index_base[-1] + slides[-1].tile_index.shape[0] >= 2**31:
+            raise ValueError("the dataset holds too many tiles for int32 indexing; use fewer slides or levels")
+    else:
+        pixel_base = np.cumsum([0] + [int(s.pixels.shape[0]) for s in slides[:-1]])
+        sat_base = np.cumsum([0] + [int(s.tumour_sat.shape[0]) for s in slides[:-1]])
+        if pixel_base[-1] + slides[-1].pixels.shape[0] >= 2**31 or sat_base[-1] + slides[-1].tumour_sat.shape[0] >= 2**31:
+            raise ValueError("the dataset holds too many pixels for int32 indexing; use fewer slides or levels")
     h = max(int(s.start_logits.shape[0]) for s in slides)
     w = max(int(s.start_logits.shape[1]) for s in slides)
     logits = np.full((len(slides), h, w), -np.inf, np.float32)
@@ -98,16 +139,25 @@ def stack_slides(slides: list[SlideArrays], weights=None) -> SlideArrays:
     if weights.shape != (len(slides),) or np.any(weights < 0) or weights.sum() <= 0:
         raise ValueError(f"slide weights must be {len(slides)} non-negative numbers, not all zero")
     stacked = dict(
-        pixels=jnp.concatenate([s.pixels for s in slides]),
+        pixels=None if all(tiled) else jnp.concatenate([s.pixels for s in slides]),
         level_offset=jnp.stack([s.level_offset + int(b) for s, b in zip(slides, pixel_base)]),
         level_width=jnp.stack([s.level_width for s in slides]),
         level_height=jnp.stack([s.level_height for s in slides]),
         downsample=jnp.stack([s.downsample for s in slides]),
-        tumour_sat=jnp.concatenate([s.tumour_sat for s in slides]),
+        tumour_sat=None if all(tiled) else jnp.concatenate([s.tumour_sat for s in slides]),
         sat_offset=jnp.stack([s.sat_offset + int(b) for s, b in zip(slides, sat_base)]),
         start_logits=jnp.asarray(logits),
         slide_logits=jnp.asarray(np.log(weights / weights.sum()), dtype=jnp.float32),
     )
+    if all(tiled):
+        stacked.update(
+            tile_pool=jnp.concatenate([s.tile_pool for s in slides]),
+            tile_index=jnp.concatenate([s.tile_index + int(b) for s, b in zip(slides, tile_base)]),
+            tile_offset=jnp.stack([s.tile_offset + int(b) for s, b in zip(slides, index_base)]),
+            tile_grid_width=jnp.stack([s.tile_grid_width for s in slides]),
+            sat_pool=jnp.concatenate([s.sat_pool for s in slides]),
+            sat_index=jnp.concatenate([s.sat_index + int(b) for s, b in zip(slides, satp_base)]),
+        )
     if all(s.slide_label is not None for s in slides):
         stacked["slide_label"] = jnp.stack([jnp.asarray(s.slide_label, jnp.int32) for s in slides])
     if all(with_features):
@@ -170,8 +220,53 @@ def select_levels(metadata: dict, n_levels: int, where="") -> list[int]:
     return chosen
 
 
+def tiled_slide_arrays(bundle: Bundle, tile_size: int) -> SlideArrays:
+    """Pack the tiled levels of a loaded bundle (levels chosen, coarsest first) into a tiled ``SlideArrays``:
+    pools concatenated with each level's indices shifted by its pool base."""
+    n = len(bundle.pixels)
+    tile_base = np.cumsum([0] + [int(p.pool.shape[0]) for p in bundle.pixels[:-1]])
+    sat_base = np.cumsum([0] + [int(m.pool.shape[0]) for m in bundle.tumour[:-1]])
+    grid_sizes = np.array([p.index.size for p in bundle.pixels], dtype=np.int64)
+    n_tiles = sum(int(p.pool.shape[0]) for p in bundle.pixels)
+    n_sats = sum(int(m.pool.shape[0]) for m in bundle.tumour)
+    if (n_tiles + 1) * tile_size**2 >= 2**31 or n_sats * (tile_size + 1) ** 2 >= 2**31 or grid_sizes.sum() >= 2**31:
+        raise BundleError(bundle.path, f"{n_tiles:,} tiles are too many for int32 indexing of the pool px in one "
+                          "slide (at most 2**31 px, 6 GiB of RGB); use fewer or coarser levels")
+    t = tile_size
+    tile_pool = np.empty((n_tiles + 1, t, t, 3), np.uint8)
+    tile_pool[-1] = 255  # the spare tile the view's row slices may run into
+    sat_pool = np.empty((n_sats, t + 1, t + 1), np.uint32)
+    for p, m, b, c in zip(bundle.pixels, bundle.tumour, tile_base, sat_base):
+        tile_pool[b:b + p.pool.shape[0]] = p.pool
+        sat_pool[c:c + m.pool.shape[0]] = m.pool
+    if n_tiles and np.ptp(tile_pool[0].reshape(-1, 3), axis=0).any():
+        raise BundleError(bundle.path, "tile 0 of a tiled bundle must be the blank tile; rebuild the bundle")
+    widths = np.array([p.width for p in bundle.pixels], dtype=np.int32)
+    heights = np.array([p.height for p in bundle.pixels], dtype=np.int32)
+    downsample = [lv["downsample"] for lv in bundle.metadata["levels"]]
+    zeros = jnp.zeros((n,), jnp.int32)
+    return SlideArrays(
+        pixels=None, tumour_sat=None, level_offset=zeros, sat_offset=zeros,
+        level_width=jnp.asarray(widths), level_height=jnp.asarray(heights),
+        downsample=jnp.asarray(downsample, dtype=jnp.float32),
+        start_logits=jnp.asarray(start_logits(bundle.tissue, tile_size, getattr(bundle, "region", None))),
+        slide_label=jnp.asarray(slide_label_from_metadata(bundle.metadata), dtype=jnp.int32),
+        tile_pool=jnp.asarray(tile_pool),
+        tile_index=jnp.asarray(np.concatenate([p.index.ravel() + int(b) for p, b in zip(bundle.pixels, tile_base)])
+                               .astype(np.int32)),
+        tile_offset=jnp.asarray(np.concatenate([[0], np.cumsum(grid_sizes)[:-1]]), dtype=jnp.int32),
+        tile_grid_width=jnp.asarray([p.index.shape[1] for p in bundle.pixels], dtype=jnp.int32),
+        sat_pool=jnp.asarray(sat_pool),
+        sat_index=jnp.asarray(np.concatenate([m.index.ravel() + int(c) for m, c in zip(bundle.tumour, sat_base)])
+                              .astype(np.int32)),
+    )
+
+
 def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
-    """Pack host arrays of a loaded bundle (levels already chosen, coarsest first) into ``SlideArrays``."""
+    """Pack host arrays of a loaded bundle (levels already chosen, coarsest first) into ``SlideArrays``
+    (dense, or tiled for a tiled bundle)."""
+    if bundle.metadata.get("storage") == "tiled":
+        return tiled_slide_arrays(bundle, tile_size)
     widths = np.array([p.shape[1] for p in bundle.pixels], dtype=np.int64)
     heights = np.array([p.shape[0] for p in bundle.pixels], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(widths * heights)[:-1]])
@@ -210,7 +305,8 @@ def load_slide(path, n_levels: int, verify: bool = True,
     ``False`` skips it.
 
     Refuses, before reading any array, a slide whose levels need more than
-    ``max_device_bytes`` (pixels and summed-area tables, see ``device_bytes``).
+    ``max_device_bytes`` (pixels and summed-area tables, see ``device_bytes``; for a tiled bundle the
+    pools and index grids recorded in its metadata).
 
     Returns the ``SlideArrays`` (levels coarsest first) and the host ``Bundle``
     (metadata and thumbnails for rendering, levels also coarsest first).
@@ -218,7 +314,9 @@ def load_slide(path, n_levels: int, verify: bool = True,
     path = Path(path)
     metadata = read_metadata(path)
     chosen = select_levels(metadata, n_levels, path)
-    needed = sum(device_bytes(metadata["levels"][k]["width"], metadata["levels"][k]["height"]) for k in chosen)
+    needed = sum(level_device_bytes(metadata["levels"][k]) for k in chosen)
+    if metadata.get("storage") == "tiled":
+        needed += 3 * int(metadata["tile_size"]) ** 2  # the spare tile at the end of the pool
     load_features = bool(features) or (features is None and bool(metadata.get("features")))
     if load_features:
         needed += feature_bytes(metadata, chosen, path)

@@ -157,7 +157,7 @@ def test_glass_views_are_white_and_tissue_views_exact(hard):
 
 
 def _rollout(env, params, n_envs=16, n_steps=40):
-    def run(key):
+    def run(key, params):  # params passed as an argument: the slide arrays must not become constants
         keys = jax.random.split(key, n_envs)
         obs, state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
 
@@ -170,7 +170,7 @@ def _rollout(env, params, n_envs=16, n_steps=40):
 
         return jax.lax.scan(body, state, jax.random.split(key, n_steps))[1]
 
-    return jax.jit(run)(KEY)
+    return jax.jit(run)(KEY, params)
 
 
 def test_env_jit_vmap_scan_on_tiled(hard):

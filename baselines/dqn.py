@@ -1,0 +1,254 @@
+"""DQN in pure JAX: many vectorised actors feed one replay buffer; double-Q, n-step returns and a
+target network. The whole run is one jitted ``lax.scan``, vmapped over seeds.
+
+    python -m baselines.dqn --env HistoJAX-Easy-v0 --with-position --seeds 2 --total-steps 200000 --out runs/dqn-easy
+
+Outputs as :mod:`baselines.ppo` (``log.csv``, ``log.json``, ``curve.png``, ``params.msgpack``,
+``config.json``). Discrete actions only.
+
+**Replay buffer**: a circular buffer in a pytree, time-major: ``rows × num_envs`` transitions
+(observation pooled to 32 px uint8 by :func:`networks.preprocess_obs`, action, reward, done),
+each observation stored once — the next observation of row ``t`` is row ``t + 1`` of the same
+env. A sample is a (row, env) pair whose ``n`` following rows are written; its n-step return
+stops at the first episode end (auto-reset puts the next episode's first observation after it,
+which the zero discount then ignores). Time limits count as episode ends, as in PPO.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import optax
+from flax import struct
+
+from baselines import common
+from baselines.networks import QNetwork, preprocess_obs
+from baselines.ppo import config_from_args, finish_run, parse_args
+from histojax.wrappers import LogWrapper
+
+DEFAULTS = dict(
+    env_id="HistoJAX-Easy-v0", slide=None, action_mode="discrete", obs="pixels", with_position=False,
+    reward=None, max_steps_in_episode=None, env_kwargs=None,
+    num_envs=32, total_timesteps=200_000, buffer_size=32_768, batch_size=128, n_step=3, gamma=0.99,
+    lr=2.5e-4, max_grad_norm=10.0, learning_starts=2_048, train_every=1, target_update_every=250,
+    eps_start=1.0, eps_end=0.05, eps_fraction=0.4, double_q=True, hidden=256,
+    num_seeds=1, vmap_seeds=True, iterations_per_log=50, log_every=2, print_progress=True,
+)
+
+
+# ----------------------------------------------------------------------------- targets
+def n_step_return(rewards, dones, gamma: float, bootstrap):
+    """n-step return ``Σ_k γ^k r_k Π_{j<k}(1 − d_j) + γ^n Π_j(1 − d_j) · bootstrap``.
+
+    ``rewards, dones``: ``(n, ...)`` (the reward of step ``k`` and whether the episode ended at
+    it); ``bootstrap``: ``(...)`` the value of the state after the n-th step. Returns ``(G,
+    discount)`` where ``discount = γ^n Π(1 − d)`` is the weight the bootstrap got."""
+    def body(carry, x):
+        g, disc = carry
+        r, d = x
+        return (g + disc * r, disc * gamma * (1.0 - d)), None
+
+    ones = jnp.ones_like(bootstrap, jnp.float32)
+    (g, disc), _ = jax.lax.scan(body, (jnp.zeros_like(ones), ones),
+                                (jnp.asarray(rewards, jnp.float32), jnp.asarray(dones, jnp.float32)))
+    return g + disc * bootstrap, disc
+
+
+def double_q_value(q_online_next, q_target_next):
+    """Double-Q bootstrap: the target network's value of the online network's greedy action."""
+    a = jnp.argmax(q_online_next, axis=-1)
+    return jnp.take_along_axis(q_target_next, a[..., None], axis=-1)[..., 0]
+
+
+def td_targets(rewards, dones, q_online_next, q_target_next, gamma: float, double_q: bool = True):
+    """n-step (double-)Q targets for a batch: ``rewards, dones (n, B)``, ``q_* (B, A)``."""
+    boot = double_q_value(q_online_next, q_target_next) if double_q else q_target_next.max(-1)
+    return n_step_return(rewards, dones, gamma, boot)[0]
+
+
+# ----------------------------------------------------------------------------- buffer
+@struct.dataclass
+class Buffer:
+    obs: object           # (rows, envs, ...) preprocessed observations
+    action: jnp.ndarray   # (rows, envs)
+    reward: jnp.ndarray   # (rows, envs)
+    done: jnp.ndarray     # (rows, envs)
+    pointer: jnp.ndarray  # next row to write
+    filled: jnp.ndarray   # rows written so far (≤ rows)
+
+
+def buffer_init(obs_example, rows: int, num_envs: int) -> Buffer:
+    obs = jax.tree.map(lambda a: jnp.zeros((rows, *a.shape), a.dtype), obs_example)
+    z = jnp.zeros((rows, num_envs))
+    return Buffer(obs, z.astype(jnp.int32), z, z, jnp.zeros((), jnp.int32), jnp.zeros((), jnp.int32))
+
+
+def buffer_add(buf: Buffer, obs, action, reward, done) -> Buffer:
+    rows = buf.reward.shape[0]
+    p = buf.pointer
+    put = lambda store, x: store.at[p].set(x.astype(store.dtype))  # noqa: E731
+    return Buffer(jax.tree.map(put, buf.obs, obs), put(buf.action, action), put(buf.reward, reward),
+                  put(buf.done, done), (p + 1) % rows, jnp.minimum(buf.filled + 1, rows))
+
+
+def buffer_sample(buf: Buffer, key, batch_size: int, n: int):
+    """``(obs_t, action_t, rewards (n, B), dones (n, B), obs_{t+n})`` for ``batch_size`` random
+    (row, env) pairs whose next ``n`` rows are written (needs ``filled > n``)."""
+    rows, num_envs = buf.reward.shape
+    k1, k2 = jax.random.split(key)
+    logical = jax.random.randint(k1, (batch_size,), 0, jnp.maximum(buf.filled - n, 1))
+    env = jax.random.randint(k2, (batch_size,), 0, num_envs)
+    start = buf.pointer - buf.filled  # logical 0 = the oldest row
+    row = lambda k: (start + logical + k) % rows  # noqa: E731
+    steps = jnp.stack([row(k) for k in range(n)])  # (n, B)
+    obs_t = jax.tree.map(lambda a: a[row(0), env], buf.obs)
+    obs_n = jax.tree.map(lambda a: a[row(n), env], buf.obs)
+    return obs_t, buf.action[row(0), env], buf.reward[steps, env], buf.done[steps, env], obs_n
+
+
+# ----------------------------------------------------------------------------- training
+def make_train(config: dict):
+    """A jitted ``train(keys)`` (vmapped over seeds) like :func:`baselines.ppo.make_train`."""
+    config = {**DEFAULTS, **config}
+    if config["action_mode"] != "discrete":
+        raise ValueError("DQN needs action_mode='discrete'")
+    env, env_params = common.make_env(config)
+    env = LogWrapper(env)
+    num_actions = env.action_space().n
+    network = QNetwork(num_actions, hidden=config["hidden"])
+    num_envs = config["num_envs"]
+    rows = max(config["buffer_size"] // num_envs, config["n_step"] + 2)
+    per_log = config["iterations_per_log"]
+    num_logs = max(1, config["total_timesteps"] // (num_envs * per_log))
+    total_iters = num_logs * per_log
+    progress = common.Progress(config["num_seeds"], num_logs, per_log * num_envs, config["log_every"],
+                               name=f"dqn {config['env_id']}")
+    n, gamma = config["n_step"], config["gamma"]
+    tx = optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]), optax.adam(config["lr"]))
+
+    def epsilon(it):
+        frac = jnp.clip(it / (config["eps_fraction"] * total_iters), 0.0, 1.0)
+        return config["eps_start"] + frac * (config["eps_end"] - config["eps_start"])
+
+    def loss_fn(params, target_params, batch):
+        obs_t, a_t, rewards, dones, obs_n = batch
+        q = network.apply(params, obs_t)
+        q_sa = jnp.take_along_axis(q, a_t[:, None], axis=-1)[:, 0]
+        q_next_online = network.apply(params, obs_n)
+        q_next_target = network.apply(target_params, obs_n)
+        target = jax.lax.stop_gradient(td_targets(rewards, dones, q_next_online, q_next_target, gamma,
+                                                  config["double_q"]))
+        return optax.huber_loss(q_sa, target).mean(), q_sa.mean()
+
+    def init_params(key, env_params):
+        _, k_init, k_reset = jax.random.split(key, 3)
+        obs, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, num_envs), env_params)
+        return network.init(k_init, preprocess_obs(obs))
+
+    def train(key, env_params, params):
+        key, k_init, k_reset = jax.random.split(key, 3)
+        obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, num_envs), env_params)
+        obs = preprocess_obs(obs)
+        opt_state = tx.init(params)
+        buf = buffer_init(obs, rows, num_envs)
+        zero = jnp.zeros((), jnp.float32)
+
+        def iteration(carry, it):
+            params, target_params, opt_state, buf, env_state, obs, key, grad_steps = carry
+            key, k_eps, k_rand, k_step, k_sample = jax.random.split(key, 5)
+            q = network.apply(params, obs)
+            explore = jax.random.uniform(k_eps, (num_envs,)) < epsilon(it)
+            action = jnp.where(explore, jax.random.randint(k_rand, (num_envs,), 0, num_actions), q.argmax(-1))
+            next_obs, env_state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                jax.random.split(k_step, num_envs), env_state, action, env_params)
+            done = jnp.logical_or(term, trunc)
+            buf = buffer_add(buf, obs, action, reward, done)
+            next_obs = preprocess_obs(next_obs)
+
+            def learn(args):
+                params, target_params, opt_state, grad_steps = args
+                batch = buffer_sample(buf, k_sample, config["batch_size"], n)
+                (loss, q_mean), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, target_params, batch)
+                updates, opt_state = tx.update(grads, opt_state, params)
+                params = optax.apply_updates(params, updates)
+                grad_steps = grad_steps + 1
+                refresh = grad_steps % config["target_update_every"] == 0
+                target_params = jax.tree.map(lambda t, p: jnp.where(refresh, p, t), target_params, params)
+                return (params, target_params, opt_state, grad_steps), (loss, q_mean)
+
+            can_learn = ((buf.filled * num_envs >= config["learning_starts"]) & (buf.filled > n)
+                         & (it % config["train_every"] == 0))
+            (params, target_params, opt_state, grad_steps), (loss, q_mean) = jax.lax.cond(
+                can_learn, learn, lambda a: (a, (zero, zero)), (params, target_params, opt_state, grad_steps))
+            keep = {k: info[k] for k in ("returned_episode", "returned_episode_returns",
+                                         "returned_episode_lengths", "returned_episode_success")}
+            out = {"info": keep, "loss": loss, "q": q_mean, "learned": can_learn.astype(jnp.float32)}
+            return (params, target_params, opt_state, buf, env_state, next_obs, key, grad_steps), out
+
+        def log_block(carry, block):
+            its = block * per_log + jnp.arange(per_log)
+            carry, out = jax.lax.scan(iteration, carry, its)
+            learned = jnp.maximum(out["learned"].sum(), 1.0)
+            metrics = {**common.episode_stats(out["info"]), "loss": out["loss"].sum() / learned,
+                       "q": out["q"].sum() / learned, "epsilon": epsilon(its[-1])}
+            if config["print_progress"]:
+                ack = common.report(progress, block, metrics)
+                metrics = {**metrics, "episodes": metrics["episodes"] + ack}
+            return carry, metrics
+
+        carry = (params, params, opt_state, buf, env_state, obs, key, jnp.zeros((), jnp.int32))
+        carry, metrics = jax.lax.scan(log_block, carry, jnp.arange(num_logs))
+        return {"params": carry[0], "metrics": metrics}
+
+    def all_seeds(keys, p):
+        # Initial parameters always via lax.map: jit(vmap(init)) of the orthogonal initialisers
+        # (batched QR) never finished on jaxlib 0.10's CPU backend.
+        params = jax.lax.map(lambda k: init_params(k, p), keys)
+        if config["vmap_seeds"]:
+            return jax.vmap(train, in_axes=(0, None, 0))(keys, p, params)
+        return jax.lax.map(lambda kp: train(kp[0], p, kp[1]), (keys, params))
+
+    jitted = jax.jit(all_seeds)
+
+    def run(keys, params=None):
+        progress.t0 = time.perf_counter()
+        return jitted(keys, env_params if params is None else params)
+
+    def compile_(keys, params=None):
+        params = env_params if params is None else params
+        exe = jitted.lower(keys, params).compile()
+
+        def call(keys, p=None):
+            progress.t0 = time.perf_counter()
+            return exe(keys, params if p is None else p)
+        return call
+
+    run.compile, run.raw = compile_, train
+    run.env, run.env_params, run.network, run.config = env, env_params, network, config
+    run.num_updates, run.steps_per_update = num_logs, per_log * num_envs
+    return run
+
+
+def main(argv=None) -> int:
+    args = parse_args(argv, defaults=DEFAULTS, description=__doc__)
+    config = config_from_args(args, defaults=DEFAULTS)
+    out = Path(args.out or f"runs/dqn-{config['env_id']}")
+    train = make_train(config)
+    config = train.config
+    keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
+    print(f"DQN on {config['env_id']}: {train.num_updates} log blocks x {train.steps_per_update} env steps x "
+          f"{config['num_seeds']} seeds; compiling ...", flush=True)
+    t0 = time.perf_counter()
+    compiled = train.compile(keys)
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    result = jax.block_until_ready(compiled(keys))
+    train_s = time.perf_counter() - t0
+    finish_run("dqn", config, out, result["params"], result["metrics"], train.steps_per_update, train_s, compile_s)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,259 @@
+"""Evaluate a trained checkpoint against reference policies.
+
+    python -m baselines.evaluate runs/ppo-easy [--env HistoJAX-Easy-v0] [--slide BUNDLE ...] [--episodes 256]
+
+For every slide (default: the one the checkpoint was trained on) prints and writes
+(``eval.json``, ``eval.csv`` in ``--out``, default ``<run>/eval``) one row per policy:
+
+* the checkpoint's policy, greedy (argmax / Gaussian mean) and sampled, pooled over its seeds;
+* ``random`` — uniform random actions;
+* ``scripted`` — coarse-to-fine using only the observation (see :func:`scripted_policy`).
+
+Columns: success rate (target reached at the finest level), mean return, mean episode length,
+mean steps to success (over the successful episodes). Episodes run without auto-reset until
+success or the step limit. Also writes ``trajectory_<policy>.png`` (histojax.render.render_trajectory)
+and ``trajectory.gif`` (histojax.render.animate) of one episode of the learned policy.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from baselines import common
+from baselines.networks import (ActorCritic, QNetwork, policy_mode, policy_sample, preprocess_obs)
+from histojax import actions
+from histojax.render import animate, render_trajectory
+
+
+# ----------------------------------------------------------------------------- scripted policy
+def stain_offset(pixels, grid: int = 4, sharpen: float = 4.0):
+    """Where the darkest stain of one view ``(T, T, 3)`` lies: the score ``1 − (R + G) / 510``
+    (H&E: haematoxylin-rich purple epithelium is dark in red and green; white background and pink
+    stroma score low), averaged over a ``grid × grid`` of cells, raised to ``sharpen`` and
+    turned into a centroid offset ``(ox, oy)`` from the view centre, in view widths (±0.5)."""
+    t = pixels.shape[0]
+    score = 1.0 - (pixels[..., 0] + pixels[..., 1]) / 510.0
+    cells = score.reshape(grid, t // grid, grid, t // grid).mean(axis=(1, 3))
+    w = cells ** sharpen + 1e-6
+    centres = (jnp.arange(grid) + 0.5) / grid - 0.5
+    ox = (w.sum(0) * centres).sum() / w.sum()
+    oy = (w.sum(1) * centres).sum() / w.sum()
+    return ox, oy
+
+
+def scripted_policy(key, obs, action_mode: str = "discrete", centred: float = 0.12, epsilon: float = 0.1):
+    """Coarse-to-fine from the observation and position only (never the mask), for one env.
+
+    Look where the darkest stain of the view lies (:func:`stain_offset`); if it is within
+    ``centred`` view widths of the centre, zoom in (at the finest level: step randomly, since the
+    target was not reached there); otherwise move toward it — one view width along the larger
+    offset for discrete actions, the offset itself for continuous ones. With probability
+    ``epsilon`` a random discrete action breaks loops."""
+    px = obs["pixels"] if isinstance(obs, dict) else obs
+    pxf = jnp.asarray(px, jnp.float32)
+    if not jnp.issubdtype(jnp.asarray(px).dtype, jnp.integer):
+        pxf = pxf * 255.0
+    ox, oy = stain_offset(pxf)
+    finest = obs["position"][2] >= 1.0 - 1e-6 if isinstance(obs, dict) and "position" in obs else False
+    k1, k2, k3 = jax.random.split(key, 3)
+    is_centred = jnp.maximum(jnp.abs(ox), jnp.abs(oy)) < centred
+    if action_mode == "discrete":
+        move = jnp.where(jnp.abs(ox) >= jnp.abs(oy),
+                         jnp.where(ox > 0, actions.RIGHT, actions.LEFT),
+                         jnp.where(oy > 0, actions.DOWN, actions.UP))
+        rand_move = jax.random.randint(k1, (), 0, 4)
+        centred_action = jnp.where(finest, rand_move, actions.ZOOM_IN)
+        a = jnp.where(is_centred, centred_action, move)
+        return jnp.where(jax.random.uniform(k2) < epsilon, jax.random.randint(k3, (), 0, 7), a).astype(jnp.int32)
+    zoom = jnp.where(is_centred & ~jnp.asarray(finest), 1.0, 0.0)
+    jitter = jax.random.uniform(k1, (2,), minval=-0.5, maxval=0.5) * is_centred * jnp.asarray(finest)
+    return jnp.stack([2 * ox + jitter[0], 2 * oy + jitter[1], zoom])
+
+
+# ----------------------------------------------------------------------------- rollouts
+def run_episodes(env, env_params, policy, key, num_episodes: int):
+    """``num_episodes`` vmapped episodes (no auto-reset) of ``policy(key, obs_batch) -> actions``.
+    Returns numpy ``return, success, length`` per episode and the ``(steps+1, E)`` trajectories
+    ``z, x, y`` (frozen after the episode ended)."""
+    max_steps = int(env_params.max_steps_in_episode)
+    step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+
+    @jax.jit
+    def go(key, env_params):
+        key, k_reset = jax.random.split(key)
+        obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, num_episodes), env_params)
+        zeros = jnp.zeros(num_episodes)
+
+        def body(carry, k):
+            obs, state, done, ret, length, success = carry
+            k_act, k_step = jax.random.split(k)
+            action = policy(k_act, obs)
+            obs2, state2, r, term, trunc, info = step(jax.random.split(k_step, num_episodes), state, action, env_params)
+            active = ~done
+            ret = ret + r * active
+            length = length + active
+            success = success | (info["success"] & active)
+            keep = lambda old, new: jax.tree.map(  # noqa: E731
+                lambda a, b: jnp.where(done.reshape(-1, *([1] * (a.ndim - 1))), a, b), old, new)
+            state, obs = keep(state, state2), keep(obs, obs2)
+            done = done | term | trunc
+            return (obs, state, done, ret, length, success), (state.z, state.x, state.y)
+
+        carry = (obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool))
+        (_, _, _, ret, length, success), (z, x, y) = jax.lax.scan(body, carry, jax.random.split(key, max_steps))
+        cat = lambda a0, a: jnp.concatenate([a0[None], a])  # noqa: E731
+        return ret, success, length, cat(state.z, z), cat(state.x, x), cat(state.y, y)
+
+    out = jax.device_get(go(key, env_params))
+    return dict(zip(("return", "success", "length", "z", "x", "y"), (np.asarray(a) for a in out)))
+
+
+def summarise(ep: dict) -> dict:
+    s = ep["success"].astype(bool)
+    return {"episodes": int(s.size), "success_rate": float(s.mean()), "mean_return": float(ep["return"].mean()),
+            "mean_length": float(ep["length"].mean()),
+            "mean_steps_to_success": float(ep["length"][s].mean()) if s.any() else float("nan")}
+
+
+def trajectory(ep: dict, i: int):
+    """``(z, x, y)`` of episode ``i`` from its start to its last step."""
+    n = int(ep["length"][i])
+    return ep["z"][: n + 1, i], ep["x"][: n + 1, i], ep["y"][: n + 1, i]
+
+
+def learned_policy(network, params, action_mode: str, greedy: bool):
+    def policy(key, obs):
+        obs = preprocess_obs(obs)
+        if isinstance(network, QNetwork):
+            return network.apply(params, obs).argmax(-1)
+        pi, _ = network.apply(params, obs)
+        return policy_mode(pi, action_mode) if greedy else policy_sample(key, pi, action_mode)
+    return policy
+
+
+def network_for(config: dict, env):
+    space = env.action_space()
+    if config.get("algo") == "dqn" or "buffer_size" in config:
+        return QNetwork(space.n, hidden=config["hidden"])
+    dim = space.n if config["action_mode"] == "discrete" else int(np.prod(space.shape))
+    return ActorCritic(dim, config["action_mode"], hidden=config["hidden"])
+
+
+def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
+             label: str = "learned") -> dict:
+    """Rows for the learned policy (greedy and sampled; seeds pooled), the random agent and the
+    scripted policy on one slide; writes trajectory pictures to ``out`` when given."""
+    config = {**config, "slide": slide if slide is not None else config.get("slide")}
+    env, env_params = common.make_env(config, auto_reset=False)
+    mode = config["action_mode"]
+    key = jax.random.PRNGKey(seed)
+    rows, episodes = {}, {}
+    params_seeds = params
+    num_seeds = jax.tree.leaves(params)[0].shape[0] if params is not None else 0
+    if params is not None:
+        network = network_for(config, env)
+        variants = [("greedy", True)] if isinstance(network, QNetwork) else [("greedy", True), ("sampled", False)]
+        for name, greedy in variants:
+            per_seed = []
+            for s in range(num_seeds):
+                p = jax.tree.map(lambda a: a[s], params_seeds)
+                per_seed.append(run_episodes(env, env_params, learned_policy(network, p, mode, greedy),
+                                             jax.random.fold_in(key, 100 + s), num_episodes))
+            pooled = {k: np.concatenate([e[k] for e in per_seed], axis=-1) for k in per_seed[0]}
+            row = summarise(pooled)
+            row["success_rate_per_seed"] = [summarise(e)["success_rate"] for e in per_seed]
+            rows[f"{label} ({name})"] = row
+            episodes[f"{label} ({name})"] = pooled
+    space = env.action_space()
+    rand = lambda k, obs: jax.vmap(space.sample)(jax.random.split(k, jax.tree.leaves(obs)[0].shape[0]))  # noqa: E731
+    episodes["random"] = run_episodes(env, env_params, rand, jax.random.fold_in(key, 1), num_episodes)
+    rows["random"] = summarise(episodes["random"])
+    if isinstance(env.observation_space(), dict) or env.obs_mode in ("pixels", "pixels_float"):
+        def scripted(k, obs):
+            n = jax.tree.leaves(obs)[0].shape[0]
+            return jax.vmap(lambda kk, o: scripted_policy(kk, o, mode))(jax.random.split(k, n), obs)
+        try:
+            episodes["scripted"] = run_episodes(env, env_params, scripted, jax.random.fold_in(key, 2), num_episodes)
+            rows["scripted"] = summarise(episodes["scripted"])
+        except (KeyError, TypeError, ValueError) as e:  # observation without pixels
+            print(f"scripted policy skipped: {e}")
+    if out is not None:
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        for name, ep in episodes.items():
+            i = int(np.argmax(ep["success"])) if ep["success"].any() else 0
+            z, x, y = trajectory(ep, i)
+            tag = name.replace(" ", "_").replace("(", "").replace(")", "")
+            render_trajectory(env, z, x, y, path=out / f"trajectory_{tag}.png",
+                              title=f"{config['env_id']}, {name}, {len(z) - 1} steps, "
+                                    f"target {'reached' if ep['success'][i] else 'not reached'}")
+        first = next(iter(episodes))
+        ep = episodes[first]
+        i = int(np.argmax(ep["success"])) if ep["success"].any() else 0
+        animate(env, *trajectory(ep, i), out / "trajectory.gif")
+    return rows
+
+
+def print_table(title: str, rows: dict) -> None:
+    print(f"\n{title}")
+    print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}")
+    for name, r in rows.items():
+        print(f"{name:<22} {r['episodes']:>8} {r['success_rate']:>8.1%} {r['mean_return']:>11.3f} "
+              f"{r['mean_length']:>11.1f} {r['mean_steps_to_success']:>16.1f}")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("checkpoint", nargs="?", default=None,
+                   help="run folder or params.msgpack (omit with --env for reference rows only)")
+    p.add_argument("--env", default=None, help="env id (default: the checkpoint's)")
+    p.add_argument("--slide", nargs="*", default=None, help="bundle folder(s) (default: the checkpoint's slide)")
+    p.add_argument("--episodes", type=int, default=256, help="episodes per policy (per seed for the learned one)")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--with-position", action="store_true", help="(reference rows only) observation with position")
+    p.add_argument("--action-mode", default="discrete", help="(reference rows only)")
+    p.add_argument("--out", default=None, help="output folder (default <run>/eval or runs/eval-<env>)")
+    args = p.parse_args(argv)
+    if args.checkpoint is None and args.env is None:
+        p.error("give a CHECKPOINT or --env")
+    if args.checkpoint is not None:
+        params, config = common.load_checkpoint(args.checkpoint)
+        run = Path(args.checkpoint)
+        run = run if run.is_dir() else run.parent
+        label = "dqn" if "buffer_size" in config else "ppo"
+    else:
+        params, config, run, label = None, {"action_mode": args.action_mode, "with_position": args.with_position,
+                                            "obs": "pixels", "hidden": 256}, None, "none"
+    if args.env:
+        config["env_id"] = args.env
+    out = Path(args.out) if args.out else (run / "eval" if run else Path(f"runs/eval-{config['env_id']}"))
+    slides = args.slide if args.slide else [config.get("slide")]
+    results = {}
+    for i, slide in enumerate(slides):
+        sub = out if len(slides) == 1 else out / f"slide{i}"
+        rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub, label=label)
+        name = slide or "embedded sample slide"
+        print_table(f"{config['env_id']} on {name} ({args.episodes} episodes per policy"
+                    f"{' per seed' if params is not None else ''})", rows)
+        results[name] = rows
+    out.mkdir(parents=True, exist_ok=True)
+    (out / "eval.json").write_text(json.dumps({"env_id": config["env_id"], "results": results}, indent=2))
+    with open(out / "eval.csv", "w", newline="") as f:
+        w = csv.writer(f)
+        w.writerow(["slide", "policy", "episodes", "success_rate", "mean_return", "mean_length", "mean_steps_to_success"])
+        for slide, rows in results.items():
+            for name, r in rows.items():
+                w.writerow([slide, name, r["episodes"], r["success_rate"], r["mean_return"], r["mean_length"],
+                            r["mean_steps_to_success"]])
+    print(f"\nwrote {out}/eval.json, eval.csv, trajectory_*.png, trajectory.gif")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,216 @@
+"""Small networks for the baselines (flax.linen), sized to train on a CPU.
+
+* :class:`Torso` — observation → feature vector. Pixels ``(B, H, W, 3)`` (uint8 or float) are
+  average-pooled to ``POOLED_SIZE`` (32) px a side first (4× for the 128-px views), scaled to
+  ``[0, 1]`` and go through three small 2×2 stride-2 convolutions; vector observations go through an
+  MLP. A dict observation sends ``"pixels"`` through the CNN and concatenates every other entry
+  (``"position"``, feature vectors, …) flattened, after the CNN.
+* :class:`ActorCritic` — torso + policy head (categorical logits for discrete actions, a
+  diagonal Gaussian mean with a state-independent log-std for continuous ones) + value head.
+* :class:`QNetwork` — torso + one Q-value per discrete action.
+
+Every module takes observations with exactly one leading batch axis. Distributions are tiny
+pure functions here (no distrax dependency).
+"""
+from __future__ import annotations
+
+from typing import Sequence
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+POOLED_SIZE = 32
+
+
+def pool_pixels(x: jax.Array, size: int = POOLED_SIZE) -> jax.Array:
+    """Average-pool ``(B, H, W, C)`` pixels down to ``size`` px a side (float32, same scale as
+    the input). A no-op on pixels already ``size`` px a side; ``H`` must be a multiple of it."""
+    x = jnp.asarray(x, jnp.float32)
+    h, w = x.shape[-3], x.shape[-2]
+    if h == size and w == size:
+        return x
+    if h % size or w % size:
+        raise ValueError(f"pixels {h}x{w} are not a multiple of {size}")
+    fh, fw = h // size, w // size
+    x = x.reshape(*x.shape[:-3], size, fh, size, fw, x.shape[-1])
+    return x.mean(axis=(-4, -2))
+
+
+def preprocess_obs(obs):
+    """What replay buffers store: pixels pooled to ``POOLED_SIZE`` and rounded back to uint8
+    (16× smaller for 128-px views; the torso's first step is the same pooling, so the network
+    sees the same input up to rounding). Vector entries pass through."""
+    def one(x):
+        x = jnp.asarray(x)
+        if x.ndim >= 4 and x.dtype == jnp.uint8:
+            return jnp.round(pool_pixels(x)).astype(jnp.uint8)
+        return x
+    if isinstance(obs, dict):
+        return {k: (one(v) if k == "pixels" else v) for k, v in obs.items()}
+    return one(obs)
+
+
+def _pixels_to_float(x):
+    scale = 1.0 / 255.0 if x.dtype == jnp.uint8 else 1.0
+    return pool_pixels(x) * scale
+
+
+def space_to_depth(x: jax.Array, block: int = 2) -> jax.Array:
+    """``(B, H, W, C) -> (B, H/block, W/block, block*block*C)``: each block×block patch as one vector."""
+    b, h, w, c = x.shape
+    x = x.reshape(b, h // block, block, w // block, block, c).transpose(0, 1, 3, 2, 4, 5)
+    return x.reshape(b, h // block, w // block, block * block * c)
+
+
+class CNN(nn.Module):
+    """Pooled pixels (32 px) → three 2×2 stride-2 convolutions (32 → 16 → 8 → 4 px) → dense.
+
+    Each convolution is written as space-to-depth + a dense layer (the same function as
+    ``nn.Conv(c, (2, 2), strides=2)``): on XLA's CPU backend, convolution gradients inside
+    ``lax.scan`` / ``while`` loops run ~10-80× slower than outside them, while a matmul does not,
+    and the whole PPO run is one loop."""
+
+    channels: Sequence[int] = (32, 64, 64)
+    hidden: int = 256
+
+    @nn.compact
+    def __call__(self, x):
+        x = _pixels_to_float(x)
+        x = x - 0.5
+        for c in self.channels:
+            x = nn.relu(nn.Dense(c, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(space_to_depth(x)))
+        x = x.reshape(x.shape[0], -1)
+        return nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(x))
+
+
+class MLP(nn.Module):
+    hidden: Sequence[int] = (256, 256)
+
+    @nn.compact
+    def __call__(self, x):
+        for h in self.hidden:
+            x = nn.tanh(nn.Dense(h, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(x))
+        return x
+
+
+def _flat(x):
+    x = jnp.asarray(x, jnp.float32)
+    return x.reshape(x.shape[0], -1)
+
+
+class Torso(nn.Module):
+    """Observation (array or dict, one leading batch axis) → features. See the module doc."""
+
+    hidden: int = 256
+
+    @nn.compact
+    def __call__(self, obs):
+        if isinstance(obs, dict):
+            parts, vectors = [], []
+            for k in sorted(obs):
+                if k == "pixels":
+                    parts.append(CNN(hidden=self.hidden)(obs[k]))
+                else:
+                    vectors.append(_flat(obs[k]))
+            if vectors:
+                v = jnp.concatenate(vectors, axis=-1)
+                if parts:  # pixels + small vectors: join after the CNN, one more dense layer
+                    x = jnp.concatenate(parts + [v], axis=-1)
+                    return nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(x))
+                return MLP((self.hidden, self.hidden))(v)
+            return parts[0]
+        obs = jnp.asarray(obs)
+        if obs.ndim == 4:
+            return CNN(hidden=self.hidden)(obs)
+        return MLP((self.hidden, self.hidden))(_flat(obs))
+
+
+class ActorCritic(nn.Module):
+    """Shared torso; ``__call__(obs) -> (policy parameters, value)``: logits ``(B, A)`` for
+    ``action_mode="discrete"``, ``(mean (B, A), log_std (A,))`` for ``"continuous"``."""
+
+    action_dim: int
+    action_mode: str = "discrete"
+    hidden: int = 256
+
+    @nn.compact
+    def __call__(self, obs):
+        h = Torso(self.hidden)(obs)
+        a = nn.tanh(nn.Dense(self.hidden // 2, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(h))
+        c = nn.tanh(nn.Dense(self.hidden // 2, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(h))
+        value = nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0))(c)[..., 0]
+        out = nn.Dense(self.action_dim, kernel_init=nn.initializers.orthogonal(0.01),
+                       bias_init=nn.initializers.zeros)(a)
+        if self.action_mode == "discrete":
+            return out, value
+        log_std = self.param("log_std", nn.initializers.constant(-0.5), (self.action_dim,))
+        return (out, log_std), value
+
+
+class QNetwork(nn.Module):
+    """``__call__(obs) -> Q (B, num_actions)``."""
+
+    num_actions: int
+    hidden: int = 256
+
+    @nn.compact
+    def __call__(self, obs):
+        h = Torso(self.hidden)(obs)
+        return nn.Dense(self.num_actions, kernel_init=nn.initializers.orthogonal(1.0))(h)
+
+
+# ----------------------------------------------------------------------------- distributions
+def categorical_sample(key, logits):
+    return jax.random.categorical(key, logits)
+
+
+def categorical_log_prob(logits, action):
+    logp = jax.nn.log_softmax(logits)
+    return jnp.take_along_axis(logp, action[..., None].astype(jnp.int32), axis=-1)[..., 0]
+
+
+def categorical_entropy(logits):
+    logp = jax.nn.log_softmax(logits)
+    return -(jnp.exp(logp) * logp).sum(-1)
+
+
+def gaussian_sample(key, mean, log_std):
+    return mean + jnp.exp(log_std) * jax.random.normal(key, mean.shape)
+
+
+def gaussian_log_prob(mean, log_std, action):
+    z = (action - mean) * jnp.exp(-log_std)
+    return (-0.5 * z ** 2 - log_std - 0.5 * jnp.log(2 * jnp.pi)).sum(-1)
+
+
+def gaussian_entropy(mean, log_std):
+    return jnp.broadcast_to(log_std + 0.5 * jnp.log(2 * jnp.pi * jnp.e), mean.shape).sum(-1)
+
+
+def policy_sample(key, pi, action_mode: str):
+    """A stochastic action. Continuous actions are sampled unclipped (the env clips to [-1, 1];
+    the log-probability is that of the unclipped Gaussian sample — a clipped Gaussian)."""
+    if action_mode == "discrete":
+        return categorical_sample(key, pi)
+    return gaussian_sample(key, *pi)
+
+
+def policy_mode(pi, action_mode: str):
+    """The greedy action: argmax of the logits, or the clipped Gaussian mean."""
+    if action_mode == "discrete":
+        return jnp.argmax(pi, axis=-1)
+    return jnp.clip(pi[0], -1.0, 1.0)
+
+
+def policy_log_prob(pi, action, action_mode: str):
+    if action_mode == "discrete":
+        return categorical_log_prob(pi, action)
+    return gaussian_log_prob(*pi, action)
+
+
+def policy_entropy(pi, action_mode: str):
+    if action_mode == "discrete":
+        return categorical_entropy(pi)
+    return gaussian_entropy(*pi)

@@ -30,8 +30,9 @@ COMMANDS = {
 }
 
 
-def _run(module_name: str, argv: list[str]) -> int:
+def _run(module_name: str, argv: list[str], prog: str = "histojax") -> int:
     module = importlib.import_module(module_name)
+    sys.argv[0] = prog  # argparse names the program after it: "histojax train", not "cli.py"
     result = module.main(argv)
     return int(result or 0)
 
@@ -53,12 +54,12 @@ def main(argv=None) -> int:
             if algo not in ("ppo", "dqn"):
                 print(f"error: --algo must be ppo or dqn, got {algo!r}", file=sys.stderr)
                 return 2
-            return _run(f"baselines.{algo}", rest)
+            return _run(f"baselines.{algo}", rest, f"histojax train --algo {algo}")
         if command not in COMMANDS:
             print(f"error: unknown command {command!r}; one of: {', '.join([*COMMANDS, 'train'])}", file=sys.stderr)
             return 2
         module_name, prefix = COMMANDS[command]
-        return _run(module_name, prefix + rest)
+        return _run(module_name, prefix + rest, f"histojax {command}" if not prefix else "histojax")
     except KeyboardInterrupt:
         print("interrupted", file=sys.stderr)
         return 130

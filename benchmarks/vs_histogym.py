@@ -304,37 +304,13 @@ def timed(make_fn, env, params, batch: int, seconds: float) -> float:
     return _time(make_fn(env, batch, steps), (params,), seconds, steps * batch)
 
 
-@dataclasses.dataclass(frozen=True)
-class UniformStartEnv(hx_env.HistoEnv):
-    """Diagnostic only (not histojax): ``reset_env`` drawing the start with one ``randint`` into the
-    list of valid start views instead of ``jax.random.categorical`` over all of ``start_logits``.
-    The logits are 0 (valid) or -inf, so both draw uniformly from the same set."""
-
-    valid_starts: object = dataclasses.field(default=None, compare=False, hash=False, repr=False)
-
-    def reset_env(self, key, params):
-        logits = params.slide.start_logits
-        index = self.valid_starts[jax.random.randint(key, (), 0, self.valid_starts.shape[0])]
-        y0, x0 = jnp.divmod(index, logits.shape[1])
-        start = jnp.asarray(params.random_start)
-        zero = jnp.zeros((), jnp.int32)
-        state = hx_env.EnvState(z=zero, x=jnp.where(start, x0, 0).astype(jnp.int32),
-                                y=jnp.where(start, y0, 0).astype(jnp.int32), t=zero, slide_index=zero)
-        return self.get_obs(state, params), state
-
-
 def step_breakdown(env, params, fenv, fparams, batch: int, seconds: float) -> list[tuple[str, float, float | None]]:
-    """Full step at ``batch`` (observations materialised): as is, without auto-reset, and with the
-    O(1) start draw of :class:`UniformStartEnv`."""
-    valid = jnp.asarray(np.flatnonzero(np.isfinite(np.asarray(params.slide.start_logits).reshape(-1))), jnp.int32)
-
-    def uniform(e):
-        fields = {f.name: getattr(e, f.name) for f in dataclasses.fields(hx_env.HistoEnv)}
-        return UniformStartEnv(**fields, valid_starts=valid)
-
-    variants = [("as is (auto-reset, categorical start)", lambda e: e),
-                ("auto_reset=False", lambda e: dataclasses.replace(e, auto_reset=False)),
-                ("auto-reset, O(1) uniform start draw", uniform)]
+    """Full step at ``batch`` (observations materialised): as is (auto-reset, start drawn by
+    inverting the cumulative start weights), with one view per step (``final_observation=False``),
+    and without auto-reset."""
+    variants = [("as is (auto-reset)", lambda e: e),
+                ("final_observation=False", lambda e: dataclasses.replace(e, final_observation=False)),
+                ("auto_reset=False", lambda e: dataclasses.replace(e, auto_reset=False))]
     out = []
     for name, variant in variants:
         pix = timed(full_step_carry_rollout, variant(env), params, batch, seconds)
@@ -592,8 +568,7 @@ def main(argv=None) -> int:
         print(f"    {a['name']:<26} {str(a['exact']):>5} {a['crop_views_per_s']:>13,.0f} "
               f"{a['crop_views_per_s'] * view_bytes / 1e9:>10.2f} {a['crop_bw']:>9.0%} {step} "
               f"{a['device_bytes'] / 2**20:>9.1f}")
-    print(f"\n(e) where the step's time goes at batch {args.crop_batch} (observations materialised as the scan carry; "
-          f"the O(1) start draw is a diagnostic subclass, not histojax):")
+    print(f"\n(e) where the step's time goes at batch {args.crop_batch} (observations materialised as the scan carry):")
     for name, pix, feat in step_breakdown(env, params, fenv, fparams, args.crop_batch, args.seconds):
         print(f"    {name:<40} pixels {pix:>12,.0f} steps/s ({pix / hg['sps']:>8,.0f}x)" +
               (f", features {feat:>12,.0f} steps/s ({feat / hg['sps']:>9,.0f}x)" if feat else ""), flush=True)

@@ -13,37 +13,16 @@ from __future__ import annotations
 import argparse
 import os
 import platform
-import shutil
-import time
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 
 import histojax
+from histojax.sample import sample_feature_bundle
 from benchmarks.throughput import full_step_rollout, measure
 
 HISTOGYM_STEPS_PER_S = (13.0, 60.0)
-
-
-def sample_feature_bundle() -> Path:
-    """A copy of the cached sample bundle with a feature grid (built on first use)."""
-    from data_tools.bundle import read_metadata
-    from data_tools.features.grid import compute_features
-    from histojax.sample import sample_bundle
-
-    source = sample_bundle()
-    out = source.with_name(source.name + "-features")
-    if not (out.is_dir() and read_metadata(out).get("features")):
-        if not out.is_dir():
-            tmp = out.with_name(out.name + ".copy")
-            shutil.rmtree(tmp, ignore_errors=True)
-            shutil.copytree(source, tmp)
-            tmp.rename(out)
-        t0 = time.perf_counter()
-        compute_features(out)
-        print(f"computed the feature grid of {out} in {time.perf_counter() - t0:.1f} s")
-    return out
 
 
 def main(argv=None) -> int:

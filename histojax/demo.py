@@ -22,23 +22,27 @@ SCENARIOS = ("HistoJAX-Easy-v0", "HistoJAX-Medium-v0", "HistoJAX-Hard-v0")
 
 def make_random_rollout(env, num_envs: int, num_steps: int):
     """A jitted function ``(key, params) -> info`` that runs ``num_steps`` steps of ``num_envs``
-    random-agent environments (auto-reset, episode statistics) with ``lax.scan`` over ``vmap``."""
+    random-agent environments (auto-reset, episode statistics, every observation extracted) with
+    ``lax.scan`` over ``vmap``."""
     env = LogWrapper(env)
     space = env.action_space()
 
     def rollout(key, params):
         key, key_reset = jax.random.split(key)
-        _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key_reset, num_envs), params)
+        obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key_reset, num_envs), params)
 
-        def body(state, key):
+        def body(carry, key):
+            state, _ = carry
             key_act, key_step = jax.random.split(key)
             action = jax.vmap(space.sample)(jax.random.split(key_act, num_envs))
-            _, state, reward, _, _, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            obs, state, reward, _, _, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
                 jax.random.split(key_step, num_envs), state, action, params)
             keep = ("returned_episode", "returned_episode_returns", "returned_episode_success")
-            return state, {k: info[k] for k in keep}
+            # the observations go into the carry, so every view is really extracted (a random agent
+            # ignores them, and XLA would otherwise skip the crop and overstate steps/s)
+            return (state, obs), {k: info[k] for k in keep}
 
-        _, infos = jax.lax.scan(body, state, jax.random.split(key, num_steps))
+        _, infos = jax.lax.scan(body, (state, obs), jax.random.split(key, num_steps))
         return infos
 
     return jax.jit(rollout)

@@ -21,7 +21,7 @@ SCENARIOS = ("HistoJAX-Easy-v0", "HistoJAX-Medium-v0", "HistoJAX-Hard-v0")
 
 
 def make_random_rollout(env, num_envs: int, num_steps: int):
-    """A jitted function ``(key, params) -> info`` that runs ``num_steps`` steps of ``num_envs``
+    """A jitted function ``(key, params) -> (info, last observations)`` that runs ``num_steps`` steps of ``num_envs``
     random-agent environments (auto-reset, episode statistics, every observation extracted) with
     ``lax.scan`` over ``vmap``."""
     env = LogWrapper(env)
@@ -42,8 +42,8 @@ def make_random_rollout(env, num_envs: int, num_steps: int):
             # ignores them, and XLA would otherwise skip the crop and overstate steps/s)
             return (state, obs), {k: info[k] for k in keep}
 
-        _, infos = jax.lax.scan(body, (state, obs), jax.random.split(key, num_steps))
-        return infos
+        (_, last_obs), infos = jax.lax.scan(body, (state, obs), jax.random.split(key, num_steps))
+        return infos, last_obs  # returning the carried views keeps them alive
 
     return jax.jit(rollout)
 
@@ -101,7 +101,7 @@ def main(argv=None) -> int:
         jax.block_until_ready(rollout(key, params))
         compile_s = time.perf_counter() - t0
         t0 = time.perf_counter()
-        info = jax.device_get(rollout(jax.random.fold_in(key, 1), params))
+        info, _ = jax.device_get(rollout(jax.random.fold_in(key, 1), params))
         run_s = time.perf_counter() - t0
         done = info["returned_episode"]
         n_episodes = int(done.sum())

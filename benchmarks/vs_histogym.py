@@ -273,26 +273,6 @@ def features_env(env, params, make_kwargs: dict, dim: int = 1280):
                          f"{int(sizes.sum())} views) attached in memory (the step's cost does not depend on values)")
 
 
-def full_step_carry_rollout(env, batch: int, steps: int):
-    """Like ``throughput.full_step_rollout`` but the batch of observations is the scan carry, so
-    XLA must materialise every observation (used for feature observations, where consuming one
-    element would let XLA gather just that element)."""
-    def run(key, params):
-        obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, batch), params)
-
-        def body(carry, key):
-            _, state, checksum = carry
-            a = jax.random.randint(key, (batch,), 0, 7)
-            obs, state, reward, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(key, batch), state, a, params)
-            return (obs, state, checksum + reward.sum()), None
-
-        obs, _, checksum = jax.lax.scan(body, (obs, state, jnp.float32(0)), jax.random.split(key, steps))[0]
-        return checksum + obs.reshape(batch, -1)[:, 0].astype(jnp.float32).sum()
-
-    return jax.jit(run)
-
-
 QUICK_STEPS = None  # --quick: env-steps per timed call (throughput.measure uses 200,000)
 
 
@@ -313,8 +293,8 @@ def step_breakdown(env, params, fenv, fparams, batch: int, seconds: float) -> li
                 ("auto_reset=False", lambda e: dataclasses.replace(e, auto_reset=False))]
     out = []
     for name, variant in variants:
-        pix = timed(full_step_carry_rollout, variant(env), params, batch, seconds)
-        feat = timed(full_step_carry_rollout, variant(fenv), fparams, batch, seconds) if fenv else None
+        pix = timed(full_step_rollout, variant(env), params, batch, seconds)
+        feat = timed(full_step_rollout, variant(fenv), fparams, batch, seconds) if fenv else None
         out.append((name, pix, feat))
     return out
 
@@ -533,7 +513,7 @@ def main(argv=None) -> int:
     rows = []
     for batch in args.batches:
         sps = timed(full_step_rollout, env, params, batch, args.seconds)
-        fsps = timed(full_step_carry_rollout, fenv, fparams, batch, args.seconds) if fenv else None
+        fsps = timed(full_step_rollout, fenv, fparams, batch, args.seconds) if fenv else None
         rows.append((batch, sps, fsps))
         print(f"    batch {batch:>5}: pixels {sps:>12,.0f} steps/s" +
               (f", features {fsps:>12,.0f} steps/s" if fsps else ""), flush=True)

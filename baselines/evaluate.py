@@ -150,6 +150,9 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     """Rows for the learned policy (greedy and sampled; seeds pooled), the random agent and the
     scripted policy on one slide; writes trajectory pictures to ``out`` when given."""
     config = {**config, "slide": slide if slide is not None else config.get("slide")}
+    if slide is not None and config.get("env_kwargs"):  # a given slide replaces a training dataset
+        config["env_kwargs"] = {k: v for k, v in config["env_kwargs"].items()
+                                if k not in ("dataset", "split", "slides", "slide_weights")}
     env, env_params = common.make_env(config, auto_reset=False)
     mode = config["action_mode"]
     key = jax.random.PRNGKey(seed)

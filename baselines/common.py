@@ -235,3 +235,36 @@ def random_agent_reference(config: dict, num_envs: int = 256, num_steps: int = 4
     info = {**info, "returned_episode_lengths": np.zeros_like(info["returned_episode_returns"])}
     stats = jax.device_get(episode_stats(info))
     return {"return": float(stats["return"]), "success": float(stats["success"])}
+
+
+def seeds_runner(train, init_params, env_params, config: dict, progress: Progress):
+    """One jitted program over all seeds: ``run(keys, params=None)`` trains ``len(keys)`` seeds
+    (``jax.vmap`` over keys, or ``lax.map`` with ``config["vmap_seeds"] = False``) on
+    ``env_params`` (or ``params``); ``run.compile(keys)`` compiles ahead of time and returns the
+    same call. Shared by PPO and DQN."""
+    def all_seeds(keys, p):
+        # Initial parameters always via lax.map: jit(vmap(init)) of the orthogonal initialisers
+        # (batched QR) never finished on jaxlib 0.10's CPU backend.
+        params = jax.lax.map(lambda k: init_params(k, p), keys)
+        if config["vmap_seeds"]:
+            return jax.vmap(train, in_axes=(0, None, 0))(keys, p, params)
+        return jax.lax.map(lambda kp: train(kp[0], p, kp[1]), (keys, params))
+
+    jitted = jax.jit(all_seeds)
+
+    def run(keys, params=None):
+        progress.t0 = time.perf_counter()
+        return jitted(keys, env_params if params is None else params)
+
+    def compile_(keys, params=None):
+        """Compile ahead of time; returns ``compiled(keys, params=None)``."""
+        params = env_params if params is None else params
+        exe = jitted.lower(keys, params).compile()
+
+        def call(keys, p=None):
+            progress.t0 = time.perf_counter()
+            return exe(keys, params if p is None else p)
+        return call
+
+    run.compile, run.raw = compile_, train
+    return run

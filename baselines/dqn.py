@@ -202,30 +202,7 @@ def make_train(config: dict):
         carry, metrics = jax.lax.scan(log_block, carry, jnp.arange(num_logs))
         return {"params": carry[0], "metrics": metrics}
 
-    def all_seeds(keys, p):
-        # Initial parameters always via lax.map: jit(vmap(init)) of the orthogonal initialisers
-        # (batched QR) never finished on jaxlib 0.10's CPU backend.
-        params = jax.lax.map(lambda k: init_params(k, p), keys)
-        if config["vmap_seeds"]:
-            return jax.vmap(train, in_axes=(0, None, 0))(keys, p, params)
-        return jax.lax.map(lambda kp: train(kp[0], p, kp[1]), (keys, params))
-
-    jitted = jax.jit(all_seeds)
-
-    def run(keys, params=None):
-        progress.t0 = time.perf_counter()
-        return jitted(keys, env_params if params is None else params)
-
-    def compile_(keys, params=None):
-        params = env_params if params is None else params
-        exe = jitted.lower(keys, params).compile()
-
-        def call(keys, p=None):
-            progress.t0 = time.perf_counter()
-            return exe(keys, params if p is None else p)
-        return call
-
-    run.compile, run.raw = compile_, train
+    run = common.seeds_runner(train, init_params, env_params, config, progress)
     run.env, run.env_params, run.network, run.config = env, env_params, network, config
     run.num_updates, run.steps_per_update = num_logs, per_log * num_envs
     return run

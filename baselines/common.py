@@ -231,7 +231,7 @@ def random_agent_reference(config: dict, num_envs: int = 256, num_steps: int = 4
     from histojax.demo import make_random_rollout
 
     env, params = make_env(config)
-    info = jax.device_get(make_random_rollout(env, num_envs, num_steps)(jax.random.PRNGKey(seed), params))
+    info, _ = jax.device_get(make_random_rollout(env, num_envs, num_steps)(jax.random.PRNGKey(seed), params))
     info = {**info, "returned_episode_lengths": np.zeros_like(info["returned_episode_returns"])}
     stats = jax.device_get(episode_stats(info))
     return {"return": float(stats["return"]), "success": float(stats["success"])}

@@ -137,3 +137,11 @@ def test_tiny_ppo_continuous_actions():
     out = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(1), 1)))
     assert np.isfinite(np.asarray(out["metrics"]["pg_loss"])).all()
     assert out["params"]["params"]["log_std"].shape == (1, 3)
+
+
+def test_random_agent_reference_row():
+    """The random-agent reference drawn on every learning curve (uses histojax.demo's rollout)."""
+    from baselines.common import random_agent_reference
+
+    ref = random_agent_reference({"env_id": "HistoJAX-Easy-v0", "with_position": True}, num_envs=8, num_steps=50)
+    assert 0.0 <= ref["success"] <= 1.0 and np.isfinite(ref["return"])

@@ -97,6 +97,7 @@ class SlideReader:
             self.format = _detect_format(self._tif)
             self._pages = _pyramid_pages(self.path, self._tif)
             self.levels = _level_infos(self._pages)
+            _check_levels(self.path, self.levels)
             self.mpp = _find_mpp(self._tif, self.format, self._pages[0])
         except SlideError:
             self.close()
@@ -399,6 +400,21 @@ def _level_infos(pages: list[tifffile.TiffPage]) -> list[LevelInfo]:
             )
         )
     return infos
+
+
+def _check_levels(path: str, levels: list[LevelInfo]) -> None:
+    """Refuse an inconsistent pyramid: every level must be smaller than the one before it and keep
+    level 0's aspect ratio (within 2 % or 2 px of rounding)."""
+    w0, h0 = levels[0].width, levels[0].height
+    for i in range(1, len(levels)):
+        prev, lv = levels[i - 1], levels[i]
+        if lv.width > prev.width or lv.height > prev.height or (lv.width, lv.height) == (prev.width, prev.height):
+            raise SlideError(path, f"inconsistent pyramid: level {i} is {lv.width}×{lv.height} px, not smaller than "
+                             f"level {i - 1} ({prev.width}×{prev.height}); rewrite the pyramid or keep only level 0")
+        expected_h = lv.width * h0 / w0
+        if abs(lv.height - expected_h) > max(2.0, 0.02 * expected_h):
+            raise SlideError(path, f"inconsistent pyramid: level {i} ({lv.width}×{lv.height} px) does not keep the "
+                             f"aspect ratio of level 0 ({w0}×{h0}); rewrite the pyramid or keep only level 0")
 
 
 # ---------------------------------------------------------------------------

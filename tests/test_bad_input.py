@@ -32,3 +32,25 @@ def test_duplicate_order_values_warn_and_keep_file_order(tmp_path):
     with pytest.warns(UserWarning, match="duplicate Order"):
         ann = load_annotations(xml)
     assert ann.tumour.area == pytest.approx(100 * 100)
+
+
+@pytest.mark.parametrize("second", [(96, 96), (64, 20)])  # larger than level 0; wrong aspect ratio
+def test_inconsistent_sub_levels_are_left_out(tmp_path, second):
+    """tifffile leaves inconsistent sub-resolution levels out of the pyramid: the slide reads as
+    its valid levels (the bundle builder then makes the coarser levels itself)."""
+    path = tmp_path / "pyramid.tif"
+    with tifffile.TiffWriter(path) as tif:
+        tif.write(np.zeros((64, 64, 3), np.uint8), tile=(16, 16), photometric="rgb", subifds=1)
+        tif.write(np.zeros((*second[::-1], 3), np.uint8), tile=(16, 16), photometric="rgb", subfiletype=1)
+    with open_slide(path) as reader:
+        assert [(lv.width, lv.height) for lv in reader.levels] == [(64, 64)]
+
+
+@pytest.mark.parametrize("sizes", [[(64, 64), (96, 96)], [(64, 64), (64, 64)], [(64, 64), (32, 10)]])
+def test_inconsistent_level_lists_are_refused(sizes):
+    """Our own guard, for readers that do list such levels: larger, equal or distorted levels."""
+    from data_tools.slides import LevelInfo, _check_levels
+
+    levels = [LevelInfo(w, h, 64 / w, None, "NONE") for w, h in sizes]
+    with pytest.raises(SlideError, match="inconsistent pyramid"):
+        _check_levels("odd.tif", levels)

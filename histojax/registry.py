@@ -92,7 +92,10 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     if slides is None:
         if slide is None and env_id in _SLIDES:
             recipe = _SLIDES[env_id]
-            slide = recipe(spec) if callable(recipe) else recipe
+            slide = recipe({**spec, "split": split}) if callable(recipe) else recipe
+        if isinstance(slide, (list, tuple)):  # a registered dataset (e.g. a multi-slide scenario)
+            slides, slide = list(slide), None
+    if slides is None:
         if slide is None:
             from histojax.sample import sample_bundle
 

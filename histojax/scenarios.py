@@ -29,8 +29,8 @@ one of ``box = [x0, y0, x1, y1]`` (level-0 px), ``group = "tumour"`` (the boundi
 annotation group/label) or ``polygon = [[x, y], ...]``, and ``margin`` (level-0 px), ``params``
 (other ``EnvParams`` fields, e.g. ``stride``), and ``train`` / ``test`` (lists of slide names for
 splits). A slide file is built into a bundle in the cache (``histojax.sample.cache_dir()``) the first
-time the id is made and reused after. One slide per scenario for now: multi-slide datasets arrive
-with issue 5.
+time the id is made and reused after. Several slides make a dataset (``reset`` draws one);
+``make(id, split="train" | "test" | "all")`` picks the scenario's ``train`` / ``test`` lists.
 """
 from __future__ import annotations
 
@@ -326,17 +326,24 @@ def _recipe(scenario: Scenario):
 
         n, tile = int(spec["n_levels"]), int(spec.get("tile_size", scenario.tile_size))
         level_sets = LEVEL_SETS if n in LEVEL_SETS else (n,)
+        def one(source: SlideSource):
+            if source.bundle is not None:
+                return source.bundle
+            return cached_bundle(source.slide, source.annotations, tile_size=tile, level_sets=level_sets,
+                                 label_map=scenario.label_map, region=scenario.region,
+                                 prefix=f"scenario-{_slug(scenario.id)}")
+
         if scenario.slides is None:
             if scenario.region is None and not scenario.label_map and n in LEVEL_SETS:
                 return sample_bundle(tile_size=tile, progress=False)
-            source = SlideSource(slide=str(SAMPLE_SLIDE), annotations=str(SAMPLE_ANNOTATIONS))
-        else:
-            source = scenario.slides[0]
-        if source.bundle is not None:
-            return source.bundle
-        return cached_bundle(source.slide, source.annotations, tile_size=tile, level_sets=level_sets,
-                             label_map=scenario.label_map, region=scenario.region,
-                             prefix=f"scenario-{_slug(scenario.id)}")
+            return one(SlideSource(slide=str(SAMPLE_SLIDE), annotations=str(SAMPLE_ANNOTATIONS)))
+        if len(scenario.slides) == 1:
+            return one(scenario.slides[0])
+        # a dataset: the split's slides (make(..., split="train" | "test" | "all"); no lists = all)
+        split = spec.get("split", "train")
+        names = {"train": scenario.train, "test": scenario.test}.get(split) or ()
+        chosen = [s for s in scenario.slides if not names or s.name in names]
+        return [one(s) for s in chosen]
 
     return build
 
@@ -348,9 +355,6 @@ def register_scenario(scenario_or_path) -> Scenario:
 
     scenario = scenario_or_path if isinstance(scenario_or_path, Scenario) else load_scenario(scenario_or_path)
     where = scenario.source or scenario.id
-    if scenario.slides is not None and len(scenario.slides) > 1:
-        raise ScenarioError(where, f"scenario {scenario.id!r} lists {len(scenario.slides)} slides; this version "
-                            "runs one slide per scenario (multi-slide datasets arrive with issue 5)")
     if scenario.region is not None and scenario.slides is not None and scenario.slides[0].bundle is not None:
         raise ScenarioError(where, "a region rule needs the slide file (a bundle is already cut); give "
                             "{slide = ..., annotations = ...} or build the region with "

@@ -116,14 +116,40 @@ def test_bad_toml_names_the_file(tmp_path, text, match):
     assert str(path) in str(e.value) and isinstance(e.value, ValueError)
 
 
-def test_missing_file_and_multi_slide(tmp_path):
+def test_multi_slide_scenario_with_a_split(tmp_path):
+    import tifffile
+
+    rng = np.random.default_rng(0)
+    blank = tmp_path / "blank.tif"
+    tifffile.imwrite(blank, rng.integers(200, 255, (700, 900, 3), dtype=np.uint8), photometric="rgb")
+    path = tmp_path / "two.toml"
+    path.write_text(f'''
+id = "Test-Two-Slides-v0"
+levels = 3
+train = ["CMU-1-Small-Region.svs"]
+test = ["blank.tif"]
+
+[[slides]]
+slide = "{SAMPLE_SLIDE}"
+annotations = "{SAMPLE_ANNOTATIONS}"
+
+[[slides]]
+slide = "{blank}"
+''')
+    register_scenario(path)
+    env, params = histojax.make("Test-Two-Slides-v0", split="all")
+    assert params.slide.num_slides == 2 and len(env._bundles) == 2
+    _, states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(0), 64), params)
+    assert set(np.asarray(states.slide_index).tolist()) == {0, 1}  # both slides are drawn
+    train_env, train_params = histojax.make("Test-Two-Slides-v0")  # split="train" by default
+    assert train_params.slide.num_slides == 1 and train_env._bundle.metadata["source"]["file"] == SAMPLE_SLIDE.name
+    test_env, _ = histojax.make("Test-Two-Slides-v0", split="test")
+    assert test_env._bundle.metadata["source"]["file"] == "blank.tif"
+
+
+def test_missing_file_and_region_on_a_bundle(tmp_path):
     with pytest.raises(ScenarioError, match="cannot read"):
         load_scenario(tmp_path / "nope.toml")
-    path = tmp_path / "two.toml"
-    path.write_text('id = "Two-v0"\nslides = ["a.svs", "b.svs"]\n')
-    with pytest.raises(ValueError, match="issue 5") as e:
-        register_scenario(path)
-    assert str(path) in str(e.value)
     with pytest.raises(ValueError, match="needs the slide file"):
         register_scenario(Scenario(id="R-v0", slides=(SlideSource(bundle=str(tmp_path)),),
                                    region=load_scenario_region()))

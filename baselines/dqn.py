@@ -15,8 +15,6 @@ which the zero discount then ignores). Time limits count as episode ends, as in 
 """
 from __future__ import annotations
 
-import time
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -25,7 +23,7 @@ from flax import struct
 
 from baselines import common
 from baselines.networks import QNetwork, preprocess_obs
-from baselines.ppo import config_from_args, finish_run, parse_args
+from baselines.ppo import train_and_save
 from histojax.wrappers import LogWrapper
 
 DEFAULTS = dict(
@@ -209,22 +207,7 @@ def make_train(config: dict):
 
 
 def main(argv=None) -> int:
-    args = parse_args(argv, defaults=DEFAULTS, description=__doc__)
-    config = config_from_args(args, defaults=DEFAULTS)
-    out = Path(args.out or f"runs/dqn-{config['env_id']}")
-    train = make_train(config)
-    config = train.config
-    keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
-    print(f"DQN on {config['env_id']}: {train.num_updates} log blocks x {train.steps_per_update} env steps x "
-          f"{config['num_seeds']} seeds; compiling ...", flush=True)
-    t0 = time.perf_counter()
-    compiled = train.compile(keys)
-    compile_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    result = jax.block_until_ready(compiled(keys))
-    train_s = time.perf_counter() - t0
-    finish_run("dqn", config, out, result["params"], result["metrics"], train.steps_per_update, train_s, compile_s)
-    return 0
+    return train_and_save("dqn", make_train, argv, DEFAULTS, __doc__, "log blocks")
 
 
 if __name__ == "__main__":

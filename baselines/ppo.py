@@ -249,14 +249,16 @@ def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_
     return summary
 
 
-def main(argv=None) -> int:
-    args = parse_args(argv)
-    config = config_from_args(args)
-    out = Path(args.out or f"runs/ppo-{config['env_id']}")
-    train = make_train(config)
+def train_and_save(algo: str, make_train_fn, argv, defaults: dict, description: str, unit: str) -> int:
+    """The CLI of a baseline (shared by PPO and DQN): parse ``argv``, compile, train all seeds
+    in one program, then write logs, curve and checkpoint with :func:`finish_run`."""
+    args = parse_args(argv, defaults=defaults, description=description)
+    config = config_from_args(args, defaults=defaults)
+    out = Path(args.out or f"runs/{algo}-{config['env_id']}")
+    train = make_train_fn(config)
     config = train.config
     keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
-    print(f"PPO on {config['env_id']}: {train.num_updates} updates x {train.steps_per_update} env steps x "
+    print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps x "
           f"{config['num_seeds']} seeds; compiling ...", flush=True)
     t0 = time.perf_counter()
     compiled = train.compile(keys)
@@ -264,8 +266,12 @@ def main(argv=None) -> int:
     t0 = time.perf_counter()
     result = jax.block_until_ready(compiled(keys))
     train_s = time.perf_counter() - t0
-    finish_run("ppo", config, out, result["params"], result["metrics"], train.steps_per_update, train_s, compile_s)
+    finish_run(algo, config, out, result["params"], result["metrics"], train.steps_per_update, train_s, compile_s)
     return 0
+
+
+def main(argv=None) -> int:
+    return train_and_save("ppo", make_train, argv, DEFAULTS, __doc__, "updates")
 
 
 if __name__ == "__main__":

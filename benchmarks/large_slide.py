@@ -50,7 +50,7 @@ def finest_steps_per_second(env, params, batch: int, steps: int) -> float:
     w, h = int(params.slide.level_width[finest]), int(params.slide.level_height[finest])
     state = histojax.EnvState(z=zeros + finest, x=jnp.asarray(np.minimum(pick[:, 1] * t, w - t), jnp.int32),
                               y=jnp.asarray(np.minimum(pick[:, 0] * t, h - t), jnp.int32), t=zeros,
-                              slide_index=zeros)
+                              slide_index=zeros, orientation=zeros)
     pan = jnp.asarray([0, 1, 2, 3, 6], jnp.int32)  # stay on the finest level
 
     def run(key, state, params):

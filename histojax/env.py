@@ -7,7 +7,7 @@ gymnax 1.0 contract::
 
 **State** (``EnvState``, int32 scalars): level ``z`` (0 = coarsest, ``n_levels - 1`` = finest),
 ``x, y`` the view's top-left corner in px of level ``z``, ``t`` steps taken this episode,
-``slide_index`` (0 for one slide).
+``slide_index`` (0 for one slide), ``orientation`` (0 unless ``augment=True``).
 
 **Actions**: ``action_mode="discrete"`` — ``Discrete(7)`` with HistoGym's codes UP=0, DOWN=1,
 LEFT=2, RIGHT=3, ZOOM_IN=4, ZOOM_OUT=5, STAY=6 (moves go ``stride`` view widths; out-of-range codes
@@ -29,6 +29,11 @@ diagnose the slide: discrete actions add DECLARE_NO_TUMOUR=7 and DECLARE_TUMOUR=
 ``+diagnosis_reward`` if it matches the slide label, ``−diagnosis_reward`` if not; every step costs
 ``step_cost``; ``info["success"]`` is a right diagnosis. Slide labels come from the annotations
 (tumour annotated → 1) or ``make(..., labels=CSV or dict)``.
+
+**Augmentation**: ``augment=True`` shows each episode in one of 8 orientations (90° turns ×
+mirror) drawn at reset: the view and the position are turned and the agent's moves are read in
+its turned frame (see :mod:`histojax.augment`); state, rewards and termination stay in the
+slide's frame. Pixel observations only.
 
 **Datasets**: ``make(..., slides=[bundle, ...])`` (or ``dataset=FOLDER`` with a ``dataset.json``)
 stacks slides of any sizes into one ``SlideArrays``; ``reset`` draws a slide (uniformly or by
@@ -52,7 +57,7 @@ import jax.numpy as jnp
 from flax import struct
 from jax import lax
 
-from histojax import actions, rewards, spaces
+from histojax import actions, augment as dihedral, rewards, spaces
 from histojax.slide import SlideArrays
 from histojax.views import view_pixels, view_tumour_fraction
 
@@ -94,6 +99,7 @@ class EnvState:
     y: jnp.ndarray
     t: jnp.ndarray
     slide_index: jnp.ndarray
+    orientation: jnp.ndarray = struct.field(default_factory=lambda: jnp.zeros((), jnp.int32))
 
 
 @struct.dataclass
@@ -125,6 +131,7 @@ class HistoEnv:
     auto_reset: bool = True
     final_observation: bool = True
     task: str = "detection"
+    augment: bool = False
     name: str = "HistoJAX-v0"
     _default_params: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
     _bundle: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
@@ -139,6 +146,9 @@ class HistoEnv:
             raise ValueError(f"reward must be one of {rewards.PRESETS}, got {self.reward!r}")
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
+        if self.augment and self.obs_mode == "features":
+            raise ValueError("augment=True turns the view's pixels; a feature vector cannot be turned. "
+                             "Use obs_mode='pixels' (or 'pixels_float'), or compute features of turned views")
 
     # ----------------------------------------------------------------- gymnax API
     @property
@@ -221,12 +231,18 @@ class HistoEnv:
         y0, x0 = jnp.divmod(index, logits.shape[1])
         start = jnp.asarray(params.random_start)
         zero = jnp.zeros((), jnp.int32)
+        if self.augment:  # a static setting: without it the keys (and trajectories) are unchanged
+            key, key_orientation = jax.random.split(key)
+            orientation = jax.random.randint(key_orientation, (), 0, dihedral.NUM_ORIENTATIONS, jnp.int32)
+        else:
+            orientation = zero
         state = EnvState(
             z=zero,
             x=jnp.where(start, x0, 0).astype(jnp.int32),
             y=jnp.where(start, y0, 0).astype(jnp.int32),
             t=zero,
             slide_index=slide_index,
+            orientation=orientation,
         )
         return state
 
@@ -239,6 +255,9 @@ class HistoEnv:
         """The dynamics without the observation: ``(state, reward, terminated, truncated, info)``."""
         slide, t = params.slide.select(state.slide_index), self.tile_size
         stride_px = jnp.round(params.stride * t).astype(jnp.int32)
+        if self.augment:  # the agent acts in its turned frame
+            action = (dihedral.discrete_to_slide(action, state.orientation) if self.action_mode == "discrete"
+                      else dihedral.continuous_to_slide(action, state.orientation))
         if self.action_mode == "discrete":
             dx, dy, dz = actions.discrete_deltas(action, stride_px)
             diagnosis = actions.discrete_diagnosis(action) if self.task == "classification" else None
@@ -257,7 +276,8 @@ class HistoEnv:
             success = declared & (diagnosis == slide.slide_label)
             reward = rewards.classification_reward(params, declared, success)
             terminated = declared
-        new_state = EnvState(z=z, x=x, y=y, t=state.t + 1, slide_index=state.slide_index)
+        new_state = EnvState(z=z, x=x, y=y, t=state.t + 1, slide_index=state.slide_index,
+                             orientation=state.orientation)
         truncated = jnp.logical_and(new_state.t >= params.max_steps_in_episode, jnp.logical_not(terminated))
         info = {
             "tumour_fraction": fraction,
@@ -278,6 +298,8 @@ class HistoEnv:
                 return obs
             return {"features": obs, "position": self._position(state, slide)}
         pixels = view_pixels(slide, state.z, state.x, state.y, t)
+        if self.augment:
+            pixels = dihedral.orient_pixels(pixels, state.orientation)
         if self.obs_mode == "pixels_float":
             pixels = pixels.astype(jnp.float32) / 255.0
         if not self.with_position:
@@ -287,11 +309,12 @@ class HistoEnv:
     def _position(self, state: EnvState, slide: SlideArrays):
         """``(x_centre / W_z, y_centre / H_z, z / (n_levels - 1))`` float32 in ``[0, 1]``."""
         half = self.tile_size / 2.0
-        return jnp.stack([
+        position = jnp.stack([
             (state.x + half) / slide.level_width[state.z],
             (state.y + half) / slide.level_height[state.z],
             state.z / max(self.n_levels - 1, 1),
         ]).astype(jnp.float32)
+        return dihedral.orient_position(position, state.orientation) if self.augment else position
 
     # ----------------------------------------------------------------- host-side helpers
     def render(self, state: EnvState, params: EnvParams | None = None):

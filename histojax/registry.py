@@ -27,6 +27,7 @@ from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide, stack_slides
 _REGISTRY: dict[str, dict] = {}
 _SLIDES: dict[str, object] = {}  # env id → default slide: a bundle path, or a recipe ``f(spec) -> bundle path``
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
+                 "augment",
                  "final_observation")
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name != "slide")
 
@@ -63,7 +64,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     ``slide``: a bundle folder (``python -m data_tools build``) or ``None`` for the id's registered
     slide (``register(..., slide=...)``, e.g. a scenario's recipe) or else the embedded sample slide
     (bundles are built on first use). ``overrides``: any static setting
-    (``action_mode``, ``obs_mode``, ``with_position``, ``reward``, ``auto_reset``; ``tile_size``
+    (``action_mode``, ``obs_mode``, ``with_position``, ``reward``, ``auto_reset``, ``augment``; ``tile_size``
     only for the sample slide, where it selects another cached bundle) or ``EnvParams`` field
     (``max_steps_in_episode``, ``stride``, ``success_threshold``, ``step_cost``,
     ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``).

@@ -146,13 +146,17 @@ def network_for(config: dict, env):
 
 
 def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
-             label: str = "learned") -> dict:
+             label: str = "learned", augment: bool = False) -> dict:
     """Rows for the learned policy (greedy and sampled; seeds pooled), the random agent and the
-    scripted policy on one slide; writes trajectory pictures to ``out`` when given."""
+    scripted policy on one slide; writes trajectory pictures to ``out`` when given. Training-time
+    view augmentation (``env_kwargs["augment"]``) is switched off unless ``augment=True``: a
+    slide is evaluated as it is."""
     config = {**config, "slide": slide if slide is not None else config.get("slide")}
-    if slide is not None and config.get("env_kwargs"):  # a given slide replaces a training dataset
-        config["env_kwargs"] = {k: v for k, v in config["env_kwargs"].items()
-                                if k not in ("dataset", "split", "slides", "slide_weights")}
+    if config.get("env_kwargs"):
+        drop = {"augment"} if not augment else set()
+        if slide is not None:  # a given slide replaces a training dataset
+            drop |= {"dataset", "split", "slides", "slide_weights"}
+        config["env_kwargs"] = {k: v for k, v in config["env_kwargs"].items() if k not in drop}
     env, env_params = common.make_env(config, auto_reset=False)
     mode = config["action_mode"]
     key = jax.random.PRNGKey(seed)
@@ -222,6 +226,8 @@ def main(argv=None) -> int:
     p.add_argument("--with-position", action="store_true", help="(reference rows only) observation with position")
     p.add_argument("--action-mode", default="discrete", help="(reference rows only)")
     p.add_argument("--out", default=None, help="output folder (default <run>/eval or runs/eval-<env>)")
+    p.add_argument("--augment", action="store_true",
+                   help="keep the checkpoint's training-time view augmentation (default: slides as they are)")
     args = p.parse_args(argv)
     if args.checkpoint is None and args.env is None:
         p.error("give a CHECKPOINT or --env")
@@ -240,7 +246,8 @@ def main(argv=None) -> int:
     results = {}
     for i, slide in enumerate(slides):
         sub = out if len(slides) == 1 else out / f"slide{i}"
-        rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub, label=label)
+        rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub, label=label,
+                        augment=args.augment)
         name = slide or "embedded sample slide"
         print_table(f"{config['env_id']} on {name} ({args.episodes} episodes per policy"
                     f"{' per seed' if params is not None else ''})", rows)

@@ -1,0 +1,144 @@
+"""The baseline targets on slides the agent never trained on (issue: PPO, discrete, held-out
+success ≥ 90 % Easy, ≥ 70 % Medium, ≥ 50 % Hard), and PPO's training throughput.
+
+    python benchmarks/heldout_targets.py [--dataset /tmp/synth] [--scenarios Easy Medium Hard]
+                                         [--steps 262144 1048576 1048576] [--seeds 2] [--out runs/heldout]
+
+Data: a semi-synthetic CAMELYON16-geometry slide set (pixels synthetic, geometry real) with a
+train/test split by slide; made first with ``python -m data_tools synth DATASET --slides 8 --size 4096``
+when ``DATASET/dataset.json`` is missing (~2 min, ~850 MB). Each scenario trains
+``baselines.ppo`` on the train split (pixels + position, dihedral view augmentation), then
+evaluates the sampled policy of every seed on every test slide *as it is* (no augmentation),
+with the random agent and the scripted policy as reference rows. Writes ``targets.md`` and
+``targets.json`` to ``--out`` and prints the table. Training throughput is printed with and without
+compile time. This is a benchmark (hours of CPU at full budgets), not a test.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import numpy as np
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from baselines import common, ppo  # noqa: E402
+from baselines.evaluate import evaluate  # noqa: E402
+
+TARGETS = {"Easy": 0.90, "Medium": 0.70, "Hard": 0.50}
+DEFAULT_STEPS = {"Easy": 262_144, "Medium": 1_048_576, "Hard": 1_048_576}
+
+
+def ensure_dataset(path: Path, slides: int, size: int) -> dict:
+    """``dataset.json`` of ``path``, making the slide set first if it is missing."""
+    if not (path / "dataset.json").exists():
+        subprocess.run([sys.executable, "-m", "data_tools", "synth", str(path), "--slides", str(slides),
+                        "--size", str(size), "--seed", "0"], check=True, cwd=ROOT)
+    return json.loads((path / "dataset.json").read_text())
+
+
+def run_scenario(name: str, dataset: Path, spec: dict, steps: int, seeds: int, episodes: int, out: Path,
+                 extra: list[str], reuse: bool = False) -> dict:
+    """Train on the train split (or, with ``reuse``, take a finished run folder trained with the same
+    scenario, dataset, steps and seeds), evaluate on each test slide; returns the scenario's result."""
+    env_id = f"HistoJAX-{name}-v0"
+    run = out / f"ppo-{name.lower()}"
+    kwargs = {"dataset": str(dataset), "split": "train", "augment": True}
+    argv = ["--env", env_id, "--with-position", "--seeds", str(seeds), "--total-steps", str(steps),
+            "--out", str(run), "--set", f"env_kwargs={json.dumps(kwargs)}",
+            *extra]
+    if not (reuse and _same_run(run, env_id, kwargs, steps, seeds)):
+        ppo.main(argv)
+    else:
+        print(f"reusing {run} (same scenario, dataset, steps and seeds)")
+    summary = json.loads((run / "log.json").read_text())["summary"]
+    params, config = common.load_checkpoint(run)
+    per_slide = {}
+    for rel in spec["test"]:
+        bundle = dataset / rel
+        rows = evaluate(config, params, slide=str(bundle), num_episodes=episodes,
+                        out=run / "eval" / Path(rel).name, label="ppo")
+        per_slide[Path(rel).name] = {k: rows[k] for k in ("ppo (sampled)", "ppo (greedy)", "random", "scripted")
+                                     if k in rows}
+    mean = lambda key: float(np.mean([r[key]["success_rate"] for r in per_slide.values()]))  # noqa: E731
+    return {"env_id": env_id, "steps_per_seed": steps, "seeds": seeds, "target": TARGETS[name],
+            "heldout_success_sampled": mean("ppo (sampled)"), "heldout_success_greedy": mean("ppo (greedy)"),
+            "random_success": mean("random"), "scripted_success": mean("scripted"),
+            "train_success_final": summary["final"]["success"],
+            "train_seconds": summary["train_seconds"], "compile_seconds": summary["compile_seconds"],
+            "steps_per_s": summary["env_steps_per_second_all_seeds"],
+            "steps_per_s_with_compile": steps * seeds / (summary["train_seconds"] + summary["compile_seconds"]),
+            "per_slide": per_slide}
+
+
+def _same_run(run: Path, env_id: str, kwargs: dict, steps: int, seeds: int) -> bool:
+    try:
+        config = json.loads((run / "config.json").read_text())
+        summary = json.loads((run / "log.json").read_text())["summary"]
+    except (OSError, ValueError, KeyError):
+        return False
+    return (config.get("env_id") == env_id and config.get("env_kwargs") == kwargs and config.get("with_position")
+            and summary.get("env_steps_per_seed") == steps and summary.get("seeds") == seeds)
+
+
+def markdown(results: dict, dataset: Path) -> str:
+    lines = ["| scenario | target | held-out success (sampled) | greedy | random agent | scripted | "
+             "train success | env steps/s (w/o, with compile) | steps × seeds |", "|---|---|---|---|---|---|---|---|---|"]
+    for name, r in results.items():
+        ok = "met" if r["heldout_success_sampled"] >= r["target"] else "NOT met"
+        lines.append(f"| {name} | ≥ {r['target']:.0%} | **{r['heldout_success_sampled']:.1%}** ({ok}) | "
+                     f"{r['heldout_success_greedy']:.1%} | {r['random_success']:.1%} | {r['scripted_success']:.1%} | "
+                     f"{r['train_success_final']:.1%} | {r['steps_per_s']:,.0f} / {r['steps_per_s_with_compile']:,.0f} | "
+                     f"{r['steps_per_seed']:,} × {r['seeds']} |")
+    lines += ["", "Per test slide (sampled policy success):", ""]
+    for name, r in results.items():
+        cells = ", ".join(f"{s} {v['ppo (sampled)']['success_rate']:.1%}" for s, v in r["per_slide"].items())
+        lines.append(f"- {name}: {cells}")
+    lines += ["", f"Dataset {dataset} (pixels synthetic, geometry real CAMELYON16; split by slide). "
+              f"Machine: {platform.machine()}, {jax.device_count()} {jax.devices()[0].platform} device(s), "
+              f"JAX {jax.__version__}."]
+    return "\n".join(lines)
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--dataset", default="/tmp/synth", help="semi-synthetic slide set (made if missing)")
+    p.add_argument("--slides", type=int, default=8, help="slides to make when the dataset is missing")
+    p.add_argument("--size", type=int, default=4096, help="canvas px when the dataset is missing")
+    p.add_argument("--scenarios", nargs="+", default=list(TARGETS), choices=list(TARGETS))
+    p.add_argument("--steps", type=int, nargs="+", default=None, help="env steps per seed, one per scenario")
+    p.add_argument("--seeds", type=int, default=2)
+    p.add_argument("--episodes", type=int, default=128, help="evaluation episodes per seed and test slide")
+    p.add_argument("--out", default="runs/heldout")
+    p.add_argument("--reuse", action="store_true", help="evaluate finished runs in --out again instead of retraining")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="passed to baselines.ppo")
+    args = p.parse_args(argv)
+    steps = args.steps or [DEFAULT_STEPS[s] for s in args.scenarios]
+    if len(steps) != len(args.scenarios):
+        p.error("give one --steps value per scenario")
+    dataset = Path(args.dataset)
+    spec = ensure_dataset(dataset, args.slides, args.size)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    extra = [a for s in args.set for a in ("--set", s)]
+    results = {}
+    t0 = time.perf_counter()
+    for name, n in zip(args.scenarios, steps):
+        results[name] = run_scenario(name, dataset, spec, n, args.seeds, args.episodes, out, extra, args.reuse)
+        text = markdown(results, dataset)
+        (out / "targets.md").write_text(text + "\n")
+        (out / "targets.json").write_text(json.dumps(results, indent=1))
+    print("\n" + text)
+    print(f"\ntotal {time.perf_counter() - t0:.0f} s; wrote {out}/targets.md, targets.json")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

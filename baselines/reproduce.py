@@ -11,7 +11,7 @@ Each cell trains with ``baselines.ppo`` / ``baselines.dqn`` (one run folder per 
 (PPO: sampled actions; DQN: greedy). Rows report success rate (target reached at the finest
 level), mean return, mean steps to success, and wall time (training + compile).
 
-    python -m baselines.reproduce [--quick] [--tables 1 2] [--out runs/reproduce]
+    python -m baselines.reproduce [--quick] [--tables 1 2] [--steps N] [--seeds N] [--out runs/reproduce]
 
 ``--quick`` uses tiny budgets (a smoke run of the whole grid in minutes, far from converged);
 the default budgets take hours on 2 CPU cores.
@@ -103,11 +103,18 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--quick", action="store_true", help="tiny budgets: a smoke run of the grid, not converged")
     p.add_argument("--tables", type=int, nargs="+", default=[1, 2], choices=(1, 2))
+    p.add_argument("--steps", type=int, default=None, help="env steps per seed per cell (overrides the budget)")
+    p.add_argument("--seeds", type=int, default=None, help="seeds per cell (overrides the budget)")
+    p.add_argument("--episodes", type=int, default=None, help="evaluation episodes per seed (overrides the budget)")
     p.add_argument("--imported", default=None, help="bundle with an imported feature grid (Table 2 column)")
     p.add_argument("--out", default="runs/reproduce", help="folder for run folders and the markdown table")
     args = p.parse_args(argv)
     mode = "quick" if args.quick else "full"
-    budget = BUDGETS[mode]
+    budget = dict(BUDGETS[mode])
+    for k in ("steps", "seeds", "episodes"):
+        if getattr(args, k) is not None:
+            budget[k] = getattr(args, k)
+            mode = "custom"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()

@@ -1,5 +1,6 @@
 """Shared by the trainers: making the env from a config, episode statistics, progress printing,
-checkpoints (flax.serialization msgpack), logs (CSV / JSON) and learning-curve PNGs (Pillow)."""
+checkpoints (flax.serialization msgpack), logs (CSV / JSON), learning-curve PNGs (Pillow) and
+sharding the env batch over devices (``--devices N``)."""
 from __future__ import annotations
 
 import csv
@@ -11,6 +12,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import serialization
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 import histojax
 
@@ -237,11 +240,43 @@ def random_agent_reference(config: dict, num_envs: int = 256, num_steps: int = 4
     return {"return": float(stats["return"]), "success": float(stats["success"])}
 
 
-def seeds_runner(train, init_params, env_params, config: dict, progress: Progress):
+# ----------------------------------------------------------------------------- devices
+def batch_mesh(devices: int | None, num_envs: int) -> Mesh | None:
+    """A 1-D ``Mesh`` named ``"batch"`` over the first ``devices`` of ``jax.devices()`` (all
+    hosts' devices after ``jax.distributed.initialize()``), or None for ``devices=None``."""
+    if devices is None:
+        return None
+    n, available = int(devices), jax.devices()
+    if n < 1:
+        raise ValueError(f"devices must be >= 1, got {n}")
+    if num_envs % n:
+        raise ValueError(f"num_envs={num_envs} must divide by devices={n} (each device steps "
+                         f"num_envs / devices envs)")
+    if n > len(available):
+        raise ValueError(
+            f"devices={n} but only {len(available)} {available[0].platform} device(s) are visible; on "
+            f"CPU set XLA_FLAGS=--xla_force_host_platform_device_count={n} before jax is imported "
+            f"(several hosts: call jax.distributed.initialize() first)")
+    return Mesh(np.array(available[:n]), ("batch",))
+
+
+def shard_batch(mesh: Mesh | None, tree, axis: int = 0):
+    """Constrain every array of ``tree`` to be split over ``mesh``'s devices along ``axis`` (the
+    env batch). Identity for ``mesh=None``. Under ``jax.vmap`` over seeds JAX inserts the seed
+    axis, unconstrained, in front of the spec, so ``axis`` counts the unbatched dimensions."""
+    if mesh is None:
+        return tree
+    sharding = NamedSharding(mesh, P(*([None] * axis), "batch"))
+    return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, sharding), tree)
+
+
+def seeds_runner(train, init_params, env_params, config: dict, progress: Progress, mesh: Mesh | None = None):
     """One jitted program over all seeds: ``run(keys, params=None)`` trains ``len(keys)`` seeds
     (``jax.vmap`` over keys, or ``lax.map`` with ``config["vmap_seeds"] = False``) on
     ``env_params`` (or ``params``); ``run.compile(keys)`` compiles ahead of time and returns the
-    same call. Shared by PPO and DQN."""
+    same call. With a ``mesh`` (:func:`batch_mesh`) the keys and env params (slide arrays) are
+    placed replicated on its devices; ``train`` shards the env batch itself (:func:`shard_batch`).
+    Shared by PPO and DQN."""
     def all_seeds(keys, p):
         # Initial parameters always via lax.map: jit(vmap(init)) of the orthogonal initialisers
         # (batched QR) never finished on jaxlib 0.10's CPU backend.
@@ -251,20 +286,24 @@ def seeds_runner(train, init_params, env_params, config: dict, progress: Progres
         return jax.lax.map(lambda kp: train(kp[0], p, kp[1]), (keys, params))
 
     jitted = jax.jit(all_seeds)
+    # replicated on the mesh's devices (a no-op for arrays already placed there)
+    place = (lambda x: x) if mesh is None else (lambda x: jax.device_put(x, NamedSharding(mesh, P())))
 
     def run(keys, params=None):
         progress.t0 = time.perf_counter()
-        return jitted(keys, env_params if params is None else params)
+        return jitted(place(keys), place(env_params if params is None else params))
 
     def compile_(keys, params=None):
-        """Compile ahead of time; returns ``compiled(keys, params=None)``."""
-        params = env_params if params is None else params
-        exe = jitted.lower(keys, params).compile()
+        """Compile ahead of time; returns ``compiled(keys, params=None)`` (``.exe``: the
+        ``jax.stages.Compiled``, e.g. for ``.as_text()``)."""
+        params = place(env_params if params is None else params)
+        exe = jitted.lower(place(keys), params).compile()
 
         def call(keys, p=None):
             progress.t0 = time.perf_counter()
-            return exe(keys, params if p is None else p)
+            return exe(place(keys), params if p is None else place(p))
+        call.exe = exe
         return call
 
-    run.compile, run.raw = compile_, train
+    run.compile, run.raw, run.mesh = compile_, train, mesh
     return run

@@ -112,6 +112,8 @@ def make_train(config: dict):
     config = {**DEFAULTS, **config}
     if config["action_mode"] != "discrete":
         raise ValueError("DQN needs action_mode='discrete'")
+    if config.get("devices") is not None:
+        raise ValueError("DQN does not shard over devices (devices / --devices is PPO only)")
     env, env_params = common.make_env(config)
     env = LogWrapper(env)
     num_actions = env.action_space().n

@@ -14,7 +14,7 @@ $(STAMP): pyproject.toml
 	touch $(STAMP)
 
 demo: $(STAMP)
-	$(PY) -m histojax.demo
+	$(PY) -m baselines.demo
 
 test: $(STAMP)
 	$(PY) -m pytest -q

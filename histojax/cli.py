@@ -3,7 +3,7 @@
     histojax info SLIDE|BUNDLE        pyramid of a slide (levels, px sizes, tiles, compression, µm/px)
     histojax build SLIDE --out DIR    slide bundle (levels, masks; see `histojax build --help`)
     histojax features BUNDLE          feature grid of a bundle (`python -m data_tools features`)
-    histojax demo                     random-agent table and trajectory picture on the sample slide
+    histojax demo [--no-train]        random-agent table, then PPO trained and evaluated on Easy (`make demo`)
     histojax train [--algo ppo|dqn]   pure-JAX baselines (`python -m baselines.ppo|dqn`)
     histojax evaluate CHECKPOINT      success rate, return, steps to success, trajectory pictures
     histojax bench                    environment throughput (steps/s) against memory bandwidth
@@ -24,7 +24,7 @@ COMMANDS = {
     "info": ("data_tools.__main__", ["info"]),
     "build": ("data_tools.__main__", ["build"]),
     "features": ("data_tools.__main__", ["features"]),
-    "demo": ("histojax.demo", []),
+    "demo": ("baselines.demo", []),
     "evaluate": ("baselines.evaluate", []),
     "bench": ("benchmarks.throughput", []),
 }

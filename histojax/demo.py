@@ -1,5 +1,6 @@
-"""`make demo`: jitted, vmapped random-agent episodes on Easy / Medium / Hard of the embedded
-sample slide, a table of steps/s, episode return and success rate, and a trajectory picture.
+"""The environment half of `make demo`: jitted, vmapped random-agent episodes on Easy / Medium /
+Hard of the embedded sample slide, a table of steps/s, episode return and success rate, and a
+trajectory picture. `make demo` (``python -m baselines.demo``) runs this, then trains PPO.
 
     python -m histojax.demo [--envs 256] [--steps 400] [--out out/]
 """
@@ -81,22 +82,19 @@ def first_episode(env, params, key, num_envs: int = 64):
     return zs, xs, ys, bool(success_any[pick])
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--envs", type=int, default=256, help="parallel environments (vmap)")
-    p.add_argument("--steps", type=int, default=400, help="steps per environment (lax.scan)")
-    p.add_argument("--out", default="out", help="folder for the trajectory picture")
-    p.add_argument("--seed", type=int, default=0)
-    args = p.parse_args(argv)
-    out = Path(args.out)
+def random_agent_table(num_envs: int = 256, num_steps: int = 400, seed: int = 0, out="out",
+                       scenarios=SCENARIOS, picture_max_steps: int | None = None) -> dict:
+    """Print the random-agent table (one row per scenario: levels, steps/s, compile seconds,
+    finished episodes, mean return, success rate) and write ``demo_trajectory.png`` / ``.gif``
+    (one random Easy episode over the slide; ``picture_max_steps`` shortens its step limit, for
+    quick runs) to ``out``. Returns ``{"rows": [...], "files": [...]}``."""
+    out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    print(f"histojax demo on the embedded sample slide (CMU-1-Small-Region.svs, CC0; the target is an "
-          f"illustrative navigation target, not a diagnosis); JAX {jax.__version__} on {jax.devices()[0].platform}")
     rows = []
-    key = jax.random.PRNGKey(args.seed)
-    for env_id in SCENARIOS:
+    key = jax.random.PRNGKey(seed)
+    for env_id in scenarios:
         env, params = histojax.make(env_id)
-        rollout = make_random_rollout(env, args.envs, args.steps)
+        rollout = make_random_rollout(env, num_envs, num_steps)
         t0 = time.perf_counter()
         jax.block_until_ready(rollout(key, params))
         compile_s = time.perf_counter() - t0
@@ -107,20 +105,40 @@ def main(argv=None) -> int:
         n_episodes = int(done.sum())
         mean_return = float(info["returned_episode_returns"][done].mean()) if n_episodes else float("nan")
         success = float(info["returned_episode_success"][done].mean()) if n_episodes else float("nan")
-        rows.append((env_id, env.n_levels, args.envs * args.steps / run_s, compile_s, n_episodes, mean_return, success))
-    print()
-    print(f"random agent, {args.envs} envs × {args.steps} steps, reward preset 'dense'")
+        rows.append({"env_id": env_id, "levels": env.n_levels, "steps_per_second": num_envs * num_steps / run_s,
+                     "compile_seconds": compile_s, "episodes": n_episodes, "mean_return": mean_return,
+                     "success_rate": success})
+    print(f"\nrandom agent, {num_envs} envs × {num_steps} steps, reward preset 'dense'")
     print(f"{'scenario':<20} {'levels':>6} {'steps/s':>12} {'compile s':>9} {'episodes':>8} {'mean return':>11} "
           f"{'target reached':>14}")
-    for env_id, n, sps, cs, ne, ret, succ in rows:
-        print(f"{env_id:<20} {n:>6} {sps:>12,.0f} {cs:>9.1f} {ne:>8} {ret:>11.3f} {succ:>13.1%}")
-    env, params = histojax.make("HistoJAX-Easy-v0")
+    for r in rows:
+        print(f"{r['env_id']:<20} {r['levels']:>6} {r['steps_per_second']:>12,.0f} {r['compile_seconds']:>9.1f} "
+              f"{r['episodes']:>8} {r['mean_return']:>11.3f} {r['success_rate']:>13.1%}")
+    limit = {"max_steps_in_episode": picture_max_steps} if picture_max_steps else {}
+    env, params = histojax.make("HistoJAX-Easy-v0", **limit)
     z, x, y, reached = first_episode(env, params, jax.random.fold_in(key, 2))
     picture = out / "demo_trajectory.png"
     title = f"Easy, random agent, {len(z) - 1} steps, target {'reached' if reached else 'not reached'}"
     render_trajectory(env, z, x, y, path=picture, title=title)
     gif = animate(env, z, x, y, out / "demo_trajectory.gif")
-    print(f"\ntrajectory picture: {picture.resolve()}\nanimation:          {gif.resolve()}")
+    print(f"\ntrajectory picture: {picture.resolve()}\nanimation:          {Path(gif).resolve()}")
+    return {"rows": rows, "files": [picture, Path(gif)]}
+
+
+def print_banner() -> None:
+    print(f"histojax demo on the embedded sample slide (CMU-1-Small-Region.svs, CC0; the target is an "
+          f"illustrative navigation target, not a diagnosis); JAX {jax.__version__} on {jax.devices()[0].platform}")
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--envs", type=int, default=256, help="parallel environments (vmap)")
+    p.add_argument("--steps", type=int, default=400, help="steps per environment (lax.scan)")
+    p.add_argument("--out", default="out", help="folder for the trajectory picture")
+    p.add_argument("--seed", type=int, default=0)
+    args = p.parse_args(argv)
+    print_banner()
+    random_agent_table(args.envs, args.steps, args.seed, args.out)
     return 0
 
 

@@ -75,6 +75,8 @@ def _parser() -> argparse.ArgumentParser:
     synth.add_argument("--tissue", choices=("synthetic", "camelyon16"), default="synthetic",
                        help="tissue region: a random blob around the tumour (default) or a CAMELYON16 tissue "
                             "outline of another slide")
+    synth.add_argument("--tumour-xml", nargs="+", default=None, metavar="XML",
+                       help="ASAP XML tumour annotations to place (default: the bundled CAMELYON16 files)")
     synth.add_argument("--quiet", action="store_true", help="no progress bar")
     large = sub.add_parser("synth-large", help="write a gigapixel semi-synthetic pyramidal TIFF (mostly glass; real "
                                               "CAMELYON16 tissue and tumour outlines, synthetic pixels), tile by tile")
@@ -151,7 +153,8 @@ def main(argv=None) -> int:
             from data_tools.synth import make_dataset
 
             ds = make_dataset(args.out_dir, n_slides=args.slides, size=(args.size, args.size), seed=args.seed,
-                              tile_size=args.tile_size, tissue=args.tissue, progress=not args.quiet)
+                              tile_size=args.tile_size, tissue=args.tissue, progress=not args.quiet,
+                              tumour_xmls=args.tumour_xml)
             print(f"wrote {Path(args.out_dir) / 'dataset.json'}: {len(ds['train'])} train, {len(ds['test'])} test "
                   f"bundles in {ds['seconds']:.0f} s (pixels synthetic, geometry real CAMELYON16)")
             for s in ds["slides"]:

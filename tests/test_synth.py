@@ -114,3 +114,15 @@ def test_make_dataset_split_is_disjoint(tmp_path):
         bundle = load_bundle(tmp_path / "ds" / s["bundle"])
         assert bundle.metadata["source"]["file"] == Path(s["tiff"]).name
         assert bundle.tumour[0].sum() > 0
+
+
+def test_cli_places_the_tumour_files_it_is_given(tmp_path, capsys):
+    from data_tools.__main__ import main
+
+    xml = Path(__file__).parent / "data" / "annotations" / "tumor_039.xml"
+    assert main(["synth", str(tmp_path / "ds"), "--slides", "2", "--size", "1024", "--tile-size", "32",
+                 "--tumour-xml", str(xml), "--quiet"]) == 0
+    ds = json.loads((tmp_path / "ds" / "dataset.json").read_text())
+    assert [s["tumour_source"] for s in ds["slides"]] == ["tumor_039.xml", "tumor_039.xml"]
+    assert [s["orientation"] for s in ds["slides"]] == [0, 5]  # the second is the file turned and mirrored
+    assert "tumor_039" in capsys.readouterr().out

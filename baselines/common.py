@@ -205,7 +205,9 @@ def plot_curves(path, steps, panels: dict, title: str = "", reference: dict | No
             d.text((4, Y(v) - 6), f"{v:.3g}", fill="black")
         for frac in (0.0, 0.5, 1.0):
             s = frac * smax
-            d.text((X(s) - 20, y1 + 4), f"{s:,.0f}", fill="black")
+            label = f"{s:,.0f}"
+            w = d.textlength(label)
+            d.text((min(X(s) - w / 2, x1 - w), y1 + 4), label, fill="black")  # the last one right-aligned
         d.text((x0 + 6, y0 + 4), name, fill=(0, 0, 0))
         with np.errstate(all="ignore"):
             mean = np.nanmean(arr, axis=0)

@@ -1,6 +1,6 @@
 """Evaluate a trained checkpoint against reference policies.
 
-    python -m baselines.evaluate runs/ppo-easy [--env HistoJAX-Easy-v0] [--slide BUNDLE ...] [--episodes 256]
+    python -m baselines.evaluate runs/ppo-easy [--env HistoJAX-Easy-v0] [--slides BUNDLE ... | held-out] [--episodes 256]
 
 For every slide (default: the one the checkpoint was trained on) prints and writes
 (``eval.json``, ``eval.csv`` in ``--out``, default ``<run>/eval``) one row per policy:
@@ -207,6 +207,25 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     return rows
 
 
+def resolve_slides(slides: list[str], config: dict) -> list[str]:
+    """Bundle paths to evaluate: ``slides`` as given, or for ``["held-out"]`` the ``"test"`` list of
+    the ``dataset.json`` the checkpoint was trained on (``config["env_kwargs"]["dataset"]``)."""
+    if list(slides) != ["held-out"]:
+        return list(slides)
+    dataset = (config.get("env_kwargs") or {}).get("dataset")
+    if not dataset:
+        raise SystemExit("--slides held-out: this checkpoint was not trained on a dataset (env_kwargs has no "
+                         "'dataset'); give bundle folders instead")
+    spec_path = Path(dataset) / "dataset.json"
+    try:
+        test = json.loads(spec_path.read_text())["test"]
+    except (OSError, ValueError, KeyError) as e:
+        raise SystemExit(f"--slides held-out: cannot read the test split from {spec_path}: {e}") from None
+    if not test:
+        raise SystemExit(f"--slides held-out: {spec_path} has an empty test split")
+    return [str(Path(dataset) / rel) for rel in test]
+
+
 def print_table(title: str, rows: dict) -> None:
     print(f"\n{title}")
     print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}")
@@ -220,7 +239,9 @@ def main(argv=None) -> int:
     p.add_argument("checkpoint", nargs="?", default=None,
                    help="run folder or params.msgpack (omit with --env for reference rows only)")
     p.add_argument("--env", default=None, help="env id (default: the checkpoint's)")
-    p.add_argument("--slide", nargs="*", default=None, help="bundle folder(s) (default: the checkpoint's slide)")
+    p.add_argument("--slide", "--slides", nargs="*", default=None,
+                   help="bundle folder(s) (default: the checkpoint's slide), or 'held-out': the test split of "
+                        "the dataset the checkpoint trained on")
     p.add_argument("--episodes", type=int, default=256, help="episodes per policy (per seed for the learned one)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--with-position", action="store_true", help="(reference rows only) observation with position")
@@ -242,7 +263,7 @@ def main(argv=None) -> int:
     if args.env:
         config["env_id"] = args.env
     out = Path(args.out) if args.out else (run / "eval" if run else Path(f"runs/eval-{config['env_id']}"))
-    slides = args.slide if args.slide else [config.get("slide")]
+    slides = resolve_slides(args.slide, config) if args.slide else [config.get("slide")]
     results = {}
     for i, slide in enumerate(slides):
         sub = out if len(slides) == 1 else out / f"slide{i}"

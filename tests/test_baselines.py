@@ -145,3 +145,19 @@ def test_random_agent_reference_row():
 
     ref = random_agent_reference({"env_id": "HistoJAX-Easy-v0", "with_position": True}, num_envs=8, num_steps=50)
     assert 0.0 <= ref["success"] <= 1.0 and np.isfinite(ref["return"])
+
+
+def test_evaluate_resolves_held_out_slides_from_the_training_dataset(tmp_path):
+    import json as _json
+
+    from baselines.evaluate import resolve_slides
+
+    (tmp_path / "dataset.json").write_text(_json.dumps({"train": ["bundles/a"], "test": ["bundles/b", "bundles/c"]}))
+    config = {"env_kwargs": {"dataset": str(tmp_path), "split": "train", "augment": True}}
+    assert resolve_slides(["held-out"], config) == [str(tmp_path / "bundles/b"), str(tmp_path / "bundles/c")]
+    assert resolve_slides(["x", "y"], config) == ["x", "y"]
+    with pytest.raises(SystemExit, match="not trained on a dataset"):
+        resolve_slides(["held-out"], {"env_kwargs": None})
+    (tmp_path / "dataset.json").write_text("{")
+    with pytest.raises(SystemExit, match="cannot read the test split"):
+        resolve_slides(["held-out"], config)

@@ -38,6 +38,27 @@ def make_env(config: dict, auto_reset: bool = True):
                          **env_overrides(config))
 
 
+def reset_envs(env, key, env_params, num_envs: int):
+    """The trainers' first step: ``key`` → ``(key, k_init, obs, env_state)`` with ``num_envs``
+    vmapped resets and the observations pooled for the network (:func:`networks.preprocess_obs`).
+    ``k_init`` is the key the network's parameters are made from, so :func:`params_initialiser`
+    and the trainer see the same first observations."""
+    from baselines.networks import preprocess_obs
+
+    key, k_init, k_reset = jax.random.split(key, 3)
+    obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, num_envs), env_params)
+    return key, k_init, preprocess_obs(obs), env_state
+
+
+def params_initialiser(env, network, num_envs: int):
+    """``init_params(key, env_params)``: the network's parameters for a trainer's key, made on the
+    first observations of :func:`reset_envs`."""
+    def init_params(key, env_params):
+        _, k_init, obs, _ = reset_envs(env, key, env_params, num_envs)
+        return network.init(k_init, obs)
+    return init_params
+
+
 def episode_stats(info: dict) -> dict:
     """Means over the episodes that finished in a batch of steps (any shape): ``episodes``,
     ``return``, ``success`` (rate), ``length`` and ``steps_to_success`` (mean length of the

@@ -142,15 +142,10 @@ def make_train(config: dict):
                                                   config["double_q"]))
         return optax.huber_loss(q_sa, target).mean(), q_sa.mean()
 
-    def init_params(key, env_params):
-        _, k_init, k_reset = jax.random.split(key, 3)
-        obs, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, num_envs), env_params)
-        return network.init(k_init, preprocess_obs(obs))
+    init_params = common.params_initialiser(env, network, num_envs)
 
     def train(key, env_params, params):
-        key, k_init, k_reset = jax.random.split(key, 3)
-        obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, num_envs), env_params)
-        obs = preprocess_obs(obs)
+        key, _, obs, env_state = common.reset_envs(env, key, env_params, num_envs)
         opt_state = tx.init(params)
         buf = buffer_init(obs, rows, num_envs)
         zero = jnp.zeros((), jnp.float32)

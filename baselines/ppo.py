@@ -113,15 +113,11 @@ def make_train(config: dict):
         frac = 1.0 - (count // (config["num_minibatches"] * config["update_epochs"])) / num_updates
         return config["lr"] * frac
 
-    def init_params(key, env_params):
-        _, k_init, k_reset = jax.random.split(key, 3)
-        obs0, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, num_envs), env_params)
-        return network.init(k_init, preprocess_obs(obs0))
+    init_params = common.params_initialiser(env, network, num_envs)
 
     def train(key, env_params, params):
-        key, k_init, k_reset = jax.random.split(key, 3)
-        obs0, env_state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, num_envs), env_params)
-        obs0, env_state = shard((preprocess_obs(obs0), env_state))
+        key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs)
+        obs0, env_state = shard((obs0, env_state))
         tx = optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
                          optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
         state = TrainState.create(apply_fn=network.apply, params=params, tx=tx)

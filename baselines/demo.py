@@ -23,8 +23,6 @@ import math
 import time
 from pathlib import Path
 
-import jax
-
 from histojax.demo import print_banner, random_agent_table
 
 ENV_ID = "HistoJAX-Easy-v0"
@@ -43,26 +41,12 @@ RANDOM_TABLE, QUICK_RANDOM_TABLE = (256, 400), (16, 50)  # (envs, steps per env)
 
 def train_ppo(config: dict, out: Path) -> tuple[dict, object, dict]:
     """Compile and run PPO for ``config`` (one program over its seeds), then write logs, curve
-    and checkpoint to ``out`` (:func:`baselines.ppo.finish_run`). Returns ``(config, params, summary)``."""
+    and checkpoint to ``out`` (:func:`baselines.ppo.run_and_save`). Returns ``(config, params, summary)``."""
     from baselines import ppo
 
-    train = ppo.make_train(config)
-    config = train.config
-    keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
-    total = train.num_updates * train.steps_per_update
-    print(f"\nPPO on {config['env_id']} (pixels + view position, {config['num_envs']} envs, seed {config['seed']}): "
-          f"{train.num_updates} updates x {train.steps_per_update:,} env steps = {total:,} env steps; compiling ...",
-          flush=True)
-    t0 = time.perf_counter()
-    compiled = train.compile(keys)
-    compile_s = time.perf_counter() - t0
-    print(f"compiled in {compile_s:.0f} s; training (a line every {config['log_every']} updates) ...", flush=True)
-    t0 = time.perf_counter()
-    result = jax.block_until_ready(compiled(keys))
-    train_s = time.perf_counter() - t0
-    summary = ppo.finish_run("ppo", config, out, result["params"], result["metrics"], train.steps_per_update,
-                             train_s, compile_s)
-    return config, result["params"], summary
+    print(f"\nPPO (pixels + view position, {config['num_envs']} envs, seed {config['seed']}), a line every "
+          f"{config['log_every']} updates:", flush=True)
+    return ppo.run_and_save("ppo", ppo.make_train, config, out)
 
 
 def evaluate_policy(config: dict, params, episodes: int, seed: int, out: Path) -> dict:

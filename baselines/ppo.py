@@ -275,7 +275,14 @@ def train_and_save(algo: str, make_train_fn, argv, defaults: dict, description: 
     in one program, then write logs, curve and checkpoint with :func:`finish_run`."""
     args = parse_args(argv, defaults=defaults, description=description)
     config = config_from_args(args, defaults=defaults)
-    out = Path(args.out or f"runs/{algo}-{config['env_id']}")
+    run_and_save(algo, make_train_fn, config, Path(args.out or f"runs/{algo}-{config['env_id']}"), unit)
+    return 0
+
+
+def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = "updates"):
+    """Make, compile and run the trainer for ``config`` (all seeds in one program, compile time
+    measured apart), then :func:`finish_run` into ``out``. Returns ``(config, params, summary)``
+    with the trainer's full config."""
     train = make_train_fn(config)
     config = train.config
     keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
@@ -287,8 +294,9 @@ def train_and_save(algo: str, make_train_fn, argv, defaults: dict, description: 
     t0 = time.perf_counter()
     result = jax.block_until_ready(compiled(keys))
     train_s = time.perf_counter() - t0
-    finish_run(algo, config, out, result["params"], result["metrics"], train.steps_per_update, train_s, compile_s)
-    return 0
+    summary = finish_run(algo, config, out, result["params"], result["metrics"], train.steps_per_update, train_s,
+                         compile_s)
+    return config, result["params"], summary
 
 
 def main(argv=None) -> int:

@@ -41,6 +41,10 @@ def matrices() -> np.ndarray:
     return np.stack(out)
 
 
+_MATRICES = matrices()
+_INVERSES = np.round(np.linalg.inv(_MATRICES)).astype(np.int32)  # M_o⁻¹: the agent's frame → the slide's
+
+
 @functools.lru_cache(maxsize=None)
 def pixel_permutations(tile_size: int) -> np.ndarray:
     """``(8, T*T)`` int32: ``observed.flat[i] = view.flat[perm[o, i]]`` for a ``(T, T)`` view in
@@ -49,8 +53,7 @@ def pixel_permutations(tile_size: int) -> np.ndarray:
     c = (t - 1) / 2.0
     ys, xs = np.mgrid[0:t, 0:t]
     out = np.empty((NUM_ORIENTATIONS, t * t), np.int32)
-    for o, m in enumerate(matrices()):
-        inv = np.round(np.linalg.inv(m)).astype(np.int64)
+    for o, inv in enumerate(_INVERSES):
         # the observed pixel at (x, y) comes from the view pixel M⁻¹ ((x, y) − c) + c
         sx = inv[0, 0] * (xs - c) + inv[0, 1] * (ys - c) + c
         sy = inv[1, 0] * (xs - c) + inv[1, 1] * (ys - c) + c
@@ -70,8 +73,7 @@ def _move_table() -> np.ndarray:
     unit = {actions.UP: (0, -1), actions.DOWN: (0, 1), actions.LEFT: (-1, 0), actions.RIGHT: (1, 0)}
     code = {v: k for k, v in unit.items()}
     table = np.zeros((NUM_ORIENTATIONS, 4), np.int32)
-    for o, m in enumerate(matrices()):
-        inv = np.round(np.linalg.inv(m)).astype(np.int64)
+    for o, inv in enumerate(_INVERSES):
         for a in range(4):
             table[o, a] = code[tuple(int(v) for v in inv @ np.array(unit[a]))]
     return table
@@ -93,13 +95,13 @@ def continuous_to_slide(action: jax.Array, orientation: jax.Array) -> jax.Array:
     ``(dx, dy)`` turned into the slide's frame (``M_o⁻¹ (dx, dy)``), after NaN → 0 and clipping to
     ``[-1, 1]`` as :func:`histojax.actions.continuous_deltas` does. float32."""
     a = jnp.clip(jnp.nan_to_num(jnp.asarray(action, jnp.float32), nan=0.0, posinf=1.0, neginf=-1.0), -1.0, 1.0)
-    inv = jnp.asarray(np.round(np.linalg.inv(matrices())).astype(np.float32))[orientation]
+    inv = jnp.asarray(_INVERSES.astype(np.float32))[orientation]
     return a.at[:2].set(inv @ a[:2])
 
 
 def orient_position(position: jax.Array, orientation: jax.Array) -> jax.Array:
     """``(x_centre, y_centre, z)`` normalised to ``[0, 1]`` as seen in ``orientation``: the centre
     turned about ``(½, ½)``, ``z`` unchanged. float32 ``(3,)``."""
-    m = jnp.asarray(matrices().astype(np.float32))[orientation]
+    m = jnp.asarray(_MATRICES.astype(np.float32))[orientation]
     xy = m @ (position[:2] - 0.5) + 0.5
     return jnp.concatenate([xy, position[2:]]).astype(jnp.float32)

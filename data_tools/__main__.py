@@ -36,9 +36,10 @@ def _parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m data_tools", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
     info = sub.add_parser("info", help="print a slide's pyramid (levels, sizes in px, tiles, compression, µm/px)")
-    info.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file, or a bundle folder")
+    info.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file, DICOM WSI file or folder, or a bundle folder")
     build = sub.add_parser("build", help="write a slide bundle (levels, tumour masks, tissue mask, metadata)")
-    build.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file")
+    build.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file, or DICOM WSI file or folder "
+                                     "(needs the extra: pip install 'histojax[dicom]')")
     build.add_argument("--annotations", help="ASAP XML or QuPath GeoJSON in level-0 px (default: no tumour)")
     build.add_argument("--out", required=True, help="bundle folder to create (written atomically)")
     build.add_argument("--levels", type=_levels, action="extend", metavar="N",
@@ -93,7 +94,9 @@ def _parser() -> argparse.ArgumentParser:
 
 
 def _info(path: str) -> str:
-    if Path(path).is_dir():
+    from data_tools.dicom import is_dicom
+
+    if Path(path).is_dir() and not is_dicom(path):
         from data_tools.bundle import level_device_bytes, read_metadata
 
         meta = read_metadata(path)

@@ -94,10 +94,15 @@ def level_device_bytes(level: dict) -> int:
 
 
 def _sha256(path: Path) -> str:
+    """Hex SHA-256 of a file's bytes; of a folder (a DICOM WSI), of its files' names and bytes in name order."""
     h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
+    folder = Path(path).is_dir()
+    for file in sorted(p for p in Path(path).iterdir() if p.is_file()) if folder else [Path(path)]:
+        if folder:
+            h.update(file.name.encode() + b"\0")
+        with open(file, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
     return h.hexdigest()
 
 

@@ -1,4 +1,5 @@
-"""Read whole-slide image files (Aperio SVS, pyramidal TIFF, OME-TIFF) as 8-bit RGB.
+"""Read whole-slide image files (Aperio SVS, pyramidal TIFF, OME-TIFF) as 8-bit RGB; DICOM WSI in
+:mod:`data_tools.dicom`, behind the same interface (:func:`open_slide` picks).
 
 This module's one job: open a slide file with tifffile, list its pyramid levels,
 and decode whole levels or rectangular regions of a level into ``(H, W, 3)``
@@ -37,7 +38,7 @@ MAX_DECODE_BYTES = 4 * 1024**3
 MAX_SIDE = 1_000_000
 """Largest accepted image width or height, in pixels."""
 
-_SUPPORTED = "histojax reads Aperio SVS, pyramidal TIFF and OME-TIFF"
+_SUPPORTED = "histojax reads Aperio SVS, pyramidal TIFF, OME-TIFF and DICOM WSI"
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 _JPEG_COMPRESSIONS = {6, 7, 34892, 33007}  # need JPEGTables / header when decoding
 
@@ -262,8 +263,11 @@ class SlideReader:
 
 
 def open_slide(path: str | os.PathLike) -> SlideReader:
-    """Open a slide file (SVS, pyramidal TIFF, OME-TIFF); raises SlideError if unreadable."""
-    return SlideReader(path)
+    """Open a slide (SVS, pyramidal TIFF, OME-TIFF file; DICOM WSI file or folder, see
+    :mod:`data_tools.dicom`); raises SlideError if unreadable."""
+    from data_tools.dicom import DicomSlideReader, is_dicom
+
+    return DicomSlideReader(path) if is_dicom(path) else SlideReader(path)
 
 
 def describe(reader: SlideReader) -> str:
@@ -291,11 +295,7 @@ def describe(reader: SlideReader) -> str:
 def _check_signature(path: str) -> None:
     """Reject missing files, directories and non-TIFF files with a helpful SlideError."""
     if os.path.isdir(path):
-        raise SlideError(
-            path,
-            "is a directory, not a slide file (DICOM WSI is not supported: convert to "
-            f"pyramidal TIFF, e.g. with wsidicom / bfconvert); {_SUPPORTED}",
-        )
+        raise SlideError(path, f"is a folder with no DICOM file in it, not a slide; {_SUPPORTED}")
     try:
         with open(path, "rb") as f:
             head = f.read(132)
@@ -304,9 +304,7 @@ def _check_signature(path: str) -> None:
     except OSError as exc:
         raise SlideError(path, f"cannot read file: {exc}") from exc
     if head[128:132] == b"DICM":
-        raise SlideError(
-            path, "DICOM WSI is not supported: convert to pyramidal TIFF (e.g. with wsidicom / bfconvert)"
-        )
+        raise SlideError(path, "is DICOM: open it with data_tools.slides.open_slide, not SlideReader")
     if head[:4] not in _TIFF_MAGICS:
         raise SlideError(path, f"format not recognised (not a TIFF file); {_SUPPORTED}")
 

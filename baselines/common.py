@@ -16,6 +16,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 import histojax
+from baselines.curves import plot_curves  # noqa: F401  (the learning-curve PNG; kept here for callers)
 
 
 def env_overrides(config: dict) -> dict:
@@ -186,70 +187,6 @@ def smooth(a: np.ndarray, k: int) -> np.ndarray:
         with np.errstate(all="ignore"):
             out[..., i] = np.nanmean(w, axis=-1) if np.isfinite(w).any() else np.nan
     return out
-
-
-def plot_curves(path, steps, panels: dict, title: str = "", reference: dict | None = None,
-                width: int = 900, height_per_panel: int = 220) -> Path:
-    """A learning-curve PNG drawn with Pillow: one panel per ``panels[name] = (seeds, points)``
-    array; the seed mean as a line and the seed min–max as a band; ``reference[name] = value``
-    draws a dashed horizontal line (e.g. the random agent)."""
-    from PIL import Image, ImageDraw
-
-    steps = np.asarray(steps, np.float64)
-    n = len(panels)
-    top, left, right, gap = 28, 70, 20, 40
-    H = top + n * (height_per_panel + gap)
-    img = Image.new("RGB", (width, H), "white")
-    d = ImageDraw.Draw(img)
-    d.text((left, 6), title, fill="black")
-    x0, x1 = left, width - right
-    smax = max(steps.max(), 1.0) if len(steps) else 1.0
-    for p, (name, arr) in enumerate(panels.items()):
-        arr = np.asarray(arr, np.float64)
-        arr = arr[None] if arr.ndim == 1 else arr
-        y0 = top + p * (height_per_panel + gap) + 10
-        y1 = y0 + height_per_panel - 20
-        finite = arr[np.isfinite(arr)]
-        ref = (reference or {}).get(name)
-        vals = np.concatenate([finite, [ref] if ref is not None and np.isfinite(ref) else []])
-        lo, hi = (float(vals.min()), float(vals.max())) if vals.size else (0.0, 1.0)
-        if hi - lo < 1e-9:
-            lo, hi = lo - 0.5, hi + 0.5
-        pad = 0.05 * (hi - lo)
-        lo, hi = lo - pad, hi + pad
-        X = lambda s: x0 + (x1 - x0) * s / smax  # noqa: E731
-        Y = lambda v: y1 - (y1 - y0) * (v - lo) / (hi - lo)  # noqa: E731
-        d.rectangle([x0, y0, x1, y1], outline=(120, 120, 120))
-        for frac in (0.0, 0.5, 1.0):
-            v = lo + pad + frac * (hi - lo - 2 * pad)
-            d.line([x0 - 4, Y(v), x0, Y(v)], fill="black")
-            d.text((4, Y(v) - 6), f"{v:.3g}", fill="black")
-        for frac in (0.0, 0.5, 1.0):
-            s = frac * smax
-            label = f"{s:,.0f}"
-            w = d.textlength(label)
-            d.text((min(X(s) - w / 2, x1 - w), y1 + 4), label, fill="black")  # the last one right-aligned
-        d.text((x0 + 6, y0 + 4), name, fill=(0, 0, 0))
-        with np.errstate(all="ignore"):
-            mean = np.nanmean(arr, axis=0)
-            mn, mx = np.nanmin(arr, axis=0), np.nanmax(arr, axis=0)
-        ok = np.isfinite(mean)
-        if arr.shape[0] > 1:
-            for i in range(len(steps) - 1):
-                if ok[i] and ok[i + 1]:
-                    d.polygon([(X(steps[i]), Y(mx[i])), (X(steps[i + 1]), Y(mx[i + 1])),
-                               (X(steps[i + 1]), Y(mn[i + 1])), (X(steps[i]), Y(mn[i]))], fill=(190, 210, 240))
-        pts = [(X(s), Y(v)) for s, v, o in zip(steps, mean, ok) if o]
-        if len(pts) > 1:
-            d.line(pts, fill=(20, 60, 200), width=2)
-        if ref is not None and np.isfinite(ref):
-            for xs in range(int(x0), int(x1), 12):
-                d.line([xs, Y(ref), min(xs + 6, x1), Y(ref)], fill=(200, 40, 40), width=2)
-            d.text((x1 - 150, Y(ref) - 14), f"random agent {ref:.3g}", fill=(200, 40, 40))
-    d.text((x1 - 120, H - 16), "env steps per seed", fill="black")
-    path = Path(path)
-    img.save(path)
-    return path
 
 
 def random_agent_reference(config: dict, num_envs: int = 256, num_steps: int = 400, seed: int = 0) -> dict:

@@ -1,5 +1,6 @@
-"""Pictures on the host (numpy + Pillow): the slide thumbnail, the tumour outline, view boxes,
-trajectories and GIFs. Not jittable and not meant to be: call with concrete states."""
+"""Pictures on the host: the slide thumbnail, the tumour outline, view boxes (Pillow), trajectories
+(matplotlib, Agg canvas: no display needed) and GIFs (Pillow). Not jittable and not meant to be: call
+with concrete states."""
 from __future__ import annotations
 
 import json
@@ -38,21 +39,28 @@ def _canvas(env, max_side: int, slide_index: int = 0):
     return image, size[0] / (level.shape[1] * bundle.metadata["levels"][k]["downsample"])
 
 
-def _draw_tumour(draw: ImageDraw.ImageDraw, env, scale: float, slide_index: int = 0) -> None:
+def tumour_rings(env, slide_index: int = 0) -> list[np.ndarray]:
+    """The tumour outline of a slide of ``env`` as rings ``(N, 2)`` of level-0 px ``(x, y)``
+    (exteriors and holes; empty when the bundle has no annotations)."""
     path = Path(bundle_of(env, slide_index).path) / "annotations.geojson"
     if not path.is_file():
-        return
+        return []
     import shapely.geometry
 
+    rings = []
     for feature in json.loads(path.read_text()).get("features", []):
         if feature.get("properties", {}).get("label", "tumour") != "tumour":
             continue
         geom = shapely.geometry.shape(feature["geometry"])
         for poly in getattr(geom, "geoms", [geom]):
-            for ring in [poly.exterior, *poly.interiors]:
-                pts = [(x * scale, y * scale) for x, y in ring.coords]
-                if len(pts) > 1:
-                    draw.line(pts, fill=TUMOUR_COLOUR, width=2)
+            rings += [np.asarray(ring.coords, np.float64) for ring in [poly.exterior, *poly.interiors]
+                      if len(ring.coords) > 1]
+    return rings
+
+
+def _draw_tumour(draw: ImageDraw.ImageDraw, env, scale: float, slide_index: int = 0) -> None:
+    for ring in tumour_rings(env, slide_index):
+        draw.line([(x * scale, y * scale) for x, y in ring], fill=TUMOUR_COLOUR, width=2)
 
 
 def view_box_level0(env, z: int, x: int, y: int, slide_index: int = 0) -> tuple[float, float, float, float]:
@@ -89,40 +97,88 @@ def _zxy(z, x, y):
     return tuple(np.asarray(a).astype(int).ravel() for a in (z, x, y))
 
 
-def render_trajectory(env, z, x=None, y=None, path=None, title: str = "", max_side: int = 640,
-                      slide_index: int | None = None) -> np.ndarray:
-    """Draw a trajectory over the thumbnail: sequences ``z, x, y`` of one episode, or a stacked
-    ``EnvState`` (e.g. from ``lax.scan``) as the only positional argument after ``env``.
+def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 640,
+                      slide_index: int | None = None):
+    """A matplotlib Figure (Agg canvas attached) of one trajectory over the slide thumbnail: sequences
+    ``z, x, y`` of one episode, or a stacked ``EnvState`` (e.g. from ``lax.scan``) as ``z``.
 
-    Views are boxes coloured by level (blue coarsest → red finest), their centres joined by a
-    path coloured by the level it moved to; the start is a cyan dot, the end a red square and box. Saves a PNG to ``path`` when given.
-    Returns the RGB uint8 picture.
+    Axes are in level-0 px. Each view is a box coloured by its level (blue coarsest → red finest,
+    :func:`level_colour`), the path joins the view centres (each step coloured by the level it moved
+    to), the tumour is outlined in green, the start is a cyan dot and the end a red square with its
+    box drawn thick; a legend names all of them.
     """
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.collections import LineCollection
+    from matplotlib.figure import Figure
+    from matplotlib.lines import Line2D
+    from matplotlib.patches import Rectangle
+
     if slide_index is None:
         slide_index = int(np.asarray(getattr(z, "slide_index", 0)).ravel()[0])
     z, x, y = _zxy(z, x, y)
     image, scale = _canvas(env, max_side, slide_index)
-    draw = ImageDraw.Draw(image)
-    _draw_tumour(draw, env, scale, slide_index)
-    centres = []
-    for zi, xi, yi in zip(z, x, y):
-        box = [v * scale for v in view_box_level0(env, zi, xi, yi, slide_index)]
-        draw.rectangle(box, outline=level_colour(zi, env.n_levels), width=1)
-        centres.append(((box[0] + box[2]) / 2, (box[1] + box[3]) / 2))
-    for (a, b), zi in zip(zip(centres[:-1], centres[1:]), z[1:]):
-        draw.line([a, b], fill=level_colour(zi, env.n_levels), width=3)
-    if centres:
-        last = [v * scale for v in view_box_level0(env, z[-1], x[-1], y[-1], slide_index)]
-        draw.rectangle(last, outline=END_COLOUR, width=3)
-    if centres:
-        (sx, sy), (ex, ey) = centres[0], centres[-1]
-        draw.ellipse([sx - 6, sy - 6, sx + 6, sy + 6], fill=START_COLOUR, outline=(0, 0, 0))
-        draw.rectangle([ex - 6, ey - 6, ex + 6, ey + 6], fill=END_COLOUR, outline=(0, 0, 0))
-    legend = " ".join(f"z{k}" for k in range(env.n_levels))
-    draw.text((6, 6), f"{title}  levels {legend} (blue coarse -> red fine)".strip(), fill=(0, 0, 0))
+    width0, height0 = image.width / scale, image.height / scale
+    colour = lambda k: tuple(c / 255 for c in level_colour(int(k), env.n_levels))  # noqa: E731
+    aspect = image.height / image.width
+    fig = Figure(figsize=(9.0, min(max(3.0, 5.6 * aspect), 9.0) + 0.8), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.add_subplot()
+    ax.imshow(np.asarray(image), extent=(0, width0, height0, 0), interpolation="antialiased")
+    handles = []
+    rings = tumour_rings(env, slide_index)
+    for ring in rings:
+        ax.plot(ring[:, 0], ring[:, 1], color=tuple(c / 255 for c in TUMOUR_COLOUR), linewidth=1.5)
+    if rings:
+        handles.append(Line2D([], [], color=tuple(c / 255 for c in TUMOUR_COLOUR), linewidth=1.5, label="tumour"))
+    boxes = [view_box_level0(env, zi, xi, yi, slide_index) for zi, xi, yi in zip(z, x, y)]
+    for (left, top, right, bottom), zi in zip(boxes, z):
+        ax.add_patch(Rectangle((left, top), right - left, bottom - top, fill=False, edgecolor=colour(zi),
+                               linewidth=0.9))
+    centres = np.array([((b[0] + b[2]) / 2, (b[1] + b[3]) / 2) for b in boxes]).reshape(-1, 2)
+    if len(centres) > 1:
+        ax.add_collection(LineCollection(np.stack([centres[:-1], centres[1:]], axis=1),
+                                         colors=[colour(k) for k in z[1:]], linewidths=2.2))
+    downsamples = [lv["downsample"] for lv in bundle_of(env, slide_index).metadata["levels"]]
+    for k in range(env.n_levels):
+        seen = "" if k in set(z.tolist()) else ", not visited"
+        handles.append(Line2D([], [], color=colour(k), linewidth=2.2,
+                              label=f"level {k}: downsample {downsamples[k]:.3g}{seen}"))
+    if len(centres):
+        left, top, right, bottom = boxes[-1]
+        ax.add_patch(Rectangle((left, top), right - left, bottom - top, fill=False,
+                               edgecolor=tuple(c / 255 for c in END_COLOUR), linewidth=2.5))
+        start = ax.plot(*centres[0], marker="o", markersize=9, color=tuple(c / 255 for c in START_COLOUR),
+                        markeredgecolor="black", linestyle="none", label="start")[0]
+        end = ax.plot(*centres[-1], marker="s", markersize=9, color=tuple(c / 255 for c in END_COLOUR),
+                      markeredgecolor="black", linestyle="none", label=f"end (after {len(z) - 1} steps)")[0]
+        handles += [start, end]
+    ax.set_xlim(0, width0)
+    ax.set_ylim(height0, 0)
+    ax.set_xlabel("x (level-0 px)")
+    ax.set_ylabel("y (level-0 px)")
+    fig.legend(handles=handles, loc="outside right upper", fontsize="small", frameon=False,
+               title="views (boxes) and path", title_fontsize="small", alignment="left")
+    if title:
+        ax.set_title(title, fontsize="medium")
+    return fig
+
+
+def figure_rgb(fig) -> np.ndarray:
+    """Draw a matplotlib Figure with an Agg canvas; RGB uint8 ``(H, W, 3)``."""
+    fig.canvas.draw()
+    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+
+
+def render_trajectory(env, z, x=None, y=None, path=None, title: str = "", max_side: int = 640,
+                      slide_index: int | None = None) -> np.ndarray:
+    """Draw a trajectory over the thumbnail (:func:`trajectory_figure`): sequences ``z, x, y`` of one
+    episode, or a stacked ``EnvState`` as the only positional argument after ``env``. Saves a PNG to
+    ``path`` when given. Returns the RGB uint8 picture ``(H, W, 3)``."""
+    fig = trajectory_figure(env, z, x, y, title=title, max_side=max_side, slide_index=slide_index)
+    picture = figure_rgb(fig)
     if path is not None:
-        image.save(path)
-    return np.asarray(image)
+        Image.fromarray(picture).save(path)
+    return picture
 
 
 def animate(env, z, x=None, y=None, path="trajectory.gif", fps: int = 4, max_side: int = 480,

@@ -1,11 +1,12 @@
-"""Pictures: trajectory PNG and GIF from a scanned rollout, colours by level."""
+"""Pictures: trajectory PNG (matplotlib) and GIF from a scanned rollout, colours by level; learning curves."""
 from __future__ import annotations
 
 import jax
 import numpy as np
 from PIL import Image
 
-from histojax.render import animate, level_colour, render_trajectory
+from baselines.curves import curves_figure, plot_curves
+from histojax.render import animate, level_colour, render_trajectory, trajectory_figure
 
 
 def test_trajectory_png_and_gif_from_a_scan(sample_envs, tmp_path):
@@ -22,12 +23,43 @@ def test_trajectory_png_and_gif_from_a_scan(sample_envs, tmp_path):
     _, states = jax.lax.scan(body, state, (jax.random.split(key, 6), actions))
     png = tmp_path / "t.png"
     picture = render_trajectory(env, states, path=png, title="zoom in")
-    assert png.is_file() and picture.shape[2] == 3
-    # the finest level's colour (red end of the scale) is drawn somewhere
-    red = np.array(level_colour(env.n_levels - 1, env.n_levels))
-    assert np.any(np.all(picture == red, axis=-1))
+    with Image.open(png) as im:
+        assert im.size == (picture.shape[1], picture.shape[0]) and 600 <= im.size[0] <= 1200
+    assert picture.shape[2] == 3 and 300 <= picture.shape[0] <= 1200
+    fig = trajectory_figure(env, states, title="zoom in")
+    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    assert labels[0] == "tumour" and labels[-2:] == ["start", "end (after 5 steps)"]
+    assert [label.split(":")[0] for label in labels[1:-2]] == [f"level {k}" for k in range(env.n_levels)]
+    ax = fig.axes[0]
+    assert ax.get_xlabel() == "x (level-0 px)" and ax.get_ylabel() == "y (level-0 px)" and ax.get_title() == "zoom in"
+    # one box per view, in its level's colour, plus the thick end box; the path has 5 steps
+    boxes = [p for p in ax.patches if type(p).__name__ == "Rectangle"]
+    assert len(boxes) == 7
+    finest = tuple(c / 255 for c in level_colour(env.n_levels - 1, env.n_levels))
+    assert np.allclose(boxes[-2].get_edgecolor()[:3], finest)
+    assert len(ax.collections[0].get_segments()) == 5
     gif = animate(env, states, path=tmp_path / "t.gif")
     with Image.open(gif) as im:
         assert im.n_frames == 6
-    same = render_trajectory(env, np.asarray(states.z), np.asarray(states.x), np.asarray(states.y))
-    np.testing.assert_array_equal(same[20:], picture[20:])  # below the title line
+    same = render_trajectory(env, np.asarray(states.z), np.asarray(states.x), np.asarray(states.y), title="zoom in")
+    np.testing.assert_array_equal(same, picture)
+
+
+def test_learning_curves(tmp_path):
+    """Seeds as a band, the mean as a line, the random agent as a reference, x in env steps; NaN are gaps."""
+    steps = np.arange(1, 51) * 4096
+    rng = np.random.default_rng(0)
+    success = np.clip(np.linspace(0, 0.9, 50) + rng.normal(0, 0.05, (3, 50)), 0, 1)
+    length = np.where(success > 0.3, 40 - 20 * success, np.nan)
+    panels = {"success rate": success, "mean steps to success": length}
+    fig = curves_figure(steps, panels, title="PPO, 3 seeds", reference={"success rate": 0.04})
+    top, bottom = fig.axes
+    assert top.get_ylabel() == "success rate" and bottom.get_xlabel() == "env steps per seed"
+    assert [t.get_text() for t in top.get_legend().get_texts()] == \
+        ["3 seeds (min–max)", "mean over seeds", "random agent (0.04)"]
+    assert [t.get_text() for t in bottom.get_legend().get_texts()] == ["3 seeds (min–max)", "mean over seeds"]
+    np.testing.assert_allclose(top.lines[0].get_ydata(), success.mean(axis=0))
+    assert top.get_xlim() == (0, steps[-1])
+    png = plot_curves(tmp_path / "curve.png", steps, panels, title="PPO, 3 seeds", reference={"success rate": 0.04})
+    with Image.open(png) as im:
+        assert 600 <= im.size[0] <= 1200 and 400 <= im.size[1] <= 1200

@@ -1,2 +1,2 @@
 """Baselines for histojax: PPO and DQN trainers (pure JAX, one jitted program per run), small
-networks, and an evaluation script with random and scripted reference policies. See README "Baselines"."""
+networks, and an evaluation script with random and scripted reference policies. See docs/baselines.md."""

@@ -104,8 +104,8 @@ def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 6
 
     Axes are in level-0 px. Each view is a box coloured by its level (blue coarsest → red finest,
     :func:`level_colour`), the path joins the view centres (each step coloured by the level it moved
-    to), the tumour is outlined in green, the start is a cyan dot and the end a red square with its
-    box drawn thick; a legend names all of them.
+    to), the tumour is outlined in green, the start is a cyan ring (visible around the end when a
+    zoom kept the centre) and the end a red square with its box drawn thick; a legend names all of them.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.collections import LineCollection
@@ -120,7 +120,8 @@ def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 6
     width0, height0 = image.width / scale, image.height / scale
     colour = lambda k: tuple(c / 255 for c in level_colour(int(k), env.n_levels))  # noqa: E731
     aspect = image.height / image.width
-    fig = Figure(figsize=(9.0, min(max(3.0, 5.6 * aspect), 9.0) + 0.8), dpi=100, layout="constrained")
+    image_width = min(6.5, 7.0 / aspect)  # inches: at most 6.5 wide and 7 high
+    fig = Figure(figsize=(image_width + 3.2, max(image_width * aspect, 2.5) + 1.0), dpi=100)
     FigureCanvasAgg(fig)
     ax = fig.add_subplot()
     ax.imshow(np.asarray(image), extent=(0, width0, height0, 0), interpolation="antialiased")
@@ -147,8 +148,8 @@ def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 6
         left, top, right, bottom = boxes[-1]
         ax.add_patch(Rectangle((left, top), right - left, bottom - top, fill=False,
                                edgecolor=tuple(c / 255 for c in END_COLOUR), linewidth=2.5))
-        start = ax.plot(*centres[0], marker="o", markersize=9, color=tuple(c / 255 for c in START_COLOUR),
-                        markeredgecolor="black", linestyle="none", label="start")[0]
+        start = ax.plot(*centres[0], marker="o", markersize=15, markerfacecolor="none", markeredgewidth=3,
+                        markeredgecolor=tuple(c / 255 for c in START_COLOUR), linestyle="none", label="start")[0]
         end = ax.plot(*centres[-1], marker="s", markersize=9, color=tuple(c / 255 for c in END_COLOUR),
                       markeredgecolor="black", linestyle="none", label=f"end (after {len(z) - 1} steps)")[0]
         handles += [start, end]
@@ -156,17 +157,23 @@ def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 6
     ax.set_ylim(height0, 0)
     ax.set_xlabel("x (level-0 px)")
     ax.set_ylabel("y (level-0 px)")
-    fig.legend(handles=handles, loc="outside right upper", fontsize="small", frameon=False,
-               title="views (boxes) and path", title_fontsize="small", alignment="left")
+    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small", frameon=False,
+              title="views (boxes) and path", title_fontsize="small", alignment="left")
     if title:
         ax.set_title(title, fontsize="medium")
     return fig
 
 
 def figure_rgb(fig) -> np.ndarray:
-    """Draw a matplotlib Figure with an Agg canvas; RGB uint8 ``(H, W, 3)``."""
-    fig.canvas.draw()
-    return np.asarray(fig.canvas.buffer_rgba())[..., :3].copy()
+    """Draw a matplotlib Figure, cropped to what it shows (labels and legend included); RGB uint8
+    ``(H, W, 3)``."""
+    import io
+
+    buffer = io.BytesIO()
+    fig.savefig(buffer, format="png", bbox_inches="tight", pad_inches=0.15)
+    buffer.seek(0)
+    with Image.open(buffer) as image:
+        return np.asarray(image.convert("RGB"))
 
 
 def render_trajectory(env, z, x=None, y=None, path=None, title: str = "", max_side: int = 640,

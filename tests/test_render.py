@@ -27,7 +27,7 @@ def test_trajectory_png_and_gif_from_a_scan(sample_envs, tmp_path):
         assert im.size == (picture.shape[1], picture.shape[0]) and 600 <= im.size[0] <= 1200
     assert picture.shape[2] == 3 and 300 <= picture.shape[0] <= 1200
     fig = trajectory_figure(env, states, title="zoom in")
-    labels = [t.get_text() for t in fig.legends[0].get_texts()]
+    labels = [t.get_text() for t in fig.axes[0].get_legend().get_texts()]
     assert labels[0] == "tumour" and labels[-2:] == ["start", "end (after 5 steps)"]
     assert [label.split(":")[0] for label in labels[1:-2]] == [f"level {k}" for k in range(env.n_levels)]
     ax = fig.axes[0]

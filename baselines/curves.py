@@ -42,6 +42,9 @@ def curves_figure(steps, panels: dict, title: str = "", reference: dict | None =
             ax.fill_between(steps, lo, hi, color=BAND_COLOUR, alpha=0.6, linewidth=0,
                             label=f"{seeds} seeds (min–max)")
         ax.plot(steps, mean, color=MEAN_COLOUR, linewidth=1.8, label="mean over seeds" if seeds > 1 else "1 seed")
+        ok = np.isfinite(mean)
+        alone = ok & ~np.concatenate([[False], ok[:-1]]) & ~np.concatenate([ok[1:], [False]])
+        ax.plot(steps[alone], mean[alone], "o", color=MEAN_COLOUR, markersize=4)  # points no line reaches
         ref = (reference or {}).get(name)
         if ref is not None and np.isfinite(ref):
             ax.axhline(ref, color=REFERENCE_COLOUR, linestyle="--", linewidth=1.4, label=f"random agent ({ref:.3g})")

@@ -145,8 +145,8 @@ class DicomSlideReader(SlideReader):
             pixels = self._tif.read_region((x0, y0), lv.level, (x1 - x0, y1 - y0), as_array=True)
         except Exception as exc:  # wsidicom / codec / OS errors (e.g. a truncated file)
             raise SlideError(self.path, f"cannot decode level {level} frames ({self.levels[level].compression}): "
-                                        f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
-                             ) from exc
+                                        f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}; "
+                                        "file truncated or corrupt") from exc
         pixels = np.asarray(pixels)
         if pixels.ndim == 2:
             pixels = pixels[..., None]

@@ -124,6 +124,8 @@ def _dry_parse(kind: str, target: str, args: list[str]) -> None:
 
                 status = main(args)
                 assert status == 0, f"histojax {' '.join(args)} exited {status}: {err.getvalue()}"
+                if {"-h", "--help"} & set(args):
+                    return  # `histojax --help` prints its overview without argparse
     except _Parsed:
         return
     except SystemExit as e:

@@ -9,8 +9,9 @@ Every line of every ```bash block in README.md and docs/*.md is checked:
   ``ArgumentParser.parse_args``, which parses and then stops it (a dry parse: nothing is computed);
 * anything else fails, so the docs show only commands that are checked.
 
-Blocks preceded by ``<!-- docs-check: run -->`` are also run for real (in a scratch folder that sees the
-repository's files); ``<!-- docs-check: run-slow -->`` blocks run only under ``make test-all``.
+Bash blocks preceded by ``<!-- docs-check: run -->`` are also run for real (in a scratch folder that sees
+the repository's files), and so are ```python blocks with that mark; ``<!-- docs-check: run-slow -->``
+blocks run only under ``make test-all``.
 Relative links between pages must resolve, anchors included.
 """
 from __future__ import annotations
@@ -86,6 +87,18 @@ def _run_blocks():
             if mark:
                 marks = [pytest.mark.slow] if mark == "run-slow" else []
                 yield pytest.param(page, commands, id=f"{page.relative_to(ROOT)}:{start}", marks=marks)
+
+
+def _python_blocks():
+    """``(first line number, code)`` of each ```python block preceded by a run mark."""
+    for page in PAGES:
+        lines = page.read_text().splitlines()
+        for i, line in enumerate(lines):
+            before = next((lines[j] for j in range(i - 1, -1, -1) if lines[j].strip()), "")
+            if line.strip() == "```python" and (mark := _MARK.search(before)):
+                end = lines.index("```", i + 1)
+                marks = [pytest.mark.slow] if mark.group(1) == "run-slow" else []
+                yield pytest.param("\n".join(lines[i + 1:end]), id=f"{page.relative_to(ROOT)}:{i + 1}", marks=marks)
 
 
 def _words(command: str) -> list[str]:
@@ -198,6 +211,17 @@ def test_marked_blocks_run(page, commands, tmp_path):
         done = subprocess.run(argv, cwd=tmp_path, env={**env, **assigned}, capture_output=True, text=True,
                               timeout=600)
         assert done.returncode == 0, f"{command!r} exited {done.returncode}:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
+
+
+@pytest.mark.parametrize("code", list(_python_blocks()))
+def test_marked_python_blocks_run(code, tmp_path):
+    """Marked ```python blocks run as they are, in a fresh interpreter."""
+    script = tmp_path / "snippet.py"
+    script.write_text(code + "\n")
+    env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
+    done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True,
+                          timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
 
 
 def _anchor(heading: str) -> str:

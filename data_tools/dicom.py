@@ -118,8 +118,7 @@ class DicomSlideReader(SlideReader):
             self._levels = sorted(self._tif.levels, key=lambda lv: lv.size.width, reverse=True)
             self.levels = _level_infos(self._levels)
             _check_levels(self.path, self.levels)
-            mpp = float(self._tif.mpp.width)
-            self.mpp = mpp if np.isfinite(mpp) and mpp > 0 else None
+            self.mpp = _mpp(self._tif)
             for k, lv in enumerate(self.levels):  # the last frame of a TILED_FULL instance: catches truncation
                 self._decode_window(k, lv.width - 1, lv.height - 1, lv.width, lv.height)
         except SlideError:
@@ -156,6 +155,15 @@ class DicomSlideReader(SlideReader):
         if pixels.shape[2] == 1:
             pixels = np.repeat(pixels, 3, axis=2)
         return np.ascontiguousarray(pixels[..., :3])
+
+
+def _mpp(wsi) -> float | None:
+    """µm per level-0 px from the pixel spacing, or None when the file gives none usable."""
+    try:
+        mpp = float(wsi.mpp.width)
+    except Exception:  # wsidicom raises when no level states a pixel spacing
+        return None
+    return mpp if np.isfinite(mpp) and mpp > 0 else None
 
 
 def _level_infos(levels) -> list[LevelInfo]:

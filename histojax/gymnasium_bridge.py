@@ -4,9 +4,16 @@ Stable-Baselines3, Tianshou and other Gymnasium users.
 * :class:`GymnasiumEnv` — one environment as a ``gymnasium.Env`` (``reset(seed=...)``,
   ``render_mode="rgb_array"``).
 * :class:`GymnasiumVectorEnv` — ``num_envs`` environments as a ``gymnasium.vector.VectorEnv``,
-  the whole batch stepped by one jitted ``vmap`` on the device, with Gymnasium's default
-  ``NEXT_STEP`` autoreset: the step after an episode ends ignores that sub-environment's action
-  and returns its reset observation with reward 0 and both flags false.
+  the whole batch stepped by one jitted ``vmap`` on the device, following Gymnasium 1.x's own
+  ``SyncVectorEnv`` over ``GymnasiumEnv``\\ s step for step (same seeds and actions give the same
+  arrays): ``NEXT_STEP`` autoreset (the step after an episode ends ignores that
+  sub-environment's action and returns its reset observation with reward 0, both flags false and
+  no ``info`` for it: every ``info[key]`` comes with a boolean mask ``info["_" + key]``),
+  ``reset(seed=int | [int | None, ...])``, ``reset(options={"reset_mask": mask})``, writable
+  numpy arrays. ``gymnasium.make_vec("histojax/<id>", num_envs=n)`` builds one.
+
+Each sub-environment has its own JAX key: ``seed`` ``s`` starts it at ``PRNGKey(s)`` as
+``GymnasiumEnv.reset(seed=s)`` does, and every reset or step splits it once.
 """
 from __future__ import annotations
 
@@ -45,8 +52,33 @@ def single_spaces(env: HistoEnv, params):
     return obs_space, action_space
 
 
-def _numpy(tree):
-    return jax.tree.map(np.asarray, jax.device_get(tree))
+def numpy_copy(tree):
+    """``tree`` of device arrays as writable numpy arrays (copies, never read-only views)."""
+    return jax.tree.map(np.array, tree)
+
+
+def without_final_observation(info: dict) -> dict:
+    """``info`` less ``final_observation`` (the bridges' envs never reset inside a step)."""
+    return {k: v for k, v in info.items() if k != "final_observation"}
+
+
+def seed_key(seed: int) -> jax.Array:
+    """The JAX key a sub-environment starts from after ``reset(seed=seed)``."""
+    return jax.random.PRNGKey(int(seed))
+
+
+def split_keys(keys: jax.Array):
+    """Per-row ``key, sub = jax.random.split(key)`` of a ``(n, 2)`` key batch: ``(keys, subs)``."""
+    pair = jax.vmap(jax.random.split)(keys)
+    return pair[:, 0], pair[:, 1]
+
+
+def select(mask: jax.Array, a, b):
+    """Rows of the trees ``a`` where ``mask`` (shape ``(n,)``) is true, else of ``b``."""
+    def pick(x, y):
+        return jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y)
+
+    return jax.tree.map(pick, a, b)
 
 
 class GymnasiumEnv(gymnasium.Env):
@@ -59,19 +91,30 @@ class GymnasiumEnv(gymnasium.Env):
         self.params = env.default_params if params is None else params
         self.observation_space, self.action_space = single_spaces(env, self.params)
         self.render_mode = render_mode
-        self._reset = jax.jit(self.env.reset)
-        self._step = jax.jit(self.env.step)
         self._key = None
         self._state = None
+        self._compile()
+
+    def _compile(self) -> None:
+        self._reset = jax.jit(self.env.reset)
+        self._step = jax.jit(self.env.step)
+
+    def __getstate__(self):
+        """Pickle / deepcopy without the jitted functions (rebuilt on load)."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("_reset", "_step")}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._compile()
 
     def reset(self, *, seed: int | None = None, options=None):
         """Start an episode; ``seed`` fixes the whole following trajectory."""
         super().reset(seed=seed)
         if seed is not None or self._key is None:
-            self._key = jax.random.PRNGKey(int(self.np_random.integers(0, 2**31 - 1)) if seed is None else seed)
+            self._key = seed_key(self.np_random.integers(0, 2**31 - 1) if seed is None else seed)
         self._key, key = jax.random.split(self._key)
         obs, self._state = self._reset(key, self.params)
-        return _numpy(obs), {}
+        return numpy_copy(obs), {}
 
     def step(self, action):
         """``(obs, reward, terminated, truncated, info)`` with numpy / Python values."""
@@ -79,8 +122,9 @@ class GymnasiumEnv(gymnasium.Env):
             raise RuntimeError("call reset() before step()")
         self._key, key = jax.random.split(self._key)
         obs, self._state, reward, terminated, truncated, info = self._step(key, self._state, action, self.params)
-        info = {k: v.item() if np.ndim(v) == 0 else v for k, v in _numpy(info).items()}
-        return _numpy(obs), float(reward), bool(terminated), bool(truncated), info
+        info = {k: v.item() if np.ndim(v) == 0 else v
+                for k, v in numpy_copy(without_final_observation(info)).items()}
+        return numpy_copy(obs), float(reward), bool(terminated), bool(truncated), info
 
     def render(self):
         """RGB uint8 picture of the slide with the current view (``render_mode="rgb_array"``)."""
@@ -90,7 +134,8 @@ class GymnasiumEnv(gymnasium.Env):
 
 
 class GymnasiumVectorEnv(gymnasium.vector.VectorEnv):
-    """``num_envs`` histojax environments stepped together by one jitted ``vmap``."""
+    """``num_envs`` histojax environments stepped together by one jitted ``vmap`` (conventions in
+    the module doc)."""
 
     metadata = {"render_modes": ["rgb_array"], "autoreset_mode": gymnasium.vector.AutoresetMode.NEXT_STEP}
 
@@ -102,52 +147,98 @@ class GymnasiumVectorEnv(gymnasium.vector.VectorEnv):
         self.observation_space = gymnasium.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         self.action_space = gymnasium.vector.utils.batch_space(self.single_action_space, self.num_envs)
         self.render_mode = render_mode
-        inner = self.env
-        batch_reset = jax.vmap(inner.reset, in_axes=(0, None))
-        batch_step = jax.vmap(inner.step, in_axes=(0, 0, 0, None))
+        self._keys = None      # (n, 2) device keys, one per sub-environment
+        self._state = None     # batched EnvState on the device
+        self._obs = None       # batched observation on the device (kept for reset_mask)
+        self._autoreset = np.zeros(self.num_envs, dtype=bool)
+        self._compile()
 
-        def step(key, state, action, autoreset, params):
-            keys = jax.random.split(key, self.num_envs)
-            obs, new, reward, term, trunc, info = batch_step(keys, state, action, params)
-            obs_re, state_re = batch_reset(keys, params)
+    def _compile(self) -> None:
+        batch_reset = jax.vmap(self.env.reset, in_axes=(0, None))
+        batch_step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
 
-            def pick(a, b):
-                mask = autoreset.reshape(autoreset.shape + (1,) * (a.ndim - 1))
-                return jnp.where(mask, a, b)
+        def reset(keys, mask, old_obs, old_state, params):
+            new_keys, subs = split_keys(keys)
+            obs, state = batch_reset(subs, params)
+            if old_state is None:
+                return obs, state, new_keys
+            return select(mask, obs, old_obs), select(mask, state, old_state), select(mask, new_keys, keys)
 
-            obs = jax.tree.map(pick, obs_re, obs)
-            new = jax.tree.map(pick, state_re, new)
-            zero = jnp.zeros_like(term)
-            return (obs, new, jnp.where(autoreset, 0.0, reward), jnp.where(autoreset, zero, term),
-                    jnp.where(autoreset, zero, trunc), info)
+        def step(keys, state, action, autoreset, params):
+            keys, subs = split_keys(keys)
+            obs, new, reward, term, trunc, info = batch_step(subs, state, action, params)
+            obs_re, state_re = batch_reset(subs, params)
+            stepped = jnp.logical_not(autoreset)
+            info = {k: select(stepped, v, jnp.zeros_like(v)) for k, v in without_final_observation(info).items()}
+            return (select(autoreset, obs_re, obs), select(autoreset, state_re, new), jnp.where(stepped, reward, 0.0),
+                    term & stepped, trunc & stepped, info, keys)
 
-        self._reset = jax.jit(lambda key, params: batch_reset(jax.random.split(key, self.num_envs), params))
+        self._reset = jax.jit(reset)
         self._step = jax.jit(step)
-        self._key = None
-        self._state = None
-        self._autoreset = np.zeros(self.num_envs, dtype=bool)
 
-    def reset(self, *, seed: int | None = None, options=None):
-        """Reset all sub-environments: ``(obs batch, info)``."""
-        if seed is not None:
-            self._np_random, self._np_random_seed = gymnasium.utils.seeding.np_random(seed)
-        if seed is not None or self._key is None:
-            self._key = jax.random.PRNGKey(int(self.np_random.integers(0, 2**31 - 1)) if seed is None else seed)
-        self._key, key = jax.random.split(self._key)
-        obs, self._state = self._reset(key, self.params)
-        self._autoreset = np.zeros(self.num_envs, dtype=bool)
-        return _numpy(obs), {}
+    def __getstate__(self):
+        """Pickle / deepcopy without the jitted functions (rebuilt on load)."""
+        return {k: v for k, v in self.__dict__.items() if k not in ("_reset", "_step")}
+
+    def __setstate__(self, state):
+        self.__dict__.update(state)
+        self._compile()
+
+    def _seed_keys(self, seed, mask: np.ndarray) -> jax.Array:
+        """Keys after ``reset(seed=...)``: ``int`` s → ``s + i`` for sub-env ``i``; a list → one seed
+        (or ``None``) each; ``None`` keeps the running keys (drawn from ``np_random`` at first)."""
+        if seed is None:
+            seeds = [None] * self.num_envs
+        elif isinstance(seed, (int, np.integer)):
+            self._np_random, self._np_random_seed = gymnasium.utils.seeding.np_random(int(seed))
+            seeds = [int(seed) + i for i in range(self.num_envs)]
+        else:
+            seeds = list(seed)
+            if len(seeds) != self.num_envs:
+                raise ValueError(f"reset(seed=[...]) needs one seed per sub-environment ({self.num_envs}), "
+                                 f"got {len(seeds)}")
+        if self._keys is None:
+            keys = np.stack([np.asarray(seed_key(self.np_random.integers(0, 2**31 - 1))) for _ in seeds])
+        else:
+            keys = np.array(self._keys)
+        for i, (s, m) in enumerate(zip(seeds, mask)):
+            if s is not None and m:
+                keys[i] = np.asarray(seed_key(s))
+        return jnp.asarray(keys)
+
+    def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
+        """Reset all sub-environments, or those of ``options["reset_mask"]`` (bool ``(n,)`` numpy
+        array; the others keep their state and observation): ``(obs batch, {})``."""
+        options = dict(options or {})
+        mask = options.pop("reset_mask", None)
+        if mask is None or self._state is None:
+            mask = np.ones(self.num_envs, dtype=bool)
+        elif not (isinstance(mask, np.ndarray) and mask.dtype == np.bool_ and mask.shape == (self.num_envs,)):
+            raise ValueError(f"options['reset_mask'] must be a numpy bool array of shape ({self.num_envs},), "
+                             f"got {type(mask).__name__} {getattr(mask, 'dtype', '')} {getattr(mask, 'shape', '')}")
+        elif not mask.any():
+            raise ValueError("options['reset_mask'] resets no sub-environment (all False)")
+        keys = self._seed_keys(seed, mask)
+        self._obs, self._state, self._keys = self._reset(keys, jnp.asarray(mask), self._obs, self._state, self.params)
+        self._autoreset = self._autoreset & ~mask
+        return numpy_copy(self._obs), {}
 
     def step(self, actions):
-        """``(obs, rewards, terminations, truncations, info)`` batches (numpy), NEXT_STEP autoreset."""
+        """``(obs, rewards, terminations, truncations, info)`` numpy batches (rewards float64),
+        ``NEXT_STEP`` autoreset; ``info`` keys masked by ``info["_" + key]``."""
         if self._state is None:
             raise RuntimeError("call reset() before step()")
-        self._key, key = jax.random.split(self._key)
-        obs, self._state, reward, term, trunc, info = self._step(
-            key, self._state, jnp.asarray(actions), jnp.asarray(self._autoreset), self.params)
-        term, trunc = np.asarray(term), np.asarray(trunc)
+        autoreset = self._autoreset
+        self._obs, self._state, reward, term, trunc, info, self._keys = self._step(
+            self._keys, self._state, jnp.asarray(actions), jnp.asarray(autoreset), self.params)
+        term, trunc = np.array(term), np.array(trunc)
         self._autoreset = term | trunc
-        return _numpy(obs), np.asarray(reward, dtype=np.float32), term, trunc, _numpy(info)
+        stepped = ~autoreset
+        infos = {}
+        if stepped.any():  # as SyncVectorEnv: a key only when some sub-environment gave it
+            for k, v in numpy_copy(info).items():
+                infos[k], infos["_" + k] = v, stepped.copy()
+        return numpy_copy(self._obs), np.array(reward, dtype=np.float64), term, trunc, infos
 
     def render(self):
         """Picture of sub-environment 0 (``render_mode="rgb_array"``)."""
@@ -164,15 +255,27 @@ def make_gymnasium_env(env_id: str, slide=None, render_mode: str | None = None, 
     return GymnasiumEnv(env, params, render_mode=render_mode)
 
 
+def make_gymnasium_vector_env(env_id: str, num_envs: int = 1, slide=None, render_mode: str | None = None,
+                              **overrides) -> GymnasiumVectorEnv:
+    """``histojax.make(env_id, slide, **overrides)`` as a :class:`GymnasiumVectorEnv` of ``num_envs``
+    (what ``gymnasium.make_vec("histojax/<id>", num_envs)`` calls)."""
+    from histojax.registry import make
+
+    env, params = make(env_id, slide=slide, **overrides)
+    return GymnasiumVectorEnv(env, num_envs, params, render_mode=render_mode)
+
+
 def register_gymnasium_envs() -> None:
     """Register every histojax id with Gymnasium as ``"histojax/<id>"``, so
-    ``gymnasium.make("histojax/HistoJAX-Easy-v0", slide=..., **overrides)`` works."""
+    ``gymnasium.make("histojax/HistoJAX-Easy-v0", slide=..., **overrides)`` and
+    ``gymnasium.make_vec("histojax/HistoJAX-Easy-v0", num_envs=64, **overrides)`` work."""
     from histojax.registry import registered_envs
 
     for env_id in registered_envs():
         name = f"histojax/{env_id}"
         if name not in gymnasium.registry:
             gymnasium.register(name, entry_point="histojax.gymnasium_bridge:make_gymnasium_env",
+                               vector_entry_point="histojax.gymnasium_bridge:make_gymnasium_vector_env",
                                kwargs={"env_id": env_id}, disable_env_checker=True)
 
 

@@ -18,6 +18,7 @@ Each sub-environment has its own JAX key: ``seed`` ``s`` starts it at ``PRNGKey(
 from __future__ import annotations
 
 import dataclasses
+import functools
 
 import gymnasium
 import jax
@@ -30,6 +31,13 @@ from histojax.env import HistoEnv
 
 def _without_autoreset(env: HistoEnv) -> HistoEnv:
     return dataclasses.replace(env, auto_reset=False)
+
+
+def settings_only(env: HistoEnv) -> HistoEnv:
+    """``env`` without its default params and bundles: the static argument of the bridges' jitted
+    functions, which always pass params explicitly. Envs of equal settings are then equal, so all
+    bridges over them share one compiled program, and no slide can be read from a wrong env."""
+    return dataclasses.replace(env, _default_params=None, _bundle=None, _bundles=())
 
 
 def single_spaces(env: HistoEnv, params):
@@ -81,6 +89,39 @@ def select(mask: jax.Array, a, b):
     return jax.tree.map(pick, a, b)
 
 
+@functools.partial(jax.jit, static_argnums=0)
+def _reset_one(env: HistoEnv, key, params):
+    return env.reset(key, params)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _step_one(env: HistoEnv, key, state, action, params):
+    return env.step(key, state, action, params)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _reset_batch(env: HistoEnv, keys, mask, old_obs, old_state, params):
+    """Reset the sub-environments of ``mask`` (all when there is no old state): ``(obs, state, keys)``."""
+    new_keys, subs = split_keys(keys)
+    obs, state = jax.vmap(env.reset, in_axes=(0, None))(subs, params)
+    if old_state is None:
+        return obs, state, new_keys
+    return select(mask, obs, old_obs), select(mask, state, old_state), select(mask, new_keys, keys)
+
+
+@functools.partial(jax.jit, static_argnums=0)
+def _step_batch_next(env: HistoEnv, keys, state, action, autoreset, params):
+    """One ``NEXT_STEP`` step: sub-environments in ``autoreset`` reset, the others step; ``info``
+    entries of the resetting ones are zero. ``(obs, state, reward, term, trunc, info, keys)``."""
+    keys, subs = split_keys(keys)
+    obs, new, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(subs, state, action, params)
+    obs_re, state_re = jax.vmap(env.reset, in_axes=(0, None))(subs, params)
+    stepped = jnp.logical_not(autoreset)
+    info = {k: select(stepped, v, jnp.zeros_like(v)) for k, v in without_final_observation(info).items()}
+    return (select(autoreset, obs_re, obs), select(autoreset, state_re, new), jnp.where(stepped, reward, 0.0),
+            term & stepped, trunc & stepped, info, keys)
+
+
 class GymnasiumEnv(gymnasium.Env):
     """One histojax environment as a ``gymnasium.Env`` (numpy observations, Python scalars)."""
 
@@ -91,21 +132,9 @@ class GymnasiumEnv(gymnasium.Env):
         self.params = env.default_params if params is None else params
         self.observation_space, self.action_space = single_spaces(env, self.params)
         self.render_mode = render_mode
+        self._static = settings_only(self.env)
         self._key = None
         self._state = None
-        self._compile()
-
-    def _compile(self) -> None:
-        self._reset = jax.jit(self.env.reset)
-        self._step = jax.jit(self.env.step)
-
-    def __getstate__(self):
-        """Pickle / deepcopy without the jitted functions (rebuilt on load)."""
-        return {k: v for k, v in self.__dict__.items() if k not in ("_reset", "_step")}
-
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-        self._compile()
 
     def reset(self, *, seed: int | None = None, options=None):
         """Start an episode; ``seed`` fixes the whole following trajectory."""
@@ -113,7 +142,7 @@ class GymnasiumEnv(gymnasium.Env):
         if seed is not None or self._key is None:
             self._key = seed_key(self.np_random.integers(0, 2**31 - 1) if seed is None else seed)
         self._key, key = jax.random.split(self._key)
-        obs, self._state = self._reset(key, self.params)
+        obs, self._state = _reset_one(self._static, key, self.params)
         return numpy_copy(obs), {}
 
     def step(self, action):
@@ -121,7 +150,8 @@ class GymnasiumEnv(gymnasium.Env):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         self._key, key = jax.random.split(self._key)
-        obs, self._state, reward, terminated, truncated, info = self._step(key, self._state, action, self.params)
+        obs, self._state, reward, terminated, truncated, info = _step_one(self._static, key, self._state, action,
+                                                                          self.params)
         info = {k: v.item() if np.ndim(v) == 0 else v
                 for k, v in numpy_copy(without_final_observation(info)).items()}
         return numpy_copy(obs), float(reward), bool(terminated), bool(truncated), info
@@ -151,38 +181,7 @@ class GymnasiumVectorEnv(gymnasium.vector.VectorEnv):
         self._state = None     # batched EnvState on the device
         self._obs = None       # batched observation on the device (kept for reset_mask)
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
-        self._compile()
-
-    def _compile(self) -> None:
-        batch_reset = jax.vmap(self.env.reset, in_axes=(0, None))
-        batch_step = jax.vmap(self.env.step, in_axes=(0, 0, 0, None))
-
-        def reset(keys, mask, old_obs, old_state, params):
-            new_keys, subs = split_keys(keys)
-            obs, state = batch_reset(subs, params)
-            if old_state is None:
-                return obs, state, new_keys
-            return select(mask, obs, old_obs), select(mask, state, old_state), select(mask, new_keys, keys)
-
-        def step(keys, state, action, autoreset, params):
-            keys, subs = split_keys(keys)
-            obs, new, reward, term, trunc, info = batch_step(subs, state, action, params)
-            obs_re, state_re = batch_reset(subs, params)
-            stepped = jnp.logical_not(autoreset)
-            info = {k: select(stepped, v, jnp.zeros_like(v)) for k, v in without_final_observation(info).items()}
-            return (select(autoreset, obs_re, obs), select(autoreset, state_re, new), jnp.where(stepped, reward, 0.0),
-                    term & stepped, trunc & stepped, info, keys)
-
-        self._reset = jax.jit(reset)
-        self._step = jax.jit(step)
-
-    def __getstate__(self):
-        """Pickle / deepcopy without the jitted functions (rebuilt on load)."""
-        return {k: v for k, v in self.__dict__.items() if k not in ("_reset", "_step")}
-
-    def __setstate__(self, state):
-        self.__dict__.update(state)
-        self._compile()
+        self._static = settings_only(self.env)
 
     def _seed_keys(self, seed, mask: np.ndarray) -> jax.Array:
         """Keys after ``reset(seed=...)``: ``int`` s → ``s + i`` for sub-env ``i``; a list → one seed
@@ -219,7 +218,8 @@ class GymnasiumVectorEnv(gymnasium.vector.VectorEnv):
         elif not mask.any():
             raise ValueError("options['reset_mask'] resets no sub-environment (all False)")
         keys = self._seed_keys(seed, mask)
-        self._obs, self._state, self._keys = self._reset(keys, jnp.asarray(mask), self._obs, self._state, self.params)
+        self._obs, self._state, self._keys = _reset_batch(self._static, keys, jnp.asarray(mask), self._obs, self._state,
+                                                          self.params)
         self._autoreset = self._autoreset & ~mask
         return numpy_copy(self._obs), {}
 
@@ -229,8 +229,8 @@ class GymnasiumVectorEnv(gymnasium.vector.VectorEnv):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         autoreset = self._autoreset
-        self._obs, self._state, reward, term, trunc, info, self._keys = self._step(
-            self._keys, self._state, jnp.asarray(actions), jnp.asarray(autoreset), self.params)
+        self._obs, self._state, reward, term, trunc, info, self._keys = _step_batch_next(
+            self._static, self._keys, self._state, jnp.asarray(actions), jnp.asarray(autoreset), self.params)
         term, trunc = np.array(term), np.array(trunc)
         self._autoreset = term | trunc
         stepped = ~autoreset

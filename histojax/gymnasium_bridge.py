@@ -75,6 +75,19 @@ def seed_key(seed: int) -> jax.Array:
     return jax.random.PRNGKey(int(seed))
 
 
+def seeded_keys(keys, seeds, mask, rng: np.random.Generator) -> jax.Array:
+    """The ``(n, 2)`` keys after a reset: ``seed_key(seeds[i])`` where ``seeds[i]`` is not ``None``
+    and ``mask[i]``, else the running key ``keys[i]`` (``keys=None``: fresh ones drawn from ``rng``)."""
+    if keys is None:
+        keys = np.stack([np.asarray(seed_key(rng.integers(0, 2**31 - 1))) for _ in seeds])
+    else:
+        keys = np.array(keys)
+    for i, (s, m) in enumerate(zip(seeds, mask)):
+        if s is not None and m:
+            keys[i] = np.asarray(seed_key(s))
+    return jnp.asarray(keys)
+
+
 def split_keys(keys: jax.Array):
     """Per-row ``key, sub = jax.random.split(key)`` of a ``(n, 2)`` key batch: ``(keys, subs)``."""
     pair = jax.vmap(jax.random.split)(keys)
@@ -196,14 +209,7 @@ class GymnasiumVectorEnv(gymnasium.vector.VectorEnv):
             if len(seeds) != self.num_envs:
                 raise ValueError(f"reset(seed=[...]) needs one seed per sub-environment ({self.num_envs}), "
                                  f"got {len(seeds)}")
-        if self._keys is None:
-            keys = np.stack([np.asarray(seed_key(self.np_random.integers(0, 2**31 - 1))) for _ in seeds])
-        else:
-            keys = np.array(self._keys)
-        for i, (s, m) in enumerate(zip(seeds, mask)):
-            if s is not None and m:
-                keys[i] = np.asarray(seed_key(s))
-        return jnp.asarray(keys)
+        return seeded_keys(self._keys, seeds, mask, self.np_random)
 
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
         """Reset all sub-environments, or those of ``options["reset_mask"]`` (bool ``(n,)`` numpy

@@ -144,7 +144,8 @@ class HistoEnv(_GymnaxEnvironment):
     programs while two ``make`` calls (or a deepcopy) never do. A digest of the default params
     would also be sound but would copy the whole slide (up to ``max_device_bytes``) to the host to
     hash it; the params are immutable (a frozen pytree of JAX arrays), so identity of the object
-    is identity of the content, at no cost.
+    is identity of the content, at no cost. The ids are of objects the env keeps alive, so none can
+    be reused by other data while the env, or a compiled program keyed on it, exists.
     """
 
     n_levels: int

@@ -147,6 +147,20 @@ def test_gymnax_to_gym_wrapper_runs_unchanged(easy):
     assert bool(truncated) and info["final_observation"].shape == (128, 128, 3)
 
 
+def test_gymnax_to_vector_gym_wrapper_runs_through_a_plain_wrapper(easy):
+    from gymnax.wrappers.gym import GymnaxToVectorGymWrapper
+
+    from histojax.wrappers import Wrapper
+
+    env, params = easy
+    with pytest.raises(dataclasses.FrozenInstanceError):  # it assigns to env.reset / env.step
+        GymnaxToVectorGymWrapper(env, 2, params)
+    venv = GymnaxToVectorGymWrapper(Wrapper(env), 2, params)
+    obs, _ = venv.reset(seed=0)
+    obs, reward, term, trunc, info = venv.step(np.array([4, 6]))
+    assert obs.shape == (2, 128, 128, 3) and reward.shape == (2,) and info["final_observation"].shape == obs.shape
+
+
 # ------------------------------------------------------------------ copies
 @pytest.mark.parametrize("wrap", [LogWrapper, GymnaxV0Wrapper])
 def test_wrappers_deepcopy_and_pickle(easy, wrap):

@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all bench bench-histogym bench-large contract fuzz clean
+.PHONY: demo test test-all test-integrations integrations bench bench-histogym bench-large contract fuzz clean
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (Python 3.11) on PATH, or run: make PYTHON=python3 ..."; exit 1; }
@@ -19,8 +19,16 @@ demo: $(STAMP)
 test: $(STAMP)
 	$(PY) -m pytest -q
 
-test-all: $(STAMP)
+test-all: integrations
 	$(PY) -m pytest -q -m ''
+
+# Stable-Baselines3 (with torch, heavy) and rejax: not in `make test`'s install; their tests skip without them
+integrations: $(STAMP)
+	$(PY) -m pip install --quiet -e '.[sb3,rejax]'
+
+test-integrations: integrations
+	$(PY) -c "import stable_baselines3, rejax"  # the tests below skip without them: fail here instead
+	$(PY) -m pytest -q -rs tests/test_sb3.py tests/test_rejax.py tests/test_gymnax.py tests/test_gymnasium.py
 
 fuzz: $(STAMP)
 	HISTOJAX_FUZZ_EXAMPLES=3400 $(PY) -m pytest -q -s tests/test_fuzz.py

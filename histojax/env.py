@@ -44,8 +44,16 @@ stacks slides of any sizes into one ``SlideArrays``; ``reset`` draws a slide (un
 reaches ``max_steps_in_episode`` (never reported as termination). With ``auto_reset=True``
 (default) ``step`` starts a new episode after the last one, returning the first observation of the
 new episode and the last one of the old in ``info["final_observation"]``; ``final_observation=False``
-drops that key and extracts one view per step instead of two (about twice as fast for pixels;
-PureJaxRL-style trainers that do not bootstrap from truncated episodes do not need it).
+extracts one view per step instead of two (about twice as fast for pixels; PureJaxRL-style trainers
+that do not bootstrap from truncated episodes do not need the last view) and keeps the key, which
+gymnax's wrappers read, as an empty ``(0,)`` array per observation leaf: code that does use it
+fails at trace time instead of reading a wrong view. With ``auto_reset=False`` it is the returned
+observation. ``info`` always has gymnax 1.0's keys ``terminated``, ``truncated`` and
+``final_observation``, plus ``discount`` (0 on termination), ``tumour_fraction`` and ``success``.
+
+**gymnax**: with gymnax installed, ``HistoEnv`` is a subclass of
+``gymnax.environments.environment.Environment`` and its spaces are gymnax's classes (see
+:mod:`histojax.spaces`); code that asks ``isinstance`` has imported gymnax, so it always gets yes.
 """
 from __future__ import annotations
 
@@ -60,6 +68,11 @@ from jax import lax
 from histojax import actions, augment as dihedral, rewards, spaces
 from histojax.slide import SlideArrays
 from histojax.views import view_pixels, view_tumour_fraction
+
+try:  # gymnax is optional; code that can ask ``isinstance(env, Environment)`` has it installed
+    from gymnax.environments.environment import Environment as _GymnaxEnvironment
+except ImportError:
+    _GymnaxEnvironment = object
 
 ACTION_MODES = ("discrete", "continuous")
 OBS_MODES = ("pixels", "pixels_float", "features")
@@ -118,9 +131,22 @@ class EnvParams:
     diagnosis_reward: float = 1.0        # task="classification": +this for a right diagnosis, -this for a wrong one
 
 
-@dataclasses.dataclass(frozen=True)
-class HistoEnv:
-    """A slide-navigation environment. Static (hashable) settings are fields; see the module doc."""
+@dataclasses.dataclass(frozen=True, eq=False)
+class HistoEnv(_GymnaxEnvironment):
+    """A slide-navigation environment. Static (hashable) settings are fields; see the module doc.
+
+    **Equality and hash** (what ``jax.jit(..., static_argnums=env)`` keys its compiled programs
+    on): two envs are equal when their settings are equal *and* they hold the very same default
+    params and bundle objects. With ``params=None`` a jitted function reads the slide and the
+    settings from ``env.default_params``, so envs with different data must never compare equal.
+    gymnax's own envs compare by identity; histojax compares the data by identity and the
+    settings by value, so ``dataclasses.replace(env, ...)`` of one env still shares compiled
+    programs while two ``make`` calls (or a deepcopy) never do. A digest of the default params
+    would also be sound but would copy the whole slide (up to ``max_device_bytes``) to the host to
+    hash it; the params are immutable (a frozen pytree of JAX arrays), so identity of the object
+    is identity of the content, at no cost. The ids are of objects the env keeps alive, so none can
+    be reused by other data while the env, or a compiled program keyed on it, exists.
+    """
 
     n_levels: int
     tile_size: int = 128
@@ -136,6 +162,19 @@ class HistoEnv:
     _default_params: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
     _bundle: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
     _bundles: Any = dataclasses.field(default=(), compare=False, hash=False, repr=False)  # one per slide
+
+    def _identity(self) -> tuple:
+        settings = tuple(getattr(self, f.name) for f in dataclasses.fields(self) if f.compare)
+        data = tuple(id(getattr(self, f.name)) for f in dataclasses.fields(self) if not f.compare)
+        return type(self), settings, data
+
+    def __eq__(self, other) -> bool:
+        if not isinstance(other, HistoEnv):
+            return NotImplemented
+        return self._identity() == other._identity()
+
+    def __hash__(self) -> int:
+        return hash(self._identity())
 
     def __post_init__(self):
         if self.action_mode not in ACTION_MODES:
@@ -201,10 +240,12 @@ class HistoEnv:
             state_re = self.reset_state(key_reset, params)
             done = jnp.logical_or(terminated, truncated)
             state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_re, state_st)
-            return self.get_obs(state, params), state, reward, terminated, truncated, info
+            obs = self.get_obs(state, params)
+            empty = jax.tree.map(lambda a: jnp.zeros((0,), a.dtype), obs)  # the key without a wrong view
+            return obs, state, reward, terminated, truncated, {**info, "final_observation": empty}
         obs_st, state_st, reward, terminated, truncated, info = self.step_env(key, state, action, params)
         if not self.auto_reset:
-            return obs_st, state_st, reward, terminated, truncated, info
+            return obs_st, state_st, reward, terminated, truncated, {**info, "final_observation": obs_st}
         obs_re, state_re = self.reset_env(key_reset, params)
         done = jnp.logical_or(terminated, truncated)
         state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_re, state_st)
@@ -247,7 +288,8 @@ class HistoEnv:
         return state
 
     def step_env(self, key: jax.Array, state: EnvState, action, params: EnvParams):
-        """One step without auto-reset: ``(obs, state, reward, terminated, truncated, info)``."""
+        """One step without auto-reset: ``(obs, state, reward, terminated, truncated, info)``
+        (``info`` without ``final_observation``, which :meth:`step` adds)."""
         new_state, reward, terminated, truncated, info = self.transition(state, action, params)
         return self.get_obs(new_state, params), new_state, reward, terminated, truncated, info
 
@@ -283,11 +325,15 @@ class HistoEnv:
             "tumour_fraction": fraction,
             "success": success,
             "discount": 1.0 - terminated.astype(jnp.float32),
+            "terminated": terminated,
+            "truncated": truncated,
         }
         return new_state, reward.astype(jnp.float32), terminated, truncated, info
 
-    def get_obs(self, state: EnvState, params: EnvParams):
-        """The observation of ``state`` (see the module doc for modes and units)."""
+    def get_obs(self, state: EnvState, params: EnvParams | None = None, key: jax.Array | None = None):
+        """The observation of ``state`` (see the module doc for modes and units); ``key`` is unused
+        (gymnax's signature)."""
+        params = self.default_params if params is None else params
         slide, t = params.slide.select(state.slide_index), self.tile_size
         if self.obs_mode == "features":
             if slide.features is None:
@@ -305,6 +351,10 @@ class HistoEnv:
         if not self.with_position:
             return pixels
         return {"pixels": pixels, "position": self._position(state, slide)}
+
+    def is_truncated(self, state: EnvState, params: EnvParams) -> jax.Array:
+        """True when the episode has reached ``params.max_steps_in_episode`` steps (bool scalar)."""
+        return state.t >= params.max_steps_in_episode
 
     def _position(self, state: EnvState, slide: SlideArrays):
         """``(x_centre / W_z, y_centre / H_z, z / (n_levels - 1))`` float32 in ``[0, 1]``."""

@@ -3,19 +3,27 @@ gymnax 5-value step (``obs, state, reward, done, info``), and the Gymnasium brid
 ``GymnasiumEnv`` / ``GymnasiumVectorEnv`` (loaded lazily from ``histojax.gymnasium_bridge``)."""
 from __future__ import annotations
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 from flax import struct
 
+from histojax.env import HistoEnv
+
 
 class Wrapper:
-    """Forwards every attribute to the wrapped environment."""
+    """Forwards every attribute it lacks to the wrapped environment ``_env``; copies and pickles
+    (``copy.deepcopy`` and ``pickle`` make the object before ``_env`` is set: no forwarding then)."""
 
     def __init__(self, env):
         self._env = env
 
     def __getattr__(self, name):
-        return getattr(self._env, name)
+        env = self.__dict__.get("_env")
+        if env is None or (name.startswith("__") and name.endswith("__")):
+            raise AttributeError(f"{type(self).__name__!r} object has no attribute {name!r}")
+        return getattr(env, name)
 
 
 @struct.dataclass
@@ -63,11 +71,22 @@ class LogWrapper(Wrapper):
 
 
 class GymnaxV0Wrapper(Wrapper):
-    """The older gymnax step: ``(obs, state, reward, done, info)`` with ``done = terminated or
-    truncated`` and both flags kept in ``info["terminated"]`` / ``info["truncated"]``."""
+    """The older gymnax step (gymnax < 1.0, PureJaxRL, rejax): ``(obs, state, reward, done, info)``
+    with ``done = terminated or truncated`` and both flags kept in ``info["terminated"]`` /
+    ``info["truncated"]``. ``info`` has no ``final_observation`` (older gymnax had none, and
+    trainers that keep all of ``info`` as metrics would stack one observation per step); a
+    ``HistoEnv`` with auto-reset is therefore wrapped with ``final_observation=False``, which
+    extracts one view per step instead of two and gives the same trajectories."""
+
+    def __init__(self, env):
+        if isinstance(env, HistoEnv) and env.auto_reset and env.final_observation:
+            env = dataclasses.replace(env, final_observation=False)
+        super().__init__(env)
 
     def step(self, key, state, action, params=None):
+        """``(obs, state, reward, done, info)``: one step of the wrapped env, flags merged."""
         obs, state, reward, terminated, truncated, info = self._env.step(key, state, action, params)
+        info = {k: v for k, v in info.items() if k != "final_observation"}
         info = {**info, "terminated": terminated, "truncated": truncated}
         return obs, state, reward, jnp.logical_or(terminated, truncated), info
 

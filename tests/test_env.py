@@ -237,4 +237,7 @@ def test_final_observation_off_gives_the_same_trajectory(easy):
         np.testing.assert_array_equal(np.asarray(o_full), np.asarray(o_lean))
         assert [int(a) for a in jax.tree.leaves(s_full)] == [int(a) for a in jax.tree.leaves(s_lean)]
         assert float(r_full) == float(r_lean) and (bool(te), bool(tr)) == (bool(te2), bool(tr2))
-        assert "final_observation" in info_full and "final_observation" not in info_lean
+        # the lean env keeps gymnax's key (its wrappers read it) but as an empty array, never a wrong view
+        assert info_full["final_observation"].shape == (128, 128, 3)
+        assert info_lean["final_observation"].shape == (0,)
+        assert set(info_full) == set(info_lean)

@@ -20,7 +20,9 @@ rollout are sharded along the envs, each minibatch along its samples; parameters
 state and slide arrays are replicated, and XLA's SPMD partitioner adds the gradient all-reduce.
 The same code runs on one CPU (``XLA_FLAGS=--xla_force_host_platform_device_count=N``), several
 GPUs, or several hosts after ``jax.distributed.initialize()``. ``devices=None`` (default) adds
-nothing to the program.
+nothing to the program. ``--shard-slides`` (config ``shard_slides``) also splits the dataset's
+slides over the devices (:mod:`histojax.sharding`): each device holds and draws only its own
+slides, so slide memory per device falls as 1 / N (docs/scaling.md).
 
 Observations are pooled to 32 px before they are stored (see :func:`networks.preprocess_obs`),
 so a rollout of 64 envs × 64 steps needs ~13 MB, not ~200 MB. Time limits are treated as episode
@@ -52,7 +54,7 @@ DEFAULTS = dict(
     num_envs=64, num_steps=64, total_timesteps=500_000, update_epochs=2, num_minibatches=8,
     lr=3e-4, anneal_lr=True, gamma=0.99, gae_lambda=0.95, clip_eps=0.2, ent_coef=0.01, vf_coef=0.5,
     max_grad_norm=0.5, hidden=256, num_seeds=1, vmap_seeds=True, log_every=4, print_progress=True,
-    devices=None,
+    devices=None, shard_slides=False,
 )
 
 
@@ -92,16 +94,21 @@ def make_train(config: dict):
     ``train.env``, ``train.env_params``, ``train.network`` and ``train.num_updates`` are attached.
     ``config["devices"] = N`` shards the env batch over ``N`` devices (``train.mesh``)."""
     config = {**DEFAULTS, **config}
-    env, env_params = common.make_env(config)
+    num_envs, num_steps = config["num_envs"], config["num_steps"]
+    mesh = common.batch_mesh(config["devices"], num_envs)
+    sharded = bool(config["shard_slides"])
+    if sharded and mesh is None:
+        raise ValueError("shard_slides=True splits the slides over the devices: give devices=N too")
+    env, env_params = common.make_env(config, mesh=mesh)
     env = LogWrapper(env)
+    reset_all = common.env_vmap(env.reset, 1, mesh, sharded)
+    step_all = common.env_vmap(env.step, 3, mesh, sharded)
     network = make_network(config, env)
     mode = config["action_mode"]
-    num_envs, num_steps = config["num_envs"], config["num_steps"]
     num_updates = max(1, config["total_timesteps"] // (num_envs * num_steps))
     batch = num_envs * num_steps
     minibatch = batch // config["num_minibatches"]
     assert minibatch * config["num_minibatches"] == batch, "num_envs * num_steps must divide by num_minibatches"
-    mesh = common.batch_mesh(config["devices"], num_envs)
     if mesh is not None and minibatch % mesh.size:
         raise ValueError(f"the minibatch ({minibatch} = num_envs * num_steps / num_minibatches) must divide "
                          f"by devices={mesh.size}")
@@ -113,10 +120,10 @@ def make_train(config: dict):
         frac = 1.0 - (count // (config["num_minibatches"] * config["update_epochs"])) / num_updates
         return config["lr"] * frac
 
-    init_params = common.params_initialiser(env, network, num_envs)
+    init_params = common.params_initialiser(env, network, num_envs, reset_all)
 
     def train(key, env_params, params):
-        key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs)
+        key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs, reset_all)
         obs0, env_state = shard((obs0, env_state))
         tx = optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
                          optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
@@ -128,7 +135,7 @@ def make_train(config: dict):
             pi, value = network.apply(state.params, obs)
             action = policy_sample(k_act, pi, mode)
             log_prob = policy_log_prob(pi, action, mode)
-            next_obs, env_state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            next_obs, env_state, reward, term, trunc, info = step_all(
                 jax.random.split(k_step, num_envs), env_state, action, env_params)
             keep = {k: info[k] for k in ("returned_episode", "returned_episode_returns",
                                          "returned_episode_lengths", "returned_episode_success")}
@@ -207,6 +214,9 @@ def parse_args(argv=None, defaults=DEFAULTS, description=__doc__):
     p.add_argument("--devices", type=int, default=None,
                    help="shard the env batch over the first N devices (PPO; on CPU set "
                         "XLA_FLAGS=--xla_force_host_platform_device_count=N)")
+    p.add_argument("--shard-slides", action="store_true",
+                   help="with --devices N: split the dataset's slides over the devices (each device holds and "
+                        "draws only its own slides; docs/scaling.md)")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other config entry, value parsed as JSON (e.g. --set ent_coef=0.02)")
     p.add_argument("--out", default=None, help="run folder (default runs/<algo>-<env>)")
@@ -222,6 +232,10 @@ def config_from_args(args, defaults=DEFAULTS) -> dict:
         if "devices" not in defaults:
             raise SystemExit("--devices is supported by the PPO baseline only")
         config["devices"] = args.devices
+    if getattr(args, "shard_slides", False):
+        if "shard_slides" not in defaults:
+            raise SystemExit("--shard-slides is supported by the PPO baseline only")
+        config["shard_slides"] = True
     for item in args.set:
         k, _, v = item.partition("=")
         if k not in defaults:
@@ -234,8 +248,9 @@ def config_from_args(args, defaults=DEFAULTS) -> dict:
 
 
 def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_per_update: int,
-               train_seconds: float, compile_seconds: float) -> dict:
-    """Logs, curve, checkpoint and a printed summary (shared by PPO and DQN)."""
+               train_seconds: float, compile_seconds: float, env_and_params=None) -> dict:
+    """Logs, curve, checkpoint and a printed summary (shared by PPO and DQN). ``env_and_params``:
+    the trainer's, for the random-agent reference of slides sharded over devices."""
     metrics = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
     n_updates = metrics["success"].shape[1]
     steps = (np.arange(n_updates) + 1) * steps_per_update
@@ -245,7 +260,7 @@ def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_
         final = {name: float(np.nanmean(metrics[name][:, tail])) for name in ("return", "success", "length",
                                                                               "steps_to_success")}
         final_per_seed = {name: np.nanmean(metrics[name][:, tail], axis=1).tolist() for name in ("return", "success")}
-    ref = common.random_agent_reference(config)
+    ref = common.random_agent_reference(config, env_and_params=env_and_params)
     summary = {"algo": algo, "env_id": config["env_id"], "env_steps_per_seed": int(steps[-1]),
                "seeds": int(metrics["success"].shape[0]), "train_seconds": train_seconds,
                "compile_seconds": compile_seconds,
@@ -295,7 +310,7 @@ def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = 
     result = jax.block_until_ready(compiled(keys))
     train_s = time.perf_counter() - t0
     summary = finish_run(algo, config, out, result["params"], result["metrics"], train.steps_per_update, train_s,
-                         compile_s)
+                         compile_s, env_and_params=(train.env, train.env_params))
     return config, result["params"], summary
 
 

@@ -275,19 +275,20 @@ def plot_curves(path, steps, panels: dict, title: str = "", reference: dict | No
 
 def random_agent_reference(config: dict, num_envs: int = 256, num_steps: int = 400, seed: int = 0,
                            env_and_params=None) -> dict:
-    """Episode statistics of the uniform random agent on the same env (for the curves). For
-    slides sharded over devices (``env_and_params`` given, ``config["shard_slides"]``): on the
-    slides of this process's first device."""
+    """Episode statistics of the uniform random agent on the same env (for the curves): the
+    trainer's ``env_and_params`` when given (for slides sharded over devices, those of this
+    process's first device), else the env made from ``config``."""
     from histojax.demo import make_random_rollout
 
-    if config.get("shard_slides") and env_and_params is not None:
-        from histojax.sharding import first_local_group
-
+    if env_and_params is None:
+        env, params = make_env(config)
+    else:
         env, params = env_and_params
         env = getattr(env, "_env", env)  # the bare env under a LogWrapper
-        params = params.replace(slide=first_local_group(params.slide))
-    else:
-        env, params = make_env(config)
+        if config.get("shard_slides"):
+            from histojax.sharding import first_local_group
+
+            params = params.replace(slide=first_local_group(params.slide))
     info, _ = jax.device_get(make_random_rollout(env, num_envs, num_steps)(jax.random.PRNGKey(seed), params))
     info = {**info, "returned_episode_lengths": np.zeros_like(info["returned_episode_returns"])}
     stats = jax.device_get(episode_stats(info))

@@ -91,7 +91,10 @@ def make_train(config: dict):
     or ``lax.map`` with ``vmap_seeds=False``) and
     returning ``{"params": seeds-stacked params, "metrics": {name: (seeds, updates)}}``.
     The env's params (slide arrays) are an argument of the jitted function, not a constant;
-    ``train.env``, ``train.env_params``, ``train.network`` and ``train.num_updates`` are attached.
+    ``train.env``, ``train.env_params``, ``train.network`` and ``train.num_updates`` are attached,
+    and the pieces of ``train`` for trainers that run it in phases (:mod:`baselines.rotation`):
+    ``train.init_params(key, env_params)``, ``train.init_state(params)`` and
+    ``train.run_updates(state, key, env_params, first_update, n_updates)`` (unjitted, one seed).
     ``config["devices"] = N`` shards the env batch over ``N`` devices (``train.mesh``)."""
     config = {**DEFAULTS, **config}
     num_envs, num_steps = config["num_envs"], config["num_steps"]
@@ -122,12 +125,18 @@ def make_train(config: dict):
 
     init_params = common.params_initialiser(env, network, num_envs, reset_all)
 
-    def train(key, env_params, params):
+    tx = optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
+                     optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
+
+    def init_state(params) -> TrainState:
+        """Network parameters → the train state (optimizer state fresh, step 0)."""
+        return TrainState.create(apply_fn=network.apply, params=params, tx=tx)
+
+    def run_updates(state, key, env_params, first_update, n_updates: int):
+        """``n_updates`` PPO updates from freshly reset envs: ``(state, key, metrics)``;
+        ``first_update`` (the index of the first, for progress) may be traced."""
         key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs, reset_all)
         obs0, env_state = shard((obs0, env_state))
-        tx = optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
-                         optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
-        state = TrainState.create(apply_fn=network.apply, params=params, tx=tx)
 
         def env_step(carry, _):
             state, env_state, obs, key = carry
@@ -189,10 +198,15 @@ def make_train(config: dict):
             return (state, env_state, obs, key), metrics
 
         carry = (state, env_state, obs0, key)
-        (state, *_), metrics = jax.lax.scan(update, carry, jnp.arange(num_updates))
+        (state, _, _, key), metrics = jax.lax.scan(update, carry, first_update + jnp.arange(n_updates))
+        return state, key, metrics
+
+    def train(key, env_params, params):
+        state, _, metrics = run_updates(init_state(params), key, env_params, 0, num_updates)
         return {"params": state.params, "metrics": metrics}
 
     run = common.seeds_runner(train, init_params, env_params, config, progress, mesh)
+    run.init_params, run.init_state, run.run_updates, run.progress = init_params, init_state, run_updates, progress
     run.env, run.env_params, run.network, run.num_updates, run.config = env, env_params, network, num_updates, config
     run.steps_per_update = batch
     return run

@@ -46,7 +46,7 @@ def round_robin(items: list, n: int) -> list[list]:
     return [list(items[d::n]) for d in range(n)]
 
 
-def _pad(a: np.ndarray, shape: tuple, name: str) -> np.ndarray:
+def pad_leaf(a: np.ndarray, shape: tuple, name: str) -> np.ndarray:
     """``a`` padded at the end of every axis to ``shape`` (see the module doc for the fill)."""
     if a.shape == tuple(shape):
         return a
@@ -59,9 +59,9 @@ def _pad(a: np.ndarray, shape: tuple, name: str) -> np.ndarray:
     return np.pad(a, [(0, shape[0] - a.shape[0])] + [(0, 0)] * (a.ndim - 1), mode="edge")
 
 
-def _leaves(slide: SlideArrays) -> dict[str, np.ndarray]:
-    """The non-None leaves of a stacked ``SlideArrays`` as host numpy arrays, by field name."""
-    return {f.name: np.asarray(getattr(slide, f.name)) for f in dataclasses.fields(slide)
+def host_leaves(slide: SlideArrays) -> dict[str, np.ndarray]:
+    """The non-None leaves of a ``SlideArrays`` as host numpy arrays (copies), by field name."""
+    return {f.name: np.array(getattr(slide, f.name)) for f in dataclasses.fields(slide)
             if getattr(slide, f.name) is not None}
 
 
@@ -93,13 +93,13 @@ def place_groups(groups: dict[int, SlideArrays], mesh: Mesh, axis: str = "batch"
     missing = sorted(set(local) - set(groups))
     if missing:
         raise ValueError(f"no slides given for mesh devices {missing} of this process")
-    host = {d: _leaves(groups[d]) for d in local}
+    host = {d: host_leaves(groups[d]) for d in local}
     shapes = _global_shapes([host[d] for d in local])
     sharding = NamedSharding(mesh, P(axis))
     out = {}
     for name, shape in shapes.items():
         dtype = np.result_type(*[host[d][name].dtype for d in local])
-        shards = [jax.device_put(_pad(host[d][name].astype(dtype), shape, name)[None], devices[d]) for d in local]
+        shards = [jax.device_put(pad_leaf(host[d][name].astype(dtype), shape, name)[None], devices[d]) for d in local]
         out[name] = jax.make_array_from_single_device_arrays((len(devices), *shape), sharding, shards)
     return SlideArrays(**{f.name: out.get(f.name) for f in dataclasses.fields(SlideArrays)})
 

@@ -104,23 +104,13 @@ json.dump(saved, open(out, "w"))
 
 
 @pytest.fixture(scope="module")
-def slides(tmp_path_factory):
-    from data_tools.synth import make_dataset
-
-    root = tmp_path_factory.mktemp("shard-ds")
-    ds = make_dataset(root, n_slides=8, size=(320, 256), seed=0, tile_size=32, level_sets=(3,), progress=False,
-                      previews=False)
-    return [str(root / s["bundle"]) for s in ds["slides"]]
-
-
-@pytest.fixture(scope="module")
-def runs(slides, tmp_path_factory):
+def runs(small_slides, tmp_path_factory):
     out = tmp_path_factory.mktemp("shard-run") / "saved.json"
     env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
            "XLA_FLAGS": " ".join([os.environ.get("XLA_FLAGS", ""), "--xla_force_host_platform_device_count=4",
                                   "--xla_backend_optimization_level=0"]).strip(),
            "JAX_PLATFORMS": "cpu"}
-    proc = subprocess.run([sys.executable, "-c", CHILD, json.dumps(slides), str(out)], env=env, cwd=ROOT,
+    proc = subprocess.run([sys.executable, "-c", CHILD, json.dumps(small_slides), str(out)], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
     return json.loads(out.read_text())

@@ -334,7 +334,9 @@ def replicate_on(mesh: Mesh, tree):
     def put(x):
         if isinstance(x, jax.Array) and x.sharding.device_set == devices and not x.sharding.is_fully_replicated:
             return x
-        return jax.device_put(x, replicated)
+        # a Python scalar as a weakly typed jax array first: with several processes device_put compares
+        # the value across processes, and a Python float (float64) never equals its float32 copy
+        return jax.device_put(jnp.asarray(x) if isinstance(x, (bool, int, float)) else x, replicated)
     return jax.tree.map(put, tree)
 
 

@@ -43,7 +43,7 @@ import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
-from baselines import common
+from baselines import common, distributed
 from baselines.networks import (ActorCritic, policy_entropy, policy_log_prob, policy_sample,
                                 preprocess_obs)
 from histojax.wrappers import LogWrapper
@@ -231,6 +231,7 @@ def parse_args(argv=None, defaults=DEFAULTS, description=__doc__):
     p.add_argument("--shard-slides", action="store_true",
                    help="with --devices N: split the dataset's slides over the devices (each device holds and "
                         "draws only its own slides; docs/scaling.md)")
+    distributed.add_arguments(p)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other config entry, value parsed as JSON (e.g. --set ent_coef=0.02)")
     p.add_argument("--out", default=None, help="run folder (default runs/<algo>-<env>)")
@@ -304,6 +305,9 @@ def train_and_save(algo: str, make_train_fn, argv, defaults: dict, description: 
     in one program, then write logs, curve and checkpoint with :func:`finish_run`."""
     args = parse_args(argv, defaults=defaults, description=description)
     config = config_from_args(args, defaults=defaults)
+    if (args.coordinator is not None or args.distributed) and "devices" not in defaults:
+        raise SystemExit("several processes (--coordinator / --distributed) are supported by the PPO baseline only")
+    distributed.from_args(args)
     run_and_save(algo, make_train_fn, config, Path(args.out or f"runs/{algo}-{config['env_id']}"), unit)
     return 0
 
@@ -314,6 +318,12 @@ def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = 
     with the trainer's full config."""
     train = make_train_fn(config)
     config = train.config
+    if config.get("shard_slides"):
+        from histojax.sharding import local_slides
+
+        n, nbytes = local_slides(train.env_params.slide)
+        print(f"process {jax.process_index()} of {jax.process_count()}: {n} slide(s), {nbytes:,} bytes of slide arrays "
+              f"on its {len(jax.local_devices())} device(s)", flush=True)
     keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
     print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps x "
           f"{config['num_seeds']} seeds; compiling ...", flush=True)
@@ -323,6 +333,10 @@ def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = 
     t0 = time.perf_counter()
     result = jax.block_until_ready(compiled(keys))
     train_s = time.perf_counter() - t0
+    if jax.process_index() > 0:  # several processes: process 0 writes the run, the others their parameters
+        common.save_checkpoint(out / f"process-{jax.process_index()}", result["params"], config)
+        print(f"process {jax.process_index()}: {train_s:.1f} s; wrote {out}/process-{jax.process_index()}/params.msgpack")
+        return config, result["params"], None
     summary = finish_run(algo, config, out, result["params"], result["metrics"], train.steps_per_update, train_s,
                          compile_s, env_and_params=(train.env, train.env_params))
     return config, result["params"], summary

@@ -185,6 +185,13 @@ def make_sharded(env_id: str, mesh: Mesh, axis: str = "batch", slide=None, slide
     return dataclasses.replace(env, _default_params=params, _bundle=None, _bundles=()), params
 
 
+def local_slides(slide: SlideArrays) -> tuple[int, int]:
+    """``(slides, bytes)`` of a sharded dataset held by this process's devices (padding slides,
+    which are never drawn, not counted among the slides; padding bytes are)."""
+    n = sum(int(np.isfinite(np.asarray(s.data)).sum()) for s in slide.slide_logits.addressable_shards)
+    return n, sum(device_bytes(slide).values())
+
+
 def device_bytes(tree) -> dict:
     """Bytes of the jax arrays of ``tree`` per device, from their addressable shards:
     ``{device: bytes}``."""

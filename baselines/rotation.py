@@ -37,6 +37,7 @@ import time
 from pathlib import Path
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 
 from baselines import common, ppo
@@ -190,11 +191,13 @@ def train_rotating(config: dict, budget_bytes: int, resident: int | None = None,
     states = init_states(keys, base.replace(slide=current))
     jax.block_until_ready(states)
     state_bytes = tree_bytes(states) + tree_bytes(keys)
+    compiled = phase.lower(states, keys, base.replace(slide=current), jnp.int32(0)).compile()
+    compile_seconds = time.perf_counter() - t0
     resident_peak, live_peak, metrics = tree_bytes(current), 0, []
-    train.progress.t0 = time.perf_counter()
+    t0 = train.progress.t0 = time.perf_counter()
     with concurrent.futures.ThreadPoolExecutor(max_workers=1) as pool:
         for r in range(phases):
-            states, keys, m = phase(states, keys, base.replace(slide=current), r * rotate_every)  # async
+            states, keys, m = compiled(states, keys, base.replace(slide=current), jnp.int32(r * rotate_every))  # async
             nxt = pool.submit(build_set, store, sets[(r + 1) % len(sets)], cap, device) if r + 1 < phases else None
             metrics.append(m)
             jax.block_until_ready((states, m))  # phase r done before set r + 2 may be built
@@ -213,6 +216,7 @@ def train_rotating(config: dict, budget_bytes: int, resident: int | None = None,
                 "live_peak_bytes": int(live_peak), "baseline_bytes": int(baseline),
                 "train_state_bytes": int(state_bytes), "source": source,
                 "device_peak_bytes_in_use": stats.get("peak_bytes_in_use"), "train_seconds": train_seconds,
+                "compile_seconds": compile_seconds,
                 "env_steps_per_second": phases * rotate_every * batch * num_seeds / train_seconds}
     return {"params": states.params, "metrics": metrics, "rotation": rotation, "env": train.env,
             "env_params": base.replace(slide=current), "config": config, "steps_per_update": batch}
@@ -232,9 +236,10 @@ def main(argv=None) -> int:
     rot = result["rotation"]
     print(f"resident sets: K={rot['resident_slides']} of {rot['num_slides']} slides, {rot['phases']} phases of {rot['rotate_every']} updates; dataset {rot['dataset_bytes']:,} bytes, "
           f"budget {rot['budget_bytes']:,}, bound {rot['bound_bytes']:,}, resident peak {rot['resident_peak_bytes']:,}, "
-          f"all live arrays at peak {rot['live_peak_bytes']:,} (before the first set {rot['baseline_bytes']:,})")
+          f"all live arrays at peak {rot['live_peak_bytes']:,} (before the first set {rot['baseline_bytes']:,}, "
+          f"train state {rot['train_state_bytes']:,})")
     ppo.finish_run("ppo", result["config"], out, result["params"], result["metrics"], result["steps_per_update"],
-                   rot["train_seconds"], 0.0, env_and_params=(result["env"], result["env_params"]))
+                   rot["train_seconds"], rot["compile_seconds"], env_and_params=(result["env"], result["env_params"]))
     return 0
 
 

@@ -9,7 +9,12 @@ After it, ``jax.devices()`` lists every process's devices and a ``Mesh`` over th
 """
 from __future__ import annotations
 
+import os
+from pathlib import Path
+
 import jax
+
+ROOT = Path(__file__).resolve().parents[1]
 
 
 def initialize(coordinator: str | None = None, num_processes: int | None = None, process_id: int | None = None,
@@ -43,3 +48,14 @@ def from_args(args) -> bool:
         return False
     initialize(args.coordinator, args.num_processes, args.process_id)
     return True
+
+
+def cpu_child_env(devices: int, fast_compile: bool = False) -> dict:
+    """Environment for a child Python process on CPU with ``devices`` fake CPU devices
+    (``--xla_force_host_platform_device_count``; ``fast_compile`` adds
+    ``--xla_backend_optimization_level=0``) and this repository importable."""
+    flags = [os.environ.get("XLA_FLAGS", ""), f"--xla_force_host_platform_device_count={devices}"]
+    if fast_compile:
+        flags.append("--xla_backend_optimization_level=0")
+    return {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": " ".join(flags).strip(),
+            "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}

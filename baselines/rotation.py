@@ -210,8 +210,8 @@ def train_rotating(config: dict, budget_bytes: int, resident: int | None = None,
     train_seconds = time.perf_counter() - t0
     stats = device.memory_stats() or {}
     metrics = jax.tree.map(lambda *a: np.concatenate([np.asarray(x) for x in a], axis=1), *metrics)
-    rotation = {"budget_bytes": int(budget_bytes), "num_slides": len(paths), "resident_slides": k, "sets": sets, "rotate_every": rotate_every,
-                "phases": phases, "set_bytes": int(set_bytes), "bound_bytes": int(2 * set_bytes),
+    rotation = {"budget_bytes": int(budget_bytes), "num_slides": len(paths), "resident_slides": k, "sets": sets,
+                "rotate_every": rotate_every, "phases": phases, "set_bytes": int(set_bytes), "bound_bytes": int(2 * set_bytes),
                 "dataset_bytes": int(store.nbytes()), "resident_peak_bytes": int(resident_peak),
                 "live_peak_bytes": int(live_peak), "baseline_bytes": int(baseline),
                 "train_state_bytes": int(state_bytes), "source": source,
@@ -234,8 +234,8 @@ def main(argv=None) -> int:
     out = Path(args.out or f"runs/rotation-{config['env_id']}")
     result = train_rotating(config, int(own.budget_mb * 2**20), own.resident, own.rotate_every, own.source)
     rot = result["rotation"]
-    print(f"resident sets: K={rot['resident_slides']} of {rot['num_slides']} slides, {rot['phases']} phases of {rot['rotate_every']} updates; dataset {rot['dataset_bytes']:,} bytes, "
-          f"budget {rot['budget_bytes']:,}, bound {rot['bound_bytes']:,}, resident peak {rot['resident_peak_bytes']:,}, "
+    print(f"resident sets: K={rot['resident_slides']} of {rot['num_slides']} slides, {rot['phases']} phases of "
+          f"{rot['rotate_every']} updates; dataset {rot['dataset_bytes']:,} bytes, budget {rot['budget_bytes']:,}, bound {rot['bound_bytes']:,}, resident peak {rot['resident_peak_bytes']:,}, "
           f"all live arrays at peak {rot['live_peak_bytes']:,} (before the first set {rot['baseline_bytes']:,}, "
           f"train state {rot['train_state_bytes']:,})")
     ppo.finish_run("ppo", result["config"], out, result["params"], result["metrics"], result["steps_per_update"],

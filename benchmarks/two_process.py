@@ -16,7 +16,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import socket
 import subprocess
 import sys
@@ -25,6 +24,8 @@ import time
 from pathlib import Path
 
 import numpy as np
+
+from baselines.distributed import cpu_child_env
 
 ROOT = Path(__file__).resolve().parents[1]
 PPO_ARGS = ["--env", "HistoJAX-Easy-v0", "--seeds", "1", "--num-envs", "8", "--set", "num_steps=16",
@@ -36,15 +37,6 @@ def free_port() -> int:
     with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as s:
         s.bind(("127.0.0.1", 0))
         return int(s.getsockname()[1])
-
-
-def child_env(devices: int, fast_compile: bool) -> dict:
-    """Environment of a child: CPU only, ``devices`` fake CPU devices, the repository importable."""
-    flags = [os.environ.get("XLA_FLAGS", ""), f"--xla_force_host_platform_device_count={devices}"]
-    if fast_compile:
-        flags.append("--xla_backend_optimization_level=0")
-    return {**os.environ, "JAX_PLATFORMS": "cpu", "XLA_FLAGS": " ".join(flags).strip(),
-            "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")])}
 
 
 def run_all(commands: list[list[str]], envs: list[dict], logs: list[Path], timeout: float) -> list[int]:
@@ -117,7 +109,7 @@ def main(argv=None) -> int:
     logs = [out / f"process-{i}.log" for i in range(n)]
     print(f"{n} processes x {local} CPU device(s), coordinator 127.0.0.1:{port}, logs in {out}", flush=True)
     t0 = time.perf_counter()
-    codes = run_all(commands, [child_env(local, args.fast_compile)] * n, logs, args.timeout)
+    codes = run_all(commands, [cpu_child_env(local, args.fast_compile)] * n, logs, args.timeout)
     wall = time.perf_counter() - t0
     if any(c != 0 for c in codes):
         for log, c in zip(logs, codes):
@@ -140,7 +132,7 @@ def main(argv=None) -> int:
     if args.compare_single:
         log = out / "single.log"
         t0 = time.perf_counter()
-        codes = run_all([base + ["--out", str(out / "single")]], [child_env(devices, args.fast_compile)], [log],
+        codes = run_all([base + ["--out", str(out / "single")]], [cpu_child_env(devices, args.fast_compile)], [log],
                         args.timeout)
         if codes != [0]:
             print(f"--- single process (exit {codes[0]}):\n{tail(log)}\nFAILED")

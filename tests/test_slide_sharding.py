@@ -17,7 +17,6 @@ small semi-synthetic slides built here, and save what the tests assert:
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -26,6 +25,7 @@ import numpy as np
 import pytest
 
 from baselines import ppo
+from baselines.distributed import cpu_child_env
 from histojax import sharding
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -106,10 +106,7 @@ json.dump(saved, open(out, "w"))
 @pytest.fixture(scope="module")
 def runs(small_slides, tmp_path_factory):
     out = tmp_path_factory.mktemp("shard-run") / "saved.json"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
-           "XLA_FLAGS": " ".join([os.environ.get("XLA_FLAGS", ""), "--xla_force_host_platform_device_count=4",
-                                  "--xla_backend_optimization_level=0"]).strip(),
-           "JAX_PLATFORMS": "cpu"}
+    env = cpu_child_env(4, fast_compile=True)
     proc = subprocess.run([sys.executable, "-c", CHILD, json.dumps(small_slides), str(out)], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=600)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]

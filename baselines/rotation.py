@@ -170,7 +170,8 @@ def train_rotating(config: dict, budget_bytes: int, resident: int | None = None,
     phases = math.ceil(num_updates / rotate_every)
     env_kwargs = {a: b for a, b in (config.get("env_kwargs") or {}).items() if a not in ("slides", "dataset", "split")}
     config = {**config, "total_timesteps": phases * rotate_every * batch, "slide": paths[0], "env_kwargs": env_kwargs}
-    train = ppo.make_train(config)  # the env and the jittable pieces (its own env params: one slide)
+    with on_host():  # the env and the jittable pieces; their own env params (one slide) stay off the accelerator
+        train = ppo.make_train(config)
     device = jax.devices()[0]
     base = train.env_params
     num_seeds = config["num_seeds"]
@@ -185,7 +186,9 @@ def train_rotating(config: dict, budget_bytes: int, resident: int | None = None,
     def phase(states, keys, env_params, first_update):
         return jax.vmap(lambda s, kk: train.run_updates(s, kk, env_params, first_update, rotate_every))(states, keys)
 
-    baseline = live_device_bytes(device)  # before any set: the trainer's own arrays (one slide in make_train)
+    # before any set: the trainer's own arrays (on a CPU-only machine also make_train's one slide, which
+    # on an accelerator stays on the host)
+    baseline = live_device_bytes(device)
     t0 = time.perf_counter()
     current = build_set(store, sets[0], cap, device)
     states = init_states(keys, base.replace(slide=current))

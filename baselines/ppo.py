@@ -319,11 +319,12 @@ def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = 
     train = make_train_fn(config)
     config = train.config
     if config.get("shard_slides"):
-        from histojax.sharding import local_slides
+        from histojax.sharding import device_bytes, local_slides
 
         n, nbytes = local_slides(train.env_params.slide)
+        per = device_bytes(train.env_params.slide)
         print(f"process {jax.process_index()} of {jax.process_count()}: {n} slide(s), {nbytes:,} bytes of slide arrays "
-              f"on its {len(jax.local_devices())} device(s)", flush=True)
+              f"on its {len(per)} device(s), {max(per.values()):,} on each", flush=True)
     keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
     print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps x "
           f"{config['num_seeds']} seeds; compiling ...", flush=True)

@@ -226,13 +226,22 @@ def train_rotating(config: dict, budget_bytes: int, resident: int | None = None,
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(add_help=False)
+    """The CLI: the rotation flags below, then every flag of ``python -m baselines.ppo``."""
+    p = argparse.ArgumentParser(prog="python -m baselines.rotation", add_help=False,
+                                usage="%(prog)s --budget-mb MB [rotation flags] [PPO flags]")
     p.add_argument("--resident", type=int, default=None, help="slides on the device per set (default: most that fit)")
     p.add_argument("--rotate-every", type=int, default=4, help="PPO updates per resident set")
-    p.add_argument("--budget-mb", type=float, required=True, help="device bytes for the two resident sets, MiB")
+    p.add_argument("--budget-mb", type=float, default=None, help="device MiB for the two resident sets (required)")
     p.add_argument("--source", default="memory", choices=("memory", "disk"), help="host RAM or read bundles per set")
     own, rest = p.parse_known_args(argv)
+    if "-h" in rest or "--help" in rest:
+        p.print_help()
+        print("\nPPO flags:")
+    elif own.budget_mb is None:
+        p.error("--budget-mb is required")
     args = ppo.parse_args(rest, description=__doc__)
+    if args.coordinator is not None or args.distributed:
+        raise SystemExit("baselines.rotation runs in one process (no --coordinator / --distributed)")
     config = ppo.config_from_args(args)
     out = Path(args.out or f"runs/rotation-{config['env_id']}")
     result = train_rotating(config, int(own.budget_mb * 2**20), own.resident, own.rotate_every, own.source)

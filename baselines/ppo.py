@@ -20,7 +20,9 @@ rollout are sharded along the envs, each minibatch along its samples; parameters
 state and slide arrays are replicated, and XLA's SPMD partitioner adds the gradient all-reduce.
 The same code runs on one CPU (``XLA_FLAGS=--xla_force_host_platform_device_count=N``), several
 GPUs, or several hosts after ``jax.distributed.initialize()``. ``devices=None`` (default) adds
-nothing to the program.
+nothing to the program. ``--shard-slides`` (config ``shard_slides``) also splits the dataset's
+slides over the devices (:mod:`histojax.sharding`): each device holds and draws only its own
+slides, so slide memory per device falls as 1 / N (docs/scaling.md).
 
 Observations are pooled to 32 px before they are stored (see :func:`networks.preprocess_obs`),
 so a rollout of 64 envs × 64 steps needs ~13 MB, not ~200 MB. Time limits are treated as episode
@@ -41,7 +43,7 @@ import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
-from baselines import common
+from baselines import common, distributed
 from baselines.networks import (ActorCritic, policy_entropy, policy_log_prob, policy_sample,
                                 preprocess_obs)
 from histojax.wrappers import LogWrapper
@@ -52,7 +54,7 @@ DEFAULTS = dict(
     num_envs=64, num_steps=64, total_timesteps=500_000, update_epochs=2, num_minibatches=8,
     lr=3e-4, anneal_lr=True, gamma=0.99, gae_lambda=0.95, clip_eps=0.2, ent_coef=0.01, vf_coef=0.5,
     max_grad_norm=0.5, hidden=256, num_seeds=1, vmap_seeds=True, log_every=4, print_progress=True,
-    devices=None,
+    devices=None, shard_slides=False,
 )
 
 
@@ -89,19 +91,27 @@ def make_train(config: dict):
     or ``lax.map`` with ``vmap_seeds=False``) and
     returning ``{"params": seeds-stacked params, "metrics": {name: (seeds, updates)}}``.
     The env's params (slide arrays) are an argument of the jitted function, not a constant;
-    ``train.env``, ``train.env_params``, ``train.network`` and ``train.num_updates`` are attached.
+    ``train.env``, ``train.env_params``, ``train.network`` and ``train.num_updates`` are attached,
+    and the pieces of ``train`` for trainers that run it in phases (:mod:`baselines.rotation`):
+    ``train.init_params(key, env_params)``, ``train.init_state(params)`` and
+    ``train.run_updates(state, key, env_params, first_update, n_updates)`` (unjitted, one seed).
     ``config["devices"] = N`` shards the env batch over ``N`` devices (``train.mesh``)."""
     config = {**DEFAULTS, **config}
-    env, env_params = common.make_env(config)
+    num_envs, num_steps = config["num_envs"], config["num_steps"]
+    mesh = common.batch_mesh(config["devices"], num_envs)
+    sharded = bool(config["shard_slides"])
+    if sharded and mesh is None:
+        raise ValueError("shard_slides=True splits the slides over the devices: give devices=N too")
+    env, env_params = common.make_env(config, mesh=mesh)
     env = LogWrapper(env)
+    reset_all = common.env_vmap(env.reset, 1, mesh, sharded)
+    step_all = common.env_vmap(env.step, 3, mesh, sharded)
     network = make_network(config, env)
     mode = config["action_mode"]
-    num_envs, num_steps = config["num_envs"], config["num_steps"]
     num_updates = max(1, config["total_timesteps"] // (num_envs * num_steps))
     batch = num_envs * num_steps
     minibatch = batch // config["num_minibatches"]
     assert minibatch * config["num_minibatches"] == batch, "num_envs * num_steps must divide by num_minibatches"
-    mesh = common.batch_mesh(config["devices"], num_envs)
     if mesh is not None and minibatch % mesh.size:
         raise ValueError(f"the minibatch ({minibatch} = num_envs * num_steps / num_minibatches) must divide "
                          f"by devices={mesh.size}")
@@ -113,14 +123,20 @@ def make_train(config: dict):
         frac = 1.0 - (count // (config["num_minibatches"] * config["update_epochs"])) / num_updates
         return config["lr"] * frac
 
-    init_params = common.params_initialiser(env, network, num_envs)
+    init_params = common.params_initialiser(env, network, num_envs, reset_all)
 
-    def train(key, env_params, params):
-        key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs)
+    tx = optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
+                     optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
+
+    def init_state(params) -> TrainState:
+        """Network parameters → the train state (optimizer state fresh, step 0)."""
+        return TrainState.create(apply_fn=network.apply, params=params, tx=tx)
+
+    def run_updates(state, key, env_params, first_update, n_updates: int):
+        """``n_updates`` PPO updates from freshly reset envs: ``(state, key, metrics)``;
+        ``first_update`` (the index of the first, for progress) may be traced."""
+        key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs, reset_all)
         obs0, env_state = shard((obs0, env_state))
-        tx = optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
-                         optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
-        state = TrainState.create(apply_fn=network.apply, params=params, tx=tx)
 
         def env_step(carry, _):
             state, env_state, obs, key = carry
@@ -128,7 +144,7 @@ def make_train(config: dict):
             pi, value = network.apply(state.params, obs)
             action = policy_sample(k_act, pi, mode)
             log_prob = policy_log_prob(pi, action, mode)
-            next_obs, env_state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            next_obs, env_state, reward, term, trunc, info = step_all(
                 jax.random.split(k_step, num_envs), env_state, action, env_params)
             keep = {k: info[k] for k in ("returned_episode", "returned_episode_returns",
                                          "returned_episode_lengths", "returned_episode_success")}
@@ -182,10 +198,15 @@ def make_train(config: dict):
             return (state, env_state, obs, key), metrics
 
         carry = (state, env_state, obs0, key)
-        (state, *_), metrics = jax.lax.scan(update, carry, jnp.arange(num_updates))
+        (state, _, _, key), metrics = jax.lax.scan(update, carry, first_update + jnp.arange(n_updates))
+        return state, key, metrics
+
+    def train(key, env_params, params):
+        state, _, metrics = run_updates(init_state(params), key, env_params, 0, num_updates)
         return {"params": state.params, "metrics": metrics}
 
     run = common.seeds_runner(train, init_params, env_params, config, progress, mesh)
+    run.init_params, run.init_state, run.run_updates, run.progress = init_params, init_state, run_updates, progress
     run.env, run.env_params, run.network, run.num_updates, run.config = env, env_params, network, num_updates, config
     run.steps_per_update = batch
     return run
@@ -207,6 +228,10 @@ def parse_args(argv=None, defaults=DEFAULTS, description=__doc__):
     p.add_argument("--devices", type=int, default=None,
                    help="shard the env batch over the first N devices (PPO; on CPU set "
                         "XLA_FLAGS=--xla_force_host_platform_device_count=N)")
+    p.add_argument("--shard-slides", action="store_true",
+                   help="with --devices N: split the dataset's slides over the devices (each device holds and "
+                        "draws only its own slides; docs/scaling.md)")
+    distributed.add_arguments(p)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other config entry, value parsed as JSON (e.g. --set ent_coef=0.02)")
     p.add_argument("--out", default=None, help="run folder (default runs/<algo>-<env>)")
@@ -222,6 +247,10 @@ def config_from_args(args, defaults=DEFAULTS) -> dict:
         if "devices" not in defaults:
             raise SystemExit("--devices is supported by the PPO baseline only")
         config["devices"] = args.devices
+    if getattr(args, "shard_slides", False):
+        if "shard_slides" not in defaults:
+            raise SystemExit("--shard-slides is supported by the PPO baseline only")
+        config["shard_slides"] = True
     for item in args.set:
         k, _, v = item.partition("=")
         if k not in defaults:
@@ -234,8 +263,9 @@ def config_from_args(args, defaults=DEFAULTS) -> dict:
 
 
 def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_per_update: int,
-               train_seconds: float, compile_seconds: float) -> dict:
-    """Logs, curve, checkpoint and a printed summary (shared by PPO and DQN)."""
+               train_seconds: float, compile_seconds: float, env_and_params=None) -> dict:
+    """Logs, curve, checkpoint and a printed summary (shared by PPO and DQN). ``env_and_params``:
+    the trainer's, for the random-agent reference of slides sharded over devices."""
     metrics = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
     n_updates = metrics["success"].shape[1]
     steps = (np.arange(n_updates) + 1) * steps_per_update
@@ -245,7 +275,7 @@ def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_
         final = {name: float(np.nanmean(metrics[name][:, tail])) for name in ("return", "success", "length",
                                                                               "steps_to_success")}
         final_per_seed = {name: np.nanmean(metrics[name][:, tail], axis=1).tolist() for name in ("return", "success")}
-    ref = common.random_agent_reference(config)
+    ref = common.random_agent_reference(config, env_and_params=env_and_params)
     summary = {"algo": algo, "env_id": config["env_id"], "env_steps_per_seed": int(steps[-1]),
                "seeds": int(metrics["success"].shape[0]), "train_seconds": train_seconds,
                "compile_seconds": compile_seconds,
@@ -275,6 +305,9 @@ def train_and_save(algo: str, make_train_fn, argv, defaults: dict, description: 
     in one program, then write logs, curve and checkpoint with :func:`finish_run`."""
     args = parse_args(argv, defaults=defaults, description=description)
     config = config_from_args(args, defaults=defaults)
+    if (args.coordinator is not None or args.distributed) and "devices" not in defaults:
+        raise SystemExit("several processes (--coordinator / --distributed) are supported by the PPO baseline only")
+    distributed.from_args(args)
     run_and_save(algo, make_train_fn, config, Path(args.out or f"runs/{algo}-{config['env_id']}"), unit)
     return 0
 
@@ -285,6 +318,13 @@ def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = 
     with the trainer's full config."""
     train = make_train_fn(config)
     config = train.config
+    if config.get("shard_slides"):
+        from histojax.sharding import device_bytes, local_slides
+
+        n, nbytes = local_slides(train.env_params.slide)
+        per = device_bytes(train.env_params.slide)
+        print(f"process {jax.process_index()} of {jax.process_count()}: {n} slide(s), {nbytes:,} bytes of slide arrays "
+              f"on its {len(per)} device(s), {max(per.values()):,} on each", flush=True)
     keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
     print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps x "
           f"{config['num_seeds']} seeds; compiling ...", flush=True)
@@ -294,8 +334,12 @@ def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = 
     t0 = time.perf_counter()
     result = jax.block_until_ready(compiled(keys))
     train_s = time.perf_counter() - t0
+    if jax.process_index() > 0:  # several processes: process 0 writes the run, the others their parameters
+        common.save_checkpoint(out / f"process-{jax.process_index()}", result["params"], config)
+        print(f"process {jax.process_index()}: {train_s:.1f} s; wrote {out}/process-{jax.process_index()}/params.msgpack")
+        return config, result["params"], None
     summary = finish_run(algo, config, out, result["params"], result["metrics"], train.steps_per_update, train_s,
-                         compile_s)
+                         compile_s, env_and_params=(train.env, train.env_params))
     return config, result["params"], summary
 
 

@@ -86,24 +86,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     if unknown:
         raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
                         f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
-    if dataset is not None:
-        slides = dataset_slides(dataset, split)
-    if slides is not None and slide is not None:
-        raise ValueError("give either slide= or slides=/dataset=, not both")
-    if slides is None:
-        if slide is None and env_id in _SLIDES:
-            recipe = _SLIDES[env_id]
-            slide = recipe({**spec, "split": split}) if callable(recipe) else recipe
-        if isinstance(slide, (list, tuple)):  # a registered dataset (e.g. a multi-slide scenario)
-            slides, slide = list(slide), None
-    if slides is None:
-        if slide is None:
-            from histojax.sample import sample_bundle
-
-            slide = sample_bundle(tile_size=spec.get("tile_size", 128))
-        slides = [slide]
-    if not slides:
-        raise ValueError("slides= is empty")
+    slides = _resolve_slides(env_id, spec, slide, slides, dataset, split)
     features = True if spec.get("obs_mode") == "features" else None
     loaded, budget = [], max_device_bytes
     for path in slides:
@@ -129,6 +112,37 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     bundles = tuple(b for _, b in loaded)
     env = HistoEnv(name=env_id, _default_params=params, _bundle=bundles[0], _bundles=bundles, **static)
     return env, params
+
+
+def slide_paths(env_id: str, slide=None, slides=None, dataset=None, split: str = "train", **overrides) -> list:
+    """The bundle paths ``make`` would load for these arguments (one for a single slide)."""
+    if env_id not in _REGISTRY:
+        raise ValueError(f"unknown environment id {env_id!r}; registered: {', '.join(_REGISTRY)}")
+    return _resolve_slides(env_id, {**_REGISTRY[env_id], **overrides}, slide, slides, dataset, split)
+
+
+def _resolve_slides(env_id: str, spec: dict, slide, slides, dataset, split: str) -> list:
+    """``slides`` / ``dataset`` / ``slide`` / the id's registered slide or dataset / the sample slide,
+    as a non-empty list of bundle paths."""
+    if dataset is not None:
+        slides = dataset_slides(dataset, split)
+    if slides is not None and slide is not None:
+        raise ValueError("give either slide= or slides=/dataset=, not both")
+    if slides is None:
+        if slide is None and env_id in _SLIDES:
+            recipe = _SLIDES[env_id]
+            slide = recipe({**spec, "split": split}) if callable(recipe) else recipe
+        if isinstance(slide, (list, tuple)):  # a registered dataset (e.g. a multi-slide scenario)
+            slides, slide = list(slide), None
+    if slides is None:
+        if slide is None:
+            from histojax.sample import sample_bundle
+
+            slide = sample_bundle(tile_size=spec.get("tile_size", 128))
+        slides = [slide]
+    if not slides:
+        raise ValueError("slides= is empty")
+    return list(slides)
 
 
 def dataset_slides(folder, split: str = "train") -> list[Path]:

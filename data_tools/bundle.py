@@ -289,6 +289,9 @@ def build_bundle(
         raise BundleError(out_dir, f"region margin {region_margin} must be a finite number of level-0 px")
     if band_bytes is not None and not band_bytes > 0:
         raise BundleError(out_dir, f"band bytes {band_bytes} must be a positive number")
+    for parent in out_dir.parents:
+        if parent.exists() and not parent.is_dir():
+            raise BundleError(out_dir, f"cannot create the bundle here: {parent} is a file, not a folder")
     try:
         out_dir.parent.mkdir(parents=True, exist_ok=True)
         lock = build_lock(out_dir)

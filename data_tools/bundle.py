@@ -598,9 +598,10 @@ def _load_tiled(path: Path, lv: dict, metadata: dict, verify: bool, kind: str):
     return TiledLevel(pool=pool, index=index, height=int(lv["height"]), width=int(lv["width"]), kind=kind)
 
 
-def load_bundle(path, verify: bool = True, levels: list[int] | None = None) -> Bundle:
+def load_bundle(path, verify: bool = True, levels: list[int] | None = None, mmap: bool = False) -> Bundle:
     """Load the bundle at ``path`` (host numpy arrays); ``levels`` selects bundle level indices
-    (finest first, as in the metadata; default all). Checksums are verified unless ``verify=False``."""
+    (finest first, as in the metadata; default all). Checksums are verified unless ``verify=False``.
+    ``mmap=True`` memory-maps the dense level arrays (read-only) instead of reading them into memory."""
     path = Path(path)
     metadata = read_metadata(path)
     chosen = range(len(metadata["levels"])) if levels is None else levels
@@ -611,8 +612,8 @@ def load_bundle(path, verify: bool = True, levels: list[int] | None = None) -> B
             pixels.append(_load_tiled(path, lv, metadata, verify, "pixels"))
             tumour.append(_load_tiled(path, lv, metadata, verify, "tumour"))
             continue
-        pixels.append(_load_array(path, lv["pixels"], metadata, verify))
-        tumour.append(_load_array(path, lv["tumour"], metadata, verify))
+        pixels.append(_load_array(path, lv["pixels"], metadata, verify, mmap=mmap))
+        tumour.append(_load_array(path, lv["tumour"], metadata, verify, mmap=mmap))
         for name, array, shape in ((lv["pixels"], pixels[-1], (lv["height"], lv["width"], 3)),
                                    (lv["tumour"], tumour[-1], (lv["height"], lv["width"]))):
             if array.shape != shape or array.dtype != np.uint8:

@@ -23,7 +23,7 @@ test-all: $(STAMP)
 	$(PY) -m pytest -q -m ''
 
 fuzz: $(STAMP)
-	HISTOJAX_FUZZ_EXAMPLES=3400 $(PY) -m pytest -q -s tests/test_fuzz.py
+	HISTOJAX_FUZZ_EXAMPLES=10000 $(PY) -m pytest -q -s tests/test_fuzz.py
 
 bench: $(STAMP)
 	$(PY) benchmarks/throughput.py

@@ -14,11 +14,12 @@ ids or settings) print one line and exit with status 2; HISTOJAX_DEBUG=1 shows t
 """
 from __future__ import annotations
 
+import argparse
 import importlib
 import os
 import sys
 
-from data_tools.cli_output import one_line_messages, os_error_text, print_error
+from data_tools.cli_output import OneLineParser, one_line_messages, os_error_text, print_error
 from data_tools.errors import HistojaxDataError
 
 COMMANDS = {
@@ -34,7 +35,12 @@ COMMANDS = {
 def _run(module_name: str, argv: list[str], prog: str = "histojax") -> int:
     module = importlib.import_module(module_name)
     sys.argv[0] = prog  # argparse names the program after it: "histojax train", not "cli.py"
-    result = module.main(argv)
+    original_error = argparse.ArgumentParser.error
+    argparse.ArgumentParser.error = OneLineParser.error  # every subcommand's usage errors: one line, exit 2
+    try:
+        result = module.main(argv)
+    finally:
+        argparse.ArgumentParser.error = original_error
     return int(result or 0)
 
 

@@ -41,10 +41,10 @@ import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
-from data_tools.cli_output import positive_float
 from baselines import common
 from baselines.networks import (ActorCritic, policy_entropy, policy_log_prob, policy_sample,
                                 preprocess_obs)
+from data_tools.cli_output import positive_float
 from histojax.wrappers import LogWrapper
 
 DEFAULTS = dict(

@@ -430,9 +430,10 @@ def load_annotations(
         )
 
     exclusion = _union(by_label["exclusion"])
-    tumour = shapely.difference(_union(by_label["tumour"]), exclusion)
+    tumour = _union(by_label["tumour"])
     tissue = _union(by_label["tissue"])
     if slide_size is not None:
+        had_tumour = not shapely.difference(tumour, exclusion).is_empty
         w, h = slide_size
         frame = box(0, 0, w, h)
         outside = sum(not frame.contains(p) for label in LABELS for p in by_label[label])
@@ -440,10 +441,11 @@ def load_annotations(
             warnings.warn(
                 f"{source}: {outside} polygon(s) extend beyond the slide {w}x{h}; clipped to it", stacklevel=2
             )
-        had_tumour = not tumour.is_empty
         tumour, exclusion, tissue = (shapely.intersection(g, frame) for g in (tumour, exclusion, tissue))
-        if had_tumour and _as_multipolygon(tumour).is_empty:
-            raise AnnotationError(path, f"annotation lies outside the slide {w}x{h}")
+    # subtracted after clipping, from the very exclusion returned: tumour and exclusion never overlap
+    tumour = shapely.difference(tumour, exclusion)
+    if slide_size is not None and had_tumour and _as_multipolygon(tumour).is_empty:
+        raise AnnotationError(path, f"annotation lies outside the slide {w}x{h}")
     return Annotations(
         tumour=_as_multipolygon(tumour),
         exclusion=_as_multipolygon(exclusion),

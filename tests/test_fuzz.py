@@ -193,7 +193,8 @@ def _check_geometry(path):
         assert geom.is_valid and np.isfinite(geom.area)
         if not geom.is_empty:
             x0, y0, x1, y1 = geom.bounds
-            assert 0 <= x0 <= x1 <= SIDE and 0 <= y0 <= y1 <= SIDE
+            assert -1e-6 <= x0 <= x1 <= SIDE + 1e-6 and -1e-6 <= y0 <= y1 <= SIDE + 1e-6  # GEOS may keep a
+            # vertex 1e-233 px outside the frame it clips to: no pixel centre can tell
     assert ann.tumour.intersection(ann.exclusion).area <= 1e-6 * max(1.0, ann.exclusion.area)
 
 

@@ -367,3 +367,18 @@ def test_tiled_build_of_a_single_level_tiff_reads_bounded_windows(tmp_path, monk
     got = load_bundle(out)
     for k in range(len(dense.pixels)):
         np.testing.assert_array_equal(np.asarray(got.pixels[k]), dense.pixels[k])
+
+
+def test_budget_checks_what_is_really_allocated(tmp_path):
+    """The metadata estimate leaves out the start weights (4 B per start position of the coarsest level):
+    a budget of exactly the estimate is now refused after loading, naming the bytes really allocated."""
+    from data_tools.bundle import level_device_bytes, read_metadata
+    from histojax.slide import load_slide, select_levels
+
+    out = build_bundle(_slide(tmp_path / "s.tif", 512), tmp_path / "b", tile_size=32, level_sets=(3,), progress=False)
+    meta = read_metadata(out)
+    estimate = sum(level_device_bytes(meta["levels"][k]) for k in select_levels(meta, 3))
+    with pytest.raises(BundleError, match=r"took [\d,]+ bytes on the device"):
+        load_slide(out, 3, max_device_bytes=estimate)
+    arrays, _ = load_slide(out, 3, max_device_bytes=estimate + 2**20)
+    assert arrays.pixels is not None

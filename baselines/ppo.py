@@ -46,6 +46,7 @@ from flax.training.train_state import TrainState
 from baselines import common, distributed
 from baselines.networks import (ActorCritic, policy_entropy, policy_log_prob, policy_sample,
                                 preprocess_obs)
+from data_tools.cli_output import positive_float
 from histojax.wrappers import LogWrapper
 
 DEFAULTS = dict(
@@ -224,7 +225,7 @@ def parse_args(argv=None, defaults=DEFAULTS, description=__doc__):
     p.add_argument("--seed", type=int, default=0, help="first seed")
     p.add_argument("--total-steps", type=int, default=defaults["total_timesteps"], help="env steps per seed")
     p.add_argument("--num-envs", type=int, default=defaults["num_envs"])
-    p.add_argument("--lr", type=float, default=defaults["lr"])
+    p.add_argument("--lr", type=positive_float, default=defaults["lr"], help="learning rate (finite, > 0)")
     p.add_argument("--devices", type=int, default=None,
                    help="shard the env batch over the first N devices (PPO; on CPU set "
                         "XLA_FLAGS=--xla_force_host_platform_device_count=N)")

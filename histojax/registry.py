@@ -19,6 +19,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from data_tools.errors import BundleError
 from histojax.env import EnvParams, HistoEnv
@@ -108,6 +109,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
         arrays = stack_slides([a for a, _ in loaded], weights=slide_weights)
     static = {k: spec[k] for k in STATIC_FIELDS if k in spec}
     static["tile_size"] = tile_size
+    validate_params({k: spec[k] for k in PARAM_FIELDS if k in spec}, tile_size, where=f"make({env_id!r})")
     params = EnvParams(slide=arrays, **{k: spec[k] for k in PARAM_FIELDS if k in spec})
     bundles = tuple(b for _, b in loaded)
     env = HistoEnv(name=env_id, _default_params=params, _bundle=bundles[0], _bundles=bundles, **static)
@@ -143,6 +145,43 @@ def _resolve_slides(env_id: str, spec: dict, slide, slides, dataset, split: str)
     if not slides:
         raise ValueError("slides= is empty")
     return list(slides)
+
+
+MAX_STRIDE_PX = 2**30  # a move of stride × tile_size px plus a position (< 2**30 px) stays inside int32
+
+
+def validate_params(values: dict, tile_size: int, where: str = "make") -> None:
+    """Check ``EnvParams`` values given to ``make`` (Python or array scalars; arrays element-wise):
+    ``stride`` finite with ``1 <= stride × tile_size <= 2**30`` px (moves cannot wrap int32),
+    ``max_steps_in_episode`` an integer in ``[1, 2**31 - 2]``, ``success_threshold`` in ``(0, 1]``,
+    rewards (``step_cost``, ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``diagnosis_reward``)
+    finite, ``random_start`` a bool. Raises ValueError naming the field."""
+    def bad(field, value, rule):
+        raise ValueError(f"{where}: {field}={value!r} {rule}")
+
+    def numbers(field):
+        try:
+            return np.asarray(values[field], dtype=np.float64)
+        except (TypeError, ValueError):
+            bad(field, values[field], "is not a number")
+
+    for field in values:
+        if field == "random_start":
+            v = np.asarray(values[field])
+            if v.dtype != bool and not (np.issubdtype(v.dtype, np.integer) and np.isin(v, (0, 1)).all()):
+                bad(field, values[field], "must be True or False")
+            continue
+        v = numbers(field)
+        if not np.isfinite(v).all():
+            bad(field, values[field], "must be finite")
+        if field == "stride" and not ((v * tile_size >= 1).all() and (v * tile_size <= MAX_STRIDE_PX).all()):
+            bad(field, values[field], f"must be > 0 view widths with 1 <= stride × tile_size ({tile_size}) <= 2**30 px "
+                "(a move of stride × tile_size px must stay inside int32)")
+        if field == "max_steps_in_episode" and not ((v == np.round(v)).all() and (v >= 1).all()
+                                                    and (v <= 2**31 - 2).all()):
+            bad(field, values[field], "must be a whole number of steps in [1, 2**31 - 2]")
+        if field == "success_threshold" and not ((v > 0).all() and (v <= 1).all()):
+            bad(field, values[field], "must be a tumour fraction in (0, 1]")
 
 
 def dataset_slides(folder, split: str = "train") -> list[Path]:

@@ -29,6 +29,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
@@ -262,6 +263,16 @@ def tiled_slide_arrays(bundle: Bundle, tile_size: int) -> SlideArrays:
     )
 
 
+def _release_pages(array) -> None:
+    """Drop the pages a memory-mapped array (``np.load(..., mmap_mode="r")``) has read from this process's
+    resident memory (they stay readable from the file); other arrays are left alone."""
+    import mmap
+
+    m = getattr(array, "_mmap", None)
+    if m is not None and hasattr(m, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
+        m.madvise(mmap.MADV_DONTNEED)
+
+
 def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
     """Pack host arrays of a loaded bundle (levels already chosen, coarsest first) into ``SlideArrays``
     (dense, or tiled for a tiled bundle)."""
@@ -270,19 +281,38 @@ def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
     widths = np.array([p.shape[1] for p in bundle.pixels], dtype=np.int64)
     heights = np.array([p.shape[0] for p in bundle.pixels], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(widths * heights)[:-1]])
-    sats = [summed_area_table(t) for t in bundle.tumour]
-    sat_sizes = np.array([s.size for s in sats], dtype=np.int64)
+    sat_sizes = (widths + 1) * (heights + 1)
     sat_offsets = np.concatenate([[0], np.cumsum(sat_sizes)[:-1]])
     if widths @ heights >= 2**31 or sat_sizes.sum() >= 2**31:
         raise BundleError(bundle.path, "too many pixels for int32 indexing in one slide; use fewer or coarser levels")
     downsample = [lv["downsample"] for lv in bundle.metadata["levels"]]
+    # one host buffer per flat array, filled level by level from the (memory-mapped) bundle arrays, put on
+    # the device and freed before the next: the host peak is one flat array, not several copies of it
+    flat = np.empty((int(widths @ heights), 3), np.uint8)
+    for p, o in zip(bundle.pixels, offsets):
+        flat[o:o + p.shape[0] * p.shape[1]] = np.asarray(p).reshape(-1, 3)
+        _release_pages(p)
+    pixels = jax.device_put(flat, may_alias=False).block_until_ready()  # a copy: the host buffer can go
+    del flat
+    sat = np.empty(int(sat_sizes.sum()), np.uint32)
+    for t, o, w, h in zip(bundle.tumour, sat_offsets, widths, heights):
+        s = sat[o:o + (h + 1) * (w + 1)].reshape(h + 1, w + 1)
+        s[0], s[:, 0] = 0, 0
+        for a in range(0, h, 256):  # row blocks: temporaries of 256 rows, not of the whole level
+            block = s[1 + a:1 + min(h, a + 256), 1:]
+            np.cumsum(np.asarray(t[a:a + 256]), axis=1, dtype=np.uint32, out=block)  # wraps mod 2**32, as documented
+            np.cumsum(block, axis=0, dtype=np.uint32, out=block)
+            block += s[a, 1:]
+        _release_pages(t)
+    tumour_sat = jax.device_put(sat, may_alias=False).block_until_ready()
+    del sat
     return SlideArrays(
-        pixels=jnp.asarray(np.concatenate([p.reshape(-1, 3) for p in bundle.pixels])),
+        pixels=pixels,
         level_offset=jnp.asarray(offsets, dtype=jnp.int32),
         level_width=jnp.asarray(widths, dtype=jnp.int32),
         level_height=jnp.asarray(heights, dtype=jnp.int32),
         downsample=jnp.asarray(downsample, dtype=jnp.float32),
-        tumour_sat=jnp.asarray(np.concatenate([s.ravel() for s in sats]).astype(np.uint32)),  # wraps mod 2**32
+        tumour_sat=tumour_sat,
         sat_offset=jnp.asarray(sat_offsets, dtype=jnp.int32),
         start_logits=jnp.asarray(start_logits(bundle.tissue, tile_size, getattr(bundle, "region", None))),
         slide_label=jnp.asarray(slide_label_from_metadata(bundle.metadata), dtype=jnp.int32),
@@ -329,12 +359,16 @@ def load_slide(path, n_levels: int, verify: bool = True,
     coarsest = len(metadata["levels"]) - 1
     if chosen[0] != coarsest:
         raise BundleError(path, "the scenario's coarsest level is not the bundle's coarsest; rebuild the bundle")
-    bundle = load_bundle(path, verify=verify, levels=chosen)
+    bundle = load_bundle(path, verify=verify, levels=chosen, mmap=True)  # host copies: one flat array at a time
     ordered = Bundle(path=bundle.path, metadata={**metadata, "levels": [metadata["levels"][k] for k in chosen]},
                      pixels=bundle.pixels, tumour=bundle.tumour, tissue=bundle.tissue, region=bundle.region)
     arrays = slide_arrays_from_bundle(ordered, int(metadata["tile_size"]))
     if load_features:
         arrays = with_features(arrays, path, metadata, chosen, verify)
+    allocated = sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
+    if allocated > max_device_bytes:  # what was really put on the device (start weights, labels, ... included)
+        raise BundleError(path, f"{n_levels} levels took {allocated:,} bytes on the device, more than "
+                          f"max_device_bytes={max_device_bytes:,}: use fewer levels or raise max_device_bytes")
     return arrays, ordered
 
 

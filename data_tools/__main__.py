@@ -102,20 +102,20 @@ def _info(path: str) -> str:
     from data_tools.dicom import is_dicom
 
     if Path(path).is_dir() and not is_dicom(path):
-        from data_tools.bundle import level_device_bytes, read_metadata
+        from data_tools.bundle_format import read_metadata
 
         meta = read_metadata(path)
-        lines = [f"bundle {path}: format v{meta['format_version']} ({meta.get('storage', 'dense')}), "
-                 f"source {meta['source']['file']}, "
-                 f"tile {meta['tile_size']} px, magnification range {meta['magnification_range']:g}, "
-                 f"level sets {meta['level_sets']}"]
-        for k, lv in enumerate(meta["levels"]):
-            lines.append(f"  level {k}: {lv['width']}×{lv['height']} px, downsample {lv['downsample']:.4g}, "
+        lines = [f"bundle {path}: format v{meta.format_version} ({meta.storage}), "
+                 f"source {meta.source['file']}, "
+                 f"tile {meta.tile_size} px, magnification range {meta.magnification_range:g}, "
+                 f"level sets {meta.level_sets}"]
+        for k, lv in enumerate(meta.levels):
+            lines.append(f"  level {k}: {lv.width}×{lv.height} px, downsample {lv.downsample:.4g}, "
                          f"tumour {lv['tumour_pixels']} px, "
-                         f"{level_device_bytes(lv) / 2**20:.1f} MiB on the device"
+                         f"{lv.device_bytes / 2**20:.1f} MiB on the device"
                          + (f" ({lv['pool_tiles']:,} pool tiles for a {lv['grid'][0]}×{lv['grid'][1]} grid, "
                             f"{lv['sat_pool_tiles']:,} SAT tiles; dense would be "
-                            f"{lv['dense_device_bytes'] / 2**20:.1f} MiB)" if lv.get("storage") == "tiled" else ""))
+                            f"{lv['dense_device_bytes'] / 2**20:.1f} MiB)" if lv.is_tiled else ""))
         return "\n".join(lines)
     from data_tools.slides import describe, open_slide
 
@@ -153,7 +153,8 @@ def _command(args) -> None:
     if args.command == "info":
         print(_info(args.slide))
     elif args.command == "build":
-        from data_tools.bundle import LEVEL_SETS, build_bundle, read_metadata
+        from data_tools.bundle import LEVEL_SETS, build_bundle
+        from data_tools.bundle_format import read_metadata
 
         label_map = json.loads(args.label_map) if args.label_map else None
         if label_map is not None:
@@ -167,8 +168,8 @@ def _command(args) -> None:
                            share_background=not args.keep_all_tiles,
                            band_bytes=None if args.band_mb is None else int(args.band_mb * 2**20))
         meta = read_metadata(out)
-        print(f"wrote {out}: {len(meta['levels'])} levels"
-              + (f", region {meta['region']['box']} of the slide" if meta.get("region") else ""))
+        print(f"wrote {out}: {len(meta.levels)} levels"
+              + (f", region {meta.region['box']} of the slide" if meta.region else ""))
         print(_info(str(out)))
     elif args.command == "synth":
         from data_tools.synth import make_dataset

@@ -21,117 +21,23 @@ from __future__ import annotations
 import contextlib
 import errno
 import glob
-import hashlib
 import json
 import math
 import os
 import shutil
-import uuid
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
-from PIL import Image
 from tqdm.auto import tqdm
 
 from data_tools.errors import BundleError
-
-FORMAT_VERSION = 1        # dense bundles (pixels_KK.npy / tumour_KK.npy)
-TILED_FORMAT_VERSION = 2  # tiled bundles (tile pools + index grids, see data_tools.tiled)
-READ_VERSIONS = (FORMAT_VERSION, TILED_FORMAT_VERSION)
-STORAGES = ("dense", "tiled", "auto")
-METADATA = "metadata.json"
-LEVEL_SETS = (3, 5, 7)
-MAX_FLAT_PIXELS = 2**31 // 2  # the env indexes pixels with int32
-
-
-def default_magnification_range(width: int, height: int, tile_size: int) -> float:
-    """Largest power of two ``R`` such that the slide's shorter side is still at least one view
-    (``tile_size`` px) at downsample ``R``: at the coarsest level one view shows most of the slide."""
-    shorter = min(width, height)
-    r = 1
-    while shorter / (r * 2) >= tile_size:
-        r *= 2
-    return float(r)
-
-
-def level_downsamples(n_levels: int, magnification_range: float) -> list[float]:
-    """Downsamples (level-0 px per level px) of an ``n_levels`` scenario, coarsest first.
-
-    Level ``z`` (0 = coarsest) has downsample ``R ** ((n - 1 - z) / (n - 1))``: the
-    same range ``R`` for every scenario, split into equal zoom steps in log scale.
-    """
-    if n_levels < 2:
-        raise ValueError(f"a scenario needs at least 2 zoom levels, got {n_levels}")
-    return [float(magnification_range ** ((n_levels - 1 - z) / (n_levels - 1))) for z in range(n_levels)]
-
-
-def bundle_downsamples(level_sets, magnification_range: float) -> list[float]:
-    """The union of the downsamples of all requested level counts, finest first (deduplicated)."""
-    found: list[float] = []
-    for n in level_sets:
-        for d in level_downsamples(n, magnification_range):
-            if not any(math.isclose(d, e, rel_tol=1e-9) for e in found):
-                found.append(d)
-    return sorted(found)
-
-
-def level_size(width0: int, height0: int, downsample: float) -> tuple[int, int]:
-    """(width, height) in px of a level at ``downsample`` of a level-0 ``width0 × height0`` slide."""
-    return max(1, int(width0 // downsample)), max(1, int(height0 // downsample))
-
-
-def device_bytes(width: int, height: int) -> int:
-    """Device bytes the env needs for one ``width × height`` px level: RGB uint8 pixels plus the
-    int32 summed-area table of its tumour mask."""
-    return 3 * width * height + 4 * (width + 1) * (height + 1)
-
-
-def level_device_bytes(level: dict) -> int:
-    """Device bytes of one bundle level from its metadata: dense (:func:`device_bytes`) or tiled (the
-    recorded pool and index bytes, see :mod:`data_tools.tiled`)."""
-    if level.get("storage") == "tiled":
-        return int(level["device_bytes"])
-    return device_bytes(level["width"], level["height"])
-
-
-def _sha256(path: Path) -> str:
-    """Hex SHA-256 of a file's bytes; of a folder (a DICOM WSI), of its files' names and bytes in name order."""
-    h = hashlib.sha256()
-    folder = Path(path).is_dir()
-    for file in sorted(p for p in Path(path).iterdir() if p.is_file()) if folder else [Path(path)]:
-        if folder:
-            h.update(file.name.encode() + b"\0")
-        with open(file, "rb") as f:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
-    return h.hexdigest()
-
-
-def _resample(source: np.ndarray, source_downsample: float, downsample: float, size: tuple[int, int],
-              offset: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
-    """Area-average ``source`` (a level at ``source_downsample``) to a level at ``downsample`` of ``size`` (W, H);
-    ``offset`` is where the output's top-left corner lies in ``source`` (px of the source)."""
-    scale = downsample / source_downsample
-    width, height = size
-    ox, oy = offset
-    if (math.isclose(scale, 1.0) and ox == int(ox) and oy == int(oy)
-            and source.shape[1] >= width + ox and source.shape[0] >= height + oy):
-        return np.ascontiguousarray(source[int(oy):int(oy) + height, int(ox):int(ox) + width])
-    box = (ox, oy, min(ox + width * scale, source.shape[1]), min(oy + height * scale, source.shape[0]))
-    image = Image.fromarray(source).resize((width, height), resample=Image.Resampling.BOX, box=box)
-    return np.asarray(image, dtype=np.uint8)
-
-
-def _pad(array: np.ndarray, min_side: int, fill: int) -> np.ndarray:
-    """Pad at the bottom/right so both sides are at least ``min_side`` (a view must fit)."""
-    h, w = array.shape[:2]
-    ph, pw = max(0, min_side - h), max(0, min_side - w)
-    if ph == 0 and pw == 0:
-        return array
-    pad = ((0, ph), (0, pw)) + ((0, 0),) * (array.ndim - 2)
-    return np.pad(array, pad, constant_values=fill)
+from data_tools.bundle_format import (  # noqa: F401  (re-exported: the format's names, as before)
+    ANNOTATIONS, FORMAT_VERSION, LEVEL_SETS, REGION, TISSUE, MAX_FLAT_PIXELS, METADATA, READ_VERSIONS, STORAGES, TILED_FORMAT_VERSION, Bundle,
+    atomic_folder, bundle_downsamples, default_magnification_range, device_bytes, level_device_bytes,
+    level_downsamples, level_files, level_size, load_bundle, read_metadata, sha256, write_metadata)
+from data_tools.raster import pad, resample
 
 
 @dataclass(frozen=True)
@@ -307,10 +213,11 @@ def build_bundle(
         if out_dir.exists() and not overwrite:  # checked again under the lock: another build may have finished
             raise BundleError(out_dir, "already exists; pass overwrite=True (--overwrite) to replace it")
         remove_stale_builds(out_dir)
-        tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
-        tmp.mkdir()
-        _build_into(tmp, slide_path, out_dir, annotations_path, level_sets, tile_size, magnification_range, label_map,
-                    progress, max_decode_bytes, region, region_margin, storage, share_background, band_bytes)
+        with atomic_folder(out_dir) as tmp:
+            tmp.mkdir()
+            _build_into(tmp, slide_path, out_dir, annotations_path, level_sets, tile_size, magnification_range,
+                        label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
+                        band_bytes)
         return out_dir
     except OSError as e:
         raise BundleError(out_dir, f"cannot write the bundle ({e.strerror or e}"
@@ -322,151 +229,133 @@ def build_bundle(
 def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, level_sets, tile_size, magnification_range,
                 label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
                 band_bytes) -> None:
-    """The body of :func:`build_bundle`: write the bundle into ``tmp`` and rename it to ``out_dir`` (called
-    with the build lock held); ``tmp`` is removed on any error."""
+    """The body of :func:`build_bundle`: write the bundle into ``tmp`` (called with the build lock held, inside
+    :func:`data_tools.bundle_format.atomic_folder`, which renames it to ``out_dir`` or removes it)."""
     from data_tools.annotations import annotations_to_geojson, load_annotations
     from data_tools.masks import rasterize, tissue_mask
     from data_tools.slides import MAX_DECODE_BYTES, open_slide
     import shapely.geometry
 
-    try:
-        with open_slide(slide_path) as reader:
-            width0, height0 = reader.dimensions
-            ann = None
-            if annotations_path is not None:
-                ann = load_annotations(annotations_path, label_map=label_map, slide_size=(width0, height0))
-            reg = None
-            if region is not None:
-                reg = resolve_region(region, (width0, height0), annotations_path, label_map, ann,
-                                     margin=region_margin, tile_size=tile_size, where=slide_path)
-                width0, height0 = reg.width, reg.height
-                if ann is not None:
-                    ann = _crop_annotations(ann, reg)
-            r = magnification_range or default_magnification_range(width0, height0, tile_size)
-            downsamples = bundle_downsamples(level_sets, r)
-            sizes = [level_size(width0, height0, d) for d in downsamples]
-            total = sum(max(w, tile_size) * max(h, tile_size) for w, h in sizes)
-            if storage == "auto":
-                from data_tools.tiled import AUTO_TILED_BYTES
+    with open_slide(slide_path) as reader:
+        width0, height0 = reader.dimensions
+        ann = None
+        if annotations_path is not None:
+            ann = load_annotations(annotations_path, label_map=label_map, slide_size=(width0, height0))
+        reg = None
+        if region is not None:
+            reg = resolve_region(region, (width0, height0), annotations_path, label_map, ann,
+                                 margin=region_margin, tile_size=tile_size, where=slide_path)
+            width0, height0 = reg.width, reg.height
+            if ann is not None:
+                ann = _crop_annotations(ann, reg)
+        r = magnification_range or default_magnification_range(width0, height0, tile_size)
+        downsamples = bundle_downsamples(level_sets, r)
+        sizes = [level_size(width0, height0, d) for d in downsamples]
+        total = sum(max(w, tile_size) * max(h, tile_size) for w, h in sizes)
+        if storage == "auto":
+            from data_tools.tiled import AUTO_TILED_BYTES
 
-                dense_bytes = sum(device_bytes(max(w, tile_size), max(h, tile_size)) for w, h in sizes)
-                storage = "tiled" if dense_bytes > AUTO_TILED_BYTES else "dense"
-            build_stats = None
-            if storage == "tiled":
-                from data_tools.tiled import BAND_BYTES, build_tiled_levels
+            dense_bytes = sum(device_bytes(max(w, tile_size), max(h, tile_size)) for w, h in sizes)
+            storage = "tiled" if dense_bytes > AUTO_TILED_BYTES else "dense"
+        build_stats = None
+        if storage == "tiled":
+            from data_tools.tiled import BAND_BYTES, build_tiled_levels
 
-                levels_meta, build_stats = build_tiled_levels(
-                    reader, tmp, downsamples, sizes, tile_size, ann=ann, reg=reg, share_background=share_background,
-                    band_bytes=band_bytes or BAND_BYTES, progress=progress, mpp=reader.mpp)
-            elif total > MAX_FLAT_PIXELS:
-                raise BundleError(slide_path, f"the {len(sizes)} levels would hold {total:,} px "
-                                  f"({total * 7 / 2**30:.1f} GiB on the device with their masks), more than the "
-                                  f"{MAX_FLAT_PIXELS:,} px one dense slide array can index: use fewer levels "
-                                  "(--levels), a larger --magnification-range start, or a coarser slide")
-            if storage == "dense":
-                levels_meta = []
-            cache: tuple[int, np.ndarray] | None = None
-            bar = tqdm(downsamples if storage == "dense" else [], desc=f"building {out_dir.name}", unit="level",
-                       disable=not progress or storage != "dense")
-            for k, d in enumerate(bar):
-                # the coarsest source level that is still at least as fine as the target
-                src = max((i for i, lv in enumerate(reader.levels) if lv.downsample <= d * (1 + 1e-6)),
-                          key=lambda i: reader.levels[i].downsample)
-                ds = reader.levels[src].downsample
-                if cache is None or cache[0] != src:
-                    cache = None  # free the previous level before decoding the next
-                    if reg is None:
-                        cache = (src, reader.read_level(src, max_bytes=max_decode_bytes or MAX_DECODE_BYTES))
-                    else:  # only the region's window of the source level
-                        win = (math.floor(reg.box[0] / ds), math.floor(reg.box[1] / ds),
-                               math.ceil(reg.box[2] / ds), math.ceil(reg.box[3] / ds))
-                        needed = (win[2] - win[0]) * (win[3] - win[1]) * 3
-                        if needed > (max_decode_bytes or MAX_DECODE_BYTES):
-                            raise BundleError(slide_path, f"region window of level {src} needs {needed:,} bytes, "
-                                              "over the decode limit; use a smaller region")
-                        cache = (src, reader.read_region(src, win[0], win[1], win[2] - win[0], win[3] - win[1]))
-                size = level_size(width0, height0, d)
-                offset = (0.0, 0.0) if reg is None else (reg.box[0] / ds - math.floor(reg.box[0] / ds),
-                                                         reg.box[1] / ds - math.floor(reg.box[1] / ds))
-                content = _resample(cache[1], ds, d, size, offset)
-                inside = None
-                if reg is not None and reg.polygon is not None:
-                    from shapely.affinity import translate
+            levels_meta, build_stats = build_tiled_levels(
+                reader, tmp, downsamples, sizes, tile_size, ann=ann, reg=reg, share_background=share_background,
+                band_bytes=band_bytes or BAND_BYTES, progress=progress, mpp=reader.mpp)
+        elif total > MAX_FLAT_PIXELS:
+            raise BundleError(slide_path, f"the {len(sizes)} levels would hold {total:,} px "
+                              f"({total * 7 / 2**30:.1f} GiB on the device with their masks), more than the "
+                              f"{MAX_FLAT_PIXELS:,} px one dense slide array can index: use fewer levels "
+                              "(--levels), a larger --magnification-range start, or a coarser slide")
+        if storage == "dense":
+            levels_meta = []
+        cache: tuple[int, np.ndarray] | None = None
+        bar = tqdm(downsamples if storage == "dense" else [], desc=f"building {out_dir.name}", unit="level",
+                   disable=not progress or storage != "dense")
+        for k, d in enumerate(bar):
+            # the coarsest source level that is still at least as fine as the target
+            src = max((i for i, lv in enumerate(reader.levels) if lv.downsample <= d * (1 + 1e-6)),
+                      key=lambda i: reader.levels[i].downsample)
+            ds = reader.levels[src].downsample
+            if cache is None or cache[0] != src:
+                cache = None  # free the previous level before decoding the next
+                if reg is None:
+                    cache = (src, reader.read_level(src, max_bytes=max_decode_bytes or MAX_DECODE_BYTES))
+                else:  # only the region's window of the source level
+                    win = (math.floor(reg.box[0] / ds), math.floor(reg.box[1] / ds),
+                           math.ceil(reg.box[2] / ds), math.ceil(reg.box[3] / ds))
+                    needed = (win[2] - win[0]) * (win[3] - win[1]) * 3
+                    if needed > (max_decode_bytes or MAX_DECODE_BYTES):
+                        raise BundleError(slide_path, f"region window of level {src} needs {needed:,} bytes, "
+                                          "over the decode limit; use a smaller region")
+                    cache = (src, reader.read_region(src, win[0], win[1], win[2] - win[0], win[3] - win[1]))
+            size = level_size(width0, height0, d)
+            offset = (0.0, 0.0) if reg is None else (reg.box[0] / ds - math.floor(reg.box[0] / ds),
+                                                     reg.box[1] / ds - math.floor(reg.box[1] / ds))
+            content = resample(cache[1], ds, d, size, offset)
+            inside = None
+            if reg is not None and reg.polygon is not None:
+                from shapely.affinity import translate
 
-                    inside = rasterize(translate(reg.polygon, -reg.box[0], -reg.box[1]), size[0], size[1], d)
-                    content = content.copy()
-                    content[~inside] = 255  # outside the polygon: glass
-                pixels = _pad(content, tile_size, 255)
-                tumour = np.zeros(size[::-1], dtype=bool)
-                if ann is not None:
-                    tumour = rasterize(ann.tumour, size[0], size[1], d)
-                tumour = _pad(tumour.astype(np.uint8), tile_size, 0)
-                names = {"pixels": f"pixels_{k:02d}.npy", "tumour": f"tumour_{k:02d}.npy"}
-                np.save(tmp / names["pixels"], pixels, allow_pickle=False)
-                np.save(tmp / names["tumour"], tumour, allow_pickle=False)
-                levels_meta.append({
-                    "downsample": d, "width": int(pixels.shape[1]), "height": int(pixels.shape[0]),
-                    "content_width": size[0], "content_height": size[1],
-                    "mpp": None if reader.mpp is None else reader.mpp * d,
-                    "tumour_pixels": int(tumour.sum()), **names,
-                })
-                if k == len(downsamples) - 1:
-                    tissue = tissue_mask(pixels[: size[1], : size[0]])
-                    if inside is not None:
-                        tissue &= inside
-                    np.save(tmp / "tissue.npy", _pad(tissue, tile_size, False), allow_pickle=False)
-                    if reg is not None:  # where a view centre may start
-                        allowed = inside if inside is not None else np.ones(size[::-1], dtype=bool)
-                        np.save(tmp / "region.npy", _pad(allowed, tile_size, False), allow_pickle=False)
-            cache = None
-            geojson = annotations_to_geojson(ann) if ann is not None else {"type": "FeatureCollection", "features": []}
-            (tmp / "annotations.geojson").write_text(json.dumps(geojson))
-            files = sorted(p.name for p in tmp.iterdir())
-            metadata = {
-                "format_version": FORMAT_VERSION if storage == "dense" else TILED_FORMAT_VERSION,
-                "storage": storage,
-                "device_bytes": sum(level_device_bytes(lv) for lv in levels_meta),
-                **({} if build_stats is None else {"build": build_stats}),
-                "source": {
-                    "file": slide_path.name, "sha256": _sha256(slide_path), "format": reader.format,
-                    "width": width0, "height": height0, "mpp": reader.mpp,
-                },
-                "annotations": None if annotations_path is None else {
-                    "file": Path(annotations_path).name, "sha256": _sha256(Path(annotations_path)),
-                    "unknown_groups": list(ann.unknown_groups), "n_polygons": dict(ann.n_polygons),
-                    "tumour_area_px": float(ann.tumour.area),
-                },
-                "label_map": label_map or {},
-                "tile_size": tile_size,
-                "magnification_range": r,
-                "level_sets": list(level_sets),
-                "levels": levels_meta,
-                "tissue": {"file": "tissue.npy", "level": len(levels_meta) - 1},
-                "region": None if reg is None else {
-                    "box": list(reg.box), "kind": reg.kind, "group": reg.group, "margin": reg.margin,
-                    "polygon": None if reg.polygon is None else shapely.geometry.mapping(reg.polygon),
-                    "mask": "region.npy", "level": len(levels_meta) - 1,
-                },
-                "checksums": {name: _sha256(tmp / name) for name in files},
-            }
-            with open(tmp / METADATA, "w") as f:
-                json.dump(metadata, f, indent=1)
-                f.flush()
-                os.fsync(f.fileno())
-        if out_dir.exists():
-            old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
-            out_dir.rename(old)
-            try:
-                tmp.rename(out_dir)
-            except BaseException:
-                old.rename(out_dir)  # put the previous bundle back
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(out_dir)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        raise
+                inside = rasterize(translate(reg.polygon, -reg.box[0], -reg.box[1]), size[0], size[1], d)
+                content = content.copy()
+                content[~inside] = 255  # outside the polygon: glass
+            pixels = pad(content, tile_size, 255)
+            tumour = np.zeros(size[::-1], dtype=bool)
+            if ann is not None:
+                tumour = rasterize(ann.tumour, size[0], size[1], d)
+            tumour = pad(tumour.astype(np.uint8), tile_size, 0)
+            names = level_files(k)
+            np.save(tmp / names["pixels"], pixels, allow_pickle=False)
+            np.save(tmp / names["tumour"], tumour, allow_pickle=False)
+            levels_meta.append({
+                "downsample": d, "width": int(pixels.shape[1]), "height": int(pixels.shape[0]),
+                "content_width": size[0], "content_height": size[1],
+                "mpp": None if reader.mpp is None else reader.mpp * d,
+                "tumour_pixels": int(tumour.sum()), **names,
+            })
+            if k == len(downsamples) - 1:
+                tissue = tissue_mask(pixels[: size[1], : size[0]])
+                if inside is not None:
+                    tissue &= inside
+                np.save(tmp / TISSUE, pad(tissue, tile_size, False), allow_pickle=False)
+                if reg is not None:  # where a view centre may start
+                    allowed = inside if inside is not None else np.ones(size[::-1], dtype=bool)
+                    np.save(tmp / REGION, pad(allowed, tile_size, False), allow_pickle=False)
+        cache = None
+        geojson = annotations_to_geojson(ann) if ann is not None else {"type": "FeatureCollection", "features": []}
+        (tmp / ANNOTATIONS).write_text(json.dumps(geojson))
+        files = sorted(p.name for p in tmp.iterdir())
+        metadata = {
+            "format_version": FORMAT_VERSION if storage == "dense" else TILED_FORMAT_VERSION,
+            "storage": storage,
+            "device_bytes": sum(level_device_bytes(lv) for lv in levels_meta),
+            **({} if build_stats is None else {"build": build_stats}),
+            "source": {
+                "file": slide_path.name, "sha256": sha256(slide_path), "format": reader.format,
+                "width": width0, "height": height0, "mpp": reader.mpp,
+            },
+            "annotations": None if annotations_path is None else {
+                "file": Path(annotations_path).name, "sha256": sha256(Path(annotations_path)),
+                "unknown_groups": list(ann.unknown_groups), "n_polygons": dict(ann.n_polygons),
+                "tumour_area_px": float(ann.tumour.area),
+            },
+            "label_map": label_map or {},
+            "tile_size": tile_size,
+            "magnification_range": r,
+            "level_sets": list(level_sets),
+            "levels": levels_meta,
+            "tissue": {"file": TISSUE, "level": len(levels_meta) - 1},
+            "region": None if reg is None else {
+                "box": list(reg.box), "kind": reg.kind, "group": reg.group, "margin": reg.margin,
+                "polygon": None if reg.polygon is None else shapely.geometry.mapping(reg.polygon),
+                "mask": REGION, "level": len(levels_meta) - 1,
+            },
+            "checksums": {name: sha256(tmp / name) for name in files},
+        }
+        write_metadata(tmp, metadata)
 
 
 def _lock_path(out_dir: Path) -> Path:
@@ -524,111 +413,6 @@ def remove_stale_builds(out_dir) -> list[Path]:
         else:
             p.unlink(missing_ok=True)
     return stale
-
-
-@dataclass(frozen=True)
-class Bundle:
-    """A loaded bundle (host numpy arrays). ``levels`` are finest first, as in the metadata."""
-
-    path: Path
-    metadata: dict
-    pixels: list[np.ndarray]   # (H, W, 3) uint8 per level (tiled bundles: lazy data_tools.tiled.TiledLevel)
-    tumour: list[np.ndarray]   # (H, W) uint8 0/1 per level (tiled bundles: TiledLevel of local SATs)
-    tissue: np.ndarray         # (H, W) bool at the coarsest bundle level
-    region: np.ndarray | None = None  # (H, W) bool at the coarsest level: allowed view centres (region bundles)
-
-    @property
-    def downsamples(self) -> list[float]:
-        return [lv["downsample"] for lv in self.metadata["levels"]]
-
-    @property
-    def tile_size(self) -> int:
-        return int(self.metadata["tile_size"])
-
-    @property
-    def storage(self) -> str:
-        return self.metadata.get("storage", "dense")
-
-
-def read_metadata(path) -> dict:
-    """Read and check ``metadata.json`` of the bundle at ``path`` (format version, fields)."""
-    path = Path(path)
-    meta_file = path / METADATA
-    if not meta_file.is_file():
-        raise BundleError(path, f"not a slide bundle (no {METADATA}); build one with "
-                          "`python -m data_tools build SLIDE --out DIR`")
-    try:
-        metadata = json.loads(meta_file.read_text())
-    except (json.JSONDecodeError, UnicodeDecodeError) as e:
-        raise BundleError(meta_file, f"unreadable metadata ({e}); rebuild the bundle") from None
-    if not isinstance(metadata, dict):
-        raise BundleError(meta_file, "metadata is not a JSON object; rebuild the bundle")
-    if metadata.get("format_version") not in READ_VERSIONS:
-        raise BundleError(path, f"bundle format version {metadata.get('format_version')!r}, this histojax reads "
-                          f"versions {READ_VERSIONS}; rebuild it with `python -m data_tools build`")
-    if (metadata.get("storage", "dense") == "tiled") != (metadata["format_version"] == TILED_FORMAT_VERSION):
-        raise BundleError(meta_file, "storage and format version disagree; rebuild the bundle")
-    for key in ("tile_size", "levels", "checksums", "magnification_range", "tissue"):
-        if key not in metadata:
-            raise BundleError(meta_file, f"metadata lacks {key!r}; rebuild the bundle")
-    return metadata
-
-
-def _load_array(path: Path, name: str, metadata: dict, verify: bool, mmap: bool = False) -> np.ndarray:
-    file = path / name
-    if not file.is_file():
-        raise BundleError(path, f"missing array {name}; rebuild the bundle")
-    if verify and _sha256(file) != metadata["checksums"].get(name):
-        raise BundleError(file, "checksum mismatch (the file changed or is corrupt); rebuild the bundle")
-    try:
-        return np.load(file, allow_pickle=False, mmap_mode="r" if mmap else None)
-    except (ValueError, OSError) as e:
-        raise BundleError(file, f"unreadable array ({e}); rebuild the bundle") from None
-
-
-def _load_tiled(path: Path, lv: dict, metadata: dict, verify: bool, kind: str):
-    """One tiled level as a lazy :class:`data_tools.tiled.TiledLevel` (pools memory-mapped)."""
-    from data_tools.tiled import TiledLevel
-
-    t = int(metadata["tile_size"])
-    pool_name, index_name = ("tiles", "tile_index") if kind == "pixels" else ("sat_tiles", "sat_index")
-    pool = _load_array(path, lv[pool_name], metadata, verify, mmap=True)
-    index = _load_array(path, lv[index_name], metadata, verify)
-    item = (t, t, 3) if kind == "pixels" else (t + 1, t + 1)
-    dtype = np.uint8 if kind == "pixels" else np.uint32
-    grid = (-(-lv["height"] // t), -(-lv["width"] // t))
-    if pool.shape[1:] != item or pool.dtype != dtype or pool.shape[0] < 1 or index.shape != grid \
-            or index.dtype != np.int32 or (index.size and (index.min() < 0 or index.max() >= pool.shape[0])):
-        raise BundleError(path / lv[pool_name], "tile pool or index disagrees with metadata; rebuild the bundle")
-    return TiledLevel(pool=pool, index=index, height=int(lv["height"]), width=int(lv["width"]), kind=kind)
-
-
-def load_bundle(path, verify: bool = True, levels: list[int] | None = None, mmap: bool = False) -> Bundle:
-    """Load the bundle at ``path`` (host numpy arrays); ``levels`` selects bundle level indices
-    (finest first, as in the metadata; default all). Checksums are verified unless ``verify=False``.
-    ``mmap=True`` memory-maps the dense level arrays (read-only) instead of reading them into memory."""
-    path = Path(path)
-    metadata = read_metadata(path)
-    chosen = range(len(metadata["levels"])) if levels is None else levels
-    pixels, tumour = [], []
-    for k in chosen:
-        lv = metadata["levels"][k]
-        if lv.get("storage") == "tiled":
-            pixels.append(_load_tiled(path, lv, metadata, verify, "pixels"))
-            tumour.append(_load_tiled(path, lv, metadata, verify, "tumour"))
-            continue
-        pixels.append(_load_array(path, lv["pixels"], metadata, verify, mmap=mmap))
-        tumour.append(_load_array(path, lv["tumour"], metadata, verify, mmap=mmap))
-        for name, array, shape in ((lv["pixels"], pixels[-1], (lv["height"], lv["width"], 3)),
-                                   (lv["tumour"], tumour[-1], (lv["height"], lv["width"]))):
-            if array.shape != shape or array.dtype != np.uint8:
-                raise BundleError(path / name, f"array {array.shape} {array.dtype} disagrees with the metadata "
-                                  f"({shape} uint8); rebuild the bundle")
-    tissue = _load_array(path, metadata["tissue"]["file"], metadata, verify)
-    region = None
-    if metadata.get("region") and metadata["region"].get("mask"):
-        region = _load_array(path, metadata["region"]["mask"], metadata, verify).astype(bool)
-    return Bundle(path=path, metadata=metadata, pixels=pixels, tumour=tumour, tissue=tissue, region=region)
 
 
 __all__ = ["Bundle", "FORMAT_VERSION", "LEVEL_SETS", "STORAGES", "TILED_FORMAT_VERSION", "level_device_bytes", "Region", "build_bundle", "bundle_downsamples", "resolve_region",

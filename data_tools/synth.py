@@ -29,7 +29,6 @@ like any other slide. Everything is deterministic given the seed.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import time
@@ -44,6 +43,7 @@ from shapely import affinity
 from shapely.geometry import MultiPolygon, Polygon, box, mapping
 from tqdm.auto import tqdm
 
+from data_tools.bundle_format import atomic_file, sha256
 from data_tools.errors import AnnotationError
 
 __all__ = ["CAMELYON16_DIR", "CAMELYON16_MPP", "make_dataset", "make_semisynthetic_slide", "save_preview",
@@ -94,8 +94,7 @@ def tissue_files() -> list[Path]:
     return [found.pop(s) for s in preferred if s in found] + sorted(found.values())
 
 
-def _sha256(path: Path) -> str:
-    return hashlib.sha256(Path(path).read_bytes()).hexdigest()
+_sha256 = sha256  # the bundle format's checksum (older importers use this name)
 
 
 def _rng(seed: int, *tags: int) -> np.random.Generator:
@@ -446,8 +445,7 @@ def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int 
     px_per_cm = 1e4 / mpp
     options = dict(tile=(TIFF_TILE, TIFF_TILE), compression="jpeg", compressionargs={"level": int(jpeg_quality)},
                    photometric="rgb", resolutionunit="CENTIMETER", metadata=None)
-    tmp = out_tiff.with_name(f".{out_tiff.name}.tmp")
-    try:
+    with atomic_file(out_tiff) as tmp:
         with tifffile.TiffWriter(tmp, bigtiff=width * height * 3 > 2**31) as tif:
             tif.write(level0_tiles(), shape=(height, width, 3), dtype=np.uint8, subifds=n_sub,
                       description=description, resolution=(px_per_cm, px_per_cm), **options)
@@ -455,9 +453,6 @@ def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int 
             for _ in range(n_sub):
                 tif.write(level, subfiletype=1, resolution=(px_per_cm / factor, px_per_cm / factor), **options)
                 level, factor = _halve(level), factor * 2
-        tmp.replace(out_tiff)
-    finally:
-        tmp.unlink(missing_ok=True)
 
     geojson_path = out_tiff.with_suffix(".geojson")
     geojson_path.write_text(json.dumps(_geojson(tumour, tissue, source_line)))

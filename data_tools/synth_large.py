@@ -26,8 +26,9 @@ from shapely import affinity
 from shapely.geometry import box
 from tqdm.auto import tqdm
 
+from data_tools.bundle_format import atomic_file, sha256
 from data_tools.synth import (CAMELYON16_MPP, GLASS, LICENCE_NOTE, MIN_LEVEL_SIDE, PIXELS_NOTE, TIFF_TILE, _geojson,
-                              _polygonal, _sha256, _strips, tissue_files, tumour_files)
+                              _polygonal, _strips, tissue_files, tumour_files)
 
 __all__ = ["make_large_slide"]
 
@@ -188,8 +189,7 @@ def make_large_slide(out_tiff, size=100_000, tissue_fraction: float = 0.1, seed:
     description = (f"histojax large semi-synthetic slide {width}x{height}. {PIXELS_NOTE} Tissue outline: CAMELYON16 "
                    f"{tissue_xml.name}; tumour: CAMELYON16 {tumour_xml.name} (CC0 1.0). Seed {seed}.")
     options = dict(tile=(t, t), compression="jpeg", photometric="rgb", resolutionunit="CENTIMETER", metadata=None)
-    tmp = out_tiff.with_name(f".{out_tiff.name}.tmp")
-    try:
+    with atomic_file(out_tiff) as tmp:
         with tifffile.TiffWriter(tmp, bigtiff=width * height * 3 > 2**31 or width * height > 2**28) as tif:
             tif.write(level_tiles(0, width, height), shape=(height, width, 3), dtype=np.uint8,
                       subifds=len(levels) - 1, description=description.encode("ascii", "replace").decode("ascii"),
@@ -198,17 +198,14 @@ def make_large_slide(out_tiff, size=100_000, tissue_fraction: float = 0.1, seed:
                 f = 2 ** k
                 tif.write(level_tiles(k, w, h), shape=(h, w, 3), dtype=np.uint8, subfiletype=1,
                           resolution=(px_per_cm / f, px_per_cm / f), **options)
-        tmp.replace(out_tiff)
-    finally:
-        tmp.unlink(missing_ok=True)
     geojson_path = out_tiff.with_suffix(".geojson")
     geojson_path.write_text(json.dumps(_geojson(tumour, tissue, source_line)))
     area = float(width) * height
     provenance = {
         "kind": "large semi-synthetic slide (histojax data_tools.synth_large)",
         "note": PIXELS_NOTE, "licence": LICENCE_NOTE, "summary": source_line,
-        "tumour_source": {"file": tumour_xml.name, "sha256": _sha256(tumour_xml)},
-        "tissue_source": {"file": tissue_xml.name, "sha256": _sha256(tissue_xml)},
+        "tumour_source": {"file": tumour_xml.name, "sha256": sha256(tumour_xml)},
+        "tissue_source": {"file": tissue_xml.name, "sha256": sha256(tissue_xml)},
         "placement": placement, "seed": int(seed), "canvas": [width, height], "levels": [list(lv) for lv in levels],
         "tiff": out_tiff.name, "geojson": geojson_path.name,
         "tissue_fraction": float(tissue.area) / area, "tumour_fraction": float(tumour.area) / area,

@@ -18,7 +18,7 @@ fewer than ``SATURATED_FRACTION`` of its pixels (sampled every 4th px) are more 
 Otsu threshold; ``share_background=False`` keeps every tile (an exact copy of the dense level).
 
 The build streams: each level is made in bands of tile rows read with ``SlideReader.read_region``
-from the best source pyramid level and resampled with PIL (as ``bundle._resample``), the tumour is
+from the best source pyramid level and resampled with PIL (:func:`data_tools.raster.resample`), the tumour is
 rasterised per band (pixel-centre rule, tiles wholly inside or outside the polygons decided
 geometrically, only boundary tiles tested pixel by pixel), and the pools are appended to ``.npy``
 files whose header is rewritten with the final count, so memory stays bounded by the band size.
@@ -27,10 +27,11 @@ from __future__ import annotations
 
 import math
 import struct as _struct
-from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from data_tools.bundle_format import REGION, TISSUE, TiledLevel, tiled_level_files  # noqa: F401  (TiledLevel: the reader side)
 
 BAND_BYTES = 96 * 2**20        # RGB bytes of one band of a level (plus the source window and copies)
 MAX_WINDOW_BYTES = 64 * 2**20  # source RGB bytes read at once for a band (a band is read in strips below it)
@@ -185,7 +186,7 @@ def _source_level(reader, d: float) -> int:
 def _bands(reader, d: float, size, tile_size: int, reg, band_bytes: int):
     """Yield ``(r0, r1, rgb)`` for bands of whole tile rows of a level at downsample ``d`` with content
     ``size = (cw, ch)``: ``rgb`` is ``(r1 - r0, gw * T, 3)`` uint8, white outside the content."""
-    from data_tools.bundle import _resample
+    from data_tools.raster import resample as _resample
 
     t = tile_size
     cw, ch = size
@@ -253,12 +254,12 @@ def build_tiled_levels(reader, tmp: Path, downsamples, sizes, tile_size: int, an
     if inside_c is not None:
         tissue &= inside_c[:chc, :cwc]
     threshold = saturation_threshold(content_c)
-    from data_tools.bundle import _pad
+    from data_tools.raster import pad as _pad
 
-    np.save(tmp / "tissue.npy", _pad(tissue, t, False), allow_pickle=False)
+    np.save(tmp / TISSUE, _pad(tissue, t, False), allow_pickle=False)
     if reg is not None:
         allowed = inside_c[:chc, :cwc] if inside_c is not None else np.ones((chc, cwc), dtype=bool)
-        np.save(tmp / "region.npy", _pad(allowed, t, False), allow_pickle=False)
+        np.save(tmp / REGION, _pad(allowed, t, False), allow_pickle=False)
     dilated = binary_dilation(tissue, iterations=1) if tissue.any() else tissue
     tissue_sat = np.zeros((chc + 1, cwc + 1), dtype=np.int64)
     np.cumsum(np.cumsum(dilated, axis=0, dtype=np.int64), axis=1, out=tissue_sat[1:, 1:])
@@ -284,8 +285,7 @@ def build_tiled_levels(reader, tmp: Path, downsamples, sizes, tile_size: int, an
         d, (cw, ch) = downsamples[k], sizes[k]
         width, height = max(cw, t), max(ch, t)
         gw, gh = -(-width // t), -(-height // t)
-        names = {"tiles": f"tiles_{k:02d}.npy", "tile_index": f"tile_index_{k:02d}.npy",
-                 "sat_tiles": f"sat_tiles_{k:02d}.npy", "sat_index": f"sat_index_{k:02d}.npy"}
+        names = tiled_level_files(k)
         pool = PoolWriter(tmp / names["tiles"], (t, t, 3), np.uint8)
         sat_pool = PoolWriter(tmp / names["sat_tiles"], (t + 1, t + 1), np.uint32)
         try:
@@ -350,81 +350,6 @@ def build_tiled_levels(reader, tmp: Path, downsamples, sizes, tile_size: int, an
         stats["seconds_per_level"][k] = round(time.perf_counter() - t0, 2)
     stats["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     return levels_meta, stats
-
-
-# ---------------------------------------------------------------------------- host-side lazy levels
-
-
-@dataclass
-class TiledLevel:
-    """A tiled level on the host: ``pool[index[ty, tx]]`` is tile ``(ty, tx)``. Behaves like the dense
-    ``(H, W, 3)`` (or, for tumour, ``(H, W)``) array for ``shape``, 2-D slicing and ``np.asarray``
-    (materialised on demand: only for small levels or crops)."""
-
-    pool: np.ndarray   # (N, T, T, 3) uint8 or (M, T+1, T+1) uint32 local SATs
-    index: np.ndarray  # (gh, gw) int32
-    height: int
-    width: int
-    kind: str = "pixels"  # "pixels" or "tumour" (SAT pool → 0/1 mask)
-
-    @property
-    def tile_size(self) -> int:
-        return int(self.pool.shape[1]) - (1 if self.kind == "tumour" else 0)
-
-    @property
-    def shape(self):
-        return (self.height, self.width, 3) if self.kind == "pixels" else (self.height, self.width)
-
-    @property
-    def dtype(self):
-        return np.dtype(np.uint8)
-
-    @property
-    def ndim(self) -> int:
-        return len(self.shape)
-
-    def _tiles(self, ids: np.ndarray) -> np.ndarray:
-        tiles = np.asarray(self.pool[ids.ravel()])
-        if self.kind == "tumour":
-            s = tiles.astype(np.int64)
-            tiles = (s[:, 1:, 1:] - s[:, :-1, 1:] - s[:, 1:, :-1] + s[:, :-1, :-1]).astype(np.uint8)
-        return tiles
-
-    def crop(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
-        y0, y1, x0, x1 = max(0, y0), min(self.height, y1), max(0, x0), min(self.width, x1)
-        t = self.tile_size
-        if y1 <= y0 or x1 <= x0:
-            return np.zeros((max(0, y1 - y0), max(0, x1 - x0)) + self.shape[2:], np.uint8)
-        ty0, ty1, tx0, tx1 = y0 // t, (y1 - 1) // t + 1, x0 // t, (x1 - 1) // t + 1
-        ids = self.index[ty0:ty1, tx0:tx1]
-        tiles = self._tiles(ids).reshape(ids.shape + (t, t) + self.shape[2:])
-        full = np.moveaxis(tiles, 2, 1).reshape((ids.shape[0] * t, ids.shape[1] * t) + self.shape[2:])
-        return np.ascontiguousarray(full[y0 - ty0 * t:y1 - ty0 * t, x0 - tx0 * t:x1 - tx0 * t])
-
-    def __getitem__(self, key):
-        if not isinstance(key, tuple):
-            key = (key,)
-        key = key + (slice(None),) * (2 - len(key))
-        rows, cols = key[0], key[1]
-        if not (isinstance(rows, slice) and isinstance(cols, slice)) or rows.step not in (None, 1) \
-                or cols.step not in (None, 1):
-            return np.asarray(self)[key]
-        y0, y1, _ = rows.indices(self.height)
-        x0, x1, _ = cols.indices(self.width)
-        out = self.crop(y0, y1, x0, x1)
-        return out[(slice(None), slice(None)) + key[2:]] if len(key) > 2 else out
-
-    def __array__(self, dtype=None, copy=None):
-        out = self.crop(0, self.height, 0, self.width)
-        return out if dtype is None else out.astype(dtype)
-
-    def sum(self) -> int:
-        """Sum of the level (tumour px count for a tumour level) without materialising it."""
-        if self.kind != "tumour":
-            return int(np.asarray(self).sum())
-        t = self.tile_size
-        totals = np.asarray(self.pool[:, t, t]).astype(np.int64)
-        return int(totals[self.index].sum())
 
 
 __all__ = ["AUTO_TILED_BYTES", "BAND_BYTES", "MAX_WINDOW_BYTES", "PoolWriter", "TiledLevel", "build_tiled_levels", "full_sat_tile",

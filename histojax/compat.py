@@ -28,7 +28,6 @@ is ``obs.transpose(1, 2, 0)``); ``"human"`` without a display saves the PNG inst
 """
 from __future__ import annotations
 
-import hashlib
 import os
 import sys
 import warnings
@@ -95,22 +94,10 @@ class Box:
 def compat_bundle(img_path, xml_path, tile_size: int, progress: bool = True) -> Path:
     """The cached bundle of ``img_path`` (+ ``xml_path``) with ``tile_size`` views for Easy, Medium
     and Hard: ``cache_dir() / f"compat-{sha}"``, built on first use."""
-    from data_tools.bundle import FORMAT_VERSION, LEVEL_SETS, build_bundle
-    from data_tools.errors import BundleError
-    from histojax.sample import cache_dir
-    from histojax.scenarios import file_digest
+    from histojax.cache import cached_bundle
 
-    key = f"{file_digest(img_path)}|{'' if xml_path is None else file_digest(xml_path)}|{int(tile_size)}|" \
-          f"v{FORMAT_VERSION}"
-    out = cache_dir() / f"compat-{hashlib.sha256(key.encode()).hexdigest()[:16]}"
-    if not (out / "metadata.json").is_file():
-        try:
-            build_bundle(img_path, out, annotations_path=xml_path, level_sets=LEVEL_SETS, tile_size=int(tile_size),
-                         progress=progress)
-        except BundleError:
-            if not (out / "metadata.json").is_file():  # built meanwhile by another process
-                raise
-    return out
+    return cached_bundle(img_path, xml_path, tile_size=int(tile_size), prefix="compat", progress=progress,
+                         storage="dense")
 
 
 def _has_display() -> bool:

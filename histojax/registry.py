@@ -94,7 +94,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
         arrays, bundle = load_slide(path, spec["n_levels"], verify=verify, max_device_bytes=budget, features=features)
         budget -= sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
         loaded.append((arrays, bundle))
-    tile_sizes = {int(b.metadata["tile_size"]) for _, b in loaded}
+    tile_sizes = {b.tile_size for _, b in loaded}
     if len(tile_sizes) != 1:
         raise ValueError(f"the slides were built with different tile sizes {sorted(tile_sizes)}; rebuild them alike")
     tile_size = tile_sizes.pop()
@@ -216,7 +216,7 @@ def _label_of(bundle, labels) -> int:
             labels = {r["slide"]: int(r["label"]) for r in rows}
         except (KeyError, ValueError):
             raise BundleError(labels, "a labels CSV needs columns slide,label with label 0 or 1") from None
-    for key in (Path(bundle.path).name, Path(bundle.metadata["source"]["file"]).stem):
+    for key in (Path(bundle.path).name, Path(bundle.metadata.source["file"]).stem):
         if key in labels:
             return int(labels[key])
     raise BundleError(bundle.path, "no label for this slide in labels= (keyed by bundle folder name or slide stem)")

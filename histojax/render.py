@@ -10,6 +10,8 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
+from data_tools.bundle_format import ANNOTATIONS
+
 TUMOUR_COLOUR = (0, 170, 0)
 START_COLOUR = (0, 200, 255)
 END_COLOUR = (255, 0, 0)
@@ -36,13 +38,13 @@ def _canvas(env, max_side: int, slide_index: int = 0):
     fit = min(1.0, max_side / max(level.shape[:2]))
     size = (max(1, round(level.shape[1] * fit)), max(1, round(level.shape[0] * fit)))
     image = Image.fromarray(level).resize(size, Image.Resampling.BOX)
-    return image, size[0] / (level.shape[1] * bundle.metadata["levels"][k]["downsample"])
+    return image, size[0] / (level.shape[1] * bundle.downsamples[k])
 
 
 def tumour_rings(env, slide_index: int = 0) -> list[np.ndarray]:
     """The tumour outline of a slide of ``env`` as rings ``(N, 2)`` of level-0 px ``(x, y)``
     (exteriors and holes; empty when the bundle has no annotations)."""
-    path = Path(bundle_of(env, slide_index).path) / "annotations.geojson"
+    path = Path(bundle_of(env, slide_index).path) / ANNOTATIONS
     if not path.is_file():
         return []
     import shapely.geometry
@@ -65,7 +67,7 @@ def _draw_tumour(draw: ImageDraw.ImageDraw, env, scale: float, slide_index: int 
 
 def view_box_level0(env, z: int, x: int, y: int, slide_index: int = 0) -> tuple[float, float, float, float]:
     """The view at ``(z, x, y)`` as a level-0 px box ``(left, top, right, bottom)``."""
-    d = bundle_of(env, slide_index).metadata["levels"][int(z)]["downsample"]
+    d = bundle_of(env, slide_index).downsamples[int(z)]
     return x * d, y * d, (x + env.tile_size) * d, (y + env.tile_size) * d
 
 
@@ -139,7 +141,7 @@ def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 6
     if len(centres) > 1:
         ax.add_collection(LineCollection(np.stack([centres[:-1], centres[1:]], axis=1),
                                          colors=[colour(k) for k in z[1:]], linewidths=2.2))
-    downsamples = [lv["downsample"] for lv in bundle_of(env, slide_index).metadata["levels"]]
+    downsamples = bundle_of(env, slide_index).downsamples
     for k in range(env.n_levels):
         seen = "" if k in set(z.tolist()) else ", not visited"
         handles.append(Line2D([], [], color=colour(k), linewidth=2.2,

@@ -5,36 +5,23 @@ epithelium for the demo — not a diagnosis.
 """
 from __future__ import annotations
 
-import hashlib
-import os
 from pathlib import Path
+
+from histojax.cache import cache_dir, cached_bundle  # noqa: F401  (cache_dir: re-exported)
 
 DATA = Path(__file__).parent / "data"
 SAMPLE_SLIDE = DATA / "CMU-1-Small-Region.svs"
 SAMPLE_ANNOTATIONS = DATA / "CMU-1-Small-Region.target.xml"
 
 
-def cache_dir() -> Path:
-    """Where built bundles are cached: ``$HISTOJAX_CACHE`` or ``~/.cache/histojax``."""
-    return Path(os.environ.get("HISTOJAX_CACHE", Path.home() / ".cache" / "histojax"))
-
-
 def sample_bundle(tile_size: int = 128, progress: bool = True) -> Path:
     """Path to the bundle of the embedded sample slide at ``tile_size`` px views (levels for
     3, 5 and 7 zoom levels), building it into the cache the first time (a few seconds)."""
-    from data_tools.bundle import FORMAT_VERSION, build_bundle
-    from data_tools.errors import BundleError
+    from data_tools.bundle_format import FORMAT_VERSION, text_digest
 
-    digest = hashlib.sha256(SAMPLE_SLIDE.read_bytes() + SAMPLE_ANNOTATIONS.read_bytes()).hexdigest()[:12]
-    out = cache_dir() / f"cmu-1-small-region-t{tile_size}-v{FORMAT_VERSION}-{digest}"
-    if not (out / "metadata.json").is_file():
-        try:
-            build_bundle(SAMPLE_SLIDE, out, annotations_path=SAMPLE_ANNOTATIONS, tile_size=tile_size,
-                         progress=progress)
-        except BundleError:
-            if not (out / "metadata.json").is_file():  # another process may have just built it
-                raise
-    return out
+    digest = text_digest(SAMPLE_SLIDE.read_bytes() + SAMPLE_ANNOTATIONS.read_bytes(), 12)
+    return cached_bundle(SAMPLE_SLIDE, SAMPLE_ANNOTATIONS, tile_size=tile_size, progress=progress, storage="dense",
+                         name=f"cmu-1-small-region-t{tile_size}-v{FORMAT_VERSION}-{digest}")
 
 
 def sample_feature_bundle() -> Path:
@@ -43,12 +30,12 @@ def sample_feature_bundle() -> Path:
     import shutil
     import time
 
-    from data_tools.bundle import read_metadata
+    from data_tools.bundle_format import read_metadata
     from data_tools.features.grid import compute_features
 
     source = sample_bundle()
     out = source.with_name(source.name + "-features")
-    if not (out.is_dir() and read_metadata(out).get("features")):
+    if not (out.is_dir() and read_metadata(out).features):
         if not out.is_dir():
             tmp = out.with_name(out.name + ".copy")
             shutil.rmtree(tmp, ignore_errors=True)

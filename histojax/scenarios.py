@@ -35,13 +35,14 @@ time the id is made and reused after. Several slides make a dataset (``reset`` d
 from __future__ import annotations
 
 import dataclasses
-import hashlib
 import json
 import re
 from pathlib import Path
 from typing import Any
 
-from data_tools.errors import BundleError, HistojaxDataError
+from data_tools.bundle_format import file_digest  # noqa: F401  (re-exported)
+from data_tools.errors import HistojaxDataError
+from histojax.cache import cached_bundle  # noqa: F401  (re-exported)
 
 try:  # Python 3.11+
     import tomllib
@@ -267,52 +268,6 @@ def load_scenario(path) -> Scenario:
 
 
 # ----------------------------------------------------------------------------- building and registering
-def file_digest(path, limit: int = 256 * 2**20) -> str:
-    """SHA-256 of a file's content (files over ``limit`` bytes: its size, first and last 16 MiB),
-    so a cached bundle is rebuilt when the slide changes without reading gigabytes each time."""
-    path = Path(path)
-    h = hashlib.sha256()
-    size = path.stat().st_size
-    with open(path, "rb") as f:
-        if size <= limit:
-            for chunk in iter(lambda: f.read(1 << 20), b""):
-                h.update(chunk)
-        else:
-            h.update(str(size).encode())
-            h.update(f.read(16 * 2**20))
-            f.seek(size - 16 * 2**20)
-            h.update(f.read())
-    return h.hexdigest()
-
-
-def cached_bundle(slide, annotations=None, tile_size: int = 128, level_sets=None, label_map=None,
-                  region: RegionRule | None = None, prefix: str = "scenario", progress: bool = False) -> Path:
-    """Build (once) and return the bundle of ``slide`` (+ ``annotations``) in the cache folder
-    ``cache_dir() / f"{prefix}-{sha}"``, where the digest covers the files and every build setting."""
-    from data_tools.bundle import FORMAT_VERSION, LEVEL_SETS, build_bundle
-    from histojax.sample import cache_dir
-
-    level_sets = tuple(sorted(level_sets or LEVEL_SETS))
-    key = json.dumps({
-        "slide": file_digest(slide), "annotations": None if annotations is None else file_digest(annotations),
-        "tile_size": tile_size, "levels": level_sets, "label_map": label_map,
-        "region": None if region is None else dataclasses.asdict(region), "format": FORMAT_VERSION,
-        "storage": "auto",
-    }, sort_keys=True)
-    out = cache_dir() / f"{prefix}-{hashlib.sha256(key.encode()).hexdigest()[:16]}"
-    if not (out / "metadata.json").is_file():
-        try:
-            build_bundle(slide, out, annotations_path=annotations, level_sets=level_sets, tile_size=tile_size,
-                         label_map=label_map, progress=progress,
-                         region=None if region is None else region.build_argument(),
-                         region_margin=0.0 if region is None else region.margin,
-                         storage="auto")  # tiled (gigapixel) when the dense levels would exceed 256 MiB
-        except BundleError:
-            if not (out / "metadata.json").is_file():  # another process may have just built it
-                raise
-    return out
-
-
 def _slug(text: str) -> str:
     return re.sub(r"[^A-Za-z0-9_.-]+", "-", text).strip("-").lower() or "scenario"
 

@@ -26,7 +26,6 @@ A view then covers at most 2 × 2 tiles (see :mod:`histojax.views`).
 """
 from __future__ import annotations
 
-import math
 from pathlib import Path
 
 import jax
@@ -34,7 +33,9 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from data_tools.bundle import Bundle, level_device_bytes, level_downsamples, load_bundle, read_metadata
+from data_tools.bundle_format import (  # noqa: F401  (select_levels, feature_bytes: re-exported)
+    Bundle, BundleMetadata, feature_bytes, load_bundle, load_feature_levels, read_metadata, scenario_device_bytes,
+    select_levels)
 from data_tools.errors import BundleError
 
 DEFAULT_MAX_DEVICE_BYTES = 4 * 2**30  # the memory budget of one slide on the device
@@ -207,20 +208,6 @@ def start_logits(tissue: np.ndarray, tile_size: int, region: np.ndarray | None =
     return np.where(ok, 0.0, -np.inf).astype(np.float32)
 
 
-def select_levels(metadata: dict, n_levels: int, where="") -> list[int]:
-    """Bundle level indices (finest-first order in the metadata) of an ``n_levels`` scenario, coarsest first."""
-    available = [lv["downsample"] for lv in metadata["levels"]]
-    chosen = []
-    for d in level_downsamples(n_levels, metadata["magnification_range"]):
-        match = [k for k, a in enumerate(available) if math.isclose(a, d, rel_tol=1e-6)]
-        if not match:
-            raise BundleError(where or None, f"bundle has no level at downsample {d:.4g} needed for {n_levels} "
-                              f"zoom levels (it was built for {metadata.get('level_sets')}); rebuild with "
-                              f"`python -m data_tools build ... --levels {n_levels}`")
-        chosen.append(match[0])
-    return chosen
-
-
 def tiled_slide_arrays(bundle: Bundle, tile_size: int) -> SlideArrays:
     """Pack the tiled levels of a loaded bundle (levels chosen, coarsest first) into a tiled ``SlideArrays``:
     pools concatenated with each level's indices shifted by its pool base."""
@@ -244,7 +231,7 @@ def tiled_slide_arrays(bundle: Bundle, tile_size: int) -> SlideArrays:
         raise BundleError(bundle.path, "tile 0 of a tiled bundle must be the blank tile; rebuild the bundle")
     widths = np.array([p.width for p in bundle.pixels], dtype=np.int32)
     heights = np.array([p.height for p in bundle.pixels], dtype=np.int32)
-    downsample = [lv["downsample"] for lv in bundle.metadata["levels"]]
+    downsample = BundleMetadata(bundle.metadata).downsamples
     zeros = jnp.zeros((n,), jnp.int32)
     return SlideArrays(
         pixels=None, tumour_sat=None, level_offset=zeros, sat_offset=zeros,
@@ -276,7 +263,7 @@ def _release_pages(array) -> None:
 def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
     """Pack host arrays of a loaded bundle (levels already chosen, coarsest first) into ``SlideArrays``
     (dense, or tiled for a tiled bundle)."""
-    if bundle.metadata.get("storage") == "tiled":
+    if BundleMetadata(bundle.metadata).is_tiled:
         return tiled_slide_arrays(bundle, tile_size)
     widths = np.array([p.shape[1] for p in bundle.pixels], dtype=np.int64)
     heights = np.array([p.shape[0] for p in bundle.pixels], dtype=np.int64)
@@ -285,7 +272,7 @@ def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
     sat_offsets = np.concatenate([[0], np.cumsum(sat_sizes)[:-1]])
     if widths @ heights >= 2**31 or sat_sizes.sum() >= 2**31:
         raise BundleError(bundle.path, "too many pixels for int32 indexing in one slide; use fewer or coarser levels")
-    downsample = [lv["downsample"] for lv in bundle.metadata["levels"]]
+    downsample = BundleMetadata(bundle.metadata).downsamples
     # one host buffer per flat array, filled level by level from the (memory-mapped) bundle arrays, put on
     # the device and freed before the next: the host peak is one flat array, not several copies of it
     flat = np.empty((int(widths @ heights), 3), np.uint8)
@@ -322,8 +309,7 @@ def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
 def slide_label_from_metadata(metadata: dict) -> int:
     """Slide-level label from a bundle's annotations: 1 (tumour) when any tumour was annotated,
     else 0. Override with ``make(..., labels=...)`` (a CSV of slide, label) where that is wrong."""
-    ann = metadata.get("annotations") or {}
-    return int(float(ann.get("tumour_area_px") or 0.0) > 0.0)
+    return BundleMetadata(metadata).slide_label
 
 
 def load_slide(path, n_levels: int, verify: bool = True,
@@ -344,25 +330,21 @@ def load_slide(path, n_levels: int, verify: bool = True,
     path = Path(path)
     metadata = read_metadata(path)
     chosen = select_levels(metadata, n_levels, path)
-    needed = sum(level_device_bytes(metadata["levels"][k]) for k in chosen)
-    if metadata.get("storage") == "tiled":
-        needed += 3 * int(metadata["tile_size"]) ** 2  # the spare tile at the end of the pool
-    load_features = bool(features) or (features is None and bool(metadata.get("features")))
-    if load_features:
-        needed += feature_bytes(metadata, chosen, path)
+    load_features = bool(features) or (features is None and bool(metadata.features))
+    needed = scenario_device_bytes(metadata, chosen, load_features, path)
     if needed > max_device_bytes:
-        finest = metadata["levels"][chosen[-1]]
+        finest = metadata.levels[chosen[-1]]
         raise BundleError(path, f"{n_levels} levels need {needed:,} bytes on the device (finest level "
-                          f"{finest['width']}×{finest['height']} px), more than max_device_bytes="
+                          f"{finest.width}×{finest.height} px), more than max_device_bytes="
                           f"{max_device_bytes:,}: use fewer levels, build from a coarser finest level, or raise "
                           "max_device_bytes")
-    coarsest = len(metadata["levels"]) - 1
+    coarsest = len(metadata.levels) - 1
     if chosen[0] != coarsest:
         raise BundleError(path, "the scenario's coarsest level is not the bundle's coarsest; rebuild the bundle")
     bundle = load_bundle(path, verify=verify, levels=chosen, mmap=True)  # host copies: one flat array at a time
-    ordered = Bundle(path=bundle.path, metadata={**metadata, "levels": [metadata["levels"][k] for k in chosen]},
+    ordered = Bundle(path=bundle.path, metadata=metadata.with_levels(chosen),
                      pixels=bundle.pixels, tumour=bundle.tumour, tissue=bundle.tissue, region=bundle.region)
-    arrays = slide_arrays_from_bundle(ordered, int(metadata["tile_size"]))
+    arrays = slide_arrays_from_bundle(ordered, metadata.tile_size)
     if load_features:
         arrays = with_features(arrays, path, metadata, chosen, verify)
     allocated = sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
@@ -372,24 +354,9 @@ def load_slide(path, n_levels: int, verify: bool = True,
     return arrays, ordered
 
 
-def feature_bytes(metadata: dict, chosen: list[int], where=None) -> int:
-    """Device bytes of the feature grids of bundle levels ``chosen`` (0 if the bundle has none)."""
-    info = metadata.get("features")
-    if not info:
-        return 0
-    itemsize = np.dtype(info.get("dtype", "float32")).itemsize
-    try:
-        return sum(int(np.prod(info["levels"][k]["grid"])) * int(info["dim"]) * itemsize for k in chosen)
-    except (KeyError, IndexError, TypeError):
-        raise BundleError(where, "metadata['features'] is malformed; recompute with "
-                          "`python -m data_tools features BUNDLE`") from None
-
-
 def with_features(arrays: SlideArrays, path, metadata: dict, chosen: list[int], verify: bool = True) -> SlideArrays:
     """``arrays`` with the feature grids of bundle levels ``chosen`` (coarsest first) packed in:
     ``features`` ``(F, D)`` (dtype as stored) plus per-level offsets and grid sizes."""
-    from data_tools.features.store import load_feature_levels
-
     grids, stride = load_feature_levels(path, metadata, chosen, verify=verify)
     sizes = np.array([g.shape[0] * g.shape[1] for g in grids], dtype=np.int64)
     if sizes.sum() >= 2**31:

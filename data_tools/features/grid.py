@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.bundle import load_bundle, read_metadata
+from data_tools.bundle_format import load_bundle, read_metadata
 from data_tools.errors import BundleError
 from data_tools.features.store import level_grids, save_array, update_metadata
 
@@ -32,8 +32,8 @@ PROJECTIONS = ("random", "pca")
 
 def _settings(metadata: dict, encoder, stride: int, batch: int) -> dict:
     return {"encoder": encoder.name, "image_size": encoder.image_size, "stride": stride, "batch": batch,
-            "tile_size": int(metadata["tile_size"]), "source_sha256": metadata["source"]["sha256"],
-            "levels": [[lv["width"], lv["height"], lv["downsample"]] for lv in metadata["levels"]]}
+            "tile_size": metadata.tile_size, "source_sha256": metadata.source["sha256"],
+            "levels": [[lv["width"], lv["height"], lv["downsample"]] for lv in metadata.levels]}
 
 
 def _projection(raw: np.ndarray, dim: int | None, kind: str, seed: int):
@@ -66,7 +66,7 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
 
     bundle = Path(bundle)
     metadata = read_metadata(bundle)
-    tile = int(metadata["tile_size"])
+    tile = metadata.tile_size
     stride = int(stride or tile)
     if stride < 1 or batch < 1:
         raise BundleError(bundle, f"stride ({stride}) and batch ({batch}) must be at least 1")

@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.bundle import _sha256, read_metadata
+from data_tools.bundle_format import read_metadata, sha256
 from data_tools.errors import BundleError, HistojaxDataError
 from data_tools.features.store import level_grids, save_array, update_metadata
 
@@ -138,16 +138,15 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
     metadata = read_metadata(bundle)
     if dtype not in ("float16", "float32"):
         raise BundleError(bundle, f"dtype must be float16 or float32, got {dtype!r}")
-    tile = int(metadata["tile_size"])
+    tile = metadata.tile_size
     stride = int(stride or tile)
     coords, features, extent, info = read_patch_features(h5_path, patch_size, level, downsample)
-    region = metadata.get("region")
-    if region and region.get("box"):  # a region bundle's level-0 px start at the region's corner
-        coords = coords - np.asarray(region["box"][:2], dtype=np.float64)
-        info["region_offset"] = [float(v) for v in region["box"][:2]]
+    if (metadata.region or {}).get("box"):  # a region bundle's level-0 px start at the region's corner
+        coords = coords - np.asarray(metadata.region_offset, dtype=np.float64)
+        info["region_offset"] = list(metadata.region_offset)
     written, levels = [], []
-    for k, (lv, grid) in enumerate(zip(metadata["levels"], level_grids(metadata, stride))):
-        d = float(lv["downsample"])
+    for k, (lv, grid) in enumerate(zip(metadata.levels, level_grids(metadata, stride))):
+        d = lv.downsample
         grid_features, mask = patches_to_grid(coords, features, extent, grid, tile * d, stride * d)
         names = {"file": f"features_{k:02d}.npy", "mask_file": f"features_mask_{k:02d}.npy"}
         save_array(bundle / names["file"], grid_features.astype(dtype))
@@ -157,7 +156,7 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
     result = {
         "encoder": f"imported:{h5_path.name}", "dim": int(features.shape[1]), "stride": stride, "dtype": dtype,
         "projection": None, "source": "imported",
-        "import": {"file": h5_path.name, "sha256": _sha256(h5_path), "n_patches": int(len(coords)), **info},
+        "import": {"file": h5_path.name, "sha256": sha256(h5_path), "n_patches": int(len(coords)), **info},
         "grid": "cell (gy, gx) of level KK = the view with top-left (gx*stride, gy*stride) px of that level",
         "levels": levels,
     }

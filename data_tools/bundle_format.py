@@ -1,0 +1,595 @@
+"""The slide-bundle format, in one place: schema, file names, versions, device bytes, checksums,
+atomic writes and the verified read of every kind of bundle (dense, tiled, feature grids).
+
+Why here, in ``data_tools`` (the lower layer, numpy only): data flows one way. ``data_tools``
+(offline: slide readers, shapely, PIL) *writes* bundles; ``histojax`` (the environment, JAX)
+*reads* them. Both need the format, and the reader must not pull in the writer nor the writer
+JAX, so the format is its own module of the lower package, imported by the writer
+(:mod:`data_tools.bundle`, :mod:`data_tools.tiled`, :mod:`data_tools.features`) and by every
+reader (:mod:`histojax.slide`, :mod:`histojax.render`, :mod:`histojax.cache`); it imports nothing
+of either (only the leaf module of error types). Nothing else reads ``metadata.json`` or checks a
+checksum.
+
+A bundle is one folder with ``metadata.json`` (:data:`METADATA`) and ``.npy`` arrays. For each
+zoom level the environment may use (``metadata["levels"]`` lists them finest first):
+  * dense (format version 1): ``pixels_KK.npy`` ``(H, W, 3)`` uint8 RGB and ``tumour_KK.npy``
+    ``(H, W)`` uint8 0/1 tumour mask (exclusion holes removed);
+  * tiled (format version 2, gigapixel slides): tile pools and index grids per level (see
+    :class:`TiledLevel` and :mod:`data_tools.tiled`);
+plus ``tissue.npy`` (bool, coarsest level), ``annotations.geojson`` (level-0 px), ``region.npy``
+(region bundles) and optional feature grids ``features_KK.npy`` (``metadata["features"]``).
+Every file's SHA-256 is recorded in ``metadata["checksums"]`` and checked on load; arrays are read
+with ``allow_pickle=False``. :class:`BundleMetadata` is the typed view of ``metadata.json``.
+"""
+from __future__ import annotations
+
+import contextlib
+import hashlib
+import json
+import math
+import os
+import shutil
+import uuid
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.errors import BundleError
+
+FORMAT_VERSION = 1        # dense bundles (pixels_KK.npy / tumour_KK.npy)
+TILED_FORMAT_VERSION = 2  # tiled bundles (tile pools + index grids, see data_tools.tiled)
+READ_VERSIONS = (FORMAT_VERSION, TILED_FORMAT_VERSION)
+STORAGES = ("dense", "tiled", "auto")
+METADATA = "metadata.json"
+TISSUE = "tissue.npy"
+REGION = "region.npy"
+ANNOTATIONS = "annotations.geojson"
+LEVEL_SETS = (3, 5, 7)
+MAX_FLAT_PIXELS = 2**31 // 2  # the env indexes pixels with int32
+FEATURES_COMMAND = "python -m data_tools features BUNDLE"
+
+
+def level_files(k: int) -> dict[str, str]:
+    """File names of dense bundle level ``k`` (finest first): ``{"pixels": ..., "tumour": ...}``."""
+    return {"pixels": f"pixels_{k:02d}.npy", "tumour": f"tumour_{k:02d}.npy"}
+
+
+def tiled_level_files(k: int) -> dict[str, str]:
+    """File names of tiled bundle level ``k``: tile pool, tile index, SAT pool, SAT index."""
+    return {"tiles": f"tiles_{k:02d}.npy", "tile_index": f"tile_index_{k:02d}.npy",
+            "sat_tiles": f"sat_tiles_{k:02d}.npy", "sat_index": f"sat_index_{k:02d}.npy"}
+
+
+# ----------------------------------------------------------------------------- level geometry
+def default_magnification_range(width: int, height: int, tile_size: int) -> float:
+    """Largest power of two ``R`` such that the slide's shorter side is still at least one view
+    (``tile_size`` px) at downsample ``R``: at the coarsest level one view shows most of the slide."""
+    shorter = min(width, height)
+    r = 1
+    while shorter / (r * 2) >= tile_size:
+        r *= 2
+    return float(r)
+
+
+def level_downsamples(n_levels: int, magnification_range: float) -> list[float]:
+    """Downsamples (level-0 px per level px) of an ``n_levels`` scenario, coarsest first.
+
+    Level ``z`` (0 = coarsest) has downsample ``R ** ((n - 1 - z) / (n - 1))``: the
+    same range ``R`` for every scenario, split into equal zoom steps in log scale.
+    """
+    if n_levels < 2:
+        raise ValueError(f"a scenario needs at least 2 zoom levels, got {n_levels}")
+    return [float(magnification_range ** ((n_levels - 1 - z) / (n_levels - 1))) for z in range(n_levels)]
+
+
+def bundle_downsamples(level_sets, magnification_range: float) -> list[float]:
+    """The union of the downsamples of all requested level counts, finest first (deduplicated)."""
+    found: list[float] = []
+    for n in level_sets:
+        for d in level_downsamples(n, magnification_range):
+            if not any(math.isclose(d, e, rel_tol=1e-9) for e in found):
+                found.append(d)
+    return sorted(found)
+
+
+def level_size(width0: int, height0: int, downsample: float) -> tuple[int, int]:
+    """(width, height) in px of a level at ``downsample`` of a level-0 ``width0 × height0`` slide."""
+    return max(1, int(width0 // downsample)), max(1, int(height0 // downsample))
+
+
+def device_bytes(width: int, height: int) -> int:
+    """Device bytes the env needs for one ``width × height`` px level: RGB uint8 pixels plus the
+    int32 summed-area table of its tumour mask."""
+    return 3 * width * height + 4 * (width + 1) * (height + 1)
+
+
+def level_device_bytes(level: dict) -> int:
+    """Device bytes of one bundle level from its metadata: dense (:func:`device_bytes`) or tiled (the
+    recorded pool and index bytes, see :mod:`data_tools.tiled`)."""
+    if level.get("storage") == "tiled":
+        return int(level["device_bytes"])
+    return device_bytes(level["width"], level["height"])
+
+
+def grid_shape(width: int, height: int, tile_size: int, stride: int) -> tuple[int, int]:
+    """``(gh, gw)``: feature-grid positions of ``tile_size`` views every ``stride`` px inside a
+    ``width × height`` px level (``gw = (W − tile_size) // stride + 1``, likewise ``gh``)."""
+    if stride < 1:
+        raise ValueError(f"stride must be at least 1 px, got {stride}")
+    return max(0, (height - tile_size) // stride + 1), max(0, (width - tile_size) // stride + 1)
+
+
+def level_grids(metadata: dict, stride: int) -> list[tuple[int, int]]:
+    """``(gh, gw)`` feature grid of every bundle level (finest first)."""
+    t = int(metadata["tile_size"])
+    return [grid_shape(int(lv["width"]), int(lv["height"]), t, stride) for lv in metadata["levels"]]
+
+
+# ----------------------------------------------------------------------------- typed metadata
+class LevelMeta(dict):
+    """One entry of ``metadata["levels"]`` (a dict, as stored) with typed read access."""
+
+    @property
+    def downsample(self) -> float:
+        """Level-0 px per px of this level."""
+        return float(self["downsample"])
+
+    @property
+    def width(self) -> int:
+        """Level width in px (padded to at least one view)."""
+        return int(self["width"])
+
+    @property
+    def height(self) -> int:
+        """Level height in px (padded to at least one view)."""
+        return int(self["height"])
+
+    @property
+    def is_tiled(self) -> bool:
+        """True for a tiled level (tile pools instead of dense arrays)."""
+        return self.get("storage") == "tiled"
+
+    @property
+    def device_bytes(self) -> int:
+        """Device bytes of this level (:func:`level_device_bytes`)."""
+        return level_device_bytes(self)
+
+
+class BundleMetadata(dict):
+    """``metadata.json`` of a bundle: the JSON object as read (a dict, so ``metadata["key"]`` still
+    works and it is written back unchanged) with typed properties for every field readers use."""
+
+    @property
+    def format_version(self) -> int:
+        """1 dense, 2 tiled."""
+        return int(self["format_version"])
+
+    @property
+    def storage(self) -> str:
+        """``"dense"`` or ``"tiled"``."""
+        return self.get("storage", "dense")
+
+    @property
+    def is_tiled(self) -> bool:
+        return self.storage == "tiled"
+
+    @property
+    def tile_size(self) -> int:
+        """View size in px."""
+        return int(self["tile_size"])
+
+    @property
+    def magnification_range(self) -> float:
+        """Coarsest downsample ``R`` (level-0 px per px)."""
+        return float(self["magnification_range"])
+
+    @property
+    def level_sets(self) -> list[int] | None:
+        """Scenario level counts the bundle was built for (e.g. ``[3, 5, 7]``)."""
+        return self.get("level_sets")
+
+    @property
+    def levels(self) -> list[LevelMeta]:
+        """Bundle levels, finest first."""
+        return [LevelMeta(lv) for lv in self["levels"]]
+
+    @property
+    def downsamples(self) -> list[float]:
+        """Downsample of every bundle level, finest first."""
+        return [float(lv["downsample"]) for lv in self["levels"]]
+
+    @property
+    def checksums(self) -> dict[str, str]:
+        """SHA-256 hex digest of every file, by name."""
+        return self["checksums"]
+
+    @property
+    def tissue_file(self) -> str:
+        """File name of the coarsest level's tissue mask."""
+        return self["tissue"]["file"]
+
+    @property
+    def region_mask_file(self) -> str | None:
+        """File name of the allowed-start mask of a region bundle, else ``None``."""
+        region = self.get("region")
+        return region.get("mask") if region else None
+
+    @property
+    def region(self) -> dict | None:
+        """The region record of a region bundle (``box`` in slide px, ``kind``, ``mask``), else ``None``."""
+        return self.get("region") or None
+
+    @property
+    def region_offset(self) -> tuple[float, float]:
+        """Level-0 slide px of the bundle's level-0 px ``(0, 0)``: the region's corner, else ``(0, 0)``."""
+        box = (self.region or {}).get("box")
+        return (float(box[0]), float(box[1])) if box else (0.0, 0.0)
+
+    @property
+    def features(self) -> dict | None:
+        """The feature-grid record (encoder, dim, stride, levels, projection), ``None`` without one."""
+        return self.get("features") or None
+
+    @property
+    def annotations(self) -> dict | None:
+        """The annotation source record (file, sha256, tumour_area_px, ...), ``None`` without one."""
+        return self.get("annotations") or None
+
+    @property
+    def source(self) -> dict:
+        """The slide source record (file, sha256, format, width, height, mpp)."""
+        return self.get("source") or {}
+
+    @property
+    def slide_label(self) -> int:
+        """Slide-level label: 1 (tumour) when any tumour was annotated, else 0."""
+        return int(float((self.annotations or {}).get("tumour_area_px") or 0.0) > 0.0)
+
+    def with_levels(self, chosen: list[int]) -> "BundleMetadata":
+        """A copy holding only bundle levels ``chosen`` (in that order)."""
+        return BundleMetadata({**self, "levels": [self["levels"][k] for k in chosen]})
+
+
+def select_levels(metadata: dict, n_levels: int, where="") -> list[int]:
+    """Bundle level indices (finest-first order in the metadata) of an ``n_levels`` scenario, coarsest first."""
+    available = [lv["downsample"] for lv in metadata["levels"]]
+    chosen = []
+    for d in level_downsamples(n_levels, metadata["magnification_range"]):
+        match = [k for k, a in enumerate(available) if math.isclose(a, d, rel_tol=1e-6)]
+        if not match:
+            raise BundleError(where or None, f"bundle has no level at downsample {d:.4g} needed for {n_levels} "
+                              f"zoom levels (it was built for {metadata.get('level_sets')}); rebuild with "
+                              f"`python -m data_tools build ... --levels {n_levels}`")
+        chosen.append(match[0])
+    return chosen
+
+
+def feature_bytes(metadata: dict, chosen: list[int], where=None) -> int:
+    """Device bytes of the feature grids of bundle levels ``chosen`` (0 if the bundle has none)."""
+    info = metadata.get("features")
+    if not info:
+        return 0
+    itemsize = np.dtype(info.get("dtype", "float32")).itemsize
+    try:
+        return sum(int(np.prod(info["levels"][k]["grid"])) * int(info["dim"]) * itemsize for k in chosen)
+    except (KeyError, IndexError, TypeError):
+        raise BundleError(where, "metadata['features'] is malformed; recompute with "
+                          "`python -m data_tools features BUNDLE`") from None
+
+
+def scenario_device_bytes(metadata: dict, chosen: list[int], features: bool, where=None) -> int:
+    """Device bytes of bundle levels ``chosen``: pixels and summed-area tables (dense) or pools and index
+    grids (tiled, plus the spare blank tile), plus their feature grids when ``features``."""
+    needed = sum(level_device_bytes(metadata["levels"][k]) for k in chosen)
+    if metadata.get("storage") == "tiled":
+        needed += 3 * int(metadata["tile_size"]) ** 2  # the spare tile at the end of the pool
+    if features:
+        needed += feature_bytes(metadata, chosen, where)
+    return needed
+
+
+# ----------------------------------------------------------------------------- checksums
+def sha256(path) -> str:
+    """Hex SHA-256 of a file's bytes; of a folder (a DICOM WSI), of its files' names and bytes in name order."""
+    h = hashlib.sha256()
+    folder = Path(path).is_dir()
+    for file in sorted(p for p in Path(path).iterdir() if p.is_file()) if folder else [Path(path)]:
+        if folder:
+            h.update(file.name.encode() + b"\0")
+        with open(file, "rb") as f:
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+    return h.hexdigest()
+
+
+def file_digest(path, limit: int = 256 * 2**20) -> str:
+    """SHA-256 of a file's content (files over ``limit`` bytes: its size, first and last 16 MiB),
+    so a cached bundle is rebuilt when the slide changes without reading gigabytes each time."""
+    path = Path(path)
+    if path.stat().st_size <= limit:
+        return sha256(path)
+    h = hashlib.sha256()
+    size = path.stat().st_size
+    with open(path, "rb") as f:
+        h.update(str(size).encode())
+        h.update(f.read(16 * 2**20))
+        f.seek(size - 16 * 2**20)
+        h.update(f.read())
+    return h.hexdigest()
+
+
+def text_digest(text: str | bytes, length: int = 16) -> str:
+    """The first ``length`` hex digits of the SHA-256 of ``text`` (a cache key)."""
+    return hashlib.sha256(text.encode() if isinstance(text, str) else text).hexdigest()[:length]
+
+
+# ----------------------------------------------------------------------------- atomic writes
+@contextlib.contextmanager
+def atomic_file(path):
+    """Yield a temporary sibling path of ``path`` (``.NAME.tmp-XXXXXXXX``); when the block ends the
+    file there is fsync-ed and ``os.replace``-d onto ``path`` (readers never see half a file). On an
+    error the temporary file is removed and ``path`` is left as it was."""
+    path = Path(path)
+    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    try:
+        yield tmp
+        with open(tmp, "rb+") as f:
+            os.fsync(f.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        tmp.unlink(missing_ok=True)
+        raise
+
+
+def save_array(path, array: np.ndarray) -> None:
+    """``np.save`` (no pickles) atomically onto ``path`` (see :func:`atomic_file`)."""
+    with atomic_file(path) as tmp, open(tmp, "wb") as f:
+        np.save(f, array, allow_pickle=False)
+
+
+def write_metadata(folder, metadata: dict) -> None:
+    """Write ``metadata.json`` of the bundle at ``folder`` atomically (indent 1, as every bundle has it)."""
+    with atomic_file(Path(folder) / METADATA) as tmp, open(tmp, "w") as f:
+        json.dump(metadata, f, indent=1)
+
+
+@contextlib.contextmanager
+def atomic_folder(out_dir):
+    """Yield a temporary sibling folder of ``out_dir`` (``.NAME.tmp-XXXXXXXX``) to fill; when the block
+    ends it is renamed onto ``out_dir`` (a previous ``out_dir`` is moved aside first and put back if the
+    rename fails), so a crash leaves nothing that looks like a bundle. On an error the temporary folder
+    is removed and ``out_dir`` is left as it was."""
+    out_dir = Path(out_dir)
+    tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
+    try:
+        yield tmp
+        if out_dir.exists():
+            old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
+            out_dir.rename(old)
+            try:
+                tmp.rename(out_dir)
+            except BaseException:
+                old.rename(out_dir)  # put the previous bundle back
+                raise
+            shutil.rmtree(old, ignore_errors=True)
+        else:
+            tmp.rename(out_dir)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+
+
+# ----------------------------------------------------------------------------- verified read
+@dataclass
+class TiledLevel:
+    """A tiled level on the host: ``pool[index[ty, tx]]`` is tile ``(ty, tx)``. Behaves like the dense
+    ``(H, W, 3)`` (or, for tumour, ``(H, W)``) array for ``shape``, 2-D slicing and ``np.asarray``
+    (materialised on demand: only for small levels or crops)."""
+
+    pool: np.ndarray   # (N, T, T, 3) uint8 or (M, T+1, T+1) uint32 local SATs
+    index: np.ndarray  # (gh, gw) int32
+    height: int
+    width: int
+    kind: str = "pixels"  # "pixels" or "tumour" (SAT pool → 0/1 mask)
+
+    @property
+    def tile_size(self) -> int:
+        return int(self.pool.shape[1]) - (1 if self.kind == "tumour" else 0)
+
+    @property
+    def shape(self):
+        return (self.height, self.width, 3) if self.kind == "pixels" else (self.height, self.width)
+
+    @property
+    def dtype(self):
+        return np.dtype(np.uint8)
+
+    @property
+    def ndim(self) -> int:
+        return len(self.shape)
+
+    def _tiles(self, ids: np.ndarray) -> np.ndarray:
+        tiles = np.asarray(self.pool[ids.ravel()])
+        if self.kind == "tumour":
+            s = tiles.astype(np.int64)
+            tiles = (s[:, 1:, 1:] - s[:, :-1, 1:] - s[:, 1:, :-1] + s[:, :-1, :-1]).astype(np.uint8)
+        return tiles
+
+    def crop(self, y0: int, y1: int, x0: int, x1: int) -> np.ndarray:
+        """Rows ``y0:y1`` and columns ``x0:x1`` (px, clipped to the level) as a dense array."""
+        y0, y1, x0, x1 = max(0, y0), min(self.height, y1), max(0, x0), min(self.width, x1)
+        t = self.tile_size
+        if y1 <= y0 or x1 <= x0:
+            return np.zeros((max(0, y1 - y0), max(0, x1 - x0)) + self.shape[2:], np.uint8)
+        ty0, ty1, tx0, tx1 = y0 // t, (y1 - 1) // t + 1, x0 // t, (x1 - 1) // t + 1
+        ids = self.index[ty0:ty1, tx0:tx1]
+        tiles = self._tiles(ids).reshape(ids.shape + (t, t) + self.shape[2:])
+        full = np.moveaxis(tiles, 2, 1).reshape((ids.shape[0] * t, ids.shape[1] * t) + self.shape[2:])
+        return np.ascontiguousarray(full[y0 - ty0 * t:y1 - ty0 * t, x0 - tx0 * t:x1 - tx0 * t])
+
+    def __getitem__(self, key):
+        if not isinstance(key, tuple):
+            key = (key,)
+        key = key + (slice(None),) * (2 - len(key))
+        rows, cols = key[0], key[1]
+        if not (isinstance(rows, slice) and isinstance(cols, slice)) or rows.step not in (None, 1) \
+                or cols.step not in (None, 1):
+            return np.asarray(self)[key]
+        y0, y1, _ = rows.indices(self.height)
+        x0, x1, _ = cols.indices(self.width)
+        out = self.crop(y0, y1, x0, x1)
+        return out[(slice(None), slice(None)) + key[2:]] if len(key) > 2 else out
+
+    def __array__(self, dtype=None, copy=None):
+        out = self.crop(0, self.height, 0, self.width)
+        return out if dtype is None else out.astype(dtype)
+
+    def sum(self) -> int:
+        """Sum of the level (tumour px count for a tumour level) without materialising it."""
+        if self.kind != "tumour":
+            return int(np.asarray(self).sum())
+        t = self.tile_size
+        totals = np.asarray(self.pool[:, t, t]).astype(np.int64)
+        return int(totals[self.index].sum())
+
+
+@dataclass(frozen=True)
+class Bundle:
+    """A loaded bundle (host numpy arrays). ``levels`` are finest first, as in the metadata."""
+
+    path: Path
+    metadata: BundleMetadata
+    pixels: list[np.ndarray]   # (H, W, 3) uint8 per level (tiled bundles: lazy TiledLevel)
+    tumour: list[np.ndarray]   # (H, W) uint8 0/1 per level (tiled bundles: TiledLevel of local SATs)
+    tissue: np.ndarray         # (H, W) bool at the coarsest bundle level
+    region: np.ndarray | None = None  # (H, W) bool at the coarsest level: allowed view centres (region bundles)
+
+    @property
+    def downsamples(self) -> list[float]:
+        return [lv["downsample"] for lv in self.metadata["levels"]]
+
+    @property
+    def tile_size(self) -> int:
+        return int(self.metadata["tile_size"])
+
+    @property
+    def storage(self) -> str:
+        return self.metadata.get("storage", "dense")
+
+
+def read_metadata(path) -> BundleMetadata:
+    """Read and check ``metadata.json`` of the bundle at ``path`` (format version, fields)."""
+    path = Path(path)
+    meta_file = path / METADATA
+    if not meta_file.is_file():
+        raise BundleError(path, f"not a slide bundle (no {METADATA}); build one with "
+                          "`python -m data_tools build SLIDE --out DIR`")
+    try:
+        metadata = json.loads(meta_file.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise BundleError(meta_file, f"unreadable metadata ({e}); rebuild the bundle") from None
+    if not isinstance(metadata, dict):
+        raise BundleError(meta_file, "metadata is not a JSON object; rebuild the bundle")
+    if metadata.get("format_version") not in READ_VERSIONS:
+        raise BundleError(path, f"bundle format version {metadata.get('format_version')!r}, this histojax reads "
+                          f"versions {READ_VERSIONS}; rebuild it with `python -m data_tools build`")
+    if (metadata.get("storage", "dense") == "tiled") != (metadata["format_version"] == TILED_FORMAT_VERSION):
+        raise BundleError(meta_file, "storage and format version disagree; rebuild the bundle")
+    for key in ("tile_size", "levels", "checksums", "magnification_range", "tissue"):
+        if key not in metadata:
+            raise BundleError(meta_file, f"metadata lacks {key!r}; rebuild the bundle")
+    return BundleMetadata(metadata)
+
+
+def load_array(path, name: str, metadata: dict, verify: bool, mmap: bool = False) -> np.ndarray:
+    """The array ``name`` of the bundle at ``path`` (no pickles), its SHA-256 checked against the
+    metadata when ``verify``; ``mmap`` memory-maps it read-only."""
+    path = Path(path)
+    file = path / name
+    if not file.is_file():
+        raise BundleError(path, f"missing array {name}; rebuild the bundle")
+    if verify and sha256(file) != metadata["checksums"].get(name):
+        raise BundleError(file, "checksum mismatch (the file changed or is corrupt); rebuild the bundle")
+    try:
+        return np.load(file, allow_pickle=False, mmap_mode="r" if mmap else None)
+    except (ValueError, OSError) as e:
+        raise BundleError(file, f"unreadable array ({e}); rebuild the bundle") from None
+
+
+def load_tiled_level(path, lv: dict, metadata: dict, verify: bool, kind: str) -> TiledLevel:
+    """One tiled level as a lazy :class:`TiledLevel` (pools memory-mapped); ``kind`` is
+    ``"pixels"`` or ``"tumour"``."""
+    path = Path(path)
+    t = int(metadata["tile_size"])
+    pool_name, index_name = ("tiles", "tile_index") if kind == "pixels" else ("sat_tiles", "sat_index")
+    pool = load_array(path, lv[pool_name], metadata, verify, mmap=True)
+    index = load_array(path, lv[index_name], metadata, verify)
+    item = (t, t, 3) if kind == "pixels" else (t + 1, t + 1)
+    dtype = np.uint8 if kind == "pixels" else np.uint32
+    grid = (-(-lv["height"] // t), -(-lv["width"] // t))
+    if pool.shape[1:] != item or pool.dtype != dtype or pool.shape[0] < 1 or index.shape != grid \
+            or index.dtype != np.int32 or (index.size and (index.min() < 0 or index.max() >= pool.shape[0])):
+        raise BundleError(path / lv[pool_name], "tile pool or index disagrees with metadata; rebuild the bundle")
+    return TiledLevel(pool=pool, index=index, height=int(lv["height"]), width=int(lv["width"]), kind=kind)
+
+
+def load_bundle(path, verify: bool = True, levels: list[int] | None = None, mmap: bool = False,
+                metadata: dict | None = None) -> Bundle:
+    """Load the bundle at ``path`` (host numpy arrays); ``levels`` selects bundle level indices
+    (finest first, as in the metadata; default all). Checksums are verified unless ``verify=False``.
+    ``mmap=True`` memory-maps the dense level arrays (read-only) instead of reading them into memory.
+    ``metadata`` skips reading ``metadata.json`` again when the caller has just read it."""
+    path = Path(path)
+    metadata = read_metadata(path) if metadata is None else BundleMetadata(metadata)
+    chosen = range(len(metadata["levels"])) if levels is None else levels
+    pixels, tumour = [], []
+    for k in chosen:
+        lv = metadata["levels"][k]
+        if lv.get("storage") == "tiled":
+            pixels.append(load_tiled_level(path, lv, metadata, verify, "pixels"))
+            tumour.append(load_tiled_level(path, lv, metadata, verify, "tumour"))
+            continue
+        pixels.append(load_array(path, lv["pixels"], metadata, verify, mmap=mmap))
+        tumour.append(load_array(path, lv["tumour"], metadata, verify, mmap=mmap))
+        for name, array, shape in ((lv["pixels"], pixels[-1], (lv["height"], lv["width"], 3)),
+                                   (lv["tumour"], tumour[-1], (lv["height"], lv["width"]))):
+            if array.shape != shape or array.dtype != np.uint8:
+                raise BundleError(path / name, f"array {array.shape} {array.dtype} disagrees with the metadata "
+                                  f"({shape} uint8); rebuild the bundle")
+    tissue = load_array(path, metadata.tissue_file, metadata, verify)
+    region = None
+    if metadata.region_mask_file:
+        region = load_array(path, metadata.region_mask_file, metadata, verify).astype(bool)
+    return Bundle(path=path, metadata=metadata, pixels=pixels, tumour=tumour, tissue=tissue, region=region)
+
+
+def load_feature_levels(bundle, metadata: dict, levels: list[int], verify: bool = True):
+    """The feature grids of bundle ``levels`` (indices into ``metadata["levels"]``) and the grid
+    stride: ``([(gh, gw, D) arrays], stride)``. Raises ``BundleError`` naming the command to run
+    when the bundle has no feature grid."""
+    bundle = Path(bundle)
+    info = metadata.get("features")
+    if not info:
+        raise BundleError(bundle, "has no feature grid (needed for obs_mode='features'); compute one with "
+                          f"`python -m data_tools features {bundle}` or import one with "
+                          f"`python -m data_tools import-features {bundle} FILE.h5 --patch-size P --level L`")
+    stride, dim = int(info["stride"]), int(info["dim"])
+    expected = level_grids(metadata, stride)
+    arrays = []
+    for k in levels:
+        entry = info["levels"][k]
+        array = load_array(bundle, entry["file"], metadata, verify)
+        if array.shape != (*expected[k], dim) or array.dtype.kind != "f":
+            raise BundleError(bundle / entry["file"], f"feature grid of shape {array.shape} ({array.dtype}), expected "
+                              f"{(*expected[k], dim)} floats; recompute it with `{FEATURES_COMMAND}`")
+        arrays.append(array)
+    return arrays, stride
+
+
+__all__ = ["ANNOTATIONS", "Bundle", "BundleMetadata", "FEATURES_COMMAND", "FORMAT_VERSION", "LEVEL_SETS",
+           "LevelMeta", "MAX_FLAT_PIXELS", "METADATA", "READ_VERSIONS", "REGION", "STORAGES", "TILED_FORMAT_VERSION",
+           "TISSUE", "TiledLevel", "atomic_file", "atomic_folder", "bundle_downsamples", "default_magnification_range",
+           "device_bytes", "feature_bytes", "file_digest", "scenario_device_bytes", "select_levels", "grid_shape", "level_device_bytes", "level_downsamples", "level_files",
+           "level_grids", "level_size", "load_array", "load_bundle", "load_feature_levels", "load_tiled_level",
+           "read_metadata", "save_array", "sha256", "text_digest", "tiled_level_files", "write_metadata"]

@@ -145,10 +145,10 @@ def main() -> None:
                         str(tif.with_suffix(".geojson")), "--out", str(bundle), "--levels", str(args.levels),
                         "--tile-size", str(args.tile_size), "--storage", "tiled", "--overwrite"], check=True)
         results["build_seconds"] = round(time.perf_counter() - t0, 1)
-    from data_tools.bundle import read_metadata
+    from data_tools.bundle_format import read_metadata
 
     meta = read_metadata(bundle)
-    t = int(meta["tile_size"])
+    t = meta.tile_size
     results["build_peak_rss_bytes"] = meta["build"]["peak_rss_bytes"]
     results["build_seconds_per_level"] = meta["build"]["seconds_per_level"]
     print(f"build: {results.get('build_seconds', 'n/a')} s, peak RSS {results['build_peak_rss_bytes'] / 2**20:.0f} MiB",

@@ -31,7 +31,6 @@ from __future__ import annotations
 import argparse
 import contextlib
 import dataclasses
-import hashlib
 import os
 import platform
 import sys
@@ -445,21 +444,15 @@ def crop_alternatives(env, params, batch: int, seconds: float, bandwidth: float,
 # --------------------------------------------------------------------------- main
 def slide_and_bundle(args):
     """``(slide path, annotation path, bundle path or None for the embedded sample)``."""
-    from histojax.sample import SAMPLE_ANNOTATIONS, SAMPLE_SLIDE, cache_dir
+    from histojax.cache import cached_bundle
+    from histojax.sample import SAMPLE_ANNOTATIONS, SAMPLE_SLIDE
 
     if args.slide is None:
         return SAMPLE_SLIDE, SAMPLE_ANNOTATIONS, None
     if args.annotations is None:
         raise SystemExit("--slide needs --annotations (the reward needs the tumour polygons)")
-    from data_tools.bundle import build_bundle
-
     slide, ann = Path(args.slide), Path(args.annotations)
-    st_s, st_a = slide.stat(), ann.stat()
-    key = hashlib.sha256(f"{slide.resolve()}|{st_s.st_size}|{st_s.st_mtime_ns}|{ann.resolve()}|"
-                         f"{st_a.st_size}|{st_a.st_mtime_ns}|{args.tile_size}".encode()).hexdigest()[:12]
-    out = cache_dir() / f"vs-histogym-{slide.stem}-t{args.tile_size}-{key}"
-    if not (out / "metadata.json").is_file():
-        build_bundle(slide, out, annotations_path=ann, tile_size=args.tile_size, progress=False)
+    out = cached_bundle(slide, ann, tile_size=args.tile_size, prefix=f"vs-histogym-{slide.stem}", storage="dense")
     return slide, ann, out
 
 

@@ -31,7 +31,7 @@ from data_tools.pcam_bank import PATCH, PatchBank
 
 TIFF_TILE = 256
 MIN_LEVEL_SIDE = 512
-GLASS = np.array([240, 239, 243], np.uint8)
+GLASS = np.array([255, 255, 255], np.uint8)  # as the blank tile of a tiled bundle
 PER_CLASS = 256
 STAIN_RANGE = (0.85, 1.15)     # per-channel optical-density factor of a slide
 DENSITY_RANGE = (0.8, 1.2)     # whole-slide optical-density factor

@@ -71,7 +71,7 @@ def cv_auc(x, y, groups, folds: int = 2, seed: int = 0) -> float:
     return float(np.mean(scores))
 
 
-def dataset_views(folder: Path, per_class: int, seed: int = 0):
+def dataset_views(folder: Path, per_class: int, seed: int = 0, min_tissue: float = 0.5):
     """Views ``(n, T, T, 3)``, labels and slide names: every grid-aligned finest-level view of every
     slide with tumour ≥ 50 % and as many tumour-free tissue views, at most ``per_class`` per slide and class."""
     from data_tools.bundle import load_bundle
@@ -96,7 +96,7 @@ def dataset_views(folder: Path, per_class: int, seed: int = 0):
                 break
             ty, tx = neg[i]
             v = pix.crop(ty * t, ty * t + t, tx * t, tx * t + t)
-            if (v.min(axis=-1) < GLASS_MIN).mean() >= 0.5:
+            if (v.min(axis=-1) < GLASS_MIN).mean() >= min_tissue:
                 picks.append((neg[i], 0))
         for (ty, tx), lab in picks:
             views.append(pix.crop(ty * t, ty * t + t, tx * t, tx * t + t))
@@ -110,13 +110,15 @@ def main(argv=None) -> int:
     p.add_argument("--dataset", required=True, help="a data_tools c16 dataset folder")
     p.add_argument("--patches", default=None, help="real PCam patches (folder/.tar.gz/bank .npz; default: shipped bank)")
     p.add_argument("--per-class", type=int, default=300, help="views per slide and class (default 300)")
+    p.add_argument("--min-tissue", type=float, default=0.5,
+                   help="a tumour-free view counts as tissue with at least this fraction of non-glass px (0.5)")
     p.add_argument("--embed", type=int, default=600, help="views (and patches) per class embedded by "
                                                         "EfficientNet-Lite0 (default 600; 0 skips it)")
     args = p.parse_args(argv)
     from data_tools.pcam_bank import load_bank
 
     t0 = time.perf_counter()
-    views, y, groups = dataset_views(Path(args.dataset), args.per_class)
+    views, y, groups = dataset_views(Path(args.dataset), args.per_class, min_tissue=args.min_tissue)
     bank = load_bank(args.patches)
     patches = bank.decode(np.arange(len(bank)))
     py = bank.labels.astype(int)

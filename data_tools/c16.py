@@ -174,6 +174,47 @@ def _views_ge(meta: dict, bundle: Path, threshold: float = 0.5) -> int:
     return int((counts >= threshold * t * t).sum())
 
 
+def slide_seed(seed: int, name: str) -> int:
+    """The texture seed of slide ``name`` (the same in any subset or order)."""
+    import zlib
+
+    return (int(seed) * 1_000_003 + zlib.crc32(name.encode())) & 0x7FFFFFFF
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(bank, progress: bool) -> None:
+    _WORKER.update(bank=bank, progress=progress)
+
+
+def _one_slide(job) -> dict:
+    """Make one slide and its bundle (skipping what is done); its record for ``dataset.json``."""
+    out_dir, slide, donor, d, seed, jpeg_quality, mag, features = job
+    s0 = time.perf_counter()
+    name = slide.name
+    prov = make_slide(out_dir, slide, donor, d, seed, _WORKER["bank"], jpeg_quality, _WORKER["progress"])
+    meta = make_bundle(out_dir, name, prov, mag)
+    if features and not meta.get("features"):
+        from data_tools.features.grid import compute_features
+
+        compute_features(out_dir / "bundles" / name, progress=_WORKER["progress"])
+    return {
+        "name": name, "bundle": f"bundles/{name}", "tiff": f"slides/{name}.tif",
+        "label": int(slide.is_tumour_slide), "tissue": prov["tissue"],
+        "tissue_donor": prov.get("tissue_donor"), "canvas": prov["canvas"], "mpp": prov["mpp"],
+        "tumour_area_level0_px2": prov["tumour_area_level0_px2"],
+        "tumour_fraction_of_tissue": round(prov["tumour_fraction_of_tissue"], 6),
+        "finest_views_ge50": _views_ge(meta, out_dir / "bundles" / name),
+        "stain_od_factors": prov["stain_od_factors"],
+        "tiff_bytes": prov["tiff_bytes"],
+        "bundle_bytes": sum(f.stat().st_size for f in (out_dir / "bundles" / name).iterdir()),
+        "device_bytes_pixels": int(meta["device_bytes"]),
+        "seconds_slide": prov["seconds"], "seconds_total": round(time.perf_counter() - s0, 2),
+        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+    }
+
+
 class _Lock:
     def __init__(self, out_dir: Path):
         out_dir.mkdir(parents=True, exist_ok=True)
@@ -195,7 +236,7 @@ class _Lock:
 def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = False, downsample: float | None = None,
                      names=None, n_tumour: int | None = None, n_normal: int | None = None, seed: int = 0,
                      test_fraction: float = 0.25, features: bool = False, jpeg_quality: int = 85,
-                     progress: bool = True) -> dict:
+                     progress: bool = True, workers: int = 1) -> dict:
     """Make (or finish) the true-scale CAMELYON16 dataset in ``out_dir`` (see the module doc).
 
     ``annotations``: a folder or ``.tar.gz`` of NCRF JSON files (default: the 6 shipped with the
@@ -204,6 +245,7 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     32 (seconds). ``downsample``: output px per CAMELYON16 level-0 px (default 8, small 32).
     ``names`` / ``n_tumour`` / ``n_normal``: a subset (default every slide found). The env's
     coarsest level is CAMELYON16 level 0 / 256 (``magnification_range = 256 / downsample``).
+    ``workers``: slides made in parallel processes (each holds one slide's memory, ~1.5 GB at D = 8).
     Returns the ``dataset.json`` dict.
     """
     from data_tools.ncrf import SHIPPED_DIR, read_ncrf
@@ -234,30 +276,26 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
                     raise HistojaxDataError(annotations, f"{n} needs a Normal_* slide to lend it tissue; none given")
                 donors[n] = donor_for(n, tumours_all, normals_all)
         t0 = time.perf_counter()
-        records = []
-        for i, name in enumerate(tqdm(todo, desc="c16 slides", unit="slide", disable=not progress)):
-            s0 = time.perf_counter()
-            prov = make_slide(out_dir, slides[name], slides.get(donors.get(name)), d, seed * 100_003 + i, bank,
-                              jpeg_quality, progress)
-            meta = make_bundle(out_dir, name, prov, mag)
-            if features:
-                from data_tools.features.grid import compute_features
+        jobs = [(out_dir, slides[n], slides.get(donors.get(n)), d, slide_seed(seed, n), jpeg_quality, mag, features)
+                for n in todo]
+        bar = tqdm(total=len(todo), desc="c16 slides", unit="slide", disable=not progress)
+        if workers <= 1:
+            _init_worker(bank, progress)
+            records = []
+            for job in jobs:
+                records.append(_one_slide(job))
+                bar.update(1)
+        else:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
 
-                if not meta.get("features"):
-                    compute_features(out_dir / "bundles" / name, progress=progress)
-            records.append({
-                "name": name, "bundle": f"bundles/{name}", "tiff": f"slides/{name}.tif",
-                "label": int(slides[name].is_tumour_slide), "tissue": prov["tissue"],
-                "tissue_donor": prov.get("tissue_donor"), "canvas": prov["canvas"], "mpp": prov["mpp"],
-                "tumour_area_level0_px2": prov["tumour_area_level0_px2"],
-                "tumour_fraction_of_tissue": round(prov["tumour_fraction_of_tissue"], 6),
-                "finest_views_ge50": _views_ge(meta, out_dir / "bundles" / name),
-                "stain_od_factors": prov["stain_od_factors"],
-                "tiff_bytes": prov["tiff_bytes"],
-                "bundle_bytes": sum(f.stat().st_size for f in (out_dir / "bundles" / name).iterdir()),
-                "device_bytes_pixels": int(meta["device_bytes"]),
-                "seconds_slide": prov["seconds"], "seconds_total": round(time.perf_counter() - s0, 2),
-            })
+            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                                     initializer=_init_worker, initargs=(bank, False)) as pool:
+                records = []
+                for rec in pool.map(_one_slide, jobs):
+                    records.append(rec)
+                    bar.update(1)
+        bar.close()
         train, test = split_slides(todo, donors, test_fraction, seed)
         dataset = {
             "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)",
@@ -276,7 +314,9 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
             "labels": {n: int(slides[n].is_tumour_slide) for n in todo},
             "slides": records,
             "seconds_this_run": round(time.perf_counter() - t0, 2),
-            "peak_rss_bytes_this_run": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+            "peak_rss_bytes_this_run": max([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024]
+                                           + [r["peak_rss_bytes"] for r in records]),
+            "workers": int(workers),
         }
         tmp = out_dir / f".dataset.json.tmp-{os.getpid()}"
         tmp.write_text(json.dumps(dataset, indent=1))

@@ -17,7 +17,6 @@ on SIGKILL) and, holding it, first deletes the hidden temporaries a killed run l
 from __future__ import annotations
 
 import fcntl
-import hashlib
 import json
 import math
 import os
@@ -29,6 +28,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
+from data_tools.bundle import _sha256
 from data_tools.c16_layout import C16_MPP, donor_for, layout
 from data_tools.c16_mosaic import PIXELS_NOTE, Texture, write_slide_tiff
 from data_tools.errors import HistojaxDataError
@@ -43,14 +43,6 @@ LEVEL_SETS = (3, 5, 7)
 LICENCE = ("tumour and tissue polygons: CAMELYON16 ground truth (CC0 1.0) as converted to JSON by "
            "baidu-research/NCRF (Apache-2.0); tissue outlines of tumor_001/013/021/031/051/092: pathml-tutorial; "
            "pixels: PatchCamelyon patches, CC0 1.0 — " + CITATION)
-
-
-def _sha256(path: Path) -> str:
-    h = hashlib.sha256()
-    with open(path, "rb") as f:
-        for chunk in iter(lambda: f.read(1 << 20), b""):
-            h.update(chunk)
-    return h.hexdigest()
 
 
 def clean_stale(out_dir: Path) -> list[str]:

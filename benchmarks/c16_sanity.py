@@ -1,7 +1,8 @@
 """Does colour give the answer away? The sanity figure of the true-scale CAMELYON16 benchmark.
 
 AUC of a linear classifier (L2 logistic regression) separating finest-level views with tumour ≥ 50 %
-from tumour-free tissue views (≥ 50 % of px not glass), on the slides of a ``data_tools c16`` dataset
+from tumour-free tissue views (≥ 50 % inside the slide's tissue polygon: fat and loose tissue count,
+as in PCam's normal class), on the slides of a ``data_tools c16`` dataset
 (2-fold cross-validation grouped by slide: trained on the views of half the slides, tested on the
 other half, and back), and the same on real PCam patches (tumour / no tumour folders; random
 2-fold split). Two inputs: the mean RGB of the view (3 numbers) and EfficientNet-Lite0 embeddings
@@ -22,7 +23,6 @@ from scipy.optimize import minimize
 from scipy.stats import rankdata
 
 T = 128
-GLASS_MIN = 225  # a px with every channel ≥ this is glass
 
 
 def auc(scores: np.ndarray, labels: np.ndarray) -> float:
@@ -72,8 +72,12 @@ def cv_auc(x, y, groups, folds: int = 2, seed: int = 0) -> float:
 
 
 def dataset_views(folder: Path, per_class: int, seed: int = 0, min_tissue: float = 0.5):
-    """Views ``(n, T, T, 3)``, labels and slide names: every grid-aligned finest-level view of every
-    slide with tumour ≥ 50 % and as many tumour-free tissue views, at most ``per_class`` per slide and class."""
+    """Views ``(n, T, T, 3)``, labels and slide names: grid-aligned finest-level views with tumour ≥ 50 %
+    and tumour-free views at least ``min_tissue`` inside the tissue polygon, at most ``per_class`` per
+    slide and class."""
+    import shapely
+
+    from data_tools.annotations import load_annotations
     from data_tools.bundle import load_bundle
 
     ds = json.loads((folder / "dataset.json").read_text())
@@ -87,17 +91,18 @@ def dataset_views(folder: Path, per_class: int, seed: int = 0, min_tissue: float
         kept = pix.index > 0
         gh, gw = counts.shape
         pos = np.argwhere(counts >= 0.5 * t * t)
-        neg = np.argwhere((counts == 0) & kept)
+        tissue = load_annotations(folder / rec["tiff"].replace(".tif", ".geojson")).tissue
+        ty_, tx_ = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
+        boxes = shapely.box(tx_ * t, ty_ * t, tx_ * t + t, ty_ * t + t)
+        inside = shapely.area(shapely.intersection(boxes, tissue)) / (t * t)
+        neg = np.argwhere((counts == 0) & kept & (inside >= min_tissue))
         picks = []
         if len(pos):
             picks += [(p, 1) for p in pos[rng.permutation(len(pos))[:per_class]]]
         for i in rng.permutation(len(neg)):
             if sum(lab == 0 for _, lab in picks) >= per_class:
                 break
-            ty, tx = neg[i]
-            v = pix.crop(ty * t, ty * t + t, tx * t, tx * t + t)
-            if (v.min(axis=-1) < GLASS_MIN).mean() >= min_tissue:
-                picks.append((neg[i], 0))
+            picks.append((neg[i], 0))
         for (ty, tx), lab in picks:
             views.append(pix.crop(ty * t, ty * t + t, tx * t, tx * t + t))
             labels.append(lab)
@@ -111,7 +116,7 @@ def main(argv=None) -> int:
     p.add_argument("--patches", default=None, help="real PCam patches (folder/.tar.gz/bank .npz; default: shipped bank)")
     p.add_argument("--per-class", type=int, default=300, help="views per slide and class (default 300)")
     p.add_argument("--min-tissue", type=float, default=0.5,
-                   help="a tumour-free view counts as tissue with at least this fraction of non-glass px (0.5)")
+                   help="a tumour-free view counts as tissue with at least this fraction inside the tissue polygon (0.5)")
     p.add_argument("--embed", type=int, default=600, help="views (and patches) per class embedded by "
                                                         "EfficientNet-Lite0 (default 600; 0 skips it)")
     args = p.parse_args(argv)

@@ -217,3 +217,27 @@ def test_shipped_bank_is_small_and_balanced():
     assert len(bank) == 1000 and int(bank.labels.sum()) == 500
     assert SHIPPED_BANK.stat().st_size < 6 * 2**20
     assert bank.decode([0]).shape == (1, 96, 96, 3)
+
+
+@pytest.mark.slow
+def test_benchmark_scale_build_of_the_shipped_slides(tmp_path):
+    """The six shipped slides at the full benchmark's scale (downsample 8, ~1 min): true tumour sizes,
+    micro- and macro-metastases findable at the finest level, and the Hard env over all six."""
+    import histojax
+    from data_tools.annotations import load_annotations
+    from data_tools.c16 import SMALL_SLIDES, make_c16_dataset
+    from data_tools.ncrf import SHIPPED_DIR, read_ncrf
+
+    ds = make_c16_dataset(tmp_path / "d8", names=list(SMALL_SLIDES), progress=False, workers=2)
+    assert ds["scale"]["downsample_from_camelyon16_level0"] == 8 and ds["scale"]["magnification_range"] == 32
+    polygons = read_ncrf(SHIPPED_DIR)
+    for rec in ds["slides"]:
+        if rec["label"]:
+            placed = load_annotations(tmp_path / "d8" / "slides" / f"{rec['name']}.geojson").tumour
+            true = shapely.difference(polygons[rec["name"]].positive, polygons[rec["name"]].negative).area
+            assert placed.area * 64 == pytest.approx(true, rel=0.01)
+            assert rec["finest_views_ge50"] > 0, rec["name"]
+        else:
+            assert rec["finest_views_ge50"] == 0
+    env, params = histojax.make("HistoJAX-C16-Hard-v0", dataset=tmp_path / "d8", split="all", verify=False)
+    assert params.slide.num_slides == 6

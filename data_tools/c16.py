@@ -85,8 +85,11 @@ def split_slides(names: list[str], donors: dict[str, str], test_fraction: float,
 
 
 def _slide_settings(name, downsample, seed, bank, jpeg_quality, sha) -> dict:
+    from data_tools import c16_mosaic
+
     return {"name": name, "downsample": float(downsample), "seed": int(seed), "bank": bank.source,
-            "bank_patches": len(bank), "jpeg_quality": int(jpeg_quality), "polygons_sha256": sha}
+            "bank_patches": len(bank), "jpeg_quality": int(jpeg_quality), "polygons_sha256": sha,
+            "colour_match": c16_mosaic.COLOUR_MATCH}
 
 
 def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, jpeg_quality: int = 85,

@@ -1,7 +1,9 @@
 """The data_tools command line: ``python -m data_tools info SLIDE`` and
 ``python -m data_tools build SLIDE [--annotations FILE] --out DIR [--levels 3 5 7] [--tile-size 128]
 [--region x0,y0,x1,y1 | --region-group NAME] [--region-margin PX] [--storage dense|tiled|auto]``, and
-``python -m data_tools synth-large OUT.tif [--size 100000] [--tissue-fraction 0.1]`` (a gigapixel test slide).
+``python -m data_tools synth-large OUT.tif [--size 100000] [--tissue-fraction 0.1]`` (a gigapixel test slide), and
+``python -m data_tools c16 --out DIR [--annotations NCRF.tar.gz] [--patches PCAM.tar.gz] [--small]`` (the true-scale
+CAMELYON16 benchmark).
 
 User errors (bad files, existing output) print one line and exit with status 2, no traceback.
 """
@@ -92,6 +94,27 @@ def _parser() -> argparse.ArgumentParser:
                        help="approximate fraction of the canvas covered by tissue (default 0.1)")
     large.add_argument("--seed", type=int, default=0)
     large.add_argument("--quiet", action="store_true", help="no progress bar")
+    c16 = sub.add_parser("c16", help="make the true-scale CAMELYON16 benchmark: real CAMELYON16 geometry, real PCam "
+                                     "patches arranged by us (not scanned slides); slides, tiled bundles, dataset.json")
+    c16.add_argument("--out", required=True, help="dataset folder (slides/, bundles/, dataset.json); an unfinished "
+                                                  "one is resumed")
+    c16.add_argument("--annotations", default=None,
+                     help="folder or .tar.gz of NCRF JSON files (camelyon16_ncrf_train.tar.gz; default: the 6 shipped)")
+    c16.add_argument("--patches", default=None, help="PCam patches: folder with 0/ and 1/, its .tar.gz, or a bank "
+                                                     ".npz (default: the shipped 1,000-patch bank)")
+    c16.add_argument("--small", action="store_true", help="the small variant: 3 tumour + 3 normal slides at "
+                                                          "downsample 32 (seconds)")
+    c16.add_argument("--downsample", type=float, default=None,
+                     help="CAMELYON16 level-0 px per output px for the whole set (default 8; --small 32)")
+    c16.add_argument("--slides", nargs="+", default=None, metavar="NAME", help="only these slides (e.g. Tumor_001)")
+    c16.add_argument("--tumour-slides", type=int, default=None, metavar="N", help="only the first N tumour slides")
+    c16.add_argument("--normal-slides", type=int, default=None, metavar="N", help="only the first N normal slides")
+    c16.add_argument("--test-fraction", type=float, default=0.25, help="share of slides in the test split (0.25)")
+    c16.add_argument("--features", action="store_true",
+                     help="also embed every bundle's feature grid with EfficientNet-Lite0 (slow on CPU)")
+    c16.add_argument("--jobs", type=int, default=1, help="slides made in parallel processes (default 1; ~1.5 GB each)")
+    c16.add_argument("--seed", type=int, default=0)
+    c16.add_argument("--quiet", action="store_true", help="no progress bars")
     from data_tools.features.cli import add_subcommands as _add_feature_commands
 
     _add_feature_commands(sub)  # features, import-features
@@ -183,6 +206,18 @@ def _command(args) -> None:
             print(f"  {s['name']}: tumour {100 * s['tumour_fraction']:.1f} % of the canvas, "
                   f"{s['finest_views_ge50']}/{s['finest_views']} finest views >= 50 % tumour, "
                   f"mean RGB tumour {s['tumour_mean_rgb']} vs normal {s['normal_tissue_mean_rgb']}")
+    elif args.command == "c16":
+        from data_tools.c16 import make_c16_dataset
+
+        ds = make_c16_dataset(args.out, annotations=args.annotations, patches=args.patches, small=args.small,
+                              downsample=args.downsample, names=args.slides, n_tumour=args.tumour_slides,
+                              n_normal=args.normal_slides, seed=args.seed, test_fraction=args.test_fraction,
+                              features=args.features, progress=not args.quiet, workers=args.jobs)
+        sc = ds["scale"]
+        print(f"wrote {Path(args.out) / 'dataset.json'}: {len(ds['train'])} train, {len(ds['test'])} test slides "
+              f"at {sc['mpp']:.3g} um/px (CAMELYON16 level 0 / {sc['downsample_from_camelyon16_level0']:g}); "
+              f"geometry real CAMELYON16, pixels real PCam patches arranged by histojax (not scanned slides); "
+              f"{ds['seconds_this_run']:.0f} s this run")
     elif args.command == "synth-large":
         from data_tools.synth_large import make_large_slide
 

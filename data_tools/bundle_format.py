@@ -278,15 +278,28 @@ def feature_bytes(metadata: dict, chosen: list[int], where=None) -> int:
                           "`python -m data_tools features BUNDLE`") from None
 
 
-def scenario_device_bytes(metadata: dict, chosen: list[int], features: bool, where=None) -> int:
-    """Device bytes of bundle levels ``chosen``: pixels and summed-area tables (dense) or pools and index
-    grids (tiled, plus the spare blank tile), plus their feature grids when ``features``."""
-    needed = sum(level_device_bytes(metadata["levels"][k]) for k in chosen)
-    if metadata.get("storage") == "tiled":
-        needed += 3 * int(metadata["tile_size"]) ** 2  # the spare tile at the end of the pool
-    if features:
-        needed += feature_bytes(metadata, chosen, where)
-    return needed
+def tumour_table_bytes(level: dict, tile_size: int) -> int:
+    """Device bytes of one bundle level's tumour table alone (no pixels): the tiled SAT pool and its index
+    grid, or the dense level's uint32 summed-area table."""
+    if level.get("storage") == "tiled":
+        gh, gw = level["grid"]
+        return int(level["sat_pool_tiles"]) * (tile_size + 1) ** 2 * 4 + 4 * int(gh) * int(gw)
+    return 4 * (int(level["width"]) + 1) * (int(level["height"]) + 1)
+
+
+def slide_device_bytes(metadata: dict, chosen: list[int], pixels: bool = True, features: bool = False,
+                       where=None) -> int:
+    """Device bytes of bundle levels ``chosen`` (from the metadata, nothing read): pixels and tumour tables
+    (``pixels=False``: tumour tables only), plus the feature grids when ``features``; start weights are
+    small (the coarsest level) and not counted."""
+    t = int(metadata["tile_size"])
+    if pixels:
+        needed = sum(level_device_bytes(metadata["levels"][k]) for k in chosen)
+        if metadata.get("storage") == "tiled":
+            needed += 3 * t ** 2  # the spare tile at the end of the pool
+    else:
+        needed = sum(tumour_table_bytes(metadata["levels"][k], t) for k in chosen)
+    return needed + (feature_bytes(metadata, chosen, where) if features else 0)
 
 
 # ----------------------------------------------------------------------------- checksums
@@ -348,10 +361,15 @@ def save_array(path, array: np.ndarray) -> None:
         np.save(f, array, allow_pickle=False)
 
 
+def write_json(path, data) -> None:
+    """Write ``data`` as JSON (indent 1) atomically onto ``path`` (see :func:`atomic_file`)."""
+    with atomic_file(path) as tmp, open(tmp, "w") as f:
+        json.dump(data, f, indent=1)
+
+
 def write_metadata(folder, metadata: dict) -> None:
-    """Write ``metadata.json`` of the bundle at ``folder`` atomically (indent 1, as every bundle has it)."""
-    with atomic_file(Path(folder) / METADATA) as tmp, open(tmp, "w") as f:
-        json.dump(metadata, f, indent=1)
+    """Write ``metadata.json`` of the bundle at ``folder`` atomically."""
+    write_json(Path(folder) / METADATA, metadata)
 
 
 @contextlib.contextmanager
@@ -590,6 +608,6 @@ def load_feature_levels(bundle, metadata: dict, levels: list[int], verify: bool 
 __all__ = ["ANNOTATIONS", "Bundle", "BundleMetadata", "FEATURES_COMMAND", "FORMAT_VERSION", "LEVEL_SETS",
            "LevelMeta", "MAX_FLAT_PIXELS", "METADATA", "READ_VERSIONS", "REGION", "STORAGES", "TILED_FORMAT_VERSION",
            "TISSUE", "TiledLevel", "atomic_file", "atomic_folder", "bundle_downsamples", "default_magnification_range",
-           "device_bytes", "feature_bytes", "file_digest", "scenario_device_bytes", "select_levels", "grid_shape", "level_device_bytes", "level_downsamples", "level_files",
+           "device_bytes", "feature_bytes", "file_digest", "slide_device_bytes", "tumour_table_bytes", "select_levels", "grid_shape", "level_device_bytes", "level_downsamples", "level_files",
            "level_grids", "level_size", "load_array", "load_bundle", "load_feature_levels", "load_tiled_level",
-           "read_metadata", "save_array", "sha256", "text_digest", "tiled_level_files", "write_metadata"]
+           "read_metadata", "save_array", "sha256", "text_digest", "tiled_level_files", "write_json", "write_metadata"]

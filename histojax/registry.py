@@ -9,6 +9,19 @@ HistoJAX-Easy-v0    3         100                     4×
 HistoJAX-Medium-v0  5         200                     2×
 HistoJAX-Hard-v0    7         300                     1.59×
 ==================  ========  ======================  ===================
+
+The true-scale CAMELYON16 benchmark (``docs/c16-benchmark.md``; geometry real CAMELYON16, pixels real
+PCam patches arranged by us, not scanned slides) needs a dataset made by ``python -m data_tools c16``:
+``make("HistoJAX-C16-Hard-v0", dataset=DIR, split="train" | "test")`` (or ``$HISTOJAX_C16_DATASET``).
+
+=========================  ========  =====  ==============================================
+id                         levels    steps  task
+=========================  ========  =====  ==============================================
+HistoJAX-C16-Easy-v0       3         100    detection (find a view ≥ 50 % tumour)
+HistoJAX-C16-Medium-v0     5         200    detection
+HistoJAX-C16-Hard-v0       7         300    detection
+HistoJAX-C16-Diagnosis-v0  5         200    classification: declare tumour / no tumour
+=========================  ========  =====  ==============================================
 """
 from __future__ import annotations
 
@@ -58,6 +71,32 @@ register("HistoJAX-Medium-v0", n_levels=5, max_steps_in_episode=200)
 register("HistoJAX-Hard-v0", n_levels=7, max_steps_in_episode=300)
 
 
+C16_DATASET_VARIABLE = "HISTOJAX_C16_DATASET"
+
+
+def _c16_dataset(spec: dict) -> list[Path]:
+    """The default dataset of the C16 ids: ``$HISTOJAX_C16_DATASET``, else ``cache_dir()/c16``; a clear
+    error naming the command when neither holds a ``dataset.json``."""
+    import os
+
+    from histojax.sample import cache_dir
+
+    given = os.environ.get(C16_DATASET_VARIABLE)
+    folder = Path(given) if given else cache_dir() / "c16"
+    if not (folder / "dataset.json").is_file():
+        raise BundleError(folder, "no C16 dataset here (no dataset.json): the HistoJAX-C16-* ids need one. Make the "
+                          "small one with `python -m data_tools c16 --small --out DIR` (seconds) or the full one with "
+                          "`python -m data_tools c16 --annotations camelyon16_ncrf_train.tar.gz --patches "
+                          "pcam_train_patches.tar.gz --out DIR`, then pass make(id, dataset=DIR) or set "
+                          f"{C16_DATASET_VARIABLE}=DIR")
+    return dataset_slides(folder, spec.get("split", "train"))
+
+
+for _name, _levels, _steps in (("Easy", 3, 100), ("Medium", 5, 200), ("Hard", 7, 300)):
+    register(f"HistoJAX-C16-{_name}-v0", slide=_c16_dataset, n_levels=_levels, max_steps_in_episode=_steps)
+register("HistoJAX-C16-Diagnosis-v0", slide=_c16_dataset, n_levels=5, max_steps_in_episode=200, task="classification")
+
+
 def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES,
          slides=None, slide_weights=None, dataset=None, split: str = "train", labels=None, **overrides):
     """Make ``(env, params)`` for a registered id.
@@ -90,8 +129,9 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     slides = _resolve_slides(env_id, spec, slide, slides, dataset, split)
     features = True if spec.get("obs_mode") == "features" else None
     loaded, budget = [], max_device_bytes
-    for path in slides:
-        arrays, bundle = load_slide(path, spec["n_levels"], verify=verify, max_device_bytes=budget, features=features)
+    for path in slides:  # obs_mode="features": the feature-only layout, no pixels on the device
+        arrays, bundle = load_slide(path, spec["n_levels"], verify=verify, max_device_bytes=budget, features=features,
+                                    pixels=features is None)
         budget -= sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
         loaded.append((arrays, bundle))
     tile_sizes = {b.tile_size for _, b in loaded}

@@ -24,7 +24,7 @@ def env_overrides(config: dict) -> dict:
     """The ``histojax.make`` overrides named in a trainer config."""
     kw = {"action_mode": config.get("action_mode", "discrete"),
           "with_position": bool(config.get("with_position", False))}
-    obs = config.get("obs", "pixels")
+    obs = config.get("obs_mode", config.get("obs", "pixels"))  # "obs": the spelling of older config.json files
     if obs != "pixels":
         kw["obs_mode"] = obs  # e.g. "features" once the env has it
     for k in ("reward", "max_steps_in_episode"):
@@ -161,6 +161,8 @@ def load_checkpoint(path) -> tuple[dict, dict]:
         path = path / "params.msgpack"
     params = serialization.msgpack_restore(path.read_bytes())
     config = json.loads((path.parent / "config.json").read_text())
+    if "obs" in config and "obs_mode" not in config:  # older runs spelled the env's obs_mode "obs"
+        config["obs_mode"] = config.pop("obs")
     return jax.tree.map(jnp.asarray, params), config
 
 

@@ -27,7 +27,7 @@ from baselines.ppo import train_and_save
 from histojax.wrappers import LogWrapper
 
 DEFAULTS = dict(
-    env_id="HistoJAX-Easy-v0", slide=None, action_mode="discrete", obs="pixels", with_position=False,
+    env_id="HistoJAX-Easy-v0", slide=None, action_mode="discrete", obs_mode="pixels", with_position=False,
     reward=None, max_steps_in_episode=None, env_kwargs=None,
     num_envs=32, total_timesteps=200_000, buffer_size=32_768, batch_size=128, n_step=3, gamma=0.99,
     lr=2.5e-4, max_grad_norm=10.0, learning_starts=2_048, train_every=1, target_update_every=250,

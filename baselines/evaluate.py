@@ -259,7 +259,7 @@ def main(argv=None) -> int:
         label = "dqn" if "buffer_size" in config else "ppo"
     else:
         params, config, run, label = None, {"action_mode": args.action_mode, "with_position": args.with_position,
-                                            "obs": "pixels", "hidden": 256}, None, "none"
+                                            "obs_mode": "pixels", "hidden": 256}, None, "none"
     if args.env:
         config["env_id"] = args.env
     out = Path(args.out) if args.out else (run / "eval" if run else Path(f"runs/eval-{config['env_id']}"))

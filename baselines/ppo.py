@@ -50,7 +50,7 @@ from data_tools.cli_output import positive_float
 from histojax.wrappers import LogWrapper
 
 DEFAULTS = dict(
-    env_id="HistoJAX-Easy-v0", slide=None, action_mode="discrete", obs="pixels", with_position=False,
+    env_id="HistoJAX-Easy-v0", slide=None, action_mode="discrete", obs_mode="pixels", with_position=False,
     reward=None, max_steps_in_episode=None, env_kwargs=None,
     num_envs=64, num_steps=64, total_timesteps=500_000, update_epochs=2, num_minibatches=8,
     lr=3e-4, anneal_lr=True, gamma=0.99, gae_lambda=0.95, clip_eps=0.2, ent_coef=0.01, vf_coef=0.5,
@@ -218,7 +218,8 @@ def parse_args(argv=None, defaults=DEFAULTS, description=__doc__):
     p.add_argument("--env", default=defaults["env_id"], help="registered env id")
     p.add_argument("--slide", default=None, help="bundle folder (default: the embedded sample slide)")
     p.add_argument("--action-mode", default="discrete", choices=("discrete", "continuous"))
-    p.add_argument("--obs", default="pixels", help="pixels | features (an env obs_mode)")
+    p.add_argument("--obs-mode", "--obs", dest="obs_mode", default="pixels",
+                   help="the env's obs_mode: pixels | features | ... (--obs: the older spelling)")
     p.add_argument("--with-position", action="store_true", help="observation dict with the view position")
     p.add_argument("--reward", default=None, help="reward preset (default: the env's, 'dense')")
     p.add_argument("--seeds", type=int, default=4)
@@ -241,7 +242,7 @@ def parse_args(argv=None, defaults=DEFAULTS, description=__doc__):
 
 def config_from_args(args, defaults=DEFAULTS) -> dict:
     config = {**defaults, "env_id": args.env, "slide": args.slide, "action_mode": args.action_mode,
-              "obs": args.obs, "with_position": args.with_position, "reward": args.reward,
+              "obs_mode": args.obs_mode, "with_position": args.with_position, "reward": args.reward,
               "num_seeds": args.seeds, "seed": args.seed, "total_timesteps": args.total_steps,
               "num_envs": args.num_envs, "lr": args.lr}
     if args.devices is not None:
@@ -286,7 +287,7 @@ def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_
     common.write_logs(out, steps, metrics, summary)
     panels = {"mean return": common.smooth(metrics["return"], k), "success rate": common.smooth(metrics["success"], k),
               "mean steps to success": common.smooth(metrics["steps_to_success"], k)}
-    title = (f"{algo.upper()} on {config['env_id']} ({config['action_mode']}, obs {config['obs']}"
+    title = (f"{algo.upper()} on {config['env_id']} ({config['action_mode']}, obs {config['obs_mode']}"
              f"{' + position' if config['with_position'] else ''}), {metrics['success'].shape[0]} seeds")
     common.plot_curves(out / "curve.png", steps, panels, title=title,
                        reference={"mean return": ref["return"], "success rate": ref["success"]})

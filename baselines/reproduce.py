@@ -38,7 +38,7 @@ SCENARIOS = ("HistoJAX-Easy-v0", "HistoJAX-Medium-v0", "HistoJAX-Hard-v0")
 
 def run_cell(algo: str, env_id: str, action_mode: str, obs: str, slide, budget: dict, out: Path) -> dict:
     """Train one cell and evaluate it; returns the row (success, return, steps, seconds)."""
-    argv = ["--env", env_id, "--action-mode", action_mode, "--obs", obs, "--with-position",
+    argv = ["--env", env_id, "--action-mode", action_mode, "--obs-mode", obs, "--with-position",
             "--seeds", str(budget["seeds"]), "--total-steps", str(budget["steps"]), "--out", str(out),
             "--set", "print_progress=false"]
     if slide is not None:

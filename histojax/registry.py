@@ -38,27 +38,56 @@ from data_tools.errors import BundleError
 from histojax.env import EnvParams, HistoEnv
 from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide, stack_slides
 
-_REGISTRY: dict[str, dict] = {}
-_SLIDES: dict[str, object] = {}  # env id → default slide: a bundle path, or a recipe ``f(spec) -> bundle path``
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
                  "augment",
                  "final_observation")
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name != "slide")
 
 
-def register(env_id: str, slide=None, **spec) -> None:
-    """Register a scenario: ``spec`` holds static settings (``n_levels``, ``reward``, …) and
-    ``EnvParams`` defaults (``max_steps_in_episode``, …). ``slide`` is the id's default slide when
-    ``make`` gets none: a bundle path, or a recipe called with the merged settings that returns
-    one (e.g. builds it into the cache on first use); ``None`` means the embedded sample slide."""
-    unknown = set(spec) - set(STATIC_FIELDS) - set(PARAM_FIELDS)
-    if unknown:
-        raise TypeError(f"unknown scenario settings {sorted(unknown)}")
-    _REGISTRY[env_id] = dict(spec)
-    if slide is None:
-        _SLIDES.pop(env_id, None)
-    else:
-        _SLIDES[env_id] = slide
+@dataclasses.dataclass(frozen=True)
+class EnvSpec:
+    """The one registration record of an environment id, for built-in ids and scenario files alike.
+
+    ``settings`` holds static settings (``STATIC_FIELDS``: ``n_levels``, ``obs_mode``, ``reward``, …)
+    and ``EnvParams`` defaults (``PARAM_FIELDS``: ``max_steps_in_episode``, …), spelled as the env
+    spells them. ``slide`` is the id's default slide when ``make`` gets none: a bundle path, a list of
+    them (a dataset), or a recipe ``f(settings) -> path(s)`` (e.g. builds into the cache on first use);
+    ``None`` means the embedded sample slide. ``scenario`` is the :class:`histojax.scenarios.Scenario`
+    it was registered from, if any."""
+
+    id: str
+    settings: dict
+    slide: object = None
+    scenario: object = None
+
+    def __post_init__(self):
+        unknown = set(self.settings) - set(STATIC_FIELDS) - set(PARAM_FIELDS)
+        if unknown:
+            raise TypeError(f"unknown scenario settings {sorted(unknown)}")
+
+
+_REGISTRY: dict[str, EnvSpec] = {}
+
+
+def register(env_id: str, slide=None, **settings) -> EnvSpec:
+    """Register an id: ``settings`` are :class:`EnvSpec` settings (static ones such as ``n_levels``,
+    ``reward``, and ``EnvParams`` defaults such as ``max_steps_in_episode``); ``slide`` as in
+    :class:`EnvSpec`. Returns the record. (:func:`histojax.scenarios.register_scenario` registers a
+    scenario file through :func:`register_spec` with the same record.)"""
+    return register_spec(EnvSpec(id=env_id, settings=dict(settings), slide=slide))
+
+
+def register_spec(spec: EnvSpec) -> EnvSpec:
+    """Register (or replace) the record ``spec`` under ``spec.id``; returns it."""
+    _REGISTRY[spec.id] = spec
+    return spec
+
+
+def spec_of(env_id: str) -> EnvSpec:
+    """The registration record of ``env_id`` (ValueError naming the registered ids when unknown)."""
+    if env_id not in _REGISTRY:
+        raise ValueError(f"unknown environment id {env_id!r}; registered: {', '.join(_REGISTRY)}")
+    return _REGISTRY[env_id]
 
 
 def registered_envs() -> tuple[str, ...]:
@@ -119,9 +148,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     ``labels`` (a dict bundle-name → 0/1 or a CSV file with columns ``slide,label``) overrides the
     slide labels of ``task="classification"`` (default: 1 when the bundle has tumour annotated).
     """
-    if env_id not in _REGISTRY:
-        raise ValueError(f"unknown environment id {env_id!r}; registered: {', '.join(_REGISTRY)}")
-    spec = {**_REGISTRY[env_id], **overrides}
+    spec = {**spec_of(env_id).settings, **overrides}
     unknown = set(spec) - set(STATIC_FIELDS) - set(PARAM_FIELDS)
     if unknown:
         raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
@@ -158,9 +185,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
 
 def slide_paths(env_id: str, slide=None, slides=None, dataset=None, split: str = "train", **overrides) -> list:
     """The bundle paths ``make`` would load for these arguments (one for a single slide)."""
-    if env_id not in _REGISTRY:
-        raise ValueError(f"unknown environment id {env_id!r}; registered: {', '.join(_REGISTRY)}")
-    return _resolve_slides(env_id, {**_REGISTRY[env_id], **overrides}, slide, slides, dataset, split)
+    return _resolve_slides(env_id, {**spec_of(env_id).settings, **overrides}, slide, slides, dataset, split)
 
 
 def _resolve_slides(env_id: str, spec: dict, slide, slides, dataset, split: str) -> list:
@@ -171,8 +196,8 @@ def _resolve_slides(env_id: str, spec: dict, slide, slides, dataset, split: str)
     if slides is not None and slide is not None:
         raise ValueError("give either slide= or slides=/dataset=, not both")
     if slides is None:
-        if slide is None and env_id in _SLIDES:
-            recipe = _SLIDES[env_id]
+        if slide is None and spec_of(env_id).slide is not None:
+            recipe = spec_of(env_id).slide
             slide = recipe({**spec, "split": split}) if callable(recipe) else recipe
         if isinstance(slide, (list, tuple)):  # a registered dataset (e.g. a multi-slide scenario)
             slides, slide = list(slide), None

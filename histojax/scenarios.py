@@ -3,7 +3,7 @@ reward, the observation and action modes, an optional region rule and the step l
 from TOML or JSON and registers as an environment id, so ``histojax.make(id)`` works::
 
     id = "CAMELYON16-tumor_001-Hard-v0"
-    levels = 7
+    n_levels = 7
     reward = "histogym"
     max_steps_in_episode = 300
 
@@ -21,15 +21,18 @@ from TOML or JSON and registers as an environment id, so ``histojax.make(id)`` w
 
 Keys (all optional but ``id``): ``slides`` — a list of bundle folders, of slide files, or of tables
 ``{slide = FILE, annotations = FILE}`` / ``{bundle = DIR}`` (absent: the embedded sample slide);
-relative paths are taken from the scenario file's folder. ``levels`` (3), ``tile_size`` (128),
+relative paths are taken from the scenario file's folder. ``n_levels`` (3; ``levels`` is accepted as
+an older spelling), ``tile_size`` (128),
 ``reward`` ("dense"), ``obs_mode`` ("pixels"), ``action_mode`` ("discrete"), ``with_position``
 (false), ``max_steps_in_episode`` (100 / 200 / 300 for 3 / 5 / 7 levels, else 100 per 2 levels),
 ``label_map`` (annotation group → tumour / exclusion / tissue / ignore), ``region`` — a table with
 one of ``box = [x0, y0, x1, y1]`` (level-0 px), ``group = "tumour"`` (the bounding box of an
 annotation group/label) or ``polygon = [[x, y], ...]``, and ``margin`` (level-0 px), ``params``
 (other ``EnvParams`` fields, e.g. ``stride``), and ``train`` / ``test`` (lists of slide names for
-splits). A slide file is built into a bundle in the cache (``histojax.sample.cache_dir()``) the first
-time the id is made and reused after. Several slides make a dataset (``reset`` draws one);
+splits). Every setting is spelled as the env spells it (``histojax.make(id, n_levels=..., obs_mode=...)``),
+and registering makes the same record as a built-in id (:class:`histojax.registry.EnvSpec`). A slide file
+is built into a bundle in the cache (:func:`histojax.cache.cached_bundle`) the first time the id is made
+and reused after. Several slides make a dataset (``reset`` draws one);
 ``make(id, split="train" | "test" | "all")`` picks the scenario's ``train`` / ``test`` lists.
 """
 from __future__ import annotations
@@ -50,7 +53,7 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
 DEFAULT_MAX_STEPS = {3: 100, 5: 200, 7: 300}
-_KEYS = ("id", "slides", "levels", "tile_size", "reward", "obs_mode", "action_mode", "with_position",
+_KEYS = ("id", "slides", "n_levels", "levels", "tile_size", "reward", "obs_mode", "action_mode", "with_position",
          "max_steps_in_episode", "label_map", "region", "params", "train", "test")
 
 
@@ -98,7 +101,7 @@ class Scenario:
 
     id: str
     slides: tuple[SlideSource, ...] | None = None   # None: the embedded sample slide
-    levels: int = 3
+    n_levels: int = 3
     tile_size: int = 128
     reward: str = "dense"
     obs_mode: str = "pixels"
@@ -112,10 +115,15 @@ class Scenario:
     test: tuple[str, ...] = ()
     source: str | None = None                       # the file it was loaded from
 
+    @property
+    def levels(self) -> int:
+        """The older spelling of :attr:`n_levels`."""
+        return self.n_levels
+
     def spec(self) -> dict:
-        """The ``histojax.register`` settings of this scenario."""
-        steps = self.max_steps_in_episode or DEFAULT_MAX_STEPS.get(self.levels, 50 * self.levels)
-        return dict(n_levels=self.levels, tile_size=self.tile_size, reward=self.reward, obs_mode=self.obs_mode,
+        """The :class:`histojax.registry.EnvSpec` settings of this scenario."""
+        steps = self.max_steps_in_episode or DEFAULT_MAX_STEPS.get(self.n_levels, 50 * self.n_levels)
+        return dict(n_levels=self.n_levels, tile_size=self.tile_size, reward=self.reward, obs_mode=self.obs_mode,
                     action_mode=self.action_mode, with_position=self.with_position,
                     max_steps_in_episode=steps, **self.params)
 
@@ -209,7 +217,10 @@ def scenario_from_dict(data: dict, base: Path | None = None, where=None) -> Scen
     def is_int(v):
         return isinstance(v, int) and not isinstance(v, bool)
 
-    check("levels", lambda v: is_int(v) and v >= 2, "an integer >= 2 (3 Easy, 5 Medium, 7 Hard)")
+    if "levels" in data and "n_levels" in data:
+        _fail(where, "give n_levels (or its older spelling levels), not both")
+    for key in ("n_levels", "levels"):
+        check(key, lambda v: is_int(v) and v >= 2, "an integer >= 2 (3 Easy, 5 Medium, 7 Hard)")
     check("tile_size", lambda v: is_int(v) and v >= 8, "an integer >= 8 (view size in px)")
     check("max_steps_in_episode", lambda v: is_int(v) and v >= 1, "an integer >= 1")
     check("reward", lambda v: v in rewards.PRESETS, f"one of {rewards.PRESETS}")
@@ -232,7 +243,7 @@ def scenario_from_dict(data: dict, base: Path | None = None, where=None) -> Scen
         slides = tuple(_slide_source(s, base, where) for s in slides)
     return Scenario(
         id=data["id"].strip(), slides=slides,
-        levels=data.get("levels", 3), tile_size=data.get("tile_size", 128), reward=data.get("reward", "dense"),
+        n_levels=data.get("n_levels", data.get("levels", 3)), tile_size=data.get("tile_size", 128), reward=data.get("reward", "dense"),
         obs_mode=data.get("obs_mode", "pixels"), action_mode=data.get("action_mode", "discrete"),
         with_position=data.get("with_position", False), max_steps_in_episode=data.get("max_steps_in_episode"),
         label_map=data.get("label_map"), region=_region(data.get("region"), where),
@@ -306,7 +317,7 @@ def _recipe(scenario: Scenario):
 def register_scenario(scenario_or_path) -> Scenario:
     """Register a :class:`Scenario` (or load one from a TOML/JSON file first) so that
     ``histojax.make(scenario.id)`` works; returns the scenario. Nothing is built until ``make``."""
-    from histojax.registry import register
+    from histojax.registry import EnvSpec, register_spec
 
     scenario = scenario_or_path if isinstance(scenario_or_path, Scenario) else load_scenario(scenario_or_path)
     where = scenario.source or scenario.id
@@ -318,9 +329,8 @@ def register_scenario(scenario_or_path) -> Scenario:
     for split in (*scenario.train, *scenario.test):
         if split not in names:
             raise ScenarioError(where, f"train/test entry {split!r} names no slide of the scenario ({sorted(names)})")
-    spec = scenario.spec()
     try:
-        register(scenario.id, slide=_recipe(scenario), **spec)
+        register_spec(EnvSpec(id=scenario.id, settings=scenario.spec(), slide=_recipe(scenario), scenario=scenario))
     except TypeError as e:
         raise ScenarioError(where, str(e)) from None
     return scenario
@@ -330,7 +340,7 @@ def register_scenario(scenario_or_path) -> Scenario:
 TARGET_MARGIN = 300  # level-0 px around the embedded slide's target annotation
 
 for _name, _levels in (("Easy", 3), ("Medium", 5), ("Hard", 7)):
-    register_scenario(Scenario(id=f"HistoJAX-{_name}-Region-v0", levels=_levels,
+    register_scenario(Scenario(id=f"HistoJAX-{_name}-Region-v0", n_levels=_levels,
                                region=RegionRule(group="tumour", margin=TARGET_MARGIN)))
 
 __all__ = ["RegionRule", "Scenario", "ScenarioError", "SlideSource", "cached_bundle", "file_digest",

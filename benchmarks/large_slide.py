@@ -37,7 +37,7 @@ def finest_steps_per_second(env, params, batch: int, steps: int) -> float:
 
     t = env.tile_size
     finest = env.n_levels - 1
-    level = env._bundle.pixels[finest]
+    level = env.bundles[0].pixels[finest]
     if hasattr(level, "index"):
         cells = np.argwhere(level.index > 0)
     else:

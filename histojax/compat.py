@@ -37,58 +37,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from histojax import actions
+from histojax import actions, spaces
+from histojax.spaces import NumpyBox as Box, NumpyDiscrete as Discrete  # noqa: F401  (gym-style, numpy)
 
 SCENARIOS = {"easy": "HistoJAX-Easy-v0", "medium": "HistoJAX-Medium-v0", "hard": "HistoJAX-Hard-v0"}
 RENDER_MODES = ("human", "save", "rgb_array")
-
-
-class Discrete:
-    """A gym-style ``Discrete(n)``: ``.n``, ``.sample()`` (a numpy int64), ``.contains(x)``, ``.seed(s)``."""
-
-    def __init__(self, n: int, seed: int | None = None):
-        self.n = int(n)
-        self.shape: tuple[int, ...] = ()
-        self.dtype = np.int64
-        self._rng = np.random.default_rng(seed)
-
-    def seed(self, seed: int | None = None) -> list[int | None]:
-        self._rng = np.random.default_rng(seed)
-        return [seed]
-
-    def sample(self) -> np.int64:
-        return np.int64(self._rng.integers(self.n))
-
-    def contains(self, x) -> bool:
-        x = np.asarray(x)
-        return bool(x.shape == () and np.issubdtype(x.dtype, np.integer) and 0 <= int(x) < self.n)
-
-    def __repr__(self) -> str:
-        return f"Discrete({self.n})"
-
-
-class Box:
-    """A gym-style ``Box`` of numpy arrays: ``low``, ``high``, ``shape``, ``dtype``, ``sample()``, ``contains(x)``."""
-
-    def __init__(self, low, high, shape: tuple[int, ...], dtype=np.uint8, seed: int | None = None):
-        self.low, self.high, self.shape, self.dtype = low, high, tuple(shape), np.dtype(dtype)
-        self._rng = np.random.default_rng(seed)
-
-    def seed(self, seed: int | None = None) -> list[int | None]:
-        self._rng = np.random.default_rng(seed)
-        return [seed]
-
-    def sample(self) -> np.ndarray:
-        if np.issubdtype(self.dtype, np.integer):
-            return self._rng.integers(self.low, int(self.high) + 1, self.shape).astype(self.dtype)
-        return self._rng.uniform(self.low, self.high, self.shape).astype(self.dtype)
-
-    def contains(self, x) -> bool:
-        x = np.asarray(x)
-        return bool(x.shape == self.shape and np.all(x >= self.low) and np.all(x <= self.high))
-
-    def __repr__(self) -> str:
-        return f"Box({self.low}, {self.high}, {self.shape}, {self.dtype.name})"
 
 
 def compat_bundle(img_path, xml_path, tile_size: int, progress: bool = True) -> Path:
@@ -134,9 +87,10 @@ class HistoEnv:
             SCENARIOS[key], slide=self.bundle_path, auto_reset=False, reward=reward,
             max_steps_in_episode=self.max_step, random_start=random_start, **make_kwargs)
         self.n_actions = actions.NUM_DISCRETE_ACTIONS
-        self.action_space = Discrete(self.n_actions, seed=seed)
+        self.action_space = spaces.to_numpy(self.env.action_space(self.params), seed=seed)
         self.OBS_W = self.OBS_H = self.tile_size
-        self.observation_space = Box(0, 255, (3, self.tile_size, self.tile_size), np.uint8, seed=seed)
+        self.observation_space = spaces.to_numpy(spaces.channel_first(self.env.observation_space(self.params)),
+                                                 seed=seed)
         self._key = jax.random.PRNGKey(seed)
         self._reset = jax.jit(self._reset_fn)
         self._step = jax.jit(self._step_fn)

@@ -196,6 +196,14 @@ class HistoEnv(_GymnaxEnvironment):
         return self._default_params
 
     @property
+    def bundles(self) -> tuple:
+        """The host bundles (:class:`data_tools.bundle_format.Bundle`: metadata, thumbnails, levels coarsest
+        first) of the env's slides, one per slide, read-only: for rendering and inspection. Empty for an env
+        made without data (``histojax.gymnasium_bridge.settings_only``). Copy an env with one change with
+        ``dataclasses.replace(env, setting=value)``; its bundles go with it."""
+        return tuple(self._bundles) or (() if self._bundle is None else (self._bundle,))
+
+    @property
     def num_actions(self) -> int:
         """Discrete: 7 (+2 diagnosis actions for classification); continuous: the Box size 3 (or 4)."""
         classify = self.task == "classification"

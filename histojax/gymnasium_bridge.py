@@ -24,9 +24,9 @@ import gymnasium
 import jax
 import jax.numpy as jnp
 import numpy as np
-from gymnasium import spaces as gym_spaces
 
 from histojax.env import HistoEnv
+from histojax.spaces import to_gymnasium
 
 
 def _without_autoreset(env: HistoEnv) -> HistoEnv:
@@ -41,23 +41,9 @@ def settings_only(env: HistoEnv) -> HistoEnv:
 
 
 def single_spaces(env: HistoEnv, params):
-    """Gymnasium ``(observation_space, action_space)`` of one environment."""
-    t = env.tile_size
-    if env.obs_mode == "features":
-        view = gym_spaces.Box(-np.inf, np.inf, (params.slide.features.shape[-1],), np.float32)
-    elif env.obs_mode == "pixels":
-        view = gym_spaces.Box(0, 255, (t, t, 3), np.uint8)
-    else:
-        view = gym_spaces.Box(0.0, 1.0, (t, t, 3), np.float32)
-    obs_space = view
-    if env.with_position:
-        key = "features" if env.obs_mode == "features" else "pixels"
-        obs_space = gym_spaces.Dict({key: view, "position": gym_spaces.Box(0.0, 1.0, (3,), np.float32)})
-    if env.action_mode == "discrete":
-        action_space = gym_spaces.Discrete(env.num_actions)
-    else:
-        action_space = gym_spaces.Box(-1.0, 1.0, (env.num_actions,), np.float32)
-    return obs_space, action_space
+    """Gymnasium ``(observation_space, action_space)`` of one environment: the env's own spaces
+    converted (:func:`histojax.spaces.to_gymnasium`)."""
+    return to_gymnasium(env.observation_space(params)), to_gymnasium(env.action_space(params))
 
 
 def numpy_copy(tree):

@@ -25,8 +25,7 @@ def level_colour(z: int, n_levels: int) -> tuple[int, int, int]:
 
 def bundle_of(env, slide_index: int = 0):
     """The host bundle of slide ``slide_index`` of ``env`` (datasets have one per slide)."""
-    bundles = getattr(env, "_bundles", ()) or (env._bundle,)
-    return bundles[int(slide_index)]
+    return env.bundles[int(slide_index)]
 
 
 def _canvas(env, max_side: int, slide_index: int = 0):

@@ -7,6 +7,11 @@ With gymnax installed (``pip install histojax[gymnax]``), ``Discrete`` and ``Box
 ``gymnax_space_to_gym_space`` all work. Without gymnax the stand-ins below take the same
 constructor arguments and offer the same ``n``, ``low``, ``high``, ``shape``, ``dtype``,
 ``sample(key)`` and ``contains(x)``; nobody can then ask whether they are gymnax's.
+
+The env declares its spaces once (``env.observation_space(params)``, ``env.action_space(params)``);
+every bridge converts them here, never re-derives them: :func:`to_gymnasium` (Gymnasium and
+Stable-Baselines3) and :func:`to_numpy` (HistoGym's API: gym-style spaces of numpy values with their
+own seedable generator).
 """
 from __future__ import annotations
 
@@ -15,6 +20,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 try:
     from gymnax.environments import spaces as _gymnax_spaces
@@ -120,3 +126,87 @@ else:
 
         def __repr__(self) -> str:
             return f"Dict({self.spaces})"
+
+
+# ----------------------------------------------------------------------------- converters for the bridges
+def _bound(value):
+    """A space bound as numpy (a Python scalar stays a scalar)."""
+    return value if isinstance(value, (int, float)) else np.asarray(value)
+
+
+def to_gymnasium(space):
+    """The ``gymnasium.spaces`` equivalent of a histojax (gymnax) ``Discrete`` / ``Box`` / ``Dict``
+    (needs gymnasium)."""
+    from gymnasium import spaces as gym_spaces
+
+    if isinstance(space, Discrete):
+        return gym_spaces.Discrete(int(space.n))
+    if isinstance(space, Box):
+        return gym_spaces.Box(_bound(space.low), _bound(space.high), tuple(space.shape), np.dtype(space.dtype))
+    if isinstance(space, Dict):
+        return gym_spaces.Dict({name: to_gymnasium(s) for name, s in space.spaces.items()})
+    raise TypeError(f"no Gymnasium space for {space!r}")
+
+
+def channel_first(space):
+    """An image ``Box`` ``(H, W, C)`` as ``(C, H, W)`` (HistoGym's observation layout)."""
+    h, w, c = space.shape
+    return Box(space.low, space.high, (c, h, w), space.dtype)
+
+
+class NumpyDiscrete:
+    """A gym-style ``Discrete(n)``: ``.n``, ``.sample()`` (a numpy int64), ``.contains(x)``, ``.seed(s)``."""
+
+    def __init__(self, n: int, seed: int | None = None):
+        self.n = int(n)
+        self.shape: tuple[int, ...] = ()
+        self.dtype = np.int64
+        self._rng = np.random.default_rng(seed)
+
+    def seed(self, seed: int | None = None) -> list[int | None]:
+        self._rng = np.random.default_rng(seed)
+        return [seed]
+
+    def sample(self) -> np.int64:
+        return np.int64(self._rng.integers(self.n))
+
+    def contains(self, x) -> bool:
+        x = np.asarray(x)
+        return bool(x.shape == () and np.issubdtype(x.dtype, np.integer) and 0 <= int(x) < self.n)
+
+    def __repr__(self) -> str:
+        return f"Discrete({self.n})"
+
+
+class NumpyBox:
+    """A gym-style ``Box`` of numpy arrays: ``low``, ``high``, ``shape``, ``dtype``, ``sample()``, ``contains(x)``."""
+
+    def __init__(self, low, high, shape: tuple[int, ...], dtype=np.uint8, seed: int | None = None):
+        self.low, self.high, self.shape, self.dtype = low, high, tuple(shape), np.dtype(dtype)
+        self._rng = np.random.default_rng(seed)
+
+    def seed(self, seed: int | None = None) -> list[int | None]:
+        self._rng = np.random.default_rng(seed)
+        return [seed]
+
+    def sample(self) -> np.ndarray:
+        if np.issubdtype(self.dtype, np.integer):
+            return self._rng.integers(self.low, int(self.high) + 1, self.shape).astype(self.dtype)
+        return self._rng.uniform(self.low, self.high, self.shape).astype(self.dtype)
+
+    def contains(self, x) -> bool:
+        x = np.asarray(x)
+        return bool(x.shape == self.shape and np.all(x >= self.low) and np.all(x <= self.high))
+
+    def __repr__(self) -> str:
+        return f"Box({self.low}, {self.high}, {self.shape}, {self.dtype.name})"
+
+
+def to_numpy(space, seed: int | None = None):
+    """The gym-style numpy equivalent (:class:`NumpyDiscrete` / :class:`NumpyBox`, sampled from a
+    ``numpy`` generator seeded with ``seed``) of a histojax ``Discrete`` / ``Box``."""
+    if isinstance(space, Discrete):
+        return NumpyDiscrete(int(space.n), seed=seed)
+    if isinstance(space, Box):
+        return NumpyBox(_bound(space.low), _bound(space.high), tuple(space.shape), np.dtype(space.dtype), seed=seed)
+    raise TypeError(f"no numpy space for {space!r}")

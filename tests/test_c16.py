@@ -73,7 +73,7 @@ def test_ids_detection_and_diagnosis(small):
         env, params = histojax.make(env_id, dataset=small, split="test", verify=False)
         assert env.n_levels == levels and params.slide.num_slides == 2
     assert env.task == "classification" and env.num_actions == 9
-    labels = dict(zip([b.path.name for b in env._bundles], np.asarray(params.slide.slide_label).tolist()))
+    labels = dict(zip([b.path.name for b in env.bundles], np.asarray(params.slide.slide_label).tolist()))
     assert labels == {"Tumor_073": 1, "Normal_108": 0}
 
     @jax.jit
@@ -83,7 +83,7 @@ def test_ids_detection_and_diagnosis(small):
 
     index, (obs, state, reward, terminated, *_) = declare_tumour(jax.random.PRNGKey(0), params)
     assert obs.shape == (128, 128, 3) and bool(terminated)
-    right = labels[env._bundles[int(index)].path.name] == 1
+    right = labels[env.bundles[int(index)].path.name] == 1
     assert float(reward) == pytest.approx((1.0 if right else -1.0) - 0.01)
 
 
@@ -134,7 +134,7 @@ def test_feature_mode_holds_no_pixels(small, tmp_path):
     assert params_p.slide.tile_pool is not None
     leaves = sum(int(a.nbytes) for a in jax.tree.leaves(s))
     expected = sum(slide_device_bytes(m, select_levels(m, 5), pixels=False, features=True)
-                   for m in (read_metadata(b.path) for b in env_f._bundles))
+                   for m in (read_metadata(b.path) for b in env_f.bundles))
     small_arrays = sum(int(a.nbytes) for a in (s.start_logits, s.level_offset, s.level_width, s.level_height,
                                                 s.downsample, s.sat_offset, s.tile_offset, s.tile_grid_width,
                                                 s.feature_offset, s.feature_grid_width, s.feature_grid_height,

@@ -52,7 +52,7 @@ def test_reset_draws_slides_by_weight_and_views_stay_inside_their_slide(two_slid
 def test_observation_comes_from_the_state_slide(two_slides):
     root, a, b = two_slides
     env, params = histojax.make("HistoJAX-Easy-v0", slides=[a, b])
-    for index, bundle in enumerate(env._bundles):
+    for index, bundle in enumerate(env.bundles):
         s = histojax.EnvState(z=jnp.int32(2), x=jnp.int32(100), y=jnp.int32(200), t=jnp.int32(0),
                               slide_index=jnp.int32(index))
         np.testing.assert_array_equal(np.asarray(env.get_obs(s, params)), bundle.pixels[2][200:328, 100:228])
@@ -63,7 +63,7 @@ def test_observation_comes_from_the_state_slide(two_slides):
 def test_dataset_folder_and_split(two_slides):
     root, a, b = two_slides
     env, params = histojax.make("HistoJAX-Easy-v0", dataset=root, split="test")
-    assert params.slide.num_slides == 1 and env._bundle.path.name == "blank"
+    assert params.slide.num_slides == 1 and env.bundles[0].path.name == "blank"
     with pytest.raises(ValueError, match="split"):
         histojax.make("HistoJAX-Easy-v0", dataset=root, split="validation")
 

@@ -46,7 +46,7 @@ def test_spaces_use_gymnax_names(easy):
 
 def test_observation_is_the_view_of_the_level(easy):
     env, params = easy
-    bundle = env._bundle
+    bundle = env.bundles[0]
     state = histojax.EnvState(z=jnp.int32(1), x=jnp.int32(37), y=jnp.int32(211), t=jnp.int32(0),
                               slide_index=jnp.int32(0))
     obs = env.get_obs(state, params)
@@ -121,7 +121,7 @@ def test_random_starts_are_on_tissue(easy):
 
 def test_success_terminates_at_finest_level_only(easy):
     env, params = easy
-    bundle = env._bundle
+    bundle = env.bundles[0]
     # a finest-level view fully inside the target, and the same place one level coarser
     finest = bundle.tumour[-1]
     ys, xs = np.nonzero(finest[:-128, :-128])
@@ -139,7 +139,7 @@ def test_success_terminates_at_finest_level_only(easy):
 
 def test_histogym_preset_never_terminates_and_pays_at_finest():
     env, params = histojax.make("HistoJAX-Easy-v0", reward="histogym", auto_reset=False, max_steps_in_episode=5)
-    bundle = env._bundle
+    bundle = env.bundles[0]
     finest = bundle.tumour[-1]
     ys, xs = np.nonzero(finest)
     x, y = int(xs[len(xs) // 2]) - 64, int(ys[len(ys) // 2]) - 64

@@ -287,7 +287,7 @@ def test_env_observation_equals_encoder_on_the_view(feature_env, feature_bundle)
     for z, gx, gy in [(0, 0, 0), (1, 2, 1), (2, 7, 5), (2, 3, 2)]:
         s = EnvState(*(jnp.int32(v) for v in (z, gx * TILE, gy * TILE, 0, 0)))
         states.append(s)
-        level = env._bundle.pixels[z]  # the host bundle, levels coarsest first as in the env
+        level = env.bundles[0].pixels[z]  # the host bundle, levels coarsest first as in the env
         views.append(np.asarray(level[gy * TILE:gy * TILE + TILE, gx * TILE:gx * TILE + TILE]))
     batch = np.zeros((BATCH, TILE, TILE, 3), np.uint8)
     batch[: len(views)] = views

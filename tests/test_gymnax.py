@@ -59,7 +59,7 @@ def test_jit_with_static_env_keeps_each_envs_slide_and_settings(blank_bundle):
     for env, limit in ((a, 100), (b, 3), (a, 100)):
         obs, state, got_limit = first_look(env, KEY)
         z, x, y = int(state.z), int(state.x), int(state.y)
-        np.testing.assert_array_equal(np.asarray(obs), env._bundle.pixels[z][y:y + 128, x:x + 128])
+        np.testing.assert_array_equal(np.asarray(obs), env.bundles[0].pixels[z][y:y + 128, x:x + 128])
         assert int(got_limit) == limit
     assert a != b and hash(a) != hash(b)
 

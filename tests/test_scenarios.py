@@ -54,13 +54,13 @@ def test_toml_register_make_step(tmp_path):
     env, params = histojax.make(scenario.id)
     assert env.n_levels == 5 and env.reward == "histogym" and env.with_position
     assert int(params.max_steps_in_episode) == 40 and float(params.stride) == 0.5
-    meta = env._bundle.metadata
+    meta = env.bundles[0].metadata
     assert meta["region"]["kind"] == "group" and meta["label_map"]["_2"] == "exclusion"
     obs, state, reward = _step_some(env, params)
     assert obs["pixels"].shape == (128, 128, 3) and int(state.z) == 3 and np.isfinite(float(reward))
     # made again: the cached bundle is reused, not rebuilt
     env2, _ = histojax.make(scenario.id)
-    assert env2._bundle.path == env._bundle.path
+    assert env2.bundles[0].path == env.bundles[0].path
 
 
 def test_json_with_bundle_path_and_relative_paths(tmp_path):
@@ -88,7 +88,7 @@ def test_json_with_bundle_path_and_relative_paths(tmp_path):
 def test_builtin_region_ids(env_id, levels):
     env, params = histojax.make(env_id)
     assert env.n_levels == levels
-    region = env._bundle.metadata["region"]
+    region = env.bundles[0].metadata["region"]
     assert region["kind"] == "group" and region["group"] == "tumour" and region["margin"] == 300
     x0, y0, x1, y1 = region["box"]
     assert int(params.slide.level_width[-1]) == x1 - x0 and int(params.slide.level_height[-1]) == y1 - y0
@@ -138,13 +138,13 @@ slide = "{blank}"
 ''')
     register_scenario(path)
     env, params = histojax.make("Test-Two-Slides-v0", split="all")
-    assert params.slide.num_slides == 2 and len(env._bundles) == 2
+    assert params.slide.num_slides == 2 and len(env.bundles) == 2
     _, states = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(0), 64), params)
     assert set(np.asarray(states.slide_index).tolist()) == {0, 1}  # both slides are drawn
     train_env, train_params = histojax.make("Test-Two-Slides-v0")  # split="train" by default
-    assert train_params.slide.num_slides == 1 and train_env._bundle.metadata["source"]["file"] == SAMPLE_SLIDE.name
+    assert train_params.slide.num_slides == 1 and train_env.bundles[0].metadata["source"]["file"] == SAMPLE_SLIDE.name
     test_env, _ = histojax.make("Test-Two-Slides-v0", split="test")
-    assert test_env._bundle.metadata["source"]["file"] == "blank.tif"
+    assert test_env.bundles[0].metadata["source"]["file"] == "blank.tif"
 
 
 def test_missing_file_and_region_on_a_bundle(tmp_path):

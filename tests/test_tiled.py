@@ -131,7 +131,7 @@ def test_views_match_dense(hard, z, fx, fy, aligned):
     pix_s, frac_s = (np.asarray(a[0]) for a in _views_fn()(ps.slide, *args))
     np.testing.assert_array_equal(pix_a, pix_d)
     assert frac_a == frac_d == frac_s
-    index = env_s._bundle.pixels[z].index  # (gh, gw) pool index of each tile of level z (0 = blank)
+    index = env_s.bundles[0].pixels[z].index  # (gh, gw) pool index of each tile of level z (0 = blank)
     rows, cols = np.arange(y, y + T) // T, np.arange(x, x + T) // T
     kept = index[rows][:, cols] > 0
     np.testing.assert_array_equal(pix_s[kept], pix_d[kept])
@@ -141,7 +141,7 @@ def test_views_match_dense(hard, z, fx, fy, aligned):
 def test_glass_views_are_white_and_tissue_views_exact(hard):
     (_, pd), (env_s, ps) = hard["dense"], hard["shared"]
     z = 6
-    index = env_s._bundle.pixels[z].index
+    index = env_s.bundles[0].pixels[z].index
     blank = np.argwhere(index == 0)
     kept = np.argwhere(index > 0)
     assert len(blank) and len(kept)

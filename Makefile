@@ -44,7 +44,7 @@ bench-large: $(STAMP)
 	$(PY) benchmarks/large_slide.py --size 100000 --compare-sample
 
 contract: $(STAMP)
-	$(PY) ../shared/tools/check_contract.py
+	$(PY) -m histojax.testing
 
 clean:
 	rm -rf $(VENV) build *.egg-info .pytest_cache

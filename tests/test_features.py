@@ -297,6 +297,13 @@ def test_env_observation_equals_encoder_on_the_view(feature_env, feature_bundle)
     np.testing.assert_allclose(obs, direct, rtol=1e-4, atol=1e-4)
 
 
+def test_contract_of_the_feature_observation_mode(feature_env):
+    from histojax.testing import check_env
+
+    report = check_env(*feature_env, batch=4, steps=8, jit_steps=2)
+    assert report.ok, report.failures
+
+
 def test_off_grid_views_snap_to_the_nearest_cell(feature_env):
     from histojax.env import view_features
 

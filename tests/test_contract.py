@@ -1,0 +1,74 @@
+"""The package's contract check (histojax.testing) on registered ids and every action/observation mode.
+
+Default run: two ids (3 levels on the whole sample slide; 7 levels on a region bundle) and the modes
+combined into two configurations; every other registered id (the C16 ids on the small C16 dataset)
+under ``make test-all``. The feature observation mode is checked in tests/test_features.py (it needs
+a feature grid). Each configuration compiles once, with small budgets.
+"""
+from __future__ import annotations
+
+import jax.numpy as jnp
+import pytest
+
+import histojax
+from histojax.env import HistoEnv
+from histojax.testing import check_contract, check_env
+
+SMALL = dict(batch=4, steps=8, jit_steps=2)
+DEFAULT_IDS = ("HistoJAX-Easy-v0", "HistoJAX-Hard-Region-v0")
+
+
+@pytest.mark.parametrize("env_id", DEFAULT_IDS)
+def test_contract_of_registered_id(env_id):
+    (report,) = check_contract([env_id], **SMALL)
+    assert report.skipped is None and report.ok, report.failures
+    assert len(report.checks) >= 12
+
+
+@pytest.mark.parametrize("overrides", [
+    dict(action_mode="continuous", obs_mode="pixels_float", with_position=True),
+    dict(task="classification", with_position=True),
+], ids=["continuous-float-position", "classification-position"])
+def test_contract_of_each_mode(overrides):
+    env, params = histojax.make("HistoJAX-Easy-v0", **overrides)
+    report = check_env(env, params, **SMALL)
+    assert report.ok, report.failures
+
+
+class _NanReward(HistoEnv):
+    """An env that breaks the contract: every reward is NaN."""
+
+    def step(self, key, state, action, params=None):
+        obs, state, reward, terminated, truncated, info = super().step(key, state, action, params)
+        return obs, state, reward * jnp.nan, terminated, truncated, info
+
+
+def test_contract_catches_a_broken_env():
+    import dataclasses
+
+    env, params = histojax.make("HistoJAX-Easy-v0")
+    broken = _NanReward(**{f.name: getattr(env, f.name) for f in dataclasses.fields(env)})
+    report = check_env(broken, params, **SMALL)
+    assert not report.ok
+    failed = " ".join(report.failures)
+    assert "finite rewards" in failed and "jit == no-jit" in failed
+
+
+def test_contract_skips_an_id_without_its_data(monkeypatch, tmp_path):
+    monkeypatch.setenv("HISTOJAX_C16_DATASET", str(tmp_path / "none"))
+    (report,) = check_contract(["HistoJAX-C16-Easy-v0"], **SMALL)
+    assert report.skipped and "dataset.json" in report.skipped and not report.checks
+
+
+@pytest.mark.slow
+@pytest.mark.parametrize("env_id", [i for i in histojax.registered_envs() if i not in DEFAULT_IDS])
+def test_contract_of_every_other_registered_id(env_id, tmp_path_factory, monkeypatch):
+    if env_id.startswith("HistoJAX-C16-"):
+        from data_tools.c16 import make_c16_dataset
+
+        out = tmp_path_factory.getbasetemp() / "c16-contract"
+        if not (out / "dataset.json").is_file():
+            make_c16_dataset(out, small=True, progress=False)
+        monkeypatch.setenv("HISTOJAX_C16_DATASET", str(out))
+    (report,) = check_contract([env_id], **SMALL)
+    assert report.skipped is None and report.ok, report.failures

@@ -50,12 +50,13 @@ def reset_envs(env, key, env_params, num_envs: int):
     return key, k_init, preprocess_obs(obs), env_state
 
 
-def params_initialiser(env, network, num_envs: int):
+def params_initialiser(env, network, num_envs: int, inputs=None):
     """``init_params(key, env_params)``: the network's parameters for a trainer's key, made on the
-    first observations of :func:`reset_envs`."""
+    first observations of :func:`reset_envs` (``network.init(key, *inputs(obs))``; by default the
+    observations alone)."""
     def init_params(key, env_params):
         _, k_init, obs, _ = reset_envs(env, key, env_params, num_envs)
-        return network.init(k_init, obs)
+        return network.init(k_init, *(inputs(obs) if inputs is not None else (obs,)))
     return init_params
 
 

@@ -26,7 +26,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from baselines import common
-from baselines.networks import (ActorCritic, QNetwork, policy_mode, policy_sample, preprocess_obs)
+from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
+                                policy_mode, policy_sample, preprocess_obs)
 from histojax import actions
 from histojax.render import animate, render_trajectory
 
@@ -78,11 +79,14 @@ def scripted_policy(key, obs, action_mode: str = "discrete", centred: float = 0.
 
 # ----------------------------------------------------------------------------- rollouts
 def run_episodes(env, env_params, policy, key, num_episodes: int):
-    """``num_episodes`` vmapped episodes (no auto-reset) of ``policy(key, obs_batch) -> actions``.
+    """``num_episodes`` vmapped episodes (no auto-reset) of ``policy(key, obs_batch) -> actions``,
+    or of a recurrent policy (``policy.initial_memory(n)`` defined): ``policy(key, obs_batch,
+    memory) -> (actions, memory)``, its memory carried from step to step of each episode.
     Returns numpy ``return, success, length`` per episode and the ``(steps+1, E)`` trajectories
     ``z, x, y`` (frozen after the episode ended)."""
     max_steps = int(env_params.max_steps_in_episode)
     step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+    recurrent = hasattr(policy, "initial_memory")
 
     @jax.jit
     def go(key, env_params):
@@ -91,9 +95,12 @@ def run_episodes(env, env_params, policy, key, num_episodes: int):
         zeros = jnp.zeros(num_episodes)
 
         def body(carry, k):
-            obs, state, done, ret, length, success = carry
+            obs, state, done, ret, length, success, memory = carry
             k_act, k_step = jax.random.split(k)
-            action = policy(k_act, obs)
+            if recurrent:
+                action, memory = policy(k_act, obs, memory)
+            else:
+                action = policy(k_act, obs)
             obs2, state2, r, term, trunc, info = step(jax.random.split(k_step, num_episodes), state, action, env_params)
             active = ~done
             ret = ret + r * active
@@ -103,10 +110,11 @@ def run_episodes(env, env_params, policy, key, num_episodes: int):
                 lambda a, b: jnp.where(done.reshape(-1, *([1] * (a.ndim - 1))), a, b), old, new)
             state, obs = keep(state, state2), keep(obs, obs2)
             done = done | term | trunc
-            return (obs, state, done, ret, length, success), (state.z, state.x, state.y)
+            return (obs, state, done, ret, length, success, memory), (state.z, state.x, state.y)
 
-        carry = (obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool))
-        (_, _, _, ret, length, success), (z, x, y) = jax.lax.scan(body, carry, jax.random.split(key, max_steps))
+        memory = policy.initial_memory(num_episodes) if recurrent else ()
+        carry = (obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool), memory)
+        (_, _, _, ret, length, success, _), (z, x, y) = jax.lax.scan(body, carry, jax.random.split(key, max_steps))
         cat = lambda a0, a: jnp.concatenate([a0[None], a])  # noqa: E731
         return ret, success, length, cat(state.z, z), cat(state.x, x), cat(state.y, y)
 
@@ -128,6 +136,17 @@ def trajectory(ep: dict, i: int):
 
 
 def learned_policy(network, params, action_mode: str, greedy: bool):
+    """The checkpoint's policy for :func:`run_episodes`: greedy or sampled; a
+    :class:`RecurrentActorCritic` gives a recurrent policy whose memory is the GRU state (zeros
+    at the episode's start, as in training)."""
+    if isinstance(network, RecurrentActorCritic):
+        def recurrent_policy(key, obs, h):
+            first = jnp.zeros(jax.tree.leaves(obs)[0].shape[0], bool)  # h starts at zeros already
+            h, pi, _ = network_step(network, params, h, preprocess_obs(obs), first)
+            return (policy_mode(pi, action_mode) if greedy else policy_sample(key, pi, action_mode)), h
+        recurrent_policy.initial_memory = lambda n: ScannedGRU.initial_state(n, network.hidden)
+        return recurrent_policy
+
     def policy(key, obs):
         obs = preprocess_obs(obs)
         if isinstance(network, QNetwork):
@@ -141,6 +160,9 @@ def network_for(config: dict, env):
     space = env.action_space()
     if config.get("algo") == "dqn" or "buffer_size" in config:
         return QNetwork(space.n, hidden=config["hidden"])
+    if config.get("algo") == "ppo_rnn":
+        from baselines.ppo_rnn import make_network
+        return make_network(config, env)
     dim = space.n if config["action_mode"] == "discrete" else int(np.prod(space.shape))
     return ActorCritic(dim, config["action_mode"], hidden=config["hidden"])
 
@@ -256,7 +278,7 @@ def main(argv=None) -> int:
         params, config = common.load_checkpoint(args.checkpoint)
         run = Path(args.checkpoint)
         run = run if run.is_dir() else run.parent
-        label = "dqn" if "buffer_size" in config else "ppo"
+        label = config.get("algo") or ("dqn" if "buffer_size" in config else "ppo")
     else:
         params, config, run, label = None, {"action_mode": args.action_mode, "with_position": args.with_position,
                                             "obs": "pixels", "hidden": 256}, None, "none"

@@ -56,6 +56,9 @@ DEFAULTS = dict(
 )
 
 
+LOG_KEYS = ("returned_episode", "returned_episode_returns", "returned_episode_lengths", "returned_episode_success")
+
+
 class Transition(NamedTuple):
     done: jnp.ndarray
     action: jnp.ndarray
@@ -84,6 +87,47 @@ def gae(traj: Transition, last_value, gamma: float, lam: float):
     return advantages, advantages + traj.value
 
 
+def make_optimizer(config: dict, num_updates: int):
+    """Adam with global-norm clipping; the learning rate decays linearly to 0 over
+    ``num_updates`` updates of ``num_minibatches × update_epochs`` steps (``anneal_lr``)."""
+    def lr_schedule(count):
+        frac = 1.0 - (count // (config["num_minibatches"] * config["update_epochs"])) / num_updates
+        return config["lr"] * frac
+
+    return optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
+                       optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
+
+
+def clipped_loss(pi, value, traj, adv, target, config: dict):
+    """PPO's loss on a minibatch (any batch shape): clipped policy objective on normalised
+    advantages, clipped value loss, entropy bonus. ``pi``/``value``: the network's outputs for
+    ``traj.obs`` now; ``traj.action``/``traj.log_prob``/``traj.value``: from the rollout.
+    Returns ``(total, (pg_loss, v_loss, entropy, approx_kl))``."""
+    mode = config["action_mode"]
+    log_prob = policy_log_prob(pi, traj.action, mode)
+    v_clipped = traj.value + jnp.clip(value - traj.value, -config["clip_eps"], config["clip_eps"])
+    v_loss = 0.5 * jnp.maximum((value - target) ** 2, (v_clipped - target) ** 2).mean()
+    ratio = jnp.exp(log_prob - traj.log_prob)
+    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    pg_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config["clip_eps"], 1 + config["clip_eps"]) * adv).mean()
+    entropy = policy_entropy(pi, mode).mean()
+    total = pg_loss + config["vf_coef"] * v_loss - config["ent_coef"] * entropy
+    approx_kl = ((ratio - 1) - (log_prob - traj.log_prob)).mean()
+    return total, (pg_loss, v_loss, entropy, approx_kl)
+
+
+def update_metrics(info: dict, aux, progress, update_index, config: dict) -> dict:
+    """One update's metrics: episode statistics of the rollout's ``info`` and the means of the
+    losses ``aux`` (from :func:`clipped_loss`); printed through ``progress`` when asked."""
+    pg_loss, v_loss, entropy, kl = (a.mean() for a in aux)
+    metrics = {**common.episode_stats(info), "pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy,
+               "approx_kl": kl}
+    if config["print_progress"]:
+        ack = common.report(progress, update_index, metrics)
+        metrics = {**metrics, "episodes": metrics["episodes"] + ack}
+    return metrics
+
+
 def make_train(config: dict):
     """A jitted ``train(keys)`` running ``len(keys)`` seeds in one program (``jax.vmap`` over keys,
     or ``lax.map`` with ``vmap_seeds=False``) and
@@ -109,18 +153,12 @@ def make_train(config: dict):
     progress = common.Progress(config["num_seeds"], num_updates, batch, config["log_every"],
                                name=f"ppo {config['env_id']}")
 
-    def lr_schedule(count):
-        frac = 1.0 - (count // (config["num_minibatches"] * config["update_epochs"])) / num_updates
-        return config["lr"] * frac
-
     init_params = common.params_initialiser(env, network, num_envs)
 
     def train(key, env_params, params):
         key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs)
         obs0, env_state = shard((obs0, env_state))
-        tx = optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
-                         optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
-        state = TrainState.create(apply_fn=network.apply, params=params, tx=tx)
+        state = TrainState.create(apply_fn=network.apply, params=params, tx=make_optimizer(config, num_updates))
 
         def env_step(carry, _):
             state, env_state, obs, key = carry
@@ -130,8 +168,7 @@ def make_train(config: dict):
             log_prob = policy_log_prob(pi, action, mode)
             next_obs, env_state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
                 jax.random.split(k_step, num_envs), env_state, action, env_params)
-            keep = {k: info[k] for k in ("returned_episode", "returned_episode_returns",
-                                         "returned_episode_lengths", "returned_episode_success")}
+            keep = {k: info[k] for k in LOG_KEYS}
             done = jnp.logical_or(term, trunc).astype(jnp.float32)
             t = shard(Transition(done, action, value, reward, log_prob, obs, keep))
             next_obs, env_state = shard((preprocess_obs(next_obs), env_state))
@@ -145,17 +182,7 @@ def make_train(config: dict):
             def loss_fn(params, mb):
                 traj, adv, target = mb
                 pi, value = network.apply(params, traj.obs)
-                log_prob = policy_log_prob(pi, traj.action, mode)
-                v_clipped = traj.value + jnp.clip(value - traj.value, -config["clip_eps"], config["clip_eps"])
-                v_loss = 0.5 * jnp.maximum((value - target) ** 2, (v_clipped - target) ** 2).mean()
-                ratio = jnp.exp(log_prob - traj.log_prob)
-                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                pg_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config["clip_eps"],
-                                                             1 + config["clip_eps"]) * adv).mean()
-                entropy = policy_entropy(pi, mode).mean()
-                total = pg_loss + config["vf_coef"] * v_loss - config["ent_coef"] * entropy
-                approx_kl = ((ratio - 1) - (log_prob - traj.log_prob)).mean()
-                return total, (pg_loss, v_loss, entropy, approx_kl)
+                return clipped_loss(pi, value, traj, adv, target, config)
 
             def epoch(carry, _):
                 state, key = carry
@@ -173,12 +200,7 @@ def make_train(config: dict):
                 return (state, key), aux
 
             (state, key), aux = jax.lax.scan(epoch, (state, key), None, config["update_epochs"])
-            pg_loss, v_loss, entropy, kl = (a.mean() for a in aux)
-            metrics = {**common.episode_stats(traj.info), "pg_loss": pg_loss, "v_loss": v_loss,
-                       "entropy": entropy, "approx_kl": kl}
-            if config["print_progress"]:
-                ack = common.report(progress, update_index, metrics)
-                metrics = {**metrics, "episodes": metrics["episodes"] + ack}
+            metrics = update_metrics(traj.info, aux, progress, update_index, config)
             return (state, env_state, obs, key), metrics
 
         carry = (state, env_state, obs0, key)

@@ -17,3 +17,38 @@ def sample_envs():
 
     return {env_id: histojax.make(env_id) for env_id in
             ("HistoJAX-Easy-v0", "HistoJAX-Medium-v0", "HistoJAX-Hard-v0")}
+
+
+def _colour_feature_grid(src, dest):
+    """Copy the bundle ``src`` to ``dest`` and give it a cheap 6-d feature grid (mean and std of
+    each view's RGB in [0, 1], one cell per tile) through ``data_tools.features.store``, so
+    ``obs_mode="features"`` can be tested without running the EfficientNet encoder."""
+    import shutil
+    from pathlib import Path
+
+    import numpy as np
+
+    from data_tools.bundle import load_bundle, read_metadata
+    from data_tools.features.store import level_grids, save_array, update_metadata
+
+    dest = Path(dest)
+    shutil.copytree(src, dest)
+    meta = read_metadata(dest)
+    tile = int(meta["tile_size"])
+    bundle = load_bundle(dest, verify=False)
+    written, levels = [], []
+    for k, (gh, gw) in enumerate(level_grids(meta, tile)):
+        views = np.asarray(bundle.pixels[k][: gh * tile, : gw * tile], np.float32).reshape(gh, tile, gw, tile, 3) / 255
+        grid = np.concatenate([views.mean(axis=(1, 3)), views.std(axis=(1, 3))], -1).astype(np.float32)
+        save_array(dest / f"features_{k:02d}.npy", grid)
+        written.append(f"features_{k:02d}.npy")
+        levels.append({"file": f"features_{k:02d}.npy", "grid": [gh, gw]})
+    update_metadata(dest, {"encoder": "mean-std-rgb (tests)", "dim": 6, "stride": tile, "dtype": "float32",
+                           "projection": None, "levels": levels}, written)
+    return dest
+
+
+@pytest.fixture(scope="session")
+def colour_feature_grid():
+    """``f(src_bundle, dest) -> dest``: a copy of a bundle with a 6-d mean/std-RGB feature grid."""
+    return _colour_feature_grid

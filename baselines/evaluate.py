@@ -168,11 +168,11 @@ def network_for(config: dict, env):
 
 
 def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
-             label: str = "learned", augment: bool = False) -> dict:
+             label: str = "learned", augment: bool = False, references: bool = True) -> dict:
     """Rows for the learned policy (greedy and sampled; seeds pooled), the random agent and the
-    scripted policy on one slide; writes trajectory pictures to ``out`` when given. Training-time
-    view augmentation (``env_kwargs["augment"]``) is switched off unless ``augment=True``: a
-    slide is evaluated as it is."""
+    scripted policy (``references=False``: without these two) on one slide; writes trajectory
+    pictures to ``out`` when given. Training-time view augmentation (``env_kwargs["augment"]``)
+    is switched off unless ``augment=True``: a slide is evaluated as it is."""
     config = {**config, "slide": slide if slide is not None else config.get("slide")}
     if config.get("env_kwargs"):
         drop = {"augment"} if not augment else set()
@@ -199,6 +199,8 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             row["success_rate_per_seed"] = [summarise(e)["success_rate"] for e in per_seed]
             rows[f"{label} ({name})"] = row
             episodes[f"{label} ({name})"] = pooled
+    if not references:
+        return rows
     space = env.action_space()
     rand = lambda k, obs: jax.vmap(space.sample)(jax.random.split(k, jax.tree.leaves(obs)[0].shape[0]))  # noqa: E731
     episodes["random"] = run_episodes(env, env_params, rand, jax.random.fold_in(key, 1), num_episodes)

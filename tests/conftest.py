@@ -19,10 +19,11 @@ def sample_envs():
             ("HistoJAX-Easy-v0", "HistoJAX-Medium-v0", "HistoJAX-Hard-v0")}
 
 
-def _colour_feature_grid(src, dest):
-    """Copy the bundle ``src`` to ``dest`` and give it a cheap 6-d feature grid (mean and std of
-    each view's RGB in [0, 1], one cell per tile) through ``data_tools.features.store``, so
-    ``obs_mode="features"`` can be tested without running the EfficientNet encoder."""
+def _colour_feature_grid(src, dest=None):
+    """Copy the bundle ``src`` to ``dest`` (None: change ``src`` in place) and give it a cheap 6-d
+    feature grid (mean and std of each view's RGB in [0, 1], one cell per tile) through
+    ``data_tools.features.store``, so ``obs_mode="features"`` can be tested without running the
+    EfficientNet encoder."""
     import shutil
     from pathlib import Path
 
@@ -31,8 +32,9 @@ def _colour_feature_grid(src, dest):
     from data_tools.bundle import load_bundle, read_metadata
     from data_tools.features.store import level_grids, save_array, update_metadata
 
-    dest = Path(dest)
-    shutil.copytree(src, dest)
+    dest = Path(src if dest is None else dest)
+    if dest != Path(src):
+        shutil.copytree(src, dest)
     meta = read_metadata(dest)
     tile = int(meta["tile_size"])
     bundle = load_bundle(dest, verify=False)
@@ -50,5 +52,6 @@ def _colour_feature_grid(src, dest):
 
 @pytest.fixture(scope="session")
 def colour_feature_grid():
-    """``f(src_bundle, dest) -> dest``: a copy of a bundle with a 6-d mean/std-RGB feature grid."""
+    """``f(src_bundle, dest=None) -> dest``: a copy of a bundle (or the bundle itself) with a 6-d
+    mean/std-RGB feature grid."""
     return _colour_feature_grid

@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from baselines import common
+from baselines.ppo import make_network
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
                                 policy_mode, policy_sample, preprocess_obs)
 from histojax import actions
@@ -160,11 +161,7 @@ def network_for(config: dict, env):
     space = env.action_space()
     if config.get("algo") == "dqn" or "buffer_size" in config:
         return QNetwork(space.n, hidden=config["hidden"])
-    if config.get("algo") == "ppo_rnn":
-        from baselines.ppo_rnn import make_network
-        return make_network(config, env)
-    dim = space.n if config["action_mode"] == "discrete" else int(np.prod(space.shape))
-    return ActorCritic(dim, config["action_mode"], hidden=config["hidden"])
+    return make_network(config, env, RecurrentActorCritic if config.get("algo") == "ppo_rnn" else ActorCritic)
 
 
 def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,

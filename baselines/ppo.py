@@ -60,19 +60,24 @@ LOG_KEYS = ("returned_episode", "returned_episode_returns", "returned_episode_le
 
 
 class Transition(NamedTuple):
-    done: jnp.ndarray
+    """One rollout step (arrays with the env batch axis; time-major once scanned)."""
+
+    done: jnp.ndarray      # float: this step ended the episode (GAE)
     action: jnp.ndarray
     value: jnp.ndarray
     reward: jnp.ndarray
     log_prob: jnp.ndarray
     obs: object
     info: dict
+    first: object = None   # recurrent PPO: obs is the first of an episode (reset the memory first)
 
 
-def make_network(config: dict, env) -> ActorCritic:
+def make_network(config: dict, env, network_cls=ActorCritic):
+    """``network_cls`` (an actor-critic) sized for ``env``'s action space: ``n`` logits for discrete
+    actions, the Box size for continuous ones; width ``config["hidden"]``."""
     space = env.action_space()
     action_dim = space.n if config["action_mode"] == "discrete" else int(np.prod(space.shape))
-    return ActorCritic(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"])
+    return network_cls(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"])
 
 
 def gae(traj: Transition, last_value, gamma: float, lam: float):

@@ -20,11 +20,8 @@ ratio is 1 before the first gradient step). Minibatches are sets of whole env se
 """
 from __future__ import annotations
 
-from typing import NamedTuple
-
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax.training.train_state import TrainState
 
 from baselines import common, ppo
@@ -36,29 +33,16 @@ DEFAULTS = {**{k: v for k, v in ppo.DEFAULTS.items() if k != "devices"},
             "algo": "ppo_rnn", "num_minibatches": 4, "hidden": 128}
 
 
-class RnnTransition(NamedTuple):
-    first: jnp.ndarray     # (B,) obs is the first of an episode: reset h before reading it
-    done: jnp.ndarray      # (B,) float: this step ended the episode (GAE)
-    action: jnp.ndarray
-    value: jnp.ndarray
-    reward: jnp.ndarray
-    log_prob: jnp.ndarray
-    obs: object
-    info: dict
-
-
 def make_network(config: dict, env) -> RecurrentActorCritic:
     """The GRU actor-critic for ``env``'s action space (discrete: ``n`` logits; continuous: Box size)."""
-    space = env.action_space()
-    action_dim = space.n if config["action_mode"] == "discrete" else int(np.prod(space.shape))
-    return RecurrentActorCritic(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"])
+    return ppo.make_network(config, env, RecurrentActorCritic)
 
 
 def rollout(network, env, params, env_params, carry, num_steps: int, action_mode: str):
     """``num_steps`` steps of the sampled recurrent policy in ``B`` vmapped, auto-resetting envs
     (``env`` wrapped in :class:`~histojax.wrappers.LogWrapper`). ``carry = (env_state, obs (pooled,
     :func:`~baselines.networks.preprocess_obs`), first (B,) bool, h (B, H), key)`` → ``(carry,
-    traj)`` with ``traj`` an :class:`RnnTransition` of time-major ``(num_steps, B, ...)`` arrays;
+    traj)`` with ``traj`` a :class:`baselines.ppo.Transition` (with ``first``) of time-major ``(num_steps, B, ...)`` arrays;
     ``first`` of step ``t + 1`` is ``done`` of step ``t``."""
     num_envs = carry[2].shape[0]
 
@@ -71,14 +55,14 @@ def rollout(network, env, params, env_params, carry, num_steps: int, action_mode
         next_obs, env_state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
             jax.random.split(k_step, num_envs), env_state, action, env_params)
         done = jnp.logical_or(term, trunc)
-        t = RnnTransition(first, done.astype(jnp.float32), action, value, reward, log_prob, obs,
-                          {k: info[k] for k in ppo.LOG_KEYS})
+        t = ppo.Transition(done.astype(jnp.float32), action, value, reward, log_prob, obs,
+                           {k: info[k] for k in ppo.LOG_KEYS}, first)
         return (env_state, preprocess_obs(next_obs), done, h, key), t
 
     return jax.lax.scan(env_step, carry, None, num_steps)
 
 
-def replay(network, params, h_start, traj: RnnTransition):
+def replay(network, params, h_start, traj: ppo.Transition):
     """The policy and values ``(pi (T, B, ...), value (T, B))`` of ``params`` along a stored
     rollout, from the hidden states ``h_start (B, H)`` it started with, resetting where
     ``traj.first``: with the rollout's own parameters this reproduces its log-probabilities."""

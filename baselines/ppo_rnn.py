@@ -42,8 +42,8 @@ def rollout(network, env, params, env_params, carry, num_steps: int, action_mode
     """``num_steps`` steps of the sampled recurrent policy in ``B`` vmapped, auto-resetting envs
     (``env`` wrapped in :class:`~histojax.wrappers.LogWrapper`). ``carry = (env_state, obs (pooled,
     :func:`~baselines.networks.preprocess_obs`), first (B,) bool, h (B, H), key)`` → ``(carry,
-    traj)`` with ``traj`` a :class:`baselines.ppo.Transition` (with ``first``) of time-major ``(num_steps, B, ...)`` arrays;
-    ``first`` of step ``t + 1`` is ``done`` of step ``t``."""
+    traj)`` with ``traj`` a :class:`baselines.ppo.Transition` (``first`` set) of time-major
+    ``(num_steps, B, ...)`` arrays; ``first`` of step ``t + 1`` is ``done`` of step ``t``."""
     num_envs = carry[2].shape[0]
 
     def env_step(carry, _):

@@ -83,8 +83,8 @@ def run_episodes(env, env_params, policy, key, num_episodes: int):
     """``num_episodes`` vmapped episodes (no auto-reset) of ``policy(key, obs_batch) -> actions``,
     or of a recurrent policy (``policy.initial_memory(n)`` defined): ``policy(key, obs_batch,
     memory) -> (actions, memory)``, its memory carried from step to step of each episode.
-    Returns numpy ``return, success, length`` per episode and the ``(steps+1, E)`` trajectories
-    ``z, x, y`` (frozen after the episode ended)."""
+    Returns numpy ``return, success, length`` and ``slide`` (the slide index of a multi-slide env)
+    per episode and the ``(steps+1, E)`` trajectories ``z, x, y`` (frozen after the episode ended)."""
     max_steps = int(env_params.max_steps_in_episode)
     step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
     recurrent = hasattr(policy, "initial_memory")
@@ -117,17 +117,26 @@ def run_episodes(env, env_params, policy, key, num_episodes: int):
         carry = (obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool), memory)
         (_, _, _, ret, length, success, _), (z, x, y) = jax.lax.scan(body, carry, jax.random.split(key, max_steps))
         cat = lambda a0, a: jnp.concatenate([a0[None], a])  # noqa: E731
-        return ret, success, length, cat(state.z, z), cat(state.x, x), cat(state.y, y)
+        return ret, success, length, state.slide_index, cat(state.z, z), cat(state.x, x), cat(state.y, y)
 
     out = jax.device_get(go(key, env_params))
-    return dict(zip(("return", "success", "length", "z", "x", "y"), (np.asarray(a) for a in out)))
+    return dict(zip(("return", "success", "length", "slide", "z", "x", "y"), (np.asarray(a) for a in out)))
 
 
-def summarise(ep: dict) -> dict:
+def summarise(ep: dict, slide_names=None) -> dict:
+    """Episodes, success rate, mean return, mean length and mean steps to success (over the
+    successful episodes) of :func:`run_episodes`' output; with ``slide_names`` (one per slide of a
+    multi-slide env) also ``by_slide``: ``{name: {"episodes", "successes"}}`` for the slides drawn."""
     s = ep["success"].astype(bool)
-    return {"episodes": int(s.size), "success_rate": float(s.mean()), "mean_return": float(ep["return"].mean()),
-            "mean_length": float(ep["length"].mean()),
-            "mean_steps_to_success": float(ep["length"][s].mean()) if s.any() else float("nan")}
+    row = {"episodes": int(s.size), "success_rate": float(s.mean()), "mean_return": float(ep["return"].mean()),
+           "mean_length": float(ep["length"].mean()),
+           "mean_steps_to_success": float(ep["length"][s].mean()) if s.any() else float("nan")}
+    if slide_names is not None and len(slide_names) > 1:
+        row["by_slide"] = {name: {"episodes": int((ep["slide"] == i).sum()),
+                                  "successes": int(s[ep["slide"] == i].sum()),
+                                  "steps_to_success_sum": float(ep["length"][s & (ep["slide"] == i)].sum())}
+                           for i, name in enumerate(slide_names) if (ep["slide"] == i).any()}
+    return row
 
 
 def trajectory(ep: dict, i: int):
@@ -177,6 +186,7 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             drop |= {"dataset", "split", "slides", "slide_weights"}
         config["env_kwargs"] = {k: v for k, v in config["env_kwargs"].items() if k not in drop}
     env, env_params = common.make_env(config, auto_reset=False)
+    names = [Path(b.path).name for b in env._bundles]
     mode = config["action_mode"]
     key = jax.random.PRNGKey(seed)
     rows, episodes = {}, {}
@@ -192,7 +202,7 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
                 per_seed.append(run_episodes(env, env_params, learned_policy(network, p, mode, greedy),
                                              jax.random.fold_in(key, 100 + s), num_episodes))
             pooled = {k: np.concatenate([e[k] for e in per_seed], axis=-1) for k in per_seed[0]}
-            row = summarise(pooled)
+            row = summarise(pooled, names)
             row["success_rate_per_seed"] = [summarise(e)["success_rate"] for e in per_seed]
             rows[f"{label} ({name})"] = row
             episodes[f"{label} ({name})"] = pooled
@@ -201,14 +211,14 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     space = env.action_space()
     rand = lambda k, obs: jax.vmap(space.sample)(jax.random.split(k, jax.tree.leaves(obs)[0].shape[0]))  # noqa: E731
     episodes["random"] = run_episodes(env, env_params, rand, jax.random.fold_in(key, 1), num_episodes)
-    rows["random"] = summarise(episodes["random"])
+    rows["random"] = summarise(episodes["random"], names)
     if isinstance(env.observation_space(), dict) or env.obs_mode in ("pixels", "pixels_float"):
         def scripted(k, obs):
             n = jax.tree.leaves(obs)[0].shape[0]
             return jax.vmap(lambda kk, o: scripted_policy(kk, o, mode))(jax.random.split(k, n), obs)
         try:
             episodes["scripted"] = run_episodes(env, env_params, scripted, jax.random.fold_in(key, 2), num_episodes)
-            rows["scripted"] = summarise(episodes["scripted"])
+            rows["scripted"] = summarise(episodes["scripted"], names)
         except (KeyError, TypeError, ValueError) as e:  # observation without pixels
             print(f"scripted policy skipped: {e}")
     if out is not None:

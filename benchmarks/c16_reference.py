@@ -20,7 +20,10 @@ one value or one per scenario; ``--seeds`` seeds in one program) on the train sp
 ``OUT/<method>-<scenario>/``, then evaluates every seed's **sampled** policy on ``--episodes`` fresh
 test episodes per seed (``baselines.evaluate``; the greedy row is kept in the JSON). Random and
 scripted rows come from the same evaluation on pixels + position. The scripted policy walks toward
-the darkest stain and never declares a diagnosis, so it has no Diagnosis cell. Success on
+the darkest stain and never declares a diagnosis, so it has no Diagnosis cell. Detection success
+and steps to success count the episodes on test *tumour* slides only (labels from
+``dataset.json``; a normal slide has nothing to find); the JSON keeps the rate over all slides and
+per slide too. Success on
 Diagnosis = a right diagnosis (declaring ends the episode; an episode that never declares counts
 as wrong).
 
@@ -78,6 +81,31 @@ def cell_budget(dataset: Path, env_id: str, env_kwargs: dict, method: str, steps
     if method not in REFERENCE:
         budget.update(steps=steps, seeds=seeds, set=list(extra), **method_settings(method, rnn_obs))
     return budget
+
+
+def slide_labels(spec: dict) -> dict:
+    """Bundle folder name → 1 (tumour) / 0 (normal) from ``dataset.json``: its ``slides[].label``
+    entries, or its ``labels`` mapping; empty when it has neither (then every slide counts as a
+    tumour slide, as for ``data_tools synth``)."""
+    labels = {Path(s["bundle"]).name: int(s["label"]) for s in spec.get("slides", [])
+              if isinstance(s, dict) and "bundle" in s and "label" in s}
+    if not labels and isinstance(spec.get("labels"), dict):
+        labels = {Path(k).name: int(v) for k, v in spec["labels"].items()}
+    return labels
+
+
+def on_tumour_slides(row: dict, labels: dict) -> dict:
+    """Detection row restricted to the episodes on tumour slides (on a normal slide there is nothing
+    to find): ``success_rate``, ``mean_steps_to_success``, ``episodes``; the row itself when it has
+    no per-slide counts (one slide) or no slide is labelled normal."""
+    by = row.get("by_slide")
+    if not by or not any(labels.get(name, 1) == 0 for name in by):
+        return {k: row[k] for k in ("episodes", "success_rate", "mean_steps_to_success")}
+    keep = [v for name, v in by.items() if labels.get(name, 1) == 1]
+    n, wins = sum(v["episodes"] for v in keep), sum(v["successes"] for v in keep)
+    steps = sum(v["steps_to_success_sum"] for v in keep)
+    return {"episodes": n, "success_rate": wins / n if n else float("nan"),
+            "mean_steps_to_success": steps / wins if wins else float("nan")}
 
 
 def reference_cells(dataset: Path, env_id: str, env_kwargs: dict, episodes: int, seed: int = 0) -> dict:
@@ -152,13 +180,18 @@ def markdown(cells: dict, methods: list[str], scenarios: list[str], meta: dict) 
             if c is None:
                 row += ["n/a" if (m == "scripted" and s == "Diagnosis") else "not run", ""]
                 continue
-            steps = c["mean_length"] if s == "Diagnosis" else c["mean_steps_to_success"]
-            row += [_pct(c["success_rate"]), _num(steps)]
+            if s == "Diagnosis":
+                row += [_pct(c["success_rate"]), _num(c["mean_length"])]
+            else:
+                d = c.get("tumour_slides", c)
+                row += [_pct(d["success_rate"]), _num(d["mean_steps_to_success"])]
             wall += c.get("train_wall_s", 0.0)
         row.append(f"{wall:,.0f} s" if m not in REFERENCE else "–")
         lines.append("| " + " | ".join(row) + " |")
-    lines += ["", f"Dataset `{meta['dataset']}` (test split: {meta['test_slides']} slides; train split: "
-              f"{meta['train_slides']}). Env ids: " + ", ".join(f"{s} `{meta['env_ids'][s]}`" for s in scenarios) + ".",
+    lines += ["", f"Dataset `{meta['dataset']}` (test split: {meta['test_slides']} slides, "
+              f"{meta['test_tumour_slides']} with tumour; train split: {meta['train_slides']}). Detection "
+              f"success counts the episodes on test tumour slides only (a normal slide has nothing to find); "
+              f"{meta['reachable']} Env ids: " + ", ".join(f"{s} `{meta['env_ids'][s]}`" for s in scenarios) + ".",
               f"Budget per trained cell: {meta['steps']} env steps per seed × {meta['seeds']} seed(s); "
               f"{meta['episodes']} test episodes per seed (per policy for random / scripted). Trained rows: the "
               f"sampled policy pooled over seeds. Steps: mean episode length of the successful episodes "
@@ -217,7 +250,16 @@ def main(argv=None) -> int:
     store = out / "reference.json"
     cells = json.loads(store.read_text()).get("cells", {}) if store.exists() and not args.redo else {}
     extra = [a for s in args.set for a in ("--set", s)]
+    labels = slide_labels(spec)
+    test_names = [Path(t).name for t in spec["test"]]
+    tumour_test = [n for n in test_names if labels.get(n, 1) == 1]
+    views = {Path(s["bundle"]).name: s["finest_views_ge50"] for s in spec.get("slides", [])
+             if isinstance(s, dict) and "finest_views_ge50" in s and "bundle" in s}
+    reachable = (f"{sum(views.get(n, 0) > 0 for n in tumour_test)} of the {len(tumour_test)} test tumour slides "
+                 f"have a finest-level view ≥ 50 % tumour on the bundle's grid (dataset.json "
+                 f"`finest_views_ge50`)." if views else "")
     meta = {"dataset": str(dataset), "train_slides": len(spec["train"]), "test_slides": len(spec["test"]),
+            "test_tumour_slides": len(tumour_test), "reachable": reachable,
             "env_ids": env_ids, "steps": ", ".join(f"{s} {steps[s]:,}" for s in args.scenarios),
             "seeds": args.seeds, "episodes": args.episodes, "wall_s": 0.0}
 
@@ -243,12 +285,14 @@ def main(argv=None) -> int:
                 rows = reference_cells(dataset, env_ids[s], kw, args.episodes)
                 for ref in REFERENCE:
                     if ref in rows and ref in args.methods and not (ref == "scripted" and s == "Diagnosis"):
-                        cells[cell_key(ref, s)] = {**rows[ref], "budget": cell_budget(
+                        cells[cell_key(ref, s)] = {**rows[ref], "tumour_slides": on_tumour_slides(rows[ref], labels),
+                                                   "budget": cell_budget(
                             dataset, env_ids[s], kw, ref, steps[s], args.seeds, args.episodes, args.set, args.rnn_obs)}
             else:
                 run = out / f"{m}-{s.lower()}"
-                cells[key] = {**trained_cell(m, dataset, env_ids[s], kw, steps[s], args.seeds, args.episodes, run,
-                                             extra, args.rnn_obs, not args.no_augment), "budget": budget}
+                c = trained_cell(m, dataset, env_ids[s], kw, steps[s], args.seeds, args.episodes, run, extra,
+                                 args.rnn_obs, not args.no_augment)
+                cells[key] = {**c, "tumour_slides": on_tumour_slides(c, labels), "budget": budget}
             save()
     text = save()
     print("\n" + text)

@@ -17,8 +17,9 @@ def dataset(tmp_path_factory, colour_feature_grid):
     from data_tools.synth import make_dataset
 
     root = tmp_path_factory.mktemp("c16ref") / "ds"
-    spec = make_dataset(root, n_slides=3, size=(256, 256), seed=1, tile_size=32, level_sets=(3,), progress=False,
-                        previews=False)
+    spec = make_dataset(root, n_slides=4, size=(256, 256), seed=1, tile_size=32, level_sets=(3,), progress=False,
+                        previews=False, test_fraction=0.5)
+    assert len(spec["test"]) == 2
     for s in spec["slides"]:
         colour_feature_grid(root / s["bundle"])
     return root
@@ -38,8 +39,12 @@ def test_reference_rows_are_written_and_kept_on_a_rerun(dataset, tmp_path, monke
     assert set(cells) == {"random/Easy", "scripted/Easy"}
     for c in cells.values():
         assert c["episodes"] == 8 and 0.0 <= c["success_rate"] <= 1.0 and c["mean_length"] <= 10
+        by = c["by_slide"]  # episodes of the two test slides counted apart
+        assert len(by) <= 2 and sum(v["episodes"] for v in by.values()) == 8
+        assert sum(v["successes"] for v in by.values()) == round(8 * c["success_rate"])
+        assert c["tumour_slides"]["success_rate"] == c["success_rate"]  # synth: every slide has tumour
     table = (out / "reference.md").read_text()
-    assert "| random |" in table and "Easy success" in table and "test split: 1 slides" in table
+    assert "| random |" in table and "Easy success" in table and "test split: 2 slides, 2 with tumour" in table
     # a rerun with the same budget keeps every cell; another budget recomputes
     def recompute(*args, **kwargs):
         raise RuntimeError("recomputed")
@@ -58,6 +63,20 @@ def test_bad_dataset_and_arguments_are_one_line_errors(tmp_path):
         c16_reference.main(["--dataset", str(tmp_path), "--out", str(tmp_path / "o")])
     with pytest.raises(SystemExit, match="SCENARIO=VALUE"):
         c16_reference.main(["--dataset", str(tmp_path), "--env", "Tiny=HistoJAX-Easy-v0"])
+
+
+def test_detection_success_counts_tumour_slides_only():
+    spec = {"slides": [{"bundle": "bundles/T1", "label": 1}, {"bundle": "bundles/N1", "label": 0}]}
+    labels = c16_reference.slide_labels(spec)
+    assert labels == {"T1": 1, "N1": 0}
+    assert c16_reference.slide_labels({"labels": {"bundles/A": 0}}) == {"A": 0}
+    row = {"episodes": 10, "success_rate": 0.3, "mean_steps_to_success": 5.0,
+           "by_slide": {"T1": {"episodes": 4, "successes": 3, "steps_to_success_sum": 15.0},
+                        "N1": {"episodes": 6, "successes": 0, "steps_to_success_sum": 0.0}}}
+    assert c16_reference.on_tumour_slides(row, labels) == {"episodes": 4, "success_rate": 0.75,
+                                                           "mean_steps_to_success": 5.0}
+    # no normal slide among those drawn (or one slide): the row as it is
+    assert c16_reference.on_tumour_slides(row, {})["success_rate"] == 0.3
 
 
 @pytest.mark.slow

@@ -121,6 +121,26 @@ def clipped_loss(pi, value, traj, adv, target, config: dict):
     return total, (pg_loss, v_loss, entropy, approx_kl)
 
 
+def run_epochs(state, key, loss_fn, minibatches, epochs: int):
+    """``epochs`` passes over one update's data: each pass splits ``key`` once, takes the minibatches
+    ``minibatches(k)`` (a pytree with a leading minibatch axis, shuffled with ``k``) and one gradient
+    step of ``loss_fn(params, mb) -> (loss, aux)`` per minibatch. Returns ``(state, key, aux)``
+    with ``aux`` stacked ``(epochs, minibatches, ...)``."""
+    def epoch(carry, _):
+        state, key = carry
+        key, k_perm = jax.random.split(key)
+
+        def minibatch_step(state, mb):
+            grads, aux = jax.grad(loss_fn, has_aux=True)(state.params, mb)
+            return state.apply_gradients(grads=grads), aux
+
+        state, aux = jax.lax.scan(minibatch_step, state, minibatches(k_perm))
+        return (state, key), aux
+
+    (state, key), aux = jax.lax.scan(epoch, (state, key), None, epochs)
+    return state, key, aux
+
+
 def update_metrics(info: dict, aux, progress, update_index, config: dict) -> dict:
     """One update's metrics: episode statistics of the rollout's ``info`` and the means of the
     losses ``aux`` (from :func:`clipped_loss`); printed through ``progress`` when asked."""
@@ -189,22 +209,13 @@ def make_train(config: dict):
                 pi, value = network.apply(params, traj.obs)
                 return clipped_loss(pi, value, traj, adv, target, config)
 
-            def epoch(carry, _):
-                state, key = carry
-                key, k_perm = jax.random.split(key)
+            def minibatches(k_perm):
                 flat = jax.tree.map(lambda a: a.reshape(batch, *a.shape[2:]), (traj, advantages, targets))
                 perm = jax.random.permutation(k_perm, batch)
                 mbs = jax.tree.map(lambda a: a[perm].reshape(config["num_minibatches"], minibatch, *a.shape[1:]), flat)
-                mbs = shard(mbs, axis=1)  # each minibatch split over the devices
+                return shard(mbs, axis=1)  # each minibatch split over the devices
 
-                def minibatch_step(state, mb):
-                    grads, aux = jax.grad(loss_fn, has_aux=True)(state.params, mb)
-                    return state.apply_gradients(grads=grads), aux
-
-                state, aux = jax.lax.scan(minibatch_step, state, mbs)
-                return (state, key), aux
-
-            (state, key), aux = jax.lax.scan(epoch, (state, key), None, config["update_epochs"])
+            state, key, aux = run_epochs(state, key, loss_fn, minibatches, config["update_epochs"])
             metrics = update_metrics(traj.info, aux, progress, update_index, config)
             return (state, env_state, obs, key), metrics
 

@@ -112,23 +112,14 @@ def make_train(config: dict):
                 pi, value = replay(network, params, h_start, traj)
                 return ppo.clipped_loss(pi, value, traj, adv, target, config)
 
-            def epoch(carry, _):
-                state, key = carry
-                key, k_perm = jax.random.split(key)
+            def minibatches(k_perm):  # whole env sequences: shuffle and split the env axis
                 perm = jax.random.permutation(k_perm, num_envs)
                 # env axis: 0 for the start states, 1 for the time-major rollout
                 split = lambda a, axis: jnp.stack(jnp.split(jnp.take(a, perm, axis=axis), n_mb, axis=axis))  # noqa: E731
-                mbs = (jax.tree.map(lambda a: split(a, 0), h0),
-                       *jax.tree.map(lambda a: split(a, 1), (traj, advantages, targets)))
+                return (jax.tree.map(lambda a: split(a, 0), h0),
+                        *jax.tree.map(lambda a: split(a, 1), (traj, advantages, targets)))
 
-                def minibatch_step(state, mb):
-                    grads, aux = jax.grad(loss_fn, has_aux=True)(state.params, mb)
-                    return state.apply_gradients(grads=grads), aux
-
-                state, aux = jax.lax.scan(minibatch_step, state, mbs)
-                return (state, key), aux
-
-            (state, key), aux = jax.lax.scan(epoch, (state, key), None, config["update_epochs"])
+            state, key, aux = ppo.run_epochs(state, key, loss_fn, minibatches, config["update_epochs"])
             metrics = ppo.update_metrics(traj.info, aux, progress, update_index, config)
             return (state, env_state, obs, first, h, key), metrics
 

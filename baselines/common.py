@@ -72,12 +72,13 @@ def reset_envs(env, key, env_params, num_envs: int, reset_all=None):
     return key, k_init, preprocess_obs(obs), env_state
 
 
-def params_initialiser(env, network, num_envs: int, reset_all=None):
+def params_initialiser(env, network, num_envs: int, reset_all=None, inputs=None):
     """``init_params(key, env_params)``: the network's parameters for a trainer's key, made on the
-    first observations of :func:`reset_envs`."""
+    first observations of :func:`reset_envs` (``network.init(key, *inputs(obs))``; by default the
+    observations alone)."""
     def init_params(key, env_params):
         _, k_init, obs, _ = reset_envs(env, key, env_params, num_envs, reset_all)
-        return network.init(k_init, obs)
+        return network.init(k_init, *(inputs(obs) if inputs is not None else (obs,)))
     return init_params
 
 

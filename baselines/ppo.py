@@ -59,20 +59,28 @@ DEFAULTS = dict(
 )
 
 
+LOG_KEYS = ("returned_episode", "returned_episode_returns", "returned_episode_lengths", "returned_episode_success")
+
+
 class Transition(NamedTuple):
-    done: jnp.ndarray
+    """One rollout step (arrays with the env batch axis; time-major once scanned)."""
+
+    done: jnp.ndarray      # float: this step ended the episode (GAE)
     action: jnp.ndarray
     value: jnp.ndarray
     reward: jnp.ndarray
     log_prob: jnp.ndarray
     obs: object
     info: dict
+    first: object = None   # recurrent PPO: obs is the first of an episode (reset the memory first)
 
 
-def make_network(config: dict, env) -> ActorCritic:
+def make_network(config: dict, env, network_cls=ActorCritic):
+    """``network_cls`` (an actor-critic) sized for ``env``'s action space: ``n`` logits for discrete
+    actions, the Box size for continuous ones; width ``config["hidden"]``."""
     space = env.action_space()
     action_dim = space.n if config["action_mode"] == "discrete" else int(np.prod(space.shape))
-    return ActorCritic(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"])
+    return network_cls(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"])
 
 
 def gae(traj: Transition, last_value, gamma: float, lam: float):
@@ -85,6 +93,67 @@ def gae(traj: Transition, last_value, gamma: float, lam: float):
 
     _, advantages = jax.lax.scan(body, (jnp.zeros_like(last_value), last_value), traj, reverse=True, unroll=8)
     return advantages, advantages + traj.value
+
+
+def make_optimizer(config: dict, num_updates: int):
+    """Adam with global-norm clipping; the learning rate decays linearly to 0 over
+    ``num_updates`` updates of ``num_minibatches × update_epochs`` steps (``anneal_lr``)."""
+    def lr_schedule(count):
+        frac = 1.0 - (count // (config["num_minibatches"] * config["update_epochs"])) / num_updates
+        return config["lr"] * frac
+
+    return optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
+                       optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
+
+
+def clipped_loss(pi, value, traj, adv, target, config: dict):
+    """PPO's loss on a minibatch (any batch shape): clipped policy objective on normalised
+    advantages, clipped value loss, entropy bonus. ``pi``/``value``: the network's outputs for
+    ``traj.obs`` now; ``traj.action``/``traj.log_prob``/``traj.value``: from the rollout.
+    Returns ``(total, (pg_loss, v_loss, entropy, approx_kl))``."""
+    mode = config["action_mode"]
+    log_prob = policy_log_prob(pi, traj.action, mode)
+    v_clipped = traj.value + jnp.clip(value - traj.value, -config["clip_eps"], config["clip_eps"])
+    v_loss = 0.5 * jnp.maximum((value - target) ** 2, (v_clipped - target) ** 2).mean()
+    ratio = jnp.exp(log_prob - traj.log_prob)
+    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    pg_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config["clip_eps"], 1 + config["clip_eps"]) * adv).mean()
+    entropy = policy_entropy(pi, mode).mean()
+    total = pg_loss + config["vf_coef"] * v_loss - config["ent_coef"] * entropy
+    approx_kl = ((ratio - 1) - (log_prob - traj.log_prob)).mean()
+    return total, (pg_loss, v_loss, entropy, approx_kl)
+
+
+def run_epochs(state, key, loss_fn, minibatches, epochs: int):
+    """``epochs`` passes over one update's data: each pass splits ``key`` once, takes the minibatches
+    ``minibatches(k)`` (a pytree with a leading minibatch axis, shuffled with ``k``) and one gradient
+    step of ``loss_fn(params, mb) -> (loss, aux)`` per minibatch. Returns ``(state, key, aux)``
+    with ``aux`` stacked ``(epochs, minibatches, ...)``."""
+    def epoch(carry, _):
+        state, key = carry
+        key, k_perm = jax.random.split(key)
+
+        def minibatch_step(state, mb):
+            grads, aux = jax.grad(loss_fn, has_aux=True)(state.params, mb)
+            return state.apply_gradients(grads=grads), aux
+
+        state, aux = jax.lax.scan(minibatch_step, state, minibatches(k_perm))
+        return (state, key), aux
+
+    (state, key), aux = jax.lax.scan(epoch, (state, key), None, epochs)
+    return state, key, aux
+
+
+def update_metrics(info: dict, aux, progress, update_index, config: dict) -> dict:
+    """One update's metrics: episode statistics of the rollout's ``info`` and the means of the
+    losses ``aux`` (from :func:`clipped_loss`); printed through ``progress`` when asked."""
+    pg_loss, v_loss, entropy, kl = (a.mean() for a in aux)
+    metrics = {**common.episode_stats(info), "pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy,
+               "approx_kl": kl}
+    if config["print_progress"]:
+        ack = common.report(progress, update_index, metrics)
+        metrics = {**metrics, "episodes": metrics["episodes"] + ack}
+    return metrics
 
 
 def make_train(config: dict):
@@ -120,14 +189,9 @@ def make_train(config: dict):
     progress = common.Progress(config["num_seeds"], num_updates, batch, config["log_every"],
                                name=f"ppo {config['env_id']}")
 
-    def lr_schedule(count):
-        frac = 1.0 - (count // (config["num_minibatches"] * config["update_epochs"])) / num_updates
-        return config["lr"] * frac
-
     init_params = common.params_initialiser(env, network, num_envs, reset_all)
 
-    tx = optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
-                     optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
+    tx = make_optimizer(config, num_updates)
 
     def init_state(params) -> TrainState:
         """Network parameters → the train state (optimizer state fresh, step 0)."""
@@ -147,8 +211,7 @@ def make_train(config: dict):
             log_prob = policy_log_prob(pi, action, mode)
             next_obs, env_state, reward, term, trunc, info = step_all(
                 jax.random.split(k_step, num_envs), env_state, action, env_params)
-            keep = {k: info[k] for k in ("returned_episode", "returned_episode_returns",
-                                         "returned_episode_lengths", "returned_episode_success")}
+            keep = {k: info[k] for k in LOG_KEYS}
             done = jnp.logical_or(term, trunc).astype(jnp.float32)
             t = shard(Transition(done, action, value, reward, log_prob, obs, keep))
             next_obs, env_state = shard((preprocess_obs(next_obs), env_state))
@@ -162,40 +225,16 @@ def make_train(config: dict):
             def loss_fn(params, mb):
                 traj, adv, target = mb
                 pi, value = network.apply(params, traj.obs)
-                log_prob = policy_log_prob(pi, traj.action, mode)
-                v_clipped = traj.value + jnp.clip(value - traj.value, -config["clip_eps"], config["clip_eps"])
-                v_loss = 0.5 * jnp.maximum((value - target) ** 2, (v_clipped - target) ** 2).mean()
-                ratio = jnp.exp(log_prob - traj.log_prob)
-                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                pg_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config["clip_eps"],
-                                                             1 + config["clip_eps"]) * adv).mean()
-                entropy = policy_entropy(pi, mode).mean()
-                total = pg_loss + config["vf_coef"] * v_loss - config["ent_coef"] * entropy
-                approx_kl = ((ratio - 1) - (log_prob - traj.log_prob)).mean()
-                return total, (pg_loss, v_loss, entropy, approx_kl)
+                return clipped_loss(pi, value, traj, adv, target, config)
 
-            def epoch(carry, _):
-                state, key = carry
-                key, k_perm = jax.random.split(key)
+            def minibatches(k_perm):
                 flat = jax.tree.map(lambda a: a.reshape(batch, *a.shape[2:]), (traj, advantages, targets))
                 perm = jax.random.permutation(k_perm, batch)
                 mbs = jax.tree.map(lambda a: a[perm].reshape(config["num_minibatches"], minibatch, *a.shape[1:]), flat)
-                mbs = shard(mbs, axis=1)  # each minibatch split over the devices
+                return shard(mbs, axis=1)  # each minibatch split over the devices
 
-                def minibatch_step(state, mb):
-                    grads, aux = jax.grad(loss_fn, has_aux=True)(state.params, mb)
-                    return state.apply_gradients(grads=grads), aux
-
-                state, aux = jax.lax.scan(minibatch_step, state, mbs)
-                return (state, key), aux
-
-            (state, key), aux = jax.lax.scan(epoch, (state, key), None, config["update_epochs"])
-            pg_loss, v_loss, entropy, kl = (a.mean() for a in aux)
-            metrics = {**common.episode_stats(traj.info), "pg_loss": pg_loss, "v_loss": v_loss,
-                       "entropy": entropy, "approx_kl": kl}
-            if config["print_progress"]:
-                ack = common.report(progress, update_index, metrics)
-                metrics = {**metrics, "episodes": metrics["episodes"] + ack}
+            state, key, aux = run_epochs(state, key, loss_fn, minibatches, config["update_epochs"])
+            metrics = update_metrics(traj.info, aux, progress, update_index, config)
             return (state, env_state, obs, key), metrics
 
         carry = (state, env_state, obs0, key)

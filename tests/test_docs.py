@@ -36,7 +36,6 @@ PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 # Pages written in parallel on other branches, linked before they are merged. Links to these may
 # dangle ONLY until they land: remove each name from this list when its page exists.
 PENDING_PAGES = {
-    "docs/baselines-recurrent.md",
 }
 
 _MARK = re.compile(r"<!--\s*docs-check:\s*(run|run-slow)\s*-->")

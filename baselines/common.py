@@ -20,11 +20,24 @@ import histojax
 from baselines.curves import plot_curves  # noqa: F401  (the learning-curve PNG; kept here for callers)
 
 
+OLDER_SPELLINGS = {"obs": "obs_mode"}  # config keys of older runs → the env's spelling
+
+
+def canonical_config(config: dict) -> dict:
+    """``config`` with older key spellings renamed to the env's (``obs`` → ``obs_mode``); a copy."""
+    out = dict(config)
+    for old, new in OLDER_SPELLINGS.items():
+        if old in out:
+            value = out.pop(old)
+            out.setdefault(new, value)
+    return out
+
+
 def env_overrides(config: dict) -> dict:
     """The ``histojax.make`` overrides named in a trainer config."""
     kw = {"action_mode": config.get("action_mode", "discrete"),
           "with_position": bool(config.get("with_position", False))}
-    obs = config.get("obs_mode", config.get("obs", "pixels"))  # "obs": the spelling of older config.json files
+    obs = canonical_config(config).get("obs_mode", "pixels")
     if obs != "pixels":
         kw["obs_mode"] = obs  # e.g. "features" once the env has it
     for k in ("reward", "max_steps_in_episode"):
@@ -162,9 +175,7 @@ def load_checkpoint(path) -> tuple[dict, dict]:
         path = path / "params.msgpack"
     params = serialization.msgpack_restore(path.read_bytes())
     config = json.loads((path.parent / "config.json").read_text())
-    if "obs" in config and "obs_mode" not in config:  # older runs spelled the env's obs_mode "obs"
-        config["obs_mode"] = config.pop("obs")
-    return jax.tree.map(jnp.asarray, params), config
+    return jax.tree.map(jnp.asarray, params), canonical_config(config)  # older runs spelled obs_mode "obs"
 
 
 # ----------------------------------------------------------------------------- logs

@@ -109,7 +109,7 @@ def buffer_sample(buf: Buffer, key, batch_size: int, n: int):
 # ----------------------------------------------------------------------------- training
 def make_train(config: dict):
     """A jitted ``train(keys)`` (vmapped over seeds) like :func:`baselines.ppo.make_train`."""
-    config = {**DEFAULTS, **config}
+    config = {**DEFAULTS, **common.canonical_config(config)}
     if config["action_mode"] != "discrete":
         raise ValueError("DQN needs action_mode='discrete'")
     if config.get("devices") is not None:

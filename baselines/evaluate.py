@@ -186,7 +186,7 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             drop |= {"dataset", "split", "slides", "slide_weights"}
         config["env_kwargs"] = {k: v for k, v in config["env_kwargs"].items() if k not in drop}
     env, env_params = common.make_env(config, auto_reset=False)
-    names = [Path(b.path).name for b in env._bundles]
+    names = [Path(b.path).name for b in env.bundles]
     mode = config["action_mode"]
     key = jax.random.PRNGKey(seed)
     rows, episodes = {}, {}

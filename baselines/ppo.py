@@ -166,7 +166,7 @@ def make_train(config: dict):
     ``train.init_params(key, env_params)``, ``train.init_state(params)`` and
     ``train.run_updates(state, key, env_params, first_update, n_updates)`` (unjitted, one seed).
     ``config["devices"] = N`` shards the env batch over ``N`` devices (``train.mesh``)."""
-    config = {**DEFAULTS, **config}
+    config = {**DEFAULTS, **common.canonical_config(config)}
     num_envs, num_steps = config["num_envs"], config["num_steps"]
     mesh = common.batch_mesh(config["devices"], num_envs)
     sharded = bool(config["shard_slides"])

@@ -74,7 +74,7 @@ def make_train(config: dict):
     """A jitted ``train(keys)`` for ``len(keys)`` seeds, returning ``{"params": seeds-stacked params,
     "metrics": {name: (seeds, updates)}}`` as :func:`baselines.ppo.make_train` (same attributes:
     ``env``, ``env_params``, ``network``, ``num_updates``, ``config``, ``steps_per_update``)."""
-    config = {**DEFAULTS, **config}
+    config = {**DEFAULTS, **common.canonical_config(config)}
     if config.get("devices") is not None:
         raise ValueError("ppo_rnn does not shard over devices; drop devices (use baselines.ppo for that)")
     env, env_params = common.make_env(config)

@@ -157,7 +157,7 @@ def train_rotating(config: dict, budget_bytes: int, resident: int | None = None,
     names (``slide`` / ``env_kwargs`` ``slides`` or ``dataset``). Returns ``{"params",
     "metrics": {name: (seeds, updates)}, "rotation": {measured bytes and the plan}, "env",
     "env_params" (on set 0), "config"}``."""
-    config = {**ppo.DEFAULTS, **config}
+    config = {**ppo.DEFAULTS, **common.canonical_config(config)}
     if config.get("devices") is not None or config.get("shard_slides"):
         raise ValueError("rotating slides runs on one device (no devices / shard_slides)")
     kw = common.env_overrides(config)

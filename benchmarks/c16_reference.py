@@ -61,11 +61,11 @@ def default_env_id(scenario: str) -> str:
 def method_settings(method: str, rnn_obs: str) -> dict:
     """The trainer and observation of a trained ``method``."""
     if method == "ppo-pixels":
-        return {"trainer": "ppo", "obs": "pixels"}
+        return {"trainer": "ppo", "obs_mode": "pixels"}
     if method == "ppo-features":
-        return {"trainer": "ppo", "obs": "features"}
+        return {"trainer": "ppo", "obs_mode": "features"}
     if method == "ppo-rnn":
-        return {"trainer": "ppo_rnn", "obs": rnn_obs}
+        return {"trainer": "ppo_rnn", "obs_mode": rnn_obs}
     raise ValueError(f"unknown trained method {method!r}")
 
 
@@ -110,7 +110,7 @@ def on_tumour_slides(row: dict, labels: dict) -> dict:
 
 def reference_cells(dataset: Path, env_id: str, env_kwargs: dict, episodes: int, seed: int = 0) -> dict:
     """Random and scripted rows on the test split (pixels + position), ``episodes`` episodes each."""
-    config = {"env_id": env_id, "with_position": True, "action_mode": "discrete", "obs": "pixels", "hidden": 256,
+    config = {"env_id": env_id, "with_position": True, "action_mode": "discrete", "obs_mode": "pixels", "hidden": 256,
               "env_kwargs": {**env_kwargs, "dataset": str(dataset), "split": "test"}}
     t0 = time.perf_counter()
     rows = evaluate(config, None, num_episodes=episodes, seed=seed)
@@ -125,9 +125,9 @@ def trained_cell(method: str, dataset: Path, env_id: str, env_kwargs: dict, step
     settings = method_settings(method, rnn_obs)
     trainer = ppo if settings["trainer"] == "ppo" else ppo_rnn
     train_kwargs = {**env_kwargs, "dataset": str(dataset), "split": "train"}
-    if augment and settings["obs"] == "pixels":
+    if augment and settings["obs_mode"] == "pixels":
         train_kwargs["augment"] = True
-    argv = ["--env", env_id, "--obs", settings["obs"], "--with-position", "--seeds", str(seeds),
+    argv = ["--env", env_id, "--obs-mode", settings["obs_mode"], "--with-position", "--seeds", str(seeds),
             "--total-steps", str(steps), "--out", str(out), "--set", f"env_kwargs={json.dumps(train_kwargs)}",
             "--set", "print_progress=false", *extra]
     t0 = time.perf_counter()

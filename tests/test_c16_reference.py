@@ -92,6 +92,6 @@ def test_every_method_end_to_end_on_a_tiny_budget(dataset, tmp_path):
         assert 0.0 <= c["success_rate"] <= 1.0, key
         if key.split("/")[0] not in c16_reference.REFERENCE:
             assert (Path(c["run"]) / "params.msgpack").is_file() and "greedy" in c
-    assert json.loads((out / "ppo-rnn-easy" / "config.json").read_text())["obs"] == "features"
+    assert json.loads((out / "ppo-rnn-easy" / "config.json").read_text())["obs_mode"] == "features"
     table = (out / "reference.md").read_text()
     assert "| scripted | " in table and "n/a" in table and "Diagnosis accuracy" in table

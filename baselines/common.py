@@ -17,6 +17,7 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 import histojax
+from histojax.wrappers import LogWrapper
 from baselines.curves import plot_curves  # noqa: F401  (the learning-curve PNG; kept here for callers)
 
 
@@ -224,13 +225,39 @@ def smooth(a: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
+def make_random_rollout(env, num_envs: int, num_steps: int):
+    """A jitted function ``(key, params) -> (info, last observations)`` that runs ``num_steps`` steps of ``num_envs``
+    random-agent environments (auto-reset, episode statistics, every observation extracted) with
+    ``lax.scan`` over ``vmap``."""
+    env = LogWrapper(env)
+    space = env.action_space()
+
+    def rollout(key, params):
+        key, key_reset = jax.random.split(key)
+        obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key_reset, num_envs), params)
+
+        def body(carry, key):
+            state, _ = carry
+            key_act, key_step = jax.random.split(key)
+            action = jax.vmap(space.sample)(jax.random.split(key_act, num_envs))
+            obs, state, reward, _, _, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                jax.random.split(key_step, num_envs), state, action, params)
+            keep = ("returned_episode", "returned_episode_returns", "returned_episode_success")
+            # the observations go into the carry, so every view is really extracted (a random agent
+            # ignores them, and XLA would otherwise skip the crop and overstate steps/s)
+            return (state, obs), {k: info[k] for k in keep}
+
+        (_, last_obs), infos = jax.lax.scan(body, (state, obs), jax.random.split(key, num_steps))
+        return infos, last_obs  # returning the carried views keeps them alive
+
+    return jax.jit(rollout)
+
+
 def random_agent_reference(config: dict, num_envs: int = 256, num_steps: int = 400, seed: int = 0,
                            env_and_params=None) -> dict:
     """Episode statistics of the uniform random agent on the same env (for the curves): the
     trainer's ``env_and_params`` when given (for slides sharded over devices, those of this
     process's first device), else the env made from ``config``."""
-    from histojax.demo import make_random_rollout
-
     if env_and_params is None:
         env, params = make_env(config)
     else:

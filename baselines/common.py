@@ -3,7 +3,9 @@ checkpoints (flax.serialization msgpack), logs (CSV / JSON), learning-curve PNGs
 sharding the env batch over devices (``--devices N``)."""
 from __future__ import annotations
 
+import argparse
 import csv
+import dataclasses
 import functools
 import json
 import time
@@ -17,8 +19,26 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 import histojax
+from baselines import distributed
+from data_tools.cli_output import positive_float
 from histojax.wrappers import LogWrapper
 from baselines.curves import plot_curves  # noqa: F401  (the learning-curve PNG; kept here for callers)
+
+
+@dataclasses.dataclass(frozen=True)
+class EnvConfig:
+    """The settings every trainer shares: which trainer, and the env it trains on (spelled as
+    ``histojax.make`` spells them). Each algorithm file's config (``PPOConfig``, ``DQNConfig``) adds its own."""
+
+    algo: str = ""                       # the trainer (recorded in config.json)
+    env_id: str = "HistoJAX-Easy-v0"     # registered env id
+    slide: str | None = None             # bundle folder; None: the id's slide (the sample slide)
+    action_mode: str = "discrete"        # the env's action_mode
+    obs_mode: str = "pixels"             # the env's obs_mode
+    with_position: bool = False          # observation dict with the view position
+    reward: str | None = None            # reward preset; None: the env's
+    max_steps_in_episode: int | None = None  # None: the id's
+    env_kwargs: dict | None = None       # any other histojax.make keyword
 
 
 OLDER_SPELLINGS = {"obs": "obs_mode"}  # config keys of older runs → the env's spelling
@@ -356,3 +376,138 @@ def seeds_runner(train, init_params, env_params, config: dict, progress: Progres
 
     run.compile, run.raw, run.mesh = compile_, train, mesh
     return run
+
+
+# ----------------------------------------------------------------------------- the command line and a run
+def parse_args(argv=None, defaults: dict | None = None, description: str = ""):
+    """Parse a baseline's command line (``defaults``: its config defaults)."""
+    p = argparse.ArgumentParser(description=description.split("\n\n")[0])
+    p.add_argument("--env", default=defaults["env_id"], help="registered env id")
+    p.add_argument("--slide", default=None, help="bundle folder (default: the embedded sample slide)")
+    p.add_argument("--action-mode", default="discrete", choices=("discrete", "continuous"))
+    p.add_argument("--obs-mode", "--obs", dest="obs_mode", default="pixels",
+                   help="the env's obs_mode: pixels | features | ... (--obs: the older spelling)")
+    p.add_argument("--with-position", action="store_true", help="observation dict with the view position")
+    p.add_argument("--reward", default=None, help="reward preset (default: the env's, 'dense')")
+    p.add_argument("--seeds", type=int, default=4)
+    p.add_argument("--seed", type=int, default=0, help="first seed")
+    p.add_argument("--total-steps", type=int, default=defaults["total_timesteps"], help="env steps per seed")
+    p.add_argument("--num-envs", type=int, default=defaults["num_envs"])
+    p.add_argument("--lr", type=positive_float, default=defaults["lr"], help="learning rate (finite, > 0)")
+    p.add_argument("--devices", type=int, default=None,
+                   help="shard the env batch over the first N devices (PPO; on CPU set "
+                        "XLA_FLAGS=--xla_force_host_platform_device_count=N)")
+    p.add_argument("--shard-slides", action="store_true",
+                   help="with --devices N: split the dataset's slides over the devices (each device holds and "
+                        "draws only its own slides; docs/scaling.md)")
+    distributed.add_arguments(p)
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
+                   help="any other config entry, value parsed as JSON (e.g. --set ent_coef=0.02)")
+    p.add_argument("--out", default=None, help="run folder (default runs/<algo>-<env>)")
+    return p.parse_args(argv)
+
+
+def config_from_args(args, defaults: dict) -> dict:
+    """The trainer config of parsed arguments: ``defaults`` with the options and ``--set`` entries applied."""
+    config = {**defaults, "env_id": args.env, "slide": args.slide, "action_mode": args.action_mode,
+              "obs_mode": args.obs_mode, "with_position": args.with_position, "reward": args.reward,
+              "num_seeds": args.seeds, "seed": args.seed, "total_timesteps": args.total_steps,
+              "num_envs": args.num_envs, "lr": args.lr}
+    if args.devices is not None:
+        if "devices" not in defaults:
+            raise SystemExit("--devices is supported by the PPO baseline only")
+        config["devices"] = args.devices
+    if getattr(args, "shard_slides", False):
+        if "shard_slides" not in defaults:
+            raise SystemExit("--shard-slides is supported by the PPO baseline only")
+        config["shard_slides"] = True
+    for item in args.set:
+        k, _, v = item.partition("=")
+        if k not in defaults:
+            raise SystemExit(f"unknown config entry {k!r}; known: {', '.join(defaults)}")
+        try:
+            config[k] = json.loads(v)
+        except json.JSONDecodeError:
+            config[k] = v
+    return config
+
+
+def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_per_update: int,
+               train_seconds: float, compile_seconds: float, env_and_params=None) -> dict:
+    """Logs, curve, checkpoint and a printed summary (shared by PPO and DQN). ``env_and_params``:
+    the trainer's, for the random-agent reference of slides sharded over devices."""
+    metrics = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
+    n_updates = metrics["success"].shape[1]
+    steps = (np.arange(n_updates) + 1) * steps_per_update
+    k = max(1, n_updates // 40)  # smooth over ~1/40 of the run for the curve and the final figure
+    tail = slice(max(0, n_updates - k), None)
+    with np.errstate(all="ignore"):
+        final = {name: float(np.nanmean(metrics[name][:, tail])) for name in ("return", "success", "length",
+                                                                              "steps_to_success")}
+        final_per_seed = {name: np.nanmean(metrics[name][:, tail], axis=1).tolist() for name in ("return", "success")}
+    ref = random_agent_reference(config, env_and_params=env_and_params)
+    summary = {"algo": algo, "env_id": config["env_id"], "env_steps_per_seed": int(steps[-1]),
+               "seeds": int(metrics["success"].shape[0]), "train_seconds": train_seconds,
+               "compile_seconds": compile_seconds,
+               "env_steps_per_second_all_seeds": float(steps[-1] * metrics["success"].shape[0] / train_seconds),
+               "final_window_updates": k, "final": final, "final_per_seed": final_per_seed,
+               "random_agent": ref}
+    write_logs(out, steps, metrics, summary)
+    panels = {"mean return": smooth(metrics["return"], k), "success rate": smooth(metrics["success"], k),
+              "mean steps to success": smooth(metrics["steps_to_success"], k)}
+    title = (f"{algo.upper()} on {config['env_id']} ({config['action_mode']}, obs {config['obs_mode']}"
+             f"{' + position' if config['with_position'] else ''}), {metrics['success'].shape[0]} seeds")
+    plot_curves(out / "curve.png", steps, panels, title=title,
+                       reference={"mean return": ref["return"], "success rate": ref["success"]})
+    save_checkpoint(out, params, config)
+    print(f"\n{algo} {config['env_id']}: {steps[-1]:,} env steps/seed x {summary['seeds']} seeds in "
+          f"{train_seconds:.0f} s (+{compile_seconds:.0f} s compile), "
+          f"{summary['env_steps_per_second_all_seeds']:,.0f} env steps/s")
+    print(f"final (last {k} updates, training policy): return {final['return']:.3f}  success {final['success']:.1%}  "
+          f"mean length {final['length']:.1f}  steps to success {final['steps_to_success']:.1f}")
+    print(f"random agent: return {ref['return']:.3f}  success {ref['success']:.1%}")
+    print(f"wrote {out}/log.csv, log.json, curve.png, params.msgpack, config.json")
+    return summary
+
+
+def train_and_save(algo: str, make_train_fn, argv, defaults: dict, description: str, unit: str) -> int:
+    """The CLI of a baseline (shared by every algorithm file): parse ``argv``, compile, train all seeds
+    in one program, then write logs, curve and checkpoint with :func:`finish_run`."""
+    args = parse_args(argv, defaults=defaults, description=description)
+    config = config_from_args(args, defaults=defaults)
+    if (args.coordinator is not None or args.distributed) and "devices" not in defaults:
+        raise SystemExit("several processes (--coordinator / --distributed) are supported by the PPO baseline only")
+    distributed.from_args(args)
+    run_and_save(algo, make_train_fn, config, Path(args.out or f"runs/{algo}-{config['env_id']}"), unit)
+    return 0
+
+
+def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = "updates"):
+    """Make, compile and run the trainer for ``config`` (all seeds in one program, compile time
+    measured apart), then :func:`finish_run` into ``out``. Returns ``(config, params, summary)``
+    with the trainer's full config."""
+    train = make_train_fn(config)
+    config = train.config
+    if config.get("shard_slides"):
+        from histojax.sharding import device_bytes, local_slides
+
+        n, nbytes = local_slides(train.env_params.slide)
+        per = device_bytes(train.env_params.slide)
+        print(f"process {jax.process_index()} of {jax.process_count()}: {n} slide(s), {nbytes:,} bytes of slide arrays "
+              f"on its {len(per)} device(s), {max(per.values()):,} on each", flush=True)
+    keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
+    print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps x "
+          f"{config['num_seeds']} seeds; compiling ...", flush=True)
+    t0 = time.perf_counter()
+    compiled = train.compile(keys)
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    result = jax.block_until_ready(compiled(keys))
+    train_s = time.perf_counter() - t0
+    if jax.process_index() > 0:  # several processes: process 0 writes the run, the others their parameters
+        save_checkpoint(out / f"process-{jax.process_index()}", result["params"], config)
+        print(f"process {jax.process_index()}: {train_s:.1f} s; wrote {out}/process-{jax.process_index()}/params.msgpack")
+        return config, result["params"], None
+    summary = finish_run(algo, config, out, result["params"], result["metrics"], train.steps_per_update, train_s,
+                         compile_s, env_and_params=(train.env, train.env_params))
+    return config, result["params"], summary

@@ -134,12 +134,12 @@ def print_banner() -> None:
 
 def train_ppo(config: dict, out: Path) -> tuple[dict, object, dict]:
     """Compile and run PPO for ``config`` (one program over its seeds), then write logs, curve
-    and checkpoint to ``out`` (:func:`baselines.ppo.run_and_save`). Returns ``(config, params, summary)``."""
+    and checkpoint to ``out`` (:func:`baselines.common.run_and_save`). Returns ``(config, params, summary)``."""
     from baselines import ppo
 
     print(f"\nPPO (pixels + view position, {config['num_envs']} envs, seed {config['seed']}), a line every "
           f"{config['log_every']} updates:", flush=True)
-    return ppo.run_and_save("ppo", ppo.make_train, config, out)
+    return common.run_and_save("ppo", ppo.make_train, config, out)
 
 
 def evaluate_policy(config: dict, params, episodes: int, seed: int, out: Path) -> dict:

@@ -15,6 +15,7 @@ which the zero discount then ignores). Time limits count as episode ends, as in 
 """
 from __future__ import annotations
 
+import dataclasses
 
 import jax
 import jax.numpy as jnp
@@ -23,17 +24,37 @@ from flax import struct
 
 from baselines import common
 from baselines.networks import QNetwork, preprocess_obs
-from baselines.ppo import train_and_save
 from histojax.wrappers import LogWrapper
 
-DEFAULTS = dict(
-    env_id="HistoJAX-Easy-v0", slide=None, action_mode="discrete", obs_mode="pixels", with_position=False,
-    reward=None, max_steps_in_episode=None, env_kwargs=None,
-    num_envs=32, total_timesteps=200_000, buffer_size=32_768, batch_size=128, n_step=3, gamma=0.99,
-    lr=2.5e-4, max_grad_norm=10.0, learning_starts=2_048, train_every=1, target_update_every=250,
-    eps_start=1.0, eps_end=0.05, eps_fraction=0.4, double_q=True, hidden=256,
-    num_seeds=1, vmap_seeds=True, iterations_per_log=50, log_every=2, print_progress=True,
-)
+@dataclasses.dataclass(frozen=True)
+class DQNConfig(common.EnvConfig):
+    """DQN's settings (``config.json`` records them, ``--set KEY=VALUE`` changes any; discrete actions only)."""
+
+    algo: str = "dqn"                    # the trainer (recorded in config.json)
+    num_envs: int = 32                   # parallel envs per seed
+    total_timesteps: int = 200_000       # env steps per seed
+    buffer_size: int = 32_768            # replay rows (transitions of all envs)
+    batch_size: int = 128
+    n_step: int = 3                      # n-step returns
+    gamma: float = 0.99                  # discount
+    lr: float = 2.5e-4                   # Adam learning rate
+    max_grad_norm: float = 10.0
+    learning_starts: int = 2_048         # env steps before the first update
+    train_every: int = 1                 # iterations per gradient step
+    target_update_every: int = 250       # gradient steps per target-network copy
+    eps_start: float = 1.0               # epsilon-greedy schedule
+    eps_end: float = 0.05
+    eps_fraction: float = 0.4            # fraction of the run the schedule takes
+    double_q: bool = True
+    hidden: int = 256                    # network width
+    num_seeds: int = 1
+    vmap_seeds: bool = True              # all seeds in one vmapped program
+    iterations_per_log: int = 50
+    log_every: int = 2                   # log blocks per progress line
+    print_progress: bool = True
+
+
+DEFAULTS = dataclasses.asdict(DQNConfig())
 
 
 # ----------------------------------------------------------------------------- targets
@@ -204,7 +225,7 @@ def make_train(config: dict):
 
 
 def main(argv=None) -> int:
-    return train_and_save("dqn", make_train, argv, DEFAULTS, __doc__, "log blocks")
+    return common.train_and_save("dqn", make_train, argv, DEFAULTS, __doc__, "log blocks")
 
 
 if __name__ == "__main__":

@@ -134,7 +134,7 @@ def make_train(config: dict):
 
 
 def main(argv=None) -> int:
-    return ppo.train_and_save("ppo_rnn", make_train, argv, DEFAULTS, __doc__, "updates")
+    return common.train_and_save("ppo_rnn", make_train, argv, DEFAULTS, __doc__, "updates")
 
 
 if __name__ == "__main__":

@@ -250,7 +250,7 @@ def main(argv=None) -> int:
           f"{rot['rotate_every']} updates; dataset {rot['dataset_bytes']:,} bytes, budget {rot['budget_bytes']:,}, bound {rot['bound_bytes']:,}, resident peak {rot['resident_peak_bytes']:,}, "
           f"all live arrays at peak {rot['live_peak_bytes']:,} (before the first set {rot['baseline_bytes']:,}, "
           f"train state {rot['train_state_bytes']:,})")
-    ppo.finish_run("ppo", result["config"], out, result["params"], result["metrics"], result["steps_per_update"],
+    common.finish_run("ppo", result["config"], out, result["params"], result["metrics"], result["steps_per_update"],
                    rot["train_seconds"], rot["compile_seconds"], env_and_params=(result["env"], result["env_params"]))
     return 0
 

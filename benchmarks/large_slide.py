@@ -154,7 +154,7 @@ def main() -> None:
     print(f"build: {results.get('build_seconds', 'n/a')} s, peak RSS {results['build_peak_rss_bytes'] / 2**20:.0f} MiB",
           flush=True)
     rows = []
-    for lv in meta["levels"]:
+    for lv in meta.levels:
         tissue_bytes = lv["kept_tiles"] * t * t * 3
         ratio = lv["device_bytes"] / max(tissue_bytes, 1)
         rows.append({"downsample": lv["downsample"], "size": [lv["width"], lv["height"]], "grid": lv["grid"],
@@ -166,8 +166,8 @@ def main() -> None:
               f"{lv['device_bytes'] / 2**20:,.1f} MiB = {ratio:.3f} × tissue tiles' bytes; dense would be "
               f"{lv['dense_device_bytes'] / 2**20:,.1f} MiB", flush=True)
     results["per_level"] = rows
-    results["device_bytes"] = meta["device_bytes"]
-    results["dense_device_bytes"] = sum(lv["dense_device_bytes"] for lv in meta["levels"])
+    results["device_bytes"] = meta.device_bytes
+    results["dense_device_bytes"] = sum(lv["dense_device_bytes"] for lv in meta.levels)
 
     # 3. the env at full resolution
     import jax

@@ -200,6 +200,11 @@ class BundleMetadata(dict):
         return [float(lv["downsample"]) for lv in self["levels"]]
 
     @property
+    def device_bytes(self) -> int:
+        """Device bytes of all bundle levels (as recorded at build time)."""
+        return int(self["device_bytes"])
+
+    @property
     def checksums(self) -> dict[str, str]:
         """SHA-256 hex digest of every file, by name."""
         return self["checksums"]

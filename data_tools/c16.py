@@ -200,7 +200,7 @@ def _one_slide(job) -> dict:
         "stain_od_factors": prov["stain_od_factors"],
         "tiff_bytes": prov["tiff_bytes"],
         "bundle_bytes": sum(f.stat().st_size for f in (out_dir / "bundles" / name).iterdir()),
-        "device_bytes_pixels": int(meta["device_bytes"]),
+        "device_bytes_pixels": meta.device_bytes,
         "seconds_slide": prov["seconds"], "seconds_total": round(time.perf_counter() - s0, 2),
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
     }

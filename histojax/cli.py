@@ -1,12 +1,18 @@
-"""The ``histojax`` command: one entry point for the tools, each a thin wrapper of its module.
+"""The ``histojax`` command: the one entry point for the tools, each a thin wrapper of its module.
 
     histojax info SLIDE|BUNDLE        pyramid of a slide (levels, px sizes, tiles, compression, µm/px)
     histojax build SLIDE --out DIR    slide bundle (levels, masks; see `histojax build --help`)
-    histojax features BUNDLE          feature grid of a bundle (`python -m data_tools features`)
+    histojax features BUNDLE          feature grid of a bundle (also: histojax import-features BUNDLE FILE.h5)
+    histojax synth OUT_DIR            semi-synthetic slides and bundles with a train/test split
+    histojax synth-large OUT.tif      a gigapixel semi-synthetic pyramidal TIFF
+    histojax c16 --out DIR            the true-scale CAMELYON16-geometry benchmark dataset
     histojax demo [--no-train]        random-agent table, then PPO trained and evaluated on Easy (`make demo`)
-    histojax train [--algo ppo|dqn]   pure-JAX baselines (`python -m baselines.ppo|dqn`)
+    histojax train [--algo ppo|dqn|ppo_rnn]   pure-JAX baselines (`python -m baselines.ppo|dqn|ppo_rnn`)
     histojax evaluate CHECKPOINT      success rate, return, steps to success, trajectory pictures
+    histojax contract [ENV_ID ...]    the environment contract check (`make contract`, histojax.testing)
     histojax bench                    environment throughput (steps/s) against memory bandwidth
+
+The data commands are data_tools' (``python -m data_tools <command>`` is the same command).
 
 Units: positions and sizes are pixels (level-0 px for annotations and regions, px of the
 current level for views); `--tile-size` is the view side in px. User errors (bad files, unknown
@@ -22,14 +28,15 @@ import sys
 from data_tools.cli_output import OneLineParser, one_line_messages, os_error_text, print_error
 from data_tools.errors import HistojaxDataError
 
+DATA_COMMANDS = ("info", "build", "features", "import-features", "synth", "synth-large", "c16")
 COMMANDS = {
-    "info": ("data_tools.__main__", ["info"]),
-    "build": ("data_tools.__main__", ["build"]),
-    "features": ("data_tools.__main__", ["features"]),
+    **{name: ("data_tools.__main__", [name]) for name in DATA_COMMANDS},
     "demo": ("baselines.demo", []),
     "evaluate": ("baselines.evaluate", []),
+    "contract": ("histojax.testing", []),
     "bench": ("benchmarks.throughput", []),
 }
+ALGOS = ("ppo", "dqn", "ppo_rnn")
 
 
 def _run(module_name: str, argv: list[str], prog: str = "histojax") -> int:
@@ -71,8 +78,8 @@ def _dispatch(command: str, rest: list[str]) -> int:
             i = rest.index("--algo")
             algo = rest[i + 1] if i + 1 < len(rest) else ""
             rest = rest[:i] + rest[i + 2:]
-        if algo not in ("ppo", "dqn"):
-            return print_error(f"--algo must be ppo or dqn, got {algo!r}")
+        if algo not in ALGOS:
+            return print_error(f"--algo must be one of {', '.join(ALGOS)}, got {algo!r}")
         return _run(f"baselines.{algo}", rest, f"histojax train --algo {algo}")
     if command not in COMMANDS:
         return print_error(f"unknown command {command!r}; one of: {', '.join([*COMMANDS, 'train'])}")

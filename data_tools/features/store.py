@@ -26,7 +26,7 @@ def update_metadata(bundle: Path, features: dict, written: list[str]) -> dict:
     metadata = read_metadata(bundle)
     old = _feature_files(metadata.get("features"))
     new = _feature_files(features)
-    checksums = {k: v for k, v in metadata["checksums"].items() if k not in old - new}
+    checksums = {k: v for k, v in metadata.checksums.items() if k not in old - new}
     checksums.update({name: sha256(bundle / name) for name in written})
     metadata = {**metadata, "features": features, "checksums": checksums}
     write_metadata(bundle, metadata)

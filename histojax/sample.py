@@ -30,17 +30,15 @@ def sample_feature_bundle() -> Path:
     import shutil
     import time
 
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_format import atomic_folder, read_metadata
     from data_tools.features.grid import compute_features
 
     source = sample_bundle()
     out = source.with_name(source.name + "-features")
     if not (out.is_dir() and read_metadata(out).features):
         if not out.is_dir():
-            tmp = out.with_name(out.name + ".copy")
-            shutil.rmtree(tmp, ignore_errors=True)
-            shutil.copytree(source, tmp)
-            tmp.rename(out)
+            with atomic_folder(out) as tmp:
+                shutil.copytree(source, tmp)
         t0 = time.perf_counter()
         compute_features(out)
         print(f"computed the feature grid of {out} in {time.perf_counter() - t0:.1f} s")

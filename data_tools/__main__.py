@@ -40,7 +40,9 @@ def _box(text: str) -> tuple[float, float, float, float]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = OneLineParser(prog="python -m data_tools", description=__doc__.split("\n\n")[0])
+    # the same commands are `histojax <command>`: usage lines name the command the user typed
+    prog = "histojax" if Path(sys.argv[0]).name == "histojax" else "python -m data_tools"
+    p = OneLineParser(prog=prog, description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
     info = sub.add_parser("info", help="print a slide's pyramid (levels, sizes in px, tiles, compression, µm/px)")
     info.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file, DICOM WSI file or folder, or a bundle folder")

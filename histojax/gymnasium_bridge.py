@@ -26,6 +26,7 @@ import jax.numpy as jnp
 import numpy as np
 from gymnasium import spaces as gym_spaces
 
+from histojax import spaces as hj_spaces
 from histojax.env import HistoEnv
 
 
@@ -40,24 +41,22 @@ def settings_only(env: HistoEnv) -> HistoEnv:
     return dataclasses.replace(env, _default_params=None, _bundle=None, _bundles=())
 
 
+def gym_space(space):
+    """The Gymnasium space of a histojax (gymnax) space: ``Discrete``, ``Box`` (numpy dtype and
+    bounds) or ``Dict`` (recursively)."""
+    if isinstance(space, hj_spaces.Dict):
+        return gym_spaces.Dict({k: gym_space(v) for k, v in space.spaces.items()})
+    if isinstance(space, hj_spaces.Discrete):
+        return gym_spaces.Discrete(space.n)
+    dtype = np.dtype(space.dtype)
+    cast = float if np.issubdtype(dtype, np.floating) else int
+    return gym_spaces.Box(cast(space.low), cast(space.high), tuple(space.shape), dtype)
+
+
 def single_spaces(env: HistoEnv, params):
-    """Gymnasium ``(observation_space, action_space)`` of one environment."""
-    t = env.tile_size
-    if env.obs_mode == "features":
-        view = gym_spaces.Box(-np.inf, np.inf, (params.slide.features.shape[-1],), np.float32)
-    elif env.obs_mode == "pixels":
-        view = gym_spaces.Box(0, 255, (t, t, 3), np.uint8)
-    else:
-        view = gym_spaces.Box(0.0, 1.0, (t, t, 3), np.float32)
-    obs_space = view
-    if env.with_position:
-        key = "features" if env.obs_mode == "features" else "pixels"
-        obs_space = gym_spaces.Dict({key: view, "position": gym_spaces.Box(0.0, 1.0, (3,), np.float32)})
-    if env.action_mode == "discrete":
-        action_space = gym_spaces.Discrete(env.num_actions)
-    else:
-        action_space = gym_spaces.Box(-1.0, 1.0, (env.num_actions,), np.float32)
-    return obs_space, action_space
+    """Gymnasium ``(observation_space, action_space)`` of one environment (the env's own spaces,
+    converted by :func:`gym_space`)."""
+    return gym_space(env.observation_space(params)), gym_space(env.action_space(params))
 
 
 def numpy_copy(tree):

@@ -21,6 +21,7 @@ import jax
 import jax.numpy as jnp
 
 from data_tools.errors import BundleError
+from histojax import modes
 from histojax.env import EnvParams, HistoEnv
 from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide, stack_slides
 
@@ -29,7 +30,7 @@ _SLIDES: dict[str, object] = {}  # env id → default slide: a bundle path, or a
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
                  "augment",
                  "final_observation")
-PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name != "slide")
+PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name not in ("slide", "mode_data"))
 
 
 def register(env_id: str, slide=None, **spec) -> None:
@@ -104,7 +105,9 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
         slides = [slide]
     if not slides:
         raise ValueError("slides= is empty")
-    features = True if spec.get("obs_mode") == "features" else None
+    needs_features = (modes.obs_mode(spec.get("obs_mode", "pixels")).needs_features
+                      or modes.action_mode(spec.get("action_mode", "discrete")).needs_features)
+    features = True if needs_features else None
     loaded, budget = [], max_device_bytes
     for path in slides:
         arrays, bundle = load_slide(path, spec["n_levels"], verify=verify, max_device_bytes=budget, features=features)
@@ -128,6 +131,10 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     params = EnvParams(slide=arrays, **{k: spec[k] for k in PARAM_FIELDS if k in spec})
     bundles = tuple(b for _, b in loaded)
     env = HistoEnv(name=env_id, _default_params=params, _bundle=bundles[0], _bundles=bundles, **static)
+    mode_data = env.action.prepare(env, params, bundles)  # per-slide tables of a reading mode, once
+    if mode_data is not None:
+        params = params.replace(mode_data=mode_data)
+        env = dataclasses.replace(env, _default_params=params)
     return env, params
 
 

@@ -59,8 +59,11 @@ class ActionMode:
     def space(self, env, params):
         raise NotImplementedError
 
-    def prepare(self, env, params, bundles):
-        """Per-slide tables for ``params.mode_data`` (host side, once, in ``make``); ``None`` if none."""
+    def prepare(self, env, params, bundles, **settings):
+        """Per-slide tables for ``params.mode_data`` (host side, once, in ``make``; ``settings`` such
+        as ``read_budget`` come from ``make``'s keywords); ``None`` if none."""
+        if settings:
+            raise TypeError(f"action_mode={self.name!r} takes no {sorted(settings)}")
         return None
 
     def init_memory(self, env, state, params):

@@ -30,6 +30,7 @@ _SLIDES: dict[str, object] = {}  # env id → default slide: a bundle path, or a
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
                  "augment",
                  "final_observation")
+MODE_SETTINGS = ("read_budget",)  # passed to the action mode's prepare (histojax.modes)
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name not in ("slide", "mode_data"))
 
 
@@ -68,7 +69,8 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     (``action_mode``, ``obs_mode``, ``with_position``, ``reward``, ``auto_reset``, ``augment``; ``tile_size``
     only for the sample slide, where it selects another cached bundle) or ``EnvParams`` field
     (``max_steps_in_episode``, ``stride``, ``success_threshold``, ``step_cost``,
-    ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``).
+    ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``), or ``read_budget``
+    (fraction of finest-level tissue views, for ``action_mode="glimpse"`` / ``"zoom_select"``).
     The slide's arrays are put on the device once and returned inside ``params``; a slide
     needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error.
     ``verify`` checks every array's SHA-256 against the bundle metadata.
@@ -82,6 +84,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     """
     if env_id not in _REGISTRY:
         raise ValueError(f"unknown environment id {env_id!r}; registered: {', '.join(_REGISTRY)}")
+    mode_settings = {k: overrides.pop(k) for k in MODE_SETTINGS if k in overrides}
     spec = {**_REGISTRY[env_id], **overrides}
     unknown = set(spec) - set(STATIC_FIELDS) - set(PARAM_FIELDS)
     if unknown:
@@ -131,7 +134,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     params = EnvParams(slide=arrays, **{k: spec[k] for k in PARAM_FIELDS if k in spec})
     bundles = tuple(b for _, b in loaded)
     env = HistoEnv(name=env_id, _default_params=params, _bundle=bundles[0], _bundles=bundles, **static)
-    mode_data = env.action.prepare(env, params, bundles)  # per-slide tables of a reading mode, once
+    mode_data = env.action.prepare(env, params, bundles, **mode_settings)  # per-slide tables of a reading mode, once
     if mode_data is not None:
         params = params.replace(mode_data=mode_data)
         env = dataclasses.replace(env, _default_params=params)

@@ -22,7 +22,7 @@ exactly the whole budget. Reading never exceeds the budget.
 **Observation**: the observation mode's entry of the current view, plus (all float32, ``C`` cells)
 ``cells (C, D)`` low-resolution features of every cell (0 for padding), ``valid (C,)`` 0/1,
 ``revealed (C,)`` 0/1, ``summaries (C, 2D)`` the revealed summaries (0 where unread) and
-``budget_left ()`` the unread fraction of the budget. Bytes per observation:
+``budget_left ()`` the budget not yet read (``read_budget − fraction_read``). Bytes per observation:
 ``4 · C · (3D + 2) + 4`` plus the view entry (see :func:`observation_bytes`).
 
 **info** (every step): ``fraction_read`` (read tissue views / all tissue views), ``fields_of_view``
@@ -52,6 +52,7 @@ class GlimpseTables:
     cell_x: jnp.ndarray       # (S, C) int32 top-left of the cell's view, px of the glimpse level
     cell_y: jnp.ndarray       # (S, C) int32
     total_views: jnp.ndarray  # (S,) int32 finest-level tissue views of the slide (≥ 1)
+    inv_total: jnp.ndarray    # (S,) float32 1 / total_views (a product, not a division, is bitwise stable under vmap)
     read_budget: jnp.ndarray  # () float32 fraction of total_views an episode may read, in (0, 1]
 
 
@@ -141,7 +142,8 @@ class Glimpse(ActionMode):
             cells=jnp.asarray(np.stack(out["cells"])), summaries=jnp.asarray(np.stack(out["summaries"])),
             cell_views=jnp.asarray(np.stack(out["cell_views"])), valid=jnp.asarray(np.stack(out["valid"])),
             cell_x=jnp.asarray(np.stack(out["cell_x"])), cell_y=jnp.asarray(np.stack(out["cell_y"])),
-            total_views=jnp.asarray(out["total"], jnp.int32), read_budget=jnp.float32(read_budget))
+            total_views=jnp.asarray(out["total"], jnp.int32),
+            inv_total=jnp.asarray(1.0 / np.asarray(out["total"], np.float64), jnp.float32), read_budget=jnp.float32(read_budget))
 
     def init_memory(self, env, state, params) -> GlimpseMemory:
         c = self.num_cells(params)
@@ -177,13 +179,13 @@ class Glimpse(ActionMode):
     def memory_obs(self, env, state, params) -> dict:
         tables, mem, i = params.mode_data, state.memory, state.slide_index
         revealed = mem.revealed.astype(jnp.float32)
-        budget = jnp.maximum(budget_views(tables, i), 1).astype(jnp.float32)
+        fraction = mem.views_read.astype(jnp.float32) * tables.inv_total[i]
         return {
             "cells": tables.cells[i],
             "valid": tables.valid[i].astype(jnp.float32),
             "revealed": revealed,
             "summaries": tables.summaries[i] * revealed[:, None],
-            "budget_left": jnp.clip(1.0 - mem.views_read / budget, 0.0, 1.0).astype(jnp.float32),
+            "budget_left": jnp.clip(tables.read_budget - fraction, 0.0, 1.0).astype(jnp.float32),
         }
 
     def memory_space(self, env, params) -> dict:
@@ -194,8 +196,8 @@ class Glimpse(ActionMode):
 
     def reading_info(self, env, state, params) -> dict:
         mem, tables = state.memory, params.mode_data
-        total = tables.total_views[state.slide_index].astype(jnp.float32)
-        return {"fraction_read": mem.views_read / total, "fields_of_view": mem.fields}
+        fraction = mem.views_read.astype(jnp.float32) * tables.inv_total[state.slide_index]
+        return {"fraction_read": fraction, "fields_of_view": mem.fields}
 
 
 def observation_bytes(env, params) -> int:

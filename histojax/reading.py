@@ -34,9 +34,9 @@ def tissue_views(bundle, slide, tile_size: int) -> np.ndarray:
     f = len(ds) - 1
     gh, gw = grid(int(width[f]), int(height[f]), tile_size, tile_size)
     tissue = np.asarray(bundle.tissue, bool)
-    scale = ds[f] / float(bundle.downsamples[-1])  # tissue-mask px per px of the finest level
-    sat = summed_area_table(tissue.astype(np.uint8)).astype(np.int64)
     th, tw = tissue.shape
+    scale = tw / float(width[f])  # tissue-mask px per px of the finest level (the mask spans the slide)
+    sat = summed_area_table(tissue.astype(np.uint8)).astype(np.int64)
 
     def edges(n):
         a = np.floor(np.arange(n) * tile_size * scale).astype(np.int64)

@@ -1,7 +1,7 @@
 """``action_mode="zoom_select"`` (RLogist style): at level ``z`` the view's footprint at level
 ``z + 1`` is split into ``k × k`` children; action ``i < k²`` zooms into child ``i`` (row-major:
-``i = row·k + col``); action ``k²`` zooms out to the parent view (keeping the centre, as
-ZOOM_OUT does); for ``task="classification"`` ``k² + 1`` declares no tumour and ``k² + 2`` tumour.
+``i = row·k + col``); action ``k²`` zooms out to the parent view (the view this one was
+zoomed into from; at the coarsest level it stays); for ``task="classification"`` ``k² + 1`` declares no tumour and ``k² + 2`` tumour.
 
 Child ``(row, col)`` is the ``T × T`` view of level ``z + 1`` centred on the centre of the
 footprint's sub-square ``(row, col)`` (footprint side ``T · ratio`` px of level ``z + 1``,
@@ -45,6 +45,8 @@ class ZoomTables:
     coarse_cell: jnp.ndarray   # (S, Vf) int32 coarsest-level grid cell over finest view v (padded Gc: dropped)
     coarse_views: jnp.ndarray  # (S, Gc) float32 tissue views under each coarse cell (≥ 1 to divide by)
     total_views: jnp.ndarray   # (S,) int32 finest-level tissue views of the slide (≥ 1)
+    inv_total: jnp.ndarray     # (S,) float32 1 / total_views
+    inv_coarse: jnp.ndarray    # (S, Gc) float32 1 / coarse_views
     read_budget: jnp.ndarray   # () float32 fraction of total_views after which the episode is truncated
     seen_zero: jnp.ndarray     # (V,) bool all False: a fresh ``seen`` (V = the largest sum of grid sizes)
 
@@ -56,6 +58,8 @@ class ZoomMemory:
     seen: jnp.ndarray        # (V,) bool views of every level's grid seen (level z from grid_offset[z])
     views_read: jnp.ndarray  # () int32 finest-level tissue views seen
     fields: jnp.ndarray      # () int32 distinct views seen, any level
+    path_x: jnp.ndarray      # (n_levels,) int32 x of the view last zoomed in from at each level (the parents)
+    path_y: jnp.ndarray      # (n_levels,) int32
 
 
 @dataclasses.dataclass(frozen=True)
@@ -107,13 +111,16 @@ class ZoomSelect(ActionMode):
             tissue=jnp.asarray(reading.pad_stack(rows["tissue"], False)),
             coarse_cell=jnp.asarray(reading.pad_stack(rows["coarse"], big_c)),
             coarse_views=jnp.asarray(np.stack(coarse_views)), total_views=jnp.asarray(rows["total"], jnp.int32),
+            inv_total=jnp.asarray(1.0 / np.asarray(rows["total"], np.float64), jnp.float32),
+            inv_coarse=jnp.asarray(1.0 / np.stack(coarse_views).astype(np.float64), jnp.float32),
             read_budget=jnp.float32(read_budget),
             seen_zero=jnp.zeros((max(int(o[-1]) + int(w[-1]) * int(h[-1]) for o, w, h in
                                      zip(rows["offset"], rows["width"], rows["height"])),), bool))
 
     def init_memory(self, env, state, params) -> ZoomMemory:
         zero = jnp.zeros((), jnp.int32)
-        memory = ZoomMemory(seen=params.mode_data.seen_zero, views_read=zero, fields=zero)
+        path = jnp.zeros((env.n_levels,), jnp.int32)
+        memory = ZoomMemory(seen=params.mode_data.seen_zero, views_read=zero, fields=zero, path_x=path, path_y=path)
         return _see(params.mode_data, memory, state.slide_index, state.z, state.x, state.y, env)
 
     def apply(self, env, state, action, params) -> Move:
@@ -131,22 +138,25 @@ class ZoomSelect(ActionMode):
         cx = jnp.round(corner_x + (col + 0.5) * side / k - t / 2.0).astype(jnp.int32)
         cy = jnp.round(corner_y + (row + 0.5) * side / k - t / 2.0).astype(jnp.int32)
         cx, cy = actions.clamp_position(slide, z1, cx, cy, t)
-        dz = -(a == k * k).astype(jnp.int32)
-        oz, ox, oy = actions.move_and_zoom(slide, state.z, state.x, state.y, 0, 0, dz, t, env.n_levels)
-        z = jnp.where(child, z1, oz).astype(jnp.int32)
-        x = jnp.where(child, cx, ox).astype(jnp.int32)
-        y = jnp.where(child, cy, oy).astype(jnp.int32)
+        mem = state.memory
+        out = (a == k * k) & (state.z > 0)  # back to the view this one was zoomed into from
+        parent = jnp.maximum(state.z - 1, 0)
+        z = jnp.where(child, z1, jnp.where(out, parent, state.z)).astype(jnp.int32)
+        x = jnp.where(child, cx, jnp.where(out, mem.path_x[parent], state.x)).astype(jnp.int32)
+        y = jnp.where(child, cy, jnp.where(out, mem.path_y[parent], state.y)).astype(jnp.int32)
+        mem = mem.replace(path_x=jnp.where(child, mem.path_x.at[state.z].set(state.x), mem.path_x),
+                          path_y=jnp.where(child, mem.path_y.at[state.z].set(state.y), mem.path_y))
         d = k * k + 1
         diagnosis = jnp.where(a == d + 1, 1, jnp.where(a == d, 0, -1)).astype(jnp.int32)
         if env.task != "classification":
             diagnosis = jnp.full((), -1, jnp.int32)
-        memory = _see(params.mode_data, state.memory, state.slide_index, z, x, y, env)
+        memory = _see(params.mode_data, mem, state.slide_index, z, x, y, env)
         return Move(z, x, y, diagnosis, _declared_score(diagnosis), memory)
 
     def budget_spent(self, env, state, params) -> jax.Array:
         tables = params.mode_data
-        total = tables.total_views[state.slide_index].astype(jnp.float32)
-        return (tables.read_budget < 1.0) & (state.memory.views_read >= tables.read_budget * total)
+        fraction = state.memory.views_read.astype(jnp.float32) * tables.inv_total[state.slide_index]
+        return (tables.read_budget < 1.0) & (fraction >= tables.read_budget)
 
     def memory_obs(self, env, state, params) -> dict:
         tables, i = params.mode_data, state.slide_index
@@ -157,7 +167,7 @@ class ZoomSelect(ActionMode):
         read = (seen_f & tables.tissue[i]).astype(jnp.float32)
         big_c = tables.coarse_views.shape[-1]
         per_cell = jax.ops.segment_sum(read, tables.coarse_cell[i], num_segments=big_c + 1)[:big_c]
-        return {"visited": per_cell / tables.coarse_views[i], "position": _position(env, state, params)}
+        return {"visited": per_cell * tables.inv_coarse[i], "position": _position(env, state, params)}
 
     def memory_space(self, env, params) -> dict:
         big_c = int(params.mode_data.coarse_views.shape[-1])
@@ -165,8 +175,8 @@ class ZoomSelect(ActionMode):
                 "position": spaces.Box(0.0, 1.0, (3,), jnp.float32)}
 
     def reading_info(self, env, state, params) -> dict:
-        total = params.mode_data.total_views[state.slide_index].astype(jnp.float32)
-        return {"fraction_read": state.memory.views_read / total, "fields_of_view": state.memory.fields}
+        fraction = state.memory.views_read.astype(jnp.float32) * params.mode_data.inv_total[state.slide_index]
+        return {"fraction_read": fraction, "fields_of_view": state.memory.fields}
 
 
 def _grid_index(tables: ZoomTables, i, z, x, y, tile_size: int):
@@ -184,9 +194,9 @@ def _see(tables: ZoomTables, memory: ZoomMemory, i, z, x, y, env) -> ZoomMemory:
     new = ~memory.seen[index]
     finest = z == env.n_levels - 1
     tissue = tables.tissue[i, jnp.clip(local, 0, tables.tissue.shape[-1] - 1)]
-    return ZoomMemory(seen=memory.seen.at[index].set(True),
-                      views_read=memory.views_read + (new & finest & tissue).astype(jnp.int32),
-                      fields=memory.fields + new.astype(jnp.int32))
+    return memory.replace(seen=memory.seen.at[index].set(True),
+                          views_read=memory.views_read + (new & finest & tissue).astype(jnp.int32),
+                          fields=memory.fields + new.astype(jnp.int32))
 
 
 def _position(env, state, params):

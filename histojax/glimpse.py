@@ -102,6 +102,21 @@ class Glimpse(ActionMode):
         return spaces.Discrete(self.num_cells(params) + 2)
 
     def prepare(self, env, params, bundles, read_budget: float = 1.0) -> GlimpseTables:
+        if not 0.0 < read_budget <= 1.0:
+            raise ValueError(f"read_budget must be in (0, 1], got {read_budget}")
+        per = self.host_tables(env, params, bundles)
+        stack = lambda k, dtype=None: jnp.asarray(np.stack([p[k] for p in per]), dtype)  # noqa: E731
+        total = np.asarray([p["total"] for p in per])
+        return GlimpseTables(
+            cells=stack("cells"), summaries=stack("summaries"), cell_views=stack("cell_views"), valid=stack("valid"),
+            cell_x=stack("cell_x"), cell_y=stack("cell_y"), total_views=jnp.asarray(total, jnp.int32),
+            inv_total=jnp.asarray(1.0 / total.astype(np.float64), jnp.float32), read_budget=jnp.float32(read_budget))
+
+    def host_tables(self, env, params, bundles) -> list[dict]:
+        """Per slide, host numpy: the padded cell tables of :class:`GlimpseTables` (``cells``,
+        ``summaries``, ``cell_views``, ``valid``, ``cell_x``, ``cell_y``, ``total``) and the instances
+        behind them: ``instances (V, D)`` features of the slide's finest-level tissue views and
+        ``instance_cell (V,)`` the (padded) cell index, i.e. the action, that reveals each."""
         t, g = env.tile_size, self.level
         per = []
         for slide, bundle in reading.per_slide(params, bundles):
@@ -112,13 +127,12 @@ class Glimpse(ActionMode):
             gw, gh = int(np.asarray(slide.feature_grid_width)[g]), int(np.asarray(slide.feature_grid_height)[g])
             per.append((slide, bundle, s, gh, gw))
         big_h, big_w = max(p[3] for p in per), max(p[4] for p in per)
-        out = {k: [] for k in ("cells", "summaries", "cell_views", "valid", "cell_x", "cell_y", "total")}
+        out = []
         for slide, bundle, s, gh, gw in per:
             tissue = reading.tissue_views(bundle, slide, t).reshape(-1)
             cell = reading.cell_of_views(slide, t, g, s, (gh, gw)).reshape(-1)
             feats = reading.finest_view_features(slide, t).reshape(tissue.shape[0], -1)
-            d = feats.shape[1]
-            n = gh * gw
+            d, n = feats.shape[1], gh * gw
             count = np.bincount(cell[tissue], minlength=n)
             mean = np.zeros((n, d), np.float64)
             np.add.at(mean, cell[tissue], feats[tissue])
@@ -129,21 +143,14 @@ class Glimpse(ActionMode):
             low = np.asarray(slide.features, np.float32)[int(np.asarray(slide.feature_offset)[g]) + np.arange(n)]
             gy, gx = np.divmod(np.arange(n), gw)
             pad = lambda a, fill=0: _to_padded(a.reshape(gh, gw, *a.shape[1:]), big_h, big_w, fill)  # noqa: E731
-            out["cells"].append(pad(low))
-            out["summaries"].append(pad(np.concatenate([mean, mx], 1).astype(np.float32)))
-            out["cell_views"].append(pad(count.astype(np.int32)))
-            out["valid"].append(pad(count > 0, False))
-            out["cell_x"].append(pad((gx * s).astype(np.int32)))
-            out["cell_y"].append(pad((gy * s).astype(np.int32)))
-            out["total"].append(max(1, int(tissue.sum())))
-        if not 0.0 < read_budget <= 1.0:
-            raise ValueError(f"read_budget must be in (0, 1], got {read_budget}")
-        return GlimpseTables(
-            cells=jnp.asarray(np.stack(out["cells"])), summaries=jnp.asarray(np.stack(out["summaries"])),
-            cell_views=jnp.asarray(np.stack(out["cell_views"])), valid=jnp.asarray(np.stack(out["valid"])),
-            cell_x=jnp.asarray(np.stack(out["cell_x"])), cell_y=jnp.asarray(np.stack(out["cell_y"])),
-            total_views=jnp.asarray(out["total"], jnp.int32),
-            inv_total=jnp.asarray(1.0 / np.asarray(out["total"], np.float64), jnp.float32), read_budget=jnp.float32(read_budget))
+            cy, cx = np.divmod(cell[tissue], gw)
+            out.append({
+                "cells": pad(low), "summaries": pad(np.concatenate([mean, mx], 1).astype(np.float32)),
+                "cell_views": pad(count.astype(np.int32)), "valid": pad(count > 0, False),
+                "cell_x": pad((gx * s).astype(np.int32)), "cell_y": pad((gy * s).astype(np.int32)),
+                "total": max(1, int(tissue.sum())),
+                "instances": feats[tissue].astype(np.float32), "instance_cell": (cy * big_w + cx).astype(np.int64)})
+        return out
 
     def init_memory(self, env, state, params) -> GlimpseMemory:
         c = self.num_cells(params)

@@ -22,7 +22,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from histojax import actions, spaces
+from histojax import actions, reading, spaces
 from histojax import augment as dihedral
 from histojax.views import view_pixels
 
@@ -96,11 +96,52 @@ def _declared_score(diagnosis):
 
 
 @dataclasses.dataclass(frozen=True)
-class Discrete(ActionMode):
+class Navigation(ActionMode):
+    """Base of the pan/zoom modes. They keep no memory unless asked: ``make(..., track_reading=True)``
+    (``fraction_read`` / ``fields_of_view`` in ``info``; ``read_budget`` truncates) or
+    ``memory=True`` (that, plus the coarse ``visited`` map and ``position`` in the observation; see
+    :mod:`histojax.reading`). Without either the state and the trajectories are HistoGym's."""
+
+    memory: bool = False
+    supports_augment = True
+
+    def prepare(self, env, params, bundles, track_reading: bool = False, read_budget: float | None = None):
+        if not (self.memory or track_reading):
+            if read_budget is not None:
+                raise TypeError(f"read_budget needs track_reading=True (or {self.name} with memory=True)")
+            return None
+        return reading.seen_tables(env, params, bundles, 1.0 if read_budget is None else read_budget)
+
+    def init_memory(self, env, state, params):
+        return None if params.mode_data is None else reading.init_seen(params.mode_data, state, env)
+
+    def _seen(self, env, state, params, z, x, y):
+        if state.memory is None:
+            return None
+        return reading.see(params.mode_data, state.memory, state.slide_index, z, x, y, env)
+
+    def budget_spent(self, env, state, params) -> jax.Array:
+        if state.memory is None:
+            return super().budget_spent(env, state, params)
+        return reading.budget_spent(params.mode_data, state.memory, state.slide_index)
+
+    def reading_info(self, env, state, params) -> dict:
+        if state.memory is None:
+            return {}
+        return reading.reading_info(params.mode_data, state.memory, state.slide_index)
+
+    def memory_obs(self, env, state, params) -> dict:
+        return reading.visited_obs(env, state, params) if self.memory else {}
+
+    def memory_space(self, env, params) -> dict:
+        return reading.visited_space(params) if self.memory else {}
+
+
+@dataclasses.dataclass(frozen=True)
+class Discrete(Navigation):
     """HistoGym's ``Discrete(7)`` moves (+ DECLARE_NO_TUMOUR=7, DECLARE_TUMOUR=8 for classification)."""
 
     name = "discrete"
-    supports_augment = True
 
     def num_actions(self, env) -> int:
         return actions.NUM_DISCRETE_ACTIONS + (2 if env.task == "classification" else 0)
@@ -116,15 +157,14 @@ class Discrete(ActionMode):
         dx, dy, dz = actions.discrete_deltas(action, stride_px)
         z, x, y = actions.move_and_zoom(slide, state.z, state.x, state.y, dx, dy, dz, env.tile_size, env.n_levels)
         diagnosis = actions.discrete_diagnosis(action)
-        return Move(z, x, y, diagnosis, _declared_score(diagnosis))
+        return Move(z, x, y, diagnosis, _declared_score(diagnosis), self._seen(env, state, params, z, x, y))
 
 
 @dataclasses.dataclass(frozen=True)
-class Continuous(ActionMode):
+class Continuous(Navigation):
     """``Box(-1, 1, (3,))`` ``(dx, dy, dzoom)`` (+ a 4th diagnosis component for classification)."""
 
     name = "continuous"
-    supports_augment = True
 
     def num_actions(self, env) -> int:
         return 3 + (1 if env.task == "classification" else 0)
@@ -145,7 +185,7 @@ class Continuous(ActionMode):
             score = jnp.where(diagnosis < 0, 0.5, (jnp.clip(d, -1.0, 1.0) + 1.0) / 2.0)  # > 0.75 declares tumour
         else:
             diagnosis, score = jnp.full((), -1, jnp.int32), jnp.full((), 0.5, jnp.float32)
-        return Move(z, x, y, diagnosis, score.astype(jnp.float32))
+        return Move(z, x, y, diagnosis, score.astype(jnp.float32), self._seen(env, state, params, z, x, y))
 
 
 # ----------------------------------------------------------------------------- observation modes

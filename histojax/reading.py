@@ -7,13 +7,22 @@ top-left ``(fx·T, fy·T)``. A view is a **tissue view** when at least ``MIN_STA
 of its footprint is tissue in the bundle's tissue mask (a slide with no tissue view at all counts
 every view). "Fraction read" is always read tissue views / all tissue views of the slide.
 
+**Seen views** (:class:`SeenTables`, :class:`SeenMemory`): navigating modes (``zoom_select``, and
+``discrete`` / ``continuous`` with ``make(..., track_reading=True)`` or ``memory=True``) mark the
+view nearest each position on a stride-``T`` grid of its level; a finest-level tissue view seen counts
+as read. The observation's ``visited (Gc,)`` is the fraction of the finest tissue views read under
+each view of the coarsest level's grid (the "coarse visited map").
+
 A **cell grid** at level ``g`` with step ``s`` px puts each finest view under exactly one cell, the
 one holding the view's centre (``gx = clip(floor(cx_g / s), 0, gw_g − 1)``, ``cx_g`` the centre in px
 of level ``g``): a partition, so reading every cell reads every view once.
 """
 from __future__ import annotations
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+from flax import struct
 
 from histojax.slide import MIN_START_TISSUE, summed_area_table
 
@@ -97,3 +106,132 @@ def pad_stack(arrays: list[np.ndarray], fill=0) -> np.ndarray:
     for i, a in enumerate(arrays):
         out[i, : a.shape[0]] = a
     return out
+
+
+# ----------------------------------------------------------------------------- seen views (JAX side)
+@struct.dataclass
+class SeenTables:
+    """What a navigating episode can see, per slide of ``S`` (in ``EnvParams.mode_data``); views on
+    stride-``T`` grids of every level."""
+
+    grid_offset: jnp.ndarray   # (S, n) int32 first index of level z's grid in the flat ``seen`` array
+    grid_width: jnp.ndarray    # (S, n) int32 columns of each level's grid
+    grid_height: jnp.ndarray   # (S, n) int32 rows of each level's grid
+    tissue: jnp.ndarray        # (S, Vf) bool: finest-level view v is a tissue view (flat, padded False)
+    coarse_cell: jnp.ndarray   # (S, Vf) int32 coarsest-level grid cell over finest view v (padded Gc: dropped)
+    coarse_views: jnp.ndarray  # (S, Gc) float32 tissue views under each coarse cell (≥ 1 to divide by)
+    total_views: jnp.ndarray   # (S,) int32 finest-level tissue views of the slide (≥ 1)
+    inv_total: jnp.ndarray     # (S,) float32 1 / total_views
+    inv_coarse: jnp.ndarray    # (S, Gc) float32 1 / coarse_views
+    read_budget: jnp.ndarray   # () float32 fraction of total_views after which the episode is truncated
+    seen_zero: jnp.ndarray     # (V,) bool all False: a fresh ``seen`` (V = the largest sum of grid sizes)
+
+
+
+@struct.dataclass
+class SeenMemory:
+    """What a navigating episode has seen (in ``EnvState.memory``)."""
+
+    seen: jnp.ndarray        # (V,) bool views of every level's grid seen (level z from grid_offset[z])
+    views_read: jnp.ndarray  # () int32 finest-level tissue views seen
+    fields: jnp.ndarray      # () int32 distinct views seen, any level
+
+
+def seen_tables(env, params, bundles, read_budget: float = 1.0) -> SeenTables:
+    """The :class:`SeenTables` of a dataset (host side, once)."""
+    if not 0.0 < read_budget <= 1.0:
+        raise ValueError(f"read_budget must be in (0, 1], got {read_budget}")
+    t = env.tile_size
+    rows = {k: [] for k in ("offset", "width", "height", "tissue", "coarse", "total")}
+    geoms = []
+    for slide, bundle in per_slide(params, bundles):
+        _, width, height = level_geometry(slide)
+        grids = [grid(int(w), int(h), t, t) for w, h in zip(width, height)]
+        geoms.append((slide, bundle, grids))
+    big_c = max(g[2][0][0] * g[2][0][1] for g in geoms)
+    coarse_views = []
+    for slide, bundle, grids in geoms:
+        sizes = [h * w for h, w in grids]
+        rows["offset"].append(np.cumsum([0] + sizes[:-1]).astype(np.int32))
+        rows["width"].append(np.asarray([w for _, w in grids], np.int32))
+        rows["height"].append(np.asarray([h for h, _ in grids], np.int32))
+        tissue = tissue_views(bundle, slide, t).reshape(-1)
+        coarse = cell_of_views(slide, t, 0, t, grids[0]).reshape(-1)
+        gh0, gw0 = grids[0]
+        counts = np.bincount(coarse[tissue], minlength=gh0 * gw0).astype(np.float32)
+        coarse_views.append(np.pad(np.maximum(counts, 1.0), (0, big_c - counts.shape[0]), constant_values=1.0))
+        rows["tissue"].append(tissue)
+        rows["coarse"].append(coarse.astype(np.int32))
+        rows["total"].append(max(1, int(tissue.sum())))
+    return SeenTables(
+        grid_offset=jnp.asarray(np.stack(rows["offset"])), grid_width=jnp.asarray(np.stack(rows["width"])),
+        grid_height=jnp.asarray(np.stack(rows["height"])),
+        tissue=jnp.asarray(pad_stack(rows["tissue"], False)),
+        coarse_cell=jnp.asarray(pad_stack(rows["coarse"], big_c)),
+        coarse_views=jnp.asarray(np.stack(coarse_views)), total_views=jnp.asarray(rows["total"], jnp.int32),
+        inv_total=jnp.asarray(1.0 / np.asarray(rows["total"], np.float64), jnp.float32),
+        inv_coarse=jnp.asarray(1.0 / np.stack(coarse_views).astype(np.float64), jnp.float32),
+        read_budget=jnp.float32(read_budget),
+        seen_zero=jnp.zeros((max(int(o[-1]) + int(w[-1]) * int(h[-1]) for o, w, h in
+                                 zip(rows["offset"], rows["width"], rows["height"])),), bool))
+
+def init_seen(tables: SeenTables, state, env) -> SeenMemory:
+    """A fresh :class:`SeenMemory` that has seen the start view of ``state``."""
+    zero = jnp.zeros((), jnp.int32)
+    return see(tables, SeenMemory(seen=tables.seen_zero, views_read=zero, fields=zero),
+               state.slide_index, state.z, state.x, state.y, env)
+
+
+def _grid_index(tables: SeenTables, i, z, x, y, tile_size: int):
+    """Flat index in ``seen`` of the stride-``T`` grid view nearest ``(z, x, y)``, and its index in
+    level ``z``'s grid."""
+    gw, gh = tables.grid_width[i, z], tables.grid_height[i, z]
+    gx = jnp.clip((x + tile_size // 2) // tile_size, 0, gw - 1)
+    gy = jnp.clip((y + tile_size // 2) // tile_size, 0, gh - 1)
+    return tables.grid_offset[i, z] + gy * gw + gx, gy * gw + gx
+
+
+def see(tables: SeenTables, memory, i, z, x, y, env):
+    """``memory`` (any dataclass with ``seen``, ``views_read``, ``fields``) after looking at
+    ``(z, x, y)`` of slide ``i``: the view is marked and counted once."""
+    index, local = _grid_index(tables, i, z, x, y, env.tile_size)
+    new = ~memory.seen[index]
+    finest = z == env.n_levels - 1
+    tissue = tables.tissue[i, jnp.clip(local, 0, tables.tissue.shape[-1] - 1)]
+    return memory.replace(seen=memory.seen.at[index].set(True),
+                          views_read=memory.views_read + (new & finest & tissue).astype(jnp.int32),
+                          fields=memory.fields + new.astype(jnp.int32))
+
+
+def budget_spent(tables, memory, i) -> jax.Array:
+    """True once the finest tissue views read reach ``read_budget`` (never with a budget of 1)."""
+    fraction = memory.views_read.astype(jnp.float32) * tables.inv_total[i]
+    return (tables.read_budget < 1.0) & (fraction >= tables.read_budget)
+
+
+def reading_info(tables, memory, i) -> dict:
+    """``fraction_read`` (float32) and ``fields_of_view`` (int32) for ``info``."""
+    return {"fraction_read": memory.views_read.astype(jnp.float32) * tables.inv_total[i],
+            "fields_of_view": memory.fields}
+
+
+def visited_obs(env, state, params) -> dict:
+    """``visited (Gc,)`` float32 (the coarse visited map, see the module doc) and ``position (3,)``."""
+    tables, i = params.mode_data, state.slide_index
+    f = env.n_levels - 1
+    start = tables.grid_offset[i, f]
+    n_f = tables.tissue.shape[-1]
+    seen_f = jax.lax.dynamic_slice(jnp.pad(state.memory.seen, (0, n_f)), (start,), (n_f,))
+    read = (seen_f & tables.tissue[i]).astype(jnp.float32)
+    big_c = tables.coarse_views.shape[-1]
+    per_cell = jax.ops.segment_sum(read, tables.coarse_cell[i], num_segments=big_c + 1)[:big_c]
+    return {"visited": per_cell * tables.inv_coarse[i],
+            "position": env._position(state, params.slide.select(i))}
+
+
+def visited_space(params) -> dict:
+    """Spaces of :func:`visited_obs`."""
+    from histojax import spaces
+
+    big_c = int(params.mode_data.coarse_views.shape[-1])
+    return {"visited": spaces.Box(0.0, 1.0, (big_c,), jnp.float32), "position": spaces.Box(0.0, 1.0, (3,), jnp.float32)}

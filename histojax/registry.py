@@ -30,7 +30,7 @@ _SLIDES: dict[str, object] = {}  # env id → default slide: a bundle path, or a
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
                  "augment",
                  "final_observation")
-MODE_SETTINGS = ("read_budget",)  # passed to the action mode's prepare (histojax.modes)
+MODE_SETTINGS = ("read_budget", "track_reading")  # passed to the action mode's prepare (histojax.modes)
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name not in ("slide", "mode_data"))
 
 
@@ -69,8 +69,10 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     (``action_mode``, ``obs_mode``, ``with_position``, ``reward``, ``auto_reset``, ``augment``; ``tile_size``
     only for the sample slide, where it selects another cached bundle) or ``EnvParams`` field
     (``max_steps_in_episode``, ``stride``, ``success_threshold``, ``step_cost``,
-    ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``), or ``read_budget``
-    (fraction of finest-level tissue views, for ``action_mode="glimpse"`` / ``"zoom_select"``).
+    ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``), or the reading
+    settings of :mod:`histojax.reading`: ``read_budget`` (fraction of finest-level tissue views, for
+    ``action_mode="glimpse"`` / ``"zoom_select"``, or with tracking) and ``track_reading=True`` (the
+    pan/zoom modes then report ``fraction_read`` and ``fields_of_view`` in ``info``).
     The slide's arrays are put on the device once and returned inside ``params``; a slide
     needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error.
     ``verify`` checks every array's SHA-256 against the bundle metadata.

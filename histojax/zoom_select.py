@@ -27,28 +27,10 @@ import dataclasses
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
 from histojax import actions, reading, spaces
 from histojax.modes import ActionMode, Move, _declared_score
-
-
-@struct.dataclass
-class ZoomTables:
-    """Per-slide tables of ``S`` slides (in ``EnvParams.mode_data``); views on stride-``T`` grids."""
-
-    grid_offset: jnp.ndarray   # (S, n) int32 first index of level z's grid in the flat ``seen`` array
-    grid_width: jnp.ndarray    # (S, n) int32 columns of each level's grid
-    grid_height: jnp.ndarray   # (S, n) int32 rows of each level's grid
-    tissue: jnp.ndarray        # (S, Vf) bool: finest-level view v is a tissue view (flat, padded False)
-    coarse_cell: jnp.ndarray   # (S, Vf) int32 coarsest-level grid cell over finest view v (padded Gc: dropped)
-    coarse_views: jnp.ndarray  # (S, Gc) float32 tissue views under each coarse cell (≥ 1 to divide by)
-    total_views: jnp.ndarray   # (S,) int32 finest-level tissue views of the slide (≥ 1)
-    inv_total: jnp.ndarray     # (S,) float32 1 / total_views
-    inv_coarse: jnp.ndarray    # (S, Gc) float32 1 / coarse_views
-    read_budget: jnp.ndarray   # () float32 fraction of total_views after which the episode is truncated
-    seen_zero: jnp.ndarray     # (V,) bool all False: a fresh ``seen`` (V = the largest sum of grid sizes)
 
 
 @struct.dataclass
@@ -80,48 +62,14 @@ class ZoomSelect(ActionMode):
     def space(self, env, params):
         return spaces.Discrete(self.num_actions(env))
 
-    def prepare(self, env, params, bundles, read_budget: float = 1.0) -> ZoomTables:
-        if not 0.0 < read_budget <= 1.0:
-            raise ValueError(f"read_budget must be in (0, 1], got {read_budget}")
-        t = env.tile_size
-        rows = {k: [] for k in ("offset", "width", "height", "tissue", "coarse", "total")}
-        geoms = []
-        for slide, bundle in reading.per_slide(params, bundles):
-            _, width, height = reading.level_geometry(slide)
-            grids = [reading.grid(int(w), int(h), t, t) for w, h in zip(width, height)]
-            geoms.append((slide, bundle, grids))
-        big_c = max(g[2][0][0] * g[2][0][1] for g in geoms)
-        coarse_views = []
-        for slide, bundle, grids in geoms:
-            sizes = [h * w for h, w in grids]
-            rows["offset"].append(np.cumsum([0] + sizes[:-1]).astype(np.int32))
-            rows["width"].append(np.asarray([w for _, w in grids], np.int32))
-            rows["height"].append(np.asarray([h for h, _ in grids], np.int32))
-            tissue = reading.tissue_views(bundle, slide, t).reshape(-1)
-            coarse = reading.cell_of_views(slide, t, 0, t, grids[0]).reshape(-1)
-            gh0, gw0 = grids[0]
-            counts = np.bincount(coarse[tissue], minlength=gh0 * gw0).astype(np.float32)
-            coarse_views.append(np.pad(np.maximum(counts, 1.0), (0, big_c - counts.shape[0]), constant_values=1.0))
-            rows["tissue"].append(tissue)
-            rows["coarse"].append(coarse.astype(np.int32))
-            rows["total"].append(max(1, int(tissue.sum())))
-        return ZoomTables(
-            grid_offset=jnp.asarray(np.stack(rows["offset"])), grid_width=jnp.asarray(np.stack(rows["width"])),
-            grid_height=jnp.asarray(np.stack(rows["height"])),
-            tissue=jnp.asarray(reading.pad_stack(rows["tissue"], False)),
-            coarse_cell=jnp.asarray(reading.pad_stack(rows["coarse"], big_c)),
-            coarse_views=jnp.asarray(np.stack(coarse_views)), total_views=jnp.asarray(rows["total"], jnp.int32),
-            inv_total=jnp.asarray(1.0 / np.asarray(rows["total"], np.float64), jnp.float32),
-            inv_coarse=jnp.asarray(1.0 / np.stack(coarse_views).astype(np.float64), jnp.float32),
-            read_budget=jnp.float32(read_budget),
-            seen_zero=jnp.zeros((max(int(o[-1]) + int(w[-1]) * int(h[-1]) for o, w, h in
-                                     zip(rows["offset"], rows["width"], rows["height"])),), bool))
+    def prepare(self, env, params, bundles, read_budget: float = 1.0) -> reading.SeenTables:
+        return reading.seen_tables(env, params, bundles, read_budget)
 
     def init_memory(self, env, state, params) -> ZoomMemory:
         zero = jnp.zeros((), jnp.int32)
         path = jnp.zeros((env.n_levels,), jnp.int32)
         memory = ZoomMemory(seen=params.mode_data.seen_zero, views_read=zero, fields=zero, path_x=path, path_y=path)
-        return _see(params.mode_data, memory, state.slide_index, state.z, state.x, state.y, env)
+        return reading.see(params.mode_data, memory, state.slide_index, state.z, state.x, state.y, env)
 
     def apply(self, env, state, action, params) -> Move:
         slide = params.slide.select(state.slide_index)
@@ -150,56 +98,17 @@ class ZoomSelect(ActionMode):
         diagnosis = jnp.where(a == d + 1, 1, jnp.where(a == d, 0, -1)).astype(jnp.int32)
         if env.task != "classification":
             diagnosis = jnp.full((), -1, jnp.int32)
-        memory = _see(params.mode_data, mem, state.slide_index, z, x, y, env)
+        memory = reading.see(params.mode_data, mem, state.slide_index, z, x, y, env)
         return Move(z, x, y, diagnosis, _declared_score(diagnosis), memory)
 
     def budget_spent(self, env, state, params) -> jax.Array:
-        tables = params.mode_data
-        fraction = state.memory.views_read.astype(jnp.float32) * tables.inv_total[state.slide_index]
-        return (tables.read_budget < 1.0) & (fraction >= tables.read_budget)
+        return reading.budget_spent(params.mode_data, state.memory, state.slide_index)
 
     def memory_obs(self, env, state, params) -> dict:
-        tables, i = params.mode_data, state.slide_index
-        f = env.n_levels - 1
-        start = tables.grid_offset[i, f]
-        n_f = tables.tissue.shape[-1]
-        seen_f = jax.lax.dynamic_slice(jnp.pad(state.memory.seen, (0, n_f)), (start,), (n_f,))
-        read = (seen_f & tables.tissue[i]).astype(jnp.float32)
-        big_c = tables.coarse_views.shape[-1]
-        per_cell = jax.ops.segment_sum(read, tables.coarse_cell[i], num_segments=big_c + 1)[:big_c]
-        return {"visited": per_cell * tables.inv_coarse[i], "position": _position(env, state, params)}
+        return reading.visited_obs(env, state, params)
 
     def memory_space(self, env, params) -> dict:
-        big_c = int(params.mode_data.coarse_views.shape[-1])
-        return {"visited": spaces.Box(0.0, 1.0, (big_c,), jnp.float32),
-                "position": spaces.Box(0.0, 1.0, (3,), jnp.float32)}
+        return reading.visited_space(params)
 
     def reading_info(self, env, state, params) -> dict:
-        fraction = state.memory.views_read.astype(jnp.float32) * params.mode_data.inv_total[state.slide_index]
-        return {"fraction_read": fraction, "fields_of_view": state.memory.fields}
-
-
-def _grid_index(tables: ZoomTables, i, z, x, y, tile_size: int):
-    """Flat index in ``seen`` of the stride-``T`` grid view nearest ``(z, x, y)``, and its
-    position ``(gy, gx)`` in level ``z``'s grid."""
-    gw, gh = tables.grid_width[i, z], tables.grid_height[i, z]
-    gx = jnp.clip((x + tile_size // 2) // tile_size, 0, gw - 1)
-    gy = jnp.clip((y + tile_size // 2) // tile_size, 0, gh - 1)
-    return tables.grid_offset[i, z] + gy * gw + gx, gy * gw + gx
-
-
-def _see(tables: ZoomTables, memory: ZoomMemory, i, z, x, y, env) -> ZoomMemory:
-    """``memory`` after looking at ``(z, x, y)``: marks the view, counts it once."""
-    index, local = _grid_index(tables, i, z, x, y, env.tile_size)
-    new = ~memory.seen[index]
-    finest = z == env.n_levels - 1
-    tissue = tables.tissue[i, jnp.clip(local, 0, tables.tissue.shape[-1] - 1)]
-    return memory.replace(seen=memory.seen.at[index].set(True),
-                          views_read=memory.views_read + (new & finest & tissue).astype(jnp.int32),
-                          fields=memory.fields + new.astype(jnp.int32))
-
-
-def _position(env, state, params):
-    """``(x_centre / W_z, y_centre / H_z, z / (n_levels - 1))`` float32 (as ``with_position``)."""
-    slide = params.slide.select(state.slide_index)
-    return env._position(state, slide)
+        return reading.reading_info(params.mode_data, state.memory, state.slide_index)

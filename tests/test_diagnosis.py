@@ -246,3 +246,76 @@ def test_auc_matches_a_hand_computation():
     # a tie counts one half: 0.5 vs 0.5 → (1 + 0.5) / 2
     assert roc_auc([0.5, 0.2, 0.5, 0.9], [0, 0, 1, 1]) == pytest.approx((2 + 1.5) / 4)
     assert np.isnan(roc_auc([0.1, 0.2], [1, 1]))  # one class only: undefined
+
+
+def test_navigation_tracks_reading_without_changing_trajectories(bundle):
+    plain, p0 = histojax.make("HistoJAX-Easy-v0", slide=bundle, auto_reset=False)
+    tracked, p1 = histojax.make("HistoJAX-Easy-v0", slide=bundle, auto_reset=False, track_reading=True)
+    actions = jax.random.randint(jax.random.key(4), (STEPS - 1,), 0, 7)
+    s0, i0, o0 = jax.jit(_rollout(plain))(jax.random.key(8), actions, p0)
+    s1, i1, o1 = jax.jit(_rollout(tracked))(jax.random.key(8), actions, p1)
+    for f in ("z", "x", "y", "t"):
+        np.testing.assert_array_equal(np.asarray(getattr(s0, f)), np.asarray(getattr(s1, f)))
+    np.testing.assert_array_equal(np.asarray(o0), np.asarray(o1))
+    assert s0.memory is None and "fraction_read" not in i0
+    fraction = np.asarray(i1["fraction_read"])
+    assert np.all(np.diff(fraction) >= 0) and np.all(fraction <= 1)
+    # finest-level tissue views read = distinct finest views visited that hold tissue
+    total = int(p1.mode_data.total_views[0])
+    tissue = np.asarray(p1.mode_data.tissue[0])
+    finest = np.asarray(s1.z) == 2
+    views = {(int(y) + TILE // 2) // TILE * 32 + (int(x) + TILE // 2) // TILE
+             for x, y in zip(np.asarray(s1.x)[finest], np.asarray(s1.y)[finest])}
+    assert round(fraction[-1] * total) == sum(bool(tissue[v]) for v in views)
+
+
+def test_navigation_memory_observation(bundle):
+    from histojax.modes import Discrete
+
+    env, params = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode=Discrete(memory=True))
+    obs, _ = env.reset(jax.random.key(0), params)
+    assert set(obs) == {"pixels", "visited", "position"}
+    assert env.observation_space(params).contains(obs)
+    assert observation_bytes(env, params) == sum(np.asarray(v).nbytes for v in obs.values())
+
+
+def test_offline_reader_reads_as_the_env(glimpse):
+    from baselines.budget_curve import read_cells
+
+    env, params = glimpse
+    table = env.action.host_tables(env, params, env._bundles)[0]
+    order = np.random.default_rng(0).permutation(np.flatnonzero(table["valid"]))
+    for budget in (0.1, 0.3):
+        cells, fraction = read_cells(table, order, budget)
+        p = with_budget(params, budget)
+        _, state = env.reset(jax.random.key(0), p)
+        step = jax.jit(env.step)
+        for c in order:
+            _, state, _, _, truncated, info = step(jax.random.key(1), state, int(c), p)
+            if bool(truncated):
+                break
+        assert float(info["fraction_read"]) == pytest.approx(fraction)
+        assert sorted(np.flatnonzero(np.asarray(state.memory.revealed))) == sorted(cells.tolist())
+
+
+def test_budget_rows_csv_and_png(tmp_path):
+    from baselines.budget_curve import budget_rows, plot, write_csv
+
+    rng = np.random.default_rng(0)
+
+    def slide(label):
+        cell = np.repeat(np.arange(8), 4)
+        x = rng.normal(size=(32, 3)).astype(np.float32)
+        if label:
+            x[cell == 5] += 3.0  # one cell of "tumour"
+        low = np.stack([x[cell == c].mean(0) for c in range(8)])
+        return {"instances": x, "instance_cell": cell, "cells": low, "valid": np.ones(8, bool),
+                "cell_views": np.full(8, 4), "total": 32}
+
+    labels = np.array([0, 1] * 6)
+    tables = [slide(y) for y in labels]
+    rows = budget_rows((tables[:8], labels[:8]), (tables[8:], labels[8:]), budgets=(0.25, 0.5), seeds=2, steps=30)
+    assert {r["method"] for r in rows} == {"MIL, read everything", "random reader + MIL", "attention reader + MIL"}
+    assert all(r["fraction_read"] <= r["budget"] + 1e-9 and 0 <= r["auc"] <= 1 for r in rows)
+    assert write_csv(rows, tmp_path / "c.csv").read_text().count("\n") == len(rows) + 1
+    assert plot(rows, tmp_path / "c.png").stat().st_size > 1000

@@ -1,0 +1,200 @@
+"""AUC and accuracy against the fraction of the slide read: ``python -m baselines.budget_curve``.
+
+Methods, all scored on the test slides of a dataset with the same gated-attention MIL head
+(:mod:`baselines.mil`), trained once on the *training* slides' finest-level tissue views:
+
+* ``MIL, read everything`` — the head on every finest-level tissue view (the ceiling; fraction 1);
+* ``random reader + MIL`` — glimpse cells picked uniformly at random (``--seeds`` orders);
+* ``attention reader + MIL`` — cells picked by the MIL attention on their *low-resolution* features,
+  highest first (what the agent could know before reading);
+* ``PPO glimpse`` (``--ppo-checkpoint DIR``) — a trained glimpse policy's reading, with the same head.
+
+A reader reads cells of ``action_mode=Glimpse(level)`` exactly as the env does (:func:`read_cells`
+follows :meth:`histojax.glimpse.Glimpse.apply`: a cell is read when it still fits in the budget;
+the first pick that does not fit ends the episode), at budgets of ``--budgets`` (fractions of the
+slide's finest-level tissue views). Writes ``budget_curve.csv`` (one row per method × budget:
+mean fraction actually read, AUC, accuracy at 0.5, slides) and ``budget_curve.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from baselines.metrics import accuracy, roc_auc
+from baselines.mil import MILClassifier, train_mil
+
+BUDGETS = (0.05, 0.1, 0.2, 0.5)
+
+
+def load_split(dataset, split: str, env_id: str, level: int, verify: bool = False):
+    """``(tables, labels)`` of a dataset split: :meth:`Glimpse.host_tables` per slide and 0/1 labels."""
+    import histojax
+    from histojax.glimpse import Glimpse
+
+    env, params = histojax.make(env_id, dataset=dataset, split=split, obs_mode="features",
+                                action_mode=Glimpse(level=level), task="classification", verify=verify)
+    tables = env.action.host_tables(env, params, env._bundles)
+    labels = np.atleast_1d(np.asarray(params.slide.slide_label)).astype(int)
+    return tables, labels
+
+
+def bags(tables: list[dict], read: list[np.ndarray] | None = None):
+    """Padded MIL inputs ``(B, N, D)``, ``(B, N)`` of the slides' instances (only those under the
+    ``read[i]`` cells when given; a slide with nothing read gets one all-zero instance)."""
+    chosen = []
+    for i, t in enumerate(tables):
+        keep = np.ones(len(t["instances"]), bool) if read is None else np.isin(t["instance_cell"], read[i])
+        chosen.append(t["instances"][keep])
+    n = max(1, max(len(c) for c in chosen))
+    d = tables[0]["instances"].shape[1]
+    x = np.zeros((len(chosen), n, d), np.float32)
+    m = np.zeros((len(chosen), n), bool)
+    for i, c in enumerate(chosen):
+        x[i, : len(c)] = c
+        m[i, : max(len(c), 1)] = True
+    return x, m
+
+
+def read_cells(table: dict, order, budget: float) -> tuple[np.ndarray, float]:
+    """Cells read when picking ``order`` (cell indices) under ``budget``, as the glimpse env reads:
+    an unread valid cell is read if ``read + its views <= floor(budget · total)``; the first one that
+    does not fit ends the reading. Returns ``(cells read, fraction of tissue views read)``."""
+    limit = int(np.floor(budget * table["total"] + 1e-4))
+    done, read = [], 0
+    for c in order:
+        c = int(c)
+        if not table["valid"][c] or c in done:
+            continue
+        n = int(table["cell_views"][c])
+        if read + n > limit:
+            break
+        done.append(c)
+        read += n
+        if read >= limit:
+            break
+    return np.asarray(done, np.int64), read / table["total"]
+
+
+def random_order(table: dict, rng) -> np.ndarray:
+    """The valid cells in a uniformly random order."""
+    return rng.permutation(np.flatnonzero(table["valid"]))
+
+
+def attention_order(table: dict, head: MILClassifier) -> np.ndarray:
+    """The valid cells by the head's attention on their low-resolution features, highest first."""
+    cells = np.flatnonzero(table["valid"])
+    att = head.attention(table["cells"][cells])
+    return cells[np.argsort(-att, kind="stable")]
+
+
+def evaluate_reader(tables, labels, head: MILClassifier, orders, budget: float) -> dict:
+    """AUC / accuracy of the head on what the reader (one cell order per slide) reads at ``budget``."""
+    reads = [read_cells(t, o, budget) for t, o in zip(tables, orders)]
+    x, m = bags(tables, [r[0] for r in reads])
+    scores = head.scores(x, m)
+    return {"fraction_read": float(np.mean([r[1] for r in reads])), "auc": roc_auc(scores, labels),
+            "accuracy": accuracy(scores, labels), "slides": len(labels)}
+
+
+def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400) -> list[dict]:
+    """Train the head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``."""
+    head = train_mil(*bags(train[0]), train[1], steps=steps)
+    tables, labels = test
+    x, m = bags(tables)
+    full = head.scores(x, m)
+    rows = [{"method": "MIL, read everything", "budget": 1.0, "fraction_read": 1.0, "auc": roc_auc(full, labels),
+             "accuracy": accuracy(full, labels), "slides": len(labels)}]
+    for b in budgets:
+        per_seed = [evaluate_reader(tables, labels, head, [random_order(t, np.random.default_rng(s * 1000 + i))
+                                                           for i, t in enumerate(tables)], b) for s in range(seeds)]
+        rows.append({"method": "random reader + MIL", "budget": b,
+                     **{k: float(np.mean([r[k] for r in per_seed])) for k in ("fraction_read", "auc", "accuracy")},
+                     "slides": len(labels)})
+        rows.append({"method": "attention reader + MIL", "budget": b,
+                     **evaluate_reader(tables, labels, head, [attention_order(t, head) for t in tables], b)})
+    return rows
+
+
+def write_csv(rows: list[dict], path) -> Path:
+    """One line per method × budget."""
+    path = Path(path)
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["method", "budget", "fraction_read", "auc", "accuracy", "slides"])
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()})
+    return path
+
+
+def plot(rows: list[dict], path, title: str = "") -> Path:
+    """AUC and accuracy against the fraction read (log axis), one line per method (the read-everything
+    ceiling as a dashed line)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8.0, 5.6), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, 1, sharex=True)
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    colours = ["#1f4e9c", "#c0392b", "#27ae60", "#8e44ad", "#d35400"]
+    for ax, metric in zip(axes, ("auc", "accuracy")):
+        for k, name in enumerate(methods):
+            pts = sorted((r["fraction_read"], r[metric]) for r in rows if r["method"] == name)
+            if len(pts) == 1 and pts[0][0] >= 0.999:
+                ax.axhline(pts[0][1], color="#555555", linestyle="--", linewidth=1.3, label=f"{name} ({pts[0][1]:.3f})")
+                continue
+            xs, ys = zip(*pts)
+            ax.plot(xs, ys, "o-", color=colours[k % len(colours)], linewidth=1.8, markersize=4, label=name)
+        ax.set_xscale("log")
+        ax.set_ylabel(metric.upper() if metric == "auc" else metric)
+        ax.set_ylim(0.0, 1.02)
+        ax.grid(True, color="#dddddd", linewidth=0.6)
+        ax.legend(loc="lower right", fontsize="small", framealpha=0.85)
+    axes[-1].set_xlabel("fraction of finest-level tissue views read")
+    axes[-1].set_xticks([0.05, 0.1, 0.2, 0.5, 1.0], ["5 %", "10 %", "20 %", "50 %", "100 %"])
+    if title:
+        fig.suptitle(title, fontsize="medium")
+    path = Path(path)
+    fig.savefig(path)
+    return path
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m baselines.budget_curve", description=__doc__.split("\n")[0])
+    p.add_argument("--dataset", required=True, help="dataset folder with dataset.json (train / test split) whose "
+                                                   "bundles have feature grids")
+    p.add_argument("--env", default="HistoJAX-Medium-v0", help="scenario id (its levels; default HistoJAX-Medium-v0)")
+    p.add_argument("--glimpse-level", type=int, default=3,
+                   help="scenario level of the glimpse cells (default 3: one above the finest of the 5 levels of "
+                        "HistoJAX-Medium-v0)")
+    p.add_argument("--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)")
+    p.add_argument("--seeds", type=int, default=5, help="random reader orders per slide (default 5)")
+    p.add_argument("--steps", type=int, default=400, help="MIL training steps (default 400)")
+    p.add_argument("--out", default="runs/budget_curve", help="output folder (default runs/budget_curve)")
+    return p
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    level = args.glimpse_level
+    train = load_split(args.dataset, "train", args.env, level)
+    test = load_split(args.dataset, "test", args.env, level)
+    rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path = write_csv(rows, out / "budget_curve.csv")
+    title = (f"{Path(args.dataset).name}: {len(train[1])} train / {len(test[1])} test slides, "
+             f"glimpse level {level} of {args.env}")
+    png = plot(rows, out / "budget_curve.png", title)
+    print(f"{'method':28s} {'budget':>6s} {'read':>6s} {'AUC':>6s} {'acc':>6s}")
+    for r in rows:
+        print(f"{r['method']:28s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {r['auc']:6.3f} {r['accuracy']:6.3f}")
+    print(f"wrote {csv_path} and {png}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

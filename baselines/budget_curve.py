@@ -162,6 +162,18 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
     return path
 
 
+def compute_missing_features(dataset, encoder: str) -> None:
+    """Compute the feature grid (``encoder``, float32) of every bundle in ``dataset`` that has none."""
+    from data_tools.bundle import read_metadata
+    from data_tools.features.grid import compute_features
+    from histojax.registry import dataset_slides
+
+    for bundle in dataset_slides(dataset, "all"):
+        if not read_metadata(bundle).get("features"):
+            compute_features(bundle, encoder_name=encoder, image_size=None, dtype="float32", progress=False)
+            print(f"computed the {encoder} feature grid of {bundle}")
+
+
 def parser() -> argparse.ArgumentParser:
     p = argparse.ArgumentParser(prog="python -m baselines.budget_curve", description=__doc__.split("\n")[0])
     p.add_argument("--dataset", required=True, help="dataset folder with dataset.json (train / test split) whose "
@@ -173,6 +185,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)")
     p.add_argument("--seeds", type=int, default=5, help="random reader orders per slide (default 5)")
     p.add_argument("--steps", type=int, default=400, help="MIL training steps (default 400)")
+    p.add_argument("--compute-features", metavar="ENCODER", default=None,
+                   help="first compute the feature grid of every bundle of the dataset that has none with this "
+                        "encoder (e.g. colour-stats; see `python -m data_tools features --help`)")
     p.add_argument("--out", default="runs/budget_curve", help="output folder (default runs/budget_curve)")
     return p
 
@@ -180,6 +195,8 @@ def parser() -> argparse.ArgumentParser:
 def main(argv=None) -> int:
     args = parser().parse_args(argv)
     level = args.glimpse_level
+    if args.compute_features:
+        compute_missing_features(args.dataset, args.compute_features)
     train = load_split(args.dataset, "train", args.env, level)
     test = load_split(args.dataset, "test", args.env, level)
     rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps)

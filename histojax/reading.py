@@ -10,8 +10,9 @@ every view). "Fraction read" is always read tissue views / all tissue views of t
 **Seen views** (:class:`SeenTables`, :class:`SeenMemory`): navigating modes (``zoom_select``, and
 ``discrete`` / ``continuous`` with ``make(..., track_reading=True)`` or ``memory=True``) mark the
 view nearest each position on a stride-``T`` grid of its level; a finest-level tissue view seen counts
-as read. The observation's ``visited (Gc,)`` is the fraction of the finest tissue views read under
-each view of the coarsest level's grid (the "coarse visited map").
+as read. The observation's ``visited (16, 16)`` is the "coarse visited map": the slide cut into
+16 × 16 equal blocks of finest-level views (block ``(fy·16 // gh, fx·16 // gw)``), each holding
+the fraction of its tissue views read (0 where it has none).
 
 A **cell grid** at level ``g`` with step ``s`` px puts each finest view under exactly one cell, the
 one holding the view's centre (``gx = clip(floor(cx_g / s), 0, gw_g − 1)``, ``cx_g`` the centre in px
@@ -25,6 +26,8 @@ import numpy as np
 from flax import struct
 
 from histojax.slide import MIN_START_TISSUE, summed_area_table
+
+VISITED_MAP = 16  # the coarse visited map is VISITED_MAP × VISITED_MAP blocks of the slide
 
 
 def grid(width: int, height: int, step: int, tile_size: int) -> tuple[int, int]:
@@ -118,8 +121,8 @@ class SeenTables:
     grid_width: jnp.ndarray    # (S, n) int32 columns of each level's grid
     grid_height: jnp.ndarray   # (S, n) int32 rows of each level's grid
     tissue: jnp.ndarray        # (S, Vf) bool: finest-level view v is a tissue view (flat, padded False)
-    coarse_cell: jnp.ndarray   # (S, Vf) int32 coarsest-level grid cell over finest view v (padded Gc: dropped)
-    coarse_views: jnp.ndarray  # (S, Gc) float32 tissue views under each coarse cell (≥ 1 to divide by)
+    coarse_cell: jnp.ndarray   # (S, Vf) int32 visited-map block of finest view v (padding: Gc, dropped)
+    coarse_views: jnp.ndarray  # (S, Gc) float32 tissue views in each block (≥ 1 to divide by), Gc = 16·16
     total_views: jnp.ndarray   # (S,) int32 finest-level tissue views of the slide (≥ 1)
     inv_total: jnp.ndarray     # (S,) float32 1 / total_views
     inv_coarse: jnp.ndarray    # (S, Gc) float32 1 / coarse_views
@@ -148,7 +151,7 @@ def seen_tables(env, params, bundles, read_budget: float = 1.0) -> SeenTables:
         _, width, height = level_geometry(slide)
         grids = [grid(int(w), int(h), t, t) for w, h in zip(width, height)]
         geoms.append((slide, bundle, grids))
-    big_c = max(g[2][0][0] * g[2][0][1] for g in geoms)
+    big_c = VISITED_MAP * VISITED_MAP
     coarse_views = []
     for slide, bundle, grids in geoms:
         sizes = [h * w for h, w in grids]
@@ -156,10 +159,11 @@ def seen_tables(env, params, bundles, read_budget: float = 1.0) -> SeenTables:
         rows["width"].append(np.asarray([w for _, w in grids], np.int32))
         rows["height"].append(np.asarray([h for h, _ in grids], np.int32))
         tissue = tissue_views(bundle, slide, t).reshape(-1)
-        coarse = cell_of_views(slide, t, 0, t, grids[0]).reshape(-1)
-        gh0, gw0 = grids[0]
-        counts = np.bincount(coarse[tissue], minlength=gh0 * gw0).astype(np.float32)
-        coarse_views.append(np.pad(np.maximum(counts, 1.0), (0, big_c - counts.shape[0]), constant_values=1.0))
+        gh, gw = grids[-1]
+        fy, fx = np.divmod(np.arange(gh * gw), gw)
+        coarse = (fy * VISITED_MAP // gh) * VISITED_MAP + fx * VISITED_MAP // gw
+        counts = np.bincount(coarse[tissue], minlength=big_c).astype(np.float32)
+        coarse_views.append(np.maximum(counts, 1.0))
         rows["tissue"].append(tissue)
         rows["coarse"].append(coarse.astype(np.int32))
         rows["total"].append(max(1, int(tissue.sum())))
@@ -216,7 +220,7 @@ def reading_info(tables, memory, i) -> dict:
 
 
 def visited_obs(env, state, params) -> dict:
-    """``visited (Gc,)`` float32 (the coarse visited map, see the module doc) and ``position (3,)``."""
+    """``visited (16, 16)`` float32 (the coarse visited map, see the module doc) and ``position (3,)``."""
     tables, i = params.mode_data, state.slide_index
     f = env.n_levels - 1
     start = tables.grid_offset[i, f]
@@ -225,7 +229,7 @@ def visited_obs(env, state, params) -> dict:
     read = (seen_f & tables.tissue[i]).astype(jnp.float32)
     big_c = tables.coarse_views.shape[-1]
     per_cell = jax.ops.segment_sum(read, tables.coarse_cell[i], num_segments=big_c + 1)[:big_c]
-    return {"visited": per_cell * tables.inv_coarse[i],
+    return {"visited": (per_cell * tables.inv_coarse[i]).reshape(VISITED_MAP, VISITED_MAP),
             "position": env._position(state, params.slide.select(i))}
 
 
@@ -233,5 +237,17 @@ def visited_space(params) -> dict:
     """Spaces of :func:`visited_obs`."""
     from histojax import spaces
 
-    big_c = int(params.mode_data.coarse_views.shape[-1])
-    return {"visited": spaces.Box(0.0, 1.0, (big_c,), jnp.float32), "position": spaces.Box(0.0, 1.0, (3,), jnp.float32)}
+    return {"visited": spaces.Box(0.0, 1.0, (VISITED_MAP, VISITED_MAP), jnp.float32),
+            "position": spaces.Box(0.0, 1.0, (3,), jnp.float32)}
+
+
+def with_tracking(env, params):
+    """``(env, params)`` whose episodes report ``fraction_read`` and ``fields_of_view`` in ``info``
+    (unchanged when they already do; trajectories stay the same): the pan/zoom modes get their
+    :class:`SeenTables` as ``make(..., track_reading=True)`` would give them."""
+    import dataclasses
+
+    if params.mode_data is not None:
+        return env, params
+    params = params.replace(mode_data=env.action.prepare(env, params, env._bundles, track_reading=True))
+    return dataclasses.replace(env, _default_params=params), params

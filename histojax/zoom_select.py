@@ -11,10 +11,10 @@ finest level a child action stays. ``k`` is set with ``action_mode=ZoomSelect(k=
 
 **Memory** (``EnvState.memory``): which views of a stride-``T`` grid of every level were seen
 (``seen``; the finest level's part says which finest-level views were read) and the counts.
-**Observation**: the observation mode's entry, plus ``visited (Gc,)`` float32, the fraction of the
-finest tissue views read under each view of the coarsest level's grid (padded to the dataset's
-largest, ``Gc = Hc·Wc``), and ``position (3,)`` as ``with_position`` gives it. Bytes per
-observation: ``4·(Gc + 3)`` plus the view.
+**Observation**: the observation mode's entry, plus ``visited (16, 16)`` float32, the coarse
+visited map of :mod:`histojax.reading` (the fraction of the finest tissue views read in each of
+16 × 16 blocks of the slide), and ``position (3,)`` as ``with_position`` gives it. Bytes per
+observation: ``4·(256 + 3) = 1036`` plus the view.
 
 **Reading budget** ``read_budget`` (fraction of finest-level tissue views; ``make(...,
 read_budget=…)``): the episode is truncated as soon as the read views reach it (the last child

@@ -31,7 +31,7 @@ test-integrations: integrations
 	$(PY) -m pytest -q -rs tests/test_sb3.py tests/test_rejax.py tests/test_gymnax.py tests/test_gymnasium.py
 
 fuzz: $(STAMP)
-	HISTOJAX_FUZZ_EXAMPLES=3400 $(PY) -m pytest -q -s tests/test_fuzz.py
+	HISTOJAX_FUZZ_EXAMPLES=10000 $(PY) -m pytest -q -s tests/test_fuzz.py
 
 bench: $(STAMP)
 	$(PY) benchmarks/throughput.py

@@ -4,6 +4,7 @@ sharding the env batch over devices (``--devices N``)."""
 from __future__ import annotations
 
 import csv
+import functools
 import json
 import time
 from pathlib import Path
@@ -33,30 +34,51 @@ def env_overrides(config: dict) -> dict:
     return kw
 
 
-def make_env(config: dict, auto_reset: bool = True):
-    """``(env, params)`` for ``config["env_id"]`` on ``config["slide"]`` (None = sample slide)."""
+def make_env(config: dict, auto_reset: bool = True, mesh: Mesh | None = None):
+    """``(env, params)`` for ``config["env_id"]`` on ``config["slide"]`` (None = sample slide).
+    With ``config["shard_slides"]`` and a ``mesh``, the slides are split over its devices
+    (:func:`histojax.sharding.make_sharded`); without a mesh they all load on one device."""
+    if config.get("shard_slides") and mesh is not None:
+        from histojax.sharding import make_sharded
+
+        return make_sharded(config["env_id"], mesh, slide=config.get("slide"), auto_reset=auto_reset,
+                            **env_overrides(config))
     return histojax.make(config["env_id"], slide=config.get("slide"), auto_reset=auto_reset,
                          **env_overrides(config))
 
 
-def reset_envs(env, key, env_params, num_envs: int):
+def env_vmap(fn, num_args: int, mesh: Mesh | None = None, sharded_slides: bool = False):
+    """``fn(*per_env_args, env_params)`` (an env's ``reset`` with 1 arg, ``step`` with 3) over a
+    batch of envs: ``jax.vmap`` with the params shared, or, for slides sharded over ``mesh``,
+    each device's block of envs on its own slides (:func:`histojax.sharding.vmap_local`)."""
+    if sharded_slides:
+        from histojax.sharding import vmap_local
+
+        return vmap_local(fn, mesh, num_args)
+    return jax.vmap(fn, in_axes=(0,) * num_args + (None,))
+
+
+def reset_envs(env, key, env_params, num_envs: int, reset_all=None):
     """The trainers' first step: ``key`` → ``(key, k_init, obs, env_state)`` with ``num_envs``
-    vmapped resets and the observations pooled for the network (:func:`networks.preprocess_obs`).
+    vmapped resets (``reset_all``, default ``jax.vmap(env.reset)``, see :func:`env_vmap`) and the
+    observations pooled for the network (:func:`networks.preprocess_obs`).
     ``k_init`` is the key the network's parameters are made from, so :func:`params_initialiser`
     and the trainer see the same first observations."""
     from baselines.networks import preprocess_obs
 
+    reset_all = reset_all or env_vmap(env.reset, 1)
     key, k_init, k_reset = jax.random.split(key, 3)
-    obs, env_state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, num_envs), env_params)
+    obs, env_state = reset_all(jax.random.split(k_reset, num_envs), env_params)
     return key, k_init, preprocess_obs(obs), env_state
 
 
-def params_initialiser(env, network, num_envs: int):
+def params_initialiser(env, network, num_envs: int, reset_all=None, inputs=None):
     """``init_params(key, env_params)``: the network's parameters for a trainer's key, made on the
-    first observations of :func:`reset_envs`."""
+    first observations of :func:`reset_envs` (``network.init(key, *inputs(obs))``; by default the
+    observations alone)."""
     def init_params(key, env_params):
-        _, k_init, obs, _ = reset_envs(env, key, env_params, num_envs)
-        return network.init(k_init, obs)
+        _, k_init, obs, _ = reset_envs(env, key, env_params, num_envs, reset_all)
+        return network.init(k_init, *(inputs(obs) if inputs is not None else (obs,)))
     return init_params
 
 
@@ -189,11 +211,22 @@ def smooth(a: np.ndarray, k: int) -> np.ndarray:
     return out
 
 
-def random_agent_reference(config: dict, num_envs: int = 256, num_steps: int = 400, seed: int = 0) -> dict:
-    """Episode statistics of the uniform random agent on the same env (for the curves)."""
+def random_agent_reference(config: dict, num_envs: int = 256, num_steps: int = 400, seed: int = 0,
+                           env_and_params=None) -> dict:
+    """Episode statistics of the uniform random agent on the same env (for the curves): the
+    trainer's ``env_and_params`` when given (for slides sharded over devices, those of this
+    process's first device), else the env made from ``config``."""
     from histojax.demo import make_random_rollout
 
-    env, params = make_env(config)
+    if env_and_params is None:
+        env, params = make_env(config)
+    else:
+        env, params = env_and_params
+        env = getattr(env, "_env", env)  # the bare env under a LogWrapper
+        if config.get("shard_slides"):
+            from histojax.sharding import first_local_group
+
+            params = params.replace(slide=first_local_group(params.slide))
     info, _ = jax.device_get(make_random_rollout(env, num_envs, num_steps)(jax.random.PRNGKey(seed), params))
     info = {**info, "returned_episode_lengths": np.zeros_like(info["returned_episode_returns"])}
     stats = jax.device_get(episode_stats(info))
@@ -230,6 +263,21 @@ def shard_batch(mesh: Mesh | None, tree, axis: int = 0):
     return jax.tree.map(lambda x: jax.lax.with_sharding_constraint(x, sharding), tree)
 
 
+def replicate_on(mesh: Mesh, tree):
+    """Every leaf of ``tree`` replicated on ``mesh``'s devices, except jax arrays already split
+    over exactly those devices (a sharded dataset), which are kept as they are."""
+    devices = set(mesh.devices.flat)
+    replicated = NamedSharding(mesh, P())
+
+    def put(x):
+        if isinstance(x, jax.Array) and x.sharding.device_set == devices and not x.sharding.is_fully_replicated:
+            return x
+        # a Python scalar as a weakly typed jax array first: with several processes device_put compares
+        # the value across processes, and a Python float (float64) never equals its float32 copy
+        return jax.device_put(jnp.asarray(x) if isinstance(x, (bool, int, float)) else x, replicated)
+    return jax.tree.map(put, tree)
+
+
 def seeds_runner(train, init_params, env_params, config: dict, progress: Progress, mesh: Mesh | None = None):
     """One jitted program over all seeds: ``run(keys, params=None)`` trains ``len(keys)`` seeds
     (``jax.vmap`` over keys, or ``lax.map`` with ``config["vmap_seeds"] = False``) on
@@ -246,8 +294,9 @@ def seeds_runner(train, init_params, env_params, config: dict, progress: Progres
         return jax.lax.map(lambda kp: train(kp[0], p, kp[1]), (keys, params))
 
     jitted = jax.jit(all_seeds)
-    # replicated on the mesh's devices (a no-op for arrays already placed there)
-    place = (lambda x: x) if mesh is None else (lambda x: jax.device_put(x, NamedSharding(mesh, P())))
+    # replicated on the mesh's devices (a no-op for arrays already placed there; slides sharded
+    # over the mesh, see histojax.sharding, stay as they are)
+    place = (lambda x: x) if mesh is None else functools.partial(replicate_on, mesh)
 
     def run(keys, params=None):
         progress.t0 = time.perf_counter()

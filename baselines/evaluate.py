@@ -26,7 +26,9 @@ import jax.numpy as jnp
 import numpy as np
 
 from baselines import common
-from baselines.networks import (ActorCritic, QNetwork, policy_mode, policy_sample, preprocess_obs)
+from baselines.ppo import make_network
+from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
+                                policy_mode, policy_sample, preprocess_obs)
 from histojax import actions, reading
 from histojax.render import animate, render_trajectory
 
@@ -78,12 +80,16 @@ def scripted_policy(key, obs, action_mode: str = "discrete", centred: float = 0.
 
 # ----------------------------------------------------------------------------- rollouts
 def run_episodes(env, env_params, policy, key, num_episodes: int):
-    """``num_episodes`` vmapped episodes (no auto-reset) of ``policy(key, obs_batch) -> actions``.
-    Returns numpy ``return, success, length`` per episode, ``fraction_read`` and ``fields_of_view``
-    at its end (NaN / -1 when the env does not track reading; see :func:`histojax.reading.with_tracking`)
-    and the ``(steps+1, E)`` trajectories ``z, x, y`` (frozen after the episode ended)."""
+    """``num_episodes`` vmapped episodes (no auto-reset) of ``policy(key, obs_batch) -> actions``,
+    or of a recurrent policy (``policy.initial_memory(n)`` defined): ``policy(key, obs_batch,
+    memory) -> (actions, memory)``, its memory carried from step to step of each episode.
+    Returns numpy ``return, success, length`` and ``slide`` (the slide index of a multi-slide env)
+    per episode, ``fraction_read`` and ``fields_of_view`` at its end (NaN / -1 when the env does not
+    track reading; see :func:`histojax.reading.with_tracking`) and the ``(steps+1, E)`` trajectories
+    ``z, x, y`` (frozen after the episode ended)."""
     max_steps = int(env_params.max_steps_in_episode)
     step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+    recurrent = hasattr(policy, "initial_memory")
 
     @jax.jit
     def go(key, env_params):
@@ -92,9 +98,12 @@ def run_episodes(env, env_params, policy, key, num_episodes: int):
         zeros = jnp.zeros(num_episodes)
 
         def body(carry, k):
-            (obs, state, done, ret, length, success), (read, fields) = carry
+            (obs, state, done, ret, length, success, memory), (read, fields) = carry
             k_act, k_step = jax.random.split(k)
-            action = policy(k_act, obs)
+            if recurrent:
+                action, memory = policy(k_act, obs, memory)
+            else:
+                action = policy(k_act, obs)
             obs2, state2, r, term, trunc, info = step(jax.random.split(k_step, num_episodes), state, action, env_params)
             active = ~done
             ret = ret + r * active
@@ -106,27 +115,38 @@ def run_episodes(env, env_params, policy, key, num_episodes: int):
             read = jnp.where(active, info.get("fraction_read", read), read)
             fields = jnp.where(active, info.get("fields_of_view", fields), fields)
             done = done | term | trunc
-            return ((obs, state, done, ret, length, success), (read, fields)), (state.z, state.x, state.y)
+            return ((obs, state, done, ret, length, success, memory), (read, fields)), (state.z, state.x, state.y)
 
-        carry = ((obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool)),
+        memory = policy.initial_memory(num_episodes) if recurrent else ()
+        carry = ((obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool), memory),
                  (jnp.full(num_episodes, jnp.nan, jnp.float32), jnp.full(num_episodes, -1, jnp.int32)))
-        ((_, _, _, ret, length, success), (read, fields)), (z, x, y) = jax.lax.scan(
+        ((_, _, _, ret, length, success, _), (read, fields)), (z, x, y) = jax.lax.scan(
             body, carry, jax.random.split(key, max_steps))
         cat = lambda a0, a: jnp.concatenate([a0[None], a])  # noqa: E731
-        return ret, success, length, read, fields, cat(state.z, z), cat(state.x, x), cat(state.y, y)
+        return (ret, success, length, state.slide_index, read, fields, cat(state.z, z), cat(state.x, x),
+                cat(state.y, y))
 
     out = jax.device_get(go(key, env_params))
-    names = ("return", "success", "length", "fraction_read", "fields_of_view", "z", "x", "y")
+    names = ("return", "success", "length", "slide", "fraction_read", "fields_of_view", "z", "x", "y")
     return dict(zip(names, (np.asarray(a) for a in out)))
 
 
-def summarise(ep: dict) -> dict:
+def summarise(ep: dict, slide_names=None) -> dict:
+    """Episodes, success rate, mean return, mean length and mean steps to success (over the
+    successful episodes) of :func:`run_episodes`' output; with ``slide_names`` (one per slide of a
+    multi-slide env) also ``by_slide``: ``{name: {"episodes", "successes"}}`` for the slides drawn."""
     s = ep["success"].astype(bool)
-    return {"episodes": int(s.size), "success_rate": float(s.mean()), "mean_return": float(ep["return"].mean()),
-            "mean_length": float(ep["length"].mean()),
-            "mean_steps_to_success": float(ep["length"][s].mean()) if s.any() else float("nan"),
-            "mean_fraction_read": float(np.mean(ep["fraction_read"])) if "fraction_read" in ep else float("nan"),
-            "mean_fields_of_view": float(np.mean(ep["fields_of_view"])) if "fields_of_view" in ep else float("nan")}
+    row = {"episodes": int(s.size), "success_rate": float(s.mean()), "mean_return": float(ep["return"].mean()),
+           "mean_length": float(ep["length"].mean()),
+           "mean_steps_to_success": float(ep["length"][s].mean()) if s.any() else float("nan"),
+           "mean_fraction_read": float(np.mean(ep["fraction_read"])) if "fraction_read" in ep else float("nan"),
+           "mean_fields_of_view": float(np.mean(ep["fields_of_view"])) if "fields_of_view" in ep else float("nan")}
+    if slide_names is not None and len(slide_names) > 1:
+        row["by_slide"] = {name: {"episodes": int((ep["slide"] == i).sum()),
+                                  "successes": int(s[ep["slide"] == i].sum()),
+                                  "steps_to_success_sum": float(ep["length"][s & (ep["slide"] == i)].sum())}
+                           for i, name in enumerate(slide_names) if (ep["slide"] == i).any()}
+    return row
 
 
 def trajectory(ep: dict, i: int):
@@ -136,6 +156,17 @@ def trajectory(ep: dict, i: int):
 
 
 def learned_policy(network, params, action_mode: str, greedy: bool):
+    """The checkpoint's policy for :func:`run_episodes`: greedy or sampled; a
+    :class:`RecurrentActorCritic` gives a recurrent policy whose memory is the GRU state (zeros
+    at the episode's start, as in training)."""
+    if isinstance(network, RecurrentActorCritic):
+        def recurrent_policy(key, obs, h):
+            first = jnp.zeros(jax.tree.leaves(obs)[0].shape[0], bool)  # h starts at zeros already
+            h, pi, _ = network_step(network, params, h, preprocess_obs(obs), first)
+            return (policy_mode(pi, action_mode) if greedy else policy_sample(key, pi, action_mode)), h
+        recurrent_policy.initial_memory = lambda n: ScannedGRU.initial_state(n, network.hidden)
+        return recurrent_policy
+
     def policy(key, obs):
         obs = preprocess_obs(obs)
         if isinstance(network, QNetwork):
@@ -149,16 +180,15 @@ def network_for(config: dict, env):
     space = env.action_space()
     if config.get("algo") == "dqn" or "buffer_size" in config:
         return QNetwork(space.n, hidden=config["hidden"])
-    dim = space.n if config["action_mode"] == "discrete" else int(np.prod(space.shape))
-    return ActorCritic(dim, config["action_mode"], hidden=config["hidden"])
+    return make_network(config, env, RecurrentActorCritic if config.get("algo") == "ppo_rnn" else ActorCritic)
 
 
 def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
-             label: str = "learned", augment: bool = False) -> dict:
+             label: str = "learned", augment: bool = False, references: bool = True) -> dict:
     """Rows for the learned policy (greedy and sampled; seeds pooled), the random agent and the
-    scripted policy on one slide; writes trajectory pictures to ``out`` when given. Training-time
-    view augmentation (``env_kwargs["augment"]``) is switched off unless ``augment=True``: a
-    slide is evaluated as it is."""
+    scripted policy (``references=False``: without these two) on one slide; writes trajectory
+    pictures to ``out`` when given. Training-time view augmentation (``env_kwargs["augment"]``)
+    is switched off unless ``augment=True``: a slide is evaluated as it is."""
     config = {**config, "slide": slide if slide is not None else config.get("slide")}
     if config.get("env_kwargs"):
         drop = {"augment"} if not augment else set()
@@ -166,6 +196,7 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             drop |= {"dataset", "split", "slides", "slide_weights"}
         config["env_kwargs"] = {k: v for k, v in config["env_kwargs"].items() if k not in drop}
     env, env_params = reading.with_tracking(*common.make_env(config, auto_reset=False))  # efficiency metrics
+    names = [Path(b.path).name for b in env._bundles]
     mode = config["action_mode"]
     key = jax.random.PRNGKey(seed)
     rows, episodes = {}, {}
@@ -181,21 +212,23 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
                 per_seed.append(run_episodes(env, env_params, learned_policy(network, p, mode, greedy),
                                              jax.random.fold_in(key, 100 + s), num_episodes))
             pooled = {k: np.concatenate([e[k] for e in per_seed], axis=-1) for k in per_seed[0]}
-            row = summarise(pooled)
+            row = summarise(pooled, names)
             row["success_rate_per_seed"] = [summarise(e)["success_rate"] for e in per_seed]
             rows[f"{label} ({name})"] = row
             episodes[f"{label} ({name})"] = pooled
+    if not references:
+        return rows
     space = env.action_space()
     rand = lambda k, obs: jax.vmap(space.sample)(jax.random.split(k, jax.tree.leaves(obs)[0].shape[0]))  # noqa: E731
     episodes["random"] = run_episodes(env, env_params, rand, jax.random.fold_in(key, 1), num_episodes)
-    rows["random"] = summarise(episodes["random"])
+    rows["random"] = summarise(episodes["random"], names)
     if isinstance(env.observation_space(), dict) or env.obs_mode in ("pixels", "pixels_float"):
         def scripted(k, obs):
             n = jax.tree.leaves(obs)[0].shape[0]
             return jax.vmap(lambda kk, o: scripted_policy(kk, o, mode))(jax.random.split(k, n), obs)
         try:
             episodes["scripted"] = run_episodes(env, env_params, scripted, jax.random.fold_in(key, 2), num_episodes)
-            rows["scripted"] = summarise(episodes["scripted"])
+            rows["scripted"] = summarise(episodes["scripted"], names)
         except (KeyError, TypeError, ValueError) as e:  # observation without pixels
             print(f"scripted policy skipped: {e}")
     if out is not None:
@@ -266,7 +299,7 @@ def main(argv=None) -> int:
         params, config = common.load_checkpoint(args.checkpoint)
         run = Path(args.checkpoint)
         run = run if run.is_dir() else run.parent
-        label = "dqn" if "buffer_size" in config else "ppo"
+        label = config.get("algo") or ("dqn" if "buffer_size" in config else "ppo")
     else:
         params, config, run, label = None, {"action_mode": args.action_mode, "with_position": args.with_position,
                                             "obs": "pixels", "hidden": 256}, None, "none"

@@ -7,13 +7,16 @@
   (``"position"``, feature vectors, …) flattened, after the CNN.
 * :class:`ActorCritic` — torso + policy head (categorical logits for discrete actions, a
   diagonal Gaussian mean with a state-independent log-std for continuous ones) + value head.
+* :class:`RecurrentActorCritic` — torso + a GRU over time (hidden state reset at episode starts)
+  + the same heads, for ``baselines.ppo_rnn``.
 * :class:`QNetwork` — torso + one Q-value per discrete action.
 
-Every module takes observations with exactly one leading batch axis. Distributions are tiny
+Every module but the recurrent one takes observations with exactly one leading batch axis. Distributions are tiny
 pure functions here (no distrax dependency).
 """
 from __future__ import annotations
 
+import functools
 from typing import Sequence
 
 import flax.linen as nn
@@ -137,16 +140,73 @@ class ActorCritic(nn.Module):
 
     @nn.compact
     def __call__(self, obs):
-        h = Torso(self.hidden)(obs)
-        a = nn.tanh(nn.Dense(self.hidden // 2, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(h))
-        c = nn.tanh(nn.Dense(self.hidden // 2, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(h))
-        value = nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0))(c)[..., 0]
-        out = nn.Dense(self.action_dim, kernel_init=nn.initializers.orthogonal(0.01),
-                       bias_init=nn.initializers.zeros)(a)
-        if self.action_mode == "discrete":
-            return out, value
-        log_std = self.param("log_std", nn.initializers.constant(-0.5), (self.action_dim,))
-        return (out, log_std), value
+        return policy_value_heads(self, Torso(self.hidden)(obs))
+
+
+def policy_value_heads(module: nn.Module, h: jax.Array):
+    """The actor and critic heads of ``module`` (an :class:`ActorCritic`-like module with
+    ``action_dim``, ``action_mode``, ``hidden``), called from inside its compact ``__call__`` on
+    features ``h (..., F)``: ``(policy parameters, value (...))`` as :class:`ActorCritic` returns.
+    Shared by the feed-forward and the recurrent actor-critic (same parameter names)."""
+    a = nn.tanh(nn.Dense(module.hidden // 2, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(h))
+    c = nn.tanh(nn.Dense(module.hidden // 2, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(h))
+    value = nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0))(c)[..., 0]
+    out = nn.Dense(module.action_dim, kernel_init=nn.initializers.orthogonal(0.01),
+                   bias_init=nn.initializers.zeros)(a)
+    if module.action_mode == "discrete":
+        return out, value
+    log_std = module.param("log_std", nn.initializers.constant(-0.5), (module.action_dim,))
+    return (out, log_std), value
+
+
+class ScannedGRU(nn.Module):
+    """A GRU over a time-major sequence (``nn.scan`` of ``nn.GRUCell``, PureJaxRL ``ppo_rnn``
+    style): ``(h (B, H), (x (T, B, F), resets (T, B) bool)) -> (h_T, outputs (T, B, H))``. Where
+    ``resets[t, b]`` is true the hidden state of env ``b`` is set to zeros *before* step ``t``
+    reads ``x[t, b]`` (``x[t]`` is the first observation of a new episode)."""
+
+    hidden: int
+
+    @functools.partial(nn.scan, variable_broadcast="params", split_rngs={"params": False}, in_axes=0, out_axes=0)
+    @nn.compact
+    def __call__(self, h, inputs):
+        x, resets = inputs
+        h = jnp.where(resets[:, None], jnp.zeros_like(h), h)
+        h, y = nn.GRUCell(features=self.hidden)(h, x)
+        return h, y
+
+    @staticmethod
+    def initial_state(batch: int, hidden: int) -> jax.Array:
+        """The hidden state of a fresh episode: zeros ``(batch, hidden)`` float32."""
+        return jnp.zeros((batch, hidden), jnp.float32)
+
+
+class RecurrentActorCritic(nn.Module):
+    """:class:`Torso` → dense embedding → :class:`ScannedGRU` → the heads of :class:`ActorCritic`.
+
+    ``__call__(h (B, H), obs (T, B, ...), resets (T, B)) -> (h_T, policy parameters (T, B, ...),
+    value (T, B))``; ``obs`` is time-major with one batch axis after time (an array or dict, as
+    :class:`Torso` takes). One env step is ``T = 1``."""
+
+    action_dim: int
+    action_mode: str = "discrete"
+    hidden: int = 256
+
+    @nn.compact
+    def __call__(self, h, obs, resets):
+        t, b = resets.shape
+        flat = jax.tree.map(lambda a: jnp.reshape(a, (t * b, *jnp.shape(a)[2:])), obs)
+        x = Torso(self.hidden)(flat).reshape(t, b, -1)
+        x = nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(x))
+        h, y = ScannedGRU(self.hidden)(h, (x, resets.astype(bool)))
+        return (h, *policy_value_heads(self, y))
+
+
+def network_step(network: RecurrentActorCritic, params, h, obs, first):
+    """One env step of the recurrent policy for a batch: ``h (B, H)``, ``obs`` (batch-major, one
+    leading axis ``B``), ``first (B,)`` bool → ``(h', policy parameters (B, ...), value (B,))``."""
+    h, pi, value = network.apply(params, h, jax.tree.map(lambda a: a[None], obs), first[None])
+    return h, jax.tree.map(lambda a: a[0], pi), value[0]
 
 
 class QNetwork(nn.Module):

@@ -20,7 +20,9 @@ rollout are sharded along the envs, each minibatch along its samples; parameters
 state and slide arrays are replicated, and XLA's SPMD partitioner adds the gradient all-reduce.
 The same code runs on one CPU (``XLA_FLAGS=--xla_force_host_platform_device_count=N``), several
 GPUs, or several hosts after ``jax.distributed.initialize()``. ``devices=None`` (default) adds
-nothing to the program.
+nothing to the program. ``--shard-slides`` (config ``shard_slides``) also splits the dataset's
+slides over the devices (:mod:`histojax.sharding`): each device holds and draws only its own
+slides, so slide memory per device falls as 1 / N (docs/scaling.md).
 
 Observations are pooled to 32 px before they are stored (see :func:`networks.preprocess_obs`),
 so a rollout of 64 envs × 64 steps needs ~13 MB, not ~200 MB. Time limits are treated as episode
@@ -41,9 +43,10 @@ import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
-from baselines import common
+from baselines import common, distributed
 from baselines.networks import (ActorCritic, policy_entropy, policy_log_prob, policy_sample,
                                 preprocess_obs)
+from data_tools.cli_output import positive_float
 from histojax.wrappers import LogWrapper
 
 DEFAULTS = dict(
@@ -52,24 +55,32 @@ DEFAULTS = dict(
     num_envs=64, num_steps=64, total_timesteps=500_000, update_epochs=2, num_minibatches=8,
     lr=3e-4, anneal_lr=True, gamma=0.99, gae_lambda=0.95, clip_eps=0.2, ent_coef=0.01, vf_coef=0.5,
     max_grad_norm=0.5, hidden=256, num_seeds=1, vmap_seeds=True, log_every=4, print_progress=True,
-    devices=None,
+    devices=None, shard_slides=False,
 )
 
 
+LOG_KEYS = ("returned_episode", "returned_episode_returns", "returned_episode_lengths", "returned_episode_success")
+
+
 class Transition(NamedTuple):
-    done: jnp.ndarray
+    """One rollout step (arrays with the env batch axis; time-major once scanned)."""
+
+    done: jnp.ndarray      # float: this step ended the episode (GAE)
     action: jnp.ndarray
     value: jnp.ndarray
     reward: jnp.ndarray
     log_prob: jnp.ndarray
     obs: object
     info: dict
+    first: object = None   # recurrent PPO: obs is the first of an episode (reset the memory first)
 
 
-def make_network(config: dict, env) -> ActorCritic:
+def make_network(config: dict, env, network_cls=ActorCritic):
+    """``network_cls`` (an actor-critic) sized for ``env``'s action space: ``n`` logits for discrete
+    actions, the Box size for continuous ones; width ``config["hidden"]``."""
     space = env.action_space()
     action_dim = space.n if config["action_mode"] == "discrete" else int(np.prod(space.shape))
-    return ActorCritic(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"])
+    return network_cls(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"])
 
 
 def gae(traj: Transition, last_value, gamma: float, lam: float):
@@ -84,24 +95,93 @@ def gae(traj: Transition, last_value, gamma: float, lam: float):
     return advantages, advantages + traj.value
 
 
+def make_optimizer(config: dict, num_updates: int):
+    """Adam with global-norm clipping; the learning rate decays linearly to 0 over
+    ``num_updates`` updates of ``num_minibatches × update_epochs`` steps (``anneal_lr``)."""
+    def lr_schedule(count):
+        frac = 1.0 - (count // (config["num_minibatches"] * config["update_epochs"])) / num_updates
+        return config["lr"] * frac
+
+    return optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
+                       optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
+
+
+def clipped_loss(pi, value, traj, adv, target, config: dict):
+    """PPO's loss on a minibatch (any batch shape): clipped policy objective on normalised
+    advantages, clipped value loss, entropy bonus. ``pi``/``value``: the network's outputs for
+    ``traj.obs`` now; ``traj.action``/``traj.log_prob``/``traj.value``: from the rollout.
+    Returns ``(total, (pg_loss, v_loss, entropy, approx_kl))``."""
+    mode = config["action_mode"]
+    log_prob = policy_log_prob(pi, traj.action, mode)
+    v_clipped = traj.value + jnp.clip(value - traj.value, -config["clip_eps"], config["clip_eps"])
+    v_loss = 0.5 * jnp.maximum((value - target) ** 2, (v_clipped - target) ** 2).mean()
+    ratio = jnp.exp(log_prob - traj.log_prob)
+    adv = (adv - adv.mean()) / (adv.std() + 1e-8)
+    pg_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config["clip_eps"], 1 + config["clip_eps"]) * adv).mean()
+    entropy = policy_entropy(pi, mode).mean()
+    total = pg_loss + config["vf_coef"] * v_loss - config["ent_coef"] * entropy
+    approx_kl = ((ratio - 1) - (log_prob - traj.log_prob)).mean()
+    return total, (pg_loss, v_loss, entropy, approx_kl)
+
+
+def run_epochs(state, key, loss_fn, minibatches, epochs: int):
+    """``epochs`` passes over one update's data: each pass splits ``key`` once, takes the minibatches
+    ``minibatches(k)`` (a pytree with a leading minibatch axis, shuffled with ``k``) and one gradient
+    step of ``loss_fn(params, mb) -> (loss, aux)`` per minibatch. Returns ``(state, key, aux)``
+    with ``aux`` stacked ``(epochs, minibatches, ...)``."""
+    def epoch(carry, _):
+        state, key = carry
+        key, k_perm = jax.random.split(key)
+
+        def minibatch_step(state, mb):
+            grads, aux = jax.grad(loss_fn, has_aux=True)(state.params, mb)
+            return state.apply_gradients(grads=grads), aux
+
+        state, aux = jax.lax.scan(minibatch_step, state, minibatches(k_perm))
+        return (state, key), aux
+
+    (state, key), aux = jax.lax.scan(epoch, (state, key), None, epochs)
+    return state, key, aux
+
+
+def update_metrics(info: dict, aux, progress, update_index, config: dict) -> dict:
+    """One update's metrics: episode statistics of the rollout's ``info`` and the means of the
+    losses ``aux`` (from :func:`clipped_loss`); printed through ``progress`` when asked."""
+    pg_loss, v_loss, entropy, kl = (a.mean() for a in aux)
+    metrics = {**common.episode_stats(info), "pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy,
+               "approx_kl": kl}
+    if config["print_progress"]:
+        ack = common.report(progress, update_index, metrics)
+        metrics = {**metrics, "episodes": metrics["episodes"] + ack}
+    return metrics
+
+
 def make_train(config: dict):
     """A jitted ``train(keys)`` running ``len(keys)`` seeds in one program (``jax.vmap`` over keys,
     or ``lax.map`` with ``vmap_seeds=False``) and
     returning ``{"params": seeds-stacked params, "metrics": {name: (seeds, updates)}}``.
     The env's params (slide arrays) are an argument of the jitted function, not a constant;
-    ``train.env``, ``train.env_params``, ``train.network`` and ``train.num_updates`` are attached.
+    ``train.env``, ``train.env_params``, ``train.network`` and ``train.num_updates`` are attached,
+    and the pieces of ``train`` for trainers that run it in phases (:mod:`baselines.rotation`):
+    ``train.init_params(key, env_params)``, ``train.init_state(params)`` and
+    ``train.run_updates(state, key, env_params, first_update, n_updates)`` (unjitted, one seed).
     ``config["devices"] = N`` shards the env batch over ``N`` devices (``train.mesh``)."""
     config = {**DEFAULTS, **config}
-    env, env_params = common.make_env(config)
+    num_envs, num_steps = config["num_envs"], config["num_steps"]
+    mesh = common.batch_mesh(config["devices"], num_envs)
+    sharded = bool(config["shard_slides"])
+    if sharded and mesh is None:
+        raise ValueError("shard_slides=True splits the slides over the devices: give devices=N too")
+    env, env_params = common.make_env(config, mesh=mesh)
     env = LogWrapper(env)
+    reset_all = common.env_vmap(env.reset, 1, mesh, sharded)
+    step_all = common.env_vmap(env.step, 3, mesh, sharded)
     network = make_network(config, env)
     mode = config["action_mode"]
-    num_envs, num_steps = config["num_envs"], config["num_steps"]
     num_updates = max(1, config["total_timesteps"] // (num_envs * num_steps))
     batch = num_envs * num_steps
     minibatch = batch // config["num_minibatches"]
     assert minibatch * config["num_minibatches"] == batch, "num_envs * num_steps must divide by num_minibatches"
-    mesh = common.batch_mesh(config["devices"], num_envs)
     if mesh is not None and minibatch % mesh.size:
         raise ValueError(f"the minibatch ({minibatch} = num_envs * num_steps / num_minibatches) must divide "
                          f"by devices={mesh.size}")
@@ -109,18 +189,19 @@ def make_train(config: dict):
     progress = common.Progress(config["num_seeds"], num_updates, batch, config["log_every"],
                                name=f"ppo {config['env_id']}")
 
-    def lr_schedule(count):
-        frac = 1.0 - (count // (config["num_minibatches"] * config["update_epochs"])) / num_updates
-        return config["lr"] * frac
+    init_params = common.params_initialiser(env, network, num_envs, reset_all)
 
-    init_params = common.params_initialiser(env, network, num_envs)
+    tx = make_optimizer(config, num_updates)
 
-    def train(key, env_params, params):
-        key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs)
+    def init_state(params) -> TrainState:
+        """Network parameters → the train state (optimizer state fresh, step 0)."""
+        return TrainState.create(apply_fn=network.apply, params=params, tx=tx)
+
+    def run_updates(state, key, env_params, first_update, n_updates: int):
+        """``n_updates`` PPO updates from freshly reset envs: ``(state, key, metrics)``;
+        ``first_update`` (the index of the first, for progress) may be traced."""
+        key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs, reset_all)
         obs0, env_state = shard((obs0, env_state))
-        tx = optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
-                         optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
-        state = TrainState.create(apply_fn=network.apply, params=params, tx=tx)
 
         def env_step(carry, _):
             state, env_state, obs, key = carry
@@ -128,10 +209,9 @@ def make_train(config: dict):
             pi, value = network.apply(state.params, obs)
             action = policy_sample(k_act, pi, mode)
             log_prob = policy_log_prob(pi, action, mode)
-            next_obs, env_state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            next_obs, env_state, reward, term, trunc, info = step_all(
                 jax.random.split(k_step, num_envs), env_state, action, env_params)
-            keep = {k: info[k] for k in ("returned_episode", "returned_episode_returns",
-                                         "returned_episode_lengths", "returned_episode_success")}
+            keep = {k: info[k] for k in LOG_KEYS}
             done = jnp.logical_or(term, trunc).astype(jnp.float32)
             t = shard(Transition(done, action, value, reward, log_prob, obs, keep))
             next_obs, env_state = shard((preprocess_obs(next_obs), env_state))
@@ -145,47 +225,28 @@ def make_train(config: dict):
             def loss_fn(params, mb):
                 traj, adv, target = mb
                 pi, value = network.apply(params, traj.obs)
-                log_prob = policy_log_prob(pi, traj.action, mode)
-                v_clipped = traj.value + jnp.clip(value - traj.value, -config["clip_eps"], config["clip_eps"])
-                v_loss = 0.5 * jnp.maximum((value - target) ** 2, (v_clipped - target) ** 2).mean()
-                ratio = jnp.exp(log_prob - traj.log_prob)
-                adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-                pg_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config["clip_eps"],
-                                                             1 + config["clip_eps"]) * adv).mean()
-                entropy = policy_entropy(pi, mode).mean()
-                total = pg_loss + config["vf_coef"] * v_loss - config["ent_coef"] * entropy
-                approx_kl = ((ratio - 1) - (log_prob - traj.log_prob)).mean()
-                return total, (pg_loss, v_loss, entropy, approx_kl)
+                return clipped_loss(pi, value, traj, adv, target, config)
 
-            def epoch(carry, _):
-                state, key = carry
-                key, k_perm = jax.random.split(key)
+            def minibatches(k_perm):
                 flat = jax.tree.map(lambda a: a.reshape(batch, *a.shape[2:]), (traj, advantages, targets))
                 perm = jax.random.permutation(k_perm, batch)
                 mbs = jax.tree.map(lambda a: a[perm].reshape(config["num_minibatches"], minibatch, *a.shape[1:]), flat)
-                mbs = shard(mbs, axis=1)  # each minibatch split over the devices
+                return shard(mbs, axis=1)  # each minibatch split over the devices
 
-                def minibatch_step(state, mb):
-                    grads, aux = jax.grad(loss_fn, has_aux=True)(state.params, mb)
-                    return state.apply_gradients(grads=grads), aux
-
-                state, aux = jax.lax.scan(minibatch_step, state, mbs)
-                return (state, key), aux
-
-            (state, key), aux = jax.lax.scan(epoch, (state, key), None, config["update_epochs"])
-            pg_loss, v_loss, entropy, kl = (a.mean() for a in aux)
-            metrics = {**common.episode_stats(traj.info), "pg_loss": pg_loss, "v_loss": v_loss,
-                       "entropy": entropy, "approx_kl": kl}
-            if config["print_progress"]:
-                ack = common.report(progress, update_index, metrics)
-                metrics = {**metrics, "episodes": metrics["episodes"] + ack}
+            state, key, aux = run_epochs(state, key, loss_fn, minibatches, config["update_epochs"])
+            metrics = update_metrics(traj.info, aux, progress, update_index, config)
             return (state, env_state, obs, key), metrics
 
         carry = (state, env_state, obs0, key)
-        (state, *_), metrics = jax.lax.scan(update, carry, jnp.arange(num_updates))
+        (state, _, _, key), metrics = jax.lax.scan(update, carry, first_update + jnp.arange(n_updates))
+        return state, key, metrics
+
+    def train(key, env_params, params):
+        state, _, metrics = run_updates(init_state(params), key, env_params, 0, num_updates)
         return {"params": state.params, "metrics": metrics}
 
     run = common.seeds_runner(train, init_params, env_params, config, progress, mesh)
+    run.init_params, run.init_state, run.run_updates, run.progress = init_params, init_state, run_updates, progress
     run.env, run.env_params, run.network, run.num_updates, run.config = env, env_params, network, num_updates, config
     run.steps_per_update = batch
     return run
@@ -203,10 +264,14 @@ def parse_args(argv=None, defaults=DEFAULTS, description=__doc__):
     p.add_argument("--seed", type=int, default=0, help="first seed")
     p.add_argument("--total-steps", type=int, default=defaults["total_timesteps"], help="env steps per seed")
     p.add_argument("--num-envs", type=int, default=defaults["num_envs"])
-    p.add_argument("--lr", type=float, default=defaults["lr"])
+    p.add_argument("--lr", type=positive_float, default=defaults["lr"], help="learning rate (finite, > 0)")
     p.add_argument("--devices", type=int, default=None,
                    help="shard the env batch over the first N devices (PPO; on CPU set "
                         "XLA_FLAGS=--xla_force_host_platform_device_count=N)")
+    p.add_argument("--shard-slides", action="store_true",
+                   help="with --devices N: split the dataset's slides over the devices (each device holds and "
+                        "draws only its own slides; docs/scaling.md)")
+    distributed.add_arguments(p)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other config entry, value parsed as JSON (e.g. --set ent_coef=0.02)")
     p.add_argument("--out", default=None, help="run folder (default runs/<algo>-<env>)")
@@ -222,6 +287,10 @@ def config_from_args(args, defaults=DEFAULTS) -> dict:
         if "devices" not in defaults:
             raise SystemExit("--devices is supported by the PPO baseline only")
         config["devices"] = args.devices
+    if getattr(args, "shard_slides", False):
+        if "shard_slides" not in defaults:
+            raise SystemExit("--shard-slides is supported by the PPO baseline only")
+        config["shard_slides"] = True
     for item in args.set:
         k, _, v = item.partition("=")
         if k not in defaults:
@@ -234,8 +303,9 @@ def config_from_args(args, defaults=DEFAULTS) -> dict:
 
 
 def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_per_update: int,
-               train_seconds: float, compile_seconds: float) -> dict:
-    """Logs, curve, checkpoint and a printed summary (shared by PPO and DQN)."""
+               train_seconds: float, compile_seconds: float, env_and_params=None) -> dict:
+    """Logs, curve, checkpoint and a printed summary (shared by PPO and DQN). ``env_and_params``:
+    the trainer's, for the random-agent reference of slides sharded over devices."""
     metrics = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
     n_updates = metrics["success"].shape[1]
     steps = (np.arange(n_updates) + 1) * steps_per_update
@@ -245,7 +315,7 @@ def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_
         final = {name: float(np.nanmean(metrics[name][:, tail])) for name in ("return", "success", "length",
                                                                               "steps_to_success")}
         final_per_seed = {name: np.nanmean(metrics[name][:, tail], axis=1).tolist() for name in ("return", "success")}
-    ref = common.random_agent_reference(config)
+    ref = common.random_agent_reference(config, env_and_params=env_and_params)
     summary = {"algo": algo, "env_id": config["env_id"], "env_steps_per_seed": int(steps[-1]),
                "seeds": int(metrics["success"].shape[0]), "train_seconds": train_seconds,
                "compile_seconds": compile_seconds,
@@ -275,6 +345,9 @@ def train_and_save(algo: str, make_train_fn, argv, defaults: dict, description: 
     in one program, then write logs, curve and checkpoint with :func:`finish_run`."""
     args = parse_args(argv, defaults=defaults, description=description)
     config = config_from_args(args, defaults=defaults)
+    if (args.coordinator is not None or args.distributed) and "devices" not in defaults:
+        raise SystemExit("several processes (--coordinator / --distributed) are supported by the PPO baseline only")
+    distributed.from_args(args)
     run_and_save(algo, make_train_fn, config, Path(args.out or f"runs/{algo}-{config['env_id']}"), unit)
     return 0
 
@@ -285,6 +358,13 @@ def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = 
     with the trainer's full config."""
     train = make_train_fn(config)
     config = train.config
+    if config.get("shard_slides"):
+        from histojax.sharding import device_bytes, local_slides
+
+        n, nbytes = local_slides(train.env_params.slide)
+        per = device_bytes(train.env_params.slide)
+        print(f"process {jax.process_index()} of {jax.process_count()}: {n} slide(s), {nbytes:,} bytes of slide arrays "
+              f"on its {len(per)} device(s), {max(per.values()):,} on each", flush=True)
     keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
     print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps x "
           f"{config['num_seeds']} seeds; compiling ...", flush=True)
@@ -294,8 +374,12 @@ def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = 
     t0 = time.perf_counter()
     result = jax.block_until_ready(compiled(keys))
     train_s = time.perf_counter() - t0
+    if jax.process_index() > 0:  # several processes: process 0 writes the run, the others their parameters
+        common.save_checkpoint(out / f"process-{jax.process_index()}", result["params"], config)
+        print(f"process {jax.process_index()}: {train_s:.1f} s; wrote {out}/process-{jax.process_index()}/params.msgpack")
+        return config, result["params"], None
     summary = finish_run(algo, config, out, result["params"], result["metrics"], train.steps_per_update, train_s,
-                         compile_s)
+                         compile_s, env_and_params=(train.env, train.env_params))
     return config, result["params"], summary
 
 

@@ -20,6 +20,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from data_tools.cli_output import positive_float
 import histojax
 from histojax import actions as act
 from histojax.views import view_tumour_fraction
@@ -100,7 +101,7 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--env", default="HistoJAX-Hard-v0")
     p.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024, 4096])
-    p.add_argument("--seconds", type=float, default=1.0, help="minimum timed seconds per measurement")
+    p.add_argument("--seconds", type=positive_float, default=1.0, help="minimum timed seconds per measurement")
     args = p.parse_args(argv)
     env, params = histojax.make(args.env)
     view_bytes = env.tile_size**2 * 3

@@ -1,7 +1,9 @@
 """The data_tools command line: ``python -m data_tools info SLIDE`` and
 ``python -m data_tools build SLIDE [--annotations FILE] --out DIR [--levels 3 5 7] [--tile-size 128]
 [--region x0,y0,x1,y1 | --region-group NAME] [--region-margin PX] [--storage dense|tiled|auto]``, and
-``python -m data_tools synth-large OUT.tif [--size 100000] [--tissue-fraction 0.1]`` (a gigapixel test slide).
+``python -m data_tools synth-large OUT.tif [--size 100000] [--tissue-fraction 0.1]`` (a gigapixel test slide), and
+``python -m data_tools c16 --out DIR [--annotations NCRF.tar.gz] [--patches PCAM.tar.gz] [--small]`` (the true-scale
+CAMELYON16 benchmark).
 
 User errors (bad files, existing output) print one line and exit with status 2, no traceback.
 """
@@ -12,11 +14,16 @@ import json
 import sys
 from pathlib import Path
 
+from data_tools.cli_output import (OneLineParser, finite_float, one_line_messages, os_error_text, positive_float,
+                                  positive_int, print_error)
 from data_tools.errors import HistojaxDataError
 
 
 def _levels(text: str) -> list[int]:
-    values = [int(v) for v in text.replace(",", " ").split()]
+    try:
+        values = [int(v) for v in text.replace(",", " ").split()]
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r}: zoom level counts are integers, e.g. 3,5,7") from None
     if any(v < 2 for v in values):
         raise argparse.ArgumentTypeError("zoom level counts must be at least 2")
     return values
@@ -24,8 +31,8 @@ def _levels(text: str) -> list[int]:
 
 def _box(text: str) -> tuple[float, float, float, float]:
     try:
-        values = tuple(float(v) for v in text.replace(",", " ").split())
-    except ValueError:
+        values = tuple(finite_float(v) for v in text.replace(",", " ").split())
+    except argparse.ArgumentTypeError:
         values = ()
     if len(values) != 4:
         raise argparse.ArgumentTypeError("a region is four numbers x0,y0,x1,y1 (level-0 px)")
@@ -33,7 +40,7 @@ def _box(text: str) -> tuple[float, float, float, float]:
 
 
 def _parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m data_tools", description=__doc__.split("\n\n")[0])
+    p = OneLineParser(prog="python -m data_tools", description=__doc__.split("\n\n")[0])
     sub = p.add_subparsers(dest="command", required=True)
     info = sub.add_parser("info", help="print a slide's pyramid (levels, sizes in px, tiles, compression, µm/px)")
     info.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file, DICOM WSI file or folder, or a bundle folder")
@@ -44,8 +51,8 @@ def _parser() -> argparse.ArgumentParser:
     build.add_argument("--out", required=True, help="bundle folder to create (written atomically)")
     build.add_argument("--levels", type=_levels, action="extend", metavar="N",
                        help="zoom level counts to support (repeatable, or comma-separated): 3 (Easy), 5 (Medium), 7 (Hard); default 3,5,7")
-    build.add_argument("--tile-size", type=int, default=128, help="view size in px (default 128)")
-    build.add_argument("--magnification-range", type=float, default=None,
+    build.add_argument("--tile-size", type=positive_int, default=128, help="view size in px (default 128)")
+    build.add_argument("--magnification-range", type=finite_float, default=None,
                        help="coarsest downsample R (default: largest power of 2 with the slide's shorter side "
                             "still >= one view)")
     build.add_argument("--label-map", help='JSON object mapping annotation group to tumour/exclusion/tissue/ignore, '
@@ -55,26 +62,26 @@ def _parser() -> argparse.ArgumentParser:
                        help="build only this rectangle of the slide (level-0 px)")
     where.add_argument("--region-group", metavar="NAME",
                        help="build only the bounding box of an annotation group/label, e.g. tissue or tumour")
-    build.add_argument("--region-margin", type=float, default=0.0, metavar="PX",
+    build.add_argument("--region-margin", type=finite_float, default=0.0, metavar="PX",
                        help="grow the region by this many level-0 px on every side (default 0)")
     build.add_argument("--storage", choices=("dense", "tiled", "auto"), default="dense",
                        help="dense level arrays (default), tiled pools with background tiles shared (gigapixel "
                             "slides; built streaming with bounded memory), or auto (tiled above 256 MiB)")
     build.add_argument("--keep-all-tiles", action="store_true",
                        help="tiled: keep every tile (no shared blank background tile)")
-    build.add_argument("--band-mb", type=float, default=None,
+    build.add_argument("--band-mb", type=positive_float, default=None,
                        help="tiled: MiB of RGB per band of a level read at a time (default 96)")
     build.add_argument("--overwrite", action="store_true", help="replace an existing bundle")
     build.add_argument("--quiet", action="store_true", help="no progress bar")
     synth = sub.add_parser("synth", help="make semi-synthetic slides (synthetic pixels, real CAMELYON16 "
                                          "tumour geometry) and their bundles, with a train/test split")
     synth.add_argument("out_dir", help="output folder (slides/, bundles/, previews/, dataset.json)")
-    synth.add_argument("--slides", type=int, default=8, help="number of slides (default 8)")
-    synth.add_argument("--size", type=int, default=4096, help="canvas side in level-0 px (default 4096)")
+    synth.add_argument("--slides", type=positive_int, default=8, help="number of slides (default 8)")
+    synth.add_argument("--size", type=positive_int, default=4096, help="canvas side in level-0 px (default 4096)")
     synth.add_argument("--seed", type=int, default=0)
     synth.add_argument("--negatives", type=int, default=0,
                        help="that many more slides without tumour (label 0, for diagnosis; default 0)")
-    synth.add_argument("--tile-size", type=int, default=128, help="view size in px of the bundles (default 128)")
+    synth.add_argument("--tile-size", type=positive_int, default=128, help="view size in px of the bundles (default 128)")
     synth.add_argument("--tissue", choices=("synthetic", "camelyon16"), default="synthetic",
                        help="tissue region: a random blob around the tumour (default) or a CAMELYON16 tissue "
                             "outline of another slide")
@@ -84,11 +91,32 @@ def _parser() -> argparse.ArgumentParser:
     large = sub.add_parser("synth-large", help="write a gigapixel semi-synthetic pyramidal TIFF (mostly glass; real "
                                               "CAMELYON16 tissue and tumour outlines, synthetic pixels), tile by tile")
     large.add_argument("out", help="output .tif (a .geojson with tumour and tissue is written beside it)")
-    large.add_argument("--size", type=int, default=100_000, help="canvas side in level-0 px (default 100000)")
-    large.add_argument("--tissue-fraction", type=float, default=0.1,
+    large.add_argument("--size", type=positive_int, default=100_000, help="canvas side in level-0 px (default 100000)")
+    large.add_argument("--tissue-fraction", type=positive_float, default=0.1,
                        help="approximate fraction of the canvas covered by tissue (default 0.1)")
     large.add_argument("--seed", type=int, default=0)
     large.add_argument("--quiet", action="store_true", help="no progress bar")
+    c16 = sub.add_parser("c16", help="make the true-scale CAMELYON16 benchmark: real CAMELYON16 geometry, real PCam "
+                                     "patches arranged by us (not scanned slides); slides, tiled bundles, dataset.json")
+    c16.add_argument("--out", required=True, help="dataset folder (slides/, bundles/, dataset.json); an unfinished "
+                                                  "one is resumed")
+    c16.add_argument("--annotations", default=None,
+                     help="folder or .tar.gz of NCRF JSON files (camelyon16_ncrf_train.tar.gz; default: the 6 shipped)")
+    c16.add_argument("--patches", default=None, help="PCam patches: folder with 0/ and 1/, its .tar.gz, or a bank "
+                                                     ".npz (default: the shipped 1,000-patch bank)")
+    c16.add_argument("--small", action="store_true", help="the small variant: 3 tumour + 3 normal slides at "
+                                                          "downsample 32 (seconds)")
+    c16.add_argument("--downsample", type=float, default=None,
+                     help="CAMELYON16 level-0 px per output px for the whole set (default 8; --small 32)")
+    c16.add_argument("--slides", nargs="+", default=None, metavar="NAME", help="only these slides (e.g. Tumor_001)")
+    c16.add_argument("--tumour-slides", type=int, default=None, metavar="N", help="only the first N tumour slides")
+    c16.add_argument("--normal-slides", type=int, default=None, metavar="N", help="only the first N normal slides")
+    c16.add_argument("--test-fraction", type=float, default=0.25, help="share of slides in the test split (0.25)")
+    c16.add_argument("--features", action="store_true",
+                     help="also embed every bundle's feature grid with EfficientNet-Lite0 (slow on CPU)")
+    c16.add_argument("--jobs", type=int, default=1, help="slides made in parallel processes (default 1; ~1.5 GB each)")
+    c16.add_argument("--seed", type=int, default=0)
+    c16.add_argument("--quiet", action="store_true", help="no progress bars")
     from data_tools.features.cli import add_subcommands as _add_feature_commands
 
     _add_feature_commands(sub)  # features, import-features
@@ -131,60 +159,78 @@ def _check_label_map(label_map) -> None:
 
 
 def main(argv=None) -> int:
-    """Entry point; returns the process exit status."""
-    args = _parser().parse_args(argv)
-    try:
-        if args.command == "info":
-            print(_info(args.slide))
-        elif args.command == "build":
-            from data_tools.bundle import LEVEL_SETS, build_bundle, read_metadata
-
-            label_map = json.loads(args.label_map) if args.label_map else None
-            if label_map is not None:
-                _check_label_map(label_map)
-            out = build_bundle(args.slide, args.out, annotations_path=args.annotations,
-                               level_sets=args.levels or LEVEL_SETS, tile_size=args.tile_size,
-                               magnification_range=args.magnification_range, label_map=label_map,
-                               overwrite=args.overwrite, progress=not args.quiet,
-                               region=args.region if args.region is not None else args.region_group,
-                               region_margin=args.region_margin, storage=args.storage,
-                               share_background=not args.keep_all_tiles,
-                               band_bytes=None if args.band_mb is None else int(args.band_mb * 2**20))
-            meta = read_metadata(out)
-            print(f"wrote {out}: {len(meta['levels'])} levels"
-                  + (f", region {meta['region']['box']} of the slide" if meta.get("region") else ""))
-            print(_info(str(out)))
-        elif args.command == "synth":
-            from data_tools.synth import make_dataset
-
-            ds = make_dataset(args.out_dir, n_slides=args.slides, size=(args.size, args.size), seed=args.seed,
-                              tile_size=args.tile_size, tissue=args.tissue, progress=not args.quiet,
-                              tumour_xmls=args.tumour_xml, negatives=args.negatives)
-            print(f"wrote {Path(args.out_dir) / 'dataset.json'}: {len(ds['train'])} train, {len(ds['test'])} test "
-                  f"bundles in {ds['seconds']:.0f} s (pixels synthetic, geometry real CAMELYON16)")
-            for s in ds["slides"]:
-                print(f"  {s['name']}: tumour {100 * s['tumour_fraction']:.1f} % of the canvas, "
-                      f"{s['finest_views_ge50']}/{s['finest_views']} finest views >= 50 % tumour, "
-                      f"mean RGB tumour {s['tumour_mean_rgb']} vs normal {s['normal_tissue_mean_rgb']}")
-        elif args.command == "synth-large":
-            from data_tools.synth_large import make_large_slide
-
-            prov = make_large_slide(args.out, size=args.size, tissue_fraction=args.tissue_fraction, seed=args.seed,
-                                    progress=not args.quiet)
-            print(f"wrote {args.out}: {args.size}×{args.size} px, {prov['tiff_bytes'] / 2**20:.1f} MiB, "
-                  f"tissue {100 * prov['tissue_fraction']:.1f} %, tumour {100 * prov['tumour_fraction']:.2f} % "
-                  f"of the canvas, in {prov['seconds']:.0f} s (pixels synthetic, geometry real CAMELYON16)")
-        elif args.command in ("features", "import-features"):
-            from data_tools.features.cli import run as _run_feature_command
-
-            _run_feature_command(args)
-    except HistojaxDataError as e:
-        print(f"error: {e}", file=sys.stderr)
-        return 2
-    except json.JSONDecodeError as e:
-        print(f"error: --label-map is not valid JSON: {e}", file=sys.stderr)
-        return 2
+    """Entry point; returns the process exit status (2 for a user error, printed as one line)."""
+    with one_line_messages():
+        args = _parser().parse_args(argv)
+        try:
+            _command(args)
+        except HistojaxDataError as e:
+            return print_error(e)
+        except json.JSONDecodeError as e:
+            return print_error(f"--label-map is not valid JSON: {e}")
+        except OSError as e:  # file-system errors outside the project's checks (permissions, full disk, ...)
+            return print_error(os_error_text(e))
     return 0
+
+
+def _command(args) -> None:
+    """Run the parsed command."""
+    if args.command == "info":
+        print(_info(args.slide))
+    elif args.command == "build":
+        from data_tools.bundle import LEVEL_SETS, build_bundle, read_metadata
+
+        label_map = json.loads(args.label_map) if args.label_map else None
+        if label_map is not None:
+            _check_label_map(label_map)
+        out = build_bundle(args.slide, args.out, annotations_path=args.annotations,
+                           level_sets=args.levels or LEVEL_SETS, tile_size=args.tile_size,
+                           magnification_range=args.magnification_range, label_map=label_map,
+                           overwrite=args.overwrite, progress=not args.quiet,
+                           region=args.region if args.region is not None else args.region_group,
+                           region_margin=args.region_margin, storage=args.storage,
+                           share_background=not args.keep_all_tiles,
+                           band_bytes=None if args.band_mb is None else int(args.band_mb * 2**20))
+        meta = read_metadata(out)
+        print(f"wrote {out}: {len(meta['levels'])} levels"
+              + (f", region {meta['region']['box']} of the slide" if meta.get("region") else ""))
+        print(_info(str(out)))
+    elif args.command == "synth":
+        from data_tools.synth import make_dataset
+
+        ds = make_dataset(args.out_dir, n_slides=args.slides, size=(args.size, args.size), seed=args.seed,
+                          tile_size=args.tile_size, tissue=args.tissue, progress=not args.quiet,
+                          tumour_xmls=args.tumour_xml, negatives=args.negatives)
+        print(f"wrote {Path(args.out_dir) / 'dataset.json'}: {len(ds['train'])} train, {len(ds['test'])} test "
+              f"bundles in {ds['seconds']:.0f} s (pixels synthetic, geometry real CAMELYON16)")
+        for s in ds["slides"]:
+            print(f"  {s['name']}: tumour {100 * s['tumour_fraction']:.1f} % of the canvas, "
+                  f"{s['finest_views_ge50']}/{s['finest_views']} finest views >= 50 % tumour, "
+                  f"mean RGB tumour {s['tumour_mean_rgb']} vs normal {s['normal_tissue_mean_rgb']}")
+    elif args.command == "c16":
+        from data_tools.c16 import make_c16_dataset
+
+        ds = make_c16_dataset(args.out, annotations=args.annotations, patches=args.patches, small=args.small,
+                              downsample=args.downsample, names=args.slides, n_tumour=args.tumour_slides,
+                              n_normal=args.normal_slides, seed=args.seed, test_fraction=args.test_fraction,
+                              features=args.features, progress=not args.quiet, workers=args.jobs)
+        sc = ds["scale"]
+        print(f"wrote {Path(args.out) / 'dataset.json'}: {len(ds['train'])} train, {len(ds['test'])} test slides "
+              f"at {sc['mpp']:.3g} um/px (CAMELYON16 level 0 / {sc['downsample_from_camelyon16_level0']:g}); "
+              f"geometry real CAMELYON16, pixels real PCam patches arranged by histojax (not scanned slides); "
+              f"{ds['seconds_this_run']:.0f} s this run")
+    elif args.command == "synth-large":
+        from data_tools.synth_large import make_large_slide
+
+        prov = make_large_slide(args.out, size=args.size, tissue_fraction=args.tissue_fraction, seed=args.seed,
+                                progress=not args.quiet)
+        print(f"wrote {args.out}: {args.size}×{args.size} px, {prov['tiff_bytes'] / 2**20:.1f} MiB, "
+              f"tissue {100 * prov['tissue_fraction']:.1f} %, tumour {100 * prov['tumour_fraction']:.2f} % "
+              f"of the canvas, in {prov['seconds']:.0f} s (pixels synthetic, geometry real CAMELYON16)")
+    elif args.command in ("features", "import-features"):
+        from data_tools.features.cli import run as _run_feature_command
+
+        _run_feature_command(args)
 
 
 if __name__ == "__main__":

@@ -26,6 +26,7 @@ from xml.etree.ElementTree import ParseError
 
 import defusedxml
 import defusedxml.ElementTree as SafeET
+import numpy as np
 import shapely
 from shapely.geometry import MultiPolygon, Polygon, box, mapping
 
@@ -35,6 +36,8 @@ __all__ = [
     "DEFAULT_LABEL_MAP",
     "LABELS",
     "MAX_ANNOTATION_BYTES",
+    "MAX_COORDINATE",
+    "MAX_REPAIR_CROSSINGS",
     "Annotations",
     "annotations_to_geojson",
     "load_annotations",
@@ -44,6 +47,8 @@ __all__ = [
 
 LABELS = ("tumour", "exclusion", "tissue", "ignore")
 MAX_ANNOTATION_BYTES = 512 * 1024 * 1024  # refuse larger annotation files
+MAX_COORDINATE = 2.0**31  # level-0 px: coordinates beyond ±2**31 are refused (no slide is that large)
+MAX_REPAIR_CROSSINGS = 50_000  # an invalid polygon whose edges cross more often than this is refused
 
 DEFAULT_LABEL_MAP: dict[str, str] = {
     **{k: "tumour" for k in ("metastasis", "metastases", "tumor", "tumour", "_0", "_1", "carcinoma")},
@@ -133,6 +138,9 @@ def _polygon(path, what: str, shell, holes, notes: dict[str, list[str]]) -> list
                 raise AnnotationError(path, f"{what}: non-numeric coordinate {p!r}")
             if not (math.isfinite(x) and math.isfinite(y)):
                 raise AnnotationError(path, f"{what}: non-finite coordinate ({x}, {y})")
+            if abs(x) > MAX_COORDINATE or abs(y) > MAX_COORDINATE:
+                raise AnnotationError(path, f"{what}: coordinate ({x:g}, {y:g}) is beyond ±2^31 level-0 px, "
+                                      "outside any slide (wrong units?)")
             pts.append((float(x), float(y)))
         if len(pts) > 1 and pts[0] == pts[-1]:
             pts.pop()
@@ -140,7 +148,7 @@ def _polygon(path, what: str, shell, holes, notes: dict[str, list[str]]) -> list
             raise AnnotationError(path, f"{what}: a ring has {len(pts)} vertices, at least 3 needed")
         rings.append(pts)
     poly = Polygon(rings[0], rings[1:])
-    pieces = [poly] if poly.is_valid else _polygonal_parts(shapely.make_valid(poly))
+    pieces = [poly] if poly.is_valid else _repair(path, what, poly, rings)
     pieces = [g for g in pieces if g.area > 0]
     if not pieces:
         notes["dropped"].append(what)
@@ -149,9 +157,44 @@ def _polygon(path, what: str, shell, holes, notes: dict[str, list[str]]) -> list
     return pieces
 
 
+def _edge_crossings_over(rings: list[list[tuple[float, float]]], limit: int) -> bool:
+    """Whether the edges of ``rings`` (vertex lists, not closed) meet each other (edges sharing a vertex
+    of the ring excepted) at more than ``limit`` pairs. Bounded work: edges are queried against an STR
+    tree in chunks that grow while they find little and stop as soon as ``limit`` is passed."""
+    starts = np.concatenate([np.asarray(r, dtype=np.float64) for r in rings])
+    ends = np.concatenate([np.roll(np.asarray(r, dtype=np.float64), -1, axis=0) for r in rings])
+    ring_of = np.concatenate([np.full(len(r), i) for i, r in enumerate(rings)])
+    pos = np.concatenate([np.arange(len(r)) for r in rings])
+    size = np.concatenate([np.full(len(r), len(r)) for r in rings])
+    edges = shapely.linestrings(np.stack([starts, ends], axis=1))
+    tree = shapely.STRtree(edges)
+    count, first, chunk = 0, 0, 1
+    while first < len(edges):
+        rows = np.arange(first, min(len(edges), first + chunk))
+        a, b = tree.query(edges[rows], predicate="intersects")
+        a = rows[a]
+        gap = np.abs(pos[a] - pos[b])
+        neighbours = (ring_of[a] == ring_of[b]) & ((gap <= 1) | (gap == size[a] - 1))
+        count += int(np.count_nonzero((b > a) & ~neighbours))
+        if count > limit:
+            return True
+        first += chunk
+        chunk = chunk * 2 if len(a) <= 8 * len(rows) else max(1, chunk // 2)
+    return False
+
+
+def _repair(path, what: str, poly: Polygon, rings) -> list[Polygon]:
+    """Valid pieces of an invalid polygon: ``make_valid(method="structure")`` (the area its rings enclose,
+    holes subtracted), whose time grows with the edge crossings; more than MAX_REPAIR_CROSSINGS refused."""
+    if _edge_crossings_over(rings, MAX_REPAIR_CROSSINGS):
+        raise AnnotationError(path, f"{what}: {sum(map(len, rings))} vertices whose edges cross each other more "
+                              f"than {MAX_REPAIR_CROSSINGS:,} times; too tangled to repair, redraw or simplify it")
+    return _polygonal_parts(shapely.make_valid(poly, method="structure", keep_collapsed=False))
+
+
 def _finish(path, items: list[tuple[str, list[Polygon]]], notes: dict[str, list[str]]):
     """Warn once per file about repaired / dropped polygons; refuse a file without any polygon."""
-    for key, problem in (("repaired", "invalid (self-intersecting) polygon(s) repaired with make_valid"),
+    for key, problem in (("repaired", "invalid (self-intersecting) polygon(s) repaired with make_valid(method='structure')"),
                          ("dropped", "zero-area polygon(s) dropped")):
         if notes[key]:
             names = ", ".join(notes[key][:10]) + (", ..." if len(notes[key]) > 10 else "")
@@ -387,9 +430,10 @@ def load_annotations(
         )
 
     exclusion = _union(by_label["exclusion"])
-    tumour = shapely.difference(_union(by_label["tumour"]), exclusion)
+    tumour = _union(by_label["tumour"])
     tissue = _union(by_label["tissue"])
     if slide_size is not None:
+        had_tumour = not shapely.difference(tumour, exclusion).is_empty
         w, h = slide_size
         frame = box(0, 0, w, h)
         outside = sum(not frame.contains(p) for label in LABELS for p in by_label[label])
@@ -397,10 +441,11 @@ def load_annotations(
             warnings.warn(
                 f"{source}: {outside} polygon(s) extend beyond the slide {w}x{h}; clipped to it", stacklevel=2
             )
-        had_tumour = not tumour.is_empty
         tumour, exclusion, tissue = (shapely.intersection(g, frame) for g in (tumour, exclusion, tissue))
-        if had_tumour and _as_multipolygon(tumour).is_empty:
-            raise AnnotationError(path, f"annotation lies outside the slide {w}x{h}")
+    # subtracted after clipping, from the very exclusion returned: tumour and exclusion never overlap
+    tumour = shapely.difference(tumour, exclusion)
+    if slide_size is not None and had_tumour and _as_multipolygon(tumour).is_empty:
+        raise AnnotationError(path, f"annotation lies outside the slide {w}x{h}")
     return Annotations(
         tumour=_as_multipolygon(tumour),
         exclusion=_as_multipolygon(exclusion),

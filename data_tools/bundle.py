@@ -18,6 +18,9 @@ SHA-256 is recorded and checked on load.
 """
 from __future__ import annotations
 
+import contextlib
+import errno
+import glob
 import hashlib
 import json
 import math
@@ -276,11 +279,6 @@ def build_bundle(
     than 256 MiB on the device). ``share_background=False`` keeps every tile of a tiled bundle (exactly
     the dense pixels); ``band_bytes`` bounds the RGB bytes of one band (default 96 MiB).
     """
-    from data_tools.annotations import annotations_to_geojson, load_annotations
-    from data_tools.masks import rasterize, tissue_mask
-    from data_tools.slides import MAX_DECODE_BYTES, open_slide
-    import shapely.geometry
-
     slide_path, out_dir = Path(slide_path), Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise BundleError(out_dir, "already exists; pass overwrite=True (--overwrite) to replace it")
@@ -292,9 +290,45 @@ def build_bundle(
     level_sets = tuple(sorted(set(int(n) for n in level_sets)))
     if storage not in STORAGES:
         raise BundleError(out_dir, f"storage must be one of {STORAGES}, got {storage!r}")
-    out_dir.parent.mkdir(parents=True, exist_ok=True)
-    tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
-    tmp.mkdir()
+    if not math.isfinite(region_margin):
+        raise BundleError(out_dir, f"region margin {region_margin} must be a finite number of level-0 px")
+    if band_bytes is not None and not band_bytes > 0:
+        raise BundleError(out_dir, f"band bytes {band_bytes} must be a positive number")
+    for parent in out_dir.parents:
+        if parent.exists() and not parent.is_dir():
+            raise BundleError(out_dir, f"cannot create the bundle here: {parent} is a file, not a folder")
+    try:
+        out_dir.parent.mkdir(parents=True, exist_ok=True)
+        lock = build_lock(out_dir)
+        lock.__enter__()
+    except OSError as e:
+        raise BundleError(out_dir, f"cannot create the bundle here ({e.strerror or e})") from None
+    try:
+        if out_dir.exists() and not overwrite:  # checked again under the lock: another build may have finished
+            raise BundleError(out_dir, "already exists; pass overwrite=True (--overwrite) to replace it")
+        remove_stale_builds(out_dir)
+        tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
+        tmp.mkdir()
+        _build_into(tmp, slide_path, out_dir, annotations_path, level_sets, tile_size, magnification_range, label_map,
+                    progress, max_decode_bytes, region, region_margin, storage, share_background, band_bytes)
+        return out_dir
+    except OSError as e:
+        raise BundleError(out_dir, f"cannot write the bundle ({e.strerror or e}"
+                          + (f": {e.filename}" if e.filename else "") + ")") from None
+    finally:
+        lock.__exit__(None, None, None)
+
+
+def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, level_sets, tile_size, magnification_range,
+                label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
+                band_bytes) -> None:
+    """The body of :func:`build_bundle`: write the bundle into ``tmp`` and rename it to ``out_dir`` (called
+    with the build lock held); ``tmp`` is removed on any error."""
+    from data_tools.annotations import annotations_to_geojson, load_annotations
+    from data_tools.masks import rasterize, tissue_mask
+    from data_tools.slides import MAX_DECODE_BYTES, open_slide
+    import shapely.geometry
+
     try:
         with open_slide(slide_path) as reader:
             width0, height0 = reader.dimensions
@@ -430,10 +464,66 @@ def build_bundle(
             shutil.rmtree(old, ignore_errors=True)
         else:
             tmp.rename(out_dir)
-        return out_dir
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
+
+
+def _lock_path(out_dir: Path) -> Path:
+    return out_dir.parent / f".{out_dir.name}.lock"
+
+
+@contextlib.contextmanager
+def build_lock(out_dir):
+    """Hold an exclusive ``fcntl.flock`` on the hidden file ``.NAME.lock`` beside ``out_dir`` while building it,
+    so concurrent builds of one bundle (processes sharing a cache) run one after another. The holder removes
+    the lock file when done; a waiter that then holds a removed file opens the new one. The kernel drops the
+    lock of a killed process. Filesystems without ``flock`` are built on unlocked."""
+    import fcntl
+
+    path = _lock_path(Path(out_dir))
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            try:
+                fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            except BlockingIOError:
+                warnings.warn(f"{out_dir}: another process is building it; waiting for it to finish", stacklevel=3)
+                fcntl.flock(fd, fcntl.LOCK_EX)
+        except OSError as e:
+            if isinstance(e, BlockingIOError) or e.errno not in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                os.close(fd)
+                raise
+            break  # no locking on this filesystem
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            break
+        os.close(fd)  # the previous holder removed this lock file: take the new one
+    try:
+        yield path
+    finally:
+        try:
+            os.unlink(path)
+        except OSError:
+            pass
+        os.close(fd)
+
+
+def remove_stale_builds(out_dir) -> list[Path]:
+    """Remove the hidden ``.NAME.tmp-*`` / ``.NAME.old-*`` folders beside ``out_dir`` left by builds that were
+    killed (call it holding :func:`build_lock`: every live build of ``out_dir`` holds it, so any such folder
+    belongs to a dead one). Returns the folders removed."""
+    out_dir = Path(out_dir)
+    stale = [p for kind in ("tmp", "old") for p in out_dir.parent.glob(f".{glob.escape(out_dir.name)}.{kind}-*")]
+    for p in stale:
+        if p.is_dir() and not p.is_symlink():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+    return stale
 
 
 @dataclass(frozen=True)
@@ -513,9 +603,10 @@ def _load_tiled(path: Path, lv: dict, metadata: dict, verify: bool, kind: str):
     return TiledLevel(pool=pool, index=index, height=int(lv["height"]), width=int(lv["width"]), kind=kind)
 
 
-def load_bundle(path, verify: bool = True, levels: list[int] | None = None) -> Bundle:
+def load_bundle(path, verify: bool = True, levels: list[int] | None = None, mmap: bool = False) -> Bundle:
     """Load the bundle at ``path`` (host numpy arrays); ``levels`` selects bundle level indices
-    (finest first, as in the metadata; default all). Checksums are verified unless ``verify=False``."""
+    (finest first, as in the metadata; default all). Checksums are verified unless ``verify=False``.
+    ``mmap=True`` memory-maps the dense level arrays (read-only) instead of reading them into memory."""
     path = Path(path)
     metadata = read_metadata(path)
     chosen = range(len(metadata["levels"])) if levels is None else levels
@@ -526,11 +617,13 @@ def load_bundle(path, verify: bool = True, levels: list[int] | None = None) -> B
             pixels.append(_load_tiled(path, lv, metadata, verify, "pixels"))
             tumour.append(_load_tiled(path, lv, metadata, verify, "tumour"))
             continue
-        pixels.append(_load_array(path, lv["pixels"], metadata, verify))
-        tumour.append(_load_array(path, lv["tumour"], metadata, verify))
-        if pixels[-1].shape != (lv["height"], lv["width"], 3) or pixels[-1].dtype != np.uint8 \
-                or tumour[-1].shape != (lv["height"], lv["width"]):
-            raise BundleError(path / lv["pixels"], "array shape or dtype disagrees with metadata; rebuild the bundle")
+        pixels.append(_load_array(path, lv["pixels"], metadata, verify, mmap=mmap))
+        tumour.append(_load_array(path, lv["tumour"], metadata, verify, mmap=mmap))
+        for name, array, shape in ((lv["pixels"], pixels[-1], (lv["height"], lv["width"], 3)),
+                                   (lv["tumour"], tumour[-1], (lv["height"], lv["width"]))):
+            if array.shape != shape or array.dtype != np.uint8:
+                raise BundleError(path / name, f"array {array.shape} {array.dtype} disagrees with the metadata "
+                                  f"({shape} uint8); rebuild the bundle")
     tissue = _load_array(path, metadata["tissue"]["file"], metadata, verify)
     region = None
     if metadata.get("region") and metadata["region"].get("mask"):
@@ -539,4 +632,5 @@ def load_bundle(path, verify: bool = True, levels: list[int] | None = None) -> B
 
 
 __all__ = ["Bundle", "FORMAT_VERSION", "LEVEL_SETS", "STORAGES", "TILED_FORMAT_VERSION", "level_device_bytes", "Region", "build_bundle", "bundle_downsamples", "resolve_region",
-           "default_magnification_range", "level_downsamples", "level_size", "load_bundle", "read_metadata"]
+           "default_magnification_range", "level_downsamples", "level_size", "load_bundle", "read_metadata",
+           "build_lock", "remove_stale_builds"]

@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import warnings
 from dataclasses import dataclass
 
 import numpy as np
@@ -92,6 +93,7 @@ class SlideReader:
     def __init__(self, path: str | os.PathLike):
         self.path = os.fspath(path)
         self._tif: tifffile.TiffFile | None = None
+        self._warned_missing: set[int] = set()
         _check_signature(self.path)
         try:
             self._tif = tifffile.TiffFile(self.path)
@@ -259,6 +261,10 @@ class SlideReader:
         rgb = _to_rgb(pixels, page)
         if missing.any():
             rgb[missing] = 255
+            if level not in self._warned_missing:
+                self._warned_missing.add(level)
+                warnings.warn(f"{self.path}: level {level} has tiles/strips absent from the file (offset or byte "
+                              "count 0); they are read as white", stacklevel=3)
         return rgb
 
 
@@ -358,6 +364,11 @@ def _validate_page(path: str, level: int, page: tifffile.TiffPage) -> None:
         seg_px = tw * th
     else:
         seg_px = w * min(page.rowsperstrip or h, h)
+    expected = _segment_count(page)
+    if len(page.dataoffsets) != expected or len(page.databytecounts) != len(page.dataoffsets):
+        raise SlideError(path, f"level {level}: {len(page.dataoffsets)} tile/strip offsets and "
+                         f"{len(page.databytecounts)} byte counts, expected {expected} (offsets tag missing or short): "
+                         "file is corrupt")
     samples = page.samplesperpixel
     dtype = page.dtype
     what = f"level {level}: {samples} samples / dtype {dtype} / photometric {page.photometric.name}"
@@ -381,6 +392,16 @@ def _validate_page(path: str, level: int, page: tifffile.TiffPage) -> None:
         raise SlideError(
             path, f"level {level}: one tile/strip would decode to more than {MAX_DECODE_BYTES} bytes"
         )
+
+
+def _segment_count(page: tifffile.TiffPage) -> int:
+    """Number of tiles (or strips) of a page, all sample planes: what its offsets tag must list."""
+    w, h = page.imagewidth, page.imagelength
+    if page.is_tiled:
+        seg_w, seg_h = page.tilewidth, page.tilelength
+    else:
+        seg_w, seg_h = w, min(page.rowsperstrip or h, h)
+    return page.shaped[0] * math.ceil(w / seg_w) * math.ceil(h / seg_h)
 
 
 def _level_infos(pages: list[tifffile.TiffPage]) -> list[LevelInfo]:

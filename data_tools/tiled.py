@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 BAND_BYTES = 96 * 2**20        # RGB bytes of one band of a level (plus the source window and copies)
+MAX_WINDOW_BYTES = 64 * 2**20  # source RGB bytes read at once for a band (a band is read in strips below it)
 SATURATED_FRACTION = 0.005     # a tile with more saturated px than this (sampled) counts as tissue
 HEADER_BYTES = 128             # fixed .npy header size of the appended pools (rewritten at the end)
 AUTO_TILED_BYTES = 256 * 2**20  # storage="auto": tiled when the dense levels would need more device bytes
@@ -196,17 +197,21 @@ def _bands(reader, d: float, size, tile_size: int, reg, band_bytes: int):
     rx0 = 0.0 if reg is None else reg.box[0] / ds
     ry0 = 0.0 if reg is None else reg.box[1] / ds
     per_band = max(1, band_bytes // (gw * t * t * 3))
+    # level rows per source window: a coarse level made from a much finer source (a single-level TIFF) is
+    # read in strips of at most MAX_WINDOW_BYTES of source RGB, never as one window over the whole source
+    step = max(1, int(MAX_WINDOW_BYTES // ((cw * scale + 2) * max(scale, 1.0) * 3)))
     for b0 in range(0, gh, per_band):
         r0, r1 = b0 * t, min(height, (b0 + per_band) * t)
         band = np.full((r1 - r0, gw * t, 3), 255, dtype=np.uint8)
         rows = min(r1, ch) - r0
-        if rows > 0:
-            sy0 = ry0 + r0 * scale
+        for a0 in range(0, max(rows, 0), step):
+            n = min(step, rows - a0)
+            sy0 = ry0 + (r0 + a0) * scale
             wx0, wy0 = math.floor(rx0), math.floor(sy0)
             wx1 = min(math.ceil(rx0 + cw * scale), reader.levels[src].width)
-            wy1 = min(math.ceil(ry0 + (r0 + rows) * scale), reader.levels[src].height)
+            wy1 = min(math.ceil(ry0 + (r0 + a0 + n) * scale), reader.levels[src].height)
             window = reader.read_region(src, wx0, wy0, wx1 - wx0, wy1 - wy0)
-            band[:rows, :cw] = _resample(window, ds, d, (cw, rows), (rx0 - wx0, sy0 - wy0))
+            band[a0:a0 + n, :cw] = _resample(window, ds, d, (cw, n), (rx0 - wx0, sy0 - wy0))
             del window
         yield r0, r1, band
 
@@ -422,6 +427,6 @@ class TiledLevel:
         return int(totals[self.index].sum())
 
 
-__all__ = ["AUTO_TILED_BYTES", "BAND_BYTES", "PoolWriter", "TiledLevel", "build_tiled_levels", "full_sat_tile",
+__all__ = ["AUTO_TILED_BYTES", "BAND_BYTES", "MAX_WINDOW_BYTES", "PoolWriter", "TiledLevel", "build_tiled_levels", "full_sat_tile",
            "local_sats", "tiled_level_bytes",
            "saturation_threshold", "tumour_band"]

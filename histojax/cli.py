@@ -14,10 +14,12 @@ ids or settings) print one line and exit with status 2; HISTOJAX_DEBUG=1 shows t
 """
 from __future__ import annotations
 
+import argparse
 import importlib
 import os
 import sys
 
+from data_tools.cli_output import OneLineParser, one_line_messages, os_error_text, print_error
 from data_tools.errors import HistojaxDataError
 
 COMMANDS = {
@@ -33,7 +35,12 @@ COMMANDS = {
 def _run(module_name: str, argv: list[str], prog: str = "histojax") -> int:
     module = importlib.import_module(module_name)
     sys.argv[0] = prog  # argparse names the program after it: "histojax train", not "cli.py"
-    result = module.main(argv)
+    original_error = argparse.ArgumentParser.error
+    argparse.ArgumentParser.error = OneLineParser.error  # every subcommand's usage errors: one line, exit 2
+    try:
+        result = module.main(argv)
+    finally:
+        argparse.ArgumentParser.error = original_error
     return int(result or 0)
 
 
@@ -44,30 +51,33 @@ def main(argv=None) -> int:
         print(__doc__)
         return 0 if argv else 2
     command, rest = argv[0], argv[1:]
-    try:
-        if command == "train":
-            algo = "ppo"
-            if "--algo" in rest:
-                i = rest.index("--algo")
-                algo = rest[i + 1] if i + 1 < len(rest) else ""
-                rest = rest[:i] + rest[i + 2:]
-            if algo not in ("ppo", "dqn"):
-                print(f"error: --algo must be ppo or dqn, got {algo!r}", file=sys.stderr)
-                return 2
-            return _run(f"baselines.{algo}", rest, f"histojax train --algo {algo}")
-        if command not in COMMANDS:
-            print(f"error: unknown command {command!r}; one of: {', '.join([*COMMANDS, 'train'])}", file=sys.stderr)
-            return 2
-        module_name, prefix = COMMANDS[command]
-        return _run(module_name, prefix + rest, f"histojax {command}" if not prefix else "histojax")
-    except KeyboardInterrupt:
-        print("interrupted", file=sys.stderr)
-        return 130
-    except (HistojaxDataError, FileNotFoundError, ValueError, TypeError) as e:
-        if os.environ.get("HISTOJAX_DEBUG"):
-            raise
-        print(f"error: {e} (HISTOJAX_DEBUG=1 shows the traceback)", file=sys.stderr)
-        return 2
+    with one_line_messages():
+        try:
+            return _dispatch(command, rest)
+        except KeyboardInterrupt:
+            print("interrupted", file=sys.stderr)
+            return 130
+        except (HistojaxDataError, FileNotFoundError, ValueError, TypeError, OSError) as e:
+            if os.environ.get("HISTOJAX_DEBUG"):
+                raise
+            text = os_error_text(e) if isinstance(e, OSError) else e
+            return print_error(text, " (HISTOJAX_DEBUG=1 shows the traceback)")
+
+
+def _dispatch(command: str, rest: list[str]) -> int:
+    if command == "train":
+        algo = "ppo"
+        if "--algo" in rest:
+            i = rest.index("--algo")
+            algo = rest[i + 1] if i + 1 < len(rest) else ""
+            rest = rest[:i] + rest[i + 2:]
+        if algo not in ("ppo", "dqn"):
+            return print_error(f"--algo must be ppo or dqn, got {algo!r}")
+        return _run(f"baselines.{algo}", rest, f"histojax train --algo {algo}")
+    if command not in COMMANDS:
+        return print_error(f"unknown command {command!r}; one of: {', '.join([*COMMANDS, 'train'])}")
+    module_name, prefix = COMMANDS[command]
+    return _run(module_name, prefix + rest, f"histojax {command}" if not prefix else "histojax")
 
 
 if __name__ == "__main__":

@@ -9,6 +9,19 @@ HistoJAX-Easy-v0    3         100                     4×
 HistoJAX-Medium-v0  5         200                     2×
 HistoJAX-Hard-v0    7         300                     1.59×
 ==================  ========  ======================  ===================
+
+The true-scale CAMELYON16 benchmark (``docs/c16-benchmark.md``; geometry real CAMELYON16, pixels real
+PCam patches arranged by us, not scanned slides) needs a dataset made by ``python -m data_tools c16``:
+``make("HistoJAX-C16-Hard-v0", dataset=DIR, split="train" | "test")`` (or ``$HISTOJAX_C16_DATASET``).
+
+=========================  ========  =====  ==============================================
+id                         levels    steps  task
+=========================  ========  =====  ==============================================
+HistoJAX-C16-Easy-v0       3         100    detection (find a view ≥ 50 % tumour)
+HistoJAX-C16-Medium-v0     5         200    detection
+HistoJAX-C16-Hard-v0       7         300    detection
+HistoJAX-C16-Diagnosis-v0  5         200    classification: declare tumour / no tumour
+=========================  ========  =====  ==============================================
 """
 from __future__ import annotations
 
@@ -19,6 +32,7 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 
 from data_tools.errors import BundleError
 from histojax import modes
@@ -59,6 +73,32 @@ register("HistoJAX-Medium-v0", n_levels=5, max_steps_in_episode=200)
 register("HistoJAX-Hard-v0", n_levels=7, max_steps_in_episode=300)
 
 
+C16_DATASET_VARIABLE = "HISTOJAX_C16_DATASET"
+
+
+def _c16_dataset(spec: dict) -> list[Path]:
+    """The default dataset of the C16 ids: ``$HISTOJAX_C16_DATASET``, else ``cache_dir()/c16``; a clear
+    error naming the command when neither holds a ``dataset.json``."""
+    import os
+
+    from histojax.sample import cache_dir
+
+    given = os.environ.get(C16_DATASET_VARIABLE)
+    folder = Path(given) if given else cache_dir() / "c16"
+    if not (folder / "dataset.json").is_file():
+        raise BundleError(folder, "no C16 dataset here (no dataset.json): the HistoJAX-C16-* ids need one. Make the "
+                          "small one with `python -m data_tools c16 --small --out DIR` (seconds) or the full one with "
+                          "`python -m data_tools c16 --annotations camelyon16_ncrf_train.tar.gz --patches "
+                          "pcam_train_patches.tar.gz --out DIR`, then pass make(id, dataset=DIR) or set "
+                          f"{C16_DATASET_VARIABLE}=DIR")
+    return dataset_slides(folder, spec.get("split", "train"))
+
+
+for _name, _levels, _steps in (("Easy", 3, 100), ("Medium", 5, 200), ("Hard", 7, 300)):
+    register(f"HistoJAX-C16-{_name}-v0", slide=_c16_dataset, n_levels=_levels, max_steps_in_episode=_steps)
+register("HistoJAX-C16-Diagnosis-v0", slide=_c16_dataset, n_levels=5, max_steps_in_episode=200, task="classification")
+
+
 def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES,
          slides=None, slide_weights=None, dataset=None, split: str = "train", labels=None, **overrides):
     """Make ``(env, params)`` for a registered id.
@@ -92,6 +132,51 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     if unknown:
         raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
                         f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
+    slides = _resolve_slides(env_id, spec, slide, slides, dataset, split)
+    feature_obs = modes.obs_mode(spec.get("obs_mode", "pixels")).needs_features
+    features = True if feature_obs or modes.action_mode(spec.get("action_mode", "discrete")).needs_features else None
+    loaded, budget = [], max_device_bytes
+    for path in slides:  # obs_mode="features": the feature-only layout, no pixels on the device
+        arrays, bundle = load_slide(path, spec["n_levels"], verify=verify, max_device_bytes=budget, features=features,
+                                    pixels=not feature_obs)
+        budget -= sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
+        loaded.append((arrays, bundle))
+    tile_sizes = {int(b.metadata["tile_size"]) for _, b in loaded}
+    if len(tile_sizes) != 1:
+        raise ValueError(f"the slides were built with different tile sizes {sorted(tile_sizes)}; rebuild them alike")
+    tile_size = tile_sizes.pop()
+    if spec.get("tile_size", tile_size) != tile_size:
+        raise ValueError(f"bundle {slides[0]} was built with tile size {tile_size}; rebuild it with "
+                         f"--tile-size {spec['tile_size']} or drop the override")
+    if labels is not None:
+        loaded = [(a.replace(slide_label=jnp.int32(_label_of(b, labels))), b) for a, b in loaded]
+    if len(loaded) == 1 and slide_weights is None:
+        arrays = loaded[0][0]
+    else:
+        arrays = stack_slides([a for a, _ in loaded], weights=slide_weights)
+    static = {k: spec[k] for k in STATIC_FIELDS if k in spec}
+    static["tile_size"] = tile_size
+    validate_params({k: spec[k] for k in PARAM_FIELDS if k in spec}, tile_size, where=f"make({env_id!r})")
+    params = EnvParams(slide=arrays, **{k: spec[k] for k in PARAM_FIELDS if k in spec})
+    bundles = tuple(b for _, b in loaded)
+    env = HistoEnv(name=env_id, _default_params=params, _bundle=bundles[0], _bundles=bundles, **static)
+    mode_data = env.action.prepare(env, params, bundles, **mode_settings)  # per-slide tables of a reading mode, once
+    if mode_data is not None:
+        params = params.replace(mode_data=mode_data)
+        env = dataclasses.replace(env, _default_params=params)
+    return env, params
+
+
+def slide_paths(env_id: str, slide=None, slides=None, dataset=None, split: str = "train", **overrides) -> list:
+    """The bundle paths ``make`` would load for these arguments (one for a single slide)."""
+    if env_id not in _REGISTRY:
+        raise ValueError(f"unknown environment id {env_id!r}; registered: {', '.join(_REGISTRY)}")
+    return _resolve_slides(env_id, {**_REGISTRY[env_id], **overrides}, slide, slides, dataset, split)
+
+
+def _resolve_slides(env_id: str, spec: dict, slide, slides, dataset, split: str) -> list:
+    """``slides`` / ``dataset`` / ``slide`` / the id's registered slide or dataset / the sample slide,
+    as a non-empty list of bundle paths."""
     if dataset is not None:
         slides = dataset_slides(dataset, split)
     if slides is not None and slide is not None:
@@ -110,37 +195,44 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
         slides = [slide]
     if not slides:
         raise ValueError("slides= is empty")
-    needs_features = (modes.obs_mode(spec.get("obs_mode", "pixels")).needs_features
-                      or modes.action_mode(spec.get("action_mode", "discrete")).needs_features)
-    features = True if needs_features else None
-    loaded, budget = [], max_device_bytes
-    for path in slides:
-        arrays, bundle = load_slide(path, spec["n_levels"], verify=verify, max_device_bytes=budget, features=features)
-        budget -= sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
-        loaded.append((arrays, bundle))
-    tile_sizes = {int(b.metadata["tile_size"]) for _, b in loaded}
-    if len(tile_sizes) != 1:
-        raise ValueError(f"the slides were built with different tile sizes {sorted(tile_sizes)}; rebuild them alike")
-    tile_size = tile_sizes.pop()
-    if spec.get("tile_size", tile_size) != tile_size:
-        raise ValueError(f"bundle {slides[0]} was built with tile size {tile_size}; rebuild it with "
-                         f"--tile-size {spec['tile_size']} or drop the override")
-    if labels is not None:
-        loaded = [(a.replace(slide_label=jnp.int32(_label_of(b, labels))), b) for a, b in loaded]
-    if len(loaded) == 1 and slide_weights is None:
-        arrays = loaded[0][0]
-    else:
-        arrays = stack_slides([a for a, _ in loaded], weights=slide_weights)
-    static = {k: spec[k] for k in STATIC_FIELDS if k in spec}
-    static["tile_size"] = tile_size
-    params = EnvParams(slide=arrays, **{k: spec[k] for k in PARAM_FIELDS if k in spec})
-    bundles = tuple(b for _, b in loaded)
-    env = HistoEnv(name=env_id, _default_params=params, _bundle=bundles[0], _bundles=bundles, **static)
-    mode_data = env.action.prepare(env, params, bundles, **mode_settings)  # per-slide tables of a reading mode, once
-    if mode_data is not None:
-        params = params.replace(mode_data=mode_data)
-        env = dataclasses.replace(env, _default_params=params)
-    return env, params
+    return list(slides)
+
+
+MAX_STRIDE_PX = 2**30  # a move of stride × tile_size px plus a position (< 2**30 px) stays inside int32
+
+
+def validate_params(values: dict, tile_size: int, where: str = "make") -> None:
+    """Check ``EnvParams`` values given to ``make`` (Python or array scalars; arrays element-wise):
+    ``stride`` finite with ``1 <= stride × tile_size <= 2**30`` px (moves cannot wrap int32),
+    ``max_steps_in_episode`` an integer in ``[1, 2**31 - 2]``, ``success_threshold`` in ``(0, 1]``,
+    rewards (``step_cost``, ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``diagnosis_reward``)
+    finite, ``random_start`` a bool. Raises ValueError naming the field."""
+    def bad(field, value, rule):
+        raise ValueError(f"{where}: {field}={value!r} {rule}")
+
+    def numbers(field):
+        try:
+            return np.asarray(values[field], dtype=np.float64)
+        except (TypeError, ValueError):
+            bad(field, values[field], "is not a number")
+
+    for field in values:
+        if field == "random_start":
+            v = np.asarray(values[field])
+            if v.dtype != bool and not (np.issubdtype(v.dtype, np.integer) and np.isin(v, (0, 1)).all()):
+                bad(field, values[field], "must be True or False")
+            continue
+        v = numbers(field)
+        if not np.isfinite(v).all():
+            bad(field, values[field], "must be finite")
+        if field == "stride" and not ((v * tile_size >= 1).all() and (v * tile_size <= MAX_STRIDE_PX).all()):
+            bad(field, values[field], f"must be > 0 view widths with 1 <= stride × tile_size ({tile_size}) <= 2**30 px "
+                "(a move of stride × tile_size px must stay inside int32)")
+        if field == "max_steps_in_episode" and not ((v == np.round(v)).all() and (v >= 1).all()
+                                                    and (v <= 2**31 - 2).all()):
+            bad(field, values[field], "must be a whole number of steps in [1, 2**31 - 2]")
+        if field == "success_threshold" and not ((v > 0).all() and (v <= 1).all()):
+            bad(field, values[field], "must be a tumour fraction in (0, 1]")
 
 
 def dataset_slides(folder, split: str = "train") -> list[Path]:

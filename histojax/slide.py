@@ -23,12 +23,18 @@ A *tiled* slide (a bundle built with ``storage="tiled"``, for gigapixel slides) 
   * ``sat_pool`` — ``(M, T+1, T+1)`` uint32 local summed-area tables of each tile's tumour mask, and
     ``sat_index`` ``(G,)`` int32 laid out like ``tile_index``.
 A view then covers at most 2 × 2 tiles (see :mod:`histojax.views`).
+
+**Feature-only layout** (``load_slide(..., pixels=False)``, what ``make`` does for ``obs_mode="features"``):
+no pixels reach the device at all — ``pixels`` and ``tile_pool`` / ``tile_index`` are ``None``; only the
+tumour tables (``tumour_sat``, or ``sat_pool`` / ``sat_index`` with the grid geometry), the start
+weights and the feature grid are there.
 """
 from __future__ import annotations
 
 import math
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
@@ -72,8 +78,13 @@ class SlideArrays:
 
     @property
     def is_tiled(self) -> bool:
-        """True for a tiled slide (a static Python bool)."""
-        return self.tile_pool is not None
+        """True for a tiled slide (a static Python bool); also without pixels (feature-only layout)."""
+        return self.sat_pool is not None
+
+    @property
+    def has_pixels(self) -> bool:
+        """False in the feature-only layout (a static Python bool)."""
+        return self.pixels is not None or self.tile_pool is not None
 
     @property
     def num_slides(self) -> int:
@@ -110,25 +121,28 @@ def stack_slides(slides: list[SlideArrays], weights=None) -> SlideArrays:
     if all(with_features) and len({int(s.features.shape[1]) for s in slides}) != 1:
         raise ValueError("feature grids of a dataset's slides must have the same dimension")
     tiled = [s.is_tiled for s in slides]
+    if len({s.has_pixels for s in slides}) != 1:
+        raise ValueError("either every slide of a dataset has its pixels on the device or none has")
+    pix = slides[0].has_pixels
     if any(tiled) and not all(tiled):
         raise ValueError("a dataset cannot mix dense and tiled slides: rebuild them all with the same "
                          "--storage (dense or tiled)")
     if all(tiled):
         pixel_base = sat_base = np.zeros(len(slides), np.int64)  # level_offset / sat_offset unused
-        tile_base = np.cumsum([0] + [int(s.tile_pool.shape[0]) for s in slides[:-1]])
+        tile_base = np.cumsum([0] + [int(s.tile_pool.shape[0]) if pix else 0 for s in slides[:-1]])
         satp_base = np.cumsum([0] + [int(s.sat_pool.shape[0]) for s in slides[:-1]])
-        index_base = np.cumsum([0] + [int(s.tile_index.shape[0]) for s in slides[:-1]])
-        t = int(slides[0].tile_pool.shape[1])
-        n_tiles = tile_base[-1] + slides[-1].tile_pool.shape[0]
+        index_base = np.cumsum([0] + [int(s.sat_index.shape[0]) for s in slides[:-1]])
+        t = int(slides[0].sat_pool.shape[1]) - 1
+        n_tiles = tile_base[-1] + (slides[-1].tile_pool.shape[0] if pix else 0)
         n_sats = satp_base[-1] + slides[-1].sat_pool.shape[0]
-        if any(int(s.tile_pool.shape[1]) != t for s in slides):
+        if any(int(s.sat_pool.shape[1]) != t + 1 for s in slides):
             raise ValueError("tiled slides of a dataset need the same tile size")
-        if n_tiles * t * t >= 2**31 or n_sats * (t + 1) ** 2 >= 2**31 or index_base[-1] + slides[-1].tile_index.shape[0] >= 2**31:
+        if n_tiles * t * t >= 2**31 or n_sats * (t + 1) ** 2 >= 2**31 or index_base[-1] + slides[-1].sat_index.shape[0] >= 2**31:
             raise ValueError("the dataset holds too many tiles for int32 indexing; use fewer slides or levels")
     else:
-        pixel_base = np.cumsum([0] + [int(s.pixels.shape[0]) for s in slides[:-1]])
+        pixel_base = np.cumsum([0] + [int(s.pixels.shape[0]) if pix else 0 for s in slides[:-1]])
         sat_base = np.cumsum([0] + [int(s.tumour_sat.shape[0]) for s in slides[:-1]])
-        if pixel_base[-1] + slides[-1].pixels.shape[0] >= 2**31 or sat_base[-1] + slides[-1].tumour_sat.shape[0] >= 2**31:
+        if pixel_base[-1] + (slides[-1].pixels.shape[0] if pix else 0) >= 2**31 or sat_base[-1] + slides[-1].tumour_sat.shape[0] >= 2**31:
             raise ValueError("the dataset holds too many pixels for int32 indexing; use fewer slides or levels")
     h = max(int(s.start_logits.shape[0]) for s in slides)
     w = max(int(s.start_logits.shape[1]) for s in slides)
@@ -139,7 +153,7 @@ def stack_slides(slides: list[SlideArrays], weights=None) -> SlideArrays:
     if weights.shape != (len(slides),) or np.any(weights < 0) or weights.sum() <= 0:
         raise ValueError(f"slide weights must be {len(slides)} non-negative numbers, not all zero")
     stacked = dict(
-        pixels=None if all(tiled) else jnp.concatenate([s.pixels for s in slides]),
+        pixels=None if all(tiled) or not pix else jnp.concatenate([s.pixels for s in slides]),
         level_offset=jnp.stack([s.level_offset + int(b) for s, b in zip(slides, pixel_base)]),
         level_width=jnp.stack([s.level_width for s in slides]),
         level_height=jnp.stack([s.level_height for s in slides]),
@@ -151,8 +165,8 @@ def stack_slides(slides: list[SlideArrays], weights=None) -> SlideArrays:
     )
     if all(tiled):
         stacked.update(
-            tile_pool=jnp.concatenate([s.tile_pool for s in slides]),
-            tile_index=jnp.concatenate([s.tile_index + int(b) for s, b in zip(slides, tile_base)]),
+            tile_pool=jnp.concatenate([s.tile_pool for s in slides]) if pix else None,
+            tile_index=jnp.concatenate([s.tile_index + int(b) for s, b in zip(slides, tile_base)]) if pix else None,
             tile_offset=jnp.stack([s.tile_offset + int(b) for s, b in zip(slides, index_base)]),
             tile_grid_width=jnp.stack([s.tile_grid_width for s in slides]),
             sat_pool=jnp.concatenate([s.sat_pool for s in slides]),
@@ -220,26 +234,29 @@ def select_levels(metadata: dict, n_levels: int, where="") -> list[int]:
     return chosen
 
 
-def tiled_slide_arrays(bundle: Bundle, tile_size: int) -> SlideArrays:
+def tiled_slide_arrays(bundle: Bundle, tile_size: int, pixels: bool = True) -> SlideArrays:
     """Pack the tiled levels of a loaded bundle (levels chosen, coarsest first) into a tiled ``SlideArrays``:
-    pools concatenated with each level's indices shifted by its pool base."""
+    pools concatenated with each level's indices shifted by its pool base. ``pixels=False``: the
+    feature-only layout (no RGB pool or tile index; the pool files are never read)."""
     n = len(bundle.pixels)
     tile_base = np.cumsum([0] + [int(p.pool.shape[0]) for p in bundle.pixels[:-1]])
     sat_base = np.cumsum([0] + [int(m.pool.shape[0]) for m in bundle.tumour[:-1]])
     grid_sizes = np.array([p.index.size for p in bundle.pixels], dtype=np.int64)
-    n_tiles = sum(int(p.pool.shape[0]) for p in bundle.pixels)
+    n_tiles = sum(int(p.pool.shape[0]) for p in bundle.pixels) if pixels else 0
     n_sats = sum(int(m.pool.shape[0]) for m in bundle.tumour)
     if (n_tiles + 1) * tile_size**2 >= 2**31 or n_sats * (tile_size + 1) ** 2 >= 2**31 or grid_sizes.sum() >= 2**31:
         raise BundleError(bundle.path, f"{n_tiles:,} tiles are too many for int32 indexing of the pool px in one "
                           "slide (at most 2**31 px, 6 GiB of RGB); use fewer or coarser levels")
     t = tile_size
-    tile_pool = np.empty((n_tiles + 1, t, t, 3), np.uint8)
-    tile_pool[-1] = 255  # the spare tile the view's row slices may run into
+    tile_pool = np.empty((n_tiles + 1, t, t, 3), np.uint8) if pixels else None
     sat_pool = np.empty((n_sats, t + 1, t + 1), np.uint32)
     for p, m, b, c in zip(bundle.pixels, bundle.tumour, tile_base, sat_base):
-        tile_pool[b:b + p.pool.shape[0]] = p.pool
+        if pixels:
+            tile_pool[b:b + p.pool.shape[0]] = p.pool
         sat_pool[c:c + m.pool.shape[0]] = m.pool
-    if n_tiles and np.ptp(tile_pool[0].reshape(-1, 3), axis=0).any():
+    if pixels:
+        tile_pool[-1] = 255  # the spare tile the view's row slices may run into
+    if pixels and n_tiles and np.ptp(tile_pool[0].reshape(-1, 3), axis=0).any():
         raise BundleError(bundle.path, "tile 0 of a tiled bundle must be the blank tile; rebuild the bundle")
     widths = np.array([p.width for p in bundle.pixels], dtype=np.int32)
     heights = np.array([p.height for p in bundle.pixels], dtype=np.int32)
@@ -251,9 +268,9 @@ def tiled_slide_arrays(bundle: Bundle, tile_size: int) -> SlideArrays:
         downsample=jnp.asarray(downsample, dtype=jnp.float32),
         start_logits=jnp.asarray(start_logits(bundle.tissue, tile_size, getattr(bundle, "region", None))),
         slide_label=jnp.asarray(slide_label_from_metadata(bundle.metadata), dtype=jnp.int32),
-        tile_pool=jnp.asarray(tile_pool),
+        tile_pool=jnp.asarray(tile_pool) if pixels else None,
         tile_index=jnp.asarray(np.concatenate([p.index.ravel() + int(b) for p, b in zip(bundle.pixels, tile_base)])
-                               .astype(np.int32)),
+                               .astype(np.int32)) if pixels else None,
         tile_offset=jnp.asarray(np.concatenate([[0], np.cumsum(grid_sizes)[:-1]]), dtype=jnp.int32),
         tile_grid_width=jnp.asarray([p.index.shape[1] for p in bundle.pixels], dtype=jnp.int32),
         sat_pool=jnp.asarray(sat_pool),
@@ -262,27 +279,58 @@ def tiled_slide_arrays(bundle: Bundle, tile_size: int) -> SlideArrays:
     )
 
 
-def slide_arrays_from_bundle(bundle: Bundle, tile_size: int) -> SlideArrays:
+def _release_pages(array) -> None:
+    """Drop the pages a memory-mapped array (``np.load(..., mmap_mode="r")``) has read from this process's
+    resident memory (they stay readable from the file); other arrays are left alone."""
+    import mmap
+
+    m = getattr(array, "_mmap", None)
+    if m is not None and hasattr(m, "madvise") and hasattr(mmap, "MADV_DONTNEED"):
+        m.madvise(mmap.MADV_DONTNEED)
+
+
+def slide_arrays_from_bundle(bundle: Bundle, tile_size: int, pixels: bool = True) -> SlideArrays:
     """Pack host arrays of a loaded bundle (levels already chosen, coarsest first) into ``SlideArrays``
-    (dense, or tiled for a tiled bundle)."""
+    (dense, or tiled for a tiled bundle); ``pixels=False`` leaves the pixels off (feature-only layout)."""
     if bundle.metadata.get("storage") == "tiled":
-        return tiled_slide_arrays(bundle, tile_size)
+        return tiled_slide_arrays(bundle, tile_size, pixels)
     widths = np.array([p.shape[1] for p in bundle.pixels], dtype=np.int64)
     heights = np.array([p.shape[0] for p in bundle.pixels], dtype=np.int64)
     offsets = np.concatenate([[0], np.cumsum(widths * heights)[:-1]])
-    sats = [summed_area_table(t) for t in bundle.tumour]
-    sat_sizes = np.array([s.size for s in sats], dtype=np.int64)
+    sat_sizes = (widths + 1) * (heights + 1)
     sat_offsets = np.concatenate([[0], np.cumsum(sat_sizes)[:-1]])
     if widths @ heights >= 2**31 or sat_sizes.sum() >= 2**31:
         raise BundleError(bundle.path, "too many pixels for int32 indexing in one slide; use fewer or coarser levels")
     downsample = [lv["downsample"] for lv in bundle.metadata["levels"]]
+    # one host buffer per flat array, filled level by level from the (memory-mapped) bundle arrays, put on
+    # the device and freed before the next: the host peak is one flat array, not several copies of it
+    pixel_array = None
+    if pixels:
+        flat = np.empty((int(widths @ heights), 3), np.uint8)
+        for p, o in zip(bundle.pixels, offsets):
+            flat[o:o + p.shape[0] * p.shape[1]] = np.asarray(p).reshape(-1, 3)
+            _release_pages(p)
+        pixel_array = jax.device_put(flat, may_alias=False).block_until_ready()  # a copy: the host buffer can go
+        del flat
+    sat = np.empty(int(sat_sizes.sum()), np.uint32)
+    for t, o, w, h in zip(bundle.tumour, sat_offsets, widths, heights):
+        s = sat[o:o + (h + 1) * (w + 1)].reshape(h + 1, w + 1)
+        s[0], s[:, 0] = 0, 0
+        for a in range(0, h, 256):  # row blocks: temporaries of 256 rows, not of the whole level
+            block = s[1 + a:1 + min(h, a + 256), 1:]
+            np.cumsum(np.asarray(t[a:a + 256]), axis=1, dtype=np.uint32, out=block)  # wraps mod 2**32, as documented
+            np.cumsum(block, axis=0, dtype=np.uint32, out=block)
+            block += s[a, 1:]
+        _release_pages(t)
+    tumour_sat = jax.device_put(sat, may_alias=False).block_until_ready()
+    del sat
     return SlideArrays(
-        pixels=jnp.asarray(np.concatenate([p.reshape(-1, 3) for p in bundle.pixels])),
+        pixels=pixel_array,
         level_offset=jnp.asarray(offsets, dtype=jnp.int32),
         level_width=jnp.asarray(widths, dtype=jnp.int32),
         level_height=jnp.asarray(heights, dtype=jnp.int32),
         downsample=jnp.asarray(downsample, dtype=jnp.float32),
-        tumour_sat=jnp.asarray(np.concatenate([s.ravel() for s in sats]).astype(np.uint32)),  # wraps mod 2**32
+        tumour_sat=tumour_sat,
         sat_offset=jnp.asarray(sat_offsets, dtype=jnp.int32),
         start_logits=jnp.asarray(start_logits(bundle.tissue, tile_size, getattr(bundle, "region", None))),
         slide_label=jnp.asarray(slide_label_from_metadata(bundle.metadata), dtype=jnp.int32),
@@ -296,13 +344,39 @@ def slide_label_from_metadata(metadata: dict) -> int:
     return int(float(ann.get("tumour_area_px") or 0.0) > 0.0)
 
 
+def tumour_table_bytes(level: dict, tile_size: int) -> int:
+    """Device bytes of one bundle level's tumour table alone (no pixels): the tiled SAT pool and its index
+    grid, or the dense level's uint32 summed-area table."""
+    if level.get("storage") == "tiled":
+        gh, gw = level["grid"]
+        return int(level["sat_pool_tiles"]) * (tile_size + 1) ** 2 * 4 + 4 * int(gh) * int(gw)
+    return 4 * (int(level["width"]) + 1) * (int(level["height"]) + 1)
+
+
+def slide_device_bytes(metadata: dict, chosen: list[int], pixels: bool = True, features: bool = False,
+                       where=None) -> int:
+    """Device bytes of bundle levels ``chosen`` (from the metadata, nothing read): pixels and tumour tables
+    (``pixels=False``: tumour tables only), plus the feature grids when ``features``; start weights are
+    small (the coarsest level) and not counted."""
+    t = int(metadata["tile_size"])
+    if pixels:
+        needed = sum(level_device_bytes(metadata["levels"][k]) for k in chosen)
+        if metadata.get("storage") == "tiled":
+            needed += 3 * t ** 2  # the spare tile at the end of the pool
+    else:
+        needed = sum(tumour_table_bytes(metadata["levels"][k], t) for k in chosen)
+    return needed + (feature_bytes(metadata, chosen, where) if features else 0)
+
+
 def load_slide(path, n_levels: int, verify: bool = True,
-               max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES, features=None) -> tuple[SlideArrays, Bundle]:
+               max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES, features=None,
+               pixels: bool = True) -> tuple[SlideArrays, Bundle]:
     """Load the ``n_levels`` zoom levels of the bundle at ``path`` onto the device.
 
     ``features``: ``None`` loads the bundle's feature grid if it has one (``python -m data_tools
     features``), ``True`` requires it (``BundleError`` naming the command to run otherwise),
-    ``False`` skips it.
+    ``False`` skips it. ``pixels=False``: the feature-only layout (no pixels on the device; needs the
+    feature grid).
 
     Refuses, before reading any array, a slide whose levels need more than
     ``max_device_bytes`` (pixels and summed-area tables, see ``device_bytes``; for a tiled bundle the
@@ -314,27 +388,32 @@ def load_slide(path, n_levels: int, verify: bool = True,
     path = Path(path)
     metadata = read_metadata(path)
     chosen = select_levels(metadata, n_levels, path)
-    needed = sum(level_device_bytes(metadata["levels"][k]) for k in chosen)
-    if metadata.get("storage") == "tiled":
-        needed += 3 * int(metadata["tile_size"]) ** 2  # the spare tile at the end of the pool
-    load_features = bool(features) or (features is None and bool(metadata.get("features")))
-    if load_features:
-        needed += feature_bytes(metadata, chosen, path)
+    load_features = bool(features) or (features is None and bool(metadata.get("features"))) or not pixels
+    needed = slide_device_bytes(metadata, chosen, pixels, load_features, path)
     if needed > max_device_bytes:
         finest = metadata["levels"][chosen[-1]]
-        raise BundleError(path, f"{n_levels} levels need {needed:,} bytes on the device (finest level "
-                          f"{finest['width']}×{finest['height']} px), more than max_device_bytes="
-                          f"{max_device_bytes:,}: use fewer levels, build from a coarser finest level, or raise "
-                          "max_device_bytes")
+        what = "pixels, tumour tables" if pixels else "tumour tables"
+        raise BundleError(path, f"{n_levels} levels need {needed:,} bytes on the device ({what}"
+                          f"{' and feature grid' if load_features else ''}; finest level "
+                          f"{finest['width']}×{finest['height']} px), more than what is left of max_device_bytes="
+                          f"{max_device_bytes:,}: "
+                          + ("use obs_mode='features' (no pixels on the device), " if pixels else
+                             "recompute the feature grid with a smaller --dim or larger --stride, ")
+                          + "use fewer slides (split=, slides=) or levels, build from a coarser finest level, or "
+                          "raise max_device_bytes")
     coarsest = len(metadata["levels"]) - 1
     if chosen[0] != coarsest:
         raise BundleError(path, "the scenario's coarsest level is not the bundle's coarsest; rebuild the bundle")
-    bundle = load_bundle(path, verify=verify, levels=chosen)
+    bundle = load_bundle(path, verify=verify, levels=chosen, mmap=True)  # host copies: one flat array at a time
     ordered = Bundle(path=bundle.path, metadata={**metadata, "levels": [metadata["levels"][k] for k in chosen]},
                      pixels=bundle.pixels, tumour=bundle.tumour, tissue=bundle.tissue, region=bundle.region)
-    arrays = slide_arrays_from_bundle(ordered, int(metadata["tile_size"]))
+    arrays = slide_arrays_from_bundle(ordered, int(metadata["tile_size"]), pixels)
     if load_features:
         arrays = with_features(arrays, path, metadata, chosen, verify)
+    allocated = sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
+    if allocated > max_device_bytes:  # what was really put on the device (start weights, labels, ... included)
+        raise BundleError(path, f"{n_levels} levels took {allocated:,} bytes on the device, more than "
+                          f"max_device_bytes={max_device_bytes:,}: use fewer levels or raise max_device_bytes")
     return arrays, ordered
 
 

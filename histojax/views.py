@@ -18,6 +18,9 @@ def view_pixels(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.Array, ti
     """RGB uint8 ``(tile_size, tile_size, 3)`` of level ``z`` at top-left ``(x, y)`` (px of level ``z``).
 
     The caller keeps ``(x, y)`` inside ``[0, W_z - T] × [0, H_z - T]``."""
+    if not slide.has_pixels:
+        raise ValueError("this slide was loaded without pixels (the feature-only layout of obs_mode='features'); "
+                         "make the env with obs_mode='pixels' to see pixels")
     if slide.tile_pool is not None:
         return _tiled_view_pixels(slide, z, x, y, tile_size)
     rows = slide.level_offset[z] + (y + jnp.arange(tile_size)) * slide.level_width[z] + x
@@ -28,7 +31,7 @@ def view_tumour_fraction(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.
     """Fraction in ``[0, 1]`` (float32) of the view's pixels that are tumour, from the summed-area
     table of level ``z``: four lookups, O(1) whatever the view size (uint32 arithmetic modulo
     2**32, exact for any level size; see :mod:`histojax.slide`)."""
-    if slide.tile_pool is not None:
+    if slide.sat_pool is not None:  # tiled (with or without pixels)
         return _tiled_tumour_fraction(slide, z, x, y, tile_size)
     stride = slide.level_width[z] + 1
     base = slide.sat_offset[z]

@@ -17,3 +17,53 @@ def sample_envs():
 
     return {env_id: histojax.make(env_id) for env_id in
             ("HistoJAX-Easy-v0", "HistoJAX-Medium-v0", "HistoJAX-Hard-v0")}
+
+
+@pytest.fixture(scope="session")
+def small_slides(tmp_path_factory):
+    """Bundle paths of 8 small semi-synthetic slides (320 × 256 px, tile 32, Easy levels; a few
+    seconds to build), for the sharding and rotation tests."""
+    from data_tools.synth import make_dataset
+
+    root = tmp_path_factory.mktemp("small-slides")
+    ds = make_dataset(root, n_slides=8, size=(320, 256), seed=0, tile_size=32, level_sets=(3,), progress=False,
+                      previews=False)
+    return [str(root / s["bundle"]) for s in ds["slides"]]
+
+
+def _colour_feature_grid(src, dest=None):
+    """Copy the bundle ``src`` to ``dest`` (None: change ``src`` in place) and give it a cheap 6-d
+    feature grid (mean and std of each view's RGB in [0, 1], one cell per tile) through
+    ``data_tools.features.store``, so ``obs_mode="features"`` can be tested without running the
+    EfficientNet encoder."""
+    import shutil
+    from pathlib import Path
+
+    import numpy as np
+
+    from data_tools.bundle import load_bundle, read_metadata
+    from data_tools.features.store import level_grids, save_array, update_metadata
+
+    dest = Path(src if dest is None else dest)
+    if dest != Path(src):
+        shutil.copytree(src, dest)
+    meta = read_metadata(dest)
+    tile = int(meta["tile_size"])
+    bundle = load_bundle(dest, verify=False)
+    written, levels = [], []
+    for k, (gh, gw) in enumerate(level_grids(meta, tile)):
+        views = np.asarray(bundle.pixels[k][: gh * tile, : gw * tile], np.float32).reshape(gh, tile, gw, tile, 3) / 255
+        grid = np.concatenate([views.mean(axis=(1, 3)), views.std(axis=(1, 3))], -1).astype(np.float32)
+        save_array(dest / f"features_{k:02d}.npy", grid)
+        written.append(f"features_{k:02d}.npy")
+        levels.append({"file": f"features_{k:02d}.npy", "grid": [gh, gw]})
+    update_metadata(dest, {"encoder": "mean-std-rgb (tests)", "dim": 6, "stride": tile, "dtype": "float32",
+                           "projection": None, "levels": levels}, written)
+    return dest
+
+
+@pytest.fixture(scope="session")
+def colour_feature_grid():
+    """``f(src_bundle, dest=None) -> dest``: a copy of a bundle (or the bundle itself) with a 6-d
+    mean/std-RGB feature grid."""
+    return _colour_feature_grid

@@ -48,7 +48,7 @@ def _regex_polygons(path: Path) -> list[tuple[str, str, Polygon]]:
     out = []
     for m in _ANNOTATION_RE.finditer(path.read_text()):
         coords = sorted((int(o), float(x), float(y)) for o, x, y in _COORD_RE.findall(m.group(0)))
-        poly = shapely.make_valid(Polygon([(x, y) for _, x, y in coords]))
+        poly = shapely.make_valid(Polygon([(x, y) for _, x, y in coords]), method="structure", keep_collapsed=False)
         out.append((m.group(2), m.group(3), poly))
     return out
 

@@ -278,16 +278,17 @@ def feature_env(feature_bundle):
 def test_env_observation_equals_encoder_on_the_view(feature_env, feature_bundle):
     from data_tools.features.efficientnet import load_encoder
     from histojax.env import EnvState
-    from histojax.views import view_pixels
 
     env, params = feature_env
+    assert params.slide.pixels is None and params.slide.tile_pool is None  # feature-only layout
     assert env.observation_space(params).shape == (1280,)
     encoder = load_encoder(image_size=None)
     states, views = [], []
     for z, gx, gy in [(0, 0, 0), (1, 2, 1), (2, 7, 5), (2, 3, 2)]:
         s = EnvState(*(jnp.int32(v) for v in (z, gx * TILE, gy * TILE, 0, 0)))
         states.append(s)
-        views.append(np.asarray(view_pixels(params.slide, s.z, s.x, s.y, TILE)))
+        level = env._bundle.pixels[z]  # the host bundle, levels coarsest first as in the env
+        views.append(np.asarray(level[gy * TILE:gy * TILE + TILE, gx * TILE:gx * TILE + TILE]))
     batch = np.zeros((BATCH, TILE, TILE, 3), np.uint8)
     batch[: len(views)] = views
     direct = np.asarray(encoder.embed(batch))[: len(views)]

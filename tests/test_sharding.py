@@ -22,7 +22,6 @@ run in-process.
 from __future__ import annotations
 
 import json
-import os
 import subprocess
 import sys
 from pathlib import Path
@@ -32,6 +31,7 @@ import numpy as np
 import pytest
 
 from baselines import common, dqn, ppo
+from baselines.distributed import cpu_child_env
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = dict(env_id="HistoJAX-Easy-v0", num_envs=8, num_steps=16, total_timesteps=384, update_epochs=1,
@@ -68,10 +68,7 @@ np.savez(out, **saved)
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     out = tmp_path_factory.mktemp("sharding") / "runs.npz"
-    env = {**os.environ, "PYTHONPATH": os.pathsep.join([str(ROOT), os.environ.get("PYTHONPATH", "")]),
-           "XLA_FLAGS": " ".join([os.environ.get("XLA_FLAGS", ""), "--xla_force_host_platform_device_count=4",
-                                  "--xla_backend_optimization_level=0"]).strip(),
-           "JAX_PLATFORMS": "cpu"}
+    env = cpu_child_env(4, fast_compile=True)
     proc = subprocess.run([sys.executable, "-c", CHILD, json.dumps(TINY), str(out)], env=env, cwd=ROOT,
                           capture_output=True, text=True, timeout=900)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]

@@ -1,0 +1,304 @@
+"""Reference results on a slide dataset with a train/test split by slide (the CAMELYON16-geometry
+benchmark): random agent, scripted coarse-to-fine policy, PPO on pixels + position, PPO on
+features (+ position), recurrent PPO; detection success and steps to success on Easy / Medium /
+Hard, diagnosis accuracy on Diagnosis, all on the test split.
+
+    python benchmarks/c16_reference.py --dataset DIR [--steps 262144] [--seeds 2] [--episodes 128]
+                                       [--methods random scripted ppo-pixels ppo-features ppo-rnn]
+                                       [--scenarios Easy Medium Hard Diagnosis] [--out runs/c16-reference]
+                                       [--env NAME=ID] [--env-kwargs NAME=JSON] [--rnn-obs features|pixels]
+
+Scenarios map to env ids ``HistoJAX-C16-{Easy,Medium,Hard,Diagnosis}-v0`` (``--env NAME=ID`` for
+others, ``--env-kwargs NAME=JSON`` for extra ``histojax.make`` settings of one scenario, e.g.
+``--env Diagnosis=HistoJAX-Easy-v0 --env-kwargs 'Diagnosis={"task": "classification"}'`` on a
+dataset without the C16 ids). Every env is made with ``dataset=DIR`` and ``split="train"`` for
+training, ``split="test"`` for evaluation: the test split is one env whose resets draw a test
+slide uniformly, so a success rate is pooled over test slides.
+
+Each trained method runs ``baselines.ppo`` / ``baselines.ppo_rnn`` (``--steps`` env steps per seed,
+one value or one per scenario; ``--seeds`` seeds in one program) on the train split into
+``OUT/<method>-<scenario>/``, then evaluates every seed's **sampled** policy on ``--episodes`` fresh
+test episodes per seed (``baselines.evaluate``; the greedy row is kept in the JSON). Random and
+scripted rows come from the same evaluation on pixels + position. The scripted policy walks toward
+the darkest stain and never declares a diagnosis, so it has no Diagnosis cell. Detection success
+and steps to success count the episodes on test *tumour* slides only (labels from
+``dataset.json``; a normal slide has nothing to find); the JSON keeps the rate over all slides and
+per slide too. Success on
+Diagnosis = a right diagnosis (declaring ends the episode; an episode that never declares counts
+as wrong).
+
+Rows are resumable: every finished cell goes into ``OUT/reference.json`` with its budget, and a
+rerun with the same dataset, env id, settings and budget keeps it (``--redo`` recomputes). The
+table (``OUT/reference.md``) is rewritten after every cell and printed at the end. This is a
+benchmark (hours of CPU at real budgets), never a test.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import sys
+import time
+from pathlib import Path
+
+import jax
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from baselines import common, ppo, ppo_rnn  # noqa: E402
+from baselines.evaluate import evaluate  # noqa: E402
+
+SCENARIOS = ("Easy", "Medium", "Hard", "Diagnosis")
+METHODS = ("random", "scripted", "ppo-pixels", "ppo-features", "ppo-rnn")
+REFERENCE = ("random", "scripted")  # rows of the untrained evaluation
+
+
+def default_env_id(scenario: str) -> str:
+    return f"HistoJAX-C16-{scenario}-v0"
+
+
+def method_settings(method: str, rnn_obs: str) -> dict:
+    """The trainer and observation of a trained ``method``."""
+    if method == "ppo-pixels":
+        return {"trainer": "ppo", "obs": "pixels"}
+    if method == "ppo-features":
+        return {"trainer": "ppo", "obs": "features"}
+    if method == "ppo-rnn":
+        return {"trainer": "ppo_rnn", "obs": rnn_obs}
+    raise ValueError(f"unknown trained method {method!r}")
+
+
+def cell_key(method: str, scenario: str) -> str:
+    return f"{method}/{scenario}"
+
+
+def cell_budget(dataset: Path, env_id: str, env_kwargs: dict, method: str, steps: int, seeds: int,
+                episodes: int, extra: list[str], rnn_obs: str) -> dict:
+    """What a stored cell must match to be kept on a rerun."""
+    budget = {"dataset": str(Path(dataset).resolve()), "env_id": env_id, "env_kwargs": env_kwargs,
+              "episodes": episodes}
+    if method not in REFERENCE:
+        budget.update(steps=steps, seeds=seeds, set=list(extra), **method_settings(method, rnn_obs))
+    return budget
+
+
+def slide_labels(spec: dict) -> dict:
+    """Bundle folder name → 1 (tumour) / 0 (normal) from ``dataset.json``: its ``slides[].label``
+    entries, or its ``labels`` mapping; empty when it has neither (then every slide counts as a
+    tumour slide, as for ``data_tools synth``)."""
+    labels = {Path(s["bundle"]).name: int(s["label"]) for s in spec.get("slides", [])
+              if isinstance(s, dict) and "bundle" in s and "label" in s}
+    if not labels and isinstance(spec.get("labels"), dict):
+        labels = {Path(k).name: int(v) for k, v in spec["labels"].items()}
+    return labels
+
+
+def on_tumour_slides(row: dict, labels: dict) -> dict:
+    """Detection row restricted to the episodes on tumour slides (on a normal slide there is nothing
+    to find): ``success_rate``, ``mean_steps_to_success``, ``episodes``; the row itself when it has
+    no per-slide counts (one slide) or no slide is labelled normal."""
+    by = row.get("by_slide")
+    if not by or not any(labels.get(name, 1) == 0 for name in by):
+        return {k: row[k] for k in ("episodes", "success_rate", "mean_steps_to_success")}
+    keep = [v for name, v in by.items() if labels.get(name, 1) == 1]
+    n, wins = sum(v["episodes"] for v in keep), sum(v["successes"] for v in keep)
+    steps = sum(v["steps_to_success_sum"] for v in keep)
+    return {"episodes": n, "success_rate": wins / n if n else float("nan"),
+            "mean_steps_to_success": steps / wins if wins else float("nan")}
+
+
+def reference_cells(dataset: Path, env_id: str, env_kwargs: dict, episodes: int, seed: int = 0) -> dict:
+    """Random and scripted rows on the test split (pixels + position), ``episodes`` episodes each."""
+    config = {"env_id": env_id, "with_position": True, "action_mode": "discrete", "obs": "pixels", "hidden": 256,
+              "env_kwargs": {**env_kwargs, "dataset": str(dataset), "split": "test"}}
+    t0 = time.perf_counter()
+    rows = evaluate(config, None, num_episodes=episodes, seed=seed)
+    wall = time.perf_counter() - t0
+    return {name: {**row, "wall_s": wall} for name, row in rows.items()}
+
+
+def trained_cell(method: str, dataset: Path, env_id: str, env_kwargs: dict, steps: int, seeds: int, episodes: int,
+                 out: Path, extra: list[str], rnn_obs: str, augment: bool) -> dict:
+    """Train ``method`` on the train split into ``out``, evaluate its sampled (and greedy) policy on
+    the test split; returns the row (``sampled`` / ``greedy`` evaluation rows, training summary)."""
+    settings = method_settings(method, rnn_obs)
+    trainer = ppo if settings["trainer"] == "ppo" else ppo_rnn
+    train_kwargs = {**env_kwargs, "dataset": str(dataset), "split": "train"}
+    if augment and settings["obs"] == "pixels":
+        train_kwargs["augment"] = True
+    argv = ["--env", env_id, "--obs", settings["obs"], "--with-position", "--seeds", str(seeds),
+            "--total-steps", str(steps), "--out", str(out), "--set", f"env_kwargs={json.dumps(train_kwargs)}",
+            "--set", "print_progress=false", *extra]
+    t0 = time.perf_counter()
+    trainer.main(argv)
+    train_wall = time.perf_counter() - t0
+    params, config = common.load_checkpoint(out)
+    config["env_kwargs"] = {**train_kwargs, "split": "test"}
+    config["env_kwargs"].pop("augment", None)
+    t0 = time.perf_counter()
+    rows = evaluate(config, params, num_episodes=episodes, label=settings["trainer"], references=False)
+    summary = json.loads((out / "log.json").read_text())["summary"]
+    return {**rows[f"{settings['trainer']} (sampled)"], "greedy": rows[f"{settings['trainer']} (greedy)"],
+            "train_wall_s": train_wall, "eval_wall_s": time.perf_counter() - t0,
+            "train_success_final": summary["final"]["success"],
+            "train_steps_per_s": summary["env_steps_per_second_all_seeds"],
+            "run": str(out)}
+
+
+def total_wall(cells: dict) -> float:
+    """Seconds spent on the cells: training + evaluation of trained cells, and each scenario's one
+    evaluation of the reference policies (random and scripted share it)."""
+    trained = sum(c["train_wall_s"] + c["eval_wall_s"] for k, c in cells.items() if k.split("/")[0] not in REFERENCE)
+    reference = {}
+    for k, c in cells.items():
+        if k.split("/")[0] in REFERENCE:
+            reference[k.split("/")[1]] = c["wall_s"]
+    return trained + sum(reference.values())
+
+
+def _pct(v) -> str:
+    return "–" if v is None or v != v else f"{v:.1%}"
+
+
+def _num(v) -> str:
+    return "–" if v is None or v != v else f"{v:.1f}"
+
+
+def markdown(cells: dict, methods: list[str], scenarios: list[str], meta: dict) -> str:
+    """The reference table: one row per method; per detection scenario the test-split success and
+    mean steps to success, for Diagnosis the accuracy and mean steps to the decision."""
+    head = ["method"]
+    for s in scenarios:
+        head += [f"{s} accuracy", f"{s} steps"] if s == "Diagnosis" else [f"{s} success", f"{s} steps to success"]
+    head.append("training wall time")
+    lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
+    for m in methods:
+        row, wall = [m], 0.0
+        for s in scenarios:
+            c = cells.get(cell_key(m, s))
+            if c is None:
+                row += ["n/a" if (m == "scripted" and s == "Diagnosis") else "not run", ""]
+                continue
+            if s == "Diagnosis":
+                row += [_pct(c["success_rate"]), _num(c["mean_length"])]
+            else:
+                d = c.get("tumour_slides", c)
+                row += [_pct(d["success_rate"]), _num(d["mean_steps_to_success"])]
+            wall += c.get("train_wall_s", 0.0)
+        row.append(f"{wall:,.0f} s" if m not in REFERENCE else "–")
+        lines.append("| " + " | ".join(row) + " |")
+    lines += ["", f"Dataset `{meta['dataset']}` (test split: {meta['test_slides']} slides, "
+              f"{meta['test_tumour_slides']} with tumour; train split: {meta['train_slides']}). Detection "
+              f"success counts the episodes on test tumour slides only (a normal slide has nothing to find); "
+              f"{meta['reachable']} Env ids: " + ", ".join(f"{s} `{meta['env_ids'][s]}`" for s in scenarios) + ".",
+              f"Budget per trained cell: {meta['steps']} env steps per seed × {meta['seeds']} seed(s); "
+              f"{meta['episodes']} test episodes per seed (per policy for random / scripted). Trained rows: the "
+              f"sampled policy pooled over seeds. Steps: mean episode length of the successful episodes "
+              f"(Diagnosis: of all episodes, i.e. steps to a decision or the step limit).",
+              f"Machine: {platform.machine()}, {jax.device_count()} {jax.devices()[0].platform} device(s), "
+              f"JAX {jax.__version__}. Total wall time of the cells: {meta['wall_s']:,.0f} s."]
+    return "\n".join(lines)
+
+
+def parse_pairs(items: list[str], what: str) -> dict:
+    out = {}
+    for item in items:
+        k, sep, v = item.partition("=")
+        if not sep or k not in SCENARIOS:
+            raise SystemExit(f"{what} takes SCENARIO=VALUE with SCENARIO one of {', '.join(SCENARIOS)}; got {item!r}")
+        out[k] = v
+    return out
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--dataset", required=True, help="dataset folder with dataset.json (train/test split by slide)")
+    p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
+    p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
+    p.add_argument("--steps", type=int, nargs="+", default=[262_144],
+                   help="env steps per seed of each trained cell: one value, or one per scenario")
+    p.add_argument("--seeds", type=int, default=2)
+    p.add_argument("--episodes", type=int, default=128, help="test episodes per seed (per policy for the references)")
+    p.add_argument("--env", action="append", default=[], metavar="SCENARIO=ID", help="env id of a scenario")
+    p.add_argument("--env-kwargs", action="append", default=[], metavar="SCENARIO=JSON",
+                   help="extra histojax.make settings of a scenario (JSON object)")
+    p.add_argument("--rnn-obs", default="features", choices=("features", "pixels"),
+                   help="observation of the recurrent PPO (with the view position)")
+    p.add_argument("--no-augment", action="store_true", help="train pixel policies without dihedral view augmentation")
+    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="passed to every trainer")
+    p.add_argument("--out", default="runs/c16-reference")
+    p.add_argument("--redo", action="store_true", help="recompute cells already in OUT/reference.json")
+    args = p.parse_args(argv)
+    if len(args.steps) not in (1, len(args.scenarios)):
+        p.error("give one --steps value, or one per scenario")
+    steps = dict(zip(args.scenarios, args.steps * len(args.scenarios) if len(args.steps) == 1 else args.steps))
+    env_ids = {s: default_env_id(s) for s in args.scenarios} | parse_pairs(args.env, "--env")
+    try:
+        env_kwargs = {s: json.loads(v) for s, v in parse_pairs(args.env_kwargs, "--env-kwargs").items()}
+    except json.JSONDecodeError as e:
+        raise SystemExit(f"--env-kwargs: not a JSON object ({e})") from None
+    dataset = Path(args.dataset)
+    try:
+        spec = json.loads((dataset / "dataset.json").read_text())
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"--dataset {dataset}: cannot read dataset.json ({e})") from None
+    if not spec.get("train") or not spec.get("test"):
+        raise SystemExit(f"--dataset {dataset}: dataset.json needs non-empty 'train' and 'test' lists")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    store = out / "reference.json"
+    cells = json.loads(store.read_text()).get("cells", {}) if store.exists() and not args.redo else {}
+    extra = [a for s in args.set for a in ("--set", s)]
+    labels = slide_labels(spec)
+    test_names = [Path(t).name for t in spec["test"]]
+    tumour_test = [n for n in test_names if labels.get(n, 1) == 1]
+    views = {Path(s["bundle"]).name: s["finest_views_ge50"] for s in spec.get("slides", [])
+             if isinstance(s, dict) and "finest_views_ge50" in s and "bundle" in s}
+    reachable = (f"{sum(views.get(n, 0) > 0 for n in tumour_test)} of the {len(tumour_test)} test tumour slides "
+                 f"have a finest-level view ≥ 50 % tumour on the bundle's grid (dataset.json "
+                 f"`finest_views_ge50`)." if views else "")
+    meta = {"dataset": str(dataset), "train_slides": len(spec["train"]), "test_slides": len(spec["test"]),
+            "test_tumour_slides": len(tumour_test), "reachable": reachable,
+            "env_ids": env_ids, "steps": ", ".join(f"{s} {steps[s]:,}" for s in args.scenarios),
+            "seeds": args.seeds, "episodes": args.episodes, "wall_s": 0.0}
+
+    def save():
+        meta["wall_s"] = total_wall(cells)
+        store.write_text(json.dumps({"meta": meta, "cells": cells}, indent=1, default=float))
+        text = markdown(cells, args.methods, args.scenarios, meta)
+        (out / "reference.md").write_text(text + "\n")
+        return text
+
+    for s in args.scenarios:
+        kw = env_kwargs.get(s, {})
+        for m in args.methods:
+            if m == "scripted" and s == "Diagnosis":
+                continue
+            budget = cell_budget(dataset, env_ids[s], kw, m, steps[s], args.seeds, args.episodes, args.set, args.rnn_obs)
+            key = cell_key(m, s)
+            if key in cells and cells[key].get("budget") == budget:
+                print(f"kept {key} from {store}")
+                continue
+            print(f"\n=== {key} ({env_ids[s]}) ===", flush=True)
+            if m in REFERENCE:
+                rows = reference_cells(dataset, env_ids[s], kw, args.episodes)
+                for ref in REFERENCE:
+                    if ref in rows and ref in args.methods and not (ref == "scripted" and s == "Diagnosis"):
+                        cells[cell_key(ref, s)] = {**rows[ref], "tumour_slides": on_tumour_slides(rows[ref], labels),
+                                                   "budget": cell_budget(
+                            dataset, env_ids[s], kw, ref, steps[s], args.seeds, args.episodes, args.set, args.rnn_obs)}
+            else:
+                run = out / f"{m}-{s.lower()}"
+                c = trained_cell(m, dataset, env_ids[s], kw, steps[s], args.seeds, args.episodes, run, extra,
+                                 args.rnn_obs, not args.no_augment)
+                cells[key] = {**c, "tumour_slides": on_tumour_slides(c, labels), "budget": budget}
+            save()
+    text = save()
+    print("\n" + text)
+    print(f"\nwrote {out}/reference.md, reference.json")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,325 @@
+"""The true-scale CAMELYON16 benchmark dataset (``python -m data_tools c16``).
+
+GEOMETRY IS REAL CAMELYON16 (NCRF polygons, every tumour at its true size relative to the tissue and
+the view), PIXELS ARE REAL PatchCamelyon PATCHES ARRANGED BY US (a mosaic, see
+:mod:`data_tools.c16_mosaic`), NOT SCANNED SLIDES. Geometry: :mod:`data_tools.c16_layout`.
+
+Layout of ``OUT``: ``slides/NAME.tif`` (pyramidal JPEG-tiled TIFF) with ``NAME.geojson`` (tumour and
+tissue, output px) and ``NAME.provenance.json`` beside it, ``bundles/NAME/`` (tiled bundles) and
+``dataset.json`` (split, provenance, scale, per-slide figures) written last.
+
+Restartable per slide: a slide whose TIFF, GeoJSON and provenance exist with the same settings is
+not made again, nor its bundle when the bundle's source checksum matches; the TIFF is written to
+``slides/.NAME.tif.tmp-PID`` and renamed, bundles are written by :func:`data_tools.bundle.build_bundle`
+to a hidden temporary sibling. A run holds ``OUT/.c16.lock`` (``flock``, released by the kernel even
+on SIGKILL) and, holding it, first deletes the hidden temporaries a killed run left behind.
+"""
+from __future__ import annotations
+
+import fcntl
+import json
+import math
+import os
+import resource
+import shutil
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from data_tools.bundle import _sha256
+from data_tools.c16_layout import C16_MPP, donor_for, layout
+from data_tools.c16_mosaic import PIXELS_NOTE, Texture, write_slide_tiff
+from data_tools.errors import HistojaxDataError
+from data_tools.pcam_bank import CITATION, load_bank
+
+FULL_DOWNSAMPLE = 8.0    # the full benchmark: CAMELYON16 level 0 / 8 = 1.94 µm/px (see docs/c16-benchmark.md)
+SMALL_DOWNSAMPLE = 32.0  # the small variant (tests, demo): 7.8 µm/px
+COARSEST = 256.0         # the coarsest env level is CAMELYON16 level 0 / 256 for every downsample
+SMALL_SLIDES = ("Tumor_073", "Tumor_079", "Tumor_094", "Normal_017", "Normal_042", "Normal_108")
+TILE_SIZE = 128
+LEVEL_SETS = (3, 5, 7)
+LICENCE = ("tumour and tissue polygons: CAMELYON16 ground truth (CC0 1.0) as converted to JSON by "
+           "baidu-research/NCRF (Apache-2.0); tissue outlines of tumor_001/013/021/031/051/092: pathml-tutorial; "
+           "pixels: PatchCamelyon patches, CC0 1.0 — " + CITATION)
+
+
+def clean_stale(out_dir: Path) -> list[str]:
+    """Delete the hidden temporaries of killed runs (``slides/.*.tmp-*``, ``bundles/.*.tmp-*``,
+    ``bundles/.*.old-*``) and unfinished feature folders; returns their names. Call only while holding
+    the dataset's lock."""
+    removed = []
+    for folder, patterns in (("slides", (".*.tmp-*",)), ("bundles", (".*.tmp-*", ".*.old-*"))):
+        for pattern in patterns:
+            for p in sorted((out_dir / folder).glob(pattern)):
+                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
+                removed.append(f"{folder}/{p.name}")
+    return removed
+
+
+def split_slides(names: list[str], donors: dict[str, str], test_fraction: float, seed: int) -> tuple[list, list]:
+    """Train/test by slide: a tumour slide and the normal slide lending it tissue are one group (same
+    side); groups go to test in a seeded order while the test side holds at most ``test_fraction`` of
+    the tumour slides and of the normal slides; each side keeps at least one of each kind when it can."""
+    parent = {n: n for n in names}
+    for t, d in donors.items():
+        if d in parent:
+            parent[t] = d
+    groups: dict[str, list[str]] = {}
+    for n in names:
+        groups.setdefault(parent[n], []).append(n)
+    keys = sorted(groups)
+    order = [keys[i] for i in np.random.default_rng([seed, 13]).permutation(len(keys))]
+    is_t = lambda n: n.lower().startswith("tumor")  # noqa: E731
+    n_t, n_n = sum(map(is_t, names)), sum(not is_t(n) for n in names)
+    cap_t, cap_n = max(1, math.floor(test_fraction * n_t)), max(1, math.floor(test_fraction * n_n))
+    test: list[str] = []
+    order = [g for g in order if any(map(is_t, groups[g]))] + [g for g in order if not any(map(is_t, groups[g]))]
+    for g in order:
+        tt = sum(map(is_t, test)) + sum(map(is_t, groups[g]))
+        tn = sum(not is_t(n) for n in test) + sum(not is_t(n) for n in groups[g])
+        if tt <= min(cap_t, n_t - 1) and tn <= min(cap_n, n_n - 1):
+            test += groups[g]
+    return [n for n in names if n not in test], [n for n in names if n in test]
+
+
+def _slide_settings(name, downsample, seed, bank, jpeg_quality, sha) -> dict:
+    from data_tools import c16_mosaic
+
+    return {"name": name, "downsample": float(downsample), "seed": int(seed), "bank": bank.source,
+            "bank_patches": len(bank), "jpeg_quality": int(jpeg_quality), "polygons_sha256": sha,
+            "colour_match": c16_mosaic.COLOUR_MATCH}
+
+
+def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, jpeg_quality: int = 85,
+               progress: bool = True) -> dict:
+    """Write ``slides/NAME.tif`` (+ ``.geojson``, ``.provenance.json``) unless a finished one with the same
+    settings is there; returns its provenance."""
+    from data_tools.synth import _geojson
+
+    folder = out_dir / "slides"
+    folder.mkdir(parents=True, exist_ok=True)
+    tiff = folder / f"{slide.name}.tif"
+    prov_file = tiff.with_suffix(".provenance.json")
+    settings = _slide_settings(slide.name, downsample, seed, bank, jpeg_quality, slide.sha256)
+    if prov_file.is_file() and tiff.is_file() and tiff.with_suffix(".geojson").is_file():
+        try:
+            prov = json.loads(prov_file.read_text())
+            if prov.get("settings") == settings:
+                return prov
+        except (OSError, json.JSONDecodeError):
+            pass
+    t0 = time.perf_counter()
+    lay = layout(slide, downsample, donor)
+    texture = Texture(bank, downsample, seed)
+    description = (f"histojax true-scale CAMELYON16 slide {slide.name}. {PIXELS_NOTE} Scale: CAMELYON16 level 0 / "
+                   f"{downsample:g} = {lay.mpp:.4g} um/px. Tissue: {lay.provenance['tissue']}. Seed {seed}.")
+    tmp = folder / f".{tiff.name}.tmp-{os.getpid()}"
+    bar = tqdm(total=-(-lay.size[0] // 256) * -(-lay.size[1] // 256), unit="tile", leave=False,
+               desc=f"{slide.name} ({lay.size[0]}×{lay.size[1]} px)", disable=not progress, mininterval=1.0)
+    try:
+        info = write_slide_tiff(lay, texture, tmp, description, jpeg_quality, progress=bar.update)
+        os.replace(tmp, tiff)
+    finally:
+        bar.close()
+        tmp.unlink(missing_ok=True)
+    summary = f"geometry real CAMELYON16 {slide.name}, pixels real PCam patches arranged by histojax"
+    tiff.with_suffix(".geojson").write_text(json.dumps(_geojson(lay.tumour, lay.tissue, summary)))
+    area = float(lay.size[0]) * lay.size[1]
+    prov = {"settings": settings, "note": PIXELS_NOTE, "licence": LICENCE, "summary": summary, **lay.provenance,
+            "stain_od_factors": texture.stain, "patch_side_px": texture.side, "patch_step_px": texture.step,
+            "tumour_fraction_of_canvas": float(lay.tumour.area) / area,
+            "tumour_fraction_of_tissue": float(lay.tumour.area) / max(float(lay.tissue.area), 1.0),
+            "tissue_fraction_of_canvas": float(lay.tissue.area) / area, **info,
+            "tiff_bytes": tiff.stat().st_size, "tiff_sha256": _sha256(tiff),
+            "seconds": round(time.perf_counter() - t0, 2)}
+    tmp_prov = prov_file.with_name(f".{prov_file.name}.tmp-{os.getpid()}")
+    tmp_prov.write_text(json.dumps(prov, indent=1))
+    os.replace(tmp_prov, prov_file)
+    return prov
+
+
+def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float, progress: bool = False) -> dict:
+    """Build (unless up to date) the tiled bundle ``bundles/NAME`` of a made slide; returns its metadata."""
+    from data_tools.bundle import build_bundle, read_metadata
+
+    bundle = out_dir / "bundles" / name
+    if (bundle / "metadata.json").is_file():
+        try:
+            meta = read_metadata(bundle)
+            if meta["source"]["sha256"] == prov["tiff_sha256"] and meta["magnification_range"] == magnification_range:
+                return meta
+        except (HistojaxDataError, KeyError):
+            pass
+    tiff = out_dir / "slides" / f"{name}.tif"
+    build_bundle(tiff, bundle, annotations_path=tiff.with_suffix(".geojson"), level_sets=LEVEL_SETS,
+                 tile_size=TILE_SIZE, magnification_range=magnification_range, storage="tiled", overwrite=True,
+                 progress=progress)
+    return read_metadata(bundle)
+
+
+def _views_ge(meta: dict, bundle: Path, threshold: float = 0.5) -> int:
+    """Grid-aligned finest-level views with tumour fraction ≥ ``threshold`` (from the SAT pool)."""
+    from data_tools.bundle import load_bundle
+
+    lv = load_bundle(bundle, verify=False, levels=[0]).tumour[0]
+    t = TILE_SIZE
+    counts = np.asarray(lv.pool[:, t, t]).astype(np.int64)[lv.index]
+    return int((counts >= threshold * t * t).sum())
+
+
+def slide_seed(seed: int, name: str) -> int:
+    """The texture seed of slide ``name`` (the same in any subset or order)."""
+    import zlib
+
+    return (int(seed) * 1_000_003 + zlib.crc32(name.encode())) & 0x7FFFFFFF
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(bank, progress: bool) -> None:
+    _WORKER.update(bank=bank, progress=progress)
+
+
+def _one_slide(job) -> dict:
+    """Make one slide and its bundle (skipping what is done); its record for ``dataset.json``."""
+    out_dir, slide, donor, d, seed, jpeg_quality, mag, features = job
+    s0 = time.perf_counter()
+    name = slide.name
+    prov = make_slide(out_dir, slide, donor, d, seed, _WORKER["bank"], jpeg_quality, _WORKER["progress"])
+    meta = make_bundle(out_dir, name, prov, mag)
+    if features and not meta.get("features"):
+        from data_tools.features.grid import compute_features
+
+        compute_features(out_dir / "bundles" / name, progress=_WORKER["progress"])
+    return {
+        "name": name, "bundle": f"bundles/{name}", "tiff": f"slides/{name}.tif",
+        "label": int(slide.is_tumour_slide), "tissue": prov["tissue"],
+        "tissue_donor": prov.get("tissue_donor"), "canvas": prov["canvas"], "mpp": prov["mpp"],
+        "tumour_area_level0_px2": prov["tumour_area_level0_px2"],
+        "tumour_fraction_of_tissue": round(prov["tumour_fraction_of_tissue"], 6),
+        "finest_views_ge50": _views_ge(meta, out_dir / "bundles" / name),
+        "stain_od_factors": prov["stain_od_factors"],
+        "tiff_bytes": prov["tiff_bytes"],
+        "bundle_bytes": sum(f.stat().st_size for f in (out_dir / "bundles" / name).iterdir()),
+        "device_bytes_pixels": int(meta["device_bytes"]),
+        "seconds_slide": prov["seconds"], "seconds_total": round(time.perf_counter() - s0, 2),
+        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+    }
+
+
+class _Lock:
+    def __init__(self, out_dir: Path):
+        out_dir.mkdir(parents=True, exist_ok=True)
+        self.file = open(out_dir / ".c16.lock", "w")
+        try:
+            fcntl.flock(self.file, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except BlockingIOError:
+            self.file.close()
+            raise HistojaxDataError(out_dir, "another `data_tools c16` run is writing this dataset (lock held)") \
+                from None
+        self.file.write(str(os.getpid()))
+        self.file.flush()
+
+    def release(self):
+        fcntl.flock(self.file, fcntl.LOCK_UN)
+        self.file.close()
+
+
+def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = False, downsample: float | None = None,
+                     names=None, n_tumour: int | None = None, n_normal: int | None = None, seed: int = 0,
+                     test_fraction: float = 0.25, features: bool = False, jpeg_quality: int = 85,
+                     progress: bool = True, workers: int = 1) -> dict:
+    """Make (or finish) the true-scale CAMELYON16 dataset in ``out_dir`` (see the module doc).
+
+    ``annotations``: a folder or ``.tar.gz`` of NCRF JSON files (default: the 6 shipped with the
+    package, enough for ``small``). ``patches``: PCam patches (folder, ``.tar.gz`` or bank ``.npz``;
+    default the shipped 1,000-patch bank). ``small``: the 6 slides of ``SMALL_SLIDES`` at downsample
+    32 (seconds). ``downsample``: output px per CAMELYON16 level-0 px (default 8, small 32).
+    ``names`` / ``n_tumour`` / ``n_normal``: a subset (default every slide found). The env's
+    coarsest level is CAMELYON16 level 0 / 256 (``magnification_range = 256 / downsample``).
+    ``workers``: slides made in parallel processes (each holds one slide's memory, ~1.5 GB at D = 8).
+    Returns the ``dataset.json`` dict.
+    """
+    from data_tools.ncrf import SHIPPED_DIR, read_ncrf
+
+    out_dir = Path(out_dir)
+    d = float(downsample or (SMALL_DOWNSAMPLE if small else FULL_DOWNSAMPLE))
+    if not (1 <= d <= 64):
+        raise HistojaxDataError(None, f"--downsample {d} must be between 1 and 64 (CAMELYON16 level-0 px per px)")
+    mag = COARSEST / d
+    slides = read_ncrf(annotations or SHIPPED_DIR, names=list(SMALL_SLIDES) if small and names is None else names)
+    tumours_all = [n for n, s in slides.items() if s.is_tumour_slide]
+    tumours = tumours_all[:n_tumour]
+    normals_all = [n for n, s in slides.items() if not s.is_tumour_slide]
+    normals = normals_all[:n_normal]
+    bank = load_bank(patches)
+    lock = _Lock(out_dir)
+    try:
+        removed = clean_stale(out_dir)
+        if removed and progress:
+            print(f"removed {len(removed)} stale temporaries of an interrupted run: {', '.join(removed[:5])}")
+        todo = tumours + normals
+        donors = {}
+        for n in tumours:
+            from data_tools.c16_layout import OWN_TISSUE
+
+            if n not in OWN_TISSUE:
+                if not normals_all:
+                    raise HistojaxDataError(annotations, f"{n} needs a Normal_* slide to lend it tissue; none given")
+                donors[n] = donor_for(n, tumours_all, normals_all)
+        t0 = time.perf_counter()
+        jobs = [(out_dir, slides[n], slides.get(donors.get(n)), d, slide_seed(seed, n), jpeg_quality, mag, features)
+                for n in todo]
+        bar = tqdm(total=len(todo), desc="c16 slides", unit="slide", disable=not progress)
+        if workers <= 1:
+            _init_worker(bank, progress)
+            records = []
+            for job in jobs:
+                records.append(_one_slide(job))
+                bar.update(1)
+        else:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                                     initializer=_init_worker, initargs=(bank, False)) as pool:
+                records = []
+                for rec in pool.map(_one_slide, jobs):
+                    records.append(rec)
+                    bar.update(1)
+        bar.close()
+        train, test = split_slides(todo, donors, test_fraction, seed)
+        dataset = {
+            "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)",
+            "note": PIXELS_NOTE, "licence": LICENCE,
+            "scale": {"downsample_from_camelyon16_level0": d, "mpp": C16_MPP * d,
+                      "view_px": TILE_SIZE, "view_um": TILE_SIZE * C16_MPP * d,
+                      "magnification_range": mag, "coarsest_downsample_from_level0": COARSEST,
+                      "level_sets": list(LEVEL_SETS)},
+            "variant": "small" if small else "full" if names is None and n_tumour is None and n_normal is None
+            else "subset",
+            "seed": int(seed), "test_fraction": test_fraction, "tile_size": TILE_SIZE,
+            "annotations": str(annotations or SHIPPED_DIR), "patches": bank.source,
+            "split_rule": "by slide; a tumour slide and the normal slide lending it tissue are on the same side; "
+                          f"at most {test_fraction:.0%} of the tumour and of the normal slides in test",
+            "train": [f"bundles/{n}" for n in train], "test": [f"bundles/{n}" for n in test],
+            "labels": {n: int(slides[n].is_tumour_slide) for n in todo},
+            "slides": records,
+            "seconds_this_run": round(time.perf_counter() - t0, 2),
+            "peak_rss_bytes_this_run": max([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024]
+                                           + [r["peak_rss_bytes"] for r in records]),
+            "workers": int(workers),
+        }
+        tmp = out_dir / f".dataset.json.tmp-{os.getpid()}"
+        tmp.write_text(json.dumps(dataset, indent=1))
+        os.replace(tmp, out_dir / "dataset.json")
+        return dataset
+    finally:
+        lock.release()
+
+
+__all__ = ["FULL_DOWNSAMPLE", "SMALL_DOWNSAMPLE", "SMALL_SLIDES", "clean_stale", "make_c16_dataset", "make_slide",
+           "split_slides"]

@@ -1,0 +1,107 @@
+"""One-line messages for the command lines: user errors, warnings and library log records.
+
+A command's stderr is then ``warning: ...`` lines (each once) followed, on a user error, by one
+``error: ...`` line, with no traceback; the exit status of a user error is 2.
+"""
+from __future__ import annotations
+
+import argparse
+import contextlib
+import logging
+import math
+import sys
+import warnings
+
+USER_ERROR = 2
+LOGGERS = ("tifffile", "imagecodecs")  # libraries whose log records would otherwise print free-form lines
+
+
+def one_line(text) -> str:
+    """``text`` with every run of whitespace (newlines included) made one space."""
+    return " ".join(str(text).split())
+
+
+def print_error(error, hint: str = "") -> int:
+    """Print ``error: <error>`` (one line) to stderr; returns the user-error exit status 2."""
+    print(f"error: {one_line(error)}{hint}", file=sys.stderr)
+    return USER_ERROR
+
+
+def os_error_text(e: OSError) -> str:
+    """``FILE: reason`` of an OSError, the way the project's own errors read."""
+    where = e.filename if e.filename is not None else ""
+    return f"{where}: {e.strerror or e}" if where else str(e.strerror or e)
+
+
+class _LogToLine(logging.Handler):
+    def __init__(self, emit):
+        super().__init__(logging.WARNING)
+        self._emit = emit
+
+    def emit(self, record: logging.LogRecord) -> None:
+        self._emit(f"{record.name}: {record.getMessage()}")
+
+
+@contextlib.contextmanager
+def one_line_messages(stream=None):
+    """Within the block, warnings and the log records of ``LOGGERS`` print as one ``warning: ...`` line
+    each on ``stream`` (default stderr), a repeated line only once."""
+    stream = stream or sys.stderr
+    seen: set[str] = set()
+
+    def emit(text) -> None:
+        line = f"warning: {one_line(text)}"
+        if line not in seen:
+            seen.add(line)
+            print(line, file=stream)
+
+    old_show = warnings.showwarning
+    warnings.showwarning = lambda message, *args, **kwargs: emit(message)
+    handler = _LogToLine(emit)
+    loggers = [logging.getLogger(name) for name in LOGGERS]
+    saved = [(lg.propagate, lg.handlers[:]) for lg in loggers]
+    for lg in loggers:
+        lg.handlers, lg.propagate = [handler], False
+    try:
+        yield
+    finally:
+        warnings.showwarning = old_show
+        for lg, (propagate, handlers) in zip(loggers, saved):
+            lg.handlers, lg.propagate = handlers, propagate
+
+
+class OneLineParser(argparse.ArgumentParser):
+    """An ArgumentParser whose usage errors are one ``error: PROG: ...`` line (exit status 2)."""
+
+    def error(self, message):
+        self.exit(USER_ERROR, f"error: {self.prog}: {one_line(message)} (--help shows the options)\n")
+
+
+def finite_float(text: str) -> float:
+    """argparse type: a finite number (``inf`` and ``nan`` refused)."""
+    try:
+        value = float(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a number") from None
+    if not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"{text!r} is not a finite number")
+    return value
+
+
+def positive_float(text: str) -> float:
+    """argparse type: a finite number > 0."""
+    value = finite_float(text)
+    if value <= 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be > 0")
+    return value
+
+
+def positive_int(text: str) -> int:
+    """argparse type: an integer >= 1."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 1")
+    return value

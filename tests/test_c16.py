@@ -1,0 +1,243 @@
+"""The true-scale CAMELYON16 benchmark (``data_tools c16``): the small variant (the package's 6 NCRF files
+and 1,000-patch bank, downsample 32, ~5 s), its registered ids, the feature-only device layout,
+and a generator killed mid-run. Geometry real CAMELYON16, pixels real PCam patches arranged by us."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+import shapely
+
+from data_tools.errors import AnnotationError, BundleError, HistojaxDataError
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory) -> Path:
+    from data_tools.c16 import make_c16_dataset
+
+    out = tmp_path_factory.mktemp("c16") / "small"
+    make_c16_dataset(out, small=True, progress=False)
+    return out
+
+
+def test_dataset_json_split_labels_scale_and_provenance(small):
+    ds = json.loads((small / "dataset.json").read_text())
+    assert ds["variant"] == "small" and ds["scale"]["downsample_from_camelyon16_level0"] == 32
+    assert ds["scale"]["magnification_range"] == 8  # coarsest level: CAMELYON16 level 0 / 256
+    assert "REAL CAMELYON16" in ds["note"] and "NOT A SCANNED SLIDE" in ds["note"]
+    for side in ("train", "test"):
+        names = [Path(b).name for b in ds[side]]
+        assert any(n.startswith("Tumor") for n in names) and any(n.startswith("Normal") for n in names), side
+        assert all((small / b / "metadata.json").is_file() for b in ds[side])
+    assert not set(ds["train"]) & set(ds["test"])
+    by_name = {s["name"]: s for s in ds["slides"]}
+    for s in ds["slides"]:  # a borrowed tissue outline stays on its tumour slide's side
+        if s["tissue_donor"]:
+            side = "test" if f"bundles/{s['name']}" in ds["test"] else "train"
+            assert f"bundles/{s['tissue_donor']}" in ds[side]
+    assert by_name["Tumor_094"]["finest_views_ge50"] > 0 and by_name["Normal_017"]["finest_views_ge50"] == 0
+    assert ds["labels"] == {n: int(n.startswith("Tumor")) for n in by_name}
+    assert not list(small.rglob(".*.tmp-*"))
+
+
+def test_every_tumour_keeps_its_true_size(small):
+    """Tumour area on the slide × downsample² equals the CAMELYON16 area (positive minus holes)."""
+    from data_tools.annotations import load_annotations
+    from data_tools.ncrf import SHIPPED_DIR, read_ncrf
+
+    polygons = read_ncrf(SHIPPED_DIR)
+    for name in ("Tumor_073", "Tumor_079", "Tumor_094"):
+        true_area = shapely.difference(polygons[name].positive, polygons[name].negative).area
+        placed = load_annotations(small / "slides" / f"{name}.geojson").tumour
+        assert placed.area * 32**2 == pytest.approx(true_area, rel=0.01), name
+        tissue = load_annotations(small / "slides" / f"{name}.geojson").tissue
+        assert shapely.difference(placed, tissue).area < 1e-6 * placed.area  # tumour lies on tissue
+
+
+def test_ids_detection_and_diagnosis(small):
+    import histojax
+
+    for env_id, levels in (("HistoJAX-C16-Easy-v0", 3), ("HistoJAX-C16-Medium-v0", 5), ("HistoJAX-C16-Hard-v0", 7),
+                           ("HistoJAX-C16-Diagnosis-v0", 5)):
+        env, params = histojax.make(env_id, dataset=small, split="test", verify=False)
+        assert env.n_levels == levels and params.slide.num_slides == 2
+    assert env.task == "classification" and env.num_actions == 9
+    labels = dict(zip([b.path.name for b in env._bundles], np.asarray(params.slide.slide_label).tolist()))
+    assert labels == {"Tumor_073": 1, "Normal_108": 0}
+
+    @jax.jit
+    def declare_tumour(key, params):
+        _, state = env.reset(key, params)
+        return state.slide_index, env.step(key, state, jnp.int32(8), params)
+
+    index, (obs, state, reward, terminated, *_) = declare_tumour(jax.random.PRNGKey(0), params)
+    assert obs.shape == (128, 128, 3) and bool(terminated)
+    right = labels[env._bundles[int(index)].path.name] == 1
+    assert float(reward) == pytest.approx((1.0 if right else -1.0) - 0.01)
+
+
+def test_no_dataset_is_a_clear_error(monkeypatch, tmp_path):
+    import histojax
+
+    monkeypatch.setenv("HISTOJAX_C16_DATASET", str(tmp_path / "nowhere"))
+    with pytest.raises(BundleError, match="python -m data_tools c16 --small --out DIR"):
+        histojax.make("HistoJAX-C16-Medium-v0")
+
+
+def _random_features(bundle: Path, dim: int = 8) -> None:
+    """A random feature grid (the device layout does not care what the features mean)."""
+    from data_tools.bundle import read_metadata
+    from data_tools.features.store import level_grids, save_array, update_metadata
+
+    meta = read_metadata(bundle)
+    rng = np.random.default_rng(len(bundle.name))
+    levels, written = [], []
+    for k, grid in enumerate(level_grids(meta, 128)):
+        name = f"features_{k:02d}.npy"
+        save_array(bundle / name, rng.standard_normal((*grid, dim)).astype(np.float16))
+        levels.append({"file": name, "grid": list(grid)})
+        written.append(name)
+    update_metadata(bundle, {"encoder": "random-test", "encoder_dim": dim, "image_size": None, "dim": dim,
+                             "stride": 128, "dtype": "float16", "projection": None, "source": "test",
+                             "levels": levels}, written)
+
+
+def test_feature_mode_holds_no_pixels(small, tmp_path):
+    """obs_mode="features": no pixel array on the device, bytes as computed from the metadata, and the
+    same tumour fractions (hence rewards) as pixel mode on the same trajectory."""
+    import shutil
+
+    import histojax
+    from data_tools.bundle import read_metadata
+    from histojax.slide import select_levels, slide_device_bytes
+
+    ds = tmp_path / "ds"
+    shutil.copytree(small, ds)
+    for b in (ds / "bundles").iterdir():
+        _random_features(b)
+    env_f, params_f = histojax.make("HistoJAX-C16-Medium-v0", dataset=ds, split="train", obs_mode="features",
+                                    verify=False)
+    env_p, params_p = histojax.make("HistoJAX-C16-Medium-v0", dataset=ds, split="train", verify=False)
+    s = params_f.slide
+    assert s.pixels is None and s.tile_pool is None and s.tile_index is None and s.features is not None
+    assert params_p.slide.tile_pool is not None
+    leaves = sum(int(a.nbytes) for a in jax.tree.leaves(s))
+    expected = sum(slide_device_bytes(m, select_levels(m, 5), pixels=False, features=True)
+                   for m in (read_metadata(b.path) for b in env_f._bundles))
+    small_arrays = sum(int(a.nbytes) for a in (s.start_logits, s.level_offset, s.level_width, s.level_height,
+                                                s.downsample, s.sat_offset, s.tile_offset, s.tile_grid_width,
+                                                s.feature_offset, s.feature_grid_width, s.feature_grid_height,
+                                                s.feature_stride, s.slide_label, s.slide_logits))
+    assert leaves - small_arrays == expected
+    assert leaves < sum(int(a.nbytes) for a in jax.tree.leaves(params_p.slide))
+    from histojax.views import view_tumour_fraction
+
+    rng = np.random.default_rng(0)
+    for i in range(12):  # the tumour tables agree with pixel mode's, view by view
+        slide = int(rng.integers(2))
+        z = int(rng.integers(5))
+        w, h = (int(a[slide, z]) for a in (s.level_width, s.level_height))
+        x, y = int(rng.integers(w - 127)), int(rng.integers(h - 127))
+        args = (jnp.int32(z), jnp.int32(x), jnp.int32(y), 128)
+        assert float(view_tumour_fraction(s.select(slide), *args)) == \
+            float(view_tumour_fraction(params_p.slide.select(slide), *args))
+    obs, *_ = jax.jit(lambda k, p: env_f.step(k, env_f.reset(k, p)[1], jnp.int32(4), p))(jax.random.PRNGKey(3),
+                                                                                        params_f)
+    assert obs.shape == (8,) and obs.dtype == jnp.float32
+
+
+def test_memory_budget_error_names_what_to_change(small):
+    import histojax
+
+    with pytest.raises(BundleError, match="obs_mode='features'"):
+        histojax.make("HistoJAX-C16-Hard-v0", dataset=small, max_device_bytes=2**20, verify=False)
+
+
+def test_killed_run_leaves_no_temporaries_and_resumes(small, tmp_path):
+    """SIGKILL a generator mid-run; the next run removes what it left and skips the finished slides."""
+    from data_tools.c16 import make_c16_dataset
+
+    out = tmp_path / "killed"
+    (out / "slides").mkdir(parents=True)
+    (out / "bundles").mkdir()
+    (out / "bundles" / ".Old.tmp-deadbeef").mkdir()  # as build_bundle leaves one when killed
+    proc = subprocess.Popen([sys.executable, "-m", "data_tools", "c16", "--small", "--quiet", "--out", str(out)],
+                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 120
+        while not (out / "slides" / "Tumor_073.provenance.json").is_file() and time.time() < deadline:
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait()
+    first = (out / "slides" / "Tumor_073.tif").stat().st_mtime_ns
+    assert not (out / "dataset.json").exists()
+    (out / "slides" / ".Tumor_079.tif.tmp-999999").write_bytes(b"half a tiff")  # whatever the kill hit
+    ds = make_c16_dataset(out, small=True, progress=False)
+    assert (out / "slides" / "Tumor_073.tif").stat().st_mtime_ns == first  # not made again
+    assert not list(out.rglob(".*.tmp-*")) and not list(out.rglob(".*.old-*"))
+    assert ds["train"] == json.loads((small / "dataset.json").read_text())["train"]
+
+
+def test_bad_inputs_name_the_file(tmp_path):
+    from data_tools.c16 import make_c16_dataset
+    from data_tools.ncrf import read_ncrf
+    from data_tools.pcam_bank import load_bank
+
+    bad = tmp_path / "ann"
+    bad.mkdir()
+    (bad / "Tumor_001.json").write_text("{not json")
+    with pytest.raises(AnnotationError, match="Tumor_001.json: not valid NCRF JSON"):
+        read_ncrf(bad)
+    with pytest.raises(AnnotationError, match="no such folder"):
+        read_ncrf(tmp_path / "missing.tar.gz")
+    (tmp_path / "patches" / "0").mkdir(parents=True)
+    with pytest.raises(HistojaxDataError, match="holds no patches labelled 0"):
+        load_bank(tmp_path / "patches")
+    with pytest.raises(HistojaxDataError, match="--downsample 0.5"):
+        make_c16_dataset(tmp_path / "out", small=True, downsample=0.5, progress=False)
+    assert not (tmp_path / "out").exists()
+
+
+def test_shipped_bank_is_small_and_balanced():
+    from data_tools.pcam_bank import SHIPPED_BANK, load_bank
+
+    bank = load_bank()
+    assert len(bank) == 1000 and int(bank.labels.sum()) == 500
+    assert SHIPPED_BANK.stat().st_size < 6 * 2**20
+    assert bank.decode([0]).shape == (1, 96, 96, 3)
+
+
+@pytest.mark.slow
+def test_benchmark_scale_build_of_the_shipped_slides(tmp_path):
+    """The six shipped slides at the full benchmark's scale (downsample 8, ~1 min): true tumour sizes,
+    micro- and macro-metastases findable at the finest level, and the Hard env over all six."""
+    import histojax
+    from data_tools.annotations import load_annotations
+    from data_tools.c16 import SMALL_SLIDES, make_c16_dataset
+    from data_tools.ncrf import SHIPPED_DIR, read_ncrf
+
+    ds = make_c16_dataset(tmp_path / "d8", names=list(SMALL_SLIDES), progress=False, workers=2)
+    assert ds["scale"]["downsample_from_camelyon16_level0"] == 8 and ds["scale"]["magnification_range"] == 32
+    polygons = read_ncrf(SHIPPED_DIR)
+    for rec in ds["slides"]:
+        if rec["label"]:
+            placed = load_annotations(tmp_path / "d8" / "slides" / f"{rec['name']}.geojson").tumour
+            true = shapely.difference(polygons[rec["name"]].positive, polygons[rec["name"]].negative).area
+            assert placed.area * 64 == pytest.approx(true, rel=0.01)
+            assert rec["finest_views_ge50"] > 0, rec["name"]
+        else:
+            assert rec["finest_views_ge50"] == 0
+    env, params = histojax.make("HistoJAX-C16-Hard-v0", dataset=tmp_path / "d8", split="all", verify=False)
+    assert params.slide.num_slides == 6

@@ -90,32 +90,56 @@ def attention_order(table: dict, head: MILClassifier) -> np.ndarray:
     return cells[np.argsort(-att, kind="stable")]
 
 
-def evaluate_reader(tables, labels, head: MILClassifier, orders, budget: float) -> dict:
-    """AUC / accuracy of the head on what the reader (one cell order per slide) reads at ``budget``."""
+def reader_scores(tables, head: MILClassifier, orders, budget: float) -> tuple[np.ndarray, np.ndarray]:
+    """The head's scores ``(B,)`` on what a reader (one cell order per slide) reads at ``budget``, and
+    the fractions read ``(B,)``."""
     reads = [read_cells(t, o, budget) for t, o in zip(tables, orders)]
     x, m = bags(tables, [r[0] for r in reads])
-    scores = head.scores(x, m)
-    return {"fraction_read": float(np.mean([r[1] for r in reads])), "auc": roc_auc(scores, labels),
-            "accuracy": accuracy(scores, labels), "slides": len(labels)}
+    return head.scores(x, m), np.asarray([r[1] for r in reads])
+
+
+def method_scores(head: MILClassifier, tables, budgets=BUDGETS, seeds: int = 5) -> dict:
+    """``{(method, budget): (scores (seeds, B), fractions (seeds, B))}`` of every method on ``tables``."""
+    x, m = bags(tables)
+    out = {("MIL, read everything", 1.0): (head.scores(x, m)[None], np.ones((1, len(tables))))}
+    for b in budgets:
+        runs = [reader_scores(tables, head, [random_order(t, np.random.default_rng(s * 1000 + i))
+                                             for i, t in enumerate(tables)], b) for s in range(seeds)]
+        out[("random reader + MIL", b)] = tuple(np.stack(r) for r in zip(*runs))
+        scores, fractions = reader_scores(tables, head, [attention_order(t, head) for t in tables], b)
+        out[("attention reader + MIL", b)] = (scores[None], fractions[None])
+    return out
+
+
+def rows_from_scores(scores: dict, labels) -> list[dict]:
+    """One row per ``(method, budget)``: mean fraction read, AUC and accuracy (averaged over seeds)."""
+    return [{"method": method, "budget": float(b), "fraction_read": float(f.mean()),
+             "auc": float(np.mean([roc_auc(row, labels) for row in s])),
+             "accuracy": float(np.mean([accuracy(row, labels) for row in s])), "slides": len(labels)}
+            for (method, b), (s, f) in scores.items()]
 
 
 def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400) -> list[dict]:
     """Train the head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``."""
     head = train_mil(*bags(train[0]), train[1], steps=steps)
-    tables, labels = test
-    x, m = bags(tables)
-    full = head.scores(x, m)
-    rows = [{"method": "MIL, read everything", "budget": 1.0, "fraction_read": 1.0, "auc": roc_auc(full, labels),
-             "accuracy": accuracy(full, labels), "slides": len(labels)}]
-    for b in budgets:
-        per_seed = [evaluate_reader(tables, labels, head, [random_order(t, np.random.default_rng(s * 1000 + i))
-                                                           for i, t in enumerate(tables)], b) for s in range(seeds)]
-        rows.append({"method": "random reader + MIL", "budget": b,
-                     **{k: float(np.mean([r[k] for r in per_seed])) for k in ("fraction_read", "auc", "accuracy")},
-                     "slides": len(labels)})
-        rows.append({"method": "attention reader + MIL", "budget": b,
-                     **evaluate_reader(tables, labels, head, [attention_order(t, head) for t in tables], b)})
-    return rows
+    return rows_from_scores(method_scores(head, test[0], budgets, seeds), test[1])
+
+
+def cross_validated_rows(tables, labels, folds: int, budgets=BUDGETS, seeds: int = 5, steps: int = 400) -> list[dict]:
+    """``folds``-fold cross-validation over all slides (for datasets too small for a test split):
+    each slide is scored by a head trained on the other folds; AUC and accuracy of the pooled scores."""
+    labels = np.asarray(labels)
+    fold = np.arange(len(labels)) % folds
+    pooled = {}
+    for k in range(folds):
+        train = [t for t, f in zip(tables, fold) if f != k]
+        head = train_mil(*bags(train), labels[fold != k], steps=steps)
+        part = method_scores(head, [t for t, f in zip(tables, fold) if f == k], budgets, seeds)
+        for key, (s, f) in part.items():
+            prev = pooled.get(key)
+            pooled[key] = (s, f) if prev is None else (np.concatenate([prev[0], s], 1), np.concatenate([prev[1], f], 1))
+    order = np.concatenate([np.flatnonzero(fold == k) for k in range(folds)])
+    return rows_from_scores(pooled, labels[order])
 
 
 def write_csv(rows: list[dict], path) -> Path:
@@ -185,6 +209,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)")
     p.add_argument("--seeds", type=int, default=5, help="random reader orders per slide (default 5)")
     p.add_argument("--steps", type=int, default=400, help="MIL training steps (default 400)")
+    p.add_argument("--folds", type=int, default=0,
+                   help="K-fold cross-validation over all the dataset's slides instead of its train/test split "
+                        "(for small datasets; default 0 = use the split)")
     p.add_argument("--compute-features", metavar="ENCODER", default=None,
                    help="first compute the feature grid of every bundle of the dataset that has none with this "
                         "encoder (e.g. colour-stats; see `python -m data_tools features --help`)")
@@ -197,14 +224,19 @@ def main(argv=None) -> int:
     level = args.glimpse_level
     if args.compute_features:
         compute_missing_features(args.dataset, args.compute_features)
-    train = load_split(args.dataset, "train", args.env, level)
-    test = load_split(args.dataset, "test", args.env, level)
-    rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps)
+    if args.folds:
+        tables, labels = load_split(args.dataset, "all", args.env, level)
+        rows = cross_validated_rows(tables, labels, args.folds, args.budgets, seeds=args.seeds, steps=args.steps)
+        split = f"{len(labels)} slides, {args.folds}-fold cross-validation"
+    else:
+        train = load_split(args.dataset, "train", args.env, level)
+        test = load_split(args.dataset, "test", args.env, level)
+        rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps)
+        split = f"{len(train[1])} train / {len(test[1])} test slides"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     csv_path = write_csv(rows, out / "budget_curve.csv")
-    title = (f"{Path(args.dataset).name}: {len(train[1])} train / {len(test[1])} test slides, "
-             f"glimpse level {level} of {args.env}")
+    title = f"{Path(args.dataset).name}: {split}, glimpse level {level} of {args.env}"
     png = plot(rows, out / "budget_curve.png", title)
     print(f"{'method':28s} {'budget':>6s} {'read':>6s} {'AUC':>6s} {'acc':>6s}")
     for r in rows:

@@ -319,3 +319,17 @@ def test_budget_rows_csv_and_png(tmp_path):
     assert all(r["fraction_read"] <= r["budget"] + 1e-9 and 0 <= r["auc"] <= 1 for r in rows)
     assert write_csv(rows, tmp_path / "c.csv").read_text().count("\n") == len(rows) + 1
     assert plot(rows, tmp_path / "c.png").stat().st_size > 1000
+
+
+def test_cross_validation_scores_every_slide_once():
+    from baselines.budget_curve import cross_validated_rows
+
+    rng = np.random.default_rng(1)
+    labels = np.array([0, 1] * 4)
+    tables = []
+    for y in labels:
+        x = rng.normal(size=(8, 2)).astype(np.float32) + 2.0 * y
+        tables.append({"instances": x, "instance_cell": np.arange(8), "cells": x, "valid": np.ones(8, bool),
+                       "cell_views": np.ones(8, int), "total": 8})
+    rows = cross_validated_rows(tables, labels, folds=4, budgets=(0.5,), seeds=1, steps=20)
+    assert all(r["slides"] == 8 for r in rows) and len(rows) == 3

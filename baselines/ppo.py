@@ -44,7 +44,7 @@ import optax
 from flax.training.train_state import TrainState
 
 from baselines import common, distributed
-from baselines.networks import (ActorCritic, policy_entropy, policy_log_prob, policy_sample,
+from baselines.networks import (ActorCritic, is_discrete, policy_entropy, policy_log_prob, policy_sample,
                                 preprocess_obs)
 from data_tools.cli_output import positive_float
 from histojax.wrappers import LogWrapper
@@ -79,7 +79,7 @@ def make_network(config: dict, env, network_cls=ActorCritic):
     """``network_cls`` (an actor-critic) sized for ``env``'s action space: ``n`` logits for discrete
     actions, the Box size for continuous ones; width ``config["hidden"]``."""
     space = env.action_space()
-    action_dim = space.n if config["action_mode"] == "discrete" else int(np.prod(space.shape))
+    action_dim = space.n if is_discrete(config["action_mode"]) else int(np.prod(space.shape))
     return network_cls(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"])
 
 
@@ -256,7 +256,8 @@ def parse_args(argv=None, defaults=DEFAULTS, description=__doc__):
     p = argparse.ArgumentParser(description=description.split("\n\n")[0])
     p.add_argument("--env", default=defaults["env_id"], help="registered env id")
     p.add_argument("--slide", default=None, help="bundle folder (default: the embedded sample slide)")
-    p.add_argument("--action-mode", default="discrete", choices=("discrete", "continuous"))
+    p.add_argument("--action-mode", default="discrete",
+                   help="discrete | continuous | glimpse[:LEVEL] | zoom_select[:K] (histojax.modes)")
     p.add_argument("--obs", default="pixels", help="pixels | features (an env obs_mode)")
     p.add_argument("--with-position", action="store_true", help="observation dict with the view position")
     p.add_argument("--reward", default=None, help="reward preset (default: the env's, 'dense')")

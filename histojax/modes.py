@@ -280,12 +280,21 @@ OBS_MODES = {"pixels": Pixels, "pixels_float": lambda: Pixels(as_float=True), "f
 
 
 def action_mode(mode) -> ActionMode:
-    """The action mode object for a name in :data:`ACTION_MODES` (or an ``ActionMode`` as it is)."""
+    """The action mode object for a name in :data:`ACTION_MODES` (or an ``ActionMode`` as it is).
+    ``"glimpse:L"`` and ``"zoom_select:K"`` set the glimpse level / the number of children a side
+    (strings, so a trainer's JSON config can name them)."""
     if isinstance(mode, ActionMode):
         return mode
-    if mode not in ACTION_MODES:
-        raise ValueError(f"action_mode must be one of {tuple(ACTION_MODES)}, got {mode!r}")
-    return ACTION_MODES[mode]()
+    name, _, arg = str(mode).partition(":")
+    if name not in ACTION_MODES or (arg and name not in ("glimpse", "zoom_select")):
+        raise ValueError(f"action_mode must be one of {tuple(ACTION_MODES)} (or glimpse:LEVEL, zoom_select:K), "
+                         f"got {mode!r}")
+    obj = ACTION_MODES[name]()
+    if arg:
+        if not arg.isdigit():
+            raise ValueError(f"action_mode {mode!r}: the part after ':' must be a whole number")
+        obj = dataclasses.replace(obj, **{"level" if name == "glimpse" else "k": int(arg)})
+    return obj
 
 
 def obs_mode(mode) -> ObsMode:

@@ -119,10 +119,14 @@ def rows_from_scores(scores: dict, labels) -> list[dict]:
             for (method, b), (s, f) in scores.items()]
 
 
-def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400) -> list[dict]:
-    """Train the head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``."""
+def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, policies=(), dataset=None):
+    """Train the head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``;
+    ``policies``: ``(name, run folder)`` of trained PPO policies, rolled on ``dataset``'s test split."""
     head = train_mil(*bags(train[0]), train[1], steps=steps)
-    return rows_from_scores(method_scores(head, test[0], budgets, seeds), test[1])
+    rows = rows_from_scores(method_scores(head, test[0], budgets, seeds), test[1])
+    for name, run in policies:
+        rows += policy_rows(run, dataset, name, head, test[0], test[1], budgets)
+    return rows
 
 
 def cross_validated_rows(tables, labels, folds: int, budgets=BUDGETS, seeds: int = 5, steps: int = 400) -> list[dict]:
@@ -140,6 +144,88 @@ def cross_validated_rows(tables, labels, folds: int, budgets=BUDGETS, seeds: int
             pooled[key] = (s, f) if prev is None else (np.concatenate([prev[0], s], 1), np.concatenate([prev[1], f], 1))
     order = np.concatenate([np.flatnonzero(fold == k) for k in range(folds)])
     return rows_from_scores(pooled, labels[order])
+
+
+def policy_reads(run, dataset, split: str, budget: float, env_id: str | None = None):
+    """Roll a trained PPO policy (run folder of ``python -m baselines.ppo`` in a ``glimpse`` or
+    ``zoom_select`` mode), greedily, once on every slide of ``split`` at ``budget``. Returns per slide
+    ``(read, own_score, fraction_read)``: the finest tissue views it read (indices into the slide's
+    ``host_tables`` instances), its own tumour score (``p(tumour) / (p(tumour) + p(no tumour))`` of its
+    policy at the step it declared, or at its last step) and the fraction read."""
+    import jax
+    import jax.numpy as jnp
+
+    import histojax
+    from baselines.common import load_checkpoint
+    from baselines.networks import preprocess_obs
+    from baselines.ppo import make_network
+    from histojax.glimpse import with_budget
+
+    params, config = load_checkpoint(run)
+    params = jax.tree.map(lambda a: a[0], params)  # the first seed
+    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "read_budget")}
+    env, env_params = histojax.make(env_id or config["env_id"], dataset=dataset, split=split, auto_reset=False,
+                                    action_mode=config["action_mode"], obs_mode=config.get("obs", "features"),
+                                    with_position=config.get("with_position", False), **kw)
+    env_params = with_budget(env_params, budget)
+    network = make_network(config, env)
+    n_slides = env_params.slide.num_slides
+    steps = int(env_params.max_steps_in_episode)
+    n = env.num_actions
+
+    def episode(index):
+        logits = jnp.where(jnp.arange(n_slides) == index, 0.0, -jnp.inf)
+        p = env_params.replace(slide=env_params.slide.replace(slide_logits=logits)) if n_slides > 1 else env_params
+        obs, state = env.reset(jax.random.key(0), p)
+
+        def body(carry, _):
+            obs, state, done, score, fraction = carry
+            pi, _ = network.apply(params, jax.tree.map(lambda a: a[None], preprocess_obs(obs)))
+            logp = jax.nn.log_softmax(pi[0])
+            action = jnp.argmax(logp)
+            own = jax.nn.sigmoid(logp[n - 1] - logp[n - 2])  # tumour vs no tumour
+            obs2, state2, _, term, trunc, info = env.step(jax.random.key(1), state, action, p)
+            keep = lambda a, b: jax.tree.map(lambda x, y: jnp.where(done, x, y), a, b)  # noqa: E731
+            score = jnp.where(done, score, own)
+            fraction = jnp.where(done, fraction, info["fraction_read"])
+            return (keep(obs, obs2), keep(state, state2), done | term | trunc, score, fraction), None
+
+        carry = (obs, state, jnp.zeros((), bool), jnp.float32(0.5), jnp.float32(0.0))
+        (_, state, _, score, fraction), _ = jax.lax.scan(body, carry, None, steps)
+        return state.memory, score, fraction
+
+    memory, scores, fractions = jax.jit(jax.vmap(episode))(jnp.arange(n_slides))
+    tables = env.action.host_tables(env, env_params, env._bundles) if hasattr(env.action, "host_tables") else None
+    out = []
+    for i, b in enumerate(env._bundles):
+        if tables is not None:  # glimpse: the instances under the revealed cells
+            revealed = np.flatnonzero(np.asarray(memory.revealed[i]))
+            read = np.isin(tables[i]["instance_cell"], revealed)
+        else:  # zoom_select: the finest tissue views seen
+            seen_tables = env_params.mode_data
+            f = env.n_levels - 1
+            start = int(seen_tables.grid_offset[i, f])
+            size = int(seen_tables.grid_width[i, f] * seen_tables.grid_height[i, f])
+            seen = np.asarray(memory.seen[i])[start:start + size]
+            read = seen[np.asarray(seen_tables.tissue[i])[:size]]
+        out.append((np.flatnonzero(read), float(scores[i]), float(fractions[i])))
+    return out
+
+
+def policy_rows(run, dataset, name: str, head: MILClassifier, tables, labels, budgets=BUDGETS) -> list[dict]:
+    """Rows for a trained policy at ``budgets``: its own diagnosis (``name``) and the MIL head on what
+    it read (``name + MIL``)."""
+    rows = []
+    for b in budgets:
+        reads = policy_reads(run, dataset, "test", b)
+        x, m = bags([{**t, "instance_cell": np.arange(len(t["instances"]))} for t in tables], [r[0] for r in reads])
+        fraction = float(np.mean([r[2] for r in reads]))
+        own = np.asarray([r[1] for r in reads])
+        mil = head.scores(x, m)
+        for method, s in ((name, own), (f"{name} reader + MIL", mil)):
+            rows.append({"method": method, "budget": float(b), "fraction_read": fraction, "auc": roc_auc(s, labels),
+                         "accuracy": accuracy(s, labels), "slides": len(labels)})
+    return rows
 
 
 def write_csv(rows: list[dict], path) -> Path:
@@ -212,6 +298,9 @@ def parser() -> argparse.ArgumentParser:
     p.add_argument("--folds", type=int, default=0,
                    help="K-fold cross-validation over all the dataset's slides instead of its train/test split "
                         "(for small datasets; default 0 = use the split)")
+    p.add_argument("--ppo", nargs=2, action="append", default=[], metavar=("NAME", "RUN"),
+                   help="also a trained PPO policy (run folder of `python -m baselines.ppo` in a glimpse or "
+                        "zoom_select mode) on the test split: its own diagnosis and the MIL head on what it read")
     p.add_argument("--compute-features", metavar="ENCODER", default=None,
                    help="first compute the feature grid of every bundle of the dataset that has none with this "
                         "encoder (e.g. colour-stats; see `python -m data_tools features --help`)")
@@ -231,7 +320,8 @@ def main(argv=None) -> int:
     else:
         train = load_split(args.dataset, "train", args.env, level)
         test = load_split(args.dataset, "test", args.env, level)
-        rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps)
+        rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps, policies=args.ppo,
+                           dataset=args.dataset)
         split = f"{len(train[1])} train / {len(test[1])} test slides"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

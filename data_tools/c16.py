@@ -37,7 +37,7 @@ from data_tools.pcam_bank import CITATION, load_bank
 FULL_DOWNSAMPLE = 8.0    # the full benchmark: CAMELYON16 level 0 / 8 = 1.94 µm/px (see docs/c16-benchmark.md)
 SMALL_DOWNSAMPLE = 32.0  # the small variant (tests, demo): 7.8 µm/px
 COARSEST = 256.0         # the coarsest env level is CAMELYON16 level 0 / 256 for every downsample
-SMALL_SLIDES = ("Tumor_073", "Tumor_079", "Tumor_094", "Normal_017", "Normal_042", "Normal_108")
+SMALL_SLIDES = ("Tumor_072", "Tumor_082", "Tumor_094", "Normal_017", "Normal_042", "Normal_108")
 TILE_SIZE = 128
 LEVEL_SETS = (3, 5, 7)
 LICENCE = ("tumour and tissue polygons: CAMELYON16 ground truth (CC0 1.0) as converted to JSON by "

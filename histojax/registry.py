@@ -17,7 +17,7 @@ PCam patches arranged by us, not scanned slides) needs a dataset made by ``pytho
 =========================  ========  =====  ==============================================
 id                         levels    steps  task
 =========================  ========  =====  ==============================================
-HistoJAX-C16-Easy-v0       3         100    detection (find a view ≥ 50 % tumour)
+HistoJAX-C16-Easy-v0       3         100    detection (find a view ≥ 50 % tumour; tumour slides)
 HistoJAX-C16-Medium-v0     5         200    detection
 HistoJAX-C16-Hard-v0       7         300    detection
 HistoJAX-C16-Diagnosis-v0  5         200    classification: declare tumour / no tumour
@@ -46,6 +46,10 @@ STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "rewar
                  "final_observation")
 MODE_SETTINGS = ("read_budget", "track_reading")  # passed to the action mode's prepare (histojax.modes)
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name not in ("slide", "mode_data"))
+# settings of how ``make`` draws a dataset's slides (neither static nor EnvParams):
+# ``tumour_slides_only`` — reset draws only slides with tumour annotated (detection on a dataset that
+# also holds normal slides: a normal slide has nothing to find, so its episodes could only fail)
+DATASET_FIELDS = ("tumour_slides_only",)
 
 
 def register(env_id: str, slide=None, **spec) -> None:
@@ -53,7 +57,7 @@ def register(env_id: str, slide=None, **spec) -> None:
     ``EnvParams`` defaults (``max_steps_in_episode``, …). ``slide`` is the id's default slide when
     ``make`` gets none: a bundle path, or a recipe called with the merged settings that returns
     one (e.g. builds it into the cache on first use); ``None`` means the embedded sample slide."""
-    unknown = set(spec) - set(STATIC_FIELDS) - set(PARAM_FIELDS)
+    unknown = set(spec) - set(STATIC_FIELDS) - set(PARAM_FIELDS) - set(DATASET_FIELDS)
     if unknown:
         raise TypeError(f"unknown scenario settings {sorted(unknown)}")
     _REGISTRY[env_id] = dict(spec)
@@ -95,7 +99,8 @@ def _c16_dataset(spec: dict) -> list[Path]:
 
 
 for _name, _levels, _steps in (("Easy", 3, 100), ("Medium", 5, 200), ("Hard", 7, 300)):
-    register(f"HistoJAX-C16-{_name}-v0", slide=_c16_dataset, n_levels=_levels, max_steps_in_episode=_steps)
+    register(f"HistoJAX-C16-{_name}-v0", slide=_c16_dataset, n_levels=_levels, max_steps_in_episode=_steps,
+             tumour_slides_only=True)
 register("HistoJAX-C16-Diagnosis-v0", slide=_c16_dataset, n_levels=5, max_steps_in_episode=200, task="classification")
 
 
@@ -128,7 +133,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
         raise ValueError(f"unknown environment id {env_id!r}; registered: {', '.join(_REGISTRY)}")
     mode_settings = {k: overrides.pop(k) for k in MODE_SETTINGS if k in overrides}
     spec = {**_REGISTRY[env_id], **overrides}
-    unknown = set(spec) - set(STATIC_FIELDS) - set(PARAM_FIELDS)
+    unknown = set(spec) - set(STATIC_FIELDS) - set(PARAM_FIELDS) - set(DATASET_FIELDS)
     if unknown:
         raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
                         f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
@@ -150,6 +155,8 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
                          f"--tile-size {spec['tile_size']} or drop the override")
     if labels is not None:
         loaded = [(a.replace(slide_label=jnp.int32(_label_of(b, labels))), b) for a, b in loaded]
+    if spec.get("tumour_slides_only") and spec.get("task", "detection") == "detection":
+        slide_weights = _tumour_slide_weights([a for a, _ in loaded], slides, slide_weights)
     if len(loaded) == 1 and slide_weights is None:
         arrays = loaded[0][0]
     else:
@@ -165,6 +172,19 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
         params = params.replace(mode_data=mode_data)
         env = dataclasses.replace(env, _default_params=params)
     return env, params
+
+
+def _tumour_slide_weights(arrays: list, paths: list, weights=None) -> list[float] | None:
+    """``weights`` (default uniform) with the slides that have no tumour annotated set to 0; ``None``
+    for one slide with tumour; ``ValueError`` when no slide has tumour."""
+    has_tumour = [int(a.slide_label) == 1 for a in arrays]
+    if not any(has_tumour):
+        raise ValueError(f"detection needs a slide with tumour annotated; none of the {len(paths)} slides has any "
+                         f"({', '.join(Path(p).name for p in paths[:4])}{', ...' if len(paths) > 4 else ''})")
+    if len(arrays) == 1:
+        return weights
+    base = [1.0] * len(arrays) if weights is None else [float(w) for w in weights]
+    return [w if t else 0.0 for w, t in zip(base, has_tumour)]
 
 
 def slide_paths(env_id: str, slide=None, slides=None, dataset=None, split: str = "train", **overrides) -> list:

@@ -57,7 +57,7 @@ def test_every_tumour_keeps_its_true_size(small):
     from data_tools.ncrf import SHIPPED_DIR, read_ncrf
 
     polygons = read_ncrf(SHIPPED_DIR)
-    for name in ("Tumor_073", "Tumor_079", "Tumor_094"):
+    for name in ("Tumor_072", "Tumor_082", "Tumor_094"):
         true_area = shapely.difference(polygons[name].positive, polygons[name].negative).area
         placed = load_annotations(small / "slides" / f"{name}.geojson").tumour
         assert placed.area * 32**2 == pytest.approx(true_area, rel=0.01), name
@@ -74,7 +74,7 @@ def test_ids_detection_and_diagnosis(small):
         assert env.n_levels == levels and params.slide.num_slides == 2
     assert env.task == "classification" and env.num_actions == 9
     labels = dict(zip([b.path.name for b in env._bundles], np.asarray(params.slide.slide_label).tolist()))
-    assert labels == {"Tumor_073": 1, "Normal_108": 0}
+    assert labels == {"Tumor_072": 1, "Normal_108": 0}
 
     @jax.jit
     def declare_tumour(key, params):
@@ -85,6 +85,24 @@ def test_ids_detection_and_diagnosis(small):
     assert obs.shape == (128, 128, 3) and bool(terminated)
     right = labels[env._bundles[int(index)].path.name] == 1
     assert float(reward) == pytest.approx((1.0 if right else -1.0) - 0.01)
+
+
+def test_detection_draws_tumour_slides_only_and_each_can_succeed(small):
+    """Detection ids never start an episode on a normal slide (nothing to find there), the diagnosis id
+    draws both kinds, and every tumour slide of the small variant has a finest view >= 50 % tumour (so
+    detection can succeed on either side of the split)."""
+    import histojax
+
+    ds = json.loads((small / "dataset.json").read_text())
+    assert all(s["finest_views_ge50"] > 0 for s in ds["slides"] if s["label"] == 1)
+    keys = jax.random.split(jax.random.PRNGKey(1), 256)
+    for env_id, kinds in (("HistoJAX-C16-Easy-v0", {1}), ("HistoJAX-C16-Diagnosis-v0", {0, 1})):
+        env, params = histojax.make(env_id, dataset=small, split="train", verify=False)
+        drawn = np.asarray(jax.vmap(lambda k: env.reset(k, params)[1].slide_index)(keys))
+        labels = np.asarray(params.slide.slide_label)
+        assert set(labels[np.unique(drawn)].tolist()) == kinds, env_id
+    with pytest.raises(ValueError, match="needs a slide with tumour"):
+        histojax.make("HistoJAX-C16-Easy-v0", slide=small / "bundles" / "Normal_017", verify=False)
 
 
 def test_no_dataset_is_a_clear_error(monkeypatch, tmp_path):
@@ -176,16 +194,16 @@ def test_killed_run_leaves_no_temporaries_and_resumes(small, tmp_path):
                             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
         deadline = time.time() + 120
-        while not (out / "slides" / "Tumor_073.provenance.json").is_file() and time.time() < deadline:
+        while not (out / "slides" / "Tumor_072.provenance.json").is_file() and time.time() < deadline:
             time.sleep(0.05)
         proc.send_signal(signal.SIGKILL)
     finally:
         proc.wait()
-    first = (out / "slides" / "Tumor_073.tif").stat().st_mtime_ns
+    first = (out / "slides" / "Tumor_072.tif").stat().st_mtime_ns
     assert not (out / "dataset.json").exists()
-    (out / "slides" / ".Tumor_079.tif.tmp-999999").write_bytes(b"half a tiff")  # whatever the kill hit
+    (out / "slides" / ".Tumor_082.tif.tmp-999999").write_bytes(b"half a tiff")  # whatever the kill hit
     ds = make_c16_dataset(out, small=True, progress=False)
-    assert (out / "slides" / "Tumor_073.tif").stat().st_mtime_ns == first  # not made again
+    assert (out / "slides" / "Tumor_072.tif").stat().st_mtime_ns == first  # not made again
     assert not list(out.rglob(".*.tmp-*")) and not list(out.rglob(".*.old-*"))
     assert ds["train"] == json.loads((small / "dataset.json").read_text())["train"]
 

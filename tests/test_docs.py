@@ -35,8 +35,7 @@ PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 
 # Pages written in parallel on other branches, linked before they are merged. Links to these may
 # dangle ONLY until they land: remove each name from this list when its page exists.
-PENDING_PAGES = {
-}
+PENDING_PAGES: set[str] = set()  # pages linked before they land; every page has landed
 
 _MARK = re.compile(r"<!--\s*docs-check:\s*(run|run-slow)\s*-->")
 

@@ -240,8 +240,8 @@ def write_csv(rows: list[dict], path) -> Path:
 
 
 def plot(rows: list[dict], path, title: str = "") -> Path:
-    """AUC and accuracy against the fraction read (log axis), one line per method (the read-everything
-    ceiling as a dashed line)."""
+    """AUC and accuracy against the fraction read, one line per method (the read-everything ceiling as
+    a dashed line)."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -249,7 +249,7 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, 1, sharex=True)
     methods = list(dict.fromkeys(r["method"] for r in rows))
-    colours = ["#1f4e9c", "#c0392b", "#27ae60", "#8e44ad", "#d35400"]
+    colours = ["#1f4e9c", "#c0392b", "#27ae60", "#8e44ad", "#d35400", "#16a085", "#7f8c8d"]
     for ax, metric in zip(axes, ("auc", "accuracy")):
         for k, name in enumerate(methods):
             pts = sorted((r["fraction_read"], r[metric]) for r in rows if r["method"] == name)
@@ -258,13 +258,13 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
                 continue
             xs, ys = zip(*pts)
             ax.plot(xs, ys, "o-", color=colours[k % len(colours)], linewidth=1.8, markersize=4, label=name)
-        ax.set_xscale("log")
+        ax.set_xlim(-0.02, 1.02)
         ax.set_ylabel(metric.upper() if metric == "auc" else metric)
         ax.set_ylim(0.0, 1.02)
         ax.grid(True, color="#dddddd", linewidth=0.6)
         ax.legend(loc="lower right", fontsize="small", framealpha=0.85)
     axes[-1].set_xlabel("fraction of finest-level tissue views read")
-    axes[-1].set_xticks([0.05, 0.1, 0.2, 0.5, 1.0], ["5 %", "10 %", "20 %", "50 %", "100 %"])
+    axes[-1].set_xticks([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 1.0], ["0", "10 %", "20 %", "30 %", "40 %", "50 %", "100 %"])
     if title:
         fig.suptitle(title, fontsize="medium")
     path = Path(path)

@@ -234,10 +234,11 @@ class HistoEnv(_GymnaxEnvironment):
         state_re = self.reset_state(key_reset, params)
         done = jnp.logical_or(terminated, truncated)
         state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_re, state_st)
-        obs = self.get_obs(state, params)
-        if self.final_observation:
+        if self.final_observation:  # both views, then a select (the last one is info's)
             final = self.get_obs(state_st, params)
-        else:  # one view per step; the key stays, without a wrong view
+            obs = jax.tree.map(lambda a, b: jnp.where(done, a, b), self.get_obs(state_re, params), final)
+        else:  # one view per step, of the state chosen; the key stays, without a wrong view
+            obs = self.get_obs(state, params)
             final = jax.tree.map(lambda a: jnp.zeros((0,), a.dtype), obs)
         return obs, state, reward, terminated, truncated, {**info, "final_observation": final}
 

@@ -331,5 +331,5 @@ def test_cross_validation_scores_every_slide_once():
         x = rng.normal(size=(8, 2)).astype(np.float32) + 2.0 * y
         tables.append({"instances": x, "instance_cell": np.arange(8), "cells": x, "valid": np.ones(8, bool),
                        "cell_views": np.ones(8, int), "total": 8})
-    rows = cross_validated_rows(tables, labels, folds=4, budgets=(0.5,), seeds=1, steps=20)
+    rows = cross_validated_rows(tables, labels, folds=2, budgets=(0.5,), seeds=1, steps=20)
     assert all(r["slides"] == 8 for r in rows) and len(rows) == 3

@@ -107,6 +107,12 @@ class SlideArrays:
             tile_offset=pick(self.tile_offset), tile_grid_width=pick(self.tile_grid_width))
 
 
+def _log_weights(weights: np.ndarray) -> np.ndarray:
+    """Normalised log-weights; a weight of 0 (a slide never drawn) is ``-inf``, without a warning."""
+    with np.errstate(divide="ignore"):
+        return np.log(weights / weights.sum())
+
+
 def stack_slides(slides: list[SlideArrays], weights=None) -> SlideArrays:
     """One ``SlideArrays`` for a dataset of slides of any sizes (same number of levels): flat arrays
     concatenated with offsets shifted, per-level arrays stacked on a new leading axis, start
@@ -161,7 +167,7 @@ def stack_slides(slides: list[SlideArrays], weights=None) -> SlideArrays:
         tumour_sat=None if all(tiled) else jnp.concatenate([s.tumour_sat for s in slides]),
         sat_offset=jnp.stack([s.sat_offset + int(b) for s, b in zip(slides, sat_base)]),
         start_logits=jnp.asarray(logits),
-        slide_logits=jnp.asarray(np.log(weights / weights.sum()), dtype=jnp.float32),
+        slide_logits=jnp.asarray(_log_weights(weights), dtype=jnp.float32),
     )
     if all(tiled):
         stacked.update(

@@ -384,7 +384,8 @@ def parse_args(argv=None, defaults: dict | None = None, description: str = ""):
     p = argparse.ArgumentParser(description=description.split("\n\n")[0])
     p.add_argument("--env", default=defaults["env_id"], help="registered env id")
     p.add_argument("--slide", default=None, help="bundle folder (default: the embedded sample slide)")
-    p.add_argument("--action-mode", default="discrete", choices=("discrete", "continuous"))
+    p.add_argument("--action-mode", default="discrete",
+                   help="discrete | continuous | glimpse[:LEVEL] | zoom_select[:K] (histojax.modes)")
     p.add_argument("--obs-mode", "--obs", dest="obs_mode", default="pixels",
                    help="the env's obs_mode: pixels | features | ... (--obs: the older spelling)")
     p.add_argument("--with-position", action="store_true", help="observation dict with the view position")

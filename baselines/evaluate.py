@@ -29,7 +29,7 @@ from baselines import common
 from baselines.ppo import make_network
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
                                 policy_mode, policy_sample, preprocess_obs)
-from histojax import actions
+from histojax import actions, reading
 from histojax.render import animate, render_trajectory
 
 
@@ -84,7 +84,9 @@ def run_episodes(env, env_params, policy, key, num_episodes: int):
     or of a recurrent policy (``policy.initial_memory(n)`` defined): ``policy(key, obs_batch,
     memory) -> (actions, memory)``, its memory carried from step to step of each episode.
     Returns numpy ``return, success, length`` and ``slide`` (the slide index of a multi-slide env)
-    per episode and the ``(steps+1, E)`` trajectories ``z, x, y`` (frozen after the episode ended)."""
+    per episode, ``fraction_read`` and ``fields_of_view`` at its end (NaN / -1 when the env does not
+    track reading; see :func:`histojax.reading.with_tracking`) and the ``(steps+1, E)`` trajectories
+    ``z, x, y`` (frozen after the episode ended)."""
     max_steps = int(env_params.max_steps_in_episode)
     step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
     recurrent = hasattr(policy, "initial_memory")
@@ -96,7 +98,7 @@ def run_episodes(env, env_params, policy, key, num_episodes: int):
         zeros = jnp.zeros(num_episodes)
 
         def body(carry, k):
-            obs, state, done, ret, length, success, memory = carry
+            (obs, state, done, ret, length, success, memory), (read, fields) = carry
             k_act, k_step = jax.random.split(k)
             if recurrent:
                 action, memory = policy(k_act, obs, memory)
@@ -110,17 +112,23 @@ def run_episodes(env, env_params, policy, key, num_episodes: int):
             keep = lambda old, new: jax.tree.map(  # noqa: E731
                 lambda a, b: jnp.where(done.reshape(-1, *([1] * (a.ndim - 1))), a, b), old, new)
             state, obs = keep(state, state2), keep(obs, obs2)
+            read = jnp.where(active, info.get("fraction_read", read), read)
+            fields = jnp.where(active, info.get("fields_of_view", fields), fields)
             done = done | term | trunc
-            return (obs, state, done, ret, length, success, memory), (state.z, state.x, state.y)
+            return ((obs, state, done, ret, length, success, memory), (read, fields)), (state.z, state.x, state.y)
 
         memory = policy.initial_memory(num_episodes) if recurrent else ()
-        carry = (obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool), memory)
-        (_, _, _, ret, length, success, _), (z, x, y) = jax.lax.scan(body, carry, jax.random.split(key, max_steps))
+        carry = ((obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool), memory),
+                 (jnp.full(num_episodes, jnp.nan, jnp.float32), jnp.full(num_episodes, -1, jnp.int32)))
+        ((_, _, _, ret, length, success, _), (read, fields)), (z, x, y) = jax.lax.scan(
+            body, carry, jax.random.split(key, max_steps))
         cat = lambda a0, a: jnp.concatenate([a0[None], a])  # noqa: E731
-        return ret, success, length, state.slide_index, cat(state.z, z), cat(state.x, x), cat(state.y, y)
+        return (ret, success, length, state.slide_index, read, fields, cat(state.z, z), cat(state.x, x),
+                cat(state.y, y))
 
     out = jax.device_get(go(key, env_params))
-    return dict(zip(("return", "success", "length", "slide", "z", "x", "y"), (np.asarray(a) for a in out)))
+    names = ("return", "success", "length", "slide", "fraction_read", "fields_of_view", "z", "x", "y")
+    return dict(zip(names, (np.asarray(a) for a in out)))
 
 
 def summarise(ep: dict, slide_names=None) -> dict:
@@ -130,7 +138,9 @@ def summarise(ep: dict, slide_names=None) -> dict:
     s = ep["success"].astype(bool)
     row = {"episodes": int(s.size), "success_rate": float(s.mean()), "mean_return": float(ep["return"].mean()),
            "mean_length": float(ep["length"].mean()),
-           "mean_steps_to_success": float(ep["length"][s].mean()) if s.any() else float("nan")}
+           "mean_steps_to_success": float(ep["length"][s].mean()) if s.any() else float("nan"),
+           "mean_fraction_read": float(np.mean(ep["fraction_read"])) if "fraction_read" in ep else float("nan"),
+           "mean_fields_of_view": float(np.mean(ep["fields_of_view"])) if "fields_of_view" in ep else float("nan")}
     if slide_names is not None and len(slide_names) > 1:
         row["by_slide"] = {name: {"episodes": int((ep["slide"] == i).sum()),
                                   "successes": int(s[ep["slide"] == i].sum()),
@@ -185,7 +195,7 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
         if slide is not None:  # a given slide replaces a training dataset
             drop |= {"dataset", "split", "slides", "slide_weights"}
         config["env_kwargs"] = {k: v for k, v in config["env_kwargs"].items() if k not in drop}
-    env, env_params = common.make_env(config, auto_reset=False)
+    env, env_params = reading.with_tracking(*common.make_env(config, auto_reset=False))  # efficiency metrics
     names = [Path(b.path).name for b in env.bundles]
     mode = config["action_mode"]
     key = jax.random.PRNGKey(seed)
@@ -259,10 +269,12 @@ def resolve_slides(slides: list[str], config: dict) -> list[str]:
 
 def print_table(title: str, rows: dict) -> None:
     print(f"\n{title}")
-    print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}")
+    print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}"
+          f" {'read':>6} {'fields':>6}")
     for name, r in rows.items():
         print(f"{name:<22} {r['episodes']:>8} {r['success_rate']:>8.1%} {r['mean_return']:>11.3f} "
-              f"{r['mean_length']:>11.1f} {r['mean_steps_to_success']:>16.1f}")
+              f"{r['mean_length']:>11.1f} {r['mean_steps_to_success']:>16.1f} {r['mean_fraction_read']:>6.1%} "
+              f"{r['mean_fields_of_view']:>6.1f}")
 
 
 def main(argv=None) -> int:
@@ -308,11 +320,12 @@ def main(argv=None) -> int:
     (out / "eval.json").write_text(json.dumps({"env_id": config["env_id"], "results": results}, indent=2))
     with open(out / "eval.csv", "w", newline="") as f:
         w = csv.writer(f)
-        w.writerow(["slide", "policy", "episodes", "success_rate", "mean_return", "mean_length", "mean_steps_to_success"])
+        w.writerow(["slide", "policy", "episodes", "success_rate", "mean_return", "mean_length", "mean_steps_to_success",
+                    "mean_fraction_read", "mean_fields_of_view"])
         for slide, rows in results.items():
             for name, r in rows.items():
                 w.writerow([slide, name, r["episodes"], r["success_rate"], r["mean_return"], r["mean_length"],
-                            r["mean_steps_to_success"]])
+                            r["mean_steps_to_success"], r["mean_fraction_read"], r["mean_fields_of_view"]])
     print(f"\nwrote {out}/eval.json, eval.csv, trajectory_*.png, trajectory.gif")
     return 0
 

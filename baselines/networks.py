@@ -98,6 +98,12 @@ class MLP(nn.Module):
         return x
 
 
+def is_discrete(action_mode: str) -> bool:
+    """True for the action modes with a ``Discrete`` space: ``"discrete"``, ``"glimpse[:LEVEL]"`` and
+    ``"zoom_select[:K]"`` (see :mod:`histojax.modes`); the others are continuous."""
+    return action_mode.partition(":")[0] in ("discrete", "glimpse", "zoom_select")
+
+
 def _flat(x):
     x = jnp.asarray(x, jnp.float32)
     return x.reshape(x.shape[0], -1)
@@ -153,7 +159,7 @@ def policy_value_heads(module: nn.Module, h: jax.Array):
     value = nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0))(c)[..., 0]
     out = nn.Dense(module.action_dim, kernel_init=nn.initializers.orthogonal(0.01),
                    bias_init=nn.initializers.zeros)(a)
-    if module.action_mode == "discrete":
+    if is_discrete(module.action_mode):
         return out, value
     log_std = module.param("log_std", nn.initializers.constant(-0.5), (module.action_dim,))
     return (out, log_std), value
@@ -252,25 +258,25 @@ def gaussian_entropy(mean, log_std):
 def policy_sample(key, pi, action_mode: str):
     """A stochastic action. Continuous actions are sampled unclipped (the env clips to [-1, 1];
     the log-probability is that of the unclipped Gaussian sample — a clipped Gaussian)."""
-    if action_mode == "discrete":
+    if is_discrete(action_mode):
         return categorical_sample(key, pi)
     return gaussian_sample(key, *pi)
 
 
 def policy_mode(pi, action_mode: str):
     """The greedy action: argmax of the logits, or the clipped Gaussian mean."""
-    if action_mode == "discrete":
+    if is_discrete(action_mode):
         return jnp.argmax(pi, axis=-1)
     return jnp.clip(pi[0], -1.0, 1.0)
 
 
 def policy_log_prob(pi, action, action_mode: str):
-    if action_mode == "discrete":
+    if is_discrete(action_mode):
         return categorical_log_prob(pi, action)
     return gaussian_log_prob(*pi, action)
 
 
 def policy_entropy(pi, action_mode: str):
-    if action_mode == "discrete":
+    if is_discrete(action_mode):
         return categorical_entropy(pi)
     return gaussian_entropy(*pi)

@@ -41,7 +41,7 @@ import optax
 from flax.training.train_state import TrainState
 
 from baselines import common
-from baselines.networks import (ActorCritic, policy_entropy, policy_log_prob, policy_sample,
+from baselines.networks import (ActorCritic, is_discrete, policy_entropy, policy_log_prob, policy_sample,
                                 preprocess_obs)
 from histojax.wrappers import LogWrapper
 
@@ -95,7 +95,7 @@ def make_network(config: dict, env, network_cls=ActorCritic):
     """``network_cls`` (an actor-critic) sized for ``env``'s action space: ``n`` logits for discrete
     actions, the Box size for continuous ones; width ``config["hidden"]``."""
     space = env.action_space()
-    action_dim = space.n if config["action_mode"] == "discrete" else int(np.prod(space.shape))
+    action_dim = space.n if is_discrete(config["action_mode"]) else int(np.prod(space.shape))
     return network_cls(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"])
 
 

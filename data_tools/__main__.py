@@ -81,6 +81,8 @@ def _parser() -> argparse.ArgumentParser:
     synth.add_argument("--slides", type=positive_int, default=8, help="number of slides (default 8)")
     synth.add_argument("--size", type=positive_int, default=4096, help="canvas side in level-0 px (default 4096)")
     synth.add_argument("--seed", type=int, default=0)
+    synth.add_argument("--negatives", type=int, default=0,
+                       help="that many more slides without tumour (label 0, for diagnosis; default 0)")
     synth.add_argument("--tile-size", type=positive_int, default=128, help="view size in px of the bundles (default 128)")
     synth.add_argument("--tissue", choices=("synthetic", "camelyon16"), default="synthetic",
                        help="tissue region: a random blob around the tumour (default) or a CAMELYON16 tissue "
@@ -201,7 +203,7 @@ def _command(args) -> None:
 
         ds = make_dataset(args.out_dir, n_slides=args.slides, size=(args.size, args.size), seed=args.seed,
                           tile_size=args.tile_size, tissue=args.tissue, progress=not args.quiet,
-                          tumour_xmls=args.tumour_xml)
+                          tumour_xmls=args.tumour_xml, negatives=args.negatives)
         print(f"wrote {Path(args.out_dir) / 'dataset.json'}: {len(ds['train'])} train, {len(ds['test'])} test "
               f"bundles in {ds['seconds']:.0f} s (pixels synthetic, geometry real CAMELYON16)")
         for s in ds["slides"]:

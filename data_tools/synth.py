@@ -375,7 +375,8 @@ def _geojson(tumour, tissue, provenance_line: str) -> dict:
 
 
 def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int = 0, tissue_xml=None,
-                             orientation: int = 0, jpeg_quality: int = 90, progress: bool = True) -> dict:
+                             orientation: int = 0, jpeg_quality: int = 90, progress: bool = True,
+                             negative: bool = False) -> dict:
     """Write a semi-synthetic slide: real CAMELYON16 tumour geometry, synthetic H&E-like pixels.
 
     ``tumour_xml``: an ASAP XML with tumour polygons (exclusion holes are subtracted). Its tumour,
@@ -390,6 +391,8 @@ def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int 
     ``<stem>.geojson`` (tumour and tissue in canvas px, labels ``tumour`` / ``tissue``) and
     ``<stem>.provenance.json`` beside it. Deterministic given ``seed``. Returns the provenance dict
     (it includes the paths, tumour area, mean colours of tumour and normal tissue, seconds taken).
+    ``negative=True`` makes a tumour-free slide: the tumour geometry only places the tissue, and
+    only normal tissue is drawn (a slide of label 0 for diagnosis tasks).
     """
     t_start = time.perf_counter()
     out_tiff = Path(out_tiff)
@@ -399,6 +402,9 @@ def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int 
     out_tiff.parent.mkdir(parents=True, exist_ok=True)
     tumour, tissue, transform, tissue_info, notes = _place_geometry(tumour_xml, (width, height), seed,
                                                                     orientation, tissue_xml)
+    if negative:  # the tumour only shaped the tissue; none is drawn
+        tissue, tumour = tissue.union(tumour), MultiPolygon()
+        notes = list(notes) + ["negative slide: no tumour drawn (the tumour geometry only placed the tissue)"]
     mpp = CAMELYON16_MPP / transform["scale"]
     source_line = f"pixels synthetic, geometry real CAMELYON16 {Path(tumour_xml).name}"
     provenance = {
@@ -526,7 +532,7 @@ def _split(names: list[str], groups: list[str], test_fraction: float, seed: int)
 
 def make_dataset(out_dir, n_slides: int = 8, size=(4096, 4096), seed: int = 0, test_fraction: float = 0.25,
                  tile_size: int = 128, level_sets=(3, 5, 7), tumour_xmls=None, tissue: str = "synthetic",
-                 progress: bool = True, previews: bool = True) -> dict:
+                 progress: bool = True, previews: bool = True, negatives: int = 0) -> dict:
     """Make ``n_slides`` semi-synthetic slides and their bundles under ``out_dir``.
 
     One slide per tumour file (default: the bundled CAMELYON16 files, :func:`tumour_files`); when more
@@ -540,6 +546,8 @@ def make_dataset(out_dir, n_slides: int = 8, size=(4096, 4096), seed: int = 0, t
     by :func:`data_tools.bundle.build_bundle`), ``previews/<name>.png`` and ``dataset.json`` with the
     train/test split by slide (all slides of one tumour file on the same side), per-slide provenance
     and checks (tumour fraction, finest-level views ≥ 50 % tumour, mean colours). Returns that dict.
+    ``negatives``: that many more slides without tumour (``negative=True``; tissue placed by the
+    tumour files in turn, named ``synth_NN_normal_<file>``), for slide-level diagnosis.
     """
     from data_tools.bundle import build_bundle, load_bundle
 
@@ -554,15 +562,17 @@ def make_dataset(out_dir, n_slides: int = 8, size=(4096, 4096), seed: int = 0, t
     tissues = tissue_files()
     slides = []
     t0 = time.perf_counter()
-    for i in tqdm(range(n_slides), desc="semi-synthetic slides", unit="slide", disable=not progress):
+    for i in tqdm(range(n_slides + negatives), desc="semi-synthetic slides", unit="slide", disable=not progress):
+        negative = i >= n_slides
         src, cycle = files[i % len(files)], i // len(files)
         orientation = (cycle * 5) % 8  # 0, then mirrored-90, 2 (180), ...: a different view of the same geometry
         slide_seed = int(seed) * 1000 + i
-        name = f"synth_{i:02d}_{src.stem}" + (f"_o{orientation}" if orientation else "")
+        name = (f"synth_{i:02d}_{'normal_' if negative else ''}{src.stem}"
+                + (f"_o{orientation}" if orientation else ""))
         tiff = out_dir / "slides" / f"{name}.tif"
         tissue_xml = tissues[i % len(tissues)] if tissue == "camelyon16" and tissues else None
         prov = make_semisynthetic_slide(src, tiff, size=size, seed=slide_seed, tissue_xml=tissue_xml,
-                                        orientation=orientation, progress=False)
+                                        orientation=orientation, progress=False, negative=negative)
         t_b = time.perf_counter()
         bundle = build_bundle(tiff, out_dir / "bundles" / name, annotations_path=tiff.with_suffix(".geojson"),
                               level_sets=level_sets, tile_size=tile_size, overwrite=True, progress=False)

@@ -63,34 +63,21 @@ from typing import Any
 import jax
 import jax.numpy as jnp
 from flax import struct
-from jax import lax
 
-from histojax import actions, augment as dihedral, rewards, spaces
+from histojax import augment as dihedral
+from histojax import modes, rewards, spaces
 from histojax.slide import SlideArrays
-from histojax.views import view_pixels, view_tumour_fraction
+from histojax.views import view_tumour_fraction
 
 try:  # gymnax is optional; code that can ask ``isinstance(env, Environment)`` has it installed
     from gymnax.environments.environment import Environment as _GymnaxEnvironment
 except ImportError:
     _GymnaxEnvironment = object
 
-ACTION_MODES = ("discrete", "continuous")
-OBS_MODES = ("pixels", "pixels_float", "features")
+ACTION_MODES = tuple(modes.ACTION_MODES)
+OBS_MODES = tuple(modes.OBS_MODES)
 TASKS = ("detection", "classification")
-
-
-def view_features(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.Array) -> jax.Array:
-    """Feature vector ``(D,)`` float32 of the view at ``(z, x, y)``: the grid cell whose position is
-    nearest the view's top-left corner, ``gx = clip(round(x / stride), 0, gw - 1)`` (likewise
-    ``gy``). Exact for grid-aligned views; any other view gets the grid view at most
-    ``stride / 2`` px away on each axis (or, at the right/bottom edge, the last grid column/row).
-    One gather of ``D`` values."""
-    stride = slide.feature_stride
-    gw, gh = slide.feature_grid_width[z], slide.feature_grid_height[z]
-    gx = jnp.clip((x + stride // 2) // stride, 0, gw - 1)
-    gy = jnp.clip((y + stride // 2) // stride, 0, gh - 1)
-    row = slide.feature_offset[z] + gy * gw + gx
-    return lax.dynamic_index_in_dim(slide.features, row, axis=0, keepdims=False).astype(jnp.float32)
+view_features = modes.view_features  # public name kept: the feature vector of a view
 
 
 def sample_index(key: jax.Array, logits: jax.Array) -> jax.Array:
@@ -105,21 +92,22 @@ def sample_index(key: jax.Array, logits: jax.Array) -> jax.Array:
 
 @struct.dataclass
 class EnvState:
-    """The immutable state of one environment (all int32 scalars; units in the module doc)."""
+    """The immutable state of one environment (units in the module doc)."""
 
-    z: jnp.ndarray
-    x: jnp.ndarray
-    y: jnp.ndarray
-    t: jnp.ndarray
-    slide_index: jnp.ndarray
-    orientation: jnp.ndarray = struct.field(default_factory=lambda: jnp.zeros((), jnp.int32))
+    z: jnp.ndarray            # () int32 level of the view, 0 = coarsest, n_levels - 1 = finest
+    x: jnp.ndarray            # () int32 view's top-left corner, px of level z
+    y: jnp.ndarray            # () int32
+    t: jnp.ndarray            # () int32 steps taken this episode
+    slide_index: jnp.ndarray  # () int32 which slide of the dataset (0 for one slide)
+    orientation: jnp.ndarray = struct.field(default_factory=lambda: jnp.zeros((), jnp.int32))  # () int32 0..7 (augment)
+    memory: Any = None        # the action mode's reading memory (None for discrete / continuous)
 
 
 @struct.dataclass
 class EnvParams:
     """Dynamic settings (vmappable). The slide's device arrays travel here, never closed over."""
 
-    slide: SlideArrays
+    slide: SlideArrays                   # the slide (or stacked dataset) on the device
     max_steps_in_episode: int = 200      # truncation at this many steps
     stride: float = 1.0                  # move length in view widths
     success_threshold: float = 0.5       # tumour fraction of the finest view that counts as found
@@ -129,6 +117,7 @@ class EnvParams:
     dense_weight: float = 1.0            # "dense": weight of the potential difference
     random_start: bool = True            # False: HistoGym's fixed start at the top-left, coarsest level
     diagnosis_reward: float = 1.0        # task="classification": +this for a right diagnosis, -this for a wrong one
+    mode_data: Any = None                # the action mode's per-slide tables (ActionMode.prepare); None for navigation
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -150,8 +139,8 @@ class HistoEnv(_GymnaxEnvironment):
 
     n_levels: int
     tile_size: int = 128
-    action_mode: str = "discrete"
-    obs_mode: str = "pixels"
+    action_mode: Any = "discrete"   # a name in ACTION_MODES or a histojax.modes.ActionMode object
+    obs_mode: Any = "pixels"        # a name in OBS_MODES or a histojax.modes.ObsMode object
     with_position: bool = False
     reward: str = "dense"
     auto_reset: bool = True
@@ -177,17 +166,28 @@ class HistoEnv(_GymnaxEnvironment):
         return hash(self._identity())
 
     def __post_init__(self):
-        if self.action_mode not in ACTION_MODES:
-            raise ValueError(f"action_mode must be one of {ACTION_MODES}, got {self.action_mode!r}")
-        if self.obs_mode not in OBS_MODES:
-            raise ValueError(f"obs_mode must be one of {OBS_MODES}, got {self.obs_mode!r}")
+        action, observation = self.action, self.observation  # unknown names raise here
         if self.reward not in rewards.PRESETS:
             raise ValueError(f"reward must be one of {rewards.PRESETS}, got {self.reward!r}")
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
-        if self.augment and self.obs_mode == "features":
+        if self.augment and not observation.supports_augment:
             raise ValueError("augment=True turns the view's pixels; a feature vector cannot be turned. "
                              "Use obs_mode='pixels' (or 'pixels_float'), or compute features of turned views")
+        if self.augment and not action.supports_augment:
+            raise ValueError(f"augment=True cannot turn action_mode={action.name!r}; use 'discrete' or 'continuous'")
+        action.validate(self)
+
+    # ----------------------------------------------------------------- the modes (histojax.modes)
+    @property
+    def action(self) -> modes.ActionMode:
+        """The action mode object ``action_mode`` names."""
+        return modes.action_mode(self.action_mode)
+
+    @property
+    def observation(self) -> modes.ObsMode:
+        """The observation mode object ``obs_mode`` names."""
+        return modes.obs_mode(self.obs_mode)
 
     # ----------------------------------------------------------------- gymnax API
     @property
@@ -205,32 +205,25 @@ class HistoEnv(_GymnaxEnvironment):
 
     @property
     def num_actions(self) -> int:
-        """Discrete: 7 (+2 diagnosis actions for classification); continuous: the Box size 3 (or 4)."""
-        classify = self.task == "classification"
-        if self.action_mode == "discrete":
-            return actions.NUM_DISCRETE_ACTIONS + (2 if classify else 0)
-        return 3 + (1 if classify else 0)
+        """Discrete: the number of actions (7, +2 diagnosis actions for classification; see the mode);
+        continuous: the Box size 3 (or 4)."""
+        return self.action.num_actions(self)
 
     def action_space(self, params: EnvParams | None = None):
-        """``Discrete(7)`` or ``Box(-1, 1, (3,), float32)`` (see the module doc)."""
-        if self.action_mode == "discrete":
-            return spaces.Discrete(self.num_actions)
-        return spaces.Box(-1.0, 1.0, (self.num_actions,), jnp.float32)
+        """The action mode's space, e.g. ``Discrete(7)`` or ``Box(-1, 1, (3,), float32)``."""
+        return self.action.space(self, self.default_params if params is None else params)
 
     def observation_space(self, params: EnvParams | None = None):
-        """Box of the view (uint8 in [0, 255] or float32 in [0, 1]) or of its features (float32,
-        unbounded, ``(D,)``), or a Dict with the position."""
-        t = self.tile_size
-        if self.obs_mode == "features":
-            slide = (self.default_params if params is None else params).slide
-            pixels = spaces.Box(-jnp.inf, jnp.inf, (slide.features.shape[-1],), jnp.float32)
-        else:
-            pixels = (spaces.Box(0, 255, (t, t, 3), jnp.uint8) if self.obs_mode == "pixels"
-                      else spaces.Box(0.0, 1.0, (t, t, 3), jnp.float32))
-        if not self.with_position:
-            return pixels
-        key = "features" if self.obs_mode == "features" else "pixels"
-        return spaces.Dict({key: pixels, "position": spaces.Box(0.0, 1.0, (3,), jnp.float32)})
+        """The observation mode's space (view pixels or features), or a Dict with the position and the
+        action mode's memory entries when there are any."""
+        params = self.default_params if params is None else params
+        view = self.observation.space(self, params)
+        extra = self._extra_spaces(params)
+        return spaces.Dict({self.observation.key: view, **extra}) if extra else view
+
+    def _extra_spaces(self, params) -> dict:
+        extra = {"position": spaces.Box(0.0, 1.0, (3,), jnp.float32)} if self.with_position else {}
+        return {**extra, **self.action.memory_space(self, params)}
 
     def reset(self, key: jax.Array, params: EnvParams | None = None):
         """Start an episode: ``(obs, state)``."""
@@ -239,27 +232,23 @@ class HistoEnv(_GymnaxEnvironment):
 
     def step(self, key: jax.Array, state: EnvState, action, params: EnvParams | None = None):
         """One step with auto-reset (unless ``auto_reset=False``):
-        ``(obs, state, reward, terminated, truncated, info)``."""
+        ``(obs, state, reward, terminated, truncated, info)``. The only place episodes restart."""
         params = self.default_params if params is None else params
         key_reset, _ = jax.random.split(key)
-        if self.auto_reset and not self.final_observation:
-            # one observation per step: pick the next state first, then look once
-            state_st, reward, terminated, truncated, info = self.transition(state, action, params)
-            state_re = self.reset_state(key_reset, params)
-            done = jnp.logical_or(terminated, truncated)
-            state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_re, state_st)
-            obs = self.get_obs(state, params)
-            empty = jax.tree.map(lambda a: jnp.zeros((0,), a.dtype), obs)  # the key without a wrong view
-            return obs, state, reward, terminated, truncated, {**info, "final_observation": empty}
-        obs_st, state_st, reward, terminated, truncated, info = self.step_env(key, state, action, params)
+        state_st, reward, terminated, truncated, info = self.transition(state, action, params)
         if not self.auto_reset:
-            return obs_st, state_st, reward, terminated, truncated, {**info, "final_observation": obs_st}
-        obs_re, state_re = self.reset_env(key_reset, params)
+            obs = self.get_obs(state_st, params)
+            return obs, state_st, reward, terminated, truncated, {**info, "final_observation": obs}
+        state_re = self.reset_state(key_reset, params)
         done = jnp.logical_or(terminated, truncated)
         state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_re, state_st)
-        obs = jax.tree.map(lambda a, b: jnp.where(done, a, b), obs_re, obs_st)
-        info = {**info, "final_observation": obs_st}
-        return obs, state, reward, terminated, truncated, info
+        if self.final_observation:  # both views, then a select (the last one is info's)
+            final = self.get_obs(state_st, params)
+            obs = jax.tree.map(lambda a, b: jnp.where(done, a, b), self.get_obs(state_re, params), final)
+        else:  # one view per step, of the state chosen; the key stays, without a wrong view
+            obs = self.get_obs(state, params)
+            final = jax.tree.map(lambda a: jnp.zeros((0,), a.dtype), obs)
+        return obs, state, reward, terminated, truncated, {**info, "final_observation": final}
 
     # ----------------------------------------------------------------- dynamics
     def reset_env(self, key: jax.Array, params: EnvParams):
@@ -293,7 +282,7 @@ class HistoEnv(_GymnaxEnvironment):
             slide_index=slide_index,
             orientation=orientation,
         )
-        return state
+        return state.replace(memory=self.action.init_memory(self, state, params))
 
     def step_env(self, key: jax.Array, state: EnvState, action, params: EnvParams):
         """One step without auto-reset: ``(obs, state, reward, terminated, truncated, info)``
@@ -302,39 +291,37 @@ class HistoEnv(_GymnaxEnvironment):
         return self.get_obs(new_state, params), new_state, reward, terminated, truncated, info
 
     def transition(self, state: EnvState, action, params: EnvParams):
-        """The dynamics without the observation: ``(state, reward, terminated, truncated, info)``."""
+        """The dynamics without the observation: ``(state, reward, terminated, truncated, info)``.
+        The action mode picks the next view (and diagnosis); the task scores it."""
         slide, t = params.slide.select(state.slide_index), self.tile_size
-        stride_px = jnp.round(params.stride * t).astype(jnp.int32)
-        if self.augment:  # the agent acts in its turned frame
-            action = (dihedral.discrete_to_slide(action, state.orientation) if self.action_mode == "discrete"
-                      else dihedral.continuous_to_slide(action, state.orientation))
-        if self.action_mode == "discrete":
-            dx, dy, dz = actions.discrete_deltas(action, stride_px)
-            diagnosis = actions.discrete_diagnosis(action) if self.task == "classification" else None
-        else:
-            dx, dy, dz = actions.continuous_deltas(action, stride_px)
-            diagnosis = actions.continuous_diagnosis(action) if self.task == "classification" else None
-        z, x, y = actions.move_and_zoom(slide, state.z, state.x, state.y, dx, dy, dz, t, self.n_levels)
+        move = self.action.apply(self, state, action, params)
+        z, x, y = move.z, move.x, move.y
         fraction = view_tumour_fraction(slide, z, x, y, t)
-        if diagnosis is None:  # detection: find the tumour
+        extra = {}
+        if self.task == "detection":  # find the tumour
             prev_fraction = view_tumour_fraction(slide, state.z, state.x, state.y, t)
             success = (z == self.n_levels - 1) & (fraction >= params.success_threshold)
             reward = rewards.reward(self.reward, params, fraction, z, prev_fraction, state.z, success, self.n_levels)
             terminated = success if rewards.terminates_on_success(self.reward) else jnp.zeros((), bool)
         else:  # classification: declaring a diagnosis ends the episode
-            declared = diagnosis >= 0
-            success = declared & (diagnosis == slide.slide_label)
+            declared = move.diagnosis >= 0
+            success = declared & (move.diagnosis == slide.slide_label)
             reward = rewards.classification_reward(params, declared, success)
             terminated = declared
+            extra = {"score": move.score, "declared": declared}
         new_state = EnvState(z=z, x=x, y=y, t=state.t + 1, slide_index=state.slide_index,
-                             orientation=state.orientation)
+                             orientation=state.orientation, memory=move.memory)
         truncated = jnp.logical_and(new_state.t >= params.max_steps_in_episode, jnp.logical_not(terminated))
+        truncated = jnp.logical_or(truncated, self.action.budget_spent(self, new_state, params)) & ~terminated
         info = {
             "tumour_fraction": fraction,
             "success": success,
             "discount": 1.0 - terminated.astype(jnp.float32),
             "terminated": terminated,
             "truncated": truncated,
+            "steps": new_state.t,
+            **extra,
+            **self.action.reading_info(self, new_state, params),
         }
         return new_state, reward.astype(jnp.float32), terminated, truncated, info
 
@@ -342,23 +329,12 @@ class HistoEnv(_GymnaxEnvironment):
         """The observation of ``state`` (see the module doc for modes and units); ``key`` is unused
         (gymnax's signature)."""
         params = self.default_params if params is None else params
-        slide, t = params.slide.select(state.slide_index), self.tile_size
-        if self.obs_mode == "features":
-            if slide.features is None:
-                raise ValueError("obs_mode='features' needs a slide with a feature grid: compute one with "
-                                 "`python -m data_tools features BUNDLE` and make the env from that bundle")
-            obs = view_features(slide, state.z, state.x, state.y)
-            if not self.with_position:
-                return obs
-            return {"features": obs, "position": self._position(state, slide)}
-        pixels = view_pixels(slide, state.z, state.x, state.y, t)
-        if self.augment:
-            pixels = dihedral.orient_pixels(pixels, state.orientation)
-        if self.obs_mode == "pixels_float":
-            pixels = pixels.astype(jnp.float32) / 255.0
-        if not self.with_position:
-            return pixels
-        return {"pixels": pixels, "position": self._position(state, slide)}
+        obs = self.observation.observe(self, state, params)
+        extra = {}
+        if self.with_position:
+            extra["position"] = self._position(state, params.slide.select(state.slide_index))
+        extra.update(self.action.memory_obs(self, state, params))
+        return {self.observation.key: obs, **extra} if extra else obs
 
     def is_truncated(self, state: EnvState, params: EnvParams) -> jax.Array:
         """True when the episode has reached ``params.max_steps_in_episode`` steps (bool scalar)."""

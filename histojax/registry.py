@@ -35,13 +35,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from data_tools.errors import BundleError
+from histojax import modes
 from histojax.env import EnvParams, HistoEnv
 from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide, stack_slides
 
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
                  "augment",
                  "final_observation")
-PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name != "slide")
+MODE_SETTINGS = ("read_budget", "track_reading")  # passed to the action mode's prepare (histojax.modes)
+PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name not in ("slide", "mode_data"))
 # settings of how ``make`` draws a dataset's slides (neither static nor EnvParams):
 # ``tumour_slides_only`` — reset draws only slides with tumour annotated (detection on a dataset that
 # also holds normal slides: a normal slide has nothing to find, so its episodes could only fail)
@@ -141,7 +143,10 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     (``action_mode``, ``obs_mode``, ``with_position``, ``reward``, ``auto_reset``, ``augment``; ``tile_size``
     only for the sample slide, where it selects another cached bundle) or ``EnvParams`` field
     (``max_steps_in_episode``, ``stride``, ``success_threshold``, ``step_cost``,
-    ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``).
+    ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``), or the reading
+    settings of :mod:`histojax.reading`: ``read_budget`` (fraction of finest-level tissue views, for
+    ``action_mode="glimpse"`` / ``"zoom_select"``, or with tracking) and ``track_reading=True`` (the
+    pan/zoom modes then report ``fraction_read`` and ``fields_of_view`` in ``info``).
     The slide's arrays are put on the device once and returned inside ``params``; a slide
     needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error.
     ``verify`` checks every array's SHA-256 against the bundle metadata.
@@ -153,17 +158,19 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     ``labels`` (a dict bundle-name → 0/1 or a CSV file with columns ``slide,label``) overrides the
     slide labels of ``task="classification"`` (default: 1 when the bundle has tumour annotated).
     """
+    mode_settings = {k: overrides.pop(k) for k in MODE_SETTINGS if k in overrides}
     spec = {**spec_of(env_id).settings, **overrides}
     unknown = set(spec) - set(STATIC_FIELDS) - set(PARAM_FIELDS) - set(DATASET_FIELDS)
     if unknown:
         raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
                         f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
     slides = _resolve_slides(env_id, spec, slide, slides, dataset, split)
-    features = True if spec.get("obs_mode") == "features" else None
+    feature_obs = modes.obs_mode(spec.get("obs_mode", "pixels")).needs_features
+    features = True if feature_obs or modes.action_mode(spec.get("action_mode", "discrete")).needs_features else None
     loaded, budget = [], max_device_bytes
     for path in slides:  # obs_mode="features": the feature-only layout, no pixels on the device
         arrays, bundle = load_slide(path, spec["n_levels"], verify=verify, max_device_bytes=budget, features=features,
-                                    pixels=features is None)
+                                    pixels=not feature_obs)
         budget -= sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
         loaded.append((arrays, bundle))
     tile_sizes = {b.tile_size for _, b in loaded}
@@ -187,6 +194,10 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     params = EnvParams(slide=arrays, **{k: spec[k] for k in PARAM_FIELDS if k in spec})
     bundles = tuple(b for _, b in loaded)
     env = HistoEnv(name=env_id, _default_params=params, _bundle=bundles[0], _bundles=bundles, **static)
+    mode_data = env.action.prepare(env, params, bundles, **mode_settings)  # per-slide tables of a reading mode, once
+    if mode_data is not None:
+        params = params.replace(mode_data=mode_data)
+        env = dataclasses.replace(env, _default_params=params)
     return env, params
 
 

@@ -225,9 +225,14 @@ class Encoder:
 @functools.lru_cache(maxsize=4)
 def load_encoder(name: str = NAME, image_size: int | None = TRAIN_SIZE, weights=None) -> Encoder:
     """The encoder ``name`` (only ``"efficientnet-lite0"``) with its ImageNet weights, inputs resized to
-    ``image_size`` (default 224, the training size; None feeds views at their own size). Cached."""
+    ``image_size`` (default 224, the training size; None feeds views at their own size). Cached.
+    ``"colour-stats"`` is the cheap hand-made colour encoder of :mod:`data_tools.features.colour`."""
+    from data_tools.features import colour
+
+    if name == colour.NAME:
+        return colour.load_colour_encoder(Encoder)
     if name != NAME:
-        raise ValueError(f"unknown encoder {name!r}; available: {NAME!r}")
+        raise ValueError(f"unknown encoder {name!r}; available: {NAME!r}, {colour.NAME!r}")
     path = Path(weights) if weights is not None else default_weights_path()
     variables = variables_from_torch(load_state_dict(path), path)
     model = EfficientNetLite0()

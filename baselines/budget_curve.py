@@ -1,0 +1,339 @@
+"""AUC and accuracy against the fraction of the slide read: ``python -m baselines.budget_curve``.
+
+Methods, all scored on the test slides of a dataset with the same gated-attention MIL head
+(:mod:`baselines.mil`), trained once on the *training* slides' finest-level tissue views:
+
+* ``MIL, read everything`` — the head on every finest-level tissue view (the ceiling; fraction 1);
+* ``random reader + MIL`` — glimpse cells picked uniformly at random (``--seeds`` orders);
+* ``attention reader + MIL`` — cells picked by the MIL attention on their *low-resolution* features,
+  highest first (what the agent could know before reading);
+* ``PPO glimpse`` (``--ppo-checkpoint DIR``) — a trained glimpse policy's reading, with the same head.
+
+A reader reads cells of ``action_mode=Glimpse(level)`` exactly as the env does (:func:`read_cells`
+follows :meth:`histojax.glimpse.Glimpse.apply`: a cell is read when it still fits in the budget;
+the first pick that does not fit ends the episode), at budgets of ``--budgets`` (fractions of the
+slide's finest-level tissue views). Writes ``budget_curve.csv`` (one row per method × budget:
+mean fraction actually read, AUC, accuracy at 0.5, slides) and ``budget_curve.png``.
+"""
+from __future__ import annotations
+
+import argparse
+import csv
+from pathlib import Path
+
+import numpy as np
+
+from baselines.metrics import accuracy, roc_auc
+from baselines.mil import MILClassifier, train_mil
+
+BUDGETS = (0.05, 0.1, 0.2, 0.5)
+
+
+def load_split(dataset, split: str, env_id: str, level: int, verify: bool = False):
+    """``(tables, labels)`` of a dataset split: :meth:`Glimpse.host_tables` per slide and 0/1 labels."""
+    import histojax
+    from histojax.glimpse import Glimpse
+
+    env, params = histojax.make(env_id, dataset=dataset, split=split, obs_mode="features",
+                                action_mode=Glimpse(level=level), task="classification", verify=verify)
+    tables = env.action.host_tables(env, params, env.bundles)
+    labels = np.atleast_1d(np.asarray(params.slide.slide_label)).astype(int)
+    return tables, labels
+
+
+def bags(tables: list[dict], read: list[np.ndarray] | None = None):
+    """Padded MIL inputs ``(B, N, D)``, ``(B, N)`` of the slides' instances (only those under the
+    ``read[i]`` cells when given; a slide with nothing read gets one all-zero instance)."""
+    chosen = []
+    for i, t in enumerate(tables):
+        keep = np.ones(len(t["instances"]), bool) if read is None else np.isin(t["instance_cell"], read[i])
+        chosen.append(t["instances"][keep])
+    n = max(1, max(len(c) for c in chosen))
+    d = tables[0]["instances"].shape[1]
+    x = np.zeros((len(chosen), n, d), np.float32)
+    m = np.zeros((len(chosen), n), bool)
+    for i, c in enumerate(chosen):
+        x[i, : len(c)] = c
+        m[i, : max(len(c), 1)] = True
+    return x, m
+
+
+def read_cells(table: dict, order, budget: float) -> tuple[np.ndarray, float]:
+    """Cells read when picking ``order`` (cell indices) under ``budget``, as the glimpse env reads:
+    an unread valid cell is read if ``read + its views <= floor(budget · total)``; the first one that
+    does not fit ends the reading. Returns ``(cells read, fraction of tissue views read)``."""
+    limit = int(np.floor(budget * table["total"] + 1e-4))
+    done, read = [], 0
+    for c in order:
+        c = int(c)
+        if not table["valid"][c] or c in done:
+            continue
+        n = int(table["cell_views"][c])
+        if read + n > limit:
+            break
+        done.append(c)
+        read += n
+        if read >= limit:
+            break
+    return np.asarray(done, np.int64), read / table["total"]
+
+
+def random_order(table: dict, rng) -> np.ndarray:
+    """The valid cells in a uniformly random order."""
+    return rng.permutation(np.flatnonzero(table["valid"]))
+
+
+def attention_order(table: dict, head: MILClassifier) -> np.ndarray:
+    """The valid cells by the head's attention on their low-resolution features, highest first."""
+    cells = np.flatnonzero(table["valid"])
+    att = head.attention(table["cells"][cells])
+    return cells[np.argsort(-att, kind="stable")]
+
+
+def reader_scores(tables, head: MILClassifier, orders, budget: float) -> tuple[np.ndarray, np.ndarray]:
+    """The head's scores ``(B,)`` on what a reader (one cell order per slide) reads at ``budget``, and
+    the fractions read ``(B,)``."""
+    reads = [read_cells(t, o, budget) for t, o in zip(tables, orders)]
+    x, m = bags(tables, [r[0] for r in reads])
+    return head.scores(x, m), np.asarray([r[1] for r in reads])
+
+
+def method_scores(head: MILClassifier, tables, budgets=BUDGETS, seeds: int = 5) -> dict:
+    """``{(method, budget): (scores (seeds, B), fractions (seeds, B))}`` of every method on ``tables``."""
+    x, m = bags(tables)
+    out = {("MIL, read everything", 1.0): (head.scores(x, m)[None], np.ones((1, len(tables))))}
+    for b in budgets:
+        runs = [reader_scores(tables, head, [random_order(t, np.random.default_rng(s * 1000 + i))
+                                             for i, t in enumerate(tables)], b) for s in range(seeds)]
+        out[("random reader + MIL", b)] = tuple(np.stack(r) for r in zip(*runs))
+        scores, fractions = reader_scores(tables, head, [attention_order(t, head) for t in tables], b)
+        out[("attention reader + MIL", b)] = (scores[None], fractions[None])
+    return out
+
+
+def rows_from_scores(scores: dict, labels) -> list[dict]:
+    """One row per ``(method, budget)``: mean fraction read, AUC and accuracy (averaged over seeds)."""
+    return [{"method": method, "budget": float(b), "fraction_read": float(f.mean()),
+             "auc": float(np.mean([roc_auc(row, labels) for row in s])),
+             "accuracy": float(np.mean([accuracy(row, labels) for row in s])), "slides": len(labels)}
+            for (method, b), (s, f) in scores.items()]
+
+
+def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, policies=(), dataset=None):
+    """Train the head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``;
+    ``policies``: ``(name, run folder)`` of trained PPO policies, rolled on ``dataset``'s test split."""
+    head = train_mil(*bags(train[0]), train[1], steps=steps)
+    rows = rows_from_scores(method_scores(head, test[0], budgets, seeds), test[1])
+    for name, run in policies:
+        rows += policy_rows(run, dataset, name, head, test[0], test[1], budgets)
+    return rows
+
+
+def cross_validated_rows(tables, labels, folds: int, budgets=BUDGETS, seeds: int = 5, steps: int = 400) -> list[dict]:
+    """``folds``-fold cross-validation over all slides (for datasets too small for a test split):
+    each slide is scored by a head trained on the other folds; AUC and accuracy of the pooled scores."""
+    labels = np.asarray(labels)
+    fold = np.arange(len(labels)) % folds
+    pooled = {}
+    for k in range(folds):
+        train = [t for t, f in zip(tables, fold) if f != k]
+        head = train_mil(*bags(train), labels[fold != k], steps=steps)
+        part = method_scores(head, [t for t, f in zip(tables, fold) if f == k], budgets, seeds)
+        for key, (s, f) in part.items():
+            prev = pooled.get(key)
+            pooled[key] = (s, f) if prev is None else (np.concatenate([prev[0], s], 1), np.concatenate([prev[1], f], 1))
+    order = np.concatenate([np.flatnonzero(fold == k) for k in range(folds)])
+    return rows_from_scores(pooled, labels[order])
+
+
+def policy_reads(run, dataset, split: str, budget: float, env_id: str | None = None):
+    """Roll a trained PPO policy (run folder of ``python -m baselines.ppo`` in a ``glimpse`` or
+    ``zoom_select`` mode), greedily, once on every slide of ``split`` at ``budget``. Returns per slide
+    ``(read, own_score, fraction_read)``: the finest tissue views it read (indices into the slide's
+    ``host_tables`` instances), its own tumour score (``p(tumour) / (p(tumour) + p(no tumour))`` of its
+    policy at the step it declared, or at its last step) and the fraction read."""
+    import jax
+    import jax.numpy as jnp
+
+    import histojax
+    from baselines.common import load_checkpoint
+    from baselines.networks import preprocess_obs
+    from baselines.ppo import make_network
+    from histojax.glimpse import with_budget
+
+    params, config = load_checkpoint(run)
+    params = jax.tree.map(lambda a: a[0], params)  # the first seed
+    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "read_budget")}
+    env, env_params = histojax.make(env_id or config["env_id"], dataset=dataset, split=split, auto_reset=False,
+                                    action_mode=config["action_mode"], obs_mode=config.get("obs_mode", config.get("obs", "features")),
+                                    with_position=config.get("with_position", False), **kw)
+    env_params = with_budget(env_params, budget)
+    network = make_network(config, env)
+    n_slides = env_params.slide.num_slides
+    steps = int(env_params.max_steps_in_episode)
+    n = env.num_actions
+
+    def episode(index):
+        logits = jnp.where(jnp.arange(n_slides) == index, 0.0, -jnp.inf)
+        p = env_params.replace(slide=env_params.slide.replace(slide_logits=logits)) if n_slides > 1 else env_params
+        obs, state = env.reset(jax.random.key(0), p)
+
+        def body(carry, _):
+            obs, state, done, score, fraction = carry
+            pi, _ = network.apply(params, jax.tree.map(lambda a: a[None], preprocess_obs(obs)))
+            logp = jax.nn.log_softmax(pi[0])
+            action = jnp.argmax(logp)
+            own = jax.nn.sigmoid(logp[n - 1] - logp[n - 2])  # tumour vs no tumour
+            obs2, state2, _, term, trunc, info = env.step(jax.random.key(1), state, action, p)
+            keep = lambda a, b: jax.tree.map(lambda x, y: jnp.where(done, x, y), a, b)  # noqa: E731
+            score = jnp.where(done, score, own)
+            fraction = jnp.where(done, fraction, info["fraction_read"])
+            return (keep(obs, obs2), keep(state, state2), done | term | trunc, score, fraction), None
+
+        carry = (obs, state, jnp.zeros((), bool), jnp.float32(0.5), jnp.float32(0.0))
+        (_, state, _, score, fraction), _ = jax.lax.scan(body, carry, None, steps)
+        return state.memory, score, fraction
+
+    memory, scores, fractions = jax.jit(jax.vmap(episode))(jnp.arange(n_slides))
+    tables = env.action.host_tables(env, env_params, env.bundles) if hasattr(env.action, "host_tables") else None
+    out = []
+    for i, b in enumerate(env.bundles):
+        if tables is not None:  # glimpse: the instances under the revealed cells
+            revealed = np.flatnonzero(np.asarray(memory.revealed[i]))
+            read = np.isin(tables[i]["instance_cell"], revealed)
+        else:  # zoom_select: the finest tissue views seen
+            seen_tables = env_params.mode_data
+            f = env.n_levels - 1
+            start = int(seen_tables.grid_offset[i, f])
+            size = int(seen_tables.grid_width[i, f] * seen_tables.grid_height[i, f])
+            seen = np.asarray(memory.seen[i])[start:start + size]
+            read = seen[np.asarray(seen_tables.tissue[i])[:size]]
+        out.append((np.flatnonzero(read), float(scores[i]), float(fractions[i])))
+    return out
+
+
+def policy_rows(run, dataset, name: str, head: MILClassifier, tables, labels, budgets=BUDGETS) -> list[dict]:
+    """Rows for a trained policy at ``budgets``: its own diagnosis (``name``) and the MIL head on what
+    it read (``name + MIL``)."""
+    rows = []
+    for b in budgets:
+        reads = policy_reads(run, dataset, "test", b)
+        x, m = bags([{**t, "instance_cell": np.arange(len(t["instances"]))} for t in tables], [r[0] for r in reads])
+        fraction = float(np.mean([r[2] for r in reads]))
+        own = np.asarray([r[1] for r in reads])
+        mil = head.scores(x, m)
+        for method, s in ((name, own), (f"{name} reader + MIL", mil)):
+            rows.append({"method": method, "budget": float(b), "fraction_read": fraction, "auc": roc_auc(s, labels),
+                         "accuracy": accuracy(s, labels), "slides": len(labels)})
+    return rows
+
+
+def write_csv(rows: list[dict], path) -> Path:
+    """One line per method × budget."""
+    path = Path(path)
+    with open(path, "w", newline="") as f:
+        w = csv.DictWriter(f, fieldnames=["method", "budget", "fraction_read", "auc", "accuracy", "slides"])
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()})
+    return path
+
+
+def plot(rows: list[dict], path, title: str = "") -> Path:
+    """AUC and accuracy against the fraction read, one line per method (the read-everything ceiling as
+    a dashed line)."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(8.0, 5.6), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    axes = fig.subplots(2, 1, sharex=True)
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    colours = ["#1f4e9c", "#c0392b", "#27ae60", "#8e44ad", "#d35400", "#16a085", "#7f8c8d"]
+    for ax, metric in zip(axes, ("auc", "accuracy")):
+        for k, name in enumerate(methods):
+            pts = sorted((r["fraction_read"], r[metric]) for r in rows if r["method"] == name)
+            if len(pts) == 1 and pts[0][0] >= 0.999:
+                ax.axhline(pts[0][1], color="#555555", linestyle="--", linewidth=1.3, label=f"{name} ({pts[0][1]:.3f})")
+                continue
+            xs, ys = zip(*pts)
+            ax.plot(xs, ys, "o-", color=colours[k % len(colours)], linewidth=1.8, markersize=4, label=name)
+        ax.set_xlim(-0.02, 1.02)
+        ax.set_ylabel(metric.upper() if metric == "auc" else metric)
+        ax.set_ylim(0.0, 1.02)
+        ax.grid(True, color="#dddddd", linewidth=0.6)
+        ax.legend(loc="lower right", fontsize="small", framealpha=0.85)
+    axes[-1].set_xlabel("fraction of finest-level tissue views read")
+    axes[-1].set_xticks([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 1.0], ["0", "10 %", "20 %", "30 %", "40 %", "50 %", "100 %"])
+    if title:
+        fig.suptitle(title, fontsize="medium")
+    path = Path(path)
+    fig.savefig(path)
+    return path
+
+
+def compute_missing_features(dataset, encoder: str) -> None:
+    """Compute the feature grid (``encoder``, float32) of every bundle in ``dataset`` that has none."""
+    from data_tools.bundle import read_metadata
+    from data_tools.features.grid import compute_features
+    from histojax.registry import dataset_slides
+
+    for bundle in dataset_slides(dataset, "all"):
+        if not read_metadata(bundle).get("features"):
+            compute_features(bundle, encoder_name=encoder, image_size=None, dtype="float32", progress=False)
+            print(f"computed the {encoder} feature grid of {bundle}")
+
+
+def parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="python -m baselines.budget_curve", description=__doc__.split("\n")[0])
+    p.add_argument("--dataset", required=True, help="dataset folder with dataset.json (train / test split) whose "
+                                                   "bundles have feature grids")
+    p.add_argument("--env", default="HistoJAX-Medium-v0", help="scenario id (its levels; default HistoJAX-Medium-v0)")
+    p.add_argument("--glimpse-level", type=int, default=3,
+                   help="scenario level of the glimpse cells (default 3: one above the finest of the 5 levels of "
+                        "HistoJAX-Medium-v0)")
+    p.add_argument("--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)")
+    p.add_argument("--seeds", type=int, default=5, help="random reader orders per slide (default 5)")
+    p.add_argument("--steps", type=int, default=400, help="MIL training steps (default 400)")
+    p.add_argument("--folds", type=int, default=0,
+                   help="K-fold cross-validation over all the dataset's slides instead of its train/test split "
+                        "(for small datasets; default 0 = use the split)")
+    p.add_argument("--ppo", nargs=2, action="append", default=[], metavar=("NAME", "RUN"),
+                   help="also a trained PPO policy (run folder of `python -m baselines.ppo` in a glimpse or "
+                        "zoom_select mode) on the test split: its own diagnosis and the MIL head on what it read")
+    p.add_argument("--compute-features", metavar="ENCODER", default=None,
+                   help="first compute the feature grid of every bundle of the dataset that has none with this "
+                        "encoder (e.g. colour-stats; see `python -m data_tools features --help`)")
+    p.add_argument("--out", default="runs/budget_curve", help="output folder (default runs/budget_curve)")
+    return p
+
+
+def main(argv=None) -> int:
+    args = parser().parse_args(argv)
+    level = args.glimpse_level
+    if args.compute_features:
+        compute_missing_features(args.dataset, args.compute_features)
+    if args.folds:
+        tables, labels = load_split(args.dataset, "all", args.env, level)
+        rows = cross_validated_rows(tables, labels, args.folds, args.budgets, seeds=args.seeds, steps=args.steps)
+        split = f"{len(labels)} slides, {args.folds}-fold cross-validation"
+    else:
+        train = load_split(args.dataset, "train", args.env, level)
+        test = load_split(args.dataset, "test", args.env, level)
+        rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps, policies=args.ppo,
+                           dataset=args.dataset)
+        split = f"{len(train[1])} train / {len(test[1])} test slides"
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    csv_path = write_csv(rows, out / "budget_curve.csv")
+    title = f"{Path(args.dataset).name}: {split}, glimpse level {level} of {args.env}"
+    png = plot(rows, out / "budget_curve.png", title)
+    print(f"{'method':28s} {'budget':>6s} {'read':>6s} {'AUC':>6s} {'acc':>6s}")
+    for r in rows:
+        print(f"{r['method']:28s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {r['auc']:6.3f} {r['accuracy']:6.3f}")
+    print(f"wrote {csv_path} and {png}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,221 @@
+"""``action_mode="glimpse"`` (SASHA style): pick cells of a fixed low-magnification grid, read what
+lies under them at the finest level, diagnose.
+
+**Cells** are the feature-grid views of scenario level ``level`` (default 0, the coarsest; the
+grid step is the bundle's feature stride, ``T`` px by default), padded to the dataset's largest
+grid ``Gh × Gw`` (``C = Gh·Gw`` cells, index ``gy·Gw + gx``). A cell is *valid* when it lies on the
+slide and at least one finest-level tissue view lies under it (:mod:`histojax.reading`).
+
+**Actions** ``Discrete(C + 2)``: ``i < C`` picks cell ``i``; ``C`` declares no tumour, ``C + 1``
+declares tumour (``task="classification"`` only). Picking a valid, unread cell *reveals* it: the
+summary of the finest-level tissue views under it — the **mean and the elementwise max** of their
+feature vectors, ``(2D,)`` (the mean says what the cell mostly is, the max keeps a small focus of
+tumour that the mean would dilute; attention-MIL heads read both well) — and its views count as
+read. Picking a cell again, an invalid cell, or a padding cell reveals nothing new (the step still
+costs ``step_cost``). The view in the state moves to the picked cell (level ``level``).
+
+**Reading budget** ``read_budget`` (a fraction of the slide's finest-level tissue views, in
+``params.mode_data``; ``make(..., read_budget=0.2)`` or :func:`with_budget`): a pick that would
+read past it reveals nothing and ends the episode (truncated, no diagnosis); so does reading
+exactly the whole budget. Reading never exceeds the budget.
+
+**Observation**: the observation mode's entry of the current view, plus (all float32, ``C`` cells)
+``cells (C, D)`` low-resolution features of every cell (0 for padding), ``valid (C,)`` 0/1,
+``revealed (C,)`` 0/1, ``summaries (C, 2D)`` the revealed summaries (0 where unread) and
+``budget_left ()`` the budget not yet read (``read_budget − fraction_read``). Bytes per observation:
+``4 · C · (3D + 2) + 4`` plus the view entry (see :func:`observation_bytes`).
+
+**info** (every step): ``fraction_read`` (read tissue views / all tissue views), ``fields_of_view``
+(distinct cells revealed), ``steps``; with ``score`` / ``declared`` of classification.
+"""
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from histojax import reading, spaces
+from histojax.modes import ActionMode, Move, _declared_score
+
+
+@struct.dataclass
+class GlimpseTables:
+    """Per-slide tables of a dataset of ``S`` slides, ``C`` cells (in ``EnvParams.mode_data``)."""
+
+    cells: jnp.ndarray        # (S, C, D) float32 low-resolution features of each cell (0: padding)
+    summaries: jnp.ndarray    # (S, C, 2D) float32 mean ‖ max of the finest tissue views' features under it
+    cell_views: jnp.ndarray   # (S, C) int32 finest-level tissue views under each cell
+    valid: jnp.ndarray        # (S, C) bool: on the slide with ≥ 1 tissue view under it
+    cell_x: jnp.ndarray       # (S, C) int32 top-left of the cell's view, px of the glimpse level
+    cell_y: jnp.ndarray       # (S, C) int32
+    total_views: jnp.ndarray  # (S,) int32 finest-level tissue views of the slide (≥ 1)
+    inv_total: jnp.ndarray    # (S,) float32 1 / total_views (a product, not a division, is bitwise stable under vmap)
+    read_budget: jnp.ndarray  # () float32 fraction of total_views an episode may read, in (0, 1]
+
+
+@struct.dataclass
+class GlimpseMemory:
+    """What an episode has read (in ``EnvState.memory``)."""
+
+    revealed: jnp.ndarray     # (C,) bool cells revealed so far
+    views_read: jnp.ndarray   # () int32 finest-level tissue views read so far
+    fields: jnp.ndarray       # () int32 distinct cells revealed (fields of view)
+    over_budget: jnp.ndarray  # () bool a pick was refused by the budget (the episode ends)
+
+
+def with_budget(params, read_budget: float):
+    """``params`` with another reading budget (fraction in ``(0, 1]``; no recompilation)."""
+    return params.replace(mode_data=params.mode_data.replace(read_budget=jnp.float32(read_budget)))
+
+
+def budget_views(tables: GlimpseTables, slide_index) -> jax.Array:
+    """The most tissue views an episode on slide ``slide_index`` may read (int32)."""
+    total = tables.total_views[slide_index]
+    return jnp.floor(tables.read_budget * total.astype(jnp.float32) + 1e-4).astype(jnp.int32)
+
+
+@dataclasses.dataclass(frozen=True)
+class Glimpse(ActionMode):
+    """SASHA-style cell picking (see the module doc). ``level``: the cell grid's scenario level."""
+
+    level: int = 0
+    name = "glimpse"
+    needs_features = True
+    tasks = ("classification",)
+
+    def validate(self, env) -> None:
+        super().validate(env)
+        if not 0 <= self.level < env.n_levels:
+            raise ValueError(f"glimpse level must be in [0, {env.n_levels}), got {self.level}")
+
+    def num_actions(self, env) -> int:
+        return self.num_cells(env.default_params) + 2
+
+    def num_cells(self, params) -> int:
+        """``C``, the padded number of cells (static: from the tables' shape)."""
+        return int(params.mode_data.valid.shape[-1])
+
+    def space(self, env, params):
+        return spaces.Discrete(self.num_cells(params) + 2)
+
+    def prepare(self, env, params, bundles, read_budget: float = 1.0) -> GlimpseTables:
+        if not 0.0 < read_budget <= 1.0:
+            raise ValueError(f"read_budget must be in (0, 1], got {read_budget}")
+        per = self.host_tables(env, params, bundles)
+        stack = lambda k, dtype=None: jnp.asarray(np.stack([p[k] for p in per]), dtype)  # noqa: E731
+        total = np.asarray([p["total"] for p in per])
+        return GlimpseTables(
+            cells=stack("cells"), summaries=stack("summaries"), cell_views=stack("cell_views"), valid=stack("valid"),
+            cell_x=stack("cell_x"), cell_y=stack("cell_y"), total_views=jnp.asarray(total, jnp.int32),
+            inv_total=jnp.asarray(1.0 / total.astype(np.float64), jnp.float32), read_budget=jnp.float32(read_budget))
+
+    def host_tables(self, env, params, bundles) -> list[dict]:
+        """Per slide, host numpy: the padded cell tables of :class:`GlimpseTables` (``cells``,
+        ``summaries``, ``cell_views``, ``valid``, ``cell_x``, ``cell_y``, ``total``) and the instances
+        behind them: ``instances (V, D)`` features of the slide's finest-level tissue views and
+        ``instance_cell (V,)`` the (padded) cell index, i.e. the action, that reveals each."""
+        t, g = env.tile_size, self.level
+        per = []
+        for slide, bundle in reading.per_slide(params, bundles):
+            if slide.features is None:
+                raise ValueError(f"action_mode='glimpse' needs feature grids: run `python -m data_tools features "
+                                 f"{bundle.path}`")
+            s = int(np.asarray(slide.feature_stride))
+            gw, gh = int(np.asarray(slide.feature_grid_width)[g]), int(np.asarray(slide.feature_grid_height)[g])
+            per.append((slide, bundle, s, gh, gw))
+        big_h, big_w = max(p[3] for p in per), max(p[4] for p in per)
+        out = []
+        for slide, bundle, s, gh, gw in per:
+            tissue = reading.tissue_views(bundle, slide, t).reshape(-1)
+            cell = reading.cell_of_views(slide, t, g, s, (gh, gw)).reshape(-1)
+            feats = reading.finest_view_features(slide, t).reshape(tissue.shape[0], -1)
+            d, n = feats.shape[1], gh * gw
+            count = np.bincount(cell[tissue], minlength=n)
+            mean = np.zeros((n, d), np.float64)
+            np.add.at(mean, cell[tissue], feats[tissue])
+            mean /= np.maximum(count, 1)[:, None]
+            mx = np.full((n, d), -np.inf)
+            np.maximum.at(mx, cell[tissue], feats[tissue])
+            mx[count == 0] = 0.0
+            low = np.asarray(slide.features, np.float32)[int(np.asarray(slide.feature_offset)[g]) + np.arange(n)]
+            gy, gx = np.divmod(np.arange(n), gw)
+            pad = lambda a, fill=0: _to_padded(a.reshape(gh, gw, *a.shape[1:]), big_h, big_w, fill)  # noqa: E731
+            cy, cx = np.divmod(cell[tissue], gw)
+            out.append({
+                "cells": pad(low), "summaries": pad(np.concatenate([mean, mx], 1).astype(np.float32)),
+                "cell_views": pad(count.astype(np.int32)), "valid": pad(count > 0, False),
+                "cell_x": pad((gx * s).astype(np.int32)), "cell_y": pad((gy * s).astype(np.int32)),
+                "total": max(1, int(tissue.sum())),
+                "instances": feats[tissue].astype(np.float32), "instance_cell": (cy * big_w + cx).astype(np.int64)})
+        return out
+
+    def init_memory(self, env, state, params) -> GlimpseMemory:
+        c = self.num_cells(params)
+        zero = jnp.zeros((), jnp.int32)
+        return GlimpseMemory(revealed=jnp.zeros((c,), bool), views_read=zero, fields=zero,
+                             over_budget=jnp.zeros((), bool))
+
+    def apply(self, env, state, action, params) -> Move:
+        tables, mem, i = params.mode_data, state.memory, state.slide_index
+        c = self.num_cells(params)
+        a = jnp.asarray(action, jnp.int32)
+        cell = jnp.clip(a, 0, c - 1)
+        picked = (a >= 0) & (a < c) & tables.valid[i, cell]
+        new = picked & ~mem.revealed[cell]
+        n = tables.cell_views[i, cell]
+        fits = mem.views_read + n <= budget_views(tables, i)
+        reveal = new & fits
+        memory = GlimpseMemory(
+            revealed=mem.revealed.at[cell].set(mem.revealed[cell] | reveal),
+            views_read=mem.views_read + jnp.where(reveal, n, 0),
+            fields=mem.fields + reveal.astype(jnp.int32),
+            over_budget=mem.over_budget | (new & ~fits))
+        z = jnp.where(picked, self.level, state.z).astype(jnp.int32)
+        x = jnp.where(picked, tables.cell_x[i, cell], state.x).astype(jnp.int32)
+        y = jnp.where(picked, tables.cell_y[i, cell], state.y).astype(jnp.int32)
+        diagnosis = jnp.where(a == c + 1, 1, jnp.where(a == c, 0, -1)).astype(jnp.int32)
+        return Move(z, x, y, diagnosis, _declared_score(diagnosis), memory)
+
+    def budget_spent(self, env, state, params) -> jax.Array:
+        mem = state.memory
+        return mem.over_budget | (mem.views_read >= budget_views(params.mode_data, state.slide_index))
+
+    def memory_obs(self, env, state, params) -> dict:
+        tables, mem, i = params.mode_data, state.memory, state.slide_index
+        revealed = mem.revealed.astype(jnp.float32)
+        fraction = mem.views_read.astype(jnp.float32) * tables.inv_total[i]
+        return {
+            "cells": tables.cells[i],
+            "valid": tables.valid[i].astype(jnp.float32),
+            "revealed": revealed,
+            "summaries": tables.summaries[i] * revealed[:, None],
+            "budget_left": jnp.clip(tables.read_budget - fraction, 0.0, 1.0).astype(jnp.float32),
+        }
+
+    def memory_space(self, env, params) -> dict:
+        c, d = self.num_cells(params), int(params.mode_data.cells.shape[-1])
+        box = lambda shape, lo=-jnp.inf, hi=jnp.inf: spaces.Box(lo, hi, shape, jnp.float32)  # noqa: E731
+        return {"cells": box((c, d)), "valid": box((c,), 0.0, 1.0), "revealed": box((c,), 0.0, 1.0),
+                "summaries": box((c, 2 * d)), "budget_left": box((), 0.0, 1.0)}
+
+    def reading_info(self, env, state, params) -> dict:
+        mem, tables = state.memory, params.mode_data
+        fraction = mem.views_read.astype(jnp.float32) * tables.inv_total[state.slide_index]
+        return {"fraction_read": fraction, "fields_of_view": mem.fields}
+
+
+def observation_bytes(env, params) -> int:
+    """Bytes of one observation of ``env`` (all leaves of its observation space)."""
+    space = env.observation_space(params)
+    leaves = space.spaces.values() if hasattr(space, "spaces") else [space]
+    return int(sum(np.prod(s.shape, dtype=np.int64) * np.dtype(s.dtype).itemsize for s in leaves))
+
+
+def _to_padded(a: np.ndarray, h: int, w: int, fill) -> np.ndarray:
+    """``(gh, gw, …)`` → ``(h·w, …)`` padded with ``fill`` to an ``h × w`` grid."""
+    out = np.full((h, w) + a.shape[2:], fill, dtype=a.dtype)
+    out[: a.shape[0], : a.shape[1]] = a
+    return out.reshape((h * w,) + a.shape[2:])

@@ -1,0 +1,306 @@
+"""Action and observation modes: small objects that ``HistoEnv`` calls; it never compares a mode name.
+
+An **action mode** turns an action into the next position (and, for ``task="classification"``, a
+diagnosis with a score) and declares its action space; a mode that reads the slide in its own way
+(``glimpse``, ``zoom_select``) also keeps a *memory* in ``EnvState.memory`` (``None`` for the
+navigation modes, so their state is HistoGym's ``(z, x, y, t, …)`` as before), may put precomputed
+per-slide tables in ``EnvParams.mode_data`` (``prepare``, called once by ``make``) and adds entries
+to the observation (``memory_obs``). An **observation mode** turns a state into the view's
+observation and declares its space.
+
+Adding a mode is one new object (a frozen, hashable dataclass, so the env stays a valid static
+argument of ``jax.jit``) plus an entry in :data:`ACTION_MODES` / :data:`OBS_MODES`: the strings
+users pass to ``make(..., action_mode="discrete")`` are resolved here, in :func:`action_mode` and
+:func:`obs_mode`, and nowhere else.
+"""
+from __future__ import annotations
+
+import dataclasses
+from typing import Any, NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jax import lax
+
+from histojax import actions, reading, spaces
+from histojax import augment as dihedral
+from histojax.views import view_pixels
+
+
+class Move(NamedTuple):
+    """What an action mode's ``apply`` returns (all traced scalars unless said otherwise)."""
+
+    z: jax.Array          # int32 level of the next view (0 = coarsest)
+    x: jax.Array          # int32 top-left corner of the next view, px of level z
+    y: jax.Array          # int32
+    diagnosis: jax.Array  # int32: 1 tumour, 0 no tumour, -1 none declared (classification only)
+    score: jax.Array      # float32 in [0, 1]: the declared belief that the slide holds tumour
+    memory: Any = None    # the mode's new memory pytree (None for memory-less modes)
+
+
+# ----------------------------------------------------------------------------- action modes
+@dataclasses.dataclass(frozen=True)
+class ActionMode:
+    """Base of the action modes (see the module doc). Subclasses override what they need."""
+
+    name = "base"
+    supports_augment = False       # the 8-orientation augmentation can turn this mode's actions
+    needs_features = False         # make() must load the bundles' feature grids
+    tasks = ("detection", "classification")
+
+    def validate(self, env) -> None:
+        """Raise ``ValueError`` for settings this mode cannot serve (one clear line)."""
+        if env.task not in self.tasks:
+            raise ValueError(f"action_mode={self.name!r} supports task in {self.tasks}, got {env.task!r}")
+
+    def num_actions(self, env) -> int:
+        raise NotImplementedError
+
+    def space(self, env, params):
+        raise NotImplementedError
+
+    def prepare(self, env, params, bundles, **settings):
+        """Per-slide tables for ``params.mode_data`` (host side, once, in ``make``; ``settings`` such
+        as ``read_budget`` come from ``make``'s keywords); ``None`` if none."""
+        if settings:
+            raise TypeError(f"action_mode={self.name!r} takes no {sorted(settings)}")
+        return None
+
+    def init_memory(self, env, state, params):
+        """The memory of a fresh episode at ``state`` (``None``: this mode keeps none)."""
+        return None
+
+    def apply(self, env, state, action, params) -> Move:
+        raise NotImplementedError
+
+    def memory_obs(self, env, state, params) -> dict:
+        """Extra observation entries built from the memory (``{}``: none)."""
+        return {}
+
+    def memory_space(self, env, params) -> dict:
+        """Spaces of :meth:`memory_obs`'s entries."""
+        return {}
+
+    def budget_spent(self, env, state, params) -> jax.Array:
+        """True when the episode's reading budget is spent (it is then truncated); never by default."""
+        return jnp.zeros((), bool)
+
+    def reading_info(self, env, state, params) -> dict:
+        """Efficiency figures for ``info`` (``{}`` when this mode does not track reading)."""
+        return {}
+
+
+def _declared_score(diagnosis):
+    """A hard diagnosis as a score: 1.0 tumour, 0.0 no tumour, 0.5 none."""
+    return jnp.where(diagnosis < 0, 0.5, diagnosis.astype(jnp.float32)).astype(jnp.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class Navigation(ActionMode):
+    """Base of the pan/zoom modes. They keep no memory unless asked: ``make(..., track_reading=True)``
+    (``fraction_read`` / ``fields_of_view`` in ``info``; ``read_budget`` truncates) or
+    ``memory=True`` (that, plus the coarse ``visited`` map and ``position`` in the observation; see
+    :mod:`histojax.reading`). Without either the state and the trajectories are HistoGym's."""
+
+    memory: bool = False
+    supports_augment = True
+
+    def prepare(self, env, params, bundles, track_reading: bool = False, read_budget: float | None = None):
+        if not (self.memory or track_reading):
+            if read_budget is not None:
+                raise TypeError(f"read_budget needs track_reading=True (or {self.name} with memory=True)")
+            return None
+        return reading.seen_tables(env, params, bundles, 1.0 if read_budget is None else read_budget)
+
+    def init_memory(self, env, state, params):
+        return None if params.mode_data is None else reading.init_seen(params.mode_data, state, env)
+
+    def _seen(self, env, state, params, z, x, y):
+        if state.memory is None:
+            return None
+        return reading.see(params.mode_data, state.memory, state.slide_index, z, x, y, env)
+
+    def budget_spent(self, env, state, params) -> jax.Array:
+        if state.memory is None:
+            return super().budget_spent(env, state, params)
+        return reading.budget_spent(params.mode_data, state.memory, state.slide_index)
+
+    def reading_info(self, env, state, params) -> dict:
+        if state.memory is None:
+            return {}
+        return reading.reading_info(params.mode_data, state.memory, state.slide_index)
+
+    def memory_obs(self, env, state, params) -> dict:
+        return reading.visited_obs(env, state, params) if self.memory else {}
+
+    def memory_space(self, env, params) -> dict:
+        return reading.visited_space(params) if self.memory else {}
+
+
+@dataclasses.dataclass(frozen=True)
+class Discrete(Navigation):
+    """HistoGym's ``Discrete(7)`` moves (+ DECLARE_NO_TUMOUR=7, DECLARE_TUMOUR=8 for classification)."""
+
+    name = "discrete"
+
+    def num_actions(self, env) -> int:
+        return actions.NUM_DISCRETE_ACTIONS + (2 if env.task == "classification" else 0)
+
+    def space(self, env, params):
+        return spaces.Discrete(self.num_actions(env))
+
+    def apply(self, env, state, action, params) -> Move:
+        slide = params.slide.select(state.slide_index)
+        if env.augment:  # the agent acts in its turned frame
+            action = dihedral.discrete_to_slide(action, state.orientation)
+        stride_px = jnp.round(params.stride * env.tile_size).astype(jnp.int32)
+        dx, dy, dz = actions.discrete_deltas(action, stride_px)
+        z, x, y = actions.move_and_zoom(slide, state.z, state.x, state.y, dx, dy, dz, env.tile_size, env.n_levels)
+        diagnosis = actions.discrete_diagnosis(action)
+        return Move(z, x, y, diagnosis, _declared_score(diagnosis), self._seen(env, state, params, z, x, y))
+
+
+@dataclasses.dataclass(frozen=True)
+class Continuous(Navigation):
+    """``Box(-1, 1, (3,))`` ``(dx, dy, dzoom)`` (+ a 4th diagnosis component for classification)."""
+
+    name = "continuous"
+
+    def num_actions(self, env) -> int:
+        return 3 + (1 if env.task == "classification" else 0)
+
+    def space(self, env, params):
+        return spaces.Box(-1.0, 1.0, (self.num_actions(env),), jnp.float32)
+
+    def apply(self, env, state, action, params) -> Move:
+        slide = params.slide.select(state.slide_index)
+        if env.augment:
+            action = dihedral.continuous_to_slide(action, state.orientation)
+        stride_px = jnp.round(params.stride * env.tile_size).astype(jnp.int32)
+        dx, dy, dz = actions.continuous_deltas(action, stride_px)
+        z, x, y = actions.move_and_zoom(slide, state.z, state.x, state.y, dx, dy, dz, env.tile_size, env.n_levels)
+        if env.task == "classification":
+            diagnosis = actions.continuous_diagnosis(action)
+            d = jnp.nan_to_num(jnp.asarray(action, jnp.float32)[3], nan=0.0)
+            score = jnp.where(diagnosis < 0, 0.5, (jnp.clip(d, -1.0, 1.0) + 1.0) / 2.0)  # > 0.75 declares tumour
+        else:
+            diagnosis, score = jnp.full((), -1, jnp.int32), jnp.full((), 0.5, jnp.float32)
+        return Move(z, x, y, diagnosis, score.astype(jnp.float32), self._seen(env, state, params, z, x, y))
+
+
+# ----------------------------------------------------------------------------- observation modes
+def view_features(slide, z: jax.Array, x: jax.Array, y: jax.Array) -> jax.Array:
+    """Feature vector ``(D,)`` float32 of the view at ``(z, x, y)``: the grid cell whose position is
+    nearest the view's top-left corner, ``gx = clip(round(x / stride), 0, gw - 1)`` (likewise
+    ``gy``). Exact for grid-aligned views; any other view gets the grid view at most
+    ``stride / 2`` px away on each axis (or, at the right/bottom edge, the last grid column/row).
+    One gather of ``D`` values."""
+    stride = slide.feature_stride
+    gw, gh = slide.feature_grid_width[z], slide.feature_grid_height[z]
+    gx = jnp.clip((x + stride // 2) // stride, 0, gw - 1)
+    gy = jnp.clip((y + stride // 2) // stride, 0, gh - 1)
+    row = slide.feature_offset[z] + gy * gw + gx
+    return lax.dynamic_index_in_dim(slide.features, row, axis=0, keepdims=False).astype(jnp.float32)
+
+
+@dataclasses.dataclass(frozen=True)
+class ObsMode:
+    """Base of the observation modes: ``observe(env, state, params)`` and ``space(env, params)``."""
+
+    name = "base"
+    key = "pixels"              # its entry's name in a dict observation
+    supports_augment = False
+    needs_features = False
+
+    def observe(self, env, state, params):
+        raise NotImplementedError
+
+    def space(self, env, params):
+        raise NotImplementedError
+
+
+@dataclasses.dataclass(frozen=True)
+class Pixels(ObsMode):
+    """The view, ``(T, T, 3)`` uint8 (``as_float``: float32 in ``[0, 1]``), turned with ``augment``."""
+
+    as_float: bool = False
+    supports_augment = True
+
+    @property
+    def name(self) -> str:
+        return "pixels_float" if self.as_float else "pixels"
+
+    def observe(self, env, state, params):
+        slide = params.slide.select(state.slide_index)
+        pixels = view_pixels(slide, state.z, state.x, state.y, env.tile_size)
+        if env.augment:
+            pixels = dihedral.orient_pixels(pixels, state.orientation)
+        return pixels.astype(jnp.float32) / 255.0 if self.as_float else pixels
+
+    def space(self, env, params):
+        t = env.tile_size
+        return (spaces.Box(0.0, 1.0, (t, t, 3), jnp.float32) if self.as_float
+                else spaces.Box(0, 255, (t, t, 3), jnp.uint8))
+
+
+@dataclasses.dataclass(frozen=True)
+class Features(ObsMode):
+    """The ``(D,)`` float32 feature vector of the view (see :func:`view_features`)."""
+
+    name = "features"
+    key = "features"
+    needs_features = True
+
+    def observe(self, env, state, params):
+        slide = params.slide.select(state.slide_index)
+        if slide.features is None:
+            raise ValueError("obs_mode='features' needs a slide with a feature grid: compute one with "
+                             "`python -m data_tools features BUNDLE` and make the env from that bundle")
+        return view_features(slide, state.z, state.x, state.y)
+
+    def space(self, env, params):
+        return spaces.Box(-jnp.inf, jnp.inf, (params.slide.features.shape[-1],), jnp.float32)
+
+
+# ----------------------------------------------------------------------------- the one place names resolve
+def _glimpse():
+    from histojax.glimpse import Glimpse
+
+    return Glimpse()
+
+
+def _zoom_select():
+    from histojax.zoom_select import ZoomSelect
+
+    return ZoomSelect()
+
+
+ACTION_MODES = {"discrete": Discrete, "continuous": Continuous, "glimpse": _glimpse, "zoom_select": _zoom_select}
+OBS_MODES = {"pixels": Pixels, "pixels_float": lambda: Pixels(as_float=True), "features": Features}
+
+
+def action_mode(mode) -> ActionMode:
+    """The action mode object for a name in :data:`ACTION_MODES` (or an ``ActionMode`` as it is).
+    ``"glimpse:L"`` and ``"zoom_select:K"`` set the glimpse level / the number of children a side
+    (strings, so a trainer's JSON config can name them)."""
+    if isinstance(mode, ActionMode):
+        return mode
+    name, _, arg = str(mode).partition(":")
+    if name not in ACTION_MODES or (arg and name not in ("glimpse", "zoom_select")):
+        raise ValueError(f"action_mode must be one of {tuple(ACTION_MODES)} (or glimpse:LEVEL, zoom_select:K), "
+                         f"got {mode!r}")
+    obj = ACTION_MODES[name]()
+    if arg:
+        if not arg.isdigit():
+            raise ValueError(f"action_mode {mode!r}: the part after ':' must be a whole number")
+        obj = dataclasses.replace(obj, **{"level" if name == "glimpse" else "k": int(arg)})
+    return obj
+
+
+def obs_mode(mode) -> ObsMode:
+    """The observation mode object for a name in :data:`OBS_MODES` (or an ``ObsMode`` as it is)."""
+    if isinstance(mode, ObsMode):
+        return mode
+    if mode not in OBS_MODES:
+        raise ValueError(f"obs_mode must be one of {tuple(OBS_MODES)}, got {mode!r}")
+    return OBS_MODES[mode]()

@@ -1,0 +1,335 @@
+"""Reading modes (``glimpse``, ``zoom_select``), the reading memory, the score and the efficiency
+metrics, and the AUC of the diagnosis benchmark.
+
+One small slide (1024 × 768 px, 32-px views, 3 levels at downsamples 16, 4, 1; glimpse cells at
+the middle level: 6 × 8 cells of 4 × 4 finest views) with the cheap
+``colour-stats`` feature grid; one jitted rollout per mode, compiled once for the module."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import histojax
+from histojax.glimpse import Glimpse, observation_bytes, with_budget
+from histojax.zoom_select import ZoomSelect
+
+TILE, STEPS = 32, 12
+
+
+@pytest.fixture(scope="module")
+def bundle(tmp_path_factory) -> Path:
+    import tifffile
+
+    from data_tools.bundle import build_bundle
+    from data_tools.features.grid import compute_features
+
+    root = tmp_path_factory.mktemp("diag")
+    rng = np.random.default_rng(1)
+    image = np.full((768, 1024, 3), 245, np.uint8)                      # glass
+    image[80:680, 60:940] = [230, 160, 200]                              # pink tissue
+    image[200:360, 600:840] = [120, 40, 140]                             # purple "tumour"
+    image = np.clip(image.astype(int) + rng.integers(-8, 9, image.shape), 0, 255).astype(np.uint8)
+    tifffile.imwrite(root / "tiny.tif", image, photometric="rgb")
+    path = build_bundle(root / "tiny.tif", root / "bundle", level_sets=(3,), tile_size=TILE, progress=False)
+    compute_features(path, encoder_name="colour-stats", batch=64, progress=False, dtype="float32")
+    return path
+
+
+@pytest.fixture(scope="module")
+def glimpse(bundle):
+    return histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
+                         task="classification", max_steps_in_episode=STEPS, auto_reset=False)
+
+
+@pytest.fixture(scope="module")
+def zoom(bundle):
+    return histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode="zoom_select", task="classification",
+                         max_steps_in_episode=STEPS, auto_reset=False)
+
+
+def _rollout(env):
+    """``rollout(key, actions, params) → (states, infos, obs)`` stacked over the steps (one program)."""
+    def rollout(key, actions, params):
+        obs, state = env.reset(key, params)
+
+        def body(carry, a):
+            state, key = carry
+            key, sub = jax.random.split(key)
+            obs, state, _, _, _, info = env.step(sub, state, a, params)
+            return (state, key), (state, info, obs)
+
+        return jax.lax.scan(body, (state, key), actions)[1]
+    return rollout
+
+
+@pytest.fixture(scope="module")
+def glimpse_rollout(glimpse):
+    return jax.jit(_rollout(glimpse[0]))
+
+
+@pytest.fixture(scope="module")
+def zoom_rollout(zoom):
+    return jax.jit(_rollout(zoom[0]))
+
+
+def _equal(a, b):
+    for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+@pytest.mark.parametrize("which", ["glimpse", "zoom"])
+def test_jit_equals_no_jit(which, request):
+    env, params = request.getfixturevalue(which)
+    rollout = request.getfixturevalue(f"{which}_rollout")
+    n = env.num_actions - 2  # no diagnosis: the whole episode runs
+    actions = jax.random.randint(jax.random.key(3), (STEPS - 1,), 0, n)
+    jitted = rollout(jax.random.key(7), actions, params)
+    with jax.disable_jit():
+        plain = _rollout(env)(jax.random.key(7), actions, params)
+    _equal(jitted, plain)
+
+
+@pytest.mark.parametrize("which", ["glimpse", "zoom"])
+def test_vmap_equals_loop(which, request):
+    env, params = request.getfixturevalue(which)
+    rollout = request.getfixturevalue(f"{which}_rollout")
+    keys = jax.random.split(jax.random.key(11), 3)
+    actions = jax.random.randint(jax.random.key(5), (3, STEPS - 1), 0, env.num_actions)
+    batched = jax.jit(jax.vmap(_rollout(env), in_axes=(0, 0, None)))(keys, actions, params)
+    for i in range(3):
+        _equal(jax.tree.map(lambda x: x[i], batched), rollout(keys[i], actions[i], params))
+
+
+def _direct_tables(bundle):
+    """Tissue views and the mean ‖ max of their features per glimpse cell, from the bundle's files
+    (finest level first; the glimpse grid is the middle level's, downsample 4; tissue at 1/16)."""
+    from data_tools.bundle import load_bundle, read_metadata
+
+    b = load_bundle(bundle, verify=False)
+    meta = read_metadata(bundle)
+    finest = np.load(bundle / meta["features"]["levels"][0]["file"])   # (gh, gw, D) at 32-px stride
+    coarse = np.load(bundle / meta["features"]["levels"][1]["file"])   # the glimpse cells' own features
+    ratio = round(meta["levels"][1]["downsample"] / meta["levels"][0]["downsample"])  # 4 finest px per cell-level px
+    mask = round(meta["levels"][-1]["downsample"])
+    assert b.tissue.shape[1] * mask == b.pixels[0].shape[1]             # the tissue mask is at the coarsest level
+    tissue_full = np.kron(b.tissue.astype(float), np.ones((mask, mask)))
+    gh, gw = finest.shape[:2]
+    frac = tissue_full[: gh * TILE, : gw * TILE].reshape(gh, TILE, gw, TILE).mean(axis=(1, 3))
+    tissue = frac >= 0.25
+    cgh, cgw = coarse.shape[:2]
+    cells = {}
+    for gy in range(cgh):
+        for gx in range(cgw):
+            # finest views whose centre falls in the cell's footprint (px of the finest level; last row/col take the rest)
+            cx = (np.arange(gw) + 0.5) * TILE
+            cy = (np.arange(gh) + 0.5) * TILE
+            in_x = (cx >= gx * TILE * ratio) & ((cx < (gx + 1) * TILE * ratio) | (gx == cgw - 1))
+            in_y = (cy >= gy * TILE * ratio) & ((cy < (gy + 1) * TILE * ratio) | (gy == cgh - 1))
+            under = in_y[:, None] & in_x[None, :] & tissue
+            cells[gy * cgw + gx] = (int(under.sum()), finest[under])
+    return cells, int(tissue.sum()), coarse.reshape(cgh * cgw, -1)
+
+
+def test_revealed_content_equals_a_direct_lookup(glimpse, bundle):
+    env, params = glimpse
+    cells, total, low = _direct_tables(bundle)
+    np.testing.assert_allclose(np.asarray(params.mode_data.cells[0]), low, rtol=1e-6)
+    assert int(params.mode_data.total_views[0]) == total
+    obs, state = env.reset(jax.random.key(0), params)
+    step = jax.jit(env.step)
+    order = [c for c, (n, _) in cells.items() if n > 0]
+    read = 0
+    for c in order:
+        obs, state, _, _, truncated, info = step(jax.random.key(c), state, c, params)
+        n, feats = cells[c]
+        read += n
+        np.testing.assert_allclose(np.asarray(obs["summaries"][c]),
+                                   np.concatenate([feats.mean(0), feats.max(0)]), rtol=1e-5, atol=1e-6)
+        assert float(obs["revealed"][c]) == 1.0
+        assert float(info["fraction_read"]) == pytest.approx(read / total)
+    assert bool(truncated)  # the whole slide read: the (full) budget is spent
+    assert int(info["fields_of_view"]) == len(order)
+    # the observation is as large as stated
+    assert observation_bytes(env, params) == sum(np.asarray(v).nbytes for v in obs.values())
+
+
+def test_repicking_reveals_nothing_new(glimpse):
+    env, params = glimpse
+    _, state = env.reset(jax.random.key(0), params)
+    c = int(np.flatnonzero(np.asarray(params.mode_data.valid[0]))[0])
+    obs1, state1, *_, info1 = env.step(jax.random.key(1), state, c, params)
+    obs2, state2, *_, info2 = env.step(jax.random.key(2), state1, c, params)
+    _equal((obs1, state1.memory), (obs2, state2.memory))
+    assert int(info2["fields_of_view"]) == 1 and int(info2["steps"]) == 2
+
+
+@settings(deadline=None, max_examples=25)
+@given(budget=st.sampled_from([0.05, 0.1, 0.2, 0.5, 1.0]), seed=st.integers(0, 2**16))
+def test_reading_budget_is_respected(glimpse, glimpse_rollout, budget, seed):
+    env, params = glimpse
+    params = with_budget(params, budget)
+    actions = jax.random.randint(jax.random.key(seed), (STEPS - 1,), 0, env.num_actions - 2)
+    states, infos, obs = glimpse_rollout(jax.random.key(seed), actions, params)
+    fraction = np.asarray(infos["fraction_read"])
+    assert np.all(fraction <= budget + 1e-6)
+    assert np.all(np.diff(fraction) >= 0)
+    ended = np.asarray(infos["truncated"])
+    if ended.any():  # the episode ends at the budget (or the step limit) and reads nothing after
+        first = int(np.argmax(ended))
+        assert first == STEPS - 2 or bool(states.memory.over_budget[first]) or fraction[first] >= \
+            np.floor(budget * int(params.mode_data.total_views[0]) + 1e-4) / int(params.mode_data.total_views[0]) - 1e-6
+
+
+def test_diagnosis_gives_a_score(glimpse, zoom):
+    for env, params in (glimpse, zoom):
+        _, state = env.reset(jax.random.key(0), params)
+        n = env.num_actions
+        for action, score in ((n - 1, 1.0), (n - 2, 0.0)):
+            *_, terminated, truncated, info = env.step(jax.random.key(1), state, action, params)
+            assert bool(terminated) and bool(info["declared"]) and float(info["score"]) == score
+        *_, info = env.step(jax.random.key(1), state, 0, params)
+        assert not bool(info["declared"]) and 0.0 <= float(info["score"]) <= 1.0
+
+
+def _children(env, params, x, y):
+    _, state = env.reset(jax.random.key(0), params)
+    state = state.replace(x=jnp.int32(x), y=jnp.int32(y))
+    state = state.replace(memory=env.action.init_memory(env, state, params))
+    out = [env.step(jax.random.key(i), state, i, params)[1] for i in range(env.action.k ** 2)]
+    assert all(int(c.z) == 1 for c in out)
+    return state, out
+
+
+def test_zoom_select_children(zoom, bundle):
+    env, params = zoom
+    # level 0 is 64 × 48 px, level 1 256 × 192 (zoom factor 4). The view at (16, 8) has its centre at
+    # (32, 24), (128, 96) px of level 1; its footprint there is the 128-px square from (64, 32); k = 2
+    # splits it into 64-px squares whose centres, less half a view, are the children's corners
+    parent, children = _children(env, params, 16, 8)
+    assert [(int(c.x), int(c.y)) for c in children] == [(80, 48), (144, 48), (80, 112), (144, 112)]
+    _, back, *_ = env.step(jax.random.key(9), children[3], 4, params)  # action k² zooms out to the parent
+    assert (int(back.z), int(back.x), int(back.y)) == (0, 16, 8)
+    _, same, *_ = env.step(jax.random.key(9), back, 4, params)  # the coarsest level has no parent
+    assert (int(same.z), int(same.x), int(same.y)) == (0, 16, 8)
+    # with k equal to the zoom factor the children tile the footprint exactly
+    env4, params4 = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode=ZoomSelect(k=4),
+                                  task="classification", auto_reset=False)
+    _, children = _children(env4, params4, 16, 8)
+    assert sorted((int(c.x), int(c.y)) for c in children) == sorted(
+        (64 + 32 * i, 32 + 32 * j) for i in range(4) for j in range(4))
+
+
+def test_zoom_select_counts_finest_views_read(zoom, zoom_rollout):
+    env, params = zoom
+    # in, in, then each of the four finest children of that view (out, in), then stay at the last
+    actions = jnp.asarray([0, 0, 4, 1, 4, 2, 4, 3, 3, 3, 3], jnp.int32)
+    states, infos, obs = zoom_rollout(jax.random.key(2), actions, params)
+    total = int(params.mode_data.total_views[0])
+    reads = np.round(np.asarray(infos["fraction_read"]) * total)
+    assert reads[-1] <= 4 and np.all(np.diff(reads) >= 0)
+    assert np.asarray(infos["fields_of_view"])[-1] == 6  # the start, one view at level 1, four at level 2
+    assert np.asarray(states.z).tolist() == [1, 2, 1, 2, 1, 2, 1, 2, 2, 2, 2]
+    assert np.all(np.asarray(obs["visited"]) >= 0) and np.all(np.asarray(obs["visited"]) <= 1)
+
+
+def test_auc_matches_a_hand_computation():
+    from baselines.metrics import roc_auc
+
+    # positives 0.35 and 0.8 against negatives 0.1 and 0.4: 0.35 beats 0.1 only, 0.8 beats both → 3 / 4
+    assert roc_auc([0.1, 0.4, 0.35, 0.8], [0, 0, 1, 1]) == pytest.approx(0.75)
+    # a tie counts one half: 0.5 vs 0.5 → (1 + 0.5) / 2
+    assert roc_auc([0.5, 0.2, 0.5, 0.9], [0, 0, 1, 1]) == pytest.approx((2 + 1.5) / 4)
+    assert np.isnan(roc_auc([0.1, 0.2], [1, 1]))  # one class only: undefined
+
+
+def test_navigation_tracks_reading_without_changing_trajectories(bundle):
+    plain, p0 = histojax.make("HistoJAX-Easy-v0", slide=bundle, auto_reset=False)
+    tracked, p1 = histojax.make("HistoJAX-Easy-v0", slide=bundle, auto_reset=False, track_reading=True)
+    actions = jax.random.randint(jax.random.key(4), (STEPS - 1,), 0, 7)
+    s0, i0, o0 = jax.jit(_rollout(plain))(jax.random.key(8), actions, p0)
+    s1, i1, o1 = jax.jit(_rollout(tracked))(jax.random.key(8), actions, p1)
+    for f in ("z", "x", "y", "t"):
+        np.testing.assert_array_equal(np.asarray(getattr(s0, f)), np.asarray(getattr(s1, f)))
+    np.testing.assert_array_equal(np.asarray(o0), np.asarray(o1))
+    assert s0.memory is None and "fraction_read" not in i0
+    fraction = np.asarray(i1["fraction_read"])
+    assert np.all(np.diff(fraction) >= 0) and np.all(fraction <= 1)
+    # finest-level tissue views read = distinct finest views visited that hold tissue
+    total = int(p1.mode_data.total_views[0])
+    tissue = np.asarray(p1.mode_data.tissue[0])
+    finest = np.asarray(s1.z) == 2
+    views = {(int(y) + TILE // 2) // TILE * 32 + (int(x) + TILE // 2) // TILE
+             for x, y in zip(np.asarray(s1.x)[finest], np.asarray(s1.y)[finest])}
+    assert round(fraction[-1] * total) == sum(bool(tissue[v]) for v in views)
+
+
+def test_navigation_memory_observation(bundle):
+    from histojax.modes import Discrete
+
+    env, params = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode=Discrete(memory=True))
+    obs, _ = env.reset(jax.random.key(0), params)
+    assert set(obs) == {"pixels", "visited", "position"}
+    assert env.observation_space(params).contains(obs)
+    assert observation_bytes(env, params) == sum(np.asarray(v).nbytes for v in obs.values())
+
+
+def test_offline_reader_reads_as_the_env(glimpse):
+    from baselines.budget_curve import read_cells
+
+    env, params = glimpse
+    table = env.action.host_tables(env, params, env.bundles)[0]
+    order = np.random.default_rng(0).permutation(np.flatnonzero(table["valid"]))
+    for budget in (0.1, 0.3):
+        cells, fraction = read_cells(table, order, budget)
+        p = with_budget(params, budget)
+        _, state = env.reset(jax.random.key(0), p)
+        step = jax.jit(env.step)
+        for c in order:
+            _, state, _, _, truncated, info = step(jax.random.key(1), state, int(c), p)
+            if bool(truncated):
+                break
+        assert float(info["fraction_read"]) == pytest.approx(fraction)
+        assert sorted(np.flatnonzero(np.asarray(state.memory.revealed))) == sorted(cells.tolist())
+
+
+def test_budget_rows_csv_and_png(tmp_path):
+    from baselines.budget_curve import budget_rows, plot, write_csv
+
+    rng = np.random.default_rng(0)
+
+    def slide(label):
+        cell = np.repeat(np.arange(8), 4)
+        x = rng.normal(size=(32, 3)).astype(np.float32)
+        if label:
+            x[cell == 5] += 3.0  # one cell of "tumour"
+        low = np.stack([x[cell == c].mean(0) for c in range(8)])
+        return {"instances": x, "instance_cell": cell, "cells": low, "valid": np.ones(8, bool),
+                "cell_views": np.full(8, 4), "total": 32}
+
+    labels = np.array([0, 1] * 6)
+    tables = [slide(y) for y in labels]
+    rows = budget_rows((tables[:8], labels[:8]), (tables[8:], labels[8:]), budgets=(0.25, 0.5), seeds=2, steps=30)
+    assert {r["method"] for r in rows} == {"MIL, read everything", "random reader + MIL", "attention reader + MIL"}
+    assert all(r["fraction_read"] <= r["budget"] + 1e-9 and 0 <= r["auc"] <= 1 for r in rows)
+    assert write_csv(rows, tmp_path / "c.csv").read_text().count("\n") == len(rows) + 1
+    assert plot(rows, tmp_path / "c.png").stat().st_size > 1000
+
+
+def test_cross_validation_scores_every_slide_once():
+    from baselines.budget_curve import cross_validated_rows
+
+    rng = np.random.default_rng(1)
+    labels = np.array([0, 1] * 4)
+    tables = []
+    for y in labels:
+        x = rng.normal(size=(8, 2)).astype(np.float32) + 2.0 * y
+        tables.append({"instances": x, "instance_cell": np.arange(8), "cells": x, "valid": np.ones(8, bool),
+                       "cell_views": np.ones(8, int), "total": 8})
+    rows = cross_validated_rows(tables, labels, folds=2, budgets=(0.5,), seeds=1, steps=20)
+    assert all(r["slides"] == 8 for r in rows) and len(rows) == 3

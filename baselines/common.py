@@ -233,6 +233,11 @@ def _json_default(o):
     return str(o)
 
 
+def _count(n: int, noun: str) -> str:
+    """``"1 seed"``, ``"4 seeds"``."""
+    return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
 def smooth(a: np.ndarray, k: int) -> np.ndarray:
     """Trailing moving average along the last axis, ignoring NaN."""
     if k <= 1:
@@ -457,7 +462,7 @@ def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_
     panels = {"mean return": smooth(metrics["return"], k), "success rate": smooth(metrics["success"], k),
               "mean steps to success": smooth(metrics["steps_to_success"], k)}
     title = (f"{algo.upper()} on {config['env_id']} ({config['action_mode']}, obs {config['obs_mode']}"
-             f"{' + position' if config['with_position'] else ''}), {metrics['success'].shape[0]} seeds")
+             f"{' + position' if config['with_position'] else ''}), {_count(metrics['success'].shape[0], 'seed')}")
     plot_curves(out / "curve.png", steps, panels, title=title,
                        reference={"mean return": ref["return"], "success rate": ref["success"]})
     save_checkpoint(out, params, config)

@@ -312,7 +312,9 @@ def main(argv=None) -> int:
         sub = out if len(slides) == 1 else out / f"slide{i}"
         rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub, label=label,
                         augment=args.augment)
-        name = slide or "embedded sample slide"
+        dataset = (config.get("env_kwargs") or {}).get("dataset")
+        name = slide or (f"dataset {dataset} ({(config.get('env_kwargs') or {}).get('split', 'train')} split)"
+                         if dataset else "embedded sample slide")
         print_table(f"{config['env_id']} on {name} ({args.episodes} episodes per policy"
                     f"{' per seed' if params is not None else ''})", rows)
         results[name] = rows

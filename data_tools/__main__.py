@@ -116,6 +116,12 @@ def _parser() -> argparse.ArgumentParser:
     c16.add_argument("--test-fraction", type=float, default=0.25, help="share of slides in the test split (0.25)")
     c16.add_argument("--features", action="store_true",
                      help="also embed every bundle's feature grid with EfficientNet-Lite0 (slow on CPU)")
+    c16.add_argument("--encoder", default=None, metavar="NAME",
+                     help="embed every bundle's feature grid with this encoder (efficientnet-lite0 or colour-stats; "
+                          "implies --features)")
+    c16.add_argument("--no-pixels", action="store_true",
+                     help="feature-only bundles: after the feature grid, delete the RGB tile pools of every level "
+                          "but the coarsest (obs_mode='features' only; ~1/10 of the disk; the TIFFs stay)")
     c16.add_argument("--jobs", type=int, default=1, help="slides made in parallel processes (default 1; ~1.5 GB each)")
     c16.add_argument("--seed", type=int, default=0)
     c16.add_argument("--quiet", action="store_true", help="no progress bars")
@@ -216,7 +222,8 @@ def _command(args) -> None:
         ds = make_c16_dataset(args.out, annotations=args.annotations, patches=args.patches, small=args.small,
                               downsample=args.downsample, names=args.slides, n_tumour=args.tumour_slides,
                               n_normal=args.normal_slides, seed=args.seed, test_fraction=args.test_fraction,
-                              features=args.features, progress=not args.quiet, workers=args.jobs)
+                              features=args.encoder or args.features, progress=not args.quiet, workers=args.jobs,
+                              no_pixels=args.no_pixels)
         sc = ds["scale"]
         print(f"wrote {Path(args.out) / 'dataset.json'}: {len(ds['train'])} train, {len(ds['test'])} test slides "
               f"at {sc['mpp']:.3g} um/px (CAMELYON16 level 0 / {sc['downsample_from_camelyon16_level0']:g}); "

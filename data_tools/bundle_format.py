@@ -232,6 +232,12 @@ class BundleMetadata(dict):
         return (float(box[0]), float(box[1])) if box else (0.0, 0.0)
 
     @property
+    def pixel_levels(self) -> list[int]:
+        """Indices of the levels (finest first) whose pixels the bundle holds; the others were dropped
+        by :func:`drop_pixels` (feature-only bundles of ``data_tools c16 --no-pixels``)."""
+        return [k for k, lv in enumerate(self["levels"]) if lv.get("storage") != "tiled" or lv.get("tiles")]
+
+    @property
     def features(self) -> dict | None:
         """The feature-grid record (encoder, dim, stride, levels, projection), ``None`` without one."""
         return self.get("features") or None
@@ -403,6 +409,40 @@ def atomic_folder(out_dir):
         raise
 
 
+def drop_pixels(folder) -> int:
+    """Delete the RGB tile pools of every level of the tiled bundle at ``folder`` but its coarsest (kept for
+    thumbnails), leaving tumour tables, index grids, tissue and feature grids: a feature-only bundle
+    (``obs_mode="features"`` needs no pixels; ``obs_mode="pixels"`` is then refused, naming the levels).
+    The recorded ``device_bytes`` stay those of the pixel layout. ``metadata.json`` is rewritten first
+    (atomically), then the files are deleted, so a crash leaves at most unreferenced files.
+    Returns the bytes freed on disk."""
+    folder = Path(folder)
+    metadata = read_metadata(folder)
+    if not metadata.is_tiled:
+        raise BundleError(folder, "only tiled bundles can drop their pixels")
+    if not metadata.features:
+        raise BundleError(folder, f"has no feature grid; compute one first (`{FEATURES_COMMAND}`), a bundle "
+                          "without pixels and features is of no use")
+    levels, files = [], []
+    for k, lv in enumerate(metadata["levels"]):
+        lv = dict(lv)
+        if k < len(metadata["levels"]) - 1 and lv.get("tiles"):
+            files.append(lv["tiles"])
+            lv["tiles"] = None
+        levels.append(lv)
+    checksums = {k: v for k, v in metadata.checksums.items() if k not in files}
+    write_metadata(folder, {**metadata, "levels": levels, "checksums": checksums,
+                            "pixels_dropped": "RGB tile pools of every level but the coarsest deleted "
+                                              "(feature-only bundle); device_bytes is the pixel layout's"})
+    freed = 0
+    for name in files:
+        f = folder / name
+        if f.is_file():
+            freed += f.stat().st_size
+            f.unlink()
+    return freed
+
+
 # ----------------------------------------------------------------------------- verified read
 @dataclass
 class TiledLevel:
@@ -415,6 +455,11 @@ class TiledLevel:
     height: int
     width: int
     kind: str = "pixels"  # "pixels" or "tumour" (SAT pool → 0/1 mask)
+
+    @property
+    def has_pixels(self) -> bool:
+        """False for a pixel level whose tile pool was dropped (:func:`drop_pixels`): shape and index only."""
+        return self.kind != "pixels" or self.pool.shape[0] > 0
 
     @property
     def tile_size(self) -> int:
@@ -546,14 +591,17 @@ def load_tiled_level(path, lv: dict, metadata: dict, verify: bool, kind: str) ->
     path = Path(path)
     t = int(metadata["tile_size"])
     pool_name, index_name = ("tiles", "tile_index") if kind == "pixels" else ("sat_tiles", "sat_index")
-    pool = load_array(path, lv[pool_name], metadata, verify, mmap=True)
-    index = load_array(path, lv[index_name], metadata, verify)
     item = (t, t, 3) if kind == "pixels" else (t + 1, t + 1)
     dtype = np.uint8 if kind == "pixels" else np.uint32
+    dropped = kind == "pixels" and lv.get(pool_name) is None  # pixels dropped (see drop_pixels)
+    pool = np.zeros((0, *item), dtype) if dropped else load_array(path, lv[pool_name], metadata, verify, mmap=True)
+    index = load_array(path, lv[index_name], metadata, verify)
     grid = (-(-lv["height"] // t), -(-lv["width"] // t))
-    if pool.shape[1:] != item or pool.dtype != dtype or pool.shape[0] < 1 or index.shape != grid \
-            or index.dtype != np.int32 or (index.size and (index.min() < 0 or index.max() >= pool.shape[0])):
-        raise BundleError(path / lv[pool_name], "tile pool or index disagrees with metadata; rebuild the bundle")
+    if pool.shape[1:] != item or pool.dtype != dtype or index.shape != grid or index.dtype != np.int32 \
+            or (not dropped and (pool.shape[0] < 1 or (index.size and (index.min() < 0
+                                                                       or index.max() >= pool.shape[0])))):
+        raise BundleError(path / (lv[pool_name] or lv[index_name]),
+                          "tile pool or index disagrees with metadata; rebuild the bundle")
     return TiledLevel(pool=pool, index=index, height=int(lv["height"]), width=int(lv["width"]), kind=kind)
 
 
@@ -613,6 +661,6 @@ def load_feature_levels(bundle, metadata: dict, levels: list[int], verify: bool 
 __all__ = ["ANNOTATIONS", "Bundle", "BundleMetadata", "FEATURES_COMMAND", "FORMAT_VERSION", "LEVEL_SETS",
            "LevelMeta", "MAX_FLAT_PIXELS", "METADATA", "READ_VERSIONS", "REGION", "STORAGES", "TILED_FORMAT_VERSION",
            "TISSUE", "TiledLevel", "atomic_file", "atomic_folder", "bundle_downsamples", "default_magnification_range",
-           "device_bytes", "feature_bytes", "file_digest", "slide_device_bytes", "tumour_table_bytes", "select_levels", "grid_shape", "level_device_bytes", "level_downsamples", "level_files",
+           "device_bytes", "drop_pixels", "feature_bytes", "file_digest", "slide_device_bytes", "tumour_table_bytes", "select_levels", "grid_shape", "level_device_bytes", "level_downsamples", "level_files",
            "level_grids", "level_size", "load_array", "load_bundle", "load_feature_levels", "load_tiled_level",
            "read_metadata", "save_array", "sha256", "text_digest", "tiled_level_files", "write_json", "write_metadata"]

@@ -136,15 +136,20 @@ def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, 
     return prov
 
 
-def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float, progress: bool = False) -> dict:
-    """Build (unless up to date) the tiled bundle ``bundles/NAME`` of a made slide; returns its metadata."""
+def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float, progress: bool = False,
+                encoder: str | None = None) -> dict:
+    """Build (unless up to date) the tiled bundle ``bundles/NAME`` of a made slide; returns its metadata.
+    Up to date: made from the same TIFF and range, and holding its pixels, or (a feature-only bundle) the
+    feature grid of ``encoder`` (the pixels are needed again to embed them with another encoder)."""
     from data_tools.bundle import build_bundle
 
     bundle = out_dir / "bundles" / name
     if (bundle / "metadata.json").is_file():
         try:
             meta = read_metadata(bundle)
-            if meta.source["sha256"] == prov["tiff_sha256"] and meta.magnification_range == magnification_range:
+            whole = len(meta.pixel_levels) == len(meta.levels)
+            if meta.source["sha256"] == prov["tiff_sha256"] and meta.magnification_range == magnification_range \
+                    and (whole or (encoder is not None and (meta.features or {}).get("encoder") == encoder)):
                 return meta
         except (HistojaxDataError, KeyError):
             pass
@@ -153,6 +158,16 @@ def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float
                  tile_size=TILE_SIZE, magnification_range=magnification_range, storage="tiled", overwrite=True,
                  progress=progress)
     return read_metadata(bundle)
+
+
+def _feature_layout_bytes(meta) -> int | None:
+    """Device bytes of the slide in the feature-only layout with every bundle level (tumour tables and the
+    feature grid; None without a feature grid)."""
+    from data_tools.bundle_format import slide_device_bytes
+
+    if not meta.features:
+        return None
+    return slide_device_bytes(meta, list(range(len(meta.levels))), pixels=False, features=True)
 
 
 def _views_ge(meta: dict, bundle: Path, threshold: float = 0.5) -> int:
@@ -181,15 +196,22 @@ def _init_worker(bank, progress: bool) -> None:
 
 def _one_slide(job) -> dict:
     """Make one slide and its bundle (skipping what is done); its record for ``dataset.json``."""
-    out_dir, slide, donor, d, seed, jpeg_quality, mag, features = job
+    out_dir, slide, donor, d, seed, jpeg_quality, mag, encoder, no_pixels = job
     s0 = time.perf_counter()
     name = slide.name
+    bundle = out_dir / "bundles" / name
     prov = make_slide(out_dir, slide, donor, d, seed, _WORKER["bank"], jpeg_quality, _WORKER["progress"])
-    meta = make_bundle(out_dir, name, prov, mag)
-    if features and not meta.get("features"):
+    meta = make_bundle(out_dir, name, prov, mag, encoder=encoder if no_pixels else None)
+    if encoder and (meta.features or {}).get("encoder") != encoder:
         from data_tools.features.grid import compute_features
 
-        compute_features(out_dir / "bundles" / name, progress=_WORKER["progress"])
+        compute_features(bundle, encoder_name=encoder, progress=_WORKER["progress"], verify=False)
+        meta = read_metadata(bundle)
+    if no_pixels and len(meta.pixel_levels) > 1:
+        from data_tools.bundle_format import drop_pixels
+
+        drop_pixels(bundle)
+        meta = read_metadata(bundle)
     return {
         "name": name, "bundle": f"bundles/{name}", "tiff": f"slides/{name}.tif",
         "label": int(slide.is_tumour_slide), "tissue": prov["tissue"],
@@ -199,8 +221,11 @@ def _one_slide(job) -> dict:
         "finest_views_ge50": _views_ge(meta, out_dir / "bundles" / name),
         "stain_od_factors": prov["stain_od_factors"],
         "tiff_bytes": prov["tiff_bytes"],
-        "bundle_bytes": sum(f.stat().st_size for f in (out_dir / "bundles" / name).iterdir()),
+        "bundle_bytes": sum(f.stat().st_size for f in bundle.iterdir()),
         "device_bytes_pixels": meta.device_bytes,
+        "device_bytes_features": _feature_layout_bytes(meta),
+        "pixels_kept": len(meta.pixel_levels) == len(meta.levels),
+        "encoder": (meta.features or {}).get("encoder"),
         "seconds_slide": prov["seconds"], "seconds_total": round(time.perf_counter() - s0, 2),
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
     }
@@ -226,8 +251,8 @@ class _Lock:
 
 def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = False, downsample: float | None = None,
                      names=None, n_tumour: int | None = None, n_normal: int | None = None, seed: int = 0,
-                     test_fraction: float = 0.25, features: bool = False, jpeg_quality: int = 85,
-                     progress: bool = True, workers: int = 1) -> dict:
+                     test_fraction: float = 0.25, features: bool | str = False, jpeg_quality: int = 85,
+                     progress: bool = True, workers: int = 1, no_pixels: bool = False) -> dict:
     """Make (or finish) the true-scale CAMELYON16 dataset in ``out_dir`` (see the module doc).
 
     ``annotations``: a folder or ``.tar.gz`` of NCRF JSON files (default: the 6 shipped with the
@@ -237,6 +262,10 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     ``names`` / ``n_tumour`` / ``n_normal``: a subset (default every slide found). The env's
     coarsest level is CAMELYON16 level 0 / 256 (``magnification_range = 256 / downsample``).
     ``workers``: slides made in parallel processes (each holds one slide's memory, ~1.5 GB at D = 8).
+    ``features``: compute each bundle's feature grid (``True``: EfficientNet-Lite0, or an encoder name such
+    as ``"colour-stats"``). ``no_pixels``: feature-only bundles: once the feature grid is computed the RGB
+    tile pools of every level but the coarsest are deleted (``obs_mode="features"`` needs none; a fraction
+    of the disk; implies ``features``, default encoder EfficientNet-Lite0).
     Returns the ``dataset.json`` dict.
     """
     from data_tools.ncrf import SHIPPED_DIR, read_ncrf
@@ -267,8 +296,11 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
                     raise HistojaxDataError(annotations, f"{n} needs a Normal_* slide to lend it tissue; none given")
                 donors[n] = donor_for(n, tumours_all, normals_all)
         t0 = time.perf_counter()
-        jobs = [(out_dir, slides[n], slides.get(donors.get(n)), d, slide_seed(seed, n), jpeg_quality, mag, features)
-                for n in todo]
+        encoder = features if isinstance(features, str) else "efficientnet-lite0" if features or no_pixels else None
+        if encoder not in (None, "efficientnet-lite0", "colour-stats"):
+            raise HistojaxDataError(None, f"--encoder {encoder!r}: use efficientnet-lite0 or colour-stats")
+        jobs = [(out_dir, slides[n], slides.get(donors.get(n)), d, slide_seed(seed, n), jpeg_quality, mag, encoder,
+                 no_pixels) for n in todo]
         bar = tqdm(total=len(todo), desc="c16 slides", unit="slide", disable=not progress)
         if workers <= 1:
             _init_worker(bank, progress)
@@ -308,6 +340,11 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
             "peak_rss_bytes_this_run": max([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024]
                                            + [r["peak_rss_bytes"] for r in records]),
             "workers": int(workers),
+            "encoder": encoder, "pixels_kept": not no_pixels,
+            "disk_bytes": {"slides": sum(r["tiff_bytes"] for r in records),
+                           "bundles": sum(r["bundle_bytes"] for r in records)},
+            "device_bytes": {"pixels": sum(r["device_bytes_pixels"] for r in records),
+                             "features": sum(r["device_bytes_features"] or 0 for r in records)},
         }
         write_json(out_dir / "dataset.json", dataset)
         return dataset

@@ -32,7 +32,8 @@ def _canvas(env, max_side: int, slide_index: int = 0):
     """The slide drawn at most ``max_side`` px a side from the coarsest env level that is at least
     that large (else the finest). Returns ``(PIL image, canvas px per level-0 px)``."""
     bundle = bundle_of(env, slide_index)
-    k = next((i for i, p in enumerate(bundle.pixels) if max(p.shape[:2]) >= max_side), len(bundle.pixels) - 1)
+    with_pixels = [i for i, p in enumerate(bundle.pixels) if getattr(p, "has_pixels", True)]  # coarsest first
+    k = next((i for i in with_pixels if max(bundle.pixels[i].shape[:2]) >= max_side), with_pixels[-1])
     level = np.asarray(bundle.pixels[k])
     fit = min(1.0, max_side / max(level.shape[:2]))
     size = (max(1, round(level.shape[1] * fit)), max(1, round(level.shape[0] * fit)))
@@ -203,7 +204,10 @@ def animate(env, z, x=None, y=None, path="trajectory.gif", fps: int = 4, max_sid
         s = types.SimpleNamespace(z=zi, x=xi, y=yi, slide_index=slide_index)  # a concrete state
         overview = _draw_view(base.copy(), env, s, scale, slide_index)
         level = bundle.pixels[zi]
-        view = Image.fromarray(np.asarray(level[yi:yi + env.tile_size, xi:xi + env.tile_size]))
+        if getattr(level, "has_pixels", True):
+            view = Image.fromarray(np.asarray(level[yi:yi + env.tile_size, xi:xi + env.tile_size]))
+        else:  # a feature-only bundle keeps no pixels at this level: a grey view
+            view = Image.new("RGB", (env.tile_size, env.tile_size), (200, 200, 200))
         view = view.resize((overview.height, overview.height), Image.NEAREST)
         frame = Image.new("RGB", (overview.width + view.width, overview.height), (255, 255, 255))
         frame.paste(overview, (0, 0))

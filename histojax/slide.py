@@ -357,6 +357,12 @@ def load_slide(path, n_levels: int, verify: bool = True,
     metadata = read_metadata(path)
     chosen = select_levels(metadata, n_levels, path)
     load_features = bool(features) or (features is None and bool(metadata.features)) or not pixels
+    missing = [k for k in chosen if k not in metadata.pixel_levels]
+    if pixels and missing:
+        raise BundleError(path, f"keeps no pixels at bundle levels {sorted(missing)} (a feature-only bundle, made with "
+                          "`python -m data_tools c16 --no-pixels`): use obs_mode='features', or make these slides "
+                          "again with their pixels (the same `data_tools c16` command without --no-pixels, "
+                          f"--slides {path.name})")
     needed = slide_device_bytes(metadata, chosen, pixels, load_features, path)
     if needed > max_device_bytes:
         finest = metadata.levels[chosen[-1]]

@@ -259,3 +259,71 @@ def test_benchmark_scale_build_of_the_shipped_slides(tmp_path):
             assert rec["finest_views_ge50"] == 0
     env, params = histojax.make("HistoJAX-C16-Hard-v0", dataset=tmp_path / "d8", split="all", verify=False)
     assert params.slide.num_slides == 6
+
+
+def test_pool_features_equal_the_views_they_describe(small, tmp_path):
+    """A tiled bundle's feature grid at stride = tile size is computed from the distinct pool tiles (glass
+    once); every cell still equals the encoder applied to that cell's view, looked up directly."""
+    import shutil
+
+    from data_tools.bundle_format import load_bundle, read_metadata
+    from data_tools.features.colour import colour_stats
+    from data_tools.features.grid import compute_features
+
+    bundle = tmp_path / "Tumor_082"
+    shutil.copytree(small / "bundles" / "Tumor_082", bundle)
+    compute_features(bundle, encoder_name="colour-stats", dtype="float32", progress=False, batch=16)
+    meta = read_metadata(bundle)
+    loaded = load_bundle(bundle)
+    t = meta.tile_size
+    for k in (0, len(meta.levels) // 2):
+        grid = np.load(bundle / meta.features["levels"][k]["file"])
+        gh, gw = grid.shape[:2]
+        views = np.stack([np.asarray(loaded.pixels[k][gy * t:(gy + 1) * t, gx * t:(gx + 1) * t])
+                          for gy in range(gh) for gx in range(gw)])
+        direct = np.asarray(colour_stats(jnp.asarray(views))).reshape(gh, gw, -1)
+        np.testing.assert_allclose(grid, direct, atol=1e-6)
+
+
+def test_feature_only_bundles(small, tmp_path):
+    """``--no-pixels``: after the feature grid the RGB pools of every level but the coarsest are deleted; the
+    features env is unchanged, pixel mode is refused naming what to do, rendering still works, and the
+    same command without the flag brings the pixels back."""
+    import shutil
+
+    import histojax
+    from data_tools.bundle_format import read_metadata
+    from data_tools.c16 import make_c16_dataset
+
+    out = tmp_path / "ds"
+    shutil.copytree(small, out)
+    with_pixels = make_c16_dataset(out, small=True, features="colour-stats", progress=False)
+    env_a, params_a = histojax.make("HistoJAX-C16-Easy-v0", dataset=out, split="train", obs_mode="features")
+    key = jax.random.PRNGKey(5)
+    obs_a, state_a = env_a.reset(key, params_a)
+    ds = make_c16_dataset(out, small=True, features="colour-stats", no_pixels=True, progress=False)
+    assert not ds["pixels_kept"] and ds["encoder"] == "colour-stats"
+    assert ds["disk_bytes"]["bundles"] < with_pixels["disk_bytes"]["bundles"] / 2
+    assert ds["device_bytes"]["pixels"] == with_pixels["device_bytes"]["pixels"]  # what pixel mode would need
+    assert 0 < ds["device_bytes"]["features"] < ds["device_bytes"]["pixels"]
+    for b in (out / "bundles").iterdir():
+        meta = read_metadata(b)
+        assert meta.pixel_levels == [len(meta.levels) - 1]
+        assert sorted(p.name for p in b.glob("tiles_*.npy")) == [f"tiles_{len(meta.levels) - 1:02d}.npy"]
+    env_b, params_b = histojax.make("HistoJAX-C16-Easy-v0", dataset=out, split="train", obs_mode="features")
+    obs_b, state_b = env_b.reset(key, params_b)
+    np.testing.assert_array_equal(obs_a, obs_b)
+    step = jax.jit(lambda k, s, p: env_b.step(k, s, jnp.int32(4), p))
+    np.testing.assert_array_equal(step(key, state_a, params_a)[0], step(key, state_b, params_b)[0])
+    with pytest.raises(BundleError, match="--no-pixels"):
+        histojax.make("HistoJAX-C16-Easy-v0", dataset=out, split="train")
+    from histojax.render import animate, render_trajectory
+
+    z, x, y = (np.asarray([getattr(state_b, f)]) for f in ("z", "x", "y"))
+    render_trajectory(env_b, z, x, y, tmp_path / "t.png", slide_index=int(state_b.slide_index))
+    animate(env_b, z, x, y, tmp_path / "t.gif", slide_index=int(state_b.slide_index))
+    make_c16_dataset(out, small=True, progress=False)  # without the flag: pixels again
+    for b in (out / "bundles").iterdir():
+        meta = read_metadata(b)
+        assert meta.pixel_levels == list(range(len(meta.levels)))
+    histojax.make("HistoJAX-C16-Easy-v0", dataset=out, split="train")

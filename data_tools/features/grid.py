@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import load_bundle, read_metadata
+from data_tools.bundle_format import load_bundle, load_tiled_level, read_metadata
 from data_tools.errors import BundleError
 from data_tools.features.store import level_grids, save_array, update_metadata
 
@@ -31,7 +31,8 @@ PROJECTIONS = ("random", "pca")
 
 
 def _settings(metadata: dict, encoder, stride: int, batch: int) -> dict:
-    return {"encoder": encoder.name, "image_size": encoder.image_size, "stride": stride, "batch": batch,
+    items = "pool tiles" if metadata.is_tiled and stride == metadata.tile_size else "views"
+    return {"encoder": encoder.name, "image_size": encoder.image_size, "stride": stride, "batch": batch, "items": items,
             "tile_size": metadata.tile_size, "source_sha256": metadata.source["sha256"],
             "levels": [[lv["width"], lv["height"], lv["downsample"]] for lv in metadata.levels]}
 
@@ -52,6 +53,31 @@ def _projection(raw: np.ndarray, dim: int | None, kind: str, seed: int):
     components = vt[:dim].T
     components *= np.where(components[np.abs(components).argmax(axis=0), np.arange(dim)] < 0, -1.0, 1.0)
     return components.astype(np.float32), mean.astype(np.float32)
+
+
+def _items(bundle: Path, metadata, grids, stride: int, verify: bool):
+    """What to embed for the feature grid: ``(items per level, fetch(k, ids) -> (n, T, T, 3) uint8,
+    expand(k, embeddings of level k's items) -> (gh * gw, E) grid rows)``."""
+    tile = metadata.tile_size
+    if metadata.is_tiled and stride == tile:  # the distinct tiles of each pool
+        pools = [load_tiled_level(bundle, lv, metadata, verify, "pixels") for lv in metadata["levels"]]
+        missing = [k for k, p in enumerate(pools) if not p.has_pixels]
+        if missing:
+            raise BundleError(bundle, f"keeps no pixels at levels {missing} (a feature-only bundle); make the "
+                              "slide again with its pixels to compute another feature grid")
+        return ([int(p.pool.shape[0]) for p in pools], lambda k, ids: np.asarray(pools[k].pool[ids]),
+                lambda k, emb: emb[pools[k].index[:grids[k][0], :grids[k][1]].ravel()])
+    cache: dict[int, np.ndarray] = {}
+
+    def fetch(k, ids):
+        if k not in cache:
+            cache.clear()  # one level in memory at a time (levels come finest first, in order)
+            cache[k] = load_bundle(bundle, verify=verify, levels=[k]).pixels[0]
+        gw = grids[k][1]
+        return np.stack([cache[k][(j // gw) * stride:(j // gw) * stride + tile,
+                                  (j % gw) * stride:(j % gw) * stride + tile] for j in ids])
+
+    return [gh * gw for gh, gw in grids], fetch, lambda k, emb: emb
 
 
 def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int | None = None,
@@ -92,9 +118,11 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
     partial.mkdir(exist_ok=True)
     settings_file.write_text(json.dumps(settings))
 
-    # one list of views over all levels (finest first, row-major), cut into batches of ``batch``:
-    # small coarse levels share batches instead of each padding its own
-    sizes = [gh * gw for gh, gw in grids]
+    # one list of items over all levels (finest first), cut into batches of ``batch``: small coarse levels
+    # share batches instead of each padding its own. Items are the grid's views, or, for a tiled bundle
+    # whose grid is its tile grid (stride = tile size), the distinct tiles of each level's pool: a view is
+    # then one tile, so embedding the pool once (background glass is one shared tile) gives every view
+    sizes, fetch, expand = _items(bundle, metadata, grids, stride, verify)
     starts = np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64)
     n_chunks = -(-int(starts[-1]) // batch)
 
@@ -103,7 +131,6 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
 
     done = sum(chunk_file(c).is_file() for c in range(n_chunks))
     bar = tqdm(total=n_chunks, initial=done, desc=f"embedding {bundle.name}", unit="batch", disable=not progress)
-    levels_cache: dict[int, np.ndarray] = {}
     new = 0
     try:
         for c in range(n_chunks):
@@ -113,15 +140,9 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
                 return None
             index = np.arange(c * batch, min((c + 1) * batch, int(starts[-1])))
             level = np.searchsorted(starts, index, side="right") - 1
-            for k in [k for k in levels_cache if k not in set(level.tolist())]:
-                del levels_cache[k]  # one level (or the few small ones of a batch) in memory at a time
             views = np.zeros((batch, tile, tile, 3), np.uint8)
-            for i, (k, j) in enumerate(zip(level, index - starts[level])):
-                if k not in levels_cache:
-                    levels_cache[k] = load_bundle(bundle, verify=verify, levels=[int(k)]).pixels[0]
-                gw = grids[k][1]
-                y, x = (j // gw) * stride, (j % gw) * stride
-                views[i] = levels_cache[k][y:y + tile, x:x + tile]
+            for k in np.unique(level):
+                views[np.flatnonzero(level == k)] = fetch(int(k), index[level == k] - starts[k])
             save_array(chunk_file(c), np.asarray(encoder.embed(views), dtype=np.float32)[:len(index)])
             new += 1
             bar.update(1)
@@ -130,7 +151,8 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
 
     flat = (np.concatenate([np.load(chunk_file(c), allow_pickle=False) for c in range(n_chunks)]) if n_chunks
             else np.zeros((0, encoder.dim), np.float32))
-    raw = [flat[starts[k]:starts[k + 1]] for k in range(len(grids))]
+    raw = [expand(k, flat[starts[k]:starts[k + 1]]) for k in range(len(grids))]
+    flat = np.concatenate(raw) if raw else flat
     matrix, mean = _projection(flat, dim, projection, seed)
     written, levels = [], []
     for k, (grid, emb) in enumerate(zip(grids, raw)):

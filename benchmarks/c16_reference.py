@@ -108,9 +108,11 @@ def on_tumour_slides(row: dict, labels: dict) -> dict:
             "mean_steps_to_success": steps / wins if wins else float("nan")}
 
 
-def reference_cells(dataset: Path, env_id: str, env_kwargs: dict, episodes: int, seed: int = 0) -> dict:
-    """Random and scripted rows on the test split (pixels + position), ``episodes`` episodes each."""
-    config = {"env_id": env_id, "with_position": True, "action_mode": "discrete", "obs_mode": "pixels", "hidden": 256,
+def reference_cells(dataset: Path, env_id: str, env_kwargs: dict, episodes: int, seed: int = 0,
+                    obs_mode: str = "pixels") -> dict:
+    """Random and scripted rows on the test split (``obs_mode`` + position; the scripted policy needs
+    pixels, so a features evaluation has the random row only), ``episodes`` episodes each."""
+    config = {"env_id": env_id, "with_position": True, "action_mode": "discrete", "obs_mode": obs_mode, "hidden": 256,
               "env_kwargs": {**env_kwargs, "dataset": str(dataset), "split": "test"}}
     t0 = time.perf_counter()
     rows = evaluate(config, None, num_episodes=episodes, seed=seed)
@@ -258,8 +260,16 @@ def main(argv=None) -> int:
     reachable = (f"{sum(views.get(n, 0) > 0 for n in tumour_test)} of the {len(tumour_test)} test tumour slides "
                  f"have a finest-level view ≥ 50 % tumour on the bundle's grid (dataset.json "
                  f"`finest_views_ge50`)." if views else "")
+    pixels_kept = spec.get("pixels_kept", True)
+    needs_pixels = {"scripted", "ppo-pixels"} | ({"ppo-rnn"} if args.rnn_obs == "pixels" else set())
+    no_pixels_note = ""
+    if not pixels_kept:
+        gib = spec.get("device_bytes", {}).get("pixels", 0) / 2**30
+        no_pixels_note = (f" The dataset keeps no pixels (`data_tools c16 --no-pixels`, features "
+                          f"`{spec.get('encoder')}`), so the rows that need them ({', '.join(sorted(needs_pixels))}) "
+                          f"were not run; in pixel mode the whole dataset needs {gib:,.1f} GiB on the device.")
     meta = {"dataset": str(dataset), "train_slides": len(spec["train"]), "test_slides": len(spec["test"]),
-            "test_tumour_slides": len(tumour_test), "reachable": reachable,
+            "test_tumour_slides": len(tumour_test), "reachable": reachable + no_pixels_note,
             "env_ids": env_ids, "steps": ", ".join(f"{s} {steps[s]:,}" for s in args.scenarios),
             "seeds": args.seeds, "episodes": args.episodes, "wall_s": 0.0}
 
@@ -273,7 +283,7 @@ def main(argv=None) -> int:
     for s in args.scenarios:
         kw = env_kwargs.get(s, {})
         for m in args.methods:
-            if m == "scripted" and s == "Diagnosis":
+            if m == "scripted" and s == "Diagnosis" or (not pixels_kept and m in needs_pixels):
                 continue
             budget = cell_budget(dataset, env_ids[s], kw, m, steps[s], args.seeds, args.episodes, args.set, args.rnn_obs)
             key = cell_key(m, s)
@@ -282,7 +292,8 @@ def main(argv=None) -> int:
                 continue
             print(f"\n=== {key} ({env_ids[s]}) ===", flush=True)
             if m in REFERENCE:
-                rows = reference_cells(dataset, env_ids[s], kw, args.episodes)
+                rows = reference_cells(dataset, env_ids[s], kw, args.episodes,
+                                       obs_mode="pixels" if pixels_kept else "features")
                 for ref in REFERENCE:
                     if ref in rows and ref in args.methods and not (ref == "scripted" and s == "Diagnosis"):
                         cells[cell_key(ref, s)] = {**rows[ref], "tumour_slides": on_tumour_slides(rows[ref], labels),

@@ -95,3 +95,23 @@ def test_every_method_end_to_end_on_a_tiny_budget(dataset, tmp_path):
     assert json.loads((out / "ppo-rnn-easy" / "config.json").read_text())["obs_mode"] == "features"
     table = (out / "reference.md").read_text()
     assert "| scripted | " in table and "n/a" in table and "Diagnosis accuracy" in table
+
+
+def test_feature_only_dataset_runs_the_rows_that_need_no_pixels(dataset, tmp_path):
+    """A dataset made with ``--no-pixels`` (``pixels_kept: false`` in dataset.json): random is evaluated on
+    features, the rows needing pixels are not run and the table says why, with the pixel-mode bytes."""
+    import shutil
+
+    ds = tmp_path / "ds"
+    shutil.copytree(dataset, ds)
+    spec = json.loads((ds / "dataset.json").read_text())
+    spec.update(pixels_kept=False, encoder="colour-stats", device_bytes={"pixels": 3 * 2**30, "features": 1})
+    (ds / "dataset.json").write_text(json.dumps(spec))
+    out = tmp_path / "ref"
+    assert c16_reference.main(_argv(ds, out, "--methods", "random", "scripted", "ppo-pixels",
+                                    "--scenarios", "Easy")) == 0
+    cells = json.loads((out / "reference.json").read_text())["cells"]
+    assert set(cells) == {"random/Easy"}
+    table = (out / "reference.md").read_text()
+    assert "| scripted | not run" in table and "| ppo-pixels | not run" in table
+    assert "keeps no pixels" in table and "3.0 GiB on the device" in table

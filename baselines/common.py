@@ -21,7 +21,7 @@ from jax.sharding import PartitionSpec as P
 import histojax
 from baselines import distributed
 from data_tools.cli_output import positive_float
-from histojax.wrappers import LogWrapper
+from histojax.adapters.jax import LogWrapper
 from baselines.curves import plot_curves  # noqa: F401  (the learning-curve PNG; kept here for callers)
 
 

@@ -24,7 +24,7 @@ from flax import struct
 
 from baselines import common
 from baselines.networks import QNetwork, preprocess_obs
-from histojax.wrappers import LogWrapper
+from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
 class DQNConfig(common.EnvConfig):

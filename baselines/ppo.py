@@ -43,7 +43,7 @@ from flax.training.train_state import TrainState
 from baselines import common
 from baselines.networks import (ActorCritic, is_discrete, policy_entropy, policy_log_prob, policy_sample,
                                 preprocess_obs)
-from histojax.wrappers import LogWrapper
+from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig(common.EnvConfig):

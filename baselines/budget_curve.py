@@ -24,7 +24,7 @@ import numpy as np
 
 from baselines.metrics import accuracy, roc_auc
 from baselines.mil import MILClassifier, train_mil
-from data_tools.cli_output import run_command
+from data_tools.cli_output import command_main
 
 BUDGETS = (0.05, 0.1, 0.2, 0.5)
 
@@ -334,8 +334,7 @@ def run(args, parser=None) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    return run_command(add_arguments, run, argv, prog="python -m baselines.budget_curve", doc=__doc__, one_line=False)
+main = command_main(add_arguments, run, "python -m baselines.budget_curve", __doc__)
 
 
 if __name__ == "__main__":

@@ -19,7 +19,7 @@ from jax.sharding import PartitionSpec as P
 
 import histojax
 from baselines import distributed
-from data_tools.cli_output import build_parser, positive_float
+from data_tools.cli_output import build_parser, command_main, positive_float
 from histojax.adapters.jax import LogWrapper
 from baselines.curves import plot_curves  # noqa: F401  (the learning-curve PNG; kept here for callers)
 
@@ -491,6 +491,20 @@ def train_and_save(algo: str, make_train_fn, args, defaults: dict, unit: str) ->
     distributed.from_args(args)
     run_and_save(algo, make_train_fn, config, Path(args.out or f"runs/{algo}-{config['env_id']}"), unit)
     return 0
+
+
+def trainer_command(algo: str, make_train_fn, defaults: dict, unit: str, doc: str):
+    """A trainer module's command: ``(add_arguments, run, main)`` for ``python -m baselines.<algo>`` and
+    ``histojax train --algo <algo>``, the options :func:`add_arguments` with the trainer's ``defaults``."""
+    def add(parser) -> None:
+        """The trainer's options (:func:`baselines.common.add_arguments` with its defaults)."""
+        add_arguments(parser, defaults)
+
+    def run(args, parser=None) -> int:
+        """Train on parsed ``args`` and write the run folder (:func:`train_and_save`)."""
+        return train_and_save(algo, make_train_fn, args, defaults, unit)
+
+    return add, run, command_main(add, run, f"python -m baselines.{algo}", doc)
 
 
 def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = "updates"):

@@ -29,7 +29,7 @@ import numpy as np
 
 import histojax
 from baselines import common
-from data_tools.cli_output import run_command
+from data_tools.cli_output import command_main
 from histojax.render import animate, render_trajectory
 
 ENV_ID = "HistoJAX-Easy-v0"
@@ -245,8 +245,7 @@ def run(args, parser) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    return run_command(add_arguments, run, argv, prog="python -m baselines.demo", doc=__doc__, one_line=False)
+main = command_main(add_arguments, run, "python -m baselines.demo", __doc__)
 
 
 if __name__ == "__main__":

@@ -24,7 +24,6 @@ from flax import struct
 
 from baselines import common
 from baselines.networks import QNetwork, preprocess_obs
-from data_tools.cli_output import run_command
 from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
@@ -225,19 +224,8 @@ def make_train(config: dict):
     return run
 
 
-def add_arguments(parser) -> None:
-    """The options of ``python -m baselines.dqn`` and ``histojax train --algo dqn``
-    (:func:`baselines.common.add_arguments` with this trainer's defaults)."""
-    common.add_arguments(parser, DEFAULTS)
-
-
-def run(args, parser=None) -> int:
-    """Train on parsed ``args`` and write the run folder."""
-    return common.train_and_save("dqn", make_train, args, DEFAULTS, "log blocks")
-
-
-def main(argv=None) -> int:
-    return run_command(add_arguments, run, argv, prog="python -m baselines.dqn", doc=__doc__, one_line=False)
+# python -m baselines.dqn and histojax train --algo dqn: options, command, entry point
+add_arguments, run, main = common.trainer_command("dqn", make_train, DEFAULTS, "log blocks", __doc__)
 
 
 if __name__ == "__main__":

@@ -28,7 +28,7 @@ from baselines import common
 from baselines.ppo import make_network
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
                                 policy_mode, policy_sample, preprocess_obs)
-from data_tools.cli_output import run_command
+from data_tools.cli_output import command_main
 from histojax import actions, reading
 from histojax.render import animate, render_trajectory
 
@@ -335,8 +335,7 @@ def run(args, parser) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    return run_command(add_arguments, run, argv, prog="python -m baselines.evaluate", doc=__doc__, one_line=False)
+main = command_main(add_arguments, run, "python -m baselines.evaluate", __doc__)
 
 
 if __name__ == "__main__":

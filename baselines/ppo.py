@@ -43,7 +43,6 @@ from flax.training.train_state import TrainState
 from baselines import common
 from baselines.networks import (ActorCritic, is_discrete, policy_entropy, policy_log_prob, policy_sample,
                                 preprocess_obs)
-from data_tools.cli_output import run_command
 from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
@@ -279,19 +278,8 @@ def config_from_args(args, defaults=DEFAULTS) -> dict:
     return common.config_from_args(args, defaults)
 
 
-def add_arguments(parser) -> None:
-    """The options of ``python -m baselines.ppo`` and ``histojax train --algo ppo``
-    (:func:`baselines.common.add_arguments` with this trainer's defaults)."""
-    common.add_arguments(parser, DEFAULTS)
-
-
-def run(args, parser=None) -> int:
-    """Train on parsed ``args`` and write the run folder."""
-    return common.train_and_save("ppo", make_train, args, DEFAULTS, "updates")
-
-
-def main(argv=None) -> int:
-    return run_command(add_arguments, run, argv, prog="python -m baselines.ppo", doc=__doc__, one_line=False)
+# python -m baselines.ppo and histojax train --algo ppo: options, command, entry point
+add_arguments, run, main = common.trainer_command("ppo", make_train, DEFAULTS, "updates", __doc__)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,6 @@ from flax.training.train_state import TrainState
 from baselines import common, ppo
 from baselines.networks import (RecurrentActorCritic, ScannedGRU, network_step, policy_log_prob, policy_sample,
                                 preprocess_obs)
-from data_tools.cli_output import run_command
 from histojax.adapters.jax import LogWrapper
 
 DEFAULTS = {**{k: v for k, v in ppo.DEFAULTS.items() if k != "devices"},
@@ -134,19 +133,8 @@ def make_train(config: dict):
     return run
 
 
-def add_arguments(parser) -> None:
-    """The options of ``python -m baselines.ppo_rnn`` and ``histojax train --algo ppo_rnn``
-    (:func:`baselines.common.add_arguments` with this trainer's defaults)."""
-    common.add_arguments(parser, DEFAULTS)
-
-
-def run(args, parser=None) -> int:
-    """Train on parsed ``args`` and write the run folder."""
-    return common.train_and_save("ppo_rnn", make_train, args, DEFAULTS, "updates")
-
-
-def main(argv=None) -> int:
-    return run_command(add_arguments, run, argv, prog="python -m baselines.ppo_rnn", doc=__doc__, one_line=False)
+# python -m baselines.ppo_rnn and histojax train --algo ppo_rnn: options, command, entry point
+add_arguments, run, main = common.trainer_command("ppo_rnn", make_train, DEFAULTS, "updates", __doc__)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,7 @@ import jax
 
 from baselines import common, dqn, ppo
 from baselines.evaluate import evaluate
-from data_tools.cli_output import run_command
+from data_tools.cli_output import command_main
 
 BUDGETS = {  # env steps per seed, seeds, evaluation episodes
     "quick": dict(steps=16_384, seeds=1, episodes=32),
@@ -137,8 +137,7 @@ def run(args, parser=None) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    return run_command(add_arguments, run, argv, prog="python -m baselines.reproduce", doc=__doc__, one_line=False)
+main = command_main(add_arguments, run, "python -m baselines.reproduce", __doc__)
 
 
 if __name__ == "__main__":

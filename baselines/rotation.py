@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from baselines import common, ppo
-from data_tools.cli_output import run_command
+from data_tools.cli_output import command_main
 from histojax.registry import make, slide_paths
 from histojax.sharding import PER_SLIDE, host_leaves, on_host, pad_leaf
 from histojax.slide import SlideArrays, stack_slides
@@ -255,8 +255,7 @@ def run(args, parser) -> int:
     return 0
 
 
-def main(argv=None) -> int:
-    return run_command(add_arguments, run, argv, prog="python -m baselines.rotation", doc=__doc__, one_line=False)
+main = command_main(add_arguments, run, "python -m baselines.rotation", __doc__)
 
 
 if __name__ == "__main__":

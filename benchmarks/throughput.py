@@ -19,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from data_tools.cli_output import positive_float, run_command
+from data_tools.cli_output import command_main, positive_float
 import histojax
 from histojax import actions as act
 from histojax.views import view_tumour_fraction
@@ -127,8 +127,7 @@ def run(args, parser=None) -> int:
 
 
 
-def main(argv=None) -> int:
-    return run_command(add_arguments, run, argv, prog="python benchmarks/throughput.py", doc=__doc__, one_line=False)
+main = command_main(add_arguments, run, "python benchmarks/throughput.py", __doc__)
 
 
 if __name__ == "__main__":

@@ -131,3 +131,13 @@ def run_command(add_arguments, run, argv=None, prog: str | None = None, doc: str
     description = (doc or "").split("\n\n")[0] or None
     parser = build_parser(add_arguments, prog, description, one_line)
     return int(run(parser.parse_args(argv), parser) or 0)
+
+
+def command_main(add_arguments, run, prog: str, doc: str | None = None, one_line: bool = False):
+    """A command module's ``main(argv=None) -> int`` (``python -m MODULE``): :func:`run_command` with
+    the module's ``add_arguments`` and ``run``; ``histojax <command>`` calls the same two functions."""
+    def main(argv=None) -> int:
+        return run_command(add_arguments, run, argv, prog=prog, doc=doc, one_line=one_line)
+
+    main.__doc__ = f"``{prog}``: parse ``argv`` (default ``sys.argv[1:]``) and run; returns the exit status."
+    return main

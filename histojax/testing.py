@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from data_tools.cli_output import command_main
 from histojax import actions
 
 
@@ -203,11 +204,7 @@ def run(args, parser=None) -> int:
     return 0 if not failures else 1
 
 
-def main(argv=None) -> int:
-    """``python -m histojax.testing [ENV_ID ...]`` (the same as ``histojax contract``)."""
-    from data_tools.cli_output import run_command
-
-    return run_command(add_arguments, run, argv, prog="python -m histojax.testing", doc=__doc__, one_line=False)
+main = command_main(add_arguments, run, "python -m histojax.testing", __doc__)  # = histojax contract
 
 
 if __name__ == "__main__":

@@ -17,7 +17,6 @@ mean fraction actually read, AUC, accuracy at 0.5, slides) and ``budget_curve.pn
 """
 from __future__ import annotations
 
-import argparse
 import csv
 from pathlib import Path
 
@@ -25,6 +24,7 @@ import numpy as np
 
 from baselines.metrics import accuracy, roc_auc
 from baselines.mil import MILClassifier, train_mil
+from data_tools.cli_output import command_main
 
 BUDGETS = (0.05, 0.1, 0.2, 0.5)
 
@@ -284,8 +284,8 @@ def compute_missing_features(dataset, encoder: str) -> None:
             print(f"computed the {encoder} feature grid of {bundle}")
 
 
-def parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="python -m baselines.budget_curve", description=__doc__.split("\n")[0])
+def add_arguments(p) -> None:
+    """The options of ``python -m baselines.budget_curve`` and ``histojax budget-curve``."""
     p.add_argument("--dataset", required=True, help="dataset folder with dataset.json (train / test split) whose "
                                                    "bundles have feature grids")
     p.add_argument("--env", default="HistoJAX-Medium-v0", help="scenario id (its levels; default HistoJAX-Medium-v0)")
@@ -305,11 +305,10 @@ def parser() -> argparse.ArgumentParser:
                    help="first compute the feature grid of every bundle of the dataset that has none with this "
                         "encoder (e.g. colour-stats; see `python -m data_tools features --help`)")
     p.add_argument("--out", default="runs/budget_curve", help="output folder (default runs/budget_curve)")
-    return p
 
 
-def main(argv=None) -> int:
-    args = parser().parse_args(argv)
+def run(args, parser=None) -> int:
+    """The budget curve on parsed ``args``: CSV and PNG in ``args.out``."""
     level = args.glimpse_level
     if args.compute_features:
         compute_missing_features(args.dataset, args.compute_features)
@@ -333,6 +332,9 @@ def main(argv=None) -> int:
         print(f"{r['method']:28s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {r['auc']:6.3f} {r['accuracy']:6.3f}")
     print(f"wrote {csv_path} and {png}")
     return 0
+
+
+main = command_main(add_arguments, run, "python -m baselines.budget_curve", __doc__)
 
 
 if __name__ == "__main__":

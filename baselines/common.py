@@ -3,7 +3,6 @@ checkpoints (flax.serialization msgpack), logs (CSV / JSON), learning-curve PNGs
 sharding the env batch over devices (``--devices N``)."""
 from __future__ import annotations
 
-import argparse
 import csv
 import dataclasses
 import functools
@@ -20,8 +19,8 @@ from jax.sharding import PartitionSpec as P
 
 import histojax
 from baselines import distributed
-from data_tools.cli_output import positive_float
-from histojax.wrappers import LogWrapper
+from data_tools.cli_output import build_parser, command_main, positive_float
+from histojax.adapters.jax import LogWrapper
 from baselines.curves import plot_curves  # noqa: F401  (the learning-curve PNG; kept here for callers)
 
 
@@ -384,9 +383,10 @@ def seeds_runner(train, init_params, env_params, config: dict, progress: Progres
 
 
 # ----------------------------------------------------------------------------- the command line and a run
-def parse_args(argv=None, defaults: dict | None = None, description: str = ""):
-    """Parse a baseline's command line (``defaults``: its config defaults)."""
-    p = argparse.ArgumentParser(description=description.split("\n\n")[0])
+def add_arguments(p, defaults: dict) -> None:
+    """Declare a trainer's options on the parser (or argument group) ``p``, with ``defaults`` its
+    config defaults: the one declaration behind ``python -m baselines.ppo|dqn|ppo_rnn``,
+    ``histojax train --algo ...`` and ``baselines.rotation``."""
     p.add_argument("--env", default=defaults["env_id"], help="registered env id")
     p.add_argument("--slide", default=None, help="bundle folder (default: the embedded sample slide)")
     p.add_argument("--action-mode", default="discrete",
@@ -410,7 +410,12 @@ def parse_args(argv=None, defaults: dict | None = None, description: str = ""):
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other config entry, value parsed as JSON (e.g. --set ent_coef=0.02)")
     p.add_argument("--out", default=None, help="run folder (default runs/<algo>-<env>)")
-    return p.parse_args(argv)
+
+
+def parse_args(argv=None, defaults: dict | None = None, description: str = ""):
+    """Parse a baseline's command line (``defaults``: its config defaults; :func:`add_arguments`)."""
+    add = functools.partial(add_arguments, defaults=defaults)
+    return build_parser(add, description=description.split("\n\n")[0], one_line=False).parse_args(argv)
 
 
 def config_from_args(args, defaults: dict) -> dict:
@@ -476,16 +481,30 @@ def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_
     return summary
 
 
-def train_and_save(algo: str, make_train_fn, argv, defaults: dict, description: str, unit: str) -> int:
-    """The CLI of a baseline (shared by every algorithm file): parse ``argv``, compile, train all seeds
-    in one program, then write logs, curve and checkpoint with :func:`finish_run`."""
-    args = parse_args(argv, defaults=defaults, description=description)
+def train_and_save(algo: str, make_train_fn, args, defaults: dict, unit: str) -> int:
+    """The command of a baseline (shared by every algorithm file), on ``args`` parsed with
+    :func:`add_arguments`: compile, train all seeds in one program, then write logs, curve and
+    checkpoint with :func:`finish_run`."""
     config = config_from_args(args, defaults=defaults)
     if (args.coordinator is not None or args.distributed) and "devices" not in defaults:
         raise SystemExit("several processes (--coordinator / --distributed) are supported by the PPO baseline only")
     distributed.from_args(args)
     run_and_save(algo, make_train_fn, config, Path(args.out or f"runs/{algo}-{config['env_id']}"), unit)
     return 0
+
+
+def trainer_command(algo: str, make_train_fn, defaults: dict, unit: str, doc: str):
+    """A trainer module's command: ``(add_arguments, run, main)`` for ``python -m baselines.<algo>`` and
+    ``histojax train --algo <algo>``, the options :func:`add_arguments` with the trainer's ``defaults``."""
+    def add(parser) -> None:
+        """The trainer's options (:func:`baselines.common.add_arguments` with its defaults)."""
+        add_arguments(parser, defaults)
+
+    def run(args, parser=None) -> int:
+        """Train on parsed ``args`` and write the run folder (:func:`train_and_save`)."""
+        return train_and_save(algo, make_train_fn, args, defaults, unit)
+
+    return add, run, command_main(add, run, f"python -m baselines.{algo}", doc)
 
 
 def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = "updates"):

@@ -17,7 +17,6 @@ Ends with a summary and the list of files written (also in ``<out>/demo_summary.
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import json
 import math
@@ -30,6 +29,7 @@ import numpy as np
 
 import histojax
 from baselines import common
+from data_tools.cli_output import command_main
 from histojax.render import animate, render_trajectory
 
 ENV_ID = "HistoJAX-Easy-v0"
@@ -225,8 +225,8 @@ def print_summary(summary: dict) -> None:
         print(f"  {f:<{width}}  {what}")
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_arguments(p) -> None:
+    """The options of ``python -m baselines.demo`` and ``histojax demo``."""
     p.add_argument("--total-steps", type=int, default=None,
                    help=f"PPO env steps (default {TOTAL_STEPS:,}; a few minutes on 2 CPU cores)")
     p.add_argument("--out", default="out", help="output folder (default out/)")
@@ -235,11 +235,17 @@ def main(argv=None) -> int:
     p.add_argument("--no-train", action="store_true", help="only the random-agent table and its picture")
     p.add_argument("--envs", type=int, default=None, help="random table: parallel environments (default 256)")
     p.add_argument("--steps", type=int, default=None, help="random table: steps per environment (default 400)")
-    args = p.parse_args(argv)
+
+
+def run(args, parser) -> int:
+    """The demo on parsed ``args``."""
     if args.total_steps is not None and args.total_steps <= 0:
-        p.error("--total-steps must be positive")
+        parser.error("--total-steps must be positive")
     run_demo(args.out, args.total_steps, args.seed, args.quick, not args.no_train, args.envs, args.steps)
     return 0
+
+
+main = command_main(add_arguments, run, "python -m baselines.demo", __doc__)
 
 
 if __name__ == "__main__":

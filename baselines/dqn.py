@@ -24,7 +24,7 @@ from flax import struct
 
 from baselines import common
 from baselines.networks import QNetwork, preprocess_obs
-from histojax.wrappers import LogWrapper
+from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
 class DQNConfig(common.EnvConfig):
@@ -224,8 +224,8 @@ def make_train(config: dict):
     return run
 
 
-def main(argv=None) -> int:
-    return common.train_and_save("dqn", make_train, argv, DEFAULTS, __doc__, "log blocks")
+# python -m baselines.dqn and histojax train --algo dqn: options, command, entry point
+add_arguments, run, main = common.trainer_command("dqn", make_train, DEFAULTS, "log blocks", __doc__)
 
 
 if __name__ == "__main__":

@@ -16,7 +16,6 @@ and ``trajectory.gif`` (histojax.render.animate) of one episode of the learned p
 """
 from __future__ import annotations
 
-import argparse
 import csv
 import json
 from pathlib import Path
@@ -29,6 +28,7 @@ from baselines import common
 from baselines.ppo import make_network
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
                                 policy_mode, policy_sample, preprocess_obs)
+from data_tools.cli_output import command_main
 from histojax import actions, reading
 from histojax.render import animate, render_trajectory
 
@@ -277,8 +277,8 @@ def print_table(title: str, rows: dict) -> None:
               f"{r['mean_fields_of_view']:>6.1f}")
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_arguments(p) -> None:
+    """The options of ``python -m baselines.evaluate`` and ``histojax evaluate``."""
     p.add_argument("checkpoint", nargs="?", default=None,
                    help="run folder or params.msgpack (omit with --env for reference rows only)")
     p.add_argument("--env", default=None, help="env id (default: the checkpoint's)")
@@ -292,9 +292,12 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="output folder (default <run>/eval or runs/eval-<env>)")
     p.add_argument("--augment", action="store_true",
                    help="keep the checkpoint's training-time view augmentation (default: slides as they are)")
-    args = p.parse_args(argv)
+
+
+def run(args, parser) -> int:
+    """Evaluate on parsed ``args``: tables, eval.json, eval.csv and trajectory pictures."""
     if args.checkpoint is None and args.env is None:
-        p.error("give a CHECKPOINT or --env")
+        parser.error("give a CHECKPOINT or --env")
     if args.checkpoint is not None:
         params, config = common.load_checkpoint(args.checkpoint)
         run = Path(args.checkpoint)
@@ -330,6 +333,9 @@ def main(argv=None) -> int:
                             r["mean_steps_to_success"], r["mean_fraction_read"], r["mean_fields_of_view"]])
     print(f"\nwrote {out}/eval.json, eval.csv, trajectory_*.png, trajectory.gif")
     return 0
+
+
+main = command_main(add_arguments, run, "python -m baselines.evaluate", __doc__)
 
 
 if __name__ == "__main__":

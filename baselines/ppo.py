@@ -43,7 +43,7 @@ from flax.training.train_state import TrainState
 from baselines import common
 from baselines.networks import (ActorCritic, is_discrete, policy_entropy, policy_log_prob, policy_sample,
                                 preprocess_obs)
-from histojax.wrappers import LogWrapper
+from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig(common.EnvConfig):
@@ -278,8 +278,8 @@ def config_from_args(args, defaults=DEFAULTS) -> dict:
     return common.config_from_args(args, defaults)
 
 
-def main(argv=None) -> int:
-    return common.train_and_save("ppo", make_train, argv, DEFAULTS, __doc__, "updates")
+# python -m baselines.ppo and histojax train --algo ppo: options, command, entry point
+add_arguments, run, main = common.trainer_command("ppo", make_train, DEFAULTS, "updates", __doc__)
 
 
 if __name__ == "__main__":

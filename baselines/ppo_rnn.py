@@ -27,7 +27,7 @@ from flax.training.train_state import TrainState
 from baselines import common, ppo
 from baselines.networks import (RecurrentActorCritic, ScannedGRU, network_step, policy_log_prob, policy_sample,
                                 preprocess_obs)
-from histojax.wrappers import LogWrapper
+from histojax.adapters.jax import LogWrapper
 
 DEFAULTS = {**{k: v for k, v in ppo.DEFAULTS.items() if k != "devices"},
             "algo": "ppo_rnn", "num_minibatches": 4, "hidden": 128}
@@ -40,7 +40,7 @@ def make_network(config: dict, env) -> RecurrentActorCritic:
 
 def rollout(network, env, params, env_params, carry, num_steps: int, action_mode: str):
     """``num_steps`` steps of the sampled recurrent policy in ``B`` vmapped, auto-resetting envs
-    (``env`` wrapped in :class:`~histojax.wrappers.LogWrapper`). ``carry = (env_state, obs (pooled,
+    (``env`` wrapped in :class:`~histojax.adapters.jax.LogWrapper`). ``carry = (env_state, obs (pooled,
     :func:`~baselines.networks.preprocess_obs`), first (B,) bool, h (B, H), key)`` → ``(carry,
     traj)`` with ``traj`` a :class:`baselines.ppo.Transition` (``first`` set) of time-major
     ``(num_steps, B, ...)`` arrays; ``first`` of step ``t + 1`` is ``done`` of step ``t``."""
@@ -133,8 +133,8 @@ def make_train(config: dict):
     return run
 
 
-def main(argv=None) -> int:
-    return common.train_and_save("ppo_rnn", make_train, argv, DEFAULTS, __doc__, "updates")
+# python -m baselines.ppo_rnn and histojax train --algo ppo_rnn: options, command, entry point
+add_arguments, run, main = common.trainer_command("ppo_rnn", make_train, DEFAULTS, "updates", __doc__)
 
 
 if __name__ == "__main__":

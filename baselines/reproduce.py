@@ -18,7 +18,6 @@ the default budgets take hours on 2 CPU cores.
 """
 from __future__ import annotations
 
-import argparse
 import json
 import platform
 import time
@@ -28,6 +27,7 @@ import jax
 
 from baselines import common, dqn, ppo
 from baselines.evaluate import evaluate
+from data_tools.cli_output import command_main
 
 BUDGETS = {  # env steps per seed, seeds, evaluation episodes
     "quick": dict(steps=16_384, seeds=1, episodes=32),
@@ -99,8 +99,8 @@ def table2(budget: dict, out: Path, imported=None) -> list[str]:
     return lines
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_arguments(p) -> None:
+    """The options of ``python -m baselines.reproduce`` and ``histojax reproduce``."""
     p.add_argument("--quick", action="store_true", help="tiny budgets: a smoke run of the grid, not converged")
     p.add_argument("--tables", type=int, nargs="+", default=[1, 2], choices=(1, 2))
     p.add_argument("--steps", type=int, default=None, help="env steps per seed per cell (overrides the budget)")
@@ -108,7 +108,10 @@ def main(argv=None) -> int:
     p.add_argument("--episodes", type=int, default=None, help="evaluation episodes per seed (overrides the budget)")
     p.add_argument("--imported", default=None, help="bundle with an imported feature grid (Table 2 column)")
     p.add_argument("--out", default="runs/reproduce", help="folder for run folders and the markdown table")
-    args = p.parse_args(argv)
+
+
+def run(args, parser=None) -> int:
+    """Train, evaluate and tabulate on parsed ``args``; writes ``<out>/tables.md``."""
     mode = "quick" if args.quick else "full"
     budget = dict(BUDGETS[mode])
     for k in ("steps", "seeds", "episodes"):
@@ -132,6 +135,9 @@ def main(argv=None) -> int:
     print("\n".join(lines))
     print(f"\nwrote {table}")
     return 0
+
+
+main = command_main(add_arguments, run, "python -m baselines.reproduce", __doc__)
 
 
 if __name__ == "__main__":

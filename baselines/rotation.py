@@ -29,7 +29,6 @@ One device only (no ``devices`` / ``shard_slides``); every seed trains on the sa
 """
 from __future__ import annotations
 
-import argparse
 import concurrent.futures
 import dataclasses
 import math
@@ -41,6 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from baselines import common, ppo
+from data_tools.cli_output import command_main
 from histojax.registry import make, slide_paths
 from histojax.sharding import PER_SLIDE, host_leaves, on_host, pad_leaf
 from histojax.slide import SlideArrays, stack_slides
@@ -225,26 +225,26 @@ def train_rotating(config: dict, budget_bytes: int, resident: int | None = None,
             "env_params": base.replace(slide=current), "config": config, "steps_per_update": batch}
 
 
-def main(argv=None) -> int:
-    """The CLI: the rotation flags below, then every flag of ``python -m baselines.ppo``."""
-    p = argparse.ArgumentParser(prog="python -m baselines.rotation", add_help=False,
-                                usage="%(prog)s --budget-mb MB [rotation flags] [PPO flags]")
-    p.add_argument("--resident", type=int, default=None, help="slides on the device per set (default: most that fit)")
-    p.add_argument("--rotate-every", type=int, default=4, help="PPO updates per resident set")
-    p.add_argument("--budget-mb", type=float, default=None, help="device MiB for the two resident sets (required)")
-    p.add_argument("--source", default="memory", choices=("memory", "disk"), help="host RAM or read bundles per set")
-    own, rest = p.parse_known_args(argv)
-    if "-h" in rest or "--help" in rest:
-        p.print_help()
-        print("\nPPO flags:")
-    elif own.budget_mb is None:
-        p.error("--budget-mb is required")
-    args = ppo.parse_args(rest, description=__doc__)
+def add_arguments(p) -> None:
+    """The options of ``python -m baselines.rotation`` and ``histojax rotation``: the rotation flags,
+    then every flag of ``python -m baselines.ppo`` (:func:`baselines.ppo.add_arguments`)."""
+    own = p.add_argument_group("rotation flags")
+    own.add_argument("--resident", type=int, default=None, help="slides on the device per set (default: most that fit)")
+    own.add_argument("--rotate-every", type=int, default=4, help="PPO updates per resident set")
+    own.add_argument("--budget-mb", type=float, default=None, help="device MiB for the two resident sets (required)")
+    own.add_argument("--source", default="memory", choices=("memory", "disk"), help="host RAM or read bundles per set")
+    ppo.add_arguments(p.add_argument_group("PPO flags"))
+
+
+def run(args, parser) -> int:
+    """Train PPO with rotating resident sets on parsed ``args``; writes the run folder."""
+    if args.budget_mb is None:
+        parser.error("--budget-mb is required")
     if args.coordinator is not None or args.distributed:
         raise SystemExit("baselines.rotation runs in one process (no --coordinator / --distributed)")
     config = ppo.config_from_args(args)
     out = Path(args.out or f"runs/rotation-{config['env_id']}")
-    result = train_rotating(config, int(own.budget_mb * 2**20), own.resident, own.rotate_every, own.source)
+    result = train_rotating(config, int(args.budget_mb * 2**20), args.resident, args.rotate_every, args.source)
     rot = result["rotation"]
     print(f"resident sets: K={rot['resident_slides']} of {rot['num_slides']} slides, {rot['phases']} phases of "
           f"{rot['rotate_every']} updates; dataset {rot['dataset_bytes']:,} bytes, budget {rot['budget_bytes']:,}, bound {rot['bound_bytes']:,}, resident peak {rot['resident_peak_bytes']:,}, "
@@ -253,6 +253,9 @@ def main(argv=None) -> int:
     common.finish_run("ppo", result["config"], out, result["params"], result["metrics"], result["steps_per_update"],
                    rot["train_seconds"], rot["compile_seconds"], env_and_params=(result["env"], result["env_params"]))
     return 0
+
+
+main = command_main(add_arguments, run, "python -m baselines.rotation", __doc__)
 
 
 if __name__ == "__main__":

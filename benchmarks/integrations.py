@@ -19,7 +19,7 @@ import gymnasium
 import numpy as np
 
 import histojax
-from histojax.gymnasium_bridge import GymnasiumEnv, GymnasiumVectorEnv
+from histojax.adapters.gymnasium import GymnasiumEnv, GymnasiumVectorEnv
 
 
 def steps_per_second(venv, n: int, seconds: float, sb3: bool) -> float:
@@ -54,7 +54,7 @@ def main() -> None:
     try:
         from stable_baselines3.common.vec_env import DummyVecEnv
 
-        from histojax.sb3 import SB3VecEnv
+        from histojax.adapters.sb3 import SB3VecEnv
 
         rows += [("sb3 DummyVecEnv(GymnasiumEnv x n)",
                   lambda: DummyVecEnv([lambda: GymnasiumEnv(env, params) for _ in range(n)]), True),

@@ -10,7 +10,6 @@ memory-bound: each step copies a 128×128×3 view).
 """
 from __future__ import annotations
 
-import argparse
 import dataclasses
 import os
 import platform
@@ -20,7 +19,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from data_tools.cli_output import positive_float
+from data_tools.cli_output import command_main, positive_float
 import histojax
 from histojax import actions as act
 from histojax.views import view_tumour_fraction
@@ -97,12 +96,15 @@ def measure(make_fn, env, params, batch: int, seconds: float) -> float:
             return calls * steps * batch / elapsed
 
 
-def main(argv=None) -> int:
-    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+def add_arguments(p) -> None:
+    """The options of ``python benchmarks/throughput.py`` and ``histojax bench``."""
     p.add_argument("--env", default="HistoJAX-Hard-v0")
     p.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024, 4096])
     p.add_argument("--seconds", type=positive_float, default=1.0, help="minimum timed seconds per measurement")
-    args = p.parse_args(argv)
+
+
+def run(args, parser=None) -> int:
+    """Measure and print the throughput table for parsed ``args``."""
     env, params = histojax.make(args.env)
     view_bytes = env.tile_size**2 * 3
     bandwidth = memcpy_bandwidth()
@@ -122,6 +124,10 @@ def main(argv=None) -> int:
         gbs = lps * view_bytes
         print(f"{batch:>6} {sps:>15,.0f} {lps:>13,.0f} {gbs / 1e9:>15.2f} {gbs / bandwidth:>10.1%} {rps:>20,.0f}")
     return 0
+
+
+
+main = command_main(add_arguments, run, "python benchmarks/throughput.py", __doc__)
 
 
 if __name__ == "__main__":

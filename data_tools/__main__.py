@@ -14,8 +14,8 @@ import json
 import sys
 from pathlib import Path
 
-from data_tools.cli_output import (OneLineParser, finite_float, one_line_messages, os_error_text, positive_float,
-                                  positive_int, print_error)
+from data_tools.cli_output import (finite_float, one_line_messages, os_error_text, positive_float, positive_int,
+                                  print_error, run_command)
 from data_tools.errors import HistojaxDataError
 
 
@@ -39,10 +39,9 @@ def _box(text: str) -> tuple[float, float, float, float]:
     return values
 
 
-def _parser() -> argparse.ArgumentParser:
-    # the same commands are `histojax <command>`: usage lines name the command the user typed
-    prog = "histojax" if Path(sys.argv[0]).name == "histojax" else "python -m data_tools"
-    p = OneLineParser(prog=prog, description=__doc__.split("\n\n")[0])
+def add_arguments(p) -> None:
+    """The data commands and their options, on ``p``: ``python -m data_tools <command>`` and
+    ``histojax <command>`` (one declaration for both)."""
     sub = p.add_subparsers(dest="command", required=True)
     info = sub.add_parser("info", help="print a slide's pyramid (levels, sizes in px, tiles, compression, µm/px)")
     info.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file, DICOM WSI file or folder, or a bundle folder")
@@ -128,7 +127,6 @@ def _parser() -> argparse.ArgumentParser:
     from data_tools.features.cli import add_subcommands as _add_feature_commands
 
     _add_feature_commands(sub)  # features, import-features
-    return p
 
 
 def _info(path: str) -> str:
@@ -166,19 +164,23 @@ def _check_label_map(label_map) -> None:
             raise HistojaxDataError(None, f"--label-map: {key!r} maps to {value!r}; expected one of {LABELS}")
 
 
-def main(argv=None) -> int:
+def run(args, parser=None) -> int:
+    """Run the parsed data command; returns the exit status (2 for a user error, printed as one line)."""
+    try:
+        _command(args)
+    except HistojaxDataError as e:
+        return print_error(e)
+    except json.JSONDecodeError as e:
+        return print_error(f"--label-map is not valid JSON: {e}")
+    except OSError as e:  # file-system errors outside the project's checks (permissions, full disk, ...)
+        return print_error(os_error_text(e))
+    return 0
+
+
+def main(argv=None, prog: str = "python -m data_tools") -> int:
     """Entry point; returns the process exit status (2 for a user error, printed as one line)."""
     with one_line_messages():
-        args = _parser().parse_args(argv)
-        try:
-            _command(args)
-        except HistojaxDataError as e:
-            return print_error(e)
-        except json.JSONDecodeError as e:
-            return print_error(f"--label-map is not valid JSON: {e}")
-        except OSError as e:  # file-system errors outside the project's checks (permissions, full disk, ...)
-            return print_error(os_error_text(e))
-    return 0
+        return run_command(add_arguments, run, argv, prog=prog, doc=__doc__)
 
 
 def _command(args) -> None:

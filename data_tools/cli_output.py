@@ -105,3 +105,39 @@ def positive_int(text: str) -> int:
     if value < 1:
         raise argparse.ArgumentTypeError(f"{text!r} must be >= 1")
     return value
+
+
+# ----------------------------------------------------------------------------- one parser per command
+def build_parser(add_arguments, prog: str | None = None, description: str | None = None,
+                 one_line: bool = True) -> argparse.ArgumentParser:
+    """The one place the project's command parsers are made: ``add_arguments(parser)`` — the command
+    module's own function, the only place its options are declared — fills a new parser. Both
+    ``histojax <command>`` and ``python -m <module>`` come here with the same function. ``one_line``:
+    :class:`OneLineParser` (usage errors one line, exit 2: the ``histojax`` command and
+    ``python -m data_tools``); ``False``: argparse's own usage and error lines (``python -m baselines.*``)."""
+    parser_class = OneLineParser if one_line else argparse.ArgumentParser
+    parser = parser_class(prog=prog, description=description)
+    add_arguments(parser)
+    return parser
+
+
+def run_command(add_arguments, run, argv=None, prog: str | None = None, doc: str | None = None,
+                one_line: bool = True) -> int:
+    """Run a command: ``add_arguments(parser)`` declares its options, ``run(args, parser) -> int`` runs
+    it on the parsed ``args`` (``parser.error`` for usage errors found after parsing). Parses ``argv``
+    (default ``sys.argv[1:]``) with :func:`build_parser`, described by the first paragraph of ``doc``
+    (the command module's doc); returns the exit status. Every command module's ``main`` and the
+    ``histojax`` command call it with the module's two functions."""
+    description = (doc or "").split("\n\n")[0] or None
+    parser = build_parser(add_arguments, prog, description, one_line)
+    return int(run(parser.parse_args(argv), parser) or 0)
+
+
+def command_main(add_arguments, run, prog: str, doc: str | None = None, one_line: bool = False):
+    """A command module's ``main(argv=None) -> int`` (``python -m MODULE``): :func:`run_command` with
+    the module's ``add_arguments`` and ``run``; ``histojax <command>`` calls the same two functions."""
+    def main(argv=None) -> int:
+        return run_command(add_arguments, run, argv, prog=prog, doc=doc, one_line=one_line)
+
+    main.__doc__ = f"``{prog}``: parse ``argv`` (default ``sys.argv[1:]``) and run; returns the exit status."
+    return main

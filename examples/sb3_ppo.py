@@ -15,8 +15,8 @@ import gymnasium
 from stable_baselines3 import PPO
 from stable_baselines3.common.vec_env import VecMonitor
 
-import histojax.gymnasium_bridge  # noqa: F401  (registers "histojax/<id>" with Gymnasium)
-from histojax.sb3 import make_sb3_vec_env
+import histojax.adapters.gymnasium  # noqa: F401  (registers "histojax/<id>" with Gymnasium)
+from histojax.adapters.sb3 import make_sb3_vec_env
 
 
 def main() -> None:

@@ -9,10 +9,16 @@
     histojax demo [--no-train]        random-agent table, then PPO trained and evaluated on Easy (`make demo`)
     histojax train [--algo ppo|dqn|ppo_rnn]   pure-JAX baselines (`python -m baselines.ppo|dqn|ppo_rnn`)
     histojax evaluate CHECKPOINT      success rate, return, steps to success, trajectory pictures
+    histojax rotation --budget-mb MB  PPO on a dataset larger than the device, slides rotated through it
+    histojax budget-curve --dataset DS   diagnosis AUC against the fraction of the slide read
+    histojax reproduce [--quick]      the paper's tables: every algorithm trained, evaluated, tabulated
     histojax contract [ENV_ID ...]    the environment contract check (`make contract`, histojax.testing)
     histojax bench                    environment throughput (steps/s) against memory bandwidth
 
-The data commands are data_tools' (``python -m data_tools <command>`` is the same command).
+Each command is its module's (``python -m data_tools <command>``, ``python -m baselines.<module>``,
+``python -m histojax.testing``, ``python benchmarks/throughput.py`` are the same commands): the
+module's ``add_arguments(parser)`` declares the options, once, and its ``run(args, parser)`` runs
+them (:func:`data_tools.cli_output.run_command`). `histojax <command> --help` lists the options.
 
 Units: positions and sizes are pixels (level-0 px for annotations and regions, px of the
 current level for views); `--tile-size` is the view side in px. User errors (bad files, unknown
@@ -20,35 +26,25 @@ ids or settings) print one line and exit with status 2; HISTOJAX_DEBUG=1 shows t
 """
 from __future__ import annotations
 
-import argparse
 import importlib
 import os
 import sys
 
-from data_tools.cli_output import OneLineParser, one_line_messages, os_error_text, print_error
+from data_tools.cli_output import one_line_messages, os_error_text, print_error, run_command
 from data_tools.errors import HistojaxDataError
 
 DATA_COMMANDS = ("info", "build", "features", "import-features", "synth", "synth-large", "c16")
-COMMANDS = {
-    **{name: ("data_tools.__main__", [name]) for name in DATA_COMMANDS},
-    "demo": ("baselines.demo", []),
-    "evaluate": ("baselines.evaluate", []),
-    "contract": ("histojax.testing", []),
-    "bench": ("benchmarks.throughput", []),
+COMMANDS = {  # histojax <command>: the module whose add_arguments and run it is
+    **{name: "data_tools.__main__" for name in DATA_COMMANDS},
+    "demo": "baselines.demo",
+    "evaluate": "baselines.evaluate",
+    "rotation": "baselines.rotation",
+    "budget-curve": "baselines.budget_curve",
+    "reproduce": "baselines.reproduce",
+    "contract": "histojax.testing",
+    "bench": "benchmarks.throughput",
 }
-ALGOS = ("ppo", "dqn", "ppo_rnn")
-
-
-def _run(module_name: str, argv: list[str], prog: str = "histojax") -> int:
-    module = importlib.import_module(module_name)
-    sys.argv[0] = prog  # argparse names the program after it: "histojax train", not "cli.py"
-    original_error = argparse.ArgumentParser.error
-    argparse.ArgumentParser.error = OneLineParser.error  # every subcommand's usage errors: one line, exit 2
-    try:
-        result = module.main(argv)
-    finally:
-        argparse.ArgumentParser.error = original_error
-    return int(result or 0)
+ALGOS = ("ppo", "dqn", "ppo_rnn")  # histojax train --algo NAME: baselines.NAME
 
 
 def main(argv=None) -> int:
@@ -72,6 +68,7 @@ def main(argv=None) -> int:
 
 
 def _dispatch(command: str, rest: list[str]) -> int:
+    """Run ``histojax <command> <rest>`` with the command module's own parser (one-line usage errors)."""
     if command == "train":
         algo = "ppo"
         if "--algo" in rest:
@@ -80,11 +77,18 @@ def _dispatch(command: str, rest: list[str]) -> int:
             rest = rest[:i] + rest[i + 2:]
         if algo not in ALGOS:
             return print_error(f"--algo must be one of {', '.join(ALGOS)}, got {algo!r}")
-        return _run(f"baselines.{algo}", rest, f"histojax train --algo {algo}")
+        return _run(importlib.import_module(f"baselines.{algo}"), rest, f"histojax train --algo {algo}")
     if command not in COMMANDS:
         return print_error(f"unknown command {command!r}; one of: {', '.join([*COMMANDS, 'train'])}")
-    module_name, prefix = COMMANDS[command]
-    return _run(module_name, prefix + rest, f"histojax {command}" if not prefix else "histojax")
+    module = importlib.import_module(COMMANDS[command])
+    if command in DATA_COMMANDS:  # one parser with the data commands as its subcommands
+        return _run(module, [command, *rest], "histojax")
+    return _run(module, rest, f"histojax {command}")
+
+
+def _run(module, argv: list[str], prog: str) -> int:
+    """The command ``module`` (its ``add_arguments`` and ``run``) on ``argv``, usage errors one line."""
+    return run_command(module.add_arguments, module.run, argv, prog=prog, doc=module.__doc__)
 
 
 if __name__ == "__main__":

@@ -5,6 +5,10 @@ gymnax 1.0 contract::
     obs, state = env.reset(key, params)
     obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
 
+Four entry points, gymnax's: ``reset`` and ``step`` (``params`` optional, ``step`` auto-resets) for
+users; ``reset_env`` and ``step_env`` (no auto-reset, ``params`` required), what gymnax's
+``Environment`` subclasses override and its wrappers call.
+
 **State** (``EnvState``, int32 scalars): level ``z`` (0 = coarsest, ``n_levels - 1`` = finest),
 ``x, y`` the view's top-left corner in px of level ``z``, ``t`` steps taken this episode,
 ``slide_index`` (0 for one slide), ``orientation`` (0 unless ``augment=True``).
@@ -199,7 +203,7 @@ class HistoEnv(_GymnaxEnvironment):
     def bundles(self) -> tuple:
         """The host bundles (:class:`data_tools.bundle_format.Bundle`: metadata, thumbnails, levels coarsest
         first) of the env's slides, one per slide, read-only: for rendering and inspection. Empty for an env
-        made without data (``histojax.gymnasium_bridge.settings_only``). Copy an env with one change with
+        made without data (``histojax.adapters.gymnasium.settings_only``). Copy an env with one change with
         ``dataclasses.replace(env, setting=value)``; its bundles go with it."""
         return tuple(self._bundles) or (() if self._bundle is None else (self._bundle,))
 
@@ -235,11 +239,11 @@ class HistoEnv(_GymnaxEnvironment):
         ``(obs, state, reward, terminated, truncated, info)``. The only place episodes restart."""
         params = self.default_params if params is None else params
         key_reset, _ = jax.random.split(key)
-        state_st, reward, terminated, truncated, info = self.transition(state, action, params)
+        state_st, reward, terminated, truncated, info = self._transition(state, action, params)
         if not self.auto_reset:
             obs = self.get_obs(state_st, params)
             return obs, state_st, reward, terminated, truncated, {**info, "final_observation": obs}
-        state_re = self.reset_state(key_reset, params)
+        state_re = self._reset_state(key_reset, params)
         done = jnp.logical_or(terminated, truncated)
         state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_re, state_st)
         if self.final_observation:  # both views, then a select (the last one is info's)
@@ -254,11 +258,13 @@ class HistoEnv(_GymnaxEnvironment):
     def reset_env(self, key: jax.Array, params: EnvParams):
         """A fresh episode at the coarsest level, on a random tissue view or the top-left corner;
         for a dataset, of a slide drawn by its weight: ``(obs, state)``."""
-        state = self.reset_state(key, params)
+        state = self._reset_state(key, params)
         return self.get_obs(state, params), state
 
-    def reset_state(self, key: jax.Array, params: EnvParams) -> EnvState:
-        """The start state of :meth:`reset_env`, without the observation."""
+    def _reset_state(self, key: jax.Array, params: EnvParams) -> EnvState:
+        """The start state of :meth:`reset_env`, without the observation. Private: :meth:`step`'s
+        auto-reset needs the new state alone, to choose between it and the stepped state before
+        extracting any view (one view per step with ``final_observation=False``)."""
         key_slide, key = jax.random.split(key)
         if params.slide.num_slides > 1:
             slide_index = sample_index(key_slide, params.slide.slide_logits)
@@ -287,12 +293,13 @@ class HistoEnv(_GymnaxEnvironment):
     def step_env(self, key: jax.Array, state: EnvState, action, params: EnvParams):
         """One step without auto-reset: ``(obs, state, reward, terminated, truncated, info)``
         (``info`` without ``final_observation``, which :meth:`step` adds)."""
-        new_state, reward, terminated, truncated, info = self.transition(state, action, params)
+        new_state, reward, terminated, truncated, info = self._transition(state, action, params)
         return self.get_obs(new_state, params), new_state, reward, terminated, truncated, info
 
-    def transition(self, state: EnvState, action, params: EnvParams):
+    def _transition(self, state: EnvState, action, params: EnvParams):
         """The dynamics without the observation: ``(state, reward, terminated, truncated, info)``.
-        The action mode picks the next view (and diagnosis); the task scores it."""
+        The action mode picks the next view (and diagnosis); the task scores it. Private: shared by
+        :meth:`step_env` and :meth:`step`, which observes only the state it keeps after auto-reset."""
         slide, t = params.slide.select(state.slide_index), self.tile_size
         move = self.action.apply(self, state, action, params)
         z, x, y = move.z, move.x, move.y

@@ -32,6 +32,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from data_tools.cli_output import command_main
 from histojax import actions
 
 
@@ -184,14 +185,13 @@ def check_contract(env_ids: Iterable[str] | None = None, **check_kwargs) -> list
     return reports
 
 
-def main(argv=None) -> int:
-    """Print one line per failed check and, last, ``contract: passed/total``; exit 0 only if all pass.
-    Arguments: env ids (default every registered id)."""
-    import argparse
-
-    p = argparse.ArgumentParser(prog="histojax contract", description="check the environment contract")
+def add_arguments(p) -> None:
+    """The options of ``histojax contract`` and ``python -m histojax.testing``: env ids."""
     p.add_argument("env_ids", nargs="*", help="registered ids (default: all)")
-    args = p.parse_args(argv)
+
+
+def run(args, parser=None) -> int:
+    """Print one line per failed check and, last, ``contract: passed/total``; exit 0 only if all pass."""
     reports = check_contract(args.env_ids or None)
     checks = [c for r in reports for c in r.checks]
     failures = [f for r in reports for f in r.failures]
@@ -202,6 +202,9 @@ def main(argv=None) -> int:
         print(f"FAIL {f}")
     print(f"contract: {len(checks) - len(failures)}/{len(checks)}")
     return 0 if not failures else 1
+
+
+main = command_main(add_arguments, run, "python -m histojax.testing", __doc__)  # = histojax contract
 
 
 if __name__ == "__main__":

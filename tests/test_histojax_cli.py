@@ -40,3 +40,20 @@ def test_build_then_info_on_the_bundle(tmp_path):
     assert out.returncode == 0, out.stderr
     info = run("info", str(tmp_path / "b"))
     assert info.returncode == 0 and "level 2" in info.stdout
+
+
+
+def test_every_command_is_a_module_with_one_parser():
+    """Each `histojax <command>` is its module's add_arguments (the options, declared once) and run."""
+    import importlib
+
+    from histojax.cli import ALGOS, COMMANDS
+
+    for module_name in [*COMMANDS.values(), *(f"baselines.{algo}" for algo in ALGOS)]:
+        module = importlib.import_module(module_name)
+        assert callable(module.add_arguments) and callable(module.run), module_name
+    for command in ("rotation", "budget-curve", "reproduce"):
+        assert COMMANDS[command].startswith("baselines.")
+    out = run("rotation", "--seeds", "1")
+    assert out.returncode == 2 and out.stderr.strip() == (
+        "error: histojax rotation: --budget-mb is required (--help shows the options)")

@@ -84,14 +84,35 @@ TASKS = ("detection", "classification")
 view_features = modes.view_features  # public name kept: the feature vector of a view
 
 
-def sample_index(key: jax.Array, logits: jax.Array) -> jax.Array:
+def sample_index(key: jax.Array, logits: jax.Array, cdf: jax.Array | None = None) -> jax.Array:
     """An index drawn with probability ``softmax(logits)`` by inverting the cumulative weights:
     one uniform number and a binary search (``jax.random.categorical`` would draw one Gumbel
-    number per entry, which dominated the cost of the auto-reset done in every step)."""
-    weights = jnp.exp(logits - jnp.max(logits))
-    cdf = jnp.cumsum(weights)
+    number per entry, which dominated the cost of the auto-reset done in every step). ``cdf``: the
+    cumulative weights computed beforehand (:func:`histojax.slide.start_cdf`, the same numbers), so
+    the draw costs a binary search instead of a pass over every entry."""
+    if cdf is None:
+        cdf = jnp.cumsum(jnp.exp(logits - jnp.max(logits)))
     u = jax.random.uniform(key, (), minval=0.0, maxval=cdf[-1])
     return jnp.minimum(jnp.searchsorted(cdf, u, side="right"), logits.shape[0] - 1).astype(jnp.int32)
+
+
+def sample_row(key: jax.Array, cdf: jax.Array, row=None) -> jax.Array:
+    """:func:`sample_index` from cumulative weights computed beforehand (:func:`histojax.slide.start_cdf`):
+    ``cdf`` ``(N,)``, or ``(S, N)`` with ``row`` picking one slide's row. The same draw (one uniform
+    number, ``searchsorted(side="right")``) as a binary search of ⌈log2(N + 1)⌉ scalar reads, so a
+    vmapped reset neither copies the row out nor passes over its N entries."""
+    at = (lambda i: cdf[i]) if row is None else (lambda i: cdf[row, i])
+    n = cdf.shape[-1]
+    u = jax.random.uniform(key, (), minval=0.0, maxval=at(n - 1))
+
+    def halve(_, bounds):  # invariant: cdf[:lo] <= u < cdf[hi:]
+        lo, hi = bounds
+        mid = (lo + hi) // 2
+        right = at(mid) <= u
+        return jnp.where(right, mid + 1, lo), jnp.where(right, hi, mid)
+
+    lo, _ = jax.lax.fori_loop(0, max(1, int(n).bit_length()), halve, (jnp.int32(0), jnp.int32(n)))
+    return jnp.minimum(lo, n - 1).astype(jnp.int32)
 
 
 @struct.dataclass
@@ -270,9 +291,13 @@ class HistoEnv(_GymnaxEnvironment):
             slide_index = sample_index(key_slide, params.slide.slide_logits)
         else:
             slide_index = jnp.zeros((), jnp.int32)
-        logits = params.slide.select(slide_index).start_logits
-        index = sample_index(key, logits.reshape(-1))
-        y0, x0 = jnp.divmod(index, logits.shape[1])
+        width = params.slide.start_logits.shape[-1]
+        if params.slide.start_cdf is None:
+            index = sample_index(key, params.slide.select(slide_index).start_logits.reshape(-1))
+        else:  # the slide's row of the cumulative weights is searched in place, never copied out
+            cdf = params.slide.start_cdf
+            index = sample_row(key, cdf, slide_index if cdf.ndim > 1 else None)
+        y0, x0 = jnp.divmod(index, width)
         start = jnp.asarray(params.random_start)
         zero = jnp.zeros((), jnp.int32)
         if self.augment:  # a static setting: without it the keys (and trajectories) are unchanged

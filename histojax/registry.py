@@ -37,7 +37,7 @@ import numpy as np
 from data_tools.errors import BundleError
 from histojax import modes
 from histojax.env import EnvParams, HistoEnv
-from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide, stack_slides
+from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide, stack_slides, start_cdf
 
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
                  "augment",
@@ -188,6 +188,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
         arrays = loaded[0][0]
     else:
         arrays = stack_slides([a for a, _ in loaded], weights=slide_weights)
+    arrays = arrays.replace(start_cdf=jnp.asarray(start_cdf(arrays.start_logits)))  # once, not at every reset
     static = {k: spec[k] for k in STATIC_FIELDS if k in spec}
     static["tile_size"] = tile_size
     validate_params({k: spec[k] for k in PARAM_FIELDS if k in spec}, tile_size, where=f"make({env_id!r})")

@@ -62,7 +62,7 @@ def pad_leaf(a: np.ndarray, shape: tuple, name: str) -> np.ndarray:
 def host_leaves(slide: SlideArrays) -> dict[str, np.ndarray]:
     """The non-None leaves of a ``SlideArrays`` as host numpy arrays (copies), by field name."""
     return {f.name: np.array(getattr(slide, f.name)) for f in dataclasses.fields(slide)
-            if getattr(slide, f.name) is not None}
+            if getattr(slide, f.name) is not None and f.name != "start_cdf"}  # derived: padding changes it
 
 
 def _global_shapes(local: list[dict[str, np.ndarray]]) -> dict[str, tuple]:

@@ -76,6 +76,8 @@ class SlideArrays:
     tile_grid_width: jnp.ndarray | None = None  # (n,) int32 grid columns gw of each level
     sat_pool: jnp.ndarray | None = None         # (M, T+1, T+1) uint32 local summed-area tables
     sat_index: jnp.ndarray | None = None        # (G,) int32 SAT pool index per grid cell
+    # derived once by ``make`` (:func:`start_cdf`), so a reset does not redo it over the whole coarsest level:
+    start_cdf: jnp.ndarray | None = None  # (Hc'·Wc',) or (S, Hmax·Wmax) float32 cumulative start weights; None: per reset
 
     @property
     def is_tiled(self) -> bool:
@@ -102,7 +104,7 @@ class SlideArrays:
         return self.replace(
             level_offset=pick(self.level_offset), level_width=pick(self.level_width),
             level_height=pick(self.level_height), downsample=pick(self.downsample), sat_offset=pick(self.sat_offset),
-            start_logits=pick(self.start_logits), feature_offset=pick(self.feature_offset),
+            start_logits=pick(self.start_logits), start_cdf=pick(self.start_cdf), feature_offset=pick(self.feature_offset),
             feature_grid_width=pick(self.feature_grid_width), feature_grid_height=pick(self.feature_grid_height),
             feature_stride=pick(self.feature_stride), slide_label=pick(self.slide_label),
             tile_offset=pick(self.tile_offset), tile_grid_width=pick(self.tile_grid_width))
@@ -205,6 +207,18 @@ def summed_area_table(mask: np.ndarray) -> np.ndarray:
 def box_sums(sat: np.ndarray, size: int) -> np.ndarray:
     """Sums of every ``size × size`` window of the mask behind ``sat``: ``(H-size+1, W-size+1)``."""
     return sat[size:, size:] - sat[:-size, size:] - sat[size:, :-size] + sat[:-size, :-size]
+
+
+def start_cdf(logits) -> np.ndarray:
+    """The cumulative start weights ``cumsum(exp(logits − max))`` over the flattened start positions (per
+    slide for stacked ``(S, H, W)`` logits), float32: exactly what :func:`histojax.env.sample_index`
+    would compute from the logits at every reset (start weights are 1 or 0, so the sums are exact
+    integers), computed once on the host instead (the auto-reset runs in every step, and on a
+    true-scale slide the coarsest level has ~500,000 start positions)."""
+    logits = np.asarray(logits, np.float32)
+    flat = logits.reshape(logits.shape[:-2] + (-1,))
+    weights = np.exp(flat - flat.max(axis=-1, keepdims=True))
+    return np.cumsum(weights, axis=-1, dtype=np.float32)
 
 
 def start_logits(tissue: np.ndarray, tile_size: int, region: np.ndarray | None = None) -> np.ndarray:

@@ -267,7 +267,8 @@ def main(argv=None) -> int:
         gib = spec.get("device_bytes", {}).get("pixels", 0) / 2**30
         no_pixels_note = (f" The dataset keeps no pixels (`data_tools c16 --no-pixels`, features "
                           f"`{spec.get('encoder')}`), so the rows that need them ({', '.join(sorted(needs_pixels))}) "
-                          f"were not run; in pixel mode the whole dataset needs {gib:,.1f} GiB on the device.")
+                          f"were not run; with their pixels, every level of every bundle would need {gib:,.1f} GiB on the device "
+                          f"(per level set: `benchmarks/c16_device_bytes.py`).")
     meta = {"dataset": str(dataset), "train_slides": len(spec["train"]), "test_slides": len(spec["test"]),
             "test_tumour_slides": len(tumour_test), "reachable": reachable + no_pixels_note,
             "env_ids": env_ids, "steps": ", ".join(f"{s} {steps[s]:,}" for s in args.scenarios),

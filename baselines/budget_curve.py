@@ -234,11 +234,13 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(8.0, 5.6), dpi=110, layout="constrained")
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    outside = len(methods) > 4  # many lines: one legend beside the plots
+    fig = Figure(figsize=(10.5 if outside else 8.0, 5.6), dpi=110, layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, 1, sharex=True)
-    methods = list(dict.fromkeys(r["method"] for r in rows))
-    colours = ["#1f4e9c", "#c0392b", "#27ae60", "#8e44ad", "#d35400", "#16a085", "#7f8c8d"]
+    colours = ["#1f4e9c", "#c0392b", "#27ae60", "#8e44ad", "#d35400", "#16a085", "#7f8c8d", "#b7950b", "#e84393",
+               "#2d3436"]
     for ax, metric in zip(axes, ("auc", "accuracy")):
         for k, name in enumerate(methods):
             pts = sorted((r["fraction_read"], r[metric]) for r in rows if r["method"] == name)
@@ -251,7 +253,10 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
         ax.set_ylabel(metric.upper() if metric == "auc" else metric)
         ax.set_ylim(0.0, 1.02)
         ax.grid(True, color="#dddddd", linewidth=0.6)
-        ax.legend(loc="lower right", fontsize="small", framealpha=0.85)
+        if not outside:
+            ax.legend(loc="lower right", fontsize="small", framealpha=0.85)
+    if outside:
+        axes[0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
     axes[-1].set_xlabel("fraction of finest-level tissue views read")
     axes[-1].set_xticks([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 1.0], ["0", "10 %", "20 %", "30 %", "40 %", "50 %", "100 %"])
     if title:

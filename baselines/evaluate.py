@@ -149,11 +149,15 @@ def per_episode_params(env_params, slides, read_budgets=None):
     reading budget ``read_budgets[e]`` (``mode_data.read_budget`` of ``glimpse``, ``zoom_select`` or
     tracking); every other entry of ``env_params`` is shared by the episodes."""
     slides = np.asarray(slides)
-    n_slides = int(np.asarray(env_params.slide.slide_logits).shape[-1])
-    logits = np.where(np.arange(n_slides)[None] == slides[:, None], 0.0, -np.inf).astype(np.float32)
-    axes = jax.tree.map(lambda _: None, env_params)
-    params = env_params.replace(slide=env_params.slide.replace(slide_logits=jnp.asarray(logits)))
-    axes = axes.replace(slide=axes.slide.replace(slide_logits=0))
+    params, axes = env_params, jax.tree.map(lambda _: None, env_params)
+    if env_params.slide.slide_logits is None:  # one slide
+        if slides.any():
+            raise ValueError(f"one slide, but episodes asked for slides {sorted(set(slides.tolist()))}")
+    else:
+        n_slides = int(np.asarray(env_params.slide.slide_logits).shape[-1])
+        logits = np.where(np.arange(n_slides)[None] == slides[:, None], 0.0, -np.inf).astype(np.float32)
+        params = params.replace(slide=params.slide.replace(slide_logits=jnp.asarray(logits)))
+        axes = axes.replace(slide=axes.slide.replace(slide_logits=0))
     if read_budgets is not None:
         budgets = jnp.asarray(np.broadcast_to(np.asarray(read_budgets, np.float32), slides.shape))
         params = params.replace(mode_data=params.mode_data.replace(read_budget=budgets))

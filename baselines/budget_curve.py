@@ -7,7 +7,10 @@ Methods, all scored on the test slides of a dataset with the same gated-attentio
 * ``random reader + MIL`` — glimpse cells picked uniformly at random (``--seeds`` orders);
 * ``attention reader + MIL`` — cells picked by the MIL attention on their *low-resolution* features,
   highest first (what the agent could know before reading);
-* ``PPO glimpse`` (``--ppo-checkpoint DIR``) — a trained glimpse policy's reading, with the same head.
+* ``--ppo NAME RUN`` — a trained policy in a ``glimpse`` or ``zoom_select`` mode, feed-forward
+  (``baselines.ppo``) or recurrent (``baselines.ppo_rnn``, detected from its ``config.json``),
+  rolled greedily by :func:`baselines.evaluate.run_episodes` at each budget: its own diagnosis
+  (``NAME``) and the same head on what it read (``NAME reader + MIL``).
 
 A reader reads cells of ``action_mode=Glimpse(level)`` exactly as the env does (:func:`read_cells`
 follows :meth:`histojax.glimpse.Glimpse.apply`: a cell is read when it still fits in the budget;
@@ -146,78 +149,64 @@ def cross_validated_rows(tables, labels, folds: int, budgets=BUDGETS, seeds: int
     return rows_from_scores(pooled, labels[order])
 
 
-def policy_reads(run, dataset, split: str, budget: float, env_id: str | None = None):
-    """Roll a trained PPO policy (run folder of ``python -m baselines.ppo`` in a ``glimpse`` or
-    ``zoom_select`` mode), greedily, once on every slide of ``split`` at ``budget``. Returns per slide
-    ``(read, own_score, fraction_read)``: the finest tissue views it read (indices into the slide's
-    ``host_tables`` instances), its own tumour score (``p(tumour) / (p(tumour) + p(no tumour))`` of its
-    policy at the step it declared, or at its last step) and the fraction read."""
+def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None = None) -> dict:
+    """Roll a trained policy greedily, once on every slide of ``dataset``'s ``split`` at each of
+    ``budgets``, with :func:`baselines.evaluate.run_episodes` (one jitted program for all slides and
+    budgets). ``run``: a run folder of ``python -m baselines.ppo`` (feed-forward) or ``python -m
+    baselines.ppo_rnn`` (GRU; ``"algo": "ppo_rnn"`` in its ``config.json``: its hidden state is carried
+    through each episode) in a ``glimpse`` or ``zoom_select`` mode; its first seed.
+
+    Returns ``{budget: [(read, own_score, fraction_read) per slide]}``: the finest tissue views it
+    read (indices into the slide's ``host_tables`` instances), its own tumour score
+    (``p(tumour) / (p(tumour) + p(no tumour))`` of its policy at the step it declared, or at its last
+    step; see :func:`baselines.evaluate.learned_policy`) and the fraction read."""
     import jax
-    import jax.numpy as jnp
 
-    import histojax
-    from baselines.common import load_checkpoint
-    from baselines.networks import preprocess_obs
-    from baselines.ppo import make_network
-    from histojax.glimpse import with_budget
+    from baselines import common, evaluate
 
-    params, config = load_checkpoint(run)
+    params, config = common.load_checkpoint(run)
     params = jax.tree.map(lambda a: a[0], params)  # the first seed
-    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "read_budget")}
-    env, env_params = histojax.make(env_id or config["env_id"], dataset=dataset, split=split, auto_reset=False,
-                                    action_mode=config["action_mode"], obs_mode=config.get("obs_mode", config.get("obs", "features")),
-                                    with_position=config.get("with_position", False), **kw)
-    env_params = with_budget(env_params, budget)
-    network = make_network(config, env)
-    n_slides = env_params.slide.num_slides
-    steps = int(env_params.max_steps_in_episode)
+    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides")}
+    config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split}}
+    if env_id:
+        config["env_id"] = env_id
+    config, (env, env_params) = evaluate.eval_env(config)
+    if not hasattr(env_params.mode_data, "read_budget") or getattr(env.action, "name", "") not in ("glimpse",
+                                                                                                   "zoom_select"):
+        raise ValueError(f"{run}: a policy of action mode {config['action_mode']!r}; the budget curve takes "
+                         f"glimpse or zoom_select policies")
     n = env.num_actions
-
-    def episode(index):
-        logits = jnp.where(jnp.arange(n_slides) == index, 0.0, -jnp.inf)
-        p = env_params.replace(slide=env_params.slide.replace(slide_logits=logits)) if n_slides > 1 else env_params
-        obs, state = env.reset(jax.random.key(0), p)
-
-        def body(carry, _):
-            obs, state, done, score, fraction = carry
-            pi, _ = network.apply(params, jax.tree.map(lambda a: a[None], preprocess_obs(obs)))
-            logp = jax.nn.log_softmax(pi[0])
-            action = jnp.argmax(logp)
-            own = jax.nn.sigmoid(logp[n - 1] - logp[n - 2])  # tumour vs no tumour
-            obs2, state2, _, term, trunc, info = env.step(jax.random.key(1), state, action, p)
-            keep = lambda a, b: jax.tree.map(lambda x, y: jnp.where(done, x, y), a, b)  # noqa: E731
-            score = jnp.where(done, score, own)
-            fraction = jnp.where(done, fraction, info["fraction_read"])
-            return (keep(obs, obs2), keep(state, state2), done | term | trunc, score, fraction), None
-
-        carry = (obs, state, jnp.zeros((), bool), jnp.float32(0.5), jnp.float32(0.0))
-        (_, state, _, score, fraction), _ = jax.lax.scan(body, carry, None, steps)
-        return state.memory, score, fraction
-
-    memory, scores, fractions = jax.jit(jax.vmap(episode))(jnp.arange(n_slides))
+    policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config["action_mode"], greedy=True,
+                                     declare=(n - 2, n - 1))
+    n_slides = len(env.bundles)
+    budgets = [float(b) for b in budgets]
+    slides = np.tile(np.arange(n_slides), len(budgets))
+    per_episode, axes = evaluate.per_episode_params(env_params, slides, np.repeat(budgets, n_slides))
+    ep = evaluate.run_episodes(env, per_episode, policy, jax.random.key(0), len(slides), params_axes=axes,
+                               final=True)
+    assert (ep["slide"] == slides).all()
+    memory, scores = ep["final_state"].memory, ep["final_memory"][1]
     tables = env.action.host_tables(env, env_params, env.bundles) if hasattr(env.action, "host_tables") else None
-    out = []
-    for i, b in enumerate(env.bundles):
+    seen_tables = env_params.mode_data
+    out = {b: [] for b in budgets}
+    for e, i in enumerate(slides):
         if tables is not None:  # glimpse: the instances under the revealed cells
-            revealed = np.flatnonzero(np.asarray(memory.revealed[i]))
-            read = np.isin(tables[i]["instance_cell"], revealed)
+            read = np.isin(tables[i]["instance_cell"], np.flatnonzero(np.asarray(memory.revealed[e])))
         else:  # zoom_select: the finest tissue views seen
-            seen_tables = env_params.mode_data
             f = env.n_levels - 1
             start = int(seen_tables.grid_offset[i, f])
             size = int(seen_tables.grid_width[i, f] * seen_tables.grid_height[i, f])
-            seen = np.asarray(memory.seen[i])[start:start + size]
+            seen = np.asarray(memory.seen[e])[start:start + size]
             read = seen[np.asarray(seen_tables.tissue[i])[:size]]
-        out.append((np.flatnonzero(read), float(scores[i]), float(fractions[i])))
+        out[budgets[e // n_slides]].append((np.flatnonzero(read), float(scores[e]), float(ep["fraction_read"][e])))
     return out
 
 
 def policy_rows(run, dataset, name: str, head: MILClassifier, tables, labels, budgets=BUDGETS) -> list[dict]:
-    """Rows for a trained policy at ``budgets``: its own diagnosis (``name``) and the MIL head on what
-    it read (``name + MIL``)."""
+    """Rows for a trained policy (feed-forward or recurrent, see :func:`policy_reads`) at ``budgets``:
+    its own diagnosis (``name``) and the MIL head on what it read (``name + MIL``)."""
     rows = []
-    for b in budgets:
-        reads = policy_reads(run, dataset, "test", b)
+    for b, reads in policy_reads(run, dataset, "test", budgets).items():
         x, m = bags([{**t, "instance_cell": np.arange(len(t["instances"]))} for t in tables], [r[0] for r in reads])
         fraction = float(np.mean([r[2] for r in reads]))
         own = np.asarray([r[1] for r in reads])
@@ -245,11 +234,13 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(8.0, 5.6), dpi=110, layout="constrained")
+    methods = list(dict.fromkeys(r["method"] for r in rows))
+    outside = len(methods) > 4  # many lines: one legend beside the plots
+    fig = Figure(figsize=(10.5 if outside else 8.0, 5.6), dpi=110, layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, 1, sharex=True)
-    methods = list(dict.fromkeys(r["method"] for r in rows))
-    colours = ["#1f4e9c", "#c0392b", "#27ae60", "#8e44ad", "#d35400", "#16a085", "#7f8c8d"]
+    colours = ["#1f4e9c", "#c0392b", "#27ae60", "#8e44ad", "#d35400", "#16a085", "#7f8c8d", "#b7950b", "#e84393",
+               "#2d3436"]
     for ax, metric in zip(axes, ("auc", "accuracy")):
         for k, name in enumerate(methods):
             pts = sorted((r["fraction_read"], r[metric]) for r in rows if r["method"] == name)
@@ -262,7 +253,10 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
         ax.set_ylabel(metric.upper() if metric == "auc" else metric)
         ax.set_ylim(0.0, 1.02)
         ax.grid(True, color="#dddddd", linewidth=0.6)
-        ax.legend(loc="lower right", fontsize="small", framealpha=0.85)
+        if not outside:
+            ax.legend(loc="lower right", fontsize="small", framealpha=0.85)
+    if outside:
+        axes[0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
     axes[-1].set_xlabel("fraction of finest-level tissue views read")
     axes[-1].set_xticks([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 1.0], ["0", "10 %", "20 %", "30 %", "40 %", "50 %", "100 %"])
     if title:
@@ -299,8 +293,9 @@ def add_arguments(p) -> None:
                    help="K-fold cross-validation over all the dataset's slides instead of its train/test split "
                         "(for small datasets; default 0 = use the split)")
     p.add_argument("--ppo", nargs=2, action="append", default=[], metavar=("NAME", "RUN"),
-                   help="also a trained PPO policy (run folder of `python -m baselines.ppo` in a glimpse or "
-                        "zoom_select mode) on the test split: its own diagnosis and the MIL head on what it read")
+                   help="also a trained policy (run folder of `python -m baselines.ppo` or `python -m baselines.ppo_rnn` "
+                        "in a glimpse or zoom_select mode) on the test split: its own diagnosis and the MIL head "
+                        "on what it read")
     p.add_argument("--compute-features", metavar="ENCODER", default=None,
                    help="first compute the feature grid of every bundle of the dataset that has none with this "
                         "encoder (e.g. colour-stats; see `python -m data_tools features --help`)")

@@ -28,6 +28,7 @@ from baselines import common
 from baselines.ppo import make_network
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
                                 policy_mode, policy_sample, preprocess_obs)
+from baselines.networks import is_discrete as policy_is_discrete
 from data_tools.cli_output import command_main
 from histojax import actions, reading
 from histojax.render import animate, render_trajectory
@@ -79,31 +80,39 @@ def scripted_policy(key, obs, action_mode: str = "discrete", centred: float = 0.
 
 
 # ----------------------------------------------------------------------------- rollouts
-def run_episodes(env, env_params, policy, key, num_episodes: int):
+def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=None, final: bool = False):
     """``num_episodes`` vmapped episodes (no auto-reset) of ``policy(key, obs_batch) -> actions``,
     or of a recurrent policy (``policy.initial_memory(n)`` defined): ``policy(key, obs_batch,
-    memory) -> (actions, memory)``, its memory carried from step to step of each episode.
+    memory) -> (actions, memory)``, its memory carried from step to step of each episode and frozen
+    once the episode has ended (so it holds what the policy had at the episode's last step).
     Returns numpy ``return, success, length`` and ``slide`` (the slide index of a multi-slide env)
     per episode, ``fraction_read`` and ``fields_of_view`` at its end (NaN / -1 when the env does not
     track reading; see :func:`histojax.reading.with_tracking`) and the ``(steps+1, E)`` trajectories
-    ``z, x, y`` (frozen after the episode ended)."""
-    max_steps = int(env_params.max_steps_in_episode)
-    step = jax.vmap(env.step, in_axes=(0, 0, 0, None))
+    ``z, x, y`` (frozen after the episode ended).
+
+    ``params_axes``: ``jax.vmap`` axes of ``env_params`` (default ``None``: one ``env_params`` for
+    every episode); e.g. a per-episode slide (``slide.slide_logits (E, S)``) and reading budget
+    (``mode_data.read_budget (E,)``), see :func:`per_episode_params`. ``final=True`` also returns
+    ``final_state`` (the env states at the episodes' ends) and ``final_memory`` (the policy's
+    memory; ``()`` for a feed-forward policy), as pytrees of numpy arrays."""
+    max_steps = int(np.max(np.asarray(env_params.max_steps_in_episode)))
+    step = jax.vmap(env.step, in_axes=(0, 0, 0, params_axes))
+    reset = jax.vmap(env.reset, in_axes=(0, params_axes))
     recurrent = hasattr(policy, "initial_memory")
 
     @jax.jit
     def go(key, env_params):
         key, k_reset = jax.random.split(key)
-        obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(k_reset, num_episodes), env_params)
+        obs, state = reset(jax.random.split(k_reset, num_episodes), env_params)
         zeros = jnp.zeros(num_episodes)
 
         def body(carry, k):
             (obs, state, done, ret, length, success, memory), (read, fields) = carry
             k_act, k_step = jax.random.split(k)
             if recurrent:
-                action, memory = policy(k_act, obs, memory)
+                action, memory2 = policy(k_act, obs, memory)
             else:
-                action = policy(k_act, obs)
+                action, memory2 = policy(k_act, obs), memory
             obs2, state2, r, term, trunc, info = step(jax.random.split(k_step, num_episodes), state, action, env_params)
             active = ~done
             ret = ret + r * active
@@ -111,7 +120,7 @@ def run_episodes(env, env_params, policy, key, num_episodes: int):
             success = success | (info["success"] & active)
             keep = lambda old, new: jax.tree.map(  # noqa: E731
                 lambda a, b: jnp.where(done.reshape(-1, *([1] * (a.ndim - 1))), a, b), old, new)
-            state, obs = keep(state, state2), keep(obs, obs2)
+            state, obs, memory = keep(state, state2), keep(obs, obs2), keep(memory, memory2)
             read = jnp.where(active, info.get("fraction_read", read), read)
             fields = jnp.where(active, info.get("fields_of_view", fields), fields)
             done = done | term | trunc
@@ -120,15 +129,40 @@ def run_episodes(env, env_params, policy, key, num_episodes: int):
         memory = policy.initial_memory(num_episodes) if recurrent else ()
         carry = ((obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool), memory),
                  (jnp.full(num_episodes, jnp.nan, jnp.float32), jnp.full(num_episodes, -1, jnp.int32)))
-        ((_, _, _, ret, length, success, _), (read, fields)), (z, x, y) = jax.lax.scan(
+        ((_, state, _, ret, length, success, memory), (read, fields)), (z, x, y) = jax.lax.scan(
             body, carry, jax.random.split(key, max_steps))
         cat = lambda a0, a: jnp.concatenate([a0[None], a])  # noqa: E731
         return (ret, success, length, state.slide_index, read, fields, cat(state.z, z), cat(state.x, x),
-                cat(state.y, y))
+                cat(state.y, y)), (state, memory)
 
-    out = jax.device_get(go(key, env_params))
+    out, (state, memory) = jax.device_get(go(key, env_params))
     names = ("return", "success", "length", "slide", "fraction_read", "fields_of_view", "z", "x", "y")
-    return dict(zip(names, (np.asarray(a) for a in out)))
+    episodes = dict(zip(names, (np.asarray(a) for a in out)))
+    if final:
+        episodes["final_state"], episodes["final_memory"] = state, memory
+    return episodes
+
+
+def per_episode_params(env_params, slides, read_budgets=None):
+    """``(params, axes)`` for :func:`run_episodes`' ``params_axes``: episode ``e`` runs on slide
+    ``slides[e]`` (its ``slide_logits`` put all the weight there) and, with ``read_budgets``, with
+    reading budget ``read_budgets[e]`` (``mode_data.read_budget`` of ``glimpse``, ``zoom_select`` or
+    tracking); every other entry of ``env_params`` is shared by the episodes."""
+    slides = np.asarray(slides)
+    params, axes = env_params, jax.tree.map(lambda _: None, env_params)
+    if env_params.slide.slide_logits is None:  # one slide
+        if slides.any():
+            raise ValueError(f"one slide, but episodes asked for slides {sorted(set(slides.tolist()))}")
+    else:
+        n_slides = int(np.asarray(env_params.slide.slide_logits).shape[-1])
+        logits = np.where(np.arange(n_slides)[None] == slides[:, None], 0.0, -np.inf).astype(np.float32)
+        params = params.replace(slide=params.slide.replace(slide_logits=jnp.asarray(logits)))
+        axes = axes.replace(slide=axes.slide.replace(slide_logits=0))
+    if read_budgets is not None:
+        budgets = jnp.asarray(np.broadcast_to(np.asarray(read_budgets, np.float32), slides.shape))
+        params = params.replace(mode_data=params.mode_data.replace(read_budget=budgets))
+        axes = axes.replace(mode_data=axes.mode_data.replace(read_budget=0))
+    return params, axes
 
 
 def summarise(ep: dict, slide_names=None) -> dict:
@@ -155,25 +189,47 @@ def trajectory(ep: dict, i: int):
     return ep["z"][: n + 1, i], ep["x"][: n + 1, i], ep["y"][: n + 1, i]
 
 
-def learned_policy(network, params, action_mode: str, greedy: bool):
+def learned_policy(network, params, action_mode: str, greedy: bool, declare: tuple[int, int] | None = None):
     """The checkpoint's policy for :func:`run_episodes`: greedy or sampled; a
     :class:`RecurrentActorCritic` gives a recurrent policy whose memory is the GRU state (zeros
-    at the episode's start, as in training)."""
-    if isinstance(network, RecurrentActorCritic):
-        def recurrent_policy(key, obs, h):
-            first = jnp.zeros(jax.tree.leaves(obs)[0].shape[0], bool)  # h starts at zeros already
-            h, pi, _ = network_step(network, params, h, preprocess_obs(obs), first)
-            return (policy_mode(pi, action_mode) if greedy else policy_sample(key, pi, action_mode)), h
-        recurrent_policy.initial_memory = lambda n: ScannedGRU.initial_state(n, network.hidden)
-        return recurrent_policy
+    at the episode's start, as in training).
 
-    def policy(key, obs):
+    ``declare = (no tumour, tumour)`` action indices (a discrete actor-critic of
+    ``task="classification"``): the policy is recurrent (its memory ``(GRU state or (), score)``)
+    and keeps its own **tumour score** of each step, ``p(tumour) / (p(tumour) + p(no tumour))`` of
+    its action distribution; at an episode's end (memory frozen) that is the score at the step it
+    declared, or at its last step."""
+    recurrent = isinstance(network, RecurrentActorCritic)
+
+    def act(key, obs, h):
         obs = preprocess_obs(obs)
         if isinstance(network, QNetwork):
-            return network.apply(params, obs).argmax(-1)
-        pi, _ = network.apply(params, obs)
-        return policy_mode(pi, action_mode) if greedy else policy_sample(key, pi, action_mode)
-    return policy
+            return network.apply(params, obs).argmax(-1), h, None
+        if recurrent:
+            first = jnp.zeros(jax.tree.leaves(obs)[0].shape[0], bool)  # h starts at zeros already
+            h, pi, _ = network_step(network, params, h, obs, first)
+        else:
+            pi, _ = network.apply(params, obs)
+        return (policy_mode(pi, action_mode) if greedy else policy_sample(key, pi, action_mode)), h, pi
+
+    initial_h = (lambda n: ScannedGRU.initial_state(n, network.hidden)) if recurrent else (lambda n: ())
+    if declare is not None:
+        if isinstance(network, QNetwork) or not policy_is_discrete(action_mode):
+            raise ValueError("declare= needs a discrete actor-critic")
+        no, yes = declare
+
+        def scoring_policy(key, obs, memory):
+            action, h, pi = act(key, obs, memory[0])
+            return action, (h, jax.nn.sigmoid(pi[:, yes] - pi[:, no]))
+        scoring_policy.initial_memory = lambda n: (initial_h(n), jnp.full(n, 0.5, jnp.float32))
+        return scoring_policy
+    if recurrent:
+        def recurrent_policy(key, obs, h):
+            action, h, _ = act(key, obs, h)
+            return action, h
+        recurrent_policy.initial_memory = initial_h
+        return recurrent_policy
+    return lambda key, obs: act(key, obs, ())[0]
 
 
 def network_for(config: dict, env):
@@ -183,19 +239,27 @@ def network_for(config: dict, env):
     return make_network(config, env, RecurrentActorCritic if config.get("algo") == "ppo_rnn" else ActorCritic)
 
 
-def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
-             label: str = "learned", augment: bool = False, references: bool = True) -> dict:
-    """Rows for the learned policy (greedy and sampled; seeds pooled), the random agent and the
-    scripted policy (``references=False``: without these two) on one slide; writes trajectory
-    pictures to ``out`` when given. Training-time view augmentation (``env_kwargs["augment"]``)
-    is switched off unless ``augment=True``: a slide is evaluated as it is."""
+def eval_env(config: dict, slide=None, augment: bool = False):
+    """``(config, (env, env_params))``: the checkpoint's env as :func:`evaluate` runs it — on
+    ``slide`` when given (it replaces a training dataset), without auto-reset, without training-time
+    view augmentation unless ``augment``, and with reading tracked
+    (:func:`histojax.reading.with_tracking`) for the efficiency metrics."""
     config = {**config, "slide": slide if slide is not None else config.get("slide")}
     if config.get("env_kwargs"):
         drop = {"augment"} if not augment else set()
         if slide is not None:  # a given slide replaces a training dataset
             drop |= {"dataset", "split", "slides", "slide_weights"}
         config["env_kwargs"] = {k: v for k, v in config["env_kwargs"].items() if k not in drop}
-    env, env_params = reading.with_tracking(*common.make_env(config, auto_reset=False))  # efficiency metrics
+    return config, reading.with_tracking(*common.make_env(config, auto_reset=False))
+
+
+def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
+             label: str = "learned", augment: bool = False, references: bool = True) -> dict:
+    """Rows for the learned policy (greedy and sampled; seeds pooled), the random agent and the
+    scripted policy (``references=False``: without these two) on one slide; writes trajectory
+    pictures to ``out`` when given. Training-time view augmentation (``env_kwargs["augment"]``)
+    is switched off unless ``augment=True``: a slide is evaluated as it is."""
+    config, (env, env_params) = eval_env(config, slide, augment)
     names = [Path(b.path).name for b in env.bundles]
     mode = config["action_mode"]
     key = jax.random.PRNGKey(seed)

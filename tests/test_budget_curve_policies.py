@@ -1,0 +1,125 @@
+"""Trained policies on the budget curve: a tiny recurrent PPO run (``baselines.ppo_rnn``, a few
+hundred steps) in ``glimpse`` mode, and the same GRU policy untrained in ``zoom_select`` mode, is evaluated by ``baselines.budget_curve``
+through ``baselines.evaluate.run_episodes``, its GRU state carried through each episode.
+
+One tiny dataset (4 tumour + 4 tumour-free slides of 320 × 256 px, 32-px views, Easy levels, the
+``colour-stats`` feature grid) and the two checkpoints, made once for the module."""
+from __future__ import annotations
+
+import csv
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from baselines import budget_curve, common, evaluate, ppo_rnn
+from baselines.networks import ScannedGRU
+
+BUDGETS = (0.1, 0.25, 0.5)
+STEPS = 8
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from data_tools.synth import make_dataset
+
+    root = tmp_path_factory.mktemp("diag-ds")
+    make_dataset(root, n_slides=4, negatives=4, size=(320, 256), seed=0, tile_size=32, level_sets=(3,),
+                 progress=False, previews=False)
+    budget_curve.compute_missing_features(root, "colour-stats")
+    return root
+
+
+def _config(dataset, action_mode: str) -> dict:
+    return dict(env_id="HistoJAX-Easy-v0", obs="features", action_mode=action_mode, num_envs=4, num_steps=16,
+                total_timesteps=256, hidden=16, num_minibatches=2, update_epochs=1, num_seeds=1,
+                print_progress=False, max_steps_in_episode=STEPS,
+                env_kwargs={"dataset": str(dataset), "task": "classification", "read_budget": 0.5})
+
+
+@pytest.fixture(scope="module")
+def runs(dataset, tmp_path_factory):
+    """A glimpse run trained for 256 steps, and a zoom_select checkpoint of the GRU policy as
+    initialised (one compile of the trainer, not two: the reading checks need no training)."""
+    root = tmp_path_factory.mktemp("runs")
+    train = ppo_rnn.make_train(_config(dataset, "glimpse:1"))
+    result = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 1)))
+    common.save_checkpoint(root / "glimpse", result["params"], train.config)
+    zoom = ppo_rnn.make_train(_config(dataset, "zoom_select"))
+    init = common.params_initialiser(zoom.env, zoom.network, 1, inputs=lambda obs: (
+        ScannedGRU.initial_state(1, 16), jax.tree.map(lambda a: a[None], obs), jnp.ones((1, 1), bool)))
+    params = init(jax.random.PRNGKey(1), zoom.env_params)
+    common.save_checkpoint(root / "zoom", jax.tree.map(lambda a: a[None], params), zoom.config)
+    return {"glimpse:1": root / "glimpse", "zoom_select": root / "zoom"}
+
+
+def test_budget_curve_draws_a_recurrent_run(dataset, runs, tmp_path):
+    assert common.load_checkpoint(runs["glimpse:1"])[1]["algo"] == "ppo_rnn"
+    assert budget_curve.main(["--dataset", str(dataset), "--env", "HistoJAX-Easy-v0", "--glimpse-level", "1",
+                              "--budgets", *map(str, BUDGETS), "--seeds", "1", "--steps", "20",
+                              "--ppo", "GRU glimpse", str(runs["glimpse:1"]), "--out", str(tmp_path)]) == 0
+    with open(tmp_path / "budget_curve.csv") as f:
+        rows = list(csv.DictReader(f))
+    for name in ("GRU glimpse", "GRU glimpse reader + MIL"):
+        mine = [r for r in rows if r["method"] == name]
+        assert sorted(float(r["budget"]) for r in mine) == list(BUDGETS), name
+        assert all(0.0 <= float(r["auc"]) <= 1.0 and int(r["slides"]) == 3 for r in mine)
+    assert (tmp_path / "budget_curve.png").stat().st_size > 1000
+
+
+@pytest.fixture(scope="module")
+def glimpse_reads(dataset, runs):
+    return budget_curve.policy_reads(runs["glimpse:1"], dataset, "test", BUDGETS)
+
+
+def test_recurrent_evaluation_respects_the_reading_budget(dataset, runs, glimpse_reads):
+    zoom_reads = budget_curve.policy_reads(runs["zoom_select"], dataset, "test", BUDGETS)
+    tables, _ = budget_curve.load_split(dataset, "test", "HistoJAX-Easy-v0", 1)
+    for budget in BUDGETS:
+        assert len(glimpse_reads[budget]) == len(zoom_reads[budget]) == len(tables)
+        for (read, score, fraction), table in zip(glimpse_reads[budget], tables):
+            assert fraction <= budget + 1e-6                       # glimpse never reads past the budget
+            assert len(read) == pytest.approx(fraction * table["total"])  # the views read are those counted
+            assert 0.0 <= score <= 1.0
+        for (read, score, fraction), table in zip(zoom_reads[budget], tables):
+            # zoom_select stops once the budget is reached: its last child may add one view
+            assert fraction <= budget + 1.0 / table["total"] + 1e-6
+            assert len(read) == pytest.approx(fraction * table["total"])
+            assert 0.0 <= score <= 1.0
+
+
+def test_recurrent_evaluation_jit_equals_no_jit(dataset, runs, glimpse_reads):
+    with jax.disable_jit():
+        plain = budget_curve.policy_reads(runs["glimpse:1"], dataset, "test", BUDGETS[-1:])
+    for (read, score, fraction), (read0, score0, fraction0) in zip(plain[BUDGETS[-1]], glimpse_reads[BUDGETS[-1]]):
+        np.testing.assert_array_equal(read, read0)
+        assert score == pytest.approx(score0, abs=1e-5) and fraction == pytest.approx(fraction0, abs=1e-6)
+
+
+def test_recurrent_policy_carries_its_hidden_state(dataset, runs):
+    """The evaluation's own score equals that of a step-by-step rollout carrying the GRU state by hand."""
+    from baselines.networks import network_step, preprocess_obs
+
+    params, config = common.load_checkpoint(runs["glimpse:1"])
+    params = jax.tree.map(lambda a: a[0], params)
+    config = {**config, "env_kwargs": {**config["env_kwargs"], "split": "test"}}
+    _, (env, env_params) = evaluate.eval_env(config)
+    network = evaluate.network_for(config, env)
+    n = env.num_actions
+    policy = evaluate.learned_policy(network, params, config["action_mode"], True, declare=(n - 2, n - 1))
+    slides = np.arange(len(env.bundles))
+    per, axes = evaluate.per_episode_params(env_params, slides)
+    ep = evaluate.run_episodes(env, per, policy, jax.random.key(0), len(slides), params_axes=axes, final=True)
+    step = jax.jit(lambda h, obs: network_step(network, params, h, jax.tree.map(lambda a: a[None], preprocess_obs(obs)),
+                                                jax.numpy.zeros(1, bool)))
+    reset, env_step = jax.jit(env.reset), jax.jit(env.step)
+    for i in slides:
+        p = env_params.replace(slide=env_params.slide.replace(slide_logits=per.slide.slide_logits[i]))
+        obs, state = reset(jax.random.key(1), p)
+        h = ScannedGRU.initial_state(1, network.hidden)
+        for _ in range(int(ep["length"][i])):
+            h, pi, _ = step(h, obs)
+            obs, state, *_ = env_step(jax.random.key(2), state, np.argmax(pi[0]), p)
+        own = float(jax.nn.sigmoid(pi[0, n - 1] - pi[0, n - 2]))
+        assert own == pytest.approx(float(ep["final_memory"][1][i]), abs=1e-5)

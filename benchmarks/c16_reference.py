@@ -188,7 +188,8 @@ def markdown(cells: dict, methods: list[str], scenarios: list[str], meta: dict) 
                 d = c.get("tumour_slides", c)
                 row += [_pct(d["success_rate"]), _num(d["mean_steps_to_success"])]
             wall += c.get("train_wall_s", 0.0)
-        row.append(f"{wall:,.0f} s" if m not in REFERENCE else "–")
+        ran = any(cell_key(m, s) in cells for s in scenarios)
+        row.append(f"{wall:,.0f} s" if m not in REFERENCE and ran else "–")
         lines.append("| " + " | ".join(row) + " |")
     lines += ["", f"Dataset `{meta['dataset']}` (test split: {meta['test_slides']} slides, "
               f"{meta['test_tumour_slides']} with tumour; train split: {meta['train_slides']}). Detection "

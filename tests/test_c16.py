@@ -153,7 +153,7 @@ def test_feature_mode_holds_no_pixels(small, tmp_path):
     leaves = sum(int(a.nbytes) for a in jax.tree.leaves(s))
     expected = sum(slide_device_bytes(m, select_levels(m, 5), pixels=False, features=True)
                    for m in (read_metadata(b.path) for b in env_f.bundles))
-    small_arrays = sum(int(a.nbytes) for a in (s.start_logits, s.level_offset, s.level_width, s.level_height,
+    small_arrays = sum(int(a.nbytes) for a in (s.start_logits, s.start_cdf, s.level_offset, s.level_width, s.level_height,
                                                 s.downsample, s.sat_offset, s.tile_offset, s.tile_grid_width,
                                                 s.feature_offset, s.feature_grid_width, s.feature_grid_height,
                                                 s.feature_stride, s.slide_label, s.slide_logits))

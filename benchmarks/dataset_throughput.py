@@ -4,7 +4,7 @@ CAMELYON16 set of ``data_tools c16``), with the start positions drawn from the c
 logits at every reset as before (``start_cdf=None``; the auto-reset runs in every step).
 
     python benchmarks/dataset_throughput.py --dataset DIR [--env HistoJAX-C16-Easy-v0] [--split train]
-                                            [--obs-mode features] [--batches 64 256 1024] [--seconds 2]
+                                            [--obs-mode features] [--batches 64 256 1024] [--env-steps 16384]
 """
 from __future__ import annotations
 
@@ -18,9 +18,20 @@ import jax
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from benchmarks.throughput import full_step_rollout, measure  # noqa: E402
-from data_tools.cli_output import command_main, positive_float  # noqa: E402
+from benchmarks.throughput import full_step_rollout  # noqa: E402
+from data_tools.cli_output import command_main  # noqa: E402
 import histojax  # noqa: E402
+
+
+def measure(env, params, batch: int, env_steps: int) -> float:
+    """Env steps/s of ``env_steps`` steps (rounded to whole batched steps) after compiling."""
+    steps = max(2, env_steps // batch)
+    fn = full_step_rollout(env, batch, steps)
+    key = jax.random.PRNGKey(0)
+    jax.block_until_ready(fn(key, params))  # compile
+    t0 = time.perf_counter()
+    jax.block_until_ready(fn(jax.random.fold_in(key, 1), params))
+    return steps * batch / (time.perf_counter() - t0)
 
 
 def add_arguments(p) -> None:
@@ -29,7 +40,7 @@ def add_arguments(p) -> None:
     p.add_argument("--split", default="train", choices=("train", "test"))
     p.add_argument("--obs-mode", default="features")
     p.add_argument("--batches", type=int, nargs="+", default=[64, 256, 1024])
-    p.add_argument("--seconds", type=positive_float, default=2.0, help="minimum timed seconds per measurement")
+    p.add_argument("--env-steps", type=int, default=16384, help="env steps timed per measurement (default 16384)")
 
 
 def run(args, parser=None) -> int:
@@ -47,8 +58,8 @@ def run(args, parser=None) -> int:
     old = params.replace(slide=s.replace(start_cdf=None))
     print(f"{'batch':>6} {'steps/s (start_cdf)':>20} {'steps/s (per reset)':>20}")
     for batch in args.batches:
-        new_sps = measure(full_step_rollout, env, params, batch, args.seconds)
-        old_sps = measure(full_step_rollout, env, old, batch, args.seconds)
+        new_sps = measure(env, params, batch, args.env_steps)
+        old_sps = measure(env, old, batch, args.env_steps)
         print(f"{batch:>6} {new_sps:>20,.0f} {old_sps:>20,.0f}")
     return 0
 

@@ -84,14 +84,12 @@ TASKS = ("detection", "classification")
 view_features = modes.view_features  # public name kept: the feature vector of a view
 
 
-def sample_index(key: jax.Array, logits: jax.Array, cdf: jax.Array | None = None) -> jax.Array:
+def sample_index(key: jax.Array, logits: jax.Array) -> jax.Array:
     """An index drawn with probability ``softmax(logits)`` by inverting the cumulative weights:
     one uniform number and a binary search (``jax.random.categorical`` would draw one Gumbel
-    number per entry, which dominated the cost of the auto-reset done in every step). ``cdf``: the
-    cumulative weights computed beforehand (:func:`histojax.slide.start_cdf`, the same numbers), so
-    the draw costs a binary search instead of a pass over every entry."""
-    if cdf is None:
-        cdf = jnp.cumsum(jnp.exp(logits - jnp.max(logits)))
+    number per entry, which dominated the cost of the auto-reset done in every step). With the
+    cumulative weights computed beforehand, :func:`sample_row` makes the same draw."""
+    cdf = jnp.cumsum(jnp.exp(logits - jnp.max(logits)))
     u = jax.random.uniform(key, (), minval=0.0, maxval=cdf[-1])
     return jnp.minimum(jnp.searchsorted(cdf, u, side="right"), logits.shape[0] - 1).astype(jnp.int32)
 

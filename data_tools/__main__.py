@@ -104,7 +104,12 @@ def add_arguments(p) -> None:
     c16.add_argument("--annotations", default=None,
                      help="folder or .tar.gz of NCRF JSON files (camelyon16_ncrf_train.tar.gz; default: the 6 shipped)")
     c16.add_argument("--patches", default=None, help="PCam patches: folder with 0/ and 1/, its .tar.gz, or a bank "
-                                                     ".npz (default: the shipped 1,000-patch bank)")
+                                                     ".npz (default: the shipped 1,000-patch bank); cut by a fixed "
+                                                     "rule into a training pool (train slides) and a test pool "
+                                                     "(test slides), no patch on both sides")
+    c16.add_argument("--test-patches", default=None, metavar="DIR|TAR",
+                     help="texture the test slides from this other patch set entirely (e.g. PCam's own valid or "
+                          "test patches, folder with 0/ and 1/ or its .tar.gz): pixels nothing was trained on")
     c16.add_argument("--small", action="store_true", help="the small variant: 3 tumour + 3 normal slides at "
                                                           "downsample 32 (seconds)")
     c16.add_argument("--downsample", type=float, default=None,
@@ -114,19 +119,23 @@ def add_arguments(p) -> None:
     c16.add_argument("--normal-slides", type=int, default=None, metavar="N", help="only the first N normal slides")
     c16.add_argument("--test-fraction", type=float, default=0.25, help="share of slides in the test split (0.25)")
     c16.add_argument("--features", action="store_true",
-                     help="also embed every bundle's feature grid with EfficientNet-Lite0 (slow on CPU)")
+                     help="also embed every bundle's feature grid with pcam-cnn (the default encoder)")
     c16.add_argument("--encoder", default=None, metavar="NAME",
-                     help="embed every bundle's feature grid with this encoder (efficientnet-lite0 or colour-stats; "
-                          "implies --features)")
+                     help="embed every bundle's feature grid with this encoder (pcam-cnn, the default; colour-stats; "
+                          "efficientnet-lite0, slow on CPU; implies --features)")
     c16.add_argument("--no-pixels", action="store_true",
                      help="feature-only bundles: after the feature grid, delete the RGB tile pools of every level "
                           "but the coarsest (obs_mode='features' only; ~1/10 of the disk; the TIFFs stay)")
-    c16.add_argument("--jobs", type=int, default=1, help="slides made in parallel processes (default 1; ~1.5 GB each)")
+    c16.add_argument("--jobs", type=int, default=1, help="slides made in parallel processes (default 1; 1.15-1.53 GB of memory each, measured at the "
+                          "full set's scale)")
     c16.add_argument("--seed", type=int, default=0)
     c16.add_argument("--quiet", action="store_true", help="no progress bars")
     from data_tools.features.cli import add_subcommands as _add_feature_commands
+    from data_tools.features.train_pcam_cnn import add_arguments as _train_encoder_arguments
 
     _add_feature_commands(sub)  # features, import-features
+    _train_encoder_arguments(sub.add_parser(
+        "train-encoder", help="train the pcam-cnn encoder on the PCam training pool (minutes on 2 CPU cores)"))
 
 
 def _info(path: str) -> str:
@@ -225,7 +234,7 @@ def _command(args) -> None:
                               downsample=args.downsample, names=args.slides, n_tumour=args.tumour_slides,
                               n_normal=args.normal_slides, seed=args.seed, test_fraction=args.test_fraction,
                               features=args.encoder or args.features, progress=not args.quiet, workers=args.jobs,
-                              no_pixels=args.no_pixels)
+                              no_pixels=args.no_pixels, test_patches=args.test_patches)
         sc = ds["scale"]
         print(f"wrote {Path(args.out) / 'dataset.json'}: {len(ds['train'])} train, {len(ds['test'])} test slides "
               f"at {sc['mpp']:.3g} um/px (CAMELYON16 level 0 / {sc['downsample_from_camelyon16_level0']:g}); "
@@ -239,6 +248,10 @@ def _command(args) -> None:
         print(f"wrote {args.out}: {args.size}×{args.size} px, {prov['tiff_bytes'] / 2**20:.1f} MiB, "
               f"tissue {100 * prov['tissue_fraction']:.1f} %, tumour {100 * prov['tumour_fraction']:.2f} % "
               f"of the canvas, in {prov['seconds']:.0f} s (pixels synthetic, geometry real CAMELYON16)")
+    elif args.command == "train-encoder":
+        from data_tools.features.train_pcam_cnn import run as _train_encoder
+
+        _train_encoder(args)
     elif args.command in ("features", "import-features"):
         from data_tools.features.cli import run as _run_feature_command
 

@@ -40,6 +40,7 @@ COARSEST = 256.0         # the coarsest env level is CAMELYON16 level 0 / 256 fo
 SMALL_SLIDES = ("Tumor_072", "Tumor_082", "Tumor_094", "Normal_017", "Normal_042", "Normal_108")
 TILE_SIZE = 128
 LEVEL_SETS = (3, 5, 7)
+DATASET_FORMAT = 2       # 2: train/test slides textured from disjoint PCam patch pools (recorded in dataset.json)
 LICENCE = ("tumour and tissue polygons: CAMELYON16 ground truth (CC0 1.0) as converted to JSON by "
            "baidu-research/NCRF (Apache-2.0); tissue outlines of tumor_001/013/021/031/051/092: pathml-tutorial; "
            "pixels: PatchCamelyon patches, CC0 1.0 — " + CITATION)
@@ -84,25 +85,27 @@ def split_slides(names: list[str], donors: dict[str, str], test_fraction: float,
     return [n for n in names if n not in test], [n for n in names if n in test]
 
 
-def _slide_settings(name, downsample, seed, bank, jpeg_quality, sha) -> dict:
+def _slide_settings(name, downsample, seed, bank, jpeg_quality, sha, donor=None, pool=None) -> dict:
     from data_tools import c16_mosaic
 
     return {"name": name, "downsample": float(downsample), "seed": int(seed), "bank": bank.source,
             "bank_patches": len(bank), "jpeg_quality": int(jpeg_quality), "polygons_sha256": sha,
-            "colour_match": c16_mosaic.COLOUR_MATCH}
+            "colour_match": c16_mosaic.COLOUR_MATCH, "tissue_donor": donor.name if donor is not None else None,
+            "donor_polygons_sha256": donor.sha256 if donor is not None else None, "patch_pool": pool}
 
 
 def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, jpeg_quality: int = 85,
-               progress: bool = True) -> dict:
+               progress: bool = True, pool: str | None = None) -> dict:
     """Write ``slides/NAME.tif`` (+ ``.geojson``, ``.provenance.json``) unless a finished one with the same
-    settings is there; returns its provenance."""
+    settings (the donor of its tissue and its patch pool included) is there; returns its provenance.
+    ``bank``: the patches this slide may draw (its split's pool); ``pool``: that pool's name."""
     from data_tools.synth import _geojson
 
     folder = out_dir / "slides"
     folder.mkdir(parents=True, exist_ok=True)
     tiff = folder / f"{slide.name}.tif"
     prov_file = tiff.with_suffix(".provenance.json")
-    settings = _slide_settings(slide.name, downsample, seed, bank, jpeg_quality, slide.sha256)
+    settings = _slide_settings(slide.name, downsample, seed, bank, jpeg_quality, slide.sha256, donor, pool)
     if prov_file.is_file() and tiff.is_file() and tiff.with_suffix(".geojson").is_file():
         try:
             prov = json.loads(prov_file.read_text())
@@ -126,7 +129,9 @@ def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, 
     tiff.with_suffix(".geojson").write_text(json.dumps(_geojson(lay.tumour, lay.tissue, summary)))
     area = float(lay.size[0]) * lay.size[1]
     prov = {"settings": settings, "note": PIXELS_NOTE, "licence": LICENCE, "summary": summary, **lay.provenance,
-            "stain_od_factors": texture.stain, "patch_side_px": texture.side, "patch_step_px": texture.step,
+            "stain_od_factors": texture.stain, "patch_pool": pool,
+            "patch_names": {str(lab): names for lab, names in texture.patch_names.items()},
+            "patch_side_px": texture.side, "patch_step_px": texture.step,
             "tumour_fraction_of_canvas": float(lay.tumour.area) / area,
             "tumour_fraction_of_tissue": float(lay.tumour.area) / max(float(lay.tissue.area), 1.0),
             "tissue_fraction_of_canvas": float(lay.tissue.area) / area, **info,
@@ -190,17 +195,19 @@ def slide_seed(seed: int, name: str) -> int:
 _WORKER: dict = {}
 
 
-def _init_worker(bank, progress: bool) -> None:
-    _WORKER.update(bank=bank, progress=progress)
+def _init_worker(banks: dict, progress: bool) -> None:
+    """``banks``: the patch bank of each split (``{"train": ..., "test": ...}``)."""
+    _WORKER.update(banks=banks, progress=progress)
 
 
 def _one_slide(job) -> dict:
     """Make one slide and its bundle (skipping what is done); its record for ``dataset.json``."""
-    out_dir, slide, donor, d, seed, jpeg_quality, mag, encoder, no_pixels = job
+    out_dir, slide, donor, d, seed, jpeg_quality, mag, encoder, no_pixels, side = job
     s0 = time.perf_counter()
     name = slide.name
     bundle = out_dir / "bundles" / name
-    prov = make_slide(out_dir, slide, donor, d, seed, _WORKER["bank"], jpeg_quality, _WORKER["progress"])
+    prov = make_slide(out_dir, slide, donor, d, seed, _WORKER["banks"][side], jpeg_quality, _WORKER["progress"],
+                      pool=side)
     meta = make_bundle(out_dir, name, prov, mag, encoder=encoder if no_pixels else None)
     if encoder and (meta.features or {}).get("encoder") != encoder:
         from data_tools.features.grid import compute_features
@@ -214,7 +221,7 @@ def _one_slide(job) -> dict:
         meta = read_metadata(bundle)
     return {
         "name": name, "bundle": f"bundles/{name}", "tiff": f"slides/{name}.tif",
-        "label": int(slide.is_tumour_slide), "tissue": prov["tissue"],
+        "label": int(slide.is_tumour_slide), "split": side, "patch_pool": side, "tissue": prov["tissue"],
         "tissue_donor": prov.get("tissue_donor"), "canvas": prov["canvas"], "mpp": prov["mpp"],
         "tumour_area_level0_px2": prov["tumour_area_level0_px2"],
         "tumour_fraction_of_tissue": round(prov["tumour_fraction_of_tissue"], 6),
@@ -252,58 +259,83 @@ class _Lock:
 def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = False, downsample: float | None = None,
                      names=None, n_tumour: int | None = None, n_normal: int | None = None, seed: int = 0,
                      test_fraction: float = 0.25, features: bool | str = False, jpeg_quality: int = 85,
-                     progress: bool = True, workers: int = 1, no_pixels: bool = False) -> dict:
+                     progress: bool = True, workers: int = 1, no_pixels: bool = False,
+                     test_patches=None) -> dict:
     """Make (or finish) the true-scale CAMELYON16 dataset in ``out_dir`` (see the module doc).
 
     ``annotations``: a folder or ``.tar.gz`` of NCRF JSON files (default: the 6 shipped with the
     package, enough for ``small``). ``patches``: PCam patches (folder, ``.tar.gz`` or bank ``.npz``;
-    default the shipped 1,000-patch bank). ``small``: the 6 slides of ``SMALL_SLIDES`` at downsample
-    32 (seconds). ``downsample``: output px per CAMELYON16 level-0 px (default 8, small 32).
-    ``names`` / ``n_tumour`` / ``n_normal``: a subset (default every slide found). The env's
-    coarsest level is CAMELYON16 level 0 / 256 (``magnification_range = 256 / downsample``).
-    ``workers``: slides made in parallel processes (each holds one slide's memory, ~1.5 GB at D = 8).
-    ``features``: compute each bundle's feature grid (``True``: EfficientNet-Lite0, or an encoder name such
-    as ``"colour-stats"``). ``no_pixels``: feature-only bundles: once the feature grid is computed the RGB
-    tile pools of every level but the coarsest are deleted (``obs_mode="features"`` needs none; a fraction
-    of the disk; implies ``features``, default encoder EfficientNet-Lite0).
-    Returns the ``dataset.json`` dict.
+    default the shipped 1,000-patch bank), cut by the pool rule (:func:`data_tools.pcam_bank.split_pools`)
+    into a training pool (textures the train split's slides; the only patches ``pcam-cnn`` was trained on)
+    and a test pool (the test split's); ``test_patches``: texture the test split from this other patch set
+    entirely instead (e.g. PCam's own valid/test patches). ``small``: the 6 slides of ``SMALL_SLIDES`` at
+    downsample 32 (seconds). ``downsample``: output px per CAMELYON16 level-0 px (default 8, small 32).
+    ``names`` / ``n_tumour`` / ``n_normal``: a subset (default every slide found). A subset is a part of the
+    whole set, never a set of its own: the split, the tissue donors and hence every slide's pixels are those
+    of the whole set (all slides of ``annotations``), the donors' polygons are read even when the donor is
+    not built, and a ``dataset.json`` already in ``out_dir`` keeps its other slides. The env's coarsest level
+    is CAMELYON16 level 0 / 256 (``magnification_range = 256 / downsample``). ``workers``: slides made in
+    parallel processes (each holds one slide's memory, 1.15–1.53 GB measured at D = 8). ``features``: compute
+    each bundle's feature grid (``True``: ``pcam-cnn``, or an encoder name of
+    ``data_tools.features.ENCODERS``). ``no_pixels``: feature-only bundles: once the feature grid is computed
+    the RGB tile pools of every level but the coarsest are deleted (``obs_mode="features"`` needs none; a
+    fraction of the disk; implies ``features``). Returns the ``dataset.json`` dict.
     """
+    from data_tools.c16_layout import OWN_TISSUE
+    from data_tools.features import ENCODERS
     from data_tools.ncrf import SHIPPED_DIR, read_ncrf
+    from data_tools.pcam_bank import pool_rule, split_pools
 
     out_dir = Path(out_dir)
     d = float(downsample or (SMALL_DOWNSAMPLE if small else FULL_DOWNSAMPLE))
     if not (1 <= d <= 64):
         raise HistojaxDataError(None, f"--downsample {d} must be between 1 and 64 (CAMELYON16 level-0 px per px)")
+    encoder = features if isinstance(features, str) else "pcam-cnn" if features or no_pixels else None
+    if encoder is not None and encoder not in ENCODERS:
+        raise HistojaxDataError(None, f"--encoder {encoder!r}: use one of {', '.join(ENCODERS)}")
     mag = COARSEST / d
-    slides = read_ncrf(annotations or SHIPPED_DIR, names=list(SMALL_SLIDES) if small and names is None else names)
-    tumours_all = [n for n, s in slides.items() if s.is_tumour_slide]
-    tumours = tumours_all[:n_tumour]
-    normals_all = [n for n, s in slides.items() if not s.is_tumour_slide]
-    normals = normals_all[:n_normal]
+    source = annotations or SHIPPED_DIR
+    every = read_ncrf(source)   # the whole set: its split and donors hold for any subset
+    universe = [n for n in every if n in SMALL_SLIDES] if small else list(every)
+    if small and len(universe) != len(SMALL_SLIDES):
+        raise HistojaxDataError(source, f"the small variant needs {', '.join(SMALL_SLIDES)}; "
+                                f"missing {sorted(set(SMALL_SLIDES) - set(universe))}")
+    if names is not None and set(names) - set(universe):
+        raise HistojaxDataError(source, f"no such slide(s) {sorted(set(names) - set(universe))}"
+                                + (" in the small variant" if small else ""))
+    tumours_all = [n for n in universe if every[n].is_tumour_slide]
+    normals_all = [n for n in universe if not every[n].is_tumour_slide]
+    donors = {}
+    for n in tumours_all:
+        if n not in OWN_TISSUE:
+            if not normals_all:
+                raise HistojaxDataError(source, f"{n} needs a Normal_* slide to lend it tissue; the annotations "
+                                        "hold none")
+            donors[n] = donor_for(n, tumours_all, normals_all)
+    train_all, test_all = split_slides(universe, donors, test_fraction, seed)
+    chosen = set(names) if names is not None else set(tumours_all[:n_tumour]) | set(normals_all[:n_normal])
+    todo = [n for n in universe if n in chosen]
+    side = {n: "test" if n in test_all else "train" for n in universe}
     bank = load_bank(patches)
+    train_pool, test_pool = split_pools(bank)
+    test_bank = load_bank(test_patches) if test_patches is not None else test_pool
+    pools = {**pool_rule(), "bank": bank.source,
+             "train": {"source": train_pool.source, "patches": len(train_pool),
+                       "tumour_patches": int(train_pool.labels.sum())},
+             "test": {"source": test_bank.source, "patches": len(test_bank),
+                      "tumour_patches": int(test_bank.labels.sum()), "other_patch_set": test_patches is not None}}
     lock = _Lock(out_dir)
     try:
         removed = clean_stale(out_dir)
         if removed and progress:
             print(f"removed {len(removed)} stale temporaries of an interrupted run: {', '.join(removed[:5])}")
-        todo = tumours + normals
-        donors = {}
-        for n in tumours:
-            from data_tools.c16_layout import OWN_TISSUE
-
-            if n not in OWN_TISSUE:
-                if not normals_all:
-                    raise HistojaxDataError(annotations, f"{n} needs a Normal_* slide to lend it tissue; none given")
-                donors[n] = donor_for(n, tumours_all, normals_all)
         t0 = time.perf_counter()
-        encoder = features if isinstance(features, str) else "efficientnet-lite0" if features or no_pixels else None
-        if encoder not in (None, "efficientnet-lite0", "colour-stats"):
-            raise HistojaxDataError(None, f"--encoder {encoder!r}: use efficientnet-lite0 or colour-stats")
-        jobs = [(out_dir, slides[n], slides.get(donors.get(n)), d, slide_seed(seed, n), jpeg_quality, mag, encoder,
-                 no_pixels) for n in todo]
+        jobs = [(out_dir, every[n], every.get(donors.get(n)), d, slide_seed(seed, n), jpeg_quality, mag, encoder,
+                 no_pixels, side[n]) for n in todo]
+        banks = {"train": train_pool, "test": test_bank}
         bar = tqdm(total=len(todo), desc="c16 slides", unit="slide", disable=not progress)
         if workers <= 1:
-            _init_worker(bank, progress)
+            _init_worker(banks, progress)
             records = []
             for job in jobs:
                 records.append(_one_slide(job))
@@ -313,43 +345,71 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
             from concurrent.futures import ProcessPoolExecutor
 
             with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
-                                     initializer=_init_worker, initargs=(bank, False)) as pool:
+                                     initializer=_init_worker, initargs=(banks, False)) as pool:
                 records = []
                 for rec in pool.map(_one_slide, jobs):
                     records.append(rec)
                     bar.update(1)
         bar.close()
-        train, test = split_slides(todo, donors, test_fraction, seed)
         dataset = {
-            "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)",
+            "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)", "format": DATASET_FORMAT,
             "note": PIXELS_NOTE, "licence": LICENCE,
             "scale": {"downsample_from_camelyon16_level0": d, "mpp": C16_MPP * d,
                       "view_px": TILE_SIZE, "view_um": TILE_SIZE * C16_MPP * d,
                       "magnification_range": mag, "coarsest_downsample_from_level0": COARSEST,
                       "level_sets": list(LEVEL_SETS)},
-            "variant": "small" if small else "full" if names is None and n_tumour is None and n_normal is None
-            else "subset",
             "seed": int(seed), "test_fraction": test_fraction, "tile_size": TILE_SIZE,
-            "annotations": str(annotations or SHIPPED_DIR), "patches": bank.source,
-            "split_rule": "by slide; a tumour slide and the normal slide lending it tissue are on the same side; "
-                          f"at most {test_fraction:.0%} of the tumour and of the normal slides in test",
-            "train": [f"bundles/{n}" for n in train], "test": [f"bundles/{n}" for n in test],
-            "labels": {n: int(slides[n].is_tumour_slide) for n in todo},
+            "annotations": str(source), "slides_in_annotations": len(universe), "patches": bank.source,
+            "patch_pools": pools,
+            "split_rule": "by slide, over every slide of the annotations (a subset keeps the whole set's split); "
+                          "a tumour slide and the normal slide lending it tissue are on the same side; "
+                          f"at most {test_fraction:.0%} of the tumour and of the normal slides in test; "
+                          "train slides are textured from the training patch pool only, test slides from the "
+                          "test pool (or --test-patches) only",
+            "encoder": encoder, "pixels_kept": not no_pixels,
+        }
+        records = _merge_records(out_dir, dataset, records, universe)
+        present = [r["name"] for r in records]
+        dataset.update({
+            "variant": "small" if small else "full" if set(present) == set(universe) else "subset",
+            "train": [f"bundles/{n}" for n in present if side[n] == "train"],
+            "test": [f"bundles/{n}" for n in present if side[n] == "test"],
+            "labels": {n: int(every[n].is_tumour_slide) for n in present},
             "slides": records,
             "seconds_this_run": round(time.perf_counter() - t0, 2),
             "peak_rss_bytes_this_run": max([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024]
-                                           + [r["peak_rss_bytes"] for r in records]),
+                                           + [r["peak_rss_bytes"] for r in records if r["name"] in chosen]),
             "workers": int(workers),
-            "encoder": encoder, "pixels_kept": not no_pixels,
             "disk_bytes": {"slides": sum(r["tiff_bytes"] for r in records),
                            "bundles": sum(r["bundle_bytes"] for r in records)},
             "device_bytes": {"pixels": sum(r["device_bytes_pixels"] for r in records),
                              "features": sum(r["device_bytes_features"] or 0 for r in records)},
-        }
+        })
         write_json(out_dir / "dataset.json", dataset)
         return dataset
     finally:
         lock.release()
+
+
+_SAME_SET_KEYS = ("format", "scale", "seed", "test_fraction", "annotations", "patch_pools", "encoder", "pixels_kept")
+
+
+def _merge_records(out_dir: Path, dataset: dict, records: list[dict], universe: list[str]) -> list[dict]:
+    """This run's slide records plus those of a ``dataset.json`` already in ``out_dir`` that belong to the
+    same set (same scale, seed, split, annotations, patch pools and encoder) and whose bundle is still
+    there, in the whole set's order: building a subset never drops the slides of a larger build."""
+    old_file = out_dir / "dataset.json"
+    by_name = {r["name"]: r for r in records}
+    if old_file.is_file():
+        try:
+            old = json.loads(old_file.read_text())
+        except (OSError, json.JSONDecodeError):
+            old = {}
+        if all(old.get(k) == dataset.get(k) for k in _SAME_SET_KEYS):
+            for r in old.get("slides", []):
+                if r.get("name") in universe and r["name"] not in by_name and (out_dir / r["bundle"]).is_dir():
+                    by_name[r["name"]] = r
+    return [by_name[n] for n in universe if n in by_name]
 
 
 __all__ = ["FULL_DOWNSAMPLE", "SMALL_DOWNSAMPLE", "SMALL_SLIDES", "clean_stale", "make_c16_dataset", "make_slide",

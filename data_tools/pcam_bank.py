@@ -53,6 +53,13 @@ class PatchBank:
             out[j] = img
         return out
 
+    def take(self, indices, source: str | None = None) -> "PatchBank":
+        """A bank of the patches at ``indices`` (in that order), JPEG bytes shared by copy."""
+        indices = np.asarray(indices, np.int64)
+        items = [(str(self.names[i]), int(self.labels[i]), self.blob[self.offsets[i]:self.offsets[i + 1]].tobytes())
+                 for i in indices]
+        return _from_items(items, source or self.source)
+
     def save(self, path) -> Path:
         """Write the bank as one ``.npz`` (no pickles)."""
         path = Path(path)
@@ -120,4 +127,45 @@ def subsample(bank: PatchBank, per_class: int, seed: int = 0) -> PatchBank:
     return _from_items(items, f"{bank.source} (subsample of {per_class} per class, seed {seed})")
 
 
-__all__ = ["CITATION", "PATCH", "PATCH_MPP", "PatchBank", "SHIPPED_BANK", "load_bank", "subsample"]
+POOL_SEED = 0              # the seed of the train/test patch-pool rule (recorded in dataset.json)
+POOL_TEST_FRACTION = 0.5   # share of the patches of each class in the test pool
+
+
+def in_test_pool(names, labels, seed: int = POOL_SEED, test_fraction: float = POOL_TEST_FRACTION) -> np.ndarray:
+    """``bool (N,)``: which patches belong to the **test pool** (the rest form the training pool).
+
+    The rule, recorded in ``dataset.json``: a patch is in the test pool when the first 8 bytes of
+    ``sha256(f"{seed}:{label}/{name}")``, read as a big-endian integer over 2**64, are below
+    ``test_fraction``. It depends only on the patch's own label and file name, so a patch is on the
+    same side in any bank, subset or order; a given patch never textures slides of both splits."""
+    import hashlib
+
+    out = np.empty(len(names), bool)
+    for i, (n, lab) in enumerate(zip(names, labels)):
+        h = hashlib.sha256(f"{int(seed)}:{int(lab)}/{n}".encode()).digest()
+        out[i] = int.from_bytes(h[:8], "big") / 2.0**64 < test_fraction
+    return out
+
+
+def pool_rule(seed: int = POOL_SEED, test_fraction: float = POOL_TEST_FRACTION) -> dict:
+    """The pool rule of :func:`in_test_pool` as recorded in ``dataset.json``."""
+    return {"rule": "test pool iff int(sha256(f'{seed}:{label}/{name}')[:8]) / 2**64 < test_fraction",
+            "seed": int(seed), "test_fraction": float(test_fraction)}
+
+
+def split_pools(bank: PatchBank, seed: int = POOL_SEED,
+                test_fraction: float = POOL_TEST_FRACTION) -> tuple[PatchBank, PatchBank]:
+    """``(training pool, test pool)`` of ``bank`` by :func:`in_test_pool`; ``HistojaxDataError`` naming the
+    bank when a pool would lack one of the two classes."""
+    test = in_test_pool(bank.names, bank.labels, seed, test_fraction)
+    pools = (bank.take(np.flatnonzero(~test), f"{bank.source} [training pool]"),
+             bank.take(np.flatnonzero(test), f"{bank.source} [test pool]"))
+    for pool in pools:
+        for label in (0, 1):
+            if not (pool.labels == label).any():
+                raise HistojaxDataError(bank.source, f"too few patches: the {pool.source.rsplit('[', 1)[-1][:-1]} "
+                                        f"has none labelled {label}")
+    return pools
+
+
+__all__ = ["CITATION", "POOL_SEED", "POOL_TEST_FRACTION", "in_test_pool", "pool_rule", "split_pools", "PATCH", "PATCH_MPP", "PatchBank", "SHIPPED_BANK", "load_bank", "subsample"]

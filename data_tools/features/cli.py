@@ -5,6 +5,7 @@ import time
 from pathlib import Path
 
 from data_tools.errors import HistojaxDataError
+from data_tools.features import ENCODERS
 
 COMMANDS = ("features", "import-features")
 
@@ -16,7 +17,9 @@ def add_subcommands(sub) -> None:
     f.add_argument("bundle", nargs="?", help="bundle folder (features_KK.npy are added to it)")
     f.add_argument("--check", metavar="IMAGE", help="self-check: classify an image file (or skimage:NAME, e.g. "
                                                       "skimage:chelsea) and print the top-5 ImageNet labels")
-    f.add_argument("--encoder", default="efficientnet-lite0", help="encoder (default efficientnet-lite0; colour-stats: 8 cheap colour statistics, no weights)")
+    f.add_argument("--encoder", default="efficientnet-lite0", choices=tuple(ENCODERS),
+                   help="encoder (default efficientnet-lite0; pcam-cnn: histojax's PCam-trained CNN, 64-d, for views "
+                        "at the C16 scale; colour-stats: 8 cheap colour statistics, no weights)")
     f.add_argument("--dim", type=int, default=None, help="reduce the 1280-d embeddings to D dimensions")
     f.add_argument("--projection", choices=("random", "pca"), default="random",
                    help="with --dim: seeded Gaussian random projection (default) or PCA of this slide's embeddings")

@@ -224,15 +224,19 @@ class Encoder:
 
 @functools.lru_cache(maxsize=4)
 def load_encoder(name: str = NAME, image_size: int | None = TRAIN_SIZE, weights=None) -> Encoder:
-    """The encoder ``name`` (only ``"efficientnet-lite0"``) with its ImageNet weights, inputs resized to
-    ``image_size`` (default 224, the training size; None feeds views at their own size). Cached.
-    ``"colour-stats"`` is the cheap hand-made colour encoder of :mod:`data_tools.features.colour`."""
-    from data_tools.features import colour
+    """The encoder ``name`` (one of ``data_tools.features.ENCODERS``). ``"efficientnet-lite0"``: ImageNet
+    weights, inputs resized to ``image_size`` (default 224, the training size; None feeds views at their own
+    size). ``"colour-stats"`` (:mod:`data_tools.features.colour`) and ``"pcam-cnn"``
+    (:mod:`data_tools.features.pcam_cnn`, ``weights`` default the shipped file) take views at their own size
+    and ignore ``image_size``. Cached."""
+    from data_tools.features import ENCODERS, colour, pcam_cnn
 
     if name == colour.NAME:
         return colour.load_colour_encoder(Encoder)
+    if name == pcam_cnn.NAME:  # fed at its own size: trained at the benchmark's scale, any image size
+        return pcam_cnn.load_pcam_encoder(Encoder, weights)
     if name != NAME:
-        raise ValueError(f"unknown encoder {name!r}; available: {NAME!r}, {colour.NAME!r}")
+        raise ValueError(f"unknown encoder {name!r}; available: {', '.join(ENCODERS)}")
     path = Path(weights) if weights is not None else default_weights_path()
     variables = variables_from_torch(load_state_dict(path), path)
     model = EfficientNetLite0()

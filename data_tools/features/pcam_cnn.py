@@ -1,0 +1,105 @@
+"""``pcam-cnn``: histojax's own small pathology encoder, trained on PatchCamelyon patches as they appear
+in the true-scale CAMELYON16 mosaic, its weights shipped in the package (``pcam_cnn.msgpack``).
+
+Model card: docs/encoder-pcam-cnn.md. Training command: ``python -m data_tools train-encoder``
+(:mod:`data_tools.features.train_pcam_cnn`).
+
+Input: RGB uint8 ``(B, H, W, 3)`` of any size ≥ 16 px **at the benchmark's scale** (1.94 µm/px, the
+C16 full set's level 0 / 8: a PCam patch there is 48 px, an env view 128 px); fed at its own size, no
+resizing. Preprocessing: ``(x / 255 − 0.5) / 0.25`` per channel, nothing else (deterministic).
+
+Architecture: five 3×3 convolutions with ReLU (channels 16, 32, 48, 48, 64; strides 2, 2, 2, 1, 1: one
+output cell per 8 × 8 input px, receptive field 75 px), then a 1×1 convolution to ``CHANNELS`` = 31
+feature channels ``f`` and a 1×1 linear tumour-logit map ``l`` over ``relu(f)``. Global pooling over
+the cells makes it work on a single patch as on a whole view:
+
+- ``logits(images)`` → float32 ``(B,)``: the mean of ``l`` over the cells (the trained output: the
+  patch's tumour logit; on a view it grows with the view's tumour fraction);
+- ``embed(images)`` → float32 ``(B, 64)``: ``[mean f (31), max f (31), mean l, max l]``. The last two
+  are the tumour logit and its most tumour-like cell, so a linear head (or an agent) can read "how
+  much" and "is there any" tumour in a view.
+"""
+from __future__ import annotations
+
+import functools
+from pathlib import Path
+
+import flax.linen as nn
+import jax
+import jax.numpy as jnp
+
+NAME = "pcam-cnn"
+CHANNELS = 31
+DIM = 2 * CHANNELS + 2
+LAYERS = ((24, 4, 4), (48, 3, 2), (48, 3, 1), (64, 1, 1))   # (channels, kernel, stride) of each ReLU conv
+SCALE_MPP = 1.944   # µm per input px the encoder was trained at (CAMELYON16 level 0 / 8)
+PATCH_PX = 48       # a PCam patch (96 px at 0.972 µm/px) at that scale
+WEIGHTS = Path(__file__).with_name("pcam_cnn.msgpack")
+
+
+class PcamCNN(nn.Module):
+    """The network: uint8 or float RGB in [0, 255] ``(B, H, W, 3)`` → ``(f, l)``, feature map
+    ``(B, h, w, CHANNELS)`` and logit map ``(B, h, w)`` with ``h = ceil(H / 8)``."""
+
+    @nn.compact
+    def __call__(self, images):
+        x = (images.astype(jnp.float32) / 255.0 - 0.5) / 0.25
+        for i, (c, k, s) in enumerate(LAYERS):
+            x = nn.relu(nn.Conv(c, (k, k), strides=(s, s), padding="SAME", name=f"conv{i}")(x))
+        f = nn.Conv(CHANNELS, (1, 1), name="features")(x)
+        logit = nn.Conv(1, (1, 1), name="tumour")(nn.relu(f))[..., 0]
+        return f, logit
+
+
+def pool(f: jax.Array, logit: jax.Array) -> tuple[jax.Array, jax.Array]:
+    """Global pooling of the maps: ``(embedding (B, DIM), patch logit (B,))``."""
+    emb = jnp.concatenate([f.mean(axis=(1, 2)), f.max(axis=(1, 2)),
+                           logit.mean(axis=(1, 2))[:, None], logit.max(axis=(1, 2))[:, None]], axis=1)
+    return emb, logit.mean(axis=(1, 2))
+
+
+def init_variables(seed: int = 0) -> dict:
+    """Fresh (untrained) variables, He-initialised by flax's defaults."""
+    return PcamCNN().init(jax.random.PRNGKey(seed), jnp.zeros((1, PATCH_PX, PATCH_PX, 3), jnp.uint8))
+
+
+def apply(variables, images) -> tuple[jax.Array, jax.Array]:
+    """``(embedding (B, DIM), tumour logit (B,))`` of uint8 images ``(B, H, W, 3)`` at the benchmark scale."""
+    return pool(*PcamCNN().apply(variables, images))
+
+
+def read_weights(path=None) -> dict:
+    """The shipped (or given) msgpack weights, checked against the architecture; ``WeightsError`` naming the
+    file when missing, unreadable or of another shape."""
+    from flax import serialization
+
+    from data_tools.features.torch_weights import WeightsError
+
+    path = Path(path) if path is not None else WEIGHTS
+    template = init_variables()
+    try:
+        raw = path.read_bytes()
+    except OSError as e:
+        raise WeightsError(path, f"cannot read the pcam-cnn weights ({e.strerror or e}); "
+                           "retrain them with `python -m data_tools train-encoder`") from None
+    try:
+        state = serialization.msgpack_restore(raw)
+        variables = serialization.from_state_dict(template, state)
+    except Exception as e:  # msgpack/flax raise assorted types on a corrupt or foreign file
+        raise WeightsError(path, f"not pcam-cnn weights ({type(e).__name__}: {e})") from None
+    for a, b in zip(jax.tree_util.tree_leaves(template), jax.tree_util.tree_leaves(variables)):
+        if a.shape != b.shape:
+            raise WeightsError(path, f"weights of shape {b.shape} where the architecture has {a.shape}")
+    return jax.tree_util.tree_map(jnp.asarray, variables)
+
+
+@functools.lru_cache(maxsize=2)
+def load_pcam_encoder(encoder_class, weights=None):
+    """The ``pcam-cnn`` encoder as an ``efficientnet.Encoder`` (views fed at their own size)."""
+    variables = read_weights(weights)
+    return encoder_class(name=NAME, dim=DIM, image_size=None, variables=variables,
+                         _embed=jax.jit(lambda v, x: apply(v, x)[0]), _logits=jax.jit(lambda v, x: apply(v, x)[1]))
+
+
+__all__ = ["CHANNELS", "DIM", "NAME", "PATCH_PX", "PcamCNN", "SCALE_MPP", "WEIGHTS", "apply", "init_variables",
+           "load_pcam_encoder", "read_weights"]

@@ -47,7 +47,10 @@ PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name not
 # settings of how ``make`` draws a dataset's slides (neither static nor EnvParams):
 # ``tumour_slides_only`` — reset draws only slides with tumour annotated (detection on a dataset that
 # also holds normal slides: a normal slide has nothing to find, so its episodes could only fail)
-DATASET_FIELDS = ("tumour_slides_only",)
+# ``dataset_format`` / ``dataset_encoder`` — the least ``dataset.json`` "format" and the feature encoder a
+# dataset must have for this id (the C16 v1 ids: disjoint patch pools and pcam-cnn features); an older
+# dataset is refused naming the command that rebuilds it
+DATASET_FIELDS = ("tumour_slides_only", "dataset_format", "dataset_encoder")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -109,7 +112,7 @@ register("HistoJAX-Hard-v0", n_levels=7, max_steps_in_episode=300)
 C16_DATASET_VARIABLE = "HISTOJAX_C16_DATASET"
 
 
-def _c16_dataset(spec: dict) -> list[Path]:
+def _c16_dataset(spec: dict) -> Path:
     """The default dataset of the C16 ids: ``$HISTOJAX_C16_DATASET``, else ``cache_dir()/c16``; a clear
     error naming the command when neither holds a ``dataset.json``."""
     import os
@@ -124,13 +127,43 @@ def _c16_dataset(spec: dict) -> list[Path]:
                           "`python -m data_tools c16 --annotations camelyon16_ncrf_train.tar.gz --patches "
                           "pcam_train_patches.tar.gz --out DIR`, then pass make(id, dataset=DIR) or set "
                           f"{C16_DATASET_VARIABLE}=DIR")
-    return dataset_slides(folder, spec.get("split", "train"))
+    return folder
 
 
+# v0: any C16 dataset (the observation is whatever the caller picks; pixels by default).
+# v1: datasets of format 2 (train and test slides textured from disjoint PCam patch pools) embedded with the
+# PCam-trained encoder ``pcam-cnn``, observed through it by default (obs_mode="features"); an older dataset is
+# refused with the command that rebuilds it (it keeps loading under v0).
+C16_V1 = dict(dataset_format=2, dataset_encoder="pcam-cnn", obs_mode="features")
 for _name, _levels, _steps in (("Easy", 3, 100), ("Medium", 5, 200), ("Hard", 7, 300)):
     register(f"HistoJAX-C16-{_name}-v0", slide=_c16_dataset, n_levels=_levels, max_steps_in_episode=_steps,
              tumour_slides_only=True)
+    register(f"HistoJAX-C16-{_name}-v1", slide=_c16_dataset, n_levels=_levels, max_steps_in_episode=_steps,
+             tumour_slides_only=True, **C16_V1)
 register("HistoJAX-C16-Diagnosis-v0", slide=_c16_dataset, n_levels=5, max_steps_in_episode=200, task="classification")
+register("HistoJAX-C16-Diagnosis-v1", slide=_c16_dataset, n_levels=5, max_steps_in_episode=200, task="classification",
+         **C16_V1)
+
+
+def check_dataset(folder, spec: dict, env_id: str) -> None:
+    """Refuse a dataset older than the id needs (``dataset_format`` / ``dataset_encoder`` of its spec), naming
+    the dataset, what it lacks, and the command that rebuilds it."""
+    want_format, want_encoder = spec.get("dataset_format"), spec.get("dataset_encoder")
+    if want_format is None and want_encoder is None:
+        return
+    index = Path(folder) / "dataset.json"
+    try:
+        ds = json.loads(index.read_text())
+    except (OSError, json.JSONDecodeError):
+        return  # dataset_slides reports a missing or malformed index
+    fix = (f"rebuild it with `python -m data_tools c16 --out {folder} --no-pixels ...` (same options; the "
+           f"encoder is pcam-cnn by default), or use the -v0 id")
+    if want_format is not None and int(ds.get("format", 1)) < want_format:
+        raise BundleError(index, f"{env_id} needs a dataset of format >= {want_format} (train and test slides "
+                          f"textured from disjoint PCam patch pools); this one is format {ds.get('format', 1)}: {fix}")
+    if want_encoder is not None and spec.get("obs_mode", "pixels") == "features" and ds.get("encoder") != want_encoder:
+        raise BundleError(index, f"{env_id} observes {want_encoder} features; this dataset's feature grids are "
+                          f"{ds.get('encoder')!r}: {fix}")
 
 
 def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES,
@@ -223,7 +256,10 @@ def slide_paths(env_id: str, slide=None, slides=None, dataset=None, split: str =
 def _resolve_slides(env_id: str, spec: dict, slide, slides, dataset, split: str) -> list:
     """``slides`` / ``dataset`` / ``slide`` / the id's registered slide or dataset / the sample slide,
     as a non-empty list of bundle paths."""
+    if dataset is None and slide is None and slides is None and spec_of(env_id).slide is _c16_dataset:
+        dataset = _c16_dataset(spec)
     if dataset is not None:
+        check_dataset(dataset, spec, env_id)
         slides = dataset_slides(dataset, split)
     if slides is not None and slide is not None:
         raise ValueError("give either slide= or slides=/dataset=, not both")
@@ -298,6 +334,10 @@ def dataset_slides(folder, split: str = "train") -> list[Path]:
         names = spec.get(split)
     else:
         raise ValueError(f"split must be 'train', 'test' or 'all', got {split!r}")
+    if isinstance(names, list) and not names and spec.get("variant") == "subset":
+        raise BundleError(index, f"the {split!r} split of this subset is empty: a subset keeps the whole set's split, "
+                          f"and none of its slides is on the {split} side; build some with `python -m data_tools c16 "
+                          f"--slides NAME ...` on the same --out (see the 'test' / 'train' lists of the full set)")
     if not isinstance(names, list) or not names:
         raise BundleError(index, f"no {split!r} list of bundles")
     return [folder / n for n in names]

@@ -135,6 +135,7 @@ def _settings_key(name: str, slide: dict, options: dict, slides_dir: Path) -> di
 
 
 def _record_path(out: Path, name: str, failed: bool = False) -> Path:
+    (out / "records").mkdir(parents=True, exist_ok=True)
     return out / "records" / f"{name}{'.failed' if failed else ''}.json"
 
 

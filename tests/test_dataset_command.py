@@ -344,3 +344,17 @@ def test_label_table_forms_and_the_seeded_split():
     assert sum(labels[n] for n in test) == 2 and sum(1 - labels[n] for n in test) == 3
     assert seeded_split(list(reversed(names)), labels, 0.25, seed=3) == (train, test)
     assert seeded_split(names, labels, 0.25, seed=4) != (train, test)
+
+
+def test_table_labels_reach_the_diagnosis_task_and_jobs_build_in_parallel(tmp_path, pixels):
+    import histojax
+
+    slides = tmp_path / "slides"
+    for i, name in enumerate(("p1", "p2", "p3")):
+        pyramid(slides / f"{name}.tif", crop(pixels, i))
+    # p2 is a tumour slide without an annotation (a label table of a TCGA-style cohort): label 1, not "unannotated"
+    (tmp_path / "labels.csv").write_text("slide,label,split\np1,0,train\np2,1,train\np3,0,test\n")
+    s = build_dataset(slides, tmp_path / "ds", labels=tmp_path / "labels.csv", levels=(5,), jobs=2, progress=False)
+    assert sorted(s["built"]) == ["p1", "p2", "p3"] and s["dataset"]["test"] == ["bundles/p3"]
+    env, params = histojax.make("HistoJAX-C16-Diagnosis-v0", dataset=tmp_path / "ds", verify=False)
+    assert [int(v) for v in params.slide.slide_label] == [0, 1]

@@ -17,7 +17,6 @@ reason and the others still build.
 from __future__ import annotations
 
 import json
-import os
 import resource
 import shutil
 import time
@@ -144,12 +143,6 @@ def _read_record(out: Path, name: str) -> dict | None:
         return json.loads(_record_path(out, name).read_text())
     except (OSError, json.JSONDecodeError):
         return None
-
-
-def _find_h5(features_from: Path | None, name: str, index: dict | None):
-    if features_from is None:
-        return None
-    return index.get(name.lower()) if index is not None else None
 
 
 def h5_index(features_from) -> dict[str, Path]:
@@ -283,6 +276,13 @@ def write_dataset_json(out, plan: dict, records: dict[str, dict], failed: dict[s
         "slides": [records[n] for n in names],
         **(extra or {}),
     }
+    return write_dataset_index(out, dataset)
+
+
+def write_dataset_index(out, dataset: dict) -> dict:
+    """Write ``dataset`` as ``OUT/dataset.json`` atomically, holding ``OUT/.dataset.lock`` (the one writer of
+    ``dataset.json`` for ``data_tools dataset`` and ``c16``); returns it."""
+    out = Path(out)
     with file_lock(out / ".dataset.lock", what=str(out)):
         write_json(out / "dataset.json", dataset)
     return dataset
@@ -394,4 +394,4 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
 
 
 __all__ = ["build_dataset", "build_one", "check_scales", "h5_index", "make_plan", "merge_dataset",
-           "write_dataset_json"]
+           "write_dataset_index", "write_dataset_json"]

@@ -376,3 +376,30 @@ def test_c16_leaves_no_lock_no_partial_features_and_no_stale_temporaries(tmp_pat
     make_c16_dataset(out, small=True, n_tumour=1, n_normal=1, features="colour-stats", progress=False)
     assert not list(out.rglob("features.partial")) and not list(out.rglob(".*.tmp-*"))
     assert not (out / ".c16.lock").exists() and (out / "dataset.json").is_file()
+
+
+def test_a_sigkilled_run_resumes(camelyon16, tmp_path):
+    """SIGKILL ``data_tools dataset`` once it has finished a slide; the rerun keeps that slide, removes what
+    the kill left and writes dataset.json."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    out = tmp_path / "ds"
+    proc = subprocess.Popen([sys.executable, "-m", "data_tools", "dataset", str(camelyon16), "--out", str(out),
+                             "--levels", "5,7", "--quiet"], cwd=Path(__file__).resolve().parents[1],
+                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    try:
+        deadline = time.time() + 300
+        while not list((out / "records").glob("*.json")) and time.time() < deadline and proc.poll() is None:
+            time.sleep(0.05)
+        proc.send_signal(signal.SIGKILL)
+    finally:
+        proc.wait()
+    done = sorted(p.stem for p in (out / "records").glob("*.json"))
+    assert done
+    s = build_dataset(camelyon16, out, levels=(5, 7), progress=False)
+    assert set(done) <= set(s["resumed"]) and s["dataset"] is not None and not s["failed"]
+    assert len(s["dataset"]["train"]) == 4 and len(s["dataset"]["test"]) == 2
+    assert not list(out.rglob(".*.tmp-*")) and not list(out.rglob("*lock"))

@@ -1,7 +1,8 @@
 """Find the slides of a folder, their annotations and labels (``data_tools dataset``).
 
 Slides: ``*.svs``, ``*.tif`` / ``*.tiff`` (pyramidal TIFF, OME-TIFF), ``*.ndpi`` and DICOM WSI folders
-(a folder holding ``.dcm`` files is one slide, named after the folder), found recursively. A slide's
+(a folder of DICOM files, ``.dcm`` or without extension, is one slide named after the folder), found
+recursively. A slide's
 name is its file name without the extension; names are matched case-insensitively (CAMELYON16 names
 slides ``tumor_001.tif`` but lists ``Test_001`` in ``reference.csv``). Annotations: ASAP XML,
 GeoJSON (``.geojson`` / ``.json``) and NCRF JSON (``{"positive": [...], "negative": [...]}``), in the
@@ -72,7 +73,11 @@ def _walk(root: Path, skip: list[Path]):
             dirs[:] = []
             continue
         dirs[:] = sorted(d for d in dirs if not d.startswith("."))
-        if any(f.lower().endswith(".dcm") for f in files) and is_dicom(here):
+        plain = [f for f in files if not f.startswith(".")]
+        dicom_like = any(f.lower().endswith(".dcm") for f in plain) or (
+            plain and not any(f.lower().endswith(SLIDE_EXTENSIONS + ANNOTATION_EXTENSIONS + (".csv", ".h5"))
+                              for f in plain))  # PACS exports often have no extension
+        if dicom_like and is_dicom(here):
             slides.append(here)
             dirs[:] = []
             continue

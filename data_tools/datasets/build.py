@@ -346,7 +346,8 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     mpps = check_scales(entries, magnification_range)
     options = {"levels": sorted(set(int(v) for v in levels)), "tile_size": int(tile_size),
                "magnification_range": magnification_range, "storage": storage, "label_map": label_map or None,
-               "encoder": encoder, "features_from": None if features_from is None else str(Path(features_from).resolve()),
+               "encoder": encoder,
+               "features_from": None if features_from is None else str(Path(features_from).resolve()),
                "patch_size": patch_size, "patch_level": patch_level, "no_pixels": bool(no_pixels),
                "test_fraction": test_fraction, "seed": int(seed)}
     plan = make_plan(entries, slides_dir, options, test_fraction, seed)

@@ -38,7 +38,8 @@ def _fingerprint(path: Path) -> dict:
     """Cheap identity of a slide file or DICOM folder: size in bytes and mtime (ns) of its files."""
     files = sorted(path.rglob("*")) if path.is_dir() else [path]
     stats = [f.stat() for f in files if f.is_file()]
-    return {"bytes": int(sum(s.st_size for s in stats)), "mtime_ns": int(max((s.st_mtime_ns for s in stats), default=0))}
+    return {"bytes": int(sum(s.st_size for s in stats)),
+            "mtime_ns": int(max((s.st_mtime_ns for s in stats), default=0))}
 
 
 def _rel(path: Path, root: Path) -> str:

@@ -165,4 +165,5 @@ def shard_names(names, shard: tuple[int, int] | None) -> list[str]:
     return names[i::n]
 
 
-__all__ = ["grouped_split", "parse_label", "parse_shard", "read_label_table", "seeded_split", "shard_names", "slide_key"]
+__all__ = ["grouped_split", "parse_label", "parse_shard", "read_label_table", "seeded_split", "shard_names",
+           "slide_key"]

@@ -3,7 +3,8 @@
 [--region x0,y0,x1,y1 | --region-group NAME] [--region-margin PX] [--storage dense|tiled|auto]``, and
 ``python -m data_tools synth-large OUT.tif [--size 100000] [--tissue-fraction 0.1]`` (a gigapixel test slide), and
 ``python -m data_tools c16 --out DIR [--annotations NCRF.tar.gz] [--patches PCAM.tar.gz] [--small]`` (the true-scale
-CAMELYON16 benchmark).
+CAMELYON16 benchmark), and ``python -m data_tools dataset SLIDES_DIR --out DIR [--labels CSV] [--jobs N]
+[--shard I/N]`` (a folder of real slides becomes a dataset; see docs/your-own-slides.md).
 
 User errors (bad files, existing output) print one line and exit with status 2, no traceback.
 """
@@ -130,8 +131,11 @@ def add_arguments(p) -> None:
                           "full set's scale)")
     c16.add_argument("--seed", type=int, default=0)
     c16.add_argument("--quiet", action="store_true", help="no progress bars")
+    from data_tools.datasets.cli import add_subcommand as _add_dataset_command
     from data_tools.features.cli import add_subcommands as _add_feature_commands
     from data_tools.features.train_pcam_cnn import add_arguments as _train_encoder_arguments
+
+    _add_dataset_command(sub, _levels)  # dataset
 
     _add_feature_commands(sub)  # features, import-features
     _train_encoder_arguments(sub.add_parser(
@@ -174,8 +178,13 @@ def _check_label_map(label_map) -> None:
 
 
 def run(args, parser=None) -> int:
-    """Run the parsed data command; returns the exit status (2 for a user error, printed as one line)."""
+    """Run the parsed data command; returns the exit status (2 for a user error, printed as one line;
+    1 when ``dataset`` built the cohort but some slides failed)."""
     try:
+        if args.command == "dataset":
+            from data_tools.datasets.cli import run as _run_dataset
+
+            return _run_dataset(args)
         _command(args)
     except HistojaxDataError as e:
         return print_error(e)

@@ -16,12 +16,8 @@ on SIGKILL) and, holding it, first deletes the hidden temporaries a killed run l
 """
 from __future__ import annotations
 
-import fcntl
 import json
-import math
-import os
 import resource
-import shutil
 import time
 from pathlib import Path
 
@@ -31,6 +27,7 @@ from tqdm.auto import tqdm
 from data_tools.bundle_format import atomic_file, read_metadata, sha256, write_json
 from data_tools.c16_layout import C16_MPP, donor_for, layout
 from data_tools.c16_mosaic import PIXELS_NOTE, Texture, write_slide_tiff
+from data_tools.datasets.split import grouped_split as split_slides  # one home for splits (data_tools.datasets)
 from data_tools.errors import HistojaxDataError
 from data_tools.pcam_bank import CITATION, load_bank
 
@@ -48,41 +45,13 @@ LICENCE = ("tumour and tissue polygons: CAMELYON16 ground truth (CC0 1.0) as con
 
 def clean_stale(out_dir: Path) -> list[str]:
     """Delete the hidden temporaries of killed runs (``slides/.*.tmp-*``, ``bundles/.*.tmp-*``,
-    ``bundles/.*.old-*``) and unfinished feature folders; returns their names. Call only while holding
-    the dataset's lock."""
-    removed = []
-    for folder, patterns in (("slides", (".*.tmp-*",)), ("bundles", (".*.tmp-*", ".*.old-*"))):
-        for pattern in patterns:
-            for p in sorted((out_dir / folder).glob(pattern)):
-                shutil.rmtree(p, ignore_errors=True) if p.is_dir() else p.unlink(missing_ok=True)
-                removed.append(f"{folder}/{p.name}")
-    return removed
+    ``bundles/.*.old-*``, of any name) and the ``features.partial/`` of finished bundles; returns their
+    names. Through the shared dataset code (:func:`data_tools.datasets.locks.clean_stale`): a temporary
+    whose name a live process is building is left alone."""
+    from data_tools.datasets.locks import clean_stale as _clean
 
-
-def split_slides(names: list[str], donors: dict[str, str], test_fraction: float, seed: int) -> tuple[list, list]:
-    """Train/test by slide: a tumour slide and the normal slide lending it tissue are one group (same
-    side); groups go to test in a seeded order while the test side holds at most ``test_fraction`` of
-    the tumour slides and of the normal slides; each side keeps at least one of each kind when it can."""
-    parent = {n: n for n in names}
-    for t, d in donors.items():
-        if d in parent:
-            parent[t] = d
-    groups: dict[str, list[str]] = {}
-    for n in names:
-        groups.setdefault(parent[n], []).append(n)
-    keys = sorted(groups)
-    order = [keys[i] for i in np.random.default_rng([seed, 13]).permutation(len(keys))]
-    is_t = lambda n: n.lower().startswith("tumor")  # noqa: E731
-    n_t, n_n = sum(map(is_t, names)), sum(not is_t(n) for n in names)
-    cap_t, cap_n = max(1, math.floor(test_fraction * n_t)), max(1, math.floor(test_fraction * n_n))
-    test: list[str] = []
-    order = [g for g in order if any(map(is_t, groups[g]))] + [g for g in order if not any(map(is_t, groups[g]))]
-    for g in order:
-        tt = sum(map(is_t, test)) + sum(map(is_t, groups[g]))
-        tn = sum(not is_t(n) for n in test) + sum(not is_t(n) for n in groups[g])
-        if tt <= min(cap_t, n_t - 1) and tn <= min(cap_n, n_n - 1):
-            test += groups[g]
-    return [n for n in names if n not in test], [n for n in names if n in test]
+    return [f"bundles/{n}" for n in _clean(out_dir / "bundles")] + \
+        [f"slides/{n}" for n in _clean(out_dir / "slides", finished_features=False, lock_folder=out_dir / "bundles")]
 
 
 def _slide_settings(name, downsample, seed, bank, jpeg_quality, sha, donor=None, pool=None) -> dict:
@@ -214,6 +183,9 @@ def _one_slide(job) -> dict:
 
         compute_features(bundle, encoder_name=encoder, progress=_WORKER["progress"], verify=False)
         meta = read_metadata(bundle)
+    from data_tools.datasets.locks import clean_partial_features
+
+    clean_partial_features(bundle)  # a kill during the feature step, then a rerun: no empty features.partial/
     if no_pixels and len(meta.pixel_levels) > 1:
         from data_tools.bundle_format import drop_pixels
 
@@ -238,22 +210,19 @@ def _one_slide(job) -> dict:
     }
 
 
-class _Lock:
-    def __init__(self, out_dir: Path):
-        out_dir.mkdir(parents=True, exist_ok=True)
-        self.file = open(out_dir / ".c16.lock", "w")
-        try:
-            fcntl.flock(self.file, fcntl.LOCK_EX | fcntl.LOCK_NB)
-        except BlockingIOError:
-            self.file.close()
-            raise HistojaxDataError(out_dir, "another `data_tools c16` run is writing this dataset (lock held)") \
-                from None
-        self.file.write(str(os.getpid()))
-        self.file.flush()
+def _Lock(out_dir: Path):
+    """Hold ``OUT/.c16.lock`` for the run (shared :func:`data_tools.datasets.locks.file_lock`: released by the
+    kernel even on SIGKILL, the file removed when a run ends)."""
+    from data_tools.datasets.locks import LockHeld, file_lock
 
-    def release(self):
-        fcntl.flock(self.file, fcntl.LOCK_UN)
-        self.file.close()
+    out_dir.mkdir(parents=True, exist_ok=True)
+    lock = file_lock(out_dir / ".c16.lock", blocking=False, what="this dataset")
+    try:
+        lock.__enter__()
+    except LockHeld:
+        raise HistojaxDataError(out_dir, "another `data_tools c16` run is writing this dataset (lock held)") from None
+    lock.release = lambda: lock.__exit__(None, None, None)
+    return lock
 
 
 def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = False, downsample: float | None = None,
@@ -385,7 +354,9 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
             "device_bytes": {"pixels": sum(r["device_bytes_pixels"] for r in records),
                              "features": sum(r["device_bytes_features"] or 0 for r in records)},
         })
-        write_json(out_dir / "dataset.json", dataset)
+        from data_tools.datasets.build import write_dataset_index
+
+        write_dataset_index(out_dir, dataset)
         return dataset
     finally:
         lock.release()

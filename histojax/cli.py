@@ -6,6 +6,7 @@
     histojax synth OUT_DIR            semi-synthetic slides and bundles with a train/test split
     histojax synth-large OUT.tif      a gigapixel semi-synthetic pyramidal TIFF
     histojax c16 --out DIR            the true-scale CAMELYON16-geometry benchmark dataset
+    histojax dataset SLIDES --out DIR your own slides (SVS/TIFF/DICOM, CAMELYON16 as downloaded) as a dataset
     histojax train-encoder --out W    train the pcam-cnn encoder on the PCam training pool
     histojax demo [--no-train]        random-agent table, then PPO trained and evaluated on Easy (`make demo`)
     histojax train [--algo ppo|dqn|ppo_rnn]   pure-JAX baselines (`python -m baselines.ppo|dqn|ppo_rnn`)
@@ -34,7 +35,8 @@ import sys
 from data_tools.cli_output import one_line_messages, os_error_text, print_error, run_command
 from data_tools.errors import HistojaxDataError
 
-DATA_COMMANDS = ("info", "build", "features", "import-features", "synth", "synth-large", "c16", "train-encoder")
+DATA_COMMANDS = ("info", "build", "features", "import-features", "synth", "synth-large", "c16", "dataset",
+                 "train-encoder")
 COMMANDS = {  # histojax <command>: the module whose add_arguments and run it is
     **{name: "data_tools.__main__" for name in DATA_COMMANDS},
     "demo": "baselines.demo",

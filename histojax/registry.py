@@ -189,7 +189,9 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     ``python -m data_tools synth``) give one env over all of them: ``reset`` draws a slide
     (uniformly, or by ``slide_weights``). ``max_device_bytes`` then bounds the whole dataset.
     ``labels`` (a dict bundle-name → 0/1 or a CSV file with columns ``slide,label``) overrides the
-    slide labels of ``task="classification"`` (default: 1 when the bundle has tumour annotated).
+    slide labels of ``task="classification"`` (default: the ``"labels"`` of the dataset's ``dataset.json``
+    when it has them, e.g. ``data_tools dataset --labels`` or CAMELYON16's ``reference.csv``, else 1 when
+    the bundle has tumour annotated).
     """
     mode_settings = {k: overrides.pop(k) for k in MODE_SETTINGS if k in overrides}
     spec = {**spec_of(env_id).settings, **overrides}
@@ -198,6 +200,8 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
         raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
                         f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
     slides = _resolve_slides(env_id, spec, slide, slides, dataset, split)
+    if labels is None and dataset is not None and spec.get("task", "detection") == "classification":
+        labels = dataset_labels(dataset)  # a label table's or CAMELYON16's labels, not just "annotated"
     feature_obs = modes.obs_mode(spec.get("obs_mode", "pixels")).needs_features
     features = True if feature_obs or modes.action_mode(spec.get("action_mode", "discrete")).needs_features else None
     loaded, budget = [], max_device_bytes
@@ -341,6 +345,15 @@ def dataset_slides(folder, split: str = "train") -> list[Path]:
     if not isinstance(names, list) or not names:
         raise BundleError(index, f"no {split!r} list of bundles")
     return [folder / n for n in names]
+
+
+def dataset_labels(folder) -> dict[str, int] | None:
+    """The ``"labels"`` (bundle name → 0/1) of ``FOLDER/dataset.json``, or None when it has none."""
+    try:
+        labels = json.loads((Path(folder) / "dataset.json").read_text()).get("labels")
+    except (OSError, json.JSONDecodeError):
+        return None
+    return {str(k): int(v) for k, v in labels.items()} if isinstance(labels, dict) and labels else None
 
 
 def _label_of(bundle, labels) -> int:

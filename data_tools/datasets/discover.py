@@ -1,0 +1,223 @@
+"""Find the slides of a folder, their annotations and labels (``data_tools dataset``).
+
+Slides: ``*.svs``, ``*.tif`` / ``*.tiff`` (pyramidal TIFF, OME-TIFF), ``*.ndpi`` and DICOM WSI folders
+(a folder of DICOM files, ``.dcm`` or without extension, is one slide named after the folder), found
+recursively. A slide's
+name is its file name without the extension; names are matched case-insensitively (CAMELYON16 names
+slides ``tumor_001.tif`` but lists ``Test_001`` in ``reference.csv``). Annotations: ASAP XML,
+GeoJSON (``.geojson`` / ``.json``) and NCRF JSON (``{"positive": [...], "negative": [...]}``), in the
+same tree or ``--annotations DIR``, matched to a slide by name.
+
+CAMELYON16 as downloaded (``training/tumor/*.tif``, ``training/normal/*.tif``,
+``training/lesion_annotations/*.xml``, ``testing/images/*.tif``, ``testing/reference.csv``) is
+recognised: labels from the folder (training) and ``reference.csv`` (testing), split = the official
+one.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from data_tools.datasets.split import read_label_table, slide_key
+from data_tools.errors import HistojaxDataError
+
+SLIDE_EXTENSIONS = (".svs", ".tif", ".tiff", ".ndpi")
+ANNOTATION_EXTENSIONS = (".xml", ".geojson", ".json")
+
+
+@dataclass
+class SlideEntry:
+    """One slide of the cohort: ``path`` (file or DICOM folder), ``annotation`` (file or None) of kind
+    ``"asap"`` / ``"geojson"`` / ``"ncrf"``, ``label`` (0/1) and where it came from, ``split``
+    (``"train"`` / ``"test"`` / None = seeded)."""
+
+    name: str
+    path: Path
+    annotation: Path | None = None
+    annotation_kind: str | None = None
+    label: int = 0
+    label_source: str = "no annotation: normal"
+    split: str | None = None
+    extra: dict = field(default_factory=dict)
+
+
+def _annotation_kind(path: Path) -> str | None:
+    """``"asap"``, ``"geojson"``, ``"ncrf"`` or None (not an annotation: ignored) from the file's start."""
+    try:
+        with open(path, "rb") as f:
+            head = f.read(4096)
+    except OSError:
+        return None
+    if path.suffix.lower() == ".xml":
+        return "asap" if b"Annotation" in head else None
+    text = head.lstrip()
+    if not text.startswith(b"{"):
+        return None
+    if path.suffix.lower() == ".geojson" or b'"type"' in head and (b"Feature" in head):
+        return "geojson"
+    if b'"positive"' in head or b'"negative"' in head:
+        return "ncrf"
+    return None
+
+
+def _walk(root: Path, skip: list[Path]):
+    """(slides, annotation files, csv files) under ``root``; DICOM folders are one slide each."""
+    from data_tools.dicom import is_dicom
+
+    slides, annotations = [], []
+    skip = [s.resolve() for s in skip]
+    for folder, dirs, files in os.walk(root, followlinks=True):
+        here = Path(folder)
+        if any(here.resolve() == s or s in here.resolve().parents for s in skip):
+            dirs[:] = []
+            continue
+        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
+        plain = [f for f in files if not f.startswith(".")]
+        dicom_like = any(f.lower().endswith(".dcm") for f in plain) or (
+            plain and not any(f.lower().endswith(SLIDE_EXTENSIONS + ANNOTATION_EXTENSIONS + (".csv", ".h5"))
+                              for f in plain))  # PACS exports often have no extension
+        if dicom_like and is_dicom(here):
+            slides.append(here)
+            dirs[:] = []
+            continue
+        for f in sorted(files):
+            if f.startswith("."):
+                continue
+            p = here / f
+            low = f.lower()
+            if low.endswith(SLIDE_EXTENSIONS):
+                slides.append(p)
+            elif low.endswith(ANNOTATION_EXTENSIONS):
+                annotations.append(p)
+    return slides, annotations
+
+
+def _by_key(paths, what: str) -> dict[str, Path]:
+    """Paths keyed by lower-cased name; two files of one name in two folders are an error naming both."""
+    out: dict[str, Path] = {}
+    for p in paths:
+        key = slide_key(p.name).lower()
+        if key in out:
+            raise HistojaxDataError(p, f"two {what} named {slide_key(p.name)!r}: {out[key]} and {p}; names identify "
+                                       "slides, rename one or build the folders separately")
+        out[key] = p
+    return out
+
+
+def camelyon16_layout(root: Path) -> bool:
+    """Whether ``root`` looks like CAMELYON16 as downloaded (``training/tumor``, ``training/normal`` or
+    ``testing/images``)."""
+    return any((root / p).is_dir() for p in ("training/tumor", "training/normal", "testing/images"))
+
+
+def discover(root, annotations_dir=None, labels_csv=None, skip=(), allow_unmatched: bool = False) -> list[SlideEntry]:
+    """The cohort under ``root`` (see the module doc), sorted by name. Errors (one line, naming the
+    file): no slides; two slides or annotations of one name; an annotation naming no slide (unless
+    ``allow_unmatched``); a label table naming unknown slides or missing some; CAMELYON16 testing
+    slides without ``testing/reference.csv``."""
+    root = Path(root)
+    if not root.is_dir():
+        raise HistojaxDataError(root, "no such folder of slides")
+    slide_paths, ann_paths = _walk(root, list(skip))
+    if annotations_dir is not None:
+        if not Path(annotations_dir).is_dir():
+            raise HistojaxDataError(annotations_dir, "no such folder of annotations")
+        ann_paths += _walk(Path(annotations_dir), list(skip))[1]
+    ann_paths = [p for p in ann_paths if _annotation_kind(p)]
+    if not slide_paths:
+        raise HistojaxDataError(root, f"holds no slides ({', '.join(SLIDE_EXTENSIONS)} files or DICOM folders)")
+    slides = _by_key(slide_paths, "slides")
+    anns = _by_key(ann_paths, "annotation files")
+    orphans = sorted(set(anns) - set(slides))
+    if orphans and not allow_unmatched:
+        raise HistojaxDataError(anns[orphans[0]], f"annotation for a slide that is not in {root} ({len(orphans)} "
+                                f"such: {', '.join(anns[k].name for k in orphans[:4])}"
+                                f"{', ...' if len(orphans) > 4 else ''}); a misspelt name would make a tumour "
+                                "slide look normal. Pass --allow-unmatched-annotations if only part of the "
+                                "cohort is here")
+    entries = []
+    for key, path in sorted(slides.items()):
+        e = SlideEntry(name=slide_key(path.name), path=path)
+        if key in anns:
+            e.annotation, e.annotation_kind = anns[key], _annotation_kind(anns[key])
+            e.label, e.label_source = 1, f"annotated ({anns[key].name}): tumour"
+        entries.append(e)
+    if camelyon16_layout(root):
+        _camelyon16_labels(root, entries)
+    if labels_csv is not None:
+        _table_labels(Path(labels_csv), entries)
+    return sorted(entries, key=lambda e: e.name)
+
+
+def _camelyon16_labels(root: Path, entries: list[SlideEntry]) -> None:
+    """Labels and split of CAMELYON16 as downloaded: training/tumor → 1, training/normal → 0, train;
+    testing/images → test, labels from testing/reference.csv (``Test_001,Tumor,Macro,Primary``)."""
+    testing = [e for e in entries if "testing" in e.path.relative_to(root).parts]
+    reference = None
+    if testing:
+        found = sorted(root.rglob("reference.csv"))
+        if not found:
+            raise HistojaxDataError(root / "testing" / "reference.csv",
+                                    f"missing: the labels of the {len(testing)} CAMELYON16 testing slides come from it")
+        reference = {k.lower(): v for k, v in read_label_table(found[0])[0].items()}
+    for e in entries:
+        parts = [p.lower() for p in e.path.relative_to(root).parts[:-1]]
+        if "training" in parts and ("tumor" in parts or "normal" in parts):
+            e.split = "train"
+            e.label = int("tumor" in parts)
+            e.label_source = f"CAMELYON16 folder training/{'tumor' if e.label else 'normal'}"
+        elif "testing" in parts:
+            e.split = "test"
+            if e.name.lower() not in reference:
+                raise HistojaxDataError(found[0], f"has no row for the testing slide {e.name}")
+            e.label = reference[e.name.lower()]
+            e.label_source = f"CAMELYON16 {found[0].name}"
+        else:
+            raise HistojaxDataError(e.path, "not in training/tumor, training/normal or testing/images of the "
+                                            "CAMELYON16 layout; its label would be a guess")
+
+
+def _table_labels(path: Path, entries: list[SlideEntry]) -> None:
+    """Labels (and split, if the table has one) from ``--labels``: every slide needs a row, every row a slide."""
+    labels, splits = read_label_table(path)
+    labels = {k.lower(): v for k, v in labels.items()}
+    splits = {k.lower(): v for k, v in splits.items()}
+    names = {e.name.lower() for e in entries}
+    unknown = sorted(set(labels) - names)
+    if unknown:
+        raise HistojaxDataError(path, f"names {len(unknown)} slide(s) that are not in the folder: "
+                                      f"{', '.join(unknown[:4])}{', ...' if len(unknown) > 4 else ''}")
+    missing = sorted(e.name for e in entries if e.name.lower() not in labels)
+    if missing:
+        raise HistojaxDataError(path, f"has no label for {len(missing)} slide(s): {', '.join(missing[:4])}"
+                                      f"{', ...' if len(missing) > 4 else ''}")
+    for e in entries:
+        new = labels[e.name.lower()]
+        if e.split is not None and e.label != new:  # a layout label (CAMELYON16 folder) disagrees
+            raise HistojaxDataError(path, f"labels {e.name} {new} but {e.label_source} says {e.label}")
+        e.label, e.label_source = new, f"label table {path.name}"
+        if splits:
+            e.split = splits[e.name.lower()]
+
+
+def ncrf_to_geojson(path: Path, out: Path) -> Path:
+    """Write the NCRF JSON ``path`` as GeoJSON ``out`` (``positive`` → tumour, ``negative`` → exclusion on
+    tumour slides; on slides without ``positive`` polygons, ``negative`` is tissue), atomically."""
+    from shapely.geometry import mapping
+
+    from data_tools.bundle_format import write_json
+    from data_tools.ncrf import parse_ncrf
+
+    s = parse_ncrf(slide_key(path.name), path.read_bytes(), path)
+    pairs = [("tumour", s.positive), ("exclusion", s.negative)] if not s.positive.is_empty \
+        else [("tissue", s.negative)]
+    doc = {"type": "FeatureCollection", "features": [
+        {"type": "Feature", "properties": {"label": label, "source": path.name}, "geometry": mapping(g)}
+        for label, g in pairs if not g.is_empty]}
+    out.parent.mkdir(parents=True, exist_ok=True)
+    write_json(out, doc)
+    return out
+
+
+__all__ = ["SlideEntry", "camelyon16_layout", "discover", "ncrf_to_geojson"]

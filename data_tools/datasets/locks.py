@@ -1,0 +1,159 @@
+"""Locks and leftovers of dataset builds (shared by ``data_tools dataset`` and ``data_tools c16``).
+
+A dataset folder may be written by several processes at once (``--jobs N``) and by several machines
+sharing it (``--shard I/N``, e.g. a SLURM job array). Every bundle ``bundles/NAME`` is built while
+holding ``bundles/.NAME.dataset-lock`` (``flock``, non-blocking: a bundle another process is building
+is skipped, never built twice); ``dataset.json`` and the plan are written holding ``.dataset.lock``.
+The kernel drops the lock of a killed process; a holder removes its lock file when done, so a
+finished run leaves no lock files behind.
+
+Leftovers of killed runs — ``.NAME.tmp-*`` / ``.NAME.old-*`` siblings of any bundle or file,
+and ``features.partial/`` inside a bundle whose feature grid is finished — are removed by
+:func:`clean_stale` only when nobody holds the locks of ``NAME`` (a live build's temporaries are left
+alone).
+"""
+from __future__ import annotations
+
+import contextlib
+import errno
+import fcntl
+import os
+import re
+import shutil
+from pathlib import Path
+
+from data_tools.errors import HistojaxDataError
+
+STALE = re.compile(r"^\.(?P<name>.+)\.(?:tmp|old)-[0-9a-zA-Z]+$")
+"""Hidden temporaries of :func:`data_tools.bundle_format.atomic_folder` / ``atomic_file``."""
+
+
+class LockHeld(HistojaxDataError):
+    """Another live process holds the lock."""
+
+
+def _acquire(path: Path, blocking: bool):
+    """Open and ``flock`` ``path``; returns the fd, or None when another process holds it and not blocking.
+    Loops when the previous holder removed the file between our open and our lock."""
+    while True:
+        fd = os.open(path, os.O_RDWR | os.O_CREAT, 0o644)
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | (0 if blocking else fcntl.LOCK_NB))
+        except BlockingIOError:
+            os.close(fd)
+            return None
+        except OSError as e:
+            if e.errno in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                return fd  # no locking on this filesystem: run unlocked
+            os.close(fd)
+            raise
+        try:
+            same = os.path.samestat(os.fstat(fd), os.stat(path))
+        except FileNotFoundError:
+            same = False
+        if same:
+            return fd
+        os.close(fd)
+
+
+def _release(path: Path, fd: int) -> None:
+    try:
+        os.unlink(path)
+    except OSError:
+        pass
+    os.close(fd)
+
+
+@contextlib.contextmanager
+def file_lock(path, blocking: bool = True, what: str = "this dataset"):
+    """Hold an exclusive ``flock`` on ``path`` (created; removed when released). Not blocking: raises
+    :class:`LockHeld` naming ``path`` when another process holds it."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd = _acquire(path, blocking)
+    if fd is None:
+        raise LockHeld(path, f"another process is writing {what} (lock held)")
+    try:
+        os.ftruncate(fd, 0)
+        os.write(fd, str(os.getpid()).encode())
+        yield path
+    finally:
+        _release(path, fd)
+
+
+def bundle_lock_path(bundle) -> Path:
+    """``bundles/.NAME.dataset-lock`` of the bundle folder ``bundles/NAME``."""
+    bundle = Path(bundle)
+    return bundle.parent / f".{bundle.name}.dataset-lock"
+
+
+@contextlib.contextmanager
+def _free(path: Path):
+    """Yield True when nobody holds ``path`` (and hold it meanwhile), False when someone does."""
+    fd = _acquire(path, blocking=False) if path.parent.is_dir() else None
+    if fd is None and path.parent.is_dir():
+        yield False
+        return
+    try:
+        yield True
+    finally:
+        if fd is not None:
+            _release(path, fd)
+
+
+def clean_stale(folder, finished_features: bool = True, lock_folder=None) -> list[str]:
+    """Remove the hidden temporaries of killed runs in ``folder`` (``.NAME.tmp-*``, ``.NAME.old-*`` of any
+    NAME) whose NAME no live process is building (neither ``.NAME.dataset-lock`` nor the bundle builder's
+    ``.NAME.lock`` held), and ``NAME/features.partial`` of bundles whose feature grid is finished.
+    Returns the names removed (relative to ``folder``). Safe to call while other shards run.
+    ``lock_folder``: where the locks of the names live (default ``folder``; e.g. ``bundles/`` for the
+    slide TIFFs ``slides/.NAME.tif.tmp-*`` that ``c16`` writes holding the lock of bundle NAME); a
+    temporary ``.NAME.EXT.tmp-*`` is checked against the locks of ``NAME.EXT`` and of ``NAME``."""
+    folder = Path(folder)
+    locks = Path(lock_folder) if lock_folder is not None else folder
+    removed: list[str] = []
+    if not folder.is_dir():
+        return removed
+    for p in sorted(folder.iterdir()):
+        m = STALE.match(p.name)
+        if not m:
+            continue
+        names = dict.fromkeys([m["name"], m["name"].split(".")[0]])
+        with contextlib.ExitStack() as stack:
+            if not all(stack.enter_context(_free(locks / f".{n}.{kind}"))
+                       for n in names for kind in ("dataset-lock", "lock")):
+                continue
+            if p.is_dir() and not p.is_symlink():
+                shutil.rmtree(p, ignore_errors=True)
+            else:
+                p.unlink(missing_ok=True)
+            removed.append(p.name)
+    if finished_features:
+        for partial in sorted(folder.glob("*/features.partial")):
+            bundle = partial.parent
+            with _free(bundle_lock_path(bundle)) as free:
+                if free and clean_partial_features(bundle):
+                    removed.append(f"{bundle.name}/features.partial")
+    return removed
+
+
+def clean_partial_features(bundle) -> bool:
+    """Remove ``BUNDLE/features.partial`` when it is empty or the bundle's feature grid is finished (its
+    metadata names an encoder); returns whether it was removed. Call holding the bundle's lock."""
+    import json
+
+    partial = Path(bundle) / "features.partial"
+    if not partial.is_dir():
+        return False
+    done = False
+    try:
+        done = bool((json.loads((Path(bundle) / "metadata.json").read_text()).get("features") or {}).get("encoder"))
+    except (OSError, ValueError):
+        pass
+    if done or not any(partial.iterdir()):
+        shutil.rmtree(partial, ignore_errors=True)
+        return True
+    return False
+
+
+__all__ = ["LockHeld", "bundle_lock_path", "clean_partial_features", "clean_stale", "file_lock"]

@@ -1,0 +1,169 @@
+"""Labels, train/test splits and shards of a dataset (shared by ``data_tools dataset`` and ``c16``)."""
+from __future__ import annotations
+
+import csv
+import math
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.errors import HistojaxDataError
+
+POSITIVE = {"1", "tumour", "tumor", "positive", "pos", "malignant", "metastasis", "macro", "micro", "true", "yes"}
+NEGATIVE = {"0", "normal", "negative", "neg", "benign", "false", "no"}
+NAME_COLUMNS = ("slide", "name", "slide_id", "slide_name", "image", "filename", "case_id")
+LABEL_COLUMNS = ("label", "class", "target", "diagnosis", "y")
+
+
+def parse_label(value: str, where, row: int) -> int:
+    """0 or 1 from a label cell (``1`` / ``tumour`` / ``Tumor`` / ``positive`` ... or ``0`` / ``normal`` /
+    ``negative`` ...; case-insensitive); a clear error naming the file and row otherwise."""
+    v = str(value).strip().lower()
+    if v in POSITIVE:
+        return 1
+    if v in NEGATIVE:
+        return 0
+    raise HistojaxDataError(where, f"row {row}: label {value!r} is neither tumour (1, Tumor, positive) nor normal "
+                                   "(0, Normal, negative)")
+
+
+def slide_key(text: str) -> str:
+    """A slide name as matched across files: the file name without its slide extension(s)."""
+    name = Path(str(text).strip()).name
+    for ext in (".ome.tiff", ".ome.tif", ".tiff", ".tif", ".svs", ".ndpi", ".mrxs", ".dcm", ".h5", ".xml",
+                ".geojson", ".json"):
+        if name.lower().endswith(ext):
+            return name[: -len(ext)]
+    return name
+
+
+def read_label_table(path) -> tuple[dict[str, int], dict[str, str]]:
+    """``(labels, splits)`` from a CSV: a header naming a slide column (``slide``, ``name``, ``slide_id``,
+    ...) and a label column (``label``, ``class``, ...), optionally ``split`` (train/test); or no header,
+    rows ``name,label,...`` (CAMELYON16's ``reference.csv``: ``Test_001,Tumor,Macro,Primary``). Names are
+    matched without extension. Duplicate names with different labels, unknown label values or split
+    values are errors naming the file and row."""
+    path = Path(path)
+    try:
+        text = path.read_text(encoding="utf-8-sig")
+    except OSError as e:
+        raise HistojaxDataError(path, f"cannot read the label table ({e.strerror or e})") from None
+    rows = [r for r in csv.reader(text.splitlines()) if r and any(c.strip() for c in r)]
+    if not rows:
+        raise HistojaxDataError(path, "the label table is empty")
+    head = [c.strip().lower() for c in rows[0]]
+    name_col = next((head.index(c) for c in NAME_COLUMNS if c in head), None)
+    label_col = next((head.index(c) for c in LABEL_COLUMNS if c in head), None)
+    split_col = head.index("split") if "split" in head else None
+    if name_col is None and label_col is None:  # no header: name,label,...
+        name_col, label_col, start = 0, 1, 0
+    elif name_col is None or label_col is None:
+        raise HistojaxDataError(path, f"the header {rows[0]} needs a slide column (one of {NAME_COLUMNS}) and a "
+                                      f"label column (one of {LABEL_COLUMNS})")
+    else:
+        start = 1
+    labels: dict[str, int] = {}
+    splits: dict[str, str] = {}
+    for i, row in enumerate(rows[start:], start=start + 1):
+        if len(row) <= max(name_col, label_col):
+            raise HistojaxDataError(path, f"row {i}: expected a slide name and a label, got {row}")
+        name = slide_key(row[name_col])
+        label = parse_label(row[label_col], path, i)
+        if name in labels and labels[name] != label:
+            raise HistojaxDataError(path, f"row {i}: {name} is listed twice with different labels")
+        labels[name] = label
+        if split_col is not None and len(row) > split_col and row[split_col].strip():
+            s = row[split_col].strip().lower()
+            if s not in ("train", "test"):
+                raise HistojaxDataError(path, f"row {i}: split {row[split_col]!r} must be train or test")
+            splits[name] = s
+    if splits and set(splits) != set(labels):
+        missing = sorted(set(labels) - set(splits))
+        raise HistojaxDataError(path, f"the split column is empty for {len(missing)} slide(s), e.g. {missing[:3]}; "
+                                      "give every slide a split or none")
+    return labels, splits
+
+
+def seeded_split(names, labels: dict[str, int], test_fraction: float, seed: int,
+                 groups: dict[str, str] | None = None) -> tuple[list[str], list[str]]:
+    """Train/test by slide, stratified by label: for each label, ``floor(test_fraction · n)`` slides (at
+    least one while the label has two or more) go to test in a seeded order. ``groups`` (name → group
+    key) keeps slides of one group (e.g. a patient) on one side. Deterministic given ``seed`` and the
+    set of names (not their order)."""
+    if not 0 <= test_fraction < 1:
+        raise HistojaxDataError(None, f"--test-fraction {test_fraction} must be in [0, 1)")
+    names = sorted(names)
+    groups = groups or {}
+    members: dict[str, list[str]] = {}
+    for n in names:
+        members.setdefault(groups.get(n, n), []).append(n)
+    keys = sorted(members)
+    order = [keys[i] for i in np.random.default_rng([int(seed), 22]).permutation(len(keys))]
+    test: set[str] = set()
+    for label in sorted({labels[n] for n in names}):
+        n_label = sum(labels[n] == label for n in names)
+        cap = math.floor(test_fraction * n_label)
+        if test_fraction > 0 and n_label >= 2:
+            cap = max(cap, 1)
+        taken = 0
+        for g in order:
+            if any(m in test for m in members[g]) or labels[members[g][0]] != label:
+                continue
+            size = sum(labels[m] == label for m in members[g])
+            if taken + size <= cap:
+                test.update(members[g])
+                taken += size
+    return [n for n in names if n not in test], [n for n in names if n in test]
+
+
+def grouped_split(names: list[str], donors: dict[str, str], test_fraction: float, seed: int) -> tuple[list, list]:
+    """Train/test by slide: a tumour slide and the normal slide lending it tissue are one group (same
+    side); groups go to test in a seeded order while the test side holds at most ``test_fraction`` of
+    the tumour slides and of the normal slides; each side keeps at least one of each kind when it can.
+    ``c16``'s split (``split_slides`` there; kept as it was so its published figures stay reproducible):
+    a slide is a tumour slide when its name starts with ``tumor``."""
+    parent = {n: n for n in names}
+    for t, d in donors.items():
+        if d in parent:
+            parent[t] = d
+    groups: dict[str, list[str]] = {}
+    for n in names:
+        groups.setdefault(parent[n], []).append(n)
+    keys = sorted(groups)
+    order = [keys[i] for i in np.random.default_rng([seed, 13]).permutation(len(keys))]
+    is_t = lambda n: n.lower().startswith("tumor")  # noqa: E731
+    n_t, n_n = sum(map(is_t, names)), sum(not is_t(n) for n in names)
+    cap_t, cap_n = max(1, math.floor(test_fraction * n_t)), max(1, math.floor(test_fraction * n_n))
+    test: list[str] = []
+    order = [g for g in order if any(map(is_t, groups[g]))] + [g for g in order if not any(map(is_t, groups[g]))]
+    for g in order:
+        tt = sum(map(is_t, test)) + sum(map(is_t, groups[g]))
+        tn = sum(not is_t(n) for n in test) + sum(not is_t(n) for n in groups[g])
+        if tt <= min(cap_t, n_t - 1) and tn <= min(cap_n, n_n - 1):
+            test += groups[g]
+    return [n for n in names if n not in test], [n for n in names if n in test]
+
+
+def parse_shard(text: str) -> tuple[int, int]:
+    """``"I/N"`` → ``(I, N)`` with ``0 <= I < N`` (``$SLURM_ARRAY_TASK_ID/N`` with ``--array=0-(N-1)``)."""
+    try:
+        i, n = (int(v) for v in str(text).split("/"))
+    except ValueError:
+        raise HistojaxDataError(None, f"--shard {text!r}: expected I/N, e.g. 0/8 (shards 0 to N-1)") from None
+    if not (n >= 1 and 0 <= i < n):
+        raise HistojaxDataError(None, f"--shard {text!r}: I must be in 0..N-1 and N >= 1")
+    return i, n
+
+
+def shard_names(names, shard: tuple[int, int] | None) -> list[str]:
+    """The names of shard ``(I, N)``: every N-th of the sorted names starting at the I-th (disjoint,
+    covering, the same on every machine whatever the listing order)."""
+    names = sorted(names)
+    if shard is None:
+        return names
+    i, n = shard
+    return names[i::n]
+
+
+__all__ = ["grouped_split", "parse_label", "parse_shard", "read_label_table", "seeded_split", "shard_names",
+           "slide_key"]

@@ -327,3 +327,87 @@ def test_feature_only_bundles(small, tmp_path):
         meta = read_metadata(b)
         assert meta.pixel_levels == list(range(len(meta.levels)))
     histojax.make("HistoJAX-C16-Easy-v0", dataset=out, split="train")
+
+
+def _provenance(folder: Path, name: str) -> dict:
+    return json.loads((folder / "slides" / f"{name}.provenance.json").read_text())
+
+
+def test_train_and_test_slides_share_no_patch(small):
+    """Every slide draws its texture from its split's pool only: no patch textures both sides, and each
+    side's patches are in that side's pool by the recorded rule."""
+    from data_tools.pcam_bank import in_test_pool
+
+    ds = json.loads((small / "dataset.json").read_text())
+    assert ds["format"] == 2 and ds["patch_pools"]["rule"].startswith("test pool iff")
+    used = {}
+    for side in ("train", "test"):
+        names = set()
+        for bundle in ds[side]:
+            prov = _provenance(small, Path(bundle).name)
+            assert prov["patch_pool"] == side
+            for lab, patch_names in prov["patch_names"].items():
+                names |= {(int(lab), n) for n in patch_names}
+        used[side] = names
+    assert used["train"] and used["test"] and not used["train"] & used["test"]
+    for side, names in used.items():
+        labs, pnames = zip(*sorted(names))
+        assert (in_test_pool(pnames, labs) == (side == "test")).all(), side
+
+
+def test_a_subset_keeps_the_whole_sets_split_donor_and_slides(small, tmp_path):
+    """`--slides Tumor_072` alone (its donor not named) builds, with the same donor and pixels as the whole
+    set, and on the whole set's folder leaves the other slides and the split as they were."""
+    import shutil
+
+    from data_tools.c16 import make_c16_dataset
+
+    whole = json.loads((small / "dataset.json").read_text())
+    alone = tmp_path / "alone"
+    ds = make_c16_dataset(alone, small=True, names=["Tumor_072"], progress=False)
+    assert ds["variant"] == "subset" and ds["test"] == ["bundles/Tumor_072"] and ds["train"] == []
+    assert _provenance(alone, "Tumor_072")["settings"] == _provenance(small, "Tumor_072")["settings"]
+    assert (alone / "slides" / "Tumor_072.tif").read_bytes() == (small / "slides" / "Tumor_072.tif").read_bytes()
+    with pytest.raises(BundleError, match="split of this subset is empty"):
+        import histojax
+
+        histojax.make("HistoJAX-C16-Easy-v0", dataset=alone, split="train", obs_mode="features")
+    copy = tmp_path / "copy"
+    shutil.copytree(small, copy)
+    again = make_c16_dataset(copy, small=True, names=["Tumor_072", "Normal_108"], progress=False)
+    assert again["variant"] == "small"
+    assert (again["train"], again["test"]) == (whole["train"], whole["test"])
+    assert [s["name"] for s in again["slides"]] == [s["name"] for s in whole["slides"]]
+
+
+def test_test_slides_from_another_patch_set(tmp_path):
+    """--test-patches: the test slides are textured from that set alone (here: the shipped bank's test pool
+    written out as a folder, a stand-in for PCam's own test split)."""
+    from data_tools.c16 import make_c16_dataset
+    from data_tools.pcam_bank import load_bank, split_pools
+
+    _, pool = split_pools(load_bank())
+    other = tmp_path / "other"
+    for i in range(len(pool)):
+        f = other / str(int(pool.labels[i])) / f"x{pool.names[i]}"
+        f.parent.mkdir(parents=True, exist_ok=True)
+        f.write_bytes(pool.blob[pool.offsets[i]:pool.offsets[i + 1]].tobytes())
+    out = tmp_path / "ds"
+    ds = make_c16_dataset(out, small=True, names=["Tumor_072"], test_patches=other, progress=False)
+    assert ds["patch_pools"]["test"]["other_patch_set"] and ds["patch_pools"]["test"]["source"] == str(other)
+    prov = _provenance(out, "Tumor_072")
+    assert all(n.startswith("x") for names in prov["patch_names"].values() for n in names)
+
+
+def test_v1_ids_need_a_format_2_dataset_with_pcam_cnn_features(small, tmp_path):
+    import histojax
+
+    ds = json.loads((small / "dataset.json").read_text())
+    old = tmp_path / "old"
+    old.mkdir()
+    (old / "dataset.json").write_text(json.dumps({**ds, "format": 1, "train": [str(small / b) for b in ds["train"]],
+                                                  "test": [str(small / b) for b in ds["test"]]}))
+    with pytest.raises(BundleError, match="format >= 2.*use the -v0 id"):
+        histojax.make("HistoJAX-C16-Hard-v1", dataset=old)
+    with pytest.raises(BundleError, match="pcam-cnn features; this dataset's feature grids are None"):
+        histojax.make("HistoJAX-C16-Hard-v1", dataset=small)

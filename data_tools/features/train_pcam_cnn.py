@@ -21,7 +21,6 @@ figures: data hash, command, epochs, validation and test-pool AUC).
 from __future__ import annotations
 
 import hashlib
-import json
 import sys
 import time
 from pathlib import Path
@@ -33,6 +32,7 @@ from data_tools.c16_mosaic import COLOUR_MATCH, DENSITY_RANGE, STAIN_RANGE
 GROUPS = 4          # stain groups ("slides") per batch
 P_MATCH = 0.6       # a group's chance of the mosaic's tumour colour matching
 P_RAW = 0.2         # a group's chance of keeping PCam's own colours (no stain, no matching)
+SHIFT = 4           # px of random translation each way
 
 
 def box_half(patches: np.ndarray) -> np.ndarray:
@@ -59,7 +59,7 @@ def mosaic_augment(key, images, labels):
 
     b = images.shape[0]
     g = b // GROUPS
-    ks = jax.random.split(key, 7)
+    ks = jax.random.split(key, 8)
     group = jnp.repeat(jnp.arange(GROUPS), g)
     gains = (jax.random.uniform(ks[0], (GROUPS, 3), minval=STAIN_RANGE[0], maxval=STAIN_RANGE[1])
              * jax.random.uniform(ks[1], (GROUPS, 1), minval=DENSITY_RANGE[0], maxval=DENSITY_RANGE[1]))
@@ -86,6 +86,11 @@ def mosaic_augment(key, images, labels):
     flips = jax.random.bernoulli(ks[6], 0.5, (b, 2))
     x = jnp.where(flips[:, 0, None, None, None], x[:, ::-1], x)
     x = jnp.where(flips[:, 1, None, None, None], x[:, :, ::-1], x)
+    # a shift of up to SHIFT px each way (mirror padding), as patches sit anywhere under a view's cells
+    h, w = x.shape[1:3]
+    padded = jnp.pad(x, ((0, 0), (SHIFT, SHIFT), (SHIFT, SHIFT), (0, 0)), mode="reflect")
+    offsets = jax.random.randint(ks[7], (b, 2), 0, 2 * SHIFT + 1)
+    x = jax.vmap(lambda img, o: jax.lax.dynamic_slice(img, (o[0], o[1], 0), (h, w, 3)))(padded, offsets)
     return jnp.clip(x, 0.0, 255.0)
 
 

@@ -39,7 +39,8 @@ import numpy as np
 from flax import struct
 
 from data_tools.bundle_format import (  # noqa: F401  (select_levels, *_bytes: re-exported, their home is the format)
-    Bundle, BundleMetadata, feature_bytes, load_bundle, load_feature_levels, read_metadata, select_levels,
+    Bundle, BundleMetadata, feature_bytes, load_bundle, load_feature_levels, read_metadata, select_levels, stable_read,
+    verify_metadata,
     slide_device_bytes, tumour_table_bytes)
 from data_tools.errors import BundleError
 
@@ -368,8 +369,30 @@ def load_slide(path, n_levels: int, verify: bool = True,
     (metadata and thumbnails for rendering, levels also coarsest first).
     """
     path = Path(path)
+    return stable_read(path, lambda: _load_slide(path, n_levels, verify, max_device_bytes, features, pixels))
+
+
+def check_levels(path, metadata, chosen: list[int]) -> None:
+    """Refuse scenario levels (bundle indices, coarsest first) between which zooming does nothing: the same
+    bundle level twice (a bundle built with magnification range 1) or two levels of the same size."""
+    t = int(metadata["tile_size"])
+    sizes = [(max(t, int(metadata["levels"][k]["width"])), max(t, int(metadata["levels"][k]["height"])))
+             for k in chosen]
+    for a, b, size in zip(chosen, chosen[1:], sizes[1:]):
+        if a == b or sizes[chosen.index(a)] == size:
+            raise BundleError(path, f"{len(chosen)} zoom levels would show bundle levels of the same size "
+                              f"({size[0]}×{size[1]} px, magnification range {metadata['magnification_range']:g}, "
+                              f"tile {t} px): zooming would do nothing; rebuild it with a larger "
+                              "--magnification-range or a smaller --tile-size")
+
+
+def _load_slide(path: Path, n_levels: int, verify: bool, max_device_bytes: int, features, pixels: bool):
+    """The body of :func:`load_slide` (one attempt; :func:`stable_read` repeats it when the folder is swapped)."""
     metadata = read_metadata(path)
+    if verify:
+        verify_metadata(path, metadata)
     chosen = select_levels(metadata, n_levels, path)
+    check_levels(path, metadata, chosen)
     load_features = bool(features) or (features is None and bool(metadata.features)) or not pixels
     missing = [k for k in chosen if k not in metadata.pixel_levels]
     if pixels and missing:
@@ -392,7 +415,8 @@ def load_slide(path, n_levels: int, verify: bool = True,
     coarsest = len(metadata.levels) - 1
     if chosen[0] != coarsest:
         raise BundleError(path, "the scenario's coarsest level is not the bundle's coarsest; rebuild the bundle")
-    bundle = load_bundle(path, verify=verify, levels=chosen, mmap=True)  # host copies: one flat array at a time
+    bundle = load_bundle(path, verify=verify, levels=chosen, mmap=True,  # host copies: one flat array at a time
+                         metadata=metadata)
     ordered = Bundle(path=bundle.path, metadata=metadata.with_levels(chosen),
                      pixels=bundle.pixels, tumour=bundle.tumour, tissue=bundle.tissue, region=bundle.region)
     arrays = slide_arrays_from_bundle(ordered, metadata.tile_size, pixels)

@@ -281,6 +281,19 @@ def validate_params(values: dict, tile_size: int, where: str = "make") -> None:
             bad(field, values[field], "must be a tumour fraction in (0, 1]")
 
 
+def check_params(env, params, where: str = "params") -> None:
+    """Host-side check of an ``EnvParams`` changed after ``make`` (e.g. ``params.replace(stride=...)``, or a
+    vmapped batch of them) against the rules of :func:`validate_params`, for ``env``'s tile size: raises
+    ``ValueError`` naming the field instead of letting a move wrap int32, a NaN freeze the view or a
+    negative step limit truncate every step. Called by the trainers, ``evaluate`` and the Gymnasium
+    adapters; inside ``jit`` use :func:`histojax.debug.checked`, which makes the same checks with
+    ``checkify``."""
+    values = {k: getattr(params, k) for k in PARAM_FIELDS}
+    if any(isinstance(v, jax.core.Tracer) for v in values.values()):
+        raise TypeError(f"{where}: check_params runs on the host, not inside jit; use histojax.debug.checked")
+    validate_params(values, env.tile_size, where=where)
+
+
 def dataset_slides(folder, split: str = "train") -> list[Path]:
     """Bundle paths of ``split`` (``"train"``, ``"test"`` or ``"all"``) in ``FOLDER/dataset.json``."""
     folder = Path(folder)

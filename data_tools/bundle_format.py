@@ -789,44 +789,46 @@ def load_bundle(path, verify: bool = True, levels: list[int] | None = None, mmap
 
 
 def _identity(path):
-    """``(device, inode)`` of the folder at ``path``, ``None`` when there is none."""
+    """``(device, inode, ctime)`` of the folder at ``path`` (a rename sets its ctime), ``None`` when there is none."""
     try:
         st = os.stat(path)
     except OSError:
         return None
-    return st.st_dev, st.st_ino
+    return st.st_dev, st.st_ino, st.st_ctime_ns
 
 
-def _swapping(path: Path) -> bool:
-    """True while a rebuild is between its two renames (the old folder moved aside, see :func:`atomic_folder`)."""
+def _rebuilding(path: Path) -> bool:
+    """True while a build of ``path`` is under way: its temporary folder, moved-aside old folder or build lock
+    lies beside it (see :func:`atomic_folder` and :func:`data_tools.bundle.build_lock`)."""
     import glob as _glob
 
-    return bool(_glob.glob(str(path.parent / f".{_glob.escape(path.name)}.old-*")))
+    stem = str(path.parent / f".{_glob.escape(path.name)}.")
+    return bool(_glob.glob(stem + "tmp-*") or _glob.glob(stem + "old-*") or os.path.exists(stem + "lock"))
 
 
 def stable_read(path, read, attempts: int = 8):
     """``read()`` of the bundle at ``path``, repeated when the folder was swapped while it ran (a rebuild with
-    ``--overwrite`` renames a new folder into place, see :func:`atomic_folder`): the result is all of the old
-    bundle or all of the new one, never a mix, and a swap is never reported as corruption. Detected by the
-    folder's inode before and after; an error with the folder unchanged is raised at once."""
+    ``--overwrite`` renames a new folder into place, see :func:`atomic_folder`): a verified read is all of the
+    old bundle or all of the new one, never a mix, and a swap is never reported as corruption. A read is
+    repeated when the folder's identity (inode, ctime) changed, or when it failed while a rebuild was under
+    way; an error with no rebuild in sight is raised at once, and after ``attempts`` tries (about 1.3 s)."""
     import time
 
     path = Path(path)
     for attempt in range(attempts):
+        last = attempt == attempts - 1
         before = _identity(path)
         try:
             result = read()
         except BundleError:
-            after = _identity(path)
-            swapped = after != before or (after is None and _swapping(path))
-            if not swapped or attempt == attempts - 1:
+            if last or (_identity(path) == before and not _rebuilding(path)):
                 raise
             time.sleep(0.005 * 2 ** attempt)
             continue
-        if _identity(path) == before:
+        if last or _identity(path) == before:
             return result
         time.sleep(0.005 * 2 ** attempt)
-    return read()
+    raise AssertionError("unreachable")
 
 
 def load_feature_levels(bundle, metadata: dict, levels: list[int], verify: bool = True):

@@ -148,7 +148,9 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     ``action_mode="glimpse"`` / ``"zoom_select"``, or with tracking) and ``track_reading=True`` (the
     pan/zoom modes then report ``fraction_read`` and ``fields_of_view`` in ``info``).
     The slide's arrays are put on the device once and returned inside ``params``; a slide
-    needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error.
+    needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error. It bounds the
+    arrays put on the device, not the process's host memory (on the CPU backend, where they are host
+    memory, ``make`` peaks at about 1.6× them; see :func:`histojax.slide.load_slide`).
     ``verify`` checks every array's SHA-256 against the bundle metadata.
 
     Datasets: ``slides=[bundle, ...]`` (any sizes, same tile size) or ``dataset=FOLDER`` holding a

@@ -351,6 +351,9 @@ def slide_label_from_metadata(metadata: dict) -> int:
     return BundleMetadata(metadata).slide_label
 
 
+HOST_PEAK_FACTOR = 1.6  # make's peak RSS rise / device bytes on the CPU backend (benchmarks/host_memory.py)
+
+
 def load_slide(path, n_levels: int, verify: bool = True,
                max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES, features=None,
                pixels: bool = True) -> tuple[SlideArrays, Bundle]:
@@ -363,7 +366,11 @@ def load_slide(path, n_levels: int, verify: bool = True,
 
     Refuses, before reading any array, a slide whose levels need more than
     ``max_device_bytes`` (pixels and summed-area tables, see ``device_bytes``; for a tiled bundle the
-    pools and index grids recorded in its metadata).
+    pools and index grids recorded in its metadata), and checks the bytes really allocated afterwards.
+    It bounds the device arrays only, not the process's host memory: packing goes through host copies
+    one flat array at a time, so on the CPU backend (where the device arrays are host memory too) the
+    peak RSS rise of ``make`` is about :data:`HOST_PEAK_FACTOR` × the device bytes (measured with
+    ``benchmarks/host_memory.py``; see docs/bad-input.md).
 
     Returns the ``SlideArrays`` (levels coarsest first) and the host ``Bundle``
     (metadata and thumbnails for rendering, levels also coarsest first).
@@ -411,7 +418,8 @@ def _load_slide(path: Path, n_levels: int, verify: bool, max_device_bytes: int, 
                           + ("use obs_mode='features' (no pixels on the device), " if pixels else
                              "recompute the feature grid with a smaller --dim or larger --stride, ")
                           + "use fewer slides (split=, slides=) or levels, build from a coarser finest level, or "
-                          "raise max_device_bytes")
+                          "raise max_device_bytes (it bounds the arrays put on the device, not host memory: on the "
+                          f"CPU backend make's peak RSS rise is about {HOST_PEAK_FACTOR}x these bytes)")
     coarsest = len(metadata.levels) - 1
     if chosen[0] != coarsest:
         raise BundleError(path, "the scenario's coarsest level is not the bundle's coarsest; rebuild the bundle")
@@ -425,7 +433,8 @@ def _load_slide(path: Path, n_levels: int, verify: bool, max_device_bytes: int, 
     allocated = sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
     if allocated > max_device_bytes:  # what was really put on the device (start weights, labels, ... included)
         raise BundleError(path, f"{n_levels} levels took {allocated:,} bytes on the device, more than "
-                          f"max_device_bytes={max_device_bytes:,}: use fewer levels or raise max_device_bytes")
+                          f"max_device_bytes={max_device_bytes:,} (a bound on the device arrays, not on host memory): "
+                          "use fewer levels or raise max_device_bytes")
     return arrays, ordered
 
 

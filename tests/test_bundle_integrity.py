@@ -234,3 +234,24 @@ def test_readers_see_a_whole_bundle_while_it_is_rebuilt(tmp_path):
         t.join()
     assert errors == []
     assert seen and set(seen) <= digests
+
+
+def test_cached_bundle_built_before_sealing_is_rebuilt(tmp_path, monkeypatch):
+    from histojax import cache
+
+    monkeypatch.setenv("HISTOJAX_CACHE", str(tmp_path))
+    out = cache.cached_bundle(KIDNEY, level_sets=(3,), storage="dense", name="kidney")
+    _edit_metadata(out, lambda m: m.pop(METADATA_DIGEST))  # as an older histojax wrote it
+    assert cache.cached_bundle(KIDNEY, level_sets=(3,), storage="dense", name="kidney") == out
+    assert METADATA_DIGEST in _meta(out)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        load_bundle(out)
+
+
+# --------------------------------------------------------------------------- item 14: what the budget bounds
+def test_device_budget_error_says_what_it_bounds(bundle):
+    import histojax
+
+    with pytest.raises(BundleError, match="bounds the arrays put on the device, not host memory"):
+        histojax.make("HistoJAX-Easy-v0", slide=bundle, max_device_bytes=10**6)

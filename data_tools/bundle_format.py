@@ -811,7 +811,7 @@ def stable_read(path, read, attempts: int = 8):
     ``--overwrite`` renames a new folder into place, see :func:`atomic_folder`): a verified read is all of the
     old bundle or all of the new one, never a mix, and a swap is never reported as corruption. A read is
     repeated when the folder's identity (inode, ctime) changed, or when it failed while a rebuild was under
-    way; an error with no rebuild in sight is raised at once, and after ``attempts`` tries (about 1.3 s)."""
+    way; an error with no rebuild in sight is raised at once, and after ``attempts`` tries (0.6 s of waits)."""
     import time
 
     path = Path(path)

@@ -385,8 +385,8 @@ def check_levels(path, metadata, chosen: list[int]) -> None:
     t = int(metadata["tile_size"])
     sizes = [(max(t, int(metadata["levels"][k]["width"])), max(t, int(metadata["levels"][k]["height"])))
              for k in chosen]
-    for a, b, size in zip(chosen, chosen[1:], sizes[1:]):
-        if a == b or sizes[chosen.index(a)] == size:
+    for a, b, size0, size in zip(chosen, chosen[1:], sizes, sizes[1:]):
+        if a == b or size0 == size:
             raise BundleError(path, f"{len(chosen)} zoom levels would show bundle levels of the same size "
                               f"({size[0]}×{size[1]} px, magnification range {metadata['magnification_range']:g}, "
                               f"tile {t} px): zooming would do nothing; rebuild it with a larger "

@@ -2,7 +2,7 @@
 load or raise the project's own exception types — never anything else, never a hang; a bundle that loads
 after a fuzzed edit holds 0/1 masks and the metadata it was sealed with.
 
-`make fuzz` runs HISTOJAX_FUZZ_EXAMPLES=10000 per target (50,000 cases) and prints the counts;
+`make fuzz` runs HISTOJAX_FUZZ_EXAMPLES=10000 per target (70,000 cases) and prints the counts;
 the default `make test` runs a small sample (HISTOJAX_FUZZ_EXAMPLES defaults to 60). The
 ``*-geometry`` targets feed both readers self-intersecting polygons and extreme coordinates
 (up to ±1.7e308) and check that what loads is valid geometry inside the slide.

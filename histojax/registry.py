@@ -293,6 +293,8 @@ def check_params(env, params, where: str = "params") -> None:
     values = {k: getattr(params, k) for k in PARAM_FIELDS}
     if any(isinstance(v, jax.core.Tracer) for v in values.values()):
         raise TypeError(f"{where}: check_params runs on the host, not inside jit; use histojax.debug.checked")
+    values = {k: v.addressable_data(0) if isinstance(v, jax.Array) and not v.is_fully_addressable else v
+              for k, v in values.items()}  # replicated over several processes: this process's copy
     validate_params(values, env.tile_size, where=where)
 
 

@@ -342,13 +342,23 @@ def replicate_on(mesh: Mesh, tree):
     return jax.tree.map(put, tree)
 
 
-def seeds_runner(train, init_params, env_params, config: dict, progress: Progress, mesh: Mesh | None = None):
+def seeds_runner(train, init_params, env_params, config: dict, progress: Progress, mesh: Mesh | None = None,
+                 env=None):
     """One jitted program over all seeds: ``run(keys, params=None)`` trains ``len(keys)`` seeds
     (``jax.vmap`` over keys, or ``lax.map`` with ``config["vmap_seeds"] = False``) on
     ``env_params`` (or ``params``); ``run.compile(keys)`` compiles ahead of time and returns the
     same call. With a ``mesh`` (:func:`batch_mesh`) the keys and env params (slide arrays) are
     placed replicated on its devices; ``train`` shards the env batch itself (:func:`shard_batch`).
-    Shared by PPO and DQN."""
+    Shared by PPO and DQN. With ``env`` the env params given are checked first
+    (:func:`histojax.registry.check_params`: a ``stride`` or step limit changed after ``make`` is named,
+    not trained on)."""
+    from histojax.registry import check_params
+
+    def checked(p):
+        if env is not None:
+            check_params(env, p, where="train: env params")
+        return p
+
     def all_seeds(keys, p):
         # Initial parameters always via lax.map: jit(vmap(init)) of the orthogonal initialisers
         # (batched QR) never finished on jaxlib 0.10's CPU backend.
@@ -364,17 +374,17 @@ def seeds_runner(train, init_params, env_params, config: dict, progress: Progres
 
     def run(keys, params=None):
         progress.t0 = time.perf_counter()
-        return jitted(place(keys), place(env_params if params is None else params))
+        return jitted(place(keys), place(checked(env_params if params is None else params)))
 
     def compile_(keys, params=None):
         """Compile ahead of time; returns ``compiled(keys, params=None)`` (``.exe``: the
         ``jax.stages.Compiled``, e.g. for ``.as_text()``)."""
-        params = place(env_params if params is None else params)
+        params = place(checked(env_params if params is None else params))
         exe = jitted.lower(place(keys), params).compile()
 
         def call(keys, p=None):
             progress.t0 = time.perf_counter()
-            return exe(place(keys), params if p is None else place(p))
+            return exe(place(keys), params if p is None else place(checked(p)))
         call.exe = exe
         return call
 

@@ -218,7 +218,7 @@ def make_train(config: dict):
         carry, metrics = jax.lax.scan(log_block, carry, jnp.arange(num_logs))
         return {"params": carry[0], "metrics": metrics}
 
-    run = common.seeds_runner(train, init_params, env_params, config, progress)
+    run = common.seeds_runner(train, init_params, env_params, config, progress, env=env)
     run.env, run.env_params, run.network, run.config = env, env_params, network, config
     run.num_updates, run.steps_per_update = num_logs, per_log * num_envs
     return run

@@ -95,6 +95,9 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
     (``mode_data.read_budget (E,)``), see :func:`per_episode_params`. ``final=True`` also returns
     ``final_state`` (the env states at the episodes' ends) and ``final_memory`` (the policy's
     memory; ``()`` for a feed-forward policy), as pytrees of numpy arrays."""
+    from histojax.registry import check_params
+
+    check_params(env, env_params, where="evaluate: env params")  # changed after make: named, not run
     max_steps = int(np.max(np.asarray(env_params.max_steps_in_episode)))
     step = jax.vmap(env.step, in_axes=(0, 0, 0, params_axes))
     reset = jax.vmap(env.reset, in_axes=(0, params_axes))

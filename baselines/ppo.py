@@ -261,7 +261,7 @@ def make_train(config: dict):
         state, _, metrics = run_updates(init_state(params), key, env_params, 0, num_updates)
         return {"params": state.params, "metrics": metrics}
 
-    run = common.seeds_runner(train, init_params, env_params, config, progress, mesh)
+    run = common.seeds_runner(train, init_params, env_params, config, progress, mesh, env=env)
     run.init_params, run.init_state, run.run_updates, run.progress = init_params, init_state, run_updates, progress
     run.env, run.env_params, run.network, run.num_updates, run.config = env, env_params, network, num_updates, config
     run.steps_per_update = batch

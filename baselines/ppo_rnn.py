@@ -127,7 +127,7 @@ def make_train(config: dict):
         (state, *_), metrics = jax.lax.scan(update, carry, jnp.arange(num_updates))
         return {"params": state.params, "metrics": metrics}
 
-    run = common.seeds_runner(train, init_params, env_params, config, progress)
+    run = common.seeds_runner(train, init_params, env_params, config, progress, env=env)
     run.env, run.env_params, run.network, run.num_updates, run.config = env, env_params, network, num_updates, config
     run.steps_per_update = batch
     return run

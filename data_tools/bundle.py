@@ -35,7 +35,7 @@ from tqdm.auto import tqdm
 from data_tools.errors import BundleError
 from data_tools.bundle_format import (  # noqa: F401  (re-exported: the format's names, as before)
     ANNOTATIONS, FORMAT_VERSION, LEVEL_SETS, REGION, TISSUE, MAX_FLAT_PIXELS, METADATA, READ_VERSIONS, STORAGES, TILED_FORMAT_VERSION, Bundle,
-    atomic_folder, bundle_downsamples, default_magnification_range, device_bytes, level_device_bytes,
+    atomic_folder, bundle_downsamples, check_replaceable, default_magnification_range, device_bytes, level_device_bytes,
     level_downsamples, level_files, level_size, load_bundle, read_metadata, sha256, write_metadata)
 from data_tools.raster import pad, resample
 
@@ -188,6 +188,7 @@ def build_bundle(
     slide_path, out_dir = Path(slide_path), Path(out_dir)
     if out_dir.exists() and not overwrite:
         raise BundleError(out_dir, "already exists; pass overwrite=True (--overwrite) to replace it")
+    check_replaceable(out_dir)
     if tile_size < 8:
         raise BundleError(out_dir, f"tile size {tile_size} px is too small (minimum 8)")
     if magnification_range is not None and not (math.isfinite(magnification_range) and magnification_range >= 1):
@@ -212,6 +213,7 @@ def build_bundle(
     try:
         if out_dir.exists() and not overwrite:  # checked again under the lock: another build may have finished
             raise BundleError(out_dir, "already exists; pass overwrite=True (--overwrite) to replace it")
+        check_replaceable(out_dir)
         remove_stale_builds(out_dir)
         with atomic_folder(out_dir) as tmp:
             tmp.mkdir()
@@ -251,6 +253,7 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
         r = magnification_range or default_magnification_range(width0, height0, tile_size)
         downsamples = bundle_downsamples(level_sets, r)
         sizes = [level_size(width0, height0, d) for d in downsamples]
+        check_zoom(slide_path, (width0, height0), downsamples, sizes, tile_size)
         total = sum(max(w, tile_size) * max(h, tile_size) for w, h in sizes)
         if storage == "auto":
             from data_tools.tiled import AUTO_TILED_BYTES
@@ -358,6 +361,24 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
         write_metadata(tmp, metadata)
 
 
+def check_zoom(where, size0: tuple[int, int], downsamples: list[float], sizes: list[tuple[int, int]],
+               tile_size: int) -> None:
+    """Refuse level choices with which zooming would do nothing: a single level (magnification range 1, or a
+    slide smaller than one view), or two levels of the same size once padded to one ``tile_size`` view
+    (a range so large that the coarse levels shrink below one view)."""
+    if len(downsamples) < 2:
+        hint = (f"the slide ({size0[0]}×{size0[1]} px) is smaller than two {tile_size}-px views: use a smaller "
+                "--tile-size" if min(size0) < 2 * tile_size else "use a --magnification-range above 1")
+        raise BundleError(where, f"magnification range {downsamples[-1]:g} gives a single zoom level; {hint}")
+    padded = [(max(w, tile_size), max(h, tile_size)) for w, h in sizes]
+    for (d0, p0), (d1, p1) in zip(zip(downsamples, padded), zip(downsamples[1:], padded[1:])):
+        if p0 == p1:
+            best = default_magnification_range(*size0, tile_size)
+            raise BundleError(where, f"levels at downsample {d0:.4g} and {d1:.4g} are both {p1[0]}×{p1[1]} px once "
+                              f"padded to one {tile_size}-px view, so zooming between them does nothing; use a "
+                              f"--magnification-range of at most {best:g} or a smaller --tile-size")
+
+
 def _lock_path(out_dir: Path) -> Path:
     return out_dir.parent / f".{out_dir.name}.lock"
 
@@ -415,6 +436,6 @@ def remove_stale_builds(out_dir) -> list[Path]:
     return stale
 
 
-__all__ = ["Bundle", "FORMAT_VERSION", "LEVEL_SETS", "STORAGES", "TILED_FORMAT_VERSION", "level_device_bytes", "Region", "build_bundle", "bundle_downsamples", "resolve_region",
+__all__ = ["check_zoom", "Bundle", "FORMAT_VERSION", "LEVEL_SETS", "STORAGES", "TILED_FORMAT_VERSION", "level_device_bytes", "Region", "build_bundle", "bundle_downsamples", "resolve_region",
            "default_magnification_range", "level_downsamples", "level_size", "load_bundle", "read_metadata",
            "build_lock", "remove_stale_builds"]

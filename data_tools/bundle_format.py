@@ -378,9 +378,52 @@ def write_json(path, data) -> None:
         json.dump(data, f, indent=1)
 
 
+METADATA_DIGEST = "metadata_sha256"  # the SHA-256 of the rest of metadata.json (see metadata_digest)
+
+
+def metadata_digest(metadata: dict) -> str:
+    """Hex SHA-256 of ``metadata`` without its :data:`METADATA_DIGEST` entry, serialised canonically
+    (sorted keys, no spaces; floats as Python writes them, which JSON reads back exactly)."""
+    body = {k: v for k, v in metadata.items() if k != METADATA_DIGEST}
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":"),
+                                     allow_nan=True).encode()).hexdigest()
+
+
 def write_metadata(folder, metadata: dict) -> None:
-    """Write ``metadata.json`` of the bundle at ``folder`` atomically."""
-    write_json(Path(folder) / METADATA, metadata)
+    """Write ``metadata.json`` of the bundle at ``folder`` atomically, sealed with its own digest
+    (:data:`METADATA_DIGEST`), so an edit of any field is caught on a verified load."""
+    metadata = {k: v for k, v in metadata.items() if k != METADATA_DIGEST}
+    write_json(Path(folder) / METADATA, {**metadata, METADATA_DIGEST: metadata_digest(metadata)})
+
+
+def verify_metadata(path, metadata: dict) -> None:
+    """Check the digest of the bundle at ``path``'s metadata (``BundleError`` on a mismatch). Bundles
+    written before metadata was sealed have no digest: a warning says so (their fields are still
+    cross-checked against the arrays on load)."""
+    recorded = metadata.get(METADATA_DIGEST)
+    if recorded is None:
+        import warnings
+
+        warnings.warn(f"{path}: metadata.json is not sealed (bundle built before histojax sealed metadata); "
+                      "only its cross-checks against the arrays are verified, rebuild the bundle to verify "
+                      "every field", stacklevel=3)
+    elif recorded != metadata_digest(metadata):
+        raise BundleError(Path(path) / METADATA, f"metadata digest mismatch ({METADATA_DIGEST}): metadata.json "
+                          "was edited after the build; rebuild the bundle")
+
+
+def check_replaceable(out_dir) -> None:
+    """Refuse to overwrite ``out_dir`` unless it is absent, an empty folder, a histojax bundle (a folder with
+    ``metadata.json``) or dataset (``dataset.json``): ``--overwrite`` must never delete other files."""
+    out_dir = Path(out_dir)
+    if not (out_dir.exists() or out_dir.is_symlink()):
+        return
+    if out_dir.is_symlink() or not out_dir.is_dir():
+        raise BundleError(out_dir, "is a file, not a bundle folder; refusing to overwrite it (remove it yourself "
+                          "or choose another --out)")
+    if any(out_dir.iterdir()) and not ((out_dir / METADATA).is_file() or (out_dir / "dataset.json").is_file()):
+        raise BundleError(out_dir, f"is a folder of other files, not a histojax bundle (no {METADATA}); refusing to "
+                          "overwrite it (remove it yourself or choose another --out)")
 
 
 @contextlib.contextmanager
@@ -393,7 +436,9 @@ def atomic_folder(out_dir):
     tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
     try:
         yield tmp
-        if out_dir.exists():
+        if out_dir.exists() or out_dir.is_symlink():
+            if out_dir.is_symlink() or not out_dir.is_dir():
+                raise BundleError(out_dir, "is a file, not a bundle folder; refusing to replace it")
             old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
             out_dir.rename(old)
             try:
@@ -567,22 +612,108 @@ def read_metadata(path) -> BundleMetadata:
     for key in ("tile_size", "levels", "checksums", "magnification_range", "tissue"):
         if key not in metadata:
             raise BundleError(meta_file, f"metadata lacks {key!r}; rebuild the bundle")
+    check_fields(meta_file, metadata)
     return BundleMetadata(metadata)
+
+
+MIN_TILE_SIZE = 8  # px; the smallest view a build accepts
+
+
+def _is_int(v) -> bool:
+    return isinstance(v, int) and not isinstance(v, bool)
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v)
+
+
+def safe_name(name, where) -> str:
+    """``name`` if it is a plain file name inside the bundle folder (no folder part, not ``.``/``..``),
+    else ``BundleError``: metadata may only point at the bundle's own files."""
+    if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name \
+            or "\0" in name or Path(name).name != name:
+        raise BundleError(where, f"file entry {name!r} is not a file name inside the bundle; rebuild the bundle")
+    return name
+
+
+def check_fields(where, metadata: dict) -> None:
+    """Check the types and ranges of the fields readers use (tile size, levels, file names, tissue), so a
+    malformed ``metadata.json`` is refused naming it instead of failing later inside numpy."""
+    def bad(problem):
+        raise BundleError(where, f"{problem}; rebuild the bundle")
+
+    t = metadata["tile_size"]
+    if not _is_int(t) or t < MIN_TILE_SIZE:
+        bad(f"tile_size {t!r} must be a whole number of px >= {MIN_TILE_SIZE}")
+    r = metadata["magnification_range"]
+    if not _is_number(r) or r < 1:
+        bad(f"magnification_range {r!r} must be a finite number >= 1")
+    levels = metadata["levels"]
+    if not isinstance(levels, list) or not levels or not all(isinstance(lv, dict) for lv in levels):
+        bad("levels must be a non-empty list of level records")
+    tiled = metadata.get("storage", "dense") == "tiled"
+    names = ("tiles", "tile_index", "sat_tiles", "sat_index") if tiled else ("pixels", "tumour")
+    for k, lv in enumerate(levels):
+        for key in ("width", "height"):
+            if not _is_int(lv.get(key)) or not 1 <= lv[key] < 2**31:
+                bad(f"level {k} {key} {lv.get(key)!r} must be a whole number of px in [1, 2**31)")
+        d = lv.get("downsample")
+        if not _is_number(d) or d < 1 - 1e-9:
+            bad(f"level {k} downsample {d!r} must be a finite number >= 1")
+        for key in names:
+            if key == "tiles" and lv.get(key) is None:
+                continue  # pixels dropped (drop_pixels)
+            safe_name(lv.get(key), where)
+        if not tiled and not (lv["width"] >= t and lv["height"] >= t):
+            bad(f"level {k} ({lv['width']}×{lv['height']} px) is smaller than one {t}-px view")
+    downsamples = [lv["downsample"] for lv in levels]
+    if any(b <= a for a, b in zip(downsamples, downsamples[1:])):
+        bad(f"level downsamples {downsamples} must increase (finest first)")
+    tissue = metadata["tissue"]
+    if not isinstance(tissue, dict):
+        bad("tissue must be a record with the mask's file")
+    safe_name(tissue.get("file"), where)
+    if "level" in tissue and tissue["level"] != len(levels) - 1:
+        bad(f"tissue level {tissue['level']!r} is not the coarsest level {len(levels) - 1}")
+    region = metadata.get("region")
+    if region is not None and (not isinstance(region, dict) or (region.get("mask") is not None
+                                                                  and not safe_name(region["mask"], where))):
+        bad("region must be a record")
+    if not isinstance(metadata["checksums"], dict):
+        bad("checksums must be a record of file name -> SHA-256")
 
 
 def load_array(path, name: str, metadata: dict, verify: bool, mmap: bool = False) -> np.ndarray:
     """The array ``name`` of the bundle at ``path`` (no pickles), its SHA-256 checked against the
     metadata when ``verify``; ``mmap`` memory-maps it read-only."""
     path = Path(path)
-    file = path / name
+    file = path / safe_name(name, path / METADATA)
     if not file.is_file():
         raise BundleError(path, f"missing array {name}; rebuild the bundle")
     if verify and sha256(file) != metadata["checksums"].get(name):
         raise BundleError(file, "checksum mismatch (the file changed or is corrupt); rebuild the bundle")
     try:
         return np.load(file, allow_pickle=False, mmap_mode="r" if mmap else None)
-    except (ValueError, OSError) as e:
-        raise BundleError(file, f"unreadable array ({e}); rebuild the bundle") from None
+    except Exception as e:  # a corrupt header raises ValueError, SyntaxError, tokenize.TokenError, ...
+        problem = " ".join(str(e).split())[:200] or type(e).__name__
+        raise BundleError(file, f"unreadable array ({problem}); rebuild the bundle") from None
+
+
+def check_mask(file, array, shape, kind: str = "0/1") -> None:
+    """Refuse a mask whose shape is not ``shape`` or whose values are not 0/1 (``kind`` names what it holds):
+    another program's 0/255 mask would count every tumour pixel 255 times."""
+    if array.shape != tuple(shape):
+        raise BundleError(file, f"{kind} mask of shape {array.shape}, expected {tuple(shape)} from the metadata; "
+                          "rebuild the bundle")
+    if array.dtype == np.bool_:
+        return
+    if array.dtype.kind not in "ui":
+        raise BundleError(file, f"{kind} mask of dtype {array.dtype}, expected bool or uint8 0/1; rebuild the bundle")
+    top = int(np.max(array)) if array.size else 0
+    low = int(np.min(array)) if array.size else 0
+    if top > 1 or low < 0:
+        raise BundleError(file, f"{kind} mask holds values in [{low}, {top}], expected 0/1 (a 0/255 mask from "
+                          "another program?); rebuild the bundle")
 
 
 def load_tiled_level(path, lv: dict, metadata: dict, verify: bool, kind: str) -> TiledLevel:
@@ -602,6 +733,9 @@ def load_tiled_level(path, lv: dict, metadata: dict, verify: bool, kind: str) ->
                                                                        or index.max() >= pool.shape[0])))):
         raise BundleError(path / (lv[pool_name] or lv[index_name]),
                           "tile pool or index disagrees with metadata; rebuild the bundle")
+    if kind == "tumour" and pool.shape[0] and int(np.max(pool[:, t, t])) > t * t:
+        raise BundleError(path / lv[pool_name], f"a tumour tile counts more than {t * t} px (its mask is not 0/1); "
+                          "rebuild the bundle")
     return TiledLevel(pool=pool, index=index, height=int(lv["height"]), width=int(lv["width"]), kind=kind)
 
 
@@ -610,9 +744,19 @@ def load_bundle(path, verify: bool = True, levels: list[int] | None = None, mmap
     """Load the bundle at ``path`` (host numpy arrays); ``levels`` selects bundle level indices
     (finest first, as in the metadata; default all). Checksums are verified unless ``verify=False``.
     ``mmap=True`` memory-maps the dense level arrays (read-only) instead of reading them into memory.
-    ``metadata`` skips reading ``metadata.json`` again when the caller has just read it."""
+    ``metadata`` skips reading ``metadata.json`` again when the caller has just read (and, with ``verify``,
+    checked with :func:`verify_metadata`) it; without it the metadata's digest is checked (``verify``) and a
+    folder swapped by a concurrent rebuild is read again (:func:`stable_read`)."""
+    if metadata is None:  # a bundle swapped by a rebuild while we read is read again, whole
+        def read():
+            meta = read_metadata(path)
+            if verify:
+                verify_metadata(path, meta)
+            return load_bundle(path, verify, levels, mmap, meta)
+
+        return stable_read(path, read)
     path = Path(path)
-    metadata = read_metadata(path) if metadata is None else BundleMetadata(metadata)
+    metadata = BundleMetadata(metadata)
     chosen = range(len(metadata["levels"])) if levels is None else levels
     pixels, tumour = [], []
     for k in chosen:
@@ -628,11 +772,63 @@ def load_bundle(path, verify: bool = True, levels: list[int] | None = None, mmap
             if array.shape != shape or array.dtype != np.uint8:
                 raise BundleError(path / name, f"array {array.shape} {array.dtype} disagrees with the metadata "
                                   f"({shape} uint8); rebuild the bundle")
+        check_mask(path / lv["tumour"], tumour[-1], (lv["height"], lv["width"]), "tumour")
+        recorded = lv.get("tumour_pixels")
+        if recorded is not None and recorded != int(np.sum(tumour[-1], dtype=np.int64)):
+            raise BundleError(path / METADATA, f"level {k} records {recorded!r} tumour px, {lv['tumour']} holds "
+                              f"{int(np.sum(tumour[-1], dtype=np.int64))}; rebuild the bundle")
+    coarsest = metadata["levels"][-1]
     tissue = load_array(path, metadata.tissue_file, metadata, verify)
+    check_mask(path / metadata.tissue_file, tissue, (coarsest["height"], coarsest["width"]), "tissue")
     region = None
     if metadata.region_mask_file:
-        region = load_array(path, metadata.region_mask_file, metadata, verify).astype(bool)
+        region = load_array(path, metadata.region_mask_file, metadata, verify)
+        check_mask(path / metadata.region_mask_file, region, (coarsest["height"], coarsest["width"]), "region")
+        region = region.astype(bool)
     return Bundle(path=path, metadata=metadata, pixels=pixels, tumour=tumour, tissue=tissue, region=region)
+
+
+def _identity(path):
+    """``(device, inode, ctime)`` of the folder at ``path`` (a rename sets its ctime), ``None`` when there is none."""
+    try:
+        st = os.stat(path)
+    except OSError:
+        return None
+    return st.st_dev, st.st_ino, st.st_ctime_ns
+
+
+def _rebuilding(path: Path) -> bool:
+    """True while a build of ``path`` is under way: its temporary folder, moved-aside old folder or build lock
+    lies beside it (see :func:`atomic_folder` and :func:`data_tools.bundle.build_lock`)."""
+    import glob as _glob
+
+    stem = str(path.parent / f".{_glob.escape(path.name)}.")
+    return bool(_glob.glob(stem + "tmp-*") or _glob.glob(stem + "old-*") or os.path.exists(stem + "lock"))
+
+
+def stable_read(path, read, attempts: int = 8):
+    """``read()`` of the bundle at ``path``, repeated when the folder was swapped while it ran (a rebuild with
+    ``--overwrite`` renames a new folder into place, see :func:`atomic_folder`): a verified read is all of the
+    old bundle or all of the new one, never a mix, and a swap is never reported as corruption. A read is
+    repeated when the folder's identity (inode, ctime) changed, or when it failed while a rebuild was under
+    way; an error with no rebuild in sight is raised at once, and after ``attempts`` tries (0.6 s of waits)."""
+    import time
+
+    path = Path(path)
+    for attempt in range(attempts):
+        last = attempt == attempts - 1
+        before = _identity(path)
+        try:
+            result = read()
+        except BundleError:
+            if last or (_identity(path) == before and not _rebuilding(path)):
+                raise
+            time.sleep(0.005 * 2 ** attempt)
+            continue
+        if last or _identity(path) == before:
+            return result
+        time.sleep(0.005 * 2 ** attempt)
+    raise AssertionError("unreachable")
 
 
 def load_feature_levels(bundle, metadata: dict, levels: list[int], verify: bool = True):
@@ -663,4 +859,4 @@ __all__ = ["ANNOTATIONS", "Bundle", "BundleMetadata", "FEATURES_COMMAND", "FORMA
            "TISSUE", "TiledLevel", "atomic_file", "atomic_folder", "bundle_downsamples", "default_magnification_range",
            "device_bytes", "drop_pixels", "feature_bytes", "file_digest", "slide_device_bytes", "tumour_table_bytes", "select_levels", "grid_shape", "level_device_bytes", "level_downsamples", "level_files",
            "level_grids", "level_size", "load_array", "load_bundle", "load_feature_levels", "load_tiled_level",
-           "read_metadata", "save_array", "sha256", "text_digest", "tiled_level_files", "write_json", "write_metadata"]
+           "read_metadata", "save_array", "sha256", "stable_read", "check_replaceable", "verify_metadata", "metadata_digest", "METADATA_DIGEST", "check_mask", "check_fields", "safe_name", "text_digest", "tiled_level_files", "write_json", "write_metadata"]

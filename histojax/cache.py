@@ -22,6 +22,16 @@ def cache_dir() -> Path:
     return Path(os.environ.get("HISTOJAX_CACHE", Path.home() / ".cache" / "histojax"))
 
 
+def _sealed(bundle: Path) -> bool:
+    """True when the bundle's ``metadata.json`` carries its digest (built by this version of histojax)."""
+    from data_tools.bundle_format import METADATA_DIGEST
+
+    try:
+        return METADATA_DIGEST in json.loads((bundle / METADATA).read_text())
+    except (OSError, ValueError):
+        return True  # unreadable: let the loader say what is wrong with it
+
+
 def cached_bundle(slide, annotations=None, tile_size: int = 128, level_sets=None, label_map=None,
                   region=None, prefix: str = "scenario", progress: bool = False, storage: str = "auto",
                   name: str | None = None) -> Path:
@@ -43,10 +53,10 @@ def cached_bundle(slide, annotations=None, tile_size: int = 128, level_sets=None
         }, sort_keys=True)
         name = f"{prefix}-{text_digest(key)}"
     out = cache_dir() / name
-    if not (out / METADATA).is_file():
-        try:
+    if not (out / METADATA).is_file() or not _sealed(out):
+        try:  # a cached bundle built before metadata was sealed is rebuilt (replaced atomically)
             build_bundle(slide, out, annotations_path=annotations, level_sets=level_sets, tile_size=tile_size,
-                         label_map=label_map, progress=progress,
+                         label_map=label_map, progress=progress, overwrite=(out / METADATA).is_file(),
                          region=None if region is None else region.build_argument(),
                          region_margin=0.0 if region is None else region.margin, storage=storage)
         except BundleError:

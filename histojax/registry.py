@@ -181,7 +181,9 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     ``action_mode="glimpse"`` / ``"zoom_select"``, or with tracking) and ``track_reading=True`` (the
     pan/zoom modes then report ``fraction_read`` and ``fields_of_view`` in ``info``).
     The slide's arrays are put on the device once and returned inside ``params``; a slide
-    needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error.
+    needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error. It bounds the
+    arrays put on the device, not the process's host memory (on the CPU backend, where they are host
+    memory, ``make`` peaks at about 1.6× them; see :func:`histojax.slide.load_slide`).
     ``verify`` checks every array's SHA-256 against the bundle metadata.
 
     Datasets: ``slides=[bundle, ...]`` (any sizes, same tile size) or ``dataset=FOLDER`` holding a
@@ -319,6 +321,21 @@ def validate_params(values: dict, tile_size: int, where: str = "make") -> None:
             bad(field, values[field], "must be a whole number of steps in [1, 2**31 - 2]")
         if field == "success_threshold" and not ((v > 0).all() and (v <= 1).all()):
             bad(field, values[field], "must be a tumour fraction in (0, 1]")
+
+
+def check_params(env, params, where: str = "params") -> None:
+    """Host-side check of an ``EnvParams`` changed after ``make`` (e.g. ``params.replace(stride=...)``, or a
+    vmapped batch of them) against the rules of :func:`validate_params`, for ``env``'s tile size: raises
+    ``ValueError`` naming the field instead of letting a move wrap int32, a NaN freeze the view or a
+    negative step limit truncate every step. Called by the trainers, ``evaluate`` and the Gymnasium
+    adapters; inside ``jit`` use :func:`histojax.debug.checked`, which makes the same checks with
+    ``checkify``."""
+    values = {k: getattr(params, k) for k in PARAM_FIELDS}
+    if any(isinstance(v, jax.core.Tracer) for v in values.values()):
+        raise TypeError(f"{where}: check_params runs on the host, not inside jit; use histojax.debug.checked")
+    values = {k: v.addressable_data(0) if isinstance(v, jax.Array) and not v.is_fully_addressable else v
+              for k, v in values.items()}  # replicated over several processes: this process's copy
+    validate_params(values, env.tile_size, where=where)
 
 
 def dataset_slides(folder, split: str = "train") -> list[Path]:

@@ -39,7 +39,8 @@ import numpy as np
 from flax import struct
 
 from data_tools.bundle_format import (  # noqa: F401  (select_levels, *_bytes: re-exported, their home is the format)
-    Bundle, BundleMetadata, feature_bytes, load_bundle, load_feature_levels, read_metadata, select_levels,
+    Bundle, BundleMetadata, feature_bytes, load_bundle, load_feature_levels, read_metadata, select_levels, stable_read,
+    verify_metadata,
     slide_device_bytes, tumour_table_bytes)
 from data_tools.errors import BundleError
 
@@ -350,6 +351,9 @@ def slide_label_from_metadata(metadata: dict) -> int:
     return BundleMetadata(metadata).slide_label
 
 
+HOST_PEAK_FACTOR = 1.6  # make's peak RSS rise / device bytes on the CPU backend (benchmarks/host_memory.py)
+
+
 def load_slide(path, n_levels: int, verify: bool = True,
                max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES, features=None,
                pixels: bool = True) -> tuple[SlideArrays, Bundle]:
@@ -362,14 +366,40 @@ def load_slide(path, n_levels: int, verify: bool = True,
 
     Refuses, before reading any array, a slide whose levels need more than
     ``max_device_bytes`` (pixels and summed-area tables, see ``device_bytes``; for a tiled bundle the
-    pools and index grids recorded in its metadata).
+    pools and index grids recorded in its metadata), and checks the bytes really allocated afterwards.
+    It bounds the device arrays only, not the process's host memory: packing goes through host copies
+    one flat array at a time, so on the CPU backend (where the device arrays are host memory too) the
+    peak RSS rise of ``make`` is about :data:`HOST_PEAK_FACTOR` × the device bytes (measured with
+    ``benchmarks/host_memory.py``; see docs/bad-input.md).
 
     Returns the ``SlideArrays`` (levels coarsest first) and the host ``Bundle``
     (metadata and thumbnails for rendering, levels also coarsest first).
     """
     path = Path(path)
+    return stable_read(path, lambda: _load_slide(path, n_levels, verify, max_device_bytes, features, pixels))
+
+
+def check_levels(path, metadata, chosen: list[int]) -> None:
+    """Refuse scenario levels (bundle indices, coarsest first) between which zooming does nothing: the same
+    bundle level twice (a bundle built with magnification range 1) or two levels of the same size."""
+    t = int(metadata["tile_size"])
+    sizes = [(max(t, int(metadata["levels"][k]["width"])), max(t, int(metadata["levels"][k]["height"])))
+             for k in chosen]
+    for a, b, size0, size in zip(chosen, chosen[1:], sizes, sizes[1:]):
+        if a == b or size0 == size:
+            raise BundleError(path, f"{len(chosen)} zoom levels would show bundle levels of the same size "
+                              f"({size[0]}×{size[1]} px, magnification range {metadata['magnification_range']:g}, "
+                              f"tile {t} px): zooming would do nothing; rebuild it with a larger "
+                              "--magnification-range or a smaller --tile-size")
+
+
+def _load_slide(path: Path, n_levels: int, verify: bool, max_device_bytes: int, features, pixels: bool):
+    """The body of :func:`load_slide` (one attempt; :func:`stable_read` repeats it when the folder is swapped)."""
     metadata = read_metadata(path)
+    if verify:
+        verify_metadata(path, metadata)
     chosen = select_levels(metadata, n_levels, path)
+    check_levels(path, metadata, chosen)
     load_features = bool(features) or (features is None and bool(metadata.features)) or not pixels
     missing = [k for k in chosen if k not in metadata.pixel_levels]
     if pixels and missing:
@@ -388,11 +418,13 @@ def load_slide(path, n_levels: int, verify: bool = True,
                           + ("use obs_mode='features' (no pixels on the device), " if pixels else
                              "recompute the feature grid with a smaller --dim or larger --stride, ")
                           + "use fewer slides (split=, slides=) or levels, build from a coarser finest level, or "
-                          "raise max_device_bytes")
+                          "raise max_device_bytes (it bounds the arrays put on the device, not host memory: on the "
+                          f"CPU backend make's peak RSS rise is about {HOST_PEAK_FACTOR}x these bytes)")
     coarsest = len(metadata.levels) - 1
     if chosen[0] != coarsest:
         raise BundleError(path, "the scenario's coarsest level is not the bundle's coarsest; rebuild the bundle")
-    bundle = load_bundle(path, verify=verify, levels=chosen, mmap=True)  # host copies: one flat array at a time
+    bundle = load_bundle(path, verify=verify, levels=chosen, mmap=True,  # host copies: one flat array at a time
+                         metadata=metadata)
     ordered = Bundle(path=bundle.path, metadata=metadata.with_levels(chosen),
                      pixels=bundle.pixels, tumour=bundle.tumour, tissue=bundle.tissue, region=bundle.region)
     arrays = slide_arrays_from_bundle(ordered, metadata.tile_size, pixels)
@@ -401,7 +433,8 @@ def load_slide(path, n_levels: int, verify: bool = True,
     allocated = sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
     if allocated > max_device_bytes:  # what was really put on the device (start weights, labels, ... included)
         raise BundleError(path, f"{n_levels} levels took {allocated:,} bytes on the device, more than "
-                          f"max_device_bytes={max_device_bytes:,}: use fewer levels or raise max_device_bytes")
+                          f"max_device_bytes={max_device_bytes:,} (a bound on the device arrays, not on host memory): "
+                          "use fewer levels or raise max_device_bytes")
     return arrays, ordered
 
 

@@ -184,11 +184,27 @@ def test_existing_out_dir_needs_overwrite(tmp_path):
     assert str(out) in str(info.value)
     assert (out / "keep.txt").read_text() == "not a bundle"
 
+    # a folder of someone's files is not a bundle: --overwrite refuses it too, and deletes nothing
+    with pytest.raises(BundleError, match="not a histojax bundle"):
+        build_bundle(KIDNEY, out, level_sets=(3,), progress=False, overwrite=True)
+    assert (out / "keep.txt").read_text() == "not a bundle"
+
+    (out / "keep.txt").unlink()  # an empty folder may be filled
     build_bundle(KIDNEY, out, level_sets=(3,), progress=False, overwrite=True)
-    assert not (out / "keep.txt").exists()
     b = load_bundle(out)
     assert len(b.pixels) == 3
+    build_bundle(KIDNEY, out, level_sets=(3, 5), progress=False, overwrite=True)  # a bundle may be replaced
+    assert len(load_bundle(out).pixels) == 5
     assert _leftovers(tmp_path, "bundle") == []
+
+
+def test_overwrite_refuses_a_regular_file(tmp_path):
+    out = tmp_path / "bundle"
+    out.write_text("precious")
+    with pytest.raises(BundleError, match="is a file"):
+        build_bundle(KIDNEY, out, level_sets=(3,), progress=False, overwrite=True)
+    assert out.read_text() == "precious"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["bundle"]  # no .bundle.old-* copy left behind
 
 
 # ---------------------------------------------------------------------------

@@ -1,7 +1,8 @@
-"""Fuzzing the readers: malformed ASAP XML, GeoJSON and TIFF headers either load or raise the
-project's own exception types — never anything else, never a hang.
+"""Fuzzing the readers: malformed ASAP XML, GeoJSON, TIFF headers, bundle masks and bundle metadata either
+load or raise the project's own exception types — never anything else, never a hang; a bundle that loads
+after a fuzzed edit holds 0/1 masks and the metadata it was sealed with.
 
-`make fuzz` runs HISTOJAX_FUZZ_EXAMPLES=10000 per target (50,000 cases) and prints the counts;
+`make fuzz` runs HISTOJAX_FUZZ_EXAMPLES=10000 per target (70,000 cases) and prints the counts;
 the default `make test` runs a small sample (HISTOJAX_FUZZ_EXAMPLES defaults to 60). The
 ``*-geometry`` targets feed both readers self-intersecting polygons and extreme coordinates
 (up to ±1.7e308) and check that what loads is valid geometry inside the slide.
@@ -21,7 +22,7 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 from data_tools.annotations import MAX_COORDINATE, load_annotations
-from data_tools.errors import AnnotationError, SlideError
+from data_tools.errors import AnnotationError, BundleError, SlideError
 from data_tools.slides import open_slide
 
 EXAMPLES = int(os.environ.get("HISTOJAX_FUZZ_EXAMPLES", "60"))
@@ -48,7 +49,7 @@ def outcome(target: str, fn):
         try:
             fn()
             COUNTS[target]["loaded"] += 1
-        except (AnnotationError, SlideError) as e:
+        except (AnnotationError, SlideError, BundleError) as e:
             COUNTS[target][type(e).__name__] += 1
 
 
@@ -208,3 +209,127 @@ def test_fuzz_hostile_geometry(tmp_path, fmt, polygons):
     outcome(f"{fmt}-geometry", lambda: _check_geometry(path))
     if big:  # a coordinate beyond ±2^31 px is always refused, never silently clipped
         assert COUNTS[f"{fmt}-geometry"]["AnnotationError"] == refused + 1
+
+
+# ------------------------------------------------------------------ bundles: mask values and metadata edits
+@pytest.fixture(scope="module")
+def fuzz_bundle(tmp_path_factory):
+    """``(pristine, work)``: a small semi-synthetic bundle with tumour (320 × 256 px, tile 32, Easy levels) and
+    a working copy that each example edits; the example restores what it changed from ``pristine``."""
+    import shutil
+
+    from data_tools.synth import make_dataset
+
+    root = tmp_path_factory.mktemp("fuzz-bundle")
+    ds = make_dataset(root, n_slides=2, size=(320, 256), seed=0, tile_size=32, level_sets=(3,), progress=False,
+                      previews=False)
+    pristine = next(root / s["bundle"] for s in ds["slides"]
+                    if any(lv["tumour_pixels"] for lv in json.loads((root / s["bundle"] / "metadata.json")
+                                                                     .read_text())["levels"]))
+    work = root / "work"
+    shutil.copytree(pristine, work)
+    return pristine, work
+
+
+def _restore(pristine, work, names):
+    import shutil
+
+    for name in names:
+        shutil.copyfile(pristine / name, work / name)
+
+
+MASKS = ["tumour_00.npy", "tumour_01.npy", "tumour_02.npy", "tissue.npy"]
+mask_dtypes = st.sampled_from(["uint8", "uint8", "bool", "int8", "int16", "uint16", "int32", "float32", "float64"])
+
+
+@FUZZ
+@given(name=st.sampled_from(MASKS), dtype=mask_dtypes, values=st.sampled_from(["01", "scaled", "random", "negative"]),
+       scale=st.sampled_from([2, 7, 255, 256]), reshape=st.booleans(), reseal=st.booleans(), verify=st.booleans(),
+       seed=st.integers(0, 2**16))
+def test_fuzz_bundle_mask_values(fuzz_bundle, name, dtype, values, scale, reshape, reseal, verify, seed):
+    from data_tools.bundle_format import load_bundle, sha256, write_metadata
+
+    pristine, work = fuzz_bundle
+    try:
+        original = np.load(pristine / name).astype(np.int64)
+        rng = np.random.default_rng(seed)
+        mask = {"01": original, "scaled": original * scale, "random": rng.integers(0, scale + 1, original.shape),
+                "negative": original - rng.integers(0, 2, original.shape)}[values]
+        if reshape:
+            mask = mask[: max(1, mask.shape[0] - 1 - seed % 5)]
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            mask = mask.astype(dtype)
+        np.save(work / name, mask, allow_pickle=False)
+        if reseal:  # the checksum updated, as another tool would write it
+            meta = json.loads((work / "metadata.json").read_text())
+            meta["checksums"][name] = sha256(work / name)
+            write_metadata(work, meta)
+        loaded = []
+        outcome("bundle-masks", lambda: loaded.append(load_bundle(work, verify=verify)))
+        if loaded:  # what loads is 0/1 and agrees with its metadata
+            b = loaded[0]
+            for k, t in enumerate(b.tumour):
+                assert np.isin(np.asarray(t), (0, 1)).all()
+                assert int(np.asarray(t).sum()) == b.metadata["levels"][k]["tumour_pixels"]
+            assert np.isin(np.asarray(b.tissue), (0, 1)).all()
+            assert b.tissue.shape == (b.metadata["levels"][-1]["height"], b.metadata["levels"][-1]["width"])
+            if not np.array_equal(np.asarray(mask, np.float64), original.astype(np.float64)):
+                assert not verify or reseal  # a changed file loads only without verification or resealed
+    finally:
+        _restore(pristine, work, [name, "metadata.json"])
+
+
+JSON_EDIT_VALUES = st.one_of(
+    st.none(), st.booleans(), st.integers(-2**40, 2**40), st.sampled_from([0, 1, 7, 8, 64, 128, 2**31, -1]),
+    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=6),
+    st.sampled_from(["/etc/passwd", "../x.npy", "..", "", "pixels_00.npy", "tumour_01.npy", "a/b.npy"]),
+    st.lists(st.integers(-3, 9), max_size=4), st.dictionaries(st.sampled_from(["file", "level"]),
+                                                              st.integers(-2, 5), max_size=2))
+
+
+def _paths(node, prefix=()):
+    """Every path (tuple of keys / indices) into a JSON document."""
+    yield prefix
+    if isinstance(node, dict):
+        for k, v in node.items():
+            yield from _paths(v, prefix + (k,))
+    elif isinstance(node, list):
+        for i, v in enumerate(node):
+            yield from _paths(v, prefix + (i,))
+
+
+@FUZZ
+@given(pick=st.integers(0, 10**6), value=JSON_EDIT_VALUES, delete=st.booleans(), reseal=st.booleans(),
+       verify=st.booleans())
+def test_fuzz_bundle_metadata_edits(fuzz_bundle, pick, value, delete, reseal, verify):
+    from data_tools.bundle_format import METADATA_DIGEST, load_bundle, write_metadata
+
+    pristine, work = fuzz_bundle
+    try:
+        meta = json.loads((pristine / "metadata.json").read_text())
+        paths = [p for p in _paths(meta) if p and p[0] != METADATA_DIGEST]
+        path = paths[pick % len(paths)]
+        parent = meta
+        for key in path[:-1]:
+            parent = parent[key]
+        if delete and isinstance(parent, dict):
+            del parent[path[-1]]
+        else:
+            parent[path[-1]] = value
+        if reseal:
+            write_metadata(work, meta)
+        else:
+            (work / "metadata.json").write_text(json.dumps(meta, allow_nan=True))
+        original = json.loads((pristine / "metadata.json").read_text())
+        changed = {k: v for k, v in meta.items() if k != METADATA_DIGEST} != \
+            {k: v for k, v in original.items() if k != METADATA_DIGEST}
+        loaded = []
+        outcome("bundle-metadata", lambda: loaded.append(load_bundle(work, verify=verify)))
+        if loaded and verify and not reseal:  # a hand edit never passes verification
+            assert not changed, f"edit of {path} to {value!r} loaded"
+        if loaded:
+            b = loaded[0]
+            assert b.tile_size >= 8 and all(lv["width"] >= 1 for lv in b.metadata["levels"])
+    finally:
+        _restore(pristine, work, ["metadata.json"])

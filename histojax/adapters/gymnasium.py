@@ -130,6 +130,9 @@ class GymnasiumEnv(gymnasium.Env):
     def __init__(self, env: HistoEnv, params=None, render_mode: str | None = None):
         self.env = _without_autoreset(env)
         self.params = env.default_params if params is None else params
+        from histojax.registry import check_params
+
+        check_params(env, self.params, where="GymnasiumEnv: params")
         self.observation_space, self.action_space = single_spaces(env, self.params)
         self.render_mode = render_mode
         self._static = settings_only(self.env)
@@ -172,6 +175,9 @@ class GymnasiumVectorEnv(gymnasium.vector.VectorEnv):
     def __init__(self, env: HistoEnv, num_envs: int, params=None, render_mode: str | None = None):
         self.env = _without_autoreset(env)
         self.params = env.default_params if params is None else params
+        from histojax.registry import check_params
+
+        check_params(env, self.params, where="GymnasiumVectorEnv: params")
         self.num_envs = int(num_envs)
         self.single_observation_space, self.single_action_space = single_spaces(env, self.params)
         self.observation_space = gymnasium.vector.utils.batch_space(self.single_observation_space, self.num_envs)

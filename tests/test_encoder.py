@@ -118,3 +118,12 @@ def jax_leaves(tree):
     import jax
 
     return [np.asarray(x) for x in jax.tree_util.tree_leaves(tree)]
+
+
+def test_pcam_patches_as_distributed_are_brought_to_the_benchmark_scale(bank):
+    from data_tools.features.train_pcam_cnn import box_half
+
+    x = bank.decode(np.arange(8))
+    np.testing.assert_array_equal(np.asarray(pcam_cnn.to_benchmark_scale(x, 0.972)), box_half(x))
+    assert pcam_cnn.to_benchmark_scale(x[:, :48, :48], pcam_cnn.SCALE_MPP).shape == (8, 48, 48, 3)
+    assert pcam_cnn.to_benchmark_scale(x, 0.486).shape == (8, 24, 24, 3)

@@ -6,7 +6,9 @@ Model card: docs/encoder-pcam-cnn.md. Training command: ``python -m data_tools t
 
 Input: RGB uint8 ``(B, H, W, 3)`` of any size ≥ 16 px **at the benchmark's scale** (1.94 µm/px, the
 C16 full set's level 0 / 8: a PCam patch there is 48 px, an env view 128 px); fed at its own size, no
-resizing. Preprocessing: ``(x / 255 − 0.5) / 0.25`` per channel, nothing else (deterministic).
+resizing. Preprocessing: ``(x / 255 − 0.5) / 0.25`` per channel, nothing else (deterministic). Images at
+another scale (a PCam patch as distributed: 96 px at 0.972 µm/px) go through :func:`to_benchmark_scale`
+first.
 
 Architecture: five 3×3 convolutions with ReLU (channels 16, 32, 48, 48, 64; strides 2, 2, 2, 1, 1: one
 output cell per 8 × 8 input px, receptive field 75 px), then a 1×1 convolution to ``CHANNELS`` = 31
@@ -68,6 +70,23 @@ def apply(variables, images) -> tuple[jax.Array, jax.Array]:
     return pool(*PcamCNN().apply(variables, images))
 
 
+def to_benchmark_scale(images, mpp: float) -> jax.Array:
+    """uint8 RGB ``(B, H, W, 3)`` at ``mpp`` µm/px → uint8 at the encoder's ``SCALE_MPP`` (1.94 µm/px): a PCam
+    patch (96 px at 0.972 µm/px) becomes 48 px by 2 × 2 box averaging, as the C16 mosaic resizes it; other
+    scales are resized with antialiasing. Unchanged when ``mpp`` is already the encoder's scale."""
+    images = jnp.asarray(images)
+    factor = mpp / SCALE_MPP
+    if abs(factor - 1.0) < 0.02:
+        return images
+    b, h, w, c = images.shape
+    if abs(factor - 0.5) < 0.01 and h % 2 == 0 and w % 2 == 0:
+        q = images.astype(jnp.uint32).reshape(b, h // 2, 2, w // 2, 2, c).sum(axis=(2, 4))
+        return ((q + 2) // 4).astype(jnp.uint8)
+    size = (b, max(1, round(h * factor)), max(1, round(w * factor)), c)
+    out = jax.image.resize(images.astype(jnp.float32), size, method="linear", antialias=True)
+    return jnp.clip(jnp.round(out), 0, 255).astype(jnp.uint8)
+
+
 def read_weights(path=None) -> dict:
     """The shipped (or given) msgpack weights, checked against the architecture; ``WeightsError`` naming the
     file when missing, unreadable or of another shape."""
@@ -102,4 +121,4 @@ def load_pcam_encoder(encoder_class, weights=None):
 
 
 __all__ = ["CHANNELS", "DIM", "NAME", "PATCH_PX", "PcamCNN", "SCALE_MPP", "WEIGHTS", "apply", "init_variables",
-           "load_pcam_encoder", "read_weights"]
+           "load_pcam_encoder", "read_weights", "to_benchmark_scale"]

@@ -5,6 +5,7 @@ is streamed, outputs of training / evaluation are written atomically, and DICOM 
 from __future__ import annotations
 
 import json
+import re
 import tracemalloc
 import warnings
 from pathlib import Path
@@ -282,3 +283,64 @@ def test_evaluate_on_a_truncated_checkpoint_names_the_file(tmp_path, capsys):
     assert main(["evaluate", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and f"{path}: not a readable checkpoint, truncated or corrupt" in err[0], err
+
+
+# ------------------------------------------------------------------ 15. DICOM without ImageType
+
+UNTYPED = Path(__file__).parent / "data" / "dicom-wsi-untyped" / "slide.dcm"
+ABSENT = {(0, 0), (3, 2), (1, 4)}  # tiles make_dicom_wsi_untyped.py leaves out
+
+
+def test_dicom_without_image_type_is_read_from_its_frame_positions():
+    """Was: refused as "truncated, not a slide, or a label / overview only" (wsidicom finds no level
+    without ImageType). Now each frame is placed where its plane position says: the stored tiles equal
+    those of the source instance, the absent ones are white, and a warning names what was missing."""
+    pytest.importorskip("wsidicom")
+    from data_tools.slides import open_slide
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        with open_slide(Path(__file__).parent / "data" / "dicom-wsi") as source:
+            expected, mpp = source.read_level(0), source.mpp
+    with pytest.warns(UserWarning, match=r"slide\.dcm: wsidicom cannot open it \(.*no ImageType \(0008,0008\)"):
+        reader = open_slide(UNTYPED)
+    with reader:
+        assert [(lv.width, lv.height, lv.tile_size) for lv in reader.levels] == [(512, 640, (128, 128))]
+        assert reader.mpp == pytest.approx(mpp)
+        got = reader.read_level(0)
+        region = reader.read_region(0, 100, 200, 300, 500)
+    for ty in range(5):
+        for tx in range(4):
+            tile = (slice(ty * 128, (ty + 1) * 128), slice(tx * 128, (tx + 1) * 128))
+            if (tx, ty) in ABSENT:
+                assert (got[tile] == 255).all(), (tx, ty)
+            else:
+                np.testing.assert_array_equal(got[tile], expected[tile], err_msg=str((tx, ty)))
+    np.testing.assert_array_equal(region[:440, :300], got[200:, 100:400])
+    assert (region[440:] == 255).all()
+
+
+@pytest.mark.parametrize("attribute, named", [
+    ("TotalPixelMatrixColumns", "TotalPixelMatrixColumns (0048,0006)"),
+    ("Rows", "Rows (0028,0010)"),
+    ("PerFrameFunctionalGroupsSequence", "PerFrameFunctionalGroupsSequence (5200,9230)"),
+])
+def test_dicom_missing_an_essential_attribute_is_refused_naming_it(tmp_path, attribute, named, capsys):
+    pytest.importorskip("wsidicom")
+    import pydicom
+
+    from data_tools.__main__ import main
+    from data_tools.errors import SlideError
+    from data_tools.slides import open_slide
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")  # the fixture's 65-character UIDs
+        ds = pydicom.dcmread(UNTYPED)
+        delattr(ds, attribute)
+        path = tmp_path / "slide.dcm"
+        ds.save_as(path)
+    with pytest.raises(SlideError, match=rf"slide\.dcm: .*missing the attribute {re.escape(named)}"):
+        open_slide(path)
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert err[-1].startswith("error: ") and named in err[-1] and all(e.startswith("warning: ") for e in err[:-1])

@@ -134,10 +134,7 @@ class DicomSlideReader(SlideReader):
         except Exception as exc:  # wsidicom / pydicom / OS errors: never escape raw
             self.close()
             problem = f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}"
-            if "not found" in problem.lower() or isinstance(exc, (IndexError, KeyError)):
-                self._open_frames(files, problem, exc)  # e.g. no ImageType: placed by the frames' positions
-            else:
-                raise SlideError(self.path, f"DICOM WSI not readable ({problem})") from exc
+            self._open_frames(files, problem, exc)  # e.g. no ImageType: frames placed by their positions
 
     def _open_frames(self, files: list[str], problem: str, exc: Exception) -> None:
         """Read the instances with pydicom, each frame where its plane position says (see
@@ -147,14 +144,14 @@ class DicomSlideReader(SlideReader):
             try:
                 level = _FrameLevel.open(f)
             except SlideError as e:
-                raise SlideError(self.path, f"no readable VL Whole Slide Microscopy image found (wsidicom: {problem}); "
+                raise SlideError(self.path, f"no readable VL Whole Slide Microscopy image (wsidicom: {problem}); "
                                             f"{e.problem if os.path.samefile(e.path, self.path) else e}") from exc
             if level is not None:
                 levels.append(level)
         levels.sort(key=lambda lv: (-lv.width, -lv.height))
         levels = [lv for i, lv in enumerate(levels) if i == 0 or lv.width != levels[i - 1].width]  # focal planes
         if not levels:
-            raise SlideError(self.path, f"no readable VL Whole Slide Microscopy image found (wsidicom: {problem}); "
+            raise SlideError(self.path, f"no readable VL Whole Slide Microscopy image (wsidicom: {problem}); "
                                         "only label / overview / thumbnail images") from exc
         why = sorted({w for lv in levels for w in lv.why})
         self._tif = _FrameLevels(levels)  # the open handle, as SlideReader expects one

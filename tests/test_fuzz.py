@@ -4,7 +4,9 @@ project's own exception types — never anything else, never a hang.
 `make fuzz` runs HISTOJAX_FUZZ_EXAMPLES=10000 per target (50,000 cases) and prints the counts;
 the default `make test` runs a small sample (HISTOJAX_FUZZ_EXAMPLES defaults to 60). The
 ``*-geometry`` targets feed both readers self-intersecting polygons and extreme coordinates
-(up to ±1.7e308) and check that what loads is valid geometry inside the slide.
+(up to ±1.7e308, and JSON integers up to ±10^400) and check that what loads is valid geometry inside the
+slide. The ``*-lost`` targets write tumour parts of area kinds (untyped ASAP annotations, closed
+LineStrings included) and kinds without area, and check that each is used or counted in the warning.
 """
 from __future__ import annotations
 

@@ -11,6 +11,11 @@ A slide is either a folder holding the instances of one slide (one file per pyra
 archives such as IDC / TCIA ship them; other files are ignored) or one ``.dcm`` file of it, in which
 case every DICOM file of the same series in that folder is opened with it (as OpenSlide does).
 
+When wsidicom cannot open the files (no ``ImageType``, UIDs over 64 characters: files OpenSlide refuses
+too), each instance is read with pydicom instead, as pathml does: its frames placed at their Per-frame
+Functional Groups' plane positions (row-major for ``TILED_FULL``), decoded with imagecodecs, with one
+warning saying why; an instance missing an attribute needed to place its frames is refused naming it.
+
 Units as in :mod:`data_tools.slides`: pixels of the level read, ``downsample`` in level-0 px per
 level px, ``mpp`` in µm per level-0 px. Every problem with the files raises
 :class:`data_tools.errors.SlideError` naming the path, in one line.
@@ -152,7 +157,8 @@ class DicomSlideReader(SlideReader):
         levels = [lv for i, lv in enumerate(levels) if i == 0 or lv.width != levels[i - 1].width]  # focal planes
         if not levels:
             raise SlideError(self.path, f"no readable VL Whole Slide Microscopy image (wsidicom: {problem}); "
-                                        "only label / overview / thumbnail images") from exc
+                                        "no pyramid level in it (only label / overview / thumbnail or non-WSI "
+                                        "instances)") from exc
         why = sorted({w for lv in levels for w in lv.why})
         self._tif = _FrameLevels(levels)  # the open handle, as SlideReader expects one
         w0, h0 = levels[0].width, levels[0].height
@@ -251,12 +257,13 @@ class _FrameLevel:
                 warnings.simplefilter("ignore")  # pydicom: "value length (65) exceeds the maximum ... for VR UI"
                 ds = pydicom.dcmread(path, defer_size="64 KB")
                 image_type = [str(v).upper() for v in (ds.get("ImageType") or [])]
+                sop_class = str(ds.get("SOPClassUID", ""))
                 missing = [f"{k} {tag}" for k, tag in _ESSENTIAL if ds.get(k) in (None, "")]
                 has_pixels = "PixelData" in ds
         except Exception as exc:  # pydicom errors: a corrupt or truncated header
             raise SlideError(path, f"DICOM header unreadable ({type(exc).__name__}: {exc})") from exc
-        if len(image_type) > 2 and image_type[2] in _NOT_PYRAMID:
-            return None
+        if sop_class != _WSI_SOP_CLASS or (len(image_type) > 2 and image_type[2] in _NOT_PYRAMID):
+            return None  # another kind of DICOM in the folder (annotations, segmentations), or no pyramid level
         if missing:
             raise SlideError(path, f"missing the attribute {missing[0]}: cannot place the frames"
                                    + (f" (also missing: {', '.join(missing[1:])})" if missing[1:] else ""))

@@ -25,6 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
+from baselines import outputs
 from baselines.metrics import accuracy, roc_auc
 from baselines.mil import MILClassifier, train_mil
 from data_tools.cli_output import command_main
@@ -220,7 +221,7 @@ def policy_rows(run, dataset, name: str, head: MILClassifier, tables, labels, bu
 def write_csv(rows: list[dict], path) -> Path:
     """One line per method × budget."""
     path = Path(path)
-    with open(path, "w", newline="") as f:
+    with outputs.open_text(path) as f:
         w = csv.DictWriter(f, fieldnames=["method", "budget", "fraction_read", "auc", "accuracy", "slides"])
         w.writeheader()
         for r in rows:
@@ -261,9 +262,7 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
     axes[-1].set_xticks([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 1.0], ["0", "10 %", "20 %", "30 %", "40 %", "50 %", "100 %"])
     if title:
         fig.suptitle(title, fontsize="medium")
-    path = Path(path)
-    fig.savefig(path)
-    return path
+    return outputs.save_figure(fig, path)
 
 
 def compute_missing_features(dataset, encoder: str) -> None:

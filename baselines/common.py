@@ -18,8 +18,9 @@ from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
 
 import histojax
-from baselines import distributed
+from baselines import distributed, outputs
 from data_tools.cli_output import build_parser, command_main, positive_float
+from data_tools.errors import HistojaxDataError
 from histojax.adapters.jax import LogWrapper
 from baselines.curves import plot_curves  # noqa: F401  (the learning-curve PNG; kept here for callers)
 
@@ -183,18 +184,32 @@ def save_checkpoint(out: Path, params, config: dict, name: str = "params.msgpack
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / name
-    path.write_bytes(serialization.msgpack_serialize(jax.tree.map(np.asarray, jax.device_get(params))))
-    (out / "config.json").write_text(json.dumps(config, indent=2, default=str))
+    outputs.write_bytes(path, serialization.msgpack_serialize(jax.tree.map(np.asarray, jax.device_get(params))))
+    outputs.write_text(out / "config.json", json.dumps(config, indent=2, default=str))
     return path
 
 
 def load_checkpoint(path) -> tuple[dict, dict]:
-    """``(params, config)`` from a checkpoint file or its run folder."""
+    """``(params, config)`` from a checkpoint file or its run folder. A missing, truncated or corrupt
+    file raises HistojaxDataError naming it."""
     path = Path(path)
     if path.is_dir():
         path = path / "params.msgpack"
-    params = serialization.msgpack_restore(path.read_bytes())
-    config = json.loads((path.parent / "config.json").read_text())
+    try:
+        data = path.read_bytes()
+    except OSError as e:
+        raise HistojaxDataError(path, f"cannot read the checkpoint ({e.strerror or e})") from e
+    try:
+        params = serialization.msgpack_restore(data)
+    except Exception as e:  # msgpack's errors (ExtraData, ValueError "incomplete input", ...) share no base
+        raise HistojaxDataError(path, f"not a readable checkpoint, truncated or corrupt ({e}); train again") from e
+    config_path = path.parent / "config.json"
+    try:
+        config = json.loads(config_path.read_text())
+    except OSError as e:
+        raise HistojaxDataError(config_path, f"cannot read the run's config ({e.strerror or e})") from e
+    except ValueError as e:
+        raise HistojaxDataError(config_path, f"not valid JSON, truncated or corrupt ({e})") from e
     return jax.tree.map(jnp.asarray, params), canonical_config(config)  # older runs spelled obs_mode "obs"
 
 
@@ -205,7 +220,7 @@ def write_logs(out: Path, steps: np.ndarray, metrics: dict, summary: dict) -> No
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     keys = [k for k in ("return", "success", "length", "steps_to_success") if k in metrics]
-    with open(out / "log.csv", "w", newline="") as f:
+    with outputs.open_text(out / "log.csv") as f:
         w = csv.writer(f)
         w.writerow(["step", "mean_return", "success_rate", "success_rate_min_seed", "success_rate_max_seed",
                     "mean_length", "mean_steps_to_success"])
@@ -217,7 +232,7 @@ def write_logs(out: Path, steps: np.ndarray, metrics: dict, summary: dict) -> No
                             _fmt(np.nanmean(col["length"])), _fmt(np.nanmean(col["steps_to_success"]))])
     data = {"summary": summary, "step": [int(s) for s in steps],
             "per_seed": {k: np.asarray(v).tolist() for k, v in metrics.items()}}
-    (out / "log.json").write_text(json.dumps(data, default=_json_default))
+    outputs.write_text(out / "log.json", json.dumps(data, default=_json_default))
 
 
 def _fmt(v):

@@ -11,6 +11,8 @@ from matplotlib.backends.backend_agg import FigureCanvasAgg
 from matplotlib.figure import Figure
 from matplotlib.ticker import FuncFormatter, MaxNLocator
 
+from baselines import outputs
+
 MEAN_COLOUR, BAND_COLOUR, REFERENCE_COLOUR = "#1f4e9c", "#9bb7e0", "#c0392b"
 
 
@@ -63,6 +65,4 @@ def curves_figure(steps, panels: dict, title: str = "", reference: dict | None =
 
 def plot_curves(path, steps, panels: dict, title: str = "", reference: dict | None = None) -> Path:
     """Write the learning-curve PNG of :func:`curves_figure` to ``path``; returns the path."""
-    path = Path(path)
-    curves_figure(steps, panels, title=title, reference=reference).savefig(path)
-    return path
+    return outputs.save_figure(curves_figure(steps, panels, title=title, reference=reference), path)

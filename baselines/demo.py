@@ -28,7 +28,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import histojax
-from baselines import common
+from baselines import common, outputs
 from data_tools.cli_output import command_main
 from histojax.render import animate, render_trajectory
 
@@ -192,7 +192,7 @@ def run_demo(out="out", total_steps: int | None = None, seed: int = 0, quick: bo
     summary["wall_seconds"] = time.perf_counter() - t_start
     summary["files"] = files
     path = out / "demo_summary.json"
-    path.write_text(json.dumps(summary, indent=2, default=_json_default))
+    outputs.write_text(path, json.dumps(summary, indent=2, default=_json_default))
     files[str(path)] = "this summary as JSON"
     print_summary(summary)
     return summary

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from baselines import common
+from baselines import common, outputs
 from baselines.ppo import make_network
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
                                 policy_mode, policy_sample, preprocess_obs)
@@ -389,8 +389,8 @@ def run(args, parser) -> int:
                     f"{' per seed' if params is not None else ''})", rows)
         results[name] = rows
     out.mkdir(parents=True, exist_ok=True)
-    (out / "eval.json").write_text(json.dumps({"env_id": config["env_id"], "results": results}, indent=2))
-    with open(out / "eval.csv", "w", newline="") as f:
+    outputs.write_text(out / "eval.json", json.dumps({"env_id": config["env_id"], "results": results}, indent=2))
+    with outputs.open_text(out / "eval.csv") as f:
         w = csv.writer(f)
         w.writerow(["slide", "policy", "episodes", "success_rate", "mean_return", "mean_length", "mean_steps_to_success",
                     "mean_fraction_read", "mean_fields_of_view"])

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import jax
 
-from baselines import common, dqn, ppo
+from baselines import common, dqn, outputs, ppo
 from baselines.evaluate import evaluate
 from data_tools.cli_output import command_main
 
@@ -131,7 +131,7 @@ def run(args, parser=None) -> int:
         lines += table2(budget, out, args.imported) + [""]
     lines.append(f"Total wall time {time.perf_counter() - t0:.0f} s.")
     table = out / "tables.md"
-    table.write_text("\n".join(lines) + "\n")
+    outputs.write_text(table, "\n".join(lines) + "\n")
     print("\n".join(lines))
     print(f"\nwrote {table}")
     return 0

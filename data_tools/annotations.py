@@ -37,6 +37,7 @@ __all__ = [
     "LABELS",
     "MAX_ANNOTATION_BYTES",
     "MAX_COORDINATE",
+    "MAX_FILE_REPAIR_CROSSINGS",
     "MAX_REPAIR_CROSSINGS",
     "Annotations",
     "annotations_to_geojson",
@@ -49,6 +50,7 @@ LABELS = ("tumour", "exclusion", "tissue", "ignore")
 MAX_ANNOTATION_BYTES = 512 * 1024 * 1024  # refuse larger annotation files
 MAX_COORDINATE = 2.0**31  # level-0 px: coordinates beyond ±2**31 are refused (no slide is that large)
 MAX_REPAIR_CROSSINGS = 50_000  # an invalid polygon whose edges cross more often than this is refused
+MAX_FILE_REPAIR_CROSSINGS = 100_000  # edge crossings of all invalid polygons of one file; more is refused
 
 DEFAULT_LABEL_MAP: dict[str, str] = {
     **{k: "tumour" for k in ("metastasis", "metastases", "tumor", "tumour", "_0", "_1", "carcinoma")},
@@ -57,7 +59,9 @@ DEFAULT_LABEL_MAP: dict[str, str] = {
     **{k: "ignore" for k in ("background", "artifact", "artefact", "trash", "ignore")},
 }
 
-_POLYGON_TYPES = {"polygon", "spline", "rectangle"}  # other ASAP types (PointSet, Dot, ...) are skipped
+_POLYGON_TYPES = {"polygon", "spline", "rectangle"}
+_POINT_TYPES = {"pointset", "dot", "point", "measurement"}  # ASAP types without area: skipped (warned if tumour)
+_AREA_LABELS = ("tumour", "exclusion")  # labels whose lost geometry changes the reward: every loss is warned
 _GEOMETRY_TYPES = {"Polygon", "MultiPolygon", "GeometryCollection", "Point", "MultiPoint", "LineString",
                    "MultiLineString"}
 _EMPTY = MultiPolygon()
@@ -104,13 +108,32 @@ def _map_label(name: str, lmap: dict[str, str]) -> str:
     return lmap.get(name.strip().lower(), f"unknown:{name}")
 
 
-def _read_bytes(path) -> bytes:
+def _check_size(path) -> int:
+    """Size of the file at ``path`` in bytes; AnnotationError if it cannot be read or is over the limit."""
     try:
         size = os.path.getsize(path)
-        if size > MAX_ANNOTATION_BYTES:
-            raise AnnotationError(path, f"file is {size} bytes, over the {MAX_ANNOTATION_BYTES}-byte limit")
+    except OSError as e:
+        raise AnnotationError(path, f"cannot read annotation file ({e.strerror or e})") from e
+    if size > MAX_ANNOTATION_BYTES:
+        raise AnnotationError(path, f"file is {size} bytes, over the {MAX_ANNOTATION_BYTES}-byte limit")
+    return size
+
+
+def _blank(path, limit: int = 1 << 20) -> bool:
+    """Whether the file holds only white space (checked on files up to ``limit`` bytes)."""
+    try:
         with open(path, "rb") as f:
-            data = f.read(MAX_ANNOTATION_BYTES + 1)
+            head = f.read(limit + 1)
+    except OSError:
+        return False
+    return len(head) <= limit and not head.strip()
+
+
+def _read_bytes(path) -> bytes:
+    size = _check_size(path)
+    try:
+        with open(path, "rb") as f:
+            data = f.read(min(size, MAX_ANNOTATION_BYTES) + 1)  # not a 512 MiB buffer for a small file
     except OSError as e:
         raise AnnotationError(path, f"cannot read annotation file ({e.strerror or e})") from e
     if len(data) > MAX_ANNOTATION_BYTES:
@@ -118,6 +141,12 @@ def _read_bytes(path) -> bytes:
     if not data.strip():
         raise AnnotationError(path, "empty file")
     return data
+
+
+def _short(v, limit: int = 40) -> str:
+    """``repr`` of a coordinate cut to ``limit`` characters (a JSON integer may have thousands of digits)."""
+    text = f"{v:g}" if isinstance(v, float) else repr(v)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
 
 
 def _polygon(path, what: str, shell, holes, notes: dict[str, list[str]]) -> list[Polygon]:
@@ -135,12 +164,12 @@ def _polygon(path, what: str, shell, holes, notes: dict[str, list[str]]) -> list
                 raise AnnotationError(path, f"{what}: coordinate {p!r} is not an (x, y) pair")
             x, y = p[0], p[1]
             if not all(isinstance(v, (int, float)) and not isinstance(v, bool) for v in (x, y)):
-                raise AnnotationError(path, f"{what}: non-numeric coordinate {p!r}")
-            if not (math.isfinite(x) and math.isfinite(y)):
+                raise AnnotationError(path, f"{what}: non-numeric coordinate {_short(p)}")
+            if any(isinstance(v, float) and not math.isfinite(v) for v in (x, y)):
                 raise AnnotationError(path, f"{what}: non-finite coordinate ({x}, {y})")
-            if abs(x) > MAX_COORDINATE or abs(y) > MAX_COORDINATE:
-                raise AnnotationError(path, f"{what}: coordinate ({x:g}, {y:g}) is beyond ±2^31 level-0 px, "
-                                      "outside any slide (wrong units?)")
+            if abs(x) > MAX_COORDINATE or abs(y) > MAX_COORDINATE:  # exact for ints of any size (JSON 10**400)
+                raise AnnotationError(path, f"{what}: coordinate ({_short(x)}, {_short(y)}) is beyond ±2^31 "
+                                      "level-0 px, outside any slide (wrong units?)")
             pts.append((float(x), float(y)))
         if len(pts) > 1 and pts[0] == pts[-1]:
             pts.pop()
@@ -148,7 +177,7 @@ def _polygon(path, what: str, shell, holes, notes: dict[str, list[str]]) -> list
             raise AnnotationError(path, f"{what}: a ring has {len(pts)} vertices, at least 3 needed")
         rings.append(pts)
     poly = Polygon(rings[0], rings[1:])
-    pieces = [poly] if poly.is_valid else _repair(path, what, poly, rings)
+    pieces = [poly] if poly.is_valid else _repair(path, what, poly, rings, notes)
     pieces = [g for g in pieces if g.area > 0]
     if not pieces:
         notes["dropped"].append(what)
@@ -157,10 +186,11 @@ def _polygon(path, what: str, shell, holes, notes: dict[str, list[str]]) -> list
     return pieces
 
 
-def _edge_crossings_over(rings: list[list[tuple[float, float]]], limit: int) -> bool:
-    """Whether the edges of ``rings`` (vertex lists, not closed) meet each other (edges sharing a vertex
-    of the ring excepted) at more than ``limit`` pairs. Bounded work: edges are queried against an STR
-    tree in chunks that grow while they find little and stop as soon as ``limit`` is passed."""
+def _edge_crossings(rings: list[list[tuple[float, float]]], limit: int) -> int:
+    """Number of pairs of edges of ``rings`` (vertex lists, not closed) that meet (edges sharing a vertex
+    of the ring excepted), counted up to just past ``limit``: any result > ``limit`` means "more". Bounded
+    work: edges are queried against an STR tree in chunks that grow while they find little and stop as
+    soon as ``limit`` is passed."""
     starts = np.concatenate([np.asarray(r, dtype=np.float64) for r in rings])
     ends = np.concatenate([np.roll(np.asarray(r, dtype=np.float64), -1, axis=0) for r in rings])
     ring_of = np.concatenate([np.full(len(r), i) for i, r in enumerate(rings)])
@@ -177,25 +207,47 @@ def _edge_crossings_over(rings: list[list[tuple[float, float]]], limit: int) -> 
         neighbours = (ring_of[a] == ring_of[b]) & ((gap <= 1) | (gap == size[a] - 1))
         count += int(np.count_nonzero((b > a) & ~neighbours))
         if count > limit:
-            return True
+            return count
         first += chunk
         chunk = chunk * 2 if len(a) <= 8 * len(rows) else max(1, chunk // 2)
-    return False
+    return count
 
 
-def _repair(path, what: str, poly: Polygon, rings) -> list[Polygon]:
+def _repair(path, what: str, poly: Polygon, rings, notes: dict) -> list[Polygon]:
     """Valid pieces of an invalid polygon: ``make_valid(method="structure")`` (the area its rings enclose,
-    holes subtracted), whose time grows with the edge crossings; more than MAX_REPAIR_CROSSINGS refused."""
-    if _edge_crossings_over(rings, MAX_REPAIR_CROSSINGS):
+    holes subtracted), whose time grows with the edge crossings. More than MAX_REPAIR_CROSSINGS in one
+    polygon, or more than MAX_FILE_REPAIR_CROSSINGS summed over the file's invalid polygons, is refused."""
+    spent = notes.setdefault("crossings", 0)
+    left = MAX_FILE_REPAIR_CROSSINGS - spent
+    count = _edge_crossings(rings, min(MAX_REPAIR_CROSSINGS, left))
+    if count > MAX_REPAIR_CROSSINGS:
         raise AnnotationError(path, f"{what}: {sum(map(len, rings))} vertices whose edges cross each other more "
                               f"than {MAX_REPAIR_CROSSINGS:,} times; too tangled to repair, redraw or simplify it")
+    if count > left:
+        raise AnnotationError(path, f"{what}: the invalid polygons up to this one cross their own edges more than "
+                              f"{MAX_FILE_REPAIR_CROSSINGS:,} times in all ({len(notes['repaired'])} repaired "
+                              "before it); too tangled to repair in one file, redraw or simplify them")
+    notes["crossings"] = spent + count
     return _polygonal_parts(shapely.make_valid(poly, method="structure", keep_collapsed=False))
 
 
+_NOTES = (
+    ("repaired", "invalid (self-intersecting) polygon(s) repaired with make_valid(method='structure')"),
+    ("dropped", "zero-area polygon(s) dropped"),
+    ("untyped", "annotation(s) with no or an unknown Type read as polygons"),
+    ("closed", "closed LineString(s) read as polygons"),
+    ("skipped", "tumour / exclusion annotation(s) without area (points, open lines, no geometry) skipped"),
+)
+
+
+def _new_notes() -> dict:
+    return {key: [] for key, _ in _NOTES}
+
+
 def _finish(path, items: list[tuple[str, list[Polygon]]], notes: dict[str, list[str]]):
-    """Warn once per file about repaired / dropped polygons; refuse a file without any polygon."""
-    for key, problem in (("repaired", "invalid (self-intersecting) polygon(s) repaired with make_valid(method='structure')"),
-                         ("dropped", "zero-area polygon(s) dropped")):
+    """Warn once per file and kind about repaired / dropped / reinterpreted / skipped polygons; refuse a file
+    without any polygon."""
+    for key, problem in _NOTES:
         if notes[key]:
             names = ", ".join(notes[key][:10]) + (", ..." if len(notes[key]) > 10 else "")
             warnings.warn(f"{path}: {len(notes[key])} {problem}: {names}", stacklevel=3)
@@ -224,8 +276,11 @@ def parse_asap_xml(path, label_map: dict[str, str] | None = None) -> list[tuple[
     <Coordinates><Coordinate Order X Y/>``. Vertices are sorted by ``Order``.
     Types ``Polygon``, ``Rectangle`` and ``Spline`` become polygons; a Spline's
     control vertices are used as the polygon's vertices (ASAP's smooth curve
-    through them is not reproduced). ``PointSet``/``Dot`` and other types are
-    skipped. The label is ``PartOfGroup`` mapped through ``label_map`` (on top of
+    through them is not reproduced). An annotation without a ``Type``, or with
+    one ASAP does not write (``Freehand``), is read as a polygon with a warning
+    (skipped with a warning if it has fewer than 3 distinct vertices);
+    ``PointSet``/``Dot``/``Measurement`` have no area and are skipped, with one
+    warning counting them if they are labelled tumour or exclusion. The label is ``PartOfGroup`` mapped through ``label_map`` (on top of
     DEFAULT_LABEL_MAP, case-insensitive), else ``unknown:<group>``; a missing
     group is the group ``None``. The XML is parsed with defusedxml: DTDs and
     entities are refused. Raises AnnotationError for unsafe, malformed or
@@ -235,40 +290,77 @@ def parse_asap_xml(path, label_map: dict[str, str] | None = None) -> list[tuple[
 
 
 def _read_asap_xml(path, label_map) -> list[tuple[str, list[Polygon]]]:
-    """One (label, valid pieces) item per ASAP polygon annotation."""
+    """One (label, valid pieces) item per ASAP polygon annotation.
+
+    Streamed with defusedxml's ``iterparse`` (DTDs, entities and external references refused): each
+    ``<Annotation>`` is turned into polygons and cleared as soon as it ends, so the memory held is the
+    polygons read, not the XML tree of the whole file."""
     lmap = _resolve_label_map(label_map)
-    data = _read_bytes(path)
+    _check_size(path)
+    items, notes = [], _new_notes()
+    stack: list = []
+    index = 0
     try:
-        root = SafeET.fromstring(data, forbid_dtd=True, forbid_entities=True, forbid_external=True)
+        with open(path, "rb") as f:
+            for event, elem in SafeET.iterparse(f, events=("start", "end"), forbid_dtd=True,
+                                                 forbid_entities=True, forbid_external=True):
+                if event == "start":
+                    if not stack and elem.tag != "ASAP_Annotations":
+                        raise AnnotationError(path, f"not ASAP XML (root element <{elem.tag}>)")
+                    stack.append(elem)
+                    continue
+                stack.pop()
+                depth = len(stack)
+                if depth == 2 and elem.tag == "Annotation" and stack[1].tag == "Annotations":
+                    item = _asap_annotation(path, index, elem, lmap, notes)
+                    if item is not None:
+                        items.append(item)
+                    index += 1
+                    stack[1].remove(elem)  # free the annotation's coordinates as soon as they are read
+                elif depth == 1:
+                    elem.clear()  # <Annotations>, <AnnotationGroups>, ...: children already handled or unused
+    except OSError as e:
+        raise AnnotationError(path, f"cannot read annotation file ({e.strerror or e})") from e
     except defusedxml.DefusedXmlException as e:
         raise AnnotationError(path, f"unsafe XML refused ({type(e).__name__})") from e
     except ParseError as e:
+        if index == 0 and not items and _blank(path):
+            raise AnnotationError(path, "empty file") from e
         raise AnnotationError(path, f"malformed XML ({e})") from e
-    if root.tag != "ASAP_Annotations":
-        raise AnnotationError(path, f"not ASAP XML (root element <{root.tag}>)")
-    items, notes = [], {"repaired": [], "dropped": []}
-    for i, ann in enumerate(root.iterfind("./Annotations/Annotation")):
-        if ann.get("Type", "").strip().lower() not in _POLYGON_TYPES:
-            continue
-        what = f"annotation {i} ({ann.get('Name', '?')!r})"
-        coords = []
-        for j, c in enumerate(ann.iterfind("./Coordinates/Coordinate")):
-            try:
-                order = int(c.get("Order", j))
-                xy = (float(c.get("X")), float(c.get("Y")))
-            except (TypeError, ValueError) as e:
-                raise AnnotationError(path, f"{what}: non-numeric coordinate {dict(c.attrib)}") from e
-            coords.append((order, xy))
-        if len({order for order, _ in coords}) != len(coords):
-            warnings.warn(f"{path}: {what}: duplicate Order values; vertices with equal Order kept in file order",
-                          stacklevel=3)
-        shell = [xy for _, xy in sorted(coords, key=lambda t: t[0])]  # stable: ties stay in file order
-        if ann.get("Type").strip().lower() == "rectangle" and len(shell) == 2:
-            (x0, y0), (x1, y1) = shell
-            shell = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
-        label = _map_label(ann.get("PartOfGroup") or "None", lmap)
-        items.append((label, _polygon(path, what, shell, (), notes)))
     return _finish(path, items, notes)
+
+
+def _asap_annotation(path, i: int, ann, lmap, notes) -> tuple[str, list[Polygon]] | None:
+    """(label, valid pieces) of one ``<Annotation>`` element, or None for one without area (noted)."""
+    what = f"annotation {i} ({ann.get('Name', '?')!r})"
+    kind = (ann.get("Type") or "").strip().lower()
+    label = _map_label(ann.get("PartOfGroup") or "None", lmap)
+    if kind in _POINT_TYPES:
+        if label in _AREA_LABELS:
+            notes["skipped"].append(f"{what} ({ann.get('Type')})")
+        return None
+    coords = []
+    for j, c in enumerate(ann.iterfind("./Coordinates/Coordinate")):
+        try:
+            order = int(c.get("Order", j))
+            xy = (float(c.get("X")), float(c.get("Y")))
+        except (TypeError, ValueError) as e:
+            raise AnnotationError(path, f"{what}: non-numeric coordinate {dict(c.attrib)}") from e
+        coords.append((order, xy))
+    if kind not in _POLYGON_TYPES:  # no Type, or one ASAP does not write (Freehand, ...): read as a polygon
+        if len({xy for _, xy in coords}) < 3:
+            if label in _AREA_LABELS:
+                notes["skipped"].append(f"{what} (Type {ann.get('Type')!r}, {len(coords)} vertices)")
+            return None
+        notes["untyped"].append(f"{what} (Type {ann.get('Type')!r})")
+    if len({order for order, _ in coords}) != len(coords):
+        warnings.warn(f"{path}: {what}: duplicate Order values; vertices with equal Order kept in file order",
+                      stacklevel=4)
+    shell = [xy for _, xy in sorted(coords, key=lambda t: t[0])]  # stable: ties stay in file order
+    if kind == "rectangle" and len(shell) == 2:
+        (x0, y0), (x1, y1) = shell
+        shell = [(x0, y0), (x1, y0), (x1, y1), (x0, y1)]
+    return label, _polygon(path, what, shell, (), notes)
 
 
 def _geojson_label(props: dict, lmap: dict[str, str], default_label: str | None) -> str:
@@ -302,9 +394,12 @@ def _features(path, doc) -> list[dict]:
     raise AnnotationError(path, f"not GeoJSON (type {kind!r})")
 
 
-def _geometry_polygons(geom) -> list[list]:
-    """Polygon coordinate arrays ([shell, *holes]) in a GeoJSON geometry; other types skipped."""
+def _geometry_polygons(geom, skipped: list[str], closed: list[str]) -> list[list]:
+    """Polygon coordinate arrays ([shell, *holes]) in a GeoJSON geometry. A closed LineString (first
+    position = last, at least 4) is a shell (its kind appended to ``closed``); the kinds of geometry
+    without area (points, open lines, null, unknown types) are appended to ``skipped``."""
     if not isinstance(geom, dict):
+        skipped.append("null geometry" if geom is None else "not a geometry")
         return []
     kind, coords = geom.get("type"), geom.get("coordinates")
     if kind == "Polygon":
@@ -312,7 +407,20 @@ def _geometry_polygons(geom) -> list[list]:
     if kind == "MultiPolygon":
         return list(coords) if isinstance(coords, list) else [coords]
     if kind == "GeometryCollection":
-        return [p for g in geom.get("geometries") or [] for p in _geometry_polygons(g)]
+        members = geom.get("geometries")
+        return [p for g in (members if isinstance(members, list) else []) for p in
+                _geometry_polygons(g, skipped, closed)]
+    if kind in ("LineString", "MultiLineString"):
+        lines = [coords] if kind == "LineString" else (coords if isinstance(coords, list) else [])
+        out = []
+        for line in lines:
+            if isinstance(line, list) and len(line) >= 4 and line[0] == line[-1]:
+                closed.append(kind)
+                out.append([line])
+            else:
+                skipped.append(f"open {kind}")
+        return out
+    skipped.append(str(kind) if isinstance(kind, str) else "geometry without a type")
     return []
 
 
@@ -322,8 +430,10 @@ def parse_geojson(
     """Read GeoJSON into ``(label, polygon)`` pairs, coordinates in level-0 pixels (x right, y down).
 
     Accepts a FeatureCollection, a Feature or a bare geometry. Polygon and
-    MultiPolygon (holes kept) are read; other geometry types are skipped. The
-    label of a feature, first match wins:
+    MultiPolygon (holes kept) are read, and a closed LineString (first position
+    equal to the last) as a polygon, with a warning; points, open lines and
+    ``null`` geometry are skipped, with one warning counting them if they are
+    labelled tumour or exclusion. The label of a feature, first match wins:
 
     1. ``properties.label`` (what :func:`annotations_to_geojson` writes), mapped;
     2. ``properties.classification.name`` (QuPath class), mapped;
@@ -347,7 +457,7 @@ def _read_geojson(path, label_map, default_label) -> list[tuple[str, list[Polygo
         doc = json.loads(data)
     except (ValueError, RecursionError) as e:
         raise AnnotationError(path, f"malformed JSON ({e})") from e
-    items, notes = [], {"repaired": [], "dropped": []}
+    items, notes = [], _new_notes()
     for i, feat in enumerate(_features(path, doc)):
         if not isinstance(feat, dict):
             raise AnnotationError(path, f"feature {i} is not an object")
@@ -355,7 +465,12 @@ def _read_geojson(path, label_map, default_label) -> list[tuple[str, list[Polygo
         props = props if isinstance(props, dict) else {}  # GeoJSON allows null; anything else is ignored
         what = f"feature {i}" + (f" ({props['name']!r})" if isinstance(props.get("name"), str) else "")
         label = _geojson_label(props, lmap, default_label)
-        for rings in _geometry_polygons(feat.get("geometry")):
+        skipped, closed = [], []
+        polygons = _geometry_polygons(feat.get("geometry"), skipped, closed)
+        if label in _AREA_LABELS:
+            notes["skipped"].extend(f"{what} ({kind})" for kind in skipped)
+        notes["closed"].extend(f"{what} ({kind})" for kind in closed)
+        for rings in polygons:
             if not isinstance(rings, list) or not rings or not all(isinstance(r, list) for r in rings):
                 raise AnnotationError(path, f"{what}: polygon coordinates are not a list of rings")
             items.append((label, _polygon(path, what, rings[0], rings[1:], notes)))
@@ -365,10 +480,6 @@ def _read_geojson(path, label_map, default_label) -> list[tuple[str, list[Polygo
 def _as_multipolygon(geom) -> MultiPolygon:
     parts = _polygonal_parts(geom)
     return MultiPolygon(parts) if parts else _EMPTY
-
-
-def _union(polys: list[Polygon]):
-    return shapely.union_all(polys) if polys else _EMPTY
 
 
 def _is_xml(path) -> bool:
@@ -429,11 +540,10 @@ def load_annotations(
             stacklevel=2,
         )
 
-    exclusion = _union(by_label["exclusion"])
-    tumour = _union(by_label["tumour"])
-    tissue = _union(by_label["tissue"])
+    # Clipped polygon by polygon, united by clusters of polygons that meet, subtracted part by part: GEOS's
+    # overlay of a whole file's geometry at once peaked at ~150 bytes per vertex (a 37 MiB XML: +140 MiB).
+    frame = None
     if slide_size is not None:
-        had_tumour = not shapely.difference(tumour, exclusion).is_empty
         w, h = slide_size
         frame = box(0, 0, w, h)
         outside = sum(not frame.contains(p) for label in LABELS for p in by_label[label])
@@ -441,19 +551,61 @@ def load_annotations(
             warnings.warn(
                 f"{source}: {outside} polygon(s) extend beyond the slide {w}x{h}; clipped to it", stacklevel=2
             )
-        tumour, exclusion, tissue = (shapely.intersection(g, frame) for g in (tumour, exclusion, tissue))
+    exclusion = _union_parts(_clip(by_label["exclusion"], frame))
+    tissue = _union_parts(_clip(by_label["tissue"], frame))
     # subtracted after clipping, from the very exclusion returned: tumour and exclusion never overlap
-    tumour = shapely.difference(tumour, exclusion)
-    if slide_size is not None and had_tumour and _as_multipolygon(tumour).is_empty:
+    tumour = _subtract(_union_parts(_clip(by_label["tumour"], frame)), exclusion)
+    if frame is not None and not tumour and _subtract(_union_parts(by_label["tumour"]), _union_parts(
+            by_label["exclusion"])):
         raise AnnotationError(path, f"annotation lies outside the slide {w}x{h}")
     return Annotations(
-        tumour=_as_multipolygon(tumour),
-        exclusion=_as_multipolygon(exclusion),
-        tissue=_as_multipolygon(tissue),
+        tumour=_multipolygon(tumour),
+        exclusion=_multipolygon(exclusion),
+        tissue=_multipolygon(tissue),
         n_polygons=n_polygons,
         unknown_groups=tuple(unknown),
         source=source,
     )
+
+
+def _clip(polys: list[Polygon], frame) -> list[Polygon]:
+    """``polys`` clipped to ``frame`` (None: unchanged); only those not inside it are overlaid."""
+    if frame is None:
+        return polys
+    return [q for p in polys for q in ([p] if frame.contains(p) else _polygonal_parts(shapely.intersection(p, frame)))]
+
+
+def _union_parts(polys: list[Polygon]) -> list[Polygon]:
+    """Valid polygons, pairwise disjoint (or touching at points), covering the union of the valid ``polys``:
+    a polygon that meets no other is kept as it is, the others are united with ``union_all``."""
+    if len(polys) <= 1:
+        return list(polys)
+    a, b = shapely.STRtree(polys).query(polys, predicate="intersects")
+    alone = np.ones(len(polys), bool)
+    alone[a[a != b]] = False
+    rest = [p for p, k in zip(polys, alone) if not k]
+    return [p for p, k in zip(polys, alone) if k] + (_polygonal_parts(shapely.union_all(rest)) if rest else [])
+
+
+def _subtract(parts: list[Polygon], cut: list[Polygon]) -> list[Polygon]:
+    """``parts`` minus the union of ``cut`` (both from :func:`_union_parts`): only the parts that meet
+    ``cut`` are overlaid."""
+    if not parts or not cut:
+        return parts
+    a, _ = shapely.STRtree(cut).query(parts, predicate="intersects")
+    hit = set(a.tolist())
+    whole = _multipolygon(cut)
+    return [p for i, p in enumerate(parts) if i not in hit] + [
+        q for i in sorted(hit) for q in _polygonal_parts(shapely.difference(parts[i], whole))]
+
+
+def _multipolygon(parts: list[Polygon]) -> MultiPolygon:
+    """The MultiPolygon of ``parts`` (from :func:`_union_parts` / :func:`_subtract`); united with
+    ``union_all`` in the rare case rounding left two of them overlapping."""
+    if not parts:
+        return _EMPTY
+    geom = MultiPolygon(parts)
+    return geom if geom.is_valid else _as_multipolygon(shapely.union_all(parts))
 
 
 def annotations_to_geojson(ann: Annotations) -> dict:

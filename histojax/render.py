@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from data_tools.bundle_format import ANNOTATIONS
+from data_tools.bundle_format import ANNOTATIONS, atomic_file
 
 TUMOUR_COLOUR = (0, 170, 0)
 START_COLOUR = (0, 200, 255)
@@ -186,7 +186,8 @@ def render_trajectory(env, z, x=None, y=None, path=None, title: str = "", max_si
     fig = trajectory_figure(env, z, x, y, title=title, max_side=max_side, slide_index=slide_index)
     picture = figure_rgb(fig)
     if path is not None:
-        Image.fromarray(picture).save(path)
+        with atomic_file(path) as tmp:  # the previous picture or the new one, never half of one
+            Image.fromarray(picture).save(tmp, format="PNG")
     return picture
 
 
@@ -215,5 +216,6 @@ def animate(env, z, x=None, y=None, path="trajectory.gif", fps: int = 4, max_sid
         # Pillow's default RGB → palette conversion (median cut) took ~0.8 s a frame; fast octree ~10 ms
         frames.append(frame.quantize(colors=256, method=Image.Quantize.FASTOCTREE))
     path = Path(path)
-    frames[0].save(path, save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0)
+    with atomic_file(path) as tmp:
+        frames[0].save(tmp, format="GIF", save_all=True, append_images=frames[1:], duration=int(1000 / fps), loop=0)
     return path

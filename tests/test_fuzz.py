@@ -2,10 +2,12 @@
 load or raise the project's own exception types — never anything else, never a hang; a bundle that loads
 after a fuzzed edit holds 0/1 masks and the metadata it was sealed with.
 
-`make fuzz` runs HISTOJAX_FUZZ_EXAMPLES=10000 per target (70,000 cases) and prints the counts;
+`make fuzz` runs HISTOJAX_FUZZ_EXAMPLES=10000 per target (90,000 cases) and prints the counts;
 the default `make test` runs a small sample (HISTOJAX_FUZZ_EXAMPLES defaults to 60). The
 ``*-geometry`` targets feed both readers self-intersecting polygons and extreme coordinates
-(up to ±1.7e308) and check that what loads is valid geometry inside the slide.
+(up to ±1.7e308, and JSON integers up to ±10^400) and check that what loads is valid geometry inside the
+slide. The ``*-lost`` targets write tumour parts of area kinds (untyped ASAP annotations, closed
+LineStrings included) and kinds without area, and check that each is used or counted in the warning.
 """
 from __future__ import annotations
 
@@ -65,9 +67,9 @@ clean_annotation = st.builds(
     st.sampled_from(["Polygon", "Spline"]), st.sampled_from(["metastasis", "_0", "Tumor", "_2"]),
     st.lists(st.tuples(st.integers(0, 5000), st.integers(0, 5000)), min_size=3, max_size=10))
 dirty_annotation = st.builds(
-    lambda t, g, cs: f'<Annotation Name="a" Type="{t}" PartOfGroup="{g}"><Coordinates>{"".join(cs)}'
-                     f'</Coordinates></Annotation>',
-    st.sampled_from(["Polygon", "Spline", "Rectangle", "PointSet", "Dot", "", "Weird"]),
+    lambda t, g, cs: '<Annotation Name="a"' + ("" if t is None else f' Type="{t}"') + f' PartOfGroup="{g}">'
+                     f'<Coordinates>{"".join(cs)}</Coordinates></Annotation>',
+    st.sampled_from(["Polygon", "Spline", "Rectangle", "PointSet", "Dot", "", "Weird", "Freehand", None]),
     st.sampled_from(["metastasis", "_0", "_2", "negative", "Tumor", "None", "", "tissue", "zz"]),
     st.lists(coordinate, max_size=12))
 annotation = st.one_of(clean_annotation, clean_annotation, dirty_annotation)
@@ -93,6 +95,7 @@ def test_fuzz_asap_xml(tmp_path, pro, anns, cut, junk, mode):
 
 
 # ------------------------------------------------------------------ GeoJSON
+huge_integers = st.integers(10**300, 10**400).flatmap(lambda v: st.sampled_from([v, -v]))  # beyond any float
 json_values = st.recursive(
     st.one_of(st.none(), st.booleans(), st.floats(allow_nan=False), st.integers(), st.text(max_size=8)),
     lambda children: st.one_of(st.lists(children, max_size=5), st.dictionaries(st.text(max_size=8), children,
@@ -102,8 +105,9 @@ rings = st.one_of(
     st.lists(st.lists(st.integers(0, 10**4), min_size=2, max_size=2), min_size=3, max_size=8).map(
         lambda r: [r + [r[0]]]),  # a closed ring: often a valid polygon
     st.lists(st.lists(st.one_of(st.floats(allow_nan=False, allow_infinity=False, width=32),
-                                st.integers(-10, 10**6)), min_size=0, max_size=3), max_size=8))
-geometry = st.fixed_dictionaries({"type": st.sampled_from(["Polygon", "MultiPolygon", "Point", "LineString", "x"]),
+                                st.integers(-10, 10**6), huge_integers), min_size=0, max_size=3), max_size=8))
+geometry = st.fixed_dictionaries({"type": st.sampled_from(["Polygon", "MultiPolygon", "Point", "LineString",
+                                                           "MultiLineString", "GeometryCollection", "x"]),
                                   "coordinates": st.one_of(rings, st.lists(rings, max_size=3), json_values)})
 feature = st.fixed_dictionaries({"type": st.just("Feature"), "geometry": st.one_of(geometry, json_values),
                                  "properties": st.one_of(json_values, st.fixed_dictionaries(
@@ -163,7 +167,8 @@ small = st.integers(-100, 5100)
 extreme = st.one_of(
     small, st.floats(min_value=-3e9, max_value=3e9, allow_nan=False),
     st.floats(min_value=-1.7e308, max_value=1.7e308, allow_nan=False),
-    st.sampled_from([2.0**31, -(2.0**31), 2.0**31 + 1, 2147483647.5, 1e300, -1e300, 1.7e308, 5e-324, 1e9]))
+    st.sampled_from([2.0**31, -(2.0**31), 2.0**31 + 1, 2147483647.5, 1e300, -1e300, 1.7e308, 5e-324, 1e9]),
+    huge_integers, st.sampled_from([2**31, -(2**31), 2**31 + 1, 10**309]))  # JSON integers: exact, any size
 tangled = st.one_of(  # random vertices: mostly self-intersecting, in the slide or at extreme coordinates
     st.lists(st.tuples(small, small), min_size=3, max_size=60),
     st.lists(st.tuples(small, small), min_size=3, max_size=60),
@@ -333,3 +338,70 @@ def test_fuzz_bundle_metadata_edits(fuzz_bundle, pick, value, delete, reseal, ve
             assert b.tile_size >= 8 and all(lv["width"] >= 1 for lv in b.metadata["levels"])
     finally:
         _restore(pristine, work, ["metadata.json"])
+
+# ------------------------------------------------------------------ nothing lost: tumour used or counted
+AREA_KINDS = {"xml": ["Polygon", "Spline", "Rectangle", None, "Freehand", ""],
+              "geojson": ["Polygon", "MultiPolygon", "closed LineString", "GeometryCollection"]}
+LOST_KINDS = {"xml": ["PointSet", "Dot", "Measurement", "few"],  # "few": no Type and < 3 vertices
+              "geojson": ["Point", "open LineString", "null", "MultiPoint", "x"]}
+
+
+def _part_file(tmp_path, fmt: str, parts) -> object:
+    """One square (side 100, at x = 200 i) per part, written as the kind of annotation the part names."""
+    if fmt == "xml":
+        anns = []
+        for i, (kind, group) in enumerate(parts):
+            sq = [(200 * i, 0), (200 * i + 100, 0), (200 * i + 100, 100), (200 * i, 100)]
+            if kind == "Rectangle":
+                sq = [sq[0], sq[2]]
+            typ = "" if kind in (None, "few") else f' Type="{kind}"'
+            pts = sq[:2] if kind == "few" else sq
+            anns.append(f'<Annotation Name="p{i}"{typ} PartOfGroup="{group}"><Coordinates>'
+                        + "".join(f'<Coordinate Order="{j}" X="{x}" Y="{y}" />' for j, (x, y) in enumerate(pts))
+                        + "</Coordinates></Annotation>")
+        path = tmp_path / "parts.xml"
+        path.write_text(f"<ASAP_Annotations><Annotations>{''.join(anns)}</Annotations></ASAP_Annotations>")
+        return path
+    feats = []
+    for i, (kind, group) in enumerate(parts):
+        ring = [[200 * i, 0], [200 * i + 100, 0], [200 * i + 100, 100], [200 * i, 100], [200 * i, 0]]
+        geometry = {"Polygon": {"type": "Polygon", "coordinates": [ring]},
+                    "MultiPolygon": {"type": "MultiPolygon", "coordinates": [[ring]]},
+                    "closed LineString": {"type": "LineString", "coordinates": ring},
+                    "GeometryCollection": {"type": "GeometryCollection",
+                                           "geometries": [{"type": "Polygon", "coordinates": [ring]},
+                                                          {"type": "Point", "coordinates": ring[0]}]},
+                    "Point": {"type": "Point", "coordinates": ring[0]},
+                    "MultiPoint": {"type": "MultiPoint", "coordinates": ring},
+                    "open LineString": {"type": "LineString", "coordinates": ring[:-1]},
+                    "null": None, "x": {"type": "x", "coordinates": ring}}[kind]
+        feats.append({"type": "Feature", "properties": {"label": group}, "geometry": geometry})
+    path = tmp_path / "parts.geojson"
+    path.write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    return path
+
+
+@FUZZ
+@pytest.mark.parametrize("fmt", ["xml", "geojson"])
+@given(data=st.data())
+def test_fuzz_tumour_is_used_or_counted(tmp_path, fmt, data):
+    """Every part labelled tumour is either in the tumour area or counted in the 'without area' warning."""
+    groups = {"xml": ["metastasis", "tissue"], "geojson": ["tumour", "tissue"]}[fmt]
+    parts = data.draw(st.lists(st.tuples(st.sampled_from(AREA_KINDS[fmt] + LOST_KINDS[fmt]),
+                                         st.sampled_from(groups)), min_size=1, max_size=8))
+    path = _part_file(tmp_path, fmt, parts)
+    used = sum(k in AREA_KINDS[fmt] and g == groups[0] for k, g in parts)
+    lost = sum(k in LOST_KINDS[fmt] and g == groups[0] for k, g in parts)
+    lost += sum(k == "GeometryCollection" and g == groups[0] for k, g in parts)  # its Point member
+    with warnings.catch_warnings(record=True) as record:
+        warnings.simplefilter("always")
+        try:
+            ann = load_annotations(path)
+        except AnnotationError as e:
+            assert "no polygons" in str(e) and not any(k in AREA_KINDS[fmt] for k, _ in parts), str(e)
+            ann = None
+    COUNTS[f"{fmt}-lost"]["loaded" if ann is not None else "AnnotationError"] += 1
+    if ann is not None:
+        assert ann.tumour.area == pytest.approx(10_000 * used)
+    counted = [str(w.message) for w in record if "without area" in str(w.message)]
+    assert (f": {lost} tumour / exclusion annotation(s)" in counted[0]) if lost else not counted, (parts, counted)

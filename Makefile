@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all test-integrations integrations bench bench-histogym bench-large contract fuzz clean
+.PHONY: demo test test-all test-integrations integrations bench bench-histogym bench-large contract fuzz clean bench-gpu
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (Python 3.11) on PATH, or run: make PYTHON=python3 ..."; exit 1; }
@@ -35,6 +35,11 @@ fuzz: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) benchmarks/throughput.py
+
+# every GPU figure, one process, an internal 8-minute budget (docs/benchmarks.md#gpu-figures)
+GPU_OUT ?= benchmarks/results/gpu
+bench-gpu: $(STAMP)
+	$(PY) benchmarks/gpu.py --out $(GPU_OUT)
 
 bench-histogym: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]'

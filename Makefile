@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all test-integrations integrations bench bench-histogym bench-large contract fuzz clean
+.PHONY: demo test test-all test-integrations integrations bench bench-histogym bench-large contract fuzz clean bench-gpu test-min
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (Python 3.11) on PATH, or run: make PYTHON=python3 ..."; exit 1; }
@@ -30,11 +30,26 @@ test-integrations: integrations
 	$(PY) -c "import stable_baselines3, rejax"  # the tests below skip without them: fail here instead
 	$(PY) -m pytest -q -rs tests/test_sb3.py tests/test_rejax.py tests/test_gymnax.py tests/test_gymnasium.py
 
+# the lowest declared versions (requirements-min.txt = pyproject.toml's floors) in their own venv, core tests
+MIN_VENV := .venv-min
+MIN_TESTS ?= tests/test_env.py tests/test_properties.py tests/test_baselines.py tests/test_diagnosis.py tests/test_min_versions.py
+test-min:
+	test -x $(MIN_VENV)/bin/python || $(PYTHON) -m venv $(MIN_VENV)
+	$(MIN_VENV)/bin/python -m pip install --quiet --upgrade pip
+	$(MIN_VENV)/bin/python -m pip install --quiet -e '.[test]' -c requirements-min.txt
+	$(MIN_VENV)/bin/python -m pip check
+	$(MIN_VENV)/bin/python -m pytest -q $(MIN_TESTS)
+
 fuzz: $(STAMP)
 	HISTOJAX_FUZZ_EXAMPLES=10000 $(PY) -m pytest -q -s tests/test_fuzz.py
 
 bench: $(STAMP)
 	$(PY) benchmarks/throughput.py
+
+# every GPU figure, one process, an internal 8-minute budget (docs/benchmarks.md#gpu-figures)
+GPU_OUT ?= benchmarks/results/gpu
+bench-gpu: $(STAMP)
+	$(PY) benchmarks/gpu.py --out $(GPU_OUT)
 
 bench-histogym: $(STAMP)
 	$(PY) -m pip install --quiet -e '.[bench]'

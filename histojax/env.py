@@ -244,6 +244,32 @@ class HistoEnv(_GymnaxEnvironment):
         extra = self._extra_spaces(params)
         return spaces.Dict({self.observation.key: view, **extra}) if extra else view
 
+    def state_space(self, params: EnvParams | None = None):
+        """A ``Dict`` space of the ``EnvState`` fields, with their bounds as gymnax's envs give them:
+        ``z`` ``Discrete(n_levels)``; ``x``, ``y`` (px of level ``z``) ``Box`` int32 from 0 (or the
+        smallest ``level size - tile_size`` when a level is narrower than a view) to the largest
+        ``level size - tile_size`` of any level and slide; ``t`` ``Discrete(max_steps_in_episode + 1)``
+        (with ``auto_reset=False``, a state stepped past its episode's end is outside);
+        ``slide_index`` ``Discrete(num_slides)``; ``orientation`` ``Discrete(8)``. The action mode's
+        reading ``memory`` (a pytree, ``None`` for most modes) is not described. ``contains`` takes an
+        ``EnvState`` (fields read by attribute, as gymnax's ``Dict`` does)."""
+        params = self.default_params if params is None else params
+        s = params.slide
+        spare_x = jax.device_get(s.level_width).astype("int64") - self.tile_size
+        spare_y = jax.device_get(s.level_height).astype("int64") - self.tile_size
+
+        def corner(spare):
+            return spaces.Box(min(0, int(spare.min())), max(0, int(spare.max())), (), jnp.int32)
+
+        return spaces.Dict({
+            "z": spaces.Discrete(self.n_levels),
+            "x": corner(spare_x),
+            "y": corner(spare_y),
+            "t": spaces.Discrete(int(params.max_steps_in_episode) + 1),
+            "slide_index": spaces.Discrete(s.num_slides),
+            "orientation": spaces.Discrete(dihedral.NUM_ORIENTATIONS),
+        })
+
     def _extra_spaces(self, params) -> dict:
         extra = {"position": spaces.Box(0.0, 1.0, (3,), jnp.float32)} if self.with_position else {}
         return {**extra, **self.action.memory_space(self, params)}

@@ -31,10 +31,17 @@ GYMNAX = _gymnax_spaces is not None
 
 
 def _dict_contains(spaces: dict, x: Any) -> jax.Array:
-    """True when ``x`` is a mapping with the same keys as ``spaces`` and each member is contained."""
-    if not isinstance(x, Mapping) or set(x) != set(spaces):
+    """True when ``x`` is a mapping with the same keys as ``spaces`` and each member is contained, or an
+    object (e.g. an ``EnvState``) with an attribute for every key, each contained (gymnax's reading)."""
+    if isinstance(x, Mapping):
+        if set(x) != set(spaces):
+            return jnp.asarray(False)
+        members = x
+    elif all(hasattr(x, k) for k in spaces):
+        members = {k: getattr(x, k) for k in spaces}
+    else:
         return jnp.asarray(False)
-    return jnp.all(jnp.stack([jnp.asarray(spaces[k].contains(v)) for k, v in x.items()]))
+    return jnp.all(jnp.stack([jnp.asarray(spaces[k].contains(v)) for k, v in members.items()]))
 
 
 if GYMNAX:

@@ -10,8 +10,9 @@ Every line of every ```bash block in README.md and docs/*.md is checked:
 * anything else fails, so the docs show only commands that are checked.
 
 Bash blocks preceded by ``<!-- docs-check: run -->`` are also run for real (in a scratch folder that sees
-the repository's files), and so are ```python blocks with that mark; ``<!-- docs-check: run-slow -->``
-blocks run only under ``make test-all``.
+the repository's files). **Every** ```python block runs, each in a fresh interpreter, unless the line
+before it is ``<!-- docs-check: skip (reason) -->`` — the reason, shown on the page, is required (a
+skip mark without one fails); ``<!-- docs-check: run-slow -->`` blocks run only under ``make test-all``.
 Relative links between pages must resolve, anchors included.
 """
 from __future__ import annotations
@@ -38,6 +39,8 @@ PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
 PENDING_PAGES: set[str] = set()  # pages linked before they land; every page has landed
 
 _MARK = re.compile(r"<!--\s*docs-check:\s*(run|run-slow)\s*-->")
+_SKIP = re.compile(r"<!--\s*docs-check:\s*skip\s*\((?P<reason>[^)]*\S[^)]*)\)\s*-->")
+_ANY_SKIP = re.compile(r"docs-check:\s*skip")
 
 
 def _bash_blocks(page: Path) -> list[tuple[int, str | None, list[tuple[int, str]]]]:
@@ -84,15 +87,20 @@ def _run_blocks():
 
 
 def _python_blocks():
-    """``(first line number, code)`` of each ```python block preceded by a run mark."""
+    """Every ```python block of every page: run, run-slow (marked slow) or skipped with its page's reason."""
     for page in PAGES:
         lines = page.read_text().splitlines()
         for i, line in enumerate(lines):
+            if line.strip() != "```python":
+                continue
             before = next((lines[j] for j in range(i - 1, -1, -1) if lines[j].strip()), "")
-            if line.strip() == "```python" and (mark := _MARK.search(before)):
-                end = lines.index("```", i + 1)
-                marks = [pytest.mark.slow] if mark.group(1) == "run-slow" else []
-                yield pytest.param("\n".join(lines[i + 1:end]), id=f"{page.relative_to(ROOT)}:{i + 1}", marks=marks)
+            end = lines.index("```", i + 1)
+            marks = []
+            if (mark := _MARK.search(before)) and mark.group(1) == "run-slow":
+                marks = [pytest.mark.slow]
+            elif skip := _SKIP.search(before):
+                marks = [pytest.mark.skip(reason=f"the page says: {skip.group('reason').strip()}")]
+            yield pytest.param("\n".join(lines[i + 1:end]), id=f"{page.relative_to(ROOT)}:{i + 1}", marks=marks)
 
 
 def _words(command: str) -> list[str]:
@@ -208,14 +216,33 @@ def test_marked_blocks_run(page, commands, tmp_path):
 
 
 @pytest.mark.parametrize("code", list(_python_blocks()))
-def test_marked_python_blocks_run(code, tmp_path):
-    """Marked ```python blocks run as they are, in a fresh interpreter."""
+def test_python_blocks_run(code, tmp_path):
+    """Every ```python block runs as it is, in a fresh interpreter (unless its page says why not)."""
     script = tmp_path / "snippet.py"
     script.write_text(code + "\n")
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
     done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True,
                           timeout=600)
     assert done.returncode == 0, done.stderr[-3000:]
+
+
+def test_skip_marks_give_a_reason():
+    """A ``docs-check: skip`` mark must say why, and must sit right before a ```python block."""
+    bad = []
+    for page in PAGES:
+        lines = page.read_text().splitlines()
+        for i, line in enumerate(lines):
+            if _ANY_SKIP.search(line):
+                after = next((lines[j] for j in range(i + 1, len(lines)) if lines[j].strip()), "")
+                if not _SKIP.search(line) or after.strip() != "```python":
+                    bad.append(f"{page.relative_to(ROOT)}:{i + 1}: {line.strip()}")
+    assert not bad, "skip marks need a reason in parentheses and a ```python block after them: " + "; ".join(bad)
+
+
+def test_skip_mark_syntax():
+    assert _SKIP.search("<!-- docs-check: skip (needs rejax) -->").group("reason") == "needs rejax"
+    assert not _SKIP.search("<!-- docs-check: skip -->") and not _SKIP.search("<!-- docs-check: skip ( ) -->")
+    assert _ANY_SKIP.search("<!-- docs-check: skip -->")
 
 
 def _anchor(heading: str) -> str:

@@ -110,6 +110,98 @@ def dataset_views(folder: Path, per_class: int, seed: int = 0, min_tissue: float
     return np.stack(views), np.array(labels), groups
 
 
+def tiff_views(folder: Path, split: str, per_class: int, seed: int = 0, min_tissue: float = 0.5,
+               slides=None):
+    """Like :func:`dataset_views`, for the slides of ``split`` (``"train"``, ``"test"`` or ``"all"``), read from
+    the dataset's TIFFs (level 0, grid-aligned 128-px views) and GeoJSON polygons, so it works on
+    feature-only datasets: views ≥ 50 % tumour (label 1) and tumour-free views ≥ ``min_tissue`` inside
+    the tissue (label 0), at most ``per_class`` per slide and class. Returns ``(views, labels, slide names)``."""
+    import shapely
+    import tifffile
+
+    from data_tools.annotations import load_annotations
+
+    ds = json.loads((folder / "dataset.json").read_text())
+    wanted = {Path(b).name for b in (ds["train"] + ds["test"] if split == "all" else ds[split])}
+    rng = np.random.default_rng(seed)
+    views, labels, groups = [], [], []
+    for rec in ds["slides"]:
+        if rec["name"] not in wanted or (slides is not None and rec["name"] not in slides):
+            continue
+        ann = load_annotations(folder / rec["tiff"].replace(".tif", ".geojson"))
+        with tifffile.TiffFile(folder / rec["tiff"]) as tif:
+            page = tif.pages[0]
+            h, w = page.shape[:2]
+            tile = page.tilewidth
+            gh, gw = h // T, w // T
+            ty_, tx_ = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
+            boxes = shapely.box(tx_ * T, ty_ * T, tx_ * T + T, ty_ * T + T)
+            picks = []
+            if ann.tumour is not None and not ann.tumour.is_empty:
+                near = shapely.intersects(boxes, ann.tumour)
+                frac = np.zeros((gh, gw))
+                frac[near] = shapely.area(shapely.intersection(boxes[near], ann.tumour)) / T**2
+                pos = np.argwhere(frac >= 0.5)
+                picks += [(p, 1) for p in pos[rng.permutation(len(pos))[:per_class]]]
+                free = ~near
+            else:
+                free = np.ones((gh, gw), bool)
+            cand = np.argwhere(free & shapely.intersects(boxes, ann.tissue))
+            n0 = 0
+            for i in rng.permutation(len(cand)):
+                if n0 >= per_class:
+                    break
+                ty, tx = cand[i]
+                if shapely.area(shapely.intersection(boxes[ty, tx], ann.tissue)) / T**2 >= min_tissue:
+                    picks.append(((ty, tx), 0))
+                    n0 += 1
+            cache = {}
+            per_row = -(-w // tile)
+            for (ty, tx), lab in picks:
+                y0, x0 = ty * T, tx * T
+                k = (y0 // tile) * per_row + x0 // tile
+                if k not in cache:
+                    tif.filehandle.seek(page.dataoffsets[k])
+                    cache[k] = page.decode(tif.filehandle.read(page.databytecounts[k]), k)[0][0]
+                oy, ox = y0 % tile, x0 % tile
+                views.append(cache[k][oy:oy + T, ox:ox + T, :3])
+                labels.append(lab)
+                groups.append(rec["name"])
+    return np.stack(views), np.array(labels), groups
+
+
+def loso_auc(x: np.ndarray, y: np.ndarray, groups) -> float:
+    """AUC of out-of-slide scores: each slide's views scored by a logistic regression fitted on every
+    other slide's views (leave one slide out), all scores pooled into one AUC."""
+    groups = np.asarray(groups)
+    scores = np.full(len(y), np.nan)
+    for g in sorted(set(groups)):
+        te = groups == g
+        if len(set(y[~te])) < 2:
+            continue
+        scores[te] = fit_logistic(x[~te], y[~te].astype(np.float64))(x[te])
+    ok = np.isfinite(scores)
+    return auc(scores[ok], y[ok])
+
+
+def encoder_table(views: np.ndarray, y: np.ndarray, groups, encoders, seed: int = 0) -> list[dict]:
+    """Per input (mean RGB and each encoder's embedding): linear AUC pooled (2-fold over views at random) and
+    leave-one-slide-out; for ``pcam-cnn`` also the AUC of its own tumour logit (nothing fitted)."""
+    from data_tools.features.efficientnet import load_encoder
+
+    inputs = {"mean RGB (3)": views.reshape(len(views), -1, 3).mean(1)}
+    own = {}
+    for name in encoders:
+        enc = load_encoder(name)
+        emb = np.concatenate([np.asarray(enc.embed(views[i:i + 256]), np.float32) for i in range(0, len(views), 256)])
+        inputs[f"{name} ({enc.dim})"] = emb
+        if name == "pcam-cnn":
+            own[f"{name} ({enc.dim})"] = auc(emb[:, -2], y)
+    return [{"input": k, "pooled_auc": round(cv_auc(x, y, None, seed=seed), 3),
+             "loso_auc": round(loso_auc(x, y, groups), 3),
+             "own_logit_auc": round(own[k], 3) if k in own else None} for k, x in inputs.items()]
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dataset", required=True, help="a data_tools c16 dataset folder")
@@ -119,7 +211,29 @@ def main(argv=None) -> int:
                    help="a tumour-free view counts as tissue with at least this fraction inside the tissue polygon (0.5)")
     p.add_argument("--embed", type=int, default=600, help="views (and patches) per class embedded by "
                                                         "EfficientNet-Lite0 (default 600; 0 skips it)")
+    p.add_argument("--split", default=None, choices=("train", "test", "all"),
+                   help="read the views of this split from the TIFFs (works on feature-only datasets) and print the "
+                        "table of mean RGB and --encoders, pooled and leave-one-slide-out")
+    p.add_argument("--encoders", nargs="+", default=["colour-stats", "pcam-cnn"])
+    p.add_argument("--out", default=None, help="with --split: write the table as JSON here")
     args = p.parse_args(argv)
+    if args.split:
+        t0 = time.perf_counter()
+        views, y, groups = tiff_views(Path(args.dataset), args.split, args.per_class, min_tissue=args.min_tissue)
+        rows = encoder_table(views, y, groups, args.encoders)
+        head = (f"{args.split} split of {args.dataset}: {int(y.sum())} tumour views (>= 50 %), {int((y == 0).sum())} "
+                f"tumour-free tissue views, {len(set(groups))} slides ({time.perf_counter() - t0:.0f} s)")
+        print(head + "\n\n| input | linear AUC, pooled (2-fold over views) | linear AUC, leave one slide out | "
+              "own tumour logit AUC |\n|---|---|---|---|")
+        for r in rows:
+            print(f"| {r['input']} | {r['pooled_auc']:.3f} | {r['loso_auc']:.3f} | "
+                  f"{'–' if r['own_logit_auc'] is None else format(r['own_logit_auc'], '.3f')} |")
+        if args.out:
+            from data_tools.bundle_format import write_json
+
+            write_json(args.out, {"summary": head, "rows": rows, "per_class": args.per_class,
+                                  "command": "python benchmarks/c16_sanity.py " + " ".join(argv or [])})
+        return 0
     from data_tools.pcam_bank import load_bank
 
     t0 = time.perf_counter()

@@ -10,9 +10,10 @@ resizing. Preprocessing: ``(x / 255 − 0.5) / 0.25`` per channel, nothing else 
 another scale (a PCam patch as distributed: 96 px at 0.972 µm/px) go through :func:`to_benchmark_scale`
 first.
 
-Architecture: five 3×3 convolutions with ReLU (channels 16, 32, 48, 48, 64; strides 2, 2, 2, 1, 1: one
-output cell per 8 × 8 input px, receptive field 75 px), then a 1×1 convolution to ``CHANNELS`` = 31
-feature channels ``f`` and a 1×1 linear tumour-logit map ``l`` over ``relu(f)``. Global pooling over
+Architecture: ``LAYERS``: a 4×4 convolution of stride 4 (24 channels), a 3×3 of stride 2 (48), a 3×3 (48) and
+a 1×1 (64), each followed by BatchNorm (running statistics at inference) and ReLU: one output cell per 8 × 8
+input px, receptive field 28 px; then a 1×1 convolution to ``CHANNELS`` = 31 feature channels ``f`` and a 1×1
+linear tumour-logit map ``l`` over ``relu(f)``. Global pooling over
 the cells makes it work on a single patch as on a whole view:
 
 - ``logits(images)`` → float32 ``(B,)``: the mean of ``l`` over the cells (the trained output: the
@@ -41,13 +42,17 @@ WEIGHTS = Path(__file__).with_name("pcam_cnn.msgpack")
 
 class PcamCNN(nn.Module):
     """The network: uint8 or float RGB in [0, 255] ``(B, H, W, 3)`` → ``(f, l)``, feature map
-    ``(B, h, w, CHANNELS)`` and logit map ``(B, h, w)`` with ``h = ceil(H / 8)``."""
+    ``(B, h, w, CHANNELS)`` and logit map ``(B, h, w)`` with ``h = ceil(H / 8)``. ``train``: BatchNorm uses and
+    updates the batch's statistics (``mutable=["batch_stats"]``) instead of the running ones."""
+
+    train: bool = False
 
     @nn.compact
     def __call__(self, images):
         x = (images.astype(jnp.float32) / 255.0 - 0.5) / 0.25
         for i, (c, k, s) in enumerate(LAYERS):
-            x = nn.relu(nn.Conv(c, (k, k), strides=(s, s), padding="SAME", name=f"conv{i}")(x))
+            x = nn.Conv(c, (k, k), strides=(s, s), padding="SAME", use_bias=False, name=f"conv{i}")(x)
+            x = nn.relu(nn.BatchNorm(use_running_average=not self.train, momentum=0.9, name=f"bn{i}")(x))
         f = nn.Conv(CHANNELS, (1, 1), name="features")(x)
         logit = nn.Conv(1, (1, 1), name="tumour")(nn.relu(f))[..., 0]
         return f, logit

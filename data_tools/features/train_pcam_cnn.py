@@ -153,18 +153,20 @@ def train(patches=None, seed: int = 0, epochs: int = 30, batch: int = 256, lr: f
     schedule = optax.warmup_cosine_decay_schedule(0.0, lr, min(100, steps_per_epoch), steps_per_epoch * epochs)
     tx = optax.adamw(schedule, weight_decay=weight_decay)
     variables = pcam_cnn.init_variables(seed)
-    opt_state = tx.init(variables)
+    opt_state = tx.init(variables["params"])
+    net = pcam_cnn.PcamCNN(train=True)
 
-    def loss_fn(v, x, y):
-        logit = pcam_cnn.apply(v, x)[1]
-        return optax.sigmoid_binary_cross_entropy(logit, y.astype(jnp.float32)).mean()
+    def loss_fn(params, stats, x, y):
+        (f, l), new = net.apply({"params": params, "batch_stats": stats}, x, mutable=["batch_stats"])
+        logit = pcam_cnn.pool(f, l)[1]
+        return optax.sigmoid_binary_cross_entropy(logit, y.astype(jnp.float32)).mean(), new["batch_stats"]
 
     @jax.jit
     def step(v, opt_state, key, x, y):
         x = mosaic_augment(key, x.astype(jnp.float32), y)
-        loss, grads = jax.value_and_grad(loss_fn)(v, x, y)
-        updates, opt_state = tx.update(grads, opt_state, v)
-        return optax.apply_updates(v, updates), opt_state, loss
+        (loss, stats), grads = jax.value_and_grad(loss_fn, has_aux=True)(v["params"], v["batch_stats"], x, y)
+        updates, opt_state = tx.update(grads, opt_state, v["params"])
+        return {"params": optax.apply_updates(v["params"], updates), "batch_stats": stats}, opt_state, loss
 
     key = jax.random.PRNGKey(seed)
     best, history = None, []

@@ -411,3 +411,22 @@ def test_v1_ids_need_a_format_2_dataset_with_pcam_cnn_features(small, tmp_path):
         histojax.make("HistoJAX-C16-Hard-v1", dataset=old)
     with pytest.raises(BundleError, match="pcam-cnn features; this dataset's feature grids are None"):
         histojax.make("HistoJAX-C16-Hard-v1", dataset=small)
+
+
+FULL_RECORD = ROOT / "tests" / "data" / "c16_full_patch_names.npz"
+
+
+@pytest.mark.skipif(not FULL_RECORD.is_file(), reason="the full set's patch record is made by "
+                    "benchmarks/c16_patch_record.py after a full build")
+def test_the_full_sets_sides_share_no_patch():
+    """On the recorded patch names of the full true-scale set (239 slides; benchmarks/c16_patch_record.py):
+    no patch textures both a train and a test slide, and each side's patches are in its pool."""
+    from data_tools.pcam_bank import in_test_pool
+
+    rec = np.load(FULL_RECORD)
+    train, test = set(rec["train"]), set(rec["test"])
+    assert len(train) > 5000 and len(test) > 2000 and list(rec["slides"]) == [180, 59]
+    assert not train & test
+    for side, keys in (("train", train), ("test", test)):
+        labels, names = zip(*(k.split("/", 1) for k in sorted(keys)))
+        assert (in_test_pool(names, [int(v) for v in labels]) == (side == "test")).all(), side

@@ -150,7 +150,9 @@ def train(patches=None, seed: int = 0, epochs: int = 30, batch: int = 256, lr: f
     x_val_stained = stained_copy(x_val, y_val, seed + 1)
     batch = max(GROUPS, batch // GROUPS * GROUPS)
     steps_per_epoch = max(1, len(x_fit) // batch)
-    schedule = optax.warmup_cosine_decay_schedule(0.0, lr, min(100, steps_per_epoch), steps_per_epoch * epochs)
+    total = steps_per_epoch * epochs
+    warmup = min(100, steps_per_epoch) if total > min(100, steps_per_epoch) else 0  # a one-step run: no warm-up
+    schedule = optax.warmup_cosine_decay_schedule(0.0 if warmup else lr, lr, warmup, total)
     tx = optax.adamw(schedule, weight_decay=weight_decay)
     variables = pcam_cnn.init_variables(seed)
     opt_state = tx.init(variables["params"])

@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from baselines import common
+from baselines.metrics import accuracy, roc_auc
 from baselines.ppo import make_network
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
                                 policy_mode, policy_sample, preprocess_obs)
@@ -77,6 +78,25 @@ def scripted_policy(key, obs, action_mode: str = "discrete", centred: float = 0.
     zoom = jnp.where(is_centred & ~jnp.asarray(finest), 1.0, 0.0)
     jitter = jax.random.uniform(k1, (2,), minval=-0.5, maxval=0.5) * is_centred * jnp.asarray(finest)
     return jnp.stack([2 * ox + jitter[0], 2 * oy + jitter[1], zoom])
+
+
+def scripted_features_policy(key, obs, tumour_index: int = -1, threshold: float = 0.0, epsilon: float = 0.1):
+    """Coarse-to-fine on feature observations (discrete actions; one env), from the observation only:
+    the view's tumour logit is ``features[tumour_index]`` (pcam-cnn: entry 63, the max over the view's
+    patches of the encoder's tumour logit, ``max l``; entry 62 is their mean). Above ``threshold``
+    zoom in (at the finest level: stay, since the view is already there); below it, move one view
+    width in a random direction, and at the finest level zoom out half the time to look around from
+    higher up. With probability ``epsilon`` a random action breaks loops. Meaningful for encoders
+    with a tumour logit (pcam-cnn); on others it is a baseline of the same shape."""
+    feats = obs["features"] if isinstance(obs, dict) else obs
+    logit = jnp.asarray(feats, jnp.float32)[tumour_index]
+    finest = obs["position"][2] >= 1.0 - 1e-6 if isinstance(obs, dict) and "position" in obs else False
+    k1, k2, k3, k4 = jax.random.split(key, 4)
+    move = jax.random.randint(k1, (), 0, 4)
+    away = jnp.where(finest & (jax.random.uniform(k4) < 0.5), actions.ZOOM_OUT, move)
+    hot = jnp.where(finest, actions.STAY, actions.ZOOM_IN)
+    a = jnp.where(logit > threshold, hot, away)
+    return jnp.where(jax.random.uniform(k2) < epsilon, jax.random.randint(k3, (), 0, 7), a).astype(jnp.int32)
 
 
 # ----------------------------------------------------------------------------- rollouts
@@ -165,6 +185,27 @@ def per_episode_params(env_params, slides, read_budgets=None):
     return params, axes
 
 
+def diagnosis_actions(env, network, action_mode: str):
+    """``(DECLARE_NO_TUMOUR, DECLARE_TUMOUR)`` action indices when ``env`` is a diagnosis env
+    (``task="classification"``) and ``network`` a discrete actor-critic, so the evaluation can score
+    the policy's probability of declaring tumour (:func:`learned_policy`'s ``declare``); else None."""
+    base = env
+    while not hasattr(base, "task") and hasattr(base, "_env"):
+        base = base._env
+    if getattr(base, "task", None) != "classification" or isinstance(network, QNetwork):
+        return None
+    if not policy_is_discrete(action_mode):
+        return None
+    n = int(getattr(env, "num_actions", getattr(base, "num_actions", 0)))
+    return (n - 2, n - 1) if n >= 2 else None
+
+
+def episode_labels(env_params, slides) -> np.ndarray:
+    """The 0/1 slide label of each episode's slide (``slide_label`` of the env's slides)."""
+    label = np.asarray(jax.device_get(env_params.slide.slide_label))
+    return (np.full(np.shape(slides), int(label)) if label.ndim == 0 else label[np.asarray(slides)]).astype(int)
+
+
 def summarise(ep: dict, slide_names=None) -> dict:
     """Episodes, success rate, mean return, mean length and mean steps to success (over the
     successful episodes) of :func:`run_episodes`' output; with ``slide_names`` (one per slide of a
@@ -175,6 +216,9 @@ def summarise(ep: dict, slide_names=None) -> dict:
            "mean_steps_to_success": float(ep["length"][s].mean()) if s.any() else float("nan"),
            "mean_fraction_read": float(np.mean(ep["fraction_read"])) if "fraction_read" in ep else float("nan"),
            "mean_fields_of_view": float(np.mean(ep["fields_of_view"])) if "fields_of_view" in ep else float("nan")}
+    if "tumour_score" in ep:  # diagnosis: AUC of the policy's p(tumour), accuracy of thresholding it at 0.5
+        row["diagnosis_auc"] = roc_auc(ep["tumour_score"], ep["label"])
+        row["score_accuracy"] = accuracy(ep["tumour_score"], ep["label"])
     if slide_names is not None and len(slide_names) > 1:
         row["by_slide"] = {name: {"episodes": int((ep["slide"] == i).sum()),
                                   "successes": int(s[ep["slide"] == i].sum()),
@@ -269,15 +313,22 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     if params is not None:
         network = network_for(config, env)
         variants = [("greedy", True)] if isinstance(network, QNetwork) else [("greedy", True), ("sampled", False)]
+        declare = diagnosis_actions(env, network, mode)
         for name, greedy in variants:
             per_seed = []
             for s in range(num_seeds):
                 p = jax.tree.map(lambda a: a[s], params_seeds)
-                per_seed.append(run_episodes(env, env_params, learned_policy(network, p, mode, greedy),
-                                             jax.random.fold_in(key, 100 + s), num_episodes))
+                ep = run_episodes(env, env_params, learned_policy(network, p, mode, greedy, declare=declare),
+                                  jax.random.fold_in(key, 100 + s), num_episodes, final=declare is not None)
+                if declare is not None:  # the policy's p(tumour) at its decision, and the slides' labels
+                    ep["tumour_score"] = np.asarray(ep.pop("final_memory")[1], np.float64)
+                    ep["label"] = episode_labels(env_params, ep["slide"])
+                    ep.pop("final_state")
+                per_seed.append(ep)
             pooled = {k: np.concatenate([e[k] for e in per_seed], axis=-1) for k in per_seed[0]}
             row = summarise(pooled, names)
             row["success_rate_per_seed"] = [summarise(e)["success_rate"] for e in per_seed]
+            row["per_seed"] = [summarise(e, names) for e in per_seed]
             rows[f"{label} ({name})"] = row
             episodes[f"{label} ({name})"] = pooled
     if not references:
@@ -295,6 +346,13 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             rows["scripted"] = summarise(episodes["scripted"], names)
         except (KeyError, TypeError, ValueError) as e:  # observation without pixels
             print(f"scripted policy skipped: {e}")
+    elif env.obs_mode == "features" and policy_is_discrete(mode) and diagnosis_actions(env, None, mode) is None:
+        def scripted_features(k, obs):
+            n = jax.tree.leaves(obs)[0].shape[0]
+            return jax.vmap(scripted_features_policy)(jax.random.split(k, n), obs)
+        episodes["scripted"] = run_episodes(env, env_params, scripted_features, jax.random.fold_in(key, 2),
+                                            num_episodes)
+        rows["scripted"] = summarise(episodes["scripted"], names)
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)

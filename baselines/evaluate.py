@@ -389,6 +389,22 @@ def resolve_slides(slides: list[str], config: dict) -> list[str]:
     return [str(Path(dataset) / rel) for rel in test]
 
 
+def with_dataset(config: dict, dataset=None, split: str | None = None) -> dict:
+    """``config`` scoring ``split`` of ``dataset`` (default split ``"test"``) in place of the slides it
+    trained on; only ``split`` given: the same dataset, another split. Unchanged when neither is given."""
+    if dataset is None and split is None:
+        return config
+    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("slides", "slide_weights")}
+    if dataset is not None:
+        if not (Path(dataset) / "dataset.json").is_file():
+            raise SystemExit(f"--dataset {dataset}: no dataset.json there")
+        kw["dataset"] = str(dataset)
+    elif "dataset" not in kw:
+        raise SystemExit("--split: this checkpoint was not trained on a dataset; give --dataset DIR too")
+    kw["split"] = split or "test"
+    return {**config, "env_kwargs": kw, "slide": None}
+
+
 def print_table(title: str, rows: dict) -> None:
     print(f"\n{title}")
     print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}"
@@ -407,6 +423,11 @@ def add_arguments(p) -> None:
     p.add_argument("--slide", "--slides", nargs="*", default=None,
                    help="bundle folder(s) (default: the checkpoint's slide), or 'held-out': the test split of "
                         "the dataset the checkpoint trained on")
+    p.add_argument("--dataset", default=None,
+                   help="score on this dataset folder (dataset.json) instead of the one the checkpoint trained on, "
+                        "e.g. a published agent on any C16-style dataset")
+    p.add_argument("--split", default=None, choices=("train", "test", "all"),
+                   help="split of the dataset to score (default: test with --dataset, else the checkpoint's)")
     p.add_argument("--episodes", type=int, default=256, help="episodes per policy (per seed for the learned one)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--with-position", action="store_true", help="(reference rows only) observation with position")
@@ -430,6 +451,7 @@ def run(args, parser) -> int:
                                             "obs_mode": "pixels", "hidden": 256}, None, "none"
     if args.env:
         config["env_id"] = args.env
+    config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None))
     out = Path(args.out) if args.out else (run / "eval" if run else Path(f"runs/eval-{config['env_id']}"))
     slides = resolve_slides(args.slide, config) if args.slide else [config.get("slide")]
     results = {}

@@ -1,36 +1,46 @@
 """Reference results on a slide dataset with a train/test split by slide (the CAMELYON16-geometry
 benchmark): random agent, scripted coarse-to-fine policy, PPO on pixels + position, PPO on
 features (+ position), recurrent PPO; detection success and steps to success on Easy / Medium /
-Hard, diagnosis accuracy on Diagnosis, all on the test split.
+Hard, diagnosis accuracy and AUC on Diagnosis, all on the test split, mean ± std over seeds.
 
-    python benchmarks/c16_reference.py --dataset DIR [--steps 262144] [--seeds 2] [--episodes 128]
+    python benchmarks/c16_reference.py --dataset DIR [--steps 262144] [--seeds 3] [--episodes 128]
                                        [--methods random scripted ppo-pixels ppo-features ppo-rnn]
                                        [--scenarios Easy Medium Hard Diagnosis] [--out runs/c16-reference]
+                                       [--version v1|v0] [--val-fraction 0.2] [--val-seed 0]
                                        [--env NAME=ID] [--env-kwargs NAME=JSON] [--rnn-obs features|pixels]
+    python benchmarks/c16_reference.py --quick      # a small slice of every table in minutes (small variant)
 
-Scenarios map to env ids ``HistoJAX-C16-{Easy,Medium,Hard,Diagnosis}-v0`` (``--env NAME=ID`` for
-others, ``--env-kwargs NAME=JSON`` for extra ``histojax.make`` settings of one scenario, e.g.
-``--env Diagnosis=HistoJAX-Easy-v0 --env-kwargs 'Diagnosis={"task": "classification"}'`` on a
-dataset without the C16 ids). Every env is made with ``dataset=DIR`` and ``split="train"`` for
-training, ``split="test"`` for evaluation: the test split is one env whose resets draw a test
-slide uniformly, so a success rate is pooled over test slides.
+Scenarios map to env ids ``HistoJAX-C16-{Easy,Medium,Hard,Diagnosis}-v1`` (``--version v0`` for
+older datasets; ``--env NAME=ID`` for others, ``--env-kwargs NAME=JSON`` for extra ``histojax.make``
+settings of one scenario, e.g. ``--env Diagnosis=HistoJAX-Easy-v0 --env-kwargs
+'Diagnosis={"task": "classification"}'`` on a dataset without the C16 ids). Evaluation uses
+``split="test"``: the test split is one env whose resets draw a test slide uniformly, so a success
+rate is pooled over test slides.
+
+Validation (``--val-fraction``, default 0.2; 0 turns it off): a seeded share of the *training*
+slides is held back (:mod:`baselines.validation`: per class, tumour slides with their tissue
+donors) into ``OUT/validation/dataset.json``; trained cells train on the rest and are scored on the
+validation slides too (``validation`` in ``reference.json``). Choose hyperparameters and the agent
+to publish on those numbers, never on the test split.
 
 Each trained method runs ``baselines.ppo`` / ``baselines.ppo_rnn`` (``--steps`` env steps per seed,
-one value or one per scenario; ``--seeds`` seeds in one program) on the train split into
-``OUT/<method>-<scenario>/``, then evaluates every seed's **sampled** policy on ``--episodes`` fresh
-test episodes per seed (``baselines.evaluate``; the greedy row is kept in the JSON). Random and
-scripted rows come from the same evaluation on pixels + position. The scripted policy walks toward
-the darkest stain and never declares a diagnosis, so it has no Diagnosis cell. Detection success
-and steps to success count the episodes on test *tumour* slides only (labels from
-``dataset.json``; a normal slide has nothing to find); the JSON keeps the rate over all slides and
-per slide too. Success on
-Diagnosis = a right diagnosis (declaring ends the episode; an episode that never declares counts
-as wrong).
+one value or one per scenario; ``--seeds`` seeds in one program) into ``OUT/<method>-<scenario>/``
+(its learning curves ``curve.png`` and ``log.csv`` there), then evaluates every seed's **sampled**
+policy on ``--episodes`` fresh test episodes per seed (``baselines.evaluate``; the greedy row is
+kept in the JSON) and reports mean ± std over seeds (``seeds`` in the JSON) and the compiled
+training program's env steps/s. Random and scripted rows come from the same evaluation; the
+scripted policy walks toward the darkest stain on pixels, and on features zooms where the view's
+tumour logit is high (:func:`baselines.evaluate.scripted_features_policy`); it never declares a
+diagnosis, so it has no Diagnosis cell. Detection success and steps to success count the episodes
+on test *tumour* slides only (labels from ``dataset.json``); the JSON keeps the rate over all
+slides and per slide too. Success on Diagnosis = a right diagnosis (declaring ends the episode; an
+episode that never declares counts as wrong); its AUC is that of the policy's p(tumour) at the step
+it declared.
 
 Rows are resumable: every finished cell goes into ``OUT/reference.json`` with its budget, and a
 rerun with the same dataset, env id, settings and budget keeps it (``--redo`` recomputes). The
 table (``OUT/reference.md``) is rewritten after every cell and printed at the end. This is a
-benchmark (hours of CPU at real budgets), never a test.
+benchmark (hours of CPU at real budgets), never a test; ``--quick`` is its smoke slice.
 """
 from __future__ import annotations
 

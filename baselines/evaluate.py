@@ -276,6 +276,31 @@ def learned_policy(network, params, action_mode: str, greedy: bool, declare: tup
     return lambda key, obs: act(key, obs, ())[0]
 
 
+def seeds_policy(make_policy, params_seeds, num_seeds: int):
+    """One policy for :func:`run_episodes` over ``num_seeds × E`` episodes from ``make_policy(params)``
+    (:func:`learned_policy` of one seed's parameters): episode block ``s`` (episodes ``s E`` to
+    ``(s + 1) E − 1``) acts with seed ``s``'s parameters (``params_seeds`` stacked on axis 0), all
+    seeds vmapped in one program. Recurrent policies keep their memory per episode as before."""
+    split = lambda a: a.reshape(num_seeds, a.shape[0] // num_seeds, *a.shape[1:])  # noqa: E731
+    merge = lambda a: a.reshape(a.shape[0] * a.shape[1], *a.shape[2:])  # noqa: E731
+    probe = make_policy(jax.tree.map(lambda a: a[0], params_seeds))
+    if hasattr(probe, "initial_memory"):
+        def policy(key, obs, memory):
+            def one(p, k, o, m):
+                return make_policy(p)(k, o, m)
+            a, m = jax.vmap(one)(params_seeds, jax.random.split(key, num_seeds), jax.tree.map(split, obs),
+                                 jax.tree.map(split, memory))
+            return merge(a), jax.tree.map(merge, m)
+        policy.initial_memory = probe.initial_memory
+        return policy
+
+    def policy(key, obs):
+        a = jax.vmap(lambda p, k, o: make_policy(p)(k, o))(params_seeds, jax.random.split(key, num_seeds),
+                                                         jax.tree.map(split, obs))
+        return merge(a)
+    return policy
+
+
 def network_for(config: dict, env):
     space = env.action_space()
     if config.get("algo") == "dqn" or "buffer_size" in config:
@@ -315,16 +340,17 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
         variants = [("greedy", True)] if isinstance(network, QNetwork) else [("greedy", True), ("sampled", False)]
         declare = diagnosis_actions(env, network, mode)
         for name, greedy in variants:
-            per_seed = []
-            for s in range(num_seeds):
-                p = jax.tree.map(lambda a: a[s], params_seeds)
-                ep = run_episodes(env, env_params, learned_policy(network, p, mode, greedy, declare=declare),
-                                  jax.random.fold_in(key, 100 + s), num_episodes, final=declare is not None)
-                if declare is not None:  # the policy's p(tumour) at its decision, and the slides' labels
-                    ep["tumour_score"] = np.asarray(ep.pop("final_memory")[1], np.float64)
-                    ep["label"] = episode_labels(env_params, ep["slide"])
-                    ep.pop("final_state")
-                per_seed.append(ep)
+            # every seed in one program (one compile): episodes [s E, (s + 1) E) run seed s's policy
+            policy = seeds_policy(lambda p: learned_policy(network, p, mode, greedy, declare=declare),
+                                  params_seeds, num_seeds)
+            ep = run_episodes(env, env_params, policy, jax.random.fold_in(key, 100), num_episodes * num_seeds,
+                              final=declare is not None)
+            if declare is not None:  # the policy's p(tumour) at its decision, and the slides' labels
+                ep["tumour_score"] = np.asarray(ep.pop("final_memory")[1], np.float64)
+                ep["label"] = episode_labels(env_params, ep["slide"])
+                ep.pop("final_state")
+            per_seed = [{k: v[..., s * num_episodes:(s + 1) * num_episodes] for k, v in ep.items()}
+                        for s in range(num_seeds)]
             pooled = {k: np.concatenate([e[k] for e in per_seed], axis=-1) for k in per_seed[0]}
             row = summarise(pooled, names)
             row["success_rate_per_seed"] = [summarise(e)["success_rate"] for e in per_seed]

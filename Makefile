@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all test-integrations integrations bench bench-histogym bench-large contract fuzz clean bench-gpu test-min
+.PHONY: demo test test-all test-integrations integrations bench bench-histogym bench-large reference-quick contract fuzz clean bench-gpu test-min
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (Python 3.11) on PATH, or run: make PYTHON=python3 ..."; exit 1; }
@@ -57,6 +57,10 @@ bench-histogym: $(STAMP)
 
 bench-large: $(STAMP)
 	$(PY) benchmarks/large_slide.py --size 100000 --compare-sample
+
+# a small slice of the C16 reference table (small variant built on the fly; minutes on 2 CPU cores)
+reference-quick: $(STAMP)
+	$(PY) benchmarks/c16_reference.py --quick --out runs/c16-reference-quick
 
 contract: $(STAMP)
 	$(PY) -m histojax.testing

@@ -16,7 +16,9 @@ A reader reads cells of ``action_mode=Glimpse(level)`` exactly as the env does (
 follows :meth:`histojax.glimpse.Glimpse.apply`: a cell is read when it still fits in the budget;
 the first pick that does not fit ends the episode), at budgets of ``--budgets`` (fractions of the
 slide's finest-level tissue views). Writes ``budget_curve.csv`` (one row per method × budget:
-mean fraction actually read, AUC, accuracy at 0.5, slides) and ``budget_curve.png``.
+mean fraction actually read, AUC, accuracy at 0.5, slides, the standard deviations of AUC and accuracy
+over seeds — random reader orders, or the first ``--policy-seeds`` seeds (default 3) of a trained
+policy — and a trained policy's fields of view per episode) and ``budget_curve.png``.
 """
 from __future__ import annotations
 
@@ -116,20 +118,27 @@ def method_scores(head: MILClassifier, tables, budgets=BUDGETS, seeds: int = 5) 
 
 
 def rows_from_scores(scores: dict, labels) -> list[dict]:
-    """One row per ``(method, budget)``: mean fraction read, AUC and accuracy (averaged over seeds)."""
-    return [{"method": method, "budget": float(b), "fraction_read": float(f.mean()),
-             "auc": float(np.mean([roc_auc(row, labels) for row in s])),
-             "accuracy": float(np.mean([accuracy(row, labels) for row in s])), "slides": len(labels)}
-            for (method, b), (s, f) in scores.items()]
+    """One row per ``(method, budget)``: mean fraction read, AUC and accuracy (mean and standard
+    deviation over seeds; one seed for a deterministic reader)."""
+    rows = []
+    for (method, b), (s, f) in scores.items():
+        aucs = np.asarray([roc_auc(row, labels) for row in s])
+        accs = np.asarray([accuracy(row, labels) for row in s])
+        rows.append({"method": method, "budget": float(b), "fraction_read": float(f.mean()),
+                     "auc": float(aucs.mean()), "accuracy": float(accs.mean()), "slides": len(labels),
+                     "auc_std": float(aucs.std()), "accuracy_std": float(accs.std()), "seeds": len(s),
+                     "fields_of_view": float("nan")})
+    return rows
 
 
-def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, policies=(), dataset=None):
+def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, policies=(), dataset=None,
+                policy_seeds: int = 3):
     """Train the head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``;
     ``policies``: ``(name, run folder)`` of trained PPO policies, rolled on ``dataset``'s test split."""
     head = train_mil(*bags(train[0]), train[1], steps=steps)
     rows = rows_from_scores(method_scores(head, test[0], budgets, seeds), test[1])
     for name, run in policies:
-        rows += policy_rows(run, dataset, name, head, test[0], test[1], budgets)
+        rows += policy_rows(run, dataset, name, head, test[0], test[1], budgets, policy_seeds)
     return rows
 
 
@@ -150,23 +159,27 @@ def cross_validated_rows(tables, labels, folds: int, budgets=BUDGETS, seeds: int
     return rows_from_scores(pooled, labels[order])
 
 
-def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None = None) -> dict:
+def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None = None, seed: int = 0) -> dict:
     """Roll a trained policy greedily, once on every slide of ``dataset``'s ``split`` at each of
     ``budgets``, with :func:`baselines.evaluate.run_episodes` (one jitted program for all slides and
     budgets). ``run``: a run folder of ``python -m baselines.ppo`` (feed-forward) or ``python -m
     baselines.ppo_rnn`` (GRU; ``"algo": "ppo_rnn"`` in its ``config.json``: its hidden state is carried
-    through each episode) in a ``glimpse`` or ``zoom_select`` mode; its first seed.
+    through each episode) in a ``glimpse`` or ``zoom_select`` mode; its seed ``seed`` (default the first).
 
     Returns ``{budget: [(read, own_score, fraction_read) per slide]}``: the finest tissue views it
     read (indices into the slide's ``host_tables`` instances), its own tumour score
     (``p(tumour) / (p(tumour) + p(no tumour))`` of its policy at the step it declared, or at its last
-    step; see :func:`baselines.evaluate.learned_policy`) and the fraction read."""
+    step; see :func:`baselines.evaluate.learned_policy`), the fraction read and the fields of view
+    (env steps that looked at the slide) of the episode."""
     import jax
 
     from baselines import common, evaluate
 
     params, config = common.load_checkpoint(run)
-    params = jax.tree.map(lambda a: a[0], params)  # the first seed
+    n_seeds = jax.tree.leaves(params)[0].shape[0]
+    if not 0 <= seed < n_seeds:
+        raise ValueError(f"{run} has {n_seeds} seed(s), not a seed {seed}")
+    params = jax.tree.map(lambda a: a[seed], params)
     kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides")}
     config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split}}
     if env_id:
@@ -199,22 +212,45 @@ def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None =
             size = int(seen_tables.grid_width[i, f] * seen_tables.grid_height[i, f])
             seen = np.asarray(memory.seen[e])[start:start + size]
             read = seen[np.asarray(seen_tables.tissue[i])[:size]]
-        out[budgets[e // n_slides]].append((np.flatnonzero(read), float(scores[e]), float(ep["fraction_read"][e])))
+        out[budgets[e // n_slides]].append((np.flatnonzero(read), float(scores[e]), float(ep["fraction_read"][e]),
+                                            float(ep["fields_of_view"][e])))
     return out
 
 
-def policy_rows(run, dataset, name: str, head: MILClassifier, tables, labels, budgets=BUDGETS) -> list[dict]:
+def run_seeds(run) -> int:
+    """How many seeds a run folder's ``params.msgpack`` holds."""
+    import jax
+
+    from baselines import common
+
+    return int(jax.tree.leaves(common.load_checkpoint(run)[0])[0].shape[0])
+
+
+def policy_rows(run, dataset, name: str, head: MILClassifier, tables, labels, budgets=BUDGETS,
+                policy_seeds: int = 3) -> list[dict]:
     """Rows for a trained policy (feed-forward or recurrent, see :func:`policy_reads`) at ``budgets``:
-    its own diagnosis (``name``) and the MIL head on what it read (``name + MIL``)."""
+    its own diagnosis (``name``) and the MIL head on what it read (``name + MIL``), each the mean
+    (and ``*_std``) over its first ``policy_seeds`` seeds (as many as the run has, if fewer), with
+    the mean fraction read and fields of view per episode."""
+    seeds = max(1, min(policy_seeds, run_seeds(run)))
+    per = {}  # (method, budget) -> [(auc, accuracy, fraction, fields)] per seed
+    for seed in range(seeds):
+        for b, reads in policy_reads(run, dataset, "test", budgets, seed=seed).items():
+            x, m = bags([{**t, "instance_cell": np.arange(len(t["instances"]))} for t in tables], [r[0] for r in reads])
+            fraction = float(np.mean([r[2] for r in reads]))
+            fields = float(np.mean([r[3] for r in reads]))
+            own = np.asarray([r[1] for r in reads])
+            mil = head.scores(x, m)
+            for method, s in ((name, own), (f"{name} reader + MIL", mil)):
+                per.setdefault((method, float(b)), []).append(
+                    (roc_auc(s, labels), accuracy(s, labels), fraction, fields))
     rows = []
-    for b, reads in policy_reads(run, dataset, "test", budgets).items():
-        x, m = bags([{**t, "instance_cell": np.arange(len(t["instances"]))} for t in tables], [r[0] for r in reads])
-        fraction = float(np.mean([r[2] for r in reads]))
-        own = np.asarray([r[1] for r in reads])
-        mil = head.scores(x, m)
-        for method, s in ((name, own), (f"{name} reader + MIL", mil)):
-            rows.append({"method": method, "budget": float(b), "fraction_read": fraction, "auc": roc_auc(s, labels),
-                         "accuracy": accuracy(s, labels), "slides": len(labels)})
+    for (method, b), v in per.items():
+        a = np.asarray(v, np.float64)
+        rows.append({"method": method, "budget": b, "fraction_read": float(a[:, 2].mean()),
+                     "auc": float(a[:, 0].mean()), "accuracy": float(a[:, 1].mean()), "slides": len(labels),
+                     "auc_std": float(a[:, 0].std()), "accuracy_std": float(a[:, 1].std()), "seeds": len(v),
+                     "fields_of_view": float(a[:, 3].mean())})
     return rows
 
 
@@ -222,10 +258,12 @@ def write_csv(rows: list[dict], path) -> Path:
     """One line per method × budget."""
     path = Path(path)
     with outputs.open_text(path) as f:
-        w = csv.DictWriter(f, fieldnames=["method", "budget", "fraction_read", "auc", "accuracy", "slides"])
+        w = csv.DictWriter(f, fieldnames=["method", "budget", "fraction_read", "auc", "accuracy", "slides", "auc_std",
+                                          "accuracy_std", "seeds", "fields_of_view"], restval="")
         w.writeheader()
         for r in rows:
-            w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()})
+            w.writerow({k: ("" if isinstance(v, float) and v != v else f"{v:.4f}" if isinstance(v, float) else v)
+                        for k, v in r.items()})
     return path
 
 
@@ -295,6 +333,8 @@ def add_arguments(p) -> None:
                    help="also a trained policy (run folder of `python -m baselines.ppo` or `python -m baselines.ppo_rnn` "
                         "in a glimpse or zoom_select mode) on the test split: its own diagnosis and the MIL head "
                         "on what it read")
+    p.add_argument("--policy-seeds", type=int, default=3,
+                   help="seeds of each --ppo run scored (mean ± std; default 3, or as many as the run has)")
     p.add_argument("--compute-features", metavar="ENCODER", default=None,
                    help="first compute the feature grid of every bundle of the dataset that has none with this "
                         "encoder (e.g. colour-stats; see `python -m data_tools features --help`)")
@@ -314,16 +354,17 @@ def run(args, parser=None) -> int:
         train = load_split(args.dataset, "train", args.env, level)
         test = load_split(args.dataset, "test", args.env, level)
         rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps, policies=args.ppo,
-                           dataset=args.dataset)
+                           dataset=args.dataset, policy_seeds=args.policy_seeds)
         split = f"{len(train[1])} train / {len(test[1])} test slides"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     csv_path = write_csv(rows, out / "budget_curve.csv")
     title = f"{Path(args.dataset).name}: {split}, glimpse level {level} of {args.env}"
     png = plot(rows, out / "budget_curve.png", title)
-    print(f"{'method':28s} {'budget':>6s} {'read':>6s} {'AUC':>6s} {'acc':>6s}")
+    print(f"{'method':28s} {'budget':>6s} {'read':>6s} {'AUC':>15s} {'acc':>15s} {'fields':>6s}")
     for r in rows:
-        print(f"{r['method']:28s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {r['auc']:6.3f} {r['accuracy']:6.3f}")
+        print(f"{r['method']:28s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {r['auc']:6.3f} ± {r['auc_std']:5.3f} "
+              f"{r['accuracy']:6.3f} ± {r['accuracy_std']:5.3f} {r['fields_of_view']:6.1f}")
     print(f"wrote {csv_path} and {png}")
     return 0
 

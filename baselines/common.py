@@ -156,7 +156,7 @@ class Progress:
 
     def _print(self, update, metrics, seed):
         def mean(v):
-            return float(np.nanmean(v)) if np.isfinite(v).any() else float("nan")
+            return finite_mean(v)
         m = {k: mean(v) for k, v in metrics.items()}
         steps = (update + 1) * self.steps_per_update
         dt = time.perf_counter() - self.t0
@@ -226,10 +226,9 @@ def write_logs(out: Path, steps: np.ndarray, metrics: dict, summary: dict) -> No
                     "mean_length", "mean_steps_to_success"])
         for i, s in enumerate(steps):
             col = {k: np.asarray(metrics[k])[:, i] for k in keys}
-            with np.errstate(all="ignore"):
-                w.writerow([int(s), _fmt(np.nanmean(col["return"])), _fmt(np.nanmean(col["success"])),
-                            _fmt(np.nanmin(col["success"])), _fmt(np.nanmax(col["success"])),
-                            _fmt(np.nanmean(col["length"])), _fmt(np.nanmean(col["steps_to_success"]))])
+            w.writerow([int(s), _fmt(finite_mean(col["return"])), _fmt(finite_mean(col["success"])),
+                        _fmt(finite_extreme(col["success"], np.min)), _fmt(finite_extreme(col["success"], np.max)),
+                        _fmt(finite_mean(col["length"])), _fmt(finite_mean(col["steps_to_success"]))])
     data = {"summary": summary, "step": [int(s) for s in steps],
             "per_seed": {k: np.asarray(v).tolist() for k, v in metrics.items()}}
     outputs.write_text(out / "log.json", json.dumps(data, default=_json_default))
@@ -252,6 +251,29 @@ def _count(n: int, noun: str) -> str:
     return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
+def finite_mean(a, axis=None):
+    """Mean of the finite entries of ``a`` (over ``axis``), NaN where there are none, without numpy's
+    "Mean of empty slice" warning: e.g. a window of updates in which no episode ended (or none
+    succeeded, for the steps to success) has no value, and says so with NaN."""
+    a = np.asarray(a, np.float64)
+    ok = np.isfinite(a)
+    n = ok.sum(axis=axis)
+    total = np.where(ok, a, 0.0).sum(axis=axis)
+    out = np.divide(total, n, out=np.full(np.shape(total), np.nan), where=n > 0)
+    return out if np.ndim(out) else float(out)
+
+
+def finite_extreme(a, fn, axis=None):
+    """``fn`` (``np.min`` / ``np.max``) of the finite entries of ``a``, NaN where there are none
+    (no "All-NaN slice" warning)."""
+    a = np.asarray(a, np.float64)
+    ok = np.isfinite(a)
+    fill = np.inf if fn is np.min else -np.inf
+    out = fn(np.where(ok, a, fill), axis=axis)
+    out = np.where(ok.any(axis=axis), out, np.nan)
+    return out if np.ndim(out) else float(out)
+
+
 def smooth(a: np.ndarray, k: int) -> np.ndarray:
     """Trailing moving average along the last axis, ignoring NaN."""
     if k <= 1:
@@ -259,8 +281,7 @@ def smooth(a: np.ndarray, k: int) -> np.ndarray:
     out = np.full_like(a, np.nan, dtype=np.float64)
     for i in range(a.shape[-1]):
         w = a[..., max(0, i - k + 1): i + 1]
-        with np.errstate(all="ignore"):
-            out[..., i] = np.nanmean(w, axis=-1) if np.isfinite(w).any() else np.nan
+        out[..., i] = finite_mean(w, axis=-1)
     return out
 
 
@@ -477,10 +498,8 @@ def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_
     steps = (np.arange(n_updates) + 1) * steps_per_update
     k = max(1, n_updates // 40)  # smooth over ~1/40 of the run for the curve and the final figure
     tail = slice(max(0, n_updates - k), None)
-    with np.errstate(all="ignore"):
-        final = {name: float(np.nanmean(metrics[name][:, tail])) for name in ("return", "success", "length",
-                                                                              "steps_to_success")}
-        final_per_seed = {name: np.nanmean(metrics[name][:, tail], axis=1).tolist() for name in ("return", "success")}
+    final = {name: finite_mean(metrics[name][:, tail]) for name in ("return", "success", "length", "steps_to_success")}
+    final_per_seed = {name: finite_mean(metrics[name][:, tail], axis=1).tolist() for name in ("return", "success")}
     ref = random_agent_reference(config, env_and_params=env_and_params)
     summary = {"algo": algo, "env_id": config["env_id"], "env_steps_per_seed": int(steps[-1]),
                "seeds": int(metrics["success"].shape[0]), "train_seconds": train_seconds,

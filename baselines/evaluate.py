@@ -25,6 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from baselines import common, outputs
+from baselines.metrics import accuracy, roc_auc
 from baselines.ppo import make_network
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
                                 policy_mode, policy_sample, preprocess_obs)
@@ -77,6 +78,25 @@ def scripted_policy(key, obs, action_mode: str = "discrete", centred: float = 0.
     zoom = jnp.where(is_centred & ~jnp.asarray(finest), 1.0, 0.0)
     jitter = jax.random.uniform(k1, (2,), minval=-0.5, maxval=0.5) * is_centred * jnp.asarray(finest)
     return jnp.stack([2 * ox + jitter[0], 2 * oy + jitter[1], zoom])
+
+
+def scripted_features_policy(key, obs, tumour_index: int = -1, threshold: float = 0.0, epsilon: float = 0.1):
+    """Coarse-to-fine on feature observations (discrete actions; one env), from the observation only:
+    the view's tumour logit is ``features[tumour_index]`` (pcam-cnn: entry 63, the max over the view's
+    patches of the encoder's tumour logit, ``max l``; entry 62 is their mean). Above ``threshold``
+    zoom in (at the finest level: stay, since the view is already there); below it, move one view
+    width in a random direction, and at the finest level zoom out half the time to look around from
+    higher up. With probability ``epsilon`` a random action breaks loops. Meaningful for encoders
+    with a tumour logit (pcam-cnn); on others it is a baseline of the same shape."""
+    feats = obs["features"] if isinstance(obs, dict) else obs
+    logit = jnp.asarray(feats, jnp.float32)[tumour_index]
+    finest = obs["position"][2] >= 1.0 - 1e-6 if isinstance(obs, dict) and "position" in obs else False
+    k1, k2, k3, k4 = jax.random.split(key, 4)
+    move = jax.random.randint(k1, (), 0, 4)
+    away = jnp.where(finest & (jax.random.uniform(k4) < 0.5), actions.ZOOM_OUT, move)
+    hot = jnp.where(finest, actions.STAY, actions.ZOOM_IN)
+    a = jnp.where(logit > threshold, hot, away)
+    return jnp.where(jax.random.uniform(k2) < epsilon, jax.random.randint(k3, (), 0, 7), a).astype(jnp.int32)
 
 
 # ----------------------------------------------------------------------------- rollouts
@@ -168,6 +188,27 @@ def per_episode_params(env_params, slides, read_budgets=None):
     return params, axes
 
 
+def diagnosis_actions(env, network, action_mode: str):
+    """``(DECLARE_NO_TUMOUR, DECLARE_TUMOUR)`` action indices when ``env`` is a diagnosis env
+    (``task="classification"``) and ``network`` a discrete actor-critic, so the evaluation can score
+    the policy's probability of declaring tumour (:func:`learned_policy`'s ``declare``); else None."""
+    base = env
+    while not hasattr(base, "task") and hasattr(base, "_env"):
+        base = base._env
+    if getattr(base, "task", None) != "classification" or isinstance(network, QNetwork):
+        return None
+    if not policy_is_discrete(action_mode):
+        return None
+    n = int(getattr(env, "num_actions", getattr(base, "num_actions", 0)))
+    return (n - 2, n - 1) if n >= 2 else None
+
+
+def episode_labels(env_params, slides) -> np.ndarray:
+    """The 0/1 slide label of each episode's slide (``slide_label`` of the env's slides)."""
+    label = np.asarray(jax.device_get(env_params.slide.slide_label))
+    return (np.full(np.shape(slides), int(label)) if label.ndim == 0 else label[np.asarray(slides)]).astype(int)
+
+
 def summarise(ep: dict, slide_names=None) -> dict:
     """Episodes, success rate, mean return, mean length and mean steps to success (over the
     successful episodes) of :func:`run_episodes`' output; with ``slide_names`` (one per slide of a
@@ -178,6 +219,9 @@ def summarise(ep: dict, slide_names=None) -> dict:
            "mean_steps_to_success": float(ep["length"][s].mean()) if s.any() else float("nan"),
            "mean_fraction_read": float(np.mean(ep["fraction_read"])) if "fraction_read" in ep else float("nan"),
            "mean_fields_of_view": float(np.mean(ep["fields_of_view"])) if "fields_of_view" in ep else float("nan")}
+    if "tumour_score" in ep:  # diagnosis: AUC of the policy's p(tumour), accuracy of thresholding it at 0.5
+        row["diagnosis_auc"] = roc_auc(ep["tumour_score"], ep["label"])
+        row["score_accuracy"] = accuracy(ep["tumour_score"], ep["label"])
     if slide_names is not None and len(slide_names) > 1:
         row["by_slide"] = {name: {"episodes": int((ep["slide"] == i).sum()),
                                   "successes": int(s[ep["slide"] == i].sum()),
@@ -235,6 +279,31 @@ def learned_policy(network, params, action_mode: str, greedy: bool, declare: tup
     return lambda key, obs: act(key, obs, ())[0]
 
 
+def seeds_policy(make_policy, params_seeds, num_seeds: int):
+    """One policy for :func:`run_episodes` over ``num_seeds × E`` episodes from ``make_policy(params)``
+    (:func:`learned_policy` of one seed's parameters): episode block ``s`` (episodes ``s E`` to
+    ``(s + 1) E − 1``) acts with seed ``s``'s parameters (``params_seeds`` stacked on axis 0), all
+    seeds vmapped in one program. Recurrent policies keep their memory per episode as before."""
+    split = lambda a: a.reshape(num_seeds, a.shape[0] // num_seeds, *a.shape[1:])  # noqa: E731
+    merge = lambda a: a.reshape(a.shape[0] * a.shape[1], *a.shape[2:])  # noqa: E731
+    probe = make_policy(jax.tree.map(lambda a: a[0], params_seeds))
+    if hasattr(probe, "initial_memory"):
+        def policy(key, obs, memory):
+            def one(p, k, o, m):
+                return make_policy(p)(k, o, m)
+            a, m = jax.vmap(one)(params_seeds, jax.random.split(key, num_seeds), jax.tree.map(split, obs),
+                                 jax.tree.map(split, memory))
+            return merge(a), jax.tree.map(merge, m)
+        policy.initial_memory = probe.initial_memory
+        return policy
+
+    def policy(key, obs):
+        a = jax.vmap(lambda p, k, o: make_policy(p)(k, o))(params_seeds, jax.random.split(key, num_seeds),
+                                                         jax.tree.map(split, obs))
+        return merge(a)
+    return policy
+
+
 def network_for(config: dict, env):
     space = env.action_space()
     if config.get("algo") == "dqn" or "buffer_size" in config:
@@ -272,15 +341,23 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     if params is not None:
         network = network_for(config, env)
         variants = [("greedy", True)] if isinstance(network, QNetwork) else [("greedy", True), ("sampled", False)]
+        declare = diagnosis_actions(env, network, mode)
         for name, greedy in variants:
-            per_seed = []
-            for s in range(num_seeds):
-                p = jax.tree.map(lambda a: a[s], params_seeds)
-                per_seed.append(run_episodes(env, env_params, learned_policy(network, p, mode, greedy),
-                                             jax.random.fold_in(key, 100 + s), num_episodes))
+            # every seed in one program (one compile): episodes [s E, (s + 1) E) run seed s's policy
+            policy = seeds_policy(lambda p: learned_policy(network, p, mode, greedy, declare=declare),
+                                  params_seeds, num_seeds)
+            ep = run_episodes(env, env_params, policy, jax.random.fold_in(key, 100), num_episodes * num_seeds,
+                              final=declare is not None)
+            if declare is not None:  # the policy's p(tumour) at its decision, and the slides' labels
+                ep["tumour_score"] = np.asarray(ep.pop("final_memory")[1], np.float64)
+                ep["label"] = episode_labels(env_params, ep["slide"])
+                ep.pop("final_state")
+            per_seed = [{k: v[..., s * num_episodes:(s + 1) * num_episodes] for k, v in ep.items()}
+                        for s in range(num_seeds)]
             pooled = {k: np.concatenate([e[k] for e in per_seed], axis=-1) for k in per_seed[0]}
             row = summarise(pooled, names)
             row["success_rate_per_seed"] = [summarise(e)["success_rate"] for e in per_seed]
+            row["per_seed"] = [summarise(e, names) for e in per_seed]
             rows[f"{label} ({name})"] = row
             episodes[f"{label} ({name})"] = pooled
     if not references:
@@ -298,6 +375,13 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             rows["scripted"] = summarise(episodes["scripted"], names)
         except (KeyError, TypeError, ValueError) as e:  # observation without pixels
             print(f"scripted policy skipped: {e}")
+    elif env.obs_mode == "features" and policy_is_discrete(mode) and diagnosis_actions(env, None, mode) is None:
+        def scripted_features(k, obs):
+            n = jax.tree.leaves(obs)[0].shape[0]
+            return jax.vmap(scripted_features_policy)(jax.random.split(k, n), obs)
+        episodes["scripted"] = run_episodes(env, env_params, scripted_features, jax.random.fold_in(key, 2),
+                                            num_episodes)
+        rows["scripted"] = summarise(episodes["scripted"], names)
     if out is not None:
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
@@ -334,6 +418,22 @@ def resolve_slides(slides: list[str], config: dict) -> list[str]:
     return [str(Path(dataset) / rel) for rel in test]
 
 
+def with_dataset(config: dict, dataset=None, split: str | None = None) -> dict:
+    """``config`` scoring ``split`` of ``dataset`` (default split ``"test"``) in place of the slides it
+    trained on; only ``split`` given: the same dataset, another split. Unchanged when neither is given."""
+    if dataset is None and split is None:
+        return config
+    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("slides", "slide_weights")}
+    if dataset is not None:
+        if not (Path(dataset) / "dataset.json").is_file():
+            raise SystemExit(f"--dataset {dataset}: no dataset.json there")
+        kw["dataset"] = str(dataset)
+    elif "dataset" not in kw:
+        raise SystemExit("--split: this checkpoint was not trained on a dataset; give --dataset DIR too")
+    kw["split"] = split or "test"
+    return {**config, "env_kwargs": kw, "slide": None}
+
+
 def print_table(title: str, rows: dict) -> None:
     print(f"\n{title}")
     print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}"
@@ -352,6 +452,11 @@ def add_arguments(p) -> None:
     p.add_argument("--slide", "--slides", nargs="*", default=None,
                    help="bundle folder(s) (default: the checkpoint's slide), or 'held-out': the test split of "
                         "the dataset the checkpoint trained on")
+    p.add_argument("--dataset", default=None,
+                   help="score on this dataset folder (dataset.json) instead of the one the checkpoint trained on, "
+                        "e.g. a published agent on any C16-style dataset")
+    p.add_argument("--split", default=None, choices=("train", "test", "all"),
+                   help="split of the dataset to score (default: test with --dataset, else the checkpoint's)")
     p.add_argument("--episodes", type=int, default=256, help="episodes per policy (per seed for the learned one)")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--with-position", action="store_true", help="(reference rows only) observation with position")
@@ -375,6 +480,7 @@ def run(args, parser) -> int:
                                             "obs_mode": "pixels", "hidden": 256}, None, "none"
     if args.env:
         config["env_id"] = args.env
+    config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None))
     out = Path(args.out) if args.out else (run / "eval" if run else Path(f"runs/eval-{config['env_id']}"))
     slides = resolve_slides(args.slide, config) if args.slide else [config.get("slide")]
     results = {}

@@ -109,13 +109,32 @@ def _flat(x):
     return x.reshape(x.shape[0], -1)
 
 
+def normalise_features(obs, obs_norm):
+    """``obs`` with its feature vector (the ``"features"`` entry of a dict observation, or a flat
+    ``(B, D)`` array) standardised by a fixed ``obs_norm = (mean (D,), std (D,))`` (tuples, see
+    :func:`baselines.ppo.dataset_normaliser`); ``obs`` unchanged when ``obs_norm`` is None."""
+    if obs_norm is None:
+        return obs
+    mean, std = (jnp.asarray(v, jnp.float32) for v in obs_norm)
+
+    def norm(x):
+        return (jnp.asarray(x, jnp.float32) - mean) / std
+    if isinstance(obs, dict):
+        return {k: (norm(v) if k == "features" else v) for k, v in obs.items()}
+    obs = jnp.asarray(obs)
+    return norm(obs) if obs.ndim == 2 and obs.shape[-1] == mean.shape[0] else obs
+
+
 class Torso(nn.Module):
-    """Observation (array or dict, one leading batch axis) → features. See the module doc."""
+    """Observation (array or dict, one leading batch axis) → features. See the module doc.
+    ``obs_norm``: a fixed normaliser of feature observations (:func:`normalise_features`)."""
 
     hidden: int = 256
+    obs_norm: tuple | None = None
 
     @nn.compact
     def __call__(self, obs):
+        obs = normalise_features(obs, self.obs_norm)
         if isinstance(obs, dict):
             parts, vectors = [], []
             for k in sorted(obs):
@@ -143,10 +162,11 @@ class ActorCritic(nn.Module):
     action_dim: int
     action_mode: str = "discrete"
     hidden: int = 256
+    obs_norm: tuple | None = None
 
     @nn.compact
     def __call__(self, obs):
-        return policy_value_heads(self, Torso(self.hidden)(obs))
+        return policy_value_heads(self, Torso(self.hidden, self.obs_norm)(obs))
 
 
 def policy_value_heads(module: nn.Module, h: jax.Array):
@@ -197,12 +217,13 @@ class RecurrentActorCritic(nn.Module):
     action_dim: int
     action_mode: str = "discrete"
     hidden: int = 256
+    obs_norm: tuple | None = None
 
     @nn.compact
     def __call__(self, h, obs, resets):
         t, b = resets.shape
         flat = jax.tree.map(lambda a: jnp.reshape(a, (t * b, *jnp.shape(a)[2:])), obs)
-        x = Torso(self.hidden)(flat).reshape(t, b, -1)
+        x = Torso(self.hidden, self.obs_norm)(flat).reshape(t, b, -1)
         x = nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(x))
         h, y = ScannedGRU(self.hidden)(h, (x, resets.astype(bool)))
         return (h, *policy_value_heads(self, y))

@@ -61,6 +61,9 @@ class PPOConfig(common.EnvConfig):
     gae_lambda: float = 0.95
     clip_eps: float = 0.2
     ent_coef: float = 0.01
+    ent_coef_final: float | None = None  # entropy coefficient at the last update (linear from ent_coef); None: constant
+    obs_norm: object = None              # feature observations standardised: None, "dataset" (mean / std of the
+                                         # training env's feature grids, recorded as numbers), or {"mean", "std"}
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
     hidden: int = 256                    # network width
@@ -93,10 +96,51 @@ class Transition(NamedTuple):
 
 def make_network(config: dict, env, network_cls=ActorCritic):
     """``network_cls`` (an actor-critic) sized for ``env``'s action space: ``n`` logits for discrete
-    actions, the Box size for continuous ones; width ``config["hidden"]``."""
+    actions, the Box size for continuous ones; width ``config["hidden"]``; feature observations
+    standardised by ``config["obs_norm"]`` when it holds numbers (``{"mean", "std"}``)."""
     space = env.action_space()
     action_dim = space.n if is_discrete(config["action_mode"]) else int(np.prod(space.shape))
-    return network_cls(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"])
+    norm = config.get("obs_norm")
+    if isinstance(norm, dict):
+        norm = (tuple(float(v) for v in norm["mean"]), tuple(float(v) for v in norm["std"]))
+    elif norm is not None:
+        raise ValueError(f"obs_norm={norm!r}: resolve it with resolve_obs_norm(config, env_params) first")
+    return network_cls(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"],
+                       obs_norm=norm)
+
+
+def dataset_normaliser(slide, eps: float = 1e-3) -> dict:
+    """``{"mean", "std"}`` (lists of ``D`` floats) of every feature vector of every level of the
+    slide(s) ``slide`` (:class:`histojax.slide.SlideArrays`, one slide or a stacked dataset: only each
+    slide's own rows count, not the padding); ``std`` at least ``eps``. For a training env this is a
+    fixed per-dataset normaliser computed from the training slides only."""
+    if slide.features is None:
+        raise ValueError("obs_norm='dataset' needs feature observations (obs_mode='features'; the slides have no "
+                         "feature grids loaded)")
+    feats = np.asarray(jax.device_get(slide.features), np.float64)
+    widths = np.asarray(jax.device_get(slide.feature_grid_width)).reshape(-1, np.shape(slide.feature_grid_width)[-1])
+    heights = np.asarray(jax.device_get(slide.feature_grid_height)).reshape(widths.shape)
+    feats = feats.reshape(-1, *feats.shape[-2:])
+    rows = np.concatenate([feats[i, : int((widths[i] * heights[i]).sum())] for i in range(feats.shape[0])])
+    mean, std = rows.mean(0), np.maximum(rows.std(0), eps)
+    return {"mean": mean.tolist(), "std": std.tolist()}
+
+
+def resolve_obs_norm(config: dict, env_params) -> dict:
+    """``config`` with ``obs_norm="dataset"`` replaced by :func:`dataset_normaliser` of the training
+    env's slides (so ``config.json`` records the numbers and evaluation on other slides uses them)."""
+    if config.get("obs_norm") == "dataset":
+        return {**config, "obs_norm": dataset_normaliser(env_params.slide)}
+    return config
+
+
+def entropy_coef(config: dict, update_index, num_updates: int):
+    """The entropy coefficient at update ``update_index``: ``ent_coef``, or with ``ent_coef_final``
+    a linear anneal from ``ent_coef`` (first update) to ``ent_coef_final`` (last update)."""
+    if config.get("ent_coef_final") is None:
+        return config["ent_coef"]
+    frac = jnp.clip(update_index / max(num_updates - 1, 1), 0.0, 1.0)
+    return config["ent_coef"] + frac * (config["ent_coef_final"] - config["ent_coef"])
 
 
 def gae(traj: Transition, last_value, gamma: float, lam: float):
@@ -122,10 +166,11 @@ def make_optimizer(config: dict, num_updates: int):
                        optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
 
 
-def clipped_loss(pi, value, traj, adv, target, config: dict):
+def clipped_loss(pi, value, traj, adv, target, config: dict, ent_coef=None):
     """PPO's loss on a minibatch (any batch shape): clipped policy objective on normalised
     advantages, clipped value loss, entropy bonus. ``pi``/``value``: the network's outputs for
     ``traj.obs`` now; ``traj.action``/``traj.log_prob``/``traj.value``: from the rollout.
+    ``ent_coef``: the entropy coefficient now (:func:`entropy_coef`; default ``config["ent_coef"]``).
     Returns ``(total, (pg_loss, v_loss, entropy, approx_kl))``."""
     mode = config["action_mode"]
     log_prob = policy_log_prob(pi, traj.action, mode)
@@ -135,7 +180,7 @@ def clipped_loss(pi, value, traj, adv, target, config: dict):
     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
     pg_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config["clip_eps"], 1 + config["clip_eps"]) * adv).mean()
     entropy = policy_entropy(pi, mode).mean()
-    total = pg_loss + config["vf_coef"] * v_loss - config["ent_coef"] * entropy
+    total = pg_loss + config["vf_coef"] * v_loss - (config["ent_coef"] if ent_coef is None else ent_coef) * entropy
     approx_kl = ((ratio - 1) - (log_prob - traj.log_prob)).mean()
     return total, (pg_loss, v_loss, entropy, approx_kl)
 
@@ -189,6 +234,7 @@ def make_train(config: dict):
     if sharded and mesh is None:
         raise ValueError("shard_slides=True splits the slides over the devices: give devices=N too")
     env, env_params = common.make_env(config, mesh=mesh)
+    config = resolve_obs_norm(config, env_params)
     env = LogWrapper(env)
     reset_all = common.env_vmap(env.reset, 1, mesh, sharded)
     step_all = common.env_vmap(env.step, 3, mesh, sharded)
@@ -241,7 +287,8 @@ def make_train(config: dict):
             def loss_fn(params, mb):
                 traj, adv, target = mb
                 pi, value = network.apply(params, traj.obs)
-                return clipped_loss(pi, value, traj, adv, target, config)
+                return clipped_loss(pi, value, traj, adv, target, config,
+                                    entropy_coef(config, update_index, num_updates))
 
             def minibatches(k_perm):
                 flat = jax.tree.map(lambda a: a.reshape(batch, *a.shape[2:]), (traj, advantages, targets))

@@ -78,6 +78,7 @@ def make_train(config: dict):
     if config.get("devices") is not None:
         raise ValueError("ppo_rnn does not shard over devices; drop devices (use baselines.ppo for that)")
     env, env_params = common.make_env(config)
+    config = ppo.resolve_obs_norm(config, env_params)
     env = LogWrapper(env)
     network = make_network(config, env)
     mode, hidden = config["action_mode"], config["hidden"]
@@ -110,7 +111,8 @@ def make_train(config: dict):
             def loss_fn(params, mb):
                 h_start, traj, adv, target = mb
                 pi, value = replay(network, params, h_start, traj)
-                return ppo.clipped_loss(pi, value, traj, adv, target, config)
+                return ppo.clipped_loss(pi, value, traj, adv, target, config,
+                                        ppo.entropy_coef(config, update_index, num_updates))
 
             def minibatches(k_perm):  # whole env sequences: shuffle and split the env axis
                 perm = jax.random.permutation(k_perm, num_envs)

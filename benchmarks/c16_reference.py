@@ -1,36 +1,46 @@
 """Reference results on a slide dataset with a train/test split by slide (the CAMELYON16-geometry
 benchmark): random agent, scripted coarse-to-fine policy, PPO on pixels + position, PPO on
 features (+ position), recurrent PPO; detection success and steps to success on Easy / Medium /
-Hard, diagnosis accuracy on Diagnosis, all on the test split.
+Hard, diagnosis accuracy and AUC on Diagnosis, all on the test split, mean ± std over seeds.
 
-    python benchmarks/c16_reference.py --dataset DIR [--steps 262144] [--seeds 2] [--episodes 128]
+    python benchmarks/c16_reference.py --dataset DIR [--steps 262144] [--seeds 3] [--episodes 128]
                                        [--methods random scripted ppo-pixels ppo-features ppo-rnn]
                                        [--scenarios Easy Medium Hard Diagnosis] [--out runs/c16-reference]
+                                       [--version v1|v0] [--val-fraction 0.2] [--val-seed 0]
                                        [--env NAME=ID] [--env-kwargs NAME=JSON] [--rnn-obs features|pixels]
+    python benchmarks/c16_reference.py --quick      # a small slice of every table in minutes (small variant)
 
-Scenarios map to env ids ``HistoJAX-C16-{Easy,Medium,Hard,Diagnosis}-v0`` (``--env NAME=ID`` for
-others, ``--env-kwargs NAME=JSON`` for extra ``histojax.make`` settings of one scenario, e.g.
-``--env Diagnosis=HistoJAX-Easy-v0 --env-kwargs 'Diagnosis={"task": "classification"}'`` on a
-dataset without the C16 ids). Every env is made with ``dataset=DIR`` and ``split="train"`` for
-training, ``split="test"`` for evaluation: the test split is one env whose resets draw a test
-slide uniformly, so a success rate is pooled over test slides.
+Scenarios map to env ids ``HistoJAX-C16-{Easy,Medium,Hard,Diagnosis}-v1`` (``--version v0`` for
+older datasets; ``--env NAME=ID`` for others, ``--env-kwargs NAME=JSON`` for extra ``histojax.make``
+settings of one scenario, e.g. ``--env Diagnosis=HistoJAX-Easy-v0 --env-kwargs
+'Diagnosis={"task": "classification"}'`` on a dataset without the C16 ids). Evaluation uses
+``split="test"``: the test split is one env whose resets draw a test slide uniformly, so a success
+rate is pooled over test slides.
+
+Validation (``--val-fraction``, default 0.2; 0 turns it off): a seeded share of the *training*
+slides is held back (:mod:`baselines.validation`: per class, tumour slides with their tissue
+donors) into ``OUT/validation/dataset.json``; trained cells train on the rest and are scored on the
+validation slides too (``validation`` in ``reference.json``). Choose hyperparameters and the agent
+to publish on those numbers, never on the test split.
 
 Each trained method runs ``baselines.ppo`` / ``baselines.ppo_rnn`` (``--steps`` env steps per seed,
-one value or one per scenario; ``--seeds`` seeds in one program) on the train split into
-``OUT/<method>-<scenario>/``, then evaluates every seed's **sampled** policy on ``--episodes`` fresh
-test episodes per seed (``baselines.evaluate``; the greedy row is kept in the JSON). Random and
-scripted rows come from the same evaluation on pixels + position. The scripted policy walks toward
-the darkest stain and never declares a diagnosis, so it has no Diagnosis cell. Detection success
-and steps to success count the episodes on test *tumour* slides only (labels from
-``dataset.json``; a normal slide has nothing to find); the JSON keeps the rate over all slides and
-per slide too. Success on
-Diagnosis = a right diagnosis (declaring ends the episode; an episode that never declares counts
-as wrong).
+one value or one per scenario; ``--seeds`` seeds in one program) into ``OUT/<method>-<scenario>/``
+(its learning curves ``curve.png`` and ``log.csv`` there), then evaluates every seed's **sampled**
+policy on ``--episodes`` fresh test episodes per seed (``baselines.evaluate``; the greedy row is
+kept in the JSON) and reports mean ± std over seeds (``seeds`` in the JSON) and the compiled
+training program's env steps/s. Random and scripted rows come from the same evaluation; the
+scripted policy walks toward the darkest stain on pixels, and on features zooms where the view's
+tumour logit is high (:func:`baselines.evaluate.scripted_features_policy`); it never declares a
+diagnosis, so it has no Diagnosis cell. Detection success and steps to success count the episodes
+on test *tumour* slides only (labels from ``dataset.json``); the JSON keeps the rate over all
+slides and per slide too. Success on Diagnosis = a right diagnosis (declaring ends the episode; an
+episode that never declares counts as wrong); its AUC is that of the policy's p(tumour) at the step
+it declared.
 
 Rows are resumable: every finished cell goes into ``OUT/reference.json`` with its budget, and a
 rerun with the same dataset, env id, settings and budget keeps it (``--redo`` recomputes). The
 table (``OUT/reference.md``) is rewritten after every cell and printed at the end. This is a
-benchmark (hours of CPU at real budgets), never a test.
+benchmark (hours of CPU at real budgets), never a test; ``--quick`` is its smoke slice.
 """
 from __future__ import annotations
 
@@ -42,6 +52,7 @@ import time
 from pathlib import Path
 
 import jax
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -54,8 +65,8 @@ METHODS = ("random", "scripted", "ppo-pixels", "ppo-features", "ppo-rnn")
 REFERENCE = ("random", "scripted")  # rows of the untrained evaluation
 
 
-def default_env_id(scenario: str) -> str:
-    return f"HistoJAX-C16-{scenario}-v0"
+def default_env_id(scenario: str, version: str = "v1") -> str:
+    return f"HistoJAX-C16-{scenario}-{version}"
 
 
 def method_settings(method: str, rnn_obs: str) -> dict:
@@ -74,13 +85,37 @@ def cell_key(method: str, scenario: str) -> str:
 
 
 def cell_budget(dataset: Path, env_id: str, env_kwargs: dict, method: str, steps: int, seeds: int,
-                episodes: int, extra: list[str], rnn_obs: str) -> dict:
+                episodes: int, extra: list[str], rnn_obs: str, validation: dict | None = None) -> dict:
     """What a stored cell must match to be kept on a rerun."""
     budget = {"dataset": str(Path(dataset).resolve()), "env_id": env_id, "env_kwargs": env_kwargs,
               "episodes": episodes}
     if method not in REFERENCE:
         budget.update(steps=steps, seeds=seeds, set=list(extra), **method_settings(method, rnn_obs))
+        if validation:
+            budget["validation"] = validation
     return budget
+
+
+def seed_stats(row: dict, labels: dict, scenario: str) -> dict:
+    """Mean and standard deviation over seeds of a trained row's headline numbers (its ``per_seed``
+    evaluation rows): detection success on tumour slides and steps to success, or diagnosis accuracy
+    and AUC. ``{name: {"mean", "std", "per_seed"}}``; empty when the row has no per-seed rows."""
+    per = row.get("per_seed") or []
+    if not per:
+        return {}
+    if scenario == "Diagnosis":
+        values = {"accuracy": [r["success_rate"] for r in per],
+                  "auc": [r.get("diagnosis_auc", float("nan")) for r in per]}
+    else:
+        t = [on_tumour_slides(r, labels) for r in per]
+        values = {"success": [r["success_rate"] for r in t], "steps_to_success": [r["mean_steps_to_success"] for r in t]}
+    out = {}
+    for k, v in values.items():
+        a = np.asarray(v, np.float64)
+        ok = a[np.isfinite(a)]
+        out[k] = {"mean": float(ok.mean()) if ok.size else float("nan"),
+                  "std": float(ok.std()) if ok.size else float("nan"), "per_seed": a.tolist()}
+    return out
 
 
 def slide_labels(spec: dict) -> dict:
@@ -121,12 +156,15 @@ def reference_cells(dataset: Path, env_id: str, env_kwargs: dict, episodes: int,
 
 
 def trained_cell(method: str, dataset: Path, env_id: str, env_kwargs: dict, steps: int, seeds: int, episodes: int,
-                 out: Path, extra: list[str], rnn_obs: str, augment: bool) -> dict:
-    """Train ``method`` on the train split into ``out``, evaluate its sampled (and greedy) policy on
-    the test split; returns the row (``sampled`` / ``greedy`` evaluation rows, training summary)."""
+                 out: Path, extra: list[str], rnn_obs: str, augment: bool, train_dataset: Path | None = None) -> dict:
+    """Train ``method`` on the train split of ``train_dataset`` (default ``dataset``; a validation
+    dataset of :mod:`baselines.validation` holds part of the training slides back) into ``out``,
+    evaluate its sampled (and greedy) policy on the test split of ``dataset`` and, with a
+    ``train_dataset``, on its validation slides (``validation``); returns the row (``sampled`` /
+    ``greedy`` evaluation rows, per-seed rows, training summary, learning-curve files)."""
     settings = method_settings(method, rnn_obs)
     trainer = ppo if settings["trainer"] == "ppo" else ppo_rnn
-    train_kwargs = {**env_kwargs, "dataset": str(dataset), "split": "train"}
+    train_kwargs = {**env_kwargs, "dataset": str(train_dataset or dataset), "split": "train"}
     if augment and settings["obs_mode"] == "pixels":
         train_kwargs["augment"] = True
     argv = ["--env", env_id, "--obs-mode", settings["obs_mode"], "--with-position", "--seeds", str(seeds),
@@ -136,16 +174,22 @@ def trained_cell(method: str, dataset: Path, env_id: str, env_kwargs: dict, step
     trainer.main(argv)
     train_wall = time.perf_counter() - t0
     params, config = common.load_checkpoint(out)
-    config["env_kwargs"] = {**train_kwargs, "split": "test"}
+    config["env_kwargs"] = {**train_kwargs, "dataset": str(dataset), "split": "test"}
     config["env_kwargs"].pop("augment", None)
     t0 = time.perf_counter()
     rows = evaluate(config, params, num_episodes=episodes, label=settings["trainer"], references=False)
+    name = f"{settings['trainer']} (sampled)"
+    validation = None
+    if train_dataset is not None:
+        config["env_kwargs"]["dataset"] = str(train_dataset)  # its "test" list: the validation slides
+        validation = evaluate(config, params, num_episodes=episodes, label=settings["trainer"], references=False)[name]
     summary = json.loads((out / "log.json").read_text())["summary"]
-    return {**rows[f"{settings['trainer']} (sampled)"], "greedy": rows[f"{settings['trainer']} (greedy)"],
+    return {**rows[name], "greedy": rows[f"{settings['trainer']} (greedy)"], "validation": validation,
             "train_wall_s": train_wall, "eval_wall_s": time.perf_counter() - t0,
             "train_success_final": summary["final"]["success"],
             "train_steps_per_s": summary["env_steps_per_second_all_seeds"],
-            "run": str(out)}
+            "compile_s": summary.get("compile_seconds"),
+            "run": str(out), "curve_png": str(out / "curve.png"), "curve_csv": str(out / "log.csv")}
 
 
 def total_wall(cells: dict) -> float:
@@ -167,41 +211,73 @@ def _num(v) -> str:
     return "–" if v is None or v != v else f"{v:.1f}"
 
 
+def _pm(stats: dict | None, name: str, fmt) -> str | None:
+    """``mean ± std`` over seeds of ``stats[name]`` (:func:`seed_stats`), or None without it."""
+    if not stats or name not in stats:
+        return None
+    m, sd = stats[name]["mean"], stats[name]["std"]
+    if m != m:
+        return "–"
+    if fmt is _pct:
+        return f"{m:.1%} ± {sd:.1%}"
+    if fmt is _num2:
+        return f"{m:.3f} ± {sd:.3f}"
+    return f"{m:.1f} ± {sd:.1f}"
+
+
 def markdown(cells: dict, methods: list[str], scenarios: list[str], meta: dict) -> str:
-    """The reference table: one row per method; per detection scenario the test-split success and
-    mean steps to success, for Diagnosis the accuracy and mean steps to the decision."""
+    """The reference table: one row per method; per detection scenario the test-split success on
+    tumour slides and mean steps to success, for Diagnosis the accuracy and AUC (the policy's
+    probability of declaring tumour) — trained rows as mean ± std over seeds — then the training
+    env steps/s (compiled program, all seeds) and the training wall time."""
     head = ["method"]
     for s in scenarios:
-        head += [f"{s} accuracy", f"{s} steps"] if s == "Diagnosis" else [f"{s} success", f"{s} steps to success"]
-    head.append("training wall time")
+        head += [f"{s} accuracy", f"{s} AUC"] if s == "Diagnosis" else [f"{s} success", f"{s} steps to success"]
+    head += ["train steps/s", "training wall time"]
     lines = ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)]
     for m in methods:
-        row, wall = [m], 0.0
+        row, wall, rates = [m], 0.0, []
         for s in scenarios:
             c = cells.get(cell_key(m, s))
             if c is None:
                 row += ["n/a" if (m == "scripted" and s == "Diagnosis") else "not run", ""]
                 continue
+            st = c.get("seeds")
             if s == "Diagnosis":
-                row += [_pct(c["success_rate"]), _num(c["mean_length"])]
+                row += [_pm(st, "accuracy", _pct) or _pct(c["success_rate"]),
+                        _pm(st, "auc", _num2) or _num2(c.get("diagnosis_auc"))]
             else:
                 d = c.get("tumour_slides", c)
-                row += [_pct(d["success_rate"]), _num(d["mean_steps_to_success"])]
+                row += [_pm(st, "success", _pct) or _pct(d["success_rate"]),
+                        _pm(st, "steps_to_success", _num) or _num(d["mean_steps_to_success"])]
             wall += c.get("train_wall_s", 0.0)
+            if c.get("train_steps_per_s"):
+                rates.append(c["train_steps_per_s"])
         ran = any(cell_key(m, s) in cells for s in scenarios)
+        row.append(f"{np.mean(rates):,.0f}" if rates else "–")
         row.append(f"{wall:,.0f} s" if m not in REFERENCE and ran else "–")
         lines.append("| " + " | ".join(row) + " |")
+    val = meta.get("validation")
     lines += ["", f"Dataset `{meta['dataset']}` (test split: {meta['test_slides']} slides, "
-              f"{meta['test_tumour_slides']} with tumour; train split: {meta['train_slides']}). Detection "
+              f"{meta['test_tumour_slides']} with tumour; train split: {meta['train_slides']}"
+              + (f", of which {len(val['validation'])} held back for validation (fraction {val['fraction']}, seed "
+                 f"{val['seed']}; trained rows train on the other {len(val['train'])})" if val else "")
+              + "). Detection "
               f"success counts the episodes on test tumour slides only (a normal slide has nothing to find); "
               f"{meta['reachable']} Env ids: " + ", ".join(f"{s} `{meta['env_ids'][s]}`" for s in scenarios) + ".",
               f"Budget per trained cell: {meta['steps']} env steps per seed × {meta['seeds']} seed(s); "
               f"{meta['episodes']} test episodes per seed (per policy for random / scripted). Trained rows: the "
-              f"sampled policy pooled over seeds. Steps: mean episode length of the successful episodes "
-              f"(Diagnosis: of all episodes, i.e. steps to a decision or the step limit).",
+              f"sampled policy, mean ± std over seeds. Steps: mean episode length of the successful episodes. "
+              f"Diagnosis AUC: of the policy's p(tumour) = p(DECLARE_TUMOUR) / (p(DECLARE_TUMOUR) + "
+              f"p(DECLARE_NO_TUMOUR)) at the step it declared (or its last step), over test episodes. Learning "
+              f"curves: `<out>/<method>-<scenario>/curve.png` and `log.csv`.",
               f"Machine: {platform.machine()}, {jax.device_count()} {jax.devices()[0].platform} device(s), "
               f"JAX {jax.__version__}. Total wall time of the cells: {meta['wall_s']:,.0f} s."]
     return "\n".join(lines)
+
+
+def _num2(v) -> str:
+    return "–" if v is None or v != v else f"{v:.3f}"
 
 
 def parse_pairs(items: list[str], what: str) -> dict:
@@ -214,14 +290,43 @@ def parse_pairs(items: list[str], what: str) -> dict:
     return out
 
 
+QUICK_SET = ["num_envs=16", "num_steps=32", "num_minibatches=4", "hidden=64", "log_every=1000"]
+
+
+def quick_dataset(out: Path) -> tuple[Path, str]:
+    """The small C16 variant for ``--quick``, built on the fly into ``OUT/data`` (kept between runs):
+    ``(folder, id version)`` — with pcam-cnn features (``-v1`` ids) when its weights ship, else
+    colour-stats features (``-v0`` ids)."""
+    from data_tools.features import pcam_cnn
+
+    v1 = pcam_cnn.WEIGHTS.is_file()
+    folder = out / "data" / ("c16-small-pcam" if v1 else "c16-small-colour")
+    if not (folder / "dataset.json").is_file():
+        import subprocess
+
+        cmd = [sys.executable, "-m", "data_tools", "c16", "--small", "--out", str(folder), "--no-pixels"]
+        cmd += [] if v1 else ["--encoder", "colour-stats"]
+        print("building the small C16 variant:", " ".join(cmd), flush=True)
+        subprocess.run(cmd, check=True, cwd=ROOT)
+    return folder, "v1" if v1 else "v0"
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--dataset", required=True, help="dataset folder with dataset.json (train/test split by slide)")
+    p.add_argument("--dataset", default=None, help="dataset folder with dataset.json (train/test split by slide)")
+    p.add_argument("--quick", action="store_true",
+                   help="a small slice of every table in minutes on 2 CPU cores: the small C16 variant built on the "
+                        "fly (OUT/data), 8,192 env steps per seed, 3 seeds, 16 episodes, small networks")
+    p.add_argument("--version", default="v1", choices=("v0", "v1"), help="C16 env ids HistoJAX-C16-*-VERSION")
+    p.add_argument("--val-fraction", type=float, default=0.2,
+                   help="share of the training slides held back for validation (tumour slides and their tissue "
+                        "donors kept together; 0: train on every training slide)")
+    p.add_argument("--val-seed", type=int, default=0, help="seed of the validation draw")
     p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
     p.add_argument("--steps", type=int, nargs="+", default=[262_144],
                    help="env steps per seed of each trained cell: one value, or one per scenario")
-    p.add_argument("--seeds", type=int, default=2)
+    p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--episodes", type=int, default=128, help="test episodes per seed (per policy for the references)")
     p.add_argument("--env", action="append", default=[], metavar="SCENARIO=ID", help="env id of a scenario")
     p.add_argument("--env-kwargs", action="append", default=[], metavar="SCENARIO=JSON",
@@ -233,10 +338,20 @@ def main(argv=None) -> int:
     p.add_argument("--out", default="runs/c16-reference")
     p.add_argument("--redo", action="store_true", help="recompute cells already in OUT/reference.json")
     args = p.parse_args(argv)
+    if args.quick:
+        if args.dataset is None:
+            args.dataset, args.version = quick_dataset(Path(args.out))
+        if args.steps == [262_144]:
+            args.steps = [8192]
+        if args.episodes == 128:
+            args.episodes = 16
+        args.set = QUICK_SET + args.set
+    if args.dataset is None:
+        p.error("give --dataset DIR (or --quick)")
     if len(args.steps) not in (1, len(args.scenarios)):
         p.error("give one --steps value, or one per scenario")
     steps = dict(zip(args.scenarios, args.steps * len(args.scenarios) if len(args.steps) == 1 else args.steps))
-    env_ids = {s: default_env_id(s) for s in args.scenarios} | parse_pairs(args.env, "--env")
+    env_ids = {s: default_env_id(s, args.version) for s in args.scenarios} | parse_pairs(args.env, "--env")
     try:
         env_kwargs = {s: json.loads(v) for s, v in parse_pairs(args.env_kwargs, "--env-kwargs").items()}
     except json.JSONDecodeError as e:
@@ -254,6 +369,16 @@ def main(argv=None) -> int:
     cells = json.loads(store.read_text()).get("cells", {}) if store.exists() and not args.redo else {}
     extra = [a for s in args.set for a in ("--set", s)]
     labels = slide_labels(spec)
+    val_dataset, validation = None, None
+    if args.val_fraction > 0:
+        from baselines.validation import write_validation_dataset
+
+        try:
+            val_dataset = write_validation_dataset(dataset, args.val_fraction, args.val_seed, out / "validation")
+        except ValueError as e:
+            raise SystemExit(f"--val-fraction {args.val_fraction}: {e} (give --val-fraction 0 to train on every "
+                             f"training slide)") from None
+        validation = json.loads((val_dataset / "dataset.json").read_text())["validation"]
     test_names = [Path(t).name for t in spec["test"]]
     tumour_test = [n for n in test_names if labels.get(n, 1) == 1]
     views = {Path(s["bundle"]).name: s["finest_views_ge50"] for s in spec.get("slides", [])
@@ -262,7 +387,7 @@ def main(argv=None) -> int:
                  f"have a finest-level view ≥ 50 % tumour on the bundle's grid (dataset.json "
                  f"`finest_views_ge50`)." if views else "")
     pixels_kept = spec.get("pixels_kept", True)
-    needs_pixels = {"scripted", "ppo-pixels"} | ({"ppo-rnn"} if args.rnn_obs == "pixels" else set())
+    needs_pixels = {"ppo-pixels"} | ({"ppo-rnn"} if args.rnn_obs == "pixels" else set())
     no_pixels_note = ""
     if not pixels_kept:
         gib = spec.get("device_bytes", {}).get("pixels", 0) / 2**30
@@ -273,7 +398,7 @@ def main(argv=None) -> int:
     meta = {"dataset": str(dataset), "train_slides": len(spec["train"]), "test_slides": len(spec["test"]),
             "test_tumour_slides": len(tumour_test), "reachable": reachable + no_pixels_note,
             "env_ids": env_ids, "steps": ", ".join(f"{s} {steps[s]:,}" for s in args.scenarios),
-            "seeds": args.seeds, "episodes": args.episodes, "wall_s": 0.0}
+            "seeds": args.seeds, "episodes": args.episodes, "wall_s": 0.0, "validation": validation}
 
     def save():
         meta["wall_s"] = total_wall(cells)
@@ -287,7 +412,8 @@ def main(argv=None) -> int:
         for m in args.methods:
             if m == "scripted" and s == "Diagnosis" or (not pixels_kept and m in needs_pixels):
                 continue
-            budget = cell_budget(dataset, env_ids[s], kw, m, steps[s], args.seeds, args.episodes, args.set, args.rnn_obs)
+            budget = cell_budget(dataset, env_ids[s], kw, m, steps[s], args.seeds, args.episodes, args.set, args.rnn_obs,
+                                 validation)
             key = cell_key(m, s)
             if key in cells and cells[key].get("budget") == budget:
                 print(f"kept {key} from {store}")
@@ -304,8 +430,11 @@ def main(argv=None) -> int:
             else:
                 run = out / f"{m}-{s.lower()}"
                 c = trained_cell(m, dataset, env_ids[s], kw, steps[s], args.seeds, args.episodes, run, extra,
-                                 args.rnn_obs, not args.no_augment)
-                cells[key] = {**c, "tumour_slides": on_tumour_slides(c, labels), "budget": budget}
+                                 args.rnn_obs, not args.no_augment, train_dataset=val_dataset)
+                cells[key] = {**c, "tumour_slides": on_tumour_slides(c, labels), "seeds": seed_stats(c, labels, s),
+                              "budget": budget}
+                if c.get("validation"):
+                    cells[key]["validation"] = {**c["validation"], "seeds": seed_stats(c["validation"], labels, s)}
             save()
     text = save()
     print("\n" + text)

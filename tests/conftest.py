@@ -67,3 +67,19 @@ def colour_feature_grid():
     """``f(src_bundle, dest=None) -> dest``: a copy of a bundle (or the bundle itself) with a 6-d
     mean/std-RGB feature grid."""
     return _colour_feature_grid
+
+
+@pytest.fixture(scope="session")
+def c16_small(tmp_path_factory):
+    """``(folder, id version)`` of the small C16 variant without pixels: pcam-cnn features and the
+    ``-v1`` ids when the encoder's weights ship, else colour-stats features and ``-v0`` (seconds)."""
+    import subprocess
+    import sys
+
+    from data_tools.features import pcam_cnn
+
+    v1 = pcam_cnn.WEIGHTS.is_file()
+    folder = tmp_path_factory.mktemp("c16small") / "ds"
+    cmd = [sys.executable, "-m", "data_tools", "c16", "--small", "--out", str(folder), "--no-pixels"]
+    subprocess.run(cmd + ([] if v1 else ["--encoder", "colour-stats"]), check=True, capture_output=True)
+    return folder, "v1" if v1 else "v0"

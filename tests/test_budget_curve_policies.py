@@ -43,8 +43,8 @@ def runs(dataset, tmp_path_factory):
     """A glimpse run trained for 256 steps, and a zoom_select checkpoint of the GRU policy as
     initialised (one compile of the trainer, not two: the reading checks need no training)."""
     root = tmp_path_factory.mktemp("runs")
-    train = ppo_rnn.make_train(_config(dataset, "glimpse:1"))
-    result = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 1)))
+    train = ppo_rnn.make_train({**_config(dataset, "glimpse:1"), "num_seeds": 3})
+    result = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 3)))
     common.save_checkpoint(root / "glimpse", result["params"], train.config)
     zoom = ppo_rnn.make_train(_config(dataset, "zoom_select"))
     init = common.params_initialiser(zoom.env, zoom.network, 1, inputs=lambda obs: (
@@ -65,6 +65,11 @@ def test_budget_curve_draws_a_recurrent_run(dataset, runs, tmp_path):
         mine = [r for r in rows if r["method"] == name]
         assert sorted(float(r["budget"]) for r in mine) == list(BUDGETS), name
         assert all(0.0 <= float(r["auc"]) <= 1.0 and int(r["slides"]) == 3 for r in mine)
+        # a trained reader: mean ± std over its 3 seeds, with its fields of view per episode
+        assert all(int(r["seeds"]) == 3 and float(r["auc_std"]) >= 0 and 0 <= float(r["fields_of_view"]) <= STEPS
+                   for r in mine)
+    random_rows = [r for r in rows if r["method"] == "random reader + MIL"]
+    assert random_rows and all(r["fields_of_view"] == "" for r in random_rows)
     assert (tmp_path / "budget_curve.png").stat().st_size > 1000
 
 
@@ -78,11 +83,12 @@ def test_recurrent_evaluation_respects_the_reading_budget(dataset, runs, glimpse
     tables, _ = budget_curve.load_split(dataset, "test", "HistoJAX-Easy-v0", 1)
     for budget in BUDGETS:
         assert len(glimpse_reads[budget]) == len(zoom_reads[budget]) == len(tables)
-        for (read, score, fraction), table in zip(glimpse_reads[budget], tables):
+        for (read, score, fraction, fields), table in zip(glimpse_reads[budget], tables):
             assert fraction <= budget + 1e-6                       # glimpse never reads past the budget
+            assert 0 <= fields <= STEPS
             assert len(read) == pytest.approx(fraction * table["total"])  # the views read are those counted
             assert 0.0 <= score <= 1.0
-        for (read, score, fraction), table in zip(zoom_reads[budget], tables):
+        for (read, score, fraction, fields), table in zip(zoom_reads[budget], tables):
             # zoom_select stops once the budget is reached: its last child may add one view
             assert fraction <= budget + 1.0 / table["total"] + 1e-6
             assert len(read) == pytest.approx(fraction * table["total"])
@@ -92,7 +98,7 @@ def test_recurrent_evaluation_respects_the_reading_budget(dataset, runs, glimpse
 def test_recurrent_evaluation_jit_equals_no_jit(dataset, runs, glimpse_reads):
     with jax.disable_jit():
         plain = budget_curve.policy_reads(runs["glimpse:1"], dataset, "test", BUDGETS[-1:])
-    for (read, score, fraction), (read0, score0, fraction0) in zip(plain[BUDGETS[-1]], glimpse_reads[BUDGETS[-1]]):
+    for (read, score, fraction, _), (read0, score0, fraction0, _) in zip(plain[BUDGETS[-1]], glimpse_reads[BUDGETS[-1]]):
         np.testing.assert_array_equal(read, read0)
         assert score == pytest.approx(score0, abs=1e-5) and fraction == pytest.approx(fraction0, abs=1e-6)
 

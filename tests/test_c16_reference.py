@@ -83,7 +83,7 @@ def test_detection_success_counts_tumour_slides_only():
 def test_every_method_end_to_end_on_a_tiny_budget(dataset, tmp_path):
     out = tmp_path / "ref"
     argv = _argv(dataset, out, "--scenarios", "Easy", "Diagnosis", "--steps", "256", "--set", "num_envs=8",
-                 "--set", "num_steps=16", "--set", "hidden=16", "--set", "num_minibatches=2")
+                 "--set", "num_steps=16", "--set", "hidden=16", "--set", "num_minibatches=2", "--seeds", "2")
     assert c16_reference.main(argv) == 0
     cells = json.loads((out / "reference.json").read_text())["cells"]
     expected = {f"{m}/{s}" for m in c16_reference.METHODS for s in ("Easy", "Diagnosis")} - {"scripted/Diagnosis"}
@@ -92,14 +92,24 @@ def test_every_method_end_to_end_on_a_tiny_budget(dataset, tmp_path):
         assert 0.0 <= c["success_rate"] <= 1.0, key
         if key.split("/")[0] not in c16_reference.REFERENCE:
             assert (Path(c["run"]) / "params.msgpack").is_file() and "greedy" in c
+            # trained on the kept training slides, scored on the held-back one too; mean ± std over 2 seeds
+            assert c["validation"]["episodes"] == 16 and Path(c["curve_csv"]).is_file()
+            headline = "accuracy" if key.endswith("Diagnosis") else "success"
+            assert len(c["seeds"][headline]["per_seed"]) == 2 and c["seeds"][headline]["std"] >= 0
+            if key.endswith("Diagnosis"):
+                assert "auc" in c["seeds"] and "diagnosis_auc" in c
     assert json.loads((out / "ppo-rnn-easy" / "config.json").read_text())["obs_mode"] == "features"
     table = (out / "reference.md").read_text()
-    assert "| scripted | " in table and "n/a" in table and "Diagnosis accuracy" in table
+    assert "| scripted | " in table and "n/a" in table and "Diagnosis accuracy" in table and "Diagnosis AUC" in table
+    assert " ± " in table and "held back for validation" in table
+    val = json.loads((out / "validation" / "dataset.json").read_text())["validation"]
+    assert len(val["train"]) == 1 and len(val["validation"]) == 1
 
 
 def test_feature_only_dataset_runs_the_rows_that_need_no_pixels(dataset, tmp_path):
     """A dataset made with ``--no-pixels`` (``pixels_kept: false`` in dataset.json): random is evaluated on
-    features, the rows needing pixels are not run and the table says why, with the pixel-mode bytes."""
+    features, the scripted policy on features (zoom where the view's tumour logit is high), the rows
+    needing pixels are not run and the table says why, with the pixel-mode bytes."""
     import shutil
 
     ds = tmp_path / "ds"
@@ -111,7 +121,7 @@ def test_feature_only_dataset_runs_the_rows_that_need_no_pixels(dataset, tmp_pat
     assert c16_reference.main(_argv(ds, out, "--methods", "random", "scripted", "ppo-pixels",
                                     "--scenarios", "Easy")) == 0
     cells = json.loads((out / "reference.json").read_text())["cells"]
-    assert set(cells) == {"random/Easy"}
+    assert set(cells) == {"random/Easy", "scripted/Easy"}
     table = (out / "reference.md").read_text()
-    assert "| scripted | not run" in table and "| ppo-pixels | not run" in table
+    assert "| scripted | not run" not in table and "| ppo-pixels | not run" in table
     assert "keeps no pixels" in table and "3.0 GiB on the device" in table

@@ -1,0 +1,75 @@
+"""Publish a trained agent: copy a run's ``config.json`` and ``params.msgpack`` (all seeds, or one)
+into ``baselines/published/NAME/`` with a ``published.json`` record (source run, seeds kept, the
+run's training summary and, when given, the table cell it was chosen from), so it can be scored on
+any C16-style dataset without training:
+
+    python -m baselines.publish runs/c16-reference/ppo-features-easy c16-easy-navigator [--seed 1]
+    histojax evaluate baselines/published/c16-easy-navigator --dataset DIR [--split test]
+
+Choose the run (and ``--seed``) on validation results (``c16_reference.py --val-fraction``), never
+on the test split.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import shutil
+from pathlib import Path
+
+import jax
+
+from baselines import common
+
+PUBLISHED = Path(__file__).resolve().parent / "published"
+
+
+def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str | None = None,
+            chosen_by: dict | None = None) -> Path:
+    """Copy run folder ``run``'s checkpoint into ``root/name`` (``seed``: keep only that seed's
+    parameters, still with a leading seed axis of 1); returns the folder."""
+    run = Path(run)
+    if not (run / "params.msgpack").is_file() or not (run / "config.json").is_file():
+        raise ValueError(f"{run}: not a run folder (needs params.msgpack and config.json)")
+    if not name or "/" in name or name.startswith("."):
+        raise ValueError(f"bad name {name!r}: one folder name")
+    dest = Path(root) / name
+    dest.mkdir(parents=True, exist_ok=True)
+    if seed is None:
+        shutil.copyfile(run / "params.msgpack", dest / "params.msgpack")
+        shutil.copyfile(run / "config.json", dest / "config.json")
+        seeds = None
+    else:
+        params, config = common.load_checkpoint(run)
+        n = jax.tree.leaves(params)[0].shape[0]
+        if not 0 <= seed < n:
+            raise ValueError(f"{run} has {n} seed(s); --seed {seed} is not one of them")
+        common.save_checkpoint(dest, jax.tree.map(lambda a: a[seed:seed + 1], params),
+                               {**json.loads((run / "config.json").read_text()), "num_seeds": 1})
+        seeds = [seed]
+    summary = None
+    if (run / "log.json").is_file():
+        summary = json.loads((run / "log.json").read_text()).get("summary")
+    record = {"name": name, "source_run": str(run.resolve()), "seeds": seeds, "training_summary": summary,
+              "chosen_by": chosen_by, "note": note}
+    (dest / "published.json").write_text(json.dumps(record, indent=1))
+    return dest
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("run", help="run folder (params.msgpack + config.json)")
+    p.add_argument("name", help="folder name under --root")
+    p.add_argument("--seed", type=int, default=None, help="keep only this seed (default: every seed)")
+    p.add_argument("--root", default=str(PUBLISHED), help="default baselines/published")
+    p.add_argument("--note", default=None, help="free text kept in published.json (e.g. the validation numbers)")
+    args = p.parse_args(argv)
+    try:
+        dest = publish(args.run, args.name, args.root, args.seed, args.note)
+    except (OSError, ValueError) as e:
+        raise SystemExit(f"publish: {e}") from None
+    print(f"published {args.run} as {dest}; score it with: histojax evaluate {dest} --dataset DIR")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -13,12 +13,11 @@ from __future__ import annotations
 
 import argparse
 import json
-import shutil
 from pathlib import Path
 
 import jax
 
-from baselines import common
+from baselines import common, outputs
 
 PUBLISHED = Path(__file__).resolve().parent / "published"
 
@@ -35,8 +34,8 @@ def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str |
     dest = Path(root) / name
     dest.mkdir(parents=True, exist_ok=True)
     if seed is None:
-        shutil.copyfile(run / "params.msgpack", dest / "params.msgpack")
-        shutil.copyfile(run / "config.json", dest / "config.json")
+        for f in ("params.msgpack", "config.json"):  # whole or absent (baselines.outputs)
+            outputs.write_bytes(dest / f, (run / f).read_bytes())
         seeds = None
     else:
         params, config = common.load_checkpoint(run)
@@ -51,7 +50,7 @@ def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str |
         summary = json.loads((run / "log.json").read_text()).get("summary")
     record = {"name": name, "source_run": str(run.resolve()), "seeds": seeds, "training_summary": summary,
               "chosen_by": chosen_by, "note": note}
-    (dest / "published.json").write_text(json.dumps(record, indent=1))
+    outputs.write_text(dest / "published.json", json.dumps(record, indent=1))
     return dest
 
 

@@ -22,6 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
+from baselines import outputs
+
 
 def _name(path: str) -> str:
     return Path(path).name
@@ -106,9 +108,7 @@ def write_validation_dataset(dataset, fraction: float, seed: int, out) -> Path:
     text = json.dumps(derived, indent=1)
     index = out / "dataset.json"
     if not index.is_file() or index.read_text() != text:
-        tmp = index.with_suffix(".json.tmp")
-        tmp.write_text(text)
-        tmp.replace(index)
+        outputs.write_text(index, text)
     return out
 
 

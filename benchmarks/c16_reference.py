@@ -57,7 +57,7 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from baselines import common, ppo, ppo_rnn  # noqa: E402
+from baselines import common, outputs, ppo, ppo_rnn  # noqa: E402
 from baselines.evaluate import evaluate  # noqa: E402
 
 SCENARIOS = ("Easy", "Medium", "Hard", "Diagnosis")
@@ -402,9 +402,9 @@ def main(argv=None) -> int:
 
     def save():
         meta["wall_s"] = total_wall(cells)
-        store.write_text(json.dumps({"meta": meta, "cells": cells}, indent=1, default=float))
+        outputs.write_text(store, json.dumps({"meta": meta, "cells": cells}, indent=1, default=float))
         text = markdown(cells, args.methods, args.scenarios, meta)
-        (out / "reference.md").write_text(text + "\n")
+        outputs.write_text(out / "reference.md", text + "\n")
         return text
 
     for s in args.scenarios:

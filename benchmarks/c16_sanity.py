@@ -234,7 +234,7 @@ def main(argv=None) -> int:
             write_json(args.out, {"summary": head, "rows": rows, "per_class": args.per_class,
                                   "command": "python benchmarks/c16_sanity.py " + " ".join(argv or [])})
         return 0
-    from data_tools.pcam_bank import load_bank
+    from data_tools.datasets.pcam_bank import load_bank
 
     t0 = time.perf_counter()
     views, y, groups = dataset_views(Path(args.dataset), args.per_class, min_tissue=args.min_tissue)

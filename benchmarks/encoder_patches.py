@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     from data_tools.features import ENCODERS
     from data_tools.features.efficientnet import load_encoder
     from data_tools.features.train_pcam_cnn import box_half, stained_copy
-    from data_tools.pcam_bank import load_bank, split_pools
+    from data_tools.datasets.pcam_bank import load_bank, split_pools
 
     train_pool, test_pool = split_pools(load_bank(args.patches))
     rng = np.random.default_rng(0)

@@ -66,7 +66,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", default="/tmp/histojax-host-memory")
     args = p.parse_args(argv)
     from data_tools.bundle import build_bundle
-    from data_tools.synth_large import make_large_slide
+    from data_tools.datasets.synth_large import make_large_slide
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -225,7 +225,7 @@ def _command(args) -> None:
               + (f", region {meta.region['box']} of the slide" if meta.region else ""))
         print(_info(str(out)))
     elif args.command == "synth":
-        from data_tools.synth import make_dataset
+        from data_tools.datasets.synth import make_dataset
 
         ds = make_dataset(args.out_dir, n_slides=args.slides, size=(args.size, args.size), seed=args.seed,
                           tile_size=args.tile_size, tissue=args.tissue, progress=not args.quiet,
@@ -237,7 +237,7 @@ def _command(args) -> None:
                   f"{s['finest_views_ge50']}/{s['finest_views']} finest views >= 50 % tumour, "
                   f"mean RGB tumour {s['tumour_mean_rgb']} vs normal {s['normal_tissue_mean_rgb']}")
     elif args.command == "c16":
-        from data_tools.c16 import make_c16_dataset
+        from data_tools.datasets.c16 import make_c16_dataset
 
         ds = make_c16_dataset(args.out, annotations=args.annotations, patches=args.patches, small=args.small,
                               downsample=args.downsample, names=args.slides, n_tumour=args.tumour_slides,
@@ -250,7 +250,7 @@ def _command(args) -> None:
               f"geometry real CAMELYON16, pixels real PCam patches arranged by histojax (not scanned slides); "
               f"{ds['seconds_this_run']:.0f} s this run")
     elif args.command == "synth-large":
-        from data_tools.synth_large import make_large_slide
+        from data_tools.datasets.synth_large import make_large_slide
 
         prov = make_large_slide(args.out, size=args.size, tissue_fraction=args.tissue_fraction, seed=args.seed,
                                 progress=not args.quiet)

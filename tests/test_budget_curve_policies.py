@@ -22,7 +22,7 @@ STEPS = 8
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    from data_tools.synth import make_dataset
+    from data_tools.datasets.synth import make_dataset
 
     root = tmp_path_factory.mktemp("diag-ds")
     make_dataset(root, n_slides=4, negatives=4, size=(320, 256), seed=0, tile_size=32, level_sets=(3,),

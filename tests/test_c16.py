@@ -24,7 +24,7 @@ ROOT = Path(__file__).resolve().parents[1]
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory) -> Path:
-    from data_tools.c16 import make_c16_dataset
+    from data_tools.datasets.c16 import make_c16_dataset
 
     out = tmp_path_factory.mktemp("c16") / "small"
     make_c16_dataset(out, small=True, progress=False)
@@ -184,7 +184,7 @@ def test_memory_budget_error_names_what_to_change(small):
 
 def test_killed_run_leaves_no_temporaries_and_resumes(small, tmp_path):
     """SIGKILL a generator mid-run; the next run removes what it left and skips the finished slides."""
-    from data_tools.c16 import make_c16_dataset
+    from data_tools.datasets.c16 import make_c16_dataset
 
     out = tmp_path / "killed"
     (out / "slides").mkdir(parents=True)
@@ -209,9 +209,9 @@ def test_killed_run_leaves_no_temporaries_and_resumes(small, tmp_path):
 
 
 def test_bad_inputs_name_the_file(tmp_path):
-    from data_tools.c16 import make_c16_dataset
+    from data_tools.datasets.c16 import make_c16_dataset
     from data_tools.ncrf import read_ncrf
-    from data_tools.pcam_bank import load_bank
+    from data_tools.datasets.pcam_bank import load_bank
 
     bad = tmp_path / "ann"
     bad.mkdir()
@@ -229,7 +229,7 @@ def test_bad_inputs_name_the_file(tmp_path):
 
 
 def test_shipped_bank_is_small_and_balanced():
-    from data_tools.pcam_bank import SHIPPED_BANK, load_bank
+    from data_tools.datasets.pcam_bank import SHIPPED_BANK, load_bank
 
     bank = load_bank()
     assert len(bank) == 1000 and int(bank.labels.sum()) == 500
@@ -243,7 +243,7 @@ def test_benchmark_scale_build_of_the_shipped_slides(tmp_path):
     micro- and macro-metastases findable at the finest level, and the Hard env over all six."""
     import histojax
     from data_tools.annotations import load_annotations
-    from data_tools.c16 import SMALL_SLIDES, make_c16_dataset
+    from data_tools.datasets.c16 import SMALL_SLIDES, make_c16_dataset
     from data_tools.ncrf import SHIPPED_DIR, read_ncrf
 
     ds = make_c16_dataset(tmp_path / "d8", names=list(SMALL_SLIDES), progress=False, workers=2)
@@ -293,7 +293,7 @@ def test_feature_only_bundles(small, tmp_path):
 
     import histojax
     from data_tools.bundle_format import read_metadata
-    from data_tools.c16 import make_c16_dataset
+    from data_tools.datasets.c16 import make_c16_dataset
 
     out = tmp_path / "ds"
     shutil.copytree(small, out)
@@ -336,7 +336,7 @@ def _provenance(folder: Path, name: str) -> dict:
 def test_train_and_test_slides_share_no_patch(small):
     """Every slide draws its texture from its split's pool only: no patch textures both sides, and each
     side's patches are in that side's pool by the recorded rule."""
-    from data_tools.pcam_bank import in_test_pool
+    from data_tools.datasets.pcam_bank import in_test_pool
 
     ds = json.loads((small / "dataset.json").read_text())
     assert ds["format"] == 2 and ds["patch_pools"]["rule"].startswith("test pool iff")
@@ -360,7 +360,7 @@ def test_a_subset_keeps_the_whole_sets_split_donor_and_slides(small, tmp_path):
     set, and on the whole set's folder leaves the other slides and the split as they were."""
     import shutil
 
-    from data_tools.c16 import make_c16_dataset
+    from data_tools.datasets.c16 import make_c16_dataset
 
     whole = json.loads((small / "dataset.json").read_text())
     alone = tmp_path / "alone"
@@ -383,8 +383,8 @@ def test_a_subset_keeps_the_whole_sets_split_donor_and_slides(small, tmp_path):
 def test_test_slides_from_another_patch_set(tmp_path):
     """--test-patches: the test slides are textured from that set alone (here: the shipped bank's test pool
     written out as a folder, a stand-in for PCam's own test split)."""
-    from data_tools.c16 import make_c16_dataset
-    from data_tools.pcam_bank import load_bank, split_pools
+    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.pcam_bank import load_bank, split_pools
 
     _, pool = split_pools(load_bank())
     other = tmp_path / "other"
@@ -421,7 +421,7 @@ FULL_RECORD = ROOT / "tests" / "data" / "c16_full_patch_names.npz"
 def test_the_full_sets_sides_share_no_patch():
     """On the recorded patch names of the full true-scale set (239 slides; benchmarks/c16_patch_record.py):
     no patch textures both a train and a test slide, and each side's patches are in its pool."""
-    from data_tools.pcam_bank import in_test_pool
+    from data_tools.datasets.pcam_bank import in_test_pool
 
     rec = np.load(FULL_RECORD)
     train, test = set(rec["train"]), set(rec["test"])

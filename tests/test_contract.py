@@ -64,7 +64,7 @@ def test_contract_skips_an_id_without_its_data(monkeypatch, tmp_path):
 @pytest.mark.parametrize("env_id", [i for i in histojax.registered_envs() if i not in DEFAULT_IDS])
 def test_contract_of_every_other_registered_id(env_id, tmp_path_factory, monkeypatch):
     if env_id.startswith("HistoJAX-C16-"):
-        from data_tools.c16 import make_c16_dataset
+        from data_tools.datasets.c16 import make_c16_dataset
 
         out = tmp_path_factory.getbasetemp() / "c16-contract"
         if not (out / "dataset.json").is_file():

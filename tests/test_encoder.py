@@ -13,7 +13,7 @@ import pytest
 
 from data_tools.features import ENCODERS, pcam_cnn
 from data_tools.features.efficientnet import load_encoder
-from data_tools.pcam_bank import in_test_pool, load_bank, pool_rule, split_pools
+from data_tools.datasets.pcam_bank import in_test_pool, load_bank, pool_rule, split_pools
 
 
 @pytest.fixture(scope="module")

@@ -2,12 +2,12 @@
 appear in the true-scale CAMELYON16 mosaic: ``python -m data_tools train-encoder --patches
 pcam_train_patches.tar.gz --out WEIGHTS.msgpack``. Reproducible from ``--seed``; minutes on 2 CPU cores.
 
-Data. The bank is cut by the pool rule (:func:`data_tools.pcam_bank.split_pools`): the test pool is
+Data. The bank is cut by the pool rule (:func:`data_tools.datasets.pcam_bank.split_pools`): the test pool is
 never read for training or for choosing anything; the training pool is cut once more (seeded,
 ``--val-fraction``) into the patches fitted and a validation set on which the epoch is chosen.
 
 Each patch is shown at the benchmark's scale (96 px → 48 px by 2 × 2 box averaging, as the mosaic's
-``Image.BOX`` resize does) with the mosaic's own variation (:mod:`data_tools.c16_mosaic`): a batch is
+``Image.BOX`` resize does) with the mosaic's own variation (:mod:`data_tools.datasets.c16_mosaic`): a batch is
 cut into ``GROUPS`` "slides", each with its own stain (per-channel optical-density factor in
 ``STAIN_RANGE`` times a density factor in ``DENSITY_RANGE``) and, with probability ``P_MATCH``, the
 mosaic's colour matching (tumour patches' mean RGB moved ``COLOUR_MATCH`` of the way to the group's
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.c16_mosaic import COLOUR_MATCH, DENSITY_RANGE, STAIN_RANGE
+from data_tools.datasets.c16_mosaic import COLOUR_MATCH, DENSITY_RANGE, STAIN_RANGE
 
 GROUPS = 4          # stain groups ("slides") per batch
 P_MATCH = 0.6       # a group's chance of the mosaic's tumour colour matching
@@ -132,7 +132,7 @@ def train(patches=None, seed: int = 0, epochs: int = 30, batch: int = 256, lr: f
 
     from baselines.metrics import roc_auc
     from data_tools.features import pcam_cnn
-    from data_tools.pcam_bank import load_bank, pool_rule, split_pools
+    from data_tools.datasets.pcam_bank import load_bank, pool_rule, split_pools
 
     t0 = time.perf_counter()
     bank = load_bank(patches)
@@ -209,7 +209,7 @@ def test_pool_auc(variables, patches=None, limit: int | None = None, seed: int =
     """Patch AUC of ``variables`` on the **test pool** of ``patches`` (never trained on), on PCam's own
     colours and on a fixed mosaic-like stain: ``{"raw": auc, "mosaic": auc, "patches": n}``."""
     from baselines.metrics import roc_auc
-    from data_tools.pcam_bank import load_bank, split_pools
+    from data_tools.datasets.pcam_bank import load_bank, split_pools
 
     _, test_pool = split_pools(load_bank(patches))
     idx = np.arange(len(test_pool))

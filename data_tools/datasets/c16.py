@@ -1,0 +1,387 @@
+"""The true-scale CAMELYON16 benchmark dataset (``python -m data_tools c16``).
+
+GEOMETRY IS REAL CAMELYON16 (NCRF polygons, every tumour at its true size relative to the tissue and
+the view), PIXELS ARE REAL PatchCamelyon PATCHES ARRANGED BY US (a mosaic, see
+:mod:`data_tools.datasets.c16_mosaic`), NOT SCANNED SLIDES. Geometry: :mod:`data_tools.datasets.c16_layout`.
+
+Layout of ``OUT``: ``slides/NAME.tif`` (pyramidal JPEG-tiled TIFF) with ``NAME.geojson`` (tumour and
+tissue, output px) and ``NAME.provenance.json`` beside it, ``bundles/NAME/`` (tiled bundles) and
+``dataset.json`` (split, provenance, scale, per-slide figures) written last.
+
+Restartable per slide: a slide whose TIFF, GeoJSON and provenance exist with the same settings is
+not made again, nor its bundle when the bundle's source checksum matches; the TIFF is written to
+``slides/.NAME.tif.tmp-PID`` and renamed, bundles are written by :func:`data_tools.bundle.build_bundle`
+to a hidden temporary sibling. A run holds ``OUT/.c16.lock`` (``flock``, released by the kernel even
+on SIGKILL) and, holding it, first deletes the hidden temporaries a killed run left behind.
+"""
+from __future__ import annotations
+
+import json
+import resource
+import time
+from pathlib import Path
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from data_tools.bundle_format import atomic_file, read_metadata, sha256, write_json
+from data_tools.datasets.c16_layout import C16_MPP, donor_for, layout
+from data_tools.datasets.c16_mosaic import PIXELS_NOTE, Texture, write_slide_tiff
+from data_tools.datasets.split import grouped_split as split_slides  # one home for splits (data_tools.datasets)
+from data_tools.errors import HistojaxDataError
+from data_tools.datasets.pcam_bank import CITATION, load_bank
+
+FULL_DOWNSAMPLE = 8.0    # the full benchmark: CAMELYON16 level 0 / 8 = 1.94 µm/px (see docs/c16-benchmark.md)
+SMALL_DOWNSAMPLE = 32.0  # the small variant (tests, demo): 7.8 µm/px
+COARSEST = 256.0         # the coarsest env level is CAMELYON16 level 0 / 256 for every downsample
+SMALL_SLIDES = ("Tumor_072", "Tumor_082", "Tumor_094", "Normal_017", "Normal_042", "Normal_108")
+TILE_SIZE = 128
+LEVEL_SETS = (3, 5, 7)
+DATASET_FORMAT = 2       # 2: train/test slides textured from disjoint PCam patch pools (recorded in dataset.json)
+LICENCE = ("tumour and tissue polygons: CAMELYON16 ground truth (CC0 1.0) as converted to JSON by "
+           "baidu-research/NCRF (Apache-2.0); tissue outlines of tumor_001/013/021/031/051/092: pathml-tutorial; "
+           "pixels: PatchCamelyon patches, CC0 1.0 — " + CITATION)
+
+
+def clean_stale(out_dir: Path) -> list[str]:
+    """Delete the hidden temporaries of killed runs (``slides/.*.tmp-*``, ``bundles/.*.tmp-*``,
+    ``bundles/.*.old-*``, of any name) and the ``features.partial/`` of finished bundles; returns their
+    names. Through the shared dataset code (:func:`data_tools.datasets.locks.clean_stale`): a temporary
+    whose name a live process is building is left alone."""
+    from data_tools.datasets.locks import clean_stale as _clean
+
+    return [f"bundles/{n}" for n in _clean(out_dir / "bundles")] + \
+        [f"slides/{n}" for n in _clean(out_dir / "slides", finished_features=False, lock_folder=out_dir / "bundles")]
+
+
+def _slide_settings(name, downsample, seed, bank, jpeg_quality, sha, donor=None, pool=None) -> dict:
+    from data_tools.datasets import c16_mosaic
+
+    return {"name": name, "downsample": float(downsample), "seed": int(seed), "bank": bank.source,
+            "bank_patches": len(bank), "jpeg_quality": int(jpeg_quality), "polygons_sha256": sha,
+            "colour_match": c16_mosaic.COLOUR_MATCH, "tissue_donor": donor.name if donor is not None else None,
+            "donor_polygons_sha256": donor.sha256 if donor is not None else None, "patch_pool": pool}
+
+
+def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, jpeg_quality: int = 85,
+               progress: bool = True, pool: str | None = None) -> dict:
+    """Write ``slides/NAME.tif`` (+ ``.geojson``, ``.provenance.json``) unless a finished one with the same
+    settings (the donor of its tissue and its patch pool included) is there; returns its provenance.
+    ``bank``: the patches this slide may draw (its split's pool); ``pool``: that pool's name."""
+    from data_tools.datasets.synth import _geojson
+
+    folder = out_dir / "slides"
+    folder.mkdir(parents=True, exist_ok=True)
+    tiff = folder / f"{slide.name}.tif"
+    prov_file = tiff.with_suffix(".provenance.json")
+    settings = _slide_settings(slide.name, downsample, seed, bank, jpeg_quality, slide.sha256, donor, pool)
+    if prov_file.is_file() and tiff.is_file() and tiff.with_suffix(".geojson").is_file():
+        try:
+            prov = json.loads(prov_file.read_text())
+            if prov.get("settings") == settings:
+                return prov
+        except (OSError, json.JSONDecodeError):
+            pass
+    t0 = time.perf_counter()
+    lay = layout(slide, downsample, donor)
+    texture = Texture(bank, downsample, seed)
+    description = (f"histojax true-scale CAMELYON16 slide {slide.name}. {PIXELS_NOTE} Scale: CAMELYON16 level 0 / "
+                   f"{downsample:g} = {lay.mpp:.4g} um/px. Tissue: {lay.provenance['tissue']}. Seed {seed}.")
+    bar = tqdm(total=-(-lay.size[0] // 256) * -(-lay.size[1] // 256), unit="tile", leave=False,
+               desc=f"{slide.name} ({lay.size[0]}×{lay.size[1]} px)", disable=not progress, mininterval=1.0)
+    try:
+        with atomic_file(tiff) as tmp:
+            info = write_slide_tiff(lay, texture, tmp, description, jpeg_quality, progress=bar.update)
+    finally:
+        bar.close()
+    summary = f"geometry real CAMELYON16 {slide.name}, pixels real PCam patches arranged by histojax"
+    tiff.with_suffix(".geojson").write_text(json.dumps(_geojson(lay.tumour, lay.tissue, summary)))
+    area = float(lay.size[0]) * lay.size[1]
+    prov = {"settings": settings, "note": PIXELS_NOTE, "licence": LICENCE, "summary": summary, **lay.provenance,
+            "stain_od_factors": texture.stain, "patch_pool": pool,
+            "patch_names": {str(lab): names for lab, names in texture.patch_names.items()},
+            "patch_side_px": texture.side, "patch_step_px": texture.step,
+            "tumour_fraction_of_canvas": float(lay.tumour.area) / area,
+            "tumour_fraction_of_tissue": float(lay.tumour.area) / max(float(lay.tissue.area), 1.0),
+            "tissue_fraction_of_canvas": float(lay.tissue.area) / area, **info,
+            "tiff_bytes": tiff.stat().st_size, "tiff_sha256": sha256(tiff),
+            "seconds": round(time.perf_counter() - t0, 2)}
+    write_json(prov_file, prov)
+    return prov
+
+
+def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float, progress: bool = False,
+                encoder: str | None = None) -> dict:
+    """Build (unless up to date) the tiled bundle ``bundles/NAME`` of a made slide; returns its metadata.
+    Up to date: made from the same TIFF and range, and holding its pixels, or (a feature-only bundle) the
+    feature grid of ``encoder`` (the pixels are needed again to embed them with another encoder)."""
+    from data_tools.bundle import build_bundle
+
+    bundle = out_dir / "bundles" / name
+    if (bundle / "metadata.json").is_file():
+        try:
+            meta = read_metadata(bundle)
+            whole = len(meta.pixel_levels) == len(meta.levels)
+            if meta.source["sha256"] == prov["tiff_sha256"] and meta.magnification_range == magnification_range \
+                    and (whole or (encoder is not None and (meta.features or {}).get("encoder") == encoder)):
+                return meta
+        except (HistojaxDataError, KeyError):
+            pass
+    tiff = out_dir / "slides" / f"{name}.tif"
+    build_bundle(tiff, bundle, annotations_path=tiff.with_suffix(".geojson"), level_sets=LEVEL_SETS,
+                 tile_size=TILE_SIZE, magnification_range=magnification_range, storage="tiled", overwrite=True,
+                 progress=progress)
+    return read_metadata(bundle)
+
+
+def _feature_layout_bytes(meta) -> int | None:
+    """Device bytes of the slide in the feature-only layout with every bundle level (tumour tables and the
+    feature grid; None without a feature grid)."""
+    from data_tools.bundle_format import slide_device_bytes
+
+    if not meta.features:
+        return None
+    return slide_device_bytes(meta, list(range(len(meta.levels))), pixels=False, features=True)
+
+
+def _views_ge(meta: dict, bundle: Path, threshold: float = 0.5) -> int:
+    """Grid-aligned finest-level views with tumour fraction ≥ ``threshold`` (from the SAT pool)."""
+    from data_tools.bundle import load_bundle
+
+    lv = load_bundle(bundle, verify=False, levels=[0]).tumour[0]
+    t = TILE_SIZE
+    counts = np.asarray(lv.pool[:, t, t]).astype(np.int64)[lv.index]
+    return int((counts >= threshold * t * t).sum())
+
+
+def slide_seed(seed: int, name: str) -> int:
+    """The texture seed of slide ``name`` (the same in any subset or order)."""
+    import zlib
+
+    return (int(seed) * 1_000_003 + zlib.crc32(name.encode())) & 0x7FFFFFFF
+
+
+_WORKER: dict = {}
+
+
+def _init_worker(banks: dict, progress: bool) -> None:
+    """``banks``: the patch bank of each split (``{"train": ..., "test": ...}``)."""
+    _WORKER.update(banks=banks, progress=progress)
+
+
+def _one_slide(job) -> dict:
+    """Make one slide and its bundle (skipping what is done); its record for ``dataset.json``."""
+    out_dir, slide, donor, d, seed, jpeg_quality, mag, encoder, no_pixels, side = job
+    s0 = time.perf_counter()
+    name = slide.name
+    bundle = out_dir / "bundles" / name
+    prov = make_slide(out_dir, slide, donor, d, seed, _WORKER["banks"][side], jpeg_quality, _WORKER["progress"],
+                      pool=side)
+    meta = make_bundle(out_dir, name, prov, mag, encoder=encoder if no_pixels else None)
+    if encoder and (meta.features or {}).get("encoder") != encoder:
+        from data_tools.features.grid import compute_features
+
+        compute_features(bundle, encoder_name=encoder, progress=_WORKER["progress"], verify=False)
+        meta = read_metadata(bundle)
+    from data_tools.datasets.locks import clean_partial_features
+
+    clean_partial_features(bundle)  # a kill during the feature step, then a rerun: no empty features.partial/
+    if no_pixels and len(meta.pixel_levels) > 1:
+        from data_tools.bundle_format import drop_pixels
+
+        drop_pixels(bundle)
+        meta = read_metadata(bundle)
+    return {
+        "name": name, "bundle": f"bundles/{name}", "tiff": f"slides/{name}.tif",
+        "label": int(slide.is_tumour_slide), "split": side, "patch_pool": side, "tissue": prov["tissue"],
+        "tissue_donor": prov.get("tissue_donor"), "canvas": prov["canvas"], "mpp": prov["mpp"],
+        "tumour_area_level0_px2": prov["tumour_area_level0_px2"],
+        "tumour_fraction_of_tissue": round(prov["tumour_fraction_of_tissue"], 6),
+        "finest_views_ge50": _views_ge(meta, out_dir / "bundles" / name),
+        "stain_od_factors": prov["stain_od_factors"],
+        "tiff_bytes": prov["tiff_bytes"],
+        "bundle_bytes": sum(f.stat().st_size for f in bundle.iterdir()),
+        "device_bytes_pixels": meta.device_bytes,
+        "device_bytes_features": _feature_layout_bytes(meta),
+        "pixels_kept": len(meta.pixel_levels) == len(meta.levels),
+        "encoder": (meta.features or {}).get("encoder"),
+        "seconds_slide": prov["seconds"], "seconds_total": round(time.perf_counter() - s0, 2),
+        "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
+    }
+
+
+def _Lock(out_dir: Path):
+    """Hold ``OUT/.c16.lock`` for the run (shared :func:`data_tools.datasets.locks.file_lock`: released by the
+    kernel even on SIGKILL, the file removed when a run ends)."""
+    from data_tools.datasets.locks import LockHeld, file_lock
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    lock = file_lock(out_dir / ".c16.lock", blocking=False, what="this dataset")
+    try:
+        lock.__enter__()
+    except LockHeld:
+        raise HistojaxDataError(out_dir, "another `data_tools c16` run is writing this dataset (lock held)") from None
+    lock.release = lambda: lock.__exit__(None, None, None)
+    return lock
+
+
+def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = False, downsample: float | None = None,
+                     names=None, n_tumour: int | None = None, n_normal: int | None = None, seed: int = 0,
+                     test_fraction: float = 0.25, features: bool | str = False, jpeg_quality: int = 85,
+                     progress: bool = True, workers: int = 1, no_pixels: bool = False,
+                     test_patches=None) -> dict:
+    """Make (or finish) the true-scale CAMELYON16 dataset in ``out_dir`` (see the module doc).
+
+    ``annotations``: a folder or ``.tar.gz`` of NCRF JSON files (default: the 6 shipped with the
+    package, enough for ``small``). ``patches``: PCam patches (folder, ``.tar.gz`` or bank ``.npz``;
+    default the shipped 1,000-patch bank), cut by the pool rule (:func:`data_tools.datasets.pcam_bank.split_pools`)
+    into a training pool (textures the train split's slides; the only patches ``pcam-cnn`` was trained on)
+    and a test pool (the test split's); ``test_patches``: texture the test split from this other patch set
+    entirely instead (e.g. PCam's own valid/test patches). ``small``: the 6 slides of ``SMALL_SLIDES`` at
+    downsample 32 (seconds). ``downsample``: output px per CAMELYON16 level-0 px (default 8, small 32).
+    ``names`` / ``n_tumour`` / ``n_normal``: a subset (default every slide found). A subset is a part of the
+    whole set, never a set of its own: the split, the tissue donors and hence every slide's pixels are those
+    of the whole set (all slides of ``annotations``), the donors' polygons are read even when the donor is
+    not built, and a ``dataset.json`` already in ``out_dir`` keeps its other slides. The env's coarsest level
+    is CAMELYON16 level 0 / 256 (``magnification_range = 256 / downsample``). ``workers``: slides made in
+    parallel processes (each holds one slide's memory, 1.15–1.53 GB measured at D = 8). ``features``: compute
+    each bundle's feature grid (``True``: ``pcam-cnn``, or an encoder name of
+    ``data_tools.features.ENCODERS``). ``no_pixels``: feature-only bundles: once the feature grid is computed
+    the RGB tile pools of every level but the coarsest are deleted (``obs_mode="features"`` needs none; a
+    fraction of the disk; implies ``features``). Returns the ``dataset.json`` dict.
+    """
+    from data_tools.datasets.c16_layout import OWN_TISSUE
+    from data_tools.features import ENCODERS
+    from data_tools.ncrf import SHIPPED_DIR, read_ncrf
+    from data_tools.datasets.pcam_bank import pool_rule, split_pools
+
+    out_dir = Path(out_dir)
+    d = float(downsample or (SMALL_DOWNSAMPLE if small else FULL_DOWNSAMPLE))
+    if not (1 <= d <= 64):
+        raise HistojaxDataError(None, f"--downsample {d} must be between 1 and 64 (CAMELYON16 level-0 px per px)")
+    encoder = features if isinstance(features, str) else "pcam-cnn" if features or no_pixels else None
+    if encoder is not None and encoder not in ENCODERS:
+        raise HistojaxDataError(None, f"--encoder {encoder!r}: use one of {', '.join(ENCODERS)}")
+    mag = COARSEST / d
+    source = annotations or SHIPPED_DIR
+    every = read_ncrf(source)   # the whole set: its split and donors hold for any subset
+    universe = [n for n in every if n in SMALL_SLIDES] if small else list(every)
+    if small and len(universe) != len(SMALL_SLIDES):
+        raise HistojaxDataError(source, f"the small variant needs {', '.join(SMALL_SLIDES)}; "
+                                f"missing {sorted(set(SMALL_SLIDES) - set(universe))}")
+    if names is not None and set(names) - set(universe):
+        raise HistojaxDataError(source, f"no such slide(s) {sorted(set(names) - set(universe))}"
+                                + (" in the small variant" if small else ""))
+    tumours_all = [n for n in universe if every[n].is_tumour_slide]
+    normals_all = [n for n in universe if not every[n].is_tumour_slide]
+    donors = {}
+    for n in tumours_all:
+        if n not in OWN_TISSUE:
+            if not normals_all:
+                raise HistojaxDataError(source, f"{n} needs a Normal_* slide to lend it tissue; the annotations "
+                                        "hold none")
+            donors[n] = donor_for(n, tumours_all, normals_all)
+    train_all, test_all = split_slides(universe, donors, test_fraction, seed)
+    chosen = set(names) if names is not None else set(tumours_all[:n_tumour]) | set(normals_all[:n_normal])
+    todo = [n for n in universe if n in chosen]
+    side = {n: "test" if n in test_all else "train" for n in universe}
+    bank = load_bank(patches)
+    train_pool, test_pool = split_pools(bank)
+    test_bank = load_bank(test_patches) if test_patches is not None else test_pool
+    pools = {**pool_rule(), "bank": bank.source,
+             "train": {"source": train_pool.source, "patches": len(train_pool),
+                       "tumour_patches": int(train_pool.labels.sum())},
+             "test": {"source": test_bank.source, "patches": len(test_bank),
+                      "tumour_patches": int(test_bank.labels.sum()), "other_patch_set": test_patches is not None}}
+    lock = _Lock(out_dir)
+    try:
+        removed = clean_stale(out_dir)
+        if removed and progress:
+            print(f"removed {len(removed)} stale temporaries of an interrupted run: {', '.join(removed[:5])}")
+        t0 = time.perf_counter()
+        jobs = [(out_dir, every[n], every.get(donors.get(n)), d, slide_seed(seed, n), jpeg_quality, mag, encoder,
+                 no_pixels, side[n]) for n in todo]
+        banks = {"train": train_pool, "test": test_bank}
+        bar = tqdm(total=len(todo), desc="c16 slides", unit="slide", disable=not progress)
+        if workers <= 1:
+            _init_worker(banks, progress)
+            records = []
+            for job in jobs:
+                records.append(_one_slide(job))
+                bar.update(1)
+        else:
+            import multiprocessing
+            from concurrent.futures import ProcessPoolExecutor
+
+            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                                     initializer=_init_worker, initargs=(banks, False)) as pool:
+                records = []
+                for rec in pool.map(_one_slide, jobs):
+                    records.append(rec)
+                    bar.update(1)
+        bar.close()
+        dataset = {
+            "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)", "format": DATASET_FORMAT,
+            "note": PIXELS_NOTE, "licence": LICENCE,
+            "scale": {"downsample_from_camelyon16_level0": d, "mpp": C16_MPP * d,
+                      "view_px": TILE_SIZE, "view_um": TILE_SIZE * C16_MPP * d,
+                      "magnification_range": mag, "coarsest_downsample_from_level0": COARSEST,
+                      "level_sets": list(LEVEL_SETS)},
+            "seed": int(seed), "test_fraction": test_fraction, "tile_size": TILE_SIZE,
+            "annotations": str(source), "slides_in_annotations": len(universe), "patches": bank.source,
+            "patch_pools": pools,
+            "split_rule": "by slide, over every slide of the annotations (a subset keeps the whole set's split); "
+                          "a tumour slide and the normal slide lending it tissue are on the same side; "
+                          f"at most {test_fraction:.0%} of the tumour and of the normal slides in test; "
+                          "train slides are textured from the training patch pool only, test slides from the "
+                          "test pool (or --test-patches) only",
+            "encoder": encoder, "pixels_kept": not no_pixels,
+        }
+        records = _merge_records(out_dir, dataset, records, universe)
+        present = [r["name"] for r in records]
+        dataset.update({
+            "variant": "small" if small else "full" if set(present) == set(universe) else "subset",
+            "train": [f"bundles/{n}" for n in present if side[n] == "train"],
+            "test": [f"bundles/{n}" for n in present if side[n] == "test"],
+            "labels": {n: int(every[n].is_tumour_slide) for n in present},
+            "slides": records,
+            "seconds_this_run": round(time.perf_counter() - t0, 2),
+            "peak_rss_bytes_this_run": max([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024]
+                                           + [r["peak_rss_bytes"] for r in records if r["name"] in chosen]),
+            "workers": int(workers),
+            "disk_bytes": {"slides": sum(r["tiff_bytes"] for r in records),
+                           "bundles": sum(r["bundle_bytes"] for r in records)},
+            "device_bytes": {"pixels": sum(r["device_bytes_pixels"] for r in records),
+                             "features": sum(r["device_bytes_features"] or 0 for r in records)},
+        })
+        from data_tools.datasets.build import write_dataset_index
+
+        write_dataset_index(out_dir, dataset)
+        return dataset
+    finally:
+        lock.release()
+
+
+_SAME_SET_KEYS = ("format", "scale", "seed", "test_fraction", "annotations", "patch_pools", "encoder", "pixels_kept")
+
+
+def _merge_records(out_dir: Path, dataset: dict, records: list[dict], universe: list[str]) -> list[dict]:
+    """This run's slide records plus those of a ``dataset.json`` already in ``out_dir`` that belong to the
+    same set (same scale, seed, split, annotations, patch pools and encoder) and whose bundle is still
+    there, in the whole set's order: building a subset never drops the slides of a larger build."""
+    old_file = out_dir / "dataset.json"
+    by_name = {r["name"]: r for r in records}
+    if old_file.is_file():
+        try:
+            old = json.loads(old_file.read_text())
+        except (OSError, json.JSONDecodeError):
+            old = {}
+        if all(old.get(k) == dataset.get(k) for k in _SAME_SET_KEYS):
+            for r in old.get("slides", []):
+                if r.get("name") in universe and r["name"] not in by_name and (out_dir / r["bundle"]).is_dir():
+                    by_name[r["name"]] = r
+    return [by_name[n] for n in universe if n in by_name]
+
+
+__all__ = ["FULL_DOWNSAMPLE", "SMALL_DOWNSAMPLE", "SMALL_SLIDES", "clean_stale", "make_c16_dataset", "make_slide",
+           "split_slides"]

@@ -340,7 +340,7 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
         records = _merge_records(out_dir, dataset, records, universe)
         present = [r["name"] for r in records]
         dataset.update({
-            "variant": "small" if small else "full" if set(present) == set(universe) else "subset",
+            "variant": ("small" if small else "full") if set(present) == set(universe) else "subset",
             "train": [f"bundles/{n}" for n in present if side[n] == "train"],
             "test": [f"bundles/{n}" for n in present if side[n] == "test"],
             "labels": {n: int(every[n].is_tumour_slide) for n in present},

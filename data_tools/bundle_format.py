@@ -806,12 +806,13 @@ def _rebuilding(path: Path) -> bool:
     return bool(_glob.glob(stem + "tmp-*") or _glob.glob(stem + "old-*") or os.path.exists(stem + "lock"))
 
 
-def stable_read(path, read, attempts: int = 8):
+def stable_read(path, read, attempts: int = 12):
     """``read()`` of the bundle at ``path``, repeated when the folder was swapped while it ran (a rebuild with
     ``--overwrite`` renames a new folder into place, see :func:`atomic_folder`): a verified read is all of the
     old bundle or all of the new one, never a mix, and a swap is never reported as corruption. A read is
     repeated when the folder's identity (inode, ctime) changed, or when it failed while a rebuild was under
-    way; an error with no rebuild in sight is raised at once, and after ``attempts`` tries (0.6 s of waits)."""
+    way; an error with no rebuild in sight is raised at once, and after ``attempts`` tries (10 s of waits in all,
+    doubling from 5 ms: a reader outlasts a busy machine's run of back-to-back rebuilds)."""
     import time
 
     path = Path(path)

@@ -117,9 +117,9 @@ def tiff_views(folder: Path, split: str, per_class: int, seed: int = 0, min_tiss
     feature-only datasets: views ≥ 50 % tumour (label 1) and tumour-free views ≥ ``min_tissue`` inside
     the tissue (label 0), at most ``per_class`` per slide and class. Returns ``(views, labels, slide names)``."""
     import shapely
-    import tifffile
 
     from data_tools.annotations import load_annotations
+    from data_tools.slides import open_slide
 
     ds = json.loads((folder / "dataset.json").read_text())
     wanted = {Path(b).name for b in (ds["train"] + ds["test"] if split == "all" else ds[split])}
@@ -129,10 +129,8 @@ def tiff_views(folder: Path, split: str, per_class: int, seed: int = 0, min_tiss
         if rec["name"] not in wanted or (slides is not None and rec["name"] not in slides):
             continue
         ann = load_annotations(folder / rec["tiff"].replace(".tif", ".geojson"))
-        with tifffile.TiffFile(folder / rec["tiff"]) as tif:
-            page = tif.pages[0]
-            h, w = page.shape[:2]
-            tile = page.tilewidth
+        with open_slide(folder / rec["tiff"]) as slide:
+            w, h = slide.dimensions
             gh, gw = h // T, w // T
             ty_, tx_ = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
             boxes = shapely.box(tx_ * T, ty_ * T, tx_ * T + T, ty_ * T + T)
@@ -155,16 +153,8 @@ def tiff_views(folder: Path, split: str, per_class: int, seed: int = 0, min_tiss
                 if shapely.area(shapely.intersection(boxes[ty, tx], ann.tissue)) / T**2 >= min_tissue:
                     picks.append(((ty, tx), 0))
                     n0 += 1
-            cache = {}
-            per_row = -(-w // tile)
             for (ty, tx), lab in picks:
-                y0, x0 = ty * T, tx * T
-                k = (y0 // tile) * per_row + x0 // tile
-                if k not in cache:
-                    tif.filehandle.seek(page.dataoffsets[k])
-                    cache[k] = page.decode(tif.filehandle.read(page.databytecounts[k]), k)[0][0]
-                oy, ox = y0 % tile, x0 % tile
-                views.append(cache[k][oy:oy + T, ox:ox + T, :3])
+                views.append(np.asarray(slide.read_region(0, int(tx) * T, int(ty) * T, T, T))[..., :3])
                 labels.append(lab)
                 groups.append(rec["name"])
     return np.stack(views), np.array(labels), groups

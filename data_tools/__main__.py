@@ -127,7 +127,7 @@ def add_arguments(p) -> None:
     c16.add_argument("--no-pixels", action="store_true",
                      help="feature-only bundles: after the feature grid, delete the RGB tile pools of every level "
                           "but the coarsest (obs_mode='features' only; ~1/10 of the disk; the TIFFs stay)")
-    c16.add_argument("--jobs", type=int, default=1, help="slides made in parallel processes (default 1; 1.15-1.53 GB of memory each, measured at the "
+    c16.add_argument("--jobs", type=int, default=1, help="slides made in parallel processes (default 1; median 1.4 GB, at most 2.9 GB of memory each, measured at the "
                           "full set's scale)")
     c16.add_argument("--seed", type=int, default=0)
     c16.add_argument("--quiet", action="store_true", help="no progress bars")

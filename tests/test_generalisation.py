@@ -2,6 +2,7 @@
 no numpy warnings from windows without episodes, publishing a run and scoring it on any dataset."""
 from __future__ import annotations
 
+from pathlib import Path
 import warnings
 
 import numpy as np
@@ -135,3 +136,23 @@ def test_publish_a_tiny_ppo_and_score_it_on_a_dataset(c16_small, tmp_path):
     assert "scripted" in table  # the feature-scripted reference runs on feature observations
     with pytest.raises(ValueError, match="not a run folder"):
         publish(tmp_path, "x", root=tmp_path / "published")
+
+
+def test_published_agents_load_with_their_config():
+    """The agents committed in baselines/published/ (chosen on validation slides) load with their config,
+    name a C16 v1 id and keep one seed of parameters."""
+    import json
+
+    import jax
+
+    from baselines import common
+
+    root = Path(__file__).resolve().parents[1] / "baselines" / "published"
+    runs = sorted(p for p in root.iterdir() if (p / "params.msgpack").is_file())
+    assert {p.name for p in runs} >= {"c16-v1-hard-navigator", "c16-v1-diagnosis"}
+    for run in runs:
+        params, config = common.load_checkpoint(run)
+        assert config["env_id"].startswith("HistoJAX-C16-") and config["env_id"].endswith("-v1")
+        assert {jax.tree.leaves(params)[0].shape[0]} == {1}
+        record = json.loads((run / "published.json").read_text())
+        assert record["chosen_by"]["by"].startswith("validation")

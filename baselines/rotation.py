@@ -31,6 +31,7 @@ from __future__ import annotations
 
 import concurrent.futures
 import dataclasses
+import gc
 import math
 import time
 from pathlib import Path
@@ -188,6 +189,7 @@ def train_rotating(config: dict, budget_bytes: int, resident: int | None = None,
 
     # before any set: the trainer's own arrays (on a CPU-only machine also make_train's one slide, which
     # on an accelerator stays on the host)
+    gc.collect()  # unreachable arrays of earlier work would count here and vanish mid-run (seen in the test suite)
     baseline = live_device_bytes(device)
     t0 = time.perf_counter()
     current = build_set(store, sets[0], cap, device)

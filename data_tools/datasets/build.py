@@ -27,7 +27,7 @@ from tqdm.auto import tqdm
 
 from data_tools.bundle_format import read_metadata, write_json
 from data_tools.datasets.locks import LockHeld, bundle_lock_path, clean_partial_features, clean_stale, file_lock
-from data_tools.datasets.split import seeded_split, shard_names, slide_key
+from data_tools.datasets.split import seeded_split, shard_names
 from data_tools.errors import HistojaxDataError
 
 KIND = "histojax dataset of real slides (data_tools dataset)"
@@ -152,14 +152,9 @@ def h5_index(features_from) -> dict[str, Path]:
     folder = Path(features_from)
     if not folder.is_dir():
         raise HistojaxDataError(folder, "no such folder of .h5 feature files")
-    out: dict[str, Path] = {}
-    for p in sorted(folder.rglob("*.h5")):
-        key = slide_key(p.name).lower()
-        if key in out:
-            raise HistojaxDataError(p, f"two feature files for {slide_key(p.name)}: {out[key]} and {p}; point "
-                                       "--features-from at one encoder's folder")
-        out[key] = p
-    return out
+    from data_tools.datasets.discover import by_name
+
+    return by_name(sorted(folder.rglob("*.h5")), "feature files", "point --features-from at one encoder's folder")
 
 
 def build_one(job: dict) -> dict:

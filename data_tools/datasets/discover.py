@@ -93,14 +93,15 @@ def _walk(root: Path, skip: list[Path]):
     return slides, annotations
 
 
-def _by_key(paths, what: str) -> dict[str, Path]:
-    """Paths keyed by lower-cased name; two files of one name in two folders are an error naming both."""
+def by_name(paths, what: str, hint: str = "names identify slides, rename one or build the folders separately"
+            ) -> dict[str, Path]:
+    """Paths keyed by lower-cased slide name; two files of one name in two folders are an error naming both,
+    then ``hint``."""
     out: dict[str, Path] = {}
     for p in paths:
         key = slide_key(p.name).lower()
         if key in out:
-            raise HistojaxDataError(p, f"two {what} named {slide_key(p.name)!r}: {out[key]} and {p}; names identify "
-                                       "slides, rename one or build the folders separately")
+            raise HistojaxDataError(p, f"two {what} named {slide_key(p.name)!r}: {out[key]} and {p}; {hint}")
         out[key] = p
     return out
 
@@ -127,8 +128,8 @@ def discover(root, annotations_dir=None, labels_csv=None, skip=(), allow_unmatch
     ann_paths = [p for p in ann_paths if _annotation_kind(p)]
     if not slide_paths:
         raise HistojaxDataError(root, f"holds no slides ({', '.join(SLIDE_EXTENSIONS)} files or DICOM folders)")
-    slides = _by_key(slide_paths, "slides")
-    anns = _by_key(ann_paths, "annotation files")
+    slides = by_name(slide_paths, "slides")
+    anns = by_name(ann_paths, "annotation files")
     orphans = sorted(set(anns) - set(slides))
     if orphans and not allow_unmatched:
         raise HistojaxDataError(anns[orphans[0]], f"annotation for a slide that is not in {root} ({len(orphans)} "

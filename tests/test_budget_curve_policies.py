@@ -54,6 +54,7 @@ def runs(dataset, tmp_path_factory):
     return {"glimpse:1": root / "glimpse", "zoom_select": root / "zoom"}
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_budget_curve_draws_a_recurrent_run(dataset, runs, tmp_path):
     assert common.load_checkpoint(runs["glimpse:1"])[1]["algo"] == "ppo_rnn"
     assert budget_curve.main(["--dataset", str(dataset), "--env", "HistoJAX-Easy-v0", "--glimpse-level", "1",

@@ -111,6 +111,7 @@ def test_entropy_anneal_and_dataset_normaliser(c16_small):
 
 
 # ----------------------------------------------------------------------------- publish and evaluate
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_publish_a_tiny_ppo_and_score_it_on_a_dataset(c16_small, tmp_path):
     import json
 

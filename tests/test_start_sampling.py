@@ -5,11 +5,13 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
+import pytest
 
 from histojax.env import sample_index, sample_row
 from histojax.slide import start_cdf
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_precomputed_cdf_gives_the_same_draw_as_the_logits():
     rng = np.random.default_rng(0)
     draw = jax.jit(lambda k, l, c, s: (sample_index(k, l), sample_row(k, c, s), sample_row(k, c[s])))

@@ -551,6 +551,17 @@ def trainer_command(algo: str, make_train_fn, defaults: dict, unit: str, doc: st
     return add, run, command_main(add, run, f"python -m baselines.{algo}", doc)
 
 
+def compile_and_run(train, keys) -> tuple[dict, float, float]:
+    """Compile ``train`` (a ``make_train`` runner) ahead of time for ``keys`` and run it once:
+    ``(result, compile seconds, run seconds)``, the run timed to completion (``block_until_ready``)."""
+    t0 = time.perf_counter()
+    compiled = train.compile(keys)
+    compile_s = time.perf_counter() - t0
+    t0 = time.perf_counter()
+    result = jax.block_until_ready(compiled(keys))
+    return result, compile_s, time.perf_counter() - t0
+
+
 def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = "updates"):
     """Make, compile and run the trainer for ``config`` (all seeds in one program, compile time
     measured apart), then :func:`finish_run` into ``out``. Returns ``(config, params, summary)``
@@ -567,12 +578,7 @@ def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = 
     keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
     print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps x "
           f"{config['num_seeds']} seeds; compiling ...", flush=True)
-    t0 = time.perf_counter()
-    compiled = train.compile(keys)
-    compile_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    result = jax.block_until_ready(compiled(keys))
-    train_s = time.perf_counter() - t0
+    result, compile_s, train_s = compile_and_run(train, keys)
     if jax.process_index() > 0:  # several processes: process 0 writes the run, the others their parameters
         save_checkpoint(out / f"process-{jax.process_index()}", result["params"], config)
         print(f"process {jax.process_index()}: {train_s:.1f} s; wrote {out}/process-{jax.process_index()}/params.msgpack")

@@ -209,6 +209,7 @@ def env_rows(env, params, args, budget: Budget, view_bytes: int | None, bandwidt
 
 def ppo_item(obs_mode: str, slide, args) -> dict:
     """PPO end-to-end env steps/s on ``HistoJAX-Easy-v0`` (compile apart)."""
+    from baselines.common import compile_and_run
     from baselines.ppo import make_train
 
     config = {"env_id": "HistoJAX-Easy-v0", "obs_mode": obs_mode, "slide": None if slide is None else str(slide),
@@ -217,12 +218,7 @@ def ppo_item(obs_mode: str, slide, args) -> dict:
               "num_seeds": 1, "print_progress": False, "log_every": 10**9}
     run = make_train(config)
     keys = jax.random.split(jax.random.PRNGKey(0), 1)
-    t0 = time.perf_counter()
-    compiled = run.compile(keys)
-    compile_s = time.perf_counter() - t0
-    t0 = time.perf_counter()
-    out = jax.block_until_ready(compiled(keys))
-    train_s = time.perf_counter() - t0
+    out, compile_s, train_s = compile_and_run(run, keys)
     steps = run.num_updates * run.steps_per_update
     success = float(np.asarray(out["metrics"]["success"])[0, -1])  # NaN when no episode ended
     return {"obs_mode": obs_mode, "num_envs": args.ppo_envs, "num_steps": args.ppo_steps, "updates": run.num_updates,

@@ -129,6 +129,11 @@ def add_arguments(p) -> None:
                           "but the coarsest (obs_mode='features' only; ~1/10 of the disk; the TIFFs stay)")
     c16.add_argument("--jobs", type=int, default=1, help="slides made in parallel processes (default 1; median 1.4 GB, at most 2.9 GB of memory each, measured at the "
                           "full set's scale)")
+    c16.add_argument("--shard", default=None, metavar="I/N",
+                     help="make only shard I of N (0-based; every N-th chosen slide by name): N jobs of an array "
+                          "sharing --out build disjoint slides; the last to finish writes dataset.json")
+    c16.add_argument("--merge", action="store_true",
+                     help="make nothing: write dataset.json from the slides recorded so far (after a job array)")
     c16.add_argument("--seed", type=int, default=0)
     c16.add_argument("--quiet", action="store_true", help="no progress bars")
     from data_tools.datasets.cli import add_subcommand as _add_dataset_command
@@ -179,13 +184,13 @@ def _check_label_map(label_map) -> None:
 
 def run(args, parser=None) -> int:
     """Run the parsed data command; returns the exit status (2 for a user error, printed as one line;
-    1 when ``dataset`` built the cohort but some slides failed)."""
+    1 when ``dataset`` or ``c16`` built the cohort but some slides failed)."""
     try:
         if args.command == "dataset":
             from data_tools.datasets.cli import run as _run_dataset
 
             return _run_dataset(args)
-        _command(args)
+        return _command(args) or 0
     except HistojaxDataError as e:
         return print_error(e)
     except json.JSONDecodeError as e:
@@ -201,8 +206,8 @@ def main(argv=None, prog: str = "python -m data_tools") -> int:
         return run_command(add_arguments, run, argv, prog=prog, doc=__doc__)
 
 
-def _command(args) -> None:
-    """Run the parsed command."""
+def _command(args) -> int | None:
+    """Run the parsed command; an exit status when it is not 0 (``c16`` with failed slides: 1)."""
     if args.command == "info":
         print(_info(args.slide))
     elif args.command == "build":
@@ -239,16 +244,29 @@ def _command(args) -> None:
     elif args.command == "c16":
         from data_tools.datasets.c16 import make_c16_dataset
 
+        from data_tools.datasets.split import parse_shard
+
         ds = make_c16_dataset(args.out, annotations=args.annotations, patches=args.patches, small=args.small,
                               downsample=args.downsample, names=args.slides, n_tumour=args.tumour_slides,
                               n_normal=args.normal_slides, seed=args.seed, test_fraction=args.test_fraction,
                               features=args.encoder or args.features, progress=not args.quiet, workers=args.jobs,
-                              no_pixels=args.no_pixels, test_patches=args.test_patches)
+                              no_pixels=args.no_pixels, test_patches=args.test_patches,
+                              shard=parse_shard(args.shard) if args.shard else None, merge=args.merge)
+        for name, reason in sorted(ds["failed"].items()):
+            print(f"FAILED {name}: {reason}", file=sys.stderr)
+        if ds["missing"]:
+            print(f"{len(ds['run']['built'])} slides built this run; {len(ds['missing'])} still to make by other "
+                  f"shards or runs ({', '.join(ds['missing'][:4])}{', ...' if len(ds['missing']) > 4 else ''}): "
+                  "dataset.json is written by the last of them, or by `c16 ... --merge` with the same options")
+            return 1 if ds["failed"] else 0
         sc = ds["scale"]
         print(f"wrote {Path(args.out) / 'dataset.json'}: {len(ds['train'])} train, {len(ds['test'])} test slides "
               f"at {sc['mpp']:.3g} um/px (CAMELYON16 level 0 / {sc['downsample_from_camelyon16_level0']:g}); "
               f"geometry real CAMELYON16, pixels real PCam patches arranged by histojax (not scanned slides); "
-              f"{ds['seconds_this_run']:.0f} s this run")
+              f"{ds['seconds_this_run']:.0f} s this run" + (f"; {len(ds['failed'])} slide(s) FAILED" if ds["failed"]
+                                                           else ""))
+        if ds["failed"]:
+            return 1
     elif args.command == "synth-large":
         from data_tools.datasets.synth_large import make_large_slide
 

@@ -811,7 +811,8 @@ def stable_read(path, read, attempts: int = 12):
     ``--overwrite`` renames a new folder into place, see :func:`atomic_folder`): a verified read is all of the
     old bundle or all of the new one, never a mix, and a swap is never reported as corruption. A read is
     repeated when the folder's identity (inode, ctime) changed, or when it failed while a rebuild was under
-    way; an error with no rebuild in sight is raised at once, and after ``attempts`` tries (10 s of waits in all,
+    way (a ``BundleError``, or an ``OSError`` such as a file that vanished mid-swap); an error with no rebuild in
+    sight is raised at once, and after ``attempts`` tries (10 s of waits in all,
     doubling from 5 ms: a reader outlasts a busy machine's run of back-to-back rebuilds)."""
     import time
 
@@ -821,7 +822,7 @@ def stable_read(path, read, attempts: int = 12):
         before = _identity(path)
         try:
             result = read()
-        except BundleError:
+        except (BundleError, OSError):  # OSError: a file vanished between the rename aside and the new folder's
             if last or (_identity(path) == before and not _rebuilding(path)):
                 raise
             time.sleep(0.005 * 2 ** attempt)

@@ -430,3 +430,55 @@ def test_the_full_sets_sides_share_no_patch():
     for side, keys in (("train", train), ("test", test)):
         labels, names = zip(*(k.split("/", 1) for k in sorted(keys)))
         assert (in_test_pool(names, [int(v) for v in labels]) == (side == "test")).all(), side
+
+
+def test_shards_build_disjoint_slides_and_the_last_writes_dataset_json(small, tmp_path, monkeypatch):
+    """`c16 --shard I/N` goes through the dataset command's per-slide step: shard 0/2 builds its half and
+    writes no dataset.json; a slide held by another process is skipped (busy); a failing slide is recorded
+    with its reason while the rest build; the last shard writes dataset.json (the failure under `failed`,
+    exit status 1); `--merge` after a clean rebuild of the failed slide completes the set."""
+    from data_tools.datasets import c16
+    from data_tools.datasets.locks import bundle_lock_path, file_lock
+    from data_tools.datasets.split import shard_names
+    from data_tools.datasets.c16 import SMALL_SLIDES, make_c16_dataset
+
+    out = tmp_path / "sharded"
+    halves = [shard_names(SMALL_SLIDES, (i, 2)) for i in range(2)]
+    held = halves[0][0]
+    with file_lock(bundle_lock_path(out / "bundles" / held), what="a test"):  # another shard is making it
+        first = make_c16_dataset(out, small=True, progress=False, shard=(0, 2))
+    assert first["dataset_written"] is False and not (out / "dataset.json").exists()
+    assert first["run"]["busy"] == [held] and sorted(first["run"]["built"]) == sorted(halves[0][1:])
+    assert sorted(first["missing"]) == sorted(halves[1] + [held])
+    assert not (out / "bundles" / held).exists() and not list(out.rglob(".*dataset-lock"))
+    made = {n: (out / "slides" / f"{n}.tif").stat().st_mtime_ns for n in halves[0][1:]}
+
+    broken = halves[1][0]
+    real = c16.make_bundle
+
+    def failing(out_dir, name, *a, **k):
+        if name == broken:
+            raise HistojaxDataError(out_dir / "slides" / f"{name}.tif", "a corrupt TIFF (test)")
+        return real(out_dir, name, *a, **k)
+
+    monkeypatch.setattr(c16, "make_bundle", failing)
+    second = make_c16_dataset(out, small=True, progress=False, shard=(1, 2))
+    assert second["dataset_written"] is False and second["missing"] == [held]  # held's shard never made it
+    assert "a corrupt TIFF (test)" in second["failed"][broken]
+    assert not (out / "bundles" / broken).exists()
+    third = make_c16_dataset(out, small=True, progress=False, shard=(0, 2))  # shard 0 again: finishes, writes
+    assert third["run"]["built"] == [held] and third["missing"] == []
+    written = json.loads((out / "dataset.json").read_text())
+    assert written["failed"] == {broken: second["failed"][broken]} and written["variant"] == "subset"
+    assert all((out / "slides" / f"{n}.tif").stat().st_mtime_ns == t for n, t in made.items())  # not remade
+
+    monkeypatch.setattr(c16, "make_bundle", real)
+    code = subprocess.run([sys.executable, "-m", "data_tools", "c16", "--small", "--quiet", "--out", str(out),
+                           "--merge"], cwd=ROOT, capture_output=True, text=True)
+    assert code.returncode == 1 and f"FAILED {broken}: " in code.stderr  # merge builds nothing
+    make_c16_dataset(out, small=True, progress=False, shard=(1, 2))  # the failed slide, fixed, is made again
+    whole = json.loads((small / "dataset.json").read_text())
+    done = json.loads((out / "dataset.json").read_text())
+    assert done["failed"] == {} and done["variant"] == "small"
+    assert (done["train"], done["test"]) == (whole["train"], whole["test"])
+    assert not list(out.rglob(".*.tmp-*")) and not list(out.rglob(".*lock"))

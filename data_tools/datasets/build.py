@@ -134,16 +134,83 @@ def _settings_key(name: str, slide: dict, options: dict, slides_dir: Path) -> di
             else _fingerprint(slides_dir / slide["annotation"])}
 
 
-def _record_path(out: Path, name: str, failed: bool = False) -> Path:
-    (out / "records").mkdir(parents=True, exist_ok=True)
-    return out / "records" / f"{name}{'.failed' if failed else ''}.json"
+def record_path(out: Path, name: str, failed: bool = False) -> Path:
+    """``OUT/records/NAME.json`` (a finished slide) or ``OUT/records/NAME.failed.json`` (its failure)."""
+    (Path(out) / "records").mkdir(parents=True, exist_ok=True)
+    return Path(out) / "records" / f"{name}{'.failed' if failed else ''}.json"
 
 
-def _read_record(out: Path, name: str) -> dict | None:
+def read_record(out: Path, name: str, failed: bool = False) -> dict | None:
+    """The record (or failure record) of slide ``name`` in the dataset ``out``; None when absent or unreadable."""
     try:
-        return json.loads(_record_path(out, name).read_text())
+        rec = json.loads(record_path(out, name, failed).read_text())
     except (OSError, json.JSONDecodeError):
         return None
+    return rec if isinstance(rec, dict) else None
+
+
+BUILD_ERRORS = (HistojaxDataError, OSError, ValueError, MemoryError)
+"""What a slide's build may raise that is the slide's fault: recorded, and the cohort goes on."""
+
+
+def run_locked(out, name: str, work, current=None) -> dict:
+    """Build slide ``name`` of the dataset ``out`` holding its bundle's lock (``bundles/.NAME.dataset-lock``,
+    not blocking: a slide another process or shard is building is reported ``busy`` and skipped).
+    ``current(record) -> bool``: a record that needs no rebuild (``resumed``; default: always rebuild).
+    ``work() -> record`` builds it; the record is written to ``records/NAME.json``. A build error
+    (:data:`BUILD_ERRORS`) removes the slide's bundle and writes ``records/NAME.failed.json`` with the
+    one-line reason. Returns ``{"name", "status": "built" | "resumed" | "failed" | "busy", "reason"?,
+    "record"?}``. The one per-slide step of ``data_tools dataset`` and ``data_tools c16``."""
+    out = Path(out)
+    bundle = out / "bundles" / name
+    t0 = time.perf_counter()
+    try:
+        lock = file_lock(bundle_lock_path(bundle), blocking=False, what=f"bundle {name}")
+        lock.__enter__()
+    except LockHeld:
+        return {"name": name, "status": "busy"}
+    try:
+        rec = read_record(out, name)
+        if rec is not None and current is not None and current(rec) and (bundle / "metadata.json").is_file():
+            clean_partial_features(bundle)
+            return {"name": name, "status": "resumed", "record": rec}
+        record_path(out, name).unlink(missing_ok=True)
+        try:
+            rec = work()
+        except BUILD_ERRORS as e:
+            reason = _one_line(e)
+            if bundle.exists():
+                shutil.rmtree(bundle, ignore_errors=True)
+            write_json(record_path(out, name, failed=True), {"name": name, "reason": reason})
+            return {"name": name, "status": "failed", "reason": reason}
+        rec.setdefault("seconds", round(time.perf_counter() - t0, 2))
+        rec.setdefault("peak_rss_bytes", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
+        write_json(record_path(out, name), rec)
+        record_path(out, name, failed=True).unlink(missing_ok=True)
+        return {"name": name, "status": "built", "record": rec}
+    finally:
+        lock.__exit__(None, None, None)
+
+
+def collect_records(out, names, current=None) -> tuple[dict[str, dict], dict[str, str], list[str]]:
+    """The finished slides among ``names`` of the dataset ``out``: ``(records, failed, missing)`` —
+    name → record (without its ``settings``) for each slide with a record (``current(record)`` true,
+    when given) and a bundle; name → reason for each recorded failure; the names with neither (still to
+    build, by this run or another shard). The one reader of records for ``merge`` and ``c16``."""
+    out = Path(out)
+    records, failed, missing = {}, {}, []
+    for name in names:
+        rec = read_record(out, name)
+        if rec is not None and (current is None or current(rec)) \
+                and (out / "bundles" / name / "metadata.json").is_file():
+            records[name] = {k: v for k, v in rec.items() if k != "settings"}
+            continue
+        bad = read_record(out, name, failed=True)
+        if bad is not None and "reason" in bad:
+            failed[name] = str(bad["reason"])
+        else:
+            missing.append(name)
+    return records, failed, missing
 
 
 def h5_index(features_from) -> dict[str, Path]:
@@ -158,41 +225,15 @@ def h5_index(features_from) -> dict[str, Path]:
 
 
 def build_one(job: dict) -> dict:
-    """Build one slide's bundle (unless its record is current) holding the bundle's lock; returns
-    ``{"name", "status": "built" | "resumed" | "failed" | "busy", "reason"?, "record"?}``. A failure
-    removes the slide's bundle and writes ``records/NAME.failed.json`` with the one-line reason."""
+    """Build one slide's bundle (unless its record is current) through :func:`run_locked`; returns
+    ``{"name", "status": "built" | "resumed" | "failed" | "busy", "reason"?, "record"?}``."""
     out, name, slide, opts = Path(job["out"]), job["name"], job["slide"], job["options"]
     slides_dir = Path(job["slides_dir"])
     bundle = out / "bundles" / name
-    t0 = time.perf_counter()
-    try:
-        lock = file_lock(bundle_lock_path(bundle), blocking=False, what=f"bundle {name}")
-        lock.__enter__()
-    except LockHeld:
-        return {"name": name, "status": "busy"}
-    try:
-        key = _settings_key(name, slide, opts, slides_dir)
-        rec = _read_record(out, name)
-        if rec is not None and rec.get("settings") == key and (bundle / "metadata.json").is_file():
-            clean_partial_features(bundle)
-            return {"name": name, "status": "resumed", "record": rec}
-        _record_path(out, name).unlink(missing_ok=True)
-        try:
-            rec = _build(out, name, slide, opts, slides_dir, bundle, key, job.get("h5"), job.get("progress", False))
-        except (HistojaxDataError, OSError, ValueError, MemoryError) as e:
-            reason = _one_line(e)
-            if bundle.exists():
-                shutil.rmtree(bundle, ignore_errors=True)
-            _record_path(out, name).unlink(missing_ok=True)
-            write_json(_record_path(out, name, failed=True), {"name": name, "reason": reason, "settings": key})
-            return {"name": name, "status": "failed", "reason": reason}
-        rec["seconds"] = round(time.perf_counter() - t0, 2)
-        rec["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-        write_json(_record_path(out, name), rec)
-        _record_path(out, name, failed=True).unlink(missing_ok=True)
-        return {"name": name, "status": "built", "record": rec}
-    finally:
-        lock.__exit__(None, None, None)
+    key = _settings_key(name, slide, opts, slides_dir)
+    return run_locked(out, name, lambda: _build(out, name, slide, opts, slides_dir, bundle, key, job.get("h5"),
+                                                job.get("progress", False)),
+                      current=lambda rec: rec.get("settings") == key)
 
 
 def _one_line(e: BaseException) -> str:
@@ -294,16 +335,7 @@ def merge_dataset(out) -> tuple[dict | None, list[str], dict[str, str]]:
         raise HistojaxDataError(out, "no plan.json: not a dataset started by `histojax dataset`") from None
     except json.JSONDecodeError as e:
         raise HistojaxDataError(out / "plan.json", f"malformed JSON ({e})") from None
-    records, failed, missing = {}, {}, []
-    for name in sorted(plan["slides"]):
-        rec = _read_record(out, name)
-        if rec is not None and (out / "bundles" / name / "metadata.json").is_file():
-            records[name] = {k: v for k, v in rec.items() if k != "settings"}
-            continue
-        try:
-            failed[name] = json.loads(_record_path(out, name, failed=True).read_text())["reason"]
-        except (OSError, json.JSONDecodeError, KeyError):
-            missing.append(name)
+    records, failed, missing = collect_records(out, sorted(plan["slides"]))
     if missing:
         return None, missing, failed
     return write_dataset_json(out, plan, records, failed), [], failed
@@ -390,5 +422,5 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
             "shard": shard, "n_slides": len(plan["slides"]), "n_mine": len(mine)}
 
 
-__all__ = ["build_dataset", "build_one", "check_scales", "h5_index", "make_plan", "merge_dataset",
-           "write_dataset_index", "write_dataset_json"]
+__all__ = ["BUILD_ERRORS", "build_dataset", "build_one", "check_scales", "collect_records", "h5_index", "make_plan",
+           "merge_dataset", "read_record", "record_path", "run_locked", "write_dataset_index", "write_dataset_json"]

@@ -11,8 +11,10 @@ tissue, output px) and ``NAME.provenance.json`` beside it, ``bundles/NAME/`` (ti
 Restartable per slide: a slide whose TIFF, GeoJSON and provenance exist with the same settings is
 not made again, nor its bundle when the bundle's source checksum matches; the TIFF is written to
 ``slides/.NAME.tif.tmp-PID`` and renamed, bundles are written by :func:`data_tools.bundle.build_bundle`
-to a hidden temporary sibling. A run holds ``OUT/.c16.lock`` (``flock``, released by the kernel even
-on SIGKILL) and, holding it, first deletes the hidden temporaries a killed run left behind.
+to a hidden temporary sibling. Locks, records, shards and ``dataset.json`` go through the code of
+``data_tools dataset`` (:mod:`data_tools.datasets.build`, :mod:`data_tools.datasets.locks`): each slide is
+made holding ``bundles/.NAME.dataset-lock`` (``flock``, released by the kernel even on SIGKILL) and
+recorded in ``records/NAME.json``; a run first deletes the hidden temporaries of slides nobody is making.
 """
 from __future__ import annotations
 
@@ -210,26 +212,42 @@ def _one_slide(job) -> dict:
     }
 
 
-def _Lock(out_dir: Path):
-    """Hold ``OUT/.c16.lock`` for the run (shared :func:`data_tools.datasets.locks.file_lock`: released by the
-    kernel even on SIGKILL, the file removed when a run ends)."""
-    from data_tools.datasets.locks import LockHeld, file_lock
+def _locked_slide(job) -> dict:
+    """One slide through the shared per-slide step (:func:`data_tools.datasets.build.run_locked`: the bundle's
+    lock, ``records/NAME.json``, a failure recorded with its reason); its record carries the set's settings,
+    and a slide recorded with the same settings (its bundle there) is not looked at again."""
+    from data_tools.datasets.build import run_locked
 
-    out_dir.mkdir(parents=True, exist_ok=True)
-    lock = file_lock(out_dir / ".c16.lock", blocking=False, what="this dataset")
+    out_dir, name, set_key = job[0], job[1].name, job[-1]
+    return run_locked(out_dir, name, lambda: {**_one_slide(job[:-1]), "settings": set_key},
+                      current=lambda rec: rec.get("settings") == set_key)
+
+
+def _adopt_old_records(out_dir: Path, set_key: dict, universe: list[str]) -> None:
+    """Give the slides of a ``dataset.json`` written before records existed (same set, bundle still there)
+    a record, so that a rerun keeps them."""
+    from data_tools.datasets.build import read_record, record_path
+
+    old_file = out_dir / "dataset.json"
+    if not old_file.is_file():
+        return
     try:
-        lock.__enter__()
-    except LockHeld:
-        raise HistojaxDataError(out_dir, "another `data_tools c16` run is writing this dataset (lock held)") from None
-    lock.release = lambda: lock.__exit__(None, None, None)
-    return lock
+        old = json.loads(old_file.read_text())
+    except (OSError, json.JSONDecodeError):
+        return
+    if not isinstance(old, dict) or any(old.get(k) != set_key[k] for k in _SAME_SET_KEYS):
+        return
+    for r in old.get("slides", []):
+        name = r.get("name") if isinstance(r, dict) else None
+        if name in universe and read_record(out_dir, name) is None and (out_dir / "bundles" / name).is_dir():
+            write_json(record_path(out_dir, name), {**r, "settings": set_key})
 
 
 def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = False, downsample: float | None = None,
                      names=None, n_tumour: int | None = None, n_normal: int | None = None, seed: int = 0,
                      test_fraction: float = 0.25, features: bool | str = False, jpeg_quality: int = 85,
                      progress: bool = True, workers: int = 1, no_pixels: bool = False,
-                     test_patches=None) -> dict:
+                     test_patches=None, shard: tuple[int, int] | None = None, merge: bool = False) -> dict:
     """Make (or finish) the true-scale CAMELYON16 dataset in ``out_dir`` (see the module doc).
 
     ``annotations``: a folder or ``.tar.gz`` of NCRF JSON files (default: the 6 shipped with the
@@ -248,7 +266,17 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     each bundle's feature grid (``True``: ``pcam-cnn``, or an encoder name of
     ``data_tools.features.ENCODERS``). ``no_pixels``: feature-only bundles: once the feature grid is computed
     the RGB tile pools of every level but the coarsest are deleted (``obs_mode="features"`` needs none; a
-    fraction of the disk; implies ``features``). Returns the ``dataset.json`` dict.
+    fraction of the disk; implies ``features``).
+
+    Shared with ``data_tools dataset`` (:mod:`data_tools.datasets.build`): each slide is made holding its
+    bundle's lock and recorded in ``records/NAME.json`` (a failure in ``records/NAME.failed.json`` with its
+    reason; the other slides still build). ``shard=(I, N)``: make every N-th of the chosen slides (sorted by
+    name) starting at the I-th, so N processes or machines sharing ``out_dir`` (a job array) build disjoint
+    slides; ``merge``: make nothing, write ``dataset.json`` from the records. The run that finds every chosen
+    slide recorded writes ``dataset.json`` (every recorded slide of the set, its failures under ``failed``).
+    Returns the ``dataset.json`` dict plus ``missing`` (chosen slides not yet recorded: ``[]``) and ``run``
+    (this run's ``built`` / ``busy`` / ``failed`` names); while slides of other shards are missing, nothing is
+    written and the dict holds only ``dataset_written: False``, ``missing``, ``failed`` and ``run``.
     """
     from data_tools.datasets.c16_layout import OWN_TISSUE
     from data_tools.features import ENCODERS
@@ -293,94 +321,84 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
                        "tumour_patches": int(train_pool.labels.sum())},
              "test": {"source": test_bank.source, "patches": len(test_bank),
                       "tumour_patches": int(test_bank.labels.sum()), "other_patch_set": test_patches is not None}}
-    lock = _Lock(out_dir)
-    try:
-        removed = clean_stale(out_dir)
-        if removed and progress:
-            print(f"removed {len(removed)} stale temporaries of an interrupted run: {', '.join(removed[:5])}")
-        t0 = time.perf_counter()
-        jobs = [(out_dir, every[n], every.get(donors.get(n)), d, slide_seed(seed, n), jpeg_quality, mag, encoder,
-                 no_pixels, side[n]) for n in todo]
-        banks = {"train": train_pool, "test": test_bank}
-        bar = tqdm(total=len(todo), desc="c16 slides", unit="slide", disable=not progress)
-        if workers <= 1:
-            _init_worker(banks, progress)
-            records = []
-            for job in jobs:
-                records.append(_one_slide(job))
+    dataset = {
+        "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)", "format": DATASET_FORMAT,
+        "note": PIXELS_NOTE, "licence": LICENCE,
+        "scale": {"downsample_from_camelyon16_level0": d, "mpp": C16_MPP * d,
+                  "view_px": TILE_SIZE, "view_um": TILE_SIZE * C16_MPP * d,
+                  "magnification_range": mag, "coarsest_downsample_from_level0": COARSEST,
+                  "level_sets": list(LEVEL_SETS)},
+        "seed": int(seed), "test_fraction": test_fraction, "tile_size": TILE_SIZE,
+        "annotations": str(source), "slides_in_annotations": len(universe), "patches": bank.source,
+        "patch_pools": pools,
+        "split_rule": "by slide, over every slide of the annotations (a subset keeps the whole set's split); "
+                      "a tumour slide and the normal slide lending it tissue are on the same side; "
+                      f"at most {test_fraction:.0%} of the tumour and of the normal slides in test; "
+                      "train slides are textured from the training patch pool only, test slides from the "
+                      "test pool (or --test-patches) only",
+        "encoder": encoder, "pixels_kept": not no_pixels,
+    }
+    set_key = {k: dataset[k] for k in _SAME_SET_KEYS}
+    from data_tools.datasets.build import collect_records, write_dataset_index
+    from data_tools.datasets.split import shard_names
+
+    out_dir.mkdir(parents=True, exist_ok=True)
+    _adopt_old_records(out_dir, set_key, universe)
+    removed = clean_stale(out_dir)
+    if removed and progress:
+        print(f"removed {len(removed)} stale temporaries of an interrupted run: {', '.join(removed[:5])}")
+    t0 = time.perf_counter()
+    mine = [] if merge else shard_names(todo, shard)
+    jobs = [(out_dir, every[n], every.get(donors.get(n)), d, slide_seed(seed, n), jpeg_quality, mag, encoder,
+             no_pixels, side[n], set_key) for n in mine]
+    banks = {"train": train_pool, "test": test_bank}
+    bar = tqdm(total=len(jobs), desc="c16 slides", unit="slide", disable=not progress or not jobs)
+    results = []
+    if workers <= 1 or len(jobs) <= 1:
+        _init_worker(banks, progress)
+        for job in jobs:
+            results.append(_locked_slide(job))
+            bar.update(1)
+    else:
+        import multiprocessing
+        from concurrent.futures import ProcessPoolExecutor
+
+        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
+                                 initializer=_init_worker, initargs=(banks, False)) as pool:
+            for res in pool.map(_locked_slide, jobs):
+                results.append(res)
                 bar.update(1)
-        else:
-            import multiprocessing
-            from concurrent.futures import ProcessPoolExecutor
-
-            with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
-                                     initializer=_init_worker, initargs=(banks, False)) as pool:
-                records = []
-                for rec in pool.map(_one_slide, jobs):
-                    records.append(rec)
-                    bar.update(1)
-        bar.close()
-        dataset = {
-            "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)", "format": DATASET_FORMAT,
-            "note": PIXELS_NOTE, "licence": LICENCE,
-            "scale": {"downsample_from_camelyon16_level0": d, "mpp": C16_MPP * d,
-                      "view_px": TILE_SIZE, "view_um": TILE_SIZE * C16_MPP * d,
-                      "magnification_range": mag, "coarsest_downsample_from_level0": COARSEST,
-                      "level_sets": list(LEVEL_SETS)},
-            "seed": int(seed), "test_fraction": test_fraction, "tile_size": TILE_SIZE,
-            "annotations": str(source), "slides_in_annotations": len(universe), "patches": bank.source,
-            "patch_pools": pools,
-            "split_rule": "by slide, over every slide of the annotations (a subset keeps the whole set's split); "
-                          "a tumour slide and the normal slide lending it tissue are on the same side; "
-                          f"at most {test_fraction:.0%} of the tumour and of the normal slides in test; "
-                          "train slides are textured from the training patch pool only, test slides from the "
-                          "test pool (or --test-patches) only",
-            "encoder": encoder, "pixels_kept": not no_pixels,
-        }
-        records = _merge_records(out_dir, dataset, records, universe)
-        present = [r["name"] for r in records]
-        dataset.update({
-            "variant": ("small" if small else "full") if set(present) == set(universe) else "subset",
-            "train": [f"bundles/{n}" for n in present if side[n] == "train"],
-            "test": [f"bundles/{n}" for n in present if side[n] == "test"],
-            "labels": {n: int(every[n].is_tumour_slide) for n in present},
-            "slides": records,
-            "seconds_this_run": round(time.perf_counter() - t0, 2),
-            "peak_rss_bytes_this_run": max([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024]
-                                           + [r["peak_rss_bytes"] for r in records if r["name"] in chosen]),
-            "workers": int(workers),
-            "disk_bytes": {"slides": sum(r["tiff_bytes"] for r in records),
-                           "bundles": sum(r["bundle_bytes"] for r in records)},
-            "device_bytes": {"pixels": sum(r["device_bytes_pixels"] for r in records),
-                             "features": sum(r["device_bytes_features"] or 0 for r in records)},
-        })
-        from data_tools.datasets.build import write_dataset_index
-
-        write_dataset_index(out_dir, dataset)
-        return dataset
-    finally:
-        lock.release()
+    bar.close()
+    run = {"shard": list(shard) if shard else None, "merge": bool(merge),
+           **{k: [r["name"] for r in results if r["status"] == k] for k in ("built", "resumed", "busy")},
+           "failed": {r["name"]: r["reason"] for r in results if r["status"] == "failed"}}
+    found, failed, missing = collect_records(out_dir, universe, current=lambda r: r.get("settings") == set_key)
+    missing = [n for n in missing if n in chosen]
+    if missing:
+        return {"dataset_written": False, "missing": missing, "failed": failed, "run": run}
+    records = [found[n] for n in universe if n in found]
+    present = [r["name"] for r in records]
+    dataset.update({
+        "variant": ("small" if small else "full") if set(present) == set(universe) else "subset",
+        "train": [f"bundles/{n}" for n in present if side[n] == "train"],
+        "test": [f"bundles/{n}" for n in present if side[n] == "test"],
+        "labels": {n: int(every[n].is_tumour_slide) for n in present},
+        "failed": dict(sorted(failed.items())),
+        "slides": records,
+        "seconds_this_run": round(time.perf_counter() - t0, 2),
+        "peak_rss_bytes_this_run": max([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024]
+                                       + [r.get("peak_rss_bytes", 0) for r in records if r["name"] in mine]),
+        "workers": int(workers),
+        "disk_bytes": {"slides": sum(r["tiff_bytes"] for r in records),
+                       "bundles": sum(r["bundle_bytes"] for r in records)},
+        "device_bytes": {"pixels": sum(r["device_bytes_pixels"] for r in records),
+                         "features": sum(r["device_bytes_features"] or 0 for r in records)},
+    })
+    write_dataset_index(out_dir, dataset)
+    return {**dataset, "missing": [], "run": run}
 
 
 _SAME_SET_KEYS = ("format", "scale", "seed", "test_fraction", "annotations", "patch_pools", "encoder", "pixels_kept")
-
-
-def _merge_records(out_dir: Path, dataset: dict, records: list[dict], universe: list[str]) -> list[dict]:
-    """This run's slide records plus those of a ``dataset.json`` already in ``out_dir`` that belong to the
-    same set (same scale, seed, split, annotations, patch pools and encoder) and whose bundle is still
-    there, in the whole set's order: building a subset never drops the slides of a larger build."""
-    old_file = out_dir / "dataset.json"
-    by_name = {r["name"]: r for r in records}
-    if old_file.is_file():
-        try:
-            old = json.loads(old_file.read_text())
-        except (OSError, json.JSONDecodeError):
-            old = {}
-        if all(old.get(k) == dataset.get(k) for k in _SAME_SET_KEYS):
-            for r in old.get("slides", []):
-                if r.get("name") in universe and r["name"] not in by_name and (out_dir / r["bundle"]).is_dir():
-                    by_name[r["name"]] = r
-    return [by_name[n] for n in universe if n in by_name]
 
 
 __all__ = ["FULL_DOWNSAMPLE", "SMALL_DOWNSAMPLE", "SMALL_SLIDES", "clean_stale", "make_c16_dataset", "make_slide",

@@ -255,3 +255,31 @@ def test_device_budget_error_says_what_it_bounds(bundle):
 
     with pytest.raises(BundleError, match="bounds the arrays put on the device, not host memory"):
         histojax.make("HistoJAX-Easy-v0", slide=bundle, max_device_bytes=10**6)
+
+
+def test_a_file_vanishing_mid_swap_is_read_again(tmp_path):
+    """The CI failure of the test above: a reader's ``open`` met the instant between the old folder's rename
+    aside and the new one's rename into place (``FileNotFoundError``, not a ``BundleError``). ``stable_read``
+    reads again while a rebuild is under way, and raises at once when none is."""
+    from data_tools.bundle_format import stable_read
+
+    target = tmp_path / "live"
+    target.mkdir()
+    aside = tmp_path / ".live.old-0badf00d"  # what atomic_folder leaves beside it during the swap
+    calls = []
+
+    def read():
+        calls.append(1)
+        if len(calls) == 1:
+            aside.mkdir()
+            raise FileNotFoundError(2, "No such file or directory", str(target / "levels_00.npy"))
+        aside.rmdir()
+        return "whole"
+
+    assert stable_read(target, read) == "whole" and len(calls) == 2
+
+    def missing():
+        raise FileNotFoundError(2, "No such file or directory", str(target / "levels_00.npy"))
+
+    with pytest.raises(FileNotFoundError):  # no rebuild in sight: the error is the bundle's own
+        stable_read(target, missing)

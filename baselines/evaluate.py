@@ -67,7 +67,7 @@ def scripted_policy(key, obs, action_mode: str = "discrete", centred: float = 0.
     finest = obs["position"][2] >= 1.0 - 1e-6 if isinstance(obs, dict) and "position" in obs else False
     k1, k2, k3 = jax.random.split(key, 3)
     is_centred = jnp.maximum(jnp.abs(ox), jnp.abs(oy)) < centred
-    if action_mode == "discrete":
+    if action_mode.partition(":")[0] == "discrete":  # "discrete" or "discrete:memory"
         move = jnp.where(jnp.abs(ox) >= jnp.abs(oy),
                          jnp.where(ox > 0, actions.RIGHT, actions.LEFT),
                          jnp.where(oy > 0, actions.DOWN, actions.UP))

@@ -281,15 +281,21 @@ OBS_MODES = {"pixels": Pixels, "pixels_float": lambda: Pixels(as_float=True), "f
 
 def action_mode(mode) -> ActionMode:
     """The action mode object for a name in :data:`ACTION_MODES` (or an ``ActionMode`` as it is).
-    ``"glimpse:L"`` and ``"zoom_select:K"`` set the glimpse level / the number of children a side
-    (strings, so a trainer's JSON config can name them)."""
+    ``"glimpse:L"`` and ``"zoom_select:K"`` set the glimpse level / the number of children a side;
+    ``"discrete:memory"`` / ``"continuous:memory"`` are the pan/zoom modes with ``memory=True`` (the
+    coarse visited map and the position in the observation). Strings, so a trainer's JSON config can
+    name them."""
     if isinstance(mode, ActionMode):
         return mode
-    name, _, arg = str(mode).partition(":")
-    if name not in ACTION_MODES or (arg and name not in ("glimpse", "zoom_select")):
-        raise ValueError(f"action_mode must be one of {tuple(ACTION_MODES)} (or glimpse:LEVEL, zoom_select:K), "
-                         f"got {mode!r}")
+    name, sep, arg = str(mode).partition(":")
+    navigation = name in ("discrete", "continuous")
+    if name not in ACTION_MODES or (sep and not arg) or (arg and not navigation and name not in ("glimpse", "zoom_select")) \
+            or (arg and navigation and arg != "memory"):
+        raise ValueError(f"action_mode must be one of {tuple(ACTION_MODES)} (or glimpse:LEVEL, zoom_select:K, "
+                         f"discrete:memory, continuous:memory), got {mode!r}")
     obj = ACTION_MODES[name]()
+    if navigation and arg:
+        return dataclasses.replace(obj, memory=True)
     if arg:
         if not arg.isdigit():
             raise ValueError(f"action_mode {mode!r}: the part after ':' must be a whole number")

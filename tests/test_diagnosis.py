@@ -270,13 +270,19 @@ def test_navigation_tracks_reading_without_changing_trajectories(bundle):
 
 
 def test_navigation_memory_observation(bundle):
-    from histojax.modes import Discrete
+    from histojax.modes import Continuous, Discrete, action_mode
 
     env, params = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode=Discrete(memory=True))
     obs, _ = env.reset(jax.random.key(0), params)
     assert set(obs) == {"pixels", "visited", "position"}
     assert env.observation_space(params).contains(obs)
     assert observation_bytes(env, params) == sum(np.asarray(v).nbytes for v in obs.values())
+    # the same by name, as a trainer's JSON config spells it
+    assert action_mode("discrete:memory") == Discrete(memory=True)
+    assert action_mode("continuous:memory") == Continuous(memory=True)
+    for bad in ("discrete:3", "glimpse:memory", "discrete:"):
+        with pytest.raises(ValueError, match="action_mode"):
+            action_mode(bad)
 
 
 def test_offline_reader_reads_as_the_env(glimpse):

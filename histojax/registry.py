@@ -147,7 +147,8 @@ register("HistoJAX-C16-Diagnosis-v1", slide=_c16_dataset, n_levels=5, max_steps_
 
 def check_dataset(folder, spec: dict, env_id: str) -> None:
     """Refuse a dataset older than the id needs (``dataset_format`` / ``dataset_encoder`` of its spec), naming
-    the dataset, what it lacks, and the command that rebuilds it."""
+    the dataset, what it lacks, and the command that rebuilds it. The format (disjoint patch pools) concerns
+    the ``c16`` mosaics only; a cohort of scanned slides (``histojax dataset``) needs only the encoder."""
     want_format, want_encoder = spec.get("dataset_format"), spec.get("dataset_encoder")
     if want_format is None and want_encoder is None:
         return
@@ -156,9 +157,14 @@ def check_dataset(folder, spec: dict, env_id: str) -> None:
         ds = json.loads(index.read_text())
     except (OSError, json.JSONDecodeError):
         return  # dataset_slides reports a missing or malformed index
-    fix = (f"rebuild it with `python -m data_tools c16 --out {folder} --no-pixels ...` (same options; the "
-           f"encoder is pcam-cnn by default), or use the -v0 id")
-    if want_format is not None and int(ds.get("format", 1)) < want_format:
+    mosaic = str(ds.get("kind", "")).startswith("histojax true-scale CAMELYON16")
+    if mosaic:
+        fix = (f"rebuild it with `python -m data_tools c16 --out {folder} --no-pixels ...` (same options; the "
+               f"encoder is pcam-cnn by default), or use the -v0 id")
+    else:  # a cohort of scanned slides (`histojax dataset`): no patch pools to share, only the encoder matters
+        fix = (f"rebuild it with `histojax dataset SLIDES_DIR --out {folder} --encoder {want_encoder} ...` (same "
+               f"options), or use the -v0 id")
+    if want_format is not None and mosaic and int(ds.get("format", 1)) < want_format:
         raise BundleError(index, f"{env_id} needs a dataset of format >= {want_format} (train and test slides "
                           f"textured from disjoint PCam patch pools); this one is format {ds.get('format', 1)}: {fix}")
     if want_encoder is not None and spec.get("obs_mode", "pixels") == "features" and ds.get("encoder") != want_encoder:

@@ -13,6 +13,7 @@ import re
 import shutil
 from pathlib import Path
 
+import jax
 import numpy as np
 import pytest
 import tifffile
@@ -21,7 +22,7 @@ from data_tools.__main__ import main as data_main
 from data_tools.datasets.build import build_dataset, merge_dataset
 from data_tools.datasets.locks import bundle_lock_path, clean_stale, file_lock
 from data_tools.datasets.split import read_label_table, seeded_split, shard_names
-from data_tools.errors import HistojaxDataError
+from data_tools.errors import BundleError, HistojaxDataError
 from histojax.sample import SAMPLE_SLIDE
 
 DATA = Path(__file__).parent / "data"
@@ -128,6 +129,21 @@ def test_registered_c16_ids_accept_such_a_dataset(c16_dataset):
     assert params.slide.num_slides == 4
     env, params = histojax.make("HistoJAX-C16-Diagnosis-v0", dataset=out, split="test", verify=False)
     assert [int(v) for v in params.slide.slide_label] == [1, 0]  # reference.csv's labels
+    with pytest.raises(BundleError, match="observes pcam-cnn features.*histojax dataset SLIDES_DIR .*--encoder pcam-cnn"):
+        histojax.make("HistoJAX-C16-Hard-v1", dataset=out, verify=False)  # no feature grids: the fix named
+
+
+def test_v1_ids_take_scanned_slides_embedded_with_pcam_cnn(camelyon16, tmp_path):
+    """The v1 ids' disjoint-patch-pool format concerns the c16 mosaics; scanned slides embedded with pcam-cnn
+    (feature-only bundles) are what they observe."""
+    import histojax
+
+    out = tmp_path / "v1"
+    summary = build_dataset(camelyon16, out, levels=(5, 7), encoder="pcam-cnn", no_pixels=True, progress=False)
+    assert not summary["failed"] and summary["dataset"]["encoder"] == "pcam-cnn"
+    env, params = histojax.make("HistoJAX-C16-Hard-v1", dataset=out, verify=False)
+    obs, _ = env.reset(jax.random.key(0), params)
+    assert params.slide.num_slides == 4 and obs.shape[-1] == 64  # every train slide, pcam-cnn features
 
 
 def test_rerun_resumes_and_a_killed_build_is_finished(c16_dataset, tmp_path):

@@ -306,6 +306,7 @@ def write_dataset_json(out, plan: dict, records: dict[str, dict], failed: dict[s
     names = sorted(records)
     dataset = {
         "kind": plan.get("kind", KIND), "split_rule": plan.get("split_rule"), "options": plan.get("options"),
+        "encoder": _encoder_of(plan.get("options") or {}),
         "train": [f"bundles/{n}" for n in names if plan["slides"][n]["split"] == "train"],
         "test": [f"bundles/{n}" for n in names if plan["slides"][n]["split"] == "test"],
         "labels": {n: int(plan["slides"][n]["label"]) for n in names},
@@ -314,6 +315,12 @@ def write_dataset_json(out, plan: dict, records: dict[str, dict], failed: dict[s
         **(extra or {}),
     }
     return write_dataset_index(out, dataset)
+
+
+def _encoder_of(options: dict) -> str | None:
+    """The feature grids' encoder, as the ids' ``dataset_encoder`` checks it: ``--encoder``'s name, ``"imported"``
+    for ``--features-from``, None without features."""
+    return options.get("encoder") or ("imported" if options.get("features_from") else None)
 
 
 def write_dataset_index(out, dataset: dict) -> dict:
@@ -365,8 +372,10 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
         raise HistojaxDataError(None, "give --encoder or --features-from, not both")
     if no_pixels:
         storage = "tiled"
-    if encoder not in (None, "efficientnet-lite0", "colour-stats"):
-        raise HistojaxDataError(None, f"--encoder {encoder!r}: use efficientnet-lite0 or colour-stats")
+    from data_tools.features import ENCODERS
+
+    if encoder is not None and encoder not in ENCODERS:
+        raise HistojaxDataError(None, f"--encoder {encoder!r}: use one of {', '.join(ENCODERS)}")
     t0 = time.perf_counter()
     entries = discover(slides_dir, annotations_dir=annotations, labels_csv=labels, skip=[out],
                        allow_unmatched=allow_unmatched)

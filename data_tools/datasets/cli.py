@@ -35,8 +35,9 @@ def add_subcommand(sub, levels_type) -> None:
                    help="as build (default auto: tiled above 256 MiB, as gigapixel slides need)")
     p.add_argument("--label-map", help="JSON object mapping annotation group to tumour/exclusion/tissue/ignore")
     feats = p.add_mutually_exclusive_group()
-    feats.add_argument("--encoder", default=None, help="embed every bundle's feature grid (efficientnet-lite0 or "
-                                                       "colour-stats)")
+    feats.add_argument("--encoder", default=None, help="embed every bundle's feature grid: pcam-cnn (what the "
+                                                       "HistoJAX-C16-*-v1 ids observe), colour-stats or "
+                                                       "efficientnet-lite0")
     feats.add_argument("--features-from", metavar="DIR",
                        help="import CLAM / TRIDENT features: NAME.h5 (features (N, D), coords (N, 2) level-0 px) "
                             "anywhere under DIR, matched by slide name")

@@ -7,6 +7,7 @@ import csv
 import dataclasses
 import functools
 import json
+import os
 import time
 from pathlib import Path
 
@@ -66,6 +67,37 @@ def env_overrides(config: dict) -> dict:
             kw[k] = config[k]
     kw.update(config.get("env_kwargs") or {})
     return kw
+
+
+def device_memory_bytes() -> int:
+    """Bytes of memory of the first device: its allocator's limit on a GPU / TPU, the host's RAM on the CPU."""
+    try:
+        stats = jax.devices()[0].memory_stats() or {}
+    except Exception:  # noqa: BLE001 (a backend without memory stats)
+        stats = {}
+    if stats.get("bytes_limit"):
+        return int(stats["bytes_limit"])
+    return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
+
+
+def check_rollout_memory(env, env_params, config: dict) -> int:
+    """Refuse, before compiling, a run whose rollout buffer cannot fit the device: one observation's bytes
+    × ``num_steps`` × ``num_envs`` × the seeds run at once (``num_seeds`` with ``vmap_seeds``), ×2 for the
+    shuffled minibatch copy. Returns that estimate (bytes); raises ``ValueError`` naming the figures and
+    what to lower when it exceeds the device's memory (:func:`device_memory_bytes`). E.g. ``glimpse:2`` on
+    the full C16 set observes ~2.9 MB a step: 35 GB of rollouts at 64 envs × 64 steps × 3 seeds."""
+    space = env.observation_space(env_params)
+    leaves = space.spaces.values() if hasattr(space, "spaces") else [space]
+    obs = int(sum(np.prod(s.shape, dtype=np.int64) * np.dtype(s.dtype).itemsize for s in leaves))
+    seeds = config.get("num_seeds", 1) if config.get("vmap_seeds", True) else 1
+    need = 2 * obs * config["num_steps"] * config["num_envs"] * seeds
+    have = device_memory_bytes()
+    if need > have:
+        raise ValueError(f"the rollouts of this run need about {need / 2**30:.1f} GiB ({obs:,} bytes an observation "
+                         f"× num_steps {config['num_steps']} × num_envs {config['num_envs']} × {seeds} seed(s) at "
+                         f"once × 2), more than this device's {have / 2**30:.1f} GiB: lower num_envs / num_steps, "
+                         "set vmap_seeds=false, or observe less (e.g. a coarser glimpse level)")
+    return need
 
 
 def make_env(config: dict, auto_reset: bool = True, mesh: Mesh | None = None):

@@ -235,6 +235,7 @@ def make_train(config: dict):
         raise ValueError("shard_slides=True splits the slides over the devices: give devices=N too")
     env, env_params = common.make_env(config, mesh=mesh)
     config = resolve_obs_norm(config, env_params)
+    common.check_rollout_memory(env, env_params, config)
     env = LogWrapper(env)
     reset_all = common.env_vmap(env.reset, 1, mesh, sharded)
     step_all = common.env_vmap(env.step, 3, mesh, sharded)

@@ -29,6 +29,21 @@ def test_tiny_ppo_runs_jitted_with_finite_losses(vmap_seeds):
     assert all(np.isfinite(np.asarray(leaf)).all() for leaf in leaves)
 
 
+def test_a_rollout_too_big_for_the_device_is_refused_before_compiling(monkeypatch):
+    """glimpse:2 on the full C16 set compiled for 10 minutes and then died allocating 35 GB; now the trainers
+    refuse such a run at once, with the figures and what to lower."""
+    from baselines import common, ppo_rnn
+
+    obs = 128 * 128 * 3 + 3 * 4  # a pixel view (uint8) and the position (3 float32), bytes
+    need = 2 * obs * TINY_PPO["num_steps"] * TINY_PPO["num_envs"] * 2
+    monkeypatch.setattr(common, "device_memory_bytes", lambda: need - 1)
+    for trainer in (ppo, ppo_rnn):
+        with pytest.raises(ValueError, match=r"rollouts of this run need .* lower num_envs / num_steps"):
+            trainer.make_train({**TINY_PPO, "num_seeds": 2})
+    monkeypatch.setattr(common, "device_memory_bytes", lambda: need)
+    assert ppo.make_train({**TINY_PPO, "num_seeds": 2, "vmap_seeds": True}).num_updates == 2
+
+
 def test_networks_shapes_pixels_dict_vector_and_continuous():
     key = jax.random.PRNGKey(0)
     px = jnp.zeros((3, 128, 128, 3), jnp.uint8)

@@ -22,6 +22,8 @@ policy — and a trained policy's fields of view per episode) and ``budget_curve
 """
 from __future__ import annotations
 
+import dataclasses
+
 import csv
 from pathlib import Path
 
@@ -41,10 +43,63 @@ def load_split(dataset, split: str, env_id: str, level: int, verify: bool = Fals
     from histojax.glimpse import Glimpse
 
     env, params = histojax.make(env_id, dataset=dataset, split=split, obs_mode="features",
-                                action_mode=Glimpse(level=level), task="classification", verify=verify)
-    tables = env.action.host_tables(env, params, env.bundles)
+                                task="classification", verify=verify)  # not the glimpse mode: it would make the
+    glimpse = Glimpse(level=level)                                      # device tables, unused here, a second time
+    glimpse.validate(env)
+    tables = glimpse.host_tables(env, params, env.bundles)
     labels = np.atleast_1d(np.asarray(params.slide.slide_label)).astype(int)
     return tables, labels
+
+
+@dataclasses.dataclass
+class MaxLogitHead:
+    """Max-pooling MIL with a fixed instance classifier: a slide's score is the largest tumour logit of the views
+    it read, read from feature ``dim`` (pcam-cnn's embedding holds its view's most tumour-like cell's logit at
+    :data:`PCAM_CNN_MAX_LOGIT`). Nothing is learned from slides but a 1-D logistic calibration ``(a, b)`` on the
+    training split, so that ``scores`` are probabilities (accuracy at 0.5); AUC does not depend on it. The same
+    interface as :class:`baselines.mil.MILClassifier` (``scores``, ``attention``)."""
+
+    dim: int
+    a: float = 1.0
+    b: float = 0.0
+
+    def raw(self, bags: np.ndarray, masks: np.ndarray) -> np.ndarray:
+        """The largest logit of each bag's valid instances ``(B,)`` (−1e9 for an empty bag)."""
+        return np.where(masks, bags[..., self.dim], -1e9).max(axis=-1)
+
+    def scores(self, bags: np.ndarray, masks: np.ndarray) -> np.ndarray:
+        return 1.0 / (1.0 + np.exp(-np.clip(self.a * self.raw(bags, masks) + self.b, -60, 60)))
+
+    def attention(self, instances: np.ndarray) -> np.ndarray:
+        """Cells ranked by their own low-resolution logit: the reader zooms where the overview looks like tumour."""
+        return np.asarray(instances)[:, self.dim]
+
+    @classmethod
+    def fit(cls, bags: np.ndarray, masks: np.ndarray, labels, dim: int, steps: int = 2000) -> "MaxLogitHead":
+        """Calibrate ``(a, b)`` by logistic regression of ``labels`` on the training bags' max logits."""
+        x, y = cls(dim).raw(bags, masks).astype(np.float64), np.asarray(labels, np.float64)
+        mu, sd = x.mean(), x.std() + 1e-9
+        z, w, c = (x - mu) / sd, 0.0, 0.0
+        for _ in range(steps):  # plain gradient descent on the mean log loss (convex, 2 parameters)
+            p = 1.0 / (1.0 + np.exp(-(w * z + c)))
+            w -= 0.5 * float(np.mean((p - y) * z))
+            c -= 0.5 * float(np.mean(p - y))
+        return cls(dim, a=w / sd, b=c - w * mu / sd)
+
+
+PCAM_CNN_MAX_LOGIT = 63
+"""Index of pcam-cnn's ``max l`` (the most tumour-like cell's logit) in its 64-d embedding."""
+
+
+def max_logit_dim(dataset) -> int | None:
+    """:data:`PCAM_CNN_MAX_LOGIT` when ``dataset``'s feature grids are pcam-cnn's (``dataset.json``), else None."""
+    import json
+
+    try:
+        ds = json.loads((Path(dataset) / "dataset.json").read_text())
+    except (OSError, ValueError, TypeError):
+        return None
+    return PCAM_CNN_MAX_LOGIT if ds.get("encoder") == "pcam-cnn" else None
 
 
 def bags(tables: list[dict], read: list[np.ndarray] | None = None):
@@ -104,17 +159,22 @@ def reader_scores(tables, head: MILClassifier, orders, budget: float) -> tuple[n
     return head.scores(x, m), np.asarray([r[1] for r in reads])
 
 
-def method_scores(head: MILClassifier, tables, budgets=BUDGETS, seeds: int = 5) -> dict:
-    """``{(method, budget): (scores (seeds, B), fractions (seeds, B))}`` of every method on ``tables``."""
+def method_scores(head: MILClassifier, tables, budgets=BUDGETS, seeds: int = 5,
+                  names=("MIL, read everything", "random reader + MIL", "attention reader + MIL")) -> dict:
+    """``{(method, budget): (scores (seeds, B), fractions (seeds, B))}`` of every method on ``tables``;
+    ``names``: the rows' names (reading everything, the random reader, the head-ordered reader)."""
     x, m = bags(tables)
-    out = {("MIL, read everything", 1.0): (head.scores(x, m)[None], np.ones((1, len(tables))))}
+    out = {(names[0], 1.0): (head.scores(x, m)[None], np.ones((1, len(tables))))}
     for b in budgets:
         runs = [reader_scores(tables, head, [random_order(t, np.random.default_rng(s * 1000 + i))
                                              for i, t in enumerate(tables)], b) for s in range(seeds)]
-        out[("random reader + MIL", b)] = tuple(np.stack(r) for r in zip(*runs))
+        out[(names[1], b)] = tuple(np.stack(r) for r in zip(*runs))
         scores, fractions = reader_scores(tables, head, [attention_order(t, head) for t in tables], b)
-        out[("attention reader + MIL", b)] = (scores[None], fractions[None])
+        out[(names[2], b)] = (scores[None], fractions[None])
     return out
+
+
+MAX_LOGIT_NAMES = ("max view logit, read everything", "random reader + max logit", "logit reader + max logit")
 
 
 def rows_from_scores(scores: dict, labels) -> list[dict]:
@@ -132,11 +192,15 @@ def rows_from_scores(scores: dict, labels) -> list[dict]:
 
 
 def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, policies=(), dataset=None,
-                policy_seeds: int = 3):
-    """Train the head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``;
+                policy_seeds: int = 3, max_dim: int | None = None):
+    """Train the head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``
+    (with ``max_dim``, the rows of :class:`MaxLogitHead` on that feature too);
     ``policies``: ``(name, run folder)`` of trained PPO policies, rolled on ``dataset``'s test split."""
     head = train_mil(*bags(train[0]), train[1], steps=steps)
     rows = rows_from_scores(method_scores(head, test[0], budgets, seeds), test[1])
+    if max_dim is not None:
+        top = MaxLogitHead.fit(*bags(train[0]), train[1], max_dim)
+        rows += rows_from_scores(method_scores(top, test[0], budgets, seeds, MAX_LOGIT_NAMES), test[1])
     for name, run in policies:
         rows += policy_rows(run, dataset, name, head, test[0], test[1], budgets, policy_seeds)
     return rows
@@ -284,7 +348,7 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
         for k, name in enumerate(methods):
             pts = sorted((r["fraction_read"], r[metric]) for r in rows if r["method"] == name)
             if len(pts) == 1 and pts[0][0] >= 0.999:
-                ax.axhline(pts[0][1], color="#555555", linestyle="--", linewidth=1.3, label=f"{name} ({pts[0][1]:.3f})")
+                ax.axhline(pts[0][1], color=colours[k % len(colours)], linestyle="--", linewidth=1.3, label=f"{name} ({pts[0][1]:.3f})")
                 continue
             xs, ys = zip(*pts)
             ax.plot(xs, ys, "o-", color=colours[k % len(colours)], linewidth=1.8, markersize=4, label=name)
@@ -354,16 +418,16 @@ def run(args, parser=None) -> int:
         train = load_split(args.dataset, "train", args.env, level)
         test = load_split(args.dataset, "test", args.env, level)
         rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps, policies=args.ppo,
-                           dataset=args.dataset, policy_seeds=args.policy_seeds)
+                           dataset=args.dataset, policy_seeds=args.policy_seeds, max_dim=max_logit_dim(args.dataset))
         split = f"{len(train[1])} train / {len(test[1])} test slides"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     csv_path = write_csv(rows, out / "budget_curve.csv")
     title = f"{Path(args.dataset).name}: {split}, glimpse level {level} of {args.env}"
     png = plot(rows, out / "budget_curve.png", title)
-    print(f"{'method':28s} {'budget':>6s} {'read':>6s} {'AUC':>15s} {'acc':>15s} {'fields':>6s}")
+    print(f"{'method':32s} {'budget':>6s} {'read':>6s} {'AUC':>15s} {'acc':>15s} {'fields':>6s}")
     for r in rows:
-        print(f"{r['method']:28s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {r['auc']:6.3f} ± {r['auc_std']:5.3f} "
+        print(f"{r['method']:32s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {r['auc']:6.3f} ± {r['auc_std']:5.3f} "
               f"{r['accuracy']:6.3f} ± {r['accuracy_std']:5.3f} {r['fields_of_view']:6.1f}")
     print(f"wrote {csv_path} and {png}")
     return 0

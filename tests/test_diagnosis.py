@@ -327,6 +327,39 @@ def test_budget_rows_csv_and_png(tmp_path):
     assert plot(rows, tmp_path / "c.png").stat().st_size > 1000
 
 
+def test_max_logit_rows_find_a_small_focus_that_attention_dilutes():
+    """The max-pooling rows (a fixed instance logit, as pcam-cnn's ``max l``): one tumour view among 400 sets
+    the slide's score; the logit reader reads the cell whose overview logit is highest first, so it finds the
+    focus at the smallest budget; the calibration makes scores probabilities without changing their order."""
+    from baselines.budget_curve import MAX_LOGIT_NAMES, MaxLogitHead, bags, budget_rows, method_scores
+    from baselines.metrics import roc_auc
+
+    rng = np.random.default_rng(0)
+
+    def slide(label, k):
+        cell = np.repeat(np.arange(20), 20)
+        x = rng.normal(size=(400, 4)).astype(np.float32)
+        x[:, 3] = rng.normal(-4.0, 1.0, 400)  # the logit: tissue far below 0
+        if label:
+            x[k * 20 + 3, 3] = 6.0  # one tumour view in cell k
+        low = np.stack([x[cell == c].max(0) for c in range(20)])  # the overview sees the focus, faintly
+        return {"instances": x, "instance_cell": cell, "cells": low, "valid": np.ones(20, bool),
+                "cell_views": np.full(20, 20), "total": 400}
+
+    labels = np.array([0, 1] * 8)
+    tables = [slide(y, i % 20) for i, y in enumerate(labels)]
+    head = MaxLogitHead.fit(*bags(tables[:8]), labels[:8], dim=3)
+    x, m = bags(tables[8:])
+    assert roc_auc(head.raw(x, m), labels[8:]) == 1.0
+    assert np.array_equal(np.argsort(head.scores(x, m)), np.argsort(head.raw(x, m)))  # calibration keeps order
+    assert ((head.scores(x, m) > 0.5) == labels[8:]).all()
+    scores = method_scores(head, tables[8:], budgets=(0.05,), seeds=3, names=MAX_LOGIT_NAMES)
+    assert roc_auc(scores[(MAX_LOGIT_NAMES[2], 0.05)][0][0], labels[8:]) == 1.0  # one cell read: the right one
+    rows = budget_rows((tables[:8], labels[:8]), (tables[8:], labels[8:]), budgets=(0.05,), seeds=2, steps=30,
+                       max_dim=3)
+    assert set(MAX_LOGIT_NAMES) <= {r["method"] for r in rows}
+
+
 def test_cross_validation_scores_every_slide_once():
     from baselines.budget_curve import cross_validated_rows
 

@@ -22,9 +22,8 @@ policy — and a trained policy's fields of view per episode) and ``budget_curve
 """
 from __future__ import annotations
 
-import dataclasses
-
 import csv
+import dataclasses
 from pathlib import Path
 
 import numpy as np
@@ -55,7 +54,7 @@ def load_split(dataset, split: str, env_id: str, level: int, verify: bool = Fals
 class MaxLogitHead:
     """Max-pooling MIL with a fixed instance classifier: a slide's score is the largest tumour logit of the views
     it read, read from feature ``dim`` (pcam-cnn's embedding holds its view's tumour logit at
-    :data:`PCAM_CNN_MAX_LOGIT`). Nothing is learned from slides but a 1-D logistic calibration ``(a, b)`` on the
+    :data:`PCAM_CNN_VIEW_LOGIT`). Nothing is learned from slides but a 1-D logistic calibration ``(a, b)`` on the
     training split, so that ``scores`` are probabilities (accuracy at 0.5); AUC does not depend on it. The same
     interface as :class:`baselines.mil.MILClassifier` (``scores``, ``attention``)."""
 
@@ -87,22 +86,22 @@ class MaxLogitHead:
         return cls(dim, a=w / sd, b=c - w * mu / sd)
 
 
-PCAM_CNN_MAX_LOGIT = 62
+PCAM_CNN_VIEW_LOGIT = 62
 """Index of pcam-cnn's ``mean l`` (the view's tumour logit, its trained output) in its 64-d embedding. Not
 ``max l`` (63, the most tumour-like 8-px cell's logit): on the 59 test slides of the full v1 set the slide
 maximum of ``max l`` over the finest feature grid gives AUC 0.54 (0.457 on the budget curve's tissue views),
 that of ``mean l`` 0.865 — a cell's logit is too noisy to take a maximum over ~10^4 views."""
 
 
-def max_logit_dim(dataset) -> int | None:
-    """:data:`PCAM_CNN_MAX_LOGIT` when ``dataset``'s feature grids are pcam-cnn's (``dataset.json``), else None."""
+def view_logit_dim(dataset) -> int | None:
+    """:data:`PCAM_CNN_VIEW_LOGIT` when ``dataset``'s feature grids are pcam-cnn's (``dataset.json``), else None."""
     import json
 
     try:
         ds = json.loads((Path(dataset) / "dataset.json").read_text())
     except (OSError, ValueError, TypeError):
         return None
-    return PCAM_CNN_MAX_LOGIT if ds.get("encoder") == "pcam-cnn" else None
+    return PCAM_CNN_VIEW_LOGIT if ds.get("encoder") == "pcam-cnn" else None
 
 
 def bags(tables: list[dict], read: list[np.ndarray] | None = None):
@@ -421,7 +420,7 @@ def run(args, parser=None) -> int:
         train = load_split(args.dataset, "train", args.env, level)
         test = load_split(args.dataset, "test", args.env, level)
         rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps, policies=args.ppo,
-                           dataset=args.dataset, policy_seeds=args.policy_seeds, max_dim=max_logit_dim(args.dataset))
+                           dataset=args.dataset, policy_seeds=args.policy_seeds, max_dim=view_logit_dim(args.dataset))
         split = f"{len(train[1])} train / {len(test[1])} test slides"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -86,9 +86,9 @@ def check_rollout_memory(env, env_params, config: dict) -> int:
     shuffled minibatch copy. Returns that estimate (bytes); raises ``ValueError`` naming the figures and
     what to lower when it exceeds the device's memory (:func:`device_memory_bytes`). E.g. ``glimpse:2`` on
     the full C16 set observes ~2.9 MB a step: 35 GB of rollouts at 64 envs × 64 steps × 3 seeds."""
-    space = env.observation_space(env_params)
-    leaves = space.spaces.values() if hasattr(space, "spaces") else [space]
-    obs = int(sum(np.prod(s.shape, dtype=np.int64) * np.dtype(s.dtype).itemsize for s in leaves))
+    from histojax.glimpse import observation_bytes
+
+    obs = observation_bytes(env, env_params)
     seeds = config.get("num_seeds", 1) if config.get("vmap_seeds", True) else 1
     need = 2 * obs * config["num_steps"] * config["num_envs"] * seeds
     have = device_memory_bytes()

@@ -192,6 +192,13 @@ def run_locked(out, name: str, work, current=None) -> dict:
         lock.__exit__(None, None, None)
 
 
+def run_summary(results: list[dict]) -> dict:
+    """This run's slides by the status :func:`run_locked` gave them: ``built`` / ``resumed`` / ``busy`` names
+    and ``failed`` (name → reason)."""
+    return {**{k: [r["name"] for r in results if r["status"] == k] for k in ("built", "resumed", "busy")},
+            "failed": {r["name"]: r["reason"] for r in results if r["status"] == "failed"}}
+
+
 def collect_records(out, names, current=None) -> tuple[dict[str, dict], dict[str, str], list[str]]:
     """The finished slides among ``names`` of the dataset ``out``: ``(records, failed, missing)`` —
     name → record (without its ``settings``) for each slide with a record (``current(record)`` true,
@@ -422,9 +429,7 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     dataset, missing, failed = merge_dataset(out)
     built = [r for r in results if r["status"] == "built"]
     seconds = time.perf_counter() - t0
-    return {"built": [r["name"] for r in built], "resumed": [r["name"] for r in results if r["status"] == "resumed"],
-            "busy": [r["name"] for r in results if r["status"] == "busy"],
-            "failed": {r["name"]: r["reason"] for r in results if r["status"] == "failed"},
+    return {**run_summary(results),
             "failed_all": failed, "missing": missing, "dataset": dataset, "seconds": round(seconds, 2),
             "slides_per_minute": round(60 * len(built) / seconds, 2) if built else None,
             "peak_rss_bytes_per_job": max([r["record"]["peak_rss_bytes"] for r in built] or [0]),
@@ -432,4 +437,4 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
 
 
 __all__ = ["BUILD_ERRORS", "build_dataset", "build_one", "check_scales", "collect_records", "h5_index", "make_plan",
-           "merge_dataset", "read_record", "record_path", "run_locked", "write_dataset_index", "write_dataset_json"]
+           "merge_dataset", "read_record", "record_path", "run_locked", "run_summary", "write_dataset_index", "write_dataset_json"]

@@ -339,7 +339,7 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
         "encoder": encoder, "pixels_kept": not no_pixels,
     }
     set_key = {k: dataset[k] for k in _SAME_SET_KEYS}
-    from data_tools.datasets.build import collect_records, write_dataset_index
+    from data_tools.datasets.build import collect_records, run_summary, write_dataset_index
     from data_tools.datasets.split import shard_names
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -369,9 +369,7 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
                 results.append(res)
                 bar.update(1)
     bar.close()
-    run = {"shard": list(shard) if shard else None, "merge": bool(merge),
-           **{k: [r["name"] for r in results if r["status"] == k] for k in ("built", "resumed", "busy")},
-           "failed": {r["name"]: r["reason"] for r in results if r["status"] == "failed"}}
+    run = {"shard": list(shard) if shard else None, "merge": bool(merge), **run_summary(results)}
     found, failed, missing = collect_records(out_dir, universe, current=lambda r: r.get("settings") == set_key)
     missing = [n for n in missing if n in chosen]
     if missing:

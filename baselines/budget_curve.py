@@ -32,6 +32,7 @@ from baselines import outputs
 from baselines.metrics import accuracy, roc_auc
 from baselines.mil import MILClassifier, train_mil
 from data_tools.cli_output import command_main
+from data_tools.features import pcam_cnn
 
 BUDGETS = (0.05, 0.1, 0.2, 0.5)
 
@@ -86,7 +87,7 @@ class MaxLogitHead:
         return cls(dim, a=w / sd, b=c - w * mu / sd)
 
 
-PCAM_CNN_VIEW_LOGIT = 62
+PCAM_CNN_VIEW_LOGIT = pcam_cnn.VIEW_LOGIT  # 62
 """Index of pcam-cnn's ``mean l`` (the view's tumour logit, its trained output) in its 64-d embedding. Not
 ``max l`` (63, the most tumour-like 8-px cell's logit): on the 59 test slides of the full v1 set the slide
 maximum of ``max l`` over the finest feature grid gives AUC 0.54 (0.457 on the budget curve's tissue views),

@@ -132,6 +132,21 @@ def test_scripted_policy_runs_and_moves_toward_dark_stain():
         assert r["episodes"] == 8 and 0.0 <= r["success_rate"] <= 1.0 and r["mean_length"] <= 20
 
 
+def test_scripted_features_policy_reads_the_view_logit_not_the_noisy_cell():
+    # pcam-cnn's embedding: entry 62 is the view's tumour logit (mean l), 63 its most tumour-like cell
+    from histojax import actions
+
+    feats = jnp.zeros(64).at[62].set(3.0).at[63].set(-5.0)
+    obs = {"features": feats, "position": jnp.array([0.5, 0.5, 0.0])}
+    assert int(evaluate.scripted_features_policy(jax.random.PRNGKey(0), obs, epsilon=0.0)) == actions.ZOOM_IN
+    at_finest = {**obs, "position": jnp.array([0.5, 0.5, 1.0])}
+    assert int(evaluate.scripted_features_policy(jax.random.PRNGKey(0), at_finest, epsilon=0.0)) == actions.STAY
+    # a hot cell in a cold view (63 high, 62 low) is not a reason to zoom in
+    cold = {**obs, "features": jnp.zeros(64).at[62].set(-3.0).at[63].set(5.0)}
+    moves = {int(evaluate.scripted_features_policy(jax.random.PRNGKey(k), cold, epsilon=0.0)) for k in range(20)}
+    assert actions.ZOOM_IN not in moves and moves <= {0, 1, 2, 3}
+
+
 @pytest.mark.slow
 def test_tiny_dqn_and_evaluate_cli(tmp_path):
     config = dict(env_id="HistoJAX-Easy-v0", with_position=True, num_envs=4, total_timesteps=256,

@@ -34,6 +34,8 @@ import jax.numpy as jnp
 NAME = "pcam-cnn"
 CHANNELS = 31
 DIM = 2 * CHANNELS + 2
+VIEW_LOGIT = 2 * CHANNELS   # index of ``mean l`` (the view's tumour logit, the trained output) in ``embed``
+MAX_CELL_LOGIT = 2 * CHANNELS + 1   # index of ``max l`` (the most tumour-like cell: noisy over a slide)
 LAYERS = ((24, 4, 4), (48, 3, 2), (48, 3, 1), (64, 1, 1))   # (channels, kernel, stride) of each ReLU conv
 SCALE_MPP = 1.944   # µm per input px the encoder was trained at (CAMELYON16 level 0 / 8)
 PATCH_PX = 48       # a PCam patch (96 px at 0.972 µm/px) at that scale

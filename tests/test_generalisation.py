@@ -83,6 +83,43 @@ def test_validation_dataset_on_the_small_c16_variant(c16_small, tmp_path):
     assert sorted(b.path.name for b in env.bundles) == sorted(n.split("/")[-1] for n in v["validation"])
 
 
+def test_slide_ceiling_pools_view_logits_and_names_the_misses(c16_small, tmp_path):
+    """benchmarks/c16_slide_ceiling.py: AUCs in [0, 1] on both splits, every test tumour slide listed with
+    its area, and a dataset without pcam-cnn features refused naming the file."""
+    import json
+
+    from benchmarks import c16_slide_ceiling as ceiling
+
+    folder, version = c16_small
+    if version != "v1":
+        pytest.skip("pcam-cnn weights not shipped")
+    out = tmp_path / "ceiling.json"
+    assert ceiling.main(["--dataset", str(folder), "--levels", "0", "1", "--json", str(out)]) == 0
+    r = json.loads(out.read_text())
+    assert {p["level"] for p in r["pooled"]} == {0, 1}
+    assert all(0.0 <= p["test_auc"] <= 1.0 or p["test_auc"] != p["test_auc"] for p in r["pooled"])
+    ds = json.loads((folder / "dataset.json").read_text())
+    tumour_test = sorted(n.split("/")[-1] for n in ds["test"] if ds["labels"][n.split("/")[-1]])
+    assert sorted(t["slide"] for t in r["test_tumour_slides"]) == tumour_test
+    assert all(t["tumour_area_mm2"] > 0 for t in r["test_tumour_slides"])
+    # the pooling itself: the largest view logit, the mean of the top k, a count above 2
+    grid = np.zeros((2, 2, 64), np.float32)
+    grid[..., 62] = [[1.0, 3.0], [2.5, -1.0]]
+    assert ceiling.pool(grid, 62, "top1") == 3.0 and ceiling.pool(grid, 62, "top3") == pytest.approx(6.5 / 3)
+    assert ceiling.pool(grid, 62, "n>2") == 2.0
+    bad = tmp_path / "bad"
+    bundle = next(folder.glob("bundles/*"))
+    (bad / "bundles").mkdir(parents=True)
+    import shutil
+    shutil.copytree(bundle, bad / "bundles" / bundle.name)
+    meta = json.loads((bad / "bundles" / bundle.name / "metadata.json").read_text())
+    meta["features"]["encoder"] = "colour-stats"
+    (bad / "bundles" / bundle.name / "metadata.json").write_text(json.dumps(meta))
+    (bad / "dataset.json").write_text(json.dumps({**ds, "train": [f"bundles/{bundle.name}"], "test": []}))
+    with pytest.raises(ceiling.CeilingError, match="metadata.json.*not pcam-cnn"):
+        ceiling.slide_grids(bad, "train")
+
+
 # ----------------------------------------------------------------------------- trainer options
 def test_entropy_anneal_and_dataset_normaliser(c16_small):
     import jax

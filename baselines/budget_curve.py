@@ -201,11 +201,13 @@ def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, 
     ``policies``: ``(name, run folder)`` of trained PPO policies, rolled on ``dataset``'s test split."""
     head = train_mil(*bags(train[0]), train[1], steps=steps)
     rows = rows_from_scores(method_scores(head, test[0], budgets, seeds), test[1])
+    heads = {"MIL": head}
     if max_dim is not None:
         top = MaxLogitHead.fit(*bags(train[0]), train[1], max_dim)
         rows += rows_from_scores(method_scores(top, test[0], budgets, seeds, MAX_LOGIT_NAMES), test[1])
+        heads["max logit"] = top
     for name, run in policies:
-        rows += policy_rows(run, dataset, name, head, test[0], test[1], budgets, policy_seeds)
+        rows += policy_rows(run, dataset, name, heads, test[0], test[1], budgets, policy_seeds)
     return rows
 
 
@@ -293,12 +295,15 @@ def run_seeds(run) -> int:
     return int(jax.tree.leaves(common.load_checkpoint(run)[0])[0].shape[0])
 
 
-def policy_rows(run, dataset, name: str, head: MILClassifier, tables, labels, budgets=BUDGETS,
+def policy_rows(run, dataset, name: str, heads, tables, labels, budgets=BUDGETS,
                 policy_seeds: int = 3) -> list[dict]:
     """Rows for a trained policy (feed-forward or recurrent, see :func:`policy_reads`) at ``budgets``:
-    its own diagnosis (``name``) and the MIL head on what it read (``name + MIL``), each the mean
+    its own diagnosis (``name``) and each slide head on what it read (``heads``: ``{"MIL": head, ...}``
+    or one head, named MIL; rows ``name reader + MIL``, ``name reader + max logit``, ...), each the mean
     (and ``*_std``) over its first ``policy_seeds`` seeds (as many as the run has, if fewer), with
     the mean fraction read and fields of view per episode."""
+    if not isinstance(heads, dict):
+        heads = {"MIL": heads}
     seeds = max(1, min(policy_seeds, run_seeds(run)))
     per = {}  # (method, budget) -> [(auc, accuracy, fraction, fields)] per seed
     for seed in range(seeds):
@@ -307,8 +312,8 @@ def policy_rows(run, dataset, name: str, head: MILClassifier, tables, labels, bu
             fraction = float(np.mean([r[2] for r in reads]))
             fields = float(np.mean([r[3] for r in reads]))
             own = np.asarray([r[1] for r in reads])
-            mil = head.scores(x, m)
-            for method, s in ((name, own), (f"{name} reader + MIL", mil)):
+            scored = [(name, own)] + [(f"{name} reader + {h}", head.scores(x, m)) for h, head in heads.items()]
+            for method, s in scored:
                 per.setdefault((method, float(b)), []).append(
                     (roc_auc(s, labels), accuracy(s, labels), fraction, fields))
     rows = []

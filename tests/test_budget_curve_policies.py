@@ -74,6 +74,18 @@ def test_budget_curve_draws_a_recurrent_run(dataset, runs, tmp_path):
     assert (tmp_path / "budget_curve.png").stat().st_size > 1000
 
 
+def test_a_policy_is_scored_by_every_slide_head(dataset, runs):
+    """With a max-logit head (pcam-cnn datasets), a policy's reads are scored by it too, beside the MIL."""
+    train = budget_curve.load_split(dataset, "train", "HistoJAX-Easy-v0", 1)
+    test = budget_curve.load_split(dataset, "test", "HistoJAX-Easy-v0", 1)
+    rows = budget_curve.budget_rows(train, test, budgets=(0.5,), seeds=1, steps=10, dataset=dataset,
+                                    policies=[("GRU glimpse", runs["glimpse:1"])], policy_seeds=1, max_dim=0)
+    by = {r["method"]: r for r in rows}
+    for name in ("GRU glimpse", "GRU glimpse reader + MIL", "GRU glimpse reader + max logit"):
+        assert name in by and 0.0 <= by[name]["auc"] <= 1.0
+    assert by["GRU glimpse reader + MIL"]["fraction_read"] == by["GRU glimpse reader + max logit"]["fraction_read"]
+
+
 @pytest.fixture(scope="module")
 def glimpse_reads(dataset, runs):
     return budget_curve.policy_reads(runs["glimpse:1"], dataset, "test", BUDGETS)

@@ -100,6 +100,21 @@ def check_rollout_memory(env, env_params, config: dict) -> int:
     return need
 
 
+def pin_env_shapes(config: dict, env_params) -> dict:
+    """``config`` with the env's slide-dependent shapes recorded in ``env_kwargs``, so that the saved
+    run rebuilds the same observation and action spaces on other slides: for ``glimpse``, the padded
+    cell grid (``glimpse_grid``; otherwise it is the largest grid of the slides loaded, and a policy
+    trained on one dataset would not fit another's). Unchanged for the other modes."""
+    from histojax.glimpse import GlimpseTables
+
+    tables = getattr(env_params, "mode_data", None)
+    if not isinstance(tables, GlimpseTables):
+        return config
+    kw = dict(config.get("env_kwargs") or {})
+    kw.setdefault("glimpse_grid", [int(v) for v in np.asarray(tables.grid)])
+    return {**config, "env_kwargs": kw}
+
+
 def make_env(config: dict, auto_reset: bool = True, mesh: Mesh | None = None):
     """``(env, params)`` for ``config["env_id"]`` on ``config["slide"]`` (None = sample slide).
     With ``config["shard_slides"]`` and a ``mesh``, the slides are split over its devices

@@ -234,7 +234,7 @@ def make_train(config: dict):
     if sharded and mesh is None:
         raise ValueError("shard_slides=True splits the slides over the devices: give devices=N too")
     env, env_params = common.make_env(config, mesh=mesh)
-    config = resolve_obs_norm(config, env_params)
+    config = common.pin_env_shapes(resolve_obs_norm(config, env_params), env_params)
     common.check_rollout_memory(env, env_params, config)
     env = LogWrapper(env)
     reset_all = common.env_vmap(env.reset, 1, mesh, sharded)

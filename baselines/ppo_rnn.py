@@ -78,7 +78,7 @@ def make_train(config: dict):
     if config.get("devices") is not None:
         raise ValueError("ppo_rnn does not shard over devices; drop devices (use baselines.ppo for that)")
     env, env_params = common.make_env(config)
-    config = ppo.resolve_obs_norm(config, env_params)
+    config = common.pin_env_shapes(ppo.resolve_obs_norm(config, env_params), env_params)
     common.check_rollout_memory(env, env_params, config)
     env = LogWrapper(env)
     network = make_network(config, env)

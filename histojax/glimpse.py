@@ -54,6 +54,7 @@ class GlimpseTables:
     total_views: jnp.ndarray  # (S,) int32 finest-level tissue views of the slide (≥ 1)
     inv_total: jnp.ndarray    # (S,) float32 1 / total_views (a product, not a division, is bitwise stable under vmap)
     read_budget: jnp.ndarray  # () float32 fraction of total_views an episode may read, in (0, 1]
+    grid: jnp.ndarray         # (2,) int32 (H, W): the padded cell grid, C = H · W (cell index = row · W + col)
 
 
 @struct.dataclass
@@ -101,22 +102,27 @@ class Glimpse(ActionMode):
     def space(self, env, params):
         return spaces.Discrete(self.num_cells(params) + 2)
 
-    def prepare(self, env, params, bundles, read_budget: float = 1.0) -> GlimpseTables:
+    def prepare(self, env, params, bundles, read_budget: float = 1.0, glimpse_grid=None) -> GlimpseTables:
+        """``glimpse_grid=(H, W)``: pad every slide's cells to that grid (the observation and action
+        space then do not depend on the slides loaded: a policy trained on one dataset runs on another;
+        the trainers record it in their ``config.json``); default: the largest grid of these slides."""
         if not 0.0 < read_budget <= 1.0:
             raise ValueError(f"read_budget must be in (0, 1], got {read_budget}")
-        per = self.host_tables(env, params, bundles)
+        per = self.host_tables(env, params, bundles, grid=glimpse_grid)
         stack = lambda k, dtype=None: jnp.asarray(np.stack([p[k] for p in per]), dtype)  # noqa: E731
         total = np.asarray([p["total"] for p in per])
         return GlimpseTables(
             cells=stack("cells"), summaries=stack("summaries"), cell_views=stack("cell_views"), valid=stack("valid"),
             cell_x=stack("cell_x"), cell_y=stack("cell_y"), total_views=jnp.asarray(total, jnp.int32),
-            inv_total=jnp.asarray(1.0 / total.astype(np.float64), jnp.float32), read_budget=jnp.float32(read_budget))
+            inv_total=jnp.asarray(1.0 / total.astype(np.float64), jnp.float32), read_budget=jnp.float32(read_budget),
+            grid=jnp.asarray(per[0]["grid"], jnp.int32))
 
-    def host_tables(self, env, params, bundles) -> list[dict]:
+    def host_tables(self, env, params, bundles, grid=None) -> list[dict]:
         """Per slide, host numpy: the padded cell tables of :class:`GlimpseTables` (``cells``,
-        ``summaries``, ``cell_views``, ``valid``, ``cell_x``, ``cell_y``, ``total``) and the instances
-        behind them: ``instances (V, D)`` features of the slide's finest-level tissue views and
-        ``instance_cell (V,)`` the (padded) cell index, i.e. the action, that reveals each."""
+        ``summaries``, ``cell_views``, ``valid``, ``cell_x``, ``cell_y``, ``total``, ``grid``) and the
+        instances behind them: ``instances (V, D)`` features of the slide's finest-level tissue views and
+        ``instance_cell (V,)`` the (padded) cell index, i.e. the action, that reveals each. ``grid``:
+        ``(H, W)`` to pad to (``ValueError`` naming a slide whose cells do not fit); default the largest."""
         t, g = env.tile_size, self.level
         per = []
         for slide, bundle in reading.per_slide(params, bundles):
@@ -127,6 +133,14 @@ class Glimpse(ActionMode):
             gw, gh = int(np.asarray(slide.feature_grid_width)[g]), int(np.asarray(slide.feature_grid_height)[g])
             per.append((slide, bundle, s, gh, gw))
         big_h, big_w = max(p[3] for p in per), max(p[4] for p in per)
+        if grid is not None:
+            gh_max, gw_max = (int(v) for v in grid)
+            for _, bundle, _, gh, gw in per:
+                if gh > gh_max or gw > gw_max:
+                    raise ValueError(f"{bundle.path}: its {gh} × {gw} glimpse cells at level {self.level} do not fit "
+                                     f"glimpse_grid={[gh_max, gw_max]} (the grid a policy was trained with); "
+                                     "train on slides that include one this large, or pass a larger glimpse_grid")
+            big_h, big_w = gh_max, gw_max
         out = []
         for slide, bundle, s, gh, gw in per:
             tissue = reading.tissue_views(bundle, slide, t).reshape(-1)
@@ -148,7 +162,7 @@ class Glimpse(ActionMode):
                 "cells": pad(low), "summaries": pad(np.concatenate([mean, mx], 1).astype(np.float32)),
                 "cell_views": pad(count.astype(np.int32)), "valid": pad(count > 0, False),
                 "cell_x": pad((gx * s).astype(np.int32)), "cell_y": pad((gy * s).astype(np.int32)),
-                "total": max(1, int(tissue.sum())),
+                "total": max(1, int(tissue.sum())), "grid": (big_h, big_w),
                 "instances": feats[tissue].astype(np.float32), "instance_cell": (cy * big_w + cx).astype(np.int64)})
         return out
 

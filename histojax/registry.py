@@ -42,7 +42,7 @@ from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide, stack_slides, s
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
                  "augment",
                  "final_observation")
-MODE_SETTINGS = ("read_budget", "track_reading")  # passed to the action mode's prepare (histojax.modes)
+MODE_SETTINGS = ("read_budget", "track_reading", "glimpse_grid")  # passed to the action mode's prepare (histojax.modes)
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name not in ("slide", "mode_data"))
 # settings of how ``make`` draws a dataset's slides (neither static nor EnvParams):
 # ``tumour_slides_only`` — reset draws only slides with tumour annotated (detection on a dataset that
@@ -185,7 +185,9 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``), or the reading
     settings of :mod:`histojax.reading`: ``read_budget`` (fraction of finest-level tissue views, for
     ``action_mode="glimpse"`` / ``"zoom_select"``, or with tracking) and ``track_reading=True`` (the
-    pan/zoom modes then report ``fraction_read`` and ``fields_of_view`` in ``info``).
+    pan/zoom modes then report ``fraction_read`` and ``fields_of_view`` in ``info``), and for ``glimpse``,
+    ``glimpse_grid=(H, W)``, the padded cell grid (default: the largest of the slides loaded; the
+    trainers record it so that a glimpse policy runs on other slides).
     The slide's arrays are put on the device once and returned inside ``params``; a slide
     needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error. It bounds the
     arrays put on the device, not the process's host memory (on the CPU backend, where they are host

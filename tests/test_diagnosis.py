@@ -159,6 +159,34 @@ def test_revealed_content_equals_a_direct_lookup(glimpse, bundle):
     assert observation_bytes(env, params) == sum(np.asarray(v).nbytes for v in obs.values())
 
 
+def test_glimpse_grid_pins_the_spaces_to_another_dataset(glimpse, bundle):
+    """``glimpse_grid``: the cells padded to a given grid (a policy trained elsewhere fits), the same
+    reading of every real cell; a slide too large for it refused naming the bundle; the trainers record
+    the grid of their slides in the config they save."""
+    from baselines import common
+
+    env, params = glimpse
+    h, w = (int(v) for v in np.asarray(params.mode_data.grid))
+    assert h * w == params.mode_data.valid.shape[-1]
+    big_env, big = histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
+                                 task="classification", max_steps_in_episode=STEPS, auto_reset=False,
+                                 glimpse_grid=(h + 1, w + 2))
+    assert big_env.num_actions == (h + 1) * (w + 2) + 2
+    assert big_env.observation_space(big)["cells"].shape[0] == (h + 1) * (w + 2)
+    small_cells = np.asarray(params.mode_data.cells[0]).reshape(h, w, -1)
+    big_cells = np.asarray(big.mode_data.cells[0]).reshape(h + 1, w + 2, -1)
+    np.testing.assert_array_equal(big_cells[:h, :w], small_cells)
+    assert not np.asarray(big.mode_data.valid[0]).reshape(h + 1, w + 2)[h:, :].any()
+    with pytest.raises(ValueError, match=f"{bundle.name}.*do not fit glimpse_grid"):
+        histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
+                      task="classification", glimpse_grid=(h - 1, w))
+    config = common.pin_env_shapes({"env_kwargs": {"read_budget": 0.5}}, params)
+    assert config["env_kwargs"] == {"read_budget": 0.5, "glimpse_grid": [h, w]}
+    _, zoom_params = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode="zoom_select",
+                                   task="classification")
+    assert common.pin_env_shapes({"a": 1}, zoom_params) == {"a": 1}
+
+
 def test_repicking_reveals_nothing_new(glimpse):
     env, params = glimpse
     _, state = env.reset(jax.random.key(0), params)

@@ -102,7 +102,7 @@ def view_logit_dim(dataset) -> int | None:
         ds = json.loads((Path(dataset) / "dataset.json").read_text())
     except (OSError, ValueError, TypeError):
         return None
-    return PCAM_CNN_VIEW_LOGIT if ds.get("encoder") == "pcam-cnn" else None
+    return PCAM_CNN_VIEW_LOGIT if ds.get("encoder") == pcam_cnn.NAME else None
 
 
 def bags(tables: list[dict], read: list[np.ndarray] | None = None):
@@ -295,15 +295,13 @@ def run_seeds(run) -> int:
     return int(jax.tree.leaves(common.load_checkpoint(run)[0])[0].shape[0])
 
 
-def policy_rows(run, dataset, name: str, heads, tables, labels, budgets=BUDGETS,
+def policy_rows(run, dataset, name: str, heads: dict, tables, labels, budgets=BUDGETS,
                 policy_seeds: int = 3) -> list[dict]:
     """Rows for a trained policy (feed-forward or recurrent, see :func:`policy_reads`) at ``budgets``:
-    its own diagnosis (``name``) and each slide head on what it read (``heads``: ``{"MIL": head, ...}``
-    or one head, named MIL; rows ``name reader + MIL``, ``name reader + max logit``, ...), each the mean
+    its own diagnosis (``name``) and each slide head on what it read (``heads``: ``{"MIL": head, ...}``;
+    rows ``name reader + MIL``, ``name reader + max logit``, ...), each the mean
     (and ``*_std``) over its first ``policy_seeds`` seeds (as many as the run has, if fewer), with
     the mean fraction read and fields of view per episode."""
-    if not isinstance(heads, dict):
-        heads = {"MIL": heads}
     seeds = max(1, min(policy_seeds, run_seeds(run)))
     per = {}  # (method, budget) -> [(auc, accuracy, fraction, fields)] per seed
     for seed in range(seeds):

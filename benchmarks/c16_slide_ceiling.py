@@ -12,8 +12,8 @@ bundle's annotation area and mpp), so the misses can be read off by size.
 
 ``--probe``: also train a small MLP on the finest views' 64-d embeddings to predict "the view holds
 tumour" (≥ ``--probe-positive`` of its area, from the annotation polygons; tumour-free views as
-negatives) on the train split minus a held-out validation share, and score slides by its max over
-views. Reported on validation and test beside the plain maximum.
+negatives) on the train split minus a validation share held back as ``c16_reference.py`` does
+(:func:`baselines.validation.split_train`, seed 0), and score slides by its max over views. Reported on validation and test beside the plain maximum.
 
     python benchmarks/c16_slide_ceiling.py --dataset DIR [--levels 0 1 2 3] [--probe] [--json OUT.json]
 """
@@ -27,6 +27,7 @@ from pathlib import Path
 import numpy as np
 
 from baselines.metrics import roc_auc
+from baselines.validation import split_train
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
 
@@ -38,9 +39,10 @@ class CeilingError(HistojaxDataError):
     """A dataset this benchmark cannot read (named file, one line)."""
 
 
-def slide_grids(dataset: Path, split: str) -> list[dict]:
-    """``[{name, label, bundle, mpp, tumour_area_px, grids: {level: (gh, gw, D) float32}}]`` of ``split``."""
-    meta = json.loads((dataset / "dataset.json").read_text())
+def slide_grids(dataset: Path, split: str, meta: dict | None = None) -> list[dict]:
+    """``[{name, label, bundle, mpp, tumour_area_px, grids: {level: (gh, gw, D) float32}}]`` of ``split``
+    (``meta``: the dataset's ``dataset.json``, read when not given)."""
+    meta = meta or json.loads((dataset / "dataset.json").read_text())
     out = []
     for rel in meta[split]:
         bundle = dataset / rel
@@ -157,16 +159,6 @@ def probe(train: list[dict], val: list[dict], test: list[dict], positive: float 
     return out
 
 
-def hold_out(slides: list[dict], fraction: float, seed: int) -> tuple[list[dict], list[dict]]:
-    """``(kept, held)``: a seeded share of each class held back."""
-    rng = np.random.default_rng(seed)
-    held = set()
-    for label in (0, 1):
-        names = [s["name"] for s in slides if s["label"] == label]
-        held |= set(rng.choice(names, int(len(names) * fraction), replace=False).tolist())
-    return [s for s in slides if s["name"] not in held], [s for s in slides if s["name"] in held]
-
-
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dataset", type=Path, required=True)
@@ -177,7 +169,8 @@ def main(argv=None) -> int:
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
     try:
-        train, test = slide_grids(args.dataset, "train"), slide_grids(args.dataset, "test")
+        spec = json.loads((args.dataset / "dataset.json").read_text())
+        train, test = slide_grids(args.dataset, "train", spec), slide_grids(args.dataset, "test", spec)
     except (OSError, KeyError, ValueError, HistojaxDataError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -204,7 +197,9 @@ def main(argv=None) -> int:
               "best_on_train": {"level": lv, "entry": entry, "stat": stat, "test_auc": a_test[best]},
               "test_tumour_slides": rows}
     if args.probe:
-        kept, val = hold_out(train, args.val_fraction, 0)
+        _, held = split_train(spec, args.val_fraction, 0)  # per class, tissue donors with their tumour slide
+        held = {Path(h).name for h in held}
+        kept, val = [s for s in train if s["name"] not in held], [s for s in train if s["name"] in held]
         result["probe"] = probe(kept, val, test, positive=args.probe_positive)
         pr = result["probe"]
         print(f"\nMLP view probe (trained on {len(kept)} slides' finest views: {pr['positive_views']} tumour, "

@@ -1,7 +1,7 @@
 """Building a bundle into the cache once: the one place histojax calls the bundle writer.
 
 The embedded sample slide (:mod:`histojax.sample`), scenario files (:mod:`histojax.scenarios`) and
-HistoGym's API (:mod:`histojax.adapters.histogym`, imported as ``histojax.compat``) all turn a slide
+HistoGym's API (:mod:`histojax.adapters.histogym`) all turn a slide
 file into a bundle folder under :func:`cache_dir` named by a digest of the inputs and every build
 setting, built the first time and reused after. Concurrent builders of one bundle wait on the build lock
 (:func:`data_tools.bundle.build_lock`); the losers find it built and return it.

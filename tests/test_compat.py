@@ -1,4 +1,4 @@
-"""HistoGym's API (histojax.compat): the paper's Listing 1 runs with only the import changed."""
+"""HistoGym's API (histojax.adapters.histogym): the paper's Listing 1 runs with only the import changed."""
 from __future__ import annotations
 
 import numpy as np
@@ -14,7 +14,7 @@ def result_dir(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def env(result_dir):
-    from histojax.compat import HistoEnv  # was: from gymhisto import HistoEnv
+    from histojax.adapters.histogym import HistoEnv  # was: from gymhisto import HistoEnv
 
     img_path, xml_path, tile_size, result_path = str(SAMPLE_SLIDE), str(SAMPLE_ANNOTATIONS), 128, str(result_dir)
     return HistoEnv(img_path, xml_path, tile_size, result_path)
@@ -66,7 +66,7 @@ def test_step_compiles_once(env):
 def test_render_modes_headless(env, result_dir, monkeypatch):
     monkeypatch.delenv("DISPLAY", raising=False)
     monkeypatch.delenv("WAYLAND_DISPLAY", raising=False)
-    monkeypatch.setattr("histojax.compat.sys.platform", "linux")
+    monkeypatch.setattr("histojax.adapters.histogym.sys.platform", "linux")
     env.reset()
     env.step(env.ZOOM_IN)
     picture = env.render(mode="rgb_array")
@@ -83,7 +83,7 @@ def test_render_modes_headless(env, result_dir, monkeypatch):
 
 
 def test_scenarios_and_bundle_reuse(result_dir):
-    from histojax.compat import HistoEnv
+    from histojax.adapters.histogym import HistoEnv
 
     hard = HistoEnv(str(SAMPLE_SLIDE), str(SAMPLE_ANNOTATIONS), 128, str(result_dir), scenario="hard",
                     reward="dense", max_step=5, seed=3)

@@ -397,7 +397,7 @@ def test_gymnasium_bridge_with_feature_observations(feature_bundle):
     gymnasium = pytest.importorskip("gymnasium")
     from gymnasium.utils.env_checker import check_env
 
-    import histojax.gymnasium_bridge  # noqa: F401
+    import histojax.adapters.gymnasium  # noqa: F401
 
     genv = gymnasium.make("histojax/HistoJAX-Easy-v0", slide=feature_bundle, obs_mode="features",
                           with_position=True)

@@ -10,7 +10,7 @@ gymnasium = pytest.importorskip("gymnasium")
 from gymnasium.utils.env_checker import check_env  # noqa: E402
 
 import histojax  # noqa: E402
-from histojax.wrappers import GymnasiumEnv, GymnasiumVectorEnv  # noqa: E402
+from histojax.adapters.gymnasium import GymnasiumEnv, GymnasiumVectorEnv  # noqa: E402
 
 
 @pytest.mark.parametrize("overrides", [{}, {"with_position": True, "obs_mode": "pixels_float"},

@@ -18,7 +18,7 @@ import pytest
 import tifffile
 
 import histojax
-from histojax.wrappers import GymnaxV0Wrapper, LogWrapper
+from histojax.adapters.jax import GymnaxV0Wrapper, LogWrapper
 
 gymnax = pytest.importorskip("gymnax")
 from gymnax.environments import environment as gymnax_environment  # noqa: E402
@@ -150,7 +150,7 @@ def test_gymnax_to_gym_wrapper_runs_unchanged(easy):
 def test_gymnax_to_vector_gym_wrapper_runs_through_a_plain_wrapper(easy):
     from gymnax.wrappers.gym import GymnaxToVectorGymWrapper
 
-    from histojax.wrappers import Wrapper
+    from histojax.adapters.jax import Wrapper
 
     env, params = easy
     with pytest.raises(dataclasses.FrozenInstanceError):  # it assigns to env.reset / env.step

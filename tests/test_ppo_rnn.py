@@ -73,7 +73,7 @@ def test_loss_replays_the_rollouts_log_probs_across_episode_ends():
     the same step instead (as PureJaxRL's ppo_rnn loss does) would not."""
     config = {**ppo_rnn.DEFAULTS, "with_position": True, "max_steps_in_episode": 4, "hidden": 16}
     env, env_params = common.make_env(config)
-    from histojax.wrappers import LogWrapper
+    from histojax.adapters.jax import LogWrapper
 
     env = LogWrapper(env)
     net = ppo_rnn.make_network(config, env)

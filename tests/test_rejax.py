@@ -10,7 +10,7 @@ import pytest
 rejax = pytest.importorskip("rejax")
 
 import histojax  # noqa: E402
-from histojax.wrappers import GymnaxV0Wrapper  # noqa: E402
+from histojax.adapters.jax import GymnaxV0Wrapper  # noqa: E402
 
 
 def test_rejax_ppo_trains_and_evaluates():

@@ -13,8 +13,8 @@ from stable_baselines3.common.env_checker import check_env  # noqa: E402
 from stable_baselines3.common.vec_env import DummyVecEnv, VecMonitor  # noqa: E402
 
 import histojax  # noqa: E402
-from histojax.gymnasium_bridge import GymnasiumEnv  # noqa: E402
-from histojax.sb3 import SB3VecEnv, make_sb3_vec_env  # noqa: E402
+from histojax.adapters.gymnasium import GymnasiumEnv  # noqa: E402
+from histojax.adapters.sb3 import SB3VecEnv, make_sb3_vec_env  # noqa: E402
 
 
 @pytest.mark.parametrize("overrides", [{}, {"with_position": True}, {"action_mode": "continuous"}])

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 import numpy as np
 
 import histojax
-from histojax.wrappers import GymnaxV0Wrapper, LogWrapper
+from histojax.adapters.jax import GymnaxV0Wrapper, LogWrapper
 
 
 def test_log_wrapper_counts_returns_and_lengths():

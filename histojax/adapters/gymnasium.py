@@ -1,6 +1,5 @@
 """Gymnasium bridges (needs ``pip install histojax[gymnasium]``): numpy in and out, for
-Stable-Baselines3, Tianshou and other Gymnasium users. Also importable as ``histojax.gymnasium_bridge``
-(the older path: the same module).
+Stable-Baselines3, Tianshou and other Gymnasium users.
 
 * :class:`GymnasiumEnv` — one environment as a ``gymnasium.Env`` (``reset(seed=...)``,
   ``render_mode="rgb_array"``).

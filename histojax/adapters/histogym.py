@@ -1,7 +1,6 @@
 """HistoGym's API on top of the jitted environment: HistoGym code runs with only its import changed.
-Importable as ``histojax.compat`` (the path HistoGym users are told: the same module).
 
-    from histojax.compat import HistoEnv          # was: from gymhisto import HistoEnv
+    from histojax.adapters.histogym import HistoEnv   # was: from gymhisto import HistoEnv
 
     env = HistoEnv(img_path, xml_path, tile_size, result_path)
     obs = env.reset()                             # (3, T, T) uint8, channel first like HistoGym

@@ -1,9 +1,6 @@
 """Pure-JAX wrappers, for gymnax / PureJaxRL / rejax users (jittable, vmappable, like the env):
 episode statistics (PureJaxRL's :class:`LogWrapper` for the 6-value step) and the older gymnax
-5-value step (:class:`GymnaxV0Wrapper`: ``obs, state, reward, done, info``).
-
-Also importable as ``histojax.wrappers`` (the older path, which also gives the Gymnasium bridges
-``GymnasiumEnv`` / ``GymnasiumVectorEnv`` of :mod:`histojax.adapters.gymnasium`)."""
+5-value step (:class:`GymnaxV0Wrapper`: ``obs, state, reward, done, info``)."""
 from __future__ import annotations
 
 import dataclasses

@@ -1,6 +1,6 @@
 """A Stable-Baselines3 ``VecEnv`` over the batched env (needs ``pip install histojax[sb3]``): SB3's
 algorithms step ``num_envs`` histojax environments with one jitted ``vmap`` on the device instead of
-one Python env at a time. Also importable as ``histojax.sb3`` (the older path: the same module).
+one Python env at a time.
 
     venv = SB3VecEnv(*histojax.make("HistoJAX-Easy-v0"), num_envs=16)   # or make_sb3_vec_env(id, 16)
     model = stable_baselines3.PPO("CnnPolicy", VecMonitor(venv)).learn(10_000)

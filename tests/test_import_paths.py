@@ -1,0 +1,43 @@
+"""One import path per name: the old alias modules are gone, and nothing in the repository names them."""
+import importlib.util
+import pathlib
+import re
+
+import pytest
+
+ROOT = pathlib.Path(__file__).resolve().parents[1]
+
+# old path -> the one path of the same names
+GONE = {
+    "data_tools.c16": "data_tools.datasets.c16",
+    "data_tools.c16_layout": "data_tools.datasets.c16_layout",
+    "data_tools.c16_mosaic": "data_tools.datasets.c16_mosaic",
+    "data_tools.pcam_bank": "data_tools.datasets.pcam_bank",
+    "data_tools.synth": "data_tools.datasets.synth",
+    "data_tools.synth_large": "data_tools.datasets.synth_large",
+    "histojax.compat": "histojax.adapters.histogym",
+    "histojax.gymnasium_bridge": "histojax.adapters.gymnasium",
+    "histojax.sb3": "histojax.adapters.sb3",
+    "histojax.wrappers": "histojax.adapters.jax",
+}
+
+
+@pytest.mark.parametrize("old, new", sorted(GONE.items()))
+def test_old_path_is_gone(old, new):
+    assert importlib.util.find_spec(old) is None, f"{old} still importable; the one path is {new}"
+    assert importlib.util.find_spec(new) is not None
+
+
+def test_nothing_names_an_old_path():
+    """Code, tests, docs, examples and the Makefile use only the one path of each name."""
+    pattern = re.compile(r"\b(" + "|".join(re.escape(o) for o in GONE) + r")\b")
+    files = [p for d in ("histojax", "data_tools", "baselines", "benchmarks", "examples", "tests", "docs")
+             if (ROOT / d).is_dir() for p in (ROOT / d).rglob("*")
+             if p.suffix in (".py", ".md", ".ipynb", ".toml", ".cfg", ".txt") and p.name != "test_import_paths.py"]
+    files += [ROOT / n for n in ("README.md", "Makefile", "pyproject.toml") if (ROOT / n).is_file()]
+    hits = []
+    for path in files:
+        for lineno, line in enumerate(path.read_text(errors="replace").splitlines(), 1):
+            for m in pattern.finditer(line):
+                hits.append(f"{path.relative_to(ROOT)}:{lineno}: {m.group(1)}")
+    assert not hits, "old import paths still named:\n" + "\n".join(hits)

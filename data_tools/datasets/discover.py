@@ -1,9 +1,12 @@
 """Find the slides of a folder, their annotations and labels (``data_tools dataset``).
 
-Slides: ``*.svs``, ``*.tif`` / ``*.tiff`` (pyramidal TIFF, OME-TIFF), ``*.ndpi`` and DICOM WSI folders
-(a folder of DICOM files, ``.dcm`` or without extension, is one slide named after the folder), found
-recursively. A slide's
-name is its file name without the extension; names are matched case-insensitively (CAMELYON16 names
+Slides: ``*.svs``, ``*.tif`` / ``*.tiff`` (pyramidal TIFF, OME-TIFF), ``*.ndpi``, ``*.qptiff``, BigTIFF
+(``*.btf``, ``*.tf8``, ``*.tf2``) and DICOM WSI series (the DICOM files of a folder, ``.dcm`` or without
+extension, are one slide named after the folder; other slides, annotations and sub-folders beside them are
+still searched), found recursively. Only regular files are opened (a FIFO named ``x.tif`` is skipped, never
+read); a folder reached twice through symlinks (a loop) is searched once. Every file passed over is listed
+with why (``skipped``): formats histojax does not read (MIRAX, VSI, CZI, iSyntax, SCN, BIF ...), special
+files, broken links, ``.json`` / ``.xml`` that are no annotation. A slide's name is its file name without the extension; names are matched case-insensitively (CAMELYON16 names
 slides ``tumor_001.tif`` but lists ``Test_001`` in ``reference.csv``). Annotations: ASAP XML,
 GeoJSON (``.geojson`` / ``.json``) and NCRF JSON (``{"positive": [...], "negative": [...]}``), in the
 same tree or ``--annotations DIR``, matched to a slide by name.
@@ -16,14 +19,33 @@ one.
 from __future__ import annotations
 
 import os
+import stat
 from dataclasses import dataclass, field
 from pathlib import Path
 
 from data_tools.datasets.split import read_label_table, slide_key
 from data_tools.errors import HistojaxDataError
 
-SLIDE_EXTENSIONS = (".svs", ".tif", ".tiff", ".ndpi")
+SLIDE_EXTENSIONS = (".svs", ".tif", ".tiff", ".ndpi", ".qptiff", ".btf", ".tf8", ".tf2")
+"""Slide files searched (tifffile reads them: TIFF, BigTIFF, OME-TIFF, Akoya QPTIFF, Hamamatsu NDPI)."""
 ANNOTATION_EXTENSIONS = (".xml", ".geojson", ".json")
+OTHER_SLIDE_FORMATS = {".mrxs": "3DHISTECH MIRAX", ".vsi": "Olympus VSI", ".czi": "Zeiss CZI",
+                       ".isyntax": "Philips iSyntax", ".scn": "Leica SCN", ".bif": "Ventana BIF",
+                       ".vms": "Hamamatsu VMS", ".vmu": "Hamamatsu VMU", ".svslide": "Sakura SVSlide",
+                       ".kfb": "KFBio KFB", ".sdpc": "SQRAY SDPC"}
+"""Whole-slide formats histojax does not read: listed as skipped with the format named (convert them to
+pyramidal TIFF / OME-TIFF first, e.g. with ``bfconvert`` or ``vips``)."""
+
+
+@dataclass
+class Skipped:
+    """A file or folder the search passed over and why (``reason``, one line)."""
+
+    path: Path
+    reason: str
+
+    def __str__(self) -> str:
+        return f"{self.path}: {self.reason}"
 
 
 @dataclass
@@ -61,35 +83,118 @@ def _annotation_kind(path: Path) -> str | None:
     return None
 
 
-def _walk(root: Path, skip: list[Path]):
-    """(slides, annotation files, csv files) under ``root``; DICOM folders are one slide each."""
-    from data_tools.dicom import is_dicom
+def _file_kind(mode: int) -> str:
+    for test, name in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
+                       (stat.S_ISBLK, "a block device"), (stat.S_ISDIR, "a folder")):
+        if test(mode):
+            return name
+    return "not a regular file"
 
+
+def _is_dicom_file(path: Path) -> bool:
+    """The DICOM preamble + ``DICM`` at bytes 128..131 (``path`` is a regular file)."""
+    try:
+        with open(path, "rb") as f:
+            return f.read(132)[128:132] == b"DICM"
+    except OSError:
+        return False
+
+
+def _other_file_reason(name: str) -> str:
+    low = name.lower()
+    ext = os.path.splitext(low)[1]
+    if ext in OTHER_SLIDE_FORMATS:
+        return (f"a {OTHER_SLIDE_FORMATS[ext]} slide, a format histojax does not read (it reads SVS, TIFF / BigTIFF, "
+                "OME-TIFF, QPTIFF, NDPI and DICOM WSI); convert it to a pyramidal TIFF")
+    if ext == ".dcm":
+        return "named .dcm but not a DICOM file"
+    if ext == ".csv":
+        return "a table: labels are read from --labels (or CAMELYON16's testing/reference.csv)"
+    if ext == ".h5":
+        return "an HDF5 file: features are read from --features-from"
+    return f"not a slide ({', '.join(SLIDE_EXTENSIONS)}, DICOM) or an annotation ({', '.join(ANNOTATION_EXTENSIONS)})"
+
+
+def _walk(root: Path, skip, skipped: list[Skipped]):
+    """(slides, annotation files) under ``root``. A folder holding DICOM files (``.dcm``, or without an
+    extension, as PACS exports write them) is one DICOM slide; the other slides, annotations and
+    sub-folders beside them are still searched. Only regular files are looked at (a FIFO, socket or device
+    is never opened); a folder reached twice (a symlink loop, or two links to one folder) and a file
+    reached twice (a link beside its target) are searched once. What is passed over goes to
+    ``skipped`` with why (hidden names, starting with ``.``, and the folders in ``skip`` are not listed)."""
     slides, annotations = [], []
-    skip = [s.resolve() for s in skip]
+    skip = [Path(s).resolve() for s in skip]
+    seen_dirs: dict[tuple[int, int], Path] = {}
+    seen_files: dict[tuple[int, int], Path] = {}
+    try:
+        st = os.stat(root)
+        seen_dirs[(st.st_dev, st.st_ino)] = root
+    except OSError:
+        pass
     for folder, dirs, files in os.walk(root, followlinks=True):
         here = Path(folder)
-        if any(here.resolve() == s or s in here.resolve().parents for s in skip):
+        real = here.resolve()
+        if any(real == s or s in real.parents for s in skip):
             dirs[:] = []
             continue
-        dirs[:] = sorted(d for d in dirs if not d.startswith("."))
-        plain = [f for f in files if not f.startswith(".")]
-        dicom_like = any(f.lower().endswith(".dcm") for f in plain) or (
-            plain and not any(f.lower().endswith(SLIDE_EXTENSIONS + ANNOTATION_EXTENSIONS + (".csv", ".h5"))
-                              for f in plain))  # PACS exports often have no extension
-        if dicom_like and is_dicom(here):
-            slides.append(here)
-            dirs[:] = []
-            continue
+        keep = []
+        for d in sorted(dirs):
+            if d.startswith("."):
+                continue
+            p = here / d
+            try:
+                st = os.stat(p)
+            except OSError as e:
+                skipped.append(Skipped(p, f"cannot be read ({e.strerror or e})"))
+                continue
+            key = (st.st_dev, st.st_ino)
+            if key in seen_dirs:
+                target = p.resolve()
+                if target == real or target in real.parents:
+                    reason = f"a link to {target}, a folder it lies in (a symlink loop): not searched again"
+                else:
+                    reason = f"the same folder as {seen_dirs[key]}: searched once"
+                skipped.append(Skipped(p, reason))
+                continue
+            seen_dirs[key] = p
+            keep.append(d)
+        dirs[:] = keep
+        regular: dict[str, Path] = {}
         for f in sorted(files):
             if f.startswith("."):
                 continue
             p = here / f
+            try:
+                st = os.stat(p)
+            except OSError as e:
+                skipped.append(Skipped(p, "a broken link" if p.is_symlink() else f"cannot be read ({e.strerror or e})"))
+                continue
+            if not stat.S_ISREG(st.st_mode):
+                skipped.append(Skipped(p, f"{_file_kind(st.st_mode)}, not a regular file: never opened"))
+                continue
+            key = (st.st_dev, st.st_ino)
+            if key in seen_files:
+                skipped.append(Skipped(p, f"the same file as {seen_files[key]}: used once"))
+                continue
+            seen_files[key] = p
+            regular[f] = p
+        known = SLIDE_EXTENSIONS + ANNOTATION_EXTENSIONS + (".csv", ".h5")
+        dicom = {f for f, p in regular.items()
+                 if (f.lower().endswith(".dcm") or not f.lower().endswith(known) and not os.path.splitext(f)[1])
+                 and _is_dicom_file(p)}
+        if dicom:
+            slides.append(here)
+        in_bundle = (here / "metadata.json").is_file()  # a bundle's own files are not the user's slides
+        for f, p in regular.items():
             low = f.lower()
+            if f in dicom:
+                continue
             if low.endswith(SLIDE_EXTENSIONS):
                 slides.append(p)
             elif low.endswith(ANNOTATION_EXTENSIONS):
                 annotations.append(p)
+            elif not in_bundle:
+                skipped.append(Skipped(p, _other_file_reason(f)))
     return slides, annotations
 
 
@@ -112,20 +217,28 @@ def camelyon16_layout(root: Path) -> bool:
     return any((root / p).is_dir() for p in ("training/tumor", "training/normal", "testing/images"))
 
 
-def discover(root, annotations_dir=None, labels_csv=None, skip=(), allow_unmatched: bool = False) -> list[SlideEntry]:
+def discover(root, annotations_dir=None, labels_csv=None, skip=(), allow_unmatched: bool = False,
+             skipped: list | None = None) -> list[SlideEntry]:
     """The cohort under ``root`` (see the module doc), sorted by name. Errors (one line, naming the
     file): no slides; two slides or annotations of one name; an annotation naming no slide (unless
     ``allow_unmatched``); a label table naming unknown slides or missing some; CAMELYON16 testing
-    slides without ``testing/reference.csv``."""
+    slides without ``testing/reference.csv``. ``skipped``: a list that receives a :class:`Skipped`
+    (path, why) for every file or folder passed over (other formats, FIFOs, broken links, symlink
+    loops, ``.json`` / ``.xml`` that are no annotation)."""
     root = Path(root)
+    skipped = [] if skipped is None else skipped
     if not root.is_dir():
         raise HistojaxDataError(root, "no such folder of slides")
-    slide_paths, ann_paths = _walk(root, list(skip))
+    slide_paths, ann_paths = _walk(root, list(skip), skipped)
     if annotations_dir is not None:
         if not Path(annotations_dir).is_dir():
             raise HistojaxDataError(annotations_dir, "no such folder of annotations")
-        ann_paths += _walk(Path(annotations_dir), list(skip))[1]
-    ann_paths = [p for p in ann_paths if _annotation_kind(p)]
+        _, more = _walk(Path(annotations_dir), list(skip), skipped)
+        ann_paths += more
+    kinds = {p: _annotation_kind(p) for p in ann_paths}
+    skipped += [Skipped(p, f"a {p.suffix} file that is not an ASAP XML, GeoJSON or NCRF JSON annotation")
+                for p, k in kinds.items() if not k]
+    ann_paths = [p for p in ann_paths if kinds[p]]
     if not slide_paths:
         raise HistojaxDataError(root, f"holds no slides ({', '.join(SLIDE_EXTENSIONS)} files or DICOM folders)")
     slides = by_name(slide_paths, "slides")
@@ -221,4 +334,5 @@ def ncrf_to_geojson(path: Path, out: Path) -> Path:
     return out
 
 
-__all__ = ["SlideEntry", "camelyon16_layout", "discover", "ncrf_to_geojson"]
+__all__ = ["ANNOTATION_EXTENSIONS", "OTHER_SLIDE_FORMATS", "SLIDE_EXTENSIONS", "SlideEntry", "Skipped",
+           "camelyon16_layout", "discover", "ncrf_to_geojson"]

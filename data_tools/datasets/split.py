@@ -30,25 +30,64 @@ def parse_label(value: str, where, row: int) -> int:
 def slide_key(text: str) -> str:
     """A slide name as matched across files: the file name without its slide extension(s)."""
     name = Path(str(text).strip()).name
-    for ext in (".ome.tiff", ".ome.tif", ".tiff", ".tif", ".svs", ".ndpi", ".mrxs", ".dcm", ".h5", ".xml",
-                ".geojson", ".json"):
+    for ext in (".ome.tiff", ".ome.tif", ".qptiff", ".tiff", ".tif", ".btf", ".tf8", ".tf2", ".svs", ".ndpi", ".mrxs",
+                ".dcm", ".h5", ".xml", ".geojson", ".json"):
         if name.lower().endswith(ext):
             return name[: -len(ext)]
     return name
+
+
+MAX_LABEL_TABLE_BYTES = 64 * 2**20
+"""A label table larger than this (64 MiB, millions of rows) is refused before it is read."""
+
+
+def _label_table_text(path: Path) -> str:
+    """The text of a label table: UTF-8 (with or without a BOM) or UTF-16 with a BOM; anything else, a FIFO
+    or a file over :data:`MAX_LABEL_TABLE_BYTES` is an error naming the file."""
+    import os
+    import stat
+
+    try:
+        st = os.stat(path)
+        if not stat.S_ISREG(st.st_mode):
+            raise HistojaxDataError(path, "the label table is not a regular file (a folder, FIFO or device)")
+        if st.st_size > MAX_LABEL_TABLE_BYTES:
+            raise HistojaxDataError(path, f"the label table is {st.st_size / 2**20:.0f} MiB, over the "
+                                          f"{MAX_LABEL_TABLE_BYTES // 2**20} MiB a table of slide labels needs")
+        data = path.read_bytes()
+    except OSError as e:
+        raise HistojaxDataError(path, f"cannot read the label table ({e.strerror or e})") from None
+    if data.startswith((b"\xff\xfe", b"\xfe\xff")):
+        encoding = "utf-16"
+    else:
+        encoding = "utf-8-sig"
+    try:
+        text = data.decode(encoding)
+    except UnicodeDecodeError as e:
+        raise HistojaxDataError(path, f"the label table is not {'UTF-16' if encoding == 'utf-16' else 'UTF-8'} text "
+                                      f"(byte {data[e.start]:#04x} at offset {e.start}); save it as UTF-8 (UTF-8 "
+                                      "with a BOM and UTF-16 with a BOM are read too)") from None
+    if "\x00" in text:
+        raise HistojaxDataError(path, "the label table holds NUL characters: not a text table (UTF-16 without a "
+                                      "BOM? save it as UTF-8)")
+    return text
 
 
 def read_label_table(path) -> tuple[dict[str, int], dict[str, str]]:
     """``(labels, splits)`` from a CSV: a header naming a slide column (``slide``, ``name``, ``slide_id``,
     ...) and a label column (``label``, ``class``, ...), optionally ``split`` (train/test); or no header,
     rows ``name,label,...`` (CAMELYON16's ``reference.csv``: ``Test_001,Tumor,Macro,Primary``). Names are
-    matched without extension. Duplicate names with different labels, unknown label values or split
-    values are errors naming the file and row."""
+    matched without extension and case-insensitively, so ``S1`` and ``s1`` are one slide. Text: UTF-8
+    (a BOM allowed) or UTF-16 with a BOM. Rows naming one slide with different labels or splits, unknown
+    label values or split values, undecodable text are errors naming the file and the rows."""
+    import csv as _csv
+
     path = Path(path)
+    text = _label_table_text(path)
     try:
-        text = path.read_text(encoding="utf-8-sig")
-    except OSError as e:
-        raise HistojaxDataError(path, f"cannot read the label table ({e.strerror or e})") from None
-    rows = [r for r in csv.reader(text.splitlines()) if r and any(c.strip() for c in r)]
+        rows = [r for r in csv.reader(text.splitlines()) if r and any(c.strip() for c in r)]
+    except _csv.Error as e:
+        raise HistojaxDataError(path, f"not a readable CSV table ({e})") from None
     if not rows:
         raise HistojaxDataError(path, "the label table is empty")
     head = [c.strip().lower() for c in rows[0]]
@@ -64,19 +103,35 @@ def read_label_table(path) -> tuple[dict[str, int], dict[str, str]]:
         start = 1
     labels: dict[str, int] = {}
     splits: dict[str, str] = {}
+    first: dict[str, tuple[int, str]] = {}  # case-folded name -> (row, name as written) of its first row
     for i, row in enumerate(rows[start:], start=start + 1):
         if len(row) <= max(name_col, label_col):
             raise HistojaxDataError(path, f"row {i}: expected a slide name and a label, got {row}")
         name = slide_key(row[name_col])
+        if not name:
+            raise HistojaxDataError(path, f"row {i}: the slide name is empty")
+        key = name.lower()
         label = parse_label(row[label_col], path, i)
-        if name in labels and labels[name] != label:
-            raise HistojaxDataError(path, f"row {i}: {name} is listed twice with different labels")
-        labels[name] = label
+        split = None
         if split_col is not None and len(row) > split_col and row[split_col].strip():
-            s = row[split_col].strip().lower()
-            if s not in ("train", "test"):
+            split = row[split_col].strip().lower()
+            if split not in ("train", "test"):
                 raise HistojaxDataError(path, f"row {i}: split {row[split_col]!r} must be train or test")
-            splits[name] = s
+        if key in first:
+            j, was = first[key]
+            if labels[was] != label:
+                raise HistojaxDataError(path, f"rows {j} ({was!r}, label {labels[was]}) and {i} ({name!r}, label "
+                                              f"{label}) name one slide (names are matched ignoring case) with "
+                                              "different labels; keep one row")
+            if splits.get(was) != split:
+                raise HistojaxDataError(path, f"rows {j} ({was!r}, split {splits.get(was)}) and {i} ({name!r}, split "
+                                              f"{split}) name one slide (names are matched ignoring case) with "
+                                              "different splits; keep one row")
+            continue
+        first[key] = (i, name)
+        labels[name] = label
+        if split is not None:
+            splits[name] = split
     if splits and set(splits) != set(labels):
         missing = sorted(set(labels) - set(splits))
         raise HistojaxDataError(path, f"the split column is empty for {len(missing)} slide(s), e.g. {missing[:3]}; "

@@ -37,8 +37,9 @@ def add_subcommands(sub) -> None:
     i.add_argument("h5", help="HDF5 file with coords (N, 2) level-0 px top-left and features (N, D)")
     i.add_argument("--patch-size", type=int, default=None, help="patch side in px of pyramid level L "
                                                                  "(default: the file's patch_size attribute)")
-    i.add_argument("--level", type=int, default=None, help="pyramid level L the patches were cut at (default: the "
-                                                            "file's patch_level attribute, else 0)")
+    i.add_argument("--patch-level", "--level", dest="level", type=int, default=None,
+                   help="pyramid level L the patches were cut at (default: the file's patch_level attribute, else 0; "
+                        "--level is the old spelling)")
     i.add_argument("--downsample", type=float, default=None,
                    help="level-0 px per px of level L (default: the file's downsample attribute; 1 for L = 0)")
     i.add_argument("--stride", type=int, default=None, help="grid step in px of each level (default: the tile size)")

@@ -1,5 +1,5 @@
 """Import patch features made elsewhere (CLAM / TRIDENT HDF5) onto a bundle's feature grid
-(``python -m data_tools import-features BUNDLE FILE.h5 --patch-size P --level L``).
+(``python -m data_tools import-features BUNDLE FILE.h5 --patch-size P --patch-level L``).
 
 The file holds ``coords`` ``(N, 2)`` — each patch's top-left corner ``(x, y)`` in level-0 px of
 the slide — and ``features`` ``(N, D)`` (a leading batch axis of 1, as some CLAM versions write, is
@@ -15,6 +15,12 @@ patch, this is the patch under the view, or a blend of the few it straddles; at 
 mean of the patches it covers). Cells no patch touches get zeros and ``False`` in
 ``features_mask_KK.npy``. For a region bundle (``build --region``) the coordinates are shifted by
 the region's corner first.
+
+Bounds, checked from the file's shapes and attributes before its data is read: numeric ``coords`` and
+``features`` with ``N ≥ 1`` and ``D ≥ 1``, coordinates and the patch extent inside ±2^31 level-0 px, and
+at most :data:`MAX_IMPORT_BYTES` (4 GiB) of host memory for the features, the patch–view overlaps and
+the grids; a file whose patches miss the slide is refused, one covering under
+:data:`MIN_TISSUE_COVERAGE` (50 %) of the finest level's tissue views gives a warning.
 """
 from __future__ import annotations
 
@@ -32,60 +38,172 @@ class FeatureFileError(HistojaxDataError):
     """An HDF5 feature file is missing datasets, has inconsistent shapes or non-finite values."""
 
 
-def _attr(dataset, name):
+MAX_IMPORT_BYTES = 4 * 2**30
+"""Host memory an import may use (4 GiB): the ``(N, D)`` features as float32 plus the patch–view overlap
+table, and one level's ``(gh, gw, D)`` grid, are estimated from the file's shapes before anything is read;
+a file that would need more is refused naming it (``max_bytes=`` raises or lowers the bound)."""
+MAX_COORDINATE = 2**31
+"""Patch coordinates beyond ±2^31 level-0 px are refused (wrong units: no slide is that large)."""
+MIN_TISSUE_COVERAGE = 0.5
+"""Below this share of the finest level's tissue views covered by some patch, the import warns (coordinates
+in other units, or another slide's file)."""
+OVERLAP_ENTRY_BYTES = 64  # host bytes per (patch, view) overlap while the grid is built
+
+
+def _attr(path, dataset, name):
     value = dataset.attrs.get(name)
     if value is None:
         return None
-    value = np.asarray(value).ravel()
+    try:
+        value = np.asarray(value, dtype=np.float64).ravel()
+    except (TypeError, ValueError):
+        raise FeatureFileError(path, f"the {name!r} attribute of coords is not a number ({value!r:.40})") from None
+    if value.size and not math.isfinite(value[0]):
+        raise FeatureFileError(path, f"the {name!r} attribute of coords is {value[0]}")
     return float(value[0]) if value.size else None
 
 
-def read_patch_features(path, patch_size: int | None = None, level: int | None = None,
-                        downsample: float | None = None):
-    """``(coords (N, 2) float64 level-0 px, features (N, D) float32, extent E in level-0 px, info)``."""
+def _layout(path: Path, f) -> tuple[tuple[int, ...], tuple[int, ...]]:
+    """The shapes of ``coords`` and ``features`` (a leading axis of 1 dropped), checked before any data is read."""
     import h5py
 
-    path = Path(path)
+    shapes = {}
+    for name in ("coords", "features"):
+        ds = f.get(name) if name in f else None
+        if not isinstance(ds, h5py.Dataset):
+            raise FeatureFileError(path, f"no {name!r} dataset (expected CLAM/TRIDENT layout: coords (N, 2), "
+                                   "features (N, D))")
+        if ds.dtype.kind not in "iuf":
+            raise FeatureFileError(path, f"{name} are not numbers (HDF5 type {ds.dtype}): expected coords (N, 2) and "
+                                         "features (N, D) of integers or floats")
+        shape = tuple(int(v) for v in ds.shape or ())
+        shapes[name] = shape[1:] if len(shape) == 3 and shape[0] == 1 else shape
+    coords, features = shapes["coords"], shapes["features"]
+    if len(coords) != 2 or coords[1] != 2 or len(features) != 2 or coords[0] != features[0]:
+        raise FeatureFileError(path, f"coords {coords} and features {features} do not match (expected (N, 2) and "
+                                     "(N, D))")
+    if coords[0] == 0:
+        raise FeatureFileError(path, "holds no patches (N = 0): an empty feature file")
+    if features[1] == 0:
+        raise FeatureFileError(path, f"features have D = 0 dimensions ({coords[0]} patches of nothing)")
+    return coords, features
+
+
+def _open(path: Path):
+    import os
+    import stat
+
+    import h5py
+
     try:
-        f = h5py.File(path, "r")
-    except (OSError, ValueError) as e:
-        raise FeatureFileError(path, f"not a readable HDF5 file ({e})") from None
-    with f:
-        for name in ("coords", "features"):
-            if name not in f or not isinstance(f[name], h5py.Dataset):
-                raise FeatureFileError(path, f"no {name!r} dataset (expected CLAM/TRIDENT layout: coords (N, 2), "
-                                       "features (N, D))")
-        coords_ds = f["coords"]
-        coords = np.asarray(coords_ds[()], dtype=np.float64)
-        features = np.asarray(f["features"][()], dtype=np.float32)
-        attrs = {k: _attr(coords_ds, k) for k in ("patch_size", "patch_level", "downsample", "patch_size_level0")}
-    if features.ndim == 3 and features.shape[0] == 1:
-        features = features[0]
-    if coords.ndim == 3 and coords.shape[0] == 1:
-        coords = coords[0]
-    if coords.ndim != 2 or coords.shape[1] != 2 or features.ndim != 2 or len(coords) != len(features):
-        raise FeatureFileError(path, f"coords {coords.shape} and features {features.shape} do not match "
-                               "(expected (N, 2) and (N, D))")
+        st = os.stat(path)
+    except OSError as e:
+        raise FeatureFileError(path, f"cannot read the feature file ({e.strerror or e})") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise FeatureFileError(path, "not a regular file (a folder, FIFO or device): not a feature file")
+    try:
+        return h5py.File(path, "r")
+    except Exception as e:  # noqa: BLE001 - h5py raises OSError, ValueError, KeyError ... on damaged files
+        raise FeatureFileError(path, f"not a readable HDF5 file ({type(e).__name__}: {e})") from None
+
+
+def feature_dim(path) -> int:
+    """``D`` of the ``(N, D)`` features of the HDF5 file ``path`` (shapes only, no data read)."""
+    path = Path(path)
+    with _open(path) as f:
+        try:
+            return _layout(path, f)[1][1]
+        except FeatureFileError:
+            raise
+        except Exception as e:  # noqa: BLE001 - a damaged HDF5 object header
+            raise FeatureFileError(path, f"unreadable HDF5 structure ({type(e).__name__}: {e})") from None
+
+
+def check_feature_dims(paths) -> None:
+    """Refuse feature files of different ``D`` (two encoders mixed in one dataset), naming two of them; files
+    that cannot be read are left to fail on their own slide."""
+    dims: dict[int, Path] = {}
+    for p in paths:
+        try:
+            dims.setdefault(feature_dim(p), Path(p))
+        except FeatureFileError:
+            continue
+    if len(dims) > 1:
+        (d1, p1), (d2, p2) = sorted(dims.items())[:2]
+        raise FeatureFileError(p2, f"has D = {d2} features but {p1} has D = {d1}: one dataset takes one encoder's "
+                                   "features; point --features-from at one encoder's folder")
+
+
+def read_patch_features(path, patch_size: int | None = None, level: int | None = None,
+                        downsample: float | None = None, max_bytes: int = MAX_IMPORT_BYTES):
+    """``(coords (N, 2) float64 level-0 px, features (N, D) float32, extent E in level-0 px, info)``.
+    Shapes, types and the memory the arrays need (at most ``max_bytes``) are checked before reading."""
+    path = Path(path)
+    with _open(path) as f:
+        try:
+            (n, _), (_, d) = _layout(path, f)
+            need = n * d * 4 + n * 2 * 8
+            if need > max_bytes:
+                raise FeatureFileError(path, f"{n:,} patches × {d:,} features need {need / 2**30:.1f} GiB of host "
+                                             f"memory, over the import's limit of {max_bytes / 2**30:.1f} GiB")
+            coords_ds = f["coords"]
+            attrs = {k: _attr(path, coords_ds, k) for k in ("patch_size", "patch_level", "downsample",
+                                                             "patch_size_level0")}
+            coords = np.asarray(coords_ds.astype(np.float64)[()]).reshape(n, 2)
+            features = np.asarray(f["features"].astype(np.float32)[()]).reshape(n, d)
+        except FeatureFileError:
+            raise
+        except MemoryError:
+            raise FeatureFileError(path, "out of host memory reading the features") from None
+        except Exception as e:  # noqa: BLE001 - h5py / HDF5 filter errors on damaged data
+            raise FeatureFileError(path, f"unreadable data ({type(e).__name__}: {e})") from None
     if not (np.isfinite(coords).all() and np.isfinite(features).all()):
         raise FeatureFileError(path, "coords or features hold NaN or infinity")
+    if np.abs(coords).max() >= MAX_COORDINATE:
+        raise FeatureFileError(path, f"a coordinate is {coords.flat[np.abs(coords).argmax()]:g}, beyond ±2^31 "
+                                     "level-0 px: coords in other units?")
     level = level if level is not None else attrs["patch_level"]
     if patch_size is None and attrs["patch_size_level0"]:  # TRIDENT
         extent = attrs["patch_size_level0"]
     else:
         patch_size = patch_size if patch_size is not None else attrs["patch_size"]
         if patch_size is None:
-            raise FeatureFileError(path, "patch size unknown: pass --patch-size P (px at --level L)")
+            raise FeatureFileError(path, "patch size unknown: pass --patch-size P (px at pyramid level "
+                                         "--patch-level L)")
+        if not (level is None or (float(level) == int(level) and 0 <= level < 64)):
+            raise FeatureFileError(path, f"patch level {level} is not a pyramid level (0, 1, 2 ...)")
         level = int(level or 0)
         ds = downsample if downsample is not None else attrs["downsample"]
         if ds is None:
             if level != 0:
-                raise FeatureFileError(path, f"the downsample of pyramid level {level} is unknown: pass --downsample")
+                raise FeatureFileError(path, f"the downsample of pyramid level {level} is unknown: pass --downsample "
+                                             "(import-features) or write the 'downsample' attribute on coords")
             ds = 1.0
         extent = float(patch_size) * float(ds)
-    if not (math.isfinite(extent) and extent > 0):
-        raise FeatureFileError(path, f"patch extent {extent} level-0 px is not positive")
+    if not (math.isfinite(extent) and 0 < extent < MAX_COORDINATE):
+        raise FeatureFileError(path, f"patch extent {extent:g} level-0 px is not in (0, 2^31): is the patch size "
+                                     "right?")
     info = {"patch_size": patch_size, "level": level, "extent_level0": extent}
     return coords, features, extent, info
+
+
+def _spans(coords, extent, g, a, view0, step0):
+    c = coords[:, a]
+    lo = np.clip(np.floor((c - view0) / step0).astype(np.int64) + 1, 0, None)
+    hi = np.clip(np.ceil((c + extent) / step0).astype(np.int64) - 1, None, g - 1)
+    return c, lo, hi
+
+
+def overlap_count(coords: np.ndarray, extent: float, grid: tuple[int, int], view0: float, step0: float) -> float:
+    """How many (patch, view) overlaps :func:`patches_to_grid` would hold (as a float: never overflows);
+    computed from ``N`` numbers, before anything grid-sized is allocated."""
+    gh, gw = grid
+    if gh * gw == 0 or len(coords) == 0:
+        return 0.0
+    _, x_lo, x_hi = _spans(coords, extent, gw, 0, view0, step0)
+    _, y_lo, y_hi = _spans(coords, extent, gh, 1, view0, step0)
+    return float(np.sum(np.clip(x_hi - x_lo + 1, 0, None).astype(np.float64)
+                        * np.clip(y_hi - y_lo + 1, 0, None).astype(np.float64)))
 
 
 def patches_to_grid(coords: np.ndarray, features: np.ndarray, extent: float, grid: tuple[int, int],
@@ -98,17 +216,12 @@ def patches_to_grid(coords: np.ndarray, features: np.ndarray, extent: float, gri
     d = features.shape[1]
     if gh * gw == 0 or len(coords) == 0:
         return np.zeros((gh, gw, d), np.float32), np.zeros((gh, gw), bool)
-    rows, cols, weights = [], [], []
-    axes = []
-    for a, g in ((0, gw), (1, gh)):
-        c = coords[:, a]
-        lo = np.clip(np.floor((c - view0) / step0).astype(np.int64) + 1, 0, None)
-        hi = np.clip(np.ceil((c + extent) / step0).astype(np.int64) - 1, None, g - 1)
-        axes.append((c, lo, hi))
-    (cx, x_lo, x_hi), (cy, y_lo, y_hi) = axes
+    cx, x_lo, x_hi = _spans(coords, extent, gw, 0, view0, step0)
+    cy, y_lo, y_hi = _spans(coords, extent, gh, 1, view0, step0)
     span_x = int(max(0, (x_hi - x_lo).max() + 1))
     span_y = int(max(0, (y_hi - y_lo).max() + 1))
     patch = np.arange(len(coords))
+    rows, cols, weights = [np.zeros(0, np.int64)], [np.zeros(0, np.int64)], [np.zeros(0)]
     for oy in range(span_y):
         gy = y_lo + oy
         wy = np.minimum(gy * step0 + view0, cy + extent) - np.maximum(gy * step0, cy)
@@ -120,43 +233,98 @@ def patches_to_grid(coords: np.ndarray, features: np.ndarray, extent: float, gri
             cols.append(patch[ok])
             weights.append(wx[ok] * wy[ok])
     rows, cols, weights = np.concatenate(rows), np.concatenate(cols), np.concatenate(weights)
-    matrix = sp.csr_matrix((weights, (rows, cols)), shape=(gh * gw, len(coords)))
-    total = np.asarray(matrix.sum(axis=1)).ravel()
-    sums = matrix @ features.astype(np.float64)
+    total = np.bincount(rows, weights=weights, minlength=gh * gw)
     mask = total > 0
-    out = np.zeros((gh * gw, d), np.float64)
-    out[mask] = sums[mask] / total[mask, None]
-    return out.reshape(gh, gw, d).astype(np.float32), mask.reshape(gh, gw)
+    # each view's weights normalised to sum 1, so one float32 product gives the averages
+    matrix = sp.csr_matrix(((weights / total[rows]).astype(np.float32), (rows, cols)), shape=(gh * gw, len(coords)))
+    out = np.asarray(matrix @ np.asarray(features, np.float32), dtype=np.float32)
+    out[~mask] = 0
+    return out.reshape(gh, gw, d), mask.reshape(gh, gw)
+
+
+def tissue_coverage(bundle: Path, metadata, mask: np.ndarray, level: int, stride: int) -> tuple[int, int] | None:
+    """``(covered, total)``: of the views of bundle level ``level`` that are at least half tissue (the bundle's
+    tissue mask), how many ``mask`` marks covered; None when that level has no such view."""
+    tissue = np.load(bundle / metadata.tissue_file, allow_pickle=False).astype(bool)
+    th, tw = tissue.shape
+    table = np.zeros((th + 1, tw + 1), np.int64)
+    table[1:, 1:] = tissue.cumsum(0).cumsum(1)
+    scale = metadata.levels[level].downsample / metadata.levels[-1].downsample  # level px -> tissue px
+    gh, gw = mask.shape
+    x0 = np.clip(np.floor(np.arange(gw) * stride * scale).astype(np.int64), 0, tw)
+    x1 = np.clip(np.ceil((np.arange(gw) * stride + metadata.tile_size) * scale).astype(np.int64), 0, tw)
+    y0 = np.clip(np.floor(np.arange(gh) * stride * scale).astype(np.int64), 0, th)
+    y1 = np.clip(np.ceil((np.arange(gh) * stride + metadata.tile_size) * scale).astype(np.int64), 0, th)
+    inside = (table[y1][:, x1] - table[y0][:, x1] - table[y1][:, x0] + table[y0][:, x0])
+    area = np.maximum((y1 - y0)[:, None] * (x1 - x0)[None, :], 1)
+    views = inside / area >= 0.5
+    if not views.any():
+        return None
+    return int((views & mask).sum()), int(views.sum())
 
 
 def import_features(bundle, h5_path, patch_size: int | None = None, level: int | None = None,
-                    downsample: float | None = None, stride: int | None = None, dtype: str = "float16") -> dict:
+                    downsample: float | None = None, stride: int | None = None, dtype: str = "float16",
+                    max_bytes: int = MAX_IMPORT_BYTES) -> dict:
     """Map the patch features of ``h5_path`` onto every level of the bundle's grid (see the module doc),
     write ``features_KK.npy`` and ``features_mask_KK.npy``, update the metadata; returns
-    ``metadata["features"]``."""
+    ``metadata["features"]`` (its ``import`` record holds ``tissue_coverage``: covered and total tissue views
+    of the finest level). Refused, naming the file, before anything is written: a file needing more than
+    ``max_bytes`` of host memory (see :data:`MAX_IMPORT_BYTES`), or whose patches miss the slide entirely;
+    a warning when they cover less than :data:`MIN_TISSUE_COVERAGE` of the tissue views."""
+    import warnings
+
     bundle, h5_path = Path(bundle), Path(h5_path)
     metadata = read_metadata(bundle)
     if dtype not in ("float16", "float32"):
         raise BundleError(bundle, f"dtype must be float16 or float32, got {dtype!r}")
     tile = metadata.tile_size
     stride = int(stride or tile)
-    coords, features, extent, info = read_patch_features(h5_path, patch_size, level, downsample)
+    coords, features, extent, info = read_patch_features(h5_path, patch_size, level, downsample, max_bytes)
     if (metadata.region or {}).get("box"):  # a region bundle's level-0 px start at the region's corner
         coords = coords - np.asarray(metadata.region_offset, dtype=np.float64)
         info["region_offset"] = list(metadata.region_offset)
-    written, levels = [], []
-    for k, (lv, grid) in enumerate(zip(metadata.levels, level_grids(metadata, stride))):
+    grids = level_grids(metadata, stride)
+    n, dim = features.shape
+    base = features.nbytes + coords.nbytes
+    cells = sum(gh * gw for gh, gw in grids)
+    for lv, grid in zip(metadata.levels, grids):
         d = lv.downsample
-        grid_features, mask = patches_to_grid(coords, features, extent, grid, tile * d, stride * d)
+        pairs = overlap_count(coords, extent, grid, tile * d, stride * d)
+        need = base + pairs * OVERLAP_ENTRY_BYTES + cells * dim * (4 + np.dtype(dtype).itemsize)
+        if need > max_bytes:
+            raise FeatureFileError(h5_path, f"its {n:,} patches of {extent:g} level-0 px overlap {pairs:,.0f} views "
+                                            f"of a {grid[0]}×{grid[1]} grid: {need / 2**30:.1f} GiB of host memory, "
+                                            f"over the import's limit of {max_bytes / 2**30:.1f} GiB; is the patch "
+                                            "size (--patch-size / the patch_size attribute) right?")
+    computed = []
+    for lv, grid in zip(metadata.levels, grids):
+        d = lv.downsample
+        computed.append(patches_to_grid(coords, features, extent, grid, tile * d, stride * d))
+    if not any(mask.any() for _, mask in computed):
+        w0 = metadata.levels[0].width * metadata.levels[0].downsample
+        h0 = metadata.levels[0].height * metadata.levels[0].downsample
+        lo, hi = coords.min(axis=0), coords.max(axis=0)
+        raise FeatureFileError(h5_path, f"none of its {n:,} patches lies on the slide ({w0:.0f}×{h0:.0f} level-0 px; "
+                                        f"coords span x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g}): coords of "
+                                        "another slide, or not in level-0 px?")
+    coverage = tissue_coverage(bundle, metadata, computed[0][1], 0, stride)
+    info["tissue_coverage"] = None if coverage is None else list(coverage)
+    if coverage is not None and coverage[0] < MIN_TISSUE_COVERAGE * coverage[1]:
+        warnings.warn(f"{h5_path}: its patches cover {coverage[0]} of the {coverage[1]} tissue views of the finest "
+                      f"level ({coverage[0] / coverage[1]:.0%}, under {MIN_TISSUE_COVERAGE:.0%}): coords not in "
+                      "level-0 px of this slide, or the wrong patch size?", stacklevel=2)
+    written, levels = [], []
+    for k, (grid, (grid_features, mask)) in enumerate(zip(grids, computed)):
         names = {"file": f"features_{k:02d}.npy", "mask_file": f"features_mask_{k:02d}.npy"}
         save_array(bundle / names["file"], grid_features.astype(dtype))
         save_array(bundle / names["mask_file"], mask)
         written += [names["file"], names["mask_file"]]
         levels.append({**names, "grid": list(grid), "covered": int(mask.sum())})
     result = {
-        "encoder": f"imported:{h5_path.name}", "dim": int(features.shape[1]), "stride": stride, "dtype": dtype,
+        "encoder": f"imported:{h5_path.name}", "dim": int(dim), "stride": stride, "dtype": dtype,
         "projection": None, "source": "imported",
-        "import": {"file": h5_path.name, "sha256": sha256(h5_path), "n_patches": int(len(coords)), **info},
+        "import": {"file": h5_path.name, "sha256": sha256(h5_path), "n_patches": int(n), **info},
         "grid": "cell (gy, gx) of level KK = the view with top-left (gx*stride, gy*stride) px of that level",
         "levels": levels,
     }
@@ -164,4 +332,5 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
     return result
 
 
-__all__ = ["FeatureFileError", "import_features", "patches_to_grid", "read_patch_features"]
+__all__ = ["MAX_IMPORT_BYTES", "MIN_TISSUE_COVERAGE", "FeatureFileError", "check_feature_dims", "feature_dim",
+           "import_features", "overlap_count", "patches_to_grid", "read_patch_features", "tissue_coverage"]

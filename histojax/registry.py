@@ -145,6 +145,23 @@ register("HistoJAX-C16-Diagnosis-v1", slide=_c16_dataset, n_levels=5, max_steps_
          **C16_V1)
 
 
+def _c16_rebuild_command(folder, ds: dict) -> str:
+    """The ``data_tools c16`` command that rebuilds ``folder`` with the options its ``dataset.json`` records
+    (``--small`` or the sources and scale, split seed, held-out patches, subset, pixels or not), with features."""
+    import shlex
+
+    opts = ["--small"] if ds.get("variant") == "small" else [
+        "--annotations", str(ds.get("annotations")), "--patches", str(ds.get("patches")),
+        "--downsample", str((ds.get("scale") or {}).get("downsample_from_camelyon16_level0", 8.0))]
+    test = (ds.get("patch_pools") or {}).get("test") or {}
+    opts += ["--test-patches", str(test.get("source"))] if test.get("other_patch_set") else []
+    opts += ["--slides", *sorted(ds.get("labels") or {})] if ds.get("variant") == "subset" else []
+    opts += ["--seed", str(ds["seed"])] if ds.get("seed", 0) != 0 else []
+    opts += ["--test-fraction", str(ds["test_fraction"])] if ds.get("test_fraction", 0.25) != 0.25 else []
+    opts += ["--features"] if ds.get("pixels_kept", True) else ["--no-pixels"]
+    return shlex.join(["python", "-m", "data_tools", "c16", "--out", str(folder), *opts])
+
+
 def check_dataset(folder, spec: dict, env_id: str) -> None:
     """Refuse a dataset older than the id needs (``dataset_format`` / ``dataset_encoder`` of its spec), naming
     the dataset, what it lacks, and the command that rebuilds it. The format (disjoint patch pools) concerns
@@ -159,8 +176,8 @@ def check_dataset(folder, spec: dict, env_id: str) -> None:
         return  # dataset_slides reports a missing or malformed index
     mosaic = str(ds.get("kind", "")).startswith("histojax true-scale CAMELYON16")
     if mosaic:
-        fix = (f"rebuild it with `python -m data_tools c16 --out {folder} --no-pixels ...` (same options; the "
-               f"encoder is pcam-cnn by default), or use the -v0 id")
+        fix = (f"rebuild it with `{_c16_rebuild_command(folder, ds)}` (its recorded options; the encoder is "
+               f"pcam-cnn by default), or use the -v0 id")
     else:  # a cohort of scanned slides (`histojax dataset`): no patch pools to share, only the encoder matters
         fix = (f"rebuild it with `histojax dataset SLIDES_DIR --out {folder} --encoder {want_encoder} ...` (same "
                f"options), or use the -v0 id")

@@ -225,14 +225,16 @@ def report(progress: Progress, update, metrics: dict):
 
 
 # ----------------------------------------------------------------------------- checkpoints
-def save_checkpoint(out: Path, params, config: dict, name: str = "params.msgpack") -> Path:
+def save_checkpoint(out: Path, params, config: dict, name: str = "params.msgpack", stage=None) -> Path:
     """Write ``params`` (any pytree of arrays; seeds stacked on axis 0) as flax msgpack and the
-    config as ``config.json`` beside it. Returns the params path."""
+    config as ``config.json`` beside it, each atomically, or staged in ``stage``
+    (:func:`baselines.outputs.staged`: written with the run's other files as a whole). Returns the params path."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     path = out / name
-    outputs.write_bytes(path, serialization.msgpack_serialize(jax.tree.map(np.asarray, jax.device_get(params))))
-    outputs.write_text(out / "config.json", json.dumps(config, indent=2, default=str))
+    w = stage or outputs
+    w.write_bytes(path, serialization.msgpack_serialize(jax.tree.map(np.asarray, jax.device_get(params))))
+    w.write_text(out / "config.json", json.dumps(config, indent=2, default=str))
     return path
 
 
@@ -261,13 +263,15 @@ def load_checkpoint(path) -> tuple[dict, dict]:
 
 
 # ----------------------------------------------------------------------------- logs
-def write_logs(out: Path, steps: np.ndarray, metrics: dict, summary: dict) -> None:
+def write_logs(out: Path, steps: np.ndarray, metrics: dict, summary: dict, stage=None) -> None:
     """``log.csv``: one row per logged update with the mean over seeds (and min/max of the success
-    rate over seeds); ``log.json``: the per-seed arrays and the summary."""
+    rate over seeds); ``log.json``: the per-seed arrays and the summary. Each written atomically, or
+    staged in ``stage`` (:func:`baselines.outputs.staged`)."""
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
+    files = stage or outputs
     keys = [k for k in ("return", "success", "length", "steps_to_success") if k in metrics]
-    with outputs.open_text(out / "log.csv") as f:
+    with files.open_text(out / "log.csv") as f:
         w = csv.writer(f)
         w.writerow(["step", "mean_return", "success_rate", "success_rate_min_seed", "success_rate_max_seed",
                     "mean_length", "mean_steps_to_success"])
@@ -278,7 +282,7 @@ def write_logs(out: Path, steps: np.ndarray, metrics: dict, summary: dict) -> No
                         _fmt(finite_mean(col["length"])), _fmt(finite_mean(col["steps_to_success"]))])
     data = {"summary": summary, "step": [int(s) for s in steps],
             "per_seed": {k: np.asarray(v).tolist() for k, v in metrics.items()}}
-    outputs.write_text(out / "log.json", json.dumps(data, default=_json_default))
+    files.write_text(out / "log.json", json.dumps(data, default=_json_default))
 
 
 def _fmt(v):
@@ -475,6 +479,204 @@ def seeds_runner(train, init_params, env_params, config: dict, progress: Progres
     return run
 
 
+# ----------------------------------------------------------------------------- chunks, checkpoints, resume
+CHECKPOINT_DIR = "checkpoint"     # RUN/checkpoint/: runner.msgpack, checkpoint.json, config.json
+RUNNER_FORMAT = 1
+
+
+def chunk_plan(num_updates: int, every: int | None) -> tuple[int, int]:
+    """``(chunk, n_chunks)``: a run of ``num_updates`` updates split into ``n_chunks`` chunks of ``chunk``
+    updates, checkpointed after each; ``chunk`` ≤ ``every`` (``None`` or ≤ 0: one chunk), the chunks as
+    even as they can be (``n_chunks × chunk − num_updates < n_chunks`` updates of the last chunk are skipped)."""
+    every = num_updates if every is None or every <= 0 else min(int(every), num_updates)
+    n_chunks = -(-num_updates // every)
+    return -(-num_updates // n_chunks), n_chunks
+
+
+def scan_updates(update, carry, first_update, n_updates: int, num_updates: int):
+    """``lax.scan`` of ``update(carry, i) -> (carry, metrics)`` over ``i = first_update + arange(n_updates)``;
+    an ``i ≥ num_updates`` is skipped (``lax.cond``: the carry is kept, its metrics are NaN), so the last,
+    shorter chunk of a run runs in the same compiled program as the others."""
+    def skip(c, i):
+        shapes = jax.eval_shape(update, c, i)[1]
+        return c, jax.tree.map(lambda s: jnp.full(s.shape, jnp.nan if jnp.issubdtype(s.dtype, jnp.inexact) else 0,
+                                                  s.dtype), shapes)
+
+    def body(c, i):
+        return jax.lax.cond(i < num_updates, update, skip, c, i)
+    return jax.lax.scan(body, carry, first_update + jnp.arange(n_updates))
+
+
+def chunked_runner(train):
+    """The run of ``train`` (a ``make_train`` runner with ``init_runner(key, env_params, params)``,
+    ``update(runner, update_index, env_params) -> (runner, metrics)`` and ``runner_params(runner)``, each
+    for one seed) in chunks of ``config["checkpoint_every"]`` updates (:func:`chunk_plan`): ``start(keys)``
+    → the seeds' runner states (params, optimizer state, env state, observation, key; seeds on axis 0);
+    ``chunk(runners, first_update)`` → ``(runners, metrics (seeds, chunk))``, compiled once (ahead of time,
+    on the first call; ``chunk.compile_seconds``). Seeds are vmapped (or ``lax.map``-ed with
+    ``vmap_seeds=False``) as in :func:`seeds_runner`."""
+    from histojax.registry import check_params
+
+    config, env_params, mesh = train.config, train.env_params, getattr(train, "mesh", None)
+    size, _ = chunk_plan(train.num_updates, config.get("checkpoint_every"))
+    place = (lambda x: x) if mesh is None else functools.partial(replicate_on, mesh)
+    check_params(train.env, env_params, where="train: env params")
+    env_params = place(env_params)
+
+    def start_all(keys, p):
+        params = jax.lax.map(lambda k: train.init_params(k, p), keys)  # lax.map: see seeds_runner
+        if config["vmap_seeds"]:
+            return jax.vmap(train.init_runner, in_axes=(0, None, 0))(keys, p, params)
+        return jax.lax.map(lambda kp: train.init_runner(kp[0], p, kp[1]), (keys, params))
+
+    def chunk_all(runners, p, first):
+        def one(r):
+            return scan_updates(lambda c, i: train.update(c, i, p), r, first, size, train.num_updates)
+        if config["vmap_seeds"]:
+            return jax.vmap(one)(runners)
+        return jax.lax.map(one, runners)
+
+    start_jit, chunk_jit = jax.jit(start_all), jax.jit(chunk_all)
+    compiled = {}
+
+    def start(keys):
+        return start_jit(place(keys), env_params)
+
+    def template(keys):
+        """The runner states' structure, shapes and dtypes (``jax.eval_shape``; nothing runs)."""
+        return jax.eval_shape(start_all, place(keys), env_params)
+
+    def chunk(runners, first_update: int):
+        first = jnp.asarray(first_update, jnp.int32)
+        if "exe" not in compiled:
+            t0 = time.perf_counter()
+            compiled["exe"] = chunk_jit.lower(runners, env_params, first).compile()
+            chunk.compile_seconds = time.perf_counter() - t0
+        return compiled["exe"](runners, env_params, first)
+
+    chunk.compile_seconds = 0.0  # the compile of the first call, seconds
+    start.template, start.size = template, size
+    return start, chunk
+
+
+def save_runner(folder: Path, runners, update: int, metrics: dict, train_seconds: float, config: dict,
+                num_updates: int, chunk: int) -> Path:
+    """Write a run's state after ``update`` updates into ``folder`` (``RUN/checkpoint``): ``runner.msgpack``
+    (flax msgpack: every array of the seeds' runner states, the metrics so far, the update index), then
+    ``checkpoint.json`` (a summary for people). Each file atomically; the msgpack holds all that
+    :func:`load_runner` needs, so a run killed between the two resumes from the msgpack."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    leaves = jax.tree.leaves(jax.device_get(runners))
+    state = {"format": RUNNER_FORMAT, "update": int(update), "num_updates": int(num_updates), "chunk": int(chunk),
+             "train_seconds": float(train_seconds),
+             "leaves": {str(i): np.asarray(a) for i, a in enumerate(leaves)},
+             "metrics": {k: np.asarray(v) for k, v in metrics.items()}}
+    path = outputs.write_bytes(folder / "runner.msgpack", serialization.msgpack_serialize(state))
+    outputs.write_text(folder / "checkpoint.json", json.dumps(
+        {"update": int(update), "num_updates": int(num_updates), "checkpoint_every": int(chunk),
+         "train_seconds": round(float(train_seconds), 3), "saved": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+         "resume": f"histojax train --algo {config.get('algo', 'ppo')} --resume {folder.parent}"}, indent=1))
+    return path
+
+
+def load_runner(folder: Path, template, num_updates: int, chunk: int):
+    """``(runners, update, metrics, train_seconds)`` from ``folder/runner.msgpack`` (:func:`save_runner`),
+    checked against ``template`` (:func:`chunked_runner`'s ``start.template``: the runner states this config
+    makes) and the run's ``num_updates`` / ``chunk``. A missing, corrupt or mismatching file raises
+    HistojaxDataError naming it."""
+    path = Path(folder) / "runner.msgpack"
+    try:
+        state = serialization.msgpack_restore(path.read_bytes())
+    except OSError as e:
+        raise HistojaxDataError(path, f"cannot read the run's checkpoint ({e.strerror or e}); nothing to resume") from e
+    except Exception as e:  # msgpack's errors share no base
+        raise HistojaxDataError(path, f"not a readable checkpoint, truncated or corrupt ({e})") from e
+    if not isinstance(state, dict) or state.get("format") != RUNNER_FORMAT or "leaves" not in state:
+        raise HistojaxDataError(path, "not a histojax training checkpoint (no runner state of format "
+                                      f"{RUNNER_FORMAT})")
+    if (state["num_updates"], state["chunk"]) != (num_updates, chunk):
+        raise HistojaxDataError(path, f"saved for {state['num_updates']} updates in chunks of {state['chunk']}, "
+                                      f"but the run's config.json makes {num_updates} in chunks of {chunk}")
+    want, treedef = jax.tree.flatten(template)
+    got = [state["leaves"].get(str(i)) for i in range(len(want))]
+    if len(state["leaves"]) != len(want) or any(
+            g is None or tuple(np.shape(g)) != tuple(w.shape) or np.asarray(g).dtype != w.dtype
+            for g, w in zip(got, want)):
+        raise HistojaxDataError(path, "its arrays do not match the runner state of the run's config.json "
+                                      "(another trainer, network or env); train again")
+    return (jax.tree.unflatten(treedef, [jnp.asarray(g) for g in got]), int(state["update"]),
+            {k: np.asarray(v) for k, v in state["metrics"].items()}, float(state["train_seconds"]))
+
+
+def tensorboard_writer(out: Path):
+    """A ``tensorboardX.SummaryWriter`` writing event files into ``out`` (beside ``log.csv``), or None when
+    tensorboardX is not installed (it is optional: ``pip install tensorboardX``)."""
+    try:
+        from tensorboardX import SummaryWriter
+    except ImportError:
+        return None
+    return SummaryWriter(logdir=str(out))
+
+
+def run_chunked(train, out: Path, keys=None, resume: bool = False, on_checkpoint=None):
+    """Run ``train`` in chunks (:func:`chunked_runner`), writing ``out/checkpoint/`` after each
+    (:func:`save_runner`; the run's config in ``out/checkpoint/config.json`` first) and TensorBoard scalars
+    into ``out`` when tensorboardX is installed. ``resume``: continue from ``out/checkpoint`` (same config);
+    the result equals the uninterrupted run's bit for bit (the same compiled chunk on the same states).
+    ``on_checkpoint(update)`` is called after each checkpoint. Returns ``({"params", "metrics"},
+    compile seconds, train seconds)`` with metrics ``(seeds, num_updates)``."""
+    out, config, num_updates = Path(out), train.config, train.num_updates
+    folder = out / CHECKPOINT_DIR
+    keys = jax.random.split(jax.random.PRNGKey(config.get("seed", 0)), config["num_seeds"]) if keys is None else keys
+    if getattr(train, "chunked", None) is None:  # made once per trainer: the chunk compiles once
+        train.chunked = chunked_runner(train)
+    start, chunk = train.chunked
+    if resume:
+        runners, done, metrics, train_s = load_runner(folder, start.template(keys), num_updates, start.size)
+        print(f"resuming {out} at update {done}/{num_updates}", flush=True)
+        compile_s = 0.0
+    else:
+        folder.mkdir(parents=True, exist_ok=True)
+        outputs.write_text(folder / "config.json", json.dumps(config, indent=2, default=str))
+        t0 = time.perf_counter()
+        runners = jax.block_until_ready(start(keys))
+        compile_s, train_s, done, metrics = time.perf_counter() - t0, 0.0, 0, {}
+    writer = tensorboard_writer(out) if jax.process_index() == 0 else None
+    try:
+        while done < num_updates:
+            t0, compiled_before = time.perf_counter(), chunk.compile_seconds
+            runners, m = chunk(runners, done)
+            m = jax.block_until_ready(m)
+            compiled_now = chunk.compile_seconds - compiled_before  # > 0 on the first call only
+            compile_s += compiled_now
+            train_s += time.perf_counter() - t0 - compiled_now
+            n = min(start.size, num_updates - done)  # the last chunk's skipped updates are dropped
+            m = {k: np.asarray(v)[:, :n] for k, v in jax.device_get(m).items()}
+            if writer is not None:
+                _tensorboard_scalars(writer, m, done, train.steps_per_update)
+            metrics = {k: np.concatenate([metrics[k], v], axis=1) if k in metrics else v for k, v in m.items()}
+            done += n
+            save_runner(folder, runners, done, metrics, train_s, config, num_updates, start.size)
+            if on_checkpoint is not None:
+                on_checkpoint(done)
+    finally:
+        if writer is not None:
+            writer.close()
+    return {"params": train.runner_params(runners), "metrics": metrics}, compile_s, train_s
+
+
+def _tensorboard_scalars(writer, metrics: dict, first_update: int, steps_per_update: int) -> None:
+    """The seed means of one chunk's ``metrics`` (``(seeds, n)``) as scalars ``train/NAME`` at env steps per seed."""
+    for j in range(next(iter(metrics.values())).shape[1]):
+        step = (first_update + j + 1) * steps_per_update
+        for k, v in metrics.items():
+            value = finite_mean(v[:, j])
+            if np.isfinite(value):
+                writer.add_scalar(f"train/{k}", value, step)
+    writer.flush()
+
+
 # ----------------------------------------------------------------------------- the command line and a run
 def add_arguments(p, defaults: dict) -> None:
     """Declare a trainer's options on the parser (or argument group) ``p``, with ``defaults`` its
@@ -482,6 +684,11 @@ def add_arguments(p, defaults: dict) -> None:
     ``histojax train --algo ...`` and ``baselines.rotation``."""
     p.add_argument("--env", default=defaults["env_id"], help="registered env id")
     p.add_argument("--slide", default=None, help="bundle folder (default: the embedded sample slide)")
+    p.add_argument("--dataset", default=None, metavar="DIR",
+                   help="a dataset folder (histojax dataset / data_tools c16 / synth; its dataset.json): "
+                        "train on its slides (make(env, dataset=DIR))")
+    p.add_argument("--split", default=None, metavar="S",
+                   help="with --dataset: the split to train on (default: the env's, 'train')")
     p.add_argument("--action-mode", default="discrete",
                    help="discrete | continuous | glimpse[:LEVEL] | zoom_select[:K] (histojax.modes)")
     p.add_argument("--obs-mode", "--obs", dest="obs_mode", default="pixels",
@@ -503,6 +710,14 @@ def add_arguments(p, defaults: dict) -> None:
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other config entry, value parsed as JSON (e.g. --set ent_coef=0.02)")
     p.add_argument("--out", default=None, help="run folder (default runs/<algo>-<env>)")
+    if "checkpoint_every" in defaults:
+        p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
+                       help=f"save the whole training state to OUT/checkpoint/ every N updates "
+                            f"(default {defaults['checkpoint_every']}; 0: only at the end)")
+        p.add_argument("--resume", default=None, metavar="RUN",
+                       help="continue the killed run in folder RUN from its last checkpoint, with its own "
+                            "config (RUN/checkpoint/config.json; other options are ignored); the result equals an "
+                            "uninterrupted run's")
 
 
 def parse_args(argv=None, defaults: dict | None = None, description: str = ""):
@@ -517,6 +732,13 @@ def config_from_args(args, defaults: dict) -> dict:
               "obs_mode": args.obs_mode, "with_position": args.with_position, "reward": args.reward,
               "num_seeds": args.seeds, "seed": args.seed, "total_timesteps": args.total_steps,
               "num_envs": args.num_envs, "lr": args.lr}
+    if getattr(args, "dataset", None) is not None or getattr(args, "split", None) is not None:
+        if args.dataset is None:
+            raise SystemExit("--split needs --dataset DIR")
+        config["env_kwargs"] = {**(config.get("env_kwargs") or {}), "dataset": args.dataset,
+                                **({"split": args.split} if args.split is not None else {})}
+    if getattr(args, "checkpoint_every", None) is not None:
+        config["checkpoint_every"] = args.checkpoint_every
     if args.devices is not None:
         if "devices" not in defaults:
             raise SystemExit("--devices is supported by the PPO baseline only")
@@ -554,14 +776,17 @@ def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_
                "env_steps_per_second_all_seeds": float(steps[-1] * metrics["success"].shape[0] / train_seconds),
                "final_window_updates": k, "final": final, "final_per_seed": final_per_seed,
                "random_agent": ref}
-    write_logs(out, steps, metrics, summary)
     panels = {"mean return": smooth(metrics["return"], k), "success rate": smooth(metrics["success"], k),
               "mean steps to success": smooth(metrics["steps_to_success"], k)}
     title = (f"{algo.upper()} on {config['env_id']} ({config['action_mode']}, obs {config['obs_mode']}"
              f"{' + position' if config['with_position'] else ''}), {_count(metrics['success'].shape[0], 'seed')}")
-    plot_curves(out / "curve.png", steps, panels, title=title,
-                       reference={"mean return": ref["return"], "success rate": ref["success"]})
-    save_checkpoint(out, params, config)
+    # the run's files as a whole: on a full disk (the error names the file) the previous run's stay together
+    with outputs.staged() as stage:
+        write_logs(out, steps, metrics, summary, stage=stage)
+        with stage.writing(out / "curve.png") as tmp:
+            plot_curves(tmp, steps, panels, title=title,
+                        reference={"mean return": ref["return"], "success rate": ref["success"]})
+        save_checkpoint(out, params, config, stage=stage)
     print(f"\n{algo} {config['env_id']}: {steps[-1]:,} env steps/seed x {summary['seeds']} seeds in "
           f"{train_seconds:.0f} s (+{compile_seconds:.0f} s compile), "
           f"{summary['env_steps_per_second_all_seeds']:,.0f} env steps/s")
@@ -576,12 +801,35 @@ def train_and_save(algo: str, make_train_fn, args, defaults: dict, unit: str) ->
     """The command of a baseline (shared by every algorithm file), on ``args`` parsed with
     :func:`add_arguments`: compile, train all seeds in one program, then write logs, curve and
     checkpoint with :func:`finish_run`."""
+    if getattr(args, "resume", None) is not None:
+        run = Path(args.resume)
+        config = resume_config(run, algo)
+        run_and_save(algo, make_train_fn, config, run, unit, resume=True)
+        return 0
     config = config_from_args(args, defaults=defaults)
     if (args.coordinator is not None or args.distributed) and "devices" not in defaults:
         raise SystemExit("several processes (--coordinator / --distributed) are supported by the PPO baseline only")
     distributed.from_args(args)
     run_and_save(algo, make_train_fn, config, Path(args.out or f"runs/{algo}-{config['env_id']}"), unit)
     return 0
+
+
+def resume_config(run: Path, algo: str) -> dict:
+    """The config of the run to resume in folder ``run`` (``run/checkpoint/config.json``, written when it
+    started). A missing or unreadable file, or another trainer's run, raises HistojaxDataError naming it."""
+    path = Path(run) / CHECKPOINT_DIR / "config.json"
+    try:
+        config = json.loads(path.read_text(encoding="utf-8"))
+    except OSError as e:
+        raise HistojaxDataError(path, f"cannot read the run's config ({e.strerror or e}): not a run started with "
+                                      "checkpoints, nothing to resume") from e
+    except ValueError as e:
+        raise HistojaxDataError(path, f"not valid JSON, truncated or corrupt ({e})") from e
+    if not isinstance(config, dict):
+        raise HistojaxDataError(path, "not a run config (a JSON object)")
+    if config.get("algo", algo) != algo:
+        raise HistojaxDataError(path, f"a {config['algo']} run; resume it with --algo {config['algo']}")
+    return canonical_config(config)
 
 
 def trainer_command(algo: str, make_train_fn, defaults: dict, unit: str, doc: str):
@@ -609,10 +857,13 @@ def compile_and_run(train, keys) -> tuple[dict, float, float]:
     return result, compile_s, time.perf_counter() - t0
 
 
-def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = "updates"):
+def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = "updates", resume: bool = False,
+                 on_checkpoint=None):
     """Make, compile and run the trainer for ``config`` (all seeds in one program, compile time
-    measured apart), then :func:`finish_run` into ``out``. Returns ``(config, params, summary)``
-    with the trainer's full config."""
+    measured apart), then :func:`finish_run` into ``out``. A trainer that runs in chunks (PPO,
+    recurrent PPO, DQN: ``train.init_runner``) saves its whole state to ``out/checkpoint/`` every
+    ``checkpoint_every`` updates (:func:`run_chunked`); ``resume`` continues from there.
+    Returns ``(config, params, summary)`` with the trainer's full config."""
     train = make_train_fn(config)
     config = train.config
     if config.get("shard_slides"):
@@ -622,10 +873,20 @@ def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = 
         per = device_bytes(train.env_params.slide)
         print(f"process {jax.process_index()} of {jax.process_count()}: {n} slide(s), {nbytes:,} bytes of slide arrays "
               f"on its {len(per)} device(s), {max(per.values()):,} on each", flush=True)
-    keys = jax.random.split(jax.random.PRNGKey(config["seed"]), config["num_seeds"])
-    print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps x "
-          f"{config['num_seeds']} seeds; compiling ...", flush=True)
-    result, compile_s, train_s = compile_and_run(train, keys)
+    keys = jax.random.split(jax.random.PRNGKey(config.get("seed", 0)), config["num_seeds"])
+    chunked = hasattr(train, "init_runner") and jax.process_count() == 1
+    if resume and not chunked:
+        raise ValueError(f"{algo} runs on several processes cannot resume (no checkpoints along the way)")
+    if chunked:
+        chunk, n_chunks = chunk_plan(train.num_updates, config.get("checkpoint_every"))
+        print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps "
+              f"x {config['num_seeds']} seeds, checkpoint every {chunk} {unit} in {out}/{CHECKPOINT_DIR}; "
+              "compiling ...", flush=True)
+        result, compile_s, train_s = run_chunked(train, out, keys, resume=resume, on_checkpoint=on_checkpoint)
+    else:
+        print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps "
+              f"x {config['num_seeds']} seeds; compiling ...", flush=True)
+        result, compile_s, train_s = compile_and_run(train, keys)
     if jax.process_index() > 0:  # several processes: process 0 writes the run, the others their parameters
         save_checkpoint(out / f"process-{jax.process_index()}", result["params"], config)
         print(f"process {jax.process_index()}: {train_s:.1f} s; wrote {out}/process-{jax.process_index()}/params.msgpack")

@@ -71,6 +71,7 @@ class PPOConfig(common.EnvConfig):
     vmap_seeds: bool = True              # all seeds in one vmapped program
     log_every: int = 4                   # updates per progress line
     print_progress: bool = True
+    checkpoint_every: int = 50           # updates between checkpoints of the whole training state (0: only the end)
     devices: int | None = None           # shard the env batch over the first N devices
     shard_slides: bool = False           # with devices: split the dataset's slides over them
 
@@ -260,12 +261,16 @@ def make_train(config: dict):
         """Network parameters → the train state (optimizer state fresh, step 0)."""
         return TrainState.create(apply_fn=network.apply, params=params, tx=tx)
 
-    def run_updates(state, key, env_params, first_update, n_updates: int):
-        """``n_updates`` PPO updates from freshly reset envs: ``(state, key, metrics)``;
-        ``first_update`` (the index of the first, for progress) may be traced."""
+    def init_runner(key, env_params, params):
+        """One seed's runner state before the first update: ``(train state, env states, observations, key)``
+        with the envs freshly reset."""
         key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs, reset_all)
         obs0, env_state = shard((obs0, env_state))
+        return init_state(params), env_state, obs0, key
 
+    def update(carry, update_index, env_params):
+        """One PPO update (``num_steps`` steps of every env, GAE, minibatch epochs) of a runner state
+        ``carry`` (:func:`init_runner`): ``(carry, metrics)``."""
         def env_step(carry, _):
             state, env_state, obs, key = carry
             key, k_act, k_step = jax.random.split(key, 3)
@@ -280,29 +285,33 @@ def make_train(config: dict):
             next_obs, env_state = shard((preprocess_obs(next_obs), env_state))
             return (state, env_state, next_obs, key), t
 
-        def update(carry, update_index):
-            (state, env_state, obs, key), traj = jax.lax.scan(env_step, carry, None, num_steps)
-            _, last_value = network.apply(state.params, obs)
-            advantages, targets = gae(traj, last_value, config["gamma"], config["gae_lambda"])
+        (state, env_state, obs, key), traj = jax.lax.scan(env_step, carry, None, num_steps)
+        _, last_value = network.apply(state.params, obs)
+        advantages, targets = gae(traj, last_value, config["gamma"], config["gae_lambda"])
 
-            def loss_fn(params, mb):
-                traj, adv, target = mb
-                pi, value = network.apply(params, traj.obs)
-                return clipped_loss(pi, value, traj, adv, target, config,
-                                    entropy_coef(config, update_index, num_updates))
+        def loss_fn(params, mb):
+            traj, adv, target = mb
+            pi, value = network.apply(params, traj.obs)
+            return clipped_loss(pi, value, traj, adv, target, config,
+                                entropy_coef(config, update_index, num_updates))
 
-            def minibatches(k_perm):
-                flat = jax.tree.map(lambda a: a.reshape(batch, *a.shape[2:]), (traj, advantages, targets))
-                perm = jax.random.permutation(k_perm, batch)
-                mbs = jax.tree.map(lambda a: a[perm].reshape(config["num_minibatches"], minibatch, *a.shape[1:]), flat)
-                return shard(mbs, axis=1)  # each minibatch split over the devices
+        def minibatches(k_perm):
+            flat = jax.tree.map(lambda a: a.reshape(batch, *a.shape[2:]), (traj, advantages, targets))
+            perm = jax.random.permutation(k_perm, batch)
+            mbs = jax.tree.map(lambda a: a[perm].reshape(config["num_minibatches"], minibatch, *a.shape[1:]), flat)
+            return shard(mbs, axis=1)  # each minibatch split over the devices
 
-            state, key, aux = run_epochs(state, key, loss_fn, minibatches, config["update_epochs"])
-            metrics = update_metrics(traj.info, aux, progress, update_index, config)
-            return (state, env_state, obs, key), metrics
+        state, key, aux = run_epochs(state, key, loss_fn, minibatches, config["update_epochs"])
+        metrics = update_metrics(traj.info, aux, progress, update_index, config)
+        return (state, env_state, obs, key), metrics
 
+    def run_updates(state, key, env_params, first_update, n_updates: int):
+        """``n_updates`` PPO updates from freshly reset envs: ``(state, key, metrics)``;
+        ``first_update`` (the index of the first, for progress) may be traced."""
+        _, env_state, obs0, key = init_runner(key, env_params, state.params)
         carry = (state, env_state, obs0, key)
-        (state, _, _, key), metrics = jax.lax.scan(update, carry, first_update + jnp.arange(n_updates))
+        (state, _, _, key), metrics = jax.lax.scan(lambda c, i: update(c, i, env_params), carry,
+                                                   first_update + jnp.arange(n_updates))
         return state, key, metrics
 
     def train(key, env_params, params):
@@ -311,6 +320,8 @@ def make_train(config: dict):
 
     run = common.seeds_runner(train, init_params, env_params, config, progress, mesh, env=env)
     run.init_params, run.init_state, run.run_updates, run.progress = init_params, init_state, run_updates, progress
+    # the pieces of a run in chunks with checkpoints (common.run_chunked)
+    run.init_runner, run.update, run.runner_params = init_runner, update, lambda runner: runner[0].params
     run.env, run.env_params, run.network, run.num_updates, run.config = env, env_params, network, num_updates, config
     run.steps_per_update = batch
     return run

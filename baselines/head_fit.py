@@ -1,0 +1,262 @@
+"""Fit the slide head (:mod:`histojax.head`) of a dataset: ``python -m baselines.head_fit --dataset DIR --out DIR``.
+
+Candidates: neighbourhood sides ``--ks`` (default 1 2 3 4 5 views; 1 = the plain view logit), pooled by
+the maximum or the mean of the 3 largest, with or without the slide's median logit subtracted. Each is
+calibrated (1-D logistic regression of the slide labels on its statistic, reading everything) on the
+training split minus a validation share (:func:`baselines.validation.split_train`: per class, a tumour
+slide with its tissue donor; ``--val-fraction`` 0.2, ``--seed`` 0) and scored by its AUC on that
+validation share; the best one (ties: the higher training AUC, then the simplest, in the order listed) is re-calibrated on the
+whole training split and saved to ``--out`` (``config.json`` records every candidate's validation AUC).
+The test split is never read.
+
+Also the data loading every head-based tool shares: :func:`load_slides` reads, straight from each
+bundle (no env), the finest level's view-logit map ``(H, W)``, its tissue views ``(H, W)`` (as the
+reading modes count them: :func:`histojax.reading.tissue_views`), the coarser levels' logit maps and
+the annotation's tumour geometry.
+"""
+from __future__ import annotations
+
+import json
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from baselines.metrics import roc_auc
+from data_tools.cli_output import command_main, print_error
+from data_tools.errors import HistojaxDataError
+from data_tools.features import pcam_cnn
+
+TOPS = (1, 3)
+
+
+class HeadDataError(HistojaxDataError):
+    """A dataset or bundle the head tools cannot read (file named, one line)."""
+
+
+def read_spec(dataset) -> dict:
+    """The dataset's ``dataset.json`` (``HeadDataError`` naming it when missing or malformed)."""
+    path = Path(dataset) / "dataset.json"
+    try:
+        spec = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise HeadDataError(path, "missing (not a dataset folder: build one with `python -m data_tools c16` or "
+                                  "`python -m data_tools dataset`)") from None
+    except (OSError, json.JSONDecodeError) as e:
+        raise HeadDataError(path, f"unreadable ({e})") from None
+    if not isinstance(spec, dict) or not isinstance(spec.get("train"), list):
+        raise HeadDataError(path, "has no \"train\" list of bundles")
+    return spec
+
+
+def _label(spec: dict, name: str) -> int:
+    from baselines.validation import slide_label
+
+    return slide_label(spec, name)
+
+
+def load_slide(bundle, label: int, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,)) -> dict:
+    """One bundle's arrays: ``logits (H, W)`` float32 (entry ``dim`` of the finest level's views),
+    ``tissue (H, W)`` bool, ``coarse {level: (h, w) float32}`` for each bundle level in ``levels`` > 0
+    (cell ``(cy, cx)`` of level ``L`` covers finest views ``[cy·2^L, (cy+1)·2^L)`` when the levels halve),
+    ``downsample {level: float}``, ``mpp`` (µm per finest px), ``tile`` (view side, px), ``tumour``
+    (shapely geometry in finest px, or None), ``name``, ``label``, ``bundle``."""
+    from data_tools.annotations import load_annotations
+    from histojax.reading import grid, tissue_views
+
+    bundle = Path(bundle)
+    meta_file = bundle / "metadata.json"
+    try:
+        meta = json.loads(meta_file.read_text())
+        feats = meta.get("features") or {}
+        if not feats.get("levels"):
+            raise HeadDataError(meta_file, "has no feature grids: run `python -m data_tools features "
+                                           f"{bundle} --encoder pcam-cnn`")
+        tile, stride = int(meta["tile_size"]), int(feats["stride"])
+        width, height = int(meta["levels"][0]["width"]), int(meta["levels"][0]["height"])
+        if not 0 <= dim < int(feats.get("dim", 0)):
+            raise HeadDataError(meta_file, f"features have {feats.get('dim')} entries, no entry {dim}")
+        gh, gw = grid(width, height, tile, tile)
+        fg = np.load(bundle / feats["levels"][0]["file"], mmap_mode="r")
+        fg = fg.reshape(*feats["levels"][0]["grid"], -1) if fg.ndim == 2 else fg
+        fy = np.clip((np.arange(gh) * tile + stride // 2) // stride, 0, fg.shape[0] - 1)
+        fx = np.clip((np.arange(gw) * tile + stride // 2) // stride, 0, fg.shape[1] - 1)
+        logits = np.asarray(fg[:, :, dim], np.float32)[fy[:, None], fx[None, :]]
+        tissue = tissue_views(SimpleNamespace(tissue=np.load(bundle / meta["tissue"]["file"])),
+                              SimpleNamespace(downsample=[1.0], level_width=[width], level_height=[height]), tile)
+        coarse, downsample = {}, {}
+        for lv in levels:
+            if lv == 0:
+                continue
+            g = np.load(bundle / feats["levels"][lv]["file"], mmap_mode="r")
+            g = g.reshape(*feats["levels"][lv]["grid"], -1) if g.ndim == 2 else g
+            coarse[lv] = np.asarray(g[:, :, dim], np.float32)
+            downsample[lv] = float(meta["levels"][lv]["downsample"])
+        tumour = None
+        if label and (bundle / "annotations.geojson").is_file():
+            tumour = load_annotations(bundle / "annotations.geojson").tumour
+    except HistojaxDataError:
+        raise
+    except FileNotFoundError as e:
+        raise HeadDataError(e.filename, "missing (an incomplete bundle? rebuild it)") from None
+    except (OSError, KeyError, IndexError, TypeError, ValueError, json.JSONDecodeError) as e:
+        raise HeadDataError(bundle, f"unreadable bundle ({type(e).__name__}: {e})") from None
+    if not np.all(np.isfinite(logits[tissue])):
+        raise HeadDataError(bundle / feats["levels"][0]["file"], "non-finite feature values on tissue views")
+    return {"name": bundle.name, "label": int(label), "bundle": bundle, "logits": logits, "tissue": tissue,
+            "coarse": coarse, "downsample": downsample, "mpp": float(meta["source"].get("mpp") or "nan"),
+            "tile": tile, "stride": stride, "tumour": tumour, "encoder": feats.get("encoder")}
+
+
+def load_slides(dataset, split, spec: dict | None = None, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,),
+                progress: bool = False) -> list[dict]:
+    """:func:`load_slide` of every bundle of ``split`` (``"train"``, ``"test"``, or a list of entries of
+    ``dataset.json``'s lists)."""
+    dataset = Path(dataset)
+    spec = spec or read_spec(dataset)
+    entries = spec.get(split) if isinstance(split, str) else list(split)
+    if entries is None:
+        raise HeadDataError(dataset / "dataset.json", f"has no {split!r} split")
+    out = []
+    for i, rel in enumerate(entries):
+        bundle = Path(rel) if Path(rel).is_absolute() else dataset / rel
+        out.append(load_slide(bundle, _label(spec, Path(rel).name), dim, levels))
+        if progress and (i + 1) % 20 == 0:
+            print(f"  loaded {i + 1}/{len(entries)} slides", file=sys.stderr, flush=True)
+    return out
+
+
+def padded(arrays: list[np.ndarray], fill=0) -> np.ndarray:
+    """``(B, Hmax, Wmax)`` stack of 2-D arrays padded with ``fill`` at the bottom / right."""
+    h = max(a.shape[0] for a in arrays)
+    w = max(a.shape[1] for a in arrays)
+    out = np.full((len(arrays), h, w), fill, dtype=arrays[0].dtype)
+    for i, a in enumerate(arrays):
+        out[i, : a.shape[0], : a.shape[1]] = a
+    return out
+
+
+def statistics(head, slides: list[dict], masks: list[np.ndarray] | None = None) -> np.ndarray:
+    """The head's pooled statistic ``(B,)`` of each slide over ``masks`` (default its tissue views)."""
+    from histojax.head import statistic_batch
+
+    masks = [s["tissue"] for s in slides] if masks is None else masks
+    return np.asarray(statistic_batch(head, padded([s["logits"] for s in slides], 0.0), padded(list(masks), False)))
+
+
+def logistic_fit(x, y, steps: int = 3000) -> tuple[float, float]:
+    """``(a, b)`` minimising the mean log loss of ``sigmoid(a · x + b)`` against 0/1 ``y`` (convex, 2 parameters;
+    a small L2 penalty keeps ``a`` finite when the classes separate)."""
+    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
+    mu, sd = x.mean(), x.std() + 1e-9
+    z, w, c = (x - mu) / sd, 0.0, 0.0
+    for _ in range(steps):
+        p = 1.0 / (1.0 + np.exp(-np.clip(w * z + c, -60, 60)))
+        w -= 0.5 * (float(np.mean((p - y) * z)) + 1e-3 * w)
+        c -= 0.5 * float(np.mean(p - y))
+    return w / sd, c - w * mu / sd
+
+
+def candidates(ks=(1, 2, 3, 4, 5), dim: int = pcam_cnn.VIEW_LOGIT, encoder: str | None = pcam_cnn.NAME) -> list:
+    """The candidate heads (uncalibrated), simplest first: for each ``k``, top-1 then top-3, each
+    without then with the median subtracted."""
+    from histojax.head import SlideHead
+
+    return [SlideHead(dim=dim, k=int(k), top=t, minus_median=m, encoder=encoder)
+            for k in ks for t in TOPS for m in (False, True)]
+
+
+def calibrated(head, slides: list[dict]):
+    """``head`` with ``(a, b)`` fitted on ``slides`` (reading everything) and the prior log odds."""
+    import jax.numpy as jnp
+
+    labels = np.asarray([s["label"] for s in slides])
+    a, b = logistic_fit(statistics(head, slides), labels)
+    p = np.clip(labels.mean(), 1e-3, 1 - 1e-3)
+    return head.replace(a=jnp.float32(a), b=jnp.float32(b), prior_logit=jnp.float32(np.log(p / (1 - p))))
+
+
+def choose(train: list[dict], val: list[dict], cands) -> tuple[object, list[dict]]:
+    """Calibrate each candidate on ``train``, score it on ``val``; returns the best (highest validation AUC,
+    ties to the higher training AUC, then to the earliest) and the table ``[{name, k, top, minus_median, train_auc, validation_auc}]``."""
+    y_tr, y_va = [s["label"] for s in train], [s["label"] for s in val]
+    table, best, best_key = [], None, (-1.0, -1.0)
+    for c in cands:
+        h = calibrated(c, train)
+        auc_va = round(roc_auc(statistics(h, val), y_va), 4)
+        auc_tr = round(roc_auc(statistics(h, train), y_tr), 4)
+        table.append({"name": c.name, "k": c.k, "top": c.top, "minus_median": c.minus_median,
+                      "train_auc": auc_tr, "validation_auc": auc_va})
+        if (auc_va, auc_tr) > best_key:
+            best, best_key = c, (auc_va, auc_tr)
+    return best, table
+
+
+def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3, 4, 5),
+        dim: int = pcam_cnn.VIEW_LOGIT, progress: bool = False):
+    """Choose and fit the head of ``dataset`` (see the module doc); saved to ``out`` when given.
+    Returns ``(head, table of candidates)``."""
+    import datetime
+
+    import jax
+
+    from baselines.validation import split_train
+
+    spec = read_spec(dataset)
+    kept, held = split_train(spec, val_fraction, seed)
+    train = load_slides(dataset, spec["train"], spec, dim, progress=progress)
+    by_name = {s["name"]: s for s in train}
+    tr = [by_name[Path(n).name] for n in kept]
+    va = [by_name[Path(n).name] for n in held]
+    encoders = {s["encoder"] for s in train}
+    encoder = encoders.pop() if len(encoders) == 1 else None
+    best, table = choose(tr, va, candidates(ks, dim, encoder))
+    head = calibrated(best, train)
+    chosen = next(r for r in table if r["name"] == best.name)
+    info = {"fitted_on": {"dataset": str(Path(dataset).resolve()), "split": "train", "slides": len(train),
+                          "tumour_slides": int(sum(s["label"] for s in train))},
+            "chosen_on": {"validation_fraction": val_fraction, "seed": seed, "train_slides": len(tr),
+                          "validation_slides": len(va), "validation_auc": chosen["validation_auc"]},
+            "candidates": table, "date": datetime.date.today().isoformat(), "jax": jax.__version__}
+    head = head.replace(info=json.dumps(info))
+    if out is not None:
+        head.save(out)
+    return head, table
+
+
+def add_arguments(p) -> None:
+    """The options of ``python -m baselines.head_fit``."""
+    p.add_argument("--dataset", required=True, help="dataset folder (dataset.json with a train split; feature grids)")
+    p.add_argument("--out", required=True, help="folder to save the head in (config.json, params.json)")
+    p.add_argument("--val-fraction", type=float, default=0.2, help="share of training slides held back to choose "
+                                                                    "among the candidates (default 0.2)")
+    p.add_argument("--seed", type=int, default=0, help="seed of the validation split (default 0)")
+    p.add_argument("--ks", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="neighbourhood sides to try (views)")
+    p.add_argument("--dim", type=int, default=pcam_cnn.VIEW_LOGIT,
+                   help=f"feature entry holding the view tumour logit (default {pcam_cnn.VIEW_LOGIT}: pcam-cnn's)")
+
+
+def run(args, parser=None) -> int:
+    """Fit, save and print the candidates' table."""
+    if any(k < 1 for k in args.ks):
+        return print_error(f"--ks: neighbourhood sides must be ≥ 1, got {args.ks}")
+    t0 = time.perf_counter()
+    try:
+        head, table = fit(args.dataset, args.out, args.val_fraction, args.seed, args.ks, args.dim, progress=True)
+    except (HistojaxDataError, ValueError) as e:
+        return print_error(e)
+    print("| candidate | train AUC | validation AUC |\n|---|---|---|")
+    for r in table:
+        print(f"| {r['name']} | {r['train_auc']:.3f} | {r['validation_auc']:.3f} |")
+    print(f"chosen: {head.name} (slide logit = {float(head.a):.3f} · s + {float(head.b):.3f}); saved to {args.out} "
+          f"in {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+main = command_main(add_arguments, run, "python -m baselines.head_fit", __doc__)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,443 @@
+"""Scripted readers, CAMELYON lesion classes and the budget curve with one slide head for every row:
+``python -m baselines.readers --dataset DIR --head DIR --out DIR``.
+
+Every reader produces, per slide and budget, a **read mask** ``(H, W)`` bool over the finest-level
+views; the same head (:mod:`histojax.head`, fitted by :mod:`baselines.head_fit`) scores every mask:
+
+* ``overview only`` — nothing of the finest level is read (fraction 0): the head applied to the cell
+  grid's own low-resolution logits (the overview every reader sees before reading);
+* ``random reader`` — cells in a uniformly random order (``--seeds`` orders, mean ± std);
+* ``logit reader`` — cells by their low-resolution tumour logit, highest first (follow the coarse logits);
+* ``search reader`` — the logit reader, except that once a read cell shows a finest view logit above
+  ``SEARCH_THRESHOLD`` its unread neighbouring cells are read next (hottest first): a spatial search
+  around the best cells;
+* ``read everything`` — every tissue view (fraction 1);
+* learned readers — any reader's masks, added with :func:`add_reader` (e.g. from
+  :func:`baselines.budget_curve.policy_reads` through :func:`masks_from_instances`).
+
+**Cells** are the views of bundle level ``--cell-level`` (default 2: a cell covers 4 × 4 finest views,
+as the glimpse cells one level per halving above); a cell is valid when a finest tissue view lies under
+it. A reader reads cells as the ``glimpse`` env does (:func:`baselines.budget_curve.read_cells`): a cell
+is read while its tissue views still fit in ``floor(budget · tissue views)``; the first pick that does
+not fit ends the reading. Fractions are of the slide's finest-level tissue views.
+
+**Lesion classes** (CAMELYON's rule on the largest lesion's longest diameter, from the bundle's tumour
+polygons at the bundle's µm/px): ``ITC`` < 0.2 mm, ``micro`` 0.2–2 mm, ``macro`` > 2 mm. AUC is
+reported over all test slides and over normal vs micro/macro (ITC-only slides left out). A reader
+*reads tumour* on a slide when a view it read overlaps the tumour; the head *finds* a slide when it
+scores it above every normal test slide.
+
+Writes ``readers.csv`` (one row per reader × budget), ``lesions.csv`` (per test tumour slide),
+``readers.json`` and ``readers.png``.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from baselines import outputs
+from baselines.metrics import accuracy, roc_auc
+from data_tools.cli_output import command_main, print_error
+from data_tools.errors import HistojaxDataError
+
+BUDGETS = (0.05, 0.1, 0.2, 0.5)
+ITC_MM, MACRO_MM = 0.2, 2.0
+CLASSES = ("ITC", "micro", "macro")
+SEARCH_THRESHOLD = 1.0  # pcam-cnn view logit; the scripted features policy's threshold (chosen on v1 validation)
+KINDS = ("overview", "random", "scripted", "learned", "everything")
+
+
+# ----------------------------------------------------------------------------- lesions
+def longest_diameter_px(geom) -> float:
+    """The longest distance between two points of a polygon (px): the diameter of its convex hull."""
+    hull = np.asarray(geom.convex_hull.exterior.coords if geom.convex_hull.geom_type == "Polygon"
+                      else geom.convex_hull.coords, np.float64)
+    if len(hull) < 2:
+        return 0.0
+    d = hull[:, None, :] - hull[None, :, :]
+    return float(np.sqrt((d ** 2).sum(-1)).max())
+
+
+def lesion_class(slide: dict) -> tuple[str, float]:
+    """``(class, largest lesion's longest diameter in mm)`` of a slide: ``"normal"`` for a label-0 slide,
+    else ``ITC`` / ``micro`` / ``macro`` by CAMELYON's thresholds (0.2 and 2 mm). Lesions are the connected
+    pieces of the tumour annotation; a tumour slide without polygons is ``"unknown"``."""
+    if not slide["label"]:
+        return "normal", 0.0
+    geom = slide.get("tumour")
+    if geom is None or geom.is_empty:
+        return "unknown", float("nan")
+    parts = list(getattr(geom, "geoms", [geom]))
+    mm = max(longest_diameter_px(p) for p in parts) * slide["mpp"] / 1000.0
+    return ("ITC" if mm < ITC_MM else "micro" if mm <= MACRO_MM else "macro"), mm
+
+
+def tumour_views(slide: dict) -> np.ndarray:
+    """``(H, W)`` bool: the finest views that overlap the slide's tumour polygons."""
+    import shapely
+
+    h, w = slide["tissue"].shape
+    out = np.zeros((h, w), bool)
+    geom, t = slide.get("tumour"), slide["tile"]
+    if geom is None or geom.is_empty:
+        return out
+    x0, y0, x1, y1 = geom.bounds
+    gx = np.arange(max(0, int(x0 // t)), min(w, int(x1 // t) + 1))
+    gy = np.arange(max(0, int(y0 // t)), min(h, int(y1 // t) + 1))
+    if gx.size == 0 or gy.size == 0:
+        return out
+    yy, xx = np.meshgrid(gy, gx, indexing="ij")
+    boxes = shapely.box(xx.ravel() * t, yy.ravel() * t, (xx.ravel() + 1) * t, (yy.ravel() + 1) * t)
+    shapely.prepare(geom)
+    hit = shapely.intersects(boxes, geom) & (shapely.area(shapely.intersection(boxes, geom)) > 0)
+    out[yy.ravel()[hit], xx.ravel()[hit]] = True
+    return out
+
+
+# ----------------------------------------------------------------------------- cells and readers
+def cell_table(slide: dict, level: int) -> dict:
+    """The slide's cells at bundle level ``level``: ``cell (H, W)`` int64 cell of each finest view,
+    ``cell_views (C,)`` tissue views under each cell, ``valid (C,)``, ``logit (C,)`` the cell's own
+    low-resolution logit, ``grid (h, w)``, ``total`` tissue views."""
+    coarse = slide["coarse"][level]
+    ch, cw = coarse.shape
+    step = slide["stride"] * slide["downsample"][level]  # finest px per cell
+    h, w = slide["tissue"].shape
+    cy = np.clip(((np.arange(h) + 0.5) * slide["tile"] // step).astype(np.int64), 0, ch - 1)  # cell of the centre
+    cx = np.clip(((np.arange(w) + 0.5) * slide["tile"] // step).astype(np.int64), 0, cw - 1)
+    cell = cy[:, None] * cw + cx[None, :]
+    counts = np.bincount(cell[slide["tissue"]], minlength=ch * cw)
+    return {"cell": cell, "cell_views": counts, "valid": counts > 0, "logit": coarse.reshape(-1).astype(np.float64),
+            "grid": (ch, cw), "total": max(1, int(slide["tissue"].sum()))}
+
+
+def random_order(cells: dict, rng) -> np.ndarray:
+    """The valid cells in a uniformly random order."""
+    return rng.permutation(np.flatnonzero(cells["valid"]))
+
+
+def logit_order(cells: dict) -> np.ndarray:
+    """The valid cells by their low-resolution logit, highest first (ties by index)."""
+    v = np.flatnonzero(cells["valid"])
+    return v[np.argsort(-cells["logit"][v], kind="stable")]
+
+
+def search_order(slide: dict, cells: dict, threshold: float = SEARCH_THRESHOLD, limit: float = 1.0) -> np.ndarray:
+    """The logit order, but after reading a cell whose hottest finest view logit exceeds ``threshold``
+    its unread valid neighbours (8-connected) are read next, hottest evidence first. Stops after
+    ``limit`` of the tissue views (the largest budget needs no more)."""
+    ch, cw = cells["grid"]
+    valid = cells["valid"]
+    hot = np.full(valid.shape, -np.inf)  # per cell: evidence from read neighbours
+    np.maximum.at(hot, cells["cell"][slide["tissue"]], slide["logits"][slide["tissue"]])
+    cell_max = hot.copy()  # the hottest tissue view under each cell (known once read)
+    hot[:] = -np.inf
+    base = logit_order(cells)
+    done = np.zeros(valid.shape, bool)
+    order, pos, views, stop = [], 0, 0, limit * cells["total"]
+    while views < stop:
+        frontier = np.where(done | ~valid, -np.inf, hot)
+        c = int(np.argmax(frontier))
+        if not frontier[c] > -np.inf:
+            while pos < len(base) and done[base[pos]]:
+                pos += 1
+            if pos == len(base):
+                break
+            c = int(base[pos])
+        done[c] = True
+        order.append(c)
+        views += int(cells["cell_views"][c])
+        if cell_max[c] > threshold:
+            y, x = divmod(c, cw)
+            for dy in (-1, 0, 1):
+                for dx in (-1, 0, 1):
+                    if (dy or dx) and 0 <= y + dy < ch and 0 <= x + dx < cw:
+                        n = (y + dy) * cw + x + dx
+                        hot[n] = max(hot[n], cell_max[c])
+    return np.asarray(order, np.int64)
+
+
+def read_mask(cells: dict, tissue: np.ndarray, order, budget: float) -> tuple[np.ndarray, float]:
+    """``(mask (H, W) bool, fraction read)`` of the tissue views under the cells read picking ``order``
+    at ``budget`` (the glimpse env's rule: :func:`baselines.budget_curve.read_cells`)."""
+    from baselines.budget_curve import read_cells
+
+    read, fraction = read_cells(cells, order, budget)
+    return np.isin(cells["cell"], read) & tissue, fraction
+
+
+def masks_from_instances(slide: dict, instances) -> np.ndarray:
+    """A read mask ``(H, W)`` from indices into the slide's tissue views in raster order (what
+    :meth:`histojax.glimpse.Glimpse.host_tables` calls ``instances`` and
+    :func:`baselines.budget_curve.policy_reads` returns as ``read``)."""
+    flat = np.flatnonzero(slide["tissue"].reshape(-1))
+    mask = np.zeros(slide["tissue"].size, bool)
+    mask[flat[np.asarray(instances, np.int64)]] = True
+    return mask.reshape(slide["tissue"].shape)
+
+
+# ----------------------------------------------------------------------------- scoring
+def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray:
+    """The head's slide logits ``(B,)`` on ``masks``."""
+    from baselines.head_fit import padded
+    from histojax.head import score_batch
+
+    return np.asarray(score_batch(head, padded([s["logits"] for s in slides], 0.0), padded(list(masks), False)))
+
+
+def overview_scores(head, slides: list[dict], level: int) -> np.ndarray:
+    """The head on each slide's cell-level logits over its valid cells (nothing of the finest level read)."""
+    from baselines.head_fit import padded
+    from histojax.head import score_batch
+
+    logits, masks = [], []
+    for s in slides:
+        c = cell_table(s, level)
+        logits.append(s["coarse"][level].astype(np.float32))
+        masks.append(c["valid"].reshape(c["grid"]))
+    return np.asarray(score_batch(head, padded(logits, 0.0), padded(masks, False)))
+
+
+def new_results() -> dict:
+    """An empty results record: ``{(reader, budget): {"kind", "scores" (seeds, B), "fractions" (seeds, B),
+    "tumour_read" (seeds, B) bool}}``."""
+    return {}
+
+
+def add_reader(results: dict, head, slides: list[dict], name: str, masks_by_budget: dict, kind: str = "learned",
+               tumour: list[np.ndarray] | None = None) -> dict:
+    """Score a reader's read masks with ``head`` and add its rows to ``results``.
+
+    ``masks_by_budget``: ``{budget: [masks of seed 0, masks of seed 1, ...]}``, each a list of ``(H, W)``
+    bool read masks, one per slide of ``slides`` (a learned reader: one list per training seed or rollout);
+    ``kind``: one of ``KINDS`` (colour family of the plot). The fraction read is measured from the masks."""
+    tumour = tumour if tumour is not None else [tumour_views(s) for s in slides]
+    total = np.asarray([max(1, int(s["tissue"].sum())) for s in slides])
+    for budget, per_seed in masks_by_budget.items():
+        per_seed = [per_seed] if isinstance(per_seed[0], np.ndarray) else per_seed
+        scores, fractions, found = [], [], []
+        for masks in per_seed:
+            masks = [np.asarray(m, bool) & s["tissue"] for m, s in zip(masks, slides)]
+            scores.append(head_scores(head, slides, masks))
+            fractions.append(np.asarray([m.sum() for m in masks]) / total)
+            found.append(np.asarray([bool((m & t).any()) for m, t in zip(masks, tumour)]))
+        results[(name, float(budget))] = {"kind": kind, "scores": np.stack(scores), "fractions": np.stack(fractions),
+                                          "tumour_read": np.stack(found)}
+    return results
+
+
+def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, level: int = 2,
+                     progress: bool = False) -> dict:
+    """The reference rows: overview only, random reader (``seeds`` orders), logit reader, search reader,
+    read everything."""
+    results = new_results()
+    tumour = [tumour_views(s) for s in slides]
+    n = len(slides)
+    results[("overview only", 0.0)] = {"kind": "overview", "scores": overview_scores(head, slides, level)[None],
+                                       "fractions": np.zeros((1, n)), "tumour_read": np.zeros((1, n), bool)}
+    add_reader(results, head, slides, "read everything", {1.0: [[s["tissue"] for s in slides]]}, "everything", tumour)
+    tables = [cell_table(s, level) for s in slides]
+    top = max(budgets)
+    orders = {"logit reader": [logit_order(c) for c in tables],
+              "search reader": [search_order(s, c, limit=top + 0.01) for s, c in zip(slides, tables)]}
+    randoms = [[random_order(c, np.random.default_rng(1000 * k + i)) for i, c in enumerate(tables)] for k in range(seeds)]
+    for b in budgets:
+        masks = {name: [[read_mask(c, s["tissue"], o, b)[0] for s, c, o in zip(slides, tables, ords)]]
+                 for name, ords in orders.items()}
+        masks["random reader"] = [[read_mask(c, s["tissue"], o, b)[0] for s, c, o in zip(slides, tables, ords)]
+                                  for ords in randoms]
+        for name in ("random reader", "logit reader", "search reader"):
+            add_reader(results, head, slides, name, {b: masks[name]}, "random" if name == "random reader" else "scripted",
+                       tumour)
+        if progress:
+            print(f"  budget {b:.2f} scored", file=sys.stderr, flush=True)
+    return results
+
+
+def rows_from_results(results: dict, slides: list[dict]) -> list[dict]:
+    """One row per ``(reader, budget)``: fraction read (mean, min, 10/50/90th percentiles, max over episodes),
+    AUC over all slides and without ITC-only slides, accuracy at 0.5 (mean ± std over seeds), and per lesion
+    class the slides on which the reader read tumour and those the head found (mean over seeds)."""
+    labels = np.asarray([s["label"] for s in slides])
+    classes = [lesion_class(s)[0] for s in slides]
+    no_itc = np.asarray([c != "ITC" for c in classes])
+    rows = []
+    for (name, b), r in results.items():
+        s, f, t = r["scores"], r["fractions"], r["tumour_read"]
+        aucs = np.asarray([roc_auc(x, labels) for x in s])
+        aucs_no_itc = np.asarray([roc_auc(x[no_itc], labels[no_itc]) for x in s])
+        accs = np.asarray([accuracy(1 / (1 + np.exp(-x)), labels) for x in s])
+        row = {"reader": name, "kind": r["kind"], "budget": b, "seeds": len(s), "slides": len(labels),
+               "fraction_read": float(f.mean()), "fraction_min": float(f.min()),
+               "fraction_p10": float(np.percentile(f, 10)), "fraction_median": float(np.median(f)),
+               "fraction_p90": float(np.percentile(f, 90)), "fraction_max": float(f.max()),
+               "auc": float(aucs.mean()), "auc_std": float(aucs.std()),
+               "auc_no_itc": float(aucs_no_itc.mean()), "auc_no_itc_std": float(aucs_no_itc.std()),
+               "accuracy": float(accs.mean()), "accuracy_std": float(accs.std())}
+        for c in CLASSES:
+            idx = np.asarray([k == c for k in classes])
+            top_normal = s[:, labels == 0].max(1, keepdims=True) if (labels == 0).any() else np.full((len(s), 1), -np.inf)
+            row[f"{c}_slides"] = int(idx.sum())
+            row[f"{c}_tumour_read"] = float(t[:, idx].sum(1).mean()) if idx.any() else 0.0
+            row[f"{c}_found"] = float((s[:, idx] > top_normal).sum(1).mean()) if idx.any() else 0.0
+        rows.append(row)
+    return rows
+
+
+def lesion_rows(slides: list[dict], results: dict | None = None, head=None) -> list[dict]:
+    """Per tumour slide: lesion class, largest lesion's longest diameter (mm), tumour area (mm²), tumour
+    views, and the read-everything head logit (when ``results`` holds it)."""
+    every = (results or {}).get(("read everything", 1.0))
+    labels = np.asarray([s["label"] for s in slides])
+    top_normal = float(every["scores"][0][labels == 0].max()) if every is not None and (labels == 0).any() else None
+    out = []
+    for i, s in enumerate(slides):
+        if not s["label"]:
+            continue
+        cls, mm = lesion_class(s)
+        area = float(s["tumour"].area) * s["mpp"] ** 2 / 1e6 if s.get("tumour") is not None else float("nan")
+        row = {"slide": s["name"], "class": cls, "diameter_mm": mm, "area_mm2": area,
+               "tumour_views": int(tumour_views(s).sum())}
+        if every is not None:
+            row["head_logit"] = float(every["scores"][0][i])
+            row["above_every_normal"] = bool(top_normal is None or row["head_logit"] > top_normal)
+        out.append(row)
+    return sorted(out, key=lambda r: r["diameter_mm"])
+
+
+# ----------------------------------------------------------------------------- output
+def write_csv(rows: list[dict], path) -> Path:
+    """Rows as CSV (floats to 4 decimals)."""
+    path = Path(path)
+    with outputs.open_text(path) as f:
+        w = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else ["reader"])
+        w.writeheader()
+        for r in rows:
+            w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()})
+    return path
+
+
+FAMILIES = {"overview": ["#000000"], "random": ["#7f8c8d"], "scripted": ["#1e8449", "#58d68d", "#0e6251"],
+            "learned": ["#c0392b", "#e67e22", "#8e44ad", "#d35400", "#e84393"], "everything": ["#1f4e9c"]}
+
+
+def plot(rows: list[dict], path, title: str = "", metric: str = "auc") -> Path:
+    """AUC against the fraction actually read: one colour family per reader kind (grey: random, greens:
+    scripted, warm colours: learned, each point drawn at the fraction it read and labelled), ± bands
+    over seeds / reading orders, the overview-only point marked at 0, reading everything dashed."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    fig = Figure(figsize=(9.0, 5.2), dpi=110, layout="constrained")
+    FigureCanvasAgg(fig)
+    ax = fig.subplots()
+    used = {k: 0 for k in FAMILIES}
+    readers = list(dict.fromkeys(r["reader"] for r in rows))
+    for name in readers:
+        mine = sorted((r for r in rows if r["reader"] == name), key=lambda r: r["fraction_read"])
+        kind = mine[0]["kind"]
+        colour = FAMILIES.get(kind, ["#444444"])[used.get(kind, 0) % len(FAMILIES.get(kind, ["#444444"]))]
+        used[kind] = used.get(kind, 0) + 1
+        x = np.asarray([r["fraction_read"] for r in mine])
+        y = np.asarray([r[metric] for r in mine])
+        e = np.asarray([r[f"{metric}_std"] for r in mine])
+        if kind == "everything":
+            ax.axhline(y[0], color=colour, linestyle="--", linewidth=1.4, label=f"{name} ({y[0]:.3f})")
+            continue
+        if kind == "overview":
+            ax.plot(x, y, marker="*", markersize=14, color=colour, linestyle="none", label=f"{name} ({y[0]:.3f}, reads 0 %)")
+            ax.annotate("overview only", (x[0], y[0]), textcoords="offset points", xytext=(8, -12), fontsize="small")
+            continue
+        style = "s-" if kind == "learned" else "o-"
+        ax.plot(x, y, style, color=colour, linewidth=1.8, markersize=5, label=name)
+        if (e > 0).any():
+            ax.fill_between(x, y - e, y + e, color=colour, alpha=0.2, linewidth=0)
+        if kind == "learned":
+            for xi, yi, r in zip(x, y, mine):
+                ax.annotate(f"{name}\n{xi:.1%} read", (xi, yi), textcoords="offset points", xytext=(6, 6),
+                            fontsize="x-small", color=colour)
+    ax.set_xlim(-0.02, max([0.55] + [r["fraction_read"] + 0.03 for r in rows if r["kind"] != "everything"]))
+    lo = min(r[metric] - r.get(f"{metric}_std", 0) for r in rows)
+    ax.set_ylim(max(0.0, min(0.5, lo - 0.05)), 1.01)
+    ax.set_xlabel("fraction of finest-level tissue views actually read (mean per episode)")
+    ax.set_ylabel("slide AUC" if metric == "auc" else "slide AUC, ITC-only slides left out")
+    ax.grid(True, color="#dddddd", linewidth=0.6)
+    ax.legend(loc="lower right", fontsize="small", framealpha=0.9)
+    if title:
+        ax.set_title(title, fontsize="medium")
+    return outputs.save_figure(fig, path)
+
+
+def add_arguments(p) -> None:
+    """The options of ``python -m baselines.readers``."""
+    p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; pcam-cnn feature grids)")
+    p.add_argument("--head", required=True, help="slide head folder (python -m baselines.head_fit)")
+    p.add_argument("--split", default="test", help="split scored (default test)")
+    p.add_argument("--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)")
+    p.add_argument("--seeds", type=int, default=5, help="random reader orders (default 5)")
+    p.add_argument("--cell-level", type=int, default=2, help="bundle level of the cells (default 2: 4 × 4 finest views)")
+    p.add_argument("--out", default="runs/readers", help="output folder (default runs/readers)")
+
+
+def run(args, parser=None) -> int:
+    """Score every reader at every budget; CSV, JSON, PNG in ``args.out``."""
+    from baselines.head_fit import load_slides, read_spec
+    from histojax.head import SlideHead
+
+    if not all(0.0 < b <= 1.0 for b in args.budgets):
+        return print_error(f"--budgets must lie in (0, 1], got {args.budgets}")
+    if args.seeds < 1 or args.cell_level < 1:
+        return print_error("--seeds and --cell-level must be ≥ 1")
+    t0 = time.perf_counter()
+    try:
+        head = SlideHead.load(args.head)
+        spec = read_spec(args.dataset)
+        slides = load_slides(args.dataset, args.split, spec, head.dim, levels=(0, args.cell_level), progress=True)
+    except (HistojaxDataError, ValueError) as e:
+        return print_error(e)
+    if not slides or len({s["label"] for s in slides}) < 2:
+        return print_error(f"{args.dataset}: split {args.split!r} needs tumour and normal slides to score an AUC")
+    results = scripted_results(head, slides, args.budgets, args.seeds, args.cell_level, progress=True)
+    rows = rows_from_results(results, slides)
+    lesions = lesion_rows(slides, results)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_csv(rows, out / "readers.csv")
+    write_csv(lesions, out / "lesions.csv")
+    wall = time.perf_counter() - t0
+    outputs.write_text(out / "readers.json", json.dumps(
+        {"dataset": str(args.dataset), "split": args.split, "head": str(args.head), "head_name": head.name,
+         "cell_level": args.cell_level, "seeds": args.seeds, "wall_s": round(wall, 1), "rows": rows,
+         "lesions": lesions}, indent=1, default=float))
+    png = plot(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split ({len(slides)} slides): "
+                                          f"head {head.name}")
+    print_tables(rows, lesions)
+    print(f"wrote {out}/readers.csv, lesions.csv, readers.json and {png} in {wall:.0f} s")
+    return 0
+
+
+def print_tables(rows: list[dict], lesions: list[dict], budget: float = 0.1) -> None:
+    """The curve as a markdown table, then the lesion table at ``budget`` (and reading everything)."""
+    print("| reader | budget | read (mean, p10–p90) | AUC | AUC without ITC-only | accuracy |\n|---|---|---|---|---|---|")
+    for r in rows:
+        print(f"| {r['reader']} | {r['budget']:.2f} | {r['fraction_read']:.3f} ({r['fraction_p10']:.3f}–"
+              f"{r['fraction_p90']:.3f}) | {r['auc']:.3f} ± {r['auc_std']:.3f} | {r['auc_no_itc']:.3f} ± "
+              f"{r['auc_no_itc_std']:.3f} | {r['accuracy']:.3f} |")
+    print(f"\nper lesion class: slides; read tumour / found by the head (above every normal slide), budget {budget:.2f}")
+    print("| reader | " + " | ".join(CLASSES) + " |\n|---|" + "---|" * len(CLASSES))
+    for r in rows:
+        if abs(r["budget"] - budget) < 1e-9 or r["kind"] in ("overview", "everything"):
+            print(f"| {r['reader']} ({r['budget']:.2f}) | " + " | ".join(
+                f"{r[c + '_slides']}: {r[c + '_tumour_read']:.1f} / {r[c + '_found']:.1f}" for c in CLASSES) + " |")
+
+
+main = command_main(add_arguments, run, "python -m baselines.readers", __doc__)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,167 @@
+"""A slide head with spatial context: one tumour logit for a slide from the finest-level views read so far.
+
+A metastasis spans neighbouring views; an encoder's false positives are mostly isolated. So the head
+does not take the plain maximum of the view logits: it first averages each read view's logit with the
+read views of its ``k × k`` neighbourhood (views not read, and views off tissue, count for nothing),
+then pools the neighbourhood means of the read views (the mean of the ``top`` largest; ``top=1`` is
+the maximum), optionally minus the median logit of the read views (a slide-level offset: staining or
+tissue type that raises every view), and maps that statistic ``s`` to a slide logit ``a · s + b``
+(a logistic calibration fitted on training slides: :mod:`baselines.head_fit`). A slide with nothing
+read scores ``prior_logit`` (the training split's log odds of tumour).
+
+Pure JAX and jittable (``jax.jit(score)``, ``jax.vmap`` over slides padded to one grid: padding is
+simply never read); no host callbacks, no data-dependent Python control flow::
+
+    head = SlideHead.load("baselines/published/c16-v2-head")
+    logit = score(head, grid_features, read_mask)      # (H, W, D), (H, W) bool -> () float32
+
+``grid_features`` is the feature grid of the slide's finest level (one row per finest-level view,
+``D`` entries; entry ``head.dim`` is the view's tumour logit — pcam-cnn's ``mean l``, entry 62), and
+``read_mask`` marks the views read that hold tissue. :func:`score_logits` takes the ``(H, W)`` logit
+map directly. Saved as a folder: ``config.json`` (the head's structure and how it was fitted and chosen)
+and ``params.json`` (``a``, ``b``, ``prior_logit``).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+KIND = "neighbourhood-pooled-logit"
+FORMAT = 1
+
+
+@struct.dataclass
+class SlideHead:
+    """A fitted head (a pytree: ``a``, ``b``, ``prior_logit`` are leaves; the structure is static).
+
+    ``dim``: feature entry of the view tumour logit; ``k``: neighbourhood side in views (1 = none);
+    ``top``: pool the mean of the ``top`` largest neighbourhood means; ``minus_median``: subtract the
+    read views' median logit; ``a``, ``b``: calibration (slide logit = ``a · s + b``); ``prior_logit``:
+    the score of a slide with nothing read; ``info``: a JSON object (text) recording the fit, merged into config.json."""
+
+    a: jnp.ndarray = 1.0
+    b: jnp.ndarray = 0.0
+    prior_logit: jnp.ndarray = 0.0
+    dim: int = struct.field(pytree_node=False, default=62)
+    k: int = struct.field(pytree_node=False, default=3)
+    top: int = struct.field(pytree_node=False, default=1)
+    minus_median: bool = struct.field(pytree_node=False, default=False)
+    encoder: str | None = struct.field(pytree_node=False, default="pcam-cnn")
+    info: str = struct.field(pytree_node=False, default="{}")
+
+    @property
+    def name(self) -> str:
+        """A short name of the structure, e.g. ``"3x3 mean, max"`` or ``"2x2 mean, top-3, minus median"``."""
+        parts = [f"{self.k}x{self.k} mean" if self.k > 1 else "view logit", "max" if self.top == 1 else f"top-{self.top}"]
+        return ", ".join(parts + (["minus median"] if self.minus_median else []))
+
+    def config(self) -> dict:
+        """The structure as saved in ``config.json``."""
+        return {"kind": KIND, "format": FORMAT, "dim": int(self.dim), "k": int(self.k), "top": int(self.top),
+                "minus_median": bool(self.minus_median), "encoder": self.encoder, "name": self.name,
+                "input": "finest-level feature grid (H, W, D) and read mask (H, W) bool of read tissue views",
+                "output": "slide tumour logit (sigmoid: probability)", **json.loads(self.info)}
+
+    def save(self, folder) -> Path:
+        """Write ``folder/config.json`` and ``folder/params.json``; returns the folder."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        params = {"a": float(self.a), "b": float(self.b), "prior_logit": float(self.prior_logit)}
+        for name, obj in (("params.json", params), ("config.json", self.config())):
+            tmp = folder / f".{name}.tmp"
+            tmp.write_text(json.dumps(obj, indent=1, default=_plain) + "\n")
+            tmp.replace(folder / name)
+        return folder
+
+    @classmethod
+    def load(cls, folder) -> "SlideHead":
+        """Read a head saved by :meth:`save`. ``ValueError`` naming the file on anything malformed."""
+        folder = Path(folder)
+        cfg_file, par_file = folder / "config.json", folder / "params.json"
+        try:
+            cfg = json.loads(cfg_file.read_text())
+            par = json.loads(par_file.read_text())
+        except FileNotFoundError as e:
+            raise ValueError(f"{e.filename}: missing (a slide head folder holds config.json and params.json)") from None
+        except (OSError, json.JSONDecodeError) as e:
+            raise ValueError(f"{folder}: cannot read the slide head: {e}") from None
+        if not isinstance(cfg, dict) or cfg.get("kind") != KIND:
+            raise ValueError(f"{cfg_file}: not a slide head config (kind {cfg.get('kind') if isinstance(cfg, dict) else None!r}, "
+                             f"expected {KIND!r})")
+        try:
+            k, top, dim = int(cfg["k"]), int(cfg["top"]), int(cfg["dim"])
+            a, b, prior = (float(par[n]) for n in ("a", "b", "prior_logit"))
+        except (KeyError, TypeError, ValueError) as e:
+            raise ValueError(f"{cfg_file}: malformed slide head ({type(e).__name__}: {e})") from None
+        if k < 1 or top < 1 or dim < 0 or not all(np.isfinite([a, b, prior])):
+            raise ValueError(f"{folder}: invalid slide head (k={k}, top={top}, dim={dim}, a={a}, b={b}, prior={prior})")
+        known = {"kind", "format", "dim", "k", "top", "minus_median", "encoder", "name", "input", "output"}
+        info = json.dumps({key: v for key, v in cfg.items() if key not in known})
+        return cls(a=jnp.float32(a), b=jnp.float32(b), prior_logit=jnp.float32(prior), dim=dim, k=k, top=top,
+                   minus_median=bool(cfg.get("minus_median", False)), encoder=cfg.get("encoder"), info=info)
+
+
+def _plain(v):
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    return str(v)
+
+
+def neighbourhood_mean(logits: jax.Array, mask: jax.Array, k: int) -> jax.Array:
+    """``(H, W)`` mean of ``logits`` over the ``mask``-ed views of each view's ``k × k`` neighbourhood
+    (window centred on the view; for even ``k`` it reaches one view further down / right); 0 where no
+    masked view is in reach."""
+    m = mask.astype(jnp.float32)
+    x = jnp.where(mask, logits.astype(jnp.float32), 0.0)
+    if k == 1:
+        return x
+    pad = ((k - 1) // 2, k // 2)
+    box = lambda a: jax.lax.reduce_window(a, 0.0, jax.lax.add, (k, k), (1, 1), (pad, pad))  # noqa: E731
+    return box(x) / jnp.maximum(box(m), 1.0)
+
+
+def statistic(head: SlideHead, logits: jax.Array, mask: jax.Array) -> jax.Array:
+    """The head's pooled statistic ``s`` (before calibration) of a ``(H, W)`` logit map over the read
+    views ``mask (H, W)`` bool; ``-inf``-free: 0 when nothing is read (see :func:`score_logits`)."""
+    mask = jnp.asarray(mask, bool)
+    nb = neighbourhood_mean(logits, mask, head.k).reshape(-1)
+    flat = mask.reshape(-1)
+    n = flat.sum()
+    vals = jnp.where(flat, nb, -jnp.inf)
+    top = min(head.top, vals.shape[0])
+    best = jax.lax.top_k(vals, top)[0]
+    take = jnp.arange(top) < n  # fewer views read than `top`: the mean of those there are
+    s = jnp.where(take, best, 0.0).sum() / jnp.maximum(jnp.minimum(n, top), 1)
+    if head.minus_median:
+        s = s - jnp.nanmedian(jnp.where(flat, logits.reshape(-1).astype(jnp.float32), jnp.nan))
+    return jnp.where(n > 0, s, 0.0)
+
+
+def score_logits(head: SlideHead, logits: jax.Array, read_mask: jax.Array) -> jax.Array:
+    """Slide tumour logit ``()`` float32 from a ``(H, W)`` view-logit map and the read mask ``(H, W)`` bool."""
+    s = statistic(head, logits, read_mask)
+    return jnp.where(jnp.any(read_mask), head.a * s + head.b, head.prior_logit).astype(jnp.float32)
+
+
+def score(head: SlideHead, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
+    """Slide tumour logit ``()`` float32 from the finest-level feature grid ``(H, W, D)`` and the read
+    tissue views ``(H, W)`` bool (entry ``head.dim`` of each view is its tumour logit)."""
+    return score_logits(head, jnp.asarray(grid_features)[..., head.dim], read_mask)
+
+
+def probability(head: SlideHead, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
+    """``sigmoid(score(...))``: the slide's tumour probability ``()`` in [0, 1]."""
+    return jax.nn.sigmoid(score(head, grid_features, read_mask))
+
+
+score_batch = jax.jit(jax.vmap(score_logits, in_axes=(None, 0, 0)))
+"""Jitted :func:`score_logits` over a batch: ``(B, H, W)`` logits, ``(B, H, W)`` masks → ``(B,)`` logits
+(slides padded to one grid with masks False there)."""
+
+statistic_batch = jax.jit(jax.vmap(statistic, in_axes=(None, 0, 0)))
+"""Jitted :func:`statistic` over a batch ``(B, H, W)``, ``(B, H, W)`` → ``(B,)``."""

@@ -23,6 +23,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import stat
 import warnings
 from dataclasses import dataclass
 
@@ -273,6 +274,12 @@ def open_slide(path: str | os.PathLike) -> SlideReader:
     :mod:`data_tools.dicom`); raises SlideError if unreadable."""
     from data_tools.dicom import DicomSlideReader, is_dicom
 
+    try:
+        mode = os.stat(path).st_mode
+    except OSError:
+        mode = None  # missing or unreadable: SlideReader names the reason
+    if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # never open() a FIFO: it blocks
+        raise SlideError(path, "not a regular file (a FIFO, socket or device): not a slide")
     return DicomSlideReader(path) if is_dicom(path) else SlideReader(path)
 
 
@@ -303,6 +310,8 @@ def _check_signature(path: str) -> None:
     if os.path.isdir(path):
         raise SlideError(path, f"is a folder with no DICOM file in it, not a slide; {_SUPPORTED}")
     try:
+        if not stat.S_ISREG(os.stat(path).st_mode):  # a FIFO would block open() forever
+            raise SlideError(path, "not a regular file (a FIFO, socket or device): not a slide")
         with open(path, "rb") as f:
             head = f.read(132)
     except FileNotFoundError as exc:

@@ -125,7 +125,7 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
     slides, annotations = [], []
     skip = [Path(s).resolve() for s in skip]
     seen_dirs: dict[tuple[int, int], Path] = {}
-    seen_files: dict[tuple[int, int], Path] = {}
+    identity: dict[Path, tuple[int, int]] = {}  # file -> (st_dev, st_ino)
     try:
         st = os.stat(root)
         seen_dirs[(st.st_dev, st.st_ino)] = root
@@ -138,7 +138,7 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
             dirs[:] = []
             continue
         keep = []
-        for d in sorted(dirs):
+        for d in sorted(dirs, key=lambda d: (os.path.islink(os.path.join(folder, d)), d)):  # folders before links
             if d.startswith("."):
                 continue
             p = here / d
@@ -172,11 +172,7 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
             if not stat.S_ISREG(st.st_mode):
                 skipped.append(Skipped(p, f"{_file_kind(st.st_mode)}, not a regular file: never opened"))
                 continue
-            key = (st.st_dev, st.st_ino)
-            if key in seen_files:
-                skipped.append(Skipped(p, f"the same file as {seen_files[key]}: used once"))
-                continue
-            seen_files[key] = p
+            identity[p] = (st.st_dev, st.st_ino)
             regular[f] = p
         known = SLIDE_EXTENSIONS + ANNOTATION_EXTENSIONS + (".csv", ".h5")
         dicom = {f for f, p in regular.items()
@@ -195,7 +191,22 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
                 annotations.append(p)
             elif not in_bundle:
                 skipped.append(Skipped(p, _other_file_reason(f)))
-    return slides, annotations
+    chosen: dict[tuple[int, int], Path] = {}  # one path per file reached twice: the file itself before a link
+    for p, key in identity.items():
+        if key not in chosen or (chosen[key].is_symlink() and not p.is_symlink()):
+            chosen[key] = p
+
+    def once(paths):
+        keep = []
+        for p in paths:
+            first = chosen.get(identity.get(p), p)
+            if first == p:
+                keep.append(p)
+            else:
+                skipped.append(Skipped(p, f"the same file as {first}: used once"))
+        return keep
+
+    return once(slides), once(annotations)
 
 
 def by_name(paths, what: str, hint: str = "names identify slides, rename one or build the folders separately"
@@ -218,13 +229,14 @@ def camelyon16_layout(root: Path) -> bool:
 
 
 def discover(root, annotations_dir=None, labels_csv=None, skip=(), allow_unmatched: bool = False,
-             skipped: list | None = None) -> list[SlideEntry]:
+             skipped: list | None = None, warn_skipped: bool = True) -> list[SlideEntry]:
     """The cohort under ``root`` (see the module doc), sorted by name. Errors (one line, naming the
     file): no slides; two slides or annotations of one name; an annotation naming no slide (unless
     ``allow_unmatched``); a label table naming unknown slides or missing some; CAMELYON16 testing
     slides without ``testing/reference.csv``. ``skipped``: a list that receives a :class:`Skipped`
     (path, why) for every file or folder passed over (other formats, FIFOs, broken links, symlink
-    loops, ``.json`` / ``.xml`` that are no annotation)."""
+    loops, ``.json`` / ``.xml`` that are no annotation); each is also a warning (``warn_skipped``), which
+    the CLI prints as one ``warning:`` line."""
     root = Path(root)
     skipped = [] if skipped is None else skipped
     if not root.is_dir():
@@ -239,6 +251,11 @@ def discover(root, annotations_dir=None, labels_csv=None, skip=(), allow_unmatch
     skipped += [Skipped(p, f"a {p.suffix} file that is not an ASAP XML, GeoJSON or NCRF JSON annotation")
                 for p, k in kinds.items() if not k]
     ann_paths = [p for p in ann_paths if kinds[p]]
+    if warn_skipped:
+        import warnings
+
+        for item in skipped:  # the CLI prints each as one `warning:` line
+            warnings.warn(f"{item.path}: skipped: {item.reason}", stacklevel=2)
     if not slide_paths:
         raise HistojaxDataError(root, f"holds no slides ({', '.join(SLIDE_EXTENSIONS)} files or DICOM folders)")
     slides = by_name(slide_paths, "slides")

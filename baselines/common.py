@@ -520,7 +520,8 @@ def chunked_runner(train):
     config, env_params, mesh = train.config, train.env_params, getattr(train, "mesh", None)
     size, _ = chunk_plan(train.num_updates, config.get("checkpoint_every"))
     place = (lambda x: x) if mesh is None else functools.partial(replicate_on, mesh)
-    check_params(train.env, env_params, where="train: env params")
+    if getattr(train, "env", None) is not None:
+        check_params(train.env, env_params, where="train: env params")
     env_params = place(env_params)
 
     def start_all(keys, p):
@@ -732,11 +733,6 @@ def config_from_args(args, defaults: dict) -> dict:
               "obs_mode": args.obs_mode, "with_position": args.with_position, "reward": args.reward,
               "num_seeds": args.seeds, "seed": args.seed, "total_timesteps": args.total_steps,
               "num_envs": args.num_envs, "lr": args.lr}
-    if getattr(args, "dataset", None) is not None or getattr(args, "split", None) is not None:
-        if args.dataset is None:
-            raise SystemExit("--split needs --dataset DIR")
-        config["env_kwargs"] = {**(config.get("env_kwargs") or {}), "dataset": args.dataset,
-                                **({"split": args.split} if args.split is not None else {})}
     if getattr(args, "checkpoint_every", None) is not None:
         config["checkpoint_every"] = args.checkpoint_every
     if args.devices is not None:
@@ -755,6 +751,11 @@ def config_from_args(args, defaults: dict) -> dict:
             config[k] = json.loads(v)
         except json.JSONDecodeError:
             config[k] = v
+    if getattr(args, "dataset", None) is not None or getattr(args, "split", None) is not None:
+        if args.dataset is None:
+            raise SystemExit("--split needs --dataset DIR")
+        config["env_kwargs"] = {**(config.get("env_kwargs") or {}), "dataset": args.dataset,
+                                **({"split": args.split} if args.split is not None else {})}
     return config
 
 

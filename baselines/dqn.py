@@ -52,6 +52,8 @@ class DQNConfig(common.EnvConfig):
     iterations_per_log: int = 50
     log_every: int = 2                   # log blocks per progress line
     print_progress: bool = True
+    checkpoint_every: int = 25           # log blocks between checkpoints of the whole training state, replay
+                                         # buffer included (0: only the end)
 
 
 DEFAULTS = dataclasses.asdict(DQNConfig())
@@ -165,10 +167,16 @@ def make_train(config: dict):
 
     init_params = common.params_initialiser(env, network, num_envs)
 
-    def train(key, env_params, params):
+    def init_runner(key, env_params, params):
+        """One seed's runner state before the first iteration: ``(params, target params, optimizer state,
+        replay buffer, env states, observations, key, gradient steps)`` with the envs freshly reset."""
         key, _, obs, env_state = common.reset_envs(env, key, env_params, num_envs)
-        opt_state = tx.init(params)
-        buf = buffer_init(obs, rows, num_envs)
+        return (params, params, tx.init(params), buffer_init(obs, rows, num_envs), env_state, obs, key,
+                jnp.zeros((), jnp.int32))
+
+    def update(carry, block, env_params):
+        """One log block (``iterations_per_log`` iterations) of a runner state ``carry``
+        (:func:`init_runner`): ``(carry, metrics)``."""
         zero = jnp.zeros((), jnp.float32)
 
         def iteration(carry, it):
@@ -203,24 +211,27 @@ def make_train(config: dict):
             out = {"info": keep, "loss": loss, "q": q_mean, "learned": can_learn.astype(jnp.float32)}
             return (params, target_params, opt_state, buf, env_state, next_obs, key, grad_steps), out
 
-        def log_block(carry, block):
-            its = block * per_log + jnp.arange(per_log)
-            carry, out = jax.lax.scan(iteration, carry, its)
-            learned = jnp.maximum(out["learned"].sum(), 1.0)
-            metrics = {**common.episode_stats(out["info"]), "loss": out["loss"].sum() / learned,
-                       "q": out["q"].sum() / learned, "epsilon": epsilon(its[-1])}
-            if config["print_progress"]:
-                ack = common.report(progress, block, metrics)
-                metrics = {**metrics, "episodes": metrics["episodes"] + ack}
-            return carry, metrics
+        its = block * per_log + jnp.arange(per_log)
+        carry, out = jax.lax.scan(iteration, carry, its)
+        learned = jnp.maximum(out["learned"].sum(), 1.0)
+        metrics = {**common.episode_stats(out["info"]), "loss": out["loss"].sum() / learned,
+                   "q": out["q"].sum() / learned, "epsilon": epsilon(its[-1])}
+        if config["print_progress"]:
+            ack = common.report(progress, block, metrics)
+            metrics = {**metrics, "episodes": metrics["episodes"] + ack}
+        return carry, metrics
 
-        carry = (params, params, opt_state, buf, env_state, obs, key, jnp.zeros((), jnp.int32))
-        carry, metrics = jax.lax.scan(log_block, carry, jnp.arange(num_logs))
+    def train(key, env_params, params):
+        carry = init_runner(key, env_params, params)
+        carry, metrics = jax.lax.scan(lambda c, b: update(c, b, env_params), carry, jnp.arange(num_logs))
         return {"params": carry[0], "metrics": metrics}
 
     run = common.seeds_runner(train, init_params, env_params, config, progress, env=env)
     run.env, run.env_params, run.network, run.config = env, env_params, network, config
     run.num_updates, run.steps_per_update = num_logs, per_log * num_envs
+    # the pieces of a run in chunks with checkpoints (common.run_chunked)
+    run.init_params, run.init_runner, run.update, run.runner_params = (init_params, init_runner, update,
+                                                                       lambda runner: runner[0])
     return run
 
 

@@ -97,42 +97,51 @@ def make_train(config: dict):
                                                      jax.tree.map(lambda a: a[None], obs),
                                                      jnp.ones((1, num_envs), bool)))
 
-    def train(key, env_params, params):
+    tx = ppo.make_optimizer(config, num_updates)
+
+    def init_runner(key, env_params, params):
+        """One seed's runner state before the first update: ``(train state, env states, observations,
+        first flags, GRU states, key)`` with the envs freshly reset."""
         key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs)
-        state = TrainState.create(apply_fn=network.apply, params=params,
-                                  tx=ppo.make_optimizer(config, num_updates))
+        state = TrainState.create(apply_fn=network.apply, params=params, tx=tx)
+        return state, env_state, obs0, jnp.ones(num_envs, bool), ScannedGRU.initial_state(num_envs, hidden), key
 
-        def update(carry, update_index):
-            state, env_state, obs, first, h0, key = carry
-            (env_state, obs, first, h, key), traj = rollout(network, env, state.params, env_params,
-                                                            (env_state, obs, first, h0, key), num_steps, mode)
-            _, _, last_value = network_step(network, state.params, h, obs, first)
-            advantages, targets = ppo.gae(traj, last_value, config["gamma"], config["gae_lambda"])
+    def update(carry, update_index, env_params):
+        """One recurrent PPO update of a runner state ``carry`` (:func:`init_runner`): ``(carry, metrics)``."""
+        state, env_state, obs, first, h0, key = carry
+        (env_state, obs, first, h, key), traj = rollout(network, env, state.params, env_params,
+                                                        (env_state, obs, first, h0, key), num_steps, mode)
+        _, _, last_value = network_step(network, state.params, h, obs, first)
+        advantages, targets = ppo.gae(traj, last_value, config["gamma"], config["gae_lambda"])
 
-            def loss_fn(params, mb):
-                h_start, traj, adv, target = mb
-                pi, value = replay(network, params, h_start, traj)
-                return ppo.clipped_loss(pi, value, traj, adv, target, config,
-                                        ppo.entropy_coef(config, update_index, num_updates))
+        def loss_fn(params, mb):
+            h_start, traj, adv, target = mb
+            pi, value = replay(network, params, h_start, traj)
+            return ppo.clipped_loss(pi, value, traj, adv, target, config,
+                                    ppo.entropy_coef(config, update_index, num_updates))
 
-            def minibatches(k_perm):  # whole env sequences: shuffle and split the env axis
-                perm = jax.random.permutation(k_perm, num_envs)
-                # env axis: 0 for the start states, 1 for the time-major rollout
-                split = lambda a, axis: jnp.stack(jnp.split(jnp.take(a, perm, axis=axis), n_mb, axis=axis))  # noqa: E731
-                return (jax.tree.map(lambda a: split(a, 0), h0),
-                        *jax.tree.map(lambda a: split(a, 1), (traj, advantages, targets)))
+        def minibatches(k_perm):  # whole env sequences: shuffle and split the env axis
+            perm = jax.random.permutation(k_perm, num_envs)
+            # env axis: 0 for the start states, 1 for the time-major rollout
+            split = lambda a, axis: jnp.stack(jnp.split(jnp.take(a, perm, axis=axis), n_mb, axis=axis))  # noqa: E731
+            return (jax.tree.map(lambda a: split(a, 0), h0),
+                    *jax.tree.map(lambda a: split(a, 1), (traj, advantages, targets)))
 
-            state, key, aux = ppo.run_epochs(state, key, loss_fn, minibatches, config["update_epochs"])
-            metrics = ppo.update_metrics(traj.info, aux, progress, update_index, config)
-            return (state, env_state, obs, first, h, key), metrics
+        state, key, aux = ppo.run_epochs(state, key, loss_fn, minibatches, config["update_epochs"])
+        metrics = ppo.update_metrics(traj.info, aux, progress, update_index, config)
+        return (state, env_state, obs, first, h, key), metrics
 
-        carry = (state, env_state, obs0, jnp.ones(num_envs, bool), ScannedGRU.initial_state(num_envs, hidden), key)
-        (state, *_), metrics = jax.lax.scan(update, carry, jnp.arange(num_updates))
+    def train(key, env_params, params):
+        carry = init_runner(key, env_params, params)
+        (state, *_), metrics = jax.lax.scan(lambda c, i: update(c, i, env_params), carry, jnp.arange(num_updates))
         return {"params": state.params, "metrics": metrics}
 
     run = common.seeds_runner(train, init_params, env_params, config, progress, env=env)
     run.env, run.env_params, run.network, run.num_updates, run.config = env, env_params, network, num_updates, config
     run.steps_per_update = batch
+    # the pieces of a run in chunks with checkpoints (common.run_chunked)
+    run.init_params, run.init_runner, run.update, run.runner_params = (init_params, init_runner, update,
+                                                                       lambda runner: runner[0].params)
     return run
 
 

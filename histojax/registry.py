@@ -184,7 +184,8 @@ def check_dataset(folder, spec: dict, env_id: str) -> None:
     if want_format is not None and mosaic and int(ds.get("format", 1)) < want_format:
         raise BundleError(index, f"{env_id} needs a dataset of format >= {want_format} (train and test slides "
                           f"textured from disjoint PCam patch pools); this one is format {ds.get('format', 1)}: {fix}")
-    if want_encoder is not None and spec.get("obs_mode", "pixels") == "features" and ds.get("encoder") != want_encoder:
+    # any recorded encoder's grids (pcam-cnn by default; your own with --encoder module:function), not none
+    if want_encoder is not None and spec.get("obs_mode", "pixels") == "features" and not ds.get("encoder"):
         raise BundleError(index, f"{env_id} observes {want_encoder} features; this dataset's feature grids are "
                           f"{ds.get('encoder')!r}: {fix}")
 

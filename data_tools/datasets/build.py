@@ -327,7 +327,9 @@ def write_dataset_json(out, plan: dict, records: dict[str, dict], failed: dict[s
 def _encoder_of(options: dict) -> str | None:
     """The feature grids' encoder, as the ids' ``dataset_encoder`` checks it: ``--encoder``'s name, ``"imported"``
     for ``--features-from``, None without features."""
-    return options.get("encoder") or ("imported" if options.get("features_from") else None)
+    from data_tools.features import encoder_name  # your own encoder (module:function): the name it records
+
+    return encoder_name(options.get("encoder")) or ("imported" if options.get("features_from") else None)
 
 
 def write_dataset_index(out, dataset: dict) -> dict:
@@ -379,10 +381,10 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
         raise HistojaxDataError(None, "give --encoder or --features-from, not both")
     if no_pixels:
         storage = "tiled"
-    from data_tools.features import ENCODERS
+    from data_tools.features import encoder_record
 
-    if encoder is not None and encoder not in ENCODERS:
-        raise HistojaxDataError(None, f"--encoder {encoder!r}: use one of {', '.join(ENCODERS)}")
+    if encoder is not None:  # a built-in name, or your own module:function, probed (a broken one refused)
+        encoder_record(encoder)
     t0 = time.perf_counter()
     entries = discover(slides_dir, annotations_dir=annotations, labels_csv=labels, skip=[out],
                        allow_unmatched=allow_unmatched)

@@ -112,6 +112,15 @@ def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, 
     return prov
 
 
+def has_grid_of(meta, encoder: str) -> bool:
+    """True when the bundle of ``meta`` holds the feature grid of ``--encoder encoder`` (a built-in name, or
+    your own ``module:function``: its recorded name and version)."""
+    from data_tools.features import encoder_record
+
+    want, have = encoder_record(encoder), meta.features or {}
+    return have.get("encoder") == want["encoder"] and have.get("encoder_version") == want.get("encoder_version")
+
+
 def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float, progress: bool = False,
                 encoder: str | None = None) -> dict:
     """Build (unless up to date) the tiled bundle ``bundles/NAME`` of a made slide; returns its metadata.
@@ -125,7 +134,7 @@ def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float
             meta = read_metadata(bundle)
             whole = len(meta.pixel_levels) == len(meta.levels)
             if meta.source["sha256"] == prov["tiff_sha256"] and meta.magnification_range == magnification_range \
-                    and (whole or (encoder is not None and (meta.features or {}).get("encoder") == encoder)):
+                    and (whole or (encoder is not None and has_grid_of(meta, encoder))):
                 return meta
         except (HistojaxDataError, KeyError):
             pass
@@ -180,7 +189,7 @@ def _one_slide(job) -> dict:
     prov = make_slide(out_dir, slide, donor, d, seed, _WORKER["banks"][side], jpeg_quality, _WORKER["progress"],
                       pool=side)
     meta = make_bundle(out_dir, name, prov, mag, encoder=encoder if no_pixels else None)
-    if encoder and (meta.features or {}).get("encoder") != encoder:
+    if encoder and not has_grid_of(meta, encoder):
         from data_tools.features.grid import compute_features
 
         compute_features(bundle, encoder_name=encoder, progress=_WORKER["progress"], verify=False)
@@ -279,7 +288,7 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     written and the dict holds only ``dataset_written: False``, ``missing``, ``failed`` and ``run``.
     """
     from data_tools.datasets.c16_layout import OWN_TISSUE
-    from data_tools.features import ENCODERS
+    from data_tools.features import encoder_record
     from data_tools.ncrf import SHIPPED_DIR, read_ncrf
     from data_tools.datasets.pcam_bank import pool_rule, split_pools
 
@@ -288,8 +297,8 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     if not (1 <= d <= 64):
         raise HistojaxDataError(None, f"--downsample {d} must be between 1 and 64 (CAMELYON16 level-0 px per px)")
     encoder = features if isinstance(features, str) else "pcam-cnn" if features or no_pixels else None
-    if encoder is not None and encoder not in ENCODERS:
-        raise HistojaxDataError(None, f"--encoder {encoder!r}: use one of {', '.join(ENCODERS)}")
+    # a built-in name, or your own module:function, probed (a broken one refused) before any slide is made
+    encoder_info = encoder_record(encoder) if encoder is not None else {"encoder": None}
     mag = COARSEST / d
     source = annotations or SHIPPED_DIR
     every = read_ncrf(source)   # the whole set: its split and donors hold for any subset
@@ -336,9 +345,9 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
                       f"at most {test_fraction:.0%} of the tumour and of the normal slides in test; "
                       "train slides are textured from the training patch pool only, test slides from the "
                       "test pool (or --test-patches) only",
-        "encoder": encoder, "pixels_kept": not no_pixels,
+        **encoder_info, "pixels_kept": not no_pixels,  # encoder (its name); your own's version and spec too
     }
-    set_key = {k: dataset[k] for k in _SAME_SET_KEYS}
+    set_key = {k: dataset[k] for k in (*_SAME_SET_KEYS, "encoder_version") if k in dataset}
     from data_tools.datasets.build import collect_records, run_summary, write_dataset_index
     from data_tools.datasets.split import shard_names
 

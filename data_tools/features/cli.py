@@ -5,7 +5,7 @@ import time
 from pathlib import Path
 
 from data_tools.errors import HistojaxDataError
-from data_tools.features import ENCODERS
+from data_tools.features import ENCODERS, encoder_record
 
 COMMANDS = ("features", "import-features")
 
@@ -17,9 +17,11 @@ def add_subcommands(sub) -> None:
     f.add_argument("bundle", nargs="?", help="bundle folder (features_KK.npy are added to it)")
     f.add_argument("--check", metavar="IMAGE", help="self-check: classify an image file (or skimage:NAME, e.g. "
                                                       "skimage:chelsea) and print the top-5 ImageNet labels")
-    f.add_argument("--encoder", default="efficientnet-lite0", choices=tuple(ENCODERS),
-                   help="encoder (default efficientnet-lite0; pcam-cnn: histojax's PCam-trained CNN, 64-d, for views "
-                        "at the C16 scale; colour-stats: 8 cheap colour statistics, no weights)")
+    f.add_argument("--encoder", default="efficientnet-lite0", metavar="NAME|MODULE:FUNCTION",
+                   help=f"encoder: one of {', '.join(ENCODERS)} (default efficientnet-lite0; pcam-cnn: histojax's "
+                        "PCam-trained CNN, 64-d, for views at the C16 scale; colour-stats: 8 cheap colour statistics, "
+                        "no weights), or your own callable uint8 (N, H, W, 3) -> float32 (N, D) as module:function "
+                        "(its name / version attributes are recorded)")
     f.add_argument("--dim", type=int, default=None, help="reduce the 1280-d embeddings to D dimensions")
     f.add_argument("--projection", choices=("random", "pca"), default="random",
                    help="with --dim: seeded Gaussian random projection (default) or PCA of this slide's embeddings")
@@ -78,6 +80,7 @@ def run(args) -> None:
             gh, gw = lv["grid"]
             print(f"  level {k}: grid {gh}×{gw}, {lv['covered']} of {gh * gw} views covered")
         return
+    encoder_record(args.encoder)  # an unknown name, or your own encoder refused, before anything is read
     if args.check:
         from data_tools.features.efficientnet import classify, load_encoder
 

@@ -229,8 +229,10 @@ def load_encoder(name: str = NAME, image_size: int | None = TRAIN_SIZE, weights=
     size). ``"colour-stats"`` (:mod:`data_tools.features.colour`) and ``"pcam-cnn"``
     (:mod:`data_tools.features.pcam_cnn`, ``weights`` default the shipped file) take views at their own size
     and ignore ``image_size``. Cached."""
-    from data_tools.features import ENCODERS, colour, pcam_cnn
+    from data_tools.features import ENCODERS, colour, custom, pcam_cnn
 
+    if custom.is_custom(name):  # your own, module:function (data_tools.features.custom)
+        return custom.load_custom_encoder(name)
     if name == colour.NAME:
         return colour.load_colour_encoder(Encoder)
     if name == pcam_cnn.NAME:  # fed at its own size: trained at the benchmark's scale, any image size

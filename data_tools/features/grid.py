@@ -179,6 +179,7 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
         "dtype": dtype, "projection": proj, "source": "computed",
         "grid": "cell (gy, gx) of level KK = the view with top-left (gx*stride, gy*stride) px of that level",
         "levels": levels,
+        **(encoder.record() if hasattr(encoder, "record") else {}),  # your own: name, version, module:function
     }
     update_metadata(bundle, features, written)
     shutil.rmtree(partial, ignore_errors=True)

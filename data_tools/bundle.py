@@ -425,7 +425,11 @@ def build_lock(out_dir):
 def remove_stale_builds(out_dir) -> list[Path]:
     """Remove the hidden ``.NAME.tmp-*`` / ``.NAME.old-*`` folders beside ``out_dir`` left by builds that were
     killed (call it holding :func:`build_lock`: every live build of ``out_dir`` holds it, so any such folder
-    belongs to a dead one). Returns the folders removed."""
+    belongs to a dead one), and the leftovers of killed builds of other names beside it that no live process
+    holds (:func:`data_tools.datasets.locks.clean_stale_builds`: only folders of bundle files, and free lock
+    files). Returns the paths removed."""
+    from data_tools.datasets.locks import clean_stale_builds
+
     out_dir = Path(out_dir)
     stale = [p for kind in ("tmp", "old") for p in out_dir.parent.glob(f".{glob.escape(out_dir.name)}.{kind}-*")]
     for p in stale:
@@ -433,7 +437,8 @@ def remove_stale_builds(out_dir) -> list[Path]:
             shutil.rmtree(p, ignore_errors=True)
         else:
             p.unlink(missing_ok=True)
-    return stale
+    others = clean_stale_builds(out_dir.parent, keep=(out_dir.name,))  # killed builds of other names
+    return stale + [out_dir.parent / n.split(" (")[0] for n in others]
 
 
 __all__ = ["check_zoom", "Bundle", "FORMAT_VERSION", "LEVEL_SETS", "STORAGES", "TILED_FORMAT_VERSION", "level_device_bytes", "Region", "build_bundle", "bundle_downsamples", "resolve_region",

@@ -361,6 +361,11 @@ def atomic_file(path):
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
+    except OSError as e:
+        tmp.unlink(missing_ok=True)
+        if e.filename is None:  # a full disk inside json.dump / np.save names no file: name the one written
+            raise OSError(e.errno, e.strerror or str(e), str(path)) from None
+        raise
     except BaseException:
         tmp.unlink(missing_ok=True)
         raise
@@ -412,43 +417,120 @@ def verify_metadata(path, metadata: dict) -> None:
                           "was edited after the build; rebuild the bundle")
 
 
+BUNDLE_EXTRAS = ("features.partial",)
+"""Entries a bundle may hold besides ``metadata.json`` and the files its checksums list: the chunks of an
+unfinished feature grid (:mod:`data_tools.features`)."""
+
+
+def foreign_entries(out_dir) -> list[str]:
+    """The entries of the folder ``out_dir`` that histojax cannot prove it wrote as a bundle: everything when
+    ``metadata.json`` is absent, not a regular file, or not a bundle's metadata (a JSON object with a known
+    ``format_version`` and a ``checksums`` record); else every entry that is neither ``metadata.json``, a file
+    its checksums list, :data:`BUNDLE_EXTRAS` nor a hidden ``.NAME.tmp-*`` of an interrupted atomic write.
+    Empty when the folder is a bundle as histojax wrote it (or is empty)."""
+    out_dir = Path(out_dir)
+    entries = sorted(p.name for p in out_dir.iterdir())
+    meta = out_dir / METADATA
+    try:
+        if meta.is_symlink() or not meta.is_file():
+            return entries
+        metadata = json.loads(meta.read_text())
+    except (OSError, ValueError):
+        return entries
+    if not isinstance(metadata, dict) or metadata.get("format_version") not in READ_VERSIONS \
+            or not isinstance(metadata.get("checksums"), dict):
+        return entries
+    known = {METADATA, *BUNDLE_EXTRAS, *(k for k in metadata["checksums"] if isinstance(k, str))}
+    foreign = []
+    for name in entries:
+        p = out_dir / name
+        if name.startswith(".") and ".tmp-" in name and not p.is_symlink():
+            continue
+        if name not in known or p.is_symlink() or (name != "features.partial" and not p.is_file()):
+            foreign.append(name)
+    return foreign
+
+
 def check_replaceable(out_dir) -> None:
-    """Refuse to overwrite ``out_dir`` unless it is absent, an empty folder, a histojax bundle (a folder with
-    ``metadata.json``) or dataset (``dataset.json``): ``--overwrite`` must never delete other files."""
+    """Refuse to overwrite ``out_dir`` unless it is absent, an empty folder, or a bundle histojax wrote: its
+    ``metadata.json`` a bundle's metadata and every other entry a file that metadata lists (see
+    :func:`foreign_entries`). ``--overwrite`` must never delete files histojax did not write; a dataset folder
+    (``dataset.json``) is never replaced by a bundle."""
     out_dir = Path(out_dir)
     if not (out_dir.exists() or out_dir.is_symlink()):
         return
     if out_dir.is_symlink() or not out_dir.is_dir():
         raise BundleError(out_dir, "is a file, not a bundle folder; refusing to overwrite it (remove it yourself "
                           "or choose another --out)")
-    if any(out_dir.iterdir()) and not ((out_dir / METADATA).is_file() or (out_dir / "dataset.json").is_file()):
-        raise BundleError(out_dir, f"is a folder of other files, not a histojax bundle (no {METADATA}); refusing to "
-                          "overwrite it (remove it yourself or choose another --out)")
+    if not any(out_dir.iterdir()):
+        return
+    if (out_dir / "dataset.json").exists() or (out_dir / "dataset.json").is_symlink():
+        raise BundleError(out_dir, "holds a dataset.json (a dataset folder, not a bundle); refusing to overwrite "
+                          "it (choose another --out)")
+    foreign = foreign_entries(out_dir)
+    if foreign:
+        what = (f"no readable {METADATA}" if METADATA in foreign or not (out_dir / METADATA).is_file()
+                else f"{len(foreign)} file(s) its {METADATA} does not list, e.g. {foreign[0]!r}")
+        raise BundleError(out_dir, f"is a folder of other files, not a histojax bundle ({what}); refusing to "
+                          "overwrite it (remove them yourself or choose another --out)")
+
+
+RENAME_EXCHANGE = 2  # renameat2 flag (Linux >= 3.15): swap two paths atomically
+
+
+def _exchange(a: Path, b: Path) -> bool:
+    """Swap the folders ``a`` and ``b`` in one atomic step (Linux ``renameat2(RENAME_EXCHANGE)``); False when
+    the system cannot (another OS, an old kernel or libc, a filesystem without it): nothing changed then."""
+    import ctypes
+    import sys
+
+    if not sys.platform.startswith("linux"):
+        return False
+    try:
+        libc = ctypes.CDLL(None, use_errno=True)
+        renameat2 = libc.renameat2
+    except (OSError, AttributeError):
+        return False
+    renameat2.argtypes = [ctypes.c_int, ctypes.c_char_p, ctypes.c_int, ctypes.c_char_p, ctypes.c_uint]
+    at_fdcwd = -100
+    return renameat2(at_fdcwd, os.fsencode(a), at_fdcwd, os.fsencode(b), RENAME_EXCHANGE) == 0
+
+
+def replace_folder(new, out_dir) -> None:
+    """Put the finished folder ``new`` (a sibling of ``out_dir``) at ``out_dir``: swapped in one atomic step
+    where the system can (a reader sees the old folder or the new one, never none), else the old folder is
+    renamed aside to ``.NAME.old-XXXXXXXX`` first and put back if the second rename fails. The old folder is
+    deleted once the new one is in place. ``out_dir`` must be absent or a folder (not a link)."""
+    new, out_dir = Path(new), Path(out_dir)
+    if not (out_dir.exists() or out_dir.is_symlink()):
+        new.rename(out_dir)
+        return
+    if out_dir.is_symlink() or not out_dir.is_dir():
+        raise BundleError(out_dir, "is a file, not a bundle folder; refusing to replace it")
+    if _exchange(new, out_dir):
+        shutil.rmtree(new, ignore_errors=True)  # now the old folder
+        return
+    old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
+    out_dir.rename(old)
+    try:
+        new.rename(out_dir)
+    except BaseException:
+        old.rename(out_dir)  # put the previous folder back
+        raise
+    shutil.rmtree(old, ignore_errors=True)
 
 
 @contextlib.contextmanager
 def atomic_folder(out_dir):
     """Yield a temporary sibling folder of ``out_dir`` (``.NAME.tmp-XXXXXXXX``) to fill; when the block
-    ends it is renamed onto ``out_dir`` (a previous ``out_dir`` is moved aside first and put back if the
-    rename fails), so a crash leaves nothing that looks like a bundle. On an error the temporary folder
-    is removed and ``out_dir`` is left as it was."""
+    ends it replaces ``out_dir`` (:func:`replace_folder`: an atomic swap where the system can, else the
+    previous ``out_dir`` is moved aside first and put back if the rename fails), so a crash leaves nothing
+    that looks like a bundle. On an error the temporary folder is removed and ``out_dir`` is left as it was."""
     out_dir = Path(out_dir)
     tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
     try:
         yield tmp
-        if out_dir.exists() or out_dir.is_symlink():
-            if out_dir.is_symlink() or not out_dir.is_dir():
-                raise BundleError(out_dir, "is a file, not a bundle folder; refusing to replace it")
-            old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
-            out_dir.rename(old)
-            try:
-                tmp.rename(out_dir)
-            except BaseException:
-                old.rename(out_dir)  # put the previous bundle back
-                raise
-            shutil.rmtree(old, ignore_errors=True)
-        else:
-            tmp.rename(out_dir)
+        replace_folder(tmp, out_dir)
     except BaseException:
         shutil.rmtree(tmp, ignore_errors=True)
         raise
@@ -595,9 +677,10 @@ def read_metadata(path) -> BundleMetadata:
     """Read and check ``metadata.json`` of the bundle at ``path`` (format version, fields)."""
     path = Path(path)
     meta_file = path / METADATA
-    if not meta_file.is_file():
+    if not meta_file.is_file() and not meta_file.is_symlink():
         raise BundleError(path, f"not a slide bundle (no {METADATA}); build one with "
                           "`python -m data_tools build SLIDE --out DIR`")
+    own_file(path, METADATA, "metadata")
     try:
         metadata = json.loads(meta_file.read_text())
     except (json.JSONDecodeError, UnicodeDecodeError) as e:
@@ -687,16 +770,57 @@ def load_array(path, name: str, metadata: dict, verify: bool, mmap: bool = False
     """The array ``name`` of the bundle at ``path`` (no pickles), its SHA-256 checked against the
     metadata when ``verify``; ``mmap`` memory-maps it read-only."""
     path = Path(path)
-    file = path / safe_name(name, path / METADATA)
-    if not file.is_file():
-        raise BundleError(path, f"missing array {name}; rebuild the bundle")
-    if verify and sha256(file) != metadata["checksums"].get(name):
-        raise BundleError(file, "checksum mismatch (the file changed or is corrupt); rebuild the bundle")
+    file = own_file(path, name, "array")
     try:
-        return np.load(file, allow_pickle=False, mmap_mode="r" if mmap else None)
-    except Exception as e:  # a corrupt header raises ValueError, SyntaxError, tokenize.TokenError, ...
-        problem = " ".join(str(e).split())[:200] or type(e).__name__
-        raise BundleError(file, f"unreadable array ({problem}); rebuild the bundle") from None
+        fd = os.open(file, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))  # a link put there since: refused (ELOOP)
+    except OSError as e:
+        raise BundleError(path, f"entry {name!r} cannot be opened as the bundle's own file ({e.strerror or e}); "
+                          "rebuild the bundle") from None
+    with os.fdopen(fd, "rb") as f:
+        if verify:
+            h = hashlib.sha256()
+            for chunk in iter(lambda: f.read(1 << 20), b""):
+                h.update(chunk)
+            if h.hexdigest() != metadata["checksums"].get(name):
+                raise BundleError(file, "checksum mismatch (the file changed or is corrupt); rebuild the bundle")
+            f.seek(0)
+        try:
+            if mmap:
+                own_file(path, name, "array")  # still the file just checked (memmap opens by name)
+                return np.load(file, allow_pickle=False, mmap_mode="r")
+            return np.load(f, allow_pickle=False)
+        except Exception as e:  # a corrupt header raises ValueError, SyntaxError, tokenize.TokenError, ...
+            problem = " ".join(str(e).split())[:200] or type(e).__name__
+            raise BundleError(file, f"unreadable array ({problem}); rebuild the bundle") from None
+
+
+def own_file(bundle, name: str, what: str = "file") -> Path:
+    """``BUNDLE/NAME`` after checking that the entry is the bundle's own regular file: a plain name
+    (:func:`safe_name`), present, not a symbolic link (``os.lstat``), a regular file (not a FIFO, device or
+    folder) whose resolved path lies in the bundle folder. Else a ``BundleError`` naming the bundle and the
+    entry: a bundle never reads a file outside itself (``ln -s /etc/passwd BUNDLE/tissue.npy`` is refused)."""
+    import stat
+
+    bundle = Path(bundle)
+    file = bundle / safe_name(name, bundle / METADATA)
+    try:
+        st = os.lstat(file)
+    except FileNotFoundError:
+        raise BundleError(bundle, f"missing {what} {name}; rebuild the bundle") from None
+    except OSError as e:
+        raise BundleError(bundle, f"entry {name!r} cannot be read ({e.strerror or e}); rebuild the bundle") from None
+    if stat.S_ISLNK(st.st_mode):
+        try:
+            target = os.readlink(file)
+        except OSError:
+            target = "?"
+        raise BundleError(bundle, f"entry {name!r} is a symbolic link (to {target}), not the bundle's own file; "
+                          "refusing to read it (rebuild the bundle)")
+    if not stat.S_ISREG(st.st_mode):
+        raise BundleError(bundle, f"entry {name!r} is not a regular file; refusing to read it (rebuild the bundle)")
+    if os.path.realpath(file.parent) != os.path.realpath(bundle):
+        raise BundleError(bundle, f"entry {name!r} resolves outside the bundle; refusing to read it")
+    return file
 
 
 def check_mask(file, array, shape, kind: str = "0/1") -> None:
@@ -861,4 +985,4 @@ __all__ = ["ANNOTATIONS", "Bundle", "BundleMetadata", "FEATURES_COMMAND", "FORMA
            "TISSUE", "TiledLevel", "atomic_file", "atomic_folder", "bundle_downsamples", "default_magnification_range",
            "device_bytes", "drop_pixels", "feature_bytes", "file_digest", "slide_device_bytes", "tumour_table_bytes", "select_levels", "grid_shape", "level_device_bytes", "level_downsamples", "level_files",
            "level_grids", "level_size", "load_array", "load_bundle", "load_feature_levels", "load_tiled_level",
-           "read_metadata", "save_array", "sha256", "stable_read", "check_replaceable", "verify_metadata", "metadata_digest", "METADATA_DIGEST", "check_mask", "check_fields", "safe_name", "text_digest", "tiled_level_files", "write_json", "write_metadata"]
+           "read_metadata", "save_array", "sha256", "stable_read", "check_replaceable", "verify_metadata", "metadata_digest", "METADATA_DIGEST", "check_mask", "check_fields", "safe_name", "own_file", "foreign_entries", "replace_folder", "text_digest", "tiled_level_files", "write_json", "write_metadata"]

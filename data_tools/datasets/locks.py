@@ -24,8 +24,14 @@ from pathlib import Path
 
 from data_tools.errors import HistojaxDataError
 
-STALE = re.compile(r"^\.(?P<name>.+)\.(?:tmp|old)-[0-9a-zA-Z]+$")
+STALE = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-[0-9a-zA-Z]+$")
 """Hidden temporaries of :func:`data_tools.bundle_format.atomic_folder` / ``atomic_file``."""
+LOCK_FILE = re.compile(r"^\.(?P<name>.+)\.(?:dataset-)?lock$")
+"""Lock files of :func:`file_lock` (``.NAME.dataset-lock``) and of the bundle builder (``.NAME.lock``)."""
+BUILD_TEMP = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-[0-9a-f]{8}$")
+"""A temporary (or moved-aside) bundle folder of :func:`data_tools.bundle_format.atomic_folder`."""
+BUNDLE_ENTRY = re.compile(r"^(?:[A-Za-z0-9_]+\.npy|metadata\.json|annotations\.geojson|features\.partial|\..+\.tmp-[0-9a-f]{8})$")
+"""Names a bundle (or one being built) holds."""
 
 
 class LockHeld(HistojaxDataError):
@@ -123,11 +129,18 @@ def clean_stale(folder, finished_features: bool = True, lock_folder=None) -> lis
             if not all(stack.enter_context(_free(locks / f".{n}.{kind}"))
                        for n in names for kind in ("dataset-lock", "lock")):
                 continue
+            target = folder / m["name"]
+            if m["kind"] == "old" and p.is_dir() and not p.is_symlink() and not (target.exists()
+                                                                                 or target.is_symlink()):
+                p.rename(target)  # killed between moving the previous bundle aside and the swap: put it back
+                removed.append(f"{p.name} (restored as {m['name']})")
+                continue
             if p.is_dir() and not p.is_symlink():
                 shutil.rmtree(p, ignore_errors=True)
             else:
                 p.unlink(missing_ok=True)
             removed.append(p.name)
+    removed += clean_lock_files(folder)
     if finished_features:
         for partial in sorted(folder.glob("*/features.partial")):
             bundle = partial.parent
@@ -135,6 +148,61 @@ def clean_stale(folder, finished_features: bool = True, lock_folder=None) -> lis
                 if free and clean_partial_features(bundle):
                     removed.append(f"{bundle.name}/features.partial")
     return removed
+
+
+def clean_lock_files(folder) -> list[str]:
+    """Remove the lock files (``.NAME.lock``, ``.NAME.dataset-lock``) in ``folder`` that no live process holds
+    (a killed build's): each is taken, then removed as a holder removes it. Only small files holding nothing
+    or a process id (what the locks write) are looked at. Returns the names removed."""
+    folder = Path(folder)
+    removed: list[str] = []
+    if not folder.is_dir():
+        return removed
+    for p in sorted(folder.iterdir()):
+        if not LOCK_FILE.match(p.name) or p.is_symlink() or not p.is_file():
+            continue
+        try:
+            if p.stat().st_size > 32 or not (p.read_bytes().strip() or b"0").isdigit():
+                continue
+        except OSError:
+            continue
+        with _free(p) as free:
+            if free:
+                removed.append(p.name)
+    return removed
+
+
+def clean_stale_builds(folder, keep=()) -> list[str]:
+    """Leftovers of killed bundle builds of any name in ``folder`` (any user's folder: ``build --out``'s
+    parent), removed only when they are provably histojax's and no live process holds their locks: hidden
+    ``.NAME.tmp-XXXXXXXX`` / ``.NAME.old-XXXXXXXX`` folders holding only bundle files (a ``.NAME.old-*``
+    whose ``NAME`` is gone is put back as ``NAME``: the previous bundle of a swap that was killed), then
+    free lock files (:func:`clean_lock_files`). ``keep``: names not to look at (the build in progress).
+    Returns the names removed or restored."""
+    folder = Path(folder)
+    removed: list[str] = []
+    if not folder.is_dir():
+        return removed
+    for p in sorted(folder.iterdir()):
+        m = BUILD_TEMP.match(p.name)
+        if not m or m["name"] in keep or p.is_symlink() or not p.is_dir():
+            continue
+        try:
+            if not all(BUNDLE_ENTRY.match(e.name) for e in p.iterdir()):
+                continue  # not (only) a bundle's files: not ours to judge
+        except OSError:
+            continue
+        with contextlib.ExitStack() as stack:
+            if not all(stack.enter_context(_free(folder / f".{m['name']}.{kind}")) for kind in ("dataset-lock", "lock")):
+                continue
+            target = folder / m["name"]
+            if m["kind"] == "old" and not (target.exists() or target.is_symlink()):
+                p.rename(target)
+                removed.append(f"{p.name} (restored as {m['name']})")
+            else:
+                shutil.rmtree(p, ignore_errors=True)
+                removed.append(p.name)
+    return removed + clean_lock_files(folder)
 
 
 def clean_partial_features(bundle) -> bool:
@@ -156,4 +224,5 @@ def clean_partial_features(bundle) -> bool:
     return False
 
 
-__all__ = ["LockHeld", "bundle_lock_path", "clean_partial_features", "clean_stale", "file_lock"]
+__all__ = ["LockHeld", "bundle_lock_path", "clean_lock_files", "clean_partial_features", "clean_stale",
+           "clean_stale_builds", "file_lock"]

@@ -196,6 +196,9 @@ def run(args, parser=None) -> int:
     except json.JSONDecodeError as e:
         return print_error(f"--label-map is not valid JSON: {e}")
     except OSError as e:  # file-system errors outside the project's checks (permissions, full disk, ...)
+        where = getattr(args, "out", None) or getattr(args, "out_dir", None)
+        if e.filename is None and where:  # e.g. a full disk inside a library's write: name the output at least
+            return print_error(f"{where}: {e.strerror or e} (while writing under it)")
         return print_error(os_error_text(e))
     return 0
 

@@ -1,10 +1,18 @@
 """Build a dataset from a folder of real slides (``histojax dataset SLIDES_DIR --out DIR``).
 
 Layout of ``DIR``: ``bundles/NAME/`` (one bundle per slide), ``records/NAME.json`` (a finished
-slide: its settings, label, split, figures) or ``records/NAME.failed.json`` (its one-line reason),
-``plan.json`` (the options and the cohort every shard must agree on), ``annotations/NAME.geojson``
-(NCRF JSON converted) and, once every slide has a record, ``dataset.json`` (the split that
-``histojax.make(..., dataset=DIR)`` loads, the labels, the failures).
+slide: its settings, label, split, figures) and ``records/failed/NAME.json`` (its last failure, one-line
+reason; a folder of its own, so no slide's record is another slide's failure record — before, failures were
+``records/NAME.failed.json``, which the record of a slide named ``NAME.failed`` overwrote; such files are
+still read), ``plan.json`` (the options and the cohort every shard must agree on),
+``annotations/NAME.geojson`` (NCRF JSON converted) and, once every slide has a record, ``dataset.json``
+(the split that ``histojax.make(..., dataset=DIR)`` loads, the labels, the failures; sealed with its
+digest, so a ``dataset.json`` histojax did not write is never overwritten).
+
+Nothing of the user's is deleted: a slide is built into a hidden ``bundles/.NAME.tmp-*`` and swapped into
+place only once whole, so a failed rebuild leaves the previous bundle (and its record) as they were; a
+``bundles/NAME`` holding files histojax did not write is neither replaced nor removed (the slide fails,
+naming them).
 
 Restartable: a slide whose record matches its settings and whose bundle is there is not built
 again; a killed run's temporaries are removed (:func:`data_tools.datasets.locks.clean_stale`).
@@ -17,15 +25,17 @@ reason and the others still build.
 from __future__ import annotations
 
 import json
+import os
 import resource
 import shutil
 import time
+import uuid
 from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import read_metadata, write_json
+from data_tools.bundle_format import foreign_entries, metadata_digest, read_metadata, replace_folder, write_json
 from data_tools.datasets.locks import LockHeld, bundle_lock_path, clean_partial_features, clean_stale, file_lock
 from data_tools.datasets.split import seeded_split, shard_names
 from data_tools.errors import HistojaxDataError
@@ -103,15 +113,36 @@ def make_plan(entries, slides_dir, options: dict, test_fraction: float, seed: in
     return {"kind": KIND, "options": options, "split_rule": rule, "slides": slides}
 
 
-def _agree(out: Path, plan: dict) -> None:
-    """Write ``plan.json`` if absent; else refuse a run whose options or cohort differ (one line)."""
+def read_plan(out) -> dict:
+    """``OUT/plan.json`` of a ``histojax dataset`` build, checked: a JSON object of this tool's kind with an
+    ``options`` record and a ``slides`` record of slide records. Anything else (absent, malformed, another
+    tool's ``plan.json``) is a ``HistojaxDataError`` naming the file."""
+    path = Path(out) / "plan.json"
+    try:
+        plan = json.loads(path.read_text(encoding="utf-8"))
+    except FileNotFoundError:
+        raise HistojaxDataError(out, "no plan.json: not a dataset started by `histojax dataset`") from None
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+        raise HistojaxDataError(path, f"unreadable ({_one_line(e)}); not a plan `histojax dataset` wrote, refusing "
+                                      "to touch it: choose another --out") from None
+    slides = plan.get("slides") if isinstance(plan, dict) else None
+    if not isinstance(plan, dict) or plan.get("kind") != KIND or not isinstance(plan.get("options"), dict) \
+            or not isinstance(slides, dict) \
+            or not all(isinstance(v, dict) and {"split", "label", "path"} <= set(v) for v in slides.values()):
+        found = f"kind {plan.get('kind')!r}" if isinstance(plan, dict) and "kind" in plan else \
+            f"slides {type(slides).__name__}" if isinstance(plan, dict) else type(plan).__name__
+        raise HistojaxDataError(path, f"is not a plan `histojax dataset` wrote ({found}; another tool's file?); "
+                                      "refusing to touch it: choose another --out")
+    return plan
+
+
+def _agree(out: Path, plan: dict, restart: bool = False) -> None:
+    """Write ``plan.json`` if absent (or, with ``restart``, over this tool's own plan); else refuse a run whose
+    options or cohort differ (one line). A ``plan.json`` this tool did not write is never touched."""
     path = out / "plan.json"
-    if path.is_file():
-        try:
-            old = json.loads(path.read_text())
-        except (OSError, json.JSONDecodeError):
-            old = None
-        if old is not None and old != plan:
+    if path.exists() or path.is_symlink():
+        old = read_plan(out)
+        if not restart and old != plan:
             what = [k for k in ("options", "slides", "split_rule") if old.get(k) != plan.get(k)]
             detail = ""
             if old.get("options") != plan.get("options"):
@@ -135,32 +166,82 @@ def _settings_key(name: str, slide: dict, options: dict, slides_dir: Path) -> di
 
 
 def record_path(out: Path, name: str, failed: bool = False) -> Path:
-    """``OUT/records/NAME.json`` (a finished slide) or ``OUT/records/NAME.failed.json`` (its failure)."""
-    (Path(out) / "records").mkdir(parents=True, exist_ok=True)
-    return Path(out) / "records" / f"{name}{'.failed' if failed else ''}.json"
+    """``OUT/records/NAME.json`` (a finished slide) or ``OUT/records/failed/NAME.json`` (its failure): slide
+    names hold no ``/``, so the two never collide, whatever the names."""
+    folder = Path(out) / "records" / ("failed" if failed else "")
+    folder.mkdir(parents=True, exist_ok=True)
+    return folder / f"{name}.json"
+
+
+def _legacy_failed_path(out: Path, name: str) -> Path:
+    """Where failures were recorded before ``records/failed/`` (``records/NAME.failed.json``)."""
+    return Path(out) / "records" / f"{name}.failed.json"
+
+
+def _read_json(path: Path) -> dict | None:
+    try:
+        rec = json.loads(path.read_text())
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+        return None
+    return rec if isinstance(rec, dict) else None
 
 
 def read_record(out: Path, name: str, failed: bool = False) -> dict | None:
-    """The record (or failure record) of slide ``name`` in the dataset ``out``; None when absent or unreadable."""
-    try:
-        rec = json.loads(record_path(out, name, failed).read_text())
-    except (OSError, json.JSONDecodeError):
+    """The record (or failure record) of slide ``name`` in the dataset ``out``; None when absent, unreadable or
+    another slide's (a record names its slide). Failure records of older builds (``records/NAME.failed.json``)
+    are read when they name this slide."""
+    rec = _read_json(record_path(out, name, failed))
+    if rec is None and failed:
+        rec = _read_json(_legacy_failed_path(out, name))
+        if rec is not None and "reason" not in rec:
+            rec = None
+    if rec is not None and "name" in rec and rec["name"] != name:
         return None
-    return rec if isinstance(rec, dict) else None
+    return rec
+
+
+def _clear_failed(out: Path, name: str) -> None:
+    """Remove slide ``name``'s failure record (and an older build's ``records/NAME.failed.json`` naming it)."""
+    record_path(out, name, failed=True).unlink(missing_ok=True)
+    legacy = _legacy_failed_path(out, name)
+    old = _read_json(legacy)
+    if old is not None and old.get("name") == name and "reason" in old:
+        legacy.unlink(missing_ok=True)
+
+
+def check_bundle_folder(bundle: Path) -> None:
+    """Refuse (``HistojaxDataError`` naming the folder and a file) a ``bundles/NAME`` that is not absent, empty
+    or a bundle histojax wrote (:func:`data_tools.bundle_format.foreign_entries`): a folder of the user's files
+    inside ``--out`` is never replaced nor removed."""
+    if not (bundle.exists() or bundle.is_symlink()):
+        return
+    if bundle.is_symlink() or not bundle.is_dir():
+        raise HistojaxDataError(bundle, "is not a bundle folder (a file or a link); refusing to replace it: move it "
+                                        "away or choose another --out")
+    foreign = foreign_entries(bundle)
+    if foreign:
+        raise HistojaxDataError(bundle, f"holds {len(foreign)} file(s) histojax did not write (e.g. {foreign[0]!r}); "
+                                        "refusing to replace or remove them: move them away or choose another --out")
 
 
 BUILD_ERRORS = (HistojaxDataError, OSError, ValueError, MemoryError)
 """What a slide's build may raise that is the slide's fault: recorded, and the cohort goes on."""
 
 
-def run_locked(out, name: str, work, current=None) -> dict:
+def run_locked(out, name: str, work, current=None, staged: bool = False) -> dict:
     """Build slide ``name`` of the dataset ``out`` holding its bundle's lock (``bundles/.NAME.dataset-lock``,
     not blocking: a slide another process or shard is building is reported ``busy`` and skipped).
     ``current(record) -> bool``: a record that needs no rebuild (``resumed``; default: always rebuild).
-    ``work() -> record`` builds it; the record is written to ``records/NAME.json``. A build error
-    (:data:`BUILD_ERRORS`) removes the slide's bundle and writes ``records/NAME.failed.json`` with the
-    one-line reason. Returns ``{"name", "status": "built" | "resumed" | "failed" | "busy", "reason"?,
-    "record"?}``. The one per-slide step of ``data_tools dataset`` and ``data_tools c16``."""
+    A ``bundles/NAME`` holding files histojax did not write fails the slide at once, untouched
+    (:func:`check_bundle_folder`). ``staged``: ``work(folder) -> record`` builds the bundle into the hidden
+    ``bundles/.NAME.tmp-*`` given, swapped onto ``bundles/NAME`` once whole
+    (:func:`data_tools.bundle_format.replace_folder`); a build error (:data:`BUILD_ERRORS`) removes only
+    that temporary, so a previous bundle and its record stay as they were. Not ``staged`` (``c16``):
+    ``work() -> record`` builds ``bundles/NAME`` in place and a build error removes it (only when histojax
+    wrote every file in it). The record goes to ``records/NAME.json``, a failure to
+    ``records/failed/NAME.json`` with its one-line reason. Returns ``{"name", "status": "built" | "resumed" |
+    "failed" | "busy", "reason"?, "record"?, "kept"?}`` (``kept``: a failed rebuild left the previous bundle).
+    The one per-slide step of ``data_tools dataset`` and ``data_tools c16``."""
     out = Path(out)
     bundle = out / "bundles" / name
     t0 = time.perf_counter()
@@ -169,24 +250,47 @@ def run_locked(out, name: str, work, current=None) -> dict:
         lock.__enter__()
     except LockHeld:
         return {"name": name, "status": "busy"}
+
+    def failed(e: BaseException) -> dict:
+        reason = _one_line(e) if not (isinstance(e, OSError) and e.filename is None) \
+            else f"{bundle}: {_one_line(e.strerror or e)}"
+        kept = staged and read_record(out, name) is not None and (bundle / "metadata.json").is_file()
+        write_json(record_path(out, name, failed=True), {"name": name, "reason": reason, "previous_kept": kept})
+        return {"name": name, "status": "failed", "reason": reason, "kept": kept}
+
     try:
         rec = read_record(out, name)
         if rec is not None and current is not None and current(rec) and (bundle / "metadata.json").is_file():
             clean_partial_features(bundle)
             return {"name": name, "status": "resumed", "record": rec}
-        record_path(out, name).unlink(missing_ok=True)
         try:
-            rec = work()
-        except BUILD_ERRORS as e:
-            reason = _one_line(e)
-            if bundle.exists():
-                shutil.rmtree(bundle, ignore_errors=True)
-            write_json(record_path(out, name, failed=True), {"name": name, "reason": reason})
-            return {"name": name, "status": "failed", "reason": reason}
+            check_bundle_folder(bundle)
+        except HistojaxDataError as e:
+            return failed(e)
+        if staged:
+            tmp = bundle.parent / f".{name}.tmp-{uuid.uuid4().hex[:8]}"
+            try:
+                rec = work(tmp)
+                check_bundle_folder(bundle)  # again: files may have been put there meanwhile
+                replace_folder(tmp, bundle)
+            except BUILD_ERRORS as e:
+                shutil.rmtree(tmp, ignore_errors=True)
+                return failed(e)
+            except BaseException:
+                shutil.rmtree(tmp, ignore_errors=True)
+                raise
+        else:
+            record_path(out, name).unlink(missing_ok=True)
+            try:
+                rec = work()
+            except BUILD_ERRORS as e:
+                if bundle.is_dir() and not bundle.is_symlink() and not foreign_entries(bundle):
+                    shutil.rmtree(bundle, ignore_errors=True)  # half a bundle, every file histojax's
+                return failed(e)
         rec.setdefault("seconds", round(time.perf_counter() - t0, 2))
         rec.setdefault("peak_rss_bytes", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
         write_json(record_path(out, name), rec)
-        record_path(out, name, failed=True).unlink(missing_ok=True)
+        _clear_failed(out, name)
         return {"name": name, "status": "built", "record": rec}
     finally:
         lock.__exit__(None, None, None)
@@ -196,7 +300,8 @@ def run_summary(results: list[dict]) -> dict:
     """This run's slides by the status :func:`run_locked` gave them: ``built`` / ``resumed`` / ``busy`` names
     and ``failed`` (name → reason)."""
     return {**{k: [r["name"] for r in results if r["status"] == k] for k in ("built", "resumed", "busy")},
-            "failed": {r["name"]: r["reason"] for r in results if r["status"] == "failed"}}
+            "failed": {r["name"]: r["reason"] for r in results if r["status"] == "failed"},
+            "kept": [r["name"] for r in results if r["status"] == "failed" and r.get("kept")]}
 
 
 def collect_records(out, names, current=None) -> tuple[dict[str, dict], dict[str, str], list[str]]:
@@ -236,11 +341,10 @@ def build_one(job: dict) -> dict:
     ``{"name", "status": "built" | "resumed" | "failed" | "busy", "reason"?, "record"?}``."""
     out, name, slide, opts = Path(job["out"]), job["name"], job["slide"], job["options"]
     slides_dir = Path(job["slides_dir"])
-    bundle = out / "bundles" / name
     key = _settings_key(name, slide, opts, slides_dir)
-    return run_locked(out, name, lambda: _build(out, name, slide, opts, slides_dir, bundle, key, job.get("h5"),
-                                                job.get("progress", False)),
-                      current=lambda rec: rec.get("settings") == key)
+    return run_locked(out, name, lambda folder: _build(out, name, slide, opts, slides_dir, folder, key, job.get("h5"),
+                                                       job.get("progress", False)),
+                      current=lambda rec: rec.get("settings") == key, staged=True)
 
 
 def _one_line(e: BaseException) -> str:
@@ -250,7 +354,7 @@ def _one_line(e: BaseException) -> str:
 
 
 def _build(out, name, slide, opts, slides_dir, bundle, key, h5, progress) -> dict:
-    """The work of :func:`build_one` (lock held)."""
+    """The work of :func:`build_one` (lock held): the bundle is built into ``bundle`` (a temporary folder)."""
     import warnings
 
     from data_tools.bundle import build_bundle
@@ -332,29 +436,97 @@ def _encoder_of(options: dict) -> str | None:
     return encoder_name(options.get("encoder")) or ("imported" if options.get("features_from") else None)
 
 
+DATASET_DIGEST = "dataset_sha256"
+"""Key of ``dataset.json``'s seal: the SHA-256 of the rest (as :func:`data_tools.bundle_format.metadata_digest`)."""
+OUR_KINDS = (KIND, "histojax true-scale CAMELYON16 benchmark (data_tools c16)")
+"""``kind`` of the ``dataset.json`` files histojax wrote before they were sealed."""
+
+
+def dataset_json_is_ours(path) -> bool:
+    """True when ``path`` (a ``dataset.json``) is absent or provably written by histojax: sealed with a digest
+    that matches, or (written before the seal) a JSON object of a histojax kind with ``train`` / ``test``
+    lists, ``labels`` and ``slides``. A file a user wrote (``{}``) or edited since is not."""
+    path = Path(path)
+    if not (path.exists() or path.is_symlink()):
+        return True
+    if path.is_symlink() or not path.is_file():
+        return False
+    old = _read_json(path)
+    if old is None:
+        return False
+    if DATASET_DIGEST in old:
+        return old[DATASET_DIGEST] == metadata_digest({k: v for k, v in old.items() if k != DATASET_DIGEST})
+    return old.get("kind") in OUR_KINDS and isinstance(old.get("train"), list) \
+        and isinstance(old.get("test"), list) and isinstance(old.get("labels"), dict) \
+        and isinstance(old.get("slides"), list)
+
+
+def check_dataset_json(out) -> None:
+    """Refuse (one line naming the file) an ``OUT/dataset.json`` histojax cannot prove it wrote
+    (:func:`dataset_json_is_ours`): it is never overwritten."""
+    path = Path(out) / "dataset.json"
+    if not dataset_json_is_ours(path):
+        raise HistojaxDataError(path, "was not written by histojax (or was edited since); refusing to overwrite it: "
+                                      "move it away or choose another --out")
+
+
 def write_dataset_index(out, dataset: dict) -> dict:
-    """Write ``dataset`` as ``OUT/dataset.json`` atomically, holding ``OUT/.dataset.lock`` (the one writer of
-    ``dataset.json`` for ``data_tools dataset`` and ``c16``); returns it."""
+    """Write ``dataset`` as ``OUT/dataset.json`` atomically, holding ``OUT/.dataset.lock``, sealed with its digest
+    (:data:`DATASET_DIGEST`), over nothing but a ``dataset.json`` histojax wrote (:func:`check_dataset_json`);
+    the one writer of ``dataset.json`` for ``data_tools dataset`` and ``c16``. Returns it (sealed)."""
     out = Path(out)
+    body = {k: v for k, v in dataset.items() if k != DATASET_DIGEST}
+    dataset = {**body, DATASET_DIGEST: metadata_digest(body)}
     with file_lock(out / ".dataset.lock", what=str(out)):
+        check_dataset_json(out)
         write_json(out / "dataset.json", dataset)
     return dataset
+
+
+def check_scorable(out, plan: dict, records: dict, failed: dict[str, str]) -> None:
+    """Refuse (``HistojaxDataError``, one line) a test split that failed slides left unscorable: the plan gave
+    it slides and it now holds none, or the plan gave it tumour slides and it now holds no tumour slide. (An
+    empty train side is reported by the command, not refused: the test slides may still be scored.)"""
+    for side in ("test",):
+        planned = sorted(n for n, s in plan["slides"].items() if s["split"] == side)
+        built = [n for n in planned if n in records]
+        lost = [n for n in planned if n not in records]
+        why = "; ".join(f"{n}: {failed[n]}" for n in lost[:2] if n in failed)[:300]
+        if planned and not built:
+            raise HistojaxDataError(out, f"the {side} split would hold no slide: all {len(planned)} of its slides "
+                                         f"failed ({why}); dataset.json not written (built slides are kept): fix "
+                                         "them and rerun")
+        tumour = [n for n in planned if int(plan["slides"][n]["label"]) == 1]
+        if tumour and not any(n in records for n in tumour):
+            why = "; ".join(f"{n}: {failed[n]}" for n in tumour[:2] if n in failed)[:300]
+            raise HistojaxDataError(out, f"the {side} split would hold no tumour slide: its {len(tumour)} tumour "
+                                         f"slide(s) failed ({why}), so it cannot be scored; dataset.json not "
+                                         "written (built slides are kept): fix them and rerun")
 
 
 def merge_dataset(out) -> tuple[dict | None, list[str], dict[str, str]]:
     """Read ``OUT/plan.json`` and every record; write ``dataset.json`` when every slide has one. Returns
     ``(dataset or None, names still missing, failed name → reason)``."""
     out = Path(out)
-    try:
-        plan = json.loads((out / "plan.json").read_text())
-    except FileNotFoundError:
-        raise HistojaxDataError(out, "no plan.json: not a dataset started by `histojax dataset`") from None
-    except json.JSONDecodeError as e:
-        raise HistojaxDataError(out / "plan.json", f"malformed JSON ({e})") from None
-    records, failed, missing = collect_records(out, sorted(plan["slides"]))
+    plan = read_plan(out)
+
+    def usable(rec) -> bool:  # built for this plan (a previous bundle kept by a failed rebuild may not be)
+        settings, name = rec.get("settings"), rec.get("name")
+        if not isinstance(settings, dict) or name not in plan["slides"]:
+            return False
+        return settings.get("options") == plan["options"] and settings.get("slide") == plan["slides"][name]
+
+    records, failed, missing = collect_records(out, sorted(plan["slides"]), current=usable)
     if missing:
         return None, missing, failed
-    return write_dataset_json(out, plan, records, failed), [], failed
+    kept = {}
+    for name in records:
+        bad = read_record(out, name, failed=True)
+        if bad is not None and "reason" in bad:
+            kept[name] = str(bad["reason"])
+    check_scorable(out, plan, records, failed)
+    extra = {"kept_after_failed_rebuild": kept} if kept else None
+    return write_dataset_json(out, plan, records, failed, extra), [], failed
 
 
 def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 5, 7), tile_size: int = 128,
@@ -399,14 +571,17 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     plan = make_plan(entries, slides_dir, options, test_fraction, seed)
     for n, m in mpps.items():
         plan["slides"][n]["mpp"] = m
+    if (out / "plan.json").exists() or (out / "plan.json").is_symlink():
+        read_plan(out)  # another tool's plan.json: refused before anything is written
+    check_dataset_json(out)
     out.mkdir(parents=True, exist_ok=True)
     with file_lock(out / ".dataset.lock", what=str(out)):
-        if restart:
-            for p in (out / "plan.json", out / "dataset.json"):
-                p.unlink(missing_ok=True)
-        _agree(out, plan)
+        # --restart keeps dataset.json: the dataset stays loadable until the new one replaces it
+        _agree(out, plan, restart=restart)
     removed = clean_stale(out / "bundles") + [f"annotations/{n}" for n in clean_stale(out / "annotations",
                                                                                       lock_folder=out / "bundles")]
+    for sub in ("records", "records/failed"):
+        removed += [f"{sub}/{n}" for n in clean_stale(out / sub, finished_features=False, lock_folder=out / "bundles")]
     if removed and progress:
         print(f"removed {len(removed)} leftovers of an interrupted run: {', '.join(removed[:5])}")
     mine = shard_names(plan["slides"], shard)
@@ -423,7 +598,10 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor, as_completed
 
-        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn")) as pool:
+        from data_tools.datasets.workers import die_with_parent, stop_workers_on_sigterm
+
+        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=die_with_parent,
+                                 initargs=(os.getpid(),)) as pool, stop_workers_on_sigterm(pool):
             for fut in as_completed([pool.submit(build_one, job) for job in jobs_list]):
                 results.append(fut.result())
                 bar.update(1)
@@ -438,5 +616,6 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
             "shard": shard, "n_slides": len(plan["slides"]), "n_mine": len(mine)}
 
 
-__all__ = ["BUILD_ERRORS", "build_dataset", "build_one", "check_scales", "collect_records", "h5_index", "make_plan",
-           "merge_dataset", "read_record", "record_path", "run_locked", "run_summary", "write_dataset_index", "write_dataset_json"]
+__all__ = ["BUILD_ERRORS", "DATASET_DIGEST", "build_dataset", "build_one", "check_bundle_folder", "check_dataset_json",
+           "check_scales", "check_scorable", "collect_records", "dataset_json_is_ours", "h5_index", "make_plan",
+           "merge_dataset", "read_plan", "read_record", "record_path", "run_locked", "run_summary", "write_dataset_index", "write_dataset_json"]

@@ -110,7 +110,16 @@ def _report(out: Path, dataset: dict, failed: dict, summary: dict) -> int:
           + (f"; {len(failed)} failed and left out:" if failed else ""))
     for name, reason in failed.items():
         print(f"  failed {name}: {reason}")
-    return 1 if failed else 0
+    kept = dataset.get("kept_after_failed_rebuild") or {}
+    for name, reason in kept.items():
+        print(f"  rebuild of {name} failed, its previous bundle is kept: {reason}")
+    for side in ("train", "test"):
+        if not dataset[side]:
+            print(f"note: the {side} split is empty (split rule: {dataset.get('split_rule')}"
+                  + ("; its slides failed" if failed else "") + "): no policy can be "
+                  + ("trained" if side == "train" else "scored") + " on it; give more slides, --test-fraction or a "
+                  "split column")
+    return 1 if failed or kept else 0
 
 
 __all__ = ["add_subcommand", "run"]

@@ -293,11 +293,12 @@ def test_coordinates_in_the_wrong_units_warn_with_the_coverage(bundle, tmp_path,
     ("1e300", r"a coordinate is 1e\+300, beyond ±2\^31 level-0 px"),
     ("no-size", r"pass --patch-size P \(px at pyramid level --patch-level L\)"),
     ("attr", r"the 'patch_size' attribute of coords is not a number"),
+    ("float16", r"feature values reach [\d.]+e\+0[67], beyond float16's ±65504"),
 ])
 def test_feature_files_that_cannot_be_right_are_refused_naming_them(bundle, tmp_path, case, match):
     """Was: N = 0 and D = 0 built all-zero grids; coordinates all outside the slide gave "need at least one
     array to concatenate", one at 1e300 "invalid value encountered in cast", string features a raw
-    ValueError; the hint named ``--level L``, an option ``histojax dataset`` does not have."""
+    ValueError, features beyond ±65504 were stored as float16 infinities; the hint named ``--level L``, an option ``histojax dataset`` does not have."""
     from data_tools.features.hdf5 import FeatureFileError, import_features
 
     coords, feats = _tissue_patches()
@@ -317,6 +318,8 @@ def test_feature_files_that_cannot_be_right_are_refused_naming_them(bundle, tmp_
         attrs = {}
     elif case == "attr":
         attrs = {"patch_size": "sixty-four"}
+    elif case == "float16":  # stored as float16 by default: would be infinite
+        feats = feats * 1e6
     h5 = _h5(tmp_path / f"{case}.h5", coords, feats, **attrs)
     work = _work(bundle, tmp_path)
     before = sorted(p.name for p in work.iterdir())
@@ -353,17 +356,22 @@ def test_a_huge_patch_count_is_refused_from_its_shape_before_reading(bundle, tmp
 
 def test_a_patch_size_in_the_wrong_units_is_refused_before_the_overlap_table(bundle, tmp_path):
     """Was: ``patch_size`` 1e9 made every patch overlap every view: 1.19 GB for a 4.8 MB file, then a
-    MemoryError traceback. Now the overlaps are counted from N numbers first and bounded."""
+    MemoryError traceback. Now a patch larger than the slide is refused, and the patch–view overlaps are
+    counted from N numbers and bounded before the table is built."""
     from data_tools.features.hdf5 import FeatureFileError, import_features, overlap_count
 
     rng = np.random.default_rng(0)
-    n = 400_000
-    coords = rng.integers(0, 32, (n, 2)).astype(np.int32)  # each overlaps every view
-    h5 = _h5(tmp_path / "big.h5", coords, np.zeros((n, 1), np.float32), patch_size=1e9)
-    assert overlap_count(coords.astype(float), 1e9, (1000, 1000), 128.0, 128.0) > 0.99 * n * 1e6  # no overflow
-    with pytest.raises(FeatureFileError, match=r"big\.h5: its 400,000 patches of 1e\+09 level-0 px overlap "
-                                               r"[\d,]+ views of a \d+×\d+ grid: \d+\.\d GiB .*patch size"):
-        import_features(_work(bundle, tmp_path), h5)
+    n = 200_000
+    coords = rng.integers(0, 32, (n, 2)).astype(np.int32)
+    assert overlap_count(coords.astype(float), 1e9, (1000, 1000), 128.0, 128.0) == n * 1e6  # no overflow
+    small = _h5(tmp_path / "s.h5", coords[:10], np.zeros((10, 1), np.float32), patch_size=1e9)
+    with pytest.raises(FeatureFileError, match=r"s\.h5: a patch of 1e\+09 level-0 px is larger than the whole slide "
+                                               r"\(512×384 level-0 px\)"):
+        import_features(_work(bundle, tmp_path), small)
+    big = _h5(tmp_path / "big.h5", coords, np.zeros((n, 1), np.float32), patch_size=300)
+    with pytest.raises(FeatureFileError, match=r"big\.h5: its 200,000 patches of 300 level-0 px overlap [\d,]+ "
+                                               r"views of a 12×16 grid: \d+\.\d GiB .*limit of 0\.1 GiB"):
+        import_features(_work(bundle, tmp_path), big, max_bytes=100 * 2**20)
     with pytest.raises(FeatureFileError, match=r"patch extent 1e\+10 level-0 px is not in \(0, 2\^31\)"):
         import_features(_work(bundle, tmp_path), _h5(tmp_path / "b2.h5", coords[:10], np.zeros((10, 1)),
                                                      patch_size=1e10))

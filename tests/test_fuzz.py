@@ -405,3 +405,205 @@ def test_fuzz_tumour_is_used_or_counted(tmp_path, fmt, data):
         assert ann.tumour.area == pytest.approx(10_000 * used)
     counted = [str(w.message) for w in record if "without area" in str(w.message)]
     assert (f": {lost} tumour / exclusion annotation(s)" in counted[0]) if lost else not counted, (parts, counted)
+
+
+# ------------------------------------------------------------------ the cohort path (issue 30): labels, .h5, --shard
+# Every input either succeeds or raises the project's one-line error (HistojaxDataError) naming the file; never
+# another exception. A feature file that imports leaves a finite grid whose mask marks exactly the views with data.
+def cohort_outcome(target: str, fn, path=None, word: str | None = None) -> bool:
+    """Run ``fn``; count 'loaded' or the HistojaxDataError type (which must name ``path`` / hold ``word``)."""
+    from data_tools.errors import HistojaxDataError
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        try:
+            fn()
+        except HistojaxDataError as e:
+            assert path is None or e.path == str(path), f"the error names {e.path}, not {path}: {e}"
+            assert word is None or word in str(e), str(e)
+            COUNTS[target][type(e).__name__] += 1
+            return False
+    COUNTS[target]["loaded"] += 1
+    return True
+
+
+LABEL_CELLS = st.one_of(st.text(max_size=10), st.sampled_from(
+    ["1", "0", "Tumor", "normal", "NEG", "s1", "S1", "s1.tif", "S2.svs", "s3", "train", "test", "TEST", "", " ", "x",
+     "slide", "label", "split", "\ufeffslide", "s1\x00", '"s1"']))
+LABEL_HEADERS = st.sampled_from([None, ["slide", "label"], ["slide_id", "label", "split"], ["name", "class"],
+                                 ["slide"], ["label"], ["a", "b"], ["Slide", "Label", "Split"]])
+ENCODINGS = st.sampled_from(["utf-8", "utf-8", "utf-8-sig", "utf-16", "utf-16-le", "utf-16-be", "latin-1", "cp1252",
+                             "utf-32"])
+
+
+@pytest.fixture(scope="module")
+def cohort_slides(tmp_path_factory):
+    """A folder of three slide names (s1, S2, s3: discovery does not open them)."""
+    root = tmp_path_factory.mktemp("cohort") / "slides"
+    root.mkdir()
+    for name in ("s1.tif", "S2.svs", "s3.tiff"):
+        (root / name).write_bytes(b"II*\x00")
+    return root
+
+
+CLEAN_LABEL_ROWS = st.lists(st.lists(st.sampled_from(["s1", "S1", "s1.tif", "S2", "s2.svs", "s3", "S3.TIFF"]), min_size=1,
+                                     max_size=1).flatmap(lambda name: st.tuples(st.just(name[0]), st.sampled_from(
+                                         ["1", "0", "Tumor", "normal"]), st.sampled_from(["train", "test", ""]))
+                                                         .map(list)), min_size=1, max_size=5)
+
+
+@FUZZ
+@given(header=LABEL_HEADERS, rows=st.one_of(st.lists(st.lists(LABEL_CELLS, max_size=4), max_size=6), CLEAN_LABEL_ROWS),
+       encoding=ENCODINGS,
+       quoting=st.sampled_from([0, 1, 2, 3]), mode=st.sampled_from([0, 0, 0, 1, 2]), cut=st.integers(0, 200),
+       junk=st.binary(max_size=8))
+def test_fuzz_labels_csv(tmp_path, cohort_slides, header, rows, encoding, quoting, mode, cut, junk):
+    import csv
+
+    from data_tools.datasets.discover import discover
+    from data_tools.datasets.split import read_label_table
+
+    buffer = io.StringIO()
+    writer = csv.writer(buffer, quoting=quoting, escapechar="\\")
+    for row in ([header] if header else []) + rows:
+        try:
+            writer.writerow(row)
+        except csv.Error:  # a row QUOTE_NONE cannot write: written raw
+            buffer.write(",".join(row) + "\n")
+    data = buffer.getvalue().encode(encoding, "surrogatepass" if encoding.startswith("utf") else "replace")
+    if mode == 1:
+        data = data[:cut]
+    elif mode == 2:
+        pos = cut % (len(data) + 1)
+        data = data[:pos] + junk + data[pos:]
+    path = tmp_path / "labels.csv"
+    path.write_bytes(data)
+    if cohort_outcome("labels-csv", lambda: read_label_table(path), path):
+        labels, splits = read_label_table(path)
+        assert set(v for v in labels.values()) <= {0, 1} and set(splits.values()) <= {"train", "test"}
+        assert len({k.lower() for k in labels}) == len(labels)  # case-folded names never collide silently
+    cohort_outcome("labels-csv", lambda: discover(cohort_slides, labels_csv=path, warn_skipped=False), path)
+
+
+SHARD_PARTS = st.one_of(st.integers(-3, 12).map(str), st.integers(-10**30, 10**30).map(str), st.text(max_size=5),
+                        st.sampled_from(["", " 1", "1 ", "+1", "0x1", "1e3", "1.0", "١", "1_0", "nan", "inf", "9" * 5000]))
+
+
+@FUZZ
+@given(text=st.one_of(st.text(max_size=12), st.builds(lambda i, n: f"{i}/{n}", st.integers(-2, 20), st.integers(-1, 20)),
+                      st.builds(lambda i, sep, n: f"{i}{sep}{n}", SHARD_PARTS,
+                                                      st.sampled_from(["/", "/", "//", " / ", "\\", "", "/0/"]),
+                                                      SHARD_PARTS)))
+def test_fuzz_shard(text):
+    from data_tools.datasets.split import parse_shard, shard_names
+
+    got = []
+    if cohort_outcome("shard", lambda: got.append(parse_shard(text)), None, "--shard"):
+        i, n = got[0]
+        assert isinstance(i, int) and isinstance(n, int) and 0 <= i < n
+        names = [f"s{k}" for k in range(7)]
+        if n <= 50:  # shards are disjoint and cover every name
+            parts = [shard_names(names, (j, n)) for j in range(n)]
+            assert sorted(sum(parts, [])) == sorted(names)
+
+
+@pytest.fixture(scope="module")
+def feature_bundle(tmp_path_factory):
+    """A 192 × 256 px slide (tissue over x 32..224, y 32..160), 32-px views, 3 zoom levels."""
+    from data_tools.bundle import build_bundle
+
+    root = tmp_path_factory.mktemp("fuzz-features")
+    image = np.full((192, 256, 3), 244, np.uint8)
+    image[32:160, 32:224] = [190, 80, 150]
+    image = (image.astype(np.int16) + np.random.default_rng(0).integers(-4, 5, image.shape)).clip(0, 255)
+    tifffile.imwrite(root / "slide.tif", image.astype(np.uint8), photometric="rgb", tile=(64, 64))
+    return build_bundle(root / "slide.tif", root / "bundle", level_sets=(3,), tile_size=32, progress=False)
+
+
+COORD_VALUES = st.one_of(st.integers(-64, 300), st.sampled_from([0, 32, 64, 1e300, -1e300, float("nan"), float("inf"),
+                                                                  2.0**31, 1e9, 2.5, -0.0]))
+FEATURE_VALUES = st.one_of(st.floats(-10, 10), st.sampled_from([0.0, 1e6, -1e30, float("nan"), float("inf"), 65504.0]))
+ATTRS = {"patch_size": [64, 32, 0, -5, 1e9, 1e10, float("nan"), float("inf"), "abc", [64, 64], [], True, 2.5],
+         "patch_level": [0, 1, -1, 2.5, 100, "x", float("nan")],
+         "downsample": [1, 2, 0, -1, float("nan"), 1e300, "x"],
+         "patch_size_level0": [64, 0, float("nan"), 1e12, -3]}
+
+
+@st.composite
+def feature_files(draw):
+    if draw(st.booleans()):  # a well-formed file: patches of 16 .. 96 px on (or near) the slide
+        n = draw(st.integers(1, 40))
+        d = draw(st.integers(1, 8))
+        coords = np.array(draw(st.lists(st.integers(-40, 280), min_size=2 * n, max_size=2 * n))).reshape(n, 2)
+        feats = np.array(draw(st.lists(st.floats(-100, 100), min_size=n * d, max_size=n * d))).reshape(n, d)
+        attrs = {"patch_size": draw(st.sampled_from([16, 32, 64, 96]))}
+        return (coords, draw(st.sampled_from(["int32", "int64", "float32"])), feats,
+                draw(st.sampled_from(["float32", "float16", "float64"])), attrs, "both", None, 0)
+    n = draw(st.sampled_from([0, 1, 2, 5, 12, 40]))
+    d = draw(st.sampled_from([0, 1, 3, 8]))
+    coord_shape = draw(st.sampled_from([(n, 2), (n, 2), (1, n, 2), (n, 3), (n,), (), (n, 2, 1)]))
+    feat_shape = draw(st.sampled_from([(n, d), (n, d), (1, n, d), (n,), (n + 1, d), (d,)]))
+    coord_dtype = draw(st.sampled_from(["int32", "int64", "float32", "float64", "float16", "uint8", "S4", "bool"]))
+    feat_dtype = draw(st.sampled_from(["float32", "float32", "float16", "float64", "int8", "S3", "bool", "complex64"]))
+    coords = np.array(draw(st.lists(COORD_VALUES, min_size=int(np.prod(coord_shape)),
+                                    max_size=int(np.prod(coord_shape)))), dtype=np.float64).reshape(coord_shape)
+    feats = np.array(draw(st.lists(FEATURE_VALUES, min_size=int(np.prod(feat_shape)),
+                                   max_size=int(np.prod(feat_shape)))), dtype=np.float64).reshape(feat_shape)
+    attrs = {k: draw(st.sampled_from(v)) for k, v in ATTRS.items() if draw(st.integers(0, 3)) == 0}
+    if draw(st.integers(0, 2)) == 0:
+        attrs.setdefault("patch_size", 64)
+    layout = draw(st.sampled_from(["both", "both", "both", "no-coords", "no-features", "group"]))
+    damage = draw(st.sampled_from([None, None, None, "truncate", "flip"]))
+    where = draw(st.integers(0, 10**6))
+    return coords, coord_dtype, feats, feat_dtype, attrs, layout, damage, where
+
+
+def _cast(values, dtype):
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        if dtype.startswith("S"):
+            return np.char.encode(np.char.mod("%g", values), "ascii").astype(dtype) if values.size else \
+                np.zeros(values.shape, dtype)
+        return np.nan_to_num(values).astype(dtype) if dtype.startswith(("int", "uint", "bool")) else values.astype(dtype)
+
+
+@FUZZ
+@given(spec=feature_files(), patch_size=st.sampled_from([None, None, 64, 1000000000]), level=st.sampled_from([None, 0, 1]))
+def test_fuzz_feature_h5(tmp_path, feature_bundle, spec, patch_size, level):
+    import shutil
+
+    import h5py
+
+    from data_tools.features.hdf5 import import_features
+
+    coords, coord_dtype, feats, feat_dtype, attrs, layout, damage, where = spec
+    path = tmp_path / "slide.h5"
+    with h5py.File(path, "w") as f:
+        if layout != "no-coords":
+            c = f.create_dataset("coords", data=_cast(coords, coord_dtype))
+            for k, v in attrs.items():
+                c.attrs[k] = v
+        if layout == "group":
+            f.create_group("features")
+        elif layout != "no-features":
+            f.create_dataset("features", data=_cast(feats, feat_dtype))
+    if damage:
+        data = bytearray(path.read_bytes())
+        if damage == "truncate":
+            data = data[:where % (len(data) + 1)]
+        else:
+            for k in range(8):
+                data[(where + 997 * k) % len(data)] ^= 0xFF
+        path.write_bytes(bytes(data))
+    work = tmp_path / "bundle"
+    if not work.exists():
+        shutil.copytree(feature_bundle, work)
+    result = []
+    if cohort_outcome("feature-h5", lambda: result.append(import_features(work, path, patch_size=patch_size,
+                                                                          level=level)), path):
+        info = result[0]
+        for lv in info["levels"]:  # a finite grid, zero where the mask says no patch touched the view
+            grid = np.load(work / lv["file"]).astype(np.float32)
+            mask = np.load(work / lv["mask_file"])
+            assert np.isfinite(grid).all() and not grid[~mask].any() and int(mask.sum()) == lv["covered"]
+        assert any(lv["covered"] for lv in info["levels"])

@@ -19,7 +19,7 @@ the region's corner first.
 Bounds, checked from the file's shapes and attributes before its data is read: numeric ``coords`` and
 ``features`` with ``N ≥ 1`` and ``D ≥ 1``, coordinates and the patch extent inside ±2^31 level-0 px, and
 at most :data:`MAX_IMPORT_BYTES` (4 GiB) of host memory for the features, the patch–view overlaps and
-the grids; a file whose patches miss the slide is refused, one covering under
+the grids; a patch larger than the whole slide, or a file whose patches all miss it, is refused; one covering under
 :data:`MIN_TISSUE_COVERAGE` (50 %) of the finest level's tissue views gives a warning.
 """
 from __future__ import annotations
@@ -284,6 +284,11 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
     if (metadata.region or {}).get("box"):  # a region bundle's level-0 px start at the region's corner
         coords = coords - np.asarray(metadata.region_offset, dtype=np.float64)
         info["region_offset"] = list(metadata.region_offset)
+    side = max(float(metadata.source.get("width") or 0), float(metadata.source.get("height") or 0))
+    if side > 0 and extent > side:
+        raise FeatureFileError(h5_path, f"a patch of {extent:g} level-0 px is larger than the whole slide "
+                                        f"({metadata.source.get('width')}×{metadata.source.get('height')} level-0 px): "
+                                        "is the patch size (--patch-size / the patch_size attribute) right?")
     grids = level_grids(metadata, stride)
     n, dim = features.shape
     base = features.nbytes + coords.nbytes
@@ -308,6 +313,12 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
         raise FeatureFileError(h5_path, f"none of its {n:,} patches lies on the slide ({w0:.0f}×{h0:.0f} level-0 px; "
                                         f"coords span x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g}): coords of "
                                         "another slide, or not in level-0 px?")
+    if dtype == "float16":
+        top = max(float(np.abs(g).max(initial=0.0)) for g, _ in computed)
+        if top > np.finfo(np.float16).max:
+            raise FeatureFileError(h5_path, f"feature values reach {top:.3g}, beyond float16's ±65504 (they would be "
+                                            "stored as infinity): scale the features, or import-features --dtype "
+                                            "float32")
     coverage = tissue_coverage(bundle, metadata, computed[0][1], 0, stride)
     info["tissue_coverage"] = None if coverage is None else list(coverage)
     if coverage is not None and coverage[0] < MIN_TISSUE_COVERAGE * coverage[1]:

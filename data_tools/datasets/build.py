@@ -558,9 +558,14 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     if encoder is not None:  # a built-in name, or your own module:function, probed (a broken one refused)
         encoder_record(encoder)
     t0 = time.perf_counter()
+    skipped: list = []  # files discovery passed over, with why (each also a warning): "skipped" in the summary
     entries = discover(slides_dir, annotations_dir=annotations, labels_csv=labels, skip=[out],
-                       allow_unmatched=allow_unmatched)
+                       allow_unmatched=allow_unmatched, skipped=skipped)
     h5s = h5_index(features_from) if features_from else None
+    if h5s:  # one encoder's features: files of different D refused before anything is built
+        from data_tools.features.hdf5 import check_feature_dims
+
+        check_feature_dims(h5s[e.name.lower()] for e in entries if e.name.lower() in h5s)
     mpps = check_scales(entries, magnification_range)
     options = {"levels": sorted(set(int(v) for v in levels)), "tile_size": int(tile_size),
                "magnification_range": magnification_range, "storage": storage, "label_map": label_map or None,
@@ -613,7 +618,8 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
             "failed_all": failed, "missing": missing, "dataset": dataset, "seconds": round(seconds, 2),
             "slides_per_minute": round(60 * len(built) / seconds, 2) if built else None,
             "peak_rss_bytes_per_job": max([r["record"]["peak_rss_bytes"] for r in built] or [0]),
-            "shard": shard, "n_slides": len(plan["slides"]), "n_mine": len(mine)}
+            "shard": shard, "n_slides": len(plan["slides"]), "n_mine": len(mine),
+            "skipped": [str(item) for item in skipped]}
 
 
 __all__ = ["BUILD_ERRORS", "DATASET_DIGEST", "build_dataset", "build_one", "check_bundle_folder", "check_dataset_json",

@@ -279,7 +279,9 @@ def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None =
             f = env.n_levels - 1
             start = int(seen_tables.grid_offset[i, f])
             size = int(seen_tables.grid_width[i, f] * seen_tables.grid_height[i, f])
-            seen = np.asarray(memory.seen[e])[start:start + size]
+            from histojax.reading import seen_flags  # seen is a bit set
+
+            seen = seen_flags(memory.seen[e], start, size)
             read = seen[np.asarray(seen_tables.tissue[i])[:size]]
         out[budgets[e // n_slides]].append((np.flatnonzero(read), float(scores[e]), float(ep["fraction_read"][e]),
                                             float(ep["fields_of_view"][e])))

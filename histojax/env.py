@@ -47,11 +47,13 @@ stacks slides of any sizes into one ``SlideArrays``; ``reset`` draws a slide (un
 ``random_start=False``); terminate on success (not for ``"histogym"``); truncate when ``t``
 reaches ``max_steps_in_episode`` (never reported as termination). With ``auto_reset=True``
 (default) ``step`` starts a new episode after the last one, returning the first observation of the
-new episode and the last one of the old in ``info["final_observation"]``; ``final_observation=False``
-extracts one view per step instead of two (about twice as fast for pixels; PureJaxRL-style trainers
-that do not bootstrap from truncated episodes do not need the last view) and keeps the key, which
-gymnax's wrappers read, as an empty ``(0,)`` array per observation leaf: code that does use it
-fails at trace time instead of reading a wrong view. With ``auto_reset=False`` it is the returned
+new episode and the last one of the old in ``info["final_observation"]`` (gymnax 1.0's semantics).
+``step`` selects the state first (the new episode's where one ended) and observes it once; the
+stepped state's observation for ``info["final_observation"]`` is a separate computation that a
+jitted caller which never reads it does not pay for (XLA drops it). ``final_observation=False``
+keeps the key, which gymnax's wrappers read, as an empty ``(0,)`` array per observation leaf
+(code that does use it fails at trace time instead of reading a wrong view), so it costs nothing
+even without jit. With ``auto_reset=False`` it is the returned
 observation. ``info`` always has gymnax 1.0's keys ``terminated``, ``truncated`` and
 ``final_observation``, plus ``discount`` (0 on termination), ``tumour_fraction`` and ``success``.
 
@@ -291,11 +293,10 @@ class HistoEnv(_GymnaxEnvironment):
         state_re = self._reset_state(key_reset, params)
         done = jnp.logical_or(terminated, truncated)
         state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_re, state_st)
-        if self.final_observation:  # both views, then a select (the last one is info's)
+        obs = self.get_obs(state, params)  # one observation, of the state kept after the auto-reset
+        if self.final_observation:  # the stepped state's, for info; under jit it costs nothing unless used
             final = self.get_obs(state_st, params)
-            obs = jax.tree.map(lambda a, b: jnp.where(done, a, b), self.get_obs(state_re, params), final)
-        else:  # one view per step, of the state chosen; the key stays, without a wrong view
-            obs = self.get_obs(state, params)
+        else:  # the key stays, without a wrong view
             final = jax.tree.map(lambda a: jnp.zeros((0,), a.dtype), obs)
         return obs, state, reward, terminated, truncated, {**info, "final_observation": final}
 

@@ -147,14 +147,8 @@ class Glimpse(ActionMode):
             cell = reading.cell_of_views(slide, t, g, s, (gh, gw)).reshape(-1)
             feats = reading.finest_view_features(slide, t).reshape(tissue.shape[0], -1)
             d, n = feats.shape[1], gh * gw
-            count = np.bincount(cell[tissue], minlength=n)
-            mean = np.zeros((n, d), np.float64)
-            np.add.at(mean, cell[tissue], feats[tissue])
-            mean /= np.maximum(count, 1)[:, None]
-            mx = np.full((n, d), -np.inf)
-            np.maximum.at(mx, cell[tissue], feats[tissue])
-            mx[count == 0] = 0.0
-            low = np.asarray(slide.features, np.float32)[int(np.asarray(slide.feature_offset)[g]) + np.arange(n)]
+            mean, mx, count = cell_summaries(feats[tissue], cell[tissue], n)
+            low = reading.feature_rows(slide, int(np.asarray(slide.feature_offset)[g]) + np.arange(n))
             gy, gx = np.divmod(np.arange(n), gw)
             pad = lambda a, fill=0: _to_padded(a.reshape(gh, gw, *a.shape[1:]), big_h, big_w, fill)  # noqa: E731
             cy, cx = np.divmod(cell[tissue], gw)
@@ -200,7 +194,9 @@ class Glimpse(ActionMode):
     def memory_obs(self, env, state, params) -> dict:
         tables, mem, i = params.mode_data, state.memory, state.slide_index
         revealed = mem.revealed.astype(jnp.float32)
-        fraction = mem.views_read.astype(jnp.float32) * tables.inv_total[i]
+        # the product rounded on its own before the subtraction (a min between them: XLA's CPU backend would
+        # otherwise fuse them into one multiply-subtract, whose rounding depends on what else the program holds)
+        fraction = jnp.minimum(mem.views_read.astype(jnp.float32) * tables.inv_total[i], 1.0)
         return {
             "cells": tables.cells[i],
             "valid": tables.valid[i].astype(jnp.float32),
@@ -219,6 +215,23 @@ class Glimpse(ActionMode):
         mem, tables = state.memory, params.mode_data
         fraction = mem.views_read.astype(jnp.float32) * tables.inv_total[state.slide_index]
         return {"fraction_read": fraction, "fields_of_view": mem.fields}
+
+
+def cell_summaries(feats: np.ndarray, cell: np.ndarray, n: int):
+    """Host, vectorised: ``(mean (n, D) float64, max (n, D) float64, count (n,) int64)`` of the rows
+    ``feats (V, D)`` grouped by ``cell (V,)`` in ``[0, n)`` (0 for a cell without rows). The sums
+    run in the rows' order (``np.bincount``), as ``np.add.at`` would add them."""
+    v, d = feats.shape
+    count = np.bincount(cell, minlength=n)
+    flat = (cell[:, None] * d + np.arange(d)[None, :]).reshape(-1)
+    mean = np.bincount(flat, weights=feats.reshape(-1).astype(np.float64), minlength=n * d).reshape(n, d)
+    mean /= np.maximum(count, 1)[:, None]
+    mx = np.zeros((n, d), np.float64)
+    if v:
+        order = np.argsort(cell, kind="stable")
+        starts = np.flatnonzero(np.r_[True, np.diff(cell[order]) != 0])
+        mx[cell[order][starts]] = np.maximum.reduceat(feats[order].astype(np.float64), starts, axis=0)
+    return mean, mx, count
 
 
 def observation_bytes(env, params) -> int:

@@ -80,6 +80,14 @@ def cell_of_views(slide, tile_size: int, level: int, step: int, cell_grid: tuple
     return gy[:, None] * cell_grid[1] + gx[None, :]
 
 
+def feature_rows(slide, rows: np.ndarray) -> np.ndarray:
+    """Host float32 copy of rows ``rows`` (any shape of absolute row indices) of ``slide.features``:
+    gathered where the bank lives and only those rows copied, never the whole (stacked) bank."""
+    rows = np.asarray(rows)
+    picked = jnp.take(slide.features, jnp.asarray(rows.reshape(-1), jnp.int32), axis=0)
+    return np.asarray(picked, np.float32).reshape(*rows.shape, -1)
+
+
 def finest_view_features(slide, tile_size: int) -> np.ndarray:
     """``(gh, gw, D)`` float32 features of the finest-level views: the feature-grid row nearest
     each view's top-left corner, as :func:`histojax.modes.view_features` reads it."""
@@ -93,7 +101,7 @@ def finest_view_features(slide, tile_size: int) -> np.ndarray:
     fx = np.clip((x + s // 2) // s, 0, fgw - 1)
     fy = np.clip((y + s // 2) // s, 0, fgh - 1)
     rows = int(np.asarray(slide.feature_offset)[f]) + fy[:, None] * fgw + fx[None, :]
-    return np.asarray(slide.features, np.float32)[rows]
+    return feature_rows(slide, rows)
 
 
 def per_slide(params, bundles):
@@ -127,7 +135,7 @@ class SeenTables:
     inv_total: jnp.ndarray     # (S,) float32 1 / total_views
     inv_coarse: jnp.ndarray    # (S, Gc) float32 1 / coarse_views
     read_budget: jnp.ndarray   # () float32 fraction of total_views after which the episode is truncated
-    seen_zero: jnp.ndarray     # (V,) bool all False: a fresh ``seen`` (V = the largest sum of grid sizes)
+    seen_zero: jnp.ndarray     # (⌈V/32⌉,) uint32 all 0: a fresh ``seen`` bit set (V = the largest sum of grid sizes)
 
 
 
@@ -135,9 +143,10 @@ class SeenTables:
 class SeenMemory:
     """What a navigating episode has seen (in ``EnvState.memory``)."""
 
-    seen: jnp.ndarray        # (V,) bool views of every level's grid seen (level z from grid_offset[z])
+    seen: jnp.ndarray        # (⌈V/32⌉,) uint32 bits: view v of every level's grid seen (bit v % 32 of word v // 32)
     views_read: jnp.ndarray  # () int32 finest-level tissue views seen
     fields: jnp.ndarray      # () int32 distinct views seen, any level
+    block_read: jnp.ndarray  # (Gc,) int32 finest tissue views read per block of the visited map (Gc = 16·16)
 
 
 def seen_tables(env, params, bundles, read_budget: float = 1.0) -> SeenTables:
@@ -176,14 +185,31 @@ def seen_tables(env, params, bundles, read_budget: float = 1.0) -> SeenTables:
         inv_total=jnp.asarray(1.0 / np.asarray(rows["total"], np.float64), jnp.float32),
         inv_coarse=jnp.asarray(1.0 / np.stack(coarse_views).astype(np.float64), jnp.float32),
         read_budget=jnp.float32(read_budget),
-        seen_zero=jnp.zeros((max(int(o[-1]) + int(w[-1]) * int(h[-1]) for o, w, h in
-                                 zip(rows["offset"], rows["width"], rows["height"])),), bool))
+        seen_zero=jnp.zeros((seen_words(max(int(o[-1]) + int(w[-1]) * int(h[-1]) for o, w, h in
+                                            zip(rows["offset"], rows["width"], rows["height"]))),), jnp.uint32))
+
+
+def seen_words(views: int) -> int:
+    """uint32 words of a ``seen`` bit set of ``views`` views (≥ 1)."""
+    return max(1, (int(views) + 31) // 32)
+
+
+def seen_flags(words, start: int, size: int) -> np.ndarray:
+    """Host: ``(size,)`` bool, views ``start .. start + size - 1`` of a ``seen`` bit set ``words``
+    (``(⌈V/32⌉,)`` uint32, e.g. one env's ``memory.seen``)."""
+    bits = np.unpackbits(np.asarray(words).astype("<u4").view(np.uint8), bitorder="little").astype(bool)
+    return bits[start:start + size]
 
 def init_seen(tables: SeenTables, state, env) -> SeenMemory:
     """A fresh :class:`SeenMemory` that has seen the start view of ``state``."""
     zero = jnp.zeros((), jnp.int32)
-    return see(tables, SeenMemory(seen=tables.seen_zero, views_read=zero, fields=zero),
+    return see(tables, SeenMemory(seen=tables.seen_zero, views_read=zero, fields=zero, block_read=block_zero(tables)),
                state.slide_index, state.z, state.x, state.y, env)
+
+
+def block_zero(tables: SeenTables) -> jax.Array:
+    """A fresh ``block_read``: zeros ``(Gc,)`` int32."""
+    return jnp.zeros(tables.coarse_views.shape[-1:], jnp.int32)
 
 
 def _grid_index(tables: SeenTables, i, z, x, y, tile_size: int):
@@ -196,15 +222,22 @@ def _grid_index(tables: SeenTables, i, z, x, y, tile_size: int):
 
 
 def see(tables: SeenTables, memory, i, z, x, y, env):
-    """``memory`` (any dataclass with ``seen``, ``views_read``, ``fields``) after looking at
-    ``(z, x, y)`` of slide ``i``: the view is marked and counted once."""
+    """``memory`` (any dataclass with ``seen``, ``views_read``, ``fields``, ``block_read``) after
+    looking at ``(z, x, y)`` of slide ``i``: the view is marked and counted once; a finest tissue
+    view read adds 1 to its block of the visited map (updated here, never recounted)."""
     index, local = _grid_index(tables, i, z, x, y, env.tile_size)
-    new = ~memory.seen[index]
+    word = index // 32
+    bit = jnp.left_shift(jnp.uint32(1), (index % 32).astype(jnp.uint32))
+    bits = memory.seen[word]
+    new = (bits & bit) == 0
     finest = z == env.n_levels - 1
-    tissue = tables.tissue[i, jnp.clip(local, 0, tables.tissue.shape[-1] - 1)]
-    return memory.replace(seen=memory.seen.at[index].set(True),
-                          views_read=memory.views_read + (new & finest & tissue).astype(jnp.int32),
-                          fields=memory.fields + new.astype(jnp.int32))
+    view = jnp.clip(local, 0, tables.tissue.shape[-1] - 1)
+    read = new & finest & tables.tissue[i, view]
+    return memory.replace(seen=memory.seen.at[word].set(bits | bit),
+                          views_read=memory.views_read + read.astype(jnp.int32),
+                          fields=memory.fields + new.astype(jnp.int32),
+                          block_read=memory.block_read.at[tables.coarse_cell[i, view]].add(
+                              read.astype(jnp.int32), mode="drop"))
 
 
 def budget_spent(tables, memory, i) -> jax.Array:
@@ -222,13 +255,7 @@ def reading_info(tables, memory, i) -> dict:
 def visited_obs(env, state, params) -> dict:
     """``visited (16, 16)`` float32 (the coarse visited map, see the module doc) and ``position (3,)``."""
     tables, i = params.mode_data, state.slide_index
-    f = env.n_levels - 1
-    start = tables.grid_offset[i, f]
-    n_f = tables.tissue.shape[-1]
-    seen_f = jax.lax.dynamic_slice(jnp.pad(state.memory.seen, (0, n_f)), (start,), (n_f,))
-    read = (seen_f & tables.tissue[i]).astype(jnp.float32)
-    big_c = tables.coarse_views.shape[-1]
-    per_cell = jax.ops.segment_sum(read, tables.coarse_cell[i], num_segments=big_c + 1)[:big_c]
+    per_cell = state.memory.block_read.astype(jnp.float32)  # kept up to date by see(): 256 numbers, no recount
     return {"visited": (per_cell * tables.inv_coarse[i]).reshape(VISITED_MAP, VISITED_MAP),
             "position": env._position(state, params.slide.select(i))}
 

@@ -10,7 +10,9 @@ zoom factor (2 for histojax's bundles, the default) the children tile the footpr
 finest level a child action stays. ``k`` is set with ``action_mode=ZoomSelect(k=4)``.
 
 **Memory** (``EnvState.memory``): which views of a stride-``T`` grid of every level were seen
-(``seen``; the finest level's part says which finest-level views were read) and the counts.
+(``seen``, one bit a view in uint32 words; the finest level's part says which finest-level views were
+read), the counts, and the finest tissue views read per block of the visited map (``block_read``,
+updated at each step, so the observation never recounts the slide's views).
 **Observation**: the observation mode's entry, plus ``visited (16, 16)`` float32, the coarse
 visited map of :mod:`histojax.reading` (the fraction of the finest tissue views read in each of
 16 × 16 blocks of the slide), and ``position (3,)`` as ``with_position`` gives it. Bytes per
@@ -37,9 +39,10 @@ from histojax.modes import ActionMode, Move, _declared_score
 class ZoomMemory:
     """What an episode has seen (in ``EnvState.memory``)."""
 
-    seen: jnp.ndarray        # (V,) bool views of every level's grid seen (level z from grid_offset[z])
+    seen: jnp.ndarray        # (⌈V/32⌉,) uint32 bits: views of every level's grid seen (see histojax.reading.see)
     views_read: jnp.ndarray  # () int32 finest-level tissue views seen
     fields: jnp.ndarray      # () int32 distinct views seen, any level
+    block_read: jnp.ndarray  # (256,) int32 finest tissue views read per block of the visited map
     path_x: jnp.ndarray      # (n_levels,) int32 x of the view last zoomed in from at each level (the parents)
     path_y: jnp.ndarray      # (n_levels,) int32
 
@@ -68,7 +71,8 @@ class ZoomSelect(ActionMode):
     def init_memory(self, env, state, params) -> ZoomMemory:
         zero = jnp.zeros((), jnp.int32)
         path = jnp.zeros((env.n_levels,), jnp.int32)
-        memory = ZoomMemory(seen=params.mode_data.seen_zero, views_read=zero, fields=zero, path_x=path, path_y=path)
+        memory = ZoomMemory(seen=params.mode_data.seen_zero, views_read=zero, fields=zero,
+                            block_read=reading.block_zero(params.mode_data), path_x=path, path_y=path)
         return reading.see(params.mode_data, memory, state.slide_index, state.z, state.x, state.y, env)
 
     def apply(self, env, state, action, params) -> Move:

@@ -9,6 +9,7 @@ Hang tests run in a subprocess with a timeout, so a regression fails instead of 
 from __future__ import annotations
 
 import os
+import re
 import shutil
 import subprocess
 import sys
@@ -385,7 +386,7 @@ def test_mixed_feature_dimensions_are_refused_naming_two_files(tmp_path):
     b = _h5(tmp_path / "b.h5", coords, feats[:, :4])
     c = _h5(tmp_path / "c.h5", coords, feats)
     check_feature_dims([a, c])
-    with pytest.raises(FeatureFileError, match=r"a\.h5: has D = 8 features but .*b\.h5 has D = 4"):
+    with pytest.raises(FeatureFileError, match=r"b\.h5: has D = 4 features but .*a\.h5 has D = 8"):
         check_feature_dims([a, b, c])
 
 
@@ -400,3 +401,62 @@ def test_import_features_takes_patch_level(bundle, tmp_path, capsys):
     assert main(["import-features", str(work), str(h5), "--patch-size", "64", "--patch-level", "0"]) == 0
     assert main(["import-features", str(work), str(h5)]) == 2
     assert "--patch-level L" in capsys.readouterr().err
+
+
+# ------------------------------------------------------------------ the command, end to end
+@pytest.fixture(scope="module")
+def tissue_tif(tmp_path_factory) -> Path:
+    """A 512 × 512 px crop of the sample slide's tissue (real H&E pixels), tiled TIFF."""
+    from histojax.sample import SAMPLE_SLIDE
+
+    with tifffile.TiffFile(SAMPLE_SLIDE) as tif:
+        pixels = tif.pages[0].asarray()[800:1312, 800:1312, :3]
+    path = tmp_path_factory.mktemp("tissue") / "crop.tif"
+    tifffile.imwrite(path, np.ascontiguousarray(pixels), tile=(128, 128), photometric="rgb")
+    return path
+
+
+def _dataset_cli(args, timeout=240):
+    try:
+        return subprocess.run([sys.executable, "-m", "data_tools", "dataset", *map(str, args)], capture_output=True,
+                              text=True, timeout=timeout, env=ENV, cwd=ROOT)
+    except subprocess.TimeoutExpired:
+        pytest.fail(f"histojax dataset hung for {timeout} s (killed)")
+
+
+@posix_only
+def test_the_dataset_command_with_a_fifo_a_loop_and_other_formats(tissue_tif, tmp_path):
+    """Was: hung (FIFO p.tif, killed at 60 s; two self-links, killed at 90 s). Now it builds the one real slide,
+    exit 0, with one ``warning:`` line per file or folder skipped, saying why."""
+    slides = tmp_path / "S"
+    (slides / "e").mkdir(parents=True)
+    shutil.copy(tissue_tif, slides / "e" / "s1.tif")
+    os.mkfifo(slides / "p.tif")
+    os.symlink(".", slides / "e" / "a")
+    os.symlink(".", slides / "e" / "b")
+    (slides / "x.mrxs").write_text("x")
+    proc = _dataset_cli([slides, "--out", tmp_path / "o", "--levels", "3", "--quiet", "--test-fraction", "0"])
+    assert proc.returncode == 0, proc.stderr
+    warned = [line for line in proc.stderr.splitlines() if line.startswith("warning: ") and "skipped" in line]
+    assert len(warned) == 4, proc.stderr
+    assert any("p.tif: skipped: a FIFO" in w for w in warned) and any("x.mrxs: skipped: a 3DHISTECH MIRAX" in w
+                                                                         for w in warned)
+    assert sum("symlink loop" in w for w in warned) == 2
+    import json
+
+    assert json.loads((tmp_path / "o" / "dataset.json").read_text())["labels"] == {"s1": 0}
+
+
+def test_the_dataset_command_refuses_feature_files_of_two_encoders(tissue_tif, tmp_path):
+    """Was: slides imported with D = 8 and D = 4 built one dataset of mixed dimensions without a word."""
+    slides, feats = tmp_path / "S", tmp_path / "feats"
+    slides.mkdir()
+    feats.mkdir()
+    coords, f8 = _tissue_patches()
+    for name, d in (("a", 8), ("b", 4)):
+        shutil.copy(tissue_tif, slides / f"{name}.tif")
+        _h5(feats / f"{name}.h5", coords, f8[:, :d], patch_size=64)
+    proc = _dataset_cli([slides, "--out", tmp_path / "o", "--levels", "3", "--quiet", "--features-from", feats])
+    assert proc.returncode == 2 and "Traceback" not in proc.stderr, proc.stderr
+    assert re.search(r"^error: .*b\.h5: has D = 4 features but .*a\.h5 has D = 8", proc.stderr, re.M), proc.stderr
+    assert not (tmp_path / "o" / "bundles").exists()

@@ -120,18 +120,19 @@ def feature_dim(path) -> int:
 
 
 def check_feature_dims(paths) -> None:
-    """Refuse feature files of different ``D`` (two encoders mixed in one dataset), naming two of them; files
-    that cannot be read are left to fail on their own slide."""
-    dims: dict[int, Path] = {}
+    """Refuse feature files of different ``D`` (two encoders mixed in one dataset), naming the first file whose
+    ``D`` differs from the first readable file's; files that cannot be read are left to fail on their own slide."""
+    first: tuple[int, Path] | None = None
     for p in paths:
         try:
-            dims.setdefault(feature_dim(p), Path(p))
+            d = feature_dim(p)
         except FeatureFileError:
             continue
-    if len(dims) > 1:
-        (d1, p1), (d2, p2) = sorted(dims.items())[:2]
-        raise FeatureFileError(p2, f"has D = {d2} features but {p1} has D = {d1}: one dataset takes one encoder's "
-                                   "features; point --features-from at one encoder's folder")
+        if first is None:
+            first = (d, Path(p))
+        elif d != first[0]:
+            raise FeatureFileError(p, f"has D = {d} features but {first[1]} has D = {first[0]}: one dataset takes "
+                                      "one encoder's features; point --features-from at one encoder's folder")
 
 
 def read_patch_features(path, patch_size: int | None = None, level: int | None = None,

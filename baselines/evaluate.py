@@ -3,21 +3,28 @@
     python -m baselines.evaluate runs/ppo-easy [--env HistoJAX-Easy-v0] [--slides BUNDLE ... | held-out] [--episodes 256]
 
 For every slide (default: the one the checkpoint was trained on) prints and writes
-(``eval.json``, ``eval.csv`` in ``--out``, default ``<run>/eval``) one row per policy:
+(``eval.json``, ``eval.csv`` in ``--out``, default ``<run>/eval``, or ``runs/eval-<name>`` for a run inside
+the package such as ``baselines/published/NAME``) one row per policy:
 
 * the checkpoint's policy, greedy (argmax / Gaussian mean) and sampled, pooled over its seeds;
 * ``random`` — uniform random actions;
 * ``scripted`` — coarse-to-fine using only the observation (see :func:`scripted_policy`).
 
 Columns: success rate (target reached at the finest level), mean return, mean episode length,
-mean steps to success (over the successful episodes). Episodes run without auto-reset until
-success or the step limit. Also writes ``trajectory_<policy>.png`` (histojax.render.render_trajectory)
-and ``trajectory.gif`` (histojax.render.animate) of one episode of the learned policy.
+mean steps to success (over the successful episodes), mean fraction of the slide read and fields of
+view, and for a diagnosis the AUC of the policy's tumour score. Episodes run without auto-reset until
+success or the step limit. Also writes, on each episode's own slide, ``trajectory_<policy>.png``
+(histojax.render.render_trajectory), ``reading_<policy>_tumour.png`` / ``_normal.png`` (where it read,
+histojax.render.render_reading_map) and ``trajectory.gif`` (histojax.render.animate) of one episode of
+the first policy. Warns when the slides cannot be scored (no tumour slide; one class only for an AUC), when
+the checkpoint is scored on its own training split or at another scale, and on config.json keys no
+trainer writes.
 """
 from __future__ import annotations
 
 import csv
 import json
+import sys
 from pathlib import Path
 
 import jax
@@ -30,10 +37,10 @@ from baselines.ppo import make_network
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
                                 policy_mode, policy_sample, preprocess_obs)
 from baselines.networks import is_discrete as policy_is_discrete
-from data_tools.cli_output import command_main
+from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
 from histojax import actions, reading
-from histojax.render import animate, render_trajectory
+from histojax.render import animate, render_reading_map, render_trajectory
 
 
 # ----------------------------------------------------------------------------- scripted policy
@@ -112,7 +119,8 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
     Returns numpy ``return, success, length`` and ``slide`` (the slide index of a multi-slide env)
     per episode, ``fraction_read`` and ``fields_of_view`` at its end (NaN / -1 when the env does not
     track reading; see :func:`histojax.reading.with_tracking`) and the ``(steps+1, E)`` trajectories
-    ``z, x, y`` (frozen after the episode ended).
+    ``z, x, y``: entry 0 the view at reset, entry ``t`` the view after step ``t`` (frozen after the
+    episode ended).
 
     ``params_axes``: ``jax.vmap`` axes of ``env_params`` (default ``None``: one ``env_params`` for
     every episode); e.g. a per-episode slide (``slide.slide_logits (E, S)``) and reading budget
@@ -131,6 +139,7 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
     def go(key, env_params):
         key, k_reset = jax.random.split(key)
         obs, state = reset(jax.random.split(k_reset, num_episodes), env_params)
+        start = state  # the views at reset: entry 0 of the trajectories
         zeros = jnp.zeros(num_episodes)
 
         def body(carry, k):
@@ -159,8 +168,8 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
         ((_, state, _, ret, length, success, memory), (read, fields)), (z, x, y) = jax.lax.scan(
             body, carry, jax.random.split(key, max_steps))
         cat = lambda a0, a: jnp.concatenate([a0[None], a])  # noqa: E731
-        return (ret, success, length, state.slide_index, read, fields, cat(state.z, z), cat(state.x, x),
-                cat(state.y, y)), (state, memory)
+        return (ret, success, length, state.slide_index, read, fields, cat(start.z, z), cat(start.x, x),
+                cat(start.y, y)), (state, memory)
 
     out, (state, memory) = jax.device_get(go(key, env_params))
     names = ("return", "success", "length", "slide", "fraction_read", "fields_of_view", "z", "x", "y")
@@ -330,11 +339,17 @@ def eval_env(config: dict, slide=None, augment: bool = False):
 
 
 def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
-             label: str = "learned", augment: bool = False, references: bool = True) -> dict:
+             label: str = "learned", augment: bool = False, references: bool = True, source=None,
+             progress: bool = False) -> dict:
     """Rows for the learned policy (greedy and sampled; seeds pooled), the random agent and the
     scripted policy (``references=False``: without these two) on one slide; writes trajectory
-    pictures to ``out`` when given. Training-time view augmentation (``env_kwargs["augment"]``)
-    is switched off unless ``augment=True``: a slide is evaluated as it is."""
+    pictures and reading maps to ``out`` when given (:func:`write_pictures`). Training-time view
+    augmentation (``env_kwargs["augment"]``) is switched off unless ``augment=True``: a slide is
+    evaluated as it is. ``source``: the run folder, named when its parameters do not fit the network
+    its config describes; ``progress``: a line on stderr per policy as it runs, and a warning when the
+    slides cannot be scored (:func:`split_warnings`)."""
+    if num_episodes < 1:
+        raise ValueError(f"num_episodes must be at least 1, got {num_episodes}")
     config, (env, env_params) = eval_env(config, slide, augment)
     names = [Path(b.path).name for b in env.bundles]
     mode = config["action_mode"]
@@ -342,6 +357,14 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     rows, episodes = {}, {}
     params_seeds = params
     num_seeds = jax.tree.leaves(params)[0].shape[0] if params is not None else 0
+    say = (lambda text: print(text, file=sys.stderr, flush=True)) if progress else (lambda text: None)  # noqa: E731
+    base = env
+    while not hasattr(base, "task") and hasattr(base, "_env"):
+        base = base._env
+    for w in split_warnings(env, env_params, getattr(base, "task", "detection"),
+                            f"{len(names)} slide{'s' if len(names) > 1 else ''} ({', '.join(names[:3])}"
+                            f"{', ...' if len(names) > 3 else ''})"):
+        say(f"warning: {w}")
     if params is not None:
         network = network_for(config, env)
         variants = [("greedy", True)] if isinstance(network, QNetwork) else [("greedy", True), ("sampled", False)]
@@ -350,6 +373,8 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             # every seed in one program (one compile): episodes [s E, (s + 1) E) run seed s's policy
             policy = seeds_policy(lambda p: learned_policy(network, p, mode, greedy, declare=declare),
                                   params_seeds, num_seeds)
+            check_fits(policy, env, env_params, num_seeds, config, source)
+            say(f"  {label} ({name}): {num_episodes * num_seeds} episodes ...")
             ep = run_episodes(env, env_params, policy, jax.random.fold_in(key, 100), num_episodes * num_seeds,
                               final=declare is not None)
             if declare is not None:  # the policy's p(tumour) at its decision, and the slides' labels
@@ -366,6 +391,7 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             episodes[f"{label} ({name})"] = pooled
     if not references:
         return rows
+    say(f"  random: {num_episodes} episodes ...")
     space = env.action_space()
     rand = lambda k, obs: jax.vmap(space.sample)(jax.random.split(k, jax.tree.leaves(obs)[0].shape[0]))  # noqa: E731
     episodes["random"] = run_episodes(env, env_params, rand, jax.random.fold_in(key, 1), num_episodes)
@@ -375,6 +401,7 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             n = jax.tree.leaves(obs)[0].shape[0]
             return jax.vmap(lambda kk, o: scripted_policy(kk, o, mode))(jax.random.split(k, n), obs)
         try:
+            say(f"  scripted: {num_episodes} episodes ...")
             episodes["scripted"] = run_episodes(env, env_params, scripted, jax.random.fold_in(key, 2), num_episodes)
             rows["scripted"] = summarise(episodes["scripted"], names)
         except (KeyError, TypeError, ValueError) as e:  # observation without pixels
@@ -383,24 +410,83 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
         def scripted_features(k, obs):
             n = jax.tree.leaves(obs)[0].shape[0]
             return jax.vmap(scripted_features_policy)(jax.random.split(k, n), obs)
+        say(f"  scripted: {num_episodes} episodes ...")
         episodes["scripted"] = run_episodes(env, env_params, scripted_features, jax.random.fold_in(key, 2),
                                             num_episodes)
         rows["scripted"] = summarise(episodes["scripted"], names)
     if out is not None:
-        out = Path(out)
-        out.mkdir(parents=True, exist_ok=True)
-        for name, ep in episodes.items():
-            i = int(np.argmax(ep["success"])) if ep["success"].any() else 0
-            z, x, y = trajectory(ep, i)
-            tag = name.replace(" ", "_").replace("(", "").replace(")", "")
-            render_trajectory(env, z, x, y, path=out / f"trajectory_{tag}.png",
-                              title=f"{config['env_id']}, {name}, {len(z) - 1} steps, "
-                                    f"target {'reached' if ep['success'][i] else 'not reached'}")
-        first = next(iter(episodes))
-        ep = episodes[first]
-        i = int(np.argmax(ep["success"])) if ep["success"].any() else 0
-        animate(env, *trajectory(ep, i), out / "trajectory.gif")
+        say(f"  pictures to {out} ...")
+        write_pictures(env, env_params, episodes, Path(out), config["env_id"])
     return rows
+
+
+def check_fits(policy, env, env_params, num_seeds: int, config: dict, source=None) -> None:
+    """Trace (no compute) ``policy`` on one observation per seed: parameters that do not fit the network
+    the config describes (``hidden``, ``action_mode``, the env's spaces changed since training) raise
+    ``HistojaxDataError`` naming the checkpoint, not a flax traceback."""
+    keys = jax.random.split(jax.random.PRNGKey(0), num_seeds)
+    try:
+        def probe():
+            obs, _ = jax.vmap(env.reset, in_axes=(0, None))(keys, env_params)
+            if hasattr(policy, "initial_memory"):
+                return policy(keys[0], obs, policy.initial_memory(num_seeds))
+            return policy(keys[0], obs)
+        jax.eval_shape(probe)
+    except Exception as e:  # flax's ScopeParamShapeError, KeyError of a missing layer, ...: no common base
+        where = Path(source) / "params.msgpack" if source is not None else "the checkpoint"
+        first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
+        raise HistojaxDataError(where, f"its parameters do not fit the network its config.json describes "
+                                f"(algo {config.get('algo', 'ppo')}, hidden={config.get('hidden')}, action_mode="
+                                f"{config.get('action_mode')!r}, on {config.get('env_id')}): {first[:300]}") from e
+
+
+def _tag(name: str) -> str:
+    return name.replace(" ", "_").replace("(", "").replace(")", "")
+
+
+def _shown_episode(ep: dict, among=None) -> int:
+    """The episode a picture shows: the first successful one (of ``among``, default all), else the first."""
+    among = np.arange(ep["success"].size) if among is None else np.asarray(among)
+    hit = among[ep["success"][among].astype(bool)]
+    return int(hit[0] if hit.size else among[0])
+
+
+def write_pictures(env, env_params, episodes: dict, out: Path, env_id: str) -> list[Path]:
+    """For every policy of ``episodes`` (:func:`run_episodes` output by name): ``trajectory_<policy>.png`` of
+    one episode on its own slide (the first that reached its target, else the first), ``trajectory.gif`` of
+    the first policy's, and reading maps ``reading_<policy>_tumour.png`` / ``_normal.png`` (where it read on
+    the first episode of a tumour and of a normal slide, with its tumour score when it has one). Returns
+    the paths written."""
+    out.mkdir(parents=True, exist_ok=True)
+    written = []
+    for name, ep in episodes.items():
+        i = _shown_episode(ep)
+        z, x, y = trajectory(ep, i)
+        s = int(ep["slide"][i])
+        path = out / f"trajectory_{_tag(name)}.png"
+        render_trajectory(env, z, x, y, path=path, slide_index=s,
+                          title=f"{env_id}, {name}, {len(z) - 1} steps, "
+                                f"target {'reached' if ep['success'][i] else 'not reached'}")
+        written.append(path)
+        labels = episode_labels(env_params, ep["slide"])
+        for label, kind in ((1, "tumour"), (0, "normal")):
+            on = np.flatnonzero(labels == label)
+            if not on.size:
+                continue
+            j = int(on[0])
+            score = float(ep["tumour_score"][j]) if "tumour_score" in ep else \
+                ("target reached" if ep["success"][j] else "target not reached")
+            path = out / f"reading_{_tag(name)}_{kind}.png"
+            render_reading_map(env, env_params, {"z": ep["z"][:, j], "x": ep["x"][:, j], "y": ep["y"][:, j],
+                                                 "length": ep["length"][j]},
+                               slide_index=int(ep["slide"][j]), score=score, path=path, title=f"{env_id}, {name}")
+            written.append(path)
+    first = next(iter(episodes))
+    ep = episodes[first]
+    i = _shown_episode(ep)
+    written.append(animate(env, *trajectory(ep, i), out / "trajectory.gif", slide_index=int(ep["slide"][i]),
+                           params=env_params))
+    return written
 
 
 def resolve_slides(slides: list[str], config: dict) -> list[str]:
@@ -439,13 +525,32 @@ def with_dataset(config: dict, dataset=None, split: str | None = None) -> dict:
 
 
 def print_table(title: str, rows: dict) -> None:
+    """The printed table: per policy episodes, success, mean return / length, steps to success, mean fraction
+    of the slide read and fields of view; with a diagnosis score (``diagnosis_auc``), its AUC too."""
+    auc = any("diagnosis_auc" in r for r in rows.values())
     print(f"\n{title}")
     print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}"
-          f" {'read':>6} {'fields':>6}")
+          f" {'read':>6} {'fields':>6}" + (f" {'AUC':>6}" if auc else ""))
     for name, r in rows.items():
+        cell = f" {r['diagnosis_auc']:>6.3f}" if "diagnosis_auc" in r else f" {'-':>6}"
         print(f"{name:<22} {r['episodes']:>8} {r['success_rate']:>8.1%} {r['mean_return']:>11.3f} "
               f"{r['mean_length']:>11.1f} {r['mean_steps_to_success']:>16.1f} {r['mean_fraction_read']:>6.1%} "
-              f"{r['mean_fields_of_view']:>6.1f}")
+              f"{r['mean_fields_of_view']:>6.1f}" + (cell if auc else ""))
+    if auc:
+        print("success: the diagnosis declared was right; AUC: of the policy's tumour score over the slides "
+              "(read: mean fraction of the slide's tissue views read)")
+
+
+def _positive_int(text: str) -> int:
+    import argparse
+
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
+    if value < 1:
+        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
+    return value
 
 
 def add_arguments(p) -> None:
@@ -461,58 +566,192 @@ def add_arguments(p) -> None:
                         "e.g. a published agent on any C16-style dataset")
     p.add_argument("--split", default=None, choices=("train", "test", "all"),
                    help="split of the dataset to score (default: test with --dataset, else the checkpoint's)")
-    p.add_argument("--episodes", type=int, default=256, help="episodes per policy (per seed for the learned one)")
+    p.add_argument("--episodes", type=_positive_int, default=256,
+                   help="episodes per policy (per seed for the learned one), at least 1")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--with-position", action="store_true", help="(reference rows only) observation with position")
     p.add_argument("--action-mode", default="discrete", help="(reference rows only)")
-    p.add_argument("--out", default=None, help="output folder (default <run>/eval or runs/eval-<env>)")
+    p.add_argument("--out", default=None,
+                   help="output folder (default <run>/eval, or runs/eval-<run name> for a run inside the installed "
+                        "package such as baselines/published/NAME, or runs/eval-<env> without a checkpoint)")
     p.add_argument("--augment", action="store_true",
                    help="keep the checkpoint's training-time view augmentation (default: slides as they are)")
 
 
+def default_out(run: Path | None, env_id: str) -> Path:
+    """Where ``evaluate`` writes when ``--out`` is not given: ``<run>/eval`` for a run of the user's;
+    ``runs/eval-<run name>`` (under the working folder) for a run inside the package (the published agents)
+    or a run folder that is not writable; ``runs/eval-<env id>`` without a checkpoint."""
+    import os
+
+    if run is None:
+        return Path("runs") / f"eval-{env_id}"
+    package = [Path(__file__).resolve().parent, Path(common.__file__).resolve().parents[1] / "histojax"]
+    inside = any(run.resolve().is_relative_to(p) for p in package)
+    if inside or not os.access(run, os.W_OK):
+        return Path("runs") / f"eval-{run.resolve().name}"
+    return run / "eval"
+
+
+# every key a trainer writes into config.json (the trainers' defaults) and the older spellings
+def known_config_keys() -> set[str]:
+    """The ``config.json`` keys some trainer writes (its defaults), ``seed``, and older spellings."""
+    from baselines import dqn, ppo, ppo_rnn
+
+    return {*ppo.DEFAULTS, *dqn.DEFAULTS, *ppo_rnn.DEFAULTS, "seed", *common.OLDER_SPELLINGS}
+
+
+def check_config(config, path) -> list[str]:
+    """Refuse a ``config.json`` that is not an object or whose ``hidden`` is not a positive whole number
+    (``HistojaxDataError`` naming ``path``); return one warning per key no trainer writes (a misspelling is
+    otherwise ignored without a word), naming the closest known key."""
+    import difflib
+
+    if not isinstance(config, dict):
+        raise HistojaxDataError(path, f"holds a JSON {type(config).__name__}, not an object of settings "
+                                "(the config.json a trainer writes); train again or restore it")
+    hidden = config.get("hidden", 256)
+    if isinstance(hidden, bool) or not isinstance(hidden, int) or hidden < 1:
+        raise HistojaxDataError(path, f"hidden={hidden!r}: the network width must be a whole number of at least 1")
+    mode = config.get("action_mode", "discrete")
+    if not isinstance(mode, str):
+        raise HistojaxDataError(path, f"action_mode={mode!r}: must be a string such as 'discrete' or 'glimpse:1'")
+    if not isinstance(config.get("env_kwargs") or {}, dict):
+        raise HistojaxDataError(path, f"env_kwargs={config['env_kwargs']!r}: must be an object of make() settings")
+    known = known_config_keys()
+    warnings = []
+    for key in sorted(set(config) - known):
+        close = difflib.get_close_matches(key, sorted(known), n=1)
+        warnings.append(f"{path}: unknown key {key!r} ignored" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    return warnings
+
+
+def split_warnings(env, env_params, task: str, where: str) -> list[str]:
+    """Why a set of slides cannot be scored: a diagnosis needs tumour and normal slides for an AUC; detection
+    needs a slide with tumour (no target can be reached on the others)."""
+    labels = np.asarray(jax.device_get(env_params.slide.slide_label)).ravel()
+    n = labels.size
+    if task == "classification" and len(set(labels.tolist())) < 2:
+        kind = "tumour" if labels.size and labels[0] else "normal"
+        return [f"{where}: all {n} slide{'s' if n > 1 else ''} {'are' if n > 1 else 'is'} {kind}: the diagnosis AUC "
+                "is undefined (it needs tumour and normal slides); only the accuracy of the declared diagnosis "
+                "means something"]
+    if task != "classification" and not labels.any():
+        return [f"{where}: no slide here has tumour annotated: no policy can reach a target, so every success "
+                "rate is 0 % by construction; score a split with tumour slides"]
+    return []
+
+
+def _dataset_record(folder) -> dict:
+    try:
+        record = json.loads((Path(folder) / "dataset.json").read_text())
+        return record if isinstance(record, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def provenance_warnings(trained: dict, scored: dict, config_path) -> list[str]:
+    """Warnings when a checkpoint is scored on slides it trained on, or at another scale than it trained at,
+    from what its ``config.json`` records (``trained``: env_kwargs ``dataset`` and ``split``) and the
+    ``dataset.json`` of the set scored (``scored``: the evaluation's config)."""
+    t_kw, s_kw = trained.get("env_kwargs") or {}, scored.get("env_kwargs") or {}
+    t_ds, s_ds = t_kw.get("dataset"), s_kw.get("dataset")
+    if not t_ds or not s_ds:
+        return []
+    t_split, s_split = t_kw.get("split", "train"), s_kw.get("split", "train")
+    overlap = s_split == "all" or t_split == "all" or s_split == t_split
+    t_rec, s_rec = _dataset_record(t_ds), _dataset_record(s_ds)
+    same = Path(t_ds).resolve() == Path(s_ds).resolve()
+    c16 = lambda rec, env_id="": "CAMELYON16" in str(rec.get("kind", "")) or "-C16-" in env_id  # noqa: E731
+    out = []
+    if overlap and (same or (c16(s_rec) and c16(t_rec, str(trained.get("env_id", ""))))):
+        why = "the same dataset" if same else ("a CAMELYON16 set: its split is fixed by slide, so its "
+                                               f"{s_split} split holds slides this agent trained on")
+        out.append(f"{config_path}: trained on the {t_split} split of {t_ds}; scored on the {s_split} split of "
+                   f"{s_ds} ({why}): these figures are not held-out; score --split test")
+    t_mpp, s_mpp = (t_rec.get("scale") or {}).get("mpp"), (s_rec.get("scale") or {}).get("mpp")
+    if t_mpp and s_mpp and abs(float(t_mpp) - float(s_mpp)) > 1e-6 * float(t_mpp):
+        out.append(f"{config_path}: trained at {float(t_mpp):.3g} µm/px ({t_ds}); scored at {float(s_mpp):.3g} µm/px "
+                   f"({s_ds}): another scale than it trained at")
+    elif s_mpp and not t_rec and c16(s_rec):
+        out.append(f"{config_path}: its training dataset {t_ds} is not here and config.json records no scale, so the "
+                   f"scale cannot be checked: {s_ds} is at {float(s_mpp):.3g} µm/px ({s_rec.get('variant', '?')} "
+                   "variant); the published c16-v1 agents trained on the full set (1.94 µm/px)")
+    return out
+
+
 def run(args, parser) -> int:
-    """Evaluate on parsed ``args``: tables, eval.json, eval.csv and trajectory pictures."""
+    """Evaluate on parsed ``args``: tables, eval.json, eval.csv, trajectory pictures and reading maps."""
     if args.checkpoint is None and args.env is None:
         parser.error("give a CHECKPOINT or --env")
+    warnings = []
     if args.checkpoint is not None:
-        params, config = common.load_checkpoint(args.checkpoint)
         run = Path(args.checkpoint)
         run = run if run.is_dir() else run.parent
+        try:  # a config.json that is not an object is named before loading (which would fail on it in its own words)
+            raw = json.loads((run / "config.json").read_text())
+        except (OSError, ValueError):
+            raw = {}  # unreadable: load_checkpoint names the file and why
+        check_config(raw, run / "config.json")
+        params, config = common.load_checkpoint(args.checkpoint)
+        warnings += check_config(config, run / "config.json")
+        check_params_tree(params, run / "params.msgpack")
         label = config.get("algo") or ("dqn" if "buffer_size" in config else "ppo")
     else:
         params, config, run, label = None, {"action_mode": args.action_mode, "with_position": args.with_position,
                                             "obs_mode": "pixels", "hidden": 256}, None, "none"
+    trained = dict(config)
     if args.env:
         config["env_id"] = args.env
     config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None))
-    out = Path(args.out) if args.out else (run / "eval" if run else Path(f"runs/eval-{config['env_id']}"))
+    if run is not None:
+        warnings += provenance_warnings(trained, config, run / "config.json")
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    out = Path(args.out) if args.out else default_out(run, config["env_id"])
     slides = resolve_slides(args.slide, config) if args.slide else [config.get("slide")]
     results = {}
     for i, slide in enumerate(slides):
         sub = out if len(slides) == 1 else out / f"slide{i}"
-        rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub, label=label,
-                        augment=args.augment)
         dataset = (config.get("env_kwargs") or {}).get("dataset")
         name = slide or (f"dataset {dataset} ({(config.get('env_kwargs') or {}).get('split', 'train')} split)"
                          if dataset else "embedded sample slide")
+        print(f"evaluating {config['env_id']} on {name} ({i + 1} of {len(slides)}), {args.episodes} episodes per "
+              "policy ...", file=sys.stderr, flush=True)
+        rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub, label=label,
+                        augment=args.augment, source=run, progress=True)
         print_table(f"{config['env_id']} on {name} ({args.episodes} episodes per policy"
                     f"{' per seed' if params is not None else ''})", rows)
         results[name] = rows
     out.mkdir(parents=True, exist_ok=True)
-    outputs.write_text(out / "eval.json", json.dumps({"env_id": config["env_id"], "results": results}, indent=2))
+    outputs.write_text(out / "eval.json", json.dumps({"env_id": config["env_id"], "results": results,
+                                                      "warnings": warnings}, indent=2))
     with outputs.open_text(out / "eval.csv") as f:
         w = csv.writer(f)
         w.writerow(["slide", "policy", "episodes", "success_rate", "mean_return", "mean_length", "mean_steps_to_success",
-                    "mean_fraction_read", "mean_fields_of_view"])
+                    "mean_fraction_read", "mean_fields_of_view", "diagnosis_auc"])
         for slide, rows in results.items():
             for name, r in rows.items():
                 w.writerow([slide, name, r["episodes"], r["success_rate"], r["mean_return"], r["mean_length"],
-                            r["mean_steps_to_success"], r["mean_fraction_read"], r["mean_fields_of_view"]])
-    print(f"\nwrote {out}/eval.json, eval.csv, trajectory_*.png, trajectory.gif")
+                            r["mean_steps_to_success"], r["mean_fraction_read"], r["mean_fields_of_view"],
+                            r.get("diagnosis_auc", "")])
+    print(f"\nwrote {out}/eval.json, eval.csv, trajectory_*.png, reading_*.png, trajectory.gif")
     return 0
 
 
-main = command_main(add_arguments, run, "python -m baselines.evaluate", __doc__)
+def check_params_tree(params, path) -> None:
+    """Refuse a checkpoint that holds no parameter arrays stacked over seeds (a foreign msgpack)."""
+    leaves = jax.tree.leaves(params) if isinstance(params, dict) else []
+    if not leaves or any(np.ndim(a) < 1 for a in leaves) or len({np.shape(a)[0] for a in leaves}) != 1:
+        raise HistojaxDataError(path, "not a histojax checkpoint (no network parameters stacked over seeds, as the "
+                                "trainers write them); give the params.msgpack of a histojax training run")
+
+
+def main(argv=None) -> int:
+    """``python -m baselines.evaluate``: the same command as ``histojax evaluate`` (errors one line, exit 2)."""
+    from histojax.cli import main as histojax_main
+
+    return histojax_main(["evaluate", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":

@@ -22,6 +22,9 @@ HistoJAX-C16-Medium-v0     5         200    detection
 HistoJAX-C16-Hard-v0       7         300    detection
 HistoJAX-C16-Diagnosis-v0  5         200    classification: declare tumour / no tumour
 =========================  ========  =====  ==============================================
+
+``-v1``: pcam-cnn features observed by default, datasets of format 2. ``-v2``: as ``-v1``, and the reading
+modes' observations carry only what a step changes (``step_obs=True``; :meth:`HistoEnv.episode_tables`).
 """
 from __future__ import annotations
 
@@ -37,12 +40,13 @@ import numpy as np
 from data_tools.errors import BundleError
 from histojax import modes
 from histojax.env import EnvParams, HistoEnv
-from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, load_slide, stack_slides, start_cdf
+from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, check_alike, load_slide, stack_slides, start_cdf
 
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
                  "augment",
-                 "final_observation")
-MODE_SETTINGS = ("read_budget", "track_reading", "glimpse_grid")  # passed to the action mode's prepare (histojax.modes)
+                 "final_observation", "step_obs")
+# passed to the action mode's prepare (histojax.modes)
+MODE_SETTINGS = ("read_budget", "track_reading", "glimpse_grid", "read_slots")
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name not in ("slide", "mode_data"))
 # settings of how ``make`` draws a dataset's slides (neither static nor EnvParams):
 # ``tumour_slides_only`` — reset draws only slides with tumour annotated (detection on a dataset that
@@ -143,6 +147,15 @@ for _name, _levels, _steps in (("Easy", 3, 100), ("Medium", 5, 200), ("Hard", 7,
 register("HistoJAX-C16-Diagnosis-v0", slide=_c16_dataset, n_levels=5, max_steps_in_episode=200, task="classification")
 register("HistoJAX-C16-Diagnosis-v1", slide=_c16_dataset, n_levels=5, max_steps_in_episode=200, task="classification",
          **C16_V1)
+# v2: v1's datasets and defaults; the reading modes observe per step only what changed (step_obs=True: for
+# glimpse the cells read, their summaries in K slots, the read bits, the budget left and the slide index; the
+# slides' cell tables come once from env.episode_tables). Navigation observes the same as under v1. The v1 ids
+# keep v1's observation, so policies trained on them (the c16-v1 published readers) still load and run.
+for _name, _levels, _steps in (("Easy", 3, 100), ("Medium", 5, 200), ("Hard", 7, 300)):
+    register(f"HistoJAX-C16-{_name}-v2", slide=_c16_dataset, n_levels=_levels, max_steps_in_episode=_steps,
+             tumour_slides_only=True, step_obs=True, **C16_V1)
+register("HistoJAX-C16-Diagnosis-v2", slide=_c16_dataset, n_levels=5, max_steps_in_episode=200, task="classification",
+         step_obs=True, **C16_V1)
 
 
 def _c16_rebuild_command(folder, ds: dict) -> str:
@@ -232,6 +245,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
         labels = dataset_labels(dataset)  # a label table's or CAMELYON16's labels, not just "annotated"
     feature_obs = modes.obs_mode(spec.get("obs_mode", "pixels")).needs_features
     features = True if feature_obs or modes.action_mode(spec.get("action_mode", "discrete")).needs_features else None
+    check_alike(slides, features=features)  # bundles that cannot make one dataset, named before any array is read
     loaded, budget = [], max_device_bytes
     for path in slides:  # obs_mode="features": the feature-only layout, no pixels on the device
         arrays, bundle = load_slide(path, spec["n_levels"], verify=verify, max_device_bytes=budget, features=features,

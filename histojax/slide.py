@@ -393,6 +393,62 @@ def check_levels(path, metadata, chosen: list[int]) -> None:
                               "--magnification-range or a smaller --tile-size")
 
 
+def _pixels_hint(path: Path) -> str:
+    """How the feature-only bundle at ``path`` was made and how to make it again with its pixels: from the
+    ``kind`` of the ``dataset.json`` of the dataset holding it (``histojax dataset`` or ``data_tools c16``)."""
+    import json
+
+    try:
+        kind = str(json.loads((path.parent.parent / "dataset.json").read_text()).get("kind", ""))
+    except (OSError, ValueError, AttributeError):
+        kind = ""
+    if "data_tools dataset" in kind:
+        return ("with `histojax dataset ... --no-pixels`): use obs_mode='features', or build the dataset again with "
+                f"its pixels (the same `histojax dataset SLIDES --out {path.parent.parent}` command and options, "
+                "without --no-pixels)")
+    if "data_tools c16" in kind:
+        return ("with `python -m data_tools c16 --no-pixels`): use obs_mode='features', or make these slides "
+                "again with their pixels (the same `data_tools c16` command without --no-pixels, "
+                f"--slides {path.name})")
+    return ("with --no-pixels): use obs_mode='features', or build the bundle again with its pixels (the same "
+            "command without --no-pixels)")
+
+
+def check_alike(paths, features: bool | None = None) -> None:
+    """Refuse, before any array is read, bundles that cannot make one dataset, naming two of them: different
+    tile sizes; feature grids of different dimensions (unless ``features`` is False: not loaded); when
+    ``features`` is True (observed), grids of different encoders (recorded in each bundle's metadata) or a
+    bundle without one. ``BundleError`` naming the bundle that differs and the first."""
+    paths = [Path(p) for p in paths]
+    if len(paths) < 2:
+        return
+    metas = [read_metadata(p) for p in paths]
+    first, m0 = paths[0], metas[0]
+    for path, m in zip(paths[1:], metas[1:]):
+        if int(m["tile_size"]) != int(m0["tile_size"]):
+            raise BundleError(path, f"built with tile size {int(m['tile_size'])} px, but {first} with "
+                              f"{int(m0['tile_size'])} px: a dataset's bundles need one tile size; rebuild them alike "
+                              "(--tile-size)")
+    if features is False:
+        return
+    grids = [(p, m.features) for p, m in zip(paths, metas)]
+    with_grid = [(p, f) for p, f in grids if f]
+    if features and len(with_grid) != len(grids):
+        lacking = next(p for p, f in grids if not f)
+        raise BundleError(lacking, f"has no feature grid, but {with_grid[0][0] if with_grid else 'none'} has one: "
+                          "every slide of a dataset observed through features needs one (`histojax features "
+                          f"{lacking}`)")
+    if not with_grid:
+        return
+    (p0, f0) = with_grid[0]
+    describe = lambda f: f"encoder {f.get('encoder')!r}, {f.get('dim')}-d"  # noqa: E731
+    for path, f in with_grid[1:]:  # grids not observed (features None) load too: their dimensions must agree
+        if f.get("dim") != f0.get("dim") or (features and f.get("encoder") != f0.get("encoder")):
+            raise BundleError(path, f"its feature grid ({describe(f)}) is not of the same encoder as {p0}'s "
+                              f"({describe(f0)}): one env observes one encoder's features; recompute one of them "
+                              f"with the other's encoder (`histojax features BUNDLE --encoder NAME`)")
+
+
 def _load_slide(path: Path, n_levels: int, verify: bool, max_device_bytes: int, features, pixels: bool):
     """The body of :func:`load_slide` (one attempt; :func:`stable_read` repeats it when the folder is swapped)."""
     metadata = read_metadata(path)
@@ -403,10 +459,8 @@ def _load_slide(path: Path, n_levels: int, verify: bool, max_device_bytes: int, 
     load_features = bool(features) or (features is None and bool(metadata.features)) or not pixels
     missing = [k for k in chosen if k not in metadata.pixel_levels]
     if pixels and missing:
-        raise BundleError(path, f"keeps no pixels at bundle levels {sorted(missing)} (a feature-only bundle, made with "
-                          "`python -m data_tools c16 --no-pixels`): use obs_mode='features', or make these slides "
-                          "again with their pixels (the same `data_tools c16` command without --no-pixels, "
-                          f"--slides {path.name})")
+        raise BundleError(path, f"keeps no pixels at bundle levels {sorted(missing)} (a feature-only bundle, made "
+                          f"{_pixels_hint(path)}")
     needed = slide_device_bytes(metadata, chosen, pixels, load_features, path)
     if needed > max_device_bytes:
         finest = metadata.levels[chosen[-1]]

@@ -6,7 +6,7 @@ import numpy as np
 from PIL import Image
 
 from baselines.curves import curves_figure, plot_curves
-from histojax.render import animate, level_colour, render_trajectory, trajectory_figure
+from histojax.render import animate, level_colour, render_trajectory, slide_name, trajectory_figure
 
 
 def test_trajectory_png_and_gif_from_a_scan(sample_envs, tmp_path):
@@ -31,7 +31,8 @@ def test_trajectory_png_and_gif_from_a_scan(sample_envs, tmp_path):
     assert labels[0] == "tumour" and labels[-2:] == ["start", "end (after 5 steps)"]
     assert [label.split(":")[0] for label in labels[1:-2]] == [f"level {k}" for k in range(env.n_levels)]
     ax = fig.axes[0]
-    assert ax.get_xlabel() == "x (level-0 px)" and ax.get_ylabel() == "y (level-0 px)" and ax.get_title() == "zoom in"
+    assert ax.get_xlabel() == "x (level-0 px)" and ax.get_ylabel() == "y (level-0 px)"
+    assert ax.get_title() == f"zoom in\nslide {slide_name(env, 0)}"  # the slide's name on a line of its own
     # one box per view, in its level's colour, plus the thick end box; the path has 5 steps
     boxes = [p for p in ax.patches if type(p).__name__ == "Rectangle"]
     assert len(boxes) == 7

@@ -15,8 +15,8 @@ views; the same head (:mod:`histojax.head`, fitted by :mod:`baselines.head_fit`)
 * learned readers — any reader's masks, added with :func:`add_reader` (e.g. from
   :func:`baselines.budget_curve.policy_reads` through :func:`masks_from_instances`).
 
-**Cells** are the views of bundle level ``--cell-level`` (default 2: a cell covers 4 × 4 finest views,
-as the glimpse cells one level per halving above); a cell is valid when a finest tissue view lies under
+**Cells** are the views of bundle level ``--cell-level`` (default: the level whose downsample is nearest 4,
+so that a cell covers about 4 × 4 finest views; on the C16 sets, level 3, ×3.67); a cell is valid when a finest tissue view lies under
 it. A reader reads cells as the ``glimpse`` env does (:func:`baselines.budget_curve.read_cells`): a cell
 is read while its tissue views still fit in ``floor(budget · tissue views)``; the first pick that does
 not fit ends the reading. Fractions are of the slide's finest-level tissue views.
@@ -116,6 +116,25 @@ def cell_table(slide: dict, level: int) -> dict:
             "grid": (ch, cw), "total": max(1, int(slide["tissue"].sum()))}
 
 
+def cell_level_for(dataset: Path, spec: dict, split: str, target: float = 4.0) -> int:
+    """The bundle level (≥ 1) whose downsample is nearest ``target`` (geometric distance), read from the split's
+    first bundle."""
+    from baselines.head_fit import HeadDataError
+
+    entries = spec.get(split) or []
+    if not entries:
+        raise HeadDataError(dataset / "dataset.json", f"has no slides in split {split!r}")
+    rel = entries[0]
+    meta_file = (Path(rel) if Path(rel).is_absolute() else dataset / rel) / "metadata.json"
+    try:
+        ds = [float(lv["downsample"]) for lv in json.loads(meta_file.read_text())["levels"]]
+    except (OSError, KeyError, TypeError, ValueError) as e:
+        raise HeadDataError(meta_file, f"unreadable level list ({type(e).__name__}: {e})") from None
+    if len(ds) < 2:
+        raise HeadDataError(meta_file, "one level only: no coarser cells to read by")
+    return 1 + int(np.argmin([abs(np.log(d / target)) for d in ds[1:]]))
+
+
 def random_order(cells: dict, rng) -> np.ndarray:
     """The valid cells in a uniformly random order."""
     return rng.permutation(np.flatnonzero(cells["valid"]))
@@ -181,6 +200,21 @@ def masks_from_instances(slide: dict, instances) -> np.ndarray:
     return mask.reshape(slide["tissue"].shape)
 
 
+def policy_masks(run, dataset, slides: list[dict], split: str = "test", budgets=BUDGETS, seeds: int = 3) -> dict:
+    """A trained ``glimpse`` / ``zoom_select`` policy's read masks, ``{budget: [masks per slide] per seed}``
+    (its first ``seeds`` seeds, rolled greedily by :func:`baselines.budget_curve.policy_reads` on
+    ``dataset``'s ``split``, whose slides ``slides`` are, in the same order): ready for :func:`add_reader`."""
+    from baselines.budget_curve import policy_reads, run_seeds
+
+    out = {float(b): [] for b in budgets}
+    for seed in range(max(1, min(seeds, run_seeds(run)))):
+        for b, reads in policy_reads(run, dataset, split, budgets, seed=seed).items():
+            if len(reads) != len(slides):
+                raise ValueError(f"{run}: {len(reads)} episodes for {len(slides)} slides of split {split!r}")
+            out[float(b)].append([masks_from_instances(s, r[0]) for s, r in zip(slides, reads)])
+    return out
+
+
 # ----------------------------------------------------------------------------- scoring
 def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray:
     """The head's slide logits ``(B,)`` on ``masks``."""
@@ -231,7 +265,7 @@ def add_reader(results: dict, head, slides: list[dict], name: str, masks_by_budg
     return results
 
 
-def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, level: int = 2,
+def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, level: int = 3,
                      progress: bool = False) -> dict:
     """The reference rows: overview only, random reader (``seeds`` orders), logit reader, search reader,
     read everything."""
@@ -380,7 +414,13 @@ def add_arguments(p) -> None:
     p.add_argument("--split", default="test", help="split scored (default test)")
     p.add_argument("--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)")
     p.add_argument("--seeds", type=int, default=5, help="random reader orders (default 5)")
-    p.add_argument("--cell-level", type=int, default=2, help="bundle level of the cells (default 2: 4 × 4 finest views)")
+    p.add_argument("--cell-level", type=int, default=None,
+                   help="bundle level of the cells (default: the level whose downsample is nearest 4, so that a cell "
+                        "covers about 4 × 4 finest views)")
+    p.add_argument("--reader", nargs=2, action="append", default=[], metavar=("NAME", "RUN"),
+                   help="also a trained reader (run folder of `python -m baselines.ppo` or `baselines.ppo_rnn` in a "
+                        "glimpse or zoom_select mode): the head on what it reads at each budget")
+    p.add_argument("--policy-seeds", type=int, default=3, help="seeds of each --reader run (default 3, or fewer)")
     p.add_argument("--out", default="runs/readers", help="output folder (default runs/readers)")
 
 
@@ -391,18 +431,26 @@ def run(args, parser=None) -> int:
 
     if not all(0.0 < b <= 1.0 for b in args.budgets):
         return print_error(f"--budgets must lie in (0, 1], got {args.budgets}")
-    if args.seeds < 1 or args.cell_level < 1:
+    if args.seeds < 1 or (args.cell_level is not None and args.cell_level < 1):
         return print_error("--seeds and --cell-level must be ≥ 1")
     t0 = time.perf_counter()
     try:
         head = SlideHead.load(args.head)
         spec = read_spec(args.dataset)
+        if args.cell_level is None:
+            args.cell_level = cell_level_for(Path(args.dataset), spec, args.split)
         slides = load_slides(args.dataset, args.split, spec, head.dim, levels=(0, args.cell_level), progress=True)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     if not slides or len({s["label"] for s in slides}) < 2:
         return print_error(f"{args.dataset}: split {args.split!r} needs tumour and normal slides to score an AUC")
     results = scripted_results(head, slides, args.budgets, args.seeds, args.cell_level, progress=True)
+    for name, run_dir in args.reader:
+        try:
+            masks = policy_masks(run_dir, args.dataset, slides, args.split, args.budgets, args.policy_seeds)
+        except (OSError, ValueError, HistojaxDataError) as e:
+            return print_error(f"--reader {name}: {e}")
+        add_reader(results, head, slides, name, masks, "learned")
     rows = rows_from_results(results, slides)
     lesions = lesion_rows(slides, results)
     out = Path(args.out)

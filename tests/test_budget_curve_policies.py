@@ -142,3 +142,32 @@ def test_recurrent_policy_carries_its_hidden_state(dataset, runs):
             obs, state, *_ = env_step(jax.random.key(2), state, np.argmax(pi[0]), p)
         own = float(jax.nn.sigmoid(pi[0, n - 1] - pi[0, n - 2]))
         assert own == pytest.approx(float(ep["final_memory"][1][i]), abs=1e-5)
+
+
+def test_a_policy_read_masks_are_scored_by_the_slide_head(dataset, runs, glimpse_reads):
+    """baselines.readers.policy_masks turns a trained reader's reads into finest-level read masks that
+    count the same views as the env did, and add_reader scores them with one slide head (histojax.head)."""
+    from baselines import head_fit, readers
+    from histojax.head import SlideHead
+
+    slides = head_fit.load_slides(dataset, "test", dim=0)
+    tables, _ = budget_curve.load_split(dataset, "test", "HistoJAX-Easy-v0", 1)
+    for t, s in zip(tables, slides):  # the env's instances are the tissue views in raster order, as masks count them
+        assert t["total"] == s["tissue"].sum()
+        np.testing.assert_allclose(t["instances"][:, 0], s["logits"][s["tissue"]], rtol=1e-6)
+        pick = np.arange(0, t["total"], 3)
+        np.testing.assert_allclose(s["logits"][readers.masks_from_instances(s, pick)], t["instances"][pick, 0], rtol=1e-6)
+    masks = readers.policy_masks(runs["glimpse:1"], dataset, slides, "test", BUDGETS, seeds=1)
+    for b in BUDGETS:
+        assert len(masks[b]) == 1 and len(masks[b][0]) == len(slides)
+        for m, s, (read, _, fraction, _) in zip(masks[b][0], slides, glimpse_reads[b]):
+            assert m.shape == s["tissue"].shape and not (m & ~s["tissue"]).any()
+            assert m.sum() == len(read) == pytest.approx(fraction * s["tissue"].sum())
+    head = head_fit.calibrated(SlideHead(dim=0, k=3, encoder=None), head_fit.load_slides(dataset, "train", dim=0))
+    res = readers.add_reader(readers.new_results(), head, slides, "GRU glimpse", masks)
+    rows = readers.rows_from_results(res, slides)
+    assert [r["budget"] for r in rows] == list(BUDGETS) and all(r["kind"] == "learned" for r in rows)
+    for r in rows:
+        want = np.mean([read.size / s["tissue"].sum() for (read, *_), s in zip(glimpse_reads[r["budget"]], slides)])
+        assert r["fraction_read"] == pytest.approx(want)
+        assert np.isnan(r["auc"]) if len({s["label"] for s in slides}) < 2 else 0.0 <= r["auc"] <= 1.0

@@ -123,7 +123,7 @@ def read_plan(out) -> dict:
     except FileNotFoundError:
         raise HistojaxDataError(out, "no plan.json: not a dataset started by `histojax dataset`") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise HistojaxDataError(path, f"unreadable ({_one_line(e)}); not a plan `histojax dataset` wrote, refusing "
+        raise HistojaxDataError(path, f"unreadable ({_one_line(e)}); not a histojax dataset plan, refusing "
                                       "to touch it: choose another --out") from None
     slides = plan.get("slides") if isinstance(plan, dict) else None
     if not isinstance(plan, dict) or plan.get("kind") != KIND or not isinstance(plan.get("options"), dict) \
@@ -131,7 +131,7 @@ def read_plan(out) -> dict:
             or not all(isinstance(v, dict) and {"split", "label", "path"} <= set(v) for v in slides.values()):
         found = f"kind {plan.get('kind')!r}" if isinstance(plan, dict) and "kind" in plan else \
             f"slides {type(slides).__name__}" if isinstance(plan, dict) else type(plan).__name__
-        raise HistojaxDataError(path, f"is not a plan `histojax dataset` wrote ({found}; another tool's file?); "
+        raise HistojaxDataError(path, f"is not a histojax dataset plan ({found}; another tool's file?); "
                                       "refusing to touch it: choose another --out")
     return plan
 

@@ -106,6 +106,9 @@ def test_symlink_loops_are_named_skipped_and_never_make_twins(tmp_path):
     os.symlink(".", slides / "e" / "a")
     os.symlink(".", slides / "e" / "b")
     os.symlink("../e", slides / "e" / "up")
+    os.symlink("y", slides / "x")  # links that lead back to each other
+    os.symlink("x", slides / "y")
+    os.symlink("gone", slides / "dangling.tif")
     out = _run(f"""
         from pathlib import Path
         from data_tools.datasets.discover import discover
@@ -113,9 +116,11 @@ def test_symlink_loops_are_named_skipped_and_never_make_twins(tmp_path):
         entries = discover(Path({str(slides)!r}), skipped=skipped, warn_skipped=False)
         print("slides", [e.name for e in entries])
         print("skipped", sorted((s.path.name, "symlink loop" in s.reason) for s in skipped))
+        print("broken", [s.path.name for s in skipped if "broken link" in s.reason])
     """)
     assert "slides ['s1', 's2']" in out
-    assert "skipped [('a', True), ('b', True), ('up', True)]" in out
+    assert "skipped [('a', True), ('b', True), ('dangling.tif', False), ('up', True), ('x', True), ('y', True)]" in out
+    assert "broken ['dangling.tif']" in out
 
 
 @posix_only
@@ -191,6 +196,16 @@ def test_labels_differing_only_in_case_are_refused_naming_both_rows(tmp_path):
         read_label_table(p)
     p.write_text("slide,label\nS1,1\ns1,tumour\n")  # the same label twice: one slide
     assert read_label_table(p) == ({"S1": 1}, {})
+
+
+def test_the_label_table_and_reference_csv_in_the_slides_folder_are_not_skipped(tmp_path):
+    _tif(tmp_path / "S" / "s1.tif")
+    (tmp_path / "S" / "labels.csv").write_text("s1,1\n")
+    (tmp_path / "S" / "other.csv").write_text("s1,1\n")
+    skipped = []
+    assert discover(tmp_path / "S", labels_csv=tmp_path / "S" / "labels.csv", skipped=skipped,
+                    warn_skipped=False)[0].label == 1
+    assert [s.path.name for s in skipped] == ["other.csv"] and "--labels" in skipped[0].reason
 
 
 def test_labels_through_discovery_with_case_folded_twins(tmp_path):

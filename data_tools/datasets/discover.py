@@ -18,6 +18,7 @@ one.
 """
 from __future__ import annotations
 
+import errno
 import os
 import stat
 from dataclasses import dataclass, field
@@ -83,6 +84,19 @@ def _annotation_kind(path: Path) -> str | None:
     return None
 
 
+def _real(path) -> Path:
+    """The real path (symlinks resolved; a symlink loop gives the path as far as it resolves, never an error)."""
+    return Path(os.path.realpath(path))
+
+
+def _unreadable(path: Path, e: OSError) -> str:
+    if e.errno == errno.ELOOP:
+        return "a symlink loop (links that lead back to each other): not followed"
+    if path.is_symlink() and e.errno == errno.ENOENT:
+        return "a broken link (its target does not exist)"
+    return f"cannot be read ({e.strerror or e})"
+
+
 def _file_kind(mode: int) -> str:
     for test, name in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
                        (stat.S_ISBLK, "a block device"), (stat.S_ISDIR, "a folder")):
@@ -123,7 +137,7 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
     reached twice (a link beside its target) are searched once. What is passed over goes to
     ``skipped`` with why (hidden names, starting with ``.``, and the folders in ``skip`` are not listed)."""
     slides, annotations = [], []
-    skip = [Path(s).resolve() for s in skip]
+    skip = [_real(s) for s in skip]
     seen_dirs: dict[tuple[int, int], Path] = {}
     identity: dict[Path, tuple[int, int]] = {}  # file -> (st_dev, st_ino)
     try:
@@ -133,7 +147,7 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
         pass
     for folder, dirs, files in os.walk(root, followlinks=True):
         here = Path(folder)
-        real = here.resolve()
+        real = _real(here)
         if any(real == s or s in real.parents for s in skip):
             dirs[:] = []
             continue
@@ -145,11 +159,11 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
             try:
                 st = os.stat(p)
             except OSError as e:
-                skipped.append(Skipped(p, f"cannot be read ({e.strerror or e})"))
+                skipped.append(Skipped(p, _unreadable(p, e)))
                 continue
             key = (st.st_dev, st.st_ino)
             if key in seen_dirs:
-                target = p.resolve()
+                target = _real(p)
                 if target == real or target in real.parents:
                     reason = f"a link to {target}, a folder it lies in (a symlink loop): not searched again"
                 else:
@@ -167,7 +181,7 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
             try:
                 st = os.stat(p)
             except OSError as e:
-                skipped.append(Skipped(p, "a broken link" if p.is_symlink() else f"cannot be read ({e.strerror or e})"))
+                skipped.append(Skipped(p, _unreadable(p, e)))
                 continue
             if not stat.S_ISREG(st.st_mode):
                 skipped.append(Skipped(p, f"{_file_kind(st.st_mode)}, not a regular file: never opened"))
@@ -251,6 +265,10 @@ def discover(root, annotations_dir=None, labels_csv=None, skip=(), allow_unmatch
     skipped += [Skipped(p, f"a {p.suffix} file that is not an ASAP XML, GeoJSON or NCRF JSON annotation")
                 for p, k in kinds.items() if not k]
     ann_paths = [p for p in ann_paths if kinds[p]]
+    used = {_real(labels_csv)} if labels_csv is not None else set()  # tables read: not skipped
+    c16 = camelyon16_layout(root)
+    skipped[:] = [item for item in skipped if _real(item.path) not in used
+                  and not (c16 and item.path.name.lower() == "reference.csv")]
     if warn_skipped:
         import warnings
 
@@ -274,7 +292,7 @@ def discover(root, annotations_dir=None, labels_csv=None, skip=(), allow_unmatch
             e.annotation, e.annotation_kind = anns[key], _annotation_kind(anns[key])
             e.label, e.label_source = 1, f"annotated ({anns[key].name}): tumour"
         entries.append(e)
-    if camelyon16_layout(root):
+    if c16:
         _camelyon16_labels(root, entries)
     if labels_csv is not None:
         _table_labels(Path(labels_csv), entries)

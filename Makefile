@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all test-integrations integrations bench bench-histogym bench-large reference-quick contract fuzz clean bench-gpu test-min
+.PHONY: demo test test-all test-integrations integrations bench bench-histogym bench-large reference-quick contract fuzz fuzz-cohort clean bench-gpu test-min
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (Python 3.11) on PATH, or run: make PYTHON=python3 ..."; exit 1; }
@@ -46,6 +46,10 @@ test-min:
 
 fuzz: $(STAMP)
 	HISTOJAX_FUZZ_EXAMPLES=10000 $(PY) -m pytest -q -s tests/test_fuzz.py
+
+# the cohort path's targets only (labels CSV, --shard strings, imported .h5 features), 10,000 cases each
+fuzz-cohort: $(STAMP)
+	HISTOJAX_FUZZ_EXAMPLES=10000 $(PY) -m pytest -q -s tests/test_fuzz.py -k "labels_csv or shard or feature_h5"
 
 bench: $(STAMP)
 	$(PY) benchmarks/throughput.py

@@ -2,8 +2,10 @@
 load or raise the project's own exception types — never anything else, never a hang; a bundle that loads
 after a fuzzed edit holds 0/1 masks and the metadata it was sealed with.
 
-`make fuzz` runs HISTOJAX_FUZZ_EXAMPLES=10000 per target (90,000 cases) and prints the counts;
-the default `make test` runs a small sample (HISTOJAX_FUZZ_EXAMPLES defaults to 60). The
+`make fuzz` runs HISTOJAX_FUZZ_EXAMPLES=10000 per target and prints the counts (`make fuzz-cohort`: only
+the cohort path's targets, labels CSV, `--shard` strings and imported `.h5` features, which must succeed or
+raise the project's one-line error naming the file); the default `make test` runs a small sample
+(HISTOJAX_FUZZ_EXAMPLES defaults to 60). The
 ``*-geometry`` targets feed both readers self-intersecting polygons and extreme coordinates
 (up to ±1.7e308, and JSON integers up to ±10^400) and check that what loads is valid geometry inside the
 slide. The ``*-lost`` targets write tumour parts of area kinds (untyped ASAP annotations, closed

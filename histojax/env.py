@@ -34,6 +34,11 @@ diagnose the slide: discrete actions add DECLARE_NO_TUMOUR=7 and DECLARE_TUMOUR=
 ``step_cost``; ``info["success"]`` is a right diagnosis. Slide labels come from the annotations
 (tumour annotated → 1) or ``make(..., labels=CSV or dict)``.
 
+**Per-episode data out of every step**: ``step_obs=True`` (the ``-v2`` ids) makes a reading mode's
+observation carry only what a step changes; what is fixed for a slide during an episode comes once,
+from :meth:`HistoEnv.episode_tables` (``glimpse``: the cells' coarse features, validity, cost and
+position; see :mod:`histojax.glimpse`). Navigation observations are the same either way.
+
 **Augmentation**: ``augment=True`` shows each episode in one of 8 orientations (90° turns ×
 mirror) drawn at reset: the view and the position are turned and the agent's moves are read in
 its turned frame (see :mod:`histojax.augment`); state, rewards and termination stay in the
@@ -172,6 +177,7 @@ class HistoEnv(_GymnaxEnvironment):
     final_observation: bool = True
     task: str = "detection"
     augment: bool = False
+    step_obs: bool = False          # reading modes: a step observes what changed; per-episode tables apart
     name: str = "HistoJAX-v0"
     _default_params: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
     _bundle: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
@@ -271,6 +277,14 @@ class HistoEnv(_GymnaxEnvironment):
             "slide_index": spaces.Discrete(s.num_slides),
             "orientation": spaces.Discrete(dihedral.NUM_ORIENTATIONS),
         })
+
+    def episode_tables(self, params: EnvParams | None = None) -> dict:
+        """What is fixed for each slide during an episode, ``{name: (S, ...) array}`` for ``S`` slides, which
+        a policy indexes with the observation's ``"slide"`` entry inside its forward pass (so a rollout
+        stores only the small step observation). ``{}`` for modes without any. With ``step_obs=True``
+        (the ``-v2`` ids) the ``glimpse`` observation holds none of it: see :mod:`histojax.glimpse`."""
+        params = self.default_params if params is None else params
+        return self.action.episode_tables(self, params)
 
     def _extra_spaces(self, params) -> dict:
         extra = {"position": spaces.Box(0.0, 1.0, (3,), jnp.float32)} if self.with_position else {}

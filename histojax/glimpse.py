@@ -55,6 +55,8 @@ class GlimpseTables:
     inv_total: jnp.ndarray    # (S,) float32 1 / total_views (a product, not a division, is bitwise stable under vmap)
     read_budget: jnp.ndarray  # () float32 fraction of total_views an episode may read, in (0, 1]
     grid: jnp.ndarray         # (2,) int32 (H, W): the padded cell grid, C = H · W (cell index = row · W + col)
+    slots_zero: jnp.ndarray   # (K,) int32 all C: an empty list of the cells read (K = read_slots, see the module doc)
+    slide_grid: jnp.ndarray   # (S, 2) int32 (gh, gw): each slide's own cell grid, inside the padded one
 
 
 @struct.dataclass
@@ -65,6 +67,7 @@ class GlimpseMemory:
     views_read: jnp.ndarray   # () int32 finest-level tissue views read so far
     fields: jnp.ndarray       # () int32 distinct cells revealed (fields of view)
     over_budget: jnp.ndarray  # () bool a pick was refused by the budget (the episode ends)
+    slots: jnp.ndarray = None # (K,) int32 the cells revealed, in reading order (C: empty); episode_tables envs only
 
 
 def with_budget(params, read_budget: float):
@@ -76,6 +79,18 @@ def budget_views(tables: GlimpseTables, slide_index) -> jax.Array:
     """The most tissue views an episode on slide ``slide_index`` may read (int32)."""
     total = tables.total_views[slide_index]
     return jnp.floor(tables.read_budget * total.astype(jnp.float32) + 1e-4).astype(jnp.int32)
+
+
+def slots_needed(cell_views: np.ndarray, valid: np.ndarray, total: np.ndarray, read_budget: float) -> int:
+    """Host: the most cells any episode can reveal within ``read_budget`` on these slides (``cell_views``,
+    ``valid`` ``(S, C)``, ``total`` ``(S,)``): per slide, its smallest valid cells first, as many as fit the
+    budget's views (the bound is reached by reading the smallest cells); at least 1."""
+    most = 1
+    for views, ok, n in zip(cell_views, valid, total):
+        budget = int(np.floor(np.float32(read_budget) * np.float32(n) + np.float32(1e-4)))
+        cum = np.cumsum(np.sort(views[ok]))
+        most = max(most, int(np.searchsorted(cum, budget, side="right")))
+    return most
 
 
 @dataclasses.dataclass(frozen=True)
@@ -102,27 +117,38 @@ class Glimpse(ActionMode):
     def space(self, env, params):
         return spaces.Discrete(self.num_cells(params) + 2)
 
-    def prepare(self, env, params, bundles, read_budget: float = 1.0, glimpse_grid=None) -> GlimpseTables:
-        """``glimpse_grid=(H, W)``: pad every slide's cells to that grid (the observation and action
-        space then do not depend on the slides loaded: a policy trained on one dataset runs on another;
-        the trainers record it in their ``config.json``); default: the largest grid of these slides."""
+    def prepare(self, env, params, bundles, read_budget: float = 1.0, glimpse_grid=None,
+                read_slots: int | None = None) -> GlimpseTables:
+        """``glimpse_grid=(H, W)``: pad every slide's cells to that grid (default: the largest grid of these
+        slides; only the v1 observation, which holds every cell, needs it to match across datasets).
+        ``read_slots``: ``K``, the slots of the cells-read list of an ``episode_tables`` observation
+        (default: the most cells an episode can reveal within ``read_budget``, :func:`slots_needed`)."""
         if not 0.0 < read_budget <= 1.0:
             raise ValueError(f"read_budget must be in (0, 1], got {read_budget}")
-        per = self.host_tables(env, params, bundles, grid=glimpse_grid)
-        stack = lambda k, dtype=None: jnp.asarray(np.stack([p[k] for p in per]), dtype)  # noqa: E731
+        if read_slots is not None and int(read_slots) < 1:
+            raise ValueError(f"read_slots must be a whole number >= 1, got {read_slots}")
+        per = self.host_tables(env, params, bundles, grid=glimpse_grid, instances=False)
+        stack = lambda k, dtype=None: np.stack([p[k] for p in per]).astype(dtype)  # noqa: E731
         total = np.asarray([p["total"] for p in per])
+        cell_views, valid = stack("cell_views", np.int32), stack("valid", bool)
+        c = cell_views.shape[1]
+        k = int(read_slots) if read_slots is not None else slots_needed(cell_views, valid, total, read_budget)
         return GlimpseTables(
-            cells=stack("cells"), summaries=stack("summaries"), cell_views=stack("cell_views"), valid=stack("valid"),
-            cell_x=stack("cell_x"), cell_y=stack("cell_y"), total_views=jnp.asarray(total, jnp.int32),
+            cells=jnp.asarray(stack("cells")), summaries=jnp.asarray(stack("summaries")),
+            cell_views=jnp.asarray(cell_views), valid=jnp.asarray(valid),
+            cell_x=jnp.asarray(stack("cell_x")), cell_y=jnp.asarray(stack("cell_y")),
+            total_views=jnp.asarray(total, jnp.int32),
             inv_total=jnp.asarray(1.0 / total.astype(np.float64), jnp.float32), read_budget=jnp.float32(read_budget),
-            grid=jnp.asarray(per[0]["grid"], jnp.int32))
+            grid=jnp.asarray(per[0]["grid"], jnp.int32), slots_zero=jnp.full((min(k, c),), c, jnp.int32),
+            slide_grid=jnp.asarray(stack("slide_grid", np.int32)))
 
-    def host_tables(self, env, params, bundles, grid=None) -> list[dict]:
+    def host_tables(self, env, params, bundles, grid=None, instances: bool = True) -> list[dict]:
         """Per slide, host numpy: the padded cell tables of :class:`GlimpseTables` (``cells``,
         ``summaries``, ``cell_views``, ``valid``, ``cell_x``, ``cell_y``, ``total``, ``grid``) and the
         instances behind them: ``instances (V, D)`` features of the slide's finest-level tissue views and
         ``instance_cell (V,)`` the (padded) cell index, i.e. the action, that reveals each. ``grid``:
-        ``(H, W)`` to pad to (``ValueError`` naming a slide whose cells do not fit); default the largest."""
+        ``(H, W)`` to pad to (``ValueError`` naming a slide whose cells do not fit); default the largest.
+        ``instances=False``: without ``instances`` / ``instance_cell`` (what ``prepare`` needs)."""
         t, g = env.tile_size, self.level
         per = []
         for slide, bundle in reading.per_slide(params, bundles):
@@ -151,20 +177,23 @@ class Glimpse(ActionMode):
             low = reading.feature_rows(slide, int(np.asarray(slide.feature_offset)[g]) + np.arange(n))
             gy, gx = np.divmod(np.arange(n), gw)
             pad = lambda a, fill=0: _to_padded(a.reshape(gh, gw, *a.shape[1:]), big_h, big_w, fill)  # noqa: E731
-            cy, cx = np.divmod(cell[tissue], gw)
-            out.append({
+            row = {
                 "cells": pad(low), "summaries": pad(np.concatenate([mean, mx], 1).astype(np.float32)),
                 "cell_views": pad(count.astype(np.int32)), "valid": pad(count > 0, False),
                 "cell_x": pad((gx * s).astype(np.int32)), "cell_y": pad((gy * s).astype(np.int32)),
-                "total": max(1, int(tissue.sum())), "grid": (big_h, big_w),
-                "instances": feats[tissue].astype(np.float32), "instance_cell": (cy * big_w + cx).astype(np.int64)})
+                "total": max(1, int(tissue.sum())), "grid": (big_h, big_w), "slide_grid": (gh, gw)}
+            if instances:
+                cy, cx = np.divmod(cell[tissue], gw)
+                row.update(instances=feats[tissue].astype(np.float32), instance_cell=(cy * big_w + cx).astype(np.int64))
+            out.append(row)
         return out
 
     def init_memory(self, env, state, params) -> GlimpseMemory:
         c = self.num_cells(params)
         zero = jnp.zeros((), jnp.int32)
         return GlimpseMemory(revealed=jnp.zeros((c,), bool), views_read=zero, fields=zero,
-                             over_budget=jnp.zeros((), bool))
+                             over_budget=jnp.zeros((), bool),
+                             slots=params.mode_data.slots_zero if env.step_obs else None)
 
     def apply(self, env, state, action, params) -> Move:
         tables, mem, i = params.mode_data, state.memory, state.slide_index
@@ -175,12 +204,18 @@ class Glimpse(ActionMode):
         new = picked & ~mem.revealed[cell]
         n = tables.cell_views[i, cell]
         fits = mem.views_read + n <= budget_views(tables, i)
+        slots = mem.slots
+        if slots is not None:  # episode_tables: the cell must also find a slot in the cells-read list
+            fits = fits & (mem.fields < slots.shape[0])
         reveal = new & fits
+        if slots is not None:
+            slots = slots.at[mem.fields].set(jnp.where(reveal, cell, slots[jnp.minimum(mem.fields, slots.shape[0] - 1)]),
+                                             mode="drop")
         memory = GlimpseMemory(
             revealed=mem.revealed.at[cell].set(mem.revealed[cell] | reveal),
             views_read=mem.views_read + jnp.where(reveal, n, 0),
             fields=mem.fields + reveal.astype(jnp.int32),
-            over_budget=mem.over_budget | (new & ~fits))
+            over_budget=mem.over_budget | (new & ~fits), slots=slots)
         z = jnp.where(picked, self.level, state.z).astype(jnp.int32)
         x = jnp.where(picked, tables.cell_x[i, cell], state.x).astype(jnp.int32)
         y = jnp.where(picked, tables.cell_y[i, cell], state.y).astype(jnp.int32)
@@ -193,6 +228,8 @@ class Glimpse(ActionMode):
 
     def memory_obs(self, env, state, params) -> dict:
         tables, mem, i = params.mode_data, state.memory, state.slide_index
+        if env.step_obs:
+            return self._step_obs(state, tables)
         revealed = mem.revealed.astype(jnp.float32)
         # the product rounded on its own before the subtraction (a min between them: XLA's CPU backend would
         # otherwise fuse them into one multiply-subtract, whose rounding depends on what else the program holds)
@@ -205,9 +242,49 @@ class Glimpse(ActionMode):
             "budget_left": jnp.clip(tables.read_budget - fraction, 0.0, 1.0).astype(jnp.float32),
         }
 
+    def _step_obs(self, state, tables) -> dict:
+        """The ``episode_tables`` observation's entries (see the module doc)."""
+        mem, i = state.memory, state.slide_index
+        c = self.num_cells_of(tables)
+        fraction = jnp.minimum(mem.views_read.astype(jnp.float32) * tables.inv_total[i], 1.0)
+        filled = mem.slots < c
+        summaries = tables.summaries[i, jnp.minimum(mem.slots, c - 1)] * filled[:, None].astype(jnp.float32)
+        return {
+            "slide": jnp.asarray(i, jnp.int32),
+            "read_bits": pack_bits(mem.revealed),
+            "read_cells": mem.slots,
+            "read_summaries": summaries,
+            "budget_left": jnp.clip(tables.read_budget - fraction, 0.0, 1.0).astype(jnp.float32),
+        }
+
+    @staticmethod
+    def num_cells_of(tables) -> int:
+        return int(tables.valid.shape[-1])
+
+    def episode_tables(self, env, params) -> dict:
+        """What is fixed for a slide during an episode, per slide ``S`` (padded cells ``C``), for a policy
+        to index with the observation's ``slide`` (see the module doc): ``cells (S, C, D)`` float32
+        low-resolution features, ``valid (S, C)`` float32 0/1, ``cost (S, C)`` float32 the fraction of
+        the slide's tissue views that reading the cell reads, ``position (S, C, 2)`` float32 the cell's
+        centre ``(x, y)`` over the slide's own grid, in ``[0, 1]``."""
+        t = params.mode_data
+        c = t.valid.shape[-1]
+        gy, gx = jnp.divmod(jnp.arange(c), t.grid[1])
+        rows, cols = t.slide_grid[:, 0:1].astype(jnp.float32), t.slide_grid[:, 1:2].astype(jnp.float32)
+        pos = jnp.stack([(gx[None] + 0.5) / cols, (gy[None] + 0.5) / rows], -1)
+        return {"cells": t.cells, "valid": t.valid.astype(jnp.float32),
+                "cost": (t.cell_views.astype(jnp.float32) * t.inv_total[:, None]),
+                "position": jnp.clip(pos, 0.0, 1.0).astype(jnp.float32)}
+
     def memory_space(self, env, params) -> dict:
         c, d = self.num_cells(params), int(params.mode_data.cells.shape[-1])
         box = lambda shape, lo=-jnp.inf, hi=jnp.inf: spaces.Box(lo, hi, shape, jnp.float32)  # noqa: E731
+        if env.step_obs:
+            k = int(params.mode_data.slots_zero.shape[0])
+            return {"slide": spaces.Discrete(int(params.mode_data.valid.shape[0])),
+                    "read_bits": spaces.Box(np.uint32(0), np.uint32(2**32 - 1), (bit_words(c),), jnp.uint32),
+                    "read_cells": spaces.Box(0, c, (k,), jnp.int32),
+                    "read_summaries": box((k, 2 * d)), "budget_left": box((), 0.0, 1.0)}
         return {"cells": box((c, d)), "valid": box((c,), 0.0, 1.0), "revealed": box((c,), 0.0, 1.0),
                 "summaries": box((c, 2 * d)), "budget_left": box((), 0.0, 1.0)}
 
@@ -232,6 +309,25 @@ def cell_summaries(feats: np.ndarray, cell: np.ndarray, n: int):
         starts = np.flatnonzero(np.r_[True, np.diff(cell[order]) != 0])
         mx[cell[order][starts]] = np.maximum.reduceat(feats[order].astype(np.float64), starts, axis=0)
     return mean, mx, count
+
+
+def bit_words(n: int) -> int:
+    """uint32 words holding ``n`` bits (≥ 1)."""
+    return max(1, (int(n) + 31) // 32)
+
+
+def pack_bits(flags: jax.Array) -> jax.Array:
+    """``(n,)`` bool → ``(⌈n/32⌉,)`` uint32, bit ``j % 32`` of word ``j // 32`` is ``flags[j]``."""
+    n = flags.shape[-1]
+    words = bit_words(n)
+    padded = jnp.zeros((words * 32,), jnp.uint32).at[:n].set(flags.astype(jnp.uint32))
+    return (padded.reshape(words, 32) << jnp.arange(32, dtype=jnp.uint32)).sum(-1, dtype=jnp.uint32)
+
+
+def unpack_bits(words: jax.Array, n: int) -> jax.Array:
+    """``(..., ⌈n/32⌉)`` uint32 → ``(..., n)`` bool (the inverse of :func:`pack_bits`)."""
+    bits = (words[..., :, None] >> jnp.arange(32, dtype=jnp.uint32)) & jnp.uint32(1)
+    return bits.reshape(*words.shape[:-1], -1)[..., :n].astype(bool)
 
 
 def observation_bytes(env, params) -> int:

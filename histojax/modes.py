@@ -81,6 +81,11 @@ class ActionMode:
         """Spaces of :meth:`memory_obs`'s entries."""
         return {}
 
+    def episode_tables(self, env, params) -> dict:
+        """Per-slide arrays fixed during an episode, for a policy to index with the observation's slide
+        (:meth:`histojax.env.HistoEnv.episode_tables`); ``{}``: none."""
+        return {}
+
     def budget_spent(self, env, state, params) -> jax.Array:
         """True when the episode's reading budget is spent (it is then truncated); never by default."""
         return jnp.zeros((), bool)

@@ -400,3 +400,66 @@ def test_cross_validation_scores_every_slide_once():
                        "cell_views": np.ones(8, int), "total": 8})
     rows = cross_validated_rows(tables, labels, folds=2, budgets=(0.5,), seeds=1, steps=20)
     assert all(r["slides"] == 8 for r in rows) and len(rows) == 3
+
+
+# ----------------------------------------------------------------------------- step observation (step_obs=True, -v2)
+def test_step_observation_holds_what_the_full_one_does(bundle):
+    """``step_obs=True``: the same trajectory as the full (v1) observation, and the full observation is
+    rebuilt from the step observation plus ``env.episode_tables``: cells and validity per slide, the
+    summaries of the cells read (from the K slots), the read bits, the budget left."""
+    from histojax.glimpse import unpack_bits
+
+    kw = dict(slide=bundle, obs_mode="features", action_mode=Glimpse(level=1), task="classification",
+              max_steps_in_episode=STEPS, auto_reset=False, read_budget=0.3)
+    full, pf = histojax.make("HistoJAX-Easy-v0", **kw)
+    step, ps = histojax.make("HistoJAX-Easy-v0", step_obs=True, **kw)
+    assert observation_bytes(step, ps) < observation_bytes(full, pf)
+    actions = jax.random.randint(jax.random.key(3), (STEPS - 1,), 0, full.num_actions - 2)
+    s0, i0, o0 = jax.jit(_rollout(full))(jax.random.key(9), actions, pf)
+    s1, i1, o1 = jax.jit(_rollout(step))(jax.random.key(9), actions, ps)
+    for k in ("fraction_read", "fields_of_view", "terminated", "truncated"):
+        np.testing.assert_array_equal(np.asarray(i0[k]), np.asarray(i1[k]))
+    np.testing.assert_array_equal(np.asarray(o0["budget_left"]), np.asarray(o1["budget_left"]))
+    np.testing.assert_array_equal(np.asarray(o0["features"]), np.asarray(o1["features"]))
+    tables = step.episode_tables(ps)
+    c = int(ps.mode_data.valid.shape[-1])
+    assert set(o1) == {"features", "slide", "read_bits", "read_cells", "read_summaries", "budget_left"}
+    for t in range(STEPS - 1):
+        i = int(o1["slide"][t])
+        np.testing.assert_array_equal(np.asarray(tables["cells"][i]), np.asarray(o0["cells"][t]))
+        np.testing.assert_array_equal(np.asarray(tables["valid"][i]), np.asarray(o0["valid"][t]))
+        revealed = np.asarray(unpack_bits(o1["read_bits"][t], c)).astype(np.float32)
+        np.testing.assert_array_equal(revealed, np.asarray(o0["revealed"][t]))
+        rebuilt = np.zeros_like(np.asarray(o0["summaries"][t]))
+        cells = np.asarray(o1["read_cells"][t])
+        rebuilt[cells[cells < c]] = np.asarray(o1["read_summaries"][t])[cells < c]
+        np.testing.assert_array_equal(rebuilt, np.asarray(o0["summaries"][t]))
+        assert (cells < c).sum() == int(i1["fields_of_view"][t])
+
+
+def test_read_slots_bound_the_cells_read(bundle):
+    """``read_slots=K``: a (K+1)-th new cell reveals nothing and ends the episode, like the budget."""
+    env, params = histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
+                                task="classification", auto_reset=False, step_obs=True, read_slots=2)
+    valid = np.flatnonzero(np.asarray(params.mode_data.valid[0]))[:3]
+    _, state = env.reset(jax.random.key(0), params)
+    for j, c in enumerate(valid):
+        obs, state, _, term, trunc, info = env.step(jax.random.key(1), state, int(c), params)
+        assert bool(trunc) == (j == 2) and not bool(term)
+    assert int(info["fields_of_view"]) == 2 and list(np.asarray(obs["read_cells"])) == list(valid[:2])
+    with pytest.raises(ValueError, match="read_slots"):
+        histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode="glimpse:1",
+                      task="classification", step_obs=True, read_slots=0)
+
+
+def test_default_slots_hold_every_cell_the_budget_allows(bundle):
+    from histojax.glimpse import slots_needed
+
+    env, params = histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
+                                task="classification", step_obs=True, read_budget=0.25)
+    t = params.mode_data
+    k = int(t.slots_zero.shape[0])
+    views = np.sort(np.asarray(t.cell_views[0])[np.asarray(t.valid[0])])
+    budget = int(np.floor(np.float32(0.25) * int(t.total_views[0]) + 1e-4))
+    assert views[:k].sum() <= budget and (k == len(views) or views[:k + 1].sum() > budget)
+    assert slots_needed(np.asarray(t.cell_views), np.asarray(t.valid), np.asarray(t.total_views), 1.0) == len(views)

@@ -385,6 +385,12 @@ def dataset_slides(folder, split: str = "train") -> list[Path]:
     try:
         spec = json.loads(index.read_text())
     except FileNotFoundError:
+        if (folder / "plan.json").is_file():  # a `histojax dataset` build that has not written dataset.json yet
+            locks = sorted(p.name for p in (folder / "bundles").glob(".*.dataset-lock"))
+            raise BundleError(folder, "no dataset.json yet: the dataset is being built by `histojax dataset` ("
+                              + (f"{len(locks)} slide lock(s) held, e.g. bundles/{locks[0]}" if locks else
+                                 "plan.json written, not every slide recorded") + "); wait for the run, or finish it "
+                              f"with `histojax dataset --merge --out {folder}`") from None
         raise BundleError(folder, "not a dataset folder (no dataset.json); make one with "
                           "`python -m data_tools synth` or pass slides=[...]") from None
     except json.JSONDecodeError as e:

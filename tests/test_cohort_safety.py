@@ -429,3 +429,20 @@ def test_a_dataset_run_removes_stale_lock_files(built, cohort, tmp_path):
     s = build_dataset(slides, work, labels=labels, levels=(3,), progress=False)
     assert sorted(s["resumed"]) == ["s1", "s2", "s3"]
     assert not list(work.rglob("*lock")) and not list(work.rglob(".*.tmp-*"))
+
+
+def test_make_during_a_first_build_says_it_is_being_built(tmp_path):
+    """Before dataset.json exists, ``make(dataset=...)`` says the folder is being built, naming a slide lock,
+    not "not a dataset folder ... make one with synth"."""
+    from data_tools.datasets.locks import bundle_lock_path, file_lock
+    from histojax.registry import dataset_slides
+
+    out = tmp_path / "o"
+    (out / "bundles").mkdir(parents=True)
+    (out / "plan.json").write_text("{}")
+    with file_lock(bundle_lock_path(out / "bundles" / "s1")):
+        with pytest.raises(BundleError, match=r"being built by `histojax dataset` \(1 slide lock\(s\) held, e\.g\. "
+                                              r"bundles/\.s1\.dataset-lock\).*--merge"):
+            dataset_slides(out)
+    with pytest.raises(BundleError, match="not every slide recorded"):
+        dataset_slides(out)

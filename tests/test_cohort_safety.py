@@ -185,14 +185,14 @@ def test_a_dataset_json_the_user_wrote_is_never_overwritten(cohort, built, tmp_p
     (out / "dataset.json").write_text("{}\n")
     line = _one_error(["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3",
                        "--quiet"], capsys)
-    assert "dataset.json" in line and "not written by histojax" in line
+    assert "dataset.json" in line and "not written by histojax dataset or c16" in line
     assert (out / "dataset.json").read_text() == "{}\n" and sorted(p.name for p in out.iterdir()) == ["dataset.json"]
     # one histojax wrote, then edited by hand: refused too; the same, as written: accepted
     work = tmp_path / "w"
     shutil.copytree(built, work)
     ds = json.loads((work / "dataset.json").read_text())
     (work / "dataset.json").write_text(json.dumps({**ds, "test": []}))
-    assert "not written by histojax" in _one_error(["dataset", "--merge", "--out", str(work)], capsys)
+    assert "not written by histojax dataset or c16" in _one_error(["dataset", "--merge", "--out", str(work)], capsys)
     (work / "dataset.json").write_text(json.dumps(ds))
     assert _run(["dataset", "--merge", "--out", str(work)], capsys)[0] == 0
     # written before dataset.json was sealed (no digest, histojax's kind): still histojax's

@@ -466,8 +466,8 @@ def check_dataset_json(out) -> None:
     (:func:`dataset_json_is_ours`): it is never overwritten."""
     path = Path(out) / "dataset.json"
     if not dataset_json_is_ours(path):
-        raise HistojaxDataError(path, "was not written by histojax (or was edited since); refusing to overwrite it: "
-                                      "move it away or choose another --out")
+        raise HistojaxDataError(path, "was not written by histojax dataset or c16 (or was edited since); refusing to "
+                                      "overwrite it: move it away or choose another --out")
 
 
 def write_dataset_index(out, dataset: dict) -> dict:

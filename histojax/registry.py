@@ -126,11 +126,13 @@ def _c16_dataset(spec: dict) -> Path:
     given = os.environ.get(C16_DATASET_VARIABLE)
     folder = Path(given) if given else cache_dir() / "c16"
     if not (folder / "dataset.json").is_file():
+        embed = spec.get("dataset_encoder") is not None  # the -v1 ids observe pcam-cnn features: build them too
         raise BundleError(folder, "no C16 dataset here (no dataset.json): the HistoJAX-C16-* ids need one. Make the "
-                          "small one with `python -m data_tools c16 --small --out DIR` (seconds) or the full one with "
+                          f"small one with `python -m data_tools c16 --small{' --features' * embed} --out DIR` "
+                          f"({'a minute' if embed else 'seconds'}) or the full one with "
                           "`python -m data_tools c16 --annotations camelyon16_ncrf_train.tar.gz --patches "
-                          "pcam_train_patches.tar.gz --out DIR`, then pass make(id, dataset=DIR) or set "
-                          f"{C16_DATASET_VARIABLE}=DIR")
+                          f"pcam_train_patches.tar.gz{' --no-pixels' * embed} --out DIR`, then pass make(id, dataset=DIR) "
+                          f"or set {C16_DATASET_VARIABLE}=DIR")
     return folder
 
 

@@ -58,3 +58,15 @@ def test_hint_parses_with_the_c16_command(tmp_path):
     for recorded in ({"variant": "small"}, {"variant": "subset", "pixels_kept": False}):
         args = parser.parse_args(_hint(tmp_path, **recorded)[3:])
         assert args.command == "c16" and args.out == str(tmp_path)
+
+
+def test_missing_dataset_hint_builds_what_the_id_needs(monkeypatch, tmp_path):
+    """Without a dataset, a -v1 id names a build it accepts (with pcam-cnn features); -v0 the plain one."""
+    import histojax
+
+    monkeypatch.setenv("HISTOJAX_C16_DATASET", str(tmp_path / "nowhere"))
+    with pytest.raises(BundleError, match=r"`python -m data_tools c16 --small --features --out DIR`") as err:
+        histojax.make("HistoJAX-C16-Hard-v1")
+    assert "--no-pixels --out DIR`" in str(err.value)
+    with pytest.raises(BundleError, match=r"`python -m data_tools c16 --small --out DIR`"):
+        histojax.make("HistoJAX-C16-Hard-v0")

@@ -76,7 +76,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from histojax import augment as dihedral
-from histojax import modes, rewards, spaces
+from histojax import mode_registry, modes, rewards, spaces
 from histojax.slide import SlideArrays
 from histojax.views import view_tumour_fraction
 
@@ -85,8 +85,8 @@ try:  # gymnax is optional; code that can ask ``isinstance(env, Environment)`` h
 except ImportError:
     _GymnaxEnvironment = object
 
-ACTION_MODES = tuple(modes.ACTION_MODES)
-OBS_MODES = tuple(modes.OBS_MODES)
+ACTION_MODES = tuple(mode_registry.ACTION_MODES)
+OBS_MODES = tuple(mode_registry.OBS_MODES)
 TASKS = ("detection", "classification")
 view_features = modes.view_features  # public name kept: the feature vector of a view
 
@@ -213,12 +213,12 @@ class HistoEnv(_GymnaxEnvironment):
     @property
     def action(self) -> modes.ActionMode:
         """The action mode object ``action_mode`` names."""
-        return modes.action_mode(self.action_mode)
+        return mode_registry.action_mode(self.action_mode)
 
     @property
     def observation(self) -> modes.ObsMode:
         """The observation mode object ``obs_mode`` names."""
-        return modes.obs_mode(self.obs_mode)
+        return mode_registry.obs_mode(self.obs_mode)
 
     # ----------------------------------------------------------------- gymnax API
     @property

@@ -9,9 +9,11 @@ to the observation (``memory_obs``). An **observation mode** turns a state into 
 observation and declares its space.
 
 Adding a mode is one new object (a frozen, hashable dataclass, so the env stays a valid static
-argument of ``jax.jit``) plus an entry in :data:`ACTION_MODES` / :data:`OBS_MODES`: the strings
-users pass to ``make(..., action_mode="discrete")`` are resolved here, in :func:`action_mode` and
-:func:`obs_mode`, and nowhere else.
+argument of ``jax.jit``) plus an entry in :data:`histojax.mode_registry.ACTION_MODES` /
+:data:`~histojax.mode_registry.OBS_MODES`: the strings users pass to ``make(...,
+action_mode="discrete")`` are resolved there (:func:`histojax.mode_registry.action_mode`,
+:func:`~histojax.mode_registry.obs_mode`), apart from these base classes, which ``glimpse`` and
+``zoom_select`` import.
 """
 from __future__ import annotations
 
@@ -265,53 +267,3 @@ class Features(ObsMode):
 
     def space(self, env, params):
         return spaces.Box(-jnp.inf, jnp.inf, (params.slide.features.shape[-1],), jnp.float32)
-
-
-# ----------------------------------------------------------------------------- the one place names resolve
-def _glimpse():
-    from histojax.glimpse import Glimpse
-
-    return Glimpse()
-
-
-def _zoom_select():
-    from histojax.zoom_select import ZoomSelect
-
-    return ZoomSelect()
-
-
-ACTION_MODES = {"discrete": Discrete, "continuous": Continuous, "glimpse": _glimpse, "zoom_select": _zoom_select}
-OBS_MODES = {"pixels": Pixels, "pixels_float": lambda: Pixels(as_float=True), "features": Features}
-
-
-def action_mode(mode) -> ActionMode:
-    """The action mode object for a name in :data:`ACTION_MODES` (or an ``ActionMode`` as it is).
-    ``"glimpse:L"`` and ``"zoom_select:K"`` set the glimpse level / the number of children a side;
-    ``"discrete:memory"`` / ``"continuous:memory"`` are the pan/zoom modes with ``memory=True`` (the
-    coarse visited map and the position in the observation). Strings, so a trainer's JSON config can
-    name them."""
-    if isinstance(mode, ActionMode):
-        return mode
-    name, sep, arg = str(mode).partition(":")
-    navigation = name in ("discrete", "continuous")
-    if name not in ACTION_MODES or (sep and not arg) or (arg and not navigation and name not in ("glimpse", "zoom_select")) \
-            or (arg and navigation and arg != "memory"):
-        raise ValueError(f"action_mode must be one of {tuple(ACTION_MODES)} (or glimpse:LEVEL, zoom_select:K, "
-                         f"discrete:memory, continuous:memory), got {mode!r}")
-    obj = ACTION_MODES[name]()
-    if navigation and arg:
-        return dataclasses.replace(obj, memory=True)
-    if arg:
-        if not arg.isdigit():
-            raise ValueError(f"action_mode {mode!r}: the part after ':' must be a whole number")
-        obj = dataclasses.replace(obj, **{"level" if name == "glimpse" else "k": int(arg)})
-    return obj
-
-
-def obs_mode(mode) -> ObsMode:
-    """The observation mode object for a name in :data:`OBS_MODES` (or an ``ObsMode`` as it is)."""
-    if isinstance(mode, ObsMode):
-        return mode
-    if mode not in OBS_MODES:
-        raise ValueError(f"obs_mode must be one of {tuple(OBS_MODES)}, got {mode!r}")
-    return OBS_MODES[mode]()

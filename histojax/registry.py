@@ -38,7 +38,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from data_tools.errors import BundleError
-from histojax import modes
+from histojax import mode_registry
 from histojax.env import EnvParams, HistoEnv
 from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, check_alike, load_slide, stack_slides, start_cdf
 
@@ -245,8 +245,8 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     slides = _resolve_slides(env_id, spec, slide, slides, dataset, split)
     if labels is None and dataset is not None and spec.get("task", "detection") == "classification":
         labels = dataset_labels(dataset)  # a label table's or CAMELYON16's labels, not just "annotated"
-    feature_obs = modes.obs_mode(spec.get("obs_mode", "pixels")).needs_features
-    features = True if feature_obs or modes.action_mode(spec.get("action_mode", "discrete")).needs_features else None
+    feature_obs = mode_registry.obs_mode(spec.get("obs_mode", "pixels")).needs_features
+    features = True if feature_obs or mode_registry.action_mode(spec.get("action_mode", "discrete")).needs_features else None
     check_alike(slides, features=features)  # bundles that cannot make one dataset, named before any array is read
     loaded, budget = [], max_device_bytes
     for path in slides:  # obs_mode="features": the feature-only layout, no pixels on the device

@@ -505,8 +505,12 @@ def check_scorable(out, plan: dict, records: dict, failed: dict[str, str]) -> No
 
 
 def merge_dataset(out) -> tuple[dict | None, list[str], dict[str, str]]:
-    """Read ``OUT/plan.json`` and every record; write ``dataset.json`` when every slide has one. Returns
-    ``(dataset or None, names still missing, failed name → reason)``."""
+    """Read ``OUT/plan.json`` (:func:`read_plan`) and every record; write ``dataset.json`` when every slide has
+    one, unless failures left the test split unscorable (:func:`check_scorable` raises; nothing written). A
+    slide counts as built when its record was made with the plan's options and entry (so a previous bundle
+    kept by a failed rebuild counts only when nothing but the slide file changed; it is then listed under
+    ``kept_after_failed_rebuild`` with the reason). Returns ``(dataset or None, names still missing, failed
+    name → reason)``."""
     out = Path(out)
     plan = read_plan(out)
 

@@ -1,7 +1,9 @@
 """``histojax dataset SLIDES_DIR --out DIR`` (also ``python -m data_tools dataset``): a folder of real
 slides becomes a dataset (see :mod:`data_tools.datasets.build`). Exit status 0 when every slide of
-this run built, 1 when some failed (listed, one line each; the rest are in ``dataset.json``), 2 for a
-user error (one line)."""
+this run built, 1 when some failed (listed, one line each; the rest are in ``dataset.json``; a failed
+rebuild keeps the previous bundle), 2 for a user error (one line: also a test split that failures left
+without any slide or tumour slide, another tool's ``plan.json`` or a ``dataset.json`` histojax did not
+write)."""
 from __future__ import annotations
 
 import json

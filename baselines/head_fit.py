@@ -128,22 +128,29 @@ def load_slides(dataset, split, spec: dict | None = None, dim: int = pcam_cnn.VI
     return out
 
 
-def padded(arrays: list[np.ndarray], fill=0) -> np.ndarray:
-    """``(B, Hmax, Wmax)`` stack of 2-D arrays padded with ``fill`` at the bottom / right."""
-    h = max(a.shape[0] for a in arrays)
-    w = max(a.shape[1] for a in arrays)
+def padded(arrays: list[np.ndarray], fill=0, shape: tuple[int, int] | None = None) -> np.ndarray:
+    """``(B, Hmax, Wmax)`` stack of 2-D arrays padded with ``fill`` at the bottom / right (to ``shape`` when
+    given: one compiled program for several sets of slides)."""
+    h, w = shape or (max(a.shape[0] for a in arrays), max(a.shape[1] for a in arrays))
     out = np.full((len(arrays), h, w), fill, dtype=arrays[0].dtype)
     for i, a in enumerate(arrays):
         out[i, : a.shape[0], : a.shape[1]] = a
     return out
 
 
-def statistics(head, slides: list[dict], masks: list[np.ndarray] | None = None) -> np.ndarray:
+def statistics(head, slides: list[dict], masks: list[np.ndarray] | None = None,
+               shape: tuple[int, int] | None = None) -> np.ndarray:
     """The head's pooled statistic ``(B,)`` of each slide over ``masks`` (default its tissue views)."""
     from histojax.head import statistic_batch
 
     masks = [s["tissue"] for s in slides] if masks is None else masks
-    return np.asarray(statistic_batch(head, padded([s["logits"] for s in slides], 0.0), padded(list(masks), False)))
+    return np.asarray(statistic_batch(head, padded([s["logits"] for s in slides], 0.0, shape),
+                                      padded(list(masks), False, shape)))
+
+
+def grid_shape(slides: list[dict]) -> tuple[int, int]:
+    """The largest finest grid ``(H, W)`` of ``slides``."""
+    return max(s["logits"].shape[0] for s in slides), max(s["logits"].shape[1] for s in slides)
 
 
 def logistic_fit(x, y, steps: int = 3000) -> tuple[float, float]:
@@ -168,12 +175,12 @@ def candidates(ks=(1, 2, 3, 4, 5), dim: int = pcam_cnn.VIEW_LOGIT, encoder: str 
             for k in ks for t in TOPS for m in (False, True)]
 
 
-def calibrated(head, slides: list[dict]):
+def calibrated(head, slides: list[dict], shape: tuple[int, int] | None = None):
     """``head`` with ``(a, b)`` fitted on ``slides`` (reading everything) and the prior log odds."""
     import jax.numpy as jnp
 
     labels = np.asarray([s["label"] for s in slides])
-    a, b = logistic_fit(statistics(head, slides), labels)
+    a, b = logistic_fit(statistics(head, slides, shape=shape), labels)
     p = np.clip(labels.mean(), 1e-3, 1 - 1e-3)
     return head.replace(a=jnp.float32(a), b=jnp.float32(b), prior_logit=jnp.float32(np.log(p / (1 - p))))
 
@@ -182,11 +189,12 @@ def choose(train: list[dict], val: list[dict], cands) -> tuple[object, list[dict
     """Calibrate each candidate on ``train``, score it on ``val``; returns the best (highest validation AUC,
     ties to the higher training AUC, then to the earliest) and the table ``[{name, k, top, minus_median, train_auc, validation_auc}]``."""
     y_tr, y_va = [s["label"] for s in train], [s["label"] for s in val]
+    shape = grid_shape(train + val)
     table, best, best_key = [], None, (-1.0, -1.0)
     for c in cands:
-        h = calibrated(c, train)
-        auc_va = round(roc_auc(statistics(h, val), y_va), 4)
-        auc_tr = round(roc_auc(statistics(h, train), y_tr), 4)
+        h = calibrated(c, train, shape)
+        auc_va = round(roc_auc(statistics(h, val, shape=shape), y_va), 4)
+        auc_tr = round(roc_auc(statistics(h, train, shape=shape), y_tr), 4)
         table.append({"name": c.name, "k": c.k, "top": c.top, "minus_median": c.minus_median,
                       "train_auc": auc_tr, "validation_auc": auc_va})
         if (auc_va, auc_tr) > best_key:
@@ -213,7 +221,7 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
     encoders = {s["encoder"] for s in train}
     encoder = encoders.pop() if len(encoders) == 1 else None
     best, table = choose(tr, va, candidates(ks, dim, encoder))
-    head = calibrated(best, train)
+    head = calibrated(best, train, grid_shape(train))
     chosen = next(r for r in table if r["name"] == best.name)
     info = {"fitted_on": {"dataset": str(Path(dataset).resolve()), "split": "train", "slides": len(train),
                           "tumour_slides": int(sum(s["label"] for s in train))},

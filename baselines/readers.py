@@ -360,50 +360,55 @@ FAMILIES = {"overview": ["#000000"], "random": ["#7f8c8d"], "scripted": ["#1e844
             "learned": ["#c0392b", "#e67e22", "#8e44ad", "#d35400", "#e84393"], "everything": ["#1f4e9c"]}
 
 
-def plot(rows: list[dict], path, title: str = "", metric: str = "auc") -> Path:
-    """AUC against the fraction actually read: one colour family per reader kind (grey: random, greens:
-    scripted, warm colours: learned, each point drawn at the fraction it read and labelled), ± bands
-    over seeds / reading orders, the overview-only point marked at 0, reading everything dashed."""
+def plot(rows: list[dict], path, title: str = "") -> Path:
+    """AUC against the fraction actually read, over all slides (left) and without ITC-only slides (right):
+    one colour family per reader kind (grey: random, greens: scripted, warm colours: learned, each point
+    drawn at the fraction it read and labelled), ± bands over seeds / reading orders, the overview-only
+    point marked at 0, reading everything dashed."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(9.0, 5.2), dpi=110, layout="constrained")
+    fig = Figure(figsize=(13.0, 5.2), dpi=110, layout="constrained")
     FigureCanvasAgg(fig)
-    ax = fig.subplots()
-    used = {k: 0 for k in FAMILIES}
-    readers = list(dict.fromkeys(r["reader"] for r in rows))
-    for name in readers:
-        mine = sorted((r for r in rows if r["reader"] == name), key=lambda r: r["fraction_read"])
-        kind = mine[0]["kind"]
-        colour = FAMILIES.get(kind, ["#444444"])[used.get(kind, 0) % len(FAMILIES.get(kind, ["#444444"]))]
-        used[kind] = used.get(kind, 0) + 1
-        x = np.asarray([r["fraction_read"] for r in mine])
-        y = np.asarray([r[metric] for r in mine])
-        e = np.asarray([r[f"{metric}_std"] for r in mine])
-        if kind == "everything":
-            ax.axhline(y[0], color=colour, linestyle="--", linewidth=1.4, label=f"{name} ({y[0]:.3f})")
-            continue
-        if kind == "overview":
-            ax.plot(x, y, marker="*", markersize=14, color=colour, linestyle="none", label=f"{name} ({y[0]:.3f}, reads 0 %)")
-            ax.annotate("overview only", (x[0], y[0]), textcoords="offset points", xytext=(8, -12), fontsize="small")
-            continue
-        style = "s-" if kind == "learned" else "o-"
-        ax.plot(x, y, style, color=colour, linewidth=1.8, markersize=5, label=name)
-        if (e > 0).any():
-            ax.fill_between(x, y - e, y + e, color=colour, alpha=0.2, linewidth=0)
-        if kind == "learned":
-            for xi, yi, r in zip(x, y, mine):
-                ax.annotate(f"{name}\n{xi:.1%} read", (xi, yi), textcoords="offset points", xytext=(6, 6),
-                            fontsize="x-small", color=colour)
-    ax.set_xlim(-0.02, max([0.55] + [r["fraction_read"] + 0.03 for r in rows if r["kind"] != "everything"]))
-    lo = min(r[metric] - r.get(f"{metric}_std", 0) for r in rows)
-    ax.set_ylim(max(0.0, min(0.5, lo - 0.05)), 1.01)
-    ax.set_xlabel("fraction of finest-level tissue views actually read (mean per episode)")
-    ax.set_ylabel("slide AUC" if metric == "auc" else "slide AUC, ITC-only slides left out")
-    ax.grid(True, color="#dddddd", linewidth=0.6)
-    ax.legend(loc="lower right", fontsize="small", framealpha=0.9)
+    axes = fig.subplots(1, 2, sharey=True)
+    readers_ = list(dict.fromkeys(r["reader"] for r in rows))
+    lo = min(min(r["auc"] - r["auc_std"], r["auc_no_itc"] - r["auc_no_itc_std"]) for r in rows)
+    for ax, metric, label in zip(axes, ("auc", "auc_no_itc"), ("all slides", "ITC-only slides left out")):
+        used = {}
+        for name in readers_:
+            mine = sorted((r for r in rows if r["reader"] == name), key=lambda r: r["fraction_read"])
+            kind = mine[0]["kind"]
+            family = FAMILIES.get(kind, ["#444444"])
+            colour = family[used.get(kind, 0) % len(family)]
+            used[kind] = used.get(kind, 0) + 1
+            x = np.asarray([r["fraction_read"] for r in mine])
+            y = np.asarray([r[metric] for r in mine])
+            e = np.asarray([r[f"{metric}_std"] for r in mine])
+            if kind == "everything":
+                ax.axhline(y[0], color=colour, linestyle="--", linewidth=1.4, label=f"{name} ({y[0]:.3f})")
+                continue
+            if kind == "overview":
+                ax.plot(x, y, marker="*", markersize=15, color=colour, linestyle="none",
+                        label=f"{name} ({y[0]:.3f}, reads 0 %)")
+                ax.annotate("overview only", (x[0], y[0]), textcoords="offset points", xytext=(9, -4), fontsize="small")
+                continue
+            ax.plot(x, y, "s-" if kind == "learned" else "o-", color=colour, linewidth=1.8, markersize=5,
+                    label=name + (" (± std over orders)" if kind == "random" else ""))
+            if (e > 0).any():
+                ax.fill_between(x, y - e, y + e, color=colour, alpha=0.2, linewidth=0)
+            if kind == "learned":
+                for xi, yi in zip(x, y):
+                    ax.annotate(f"{name}: {xi:.1%} read", (xi, yi), textcoords="offset points", xytext=(6, -12),
+                                fontsize="x-small", color=colour)
+        ax.set_xlim(-0.02, max([0.55] + [r["fraction_read"] + 0.03 for r in rows if r["kind"] != "everything"]))
+        ax.set_ylim(max(0.0, min(0.5, lo - 0.05)), 1.01)
+        ax.set_xlabel("fraction of finest-level tissue views actually read (mean per episode)")
+        ax.set_title(label, fontsize="medium")
+        ax.grid(True, color="#dddddd", linewidth=0.6)
+    axes[0].set_ylabel("slide AUC (same head for every reader)")
+    axes[1].legend(loc="lower right", fontsize="small", framealpha=0.9)
     if title:
-        ax.set_title(title, fontsize="medium")
+        fig.suptitle(title, fontsize="medium")
     return outputs.save_figure(fig, path)
 
 

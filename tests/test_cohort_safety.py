@@ -132,14 +132,15 @@ def test_a_failed_rebuild_keeps_the_previous_bundle_and_dataset_json(built, coho
     later = time.time() + 100
     for tif in slides.glob("*.tif"):  # `touch SLIDES/*`: every slide is rebuilt
         os.utime(tif, (later, later))
-    monkeypatch.setattr(data_tools.bundle, "build_bundle", _full_disk)  # the disk is full
+    monkeypatch.setattr(data_tools.bundle, "_build_into", _full_disk)  # the disk is full while writing levels
     s = build_dataset(slides, work, labels=labels, levels=(3,), progress=False)
     for n, digest in before.items():  # before: every old bundle deleted, dataset.json rewritten without them
         assert read_metadata(work / "bundles" / n)["metadata_sha256"] == digest
         load_bundle(work / "bundles" / n)
     assert sorted(s["failed"]) == ["s1", "s2", "s3"] and sorted(s["kept"]) == ["s1", "s2", "s3"]
-    # the reason names where it was writing (a full disk's OSError names no file)
-    assert all("bundles" in r and "No space left on device" in r for r in s["failed"].values())
+    # the reason names where it was writing (a full disk's OSError names no file): the bundle, not its temporary
+    assert all(f"bundles/{n}:" in r and "No space left on device" in r and ".tmp-" not in r
+               for n, r in s["failed"].items())
     ds = json.loads((work / "dataset.json").read_text())
     assert ds["train"] == ["bundles/s1", "bundles/s2"] and ds["test"] == ["bundles/s3"]
     assert sorted(ds["kept_after_failed_rebuild"]) == ["s1", "s2", "s3"]

@@ -251,9 +251,12 @@ def run_locked(out, name: str, work, current=None, staged: bool = False) -> dict
     except LockHeld:
         return {"name": name, "status": "busy"}
 
+    tmp = bundle.parent / f".{name}.tmp-{uuid.uuid4().hex[:8]}"  # where a staged build writes
+
     def failed(e: BaseException) -> dict:
         reason = _one_line(e) if not (isinstance(e, OSError) and e.filename is None) \
             else f"{bundle}: {_one_line(e.strerror or e)}"
+        reason = reason.replace(str(tmp), str(bundle))  # name the bundle, not its hidden temporary
         kept = staged and read_record(out, name) is not None and (bundle / "metadata.json").is_file()
         write_json(record_path(out, name, failed=True), {"name": name, "reason": reason, "previous_kept": kept})
         return {"name": name, "status": "failed", "reason": reason, "kept": kept}
@@ -268,7 +271,6 @@ def run_locked(out, name: str, work, current=None, staged: bool = False) -> dict
         except HistojaxDataError as e:
             return failed(e)
         if staged:
-            tmp = bundle.parent / f".{name}.tmp-{uuid.uuid4().hex[:8]}"
             try:
                 rec = work(tmp)
                 check_bundle_folder(bundle)  # again: files may have been put there meanwhile

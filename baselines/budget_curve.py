@@ -19,6 +19,10 @@ slide's finest-level tissue views). Writes ``budget_curve.csv`` (one row per met
 mean fraction actually read, AUC, accuracy at 0.5, slides, the standard deviations of AUC and accuracy
 over seeds — random reader orders, or the first ``--policy-seeds`` seeds (default 3) of a trained
 policy — and a trained policy's fields of view per episode) and ``budget_curve.png``.
+
+The curve with one slide head with spatial context for every row (overview only, random, scripted and
+trained readers, read everything; the CAMELYON lesion table) is ``python -m baselines.readers``
+(:mod:`baselines.readers`, head fitted by :mod:`baselines.head_fit`).
 """
 from __future__ import annotations
 
@@ -339,36 +343,78 @@ def write_csv(rows: list[dict], path) -> Path:
     return path
 
 
+def method_kind(method: str) -> str:
+    """The reader kind of a row's method: ``everything``, ``random``, ``scripted`` (attention / logit readers)
+    or ``learned`` (a trained policy, its own diagnosis or a head on what it read)."""
+    n = method.lower()
+    if "read everything" in n:
+        return "everything"
+    if n.startswith("random reader"):
+        return "random"
+    if n.startswith(("attention reader", "logit reader")):
+        return "scripted"
+    return "learned"
+
+
+FAMILIES = {"everything": ["#1f4e9c", "#5d8fd6"], "random": ["#5f6a6a", "#a6acaf"],
+            "scripted": ["#1e8449", "#58d68d", "#0e6251"],
+            "learned": ["#c0392b", "#e67e22", "#8e44ad", "#d35400", "#e84393", "#a04000", "#f1948a", "#6c3483"]}
+
+
 def plot(rows: list[dict], path, title: str = "") -> Path:
-    """AUC and accuracy against the fraction read, one line per method (the read-everything ceiling as
-    a dashed line)."""
+    """AUC and accuracy against the fraction actually read: one colour family per reader kind (blues: read
+    everything, dashed; greys: random reader with a ± band over reading orders; greens: scripted readers;
+    warm colours: trained policies, each drawn at the fraction it actually read, labelled, with a ± band over
+    seeds); line style per head (solid: MIL, dashed: max logit, dotted: the policy's own diagnosis). A
+    policy that reads nothing is one marked point at 0, not four piled up."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
     methods = list(dict.fromkeys(r["method"] for r in rows))
-    outside = len(methods) > 4  # many lines: one legend beside the plots
-    fig = Figure(figsize=(10.5 if outside else 8.0, 5.6), dpi=110, layout="constrained")
+    fig = Figure(figsize=(11.5, 7.0), dpi=110, layout="constrained")
     FigureCanvasAgg(fig)
     axes = fig.subplots(2, 1, sharex=True)
-    colours = ["#1f4e9c", "#c0392b", "#27ae60", "#8e44ad", "#d35400", "#16a085", "#7f8c8d", "#b7950b", "#e84393",
-               "#2d3436"]
     for ax, metric in zip(axes, ("auc", "accuracy")):
-        for k, name in enumerate(methods):
-            pts = sorted((r["fraction_read"], r[metric]) for r in rows if r["method"] == name)
-            if len(pts) == 1 and pts[0][0] >= 0.999:
-                ax.axhline(pts[0][1], color=colours[k % len(colours)], linestyle="--", linewidth=1.3, label=f"{name} ({pts[0][1]:.3f})")
+        used: dict = {}
+        zero: dict = {}  # trained readers that read nothing, grouped by their score (drawn once per score)
+        for name in methods:
+            kind = method_kind(name)
+            family = FAMILIES[kind]
+            colour = family[used.get(kind, 0) % len(family)]
+            used[kind] = used.get(kind, 0) + 1
+            style = "--" if ("max logit" in name or "max view logit" in name) else (
+                ":" if kind == "learned" and " + " not in name else "-")
+            mine = sorted((r for r in rows if r["method"] == name), key=lambda r: (r["fraction_read"], r["budget"]))
+            x = np.asarray([r["fraction_read"] for r in mine])
+            y = np.asarray([r[metric] for r in mine])
+            e = np.nan_to_num(np.asarray([r.get(f"{metric}_std", 0.0) for r in mine], np.float64))
+            if kind == "everything":
+                ax.axhline(y[0], color=colour, linestyle=style, linewidth=1.3, label=f"{name} ({y[0]:.3f})")
                 continue
-            xs, ys = zip(*pts)
-            ax.plot(xs, ys, "o-", color=colours[k % len(colours)], linewidth=1.8, markersize=4, label=name)
+            if kind == "learned" and (x < 1e-6).all():  # declares at the overview: one point at 0
+                zero.setdefault(round(float(y.mean()), 3), []).append((name, float(e.mean()), colour))
+                continue
+            ax.plot(x, y, ("s" if kind == "learned" else "o"), linestyle=style, color=colour, linewidth=1.6,
+                    markersize=4.5, label=name)
+            if (e > 0).any():
+                ax.fill_between(x, y - e, y + e, color=colour, alpha=0.15, linewidth=0)
+            if kind == "learned" and metric == "auc":
+                ax.annotate(f"{name}: {x[-1]:.1%} read", (x[-1], y[-1]), textcoords="offset points", xytext=(6, 4),
+                            fontsize="x-small", color=colour)
+        for k, (y0, group) in enumerate(sorted(zero.items())):
+            name, err, colour = group[0]
+            text = f"{name}: reads 0 %" if len(group) == 1 else f"{len(group)} rows reading 0 % ({y0:.3f})"
+            ax.errorbar([0.0], [y0], yerr=[err], fmt="*", markersize=12, color=colour, capsize=3,
+                        label=name + (f" and {len(group) - 1} more" if len(group) > 1 else "") + " (reads 0 %)")
+            ax.annotate(text, (0.0, y0), textcoords="offset points", xytext=(8, 4 - 10 * (k % 2)),
+                        fontsize="x-small", color=colour)
         ax.set_xlim(-0.02, 1.02)
         ax.set_ylabel(metric.upper() if metric == "auc" else metric)
-        ax.set_ylim(0.0, 1.02)
+        low = min([r[metric] - (r.get(f"{metric}_std") or 0.0) for r in rows if r[metric] == r[metric]] + [0.5])
+        ax.set_ylim(max(0.0, low - 0.05), 1.02)
         ax.grid(True, color="#dddddd", linewidth=0.6)
-        if not outside:
-            ax.legend(loc="lower right", fontsize="small", framealpha=0.85)
-    if outside:
-        axes[0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
-    axes[-1].set_xlabel("fraction of finest-level tissue views read")
+    axes[0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
+    axes[-1].set_xlabel("fraction of finest-level tissue views actually read (mean per episode)")
     axes[-1].set_xticks([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 1.0], ["0", "10 %", "20 %", "30 %", "40 %", "50 %", "100 %"])
     if title:
         fig.suptitle(title, fontsize="medium")

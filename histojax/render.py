@@ -40,15 +40,15 @@ def _titled(title: str, env, slide_index: int) -> str:
 
 
 def _canvas(env, max_side: int, slide_index: int = 0):
-    """The slide drawn at most ``max_side`` px a side from the coarsest env level that is at least
-    that large (else the finest). Returns ``(PIL image, canvas px per level-0 px)``."""
+    """The slide drawn ``max_side`` px on its longer side from the coarsest env level with pixels that is at
+    least that large (else the finest with pixels, enlarged). Returns ``(PIL image, canvas px per level-0 px)``."""
     bundle = bundle_of(env, slide_index)
     with_pixels = [i for i, p in enumerate(bundle.pixels) if getattr(p, "has_pixels", True)]  # coarsest first
     k = next((i for i in with_pixels if max(bundle.pixels[i].shape[:2]) >= max_side), with_pixels[-1])
     level = np.asarray(bundle.pixels[k])
-    fit = min(1.0, max_side / max(level.shape[:2]))
+    fit = max_side / max(level.shape[:2])  # < 1: shrunk; > 1 (a feature-only bundle keeps its coarsest level only): grown
     size = (max(1, round(level.shape[1] * fit)), max(1, round(level.shape[0] * fit)))
-    image = Image.fromarray(level).resize(size, Image.Resampling.BOX)
+    image = Image.fromarray(level).resize(size, Image.Resampling.BOX if fit <= 1 else Image.Resampling.BICUBIC)
     return image, size[0] / (level.shape[1] * bundle.downsamples[k])
 
 
@@ -156,22 +156,24 @@ def _path_markers(ax, centres, n_steps: int, marker: float = 1.0) -> list:
     start = ax.plot(*centres[0], marker="o", markersize=15 * marker, markerfacecolor="none", markeredgewidth=3,
                     markeredgecolor=_rgb(START_COLOUR), linestyle="none", label="start")[0]
     end = ax.plot(*centres[-1], marker="s", markersize=9 * marker, color=_rgb(END_COLOUR), markeredgecolor="black",
-                  linestyle="none", label=f"end (after {n_steps} steps)")[0]
+                  linestyle="none", label=f"end (after {n_steps} step{'' if n_steps == 1 else 's'})")[0]
     return [start, end]
 
 
-def inset_box(boxes, width0: float, height0: float, fraction: float = 0.25):
-    """The level-0 box ``(left, top, right, bottom)`` a zoomed inset shows around ``boxes`` (the path's views,
-    padded by half their extent, square), or None when the path already spans at least ``fraction`` of the
-    slide's longer side (it is visible as it is)."""
+def inset_box(boxes, width0: float, height0: float, small: float = 0.1, min_zoom: float = 3.0):
+    """The level-0 box ``(left, top, right, bottom)`` a zoomed inset shows: around the path's views that are
+    hard to see on the whole slide (side under ``small`` of its longer side), square, padded to four times the
+    smallest of them; None when there are none or the inset would enlarge less than ``min_zoom`` times."""
     b = np.asarray(boxes, np.float64).reshape(-1, 4)
-    if not len(b):
+    longer = max(width0, height0)
+    sides = np.maximum(b[:, 2] - b[:, 0], b[:, 3] - b[:, 1])
+    fine = b[sides < small * longer]
+    if not len(fine):
         return None
-    left, top, right, bottom = b[:, 0].min(), b[:, 1].min(), b[:, 2].max(), b[:, 3].max()
-    side = max(right - left, bottom - top)
-    if side >= fraction * max(width0, height0):
+    left, top, right, bottom = fine[:, 0].min(), fine[:, 1].min(), fine[:, 2].max(), fine[:, 3].max()
+    side = max(right - left, bottom - top, 4 * sides[sides < small * longer].min()) * 1.3
+    if longer / side < min_zoom:
         return None
-    side *= 2.0
     cx, cy = (left + right) / 2, (top + bottom) / 2
     return cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2
 
@@ -187,8 +189,8 @@ def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 6
     :func:`level_colour`), the path joins the view centres (each step coloured by the level it moved
     to), the tumour is outlined in green, the start is a cyan ring (visible around the end when a
     zoom kept the centre) and the end a red square with its box drawn thick; a legend names all of them.
-    When the path covers less than a quarter of the slide's longer side (fine views on a large slide)
-    and ``inset``, a zoomed inset around it, drawn from a finer level, shows the boxes legibly.
+    With ``inset``, views too small to see on the whole slide (fine levels of a large slide) get a zoomed
+    inset around them (:func:`inset_box`), drawn from a finer level, in the corner away from the path.
     """
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
@@ -227,18 +229,19 @@ def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 6
     ax.set_ylabel("y (level-0 px)")
     zoom = inset_box(boxes, width0, height0) if inset else None
     if zoom is not None:
-        _inset(ax, env, slide_index, zoom, z, boxes, centres, rings, width0)
+        _inset(ax, env, slide_index, zoom, z, boxes, centres, rings, width0, height0)
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small", frameon=False,
               title="views (boxes) and path", title_fontsize="small", alignment="left")
     ax.set_title(_titled(title, env, slide_index), fontsize="medium")
     return fig
 
 
-def _inset(ax, env, slide_index: int, zoom, z, boxes, centres, rings, width0: float):
+def _inset(ax, env, slide_index: int, zoom, z, boxes, centres, rings, width0: float, height0: float):
     """A zoomed inset of level-0 box ``zoom`` in the corner of ``ax`` farthest from the path."""
-    cx = (zoom[0] + zoom[2]) / 2
+    cx, cy = (zoom[0] + zoom[2]) / 2, (zoom[1] + zoom[3]) / 2
     left_side = cx > width0 / 2  # the path is on the right: the inset goes left
-    axin = ax.inset_axes([0.02 if left_side else 0.56, 0.56, 0.42, 0.42])
+    bottom_side = cy < height0 / 2  # the path is in the upper half: the inset goes down (y axis points down)
+    axin = ax.inset_axes([0.02 if left_side else 0.56, 0.02 if bottom_side else 0.56, 0.42, 0.42])
     crop = _level_crop(env, slide_index, zoom)
     if crop is not None:
         pixels, (l0, t0, r0, b0) = crop
@@ -435,7 +438,7 @@ def _heat_panel(heat, x: int, y: int, tile: int, side: int, limits) -> Image.Ima
     ys, xs = slice(max(0, y0), min(gh, y0 + window.shape[0])), slice(max(0, x0), min(gw, x0 + window.shape[1]))
     window[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0] = values[ys, xs]
     lo, hi = limits
-    rgba = colormaps["magma"](np.clip((window - lo) / max(hi - lo, 1e-9), 0, 1))
+    rgba = colormaps["YlOrRd"](np.clip((window - lo) / max(hi - lo, 1e-9), 0, 1))  # low: pale, high: dark red
     rgb = (rgba[..., :3] * 255).astype(np.uint8)
     rgb[np.isnan(window)] = (200, 200, 200)
     panel = Image.fromarray(rgb).resize((side, side), Image.NEAREST)

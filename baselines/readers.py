@@ -69,11 +69,16 @@ def lesion_class(slide: dict) -> tuple[str, float]:
     pieces of the tumour annotation; a tumour slide without polygons is ``"unknown"``."""
     if not slide["label"]:
         return "normal", 0.0
-    geom = slide.get("tumour")
+    return lesion_of(slide.get("tumour"), slide["mpp"])
+
+
+def lesion_of(geom, mpp: float) -> tuple[str, float]:
+    """``(class, mm)`` of a tumour geometry in px at ``mpp`` µm/px: its largest connected piece's longest
+    diameter, ``ITC`` below 0.2 mm, ``micro`` up to 2 mm, ``macro`` above; ``"unknown"`` when empty."""
     if geom is None or geom.is_empty:
         return "unknown", float("nan")
     parts = list(getattr(geom, "geoms", [geom]))
-    mm = max(longest_diameter_px(p) for p in parts) * slide["mpp"] / 1000.0
+    mm = max(longest_diameter_px(p) for p in parts) * mpp / 1000.0
     return ("ITC" if mm < ITC_MM else "micro" if mm <= MACRO_MM else "macro"), mm
 
 

@@ -16,6 +16,12 @@ negatives) on the train split minus a validation share held back as ``c16_refere
 (:func:`baselines.validation.split_train`, seed 0), and score slides by its max over views. Reported on validation and test beside the plain maximum.
 
     python benchmarks/c16_slide_ceiling.py --dataset DIR [--levels 0 1 2 3] [--probe] [--json OUT.json]
+
+``--lesions ANNOTATIONS``: the CAMELYON lesion class (largest lesion's longest diameter: isolated tumour cells
+< 0.2 mm, micrometastasis 0.2–2 mm, macrometastasis > 2 mm) of every tumour slide of the NCRF annotations a
+``data_tools c16`` set is built from, by the set's split, from the geometry alone (no slide built)::
+
+    python benchmarks/c16_slide_ceiling.py --lesions camelyon16_ncrf_train.tar.gz
 """
 from __future__ import annotations
 
@@ -159,15 +165,72 @@ def probe(train: list[dict], val: list[dict], test: list[dict], positive: float 
     return out
 
 
+def lesion_census(annotations, test_fraction: float = 0.25, seed: int = 0) -> list[dict]:
+    """CAMELYON lesion class of every tumour slide of an NCRF annotation source (``data_tools c16
+    --annotations``), on the side of the split ``data_tools c16`` gives it with ``test_fraction`` and ``seed``
+    (the split of the whole set, which any subset keeps): ``[{slide, split, class, diameter_mm, area_mm2}]``.
+    Geometry only (no slide is built): tumour = the NCRF positive polygons minus the negative ones, at
+    CAMELYON16 level 0 (0.243 µm/px)."""
+    import shapely
+
+    from baselines.readers import lesion_of
+    from data_tools.datasets.c16_layout import C16_MPP, OWN_TISSUE, donor_for
+    from data_tools.datasets.split import grouped_split
+    from data_tools.ncrf import read_ncrf
+
+    every = read_ncrf(annotations)
+    tumours = [n for n in every if every[n].is_tumour_slide]
+    normals = [n for n in every if not every[n].is_tumour_slide]
+    donors = {n: donor_for(n, tumours, normals) for n in tumours if n not in OWN_TISSUE and normals}
+    _, test = grouped_split(list(every), donors, test_fraction, seed)
+    rows = []
+    for n in tumours:
+        geom = shapely.difference(every[n].positive, every[n].negative)
+        cls, mm = lesion_of(geom, C16_MPP)
+        rows.append({"slide": n, "split": "test" if n in set(test) else "train", "class": cls, "diameter_mm": mm,
+                     "area_mm2": float(geom.area) * C16_MPP ** 2 / 1e6})
+    return rows
+
+
+def print_census(rows: list[dict]) -> None:
+    """Per split, how many tumour slides of each CAMELYON class."""
+    print("| split | tumour slides | ITC (< 0.2 mm) | micro (0.2–2 mm) | macro (> 2 mm) |\n|---|---|---|---|---|")
+    for split in ("train", "test"):
+        mine = [r for r in rows if r["split"] == split]
+        print(f"| {split} | {len(mine)} | " + " | ".join(str(sum(r["class"] == c for r in mine))
+                                                         for c in ("ITC", "micro", "macro")) + " |")
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--dataset", type=Path, required=True)
+    p.add_argument("--dataset", type=Path, help="a pcam-cnn dataset (required unless --lesions only)")
+    p.add_argument("--lesions", metavar="ANNOTATIONS", default=None,
+                   help="print the CAMELYON lesion classes of every tumour slide of this NCRF source (as given to "
+                        "`data_tools c16 --annotations`) by split, from the geometry alone, and stop unless --dataset")
     p.add_argument("--levels", type=int, nargs="+", default=[0, 1, 2, 3], help="bundle levels (0 = finest)")
     p.add_argument("--probe", action="store_true", help="also train the MLP view probe (a minute on 2 cores)")
     p.add_argument("--probe-positive", type=float, default=0.25)
     p.add_argument("--val-fraction", type=float, default=0.2)
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
+    if args.lesions:
+        try:
+            census = lesion_census(args.lesions)
+        except (OSError, ValueError, HistojaxDataError) as e:
+            print(f"error: {e}", file=sys.stderr)
+            return 2
+        print_census(census)
+        print("| test tumour slide | class | largest lesion (mm) | tumour area (mm²) |\n|---|---|---|---|")
+        for r in sorted((r for r in census if r["split"] == "test"), key=lambda r: r["diameter_mm"]):
+            print(f"| {r['slide']} | {r['class']} | {r['diameter_mm']:.3f} | {r['area_mm2']:.3f} |")
+        if args.json and not args.dataset:
+            args.json.parent.mkdir(parents=True, exist_ok=True)
+            args.json.write_text(json.dumps({"lesions": census}, indent=1, default=float))
+        if not args.dataset:
+            return 0
+    if not args.dataset:
+        print("error: --dataset is required (or --lesions ANNOTATIONS alone)", file=sys.stderr)
+        return 2
     try:
         spec = json.loads((args.dataset / "dataset.json").read_text())
         train, test = slide_grids(args.dataset, "train", spec), slide_grids(args.dataset, "test", spec)

@@ -233,3 +233,24 @@ def test_readers_command_refuses_a_bad_head(dataset, tmp_path, capsys):
     assert readers.main(["--dataset", str(dataset), "--head", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "config.json: missing" in err[0]
+
+
+def test_lesion_census_of_the_shipped_annotations(capsys):
+    """The lesion classes of a C16 annotation source by split, from geometry alone (the shipped NCRF files)."""
+    import importlib.util
+    from pathlib import Path
+
+    from data_tools.ncrf import SHIPPED_DIR, read_ncrf
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "c16_slide_ceiling.py"
+    spec = importlib.util.spec_from_file_location("c16_slide_ceiling", path)
+    ceiling = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(ceiling)
+    rows = ceiling.lesion_census(SHIPPED_DIR)
+    every = read_ncrf(SHIPPED_DIR)
+    assert sorted(r["slide"] for r in rows) == sorted(n for n in every if every[n].is_tumour_slide)
+    for r in rows:
+        assert r["split"] in ("train", "test") and r["class"] in readers.CLASSES
+        assert (r["class"] == "ITC") == (r["diameter_mm"] < 0.2) and (r["class"] == "macro") == (r["diameter_mm"] > 2)
+    assert ceiling.main(["--lesions", str(SHIPPED_DIR)]) == 0
+    assert "| test |" in capsys.readouterr().out

@@ -108,7 +108,7 @@ def pin_env_shapes(config: dict, env_params) -> dict:
     from histojax.glimpse import GlimpseTables
 
     tables = getattr(env_params, "mode_data", None)
-    if not isinstance(tables, GlimpseTables):
+    if not isinstance(tables, GlimpseTables) or tables.step_obs:  # step_obs: cell-set policies fit any grid
         return config
     kw = dict(config.get("env_kwargs") or {})
     kw.setdefault("glimpse_grid", [int(v) for v in np.asarray(tables.grid)])
@@ -570,6 +570,7 @@ def save_runner(folder: Path, runners, update: int, metrics: dict, train_seconds
     folder.mkdir(parents=True, exist_ok=True)
     leaves = jax.tree.leaves(jax.device_get(runners))
     state = {"format": RUNNER_FORMAT, "update": int(update), "num_updates": int(num_updates), "chunk": int(chunk),
+             "config_sha256": config_digest(config),
              "train_seconds": float(train_seconds),
              "leaves": {str(i): np.asarray(a) for i, a in enumerate(leaves)},
              "metrics": {k: np.asarray(v) for k, v in metrics.items()}}
@@ -581,7 +582,14 @@ def save_runner(folder: Path, runners, update: int, metrics: dict, train_seconds
     return path
 
 
-def load_runner(folder: Path, template, num_updates: int, chunk: int):
+def config_digest(config: dict) -> str:
+    """SHA-256 of a run config (JSON, keys sorted): ties a checkpoint to the run that wrote it."""
+    import hashlib
+
+    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()
+
+
+def load_runner(folder: Path, template, num_updates: int, chunk: int, config: dict | None = None):
     """``(runners, update, metrics, train_seconds)`` from ``folder/runner.msgpack`` (:func:`save_runner`),
     checked against ``template`` (:func:`chunked_runner`'s ``start.template``: the runner states this config
     makes) and the run's ``num_updates`` / ``chunk``. A missing, corrupt or mismatching file raises
@@ -596,6 +604,9 @@ def load_runner(folder: Path, template, num_updates: int, chunk: int):
     if not isinstance(state, dict) or state.get("format") != RUNNER_FORMAT or "leaves" not in state:
         raise HistojaxDataError(path, "not a histojax training checkpoint (no runner state of format "
                                       f"{RUNNER_FORMAT})")
+    if config is not None and state.get("config_sha256") != config_digest(config):
+        raise HistojaxDataError(path, f"written by a run of another config than {Path(folder) / 'config.json'} (a new "
+                                      "run started in this folder before its first checkpoint?); train again")
     if (state["num_updates"], state["chunk"]) != (num_updates, chunk):
         raise HistojaxDataError(path, f"saved for {state['num_updates']} updates in chunks of {state['chunk']}, "
                                       f"but the run's config.json makes {num_updates} in chunks of {chunk}")
@@ -634,7 +645,7 @@ def run_chunked(train, out: Path, keys=None, resume: bool = False, on_checkpoint
         train.chunked = chunked_runner(train)
     start, chunk = train.chunked
     if resume:
-        runners, done, metrics, train_s = load_runner(folder, start.template(keys), num_updates, start.size)
+        runners, done, metrics, train_s = load_runner(folder, start.template(keys), num_updates, start.size, config)
         print(f"resuming {out} at update {done}/{num_updates}", flush=True)
         compile_s = 0.0
     else:

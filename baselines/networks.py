@@ -248,6 +248,138 @@ class QNetwork(nn.Module):
         return nn.Dense(self.num_actions, kernel_init=nn.initializers.orthogonal(1.0))(h)
 
 
+# ----------------------------------------------------------------------------- reader policies over a set of cells
+class EpisodeTables:
+    """The per-slide tables of an env (:meth:`histojax.env.HistoEnv.episode_tables`: ``cells (S, C, D)``,
+    ``valid``, ``cost`` ``(S, C)``, ``position (S, C, 2)``) held by a cell-set network, which indexes them
+    with the observation's ``slide``. Compared and hashed by identity (a flax module attribute must
+    hash; the arrays travel into the jitted program as constants of the network that holds them)."""
+
+    def __init__(self, tables: dict):
+        self.tables = {k: jnp.asarray(v) for k, v in tables.items()}
+
+    def __getitem__(self, key):
+        return self.tables[key]
+
+
+NEG = -1e9  # the logit of a cell the policy may not pick (invalid, padding, already read)
+
+
+def uses_cell_sets(env) -> bool:
+    """True for an env whose reading mode observes steps apart from per-episode tables (``step_obs=True``,
+    the ``-v2`` ids, with ``glimpse``): its policies are :class:`CellSetActorCritic` /
+    :class:`RecurrentCellSetActorCritic`, which run on any slide size."""
+    return bool(getattr(env, "step_obs", False)) and bool(env.episode_tables())
+
+
+class CellEncoder(nn.Module):
+    """Step observation + episode tables → ``(cell embeddings (B, C, H), per-step context (B, H),
+    pickable (B, C) bool)``. Every cell goes through the same layers (a network shared across cells):
+    its coarse features, validity, cost, position and read bit, plus, for a cell already read, its
+    summary (the ``K`` read slots are embedded and added to their cells)."""
+
+    hidden: int                 # width of the per-cell layers
+    tables: EpisodeTables
+    obs_norm: tuple | None = None
+    context_hidden: int = 256   # width of the per-step context
+
+    @nn.compact
+    def __call__(self, obs):
+        from histojax.glimpse import unpack_bits
+
+        t = self.tables
+        i = jnp.asarray(obs["slide"], jnp.int32)
+        b, c = i.shape[0], t["valid"].shape[-1]
+        dense = lambda n, name: nn.Dense(n, kernel_init=nn.initializers.orthogonal(np.sqrt(2)), name=name)  # noqa: E731
+        norm = (lambda x: x) if self.obs_norm is None else (  # noqa: E731
+            lambda x: (x - jnp.asarray(self.obs_norm[0], jnp.float32)) / jnp.asarray(self.obs_norm[1], jnp.float32))
+        cells = norm(t["cells"][i])                                      # (B, C, D)
+        valid = t["valid"][i]
+        read = unpack_bits(jnp.asarray(obs["read_bits"]), c)            # (B, C) bool
+        per_cell = jnp.concatenate([cells, valid[..., None], read[..., None].astype(jnp.float32),
+                                    t["cost"][i][..., None] * 10.0, t["position"][i]], -1)
+        x = dense(self.hidden, "cell_in")(per_cell)
+        summaries = jnp.asarray(obs["read_summaries"], jnp.float32)      # (B, K, 2D)
+        d = summaries.shape[-1] // 2
+        summaries = jnp.concatenate([norm(summaries[..., :d]), norm(summaries[..., d:])], -1)
+        slots = dense(self.hidden, "slot_in")(summaries)                  # (B, K, H)
+        where = jnp.asarray(obs["read_cells"], jnp.int32)                # (B, K), C = empty
+        x = jax.vmap(lambda xc, w, sl: xc.at[w].add(sl, mode="drop"))(x, where, slots)
+        x = nn.relu(x)
+        x = nn.relu(dense(self.hidden, "cell_mid")(x))
+        view = [jnp.asarray(v, jnp.float32).reshape(b, -1) for k, v in sorted(obs.items())
+                if k not in ("slide", "read_bits", "read_cells", "read_summaries")]
+        view = [norm(v) if v.shape[-1] == cells.shape[-1] else v for v in view]
+        weights = valid / jnp.maximum(valid.sum(-1, keepdims=True), 1.0)
+        pooled_mean = jnp.einsum("bc,bch->bh", weights, x)
+        pooled_max = jnp.where(valid[..., None] > 0, x, 0.0).max(1)
+        context = nn.relu(dense(self.context_hidden, "context")(jnp.concatenate([pooled_mean, pooled_max, *view], -1)))
+        pickable = (valid > 0) & ~read
+        return x, context, pickable
+
+
+def cell_logits(module: nn.Module, x, context, pickable):
+    """Pointer logits: one per cell (``(B, C)``, ``NEG`` where ``pickable`` is false) from each cell's
+    embedding and the context, then the 2 declaring actions from the context: ``(B, C + 2)``."""
+    h = module.cell_hidden
+    joined = nn.relu(nn.Dense(h, kernel_init=nn.initializers.orthogonal(np.sqrt(2)), name="cell_head")(x)
+                     + nn.Dense(h, use_bias=False, kernel_init=nn.initializers.orthogonal(np.sqrt(2)),
+                                name="cell_context")(context)[:, None, :])
+    per_cell = nn.Dense(1, kernel_init=nn.initializers.orthogonal(0.01), bias_init=nn.initializers.zeros,
+                        name="cell_logit")(joined)[..., 0]
+    per_cell = jnp.where(pickable, per_cell, NEG)
+    declare = nn.Dense(2, kernel_init=nn.initializers.orthogonal(0.01), bias_init=nn.initializers.zeros,
+                       name="declare")(nn.tanh(nn.Dense(module.hidden // 2, name="declare_in")(context)))
+    value = nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0), name="value")(
+        nn.tanh(nn.Dense(module.hidden // 2, name="value_in")(context)))[..., 0]
+    return jnp.concatenate([per_cell, declare], -1), value
+
+
+class CellSetActorCritic(nn.Module):
+    """A reader policy over the set of a slide's cells, for ``glimpse`` with ``step_obs=True``:
+    ``__call__(obs) -> (logits (B, C + 2), value (B,))``. A per-cell encoder shared by all cells
+    (:class:`CellEncoder`), mean and max pooling over the valid cells with the view into a context,
+    then a pointer: one logit per cell (invalid, padding and already read cells masked) and the two
+    declaring actions from the context. Its parameters do not depend on ``C``: one policy runs on any
+    slide size and any dataset (build it with that env's tables), and its cost grows with ``C``.
+    ``action_dim`` is unused (the env's ``C + 2``), kept so that trainers build it as the others."""
+
+    action_dim: int
+    tables: EpisodeTables
+    action_mode: str = "glimpse"
+    hidden: int = 256           # the context's width (config "hidden")
+    obs_norm: tuple | None = None
+    cell_hidden: int = 64       # the per-cell layers' width (config "cell_hidden")
+
+    @nn.compact
+    def __call__(self, obs):
+        x, context, pickable = CellEncoder(self.cell_hidden, self.tables, self.obs_norm, self.hidden)(obs)
+        return cell_logits(self, x, context, pickable)
+
+
+class RecurrentCellSetActorCritic(nn.Module):
+    """:class:`CellSetActorCritic` with a GRU over the per-step context (hidden state reset at
+    episode starts, as :class:`RecurrentActorCritic`): ``__call__(h (B, H), obs (T, B, ...), resets
+    (T, B)) -> (h_T, logits (T, B, C + 2), value (T, B))``. The cells' pointer logits read each cell's
+    embedding and the GRU's output."""
+
+    action_dim: int
+    tables: EpisodeTables
+    action_mode: str = "glimpse"
+    hidden: int = 128           # the context's and the GRU's width (config "hidden")
+    obs_norm: tuple | None = None
+    cell_hidden: int = 64       # the per-cell layers' width (config "cell_hidden")
+
+    @nn.compact
+    def __call__(self, h, obs, resets):
+        t, b = resets.shape
+        flat = jax.tree.map(lambda a: jnp.reshape(a, (t * b, *jnp.shape(a)[2:])), obs)
+        x, context, pickable = CellEncoder(self.cell_hidden, self.tables, self.obs_norm, self.hidden)(flat)
+        h, y = ScannedGRU(self.hidden)(h, (context.reshape(t, b, -1), resets.astype(bool)))
+        logits, value = cell_logits(self, x, y.reshape(t * b, -1), pickable)
+        return h, logits.reshape(t, b, -1), value.reshape(t, b)
+
+
 # ----------------------------------------------------------------------------- distributions
 def categorical_sample(key, logits):
     return jax.random.categorical(key, logits)

@@ -41,8 +41,9 @@ import optax
 from flax.training.train_state import TrainState
 
 from baselines import common
-from baselines.networks import (ActorCritic, is_discrete, policy_entropy, policy_log_prob, policy_sample,
-                                preprocess_obs)
+from baselines.networks import (ActorCritic, CellSetActorCritic, EpisodeTables, RecurrentActorCritic,
+                                RecurrentCellSetActorCritic, is_discrete, policy_entropy, policy_log_prob, policy_sample,
+                                preprocess_obs, uses_cell_sets)
 from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
@@ -67,6 +68,7 @@ class PPOConfig(common.EnvConfig):
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
     hidden: int = 256                    # network width
+    cell_hidden: int = 64                # cell-set readers (glimpse, step_obs): width of the layers shared by the cells
     num_seeds: int = 1
     vmap_seeds: bool = True              # all seeds in one vmapped program
     log_every: int = 4                   # updates per progress line
@@ -98,7 +100,10 @@ class Transition(NamedTuple):
 def make_network(config: dict, env, network_cls=ActorCritic):
     """``network_cls`` (an actor-critic) sized for ``env``'s action space: ``n`` logits for discrete
     actions, the Box size for continuous ones; width ``config["hidden"]``; feature observations
-    standardised by ``config["obs_norm"]`` when it holds numbers (``{"mean", "std"}``)."""
+    standardised by ``config["obs_norm"]`` when it holds numbers (``{"mean", "std"}``). For a ``glimpse``
+    env with ``step_obs=True`` (the ``-v2`` ids) the cell-set reader of the same kind (feed-forward or
+    recurrent, :class:`~baselines.networks.CellSetActorCritic`), holding ``env``'s episode tables: its
+    parameters fit any slide size, so the same parameters run on another dataset's env."""
     space = env.action_space()
     action_dim = space.n if is_discrete(config["action_mode"]) else int(np.prod(space.shape))
     norm = config.get("obs_norm")
@@ -106,6 +111,12 @@ def make_network(config: dict, env, network_cls=ActorCritic):
         norm = (tuple(float(v) for v in norm["mean"]), tuple(float(v) for v in norm["std"]))
     elif norm is not None:
         raise ValueError(f"obs_norm={norm!r}: resolve it with resolve_obs_norm(config, env_params) first")
+    if uses_cell_sets(env):  # a reader over the set of cells, built with this env's own per-slide tables
+        cls = {ActorCritic: CellSetActorCritic, RecurrentActorCritic: RecurrentCellSetActorCritic}.get(network_cls)
+        if cls is None:
+            raise ValueError(f"{network_cls.__name__} cannot read a step_obs glimpse env; use PPO or recurrent PPO")
+        return cls(action_dim=action_dim, tables=EpisodeTables(env.episode_tables()), action_mode=config["action_mode"],
+                   hidden=config["hidden"], obs_norm=norm, cell_hidden=config.get("cell_hidden", 64))
     return network_cls(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"],
                        obs_norm=norm)
 

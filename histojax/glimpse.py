@@ -57,6 +57,7 @@ class GlimpseTables:
     grid: jnp.ndarray         # (2,) int32 (H, W): the padded cell grid, C = H · W (cell index = row · W + col)
     slots_zero: jnp.ndarray   # (K,) int32 all C: an empty list of the cells read (K = read_slots, see the module doc)
     slide_grid: jnp.ndarray   # (S, 2) int32 (gh, gw): each slide's own cell grid, inside the padded one
+    step_obs: bool = struct.field(pytree_node=False, default=False)  # made for a step_obs env: no policy depends on C
 
 
 @struct.dataclass
@@ -140,7 +141,7 @@ class Glimpse(ActionMode):
             total_views=jnp.asarray(total, jnp.int32),
             inv_total=jnp.asarray(1.0 / total.astype(np.float64), jnp.float32), read_budget=jnp.float32(read_budget),
             grid=jnp.asarray(per[0]["grid"], jnp.int32), slots_zero=jnp.full((min(k, c),), c, jnp.int32),
-            slide_grid=jnp.asarray(stack("slide_grid", np.int32)))
+            slide_grid=jnp.asarray(stack("slide_grid", np.int32)), step_obs=bool(env.step_obs))
 
     def host_tables(self, env, params, bundles, grid=None, instances: bool = True) -> list[dict]:
         """Per slide, host numpy: the padded cell tables of :class:`GlimpseTables` (``cells``,

@@ -1,0 +1,132 @@
+"""Reader policies over a set of cells (``baselines.networks.CellSetActorCritic`` and its recurrent
+twin) for ``glimpse`` with ``step_obs=True``: parameters made on one dataset run on a dataset whose
+slide is wider and taller than any of its slides, the pointer masks what cannot be picked, and the
+trainers no longer pin the cell grid.
+
+Two tiny synthetic datasets (made here, no third-party data): training slides of 640 × 800 and
+800 × 560 px (height × width), and one 1000 × 2000 px slide; 32-px views, 3 levels (downsamples 16, 4, 1),
+``colour-stats`` features.
+"""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import histojax
+from baselines import common, ppo, ppo_rnn
+from baselines.networks import NEG, ScannedGRU, network_step
+
+TILE, ENVS, STEPS = 32, 4, 6
+CONFIG = {"env_id": "HistoJAX-Easy-v0", "action_mode": "glimpse:1", "obs_mode": "features", "hidden": 32,
+          "cell_hidden": 16, "obs_norm": None}
+
+
+@pytest.fixture(scope="module")
+def slides(tmp_path_factory) -> dict:
+    import tifffile
+
+    from data_tools.bundle import build_bundle
+    from data_tools.features.grid import compute_features
+
+    root = tmp_path_factory.mktemp("sets")
+    out = {}
+    for name, (h, w), seed in (("a", (640, 800), 1), ("b", (800, 560), 2), ("big", (1000, 2000), 3)):
+        rng = np.random.default_rng(seed)
+        image = np.full((h, w, 3), 245, np.uint8)
+        image[60:h - 60, 50:w - 70] = [230, 160, 200]
+        image[h // 4:h // 2, w // 2:w - 150] = [120, 40, 140]
+        image = np.clip(image.astype(int) + rng.integers(-8, 9, image.shape), 0, 255).astype(np.uint8)
+        tifffile.imwrite(root / f"{name}.tif", image, photometric="rgb")
+        out[name] = build_bundle(root / f"{name}.tif", root / name, level_sets=(3,), tile_size=TILE, progress=False)
+        compute_features(out[name], encoder_name="colour-stats", batch=64, progress=False, dtype="float32")
+    return out
+
+
+def _make(paths):
+    return histojax.make("HistoJAX-Easy-v0", slides=[str(p) for p in paths], obs_mode="features",
+                         action_mode="glimpse:1", task="classification", step_obs=True, read_budget=0.3,
+                         max_steps_in_episode=STEPS)
+
+
+@pytest.fixture(scope="module")
+def envs(slides):
+    return _make([slides["a"], slides["b"]]), _make([slides["big"]])
+
+
+def _batch_reset(env, params, key):
+    return jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, ENVS), params)
+
+
+def test_the_other_slide_is_wider_and_taller(envs):
+    (_, train), (_, other) = envs
+    grids = np.asarray(train.mode_data.slide_grid)
+    big = np.asarray(other.mode_data.slide_grid)[0]
+    assert big[0] > grids[:, 0].max() and big[1] > grids[:, 1].max()
+    assert other.mode_data.valid.shape[-1] > train.mode_data.valid.shape[-1]
+
+
+@pytest.mark.parametrize("recurrent", [False, True])
+def test_parameters_from_one_dataset_read_another(envs, recurrent):
+    (env_a, pa), (env_b, pb) = envs
+    make = ppo_rnn.make_network if recurrent else ppo.make_network
+    net_a, net_b = make(CONFIG, env_a), make(CONFIG, env_b)
+    obs_a, _ = _batch_reset(env_a, pa, jax.random.key(0))
+    if recurrent:
+        h0 = ScannedGRU.initial_state(ENVS, CONFIG["hidden"])
+        params = net_a.init(jax.random.key(1), h0, jax.tree.map(lambda a: a[None], obs_a), jnp.ones((1, ENVS), bool))
+    else:
+        params = net_a.init(jax.random.key(1), obs_a)
+    c_b = int(pb.mode_data.valid.shape[-1])
+
+    def policy(h, obs, first):
+        if recurrent:
+            return network_step(net_b, params, h, obs, first)
+        return (h, *net_b.apply(params, obs))
+
+    @jax.jit
+    def rollout(key):
+        obs, state = _batch_reset(env_b, pb, key)
+
+        def body(carry, k):
+            obs, state, h, first = carry
+            h, logits, value = policy(h, obs, first)
+            action = jax.random.categorical(k, logits)
+            obs2, state, r, term, trunc, info = jax.vmap(env_b.step, in_axes=(0, 0, 0, None))(
+                jax.random.split(k, ENVS), state, action, pb)
+            return (obs2, state, h, term | trunc), (logits, value, action, obs, info["fraction_read"])
+
+        h = ScannedGRU.initial_state(ENVS, CONFIG["hidden"])
+        return jax.lax.scan(body, (obs, state, h, jnp.ones(ENVS, bool)), jax.random.split(key, STEPS - 1))[1]
+
+    logits, value, action, obs, fraction = rollout(jax.random.key(2))
+    assert logits.shape == (STEPS - 1, ENVS, c_b + 2) and np.isfinite(np.asarray(value)).all()
+    valid = np.asarray(env_b.episode_tables(pb)["valid"])[np.asarray(obs["slide"])] > 0
+    from histojax.glimpse import unpack_bits
+
+    read = np.asarray(unpack_bits(obs["read_bits"], c_b))
+    cell_logits = np.asarray(logits)[..., :c_b]
+    assert (cell_logits[~valid | read] == NEG).all() and (cell_logits[valid & ~read] > NEG / 2).all()
+    assert (np.asarray(action) < c_b + 2).all() and float(np.asarray(fraction).max()) > 0  # it reads
+
+
+def test_trainers_do_not_pin_the_cell_grid(envs):
+    (_, pa), _ = envs
+    assert common.pin_env_shapes({"env_kwargs": {}}, pa) == {"env_kwargs": {}}
+
+
+@pytest.mark.slow
+def test_ppo_trains_on_one_dataset_and_reads_another(slides, envs):
+    """A few PPO updates on the small slides; the trained parameters then act on the large one."""
+    config = {**CONFIG, "env_kwargs": {"slides": [str(slides["a"]), str(slides["b"])], "task": "classification",
+                                       "step_obs": True, "read_budget": 0.3},
+              "num_envs": 8, "num_steps": 8, "total_timesteps": 128, "num_minibatches": 2, "print_progress": False}
+    train = ppo.make_train(config)
+    params = jax.tree.map(lambda a: a[0], train(jax.random.split(jax.random.key(0), 1))["params"])
+    assert "glimpse_grid" not in train.config["env_kwargs"]
+    _, (env_b, pb) = envs
+    net_b = ppo.make_network(train.config, env_b)
+    obs, _ = _batch_reset(env_b, pb, jax.random.key(3))
+    logits, value = jax.jit(net_b.apply)(params, obs)
+    assert logits.shape == (ENVS, int(pb.mode_data.valid.shape[-1]) + 2) and np.isfinite(np.asarray(value)).all()

@@ -447,3 +447,31 @@ def test_make_during_a_first_build_says_it_is_being_built(tmp_path):
             dataset_slides(out)
     with pytest.raises(BundleError, match="not every slide recorded"):
         dataset_slides(out)
+
+
+@pytest.mark.skipif(not sys.platform.startswith("linux"), reason="reads /proc")
+def test_a_worker_killed_mid_build_is_one_line(cohort, tmp_path, capsys):
+    """A ``--jobs`` worker killed (as the out-of-memory killer would) is one line naming --out, not a
+    ``BrokenProcessPool`` traceback; a rerun resumes."""
+    import threading
+
+    slides, labels = cohort
+    out = tmp_path / "o"
+    killed = []
+
+    def kill_a_worker():
+        deadline = time.time() + 120
+        while time.time() < deadline and not killed:
+            workers = _children(os.getpid())
+            if workers:
+                time.sleep(0.5)
+                os.kill(workers[0], signal.SIGKILL)
+                killed.append(workers[0])
+            time.sleep(0.05)
+
+    threading.Thread(target=kill_a_worker, daemon=True).start()
+    line = _one_error(["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3",
+                       "--jobs", "2", "--quiet"], capsys)
+    assert killed and str(out) in line and "worker process died" in line and "rerun to resume" in line
+    s = build_dataset(slides, out, labels=labels, levels=(3,), progress=False)
+    assert s["dataset"] is not None and not s["failed"] and not list(out.rglob(".*.tmp-*"))

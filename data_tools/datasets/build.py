@@ -611,11 +611,22 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
 
         from data_tools.datasets.workers import die_with_parent, stop_workers_on_sigterm
 
+        from concurrent.futures.process import BrokenProcessPool
+
         with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=die_with_parent,
                                  initargs=(os.getpid(),)) as pool, stop_workers_on_sigterm(pool):
-            for fut in as_completed([pool.submit(build_one, job) for job in jobs_list]):
-                results.append(fut.result())
-                bar.update(1)
+            futures = {pool.submit(build_one, job): job["name"] for job in jobs_list}
+            try:
+                for fut in as_completed(futures):
+                    results.append(fut.result())
+                    bar.update(1)
+            except BrokenProcessPool:
+                done = {r["name"] for r in results}
+                left = [n for n in futures.values() if n not in done]
+                raise HistojaxDataError(out, f"a --jobs worker process died (killed, e.g. out of memory) while "
+                                             f"{len(left)} slide(s) were unfinished (e.g. {', '.join(left[:3])}); "
+                                             "finished slides are kept: rerun to resume, with fewer --jobs if memory "
+                                             "ran out") from None
     bar.close()
     dataset, missing, failed = merge_dataset(out)
     built = [r for r in results if r["status"] == "built"]

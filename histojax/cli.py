@@ -9,7 +9,8 @@
     histojax dataset SLIDES --out DIR your own slides (SVS/TIFF/DICOM, CAMELYON16 as downloaded) as a dataset
     histojax train-encoder --out W    train the pcam-cnn encoder on the PCam training pool
     histojax demo [--no-train]        random-agent table, then PPO trained and evaluated on Easy (`make demo`)
-    histojax train [--algo ppo|dqn|ppo_rnn]   pure-JAX baselines (`python -m baselines.ppo|dqn|ppo_rnn`)
+    histojax train [--algo ppo|dqn|ppo_rnn]   pure-JAX baselines (`python -m baselines.ppo|dqn|ppo_rnn`);
+                                      --dataset DIR --split S; --resume RUN continues a killed run
     histojax evaluate CHECKPOINT      success rate, return, steps to success, trajectory pictures
     histojax rotation --budget-mb MB  PPO on a dataset larger than the device, slides rotated through it
     histojax budget-curve --dataset DS   diagnosis AUC against the fraction of the slide read
@@ -73,7 +74,7 @@ def main(argv=None) -> int:
 def _dispatch(command: str, rest: list[str]) -> int:
     """Run ``histojax <command> <rest>`` with the command module's own parser (one-line usage errors)."""
     if command == "train":
-        algo = "ppo"
+        algo = _resumed_algo(rest) or "ppo"  # --resume RUN without --algo: the run's own trainer
         if "--algo" in rest:
             i = rest.index("--algo")
             algo = rest[i + 1] if i + 1 < len(rest) else ""
@@ -87,6 +88,21 @@ def _dispatch(command: str, rest: list[str]) -> int:
     if command in DATA_COMMANDS:  # one parser with the data commands as its subcommands
         return _run(module, [command, *rest], "histojax")
     return _run(module, rest, f"histojax {command}")
+
+
+def _resumed_algo(rest: list[str]) -> str | None:
+    """The trainer recorded in ``RUN/checkpoint/config.json`` of ``--resume RUN`` in ``rest`` (None when absent
+    or unreadable: the trainer's own resume then names the file)."""
+    import json
+    from pathlib import Path
+
+    if "--resume" not in rest or rest.index("--resume") + 1 >= len(rest):
+        return None
+    try:
+        algo = json.loads((Path(rest[rest.index("--resume") + 1]) / "checkpoint" / "config.json").read_text()).get("algo")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return algo if algo in ALGOS else None
 
 
 def _run(module, argv: list[str], prog: str) -> int:

@@ -212,13 +212,21 @@ def test_resume_of_a_corrupt_or_foreign_checkpoint_names_it(tmp_path, capsys):
     (folder / "config.json").write_text(json.dumps({**ppo.DEFAULTS, **TINY, "seed": 0}))
     (folder / "runner.msgpack").write_bytes(b"\x93not msgpack at all")
     assert main(["train", "--resume", str(tmp_path / "run")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    # (the sample slide's bundle may be built into the cache first, with a progress bar)
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if not line.startswith("building ")]
     assert len(err) == 1 and f"{folder / 'runner.msgpack'}: not a" in err[0], err
     # a checkpoint of another trainer is named too, before anything is compiled
     (folder / "config.json").write_text(json.dumps({**TINY, "algo": "dqn"}))
     assert main(["train", "--algo", "ppo", "--resume", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "a dqn run; resume it with --algo dqn" in err[0], err
+    # without --algo, the run's own trainer resumes it (here: DQN, which then names the corrupt state)
+    dqn_config = {k: v for k, v in {**dqn.DEFAULTS, **TINY, "algo": "dqn"}.items() if k in dqn.DEFAULTS or k == "seed"}
+    (folder / "config.json").write_text(json.dumps({**dqn_config, "seed": 0}))
+    assert main(["train", "--resume", str(tmp_path / "run")]) == 2
+    # (the sample slide's bundle may be built into the cache first, with a progress bar)
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if not line.startswith("building ")]
+    assert len(err) == 1 and f"{folder / 'runner.msgpack'}: not a" in err[0], err
 
 
 def test_a_checkpoint_of_another_config_is_refused(tmp_path):
@@ -236,6 +244,10 @@ def test_a_checkpoint_of_another_config_is_refused(tmp_path):
         common.load_runner(tmp_path, common.chunked_runner(wider)[0].template(keys), train.num_updates, start.size)
     with pytest.raises(common.HistojaxDataError, match="saved for 5 updates in chunks of 2"):
         common.load_runner(tmp_path, template, train.num_updates, 3)
+    # the same shapes but another config (a new run started in the folder, killed before its first checkpoint)
+    common.load_runner(tmp_path, template, train.num_updates, start.size, train.config)
+    with pytest.raises(common.HistojaxDataError, match="written by a run of another config"):
+        common.load_runner(tmp_path, template, train.num_updates, start.size, {**train.config, "lr": 1e-3})
 
 
 def _full_disk_on(monkeypatch, name: str):

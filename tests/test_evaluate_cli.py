@@ -270,3 +270,16 @@ def test_make_names_two_bundles_of_different_tile_sizes(two_slides, tmp_path):
     with pytest.raises(BundleError) as e:
         histojax.make("HistoJAX-Easy-v0", slides=[two_slides[0], other])
     assert other in str(e.value) and two_slides[0] in str(e.value) and "tile size 64" in str(e.value)
+
+
+def test_glimpse_policy_on_a_slide_wider_than_its_grid_is_one_line(two_slides, colour_feature_grid, tmp_path, capsys):
+    """`python -m baselines.evaluate` (before: a ValueError traceback) says it in one line naming the bundle."""
+    bundle = colour_feature_grid(two_slides[0], tmp_path / "b")
+    run = tmp_path / "run"
+    config = {**EASY, "action_mode": "glimpse:1", "obs_mode": "features", "algo": "ppo",
+              "env_kwargs": {"task": "classification", "slides": [str(bundle)], "glimpse_grid": [1, 1]}}
+    common.save_checkpoint(run, {"params": {"w": np.zeros((1, 2), np.float32)}}, config)
+    assert evaluate.main([str(run), "--episodes", "1", "--out", str(tmp_path / "o")]) == 2
+    line = _one_error_line(capsys)
+    assert str(bundle) in line and "do not fit glimpse_grid=[1, 1]" in line
+    assert not (tmp_path / "o").exists()

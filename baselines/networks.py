@@ -273,15 +273,16 @@ def uses_cell_sets(env) -> bool:
 
 
 class CellEncoder(nn.Module):
-    """Step observation + episode tables → ``(cell embeddings (B, C, H), per-step context (B, H),
-    pickable (B, C) bool)``. Every cell goes through the same layers (a network shared across cells):
-    its coarse features, validity, cost, position and read bit, plus, for a cell already read, its
-    summary (the ``K`` read slots are embedded and added to their cells)."""
+    """Step observation + episode tables → ``(cell keys (B, C, Hc), context input (B, F), pickable
+    (B, C) bool)``. One network shared by all cells embeds each cell from what is fixed for it during an
+    episode (coarse features, validity, cost, position) into a key; this runs once per call over every
+    slide's cells (``S × C``, not per env) and each env gathers its slide's keys. The ``K`` read slots are
+    embedded from their summaries and their cells' keys and pooled (mean, max); with the slide's mean
+    key, the view entry and the budget left they make the context input."""
 
-    hidden: int                 # width of the per-cell layers
+    hidden: int                 # width of the per-cell layers (Hc)
     tables: EpisodeTables
     obs_norm: tuple | None = None
-    context_hidden: int = 256   # width of the per-step context
 
     @nn.compact
     def __call__(self, obs):
@@ -293,40 +294,37 @@ class CellEncoder(nn.Module):
         dense = lambda n, name: nn.Dense(n, kernel_init=nn.initializers.orthogonal(np.sqrt(2)), name=name)  # noqa: E731
         norm = (lambda x: x) if self.obs_norm is None else (  # noqa: E731
             lambda x: (x - jnp.asarray(self.obs_norm[0], jnp.float32)) / jnp.asarray(self.obs_norm[1], jnp.float32))
-        cells = norm(t["cells"][i])                                      # (B, C, D)
-        valid = t["valid"][i]
-        read = unpack_bits(jnp.asarray(obs["read_bits"]), c)            # (B, C) bool
-        per_cell = jnp.concatenate([cells, valid[..., None], read[..., None].astype(jnp.float32),
-                                    t["cost"][i][..., None] * 10.0, t["position"][i]], -1)
-        x = dense(self.hidden, "cell_in")(per_cell)
+        valid = t["valid"]                                                # (S, C)
+        fixed = jnp.concatenate([norm(t["cells"]), valid[..., None], t["cost"][..., None] * 10.0, t["position"]], -1)
+        keys = nn.relu(dense(self.hidden, "cell_in")(fixed))
+        keys = nn.relu(dense(self.hidden, "cell_mid")(keys))              # (S, C, Hc): every slide's cells, once
+        slide_mean = jnp.einsum("sc,sch->sh", valid / jnp.maximum(valid.sum(-1, keepdims=True), 1.0), keys)
+        where = jnp.asarray(obs["read_cells"], jnp.int32)                # (B, K), C = empty
+        filled = (where < c).astype(jnp.float32)
         summaries = jnp.asarray(obs["read_summaries"], jnp.float32)      # (B, K, 2D)
         d = summaries.shape[-1] // 2
         summaries = jnp.concatenate([norm(summaries[..., :d]), norm(summaries[..., d:])], -1)
-        slots = dense(self.hidden, "slot_in")(summaries)                  # (B, K, H)
-        where = jnp.asarray(obs["read_cells"], jnp.int32)                # (B, K), C = empty
-        x = jax.vmap(lambda xc, w, sl: xc.at[w].add(sl, mode="drop"))(x, where, slots)
-        x = nn.relu(x)
-        x = nn.relu(dense(self.hidden, "cell_mid")(x))
+        slot_keys = keys[i[:, None], jnp.minimum(where, c - 1)]           # (B, K, Hc)
+        slots = nn.relu(dense(self.hidden, "slot_in")(jnp.concatenate([summaries, slot_keys], -1)))
+        n_read = filled.sum(-1, keepdims=True)
+        slot_mean = (slots * filled[..., None]).sum(1) / jnp.maximum(n_read, 1.0)
+        slot_max = jnp.where(filled[..., None] > 0, slots, 0.0).max(1)
         view = [jnp.asarray(v, jnp.float32).reshape(b, -1) for k, v in sorted(obs.items())
                 if k not in ("slide", "read_bits", "read_cells", "read_summaries")]
-        view = [norm(v) if v.shape[-1] == cells.shape[-1] else v for v in view]
-        weights = valid / jnp.maximum(valid.sum(-1, keepdims=True), 1.0)
-        pooled_mean = jnp.einsum("bc,bch->bh", weights, x)
-        pooled_max = jnp.where(valid[..., None] > 0, x, 0.0).max(1)
-        context = nn.relu(dense(self.context_hidden, "context")(jnp.concatenate([pooled_mean, pooled_max, *view], -1)))
-        pickable = (valid > 0) & ~read
-        return x, context, pickable
+        view = [norm(v) if v.shape[-1] == d else v for v in view]
+        context_in = jnp.concatenate([slide_mean[i], slot_mean, slot_max, n_read / where.shape[-1], *view], -1)
+        read = unpack_bits(jnp.asarray(obs["read_bits"]), c)            # (B, C) bool
+        pickable = (valid[i] > 0) & ~read
+        return keys[i], context_in, pickable
 
 
-def cell_logits(module: nn.Module, x, context, pickable):
-    """Pointer logits: one per cell (``(B, C)``, ``NEG`` where ``pickable`` is false) from each cell's
-    embedding and the context, then the 2 declaring actions from the context: ``(B, C + 2)``."""
-    h = module.cell_hidden
-    joined = nn.relu(nn.Dense(h, kernel_init=nn.initializers.orthogonal(np.sqrt(2)), name="cell_head")(x)
-                     + nn.Dense(h, use_bias=False, kernel_init=nn.initializers.orthogonal(np.sqrt(2)),
-                                name="cell_context")(context)[:, None, :])
-    per_cell = nn.Dense(1, kernel_init=nn.initializers.orthogonal(0.01), bias_init=nn.initializers.zeros,
-                        name="cell_logit")(joined)[..., 0]
+def cell_logits(module: nn.Module, keys, context, pickable):
+    """Pointer logits: one per cell, the dot product of its key with a query from the context (``(B,
+    C)``, ``NEG`` where ``pickable`` is false; the cost per env grows as ``C × Hc``), then the 2
+    declaring actions from the context: ``((B, C + 2), value (B,))``."""
+    hc = keys.shape[-1]
+    query = nn.Dense(hc, kernel_init=nn.initializers.orthogonal(0.01), name="query")(context)
+    per_cell = jnp.einsum("bch,bh->bc", keys, query) / np.sqrt(hc)
     per_cell = jnp.where(pickable, per_cell, NEG)
     declare = nn.Dense(2, kernel_init=nn.initializers.orthogonal(0.01), bias_init=nn.initializers.zeros,
                        name="declare")(nn.tanh(nn.Dense(module.hidden // 2, name="declare_in")(context)))
@@ -338,9 +336,9 @@ def cell_logits(module: nn.Module, x, context, pickable):
 class CellSetActorCritic(nn.Module):
     """A reader policy over the set of a slide's cells, for ``glimpse`` with ``step_obs=True``:
     ``__call__(obs) -> (logits (B, C + 2), value (B,))``. A per-cell encoder shared by all cells
-    (:class:`CellEncoder`), mean and max pooling over the valid cells with the view into a context,
-    then a pointer: one logit per cell (invalid, padding and already read cells masked) and the two
-    declaring actions from the context. Its parameters do not depend on ``C``: one policy runs on any
+    (:class:`CellEncoder`: keys, and the read cells pooled into a context), then a pointer: one logit
+    per cell, its key against a query from the context (invalid, padding and already read cells
+    masked), and the two declaring actions from the context. Its parameters do not depend on ``C``: one policy runs on any
     slide size and any dataset (build it with that env's tables), and its cost grows with ``C``.
     ``action_dim`` is unused (the env's ``C + 2``), kept so that trainers build it as the others."""
 
@@ -349,34 +347,38 @@ class CellSetActorCritic(nn.Module):
     action_mode: str = "glimpse"
     hidden: int = 256           # the context's width (config "hidden")
     obs_norm: tuple | None = None
-    cell_hidden: int = 64       # the per-cell layers' width (config "cell_hidden")
+    cell_hidden: int = 32       # the per-cell layers' width (config "cell_hidden")
 
     @nn.compact
     def __call__(self, obs):
-        x, context, pickable = CellEncoder(self.cell_hidden, self.tables, self.obs_norm, self.hidden)(obs)
-        return cell_logits(self, x, context, pickable)
+        keys, context_in, pickable = CellEncoder(self.cell_hidden, self.tables, self.obs_norm)(obs)
+        context = nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)),
+                                   name="context")(context_in))
+        return cell_logits(self, keys, context, pickable)
 
 
 class RecurrentCellSetActorCritic(nn.Module):
     """:class:`CellSetActorCritic` with a GRU over the per-step context (hidden state reset at
     episode starts, as :class:`RecurrentActorCritic`): ``__call__(h (B, H), obs (T, B, ...), resets
-    (T, B)) -> (h_T, logits (T, B, C + 2), value (T, B))``. The cells' pointer logits read each cell's
-    embedding and the GRU's output."""
+    (T, B)) -> (h_T, logits (T, B, C + 2), value (T, B))``. The pointer's query comes from the GRU's
+    output."""
 
     action_dim: int
     tables: EpisodeTables
     action_mode: str = "glimpse"
     hidden: int = 128           # the context's and the GRU's width (config "hidden")
     obs_norm: tuple | None = None
-    cell_hidden: int = 64       # the per-cell layers' width (config "cell_hidden")
+    cell_hidden: int = 32       # the per-cell layers' width (config "cell_hidden")
 
     @nn.compact
     def __call__(self, h, obs, resets):
         t, b = resets.shape
         flat = jax.tree.map(lambda a: jnp.reshape(a, (t * b, *jnp.shape(a)[2:])), obs)
-        x, context, pickable = CellEncoder(self.cell_hidden, self.tables, self.obs_norm, self.hidden)(flat)
-        h, y = ScannedGRU(self.hidden)(h, (context.reshape(t, b, -1), resets.astype(bool)))
-        logits, value = cell_logits(self, x, y.reshape(t * b, -1), pickable)
+        keys, context_in, pickable = CellEncoder(self.cell_hidden, self.tables, self.obs_norm)(flat)
+        x = nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)),
+                             name="context")(context_in))
+        h, y = ScannedGRU(self.hidden)(h, (x.reshape(t, b, -1), resets.astype(bool)))
+        logits, value = cell_logits(self, keys, y.reshape(t * b, -1), pickable)
         return h, logits.reshape(t, b, -1), value.reshape(t, b)
 
 

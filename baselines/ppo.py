@@ -68,7 +68,7 @@ class PPOConfig(common.EnvConfig):
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
     hidden: int = 256                    # network width
-    cell_hidden: int = 64                # cell-set readers (glimpse, step_obs): width of the layers shared by the cells
+    cell_hidden: int = 32                # cell-set readers (glimpse, step_obs): width of the layers shared by the cells
     num_seeds: int = 1
     vmap_seeds: bool = True              # all seeds in one vmapped program
     log_every: int = 4                   # updates per progress line
@@ -116,7 +116,7 @@ def make_network(config: dict, env, network_cls=ActorCritic):
         if cls is None:
             raise ValueError(f"{network_cls.__name__} cannot read a step_obs glimpse env; use PPO or recurrent PPO")
         return cls(action_dim=action_dim, tables=EpisodeTables(env.episode_tables()), action_mode=config["action_mode"],
-                   hidden=config["hidden"], obs_norm=norm, cell_hidden=config.get("cell_hidden", 64))
+                   hidden=config["hidden"], obs_norm=norm, cell_hidden=config.get("cell_hidden", 32))
     return network_cls(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"],
                        obs_norm=norm)
 

@@ -6,7 +6,9 @@ environments, GAE, minibatch epochs — is one jitted function, vmapped over see
 Writes to ``--out``: ``log.csv`` / ``log.json`` (per logged update: env steps, mean return,
 success rate, mean episode length, mean steps to success), ``curve.png`` (learning curves, seed
 mean and min–max band, random agent dashed), ``params.msgpack`` + ``config.json`` (the trained
-parameters of every seed, flax msgpack; ``python -m baselines.evaluate runs/ppo-easy``).
+parameters of every seed, flax msgpack; ``python -m baselines.evaluate runs/ppo-easy``), and
+``checkpoint/``: the whole training state every ``checkpoint_every`` updates, from which ``--resume
+runs/ppo-easy`` continues a killed run to the uninterrupted result (:func:`baselines.common.run_chunked`).
 
 Seeds: ``make_train`` returns one jitted program for all seeds: ``jax.vmap`` over the keys
 (default), or ``vmap_seeds=False`` to run them one after another with ``lax.map`` in the same

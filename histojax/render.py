@@ -156,7 +156,7 @@ def _path_markers(ax, centres, n_steps: int, marker: float = 1.0) -> list:
     start = ax.plot(*centres[0], marker="o", markersize=15 * marker, markerfacecolor="none", markeredgewidth=3,
                     markeredgecolor=_rgb(START_COLOUR), linestyle="none", label="start")[0]
     end = ax.plot(*centres[-1], marker="s", markersize=9 * marker, color=_rgb(END_COLOUR), markeredgecolor="black",
-                  linestyle="none", label=f"end (after {n_steps} step{'' if n_steps == 1 else 's'})")[0]
+                  linestyle="none", label=f"end (after {_count(n_steps, 'step')})")[0]
     return [start, end]
 
 
@@ -369,12 +369,16 @@ def reading_map_figure(env, params, record, slide_index: int | None = None, scor
     handles = [Line2D([], [], color=_rgb(TUMOUR_COLOUR), linewidth=1.5, label="tumour")] if rings else []
     levels = sorted({int(v[0][0]) for v in views})
     handles.append(Rectangle((0, 0), 1, 1, facecolor=(0.5, 0.5, 0.5, 0.45), edgecolor="grey",
-                             label=f"{len(views)} views visited in {len(z) - 1} steps (levels {levels}; "
+                             label=f"{_count(len(views), 'view')} visited in {_count(len(z) - 1, 'step')} (levels {levels}; "
                                    "fill: darker at finer levels)"))
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(0.0, -0.12), fontsize="small", frameon=False)
     ax.set_title(_titled("\n".join(t for t in (title, _label_and_score(params, slide_index, score)) if t),
                          env, slide_index), fontsize="medium")
     return fig
+
+
+def _count(n: int, noun: str) -> str:
+    return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
 def _label_and_score(params, slide_index: int, score) -> str:

@@ -1,7 +1,8 @@
 """Fit the slide head (:mod:`histojax.head`) of a dataset: ``python -m baselines.head_fit --dataset DIR --out DIR``.
 
 Candidates: neighbourhood sides ``--ks`` (default 1 2 3 4 5 views; 1 = the plain view logit), pooled by
-the maximum or the mean of the 3 largest, with or without the slide's median logit subtracted. Each is
+the maximum or the mean of the 3 largest (``--minus-median``: also each minus the read views' median
+logit; see :func:`candidates` for why that is off by default). Each is
 calibrated (1-D logistic regression of the slide labels on its statistic, reading everything) on the
 training split minus a validation share (:func:`baselines.validation.split_train`: per class, a tumour
 slide with its tissue donor; ``--val-fraction`` 0.2, ``--seed`` 0) and scored by its AUC on that
@@ -166,13 +167,16 @@ def logistic_fit(x, y, steps: int = 3000) -> tuple[float, float]:
     return w / sd, c - w * mu / sd
 
 
-def candidates(ks=(1, 2, 3, 4, 5), dim: int = pcam_cnn.VIEW_LOGIT, encoder: str | None = pcam_cnn.NAME) -> list:
-    """The candidate heads (uncalibrated), simplest first: for each ``k``, top-1 then top-3, each
-    without then with the median subtracted."""
+def candidates(ks=(1, 2, 3, 4, 5), dim: int = pcam_cnn.VIEW_LOGIT, encoder: str | None = pcam_cnn.NAME,
+               minus_median: bool = False) -> list:
+    """The candidate heads (uncalibrated), simplest first: for each ``k``, top-1 then top-3 (each also with the
+    read views' median subtracted when ``minus_median``: off by default, because the median of what was read
+    depends on where a reader looked — a reader that reads only hot cells has a hot median — so such a head
+    scores a good reader's reads lower than a random reader's)."""
     from histojax.head import SlideHead
 
     return [SlideHead(dim=dim, k=int(k), top=t, minus_median=m, encoder=encoder)
-            for k in ks for t in TOPS for m in (False, True)]
+            for k in ks for t in TOPS for m in ((False, True) if minus_median else (False,))]
 
 
 def calibrated(head, slides: list[dict], shape: tuple[int, int] | None = None):
@@ -203,7 +207,7 @@ def choose(train: list[dict], val: list[dict], cands) -> tuple[object, list[dict
 
 
 def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3, 4, 5),
-        dim: int = pcam_cnn.VIEW_LOGIT, progress: bool = False):
+        dim: int = pcam_cnn.VIEW_LOGIT, progress: bool = False, minus_median: bool = False):
     """Choose and fit the head of ``dataset`` (see the module doc); saved to ``out`` when given.
     Returns ``(head, table of candidates)``."""
     import datetime
@@ -220,7 +224,7 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
     va = [by_name[Path(n).name] for n in held]
     encoders = {s["encoder"] for s in train}
     encoder = encoders.pop() if len(encoders) == 1 else None
-    best, table = choose(tr, va, candidates(ks, dim, encoder))
+    best, table = choose(tr, va, candidates(ks, dim, encoder, minus_median))
     head = calibrated(best, train, grid_shape(train))
     chosen = next(r for r in table if r["name"] == best.name)
     info = {"fitted_on": {"dataset": str(Path(dataset).resolve()), "split": "train", "slides": len(train),
@@ -242,6 +246,9 @@ def add_arguments(p) -> None:
                                                                     "among the candidates (default 0.2)")
     p.add_argument("--seed", type=int, default=0, help="seed of the validation split (default 0)")
     p.add_argument("--ks", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="neighbourhood sides to try (views)")
+    p.add_argument("--minus-median", action="store_true",
+                   help="also try each candidate minus the read views' median logit (off by default: it depends on "
+                        "where a reader looked)")
     p.add_argument("--dim", type=int, default=pcam_cnn.VIEW_LOGIT,
                    help=f"feature entry holding the view tumour logit (default {pcam_cnn.VIEW_LOGIT}: pcam-cnn's)")
 
@@ -252,7 +259,8 @@ def run(args, parser=None) -> int:
         return print_error(f"--ks: neighbourhood sides must be ≥ 1, got {args.ks}")
     t0 = time.perf_counter()
     try:
-        head, table = fit(args.dataset, args.out, args.val_fraction, args.seed, args.ks, args.dim, progress=True)
+        head, table = fit(args.dataset, args.out, args.val_fraction, args.seed, args.ks, args.dim, progress=True,
+                          minus_median=args.minus_median)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     print("| candidate | train AUC | validation AUC |\n|---|---|---|")

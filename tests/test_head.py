@@ -84,7 +84,7 @@ def dataset(tmp_path_factory):
 @pytest.fixture(scope="module")
 def fitted(dataset, tmp_path_factory):
     out = tmp_path_factory.mktemp("head")
-    head, table = head_fit.fit(dataset, out, ks=(1, 3))
+    head, table = head_fit.fit(dataset, out, ks=(1, 3), minus_median=True)
     return out, head, table
 
 
@@ -146,6 +146,7 @@ def test_fit_chooses_spatial_context_on_validation(fitted, dataset):
     # isolated false positives beat the tumour views: the plain maximum fails, the 3x3 mean does not
     assert by[(1, 1, False)]["validation_auc"] < 0.7 and by[(3, 1, False)]["validation_auc"] == 1.0
     assert head.k == 3
+    assert not any(c.minus_median for c in head_fit.candidates())  # by default: reader-independent heads only
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["k"] == 3 and cfg["chosen_on"]["validation_slides"] >= 2 and len(cfg["candidates"]) == 8
     spec = json.loads((dataset / "dataset.json").read_text())

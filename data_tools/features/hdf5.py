@@ -316,7 +316,7 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
                                         "another slide, or not in level-0 px?")
     if dtype == "float16":
         top = max(float(np.abs(g).max(initial=0.0)) for g, _ in computed)
-        if top > np.finfo(np.float16).max:
+        if top > float(np.finfo(np.float16).max):
             raise FeatureFileError(h5_path, f"feature values reach {top:.3g}, beyond float16's ±65504 (they would be "
                                             "stored as infinity): scale the features, or import-features --dtype "
                                             "float32")

@@ -203,6 +203,9 @@ def choose(train: list[dict], val: list[dict], cands) -> tuple[object, list[dict
                       "train_auc": auc_tr, "validation_auc": auc_va})
         if (auc_va, auc_tr) > best_key:
             best, best_key = c, (auc_va, auc_tr)
+    if best is None:
+        raise ValueError(f"the validation share ({len(val)} slides, labels {sorted(set(y_va))}) needs tumour and "
+                         "normal slides to choose a head: use a larger --val-fraction or another --seed")
     return best, table
 
 

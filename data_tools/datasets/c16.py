@@ -10,8 +10,10 @@ tissue, output px) and ``NAME.provenance.json`` beside it, ``bundles/NAME/`` (ti
 
 Restartable per slide: a slide whose TIFF, GeoJSON and provenance exist with the same settings is
 not made again, nor its bundle when the bundle's source checksum matches; the TIFF is written to
-``slides/.NAME.tif.tmp-PID`` and renamed, bundles are written by :func:`data_tools.bundle.build_bundle`
-to a hidden temporary sibling. Locks, records, shards and ``dataset.json`` go through the code of
+``slides/.NAME.tif.tmp-PID`` and renamed. A bundle is built (or, when up to date, hard-linked, then given its
+feature grid or stripped of pixels) into a hidden ``bundles/.NAME.tmp-*`` and swapped onto ``bundles/NAME``
+only once whole (as ``data_tools dataset`` does: :func:`data_tools.datasets.build.run_locked`), so a failed
+rebuild (a full disk, a killed feature step) leaves the previous bundle and its record as they were. Locks, records, shards and ``dataset.json`` go through the code of
 ``data_tools dataset`` (:mod:`data_tools.datasets.build`, :mod:`data_tools.datasets.locks`): each slide is
 made holding ``bundles/.NAME.dataset-lock`` (``flock``, released by the kernel even on SIGKILL) and
 recorded in ``records/NAME.json``; a run first deletes the hidden temporaries of slides nobody is making.
@@ -122,27 +124,67 @@ def has_grid_of(meta, encoder: str) -> bool:
 
 
 def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float, progress: bool = False,
-                encoder: str | None = None) -> dict:
+                encoder: str | None = None, into: Path | None = None) -> dict:
     """Build (unless up to date) the tiled bundle ``bundles/NAME`` of a made slide; returns its metadata.
     Up to date: made from the same TIFF and range, and holding its pixels, or (a feature-only bundle) the
-    feature grid of ``encoder`` (the pixels are needed again to embed them with another encoder)."""
+    feature grid of ``encoder`` (the pixels are needed again to embed them with another encoder).
+    ``into``: a folder that does not exist yet (the hidden temporary of a staged build): the bundle is built
+    there, or an up-to-date ``bundles/NAME`` is hard-linked there (:func:`_link_bundle`), and ``bundles/NAME``
+    is left untouched."""
     from data_tools.bundle import build_bundle
 
     bundle = out_dir / "bundles" / name
+    target = bundle if into is None else Path(into)
     if (bundle / "metadata.json").is_file():
         try:
             meta = read_metadata(bundle)
             whole = len(meta.pixel_levels) == len(meta.levels)
             if meta.source["sha256"] == prov["tiff_sha256"] and meta.magnification_range == magnification_range \
                     and (whole or (encoder is not None and has_grid_of(meta, encoder))):
-                return meta
+                if target == bundle:
+                    return meta
+                _link_bundle(bundle, target)
+                return read_metadata(target)
         except (HistojaxDataError, KeyError):
             pass
     tiff = out_dir / "slides" / f"{name}.tif"
-    build_bundle(tiff, bundle, annotations_path=tiff.with_suffix(".geojson"), level_sets=LEVEL_SETS,
+    build_bundle(tiff, target, annotations_path=tiff.with_suffix(".geojson"), level_sets=LEVEL_SETS,
                  tile_size=TILE_SIZE, magnification_range=magnification_range, storage="tiled", overwrite=True,
                  progress=progress)
-    return read_metadata(bundle)
+    return read_metadata(target)
+
+
+def _link_bundle(bundle: Path, into: Path) -> None:
+    """Fill the new folder ``into`` with the files of the bundle ``bundle`` (and of its ``features.partial/``,
+    so a feature step that was killed resumes): arrays hard-linked (no copy on disk; histojax never writes
+    into a bundle's file, it writes a new file and renames it, so the two folders never change each other's
+    files), other files copied; a filesystem without hard links gets copies. Only the bundle's own regular
+    files are taken (:func:`data_tools.bundle_format.own_file`); anything else is left out."""
+    import os
+    import shutil
+
+    from data_tools.bundle_format import BundleError, own_file
+
+    def put(src_dir: Path, dst_dir: Path) -> None:
+        dst_dir.mkdir()
+        for entry in sorted(src_dir.iterdir()):
+            try:
+                src = own_file(src_dir, entry.name)
+            except BundleError:
+                continue  # a folder, a link or odd entry: not a file of the bundle
+            dst = dst_dir / entry.name
+            if entry.suffix == ".npy":
+                try:
+                    os.link(src, dst)
+                    continue
+                except OSError:
+                    pass
+            shutil.copyfile(src, dst)
+
+    put(bundle, into)
+    partial = bundle / "features.partial"
+    if partial.is_dir() and not partial.is_symlink():
+        put(partial, into / "features.partial")
 
 
 def _feature_layout_bytes(meta) -> int | None:
@@ -180,15 +222,15 @@ def _init_worker(banks: dict, progress: bool) -> None:
     _WORKER.update(banks=banks, progress=progress)
 
 
-def _one_slide(job) -> dict:
-    """Make one slide and its bundle (skipping what is done); its record for ``dataset.json``."""
+def _one_slide(job, bundle: Path) -> dict:
+    """Make one slide and its bundle (skipping what is done) into ``bundle`` (a hidden temporary folder, not
+    there yet, swapped onto ``bundles/NAME`` by the caller once whole); its record for ``dataset.json``."""
     out_dir, slide, donor, d, seed, jpeg_quality, mag, encoder, no_pixels, side = job
     s0 = time.perf_counter()
     name = slide.name
-    bundle = out_dir / "bundles" / name
     prov = make_slide(out_dir, slide, donor, d, seed, _WORKER["banks"][side], jpeg_quality, _WORKER["progress"],
                       pool=side)
-    meta = make_bundle(out_dir, name, prov, mag, encoder=encoder if no_pixels else None)
+    meta = make_bundle(out_dir, name, prov, mag, encoder=encoder if no_pixels else None, into=bundle)
     if encoder and not has_grid_of(meta, encoder):
         from data_tools.features.grid import compute_features
 
@@ -208,7 +250,7 @@ def _one_slide(job) -> dict:
         "tissue_donor": prov.get("tissue_donor"), "canvas": prov["canvas"], "mpp": prov["mpp"],
         "tumour_area_level0_px2": prov["tumour_area_level0_px2"],
         "tumour_fraction_of_tissue": round(prov["tumour_fraction_of_tissue"], 6),
-        "finest_views_ge50": _views_ge(meta, out_dir / "bundles" / name),
+        "finest_views_ge50": _views_ge(meta, bundle),
         "stain_od_factors": prov["stain_od_factors"],
         "tiff_bytes": prov["tiff_bytes"],
         "bundle_bytes": sum(f.stat().st_size for f in bundle.iterdir()),
@@ -224,12 +266,14 @@ def _one_slide(job) -> dict:
 def _locked_slide(job) -> dict:
     """One slide through the shared per-slide step (:func:`data_tools.datasets.build.run_locked`: the bundle's
     lock, ``records/NAME.json``, a failure recorded with its reason); its record carries the set's settings,
-    and a slide recorded with the same settings (its bundle there) is not looked at again."""
+    and a slide recorded with the same settings (its bundle there) is not looked at again. Staged: the bundle
+    is made in a hidden ``bundles/.NAME.tmp-*`` and swapped in once whole; a failure removes only that, so a
+    previous bundle and its record stay."""
     from data_tools.datasets.build import run_locked
 
     out_dir, name, set_key = job[0], job[1].name, job[-1]
-    return run_locked(out_dir, name, lambda: {**_one_slide(job[:-1]), "settings": set_key},
-                      current=lambda rec: rec.get("settings") == set_key)
+    return run_locked(out_dir, name, lambda folder: {**_one_slide(job[:-1], folder), "settings": set_key},
+                      current=lambda rec: rec.get("settings") == set_key, staged=True)
 
 
 def _adopt_old_records(out_dir: Path, set_key: dict, universe: list[str]) -> None:

@@ -155,8 +155,16 @@ def test_a_dicom_series_folder_is_one_slide(tmp_path):
     series = tmp_path / "S" / "case-7"
     shutil.copytree(DATA / "dicom-wsi", series)
     _tif(tmp_path / "S" / "other.tif")
-    entries = discover(tmp_path / "S", warn_skipped=False)
-    assert [(e.name, e.path) for e in entries] == [("case-7", series), ("other", tmp_path / "S" / "other.tif")]
+    uids = tmp_path / "S" / "export"  # a PACS export: files named by their UID, no .dcm
+    uids.mkdir()
+    for k, f in enumerate(sorted((DATA / "dicom-wsi").iterdir())):
+        shutil.copy(f, uids / f"1.2.826.0.1.3680043.8.498.{k}")
+    (uids / "README").write_text("exported")
+    skipped = []
+    entries = discover(tmp_path / "S", skipped=skipped, warn_skipped=False)
+    assert [(e.name, e.path) for e in entries] == [("case-7", series), ("export", uids),
+                                                   ("other", tmp_path / "S" / "other.tif")]
+    assert [s.path.name for s in skipped] == ["README"]
 
 
 # ------------------------------------------------------------------ 15. TIFF-based extensions, skipped list

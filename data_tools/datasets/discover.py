@@ -130,8 +130,8 @@ def _other_file_reason(name: str) -> str:
 
 
 def _walk(root: Path, skip, skipped: list[Skipped]):
-    """(slides, annotation files) under ``root``. A folder holding DICOM files (``.dcm``, or without an
-    extension, as PACS exports write them) is one DICOM slide; the other slides, annotations and
+    """(slides, annotation files) under ``root``. A folder holding DICOM files (``.dcm``, or any other name
+    but a slide's or an annotation's, as PACS exports write them) is one DICOM slide; the other slides, annotations and
     sub-folders beside them are still searched. Only regular files are looked at (a FIFO, socket or device
     is never opened); a folder reached twice (a symlink loop, or two links to one folder) and a file
     reached twice (a link beside its target) are searched once. What is passed over goes to
@@ -189,9 +189,8 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
             identity[p] = (st.st_dev, st.st_ino)
             regular[f] = p
         known = SLIDE_EXTENSIONS + ANNOTATION_EXTENSIONS + (".csv", ".h5")
-        dicom = {f for f, p in regular.items()
-                 if (f.lower().endswith(".dcm") or not f.lower().endswith(known) and not os.path.splitext(f)[1])
-                 and _is_dicom_file(p)}
+        dicom = {f for f, p in regular.items()  # .dcm, no extension, or a UID as the name (1.2.840.....)
+                 if (f.lower().endswith(".dcm") or not f.lower().endswith(known)) and _is_dicom_file(p)}
         if dicom:
             slides.append(here)
         in_bundle = (here / "metadata.json").is_file()  # a bundle's own files are not the user's slides

@@ -1,8 +1,8 @@
 """Find the slides of a folder, their annotations and labels (``data_tools dataset``).
 
 Slides: ``*.svs``, ``*.tif`` / ``*.tiff`` (pyramidal TIFF, OME-TIFF), ``*.ndpi``, ``*.qptiff``, BigTIFF
-(``*.btf``, ``*.tf8``, ``*.tf2``) and DICOM WSI series (the DICOM files of a folder, ``.dcm`` or without
-extension, are one slide named after the folder; other slides, annotations and sub-folders beside them are
+(``*.btf``, ``*.tf8``, ``*.tf2``) and DICOM WSI series (the DICOM files of a folder, ``.dcm``, named by UID or
+without extension, are one slide named after the folder; other slides, annotations and sub-folders beside them are
 still searched), found recursively. Only regular files are opened (a FIFO named ``x.tif`` is skipped, never
 read); a folder reached twice through symlinks (a loop) is searched once. Every file passed over is listed
 with why (``skipped``): formats histojax does not read (MIRAX, VSI, CZI, iSyntax, SCN, BIF ...), special

@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from data_tools.bundle_format import ANNOTATIONS, atomic_file
+from data_tools.bundle_format import ANNOTATIONS, atomic_file, own_file
 
 TUMOUR_COLOUR = (0, 170, 0)
 START_COLOUR = (0, 200, 255)
@@ -54,10 +54,12 @@ def _canvas(env, max_side: int, slide_index: int = 0):
 
 def tumour_rings(env, slide_index: int = 0) -> list[np.ndarray]:
     """The tumour outline of a slide of ``env`` as rings ``(N, 2)`` of level-0 px ``(x, y)``
-    (exteriors and holes; empty when the bundle has no annotations)."""
-    path = Path(bundle_of(env, slide_index).path) / ANNOTATIONS
-    if not path.is_file():
+    (exteriors and holes; empty when the bundle has no annotations). A link or other entry that is not the
+    bundle's own file is refused (``BundleError`` naming the bundle and the entry)."""
+    bundle = Path(bundle_of(env, slide_index).path)
+    if not ((bundle / ANNOTATIONS).exists() or (bundle / ANNOTATIONS).is_symlink()):
         return []
+    path = own_file(bundle, ANNOTATIONS, "annotations")
     import shapely.geometry
 
     rings = []

@@ -340,14 +340,14 @@ def eval_env(config: dict, slide=None, augment: bool = False):
 
 def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
              label: str = "learned", augment: bool = False, references: bool = True, source=None,
-             progress: bool = False) -> dict:
+             progress: bool = False, warnings: list | None = None) -> dict:
     """Rows for the learned policy (greedy and sampled; seeds pooled), the random agent and the
     scripted policy (``references=False``: without these two) on one slide; writes trajectory
     pictures and reading maps to ``out`` when given (:func:`write_pictures`). Training-time view
     augmentation (``env_kwargs["augment"]``) is switched off unless ``augment=True``: a slide is
     evaluated as it is. ``source``: the run folder, named when its parameters do not fit the network
-    its config describes; ``progress``: a line on stderr per policy as it runs, and a warning when the
-    slides cannot be scored (:func:`split_warnings`)."""
+    its config describes; ``progress``: a line on stderr per policy as it runs. A warning when the slides
+    cannot be scored (:func:`split_warnings`) is printed with ``progress`` and appended to ``warnings``."""
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be at least 1, got {num_episodes}")
     config, (env, env_params) = eval_env(config, slide, augment)
@@ -365,6 +365,8 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
                             f"{len(names)} slide{'s' if len(names) > 1 else ''} ({', '.join(names[:3])}"
                             f"{', ...' if len(names) > 3 else ''})"):
         say(f"warning: {w}")
+        if warnings is not None:
+            warnings.append(w)
     if params is not None:
         network = network_for(config, env)
         variants = [("greedy", True)] if isinstance(network, QNetwork) else [("greedy", True), ("sampled", False)]
@@ -719,7 +721,7 @@ def run(args, parser) -> int:
         print(f"evaluating {config['env_id']} on {name} ({i + 1} of {len(slides)}), {args.episodes} episodes per "
               "policy ...", file=sys.stderr, flush=True)
         rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub, label=label,
-                        augment=args.augment, source=run, progress=True)
+                        augment=args.augment, source=run, progress=True, warnings=warnings)
         print_table(f"{config['env_id']} on {name} ({args.episodes} episodes per policy"
                     f"{' per seed' if params is not None else ''})", rows)
         results[name] = rows

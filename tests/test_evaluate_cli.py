@@ -193,18 +193,22 @@ def _one_error_line(capsys) -> str:
     return lines[0]
 
 
+@pytest.mark.slow  # compiles four policies' rollouts: about a minute on 2 CPU cores
 def test_evaluate_command_table_warnings_and_pictures(tmp_path, capsys):
-    run = _checkpoint(tmp_path / "run", {**EASY, "hiden": 8})
+    """A diagnosis checkpoint on the sample slide (one tumour slide: no AUC) with a misspelt config key."""
+    run = _checkpoint(tmp_path / "run", {**EASY, "hiden": 8, "env_kwargs": {"task": "classification"}})
     assert histojax_main(["evaluate", str(run), "--episodes", "2"]) == 0
     captured = capsys.readouterr()
     assert "warning: " in captured.err and "unknown key 'hiden'" in captured.err and "'hidden'" in captured.err
+    assert "AUC is undefined" in captured.err
     assert "evaluating HistoJAX-Easy-v0 on embedded sample slide" in captured.err and "ppo (greedy): 2" in captured.err
-    assert " read " in captured.out and "ppo (sampled)" in captured.out
+    header, greedy = [line.split() for line in captured.out.splitlines() if line.startswith(("policy", "ppo (gr"))]
+    assert header[-3:] == ["read", "fields", "AUC"] and greedy[-1] == "nan"  # one class: no AUC, and it says why
     names = {p.name for p in (run / "eval").iterdir()}
     assert {"eval.json", "eval.csv", "trajectory_ppo_greedy.png", "reading_ppo_greedy_tumour.png",
             "trajectory.gif"} <= names
     record = json.loads((run / "eval" / "eval.json").read_text())
-    assert any("hiden" in w for w in record["warnings"])
+    assert any("hiden" in w for w in record["warnings"]) and any("AUC is undefined" in w for w in record["warnings"])
 
 
 @pytest.mark.parametrize("argv", [["--episodes", "0"], ["--episodes", "-3"]])

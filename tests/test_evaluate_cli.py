@@ -287,3 +287,26 @@ def test_glimpse_policy_on_a_slide_wider_than_its_grid_is_one_line(two_slides, c
     line = _one_error_line(capsys)
     assert str(bundle) in line and "do not fit glimpse_grid=[1, 1]" in line
     assert not (tmp_path / "o").exists()
+
+
+def test_pixels_of_a_feature_only_dataset_bundle_point_to_histojax_dataset(two_slides, tmp_path):
+    """A `histojax dataset ... --no-pixels` bundle asked for pixels: the hint names `histojax dataset` (before:
+    `data_tools c16 ... --slides`, a command that cannot remake a user's own slides)."""
+    import histojax
+    from data_tools.bundle import build_bundle
+    from data_tools.bundle_format import drop_pixels
+    from data_tools.datasets.build import KIND
+    from data_tools.errors import BundleError
+    from data_tools.features.grid import compute_features
+
+    slide = next((Path(two_slides[0]).parents[1] / "slides").glob("*.tif"))
+    bundle = build_bundle(slide, tmp_path / "ds" / "bundles" / "s1", level_sets=(3,), tile_size=32, progress=False,
+                          storage="tiled")
+    compute_features(bundle, encoder_name="colour-stats", image_size=None, progress=False)
+    drop_pixels(bundle)
+    (tmp_path / "ds" / "dataset.json").write_text(json.dumps({"kind": KIND, "train": ["bundles/s1"], "test": []}))
+    with pytest.raises(BundleError) as e:
+        histojax.make("HistoJAX-Easy-v0", slide=str(bundle))
+    text = str(e.value)
+    assert str(bundle) in text and "histojax dataset" in text and "data_tools c16" not in text
+    histojax.make("HistoJAX-Easy-v0", slide=str(bundle), obs_mode="features")  # what it is for

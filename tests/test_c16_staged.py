@@ -1,8 +1,9 @@
 """Issue 30 on the C16 path: ``python -m data_tools c16`` builds each bundle into a hidden
 ``bundles/.NAME.tmp-*`` and swaps it in once whole, so a failed rebuild (the disk full while the bundle is
 written, or while a feature grid is added to a built set) leaves the previous bundle and its record as they
-were, and the next run rebuilds it. One slide of the ``--small`` set (a normal slide: its own tissue, seconds
-to build); features from the tiny test encoder of tests/encoder_helpers.py."""
+were, a ``dataset.json`` that failures would leave with no test slide (or no slide) is not written over the
+previous one, and the next run rebuilds. Two normal slides of the ``--small`` set (their own tissue, seconds to
+build: one on each side of the split); features from the tiny test encoder of tests/encoder_helpers.py."""
 from __future__ import annotations
 
 import errno
@@ -13,8 +14,10 @@ import numpy as np
 import pytest
 
 from data_tools.bundle_format import load_bundle, read_metadata
+from data_tools.errors import HistojaxDataError
 
-NAME = "Normal_042"  # one slide of SMALL_SLIDES
+NAME = "Normal_042"       # a slide of SMALL_SLIDES, train side at seeds 0 and 1
+TEST_NAME = "Normal_108"  # test side at seed 0
 TINY = "encoder_helpers:tiny_colour"
 
 
@@ -23,7 +26,7 @@ def built(tmp_path_factory) -> Path:
     from data_tools.datasets.c16 import make_c16_dataset
 
     out = tmp_path_factory.mktemp("c16staged") / "c16"
-    make_c16_dataset(out, small=True, names=[NAME], progress=False)
+    make_c16_dataset(out, small=True, names=[NAME, TEST_NAME], progress=False)
     return out
 
 
@@ -33,11 +36,11 @@ def _copy(built: Path, tmp_path: Path) -> Path:
     return Path(shutil.copytree(built, tmp_path / "c16"))
 
 
-def _state(out: Path) -> tuple[dict, bytes]:
+def _state(out: Path, name: str = NAME) -> tuple[dict, bytes]:
     """Every file of the slide's bundle (name -> bytes) and its record's bytes."""
-    bundle = out / "bundles" / NAME
+    bundle = out / "bundles" / name
     files = {p.name: p.read_bytes() for p in sorted(bundle.iterdir()) if p.is_file()}
-    return files, (out / "records" / f"{NAME}.json").read_bytes()
+    return files, (out / "records" / f"{name}.json").read_bytes()
 
 
 def _full_disk_after_first(monkeypatch, module, attr: str, inside: str) -> list:
@@ -58,15 +61,14 @@ def _full_disk_after_first(monkeypatch, module, attr: str, inside: str) -> list:
     return calls
 
 
-def _check_kept(out: Path, before: tuple[dict, bytes], result: dict) -> None:
-    bundle = out / "bundles" / NAME
-    assert _state(out) == before  # before: the bundle removed and its record deleted
-    load_bundle(bundle)           # whole and verified
-    assert result["run"]["kept"] == [NAME] and list(result["run"]["failed"]) == [NAME]
-    reason = result["run"]["failed"][NAME]
-    assert f"bundles/{NAME}" in reason and "No space left on device" in reason and ".tmp-" not in reason
-    failure = json.loads((out / "records" / "failed" / f"{NAME}.json").read_text())
-    assert failure["previous_kept"] is True and failure["reason"] == reason
+def _check_kept(out: Path, before: tuple[dict, bytes], name: str = NAME) -> None:
+    bundle = out / "bundles" / name
+    assert _state(out, name) == before  # before: the bundle removed and its record deleted
+    load_bundle(bundle)                 # whole and verified
+    failure = json.loads((out / "records" / "failed" / f"{name}.json").read_text())
+    reason = failure["reason"]
+    assert f"bundles/{name}" in reason and "No space left on device" in reason and ".tmp-" not in reason
+    assert failure["previous_kept"] is True
     assert not list(out.rglob(".*.tmp-*")) and not list(out.rglob(".*lock"))  # nothing half-written left
 
 
@@ -76,11 +78,13 @@ def test_a_failed_rebuild_keeps_the_previous_bundle_and_its_record(built, tmp_pa
     from data_tools.datasets.c16 import make_c16_dataset
 
     out = _copy(built, tmp_path)
-    before = _state(out)
+    before, index = _state(out), (out / "dataset.json").read_bytes()
     calls = _full_disk_after_first(monkeypatch, np, "save", inside="/bundles/")
-    result = make_c16_dataset(out, small=True, names=[NAME], seed=1, progress=False)
+    with pytest.raises(HistojaxDataError, match=f"no slide of this set is built: 1 failed \\({NAME}: .*No space"):
+        make_c16_dataset(out, small=True, names=[NAME], seed=1, progress=False)
     assert len(calls) == 2  # the writer wrote one file into the staged bundle, then the disk was full
-    _check_kept(out, before, result)
+    _check_kept(out, before)
+    assert (out / "dataset.json").read_bytes() == index  # before: rewritten with no slide
 
     monkeypatch.undo()
     again = make_c16_dataset(out, small=True, names=[NAME], seed=1, progress=False)
@@ -100,19 +104,24 @@ def test_adding_features_that_fail_leaves_the_pixel_bundle_untouched(built, tmp_
     from data_tools.datasets.c16 import make_c16_dataset
 
     out = _copy(built, tmp_path)
-    before = _state(out)
+    before = {n: _state(out, n) for n in (NAME, TEST_NAME)}
+    index = (out / "dataset.json").read_bytes()
     calls = _full_disk_after_first(monkeypatch, grid, "save_array", inside="/bundles/")
-    result = make_c16_dataset(out, small=True, names=[NAME], features=TINY, progress=False)
-    assert len(calls) == 2
-    _check_kept(out, before, result)
-    assert read_metadata(out / "bundles" / NAME).features is None
+    with pytest.raises(HistojaxDataError, match=f"the test split would hold no slide.*{TEST_NAME}: .*No space"):
+        make_c16_dataset(out, small=True, names=[NAME, TEST_NAME], features=TINY, progress=False)
+    assert len(calls) == 3  # one chunk written, then the disk full for each slide
+    for n in (NAME, TEST_NAME):
+        _check_kept(out, before[n], n)
+        assert read_metadata(out / "bundles" / n).features is None
+    assert (out / "dataset.json").read_bytes() == index  # before: rewritten with no slide
 
     monkeypatch.undo()
-    again = make_c16_dataset(out, small=True, names=[NAME], features=TINY, progress=False)
-    assert again["run"]["built"] == [NAME] and not again["run"]["failed"]
-    meta = read_metadata(out / "bundles" / NAME)
-    assert meta.features["encoder"] == "tiny-colour"
-    load_bundle(out / "bundles" / NAME)  # every file, the linked pixels included, matches its checksum
+    again = make_c16_dataset(out, small=True, names=[NAME, TEST_NAME], features=TINY, progress=False)
+    assert sorted(again["run"]["built"]) == sorted([NAME, TEST_NAME]) and not again["run"]["failed"]
+    assert again["encoder"] == "tiny-colour" and again["train"] == [f"bundles/{NAME}"]
+    for n in (NAME, TEST_NAME):
+        assert read_metadata(out / "bundles" / n).features["encoder"] == "tiny-colour"
+        load_bundle(out / "bundles" / n)  # every file, the linked pixels included, matches its checksum
     assert not list(out.rglob(".*.tmp-*")) and not list(out.rglob(".*lock"))
 
 
@@ -125,6 +134,6 @@ def test_a_rerun_resumes_finished_bundles_without_touching_them(built, tmp_path)
     bundle = out / "bundles" / NAME
     inodes = {p.name: p.stat().st_ino for p in bundle.iterdir()}
     before = _state(out)
-    again = make_c16_dataset(out, small=True, names=[NAME], progress=False)
-    assert again["run"]["resumed"] == [NAME] and not again["run"]["built"]
+    again = make_c16_dataset(out, small=True, names=[NAME, TEST_NAME], progress=False)
+    assert sorted(again["run"]["resumed"]) == sorted([NAME, TEST_NAME]) and not again["run"]["built"]
     assert {p.name: p.stat().st_ino for p in bundle.iterdir()} == inodes and _state(out) == before

@@ -236,7 +236,7 @@ def run_locked(out, name: str, work, current=None, staged: bool = False) -> dict
     (:func:`check_bundle_folder`). ``staged``: ``work(folder) -> record`` builds the bundle into the hidden
     ``bundles/.NAME.tmp-*`` given, swapped onto ``bundles/NAME`` once whole
     (:func:`data_tools.bundle_format.replace_folder`); a build error (:data:`BUILD_ERRORS`) removes only
-    that temporary, so a previous bundle and its record stay as they were. Not ``staged`` (``c16``):
+    that temporary, so a previous bundle and its record stay as they were. Not ``staged``:
     ``work() -> record`` builds ``bundles/NAME`` in place and a build error removes it (only when histojax
     wrote every file in it). The record goes to ``records/NAME.json``, a failure to
     ``records/failed/NAME.json`` with its one-line reason. Returns ``{"name", "status": "built" | "resumed" |

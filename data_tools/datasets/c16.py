@@ -322,8 +322,10 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     fraction of the disk; implies ``features``).
 
     Shared with ``data_tools dataset`` (:mod:`data_tools.datasets.build`): each slide is made holding its
-    bundle's lock and recorded in ``records/NAME.json`` (a failure in ``records/NAME.failed.json`` with its
-    reason; the other slides still build). ``shard=(I, N)``: make every N-th of the chosen slides (sorted by
+    bundle's lock and recorded in ``records/NAME.json`` (a failure in ``records/failed/NAME.json`` with its
+    reason; the other slides still build; a failed rebuild keeps the previous bundle and record). When
+    failures leave the test split with no slide (or no tumour slide) or the set with no slide at all,
+    ``HistojaxDataError`` is raised and ``dataset.json`` is not written (a previous one stays). ``shard=(I, N)``: make every N-th of the chosen slides (sorted by
     name) starting at the I-th, so N processes or machines sharing ``out_dir`` (a job array) build disjoint
     slides; ``merge``: make nothing, write ``dataset.json`` from the records. The run that finds every chosen
     slide recorded writes ``dataset.json`` (every recorded slide of the set, its failures under ``failed``).
@@ -427,6 +429,17 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     missing = [n for n in missing if n in chosen]
     if missing:
         return {"dataset_written": False, "missing": missing, "failed": failed, "run": run}
+    from data_tools.datasets.build import check_scorable
+
+    # failures (a rebuild that failed keeps the previous bundle, not of this set) may leave the test split
+    # unscorable: then the previous dataset.json stays as it was (one line, nothing written)
+    planned = {n: {"split": side[n], "label": int(every[n].is_tumour_slide)} for n in universe
+               if n in chosen or n in found or n in failed}
+    check_scorable(out_dir, {"slides": planned}, found, failed)
+    if failed and not found:
+        why = "; ".join(f"{n}: {failed[n]}" for n in sorted(failed)[:2])[:300]
+        raise HistojaxDataError(out_dir, f"no slide of this set is built: {len(failed)} failed ({why}); dataset.json "
+                                         "not written (previous bundles are kept): fix them and rerun")
     records = [found[n] for n in universe if n in found]
     present = [r["name"] for r in records]
     dataset.update({

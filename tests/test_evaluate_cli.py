@@ -310,3 +310,21 @@ def test_pixels_of_a_feature_only_dataset_bundle_point_to_histojax_dataset(two_s
     text = str(e.value)
     assert str(bundle) in text and "histojax dataset" in text and "data_tools c16" not in text
     histojax.make("HistoJAX-Easy-v0", slide=str(bundle), obs_mode="features")  # what it is for
+
+
+def test_make_names_two_bundles_of_different_feature_dimensions(two_slides, colour_feature_grid, tmp_path):
+    """Pixel observations still load the grids: 6-d and 8-d ones are refused naming both bundles (before: a
+    ValueError naming neither)."""
+    import shutil
+
+    import histojax
+    from data_tools.errors import BundleError
+    from data_tools.features.grid import compute_features
+
+    a = colour_feature_grid(two_slides[0], tmp_path / "a")
+    b = tmp_path / "b"
+    shutil.copytree(two_slides[1], b)
+    compute_features(b, encoder_name="colour-stats", image_size=None, progress=False)
+    with pytest.raises(BundleError) as e:
+        histojax.make("HistoJAX-Easy-v0", slides=[str(a), str(b)])
+    assert str(a) in str(e.value) and str(b) in str(e.value) and "6-d" in str(e.value) and "8-d" in str(e.value)

@@ -52,18 +52,24 @@ def read_spec(dataset) -> dict:
     return spec
 
 
-def _label(spec: dict, name: str) -> int:
-    from baselines.validation import slide_label
+def _label(spec: dict, name: str) -> int | None:
+    """The slide label as the env reads it: ``dataset.json``'s ``"labels"`` (by bundle name) when it has them,
+    else None (the bundle's own metadata decides: :func:`load_slide`)."""
+    labels = spec.get("labels")
+    if isinstance(labels, dict) and labels:
+        for key, value in labels.items():
+            if Path(key).name == name:
+                return int(value)
+    return None
 
-    return slide_label(spec, name)
 
-
-def load_slide(bundle, label: int, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,)) -> dict:
+def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,)) -> dict:
     """One bundle's arrays: ``logits (H, W)`` float32 (entry ``dim`` of the finest level's views),
     ``tissue (H, W)`` bool, ``coarse {level: (h, w) float32}`` for each bundle level in ``levels`` > 0
     (cell ``(cy, cx)`` of level ``L`` covers finest views ``[cy·2^L, (cy+1)·2^L)`` when the levels halve),
     ``downsample {level: float}``, ``mpp`` (µm per finest px), ``tile`` (view side, px), ``tumour``
-    (shapely geometry in finest px, or None), ``name``, ``label``, ``bundle``."""
+    (shapely geometry in finest px, or None), ``name``, ``label`` (``label``, or when None the bundle's own:
+    tumour annotated or not, as the env reads it), ``bundle``."""
     from data_tools.annotations import load_annotations
     from histojax.reading import grid, tissue_views
 
@@ -71,6 +77,10 @@ def load_slide(bundle, label: int, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,)) 
     meta_file = bundle / "metadata.json"
     try:
         meta = json.loads(meta_file.read_text())
+        if label is None:
+            from histojax.slide import slide_label_from_metadata
+
+            label = int(slide_label_from_metadata(meta))
         feats = meta.get("features") or {}
         if not feats.get("levels"):
             raise HeadDataError(meta_file, "has no feature grids: run `python -m data_tools features "

@@ -171,3 +171,24 @@ def test_a_policy_read_masks_are_scored_by_the_slide_head(dataset, runs, glimpse
         want = np.mean([read.size / s["tissue"].sum() for (read, *_), s in zip(glimpse_reads[r["budget"]], slides)])
         assert r["fraction_read"] == pytest.approx(want)
         assert np.isnan(r["auc"]) if len({s["label"] for s in slides}) < 2 else 0.0 <= r["auc"] <= 1.0
+
+
+def test_readers_command_adds_a_trained_reader(dataset, runs, tmp_path):
+    """`python -m baselines.readers --reader NAME RUN`: the trained reader's rows beside the scripted ones,
+    scored by the same head (here on the training split, which holds both classes)."""
+    from baselines import head_fit, readers
+    from histojax.head import SlideHead
+
+    head_fit.calibrated(SlideHead(dim=0, k=3, encoder=None), head_fit.load_slides(dataset, "train", dim=0)).save(
+        tmp_path / "head")
+    assert readers.main(["--dataset", str(dataset), "--head", str(tmp_path / "head"), "--split", "train",
+                         "--budgets", "0.25", "0.5", "--seeds", "1", "--reader", "GRU glimpse", str(runs["glimpse:1"]),
+                         "--policy-seeds", "2", "--out", str(tmp_path / "out")]) == 0
+    with open(tmp_path / "out" / "readers.csv") as f:
+        rows = list(csv.DictReader(f))
+    mine = [r for r in rows if r["reader"] == "GRU glimpse"]
+    assert sorted(float(r["budget"]) for r in mine) == [0.25, 0.5]
+    assert all(r["kind"] == "learned" and int(r["seeds"]) == 2 and float(r["fraction_max"]) <= float(r["budget"])
+               for r in mine)
+    assert {r["reader"] for r in rows} >= {"overview only", "random reader", "logit reader", "search reader",
+                                           "read everything"}

@@ -25,6 +25,13 @@ exactly the whole budget. Reading never exceeds the budget.
 ``budget_left ()`` the budget not yet read (``read_budget − fraction_read``). Bytes per observation:
 ``4 · C · (3D + 2) + 4`` plus the view entry (see :func:`observation_bytes`).
 
+**Step observation** (``step_obs=True``, the ``-v2`` ids): what is fixed for a slide during an episode
+comes once from :meth:`Glimpse.episode_tables` (``env.episode_tables(params)``); a step carries the view
+entry, ``slide ()`` int32, ``read_bits (⌈C/32⌉,)`` uint32 (:func:`unpack_bits`), ``read_cells (K,)``
+int32 (the cells read in order, ``C`` for an empty slot), ``read_summaries (K, 2D)`` in the feature
+bank's dtype and ``budget_left ()``. ``K`` (``read_slots``) is by default the most cells the budget
+lets an episode read; a new cell without a free slot ends the episode like the budget.
+
 **info** (every step): ``fraction_read`` (read tissue views / all tissue views), ``fields_of_view``
 (distinct cells revealed), ``steps``; with ``score`` / ``declared`` of classification.
 """
@@ -68,7 +75,8 @@ class GlimpseMemory:
     views_read: jnp.ndarray   # () int32 finest-level tissue views read so far
     fields: jnp.ndarray       # () int32 distinct cells revealed (fields of view)
     over_budget: jnp.ndarray  # () bool a pick was refused by the budget (the episode ends)
-    slots: jnp.ndarray = None # (K,) int32 the cells revealed, in reading order (C: empty); episode_tables envs only
+    slots: jnp.ndarray = None # (K,) int32 the cells revealed, in reading order (C: empty); step_obs envs only
+    slot_summaries: jnp.ndarray = None  # (K, 2D) their summaries in the feature bank's dtype (0: empty); step_obs only
 
 
 def with_budget(params, read_budget: float):
@@ -194,7 +202,10 @@ class Glimpse(ActionMode):
         zero = jnp.zeros((), jnp.int32)
         return GlimpseMemory(revealed=jnp.zeros((c,), bool), views_read=zero, fields=zero,
                              over_budget=jnp.zeros((), bool),
-                             slots=params.mode_data.slots_zero if env.step_obs else None)
+                             slots=params.mode_data.slots_zero if env.step_obs else None,
+                             slot_summaries=(jnp.zeros(params.mode_data.slots_zero.shape
+                                                       + params.mode_data.summaries.shape[-1:], summary_dtype(params))
+                                             if env.step_obs else None))
 
     def apply(self, env, state, action, params) -> Move:
         tables, mem, i = params.mode_data, state.memory, state.slide_index
@@ -209,14 +220,17 @@ class Glimpse(ActionMode):
         if slots is not None:  # episode_tables: the cell must also find a slot in the cells-read list
             fits = fits & (mem.fields < slots.shape[0])
         reveal = new & fits
-        if slots is not None:
-            slots = slots.at[mem.fields].set(jnp.where(reveal, cell, slots[jnp.minimum(mem.fields, slots.shape[0] - 1)]),
-                                             mode="drop")
+        slot_summaries = mem.slot_summaries
+        if slots is not None:  # the new cell and its summary go to the next slot (one row, not the whole list)
+            j = jnp.minimum(mem.fields, slots.shape[0] - 1)
+            slots = slots.at[mem.fields].set(jnp.where(reveal, cell, slots[j]), mode="drop")
+            slot_summaries = slot_summaries.at[mem.fields].set(
+                jnp.where(reveal, tables.summaries[i, cell].astype(slot_summaries.dtype), slot_summaries[j]), mode="drop")
         memory = GlimpseMemory(
             revealed=mem.revealed.at[cell].set(mem.revealed[cell] | reveal),
             views_read=mem.views_read + jnp.where(reveal, n, 0),
             fields=mem.fields + reveal.astype(jnp.int32),
-            over_budget=mem.over_budget | (new & ~fits), slots=slots)
+            over_budget=mem.over_budget | (new & ~fits), slots=slots, slot_summaries=slot_summaries)
         z = jnp.where(picked, self.level, state.z).astype(jnp.int32)
         x = jnp.where(picked, tables.cell_x[i, cell], state.x).astype(jnp.int32)
         y = jnp.where(picked, tables.cell_y[i, cell], state.y).astype(jnp.int32)
@@ -246,15 +260,12 @@ class Glimpse(ActionMode):
     def _step_obs(self, state, tables) -> dict:
         """The ``episode_tables`` observation's entries (see the module doc)."""
         mem, i = state.memory, state.slide_index
-        c = self.num_cells_of(tables)
         fraction = jnp.minimum(mem.views_read.astype(jnp.float32) * tables.inv_total[i], 1.0)
-        filled = mem.slots < c
-        summaries = tables.summaries[i, jnp.minimum(mem.slots, c - 1)] * filled[:, None].astype(jnp.float32)
         return {
             "slide": jnp.asarray(i, jnp.int32),
             "read_bits": pack_bits(mem.revealed),
             "read_cells": mem.slots,
-            "read_summaries": summaries,
+            "read_summaries": mem.slot_summaries,  # kept in the memory: no gather of K summaries per step
             "budget_left": jnp.clip(tables.read_budget - fraction, 0.0, 1.0).astype(jnp.float32),
         }
 
@@ -285,7 +296,8 @@ class Glimpse(ActionMode):
             return {"slide": spaces.Discrete(int(params.mode_data.valid.shape[0])),
                     "read_bits": spaces.Box(np.uint32(0), np.uint32(2**32 - 1), (bit_words(c),), jnp.uint32),
                     "read_cells": spaces.Box(0, c, (k,), jnp.int32),
-                    "read_summaries": box((k, 2 * d)), "budget_left": box((), 0.0, 1.0)}
+                    "read_summaries": spaces.Box(-jnp.inf, jnp.inf, (k, 2 * d), summary_dtype(params)),
+                    "budget_left": box((), 0.0, 1.0)}
         return {"cells": box((c, d)), "valid": box((c,), 0.0, 1.0), "revealed": box((c,), 0.0, 1.0),
                 "summaries": box((c, 2 * d)), "budget_left": box((), 0.0, 1.0)}
 
@@ -310,6 +322,12 @@ def cell_summaries(feats: np.ndarray, cell: np.ndarray, n: int):
         starts = np.flatnonzero(np.r_[True, np.diff(cell[order]) != 0])
         mx[cell[order][starts]] = np.maximum.reduceat(feats[order].astype(np.float64), starts, axis=0)
     return mean, mx, count
+
+
+def summary_dtype(params):
+    """The dtype of a step observation's ``read_summaries``: the feature bank's (float16 for the C16
+    datasets: the max half exact, the mean rounded to the precision the features are stored at)."""
+    return jnp.dtype(params.slide.features.dtype)
 
 
 def bit_words(n: int) -> int:

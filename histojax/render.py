@@ -136,8 +136,8 @@ def _level_crop(env, slide_index: int, box) -> tuple[np.ndarray, tuple[float, fl
     return np.asarray(level[y0:y1, x0:x1]), (x0 * d, y0 * d, x1 * d, y1 * d)
 
 
-def _draw_path(ax, env, z, boxes, centres, marker: float = 1.0) -> None:
-    """Boxes coloured by level, the path between view centres, the thick end box, start ring and end square."""
+def _draw_path(ax, env, z, boxes, centres) -> None:
+    """Boxes coloured by level, the path between view centres (coloured by the level moved to), the thick end box."""
     from matplotlib.collections import LineCollection
     from matplotlib.patches import Rectangle
 
@@ -155,6 +155,7 @@ def _draw_path(ax, env, z, boxes, centres, marker: float = 1.0) -> None:
 
 
 def _path_markers(ax, centres, n_steps: int, marker: float = 1.0) -> list:
+    """The start ring and the end square (``marker`` scales them); returns their legend handles."""
     start = ax.plot(*centres[0], marker="o", markersize=15 * marker, markerfacecolor="none", markeredgewidth=3,
                     markeredgecolor=_rgb(START_COLOUR), linestyle="none", label="start")[0]
     end = ax.plot(*centres[-1], marker="s", markersize=9 * marker, color=_rgb(END_COLOUR), markeredgecolor="black",

@@ -1,4 +1,5 @@
-"""Pictures: trajectory PNG (matplotlib) and GIF from a scanned rollout, colours by level; learning curves."""
+"""Pictures: trajectory PNG (matplotlib) and GIF from a scanned rollout, colours by level, a zoomed inset for
+views too small to see; learning curves."""
 from __future__ import annotations
 
 import jax
@@ -39,6 +40,10 @@ def test_trajectory_png_and_gif_from_a_scan(sample_envs, tmp_path):
     finest = tuple(c / 255 for c in level_colour(env.n_levels - 1, env.n_levels))
     assert np.allclose(boxes[-2].get_edgecolor()[:3], finest)
     assert len(ax.collections[0].get_segments()) == 5
+    # the finest views (128 px on a 2,967 px slide) are too small to see: a zoomed inset shows them
+    (inset,) = ax.child_axes
+    assert inset.get_title().startswith("zoomed") and inset.get_xlim()[1] - inset.get_xlim()[0] < 2967 / 3
+    assert not trajectory_figure(env, states, inset=False).axes[0].child_axes
     gif = animate(env, states, path=tmp_path / "t.gif")
     with Image.open(gif) as im:
         assert im.n_frames == 6

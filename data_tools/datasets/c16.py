@@ -159,7 +159,8 @@ def _link_bundle(bundle: Path, into: Path) -> None:
     so a feature step that was killed resumes): arrays hard-linked (no copy on disk; histojax never writes
     into a bundle's file, it writes a new file and renames it, so the two folders never change each other's
     files), other files copied; a filesystem without hard links gets copies. Only the bundle's own regular
-    files are taken (:func:`data_tools.bundle_format.own_file`); anything else is left out."""
+    files are taken (:func:`data_tools.bundle_format.own_file`); links, folders and hidden temporaries of
+    killed writes are left out."""
     import os
     import shutil
 
@@ -168,6 +169,8 @@ def _link_bundle(bundle: Path, into: Path) -> None:
     def put(src_dir: Path, dst_dir: Path) -> None:
         dst_dir.mkdir()
         for entry in sorted(src_dir.iterdir()):
+            if entry.name.startswith("."):
+                continue  # the hidden temporary of a write that was killed: not carried over
             try:
                 src = own_file(src_dir, entry.name)
             except BundleError:

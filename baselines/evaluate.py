@@ -470,8 +470,9 @@ def write_pictures(env, env_params, episodes: dict, out: Path, env_id: str) -> l
                           title=f"{env_id}, {name}, {len(z) - 1} steps, "
                                 f"target {'reached' if ep['success'][i] else 'not reached'}")
         written.append(path)
-        labels = episode_labels(env_params, ep["slide"])
-        for label, kind in ((1, "tumour"), (0, "normal")):
+        known = getattr(env_params.slide, "slide_label", None) is not None
+        labels = episode_labels(env_params, ep["slide"]) if known else np.full(ep["slide"].shape, -1)
+        for label, kind in ((1, "tumour"), (0, "normal"), (-1, "slide")):  # -1: slides without a label
             on = np.flatnonzero(labels == label)
             if not on.size:
                 continue
@@ -631,6 +632,8 @@ def check_config(config, path) -> list[str]:
 def split_warnings(env, env_params, task: str, where: str) -> list[str]:
     """Why a set of slides cannot be scored: a diagnosis needs tumour and normal slides for an AUC; detection
     needs a slide with tumour (no target can be reached on the others)."""
+    if getattr(env_params.slide, "slide_label", None) is None:
+        return []
     labels = np.asarray(jax.device_get(env_params.slide.slide_label)).ravel()
     n = labels.size
     if task == "classification" and len(set(labels.tolist())) < 2:

@@ -401,9 +401,10 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
                     label=name + (" (± std over orders)" if kind == "random" else ""))
             if (e > 0).any():
                 ax.fill_between(x, y - e, y + e, color=colour, alpha=0.2, linewidth=0)
-            if kind == "learned":
-                for xi, yi in zip(x, y):
-                    ax.annotate(f"{name}: {xi:.1%} read", (xi, yi), textcoords="offset points", xytext=(6, -12),
+            if kind == "learned":  # each point at the fraction it read; the name once, at the last point
+                for j, (xi, yi) in enumerate(zip(x, y)):
+                    text = f"{name}: {xi:.1%} read" if j == len(x) - 1 else f"{xi:.1%}"
+                    ax.annotate(text, (xi, yi), textcoords="offset points", xytext=(5, 6 if j % 2 else -12),
                                 fontsize="x-small", color=colour)
         ax.set_xlim(-0.02, max([0.55] + [r["fraction_read"] + 0.03 for r in rows if r["kind"] != "everything"]))
         ax.set_ylim(max(0.0, min(0.5, lo - 0.05)), 1.01)

@@ -453,6 +453,10 @@ def run(args, parser=None) -> int:
         slides = load_slides(args.dataset, args.split, spec, head.dim, levels=(0, args.cell_level), progress=True)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
+    other = sorted({str(s["encoder"]) for s in slides if head.encoder and s["encoder"] != head.encoder})
+    if other:
+        return print_error(f"{args.head}: a head for {head.encoder} features; {args.dataset} holds {', '.join(other)} "
+                           "features (fit a head on it: python -m baselines.head_fit)")
     if not slides or len({s["label"] for s in slides}) < 2:
         return print_error(f"{args.dataset}: split {args.split!r} needs tumour and normal slides to score an AUC")
     results = scripted_results(head, slides, args.budgets, args.seeds, args.cell_level, progress=True)

@@ -234,6 +234,11 @@ def test_readers_command_refuses_a_bad_head(dataset, tmp_path, capsys):
     assert readers.main(["--dataset", str(dataset), "--head", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "config.json: missing" in err[0]
+    SlideHead(encoder="uni").save(tmp_path / "uni")  # a head for another encoder's features
+    assert readers.main(["--dataset", str(dataset), "--head", str(tmp_path / "uni"), "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "a head for uni features" in err[0] and "pcam-cnn" in err[0]
+    assert not (tmp_path / "o").exists()
 
 
 def test_lesion_census_of_the_shipped_annotations(capsys):

@@ -322,7 +322,8 @@ def reading_map_figure(env, params, record, slide_index: int | None = None, scor
     """A matplotlib Figure of **where a policy read** on one slide: over the thumbnail of the episode's slide,
     each distinct view it visited (from the per-step record ``record``, see :func:`reading_record`) is a box
     filled by the step it was first visited (colour bar; step 0 is the view at reset) with a dot at its
-    centre (visible however small the view), the tumour outlined in green. The title names the slide, its
+    centre (visible however small the view; views too small to see get a zoomed inset, :func:`inset_box`),
+    the tumour outlined in green. The title names the slide, its
     label (``params.slide.slide_label``: tumour / normal) and ``score`` (a float: the policy's tumour score;
     a string: shown as it is). Axes in level-0 px."""
     from matplotlib import colormaps
@@ -349,23 +350,43 @@ def reading_map_figure(env, params, record, slide_index: int | None = None, scor
     for ring in rings:
         ax.plot(ring[:, 0], ring[:, 1], color=_rgb(TUMOUR_COLOUR), linewidth=1.5)
     cmap, norm = colormaps["viridis"], Normalize(0, max(1, len(z) - 1))
-    centres = []
-    for (zi, xi, yi), first, _ in views:
-        left, top, right, bottom = view_box_level0(env, zi, xi, yi, slide_index)
-        c = cmap(norm(first))
-        fill = 0.12 + 0.4 * zi / max(env.n_levels - 1, 1)  # coarse views (large boxes) lighter, fine ones solid
-        ax.add_patch(Rectangle((left, top), right - left, bottom - top, facecolor=(*c[:3], fill), edgecolor=c,
-                               linewidth=1.2))
-        centres.append(((left + right) / 2, (top + bottom) / 2, first))
-    if centres:
-        cx, cy, order = np.asarray(centres).T
-        ax.scatter(cx, cy, c=order, cmap=cmap, norm=norm, s=18, edgecolors="white", linewidths=0.6, zorder=3)
+    boxes = [view_box_level0(env, zi, xi, yi, slide_index) for (zi, xi, yi), _, _ in views]
+
+    def draw(on):  # the views: boxes filled by first visit, a dot at each centre
+        for ((zi, _, _), first, _), (left, top, right, bottom) in zip(views, boxes):
+            c = cmap(norm(first))
+            fill = 0.12 + 0.4 * zi / max(env.n_levels - 1, 1)  # coarse views (large boxes) lighter, fine ones solid
+            on.add_patch(Rectangle((left, top), right - left, bottom - top, facecolor=(*c[:3], fill), edgecolor=c,
+                                   linewidth=1.2))
+        if boxes:
+            b = np.asarray(boxes)
+            return on.scatter((b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2, c=[v[1] for v in views], cmap=cmap,
+                              norm=norm, s=18, edgecolors="white", linewidths=0.6, zorder=3)
+        return None
+
+    dots = draw(ax)
     ax.set_xlim(0, width0)
     ax.set_ylim(height0, 0)
     ax.set_xlabel("x (level-0 px)")
     ax.set_ylabel("y (level-0 px)")
-    if centres:
-        bar = fig.colorbar(ax.collections[-1], ax=ax, fraction=0.04, pad=0.02)
+    zoom = inset_box(boxes, width0, height0) if boxes else None
+    if zoom is not None:  # views too small to see on the whole slide: a zoomed inset around them
+        cx, cy = (zoom[0] + zoom[2]) / 2, (zoom[1] + zoom[3]) / 2
+        axin = ax.inset_axes([0.02 if cx > width0 / 2 else 0.56, 0.02 if cy < height0 / 2 else 0.56, 0.42, 0.42])
+        crop = _level_crop(env, slide_index, zoom)
+        if crop is not None:
+            axin.imshow(crop[0], extent=(crop[1][0], crop[1][2], crop[1][3], crop[1][1]), interpolation="antialiased")
+        for ring in rings:
+            axin.plot(ring[:, 0], ring[:, 1], color=_rgb(TUMOUR_COLOUR), linewidth=1.5)
+        draw(axin)
+        axin.set_xlim(zoom[0], zoom[2])
+        axin.set_ylim(zoom[3], zoom[1])
+        axin.set_xticks([])
+        axin.set_yticks([])
+        axin.set_title(f"zoomed ×{max(1, round(width0 / (zoom[2] - zoom[0])))}", fontsize="x-small", pad=2)
+        ax.indicate_inset_zoom(axin, edgecolor="black")
+    if dots is not None:
+        bar = fig.colorbar(dots, ax=ax, fraction=0.04, pad=0.02)
         bar.set_label("step first visited (0: the view at reset)")
         if len(z) - 1 <= 10:
             bar.set_ticks(range(len(z)))

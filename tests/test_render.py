@@ -7,7 +7,8 @@ import numpy as np
 from PIL import Image
 
 from baselines.curves import curves_figure, plot_curves
-from histojax.render import animate, level_colour, render_trajectory, slide_name, trajectory_figure
+from histojax.render import (animate, level_colour, reading_map_figure, render_trajectory, slide_name,
+                             trajectory_figure)
 
 
 def test_trajectory_png_and_gif_from_a_scan(sample_envs, tmp_path):
@@ -44,6 +45,8 @@ def test_trajectory_png_and_gif_from_a_scan(sample_envs, tmp_path):
     (inset,) = ax.child_axes
     assert inset.get_title().startswith("zoomed") and inset.get_xlim()[1] - inset.get_xlim()[0] < 2967 / 3
     assert not trajectory_figure(env, states, inset=False).axes[0].child_axes
+    reading = reading_map_figure(env, params, states, score=0.5).axes[0]  # the same views as a reading map
+    assert len([p for p in reading.patches if type(p).__name__ == "Rectangle"]) == 6 and len(reading.child_axes) == 1
     gif = animate(env, states, path=tmp_path / "t.gif")
     with Image.open(gif) as im:
         assert im.n_frames == 6

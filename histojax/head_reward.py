@@ -1,0 +1,215 @@
+"""SASHA's reward as an option: a gymnax-style wrapper that rewards reading by a fixed slide head.
+
+HistoGym's reward (and histojax's default) is unchanged unless an env is wrapped::
+
+    from histojax.head import SlideHead
+    from histojax.head_reward import HeadReward
+
+    env, params = histojax.make("HistoJAX-C16-Diagnosis-v2", action_mode="glimpse", read_budget=0.1)
+    head = SlideHead.load("baselines/published/c16-v2-head")
+    env = HeadReward(env, head, gain="log", final=1.0, read_cost=0.0)   # wraps, like LogWrapper
+    obs, state = env.reset(key, params)
+    obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
+
+After every step the wrapper scores **what has been read so far** with the head
+(:func:`histojax.head.score_logits`: a slide tumour logit from the finest-level views read) and pays
+
+* ``gain``: the head's gain in confidence in the slide's true class, after the step minus before —
+  ``"log"``: ``log p(true class)`` (a potential difference: summed over an episode it is the final
+  log-probability minus the prior's), ``"prob"``: ``p(true class)``; ``None`` / ``False``: no gain term;
+* ``final``: at the episode's end (terminated or truncated), ``final`` when the head's diagnosis
+  (``p(tumour) ≥ 0.5``) is the slide's label, 0 otherwise (``0`` / ``False``: no final term);
+* ``read_cost``: subtracted once for every step that reads new finest-level tissue views (a *read*: a
+  ``glimpse`` cell revealed, a new finest view visited by a navigator);
+* ``env_reward=True`` adds the wrapped env's own reward (default: the head's reward replaces it).
+
+**What counts as read**: for ``glimpse`` the finest tissue views under the cells revealed (the mode's
+memory ``revealed``, mapped to the finest grid as :meth:`histojax.glimpse.Glimpse.host_tables` does);
+for every other mode (navigation, ``zoom_select``) the wrapper keeps its own bit set of the
+finest-level views the episode's view stood on (the grid view nearest the view's top-left corner, as
+:func:`histojax.reading.see` counts them), so the wrapped env is unchanged.
+
+**The navigator's diagnosis through the head**: ``info["head_score"]`` is the head's slide logit of
+what the episode has read after the step (at the step where ``terminated | truncated``, the episode's
+diagnosis by the head: the navigator chooses where to look, the head declares);
+``info["head_correct"]`` whether it is right, ``info["head_views"]`` the finest tissue views read.
+
+The wrapper does the auto-reset itself (the same keys as :meth:`histojax.env.HistoEnv.step`, so a
+trajectory's env states are the unwrapped env's), and its tables (each slide's finest view logits,
+tissue views and cells, host-built once) are those of the slides of the params it was made with
+(``params``, default the env's own): step it with those params. Pure and jittable: no host
+callbacks, no data-dependent Python control flow; ``jax.vmap`` over envs like the env itself.
+"""
+from __future__ import annotations
+
+from typing import Any
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from histojax import reading
+from histojax.adapters.jax import Wrapper
+from histojax.head import SlideHead, score_logits
+
+GAINS = ("log", "prob")
+
+
+@struct.dataclass
+class HeadTables:
+    """Per slide ``S`` of the wrapped env, the finest-level grid padded to ``H × W``."""
+
+    logits: jnp.ndarray      # (S, H, W) float32 the head's view logit (feature entry head.dim) of each finest view
+    tissue: jnp.ndarray      # (S, H, W) bool finest tissue views (as the reading modes count them)
+    cell: jnp.ndarray        # (S, H, W) int32 glimpse cell (padded index) holding each view; 0 for other modes
+    grid: jnp.ndarray        # (S, 2) int32 (gh, gw) each slide's own finest grid
+    label: jnp.ndarray       # (S,) int32 slide label (1 tumour)
+
+
+@struct.dataclass
+class HeadRewardState:
+    """The wrapped env's state plus what the head has scored."""
+
+    env_state: Any
+    visited: jnp.ndarray     # (H·W,) bool finest views visited (non-glimpse modes); (0,) for glimpse
+    logit: jnp.ndarray       # () float32 the head's slide logit of what has been read
+    views: jnp.ndarray       # () int32 finest tissue views read
+
+
+def build_tables(env, head: SlideHead, params=None) -> HeadTables:
+    """Host-built :class:`HeadTables` of ``env``'s slides (``params``: default ``env.default_params``)."""
+    params = env.default_params if params is None else params
+    bundles = env.bundles
+    if not bundles:
+        raise ValueError("HeadReward needs an env made from bundles (histojax.make on a slide or dataset folder)")
+    t = env.tile_size
+    glimpse = getattr(env.action, "name", "") == "glimpse"
+    rows = []
+    for slide, bundle in reading.per_slide(params, bundles):
+        if slide.features is None:
+            raise ValueError(f"{bundle.path}: the slide head reads feature grids; run `python -m data_tools features "
+                             f"{bundle.path}`")
+        logits = reading.finest_view_features(slide, t)[..., head.dim]
+        tissue = reading.tissue_views(bundle, slide, t)
+        cell = np.zeros(tissue.shape, np.int64)
+        if glimpse:
+            g, s = env.action.level, int(np.asarray(slide.feature_stride))
+            gw, gh = int(np.asarray(slide.feature_grid_width)[g]), int(np.asarray(slide.feature_grid_height)[g])
+            own = reading.cell_of_views(slide, t, g, s, (gh, gw))
+            cy, cx = np.divmod(own, gw)
+            cell = cy * int(np.asarray(params.mode_data.grid)[1]) + cx
+        rows.append((logits, tissue, cell, int(np.asarray(slide.slide_label))))
+    h = max(r[1].shape[0] for r in rows)
+    w = max(r[1].shape[1] for r in rows)
+
+    def pad(a, fill):
+        out = np.full((h, w), fill, a.dtype)
+        out[: a.shape[0], : a.shape[1]] = a
+        return out
+    return HeadTables(logits=jnp.asarray(np.stack([pad(r[0].astype(np.float32), 0.0) for r in rows])),
+                      tissue=jnp.asarray(np.stack([pad(r[1], False) for r in rows])),
+                      cell=jnp.asarray(np.stack([pad(r[2], 0) for r in rows]), jnp.int32),
+                      grid=jnp.asarray([r[1].shape for r in rows], jnp.int32),
+                      label=jnp.asarray([r[3] for r in rows], jnp.int32))
+
+
+class HeadReward(Wrapper):
+    """SASHA's reward by a slide head (see the module doc). ``gain``: ``"log"`` (default), ``"prob"`` or
+    ``None``; ``final``: reward for a right diagnosis by the head at the episode's end (``True`` = 1.0);
+    ``read_cost``: per step that reads new tissue views; ``env_reward``: add the env's own reward;
+    ``params``: the env params whose slides the tables hold (default the env's)."""
+
+    def __init__(self, env, head: SlideHead, gain: str | None = "log", final: float = 1.0, read_cost: float = 0.0,
+                 env_reward: bool = False, params=None):
+        super().__init__(env)
+        if gain is True:
+            gain = "log"
+        if gain not in GAINS and gain not in (None, False):
+            raise ValueError(f"gain must be one of {GAINS} or None, got {gain!r}")
+        if not np.isfinite(float(final)) or not np.isfinite(float(read_cost)) or float(read_cost) < 0:
+            raise ValueError(f"final must be finite and read_cost finite and ≥ 0, got final={final}, "
+                             f"read_cost={read_cost}")
+        self.head = head
+        self.gain = gain or None
+        self.final = float(final)
+        self.read_cost = float(read_cost)
+        self.env_reward = bool(env_reward)
+        self.glimpse = getattr(env.action, "name", "") == "glimpse"
+        self.tables = build_tables(env, head, params)
+
+    # ------------------------------------------------------------------ head on a state
+    def read_mask(self, env_state, visited) -> jax.Array:
+        """``(H, W)`` bool: the finest tissue views read in ``env_state`` (padded grid of the tables)."""
+        tb, i = self.tables, env_state.slide_index
+        if self.glimpse:
+            return env_state.memory.revealed[tb.cell[i]] & tb.tissue[i]
+        return visited.reshape(tb.tissue.shape[1:]) & tb.tissue[i]
+
+    def _visit(self, env_state, visited) -> jax.Array:
+        """``visited`` with the finest view under ``env_state``'s view marked (non-glimpse modes)."""
+        if self.glimpse:
+            return visited
+        tb, i, t = self.tables, env_state.slide_index, self._env.tile_size
+        w = tb.tissue.shape[2]
+        gx = jnp.clip((env_state.x + t // 2) // t, 0, tb.grid[i, 1] - 1)
+        gy = jnp.clip((env_state.y + t // 2) // t, 0, tb.grid[i, 0] - 1)
+        finest = env_state.z == self._env.n_levels - 1
+        return visited.at[gy * w + gx].set(visited[gy * w + gx] | finest)
+
+    def _score(self, env_state, visited):
+        mask = self.read_mask(env_state, visited)
+        return score_logits(self.head, self.tables.logits[env_state.slide_index], mask), mask.sum(dtype=jnp.int32)
+
+    def _wrap(self, env_state) -> HeadRewardState:
+        n = 0 if self.glimpse else int(np.prod(self.tables.tissue.shape[1:]))
+        visited = self._visit(env_state, jnp.zeros((n,), bool))
+        logit, views = self._score(env_state, visited)
+        return HeadRewardState(env_state=env_state, visited=visited, logit=logit, views=views)
+
+    def log_prob_true(self, logit, label) -> jax.Array:
+        """``log p(label)`` of a slide logit (label 1: tumour)."""
+        return jnp.where(label == 1, jax.nn.log_sigmoid(logit), jax.nn.log_sigmoid(-logit))
+
+    # ------------------------------------------------------------------ gymnax API
+    def reset(self, key, params=None):
+        """``(obs, HeadRewardState)``."""
+        params = self._env.default_params if params is None else params
+        obs, env_state = self._env.reset_env(key, params)
+        return obs, self._wrap(env_state)
+
+    def step(self, key, state: HeadRewardState, action, params=None):
+        """``(obs, state, reward, terminated, truncated, info)``: the env's step (auto-reset as the env's
+        own), the reward of the module doc, ``info`` plus ``head_score``, ``head_correct``, ``head_views``,
+        ``head_reward``."""
+        params = self._env.default_params if params is None else params
+        key_reset, _ = jax.random.split(key)
+        obs_st, env_st, env_r, terminated, truncated, info = self._env.step_env(key, state.env_state, action, params)
+        visited = self._visit(env_st, state.visited)
+        logit, views = self._score(env_st, visited)
+        label = self.tables.label[env_st.slide_index]
+        done = terminated | truncated
+        correct = (logit >= 0.0) == (label == 1)
+        reward = jnp.zeros((), jnp.float32)
+        if self.gain == "log":
+            reward = reward + self.log_prob_true(logit, label) - self.log_prob_true(state.logit, label)
+        elif self.gain == "prob":
+            reward = reward + jnp.exp(self.log_prob_true(logit, label)) - jnp.exp(self.log_prob_true(state.logit, label))
+        if self.final:
+            reward = reward + jnp.where(done & correct, self.final, 0.0)
+        if self.read_cost:
+            reward = reward - jnp.where(views > state.views, self.read_cost, 0.0)
+        head_reward = reward.astype(jnp.float32)
+        if self.env_reward:
+            reward = reward + env_r
+        info = {**info, "head_score": logit, "head_correct": correct, "head_views": views, "head_reward": head_reward}
+        new = HeadRewardState(env_state=env_st, visited=visited, logit=logit, views=views)
+        if not self._env.auto_reset:
+            return obs_st, new, reward.astype(jnp.float32), terminated, truncated, {**info, "final_observation": obs_st}
+        obs_re, env_re = self._env.reset_env(key_reset, params)
+        fresh = self._wrap(env_re)
+        out = jax.tree.map(lambda a, b: jnp.where(done, a, b), fresh, new)
+        obs = jax.tree.map(lambda a, b: jnp.where(done, a, b), obs_re, obs_st)
+        if self._env.final_observation:
+            info["final_observation"] = obs_st
+        return obs, out, reward.astype(jnp.float32), terminated, truncated, info

@@ -1,0 +1,224 @@
+"""SASHA's reward through a slide head (histojax.head_reward.HeadReward): the reward is the head's score
+difference computed by hand from what was read (glimpse cells revealed; a navigator's finest views), the
+final diagnosis bonus and the reading cost; vmap of step equals a loop; the same key gives the same
+trajectory; the wrapped env's states are the unwrapped env's.
+
+One tiny synthetic dataset (made here: 2 tumour + 2 tumour-free slides of 320 × 256 px, 32-px views,
+Easy levels, ``colour-stats`` features; the head reads feature entry 0 as its view logit)."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import histojax
+from histojax import reading
+from histojax.head import SlideHead, score_logits
+from histojax.head_reward import HeadReward
+
+STEPS, ENVS = 14, 3
+HEAD = SlideHead(a=jnp.float32(1.5), b=jnp.float32(-0.2), prior_logit=jnp.float32(0.3), dim=0, k=3, top=1,
+                 encoder=None)
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from baselines.budget_curve import compute_missing_features
+    from data_tools.datasets.synth import make_dataset
+
+    root = tmp_path_factory.mktemp("head-reward-ds")
+    make_dataset(root, n_slides=2, negatives=2, size=(320, 256), seed=0, tile_size=32, level_sets=(3,),
+                 progress=False, previews=False)
+    compute_missing_features(root, "colour-stats")
+    return root
+
+
+def _make(dataset, **kw):
+    return histojax.make("HistoJAX-Easy-v0", dataset=str(dataset), split="train", obs_mode="features",
+                         task="classification", max_steps_in_episode=STEPS, **kw)
+
+
+@pytest.fixture(scope="module")
+def glimpse(dataset):
+    env, params = _make(dataset, action_mode="glimpse:1", step_obs=True, read_budget=0.6)
+    return env, params, HeadReward(env, HEAD, gain="log", final=1.0, read_cost=0.05)
+
+
+@pytest.fixture(scope="module")
+def navigation(dataset):
+    env, params = _make(dataset)
+    return env, params, HeadReward(env, HEAD, gain="prob", final=0.5, read_cost=0.0)
+
+
+def _finest(env, params):
+    """Per slide, host: (view logits (H, W), tissue (H, W)) — the head's inputs, straight from the bundles."""
+    out = []
+    for slide, bundle in reading.per_slide(params, env.bundles):
+        out.append((reading.finest_view_features(slide, env.tile_size)[..., HEAD.dim],
+                    reading.tissue_views(bundle, slide, env.tile_size)))
+    return out
+
+
+def _logp(logit, label):
+    p = 1.0 / (1.0 + np.exp(-float(logit)))
+    return np.log(p if label == 1 else 1.0 - p)
+
+
+def test_glimpse_reward_is_the_heads_gain_by_hand(glimpse):
+    """Each reward = log p(true) after the read − before (masks from the revealed cells, mapped by hand
+    through host_tables' instances), + 1 for a right head diagnosis at the end, − 0.05 per cell read."""
+    env, params, wrapped = glimpse
+    finest = _finest(env, params)
+    host = env.action.host_tables(env, params, env.bundles)
+    labels = np.asarray(params.slide.slide_label)
+    step = jax.jit(wrapped.step)
+    inner_step = jax.jit(env.step_env)
+    obs, state = jax.jit(wrapped.reset)(jax.random.key(3), params)
+    rng = np.random.default_rng(0)
+    c = int(params.mode_data.valid.shape[-1])
+
+    def hand_logit(env_state):
+        i = int(env_state.slide_index)
+        logits, tissue = finest[i]
+        cells = np.flatnonzero(np.asarray(env_state.memory.revealed))
+        read = np.isin(host[i]["instance_cell"], cells)
+        mask = np.zeros(tissue.size, bool)
+        mask[np.flatnonzero(tissue.reshape(-1))[read]] = True
+        return float(score_logits(HEAD, jnp.asarray(logits), jnp.asarray(mask.reshape(tissue.shape)))), int(mask.sum())
+
+    seen_read = seen_end = 0
+    for t in range(40):
+        valid = np.flatnonzero(np.asarray(params.mode_data.valid[int(state.env_state.slide_index)]))
+        action = int(rng.choice(valid)) if rng.random() < 0.85 else int(rng.choice([c, c + 1]))
+        key = jax.random.key(100 + t)
+        before, views_before = hand_logit(state.env_state)
+        _, stepped, _, term, trunc, _ = inner_step(key, state.env_state, action, params)
+        after, views_after = hand_logit(stepped)
+        label = int(labels[int(stepped.slide_index)])
+        done = bool(term | trunc)
+        expected = _logp(after, label) - _logp(before, label)
+        expected += 1.0 if done and ((after >= 0) == (label == 1)) else 0.0
+        expected -= 0.05 if views_after > views_before else 0.0
+        obs, state, reward, term2, trunc2, info = step(key, state, action, params)
+        assert bool(term2 | trunc2) == done
+        np.testing.assert_allclose(float(info["head_score"]), after, rtol=1e-5, atol=1e-5)
+        np.testing.assert_allclose(float(reward), expected, rtol=1e-4, atol=1e-4)
+        assert int(info["head_views"]) == views_after
+        seen_read += views_after > views_before
+        seen_end += done
+        if done:  # a fresh episode: nothing read, the head's prior
+            assert float(state.logit) == pytest.approx(float(HEAD.prior_logit)) and int(state.views) == 0
+    assert seen_read >= 3 and seen_end >= 2  # the trajectory read cells and ended episodes
+
+
+def test_navigator_reads_are_the_finest_views_it_stood_on(navigation):
+    """A navigator's head score is the head on the finest views its view stood on (marked by hand)."""
+    env, params, wrapped = navigation
+    finest = _finest(env, params)
+    labels = np.asarray(params.slide.slide_label)
+    step = jax.jit(wrapped.step)
+    obs, state = jax.jit(wrapped.reset)(jax.random.key(5), params)
+    rng = np.random.default_rng(1)
+    visited, t_px, f = set(), env.tile_size, env.n_levels - 1
+    prev_p = None
+    n_finest = 0
+    for t in range(60):
+        es = state.env_state
+        i = int(es.slide_index)
+        logits, tissue = finest[i]
+        p_before = 1 / (1 + np.exp(-float(state.logit)))
+        obs, state, reward, term, trunc, info = step(jax.random.key(200 + t), state, int(rng.integers(env.num_actions)),
+                                                     params)
+        done = bool(term | trunc)
+        if not done:  # (after an auto-reset the stepped state is not kept: nothing to compare)
+            stepped = state.env_state
+            if int(stepped.z) == f:
+                gx = min((int(stepped.x) + t_px // 2) // t_px, tissue.shape[1] - 1)
+                gy = min((int(stepped.y) + t_px // 2) // t_px, tissue.shape[0] - 1)
+                visited.add((gy, gx))
+                n_finest += 1
+            mask = np.zeros(tissue.shape, bool)
+            for gy, gx in visited:
+                mask[gy, gx] = True
+            mask &= tissue
+            expected = float(score_logits(HEAD, jnp.asarray(logits), jnp.asarray(mask)))
+            np.testing.assert_allclose(float(info["head_score"]), expected, rtol=1e-5, atol=1e-5)
+            label = int(labels[i])
+            p_after = 1 / (1 + np.exp(-expected))
+            gain = (p_after - p_before) if label == 1 else (p_before - p_after)
+            np.testing.assert_allclose(float(reward), gain, rtol=1e-4, atol=1e-5)
+        else:
+            visited = set()
+        prev_p = p_before
+    assert prev_p is not None and n_finest >= 3  # the navigator stood on finest views
+
+
+def test_vmap_equals_a_loop_and_the_key_fixes_the_trajectory(glimpse):
+    env, params, wrapped = glimpse
+    keys = jax.random.split(jax.random.key(7), ENVS)
+    reset_v = jax.jit(jax.vmap(wrapped.reset, in_axes=(0, None)))
+    step_v = jax.jit(jax.vmap(wrapped.step, in_axes=(0, 0, 0, None)))
+    step_1 = jax.jit(wrapped.step)
+    c = int(params.mode_data.valid.shape[-1])
+
+    def roll(seed):
+        obs, st = reset_v(keys, params)
+        out = []
+        for t in range(10):
+            actions = jax.random.randint(jax.random.key(seed * 1000 + t), (ENVS,), 0, c + 2)
+            ks = jax.random.split(jax.random.key(50 + t), ENVS)
+            singles = [step_1(ks[e], jax.tree.map(lambda a: a[e], st), actions[e], params) for e in range(ENVS)]
+            obs, st, r, term, trunc, info = step_v(ks, st, actions, params)
+            for e, s in enumerate(singles):
+                for a, b in zip(jax.tree.leaves((s[0], s[1], s[2], s[3], s[4], s[5]["head_score"])),
+                                jax.tree.leaves(jax.tree.map(lambda x: x[e], (obs, st, r, term, trunc,
+                                                                                info["head_score"])))):
+                    np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+            out.append((np.asarray(r), np.asarray(st.logit), np.asarray(st.env_state.memory.revealed)))
+        return out
+
+    first, again = roll(0), roll(0)
+    for a, b in zip(first, again):
+        for x, y in zip(a, b):
+            np.testing.assert_array_equal(x, y)
+
+
+def test_wrapped_states_are_the_unwrapped_envs(glimpse):
+    """The wrapper auto-resets with the env's own keys: the same actions give the env's own states."""
+    env, params, wrapped = glimpse
+    c = int(params.mode_data.valid.shape[-1])
+    obs_w, st_w = wrapped.reset(jax.random.key(11), params)
+    obs_e, st_e = env.reset(jax.random.key(11), params)
+    step_w, step_e = jax.jit(wrapped.step), jax.jit(env.step)
+    for t in range(25):
+        a = (7 * t + 3) % (c + 2)
+        k = jax.random.key(300 + t)
+        obs_w, st_w, *_ = step_w(k, st_w, a, params)
+        obs_e, st_e, *_ = step_e(k, st_e, a, params)
+        for x, y in zip(jax.tree.leaves((obs_w, st_w.env_state)), jax.tree.leaves((obs_e, st_e))):
+            np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_env_reward_is_added_only_when_asked(glimpse):
+    env, params, _ = glimpse
+    both = HeadReward(env, HEAD, gain="log", final=1.0, read_cost=0.05, env_reward=True)
+    only = HeadReward(env, HEAD, gain="log", final=1.0, read_cost=0.05)
+    c = int(params.mode_data.valid.shape[-1])
+    _, s1 = both.reset(jax.random.key(1), params)
+    _, s2 = only.reset(jax.random.key(1), params)
+    _, s3 = env.reset(jax.random.key(1), params)
+    for t, a in enumerate([0, 1, c + 1]):
+        k = jax.random.key(t)
+        _, s1, r1, *_ = both.step(k, s1, a, params)
+        _, s2, r2, *_ = only.step(k, s2, a, params)
+        _, s3, r3, *_ = env.step(k, s3, a, params)
+        assert float(r1) == pytest.approx(float(r2) + float(r3), abs=1e-6)
+
+
+def test_bad_settings_are_refused(glimpse):
+    env, _, _ = glimpse
+    with pytest.raises(ValueError, match="gain"):
+        HeadReward(env, HEAD, gain="linear")
+    with pytest.raises(ValueError, match="read_cost"):
+        HeadReward(env, HEAD, read_cost=-1.0)

@@ -492,6 +492,14 @@ def write_pictures(env, env_params, episodes: dict, out: Path, env_id: str) -> l
     return written
 
 
+def _usage_exit(message: str) -> SystemExit:
+    """A ``SystemExit`` with status 2 (a user error) whose text is ``message``, printed as one ``error:`` line."""
+    print(f"error: {message}", file=sys.stderr)
+    exit_ = SystemExit(message)
+    exit_.code = 2
+    return exit_
+
+
 def resolve_slides(slides: list[str], config: dict) -> list[str]:
     """Bundle paths to evaluate: ``slides`` as given, or for ``["held-out"]`` the ``"test"`` list of
     the ``dataset.json`` the checkpoint was trained on (``config["env_kwargs"]["dataset"]``)."""
@@ -499,15 +507,15 @@ def resolve_slides(slides: list[str], config: dict) -> list[str]:
         return list(slides)
     dataset = (config.get("env_kwargs") or {}).get("dataset")
     if not dataset:
-        raise SystemExit("--slides held-out: this checkpoint was not trained on a dataset (env_kwargs has no "
-                         "'dataset'); give bundle folders instead")
+        raise _usage_exit("--slides held-out: this checkpoint was not trained on a dataset (env_kwargs has no "
+                          "'dataset'); give bundle folders instead")
     spec_path = Path(dataset) / "dataset.json"
     try:
         test = json.loads(spec_path.read_text())["test"]
     except (OSError, ValueError, KeyError) as e:
-        raise SystemExit(f"--slides held-out: cannot read the test split from {spec_path}: {e}") from None
+        raise _usage_exit(f"--slides held-out: cannot read the test split from {spec_path}: {e}") from None
     if not test:
-        raise SystemExit(f"--slides held-out: {spec_path} has an empty test split")
+        raise _usage_exit(f"--slides held-out: {spec_path} has an empty test split")
     return [str(Path(dataset) / rel) for rel in test]
 
 
@@ -519,10 +527,10 @@ def with_dataset(config: dict, dataset=None, split: str | None = None) -> dict:
     kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("slides", "slide_weights")}
     if dataset is not None:
         if not (Path(dataset) / "dataset.json").is_file():
-            raise SystemExit(f"--dataset {dataset}: no dataset.json there")
+            raise _usage_exit(f"--dataset {dataset}: no dataset.json there")
         kw["dataset"] = str(dataset)
     elif "dataset" not in kw:
-        raise SystemExit("--split: this checkpoint was not trained on a dataset; give --dataset DIR too")
+        raise _usage_exit("--split: this checkpoint was not trained on a dataset; give --dataset DIR too")
     kw["split"] = split or "test"
     return {**config, "env_kwargs": kw, "slide": None}
 

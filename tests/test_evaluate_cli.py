@@ -328,3 +328,12 @@ def test_make_names_two_bundles_of_different_feature_dimensions(two_slides, colo
     with pytest.raises(BundleError) as e:
         histojax.make("HistoJAX-Easy-v0", slides=[str(a), str(b)])
     assert str(a) in str(e.value) and str(b) in str(e.value) and "6-d" in str(e.value) and "8-d" in str(e.value)
+
+
+def test_held_out_without_a_training_dataset_is_exit_2(tmp_path, capsys):
+    """Was: exit status 1. Now one error line and status 2, as every user error."""
+    run = _checkpoint(tmp_path / "run", EASY)
+    with pytest.raises(SystemExit, match="not trained on a dataset") as e:
+        histojax_main(["evaluate", str(run), "--slides", "held-out"])
+    assert e.value.code == 2
+    assert "--slides held-out" in _one_error_line(capsys)

@@ -1,0 +1,136 @@
+"""Learned readers trained with SASHA's reward (:class:`histojax.head_reward.HeadReward`), scored on
+validation slides with the same head as every other reader:
+
+    python -m benchmarks.train_readers --dataset DIR --head HEAD --out runs/set-readers \\
+        [--algo ppo|ppo_rnn] [--seeds 3] [--total-steps N] [--read-budget 0.2] [--gain log] [--final 1] \\
+        [--read-cost 0] [--val-fraction 0.3] [-- TRAINER OPTIONS]
+
+1. Holds back a validation share of ``DIR``'s training split (:func:`baselines.validation.split_train`,
+   per class) and writes ``OUT/dataset.json``: the same bundles, splits ``train`` (what is kept),
+   ``validation`` and ``test`` (never read here), and ``OUT/validation-set/dataset.json`` whose ``test``
+   split is the validation slides (what the scoring step reads; it holds no test slide).
+2. Trains the cell-set reader (``glimpse`` with ``step_obs=True``, the ``-v2`` ids:
+   :class:`baselines.networks.CellSetActorCritic`, or its recurrent twin with ``--algo ppo_rnn``) on
+   the kept training slides, the env wrapped in ``HeadReward(env, head, gain, final, read_cost)``; the
+   trainer's run folder ``OUT/<algo>`` (``log.csv``, ``curve.png``, ``params.msgpack``, ``config.json``)
+   plus ``OUT/<algo>/head_reward.json`` (the reward's settings).
+3. Scores the trained seeds with :mod:`baselines.readers` on the **validation** split at 5/10/20/50 %
+   (overview only, random, scripted, the learned reader, read everything; the same head for every row):
+   ``OUT/validation/readers.csv``, ``readers.png``, ``readers.json``.
+
+Prints wall times (training, compile, scoring) and env steps per second.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+ENV_ID = "HistoJAX-C16-Diagnosis-v2"
+
+
+def split_dataset(dataset: Path, out: Path, fraction: float, seed: int) -> Path:
+    """``out/dataset.json``: ``dataset``'s spec with its training split cut into ``train`` and
+    ``validation`` (bundle paths made absolute); returns ``out``."""
+    from baselines.validation import split_train
+
+    spec = json.loads((dataset / "dataset.json").read_text())
+    kept, val = split_train(spec, fraction, seed)
+    absolute = lambda entries: [str((dataset / e).resolve()) if not Path(e).is_absolute() else e  # noqa: E731
+                                for e in entries]
+    derived = {**spec, "train": absolute(kept), "validation": absolute(val), "test": absolute(spec.get("test") or []),
+               "derived_from": str(dataset.resolve()),
+               "validation_split": {"fraction": fraction, "seed": seed, "rule": "baselines.validation.split_train"}}
+    # the envs know the splits train / test: the validation slides are scored as the test split of a second
+    # folder (OUT/validation-set), which holds no test slide at all
+    scoring = {**derived, "test": derived["validation"], "validation": [], "note_split": "test = the validation slides"}
+    for folder, obj in ((out, derived), (out / "validation-set", scoring)):
+        folder.mkdir(parents=True, exist_ok=True)
+        tmp = folder / ".dataset.json.tmp"
+        tmp.write_text(json.dumps(obj, indent=1))
+        tmp.replace(folder / "dataset.json")
+    return out
+
+
+def with_head_reward(head, gain, final: float, read_cost: float):
+    """Make :func:`baselines.common.make_env` (which every trainer calls) return the env wrapped in
+    :class:`~histojax.head_reward.HeadReward`; returns the original to restore."""
+    from baselines import common
+    from histojax.head_reward import HeadReward
+
+    original = common.make_env
+
+    def make_env(config, auto_reset=True, mesh=None):
+        env, params = original(config, auto_reset=auto_reset, mesh=mesh)
+        return HeadReward(env, head, gain=gain, final=final, read_cost=read_cost, params=params), params
+
+    common.make_env = make_env
+    return original
+
+
+def main(argv=None) -> int:
+    argv = list(sys.argv[1:] if argv is None else argv)
+    extra = argv[argv.index("--") + 1:] if "--" in argv else []
+    argv = argv[: argv.index("--")] if "--" in argv else argv
+    p = argparse.ArgumentParser(prog="python -m benchmarks.train_readers", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--dataset", required=True, type=Path)
+    p.add_argument("--head", required=True)
+    p.add_argument("--out", required=True, type=Path)
+    p.add_argument("--algo", choices=("ppo", "ppo_rnn"), default="ppo")
+    p.add_argument("--env", default=ENV_ID)
+    p.add_argument("--action-mode", default="glimpse:1")
+    p.add_argument("--seeds", type=int, default=3)
+    p.add_argument("--total-steps", type=int, default=200_000, help="env steps per seed")
+    p.add_argument("--num-envs", type=int, default=32)
+    p.add_argument("--read-budget", type=float, default=0.2)
+    p.add_argument("--gain", default="log", choices=("log", "prob", "none"))
+    p.add_argument("--final", type=float, default=1.0)
+    p.add_argument("--read-cost", type=float, default=0.0)
+    p.add_argument("--val-fraction", type=float, default=0.3)
+    p.add_argument("--split-seed", type=int, default=0)
+    p.add_argument("--skip-training", action="store_true", help="score the run already in OUT/<algo>")
+    args = p.parse_args(argv)
+
+    from baselines import common, readers
+    from histojax.head import SlideHead
+
+    try:
+        head = SlideHead.load(args.head)
+    except ValueError as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    data = split_dataset(args.dataset, args.out, args.val_fraction, args.split_seed)
+    run_dir = args.out / args.algo
+    t0 = time.perf_counter()
+    if not args.skip_training:
+        module = __import__(f"baselines.{args.algo}", fromlist=["main"])
+        gain = None if args.gain == "none" else args.gain
+        original = with_head_reward(head, gain, args.final, args.read_cost)
+        try:
+            trainer_argv = ["--env", args.env, "--dataset", str(data), "--split", "train",
+                            "--action-mode", args.action_mode, "--obs", "features", "--seeds", str(args.seeds),
+                            "--total-steps", str(args.total_steps), "--num-envs", str(args.num_envs),
+                            "--set", f'env_kwargs={json.dumps({"dataset": str(data), "split": "train", "read_budget": args.read_budget})}',
+                            "--out", str(run_dir), *extra]
+            code = module.main(trainer_argv)
+        finally:
+            common.make_env = original
+        if code:
+            return code
+        (run_dir / "head_reward.json").write_text(json.dumps(
+            {"head": str(args.head), "head_name": head.name, "gain": gain, "final": args.final,
+             "read_cost": args.read_cost, "read_budget": args.read_budget, "train_wall_s": round(time.perf_counter() - t0, 1),
+             "dataset": str(data), "validation_fraction": args.val_fraction, "split_seed": args.split_seed}, indent=1) + "\n")
+    t1 = time.perf_counter()
+    code = readers.main(["--dataset", str(data / "validation-set"), "--head", str(args.head), "--split", "test",
+                         "--reader", f"set reader ({args.algo}, head reward)", str(run_dir),
+                         "--policy-seeds", str(args.seeds), "--out", str(args.out / "validation")])
+    print(f"training {t1 - t0:.0f} s, scoring on validation {time.perf_counter() - t1:.0f} s")
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -441,9 +441,14 @@ def check_alike(paths, features: bool | None = None) -> None:
     if not with_grid:
         return
     (p0, f0) = with_grid[0]
+
+    def encoder_of(f):  # imported grids record their file ("imported:NAME.h5"): one dataset's files are one encoder
+        name = str(f.get("encoder"))
+        return "imported" if f.get("source") == "imported" or name.startswith("imported:") else name
+
     describe = lambda f: f"encoder {f.get('encoder')!r}, {f.get('dim')}-d"  # noqa: E731
     for path, f in with_grid[1:]:  # grids not observed (features None) load too: their dimensions must agree
-        if f.get("dim") != f0.get("dim") or (features and f.get("encoder") != f0.get("encoder")):
+        if f.get("dim") != f0.get("dim") or (features and encoder_of(f) != encoder_of(f0)):
             raise BundleError(path, f"its feature grid ({describe(f)}) is not of the same encoder as {p0}'s "
                               f"({describe(f0)}): one env observes one encoder's features; recompute one of them "
                               f"with the other's encoder (`histojax features BUNDLE --encoder NAME`)")

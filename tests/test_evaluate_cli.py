@@ -261,6 +261,14 @@ def test_make_refuses_bundles_of_two_encoders_naming_both(two_slides, colour_fea
     with pytest.raises(BundleError) as e:
         histojax.make("HistoJAX-Easy-v0", slides=[str(a), str(b)], obs_mode="features")
     assert str(a) in str(e.value) and str(b) in str(e.value) and "'another encoder, 6-d'" in str(e.value)
+    # imported grids record their file, not their encoder: one dataset's imported files load together ...
+    update_metadata(a, {**record, "encoder": "imported:a.h5", "source": "imported"}, [])
+    update_metadata(b, {**record, "encoder": "imported:b.h5", "source": "imported"}, [])
+    histojax.make("HistoJAX-Easy-v0", slides=[str(a), str(b)], obs_mode="features")
+    # ... but not beside a named encoder's grid of the same D
+    update_metadata(a, record, [])
+    with pytest.raises(BundleError, match="imported:b.h5"):
+        histojax.make("HistoJAX-Easy-v0", slides=[str(a), str(b)], obs_mode="features")
 
 
 def test_make_names_two_bundles_of_different_tile_sizes(two_slides, tmp_path):

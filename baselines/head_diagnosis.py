@@ -27,10 +27,10 @@ from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 
 
-def navigator_reads(run, dataset, split: str = "test", seed: int = 0) -> list[np.ndarray]:
+def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bool = True) -> list[np.ndarray]:
     """Per slide of ``dataset``'s ``split`` (in its order): the indices of the finest tissue views (in the
     slide's raster order of tissue views, as :func:`baselines.readers.masks_from_instances` takes them)
-    that one greedy episode of ``run``'s seed ``seed`` stood on."""
+    that one greedy (``greedy=False``: sampled, key ``seed``) episode of ``run``'s seed ``seed`` stood on."""
     import jax
 
     from baselines import common, evaluate
@@ -47,7 +47,7 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0) -> list[np
     kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides")}
     config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split}}
     config, (env, env_params) = evaluate.eval_env(config)
-    policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config["action_mode"], greedy=True,
+    policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config["action_mode"], greedy=greedy,
                                      declare=evaluate.diagnosis_actions(env, evaluate.network_for(config, env),
                                                                         config["action_mode"]))
     n_slides = max(1, len(env.bundles))

@@ -222,3 +222,40 @@ def test_bad_settings_are_refused(glimpse):
         HeadReward(env, HEAD, gain="linear")
     with pytest.raises(ValueError, match="read_cost"):
         HeadReward(env, HEAD, read_cost=-1.0)
+
+
+def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(dataset, tmp_path):
+    """baselines.head_diagnosis: the read mask of a (freshly initialised) navigator is the set of finest
+    tissue views its (sampled) trajectory stood on, recomputed here from the trajectory's (z, x, y)."""
+    from baselines import common, evaluate, head_diagnosis, ppo
+
+    config = dict(env_id="HistoJAX-Easy-v0", obs_mode="features", action_mode="discrete", num_envs=2, num_steps=4,
+                  total_timesteps=8, hidden=8, num_minibatches=1, update_epochs=1, num_seeds=1, print_progress=False,
+                  max_steps_in_episode=30, env_kwargs={"dataset": str(dataset), "task": "classification"})
+    train = ppo.make_train(config)
+    params = train.init_params(jax.random.key(0), train.env_params)
+    common.save_checkpoint(tmp_path / "nav", jax.tree.map(lambda a: a[None], params), train.config)
+    reads = head_diagnosis.navigator_reads(tmp_path / "nav", dataset, "train", seed=0, greedy=False)
+    # the same episodes, by hand: the run's env and policy, the finest views on the trajectory
+    _, cfg = common.load_checkpoint(tmp_path / "nav")
+    cfg = {**cfg, "env_kwargs": {**cfg["env_kwargs"], "dataset": str(dataset), "split": "train"}}
+    cfg, (env, env_params) = evaluate.eval_env(cfg)
+    net = evaluate.network_for(cfg, env)
+    policy = evaluate.learned_policy(net, params, "discrete", greedy=False,
+                                     declare=evaluate.diagnosis_actions(env, net, "discrete"))
+    n = len(env.bundles)
+    per, axes = evaluate.per_episode_params(env_params, np.arange(n))
+    ep = evaluate.run_episodes(env, per, policy, jax.random.key(0), n, params_axes=axes)
+    f, t = env.n_levels - 1, env.tile_size
+    finest_total = 0
+    for e, (slide, bundle) in enumerate(reading.per_slide(env_params, env.bundles)):
+        tissue = reading.tissue_views(bundle, slide, t)
+        mask = np.zeros(tissue.shape, bool)
+        steps = int(ep["length"][e]) + 1
+        for z, x, y in zip(ep["z"][:steps, e], ep["x"][:steps, e], ep["y"][:steps, e]):
+            if z == f:
+                mask[min((y + t // 2) // t, tissue.shape[0] - 1), min((x + t // 2) // t, tissue.shape[1] - 1)] = True
+        expected = np.flatnonzero(mask[tissue])
+        finest_total += expected.size
+        np.testing.assert_array_equal(np.sort(reads[e]), expected)
+    assert finest_total > 0  # the untrained sampled navigator reached the finest level somewhere

@@ -13,6 +13,9 @@ comes from its own process (so peak RSS is that run's), compiled first, then tim
 * **ppo**: ``baselines.ppo`` (feed-forward; the cell-set reader for glimpse) with ``num_envs`` = the
   batch, ``--ppo-steps`` steps per update, ``--ppo-updates`` updates, 1 seed;
 * **host tables**: ``Glimpse.prepare`` (the per-slide cell tables) on all the slides.
+
+``glimpse:1-full`` is ``glimpse:1`` with the full observation of the ``-v1`` ids (``step_obs=False``) and,
+for PPO, the flat network that observation needs: the reading mode as it was before ``-v2``.
 """
 from __future__ import annotations
 
@@ -25,7 +28,9 @@ import sys
 import time
 from pathlib import Path
 
-MODES = ("navigation", "glimpse:1", "glimpse:2", "zoom_select")
+MODES = ("navigation", "glimpse:1", "glimpse:2", "zoom_select", "glimpse:1-full")
+# glimpse:1-full: glimpse:1 with the full (v1) observation, every cell's features and summaries at every
+# step (step_obs=False), and for PPO the flat network it needs: the reading modes as they were before v2
 ENV_ID = "HistoJAX-C16-Diagnosis-v2"
 
 
@@ -45,6 +50,8 @@ def dataset_bundles(folder) -> list[str]:
 def _overrides(mode: str, budget: float) -> dict:
     if mode == "navigation":
         return {"action_mode": "discrete"}
+    if mode.endswith("-full"):
+        return {"action_mode": mode[: -len("-full")], "read_budget": budget, "step_obs": False}
     return {"action_mode": mode, "read_budget": budget}
 
 
@@ -65,7 +72,7 @@ def one_env(dataset, mode: str, batch: int, steps: int, budget: float) -> dict:
     made = time.perf_counter() - t0
     out = {"kind": "env", "mode": mode, "batch": batch, "slides": len(paths), "make_s": made,
            "obs_bytes": observation_bytes(env, params)}
-    if mode.startswith("glimpse"):
+    if mode.startswith("glimpse") and not mode.endswith("-full"):
         t0 = time.perf_counter()
         env.action.prepare(env, params, env.bundles, read_budget=budget)
         out["host_tables_s"] = time.perf_counter() - t0

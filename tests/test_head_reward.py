@@ -224,6 +224,7 @@ def test_bad_settings_are_refused(glimpse):
         HeadReward(env, HEAD, read_cost=-1.0)
 
 
+@pytest.mark.slow  # `make test-all`: builds a PPO navigator and rolls it twice (about a minute on 2 cores)
 def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(dataset, tmp_path):
     """baselines.head_diagnosis: the read mask of a (freshly initialised) navigator is the set of finest
     tissue views its (sampled) trajectory stood on, recomputed here from the trajectory's (z, x, y)."""

@@ -37,6 +37,7 @@ from baselines.ppo import make_network
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
                                 policy_mode, policy_sample, preprocess_obs)
 from baselines.networks import is_discrete as policy_is_discrete
+from data_tools.cli_output import positive_int
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
 from histojax import actions, reading
@@ -552,18 +553,6 @@ def print_table(title: str, rows: dict) -> None:
               "(read: mean fraction of the slide's tissue views read)")
 
 
-def _positive_int(text: str) -> int:
-    import argparse
-
-    try:
-        value = int(text)
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"must be a whole number, got {text!r}") from None
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"must be at least 1, got {value}")
-    return value
-
-
 def add_arguments(p) -> None:
     """The options of ``python -m baselines.evaluate`` and ``histojax evaluate``."""
     p.add_argument("checkpoint", nargs="?", default=None,
@@ -577,7 +566,7 @@ def add_arguments(p) -> None:
                         "e.g. a published agent on any C16-style dataset")
     p.add_argument("--split", default=None, choices=("train", "test", "all"),
                    help="split of the dataset to score (default: test with --dataset, else the checkpoint's)")
-    p.add_argument("--episodes", type=_positive_int, default=256,
+    p.add_argument("--episodes", type=positive_int, default=256,
                    help="episodes per policy (per seed for the learned one), at least 1")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--with-position", action="store_true", help="(reference rows only) observation with position")

@@ -232,15 +232,20 @@ def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 6
     ax.set_ylabel("y (level-0 px)")
     zoom = inset_box(boxes, width0, height0) if inset else None
     if zoom is not None:
-        _inset(ax, env, slide_index, zoom, z, boxes, centres, rings, width0, height0)
+        def path(axin):
+            _draw_path(axin, env, z, boxes, centres)
+            _path_markers(axin, centres, len(z) - 1, marker=0.7)
+
+        _inset(ax, env, slide_index, zoom, rings, width0, height0, path)
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small", frameon=False,
               title="views (boxes) and path", title_fontsize="small", alignment="left")
     ax.set_title(_titled(title, env, slide_index), fontsize="medium")
     return fig
 
 
-def _inset(ax, env, slide_index: int, zoom, z, boxes, centres, rings, width0: float, height0: float):
-    """A zoomed inset of level-0 box ``zoom`` in the corner of ``ax`` farthest from the path."""
+def _inset(ax, env, slide_index: int, zoom, rings, width0: float, height0: float, draw):
+    """A zoomed inset of level-0 box ``zoom`` (px) in the corner of ``ax`` farthest from it: the level's pixels
+    (or feature map) there, the tumour outline, and whatever ``draw(axin)`` adds (the path, the views read)."""
     cx, cy = (zoom[0] + zoom[2]) / 2, (zoom[1] + zoom[3]) / 2
     left_side = cx > width0 / 2  # the path is on the right: the inset goes left
     bottom_side = cy < height0 / 2  # the path is in the upper half: the inset goes down (y axis points down)
@@ -251,8 +256,7 @@ def _inset(ax, env, slide_index: int, zoom, z, boxes, centres, rings, width0: fl
         axin.imshow(pixels, extent=(l0, r0, b0, t0), interpolation="antialiased")
     for ring in rings:
         axin.plot(ring[:, 0], ring[:, 1], color=_rgb(TUMOUR_COLOUR), linewidth=1.5)
-    _draw_path(axin, env, z, boxes, centres)
-    _path_markers(axin, centres, len(z) - 1, marker=0.7)
+    draw(axin)
     axin.set_xlim(zoom[0], zoom[2])
     axin.set_ylim(zoom[3], zoom[1])
     axin.set_xticks([])
@@ -371,20 +375,7 @@ def reading_map_figure(env, params, record, slide_index: int | None = None, scor
     ax.set_ylabel("y (level-0 px)")
     zoom = inset_box(boxes, width0, height0) if boxes else None
     if zoom is not None:  # views too small to see on the whole slide: a zoomed inset around them
-        cx, cy = (zoom[0] + zoom[2]) / 2, (zoom[1] + zoom[3]) / 2
-        axin = ax.inset_axes([0.02 if cx > width0 / 2 else 0.56, 0.02 if cy < height0 / 2 else 0.56, 0.42, 0.42])
-        crop = _level_crop(env, slide_index, zoom)
-        if crop is not None:
-            axin.imshow(crop[0], extent=(crop[1][0], crop[1][2], crop[1][3], crop[1][1]), interpolation="antialiased")
-        for ring in rings:
-            axin.plot(ring[:, 0], ring[:, 1], color=_rgb(TUMOUR_COLOUR), linewidth=1.5)
-        draw(axin)
-        axin.set_xlim(zoom[0], zoom[2])
-        axin.set_ylim(zoom[3], zoom[1])
-        axin.set_xticks([])
-        axin.set_yticks([])
-        axin.set_title(f"zoomed ×{max(1, round(width0 / (zoom[2] - zoom[0])))}", fontsize="x-small", pad=2)
-        ax.indicate_inset_zoom(axin, edgecolor="black")
+        _inset(ax, env, slide_index, zoom, rings, width0, height0, draw)
     if dots is not None:
         bar = fig.colorbar(dots, ax=ax, fraction=0.04, pad=0.02)
         bar.set_label("step first visited (0: the view at reset)")

@@ -216,7 +216,7 @@ def test_no_episodes_is_a_usage_error(argv, capsys):
     with pytest.raises(SystemExit) as e:  # argparse's usage error: exit status 2, before anything runs
         histojax_main(["evaluate", "--env", "HistoJAX-Easy-v0", *argv])
     assert e.value.code == 2
-    assert "--episodes: must be at least 1" in _one_error_line(capsys)
+    assert f"--episodes: '{argv[1]}' must be >= 1" in _one_error_line(capsys)
 
 
 def test_checkpoint_that_does_not_fit_its_config(tmp_path, capsys):

@@ -44,6 +44,7 @@ def tiny_run(tmp_path_factory):
     return out, json.loads((out / "gpu.json").read_text()), (out / "gpu.md").read_text()
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_every_section_has_figures_or_a_reason(tiny_run):
     _, report, md = tiny_run
     _check(report)
@@ -64,6 +65,7 @@ def test_every_section_has_figures_or_a_reason(tiny_run):
         assert title in md
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_the_checker_can_fail(tiny_run):
     _, report, _ = tiny_run
     broken = json.loads(json.dumps(report))

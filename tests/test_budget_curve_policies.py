@@ -74,6 +74,7 @@ def test_budget_curve_draws_a_recurrent_run(dataset, runs, tmp_path):
     assert (tmp_path / "budget_curve.png").stat().st_size > 1000
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_a_policy_is_scored_by_every_slide_head(dataset, runs):
     """With a max-logit head (pcam-cnn datasets), a policy's reads are scored by it too, beside the MIL."""
     train = budget_curve.load_split(dataset, "train", "HistoJAX-Easy-v0", 1)
@@ -108,6 +109,7 @@ def test_recurrent_evaluation_respects_the_reading_budget(dataset, runs, glimpse
             assert 0.0 <= score <= 1.0
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_recurrent_evaluation_jit_equals_no_jit(dataset, runs, glimpse_reads):
     with jax.disable_jit():
         plain = budget_curve.policy_reads(runs["glimpse:1"], dataset, "test", BUDGETS[-1:])

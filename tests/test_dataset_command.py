@@ -133,6 +133,7 @@ def test_registered_c16_ids_accept_such_a_dataset(c16_dataset):
         histojax.make("HistoJAX-C16-Hard-v1", dataset=out, verify=False)  # no feature grids: the fix named
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_v1_ids_take_scanned_slides_embedded_with_pcam_cnn(camelyon16, tmp_path):
     """The v1 ids' disjoint-patch-pool format concerns the c16 mosaics; scanned slides embedded with pcam-cnn
     (feature-only bundles) are what they observe."""

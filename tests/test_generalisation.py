@@ -25,6 +25,7 @@ def test_finite_mean_and_extremes_say_nan_without_warnings():
         assert np.isnan(s[0, 0]) and np.isnan(s[0, 1]) and s[0, 2] == 1.0 and s[1, 2] == 2.0
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_tiny_hard_run_where_no_episode_ends_writes_its_logs_without_warnings(tmp_path):
     """Hard with a long step limit and a tiny budget: no episode ends in most windows (the run that
     printed "Mean of empty slice" from the logs and the final window); NaN is recorded instead."""
@@ -120,6 +121,7 @@ def test_slide_ceiling_pools_view_logits_and_names_the_misses(c16_small, tmp_pat
         ceiling.slide_grids(bad, "train")
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 # ----------------------------------------------------------------------------- trainer options
 def test_entropy_anneal_and_dataset_normaliser(c16_small):
     import jax

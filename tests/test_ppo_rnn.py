@@ -101,6 +101,7 @@ def test_loss_replays_the_rollouts_log_probs_across_episode_ends():
     assert np.abs(np.asarray(wrong - traj.log_prob)).max() > 1e-3
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_short_run_beats_the_random_agent_and_evaluates_from_its_checkpoint(tmp_path, colour_feature_grid):
     from histojax.sample import sample_bundle
 

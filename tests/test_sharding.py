@@ -80,6 +80,7 @@ def runs(tmp_path_factory):
     return dict(np.load(out)), proc.stdout
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_env_batch_is_split_over_four_devices(runs):
     saved, _ = runs
     assert saved["one_renders_all"] and not saved["one_renders_quarter"]
@@ -88,6 +89,7 @@ def test_env_batch_is_split_over_four_devices(runs):
     assert saved["one_param_devices"] == 1 and saved["four_param_devices"] == 4  # params replicated on the mesh
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_sharded_run_trains_and_matches_one_device(runs):
     saved, stdout = runs
     params = sorted(k for k in saved if k.startswith("one_param_") and k != "one_param_devices")

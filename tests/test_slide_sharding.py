@@ -113,6 +113,7 @@ def runs(small_slides, tmp_path_factory):
     return json.loads(out.read_text())
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_each_device_holds_about_a_quarter_of_the_slides(runs):
     whole, per = runs["whole_bytes"], runs["per_device_bytes"]
     assert len(per) == 4 and len(set(per)) == 1  # padded to one shape
@@ -122,6 +123,7 @@ def test_each_device_holds_about_a_quarter_of_the_slides(runs):
     assert runs["ppo_argument_bytes"] >= per[0]
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_an_env_on_its_device_equals_the_same_env_on_one_device(runs):
     assert runs["group_sizes"] == [2, 1, 1, 1]
     assert runs["trajectories_equal"] == [True] * 4
@@ -131,6 +133,7 @@ def test_an_env_on_its_device_equals_the_same_env_on_one_device(runs):
         assert runs[f"slides_drawn_{d}"] == [0]
 
 
+@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_ppo_trains_on_sharded_slides(runs):
     assert runs["ppo_params_same_on_devices"]
     for name, values in runs["ppo_losses"].items():

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from data_tools.datasets.split import read_label_table, slide_key
+from data_tools.dicom import is_dicom
 from data_tools.errors import HistojaxDataError
 
 SLIDE_EXTENSIONS = (".svs", ".tif", ".tiff", ".ndpi", ".qptiff", ".btf", ".tf8", ".tf2")
@@ -105,15 +106,6 @@ def _file_kind(mode: int) -> str:
     return "not a regular file"
 
 
-def _is_dicom_file(path: Path) -> bool:
-    """The DICOM preamble + ``DICM`` at bytes 128..131 (``path`` is a regular file)."""
-    try:
-        with open(path, "rb") as f:
-            return f.read(132)[128:132] == b"DICM"
-    except OSError:
-        return False
-
-
 def _other_file_reason(name: str) -> str:
     low = name.lower()
     ext = os.path.splitext(low)[1]
@@ -127,6 +119,15 @@ def _other_file_reason(name: str) -> str:
     if ext == ".h5":
         return "an HDF5 file: features are read from --features-from"
     return f"not a slide ({', '.join(SLIDE_EXTENSIONS)}, DICOM) or an annotation ({', '.join(ANNOTATION_EXTENSIONS)})"
+
+
+def _stat_or_skip(path: Path, skipped: list) -> os.stat_result | None:
+    """``os.stat(path)`` (links followed), or None with ``path`` and why added to ``skipped``."""
+    try:
+        return os.stat(path)
+    except OSError as e:
+        skipped.append(Skipped(path, _unreadable(path, e)))
+        return None
 
 
 def _walk(root: Path, skip, skipped: list[Skipped]):
@@ -156,10 +157,8 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
             if d.startswith("."):
                 continue
             p = here / d
-            try:
-                st = os.stat(p)
-            except OSError as e:
-                skipped.append(Skipped(p, _unreadable(p, e)))
+            st = _stat_or_skip(p, skipped)
+            if st is None:
                 continue
             key = (st.st_dev, st.st_ino)
             if key in seen_dirs:
@@ -178,10 +177,8 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
             if f.startswith("."):
                 continue
             p = here / f
-            try:
-                st = os.stat(p)
-            except OSError as e:
-                skipped.append(Skipped(p, _unreadable(p, e)))
+            st = _stat_or_skip(p, skipped)
+            if st is None:
                 continue
             if not stat.S_ISREG(st.st_mode):
                 skipped.append(Skipped(p, f"{_file_kind(st.st_mode)}, not a regular file: never opened"))
@@ -190,7 +187,7 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
             regular[f] = p
         known = SLIDE_EXTENSIONS + ANNOTATION_EXTENSIONS + (".csv", ".h5")
         dicom = {f for f, p in regular.items()  # .dcm, no extension, or a UID as the name (1.2.840.....)
-                 if (f.lower().endswith(".dcm") or not f.lower().endswith(known)) and _is_dicom_file(p)}
+                 if (f.lower().endswith(".dcm") or not f.lower().endswith(known)) and is_dicom(p)}
         if dicom:
             slides.append(here)
         in_bundle = (here / "metadata.json").is_file()  # a bundle's own files are not the user's slides

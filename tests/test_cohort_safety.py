@@ -28,24 +28,11 @@ from data_tools.bundle_format import load_bundle, read_metadata
 from data_tools.datasets.build import build_dataset
 from data_tools.errors import BundleError, HistojaxDataError
 from histojax.sample import SAMPLE_SLIDE
+from slide_helpers import pyramid
 
 ROOT = Path(__file__).resolve().parents[1]
 
 
-def pyramid(path: Path, rgb: np.ndarray) -> Path:
-    """A 3-level pyramidal tiled TIFF (SubIFDs at 2x, 4x) of ``rgb`` at 0.5 µm/px."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    levels = [rgb]
-    while len(levels) < 3:
-        a = levels[-1]
-        h, w = a.shape[0] // 2 * 2, a.shape[1] // 2 * 2
-        levels.append(a[:h, :w].reshape(h // 2, 2, w // 2, 2, 3).mean((1, 3)).astype(np.uint8))
-    with tifffile.TiffWriter(path) as tif:
-        opts = dict(tile=(128, 128), photometric="rgb", resolutionunit="CENTIMETER")
-        tif.write(levels[0], subifds=2, resolution=(2e4, 2e4), **opts)
-        for k, lv in enumerate(levels[1:], 1):
-            tif.write(lv, subfiletype=1, resolution=(2e4 / 2**k, 2e4 / 2**k), **opts)
-    return path
 
 
 @pytest.fixture(scope="module")

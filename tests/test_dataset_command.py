@@ -24,6 +24,7 @@ from data_tools.datasets.locks import bundle_lock_path, clean_stale, file_lock
 from data_tools.datasets.split import read_label_table, seeded_split, shard_names
 from data_tools.errors import BundleError, HistojaxDataError
 from histojax.sample import SAMPLE_SLIDE
+from slide_helpers import pyramid
 
 DATA = Path(__file__).parent / "data"
 C16_XML = DATA / "annotations" / "tumor_039.xml"
@@ -35,21 +36,6 @@ def pixels():
         return tif.pages[0].asarray()
 
 
-def pyramid(path: Path, rgb: np.ndarray, mpp: float = 0.5) -> Path:
-    """A 3-level pyramidal tiled TIFF (SubIFDs at 2x, 4x) of ``rgb`` with µm/px in the resolution tags."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    levels = [rgb]
-    while len(levels) < 3:
-        a = levels[-1]
-        h, w = a.shape[0] // 2 * 2, a.shape[1] // 2 * 2
-        levels.append(a[:h, :w].reshape(h // 2, 2, w // 2, 2, 3).mean((1, 3)).astype(np.uint8))
-    ppc = 1e4 / mpp
-    with tifffile.TiffWriter(path) as tif:
-        opts = dict(tile=(128, 128), photometric="rgb", resolutionunit="CENTIMETER")
-        tif.write(levels[0], subifds=2, resolution=(ppc, ppc), **opts)
-        for k, lv in enumerate(levels[1:], 1):
-            tif.write(lv, subfiletype=1, resolution=(ppc / 2**k, ppc / 2**k), **opts)
-    return path
 
 
 def crop(pixels, i: int, size=(640, 512)) -> np.ndarray:

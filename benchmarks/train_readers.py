@@ -86,7 +86,7 @@ def main(argv=None) -> int:
     p.add_argument("--total-steps", type=int, default=200_000, help="env steps per seed")
     p.add_argument("--num-envs", type=int, default=32)
     p.add_argument("--read-budget", type=float, default=0.2)
-    p.add_argument("--gain", default="log", choices=("log", "prob", "none"))
+    p.add_argument("--gain", default="log", choices=("log", "prob", "fidelity", "none"))
     p.add_argument("--final", type=float, default=1.0)
     p.add_argument("--read-cost", type=float, default=0.0)
     p.add_argument("--val-fraction", type=float, default=0.3)

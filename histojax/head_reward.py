@@ -16,7 +16,12 @@ After every step the wrapper scores **what has been read so far** with the head
 
 * ``gain``: the head's gain in confidence in the slide's true class, after the step minus before —
   ``"log"``: ``log p(true class)`` (a potential difference: summed over an episode it is the final
-  log-probability minus the prior's), ``"prob"``: ``p(true class)``; ``None`` / ``False``: no gain term;
+  log-probability minus the prior's), ``"prob"``: ``p(true class)``; or ``"fidelity"`` (SASHA's own
+  reward, label-free): how much closer the head's slide logit of what has been read came to its logit
+  of the whole slide read, ``|s_before − s_all| − |s_after − s_all|`` (logit units; summed over an
+  episode, the gap closed). A reader rewarded so learns to read what the read-everything head would
+  base its score on, on tumour and normal slides alike, and gains nothing by stopping early;
+  ``None`` / ``False``: no gain term;
 * ``final``: at the episode's end (terminated or truncated), ``final`` when the head's diagnosis
   (``p(tumour) ≥ 0.5``) is the slide's label, 0 otherwise (``0`` / ``False``: no final term);
 * ``read_cost``: subtracted once for every step that reads new finest-level tissue views (a *read*: a
@@ -53,7 +58,7 @@ from histojax import reading
 from histojax.adapters.jax import Wrapper
 from histojax.head import SlideHead, score_logits
 
-GAINS = ("log", "prob")
+GAINS = ("log", "prob", "fidelity")
 
 
 @struct.dataclass
@@ -65,6 +70,7 @@ class HeadTables:
     cell: jnp.ndarray        # (S, H, W) int32 glimpse cell (padded index) holding each view; 0 for other modes
     grid: jnp.ndarray        # (S, 2) int32 (gh, gw) each slide's own finest grid
     label: jnp.ndarray       # (S,) int32 slide label (1 tumour)
+    full_logit: jnp.ndarray  # (S,) float32 the head's slide logit with every tissue view read
 
 
 @struct.dataclass
@@ -107,11 +113,14 @@ def build_tables(env, head: SlideHead, params=None) -> HeadTables:
         out = np.full((h, w), fill, a.dtype)
         out[: a.shape[0], : a.shape[1]] = a
         return out
-    return HeadTables(logits=jnp.asarray(np.stack([pad(r[0].astype(np.float32), 0.0) for r in rows])),
-                      tissue=jnp.asarray(np.stack([pad(r[1], False) for r in rows])),
+    logits = jnp.asarray(np.stack([pad(r[0].astype(np.float32), 0.0) for r in rows]))
+    tissue = jnp.asarray(np.stack([pad(r[1], False) for r in rows]))
+    full = jax.jit(jax.vmap(lambda lg, ts: score_logits(head, lg, ts)))(logits, tissue)
+    return HeadTables(logits=logits, tissue=tissue,
                       cell=jnp.asarray(np.stack([pad(r[2], 0) for r in rows]), jnp.int32),
                       grid=jnp.asarray([r[1].shape for r in rows], jnp.int32),
-                      label=jnp.asarray([r[3] for r in rows], jnp.int32))
+                      label=jnp.asarray([r[3] for r in rows], jnp.int32),
+                      full_logit=full.astype(jnp.float32))
 
 
 class HeadReward(Wrapper):
@@ -195,6 +204,9 @@ class HeadReward(Wrapper):
             reward = reward + self.log_prob_true(logit, label) - self.log_prob_true(state.logit, label)
         elif self.gain == "prob":
             reward = reward + jnp.exp(self.log_prob_true(logit, label)) - jnp.exp(self.log_prob_true(state.logit, label))
+        elif self.gain == "fidelity":
+            full = self.tables.full_logit[env_st.slide_index]
+            reward = reward + jnp.abs(state.logit - full) - jnp.abs(logit - full)
         if self.final:
             reward = reward + jnp.where(done & correct, self.final, 0.0)
         if self.read_cost:

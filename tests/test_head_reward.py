@@ -112,6 +112,33 @@ def test_glimpse_reward_is_the_heads_gain_by_hand(glimpse):
     assert seen_read >= 3 and seen_end >= 2  # the trajectory read cells and ended episodes
 
 
+def test_fidelity_reward_is_the_gap_to_the_read_everything_score_closed(glimpse):
+    """gain="fidelity" (SASHA's label-free reward): each reward = |s_before − s_all| − |s_after − s_all| with
+    s_all the head's logit of the whole slide's tissue read, computed by hand; over an episode the rewards sum to
+    the gap closed, whatever the slide's label."""
+    env, params, _ = glimpse
+    wrapped = HeadReward(env, HEAD, gain="fidelity", final=0.0)
+    finest = _finest(env, params)
+    full = [float(score_logits(HEAD, jnp.asarray(lg), jnp.asarray(ts))) for lg, ts in finest]
+    np.testing.assert_allclose(np.asarray(wrapped.tables.full_logit), full, rtol=1e-6, atol=1e-6)
+    step = jax.jit(wrapped.step)
+    obs, state = jax.jit(wrapped.reset)(jax.random.key(5), params)
+    rng = np.random.default_rng(1)
+    gained = nonzero = 0
+    for t in range(30):
+        i = int(state.env_state.slide_index)
+        valid = np.flatnonzero(np.asarray(params.mode_data.valid[i]))
+        before = float(state.logit)
+        obs, new, reward, term, trunc, info = step(jax.random.key(200 + t), state, int(rng.choice(valid)), params)
+        after = float(info["head_score"])
+        expected = abs(before - full[i]) - abs(after - full[i])
+        np.testing.assert_allclose(float(reward), expected, rtol=1e-5, atol=1e-5)
+        nonzero += abs(expected) > 1e-6
+        gained += expected > 1e-6
+        state = new
+    assert nonzero >= 3 and gained >= 1  # reads moved the score, some towards the read-everything score
+
+
 def test_navigator_reads_are_the_finest_views_it_stood_on(navigation):
     """A navigator's head score is the head on the finest views its view stood on (marked by hand)."""
     env, params, wrapped = navigation

@@ -12,7 +12,17 @@ the package such as ``baselines/published/NAME``) one row per policy:
 
 Columns: success rate (target reached at the finest level), mean return, mean episode length,
 mean steps to success (over the successful episodes), mean fraction of the slide read and fields of
-view, and for a diagnosis the AUC of the policy's tumour score. Episodes run without auto-reset until
+view, and for a diagnosis the AUC of the policy's tumour score.
+
+**Readers trained with SASHA's reward** (``python -m benchmarks.train_readers``; their run folder holds a
+``head_reward.json`` naming the slide head; ``--head DIR`` names another, or scores any checkpoint's reading
+through a head): the policy only chooses where to read, until it stops or its budget is spent, and the
+**head declares** — it scores the finest views each episode read (:func:`head_env`), every row through
+the same head; columns ``AUC`` over all slides and ``AUC w/o ITC`` without ITC-only tumour slides
+(CAMELYON's lesion classes from the bundles' tumour polygons, when every tumour slide has them), success
+= the head's diagnosis right, each slide read equally often. A cell-set reader (the ``-v2`` ids) runs on
+slides of any size; a flat glimpse policy (``-v1``) on a slide wider or taller than its cell grid, a
+retired published folder and a slide head folder are refused in one line saying what to use instead. Episodes run without auto-reset until
 success or the step limit. Also writes, on each episode's own slide, ``trajectory_<policy>.png``
 (histojax.render.render_trajectory), ``reading_<policy>_tumour.png`` / ``_normal.png`` (where it read,
 histojax.render.render_reading_map) and ``trajectory.gif`` (histojax.render.animate) of one episode of
@@ -127,7 +137,12 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
     every episode); e.g. a per-episode slide (``slide.slide_logits (E, S)``) and reading budget
     (``mode_data.read_budget (E,)``), see :func:`per_episode_params`. ``final=True`` also returns
     ``final_state`` (the env states at the episodes' ends) and ``final_memory`` (the policy's
-    memory; ``()`` for a feed-forward policy), as pytrees of numpy arrays."""
+    memory; ``()`` for a feed-forward policy), as pytrees of numpy arrays.
+
+    An env wrapped in :class:`histojax.head_reward.HeadReward` also gives per episode ``head_score``
+    (the slide head's tumour logit of what the episode read, at its last step) and ``head_correct``
+    (the head's diagnosis right); ``NaN`` / False for other envs. Trajectories and ``final_state`` are
+    the wrapped env's own states."""
     from histojax.registry import check_params
 
     check_params(env, env_params, where="evaluate: env params")  # changed after make: named, not run
@@ -135,16 +150,17 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
     step = jax.vmap(env.step, in_axes=(0, 0, 0, params_axes))
     reset = jax.vmap(env.reset, in_axes=(0, params_axes))
     recurrent = hasattr(policy, "initial_memory")
+    inner = lambda s: getattr(s, "env_state", s)  # noqa: E731  (a HeadReward state holds the env's)
 
     @jax.jit
     def go(key, env_params):
         key, k_reset = jax.random.split(key)
         obs, state = reset(jax.random.split(k_reset, num_episodes), env_params)
-        start = state  # the views at reset: entry 0 of the trajectories
+        start = inner(state)  # the views at reset: entry 0 of the trajectories
         zeros = jnp.zeros(num_episodes)
 
         def body(carry, k):
-            (obs, state, done, ret, length, success, memory), (read, fields) = carry
+            (obs, state, done, ret, length, success, memory), (read, fields, head, right) = carry
             k_act, k_step = jax.random.split(k)
             if recurrent:
                 action, memory2 = policy(k_act, obs, memory)
@@ -160,20 +176,27 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
             state, obs, memory = keep(state, state2), keep(obs, obs2), keep(memory, memory2)
             read = jnp.where(active, info.get("fraction_read", read), read)
             fields = jnp.where(active, info.get("fields_of_view", fields), fields)
+            head = jnp.where(active, info.get("head_score", head), head)
+            right = jnp.where(active, info.get("head_correct", right), right)
             done = done | term | trunc
-            return ((obs, state, done, ret, length, success, memory), (read, fields)), (state.z, state.x, state.y)
+            view = inner(state)
+            return ((obs, state, done, ret, length, success, memory), (read, fields, head, right)), (view.z, view.x,
+                                                                                                     view.y)
 
         memory = policy.initial_memory(num_episodes) if recurrent else ()
         carry = ((obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool), memory),
-                 (jnp.full(num_episodes, jnp.nan, jnp.float32), jnp.full(num_episodes, -1, jnp.int32)))
-        ((_, state, _, ret, length, success, memory), (read, fields)), (z, x, y) = jax.lax.scan(
+                 (jnp.full(num_episodes, jnp.nan, jnp.float32), jnp.full(num_episodes, -1, jnp.int32),
+                  jnp.full(num_episodes, jnp.nan, jnp.float32), jnp.zeros(num_episodes, bool)))
+        ((_, state, _, ret, length, success, memory), (read, fields, head, right)), (z, x, y) = jax.lax.scan(
             body, carry, jax.random.split(key, max_steps))
+        state = inner(state)
         cat = lambda a0, a: jnp.concatenate([a0[None], a])  # noqa: E731
         return (ret, success, length, state.slide_index, read, fields, cat(start.z, z), cat(start.x, x),
-                cat(start.y, y)), (state, memory)
+                cat(start.y, y), head, right), (state, memory)
 
     out, (state, memory) = jax.device_get(go(key, env_params))
-    names = ("return", "success", "length", "slide", "fraction_read", "fields_of_view", "z", "x", "y")
+    names = ("return", "success", "length", "slide", "fraction_read", "fields_of_view", "z", "x", "y", "head_score",
+             "head_correct")
     episodes = dict(zip(names, (np.asarray(a) for a in out)))
     if final:
         episodes["final_state"], episodes["final_memory"] = state, memory
@@ -236,6 +259,9 @@ def summarise(ep: dict, slide_names=None) -> dict:
     if "tumour_score" in ep:  # diagnosis: AUC of the policy's p(tumour), accuracy of thresholding it at 0.5
         row["diagnosis_auc"] = roc_auc(ep["tumour_score"], ep["label"])
         row["score_accuracy"] = accuracy(ep["tumour_score"], ep["label"])
+    if "lesion" in ep:  # ITC-only slides left out (CAMELYON's isolated tumour cells)
+        keep = ep["lesion"] != "ITC"
+        row["diagnosis_auc_no_itc"] = roc_auc(ep["tumour_score"][keep], ep["label"][keep])
     if slide_names is not None and len(slide_names) > 1:
         row["by_slide"] = {name: {"episodes": int((ep["slide"] == i).sum()),
                                   "successes": int(s[ep["slide"] == i].sum()),
@@ -341,18 +367,31 @@ def eval_env(config: dict, slide=None, augment: bool = False):
 
 def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
              label: str = "learned", augment: bool = False, references: bool = True, source=None,
-             progress: bool = False, warnings: list | None = None) -> dict:
+             progress: bool = False, warnings: list | None = None, head=None, head_reward: dict | None = None) -> dict:
     """Rows for the learned policy (greedy and sampled; seeds pooled), the random agent and the
     scripted policy (``references=False``: without these two) on one slide; writes trajectory
     pictures and reading maps to ``out`` when given (:func:`write_pictures`). Training-time view
     augmentation (``env_kwargs["augment"]``) is switched off unless ``augment=True``: a slide is
     evaluated as it is. ``source``: the run folder, named when its parameters do not fit the network
     its config describes; ``progress``: a line on stderr per policy as it runs. A warning when the slides
-    cannot be scored (:func:`split_warnings`) is printed with ``progress`` and appended to ``warnings``."""
+    cannot be scored (:func:`split_warnings`) is printed with ``progress`` and appended to ``warnings``.
+
+    ``head`` (a :class:`histojax.head.SlideHead`): **the head declares** — every row's episodes run in the
+    env wrapped in :class:`histojax.head_reward.HeadReward` (``head_reward``: the run's reward settings
+    ``gain``, ``final``, ``read_cost`` from its ``head_reward.json``, so the return is the one it trained
+    for; without them the env's own reward), the policy only chooses where to read (its declaring
+    actions just stop the reading), and at each episode's end the head scores the finest views read:
+    ``success`` is the head's diagnosis right, ``diagnosis_auc`` the AUC of its score and
+    ``diagnosis_auc_no_itc`` the same without ITC-only slides (when every tumour slide's lesion class is
+    known, :func:`lesion_classes`). Episode ``e`` of each policy reads slide ``e mod S``: every slide
+    equally often."""
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be at least 1, got {num_episodes}")
     config, (env, env_params) = eval_env(config, slide, augment)
     names = [Path(b.path).name for b in env.bundles]
+    picture_env, classes = env, None
+    if head is not None:
+        env, classes = head_env(env, env_params, head, head_reward)
     mode = config["action_mode"]
     key = jax.random.PRNGKey(seed)
     rows, episodes = {}, {}
@@ -368,18 +407,24 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
         say(f"warning: {w}")
         if warnings is not None:
             warnings.append(w)
+    def episodes_of(policy, k, n):  # n episodes; through a head, episode e reads slide e mod S
+        if head is None:
+            return run_episodes(env, env_params, policy, k, n, final=declare is not None)
+        per, axes = per_episode_params(env_params, np.arange(n) % len(names))
+        return head_scored(run_episodes(env, per, policy, k, n, params_axes=axes), env_params, classes)
+
+    declare = None
     if params is not None:
         network = network_for(config, env)
         variants = [("greedy", True)] if isinstance(network, QNetwork) else [("greedy", True), ("sampled", False)]
-        declare = diagnosis_actions(env, network, mode)
+        declare = diagnosis_actions(env, network, mode) if head is None else None  # through a head: it declares
         for name, greedy in variants:
             # every seed in one program (one compile): episodes [s E, (s + 1) E) run seed s's policy
             policy = seeds_policy(lambda p: learned_policy(network, p, mode, greedy, declare=declare),
                                   params_seeds, num_seeds)
             check_fits(policy, env, env_params, num_seeds, config, source)
             say(f"  {label} ({name}): {num_episodes * num_seeds} episodes ...")
-            ep = run_episodes(env, env_params, policy, jax.random.fold_in(key, 100), num_episodes * num_seeds,
-                              final=declare is not None)
+            ep = episodes_of(policy, jax.random.fold_in(key, 100), num_episodes * num_seeds)
             if declare is not None:  # the policy's p(tumour) at its decision, and the slides' labels
                 ep["tumour_score"] = np.asarray(ep.pop("final_memory")[1], np.float64)
                 ep["label"] = episode_labels(env_params, ep["slide"])
@@ -397,7 +442,8 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     say(f"  random: {num_episodes} episodes ...")
     space = env.action_space()
     rand = lambda k, obs: jax.vmap(space.sample)(jax.random.split(k, jax.tree.leaves(obs)[0].shape[0]))  # noqa: E731
-    episodes["random"] = run_episodes(env, env_params, rand, jax.random.fold_in(key, 1), num_episodes)
+    declare = None
+    episodes["random"] = episodes_of(rand, jax.random.fold_in(key, 1), num_episodes)
     rows["random"] = summarise(episodes["random"], names)
     if isinstance(env.observation_space(), dict) or env.obs_mode in ("pixels", "pixels_float"):
         def scripted(k, obs):
@@ -419,8 +465,73 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
         rows["scripted"] = summarise(episodes["scripted"], names)
     if out is not None:
         say(f"  pictures to {out} ...")
-        write_pictures(env, env_params, episodes, Path(out), config["env_id"])
+        write_pictures(picture_env, env_params, episodes, Path(out), config["env_id"])
     return rows
+
+
+def head_env(env, env_params, head, settings: dict | None = None):
+    """``(env wrapped in HeadReward, lesion classes per slide or None)`` for :func:`evaluate` with a head.
+    ``settings``: ``gain``, ``final``, ``read_cost`` of a run's ``head_reward.json`` (None: no head reward
+    terms, the env's own reward). ``ValueError`` (one line) when the slides' features do not carry the
+    head's view logit."""
+    from histojax.head_reward import HeadReward
+
+    encoders = sorted({str((b.metadata.get("features") or {}).get("encoder")) for b in env.bundles} - {"None"})
+    if head.encoder and any(e != head.encoder for e in encoders):
+        raise ValueError(f"a slide head for {head.encoder} features; these slides hold {', '.join(encoders)} features "
+                         "(fit a head on them: python -m baselines.head_fit)")
+    features = getattr(env_params.slide, "features", None)
+    dim = int(np.shape(features)[-1]) if features is not None else 0
+    if head.dim >= dim:
+        raise ValueError(f"the slide head reads feature entry {head.dim} ({head.encoder or 'its encoder'}'s view "
+                         f"logit); these slides' features have {dim} entries: score slides embedded with "
+                         f"{head.encoder or 'the encoder the head was fitted on'}")
+    if settings:
+        gain = settings.get("gain")
+        wrapped = HeadReward(env, head, gain=None if gain in (None, "none", False) else gain,
+                             final=float(settings.get("final") or 0.0), read_cost=float(settings.get("read_cost") or 0.0),
+                             params=env_params)
+    else:
+        wrapped = HeadReward(env, head, gain=None, final=0.0, env_reward=True, params=env_params)
+    return wrapped, lesion_classes(env, env_params)
+
+
+def head_scored(ep: dict, env_params, classes) -> dict:
+    """:func:`run_episodes` output of a :class:`~histojax.head_reward.HeadReward` env with the head's
+    diagnosis in the fields :func:`summarise` scores: ``tumour_score`` (the head's p(tumour) of what was
+    read), ``label``, ``success`` (the head right) and, with ``classes``, ``lesion`` per episode."""
+    ep["tumour_score"] = 1.0 / (1.0 + np.exp(-np.asarray(ep["head_score"], np.float64)))
+    ep["label"] = episode_labels(env_params, ep["slide"])
+    ep["success"] = np.asarray(ep["head_correct"], bool)
+    if classes is not None:
+        ep["lesion"] = np.asarray(classes)[ep["slide"]]
+    return ep
+
+
+def lesion_classes(env, env_params) -> list[str] | None:
+    """CAMELYON's lesion class of each slide of ``env`` (``normal``, ``ITC``, ``micro``, ``macro``:
+    :func:`baselines.readers.lesion_of` on the bundle's tumour polygons at its µm/px), or None when a tumour
+    slide's class cannot be known (no polygons, no µm/px)."""
+    from data_tools.annotations import load_annotations
+    from baselines.readers import lesion_of
+
+    labels = np.atleast_1d(np.asarray(jax.device_get(env_params.slide.slide_label))).astype(int)
+    out = []
+    for bundle, label in zip(env.bundles, np.broadcast_to(labels, (len(env.bundles),))):
+        if not label:
+            out.append("normal")
+            continue
+        folder = Path(bundle.path)
+        try:
+            mpp = float(json.loads((folder / "metadata.json").read_text())["source"]["mpp"])
+            geom = load_annotations(folder / "annotations.geojson").tumour
+        except (OSError, ValueError, KeyError, TypeError, HistojaxDataError):
+            return None
+        cls, _ = lesion_of(geom, mpp) if np.isfinite(mpp) and mpp > 0 else ("unknown", None)
+        if cls == "unknown":
+            return None
+        out.append(cls)
+    return out
 
 
 def check_fits(policy, env, env_params, num_seeds: int, config: dict, source=None) -> None:
@@ -536,19 +647,28 @@ def with_dataset(config: dict, dataset=None, split: str | None = None) -> dict:
     return {**config, "env_kwargs": kw, "slide": None}
 
 
-def print_table(title: str, rows: dict) -> None:
+def print_table(title: str, rows: dict, head: str | None = None) -> None:
     """The printed table: per policy episodes, success, mean return / length, steps to success, mean fraction
-    of the slide read and fields of view; with a diagnosis score (``diagnosis_auc``), its AUC too."""
+    of the slide read and fields of view; with a diagnosis score (``diagnosis_auc``), its AUC too, and
+    without ITC-only slides (``diagnosis_auc_no_itc``) when known. ``head``: the slide head that declared
+    (its name and folder), said under the table."""
     auc = any("diagnosis_auc" in r for r in rows.values())
+    no_itc = any("diagnosis_auc_no_itc" in r for r in rows.values())
     print(f"\n{title}")
     print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}"
-          f" {'read':>6} {'fields':>6}" + (f" {'AUC':>6}" if auc else ""))
+          f" {'read':>6} {'fields':>6}" + (f" {'AUC':>6}" if auc else "") + (f" {'AUC w/o ITC':>11}" if no_itc else ""))
     for name, r in rows.items():
         cell = f" {r['diagnosis_auc']:>6.3f}" if "diagnosis_auc" in r else f" {'-':>6}"
+        cell2 = f" {r['diagnosis_auc_no_itc']:>11.3f}" if "diagnosis_auc_no_itc" in r else f" {'-':>11}"
         print(f"{name:<22} {r['episodes']:>8} {r['success_rate']:>8.1%} {r['mean_return']:>11.3f} "
               f"{r['mean_length']:>11.1f} {r['mean_steps_to_success']:>16.1f} {r['mean_fraction_read']:>6.1%} "
-              f"{r['mean_fields_of_view']:>6.1f}" + (cell if auc else ""))
-    if auc:
+              f"{r['mean_fields_of_view']:>6.1f}" + (cell if auc else "") + (cell2 if no_itc else ""))
+    if head:
+        print(f"the head declares: the policy chooses where to read, then the slide head {head} scores the finest "
+              "views read; success: the head's diagnosis was right; AUC: of the head's score over the episodes "
+              "(each slide equally often)" + ("; AUC w/o ITC: ITC-only tumour slides left out" if no_itc else "")
+              + " (read: mean fraction of the slide's tissue views read)")
+    elif auc:
         print("success: the diagnosis declared was right; AUC: of the policy's tumour score over the slides "
               "(read: mean fraction of the slide's tissue views read)")
 
@@ -576,6 +696,10 @@ def add_arguments(p) -> None:
                         "package such as baselines/published/NAME, or runs/eval-<env> without a checkpoint)")
     p.add_argument("--augment", action="store_true",
                    help="keep the checkpoint's training-time view augmentation (default: slides as they are)")
+    p.add_argument("--head", default=None,
+                   help="slide head folder (histojax.head) that declares: the policy only chooses where to read, "
+                        "the head scores what was read (default: the head a reader trained with SASHA's reward "
+                        "names in its head_reward.json; none for other checkpoints)")
 
 
 def default_out(run: Path | None, env_id: str) -> Path:
@@ -687,7 +811,9 @@ def run(args, parser) -> int:
     if args.checkpoint is None and args.env is None:
         parser.error("give a CHECKPOINT or --env")
     warnings = []
+    settings, where = None, None
     if args.checkpoint is not None:
+        refuse_not_an_agent(Path(args.checkpoint))
         run = Path(args.checkpoint)
         run = run if run.is_dir() else run.parent
         try:  # a config.json that is not an object is named before loading (which would fail on it in its own words)
@@ -699,6 +825,7 @@ def run(args, parser) -> int:
         warnings += check_config(config, run / "config.json")
         check_params_tree(params, run / "params.msgpack")
         label = config.get("algo") or ("dqn" if "buffer_size" in config else "ppo")
+        settings, where = head_reward_settings(run, config)
     else:
         params, config, run, label = None, {"action_mode": args.action_mode, "with_position": args.with_position,
                                             "obs_mode": "pixels", "hidden": 256}, None, "none"
@@ -708,6 +835,16 @@ def run(args, parser) -> int:
     config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None))
     if run is not None:
         warnings += provenance_warnings(trained, config, run / "config.json")
+    head, head_dir = None, None
+    if getattr(args, "head", None) or settings:
+        from histojax.head import SlideHead
+
+        head_dir = Path(args.head) if getattr(args, "head", None) else resolve_head(settings["head"], run, where)
+        head = SlideHead.load(head_dir)  # ValueError naming the file: one line
+        recorded = (settings or {}).get("head_name")
+        if recorded and not getattr(args, "head", None) and recorded != head.name:
+            warnings.append(f"{where}: the reader trained with the head {recorded!r}; the head found at {head_dir} "
+                            f"is {head.name!r}")
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
     out = Path(args.out) if args.out else default_out(run, config["env_id"])
@@ -720,25 +857,126 @@ def run(args, parser) -> int:
                          if dataset else "embedded sample slide")
         print(f"evaluating {config['env_id']} on {name} ({i + 1} of {len(slides)}), {args.episodes} episodes per "
               "policy ...", file=sys.stderr, flush=True)
-        rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub, label=label,
-                        augment=args.augment, source=run, progress=True, warnings=warnings)
+        try:
+            rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub,
+                            label=label, augment=args.augment, source=run, progress=True, warnings=warnings,
+                            head=head, head_reward=settings if not getattr(args, "head", None) else None)
+        except ValueError as e:
+            raise grid_refusal(e, run) from None
         print_table(f"{config['env_id']} on {name} ({args.episodes} episodes per policy"
-                    f"{' per seed' if params is not None else ''})", rows)
+                    f"{' per seed' if params is not None else ''})", rows,
+                    head=f"{head.name!r} ({head_dir})" if head is not None else None)
         results[name] = rows
     out.mkdir(parents=True, exist_ok=True)
-    outputs.write_text(out / "eval.json", json.dumps({"env_id": config["env_id"], "results": results,
-                                                      "warnings": warnings}, indent=2))
+    record = {"env_id": config["env_id"], "results": results, "warnings": warnings}
+    if head is not None:
+        record["head"] = {"folder": str(head_dir), "name": head.name, "reward": settings}
+    outputs.write_text(out / "eval.json", json.dumps(record, indent=2))
     with outputs.open_text(out / "eval.csv") as f:
         w = csv.writer(f)
         w.writerow(["slide", "policy", "episodes", "success_rate", "mean_return", "mean_length", "mean_steps_to_success",
-                    "mean_fraction_read", "mean_fields_of_view", "diagnosis_auc"])
+                    "mean_fraction_read", "mean_fields_of_view", "diagnosis_auc", "diagnosis_auc_no_itc"])
         for slide, rows in results.items():
             for name, r in rows.items():
                 w.writerow([slide, name, r["episodes"], r["success_rate"], r["mean_return"], r["mean_length"],
                             r["mean_steps_to_success"], r["mean_fraction_read"], r["mean_fields_of_view"],
-                            r.get("diagnosis_auc", "")])
+                            r.get("diagnosis_auc", ""), r.get("diagnosis_auc_no_itc", "")])
     print(f"\nwrote {out}/eval.json, eval.csv, trajectory_*.png, reading_*.png, trajectory.gif")
     return 0
+
+
+# ----------------------------------------------------------------------------- published readers
+SET_READER = "c16-v2-set-reader"  # the published cell-set reader: reads slides of any size
+# published folders retired, with what replaced them: `histojax evaluate` on the old path names the new one
+RETIRED = {"c16-v1-glimpse-reader": (SET_READER, "a flat glimpse policy over a padded 16 × 14 cell grid, it could "
+                                                 "not read a slide wider or taller than that grid")}
+
+
+def published_path(name: str) -> Path:
+    """``baselines/published/NAME``, relative to the working folder when it lies under it."""
+    from baselines.publish import PUBLISHED
+
+    path = PUBLISHED / name
+    try:
+        return path.relative_to(Path.cwd())
+    except ValueError:
+        return path
+
+
+def refuse_not_an_agent(path: Path) -> None:
+    """Refuse, in one line saying why and what to use instead, a published folder that was retired
+    (:data:`RETIRED`; the folder is gone) and a slide head folder (``histojax.head``: it scores what a
+    reader read, it does not act)."""
+    from histojax.head import KIND
+
+    name = path.parent.name if path.name == "params.msgpack" else path.name
+    if not path.exists() and name in RETIRED:
+        new, why = RETIRED[name]
+        raise HistojaxDataError(path, f"the published agent {name} was retired ({why}); its results stay in "
+                                f"docs/c16-results-history.md; use {published_path(new)}, which reads slides of any "
+                                f"size: histojax evaluate {published_path(new)} --dataset DIR")
+    try:
+        kind = json.loads((path / "config.json").read_text()).get("kind") if path.is_dir() else None
+    except (OSError, ValueError, AttributeError):
+        kind = None
+    if kind == KIND:
+        raise HistojaxDataError(path, "a slide head, not an agent: it scores what a reader read, it does not act; "
+                                f"score a reader through it: histojax evaluate READER --head {path} --dataset DIR "
+                                f"(or python -m baselines.readers --head {path} --dataset DIR)")
+
+
+def grid_refusal(error: ValueError, run) -> ValueError:
+    """``error`` of a flat glimpse policy (the ``-v1`` observation, a padded cell grid pinned at training) on
+    a slide whose cells do not fit that grid, as one line saying that this policy cannot read it by
+    construction and which reader to use instead; any other error unchanged."""
+    text = str(error)
+    if run is None or "do not fit glimpse_grid" not in text:
+        return error
+    where = text.split(" (the grid a policy was trained with)")[0]
+    set_reader = published_path(SET_READER)
+    use = (f"use the cell-set reader, which reads slides of any size: histojax evaluate {set_reader} --dataset DIR"
+           if (Path(run).resolve().parent / SET_READER).is_dir() or set_reader.is_dir() else
+           "use a cell-set reader, which reads slides of any size (the -v2 ids; python -m benchmarks.train_readers "
+           "trains one)")
+    return ValueError(f"{where}: {run} is a flat glimpse policy over the padded cell grid it trained on, so it cannot "
+                      f"read a slide wider or taller than that grid; {use}")
+
+
+def head_reward_settings(run: Path, config: dict) -> tuple[dict | None, Path | None]:
+    """``(settings, file)`` of a reader trained with SASHA's reward (``RUN/head_reward.json`` as
+    ``benchmarks.train_readers`` writes it, or a ``head_reward`` object in ``config.json``): ``head``
+    (its slide head folder), ``gain``, ``final``, ``read_cost``; ``(None, None)`` for other runs."""
+    f = run / "head_reward.json"
+    if f.is_file():
+        try:
+            record = json.loads(f.read_text())
+        except (OSError, ValueError) as e:
+            raise HistojaxDataError(f, f"unreadable ({type(e).__name__}: {e})") from None
+        if not isinstance(record, dict) or not isinstance(record.get("head"), str) or not record["head"]:
+            raise HistojaxDataError(f, "names no slide head (a 'head' folder, as benchmarks.train_readers writes it); "
+                                    "give --head DIR")
+        return record, f
+    record = config.get("head_reward")
+    if isinstance(record, dict) and isinstance(record.get("head"), str) and record["head"]:
+        return record, run / "config.json"
+    return None, None
+
+
+def resolve_head(recorded: str, run: Path, where) -> Path:
+    """The slide head folder a run names (``recorded``): as given when absolute; else beside the run, in the
+    working folder, in the repository, or a published head of that name. ``HistojaxDataError`` naming
+    ``where`` (the file that names it) when none holds a ``config.json``."""
+    from baselines.publish import PUBLISHED
+
+    p = Path(recorded)
+    tries = [p] if p.is_absolute() else [run / p, p, Path(__file__).resolve().parents[1] / p]
+    tries.append(PUBLISHED / p.name)
+    for c in tries:
+        if (c / "config.json").is_file():
+            return c
+    raise HistojaxDataError(where, f"names the slide head {recorded!r}, which is not here (looked beside the run, in "
+                            "the working folder and in baselines/published); give --head DIR, e.g. --head "
+                            f"{published_path('c16-v2-head')}")
 
 
 def check_params_tree(params, path) -> None:

@@ -11,7 +11,8 @@
     histojax demo [--no-train]        random-agent table, then PPO trained and evaluated on Easy (`make demo`)
     histojax train [--algo ppo|dqn|ppo_rnn]   pure-JAX baselines (`python -m baselines.ppo|dqn|ppo_rnn`);
                                       --dataset DIR --split S; --resume RUN continues a killed run
-    histojax evaluate CHECKPOINT      success rate, return, steps to success, trajectory pictures
+    histojax evaluate CHECKPOINT      success rate, return, steps to success, trajectory pictures; a reader:
+                                      AUC through its slide head (--head DIR), fraction read; --dataset DIR
     histojax rotation --budget-mb MB  PPO on a dataset larger than the device, slides rotated through it
     histojax budget-curve --dataset DS   diagnosis AUC against the fraction of the slide read
     histojax reproduce [--quick]      the paper's tables: every algorithm trained, evaluated, tabulated

@@ -253,8 +253,7 @@ def test_a_retired_folder_points_to_the_set_reader(tmp_path, capsys):
     assert f"histojax evaluate {evaluate.published_path(evaluate.SET_READER)} --dataset DIR" in line
 
 
-@pytest.mark.slow  # about 45 s per agent on 2 CPU cores (greedy, sampled, random, scripted rollouts and pictures)
-@pytest.mark.parametrize("name", RUNS)
+@pytest.mark.parametrize("name", RUNS)  # 10-15 s each on 2 CPU cores: greedy, sampled, random (scripted) rollouts
 def test_published_agent_runs_on_wider_slides(name, data, tmp_path, capsys):
     out = tmp_path / "eval"
     assert histojax_main(["evaluate", str(PUBLISHED / name), "--dataset", str(data["big"]), "--episodes", "2",

@@ -935,7 +935,7 @@ def grid_refusal(error: ValueError, run) -> ValueError:
     where = text.split(" (the grid a policy was trained with)")[0]
     set_reader = published_path(SET_READER)
     use = (f"use the cell-set reader, which reads slides of any size: histojax evaluate {set_reader} --dataset DIR"
-           if (Path(run).resolve().parent / SET_READER).is_dir() or set_reader.is_dir() else
+           if set_reader.is_dir() else
            "use a cell-set reader, which reads slides of any size (the -v2 ids; python -m benchmarks.train_readers "
            "trains one)")
     return ValueError(f"{where}: {run} is a flat glimpse policy over the padded cell grid it trained on, so it cannot "

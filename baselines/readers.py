@@ -365,6 +365,15 @@ FAMILIES = {"overview": ["#000000"], "random": ["#7f8c8d"], "scripted": ["#1e844
             "learned": ["#c0392b", "#e67e22", "#8e44ad", "#d35400", "#e84393"], "everything": ["#1f4e9c"]}
 
 
+def coincident_points(x, y, budgets, places: int = 3) -> list[tuple[float, float, list[float]]]:
+    """Points ``(x, y)`` merged where they coincide to ``places`` decimals (a reader that reads the same at
+    several budgets): ``[(x, y, [budgets...])]`` in first-seen order, so each spot is labelled once."""
+    out: dict[tuple, list] = {}
+    for xi, yi, b in zip(x, y, budgets):
+        out.setdefault((round(float(xi), places), round(float(yi), places)), [float(xi), float(yi), []])[2].append(float(b))
+    return [tuple(v) for v in out.values()]
+
+
 def plot(rows: list[dict], path, title: str = "") -> Path:
     """AUC against the fraction actually read, over all slides (left) and without ITC-only slides (right):
     one colour family per reader kind (grey: random, greens: scripted, warm colours: learned, each point
@@ -401,9 +410,9 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
                     label=name + (" (± std over orders)" if kind == "random" else ""))
             if (e > 0).any():
                 ax.fill_between(x, y - e, y + e, color=colour, alpha=0.2, linewidth=0)
-            if kind == "learned":  # each point at the fraction it read; the name once, at the last point
-                for j, (xi, yi) in enumerate(zip(x, y)):
-                    text = f"{name}: {xi:.1%} read" if j == len(x) - 1 else f"{xi:.1%}"
+            if kind == "learned":  # each point at the fraction it read, labelled by its budget(s) once
+                for j, (xi, yi, budgets) in enumerate(coincident_points(x, y, [r["budget"] for r in mine])):
+                    text = f"budget {'/'.join(f'{b:.0%}' for b in budgets)}: {xi:.1%} read"
                     ax.annotate(text, (xi, yi), textcoords="offset points", xytext=(5, 6 if j % 2 else -12),
                                 fontsize="x-small", color=colour)
         ax.set_xlim(-0.02, max([0.55] + [r["fraction_read"] + 0.03 for r in rows if r["kind"] != "everything"]))

@@ -262,3 +262,17 @@ def test_published_agent_runs_on_wider_slides(name, data, tmp_path, capsys):
     assert "random" in table and all(np.isfinite(r["mean_fraction_read"]) for r in table.values())
     header = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("policy"))
     assert "read" in header.split()
+
+
+def test_a_head_that_is_not_there_is_one_line(reader, data, tmp_path, capsys):
+    import shutil
+
+    run = tmp_path / "moved"
+    shutil.copytree(reader, run, ignore=shutil.ignore_patterns("head"))  # the reader without its head folder
+    assert histojax_main(["evaluate", str(run), "--dataset", str(data["big"]), "--out", str(tmp_path / "o")]) == 2
+    line = _one_error_line(capsys)
+    assert str(run / "head_reward.json") in line and "names the slide head 'head'" in line and "--head DIR" in line
+    (run / "head_reward.json").write_text("[1, 2]")
+    assert histojax_main(["evaluate", str(run), "--dataset", str(data["big"]), "--out", str(tmp_path / "o")]) == 2
+    assert "names no slide head" in _one_error_line(capsys)
+    assert not (tmp_path / "o").exists()

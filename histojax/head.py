@@ -90,6 +90,10 @@ class SlideHead:
             raise ValueError(f"{e.filename}: missing (a slide head folder holds config.json and params.json)") from None
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"{folder}: cannot read the slide head: {e}") from None
+        if isinstance(cfg, dict) and cfg.get("kind") in _other_kinds():  # a trained head (histojax.head_mil)
+            from histojax import head_mil
+
+            return head_mil.load(folder)
         if not isinstance(cfg, dict) or cfg.get("kind") != KIND:
             raise ValueError(f"{cfg_file}: not a slide head config (kind {cfg.get('kind') if isinstance(cfg, dict) else None!r}, "
                              f"expected {KIND!r})")
@@ -104,6 +108,12 @@ class SlideHead:
         info = json.dumps({key: v for key, v in cfg.items() if key not in known})
         return cls(a=jnp.float32(a), b=jnp.float32(b), prior_logit=jnp.float32(prior), dim=dim, k=k, top=top,
                    minus_median=bool(cfg.get("minus_median", False)), encoder=cfg.get("encoder"), info=info)
+
+
+def _other_kinds() -> tuple:
+    from histojax.head_mil import KINDS
+
+    return KINDS
 
 
 def _plain(v):
@@ -147,6 +157,8 @@ def statistic(head: SlideHead, logits: jax.Array, mask: jax.Array) -> jax.Array:
 
 def score_logits(head: SlideHead, logits: jax.Array, read_mask: jax.Array) -> jax.Array:
     """Slide tumour logit ``()`` float32 from a ``(H, W)`` view-logit map and the read mask ``(H, W)`` bool."""
+    if not isinstance(head, SlideHead):  # a trained head (histojax.head_mil): its own scoring
+        return head.score_logits(logits, read_mask)
     s = statistic(head, logits, read_mask)
     return jnp.where(jnp.any(read_mask), head.a * s + head.b, head.prior_logit).astype(jnp.float32)
 
@@ -154,6 +166,8 @@ def score_logits(head: SlideHead, logits: jax.Array, read_mask: jax.Array) -> ja
 def score(head: SlideHead, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
     """Slide tumour logit ``()`` float32 from the finest-level feature grid ``(H, W, D)`` and the read
     tissue views ``(H, W)`` bool (entry ``head.dim`` of each view is its tumour logit)."""
+    if not isinstance(head, SlideHead):  # a trained head (histojax.head_mil): its own scoring
+        return head.score(grid_features, read_mask)
     return score_logits(head, jnp.asarray(grid_features)[..., head.dim], read_mask)
 
 

@@ -1,0 +1,225 @@
+"""Fit a second slide head (:mod:`histojax.head_mil`) on a dataset's training slides and choose it on the
+validation share: ``python -m baselines.head_mil_fit --dataset DIR --cache FILE.npz --out DIR``.
+
+Data: the finest level's full feature grid ``(H, W, D)`` of every training slide and its tissue views,
+read once from the bundles (as :func:`baselines.head_fit.load_slide` reads them: one row per finest
+view) and cached to ``--cache`` (a ``.npz``; re-used when it holds the same slides). The validation share
+is :func:`baselines.validation.split_train` with ``--val-fraction`` / ``--seed`` (the same as
+:mod:`baselines.head_fit`'s defaults, 0.2 / 0), so the candidates here are scored on the same validation
+slides as the published ``c16-v2-head``. The test split is never read.
+"""
+from __future__ import annotations
+
+import sys
+from pathlib import Path
+
+import numpy as np
+
+from baselines.head_fit import HeadDataError, load_slide, read_spec, _label
+from data_tools.features import pcam_cnn
+
+
+def load_grid(bundle, label=None, dim: int = pcam_cnn.VIEW_LOGIT) -> dict:
+    """:func:`baselines.head_fit.load_slide` plus ``features (H, W, D)`` float16: the finest feature grid with
+    one row per finest view (the same view → feature-cell mapping as ``logits``; ``features[..., dim]``
+    equals ``logits``)."""
+    import json
+
+    s = load_slide(bundle, label, dim)
+    meta_file = Path(bundle) / "metadata.json"
+    try:
+        meta = json.loads(meta_file.read_text())
+        feats = meta["features"]
+        tile, stride = int(meta["tile_size"]), int(feats["stride"])
+        gh, gw = s["logits"].shape
+        fg = np.load(Path(bundle) / feats["levels"][0]["file"], mmap_mode="r")
+        fg = fg.reshape(*feats["levels"][0]["grid"], -1) if fg.ndim == 2 else fg
+        fy = np.clip((np.arange(gh) * tile + stride // 2) // stride, 0, fg.shape[0] - 1)
+        fx = np.clip((np.arange(gw) * tile + stride // 2) // stride, 0, fg.shape[1] - 1)
+        full = np.asarray(fg, np.float16)[fy[:, None], fx[None, :]]
+    except (OSError, KeyError, IndexError, TypeError, ValueError) as e:
+        raise HeadDataError(bundle, f"unreadable feature grid ({type(e).__name__}: {e})") from None
+    if not np.all(np.isfinite(full[s["tissue"]])):
+        raise HeadDataError(bundle, "non-finite feature values on tissue views")
+    s["features"] = full
+    return s
+
+
+def cache_grids(dataset, entries, cache, progress: bool = True, extra=None) -> list[dict]:
+    """Load the grids of ``entries`` (entries of ``dataset.json``'s lists), or read them from ``cache``
+    (``.npz``) when it holds exactly those slides; writes the cache otherwise. Each slide: ``name``,
+    ``label``, ``features (H, W, D)`` float16, ``tissue (H, W)`` bool (plus ``extra(slide) -> dict`` of
+    arrays / strings stored with it)."""
+    dataset, cache = Path(dataset), Path(cache)
+    spec = read_spec(dataset)
+    names = [Path(e).name for e in entries]
+    if cache.is_file():
+        z = np.load(cache, allow_pickle=False)
+        if list(z["names"]) == names:
+            out = []
+            for i, n in enumerate(names):
+                d = {"name": n, "label": int(z["labels"][i]), "features": z[f"f{i}"], "tissue": z[f"t{i}"]}
+                for key in z.files:
+                    if key.startswith(f"x{i}_"):
+                        d[key[len(f"x{i}_"):]] = z[key]
+                out.append(d)
+            return out
+    out, arrays = [], {}
+    for i, rel in enumerate(entries):
+        bundle = Path(rel) if Path(rel).is_absolute() else dataset / rel
+        s = load_grid(bundle, _label(spec, Path(rel).name))
+        d = {"name": s["name"], "label": s["label"], "features": s["features"], "tissue": s["tissue"]}
+        for key, v in (extra(s) if extra else {}).items():
+            d[key] = np.asarray(v)
+            arrays[f"x{i}_{key}"] = np.asarray(v)
+        arrays[f"f{i}"], arrays[f"t{i}"] = d["features"], d["tissue"]
+        out.append(d)
+        if progress and (i + 1) % 20 == 0:
+            print(f"  loaded {i + 1}/{len(entries)} slides", file=sys.stderr, flush=True)
+    cache.parent.mkdir(parents=True, exist_ok=True)
+    tmp = cache.with_name(f".{cache.stem}.tmp.npz")
+    np.savez(tmp, names=np.asarray(names), labels=np.asarray([d["label"] for d in out]), **arrays)
+    tmp.replace(cache)
+    return out
+
+
+# ----------------------------------------------------------------------------- training data, sparse
+OFFSETS = (-1, 0, 1, 2)   # the 4 × 4 window holding every k × k window of histojax.head.neighbourhood_mean, k ≤ 4
+CELL = 4                  # random reads pick cells of CELL × CELL views (a reader's cell is about 4 × 4 views)
+
+
+def window_slots(k: int) -> list[int]:
+    """Slots (of the ``OFFSETS × OFFSETS`` neighbour table) inside the ``k × k`` window of
+    :func:`histojax.head.neighbourhood_mean` (rows / columns ``-(k-1)//2 … k//2``)."""
+    lo, hi = -((k - 1) // 2), k // 2
+    return [i * len(OFFSETS) + j for i, dy in enumerate(OFFSETS) for j, dx in enumerate(OFFSETS)
+            if lo <= dy <= hi and lo <= dx <= hi]
+
+
+def bags(slides: list[dict], dim: int = pcam_cnn.VIEW_LOGIT) -> dict:
+    """The tissue views of ``slides`` as one flat set: ``x (N+1, D)`` float32 features (row ``N`` a zero dummy),
+    ``seg (N,)`` slide of each view, ``nbr (N, 16)`` row of the tissue view at each offset (``N`` where none),
+    ``cell (N,)`` global cell (``CELL × CELL`` views) of each view, ``cell_seg (C,)`` slide of each cell,
+    ``labels (B,)``."""
+    xs, segs, nbrs, cells, cell_seg = [], [], [], [], []
+    base, cbase = 0, 0
+    n_total = sum(int(s["tissue"].sum()) for s in slides)
+    for b, s in enumerate(slides):
+        t = s["tissue"]
+        h, w = t.shape
+        idx = -np.ones((h + 3, w + 3), np.int64)  # padded by 1 before, 2 after
+        ys, xs_ = np.nonzero(t)
+        idx[ys + 1, xs_ + 1] = base + np.arange(ys.size)
+        nb = np.stack([idx[ys + 1 + dy, xs_ + 1 + dx] for dy in OFFSETS for dx in OFFSETS], 1)
+        nbrs.append(np.where(nb < 0, n_total, nb))
+        xs.append(np.asarray(s["features"][ys, xs_], np.float32))
+        segs.append(np.full(ys.size, b))
+        cw = -(-w // CELL)
+        cells.append(cbase + (ys // CELL) * cw + xs_ // CELL)
+        nc = (-(-h // CELL)) * cw
+        cell_seg.append(np.full(nc, b))
+        base += ys.size
+        cbase += nc
+    x = np.concatenate(xs + [np.zeros((1, xs[0].shape[1]), np.float32)])
+    return {"x": x, "logit": x[:, dim], "seg": np.concatenate(segs).astype(np.int32),
+            "nbr": np.concatenate(nbrs).astype(np.int32), "cell": np.concatenate(cells).astype(np.int32),
+            "cell_seg": np.concatenate(cell_seg).astype(np.int32),
+            "labels": np.asarray([s["label"] for s in slides], np.float32), "n": n_total, "b": len(slides)}
+
+
+def random_reads(key, data: dict, p_full: float = 0.3, lo: float = 0.02, hi: float = 0.8):
+    """``(N,)`` bool random read masks: per slide all tissue (probability ``p_full``) or each cell read with
+    probability ``f ~ U(lo, hi)``."""
+    import jax
+    import jax.numpy as jnp
+
+    k1, k2, k3 = jax.random.split(key, 3)
+    f = jax.random.uniform(k1, (data["b"],), minval=lo, maxval=hi)
+    f = jnp.where(jax.random.uniform(k2, (data["b"],)) < p_full, 1.01, f)
+    u = jax.random.uniform(k3, (data["cell_seg"].shape[0],))
+    read_cell = u < f[data["cell_seg"]]
+    return read_cell[data["cell"]]
+
+
+def sparse_instances(head, data: dict, mask):
+    """``(N, F)`` the instances of :meth:`histojax.head_mil.MilHead.instances` for the flat views of ``data``
+    under the read mask ``mask (N,)`` (gathered from the neighbour table; equals the dense computation)."""
+    import jax.numpy as jnp
+
+    m = jnp.concatenate([mask, jnp.zeros(1, bool)]).astype(jnp.float32)
+    nbr = data["nbr"]
+    mn = m[nbr]                                   # (N, 16)
+    ln = (data["logit"] * m)[nbr]
+    cols = []
+    for k in head.ks:
+        sl = np.asarray(window_slots(int(k)))
+        cols.append(ln[:, sl].sum(1) / jnp.maximum(mn[:, sl].sum(1), 1.0))
+    x = jnp.stack(cols, -1)
+    if head.inputs == "features":
+        sl = np.asarray(window_slots(head.feature_k))
+        xf = (data["x"] * m[:, None])[nbr[:, sl]].sum(1) / jnp.maximum(mn[:, sl].sum(1), 1.0)[:, None]
+        x = jnp.concatenate([x, xf], -1)
+    return x
+
+
+def init_mil(key, n_in: int, hidden: int = 64, att: int = 32, mu=None, sd=None) -> dict:
+    """Initial MilHead parameters (Glorot-uniform weights, zero biases) for ``n_in`` inputs."""
+    import jax
+    import jax.numpy as jnp
+
+    ks = jax.random.split(key, 5)
+    g = jax.nn.initializers.glorot_uniform()
+    return {"mu": jnp.zeros(n_in) if mu is None else jnp.asarray(mu, jnp.float32),
+            "sd": jnp.ones(n_in) if sd is None else jnp.asarray(sd, jnp.float32),
+            "w1": g(ks[0], (n_in, hidden)), "b1": jnp.zeros(hidden), "V": g(ks[1], (hidden, att)), "bV": jnp.zeros(att),
+            "U": g(ks[2], (hidden, att)), "bU": jnp.zeros(att), "wa": g(ks[3], (att, 1))[:, 0],
+            "wc": g(ks[4], (hidden, 1))[:, 0], "bc": jnp.zeros(())}
+
+
+def train_mil(head, data: dict, seed: int = 0, steps: int = 400, lr: float = 3e-3, weight_decay: float = 1e-4,
+              p_full: float = 0.3, log_every: int = 0):
+    """Train ``head`` (a :class:`histojax.head_mil.MilHead` whose params fix the structure) on the flat
+    training views ``data`` (:func:`bags`) with optax AdamW, full batch, a fresh random read mask per slide
+    each step (:func:`random_reads`); slide-level log loss. Returns ``(head, losses)``."""
+    import jax
+    import jax.numpy as jnp
+    import optax
+
+    from histojax.head_mil import attention_pool
+
+    n_in = len(head.ks) + (data["x"].shape[1] if head.inputs == "features" else 0)
+    full = jnp.ones(data["n"], bool)
+    x_full = sparse_instances(head, data, full)
+    mu, sd = x_full.mean(0), x_full.std(0) + 1e-3
+    params = init_mil(jax.random.PRNGKey(seed), n_in, head.hidden, mu=mu, sd=sd)
+    frozen = {"mu", "sd"}
+    opt = optax.adamw(lr, weight_decay=weight_decay)
+    train_p = {k: v for k, v in params.items() if k not in frozen}
+    state = opt.init(train_p)
+    arrays = {k: jnp.asarray(v) for k, v in data.items() if isinstance(v, np.ndarray)}
+    d = {**data, **arrays}
+    y = arrays["labels"]
+
+    def loss_fn(tp, mask):
+        p = {**tp, "mu": mu, "sd": sd}
+        x = sparse_instances(head, d, mask)
+        logits = attention_pool(p, x, mask, d["seg"], d["b"])
+        return optax.sigmoid_binary_cross_entropy(logits, y).mean()
+
+    @jax.jit
+    def step(tp, st, key):
+        mask = random_reads(key, d, p_full)
+        loss, g = jax.value_and_grad(loss_fn)(tp, mask)
+        upd, st = opt.update(g, st, tp)
+        return optax.apply_updates(tp, upd), st, loss
+
+    key = jax.random.PRNGKey(1000 + seed)
+    losses = []
+    for i in range(steps):
+        key, sub = jax.random.split(key)
+        train_p, state, loss = step(train_p, state, sub)
+        losses.append(float(loss))
+        if log_every and (i + 1) % log_every == 0:
+            print(f"    step {i + 1}: loss {np.mean(losses[-log_every:]):.4f}", file=sys.stderr, flush=True)
+    p = float(np.clip(data["labels"].mean(), 1e-3, 1 - 1e-3))
+    return head.replace(params={**train_p, "mu": mu, "sd": sd}, prior_logit=jnp.float32(np.log(p / (1 - p)))), losses

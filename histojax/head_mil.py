@@ -1,0 +1,290 @@
+"""Trained slide heads beside :class:`histojax.head.SlideHead`: an attention-MIL over neighbourhood-pooled
+views (:class:`MilHead`) and a logistic model of pooled statistics (:class:`StatsHead`).
+
+Both score a slide from what has been read, with the interface of :mod:`histojax.head` (they are what
+``SlideHead.load`` returns for a folder of their kind, and ``histojax.head.score`` / ``score_logits``
+dispatch to them), so the readers, ``HeadReward`` and the diagnosis tools use them unchanged::
+
+    head = SlideHead.load("baselines/published/c16-v2-head-mil")
+    logit = score(head, grid_features, read_mask)      # (H, W, D), (H, W) bool -> () float32
+
+**Instances.** Each read view is described by the ``k × k`` neighbourhood means of the view tumour logit
+(feature entry ``dim``) over the *read* views, for ``k`` in ``ks`` (:func:`histojax.head.neighbourhood_mean`,
+views not read count for nothing); with ``inputs="features"`` also the ``feature_k × feature_k``
+neighbourhood mean of all ``D`` feature entries (such a head needs the whole grid: ``score``, not
+``score_logits``).
+
+**MilHead** (gated attention, Ilse et al. 2018 / CLAM): standardised instance ``x`` → ``h = relu(W₁x + b₁)``
+(``hidden`` units) → attention ``a = wₐ · (tanh(V h) ⊙ σ(U h))`` → softmax of ``a`` over the read views only
+→ ``z = Σ softmax(a) h`` → slide logit ``w_c · z + b_c``.
+
+**StatsHead**: the statistics of :func:`statistics_of` (top-1 and top-3 means of each neighbourhood mean,
+counts of 2 × 2 means above thresholds, the number of views read), standardised, then ``w · s + b``.
+
+A slide with nothing read scores ``prior_logit``. Pure JAX, jittable, vmappable over slides padded to one
+grid (padding is never read). Fitted by :mod:`baselines.head_mil_fit` with random read masks, so they score
+partial reads. Saved as a folder: ``config.json`` (``kind``, ``format``, structure, the fit) and
+``params.npz`` (the arrays).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from flax import struct
+
+from histojax.head import neighbourhood_mean
+
+KIND_MIL = "attention-mil"
+KIND_STATS = "pooled-statistics"
+KINDS = (KIND_MIL, KIND_STATS)
+FORMAT = 1
+THRESHOLDS = (0.0, 1.0, 2.0)   # view-logit thresholds of the counts in StatsHead's statistics
+TOPS = (1, 3)
+
+
+def logit_instances(logits: jax.Array, mask: jax.Array, ks) -> jax.Array:
+    """``(H, W, len(ks))``: for each view the ``k × k`` neighbourhood mean of ``logits`` over the read views
+    ``mask``, one channel per ``k`` in ``ks`` (0 where nothing in reach is read)."""
+    mask = jnp.asarray(mask, bool)
+    return jnp.stack([neighbourhood_mean(logits, mask, int(k)) for k in ks], -1)
+
+
+def feature_means(features: jax.Array, mask: jax.Array, k: int) -> jax.Array:
+    """``(H, W, D)`` the ``k × k`` neighbourhood mean of every feature entry over the read views (the window of
+    :func:`histojax.head.neighbourhood_mean`)."""
+    m = jnp.asarray(mask, bool).astype(jnp.float32)
+    x = jnp.where(mask[..., None], features.astype(jnp.float32), 0.0)
+    if k == 1:
+        return x
+    pad = ((k - 1) // 2, k // 2)
+
+    def box(a):
+        extra = ((0, 0),) * (a.ndim - 2)
+        a = jax.lax.reduce_window(a, 0.0, jax.lax.add, (k, 1) + (1,) * (a.ndim - 2), (1,) * a.ndim,
+                                  (pad, (0, 0)) + extra)
+        return jax.lax.reduce_window(a, 0.0, jax.lax.add, (1, k) + (1,) * (a.ndim - 2), (1,) * a.ndim,
+                                     ((0, 0), pad) + extra)
+    return box(x) / jnp.maximum(box(m), 1.0)[..., None]
+
+
+def attention_pool(params: dict, x: jax.Array, mask: jax.Array, segments: jax.Array | None = None,
+                   num_segments: int = 1) -> jax.Array:
+    """Gated-attention MIL over instances ``x (N, F)`` read where ``mask (N,)``; ``segments (N,)`` int assigns
+    instances to bags (default one bag). Returns ``(num_segments,)`` slide logits (0 for a bag with nothing
+    read: the caller substitutes the prior)."""
+    seg = jnp.zeros(x.shape[0], jnp.int32) if segments is None else segments
+    xs = (x - params["mu"]) / params["sd"]
+    h = jax.nn.relu(xs @ params["w1"] + params["b1"])
+    gate = jnp.tanh(h @ params["V"] + params["bV"]) * jax.nn.sigmoid(h @ params["U"] + params["bU"])
+    a = jnp.where(mask, gate @ params["wa"], -jnp.inf)
+    amax = jax.ops.segment_max(a, seg, num_segments)
+    amax = jnp.where(jnp.isfinite(amax), amax, 0.0)
+    e = jnp.where(mask, jnp.exp(a - amax[seg]), 0.0)
+    den = jax.ops.segment_sum(e, seg, num_segments)
+    z = jax.ops.segment_sum(e[:, None] * h, seg, num_segments) / jnp.maximum(den, 1e-30)[:, None]
+    return z @ params["wc"] + params["bc"]
+
+
+def statistics_of(logits: jax.Array, mask: jax.Array, ks=(1, 2, 3, 4)) -> jax.Array:
+    """StatsHead's statistics ``(len(ks)·len(TOPS) + len(THRESHOLDS) + 1,)`` of a ``(H, W)`` logit map over the
+    read views: for each ``k``, the mean of the 1 and 3 largest ``k × k`` neighbourhood means of read views;
+    ``log(1 + count)`` of read views whose 2 × 2 mean exceeds each of ``THRESHOLDS``; ``log(1 + views read)``.
+    Zeros when nothing is read."""
+    mask = jnp.asarray(mask, bool)
+    flat = mask.reshape(-1)
+    n = flat.sum()
+    out = []
+    for k in ks:
+        vals = jnp.where(flat, neighbourhood_mean(logits, mask, int(k)).reshape(-1), -jnp.inf)
+        best = jax.lax.top_k(vals, max(TOPS))[0]
+        for t in TOPS:
+            take = jnp.arange(t) < n
+            out.append(jnp.where(take, best[:t], 0.0).sum() / jnp.maximum(jnp.minimum(n, t), 1))
+    m2 = neighbourhood_mean(logits, mask, 2).reshape(-1)
+    for t in THRESHOLDS:
+        out.append(jnp.log1p(jnp.sum(flat & (m2 > t))))
+    out.append(jnp.log1p(n.astype(jnp.float32)))
+    s = jnp.stack(out).astype(jnp.float32)
+    return jnp.where(n > 0, s, 0.0)
+
+
+class _Saved:
+    """Save / config helpers shared by the two heads."""
+
+    def config(self) -> dict:
+        """The structure as saved in ``config.json``."""
+        return {"kind": self.KIND, "format": FORMAT, **self._structure(), "encoder": self.encoder, "name": self.name,
+                "input": "finest-level feature grid (H, W, D) and read mask (H, W) bool of read tissue views",
+                "output": "slide tumour logit (sigmoid: probability)", **json.loads(self.info)}
+
+    def save(self, folder) -> Path:
+        """Write ``folder/config.json`` and ``folder/params.npz``; returns the folder."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        arrays = {k: np.asarray(v, np.float32) for k, v in self.params.items()}
+        arrays["prior_logit"] = np.asarray(self.prior_logit, np.float32)
+        tmp = folder / ".params.tmp.npz"
+        np.savez(tmp, **arrays)
+        tmp.replace(folder / "params.npz")
+        tmp = folder / ".config.json.tmp"
+        tmp.write_text(json.dumps(self.config(), indent=1, default=_plain) + "\n")
+        tmp.replace(folder / "config.json")
+        return folder
+
+    def score(self, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
+        """Slide tumour logit ``()`` float32 from the feature grid ``(H, W, D)`` and the read views ``(H, W)`` bool."""
+        grid_features = jnp.asarray(grid_features)
+        logits = grid_features[..., self.dim]
+        return self._score(logits, grid_features, read_mask)
+
+    def score_logits(self, logits: jax.Array, read_mask: jax.Array) -> jax.Array:
+        """Slide tumour logit ``()`` float32 from the ``(H, W)`` view-logit map and the read views ``(H, W)`` bool."""
+        return self._score(jnp.asarray(logits), None, read_mask)
+
+
+@struct.dataclass
+class MilHead(_Saved):
+    """A gated-attention MIL head (see the module doc). ``params``: the arrays (a pytree leaf dict);
+    ``prior_logit``: the score of a slide with nothing read; ``dim``: the view-logit entry; ``ks``: logit
+    neighbourhood sides of the instances; ``inputs``: ``"logit"`` or ``"features"`` (also the ``feature_k``
+    neighbourhood mean of all entries); ``info``: the fit (JSON text, merged into config.json)."""
+
+    params: dict
+    prior_logit: jnp.ndarray = 0.0
+    dim: int = struct.field(pytree_node=False, default=62)
+    ks: tuple = struct.field(pytree_node=False, default=(1, 2, 3, 4))
+    inputs: str = struct.field(pytree_node=False, default="logit")
+    feature_k: int = struct.field(pytree_node=False, default=2)
+    hidden: int = struct.field(pytree_node=False, default=64)
+    encoder: str | None = struct.field(pytree_node=False, default="pcam-cnn")
+    info: str = struct.field(pytree_node=False, default="{}")
+    KIND = KIND_MIL
+
+    @property
+    def name(self) -> str:
+        """A short name, e.g. ``"attention-MIL over 1-4 logit means"``."""
+        what = f"{min(self.ks)}-{max(self.ks)} logit means" if len(self.ks) > 1 else f"{self.ks[0]}x{self.ks[0]} logit mean"
+        if self.inputs == "features":
+            what += f" + {self.feature_k}x{self.feature_k} feature means"
+        return f"attention-MIL over {what}, {self.hidden} units"
+
+    def _structure(self) -> dict:
+        return {"dim": self.dim, "ks": list(self.ks), "inputs": self.inputs, "feature_k": self.feature_k,
+                "hidden": self.hidden}
+
+    def instances(self, logits, features, mask) -> jax.Array:
+        """``(H, W, F)`` the instance vector of each view (meaningful where ``mask``)."""
+        x = logit_instances(logits, mask, self.ks)
+        if self.inputs == "features":
+            if features is None:
+                raise ValueError(f"this head ({self.name}) reads all feature entries: call histojax.head.score with "
+                                 "the feature grid, not score_logits with the logit map")
+            x = jnp.concatenate([x, feature_means(features, mask, self.feature_k)], -1)
+        return x
+
+    def _score(self, logits, features, read_mask) -> jax.Array:
+        mask = jnp.asarray(read_mask, bool)
+        x = self.instances(logits, features, mask)
+        s = attention_pool(self.params, x.reshape(-1, x.shape[-1]), mask.reshape(-1))[0]
+        return jnp.where(jnp.any(mask), s, self.prior_logit).astype(jnp.float32)
+
+
+@struct.dataclass
+class StatsHead(_Saved):
+    """A logistic model of pooled statistics (:func:`statistics_of`); ``params``: ``mu``, ``sd`` (standardisation)
+    and ``w``, ``b``; other fields as :class:`MilHead`."""
+
+    params: dict
+    prior_logit: jnp.ndarray = 0.0
+    dim: int = struct.field(pytree_node=False, default=62)
+    ks: tuple = struct.field(pytree_node=False, default=(1, 2, 3, 4))
+    encoder: str | None = struct.field(pytree_node=False, default="pcam-cnn")
+    info: str = struct.field(pytree_node=False, default="{}")
+    KIND = KIND_STATS
+
+    @property
+    def name(self) -> str:
+        return f"logistic over pooled statistics ({min(self.ks)}-{max(self.ks)} means, top-1/3, counts, views read)"
+
+    def _structure(self) -> dict:
+        return {"dim": self.dim, "ks": list(self.ks), "thresholds": list(THRESHOLDS), "tops": list(TOPS)}
+
+    def _score(self, logits, features, read_mask) -> jax.Array:
+        mask = jnp.asarray(read_mask, bool)
+        s = (statistics_of(logits, mask, self.ks) - self.params["mu"]) / self.params["sd"]
+        out = s @ self.params["w"] + self.params["b"]
+        return jnp.where(jnp.any(mask), out, self.prior_logit).astype(jnp.float32)
+
+
+def _plain(v):
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    return str(v)
+
+
+_SHAPES = {KIND_MIL: ("mu", "sd", "w1", "b1", "V", "bV", "U", "bU", "wa", "wc", "bc"),
+           KIND_STATS: ("mu", "sd", "w", "b")}
+
+
+def load(folder):
+    """Read a head saved by ``save`` (either kind). ``ValueError`` naming the file, one line, on anything
+    malformed or of a kind / format this version does not know."""
+    folder = Path(folder)
+    cfg_file, par_file = folder / "config.json", folder / "params.npz"
+    try:
+        cfg = json.loads(cfg_file.read_text())
+    except FileNotFoundError as e:
+        raise ValueError(f"{e.filename}: missing (a slide head folder holds config.json)") from None
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{cfg_file}: cannot read the slide head config: {e}") from None
+    kind = cfg.get("kind") if isinstance(cfg, dict) else None
+    if kind not in KINDS:
+        raise ValueError(f"{cfg_file}: not a slide head this version reads (kind {kind!r}; known: {', '.join(KINDS)})")
+    if cfg.get("format") != FORMAT:
+        raise ValueError(f"{cfg_file}: {kind} head format {cfg.get('format')!r}; this version reads format {FORMAT}")
+    try:
+        with np.load(par_file, allow_pickle=False) as z:
+            arrays = {k: np.asarray(z[k], np.float32) for k in z.files}
+    except FileNotFoundError:
+        raise ValueError(f"{par_file}: missing (a {kind} head folder holds config.json and params.npz)") from None
+    except (OSError, ValueError) as e:
+        raise ValueError(f"{par_file}: unreadable ({e})") from None
+    need = _SHAPES[kind] + ("prior_logit",)
+    missing = [k for k in need if k not in arrays]
+    if missing:
+        raise ValueError(f"{par_file}: missing arrays {', '.join(missing)}")
+    if not all(np.all(np.isfinite(arrays[k])) for k in need):
+        raise ValueError(f"{par_file}: non-finite parameters")
+    try:
+        dim, ks = int(cfg["dim"]), tuple(int(k) for k in cfg["ks"])
+        if dim < 0 or not ks or min(ks) < 1:
+            raise ValueError(f"dim={dim}, ks={ks}")
+        params = {k: jnp.asarray(arrays[k]) for k in _SHAPES[kind]}
+        prior = jnp.float32(arrays["prior_logit"])
+        known = {"kind", "format", "dim", "ks", "inputs", "feature_k", "hidden", "thresholds", "tops", "encoder",
+                 "name", "input", "output"}
+        info = json.dumps({k: v for k, v in cfg.items() if k not in known})
+        if kind == KIND_MIL:
+            inputs, fk, hidden = str(cfg["inputs"]), int(cfg["feature_k"]), int(cfg["hidden"])
+            if inputs not in ("logit", "features") or fk < 1:
+                raise ValueError(f"inputs={inputs!r}, feature_k={fk}")
+            f = len(ks) + (0 if inputs == "logit" else params["mu"].shape[0] - len(ks))
+            if params["w1"].shape != (f, hidden) or params["mu"].shape != (f,) or params["wc"].shape != (hidden,):
+                raise ValueError(f"parameter shapes do not match {f} inputs and {hidden} hidden units")
+            head = MilHead(params=params, prior_logit=prior, dim=dim, ks=ks, inputs=inputs, feature_k=fk,
+                           hidden=hidden, encoder=cfg.get("encoder"), info=info)
+        else:
+            if list(cfg.get("thresholds", [])) != list(THRESHOLDS) or list(cfg.get("tops", [])) != list(TOPS):
+                raise ValueError(f"thresholds / tops {cfg.get('thresholds')} / {cfg.get('tops')} differ from this "
+                                 f"version's {list(THRESHOLDS)} / {list(TOPS)}")
+            n = len(ks) * len(TOPS) + len(THRESHOLDS) + 1
+            if params["w"].shape != (n,) or params["mu"].shape != (n,):
+                raise ValueError(f"parameter shapes do not match {n} statistics")
+            head = StatsHead(params=params, prior_logit=prior, dim=dim, ks=ks, encoder=cfg.get("encoder"), info=info)
+    except (KeyError, TypeError, ValueError) as e:
+        raise ValueError(f"{cfg_file}: malformed {kind} head ({type(e).__name__}: {e})") from None
+    return head

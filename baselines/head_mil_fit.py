@@ -223,3 +223,96 @@ def train_mil(head, data: dict, seed: int = 0, steps: int = 400, lr: float = 3e-
             print(f"    step {i + 1}: loss {np.mean(losses[-log_every:]):.4f}", file=sys.stderr, flush=True)
     p = float(np.clip(data["labels"].mean(), 1e-3, 1 - 1e-3))
     return head.replace(params={**train_p, "mu": mu, "sd": sd}, prior_logit=jnp.float32(np.log(p / (1 - p)))), losses
+
+
+# ----------------------------------------------------------------------------- the statistics head
+def dense_reads(rng, slides: list[dict], shape, fraction: float | None) -> np.ndarray:
+    """``(B, H, W)`` bool: each slide's tissue views, all of them (``fraction`` None) or those under cells of
+    ``CELL × CELL`` views each read with probability ``fraction``."""
+    out = np.zeros((len(slides),) + tuple(shape), bool)
+    for i, s in enumerate(slides):
+        t = s["tissue"]
+        if fraction is not None:
+            h, w = t.shape
+            u = rng.random((-(-h // CELL), -(-w // CELL))) < fraction
+            t = t & np.repeat(np.repeat(u, CELL, 0), CELL, 1)[:h, :w]
+        out[i, : t.shape[0], : t.shape[1]] = t
+    return out
+
+
+def padded_logits(slides: list[dict], shape, dim: int = pcam_cnn.VIEW_LOGIT) -> np.ndarray:
+    """``(B, H, W)`` float32 view-logit maps padded with 0."""
+    out = np.zeros((len(slides),) + tuple(shape), np.float32)
+    for i, s in enumerate(slides):
+        lg = np.asarray(s["features"][..., dim], np.float32)
+        out[i, : lg.shape[0], : lg.shape[1]] = lg
+    return out
+
+
+def fit_stats(slides: list[dict], shape, seed: int = 0, masks_per_slide: int = 12, l2: float = 1e-2,
+              p_full: float = 0.3, ks=(1, 2, 3, 4)):
+    """A :class:`histojax.head_mil.StatsHead` fitted (L2-penalised logistic regression, standardised
+    statistics) on ``slides`` read ``masks_per_slide`` times each: all tissue with probability ``p_full``,
+    else random cells at a fraction ``U(0.02, 0.8)``."""
+    import jax
+    import jax.numpy as jnp
+
+    from histojax.head_mil import StatsHead, statistics_of
+
+    rng = np.random.default_rng(seed)
+    stat = jax.jit(jax.vmap(lambda lg, m: statistics_of(lg, m, ks)))
+    logits = padded_logits(slides, shape)
+    xs, ys = [], []
+    y = np.asarray([s["label"] for s in slides], np.float64)
+    for _ in range(masks_per_slide):
+        fr = [None if rng.random() < p_full else rng.uniform(0.02, 0.8) for _ in slides]
+        m = np.stack([dense_reads(rng, [s], shape, f)[0] for s, f in zip(slides, fr)])
+        xs.append(np.asarray(stat(logits, m), np.float64))
+        ys.append(y)
+    x, y = np.concatenate(xs), np.concatenate(ys)
+    mu, sd = x.mean(0), x.std(0) + 1e-6
+    z = (x - mu) / sd
+    w, b = np.zeros(z.shape[1]), 0.0
+    for _ in range(4000):
+        p = 1.0 / (1.0 + np.exp(-np.clip(z @ w + b, -60, 60)))
+        w -= 0.3 * (z.T @ (p - y) / len(y) + l2 * w)
+        b -= 0.3 * float(np.mean(p - y))
+    pr = float(np.clip(np.mean([s["label"] for s in slides]), 1e-3, 1 - 1e-3))
+    params = {"mu": jnp.asarray(mu, jnp.float32), "sd": jnp.asarray(sd, jnp.float32),
+              "w": jnp.asarray(w, jnp.float32), "b": jnp.float32(b)}
+    return StatsHead(params=params, prior_logit=jnp.float32(np.log(pr / (1 - pr))), ks=tuple(ks))
+
+
+# ----------------------------------------------------------------------------- scoring on validation
+def dense_scores(head, slides: list[dict], masks: np.ndarray, shape, chunk: int = 8) -> np.ndarray:
+    """The head's slide logits ``(B,)`` through the deployed path (``histojax.head.score`` on the padded
+    feature grids, vmapped, in chunks of ``chunk`` slides)."""
+    import jax
+
+    from histojax.head import score
+
+    f = jax.jit(jax.vmap(lambda g, m: score(head, g, m)))
+    out = []
+    for i in range(0, len(slides), chunk):
+        part = slides[i:i + chunk]
+        g = np.zeros((len(part),) + tuple(shape) + (part[0]["features"].shape[-1],), np.float32)
+        for j, s in enumerate(part):
+            g[j, : s["features"].shape[0], : s["features"].shape[1]] = s["features"]
+        m = np.zeros((len(part),) + tuple(shape), bool)
+        m[:len(part)] = masks[i:i + chunk]
+        out.append(np.asarray(f(g, m)))
+    return np.concatenate(out)
+
+
+def validation_aucs(head, slides: list[dict], shape, fractions=(0.1, 0.2), draws: int = 5, seed: int = 123) -> dict:
+    """``{"full": AUC reading every tissue view, "read 0.1": mean AUC over ``draws`` random cell reads, …}`` of
+    ``head`` on ``slides`` (the same masks for every head: ``seed``)."""
+    from baselines.metrics import roc_auc
+
+    y = [s["label"] for s in slides]
+    out = {"full": round(roc_auc(dense_scores(head, slides, dense_reads(None, slides, shape, None), shape), y), 4)}
+    rng = np.random.default_rng(seed)
+    for f in fractions:
+        aucs = [roc_auc(dense_scores(head, slides, dense_reads(rng, slides, shape, f), shape), y) for _ in range(draws)]
+        out[f"read {f:g}"] = round(float(np.mean(aucs)), 4)
+    return out

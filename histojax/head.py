@@ -85,15 +85,15 @@ class SlideHead:
         cfg_file, par_file = folder / "config.json", folder / "params.json"
         try:
             cfg = json.loads(cfg_file.read_text())
+            if isinstance(cfg, dict) and cfg.get("kind") in _other_kinds():  # a trained head (histojax.head_mil)
+                from histojax import head_mil
+
+                return head_mil.load(folder)
             par = json.loads(par_file.read_text())
         except FileNotFoundError as e:
             raise ValueError(f"{e.filename}: missing (a slide head folder holds config.json and params.json)") from None
         except (OSError, json.JSONDecodeError) as e:
             raise ValueError(f"{folder}: cannot read the slide head: {e}") from None
-        if isinstance(cfg, dict) and cfg.get("kind") in _other_kinds():  # a trained head (histojax.head_mil)
-            from histojax import head_mil
-
-            return head_mil.load(folder)
         if not isinstance(cfg, dict) or cfg.get("kind") != KIND:
             raise ValueError(f"{cfg_file}: not a slide head config (kind {cfg.get('kind') if isinstance(cfg, dict) else None!r}, "
                              f"expected {KIND!r})")

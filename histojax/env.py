@@ -53,7 +53,9 @@ stacks slides of any sizes into one ``SlideArrays``; ``reset`` draws a slide (un
 reaches ``max_steps_in_episode`` (never reported as termination). With ``auto_reset=True``
 (default) ``step`` starts a new episode after the last one, returning the first observation of the
 new episode and the last one of the old in ``info["final_observation"]`` (gymnax 1.0's semantics).
-``step`` selects the state first (the new episode's where one ended) and observes it once; the
+``step`` selects the state first (the new episode's where one ended; the action mode starts its
+reading memory's new episode, ``ActionMode.auto_reset_memory``, which for ``zoom_select`` writes one
+word, not the memory) and observes it once; the
 stepped state's observation for ``info["final_observation"]`` is a separate computation that a
 jitted caller which never reads it does not pay for (XLA drops it). ``final_observation=False``
 keeps the key, which gymnax's wrappers read, as an empty ``(0,)`` array per observation leaf
@@ -304,9 +306,11 @@ class HistoEnv(_GymnaxEnvironment):
         if not self.auto_reset:
             obs = self.get_obs(state_st, params)
             return obs, state_st, reward, terminated, truncated, {**info, "final_observation": obs}
-        state_re = self._reset_state(key_reset, params)
+        state_re = self._reset_state(key_reset, params, with_memory=False)
         done = jnp.logical_or(terminated, truncated)
-        state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_re, state_st)
+        state = jax.tree.map(lambda a, b: jnp.where(done, a, b), state_re, state_st.replace(memory=None))
+        if state_st.memory is not None:  # the mode starts its memory's new episode (see ActionMode.auto_reset_memory)
+            state = state.replace(memory=self.action.auto_reset_memory(self, done, state_st.memory, state, params))
         obs = self.get_obs(state, params)  # one observation, of the state kept after the auto-reset
         if self.final_observation:  # the stepped state's, for info; under jit it costs nothing unless used
             final = self.get_obs(state_st, params)
@@ -321,10 +325,11 @@ class HistoEnv(_GymnaxEnvironment):
         state = self._reset_state(key, params)
         return self.get_obs(state, params), state
 
-    def _reset_state(self, key: jax.Array, params: EnvParams) -> EnvState:
+    def _reset_state(self, key: jax.Array, params: EnvParams, with_memory: bool = True) -> EnvState:
         """The start state of :meth:`reset_env`, without the observation. Private: :meth:`step`'s
         auto-reset needs the new state alone, to choose between it and the stepped state before
-        extracting any view (one view per step with ``final_observation=False``)."""
+        extracting any view (one view per step with ``final_observation=False``); it starts the mode's
+        memory itself (``with_memory=False``: ``memory`` is ``None``)."""
         key_slide, key = jax.random.split(key)
         if params.slide.num_slides > 1:
             slide_index = sample_index(key_slide, params.slide.slide_logits)
@@ -352,7 +357,7 @@ class HistoEnv(_GymnaxEnvironment):
             slide_index=slide_index,
             orientation=orientation,
         )
-        return state.replace(memory=self.action.init_memory(self, state, params))
+        return state.replace(memory=self.action.init_memory(self, state, params)) if with_memory else state
 
     def step_env(self, key: jax.Array, state: EnvState, action, params: EnvParams):
         """One step without auto-reset: ``(obs, state, reward, terminated, truncated, info)``

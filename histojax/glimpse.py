@@ -75,8 +75,10 @@ class GlimpseMemory:
     views_read: jnp.ndarray   # () int32 finest-level tissue views read so far
     fields: jnp.ndarray       # () int32 distinct cells revealed (fields of view)
     over_budget: jnp.ndarray  # () bool a pick was refused by the budget (the episode ends)
-    slots: jnp.ndarray = None # (K,) int32 the cells revealed, in reading order (C: empty); step_obs envs only
-    slot_summaries: jnp.ndarray = None  # (K, 2D) their summaries in the feature bank's dtype (0: empty); step_obs only
+    slots: jnp.ndarray = None # (K,) int32 the cells revealed, in reading order; step_obs envs only
+    slot_summaries: jnp.ndarray = None  # (K, 2D) their summaries in the feature bank's dtype; step_obs only
+    # only the first ``fields`` slots are this episode's: the auto-reset leaves the others as they were
+    # (the observation shows them empty: cell C, summary 0)
 
 
 def with_budget(params, read_budget: float):
@@ -207,6 +209,16 @@ class Glimpse(ActionMode):
                                                        + params.mode_data.summaries.shape[-1:], summary_dtype(params))
                                              if env.step_obs else None))
 
+    def auto_reset_memory(self, env, done, memory, state, params) -> GlimpseMemory:
+        """A new episode where ``done``. With ``step_obs`` the cells-read list (``slots``, ``slot_summaries``,
+        the largest part of the memory) is not cleared: only its first ``fields`` slots count (the observation
+        shows the others empty), so a new episode writes the read flags and counts, not the list."""
+        if not env.step_obs:
+            return super().auto_reset_memory(env, done, memory, state, params)
+        zero = jnp.zeros((), jnp.int32)
+        return memory.replace(revealed=memory.revealed & ~done, views_read=jnp.where(done, zero, memory.views_read),
+                              fields=jnp.where(done, zero, memory.fields), over_budget=memory.over_budget & ~done)
+
     def apply(self, env, state, action, params) -> Move:
         tables, mem, i = params.mode_data, state.memory, state.slide_index
         c = self.num_cells(params)
@@ -261,11 +273,13 @@ class Glimpse(ActionMode):
         """The ``episode_tables`` observation's entries (see the module doc)."""
         mem, i = state.memory, state.slide_index
         fraction = jnp.minimum(mem.views_read.astype(jnp.float32) * tables.inv_total[i], 1.0)
+        used = jnp.arange(mem.slots.shape[0]) < mem.fields  # slots past ``fields`` may hold an earlier episode's
         return {
             "slide": jnp.asarray(i, jnp.int32),
             "read_bits": pack_bits(mem.revealed),
-            "read_cells": mem.slots,
-            "read_summaries": mem.slot_summaries,  # kept in the memory: no gather of K summaries per step
+            "read_cells": jnp.where(used, mem.slots, tables.slots_zero),
+            "read_summaries": jnp.where(used[:, None], mem.slot_summaries,  # kept in the memory: no gather per step
+                                        jnp.zeros((), mem.slot_summaries.dtype)),
             "budget_left": jnp.clip(tables.read_budget - fraction, 0.0, 1.0).astype(jnp.float32),
         }
 

@@ -72,6 +72,14 @@ class ActionMode:
         """The memory of a fresh episode at ``state`` (``None``: this mode keeps none)."""
         return None
 
+    def auto_reset_memory(self, env, done, memory, state, params):
+        """The memory :meth:`histojax.env.HistoEnv.step` keeps after its auto-reset: a fresh episode's at
+        ``state`` (the state kept, the new episode's where ``done``) where ``done`` (bool scalar), else
+        ``memory``, the stepped one. By default a select over the whole memory; a mode whose memory is
+        large overrides it to write only what a new episode changes."""
+        fresh = self.init_memory(env, state, params)
+        return jax.tree.map(lambda a, b: jnp.where(done, a, b), fresh, memory)
+
     def apply(self, env, state, action, params) -> Move:
         raise NotImplementedError
 

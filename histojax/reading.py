@@ -222,22 +222,40 @@ def _grid_index(tables: SeenTables, i, z, x, y, tile_size: int):
 
 
 def see(tables: SeenTables, memory, i, z, x, y, env):
-    """``memory`` (any dataclass with ``seen``, ``views_read``, ``fields``, ``block_read``) after
-    looking at ``(z, x, y)`` of slide ``i``: the view is marked and counted once; a finest tissue
-    view read adds 1 to its block of the visited map (updated here, never recounted)."""
+    """``memory`` (any dataclass with ``seen``, ``views_read``, ``fields``, ``block_read``, or the
+    episode-stamped ``words`` / ``stamp`` / ``block_raw`` / ``block_stamp`` / ``episode`` of
+    :class:`histojax.zoom_select.ZoomMemory`) after looking at ``(z, x, y)`` of slide ``i``: the view is
+    marked and counted once; a finest tissue view read adds 1 to its block of the visited map (updated
+    here, never recounted). One word and one block are read and written."""
     index, local = _grid_index(tables, i, z, x, y, env.tile_size)
     word = index // 32
     bit = jnp.left_shift(jnp.uint32(1), (index % 32).astype(jnp.uint32))
-    bits = memory.seen[word]
+    stamped = getattr(memory, "episode", None) is not None
+    if stamped:  # a word written in an earlier episode reads as 0
+        word_stamp = memory.stamp[word]
+        bits = jnp.where(word_stamp == memory.episode, memory.words[word], jnp.uint32(0))
+    else:
+        bits = memory.seen[word]
     new = (bits & bit) == 0
     finest = z == env.n_levels - 1
     view = jnp.clip(local, 0, tables.tissue.shape[-1] - 1)
     read = new & finest & tables.tissue[i, view]
-    return memory.replace(seen=memory.seen.at[word].set(bits | bit),
-                          views_read=memory.views_read + read.astype(jnp.int32),
-                          fields=memory.fields + new.astype(jnp.int32),
-                          block_read=memory.block_read.at[tables.coarse_cell[i, view]].add(
-                              read.astype(jnp.int32), mode="drop"))
+    counts = dict(views_read=memory.views_read + read.astype(jnp.int32),
+                  fields=memory.fields + new.astype(jnp.int32))
+    block = tables.coarse_cell[i, view]  # Gc (dropped) for padding, which is never read
+    if not stamped:
+        return memory.replace(seen=memory.seen.at[word].set(bits | bit), **counts,
+                              block_read=memory.block_read.at[block].add(read.astype(jnp.int32), mode="drop"))
+    b = jnp.minimum(block, memory.block_raw.shape[-1] - 1)
+    block_stamp = memory.block_stamp[b]
+    held = jnp.where(block_stamp == memory.episode, memory.block_raw[b], 0)
+    # stamps never exceed ``episode``, so the max is ``episode``; written from the value read, it makes XLA read
+    # before it writes and update the stamps in place (a constant write let it copy the whole array first)
+    return memory.replace(words=memory.words.at[word].set(bits | bit),
+                          stamp=memory.stamp.at[word].set(jnp.maximum(word_stamp, memory.episode)),
+                          block_raw=memory.block_raw.at[block].set(held + read.astype(jnp.int32), mode="drop"),
+                          block_stamp=memory.block_stamp.at[block].set(jnp.maximum(block_stamp, memory.episode),
+                                                                       mode="drop"), **counts)
 
 
 def budget_spent(tables, memory, i) -> jax.Array:

@@ -12,7 +12,8 @@ finest level a child action stays. ``k`` is set with ``action_mode=ZoomSelect(k=
 **Memory** (``EnvState.memory``): which views of a stride-``T`` grid of every level were seen
 (``seen``, one bit a view in uint32 words; the finest level's part says which finest-level views were
 read), the counts, and the finest tissue views read per block of the visited map (``block_read``,
-updated at each step, so the observation never recounts the slide's views).
+updated at each step, so the observation never recounts the slide's views). Both carry an episode
+stamp (:class:`ZoomMemory`), so the auto-reset starts an episode without writing the whole memory.
 **Observation**: the observation mode's entry, plus ``visited (16, 16)`` float32, the coarse
 visited map of :mod:`histojax.reading` (the fraction of the finest tissue views read in each of
 16 × 16 blocks of the slide), and ``position (3,)`` as ``with_position`` gives it. Bytes per
@@ -37,14 +38,33 @@ from histojax.modes import ActionMode, Move, _declared_score
 
 @struct.dataclass
 class ZoomMemory:
-    """What an episode has seen (in ``EnvState.memory``)."""
+    """What an episode has seen (in ``EnvState.memory``).
 
-    seen: jnp.ndarray        # (⌈V/32⌉,) uint32 bits: views of every level's grid seen (see histojax.reading.see)
-    views_read: jnp.ndarray  # () int32 finest-level tissue views seen
-    fields: jnp.ndarray      # () int32 distinct views seen, any level
-    block_read: jnp.ndarray  # (256,) int32 finest tissue views read per block of the visited map
-    path_x: jnp.ndarray      # (n_levels,) int32 x of the view last zoomed in from at each level (the parents)
-    path_y: jnp.ndarray      # (n_levels,) int32
+    The bit set and the visited-map counts carry an **episode stamp**: a word of ``words`` (a block of
+    ``block_raw``) counts only where its stamp equals ``episode``, else it reads as 0. Starting an episode
+    in the auto-reset adds 1 to ``episode`` instead of writing zeros over the whole memory, so a step
+    writes one word and one block whatever the slide's size. Read the bits and counts through
+    :attr:`seen` and :attr:`block_read` (they apply the stamps; any leading batch axes are fine)."""
+
+    words: jnp.ndarray        # (⌈V/32⌉,) uint32 raw bits: views of every level's grid seen (histojax.reading.see)
+    stamp: jnp.ndarray        # (⌈V/32⌉,) int32 the episode that last wrote each word
+    views_read: jnp.ndarray   # () int32 finest-level tissue views seen
+    fields: jnp.ndarray       # () int32 distinct views seen, any level
+    block_raw: jnp.ndarray    # (256,) int32 raw finest tissue views read per block of the visited map
+    block_stamp: jnp.ndarray  # (256,) int32 the episode that last wrote each block
+    path_x: jnp.ndarray       # (n_levels,) int32 x of the view last zoomed in from at each level (the parents)
+    path_y: jnp.ndarray       # (n_levels,) int32
+    episode: jnp.ndarray      # () int32 episodes started by this env's auto-reset since ``reset`` (0 first)
+
+    @property
+    def seen(self) -> jax.Array:
+        """``(..., ⌈V/32⌉)`` uint32: this episode's bits (stale words of earlier episodes read as 0)."""
+        return jnp.where(self.stamp == jnp.asarray(self.episode)[..., None], self.words, jnp.uint32(0))
+
+    @property
+    def block_read(self) -> jax.Array:
+        """``(..., 256)`` int32: this episode's finest tissue views read per block of the visited map."""
+        return jnp.where(self.block_stamp == jnp.asarray(self.episode)[..., None], self.block_raw, 0)
 
 
 @dataclasses.dataclass(frozen=True)
@@ -71,9 +91,32 @@ class ZoomSelect(ActionMode):
     def init_memory(self, env, state, params) -> ZoomMemory:
         zero = jnp.zeros((), jnp.int32)
         path = jnp.zeros((env.n_levels,), jnp.int32)
-        memory = ZoomMemory(seen=params.mode_data.seen_zero, views_read=zero, fields=zero,
-                            block_read=reading.block_zero(params.mode_data), path_x=path, path_y=path)
+        words = params.mode_data.seen_zero
+        blocks = reading.block_zero(params.mode_data)
+        memory = ZoomMemory(words=words, stamp=jnp.zeros(words.shape, jnp.int32), views_read=zero, fields=zero,
+                            block_raw=blocks, block_stamp=blocks, path_x=path, path_y=path, episode=zero)
         return reading.see(params.mode_data, memory, state.slide_index, state.z, state.x, state.y, env)
+
+    def auto_reset_memory(self, env, done, memory, state, params) -> ZoomMemory:
+        """A new episode where ``done``: ``episode`` + 1 (every word and block goes stale at once), counts and
+        path to 0, then the start view of ``state`` seen. A start view is at the coarsest level and new, so
+        (with more than one level) seeing it is one bit in one word and one field, and reads nothing: only
+        that word and its stamp are written, and nothing where not ``done``."""
+        zero = jnp.zeros((), jnp.int32)
+        episode = memory.episode + done.astype(jnp.int32)
+        fresh = memory.replace(episode=episode, views_read=jnp.where(done, zero, memory.views_read),
+                               fields=jnp.where(done, zero, memory.fields),
+                               path_x=jnp.where(done, 0, memory.path_x), path_y=jnp.where(done, 0, memory.path_y))
+        if env.n_levels == 1:  # the start view is a finest view: it may be read (a block of the visited map counts it)
+            return jax.tree.map(lambda a, b: jnp.where(done, a, b),
+                                reading.see(params.mode_data, fresh, state.slide_index, state.z, state.x, state.y, env),
+                                memory)
+        index, _ = reading._grid_index(params.mode_data, state.slide_index, state.z, state.x, state.y, env.tile_size)
+        word = jnp.where(done, index // 32, memory.words.shape[-1])  # out of range where not done: dropped
+        bit = jnp.left_shift(jnp.uint32(1), (index % 32).astype(jnp.uint32))
+        return fresh.replace(words=memory.words.at[word].set(bit, mode="drop"),
+                             stamp=memory.stamp.at[word].set(episode, mode="drop"),
+                             fields=jnp.where(done, 1, memory.fields))
 
     def apply(self, env, state, action, params) -> Move:
         slide = params.slide.select(state.slide_index)

@@ -18,6 +18,13 @@ validation slides with the same head as every other reader:
    (overview only, random, scripted, the learned reader, read everything; the same head for every row):
    ``OUT/validation/readers.csv``, ``readers.png``, ``readers.json``.
 
+**Navigators** (``--action-mode discrete`` or ``continuous``, e.g. on ``HistoJAX-C16-Diagnosis-v2``): the
+same training, the env wrapped in ``HeadReward`` (it tracks the finest views the navigator stood on; with
+``HeadReward`` the head declares, the navigator's own declare only ends the episode; no ``read_budget``),
+and the scoring step is :mod:`baselines.head_diagnosis` on the validation split instead: each seed rolled
+greedily once per validation slide, its read masks scored by the head beside the readers at the fraction
+it read, plus any ``--compare NAME RUN`` navigator (e.g. a published one) scored the same way.
+
 Prints wall times (training, compile, scoring) and env steps per second.
 """
 from __future__ import annotations
@@ -29,6 +36,13 @@ import time
 from pathlib import Path
 
 ENV_ID = "HistoJAX-C16-Diagnosis-v2"
+NAVIGATION_MODES = ("discrete", "continuous")
+
+
+def is_navigator(action_mode: str) -> bool:
+    """Whether ``action_mode`` (e.g. ``"discrete"``, ``"glimpse:1"``) moves a view (a navigator) rather than
+    picking cells (a reader)."""
+    return action_mode.split(":")[0] in NAVIGATION_MODES
 
 
 def split_dataset(dataset: Path, out: Path, fraction: float, seed: int) -> Path:
@@ -92,6 +106,8 @@ def main(argv=None) -> int:
     p.add_argument("--val-fraction", type=float, default=0.3)
     p.add_argument("--split-seed", type=int, default=0)
     p.add_argument("--skip-training", action="store_true", help="score the run already in OUT/<algo>")
+    p.add_argument("--compare", nargs=2, action="append", default=[], metavar=("NAME", "RUN"),
+                   help="navigation modes: another navigator scored beside on validation (repeatable)")
     args = p.parse_args(argv)
 
     from baselines import common, readers
@@ -102,6 +118,7 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    navigator = is_navigator(args.action_mode)
     data = split_dataset(args.dataset, args.out, args.val_fraction, args.split_seed)
     run_dir = args.out / args.algo
     t0 = time.perf_counter()
@@ -110,10 +127,13 @@ def main(argv=None) -> int:
         gain = None if args.gain == "none" else args.gain
         original = with_head_reward(head, gain, args.final, args.read_cost)
         try:
+            env_kwargs = {"dataset": str(data), "split": "train"}
+            if not navigator:   # a navigator's episode reads what it stands on: no reading budget
+                env_kwargs["read_budget"] = args.read_budget
             trainer_argv = ["--env", args.env, "--dataset", str(data), "--split", "train",
                             "--action-mode", args.action_mode, "--obs", "features", "--seeds", str(args.seeds),
                             "--total-steps", str(args.total_steps), "--num-envs", str(args.num_envs),
-                            "--set", f'env_kwargs={json.dumps({"dataset": str(data), "split": "train", "read_budget": args.read_budget})}',
+                            "--set", f"env_kwargs={json.dumps(env_kwargs)}",
                             "--out", str(run_dir), *extra]
             code = module.main(trainer_argv)
         finally:
@@ -122,9 +142,19 @@ def main(argv=None) -> int:
             return code
         (run_dir / "head_reward.json").write_text(json.dumps(
             {"head": str(args.head), "head_name": head.name, "gain": gain, "final": args.final,
-             "read_cost": args.read_cost, "read_budget": args.read_budget, "train_wall_s": round(time.perf_counter() - t0, 1),
+             "read_cost": args.read_cost, "read_budget": None if navigator else args.read_budget,
+             "action_mode": args.action_mode, "train_wall_s": round(time.perf_counter() - t0, 1),
              "dataset": str(data), "validation_fraction": args.val_fraction, "split_seed": args.split_seed}, indent=1) + "\n")
     t1 = time.perf_counter()
+    if navigator:
+        from baselines import head_diagnosis
+
+        code = head_diagnosis.main(["--dataset", str(data / "validation-set"), "--head", str(args.head),
+                                    "--split", "test", "--navigator", f"navigator ({args.algo}, head reward)",
+                                    str(run_dir), *[a for name, r in args.compare for a in ("--navigator", name, r)],
+                                    "--policy-seeds", str(args.seeds), "--out", str(args.out / "validation")])
+        print(f"training {t1 - t0:.0f} s, scoring on validation {time.perf_counter() - t1:.0f} s")
+        return code
     code = readers.main(["--dataset", str(data / "validation-set"), "--head", str(args.head), "--split", "test",
                          "--reader", f"set reader ({args.algo}, head reward)", str(run_dir),
                          "--policy-seeds", str(args.seeds), "--out", str(args.out / "validation")])

@@ -1,0 +1,112 @@
+"""The ceiling of a navigator's diagnosis through the slide head: what an episode of ``--max-steps`` steps
+can read at most, and what the one-head readers reach at that fraction.
+
+    python -m benchmarks.navigator_ceiling --dataset DIR --head HEAD [--split test] [--max-steps 200] \\
+        [--budgets 0.005 0.01 0.02] [--seeds 5] [--out DIR]
+
+A navigator stands on one view per step, so a ``--max-steps`` episode reads at most ``max_steps`` finest
+tissue views of a slide (fewer: it also zooms and moves over views it has read). Prints, over the split's
+slides, the finest tissue views per slide and the fraction ``max_steps / views`` (median, min, max), then the
+head's AUC (all slides; ITC-only slides left out) for the readers of :mod:`baselines.readers` (overview only,
+random reader over ``--seeds`` orders, logit reader, search reader, read everything) at ``--budgets``, and
+each reader at **each slide's own ceiling** (``max_steps`` views of that slide: the row ``budget = median
+ceiling``). Writes ``OUT/readers.csv`` and ``OUT/ceiling.json``.
+"""
+from __future__ import annotations
+
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.cli_output import command_main, print_error
+from data_tools.errors import HistojaxDataError
+
+
+def ceiling_fractions(slides: list[dict], max_steps: int) -> np.ndarray:
+    """``(n,)`` float: per slide, the largest fraction of its finest tissue views that ``max_steps`` views
+    make (``min(1, max_steps / tissue views)``)."""
+    views = np.asarray([max(1, int(s["tissue"].sum())) for s in slides], np.float64)
+    return np.minimum(1.0, max_steps / views)
+
+
+def at_ceiling(head, slides: list[dict], results: dict, ceilings: np.ndarray, level: int, seeds: int) -> float:
+    """Add the random (``seeds`` orders), logit and search readers, each reading up to its slide's own
+    ``ceilings[i]`` fraction, to ``results`` under the budget ``median(ceilings)``; returns that key."""
+    from baselines import readers
+
+    key = float(np.median(ceilings))
+    tables = [readers.cell_table(s, level) for s in slides]
+    tumour = [readers.tumour_views(s) for s in slides]
+    orders = {"logit reader": [readers.logit_order(c) for c in tables],
+              "search reader": [readers.search_order(s, c, limit=float(b) + 0.01)
+                                for s, c, b in zip(slides, tables, ceilings)]}
+    for name, ords in orders.items():
+        masks = [[readers.read_mask(c, s["tissue"], o, float(b))[0]
+                  for s, c, o, b in zip(slides, tables, ords, ceilings)]]
+        readers.add_reader(results, head, slides, f"{name}, per-slide ceiling", {key: masks}, "scripted", tumour)
+    masks = [[readers.read_mask(c, s["tissue"], readers.random_order(c, np.random.default_rng(1000 * k + i)),
+                                float(b))[0] for i, (s, c, b) in enumerate(zip(slides, tables, ceilings))]
+             for k in range(seeds)]
+    readers.add_reader(results, head, slides, "random reader, per-slide ceiling", {key: masks}, "random", tumour)
+    return key
+
+
+def add_arguments(p) -> None:
+    """The options of ``python -m benchmarks.navigator_ceiling``."""
+    p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; pcam-cnn feature grids)")
+    p.add_argument("--head", required=True, help="slide head folder")
+    p.add_argument("--split", default="test", help="split scored (default test)")
+    p.add_argument("--max-steps", type=int, default=200, help="steps per navigator episode (default 200)")
+    p.add_argument("--budgets", type=float, nargs="+", default=[0.005, 0.01, 0.02], help="fractions read")
+    p.add_argument("--seeds", type=int, default=5, help="random reader orders (default 5)")
+    p.add_argument("--out", default="runs/navigator-ceiling", help="output folder")
+
+
+def run(args, parser=None) -> int:
+    """Print the ceiling fractions and the readers' AUC at them; CSV and JSON in ``args.out``."""
+    from baselines import outputs, readers
+    from baselines.head_fit import load_slides, read_spec
+    from histojax.head import SlideHead
+
+    if args.max_steps < 1 or args.seeds < 1 or not all(0.0 < b <= 1.0 for b in args.budgets):
+        return print_error("--max-steps and --seeds must be ≥ 1 and --budgets in (0, 1]")
+    t0 = time.perf_counter()
+    try:
+        head = SlideHead.load(args.head)
+        spec = read_spec(args.dataset)
+        level = readers.cell_level_for(Path(args.dataset), spec, args.split)
+        slides = load_slides(args.dataset, args.split, spec, head.dim, levels=(0, level), progress=True)
+    except (HistojaxDataError, ValueError) as e:
+        return print_error(e)
+    if not slides or len({s["label"] for s in slides}) < 2:
+        return print_error(f"{args.dataset}: split {args.split!r} needs tumour and normal slides to score an AUC")
+    ceilings = ceiling_fractions(slides, args.max_steps)
+    views = np.asarray([int(s["tissue"].sum()) for s in slides])
+    results = readers.scripted_results(head, slides, args.budgets, args.seeds, level)
+    key = at_ceiling(head, slides, results, ceilings, level, args.seeds)
+    rows = readers.rows_from_results(results, slides)
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    readers.write_csv(rows, out / "readers.csv")
+    wall = time.perf_counter() - t0
+    summary = {"dataset": str(args.dataset), "split": args.split, "head": str(args.head), "max_steps": args.max_steps,
+               "slides": len(slides), "tissue_views_median": float(np.median(views)),
+               "tissue_views_min": int(views.min()), "tissue_views_max": int(views.max()),
+               "ceiling_median": float(np.median(ceilings)), "ceiling_min": float(ceilings.min()),
+               "ceiling_max": float(ceilings.max()), "ceiling_key": key, "wall_s": round(wall, 1), "rows": rows}
+    outputs.write_text(out / "ceiling.json", json.dumps(summary, indent=1, default=float))
+    print(f"{len(slides)} slides: finest tissue views median {np.median(views):.0f} (min {views.min()}, max "
+          f"{views.max()}); {args.max_steps} views = {100 * np.median(ceilings):.3f} % of a slide's finest tissue "
+          f"(median; min {100 * ceilings.min():.3f} %, max {100 * ceilings.max():.3f} %)")
+    readers.print_tables(rows, [])
+    print(f"wrote {out}/readers.csv and ceiling.json in {wall:.0f} s")
+    return 0
+
+
+main = command_main(add_arguments, run, "python -m benchmarks.navigator_ceiling", __doc__)
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

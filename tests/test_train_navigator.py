@@ -50,6 +50,7 @@ def test_is_navigator():
     assert not is_navigator("glimpse:1") and not is_navigator("zoom_select")
 
 
+@pytest.mark.slow  # PPO and greedy-rollout compiles: ~1-6 min on 2 shared CPU cores
 def test_navigator_is_trained_with_the_head_and_scored_on_validation(trained):
     reward = json.loads((trained / "ppo" / "head_reward.json").read_text())
     assert reward["action_mode"] == "discrete" and reward["read_budget"] is None and reward["gain"] == "fidelity"
@@ -67,6 +68,7 @@ def test_navigator_is_trained_with_the_head_and_scored_on_validation(trained):
     assert {"overview only", "read everything"} <= {r["reader"] for r in rows}
 
 
+@pytest.mark.slow
 def test_compare_navigator_is_scored_beside(trained, data, tmp_path):
     """``--skip-training`` re-scores the run; ``--compare`` adds another navigator's row (here the same run)."""
     from benchmarks import train_readers

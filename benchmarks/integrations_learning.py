@@ -9,7 +9,7 @@ and the wall time of training.
 
 ``obs_mode="features"`` needs a bundle with a feature grid; the sample slide's bundle has none. When
 ``--slide DIR`` does not exist, the sample bundle is copied to ``DIR`` and its feature grid computed there
-(``python -m data_tools features DIR``: efficientnet-lite0, 1280-d, about 1.5 min on a CPU; needs torch,
+(``python -m data_tools features DIR``: efficientnet-lite0, 1280-d, 1.5–3 min on a 2-core CPU; needs torch,
 which the ``sb3`` extra brings); an existing ``DIR`` must be a bundle with features::
 
     python benchmarks/integrations_learning.py --slide easy-features [--algo random rejax sb3] [--seed 0]

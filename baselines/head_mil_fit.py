@@ -316,3 +316,105 @@ def validation_aucs(head, slides: list[dict], shape, fractions=(0.1, 0.2), draws
         aucs = [roc_auc(dense_scores(head, slides, dense_reads(rng, slides, shape, f), shape), y) for _ in range(draws)]
         out[f"read {f:g}"] = round(float(np.mean(aucs)), 4)
     return out
+
+
+# ----------------------------------------------------------------------------- the command
+CANDIDATES = ("stats", "mil-logit", "mil-features")
+
+
+def candidate_head(name: str, train: list[dict], shape, seed: int, steps: int, data=None):
+    """Fit candidate ``name`` (one of ``CANDIDATES``) on ``train`` with ``seed``."""
+    from histojax.head_mil import MilHead
+
+    if name == "stats":
+        return fit_stats(train, shape, seed)
+    head = MilHead(params={}, inputs="logit" if name == "mil-logit" else "features")
+    return train_mil(head, data if data is not None else bags(train), seed=seed, steps=steps)[0]
+
+
+def add_arguments(p) -> None:
+    """The options of ``python -m baselines.head_mil_fit``."""
+    p.add_argument("--dataset", required=True, help="dataset folder (dataset.json with a train split; feature grids)")
+    p.add_argument("--cache", required=True, help=".npz cache of the training slides' finest feature grids")
+    p.add_argument("--out", required=True, help="folder to save the chosen head in (config.json, params.npz)")
+    p.add_argument("--candidates", nargs="+", default=list(CANDIDATES), choices=CANDIDATES)
+    p.add_argument("--seeds", type=int, default=3, help="fits per candidate (default 3)")
+    p.add_argument("--steps", type=int, default=150, help="training steps of the MIL candidates (default 150)")
+    p.add_argument("--table", default=None, help="JSON file of validation results: rows already there are re-used, "
+                                                 "new rows written to it")
+    p.add_argument("--val-fraction", type=float, default=0.2)
+    p.add_argument("--seed", type=int, default=0, help="seed of the validation split (default 0, as head_fit)")
+
+
+def run(args, parser=None) -> int:
+    """Score every candidate × seed on the validation share, choose the best mean full-read AUC, refit it on
+    the whole training split (seed 0) and save it."""
+    import datetime
+    import json
+    import time
+
+    import jax
+
+    from baselines.validation import split_train
+    from data_tools.cli_output import print_error
+    from histojax.head import SlideHead
+
+    t0 = time.perf_counter()
+    try:
+        spec = read_spec(args.dataset)
+        kept, held = split_train(spec, args.val_fraction, args.seed)
+        slides = cache_grids(args.dataset, spec["train"], args.cache)
+    except (HeadDataError, ValueError, OSError) as e:
+        return print_error(e)
+    by = {s["name"]: s for s in slides}
+    tr, va = [by[Path(n).name] for n in kept], [by[Path(n).name] for n in held]
+    shape = (max(s["tissue"].shape[0] for s in slides), max(s["tissue"].shape[1] for s in slides))
+    table_file = Path(args.table) if args.table else None
+    table = json.loads(table_file.read_text()) if table_file and table_file.is_file() else {}
+    ref = "2x2 mean, max (c16-v2-head)"
+    if ref not in table:
+        table[ref] = [validation_aucs(SlideHead(k=2, top=1), va, shape)]
+    data = None
+    for name in args.candidates:
+        key = name if name == "stats" else f"{name}, {args.steps} steps"
+        rows = table.setdefault(key, [])
+        for seed in range(len(rows), args.seeds):
+            if name != "stats" and data is None:
+                data = bags(tr)
+            t = time.perf_counter()
+            h = candidate_head(name, tr, shape, seed, args.steps, data)
+            rows.append({**validation_aucs(h, va, shape), "seed": seed, "seconds": round(time.perf_counter() - t)})
+            print(f"  {key} seed {seed}: {rows[-1]}", file=sys.stderr, flush=True)
+            if table_file:
+                table_file.write_text(json.dumps(table, indent=1))
+    summary = {k: {m: [float(np.mean([r[m] for r in v])), float(np.std([r[m] for r in v]))] for m in v[0]
+                   if m not in ("seed", "seconds")} | {"seeds": len(v)} for k, v in table.items()}
+    best = max((k for k in summary if k != ref and k.split(",")[0] in args.candidates),
+               key=lambda k: summary[k]["full"][0])
+    print("| candidate | fits | validation AUC, read everything | random 10 % | random 20 % |\n|---|---|---|---|---|")
+    for k, v in summary.items():
+        print(f"| {k} | {v['seeds']} | {v['full'][0]:.3f} ± {v['full'][1]:.3f} | {v['read 0.1'][0]:.3f} | "
+              f"{v['read 0.2'][0]:.3f} |")
+    name = best.split(",")[0]
+    head = candidate_head(name, slides, shape, 0, args.steps)
+    info = {"fitted_on": {"dataset": str(Path(args.dataset).resolve()), "split": "train", "slides": len(slides),
+                          "tumour_slides": int(sum(s["label"] for s in slides)), "seed": 0},
+            "chosen_on": {"validation_fraction": args.val_fraction, "seed": args.seed, "train_slides": len(tr),
+                          "validation_slides": len(va), "candidate": best,
+                          "validation_auc": round(summary[best]["full"][0], 4),
+                          "reference_validation_auc": summary[ref]["full"][0]},
+            "candidates": summary, "date": datetime.date.today().isoformat(), "jax": jax.__version__}
+    head = head.replace(info=json.dumps(info))
+    head.save(args.out)
+    print(f"chosen: {head.name}; saved to {args.out} in {time.perf_counter() - t0:.0f} s")
+    return 0
+
+
+def _main():
+    from data_tools.cli_output import command_main
+
+    return command_main(add_arguments, run, "python -m baselines.head_mil_fit", __doc__)
+
+
+if __name__ == "__main__":
+    raise SystemExit(_main()())

@@ -89,7 +89,7 @@ class SlideHead:
                 from histojax import head_mil
 
                 return head_mil.load(folder)
-            par = json.loads(par_file.read_text())
+            par = json.loads(par_file.read_text()) if isinstance(cfg, dict) and cfg.get("kind") == KIND else None
         except FileNotFoundError as e:
             raise ValueError(f"{e.filename}: missing (a slide head folder holds config.json and params.json)") from None
         except (OSError, json.JSONDecodeError) as e:

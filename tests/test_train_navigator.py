@@ -123,3 +123,18 @@ def test_ceiling_bad_input_is_one_line(data, tmp_path, capsys):
                                    "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err
     assert "error:" in err and "Traceback" not in err and not (tmp_path / "o").exists()
+
+
+def test_params_from_leaves():
+    """The parameters are the first run of leaves with the network's shapes (seeds on axis 0), not the
+    optimiser's moments after them; no such run is one ValueError."""
+    from benchmarks.checkpoint_to_run import params_from_leaves
+
+    template = {"dense": {"kernel": np.zeros((4, 3)), "bias": np.zeros(3)}}
+    params = [np.full((2, 3), 1.0), np.full((2, 4, 3), 2.0)]  # flattened: bias, kernel (sorted keys)
+    moments = [np.full((2, 3), 9.0), np.full((2, 4, 3), 9.0)]
+    got = params_from_leaves(template, [np.zeros(2, np.int32), *params, *moments], 2)
+    np.testing.assert_array_equal(got["dense"]["bias"], params[0])
+    np.testing.assert_array_equal(got["dense"]["kernel"], params[1])
+    with pytest.raises(ValueError, match="parameter shapes"):
+        params_from_leaves(template, [np.zeros(2), np.zeros((2, 5))], 2)

@@ -268,7 +268,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     if len(loaded) == 1 and slide_weights is None:
         arrays = loaded[0][0]
     else:
-        arrays = stack_slides([a for a, _ in loaded], weights=slide_weights)
+        arrays = stack_slides([a for a, _ in loaded], weights=slide_weights, consume=True)  # per-slide copies freed
     arrays = arrays.replace(start_cdf=jnp.asarray(start_cdf(arrays.start_logits)))  # once, not at every reset
     static = {k: spec[k] for k in STATIC_FIELDS if k in spec}
     static["tile_size"] = tile_size

@@ -7,6 +7,13 @@ view) and cached to ``--cache`` (a ``.npz``; re-used when it holds the same slid
 is :func:`baselines.validation.split_train` with ``--val-fraction`` / ``--seed`` (the same as
 :mod:`baselines.head_fit`'s defaults, 0.2 / 0), so the candidates here are scored on the same validation
 slides as the published ``c16-v2-head``. The test split is never read.
+
+Candidates (``--candidates``): ``stats`` (:class:`histojax.head_mil.StatsHead`, :func:`fit_stats`), ``mil-logit``
+and ``mil-features`` (:class:`histojax.head_mil.MilHead`, :func:`train_mil`, ``--steps`` AdamW steps), each fitted
+``--seeds`` times on the kept training slides with random reads and scored on the validation share reading
+everything and reading random cells (10 %, 20 %); the best mean validation AUC (reading everything) is refitted on
+the whole training split (seed 0) and saved to ``--out`` (``config.json`` records every candidate's figures beside
+the 2 × 2-mean head's). ``--table FILE`` keeps the validation figures, so a re-run only fits what is missing.
 """
 from __future__ import annotations
 

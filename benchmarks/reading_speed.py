@@ -14,6 +14,9 @@ comes from its own process (so peak RSS is that run's), compiled first, then tim
   batch, ``--ppo-steps`` steps per update, ``--ppo-updates`` updates, 1 seed;
 * **host tables**: ``Glimpse.prepare`` (the per-slide cell tables) on all the slides.
 
+``--paired N``: each env row also times navigation in its own process, the two programs in turn ``N``
+times (best of each): ``vs_navigation_paired``, a ratio that a load changing during the run moves less.
+
 ``glimpse:1-full`` is ``glimpse:1`` with the full observation of the ``-v1`` ids (``step_obs=False``) and,
 for PPO, the flat network that observation needs: the reading mode as it was before ``-v2``.
 """
@@ -59,24 +62,11 @@ def peak_rss_gb() -> float:
     return resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20
 
 
-def one_env(dataset, mode: str, batch: int, steps: int, budget: float) -> dict:
+def _env_program(env, params, batch: int, steps: int):
+    """The compiled env rollout of :func:`one_env` (run once): ``fn(key)``."""
     import jax
     import jax.numpy as jnp
 
-    import histojax
-    from histojax.glimpse import observation_bytes
-
-    paths = dataset_bundles(dataset)
-    t0 = time.perf_counter()
-    env, params = histojax.make(ENV_ID, slides=paths, **_overrides(mode, budget))
-    made = time.perf_counter() - t0
-    out = {"kind": "env", "mode": mode, "batch": batch, "slides": len(paths), "make_s": made,
-           "obs_bytes": observation_bytes(env, params)}
-    if mode.startswith("glimpse") and not mode.endswith("-full"):
-        t0 = time.perf_counter()
-        env.action.prepare(env, params, env.bundles, read_budget=budget)
-        out["host_tables_s"] = time.perf_counter() - t0
-        out["cells"] = int(params.mode_data.valid.shape[-1])
     n = env.num_actions
 
     def run(key):
@@ -97,12 +87,41 @@ def one_env(dataset, mode: str, batch: int, steps: int, budget: float) -> dict:
 
     fn = jax.jit(run).lower(jax.random.key(0)).compile()
     jax.block_until_ready(fn(jax.random.key(1)))
-    best = float("inf")
-    for r in range(2):
+    return fn
+
+
+def one_env(dataset, mode: str, batch: int, steps: int, budget: float, paired: int = 0) -> dict:
+    """Env steps/s of ``mode``; ``paired`` > 0: navigation's too, in the same process, the two programs timed
+    in turn ``paired`` times (best of each), so that a load changing during the run moves both alike."""
+    import jax
+
+    import histojax
+    from histojax.glimpse import observation_bytes
+
+    paths = dataset_bundles(dataset)
+    t0 = time.perf_counter()
+    env, params = histojax.make(ENV_ID, slides=paths, **_overrides(mode, budget))
+    made = time.perf_counter() - t0
+    out = {"kind": "env", "mode": mode, "batch": batch, "slides": len(paths), "make_s": made,
+           "obs_bytes": observation_bytes(env, params)}
+    if mode.startswith("glimpse") and not mode.endswith("-full"):
         t0 = time.perf_counter()
-        jax.block_until_ready(fn(jax.random.key(2 + r)))
-        best = min(best, time.perf_counter() - t0)
-    out.update(steps_per_s=batch * steps / best, peak_rss_gb=peak_rss_gb())
+        env.action.prepare(env, params, env.bundles, read_budget=budget)
+        out["host_tables_s"] = time.perf_counter() - t0
+        out["cells"] = int(params.mode_data.valid.shape[-1])
+    programs = [_env_program(env, params, batch, steps)]
+    if paired and mode != "navigation":
+        nav_env, nav_params = histojax.make(ENV_ID, slides=paths, **_overrides("navigation", budget))
+        programs.append(_env_program(nav_env, nav_params, batch, steps))
+    best = [float("inf")] * len(programs)
+    for r in range(max(2, paired)):
+        for j, fn in enumerate(programs):
+            t0 = time.perf_counter()
+            jax.block_until_ready(fn(jax.random.key(2 + r)))
+            best[j] = min(best[j], time.perf_counter() - t0)
+    out.update(steps_per_s=batch * steps / best[0], peak_rss_gb=peak_rss_gb())
+    if len(best) > 1:
+        out.update(navigation_paired=batch * steps / best[1], vs_navigation_paired=best[1] / best[0])
     return out
 
 
@@ -132,7 +151,7 @@ def one_ppo(dataset, mode: str, batch: int, steps: int, updates: int, budget: fl
 def _child(args, kind: str, mode: str, batch: int) -> dict:
     cmd = [sys.executable, "-m", "benchmarks.reading_speed", "--dataset", str(args.dataset), "--one", kind, mode,
            str(batch), "--env-steps", str(args.env_steps), "--ppo-steps", str(args.ppo_steps),
-           "--ppo-updates", str(args.ppo_updates), "--budget", str(args.budget)]
+           "--ppo-updates", str(args.ppo_updates), "--budget", str(args.budget), "--paired", str(args.paired)]
     done = subprocess.run(cmd, capture_output=True, text=True)
     if done.returncode != 0:
         tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["(no output)"]
@@ -150,6 +169,9 @@ def main(argv=None) -> int:
     parser.add_argument("--ppo-updates", type=int, default=2)
     parser.add_argument("--budget", type=float, default=0.1)
     parser.add_argument("--skip-ppo", action="store_true")
+    parser.add_argument("--paired", type=int, default=0,
+                        help="env rows: also time navigation in the same process, in turn with the mode, this many "
+                             "times (ratio 'paired'); 0: off")
     parser.add_argument("--json", type=Path, help="also write the rows here")
     parser.add_argument("--one", nargs=3, metavar=("KIND", "MODE", "BATCH"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
@@ -159,7 +181,7 @@ def main(argv=None) -> int:
         return 2
     if args.one:
         kind, mode, batch = args.one[0], args.one[1], int(args.one[2])
-        row = (one_env(args.dataset, mode, batch, args.env_steps, args.budget) if kind == "env" else
+        row = (one_env(args.dataset, mode, batch, args.env_steps, args.budget, args.paired) if kind == "env" else
                one_ppo(args.dataset, mode, batch, args.ppo_steps, args.ppo_updates, args.budget))
         print(json.dumps(row))
         return 0
@@ -181,7 +203,8 @@ def main(argv=None) -> int:
                     row["vs_navigation"] = row["steps_per_s"] / base
                 rows.append(row)
                 extra = "".join(f"  {k} {row[k]:.3g}" if isinstance(row[k], float) else f"  {k} {row[k]}"
-                                for k in ("obs_bytes", "cells", "host_tables_s", "network", "peak_rss_gb")
+                                for k in ("vs_navigation_paired", "obs_bytes", "cells", "host_tables_s", "network",
+                                          "peak_rss_gb")
                                 if k in row)
                 if "error" in row:
                     print(f"{kind:4s} {mode:12s} batch {batch:5d}  error: {row['error']}", flush=True)

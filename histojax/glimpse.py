@@ -168,18 +168,18 @@ class Glimpse(ActionMode):
                                  f"{bundle.path}`")
             s = int(np.asarray(slide.feature_stride))
             gw, gh = int(np.asarray(slide.feature_grid_width)[g]), int(np.asarray(slide.feature_grid_height)[g])
-            per.append((slide, bundle, s, gh, gw))
-        big_h, big_w = max(p[3] for p in per), max(p[4] for p in per)
+            per.append((bundle, s, gh, gw))  # not the slide's view: it is made again below, one at a time
+        big_h, big_w = max(p[2] for p in per), max(p[3] for p in per)
         if grid is not None:
             gh_max, gw_max = (int(v) for v in grid)
-            for _, bundle, _, gh, gw in per:
+            for bundle, _, gh, gw in per:
                 if gh > gh_max or gw > gw_max:
                     raise ValueError(f"{bundle.path}: its {gh} × {gw} glimpse cells at level {self.level} do not fit "
                                      f"glimpse_grid={[gh_max, gw_max]} (the grid a policy was trained with); "
                                      "train on slides that include one this large, or pass a larger glimpse_grid")
             big_h, big_w = gh_max, gw_max
         out = []
-        for slide, bundle, s, gh, gw in per:
+        for (slide, _), (bundle, s, gh, gw) in zip(reading.per_slide(params, bundles), per):
             tissue = reading.tissue_views(bundle, slide, t).reshape(-1)
             cell = reading.cell_of_views(slide, t, g, s, (gh, gw)).reshape(-1)
             feats = reading.finest_view_features(slide, t).reshape(tissue.shape[0], -1)

@@ -84,8 +84,13 @@ def feature_rows(slide, rows: np.ndarray) -> np.ndarray:
     """Host float32 copy of rows ``rows`` (any shape of absolute row indices) of ``slide.features``:
     gathered where the bank lives and only those rows copied, never the whole (stacked) bank."""
     rows = np.asarray(rows)
-    picked = jnp.take(slide.features, jnp.asarray(rows.reshape(-1), jnp.int32), axis=0)
-    return np.asarray(picked, np.float32).reshape(*rows.shape, -1)
+    flat = rows.reshape(-1)
+    # padded to a power of two: one compiled gather per size class, not one per slide (each compiled
+    # program stays in memory: hundreds of them held GBs of host memory for a full dataset)
+    padded = np.zeros(1 << max(0, int(flat.size - 1).bit_length()), np.int32)
+    padded[:flat.size] = flat
+    picked = np.asarray(jnp.take(slide.features, jnp.asarray(padded), axis=0)[:flat.size], np.float32)
+    return picked.reshape(*rows.shape, -1)
 
 
 def finest_view_features(slide, tile_size: int) -> np.ndarray:
@@ -105,9 +110,10 @@ def finest_view_features(slide, tile_size: int) -> np.ndarray:
 
 
 def per_slide(params, bundles):
-    """``[(single-slide SlideArrays, Bundle), ...]`` of a (possibly stacked) dataset."""
+    """``(single-slide SlideArrays, Bundle)`` of each slide of a (possibly stacked) dataset, one at a time (an
+    iterator: each slide's view, with its rows of the start weights, is dropped before the next is made)."""
     slides = params.slide
-    return [(slides.select(i), b) for i, b in enumerate(bundles)]
+    return ((slides.select(i), b) for i, b in enumerate(bundles))
 
 
 def pad_stack(arrays: list[np.ndarray], fill=0) -> np.ndarray:
@@ -159,10 +165,10 @@ def seen_tables(env, params, bundles, read_budget: float = 1.0) -> SeenTables:
     for slide, bundle in per_slide(params, bundles):
         _, width, height = level_geometry(slide)
         grids = [grid(int(w), int(h), t, t) for w, h in zip(width, height)]
-        geoms.append((slide, bundle, grids))
+        geoms.append((bundle, grids))
     big_c = VISITED_MAP * VISITED_MAP
     coarse_views = []
-    for slide, bundle, grids in geoms:
+    for (slide, _), (bundle, grids) in zip(per_slide(params, bundles), geoms):
         sizes = [h * w for h, w in grids]
         rows["offset"].append(np.cumsum([0] + sizes[:-1]).astype(np.int32))
         rows["width"].append(np.asarray([w for _, w in grids], np.int32))

@@ -3,7 +3,7 @@ validation slides with the same head as every other reader:
 
     python -m benchmarks.train_readers --dataset DIR --head HEAD --out runs/set-readers \\
         [--algo ppo|ppo_rnn] [--seeds 3] [--total-steps N] [--read-budget 0.2] [--gain log] [--final 1] \\
-        [--read-cost 0] [--val-fraction 0.3] [-- TRAINER OPTIONS]
+        [--read-cost 0] [--val-fraction 0.3] [--compare NAME RUN] [-- TRAINER OPTIONS]
 
 1. Holds back a validation share of ``DIR``'s training split (:func:`baselines.validation.split_train`,
    per class) and writes ``OUT/dataset.json``: the same bundles, splits ``train`` (what is kept),
@@ -13,7 +13,8 @@ validation slides with the same head as every other reader:
    :class:`baselines.networks.CellSetActorCritic`, or its recurrent twin with ``--algo ppo_rnn``) on
    the kept training slides, the env wrapped in ``HeadReward(env, head, gain, final, read_cost)``; the
    trainer's run folder ``OUT/<algo>`` (``log.csv``, ``curve.png``, ``params.msgpack``, ``config.json``)
-   plus ``OUT/<algo>/head_reward.json`` (the reward's settings).
+   plus ``OUT/<algo>/head_reward.json`` (the reward's settings) and ``OUT/<algo>/curve-seeds.png`` / ``.csv``
+   (the learning curve as mean ± std over seeds: :func:`seed_curve`).
 3. Scores the trained seeds with :mod:`baselines.readers` on the **validation** split at 5/10/20/50 %
    (overview only, random, scripted, the learned reader, read everything; the same head for every row):
    ``OUT/validation/readers.csv``, ``readers.png``, ``readers.json``.
@@ -84,6 +85,49 @@ def with_head_reward(head, gain, final: float, read_cost: float):
     return original
 
 
+def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tuple[Path, Path]:
+    """The learning curve of a multi-seed run as mean ± std over seeds (``log.json``'s ``per_seed``
+    ``return`` and ``length``, a running mean over ``smooth`` log points): ``csv_path`` (step, return mean,
+    std, per seed; length mean, std) and ``png``. Steps are env steps per seed."""
+    import matplotlib
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+    import numpy as np
+
+    log = json.loads((run_dir / "log.json").read_text())
+    steps = np.asarray(log["step"], float)
+    ret = np.asarray(log["per_seed"]["return"], float)       # (seeds, points)
+    length = np.asarray(log["per_seed"]["length"], float)
+    if ret.shape[-1] != len(steps):  # stored (points, seeds): make it (seeds, points)
+        ret, length = ret.T, length.T
+    kernel = np.ones(smooth) / smooth
+    sm = lambda a: np.stack([np.convolve(r, kernel, mode="valid") for r in a])  # noqa: E731
+    x = steps[smooth - 1:]
+    r, n = sm(ret), sm(length)
+    with open(csv_path, "w") as f:
+        f.write("env_steps_per_seed,return_mean,return_std," + ",".join(f"return_seed{i}" for i in range(len(r)))
+                + ",length_mean,length_std\n")
+        for j in range(len(x)):
+            f.write(f"{int(x[j])},{r[:, j].mean():.4f},{r[:, j].std():.4f},"
+                    + ",".join(f"{v:.4f}" for v in r[:, j]) + f",{n[:, j].mean():.3f},{n[:, j].std():.3f}\n")
+    fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
+    for ax, a, label in ((axes[0], r, "head-reward return"), (axes[1], n, "episode length (reads)")):
+        m, sd = a.mean(0), a.std(0)
+        ax.plot(x, m, color="C0", label=f"mean over {len(a)} seeds")
+        ax.fill_between(x, m - sd, m + sd, color="C0", alpha=0.25, linewidth=0, label="± std over seeds")
+        ax.set_ylabel(label)
+        ax.grid(alpha=0.4)
+    axes[0].legend(fontsize="small")
+    axes[1].set_xlabel("env steps per seed")
+    cfg = json.loads((run_dir / "config.json").read_text()) if (run_dir / "config.json").is_file() else {}
+    fig.suptitle(f"{cfg.get('algo', '').upper()} {cfg.get('env_id', run_dir.name)} {cfg.get('action_mode', '')}, "
+                 f"head reward: running mean over {smooth} log points", fontsize="small")
+    fig.tight_layout()
+    fig.savefig(png, dpi=110)
+    plt.close(fig)
+    return png, csv_path
+
+
 def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     extra = argv[argv.index("--") + 1:] if "--" in argv else []
@@ -145,6 +189,8 @@ def main(argv=None) -> int:
              "read_cost": args.read_cost, "read_budget": None if navigator else args.read_budget,
              "action_mode": args.action_mode, "train_wall_s": round(time.perf_counter() - t0, 1),
              "dataset": str(data), "validation_fraction": args.val_fraction, "split_seed": args.split_seed}, indent=1) + "\n")
+    if (run_dir / "log.json").is_file():
+        seed_curve(run_dir, run_dir / "curve-seeds.png", run_dir / "curve-seeds.csv")
     t1 = time.perf_counter()
     if navigator:
         from baselines import head_diagnosis

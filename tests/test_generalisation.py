@@ -180,8 +180,9 @@ def test_publish_a_tiny_ppo_and_score_it_on_a_dataset(c16_small, tmp_path):
 
 def test_published_agents_load_with_their_config():
     """The agents committed in baselines/published/ (navigators chosen on validation slides; the zoom reader,
-    trained with defaults on every training slide, by its training success) load with their config, name a
-    C16 v1 id and keep one seed of parameters."""
+    trained with defaults on every training slide, by its training success; the cell-set reader, by its
+    validation AUC) load with their config, name the C16 id of the version in their name (c16-vN-… → -vN) and
+    keep one seed of parameters."""
     import json
 
     import jax
@@ -193,7 +194,8 @@ def test_published_agents_load_with_their_config():
     assert {p.name for p in runs} >= {"c16-v1-hard-navigator", "c16-v1-diagnosis"}
     for run in runs:
         params, config = common.load_checkpoint(run)
-        assert config["env_id"].startswith("HistoJAX-C16-") and config["env_id"].endswith("-v1")
+        version = run.name.split("-")[1]
+        assert config["env_id"].startswith("HistoJAX-C16-") and config["env_id"].endswith(f"-{version}"), run.name
         assert {jax.tree.leaves(params)[0].shape[0]} == {1}
         record = json.loads((run / "published.json").read_text())
         assert record["chosen_by"]["by"].startswith(("validation", "training success (no validation"))

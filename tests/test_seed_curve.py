@@ -1,0 +1,27 @@
+"""benchmarks.train_readers.seed_curve: a multi-seed run's learning curve as mean ± std over seeds, from the
+trainer's log.json (per_seed stored as (seeds, points)), computed by hand here."""
+from __future__ import annotations
+
+import csv
+import json
+
+import numpy as np
+
+from benchmarks.train_readers import seed_curve
+
+
+def test_seed_curve_is_mean_and_std_over_seeds(tmp_path):
+    steps = list(range(1000, 11000, 1000))
+    rng = np.random.default_rng(0)
+    ret = rng.normal(size=(3, len(steps)))
+    length = rng.uniform(5, 10, size=(3, len(steps)))
+    (tmp_path / "log.json").write_text(json.dumps({"step": steps, "per_seed": {"return": ret.tolist(),
+                                                                              "length": length.tolist()}}))
+    png, path = seed_curve(tmp_path, tmp_path / "c.png", tmp_path / "c.csv", smooth=2)
+    assert png.stat().st_size > 0
+    rows = list(csv.DictReader(open(path)))
+    assert len(rows) == len(steps) - 1 and int(rows[0]["env_steps_per_seed"]) == 2000
+    smoothed = (ret[:, :-1] + ret[:, 1:]) / 2
+    np.testing.assert_allclose([float(r["return_mean"]) for r in rows], smoothed.mean(0), atol=1e-4)
+    np.testing.assert_allclose([float(r["return_std"]) for r in rows], smoothed.std(0), atol=1e-4)
+    np.testing.assert_allclose([float(r["return_seed1"]) for r in rows], smoothed[1], atol=1e-4)

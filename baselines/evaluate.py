@@ -908,6 +908,7 @@ def refuse_not_an_agent(path: Path) -> None:
     (:data:`RETIRED`; the folder is gone) and a slide head folder (``histojax.head``: it scores what a
     reader read, it does not act)."""
     from histojax.head import KIND
+    from histojax.head_mil import KINDS as OTHER_HEAD_KINDS
 
     name = path.parent.name if path.name == "params.msgpack" else path.name
     if not path.exists() and name in RETIRED:
@@ -919,7 +920,7 @@ def refuse_not_an_agent(path: Path) -> None:
         kind = json.loads((path / "config.json").read_text()).get("kind") if path.is_dir() else None
     except (OSError, ValueError, AttributeError):
         kind = None
-    if kind == KIND:
+    if kind == KIND or kind in OTHER_HEAD_KINDS:
         raise HistojaxDataError(path, "a slide head, not an agent: it scores what a reader read, it does not act; "
                                 f"score a reader through it: histojax evaluate READER --head {path} --dataset DIR "
                                 f"(or python -m baselines.readers --head {path} --dataset DIR)")

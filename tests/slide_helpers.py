@@ -22,3 +22,21 @@ def pyramid(path: Path, rgb: np.ndarray, mpp: float = 0.5) -> Path:
         for k, lv in enumerate(levels[1:], 1):
             tif.write(lv, subfiletype=1, resolution=(ppc / 2**k, ppc / 2**k), **opts)
     return path
+
+
+def tiny_feature_bundle(root: Path, seed: int, tile: int = 32) -> Path:
+    """A 1024 × 768 px single-level slide (glass, pink tissue, a purple "tumour" block, ±8 noise from
+    ``seed``) built into ``root/bundle`` at ``tile``-px views, Easy levels, with the cheap ``colour-stats``
+    feature grid (float32); returns the bundle path."""
+    from data_tools.bundle import build_bundle
+    from data_tools.features.grid import compute_features
+
+    rng = np.random.default_rng(seed)
+    image = np.full((768, 1024, 3), 245, np.uint8)                      # glass
+    image[80:680, 60:940] = [230, 160, 200]                              # pink tissue
+    image[200:360, 600:840] = [120, 40, 140]                             # purple "tumour"
+    image = np.clip(image.astype(int) + rng.integers(-8, 9, image.shape), 0, 255).astype(np.uint8)
+    tifffile.imwrite(root / "tiny.tif", image, photometric="rgb")
+    path = build_bundle(root / "tiny.tif", root / "bundle", level_sets=(3,), tile_size=tile, progress=False)
+    compute_features(path, encoder_name="colour-stats", batch=64, progress=False, dtype="float32")
+    return path

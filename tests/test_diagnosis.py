@@ -24,21 +24,9 @@ TILE, STEPS = 32, 12
 
 @pytest.fixture(scope="module")
 def bundle(tmp_path_factory) -> Path:
-    import tifffile
+    from slide_helpers import tiny_feature_bundle
 
-    from data_tools.bundle import build_bundle
-    from data_tools.features.grid import compute_features
-
-    root = tmp_path_factory.mktemp("diag")
-    rng = np.random.default_rng(1)
-    image = np.full((768, 1024, 3), 245, np.uint8)                      # glass
-    image[80:680, 60:940] = [230, 160, 200]                              # pink tissue
-    image[200:360, 600:840] = [120, 40, 140]                             # purple "tumour"
-    image = np.clip(image.astype(int) + rng.integers(-8, 9, image.shape), 0, 255).astype(np.uint8)
-    tifffile.imwrite(root / "tiny.tif", image, photometric="rgb")
-    path = build_bundle(root / "tiny.tif", root / "bundle", level_sets=(3,), tile_size=TILE, progress=False)
-    compute_features(path, encoder_name="colour-stats", batch=64, progress=False, dtype="float32")
-    return path
+    return tiny_feature_bundle(tmp_path_factory.mktemp("diag"), seed=1, tile=TILE)
 
 
 @pytest.fixture(scope="module")

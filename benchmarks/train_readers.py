@@ -100,6 +100,7 @@ def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tup
     length = np.asarray(log["per_seed"]["length"], float)
     if ret.shape[-1] != len(steps):  # stored (points, seeds): make it (seeds, points)
         ret, length = ret.T, length.T
+    smooth = max(1, min(smooth, len(steps)))  # a short run has fewer log points than the window
     kernel = np.ones(smooth) / smooth
     sm = lambda a: np.stack([np.convolve(r, kernel, mode="valid") for r in a])  # noqa: E731
     x = steps[smooth - 1:]

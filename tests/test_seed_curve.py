@@ -25,3 +25,14 @@ def test_seed_curve_is_mean_and_std_over_seeds(tmp_path):
     np.testing.assert_allclose([float(r["return_mean"]) for r in rows], smoothed.mean(0), atol=1e-4)
     np.testing.assert_allclose([float(r["return_std"]) for r in rows], smoothed.std(0), atol=1e-4)
     np.testing.assert_allclose([float(r["return_seed1"]) for r in rows], smoothed[1], atol=1e-4)
+
+
+def test_a_run_shorter_than_the_window_still_gets_its_curve(tmp_path):
+    """5 log points and the default window of 8: the window shrinks to the run (a short training run's
+    train_readers call must not fail after training)."""
+    ret = np.arange(15, dtype=float).reshape(3, 5)
+    (tmp_path / "log.json").write_text(json.dumps({"step": [1, 2, 3, 4, 5], "per_seed": {
+        "return": ret.tolist(), "length": np.ones((3, 5)).tolist()}}))
+    _, path = seed_curve(tmp_path, tmp_path / "c.png", tmp_path / "c.csv")
+    rows = list(csv.DictReader(open(path)))
+    assert len(rows) == 1 and float(rows[0]["return_mean"]) == ret.mean()

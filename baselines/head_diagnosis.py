@@ -97,15 +97,10 @@ def add_arguments(p) -> None:
 def run(args, parser=None) -> int:
     """Score each navigator through the head beside the readers; CSV, JSON, PNG in ``args.out``."""
     from baselines import outputs, readers
-    from baselines.head_fit import load_slides, read_spec
-    from histojax.head import SlideHead
 
     t0 = time.perf_counter()
     try:
-        head = SlideHead.load(args.head)
-        spec = read_spec(args.dataset)
-        level = readers.cell_level_for(Path(args.dataset), spec, args.split)
-        slides = load_slides(args.dataset, args.split, spec, head.dim, levels=(0, level), progress=True)
+        head, level, slides = readers.load_split(args.dataset, args.head, args.split)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     if not slides or len({s["label"] for s in slides}) < 2:

@@ -444,22 +444,29 @@ def add_arguments(p) -> None:
     p.add_argument("--out", default="runs/readers", help="output folder (default runs/readers)")
 
 
-def run(args, parser=None) -> int:
-    """Score every reader at every budget; CSV, JSON, PNG in ``args.out``."""
+def load_split(dataset, head_path, split: str, cell_level: int | None = None) -> tuple:
+    """``(head, cell_level, slides)``: the slide head loaded from ``head_path`` and ``split``'s slides of
+    ``dataset`` as :func:`baselines.head_fit.load_slides` gives them (the finest level and the cell level:
+    ``cell_level``, default :func:`cell_level_for`). Raises ``HistojaxDataError`` / ``ValueError`` naming the file."""
     from baselines.head_fit import load_slides, read_spec
     from histojax.head import SlideHead
 
+    head = SlideHead.load(head_path)
+    spec = read_spec(dataset)
+    if cell_level is None:
+        cell_level = cell_level_for(Path(dataset), spec, split)
+    return head, cell_level, load_slides(dataset, split, spec, head.dim, levels=(0, cell_level), progress=True)
+
+
+def run(args, parser=None) -> int:
+    """Score every reader at every budget; CSV, JSON, PNG in ``args.out``."""
     if not all(0.0 < b <= 1.0 for b in args.budgets):
         return print_error(f"--budgets must lie in (0, 1], got {args.budgets}")
     if args.seeds < 1 or (args.cell_level is not None and args.cell_level < 1):
         return print_error("--seeds and --cell-level must be ≥ 1")
     t0 = time.perf_counter()
     try:
-        head = SlideHead.load(args.head)
-        spec = read_spec(args.dataset)
-        if args.cell_level is None:
-            args.cell_level = cell_level_for(Path(args.dataset), spec, args.split)
-        slides = load_slides(args.dataset, args.split, spec, head.dim, levels=(0, args.cell_level), progress=True)
+        head, args.cell_level, slides = load_split(args.dataset, args.head, args.split, args.cell_level)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     other = sorted({str(s["encoder"]) for s in slides if head.encoder and s["encoder"] != head.encoder})

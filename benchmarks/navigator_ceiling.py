@@ -67,17 +67,12 @@ def add_arguments(p) -> None:
 def run(args, parser=None) -> int:
     """Print the ceiling fractions and the readers' AUC at them; CSV and JSON in ``args.out``."""
     from baselines import outputs, readers
-    from baselines.head_fit import load_slides, read_spec
-    from histojax.head import SlideHead
 
     if args.max_steps < 1 or args.seeds < 1 or not all(0.0 < b <= 1.0 for b in args.budgets):
         return print_error("--max-steps and --seeds must be ≥ 1 and --budgets in (0, 1]")
     t0 = time.perf_counter()
     try:
-        head = SlideHead.load(args.head)
-        spec = read_spec(args.dataset)
-        level = readers.cell_level_for(Path(args.dataset), spec, args.split)
-        slides = load_slides(args.dataset, args.split, spec, head.dim, levels=(0, level), progress=True)
+        head, level, slides = readers.load_split(args.dataset, args.head, args.split)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     if not slides or len({s["label"] for s in slides}) < 2:

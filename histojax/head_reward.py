@@ -56,7 +56,7 @@ from flax import struct
 
 from histojax import reading
 from histojax.adapters.jax import Wrapper
-from histojax.head import SlideHead, score_logits
+from histojax.head import SlideHead, neighbourhood_mean, score_logits
 
 GAINS = ("log", "prob", "fidelity")
 
@@ -71,6 +71,15 @@ class HeadTables:
     grid: jnp.ndarray        # (S, 2) int32 (gh, gw) each slide's own finest grid
     label: jnp.ndarray       # (S,) int32 slide label (1 tumour)
     full_logit: jnp.ndarray  # (S,) float32 the head's slide logit with every tissue view read
+    # glimpse with a max-pooling SlideHead only (else None): the same grids padded by ``k`` views above / left
+    # and a window's size below / right, and each cell row's / column's first finest row / column, so that
+    # a step re-scores only the window around the cell it revealed (see :meth:`HeadReward._score_incremental`)
+    win_logits: jnp.ndarray | None = None   # (S, H + pad_h, W + pad_w) float32
+    win_tissue: jnp.ndarray | None = None   # (S, H + pad_h, W + pad_w) bool
+    win_cell: jnp.ndarray | None = None     # (S, H + pad_h, W + pad_w) int32
+    row_start: jnp.ndarray | None = None    # (S, Gh + 1) int32 first finest row of each cell row (then the end)
+    col_start: jnp.ndarray | None = None    # (S, Gw + 1) int32 first finest column of each cell column
+    window: tuple = struct.field(pytree_node=False, default=(0, 0))  # (rows, cols) of the re-scored window
 
 
 @struct.dataclass
@@ -81,10 +90,20 @@ class HeadRewardState:
     visited: jnp.ndarray     # (H·W,) bool finest views visited (non-glimpse modes); (0,) for glimpse
     logit: jnp.ndarray       # () float32 the head's slide logit of what has been read
     views: jnp.ndarray       # () int32 finest tissue views read
+    cell_best: jnp.ndarray = None  # (C,) float32 incremental score only: each cell's largest neighbourhood
+                                   # mean over its read views (-inf: none read); (0,) otherwise
 
 
-def build_tables(env, head: SlideHead, params=None) -> HeadTables:
-    """Host-built :class:`HeadTables` of ``env``'s slides (``params``: default ``env.default_params``)."""
+def incremental(head, glimpse: bool) -> bool:
+    """Whether a step can re-score only the window around the cell it revealed (exactly the full score):
+    ``glimpse`` reading and a :class:`~histojax.head.SlideHead` that pools by the maximum (``top=1``, no
+    median), whose neighbourhood means change only near newly read views."""
+    return bool(glimpse and isinstance(head, SlideHead) and head.top == 1 and not head.minus_median)
+
+
+def build_tables(env, head: SlideHead, params=None, windows: bool | None = None) -> HeadTables:
+    """Host-built :class:`HeadTables` of ``env``'s slides (``params``: default ``env.default_params``);
+    ``windows`` (default :func:`incremental`): also the padded grids of the incremental score."""
     params = env.default_params if params is None else params
     bundles = env.bundles
     if not bundles:
@@ -99,13 +118,17 @@ def build_tables(env, head: SlideHead, params=None) -> HeadTables:
         logits = reading.finest_view_features(slide, t)[..., head.dim]
         tissue = reading.tissue_views(bundle, slide, t)
         cell = np.zeros(tissue.shape, np.int64)
+        starts = None
         if glimpse:
             g, s = env.action.level, int(np.asarray(slide.feature_stride))
             gw, gh = int(np.asarray(slide.feature_grid_width)[g]), int(np.asarray(slide.feature_grid_height)[g])
             own = reading.cell_of_views(slide, t, g, s, (gh, gw))
             cy, cx = np.divmod(own, gw)
             cell = cy * int(np.asarray(params.mode_data.grid)[1]) + cx
-        rows.append((logits, tissue, cell, int(np.asarray(slide.slide_label))))
+            big_h, big_w = (int(v) for v in np.asarray(params.mode_data.grid))
+            # cell_of_views is separable and monotone: cell row of finest row r is cy[r, 0], column cx[0, c]
+            starts = (np.searchsorted(cy[:, 0], np.arange(big_h + 1)), np.searchsorted(cx[0, :], np.arange(big_w + 1)))
+        rows.append((logits, tissue, cell, int(np.asarray(slide.slide_label)), starts))
     h = max(r[1].shape[0] for r in rows)
     w = max(r[1].shape[1] for r in rows)
 
@@ -116,21 +139,36 @@ def build_tables(env, head: SlideHead, params=None) -> HeadTables:
     logits = jnp.asarray(np.stack([pad(r[0].astype(np.float32), 0.0) for r in rows]))
     tissue = jnp.asarray(np.stack([pad(r[1], False) for r in rows]))
     full = jax.jit(jax.vmap(lambda lg, ts: score_logits(head, lg, ts)))(logits, tissue)
-    return HeadTables(logits=logits, tissue=tissue,
-                      cell=jnp.asarray(np.stack([pad(r[2], 0) for r in rows]), jnp.int32),
+    cells = np.stack([pad(r[2], 0) for r in rows])
+    extra = {}
+    if incremental(head, glimpse) if windows is None else windows:
+        row_start = np.stack([r[4][0] for r in rows]).astype(np.int32)
+        col_start = np.stack([r[4][1] for r in rows]).astype(np.int32)
+        k = int(head.k)
+        # the re-scored window: the 3 × 3 cells around a revealed one, plus k views on every side
+        win = (3 * int(np.diff(row_start, axis=1).max()) + 2 * k, 3 * int(np.diff(col_start, axis=1).max()) + 2 * k)
+        grow = lambda a, fill: np.pad(a, ((0, 0), (k, win[0]), (k, win[1])), constant_values=fill)  # noqa: E731
+        extra = dict(win_logits=jnp.asarray(grow(np.asarray(logits), 0.0)),
+                     win_tissue=jnp.asarray(grow(np.asarray(tissue), False)),
+                     win_cell=jnp.asarray(grow(cells, 0), jnp.int32),
+                     row_start=jnp.asarray(row_start), col_start=jnp.asarray(col_start), window=win)
+    return HeadTables(logits=logits, tissue=tissue, cell=jnp.asarray(cells, jnp.int32),
                       grid=jnp.asarray([r[1].shape for r in rows], jnp.int32),
                       label=jnp.asarray([r[3] for r in rows], jnp.int32),
-                      full_logit=full.astype(jnp.float32))
+                      full_logit=full.astype(jnp.float32), **extra)
 
 
 class HeadReward(Wrapper):
     """SASHA's reward by a slide head (see the module doc). ``gain``: ``"log"`` (default), ``"prob"`` or
     ``None``; ``final``: reward for a right diagnosis by the head at the episode's end (``True`` = 1.0);
     ``read_cost``: per step that reads new tissue views; ``env_reward``: add the env's own reward;
-    ``params``: the env params whose slides the tables hold (default the env's)."""
+    ``params``: the env params whose slides the tables hold (default the env's); ``incremental_score``:
+    re-score only the window around each revealed cell (default where :func:`incremental` allows it: the
+    same logits as scoring the whole grid, at a cost that does not grow with the slide; ``False``: score
+    the whole finest grid every step)."""
 
     def __init__(self, env, head: SlideHead, gain: str | None = "log", final: float = 1.0, read_cost: float = 0.0,
-                 env_reward: bool = False, params=None):
+                 env_reward: bool = False, params=None, incremental_score: bool | None = None):
         super().__init__(env)
         if gain is True:
             gain = "log"
@@ -145,7 +183,10 @@ class HeadReward(Wrapper):
         self.read_cost = float(read_cost)
         self.env_reward = bool(env_reward)
         self.glimpse = getattr(env.action, "name", "") == "glimpse"
-        self.tables = build_tables(env, head, params)
+        self.incremental = incremental(head, self.glimpse) if incremental_score is None else bool(incremental_score)
+        if self.incremental and not incremental(head, self.glimpse):
+            raise ValueError("incremental_score needs glimpse reading and a SlideHead with top=1 and no median")
+        self.tables = build_tables(env, head, params, windows=self.incremental)
 
     # ------------------------------------------------------------------ head on a state
     def read_mask(self, env_state, visited) -> jax.Array:
@@ -170,11 +211,44 @@ class HeadReward(Wrapper):
         mask = self.read_mask(env_state, visited)
         return score_logits(self.head, self.tables.logits[env_state.slide_index], mask), mask.sum(dtype=jnp.int32)
 
+    def _score_incremental(self, before: HeadRewardState, env_state):
+        """``(logit, views, cell_best)`` after a step from ``before``, re-scoring only the window of the
+        3 × 3 cells around the cell the step revealed (a glimpse step reveals at most one): a read view's
+        ``k × k`` neighbourhood mean changes only when a view of its window is newly read, and those views
+        lie in that window. The same floats as :meth:`_score` (the same sums of the same views)."""
+        tb, head, i = self.tables, self.head, env_state.slide_index
+        revealed = env_state.memory.revealed
+        changed = revealed & ~before.env_state.memory.revealed
+        new = changed.any()
+        c = jnp.argmax(changed)
+        big_w = tb.col_start.shape[1] - 1          # the padded cell grid (static)
+        gy, gx = c // big_w, c % big_w
+        oy = tb.row_start[i, jnp.maximum(gy - 1, 0)]   # padded grid: k views above, so the window starts k higher
+        ox = tb.col_start[i, jnp.maximum(gx - 1, 0)]
+        cut = lambda a: jax.lax.dynamic_slice(a[i], (oy, ox), tb.window)  # noqa: E731
+        cell, tissue = cut(tb.win_cell), cut(tb.win_tissue)
+        read = revealed[cell] & tissue
+        nb = neighbourhood_mean(cut(tb.win_logits), read, head.k)
+        big_h = tb.row_start.shape[1] - 1
+        near = (jnp.clip(gy + jnp.array([-1, 0, 1]), 0, big_h - 1)[:, None] * big_w
+                + jnp.clip(gx + jnp.array([-1, 0, 1]), 0, big_w - 1)[None, :]).reshape(-1)      # (9,) cells
+        best = jnp.where((cell[None] == near[:, None, None]) & read[None], nb[None], -jnp.inf).max((1, 2))
+        cell_best = jnp.where(new, before.cell_best.at[near].set(best), before.cell_best)
+        views = before.views + jnp.where(new, ((cell == c) & tissue).sum(dtype=jnp.int32), 0)
+        s = cell_best.max()
+        logit = jnp.where(views > 0, head.a * s + head.b, head.prior_logit).astype(jnp.float32)
+        return logit, views, cell_best
+
     def _wrap(self, env_state) -> HeadRewardState:
         n = 0 if self.glimpse else int(np.prod(self.tables.tissue.shape[1:]))
         visited = self._visit(env_state, jnp.zeros((n,), bool))
+        if self.incremental:  # a fresh glimpse episode has read nothing: the head's prior
+            return HeadRewardState(env_state=env_state, visited=visited, logit=jnp.asarray(self.head.prior_logit,
+                                   jnp.float32), views=jnp.zeros((), jnp.int32),
+                                   cell_best=jnp.full(env_state.memory.revealed.shape, -jnp.inf, jnp.float32))
         logit, views = self._score(env_state, visited)
-        return HeadRewardState(env_state=env_state, visited=visited, logit=logit, views=views)
+        return HeadRewardState(env_state=env_state, visited=visited, logit=logit, views=views,
+                               cell_best=jnp.zeros((0,), jnp.float32))
 
     def log_prob_true(self, logit, label) -> jax.Array:
         """``log p(label)`` of a slide logit (label 1: tumour)."""
@@ -195,7 +269,10 @@ class HeadReward(Wrapper):
         key_reset, _ = jax.random.split(key)
         obs_st, env_st, env_r, terminated, truncated, info = self._env.step_env(key, state.env_state, action, params)
         visited = self._visit(env_st, state.visited)
-        logit, views = self._score(env_st, visited)
+        if self.incremental:
+            logit, views, cell_best = self._score_incremental(state, env_st)
+        else:
+            (logit, views), cell_best = self._score(env_st, visited), state.cell_best
         label = self.tables.label[env_st.slide_index]
         done = terminated | truncated
         correct = (logit >= 0.0) == (label == 1)
@@ -215,7 +292,7 @@ class HeadReward(Wrapper):
         if self.env_reward:
             reward = reward + env_r
         info = {**info, "head_score": logit, "head_correct": correct, "head_views": views, "head_reward": head_reward}
-        new = HeadRewardState(env_state=env_st, visited=visited, logit=logit, views=views)
+        new = HeadRewardState(env_state=env_st, visited=visited, logit=logit, views=views, cell_best=cell_best)
         if not self._env.auto_reset:
             return obs_st, new, reward.astype(jnp.float32), terminated, truncated, {**info, "final_observation": obs_st}
         obs_re, env_re = self._env.reset_env(key_reset, params)

@@ -11,6 +11,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
 
 import histojax
 from histojax import reading
@@ -293,3 +295,58 @@ def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(datase
         finest_total += expected.size
         np.testing.assert_array_equal(np.sort(reads[e]), expected)
     assert finest_total > 0  # the untrained sampled navigator reached the finest level somewhere
+
+
+@pytest.fixture(scope="module", params=[("glimpse:1", 1), ("glimpse:1", 2), ("glimpse:2", 3)],
+                ids=lambda p: f"{p[0]}-k{p[1]}")
+def incremental_pair(dataset, request):
+    """One env (read_budget 1: episodes read many cells) wrapped twice, re-scoring the window around each
+    revealed cell and scoring the whole grid, and one jitted vmapped rollout of both (compiled once)."""
+    mode, k = request.param
+    env, params = _make(dataset, action_mode=mode, step_obs=True, read_budget=1.0)
+    head = HEAD.replace(k=k)
+    fast = HeadReward(env, head, gain="fidelity", final=1.0, params=params)
+    full = HeadReward(env, head, gain="fidelity", final=1.0, params=params, incremental_score=False)
+    assert fast.incremental and not full.incremental
+    c = int(params.mode_data.valid.shape[-1])
+
+    @jax.jit
+    def roll(key, actions):  # actions (T, ENVS)
+        keys = jax.random.split(key, ENVS)
+        outs = []
+        for w in (fast, full):
+            _, st = jax.vmap(w.reset, in_axes=(0, None))(keys, params)
+
+            def body(st, xs):
+                k, a = xs
+                _, st, r, term, trunc, info = jax.vmap(w.step, in_axes=(0, 0, 0, None))(
+                    jax.random.split(k, ENVS), st, a, params)
+                return st, (r, st.logit, st.views, info["head_score"], term | trunc)
+            outs.append(jax.lax.scan(body, st, (jax.random.split(key, actions.shape[0]), actions))[1])
+        return outs
+    return roll, c
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(seed=st.integers(0, 2**31 - 1), declare_rate=st.sampled_from([0.0, 0.05]))
+def test_windowed_score_equals_scoring_the_whole_grid(incremental_pair, seed, declare_rate):
+    """Re-scoring only the 3 × 3 cells around each revealed cell gives the very floats of scoring the whole
+    finest grid: rewards, logits, views read, over episodes with auto-resets (declares end some)."""
+    roll, c = incremental_pair
+    rng = np.random.default_rng(seed)
+    actions = rng.integers(0, c, (40, ENVS))
+    actions = np.where(rng.random(actions.shape) < declare_rate, c + rng.integers(0, 2, actions.shape), actions)
+    fast, full = roll(jax.random.key(seed), jnp.asarray(actions, jnp.int32))
+    for name, a, b in zip(("reward", "logit", "views", "head_score", "done"), fast, full):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=name)
+    assert np.asarray(full[2]).max() > 0  # the rollouts did read
+
+
+def test_incremental_score_is_refused_where_it_is_not_exact(glimpse, navigation):
+    env, params, _ = glimpse
+    with pytest.raises(ValueError, match="incremental_score"):
+        HeadReward(env, HEAD.replace(top=3), incremental_score=True)
+    nav_env, _, _ = navigation
+    with pytest.raises(ValueError, match="incremental_score"):
+        HeadReward(nav_env, HEAD, incremental_score=True)
+    assert not HeadReward(env, HEAD.replace(minus_median=True)).incremental

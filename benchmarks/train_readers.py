@@ -112,7 +112,7 @@ def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tup
             f.write(f"{int(x[j])},{r[:, j].mean():.4f},{r[:, j].std():.4f},"
                     + ",".join(f"{v:.4f}" for v in r[:, j]) + f",{n[:, j].mean():.3f},{n[:, j].std():.3f}\n")
     fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
-    for ax, a, label in ((axes[0], r, "head-reward return"), (axes[1], n, "episode length (reads)")):
+    for ax, a, label in ((axes[0], r, "head-reward return"), (axes[1], n, "episode length (steps)")):
         m, sd = a.mean(0), a.std(0)
         ax.plot(x, m, color="C0", label=f"mean over {len(a)} seeds")
         ax.fill_between(x, m - sd, m + sd, color="C0", alpha=0.25, linewidth=0, label="± std over seeds")

@@ -257,6 +257,18 @@ class EpisodeTables:
 
     def __init__(self, tables: dict):
         self.tables = {k: jnp.asarray(v) for k, v in tables.items()}
+        # the valid cells of each slide, packed: a network computes keys and logits for these only (a
+        # padded grid is mostly padding and off-tissue cells: on the C16 set 105 valid cells of 1,330 on average)
+        valid = np.asarray(self.tables["valid"]) > 0                      # (S, C)
+        s, c = valid.shape
+        packed = np.full((s, max(1, int(valid.sum(1).max()))), c, np.int32)
+        slot = np.zeros((s, c), np.int32)
+        for row in range(s):
+            cells = np.flatnonzero(valid[row])
+            packed[row, : cells.size] = cells
+            slot[row, cells] = np.arange(cells.size)
+        self.valid_cells = jnp.asarray(packed)  # (S, V) int32 cell index of each packed entry; C = none
+        self.valid_slot = jnp.asarray(slot)     # (S, C) int32 packed entry of each valid cell (0 elsewhere)
 
     def __getitem__(self, key):
         return self.tables[key]
@@ -273,10 +285,13 @@ def uses_cell_sets(env) -> bool:
 
 
 class CellEncoder(nn.Module):
-    """Step observation + episode tables → ``(cell keys (B, C, Hc), context input (B, F), pickable
-    (B, C) bool)``. One network shared by all cells embeds each cell from what is fixed for it during an
-    episode (coarse features, validity, cost, position) into a key; this runs once per call over every
-    slide's cells (``S × C``, not per env) and each env gathers its slide's keys. The ``K`` read slots are
+    """Step observation + episode tables → ``((cell keys (B, V, Hc), their cells (B, V)), context input
+    (B, F), pickable (B, C) bool)``. One network shared by all cells embeds each valid cell from what is
+    fixed for it during an episode (coarse features, validity, cost, position) into a key; this runs once
+    per call over every slide's valid cells (``S × V``, packed by :class:`EpisodeTables`: ``V`` is the most
+    valid cells of a slide, index ``C`` marks an empty entry; not per env) and each env gathers its slide's
+    keys. ``obs=None`` returns those per-slide keys and their mean, ``((S, V, Hc), (S, Hc))``, and ``cell_keys=``
+    takes them back (a rollout computes them once per parameter update: :func:`rollout_apply`). The ``K`` read slots are
     embedded from their summaries and their cells' keys and pooled (mean, max); with the slide's mean
     key, the view entry and the budget left they make the context input."""
 
@@ -285,26 +300,35 @@ class CellEncoder(nn.Module):
     obs_norm: tuple | None = None
 
     @nn.compact
-    def __call__(self, obs):
+    def __call__(self, obs, cell_keys=None):
         from histojax.glimpse import unpack_bits
 
         t = self.tables
-        i = jnp.asarray(obs["slide"], jnp.int32)
-        b, c = i.shape[0], t["valid"].shape[-1]
         dense = lambda n, name: nn.Dense(n, kernel_init=nn.initializers.orthogonal(np.sqrt(2)), name=name)  # noqa: E731
         norm = (lambda x: x) if self.obs_norm is None else (  # noqa: E731
             lambda x: (x - jnp.asarray(self.obs_norm[0], jnp.float32)) / jnp.asarray(self.obs_norm[1], jnp.float32))
         valid = t["valid"]                                                # (S, C)
-        fixed = jnp.concatenate([norm(t["cells"]), valid[..., None], t["cost"][..., None] * 10.0, t["position"]], -1)
-        keys = nn.relu(dense(self.hidden, "cell_in")(fixed))
-        keys = nn.relu(dense(self.hidden, "cell_mid")(keys))              # (S, C, Hc): every slide's cells, once
-        slide_mean = jnp.einsum("sc,sch->sh", valid / jnp.maximum(valid.sum(-1, keepdims=True), 1.0), keys)
+        c = valid.shape[-1]
+        packed = t.valid_cells                                            # (S, V): each slide's valid cells
+        if cell_keys is None:
+            fixed = jnp.concatenate([norm(t["cells"]), valid[..., None], t["cost"][..., None] * 10.0, t["position"]], -1)
+            fixed = jnp.take_along_axis(fixed, jnp.minimum(packed, c - 1)[..., None], axis=1)  # (S, V, F)
+            keys = nn.relu(dense(self.hidden, "cell_in")(fixed))
+            keys = nn.relu(dense(self.hidden, "cell_mid")(keys))          # (S, V, Hc): every slide's valid cells, once
+            on = (packed < c).astype(jnp.float32)
+            slide_mean = jnp.einsum("sv,svh->sh", on / jnp.maximum(on.sum(-1, keepdims=True), 1.0), keys)
+        else:
+            keys, slide_mean = cell_keys
+        if obs is None:
+            return keys, slide_mean
+        i = jnp.asarray(obs["slide"], jnp.int32)
+        b = i.shape[0]
         where = jnp.asarray(obs["read_cells"], jnp.int32)                # (B, K), C = empty
         filled = (where < c).astype(jnp.float32)
         summaries = jnp.asarray(obs["read_summaries"], jnp.float32)      # (B, K, 2D)
         d = summaries.shape[-1] // 2
         summaries = jnp.concatenate([norm(summaries[..., :d]), norm(summaries[..., d:])], -1)
-        slot_keys = keys[i[:, None], jnp.minimum(where, c - 1)]           # (B, K, Hc)
+        slot_keys = keys[i[:, None], t.valid_slot[i[:, None], jnp.minimum(where, c - 1)]]  # (B, K, Hc)
         slots = nn.relu(dense(self.hidden, "slot_in")(jnp.concatenate([summaries, slot_keys], -1)))
         n_read = filled.sum(-1, keepdims=True)
         slot_mean = (slots * filled[..., None]).sum(1) / jnp.maximum(n_read, 1.0)
@@ -315,16 +339,20 @@ class CellEncoder(nn.Module):
         context_in = jnp.concatenate([slide_mean[i], slot_mean, slot_max, n_read / where.shape[-1], *view], -1)
         read = unpack_bits(jnp.asarray(obs["read_bits"]), c)            # (B, C) bool
         pickable = (valid[i] > 0) & ~read
-        return keys[i], context_in, pickable
+        return (keys[i], packed[i]), context_in, pickable
 
 
 def cell_logits(module: nn.Module, keys, context, pickable):
     """Pointer logits: one per cell, the dot product of its key with a query from the context (``(B,
-    C)``, ``NEG`` where ``pickable`` is false; the cost per env grows as ``C × Hc``), then the 2
-    declaring actions from the context: ``((B, C + 2), value (B,))``."""
+    C)``, ``NEG`` where ``pickable`` is false; ``keys``: the valid cells' keys ``(B, V, Hc)`` and their
+    cells ``(B, V)`` (``C``: none), so the cost per env grows as ``V × Hc``), then the 2 declaring
+    actions from the context: ``((B, C + 2), value (B,))``."""
+    keys, cells = keys
     hc = keys.shape[-1]
     query = nn.Dense(hc, kernel_init=nn.initializers.orthogonal(0.01), name="query")(context)
-    per_cell = jnp.einsum("bch,bh->bc", keys, query) / np.sqrt(hc)
+    packed = jnp.einsum("bvh,bh->bv", keys, query) / np.sqrt(hc)
+    rows = jnp.arange(cells.shape[0])[:, None]
+    per_cell = jnp.full(pickable.shape, NEG, packed.dtype).at[rows, cells].set(packed, mode="drop")
     per_cell = jnp.where(pickable, per_cell, NEG)
     declare = nn.Dense(2, kernel_init=nn.initializers.orthogonal(0.01), bias_init=nn.initializers.zeros,
                        name="declare")(nn.tanh(nn.Dense(module.hidden // 2, name="declare_in")(context)))
@@ -340,7 +368,9 @@ class CellSetActorCritic(nn.Module):
     per cell, its key against a query from the context (invalid, padding and already read cells
     masked), and the two declaring actions from the context. Its parameters do not depend on ``C``: one policy runs on any
     slide size and any dataset (build it with that env's tables), and its cost grows with ``C``.
-    ``action_dim`` is unused (the env's ``C + 2``), kept so that trainers build it as the others."""
+    ``action_dim`` is unused (the env's ``C + 2``), kept so that trainers build it as the others.
+    ``apply(params, None)`` gives the per-slide cell keys, which ``apply(params, obs, cell_keys=...)``
+    takes back (the same outputs; a rollout with fixed parameters computes them once: :func:`rollout_apply`)."""
 
     action_dim: int
     tables: EpisodeTables
@@ -350,8 +380,11 @@ class CellSetActorCritic(nn.Module):
     cell_hidden: int = 32       # the per-cell layers' width (config "cell_hidden")
 
     @nn.compact
-    def __call__(self, obs):
-        keys, context_in, pickable = CellEncoder(self.cell_hidden, self.tables, self.obs_norm)(obs)
+    def __call__(self, obs, cell_keys=None):
+        encoded = CellEncoder(self.cell_hidden, self.tables, self.obs_norm)(obs, cell_keys)
+        if obs is None:  # the per-slide cell keys only (see CellEncoder)
+            return encoded
+        keys, context_in, pickable = encoded
         context = nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)),
                                    name="context")(context_in))
         return cell_logits(self, keys, context, pickable)
@@ -380,6 +413,16 @@ class RecurrentCellSetActorCritic(nn.Module):
         h, y = ScannedGRU(self.hidden)(h, (x.reshape(t, b, -1), resets.astype(bool)))
         logits, value = cell_logits(self, keys, y.reshape(t * b, -1), pickable)
         return h, logits.reshape(t, b, -1), value.reshape(t, b)
+
+
+def rollout_apply(network: nn.Module, params):
+    """``obs -> network.apply(params, obs)`` for the many calls of a rollout with the same ``params``. For a
+    :class:`CellSetActorCritic` the per-slide cell keys (every slide's cells, the reader's largest cost) are
+    computed here once instead of at every step; the outputs are those of ``network.apply(params, obs)``."""
+    if isinstance(network, CellSetActorCritic):
+        keys = network.apply(params, None)
+        return lambda obs: network.apply(params, obs, cell_keys=keys)
+    return lambda obs: network.apply(params, obs)
 
 
 # ----------------------------------------------------------------------------- distributions

@@ -45,7 +45,7 @@ from flax.training.train_state import TrainState
 from baselines import common
 from baselines.networks import (ActorCritic, CellSetActorCritic, EpisodeTables, RecurrentActorCritic,
                                 RecurrentCellSetActorCritic, is_discrete, policy_entropy, policy_log_prob, policy_sample,
-                                preprocess_obs, uses_cell_sets)
+                                preprocess_obs, rollout_apply, uses_cell_sets)
 from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
@@ -284,10 +284,12 @@ def make_train(config: dict):
     def update(carry, update_index, env_params):
         """One PPO update (``num_steps`` steps of every env, GAE, minibatch epochs) of a runner state
         ``carry`` (:func:`init_runner`): ``(carry, metrics)``."""
+        policy = rollout_apply(network, carry[0].params)  # the params are fixed during the rollout
+
         def env_step(carry, _):
             state, env_state, obs, key = carry
             key, k_act, k_step = jax.random.split(key, 3)
-            pi, value = network.apply(state.params, obs)
+            pi, value = policy(obs)
             action = policy_sample(k_act, pi, mode)
             log_prob = policy_log_prob(pi, action, mode)
             next_obs, env_state, reward, term, trunc, info = step_all(
@@ -299,7 +301,7 @@ def make_train(config: dict):
             return (state, env_state, next_obs, key), t
 
         (state, env_state, obs, key), traj = jax.lax.scan(env_step, carry, None, num_steps)
-        _, last_value = network.apply(state.params, obs)
+        _, last_value = policy(obs)
         advantages, targets = gae(traj, last_value, config["gamma"], config["gae_lambda"])
 
         def loss_fn(params, mb):

@@ -130,3 +130,53 @@ def test_ppo_trains_on_one_dataset_and_reads_another(slides, envs):
     obs, _ = _batch_reset(env_b, pb, jax.random.key(3))
     logits, value = jax.jit(net_b.apply)(params, obs)
     assert logits.shape == (ENVS, int(pb.mode_data.valid.shape[-1]) + 2) and np.isfinite(np.asarray(value)).all()
+
+
+def test_rollout_apply_computes_the_cell_keys_once_with_the_same_outputs(envs):
+    """A rollout's policy (:func:`baselines.networks.rollout_apply`: the per-slide cell keys computed once
+    for fixed parameters) gives the outputs of ``network.apply`` on every observation."""
+    from baselines.networks import rollout_apply
+
+    (env_a, pa), _ = envs
+    net = ppo.make_network(CONFIG, env_a)
+    obs, state = _batch_reset(env_a, pa, jax.random.key(4))
+    params = net.init(jax.random.key(5), obs)
+    policy = jax.jit(rollout_apply(net, params))
+    plain = jax.jit(lambda o: net.apply(params, o))
+    keys, mean = net.apply(params, None)
+    valid = np.asarray(pa.mode_data.valid) > 0  # keys of each slide's valid cells only, packed
+    assert keys.shape[:2] == (valid.shape[0], valid.sum(1).max()) and mean.shape == (keys.shape[0], keys.shape[-1])
+    c = int(pa.mode_data.valid.shape[-1])
+    for t in range(STEPS):
+        for a, b in zip(policy(obs), plain(obs)):
+            np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
+        action = jax.random.randint(jax.random.key(10 + t), (ENVS,), 0, c + 2)
+        obs, state, *_ = jax.vmap(env_a.step, in_axes=(0, 0, 0, None))(
+            jax.random.split(jax.random.key(20 + t), ENVS), state, action, pa)
+
+
+def test_pointer_logits_are_every_pickable_cells_key_against_the_query(envs):
+    """The packed keys (valid cells only) scatter back to the right cells: each pickable cell's logit is
+    its key, computed by hand from the per-cell layers on the dense ``(S, C)`` tables, against the query."""
+    (env_a, pa), _ = envs
+    net = ppo.make_network(CONFIG, env_a)
+    obs, _ = _batch_reset(env_a, pa, jax.random.key(6))
+    params = net.init(jax.random.key(7), obs)
+    (logits, _), inter = net.apply(params, obs, capture_intermediates=lambda m, _: m.name == "query",
+                                   mutable=["intermediates"])
+    query = np.asarray(jax.tree.leaves(inter["intermediates"])[0])             # (B, Hc)
+    t = env_a.episode_tables(pa)
+    enc = params["params"]["CellEncoder_0"]
+    fixed = np.concatenate([np.asarray(t["cells"]), np.asarray(t["valid"])[..., None],
+                            np.asarray(t["cost"])[..., None] * 10.0, np.asarray(t["position"])], -1)
+    relu = lambda x: np.maximum(x, 0.0)  # noqa: E731
+    keys = relu(fixed @ np.asarray(enc["cell_in"]["kernel"]) + np.asarray(enc["cell_in"]["bias"]))
+    keys = relu(keys @ np.asarray(enc["cell_mid"]["kernel"]) + np.asarray(enc["cell_mid"]["bias"]))  # (S, C, Hc)
+    slide = np.asarray(obs["slide"])
+    by_hand = np.einsum("bch,bh->bc", keys[slide], query) / np.sqrt(keys.shape[-1])
+    c = keys.shape[1]
+    pickable = np.asarray(t["valid"])[slide] > 0       # nothing read yet at a reset
+    got = np.asarray(logits)[:, :c]
+    assert pickable.sum() > 0
+    np.testing.assert_allclose(got[pickable], by_hand[pickable], rtol=1e-4, atol=1e-5)
+    assert (got[~pickable] == NEG).all()

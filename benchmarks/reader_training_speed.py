@@ -3,9 +3,10 @@
 training slides, the env wrapped in :class:`~histojax.head_reward.HeadReward` exactly as
 ``benchmarks.train_readers`` wraps it, under four settings measured in one run:
 
-* ``before``: the head re-scores the whole finest grid at every step (``incremental_score=False``) and
-  the rollout recomputes every slide's cell keys at every step (as ``baselines.ppo`` did before
-  :func:`baselines.networks.rollout_apply`);
+* ``whole grid, keys every step``: the head re-scores the whole finest grid at every step
+  (``incremental_score=False``) and the rollout recomputes every slide's cell keys at every step (as
+  ``baselines.ppo`` did before :func:`baselines.networks.rollout_apply`; the network computes the keys of the
+  valid cells only, as it does now);
 * ``windowed head``: the head re-scores only the window around the revealed cell;
 * ``windowed head + keys once``: also the cell keys once per update (what ``baselines.ppo`` does now);
 * the same at a larger batch (``--big-envs`` envs, ``--big-minibatches`` minibatches).
@@ -82,7 +83,7 @@ def main(argv=None) -> int:
     p.add_argument("--big-minibatches", type=int, default=4)
     p.add_argument("--updates", type=int, default=3)
     p.add_argument("--budget", type=float, default=0.1)
-    p.add_argument("--skip-before", action="store_true", help="skip the slow 'before' row")
+    p.add_argument("--skip-before", action="store_true", help="skip the slow first row (whole grid, keys every step)")
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
     if not (args.dataset / "dataset.json").is_file():
@@ -90,7 +91,7 @@ def main(argv=None) -> int:
         return 2
     import jax
 
-    settings = [("before", args.num_envs, args.minibatches, False, False),
+    settings = [("whole grid, keys every step", args.num_envs, args.minibatches, False, False),
                 ("windowed head", args.num_envs, args.minibatches, True, False),
                 ("windowed head + keys once", args.num_envs, args.minibatches, True, True),
                 ("windowed head + keys once, larger batch", args.big_envs, args.big_minibatches, True, True)]

@@ -229,11 +229,21 @@ class RecurrentActorCritic(nn.Module):
         return (h, *policy_value_heads(self, y))
 
 
-def network_step(network: RecurrentActorCritic, params, h, obs, first):
+def network_step(network: RecurrentActorCritic, params, h, obs, first, cell_keys=None):
     """One env step of the recurrent policy for a batch: ``h (B, H)``, ``obs`` (batch-major, one
-    leading axis ``B``), ``first (B,)`` bool → ``(h', policy parameters (B, ...), value (B,))``."""
-    h, pi, value = network.apply(params, h, jax.tree.map(lambda a: a[None], obs), first[None])
+    leading axis ``B``), ``first (B,)`` bool → ``(h', policy parameters (B, ...), value (B,))``.
+    ``cell_keys``: a recurrent cell-set reader's per-slide keys computed once (:func:`rollout_step`)."""
+    extra = {} if cell_keys is None else {"cell_keys": cell_keys}
+    h, pi, value = network.apply(params, h, jax.tree.map(lambda a: a[None], obs), first[None], **extra)
     return h, jax.tree.map(lambda a: a[0], pi), value[0]
+
+
+def rollout_step(network: nn.Module, params):
+    """``(h, obs, first) -> network_step(network, params, h, obs, first)`` for the many steps of a rollout
+    with the same ``params``; a :class:`RecurrentCellSetActorCritic`'s per-slide cell keys are computed here
+    once (as :func:`rollout_apply` does for the feed-forward reader)."""
+    keys = network.apply(params, None, None, None) if isinstance(network, RecurrentCellSetActorCritic) else None
+    return lambda h, obs, first: network_step(network, params, h, obs, first, cell_keys=keys)
 
 
 class QNetwork(nn.Module):
@@ -404,10 +414,13 @@ class RecurrentCellSetActorCritic(nn.Module):
     cell_hidden: int = 32       # the per-cell layers' width (config "cell_hidden")
 
     @nn.compact
-    def __call__(self, h, obs, resets):
+    def __call__(self, h, obs, resets, cell_keys=None):
+        encoder = CellEncoder(self.cell_hidden, self.tables, self.obs_norm)
+        if obs is None:  # the per-slide cell keys only (see CellEncoder)
+            return encoder(None, cell_keys)
         t, b = resets.shape
         flat = jax.tree.map(lambda a: jnp.reshape(a, (t * b, *jnp.shape(a)[2:])), obs)
-        keys, context_in, pickable = CellEncoder(self.cell_hidden, self.tables, self.obs_norm)(flat)
+        keys, context_in, pickable = encoder(flat, cell_keys)
         x = nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)),
                              name="context")(context_in))
         h, y = ScannedGRU(self.hidden)(h, (x.reshape(t, b, -1), resets.astype(bool)))

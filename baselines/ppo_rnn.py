@@ -26,7 +26,7 @@ from flax.training.train_state import TrainState
 
 from baselines import common, ppo
 from baselines.networks import (RecurrentActorCritic, ScannedGRU, network_step, policy_log_prob, policy_sample,
-                                preprocess_obs)
+                                preprocess_obs, rollout_step)
 from histojax.adapters.jax import LogWrapper
 
 DEFAULTS = {**{k: v for k, v in ppo.DEFAULTS.items() if k != "devices"},
@@ -45,11 +45,12 @@ def rollout(network, env, params, env_params, carry, num_steps: int, action_mode
     traj)`` with ``traj`` a :class:`baselines.ppo.Transition` (``first`` set) of time-major
     ``(num_steps, B, ...)`` arrays; ``first`` of step ``t + 1`` is ``done`` of step ``t``."""
     num_envs = carry[2].shape[0]
+    policy = rollout_step(network, params)  # the params are fixed during the rollout
 
     def env_step(carry, _):
         env_state, obs, first, h, key = carry
         key, k_act, k_step = jax.random.split(key, 3)
-        h, pi, value = network_step(network, params, h, obs, first)
+        h, pi, value = policy(h, obs, first)
         action = policy_sample(k_act, pi, action_mode)
         log_prob = policy_log_prob(pi, action, action_mode)
         next_obs, env_state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(

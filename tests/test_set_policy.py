@@ -180,3 +180,28 @@ def test_pointer_logits_are_every_pickable_cells_key_against_the_query(envs):
     assert pickable.sum() > 0
     np.testing.assert_allclose(got[pickable], by_hand[pickable], rtol=1e-4, atol=1e-5)
     assert (got[~pickable] == NEG).all()
+
+
+def test_recurrent_rollout_step_computes_the_cell_keys_once_with_the_same_outputs(envs):
+    """:func:`baselines.networks.rollout_step` (the recurrent reader's keys once per rollout) gives
+    ``network_step``'s outputs, GRU state included."""
+    from baselines.networks import network_step, rollout_step
+
+    (env_a, pa), _ = envs
+    net = ppo_rnn.make_network(CONFIG, env_a)
+    obs, state = _batch_reset(env_a, pa, jax.random.key(8))
+    h = ScannedGRU.initial_state(ENVS, CONFIG["hidden"])
+    params = net.init(jax.random.key(9), h, jax.tree.map(lambda a: a[None], obs), jnp.ones((1, ENVS), bool))
+    once = jax.jit(rollout_step(net, params))
+    plain = jax.jit(lambda h, o, f: network_step(net, params, h, o, f))
+    c = int(pa.mode_data.valid.shape[-1])
+    first = jnp.ones(ENVS, bool)
+    for t in range(STEPS):
+        a, b = once(h, obs, first), plain(h, obs, first)
+        for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)):
+            np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-6)
+        h = a[0]
+        action = jax.random.randint(jax.random.key(30 + t), (ENVS,), 0, c + 2)
+        obs, state, _, term, trunc, _ = jax.vmap(env_a.step, in_axes=(0, 0, 0, None))(
+            jax.random.split(jax.random.key(40 + t), ENVS), state, action, pa)
+        first = term | trunc

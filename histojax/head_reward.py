@@ -87,18 +87,24 @@ class HeadRewardState:
     """The wrapped env's state plus what the head has scored."""
 
     env_state: Any
-    visited: jnp.ndarray     # (H·W,) bool finest views visited (non-glimpse modes); (0,) for glimpse
+    visited: jnp.ndarray     # (H·W,) bool finest views visited (non-glimpse modes; with the incremental score the
+                             # grid of the windows, (k + H + window) × (k + W + window)); (0,) for glimpse
     logit: jnp.ndarray       # () float32 the head's slide logit of what has been read
     views: jnp.ndarray       # () int32 finest tissue views read
-    cell_best: jnp.ndarray = None  # (C,) float32 incremental score only: each cell's largest neighbourhood
-                                   # mean over its read views (-inf: none read); (0,) otherwise
+    cell_best: jnp.ndarray = None  # (C,) float32 incremental score only: each cell's (navigators: block's)
+                                   # largest neighbourhood mean over its read views (-inf: none read); (0,) otherwise
 
 
-def incremental(head, glimpse: bool) -> bool:
-    """Whether a step can re-score only the window around the cell it revealed (exactly the full score):
-    ``glimpse`` reading and a :class:`~histojax.head.SlideHead` that pools by the maximum (``top=1``, no
-    median), whose neighbourhood means change only near newly read views."""
-    return bool(glimpse and isinstance(head, SlideHead) and head.top == 1 and not head.minus_median)
+BLOCK = 8  # navigation modes: the incremental score keeps the best of each block of BLOCK × BLOCK finest views
+
+
+def incremental(head, glimpse: bool = True) -> bool:
+    """Whether a step can re-score only a window around what it read (exactly the full score): a
+    :class:`~histojax.head.SlideHead` that pools by the maximum (``top=1``, no median), whose neighbourhood
+    means change only near newly read views. A ``glimpse`` step reveals at most one cell, a navigator's step
+    stands on at most one new finest view; either way the window is the 3 × 3 cells (blocks of
+    ``BLOCK × BLOCK`` finest views for navigators) around it."""
+    return bool(isinstance(head, SlideHead) and head.top == 1 and not head.minus_median)
 
 
 def build_tables(env, head: SlideHead, params=None, windows: bool | None = None) -> HeadTables:
@@ -142,15 +148,24 @@ def build_tables(env, head: SlideHead, params=None, windows: bool | None = None)
     cells = np.stack([pad(r[2], 0) for r in rows])
     extra = {}
     if incremental(head, glimpse) if windows is None else windows:
-        row_start = np.stack([r[4][0] for r in rows]).astype(np.int32)
-        col_start = np.stack([r[4][1] for r in rows]).astype(np.int32)
         k = int(head.k)
+        if glimpse:
+            row_start = np.stack([r[4][0] for r in rows]).astype(np.int32)
+            col_start = np.stack([r[4][1] for r in rows]).astype(np.int32)
+            win_cells = cells
+        else:  # navigators: blocks of BLOCK × BLOCK finest views play the cells
+            b = max(BLOCK, k)  # HeadReward._block
+            nbh, nbw = -(-h // b), -(-w // b)
+            row_start = np.broadcast_to(np.minimum(np.arange(nbh + 1) * b, h), (len(rows), nbh + 1)).astype(np.int32)
+            col_start = np.broadcast_to(np.minimum(np.arange(nbw + 1) * b, w), (len(rows), nbw + 1)).astype(np.int32)
+            block = (np.arange(h)[:, None] // b) * nbw + np.arange(w)[None, :] // b
+            win_cells = np.broadcast_to(block, (len(rows), h, w))
         # the re-scored window: the 3 × 3 cells around a revealed one, plus k views on every side
         win = (3 * int(np.diff(row_start, axis=1).max()) + 2 * k, 3 * int(np.diff(col_start, axis=1).max()) + 2 * k)
         grow = lambda a, fill: np.pad(a, ((0, 0), (k, win[0]), (k, win[1])), constant_values=fill)  # noqa: E731
         extra = dict(win_logits=jnp.asarray(grow(np.asarray(logits), 0.0)),
                      win_tissue=jnp.asarray(grow(np.asarray(tissue), False)),
-                     win_cell=jnp.asarray(grow(cells, 0), jnp.int32),
+                     win_cell=jnp.asarray(grow(win_cells, 0), jnp.int32),
                      row_start=jnp.asarray(row_start), col_start=jnp.asarray(col_start), window=win)
     return HeadTables(logits=logits, tissue=tissue, cell=jnp.asarray(cells, jnp.int32),
                       grid=jnp.asarray([r[1].shape for r in rows], jnp.int32),
@@ -185,8 +200,14 @@ class HeadReward(Wrapper):
         self.glimpse = getattr(env.action, "name", "") == "glimpse"
         self.incremental = incremental(head, self.glimpse) if incremental_score is None else bool(incremental_score)
         if self.incremental and not incremental(head, self.glimpse):
-            raise ValueError("incremental_score needs glimpse reading and a SlideHead with top=1 and no median")
+            raise ValueError("incremental_score needs a SlideHead with top=1 and no median")
         self.tables = build_tables(env, head, params, windows=self.incremental)
+        tb = self.tables
+        # a navigator's visited views: the finest grid, or with the incremental score the windows' padded grid
+        self._offset = int(head.k) if self.incremental else 0
+        self._block = max(BLOCK, int(getattr(head, "k", 1)))  # build_tables' navigator blocks
+        self._visited_grid = (tuple(tb.win_tissue.shape[1:]) if self.incremental and not self.glimpse
+                              else tuple(tb.tissue.shape[1:]))
 
     # ------------------------------------------------------------------ head on a state
     def read_mask(self, env_state, visited) -> jax.Array:
@@ -194,58 +215,83 @@ class HeadReward(Wrapper):
         tb, i = self.tables, env_state.slide_index
         if self.glimpse:
             return env_state.memory.revealed[tb.cell[i]] & tb.tissue[i]
-        return visited.reshape(tb.tissue.shape[1:]) & tb.tissue[i]
+        h, w = tb.tissue.shape[1:]
+        o = self._offset
+        return visited.reshape(self._visited_grid)[o:o + h, o:o + w] & tb.tissue[i]
+
+    def _finest_view(self, env_state):
+        """``(gy, gx, on finest level)``: the finest view under ``env_state``'s view (non-glimpse modes)."""
+        tb, i, t = self.tables, env_state.slide_index, self._env.tile_size
+        gx = jnp.clip((env_state.x + t // 2) // t, 0, tb.grid[i, 1] - 1)
+        gy = jnp.clip((env_state.y + t // 2) // t, 0, tb.grid[i, 0] - 1)
+        return gy, gx, env_state.z == self._env.n_levels - 1
 
     def _visit(self, env_state, visited) -> jax.Array:
         """``visited`` with the finest view under ``env_state``'s view marked (non-glimpse modes)."""
         if self.glimpse:
             return visited
-        tb, i, t = self.tables, env_state.slide_index, self._env.tile_size
-        w = tb.tissue.shape[2]
-        gx = jnp.clip((env_state.x + t // 2) // t, 0, tb.grid[i, 1] - 1)
-        gy = jnp.clip((env_state.y + t // 2) // t, 0, tb.grid[i, 0] - 1)
-        finest = env_state.z == self._env.n_levels - 1
-        return visited.at[gy * w + gx].set(visited[gy * w + gx] | finest)
+        gy, gx, finest = self._finest_view(env_state)
+        at = (gy + self._offset) * self._visited_grid[1] + gx + self._offset
+        return visited.at[at].set(visited[at] | finest)
 
     def _score(self, env_state, visited):
         mask = self.read_mask(env_state, visited)
         return score_logits(self.head, self.tables.logits[env_state.slide_index], mask), mask.sum(dtype=jnp.int32)
 
-    def _score_incremental(self, before: HeadRewardState, env_state):
+    def _score_incremental(self, before: HeadRewardState, env_state, visited):
         """``(logit, views, cell_best)`` after a step from ``before``, re-scoring only the window of the
         3 × 3 cells around the cell the step revealed (a glimpse step reveals at most one): a read view's
         ``k × k`` neighbourhood mean changes only when a view of its window is newly read, and those views
-        lie in that window. The same floats as :meth:`_score` (the same sums of the same views)."""
+        lie in that window (navigators: the 3 × 3 blocks around the finest view stood on; ``visited`` after
+        the step). The same floats as :meth:`_score` (the same sums of the same views)."""
         tb, head, i = self.tables, self.head, env_state.slide_index
-        revealed = env_state.memory.revealed
-        changed = revealed & ~before.env_state.memory.revealed
-        new = changed.any()
-        c = jnp.argmax(changed)
         big_w = tb.col_start.shape[1] - 1          # the padded cell grid (static)
+        if self.glimpse:
+            revealed = env_state.memory.revealed
+            changed = revealed & ~before.env_state.memory.revealed
+            new = changed.any()
+            c = jnp.argmax(changed)
+        else:  # a navigator: the finest view it stands on, if new and on tissue; its block plays the cell
+            vy, vx, finest = self._finest_view(env_state)
+            at = (vy + self._offset) * self._visited_grid[1] + vx + self._offset
+            new = finest & ~before.visited[at] & tb.tissue[i, vy, vx]
+            c = (vy // self._block) * big_w + vx // self._block
         gy, gx = c // big_w, c % big_w
         oy = tb.row_start[i, jnp.maximum(gy - 1, 0)]   # padded grid: k views above, so the window starts k higher
         ox = tb.col_start[i, jnp.maximum(gx - 1, 0)]
         cut = lambda a: jax.lax.dynamic_slice(a[i], (oy, ox), tb.window)  # noqa: E731
         cell, tissue = cut(tb.win_cell), cut(tb.win_tissue)
-        read = revealed[cell] & tissue
+        if self.glimpse:
+            read = revealed[cell] & tissue
+        else:
+            read = jax.lax.dynamic_slice(visited.reshape(self._visited_grid), (oy, ox), tb.window) & tissue
         nb = neighbourhood_mean(cut(tb.win_logits), read, head.k)
         big_h = tb.row_start.shape[1] - 1
         near = (jnp.clip(gy + jnp.array([-1, 0, 1]), 0, big_h - 1)[:, None] * big_w
                 + jnp.clip(gx + jnp.array([-1, 0, 1]), 0, big_w - 1)[None, :]).reshape(-1)      # (9,) cells
         best = jnp.where((cell[None] == near[:, None, None]) & read[None], nb[None], -jnp.inf).max((1, 2))
         cell_best = jnp.where(new, before.cell_best.at[near].set(best), before.cell_best)
-        views = before.views + jnp.where(new, ((cell == c) & tissue).sum(dtype=jnp.int32), 0)
+        if self.glimpse:
+            views = before.views + jnp.where(new, ((cell == c) & tissue).sum(dtype=jnp.int32), 0)
+        else:
+            views = before.views + new.astype(jnp.int32)
         s = cell_best.max()
         logit = jnp.where(views > 0, head.a * s + head.b, head.prior_logit).astype(jnp.float32)
         return logit, views, cell_best
 
     def _wrap(self, env_state) -> HeadRewardState:
-        n = 0 if self.glimpse else int(np.prod(self.tables.tissue.shape[1:]))
-        visited = self._visit(env_state, jnp.zeros((n,), bool))
-        if self.incremental:  # a fresh glimpse episode has read nothing: the head's prior
-            return HeadRewardState(env_state=env_state, visited=visited, logit=jnp.asarray(self.head.prior_logit,
-                                   jnp.float32), views=jnp.zeros((), jnp.int32),
-                                   cell_best=jnp.full(env_state.memory.revealed.shape, -jnp.inf, jnp.float32))
+        n = 0 if self.glimpse else int(np.prod(self._visited_grid))
+        empty = jnp.zeros((n,), bool)
+        visited = self._visit(env_state, empty)
+        if self.incremental:  # a fresh episode: nothing read (a glimpse reset reveals nothing), or the one view stood on
+            cells = (self.tables.row_start.shape[1] - 1) * (self.tables.col_start.shape[1] - 1)
+            nothing = HeadRewardState(env_state=env_state, visited=empty, views=jnp.zeros((), jnp.int32),
+                                      logit=jnp.asarray(self.head.prior_logit, jnp.float32),
+                                      cell_best=jnp.full((cells,), -jnp.inf, jnp.float32))
+            if self.glimpse:
+                return nothing
+            logit, views, cell_best = self._score_incremental(nothing, env_state, visited)
+            return nothing.replace(visited=visited, logit=logit, views=views, cell_best=cell_best)
         logit, views = self._score(env_state, visited)
         return HeadRewardState(env_state=env_state, visited=visited, logit=logit, views=views,
                                cell_best=jnp.zeros((0,), jnp.float32))
@@ -270,7 +316,7 @@ class HeadReward(Wrapper):
         obs_st, env_st, env_r, terminated, truncated, info = self._env.step_env(key, state.env_state, action, params)
         visited = self._visit(env_st, state.visited)
         if self.incremental:
-            logit, views, cell_best = self._score_incremental(state, env_st)
+            logit, views, cell_best = self._score_incremental(state, env_st, visited)
         else:
             (logit, views), cell_best = self._score(env_st, visited), state.cell_best
         label = self.tables.label[env_st.slide_index]

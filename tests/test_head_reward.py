@@ -297,18 +297,24 @@ def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(datase
     assert finest_total > 0  # the untrained sampled navigator reached the finest level somewhere
 
 
-@pytest.fixture(scope="module", params=[("glimpse:1", 1), ("glimpse:1", 2), ("glimpse:2", 3)],
+@pytest.fixture(scope="module", params=[("glimpse:1", 1), ("glimpse:1", 2), ("glimpse:2", 3), ("discrete", 2),
+                                        ("discrete", 3)],
                 ids=lambda p: f"{p[0]}-k{p[1]}")
 def incremental_pair(dataset, request):
-    """One env (read_budget 1: episodes read many cells) wrapped twice, re-scoring the window around each
-    revealed cell and scoring the whole grid, and one jitted vmapped rollout of both (compiled once)."""
+    """One env (glimpse: read_budget 1, episodes read many cells; a navigator: 60-step episodes) wrapped
+    twice, re-scoring the window around each read and scoring the whole grid, and one jitted vmapped
+    rollout of both (compiled once)."""
     mode, k = request.param
-    env, params = _make(dataset, action_mode=mode, step_obs=True, read_budget=1.0)
+    if mode == "discrete":
+        env, params = histojax.make("HistoJAX-Easy-v0", dataset=str(dataset), split="train", obs_mode="features",
+                                    task="classification", max_steps_in_episode=60)
+    else:
+        env, params = _make(dataset, action_mode=mode, step_obs=True, read_budget=1.0)
     head = HEAD.replace(k=k)
     fast = HeadReward(env, head, gain="fidelity", final=1.0, params=params)
     full = HeadReward(env, head, gain="fidelity", final=1.0, params=params, incremental_score=False)
     assert fast.incremental and not full.incremental
-    c = int(params.mode_data.valid.shape[-1])
+    c = int(params.mode_data.valid.shape[-1]) if mode != "discrete" else 7  # a navigator: actions 0..6, declares 7, 8
 
     @jax.jit
     def roll(key, actions):  # actions (T, ENVS)
@@ -348,5 +354,6 @@ def test_incremental_score_is_refused_where_it_is_not_exact(glimpse, navigation)
         HeadReward(env, HEAD.replace(top=3), incremental_score=True)
     nav_env, _, _ = navigation
     with pytest.raises(ValueError, match="incremental_score"):
-        HeadReward(nav_env, HEAD, incremental_score=True)
+        HeadReward(nav_env, HEAD.replace(minus_median=True), incremental_score=True)
     assert not HeadReward(env, HEAD.replace(minus_median=True)).incremental
+    assert HeadReward(nav_env, HEAD).incremental

@@ -39,6 +39,11 @@ what the episode has read after the step (at the step where ``terminated | trunc
 diagnosis by the head: the navigator chooses where to look, the head declares);
 ``info["head_correct"]`` whether it is right, ``info["head_views"]`` the finest tissue views read.
 
+**Cost**: with a max-pooling :class:`~histojax.head.SlideHead` (``top=1``, no median, e.g. the published
+``c16-v2-head``) a step re-scores only the window of the 3 × 3 cells (navigators: blocks of ``BLOCK × BLOCK``
+finest views) around what it read, giving the same floats as scoring the whole finest grid, at a cost that
+does not grow with the slide (:func:`incremental`; ``incremental_score=False`` scores the whole grid).
+
 The wrapper does the auto-reset itself (the same keys as :meth:`histojax.env.HistoEnv.step`, so a
 trajectory's env states are the unwrapped env's), and its tables (each slide's finest view logits,
 tissue views and cells, host-built once) are those of the slides of the params it was made with

@@ -297,8 +297,7 @@ def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(datase
     assert finest_total > 0  # the untrained sampled navigator reached the finest level somewhere
 
 
-@pytest.fixture(scope="module", params=[("glimpse:1", 1), ("glimpse:1", 2), ("glimpse:2", 3), ("discrete", 2),
-                                        ("discrete", 3)],
+@pytest.fixture(scope="module", params=[("glimpse:1", 2), ("glimpse:2", 3), ("discrete", 3)],
                 ids=lambda p: f"{p[0]}-k{p[1]}")
 def incremental_pair(dataset, request):
     """One env (glimpse: read_budget 1, episodes read many cells; a navigator: 60-step episodes) wrapped
@@ -333,7 +332,7 @@ def incremental_pair(dataset, request):
     return roll, c
 
 
-@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(seed=st.integers(0, 2**31 - 1), declare_rate=st.sampled_from([0.0, 0.05]))
 def test_windowed_score_equals_scoring_the_whole_grid(incremental_pair, seed, declare_rate):
     """Re-scoring only the 3 × 3 cells around each revealed cell gives the very floats of scoring the whole

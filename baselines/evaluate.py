@@ -44,8 +44,8 @@ import numpy as np
 from baselines import common, outputs
 from baselines.metrics import accuracy, roc_auc
 from baselines.ppo import make_network
-from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, network_step,
-                                policy_mode, policy_sample, preprocess_obs)
+from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, RecurrentCellSetActorCritic, ScannedGRU,
+                                policy_mode, policy_sample, preprocess_obs, rollout_apply, rollout_step)
 from baselines.networks import is_discrete as policy_is_discrete
 from data_tools.cli_output import positive_int
 from data_tools.errors import HistojaxDataError
@@ -278,15 +278,19 @@ def trajectory(ep: dict, i: int):
 
 def learned_policy(network, params, action_mode: str, greedy: bool, declare: tuple[int, int] | None = None):
     """The checkpoint's policy for :func:`run_episodes`: greedy or sampled; a
-    :class:`RecurrentActorCritic` gives a recurrent policy whose memory is the GRU state (zeros
-    at the episode's start, as in training).
+    :class:`RecurrentActorCritic` or :class:`RecurrentCellSetActorCritic` gives a recurrent policy whose
+    memory is the GRU state (zeros at the episode's start, as in training). A cell-set reader's per-slide
+    cell keys are computed once here (:func:`~baselines.networks.rollout_apply`), not at every step.
 
     ``declare = (no tumour, tumour)`` action indices (a discrete actor-critic of
     ``task="classification"``): the policy is recurrent (its memory ``(GRU state or (), score)``)
     and keeps its own **tumour score** of each step, ``p(tumour) / (p(tumour) + p(no tumour))`` of
     its action distribution; at an episode's end (memory frozen) that is the score at the step it
     declared, or at its last step."""
-    recurrent = isinstance(network, RecurrentActorCritic)
+    recurrent = isinstance(network, (RecurrentActorCritic, RecurrentCellSetActorCritic))
+    # the params are fixed: a cell-set reader's per-slide cell keys are computed once, not at every step
+    step_recurrent = rollout_step(network, params) if recurrent else None
+    forward = rollout_apply(network, params) if not recurrent and not isinstance(network, QNetwork) else None
 
     def act(key, obs, h):
         obs = preprocess_obs(obs)
@@ -294,9 +298,9 @@ def learned_policy(network, params, action_mode: str, greedy: bool, declare: tup
             return network.apply(params, obs).argmax(-1), h, None
         if recurrent:
             first = jnp.zeros(jax.tree.leaves(obs)[0].shape[0], bool)  # h starts at zeros already
-            h, pi, _ = network_step(network, params, h, obs, first)
+            h, pi, _ = step_recurrent(h, obs, first)
         else:
-            pi, _ = network.apply(params, obs)
+            pi, _ = forward(obs)
         return (policy_mode(pi, action_mode) if greedy else policy_sample(key, pi, action_mode)), h, pi
 
     initial_h = (lambda n: ScannedGRU.initial_state(n, network.hidden)) if recurrent else (lambda n: ())

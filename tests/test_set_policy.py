@@ -205,3 +205,25 @@ def test_recurrent_rollout_step_computes_the_cell_keys_once_with_the_same_output
         obs, state, _, term, trunc, _ = jax.vmap(env_a.step, in_axes=(0, 0, 0, None))(
             jax.random.split(jax.random.key(40 + t), ENVS), state, action, pa)
         first = term | trunc
+
+
+@pytest.mark.parametrize("recurrent", [False, True])
+def test_evaluate_runs_a_set_reader_on_a_wider_slide(envs, recurrent):
+    """``baselines.evaluate.learned_policy`` (cell keys once per rollout) runs a feed-forward or recurrent
+    set reader made on one dataset on the wider slide (sampled: an untrained reader), and it reads."""
+    from baselines.evaluate import learned_policy, run_episodes
+
+    (env_a, pa), (env_b, pb) = envs
+    make = ppo_rnn.make_network if recurrent else ppo.make_network
+    net_a, net_b = make(CONFIG, env_a), make(CONFIG, env_b)
+    obs_a, _ = _batch_reset(env_a, pa, jax.random.key(0))
+    if recurrent:
+        h0 = ScannedGRU.initial_state(ENVS, CONFIG["hidden"])
+        params = net_a.init(jax.random.key(1), h0, jax.tree.map(lambda a: a[None], obs_a), jnp.ones((1, ENVS), bool))
+    else:
+        params = net_a.init(jax.random.key(1), obs_a)
+    policy = learned_policy(net_b, params, CONFIG["action_mode"], greedy=False)
+    assert hasattr(policy, "initial_memory") == recurrent
+    ep = run_episodes(env_b, pb, policy, jax.random.key(3), 4)
+    assert np.all(ep["length"] >= 1) and np.all(np.isfinite(ep["return"]))
+    assert float(np.nanmax(ep["fraction_read"])) > 0  # it reads

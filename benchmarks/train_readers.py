@@ -87,8 +87,9 @@ def with_head_reward(head, gain, final: float, read_cost: float):
 
 def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tuple[Path, Path]:
     """The learning curve of a multi-seed run as mean ± std over seeds (``log.json``'s ``per_seed``
-    ``return`` and ``length``, a running mean over ``smooth`` log points): ``csv_path`` (step, return mean,
-    std, per seed; length mean, std) and ``png``. Steps are env steps per seed."""
+    ``return`` and ``length``, a running mean over ``smooth`` log points, skipping points without a value: an
+    update in which no episode ended logs NaN): ``csv_path`` (step, return mean, std, per seed; length mean,
+    std) and ``png``. Steps are env steps per seed."""
     import matplotlib
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
@@ -101,8 +102,14 @@ def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tup
     if ret.shape[-1] != len(steps):  # stored (points, seeds): make it (seeds, points)
         ret, length = ret.T, length.T
     smooth = max(1, min(smooth, len(steps)))  # a short run has fewer log points than the window
-    kernel = np.ones(smooth) / smooth
-    sm = lambda a: np.stack([np.convolve(r, kernel, mode="valid") for r in a])  # noqa: E731
+    kernel = np.ones(smooth)
+
+    def sm(a):  # running mean over the log points that have a value (NaN: no episode ended in that update)
+        seen = ~np.isnan(a)
+        total = np.stack([np.convolve(np.where(k, r, 0.0), kernel, mode="valid") for r, k in zip(a, seen)])
+        count = np.stack([np.convolve(k.astype(float), kernel, mode="valid") for k in seen])
+        with np.errstate(invalid="ignore", divide="ignore"):
+            return np.where(count > 0, total / np.maximum(count, 1), np.nan)
     x = steps[smooth - 1:]
     r, n = sm(ret), sm(length)
     with open(csv_path, "w") as f:

@@ -36,3 +36,17 @@ def test_a_run_shorter_than_the_window_still_gets_its_curve(tmp_path):
     _, path = seed_curve(tmp_path, tmp_path / "c.png", tmp_path / "c.csv")
     rows = list(csv.DictReader(open(path)))
     assert len(rows) == 1 and float(rows[0]["return_mean"]) == ret.mean()
+
+
+def test_updates_without_an_ended_episode_are_skipped_not_spread(tmp_path):
+    """Episodes longer than an update log NaN where none ended: the running mean is over the points that
+    have a value, so a curve of 200-step episodes is not NaN everywhere."""
+    ret = np.array([[1.0, np.nan, 3.0, np.nan], [2.0, 4.0, np.nan, np.nan], [0.0, np.nan, np.nan, 6.0]])
+    (tmp_path / "log.json").write_text(json.dumps({"step": [1, 2, 3, 4], "per_seed": {
+        "return": np.where(np.isnan(ret), None, ret).tolist(), "length": np.ones((3, 4)).tolist()}}))
+    _, path = seed_curve(tmp_path, tmp_path / "c.png", tmp_path / "c.csv", smooth=2)
+    rows = list(csv.DictReader(open(path)))
+    seeds = np.array([[float(r[f"return_seed{k}"]) for r in rows] for k in range(3)])
+    np.testing.assert_allclose(seeds[0], [1.0, 3.0, 3.0])
+    np.testing.assert_allclose(seeds[1], [3.0, 4.0, np.nan])
+    np.testing.assert_allclose(seeds[2], [0.0, np.nan, 6.0])

@@ -32,7 +32,6 @@ def one_row(dataset: Path, head_dir: str, action_mode: str, num_envs: int, minib
     import jax
 
     from baselines import common, ppo
-    from baselines import networks
     from histojax.head import SlideHead
     from histojax.head_reward import HeadReward
 
@@ -64,7 +63,6 @@ def one_row(dataset: Path, head_dir: str, action_mode: str, num_envs: int, minib
         wall = time.perf_counter() - t0
     finally:
         common.make_env, ppo.rollout_apply = original_make, original_apply
-        networks  # noqa: B018 (imported for the record of what is timed)
     steps = num_envs * 64 * train.num_updates
     return {"num_envs": num_envs, "num_minibatches": minibatches, "windowed_head": windowed, "keys_once": keys_once,
             "env_steps": steps, "wall_s": round(wall, 2), "steps_per_s": round(steps / wall),

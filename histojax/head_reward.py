@@ -103,7 +103,12 @@ class HeadRewardState:
 BLOCK = 8  # navigation modes: the incremental score keeps the best of each block of BLOCK × BLOCK finest views
 
 
-def incremental(head, glimpse: bool = True) -> bool:
+def block_side(head) -> int:
+    """Side in finest views of the navigators' blocks of the incremental score (at least the head's ``k``)."""
+    return max(BLOCK, int(getattr(head, "k", 1)))
+
+
+def incremental(head) -> bool:
     """Whether a step can re-score only a window around what it read (exactly the full score): a
     :class:`~histojax.head.SlideHead` that pools by the maximum (``top=1``, no median), whose neighbourhood
     means change only near newly read views. A ``glimpse`` step reveals at most one cell, a navigator's step
@@ -152,14 +157,14 @@ def build_tables(env, head: SlideHead, params=None, windows: bool | None = None)
     full = jax.jit(jax.vmap(lambda lg, ts: score_logits(head, lg, ts)))(logits, tissue)
     cells = np.stack([pad(r[2], 0) for r in rows])
     extra = {}
-    if incremental(head, glimpse) if windows is None else windows:
+    if incremental(head) if windows is None else windows:
         k = int(head.k)
         if glimpse:
             row_start = np.stack([r[4][0] for r in rows]).astype(np.int32)
             col_start = np.stack([r[4][1] for r in rows]).astype(np.int32)
             win_cells = cells
         else:  # navigators: blocks of BLOCK × BLOCK finest views play the cells
-            b = max(BLOCK, k)  # HeadReward._block
+            b = block_side(head)
             nbh, nbw = -(-h // b), -(-w // b)
             row_start = np.broadcast_to(np.minimum(np.arange(nbh + 1) * b, h), (len(rows), nbh + 1)).astype(np.int32)
             col_start = np.broadcast_to(np.minimum(np.arange(nbw + 1) * b, w), (len(rows), nbw + 1)).astype(np.int32)
@@ -203,14 +208,14 @@ class HeadReward(Wrapper):
         self.read_cost = float(read_cost)
         self.env_reward = bool(env_reward)
         self.glimpse = getattr(env.action, "name", "") == "glimpse"
-        self.incremental = incremental(head, self.glimpse) if incremental_score is None else bool(incremental_score)
-        if self.incremental and not incremental(head, self.glimpse):
+        self.incremental = incremental(head) if incremental_score is None else bool(incremental_score)
+        if self.incremental and not incremental(head):
             raise ValueError("incremental_score needs a SlideHead with top=1 and no median")
         self.tables = build_tables(env, head, params, windows=self.incremental)
         tb = self.tables
         # a navigator's visited views: the finest grid, or with the incremental score the windows' padded grid
         self._offset = int(head.k) if self.incremental else 0
-        self._block = max(BLOCK, int(getattr(head, "k", 1)))  # build_tables' navigator blocks
+        self._block = block_side(head)  # build_tables' navigator blocks
         self._visited_grid = (tuple(tb.win_tissue.shape[1:]) if self.incremental and not self.glimpse
                               else tuple(tb.tissue.shape[1:]))
 

@@ -59,6 +59,20 @@ def _batch_reset(env, params, key):
     return jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, ENVS), params)
 
 
+def _reader_for_the_wider_slide(envs, recurrent: bool):
+    """``(network built with the wider slide's tables, parameters made on the training dataset)``."""
+    (env_a, pa), (env_b, _) = envs
+    make = ppo_rnn.make_network if recurrent else ppo.make_network
+    net_a, net_b = make(CONFIG, env_a), make(CONFIG, env_b)
+    obs_a, _ = _batch_reset(env_a, pa, jax.random.key(0))
+    if recurrent:
+        h0 = ScannedGRU.initial_state(ENVS, CONFIG["hidden"])
+        params = net_a.init(jax.random.key(1), h0, jax.tree.map(lambda a: a[None], obs_a), jnp.ones((1, ENVS), bool))
+    else:
+        params = net_a.init(jax.random.key(1), obs_a)
+    return net_b, params
+
+
 def test_the_other_slide_is_wider_and_taller(envs):
     (_, train), (_, other) = envs
     grids = np.asarray(train.mode_data.slide_grid)
@@ -69,15 +83,8 @@ def test_the_other_slide_is_wider_and_taller(envs):
 
 @pytest.mark.parametrize("recurrent", [False, True])
 def test_parameters_from_one_dataset_read_another(envs, recurrent):
-    (env_a, pa), (env_b, pb) = envs
-    make = ppo_rnn.make_network if recurrent else ppo.make_network
-    net_a, net_b = make(CONFIG, env_a), make(CONFIG, env_b)
-    obs_a, _ = _batch_reset(env_a, pa, jax.random.key(0))
-    if recurrent:
-        h0 = ScannedGRU.initial_state(ENVS, CONFIG["hidden"])
-        params = net_a.init(jax.random.key(1), h0, jax.tree.map(lambda a: a[None], obs_a), jnp.ones((1, ENVS), bool))
-    else:
-        params = net_a.init(jax.random.key(1), obs_a)
+    env_b, pb = envs[1]
+    net_b, params = _reader_for_the_wider_slide(envs, recurrent)
     c_b = int(pb.mode_data.valid.shape[-1])
 
     def policy(h, obs, first):
@@ -213,15 +220,8 @@ def test_evaluate_runs_a_set_reader_on_a_wider_slide(envs, recurrent):
     set reader made on one dataset on the wider slide (sampled: an untrained reader), and it reads."""
     from baselines.evaluate import learned_policy, run_episodes
 
-    (env_a, pa), (env_b, pb) = envs
-    make = ppo_rnn.make_network if recurrent else ppo.make_network
-    net_a, net_b = make(CONFIG, env_a), make(CONFIG, env_b)
-    obs_a, _ = _batch_reset(env_a, pa, jax.random.key(0))
-    if recurrent:
-        h0 = ScannedGRU.initial_state(ENVS, CONFIG["hidden"])
-        params = net_a.init(jax.random.key(1), h0, jax.tree.map(lambda a: a[None], obs_a), jnp.ones((1, ENVS), bool))
-    else:
-        params = net_a.init(jax.random.key(1), obs_a)
+    env_b, pb = envs[1]
+    net_b, params = _reader_for_the_wider_slide(envs, recurrent)
     policy = learned_policy(net_b, params, CONFIG["action_mode"], greedy=False)
     assert hasattr(policy, "initial_memory") == recurrent
     ep = run_episodes(env_b, pb, policy, jax.random.key(3), 4)

@@ -341,9 +341,25 @@ def test_windowed_score_equals_scoring_the_whole_grid(incremental_pair, seed, de
     rng = np.random.default_rng(seed)
     actions = rng.integers(0, c, (40, ENVS))
     actions = np.where(rng.random(actions.shape) < declare_rate, c + rng.integers(0, 2, actions.shape), actions)
-    fast, full = roll(jax.random.key(seed), jnp.asarray(actions, jnp.int32))
+    _assert_same_rollouts(*roll(jax.random.key(seed), jnp.asarray(actions, jnp.int32)))
+
+
+def _assert_same_rollouts(fast, full):
     for name, a, b in zip(("reward", "logit", "views", "head_score", "done"), fast, full):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b), err_msg=name)
+
+
+def test_windowed_score_equals_scoring_the_whole_grid_on_rollouts_that_read(incremental_pair):
+    """The property above on fixed rollouts built to read: a navigator zooms to the finest level first and then
+    only pans (no declares), a glimpse reader picks cells; both scorings agree and both read finest tissue."""
+    roll, c = incremental_pair
+    rng = np.random.default_rng(0)
+    if c == 7:  # a navigator: ZOOM_IN twice (Easy: 3 levels), then UP / DOWN / LEFT / RIGHT
+        actions = np.concatenate([np.full((2, ENVS), histojax.ZOOM_IN), rng.integers(0, 4, (38, ENVS))])
+    else:
+        actions = rng.integers(0, c, (40, ENVS))
+    fast, full = roll(jax.random.key(0), jnp.asarray(actions, jnp.int32))
+    _assert_same_rollouts(fast, full)
     assert np.asarray(full[2]).max() > 0  # the rollouts did read
 
 

@@ -49,7 +49,9 @@ stacks slides of any sizes into one ``SlideArrays``; ``reset`` draws a slide (un
 ``slide_weights``) and ``state.slide_index`` says which.
 
 **Episodes**: start at the coarsest level on a random tissue view (or top-left with
-``random_start=False``); terminate on success (not for ``"histogym"``); truncate when ``t``
+``random_start=False``); the navigation modes can start at another level with ``start_level``
+(``-1``: the finest; the start view is centred on that coarsest view, as a zoom keeps the centre;
+the reading modes always start at the coarsest level); terminate on success (not for ``"histogym"``); truncate when ``t``
 reaches ``max_steps_in_episode`` (never reported as termination). With ``auto_reset=True``
 (default) ``step`` starts a new episode after the last one, returning the first observation of the
 new episode and the last one of the old in ``info["final_observation"]`` (gymnax 1.0's semantics).
@@ -78,7 +80,7 @@ import jax.numpy as jnp
 from flax import struct
 
 from histojax import augment as dihedral
-from histojax import mode_registry, modes, rewards, spaces
+from histojax import actions, mode_registry, modes, rewards, spaces
 from histojax.slide import SlideArrays
 from histojax.views import view_tumour_fraction
 
@@ -148,6 +150,8 @@ class EnvParams:
     histogym_scale: float = 1000.0       # "histogym": reward per unit tumour fraction at the finest level
     dense_weight: float = 1.0            # "dense": weight of the potential difference
     random_start: bool = True            # False: HistoGym's fixed start at the top-left, coarsest level
+    start_level: int = 0                 # navigation modes: the level episodes start at (0 = coarsest, HistoGym's;
+                                         # -1 = finest; clipped to the levels), centred on the coarsest start view
     diagnosis_reward: float = 1.0        # task="classification": +this for a right diagnosis, -this for a wrong one
     mode_data: Any = None                # the action mode's per-slide tables (ActionMode.prepare); None for navigation
 
@@ -349,15 +353,36 @@ class HistoEnv(_GymnaxEnvironment):
             orientation = jax.random.randint(key_orientation, (), 0, dihedral.NUM_ORIENTATIONS, jnp.int32)
         else:
             orientation = zero
+        x0 = jnp.where(start, x0, 0).astype(jnp.int32)
+        y0 = jnp.where(start, y0, 0).astype(jnp.int32)
+        z = zero
+        if isinstance(self.action, modes.Navigation):  # static: the reading modes' memories start at the coarsest level
+            z, x0, y0 = self._start_view(params, slide_index, x0, y0)
         state = EnvState(
-            z=zero,
-            x=jnp.where(start, x0, 0).astype(jnp.int32),
-            y=jnp.where(start, y0, 0).astype(jnp.int32),
+            z=z,
+            x=x0,
+            y=y0,
             t=zero,
             slide_index=slide_index,
             orientation=orientation,
         )
         return state.replace(memory=self.action.init_memory(self, state, params)) if with_memory else state
+
+    def _start_view(self, params: EnvParams, slide_index, x0, y0):
+        """``(z, x, y)`` of the start at level ``params.start_level`` (negative: from the finest; clipped),
+        centred on the coarsest-level view at ``(x0, y0)`` (px of level 0, as a zoom keeps the centre) and
+        clamped inside the level. Level 0 returns ``(0, x0, y0)`` unchanged."""
+        n = self.n_levels
+        level = jnp.asarray(params.start_level, jnp.int32)
+        z = jnp.clip(jnp.where(level < 0, n + level, level), 0, n - 1).astype(jnp.int32)
+        slide = params.slide.select(slide_index)
+        ratio = slide.downsample[0] / slide.downsample[z]
+        half = self.tile_size / 2.0
+        x = jnp.round((x0 + half) * ratio - half).astype(jnp.int32)
+        y = jnp.round((y0 + half) * ratio - half).astype(jnp.int32)
+        x, y = actions.clamp_position(slide, z, x, y, self.tile_size)
+        at_zero = z == 0
+        return z, jnp.where(at_zero, x0, x).astype(jnp.int32), jnp.where(at_zero, y0, y).astype(jnp.int32)
 
     def step_env(self, key: jax.Array, state: EnvState, action, params: EnvParams):
         """One step without auto-reset: ``(obs, state, reward, terminated, truncated, info)``

@@ -40,6 +40,7 @@ import numpy as np
 from data_tools.errors import BundleError
 from histojax import mode_registry
 from histojax.env import EnvParams, HistoEnv
+from histojax.modes import Navigation
 from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, check_alike, load_slide, stack_slides, start_cdf
 
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
@@ -215,7 +216,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     (``action_mode``, ``obs_mode``, ``with_position``, ``reward``, ``auto_reset``, ``augment``; ``tile_size``
     only for the sample slide, where it selects another cached bundle) or ``EnvParams`` field
     (``max_steps_in_episode``, ``stride``, ``success_threshold``, ``step_cost``,
-    ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``), or the reading
+    ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``, ``start_level``), or the reading
     settings of :mod:`histojax.reading`: ``read_budget`` (fraction of finest-level tissue views, for
     ``action_mode="glimpse"`` / ``"zoom_select"``, or with tracking) and ``track_reading=True`` (the
     pan/zoom modes then report ``fraction_read`` and ``fields_of_view`` in ``info``), and for ``glimpse``,
@@ -242,6 +243,10 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     if unknown:
         raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
                         f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
+    mode = mode_registry.action_mode(spec.get("action_mode", "discrete"))
+    if not isinstance(mode, Navigation) and np.any(np.asarray(spec.get("start_level", 0)) != 0):
+        raise ValueError(f"make({env_id!r}): start_level={spec['start_level']!r} is for the navigation modes "
+                         f"(discrete, continuous); {mode.name!r} episodes start at the coarsest level")
     slides = _resolve_slides(env_id, spec, slide, slides, dataset, split)
     if labels is None and dataset is not None and spec.get("task", "detection") == "classification":
         labels = dataset_labels(dataset)  # a label table's or CAMELYON16's labels, not just "annotated"
@@ -336,7 +341,7 @@ def validate_params(values: dict, tile_size: int, where: str = "make") -> None:
     ``stride`` finite with ``1 <= stride × tile_size <= 2**30`` px (moves cannot wrap int32),
     ``max_steps_in_episode`` an integer in ``[1, 2**31 - 2]``, ``success_threshold`` in ``(0, 1]``,
     rewards (``step_cost``, ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``diagnosis_reward``)
-    finite, ``random_start`` a bool. Raises ValueError naming the field."""
+    finite, ``random_start`` a bool, ``start_level`` a whole number. Raises ValueError naming the field."""
     def bad(field, value, rule):
         raise ValueError(f"{where}: {field}={value!r} {rule}")
 
@@ -361,6 +366,8 @@ def validate_params(values: dict, tile_size: int, where: str = "make") -> None:
         if field == "max_steps_in_episode" and not ((v == np.round(v)).all() and (v >= 1).all()
                                                     and (v <= 2**31 - 2).all()):
             bad(field, values[field], "must be a whole number of steps in [1, 2**31 - 2]")
+        if field == "start_level" and not ((v == np.round(v)).all() and (np.abs(v) <= 2**31 - 1).all()):
+            bad(field, values[field], "must be a whole level number (0 = coarsest, -1 = finest)")
         if field == "success_threshold" and not ((v > 0).all() and (v <= 1).all()):
             bad(field, values[field], "must be a tumour fraction in (0, 1]")
 

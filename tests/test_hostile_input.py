@@ -302,7 +302,7 @@ def test_shape_mismatch_names_the_tumour_file(tmp_path):
     ("stride", 0.0), ("stride", -1.0), ("stride", float("nan")), ("stride", 1.68e7), ("stride", 1e-4),
     ("max_steps_in_episode", 0), ("max_steps_in_episode", 2**31), ("max_steps_in_episode", 2.5),
     ("success_threshold", 0.0), ("success_threshold", 1.5), ("step_cost", float("inf")),
-    ("success_bonus", float("nan")), ("random_start", 3), ("dense_weight", "a"),
+    ("success_bonus", float("nan")), ("random_start", 3), ("dense_weight", "a"), ("start_level", 0.5),
 ])
 def test_params_are_validated_naming_the_field(field, value):
     from histojax.registry import validate_params

@@ -202,16 +202,20 @@ class Progress:
         return np.zeros(np.shape(np.asarray(metrics[next(iter(metrics))])), np.int32)
 
     def _print(self, update, metrics, seed):
-        def mean(v):
-            return finite_mean(v)
-        m = {k: mean(v) for k, v in metrics.items()}
+        m = {k: finite_mean(v) for k, v in metrics.items()}
         steps = (update + 1) * self.steps_per_update
         dt = time.perf_counter() - self.t0
-        extra = "  ".join(f"{k} {v:.4g}" for k, v in m.items()
+        extra = "  ".join(f"{k} {_number(v, '.4g')}" for k, v in m.items()
                           if k not in ("return", "success", "steps_to_success", "episodes"))
         print(f"[{self.name}, {seed}] update {update + 1}/{self.num_updates}  env steps/seed {steps:,}  "
-              f"return {m['return']:.3f}  success {m['success']:.1%}  "
-              f"steps-to-success {m['steps_to_success']:.1f}  {extra}  ({dt:.0f} s)", flush=True)
+              f"return {_number(m['return'], '.3f')}  success {_number(m['success'], '.1%')}  "
+              f"steps-to-success {_number(m['steps_to_success'], '.1f')}  {extra}  ({dt:.0f} s)", flush=True)
+
+
+def _number(value: float, spec: str) -> str:
+    """``value`` formatted by ``spec``; ``"n/a"`` for NaN (an update in which no episode ended, or no
+    episode succeeded, has no return, success or steps-to-success to show)."""
+    return "n/a" if np.isnan(value) else format(value, spec)
 
 
 def report(progress: Progress, update, metrics: dict):

@@ -50,3 +50,20 @@ def test_updates_without_an_ended_episode_are_skipped_not_spread(tmp_path):
     np.testing.assert_allclose(seeds[0], [1.0, 3.0, 3.0])
     np.testing.assert_allclose(seeds[1], [3.0, 4.0, np.nan])
     np.testing.assert_allclose(seeds[2], [0.0, np.nan, 6.0])
+
+
+def test_progress_lines_say_n_a_where_no_episode_ended(capsys):
+    """The trainers' progress line shows ``n/a``, not ``nan``, for an update in which no episode ended."""
+    from baselines.common import Progress
+
+    progress = Progress(num_seeds=2, num_updates=2, steps_per_update=64, every=1, name="ppo test")
+    nan = np.full(2, np.nan)
+    progress(np.zeros(2, np.int32), {"return": nan, "success": nan, "steps_to_success": nan, "episodes": np.zeros(2),
+                                     "length": nan, "entropy": np.array([1.5, 1.7])})
+    progress(np.ones(2, np.int32), {"return": np.array([1.0, 2.0]), "success": np.array([0.5, 0.5]),
+                                    "steps_to_success": nan, "episodes": np.ones(2), "length": np.array([200.0, 200.0]),
+                                    "entropy": np.array([1.5, 1.7])})
+    first, second = capsys.readouterr().out.splitlines()
+    assert "return n/a  success n/a  steps-to-success n/a  length n/a  entropy 1.6" in first
+    assert "return 1.500  success 50.0%  steps-to-success n/a  length 200" in second
+    assert "nan" not in first + second

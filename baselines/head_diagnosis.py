@@ -4,7 +4,7 @@
 
 A trained navigator (a run folder of ``python -m baselines.ppo`` / ``ppo_rnn`` in ``discrete`` or
 ``continuous`` mode, e.g. ``baselines/published/c16-v1-diagnosis``) is rolled greedily once per slide
-of the split (each of its first ``--policy-seeds`` seeds) by :func:`baselines.evaluate.run_episodes`,
+of the split (each of its first ``--policy-seeds`` seeds; ``--sampled``: its sampled policy) by :func:`baselines.evaluate.run_episodes`,
 with reading tracked; the **finest-level tissue views it stood on** make its read mask, and the slide
 head (:mod:`histojax.head`) scores them: the slide's diagnosis no longer comes from the navigator's
 own declaring action (which can memorise overviews), only from what it read. The rows join the
@@ -67,15 +67,17 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
     return out
 
 
-def navigator_masks(run, dataset, slides: list[dict], split: str = "test", seeds: int = 1) -> dict:
+def navigator_masks(run, dataset, slides: list[dict], split: str = "test", seeds: int = 1,
+                    greedy: bool = True) -> dict:
     """``{1.0: [[read mask (H, W) per slide] per seed]}`` of a navigator (no budget: key 1.0), ready for
-    :func:`baselines.readers.add_reader`; ``slides`` are :func:`baselines.head_fit.load_slides` of the split."""
+    :func:`baselines.readers.add_reader`; ``slides`` are :func:`baselines.head_fit.load_slides` of the split;
+    ``greedy=False``: sampled episodes (key = the seed)."""
     from baselines.budget_curve import run_seeds
     from baselines.readers import masks_from_instances
 
     per_seed = []
     for seed in range(max(1, min(seeds, run_seeds(run)))):
-        reads = navigator_reads(run, dataset, split, seed)
+        reads = navigator_reads(run, dataset, split, seed, greedy=greedy)
         if len(reads) != len(slides):
             raise ValueError(f"{run}: {len(reads)} episodes for {len(slides)} slides of split {split!r}")
         per_seed.append([masks_from_instances(s, r) for s, r in zip(slides, reads)])
@@ -91,6 +93,8 @@ def add_arguments(p) -> None:
     p.add_argument("--split", default="test", help="split scored (default test)")
     p.add_argument("--policy-seeds", type=int, default=1, help="seeds of each run (default 1)")
     p.add_argument("--seeds", type=int, default=5, help="random reader orders (default 5)")
+    p.add_argument("--sampled", action="store_true",
+                   help="roll the navigators' sampled policies (key = the seed) instead of their greedy ones")
     p.add_argument("--out", default="runs/head-diagnosis", help="output folder (default runs/head-diagnosis)")
 
 
@@ -108,10 +112,12 @@ def run(args, parser=None) -> int:
     results = readers.scripted_results(head, slides, seeds=args.seeds, level=level)
     for name, run_dir in args.navigator:
         try:
-            masks = navigator_masks(run_dir, args.dataset, slides, args.split, args.policy_seeds)
+            masks = navigator_masks(run_dir, args.dataset, slides, args.split, args.policy_seeds,
+                                    greedy=not args.sampled)
         except (OSError, ValueError, HistojaxDataError) as e:
             return print_error(f"--navigator {name}: {e}")
-        readers.add_reader(results, head, slides, f"{name} (head declares)", masks, "learned")
+        how = ", sampled" if args.sampled else ""
+        readers.add_reader(results, head, slides, f"{name} (head declares{how})", masks, "learned")
     rows = readers.rows_from_results(results, slides)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -119,7 +125,7 @@ def run(args, parser=None) -> int:
     wall = time.perf_counter() - t0
     outputs.write_text(out / "readers.json", json.dumps(
         {"dataset": str(args.dataset), "split": args.split, "head": str(args.head), "head_name": head.name,
-         "navigators": args.navigator, "wall_s": round(wall, 1), "rows": rows}, indent=1, default=float))
+         "navigators": args.navigator, "sampled": bool(args.sampled), "wall_s": round(wall, 1), "rows": rows}, indent=1, default=float))
     png = readers.plot(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split: navigators "
                                                    f"through head {head.name}")
     readers.print_tables(rows, [])

@@ -85,6 +85,27 @@ def test_compare_navigator_is_scored_beside(trained, data, tmp_path):
     assert a["auc"] == b["auc"] and a["fraction_read"] == b["fraction_read"]  # greedy: the same run, the same reads
 
 
+
+@pytest.mark.slow
+def test_head_diagnosis_scores_the_sampled_policy(trained, data, tmp_path, monkeypatch):
+    """``head_diagnosis --sampled`` rolls the navigator's sampled policy (greedy=False, key = the seed) and says so in
+    the row's name; its reads are those of ``navigator_reads(..., greedy=False)``."""
+    from baselines import head_diagnosis
+
+    calls = []
+    reads = head_diagnosis.navigator_reads
+
+    def spy(*a, **kw):
+        calls.append(kw.get("greedy"))
+        return reads(*a, **kw)
+    monkeypatch.setattr(head_diagnosis, "navigator_reads", spy)
+    scoring = trained / "validation-set"
+    assert head_diagnosis.main(["--dataset", str(scoring), "--head", str(data["head"]), "--navigator", "nav",
+                                str(trained / "ppo"), "--sampled", "--seeds", "2", "--out", str(tmp_path / "s")]) == 0
+    rows = {r["reader"]: r for r in csv.DictReader((tmp_path / "s" / "readers.csv").open())}
+    assert calls == [False] and "nav (head declares, sampled)" in rows
+    assert json.loads((tmp_path / "s" / "readers.json").read_text())["sampled"] is True
+
 def test_ceiling_fractions():
     from benchmarks.navigator_ceiling import ceiling_fractions
 

@@ -40,9 +40,9 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
     n_seeds = jax.tree.leaves(params)[0].shape[0]
     if not 0 <= seed < n_seeds:
         raise ValueError(f"{run} has {n_seeds} seed(s), not a seed {seed}")
-    if config.get("action_mode") not in ("discrete", "continuous"):
+    if str(config.get("action_mode")).partition(":")[0] not in ("discrete", "continuous"):  # ":memory" too
         raise ValueError(f"{run}: a policy of action mode {config.get('action_mode')!r}; a navigator moves in "
-                         "discrete or continuous mode (readers: python -m baselines.readers --reader)")
+                         "discrete or continuous mode, with or without :memory (readers: python -m baselines.readers --reader)")
     params = jax.tree.map(lambda a: a[seed], params)
     kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides")}
     config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split}}

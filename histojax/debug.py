@@ -6,7 +6,7 @@ environment's invariants at run time (off by default: the plain functions have n
     err.throw()                                          # raises on the first broken invariant
 
 Checked: the ``EnvParams`` (the rules of :func:`histojax.registry.validate_params`: ``stride``,
-``max_steps_in_episode``, ``success_threshold``, finite reward settings), and (on the input and the output state): the view lies inside its level, ``z`` is a valid level, ``t`` is non-negative, the
+``max_steps_in_episode``, ``success_threshold``, finite reward settings, ``start_level``), and (on the input and the output state): the view lies inside its level, ``z`` is a valid level, ``t`` is non-negative, the
 reward is finite and inside the preset's documented range, float observations are finite.
 """
 from __future__ import annotations
@@ -15,6 +15,7 @@ import jax
 import jax.numpy as jnp
 from jax.experimental import checkify
 
+from histojax.modes import Navigation
 from histojax.rewards import classification_bounds, reward_bounds
 
 
@@ -46,6 +47,12 @@ def _check_params(env, params):
     for field in ("step_cost", "success_bonus", "histogym_scale", "dense_weight", "diagnosis_reward"):
         value = jnp.asarray(getattr(params, field), jnp.float32)
         checkify.check(jnp.isfinite(value), f"{field}={{v}} must be finite", v=value)
+    level = jnp.asarray(params.start_level)
+    whole = (level == jnp.round(level)) if jnp.issubdtype(level.dtype, jnp.floating) else True
+    checkify.check(whole, "start_level={v} must be a whole level number (0 = coarsest, -1 = finest)", v=level)
+    if not isinstance(env.action, Navigation):  # static: a reading mode would ignore it
+        checkify.check(level == 0, f"start_level={{v}} is for the navigation modes; {env.action.name!r} episodes "
+                       "start at the coarsest level", v=level)
 
 
 def _check_obs(obs):

@@ -243,10 +243,8 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     if unknown:
         raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
                         f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
-    mode = mode_registry.action_mode(spec.get("action_mode", "discrete"))
-    if not isinstance(mode, Navigation) and np.any(np.asarray(spec.get("start_level", 0)) != 0):
-        raise ValueError(f"make({env_id!r}): start_level={spec['start_level']!r} is for the navigation modes "
-                         f"(discrete, continuous); {mode.name!r} episodes start at the coarsest level")
+    _check_start_level(mode_registry.action_mode(spec.get("action_mode", "discrete")), spec.get("start_level", 0),
+                       f"make({env_id!r})")
     slides = _resolve_slides(env_id, spec, slide, slides, dataset, split)
     if labels is None and dataset is not None and spec.get("task", "detection") == "classification":
         labels = dataset_labels(dataset)  # a label table's or CAMELYON16's labels, not just "annotated"
@@ -385,6 +383,15 @@ def check_params(env, params, where: str = "params") -> None:
     values = {k: v.addressable_data(0) if isinstance(v, jax.Array) and not v.is_fully_addressable else v
               for k, v in values.items()}  # replicated over several processes: this process's copy
     validate_params(values, env.tile_size, where=where)
+    _check_start_level(env.action, values["start_level"], where)
+
+
+def _check_start_level(mode, start_level, where: str) -> None:
+    """``ValueError`` for a ``start_level`` other than 0 with a reading mode (its episodes start at the coarsest
+    level; the env would ignore it)."""
+    if not isinstance(mode, Navigation) and np.any(np.asarray(start_level) != 0):
+        raise ValueError(f"{where}: start_level={start_level!r} is for the navigation modes (discrete, continuous); "
+                         f"{mode.name!r} episodes start at the coarsest level")
 
 
 def dataset_slides(folder, split: str = "train") -> list[Path]:

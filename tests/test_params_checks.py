@@ -20,6 +20,7 @@ BAD = {  # the values of the issue: each moved, froze, truncated or scored silen
     "step_cost-nan": ("step_cost", float("nan")),
     "success_threshold-zero": ("success_threshold", 0.0),
     "dense_weight-inf": ("dense_weight", float("inf")),
+    "start_level-fraction": ("start_level", 0.5),
 }
 
 

@@ -73,3 +73,14 @@ def test_start_level_is_refused_where_it_cannot_apply():
         histojax.make("HistoJAX-Easy-v0", action_mode="glimpse", start_level=-1)
     with pytest.raises(ValueError, match=r"start_level=0.5 must be a whole level number"):
         histojax.make("HistoJAX-Easy-v0", start_level=0.5)
+
+
+def test_check_params_refuses_a_start_level_a_reading_mode_would_ignore():
+    from histojax.registry import check_params
+
+    env, params = histojax.make("HistoJAX-Easy-v0", action_mode="zoom_select", read_budget=0.5)
+    check_params(env, params)
+    with pytest.raises(ValueError, match=r"params: start_level=-1 is for the navigation modes.*'zoom_select'"):
+        check_params(env, params.replace(start_level=-1))
+    nav, nav_params = histojax.make("HistoJAX-Easy-v0")
+    check_params(nav, nav_params.replace(start_level=-1))

@@ -18,19 +18,20 @@ def action_mode(mode) -> ActionMode:
     """The action mode object for a name in :data:`ACTION_MODES` (or an ``ActionMode`` as it is).
     ``"glimpse:L"`` and ``"zoom_select:K"`` set the glimpse level / the number of children a side;
     ``"discrete:memory"`` / ``"continuous:memory"`` are the pan/zoom modes with ``memory=True`` (the
-    coarse visited map and the position in the observation). Strings, so a trainer's JSON config can
-    name them."""
+    coarse visited map and the position in the observation), ``"discrete:map"`` / ``"continuous:map"`` the
+    same plus a coarse map of one feature entry (``make(..., map_feature=ENTRY)``; :mod:`histojax.coarse_map`).
+    Strings, so a trainer's JSON config can name them."""
     if isinstance(mode, ActionMode):
         return mode
     name, sep, arg = str(mode).partition(":")
     navigation = name in ("discrete", "continuous")
     if name not in ACTION_MODES or (sep and not arg) or (arg and not navigation and name not in ("glimpse", "zoom_select")) \
-            or (arg and navigation and arg != "memory"):
+            or (arg and navigation and arg not in ("memory", "map")):
         raise ValueError(f"action_mode must be one of {tuple(ACTION_MODES)} (or glimpse:LEVEL, zoom_select:K, "
-                         f"discrete:memory, continuous:memory), got {mode!r}")
+                         f"discrete:memory, continuous:memory, discrete:map, continuous:map), got {mode!r}")
     obj = ACTION_MODES[name]()
     if navigation and arg:
-        return dataclasses.replace(obj, memory=True)
+        return dataclasses.replace(obj, memory=True, coarse_map=arg == "map")
     if arg:
         if not arg.isdigit():
             raise ValueError(f"action_mode {mode!r}: the part after ':' must be a whole number")

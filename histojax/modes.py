@@ -118,14 +118,30 @@ class Navigation(ActionMode):
     :mod:`histojax.reading`). Without either the state and the trajectories are HistoGym's."""
 
     memory: bool = False
+    coarse_map: bool = False   # with memory: the observation also holds ``coarse_map (16, 16)`` (histojax.coarse_map)
     supports_augment = True
 
-    def prepare(self, env, params, bundles, track_reading: bool = False, read_budget: float | None = None):
+    @property
+    def needs_features(self) -> bool:
+        return self.coarse_map  # the map is built from the slides' feature grids
+
+    def prepare(self, env, params, bundles, track_reading: bool = False, read_budget: float | None = None,
+                map_feature: int | None = None, map_level: int = -3):
+        """``map_feature`` / ``map_level`` (``coarse_map=True`` only): the feature entry and the level of the
+        coarse map (:func:`histojax.coarse_map.coarse_maps`)."""
+        if self.coarse_map != (map_feature is not None):
+            raise TypeError(f"{self.name}:map needs map_feature=ENTRY (the feature entry its coarse map shows), and "
+                            f"map_feature is for {self.name}:map only")
         if not (self.memory or track_reading):
             if read_budget is not None:
                 raise TypeError(f"read_budget needs track_reading=True (or {self.name} with memory=True)")
             return None
-        return reading.seen_tables(env, params, bundles, 1.0 if read_budget is None else read_budget)
+        tables = reading.seen_tables(env, params, bundles, 1.0 if read_budget is None else read_budget)
+        if self.coarse_map:
+            from histojax.coarse_map import coarse_maps
+
+            tables = tables.replace(coarse_map=jnp.asarray(coarse_maps(env, params, bundles, map_feature, map_level)))
+        return tables
 
     def init_memory(self, env, state, params):
         return None if params.mode_data is None else reading.init_seen(params.mode_data, state, env)
@@ -146,10 +162,20 @@ class Navigation(ActionMode):
         return reading.reading_info(params.mode_data, state.memory, state.slide_index)
 
     def memory_obs(self, env, state, params) -> dict:
-        return reading.visited_obs(env, state, params) if self.memory else {}
+        if not self.memory:
+            return {}
+        obs = reading.visited_obs(env, state, params)
+        if self.coarse_map:
+            obs["coarse_map"] = params.mode_data.coarse_map[state.slide_index]
+        return obs
 
     def memory_space(self, env, params) -> dict:
-        return reading.visited_space(params) if self.memory else {}
+        if not self.memory:
+            return {}
+        space = reading.visited_space(params)
+        if self.coarse_map:
+            space["coarse_map"] = spaces.Box(-jnp.inf, jnp.inf, (reading.VISITED_MAP, reading.VISITED_MAP), jnp.float32)
+        return space
 
 
 @dataclasses.dataclass(frozen=True)

@@ -142,6 +142,7 @@ class SeenTables:
     inv_coarse: jnp.ndarray    # (S, Gc) float32 1 / coarse_views
     read_budget: jnp.ndarray   # () float32 fraction of total_views after which the episode is truncated
     seen_zero: jnp.ndarray     # (⌈V/32⌉,) uint32 all 0: a fresh ``seen`` bit set (V = the largest sum of grid sizes)
+    coarse_map: jnp.ndarray | None = None  # (S, 16, 16) float32 coarse map (histojax.coarse_map), or None
 
 
 

@@ -47,7 +47,7 @@ STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "rewar
                  "augment",
                  "final_observation", "step_obs")
 # passed to the action mode's prepare (histojax.modes)
-MODE_SETTINGS = ("read_budget", "track_reading", "glimpse_grid", "read_slots")
+MODE_SETTINGS = ("read_budget", "track_reading", "glimpse_grid", "read_slots", "map_feature", "map_level")
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name not in ("slide", "mode_data"))
 # settings of how ``make`` draws a dataset's slides (neither static nor EnvParams):
 # ``tumour_slides_only`` — reset draws only slides with tumour annotated (detection on a dataset that

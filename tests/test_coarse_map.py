@@ -1,0 +1,95 @@
+"""``action_mode="discrete:map"``: the navigator's observation holds a coarse map of one feature entry on the
+visited map's 16 × 16 blocks (``histojax.coarse_map``), recomputed here view by view through the env's own
+feature lookup (``modes.view_features``); it is the slide's, fixed through the episode and across auto-resets.
+
+Slides made here: ``data_tools synth`` (2 tumour + 2 normal, 320 × 256 px, 32-px views, 3 levels) with
+``colour-stats`` features."""
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+import histojax
+from histojax import reading
+from histojax.modes import view_features
+
+ENTRY = 2
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory):
+    from baselines.budget_curve import compute_missing_features
+    from data_tools.datasets.synth import make_dataset
+
+    root = tmp_path_factory.mktemp("coarse-map-ds")
+    make_dataset(root, n_slides=2, negatives=2, size=(320, 256), seed=0, tile_size=32, level_sets=(3,),
+                 progress=False, previews=False)
+    compute_missing_features(root, "colour-stats")
+    return root
+
+
+def _make(dataset, **kw):
+    return histojax.make("HistoJAX-Easy-v0", dataset=str(dataset), split="all", obs_mode="features", **kw)
+
+
+def _by_hand(env, params, level: int) -> list[np.ndarray]:
+    """Per slide: each block's largest entry over the level-``level`` views that share a finest tissue view's
+    centre, read one by one with the env's feature lookup; blocks without tissue: the slide's lowest."""
+    t, f, m = env.tile_size, env.n_levels - 1, reading.VISITED_MAP
+    maps = []
+    for slide, bundle in reading.per_slide(params, env.bundles):
+        ds = np.asarray(slide.downsample, np.float64)
+        tissue = reading.tissue_views(bundle, slide, t)
+        gh, gw = tissue.shape
+        blocks = {}
+        for fy, fx in zip(*np.nonzero(tissue)):
+            x = int(np.floor((fx * t + t / 2) * ds[f] / ds[level] - t / 2))
+            y = int(np.floor((fy * t + t / 2) * ds[f] / ds[level] - t / 2))
+            v = float(view_features(slide, jnp.int32(level), jnp.int32(x), jnp.int32(y))[ENTRY])
+            key = (fy * m // gh, fx * m // gw)
+            blocks[key] = max(blocks.get(key, -np.inf), v)
+        low = min(blocks.values())
+        maps.append(np.array([[blocks.get((by, bx), low) for bx in range(m)] for by in range(m)], np.float32))
+    return maps
+
+
+@pytest.mark.parametrize("level", [-3, -2, -1])
+def test_the_map_is_each_blocks_largest_coarse_entry(dataset, level):
+    env, params = _make(dataset, action_mode="discrete:map", map_feature=ENTRY, map_level=level)
+    expected = _by_hand(env, params, level + env.n_levels)
+    assert len(expected) == 4 and (level == -3 or any(np.ptp(e) > 0 for e in expected))  # -3: 1-4 views a slide
+    reset = jax.jit(jax.vmap(env.reset, in_axes=(0, None)))
+    obs, state = reset(jax.random.split(jax.random.key(0), 16), params)
+    slides = np.asarray(state.slide_index)
+    assert len(set(slides.tolist())) > 1
+    for e, i in enumerate(slides):
+        np.testing.assert_allclose(np.asarray(obs["coarse_map"][e]), expected[i], rtol=1e-6)
+    space = env.observation_space(params)
+    assert space.spaces["coarse_map"].shape == (16, 16) and set(obs) == set(space.spaces)
+
+
+def test_the_map_is_fixed_through_steps_and_follows_the_slide_across_auto_resets(dataset):
+    env, params = _make(dataset, action_mode="discrete:map", map_feature=ENTRY, start_level=-1,
+                        max_steps_in_episode=3)
+    table = np.asarray(params.mode_data.coarse_map)
+    step = jax.jit(env.step)
+    obs, state = env.reset(jax.random.key(1), params)
+    for i in range(9):  # three episodes: the map is always that of the slide of the state
+        np.testing.assert_array_equal(np.asarray(obs["coarse_map"]), table[int(state.slide_index)])
+        obs, state, *_ = step(jax.random.key(i + 2), state, jnp.int32(i % 4), params)
+    assert int(state.z) == env.n_levels - 1  # a finest start after the auto-resets
+
+
+def test_map_settings_are_checked(dataset):
+    with pytest.raises(TypeError, match="discrete:map needs map_feature"):
+        _make(dataset, action_mode="discrete:map")
+    with pytest.raises(TypeError, match="map_feature is for discrete:map only"):
+        _make(dataset, action_mode="discrete:memory", map_feature=ENTRY)
+    with pytest.raises(ValueError, match=r"map_feature=99 is not an entry of these slides' \d+-entry features"):
+        _make(dataset, action_mode="discrete:map", map_feature=99)
+    with pytest.raises(ValueError, match="map_level=5 is not one of the 3 levels"):
+        _make(dataset, action_mode="discrete:map", map_feature=ENTRY, map_level=5)
+    with pytest.raises(ValueError, match="action_mode must be one of"):
+        histojax.make("HistoJAX-Easy-v0", action_mode="discrete:mapp")

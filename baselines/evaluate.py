@@ -8,7 +8,8 @@ the package such as ``baselines/published/NAME``) one row per policy:
 
 * the checkpoint's policy, greedy (argmax / Gaussian mean) and sampled, pooled over its seeds;
 * ``random`` — uniform random actions;
-* ``scripted`` — coarse-to-fine using only the observation (see :func:`scripted_policy`).
+* ``scripted`` — coarse-to-fine using only the observation (see :func:`scripted_policy`); for a
+  ``discrete:map`` navigator, the map follower (:func:`map_follower_policy`).
 
 Columns: success rate (target reached at the finest level), mean return, mean episode length,
 mean steps to success (over the successful episodes), mean fraction of the slide read and fields of
@@ -119,6 +120,35 @@ def scripted_features_policy(key, obs, tumour_index: int = pcam_cnn.VIEW_LOGIT, 
     hot = jnp.where(finest, actions.STAY, actions.ZOOM_IN)
     a = jnp.where(logit > threshold, hot, away)
     return jnp.where(jax.random.uniform(k2) < epsilon, jax.random.randint(k3, (), 0, 7), a).astype(jnp.int32)
+
+
+def map_follower_policy(key, obs, travel_level: float = 0.5, read_enough: float = 0.5, epsilon: float = 0.05):
+    """A navigator that walks to where the coarse map is high (``discrete:map`` observations; one env), from
+    the observation only: its target is the block of ``coarse_map (16, 16)`` with the highest value among
+    blocks whose ``visited`` fraction is below ``read_enough``. Far from it (more than 2 blocks) it travels at
+    normalised level ``travel_level`` (``position[2]``: 0 coarsest, 1 finest; zooming out from the finest);
+    over the target's block it zooms in; at the finest level inside the block it moves at random (reading
+    the block's views), outside it steps towards the block's centre along the longer axis. With probability
+    ``epsilon`` a random action breaks loops. The map's reference: what a navigator given the map could read."""
+    m = obs["coarse_map"].shape[-1]
+    score = jnp.where(obs["visited"] >= read_enough, -jnp.inf, obs["coarse_map"]).reshape(-1)
+    target = jnp.argmax(score)
+    ty, tx = jnp.divmod(target, m)
+    dx = (tx + 0.5) / m - obs["position"][0]
+    dy = (ty + 0.5) / m - obs["position"][1]
+    level = obs["position"][2]
+    finest = level >= 1.0 - 1e-6
+    inside = (jnp.abs(dx) < 0.5 / m) & (jnp.abs(dy) < 0.5 / m)
+    far = jnp.maximum(jnp.abs(dx), jnp.abs(dy)) > 2.0 / m
+    toward = jnp.where(jnp.abs(dx) >= jnp.abs(dy), jnp.where(dx > 0, actions.RIGHT, actions.LEFT),
+                       jnp.where(dy > 0, actions.DOWN, actions.UP))
+    k1, k2, k3 = jax.random.split(key, 3)
+    wander = jax.random.randint(k1, (), 0, 4)
+    at_finest = jnp.where(far, actions.ZOOM_OUT, jnp.where(inside, wander, toward))
+    above = jnp.where(far & (level > travel_level + 1e-6), actions.ZOOM_OUT,
+                      jnp.where(inside, actions.ZOOM_IN, toward))
+    a = jnp.where(finest, at_finest, above)
+    return jnp.where(jax.random.uniform(k2) < epsilon, jax.random.randint(k3, (), 0, 4), a).astype(jnp.int32)
 
 
 # ----------------------------------------------------------------------------- rollouts
@@ -449,13 +479,21 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     declare = None
     episodes["random"] = episodes_of(rand, jax.random.fold_in(key, 1), num_episodes)
     rows["random"] = summarise(episodes["random"], names)
-    if isinstance(env.observation_space(), dict) or env.obs_mode in ("pixels", "pixels_float"):
+    space_keys = getattr(env.observation_space(), "spaces", {})
+    if "coarse_map" in space_keys and policy_is_discrete(mode):
+        def map_follower(k, obs):
+            n = jax.tree.leaves(obs)[0].shape[0]
+            return jax.vmap(map_follower_policy)(jax.random.split(k, n), obs)
+        say(f"  scripted (map follower): {num_episodes} episodes ...")
+        episodes["scripted"] = episodes_of(map_follower, jax.random.fold_in(key, 2), num_episodes)
+        rows["scripted"] = summarise(episodes["scripted"], names)
+    elif isinstance(env.observation_space(), dict) or env.obs_mode in ("pixels", "pixels_float"):
         def scripted(k, obs):
             n = jax.tree.leaves(obs)[0].shape[0]
             return jax.vmap(lambda kk, o: scripted_policy(kk, o, mode))(jax.random.split(k, n), obs)
         try:
             say(f"  scripted: {num_episodes} episodes ...")
-            episodes["scripted"] = run_episodes(env, env_params, scripted, jax.random.fold_in(key, 2), num_episodes)
+            episodes["scripted"] = episodes_of(scripted, jax.random.fold_in(key, 2), num_episodes)
             rows["scripted"] = summarise(episodes["scripted"], names)
         except (KeyError, TypeError, ValueError) as e:  # observation without pixels
             print(f"scripted policy skipped: {e}")
@@ -464,8 +502,7 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             n = jax.tree.leaves(obs)[0].shape[0]
             return jax.vmap(scripted_features_policy)(jax.random.split(k, n), obs)
         say(f"  scripted: {num_episodes} episodes ...")
-        episodes["scripted"] = run_episodes(env, env_params, scripted_features, jax.random.fold_in(key, 2),
-                                            num_episodes)
+        episodes["scripted"] = episodes_of(scripted_features, jax.random.fold_in(key, 2), num_episodes)
         rows["scripted"] = summarise(episodes["scripted"], names)
     if out is not None:
         say(f"  pictures to {out} ...")

@@ -93,3 +93,48 @@ def test_map_settings_are_checked(dataset):
         _make(dataset, action_mode="discrete:map", map_feature=ENTRY, map_level=5)
     with pytest.raises(ValueError, match="action_mode must be one of"):
         histojax.make("HistoJAX-Easy-v0", action_mode="discrete:mapp")
+
+
+def _obs(target=(3, 12), position=(0.5, 0.5, 1.0), visited=None):
+    cm = np.zeros((16, 16), np.float32)
+    cm[target] = 5.0
+    return {"coarse_map": jnp.asarray(cm), "visited": jnp.asarray(np.zeros((16, 16), np.float32) if visited is None
+                                                                  else visited),
+            "position": jnp.asarray(position, jnp.float32), "features": jnp.zeros(4)}
+
+
+def test_map_follower_walks_to_the_highest_unread_block():
+    from baselines.evaluate import map_follower_policy
+
+    def act(**kw):
+        return int(map_follower_policy(jax.random.key(0), _obs(**kw), epsilon=0.0))
+
+    # target block (3, 12): centre (12.5 / 16, 3.5 / 16) = (0.78, 0.22)
+    assert act(position=(0.5, 0.5, 1.0)) == histojax.ZOOM_OUT          # finest, far: travel higher up
+    assert act(position=(0.5, 0.5, 0.75)) == histojax.ZOOM_OUT         # still below the travel level
+    assert act(position=(0.5, 0.5, 0.5)) == histojax.RIGHT             # at the travel level: longer axis first
+    assert act(position=(0.78, 0.6, 0.5)) == histojax.UP
+    assert act(position=(0.78, 0.22, 0.5)) == histojax.ZOOM_IN         # over the block: down to the finest
+    assert act(position=(0.78, 0.22, 1.0)) in (histojax.UP, histojax.DOWN, histojax.LEFT, histojax.RIGHT)  # reads it
+    assert act(position=(0.70, 0.22, 1.0)) == histojax.RIGHT           # finest, near but outside: step towards it
+    read = np.zeros((16, 16), np.float32)
+    read[3, 12] = 0.6                                                  # read enough: the next highest block
+    cm_next = _obs(position=(0.5, 0.5, 0.5), visited=read)
+    cm_next["coarse_map"] = cm_next["coarse_map"].at[14, 1].set(4.0)
+    assert int(map_follower_policy(jax.random.key(0), cm_next, epsilon=0.0)) == histojax.LEFT
+
+
+def test_evaluate_scores_the_map_follower_through_the_head(dataset):
+    """``evaluate`` through a head: the reference rows (random, the map follower) are scored by the head (AUC)."""
+    from baselines.evaluate import evaluate
+    from histojax.head import SlideHead
+
+    head = SlideHead(a=jnp.float32(1.0), b=jnp.float32(0.0), prior_logit=jnp.float32(0.0), dim=ENTRY, k=1, top=1,
+                     encoder=None)
+    config = {"env_id": "HistoJAX-Easy-v0", "action_mode": "discrete:map", "obs_mode": "features",
+              "max_steps_in_episode": 12,
+              "env_kwargs": {"dataset": str(dataset), "split": "all", "map_feature": ENTRY, "start_level": -1}}
+    rows = evaluate(config, None, num_episodes=8, head=head, head_reward={"gain": "fidelity", "final": 0.0})
+    assert set(rows) == {"random", "scripted"}
+    for row in rows.values():
+        assert 0.0 <= row["diagnosis_auc"] <= 1.0 and row["mean_fraction_read"] > 0

@@ -4,7 +4,8 @@
 
 A trained navigator (a run folder of ``python -m baselines.ppo`` / ``ppo_rnn`` in ``discrete`` or
 ``continuous`` mode, e.g. ``baselines/published/c16-v1-diagnosis``) is rolled greedily once per slide
-of the split (each of its first ``--policy-seeds`` seeds; ``--sampled``: its sampled policy) by :func:`baselines.evaluate.run_episodes`,
+of the split (each of its first ``--policy-seeds`` seeds; ``--sampled``: its sampled policy) by
+:func:`baselines.evaluate.run_episodes`,
 with reading tracked; the **finest-level tissue views it stood on** make its read mask, and the slide
 head (:mod:`histojax.head`) scores them: the slide's diagnosis no longer comes from the navigator's
 own declaring action (which can memorise overviews), only from what it read. The rows join the
@@ -40,9 +41,10 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
     n_seeds = jax.tree.leaves(params)[0].shape[0]
     if not 0 <= seed < n_seeds:
         raise ValueError(f"{run} has {n_seeds} seed(s), not a seed {seed}")
-    if str(config.get("action_mode")).partition(":")[0] not in ("discrete", "continuous"):  # ":memory" too
+    if str(config.get("action_mode")).partition(":")[0] not in ("discrete", "continuous"):  # ":memory", ":map" too
         raise ValueError(f"{run}: a policy of action mode {config.get('action_mode')!r}; a navigator moves in "
-                         "discrete or continuous mode, with or without :memory (readers: python -m baselines.readers --reader)")
+                         "discrete or continuous mode, :memory and :map included (readers: python -m baselines.readers "
+                         "--reader)")
     params = jax.tree.map(lambda a: a[seed], params)
     kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides")}
     config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split}}

@@ -479,31 +479,27 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     declare = None
     episodes["random"] = episodes_of(rand, jax.random.fold_in(key, 1), num_episodes)
     rows["random"] = summarise(episodes["random"], names)
+    # the scripted reference: one env's observation-only policy, for what the observation holds
     space_keys = getattr(env.observation_space(), "spaces", {})
+    one_env, what, may_lack_pixels = None, "scripted", False
     if "coarse_map" in space_keys and policy_is_discrete(mode):
-        def map_follower(k, obs):
-            n = jax.tree.leaves(obs)[0].shape[0]
-            return jax.vmap(map_follower_policy)(jax.random.split(k, n), obs)
-        say(f"  scripted (map follower): {num_episodes} episodes ...")
-        episodes["scripted"] = episodes_of(map_follower, jax.random.fold_in(key, 2), num_episodes)
-        rows["scripted"] = summarise(episodes["scripted"], names)
+        one_env, what = map_follower_policy, "scripted (map follower)"
     elif isinstance(env.observation_space(), dict) or env.obs_mode in ("pixels", "pixels_float"):
+        one_env, may_lack_pixels = (lambda kk, o: scripted_policy(kk, o, mode)), True
+    elif env.obs_mode == "features" and policy_is_discrete(mode) and diagnosis_actions(env, None, mode) is None:
+        one_env = scripted_features_policy
+    if one_env is not None:
         def scripted(k, obs):
             n = jax.tree.leaves(obs)[0].shape[0]
-            return jax.vmap(lambda kk, o: scripted_policy(kk, o, mode))(jax.random.split(k, n), obs)
+            return jax.vmap(one_env)(jax.random.split(k, n), obs)
         try:
-            say(f"  scripted: {num_episodes} episodes ...")
+            say(f"  {what}: {num_episodes} episodes ...")
             episodes["scripted"] = episodes_of(scripted, jax.random.fold_in(key, 2), num_episodes)
             rows["scripted"] = summarise(episodes["scripted"], names)
-        except (KeyError, TypeError, ValueError) as e:  # observation without pixels
-            print(f"scripted policy skipped: {e}")
-    elif env.obs_mode == "features" and policy_is_discrete(mode) and diagnosis_actions(env, None, mode) is None:
-        def scripted_features(k, obs):
-            n = jax.tree.leaves(obs)[0].shape[0]
-            return jax.vmap(scripted_features_policy)(jax.random.split(k, n), obs)
-        say(f"  scripted: {num_episodes} episodes ...")
-        episodes["scripted"] = episodes_of(scripted_features, jax.random.fold_in(key, 2), num_episodes)
-        rows["scripted"] = summarise(episodes["scripted"], names)
+        except (KeyError, TypeError, ValueError) as e:
+            if not may_lack_pixels:
+                raise
+            print(f"scripted policy skipped: {e}")  # observation without pixels
     if out is not None:
         say(f"  pictures to {out} ...")
         write_pictures(picture_env, env_params, episodes, Path(out), config["env_id"])

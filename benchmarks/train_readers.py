@@ -108,8 +108,7 @@ def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tup
         seen = ~np.isnan(a)
         total = np.stack([np.convolve(np.where(k, r, 0.0), kernel, mode="valid") for r, k in zip(a, seen)])
         count = np.stack([np.convolve(k.astype(float), kernel, mode="valid") for k in seen])
-        with np.errstate(invalid="ignore", divide="ignore"):
-            return np.where(count > 0, total / np.maximum(count, 1), np.nan)
+        return np.where(count > 0, total / np.maximum(count, 1), np.nan)
     x = steps[smooth - 1:]
     r, n = sm(ret), sm(length)
     with open(csv_path, "w") as f:

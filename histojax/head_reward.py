@@ -236,12 +236,16 @@ class HeadReward(Wrapper):
         gy = jnp.clip((env_state.y + t // 2) // t, 0, tb.grid[i, 0] - 1)
         return gy, gx, env_state.z == self._env.n_levels - 1
 
+    def _visited_index(self, gy, gx):
+        """Flat index in ``visited`` of finest view ``(gy, gx)`` (its grid may be padded by ``_offset``)."""
+        return (gy + self._offset) * self._visited_grid[1] + gx + self._offset
+
     def _visit(self, env_state, visited) -> jax.Array:
         """``visited`` with the finest view under ``env_state``'s view marked (non-glimpse modes)."""
         if self.glimpse:
             return visited
         gy, gx, finest = self._finest_view(env_state)
-        at = (gy + self._offset) * self._visited_grid[1] + gx + self._offset
+        at = self._visited_index(gy, gx)
         return visited.at[at].set(visited[at] | finest)
 
     def _score(self, env_state, visited):
@@ -263,8 +267,7 @@ class HeadReward(Wrapper):
             c = jnp.argmax(changed)
         else:  # a navigator: the finest view it stands on, if new and on tissue; its block plays the cell
             vy, vx, finest = self._finest_view(env_state)
-            at = (vy + self._offset) * self._visited_grid[1] + vx + self._offset
-            new = finest & ~before.visited[at] & tb.tissue[i, vy, vx]
+            new = finest & ~before.visited[self._visited_index(vy, vx)] & tb.tissue[i, vy, vx]
             c = (vy // self._block) * big_w + vx // self._block
         gy, gx = c // big_w, c % big_w
         oy = tb.row_start[i, jnp.maximum(gy - 1, 0)]   # padded grid: k views above, so the window starts k higher

@@ -15,6 +15,7 @@ import pytest
 
 from baselines import budget_curve, common, evaluate, ppo_rnn
 from baselines.networks import ScannedGRU
+from slide_helpers import synth_feature_dataset
 
 BUDGETS = (0.1, 0.25, 0.5)
 STEPS = 8
@@ -22,13 +23,7 @@ STEPS = 8
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    from data_tools.datasets.synth import make_dataset
-
-    root = tmp_path_factory.mktemp("diag-ds")
-    make_dataset(root, n_slides=4, negatives=4, size=(320, 256), seed=0, tile_size=32, level_sets=(3,),
-                 progress=False, previews=False)
-    budget_curve.compute_missing_features(root, "colour-stats")
-    return root
+    return synth_feature_dataset(tmp_path_factory.mktemp("diag-ds"), n_slides=4, negatives=4)
 
 
 def _config(dataset, action_mode: str) -> dict:

@@ -14,20 +14,14 @@ import pytest
 import histojax
 from histojax import reading
 from histojax.modes import view_features
+from slide_helpers import synth_feature_dataset
 
 ENTRY = 2
 
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    from baselines.budget_curve import compute_missing_features
-    from data_tools.datasets.synth import make_dataset
-
-    root = tmp_path_factory.mktemp("coarse-map-ds")
-    make_dataset(root, n_slides=2, negatives=2, size=(320, 256), seed=0, tile_size=32, level_sets=(3,),
-                 progress=False, previews=False)
-    compute_missing_features(root, "colour-stats")
-    return root
+    return synth_feature_dataset(tmp_path_factory.mktemp("coarse-map-ds"), n_slides=2, negatives=2)
 
 
 def _make(dataset, **kw):

@@ -18,6 +18,7 @@ import histojax
 from histojax import reading
 from histojax.head import SlideHead, score_logits
 from histojax.head_reward import HeadReward
+from slide_helpers import synth_feature_dataset
 
 STEPS, ENVS = 14, 3
 HEAD = SlideHead(a=jnp.float32(1.5), b=jnp.float32(-0.2), prior_logit=jnp.float32(0.3), dim=0, k=3, top=1,
@@ -26,14 +27,7 @@ HEAD = SlideHead(a=jnp.float32(1.5), b=jnp.float32(-0.2), prior_logit=jnp.float3
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
-    from baselines.budget_curve import compute_missing_features
-    from data_tools.datasets.synth import make_dataset
-
-    root = tmp_path_factory.mktemp("head-reward-ds")
-    make_dataset(root, n_slides=2, negatives=2, size=(320, 256), seed=0, tile_size=32, level_sets=(3,),
-                 progress=False, previews=False)
-    compute_missing_features(root, "colour-stats")
-    return root
+    return synth_feature_dataset(tmp_path_factory.mktemp("head-reward-ds"), n_slides=2, negatives=2)
 
 
 def _make(dataset, **kw):

@@ -22,6 +22,7 @@ from __future__ import annotations
 
 import json
 import resource
+import sys
 import time
 from pathlib import Path
 
@@ -30,6 +31,7 @@ from tqdm.auto import tqdm
 
 from data_tools.bundle_format import atomic_file, read_metadata, sha256, write_json
 from data_tools.datasets.c16_layout import C16_MPP, donor_for, layout
+from data_tools.datasets.c16_inputs import check_known_inputs, differing_lines
 from data_tools.datasets.c16_mosaic import PIXELS_NOTE, Texture, write_slide_tiff
 from data_tools.datasets.split import grouped_split as split_slides  # one home for splits (data_tools.datasets)
 from data_tools.errors import HistojaxDataError
@@ -350,6 +352,9 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     encoder_info = encoder_record(encoder) if encoder is not None else {"encoder": None}
     mag = COARSEST / d
     source = annotations or SHIPPED_DIR
+    inputs = check_known_inputs(annotations=annotations, patches=patches)  # the published tables' bytes?
+    for line in differing_lines(inputs):
+        print(line, file=sys.stderr)  # a warning, not a refusal: other inputs are allowed
     every = read_ncrf(source)   # the whole set: its split and donors hold for any subset
     universe = [n for n in every if n in SMALL_SLIDES] if small else list(every)
     if small and len(universe) != len(SMALL_SLIDES):
@@ -394,6 +399,7 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
                       f"at most {test_fraction:.0%} of the tumour and of the normal slides in test; "
                       "train slides are textured from the training patch pool only, test slides from the "
                       "test pool (or --test-patches) only",
+        "inputs": inputs,  # per .tar.gz input given: its sha256 and whether it is the published tables'
         **encoder_info, "pixels_kept": not no_pixels,  # encoder (its name); your own's version and spec too
     }
     set_key = {k: dataset[k] for k in (*_SAME_SET_KEYS, "encoder_version") if k in dataset}

@@ -40,12 +40,22 @@ def _box(text: str) -> tuple[float, float, float, float]:
     return values
 
 
+def add_reader_argument(p) -> None:
+    """``--reader auto|native|openslide`` on the parser ``p`` (``info``, ``build``, ``dataset``)."""
+    p.add_argument("--reader", choices=("auto", "native", "openslide"), default="auto",
+                   help="what reads the slides: auto (default: tifffile / wsidicom, OpenSlide for MIRAX, SCN, BIF, "
+                        "VMS / VMU, SVSlide and Philips TIFF), native, or openslide (any slide through OpenSlide 4; "
+                        "pip install 'histojax[openslide]')")
+
+
 def add_arguments(p) -> None:
     """The data commands and their options, on ``p``: ``python -m data_tools <command>`` and
     ``histojax <command>`` (one declaration for both)."""
     sub = p.add_subparsers(dest="command", required=True)
     info = sub.add_parser("info", help="print a slide's pyramid (levels, sizes in px, tiles, compression, µm/px)")
-    info.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file, DICOM WSI file or folder, or a bundle folder")
+    info.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file, DICOM WSI file or folder, MIRAX / SCN / "
+                                    "BIF / VMS / SVSlide / Philips TIFF (OpenSlide), or a bundle folder")
+    add_reader_argument(info)
     build = sub.add_parser("build", help="write a slide bundle (levels, tumour masks, tissue mask, metadata)")
     build.add_argument("slide", help="SVS / pyramidal TIFF / OME-TIFF file, or DICOM WSI file or folder "
                                      "(needs the extra: pip install 'histojax[dicom]')")
@@ -74,6 +84,7 @@ def add_arguments(p) -> None:
     build.add_argument("--band-mb", type=positive_float, default=None,
                        help="tiled: MiB of RGB per band of a level read at a time (default 96)")
     build.add_argument("--overwrite", action="store_true", help="replace an existing bundle")
+    add_reader_argument(build)
     build.add_argument("--quiet", action="store_true", help="no progress bar")
     synth = sub.add_parser("synth", help="make semi-synthetic slides (synthetic pixels, real CAMELYON16 "
                                          "tumour geometry) and their bundles, with a train/test split")
@@ -147,7 +158,7 @@ def add_arguments(p) -> None:
         "train-encoder", help="train the pcam-cnn encoder on the PCam training pool (minutes on 2 CPU cores)"))
 
 
-def _info(path: str) -> str:
+def _info(path: str, reader: str = "auto") -> str:
     from data_tools.dicom import is_dicom
 
     if Path(path).is_dir() and not is_dicom(path):
@@ -168,8 +179,8 @@ def _info(path: str) -> str:
         return "\n".join(lines)
     from data_tools.slides import describe, open_slide
 
-    with open_slide(path) as reader:
-        return describe(reader)
+    with open_slide(path, reader) as slide:
+        return describe(slide)
 
 
 def _check_label_map(label_map) -> None:
@@ -212,7 +223,7 @@ def main(argv=None, prog: str = "python -m data_tools") -> int:
 def _command(args) -> int | None:
     """Run the parsed command; an exit status when it is not 0 (``c16`` with failed slides: 1)."""
     if args.command == "info":
-        print(_info(args.slide))
+        print(_info(args.slide, args.reader))
     elif args.command == "build":
         from data_tools.bundle import LEVEL_SETS, build_bundle
         from data_tools.bundle_format import read_metadata
@@ -227,7 +238,8 @@ def _command(args) -> int | None:
                            region=args.region if args.region is not None else args.region_group,
                            region_margin=args.region_margin, storage=args.storage,
                            share_background=not args.keep_all_tiles,
-                           band_bytes=None if args.band_mb is None else int(args.band_mb * 2**20))
+                           band_bytes=None if args.band_mb is None else int(args.band_mb * 2**20),
+                           reader=args.reader)
         meta = read_metadata(out)
         print(f"wrote {out}: {len(meta.levels)} levels"
               + (f", region {meta.region['box']} of the slide" if meta.region else ""))

@@ -163,6 +163,7 @@ def build_bundle(
     storage: str = "dense",
     share_background: bool = True,
     band_bytes: int | None = None,
+    reader: str | None = None,
 ) -> Path:
     """Build a slide bundle at ``out_dir`` from a slide file and an optional annotation file.
 
@@ -184,6 +185,9 @@ def build_bundle(
     version 2, see :mod:`data_tools.tiled`) or ``"auto"`` (tiled when the dense levels would need more
     than 256 MiB on the device). ``share_background=False`` keeps every tile of a tiled bundle (exactly
     the dense pixels); ``band_bytes`` bounds the RGB bytes of one band (default 96 MiB).
+
+    ``reader``: what reads the slide (:data:`data_tools.slides.READERS`: ``"auto"``, the default; ``"native"``;
+    ``"openslide"``, any slide through OpenSlide 4).
     """
     slide_path, out_dir = Path(slide_path), Path(out_dir)
     if out_dir.exists() and not overwrite:
@@ -219,7 +223,7 @@ def build_bundle(
             tmp.mkdir()
             _build_into(tmp, slide_path, out_dir, annotations_path, level_sets, tile_size, magnification_range,
                         label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
-                        band_bytes)
+                        band_bytes, reader)
         return out_dir
     except OSError as e:
         raise BundleError(out_dir, f"cannot write the bundle ({e.strerror or e}"
@@ -230,7 +234,7 @@ def build_bundle(
 
 def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, level_sets, tile_size, magnification_range,
                 label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
-                band_bytes) -> None:
+                band_bytes, reader=None) -> None:
     """The body of :func:`build_bundle`: write the bundle into ``tmp`` (called with the build lock held, inside
     :func:`data_tools.bundle_format.atomic_folder`, which renames it to ``out_dir`` or removes it)."""
     from data_tools.annotations import annotations_to_geojson, load_annotations
@@ -238,7 +242,7 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
     from data_tools.slides import MAX_DECODE_BYTES, open_slide
     import shapely.geometry
 
-    with open_slide(slide_path) as reader:
+    with open_slide(slide_path, reader) as reader:
         width0, height0 = reader.dimensions
         ann = None
         if annotations_path is not None:

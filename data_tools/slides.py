@@ -32,7 +32,7 @@ import tifffile
 
 from data_tools.errors import SlideError
 
-__all__ = ["MAX_DECODE_BYTES", "LevelInfo", "SlideReader", "describe", "open_slide"]
+__all__ = ["MAX_DECODE_BYTES", "READERS", "LevelInfo", "SlideReader", "describe", "open_slide"]
 
 MAX_DECODE_BYTES = 4 * 1024**3
 """Default limit (bytes of decoded RGB, H * W * 3) for :meth:`SlideReader.read_level`."""
@@ -85,7 +85,7 @@ class SlideReader:
 
     Attributes:
         path: the file path as given (``str``).
-        format: ``"aperio-svs"``, ``"ome-tiff"`` or ``"tiff"``.
+        format: ``"aperio-svs"``, ``"ome-tiff"``, ``"philips-tiff"`` or ``"tiff"``.
         levels: pyramid levels only, finest (level 0) first. SVS thumbnail,
             label and macro images are not levels.
         mpp: micrometres per level-0 pixel when the file says so, else ``None``.
@@ -269,18 +269,64 @@ class SlideReader:
         return rgb
 
 
-def open_slide(path: str | os.PathLike) -> SlideReader:
-    """Open a slide (SVS, pyramidal TIFF, OME-TIFF file; DICOM WSI file or folder, see
-    :mod:`data_tools.dicom`); raises SlideError if unreadable."""
-    from data_tools.dicom import DicomSlideReader, is_dicom
+READERS = ("auto", "native", "openslide")
+"""What :func:`open_slide` may read a slide with (``--reader``): ``auto`` (the native readers, OpenSlide for the
+formats they do not read), ``native`` (tifffile / wsidicom only) or ``openslide`` (OpenSlide for any slide)."""
 
+
+def open_slide(path: str | os.PathLike, reader: str | None = "auto") -> SlideReader:
+    """Open a slide (SVS, pyramidal TIFF, OME-TIFF file; DICOM WSI file or folder, see
+    :mod:`data_tools.dicom`; MIRAX, SCN, BIF, VMS / VMU, SVSlide and Philips TIFF through OpenSlide, see
+    :mod:`data_tools.openslide_reader`); raises SlideError if unreadable.
+
+    ``reader``: ``"auto"`` (or None; the native readers, OpenSlide for the formats they do not read),
+    ``"native"`` or ``"openslide"`` (any slide through OpenSlide: needs ``histojax[openslide]``)."""
+    from data_tools.dicom import DicomSlideReader, is_dicom
+    from data_tools.openslide_reader import OPENSLIDE_EXTENSIONS, OpenSlideReader, openslide_available
+
+    reader = reader or "auto"
+    if reader not in READERS:
+        raise ValueError(f"reader must be one of {READERS}, got {reader!r}")
     try:
         mode = os.stat(path).st_mode
     except OSError:
         mode = None  # missing or unreadable: SlideReader names the reason
     if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # never open() a FIFO: it blocks
         raise SlideError(path, "not a regular file (a FIFO, socket or device): not a slide")
-    return DicomSlideReader(path) if is_dicom(path) else SlideReader(path)
+    if reader == "openslide":
+        return OpenSlideReader(path)
+    ext = os.path.splitext(os.fspath(path))[1].lower()
+    if reader == "auto" and ext in OPENSLIDE_EXTENSIONS and mode is not None and stat.S_ISREG(mode):
+        return OpenSlideReader(path)  # one line naming the extra when it is not installed
+    if is_dicom(path):
+        return DicomSlideReader(path)
+    try:
+        native = SlideReader(path)
+    except SlideError:
+        if reader == "auto" and _openslide_vendor(path) not in (None, "generic-tiff"):
+            try:  # a scanner's TIFF the native reader refuses (Philips, Leica, Ventana): OpenSlide's reading
+                return OpenSlideReader(path)
+            except SlideError:
+                pass
+        raise
+    if reader == "auto" and native.format == "philips-tiff" and openslide_available():
+        native.close()  # OpenSlide knows Philips TIFF's levels and the scanner's blank tiles
+        return OpenSlideReader(path)
+    return native
+
+
+def _openslide_vendor(path) -> str | None:
+    """OpenSlide's vendor name for ``path`` (``"philips"``, ``"leica"`` ...), or None (not installed, not
+    recognised)."""
+    from data_tools.openslide_reader import openslide_module
+
+    openslide = openslide_module()
+    if openslide is None:
+        return None
+    try:
+        return openslide.OpenSlide.detect_format(os.fspath(path))
+    except Exception:  # noqa: BLE001 - any trouble: not a slide OpenSlide reads
+        return None
 
 
 def describe(reader: SlideReader) -> str:
@@ -298,6 +344,9 @@ def describe(reader: SlideReader) -> str:
             f"  level {i}: {lv.width}×{lv.height} px, downsample {lv.downsample:.3f}, "
             f"{tiles}, {lv.compression}"
         )
+    associated = getattr(reader, "associated", None)  # OpenSlide's label / macro / thumbnail images
+    if associated:
+        lines.append("associated images: " + ", ".join(f"{n} {w}×{h} px" for n, (w, h) in associated.items()))
     return "\n".join(lines)
 
 
@@ -329,6 +378,8 @@ def _detect_format(tif: tifffile.TiffFile) -> str:
         return "aperio-svs"
     if tif.is_ome:
         return "ome-tiff"
+    if tif.is_philips:
+        return "philips-tiff"
     return "tiff"
 
 

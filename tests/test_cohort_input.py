@@ -170,7 +170,8 @@ def test_a_dicom_series_folder_is_one_slide(tmp_path):
 # ------------------------------------------------------------------ 15. TIFF-based extensions, skipped list
 def test_tiff_based_extensions_are_read_and_other_formats_listed_as_skipped(tmp_path):
     """Was: ``.qptiff`` (and BigTIFF ``.btf`` / ``.tf8``) were passed over without a word, as were MIRAX and
-    other formats histojax cannot read. Now the TIFF-based ones are slides; the rest are listed with why."""
+    other formats histojax cannot read. Now the TIFF-based ones are slides (and MIRAX, read through OpenSlide); the
+    rest are listed with why."""
     from data_tools.slides import open_slide
 
     slides = tmp_path / "S"
@@ -179,15 +180,17 @@ def test_tiff_based_extensions_are_read_and_other_formats_listed_as_skipped(tmp_
     tifffile.imwrite(slides / "big8.tf8", np.full((64, 64, 3), 200, np.uint8), bigtiff=True, photometric="rgb")
     for name in ("m.mrxs", "o.vsi", "z.czi", "notes.txt"):
         (slides / name).write_text("x")
+    (slides / "m").mkdir()  # a MIRAX slide's data folder: part of the slide, not searched
+    (slides / "m" / "Slidedat.ini").write_text("x")
     (slides / "meta.json").write_text('{"not": "an annotation"}')
     skipped = []
-    with pytest.warns(UserWarning, match=r"m\.mrxs: skipped: a 3DHISTECH MIRAX slide"):
+    with pytest.warns(UserWarning, match=r"o\.vsi: skipped: a Olympus VSI slide"):
         entries = discover(slides, skipped=skipped)
-    assert [e.name for e in entries] == ["akoya", "big", "big8"]
+    assert [e.name for e in entries] == ["akoya", "big", "big8", "m"]
     with open_slide(entries[2].path) as reader:
         assert reader.dimensions == (64, 64)
     reasons = {s.path.name: s.reason for s in skipped}
-    assert sorted(reasons) == ["m.mrxs", "meta.json", "notes.txt", "o.vsi", "z.czi"]
+    assert sorted(reasons) == ["meta.json", "notes.txt", "o.vsi", "z.czi"]
     assert "Olympus VSI" in reasons["o.vsi"] and "Zeiss CZI" in reasons["z.czi"]
     assert "not an ASAP XML, GeoJSON or NCRF" in reasons["meta.json"]
 
@@ -457,12 +460,12 @@ def test_the_dataset_command_with_a_fifo_a_loop_and_other_formats(tissue_tif, tm
     os.mkfifo(slides / "p.tif")
     os.symlink(".", slides / "e" / "a")
     os.symlink(".", slides / "e" / "b")
-    (slides / "x.mrxs").write_text("x")
+    (slides / "x.vsi").write_text("x")
     proc = _dataset_cli([slides, "--out", tmp_path / "o", "--levels", "3", "--quiet", "--test-fraction", "0"])
     assert proc.returncode == 0, proc.stderr
     warned = [line for line in proc.stderr.splitlines() if line.startswith("warning: ") and "skipped" in line]
     assert len(warned) == 4, proc.stderr
-    assert any("p.tif: skipped: a FIFO" in w for w in warned) and any("x.mrxs: skipped: a 3DHISTECH MIRAX" in w
+    assert any("p.tif: skipped: a FIFO" in w for w in warned) and any("x.vsi: skipped: a Olympus VSI" in w
                                                                          for w in warned)
     assert sum("symlink loop" in w for w in warned) == 2
     import json

@@ -59,7 +59,7 @@ def _rel(path: Path, root: Path) -> str:
         return str(Path(path).resolve())
 
 
-def check_scales(entries, magnification_range) -> dict[str, float | None]:
+def check_scales(entries, magnification_range, reader: str | None = None) -> dict[str, float | None]:
     """µm/px of every slide; with one ``magnification_range`` for all, slides whose level-0 µm/px differ by
     more than 5 % (or some unknown) are an error naming two of them: one range would give them different
     physical scales."""
@@ -68,8 +68,8 @@ def check_scales(entries, magnification_range) -> dict[str, float | None]:
     mpps: dict[str, float | None] = {}
     for e in entries:
         try:
-            with open_slide(e.path) as reader:
-                mpps[e.name] = reader.mpp
+            with open_slide(e.path, reader) as slide:
+                mpps[e.name] = slide.mpp
         except HistojaxDataError:
             mpps[e.name] = None  # unreadable: fails (with its reason) when built
         except Exception:  # noqa: BLE001 - any reader trouble shows up again, as a one-line failure, when built
@@ -373,7 +373,7 @@ def _build(out, name, slide, opts, slides_dir, bundle, key, h5, progress) -> dic
         warnings.simplefilter("always")
         build_bundle(path, bundle, annotations_path=ann, level_sets=opts["levels"], tile_size=opts["tile_size"],
                      magnification_range=opts["magnification_range"], storage=opts["storage"], overwrite=True,
-                     progress=progress, label_map=opts["label_map"])
+                     progress=progress, label_map=opts["label_map"], reader=opts.get("reader"))
     notes = sorted({_one_line(w.message) for w in caught})
     meta = read_metadata(bundle)
     tissue = np.load(bundle / meta.tissue_file, allow_pickle=False)
@@ -540,7 +540,7 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
                   encoder: str | None = None, features_from=None, patch_size: int | None = None,
                   patch_level: int | None = None, no_pixels: bool = False, test_fraction: float = 0.25,
                   seed: int = 0, jobs: int = 1, shard: tuple[int, int] | None = None, restart: bool = False,
-                  allow_unmatched: bool = False, progress: bool = True) -> dict:
+                  allow_unmatched: bool = False, progress: bool = True, reader: str | None = None) -> dict:
     """Build (or finish) the dataset ``out`` from the slides under ``slides_dir`` (see the module doc and
     :mod:`data_tools.datasets.discover`). ``levels`` / ``tile_size`` (px) / ``magnification_range`` (the
     coarsest downsample; default each slide's own) / ``storage`` / ``label_map``: as ``build``.
@@ -549,7 +549,8 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     files' attributes). ``no_pixels``: feature-only bundles (tiled storage). ``jobs``: processes;
     ``shard``: ``(I, N)``. Returns a summary: ``built`` / ``resumed`` / ``busy`` names, ``failed``
     (name → reason), ``dataset`` (the ``dataset.json`` dict, or None when slides remain), seconds,
-    slides per minute and the peak resident memory of one job (bytes)."""
+    slides per minute and the peak resident memory of one job (bytes). ``reader``: what reads the slides
+    (:data:`data_tools.slides.READERS`; recorded in the options when not ``"auto"``)."""
     from data_tools.datasets.discover import discover
 
     slides_dir, out = Path(slides_dir), Path(out)
@@ -572,13 +573,14 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
         from data_tools.features.hdf5 import check_feature_dims
 
         check_feature_dims(h5s[e.name.lower()] for e in entries if e.name.lower() in h5s)
-    mpps = check_scales(entries, magnification_range)
+    mpps = check_scales(entries, magnification_range, reader)
     options = {"levels": sorted(set(int(v) for v in levels)), "tile_size": int(tile_size),
                "magnification_range": magnification_range, "storage": storage, "label_map": label_map or None,
                "encoder": encoder,
                "features_from": None if features_from is None else str(Path(features_from).resolve()),
                "patch_size": patch_size, "patch_level": patch_level, "no_pixels": bool(no_pixels),
-               "test_fraction": test_fraction, "seed": int(seed)}
+               "test_fraction": test_fraction, "seed": int(seed),
+               **({"reader": reader} if reader not in (None, "auto") else {})}  # absent: plans of before stay equal
     plan = make_plan(entries, slides_dir, options, test_fraction, seed)
     for n, m in mpps.items():
         plan["slides"][n]["mpp"] = m

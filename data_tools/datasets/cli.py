@@ -60,6 +60,9 @@ def add_subcommand(sub, levels_type) -> None:
     p.add_argument("--restart", action="store_true", help="accept new options or slides for an existing --out "
                                                           "(finished slides with unchanged settings are kept)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+    from data_tools.__main__ import add_reader_argument
+
+    add_reader_argument(p)
 
 
 def run(args) -> int:
@@ -88,7 +91,7 @@ def run(args) -> int:
         label_map=label_map, encoder=args.encoder, features_from=args.features_from, patch_size=args.patch_size,
         patch_level=args.patch_level, no_pixels=args.no_pixels, test_fraction=args.test_fraction, seed=args.seed,
         jobs=args.jobs, shard=parse_shard(args.shard) if args.shard else None, restart=args.restart,
-        allow_unmatched=args.allow_unmatched_annotations, progress=not args.quiet)
+        allow_unmatched=args.allow_unmatched_annotations, progress=not args.quiet, reader=args.reader)
     s = summary
     print(f"{'shard ' + '/'.join(map(str, s['shard'])) + ': ' if s['shard'] else ''}{len(s['built'])} built, "
           f"{len(s['resumed'])} already done, {len(s['failed'])} failed"

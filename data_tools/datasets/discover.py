@@ -28,12 +28,12 @@ from data_tools.datasets.split import read_label_table, slide_key
 from data_tools.dicom import is_dicom
 from data_tools.errors import HistojaxDataError
 
-SLIDE_EXTENSIONS = (".svs", ".tif", ".tiff", ".ndpi", ".qptiff", ".btf", ".tf8", ".tf2")
-"""Slide files searched (tifffile reads them: TIFF, BigTIFF, OME-TIFF, Akoya QPTIFF, Hamamatsu NDPI)."""
+SLIDE_EXTENSIONS = (".svs", ".tif", ".tiff", ".ndpi", ".qptiff", ".btf", ".tf8", ".tf2",
+                    ".mrxs", ".scn", ".bif", ".vms", ".vmu", ".svslide")
+"""Slide files searched (tifffile reads TIFF, BigTIFF, OME-TIFF, Akoya QPTIFF, Hamamatsu NDPI; OpenSlide, the extra
+``histojax[openslide]``, reads MIRAX, Leica SCN, Ventana BIF, Hamamatsu VMS / VMU and Sakura SVSlide)."""
 ANNOTATION_EXTENSIONS = (".xml", ".geojson", ".json")
-OTHER_SLIDE_FORMATS = {".mrxs": "3DHISTECH MIRAX", ".vsi": "Olympus VSI", ".czi": "Zeiss CZI",
-                       ".isyntax": "Philips iSyntax", ".scn": "Leica SCN", ".bif": "Ventana BIF",
-                       ".vms": "Hamamatsu VMS", ".vmu": "Hamamatsu VMU", ".svslide": "Sakura SVSlide",
+OTHER_SLIDE_FORMATS = {".vsi": "Olympus VSI", ".czi": "Zeiss CZI", ".isyntax": "Philips iSyntax",
                        ".kfb": "KFBio KFB", ".sdpc": "SQRAY SDPC"}
 """Whole-slide formats histojax does not read: listed as skipped with the format named (convert them to
 pyramidal TIFF / OME-TIFF first, e.g. with ``bfconvert`` or ``vips``)."""
@@ -111,7 +111,8 @@ def _other_file_reason(name: str) -> str:
     ext = os.path.splitext(low)[1]
     if ext in OTHER_SLIDE_FORMATS:
         return (f"a {OTHER_SLIDE_FORMATS[ext]} slide, a format histojax does not read (it reads SVS, TIFF / BigTIFF, "
-                "OME-TIFF, QPTIFF, NDPI and DICOM WSI); convert it to a pyramidal TIFF")
+                "OME-TIFF, QPTIFF, NDPI, DICOM WSI and, through OpenSlide, MIRAX, SCN, BIF, VMS / VMU, SVSlide); "
+                "convert it to a pyramidal TIFF")
     if ext == ".dcm":
         return "named .dcm but not a DICOM file"
     if ext == ".csv":
@@ -153,8 +154,9 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
             dirs[:] = []
             continue
         keep = []
+        mirax = {f[:-5] for f in files if f.lower().endswith(".mrxs")}  # a MIRAX slide's data folder: part of it
         for d in sorted(dirs, key=lambda d: (os.path.islink(os.path.join(folder, d)), d)):  # folders before links
-            if d.startswith("."):
+            if d.startswith(".") or d in mirax:
                 continue
             p = here / d
             st = _stat_or_skip(p, skipped)

@@ -31,7 +31,7 @@ def slide_key(text: str) -> str:
     """A slide name as matched across files: the file name without its slide extension(s)."""
     name = Path(str(text).strip()).name
     for ext in (".ome.tiff", ".ome.tif", ".qptiff", ".tiff", ".tif", ".btf", ".tf8", ".tf2", ".svs", ".ndpi", ".mrxs",
-                ".dcm", ".h5", ".xml", ".geojson", ".json"):
+                ".scn", ".bif", ".vms", ".vmu", ".svslide", ".dcm", ".h5", ".xml", ".geojson", ".json"):
         if name.lower().endswith(ext):
             return name[: -len(ext)]
     return name

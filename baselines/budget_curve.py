@@ -13,7 +13,7 @@ Methods, all scored on the test slides of a dataset with the same gated-attentio
   (``NAME``) and the same head on what it read (``NAME reader + MIL``).
 
 A reader reads cells of ``action_mode=Glimpse(level)`` exactly as the env does (:func:`read_cells`
-follows :meth:`histojax.glimpse.Glimpse.apply`: a cell is read when it still fits in the budget;
+follows :meth:`histojax.reading.modes.glimpse.Glimpse.apply`: a cell is read when it still fits in the budget;
 the first pick that does not fit ends the episode), at budgets of ``--budgets`` (fractions of the
 slide's finest-level tissue views). Writes ``budget_curve.csv`` (one row per method × budget:
 mean fraction actually read, AUC, accuracy at 0.5, slides, the standard deviations of AUC and accuracy
@@ -44,7 +44,7 @@ BUDGETS = (0.05, 0.1, 0.2, 0.5)
 def load_split(dataset, split: str, env_id: str, level: int, verify: bool = False):
     """``(tables, labels)`` of a dataset split: :meth:`Glimpse.host_tables` per slide and 0/1 labels."""
     import histojax
-    from histojax.glimpse import Glimpse
+    from histojax.reading.modes.glimpse import Glimpse
 
     env, params = histojax.make(env_id, dataset=dataset, split=split, obs_mode="features",
                                 task="classification", verify=verify)  # not the glimpse mode: it would make the
@@ -283,7 +283,7 @@ def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None =
             f = env.n_levels - 1
             start = int(seen_tables.grid_offset[i, f])
             size = int(seen_tables.grid_width[i, f] * seen_tables.grid_height[i, f])
-            from histojax.reading import seen_flags  # seen is a bit set
+            from histojax.reading.tables import seen_flags  # seen is a bit set
 
             seen = seen_flags(memory.seen[e], start, size)
             read = seen[np.asarray(seen_tables.tissue[i])[:size]]

@@ -86,7 +86,7 @@ def check_rollout_memory(env, env_params, config: dict) -> int:
     shuffled minibatch copy. Returns that estimate (bytes); raises ``ValueError`` naming the figures and
     what to lower when it exceeds the device's memory (:func:`device_memory_bytes`). E.g. ``glimpse:2`` on
     the full C16 set observes ~2.9 MB a step: 35 GB of rollouts at 64 envs × 64 steps × 3 seeds."""
-    from histojax.glimpse import observation_bytes
+    from histojax.reading.modes.glimpse import observation_bytes
 
     obs = observation_bytes(env, env_params)
     seeds = config.get("num_seeds", 1) if config.get("vmap_seeds", True) else 1
@@ -105,7 +105,7 @@ def pin_env_shapes(config: dict, env_params) -> dict:
     run rebuilds the same observation and action spaces on other slides: for ``glimpse``, the padded
     cell grid (``glimpse_grid``; otherwise it is the largest grid of the slides loaded, and a policy
     trained on one dataset would not fit another's). Unchanged for the other modes."""
-    from histojax.glimpse import GlimpseTables
+    from histojax.reading.modes.glimpse import GlimpseTables
 
     tables = getattr(env_params, "mode_data", None)
     if not isinstance(tables, GlimpseTables) or tables.step_obs:  # step_obs: cell-set policies fit any grid
@@ -706,7 +706,7 @@ def add_arguments(p, defaults: dict) -> None:
     p.add_argument("--split", default=None, metavar="S",
                    help="with --dataset: the split to train on (default: the env's, 'train')")
     p.add_argument("--action-mode", default="discrete",
-                   help="discrete | continuous | glimpse[:LEVEL] | zoom_select[:K] (histojax.modes)")
+                   help="discrete | continuous | glimpse[:LEVEL] | zoom_select[:K] (histojax.reading.modes.base)")
     p.add_argument("--obs-mode", "--obs", dest="obs_mode", default="pixels",
                    help="the env's obs_mode: pixels | features | ... (--obs: the older spelling)")
     p.add_argument("--with-position", action="store_true", help="observation dict with the view position")

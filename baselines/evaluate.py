@@ -51,7 +51,8 @@ from baselines.networks import is_discrete as policy_is_discrete
 from data_tools.cli_output import positive_int
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
-from histojax import actions, reading
+from histojax import actions
+from histojax.reading import tables as reading_tables
 from histojax.render import animate, render_reading_map, render_trajectory
 
 
@@ -159,7 +160,7 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
     once the episode has ended (so it holds what the policy had at the episode's last step).
     Returns numpy ``return, success, length`` and ``slide`` (the slide index of a multi-slide env)
     per episode, ``fraction_read`` and ``fields_of_view`` at its end (NaN / -1 when the env does not
-    track reading; see :func:`histojax.reading.with_tracking`) and the ``(steps+1, E)`` trajectories
+    track reading; see :func:`histojax.reading.tables.with_tracking`) and the ``(steps+1, E)`` trajectories
     ``z, x, y``: entry 0 the view at reset, entry ``t`` the view after step ``t`` (frozen after the
     episode ended).
 
@@ -169,7 +170,7 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
     ``final_state`` (the env states at the episodes' ends) and ``final_memory`` (the policy's
     memory; ``()`` for a feed-forward policy), as pytrees of numpy arrays.
 
-    An env wrapped in :class:`histojax.head_reward.HeadReward` also gives per episode ``head_score``
+    An env wrapped in :class:`histojax.adapters.head_reward.HeadReward` also gives per episode ``head_score``
     (the slide head's tumour logit of what the episode read, at its last step) and ``head_correct``
     (the head's diagnosis right); ``NaN`` / False for other envs. Trajectories and ``final_state`` are
     the wrapped env's own states."""
@@ -389,14 +390,14 @@ def eval_env(config: dict, slide=None, augment: bool = False):
     """``(config, (env, env_params))``: the checkpoint's env as :func:`evaluate` runs it — on
     ``slide`` when given (it replaces a training dataset), without auto-reset, without training-time
     view augmentation unless ``augment``, and with reading tracked
-    (:func:`histojax.reading.with_tracking`) for the efficiency metrics."""
+    (:func:`histojax.reading.tables.with_tracking`) for the efficiency metrics."""
     config = {**config, "slide": slide if slide is not None else config.get("slide")}
     if config.get("env_kwargs"):
         drop = {"augment"} if not augment else set()
         if slide is not None:  # a given slide replaces a training dataset
             drop |= {"dataset", "split", "slides", "slide_weights"}
         config["env_kwargs"] = {k: v for k, v in config["env_kwargs"].items() if k not in drop}
-    return config, reading.with_tracking(*common.make_env(config, auto_reset=False))
+    return config, reading_tables.with_tracking(*common.make_env(config, auto_reset=False))
 
 
 def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
@@ -410,8 +411,8 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     its config describes; ``progress``: a line on stderr per policy as it runs. A warning when the slides
     cannot be scored (:func:`split_warnings`) is printed with ``progress`` and appended to ``warnings``.
 
-    ``head`` (a :class:`histojax.head.SlideHead`): **the head declares** — every row's episodes run in the
-    env wrapped in :class:`histojax.head_reward.HeadReward` (``head_reward``: the run's reward settings
+    ``head`` (a :class:`histojax.reading.heads.logit.SlideHead`): **the head declares** — every row's episodes run in the
+    env wrapped in :class:`histojax.adapters.head_reward.HeadReward` (``head_reward``: the run's reward settings
     ``gain``, ``final``, ``read_cost`` from its ``head_reward.json``, so the return is the one it trained
     for; without them the env's own reward), the policy only chooses where to read (its declaring
     actions just stop the reading), and at each episode's end the head scores the finest views read:
@@ -511,7 +512,7 @@ def head_env(env, env_params, head, settings: dict | None = None):
     ``settings``: ``gain``, ``final``, ``read_cost`` of a run's ``head_reward.json`` (None: no head reward
     terms, the env's own reward). ``ValueError`` (one line) when the slides' features do not carry the
     head's view logit."""
-    from histojax.head_reward import HeadReward
+    from histojax.adapters.head_reward import HeadReward
 
     encoders = sorted({str((b.metadata.get("features") or {}).get("encoder")) for b in env.bundles} - {"None"})
     if head.encoder and any(e != head.encoder for e in encoders):
@@ -534,7 +535,7 @@ def head_env(env, env_params, head, settings: dict | None = None):
 
 
 def head_scored(ep: dict, env_params, classes) -> dict:
-    """:func:`run_episodes` output of a :class:`~histojax.head_reward.HeadReward` env with the head's
+    """:func:`run_episodes` output of a :class:`~histojax.adapters.head_reward.HeadReward` env with the head's
     diagnosis in the fields :func:`summarise` scores: ``tumour_score`` (the head's p(tumour) of what was
     read), ``label``, ``success`` (the head right) and, with ``classes``, ``lesion`` per episode."""
     ep["tumour_score"] = 1.0 / (1.0 + np.exp(-np.asarray(ep["head_score"], np.float64)))
@@ -734,7 +735,7 @@ def add_arguments(p) -> None:
     p.add_argument("--augment", action="store_true",
                    help="keep the checkpoint's training-time view augmentation (default: slides as they are)")
     p.add_argument("--head", default=None,
-                   help="slide head folder (histojax.head) that declares: the policy only chooses where to read, "
+                   help="slide head folder (histojax.reading.heads) that declares: the policy only chooses where to read, "
                         "the head scores what was read (default: the head a reader trained with SASHA's reward "
                         "names in its head_reward.json; none for other checkpoints)")
 
@@ -874,10 +875,10 @@ def run(args, parser) -> int:
         warnings += provenance_warnings(trained, config, run / "config.json")
     head, head_dir = None, None
     if getattr(args, "head", None) or settings:
-        from histojax.head import SlideHead
+        from histojax.reading import heads
 
         head_dir = Path(args.head) if getattr(args, "head", None) else resolve_head(settings["head"], run, where)
-        head = SlideHead.load(head_dir)  # ValueError naming the file: one line
+        head = heads.load(head_dir)  # ValueError naming the file: one line
         recorded = (settings or {}).get("head_name")
         if recorded and not getattr(args, "head", None) and recorded != head.name:
             warnings.append(f"{where}: the reader trained with the head {recorded!r}; the head found at {head_dir} "
@@ -942,10 +943,9 @@ def published_path(name: str) -> Path:
 
 def refuse_not_an_agent(path: Path) -> None:
     """Refuse, in one line saying why and what to use instead, a published folder that was retired
-    (:data:`RETIRED`; the folder is gone) and a slide head folder (``histojax.head``: it scores what a
+    (:data:`RETIRED`; the folder is gone) and a slide head folder (``histojax.reading.heads``: it scores what a
     reader read, it does not act)."""
-    from histojax.head import KIND
-    from histojax.head_mil import KINDS as OTHER_HEAD_KINDS
+    from histojax.reading.heads import HEADS
 
     name = path.parent.name if path.name == "params.msgpack" else path.name
     if not path.exists() and name in RETIRED:
@@ -957,7 +957,7 @@ def refuse_not_an_agent(path: Path) -> None:
         kind = json.loads((path / "config.json").read_text()).get("kind") if path.is_dir() else None
     except (OSError, ValueError, AttributeError):
         kind = None
-    if kind == KIND or kind in OTHER_HEAD_KINDS:
+    if kind in HEADS:
         raise HistojaxDataError(path, "a slide head, not an agent: it scores what a reader read, it does not act; "
                                 f"score a reader through it: histojax evaluate READER --head {path} --dataset DIR "
                                 f"(or python -m baselines.readers --head {path} --dataset DIR)")

@@ -7,13 +7,13 @@ A trained navigator (a run folder of ``python -m baselines.ppo`` / ``ppo_rnn`` i
 of the split (each of its first ``--policy-seeds`` seeds; ``--sampled``: its sampled policy) by
 :func:`baselines.evaluate.run_episodes`,
 with reading tracked; the **finest-level tissue views it stood on** make its read mask, and the slide
-head (:mod:`histojax.head`) scores them: the slide's diagnosis no longer comes from the navigator's
+head (:mod:`histojax.reading.heads.logit`) scores them: the slide's diagnosis no longer comes from the navigator's
 own declaring action (which can memorise overviews), only from what it read. The rows join the
 one-head budget curve (:mod:`baselines.readers`: overview only, random and scripted readers, read
 everything, at the fraction the navigator actually read) in ``OUT/readers.csv``, ``readers.json``,
 ``readers.png``.
 
-In an env, :class:`histojax.head_reward.HeadReward` gives the same score step by step
+In an env, :class:`histojax.adapters.head_reward.HeadReward` gives the same score step by step
 (``info["head_score"]``: at the episode's end, the navigator's diagnosis by the head).
 """
 from __future__ import annotations
@@ -35,7 +35,7 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
     import jax
 
     from baselines import common, evaluate
-    from histojax.reading import SeenMemory, seen_flags
+    from histojax.reading.tables import SeenMemory, seen_flags
 
     params, config = common.load_checkpoint(run)
     n_seeds = jax.tree.leaves(params)[0].shape[0]

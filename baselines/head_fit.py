@@ -1,4 +1,4 @@
-"""Fit the slide head (:mod:`histojax.head`) of a dataset: ``python -m baselines.head_fit --dataset DIR --out DIR``.
+"""Fit the slide head (:mod:`histojax.reading.heads.logit`) of a dataset: ``python -m baselines.head_fit --dataset DIR --out DIR``.
 
 Candidates: neighbourhood sides ``--ks`` (default 1 2 3 4 5 views; 1 = the plain view logit), pooled by
 the maximum or the mean of the 3 largest (``--minus-median``: also each minus the read views' median
@@ -12,7 +12,7 @@ The test split is never read.
 
 Also the data loading every head-based tool shares: :func:`load_slides` reads, straight from each
 bundle (no env), the finest level's view-logit map ``(H, W)``, its tissue views ``(H, W)`` (as the
-reading modes count them: :func:`histojax.reading.tissue_views`), the coarser levels' logit maps and
+reading modes count them: :func:`histojax.reading.tables.tissue_views`), the coarser levels' logit maps and
 the annotation's tumour geometry.
 """
 from __future__ import annotations
@@ -71,7 +71,7 @@ def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT,
     (shapely geometry in finest px, or None), ``name``, ``label`` (``label``, or when None the bundle's own:
     tumour annotated or not, as the env reads it), ``bundle``."""
     from data_tools.annotations import load_annotations
-    from histojax.reading import grid, tissue_views
+    from histojax.reading.tables import grid, tissue_views
 
     bundle = Path(bundle)
     meta_file = bundle / "metadata.json"
@@ -152,7 +152,7 @@ def padded(arrays: list[np.ndarray], fill=0, shape: tuple[int, int] | None = Non
 def statistics(head, slides: list[dict], masks: list[np.ndarray] | None = None,
                shape: tuple[int, int] | None = None) -> np.ndarray:
     """The head's pooled statistic ``(B,)`` of each slide over ``masks`` (default its tissue views)."""
-    from histojax.head import statistic_batch
+    from histojax.reading.heads.logit import statistic_batch
 
     masks = [s["tissue"] for s in slides] if masks is None else masks
     return np.asarray(statistic_batch(head, padded([s["logits"] for s in slides], 0.0, shape),
@@ -183,7 +183,7 @@ def candidates(ks=(1, 2, 3, 4, 5), dim: int = pcam_cnn.VIEW_LOGIT, encoder: str 
     read views' median subtracted when ``minus_median``: off by default, because the median of what was read
     depends on where a reader looked — a reader that reads only hot cells has a hot median — so such a head
     scores a good reader's reads lower than a random reader's)."""
-    from histojax.head import SlideHead
+    from histojax.reading.heads.logit import SlideHead
 
     return [SlideHead(dim=dim, k=int(k), top=t, minus_median=m, encoder=encoder)
             for k in ks for t in TOPS for m in ((False, True) if minus_median else (False,))]

@@ -1,4 +1,4 @@
-"""Fit a second slide head (:mod:`histojax.head_mil`) on a dataset's training slides and choose it on the
+"""Fit a second slide head (:mod:`histojax.reading.heads.mil`) on a dataset's training slides and choose it on the
 validation share: ``python -m baselines.head_mil_fit --dataset DIR --cache FILE.npz --out DIR``.
 
 Data: the finest level's full feature grid ``(H, W, D)`` of every training slide and its tissue views,
@@ -8,8 +8,8 @@ is :func:`baselines.validation.split_train` with ``--val-fraction`` / ``--seed``
 :mod:`baselines.head_fit`'s defaults, 0.2 / 0), so the candidates here are scored on the same validation
 slides as the published ``c16-v2-head``. The test split is never read.
 
-Candidates (``--candidates``): ``stats`` (:class:`histojax.head_mil.StatsHead`, :func:`fit_stats`), ``mil-logit``
-and ``mil-features`` (:class:`histojax.head_mil.MilHead`, :func:`train_mil`, ``--steps`` AdamW steps), each fitted
+Candidates (``--candidates``): ``stats`` (:class:`histojax.reading.heads.mil.StatsHead`, :func:`fit_stats`), ``mil-logit``
+and ``mil-features`` (:class:`histojax.reading.heads.mil.MilHead`, :func:`train_mil`, ``--steps`` AdamW steps), each fitted
 ``--seeds`` times on the kept training slides with random reads and scored on the validation share reading
 everything and reading random cells (10 %, 20 %); the best mean validation AUC (reading everything) is refitted on
 the whole training split (seed 0) and saved to ``--out`` (``config.json`` records every candidate's figures beside
@@ -91,13 +91,13 @@ def cache_grids(dataset, entries, cache, progress: bool = True, extra=None) -> l
 
 
 # ----------------------------------------------------------------------------- training data, sparse
-OFFSETS = (-1, 0, 1, 2)   # the 4 × 4 window holding every k × k window of histojax.head.neighbourhood_mean, k ≤ 4
+OFFSETS = (-1, 0, 1, 2)   # the 4 × 4 window holding every k × k window of histojax.reading.heads.logit.neighbourhood_mean, k ≤ 4
 CELL = 4                  # random reads pick cells of CELL × CELL views (a reader's cell is about 4 × 4 views)
 
 
 def window_slots(k: int) -> list[int]:
     """Slots (of the ``OFFSETS × OFFSETS`` neighbour table) inside the ``k × k`` window of
-    :func:`histojax.head.neighbourhood_mean` (rows / columns ``-(k-1)//2 … k//2``)."""
+    :func:`histojax.reading.heads.logit.neighbourhood_mean` (rows / columns ``-(k-1)//2 … k//2``)."""
     lo, hi = -((k - 1) // 2), k // 2
     return [i * len(OFFSETS) + j for i, dy in enumerate(OFFSETS) for j, dx in enumerate(OFFSETS)
             if lo <= dy <= hi and lo <= dx <= hi]
@@ -149,7 +149,7 @@ def random_reads(key, data: dict, p_full: float = 0.3, lo: float = 0.02, hi: flo
 
 
 def sparse_instances(head, data: dict, mask):
-    """``(N, F)`` the instances of :meth:`histojax.head_mil.MilHead.instances` for the flat views of ``data``
+    """``(N, F)`` the instances of :meth:`histojax.reading.heads.mil.MilHead.instances` for the flat views of ``data``
     under the read mask ``mask (N,)`` (gathered from the neighbour table; equals the dense computation)."""
     import jax.numpy as jnp
 
@@ -185,14 +185,14 @@ def init_mil(key, n_in: int, hidden: int = 64, att: int = 32, mu=None, sd=None) 
 
 def train_mil(head, data: dict, seed: int = 0, steps: int = 400, lr: float = 3e-3, weight_decay: float = 1e-4,
               p_full: float = 0.3, log_every: int = 0):
-    """Train ``head`` (a :class:`histojax.head_mil.MilHead` whose params fix the structure) on the flat
+    """Train ``head`` (a :class:`histojax.reading.heads.mil.MilHead` whose params fix the structure) on the flat
     training views ``data`` (:func:`bags`) with optax AdamW, full batch, a fresh random read mask per slide
     each step (:func:`random_reads`); slide-level log loss. Returns ``(head, losses)``."""
     import jax
     import jax.numpy as jnp
     import optax
 
-    from histojax.head_mil import attention_pool
+    from histojax.reading.heads.mil import attention_pool
 
     n_in = len(head.ks) + (data["x"].shape[1] if head.inputs == "features" else 0)
     full = jnp.ones(data["n"], bool)
@@ -258,13 +258,13 @@ def padded_logits(slides: list[dict], shape, dim: int = pcam_cnn.VIEW_LOGIT) -> 
 
 def fit_stats(slides: list[dict], shape, seed: int = 0, masks_per_slide: int = 12, l2: float = 1e-2,
               p_full: float = 0.3, ks=(1, 2, 3, 4)):
-    """A :class:`histojax.head_mil.StatsHead` fitted (L2-penalised logistic regression, standardised
+    """A :class:`histojax.reading.heads.mil.StatsHead` fitted (L2-penalised logistic regression, standardised
     statistics) on ``slides`` read ``masks_per_slide`` times each: all tissue with probability ``p_full``,
     else random cells at a fraction ``U(0.02, 0.8)``."""
     import jax
     import jax.numpy as jnp
 
-    from histojax.head_mil import StatsHead, statistics_of
+    from histojax.reading.heads.mil import StatsHead, statistics_of
 
     rng = np.random.default_rng(seed)
     stat = jax.jit(jax.vmap(lambda lg, m: statistics_of(lg, m, ks)))
@@ -292,11 +292,11 @@ def fit_stats(slides: list[dict], shape, seed: int = 0, masks_per_slide: int = 1
 
 # ----------------------------------------------------------------------------- scoring on validation
 def dense_scores(head, slides: list[dict], masks: np.ndarray, shape, chunk: int = 8) -> np.ndarray:
-    """The head's slide logits ``(B,)`` through the deployed path (``histojax.head.score`` on the padded
+    """The head's slide logits ``(B,)`` through the deployed path (``histojax.reading.heads.score`` on the padded
     feature grids, vmapped, in chunks of ``chunk`` slides)."""
     import jax
 
-    from histojax.head import score
+    from histojax.reading.heads import score
 
     f = jax.jit(jax.vmap(lambda g, m: score(head, g, m)))
     out = []
@@ -331,7 +331,7 @@ CANDIDATES = ("stats", "mil-logit", "mil-features")
 
 def candidate_head(name: str, train: list[dict], shape, seed: int, steps: int, data=None):
     """Fit candidate ``name`` (one of ``CANDIDATES``) on ``train`` with ``seed``."""
-    from histojax.head_mil import MilHead
+    from histojax.reading.heads.mil import MilHead
 
     if name == "stats":
         return fit_stats(train, shape, seed)
@@ -364,7 +364,7 @@ def run(args, parser=None) -> int:
 
     from baselines.validation import split_train
     from data_tools.cli_output import print_error
-    from histojax.head import SlideHead
+    from histojax.reading.heads.logit import SlideHead
 
     t0 = time.perf_counter()
     try:

@@ -100,7 +100,7 @@ class MLP(nn.Module):
 
 def is_discrete(action_mode: str) -> bool:
     """True for the action modes with a ``Discrete`` space: ``"discrete"``, ``"glimpse[:LEVEL]"`` and
-    ``"zoom_select[:K]"`` (see :mod:`histojax.modes`); the others are continuous."""
+    ``"zoom_select[:K]"`` (see :mod:`histojax.reading.modes.base`); the others are continuous."""
     return action_mode.partition(":")[0] in ("discrete", "glimpse", "zoom_select")
 
 
@@ -311,7 +311,7 @@ class CellEncoder(nn.Module):
 
     @nn.compact
     def __call__(self, obs, cell_keys=None):
-        from histojax.glimpse import unpack_bits
+        from histojax.reading.modes.glimpse import unpack_bits
 
         t = self.tables
         dense = lambda n, name: nn.Dense(n, kernel_init=nn.initializers.orthogonal(np.sqrt(2)), name=name)  # noqa: E731

@@ -2,7 +2,7 @@
 ``python -m baselines.readers --dataset DIR --head DIR --out DIR``.
 
 Every reader produces, per slide and budget, a **read mask** ``(H, W)`` bool over the finest-level
-views; the same head (:mod:`histojax.head`, fitted by :mod:`baselines.head_fit`) scores every mask:
+views; the same head (:mod:`histojax.reading.heads.logit`, fitted by :mod:`baselines.head_fit`) scores every mask:
 
 * ``overview only`` — nothing of the finest level is read (fraction 0): the head applied to the cell
   grid's own low-resolution logits (the overview every reader sees before reading);
@@ -44,6 +44,7 @@ from baselines import outputs
 from baselines.metrics import accuracy, roc_auc
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
+from histojax import compile_cache
 
 BUDGETS = (0.05, 0.1, 0.2, 0.5)
 ITC_MM, MACRO_MM = 0.2, 2.0
@@ -197,7 +198,7 @@ def read_mask(cells: dict, tissue: np.ndarray, order, budget: float) -> tuple[np
 
 def masks_from_instances(slide: dict, instances) -> np.ndarray:
     """A read mask ``(H, W)`` from indices into the slide's tissue views in raster order (what
-    :meth:`histojax.glimpse.Glimpse.host_tables` calls ``instances`` and
+    :meth:`histojax.reading.modes.glimpse.Glimpse.host_tables` calls ``instances`` and
     :func:`baselines.budget_curve.policy_reads` returns as ``read``)."""
     flat = np.flatnonzero(slide["tissue"].reshape(-1))
     mask = np.zeros(slide["tissue"].size, bool)
@@ -224,7 +225,7 @@ def policy_masks(run, dataset, slides: list[dict], split: str = "test", budgets=
 def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray:
     """The head's slide logits ``(B,)`` on ``masks``."""
     from baselines.head_fit import padded
-    from histojax.head import score_batch
+    from histojax.reading.heads import score_batch
 
     return np.asarray(score_batch(head, padded([s["logits"] for s in slides], 0.0), padded(list(masks), False)))
 
@@ -232,7 +233,7 @@ def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray
 def overview_scores(head, slides: list[dict], level: int) -> np.ndarray:
     """The head on each slide's cell-level logits over its valid cells (nothing of the finest level read)."""
     from baselines.head_fit import padded
-    from histojax.head import score_batch
+    from histojax.reading.heads import score_batch
 
     logits, masks = [], []
     for s in slides:
@@ -449,9 +450,9 @@ def load_split(dataset, head_path, split: str, cell_level: int | None = None) ->
     ``dataset`` as :func:`baselines.head_fit.load_slides` gives them (the finest level and the cell level:
     ``cell_level``, default :func:`cell_level_for`). Raises ``HistojaxDataError`` / ``ValueError`` naming the file."""
     from baselines.head_fit import load_slides, read_spec
-    from histojax.head import SlideHead
+    from histojax.reading import heads
 
-    head = SlideHead.load(head_path)
+    head = heads.load(head_path)
     spec = read_spec(dataset)
     if cell_level is None:
         cell_level = cell_level_for(Path(dataset), spec, split)
@@ -519,4 +520,4 @@ main = command_main(add_arguments, run, "python -m baselines.readers", __doc__)
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(main(compile_cache.setup(sys.argv[1:])))  # the persistent compilation cache, --no-compile-cache

@@ -1,4 +1,4 @@
-"""How fast the slide head (:mod:`histojax.head`) scores slides: jitted and vmapped over a batch of slides
+"""How fast the slide head (:mod:`histojax.reading.heads.logit`) scores slides: jitted and vmapped over a batch of slides
 padded to one grid, as the budget curve calls it, and one slide at a time, as an env step would (a
 reward from the head's confidence after each read).
 
@@ -15,7 +15,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from histojax.head import SlideHead, score_logits
+from histojax.reading.heads import score_logits
+
+from histojax.reading.heads.logit import SlideHead
 
 
 def timed(fn, *args, repeats: int = 20) -> float:

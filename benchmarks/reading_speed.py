@@ -96,7 +96,7 @@ def one_env(dataset, mode: str, batch: int, steps: int, budget: float, paired: i
     import jax
 
     import histojax
-    from histojax.glimpse import observation_bytes
+    from histojax.reading.modes.glimpse import observation_bytes
 
     paths = dataset_bundles(dataset)
     t0 = time.perf_counter()

@@ -1,4 +1,4 @@
-"""Learned readers trained with SASHA's reward (:class:`histojax.head_reward.HeadReward`), scored on
+"""Learned readers trained with SASHA's reward (:class:`histojax.adapters.head_reward.HeadReward`), scored on
 validation slides with the same head as every other reader:
 
     python -m benchmarks.train_readers --dataset DIR --head HEAD --out runs/set-readers \\
@@ -36,6 +36,8 @@ import sys
 import time
 from pathlib import Path
 
+from histojax import compile_cache
+
 ENV_ID = "HistoJAX-C16-Diagnosis-v2"
 NAVIGATION_MODES = ("discrete", "continuous")
 
@@ -71,9 +73,9 @@ def split_dataset(dataset: Path, out: Path, fraction: float, seed: int) -> Path:
 
 def with_head_reward(head, gain, final: float, read_cost: float):
     """Make :func:`baselines.common.make_env` (which every trainer calls) return the env wrapped in
-    :class:`~histojax.head_reward.HeadReward`; returns the original to restore."""
+    :class:`~histojax.adapters.head_reward.HeadReward`; returns the original to restore."""
     from baselines import common
-    from histojax.head_reward import HeadReward
+    from histojax.adapters.head_reward import HeadReward
 
     original = common.make_env
 
@@ -162,10 +164,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
 
     from baselines import common, readers
-    from histojax.head import SlideHead
+    from histojax.reading import heads
 
     try:
-        head = SlideHead.load(args.head)
+        head = heads.load(args.head)
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
@@ -216,4 +218,4 @@ def main(argv=None) -> int:
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(main(compile_cache.setup(sys.argv[1:])))  # the persistent compilation cache, --no-compile-cache

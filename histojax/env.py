@@ -37,7 +37,7 @@ diagnose the slide: discrete actions add DECLARE_NO_TUMOUR=7 and DECLARE_TUMOUR=
 **Per-episode data out of every step**: ``step_obs=True`` (the ``-v2`` ids) makes a reading mode's
 observation carry only what a step changes; what is fixed for a slide during an episode comes once,
 from :meth:`HistoEnv.episode_tables` (``glimpse``: the cells' coarse features, validity, cost and
-position; see :mod:`histojax.glimpse`). Navigation observations are the same either way.
+position; see :mod:`histojax.reading.modes.glimpse`). Navigation observations are the same either way.
 
 **Augmentation**: ``augment=True`` shows each episode in one of 8 orientations (90° turns ×
 mirror) drawn at reset: the view and the position are turned and the agent's moves are read in
@@ -80,7 +80,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from histojax import augment as dihedral
-from histojax import actions, mode_registry, modes, rewards, spaces
+from histojax import actions, rewards, spaces
+from histojax.reading.modes import base, factory
 from histojax.slide import SlideArrays
 from histojax.views import view_tumour_fraction
 
@@ -89,10 +90,10 @@ try:  # gymnax is optional; code that can ask ``isinstance(env, Environment)`` h
 except ImportError:
     _GymnaxEnvironment = object
 
-ACTION_MODES = tuple(mode_registry.ACTION_MODES)
-OBS_MODES = tuple(mode_registry.OBS_MODES)
+ACTION_MODES = tuple(factory.ACTION_MODES)
+OBS_MODES = tuple(factory.OBS_MODES)
 TASKS = ("detection", "classification")
-view_features = modes.view_features  # public name kept: the feature vector of a view
+view_features = base.view_features  # public name kept: the feature vector of a view
 
 
 def sample_index(key: jax.Array, logits: jax.Array) -> jax.Array:
@@ -175,8 +176,8 @@ class HistoEnv(_GymnaxEnvironment):
 
     n_levels: int
     tile_size: int = 128
-    action_mode: Any = "discrete"   # a name in ACTION_MODES or a histojax.modes.ActionMode object
-    obs_mode: Any = "pixels"        # a name in OBS_MODES or a histojax.modes.ObsMode object
+    action_mode: Any = "discrete"   # a name in ACTION_MODES or a histojax.reading.modes.base.ActionMode object
+    obs_mode: Any = "pixels"        # a name in OBS_MODES or a histojax.reading.modes.base.ObsMode object
     with_position: bool = False
     reward: str = "dense"
     auto_reset: bool = True
@@ -215,16 +216,16 @@ class HistoEnv(_GymnaxEnvironment):
             raise ValueError(f"augment=True cannot turn action_mode={action.name!r}; use 'discrete' or 'continuous'")
         action.validate(self)
 
-    # ----------------------------------------------------------------- the modes (histojax.modes)
+    # ----------------------------------------------------------------- the modes (histojax.reading.modes.base)
     @property
-    def action(self) -> modes.ActionMode:
+    def action(self) -> base.ActionMode:
         """The action mode object ``action_mode`` names."""
-        return mode_registry.action_mode(self.action_mode)
+        return factory.action_mode(self.action_mode)
 
     @property
-    def observation(self) -> modes.ObsMode:
+    def observation(self) -> base.ObsMode:
         """The observation mode object ``obs_mode`` names."""
-        return mode_registry.obs_mode(self.obs_mode)
+        return factory.obs_mode(self.obs_mode)
 
     # ----------------------------------------------------------------- gymnax API
     @property
@@ -288,7 +289,7 @@ class HistoEnv(_GymnaxEnvironment):
         """What is fixed for each slide during an episode, ``{name: (S, ...) array}`` for ``S`` slides, which
         a policy indexes with the observation's ``"slide"`` entry inside its forward pass (so a rollout
         stores only the small step observation). ``{}`` for modes without any. With ``step_obs=True``
-        (the ``-v2`` ids) the ``glimpse`` observation holds none of it: see :mod:`histojax.glimpse`."""
+        (the ``-v2`` ids) the ``glimpse`` observation holds none of it: see :mod:`histojax.reading.modes.glimpse`."""
         params = self.default_params if params is None else params
         return self.action.episode_tables(self, params)
 
@@ -356,7 +357,7 @@ class HistoEnv(_GymnaxEnvironment):
         x0 = jnp.where(start, x0, 0).astype(jnp.int32)
         y0 = jnp.where(start, y0, 0).astype(jnp.int32)
         z = zero
-        if isinstance(self.action, modes.Navigation):  # static: the reading modes' memories start at the coarsest level
+        if isinstance(self.action, base.Navigation):  # static: the reading modes' memories start at the coarsest level
             z, x0, y0 = self._start_view(params, slide_index, x0, y0)
         state = EnvState(
             z=z,

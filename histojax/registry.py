@@ -38,15 +38,15 @@ import jax.numpy as jnp
 import numpy as np
 
 from data_tools.errors import BundleError
-from histojax import mode_registry
+from histojax.reading.modes import factory
 from histojax.env import EnvParams, HistoEnv
-from histojax.modes import Navigation
+from histojax.reading.modes.base import Navigation
 from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, check_alike, load_slide, stack_slides, start_cdf
 
 STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
                  "augment",
                  "final_observation", "step_obs")
-# passed to the action mode's prepare (histojax.modes)
+# passed to the action mode's prepare (histojax.reading.modes.base)
 MODE_SETTINGS = ("read_budget", "track_reading", "glimpse_grid", "read_slots", "map_feature", "map_level")
 PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name not in ("slide", "mode_data"))
 # settings of how ``make`` draws a dataset's slides (neither static nor EnvParams):
@@ -217,7 +217,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     only for the sample slide, where it selects another cached bundle) or ``EnvParams`` field
     (``max_steps_in_episode``, ``stride``, ``success_threshold``, ``step_cost``,
     ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``, ``start_level``), or the reading
-    settings of :mod:`histojax.reading`: ``read_budget`` (fraction of finest-level tissue views, for
+    settings of :mod:`histojax.reading.tables`: ``read_budget`` (fraction of finest-level tissue views, for
     ``action_mode="glimpse"`` / ``"zoom_select"``, or with tracking) and ``track_reading=True`` (the
     pan/zoom modes then report ``fraction_read`` and ``fields_of_view`` in ``info``), and for ``glimpse``,
     ``glimpse_grid=(H, W)``, the padded cell grid (default: the largest of the slides loaded; the
@@ -243,13 +243,13 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     if unknown:
         raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
                         f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
-    _check_start_level(mode_registry.action_mode(spec.get("action_mode", "discrete")), spec.get("start_level", 0),
+    _check_start_level(factory.action_mode(spec.get("action_mode", "discrete")), spec.get("start_level", 0),
                        f"make({env_id!r})")
     slides = _resolve_slides(env_id, spec, slide, slides, dataset, split)
     if labels is None and dataset is not None and spec.get("task", "detection") == "classification":
         labels = dataset_labels(dataset)  # a label table's or CAMELYON16's labels, not just "annotated"
-    feature_obs = mode_registry.obs_mode(spec.get("obs_mode", "pixels")).needs_features
-    features = True if feature_obs or mode_registry.action_mode(spec.get("action_mode", "discrete")).needs_features else None
+    feature_obs = factory.obs_mode(spec.get("obs_mode", "pixels")).needs_features
+    features = True if feature_obs or factory.action_mode(spec.get("action_mode", "discrete")).needs_features else None
     check_alike(slides, features=features)  # bundles that cannot make one dataset, named before any array is read
     loaded, budget = [], max_device_bytes
     for path in slides:  # obs_mode="features": the feature-only layout, no pixels on the device

@@ -143,9 +143,9 @@ def test_recurrent_policy_carries_its_hidden_state(dataset, runs):
 
 def test_a_policy_read_masks_are_scored_by_the_slide_head(dataset, runs, glimpse_reads):
     """baselines.readers.policy_masks turns a trained reader's reads into finest-level read masks that
-    count the same views as the env did, and add_reader scores them with one slide head (histojax.head)."""
+    count the same views as the env did, and add_reader scores them with one slide head (histojax.reading.heads.logit)."""
     from baselines import head_fit, readers
-    from histojax.head import SlideHead
+    from histojax.reading.heads.logit import SlideHead
 
     slides = head_fit.load_slides(dataset, "test", dim=0)
     tables, _ = budget_curve.load_split(dataset, "test", "HistoJAX-Easy-v0", 1)
@@ -174,7 +174,7 @@ def test_readers_command_adds_a_trained_reader(dataset, runs, tmp_path):
     """`python -m baselines.readers --reader NAME RUN`: the trained reader's rows beside the scripted ones,
     scored by the same head (here on the training split, which holds both classes)."""
     from baselines import head_fit, readers
-    from histojax.head import SlideHead
+    from histojax.reading.heads.logit import SlideHead
 
     head_fit.calibrated(SlideHead(dim=0, k=3, encoder=None), head_fit.load_slides(dataset, "train", dim=0)).save(
         tmp_path / "head")

@@ -1,5 +1,5 @@
 """``action_mode="discrete:map"``: the navigator's observation holds a coarse map of one feature entry on the
-visited map's 16 × 16 blocks (``histojax.coarse_map``), recomputed here view by view through the env's own
+visited map's 16 × 16 blocks (``histojax.reading.coarse_map``), recomputed here view by view through the env's own
 feature lookup (``modes.view_features``); it is the slide's, fixed through the episode and across auto-resets.
 
 Slides made here: ``data_tools synth`` (2 tumour + 2 normal, 320 × 256 px, 32-px views, 3 levels) with
@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import histojax
-from histojax import reading
-from histojax.modes import view_features
+from histojax.reading import tables as reading_tables
+from histojax.reading.modes.base import view_features
 from slide_helpers import synth_feature_dataset
 
 ENTRY = 2
@@ -31,11 +31,11 @@ def _make(dataset, **kw):
 def _by_hand(env, params, level: int) -> list[np.ndarray]:
     """Per slide: each block's largest entry over the level-``level`` views that share a finest tissue view's
     centre, read one by one with the env's feature lookup; blocks without tissue: the slide's lowest."""
-    t, f, m = env.tile_size, env.n_levels - 1, reading.VISITED_MAP
+    t, f, m = env.tile_size, env.n_levels - 1, reading_tables.VISITED_MAP
     maps = []
-    for slide, bundle in reading.per_slide(params, env.bundles):
+    for slide, bundle in reading_tables.per_slide(params, env.bundles):
         ds = np.asarray(slide.downsample, np.float64)
-        tissue = reading.tissue_views(bundle, slide, t)
+        tissue = reading_tables.tissue_views(bundle, slide, t)
         gh, gw = tissue.shape
         blocks = {}
         for fy, fx in zip(*np.nonzero(tissue)):
@@ -121,7 +121,7 @@ def test_map_follower_walks_to_the_highest_unread_block():
 def test_evaluate_scores_the_map_follower_through_the_head(dataset):
     """``evaluate`` through a head: the reference rows (random, the map follower) are scored by the head (AUC)."""
     from baselines.evaluate import evaluate
-    from histojax.head import SlideHead
+    from histojax.reading.heads.logit import SlideHead
 
     head = SlideHead(a=jnp.float32(1.0), b=jnp.float32(0.0), prior_logit=jnp.float32(0.0), dim=ENTRY, k=1, top=1,
                      encoder=None)

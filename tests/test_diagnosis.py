@@ -16,8 +16,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import histojax
-from histojax.glimpse import Glimpse, observation_bytes, with_budget
-from histojax.zoom_select import ZoomSelect
+from histojax.reading.modes.glimpse import Glimpse, observation_bytes, with_budget
+from histojax.reading.modes.zoom_select import ZoomSelect
 
 TILE, STEPS = 32, 12
 
@@ -286,8 +286,8 @@ def test_navigation_tracks_reading_without_changing_trajectories(bundle):
 
 
 def test_navigation_memory_observation(bundle):
-    from histojax.mode_registry import action_mode
-    from histojax.modes import Continuous, Discrete
+    from histojax.reading.modes.factory import action_mode
+    from histojax.reading.modes.base import Continuous, Discrete
 
     env, params = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode=Discrete(memory=True))
     obs, _ = env.reset(jax.random.key(0), params)
@@ -396,7 +396,7 @@ def test_step_observation_holds_what_the_full_one_does(bundle):
     """``step_obs=True``: the same trajectory as the full (v1) observation, and the full observation is
     rebuilt from the step observation plus ``env.episode_tables``: cells and validity per slide, the
     summaries of the cells read (from the K slots), the read bits, the budget left."""
-    from histojax.glimpse import unpack_bits
+    from histojax.reading.modes.glimpse import unpack_bits
 
     kw = dict(slide=bundle, obs_mode="features", action_mode=Glimpse(level=1), task="classification",
               max_steps_in_episode=STEPS, auto_reset=False, read_budget=0.3)
@@ -442,7 +442,7 @@ def test_read_slots_bound_the_cells_read(bundle):
 
 
 def test_default_slots_hold_every_cell_the_budget_allows(bundle):
-    from histojax.glimpse import slots_needed
+    from histojax.reading.modes.glimpse import slots_needed
 
     env, params = histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
                                 task="classification", step_obs=True, read_budget=0.25)
@@ -455,12 +455,12 @@ def test_default_slots_hold_every_cell_the_budget_allows(bundle):
 
 
 def test_mode_names_resolve_apart_from_the_base_classes():
-    """``histojax.modes`` holds the base classes that ``glimpse`` and ``zoom_select`` import; the names
-    resolve in ``histojax.mode_registry``, so ``modes`` imports neither reading mode (no circle)."""
+    """``histojax.reading.modes.base`` holds the base classes that ``glimpse`` and ``zoom_select`` import; the names
+    resolve in ``histojax.reading.modes.factory``, so ``modes`` imports neither reading mode (no circle)."""
     import ast
     import inspect
 
-    from histojax import mode_registry, modes
+    from histojax.reading.modes import base, factory
 
     imported = set()
     for node in ast.walk(ast.parse(inspect.getsource(modes))):
@@ -469,6 +469,6 @@ def test_mode_names_resolve_apart_from_the_base_classes():
         elif isinstance(node, ast.Import):
             imported |= {a.name for a in node.names}
     assert not {m for m in imported if "glimpse" in m or "zoom_select" in m or "mode_registry" in m}
-    assert isinstance(mode_registry.action_mode("glimpse:2"), Glimpse)
-    assert mode_registry.action_mode("zoom_select:4") == ZoomSelect(k=4)
+    assert isinstance(factory.action_mode("glimpse:2"), Glimpse)
+    assert factory.action_mode("zoom_select:4") == ZoomSelect(k=4)
     assert not hasattr(modes, "action_mode")

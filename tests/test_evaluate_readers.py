@@ -23,7 +23,7 @@ import pytest
 from baselines import common, evaluate
 from baselines.publish import PUBLISHED, publish
 from histojax.cli import main as histojax_main
-from histojax.head import SlideHead
+from histojax.reading.heads.logit import SlideHead
 
 D, LOGIT, TILE, MPP = 64, 62, 16, 2.0
 READER = {"algo": "ppo", "env_id": "HistoJAX-C16-Diagnosis-v2", "action_mode": "glimpse:1", "obs_mode": "features",
@@ -175,7 +175,7 @@ def test_the_head_scores_what_each_episode_read(data):
     """``head_score`` of an episode is the head on the finest views under the cells it revealed (computed here
     from the final state), not an earlier step's; success is that score's diagnosis; slides in turn."""
     from baselines.readers import masks_from_instances
-    from histojax.head import score_logits
+    from histojax.reading.heads import score_logits
 
     config = {**READER, "env_kwargs": {"dataset": str(data["big"]), "split": "test", "read_budget": 0.2}}
     _, (env, env_params) = evaluate.eval_env(config)

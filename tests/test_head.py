@@ -1,4 +1,4 @@
-"""The slide head with spatial context (histojax.head), its fitting (baselines.head_fit), CAMELYON lesion
+"""The slide head with spatial context (histojax.reading.heads.logit), its fitting (baselines.head_fit), CAMELYON lesion
 classes and the scripted readers with the one-head budget curve (baselines.readers).
 
 A tiny synthetic pcam-cnn-style dataset is written once for the module (no pixels: metadata.json, feature
@@ -16,7 +16,8 @@ import numpy as np
 import pytest
 
 from baselines import head_fit, readers
-from histojax.head import SlideHead, neighbourhood_mean, score, score_logits
+from histojax.reading.heads import score, score_logits
+from histojax.reading.heads.logit import SlideHead, neighbourhood_mean
 
 GH, GW, TILE, MPP, D = 24, 16, 16, 10.0, 64  # views; px per view; µm/px (a view is 160 µm)
 # (name, lesion (y, x, h, w) in views or None, polygon side in px when smaller than the block)

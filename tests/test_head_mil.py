@@ -1,6 +1,6 @@
-"""The trained slide heads (histojax.head_mil) and their training data (baselines.head_mil_fit): jittable,
+"""The trained slide heads (histojax.reading.heads.mil) and their training data (baselines.head_mil_fit): jittable,
 vmap equals a loop, unread views do not count, the sparse training path equals the deployed dense one,
-save / load round trip through SlideHead.load, bad folders refused with one line naming the file."""
+save / load round trip through heads.load, bad folders refused with one line naming the file."""
 from __future__ import annotations
 
 import json
@@ -11,8 +11,10 @@ import numpy as np
 import pytest
 
 from baselines import head_mil_fit
-from histojax.head import SlideHead, score, score_batch, score_logits
-from histojax.head_mil import MilHead, StatsHead, load, statistics_of
+from histojax.reading import heads
+from histojax.reading.heads import score, score_batch, score_logits
+from histojax.reading.heads.logit import SlideHead
+from histojax.reading.heads.mil import MilHead, StatsHead, load, statistics_of
 
 H, W, D = 13, 10, 8
 
@@ -114,7 +116,7 @@ def test_statistics_read_nothing_and_top3_of_few():
 def test_save_load_round_trip(tmp_path, name):
     head = HEADS[name].replace(info=json.dumps({"chosen_on": {"validation_auc": 0.9}}))
     head.save(tmp_path / name)
-    back = SlideHead.load(tmp_path / name)
+    back = heads.load(tmp_path / name)
     assert type(back) is type(head) and back.name == head.name and back.dim == 2
     assert json.loads((tmp_path / name / "config.json").read_text())["chosen_on"]["validation_auc"] == 0.9
     g, t = _grid(3)
@@ -133,7 +135,7 @@ def test_bad_config_refused_with_one_line(tmp_path, edit, message):
     edit(cfg)
     (folder / "config.json").write_text(json.dumps(cfg))
     with pytest.raises(ValueError, match=message) as e:
-        SlideHead.load(folder)
+        heads.load(folder)
     assert "\n" not in str(e.value) and "config.json" in str(e.value)
 
 

@@ -17,10 +17,10 @@ import numpy as np
 import pytest
 
 import histojax
-from histojax.glimpse import Glimpse
-from histojax.modes import ActionMode
-from histojax.reading import seen_flags
-from histojax.zoom_select import ZoomSelect
+from histojax.reading.modes.glimpse import Glimpse
+from histojax.reading.modes.base import ActionMode
+from histojax.reading.tables import seen_flags
+from histojax.reading.modes.zoom_select import ZoomSelect
 
 TILE, STEPS, ENVS, EPISODE = 32, 30, 6, 7
 

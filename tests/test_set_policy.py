@@ -110,7 +110,7 @@ def test_parameters_from_one_dataset_read_another(envs, recurrent):
     logits, value, action, obs, fraction = rollout(jax.random.key(2))
     assert logits.shape == (STEPS - 1, ENVS, c_b + 2) and np.isfinite(np.asarray(value)).all()
     valid = np.asarray(env_b.episode_tables(pb)["valid"])[np.asarray(obs["slide"])] > 0
-    from histojax.glimpse import unpack_bits
+    from histojax.reading.modes.glimpse import unpack_bits
 
     read = np.asarray(unpack_bits(obs["read_bits"], c_b))
     cell_logits = np.asarray(logits)[..., :c_b]

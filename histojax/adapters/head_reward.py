@@ -2,17 +2,17 @@
 
 HistoGym's reward (and histojax's default) is unchanged unless an env is wrapped::
 
-    from histojax.head import SlideHead
-    from histojax.head_reward import HeadReward
+    from histojax.adapters.head_reward import HeadReward
+    from histojax.reading import heads
 
     env, params = histojax.make("HistoJAX-C16-Diagnosis-v2", action_mode="glimpse", read_budget=0.1)
-    head = SlideHead.load("baselines/published/c16-v2-head")
+    head = heads.load("baselines/published/c16-v2-head")
     env = HeadReward(env, head, gain="log", final=1.0, read_cost=0.0)   # wraps, like LogWrapper
     obs, state = env.reset(key, params)
     obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
 
 After every step the wrapper scores **what has been read so far** with the head
-(:func:`histojax.head.score_logits`: a slide tumour logit from the finest-level views read) and pays
+(:func:`histojax.reading.heads.score_logits`: a slide tumour logit from the finest-level views read) and pays
 
 * ``gain``: the head's gain in confidence in the slide's true class, after the step minus before —
   ``"log"``: ``log p(true class)`` (a potential difference: summed over an episode it is the final
@@ -29,17 +29,17 @@ After every step the wrapper scores **what has been read so far** with the head
 * ``env_reward=True`` adds the wrapped env's own reward (default: the head's reward replaces it).
 
 **What counts as read**: for ``glimpse`` the finest tissue views under the cells revealed (the mode's
-memory ``revealed``, mapped to the finest grid as :meth:`histojax.glimpse.Glimpse.host_tables` does);
+memory ``revealed``, mapped to the finest grid as :meth:`histojax.reading.modes.glimpse.Glimpse.host_tables` does);
 for every other mode (navigation, ``zoom_select``) the wrapper keeps its own bit set of the
 finest-level views the episode's view stood on (the grid view nearest the view's top-left corner, as
-:func:`histojax.reading.see` counts them), so the wrapped env is unchanged.
+:func:`histojax.reading.tables.see` counts them), so the wrapped env is unchanged.
 
 **The navigator's diagnosis through the head**: ``info["head_score"]`` is the head's slide logit of
 what the episode has read after the step (at the step where ``terminated | truncated``, the episode's
 diagnosis by the head: the navigator chooses where to look, the head declares);
 ``info["head_correct"]`` whether it is right, ``info["head_views"]`` the finest tissue views read.
 
-**Cost**: with a max-pooling :class:`~histojax.head.SlideHead` (``top=1``, no median, e.g. the published
+**Cost**: with a max-pooling :class:`~histojax.reading.heads.logit.SlideHead` (``top=1``, no median, e.g. the published
 ``c16-v2-head``) a step re-scores only the window of the 3 × 3 cells (navigators: blocks of ``BLOCK × BLOCK``
 finest views) around what it read, giving the same floats as scoring the whole finest grid, at a cost that
 does not grow with the slide (:func:`incremental`; ``incremental_score=False`` scores the whole grid).
@@ -58,10 +58,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-
-from histojax import reading
+from histojax.reading import tables as reading_tables
 from histojax.adapters.jax import Wrapper
-from histojax.head import SlideHead, neighbourhood_mean, score_logits
+from histojax.reading.heads import score_logits
+from histojax.reading.heads.logit import SlideHead, neighbourhood_mean
 
 GAINS = ("log", "prob", "fidelity")
 
@@ -110,7 +110,7 @@ def block_side(head) -> int:
 
 def incremental(head) -> bool:
     """Whether a step can re-score only a window around what it read (exactly the full score): a
-    :class:`~histojax.head.SlideHead` that pools by the maximum (``top=1``, no median), whose neighbourhood
+    :class:`~histojax.reading.heads.logit.SlideHead` that pools by the maximum (``top=1``, no median), whose neighbourhood
     means change only near newly read views. A ``glimpse`` step reveals at most one cell, a navigator's step
     stands on at most one new finest view; either way the window is the 3 × 3 cells (blocks of
     ``BLOCK × BLOCK`` finest views for navigators) around it."""
@@ -127,18 +127,18 @@ def build_tables(env, head: SlideHead, params=None, windows: bool | None = None)
     t = env.tile_size
     glimpse = getattr(env.action, "name", "") == "glimpse"
     rows = []
-    for slide, bundle in reading.per_slide(params, bundles):
+    for slide, bundle in reading_tables.per_slide(params, bundles):
         if slide.features is None:
             raise ValueError(f"{bundle.path}: the slide head reads feature grids; run `python -m data_tools features "
                              f"{bundle.path}`")
-        logits = reading.finest_view_features(slide, t)[..., head.dim]
-        tissue = reading.tissue_views(bundle, slide, t)
+        logits = reading_tables.finest_view_features(slide, t)[..., head.dim]
+        tissue = reading_tables.tissue_views(bundle, slide, t)
         cell = np.zeros(tissue.shape, np.int64)
         starts = None
         if glimpse:
             g, s = env.action.level, int(np.asarray(slide.feature_stride))
             gw, gh = int(np.asarray(slide.feature_grid_width)[g]), int(np.asarray(slide.feature_grid_height)[g])
-            own = reading.cell_of_views(slide, t, g, s, (gh, gw))
+            own = reading_tables.cell_of_views(slide, t, g, s, (gh, gw))
             cy, cx = np.divmod(own, gw)
             cell = cy * int(np.asarray(params.mode_data.grid)[1]) + cx
             big_h, big_w = (int(v) for v in np.asarray(params.mode_data.grid))

@@ -1,13 +1,13 @@
 """The coarse map of a navigating mode with ``coarse_map=True`` (``action_mode="discrete:map"`` /
 ``"continuous:map"``): one feature entry of a coarse level, laid out on the 16 × 16 blocks of the visited
-map (:mod:`histojax.reading`), so that a navigator sees where on the slide to go, as a cell-set reader
+map (:mod:`histojax.reading.tables`), so that a navigator sees where on the slide to go, as a cell-set reader
 sees its cells' coarse features.
 
 Block ``(by, bx)`` holds the largest value of feature entry ``feature`` (e.g. the view logit of the
 ``pcam-cnn`` encoder, entry 62) over the level-``level`` views under the block's finest tissue views:
 finest view ``(fy, fx)`` of block ``(fy·16 // gh, fx·16 // gw)`` takes the level-``level`` view that
 shares its centre (the feature-grid cell nearest that view's top-left corner, as
-:func:`histojax.modes.view_features` reads it). A block without tissue holds the slide's lowest value. The
+:func:`histojax.reading.modes.base.view_features` reads it). A block without tissue holds the slide's lowest value. The
 map is built once per slide on the host; it carries nothing from the finest level but the tissue mask
 (which comes from the slide's thumbnail).
 """
@@ -15,7 +15,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from histojax.reading import VISITED_MAP, level_geometry, per_slide, tissue_views
+from histojax.reading.tables import VISITED_MAP, level_geometry, per_slide, tissue_views
 
 
 def level_index(level: int, n_levels: int) -> int:

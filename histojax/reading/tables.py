@@ -95,7 +95,7 @@ def feature_rows(slide, rows: np.ndarray) -> np.ndarray:
 
 def finest_view_features(slide, tile_size: int) -> np.ndarray:
     """``(gh, gw, D)`` float32 features of the finest-level views: the feature-grid row nearest
-    each view's top-left corner, as :func:`histojax.modes.view_features` reads it."""
+    each view's top-left corner, as :func:`histojax.reading.modes.base.view_features` reads it."""
     ds, width, height = level_geometry(slide)
     f = len(ds) - 1
     gh, gw = grid(int(width[f]), int(height[f]), tile_size, tile_size)
@@ -142,7 +142,7 @@ class SeenTables:
     inv_coarse: jnp.ndarray    # (S, Gc) float32 1 / coarse_views
     read_budget: jnp.ndarray   # () float32 fraction of total_views after which the episode is truncated
     seen_zero: jnp.ndarray     # (⌈V/32⌉,) uint32 all 0: a fresh ``seen`` bit set (V = the largest sum of grid sizes)
-    coarse_map: jnp.ndarray | None = None  # (S, 16, 16) float32 coarse map (histojax.coarse_map), or None
+    coarse_map: jnp.ndarray | None = None  # (S, 16, 16) float32 coarse map (histojax.reading.coarse_map), or None
 
 
 
@@ -231,7 +231,7 @@ def _grid_index(tables: SeenTables, i, z, x, y, tile_size: int):
 def see(tables: SeenTables, memory, i, z, x, y, env):
     """``memory`` (any dataclass with ``seen``, ``views_read``, ``fields``, ``block_read``, or the
     episode-stamped ``words`` / ``stamp`` / ``block_raw`` / ``block_stamp`` / ``episode`` of
-    :class:`histojax.zoom_select.ZoomMemory`) after looking at ``(z, x, y)`` of slide ``i``: the view is
+    :class:`histojax.reading.modes.zoom_select.ZoomMemory`) after looking at ``(z, x, y)`` of slide ``i``: the view is
     marked and counted once; a finest tissue view read adds 1 to its block of the visited map (updated
     here, never recounted). One word and one block are read and written."""
     index, local = _grid_index(tables, i, z, x, y, env.tile_size)

@@ -9,15 +9,16 @@ tissue type that raises every view), and maps that statistic ``s`` to a slide lo
 (a logistic calibration fitted on training slides: :mod:`baselines.head_fit`). A slide with nothing
 read scores ``prior_logit`` (the training split's log odds of tumour).
 
-Pure JAX and jittable (``jax.jit(score)``, ``jax.vmap`` over slides padded to one grid: padding is
+Pure JAX and jittable (``jax.jit(heads.score)``, ``jax.vmap`` over slides padded to one grid: padding is
 simply never read); no host callbacks, no data-dependent Python control flow::
 
-    head = SlideHead.load("baselines/published/c16-v2-head")
-    logit = score(head, grid_features, read_mask)      # (H, W, D), (H, W) bool -> () float32
+    from histojax.reading import heads
+    head = heads.load("baselines/published/c16-v2-head")      # a SlideHead (its config.json's kind)
+    logit = heads.score(head, grid_features, read_mask)      # (H, W, D), (H, W) bool -> () float32
 
 ``grid_features`` is the feature grid of the slide's finest level (one row per finest-level view,
 ``D`` entries; entry ``head.dim`` is the view's tumour logit — pcam-cnn's ``mean l``, entry 62), and
-``read_mask`` marks the views read that hold tissue. :func:`score_logits` takes the ``(H, W)`` logit
+``read_mask`` marks the views read that hold tissue. :meth:`SlideHead.score_logits` takes the ``(H, W)`` logit
 map directly. Saved as a folder: ``config.json`` (the head's structure and how it was fitted and chosen)
 and ``params.json`` (``a``, ``b``, ``prior_logit``).
 """
@@ -78,6 +79,22 @@ class SlideHead:
             tmp.replace(folder / name)
         return folder
 
+    kind = KIND
+
+    def view_logits(self, grid_features: jax.Array) -> jax.Array:
+        """The per-view scores the head pools: ``(H, W)`` tumour logits, entry ``dim`` of ``(H, W, D)`` features."""
+        return jnp.asarray(grid_features)[..., self.dim]
+
+    def score_logits(self, logits: jax.Array, read_mask: jax.Array) -> jax.Array:
+        """Slide tumour logit ``()`` float32 from a ``(H, W)`` view-logit map and the read mask ``(H, W)`` bool."""
+        s = statistic(self, logits, read_mask)
+        return jnp.where(jnp.any(read_mask), self.a * s + self.b, self.prior_logit).astype(jnp.float32)
+
+    def score(self, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
+        """Slide tumour logit ``()`` float32 from the finest-level feature grid ``(H, W, D)`` and the read
+        tissue views ``(H, W)`` bool (entry ``dim`` of each view is its tumour logit)."""
+        return self.score_logits(self.view_logits(grid_features), read_mask)
+
     @classmethod
     def load(cls, folder) -> "SlideHead":
         """Read a head saved by :meth:`save`. ``ValueError`` naming the file on anything malformed."""
@@ -85,10 +102,6 @@ class SlideHead:
         cfg_file, par_file = folder / "config.json", folder / "params.json"
         try:
             cfg = json.loads(cfg_file.read_text())
-            if isinstance(cfg, dict) and cfg.get("kind") in _other_kinds():  # a trained head (histojax.head_mil)
-                from histojax import head_mil
-
-                return head_mil.load(folder)
             par = json.loads(par_file.read_text()) if isinstance(cfg, dict) and cfg.get("kind") == KIND else None
         except FileNotFoundError as e:
             raise ValueError(f"{e.filename}: missing (a slide head folder holds config.json and params.json)") from None
@@ -108,12 +121,6 @@ class SlideHead:
         info = json.dumps({key: v for key, v in cfg.items() if key not in known})
         return cls(a=jnp.float32(a), b=jnp.float32(b), prior_logit=jnp.float32(prior), dim=dim, k=k, top=top,
                    minus_median=bool(cfg.get("minus_median", False)), encoder=cfg.get("encoder"), info=info)
-
-
-def _other_kinds() -> tuple:
-    from histojax.head_mil import KINDS
-
-    return KINDS
 
 
 def _plain(v):
@@ -140,7 +147,7 @@ def neighbourhood_mean(logits: jax.Array, mask: jax.Array, k: int) -> jax.Array:
 
 def statistic(head: SlideHead, logits: jax.Array, mask: jax.Array) -> jax.Array:
     """The head's pooled statistic ``s`` (before calibration) of a ``(H, W)`` logit map over the read
-    views ``mask (H, W)`` bool; ``-inf``-free: 0 when nothing is read (see :func:`score_logits`)."""
+    views ``mask (H, W)`` bool; ``-inf``-free: 0 when nothing is read (see :meth:`SlideHead.score_logits`)."""
     mask = jnp.asarray(mask, bool)
     nb = neighbourhood_mean(logits, mask, head.k).reshape(-1)
     flat = mask.reshape(-1)
@@ -154,31 +161,6 @@ def statistic(head: SlideHead, logits: jax.Array, mask: jax.Array) -> jax.Array:
         s = s - jnp.nanmedian(jnp.where(flat, logits.reshape(-1).astype(jnp.float32), jnp.nan))
     return jnp.where(n > 0, s, 0.0)
 
-
-def score_logits(head: SlideHead, logits: jax.Array, read_mask: jax.Array) -> jax.Array:
-    """Slide tumour logit ``()`` float32 from a ``(H, W)`` view-logit map and the read mask ``(H, W)`` bool."""
-    if not isinstance(head, SlideHead):  # a trained head (histojax.head_mil): its own scoring
-        return head.score_logits(logits, read_mask)
-    s = statistic(head, logits, read_mask)
-    return jnp.where(jnp.any(read_mask), head.a * s + head.b, head.prior_logit).astype(jnp.float32)
-
-
-def score(head: SlideHead, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
-    """Slide tumour logit ``()`` float32 from the finest-level feature grid ``(H, W, D)`` and the read
-    tissue views ``(H, W)`` bool (entry ``head.dim`` of each view is its tumour logit)."""
-    if not isinstance(head, SlideHead):  # a trained head (histojax.head_mil): its own scoring
-        return head.score(grid_features, read_mask)
-    return score_logits(head, jnp.asarray(grid_features)[..., head.dim], read_mask)
-
-
-def probability(head: SlideHead, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
-    """``sigmoid(score(...))``: the slide's tumour probability ``()`` in [0, 1]."""
-    return jax.nn.sigmoid(score(head, grid_features, read_mask))
-
-
-score_batch = jax.jit(jax.vmap(score_logits, in_axes=(None, 0, 0)))
-"""Jitted :func:`score_logits` over a batch: ``(B, H, W)`` logits, ``(B, H, W)`` masks → ``(B,)`` logits
-(slides padded to one grid with masks False there)."""
 
 statistic_batch = jax.jit(jax.vmap(statistic, in_axes=(None, 0, 0)))
 """Jitted :func:`statistic` over a batch ``(B, H, W)``, ``(B, H, W)`` → ``(B,)``."""

@@ -1,15 +1,19 @@
-"""Trained slide heads beside :class:`histojax.head.SlideHead`: an attention-MIL over neighbourhood-pooled
+"""Trained slide heads beside :class:`histojax.reading.heads.logit.SlideHead`: an attention-MIL over neighbourhood-pooled
 views (:class:`MilHead`) and a logistic model of pooled statistics (:class:`StatsHead`).
 
-Both score a slide from what has been read, with the interface of :mod:`histojax.head` (they are what
-``SlideHead.load`` returns for a folder of their kind, and ``histojax.head.score`` / ``score_logits``
-dispatch to them), so the readers, ``HeadReward`` and the diagnosis tools use them unchanged::
+Both score a slide from what has been read, with the protocol of :mod:`histojax.reading.heads` (they are what
+``heads.load`` returns for a folder of their kind, and ``heads.score`` / ``heads.score_logits`` call their
+methods), so the readers, ``HeadReward`` and the diagnosis tools use them unchanged::
 
-    head = SlideHead.load("baselines/published/c16-v2-head-mil")
-    logit = score(head, grid_features, read_mask)      # (H, W, D), (H, W) bool -> () float32
+    from histojax.reading import heads
+    head = heads.load("baselines/published/c16-v2-head-mil")
+    logit = heads.score(head, grid_features, read_mask)      # (H, W, D), (H, W) bool -> () float32
+
+:func:`attention_pool` is the one gated-attention MIL of the project: the baselines' "read everything"
+classifier (:mod:`baselines.reading.budget_curve`) trains the same pooling.
 
 **Instances.** Each read view is described by the ``k × k`` neighbourhood means of the view tumour logit
-(feature entry ``dim``) over the *read* views, for ``k`` in ``ks`` (:func:`histojax.head.neighbourhood_mean`,
+(feature entry ``dim``) over the *read* views, for ``k`` in ``ks`` (:func:`histojax.reading.heads.logit.neighbourhood_mean`,
 views not read count for nothing); with ``inputs="features"`` also the ``feature_k × feature_k``
 neighbourhood mean of all ``D`` feature entries (such a head needs the whole grid: ``score``, not
 ``score_logits``).
@@ -36,7 +40,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from histojax.head import neighbourhood_mean
+from histojax.reading.heads.logit import neighbourhood_mean
 
 KIND_MIL = "attention-mil"
 KIND_STATS = "pooled-statistics"
@@ -55,7 +59,7 @@ def logit_instances(logits: jax.Array, mask: jax.Array, ks) -> jax.Array:
 
 def feature_means(features: jax.Array, mask: jax.Array, k: int) -> jax.Array:
     """``(H, W, D)`` the ``k × k`` neighbourhood mean of every feature entry over the read views (the window of
-    :func:`histojax.head.neighbourhood_mean`)."""
+    :func:`histojax.reading.heads.logit.neighbourhood_mean`)."""
     m = jnp.asarray(mask, bool).astype(jnp.float32)
     x = jnp.where(mask[..., None], features.astype(jnp.float32), 0.0)
     if k == 1:
@@ -135,11 +139,23 @@ class _Saved:
         tmp.replace(folder / "config.json")
         return folder
 
+    @classmethod
+    def load(cls, folder):
+        """Read a head of this class's kind saved by :meth:`save` (:func:`load` reads either kind).
+        ``ValueError`` naming the file, one line, on anything malformed or of another kind."""
+        head = load(folder)
+        if head.kind != cls.kind:
+            raise ValueError(f"{Path(folder) / 'config.json'}: a {head.kind} head, not {cls.kind}")
+        return head
+
+    def view_logits(self, grid_features: jax.Array) -> jax.Array:
+        """The per-view scores the instances are built from: ``(H, W)`` tumour logits, entry ``dim`` of ``(H, W, D)``."""
+        return jnp.asarray(grid_features)[..., self.dim]
+
     def score(self, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
         """Slide tumour logit ``()`` float32 from the feature grid ``(H, W, D)`` and the read views ``(H, W)`` bool."""
         grid_features = jnp.asarray(grid_features)
-        logits = grid_features[..., self.dim]
-        return self._score(logits, grid_features, read_mask)
+        return self._score(self.view_logits(grid_features), grid_features, read_mask)
 
     def score_logits(self, logits: jax.Array, read_mask: jax.Array) -> jax.Array:
         """Slide tumour logit ``()`` float32 from the ``(H, W)`` view-logit map and the read views ``(H, W)`` bool."""
@@ -163,6 +179,7 @@ class MilHead(_Saved):
     encoder: str | None = struct.field(pytree_node=False, default="pcam-cnn")
     info: str = struct.field(pytree_node=False, default="{}")
     KIND = KIND_MIL
+    kind = KIND_MIL
 
     @property
     def name(self) -> str:
@@ -181,7 +198,7 @@ class MilHead(_Saved):
         x = logit_instances(logits, mask, self.ks)
         if self.inputs == "features":
             if features is None:
-                raise ValueError(f"this head ({self.name}) reads all feature entries: call histojax.head.score with "
+                raise ValueError(f"this head ({self.name}) reads all feature entries: call histojax.reading.heads.score with "
                                  "the feature grid, not score_logits with the logit map")
             x = jnp.concatenate([x, feature_means(features, mask, self.feature_k)], -1)
         return x
@@ -205,6 +222,7 @@ class StatsHead(_Saved):
     encoder: str | None = struct.field(pytree_node=False, default="pcam-cnn")
     info: str = struct.field(pytree_node=False, default="{}")
     KIND = KIND_STATS
+    kind = KIND_STATS
 
     @property
     def name(self) -> str:

@@ -9,10 +9,10 @@ to the observation (``memory_obs``). An **observation mode** turns a state into 
 observation and declares its space.
 
 Adding a mode is one new object (a frozen, hashable dataclass, so the env stays a valid static
-argument of ``jax.jit``) plus an entry in :data:`histojax.mode_registry.ACTION_MODES` /
-:data:`~histojax.mode_registry.OBS_MODES`: the strings users pass to ``make(...,
-action_mode="discrete")`` are resolved there (:func:`histojax.mode_registry.action_mode`,
-:func:`~histojax.mode_registry.obs_mode`), apart from these base classes, which ``glimpse`` and
+argument of ``jax.jit``) plus an entry in :data:`histojax.reading.modes.factory.ACTION_MODES` /
+:data:`~histojax.reading.modes.factory.OBS_MODES`: the strings users pass to ``make(...,
+action_mode="discrete")`` are resolved there (:func:`histojax.reading.modes.factory.action_mode`,
+:func:`~histojax.reading.modes.factory.obs_mode`), apart from these base classes, which ``glimpse`` and
 ``zoom_select`` import.
 """
 from __future__ import annotations
@@ -24,7 +24,8 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from histojax import actions, reading, spaces
+from histojax import actions, spaces
+from histojax.reading import tables as reading_tables
 from histojax import augment as dihedral
 from histojax.views import view_pixels
 
@@ -115,10 +116,10 @@ class Navigation(ActionMode):
     """Base of the pan/zoom modes. They keep no memory unless asked: ``make(..., track_reading=True)``
     (``fraction_read`` / ``fields_of_view`` in ``info``; ``read_budget`` truncates) or
     ``memory=True`` (that, plus the coarse ``visited`` map and ``position`` in the observation; see
-    :mod:`histojax.reading`). Without either the state and the trajectories are HistoGym's."""
+    :mod:`histojax.reading.tables`). Without either the state and the trajectories are HistoGym's."""
 
     memory: bool = False
-    coarse_map: bool = False   # with memory: the observation also holds ``coarse_map (16, 16)`` (histojax.coarse_map)
+    coarse_map: bool = False   # with memory: the observation also holds ``coarse_map (16, 16)`` (histojax.reading.coarse_map)
     supports_augment = True
 
     @property
@@ -128,7 +129,7 @@ class Navigation(ActionMode):
     def prepare(self, env, params, bundles, track_reading: bool = False, read_budget: float | None = None,
                 map_feature: int | None = None, map_level: int = -3):
         """``map_feature`` / ``map_level`` (``coarse_map=True`` only): the feature entry and the level of the
-        coarse map (:func:`histojax.coarse_map.coarse_maps`)."""
+        coarse map (:func:`histojax.reading.coarse_map.coarse_maps`)."""
         if self.coarse_map != (map_feature is not None):
             raise TypeError(f"{self.name}:map needs map_feature=ENTRY (the feature entry its coarse map shows), and "
                             f"map_feature is for {self.name}:map only")
@@ -136,35 +137,35 @@ class Navigation(ActionMode):
             if read_budget is not None:
                 raise TypeError(f"read_budget needs track_reading=True (or {self.name} with memory=True)")
             return None
-        tables = reading.seen_tables(env, params, bundles, 1.0 if read_budget is None else read_budget)
+        tables = reading_tables.seen_tables(env, params, bundles, 1.0 if read_budget is None else read_budget)
         if self.coarse_map:
-            from histojax.coarse_map import coarse_maps
+            from histojax.reading.coarse_map import coarse_maps
 
             tables = tables.replace(coarse_map=jnp.asarray(coarse_maps(env, params, bundles, map_feature, map_level)))
         return tables
 
     def init_memory(self, env, state, params):
-        return None if params.mode_data is None else reading.init_seen(params.mode_data, state, env)
+        return None if params.mode_data is None else reading_tables.init_seen(params.mode_data, state, env)
 
     def _seen(self, env, state, params, z, x, y):
         if state.memory is None:
             return None
-        return reading.see(params.mode_data, state.memory, state.slide_index, z, x, y, env)
+        return reading_tables.see(params.mode_data, state.memory, state.slide_index, z, x, y, env)
 
     def budget_spent(self, env, state, params) -> jax.Array:
         if state.memory is None:
             return super().budget_spent(env, state, params)
-        return reading.budget_spent(params.mode_data, state.memory, state.slide_index)
+        return reading_tables.budget_spent(params.mode_data, state.memory, state.slide_index)
 
     def reading_info(self, env, state, params) -> dict:
         if state.memory is None:
             return {}
-        return reading.reading_info(params.mode_data, state.memory, state.slide_index)
+        return reading_tables.reading_info(params.mode_data, state.memory, state.slide_index)
 
     def memory_obs(self, env, state, params) -> dict:
         if not self.memory:
             return {}
-        obs = reading.visited_obs(env, state, params)
+        obs = reading_tables.visited_obs(env, state, params)
         if self.coarse_map:
             obs["coarse_map"] = params.mode_data.coarse_map[state.slide_index]
         return obs
@@ -172,9 +173,9 @@ class Navigation(ActionMode):
     def memory_space(self, env, params) -> dict:
         if not self.memory:
             return {}
-        space = reading.visited_space(params)
+        space = reading_tables.visited_space(params)
         if self.coarse_map:
-            space["coarse_map"] = spaces.Box(-jnp.inf, jnp.inf, (reading.VISITED_MAP, reading.VISITED_MAP), jnp.float32)
+            space["coarse_map"] = spaces.Box(-jnp.inf, jnp.inf, (reading_tables.VISITED_MAP, reading_tables.VISITED_MAP), jnp.float32)
         return space
 
 

@@ -1,14 +1,14 @@
 """Mode names → mode objects: the one place the strings users pass to ``make(..., action_mode=...,
 obs_mode=...)`` (and trainers' JSON configs hold) are resolved. It imports every mode; the modes
-import only their base classes (:mod:`histojax.modes`), so there is no import circle.
+import only their base classes (:mod:`histojax.reading.modes.base`), so there is no import circle.
 """
 from __future__ import annotations
 
 import dataclasses
 
-from histojax.glimpse import Glimpse
-from histojax.modes import ActionMode, Continuous, Discrete, Features, ObsMode, Pixels
-from histojax.zoom_select import ZoomSelect
+from histojax.reading.modes.glimpse import Glimpse
+from histojax.reading.modes.base import ActionMode, Continuous, Discrete, Features, ObsMode, Pixels
+from histojax.reading.modes.zoom_select import ZoomSelect
 
 ACTION_MODES = {"discrete": Discrete, "continuous": Continuous, "glimpse": Glimpse, "zoom_select": ZoomSelect}
 OBS_MODES = {"pixels": Pixels, "pixels_float": lambda: Pixels(as_float=True), "features": Features}
@@ -19,7 +19,7 @@ def action_mode(mode) -> ActionMode:
     ``"glimpse:L"`` and ``"zoom_select:K"`` set the glimpse level / the number of children a side;
     ``"discrete:memory"`` / ``"continuous:memory"`` are the pan/zoom modes with ``memory=True`` (the
     coarse visited map and the position in the observation), ``"discrete:map"`` / ``"continuous:map"`` the
-    same plus a coarse map of one feature entry (``make(..., map_feature=ENTRY)``; :mod:`histojax.coarse_map`).
+    same plus a coarse map of one feature entry (``make(..., map_feature=ENTRY)``; :mod:`histojax.reading.coarse_map`).
     Strings, so a trainer's JSON config can name them."""
     if isinstance(mode, ActionMode):
         return mode

@@ -1,0 +1,92 @@
+"""Slide heads: one tumour logit for a slide from the finest-level views read so far.
+
+Every head implements :class:`SlideHeadProtocol` (``kind``, ``score``, ``score_logits``, the per-view scores
+``view_logits``, ``save`` and the class method ``load``) and is a pytree, so the functions below are pure JAX,
+jittable and vmappable over slides padded to one grid. :func:`load` reads any head folder, choosing the class
+by the ``kind`` in its ``config.json`` (:data:`HEADS`)::
+
+    from histojax.reading import heads
+    head = heads.load("baselines/published/c16-v2-head")
+    logit = heads.score(head, grid_features, read_mask)      # (H, W, D), (H, W) bool -> () float32
+
+Kinds: ``neighbourhood-pooled-logit`` (:class:`~histojax.reading.heads.logit.SlideHead`, a calibrated pooled
+view logit), ``attention-mil`` and ``pooled-statistics`` (:class:`~histojax.reading.heads.mil.MilHead`,
+:class:`~histojax.reading.heads.mil.StatsHead`, trained heads).
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+from typing import Protocol, runtime_checkable
+
+import jax
+
+from histojax.reading.heads import logit, mil
+
+
+@runtime_checkable
+class SlideHeadProtocol(Protocol):
+    """What every slide head provides. ``kind``: the string saved in ``config.json``; ``name``: a short
+    description; ``dim``: the feature entry of the view tumour logit."""
+
+    kind: str
+
+    def view_logits(self, grid_features: jax.Array) -> jax.Array:
+        """The per-view scores ``(H, W)`` float32 the head reads from the feature grid ``(H, W, D)``."""
+
+    def score(self, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
+        """Slide tumour logit ``()`` float32 from the feature grid ``(H, W, D)`` and the read views ``(H, W)`` bool."""
+
+    def score_logits(self, logits: jax.Array, read_mask: jax.Array) -> jax.Array:
+        """Slide tumour logit ``()`` float32 from the ``(H, W)`` view-logit map and the read views ``(H, W)`` bool."""
+
+    def save(self, folder) -> Path:
+        """Write the head to ``folder`` (``config.json`` and its parameters); returns the folder."""
+
+    @classmethod
+    def load(cls, folder) -> "SlideHeadProtocol":
+        """Read a head of this class's kind; ``ValueError`` naming the file, one line, on anything malformed."""
+
+
+HEADS: dict[str, type] = {logit.KIND: logit.SlideHead, mil.KIND_MIL: mil.MilHead, mil.KIND_STATS: mil.StatsHead}
+"""kind (``config.json``'s ``"kind"``) -> head class."""
+
+
+def load(folder) -> SlideHeadProtocol:
+    """Read the slide head saved in ``folder``, of the class its ``config.json``'s ``kind`` names.
+    ``ValueError`` naming the file, one line, on anything missing, malformed or of an unknown kind."""
+    folder = Path(folder)
+    cfg_file = folder / "config.json"
+    try:
+        cfg = json.loads(cfg_file.read_text())
+    except FileNotFoundError as e:
+        raise ValueError(f"{e.filename}: missing (a slide head folder holds config.json and its parameters)") from None
+    except (OSError, json.JSONDecodeError) as e:
+        raise ValueError(f"{folder}: cannot read the slide head: {e}") from None
+    kind = cfg.get("kind") if isinstance(cfg, dict) else None
+    cls = HEADS.get(kind) if isinstance(kind, str) else None
+    if cls is None:
+        raise ValueError(f"{cfg_file}: not a slide head this version reads (kind {kind!r}; known: {', '.join(HEADS)})")
+    return cls.load(folder)
+
+
+def score(head: SlideHeadProtocol, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
+    """Slide tumour logit ``()`` float32 from the finest-level feature grid ``(H, W, D)`` and the read
+    tissue views ``(H, W)`` bool."""
+    return head.score(grid_features, read_mask)
+
+
+def score_logits(head: SlideHeadProtocol, logits: jax.Array, read_mask: jax.Array) -> jax.Array:
+    """Slide tumour logit ``()`` float32 from a ``(H, W)`` view-logit map and the read mask ``(H, W)`` bool
+    (a head that reads all feature entries raises: give it the grid, :func:`score`)."""
+    return head.score_logits(logits, read_mask)
+
+
+def probability(head: SlideHeadProtocol, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
+    """``sigmoid(score(...))``: the slide's tumour probability ``()`` in [0, 1]."""
+    return jax.nn.sigmoid(score(head, grid_features, read_mask))
+
+
+score_batch = jax.jit(jax.vmap(score_logits, in_axes=(None, 0, 0)))
+"""Jitted :func:`score_logits` over a batch: ``(B, H, W)`` logits, ``(B, H, W)`` masks → ``(B,)`` logits
+(slides padded to one grid with masks False there)."""

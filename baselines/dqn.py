@@ -16,6 +16,7 @@ which the zero discount then ignores). Time limits count as episode ends, as in 
 from __future__ import annotations
 
 import dataclasses
+import sys
 
 import jax
 import jax.numpy as jnp
@@ -24,6 +25,7 @@ from flax import struct
 
 from baselines import common
 from baselines.networks import QNetwork, preprocess_obs
+from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
@@ -240,4 +242,4 @@ add_arguments, run, main = common.trainer_command("dqn", make_train, DEFAULTS, "
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(main(compile_cache.setup(sys.argv[1:])))  # the persistent compilation cache, --no-compile-cache

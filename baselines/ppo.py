@@ -34,6 +34,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import sys
 from typing import NamedTuple
 
 import jax
@@ -46,6 +47,7 @@ from baselines import common
 from baselines.networks import (ActorCritic, CellSetActorCritic, EpisodeTables, RecurrentActorCritic,
                                 RecurrentCellSetActorCritic, is_discrete, policy_entropy, policy_log_prob, policy_sample,
                                 preprocess_obs, rollout_apply, uses_cell_sets)
+from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
@@ -357,4 +359,4 @@ add_arguments, run, main = common.trainer_command("ppo", make_train, DEFAULTS, "
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(main(compile_cache.setup(sys.argv[1:])))  # the persistent compilation cache, --no-compile-cache

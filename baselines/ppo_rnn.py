@@ -20,6 +20,8 @@ ratio is 1 before the first gradient step). Minibatches are sets of whole env se
 """
 from __future__ import annotations
 
+import sys
+
 import jax
 import jax.numpy as jnp
 from flax.training.train_state import TrainState
@@ -27,6 +29,7 @@ from flax.training.train_state import TrainState
 from baselines import common, ppo
 from baselines.networks import (RecurrentActorCritic, ScannedGRU, network_step, policy_log_prob, policy_sample,
                                 preprocess_obs, rollout_step)
+from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
 
 DEFAULTS = {**{k: v for k, v in ppo.DEFAULTS.items() if k != "devices"},
@@ -151,4 +154,4 @@ add_arguments, run, main = common.trainer_command("ppo_rnn", make_train, DEFAULT
 
 
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(main(compile_cache.setup(sys.argv[1:])))  # the persistent compilation cache, --no-compile-cache

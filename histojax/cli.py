@@ -19,6 +19,10 @@
     histojax contract [ENV_ID ...]    the environment contract check (`make contract`, histojax.testing)
     histojax bench                    environment throughput (steps/s) against memory bandwidth
 
+Compiled programs are kept in JAX's persistent compilation cache (~/.cache/histojax/jax, or
+$XDG_CACHE_HOME/histojax/jax), so a second run starts warm; --no-compile-cache (any command) or
+HISTOJAX_NO_COMPILE_CACHE=1 turns it off (histojax.compile_cache).
+
 Each command is its module's (``python -m data_tools <command>``, ``python -m baselines.<module>``,
 ``python -m histojax.testing``, ``python benchmarks/throughput.py`` are the same commands): the
 module's ``add_arguments(parser)`` declares the options, once, and its ``run(args, parser)`` runs
@@ -36,6 +40,7 @@ import sys
 
 from data_tools.cli_output import one_line_messages, os_error_text, print_error, run_command
 from data_tools.errors import HistojaxDataError
+from histojax import compile_cache
 
 DATA_COMMANDS = ("info", "build", "features", "import-features", "synth", "synth-large", "c16", "dataset",
                  "train-encoder")
@@ -54,7 +59,7 @@ ALGOS = ("ppo", "dqn", "ppo_rnn")  # histojax train --algo NAME: baselines.NAME
 
 def main(argv=None) -> int:
     """Dispatch ``argv`` (default ``sys.argv[1:]``) to a subcommand; returns the exit status."""
-    argv = list(sys.argv[1:] if argv is None else argv)
+    argv = compile_cache.setup(sys.argv[1:] if argv is None else argv)  # --no-compile-cache: removed here
     if not argv or argv[0] in ("-h", "--help"):
         print(__doc__)
         return 0 if argv else 2

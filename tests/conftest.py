@@ -6,6 +6,9 @@ import tempfile
 
 # Before histojax is imported anywhere: keep the user's ~/.cache untouched and start clean.
 os.environ.setdefault("HISTOJAX_CACHE", tempfile.mkdtemp(prefix="histojax-test-cache-"))
+# Commands run by the tests (in process or as subprocesses) leave ~/.cache/histojax/jax alone: JAX's persistent
+# compilation cache is off unless a test turns it on in its own folder (tests/test_compile_cache.py).
+os.environ.setdefault("HISTOJAX_NO_COMPILE_CACHE", "1")
 
 import pytest  # noqa: E402
 

@@ -1,0 +1,593 @@
+"""Fit a slide head learned from any encoder's features (:class:`histojax.reading.heads.learned.LearnedHead`):
+``python -m baselines.reading.learned_head_fit --dataset DIR --out DIR [--seed S] [--val-fraction F]``.
+
+**Data.** The finest level's feature vector of every tissue view (the views the readers count:
+:func:`histojax.reading.tables.tissue_views`) of each training slide, read through the bundle's checked
+loader (:func:`data_tools.bundle_format.load_feature_levels`: metadata digest and array checksums verified).
+No feature entry is special: any encoder, any ``D``. The validation share is
+:func:`baselines.validation.split_train` (``--val-fraction`` 0.2, ``--split-seed`` 0, as the other head fits);
+the test split is never read while fitting.
+
+**Training** (:func:`train`): Adam with decoupled weight decay (optax ``adamw``), a jitted step over
+``--batch`` slides drawn at random (classes balanced). Each slide of a step is read at random, as a reader
+reads: all its tissue with probability 0.25, else cells of 4 × 4 views each read with a probability drawn
+log-uniformly in [2 %, 100 %]; at most ``--views`` of the views read are kept (drawn uniformly), so a step
+costs the same on any slide size. Slide-level log loss.
+
+**Choice on validation only** (:data:`CANDIDATES`, ``--hidden``): each candidate structure is trained for
+``--steps`` steps; its validation AUC reading everything (ties: reading random 10 %) is measured every
+``--eval-every`` steps and the best checkpoint over candidates and steps is kept. **Calibration**: a Platt
+scaling ``c·s + d`` fitted on the validation slides' logits (reading everything and reading random 10 %,
+pooled). The prior (nothing read) is the training split's log odds of tumour.
+
+**Guards** (one line naming the dataset, exit 2, nothing saved): fewer than :data:`MIN_SLIDES_PER_CLASS`
+training slides of either class after the validation share is held out; a validation split with one class;
+a chosen head whose validation AUC is below 0.5 (inverted) or whose calibration slope is negative.
+
+Saved to ``--out`` (:meth:`LearnedHead.save`, atomic; never over a folder of other files): ``config.json``
+(structure, the fit, every candidate's validation figures), ``params.npz`` and ``learning_curve.png``.
+
+``--score HEAD --split test`` scores a saved head on a split reading everything: AUC over all slides and
+without ITC-only slides (lesion classes as :mod:`baselines.reading.readers` defines them). ``--rotate SEED``
+multiplies every feature vector by a fixed random orthogonal matrix (drawn from ``SEED``) before fitting or
+scoring: a check that nothing depends on which entry holds what.
+"""
+from __future__ import annotations
+
+import datetime
+import io
+import json
+import sys
+import time
+from pathlib import Path
+from types import SimpleNamespace
+
+import numpy as np
+
+from baselines.metrics import roc_auc
+from data_tools.bundle_format import (load_array, load_feature_levels, own_file, read_metadata, stable_read,
+                                      verify_metadata)
+from data_tools.cli_output import command_main, print_error
+from data_tools.errors import HistojaxDataError
+
+MIN_SLIDES_PER_CLASS = 5
+"""Fewest training slides of each class (after the validation share is held out) a fit accepts."""
+CELL = 4                  # random reads pick cells of CELL × CELL views (a reader's cell is about 4 × 4 views)
+P_FULL = 0.25             # share of training reads that read all tissue
+MIN_READ = 0.02           # smallest random read fraction
+CANDIDATES = ({"hidden": 32, "attention": 16, "layers": 1}, {"hidden": 64, "attention": 32, "layers": 1})
+"""The structures tried (``--hidden`` picks among them by hidden size)."""
+
+
+class FitError(HistojaxDataError):
+    """A dataset this fit refuses (file named, one line)."""
+
+
+# ----------------------------------------------------------------------------- data
+def read_spec(dataset) -> dict:
+    """``dataset.json`` of ``dataset`` (``FitError`` naming it when missing, malformed or without a train list)."""
+    path = Path(dataset) / "dataset.json"
+    try:
+        spec = json.loads(path.read_text())
+    except FileNotFoundError:
+        raise FitError(path, "missing (not a dataset folder: build one with `histojax dataset` or "
+                             "`python -m data_tools c16`)") from None
+    except (OSError, ValueError) as e:
+        raise FitError(path, f"unreadable ({' '.join(str(e).split())[:120]})") from None
+    if not isinstance(spec, dict) or not isinstance(spec.get("train"), list):
+        raise FitError(path, "has no \"train\" list of bundles")
+    return spec
+
+
+def slide_label(spec: dict, name: str, metadata) -> int:
+    """A slide's label as the env reads it: ``dataset.json``'s ``labels`` when it names the slide, else the
+    bundle's own (tumour annotated or not)."""
+    from histojax.slide import slide_label_from_metadata
+
+    labels = spec.get("labels")
+    if isinstance(labels, dict):
+        for key, value in labels.items():
+            if Path(key).name == name:
+                return int(value)
+    return int(slide_label_from_metadata(metadata))
+
+
+def load_views(bundle, label: int | None = None, spec: dict | None = None, verify: bool = True) -> dict:
+    """One bundle's tissue views through the checked loader: ``features (N, D)`` float16 (the finest feature
+    grid's cell under each tissue view), ``yx (N, 2)`` int32 view rows / columns, ``shape (gh, gw)`` of the
+    finest view grid, ``label``, ``name``, ``encoder``, ``mpp``, ``tile``, ``bundle``. ``FitError`` naming the
+    bundle on anything missing or corrupt."""
+    from histojax.reading.tables import grid, tissue_views
+
+    bundle = Path(bundle)
+
+    def read():
+        meta = read_metadata(bundle)
+        if verify:
+            verify_metadata(bundle, meta)
+        feats = meta.get("features") or {}
+        if not feats.get("levels"):
+            raise FitError(bundle, "has no feature grid: compute one with `histojax features BUNDLE --encoder NAME` "
+                                   "or import one with `histojax import-features BUNDLE FILE.h5`")
+        grids, stride = load_feature_levels(bundle, meta, [0], verify=verify)
+        tissue = load_array(bundle, meta.tissue_file, meta, verify)
+        return meta, grids[0], stride, tissue
+
+    try:
+        meta, fg, stride, tissue_mask = stable_read(bundle, read)
+        tile = int(meta["tile_size"])
+        width, height = int(meta["levels"][0]["width"]), int(meta["levels"][0]["height"])
+        gh, gw = grid(width, height, tile, tile)
+        tissue = tissue_views(SimpleNamespace(tissue=tissue_mask),
+                              SimpleNamespace(downsample=[1.0], level_width=[width], level_height=[height]), tile)
+        fy = np.clip((np.arange(gh) * tile + stride // 2) // stride, 0, fg.shape[0] - 1)
+        fx = np.clip((np.arange(gw) * tile + stride // 2) // stride, 0, fg.shape[1] - 1)
+        ys, xs = np.nonzero(tissue)
+        features = np.asarray(fg[fy[ys], fx[xs]], np.float16)
+        lab = slide_label(spec or {}, bundle.name, meta) if label is None else int(label)
+    except HistojaxDataError:
+        raise
+    except (OSError, KeyError, IndexError, TypeError, ValueError) as e:
+        raise FitError(bundle, f"unreadable bundle ({type(e).__name__}: {' '.join(str(e).split())[:120]})") from None
+    if ys.size == 0:
+        raise FitError(bundle, "has no tissue views at the finest level")
+    if not np.all(np.isfinite(features)):
+        raise FitError(bundle, "non-finite feature values on tissue views (or beyond float16's range)")
+    mpp = (meta.get("source") or {}).get("mpp")
+    return {"name": bundle.name, "label": lab, "features": features, "yx": np.stack([ys, xs], 1).astype(np.int32),
+            "shape": (int(gh), int(gw)), "encoder": (meta.get("features") or {}).get("encoder"),
+            "mpp": float(mpp) if isinstance(mpp, (int, float)) else float("nan"), "tile": tile, "bundle": bundle}
+
+
+def load_split(dataset, entries, spec: dict, progress: bool = True, desc: str = "loading") -> list[dict]:
+    """:func:`load_views` of every entry of ``entries`` (paths relative to ``dataset`` or absolute)."""
+    from tqdm import tqdm
+
+    out = []
+    for rel in tqdm(entries, desc=desc, disable=not progress, file=sys.stderr, leave=False):
+        bundle = Path(rel) if Path(rel).is_absolute() else Path(dataset) / rel
+        out.append(load_views(bundle, spec=spec))
+    return out
+
+
+def rotation(seed: int, dim: int) -> np.ndarray:
+    """A fixed random orthogonal ``(dim, dim)`` float32 matrix (QR of a Gaussian, signs fixed) drawn from ``seed``."""
+    rng = np.random.default_rng(seed)
+    q, r = np.linalg.qr(rng.normal(size=(dim, dim)))
+    return (q * np.sign(np.diag(r))).astype(np.float32)
+
+
+def rotate(slides: list[dict], q: np.ndarray | None) -> list[dict]:
+    """``slides`` with every feature vector multiplied by ``q`` (None: unchanged)."""
+    if q is None:
+        return slides
+    return [{**s, "features": (np.asarray(s["features"], np.float32) @ q).astype(np.float32)} for s in slides]
+
+
+# ----------------------------------------------------------------------------- random reads
+def cells_of(s: dict) -> np.ndarray:
+    """``(N,)`` the ``CELL × CELL`` cell of each tissue view of slide ``s`` (cached in ``s``)."""
+    if "cell" not in s:
+        cw = -(-s["shape"][1] // CELL)
+        s["cell"] = (s["yx"][:, 0] // CELL) * cw + s["yx"][:, 1] // CELL
+        s["n_cells"] = int((-(-s["shape"][0] // CELL)) * cw)
+    return s["cell"]
+
+
+def random_read(rng, s: dict, fraction: float | None) -> np.ndarray:
+    """``(N,)`` bool: slide ``s``'s tissue views read when each ``CELL × CELL`` cell is read with probability
+    ``fraction`` (None: all), at least one cell with tissue."""
+    if fraction is None or fraction >= 1:
+        return np.ones(len(s["features"]), bool)
+    cell = cells_of(s)
+    read = rng.random(s["n_cells"]) < fraction
+    mask = read[cell]
+    if not mask.any():
+        mask = cell == cell[rng.integers(len(cell))]
+    return mask
+
+
+def draw_fraction(rng) -> float | None:
+    """A training read's fraction: None (everything) with probability ``P_FULL``, else log-uniform in [2 %, 1]."""
+    return None if rng.random() < P_FULL else float(np.exp(rng.uniform(np.log(MIN_READ), 0.0)))
+
+
+def batch(rng, slides: list[dict], size: int, views: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``(x (size, views, D) float32, mask (size, views) bool, y (size,) float32)``: ``size`` slides drawn with
+    classes balanced, each read at random (:func:`draw_fraction`), at most ``views`` read views kept."""
+    pos = [i for i, s in enumerate(slides) if s["label"]]
+    neg = [i for i, s in enumerate(slides) if not s["label"]]
+    d = slides[0]["features"].shape[1]
+    x = np.zeros((size, views, d), np.float32)
+    m = np.zeros((size, views), bool)
+    y = np.zeros(size, np.float32)
+    for b in range(size):
+        i = int(rng.choice(pos if b % 2 == 0 else neg))
+        s = slides[i]
+        idx = np.flatnonzero(random_read(rng, s, draw_fraction(rng)))
+        if idx.size > views:
+            idx = rng.choice(idx, views, replace=False)
+        x[b, :idx.size] = s["features"][idx]
+        m[b, :idx.size] = True
+        y[b] = s["label"]
+    return x, m, y
+
+
+# ----------------------------------------------------------------------------- scoring many slides
+class FlatSet:
+    """The tissue views of ``slides`` concatenated (``x (N, D)`` float32, ``seg (N,)`` slide of each view), scored
+    by one jitted segment pooling per head structure (:meth:`logits`), reading all views or a random share."""
+
+    def __init__(self, slides: list[dict]):
+        self.slides = slides
+        self.x = np.concatenate([np.asarray(s["features"], np.float32) for s in slides])
+        self.seg = np.concatenate([np.full(len(s["features"]), i, np.int32) for i, s in enumerate(slides)])
+        self.labels = np.asarray([s["label"] for s in slides])
+        self._fns = {}
+
+    def _fn(self, head):
+        import jax
+        import jax.numpy as jnp
+
+        key = (head.dim, head.hidden, head.attention, head.layers)
+        if key not in self._fns:
+            n = len(self.slides)
+
+            def pooled(head, x, seg, mask):
+                h = head.embed(x)
+                a = jnp.where(mask, head.attention_logits(h), -jnp.inf)
+                amax = jax.ops.segment_max(a, seg, n)
+                amax = jnp.where(jnp.isfinite(amax), amax, 0.0)
+                e = jnp.where(mask, jnp.exp(jnp.where(mask, a - amax[seg], 0.0)), 0.0)
+                den = jax.ops.segment_sum(e, seg, n)
+                z = jax.ops.segment_sum(e[:, None] * h, seg, n) / jnp.maximum(den, 1e-30)[:, None]
+                return jnp.where(den > 0, head.calibrate(head.raw_logit(z)), head.prior_logit)
+
+            self._fns[key] = jax.jit(pooled)
+        return self._fns[key]
+
+    def masks(self, rng, fraction: float | None) -> np.ndarray:
+        """``(N,)`` bool: every slide read at ``fraction`` (:func:`random_read`; None = everything)."""
+        return np.concatenate([random_read(rng, s, fraction) for s in self.slides])
+
+    def logits(self, head, mask: np.ndarray | None = None) -> np.ndarray:
+        """``(B,)`` slide logits of ``head`` reading ``mask`` (default every tissue view)."""
+        mask = np.ones(len(self.x), bool) if mask is None else mask
+        return np.asarray(self._fn(head)(head, self.x, self.seg, mask))
+
+    def aucs(self, head, fractions=(0.1,), draws: int = 3, seed: int = 123) -> dict:
+        """``{"full": AUC reading everything, "read 0.1": mean AUC over ``draws`` random reads, ...}``."""
+        out = {"full": roc_auc(self.logits(head), self.labels)}
+        rng = np.random.default_rng(seed)
+        for f in fractions:
+            out[f"read {f:g}"] = float(np.mean([roc_auc(self.logits(head, self.masks(rng, f)), self.labels)
+                                                for _ in range(draws)]))
+        return out
+
+
+def platt(scores: np.ndarray, labels: np.ndarray, l2: float = 1e-3, iters: int = 100) -> tuple[float, float]:
+    """``(a, b)`` of the logistic regression ``P(y) = σ(a·s + b)`` (Newton, a small L2 penalty on ``a`` so a
+    separable set stays finite)."""
+    s = np.asarray(scores, np.float64)
+    y = np.asarray(labels, np.float64)
+    sc = max(float(s.std()), 1e-6)
+    z = s / sc
+    w = np.zeros(2)
+    for _ in range(iters):
+        p = 1 / (1 + np.exp(-np.clip(w[0] * z + w[1], -60, 60)))
+        g = np.array([np.sum((p - y) * z) + l2 * len(y) * w[0], np.sum(p - y)])
+        r = p * (1 - p)
+        hm = np.array([[np.sum(r * z * z) + l2 * len(y), np.sum(r * z)], [np.sum(r * z), np.sum(r) + 1e-9]])
+        step = np.linalg.solve(hm, g)
+        w -= step
+        if np.abs(step).max() < 1e-10:
+            break
+    return float(w[0] / sc), float(w[1])
+
+
+# ----------------------------------------------------------------------------- training
+def standardisation(slides: list[dict], limit: int = 200_000, seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """``(mu, sd)`` ``(D,)`` of the training slides' tissue views (at most ``limit`` of them, drawn at random)."""
+    x = np.concatenate([np.asarray(s["features"], np.float32) for s in slides])
+    if len(x) > limit:
+        x = x[np.random.default_rng(seed).choice(len(x), limit, replace=False)]
+    return x.mean(0), x.std(0) + 1e-3
+
+
+def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: int = 0, steps: int = 600,
+          batch_size: int = 16, views: int = 512, lr: float = 2e-3, weight_decay: float = 1e-4,
+          eval_every: int = 50, progress: bool = True) -> tuple:
+    """Train a :class:`LearnedHead` of ``structure`` (``hidden``, ``attention``, ``layers``) on ``train_slides``
+    (see the module doc); every ``eval_every`` steps score it on ``val`` (a :class:`FlatSet`). Returns
+    ``(best_head, curve)``: the checkpoint with the best validation AUC reading everything (ties: reading 10 %;
+    the last one when ``val`` is None) and ``curve`` (rows of step, training loss, validation AUCs)."""
+    import jax
+    import jax.numpy as jnp
+    import optax
+    from tqdm import tqdm
+
+    from histojax.reading.heads.learned import LearnedHead, init_params
+
+    d = int(train_slides[0]["features"].shape[1])
+    mu, sd = standardisation(train_slides, seed=seed)
+    p = float(np.clip(np.mean([s["label"] for s in train_slides]), 1e-3, 1 - 1e-3))
+    params = init_params(jax.random.PRNGKey(seed), d, structure["hidden"], structure["attention"],
+                         structure["layers"], mu, sd)
+    head0 = LearnedHead(params=params, prior_logit=jnp.float32(np.log(p / (1 - p))), dim=d,
+                        hidden=structure["hidden"], attention=structure["attention"], layers=structure["layers"],
+                        encoder=train_slides[0].get("encoder"))
+    frozen = {"mu": params["mu"], "sd": params["sd"]}
+    tp = {k: v for k, v in params.items() if k not in frozen}
+    opt = optax.adamw(lr, weight_decay=weight_decay)
+    state = opt.init(tp)
+
+    def loss_fn(tp, x, m, y):
+        head = head0.replace(params={**tp, **frozen})
+        logits = jax.vmap(head.score_views)(x, m)
+        return optax.sigmoid_binary_cross_entropy(logits, y).mean()
+
+    @jax.jit
+    def step(tp, st, x, m, y):
+        loss, g = jax.value_and_grad(loss_fn)(tp, x, m, y)
+        upd, st = opt.update(g, st, tp)
+        return optax.apply_updates(tp, upd), st, loss
+
+    rng = np.random.default_rng(10_000 + seed)
+    curve, losses, best, best_key = [], [], head0, (-1.0, -1.0)
+    bar = tqdm(range(steps), desc=f"{structure['hidden']} units, seed {seed}", disable=not progress,
+               file=sys.stderr, leave=False)
+    for i in bar:
+        x, m, y = batch(rng, train_slides, batch_size, views)
+        tp, state, loss = step(tp, state, x, m, y)
+        losses.append(float(loss))
+        if (i + 1) % eval_every == 0 or i + 1 == steps:
+            head = head0.replace(params={**tp, **frozen})
+            row = {"step": i + 1, "loss": float(np.mean(losses[-eval_every:]))}
+            if val is not None:
+                row.update(val.aucs(head, draws=2))
+                key = (row["full"], row["read 0.1"])
+                if key > best_key:
+                    best, best_key = head, key
+                bar.set_postfix(loss=f"{row['loss']:.3f}", val=f"{row['full']:.3f}")
+            else:
+                best = head
+            curve.append(row)
+    return best, curve
+
+
+def calibrate(head, val: FlatSet, seed: int = 7):
+    """``head`` with Platt scaling fitted on ``val``'s raw logits reading everything and reading random 10 %
+    (pooled); returns ``(head, slope)``."""
+    import jax.numpy as jnp
+
+    raw = head.replace(cal_a=jnp.float32(1.0), cal_b=jnp.float32(0.0))
+    rng = np.random.default_rng(seed)
+    s = np.concatenate([val.logits(raw), val.logits(raw, val.masks(rng, 0.1))])
+    y = np.concatenate([val.labels, val.labels])
+    a, b = platt(s, y)
+    return head.replace(cal_a=jnp.float32(a), cal_b=jnp.float32(b)), a
+
+
+def curve_png(curves: dict, title: str) -> bytes:
+    """A learning-curve figure (PNG bytes): training loss and validation AUC (reading everything, 10 %) per step,
+    one line per candidate."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    fig, (ax1, ax2) = plt.subplots(1, 2, figsize=(9, 3.4))
+    for name, rows in curves.items():
+        st = [r["step"] for r in rows]
+        ax1.plot(st, [r["loss"] for r in rows], label=name)
+        if rows and "full" in rows[0]:
+            line, = ax2.plot(st, [r["full"] for r in rows], label=f"{name}, all read")
+            ax2.plot(st, [r["read 0.1"] for r in rows], ls="--", color=line.get_color(), label=f"{name}, 10 % read")
+    ax1.set(xlabel="step", ylabel="training log loss (random reads)")
+    ax2.set(xlabel="step", ylabel="validation AUC")
+    ax1.legend(fontsize=7)
+    ax2.legend(fontsize=7)
+    fig.suptitle(title, fontsize=9)
+    fig.tight_layout()
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=110)
+    plt.close(fig)
+    return buf.getvalue()
+
+
+# ----------------------------------------------------------------------------- the command
+def add_arguments(p) -> None:
+    """The options of ``python -m baselines.reading.learned_head_fit``."""
+    p.add_argument("--dataset", required=True, help="dataset folder (dataset.json with a train split; feature grids)")
+    p.add_argument("--out", help="folder to save the chosen head in (config.json, params.npz, learning_curve.png)")
+    p.add_argument("--seed", type=int, default=0, help="training seed (initialisation, batches; default 0)")
+    p.add_argument("--val-fraction", type=float, default=0.2, help="share of training slides held out for "
+                                                                      "validation (default 0.2)")
+    p.add_argument("--split-seed", type=int, default=0, help="seed of the validation split (default 0, as head_fit)")
+    p.add_argument("--hidden", type=int, nargs="+", default=[c["hidden"] for c in CANDIDATES],
+                   help="hidden sizes to try (of %s; default all)" % [c["hidden"] for c in CANDIDATES])
+    p.add_argument("--steps", type=int, default=600, help="training steps per candidate (default 600)")
+    p.add_argument("--batch", type=int, default=16, help="slides per step (default 16)")
+    p.add_argument("--views", type=int, default=512, help="read views kept per slide per step (default 512)")
+    p.add_argument("--lr", type=float, default=2e-3)
+    p.add_argument("--weight-decay", type=float, default=1e-4)
+    p.add_argument("--eval-every", type=int, default=50, help="validation scoring every N steps (default 50)")
+    p.add_argument("--rotate", type=int, default=None, metavar="SEED",
+                   help="multiply the features by a fixed random orthogonal matrix drawn from SEED")
+    p.add_argument("--score", default=None, metavar="HEAD", help="score the saved head HEAD on --split instead "
+                                                                  "of fitting")
+    p.add_argument("--split", default="test", help="split --score reads (default test)")
+    p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def run(args, parser=None) -> int:
+    """Fit (or ``--score``) as the module doc says; prints the figures; exit 2 on a refused dataset or head."""
+    if args.score:
+        return score_command(args)
+    if not args.out:
+        return print_error("--out is required to fit a head")
+    import jax
+
+    from baselines.validation import split_train
+
+    t0 = time.perf_counter()
+    progress = not args.quiet
+    try:
+        spec = read_spec(args.dataset)
+        if not 0.0 < args.val_fraction < 1.0:
+            raise FitError(Path(args.dataset) / "dataset.json", f"--val-fraction {args.val_fraction} is not in (0, 1)")
+        try:
+            kept, held = split_train(spec, args.val_fraction, args.split_seed)
+        except ValueError as e:
+            raise FitError(Path(args.dataset) / "dataset.json", str(e)) from None
+        train_slides = load_split(args.dataset, kept, spec, progress, "training slides")
+        val_slides = load_split(args.dataset, held, spec, progress, "validation slides")
+        check_classes(args.dataset, train_slides, val_slides)
+        check_alike(args.dataset, train_slides + val_slides)
+    except (HistojaxDataError, OSError) as e:
+        return print_error(e)
+    q = rotation(args.rotate, train_slides[0]["features"].shape[1]) if args.rotate is not None else None
+    train_slides, val_slides = rotate(train_slides, q), rotate(val_slides, q)
+    val = FlatSet(val_slides)
+    structures = [c for c in CANDIDATES if c["hidden"] in args.hidden]
+    if not structures:
+        return print_error(f"--hidden {args.hidden}: none of the candidate sizes {[c['hidden'] for c in CANDIDATES]}")
+    t_load = time.perf_counter() - t0
+    results, curves, best = {}, {}, None
+    for c in structures:
+        name = f"{c['hidden']} units"
+        head, curve = train(train_slides, val, c, seed=args.seed, steps=args.steps, batch_size=args.batch,
+                            views=args.views, lr=args.lr, weight_decay=args.weight_decay,
+                            eval_every=args.eval_every, progress=progress)
+        top = max(curve, key=lambda r: (r["full"], r["read 0.1"]))
+        results[name] = {**c, "best_step": top["step"], "validation_auc": round(top["full"], 4),
+                         "validation_auc_read_0.1": round(top["read 0.1"], 4)}
+        curves[name] = curve
+        print(f"  {name}: validation AUC {top['full']:.3f} reading everything, {top['read 0.1']:.3f} reading 10 % "
+              f"(step {top['step']})", file=sys.stderr, flush=True)
+        if best is None or (top["full"], top["read 0.1"]) > best[0]:
+            best = ((top["full"], top["read 0.1"]), name, head)
+    _, chosen, head = best
+    head, slope = calibrate(head, val)
+    final = val.aucs(head, fractions=(0.1,), draws=5)
+    where = Path(args.dataset) / "dataset.json"
+    if not final["full"] >= 0.5:
+        return print_error(FitError(where, f"the chosen head's validation AUC is {final['full']:.3f} (< 0.5: it ranks "
+                                           "tumour below normal); nothing saved"))
+    if slope < 0:
+        return print_error(FitError(where, f"the chosen head's calibration slope on validation is {slope:.3f} "
+                                           "(negative: its logit points the wrong way); nothing saved"))
+    wall = time.perf_counter() - t0
+    info = {"fitted_on": {"dataset": str(Path(args.dataset).resolve()), "split": "train (minus validation)",
+                          "slides": len(train_slides), "tumour_slides": int(sum(s["label"] for s in train_slides)),
+                          "seed": args.seed, "rotation_seed": args.rotate},
+            "chosen_on": {"validation_fraction": args.val_fraction, "split_seed": args.split_seed,
+                          "validation_slides": len(val_slides), "candidate": chosen,
+                          "validation_auc": round(final["full"], 4),
+                          "validation_auc_read_0.1": round(final["read 0.1"], 4)},
+            "calibration": {"slope": round(float(head.cal_a), 5), "intercept": round(float(head.cal_b), 5),
+                            "fitted_on": "validation slides, reading everything and reading random 10 % (pooled)"},
+            "training": {"steps": args.steps, "batch_slides": args.batch, "views_per_slide": args.views,
+                         "lr": args.lr, "weight_decay": args.weight_decay, "optimizer": "adamw",
+                         "reads": f"all tissue with p={P_FULL}, else {CELL}x{CELL}-view cells at log-uniform "
+                                  f"[{MIN_READ}, 1]"},
+            "candidates": results, "wall_seconds": round(wall, 1), "load_seconds": round(t_load, 1),
+            "date": datetime.date.today().isoformat(), "jax": jax.__version__,
+            "command": "python -m baselines.reading.learned_head_fit " + " ".join(sys.argv[1:])}
+    head = head.replace(info=json.dumps(info))
+    try:
+        head.save(args.out, extras={"learning_curve.png": curve_png(curves, f"{Path(args.dataset).name}: {head.name}")})
+    except (ValueError, HistojaxDataError, OSError) as e:
+        return print_error(e)
+    print(f"validation AUC {final['full']:.3f} reading everything, {final['read 0.1']:.3f} reading 10 % "
+          f"({len(val_slides)} slides); calibration slope {slope:.3f}")
+    print(f"chosen: {head.name} ({chosen}); saved to {args.out} in {wall:.0f} s")
+    return 0
+
+
+def check_classes(dataset, train_slides: list[dict], val_slides: list[dict]) -> None:
+    """Refuse (``FitError``) fewer than :data:`MIN_SLIDES_PER_CLASS` training slides of a class, or a validation
+    share with one class (its AUC is undefined)."""
+    where = Path(dataset) / "dataset.json"
+    for cls, what in ((1, "tumour"), (0, "normal")):
+        n = sum(int(s["label"] == cls) for s in train_slides)
+        if n < MIN_SLIDES_PER_CLASS:
+            raise FitError(where, f"{n} {what} training slides after the validation share is held out; a learned "
+                                  f"head needs at least {MIN_SLIDES_PER_CLASS} of each class")
+    if len({int(s["label"]) for s in val_slides}) < 2:
+        raise FitError(where, "the validation share holds one class only (its AUC is undefined); use a larger "
+                              "--val-fraction or more slides")
+
+
+def check_alike(dataset, slides: list[dict]) -> None:
+    """Refuse slides whose feature vectors differ in length (``FitError`` naming the first that differs)."""
+    d = slides[0]["features"].shape[1]
+    for s in slides[1:]:
+        if s["features"].shape[1] != d:
+            raise FitError(s["bundle"], f"{s['features'].shape[1]}-d features, but {slides[0]['bundle']} has {d}-d: "
+                                        "one head reads one encoder's features")
+
+
+# ----------------------------------------------------------------------------- scoring a split
+def lesion_classes(slides: list[dict]) -> list[str]:
+    """Each slide's lesion class as :func:`baselines.reading.readers.lesion_of` defines it (``normal`` for label
+    0; ``ITC`` / ``micro`` / ``macro`` by the largest lesion's diameter; ``unknown`` without polygons), the
+    annotation read from the bundle's own ``annotations.geojson``."""
+    from baselines.reading.readers import lesion_of
+    from data_tools.annotations import load_annotations
+
+    out = []
+    for s in slides:
+        if not s["label"]:
+            out.append("normal")
+            continue
+        try:
+            file = own_file(s["bundle"], "annotations.geojson", "annotation")
+            geom = load_annotations(file).tumour
+        except HistojaxDataError:
+            geom = None
+        out.append(lesion_of(geom, s["mpp"])[0])
+    return out
+
+
+def score_command(args) -> int:
+    """``--score HEAD --split S``: AUC of the saved head on split ``S`` reading everything, over all slides and
+    without ITC-only slides."""
+    from histojax.reading.heads.learned import LearnedHead
+
+    try:
+        head = LearnedHead.load(args.score)
+        spec = read_spec(args.dataset)
+        entries = spec.get(args.split)
+        if not isinstance(entries, list) or not entries:
+            raise FitError(Path(args.dataset) / "dataset.json", f"has no {args.split!r} split")
+        slides = load_split(args.dataset, entries, spec, not args.quiet, f"{args.split} slides")
+        if len({s["label"] for s in slides}) < 2:
+            raise FitError(Path(args.dataset) / "dataset.json", f"the {args.split!r} split holds one class only "
+                                                                "(AUC is undefined)")
+        if slides[0]["features"].shape[1] != head.dim:
+            raise FitError(slides[0]["bundle"], f"{slides[0]['features'].shape[1]}-d features; the head reads "
+                                                f"{head.dim}-d")
+    except (HistojaxDataError, ValueError, OSError) as e:
+        return print_error(e)
+    q = rotation(args.rotate, head.dim) if args.rotate is not None else None
+    flat = FlatSet(rotate(slides, q))
+    logits = flat.logits(head)
+    classes = lesion_classes(slides)
+    keep = np.asarray([c != "ITC" for c in classes])
+    y = flat.labels
+    auc_all = roc_auc(logits, y)
+    auc_no_itc = roc_auc(logits[keep], y[keep])
+    counts = {c: classes.count(c) for c in sorted(set(classes))}
+    print(json.dumps({"head": str(args.score), "split": args.split, "slides": len(slides), "classes": counts,
+                      "auc": round(auc_all, 4), "auc_without_itc": round(auc_no_itc, 4),
+                      "accuracy": round(float(np.mean((logits > 0) == (y > 0))), 4)}))
+    return 0
+
+
+def _main():
+    return command_main(add_arguments, run, "python -m baselines.reading.learned_head_fit", __doc__)
+
+
+if __name__ == "__main__":
+    raise SystemExit(_main()())

@@ -1,0 +1,327 @@
+"""Reading and writing slide-head folders safely: one guarded path for every head kind.
+
+A head folder holds ``config.json`` (the head's kind, format and structure: a JSON object) and its parameters
+(``params.npz``: named float arrays), and maybe files its writer listed in ``config.json``'s ``"files"`` (a
+learning curve, a README). Head folders come from other people (a published head, a colleague's run), so
+reading one follows the bundle rules (:func:`data_tools.bundle_format.own_file`):
+
+* **Regular files only.** Each file is ``lstat``-ed before it is opened: a symbolic link, a FIFO, a device
+  or a folder is refused (a FIFO would block ``open``; a link may point anywhere). It is then opened with
+  ``O_NOFOLLOW | O_NONBLOCK`` and ``fstat``-ed again (the file swapped in between is refused too).
+* **Sizes bounded before reading**: ``config.json`` at most :data:`MAX_CONFIG_BYTES` (1 MiB), parameters at
+  most :data:`MAX_PARAMS_BYTES` (64 MiB) on disk, and each array at most that once decompressed.
+* **JSON**: UTF-8, nesting at most :data:`MAX_JSON_DEPTH` deep (checked on the text before parsing: no
+  ``RecursionError``), no ``NaN`` / ``Infinity``, no repeated keys; fields read with strict types
+  (:func:`field`: a bool is ``true``/``false``, not ``"false"``; an int is a JSON integer; a float is finite).
+* **Arrays**: ``allow_pickle=False``; every member's ``.npy`` header (shape, dtype) is checked against the
+  shapes the config implies *before* its data is read: exactly the expected names (no missing, no unused
+  arrays), float dtypes only (no object, complex or structured arrays), the member's size matching its header
+  (no truncated or padded data), finite values.
+
+Any problem raises :class:`HeadFileError` (a ``ValueError``): one line naming the file and the problem.
+
+:func:`save_folder` writes a head atomically: into a marked temporary folder beside the target
+(``.NAME.tmp-XXXXXXXX``, holding :data:`TEMP_MARKER`), ``config.json`` last (it records every file the head
+wrote), then renamed into place in one step (:func:`data_tools.bundle_format.replace_folder`). It never
+replaces a folder that holds anything else: user files, a head of another kind, a link or a plain file.
+"""
+from __future__ import annotations
+
+import io
+import json
+import math
+import os
+import shutil
+import stat
+import uuid
+import zipfile
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.bundle_format import replace_folder
+
+CONFIG = "config.json"
+PARAMS = "params.npz"
+MAX_CONFIG_BYTES = 1 << 20
+"""``config.json`` larger than this (1 MiB) is refused unread."""
+MAX_PARAMS_BYTES = 64 << 20
+"""``params.npz`` larger than this (64 MiB) on disk, or any array in it larger than this decompressed, is refused
+(a head of a 4,096-d encoder with 1,024 hidden units holds 16 MiB of float32)."""
+MAX_JSON_DEPTH = 32
+"""Deepest nesting of JSON arrays / objects read (a head config is 2-3 deep)."""
+TEMP_MARKER = ".histojax-temporary"
+"""The file written inside a temporary head folder: proof that histojax made it (only such folders are removed)."""
+FLOAT_DTYPES = ("float16", "float32", "float64")
+
+
+class HeadFileError(ValueError):
+    """A head folder's file cannot be read or written as a head's: ``"FILE: problem"``, one line."""
+
+    def __init__(self, path, problem: str):
+        self.path, self.problem = os.fspath(path), problem
+        super().__init__(f"{self.path}: {problem}")
+
+
+# ----------------------------------------------------------------------------- guarded reads
+def read_regular(path, max_bytes: int, what: str = "file") -> bytes:
+    """The bytes of ``path`` after checking it is a regular file (not a link, FIFO, device or folder) of at most
+    ``max_bytes`` bytes; ``HeadFileError`` naming it otherwise (or when it is missing)."""
+    path = Path(path)
+    try:
+        st = os.lstat(path)
+    except FileNotFoundError:
+        raise HeadFileError(path, f"missing (a slide head folder holds {CONFIG} and its parameters)") from None
+    except OSError as e:
+        raise HeadFileError(path, f"cannot be read ({e.strerror or e})") from None
+    if stat.S_ISLNK(st.st_mode):
+        raise HeadFileError(path, f"is a symbolic link, not the head's own {what}; refusing to read it")
+    if not stat.S_ISREG(st.st_mode):
+        raise HeadFileError(path, f"is not a regular file (a FIFO, device or folder); refusing to read it as the "
+                                  f"head's {what}")
+    if st.st_size > max_bytes:
+        raise HeadFileError(path, f"{st.st_size:,} bytes, more than the {max_bytes:,} a head's {what} may have; "
+                                  "refusing to read it")
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+    except OSError as e:
+        raise HeadFileError(path, f"cannot be opened ({e.strerror or e})") from None
+    with os.fdopen(fd, "rb") as f:
+        now = os.fstat(f.fileno())
+        if not stat.S_ISREG(now.st_mode) or (now.st_dev, now.st_ino) != (st.st_dev, st.st_ino):
+            raise HeadFileError(path, "changed while it was opened (not the regular file checked); refusing to read it")
+        data = f.read(max_bytes + 1)
+    if len(data) > max_bytes:
+        raise HeadFileError(path, f"grew past {max_bytes:,} bytes while it was read; refusing it")
+    return data
+
+
+def json_depth(text: str) -> int:
+    """The deepest nesting of ``[`` / ``{`` in the JSON ``text`` (brackets inside strings not counted)."""
+    depth = deepest = 0
+    in_string = escaped = False
+    for ch in text:
+        if in_string:
+            if escaped:
+                escaped = False
+            elif ch == "\\":
+                escaped = True
+            elif ch == '"':
+                in_string = False
+        elif ch == '"':
+            in_string = True
+        elif ch in "[{":
+            depth += 1
+            deepest = max(deepest, depth)
+        elif ch in "]}":
+            depth -= 1
+    return deepest
+
+
+def _no_constant(name):
+    raise ValueError(f"{name} is not a number a head config may hold")
+
+
+def _unique(pairs):
+    out = {}
+    for k, v in pairs:
+        if k in out:
+            raise ValueError(f"key {k!r} appears twice")
+        out[k] = v
+    return out
+
+
+def read_config(path, max_bytes: int = MAX_CONFIG_BYTES, max_depth: int = MAX_JSON_DEPTH) -> dict:
+    """The JSON object in ``path`` (a head's ``config.json``), read through :func:`read_regular`: UTF-8, nested at
+    most ``max_depth`` deep, no NaN / Infinity, no repeated key. ``HeadFileError`` naming the file otherwise."""
+    data = read_regular(path, max_bytes, "config")
+    try:
+        text = data.decode("utf-8")
+    except UnicodeDecodeError as e:
+        raise HeadFileError(path, f"not UTF-8 text ({e.reason} at byte {e.start})") from None
+    depth = json_depth(text)
+    if depth > max_depth:
+        raise HeadFileError(path, f"JSON nested {depth} deep, more than the {max_depth} a head config may be")
+    try:
+        cfg = json.loads(text, parse_constant=_no_constant, object_pairs_hook=_unique)
+    except (ValueError, RecursionError) as e:  # JSONDecodeError is a ValueError; so is an over-long integer
+        raise HeadFileError(path, f"not valid JSON ({' '.join(str(e).split())[:160]})") from None
+    if not isinstance(cfg, dict):
+        raise HeadFileError(path, f"holds a JSON {type(cfg).__name__}, not an object (a head config)")
+    return cfg
+
+
+_MISSING = object()
+
+
+def field(cfg: dict, key: str, kind: type, where, default=_MISSING, lo=None, hi=None):
+    """``cfg[key]`` checked to be of ``kind`` (``bool``, ``int``, ``float``, ``str``, ``list`` or ``dict``), strictly:
+    a bool must be ``true`` / ``false`` (not ``"false"`` or 0), an int a JSON integer (not ``true`` or 2.0), a float
+    a finite number; numbers within ``[lo, hi]`` when given. ``default`` when absent (else refused).
+    ``HeadFileError`` naming ``where`` (the config file) and the key."""
+    if key not in cfg:
+        if default is _MISSING:
+            raise HeadFileError(where, f"lacks {key!r}")
+        return default
+    v = cfg[key]
+    if kind is bool:
+        ok = type(v) is bool
+    elif kind is int:
+        ok = type(v) is int
+    elif kind is float:
+        ok = type(v) in (int, float) and math.isfinite(v)
+        v = float(v) if ok else v
+    else:
+        ok = isinstance(v, kind)
+    if not ok:
+        what = ("a finite number" if kind is float else "an int" if kind is int else
+                f"a {getattr(kind, '__name__', None) or ' or '.join(k.__name__ for k in kind)}")
+        raise HeadFileError(where, f"{key!r} is {json.dumps(v)[:60]}, not {what}")
+    if (lo is not None and v < lo) or (hi is not None and v > hi):
+        raise HeadFileError(where, f"{key!r} is {v}, outside [{lo}, {hi}]")
+    return v
+
+
+def read_arrays(path, shapes: dict, max_bytes: int = MAX_PARAMS_BYTES) -> dict:
+    """The float arrays of the ``.npz`` at ``path`` as float32, exactly the names of ``shapes`` (name -> shape
+    tuple) with those shapes. Every member's ``.npy`` header is checked before its data is read: a missing or
+    unused array, a non-float dtype (object, complex, structured), another shape, a member whose size disagrees
+    with its header (truncated), more than ``max_bytes`` decompressed, non-finite values, an empty or truncated
+    archive: ``HeadFileError`` naming the file, one line. ``allow_pickle`` is never on."""
+    path = Path(path)
+    data = read_regular(path, max_bytes, "parameters")
+    if not data:
+        raise HeadFileError(path, "empty file (not a .npz archive of the head's parameters)")
+    try:
+        zf = zipfile.ZipFile(io.BytesIO(data))
+    except (zipfile.BadZipFile, zipfile.LargeZipFile, OSError, ValueError, EOFError) as e:
+        raise HeadFileError(path, f"not a complete .npz archive (truncated or another format: {e})") from None
+    with zf:
+        infos = zf.infolist()
+        names = [i.filename[:-4] if i.filename.endswith(".npy") else i.filename for i in infos]
+        if len(set(names)) != len(names) or any(not i.filename.endswith(".npy") for i in infos):
+            raise HeadFileError(path, "holds repeated or non-.npy members; not a head's parameters")
+        missing = sorted(set(shapes) - set(names))
+        unused = sorted(set(names) - set(shapes))
+        if missing:
+            raise HeadFileError(path, f"lacks the arrays {', '.join(missing)}")
+        if unused:
+            raise HeadFileError(path, f"holds arrays this head does not use ({', '.join(unused[:5])}); refusing it")
+        out = {}
+        for info, name in zip(infos, names):
+            if info.file_size > max_bytes:
+                raise HeadFileError(path, f"array {name} is {info.file_size:,} bytes decompressed, more than "
+                                          f"{max_bytes:,}; refusing it")
+            try:
+                with zf.open(info) as f:
+                    version = np.lib.format.read_magic(f)
+                    read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
+                                   else np.lib.format.read_array_header_2_0)
+                    shape, fortran, dtype = read_header(f)
+                    header = f.tell()
+                    if dtype.hasobject or dtype.fields is not None or dtype.subdtype is not None \
+                            or dtype.name not in FLOAT_DTYPES:
+                        raise HeadFileError(path, f"array {name} has dtype {dtype}; a head's parameters are floats "
+                                                  f"({', '.join(FLOAT_DTYPES)})")
+                    want = tuple(shapes[name])
+                    if tuple(shape) != want:
+                        raise HeadFileError(path, f"array {name} has shape {tuple(shape)}, the config implies {want}")
+                    nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
+                    if info.file_size != header + nbytes:
+                        raise HeadFileError(path, f"array {name} holds {info.file_size - header:,} data bytes, its "
+                                                  f"header says {nbytes:,} (truncated or padded)")
+                    raw = f.read(nbytes)
+                if len(raw) != nbytes:
+                    raise HeadFileError(path, f"array {name} is truncated")
+                arr = np.frombuffer(raw, dtype=dtype)
+                arr = arr.reshape(shape, order="F" if fortran else "C").astype(np.float32)
+            except HeadFileError:
+                raise
+            except (ValueError, OSError, EOFError, zipfile.BadZipFile, NotImplementedError) as e:
+                problem = " ".join(str(e).split())[:160] or type(e).__name__
+                raise HeadFileError(path, f"array {name} unreadable ({problem})") from None
+            if not np.all(np.isfinite(arr)):
+                raise HeadFileError(path, f"array {name} holds non-finite values")
+            out[name] = arr
+    return out
+
+
+# ----------------------------------------------------------------------------- atomic writes
+def _refuse_to_replace(folder: Path, kind: str) -> None:
+    """Refuse (``HeadFileError``) to replace ``folder`` unless it is absent, empty, or a head folder of ``kind``
+    holding only the files its ``config.json`` lists (``"files"``) besides ``config.json`` itself."""
+    if not (folder.exists() or folder.is_symlink()):
+        return
+    if folder.is_symlink() or not folder.is_dir():
+        raise HeadFileError(folder, "is a link or a file, not a head folder; refusing to replace it")
+    entries = sorted(p.name for p in folder.iterdir())
+    if not entries:
+        return
+    if CONFIG not in entries:
+        raise HeadFileError(folder, f"holds files that are not a slide head's (no {CONFIG}: e.g. {entries[0]!r}); "
+                                    "refusing to overwrite it (choose another folder)")
+    try:
+        cfg = read_config(folder / CONFIG)
+    except HeadFileError as e:
+        raise HeadFileError(folder, f"holds a {CONFIG} that is not a slide head's ({e.problem}); refusing to "
+                                    "overwrite it") from None
+    other = cfg.get("kind")
+    if other != kind:
+        raise HeadFileError(folder, f"holds a head of kind {other!r}; refusing to overwrite it with a {kind!r} head "
+                                    "(choose another folder)")
+    listed = cfg.get("files")
+    listed = set(listed) if isinstance(listed, list) and all(isinstance(n, str) for n in listed) else {PARAMS}
+    foreign = [n for n in entries if n != CONFIG and n not in listed]
+    if foreign:
+        raise HeadFileError(folder, f"holds files the head there did not write (e.g. {foreign[0]!r}); refusing to "
+                                    "overwrite it (remove them yourself or choose another folder)")
+    links = [n for n in entries if (folder / n).is_symlink() or not (folder / n).is_file()]
+    if links:
+        raise HeadFileError(folder, f"entry {links[0]!r} is not a regular file; refusing to overwrite the folder")
+
+
+def save_folder(folder, config: dict, arrays: dict, extras: dict | None = None) -> Path:
+    """Write a head folder atomically: ``params.npz`` (``arrays``: name -> float array, saved float32),
+    ``extras`` (file name -> bytes, e.g. a learning curve PNG) and ``config.json`` (``config`` plus ``"files"``,
+    the names of every file written besides itself), into a marked temporary folder beside ``folder`` that is
+    then renamed onto it in one step. Refused (``HeadFileError``, nothing written) when ``folder`` holds
+    anything but a head of the same ``config["kind"]`` and the files it listed. Returns ``folder``."""
+    folder = Path(folder)
+    kind = config.get("kind")
+    if not isinstance(kind, str):
+        raise ValueError("a head config needs a string 'kind'")
+    extras = dict(extras or {})
+    for name in extras:
+        if not isinstance(name, str) or name in (CONFIG, PARAMS, TEMP_MARKER) or Path(name).name != name \
+                or name.startswith("."):
+            raise ValueError(f"extra file name {name!r} is not a plain file name a head folder may hold")
+    _refuse_to_replace(folder, kind)
+    folder.parent.mkdir(parents=True, exist_ok=True)
+    tmp = folder.parent / f".{folder.name}.tmp-{uuid.uuid4().hex[:8]}"
+    try:
+        tmp.mkdir()
+        (tmp / TEMP_MARKER).write_bytes(b"histojax temporary head folder: removed when the write ends\n")
+        with open(tmp / PARAMS, "wb") as f:
+            np.savez(f, **{k: np.asarray(v, np.float32) for k, v in arrays.items()})
+        for name, data in extras.items():
+            (tmp / name).write_bytes(data)
+        cfg = {**config, "files": [PARAMS, *sorted(extras)]}
+        (tmp / CONFIG).write_text(json.dumps(cfg, indent=1, default=_plain, allow_nan=False) + "\n")
+        for name in os.listdir(tmp):
+            if name != TEMP_MARKER:
+                with open(tmp / name, "rb+") as f:
+                    os.fsync(f.fileno())
+        (tmp / TEMP_MARKER).unlink()
+        replace_folder(tmp, folder)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        raise
+    return folder
+
+
+def _plain(v):
+    if isinstance(v, (np.floating, np.integer)):
+        return v.item()
+    if isinstance(v, np.ndarray):
+        return v.tolist()
+    return str(v)

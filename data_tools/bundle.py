@@ -36,7 +36,7 @@ from data_tools.errors import BundleError
 from data_tools.bundle_format import (  # noqa: F401  (re-exported: the format's names, as before)
     ANNOTATIONS, FORMAT_VERSION, LEVEL_SETS, REGION, TISSUE, MAX_FLAT_PIXELS, METADATA, READ_VERSIONS, STORAGES, TILED_FORMAT_VERSION, Bundle,
     atomic_folder, bundle_downsamples, check_replaceable, default_magnification_range, device_bytes, level_device_bytes,
-    level_downsamples, level_files, level_size, load_bundle, read_metadata, sha256, write_metadata)
+    level_downsamples, level_files, level_size, load_bundle, read_metadata, sha256, write_metadata, TEMP_MARKER)
 from data_tools.raster import pad, resample
 
 
@@ -220,7 +220,7 @@ def build_bundle(
         check_replaceable(out_dir)
         remove_stale_builds(out_dir)
         with atomic_folder(out_dir) as tmp:
-            tmp.mkdir()
+            tmp.mkdir(exist_ok=True)
             _build_into(tmp, slide_path, out_dir, annotations_path, level_sets, tile_size, magnification_range,
                         label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
                         band_bytes, reader)
@@ -334,7 +334,7 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
         cache = None
         geojson = annotations_to_geojson(ann) if ann is not None else {"type": "FeatureCollection", "features": []}
         (tmp / ANNOTATIONS).write_text(json.dumps(geojson))
-        files = sorted(p.name for p in tmp.iterdir())
+        files = sorted(p.name for p in tmp.iterdir() if p.name != TEMP_MARKER)  # not the temporary's marker
         metadata = {
             "format_version": FORMAT_VERSION if storage == "dense" else TILED_FORMAT_VERSION,
             "storage": storage,
@@ -429,18 +429,16 @@ def build_lock(out_dir):
 def remove_stale_builds(out_dir) -> list[Path]:
     """Remove the hidden ``.NAME.tmp-*`` / ``.NAME.old-*`` folders beside ``out_dir`` left by builds that were
     killed (call it holding :func:`build_lock`: every live build of ``out_dir`` holds it, so any such folder
-    belongs to a dead one), and the leftovers of killed builds of other names beside it that no live process
-    holds (:func:`data_tools.datasets.locks.clean_stale_builds`: only folders of bundle files, and free lock
-    files). Returns the paths removed."""
+    belongs to a dead one) — only folders histojax marked as its temporaries
+    (:func:`data_tools.bundle_format.is_our_temporary`; a user's file or folder of that name stays) — and the
+    leftovers of killed builds of other names beside it that no live process holds
+    (:func:`data_tools.datasets.locks.clean_stale_builds`). Returns the paths removed."""
+    from data_tools.bundle_format import remove_temporary
     from data_tools.datasets.locks import clean_stale_builds
 
     out_dir = Path(out_dir)
     stale = [p for kind in ("tmp", "old") for p in out_dir.parent.glob(f".{glob.escape(out_dir.name)}.{kind}-*")]
-    for p in stale:
-        if p.is_dir() and not p.is_symlink():
-            shutil.rmtree(p, ignore_errors=True)
-        else:
-            p.unlink(missing_ok=True)
+    stale = [p for p in stale if remove_temporary(p)]
     others = clean_stale_builds(out_dir.parent, keep=(out_dir.name,))  # killed builds of other names
     return stale + [out_dir.parent / n.split(" (")[0] for n in others]
 

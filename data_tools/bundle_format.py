@@ -28,6 +28,7 @@ import hashlib
 import json
 import math
 import os
+import re
 import shutil
 import uuid
 from dataclasses import dataclass
@@ -349,25 +350,85 @@ def text_digest(text: str | bytes, length: int = 16) -> str:
 
 
 # ----------------------------------------------------------------------------- atomic writes
+TEMP_MARKER = ".histojax-temporary"
+"""The file histojax writes inside every temporary folder it makes (``.NAME.tmp-XXXXXXXX``, ``.NAME.old-XXXXXXXX``):
+the cleaners of killed runs delete or rename only folders holding it (:func:`is_our_temporary`); anything else of
+that name is the user's and is left alone."""
+TEMP_MARKER_TEXT = b"histojax temporary folder: made by a build, removed when it ends or by the next run\n"
+TEMP_NAME = re.compile(r"^\..+\.(?:tmp|old)-[0-9A-Za-z]+$")
+"""Names of histojax's temporaries (``.NAME.tmp-XXXXXXXX``, ``.NAME.old-XXXXXXXX``); only the marker proves one."""
+SHORT_WRITE = "requested and"  # numpy's words for a short write (``N requested and M written``): the disk is full
+
+
+def mark_temporary(folder) -> Path:
+    """Create the folder ``folder`` (and its parents) if absent and write :data:`TEMP_MARKER` inside it: the proof
+    that histojax made it as a temporary (see :func:`is_our_temporary`). Returns ``folder``."""
+    folder = Path(folder)
+    folder.mkdir(parents=True, exist_ok=True)
+    (folder / TEMP_MARKER).write_bytes(TEMP_MARKER_TEXT)
+    return folder
+
+
+def is_our_temporary(path) -> bool:
+    """True when ``path`` is a real folder (not a link) holding histojax's :data:`TEMP_MARKER` (a regular file
+    with its exact text): a temporary a histojax build made. A plain file, a link or a folder without the
+    marker is not, whatever its name."""
+    path = Path(path)
+    marker = path / TEMP_MARKER
+    try:
+        if path.is_symlink() or not path.is_dir() or marker.is_symlink() or not marker.is_file():
+            return False
+        if marker.stat().st_size != len(TEMP_MARKER_TEXT):
+            return False
+        return marker.read_bytes() == TEMP_MARKER_TEXT
+    except OSError:
+        return False
+
+
+def remove_temporary(path) -> bool:
+    """Delete the folder ``path`` when :func:`is_our_temporary` proves histojax made it; returns whether it did."""
+    if not is_our_temporary(path):
+        return False
+    shutil.rmtree(path, ignore_errors=True)
+    return True
+
+
+def _disk_full_text(e: OSError) -> OSError | None:
+    """A short write (numpy's ``N requested and M written``, no errno) as the ``ENOSPC`` it is, else None."""
+    import errno
+
+    if e.errno is None and SHORT_WRITE in str(e):
+        return OSError(errno.ENOSPC, f"No space left on device ({e})")
+    return None
+
+
 @contextlib.contextmanager
 def atomic_file(path):
-    """Yield a temporary sibling path of ``path`` (``.NAME.tmp-XXXXXXXX``); when the block ends the
-    file there is fsync-ed and ``os.replace``-d onto ``path`` (readers never see half a file). On an
-    error the temporary file is removed and ``path`` is left as it was."""
+    """Yield a temporary path for ``path``'s new content, inside a hidden marked folder beside it
+    (``.NAME.tmp-XXXXXXXX/NAME``, see :func:`mark_temporary`); when the block ends the file there is fsync-ed and
+    ``os.replace``-d onto ``path`` (readers never see half a file) and the folder removed. On an error the
+    temporary folder is removed and ``path`` is left as it was; an ``OSError`` names ``path`` (not the temporary),
+    and a short write (a full disk) says "No space left on device"."""
     path = Path(path)
-    tmp = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    folder = path.with_name(f".{path.name}.tmp-{uuid.uuid4().hex[:8]}")
+    tmp = folder / path.name
     try:
+        mark_temporary(folder)
         yield tmp
         with open(tmp, "rb+") as f:
             os.fsync(f.fileno())
         os.replace(tmp, path)
+        shutil.rmtree(folder, ignore_errors=True)
     except OSError as e:
-        tmp.unlink(missing_ok=True)
-        if e.filename is None:  # a full disk inside json.dump / np.save names no file: name the one written
+        shutil.rmtree(folder, ignore_errors=True)
+        full = _disk_full_text(e)
+        if full is not None:
+            raise OSError(full.errno, full.strerror, str(path)) from None
+        if e.filename is None or str(folder) in str(e.filename):  # name the file written, not its temporary
             raise OSError(e.errno, e.strerror or str(e), str(path)) from None
         raise
     except BaseException:
-        tmp.unlink(missing_ok=True)
+        shutil.rmtree(folder, ignore_errors=True)
         raise
 
 
@@ -429,7 +490,8 @@ def foreign_entries(out_dir) -> list[str]:
     its checksums list, :data:`BUNDLE_EXTRAS` nor a hidden ``.NAME.tmp-*`` of an interrupted atomic write.
     Empty when the folder is a bundle as histojax wrote it (or is empty)."""
     out_dir = Path(out_dir)
-    entries = sorted(p.name for p in out_dir.iterdir())
+    entries = sorted(p.name for p in out_dir.iterdir() if not (p.name == TEMP_MARKER and p.is_file()
+                                                                and not p.is_symlink()))
     meta = out_dir / METADATA
     try:
         if meta.is_symlink() or not meta.is_file():
@@ -444,11 +506,55 @@ def foreign_entries(out_dir) -> list[str]:
     foreign = []
     for name in entries:
         p = out_dir / name
-        if name.startswith(".") and ".tmp-" in name and not p.is_symlink():
+        if name.startswith(".") and ".tmp-" in name and is_our_temporary(p):
             continue
-        if name not in known or p.is_symlink() or (name != "features.partial" and not p.is_file()):
+        if name not in known or p.is_symlink() or (name != PARTIAL and not p.is_file()):
             foreign.append(name)
+        elif name == PARTIAL:
+            foreign += [f"{PARTIAL}/{n}" for n in partial_foreign(p)]
     return foreign
+
+
+PARTIAL = "features.partial"
+"""The folder of an unfinished feature grid inside a bundle: ``settings.json`` and ``NNNNNN.npy`` chunks."""
+PARTIAL_ENTRY = re.compile(r"^(?:settings\.json|[0-9]{6}\.npy)$")
+
+
+def partial_foreign(partial) -> list[str]:
+    """The entries of ``BUNDLE/features.partial`` histojax did not write (anything but ``settings.json``, regular
+    ``NNNNNN.npy`` chunk files and marked temporaries); everything when it is not a real folder."""
+    partial = Path(partial)
+    if partial.is_symlink() or not partial.is_dir():
+        return [partial.name]
+    foreign = []
+    for p in sorted(partial.iterdir()):
+        if PARTIAL_ENTRY.match(p.name) and not p.is_symlink() and p.is_file():
+            continue
+        if p.name.startswith(".") and ".tmp-" in p.name and is_our_temporary(p):
+            continue
+        foreign.append(p.name)
+    return foreign
+
+
+def remove_partial(partial) -> bool:
+    """Delete what histojax wrote in ``BUNDLE/features.partial`` (its chunks, settings and marked temporaries),
+    then the folder if that left it empty; anything else (a user's file) stays. Returns whether it is gone."""
+    partial = Path(partial)
+    if partial.is_symlink() or not partial.is_dir():
+        return False
+    foreign = set(partial_foreign(partial))
+    for p in partial.iterdir():
+        if p.name in foreign:
+            continue
+        if p.is_dir():
+            shutil.rmtree(p, ignore_errors=True)
+        else:
+            p.unlink(missing_ok=True)
+    try:
+        partial.rmdir()
+    except OSError:
+        return False
+    return True
 
 
 def check_replaceable(out_dir) -> None:
@@ -462,7 +568,7 @@ def check_replaceable(out_dir) -> None:
     if out_dir.is_symlink() or not out_dir.is_dir():
         raise BundleError(out_dir, "is a file, not a bundle folder; refusing to overwrite it (remove it yourself "
                           "or choose another --out)")
-    if not any(out_dir.iterdir()):
+    if not any(p.name != TEMP_MARKER for p in out_dir.iterdir()):
         return
     if (out_dir / "dataset.json").exists() or (out_dir / "dataset.json").is_symlink():
         raise BundleError(out_dir, "holds a dataset.json (a dataset folder, not a bundle); refusing to overwrite "
@@ -500,14 +606,25 @@ def replace_folder(new, out_dir) -> None:
     """Put the finished folder ``new`` (a sibling of ``out_dir``) at ``out_dir``: swapped in one atomic step
     where the system can (a reader sees the old folder or the new one, never none), else the old folder is
     renamed aside to ``.NAME.old-XXXXXXXX`` first and put back if the second rename fails. The old folder is
-    deleted once the new one is in place. ``out_dir`` must be absent or a folder (not a link)."""
+    marked a temporary (:func:`mark_temporary`) before it moves, so a run killed meanwhile leaves a folder the
+    next run can prove is histojax's, and deleted once the new one is in place; the new ``out_dir`` keeps no
+    marker (unless ``out_dir`` is itself a temporary, ``.NAME.tmp-*``). ``out_dir`` must be absent or a folder
+    (not a link)."""
     new, out_dir = Path(new), Path(out_dir)
+
+    def unmark() -> None:
+        if not TEMP_NAME.match(out_dir.name):
+            (out_dir / TEMP_MARKER).unlink(missing_ok=True)
+
     if not (out_dir.exists() or out_dir.is_symlink()):
         new.rename(out_dir)
+        unmark()
         return
     if out_dir.is_symlink() or not out_dir.is_dir():
         raise BundleError(out_dir, "is a file, not a bundle folder; refusing to replace it")
+    mark_temporary(out_dir)
     if _exchange(new, out_dir):
+        unmark()
         shutil.rmtree(new, ignore_errors=True)  # now the old folder
         return
     old = out_dir.parent / f".{out_dir.name}.old-{uuid.uuid4().hex[:8]}"
@@ -516,19 +633,23 @@ def replace_folder(new, out_dir) -> None:
         new.rename(out_dir)
     except BaseException:
         old.rename(out_dir)  # put the previous folder back
+        unmark()
         raise
+    unmark()
     shutil.rmtree(old, ignore_errors=True)
 
 
 @contextlib.contextmanager
 def atomic_folder(out_dir):
-    """Yield a temporary sibling folder of ``out_dir`` (``.NAME.tmp-XXXXXXXX``) to fill; when the block
-    ends it replaces ``out_dir`` (:func:`replace_folder`: an atomic swap where the system can, else the
-    previous ``out_dir`` is moved aside first and put back if the rename fails), so a crash leaves nothing
-    that looks like a bundle. On an error the temporary folder is removed and ``out_dir`` is left as it was."""
+    """Yield a temporary sibling folder of ``out_dir`` (``.NAME.tmp-XXXXXXXX``, created and marked as histojax's,
+    :func:`mark_temporary`) to fill; when the block ends it replaces ``out_dir`` (:func:`replace_folder`: an atomic
+    swap where the system can, else the previous ``out_dir`` is moved aside first and put back if the rename
+    fails), so a crash leaves nothing that looks like a bundle. On an error the temporary folder is removed and
+    ``out_dir`` is left as it was."""
     out_dir = Path(out_dir)
     tmp = out_dir.parent / f".{out_dir.name}.tmp-{uuid.uuid4().hex[:8]}"
     try:
+        mark_temporary(tmp)
         yield tmp
         replace_folder(tmp, out_dir)
     except BaseException:
@@ -794,6 +915,35 @@ def load_array(path, name: str, metadata: dict, verify: bool, mmap: bool = False
             raise BundleError(file, f"unreadable array ({problem}); rebuild the bundle") from None
 
 
+def bundle_damage(path) -> str | None:
+    """None when the bundle at ``path`` is whole: its ``metadata.json`` reads and its seal matches, and every
+    file its checksums list is the bundle's own regular file (:func:`own_file`) with the recorded SHA-256 (every
+    byte of every file is read: seconds per GB). Else one line naming the file and what is wrong. Used by dataset
+    reruns to decide that a finished slide's bundle must be built again."""
+    import warnings
+
+    path = Path(path)
+    try:
+        metadata = read_metadata(path)
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")  # a bundle sealed before metadata.json was: its files still checked
+            verify_metadata(path, metadata)
+        for name, digest in metadata["checksums"].items():
+            file = own_file(path, name, "file")
+            fd = os.open(file, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))
+            h = hashlib.sha256()
+            with os.fdopen(fd, "rb") as f:
+                for chunk in iter(lambda: f.read(1 << 20), b""):
+                    h.update(chunk)
+            if h.hexdigest() != digest:
+                return f"{file}: checksum mismatch (the file changed or is corrupt)"
+    except BundleError as e:
+        return str(e)
+    except OSError as e:
+        return f"{e.filename or path}: {e.strerror or e}"
+    return None
+
+
 def own_file(bundle, name: str, what: str = "file") -> Path:
     """``BUNDLE/NAME`` after checking that the entry is the bundle's own regular file: a plain name
     (:func:`safe_name`), present, not a symbolic link (``os.lstat``), a regular file (not a FIFO, device or
@@ -985,4 +1135,4 @@ __all__ = ["ANNOTATIONS", "Bundle", "BundleMetadata", "FEATURES_COMMAND", "FORMA
            "TISSUE", "TiledLevel", "atomic_file", "atomic_folder", "bundle_downsamples", "default_magnification_range",
            "device_bytes", "drop_pixels", "feature_bytes", "file_digest", "slide_device_bytes", "tumour_table_bytes", "select_levels", "grid_shape", "level_device_bytes", "level_downsamples", "level_files",
            "level_grids", "level_size", "load_array", "load_bundle", "load_feature_levels", "load_tiled_level",
-           "read_metadata", "save_array", "sha256", "stable_read", "check_replaceable", "verify_metadata", "metadata_digest", "METADATA_DIGEST", "check_mask", "check_fields", "safe_name", "own_file", "foreign_entries", "replace_folder", "text_digest", "tiled_level_files", "write_json", "write_metadata"]
+           "read_metadata", "save_array", "sha256", "stable_read", "check_replaceable", "verify_metadata", "metadata_digest", "METADATA_DIGEST", "check_mask", "check_fields", "safe_name", "own_file", "foreign_entries", "replace_folder", "bundle_damage", "TEMP_MARKER", "mark_temporary", "is_our_temporary", "remove_temporary", "PARTIAL", "partial_foreign", "remove_partial", "text_digest", "tiled_level_files", "write_json", "write_metadata"]

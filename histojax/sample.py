@@ -38,7 +38,7 @@ def sample_feature_bundle() -> Path:
     if not (out.is_dir() and read_metadata(out).features):
         if not out.is_dir():
             with atomic_folder(out) as tmp:
-                shutil.copytree(source, tmp)
+                shutil.copytree(source, tmp, dirs_exist_ok=True)
         t0 = time.perf_counter()
         compute_features(out)
         print(f"computed the feature grid of {out} in {time.perf_counter() - t0:.1f} s")

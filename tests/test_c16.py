@@ -15,6 +15,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+
+from data_tools.bundle_format import mark_temporary
 import shapely
 
 from data_tools.errors import AnnotationError, BundleError, HistojaxDataError
@@ -189,7 +191,7 @@ def test_killed_run_leaves_no_temporaries_and_resumes(small, tmp_path):
     out = tmp_path / "killed"
     (out / "slides").mkdir(parents=True)
     (out / "bundles").mkdir()
-    (out / "bundles" / ".Old.tmp-deadbeef").mkdir()  # as build_bundle leaves one when killed
+    mark_temporary(out / "bundles" / ".Old.tmp-deadbeef")  # as build_bundle leaves one when killed
     proc = subprocess.Popen([sys.executable, "-m", "data_tools", "c16", "--small", "--quiet", "--out", str(out)],
                             cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     try:
@@ -201,7 +203,7 @@ def test_killed_run_leaves_no_temporaries_and_resumes(small, tmp_path):
         proc.wait()
     first = (out / "slides" / "Tumor_072.tif").stat().st_mtime_ns
     assert not (out / "dataset.json").exists()
-    (out / "slides" / ".Tumor_082.tif.tmp-999999").write_bytes(b"half a tiff")  # whatever the kill hit
+    (mark_temporary(out / "slides" / ".Tumor_082.tif.tmp-999999") / "Tumor_082.tif").write_bytes(b"half a tiff")
     ds = make_c16_dataset(out, small=True, progress=False)
     assert (out / "slides" / "Tumor_072.tif").stat().st_mtime_ns == first  # not made again
     assert not list(out.rglob(".*.tmp-*")) and not list(out.rglob(".*.old-*"))

@@ -21,6 +21,8 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+
+from data_tools.bundle_format import mark_temporary
 import tifffile
 
 from data_tools.__main__ import main as data_main
@@ -390,13 +392,12 @@ def test_a_build_removes_stale_leftovers_of_other_names(cohort, tmp_path):
 
     slides, _ = cohort
     parent = tmp_path / "bundles"
-    dead = parent / ".other.tmp-0badf00d"
-    dead.mkdir(parents=True)
+    dead = mark_temporary(parent / ".other.tmp-0badf00d")
     (dead / "pixels_00.npy").write_bytes(b"\0" * 1000)
     (parent / ".other.lock").write_text("")  # a killed build's lock file
     (parent / ".gone.dataset-lock").write_text("4242")
     aside = parent / ".prev.old-0badf00d"  # killed between moving the previous bundle aside and the swap
-    aside.mkdir()
+    mark_temporary(aside)
     (aside / "metadata.json").write_text("{}")
     mine = parent / ".notes.tmp-12345678"  # not a bundle's files: not histojax's to judge
     mine.mkdir()
@@ -413,7 +414,7 @@ def test_a_dataset_run_removes_stale_lock_files(built, cohort, tmp_path):
     shutil.copytree(built, work)
     (work / "bundles" / ".s9.dataset-lock").write_text("4242")
     (work / "bundles" / ".s9.lock").write_text("")
-    (work / "records" / ".s1.json.tmp-0badf00d").write_text("{")
+    (mark_temporary(work / "records" / ".s1.json.tmp-0badf00d") / "s1.json").write_text("{")
     s = build_dataset(slides, work, labels=labels, levels=(3,), progress=False)
     assert sorted(s["resumed"]) == ["s1", "s2", "s3"]
     assert not list(work.rglob("*lock")) and not list(work.rglob(".*.tmp-*"))

@@ -16,6 +16,8 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
+
+from data_tools.bundle_format import mark_temporary
 import tifffile
 
 from data_tools.__main__ import main as data_main
@@ -141,9 +143,9 @@ def test_rerun_resumes_and_a_killed_build_is_finished(c16_dataset, tmp_path):
     # a kill during tumor_002: its record gone, a half-written temporary and a stale features folder left
     (work / "records" / "tumor_002.json").unlink()
     shutil.rmtree(work / "bundles" / "tumor_002")
-    (work / "bundles" / ".tumor_002.tmp-dead0001").mkdir()
+    mark_temporary(work / "bundles" / ".tumor_002.tmp-dead0001")
     (work / "bundles" / ".tumor_002.tmp-dead0001" / "levels_00.npy").write_bytes(b"x" * 100)
-    (work / "bundles" / ".other.tmp-dead0002").mkdir()  # a leftover of a name not built again
+    mark_temporary(work / "bundles" / ".other.tmp-dead0002")  # a leftover of a name not built again
     (work / "dataset.json").unlink()
     slides_dir = out.parent.parent / "c16" / "CAMELYON16"
     slides_dir = next(out.parent.parent.glob("c16*/CAMELYON16"))
@@ -191,8 +193,8 @@ def test_a_bundle_locked_by_another_process_is_skipped(camelyon16, tmp_path):
 
 def test_clean_stale_leaves_a_live_build_alone(tmp_path):
     bundles = tmp_path / "bundles"
-    (bundles / ".live.tmp-00000001").mkdir(parents=True)
-    (bundles / ".dead.tmp-00000002").mkdir()
+    mark_temporary(bundles / ".live.tmp-00000001")
+    mark_temporary(bundles / ".dead.tmp-00000002")
     (bundles / "done" / "features.partial").mkdir(parents=True)  # empty, left by a kill + rerun
     (bundles / "done" / "metadata.json").write_text('{"features": {"encoder": "colour-stats"}}')
     with file_lock(bundle_lock_path(bundles / "live")):
@@ -374,7 +376,7 @@ def test_c16_leaves_no_lock_no_partial_features_and_no_stale_temporaries(tmp_pat
     assert not list(out.rglob("*lock"))  # neither per-slide locks nor a dataset lock stay behind
     done = next(p for p in (out / "bundles").iterdir() if p.is_dir())
     (done / "features.partial").mkdir()  # what the kill during the feature step left, the grid finished since
-    (out / "bundles" / ".Tumor_999.tmp-0badf00d").mkdir()  # a killed build of a name not built again
+    mark_temporary(out / "bundles" / ".Tumor_999.tmp-0badf00d")  # a killed build of a name not built again
     (out / "bundles" / ".Tumor_999.tmp-0badf00d" / "levels_00.npy").write_bytes(b"\0" * 1000)
     make_c16_dataset(out, small=True, n_tumour=1, n_normal=1, features="colour-stats", progress=False)
     assert not list(out.rglob("features.partial")) and not list(out.rglob(".*.tmp-*"))

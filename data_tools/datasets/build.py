@@ -35,7 +35,8 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import foreign_entries, metadata_digest, read_metadata, replace_folder, write_json
+from data_tools.bundle_format import (bundle_damage, foreign_entries, mark_temporary, metadata_digest, read_metadata,
+                                      replace_folder, write_json)
 from data_tools.datasets.locks import LockHeld, bundle_lock_path, clean_partial_features, clean_stale, file_lock
 from data_tools.datasets.split import seeded_split, shard_names
 from data_tools.errors import HistojaxDataError
@@ -239,8 +240,11 @@ def run_locked(out, name: str, work, current=None, staged: bool = False) -> dict
     that temporary, so a previous bundle and its record stay as they were. Not ``staged``:
     ``work() -> record`` builds ``bundles/NAME`` in place and a build error removes it (only when histojax
     wrote every file in it). The record goes to ``records/NAME.json``, a failure to
-    ``records/failed/NAME.json`` with its one-line reason. Returns ``{"name", "status": "built" | "resumed" |
-    "failed" | "busy", "reason"?, "record"?, "kept"?}`` (``kept``: a failed rebuild left the previous bundle).
+    ``records/failed/NAME.json`` with its one-line reason. A current record resumes only while its bundle is
+    whole (:func:`data_tools.bundle_format.bundle_damage`: every checksum checked); a damaged one is built again.
+    Returns ``{"name", "status": "built" | "resumed" | "failed" | "busy", "reason"?, "record"?, "kept"?,
+    "damaged"?}`` (``kept``: a failed rebuild left the previous bundle; ``damaged``: why a finished bundle was
+    built again).
     The one per-slide step of ``data_tools dataset`` and ``data_tools c16``."""
     out = Path(out)
     bundle = out / "bundles" / name
@@ -263,15 +267,19 @@ def run_locked(out, name: str, work, current=None, staged: bool = False) -> dict
 
     try:
         rec = read_record(out, name)
+        damage = None
         if rec is not None and current is not None and current(rec) and (bundle / "metadata.json").is_file():
-            clean_partial_features(bundle)
-            return {"name": name, "status": "resumed", "record": rec}
+            damage = bundle_damage(bundle)  # a bundle changed since (a flipped byte, a file gone) is built again
+            if damage is None:
+                clean_partial_features(bundle)
+                return {"name": name, "status": "resumed", "record": rec}
         try:
             check_bundle_folder(bundle)
         except HistojaxDataError as e:
             return failed(e)
         if staged:
             try:
+                mark_temporary(tmp)  # proof for the next run's cleaning that this folder is histojax's
                 rec = work(tmp)
                 check_bundle_folder(bundle)  # again: files may have been put there meanwhile
                 replace_folder(tmp, bundle)
@@ -293,7 +301,7 @@ def run_locked(out, name: str, work, current=None, staged: bool = False) -> dict
         rec.setdefault("peak_rss_bytes", resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024)
         write_json(record_path(out, name), rec)
         _clear_failed(out, name)
-        return {"name": name, "status": "built", "record": rec}
+        return {"name": name, "status": "built", "record": rec, **({"damaged": damage} if damage else {})}
     finally:
         lock.__exit__(None, None, None)
 

@@ -29,7 +29,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import atomic_file, read_metadata, sha256, write_json
+from data_tools.bundle_format import atomic_file, bundle_damage, read_metadata, sha256, write_json
 from data_tools.datasets.c16_layout import C16_MPP, donor_for, layout
 from data_tools.datasets.c16_inputs import check_known_inputs, differing_lines
 from data_tools.datasets.c16_mosaic import PIXELS_NOTE, Texture, write_slide_tiff
@@ -142,7 +142,8 @@ def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float
             meta = read_metadata(bundle)
             whole = len(meta.pixel_levels) == len(meta.levels)
             if meta.source["sha256"] == prov["tiff_sha256"] and meta.magnification_range == magnification_range \
-                    and (whole or (encoder is not None and has_grid_of(meta, encoder))):
+                    and (whole or (encoder is not None and has_grid_of(meta, encoder))) \
+                    and (target == bundle or bundle_damage(bundle) is None):  # a damaged bundle is built again
                 if target == bundle:
                     return meta
                 _link_bundle(bundle, target)
@@ -169,7 +170,7 @@ def _link_bundle(bundle: Path, into: Path) -> None:
     from data_tools.bundle_format import BundleError, own_file
 
     def put(src_dir: Path, dst_dir: Path) -> None:
-        dst_dir.mkdir()
+        dst_dir.mkdir(exist_ok=True)  # the staged temporary exists already (holding histojax's marker)
         for entry in sorted(src_dir.iterdir()):
             if entry.name.startswith("."):
                 continue  # the hidden temporary of a write that was killed: not carried over

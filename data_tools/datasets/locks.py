@@ -8,9 +8,11 @@ The kernel drops the lock of a killed process; a holder removes its lock file wh
 finished run leaves no lock files behind.
 
 Leftovers of killed runs — ``.NAME.tmp-*`` / ``.NAME.old-*`` siblings of any bundle or file,
-and ``features.partial/`` inside a bundle whose feature grid is finished — are removed by
+and the chunks in ``features.partial/`` of a bundle whose feature grid is finished — are removed by
 :func:`clean_stale` only when nobody holds the locks of ``NAME`` (a live build's temporaries are left
-alone).
+alone) and only when histojax can prove it made them: every temporary folder it creates holds its marker
+(:func:`data_tools.bundle_format.mark_temporary`). A file or folder of such a name without the marker is the
+user's: neither removed nor renamed.
 """
 from __future__ import annotations
 
@@ -22,6 +24,7 @@ import re
 import shutil
 from pathlib import Path
 
+from data_tools.bundle_format import TEMP_MARKER, is_our_temporary, partial_foreign, remove_partial
 from data_tools.errors import HistojaxDataError
 
 STALE = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-[0-9a-zA-Z]+$")
@@ -30,8 +33,6 @@ LOCK_FILE = re.compile(r"^\.(?P<name>.+)\.(?:dataset-)?lock$")
 """Lock files of :func:`file_lock` (``.NAME.dataset-lock``) and of the bundle builder (``.NAME.lock``)."""
 BUILD_TEMP = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-[0-9a-f]{8}$")
 """A temporary (or moved-aside) bundle folder of :func:`data_tools.bundle_format.atomic_folder`."""
-BUNDLE_ENTRY = re.compile(r"^(?:[A-Za-z0-9_]+\.npy|metadata\.json|annotations\.geojson|features\.partial|\..+\.tmp-[0-9a-f]{8})$")
-"""Names a bundle (or one being built) holds."""
 
 
 class LockHeld(HistojaxDataError):
@@ -122,7 +123,7 @@ def clean_stale(folder, finished_features: bool = True, lock_folder=None) -> lis
         return removed
     for p in sorted(folder.iterdir()):
         m = STALE.match(p.name)
-        if not m:
+        if not m or not is_our_temporary(p):  # a user's entry of that name: not ours to remove or rename
             continue
         names = dict.fromkeys([m["name"], m["name"].split(".")[0]])
         with contextlib.ExitStack() as stack:
@@ -130,15 +131,12 @@ def clean_stale(folder, finished_features: bool = True, lock_folder=None) -> lis
                        for n in names for kind in ("dataset-lock", "lock")):
                 continue
             target = folder / m["name"]
-            if m["kind"] == "old" and p.is_dir() and not p.is_symlink() and not (target.exists()
-                                                                                 or target.is_symlink()):
+            if m["kind"] == "old" and not (target.exists() or target.is_symlink()):
                 p.rename(target)  # killed between moving the previous bundle aside and the swap: put it back
+                (target / TEMP_MARKER).unlink(missing_ok=True)
                 removed.append(f"{p.name} (restored as {m['name']})")
                 continue
-            if p.is_dir() and not p.is_symlink():
-                shutil.rmtree(p, ignore_errors=True)
-            else:
-                p.unlink(missing_ok=True)
+            shutil.rmtree(p, ignore_errors=True)
             removed.append(p.name)
     removed += clean_lock_files(folder)
     if finished_features:
@@ -175,7 +173,7 @@ def clean_lock_files(folder) -> list[str]:
 def clean_stale_builds(folder, keep=()) -> list[str]:
     """Leftovers of killed bundle builds of any name in ``folder`` (any user's folder: ``build --out``'s
     parent), removed only when they are provably histojax's and no live process holds their locks: hidden
-    ``.NAME.tmp-XXXXXXXX`` / ``.NAME.old-XXXXXXXX`` folders holding only bundle files (a ``.NAME.old-*``
+    ``.NAME.tmp-XXXXXXXX`` / ``.NAME.old-XXXXXXXX`` folders holding histojax's marker (a ``.NAME.old-*``
     whose ``NAME`` is gone is put back as ``NAME``: the previous bundle of a swap that was killed), then
     free lock files (:func:`clean_lock_files`). ``keep``: names not to look at (the build in progress).
     Returns the names removed or restored."""
@@ -185,19 +183,15 @@ def clean_stale_builds(folder, keep=()) -> list[str]:
         return removed
     for p in sorted(folder.iterdir()):
         m = BUILD_TEMP.match(p.name)
-        if not m or m["name"] in keep or p.is_symlink() or not p.is_dir():
-            continue
-        try:
-            if not all(BUNDLE_ENTRY.match(e.name) for e in p.iterdir()):
-                continue  # not (only) a bundle's files: not ours to judge
-        except OSError:
-            continue
+        if not m or m["name"] in keep or not is_our_temporary(p):
+            continue  # not a temporary histojax marked: not ours to judge
         with contextlib.ExitStack() as stack:
             if not all(stack.enter_context(_free(folder / f".{m['name']}.{kind}")) for kind in ("dataset-lock", "lock")):
                 continue
             target = folder / m["name"]
             if m["kind"] == "old" and not (target.exists() or target.is_symlink()):
                 p.rename(target)
+                (target / TEMP_MARKER).unlink(missing_ok=True)
                 removed.append(f"{p.name} (restored as {m['name']})")
             else:
                 shutil.rmtree(p, ignore_errors=True)
@@ -206,21 +200,23 @@ def clean_stale_builds(folder, keep=()) -> list[str]:
 
 
 def clean_partial_features(bundle) -> bool:
-    """Remove ``BUNDLE/features.partial`` when it is empty or the bundle's feature grid is finished (its
-    metadata names an encoder); returns whether it was removed. Call holding the bundle's lock."""
+    """Remove what histojax wrote in ``BUNDLE/features.partial`` (:func:`data_tools.bundle_format.remove_partial`)
+    when it holds no chunk or the bundle's feature grid is finished (its metadata names an encoder); a file
+    there histojax did not write stays (and so does the folder). Returns whether the folder is gone. Call
+    holding the bundle's lock."""
     import json
 
     partial = Path(bundle) / "features.partial"
-    if not partial.is_dir():
+    if partial.is_symlink() or not partial.is_dir():
         return False
     done = False
     try:
         done = bool((json.loads((Path(bundle) / "metadata.json").read_text()).get("features") or {}).get("encoder"))
-    except (OSError, ValueError):
+    except (OSError, ValueError, AttributeError):
         pass
-    if done or not any(partial.iterdir()):
-        shutil.rmtree(partial, ignore_errors=True)
-        return True
+    ours = [p for p in partial.iterdir() if p.name not in set(partial_foreign(partial))]
+    if done or not any(p.suffix == ".npy" for p in ours):
+        return remove_partial(partial)
     return False
 
 

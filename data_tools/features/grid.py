@@ -16,13 +16,12 @@ stored as ``features_projection.npy`` (``features_projection_mean.npy``).
 from __future__ import annotations
 
 import json
-import shutil
 from pathlib import Path
 
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import load_bundle, load_tiled_level, read_metadata
+from data_tools.bundle_format import load_bundle, load_tiled_level, read_metadata, remove_partial
 from data_tools.errors import BundleError
 from data_tools.features.store import level_grids, save_array, update_metadata
 
@@ -113,8 +112,8 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
             same = json.loads(settings_file.read_text()) == settings
         except (OSError, json.JSONDecodeError):
             same = False
-        if not same:  # another encoder, stride or slide: start over
-            shutil.rmtree(partial)
+        if not same:  # another encoder, stride or slide: start over (only histojax's chunks are removed)
+            remove_partial(partial)
     partial.mkdir(exist_ok=True)
     settings_file.write_text(json.dumps(settings))
 
@@ -182,7 +181,7 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
         **(encoder.record() if hasattr(encoder, "record") else {}),  # your own: name, version, module:function
     }
     update_metadata(bundle, features, written)
-    shutil.rmtree(partial, ignore_errors=True)
+    remove_partial(partial)
     return features
 
 

@@ -1,0 +1,212 @@
+"""Nothing lost where users now work, the dataset side: reruns of ``histojax dataset`` / ``c16`` remove only the
+temporaries histojax marked as its own, ``build --overwrite`` removes only histojax's files in ``features.partial/``,
+every reader of a dataset checks the ``dataset.json`` seal, a corrupt bundle is rebuilt by a rerun, two runs with
+different options do not share a folder, an own encoder's overflowing or exiting output is refused, imported
+``.h5`` coordinates that miss most of the tissue are reported, and the dataset command's words.
+
+Stand-in slides are small pyramidal TIFFs cut from the real pixels of the embedded CMU-1-Small-Region.svs
+(CC0 1.0, see tests/data/LICENSES.md).
+"""
+from __future__ import annotations
+
+import json
+import shutil
+from pathlib import Path
+
+import numpy as np
+import pytest
+import tifffile
+
+from data_tools.__main__ import main as data_main
+from data_tools.bundle_format import mark_temporary
+from data_tools.datasets.build import build_dataset
+from histojax.sample import SAMPLE_SLIDE
+from slide_helpers import pyramid
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+@pytest.fixture(scope="module")
+def pixels():
+    with tifffile.TiffFile(SAMPLE_SLIDE) as tif:
+        return tif.pages[0].asarray()
+
+
+def crop(pixels, i: int) -> np.ndarray:
+    y, x = 320 + (i * 160) % 1920, 768 + (i * 64) % 512
+    return np.ascontiguousarray(pixels[y:y + 640, x:x + 512, :3])
+
+
+@pytest.fixture(scope="module")
+def cohort(tmp_path_factory, pixels):
+    """Three slides with a label table giving the split: s1, s2 train, s3 test."""
+    root = tmp_path_factory.mktemp("cohort38")
+    for i, name in enumerate(("s1", "s2", "s3")):
+        pyramid(root / "slides" / f"{name}.tif", crop(pixels, i))
+    (root / "labels.csv").write_text("slide,label,split\ns1,0,train\ns2,1,train\ns3,1,test\n")
+    return root / "slides", root / "labels.csv"
+
+
+@pytest.fixture(scope="module")
+def built(tmp_path_factory, cohort):
+    """The cohort built once (levels 3)."""
+    slides, labels = cohort
+    out = tmp_path_factory.mktemp("built38") / "o"
+    s = build_dataset(slides, out, labels=labels, levels=(3,), progress=False)
+    assert s["dataset"] is not None and not s["failed"], s
+    return out
+
+
+def _run(argv, capsys) -> tuple[int, str, str]:
+    code = data_main(argv)
+    cap = capsys.readouterr()
+    return code, cap.out, cap.err
+
+
+def _one_error(argv, capsys) -> str:
+    code, _, err = _run(argv, capsys)
+    assert code == 2, err
+    lines = err.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("error: "), err
+    return lines[0]
+
+
+def _users_entries(folder: Path) -> dict[str, str]:
+    """The entries of the issue's repro: a user's files under names of histojax's temporaries."""
+    (folder / ".notes.tmp-12345678").mkdir(parents=True)
+    (folder / ".notes.tmp-12345678" / "thesis.txt").write_text("chapter 1")
+    (folder / ".a.old-1").mkdir()
+    (folder / ".a.old-1" / "thesis.txt").write_text("chapter 2")
+    (folder / ".zz.tmp-1234").mkdir()
+    (folder / ".c.tmp-abcdefgh").write_text("chapter 3")
+    (folder / ".notes.old-1").mkdir()
+    (folder / ".notes.old-1" / "draft.txt").write_text("chapter 4")
+    return {str(p.relative_to(folder)): (p.read_text() if p.is_file() else "<dir>") for p in folder.rglob("*")
+            if p.name.startswith(".") or p.parent.name.startswith(".")}
+
+
+def _same(folder: Path, before: dict[str, str]) -> None:
+    for rel, content in before.items():
+        p = folder / rel
+        assert p.exists(), f"{rel} was removed"
+        assert (p.read_text() if p.is_file() else "<dir>") == content
+    assert not (folder / "notes").exists() and not (folder / "a").exists()  # nothing renamed
+
+
+# ------------------------------------------------------------------ 1. reruns delete only marked temporaries
+def test_a_dataset_rerun_keeps_the_users_entries_named_like_temporaries(built, cohort, tmp_path):
+    slides, labels = cohort
+    work = tmp_path / "o"
+    shutil.copytree(built, work)
+    before = _users_entries(work / "bundles")
+    records = _users_entries(work / "records")
+    ours = mark_temporary(work / "bundles" / ".s9.tmp-0badf00d")  # a killed build's temporary: removed
+    (ours / "levels_00.npy").write_bytes(b"\0" * 100)
+    s = build_dataset(slides, work, labels=labels, levels=(3,), progress=False)
+    assert sorted(s["resumed"]) == ["s1", "s2", "s3"] and s["dataset"] is not None
+    _same(work / "bundles", before)  # before: every one deleted, .notes.old-1 renamed to bundles/notes
+    _same(work / "records", records)
+    assert not ours.exists()
+
+
+def test_c16_cleaning_keeps_the_users_entries_named_like_temporaries(tmp_path):
+    from data_tools.datasets.c16 import clean_stale
+
+    before = _users_entries(tmp_path / "bundles")
+    slides = _users_entries(tmp_path / "slides")
+    ours = mark_temporary(tmp_path / "slides" / ".Tumor_001.tif.tmp-0badf00d")
+    aside = mark_temporary(tmp_path / "bundles" / ".Tumor_001.old-0badf00d")  # killed mid-swap: put back
+    (aside / "metadata.json").write_text("{}")
+    removed = clean_stale(tmp_path)
+    _same(tmp_path / "bundles", before)
+    _same(tmp_path / "slides", slides)
+    assert not ours.exists() and "slides/.Tumor_001.tif.tmp-0badf00d" in removed
+    assert sorted(p.name for p in (tmp_path / "bundles" / "Tumor_001").iterdir()) == ["metadata.json"]
+
+
+def test_a_bundle_build_keeps_a_users_folder_named_like_its_temporary(cohort, tmp_path):
+    from data_tools.bundle import build_bundle
+
+    slides, _ = cohort
+    (tmp_path / ".b.tmp-12345678").mkdir()
+    (tmp_path / ".b.tmp-12345678" / "thesis.txt").write_text("t")
+    (tmp_path / ".b.old-0badf00d").mkdir()
+    (tmp_path / ".b.old-0badf00d" / "metadata.json").write_text("{}")
+    build_bundle(slides / "s1.tif", tmp_path / "b", level_sets=(3,), progress=False)
+    build_bundle(slides / "s1.tif", tmp_path / "b", level_sets=(3,), progress=False, overwrite=True)
+    assert (tmp_path / ".b.tmp-12345678" / "thesis.txt").read_text() == "t"
+    assert (tmp_path / ".b.old-0badf00d" / "metadata.json").read_text() == "{}"
+    assert not any(p.name.startswith(".histojax") for p in (tmp_path / "b").iterdir())  # no marker stays
+    assert sorted(p.name for p in tmp_path.iterdir()) == [".b.old-0badf00d", ".b.tmp-12345678", "b"]
+
+
+# ------------------------------------------------------------------ 5. build --overwrite and features.partial
+def test_build_overwrite_keeps_a_users_file_in_features_partial(cohort, tmp_path, capsys):
+    slides, _ = cohort
+    out = tmp_path / "b"
+    code, _, err = _run(["build", str(slides / "s1.tif"), "--out", str(out), "--levels", "3", "--quiet"], capsys)
+    assert code == 0, err
+    (out / "features.partial").mkdir()
+    (out / "features.partial" / "000000.npy").write_bytes(b"\0" * 10)
+    (out / "features.partial" / "thesis.txt").write_text("t")
+    line = _one_error(["build", str(slides / "s1.tif"), "--out", str(out), "--levels", "3", "--overwrite",
+                       "--quiet"], capsys)
+    assert "features.partial/thesis.txt" in line and str(out) in line
+    assert (out / "features.partial" / "thesis.txt").read_text() == "t"  # before: deleted, rc 0
+
+
+def test_cleaning_features_partial_removes_only_histojaxs_chunks(built, tmp_path):
+    from data_tools.datasets.locks import clean_partial_features
+
+    bundle = tmp_path / "s1"
+    shutil.copytree(built / "bundles" / "s1", bundle)
+    meta = json.loads((bundle / "metadata.json").read_text())
+    (bundle / "metadata.json").write_text(json.dumps({**meta, "features": {"encoder": "colour-stats"}}))
+    partial = bundle / "features.partial"
+    partial.mkdir()
+    (partial / "000000.npy").write_bytes(b"\0" * 10)
+    (partial / "settings.json").write_text("{}")
+    (partial / "thesis.txt").write_text("t")
+    assert not clean_partial_features(bundle)
+    assert sorted(p.name for p in partial.iterdir()) == ["thesis.txt"]
+
+
+# ------------------------------------------------------------------ 7. a corrupt bundle is rebuilt by a rerun
+def _flip_a_byte(bundle: Path) -> Path:
+    from data_tools.bundle_format import read_metadata
+
+    name = sorted(n for n in read_metadata(bundle)["checksums"] if n.endswith(".npy"))[0]
+    data = bytearray((bundle / name).read_bytes())
+    data[-1] ^= 0xFF
+    (bundle / name).write_bytes(bytes(data))
+    return bundle / name
+
+
+@pytest.mark.parametrize("restart", [False, True])
+def test_a_dataset_rerun_rebuilds_a_bundle_whose_checksum_does_not_match(built, cohort, tmp_path, restart):
+    from data_tools.bundle_format import BundleError, load_bundle
+
+    slides, labels = cohort
+    work = tmp_path / "o"
+    shutil.copytree(built, work)
+    _flip_a_byte(work / "bundles" / "s1")
+    with pytest.raises(BundleError, match="checksum mismatch"):
+        load_bundle(work / "bundles" / "s1")
+    s = build_dataset(slides, work, labels=labels, levels=(3,), progress=False, restart=restart)
+    assert s["built"] == ["s1"] and sorted(s["resumed"]) == ["s2", "s3"]  # before: 0 built, 3 already done
+    load_bundle(work / "bundles" / "s1")
+    assert s["dataset"] is not None
+
+
+@pytest.mark.slow  # about 20 s: two small c16 builds
+def test_a_c16_rerun_rebuilds_a_bundle_whose_checksum_does_not_match(tmp_path):
+    from data_tools.bundle_format import load_bundle
+    from data_tools.datasets.c16 import make_c16_dataset
+
+    out = tmp_path / "c16"
+    make_c16_dataset(out, small=True, n_tumour=1, n_normal=1, progress=False)
+    bundle = next(p for p in sorted((out / "bundles").iterdir()) if p.is_dir())
+    _flip_a_byte(bundle)
+    ds = make_c16_dataset(out, small=True, n_tumour=1, n_normal=1, progress=False)
+    load_bundle(bundle)  # before: "checksum mismatch": the rerun kept (or hard-linked) the damaged file
+    assert ds["run"]["built"] == [bundle.name]

@@ -210,3 +210,49 @@ def test_a_c16_rerun_rebuilds_a_bundle_whose_checksum_does_not_match(tmp_path):
     ds = make_c16_dataset(out, small=True, n_tumour=1, n_normal=1, progress=False)
     load_bundle(bundle)  # before: "checksum mismatch": the rerun kept (or hard-linked) the damaged file
     assert ds["run"]["built"] == [bundle.name]
+
+
+# ------------------------------------------------------------------ 8. two runs of other options, one folder
+def test_a_dataset_run_with_other_options_is_refused_while_the_first_holds_the_folder(cohort, tmp_path, capsys,
+                                                                                      monkeypatch):
+    import data_tools.datasets.build as build_module
+    from data_tools.bundle_format import read_metadata
+
+    slides, labels = cohort
+    out = tmp_path / "o"
+    real, second = build_module.build_one, {}
+
+    def build_one(job):  # while the first run builds its first slide, the second starts
+        if not second:
+            second["code"], _, second["err"] = _run(["dataset", str(slides), "--out", str(out), "--labels",
+                                                     str(labels), "--levels", "3", "--restart", "--tile-size", "64",
+                                                     "--quiet"], capsys)
+        return real(job)
+
+    monkeypatch.setattr(build_module, "build_one", build_one)
+    s = build_dataset(slides, out, labels=labels, levels=(3,), progress=False)
+    lines = second["err"].strip().splitlines()
+    assert second["code"] == 2 and len(lines) == 1 and "another histojax dataset run" in lines[0], second
+    assert str(out) in lines[0]  # before: both exit 0, bundles of two tile sizes, no dataset.json
+    assert s["dataset"] is not None and sorted(s["built"]) == ["s1", "s2", "s3"]
+    assert {read_metadata(out / "bundles" / n).tile_size for n in ("s1", "s2", "s3")} == {128}
+    assert not list(out.glob("*lock"))  # the run lock goes with the run
+    monkeypatch.undo()
+    code, _, err = _run(["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3",
+                         "--quiet"], capsys)  # the same command again: cooperates (resumes)
+    assert code == 0, err
+
+
+def test_runs_of_one_plan_share_the_folder(built, cohort, tmp_path):
+    from data_tools.datasets.locks import RUN_LOCK, RunLock
+
+    slides, labels = cohort
+    work = tmp_path / "o"
+    shutil.copytree(built, work)
+    other = RunLock(work / RUN_LOCK)
+    assert other.claim(exclusive=False)  # a shard of the same plan, running
+    try:
+        s = build_dataset(slides, work, labels=labels, levels=(3,), progress=False)
+        assert sorted(s["resumed"]) == ["s1", "s2", "s3"]
+    finally:
+        other.release()

@@ -24,6 +24,7 @@ reason and the others still build.
 """
 from __future__ import annotations
 
+import functools
 import json
 import os
 import resource
@@ -37,7 +38,8 @@ from tqdm.auto import tqdm
 
 from data_tools.bundle_format import (bundle_damage, foreign_entries, mark_temporary, metadata_digest, read_metadata,
                                       replace_folder, write_json)
-from data_tools.datasets.locks import LockHeld, bundle_lock_path, clean_partial_features, clean_stale, file_lock
+from data_tools.datasets.locks import (RUN_LOCK, LockHeld, RunLock, bundle_lock_path, clean_partial_features, clean_stale,
+                                      file_lock)
 from data_tools.datasets.split import seeded_split, shard_names
 from data_tools.errors import HistojaxDataError
 
@@ -543,6 +545,42 @@ def merge_dataset(out) -> tuple[dict | None, list[str], dict[str, str]]:
     return write_dataset_json(out, plan, records, failed, extra), [], failed
 
 
+_HELD: list = []
+"""The :class:`data_tools.datasets.locks.RunLock` of each :func:`build_dataset` call in progress (innermost last)."""
+
+
+def _hold_run(out: Path, plan: dict) -> None:
+    """Take ``OUT/.dataset-run.lock`` for this run (call holding ``OUT/.dataset.lock``): shared when ``plan.json``
+    already holds this plan, exclusive when this run would write another; refused (``HistojaxDataError``, one
+    line) while a run of other options holds the folder. Released when :func:`build_dataset` returns."""
+    same = False
+    if (out / "plan.json").is_file():
+        try:
+            same = read_plan(out) == plan
+        except HistojaxDataError:
+            same = False
+    run = RunLock(out / RUN_LOCK)
+    if not run.claim(exclusive=not same):
+        raise HistojaxDataError(out, "another histojax dataset run is building this folder with other options "
+                                     "(or another cohort); wait for it to finish (or stop it), then rerun, or "
+                                     "choose another --out")
+    _HELD.append(run)
+
+
+def _releasing_run_lock(build):
+    """Release the run locks :func:`build_dataset` took (:func:`_hold_run`) however it ends."""
+    @functools.wraps(build)
+    def wrapper(*args, **kwargs):
+        depth = len(_HELD)
+        try:
+            return build(*args, **kwargs)
+        finally:
+            while len(_HELD) > depth:
+                _HELD.pop().release()
+    return wrapper
+
+
+@_releasing_run_lock
 def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 5, 7), tile_size: int = 128,
                   magnification_range: float | None = None, storage: str = "auto", label_map=None,
                   encoder: str | None = None, features_from=None, patch_size: int | None = None,
@@ -597,8 +635,10 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     check_dataset_json(out)
     out.mkdir(parents=True, exist_ok=True)
     with file_lock(out / ".dataset.lock", what=str(out)):
+        _hold_run(out, plan)  # a run of other options holding this folder: refused, one line
         # --restart keeps dataset.json: the dataset stays loadable until the new one replaces it
         _agree(out, plan, restart=restart)
+        _HELD[-1].share()
     removed = clean_stale(out / "bundles") + [f"annotations/{n}" for n in clean_stale(out / "annotations",
                                                                                       lock_folder=out / "bundles")]
     for sub in ("records", "records/failed"):

@@ -88,6 +88,65 @@ def file_lock(path, blocking: bool = True, what: str = "this dataset"):
         _release(path, fd)
 
 
+RUN_LOCK = ".dataset-run.lock"
+"""``OUT/.dataset-run.lock``: every ``histojax dataset`` run into ``OUT`` holds it shared while it runs; a run that
+writes another plan needs it alone (:class:`RunLock`)."""
+
+
+class RunLock:
+    """The lock a ``histojax dataset`` run holds on its folder for its whole run: shared by runs of one plan (shards,
+    ``--jobs``, a second terminal with the same command cooperate), exclusive for the moment a run writes a new
+    ``plan.json`` (a first run, ``--restart`` with other options). So a run with other options is refused while
+    another holds the folder, instead of both building bundles of two settings. The kernel drops it when a run
+    is killed; the last holder removes the file."""
+
+    def __init__(self, path) -> None:
+        self.path = Path(path)
+        self.fd: int | None = None
+
+    def claim(self, exclusive: bool) -> bool:
+        """Take the lock (exclusive or shared), not blocking; False when another run holds it the other way."""
+        while True:
+            fd = os.open(self.path, os.O_RDWR | os.O_CREAT, 0o644)
+            try:
+                fcntl.flock(fd, (fcntl.LOCK_EX if exclusive else fcntl.LOCK_SH) | fcntl.LOCK_NB)
+            except BlockingIOError:
+                os.close(fd)
+                return False
+            except OSError as e:
+                if e.errno in (errno.ENOLCK, errno.EOPNOTSUPP, errno.ENOSYS):
+                    self.fd = fd  # no locking on this filesystem: run unlocked
+                    return True
+                os.close(fd)
+                raise
+            try:
+                same = os.path.samestat(os.fstat(fd), os.stat(self.path))
+            except FileNotFoundError:
+                same = False
+            if same:
+                self.fd = fd
+                return True
+            os.close(fd)  # the last holder removed this file meanwhile: take the new one
+
+    def share(self) -> None:
+        """Turn a held exclusive lock into a shared one (call it holding ``.dataset.lock``)."""
+        if self.fd is not None:
+            with contextlib.suppress(OSError):
+                fcntl.flock(self.fd, fcntl.LOCK_SH)
+
+    def release(self) -> None:
+        """Let the lock go; the file is removed when no other run holds it."""
+        if self.fd is None:
+            return
+        try:
+            fcntl.flock(self.fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+            os.unlink(self.path)
+        except OSError:
+            pass  # another run still holds it: the last one removes the file
+        os.close(self.fd)
+        self.fd = None
+
+
 def bundle_lock_path(bundle) -> Path:
     """``bundles/.NAME.dataset-lock`` of the bundle folder ``bundles/NAME``."""
     bundle = Path(bundle)
@@ -220,5 +279,5 @@ def clean_partial_features(bundle) -> bool:
     return False
 
 
-__all__ = ["LockHeld", "bundle_lock_path", "clean_lock_files", "clean_partial_features", "clean_stale",
+__all__ = ["LockHeld", "RUN_LOCK", "RunLock", "bundle_lock_path", "clean_lock_files", "clean_partial_features", "clean_stale",
            "clean_stale_builds", "file_lock"]

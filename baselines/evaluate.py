@@ -951,7 +951,7 @@ def refuse_not_an_agent(path: Path) -> None:
     if not path.exists() and name in RETIRED:
         new, why = RETIRED[name]
         raise HistojaxDataError(path, f"the published agent {name} was retired ({why}); its results stay in "
-                                f"docs/c16-results-history.md; use {published_path(new)}, which reads slides of any "
+                                f"docs/results/c16.md; use {published_path(new)}, which reads slides of any "
                                 f"size: histojax evaluate {published_path(new)} --dataset DIR")
     try:
         kind = json.loads((path / "config.json").read_text()).get("kind") if path.is_dir() else None

@@ -240,7 +240,7 @@ def test_published_folder_refused_in_one_line_saying_what_to_use(name, data, tmp
         assert (f"histojax evaluate {evaluate.published_path(evaluate.SET_READER)}" in line if set_reader.is_dir()
                 else "benchmarks.train_readers" in line)
     else:
-        assert "retired" in line and "docs/c16-results-history.md" in line and evaluate.SET_READER in line
+        assert "retired" in line and "docs/results/c16.md" in line and evaluate.SET_READER in line
     assert not (tmp_path / "o").exists()
 
 

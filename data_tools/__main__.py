@@ -146,6 +146,9 @@ def add_arguments(p) -> None:
     c16.add_argument("--merge", action="store_true",
                      help="make nothing: write dataset.json from the slides recorded so far (after a job array)")
     c16.add_argument("--seed", type=int, default=0)
+    c16.add_argument("--folds", type=int, default=None, metavar="K",
+                     help="also write K cross-validation folds of the train slides to dataset.json (stratified by "
+                          "label, a tumour slide with its tissue donor; fold i = validation): make(..., fold=i)")
     c16.add_argument("--quiet", action="store_true", help="no progress bars")
     from data_tools.datasets.cli import add_subcommand as _add_dataset_command
     from data_tools.features.cli import add_subcommands as _add_feature_commands
@@ -266,7 +269,8 @@ def _command(args) -> int | None:
                               n_normal=args.normal_slides, seed=args.seed, test_fraction=args.test_fraction,
                               features=args.encoder or args.features, progress=not args.quiet, workers=args.jobs,
                               no_pixels=args.no_pixels, test_patches=args.test_patches,
-                              shard=parse_shard(args.shard) if args.shard else None, merge=args.merge)
+                              shard=parse_shard(args.shard) if args.shard else None, merge=args.merge,
+                              folds=args.folds)
         for name, reason in sorted(ds["failed"].items()):
             print(f"FAILED {name}: {reason}", file=sys.stderr)
         if ds["missing"]:

@@ -207,7 +207,8 @@ def check_dataset(folder, spec: dict, env_id: str) -> None:
 
 
 def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES,
-         slides=None, slide_weights=None, dataset=None, split: str = "train", labels=None, **overrides):
+         slides=None, slide_weights=None, dataset=None, split: str = "train", labels=None, fold: int | None = None,
+         **overrides):
     """Make ``(env, params)`` for a registered id.
 
     ``slide``: a bundle folder (``python -m data_tools build``) or ``None`` for the id's registered
@@ -230,7 +231,8 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
 
     Datasets: ``slides=[bundle, ...]`` (any sizes, same tile size) or ``dataset=FOLDER`` holding a
     ``dataset.json`` with ``"train"`` / ``"test"`` lists of bundle paths (``split`` picks one; e.g.
-    ``python -m data_tools synth``) give one env over all of them: ``reset`` draws a slide
+    ``python -m data_tools synth``) give one env over all of them (``fold=i`` on a dataset built with
+    ``--folds K``: fold ``i``'s sides, see :func:`dataset_slides`): ``reset`` draws a slide
     (uniformly, or by ``slide_weights``). ``max_device_bytes`` then bounds the whole dataset.
     ``labels`` (a dict bundle-name → 0/1 or a CSV file with columns ``slide,label``) overrides the
     slide labels of ``task="classification"`` (default: the ``"labels"`` of the dataset's ``dataset.json``
@@ -245,7 +247,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
                         f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
     _check_start_level(factory.action_mode(spec.get("action_mode", "discrete")), spec.get("start_level", 0),
                        f"make({env_id!r})")
-    slides = _resolve_slides(env_id, spec, slide, slides, dataset, split)
+    slides = _resolve_slides(env_id, spec, slide, slides, dataset, split, fold)
     if labels is None and dataset is not None and spec.get("task", "detection") == "classification":
         labels = dataset_labels(dataset)  # a label table's or CAMELYON16's labels, not just "annotated"
     feature_obs = factory.obs_mode(spec.get("obs_mode", "pixels")).needs_features
@@ -299,19 +301,23 @@ def _tumour_slide_weights(arrays: list, paths: list, weights=None) -> list[float
     return [w if t else 0.0 for w, t in zip(base, has_tumour)]
 
 
-def slide_paths(env_id: str, slide=None, slides=None, dataset=None, split: str = "train", **overrides) -> list:
+def slide_paths(env_id: str, slide=None, slides=None, dataset=None, split: str = "train", fold: int | None = None,
+                **overrides) -> list:
     """The bundle paths ``make`` would load for these arguments (one for a single slide)."""
-    return _resolve_slides(env_id, {**spec_of(env_id).settings, **overrides}, slide, slides, dataset, split)
+    return _resolve_slides(env_id, {**spec_of(env_id).settings, **overrides}, slide, slides, dataset, split, fold)
 
 
-def _resolve_slides(env_id: str, spec: dict, slide, slides, dataset, split: str) -> list:
+def _resolve_slides(env_id: str, spec: dict, slide, slides, dataset, split: str, fold: int | None = None) -> list:
     """``slides`` / ``dataset`` / ``slide`` / the id's registered slide or dataset / the sample slide,
     as a non-empty list of bundle paths."""
     if dataset is None and slide is None and slides is None and spec_of(env_id).slide is _c16_dataset:
         dataset = _c16_dataset(spec)
+    if fold is not None and dataset is None:
+        raise ValueError(f"fold={fold!r} picks a fold of a dataset built with --folds K: give dataset=DIR (or an id "
+                         "whose slides are a dataset)")
     if dataset is not None:
         check_dataset(dataset, spec, env_id)
-        slides = dataset_slides(dataset, split)
+        slides = dataset_slides(dataset, split, fold)
     if slides is not None and slide is not None:
         raise ValueError("give either slide= or slides=/dataset=, not both")
     if slides is None:
@@ -394,8 +400,12 @@ def _check_start_level(mode, start_level, where: str) -> None:
                          f"{mode.name!r} episodes start at the coarsest level")
 
 
-def dataset_slides(folder, split: str = "train") -> list[Path]:
-    """Bundle paths of ``split`` (``"train"``, ``"test"`` or ``"all"``) in ``FOLDER/dataset.json``."""
+def dataset_slides(folder, split: str = "train", fold: int | None = None) -> list[Path]:
+    """Bundle paths of ``split`` (``"train"``, ``"test"`` or ``"all"``) in ``FOLDER/dataset.json``.
+
+    ``fold=i`` (a dataset built with ``--folds K``, :func:`fold_slides`): ``"train"`` is every fold but ``i``,
+    ``"validation"`` is fold ``i``, and so is ``"test"`` where the folds cover every slide (k-fold cross
+    validation); where they cut the train side of a fixed test set, ``"test"`` with a fold is refused."""
     folder = Path(folder)
     index = folder / "dataset.json"
     try:
@@ -411,6 +421,8 @@ def dataset_slides(folder, split: str = "train") -> list[Path]:
                           "`python -m data_tools synth` or pass slides=[...]") from None
     except json.JSONDecodeError as e:
         raise BundleError(index, f"malformed JSON ({e})") from None
+    if fold is not None:
+        return fold_slides(folder, spec, split, fold)
     if split == "all":
         names = list(spec.get("train", [])) + list(spec.get("test", []))
     elif split in ("train", "test"):
@@ -424,6 +436,34 @@ def dataset_slides(folder, split: str = "train") -> list[Path]:
     if not isinstance(names, list) or not names:
         raise BundleError(index, f"no {split!r} list of bundles")
     return [folder / n for n in names]
+
+
+def fold_slides(folder, spec: dict, split: str, fold) -> list[Path]:
+    """The bundle paths of fold ``fold``'s side ``split`` of the dataset ``spec`` (``FOLDER/dataset.json`` read):
+    ``"train"`` = the slides of every other fold; ``"validation"`` (or ``"val"``) = fold ``fold``'s slides, and
+    ``"test"`` too when the folds cover every slide (``pool == "all"``). One-line refusals: a dataset without folds,
+    a fold out of range, ``"test"`` on folds cut from the train side of a fixed test set, another split."""
+    index = Path(folder) / "dataset.json"
+    folds = spec.get("folds")
+    if not isinstance(folds, dict) or not isinstance(folds.get("lists"), list):
+        raise BundleError(index, f"fold={fold!r}: this dataset has no folds; build it with `histojax dataset ... "
+                          "--folds K` (or `c16 --folds K`), or drop fold")
+    k = len(folds["lists"])
+    if isinstance(fold, bool) or not isinstance(fold, (int, np.integer)) or not 0 <= int(fold) < k:
+        raise BundleError(index, f"fold={fold!r} is out of range: this dataset has {k} folds (0 to {k - 1})")
+    fold = int(fold)
+    if split == "train":
+        names = [n for i, lst in enumerate(folds["lists"]) if i != fold for n in lst]
+    elif split in ("validation", "val") or (split == "test" and folds.get("pool") == "all"):
+        names = list(folds["lists"][fold])
+    elif split == "test":
+        raise BundleError(index, f"fold={fold}: this dataset's folds cut its train side (its test set is fixed): fold "
+                          f"{fold}'s held-out slides are split='validation'; the test set is split='test' without fold")
+    else:
+        raise ValueError(f"with fold=, split must be 'train', 'validation' or 'test', got {split!r}")
+    if not names:
+        raise BundleError(index, f"fold {fold}'s {split!r} side holds no built slide")
+    return [Path(folder) / n for n in names]
 
 
 def dataset_labels(folder) -> dict[str, int] | None:

@@ -75,7 +75,8 @@ def colour_feature_grid():
 @pytest.fixture(scope="session")
 def c16_small(tmp_path_factory):
     """``(folder, id version)`` of the small C16 variant without pixels: pcam-cnn features and the
-    ``-v1`` ids when the encoder's weights ship, else colour-stats features and ``-v0`` (seconds)."""
+    ``-v1`` ids when the encoder's weights ship, else colour-stats features and ``-v0`` (seconds); with 2 folds of
+    its train side (``--folds 2``)."""
     import subprocess
     import sys
 
@@ -83,6 +84,6 @@ def c16_small(tmp_path_factory):
 
     v1 = pcam_cnn.WEIGHTS.is_file()
     folder = tmp_path_factory.mktemp("c16small") / "ds"
-    cmd = [sys.executable, "-m", "data_tools", "c16", "--small", "--out", str(folder), "--no-pixels"]
+    cmd = [sys.executable, "-m", "data_tools", "c16", "--small", "--out", str(folder), "--no-pixels", "--folds", "2"]
     subprocess.run(cmd + ([] if v1 else ["--encoder", "colour-stats"]), check=True, capture_output=True)
     return folder, "v1" if v1 else "v0"

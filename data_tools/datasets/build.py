@@ -40,7 +40,8 @@ from data_tools.bundle_format import (bundle_damage, foreign_entries, mark_tempo
                                       replace_folder, write_json)
 from data_tools.datasets.locks import (RUN_LOCK, LockHeld, RunLock, bundle_lock_path, clean_partial_features, clean_stale,
                                       file_lock)
-from data_tools.datasets.split import seeded_split, shard_names
+from data_tools.datasets.split import (fold_lists, folds_record, kfold_split, patient_groups, read_patient_column,
+                                       seeded_split, shard_names)
 from data_tools.errors import HistojaxDataError
 
 KIND = "histojax dataset of real slides (data_tools dataset)"
@@ -95,9 +96,13 @@ def check_scales(entries, magnification_range, reader: str | None = None) -> dic
     return mpps
 
 
-def make_plan(entries, slides_dir, options: dict, test_fraction: float, seed: int) -> dict:
+def make_plan(entries, slides_dir, options: dict, test_fraction: float, seed: int, folds: int | None = None,
+              patients: dict[str, str] | None = None) -> dict:
     """The cohort and options every shard must agree on: slide → (path relative to ``slides_dir``,
-    annotation, label, split)."""
+    annotation, label, split); with ``folds`` (K), ``folds``: K folds stratified by label, the slides of one
+    patient (``patients``: name → patient from the label table, else a TCGA barcode's) in one fold, over every
+    slide when the split is seeded, over the train side when it is given (see
+    :func:`data_tools.datasets.split.kfold_split`)."""
     fixed = {e.name: e.split for e in entries if e.split}
     if fixed and len(fixed) != len(entries):
         loose = [e.name for e in entries if not e.split]
@@ -113,7 +118,13 @@ def make_plan(entries, slides_dir, options: dict, test_fraction: float, seed: in
                        "annotation": None if e.annotation is None else _rel(e.annotation, slides_dir),
                        "annotation_kind": e.annotation_kind, "label": int(e.label), "label_source": e.label_source,
                        "split": split[e.name]} for e in entries}
-    return {"kind": KIND, "options": options, "split_rule": rule, "slides": slides}
+    plan = {"kind": KIND, "options": options, "split_rule": rule, "slides": slides}
+    if folds is not None:
+        pool = [n for n in slides if not fixed or split[n] == "train"]
+        groups, grouped_by = patient_groups(pool, patients)
+        fold = kfold_split(pool, {n: slides[n]["label"] for n in pool}, folds, seed, groups)
+        plan["folds"] = folds_record(fold, folds, seed, "train" if fixed else "all", grouped_by)
+    return plan
 
 
 def read_plan(out) -> dict:
@@ -146,7 +157,7 @@ def _agree(out: Path, plan: dict, restart: bool = False) -> None:
     if path.exists() or path.is_symlink():
         old = read_plan(out)
         if not restart and old != plan:
-            what = [k for k in ("options", "slides", "split_rule") if old.get(k) != plan.get(k)]
+            what = [k for k in ("options", "slides", "split_rule", "folds") if old.get(k) != plan.get(k)]
             detail = ""
             if old.get("options") != plan.get("options"):
                 diff = sorted(k for k in set(old["options"]) | set(plan["options"])
@@ -435,6 +446,7 @@ def write_dataset_json(out, plan: dict, records: dict[str, dict], failed: dict[s
         "labels": {n: int(plan["slides"][n]["label"]) for n in names},
         "failed": dict(sorted(failed.items())),
         "slides": [records[n] for n in names],
+        **({"folds": fold_lists(plan["folds"], names)} if plan.get("folds") else {}),
         **(extra or {}),
     }
     return write_dataset_index(out, dataset)
@@ -586,7 +598,8 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
                   encoder: str | None = None, features_from=None, patch_size: int | None = None,
                   patch_level: int | None = None, no_pixels: bool = False, test_fraction: float = 0.25,
                   seed: int = 0, jobs: int = 1, shard: tuple[int, int] | None = None, restart: bool = False,
-                  allow_unmatched: bool = False, progress: bool = True, reader: str | None = None) -> dict:
+                  allow_unmatched: bool = False, progress: bool = True, reader: str | None = None,
+                  folds: int | None = None) -> dict:
     """Build (or finish) the dataset ``out`` from the slides under ``slides_dir`` (see the module doc and
     :mod:`data_tools.datasets.discover`). ``levels`` / ``tile_size`` (px) / ``magnification_range`` (the
     coarsest downsample; default each slide's own) / ``storage`` / ``label_map``: as ``build``.
@@ -596,7 +609,8 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     ``shard``: ``(I, N)``. Returns a summary: ``built`` / ``resumed`` / ``busy`` names, ``failed``
     (name → reason), ``dataset`` (the ``dataset.json`` dict, or None when slides remain), seconds,
     slides per minute and the peak resident memory of one job (bytes). ``reader``: what reads the slides
-    (:data:`data_tools.slides.READERS`; recorded in the options when not ``"auto"``)."""
+    (:data:`data_tools.slides.READERS`; recorded in the options when not ``"auto"``). ``folds``: K cross-validation
+    folds recorded in ``dataset.json`` (:func:`make_plan`; patients from the ``labels`` table's patient column)."""
     from data_tools.datasets.discover import discover
 
     slides_dir, out = Path(slides_dir), Path(out)
@@ -627,7 +641,8 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
                "patch_size": patch_size, "patch_level": patch_level, "no_pixels": bool(no_pixels),
                "test_fraction": test_fraction, "seed": int(seed),
                **({"reader": reader} if reader not in (None, "auto") else {})}  # absent: plans of before stay equal
-    plan = make_plan(entries, slides_dir, options, test_fraction, seed)
+    patients = read_patient_column(labels) if labels is not None and folds is not None else None
+    plan = make_plan(entries, slides_dir, options, test_fraction, seed, folds=folds, patients=patients)
     for n, m in mpps.items():
         plan["slides"][n]["mpp"] = m
     if (out / "plan.json").exists() or (out / "plan.json").is_symlink():

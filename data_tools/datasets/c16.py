@@ -306,7 +306,8 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
                      names=None, n_tumour: int | None = None, n_normal: int | None = None, seed: int = 0,
                      test_fraction: float = 0.25, features: bool | str = False, jpeg_quality: int = 85,
                      progress: bool = True, workers: int = 1, no_pixels: bool = False,
-                     test_patches=None, shard: tuple[int, int] | None = None, merge: bool = False) -> dict:
+                     test_patches=None, shard: tuple[int, int] | None = None, merge: bool = False,
+                     folds: int | None = None) -> dict:
     """Make (or finish) the true-scale CAMELYON16 dataset in ``out_dir`` (see the module doc).
 
     ``annotations``: a folder or ``.tar.gz`` of NCRF JSON files (default: the 6 shipped with the
@@ -377,6 +378,14 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     chosen = set(names) if names is not None else set(tumours_all[:n_tumour]) | set(normals_all[:n_normal])
     todo = [n for n in universe if n in chosen]
     side = {n: "test" if n in test_all else "train" for n in universe}
+    fold_plan = None  # --folds K: K folds over the train side, a tumour slide with its tissue donor, by label
+    if folds is not None:
+        from data_tools.datasets.split import folds_record, kfold_split
+
+        group = {n: donors.get(n, n) for n in train_all}
+        fold_plan = folds_record(kfold_split(train_all, {n: int(every[n].is_tumour_slide) for n in train_all}, folds,
+                                             seed, group), folds, seed, "train", "a tumour slide with the normal slide "
+                                 "lending it tissue")
     bank = load_bank(patches)
     train_pool, test_pool = split_pools(bank)
     test_bank = load_bank(test_patches) if test_patches is not None else test_pool
@@ -405,6 +414,7 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     }
     set_key = {k: dataset[k] for k in (*_SAME_SET_KEYS, "encoder_version") if k in dataset}
     from data_tools.datasets.build import collect_records, run_summary, write_dataset_index
+    from data_tools.datasets.split import fold_lists
     from data_tools.datasets.split import shard_names
 
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -459,6 +469,7 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
         "labels": {n: int(every[n].is_tumour_slide) for n in present},
         "failed": dict(sorted(failed.items())),
         "slides": records,
+        **({"folds": fold_lists(fold_plan, present)} if fold_plan else {}),
         "seconds_this_run": round(time.perf_counter() - t0, 2),
         "peak_rss_bytes_this_run": max([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024]
                                        + [r.get("peak_rss_bytes", 0) for r in records if r["name"] in mine]),

@@ -52,6 +52,11 @@ def add_subcommand(sub, levels_type) -> None:
                    help="share of each label in the seeded test split (default 0.25; ignored when the layout or "
                         "the label table gives the split)")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--folds", type=int, default=None, metavar="K",
+                   help="also write K cross-validation folds to dataset.json: stratified by label, seeded, the slides "
+                        "of one patient in one fold (a patient column in --labels, or TCGA barcodes); over every slide "
+                        "(fold i = test), or over the train side when the split is given (fold i = validation); "
+                        "make(..., fold=i), --fold i")
     p.add_argument("--jobs", type=positive_int, default=1, help="slides built in parallel processes (default 1)")
     p.add_argument("--shard", metavar="I/N", default=None,
                    help="build only shard I of N (0 <= I < N; every N-th slide by sorted name), e.g. "
@@ -91,7 +96,8 @@ def run(args) -> int:
         label_map=label_map, encoder=args.encoder, features_from=args.features_from, patch_size=args.patch_size,
         patch_level=args.patch_level, no_pixels=args.no_pixels, test_fraction=args.test_fraction, seed=args.seed,
         jobs=args.jobs, shard=parse_shard(args.shard) if args.shard else None, restart=args.restart,
-        allow_unmatched=args.allow_unmatched_annotations, progress=not args.quiet, reader=args.reader)
+        allow_unmatched=args.allow_unmatched_annotations, progress=not args.quiet, reader=args.reader,
+        folds=args.folds)
     s = summary
     print(f"{'shard ' + '/'.join(map(str, s['shard'])) + ': ' if s['shard'] else ''}{len(s['built'])} built, "
           f"{len(s['resumed'])} already done, {len(s['failed'])} failed"
@@ -118,6 +124,10 @@ def _report(out: Path, dataset: dict, failed: dict, summary: dict) -> int:
     kept = dataset.get("kept_after_failed_rebuild") or {}
     for name, reason in kept.items():
         print(f"  rebuild of {name} failed, its previous bundle is kept: {reason}")
+    folds = dataset.get("folds")
+    if folds:
+        print(f"{folds['k']} folds over the {'slides' if folds['pool'] == 'all' else 'train side'}: "
+              + ", ".join(str(len(lst)) for lst in folds["lists"]) + " slides (" + folds["grouped_by"] + ")")
     for side in ("train", "test"):
         if not dataset[side]:
             print(f"note: the {side} split is empty (split rule: {dataset.get('split_rule')}"

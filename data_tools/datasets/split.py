@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import csv
 import math
+import re
 from pathlib import Path
 
 import numpy as np
@@ -199,6 +200,110 @@ def grouped_split(names: list[str], donors: dict[str, str], test_fraction: float
     return [n for n in names if n not in test], [n for n in names if n in test]
 
 
+PATIENT_COLUMNS = ("patient", "patient_id", "case_submitter_id", "submitter_id")
+"""Label-table columns naming a slide's patient (slides of one patient stay on one side of every fold)."""
+TCGA_BARCODE = re.compile(r"^(TCGA-[A-Z0-9]{2}-[A-Z0-9]{4})(?:-|$)", re.IGNORECASE)
+"""A TCGA slide name (``TCGA-A1-A0SB-01Z-00-DX1...``): its first three fields are the patient."""
+
+
+def read_patient_column(path) -> dict[str, str]:
+    """Slide name → patient from a label table's ``patient`` column (or ``patient_id``, ``case_submitter_id``,
+    ``submitter_id``); ``{}`` when the table has no such column. Names as :func:`read_label_table` reads
+    them; a row with an empty patient cell is an error naming the file and row."""
+    path = Path(path)
+    rows = [r for r in csv.reader(_label_table_text(path).splitlines()) if r and any(c.strip() for c in r)]
+    if not rows:
+        return {}
+    head = [c.strip().lower() for c in rows[0]]
+    name_col = next((head.index(c) for c in NAME_COLUMNS if c in head), None)
+    patient_col = next((head.index(c) for c in PATIENT_COLUMNS if c in head), None)
+    if name_col is None or patient_col is None:
+        return {}
+    out: dict[str, str] = {}
+    for i, row in enumerate(rows[1:], start=2):
+        name = slide_key(row[name_col]) if len(row) > name_col else ""
+        patient = row[patient_col].strip() if len(row) > patient_col else ""
+        if name and not patient:
+            raise HistojaxDataError(path, f"row {i}: the {rows[0][patient_col].strip()} cell of {name!r} is empty; "
+                                          "give every slide its patient or drop the column")
+        if name:
+            out[name] = patient
+    return out
+
+
+def patient_groups(names, patients: dict[str, str] | None = None) -> tuple[dict[str, str], str]:
+    """``(name → patient, how)``: the label table's patient column (``patients``, matched ignoring case) where it
+    names the slide, else the patient of a TCGA barcode (``TCGA-XX-XXXX``), else the slide itself; ``how`` says
+    which rule grouped the slides (for ``dataset.json``)."""
+    given = {k.lower(): v for k, v in (patients or {}).items()}
+    out, used = {}, set()
+    for n in names:
+        if n.lower() in given:
+            out[n], rule = f"patient:{given[n.lower()]}", "the label table's patient column"
+        elif (m := TCGA_BARCODE.match(n)):
+            out[n], rule = f"patient:{m.group(1).upper()}", "the TCGA barcode's patient (TCGA-XX-XXXX)"
+        else:
+            out[n], rule = f"slide:{n}", "one slide per patient"
+        used.add(rule)
+    return out, "; ".join(sorted(used)) or "one slide per patient"
+
+
+def kfold_split(names, labels: dict[str, int], k: int, seed: int,
+                groups: dict[str, str] | None = None) -> dict[str, int]:
+    """Slide name → fold (0..k-1): ``k`` folds stratified by label, the slides of one group (a patient) in one
+    fold. Groups (labelled by their highest label: a patient with a tumour slide counts as tumour) are dealt,
+    largest first and then in a seeded order, each to the fold holding the fewest slides of its label (then the
+    fewest slides, then the lowest index). Deterministic given ``seed`` and the set of names (not their order).
+    Refused (one line): ``k < 2``, or fewer than ``k`` groups of a label present (a fold would hold none of it,
+    so neither AUC nor a detection reader could be scored on it)."""
+    if isinstance(k, bool) or not isinstance(k, int) or k < 2:
+        raise HistojaxDataError(None, f"--folds {k!r} must be a whole number >= 2")
+    names = sorted(names)
+    groups = groups or {}
+    members: dict[str, list[str]] = {}
+    for n in names:
+        members.setdefault(groups.get(n, n), []).append(n)
+    keys = sorted(members)
+    glabel = {g: max(int(labels[m]) for m in members[g]) for g in keys}
+    for label in sorted(set(glabel.values())):
+        count = sum(v == label for v in glabel.values())
+        if count < k:
+            kind = "tumour" if label == 1 else "normal"
+            raise HistojaxDataError(None, f"--folds {k} needs at least {k} {kind} patients (slides of one patient stay "
+                                          f"in one fold); there are {count}: give fewer folds")
+    order = [keys[i] for i in np.random.default_rng([int(seed), 31]).permutation(len(keys))]
+    order.sort(key=lambda g: -len(members[g]))  # stable: the seeded order within one size
+    per_label = np.zeros((k, 2), dtype=np.int64)
+    total = np.zeros(k, dtype=np.int64)
+    fold: dict[str, int] = {}
+    for g in order:
+        lab = glabel[g]
+        f = min(range(k), key=lambda i: (per_label[i, lab], total[i], i))
+        for m in members[g]:
+            fold[m] = f
+        per_label[f, lab] += len(members[g])
+        total[f] += len(members[g])
+    return dict(sorted(fold.items()))
+
+
+def folds_record(fold: dict[str, int], k: int, seed: int, pool: str, grouped_by: str) -> dict:
+    """The ``folds`` entry of a dataset plan: ``k``, the ``pool`` folded (``"all"`` slides, or ``"train"``: the
+    train side of a fixed split), ``seed``, the grouping rule and ``fold`` (slide name → 0..k-1)."""
+    rule = (f"{k} folds, stratified by label, seeded (seed {seed}), slides of one patient in one fold ({grouped_by}); "
+            + ("fold i: test = fold i, train = the other folds" if pool == "all" else
+               "over the train side (the test set is fixed): fold i: validation = fold i, train = the other folds"))
+    return {"k": int(k), "pool": pool, "seed": int(seed), "grouped_by": grouped_by, "rule": rule, "fold": fold}
+
+
+def fold_lists(folds: dict, built) -> dict:
+    """``dataset.json``'s ``folds``: the plan's record (:func:`folds_record`) with ``lists`` (fold i → the
+    ``bundles/NAME`` of its built slides, sorted) in place of ``fold``."""
+    built = set(built)
+    lists = [[f"bundles/{n}" for n, i in sorted(folds["fold"].items()) if i == f and n in built]
+             for f in range(folds["k"])]
+    return {**{key: v for key, v in folds.items() if key != "fold"}, "lists": lists}
+
+
 def parse_shard(text: str) -> tuple[int, int]:
     """``"I/N"`` → ``(I, N)`` with ``0 <= I < N`` (``$SLURM_ARRAY_TASK_ID/N`` with ``--array=0-(N-1)``)."""
     try:
@@ -220,5 +325,5 @@ def shard_names(names, shard: tuple[int, int] | None) -> list[str]:
     return names[i::n]
 
 
-__all__ = ["grouped_split", "parse_label", "parse_shard", "read_label_table", "seeded_split", "shard_names",
-           "slide_key"]
+__all__ = ["PATIENT_COLUMNS", "TCGA_BARCODE", "fold_lists", "folds_record", "grouped_split", "kfold_split", "parse_label", "parse_shard",
+           "patient_groups", "read_label_table", "read_patient_column", "seeded_split", "shard_names", "slide_key"]

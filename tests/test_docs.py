@@ -1,6 +1,7 @@
 """The documentation's commands and links are real.
 
-Every line of every ```bash block in README.md and docs/*.md is checked:
+Every line of every ```bash block in README.md, docs/*.md (guides) and docs/results/*.md (measured figures) is
+checked:
 
 * ``make T`` — ``T`` is a target of the Makefile;
 * ``pip install -e '.[x]'`` / ``pip install 'histojax[x]'`` — the extras exist in pyproject.toml;
@@ -32,7 +33,10 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[1]
-PAGES = [ROOT / "README.md", *sorted((ROOT / "docs").glob("*.md"))]
+GUIDES = sorted((ROOT / "docs").glob("*.md"))            # guides: short and current (no dated run records)
+RESULTS = sorted((ROOT / "docs" / "results").glob("*.md"))  # dated measured figures, one page per topic
+PAGES = [ROOT / "README.md", *GUIDES, *RESULTS]
+GUIDE_MAX_LINES = 300
 
 # Pages written in parallel on other branches, linked before they are merged. Links to these may
 # dangle ONLY until they land: remove each name from this list when its page exists.
@@ -306,6 +310,24 @@ def test_checker_refuses_what_is_wrong(tmp_path):
 def test_pending_pages_list_is_current():
     """A pending page that has landed must leave PENDING_PAGES (so its links are checked)."""
     assert not [p for p in PENDING_PAGES if (ROOT / p).exists()], "remove landed pages from PENDING_PAGES"
+
+
+@pytest.mark.parametrize("page", GUIDES, ids=lambda p: str(p.relative_to(ROOT)))
+def test_guides_are_short(page):
+    """A guide page stays readable: at most GUIDE_MAX_LINES lines (dated run records go to docs/results/)."""
+    n = len(page.read_text().splitlines())
+    assert n <= GUIDE_MAX_LINES, f"{page.relative_to(ROOT)}: {n} lines, more than {GUIDE_MAX_LINES}; move run records to docs/results/"
+
+
+def test_results_pages_say_where_they_were_measured():
+    """Each results page opens with one "Measured on" header: machine, JAX, histojax, date."""
+    assert RESULTS, "no docs/results/ pages"
+    for page in RESULTS:
+        head = "\n".join(page.read_text().splitlines()[:8])
+        assert head.count("**Measured on**") == 1, f"{page.relative_to(ROOT)}: no single **Measured on** header"
+        for word in ("JAX", "histojax", "CPU"):
+            assert word in head, f"{page.relative_to(ROOT)}: its Measured-on header does not name {word}"
+        assert re.search(r"20\d\d-\d\d-\d\d", head), f"{page.relative_to(ROOT)}: its header gives no date"
 
 
 def test_readme_is_the_front_door():

@@ -33,7 +33,7 @@ from data_tools.cli_output import command_main
 from histojax.render import animate, render_trajectory
 
 ENV_ID = "HistoJAX-Easy-v0"
-# The configuration known to learn Easy on the sample slide (docs/benchmarks.md, "On the sample slide"); 48 updates of
+# The configuration known to learn Easy on the sample slide (docs/results/benchmarks.md, "On the sample slide"); 48 updates of
 # 64 envs x 64 steps. On the shared 2-core CPU training runs at ~1,500 env steps/s.
 TOTAL_STEPS = 196_608
 DEMO_CONFIG = dict(env_id=ENV_ID, with_position=True, num_envs=64, num_steps=64, num_seeds=1, seed=0,

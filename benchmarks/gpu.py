@@ -22,7 +22,7 @@ Sections, in the order they run (each is measured, or says why it was skipped):
    with ``colour-stats`` features) in feature mode: env steps/s per batch and the bytes of the slide
    arrays on the device; and in pixel mode when the dataset has pixels and they fit the device
    (the full true-scale set needs 27.6 / 34.3 / 42.4 GiB for 3 / 5 / 7 levels; see
-   docs/benchmarks.md), else the reason.
+   docs/results/c16.md), else the reason.
 
 Time budget: ``--time-budget`` seconds (default 480, so one 10-minute device run holds it with room
 for start-up); once it is spent, the items left are skipped and named as skipped for time. Writes
@@ -460,7 +460,7 @@ def _memory(m: dict) -> str:
 
 
 def markdown(r: dict) -> str:
-    """The report as one markdown page (what docs/benchmarks.md's GPU section takes)."""
+    """The report as one markdown page (what docs/results/benchmarks.md takes once measured on a GPU)."""
     m = r["machine"]
     lines = ["# histojax GPU benchmark (`benchmarks/gpu.py`)", "",
              f"- device: {m.get('gpu', m['device_kind'])} ({m['platform']}, {m['device_count']} device(s)); "

@@ -455,6 +455,47 @@ def metadata_digest(metadata: dict) -> str:
                                      allow_nan=True).encode()).hexdigest()
 
 
+DATASET_DIGEST = "dataset_sha256"
+"""Key of ``dataset.json``'s seal (``histojax dataset``, ``c16``): the SHA-256 of the rest (as :func:`metadata_digest`)."""
+MAX_DATASET_JSON_BYTES = 1 << 30  # bytes: far above any cohort's index (a few hundred bytes per slide)
+
+
+def read_dataset_json(folder, _depth: int = 0) -> dict:
+    """``FOLDER/dataset.json`` read with its seal checked: the one reader of a dataset's index for ``make``, the head
+    fits and ``histojax evaluate --dataset``. A file that carries a seal (:data:`DATASET_DIGEST`) must match it: an
+    edit since histojax wrote it (a label, a split) is a ``BundleError`` naming the file. A split derived from a
+    sealed dataset (``baselines.validation``: a ``validation.source`` record; the readers' ``derived_from``)
+    carries its source's seal: the source's seal is checked and the labels must be the source's. Files without a
+    seal (``data_tools synth``, older builds) are read as they are. ``FileNotFoundError``, ``OSError`` and
+    ``json.JSONDecodeError`` pass as ``json.loads(path.read_text())`` raises them. Returns the JSON value."""
+    path = Path(folder) / "dataset.json"
+    if path.is_file() and path.stat().st_size > MAX_DATASET_JSON_BYTES:
+        raise BundleError(path, f"is {path.stat().st_size / 2**20:.0f} MiB, more than a dataset index holds "
+                          f"({MAX_DATASET_JSON_BYTES // 2**20} MiB); not a histojax dataset.json")
+    spec = json.loads(path.read_text())
+    if not isinstance(spec, dict) or DATASET_DIGEST not in spec:
+        return spec
+    validation = spec.get("validation")
+    source = spec.get("derived_from") or (validation.get("source") if isinstance(validation, dict) else None)
+    if isinstance(source, str) and _depth < 4:
+        try:
+            base = read_dataset_json(source, _depth + 1)
+        except FileNotFoundError:
+            return spec  # the source moved away: its bundles' own checks report it
+        if isinstance(base, dict) and isinstance(base.get("labels"), dict) and isinstance(spec.get("labels"), dict):
+            theirs = {Path(str(k)).name: v for k, v in base["labels"].items()}
+            changed = [k for k, v in spec["labels"].items() if theirs.get(Path(str(k)).name, v) != v]
+            if changed:
+                raise BundleError(path, f"labels differ from those of the sealed dataset it was split from ({source}; "
+                                  f"e.g. {changed[0]!r}): edited since; split it again from {source}")
+        return spec
+    if spec[DATASET_DIGEST] != metadata_digest({k: v for k, v in spec.items() if k != DATASET_DIGEST}):
+        raise BundleError(path, f"does not match its seal ({DATASET_DIGEST}): edited after histojax wrote it (a label, "
+                          "a split or a slide record); restore it or rebuild it with the command that made it "
+                          "(`histojax dataset SLIDES --out DIR`, `python -m data_tools c16 ... --out DIR`)")
+    return spec
+
+
 def write_metadata(folder, metadata: dict) -> None:
     """Write ``metadata.json`` of the bundle at ``folder`` atomically, sealed with its own digest
     (:data:`METADATA_DIGEST`), so an edit of any field is caught on a verified load."""
@@ -1135,4 +1176,4 @@ __all__ = ["ANNOTATIONS", "Bundle", "BundleMetadata", "FEATURES_COMMAND", "FORMA
            "TISSUE", "TiledLevel", "atomic_file", "atomic_folder", "bundle_downsamples", "default_magnification_range",
            "device_bytes", "drop_pixels", "feature_bytes", "file_digest", "slide_device_bytes", "tumour_table_bytes", "select_levels", "grid_shape", "level_device_bytes", "level_downsamples", "level_files",
            "level_grids", "level_size", "load_array", "load_bundle", "load_feature_levels", "load_tiled_level",
-           "read_metadata", "save_array", "sha256", "stable_read", "check_replaceable", "verify_metadata", "metadata_digest", "METADATA_DIGEST", "check_mask", "check_fields", "safe_name", "own_file", "foreign_entries", "replace_folder", "bundle_damage", "TEMP_MARKER", "mark_temporary", "is_our_temporary", "remove_temporary", "PARTIAL", "partial_foreign", "remove_partial", "text_digest", "tiled_level_files", "write_json", "write_metadata"]
+           "read_metadata", "save_array", "sha256", "stable_read", "check_replaceable", "verify_metadata", "metadata_digest", "METADATA_DIGEST", "check_mask", "check_fields", "safe_name", "own_file", "foreign_entries", "replace_folder", "bundle_damage", "DATASET_DIGEST", "read_dataset_json", "TEMP_MARKER", "mark_temporary", "is_our_temporary", "remove_temporary", "PARTIAL", "partial_foreign", "remove_partial", "text_digest", "tiled_level_files", "write_json", "write_metadata"]

@@ -37,6 +37,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
+from data_tools.bundle_format import read_dataset_json
 from data_tools.errors import BundleError
 from histojax.reading.modes import factory
 from histojax.env import EnvParams, HistoEnv
@@ -187,7 +188,7 @@ def check_dataset(folder, spec: dict, env_id: str) -> None:
         return
     index = Path(folder) / "dataset.json"
     try:
-        ds = json.loads(index.read_text())
+        ds = read_dataset_json(folder)  # its seal checked (an edited dataset.json refused)
     except (OSError, json.JSONDecodeError):
         return  # dataset_slides reports a missing or malformed index
     mosaic = str(ds.get("kind", "")).startswith("histojax true-scale CAMELYON16")
@@ -409,7 +410,7 @@ def dataset_slides(folder, split: str = "train", fold: int | None = None) -> lis
     folder = Path(folder)
     index = folder / "dataset.json"
     try:
-        spec = json.loads(index.read_text())
+        spec = read_dataset_json(folder)  # its seal checked: an edited label or split is refused, naming the file
     except FileNotFoundError:
         if (folder / "plan.json").is_file():  # a `histojax dataset` build that has not written dataset.json yet
             locks = sorted(p.name for p in (folder / "bundles").glob(".*.dataset-lock"))
@@ -469,8 +470,8 @@ def fold_slides(folder, spec: dict, split: str, fold) -> list[Path]:
 def dataset_labels(folder) -> dict[str, int] | None:
     """The ``"labels"`` (bundle name → 0/1) of ``FOLDER/dataset.json``, or None when it has none."""
     try:
-        labels = json.loads((Path(folder) / "dataset.json").read_text()).get("labels")
-    except (OSError, json.JSONDecodeError):
+        labels = read_dataset_json(folder).get("labels")  # its seal checked
+    except (OSError, json.JSONDecodeError, AttributeError):
         return None
     return {str(k): int(v) for k, v in labels.items()} if isinstance(labels, dict) and labels else None
 

@@ -43,7 +43,7 @@ def cohort(tmp_path_factory, pixels):
     root = tmp_path_factory.mktemp("cohort38")
     for i, name in enumerate(("s1", "s2", "s3")):
         pyramid(root / "slides" / f"{name}.tif", crop(pixels, i))
-    (root / "labels.csv").write_text("slide,label,split\ns1,0,train\ns2,1,train\ns3,1,test\n")
+    (root / "labels.csv").write_text("slide,label,split\ns1,0,train\ns2,0,train\ns3,1,test\n")
     return root / "slides", root / "labels.csv"
 
 
@@ -256,3 +256,44 @@ def test_runs_of_one_plan_share_the_folder(built, cohort, tmp_path):
         assert sorted(s["resumed"]) == ["s1", "s2", "s3"]
     finally:
         other.release()
+
+
+# ------------------------------------------------------------------ 6. every reader checks the dataset.json seal
+def _edit_a_label(work: Path) -> None:
+    index = work / "dataset.json"
+    ds = json.loads(index.read_text())
+    assert ds["labels"]["s1"] == 0 and "dataset_sha256" in ds
+    ds["labels"]["s1"] = 1  # the seal left as it was
+    index.write_text(json.dumps(ds, indent=1))
+
+
+def test_every_reader_of_a_dataset_refuses_an_edited_dataset_json(built, tmp_path):
+    import histojax
+    from baselines.reading.head_fit import read_spec
+    from data_tools.errors import BundleError
+    from histojax.registry import dataset_labels, dataset_slides
+
+    work = tmp_path / "o"
+    shutil.copytree(built, work)
+    assert len(dataset_slides(work, "train")) == 2 and read_spec(work)["labels"]["s1"] == 0  # sealed, unedited
+    _edit_a_label(work)
+    for read in (lambda: dataset_slides(work, "train"), lambda: dataset_labels(work), lambda: read_spec(work),
+                 lambda: histojax.make("HistoJAX-Easy-v0", dataset=work)):
+        with pytest.raises(BundleError) as e:  # before: the edited label was used
+            read()
+        line = str(e.value)
+        assert "\n" not in line and str(work / "dataset.json") in line and "seal" in line
+
+
+def test_a_validation_split_of_a_sealed_dataset_reads_and_its_labels_are_checked(built, tmp_path):
+    from baselines.validation import write_validation_dataset
+    from data_tools.bundle_format import read_dataset_json
+    from data_tools.errors import BundleError
+
+    val = write_validation_dataset(built, 0.5, 0, tmp_path / "val")
+    assert read_dataset_json(val)["labels"]["s1"] == 0
+    ds = json.loads((val / "dataset.json").read_text())
+    ds["labels"]["s1"] = 1
+    (val / "dataset.json").write_text(json.dumps(ds))
+    with pytest.raises(BundleError, match="labels differ"):
+        read_dataset_json(val)

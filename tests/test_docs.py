@@ -151,7 +151,7 @@ def _dry_parse(kind: str, target: str, args: list[str]) -> None:
         assert e.code in (0, None), f"argparse refused {args}: {err.getvalue().strip()}"
         return
     except ModuleNotFoundError as e:
-        if e.name and e.name.split(".")[0] not in ("histojax", "data_tools", "baselines", "benchmarks"):
+        if e.name and e.name.split(".")[0] not in ("histojax", "data_tools", "baselines", "benchmarks", "experiments"):
             pytest.skip(f"needs the optional dependency {e.name}")
         raise
     finally:

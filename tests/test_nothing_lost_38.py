@@ -297,3 +297,70 @@ def test_a_validation_split_of_a_sealed_dataset_reads_and_its_labels_are_checked
     (val / "dataset.json").write_text(json.dumps(ds))
     with pytest.raises(BundleError, match="labels differ"):
         read_dataset_json(val)
+
+
+# ------------------------------------------------------------------ 9. your own encoder: overflow, SystemExit
+OWN_ENCODERS = '''
+import numpy as np
+
+
+def huge(images):
+    return np.full((len(images), 4), 1e6, np.float32)  # finite float32, infinity in float16
+
+
+def exits(images):
+    raise SystemExit(0)
+
+
+class Stop(BaseException):
+    pass
+
+
+def stops(images):
+    raise Stop("stop")
+'''
+
+
+@pytest.fixture()
+def own_encoders(tmp_path, monkeypatch):
+    (tmp_path / "own38.py").write_text(OWN_ENCODERS)
+    monkeypatch.syspath_prepend(str(tmp_path))
+    from data_tools.features.custom import load_custom_encoder
+
+    load_custom_encoder.cache_clear()
+    yield "own38"
+    load_custom_encoder.cache_clear()
+
+
+@pytest.fixture(scope="module")
+def one_bundle(tmp_path_factory, cohort):
+    from data_tools.bundle import build_bundle
+
+    slides, _ = cohort
+    return build_bundle(slides / "s1.tif", tmp_path_factory.mktemp("one38") / "b", level_sets=(3,), progress=False)
+
+
+def test_an_own_encoder_overflowing_float16_is_refused(own_encoders, one_bundle, tmp_path, capsys):
+    from data_tools.bundle_format import read_metadata
+
+    bundle = shutil.copytree(one_bundle, tmp_path / "b")
+    line = _one_error(["features", str(bundle), "--encoder", f"{own_encoders}:huge", "--quiet"], capsys)
+    assert "65504" in line and str(bundle) in line and "own38:huge" in line  # before: rc 0, inf in every cell
+    assert read_metadata(bundle).features is None and not list(bundle.glob("features_*.npy"))
+    code, _, err = _run(["features", str(bundle), "--encoder", f"{own_encoders}:huge", "--dtype", "float32",
+                         "--quiet"], capsys)
+    assert code == 0, err  # float32 holds them
+
+
+@pytest.mark.parametrize("fn", ["exits", "stops"])
+def test_an_own_encoder_raising_systemexit_does_not_end_features_with_status_0(own_encoders, one_bundle, tmp_path,
+                                                                               capsys, fn):
+    bundle = shutil.copytree(one_bundle, tmp_path / "b")
+    line = _one_error(["features", str(bundle), "--encoder", f"{own_encoders}:{fn}", "--quiet"], capsys)
+    assert f"{own_encoders}:{fn}" in line  # before: exit 0 (SystemExit) or a traceback, nothing written
+
+
+def test_an_own_encoder_raising_systemexit_does_not_end_c16_with_status_0(own_encoders, tmp_path, capsys):
+    code, _, err = _run(["c16", "--small", "--slides", "Tumor_072", "--encoder", f"{own_encoders}:exits", "--quiet",
+                         "--out", str(tmp_path / "c")], capsys)
+    assert code != 0 and "own38:exits" in err and "SystemExit" in err, (code, err)

@@ -40,6 +40,11 @@ def _import(spec: str):
     except ImportError as e:
         raise HistojaxDataError(None, f"--encoder {spec}: cannot import {module_name!r} ({e}); is it on the "
                                       "Python path (run from its folder, or pip install it)?") from e
+    except KeyboardInterrupt:
+        raise
+    except BaseException as e:  # noqa: BLE001 (the user's module: SystemExit(0) at import must not end us with 0)
+        raise HistojaxDataError(None, f"--encoder {spec}: importing {module_name!r} raised "
+                                      f"{type(e).__name__}: {e}") from e
     fn = module
     for part in attr.split("."):
         fn = getattr(fn, part, None)
@@ -80,13 +85,15 @@ class CustomEncoder:
 
     def embed(self, images) -> np.ndarray:
         """``uint8 (N, H, W, 3)`` → ``float32 (N, D)``; a wrong shape, dtype or a non-finite value raises
-        HistojaxDataError naming the encoder."""
+        HistojaxDataError naming the encoder, and so does any exception of the callable (``SystemExit`` included;
+        only ``KeyboardInterrupt`` passes)."""
         images = np.asarray(images, np.uint8)
         try:
             out = self.fn(images)
-        except HistojaxDataError:
+        except (HistojaxDataError, KeyboardInterrupt):
             raise
-        except Exception as e:  # noqa: BLE001 (the user's code: any error, named)
+        except BaseException as e:  # noqa: BLE001 (the user's code: any error, named; a SystemExit(0) too, which
+            # would otherwise end `features` / `c16` with status 0 having written nothing)
             raise HistojaxDataError(None, f"{self!r} failed on {images.shape[0]} views of "
                                           f"{images.shape[1]}x{images.shape[2]} px: {type(e).__name__}: {e}") from e
         try:

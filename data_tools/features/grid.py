@@ -79,6 +79,20 @@ def _items(bundle: Path, metadata, grids, stride: int, verify: bool):
     return [gh * gw for gh, gw in grids], fetch, lambda k, emb: emb
 
 
+def check_storable(grids, dtype: str, bundle, encoder) -> None:
+    """Refuse (``BundleError`` naming the bundle and the encoder, one line) feature values that ``dtype`` cannot
+    hold: beyond float16's ±65504 a float16 grid would store infinity in those cells (as imported ``.h5`` features
+    are refused, :func:`data_tools.features.hdf5.import_features`). ``grids``: the ``(n_views, D)`` arrays of
+    every level, checked before anything is written."""
+    if dtype != "float16":
+        return
+    top = max((float(np.abs(g).max(initial=0.0)) for g in grids), default=0.0)
+    if top > float(np.finfo(np.float16).max):
+        who = getattr(encoder, "spec", None) or getattr(encoder, "name", "the encoder")
+        raise BundleError(bundle, f"encoder {who} gives feature values up to {top:.3g}, beyond float16's ±65504 (they "
+                          "would be stored as infinity): scale them in the encoder, or store float32 (--dtype float32)")
+
+
 def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int | None = None,
                      projection: str = "random", seed: int = 0, stride: int | None = None, batch: int = 64,
                      image_size: int | None = 224, dtype: str = "float16", progress: bool = True,
@@ -153,10 +167,11 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
     raw = [expand(k, flat[starts[k]:starts[k + 1]]) for k in range(len(grids))]
     flat = np.concatenate(raw) if raw else flat
     matrix, mean = _projection(flat, dim, projection, seed)
+    if matrix is not None:
+        raw = [(emb - mean if mean is not None else emb) @ matrix for emb in raw]
+    check_storable(raw, dtype, bundle, encoder)
     written, levels = [], []
     for k, (grid, emb) in enumerate(zip(grids, raw)):
-        if matrix is not None:
-            emb = (emb - mean if mean is not None else emb) @ matrix
         name = f"features_{k:02d}.npy"
         save_array(bundle / name, emb.reshape(*grid, -1).astype(dtype))
         written.append(name)
@@ -185,4 +200,4 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
     return features
 
 
-__all__ = ["compute_features"]
+__all__ = ["check_storable", "compute_features"]

@@ -70,7 +70,7 @@ bench-large: $(STAMP)
 # minutes on 2 CPU cores)
 reference-quick: $(STAMP)
 	$(PY) benchmarks/c16_reference.py --quick --out runs/c16-reference-quick
-	$(PY) -m baselines.budget_curve --dataset runs/c16-reference-quick/data/c16-small-pcam \
+	$(PY) -m baselines.reading.budget_curve --dataset runs/c16-reference-quick/data/c16-small-pcam \
 	  --env HistoJAX-C16-Diagnosis-v1 --glimpse-level 2 --seeds 3 --out runs/c16-reference-quick/budget-curve
 
 contract: $(STAMP)

@@ -15,7 +15,7 @@ Columns: success rate (target reached at the finest level), mean return, mean ep
 mean steps to success (over the successful episodes), mean fraction of the slide read and fields of
 view, and for a diagnosis the AUC of the policy's tumour score.
 
-**Readers trained with SASHA's reward** (``python -m benchmarks.train_readers``; their run folder holds a
+**Readers trained with SASHA's reward** (``python -m baselines.reading.train_readers``; their run folder holds a
 ``head_reward.json`` naming the slide head; ``--head DIR`` names another, or scores any checkpoint's reading
 through a head): the policy only chooses where to read, until it stops or its budget is spent, and the
 **head declares** — it scores the finest views each episode read (:func:`head_env`), every row through
@@ -517,7 +517,7 @@ def head_env(env, env_params, head, settings: dict | None = None):
     encoders = sorted({str((b.metadata.get("features") or {}).get("encoder")) for b in env.bundles} - {"None"})
     if head.encoder and any(e != head.encoder for e in encoders):
         raise ValueError(f"a slide head for {head.encoder} features; these slides hold {', '.join(encoders)} features "
-                         "(fit a head on them: python -m baselines.head_fit)")
+                         "(fit a head on them: python -m baselines.reading.head_fit)")
     features = getattr(env_params.slide, "features", None)
     dim = int(np.shape(features)[-1]) if features is not None else 0
     if head.dim >= dim:
@@ -548,10 +548,10 @@ def head_scored(ep: dict, env_params, classes) -> dict:
 
 def lesion_classes(env, env_params) -> list[str] | None:
     """CAMELYON's lesion class of each slide of ``env`` (``normal``, ``ITC``, ``micro``, ``macro``:
-    :func:`baselines.readers.lesion_of` on the bundle's tumour polygons at its µm/px), or None when a tumour
+    :func:`baselines.reading.readers.lesion_of` on the bundle's tumour polygons at its µm/px), or None when a tumour
     slide's class cannot be known (no polygons, no µm/px)."""
     from data_tools.annotations import load_annotations
-    from baselines.readers import lesion_of
+    from baselines.reading.readers import lesion_of
 
     labels = np.atleast_1d(np.asarray(jax.device_get(env_params.slide.slide_label))).astype(int)
     out = []
@@ -960,7 +960,7 @@ def refuse_not_an_agent(path: Path) -> None:
     if kind in HEADS:
         raise HistojaxDataError(path, "a slide head, not an agent: it scores what a reader read, it does not act; "
                                 f"score a reader through it: histojax evaluate READER --head {path} --dataset DIR "
-                                f"(or python -m baselines.readers --head {path} --dataset DIR)")
+                                f"(or python -m baselines.reading.readers --head {path} --dataset DIR)")
 
 
 def grid_refusal(error: ValueError, run) -> ValueError:
@@ -974,7 +974,7 @@ def grid_refusal(error: ValueError, run) -> ValueError:
     set_reader = published_path(SET_READER)
     use = (f"use the cell-set reader, which reads slides of any size: histojax evaluate {set_reader} --dataset DIR"
            if set_reader.is_dir() else
-           "use a cell-set reader, which reads slides of any size (the -v2 ids; python -m benchmarks.train_readers "
+           "use a cell-set reader, which reads slides of any size (the -v2 ids; python -m baselines.reading.train_readers "
            "trains one)")
     return ValueError(f"{where}: {run} is a flat glimpse policy over the padded cell grid it trained on, so it cannot "
                       f"read a slide wider or taller than that grid; {use}")
@@ -982,7 +982,7 @@ def grid_refusal(error: ValueError, run) -> ValueError:
 
 def head_reward_settings(run: Path, config: dict) -> tuple[dict | None, Path | None]:
     """``(settings, file)`` of a reader trained with SASHA's reward (``RUN/head_reward.json`` as
-    ``benchmarks.train_readers`` writes it, or a ``head_reward`` object in ``config.json``): ``head``
+    ``baselines.reading.train_readers`` writes it, or a ``head_reward`` object in ``config.json``): ``head``
     (its slide head folder), ``gain``, ``final``, ``read_cost``; ``(None, None)`` for other runs."""
     f = run / "head_reward.json"
     if f.is_file():
@@ -991,7 +991,7 @@ def head_reward_settings(run: Path, config: dict) -> tuple[dict | None, Path | N
         except (OSError, ValueError) as e:
             raise HistojaxDataError(f, f"unreadable ({type(e).__name__}: {e})") from None
         if not isinstance(record, dict) or not isinstance(record.get("head"), str) or not record["head"]:
-            raise HistojaxDataError(f, "names no slide head (a 'head' folder, as benchmarks.train_readers writes it); "
+            raise HistojaxDataError(f, "names no slide head (a 'head' folder, as baselines.reading.train_readers writes it); "
                                     "give --head DIR")
         return record, f
     record = config.get("head_reward")

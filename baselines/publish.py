@@ -7,7 +7,7 @@ any C16-style dataset without training:
     histojax evaluate baselines/published/c16-easy-navigator --dataset DIR [--split test]
 
 The run's learning curve (``log.csv``, ``curve.png``) comes along when it has one. A reader trained with
-SASHA's reward (``python -m benchmarks.train_readers``) keeps its ``head_reward.json``, whose slide head
+SASHA's reward (``python -m baselines.reading.train_readers``) keeps its ``head_reward.json``, whose slide head
 is made findable wherever the folder goes: a head published in ``baselines/published`` is named as
 ``baselines/published/HEAD``; any other head is copied into the folder (``NAME/head``), so that
 ``histojax evaluate baselines/published/NAME --dataset DIR`` scores it through the head it trained with.

@@ -6,7 +6,7 @@
 seed's whole training state after the last finished chunk. This writes ``OUT/params.msgpack`` and
 ``OUT/config.json`` (the run's config, ``total_timesteps`` set to the steps actually trained), ``log.csv``,
 ``log.json`` and ``curve.png`` (the updates done so far; no random-agent reference), so that
-``baselines.head_diagnosis``, ``baselines.evaluate`` and ``histojax evaluate`` read it as a finished run.
+``baselines.reading.diagnosis``, ``baselines.evaluate`` and ``histojax evaluate`` read it as a finished run.
 ``OUT`` defaults to ``RUN``. The parameters are found in the runner state by their shapes: the network the
 config makes (built on one slide of the run's dataset), every leaf with the seeds on axis 0.
 """

@@ -7,7 +7,7 @@ can read at most, and what the one-head readers reach at that fraction.
 A navigator stands on one view per step, so a ``--max-steps`` episode reads at most ``max_steps`` finest
 tissue views of a slide (fewer: it also zooms and moves over views it has read). Prints, over the split's
 slides, the finest tissue views per slide and the fraction ``max_steps / views`` (median, min, max), then the
-head's AUC (all slides; ITC-only slides left out) for the readers of :mod:`baselines.readers` (overview only,
+head's AUC (all slides; ITC-only slides left out) for the readers of :mod:`baselines.reading.readers` (overview only,
 random reader over ``--seeds`` orders, logit reader, search reader, read everything) at ``--budgets``, and
 each reader at **each slide's own ceiling** (``max_steps`` views of that slide: the row ``budget = median
 ceiling``). Writes ``OUT/readers.csv`` and ``OUT/ceiling.json``.
@@ -34,7 +34,7 @@ def ceiling_fractions(slides: list[dict], max_steps: int) -> np.ndarray:
 def at_ceiling(head, slides: list[dict], results: dict, ceilings: np.ndarray, level: int, seeds: int) -> float:
     """Add the random (``seeds`` orders), logit and search readers, each reading up to its slide's own
     ``ceilings[i]`` fraction, to ``results`` under the budget ``median(ceilings)``; returns that key."""
-    from baselines import readers
+    from baselines.reading import readers
 
     key = float(np.median(ceilings))
     tables = [readers.cell_table(s, level) for s in slides]
@@ -66,7 +66,8 @@ def add_arguments(p) -> None:
 
 def run(args, parser=None) -> int:
     """Print the ceiling fractions and the readers' AUC at them; CSV and JSON in ``args.out``."""
-    from baselines import outputs, readers
+    from baselines import outputs
+    from baselines.reading import readers
 
     if args.max_steps < 1 or args.seeds < 1 or not all(0.0 < b <= 1.0 for b in args.budgets):
         return print_error("--max-steps and --seeds must be ≥ 1 and --budgets in (0, 1]")

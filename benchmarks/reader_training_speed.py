@@ -1,7 +1,7 @@
 """How fast the set reader trains with SASHA's reward: PPO env steps/s of the cell-set reader
 (``glimpse`` with ``step_obs=True``, :class:`~baselines.networks.CellSetActorCritic`) on a dataset's
 training slides, the env wrapped in :class:`~histojax.adapters.head_reward.HeadReward` exactly as
-``benchmarks.train_readers`` wraps it, under four settings measured in one run:
+``baselines.reading.train_readers`` wraps it, under four settings measured in one run:
 
 * ``whole grid, keys every step``: the head re-scores the whole finest grid at every step
   (``incremental_score=False``) and the rollout recomputes every slide's cell keys at every step (as

@@ -49,7 +49,7 @@ COMMANDS = {  # histojax <command>: the module whose add_arguments and run it is
     "demo": "baselines.demo",
     "evaluate": "baselines.evaluate",
     "rotation": "baselines.rotation",
-    "budget-curve": "baselines.budget_curve",
+    "budget-curve": "baselines.reading.budget_curve",
     "reproduce": "baselines.reproduce",
     "contract": "histojax.testing",
     "bench": "benchmarks.throughput",

@@ -45,7 +45,7 @@ def tiny_feature_bundle(root: Path, seed: int, tile: int = 32) -> Path:
 def synth_feature_dataset(root: Path, n_slides: int, negatives: int) -> Path:
     """A ``data_tools synth`` dataset in ``root`` (``n_slides`` tumour + ``negatives`` normal slides, 320 × 256 px,
     32-px views, Easy's 3 levels, seed 0) with the cheap ``colour-stats`` feature grids; returns ``root``."""
-    from baselines.budget_curve import compute_missing_features
+    from baselines.reading.budget_curve import compute_missing_features
     from data_tools.datasets.synth import make_dataset
 
     make_dataset(root, n_slides=n_slides, negatives=negatives, size=(320, 256), seed=0, tile_size=32,

@@ -1,5 +1,5 @@
 """Trained policies on the budget curve: a tiny recurrent PPO run (``baselines.ppo_rnn``, a few
-hundred steps) in ``glimpse`` mode, and the same GRU policy untrained in ``zoom_select`` mode, is evaluated by ``baselines.budget_curve``
+hundred steps) in ``glimpse`` mode, and the same GRU policy untrained in ``zoom_select`` mode, is evaluated by ``baselines.reading.budget_curve``
 through ``baselines.evaluate.run_episodes``, its GRU state carried through each episode.
 
 One tiny dataset (4 tumour + 4 tumour-free slides of 320 × 256 px, 32-px views, Easy levels, the
@@ -13,7 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines import budget_curve, common, evaluate, ppo_rnn
+from baselines import common, evaluate, ppo_rnn
+
+from baselines.reading import budget_curve
 from baselines.networks import ScannedGRU
 from slide_helpers import synth_feature_dataset
 
@@ -142,9 +144,9 @@ def test_recurrent_policy_carries_its_hidden_state(dataset, runs):
 
 
 def test_a_policy_read_masks_are_scored_by_the_slide_head(dataset, runs, glimpse_reads):
-    """baselines.readers.policy_masks turns a trained reader's reads into finest-level read masks that
+    """baselines.reading.readers.policy_masks turns a trained reader's reads into finest-level read masks that
     count the same views as the env did, and add_reader scores them with one slide head (histojax.reading.heads.logit)."""
-    from baselines import head_fit, readers
+    from baselines.reading import head_fit, readers
     from histojax.reading.heads.logit import SlideHead
 
     slides = head_fit.load_slides(dataset, "test", dim=0)
@@ -171,9 +173,9 @@ def test_a_policy_read_masks_are_scored_by_the_slide_head(dataset, runs, glimpse
 
 
 def test_readers_command_adds_a_trained_reader(dataset, runs, tmp_path):
-    """`python -m baselines.readers --reader NAME RUN`: the trained reader's rows beside the scripted ones,
+    """`python -m baselines.reading.readers --reader NAME RUN`: the trained reader's rows beside the scripted ones,
     scored by the same head (here on the training split, which holds both classes)."""
-    from baselines import head_fit, readers
+    from baselines.reading import head_fit, readers
     from histojax.reading.heads.logit import SlideHead
 
     head_fit.calibrated(SlideHead(dim=0, k=3, encoder=None), head_fit.load_slides(dataset, "train", dim=0)).save(

@@ -303,7 +303,7 @@ def test_navigation_memory_observation(bundle):
 
 
 def test_offline_reader_reads_as_the_env(glimpse):
-    from baselines.budget_curve import read_cells
+    from baselines.reading.budget_curve import read_cells
 
     env, params = glimpse
     table = env.action.host_tables(env, params, env.bundles)[0]
@@ -322,7 +322,7 @@ def test_offline_reader_reads_as_the_env(glimpse):
 
 
 def test_budget_rows_csv_and_png(tmp_path):
-    from baselines.budget_curve import budget_rows, plot, write_csv
+    from baselines.reading.budget_curve import budget_rows, plot, write_csv
 
     rng = np.random.default_rng(0)
 
@@ -348,7 +348,7 @@ def test_max_logit_rows_find_a_small_focus_that_attention_dilutes():
     """The max-pooling rows (a fixed instance logit, as pcam-cnn's ``max l``): one tumour view among 400 sets
     the slide's score; the logit reader reads the cell whose overview logit is highest first, so it finds the
     focus at the smallest budget; the calibration makes scores probabilities without changing their order."""
-    from baselines.budget_curve import MAX_LOGIT_NAMES, MaxLogitHead, bags, budget_rows, method_scores
+    from baselines.reading.budget_curve import MAX_LOGIT_NAMES, MaxLogitHead, bags, budget_rows, method_scores
     from baselines.metrics import roc_auc
 
     rng = np.random.default_rng(0)
@@ -378,7 +378,7 @@ def test_max_logit_rows_find_a_small_focus_that_attention_dilutes():
 
 
 def test_cross_validation_scores_every_slide_once():
-    from baselines.budget_curve import cross_validated_rows
+    from baselines.reading.budget_curve import cross_validated_rows
 
     rng = np.random.default_rng(1)
     labels = np.array([0, 1] * 4)
@@ -472,3 +472,26 @@ def test_mode_names_resolve_apart_from_the_base_classes():
     assert isinstance(factory.action_mode("glimpse:2"), Glimpse)
     assert factory.action_mode("zoom_select:4") == ZoomSelect(k=4)
     assert not hasattr(modes, "action_mode")
+
+
+def test_budget_curve_mil_is_the_heads_gated_attention():
+    """The budget curve's "read everything" classifier is histojax.reading.heads.mil's gated attention (one MIL):
+    its batched bag scores equal attention_pool on each bag alone, its attention sums to 1 and leaves unread
+    instances at 0, and training separates bags whose tumour instances carry a signal."""
+    from baselines.reading.budget_curve import train_mil
+    from histojax.reading.heads.mil import attention_pool, attention_weights
+
+    rng = np.random.default_rng(0)
+    bags = rng.normal(size=(24, 12, 6)).astype(np.float32)
+    masks = rng.random((24, 12)) < 0.8
+    masks[:, 0] = True
+    labels = np.arange(24) % 2
+    bags[labels == 1, :3, 2] += 3.0
+    head = train_mil(bags, masks, labels, steps=150)
+    p = head.scores(bags, masks)
+    alone = [float(jax.nn.sigmoid(attention_pool(head.params, jnp.asarray(b), jnp.asarray(m))[0]))
+             for b, m in zip(bags, masks)]
+    np.testing.assert_allclose(p, alone, rtol=1e-5, atol=1e-6)
+    att = np.asarray(attention_weights(head.params, jnp.asarray(bags[1]), jnp.asarray(masks[1])))
+    assert att.sum() == pytest.approx(1.0, abs=1e-5) and np.all(att[~masks[1]] == 0)
+    assert p[labels == 1].min() > p[labels == 0].max()

@@ -103,7 +103,7 @@ def data(tmp_path_factory) -> dict:
 
 @pytest.fixture(scope="module")
 def reader(data, tmp_path_factory) -> Path:
-    """A tiny cell-set reader as `benchmarks.train_readers` leaves it (untrained parameters of its network, made
+    """A tiny cell-set reader as `baselines.reading.train_readers` leaves it (untrained parameters of its network, made
     on the small slides; log.csv, head_reward.json naming a head in another folder), published with its head."""
     from baselines.networks import preprocess_obs
     from baselines.ppo import make_network
@@ -174,7 +174,7 @@ def test_set_reader_is_scored_through_its_head_on_wider_and_taller_slides(data, 
 def test_the_head_scores_what_each_episode_read(data):
     """``head_score`` of an episode is the head on the finest views under the cells it revealed (computed here
     from the final state), not an earlier step's; success is that score's diagnosis; slides in turn."""
-    from baselines.readers import masks_from_instances
+    from baselines.reading.readers import masks_from_instances
     from histojax.reading.heads import score_logits
 
     config = {**READER, "env_kwargs": {"dataset": str(data["big"]), "split": "test", "read_budget": 0.2}}
@@ -188,7 +188,7 @@ def test_the_head_scores_what_each_episode_read(data):
     ep = evaluate.head_scored(ep, env_params, classes)
     assert ep["slide"].tolist() == [0, 1, 2, 3] * 2 and ep["lesion"].tolist() == classes * 2
     host = env.action.host_tables(env, env_params, env.bundles)
-    from baselines.head_fit import load_slide
+    from baselines.reading.head_fit import load_slide
 
     for e in range(n):
         i = int(ep["slide"][e])
@@ -238,7 +238,7 @@ def test_published_folder_refused_in_one_line_saying_what_to_use(name, data, tmp
     elif kind == "flat glimpse":
         assert "do not fit glimpse_grid=[16, 14]" in line and "cannot read a slide wider or taller" in line
         assert (f"histojax evaluate {evaluate.published_path(evaluate.SET_READER)}" in line if set_reader.is_dir()
-                else "benchmarks.train_readers" in line)
+                else "baselines.reading.train_readers" in line)
     else:
         assert "retired" in line and "docs/results/c16.md" in line and evaluate.SET_READER in line
     assert not (tmp_path / "o").exists()

@@ -1,5 +1,5 @@
-"""The slide head with spatial context (histojax.reading.heads.logit), its fitting (baselines.head_fit), CAMELYON lesion
-classes and the scripted readers with the one-head budget curve (baselines.readers).
+"""The slide head with spatial context (histojax.reading.heads.logit), its fitting (baselines.reading.head_fit), CAMELYON lesion
+classes and the scripted readers with the one-head budget curve (baselines.reading.readers).
 
 A tiny synthetic pcam-cnn-style dataset is written once for the module (no pixels: metadata.json, feature
 grids whose entry 62 is a view logit, a tissue mask, tumour polygons). Normal slides carry isolated
@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines import head_fit, readers
+from baselines.reading import head_fit, readers
 from histojax.reading.heads import score, score_logits
 from histojax.reading.heads.logit import SlideHead, neighbourhood_mean
 

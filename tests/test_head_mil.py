@@ -1,4 +1,4 @@
-"""The trained slide heads (histojax.reading.heads.mil) and their training data (baselines.head_mil_fit): jittable,
+"""The trained slide heads (histojax.reading.heads.mil) and their training data (baselines.reading.head_mil_fit): jittable,
 vmap equals a loop, unread views do not count, the sparse training path equals the deployed dense one,
 save / load round trip through heads.load, bad folders refused with one line naming the file."""
 from __future__ import annotations
@@ -10,7 +10,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines import head_mil_fit
+from baselines.reading import head_mil_fit
 from histojax.reading import heads
 from histojax.reading.heads import score, score_batch, score_logits
 from histojax.reading.heads.logit import SlideHead

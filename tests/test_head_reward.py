@@ -256,9 +256,10 @@ def test_bad_settings_are_refused(glimpse):
 
 @pytest.mark.slow  # `make test-all`: builds a PPO navigator and rolls it twice (about a minute on 2 cores)
 def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(dataset, tmp_path):
-    """baselines.head_diagnosis: the read mask of a (freshly initialised) navigator is the set of finest
+    """baselines.reading.diagnosis: the read mask of a (freshly initialised) navigator is the set of finest
     tissue views its (sampled) trajectory stood on, recomputed here from the trajectory's (z, x, y)."""
-    from baselines import common, evaluate, head_diagnosis, ppo
+    from baselines import common, evaluate, ppo
+    from baselines.reading import diagnosis
 
     config = dict(env_id="HistoJAX-Easy-v0", obs_mode="features", action_mode="discrete", num_envs=2, num_steps=4,
                   total_timesteps=8, hidden=8, num_minibatches=1, update_epochs=1, num_seeds=1, print_progress=False,
@@ -266,7 +267,7 @@ def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(datase
     train = ppo.make_train(config)
     params = train.init_params(jax.random.key(0), train.env_params)
     common.save_checkpoint(tmp_path / "nav", jax.tree.map(lambda a: a[None], params), train.config)
-    reads = head_diagnosis.navigator_reads(tmp_path / "nav", dataset, "train", seed=0, greedy=False)
+    reads = diagnosis.navigator_reads(tmp_path / "nav", dataset, "train", seed=0, greedy=False)
     # the same episodes, by hand: the run's env and policy, the finest views on the trajectory
     _, cfg = common.load_checkpoint(tmp_path / "nav")
     cfg = {**cfg, "env_kwargs": {**cfg["env_kwargs"], "dataset": str(dataset), "split": "train"}}

@@ -247,7 +247,8 @@ def test_checkpoint_on_a_full_disk_keeps_the_previous_one(tmp_path, monkeypatch)
 
 
 def test_figures_and_tables_on_a_full_disk_leave_no_partial_file(tmp_path, monkeypatch):
-    from baselines import budget_curve, outputs
+    from baselines import outputs
+    from baselines.reading import budget_curve
 
     rows = [{"method": "random", "budget": 0.1, "fraction_read": 0.1, "auc": 0.5, "accuracy": 0.5, "slides": 4}]
     budget_curve.write_csv(rows, tmp_path / "budget_curve.csv")

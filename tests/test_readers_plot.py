@@ -2,7 +2,7 @@
 (a reader that declares at the overview reads 0 % at every budget: one label, not four on top of each other)."""
 from __future__ import annotations
 
-from baselines.readers import coincident_points, plot
+from baselines.reading.readers import coincident_points, plot
 
 
 def test_coincident_points_are_merged_with_their_budgets():

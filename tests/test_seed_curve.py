@@ -1,4 +1,4 @@
-"""benchmarks.train_readers.seed_curve: a multi-seed run's learning curve as mean ± std over seeds, from the
+"""baselines.reading.train_readers.seed_curve: a multi-seed run's learning curve as mean ± std over seeds, from the
 trainer's log.json (per_seed stored as (seeds, points)), computed by hand here."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import json
 
 import numpy as np
 
-from benchmarks.train_readers import seed_curve
+from baselines.reading.train_readers import seed_curve
 
 
 def test_seed_curve_is_mean_and_std_over_seeds(tmp_path):

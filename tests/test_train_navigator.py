@@ -1,6 +1,6 @@
-"""A navigator rewarded by the slide head (``benchmarks.train_readers --action-mode discrete``): trained with
+"""A navigator rewarded by the slide head (``baselines.reading.train_readers --action-mode discrete``): trained with
 the env wrapped in ``HeadReward`` (no reading budget), then scored on the validation slides by
-``baselines.head_diagnosis`` (the head declares from the finest views it stood on), beside a ``--compare``
+``baselines.reading.diagnosis`` (the head declares from the finest views it stood on), beside a ``--compare``
 navigator; and ``benchmarks.navigator_ceiling``: the fraction a ``max_steps`` episode can read, and the readers
 at each slide's own ceiling.
 
@@ -33,7 +33,7 @@ def data(tmp_path_factory) -> dict:
 @pytest.fixture(scope="module")
 def trained(data, tmp_path_factory) -> Path:
     """``train_readers`` in discrete mode, 1 seed, 64 env steps: exit 0, its output folder."""
-    from benchmarks import train_readers
+    from baselines.reading import train_readers
 
     out = tmp_path_factory.mktemp("nav-run") / "out"
     code = train_readers.main(["--dataset", str(data["set"]), "--head", str(data["head"]), "--out", str(out),
@@ -44,7 +44,7 @@ def trained(data, tmp_path_factory) -> Path:
 
 
 def test_is_navigator():
-    from benchmarks.train_readers import is_navigator
+    from baselines.reading.train_readers import is_navigator
 
     assert is_navigator("discrete") and is_navigator("continuous")
     assert not is_navigator("glimpse:1") and not is_navigator("zoom_select")
@@ -71,7 +71,7 @@ def test_navigator_is_trained_with_the_head_and_scored_on_validation(trained):
 @pytest.mark.slow
 def test_compare_navigator_is_scored_beside(trained, data, tmp_path):
     """``--skip-training`` re-scores the run; ``--compare`` adds another navigator's row (here the same run)."""
-    from benchmarks import train_readers
+    from baselines.reading import train_readers
 
     out = tmp_path / "again"
     import shutil
@@ -90,17 +90,17 @@ def test_compare_navigator_is_scored_beside(trained, data, tmp_path):
 def test_head_diagnosis_scores_the_sampled_policy(trained, data, tmp_path, monkeypatch):
     """``head_diagnosis --sampled`` rolls the navigator's sampled policy (greedy=False, key = the seed) and says so in
     the row's name; its reads are those of ``navigator_reads(..., greedy=False)``."""
-    from baselines import head_diagnosis
+    from baselines.reading import diagnosis
 
     calls = []
-    reads = head_diagnosis.navigator_reads
+    reads = diagnosis.navigator_reads
 
     def spy(*a, **kw):
         calls.append(kw.get("greedy"))
         return reads(*a, **kw)
-    monkeypatch.setattr(head_diagnosis, "navigator_reads", spy)
+    monkeypatch.setattr(diagnosis, "navigator_reads", spy)
     scoring = trained / "validation-set"
-    assert head_diagnosis.main(["--dataset", str(scoring), "--head", str(data["head"]), "--navigator", "nav",
+    assert diagnosis.main(["--dataset", str(scoring), "--head", str(data["head"]), "--navigator", "nav",
                                 str(trained / "ppo"), "--sampled", "--seeds", "2", "--out", str(tmp_path / "s")]) == 0
     rows = {r["reader"]: r for r in csv.DictReader((tmp_path / "s" / "readers.csv").open())}
     assert calls == [False] and "nav (head declares, sampled)" in rows

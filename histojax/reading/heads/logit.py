@@ -6,7 +6,7 @@ read views of its ``k × k`` neighbourhood (views not read, and views off tissue
 then pools the neighbourhood means of the read views (the mean of the ``top`` largest; ``top=1`` is
 the maximum), optionally minus the median logit of the read views (a slide-level offset: staining or
 tissue type that raises every view), and maps that statistic ``s`` to a slide logit ``a · s + b``
-(a logistic calibration fitted on training slides: :mod:`baselines.head_fit`). A slide with nothing
+(a logistic calibration fitted on training slides: :mod:`baselines.reading.head_fit`). A slide with nothing
 read scores ``prior_logit`` (the training split's log odds of tumour).
 
 Pure JAX and jittable (``jax.jit(heads.score)``, ``jax.vmap`` over slides padded to one grid: padding is

@@ -26,7 +26,7 @@ neighbourhood mean of all ``D`` feature entries (such a head needs the whole gri
 counts of 2 × 2 means above thresholds, the number of views read), standardised, then ``w · s + b``.
 
 A slide with nothing read scores ``prior_logit``. Pure JAX, jittable, vmappable over slides padded to one
-grid (padding is never read). Fitted by :mod:`baselines.head_mil_fit` with random read masks, so they score
+grid (padding is never read). Fitted by :mod:`baselines.reading.head_mil_fit` with random read masks, so they score
 partial reads. Saved as a folder: ``config.json`` (``kind``, ``format``, structure, the fit) and
 ``params.npz`` (the arrays).
 """
@@ -75,12 +75,9 @@ def feature_means(features: jax.Array, mask: jax.Array, k: int) -> jax.Array:
     return box(x) / jnp.maximum(box(m), 1.0)[..., None]
 
 
-def attention_pool(params: dict, x: jax.Array, mask: jax.Array, segments: jax.Array | None = None,
-                   num_segments: int = 1) -> jax.Array:
-    """Gated-attention MIL over instances ``x (N, F)`` read where ``mask (N,)``; ``segments (N,)`` int assigns
-    instances to bags (default one bag). Returns ``(num_segments,)`` slide logits (0 for a bag with nothing
-    read: the caller substitutes the prior)."""
-    seg = jnp.zeros(x.shape[0], jnp.int32) if segments is None else segments
+def _gated(params: dict, x: jax.Array, mask: jax.Array, seg: jax.Array, num_segments: int):
+    """``(h (N, hidden), e (N,), den (num_segments,))``: the instances' hidden units, their unnormalised attention
+    ``exp(a - max a of the bag)`` (0 where not read) and each bag's sum of it."""
     xs = (x - params["mu"]) / params["sd"]
     h = jax.nn.relu(xs @ params["w1"] + params["b1"])
     gate = jnp.tanh(h @ params["V"] + params["bV"]) * jax.nn.sigmoid(h @ params["U"] + params["bU"])
@@ -88,9 +85,28 @@ def attention_pool(params: dict, x: jax.Array, mask: jax.Array, segments: jax.Ar
     amax = jax.ops.segment_max(a, seg, num_segments)
     amax = jnp.where(jnp.isfinite(amax), amax, 0.0)
     e = jnp.where(mask, jnp.exp(a - amax[seg]), 0.0)
-    den = jax.ops.segment_sum(e, seg, num_segments)
+    return h, e, jax.ops.segment_sum(e, seg, num_segments)
+
+
+def attention_pool(params: dict, x: jax.Array, mask: jax.Array, segments: jax.Array | None = None,
+                   num_segments: int = 1) -> jax.Array:
+    """Gated-attention MIL over instances ``x (N, F)`` read where ``mask (N,)``; ``segments (N,)`` int assigns
+    instances to bags (default one bag). Returns ``(num_segments,)`` slide logits (0 for a bag with nothing
+    read: the caller substitutes the prior). ``params``: ``mu``, ``sd`` ``(F,)`` (standardisation), ``w1 (F, H)``,
+    ``b1 (H,)``, ``V``, ``U (H, A)``, ``bV``, ``bU (A,)``, ``wa (A,)``, ``wc (H,)``, ``bc ()``."""
+    seg = jnp.zeros(x.shape[0], jnp.int32) if segments is None else segments
+    h, e, den = _gated(params, x, mask, seg, num_segments)
     z = jax.ops.segment_sum(e[:, None] * h, seg, num_segments) / jnp.maximum(den, 1e-30)[:, None]
     return z @ params["wc"] + params["bc"]
+
+
+def attention_weights(params: dict, x: jax.Array, mask: jax.Array, segments: jax.Array | None = None,
+                      num_segments: int = 1) -> jax.Array:
+    """The attention :func:`attention_pool` gives each instance ``(N,)`` (summing to 1 over a bag's read
+    instances, 0 where not read)."""
+    seg = jnp.zeros(x.shape[0], jnp.int32) if segments is None else segments
+    _, e, den = _gated(params, x, mask, seg, num_segments)
+    return e / jnp.maximum(den, 1e-30)[seg]
 
 
 def statistics_of(logits: jax.Array, mask: jax.Array, ks=(1, 2, 3, 4)) -> jax.Array:

@@ -1,7 +1,7 @@
 """Learned readers trained with SASHA's reward (:class:`histojax.adapters.head_reward.HeadReward`), scored on
 validation slides with the same head as every other reader:
 
-    python -m benchmarks.train_readers --dataset DIR --head HEAD --out runs/set-readers \\
+    python -m baselines.reading.train_readers --dataset DIR --head HEAD --out runs/set-readers \\
         [--algo ppo|ppo_rnn] [--seeds 3] [--total-steps N] [--read-budget 0.2] [--gain log] [--final 1] \\
         [--read-cost 0] [--val-fraction 0.3] [--compare NAME RUN] [-- TRAINER OPTIONS]
 
@@ -15,14 +15,14 @@ validation slides with the same head as every other reader:
    trainer's run folder ``OUT/<algo>`` (``log.csv``, ``curve.png``, ``params.msgpack``, ``config.json``)
    plus ``OUT/<algo>/head_reward.json`` (the reward's settings) and ``OUT/<algo>/curve-seeds.png`` / ``.csv``
    (the learning curve as mean ± std over seeds: :func:`seed_curve`).
-3. Scores the trained seeds with :mod:`baselines.readers` on the **validation** split at 5/10/20/50 %
+3. Scores the trained seeds with :mod:`baselines.reading.readers` on the **validation** split at 5/10/20/50 %
    (overview only, random, scripted, the learned reader, read everything; the same head for every row):
    ``OUT/validation/readers.csv``, ``readers.png``, ``readers.json``.
 
 **Navigators** (``--action-mode discrete`` or ``continuous``, e.g. on ``HistoJAX-C16-Diagnosis-v2``): the
 same training, the env wrapped in ``HeadReward`` (it tracks the finest views the navigator stood on; with
 ``HeadReward`` the head declares, the navigator's own declare only ends the episode; no ``read_budget``),
-and the scoring step is :mod:`baselines.head_diagnosis` on the validation split instead: each seed rolled
+and the scoring step is :mod:`baselines.reading.diagnosis` on the validation split instead: each seed rolled
 greedily once per validation slide, its read masks scored by the head beside the readers at the fraction
 it read, plus any ``--compare NAME RUN`` navigator (e.g. a published one) scored the same way.
 
@@ -141,7 +141,7 @@ def main(argv=None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     extra = argv[argv.index("--") + 1:] if "--" in argv else []
     argv = argv[: argv.index("--")] if "--" in argv else argv
-    p = argparse.ArgumentParser(prog="python -m benchmarks.train_readers", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m baselines.reading.train_readers", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--dataset", required=True, type=Path)
     p.add_argument("--head", required=True)
@@ -163,7 +163,9 @@ def main(argv=None) -> int:
                    help="navigation modes: another navigator scored beside on validation (repeatable)")
     args = p.parse_args(argv)
 
-    from baselines import common, readers
+    from baselines import common
+
+    from baselines.reading import readers
     from histojax.reading import heads
 
     try:
@@ -202,9 +204,9 @@ def main(argv=None) -> int:
         seed_curve(run_dir, run_dir / "curve-seeds.png", run_dir / "curve-seeds.csv")
     t1 = time.perf_counter()
     if navigator:
-        from baselines import head_diagnosis
+        from baselines.reading import diagnosis
 
-        code = head_diagnosis.main(["--dataset", str(data / "validation-set"), "--head", str(args.head),
+        code = diagnosis.main(["--dataset", str(data / "validation-set"), "--head", str(args.head),
                                     "--split", "test", "--navigator", f"navigator ({args.algo}, head reward)",
                                     str(run_dir), *[a for name, r in args.compare for a in ("--navigator", name, r)],
                                     "--policy-seeds", str(args.seeds), "--out", str(args.out / "validation")])

@@ -1,8 +1,8 @@
 """Scripted readers, CAMELYON lesion classes and the budget curve with one slide head for every row:
-``python -m baselines.readers --dataset DIR --head DIR --out DIR``.
+``python -m baselines.reading.readers --dataset DIR --head DIR --out DIR``.
 
 Every reader produces, per slide and budget, a **read mask** ``(H, W)`` bool over the finest-level
-views; the same head (:mod:`histojax.reading.heads.logit`, fitted by :mod:`baselines.head_fit`) scores every mask:
+views; the same head (:mod:`histojax.reading.heads.logit`, fitted by :mod:`baselines.reading.head_fit`) scores every mask:
 
 * ``overview only`` — nothing of the finest level is read (fraction 0): the head applied to the cell
   grid's own low-resolution logits (the overview every reader sees before reading);
@@ -13,11 +13,11 @@ views; the same head (:mod:`histojax.reading.heads.logit`, fitted by :mod:`basel
   around the best cells;
 * ``read everything`` — every tissue view (fraction 1);
 * learned readers — any reader's masks, added with :func:`add_reader` (e.g. from
-  :func:`baselines.budget_curve.policy_reads` through :func:`masks_from_instances`).
+  :func:`baselines.reading.budget_curve.policy_reads` through :func:`masks_from_instances`).
 
 **Cells** are the views of bundle level ``--cell-level`` (default: the level whose downsample is nearest 4,
 so that a cell covers about 4 × 4 finest views; on the C16 sets, level 3, ×3.67); a cell is valid when a finest tissue view lies under
-it. A reader reads cells as the ``glimpse`` env does (:func:`baselines.budget_curve.read_cells`): a cell
+it. A reader reads cells as the ``glimpse`` env does (:func:`baselines.reading.budget_curve.read_cells`): a cell
 is read while its tissue views still fit in ``floor(budget · tissue views)``; the first pick that does
 not fit ends the reading. Fractions are of the slide's finest-level tissue views.
 
@@ -125,7 +125,7 @@ def cell_table(slide: dict, level: int) -> dict:
 def cell_level_for(dataset: Path, spec: dict, split: str, target: float = 4.0) -> int:
     """The bundle level (≥ 1) whose downsample is nearest ``target`` (geometric distance), read from the split's
     first bundle."""
-    from baselines.head_fit import HeadDataError
+    from baselines.reading.head_fit import HeadDataError
 
     entries = spec.get(split) or []
     if not entries:
@@ -189,8 +189,8 @@ def search_order(slide: dict, cells: dict, threshold: float = SEARCH_THRESHOLD, 
 
 def read_mask(cells: dict, tissue: np.ndarray, order, budget: float) -> tuple[np.ndarray, float]:
     """``(mask (H, W) bool, fraction read)`` of the tissue views under the cells read picking ``order``
-    at ``budget`` (the glimpse env's rule: :func:`baselines.budget_curve.read_cells`)."""
-    from baselines.budget_curve import read_cells
+    at ``budget`` (the glimpse env's rule: :func:`baselines.reading.budget_curve.read_cells`)."""
+    from baselines.reading.budget_curve import read_cells
 
     read, fraction = read_cells(cells, order, budget)
     return np.isin(cells["cell"], read) & tissue, fraction
@@ -199,7 +199,7 @@ def read_mask(cells: dict, tissue: np.ndarray, order, budget: float) -> tuple[np
 def masks_from_instances(slide: dict, instances) -> np.ndarray:
     """A read mask ``(H, W)`` from indices into the slide's tissue views in raster order (what
     :meth:`histojax.reading.modes.glimpse.Glimpse.host_tables` calls ``instances`` and
-    :func:`baselines.budget_curve.policy_reads` returns as ``read``)."""
+    :func:`baselines.reading.budget_curve.policy_reads` returns as ``read``)."""
     flat = np.flatnonzero(slide["tissue"].reshape(-1))
     mask = np.zeros(slide["tissue"].size, bool)
     mask[flat[np.asarray(instances, np.int64)]] = True
@@ -208,9 +208,9 @@ def masks_from_instances(slide: dict, instances) -> np.ndarray:
 
 def policy_masks(run, dataset, slides: list[dict], split: str = "test", budgets=BUDGETS, seeds: int = 3) -> dict:
     """A trained ``glimpse`` / ``zoom_select`` policy's read masks, ``{budget: [masks per slide] per seed}``
-    (its first ``seeds`` seeds, rolled greedily by :func:`baselines.budget_curve.policy_reads` on
+    (its first ``seeds`` seeds, rolled greedily by :func:`baselines.reading.budget_curve.policy_reads` on
     ``dataset``'s ``split``, whose slides ``slides`` are, in the same order): ready for :func:`add_reader`."""
-    from baselines.budget_curve import policy_reads, run_seeds
+    from baselines.reading.budget_curve import policy_reads, run_seeds
 
     out = {float(b): [] for b in budgets}
     for seed in range(max(1, min(seeds, run_seeds(run)))):
@@ -224,7 +224,7 @@ def policy_masks(run, dataset, slides: list[dict], split: str = "test", budgets=
 # ----------------------------------------------------------------------------- scoring
 def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray:
     """The head's slide logits ``(B,)`` on ``masks``."""
-    from baselines.head_fit import padded
+    from baselines.reading.head_fit import padded
     from histojax.reading.heads import score_batch
 
     return np.asarray(score_batch(head, padded([s["logits"] for s in slides], 0.0), padded(list(masks), False)))
@@ -232,7 +232,7 @@ def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray
 
 def overview_scores(head, slides: list[dict], level: int) -> np.ndarray:
     """The head on each slide's cell-level logits over its valid cells (nothing of the finest level read)."""
-    from baselines.head_fit import padded
+    from baselines.reading.head_fit import padded
     from histojax.reading.heads import score_batch
 
     logits, masks = [], []
@@ -429,9 +429,9 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
 
 
 def add_arguments(p) -> None:
-    """The options of ``python -m baselines.readers``."""
+    """The options of ``python -m baselines.reading.readers``."""
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; pcam-cnn feature grids)")
-    p.add_argument("--head", required=True, help="slide head folder (python -m baselines.head_fit)")
+    p.add_argument("--head", required=True, help="slide head folder (python -m baselines.reading.head_fit)")
     p.add_argument("--split", default="test", help="split scored (default test)")
     p.add_argument("--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)")
     p.add_argument("--seeds", type=int, default=5, help="random reader orders (default 5)")
@@ -447,9 +447,9 @@ def add_arguments(p) -> None:
 
 def load_split(dataset, head_path, split: str, cell_level: int | None = None) -> tuple:
     """``(head, cell_level, slides)``: the slide head loaded from ``head_path`` and ``split``'s slides of
-    ``dataset`` as :func:`baselines.head_fit.load_slides` gives them (the finest level and the cell level:
+    ``dataset`` as :func:`baselines.reading.head_fit.load_slides` gives them (the finest level and the cell level:
     ``cell_level``, default :func:`cell_level_for`). Raises ``HistojaxDataError`` / ``ValueError`` naming the file."""
-    from baselines.head_fit import load_slides, read_spec
+    from baselines.reading.head_fit import load_slides, read_spec
     from histojax.reading import heads
 
     head = heads.load(head_path)
@@ -473,7 +473,7 @@ def run(args, parser=None) -> int:
     other = sorted({str(s["encoder"]) for s in slides if head.encoder and s["encoder"] != head.encoder})
     if other:
         return print_error(f"{args.head}: a head for {head.encoder} features; {args.dataset} holds {', '.join(other)} "
-                           "features (fit a head on it: python -m baselines.head_fit)")
+                           "features (fit a head on it: python -m baselines.reading.head_fit)")
     if not slides or len({s["label"] for s in slides}) < 2:
         return print_error(f"{args.dataset}: split {args.split!r} needs tumour and normal slides to score an AUC")
     results = scripted_results(head, slides, args.budgets, args.seeds, args.cell_level, progress=True)
@@ -516,7 +516,7 @@ def print_tables(rows: list[dict], lesions: list[dict], budget: float = 0.1) -> 
                 f"{r[c + '_slides']}: {r[c + '_tumour_read']:.1f} / {r[c + '_found']:.1f}" for c in CLASSES) + " |")
 
 
-main = command_main(add_arguments, run, "python -m baselines.readers", __doc__)
+main = command_main(add_arguments, run, "python -m baselines.reading.readers", __doc__)
 
 
 if __name__ == "__main__":

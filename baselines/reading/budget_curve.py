@@ -1,7 +1,8 @@
-"""AUC and accuracy against the fraction of the slide read: ``python -m baselines.budget_curve``.
+"""AUC and accuracy against the fraction of the slide read: ``python -m baselines.reading.budget_curve``.
 
 Methods, all scored on the test slides of a dataset with the same gated-attention MIL head
-(:mod:`baselines.mil`), trained once on the *training* slides' finest-level tissue views:
+(:class:`MILClassifier`: the gated attention of :func:`histojax.reading.heads.mil.attention_pool`), trained once
+on the *training* slides' finest-level tissue views:
 
 * ``MIL, read everything`` — the head on every finest-level tissue view (the ceiling; fraction 1);
 * ``random reader + MIL`` — glimpse cells picked uniformly at random (``--seeds`` orders);
@@ -21,8 +22,8 @@ over seeds — random reader orders, or the first ``--policy-seeds`` seeds (defa
 policy — and a trained policy's fields of view per episode) and ``budget_curve.png``.
 
 The curve with one slide head with spatial context for every row (overview only, random, scripted and
-trained readers, read everything; the CAMELYON lesion table) is ``python -m baselines.readers``
-(:mod:`baselines.readers`, head fitted by :mod:`baselines.head_fit`).
+trained readers, read everything; the CAMELYON lesion table) is ``python -m baselines.reading.readers``
+(:mod:`baselines.reading.readers`, head fitted by :mod:`baselines.reading.head_fit`).
 """
 from __future__ import annotations
 
@@ -30,13 +31,17 @@ import csv
 import dataclasses
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+import optax
+from flax.core.scope import LazyRng
 
 from baselines import outputs
 from baselines.metrics import accuracy, roc_auc
-from baselines.mil import MILClassifier, train_mil
 from data_tools.cli_output import command_main
 from data_tools.features import pcam_cnn
+from histojax.reading.heads.mil import attention_pool, attention_weights
 
 BUDGETS = (0.05, 0.1, 0.2, 0.5)
 
@@ -56,12 +61,79 @@ def load_split(dataset, split: str, env_id: str, level: int, verify: bool = Fals
 
 
 @dataclasses.dataclass
+class MILClassifier:
+    """The "read everything" slide classifier: a gated-attention MIL (Ilse, Tomczak & Welling, ICML 2018) —
+    :func:`histojax.reading.heads.mil.attention_pool`, the pooling of the trained slide heads — with ``params``
+    holding its input standardisation (``mu``, ``sd`` of ``(D,)``) and its weights. Fitted by :func:`train_mil`."""
+
+    params: dict
+
+    def scores(self, bags: np.ndarray, masks: np.ndarray) -> np.ndarray:
+        """Tumour probability in ``[0, 1]`` of each bag: ``(B, N, D), (B, N) → (B,)``."""
+        return np.asarray(jax.nn.sigmoid(_bag_logits(self.params, jnp.asarray(bags, jnp.float32),
+                                                     jnp.asarray(masks, bool))))
+
+    def attention(self, instances: np.ndarray) -> np.ndarray:
+        """The attention weights ``(N,)`` (summing to 1) the classifier gives ``instances (N, D)`` read
+        as one bag: what a scripted reader ranks cells by (higher = read first)."""
+        x = jnp.asarray(instances, jnp.float32)
+        return np.asarray(attention_weights(self.params, x, jnp.ones(x.shape[0], bool)))
+
+
+def _bag_logits(params: dict, bags: jax.Array, masks: jax.Array) -> jax.Array:
+    """Slide logits ``(B,)`` of padded bags ``(B, N, D)`` with validity masks ``(B, N)``."""
+    b, n, d = bags.shape
+    return attention_pool(params, bags.reshape(b * n, d), masks.reshape(-1), jnp.repeat(jnp.arange(b), n), b)
+
+
+def _init_params(key: jax.Array, d: int, hidden: int, attention: int) -> dict:
+    """The starting weights: LeCun-normal kernels and zero biases, drawn from ``key`` as flax's ``nn.Dense``
+    layers of a module draw them (one key per layer, named ``Dense_0`` … ``Dense_4``), so a seed gives the
+    weights the published budget curves started from."""
+    init = jax.nn.initializers.lecun_normal()
+
+    def kernel(i, shape):
+        return init(LazyRng.create(LazyRng.create(key, f"Dense_{i}"), 1).as_jax_rng(), shape)
+    return {"w1": kernel(0, (d, hidden)), "b1": jnp.zeros(hidden), "V": kernel(1, (hidden, attention)),
+            "bV": jnp.zeros(attention), "U": kernel(2, (hidden, attention)), "bU": jnp.zeros(attention),
+            "wa": kernel(3, (attention, 1))[:, 0], "wc": kernel(4, (hidden, 1))[:, 0], "bc": jnp.zeros(())}
+
+
+def train_mil(bags: np.ndarray, masks: np.ndarray, labels: np.ndarray, steps: int = 400, lr: float = 3e-3,
+              seed: int = 0, hidden: int = 64, attention: int = 32) -> MILClassifier:
+    """Fit a :class:`MILClassifier` on ``bags (B, N, D)``, ``masks (B, N)``, 0/1 ``labels (B,)`` (full batch,
+    Adam, ``steps`` updates). Inputs are standardised by the valid instances' mean / std (fixed, not trained)."""
+    bags = np.asarray(bags, np.float32)
+    masks = np.asarray(masks, bool)
+    valid = bags[masks]
+    fixed = {"mu": jnp.asarray(valid.mean(0)), "sd": jnp.asarray(valid.std(0) + 1e-6)}
+    x, m = jnp.asarray(bags), jnp.asarray(masks)
+    y = jnp.asarray(labels, jnp.float32)
+    params = _init_params(jax.random.key(seed), bags.shape[-1], hidden, attention)
+    opt = optax.adam(lr)
+    state = opt.init(params)
+
+    def loss_fn(p):
+        return optax.sigmoid_binary_cross_entropy(_bag_logits({**p, **fixed}, x, m), y).mean()
+
+    @jax.jit
+    def update(p, s):
+        loss, grads = jax.value_and_grad(loss_fn)(p)
+        updates, s = opt.update(grads, s, p)
+        return optax.apply_updates(p, updates), s, loss
+
+    for _ in range(steps):
+        params, state, _ = update(params, state)
+    return MILClassifier({**params, **fixed})
+
+
+@dataclasses.dataclass
 class MaxLogitHead:
     """Max-pooling MIL with a fixed instance classifier: a slide's score is the largest tumour logit of the views
     it read, read from feature ``dim`` (pcam-cnn's embedding holds its view's tumour logit at
     :data:`PCAM_CNN_VIEW_LOGIT`). Nothing is learned from slides but a 1-D logistic calibration ``(a, b)`` on the
     training split, so that ``scores`` are probabilities (accuracy at 0.5); AUC does not depend on it. The same
-    interface as :class:`baselines.mil.MILClassifier` (``scores``, ``attention``)."""
+    interface as :class:`MILClassifier` (``scores``, ``attention``)."""
 
     dim: int
     a: float = 1.0
@@ -434,7 +506,7 @@ def compute_missing_features(dataset, encoder: str) -> None:
 
 
 def add_arguments(p) -> None:
-    """The options of ``python -m baselines.budget_curve`` and ``histojax budget-curve``."""
+    """The options of ``python -m baselines.reading.budget_curve`` and ``histojax budget-curve``."""
     p.add_argument("--dataset", required=True, help="dataset folder with dataset.json (train / test split) whose "
                                                    "bundles have feature grids")
     p.add_argument("--env", default="HistoJAX-Medium-v0", help="scenario id (its levels; default HistoJAX-Medium-v0)")
@@ -487,7 +559,7 @@ def run(args, parser=None) -> int:
     return 0
 
 
-main = command_main(add_arguments, run, "python -m baselines.budget_curve", __doc__)
+main = command_main(add_arguments, run, "python -m baselines.reading.budget_curve", __doc__)
 
 
 if __name__ == "__main__":

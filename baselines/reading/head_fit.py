@@ -1,4 +1,4 @@
-"""Fit the slide head (:mod:`histojax.reading.heads.logit`) of a dataset: ``python -m baselines.head_fit --dataset DIR --out DIR``.
+"""Fit the slide head (:mod:`histojax.reading.heads.logit`) of a dataset: ``python -m baselines.reading.head_fit --dataset DIR --out DIR``.
 
 Candidates: neighbourhood sides ``--ks`` (default 1 2 3 4 5 views; 1 = the plain view logit), pooled by
 the maximum or the mean of the 3 largest (``--minus-median``: also each minus the read views' median
@@ -26,6 +26,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from baselines.metrics import roc_auc
+from data_tools.bundle_format import read_dataset_json
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
@@ -38,10 +39,11 @@ class HeadDataError(HistojaxDataError):
 
 
 def read_spec(dataset) -> dict:
-    """The dataset's ``dataset.json`` (``HeadDataError`` naming it when missing or malformed)."""
+    """The dataset's ``dataset.json`` (``HeadDataError`` naming it when missing or malformed; a ``BundleError``
+    naming it when it does not match its seal, :func:`data_tools.bundle_format.read_dataset_json`)."""
     path = Path(dataset) / "dataset.json"
     try:
-        spec = json.loads(path.read_text())
+        spec = read_dataset_json(dataset)  # its seal checked: an edited label or split is refused, naming the file
     except FileNotFoundError:
         raise HeadDataError(path, "missing (not a dataset folder: build one with `python -m data_tools c16` or "
                                   "`python -m data_tools dataset`)") from None
@@ -252,7 +254,7 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
 
 
 def add_arguments(p) -> None:
-    """The options of ``python -m baselines.head_fit``."""
+    """The options of ``python -m baselines.reading.head_fit``."""
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json with a train split; feature grids)")
     p.add_argument("--out", required=True, help="folder to save the head in (config.json, params.json)")
     p.add_argument("--val-fraction", type=float, default=0.2, help="share of training slides held back to choose "
@@ -284,7 +286,7 @@ def run(args, parser=None) -> int:
     return 0
 
 
-main = command_main(add_arguments, run, "python -m baselines.head_fit", __doc__)
+main = command_main(add_arguments, run, "python -m baselines.reading.head_fit", __doc__)
 
 
 if __name__ == "__main__":

@@ -1,6 +1,6 @@
 """A navigator's diagnosis through the slide head: the navigator chooses where to look, the head declares.
 
-    python -m baselines.head_diagnosis --dataset DIR --head HEAD --navigator NAME RUN [--split test] [--out DIR]
+    python -m baselines.reading.diagnosis --dataset DIR --head HEAD --navigator NAME RUN [--split test] [--out DIR]
 
 A trained navigator (a run folder of ``python -m baselines.ppo`` / ``ppo_rnn`` in ``discrete`` or
 ``continuous`` mode, e.g. ``baselines/published/c16-v1-diagnosis``) is rolled greedily once per slide
@@ -9,7 +9,7 @@ of the split (each of its first ``--policy-seeds`` seeds; ``--sampled``: its sam
 with reading tracked; the **finest-level tissue views it stood on** make its read mask, and the slide
 head (:mod:`histojax.reading.heads.logit`) scores them: the slide's diagnosis no longer comes from the navigator's
 own declaring action (which can memorise overviews), only from what it read. The rows join the
-one-head budget curve (:mod:`baselines.readers`: overview only, random and scripted readers, read
+one-head budget curve (:mod:`baselines.reading.readers`: overview only, random and scripted readers, read
 everything, at the fraction the navigator actually read) in ``OUT/readers.csv``, ``readers.json``,
 ``readers.png``.
 
@@ -30,7 +30,7 @@ from data_tools.errors import HistojaxDataError
 
 def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bool = True) -> list[np.ndarray]:
     """Per slide of ``dataset``'s ``split`` (in its order): the indices of the finest tissue views (in the
-    slide's raster order of tissue views, as :func:`baselines.readers.masks_from_instances` takes them)
+    slide's raster order of tissue views, as :func:`baselines.reading.readers.masks_from_instances` takes them)
     that one greedy (``greedy=False``: sampled, key ``seed``) episode of ``run``'s seed ``seed`` stood on."""
     import jax
 
@@ -43,7 +43,7 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
         raise ValueError(f"{run} has {n_seeds} seed(s), not a seed {seed}")
     if str(config.get("action_mode")).partition(":")[0] not in ("discrete", "continuous"):  # ":memory", ":map" too
         raise ValueError(f"{run}: a policy of action mode {config.get('action_mode')!r}; a navigator moves in "
-                         "discrete or continuous mode, :memory and :map included (readers: python -m baselines.readers "
+                         "discrete or continuous mode, :memory and :map included (readers: python -m baselines.reading.readers "
                          "--reader)")
     params = jax.tree.map(lambda a: a[seed], params)
     kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides")}
@@ -72,10 +72,10 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
 def navigator_masks(run, dataset, slides: list[dict], split: str = "test", seeds: int = 1,
                     greedy: bool = True) -> dict:
     """``{1.0: [[read mask (H, W) per slide] per seed]}`` of a navigator (no budget: key 1.0), ready for
-    :func:`baselines.readers.add_reader`; ``slides`` are :func:`baselines.head_fit.load_slides` of the split;
+    :func:`baselines.reading.readers.add_reader`; ``slides`` are :func:`baselines.reading.head_fit.load_slides` of the split;
     ``greedy=False``: sampled episodes (key = the seed)."""
-    from baselines.budget_curve import run_seeds
-    from baselines.readers import masks_from_instances
+    from baselines.reading.budget_curve import run_seeds
+    from baselines.reading.readers import masks_from_instances
 
     per_seed = []
     for seed in range(max(1, min(seeds, run_seeds(run)))):
@@ -87,9 +87,9 @@ def navigator_masks(run, dataset, slides: list[dict], split: str = "test", seeds
 
 
 def add_arguments(p) -> None:
-    """The options of ``python -m baselines.head_diagnosis``."""
+    """The options of ``python -m baselines.reading.diagnosis``."""
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; pcam-cnn feature grids)")
-    p.add_argument("--head", required=True, help="slide head folder (python -m baselines.head_fit)")
+    p.add_argument("--head", required=True, help="slide head folder (python -m baselines.reading.head_fit)")
     p.add_argument("--navigator", nargs=2, action="append", required=True, metavar=("NAME", "RUN"),
                    help="a trained navigator's run folder (discrete / continuous mode); repeatable")
     p.add_argument("--split", default="test", help="split scored (default test)")
@@ -102,7 +102,8 @@ def add_arguments(p) -> None:
 
 def run(args, parser=None) -> int:
     """Score each navigator through the head beside the readers; CSV, JSON, PNG in ``args.out``."""
-    from baselines import outputs, readers
+    from baselines import outputs
+    from baselines.reading import readers
 
     t0 = time.perf_counter()
     try:
@@ -135,7 +136,7 @@ def run(args, parser=None) -> int:
     return 0
 
 
-main = command_main(add_arguments, run, "python -m baselines.head_diagnosis", __doc__)
+main = command_main(add_arguments, run, "python -m baselines.reading.diagnosis", __doc__)
 
 
 if __name__ == "__main__":

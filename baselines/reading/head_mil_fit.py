@@ -1,11 +1,11 @@
 """Fit a second slide head (:mod:`histojax.reading.heads.mil`) on a dataset's training slides and choose it on the
-validation share: ``python -m baselines.head_mil_fit --dataset DIR --cache FILE.npz --out DIR``.
+validation share: ``python -m baselines.reading.head_mil_fit --dataset DIR --cache FILE.npz --out DIR``.
 
 Data: the finest level's full feature grid ``(H, W, D)`` of every training slide and its tissue views,
-read once from the bundles (as :func:`baselines.head_fit.load_slide` reads them: one row per finest
+read once from the bundles (as :func:`baselines.reading.head_fit.load_slide` reads them: one row per finest
 view) and cached to ``--cache`` (a ``.npz``; re-used when it holds the same slides). The validation share
 is :func:`baselines.validation.split_train` with ``--val-fraction`` / ``--seed`` (the same as
-:mod:`baselines.head_fit`'s defaults, 0.2 / 0), so the candidates here are scored on the same validation
+:mod:`baselines.reading.head_fit`'s defaults, 0.2 / 0), so the candidates here are scored on the same validation
 slides as the published ``c16-v2-head``. The test split is never read.
 
 Candidates (``--candidates``): ``stats`` (:class:`histojax.reading.heads.mil.StatsHead`, :func:`fit_stats`), ``mil-logit``
@@ -22,12 +22,12 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.head_fit import HeadDataError, load_slide, read_spec, _label
+from baselines.reading.head_fit import HeadDataError, load_slide, read_spec, _label
 from data_tools.features import pcam_cnn
 
 
 def load_grid(bundle, label=None, dim: int = pcam_cnn.VIEW_LOGIT) -> dict:
-    """:func:`baselines.head_fit.load_slide` plus ``features (H, W, D)`` float16: the finest feature grid with
+    """:func:`baselines.reading.head_fit.load_slide` plus ``features (H, W, D)`` float16: the finest feature grid with
     one row per finest view (the same view → feature-cell mapping as ``logits``; ``features[..., dim]``
     equals ``logits``)."""
     import json
@@ -340,7 +340,7 @@ def candidate_head(name: str, train: list[dict], shape, seed: int, steps: int, d
 
 
 def add_arguments(p) -> None:
-    """The options of ``python -m baselines.head_mil_fit``."""
+    """The options of ``python -m baselines.reading.head_mil_fit``."""
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json with a train split; feature grids)")
     p.add_argument("--cache", required=True, help=".npz cache of the training slides' finest feature grids")
     p.add_argument("--out", required=True, help="folder to save the chosen head in (config.json, params.npz)")
@@ -420,7 +420,7 @@ def run(args, parser=None) -> int:
 def _main():
     from data_tools.cli_output import command_main
 
-    return command_main(add_arguments, run, "python -m baselines.head_mil_fit", __doc__)
+    return command_main(add_arguments, run, "python -m baselines.reading.head_mil_fit", __doc__)
 
 
 if __name__ == "__main__":

@@ -1,0 +1,10 @@
+"""The reading baselines: fitting slide heads, scripted and trained readers scored through a head, the budget
+curve, and the navigator's diagnosis through a head. Each is a command, ``python -m baselines.reading.<name>``:
+
+- ``head_fit``: fit the calibrated pooled-logit head (:mod:`histojax.reading.heads.logit`).
+- ``head_mil_fit``: fit the trained heads (:mod:`histojax.reading.heads.mil`) and choose one on validation.
+- ``readers``: scripted readers, CAMELYON lesion classes and the budget curve with one head for every row.
+- ``budget_curve``: AUC and accuracy against the fraction read (``histojax budget-curve``).
+- ``diagnosis``: navigators scored through a head beside the readers.
+- ``train_readers``: readers and navigators trained with the head reward, then scored.
+"""

@@ -364,3 +364,31 @@ def test_an_own_encoder_raising_systemexit_does_not_end_c16_with_status_0(own_en
     code, _, err = _run(["c16", "--small", "--slides", "Tumor_072", "--encoder", f"{own_encoders}:exits", "--quiet",
                          "--out", str(tmp_path / "c")], capsys)
     assert code != 0 and "own38:exits" in err and "SystemExit" in err, (code, err)
+
+
+# ------------------------------------------------------------------ 13. imported features on scattered tissue
+def test_imported_features_missing_scattered_tissue_warn_and_record_the_coverage(tmp_path):
+    """Tissue in 7-px specks (2.6 % of the tissue mask, no view half tissue): coordinates ×10 cover 1 of the 80
+    views holding tissue. Before: no warning and ``tissue_coverage: null``."""
+    import h5py
+
+    from data_tools.bundle import build_bundle
+    from data_tools.features.hdf5 import import_features
+
+    rng = np.random.default_rng(0)
+    image = np.full((768, 1024, 3), 244, np.uint8)
+    specks = [(y, x) for y in range(40, 740, 96) for x in range(40, 1000, 96)]
+    for y, x in specks:
+        image[y:y + 7, x:x + 7] = [120, 30, 110]
+    image = (image.astype(np.int16) + rng.integers(-4, 5, image.shape)).clip(0, 255).astype(np.uint8)
+    tifffile.imwrite(tmp_path / "s.tif", image, photometric="rgb", tile=(64, 64))
+    bundle = build_bundle(tmp_path / "s.tif", tmp_path / "b", level_sets=(3,), tile_size=32, progress=False)
+    coords = np.array([(x - 10, y - 10) for y, x in specks], float) * 10  # wrong units
+    with h5py.File(tmp_path / "s.h5", "w") as f:
+        f.create_dataset("features", data=rng.normal(size=(len(coords), 8)).astype(np.float32))
+        f.create_dataset("coords", data=coords).attrs["patch_size"] = 32
+    with pytest.warns(UserWarning, match=r"s\.h5: its patches cover \d+ of the \d+ tissue views .*under 50%") as w:
+        info = import_features(bundle, tmp_path / "s.h5")
+    assert len([x for x in w if "tissue views" in str(x.message)]) == 1 and "\n" not in str(w[0].message)
+    covered, total = info["import"]["tissue_coverage"]
+    assert total > 0 and covered < 0.5 * total

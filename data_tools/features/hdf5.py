@@ -245,7 +245,8 @@ def patches_to_grid(coords: np.ndarray, features: np.ndarray, extent: float, gri
 
 def tissue_coverage(bundle: Path, metadata, mask: np.ndarray, level: int, stride: int) -> tuple[int, int] | None:
     """``(covered, total)``: of the views of bundle level ``level`` that are at least half tissue (the bundle's
-    tissue mask), how many ``mask`` marks covered; None when that level has no such view."""
+    tissue mask), how many ``mask`` marks covered; on a slide of scattered tissue where no view is half tissue,
+    of the views holding any tissue; None when that level has no view touching tissue."""
     tissue = np.load(bundle / metadata.tissue_file, allow_pickle=False).astype(bool)
     th, tw = tissue.shape
     table = np.zeros((th + 1, tw + 1), np.int64)
@@ -259,6 +260,8 @@ def tissue_coverage(bundle: Path, metadata, mask: np.ndarray, level: int, stride
     inside = (table[y1][:, x1] - table[y0][:, x1] - table[y1][:, x0] + table[y0][:, x0])
     area = np.maximum((y1 - y0)[:, None] * (x1 - x0)[None, :], 1)
     views = inside / area >= 0.5
+    if not views.any():  # scattered tissue (a few % of the slide): every view holding some
+        views = inside > 0
     if not views.any():
         return None
     return int((views & mask).sum()), int(views.sum())

@@ -43,11 +43,12 @@ import jax.numpy as jnp
 import numpy as np
 
 from baselines import common, outputs
-from baselines.metrics import accuracy, roc_auc
+from data_tools.metrics import accuracy, roc_auc
 from baselines.ppo import make_network
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, RecurrentCellSetActorCritic, ScannedGRU,
                                 policy_mode, policy_sample, preprocess_obs, rollout_apply, rollout_step)
 from baselines.networks import is_discrete as policy_is_discrete
+from baselines.published_agents import PUBLISHED
 from data_tools.cli_output import positive_int
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
@@ -548,10 +549,10 @@ def head_scored(ep: dict, env_params, classes) -> dict:
 
 def lesion_classes(env, env_params) -> list[str] | None:
     """CAMELYON's lesion class of each slide of ``env`` (``normal``, ``ITC``, ``micro``, ``macro``:
-    :func:`baselines.reading.readers.lesion_of` on the bundle's tumour polygons at its µm/px), or None when a tumour
+    :func:`baselines.reading.lesions.lesion_of` on the bundle's tumour polygons at its µm/px), or None when a tumour
     slide's class cannot be known (no polygons, no µm/px)."""
     from data_tools.annotations import load_annotations
-    from baselines.reading.readers import lesion_of
+    from baselines.reading.lesions import lesion_of
 
     labels = np.atleast_1d(np.asarray(jax.device_get(env_params.slide.slide_label))).astype(int)
     out = []
@@ -932,8 +933,6 @@ RETIRED = {"c16-v1-glimpse-reader": (SET_READER, "a flat glimpse policy over a p
 
 def published_path(name: str) -> Path:
     """``baselines/published/NAME``, relative to the working folder when it lies under it."""
-    from baselines.publish import PUBLISHED
-
     path = PUBLISHED / name
     try:
         return path.relative_to(Path.cwd())
@@ -1004,8 +1003,6 @@ def resolve_head(recorded: str, run: Path, where) -> Path:
     """The slide head folder a run names (``recorded``): as given when absolute; else beside the run, in the
     working folder, in the repository, or a published head of that name. ``HistojaxDataError`` naming
     ``where`` (the file that names it) when none holds a ``config.json``."""
-    from baselines.publish import PUBLISHED
-
     p = Path(recorded)
     tries = [p] if p.is_absolute() else [run / p, p, Path(__file__).resolve().parents[1] / p]
     tries.append(PUBLISHED / p.name)

@@ -24,9 +24,8 @@ from pathlib import Path
 import jax
 
 from baselines import common, outputs
+from baselines.published_agents import PUBLISHED
 from data_tools.errors import HistojaxDataError
-
-PUBLISHED = Path(__file__).resolve().parent / "published"
 
 
 def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str | None = None,

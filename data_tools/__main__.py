@@ -15,8 +15,8 @@ import json
 import sys
 from pathlib import Path
 
-from data_tools.cli_output import (finite_float, one_line_messages, os_error_text, positive_float, positive_int,
-                                  print_error, run_command)
+from data_tools.cli_output import (add_reader_argument, finite_float, one_line_messages, os_error_text,
+                                  positive_float, positive_int, print_error, run_command)
 from data_tools.errors import HistojaxDataError
 
 
@@ -38,14 +38,6 @@ def _box(text: str) -> tuple[float, float, float, float]:
     if len(values) != 4:
         raise argparse.ArgumentTypeError("a region is four numbers x0,y0,x1,y1 (level-0 px)")
     return values
-
-
-def add_reader_argument(p) -> None:
-    """``--reader auto|native|openslide`` on the parser ``p`` (``info``, ``build``, ``dataset``)."""
-    p.add_argument("--reader", choices=("auto", "native", "openslide"), default="auto",
-                   help="what reads the slides: auto (default: tifffile / wsidicom, OpenSlide for MIRAX, SCN, BIF, "
-                        "VMS / VMU, SVSlide and Philips TIFF), native, or openslide (any slide through OpenSlide 4; "
-                        "pip install 'histojax[openslide]')")
 
 
 def add_arguments(p) -> None:
@@ -180,20 +172,11 @@ def _info(path: str, reader: str = "auto") -> str:
                             f"{lv['sat_pool_tiles']:,} SAT tiles; dense would be "
                             f"{lv['dense_device_bytes'] / 2**20:.1f} MiB)" if lv.is_tiled else ""))
         return "\n".join(lines)
-    from data_tools.slides import describe, open_slide
+    from data_tools.slide_readers import open_slide
+    from data_tools.slides import describe
 
     with open_slide(path, reader) as slide:
         return describe(slide)
-
-
-def _check_label_map(label_map) -> None:
-    from data_tools.annotations import LABELS
-
-    if not isinstance(label_map, dict):
-        raise HistojaxDataError(None, f"--label-map must be a JSON object mapping group names to one of {LABELS}")
-    for key, value in label_map.items():
-        if value not in LABELS:
-            raise HistojaxDataError(None, f"--label-map: {key!r} maps to {value!r}; expected one of {LABELS}")
 
 
 def run(args, parser=None) -> int:
@@ -233,7 +216,9 @@ def _command(args) -> int | None:
 
         label_map = json.loads(args.label_map) if args.label_map else None
         if label_map is not None:
-            _check_label_map(label_map)
+            from data_tools.annotations import check_label_map
+
+            check_label_map(label_map)
         out = build_bundle(args.slide, args.out, annotations_path=args.annotations,
                            level_sets=args.levels or LEVEL_SETS, tile_size=args.tile_size,
                            magnification_range=args.magnification_range, label_map=label_map,

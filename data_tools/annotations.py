@@ -30,7 +30,7 @@ import numpy as np
 import shapely
 from shapely.geometry import MultiPolygon, Polygon, box, mapping
 
-from data_tools.errors import AnnotationError
+from data_tools.errors import AnnotationError, HistojaxDataError
 
 __all__ = [
     "DEFAULT_LABEL_MAP",
@@ -622,3 +622,13 @@ def annotations_to_geojson(ann: Annotations) -> dict:
         if not geom.is_empty
     ]
     return {"type": "FeatureCollection", "features": features}
+
+
+def check_label_map(label_map) -> None:
+    """Refuse a ``--label-map`` (parsed JSON) that is not an object mapping group names to one of :data:`LABELS`:
+    ``HistojaxDataError``, one line."""
+    if not isinstance(label_map, dict):
+        raise HistojaxDataError(None, f"--label-map must be a JSON object mapping group names to one of {LABELS}")
+    for key, value in label_map.items():
+        if value not in LABELS:
+            raise HistojaxDataError(None, f"--label-map: {key!r} maps to {value!r}; expected one of {LABELS}")

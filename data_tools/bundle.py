@@ -36,7 +36,8 @@ from data_tools.errors import BundleError
 from data_tools.bundle_format import (  # noqa: F401  (re-exported: the format's names, as before)
     ANNOTATIONS, FORMAT_VERSION, LEVEL_SETS, REGION, TISSUE, MAX_FLAT_PIXELS, METADATA, READ_VERSIONS, STORAGES, TILED_FORMAT_VERSION, Bundle,
     atomic_folder, bundle_downsamples, check_replaceable, default_magnification_range, device_bytes, level_device_bytes,
-    level_downsamples, level_files, level_size, load_bundle, read_metadata, sha256, write_metadata, TEMP_MARKER)
+    level_downsamples, level_files, level_size, load_bundle, read_metadata, sha256, write_metadata, TEMP_MARKER,
+    as_disk_full)
 from data_tools.raster import pad, resample
 
 
@@ -186,7 +187,7 @@ def build_bundle(
     than 256 MiB on the device). ``share_background=False`` keeps every tile of a tiled bundle (exactly
     the dense pixels); ``band_bytes`` bounds the RGB bytes of one band (default 96 MiB).
 
-    ``reader``: what reads the slide (:data:`data_tools.slides.READERS`: ``"auto"``, the default; ``"native"``;
+    ``reader``: what reads the slide (:data:`data_tools.slide_readers.READERS`: ``"auto"``, the default; ``"native"``;
     ``"openslide"``, any slide through OpenSlide 4).
     """
     slide_path, out_dir = Path(slide_path), Path(out_dir)
@@ -226,6 +227,7 @@ def build_bundle(
                         band_bytes, reader)
         return out_dir
     except OSError as e:
+        e = as_disk_full(e) or e  # numpy's short write ("N requested and M written"): the disk is full
         raise BundleError(out_dir, f"cannot write the bundle ({e.strerror or e}"
                           + (f": {e.filename}" if e.filename else "") + ")") from None
     finally:
@@ -239,7 +241,8 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
     :func:`data_tools.bundle_format.atomic_folder`, which renames it to ``out_dir`` or removes it)."""
     from data_tools.annotations import annotations_to_geojson, load_annotations
     from data_tools.masks import rasterize, tissue_mask
-    from data_tools.slides import MAX_DECODE_BYTES, open_slide
+    from data_tools.slide_readers import open_slide
+    from data_tools.slides import MAX_DECODE_BYTES
     import shapely.geometry
 
     with open_slide(slide_path, reader) as reader:

@@ -141,3 +141,11 @@ def command_main(add_arguments, run, prog: str, doc: str | None = None, one_line
 
     main.__doc__ = f"``{prog}``: parse ``argv`` (default ``sys.argv[1:]``) and run; returns the exit status."
     return main
+
+
+def add_reader_argument(p) -> None:
+    """``--reader auto|native|openslide`` on the parser ``p`` (``info``, ``build``, ``dataset``)."""
+    p.add_argument("--reader", choices=("auto", "native", "openslide"), default="auto",
+                   help="what reads the slides: auto (default: tifffile / wsidicom, OpenSlide for MIRAX, SCN, BIF, "
+                        "VMS / VMU, SVSlide and Philips TIFF), native, or openslide (any slide through OpenSlide 4; "
+                        "pip install 'histojax[openslide]')")

@@ -1,5 +1,5 @@
 """Read whole-slide image files (Aperio SVS, pyramidal TIFF, OME-TIFF) as 8-bit RGB; DICOM WSI in
-:mod:`data_tools.dicom`, behind the same interface (:func:`open_slide` picks).
+:mod:`data_tools.dicom`, behind the same interface (:func:`data_tools.slide_readers.open_slide` picks).
 
 This module's one job: open a slide file with tifffile, list its pyramid levels,
 and decode whole levels or rectangular regions of a level into ``(H, W, 3)``
@@ -32,7 +32,7 @@ import tifffile
 
 from data_tools.errors import SlideError
 
-__all__ = ["MAX_DECODE_BYTES", "READERS", "LevelInfo", "SlideReader", "describe", "open_slide"]
+__all__ = ["MAX_DECODE_BYTES", "LevelInfo", "SlideReader", "describe"]
 
 MAX_DECODE_BYTES = 4 * 1024**3
 """Default limit (bytes of decoded RGB, H * W * 3) for :meth:`SlideReader.read_level`."""
@@ -40,7 +40,8 @@ MAX_DECODE_BYTES = 4 * 1024**3
 MAX_SIDE = 1_000_000
 """Largest accepted image width or height, in pixels."""
 
-_SUPPORTED = "histojax reads Aperio SVS, pyramidal TIFF, OME-TIFF and DICOM WSI"
+_SUPPORTED = ("histojax reads Aperio SVS, pyramidal TIFF and BigTIFF, OME-TIFF, Akoya QPTIFF, Hamamatsu NDPI "
+              "and DICOM WSI")
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 _JPEG_COMPRESSIONS = {6, 7, 34892, 33007}  # need JPEGTables / header when decoding
 
@@ -269,66 +270,6 @@ class SlideReader:
         return rgb
 
 
-READERS = ("auto", "native", "openslide")
-"""What :func:`open_slide` may read a slide with (``--reader``): ``auto`` (the native readers, OpenSlide for the
-formats they do not read), ``native`` (tifffile / wsidicom only) or ``openslide`` (OpenSlide for any slide)."""
-
-
-def open_slide(path: str | os.PathLike, reader: str | None = "auto") -> SlideReader:
-    """Open a slide (SVS, pyramidal TIFF, OME-TIFF file; DICOM WSI file or folder, see
-    :mod:`data_tools.dicom`; MIRAX, SCN, BIF, VMS / VMU, SVSlide and Philips TIFF through OpenSlide, see
-    :mod:`data_tools.openslide_reader`); raises SlideError if unreadable.
-
-    ``reader``: ``"auto"`` (or None; the native readers, OpenSlide for the formats they do not read),
-    ``"native"`` or ``"openslide"`` (any slide through OpenSlide: needs ``histojax[openslide]``)."""
-    from data_tools.dicom import DicomSlideReader, is_dicom
-    from data_tools.openslide_reader import OPENSLIDE_EXTENSIONS, OpenSlideReader, openslide_available
-
-    reader = reader or "auto"
-    if reader not in READERS:
-        raise ValueError(f"reader must be one of {READERS}, got {reader!r}")
-    try:
-        mode = os.stat(path).st_mode
-    except OSError:
-        mode = None  # missing or unreadable: SlideReader names the reason
-    if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # never open() a FIFO: it blocks
-        raise SlideError(path, "not a regular file (a FIFO, socket or device): not a slide")
-    if reader == "openslide":
-        return OpenSlideReader(path)
-    ext = os.path.splitext(os.fspath(path))[1].lower()
-    if reader == "auto" and ext in OPENSLIDE_EXTENSIONS and mode is not None and stat.S_ISREG(mode):
-        return OpenSlideReader(path)  # one line naming the extra when it is not installed
-    if is_dicom(path):
-        return DicomSlideReader(path)
-    try:
-        native = SlideReader(path)
-    except SlideError:
-        if reader == "auto" and _openslide_vendor(path) not in (None, "generic-tiff"):
-            try:  # a scanner's TIFF the native reader refuses (Philips, Leica, Ventana): OpenSlide's reading
-                return OpenSlideReader(path)
-            except SlideError:
-                pass
-        raise
-    if reader == "auto" and native.format == "philips-tiff" and openslide_available():
-        native.close()  # OpenSlide knows Philips TIFF's levels and the scanner's blank tiles
-        return OpenSlideReader(path)
-    return native
-
-
-def _openslide_vendor(path) -> str | None:
-    """OpenSlide's vendor name for ``path`` (``"philips"``, ``"leica"`` ...), or None (not installed, not
-    recognised)."""
-    from data_tools.openslide_reader import openslide_module
-
-    openslide = openslide_module()
-    if openslide is None:
-        return None
-    try:
-        return openslide.OpenSlide.detect_format(os.fspath(path))
-    except Exception:  # noqa: BLE001 - any trouble: not a slide OpenSlide reads
-        return None
-
-
 def describe(reader: SlideReader) -> str:
     """Multi-line human-readable summary: file, format, µm/px, one line per level."""
     mpp = "unknown" if reader.mpp is None else f"{reader.mpp:.4g} µm/px (level 0)"
@@ -368,7 +309,7 @@ def _check_signature(path: str) -> None:
     except OSError as exc:
         raise SlideError(path, f"cannot read file: {exc}") from exc
     if head[128:132] == b"DICM":
-        raise SlideError(path, "is DICOM: open it with data_tools.slides.open_slide, not SlideReader")
+        raise SlideError(path, "is DICOM: open it with data_tools.slide_readers.open_slide, not SlideReader")
     if head[:4] not in _TIFF_MAGICS:
         raise SlideError(path, f"format not recognised (not a TIFF file); {_SUPPORTED}")
 

@@ -7,7 +7,7 @@ import tifffile
 
 from data_tools.annotations import load_annotations
 from data_tools.errors import SlideError
-from data_tools.slides import open_slide
+from data_tools.slide_readers import open_slide
 
 
 def test_unknown_compression_is_a_slide_error(tmp_path):

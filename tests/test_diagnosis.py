@@ -255,7 +255,7 @@ def test_zoom_select_counts_finest_views_read(zoom, zoom_rollout):
 
 
 def test_auc_matches_a_hand_computation():
-    from baselines.metrics import roc_auc
+    from data_tools.metrics import roc_auc
 
     # positives 0.35 and 0.8 against negatives 0.1 and 0.4: 0.35 beats 0.1 only, 0.8 beats both → 3 / 4
     assert roc_auc([0.1, 0.4, 0.35, 0.8], [0, 0, 1, 1]) == pytest.approx(0.75)
@@ -349,7 +349,7 @@ def test_max_logit_rows_find_a_small_focus_that_attention_dilutes():
     the slide's score; the logit reader reads the cell whose overview logit is highest first, so it finds the
     focus at the smallest budget; the calibration makes scores probabilities without changing their order."""
     from baselines.reading.budget_curve import MAX_LOGIT_NAMES, MaxLogitHead, bags, budget_rows, method_scores
-    from baselines.metrics import roc_auc
+    from data_tools.metrics import roc_auc
 
     rng = np.random.default_rng(0)
 

@@ -21,7 +21,8 @@ import numpy as np
 import pytest
 
 from baselines import common, evaluate
-from baselines.publish import PUBLISHED, publish
+from baselines.publish import publish
+from baselines.published_agents import PUBLISHED
 from histojax.cli import main as histojax_main
 from histojax.reading.heads.logit import SlideHead
 

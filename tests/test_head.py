@@ -155,7 +155,7 @@ def test_fit_chooses_spatial_context_on_validation(fitted, dataset):
     test = head_fit.load_slides(dataset, "test")
     logits = readers.head_scores(SlideHead.load(out), test, [s["tissue"] for s in test])
     labels = [s["label"] for s in test]
-    from baselines.metrics import roc_auc
+    from data_tools.metrics import roc_auc
     assert roc_auc(logits, labels) == 1.0
 
 

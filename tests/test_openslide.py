@@ -18,7 +18,7 @@ import pytest
 import tifffile
 
 from data_tools.errors import SlideError
-from data_tools.slides import open_slide
+from data_tools.slide_readers import open_slide
 
 openslide = pytest.importorskip("openslide", reason="the optional extra histojax[openslide] is not installed")
 

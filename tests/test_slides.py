@@ -16,8 +16,8 @@ from data_tools.slides import (
     LevelInfo,
     SlideReader,
     describe,
-    open_slide,
 )
+from data_tools.slide_readers import open_slide
 
 ROOT = Path(__file__).resolve().parents[1]
 SVS = ROOT / "histojax" / "data" / "CMU-1-Small-Region.svs"

@@ -38,7 +38,7 @@ import optax
 from flax.core.scope import LazyRng
 
 from baselines import outputs
-from baselines.metrics import accuracy, roc_auc
+from data_tools.metrics import accuracy, roc_auc
 from data_tools.cli_output import command_main
 from data_tools.features import pcam_cnn
 from histojax.reading.heads.mil import attention_pool, attention_weights

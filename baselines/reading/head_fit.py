@@ -25,7 +25,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from baselines.metrics import roc_auc
+from data_tools.metrics import roc_auc
 from data_tools.bundle_format import read_dataset_json
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError

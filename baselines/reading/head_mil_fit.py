@@ -314,7 +314,7 @@ def dense_scores(head, slides: list[dict], masks: np.ndarray, shape, chunk: int 
 def validation_aucs(head, slides: list[dict], shape, fractions=(0.1, 0.2), draws: int = 5, seed: int = 123) -> dict:
     """``{"full": AUC reading every tissue view, "read 0.1": mean AUC over ``draws`` random cell reads, …}`` of
     ``head`` on ``slides`` (the same masks for every head: ``seed``)."""
-    from baselines.metrics import roc_auc
+    from data_tools.metrics import roc_auc
 
     y = [s["label"] for s in slides]
     out = {"full": round(roc_auc(dense_scores(head, slides, dense_reads(None, slides, shape, None), shape), y), 4)}

@@ -67,7 +67,7 @@ def check_scales(entries, magnification_range, reader: str | None = None) -> dic
     """µm/px of every slide; with one ``magnification_range`` for all, slides whose level-0 µm/px differ by
     more than 5 % (or some unknown) are an error naming two of them: one range would give them different
     physical scales."""
-    from data_tools.slides import open_slide
+    from data_tools.slide_readers import open_slide
 
     mpps: dict[str, float | None] = {}
     for e in entries:
@@ -607,7 +607,7 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     ``shard``: ``(I, N)``. Returns a summary: ``built`` / ``resumed`` / ``busy`` names, ``failed``
     (name → reason), ``dataset`` (the ``dataset.json`` dict, or None when slides remain), seconds,
     slides per minute and the peak resident memory of one job (bytes). ``reader``: what reads the slides
-    (:data:`data_tools.slides.READERS`; recorded in the options when not ``"auto"``). ``folds``: K cross-validation
+    (:data:`data_tools.slide_readers.READERS`; recorded in the options when not ``"auto"``). ``folds``: K cross-validation
     folds recorded in ``dataset.json`` (:func:`make_plan`; patients from the ``labels`` table's patient column)."""
     from data_tools.datasets.discover import discover
 

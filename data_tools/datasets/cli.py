@@ -65,7 +65,7 @@ def add_subcommand(sub, levels_type) -> None:
     p.add_argument("--restart", action="store_true", help="accept new options or slides for an existing --out "
                                                           "(finished slides with unchanged settings are kept)")
     p.add_argument("--quiet", action="store_true", help="no progress bars")
-    from data_tools.__main__ import add_reader_argument
+    from data_tools.cli_output import add_reader_argument
 
     add_reader_argument(p)
 
@@ -87,9 +87,9 @@ def run(args) -> int:
         raise HistojaxDataError(None, "give the folder of slides (or --merge)")
     label_map = json.loads(args.label_map) if args.label_map else None
     if label_map is not None:
-        from data_tools.__main__ import _check_label_map
+        from data_tools.annotations import check_label_map
 
-        _check_label_map(label_map)
+        check_label_map(label_map)
     summary = build_dataset(
         args.slides_dir, out, labels=args.labels, annotations=args.annotations, levels=args.levels or (3, 5, 7),
         tile_size=args.tile_size, magnification_range=args.magnification_range, storage=args.storage,

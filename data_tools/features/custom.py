@@ -22,6 +22,7 @@ import importlib
 import numpy as np
 
 from data_tools.errors import HistojaxDataError
+from data_tools.features.encoders import ENCODERS
 
 PROBE_SIZE = 128  # views of the probe call (load_custom_encoder): the C16 and default tile size
 
@@ -63,8 +64,6 @@ class CustomEncoder:
     variables = None
 
     def __init__(self, spec: str, fn):
-        from data_tools.features import ENCODERS
-
         self.spec, self.fn = spec, fn
         name = getattr(fn, "name", None)
         version = getattr(fn, "version", None)

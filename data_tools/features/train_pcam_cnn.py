@@ -130,7 +130,7 @@ def train(patches=None, seed: int = 0, epochs: int = 30, batch: int = 256, lr: f
     import optax
     from tqdm.auto import tqdm
 
-    from baselines.metrics import roc_auc
+    from data_tools.metrics import roc_auc
     from data_tools.features import pcam_cnn
     from data_tools.datasets.pcam_bank import load_bank, pool_rule, split_pools
 
@@ -208,7 +208,7 @@ def train(patches=None, seed: int = 0, epochs: int = 30, batch: int = 256, lr: f
 def test_pool_auc(variables, patches=None, limit: int | None = None, seed: int = 0) -> dict:
     """Patch AUC of ``variables`` on the **test pool** of ``patches`` (never trained on), on PCam's own
     colours and on a fixed mosaic-like stain: ``{"raw": auc, "mosaic": auc, "patches": n}``."""
-    from baselines.metrics import roc_auc
+    from data_tools.metrics import roc_auc
     from data_tools.datasets.pcam_bank import load_bank, split_pools
 
     _, test_pool = split_pools(load_bank(patches))

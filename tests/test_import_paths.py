@@ -19,6 +19,22 @@ GONE = {
     "histojax.gymnasium_bridge": "histojax.adapters.gymnasium",
     "histojax.sb3": "histojax.adapters.sb3",
     "histojax.wrappers": "histojax.adapters.jax",
+    # the reading stack, one package (histojax.reading) and its baselines (baselines.reading)
+    "histojax.modes": "histojax.reading.modes.base",
+    "histojax.glimpse": "histojax.reading.modes.glimpse",
+    "histojax.zoom_select": "histojax.reading.modes.zoom_select",
+    "histojax.mode_registry": "histojax.reading.modes.factory",
+    "histojax.coarse_map": "histojax.reading.coarse_map",
+    "histojax.head": "histojax.reading.heads",
+    "histojax.head_mil": "histojax.reading.heads.mil",
+    "histojax.head_reward": "histojax.adapters.head_reward",
+    "baselines.head_fit": "baselines.reading.head_fit",
+    "baselines.head_mil_fit": "baselines.reading.head_mil_fit",
+    "baselines.readers": "baselines.reading.readers",
+    "baselines.budget_curve": "baselines.reading.budget_curve",
+    "baselines.head_diagnosis": "baselines.reading.diagnosis",
+    "baselines.mil": "histojax.reading.heads.mil",
+    "benchmarks.train_readers": "baselines.reading.train_readers",
 }
 
 

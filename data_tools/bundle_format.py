@@ -393,12 +393,13 @@ def remove_temporary(path) -> bool:
     return True
 
 
-def _disk_full_text(e: OSError) -> OSError | None:
-    """A short write (numpy's ``N requested and M written``, no errno) as the ``ENOSPC`` it is, else None."""
+def as_disk_full(e: OSError) -> OSError | None:
+    """A short write (numpy's ``N requested and M written``, no errno) as the ``ENOSPC`` it is ("No space left on
+    device", the file name kept), else None."""
     import errno
 
     if e.errno is None and SHORT_WRITE in str(e):
-        return OSError(errno.ENOSPC, f"No space left on device ({e})")
+        return OSError(errno.ENOSPC, f"No space left on device ({e})", e.filename)
     return None
 
 
@@ -421,7 +422,7 @@ def atomic_file(path):
         shutil.rmtree(folder, ignore_errors=True)
     except OSError as e:
         shutil.rmtree(folder, ignore_errors=True)
-        full = _disk_full_text(e)
+        full = as_disk_full(e)
         if full is not None:
             raise OSError(full.errno, full.strerror, str(path)) from None
         if e.filename is None or str(folder) in str(e.filename):  # name the file written, not its temporary
@@ -1176,4 +1177,4 @@ __all__ = ["ANNOTATIONS", "Bundle", "BundleMetadata", "FEATURES_COMMAND", "FORMA
            "TISSUE", "TiledLevel", "atomic_file", "atomic_folder", "bundle_downsamples", "default_magnification_range",
            "device_bytes", "drop_pixels", "feature_bytes", "file_digest", "slide_device_bytes", "tumour_table_bytes", "select_levels", "grid_shape", "level_device_bytes", "level_downsamples", "level_files",
            "level_grids", "level_size", "load_array", "load_bundle", "load_feature_levels", "load_tiled_level",
-           "read_metadata", "save_array", "sha256", "stable_read", "check_replaceable", "verify_metadata", "metadata_digest", "METADATA_DIGEST", "check_mask", "check_fields", "safe_name", "own_file", "foreign_entries", "replace_folder", "bundle_damage", "DATASET_DIGEST", "read_dataset_json", "TEMP_MARKER", "mark_temporary", "is_our_temporary", "remove_temporary", "PARTIAL", "partial_foreign", "remove_partial", "text_digest", "tiled_level_files", "write_json", "write_metadata"]
+           "read_metadata", "save_array", "sha256", "stable_read", "check_replaceable", "verify_metadata", "metadata_digest", "METADATA_DIGEST", "check_mask", "check_fields", "safe_name", "own_file", "foreign_entries", "replace_folder", "bundle_damage", "as_disk_full", "DATASET_DIGEST", "read_dataset_json", "TEMP_MARKER", "mark_temporary", "is_our_temporary", "remove_temporary", "PARTIAL", "partial_foreign", "remove_partial", "text_digest", "tiled_level_files", "write_json", "write_metadata"]

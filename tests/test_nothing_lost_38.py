@@ -392,3 +392,92 @@ def test_imported_features_missing_scattered_tissue_warn_and_record_the_coverage
     assert len([x for x in w if "tissue views" in str(x.message)]) == 1 and "\n" not in str(w[0].message)
     covered, total = info["import"]["tissue_coverage"]
     assert total > 0 and covered < 0.5 * total
+
+
+# ------------------------------------------------------------------ 16. the dataset command's words
+def test_an_own_encoder_is_found_in_the_working_folder(tmp_path, monkeypatch):
+    """The ``histojax`` script's ``sys.path`` holds its own folder, not the working folder (``python -m`` adds it):
+    ``histojax dataset slides/ --encoder my_encoders:uni`` failed even from the module's folder."""
+    import os
+    import sys
+
+    from data_tools.features.custom import load_custom_encoder
+
+    (tmp_path / "cwd_encoders38.py").write_text(OWN_ENCODERS)
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", os.getcwd(), str(tmp_path))])
+    load_custom_encoder.cache_clear()
+    try:
+        assert load_custom_encoder("cwd_encoders38:huge").dim == 4
+    finally:
+        load_custom_encoder.cache_clear()
+        sys.modules.pop("cwd_encoders38", None)
+
+
+def test_an_own_encoder_found_nowhere_says_where_it_was_looked_for(tmp_path, monkeypatch):
+    from data_tools.errors import HistojaxDataError
+    from data_tools.features.custom import load_custom_encoder
+
+    monkeypatch.chdir(tmp_path)
+    with pytest.raises(HistojaxDataError) as e:
+        load_custom_encoder("no_such_encoders38:uni")
+    line = str(e.value)
+    assert str(tmp_path) in line and "no_such_encoders38.py" in line and "\n" not in line
+
+
+@pytest.mark.parametrize("inside", [False, True])
+def test_dataset_out_as_the_folder_of_slides_is_one_clear_line(cohort, tmp_path, capsys, inside):
+    slides, labels = cohort
+    work = shutil.copytree(slides, tmp_path / "S" / "slides" if inside else tmp_path / "S")
+    out = tmp_path / "S"
+    line = _one_error(["dataset", str(work), "--out", str(out), "--labels", str(labels), "--quiet"], capsys)
+    assert "holds no slides" not in line and "folder of slides" in line and "--out" in line  # before: holds no slides
+    assert not (out / "plan.json").exists() and not (out / "bundles").exists()
+
+
+def test_a_short_write_says_no_space_left_on_device(tmp_path, monkeypatch):
+    import errno
+
+    import numpy.lib.format
+
+    from data_tools.bundle_format import save_array
+
+    def short_write(*args, **kwargs):
+        raise OSError("2612862 requested and 2514816 written")  # numpy's words on a full disk, no errno
+
+    monkeypatch.setattr(numpy.lib.format, "write_array", short_write)
+    with pytest.raises(OSError) as e:
+        save_array(tmp_path / "pixels_00.npy", np.zeros((4, 4), np.uint8))
+    assert e.value.errno == errno.ENOSPC and "No space left on device" in str(e.value)
+    assert e.value.filename == str(tmp_path / "pixels_00.npy") and not list(tmp_path.iterdir())
+
+
+def test_a_full_disk_during_a_bundle_write_says_no_space_left_on_device(cohort, tmp_path, capsys, monkeypatch):
+    import numpy.lib.format
+
+    slides, _ = cohort
+
+    def short_write(*args, **kwargs):
+        raise OSError("2612862 requested and 2514816 written")
+
+    monkeypatch.setattr(numpy.lib.format, "write_array", short_write)
+    line = _one_error(["build", str(slides / "s1.tif"), "--out", str(tmp_path / "b"), "--levels", "3", "--quiet"],
+                      capsys)
+    assert "No space left on device" in line and str(tmp_path / "b") in line
+    assert not (tmp_path / "b").exists() and not list(tmp_path.glob(".b.*"))
+
+
+def test_the_formats_sentence_names_qptiff_ndpi_and_bigtiff(tmp_path, capsys):
+    (tmp_path / "x.svs").write_bytes(b"not a slide at all")
+    line = _one_error(["info", str(tmp_path / "x.svs")], capsys)
+    assert all(word in line for word in ("QPTIFF", "NDPI", "BigTIFF", "OME-TIFF", "DICOM WSI")), line
+
+
+def test_a_folder_of_one_failing_qptiff_gets_no_empty_dataset_json(tmp_path, capsys):
+    slides = tmp_path / "S"
+    slides.mkdir()
+    (slides / "p.qptiff").write_bytes(b"II*\x00" + b"\x08\x00\x00\x00" + b"\x00" * 8)  # a TIFF header, no image
+    out = tmp_path / "o"
+    line = _one_error(["dataset", str(slides), "--out", str(out), "--levels", "3", "--quiet"], capsys)
+    assert "p" in line and "dataset.json not written" in line  # before: a 0-slide dataset.json, rc 1
+    assert not (out / "dataset.json").exists()

@@ -150,6 +150,16 @@ def read_plan(out) -> dict:
     return plan
 
 
+def _check_out_apart(slides_dir: Path, out: Path) -> None:
+    """Refuse (one line) an ``--out`` that is the folder of slides itself or holds it: discovery leaves ``--out``
+    out, so every slide would be passed over ("holds no slides")."""
+    src, dst = Path(slides_dir).resolve(), Path(out).resolve()
+    if src == dst or dst in src.parents:
+        where = "is the folder of slides itself" if src == dst else f"holds the folder of slides {slides_dir}"
+        raise HistojaxDataError(out, f"--out {where}: the dataset (bundles, records, dataset.json) needs a folder "
+                                     f"of its own, e.g. --out {src.name}-dataset beside it")
+
+
 def _agree(out: Path, plan: dict, restart: bool = False) -> None:
     """Write ``plan.json`` if absent (or, with ``restart``, over this tool's own plan); else refuse a run whose
     options or cohort differ (one line). A ``plan.json`` this tool did not write is never touched."""
@@ -506,9 +516,14 @@ def write_dataset_index(out, dataset: dict) -> dict:
 
 
 def check_scorable(out, plan: dict, records: dict, failed: dict[str, str]) -> None:
-    """Refuse (``HistojaxDataError``, one line) a test split that failed slides left unscorable: the plan gave
-    it slides and it now holds none, or the plan gave it tumour slides and it now holds no tumour slide. (An
-    empty train side is reported by the command, not refused: the test slides may still be scored.)"""
+    """Refuse (``HistojaxDataError``, one line) a dataset none of whose slides was built, and a test split that
+    failed slides left unscorable: the plan gave it slides and it now holds none, or the plan gave it tumour
+    slides and it now holds no tumour slide. (An empty train side is reported by the command, not refused: the
+    test slides may still be scored.)"""
+    if plan["slides"] and not records:  # every slide failed: no dataset of 0 slides
+        why = "; ".join(f"{n}: {failed[n]}" for n in sorted(failed)[:2])[:300]
+        raise HistojaxDataError(out, f"no slide of this dataset is built: all {len(plan['slides'])} failed ({why}); "
+                                     "dataset.json not written: fix them and rerun")
     for side in ("test",):
         planned = sorted(n for n, s in plan["slides"].items() if s["split"] == side)
         built = [n for n in planned if n in records]
@@ -622,6 +637,7 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
 
     if encoder is not None:  # a built-in name, or your own module:function, probed (a broken one refused)
         encoder_record(encoder)
+    _check_out_apart(slides_dir, out)
     t0 = time.perf_counter()
     skipped: list = []  # files discovery passed over, with why (each also a warning): "skipped" in the summary
     entries = discover(slides_dir, annotations_dir=annotations, labels_csv=labels, skip=[out],

@@ -2,8 +2,8 @@
 embeds every view with any Python callable ``images uint8 (N, H, W, 3) → float32 (N, D)``.
 
 The callable is imported like an entry point (``package.module:function``; the module is found on
-``sys.path``, which holds the current folder when you run ``python -m data_tools``). What is recorded in each
-bundle's ``metadata.json`` and in ``dataset.json``:
+``sys.path`` or in the working folder, with ``histojax dataset`` as with ``python -m data_tools``). What is
+recorded in each bundle's ``metadata.json`` and in ``dataset.json``:
 
 * ``encoder``: the callable's ``name`` attribute (a string, e.g. ``"uni-v1"``), else the spec
   ``module:function`` itself; it may not be one of the built-in names (``pcam-cnn``, ...).
@@ -18,6 +18,8 @@ from __future__ import annotations
 
 import functools
 import importlib
+import os
+import sys
 
 import numpy as np
 
@@ -32,15 +34,30 @@ def is_custom(spec) -> bool:
     return isinstance(spec, str) and ":" in spec
 
 
+def _import_module(module_name: str):
+    """``importlib.import_module``, looking in the working folder too (as ``python -m`` does; the ``histojax``
+    script's path holds only its own folder): the working folder is put on ``sys.path`` when the module is
+    not found elsewhere, so worker processes started later find it as well."""
+    try:
+        return importlib.import_module(module_name)
+    except ModuleNotFoundError as e:
+        cwd = os.getcwd()
+        if e.name != module_name.split(".")[0] or cwd in sys.path or "" in sys.path:
+            raise
+        sys.path.insert(0, cwd)
+        return importlib.import_module(module_name)
+
+
 def _import(spec: str):
     module_name, _, attr = spec.partition(":")
     if not module_name or not attr:
         raise HistojaxDataError(None, f"--encoder {spec!r}: give module:function (e.g. my_encoders:uni)")
     try:
-        module = importlib.import_module(module_name)
+        module = _import_module(module_name)
     except ImportError as e:
-        raise HistojaxDataError(None, f"--encoder {spec}: cannot import {module_name!r} ({e}); is it on the "
-                                      "Python path (run from its folder, or pip install it)?") from e
+        raise HistojaxDataError(None, f"--encoder {spec}: cannot import {module_name!r} ({e}) from the working "
+                                      f"folder {os.getcwd()} nor the Python path: run from the folder holding "
+                                      f"{module_name.split('.')[0]}.py (or its package), or pip install it") from e
     except KeyboardInterrupt:
         raise
     except BaseException as e:  # noqa: BLE001 (the user's module: SystemExit(0) at import must not end us with 0)

@@ -705,6 +705,9 @@ def add_arguments(p, defaults: dict) -> None:
                         "train on its slides (make(env, dataset=DIR))")
     p.add_argument("--split", default=None, metavar="S",
                    help="with --dataset: the split to train on (default: the env's, 'train')")
+    p.add_argument("--fold", type=int, default=None, metavar="I",
+                   help="with --dataset built with --folds K: train on fold I's train side (the other K - 1 folds); "
+                        "make(..., fold=I)")
     p.add_argument("--action-mode", default="discrete",
                    help="discrete | continuous | glimpse[:LEVEL] | zoom_select[:K] (histojax.reading.modes.base)")
     p.add_argument("--obs-mode", "--obs", dest="obs_mode", default="pixels",
@@ -766,11 +769,13 @@ def config_from_args(args, defaults: dict) -> dict:
             config[k] = json.loads(v)
         except json.JSONDecodeError:
             config[k] = v
-    if getattr(args, "dataset", None) is not None or getattr(args, "split", None) is not None:
+    fold = getattr(args, "fold", None)
+    if getattr(args, "dataset", None) is not None or getattr(args, "split", None) is not None or fold is not None:
         if args.dataset is None:
-            raise SystemExit("--split needs --dataset DIR")
+            raise SystemExit(f"{'--split' if getattr(args, 'split', None) is not None else '--fold'} needs --dataset DIR")
         config["env_kwargs"] = {**(config.get("env_kwargs") or {}), "dataset": args.dataset,
-                                **({"split": args.split} if args.split is not None else {})}
+                                **({"split": args.split} if args.split is not None else {}),
+                                **({"fold": fold} if fold is not None else {})}
     return config
 
 

@@ -396,7 +396,7 @@ def eval_env(config: dict, slide=None, augment: bool = False):
     if config.get("env_kwargs"):
         drop = {"augment"} if not augment else set()
         if slide is not None:  # a given slide replaces a training dataset
-            drop |= {"dataset", "split", "slides", "slide_weights"}
+            drop |= {"dataset", "split", "fold", "slides", "slide_weights"}
         config["env_kwargs"] = {k: v for k, v in config["env_kwargs"].items() if k not in drop}
     return config, reading_tables.with_tracking(*common.make_env(config, auto_reset=False))
 

@@ -163,13 +163,14 @@ def train_rotating(config: dict, budget_bytes: int, resident: int | None = None,
         raise ValueError("rotating slides runs on one device (no devices / shard_slides)")
     kw = common.env_overrides(config)
     paths = slide_paths(config["env_id"], slide=config.get("slide"), slides=kw.pop("slides", None),
-                        dataset=kw.pop("dataset", None), split=kw.pop("split", "train"), **kw)
+                        dataset=kw.pop("dataset", None), split=kw.pop("split", "train"), fold=kw.pop("fold", None),
+                        **kw)
     store = SlideStore(config["env_id"], paths, source=source, **kw)
     k, sets, cap, set_bytes = choose_resident(store, budget_bytes, resident, set_seed)
     batch = config["num_envs"] * config["num_steps"]
     num_updates = max(1, config["total_timesteps"] // batch)
     phases = math.ceil(num_updates / rotate_every)
-    env_kwargs = {a: b for a, b in (config.get("env_kwargs") or {}).items() if a not in ("slides", "dataset", "split")}
+    env_kwargs = {a: b for a, b in (config.get("env_kwargs") or {}).items() if a not in ("slides", "dataset", "split", "fold")}
     config = {**config, "total_timesteps": phases * rotate_every * batch, "slide": paths[0], "env_kwargs": env_kwargs}
     with on_host():  # the env and the jittable pieces; their own env params (one slide) stay off the accelerator
         train = ppo.make_train(config)

@@ -439,12 +439,12 @@ def dataset_slides(folder, split: str = "train", fold: int | None = None) -> lis
     return [folder / n for n in names]
 
 
-def fold_slides(folder, spec: dict, split: str, fold) -> list[Path]:
-    """The bundle paths of fold ``fold``'s side ``split`` of the dataset ``spec`` (``FOLDER/dataset.json`` read):
-    ``"train"`` = the slides of every other fold; ``"validation"`` (or ``"val"``) = fold ``fold``'s slides, and
-    ``"test"`` too when the folds cover every slide (``pool == "all"``). One-line refusals: a dataset without folds,
-    a fold out of range, ``"test"`` on folds cut from the train side of a fixed test set, another split."""
-    index = Path(folder) / "dataset.json"
+def with_fold(spec: dict, fold, index="dataset.json") -> dict:
+    """``spec`` (a ``dataset.json``, read) with fold ``fold``'s sides: ``"train"`` = the bundles of every other
+    fold, ``"validation"`` = fold ``fold``'s, and ``"test"`` = fold ``fold``'s too where the folds cover every slide
+    (``pool == "all"``); where they cut the train side of a fixed test set, ``"test"`` is dropped (the fixed set has
+    no folds). How the head fits and reader commands take ``--fold i``. ``BundleError`` naming ``index`` (one line)
+    for a dataset without folds or a fold out of range."""
     folds = spec.get("folds")
     if not isinstance(folds, dict) or not isinstance(folds.get("lists"), list):
         raise BundleError(index, f"fold={fold!r}: this dataset has no folds; build it with `histojax dataset ... "
@@ -453,10 +453,24 @@ def fold_slides(folder, spec: dict, split: str, fold) -> list[Path]:
     if isinstance(fold, bool) or not isinstance(fold, (int, np.integer)) or not 0 <= int(fold) < k:
         raise BundleError(index, f"fold={fold!r} is out of range: this dataset has {k} folds (0 to {k - 1})")
     fold = int(fold)
-    if split == "train":
-        names = [n for i, lst in enumerate(folds["lists"]) if i != fold for n in lst]
-    elif split in ("validation", "val") or (split == "test" and folds.get("pool") == "all"):
-        names = list(folds["lists"][fold])
+    out = {key: v for key, v in spec.items() if key != "test"}
+    out["train"] = [n for i, lst in enumerate(folds["lists"]) if i != fold for n in lst]
+    out["validation"] = list(folds["lists"][fold])
+    if folds.get("pool") == "all":
+        out["test"] = list(folds["lists"][fold])
+    out["fold"] = fold
+    return out
+
+
+def fold_slides(folder, spec: dict, split: str, fold) -> list[Path]:
+    """The bundle paths of fold ``fold``'s side ``split`` of the dataset ``spec`` (``FOLDER/dataset.json`` read):
+    ``"train"`` = the slides of every other fold; ``"validation"`` (or ``"val"``) = fold ``fold``'s slides, and
+    ``"test"`` too when the folds cover every slide (``pool == "all"``). One-line refusals: a dataset without folds,
+    a fold out of range, ``"test"`` on folds cut from the train side of a fixed test set, another split."""
+    index = Path(folder) / "dataset.json"
+    sides = with_fold(spec, fold, index)
+    if split in ("train", "validation", "val") or (split == "test" and spec["folds"].get("pool") == "all"):
+        names = sides["validation" if split == "val" else split]
     elif split == "test":
         raise BundleError(index, f"fold={fold}: this dataset's folds cut its train side (its test set is fixed): fold "
                           f"{fold}'s held-out slides are split='validation'; the test set is split='test' without fold")

@@ -13,6 +13,7 @@ import tifffile
 
 import histojax
 from data_tools.__main__ import main as data_main
+from data_tools.datasets.build import write_dataset_index
 from data_tools.datasets.split import kfold_split, patient_groups, read_patient_column
 from data_tools.errors import BundleError, HistojaxDataError
 from histojax.registry import dataset_slides
@@ -132,7 +133,7 @@ def test_fold_refusals_are_one_line(folded, tmp_path):
     shutil.copytree(folded, plain)
     ds = json.loads((plain / "dataset.json").read_text())
     del ds["folds"]
-    (plain / "dataset.json").write_text(json.dumps(ds))
+    write_dataset_index(plain, ds)  # sealed again: a dataset built without --folds
     with pytest.raises(BundleError, match=r"fold=0: this dataset has no folds; build it with `histojax dataset "
                                           r"\.\.\. --folds K`") as e:
         histojax.make("HistoJAX-Easy-v0", dataset=plain, fold=0, verify=False)
@@ -184,3 +185,35 @@ def test_c16_folds_keep_a_tumour_slide_with_its_donor(c16_small):
     assert any(t in where and d in where for t, d in donors.items())  # the check above checked something
     env, _ = histojax.make(f"HistoJAX-C16-Hard-{version}", dataset=out, split="validation", fold=0, verify=False)
     assert sorted(b.path.name for b in env.bundles) == sorted(n.split("/")[1] for n in folds["lists"][0])
+
+
+# ------------------------------------------------------------------ --fold on the trainers, head fits and readers
+def test_trainers_take_fold(folded):
+    from baselines import common, ppo
+
+    args = ppo.parse_args(["--env", "HistoJAX-Easy-v0", "--dataset", str(folded), "--fold", "1"])
+    config = common.config_from_args(args, ppo.DEFAULTS)
+    assert config["env_kwargs"]["fold"] == 1
+    env, _ = common.make_env({**config, "env_kwargs": {**config["env_kwargs"], "verify": False}})
+    assert sorted(b.path.name for b in env.bundles) == sorted(p.name for p in dataset_slides(folded, "train", 1))
+    with pytest.raises(SystemExit, match="--fold needs --dataset DIR"):
+        common.config_from_args(ppo.parse_args(["--fold", "0"]), ppo.DEFAULTS)
+
+
+def test_head_fits_and_readers_read_the_fold(folded):
+    from baselines.reading.head_fit import HeadDataError, read_spec
+
+    lists = json.loads((folded / "dataset.json").read_text())["folds"]["lists"]
+    spec = read_spec(folded, 0)  # head_fit, head_mil_fit, readers, diagnosis: --fold I
+    assert spec["train"] == lists[1] and spec["test"] == spec["validation"] == lists[0] and spec["fold"] == 0
+    assert read_spec(folded)["train"] == json.loads((folded / "dataset.json").read_text())["train"]  # no fold
+    with pytest.raises(HeadDataError, match=r"dataset\.json: fold=3 is out of range: this dataset has 2 folds"):
+        read_spec(folded, 3)
+
+
+def test_budget_curve_refuses_folds_and_fold_together(folded, capsys):
+    from baselines.reading import budget_curve
+
+    assert budget_curve.main(["--dataset", str(folded), "--folds", "2", "--fold", "0"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "--folds K" in err and "not both" in err and len(err.splitlines()) == 1

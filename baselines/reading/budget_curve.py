@@ -39,20 +39,21 @@ from flax.core.scope import LazyRng
 
 from baselines import outputs
 from data_tools.metrics import accuracy, roc_auc
-from data_tools.cli_output import command_main
+from data_tools.cli_output import command_main, print_error
 from data_tools.features import pcam_cnn
 from histojax.reading.heads.mil import attention_pool, attention_weights
 
 BUDGETS = (0.05, 0.1, 0.2, 0.5)
 
 
-def load_split(dataset, split: str, env_id: str, level: int, verify: bool = False):
-    """``(tables, labels)`` of a dataset split: :meth:`Glimpse.host_tables` per slide and 0/1 labels."""
+def load_split(dataset, split: str, env_id: str, level: int, verify: bool = False, fold: int | None = None):
+    """``(tables, labels)`` of a dataset split (``fold=i``: fold i's side of it, ``make(..., fold=i)``):
+    :meth:`Glimpse.host_tables` per slide and 0/1 labels."""
     import histojax
     from histojax.reading.modes.glimpse import Glimpse
 
     env, params = histojax.make(env_id, dataset=dataset, split=split, obs_mode="features",
-                                task="classification", verify=verify)  # not the glimpse mode: it would make the
+                                task="classification", verify=verify, fold=fold)  # not the glimpse mode: it would make the
     glimpse = Glimpse(level=level)                                      # device tables, unused here, a second time
     glimpse.validate(env)
     tables = glimpse.host_tables(env, params, env.bundles)
@@ -271,7 +272,7 @@ def rows_from_scores(scores: dict, labels) -> list[dict]:
 
 
 def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, policies=(), dataset=None,
-                policy_seeds: int = 3, max_dim: int | None = None):
+                policy_seeds: int = 3, max_dim: int | None = None, fold: int | None = None):
     """Train the head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``
     (with ``max_dim``, the rows of :class:`MaxLogitHead` on that feature too);
     ``policies``: ``(name, run folder)`` of trained PPO policies, rolled on ``dataset``'s test split."""
@@ -283,7 +284,7 @@ def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, 
         rows += rows_from_scores(method_scores(top, test[0], budgets, seeds, MAX_LOGIT_NAMES), test[1])
         heads["max logit"] = top
     for name, run in policies:
-        rows += policy_rows(run, dataset, name, heads, test[0], test[1], budgets, policy_seeds)
+        rows += policy_rows(run, dataset, name, heads, test[0], test[1], budgets, policy_seeds, fold=fold)
     return rows
 
 
@@ -304,7 +305,8 @@ def cross_validated_rows(tables, labels, folds: int, budgets=BUDGETS, seeds: int
     return rows_from_scores(pooled, labels[order])
 
 
-def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None = None, seed: int = 0) -> dict:
+def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None = None, seed: int = 0,
+                 fold: int | None = None) -> dict:
     """Roll a trained policy greedily, once on every slide of ``dataset``'s ``split`` at each of
     ``budgets``, with :func:`baselines.evaluate.run_episodes` (one jitted program for all slides and
     budgets). ``run``: a run folder of ``python -m baselines.ppo`` (feed-forward) or ``python -m
@@ -325,8 +327,9 @@ def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None =
     if not 0 <= seed < n_seeds:
         raise ValueError(f"{run} has {n_seeds} seed(s), not a seed {seed}")
     params = jax.tree.map(lambda a: a[seed], params)
-    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides")}
-    config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split}}
+    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides", "fold")}
+    config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split,
+                                       **({"fold": fold} if fold is not None else {})}}  # fold: the slides scored
     if env_id:
         config["env_id"] = env_id
     config, (env, env_params) = evaluate.eval_env(config)
@@ -374,7 +377,7 @@ def run_seeds(run) -> int:
 
 
 def policy_rows(run, dataset, name: str, heads: dict, tables, labels, budgets=BUDGETS,
-                policy_seeds: int = 3) -> list[dict]:
+                policy_seeds: int = 3, fold: int | None = None) -> list[dict]:
     """Rows for a trained policy (feed-forward or recurrent, see :func:`policy_reads`) at ``budgets``:
     its own diagnosis (``name``) and each slide head on what it read (``heads``: ``{"MIL": head, ...}``;
     rows ``name reader + MIL``, ``name reader + max logit``, ...), each the mean
@@ -383,7 +386,7 @@ def policy_rows(run, dataset, name: str, heads: dict, tables, labels, budgets=BU
     seeds = max(1, min(policy_seeds, run_seeds(run)))
     per = {}  # (method, budget) -> [(auc, accuracy, fraction, fields)] per seed
     for seed in range(seeds):
-        for b, reads in policy_reads(run, dataset, "test", budgets, seed=seed).items():
+        for b, reads in policy_reads(run, dataset, "test", budgets, seed=seed, fold=fold).items():
             x, m = bags([{**t, "instance_cell": np.arange(len(t["instances"]))} for t in tables], [r[0] for r in reads])
             fraction = float(np.mean([r[2] for r in reads]))
             fields = float(np.mean([r[3] for r in reads]))
@@ -519,6 +522,9 @@ def add_arguments(p) -> None:
     p.add_argument("--folds", type=int, default=0,
                    help="K-fold cross-validation over all the dataset's slides instead of its train/test split "
                         "(for small datasets; default 0 = use the split)")
+    p.add_argument("--fold", type=int, default=None, metavar="I",
+                   help="a dataset built with --folds K: train on fold I's train side, score its test side "
+                        "(make(..., fold=I)); not with --folds")
     p.add_argument("--ppo", nargs=2, action="append", default=[], metavar=("NAME", "RUN"),
                    help="also a trained policy (run folder of `python -m baselines.ppo` or `python -m baselines.ppo_rnn` "
                         "in a glimpse or zoom_select mode) on the test split: its own diagnosis and the MIL head "
@@ -534,6 +540,9 @@ def add_arguments(p) -> None:
 def run(args, parser=None) -> int:
     """The budget curve on parsed ``args``: CSV and PNG in ``args.out``."""
     level = args.glimpse_level
+    if args.folds and args.fold is not None:
+        return print_error("give --folds K (cross-validation inside the curve) or --fold I (a fold the dataset "
+                           "records), not both")
     if args.compute_features:
         compute_missing_features(args.dataset, args.compute_features)
     if args.folds:
@@ -541,10 +550,11 @@ def run(args, parser=None) -> int:
         rows = cross_validated_rows(tables, labels, args.folds, args.budgets, seeds=args.seeds, steps=args.steps)
         split = f"{len(labels)} slides, {args.folds}-fold cross-validation"
     else:
-        train = load_split(args.dataset, "train", args.env, level)
-        test = load_split(args.dataset, "test", args.env, level)
+        train = load_split(args.dataset, "train", args.env, level, fold=args.fold)
+        test = load_split(args.dataset, "test", args.env, level, fold=args.fold)
         rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps, policies=args.ppo,
-                           dataset=args.dataset, policy_seeds=args.policy_seeds, max_dim=view_logit_dim(args.dataset))
+                           dataset=args.dataset, policy_seeds=args.policy_seeds, max_dim=view_logit_dim(args.dataset),
+                           fold=args.fold)
         split = f"{len(train[1])} train / {len(test[1])} test slides"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -28,7 +28,8 @@ from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 
 
-def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bool = True) -> list[np.ndarray]:
+def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bool = True,
+                    fold: int | None = None) -> list[np.ndarray]:
     """Per slide of ``dataset``'s ``split`` (in its order): the indices of the finest tissue views (in the
     slide's raster order of tissue views, as :func:`baselines.reading.readers.masks_from_instances` takes them)
     that one greedy (``greedy=False``: sampled, key ``seed``) episode of ``run``'s seed ``seed`` stood on."""
@@ -46,8 +47,9 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
                          "discrete or continuous mode, :memory and :map included (readers: python -m baselines.reading.readers "
                          "--reader)")
     params = jax.tree.map(lambda a: a[seed], params)
-    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides")}
-    config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split}}
+    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides", "fold")}
+    config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split,
+                                       **({"fold": fold} if fold is not None else {})}}  # fold: the slides scored
     config, (env, env_params) = evaluate.eval_env(config)
     policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config["action_mode"], greedy=greedy,
                                      declare=evaluate.diagnosis_actions(env, evaluate.network_for(config, env),
@@ -70,7 +72,7 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
 
 
 def navigator_masks(run, dataset, slides: list[dict], split: str = "test", seeds: int = 1,
-                    greedy: bool = True) -> dict:
+                    greedy: bool = True, fold: int | None = None) -> dict:
     """``{1.0: [[read mask (H, W) per slide] per seed]}`` of a navigator (no budget: key 1.0), ready for
     :func:`baselines.reading.readers.add_reader`; ``slides`` are :func:`baselines.reading.head_fit.load_slides` of the split;
     ``greedy=False``: sampled episodes (key = the seed)."""
@@ -79,7 +81,7 @@ def navigator_masks(run, dataset, slides: list[dict], split: str = "test", seeds
 
     per_seed = []
     for seed in range(max(1, min(seeds, run_seeds(run)))):
-        reads = navigator_reads(run, dataset, split, seed, greedy=greedy)
+        reads = navigator_reads(run, dataset, split, seed, greedy=greedy, fold=fold)
         if len(reads) != len(slides):
             raise ValueError(f"{run}: {len(reads)} episodes for {len(slides)} slides of split {split!r}")
         per_seed.append([masks_from_instances(s, r) for s, r in zip(slides, reads)])
@@ -93,6 +95,8 @@ def add_arguments(p) -> None:
     p.add_argument("--navigator", nargs=2, action="append", required=True, metavar=("NAME", "RUN"),
                    help="a trained navigator's run folder (discrete / continuous mode); repeatable")
     p.add_argument("--split", default="test", help="split scored (default test)")
+    p.add_argument("--fold", type=int, default=None, metavar="I",
+                   help="a dataset built with --folds K: score fold I's side of --split (test / validation = fold I)")
     p.add_argument("--policy-seeds", type=int, default=1, help="seeds of each run (default 1)")
     p.add_argument("--seeds", type=int, default=5, help="random reader orders (default 5)")
     p.add_argument("--sampled", action="store_true",
@@ -107,7 +111,7 @@ def run(args, parser=None) -> int:
 
     t0 = time.perf_counter()
     try:
-        head, level, slides = readers.load_split(args.dataset, args.head, args.split)
+        head, level, slides = readers.load_split(args.dataset, args.head, args.split, fold=args.fold)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     if not slides or len({s["label"] for s in slides}) < 2:
@@ -116,7 +120,7 @@ def run(args, parser=None) -> int:
     for name, run_dir in args.navigator:
         try:
             masks = navigator_masks(run_dir, args.dataset, slides, args.split, args.policy_seeds,
-                                    greedy=not args.sampled)
+                                    greedy=not args.sampled, fold=args.fold)
         except (OSError, ValueError, HistojaxDataError) as e:
             return print_error(f"--navigator {name}: {e}")
         how = ", sampled" if args.sampled else ""

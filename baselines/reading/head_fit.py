@@ -38,9 +38,12 @@ class HeadDataError(HistojaxDataError):
     """A dataset or bundle the head tools cannot read (file named, one line)."""
 
 
-def read_spec(dataset) -> dict:
+def read_spec(dataset, fold: int | None = None) -> dict:
     """The dataset's ``dataset.json`` (``HeadDataError`` naming it when missing or malformed; a ``BundleError``
-    naming it when it does not match its seal, :func:`data_tools.bundle_format.read_dataset_json`)."""
+    naming it when it does not match its seal, :func:`data_tools.bundle_format.read_dataset_json`). ``fold=i``
+    (a dataset built with ``--folds K``): its ``train`` / ``validation`` / ``test`` lists are fold i's sides
+    (:func:`histojax.registry.with_fold`: train = the other folds); no folds or a fold out of range is a
+    ``HeadDataError`` naming the file."""
     path = Path(dataset) / "dataset.json"
     try:
         spec = read_dataset_json(dataset)  # its seal checked: an edited label or split is refused, naming the file
@@ -51,6 +54,13 @@ def read_spec(dataset) -> dict:
         raise HeadDataError(path, f"unreadable ({e})") from None
     if not isinstance(spec, dict) or not isinstance(spec.get("train"), list):
         raise HeadDataError(path, "has no \"train\" list of bundles")
+    if fold is not None:
+        from histojax.registry import with_fold  # jax with it: only when a fold is asked for
+
+        try:
+            spec = with_fold(spec, fold, path)
+        except HistojaxDataError as e:
+            raise HeadDataError(path, e.problem) from None
     return spec
 
 
@@ -222,8 +232,9 @@ def choose(train: list[dict], val: list[dict], cands) -> tuple[object, list[dict
 
 
 def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3, 4, 5),
-        dim: int = pcam_cnn.VIEW_LOGIT, progress: bool = False, minus_median: bool = False):
-    """Choose and fit the head of ``dataset`` (see the module doc); saved to ``out`` when given.
+        dim: int = pcam_cnn.VIEW_LOGIT, progress: bool = False, minus_median: bool = False, fold: int | None = None):
+    """Choose and fit the head of ``dataset`` (see the module doc); saved to ``out`` when given. ``fold=i``: on
+    fold i's train side (the other folds) of a dataset built with ``--folds K``.
     Returns ``(head, table of candidates)``."""
     import datetime
 
@@ -231,7 +242,7 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
 
     from baselines.validation import split_train
 
-    spec = read_spec(dataset)
+    spec = read_spec(dataset, fold)
     kept, held = split_train(spec, val_fraction, seed)
     train = load_slides(dataset, spec["train"], spec, dim, progress=progress)
     by_name = {s["name"]: s for s in train}
@@ -243,7 +254,8 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
     head = calibrated(best, train, grid_shape(train))
     chosen = next(r for r in table if r["name"] == best.name)
     info = {"fitted_on": {"dataset": str(Path(dataset).resolve()), "split": "train", "slides": len(train),
-                          "tumour_slides": int(sum(s["label"] for s in train))},
+                          "tumour_slides": int(sum(s["label"] for s in train)), **({"fold": fold} if fold is not None
+                                                                                  else {})},
             "chosen_on": {"validation_fraction": val_fraction, "seed": seed, "train_slides": len(tr),
                           "validation_slides": len(va), "validation_auc": chosen["validation_auc"]},
             "candidates": table, "date": datetime.date.today().isoformat(), "jax": jax.__version__}
@@ -260,6 +272,8 @@ def add_arguments(p) -> None:
     p.add_argument("--val-fraction", type=float, default=0.2, help="share of training slides held back to choose "
                                                                     "among the candidates (default 0.2)")
     p.add_argument("--seed", type=int, default=0, help="seed of the validation split (default 0)")
+    p.add_argument("--fold", type=int, default=None, metavar="I",
+                   help="a dataset built with --folds K: fit on fold I's train side (the other K - 1 folds)")
     p.add_argument("--ks", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="neighbourhood sides to try (views)")
     p.add_argument("--minus-median", action="store_true",
                    help="also try each candidate minus the read views' median logit (off by default: it depends on "
@@ -275,7 +289,7 @@ def run(args, parser=None) -> int:
     t0 = time.perf_counter()
     try:
         head, table = fit(args.dataset, args.out, args.val_fraction, args.seed, args.ks, args.dim, progress=True,
-                          minus_median=args.minus_median)
+                          minus_median=args.minus_median, fold=args.fold)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     print("| candidate | train AUC | validation AUC |\n|---|---|---|")

@@ -351,6 +351,8 @@ def add_arguments(p) -> None:
                                                  "new rows written to it")
     p.add_argument("--val-fraction", type=float, default=0.2)
     p.add_argument("--seed", type=int, default=0, help="seed of the validation split (default 0, as head_fit)")
+    p.add_argument("--fold", type=int, default=None, metavar="I",
+                   help="a dataset built with --folds K: fit on fold I's train side (the other K - 1 folds)")
 
 
 def run(args, parser=None) -> int:
@@ -368,7 +370,7 @@ def run(args, parser=None) -> int:
 
     t0 = time.perf_counter()
     try:
-        spec = read_spec(args.dataset)
+        spec = read_spec(args.dataset, args.fold)
         kept, held = split_train(spec, args.val_fraction, args.seed)
         slides = cache_grids(args.dataset, spec["train"], args.cache)
     except (HeadDataError, ValueError, OSError) as e:
@@ -405,7 +407,8 @@ def run(args, parser=None) -> int:
     name = best.split(",")[0]
     head = candidate_head(name, slides, shape, 0, args.steps)
     info = {"fitted_on": {"dataset": str(Path(args.dataset).resolve()), "split": "train", "slides": len(slides),
-                          "tumour_slides": int(sum(s["label"] for s in slides)), "seed": 0},
+                          "tumour_slides": int(sum(s["label"] for s in slides)), "seed": 0,
+                          **({"fold": args.fold} if args.fold is not None else {})},
             "chosen_on": {"validation_fraction": args.val_fraction, "seed": args.seed, "train_slides": len(tr),
                           "validation_slides": len(va), "candidate": best,
                           "validation_auc": round(summary[best]["full"][0], 4),

@@ -64,8 +64,10 @@ class FitError(HistojaxDataError):
 
 
 # ----------------------------------------------------------------------------- data
-def read_spec(dataset) -> dict:
-    """``dataset.json`` of ``dataset`` (``FitError`` naming it when missing, malformed or without a train list)."""
+def read_spec(dataset, fold: int | None = None) -> dict:
+    """``dataset.json`` of ``dataset`` (``FitError`` naming it when missing, malformed or without a train list).
+    ``fold=i`` (a dataset built with ``--folds K``): its train / validation / test lists are fold i's sides
+    (:func:`histojax.registry.with_fold`; no folds or a fold out of range: ``FitError`` naming the file)."""
     path = Path(dataset) / "dataset.json"
     try:
         spec = json.loads(path.read_text())
@@ -76,6 +78,13 @@ def read_spec(dataset) -> dict:
         raise FitError(path, f"unreadable ({' '.join(str(e).split())[:120]})") from None
     if not isinstance(spec, dict) or not isinstance(spec.get("train"), list):
         raise FitError(path, "has no \"train\" list of bundles")
+    if fold is not None:
+        from histojax.registry import with_fold  # jax with it: only when a fold is asked for
+
+        try:
+            spec = with_fold(spec, fold, path)
+        except HistojaxDataError as e:
+            raise FitError(path, e.problem) from None
     return spec
 
 
@@ -404,6 +413,9 @@ def add_arguments(p) -> None:
     p.add_argument("--val-fraction", type=float, default=0.2, help="share of training slides held out for "
                                                                       "validation (default 0.2)")
     p.add_argument("--split-seed", type=int, default=0, help="seed of the validation split (default 0, as head_fit)")
+    p.add_argument("--fold", type=int, default=None, metavar="I",
+                   help="a dataset built with --folds K: fit on fold I's train side (the other K - 1 folds); "
+                        "--score: fold I's side of --split")
     p.add_argument("--hidden", type=int, nargs="+", default=[c["hidden"] for c in CANDIDATES],
                    help="hidden sizes to try (of %s; default all)" % [c["hidden"] for c in CANDIDATES])
     p.add_argument("--steps", type=int, default=600, help="training steps per candidate (default 600)")
@@ -433,7 +445,7 @@ def run(args, parser=None) -> int:
     t0 = time.perf_counter()
     progress = not args.quiet
     try:
-        spec = read_spec(args.dataset)
+        spec = read_spec(args.dataset, args.fold)
         if not 0.0 < args.val_fraction < 1.0:
             raise FitError(Path(args.dataset) / "dataset.json", f"--val-fraction {args.val_fraction} is not in (0, 1)")
         try:
@@ -557,7 +569,7 @@ def score_command(args) -> int:
 
     try:
         head = LearnedHead.load(args.score)
-        spec = read_spec(args.dataset)
+        spec = read_spec(args.dataset, args.fold)
         entries = spec.get(args.split)
         if not isinstance(entries, list) or not entries:
             raise FitError(Path(args.dataset) / "dataset.json", f"has no {args.split!r} split")

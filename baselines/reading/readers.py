@@ -186,7 +186,8 @@ def masks_from_instances(slide: dict, instances) -> np.ndarray:
     return mask.reshape(slide["tissue"].shape)
 
 
-def policy_masks(run, dataset, slides: list[dict], split: str = "test", budgets=BUDGETS, seeds: int = 3) -> dict:
+def policy_masks(run, dataset, slides: list[dict], split: str = "test", budgets=BUDGETS, seeds: int = 3,
+                 fold: int | None = None) -> dict:
     """A trained ``glimpse`` / ``zoom_select`` policy's read masks, ``{budget: [masks per slide] per seed}``
     (its first ``seeds`` seeds, rolled greedily by :func:`baselines.reading.budget_curve.policy_reads` on
     ``dataset``'s ``split``, whose slides ``slides`` are, in the same order): ready for :func:`add_reader`."""
@@ -194,7 +195,7 @@ def policy_masks(run, dataset, slides: list[dict], split: str = "test", budgets=
 
     out = {float(b): [] for b in budgets}
     for seed in range(max(1, min(seeds, run_seeds(run)))):
-        for b, reads in policy_reads(run, dataset, split, budgets, seed=seed).items():
+        for b, reads in policy_reads(run, dataset, split, budgets, seed=seed, fold=fold).items():
             if len(reads) != len(slides):
                 raise ValueError(f"{run}: {len(reads)} episodes for {len(slides)} slides of split {split!r}")
             out[float(b)].append([masks_from_instances(s, r[0]) for s, r in zip(slides, reads)])
@@ -413,6 +414,8 @@ def add_arguments(p) -> None:
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; pcam-cnn feature grids)")
     p.add_argument("--head", required=True, help="slide head folder (python -m baselines.reading.head_fit)")
     p.add_argument("--split", default="test", help="split scored (default test)")
+    p.add_argument("--fold", type=int, default=None, metavar="I",
+                   help="a dataset built with --folds K: score fold I's side of --split (test / validation = fold I)")
     p.add_argument("--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)")
     p.add_argument("--seeds", type=int, default=5, help="random reader orders (default 5)")
     p.add_argument("--cell-level", type=int, default=None,
@@ -425,7 +428,7 @@ def add_arguments(p) -> None:
     p.add_argument("--out", default="runs/readers", help="output folder (default runs/readers)")
 
 
-def load_split(dataset, head_path, split: str, cell_level: int | None = None) -> tuple:
+def load_split(dataset, head_path, split: str, cell_level: int | None = None, fold: int | None = None) -> tuple:
     """``(head, cell_level, slides)``: the slide head loaded from ``head_path`` and ``split``'s slides of
     ``dataset`` as :func:`baselines.reading.head_fit.load_slides` gives them (the finest level and the cell level:
     ``cell_level``, default :func:`cell_level_for`). Raises ``HistojaxDataError`` / ``ValueError`` naming the file."""
@@ -433,7 +436,7 @@ def load_split(dataset, head_path, split: str, cell_level: int | None = None) ->
     from histojax.reading import heads
 
     head = heads.load(head_path)
-    spec = read_spec(dataset)
+    spec = read_spec(dataset, fold)  # fold=i: fold i's sides (a dataset built with --folds K)
     if cell_level is None:
         cell_level = cell_level_for(Path(dataset), spec, split)
     return head, cell_level, load_slides(dataset, split, spec, head.dim, levels=(0, cell_level), progress=True)
@@ -447,7 +450,7 @@ def run(args, parser=None) -> int:
         return print_error("--seeds and --cell-level must be ≥ 1")
     t0 = time.perf_counter()
     try:
-        head, args.cell_level, slides = load_split(args.dataset, args.head, args.split, args.cell_level)
+        head, args.cell_level, slides = load_split(args.dataset, args.head, args.split, args.cell_level, args.fold)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     other = sorted({str(s["encoder"]) for s in slides if head.encoder and s["encoder"] != head.encoder})
@@ -459,7 +462,8 @@ def run(args, parser=None) -> int:
     results = scripted_results(head, slides, args.budgets, args.seeds, args.cell_level, progress=True)
     for name, run_dir in args.reader:
         try:
-            masks = policy_masks(run_dir, args.dataset, slides, args.split, args.budgets, args.policy_seeds)
+            masks = policy_masks(run_dir, args.dataset, slides, args.split, args.budgets, args.policy_seeds,
+                                 fold=args.fold)
         except (OSError, ValueError, HistojaxDataError) as e:
             return print_error(f"--reader {name}: {e}")
         add_reader(results, head, slides, name, masks, "learned")
@@ -471,7 +475,8 @@ def run(args, parser=None) -> int:
     write_csv(lesions, out / "lesions.csv")
     wall = time.perf_counter() - t0
     outputs.write_text(out / "readers.json", json.dumps(
-        {"dataset": str(args.dataset), "split": args.split, "head": str(args.head), "head_name": head.name,
+        {"dataset": str(args.dataset), "split": args.split, **({"fold": args.fold} if args.fold is not None else {}),
+         "head": str(args.head), "head_name": head.name,
          "cell_level": args.cell_level, "seeds": args.seeds, "wall_s": round(wall, 1), "rows": rows,
          "lesions": lesions}, indent=1, default=float))
     png = plot(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split ({len(slides)} slides): "

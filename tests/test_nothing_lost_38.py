@@ -224,6 +224,7 @@ def test_a_dataset_run_with_other_options_is_refused_while_the_first_holds_the_f
 
     def build_one(job):  # while the first run builds its first slide, the second starts
         if not second:
+            second["started"] = True
             second["code"], _, second["err"] = _run(["dataset", str(slides), "--out", str(out), "--labels",
                                                      str(labels), "--levels", "3", "--restart", "--tile-size", "64",
                                                      "--quiet"], capsys)

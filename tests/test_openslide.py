@@ -1,6 +1,7 @@
 """The OpenSlide 4 backend (data_tools.openslide_reader): the same levels and pixels as the native readers on the
-fixtures here (Aperio SVS, tiled pyramidal TIFF, DICOM WSI), one-line errors for bad files, the missing-extra line,
-and ``--reader openslide`` through ``info`` / ``build`` / ``dataset``.
+fixtures here (Aperio SVS, tiled pyramidal TIFF, DICOM WSI), a MIRAX slide written from OpenSlide's description of
+the format (tests/mirax_fixture.py), one-line errors for bad files, the missing-extra line, and ``--reader
+openslide`` through ``info`` / ``build`` / ``dataset``.
 
 Pixel tolerance: none. OpenSlide 4 and tifffile / wsidicom decode the same JPEG / JPEG 2000 tiles to the same bytes
 here (both through libjpeg-turbo and OpenJPEG), so every comparison is exact; a level whose downsample is not a whole
@@ -150,3 +151,54 @@ def test_dataset_with_reader_openslide_records_it(fixtures, tmp_path):
     ds = json.loads((tmp_path / "o" / "dataset.json").read_text())
     assert ds["options"]["reader"] == "openslide"
     assert {s["format"] for s in ds["slides"]} == {"openslide-generic-tiff"}
+
+
+# ------------------------------------------------------------------ MIRAX: a fixture written from OpenSlide's format
+@pytest.fixture(scope="module")
+def mirax_slide(tmp_path_factory):
+    """A 512 × 256 px MIRAX slide of real pixels (a crop of the sample slide), two levels, PNG images."""
+    from mirax_fixture import mirax
+
+    with tifffile.TiffFile(SVS) as tif:
+        rgb = np.ascontiguousarray(tif.pages[0].asarray()[400:656, 800:1312, :3])
+    return mirax(tmp_path_factory.mktemp("mirax") / "S" / "slide.mrxs", rgb)
+
+
+def test_a_mirax_slide_is_read_through_openslide(mirax_slide):
+    path, levels = mirax_slide
+    with open_slide(path) as b:  # auto: .mrxs goes to OpenSlide
+        assert b.format == "openslide-mirax" and b.mpp == 0.25
+        assert [(lv.width, lv.height, lv.downsample) for lv in b.levels] == [(512, 256, 1.0), (256, 128, 2.0)]
+        for k, (img, _) in enumerate(levels):  # PNG images: the pixels written, exactly
+            np.testing.assert_array_equal(b.read_level(k), img)
+        np.testing.assert_array_equal(b.read_region(0, 100, 60, 200, 100), levels[0][0][60:160, 100:300])
+    with pytest.raises(SlideError):
+        open_slide(path, "native")  # the native readers do not read MIRAX
+
+
+def test_a_mirax_folder_becomes_a_dataset_and_a_bundle(mirax_slide, tmp_path):
+    from data_tools.datasets.discover import discover
+
+    path, levels = mirax_slide
+    skipped = []
+    entries = discover(path.parent, skipped=skipped)
+    assert [(e.name, e.path) for e in entries] == [("slide", path)]
+    assert skipped == []  # its data folder (Slidedat.ini, Index.dat, Data0000.dat) is part of the slide
+    proc = _cli("build", path, "--out", tmp_path / "b", "--levels", "3", "--tile-size", "64", "--quiet")
+    assert proc.returncode == 0, proc.stderr
+    meta = json.loads((tmp_path / "b" / "metadata.json").read_text())
+    assert meta["source"]["format"] == "openslide-mirax" and meta["source"]["width"] == 512
+
+
+def test_a_broken_mirax_is_one_line(mirax_slide, tmp_path):
+    import shutil
+
+    path, _ = mirax_slide
+    bad = tmp_path / "bad.mrxs"
+    shutil.copytree(path.with_suffix(""), tmp_path / "bad")
+    bad.write_bytes(b"")
+    index = tmp_path / "bad" / "Index.dat"
+    index.write_bytes(index.read_bytes()[:40])  # truncated: the level pages are gone
+    with pytest.raises(SlideError, match=r"bad\.mrxs: format not recognised or file corrupt \(OpenSlide: ") as e:
+        open_slide(bad)
+    assert "\n" not in str(e.value)

@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 from baselines.reading import head_fit, readers
+from data_tools.bundle_format import sha256, write_metadata
 from histojax.reading.heads import score, score_logits
 from histojax.reading.heads.logit import SlideHead, neighbourhood_mean
 
@@ -53,10 +54,17 @@ def _write_slide(root, name: str, rng, lesion=None, poly_px=None) -> dict:
                        for lv in range(3)],
             "tissue": {"file": "tissue.npy"},
             "features": {"encoder": "pcam-cnn", "dim": D, "stride": TILE, "levels": levels}}
-    (b / "metadata.json").write_text(json.dumps(meta))
     feats = [] if tumour is None else [{"type": "Feature", "properties": {"label": "tumour"},
                                         "geometry": {"type": "Polygon", "coordinates": [tumour]}}]
     (b / "annotations.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
+    # a feature-only stand-in of a dense bundle: the head tools read features, tissue and annotations only (the
+    # pixel arrays it names are never opened), through the checked loader: checksums and the metadata seal
+    for k, lv in enumerate(meta["levels"]):
+        lv.update(pixels=f"pixels_{k:02d}.npy", tumour=f"tumour_{k:02d}.npy")
+    meta.update(format_version=1, magnification_range=4.0, annotations={"tumour_area_px": 1.0 if tumour else 0.0},
+                checksums={n: sha256(b / n) for n in ("tissue.npy", "annotations.geojson",
+                                                      *(lv["file"] for lv in levels))})
+    write_metadata(b, meta)
     return {"bundle": f"bundles/{name}", "label": int(lesion is not None)}
 
 

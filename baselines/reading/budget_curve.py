@@ -46,9 +46,10 @@ from histojax.reading.heads.mil import attention_pool, attention_weights
 BUDGETS = (0.05, 0.1, 0.2, 0.5)
 
 
-def load_split(dataset, split: str, env_id: str, level: int, verify: bool = False, fold: int | None = None):
+def load_split(dataset, split: str, env_id: str, level: int, verify: bool = True, fold: int | None = None):
     """``(tables, labels)`` of a dataset split (``fold=i``: fold i's side of it, ``make(..., fold=i)``):
-    :meth:`Glimpse.host_tables` per slide and 0/1 labels."""
+    :meth:`Glimpse.host_tables` per slide and 0/1 labels. Read by ``histojax.make`` (the checked bundle loader:
+    no links, nothing outside a bundle, checksums verified unless ``verify=False``)."""
     import histojax
     from histojax.reading.modes.glimpse import Glimpse
 

@@ -18,6 +18,7 @@ the annotation's tumour geometry.
 from __future__ import annotations
 
 import json
+import os
 import sys
 import time
 from pathlib import Path
@@ -26,7 +27,8 @@ from types import SimpleNamespace
 import numpy as np
 
 from data_tools.metrics import roc_auc
-from data_tools.bundle_format import read_dataset_json
+from data_tools.bundle_format import (ANNOTATIONS, load_array, load_feature_levels, own_file, read_dataset_json,
+                                      read_metadata, stable_read, verify_metadata)
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
@@ -75,51 +77,76 @@ def _label(spec: dict, name: str) -> int | None:
     return None
 
 
-def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,)) -> dict:
-    """One bundle's arrays: ``logits (H, W)`` float32 (entry ``dim`` of the finest level's views),
-    ``tissue (H, W)`` bool, ``coarse {level: (h, w) float32}`` for each bundle level in ``levels`` > 0
-    (cell ``(cy, cx)`` of level ``L`` covers finest views ``[cy·2^L, (cy+1)·2^L)`` when the levels halve),
-    ``downsample {level: float}``, ``mpp`` (µm per finest px), ``tile`` (view side, px), ``tumour``
-    (shapely geometry in finest px, or None), ``name``, ``label`` (``label``, or when None the bundle's own:
-    tumour annotated or not, as the env reads it), ``bundle``."""
+def read_bundle(bundle, levels=(0,), verify: bool = True) -> tuple:
+    """The arrays the head tools read from one bundle, through the checked loader ``histojax.make`` uses
+    (:mod:`data_tools.bundle_format`): ``metadata.json`` read and its seal checked, every file the bundle's own
+    regular file inside it (no symbolic link, no path outside the bundle), its SHA-256 checked (``verify``).
+    Returns ``(metadata, {level: (gh, gw, D) feature grid}, stride, tissue (h, w) mask)`` for bundle ``levels``.
+    A ``BundleError`` (or :class:`HeadDataError`) naming the bundle's file otherwise; a folder swapped by a
+    concurrent rebuild is read again (:func:`data_tools.bundle_format.stable_read`)."""
+    bundle = Path(bundle)
+    levels = [int(lv) for lv in levels]
+
+    def read():
+        meta = read_metadata(bundle)
+        if verify:
+            verify_metadata(bundle, meta)
+        feats = meta.get("features") or {}
+        if not feats.get("levels"):
+            raise HeadDataError(bundle / "metadata.json", "has no feature grids: run `python -m data_tools features "
+                                                          f"{bundle} --encoder pcam-cnn`")
+        if any(not 0 <= lv < len(feats["levels"]) for lv in levels):
+            raise HeadDataError(bundle / "metadata.json", f"has feature grids of {len(feats['levels'])} levels, "
+                                                          f"not of levels {levels}")
+        grids, stride = load_feature_levels(bundle, meta, levels, verify=verify)
+        tissue = load_array(bundle, meta.tissue_file, meta, verify)
+        return meta, dict(zip(levels, grids)), stride, tissue
+
+    return stable_read(bundle, read)
+
+
+def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,),
+               grid: bool = False) -> dict:
+    """One bundle's arrays, read through :func:`read_bundle` (the checked loader): ``logits (H, W)`` float32
+    (entry ``dim`` of the finest level's views), ``tissue (H, W)`` bool, ``coarse {level: (h, w) float32}`` for
+    each bundle level in ``levels`` > 0 (cell ``(cy, cx)`` of level ``L`` covers finest views
+    ``[cy·2^L, (cy+1)·2^L)`` when the levels halve), ``downsample {level: float}``, ``mpp`` (µm per finest px),
+    ``tile`` (view side, px), ``tumour`` (shapely geometry in finest px, or None), ``name``, ``label``
+    (``label``, or when None the bundle's own: tumour annotated or not, as the env reads it), ``bundle``; with
+    ``grid`` also ``features (H, W, D)`` float16 (the finest grid, one row per finest view)."""
     from data_tools.annotations import load_annotations
-    from histojax.reading.tables import grid, tissue_views
+    from histojax.reading.tables import grid as view_grid, tissue_views
 
     bundle = Path(bundle)
     meta_file = bundle / "metadata.json"
     try:
-        meta = json.loads(meta_file.read_text())
+        meta, grids, stride, tissue_mask = read_bundle(bundle, sorted({0, *levels}))
         if label is None:
             from histojax.slide import slide_label_from_metadata
 
             label = int(slide_label_from_metadata(meta))
-        feats = meta.get("features") or {}
-        if not feats.get("levels"):
-            raise HeadDataError(meta_file, "has no feature grids: run `python -m data_tools features "
-                                           f"{bundle} --encoder pcam-cnn`")
-        tile, stride = int(meta["tile_size"]), int(feats["stride"])
+        feats = meta["features"]
+        tile = int(meta["tile_size"])
         width, height = int(meta["levels"][0]["width"]), int(meta["levels"][0]["height"])
         if not 0 <= dim < int(feats.get("dim", 0)):
             raise HeadDataError(meta_file, f"features have {feats.get('dim')} entries, no entry {dim}")
-        gh, gw = grid(width, height, tile, tile)
-        fg = np.load(bundle / feats["levels"][0]["file"], mmap_mode="r")
-        fg = fg.reshape(*feats["levels"][0]["grid"], -1) if fg.ndim == 2 else fg
+        gh, gw = view_grid(width, height, tile, tile)
+        fg = grids[0]
         fy = np.clip((np.arange(gh) * tile + stride // 2) // stride, 0, fg.shape[0] - 1)
         fx = np.clip((np.arange(gw) * tile + stride // 2) // stride, 0, fg.shape[1] - 1)
         logits = np.asarray(fg[:, :, dim], np.float32)[fy[:, None], fx[None, :]]
-        tissue = tissue_views(SimpleNamespace(tissue=np.load(bundle / meta["tissue"]["file"])),
+        full = np.asarray(fg, np.float16)[fy[:, None], fx[None, :]] if grid else None
+        tissue = tissue_views(SimpleNamespace(tissue=tissue_mask),
                               SimpleNamespace(downsample=[1.0], level_width=[width], level_height=[height]), tile)
         coarse, downsample = {}, {}
         for lv in levels:
             if lv == 0:
                 continue
-            g = np.load(bundle / feats["levels"][lv]["file"], mmap_mode="r")
-            g = g.reshape(*feats["levels"][lv]["grid"], -1) if g.ndim == 2 else g
-            coarse[lv] = np.asarray(g[:, :, dim], np.float32)
+            coarse[lv] = np.asarray(grids[lv][:, :, dim], np.float32)
             downsample[lv] = float(meta["levels"][lv]["downsample"])
         tumour = None
-        if label and (bundle / "annotations.geojson").is_file():
-            tumour = load_annotations(bundle / "annotations.geojson").tumour
+        if label and os.path.lexists(bundle / ANNOTATIONS):  # a link there is refused by own_file
+            tumour = load_annotations(own_file(bundle, ANNOTATIONS, "annotations")).tumour
     except HistojaxDataError:
         raise
     except FileNotFoundError as e:
@@ -128,9 +155,14 @@ def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT,
         raise HeadDataError(bundle, f"unreadable bundle ({type(e).__name__}: {e})") from None
     if not np.all(np.isfinite(logits[tissue])):
         raise HeadDataError(bundle / feats["levels"][0]["file"], "non-finite feature values on tissue views")
-    return {"name": bundle.name, "label": int(label), "bundle": bundle, "logits": logits, "tissue": tissue,
-            "coarse": coarse, "downsample": downsample, "mpp": float(meta["source"].get("mpp") or "nan"),
-            "tile": tile, "stride": stride, "tumour": tumour, "encoder": feats.get("encoder")}
+    out = {"name": bundle.name, "label": int(label), "bundle": bundle, "logits": logits, "tissue": tissue,
+           "coarse": coarse, "downsample": downsample, "mpp": float((meta.get("source") or {}).get("mpp") or "nan"),
+           "tile": tile, "stride": stride, "tumour": tumour, "encoder": feats.get("encoder")}
+    if grid:
+        if not np.all(np.isfinite(full[tissue])):
+            raise HeadDataError(bundle / feats["levels"][0]["file"], "non-finite feature values on tissue views")
+        out["features"] = full
+    return out
 
 
 def load_slides(dataset, split, spec: dict | None = None, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,),

@@ -27,29 +27,10 @@ from data_tools.features import pcam_cnn
 
 
 def load_grid(bundle, label=None, dim: int = pcam_cnn.VIEW_LOGIT) -> dict:
-    """:func:`baselines.reading.head_fit.load_slide` plus ``features (H, W, D)`` float16: the finest feature grid with
-    one row per finest view (the same view → feature-cell mapping as ``logits``; ``features[..., dim]``
-    equals ``logits``)."""
-    import json
-
-    s = load_slide(bundle, label, dim)
-    meta_file = Path(bundle) / "metadata.json"
-    try:
-        meta = json.loads(meta_file.read_text())
-        feats = meta["features"]
-        tile, stride = int(meta["tile_size"]), int(feats["stride"])
-        gh, gw = s["logits"].shape
-        fg = np.load(Path(bundle) / feats["levels"][0]["file"], mmap_mode="r")
-        fg = fg.reshape(*feats["levels"][0]["grid"], -1) if fg.ndim == 2 else fg
-        fy = np.clip((np.arange(gh) * tile + stride // 2) // stride, 0, fg.shape[0] - 1)
-        fx = np.clip((np.arange(gw) * tile + stride // 2) // stride, 0, fg.shape[1] - 1)
-        full = np.asarray(fg, np.float16)[fy[:, None], fx[None, :]]
-    except (OSError, KeyError, IndexError, TypeError, ValueError) as e:
-        raise HeadDataError(bundle, f"unreadable feature grid ({type(e).__name__}: {e})") from None
-    if not np.all(np.isfinite(full[s["tissue"]])):
-        raise HeadDataError(bundle, "non-finite feature values on tissue views")
-    s["features"] = full
-    return s
+    """:func:`baselines.reading.head_fit.load_slide` with ``grid=True`` (read through the checked bundle loader):
+    plus ``features (H, W, D)`` float16, the finest feature grid with one row per finest view (the same view →
+    feature-cell mapping as ``logits``; ``features[..., dim]`` equals ``logits``)."""
+    return load_slide(bundle, label, dim, grid=True)
 
 
 def cache_grids(dataset, entries, cache, progress: bool = True, extra=None) -> list[dict]:

@@ -43,6 +43,7 @@ import numpy as np
 from baselines import outputs
 from data_tools.metrics import accuracy, roc_auc
 from baselines.reading.lesions import lesion_of
+from data_tools.bundle_format import read_metadata, verify_metadata
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from histojax import compile_cache
@@ -111,10 +112,13 @@ def cell_level_for(dataset: Path, spec: dict, split: str, target: float = 4.0) -
     if not entries:
         raise HeadDataError(dataset / "dataset.json", f"has no slides in split {split!r}")
     rel = entries[0]
-    meta_file = (Path(rel) if Path(rel).is_absolute() else dataset / rel) / "metadata.json"
+    bundle = Path(rel) if Path(rel).is_absolute() else dataset / rel
+    meta_file = bundle / "metadata.json"
     try:
-        ds = [float(lv["downsample"]) for lv in json.loads(meta_file.read_text())["levels"]]
-    except (OSError, KeyError, TypeError, ValueError) as e:
+        meta = read_metadata(bundle)  # the checked loader's: the bundle's own metadata.json, its fields checked
+        verify_metadata(bundle, meta)
+        ds = meta.downsamples
+    except OSError as e:
         raise HeadDataError(meta_file, f"unreadable level list ({type(e).__name__}: {e})") from None
     if len(ds) < 2:
         raise HeadDataError(meta_file, "one level only: no coarser cells to read by")

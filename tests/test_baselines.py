@@ -36,11 +36,11 @@ def test_a_rollout_too_big_for_the_device_is_refused_before_compiling(monkeypatc
 
     obs = 128 * 128 * 3 + 3 * 4  # a pixel view (uint8) and the position (3 float32), bytes
     need = 2 * obs * TINY_PPO["num_steps"] * TINY_PPO["num_envs"] * 2
-    monkeypatch.setattr(common, "device_memory_bytes", lambda: need - 1)
+    monkeypatch.setattr(common.devices, "device_memory_bytes", lambda: need - 1)
     for trainer in (ppo, ppo_rnn):
         with pytest.raises(ValueError, match=r"rollouts of this run need .* lower num_envs / num_steps"):
             trainer.make_train({**TINY_PPO, "num_seeds": 2})
-    monkeypatch.setattr(common, "device_memory_bytes", lambda: need)
+    monkeypatch.setattr(common.devices, "device_memory_bytes", lambda: need)
     assert ppo.make_train({**TINY_PPO, "num_seeds": 2, "vmap_seeds": True}).num_updates == 2
 
 

@@ -58,7 +58,7 @@ def test_pictures_of_a_two_slide_evaluation_show_the_episodes_slide(two_slide_en
     assert (ep["slide"] == 1).all()
     written = evaluate.write_pictures(env, params, {"random": ep}, tmp_path, "HistoJAX-Easy-v0")
     assert {p.name for p in written} == {"trajectory_random.png", "reading_random_tumour.png", "trajectory.gif"}
-    i = evaluate._shown_episode(ep)
+    i = evaluate.pictures._shown_episode(ep)
     z, x, y = evaluate.trajectory(ep, i)
     title = f"HistoJAX-Easy-v0, random, {len(z) - 1} steps, target {'reached' if ep['success'][i] else 'not reached'}"
     on = [render_trajectory(env, z, x, y, slide_index=s, title=title) for s in (0, 1)]
@@ -165,7 +165,7 @@ def test_provenance_warnings_training_split_and_scale(tmp_path):
 
 
 def test_default_output_folder_is_never_inside_the_package(tmp_path):
-    published = Path(evaluate.__file__).parent / "published" / "c16-v1-diagnosis"
+    published = Path(evaluate.__file__).parents[1] / "published" / "c16-v1-diagnosis"
     assert evaluate.default_out(published, "X") == Path("runs/eval-c16-v1-diagnosis")
     assert evaluate.default_out(tmp_path, "X") == tmp_path / "eval"
     assert evaluate.default_out(None, "HistoJAX-Easy-v0") == Path("runs/eval-HistoJAX-Easy-v0")

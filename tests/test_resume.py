@@ -31,7 +31,7 @@ def _kill_after(update: int):
 
 def _no_reference(monkeypatch):
     # the random-agent reference of the curves compiles its own rollout; not what is tested here
-    monkeypatch.setattr(common, "random_agent_reference", lambda *a, **k: {"return": 0.0, "success": 0.0})
+    monkeypatch.setattr(common.runner, "random_agent_reference", lambda *a, **k: {"return": 0.0, "success": 0.0})
 
 
 def _straight_and_resumed(tmp_path, algo: str, make_train, config: dict, kill_at: int):
@@ -177,7 +177,7 @@ def test_tensorboard_events_beside_log_csv(tmp_path):
     """With tensorboardX installed, the seed means of each update's metrics go to event files in the run folder."""
     pytest.importorskip("tensorboardX")
     writer = common.tensorboard_writer(tmp_path)
-    common._tensorboard_scalars(writer, {"success": np.array([[0.0, 0.5], [1.0, np.nan]])}, 3, 100)
+    common.logs._tensorboard_scalars(writer, {"success": np.array([[0.0, 0.5], [1.0, np.nan]])}, 3, 100)
     writer.close()
     from tensorboardX.proto import event_pb2
 

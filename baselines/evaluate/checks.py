@@ -1,0 +1,205 @@
+"""Checks on what is scored, each a warning or a one-line refusal: ``config.json`` keys and values, the
+parameter tree, the slides scored against those trained on (split, scale), retired published agents and
+slide head folders given as agents, flat glimpse policies on slides too large for their grid, and the slide
+head a reader names."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from baselines import common
+from baselines.published_agents import PUBLISHED
+from data_tools.errors import HistojaxDataError
+
+
+
+# every key a trainer writes into config.json (the trainers' defaults) and the older spellings
+def known_config_keys() -> set[str]:
+    """The ``config.json`` keys some trainer writes (its defaults), ``seed``, and older spellings."""
+    from baselines import dqn, ppo, ppo_rnn
+
+    return {*ppo.DEFAULTS, *dqn.DEFAULTS, *ppo_rnn.DEFAULTS, "seed", *common.OLDER_SPELLINGS}
+
+
+def check_config(config, path) -> list[str]:
+    """Refuse a ``config.json`` that is not an object or whose ``hidden`` is not a positive whole number
+    (``HistojaxDataError`` naming ``path``); return one warning per key no trainer writes (a misspelling is
+    otherwise ignored without a word), naming the closest known key."""
+    import difflib
+
+    if not isinstance(config, dict):
+        raise HistojaxDataError(path, f"holds a JSON {type(config).__name__}, not an object of settings "
+                                "(the config.json a trainer writes); train again or restore it")
+    hidden = config.get("hidden", 256)
+    if isinstance(hidden, bool) or not isinstance(hidden, int) or hidden < 1:
+        raise HistojaxDataError(path, f"hidden={hidden!r}: the network width must be a whole number of at least 1")
+    mode = config.get("action_mode", "discrete")
+    if not isinstance(mode, str):
+        raise HistojaxDataError(path, f"action_mode={mode!r}: must be a string such as 'discrete' or 'glimpse:1'")
+    if not isinstance(config.get("env_kwargs") or {}, dict):
+        raise HistojaxDataError(path, f"env_kwargs={config['env_kwargs']!r}: must be an object of make() settings")
+    known = known_config_keys()
+    warnings = []
+    for key in sorted(set(config) - known):
+        close = difflib.get_close_matches(key, sorted(known), n=1)
+        warnings.append(f"{path}: unknown key {key!r} ignored" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    return warnings
+
+
+def split_warnings(env, env_params, task: str, where: str) -> list[str]:
+    """Why a set of slides cannot be scored: a diagnosis needs tumour and normal slides for an AUC; detection
+    needs a slide with tumour (no target can be reached on the others)."""
+    if getattr(env_params.slide, "slide_label", None) is None:
+        return []
+    labels = np.asarray(jax.device_get(env_params.slide.slide_label)).ravel()
+    n = labels.size
+    if task == "classification" and len(set(labels.tolist())) < 2:
+        kind = "tumour" if labels.size and labels[0] else "normal"
+        return [f"{where}: all {n} slide{'s' if n > 1 else ''} {'are' if n > 1 else 'is'} {kind}: the diagnosis AUC "
+                "is undefined (it needs tumour and normal slides); only the accuracy of the declared diagnosis "
+                "means something"]
+    if task != "classification" and not labels.any():
+        return [f"{where}: no slide here has tumour annotated: no policy can reach a target, so every success "
+                "rate is 0 % by construction; score a split with tumour slides"]
+    return []
+
+
+def _dataset_record(folder) -> dict:
+    try:
+        record = json.loads((Path(folder) / "dataset.json").read_text())
+        return record if isinstance(record, dict) else {}
+    except (OSError, ValueError):
+        return {}
+
+
+def provenance_warnings(trained: dict, scored: dict, config_path) -> list[str]:
+    """Warnings when a checkpoint is scored on slides it trained on, or at another scale than it trained at,
+    from what its ``config.json`` records (``trained``: env_kwargs ``dataset`` and ``split``) and the
+    ``dataset.json`` of the set scored (``scored``: the evaluation's config)."""
+    t_kw, s_kw = trained.get("env_kwargs") or {}, scored.get("env_kwargs") or {}
+    t_ds, s_ds = t_kw.get("dataset"), s_kw.get("dataset")
+    if not t_ds or not s_ds:
+        return []
+    t_split, s_split = t_kw.get("split", "train"), s_kw.get("split", "train")
+    overlap = s_split == "all" or t_split == "all" or s_split == t_split
+    t_rec, s_rec = _dataset_record(t_ds), _dataset_record(s_ds)
+    same = Path(t_ds).resolve() == Path(s_ds).resolve()
+    c16 = lambda rec, env_id="": "CAMELYON16" in str(rec.get("kind", "")) or "-C16-" in env_id  # noqa: E731
+    out = []
+    if overlap and (same or (c16(s_rec) and c16(t_rec, str(trained.get("env_id", ""))))):
+        why = "the same dataset" if same else ("a CAMELYON16 set: its split is fixed by slide, so its "
+                                               f"{s_split} split holds slides this agent trained on")
+        out.append(f"{config_path}: trained on the {t_split} split of {t_ds}; scored on the {s_split} split of "
+                   f"{s_ds} ({why}): these figures are not held-out; score --split test")
+    t_mpp, s_mpp = (t_rec.get("scale") or {}).get("mpp"), (s_rec.get("scale") or {}).get("mpp")
+    if t_mpp and s_mpp and abs(float(t_mpp) - float(s_mpp)) > 1e-6 * float(t_mpp):
+        out.append(f"{config_path}: trained at {float(t_mpp):.3g} µm/px ({t_ds}); scored at {float(s_mpp):.3g} µm/px "
+                   f"({s_ds}): another scale than it trained at")
+    elif s_mpp and not t_rec and c16(s_rec):
+        out.append(f"{config_path}: its training dataset {t_ds} is not here and config.json records no scale, so the "
+                   f"scale cannot be checked: {s_ds} is at {float(s_mpp):.3g} µm/px ({s_rec.get('variant', '?')} "
+                   "variant); the published c16-v1 agents trained on the full set (1.94 µm/px)")
+    return out
+
+
+# ----------------------------------------------------------------------------- published readers
+SET_READER = "c16-v2-set-reader"  # the published cell-set reader: reads slides of any size
+
+
+# published folders retired, with what replaced them: `histojax evaluate` on the old path names the new one
+RETIRED = {"c16-v1-glimpse-reader": (SET_READER, "a flat glimpse policy over a padded 16 × 14 cell grid, it could "
+                                                 "not read a slide wider or taller than that grid")}
+
+
+def published_path(name: str) -> Path:
+    """``baselines/published/NAME``, relative to the working folder when it lies under it."""
+    path = PUBLISHED / name
+    try:
+        return path.relative_to(Path.cwd())
+    except ValueError:
+        return path
+
+
+def refuse_not_an_agent(path: Path) -> None:
+    """Refuse, in one line saying why and what to use instead, a published folder that was retired
+    (:data:`RETIRED`; the folder is gone) and a slide head folder (``histojax.reading.heads``: it scores what a
+    reader read, it does not act)."""
+    from histojax.reading.heads import HEADS
+
+    name = path.parent.name if path.name == "params.msgpack" else path.name
+    if not path.exists() and name in RETIRED:
+        new, why = RETIRED[name]
+        raise HistojaxDataError(path, f"the published agent {name} was retired ({why}); its results stay in "
+                                f"docs/results/c16.md; use {published_path(new)}, which reads slides of any "
+                                f"size: histojax evaluate {published_path(new)} --dataset DIR")
+    try:
+        kind = json.loads((path / "config.json").read_text()).get("kind") if path.is_dir() else None
+    except (OSError, ValueError, AttributeError):
+        kind = None
+    if kind in HEADS:
+        raise HistojaxDataError(path, "a slide head, not an agent: it scores what a reader read, it does not act; "
+                                f"score a reader through it: histojax evaluate READER --head {path} --dataset DIR "
+                                f"(or python -m baselines.reading.readers --head {path} --dataset DIR)")
+
+
+def grid_refusal(error: ValueError, run) -> ValueError:
+    """``error`` of a flat glimpse policy (the ``-v1`` observation, a padded cell grid pinned at training) on
+    a slide whose cells do not fit that grid, as one line saying that this policy cannot read it by
+    construction and which reader to use instead; any other error unchanged."""
+    text = str(error)
+    if run is None or "do not fit glimpse_grid" not in text:
+        return error
+    where = text.split(" (the grid a policy was trained with)")[0]
+    set_reader = published_path(SET_READER)
+    use = (f"use the cell-set reader, which reads slides of any size: histojax evaluate {set_reader} --dataset DIR"
+           if set_reader.is_dir() else
+           "use a cell-set reader, which reads slides of any size (the -v2 ids; python -m baselines.reading.train_readers "
+           "trains one)")
+    return ValueError(f"{where}: {run} is a flat glimpse policy over the padded cell grid it trained on, so it cannot "
+                      f"read a slide wider or taller than that grid; {use}")
+
+
+def head_reward_settings(run: Path, config: dict) -> tuple[dict | None, Path | None]:
+    """``(settings, file)`` of a reader trained with SASHA's reward (``RUN/head_reward.json`` as
+    ``baselines.reading.train_readers`` writes it, or a ``head_reward`` object in ``config.json``): ``head``
+    (its slide head folder), ``gain``, ``final``, ``read_cost``; ``(None, None)`` for other runs."""
+    f = run / "head_reward.json"
+    if f.is_file():
+        try:
+            record = json.loads(f.read_text())
+        except (OSError, ValueError) as e:
+            raise HistojaxDataError(f, f"unreadable ({type(e).__name__}: {e})") from None
+        if not isinstance(record, dict) or not isinstance(record.get("head"), str) or not record["head"]:
+            raise HistojaxDataError(f, "names no slide head (a 'head' folder, as baselines.reading.train_readers writes it); "
+                                    "give --head DIR")
+        return record, f
+    record = config.get("head_reward")
+    if isinstance(record, dict) and isinstance(record.get("head"), str) and record["head"]:
+        return record, run / "config.json"
+    return None, None
+
+
+def resolve_head(recorded: str, run: Path, where) -> Path:
+    """The slide head folder a run names (``recorded``): as given when absolute; else beside the run, in the
+    working folder, in the repository, or a published head of that name. ``HistojaxDataError`` naming
+    ``where`` (the file that names it) when none holds a ``config.json``."""
+    p = Path(recorded)
+    tries = [p] if p.is_absolute() else [run / p, p, Path(__file__).resolve().parents[2] / p]
+    tries.append(PUBLISHED / p.name)
+    for c in tries:
+        if (c / "config.json").is_file():
+            return c
+    raise HistojaxDataError(where, f"names the slide head {recorded!r}, which is not here (looked beside the run, in "
+                            "the working folder and in baselines/published); give --head DIR, e.g. --head "
+                            f"{published_path('c16-v2-head')}")
+
+
+def check_params_tree(params, path) -> None:
+    """Refuse a checkpoint that holds no parameter arrays stacked over seeds (a foreign msgpack)."""
+    leaves = jax.tree.leaves(params) if isinstance(params, dict) else []
+    if not leaves or any(np.ndim(a) < 1 for a in leaves) or len({np.shape(a)[0] for a in leaves}) != 1:
+        raise HistojaxDataError(path, "not a histojax checkpoint (no network parameters stacked over seeds, as the "
+                                "trainers write them); give the params.msgpack of a histojax training run")

@@ -1,0 +1,214 @@
+"""The command line of ``python -m baselines.evaluate`` and ``histojax evaluate``: options, slides and dataset
+chosen, the printed table, ``eval.json`` and ``eval.csv``."""
+from __future__ import annotations
+
+import csv
+import json
+import sys
+from pathlib import Path
+
+from baselines import common, outputs
+from data_tools.cli_output import positive_int
+from baselines.evaluate.checks import (check_config, check_params_tree, grid_refusal, head_reward_settings,
+                                       provenance_warnings, refuse_not_an_agent, resolve_head)
+from baselines.evaluate.scoring import evaluate
+
+
+
+def _usage_exit(message: str) -> SystemExit:
+    """A ``SystemExit`` with status 2 (a user error) whose text is ``message``, printed as one ``error:`` line."""
+    print(f"error: {message}", file=sys.stderr)
+    exit_ = SystemExit(message)
+    exit_.code = 2
+    return exit_
+
+
+def resolve_slides(slides: list[str], config: dict) -> list[str]:
+    """Bundle paths to evaluate: ``slides`` as given, or for ``["held-out"]`` the ``"test"`` list of
+    the ``dataset.json`` the checkpoint was trained on (``config["env_kwargs"]["dataset"]``)."""
+    if list(slides) != ["held-out"]:
+        return list(slides)
+    dataset = (config.get("env_kwargs") or {}).get("dataset")
+    if not dataset:
+        raise _usage_exit("--slides held-out: this checkpoint was not trained on a dataset (env_kwargs has no "
+                          "'dataset'); give bundle folders instead")
+    spec_path = Path(dataset) / "dataset.json"
+    try:
+        test = json.loads(spec_path.read_text())["test"]
+    except (OSError, ValueError, KeyError) as e:
+        raise _usage_exit(f"--slides held-out: cannot read the test split from {spec_path}: {e}") from None
+    if not test:
+        raise _usage_exit(f"--slides held-out: {spec_path} has an empty test split")
+    return [str(Path(dataset) / rel) for rel in test]
+
+
+def with_dataset(config: dict, dataset=None, split: str | None = None) -> dict:
+    """``config`` scoring ``split`` of ``dataset`` (default split ``"test"``) in place of the slides it
+    trained on; only ``split`` given: the same dataset, another split. Unchanged when neither is given."""
+    if dataset is None and split is None:
+        return config
+    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("slides", "slide_weights")}
+    if dataset is not None:
+        if not (Path(dataset) / "dataset.json").is_file():
+            raise _usage_exit(f"--dataset {dataset}: no dataset.json there")
+        kw["dataset"] = str(dataset)
+    elif "dataset" not in kw:
+        raise _usage_exit("--split: this checkpoint was not trained on a dataset; give --dataset DIR too")
+    kw["split"] = split or "test"
+    return {**config, "env_kwargs": kw, "slide": None}
+
+
+def print_table(title: str, rows: dict, head: str | None = None) -> None:
+    """The printed table: per policy episodes, success, mean return / length, steps to success, mean fraction
+    of the slide read and fields of view; with a diagnosis score (``diagnosis_auc``), its AUC too, and
+    without ITC-only slides (``diagnosis_auc_no_itc``) when known. ``head``: the slide head that declared
+    (its name and folder), said under the table."""
+    auc = any("diagnosis_auc" in r for r in rows.values())
+    no_itc = any("diagnosis_auc_no_itc" in r for r in rows.values())
+    print(f"\n{title}")
+    print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}"
+          f" {'read':>6} {'fields':>6}" + (f" {'AUC':>6}" if auc else "") + (f" {'AUC w/o ITC':>11}" if no_itc else ""))
+    for name, r in rows.items():
+        cell = f" {r['diagnosis_auc']:>6.3f}" if "diagnosis_auc" in r else f" {'-':>6}"
+        cell2 = f" {r['diagnosis_auc_no_itc']:>11.3f}" if "diagnosis_auc_no_itc" in r else f" {'-':>11}"
+        print(f"{name:<22} {r['episodes']:>8} {r['success_rate']:>8.1%} {r['mean_return']:>11.3f} "
+              f"{r['mean_length']:>11.1f} {r['mean_steps_to_success']:>16.1f} {r['mean_fraction_read']:>6.1%} "
+              f"{r['mean_fields_of_view']:>6.1f}" + (cell if auc else "") + (cell2 if no_itc else ""))
+    if head:
+        print(f"the head declares: the policy chooses where to read, then the slide head {head} scores the finest "
+              "views read; success: the head's diagnosis was right; AUC: of the head's score over the episodes "
+              "(each slide equally often)" + ("; AUC w/o ITC: ITC-only tumour slides left out" if no_itc else "")
+              + " (read: mean fraction of the slide's tissue views read)")
+    elif auc:
+        print("success: the diagnosis declared was right; AUC: of the policy's tumour score over the slides "
+              "(read: mean fraction of the slide's tissue views read)")
+
+
+def add_arguments(p) -> None:
+    """The options of ``python -m baselines.evaluate`` and ``histojax evaluate``."""
+    p.add_argument("checkpoint", nargs="?", default=None,
+                   help="run folder or params.msgpack (omit with --env for reference rows only)")
+    p.add_argument("--env", default=None, help="env id (default: the checkpoint's)")
+    p.add_argument("--slide", "--slides", nargs="*", default=None,
+                   help="bundle folder(s) (default: the checkpoint's slide), or 'held-out': the test split of "
+                        "the dataset the checkpoint trained on")
+    p.add_argument("--dataset", default=None,
+                   help="score on this dataset folder (dataset.json) instead of the one the checkpoint trained on, "
+                        "e.g. a published agent on any C16-style dataset")
+    p.add_argument("--split", default=None, choices=("train", "test", "all"),
+                   help="split of the dataset to score (default: test with --dataset, else the checkpoint's)")
+    p.add_argument("--episodes", type=positive_int, default=256,
+                   help="episodes per policy (per seed for the learned one), at least 1")
+    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--with-position", action="store_true", help="(reference rows only) observation with position")
+    p.add_argument("--action-mode", default="discrete", help="(reference rows only)")
+    p.add_argument("--out", default=None,
+                   help="output folder (default <run>/eval, or runs/eval-<run name> for a run inside the installed "
+                        "package such as baselines/published/NAME, or runs/eval-<env> without a checkpoint)")
+    p.add_argument("--augment", action="store_true",
+                   help="keep the checkpoint's training-time view augmentation (default: slides as they are)")
+    p.add_argument("--head", default=None,
+                   help="slide head folder (histojax.reading.heads) that declares: the policy only chooses where to read, "
+                        "the head scores what was read (default: the head a reader trained with SASHA's reward "
+                        "names in its head_reward.json; none for other checkpoints)")
+
+
+def default_out(run: Path | None, env_id: str) -> Path:
+    """Where ``evaluate`` writes when ``--out`` is not given: ``<run>/eval`` for a run of the user's;
+    ``runs/eval-<run name>`` (under the working folder) for a run inside the package (the published agents)
+    or a run folder that is not writable; ``runs/eval-<env id>`` without a checkpoint."""
+    import os
+
+    if run is None:
+        return Path("runs") / f"eval-{env_id}"
+    package = [Path(__file__).resolve().parents[1], Path(common.__file__).resolve().parents[2] / "histojax"]
+    inside = any(run.resolve().is_relative_to(p) for p in package)
+    if inside or not os.access(run, os.W_OK):
+        return Path("runs") / f"eval-{run.resolve().name}"
+    return run / "eval"
+
+
+def run(args, parser) -> int:
+    """Evaluate on parsed ``args``: tables, eval.json, eval.csv, trajectory pictures and reading maps."""
+    if args.checkpoint is None and args.env is None:
+        parser.error("give a CHECKPOINT or --env")
+    warnings = []
+    settings, where = None, None
+    if args.checkpoint is not None:
+        refuse_not_an_agent(Path(args.checkpoint))
+        run = Path(args.checkpoint)
+        run = run if run.is_dir() else run.parent
+        try:  # a config.json that is not an object is named before loading (which would fail on it in its own words)
+            raw = json.loads((run / "config.json").read_text())
+        except (OSError, ValueError):
+            raw = {}  # unreadable: load_checkpoint names the file and why
+        check_config(raw, run / "config.json")
+        params, config = common.load_checkpoint(args.checkpoint)
+        warnings += check_config(config, run / "config.json")
+        check_params_tree(params, run / "params.msgpack")
+        label = config.get("algo") or ("dqn" if "buffer_size" in config else "ppo")
+        settings, where = head_reward_settings(run, config)
+    else:
+        params, config, run, label = None, {"action_mode": args.action_mode, "with_position": args.with_position,
+                                            "obs_mode": "pixels", "hidden": 256}, None, "none"
+    trained = dict(config)
+    if args.env:
+        config["env_id"] = args.env
+    config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None))
+    if run is not None:
+        warnings += provenance_warnings(trained, config, run / "config.json")
+    head, head_dir = None, None
+    if getattr(args, "head", None) or settings:
+        from histojax.reading import heads
+
+        head_dir = Path(args.head) if getattr(args, "head", None) else resolve_head(settings["head"], run, where)
+        head = heads.load(head_dir)  # ValueError naming the file: one line
+        recorded = (settings or {}).get("head_name")
+        if recorded and not getattr(args, "head", None) and recorded != head.name:
+            warnings.append(f"{where}: the reader trained with the head {recorded!r}; the head found at {head_dir} "
+                            f"is {head.name!r}")
+    for w in warnings:
+        print(f"warning: {w}", file=sys.stderr)
+    out = Path(args.out) if args.out else default_out(run, config["env_id"])
+    slides = resolve_slides(args.slide, config) if args.slide else [config.get("slide")]
+    results = {}
+    for i, slide in enumerate(slides):
+        sub = out if len(slides) == 1 else out / f"slide{i}"
+        dataset = (config.get("env_kwargs") or {}).get("dataset")
+        name = slide or (f"dataset {dataset} ({(config.get('env_kwargs') or {}).get('split', 'train')} split)"
+                         if dataset else "embedded sample slide")
+        print(f"evaluating {config['env_id']} on {name} ({i + 1} of {len(slides)}), {args.episodes} episodes per "
+              "policy ...", file=sys.stderr, flush=True)
+        try:
+            rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub,
+                            label=label, augment=args.augment, source=run, progress=True, warnings=warnings,
+                            head=head, head_reward=settings if not getattr(args, "head", None) else None)
+        except ValueError as e:
+            raise grid_refusal(e, run) from None
+        print_table(f"{config['env_id']} on {name} ({args.episodes} episodes per policy"
+                    f"{' per seed' if params is not None else ''})", rows,
+                    head=f"{head.name!r} ({head_dir})" if head is not None else None)
+        results[name] = rows
+    out.mkdir(parents=True, exist_ok=True)
+    record = {"env_id": config["env_id"], "results": results, "warnings": warnings}
+    if head is not None:
+        record["head"] = {"folder": str(head_dir), "name": head.name, "reward": settings}
+    outputs.write_text(out / "eval.json", json.dumps(record, indent=2))
+    with outputs.open_text(out / "eval.csv") as f:
+        w = csv.writer(f)
+        w.writerow(["slide", "policy", "episodes", "success_rate", "mean_return", "mean_length", "mean_steps_to_success",
+                    "mean_fraction_read", "mean_fields_of_view", "diagnosis_auc", "diagnosis_auc_no_itc"])
+        for slide, rows in results.items():
+            for name, r in rows.items():
+                w.writerow([slide, name, r["episodes"], r["success_rate"], r["mean_return"], r["mean_length"],
+                            r["mean_steps_to_success"], r["mean_fraction_read"], r["mean_fields_of_view"],
+                            r.get("diagnosis_auc", ""), r.get("diagnosis_auc_no_itc", "")])
+    print(f"\nwrote {out}/eval.json, eval.csv, trajectory_*.png, reading_*.png, trajectory.gif")
+    return 0
+
+
+def main(argv=None) -> int:
+    """``python -m baselines.evaluate``: the same command as ``histojax evaluate`` (errors one line, exit 2)."""
+    from histojax.cli import main as histojax_main
+
+    return histojax_main(["evaluate", *(sys.argv[1:] if argv is None else argv)])

@@ -1,0 +1,78 @@
+"""Head scoring: readers whose slide head declares (SASHA's reward, ``histojax.adapters.head_reward``), the head's
+score per episode and its AUC, with and without ITC-only slides (CAMELYON's lesion classes)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from data_tools.errors import HistojaxDataError
+from baselines.evaluate.rollout import episode_labels
+
+
+
+def head_env(env, env_params, head, settings: dict | None = None):
+    """``(env wrapped in HeadReward, lesion classes per slide or None)`` for :func:`evaluate` with a head.
+    ``settings``: ``gain``, ``final``, ``read_cost`` of a run's ``head_reward.json`` (None: no head reward
+    terms, the env's own reward). ``ValueError`` (one line) when the slides' features do not carry the
+    head's view logit."""
+    from histojax.adapters.head_reward import HeadReward
+
+    encoders = sorted({str((b.metadata.get("features") or {}).get("encoder")) for b in env.bundles} - {"None"})
+    if head.encoder and any(e != head.encoder for e in encoders):
+        raise ValueError(f"a slide head for {head.encoder} features; these slides hold {', '.join(encoders)} features "
+                         "(fit a head on them: python -m baselines.reading.head_fit)")
+    features = getattr(env_params.slide, "features", None)
+    dim = int(np.shape(features)[-1]) if features is not None else 0
+    if head.dim >= dim:
+        raise ValueError(f"the slide head reads feature entry {head.dim} ({head.encoder or 'its encoder'}'s view "
+                         f"logit); these slides' features have {dim} entries: score slides embedded with "
+                         f"{head.encoder or 'the encoder the head was fitted on'}")
+    if settings:
+        gain = settings.get("gain")
+        wrapped = HeadReward(env, head, gain=None if gain in (None, "none", False) else gain,
+                             final=float(settings.get("final") or 0.0), read_cost=float(settings.get("read_cost") or 0.0),
+                             params=env_params)
+    else:
+        wrapped = HeadReward(env, head, gain=None, final=0.0, env_reward=True, params=env_params)
+    return wrapped, lesion_classes(env, env_params)
+
+
+def head_scored(ep: dict, env_params, classes) -> dict:
+    """:func:`run_episodes` output of a :class:`~histojax.adapters.head_reward.HeadReward` env with the head's
+    diagnosis in the fields :func:`summarise` scores: ``tumour_score`` (the head's p(tumour) of what was
+    read), ``label``, ``success`` (the head right) and, with ``classes``, ``lesion`` per episode."""
+    ep["tumour_score"] = 1.0 / (1.0 + np.exp(-np.asarray(ep["head_score"], np.float64)))
+    ep["label"] = episode_labels(env_params, ep["slide"])
+    ep["success"] = np.asarray(ep["head_correct"], bool)
+    if classes is not None:
+        ep["lesion"] = np.asarray(classes)[ep["slide"]]
+    return ep
+
+
+def lesion_classes(env, env_params) -> list[str] | None:
+    """CAMELYON's lesion class of each slide of ``env`` (``normal``, ``ITC``, ``micro``, ``macro``:
+    :func:`baselines.reading.lesions.lesion_of` on the bundle's tumour polygons at its µm/px), or None when a tumour
+    slide's class cannot be known (no polygons, no µm/px)."""
+    from data_tools.annotations import load_annotations
+    from baselines.reading.lesions import lesion_of
+
+    labels = np.atleast_1d(np.asarray(jax.device_get(env_params.slide.slide_label))).astype(int)
+    out = []
+    for bundle, label in zip(env.bundles, np.broadcast_to(labels, (len(env.bundles),))):
+        if not label:
+            out.append("normal")
+            continue
+        folder = Path(bundle.path)
+        try:
+            mpp = float(json.loads((folder / "metadata.json").read_text())["source"]["mpp"])
+            geom = load_annotations(folder / "annotations.geojson").tumour
+        except (OSError, ValueError, KeyError, TypeError, HistojaxDataError):
+            return None
+        cls, _ = lesion_of(geom, mpp) if np.isfinite(mpp) and mpp > 0 else ("unknown", None)
+        if cls == "unknown":
+            return None
+        out.append(cls)
+    return out

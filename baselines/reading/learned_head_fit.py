@@ -11,8 +11,10 @@ the test split is never read while fitting.
 **Training** (:func:`train`): Adam with decoupled weight decay (optax ``adamw``), a jitted step over
 ``--batch`` slides drawn at random (classes balanced). Each slide of a step is read at random, as a reader
 reads: all its tissue with probability 0.25, else cells of 4 × 4 views each read with a probability drawn
-log-uniformly in [2 %, 100 %]; at most ``--views`` of the views read are kept (drawn uniformly), so a step
-costs the same on any slide size. Slide-level log loss.
+log-uniformly in [2 %, 100 %]; at most ``--views`` of the views read are kept, so a step costs the same on any
+slide size: ``--top-share`` of them (default half) the views of highest attention under the model being
+trained (refreshed every ``--eval-every`` steps: a small tumour's views dominate the pooling of the whole read,
+and a uniform draw of 512 of 10,000 views would mostly miss them), the rest drawn uniformly. Slide-level log loss.
 
 **Choice on validation only** (:data:`CANDIDATES`, ``--hidden``): each candidate structure is trained for
 ``--steps`` steps; its validation AUC reading everything (ties: reading random 10 %) is measured every
@@ -45,6 +47,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from baselines.metrics import roc_auc
+from baselines.validation import split_train
 from data_tools.bundle_format import (load_array, load_feature_levels, own_file, read_metadata, stable_read,
                                       verify_metadata)
 from data_tools.cli_output import command_main, print_error
@@ -201,9 +204,13 @@ def draw_fraction(rng) -> float | None:
     return None if rng.random() < P_FULL else float(np.exp(rng.uniform(np.log(MIN_READ), 0.0)))
 
 
-def batch(rng, slides: list[dict], size: int, views: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def batch(rng, slides: list[dict], size: int, views: int, attention: list | None = None,
+          top_share: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """``(x (size, views, D) float32, mask (size, views) bool, y (size,) float32)``: ``size`` slides drawn with
-    classes balanced, each read at random (:func:`draw_fraction`), at most ``views`` read views kept."""
+    classes balanced, each read at random (:func:`draw_fraction`). Of a read larger than ``views`` views, the
+    ``top_share`` with the highest ``attention`` (per slide ``(N,)``, the model's own, refreshed while training;
+    None: none) are kept and the rest drawn uniformly: the views that dominate the attention pooling of the whole
+    read are the ones a small tumour lives in, and a uniform draw of 512 of 10,000 views would mostly miss them."""
     pos = [i for i, s in enumerate(slides) if s["label"]]
     neg = [i for i, s in enumerate(slides) if not s["label"]]
     d = slides[0]["features"].shape[1]
@@ -215,11 +222,36 @@ def batch(rng, slides: list[dict], size: int, views: int) -> tuple[np.ndarray, n
         s = slides[i]
         idx = np.flatnonzero(random_read(rng, s, draw_fraction(rng)))
         if idx.size > views:
-            idx = rng.choice(idx, views, replace=False)
+            n_top = int(views * top_share) if attention is not None else 0
+            if n_top:
+                part = np.argpartition(-attention[i][idx], n_top)
+                top, rest = idx[part[:n_top]], idx[part[n_top:]]
+                idx = np.concatenate([top, rng.choice(rest, views - n_top, replace=False)])
+            else:
+                idx = rng.choice(idx, views, replace=False)
         x[b, :idx.size] = s["features"][idx]
         m[b, :idx.size] = True
         y[b] = s["label"]
     return x, m, y
+
+
+def attention_of(head, slides: list[dict], chunk: int = 1 << 15) -> list[np.ndarray]:
+    """Each slide's attention logits ``(N,)`` float32 under ``head`` (in chunks of ``chunk`` views, one compiled
+    shape)."""
+    import jax
+
+    fn = jax.jit(lambda hd, x: hd.attention_logits(hd.embed(x)))
+    out = []
+    for s in slides:
+        f = np.asarray(s["features"])
+        parts = []
+        for i in range(0, len(f), chunk):
+            part = f[i:i + chunk]
+            pad = np.zeros((chunk, f.shape[1]), np.float32)
+            pad[:len(part)] = part
+            parts.append(np.asarray(fn(head, pad))[:len(part)])
+        out.append(np.concatenate(parts))
+    return out
 
 
 # ----------------------------------------------------------------------------- scoring many slides
@@ -238,7 +270,7 @@ class FlatSet:
         import jax
         import jax.numpy as jnp
 
-        key = (head.dim, head.hidden, head.attention, head.layers)
+        key = (head.features_dim, head.hidden, head.attention, head.layers)
         if key not in self._fns:
             n = len(self.slides)
 
@@ -305,9 +337,10 @@ def standardisation(slides: list[dict], limit: int = 200_000, seed: int = 0) -> 
 
 def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: int = 0, steps: int = 600,
           batch_size: int = 16, views: int = 512, lr: float = 2e-3, weight_decay: float = 1e-4,
-          eval_every: int = 50, progress: bool = True) -> tuple:
+          eval_every: int = 50, top_share: float = 0.5, progress: bool = True) -> tuple:
     """Train a :class:`LearnedHead` of ``structure`` (``hidden``, ``attention``, ``layers``) on ``train_slides``
-    (see the module doc); every ``eval_every`` steps score it on ``val`` (a :class:`FlatSet`). Returns
+    (see the module doc); every ``eval_every`` steps score it on ``val`` (a :class:`FlatSet`) and refresh the
+    training views' attention that :func:`batch` keeps its ``top_share`` of views by. Returns
     ``(best_head, curve)``: the checkpoint with the best validation AUC reading everything (ties: reading 10 %;
     the last one when ``val`` is None) and ``curve`` (rows of step, training loss, validation AUCs)."""
     import jax
@@ -322,7 +355,7 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
     p = float(np.clip(np.mean([s["label"] for s in train_slides]), 1e-3, 1 - 1e-3))
     params = init_params(jax.random.PRNGKey(seed), d, structure["hidden"], structure["attention"],
                          structure["layers"], mu, sd)
-    head0 = LearnedHead(params=params, prior_logit=jnp.float32(np.log(p / (1 - p))), dim=d,
+    head0 = LearnedHead(params=params, prior_logit=jnp.float32(np.log(p / (1 - p))), features_dim=d,
                         hidden=structure["hidden"], attention=structure["attention"], layers=structure["layers"],
                         encoder=train_slides[0].get("encoder"))
     frozen = {"mu": params["mu"], "sd": params["sd"]}
@@ -343,14 +376,17 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
 
     rng = np.random.default_rng(10_000 + seed)
     curve, losses, best, best_key = [], [], head0, (-1.0, -1.0)
+    attention = None
     bar = tqdm(range(steps), desc=f"{structure['hidden']} units, seed {seed}", disable=not progress,
                file=sys.stderr, leave=False)
     for i in bar:
-        x, m, y = batch(rng, train_slides, batch_size, views)
+        x, m, y = batch(rng, train_slides, batch_size, views, attention, top_share)
         tp, state, loss = step(tp, state, x, m, y)
         losses.append(float(loss))
         if (i + 1) % eval_every == 0 or i + 1 == steps:
             head = head0.replace(params={**tp, **frozen})
+            if top_share > 0 and i + 1 < steps:
+                attention = attention_of(head, train_slides)
             row = {"step": i + 1, "loss": float(np.mean(losses[-eval_every:]))}
             if val is not None:
                 row.update(val.aucs(head, draws=2))
@@ -421,6 +457,9 @@ def add_arguments(p) -> None:
     p.add_argument("--steps", type=int, default=600, help="training steps per candidate (default 600)")
     p.add_argument("--batch", type=int, default=16, help="slides per step (default 16)")
     p.add_argument("--views", type=int, default=512, help="read views kept per slide per step (default 512)")
+    p.add_argument("--top-share", type=float, default=0.5,
+                   help="share of the kept views taken by the model's highest attention, refreshed every "
+                        "--eval-every steps (default 0.5; 0 = all drawn uniformly)")
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--weight-decay", type=float, default=1e-4)
     p.add_argument("--eval-every", type=int, default=50, help="validation scoring every N steps (default 50)")
@@ -440,11 +479,13 @@ def run(args, parser=None) -> int:
         return print_error("--out is required to fit a head")
     import jax
 
-    from baselines.validation import split_train
+    from histojax.reading.heads import files
+    from histojax.reading.heads.learned import KIND
 
     t0 = time.perf_counter()
     progress = not args.quiet
     try:
+        files.check_replaceable(args.out, KIND)  # before any work: a folder of other files is refused now
         spec = read_spec(args.dataset, args.fold)
         if not 0.0 < args.val_fraction < 1.0:
             raise FitError(Path(args.dataset) / "dataset.json", f"--val-fraction {args.val_fraction} is not in (0, 1)")
@@ -456,7 +497,7 @@ def run(args, parser=None) -> int:
         val_slides = load_split(args.dataset, held, spec, progress, "validation slides")
         check_classes(args.dataset, train_slides, val_slides)
         check_alike(args.dataset, train_slides + val_slides)
-    except (HistojaxDataError, OSError) as e:
+    except (HistojaxDataError, ValueError, OSError) as e:
         return print_error(e)
     q = rotation(args.rotate, train_slides[0]["features"].shape[1]) if args.rotate is not None else None
     train_slides, val_slides = rotate(train_slides, q), rotate(val_slides, q)
@@ -470,25 +511,23 @@ def run(args, parser=None) -> int:
         name = f"{c['hidden']} units"
         head, curve = train(train_slides, val, c, seed=args.seed, steps=args.steps, batch_size=args.batch,
                             views=args.views, lr=args.lr, weight_decay=args.weight_decay,
-                            eval_every=args.eval_every, progress=progress)
+                            eval_every=args.eval_every, top_share=args.top_share, progress=progress)
         top = max(curve, key=lambda r: (r["full"], r["read 0.1"]))
         results[name] = {**c, "best_step": top["step"], "validation_auc": round(top["full"], 4),
                          "validation_auc_read_0.1": round(top["read 0.1"], 4)}
         curves[name] = curve
         print(f"  {name}: validation AUC {top['full']:.3f} reading everything, {top['read 0.1']:.3f} reading 10 % "
-              f"(step {top['step']})", file=sys.stderr, flush=True)
+              f"(step {top['step']})", flush=True)
         if best is None or (top["full"], top["read 0.1"]) > best[0]:
             best = ((top["full"], top["read 0.1"]), name, head)
     _, chosen, head = best
+    raw_auc = val.aucs(head, fractions=())["full"]  # before calibration: a negative slope would hide an inversion
     head, slope = calibrate(head, val)
     final = val.aucs(head, fractions=(0.1,), draws=5)
-    where = Path(args.dataset) / "dataset.json"
-    if not final["full"] >= 0.5:
-        return print_error(FitError(where, f"the chosen head's validation AUC is {final['full']:.3f} (< 0.5: it ranks "
-                                           "tumour below normal); nothing saved"))
-    if slope < 0:
-        return print_error(FitError(where, f"the chosen head's calibration slope on validation is {slope:.3f} "
-                                           "(negative: its logit points the wrong way); nothing saved"))
+    try:
+        check_head(Path(args.dataset) / "dataset.json", raw_auc, slope)
+    except FitError as e:
+        return print_error(e)
     wall = time.perf_counter() - t0
     info = {"fitted_on": {"dataset": str(Path(args.dataset).resolve()), "split": "train (minus validation)",
                           "slides": len(train_slides), "tumour_slides": int(sum(s["label"] for s in train_slides)),
@@ -500,6 +539,7 @@ def run(args, parser=None) -> int:
             "calibration": {"slope": round(float(head.cal_a), 5), "intercept": round(float(head.cal_b), 5),
                             "fitted_on": "validation slides, reading everything and reading random 10 % (pooled)"},
             "training": {"steps": args.steps, "batch_slides": args.batch, "views_per_slide": args.views,
+                         "top_attention_share": args.top_share,
                          "lr": args.lr, "weight_decay": args.weight_decay, "optimizer": "adamw",
                          "reads": f"all tissue with p={P_FULL}, else {CELL}x{CELL}-view cells at log-uniform "
                                   f"[{MIN_READ}, 1]"},
@@ -515,6 +555,17 @@ def run(args, parser=None) -> int:
           f"({len(val_slides)} slides); calibration slope {slope:.3f}")
     print(f"chosen: {head.name} ({chosen}); saved to {args.out} in {wall:.0f} s")
     return 0
+
+
+def check_head(where, auc: float, slope: float) -> None:
+    """Refuse (``FitError`` naming ``where``) a head whose validation AUC (uncalibrated, reading everything) is below
+    0.5 or undefined, or whose calibration slope is negative: it ranks or points the wrong way."""
+    if not auc >= 0.5:
+        raise FitError(where, f"the chosen head's validation AUC is {auc:.3f} (< 0.5: it ranks tumour below normal); "
+                              "nothing saved")
+    if slope < 0:
+        raise FitError(where, f"the chosen head's calibration slope on validation is {slope:.3f} (negative: its "
+                              "logit points the wrong way); nothing saved")
 
 
 def check_classes(dataset, train_slides: list[dict], val_slides: list[dict]) -> None:
@@ -577,12 +628,12 @@ def score_command(args) -> int:
         if len({s["label"] for s in slides}) < 2:
             raise FitError(Path(args.dataset) / "dataset.json", f"the {args.split!r} split holds one class only "
                                                                 "(AUC is undefined)")
-        if slides[0]["features"].shape[1] != head.dim:
+        if slides[0]["features"].shape[1] != head.features_dim:
             raise FitError(slides[0]["bundle"], f"{slides[0]['features'].shape[1]}-d features; the head reads "
-                                                f"{head.dim}-d")
+                                                f"{head.features_dim}-d")
     except (HistojaxDataError, ValueError, OSError) as e:
         return print_error(e)
-    q = rotation(args.rotate, head.dim) if args.rotate is not None else None
+    q = rotation(args.rotate, head.features_dim) if args.rotate is not None else None
     flat = FlatSet(rotate(slides, q))
     logits = flat.logits(head)
     classes = lesion_classes(slides)

@@ -11,7 +11,8 @@ by the ``kind`` in its ``config.json`` (:data:`HEADS`)::
 
 Kinds: ``neighbourhood-pooled-logit`` (:class:`~histojax.reading.heads.logit.SlideHead`, a calibrated pooled
 view logit), ``attention-mil`` and ``pooled-statistics`` (:class:`~histojax.reading.heads.mil.MilHead`,
-:class:`~histojax.reading.heads.mil.StatsHead`, trained heads).
+:class:`~histojax.reading.heads.mil.StatsHead`, trained heads), ``learned-attention-mil``
+(:class:`~histojax.reading.heads.learned.LearnedHead`, an attention-MIL learned from any encoder's features).
 """
 from __future__ import annotations
 
@@ -21,7 +22,7 @@ from typing import Protocol, runtime_checkable
 
 import jax
 
-from histojax.reading.heads import logit, mil
+from histojax.reading.heads import learned, logit, mil
 
 
 @runtime_checkable
@@ -48,7 +49,8 @@ class SlideHeadProtocol(Protocol):
         """Read a head of this class's kind; ``ValueError`` naming the file, one line, on anything malformed."""
 
 
-HEADS: dict[str, type] = {logit.KIND: logit.SlideHead, mil.KIND_MIL: mil.MilHead, mil.KIND_STATS: mil.StatsHead}
+HEADS: dict[str, type] = {logit.KIND: logit.SlideHead, mil.KIND_MIL: mil.MilHead, mil.KIND_STATS: mil.StatsHead,
+                          learned.KIND: learned.LearnedHead}
 """kind (``config.json``'s ``"kind"``) -> head class."""
 
 

@@ -184,7 +184,7 @@ def field(cfg: dict, key: str, kind: type, where, default=_MISSING, lo=None, hi=
 
 def read_arrays(path, shapes: dict, max_bytes: int = MAX_PARAMS_BYTES) -> dict:
     """The float arrays of the ``.npz`` at ``path`` as float32, exactly the names of ``shapes`` (name -> shape
-    tuple) with those shapes. Every member's ``.npy`` header is checked before its data is read: a missing or
+    tuple) with those shapes (an entry ``None``: any size along that axis, the caller checks it). Every member's ``.npy`` header is checked before its data is read: a missing or
     unused array, a non-float dtype (object, complex, structured), another shape, a member whose size disagrees
     with its header (truncated), more than ``max_bytes`` decompressed, non-finite values, an empty or truncated
     archive: ``HeadFileError`` naming the file, one line. ``allow_pickle`` is never on."""
@@ -224,8 +224,9 @@ def read_arrays(path, shapes: dict, max_bytes: int = MAX_PARAMS_BYTES) -> dict:
                         raise HeadFileError(path, f"array {name} has dtype {dtype}; a head's parameters are floats "
                                                   f"({', '.join(FLOAT_DTYPES)})")
                     want = tuple(shapes[name])
-                    if tuple(shape) != want:
-                        raise HeadFileError(path, f"array {name} has shape {tuple(shape)}, the config implies {want}")
+                    if len(shape) != len(want) or any(w is not None and n != w for n, w in zip(shape, want)):
+                        raise HeadFileError(path, f"array {name} has shape {tuple(shape)}, the config implies "
+                                                  f"{tuple('any' if w is None else w for w in want)}")
                     nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
                     if info.file_size != header + nbytes:
                         raise HeadFileError(path, f"array {name} holds {info.file_size - header:,} data bytes, its "
@@ -247,9 +248,10 @@ def read_arrays(path, shapes: dict, max_bytes: int = MAX_PARAMS_BYTES) -> dict:
 
 
 # ----------------------------------------------------------------------------- atomic writes
-def _refuse_to_replace(folder: Path, kind: str) -> None:
+def check_replaceable(folder, kind: str) -> None:
     """Refuse (``HeadFileError``) to replace ``folder`` unless it is absent, empty, or a head folder of ``kind``
     holding only the files its ``config.json`` lists (``"files"``) besides ``config.json`` itself."""
+    folder = Path(folder)
     if not (folder.exists() or folder.is_symlink()):
         return
     if folder.is_symlink() or not folder.is_dir():
@@ -295,7 +297,7 @@ def save_folder(folder, config: dict, arrays: dict, extras: dict | None = None) 
         if not isinstance(name, str) or name in (CONFIG, PARAMS, TEMP_MARKER) or Path(name).name != name \
                 or name.startswith("."):
             raise ValueError(f"extra file name {name!r} is not a plain file name a head folder may hold")
-    _refuse_to_replace(folder, kind)
+    check_replaceable(folder, kind)
     folder.parent.mkdir(parents=True, exist_ok=True)
     tmp = folder.parent / f".{folder.name}.tmp-{uuid.uuid4().hex[:8]}"
     try:

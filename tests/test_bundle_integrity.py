@@ -214,7 +214,7 @@ def test_readers_see_a_whole_bundle_while_it_is_rebuilt(tmp_path):
         try:
             for i in range(40):
                 with atomic_folder(target) as tmp:
-                    shutil.copytree(b if i % 2 == 0 else a, tmp)
+                    shutil.copytree(b if i % 2 == 0 else a, tmp, dirs_exist_ok=True)  # tmp: made and marked
         finally:
             done.set()
 

@@ -520,10 +520,6 @@ def check_scorable(out, plan: dict, records: dict, failed: dict[str, str]) -> No
     failed slides left unscorable: the plan gave it slides and it now holds none, or the plan gave it tumour
     slides and it now holds no tumour slide. (An empty train side is reported by the command, not refused: the
     test slides may still be scored.)"""
-    if plan["slides"] and not records:  # every slide failed: no dataset of 0 slides
-        why = "; ".join(f"{n}: {failed[n]}" for n in sorted(failed)[:2])[:300]
-        raise HistojaxDataError(out, f"no slide of this dataset is built: all {len(plan['slides'])} failed ({why}); "
-                                     "dataset.json not written: fix them and rerun")
     for side in ("test",):
         planned = sorted(n for n, s in plan["slides"].items() if s["split"] == side)
         built = [n for n in planned if n in records]
@@ -539,6 +535,10 @@ def check_scorable(out, plan: dict, records: dict, failed: dict[str, str]) -> No
             raise HistojaxDataError(out, f"the {side} split would hold no tumour slide: its {len(tumour)} tumour "
                                          f"slide(s) failed ({why}), so it cannot be scored; dataset.json not "
                                          "written (built slides are kept): fix them and rerun")
+    if plan["slides"] and not records:  # every slide failed (none planned for test): no dataset of 0 slides
+        why = "; ".join(f"{n}: {failed[n]}" for n in sorted(failed)[:2])[:300]
+        raise HistojaxDataError(out, f"no slide of this dataset is built: all {len(plan['slides'])} failed ({why}); "
+                                     "dataset.json not written: fix them and rerun")
 
 
 def merge_dataset(out) -> tuple[dict | None, list[str], dict[str, str]]:

@@ -2,10 +2,13 @@
 padded to one grid, as the budget curve calls it, and one slide at a time, as an env step would (a
 reward from the head's confidence after each read).
 
-    python benchmarks/head_throughput.py [--grid 256 128] [--batch 64] [--ks 1 3 5] [--repeats 20]
+    python benchmarks/head_throughput.py [--grid 256 128] [--batch 64] [--ks 1 3 5] [--repeats 20] [--dim 64]
 
 Prints, per neighbourhood side ``k``: slides/s of the batched call and µs per single-slide call (compile
-time excluded; the mask reads a random half of the views)."""
+time excluded; the mask reads a random half of the views). Then the same for the learned attention-MIL head
+(:mod:`histojax.reading.heads.learned`, ``--dim`` features, 64 units) three ways: from the feature grid
+``(H, W, D)``; from its cached view terms ``(H, W, 2)`` (attention and instance logit, computed once per
+slide); and one incremental step that adds 16 newly read views to each slide's running sums."""
 from __future__ import annotations
 
 import argparse
@@ -17,6 +20,7 @@ import numpy as np
 
 from histojax.reading.heads import score_logits
 
+from histojax.reading.heads.learned import LearnedHead, init_params
 from histojax.reading.heads.logit import SlideHead
 
 
@@ -38,6 +42,10 @@ def main(argv=None) -> int:
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--ks", type=int, nargs="+", default=[1, 3, 5])
     p.add_argument("--repeats", type=int, default=20)
+    p.add_argument("--dim", type=int, default=64, help="feature entries of the learned head's rows (default 64)")
+    p.add_argument("--feature-batch", type=int, default=8,
+                   help="slides per batched call of the learned head on feature grids (default 8: 64 of them "
+                        "are 0.5 GB of float32 at 256 x 128 x 64)")
     args = p.parse_args(argv)
     h, w = args.grid
     rng = np.random.default_rng(0)
@@ -52,7 +60,34 @@ def main(argv=None) -> int:
         tb = timed(batched, head, logits, masks, repeats=args.repeats)
         ts = timed(single, head, logits[0], masks[0], repeats=args.repeats)
         print(f"| {k} | {args.batch / tb:,.0f} | {ts * 1e6:,.0f} |")
+    learned_rows(args, masks, rng)
     return 0
+
+
+def learned_rows(args, masks, rng) -> None:
+    """The learned head's rows: batched slides/s and µs per single-slide call (see the module doc)."""
+    h, w = args.grid
+    head = LearnedHead(params=init_params(jax.random.PRNGKey(0), args.dim, 64, 32), features_dim=args.dim)
+    fb = min(args.feature_batch, args.batch)
+    grids = jnp.asarray(rng.normal(size=(fb, h, w, args.dim)).astype(np.float32))
+    terms = jax.jit(jax.vmap(head.view_terms))(grids)
+    terms = jnp.concatenate([terms] * -(-args.batch // fb))[: args.batch]
+    print(f"\nlearned head ({args.dim}-d features, 64 units): {h} × {w} views per slide\n"
+          "| input | batch | batched: slides/s | one slide: µs per call |\n|---|---|---|---|")
+    by_features = jax.jit(jax.vmap(head.score))
+    tb = timed(by_features, grids, masks[:fb], repeats=args.repeats)
+    ts = timed(jax.jit(head.score), grids[0], masks[0], repeats=args.repeats)
+    print(f"| feature grid (H, W, {args.dim}) | {fb} | {fb / tb:,.0f} | {ts * 1e6:,.0f} |")
+    by_terms = jax.jit(jax.vmap(head.score_terms))
+    tb = timed(by_terms, terms, masks, repeats=args.repeats)
+    ts = timed(jax.jit(head.score_terms), terms[0], masks[0], repeats=args.repeats)
+    print(f"| cached view terms (H, W, 2) | {args.batch} | {args.batch / tb:,.0f} | {ts * 1e6:,.0f} |")
+    states = jax.vmap(lambda _: head.init_terms_state())(jnp.arange(args.batch))
+    new = terms[:, :4, :4].reshape(args.batch, 16, 2)
+    step = jax.jit(jax.vmap(lambda s, t, m: head.logit_terms(head.add_terms(s, t, m))))
+    tb = timed(step, states, new, jnp.ones((args.batch, 16), bool), repeats=args.repeats)
+    print(f"| incremental: 16 new views per slide | {args.batch} | {args.batch / tb:,.0f} (steps/s) | "
+          f"{tb / args.batch * 1e6:,.1f} (per slide) |")
 
 
 if __name__ == "__main__":

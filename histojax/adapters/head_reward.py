@@ -43,6 +43,12 @@ diagnosis by the head: the navigator chooses where to look, the head declares);
 ``c16-v2-head``) a step re-scores only the window of the 3 × 3 cells (navigators: blocks of ``BLOCK × BLOCK``
 finest views) around what it read, giving the same floats as scoring the whole finest grid, at a cost that
 does not grow with the slide (:func:`incremental`; ``incremental_score=False`` scores the whole grid).
+With a head that pools the read views by attention (:func:`pools_views`: the
+:class:`~histojax.reading.heads.learned.LearnedHead`, any encoder's features) the tables hold each finest view's
+cached terms (attention, instance logit: :meth:`~histojax.reading.heads.learned.LearnedHead.view_terms`) and the
+state three running sums (:class:`~histojax.reading.heads.learned.PoolState`): a step adds the terms of the views
+it newly read (a glimpse cell's views, cut from a window of the largest cell's size; a navigator's one new view),
+O(views newly read), the same logit as rescoring the whole read set to float rounding.
 
 The wrapper does the auto-reset itself (the same keys as :meth:`histojax.env.HistoEnv.step`, so a
 trajectory's env states are the unwrapped env's), and its tables (each slide's finest view logits,
@@ -61,6 +67,7 @@ from flax import struct
 from histojax.reading import tables as reading_tables
 from histojax.adapters.jax import Wrapper
 from histojax.reading.heads import score_logits
+from histojax.reading.heads.learned import PoolState
 from histojax.reading.heads.logit import SlideHead, neighbourhood_mean
 
 GAINS = ("log", "prob", "fidelity")
@@ -85,6 +92,9 @@ class HeadTables:
     row_start: jnp.ndarray | None = None    # (S, Gh + 1) int32 first finest row of each cell row (then the end)
     col_start: jnp.ndarray | None = None    # (S, Gw + 1) int32 first finest column of each cell column
     window: tuple = struct.field(pytree_node=False, default=(0, 0))  # (rows, cols) of the re-scored window
+    # a head that pools by attention (pools_views) only: each finest view's cached (attention, instance logit)
+    terms: jnp.ndarray | None = None        # (S, H, W, 2) float32
+    win_terms: jnp.ndarray | None = None    # (S, H + rows, W + cols, 2) glimpse: padded by one cell's window
 
 
 @struct.dataclass
@@ -98,6 +108,8 @@ class HeadRewardState:
     views: jnp.ndarray       # () int32 finest tissue views read
     cell_best: jnp.ndarray = None  # (C,) float32 incremental score only: each cell's (navigators: block's)
                                    # largest neighbourhood mean over its read views (-inf: none read); (0,) otherwise
+    pool: PoolState | None = None  # attention-pooling heads (pools_views): the running sums (m, S, Σ e·u (1,))
+                                   # of the views read; a PoolState of empty arrays otherwise
 
 
 BLOCK = 8  # navigation modes: the incremental score keeps the best of each block of BLOCK × BLOCK finest views
@@ -117,6 +129,13 @@ def incremental(head) -> bool:
     return bool(isinstance(head, SlideHead) and head.top == 1 and not head.minus_median)
 
 
+def pools_views(head) -> bool:
+    """Whether ``head`` pools the read views by attention over cached per-view terms (it has ``view_terms``,
+    ``add_terms``, ``logit_terms``: the :class:`~histojax.reading.heads.learned.LearnedHead`), so that a step
+    adds the terms of the views it newly read to running sums instead of rescoring the slide."""
+    return all(hasattr(head, a) for a in ("view_terms", "add_terms", "logit_terms", "init_terms_state"))
+
+
 def build_tables(env, head: SlideHead, params=None, windows: bool | None = None) -> HeadTables:
     """Host-built :class:`HeadTables` of ``env``'s slides (``params``: default ``env.default_params``);
     ``windows`` (default :func:`incremental`): also the padded grids of the incremental score."""
@@ -126,12 +145,18 @@ def build_tables(env, head: SlideHead, params=None, windows: bool | None = None)
         raise ValueError("HeadReward needs an env made from bundles (histojax.make on a slide or dataset folder)")
     t = env.tile_size
     glimpse = getattr(env.action, "name", "") == "glimpse"
-    rows = []
+    pooled = pools_views(head)
+    rows, all_terms = [], []
     for slide, bundle in reading_tables.per_slide(params, bundles):
         if slide.features is None:
             raise ValueError(f"{bundle.path}: the slide head reads feature grids; run `python -m data_tools features "
                              f"{bundle.path}`")
-        logits = reading_tables.finest_view_features(slide, t)[..., head.dim]
+        feats = reading_tables.finest_view_features(slide, t)
+        if pooled:  # every entry read: per-view scores for the maps, cached terms for the reward
+            logits = np.asarray(head.view_logits(feats), np.float32)
+            terms = np.asarray(head.view_terms(feats), np.float32)
+        else:
+            logits, terms = feats[..., head.dim], None
         tissue = reading_tables.tissue_views(bundle, slide, t)
         cell = np.zeros(tissue.shape, np.int64)
         starts = None
@@ -145,6 +170,7 @@ def build_tables(env, head: SlideHead, params=None, windows: bool | None = None)
             # cell_of_views is separable and monotone: cell row of finest row r is cy[r, 0], column cx[0, c]
             starts = (np.searchsorted(cy[:, 0], np.arange(big_h + 1)), np.searchsorted(cx[0, :], np.arange(big_w + 1)))
         rows.append((logits, tissue, cell, int(np.asarray(slide.slide_label)), starts))
+        all_terms.append(terms)
     h = max(r[1].shape[0] for r in rows)
     w = max(r[1].shape[1] for r in rows)
 
@@ -154,10 +180,26 @@ def build_tables(env, head: SlideHead, params=None, windows: bool | None = None)
         return out
     logits = jnp.asarray(np.stack([pad(r[0].astype(np.float32), 0.0) for r in rows]))
     tissue = jnp.asarray(np.stack([pad(r[1], False) for r in rows]))
-    full = jax.jit(jax.vmap(lambda lg, ts: score_logits(head, lg, ts)))(logits, tissue)
     cells = np.stack([pad(r[2], 0) for r in rows])
     extra = {}
-    if incremental(head) if windows is None else windows:
+    if pooled:
+        terms = np.zeros((len(rows), h, w, 2), np.float32)
+        for j, tr in enumerate(all_terms):
+            terms[j, : tr.shape[0], : tr.shape[1]] = tr
+        full = jax.jit(jax.vmap(head.score_terms))(jnp.asarray(terms), tissue)
+        extra["terms"] = jnp.asarray(terms)
+        if glimpse:  # a revealed cell's views lie in its rows x columns: cut a window of the largest cell's size
+            row_start = np.stack([r[4][0] for r in rows]).astype(np.int32)
+            col_start = np.stack([r[4][1] for r in rows]).astype(np.int32)
+            win = (max(1, int(np.diff(row_start, axis=1).max())), max(1, int(np.diff(col_start, axis=1).max())))
+            grow = lambda a, fill: np.pad(a, ((0, 0), (0, win[0]), (0, win[1])) + ((0, 0),) * (a.ndim - 3),  # noqa: E731
+                                          constant_values=fill)
+            extra.update(win_terms=jnp.asarray(grow(terms, 0.0)), win_tissue=jnp.asarray(grow(np.asarray(tissue), False)),
+                         win_cell=jnp.asarray(grow(cells, -1), jnp.int32), row_start=jnp.asarray(row_start),
+                         col_start=jnp.asarray(col_start), window=win)
+    else:
+        full = jax.jit(jax.vmap(lambda lg, ts: score_logits(head, lg, ts)))(logits, tissue)
+    if not pooled and (incremental(head) if windows is None else windows):
         k = int(head.k)
         if glimpse:
             row_start = np.stack([r[4][0] for r in rows]).astype(np.int32)
@@ -208,9 +250,13 @@ class HeadReward(Wrapper):
         self.read_cost = float(read_cost)
         self.env_reward = bool(env_reward)
         self.glimpse = getattr(env.action, "name", "") == "glimpse"
-        self.incremental = incremental(head) if incremental_score is None else bool(incremental_score)
+        self.pooled = pools_views(head)  # attention pooling: running sums (O(views newly read)) unless told not to
+        self.pool_incremental = self.pooled and incremental_score is not False
+        self.incremental = (not self.pooled) and (incremental(head) if incremental_score is None
+                                                  else bool(incremental_score))
         if self.incremental and not incremental(head):
-            raise ValueError("incremental_score needs a SlideHead with top=1 and no median")
+            raise ValueError("incremental_score needs a SlideHead with top=1 and no median, or a head that pools "
+                             "the read views by attention")
         self.tables = build_tables(env, head, params, windows=self.incremental)
         tb = self.tables
         # a navigator's visited views: the finest grid, or with the incremental score the windows' padded grid
@@ -250,7 +296,38 @@ class HeadReward(Wrapper):
 
     def _score(self, env_state, visited):
         mask = self.read_mask(env_state, visited)
+        if self.pooled:  # the whole read set from the cached terms
+            return self.head.score_terms(self.tables.terms[env_state.slide_index], mask), mask.sum(dtype=jnp.int32)
         return score_logits(self.head, self.tables.logits[env_state.slide_index], mask), mask.sum(dtype=jnp.int32)
+
+    def _no_pool(self) -> PoolState:
+        """The pooling state of a head that keeps none (empty arrays: one pytree per wrapper)."""
+        return PoolState(jnp.zeros((0,), jnp.float32), jnp.zeros((0,), jnp.float32), jnp.zeros((0,), jnp.float32))
+
+    def _score_pooled(self, before: HeadRewardState, env_state, visited):
+        """``(logit, views, pool)`` after a step from ``before`` for an attention-pooling head: the cached terms
+        of the views the step newly read added to ``before.pool`` (a glimpse step: the tissue views of the one
+        cell it revealed, cut from a window of the largest cell's size at the cell's first row and column; a
+        navigator's step: the finest tissue view it stands on, if new). O(views newly read)."""
+        tb, head, i = self.tables, self.head, env_state.slide_index
+        if self.glimpse:
+            revealed = env_state.memory.revealed
+            changed = revealed & ~before.env_state.memory.revealed
+            c = jnp.argmax(changed)
+            big_w = tb.col_start.shape[1] - 1
+            oy, ox = tb.row_start[i, c // big_w], tb.col_start[i, c % big_w]
+            cell = jax.lax.dynamic_slice(tb.win_cell[i], (oy, ox), tb.window)
+            tissue = jax.lax.dynamic_slice(tb.win_tissue[i], (oy, ox), tb.window)
+            terms = jax.lax.dynamic_slice(tb.win_terms[i], (oy, ox, 0), tb.window + (2,))
+            new = (cell == c) & tissue & changed.any()
+            pool = head.add_terms(before.pool, terms.reshape(-1, 2), new.reshape(-1))
+            views = before.views + new.sum(dtype=jnp.int32)
+        else:
+            vy, vx, finest = self._finest_view(env_state)
+            new = finest & ~before.visited[self._visited_index(vy, vx)] & tb.tissue[i, vy, vx]
+            pool = head.add_terms(before.pool, tb.terms[i, vy, vx][None], new[None])
+            views = before.views + new.astype(jnp.int32)
+        return head.logit_terms(pool), views, pool
 
     def _score_incremental(self, before: HeadRewardState, env_state, visited):
         """``(logit, views, cell_best)`` after a step from ``before``, re-scoring only the window of the
@@ -296,18 +373,27 @@ class HeadReward(Wrapper):
         n = 0 if self.glimpse else int(np.prod(self._visited_grid))
         empty = jnp.zeros((n,), bool)
         visited = self._visit(env_state, empty)
+        if self.pool_incremental:  # a fresh episode: nothing read (glimpse), or the one view stood on (navigators)
+            nothing = HeadRewardState(env_state=env_state, visited=empty, views=jnp.zeros((), jnp.int32),
+                                      logit=jnp.asarray(self.head.prior_logit, jnp.float32),
+                                      cell_best=jnp.zeros((0,), jnp.float32), pool=self.head.init_terms_state())
+            if self.glimpse:
+                return nothing
+            logit, views, pool = self._score_pooled(nothing, env_state, visited)
+            return nothing.replace(visited=visited, logit=logit, views=views, pool=pool)
         if self.incremental:  # a fresh episode: nothing read (a glimpse reset reveals nothing), or the one view stood on
             cells = (self.tables.row_start.shape[1] - 1) * (self.tables.col_start.shape[1] - 1)
             nothing = HeadRewardState(env_state=env_state, visited=empty, views=jnp.zeros((), jnp.int32),
                                       logit=jnp.asarray(self.head.prior_logit, jnp.float32),
-                                      cell_best=jnp.full((cells,), -jnp.inf, jnp.float32))
+                                      cell_best=jnp.full((cells,), -jnp.inf, jnp.float32), pool=self._no_pool())
             if self.glimpse:
                 return nothing
             logit, views, cell_best = self._score_incremental(nothing, env_state, visited)
             return nothing.replace(visited=visited, logit=logit, views=views, cell_best=cell_best)
         logit, views = self._score(env_state, visited)
         return HeadRewardState(env_state=env_state, visited=visited, logit=logit, views=views,
-                               cell_best=jnp.zeros((0,), jnp.float32))
+                               cell_best=jnp.zeros((0,), jnp.float32),
+                               pool=self.head.init_terms_state() if self.pooled else self._no_pool())
 
     def log_prob_true(self, logit, label) -> jax.Array:
         """``log p(label)`` of a slide logit (label 1: tumour)."""
@@ -328,7 +414,10 @@ class HeadReward(Wrapper):
         key_reset, _ = jax.random.split(key)
         obs_st, env_st, env_r, terminated, truncated, info = self._env.step_env(key, state.env_state, action, params)
         visited = self._visit(env_st, state.visited)
-        if self.incremental:
+        pool = state.pool
+        if self.pool_incremental:
+            (logit, views, pool), cell_best = self._score_pooled(state, env_st, visited), state.cell_best
+        elif self.incremental:
             logit, views, cell_best = self._score_incremental(state, env_st, visited)
         else:
             (logit, views), cell_best = self._score(env_st, visited), state.cell_best
@@ -351,7 +440,8 @@ class HeadReward(Wrapper):
         if self.env_reward:
             reward = reward + env_r
         info = {**info, "head_score": logit, "head_correct": correct, "head_views": views, "head_reward": head_reward}
-        new = HeadRewardState(env_state=env_st, visited=visited, logit=logit, views=views, cell_best=cell_best)
+        new = HeadRewardState(env_state=env_st, visited=visited, logit=logit, views=views, cell_best=cell_best,
+                              pool=pool)
         if not self._env.auto_reset:
             return obs_st, new, reward.astype(jnp.float32), terminated, truncated, {**info, "final_observation": obs_st}
         obs_re, env_re = self._env.reset_env(key_reset, params)

@@ -516,10 +516,9 @@ def write_dataset_index(out, dataset: dict) -> dict:
 
 
 def check_scorable(out, plan: dict, records: dict, failed: dict[str, str]) -> None:
-    """Refuse (``HistojaxDataError``, one line) a dataset none of whose slides was built, and a test split that
-    failed slides left unscorable: the plan gave it slides and it now holds none, or the plan gave it tumour
-    slides and it now holds no tumour slide. (An empty train side is reported by the command, not refused: the
-    test slides may still be scored.)"""
+    """Refuse (``HistojaxDataError``, one line) a test split that failed slides left unscorable: the plan gave
+    it slides and it now holds none, or the plan gave it tumour slides and it now holds no tumour slide. (An
+    empty train side is reported by the command, not refused: the test slides may still be scored.)"""
     for side in ("test",):
         planned = sorted(n for n, s in plan["slides"].items() if s["split"] == side)
         built = [n for n in planned if n in records]
@@ -535,10 +534,6 @@ def check_scorable(out, plan: dict, records: dict, failed: dict[str, str]) -> No
             raise HistojaxDataError(out, f"the {side} split would hold no tumour slide: its {len(tumour)} tumour "
                                          f"slide(s) failed ({why}), so it cannot be scored; dataset.json not "
                                          "written (built slides are kept): fix them and rerun")
-    if plan["slides"] and not records:  # every slide failed (none planned for test): no dataset of 0 slides
-        why = "; ".join(f"{n}: {failed[n]}" for n in sorted(failed)[:2])[:300]
-        raise HistojaxDataError(out, f"no slide of this dataset is built: all {len(plan['slides'])} failed ({why}); "
-                                     "dataset.json not written: fix them and rerun")
 
 
 def merge_dataset(out) -> tuple[dict | None, list[str], dict[str, str]]:
@@ -566,6 +561,10 @@ def merge_dataset(out) -> tuple[dict | None, list[str], dict[str, str]]:
         if bad is not None and "reason" in bad:
             kept[name] = str(bad["reason"])
     check_scorable(out, plan, records, failed)
+    if plan["slides"] and not records:  # every slide failed (none planned for test): no dataset of 0 slides
+        why = "; ".join(f"{n}: {failed[n]}" for n in sorted(failed)[:2])[:300]
+        raise HistojaxDataError(out, f"no slide of this dataset is built: all {len(plan['slides'])} failed ({why}); "
+                                     "dataset.json not written: fix them and rerun")
     extra = {"kept_after_failed_rebuild": kept} if kept else None
     return write_dataset_json(out, plan, records, failed, extra), [], failed
 

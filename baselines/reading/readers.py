@@ -8,7 +8,11 @@ views; the same head (:mod:`histojax.reading.heads.logit`, fitted by :mod:`basel
   grid's own low-resolution logits (the overview every reader sees before reading);
 * ``random reader`` — cells in a uniformly random order (``--seeds`` orders, mean ± std);
 * ``logit reader`` — cells by their low-resolution tumour logit, highest first (follow the coarse logits);
-* ``search reader`` — the logit reader, except that once a read cell shows a finest view logit above
+  with a head that reads every feature entry (the learned attention-MIL head, any encoder) this row is the
+  ``score reader``: cells by the head's per-view score (:meth:`view_logits`) of the cell's coarse feature
+  vector, highest first (the logit reader is the score reader of a logit head: its per-view score is entry
+  ``dim``);
+* ``search reader`` — the logit (score) reader, except that once a read cell shows a finest view score above
   ``SEARCH_THRESHOLD`` its unread neighbouring cells are read next (hottest first): a spatial search
   around the best cells;
 * ``read everything`` — every tissue view (fraction 1);
@@ -38,10 +42,12 @@ import sys
 import time
 from pathlib import Path
 
+import jax
 import numpy as np
 
 from baselines import outputs
 from data_tools.metrics import accuracy, roc_auc
+from histojax.adapters.head_reward import pools_views
 from baselines.reading.lesions import lesion_of
 from data_tools.bundle_format import read_metadata, verify_metadata
 from data_tools.cli_output import command_main, print_error
@@ -207,11 +213,31 @@ def policy_masks(run, dataset, slides: list[dict], split: str = "test", budgets=
 
 
 # ----------------------------------------------------------------------------- scoring
+def padded_terms(terms: list[np.ndarray]) -> np.ndarray:
+    """``(B, Hmax, Wmax, 2)`` stack of per-view term grids ``(H, W, 2)`` padded with 0 at the bottom / right."""
+    h, w = max(t.shape[0] for t in terms), max(t.shape[1] for t in terms)
+    out = np.zeros((len(terms), h, w, 2), np.float32)
+    for i, t in enumerate(terms):
+        out[i, : t.shape[0], : t.shape[1]] = t
+    return out
+
+
+def terms_scores(head, terms: list[np.ndarray], masks: list[np.ndarray]) -> np.ndarray:
+    """An attention-pooling head's slide logits ``(B,)`` from cached per-view terms ``(H, W, 2)`` read where
+    ``masks (H, W)`` (:meth:`~histojax.reading.heads.learned.LearnedHead.score_terms`)."""
+    from baselines.reading.head_fit import padded
+
+    return np.asarray(jax.jit(jax.vmap(head.score_terms))(padded_terms(terms), padded(list(masks), False)))
+
+
 def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray:
-    """The head's slide logits ``(B,)`` on ``masks``."""
+    """The head's slide logits ``(B,)`` on ``masks`` (a head that reads every feature entry: from the slides'
+    cached ``terms``, :func:`with_head_scores`)."""
     from baselines.reading.head_fit import padded
     from histojax.reading.heads import score_batch
 
+    if pools_views(head):
+        return terms_scores(head, [s["terms"] for s in slides], masks)
     return np.asarray(score_batch(head, padded([s["logits"] for s in slides], 0.0), padded(list(masks), False)))
 
 
@@ -225,6 +251,8 @@ def overview_scores(head, slides: list[dict], level: int) -> np.ndarray:
         c = cell_table(s, level)
         logits.append(s["coarse"][level].astype(np.float32))
         masks.append(c["valid"].reshape(c["grid"]))
+    if pools_views(head):  # the head on the cells' own coarse feature vectors
+        return terms_scores(head, [s["coarse_terms"][level] for s in slides], masks)
     return np.asarray(score_batch(head, padded(logits, 0.0), padded(masks, False)))
 
 
@@ -256,6 +284,12 @@ def add_reader(results: dict, head, slides: list[dict], name: str, masks_by_budg
     return results
 
 
+def score_reader_name(head) -> str:
+    """``"score reader"`` for a head that reads every feature entry (cells by its per-view score of their coarse
+    features), ``"logit reader"`` for a logit head (its per-view score is the feature entry it reads)."""
+    return "score reader" if pools_views(head) else "logit reader"
+
+
 def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, level: int = 3,
                      progress: bool = False) -> dict:
     """The reference rows: overview only, random reader (``seeds`` orders), logit reader, search reader,
@@ -268,7 +302,7 @@ def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, 
     add_reader(results, head, slides, "read everything", {1.0: [[s["tissue"] for s in slides]]}, "everything", tumour)
     tables = [cell_table(s, level) for s in slides]
     top = max(budgets)
-    orders = {"logit reader": [logit_order(c) for c in tables],
+    orders = {score_reader_name(head): [logit_order(c) for c in tables],
               "search reader": [search_order(s, c, limit=top + 0.01) for s, c in zip(slides, tables)]}
     randoms = [[random_order(c, np.random.default_rng(1000 * k + i)) for i, c in enumerate(tables)] for k in range(seeds)]
     for b in budgets:
@@ -276,7 +310,7 @@ def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, 
                  for name, ords in orders.items()}
         masks["random reader"] = [[read_mask(c, s["tissue"], o, b)[0] for s, c, o in zip(slides, tables, ords)]
                                   for ords in randoms]
-        for name in ("random reader", "logit reader", "search reader"):
+        for name in ("random reader", score_reader_name(head), "search reader"):
             add_reader(results, head, slides, name, {b: masks[name]}, "random" if name == "random reader" else "scripted",
                        tumour)
         if progress:
@@ -443,7 +477,85 @@ def load_split(dataset, head_path, split: str, cell_level: int | None = None, fo
     spec = read_spec(dataset, fold)  # fold=i: fold i's sides (a dataset built with --folds K)
     if cell_level is None:
         cell_level = cell_level_for(Path(dataset), spec, split)
+    if pools_views(head):
+        return head, cell_level, load_feature_slides(dataset, split, spec, head, cell_level, progress=True)
     return head, cell_level, load_slides(dataset, split, spec, head.dim, levels=(0, cell_level), progress=True)
+
+
+def encoder_family(name) -> str | None:
+    """An encoder name as heads compare it: features imported from ``.h5`` files (``imported:FILE``) are one
+    family, ``"imported"``; any other name is itself."""
+    return "imported" if isinstance(name, str) and name.startswith("imported:") else name
+
+
+def with_head_scores(slide: dict, head, grids: dict) -> dict:
+    """``slide`` (:func:`baselines.reading.head_fit.load_slide` with ``grid=True``) scored by a head that reads
+    every feature entry: ``logits (H, W)`` its per-view scores of the finest views, ``terms (H, W, 2)`` their
+    cached attention and instance logits, and per coarse level in ``grids`` (``{level: (h, w, D)}``) ``coarse``
+    the per-view scores and ``coarse_terms`` the terms of the cells' own feature vectors. The finest feature
+    grid is dropped. ``HeadDataError`` naming the bundle when the features are not the head's length."""
+    from baselines.reading.head_fit import HeadDataError
+
+    feats = np.asarray(slide.pop("features"), np.float32)
+    d = int(getattr(head, "features_dim", feats.shape[-1]))
+    if feats.shape[-1] != d:
+        raise HeadDataError(slide["bundle"], f"{feats.shape[-1]}-d features; the head reads {d}-d features "
+                                             "(fit a head on this dataset: python -m baselines.reading.learned_head_fit)")
+    score = jax.jit(head.view_terms)
+    terms = np.asarray(score(feats))
+    slide.update(terms=terms, logits=np.asarray(head.calibrate(terms[..., 1]), np.float32), coarse={}, coarse_terms={})
+    for lv, g in grids.items():
+        t = np.asarray(score(np.asarray(g, np.float32)))
+        slide["coarse_terms"][lv] = t
+        slide["coarse"][lv] = np.asarray(head.calibrate(t[..., 1]), np.float32)
+    return slide
+
+
+def tumour_geometry(bundle):
+    """The tumour geometry (shapely, finest px) of a bundle's annotations, or None when it has none or its
+    annotation file holds no polygon (a slide labelled in a label table needs none); read through the bundle's
+    own file (:func:`data_tools.bundle_format.own_file`)."""
+    import os
+
+    from data_tools.annotations import AnnotationError, load_annotations
+    from data_tools.bundle_format import ANNOTATIONS, own_file
+
+    if not os.path.lexists(Path(bundle) / ANNOTATIONS):
+        return None
+    path = own_file(Path(bundle), ANNOTATIONS, "annotations")
+    try:
+        return load_annotations(path).tumour
+    except AnnotationError as e:
+        if "no polygons" in str(e):
+            return None
+        raise
+
+
+def load_feature_slides(dataset, split, spec: dict, head, cell_level: int, progress: bool = False) -> list[dict]:
+    """:func:`baselines.reading.head_fit.load_slide` of every bundle of ``split`` for a head that reads every
+    feature entry (:func:`with_head_scores`: per-view scores and terms of the finest views and of the cells of
+    bundle level ``cell_level``), through the checked bundle loader."""
+    from baselines.reading.head_fit import HeadDataError, _label, load_slide, read_bundle
+
+    dataset = Path(dataset)
+    entries = spec.get(split) if isinstance(split, str) else list(split)
+    if entries is None:
+        raise HeadDataError(dataset / "dataset.json", f"has no {split!r} split")
+    out = []
+    for i, rel in enumerate(entries):
+        bundle = Path(rel) if Path(rel).is_absolute() else dataset / rel
+        label = _label(spec, Path(rel).name)
+        if label is None:  # the bundle's own label: tumour annotated or not
+            s = load_slide(bundle, None, 0, (0,), grid=True)
+        else:  # a label table's label; tumour polygons where the bundle has any (slide-level labels need none)
+            s = load_slide(bundle, 0, 0, (0,), grid=True)
+            s.update(label=int(label), tumour=tumour_geometry(bundle) if label else None)
+        meta, grids, _, _ = read_bundle(bundle, (cell_level,))
+        s["downsample"] = {cell_level: float(meta["levels"][cell_level]["downsample"])}
+        out.append(with_head_scores(s, head, grids))
+        if progress and (i + 1) % 20 == 0:
+            print(f"  loaded {i + 1}/{len(entries)} slides", file=sys.stderr, flush=True)
+    return out
 
 
 def run(args, parser=None) -> int:
@@ -457,7 +569,8 @@ def run(args, parser=None) -> int:
         head, args.cell_level, slides = load_split(args.dataset, args.head, args.split, args.cell_level, args.fold)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
-    other = sorted({str(s["encoder"]) for s in slides if head.encoder and s["encoder"] != head.encoder})
+    other = sorted({str(s["encoder"]) for s in slides
+                    if head.encoder and encoder_family(s["encoder"]) != encoder_family(head.encoder)})
     if other:
         return print_error(f"{args.head}: a head for {head.encoder} features; {args.dataset} holds {', '.join(other)} "
                            "features (fit a head on it: python -m baselines.reading.head_fit)")

@@ -69,7 +69,7 @@ bench-large: $(STAMP)
 # a small slice of the C16 reference table and of the budget curve (small variant built on the fly;
 # minutes on 2 CPU cores)
 reference-quick: $(STAMP)
-	$(PY) benchmarks/c16_reference.py --quick --out runs/c16-reference-quick
+	$(PY) -m experiments.c16_reference --quick --out runs/c16-reference-quick
 	$(PY) -m baselines.reading.budget_curve --dataset runs/c16-reference-quick/data/c16-small-pcam \
 	  --env HistoJAX-C16-Diagnosis-v1 --glimpse-level 2 --seeds 3 --out runs/c16-reference-quick/budget-curve
 

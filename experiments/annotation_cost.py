@@ -1,7 +1,7 @@
 """Cost of reading hostile annotation files (issue 26, items 9 and 10): time to load (or refuse) an ASAP
 XML of many tangled polygons, and peak RSS of loading a large ASAP XML of many small polygons.
 
-    python benchmarks/annotation_cost.py [--repo PATH] [--tangled 60 --vertices 600] [--big-mb 37]
+    python -m experiments.annotation_cost [--repo PATH] [--tangled 60 --vertices 600] [--big-mb 37]
 
 ``--repo`` measures another checkout's ``data_tools`` (e.g. a ``git archive`` of an older commit) with
 the same files. Each measurement runs in a fresh subprocess; files are written to a temporary folder.

@@ -6,7 +6,7 @@ and writes ``OUT`` (``.npz``): for each side, the sorted ``label/name`` keys of 
 this script on the full set built in docs/c16-benchmark.md): no patch on both sides, each side's
 patches in its pool by the rule recorded in ``dataset.json``.
 
-    python benchmarks/c16_patch_record.py --dataset c16-full --out tests/data/c16_full_patch_names.npz
+    python -m experiments.c16_patch_record --dataset c16-full --out tests/data/c16_full_patch_names.npz
 """
 from __future__ import annotations
 

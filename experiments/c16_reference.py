@@ -3,12 +3,12 @@ benchmark): random agent, scripted coarse-to-fine policy, PPO on pixels + positi
 features (+ position), recurrent PPO; detection success and steps to success on Easy / Medium /
 Hard, diagnosis accuracy and AUC on Diagnosis, all on the test split, mean ± std over seeds.
 
-    python benchmarks/c16_reference.py --dataset DIR [--steps 262144] [--seeds 3] [--episodes 128]
+    python -m experiments.c16_reference --dataset DIR [--steps 262144] [--seeds 3] [--episodes 128]
                                        [--methods random scripted ppo-pixels ppo-features ppo-rnn]
                                        [--scenarios Easy Medium Hard Diagnosis] [--out runs/c16-reference]
                                        [--version v1|v0] [--val-fraction 0.2] [--val-seed 0]
                                        [--env NAME=ID] [--env-kwargs NAME=JSON] [--rnn-obs features|pixels]
-    python benchmarks/c16_reference.py --quick      # a small slice of every table in minutes (small variant)
+    python -m experiments.c16_reference --quick      # a small slice of every table in minutes (small variant)
 
 Scenarios map to env ids ``HistoJAX-C16-{Easy,Medium,Hard,Diagnosis}-v1`` (``--version v0`` for
 older datasets; ``--env NAME=ID`` for others, ``--env-kwargs NAME=JSON`` for extra ``histojax.make``

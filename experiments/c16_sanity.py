@@ -9,7 +9,7 @@ other half, and back), and the same on real PCam patches (tumour / no tumour fol
 (1280-d, ImageNet weights, at 224 px) of a sample of views. Prints both; the issue asks for mean-RGB
 AUC ≤ 0.80 on our slides (real PCam: ~0.79) and clearly more with EfficientNet features.
 
-    python benchmarks/c16_sanity.py --dataset DIR [--patches pcam_train_patches.tar.gz] [--per-class 300]
+    python -m experiments.c16_sanity --dataset DIR [--patches pcam_train_patches.tar.gz] [--per-class 300]
 """
 from __future__ import annotations
 
@@ -222,7 +222,7 @@ def main(argv=None) -> int:
             from data_tools.bundle_format import write_json
 
             write_json(args.out, {"summary": head, "rows": rows, "per_class": args.per_class,
-                                  "command": "python benchmarks/c16_sanity.py " + " ".join(argv or [])})
+                                  "command": "python -m experiments.c16_sanity " + " ".join(argv or [])})
         return 0
     from data_tools.datasets.pcam_bank import load_bank
 

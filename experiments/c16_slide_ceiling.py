@@ -15,13 +15,13 @@ tumour" (≥ ``--probe-positive`` of its area, from the annotation polygons; tum
 negatives) on the train split minus a validation share held back as ``c16_reference.py`` does
 (:func:`baselines.validation.split_train`, seed 0), and score slides by its max over views. Reported on validation and test beside the plain maximum.
 
-    python benchmarks/c16_slide_ceiling.py --dataset DIR [--levels 0 1 2 3] [--probe] [--json OUT.json]
+    python -m experiments.c16_slide_ceiling --dataset DIR [--levels 0 1 2 3] [--probe] [--json OUT.json]
 
 ``--lesions ANNOTATIONS``: the CAMELYON lesion class (largest lesion's longest diameter: isolated tumour cells
 < 0.2 mm, micrometastasis 0.2–2 mm, macrometastasis > 2 mm) of every tumour slide of the NCRF annotations a
 ``data_tools c16`` set is built from, by the set's split, from the geometry alone (no slide built)::
 
-    python benchmarks/c16_slide_ceiling.py --lesions camelyon16_ncrf_train.tar.gz
+    python -m experiments.c16_slide_ceiling --lesions camelyon16_ncrf_train.tar.gz
 """
 from __future__ import annotations
 

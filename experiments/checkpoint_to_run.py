@@ -1,6 +1,6 @@
 """A PPO run stopped before its end, as a run folder: its last checkpoint's parameters and learning curve.
 
-    python -m benchmarks.checkpoint_to_run RUN [--out DIR]
+    python -m experiments.checkpoint_to_run RUN [--out DIR]
 
 ``RUN/checkpoint/`` (``runner.msgpack``, ``config.json``: what ``--checkpoint-every`` writes) holds every
 seed's whole training state after the last finished chunk. This writes ``OUT/params.msgpack`` and
@@ -35,7 +35,7 @@ def params_from_leaves(template, leaves: list[np.ndarray], n_seeds: int):
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.checkpoint_to_run", description=__doc__,
+    p = argparse.ArgumentParser(prog="python -m experiments.checkpoint_to_run", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("run", type=Path)
     p.add_argument("--out", type=Path, default=None)

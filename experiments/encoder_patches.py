@@ -8,7 +8,7 @@ linear probe (L2 logistic regression) fitted on ``--fit`` training-pool patches 
 test-pool patches, on PCam's own colours and on a fixed mosaic-like stain (the C16 mosaic's stain jitter and
 colour matching). Speed: views/s of ``embed`` on uint8 ``(B, 128, 128, 3)`` after one call compiled it.
 
-    python benchmarks/encoder_patches.py --patches pcam_train_patches.tar.gz [--fit 2000] [--test 3000]
+    python -m experiments.encoder_patches --patches pcam_train_patches.tar.gz [--fit 2000] [--test 3000]
 """
 from __future__ import annotations
 
@@ -50,7 +50,7 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="write the figures as JSON here")
     args = p.parse_args(argv)
 
-    from benchmarks.c16_sanity import auc, fit_logistic
+    from experiments.c16_sanity import auc, fit_logistic
     from data_tools.features import ENCODERS
     from data_tools.features.efficientnet import load_encoder
     from data_tools.features.train_pcam_cnn import box_half, stained_copy
@@ -84,7 +84,7 @@ def main(argv=None) -> int:
         rows.append(row)
         print(json.dumps(row), flush=True)
     result = {"patches": str(args.patches), "fit_patches": len(fit_idx), "test_patches": len(test_idx),
-              "command": "python benchmarks/encoder_patches.py " + " ".join(argv if argv is not None else sys.argv[1:]),
+              "command": "python -m experiments.encoder_patches " + " ".join(argv if argv is not None else sys.argv[1:]),
               "rows": rows}
     print("\n| encoder | D | own logit AUC (PCam / mosaic colours) | linear-probe AUC (PCam / mosaic) | "
           "128-px views/s |\n|---|---|---|---|---|")

@@ -1,7 +1,7 @@
 """The baseline targets on slides the agent never trained on (issue: PPO, discrete, held-out
 success ≥ 90 % Easy, ≥ 70 % Medium, ≥ 50 % Hard), and PPO's training throughput.
 
-    python benchmarks/heldout_targets.py [--dataset /tmp/synth] [--scenarios Easy Medium Hard]
+    python -m experiments.heldout_targets [--dataset /tmp/synth] [--scenarios Easy Medium Hard]
                                          [--steps 262144 786432 1048576] [--seeds 2] [--out runs/heldout]
                                          [--extra-dataset /tmp/synth_new] [--reuse] [--report-only]
 

@@ -12,7 +12,7 @@ and the wall time of training.
 (``python -m data_tools features DIR``: efficientnet-lite0, 1280-d, 1.5–3 min on a 2-core CPU; needs torch,
 which the ``sb3`` extra brings); an existing ``DIR`` must be a bundle with features::
 
-    python benchmarks/integrations_learning.py --slide easy-features [--algo random rejax sb3] [--seed 0]
+    python -m experiments.integrations_learning --slide easy-features [--algo random rejax sb3] [--seed 0]
 
 Budgets: rejax 100 k env steps (16 envs, rejax's defaults otherwise, as in the snippet); SB3 20 k and
 100 k env steps (16 envs, ``n_steps=64``, SB3's defaults otherwise; one run, evaluated at 20 k and again

@@ -1,7 +1,7 @@
 """The ceiling of a navigator's diagnosis through the slide head: what an episode of ``--max-steps`` steps
 can read at most, and what the one-head readers reach at that fraction.
 
-    python -m benchmarks.navigator_ceiling --dataset DIR --head HEAD [--split test] [--max-steps 200] \\
+    python -m experiments.navigator_ceiling --dataset DIR --head HEAD [--split test] [--max-steps 200] \\
         [--budgets 0.005 0.01 0.02] [--seeds 5] [--out DIR]
 
 A navigator stands on one view per step, so a ``--max-steps`` episode reads at most ``max_steps`` finest
@@ -54,7 +54,7 @@ def at_ceiling(head, slides: list[dict], results: dict, ceilings: np.ndarray, le
 
 
 def add_arguments(p) -> None:
-    """The options of ``python -m benchmarks.navigator_ceiling``."""
+    """The options of ``python -m experiments.navigator_ceiling``."""
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; pcam-cnn feature grids)")
     p.add_argument("--head", required=True, help="slide head folder")
     p.add_argument("--split", default="test", help="split scored (default test)")
@@ -101,7 +101,7 @@ def run(args, parser=None) -> int:
     return 0
 
 
-main = command_main(add_arguments, run, "python -m benchmarks.navigator_ceiling", __doc__)
+main = command_main(add_arguments, run, "python -m experiments.navigator_ceiling", __doc__)
 
 
 if __name__ == "__main__":

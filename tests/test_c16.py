@@ -420,9 +420,9 @@ FULL_RECORD = ROOT / "tests" / "data" / "c16_full_patch_names.npz"
 
 
 @pytest.mark.skipif(not FULL_RECORD.is_file(), reason="the full set's patch record is made by "
-                    "benchmarks/c16_patch_record.py after a full build")
+                    "experiments/c16_patch_record.py after a full build")
 def test_the_full_sets_sides_share_no_patch():
-    """On the recorded patch names of the full true-scale set (239 slides; benchmarks/c16_patch_record.py):
+    """On the recorded patch names of the full true-scale set (239 slides; experiments/c16_patch_record.py):
     no patch textures both a train and a test slide, and each side's patches are in its pool."""
     from data_tools.datasets.pcam_bank import in_test_pool
 

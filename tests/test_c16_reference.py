@@ -1,4 +1,4 @@
-"""benchmarks/c16_reference.py on a tiny semi-synthetic dataset: the table, resumable cells, bad
+"""experiments/c16_reference.py on a tiny semi-synthetic dataset: the table, resumable cells, bad
 input; every method end to end (slow)."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ from pathlib import Path
 
 import pytest
 
-from benchmarks import c16_reference
+from experiments import c16_reference
 
 SHORT = {"max_steps_in_episode": 10}
 

@@ -85,11 +85,11 @@ def test_validation_dataset_on_the_small_c16_variant(c16_small, tmp_path):
 
 
 def test_slide_ceiling_pools_view_logits_and_names_the_misses(c16_small, tmp_path):
-    """benchmarks/c16_slide_ceiling.py: AUCs in [0, 1] on both splits, every test tumour slide listed with
+    """experiments/c16_slide_ceiling.py: AUCs in [0, 1] on both splits, every test tumour slide listed with
     its area, and a dataset without pcam-cnn features refused naming the file."""
     import json
 
-    from benchmarks import c16_slide_ceiling as ceiling
+    from experiments import c16_slide_ceiling as ceiling
 
     folder, version = c16_small
     if version != "v1":

@@ -1,7 +1,8 @@
 """The import graph points one way: no circles, and no import from a higher floor.
 
-Floors, lowest first: ``data_tools`` → ``histojax`` → ``baselines`` → ``benchmarks``. Every ``.py`` file of the
-four packages is parsed with :mod:`ast` and every import counts, including imports inside functions (they hide
+Floors, lowest first: ``data_tools`` → ``histojax`` → ``baselines`` → ``benchmarks`` → ``experiments`` (the
+experiment drivers: they may import any floor, nothing imports them). Every ``.py`` file of the
+five packages is parsed with :mod:`ast` and every import counts, including imports inside functions (they hide
 circles as well as top-level ones). ``from pkg import name`` is an edge to ``pkg.name`` when that is a module
 of the repository, else to ``pkg`` itself. The implicit import of a parent package (``import a.b`` runs
 ``a/__init__``) is not counted: every package's ``__init__`` imports its own modules, and counting it would make
@@ -15,11 +16,11 @@ import pathlib
 import pytest
 
 ROOT = pathlib.Path(__file__).resolve().parents[1]
-FLOORS = ("data_tools", "histojax", "baselines", "benchmarks")
+FLOORS = ("data_tools", "histojax", "baselines", "benchmarks", "experiments")
 
 
 def _modules(root: pathlib.Path = ROOT) -> dict[str, pathlib.Path]:
-    """``{dotted module name: file}`` of every ``.py`` under the four packages (a package is its ``__init__``)."""
+    """``{dotted module name: file}`` of every ``.py`` under the five packages (a package is its ``__init__``)."""
     out = {}
     for top in FLOORS:
         for path in sorted((root / top).rglob("*.py")):
@@ -42,7 +43,7 @@ def _resolve(name: str, modules: dict) -> str | None:
 
 
 def import_graph(root: pathlib.Path = ROOT) -> dict[str, dict[str, int]]:
-    """``{module: {imported module: line of the first such import}}`` over the repository's four packages."""
+    """``{module: {imported module: line of the first such import}}`` over the repository's five packages."""
     modules = _modules(root)
     graph = {}
     for mod, path in modules.items():
@@ -126,7 +127,7 @@ def test_no_import_circles():
 
 
 def test_imports_point_down_the_floors():
-    """data_tools → histojax → baselines → benchmarks: nothing imports a higher floor."""
+    """data_tools → histojax → baselines → benchmarks → experiments: nothing imports a higher floor."""
     modules = _modules()
     up = [f"{modules[m].relative_to(ROOT)}:{line}: {m} imports {t}"
           for m, edges in import_graph().items() for t, line in edges.items() if _floor(t) > _floor(m)]

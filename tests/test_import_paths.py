@@ -35,6 +35,17 @@ GONE = {
     "baselines.head_diagnosis": "baselines.reading.diagnosis",
     "baselines.mil": "histojax.reading.heads.mil",
     "benchmarks.train_readers": "baselines.reading.train_readers",
+    # experiment drivers: benchmarks/ measures speed and memory only
+    "benchmarks.annotation_cost": "experiments.annotation_cost",
+    "benchmarks.c16_patch_record": "experiments.c16_patch_record",
+    "benchmarks.c16_reference": "experiments.c16_reference",
+    "benchmarks.c16_sanity": "experiments.c16_sanity",
+    "benchmarks.c16_slide_ceiling": "experiments.c16_slide_ceiling",
+    "benchmarks.checkpoint_to_run": "experiments.checkpoint_to_run",
+    "benchmarks.encoder_patches": "experiments.encoder_patches",
+    "benchmarks.heldout_targets": "experiments.heldout_targets",
+    "benchmarks.integrations_learning": "experiments.integrations_learning",
+    "benchmarks.navigator_ceiling": "experiments.navigator_ceiling",
 }
 
 
@@ -47,7 +58,7 @@ def test_old_path_is_gone(old, new):
 def test_nothing_names_an_old_path():
     """Code, tests, docs, examples and the Makefile use only the one path of each name."""
     pattern = re.compile(r"\b(" + "|".join(re.escape(o) for o in GONE) + r")\b")
-    files = [p for d in ("histojax", "data_tools", "baselines", "benchmarks", "examples", "tests", "docs")
+    files = [p for d in ("histojax", "data_tools", "baselines", "benchmarks", "experiments", "examples", "tests", "docs")
              if (ROOT / d).is_dir() for p in (ROOT / d).rglob("*")
              if p.suffix in (".py", ".md", ".ipynb", ".toml", ".cfg", ".txt") and p.name != "test_import_paths.py"]
     files += [ROOT / n for n in ("README.md", "Makefile", "pyproject.toml") if (ROOT / n).is_file()]

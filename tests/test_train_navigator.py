@@ -1,7 +1,7 @@
 """A navigator rewarded by the slide head (``baselines.reading.train_readers --action-mode discrete``): trained with
 the env wrapped in ``HeadReward`` (no reading budget), then scored on the validation slides by
 ``baselines.reading.diagnosis`` (the head declares from the finest views it stood on), beside a ``--compare``
-navigator; and ``benchmarks.navigator_ceiling``: the fraction a ``max_steps`` episode can read, and the readers
+navigator; and ``experiments.navigator_ceiling``: the fraction a ``max_steps`` episode can read, and the readers
 at each slide's own ceiling.
 
 Slides made here (no third-party data), by the helpers of ``test_evaluate_readers``: 512 × 640 px pyramidal
@@ -107,7 +107,7 @@ def test_head_diagnosis_scores_the_sampled_policy(trained, data, tmp_path, monke
     assert json.loads((tmp_path / "s" / "readers.json").read_text())["sampled"] is True
 
 def test_ceiling_fractions():
-    from benchmarks.navigator_ceiling import ceiling_fractions
+    from experiments.navigator_ceiling import ceiling_fractions
 
     slides = [{"tissue": np.ones((10, 40), bool)}, {"tissue": np.ones((5, 5), bool)}, {"tissue": np.zeros((3, 3), bool)}]
     np.testing.assert_allclose(ceiling_fractions(slides, 200), [0.5, 1.0, 1.0])
@@ -117,7 +117,7 @@ def test_ceiling_fractions():
 def test_ceiling_rows(data, tmp_path, capsys):
     """At a ceiling that covers every slide the per-slide-ceiling readers read everything (same AUC); at 40
     views they read at most 40 of each slide's tissue views (whole cells that fit)."""
-    from benchmarks import navigator_ceiling
+    from experiments import navigator_ceiling
 
     for steps, out in ((10_000, tmp_path / "all"), (40, tmp_path / "few")):
         assert navigator_ceiling.main(["--dataset", str(data["set"]), "--head", str(data["head"]), "--split", "train",
@@ -138,7 +138,7 @@ def test_ceiling_rows(data, tmp_path, capsys):
 
 
 def test_ceiling_bad_input_is_one_line(data, tmp_path, capsys):
-    from benchmarks import navigator_ceiling
+    from experiments import navigator_ceiling
 
     assert navigator_ceiling.main(["--dataset", str(tmp_path / "nope"), "--head", str(data["head"]),
                                    "--out", str(tmp_path / "o")]) == 2
@@ -149,7 +149,7 @@ def test_ceiling_bad_input_is_one_line(data, tmp_path, capsys):
 def test_params_from_leaves():
     """The parameters are the first run of leaves with the network's shapes (seeds on axis 0), not the
     optimiser's moments after them; no such run is one ValueError."""
-    from benchmarks.checkpoint_to_run import params_from_leaves
+    from experiments.checkpoint_to_run import params_from_leaves
 
     template = {"dense": {"kernel": np.zeros((4, 3)), "bias": np.zeros(3)}}
     params = [np.full((2, 3), 1.0), np.full((2, 4, 3), 2.0)]  # flattened: bias, kernel (sorted keys)

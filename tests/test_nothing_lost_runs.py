@@ -100,3 +100,140 @@ def test_readers_cell_level_reads_the_checked_metadata(work, tmp_path):
     spec = head_fit.read_spec(work)
     with pytest.raises(HistojaxDataError, match="digest mismatch"):
         readers.cell_level_for(work, spec, "train")
+
+
+# ----------------------------------------------------------------------------- head folders: one guarded reader
+def _logit_head(folder: Path, **cfg) -> Path:
+    from histojax.reading.heads.logit import SlideHead
+
+    SlideHead(a=2.0, b=-4.0, prior_logit=-0.3, dim=62, k=2, top=1).save(folder)
+    params = {k: cfg.pop(k) for k in ("a", "b", "prior_logit") if k in cfg}
+    if cfg:
+        c = json.loads((folder / "config.json").read_text())
+        c.update(cfg)
+        (folder / "config.json").write_text(json.dumps(c))
+    if params:
+        p = json.loads((folder / "params.json").read_text())
+        p.update(params)
+        (folder / "params.json").write_text(json.dumps(p))
+    return folder
+
+
+def _stats_head(folder: Path) -> Path:
+    import jax.numpy as jnp
+
+    from histojax.reading.heads.mil import StatsHead
+
+    n = 4 * 2 + 3 + 1
+    StatsHead(params={"mu": jnp.zeros(n), "sd": jnp.ones(n), "w": jnp.full(n, 0.1), "b": jnp.float32(0.0)},
+              prior_logit=jnp.float32(-0.3)).save(folder)
+    return folder
+
+
+def _load(folder):
+    from histojax.reading import heads
+
+    return heads.load(folder)
+
+
+@pytest.mark.parametrize("edit, words", [
+    ({"minus_median": "false"}, "'minus_median' is \"false\", not a bool"),
+    ({"k": 2.9}, "'k' is 2.9, not an int"),
+    ({"k": 1_000_000_000}, "'k' is 1000000000, outside [1, 64]"),
+    ({"format": 9}, "format 9; this version reads format 1"),
+    ({"format": "1"}, "'format' is \"1\", not an int"),
+    ({"dim": -1}, "'dim' is -1, outside"),
+    ({"a": 1e38, "b": -1e38}, "params.json: 'a' is 1e+38, outside"),
+    ({"b": [1, 2]}, "'b' is [1, 2], not a finite number"),
+])
+def test_a_logit_head_config_is_read_strictly(tmp_path, edit, words):
+    folder = _logit_head(tmp_path / "h", **edit)
+    with pytest.raises(ValueError) as e:
+        _load(folder)
+    assert words in str(e.value) and "\n" not in str(e.value), e.value
+
+
+def test_a_head_reading_an_entry_the_features_lack_is_refused_not_clamped(tmp_path):
+    from histojax.reading import heads
+
+    grid = np.zeros((4, 4, 11), np.float32)
+    for folder in (_logit_head(tmp_path / "logit", dim=62), _stats_head(tmp_path / "stats")):
+        head = _load(folder)
+        with pytest.raises(ValueError, match="reads feature entry 62 .* the features have 11 entries"):
+            heads.score(head, grid, np.ones((4, 4), bool))
+
+
+@pytest.mark.parametrize("dtype", [np.complex64, object])
+def test_complex_or_object_head_parameters_are_refused(tmp_path, dtype):
+    folder = _stats_head(tmp_path / "s")
+    z = dict(np.load(folder / "params.npz"))
+    z["w"] = z["w"].astype(dtype)
+    np.savez(folder / "params.npz", **z)
+    with pytest.raises(ValueError, match="array w has dtype"):
+        _load(folder)
+
+
+def test_a_fifo_params_json_is_refused_without_blocking(tmp_path):
+    import threading
+
+    folder = _logit_head(tmp_path / "h")
+    (folder / "params.json").unlink()
+    os.mkfifo(folder / "params.json")
+    result = {}
+
+    def load():
+        try:
+            _load(folder)
+        except ValueError as e:
+            result["error"] = str(e)
+
+    t = threading.Thread(target=load, daemon=True)
+    t.start()
+    t.join(20)
+    if t.is_alive():  # free the blocked reader
+        with open(folder / "params.json", "w"):
+            pass
+        pytest.fail("loading a head whose params.json is a FIFO blocked")
+    assert "not a regular file" in result["error"]
+
+
+def test_an_unused_array_in_params_npz_is_refused_before_it_is_read(tmp_path):
+    import tracemalloc
+
+    folder = _stats_head(tmp_path / "s")
+    z = dict(np.load(folder / "params.npz"))
+    np.savez_compressed(folder / "params.npz", **z, junk=np.zeros(25_000_000, np.float32))  # 100 MB, ~100 kB on disk
+    assert (folder / "params.npz").stat().st_size < 1_000_000
+    tracemalloc.start()
+    with pytest.raises(ValueError, match="holds arrays this head does not use \\(junk\\)"):
+        _load(folder)
+    peak = tracemalloc.get_traced_memory()[1]
+    tracemalloc.stop()
+    assert peak < 20_000_000, peak
+
+
+def test_an_oversized_config_json_is_refused_by_its_size(tmp_path):
+    folder = _logit_head(tmp_path / "h")
+    c = json.loads((folder / "config.json").read_text())
+    c["notes"] = "x" * (2 << 20)  # valid JSON, 2 MiB
+    (folder / "config.json").write_text(json.dumps(c))
+    with pytest.raises(ValueError, match="config.json: 2,097,.* bytes, more than the 1,048,576"):
+        _load(folder)
+
+
+@pytest.mark.parametrize("damage", ["empty", "truncated", "nested"])
+def test_a_damaged_head_is_one_line_from_the_readers_command(small_dataset, tmp_path, capsys, damage):
+    folder = _stats_head(tmp_path / "s")
+    if damage == "empty":
+        (folder / "params.npz").write_bytes(b"")
+    elif damage == "truncated":
+        data = (folder / "params.npz").read_bytes()
+        (folder / "params.npz").write_bytes(data[: len(data) // 2])
+    else:
+        (folder / "config.json").write_text("[" * 200_000)
+    with pytest.raises(ValueError):
+        _load(folder)
+    code = readers.main(["--dataset", str(small_dataset), "--head", str(folder), "--out", str(tmp_path / "r")])
+    assert code == 2
+    line = _one_line(capsys)
+    assert str(folder) in line, line

@@ -16,13 +16,12 @@ view logit), ``attention-mil`` and ``pooled-statistics`` (:class:`~histojax.read
 """
 from __future__ import annotations
 
-import json
 from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import jax
 
-from histojax.reading.heads import learned, logit, mil
+from histojax.reading.heads import files, learned, logit, mil
 
 
 @runtime_checkable
@@ -55,17 +54,15 @@ HEADS: dict[str, type] = {logit.KIND: logit.SlideHead, mil.KIND_MIL: mil.MilHead
 
 
 def load(folder) -> SlideHeadProtocol:
-    """Read the slide head saved in ``folder``, of the class its ``config.json``'s ``kind`` names.
-    ``ValueError`` naming the file, one line, on anything missing, malformed or of an unknown kind."""
+    """Read the slide head saved in ``folder``, of the class its ``config.json``'s ``kind`` names, through the
+    guarded reader (:mod:`histojax.reading.heads.files`). ``ValueError`` naming the file, one line, on anything
+    missing, malformed, oversized or of an unknown kind."""
     folder = Path(folder)
-    cfg_file = folder / "config.json"
-    try:
-        cfg = json.loads(cfg_file.read_text())
-    except FileNotFoundError as e:
-        raise ValueError(f"{e.filename}: missing (a slide head folder holds config.json and its parameters)") from None
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"{folder}: cannot read the slide head: {e}") from None
-    kind = cfg.get("kind") if isinstance(cfg, dict) else None
+    if not folder.is_dir():
+        raise ValueError(f"{folder}: not a slide head folder (a folder holding config.json and its parameters)")
+    cfg_file = folder / files.CONFIG
+    cfg = files.read_config(cfg_file)  # a regular file of bounded size and nesting: one line, never a hang
+    kind = cfg.get("kind")
     cls = HEADS.get(kind) if isinstance(kind, str) else None
     if cls is None:
         raise ValueError(f"{cfg_file}: not a slide head this version reads (kind {kind!r}; known: {', '.join(HEADS)})")

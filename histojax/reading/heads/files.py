@@ -90,9 +90,9 @@ def read_regular(path, max_bytes: int, what: str = "file") -> bytes:
         now = os.fstat(f.fileno())
         if not stat.S_ISREG(now.st_mode) or (now.st_dev, now.st_ino) != (st.st_dev, st.st_ino):
             raise HeadFileError(path, "changed while it was opened (not the regular file checked); refusing to read it")
-        data = f.read(max_bytes + 1)
-    if len(data) > max_bytes:
-        raise HeadFileError(path, f"grew past {max_bytes:,} bytes while it was read; refusing it")
+        data = f.read(min(now.st_size, max_bytes) + 1)  # its size, not the cap: a small file costs no more
+    if len(data) > min(now.st_size, max_bytes):
+        raise HeadFileError(path, "grew while it was read; refusing it")
     return data
 
 

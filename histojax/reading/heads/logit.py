@@ -32,8 +32,21 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
+from histojax.reading.heads import files
+
 KIND = "neighbourhood-pooled-logit"
 FORMAT = 1
+MAX_DIM = 1 << 16
+"""The largest feature entry a head may read (a 65,536-d encoder)."""
+MAX_K = 64
+"""The widest neighbourhood side a head may pool, in views (the published head's is 2; a lesion spans a few)."""
+MAX_TOP = 1 << 20
+"""The most views a head may pool the mean of (``top``)."""
+MAX_PARAM = 1e6
+"""The largest magnitude of ``a``, ``b`` and ``prior_logit`` read: with view logits in float16's range (±65,504)
+``a · s + b`` stays far inside float32 (a fitted calibration is a few units)."""
+MAX_PARAMS_JSON_BYTES = 1 << 16
+"""``params.json`` (three numbers) larger than this (64 KiB) is refused unread."""
 
 
 @struct.dataclass
@@ -82,8 +95,11 @@ class SlideHead:
     kind = KIND
 
     def view_logits(self, grid_features: jax.Array) -> jax.Array:
-        """The per-view scores the head pools: ``(H, W)`` tumour logits, entry ``dim`` of ``(H, W, D)`` features."""
-        return jnp.asarray(grid_features)[..., self.dim]
+        """The per-view scores the head pools: ``(H, W)`` tumour logits, entry ``dim`` of ``(H, W, D)`` features.
+        ``ValueError`` (one line, at trace time) when ``dim`` ≥ ``D``: never a clamped, other entry."""
+        grid_features = jnp.asarray(grid_features)
+        check_dim(self, grid_features.shape[-1])
+        return grid_features[..., self.dim]
 
     def score_logits(self, logits: jax.Array, read_mask: jax.Array) -> jax.Array:
         """Slide tumour logit ``()`` float32 from a ``(H, W)`` view-logit map and the read mask ``(H, W)`` bool."""
@@ -97,30 +113,43 @@ class SlideHead:
 
     @classmethod
     def load(cls, folder) -> "SlideHead":
-        """Read a head saved by :meth:`save`. ``ValueError`` naming the file on anything malformed."""
+        """Read a head saved by :meth:`save` through the guarded reader (:mod:`histojax.reading.heads.files`:
+        regular files of bounded size, bounded JSON nesting, strict types): ``kind`` this one, ``format``
+        :data:`FORMAT`, ``dim`` an int in ``[0, MAX_DIM]``, ``k`` in ``[1, MAX_K]``, ``top`` in ``[1, MAX_TOP]``,
+        ``minus_median`` a JSON bool, ``a``, ``b``, ``prior_logit`` finite with magnitude at most
+        :data:`MAX_PARAM` (so ``a · s + b`` stays finite in float32). ``ValueError``
+        (:class:`~histojax.reading.heads.files.HeadFileError`) naming the file, one line, on anything else."""
         folder = Path(folder)
-        cfg_file, par_file = folder / "config.json", folder / "params.json"
-        try:
-            cfg = json.loads(cfg_file.read_text())
-            par = json.loads(par_file.read_text()) if isinstance(cfg, dict) and cfg.get("kind") == KIND else None
-        except FileNotFoundError as e:
-            raise ValueError(f"{e.filename}: missing (a slide head folder holds config.json and params.json)") from None
-        except (OSError, json.JSONDecodeError) as e:
-            raise ValueError(f"{folder}: cannot read the slide head: {e}") from None
-        if not isinstance(cfg, dict) or cfg.get("kind") != KIND:
-            raise ValueError(f"{cfg_file}: not a slide head config (kind {cfg.get('kind') if isinstance(cfg, dict) else None!r}, "
-                             f"expected {KIND!r})")
-        try:
-            k, top, dim = int(cfg["k"]), int(cfg["top"]), int(cfg["dim"])
-            a, b, prior = (float(par[n]) for n in ("a", "b", "prior_logit"))
-        except (KeyError, TypeError, ValueError) as e:
-            raise ValueError(f"{cfg_file}: malformed slide head ({type(e).__name__}: {e})") from None
-        if k < 1 or top < 1 or dim < 0 or not all(np.isfinite([a, b, prior])):
-            raise ValueError(f"{folder}: invalid slide head (k={k}, top={top}, dim={dim}, a={a}, b={b}, prior={prior})")
+        cfg_file, par_file = folder / files.CONFIG, folder / "params.json"
+        cfg = files.read_config(cfg_file)
+        if cfg.get("kind") != KIND:
+            raise files.HeadFileError(cfg_file, f"not a slide head config (kind {cfg.get('kind')!r}, expected "
+                                                f"{KIND!r})")
+        fmt = files.field(cfg, "format", int, cfg_file)
+        if fmt != FORMAT:
+            raise files.HeadFileError(cfg_file, f"{KIND} head format {fmt}; this version reads format {FORMAT}")
+        dim = files.field(cfg, "dim", int, cfg_file, lo=0, hi=MAX_DIM)
+        k = files.field(cfg, "k", int, cfg_file, lo=1, hi=MAX_K)
+        top = files.field(cfg, "top", int, cfg_file, lo=1, hi=MAX_TOP)
+        minus_median = files.field(cfg, "minus_median", bool, cfg_file, default=False)
+        encoder = files.field(cfg, "encoder", (str, type(None)), cfg_file, default=None)
+        par = files.read_config(par_file, max_bytes=MAX_PARAMS_JSON_BYTES)
+        a, b, prior = (files.field(par, n, float, par_file, lo=-MAX_PARAM, hi=MAX_PARAM)
+                       for n in ("a", "b", "prior_logit"))
         known = {"kind", "format", "dim", "k", "top", "minus_median", "encoder", "name", "input", "output"}
         info = json.dumps({key: v for key, v in cfg.items() if key not in known})
         return cls(a=jnp.float32(a), b=jnp.float32(b), prior_logit=jnp.float32(prior), dim=dim, k=k, top=top,
-                   minus_median=bool(cfg.get("minus_median", False)), encoder=cfg.get("encoder"), info=info)
+                   minus_median=minus_median, encoder=encoder, info=info)
+
+
+def check_dim(head, d: int) -> None:
+    """Refuse (``ValueError``, one line) to read feature entry ``head.dim`` from features of ``d`` entries when
+    ``head.dim >= d`` (JAX indexing would clamp it to entry ``d - 1`` without a word): a head fitted on another
+    encoder's features."""
+    if not 0 <= int(head.dim) < int(d):
+        raise ValueError(f"this slide head ({head.kind}, {head.name}) reads feature entry {head.dim} "
+                         f"(its encoder {head.encoder!r}), but the features have {d} entries (0..{d - 1}): it was "
+                         "fitted on another encoder's features; use a head fitted on these features")
 
 
 def _plain(v):

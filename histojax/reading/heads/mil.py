@@ -40,7 +40,8 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from histojax.reading.heads.logit import neighbourhood_mean
+from histojax.reading.heads import files
+from histojax.reading.heads.logit import MAX_DIM, MAX_K, check_dim, neighbourhood_mean
 
 KIND_MIL = "attention-mil"
 KIND_STATS = "pooled-statistics"
@@ -48,6 +49,8 @@ KINDS = (KIND_MIL, KIND_STATS)
 FORMAT = 1
 THRESHOLDS = (0.0, 1.0, 2.0)   # view-logit thresholds of the counts in StatsHead's statistics
 TOPS = (1, 3)
+MAX_UNITS = 4096
+"""The most hidden or attention units a MIL head may have."""
 
 
 def logit_instances(logits: jax.Array, mask: jax.Array, ks) -> jax.Array:
@@ -165,8 +168,11 @@ class _Saved:
         return head
 
     def view_logits(self, grid_features: jax.Array) -> jax.Array:
-        """The per-view scores the instances are built from: ``(H, W)`` tumour logits, entry ``dim`` of ``(H, W, D)``."""
-        return jnp.asarray(grid_features)[..., self.dim]
+        """The per-view scores the instances are built from: ``(H, W)`` tumour logits, entry ``dim`` of ``(H, W, D)``
+        (``ValueError``, one line, when ``dim`` ≥ ``D``: never a clamped, other entry)."""
+        grid_features = jnp.asarray(grid_features)
+        check_dim(self, grid_features.shape[-1])
+        return grid_features[..., self.dim]
 
     def score(self, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
         """Slide tumour logit ``()`` float32 from the feature grid ``(H, W, D)`` and the read views ``(H, W)`` bool."""
@@ -216,6 +222,10 @@ class MilHead(_Saved):
             if features is None:
                 raise ValueError(f"this head ({self.name}) reads all feature entries: call histojax.reading.heads.score with "
                                  "the feature grid, not score_logits with the logit map")
+            want = self.params["mu"].shape[0] - len(self.ks)
+            if features.shape[-1] != want:
+                raise ValueError(f"this slide head ({self.name}) reads all {want} feature entries, but the features "
+                                 f"have {features.shape[-1]}: it was fitted on another encoder's features")
             x = jnp.concatenate([x, feature_means(features, mask, self.feature_k)], -1)
         return x
 
@@ -260,65 +270,73 @@ def _plain(v):
     return str(v)
 
 
-_SHAPES = {KIND_MIL: ("mu", "sd", "w1", "b1", "V", "bV", "U", "bU", "wa", "wc", "bc"),
-           KIND_STATS: ("mu", "sd", "w", "b")}
+MAX_KS = 8
+"""The most neighbourhood sides (``ks``) a head's instances may hold."""
+
+
+def param_shapes(kind: str, n_ks: int, hidden: int | None = None, inputs: str = "logit") -> dict:
+    """The arrays of a head's ``params.npz`` (name -> shape; ``None``: any size, the feature dimension of an
+    ``inputs="features"`` head, checked against the other arrays after reading)."""
+    if kind == KIND_STATS:
+        n = n_ks * len(TOPS) + len(THRESHOLDS) + 1
+        return {"mu": (n,), "sd": (n,), "w": (n,), "b": (), "prior_logit": ()}
+    f = n_ks if inputs == "logit" else None
+    return {"mu": (f,), "sd": (f,), "w1": (f, hidden), "b1": (hidden,), "V": (hidden, None), "bV": (None,),
+            "U": (hidden, None), "bU": (None,), "wa": (None,), "wc": (hidden,), "bc": (), "prior_logit": ()}
 
 
 def load(folder):
-    """Read a head saved by ``save`` (either kind). ``ValueError`` naming the file, one line, on anything
-    malformed or of a kind / format this version does not know."""
+    """Read a head saved by ``save`` (either kind) through the guarded reader
+    (:mod:`histojax.reading.heads.files`: regular files of bounded size, bounded JSON nesting, strict types,
+    every ``params.npz`` member's header checked before its data is read, exactly the arrays the config
+    implies, floats only, finite). ``ValueError`` (:class:`~histojax.reading.heads.files.HeadFileError`) naming
+    the file, one line, on anything malformed or of a kind / format this version does not know."""
     folder = Path(folder)
-    cfg_file, par_file = folder / "config.json", folder / "params.npz"
-    try:
-        cfg = json.loads(cfg_file.read_text())
-    except FileNotFoundError as e:
-        raise ValueError(f"{e.filename}: missing (a slide head folder holds config.json)") from None
-    except (OSError, json.JSONDecodeError) as e:
-        raise ValueError(f"{cfg_file}: cannot read the slide head config: {e}") from None
-    kind = cfg.get("kind") if isinstance(cfg, dict) else None
+    cfg_file, par_file = folder / files.CONFIG, folder / files.PARAMS
+    cfg = files.read_config(cfg_file)
+    kind = cfg.get("kind")
     if kind not in KINDS:
-        raise ValueError(f"{cfg_file}: not a slide head this version reads (kind {kind!r}; known: {', '.join(KINDS)})")
-    if cfg.get("format") != FORMAT:
-        raise ValueError(f"{cfg_file}: {kind} head format {cfg.get('format')!r}; this version reads format {FORMAT}")
-    try:
-        with np.load(par_file, allow_pickle=False) as z:
-            arrays = {k: np.asarray(z[k], np.float32) for k in z.files}
-    except FileNotFoundError:
-        raise ValueError(f"{par_file}: missing (a {kind} head folder holds config.json and params.npz)") from None
-    except (OSError, ValueError) as e:
-        raise ValueError(f"{par_file}: unreadable ({e})") from None
-    need = _SHAPES[kind] + ("prior_logit",)
-    missing = [k for k in need if k not in arrays]
-    if missing:
-        raise ValueError(f"{par_file}: missing arrays {', '.join(missing)}")
-    if not all(np.all(np.isfinite(arrays[k])) for k in need):
-        raise ValueError(f"{par_file}: non-finite parameters")
-    try:
-        dim, ks = int(cfg["dim"]), tuple(int(k) for k in cfg["ks"])
-        if dim < 0 or not ks or min(ks) < 1:
-            raise ValueError(f"dim={dim}, ks={ks}")
-        params = {k: jnp.asarray(arrays[k]) for k in _SHAPES[kind]}
-        prior = jnp.float32(arrays["prior_logit"])
-        known = {"kind", "format", "dim", "ks", "inputs", "feature_k", "hidden", "thresholds", "tops", "encoder",
-                 "name", "input", "output"}
-        info = json.dumps({k: v for k, v in cfg.items() if k not in known})
-        if kind == KIND_MIL:
-            inputs, fk, hidden = str(cfg["inputs"]), int(cfg["feature_k"]), int(cfg["hidden"])
-            if inputs not in ("logit", "features") or fk < 1:
-                raise ValueError(f"inputs={inputs!r}, feature_k={fk}")
-            f = len(ks) + (0 if inputs == "logit" else params["mu"].shape[0] - len(ks))
-            if params["w1"].shape != (f, hidden) or params["mu"].shape != (f,) or params["wc"].shape != (hidden,):
-                raise ValueError(f"parameter shapes do not match {f} inputs and {hidden} hidden units")
-            head = MilHead(params=params, prior_logit=prior, dim=dim, ks=ks, inputs=inputs, feature_k=fk,
-                           hidden=hidden, encoder=cfg.get("encoder"), info=info)
-        else:
-            if list(cfg.get("thresholds", [])) != list(THRESHOLDS) or list(cfg.get("tops", [])) != list(TOPS):
-                raise ValueError(f"thresholds / tops {cfg.get('thresholds')} / {cfg.get('tops')} differ from this "
-                                 f"version's {list(THRESHOLDS)} / {list(TOPS)}")
-            n = len(ks) * len(TOPS) + len(THRESHOLDS) + 1
-            if params["w"].shape != (n,) or params["mu"].shape != (n,):
-                raise ValueError(f"parameter shapes do not match {n} statistics")
-            head = StatsHead(params=params, prior_logit=prior, dim=dim, ks=ks, encoder=cfg.get("encoder"), info=info)
-    except (KeyError, TypeError, ValueError) as e:
-        raise ValueError(f"{cfg_file}: malformed {kind} head ({type(e).__name__}: {e})") from None
-    return head
+        raise files.HeadFileError(cfg_file, f"not a slide head this version reads (kind {kind!r}; known: "
+                                            f"{', '.join(KINDS)})")
+    fmt = files.field(cfg, "format", int, cfg_file)
+    if fmt != FORMAT:
+        raise files.HeadFileError(cfg_file, f"{kind} head format {fmt}; this version reads format {FORMAT}")
+    dim = files.field(cfg, "dim", int, cfg_file, lo=0, hi=MAX_DIM)
+    ks = files.field(cfg, "ks", list, cfg_file)
+    if not 1 <= len(ks) <= MAX_KS or any(type(k) is not int or not 1 <= k <= MAX_K for k in ks):
+        raise files.HeadFileError(cfg_file, f"'ks' is {json.dumps(ks)[:60]}, not 1 to {MAX_KS} ints in [1, {MAX_K}]")
+    ks = tuple(ks)
+    encoder = files.field(cfg, "encoder", (str, type(None)), cfg_file, default=None)
+    known = {"kind", "format", "dim", "ks", "inputs", "feature_k", "hidden", "thresholds", "tops", "encoder",
+             "name", "input", "output"}
+    info = json.dumps({k: v for k, v in cfg.items() if k not in known})
+    if kind == KIND_STATS:
+        for key, want in (("thresholds", THRESHOLDS), ("tops", TOPS)):
+            got = files.field(cfg, key, list, cfg_file, default=list(want))
+            if got != list(want):
+                raise files.HeadFileError(cfg_file, f"{key} {json.dumps(got)[:60]} differ from this version's "
+                                                    f"{list(want)}")
+        arrays = files.read_arrays(par_file, param_shapes(kind, len(ks)))
+        if not np.all(arrays["sd"] > 0):
+            raise files.HeadFileError(par_file, "array sd holds values <= 0 (a standard deviation)")
+        params = {k: jnp.asarray(arrays[k]) for k in ("mu", "sd", "w", "b")}
+        return StatsHead(params=params, prior_logit=jnp.float32(arrays["prior_logit"]), dim=dim, ks=ks,
+                         encoder=encoder, info=info)
+    inputs = files.field(cfg, "inputs", str, cfg_file)
+    if inputs not in ("logit", "features"):
+        raise files.HeadFileError(cfg_file, f"'inputs' is {inputs[:40]!r}, not 'logit' or 'features'")
+    fk = files.field(cfg, "feature_k", int, cfg_file, lo=1, hi=MAX_K)
+    hidden = files.field(cfg, "hidden", int, cfg_file, lo=1, hi=MAX_UNITS)
+    arrays = files.read_arrays(par_file, param_shapes(kind, len(ks), hidden, inputs))
+    f, att = arrays["mu"].shape[0], arrays["wa"].shape[0]
+    shapes = {"sd": (f,), "w1": (f, hidden), "V": (hidden, att), "bV": (att,), "U": (hidden, att), "bU": (att,)}
+    bad = next((n for n, want in shapes.items() if arrays[n].shape != want), None)
+    if bad is not None or (inputs == "features" and f <= len(ks)) or att > MAX_UNITS:
+        what = f"array {bad} has shape {arrays[bad].shape}, expected {shapes[bad]}" if bad else \
+            f"{f} instance inputs and {att} attention units do not fit a {inputs} head of {len(ks)} logit means"
+        raise files.HeadFileError(par_file, f"{what} (inputs, hidden and attention units must agree)")
+    if not np.all(arrays["sd"] > 0):
+        raise files.HeadFileError(par_file, "array sd holds values <= 0 (a standard deviation)")
+    params = {k: jnp.asarray(v) for k, v in arrays.items() if k != "prior_logit"}
+    return MilHead(params=params, prior_logit=jnp.float32(arrays["prior_logit"]), dim=dim, ks=ks, inputs=inputs,
+                   feature_k=fk, hidden=hidden, encoder=encoder, info=info)

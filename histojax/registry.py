@@ -162,6 +162,19 @@ register("HistoJAX-C16-Diagnosis-v2", slide=_c16_dataset, n_levels=5, max_steps_
          step_obs=True, **C16_V1)
 
 
+def _reading_dataset(spec: dict):
+    """The reading ids have no default slides: one clear error asking for ``dataset=``."""
+    raise ValueError("HistoJAX-Reading-v0 reads a dataset of your own: make('HistoJAX-Reading-v0', dataset=DIR) with "
+                     "DIR from `histojax dataset`, `histojax c16` or imported .h5 features (any encoder)")
+
+
+# Reading on any dataset (any encoder's feature grids, imported .h5 included): the cell-set reader's -v2
+# observation (step_obs) on a classification task, five zoom levels (n_levels= for bundles built with fewer)
+READING_ID = "HistoJAX-Reading-v0"
+register(READING_ID, slide=_reading_dataset, n_levels=5, max_steps_in_episode=200, task="classification",
+         step_obs=True, obs_mode="features")
+
+
 def _c16_rebuild_command(folder, ds: dict) -> str:
     """The ``data_tools c16`` command that rebuilds ``folder`` with the options its ``dataset.json`` records
     (``--small`` or the sources and scale, split seed, held-out patches, subset, pixels or not), with features."""

@@ -237,3 +237,28 @@ def test_a_damaged_head_is_one_line_from_the_readers_command(small_dataset, tmp_
     assert code == 2
     line = _one_line(capsys)
     assert str(folder) in line, line
+
+
+# ----------------------------------------------------------------------------- the budget curve's options
+@pytest.mark.parametrize("options, words", [
+    (["--budgets", "0.1", "2"], "--budgets: 2 is not a fraction"),
+    (["--budgets", "-0.5"], "--budgets: -0.5 is not a fraction"),
+    (["--budgets", "nan"], "--budgets: nan"),
+    (["--steps", "-1"], "--steps -1: must be a whole number from 1"),
+    (["--seeds", "0"], "--seeds 0: must be"),
+    (["--policy-seeds", "0"], "--policy-seeds 0: must be"),
+    (["--folds", "100"], "--folds 100: "),
+    (["--folds", "1"], "--folds 1: give 0"),
+    (["--folds", "-3"], "--folds -3: give 0"),
+])
+@pytest.mark.parametrize("command", ["module", "histojax"])
+def test_the_budget_curve_refuses_bad_options_in_one_line(small_dataset, tmp_path, capsys, options, words, command):
+    from baselines.reading import budget_curve
+    from histojax.cli import main as histojax_main
+
+    argv = ["--dataset", str(small_dataset), "--out", str(tmp_path / "bc"), *options]
+    code = budget_curve.main(argv) if command == "module" else histojax_main(["budget-curve", *argv])
+    assert code == 2
+    line = _one_line(capsys)
+    assert words in line, line
+    assert not (tmp_path / "bc").exists()

@@ -40,6 +40,7 @@ from flax.core.scope import LazyRng
 from baselines import outputs
 from data_tools.metrics import accuracy, roc_auc
 from data_tools.cli_output import command_main, print_error
+from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
 from histojax.reading.heads.mil import attention_pool, attention_weights
 
@@ -538,12 +539,52 @@ def add_arguments(p) -> None:
     p.add_argument("--out", default="runs/budget_curve", help="output folder (default runs/budget_curve)")
 
 
-def run(args, parser=None) -> int:
-    """The budget curve on parsed ``args``: CSV and PNG in ``args.out``."""
-    level = args.glimpse_level
+MAX_SEEDS = 1000
+"""The most random reader orders (``--seeds``) or policy seeds (``--policy-seeds``) a curve takes."""
+MAX_STEPS = 10_000_000
+"""The most MIL training steps (``--steps``)."""
+
+
+def check_options(args) -> str | None:
+    """The first problem of the budget curve's options (one line naming the option), or None: budgets in
+    ``(0, 1]``, ``--seeds`` / ``--policy-seeds`` in ``[1, MAX_SEEDS]``, ``--steps`` in ``[1, MAX_STEPS]``, ``--folds``
+    0 (the dataset's split) or from 2 to the dataset's number of slides, not with ``--fold``."""
+    import math
+
+    if not args.budgets:
+        return "--budgets: give at least one fraction of the slide to read, in (0, 1]"
+    bad = [b for b in args.budgets if not (math.isfinite(b) and 0 < b <= 1)]
+    if bad:
+        return f"--budgets: {bad[0]:g} is not a fraction of the slide read; each budget must be in (0, 1]"
+    for name, value, top in (("--seeds", args.seeds, MAX_SEEDS), ("--policy-seeds", args.policy_seeds, MAX_SEEDS),
+                             ("--steps", args.steps, MAX_STEPS)):
+        if not 1 <= value <= top:
+            return f"{name} {value}: must be a whole number from 1 to {top:,}"
     if args.folds and args.fold is not None:
-        return print_error("give --folds K (cross-validation inside the curve) or --fold I (a fold the dataset "
-                           "records), not both")
+        return ("give --folds K (cross-validation inside the curve) or --fold I (a fold the dataset records), "
+                "not both")
+    if args.folds < 0 or args.folds == 1:
+        return f"--folds {args.folds}: give 0 (use the dataset's train / test split) or K >= 2 folds"
+    if args.folds:
+        from histojax.registry import dataset_slides
+
+        n = len(dataset_slides(args.dataset, "all"))
+        if args.folds > n:
+            return (f"--folds {args.folds}: {Path(args.dataset) / 'dataset.json'} lists {n} slides, so at most "
+                    f"{n} folds (each fold needs a slide to score)")
+    return None
+
+
+def run(args, parser=None) -> int:
+    """The budget curve on parsed ``args``: CSV and PNG in ``args.out``. Bad options: one line, exit 2
+    (:func:`check_options`)."""
+    level = args.glimpse_level
+    try:
+        problem = check_options(args)
+    except (HistojaxDataError, ValueError) as e:
+        return print_error(e)
+    if problem:
+        return print_error(problem)
     if args.compute_features:
         compute_missing_features(args.dataset, args.compute_features)
     if args.folds:

@@ -41,22 +41,21 @@ from data_tools.bundle_format import read_dataset_json
 from data_tools.errors import BundleError
 from histojax.reading.modes import factory
 from histojax.env import EnvParams, HistoEnv
+from histojax.make_options import DATASET, MODE, PARAMS, STATIC, MakeOptions
 from histojax.reading.modes.base import Navigation
 from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, check_alike, load_slide, stack_slides, start_cdf
 
-STATIC_FIELDS = ("tile_size", "action_mode", "obs_mode", "with_position", "reward", "auto_reset", "n_levels", "task",
-                 "augment",
-                 "final_observation", "step_obs")
-# passed to the action mode's prepare (histojax.reading.modes.base)
-MODE_SETTINGS = ("read_budget", "track_reading", "glimpse_grid", "read_slots", "map_feature", "map_level")
-PARAM_FIELDS = tuple(f.name for f in dataclasses.fields(EnvParams) if f.name not in ("slide", "mode_data"))
-# settings of how ``make`` draws a dataset's slides (neither static nor EnvParams):
-# ``tumour_slides_only`` — reset draws only slides with tumour annotated (detection on a dataset that
-# also holds normal slides: a normal slide has nothing to find, so its episodes could only fail)
-# ``dataset_format`` / ``dataset_encoder`` — the least ``dataset.json`` "format" and the feature encoder a
-# dataset must have for this id (the C16 v1 ids: disjoint patch pools and pcam-cnn features); an older
-# dataset is refused naming the command that rebuilds it
-DATASET_FIELDS = ("tumour_slides_only", "dataset_format", "dataset_encoder")
+# the names of make's options by where they go, derived from the one typed set (histojax.make_options.MakeOptions):
+# static HistoEnv settings, EnvParams fields, the action mode's prepare settings (histojax.reading.modes.base),
+# and how make draws a dataset's slides (``tumour_slides_only``: reset draws only slides with tumour annotated;
+# ``dataset_format`` / ``dataset_encoder``: the least ``dataset.json`` "format" and the feature encoder a dataset
+# must have for this id, an older dataset refused naming the command that rebuilds it)
+STATIC_FIELDS = MakeOptions.names(STATIC)
+PARAM_FIELDS = MakeOptions.names(PARAMS)
+MODE_SETTINGS = MakeOptions.names(MODE)
+DATASET_FIELDS = MakeOptions.names(DATASET)
+if set(PARAM_FIELDS) != {f.name for f in dataclasses.fields(EnvParams)} - {"slide", "mode_data"}:
+    raise AssertionError("MakeOptions' params options must be the EnvParams fields")
 
 
 @dataclasses.dataclass(frozen=True)
@@ -76,9 +75,14 @@ class EnvSpec:
     scenario: object = None
 
     def __post_init__(self):
-        unknown = set(self.settings) - set(STATIC_FIELDS) - set(PARAM_FIELDS) - set(DATASET_FIELDS)
+        unknown = set(self.settings) - set(MakeOptions.names(STATIC, PARAMS, DATASET))
         if unknown:
             raise TypeError(f"unknown scenario settings {sorted(unknown)}")
+
+    @property
+    def options(self) -> MakeOptions:
+        """``settings`` as the typed :class:`~histojax.make_options.MakeOptions`."""
+        return MakeOptions(**self.settings)
 
 
 _REGISTRY: dict[str, EnvSpec] = {}
@@ -227,9 +231,9 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
 
     ``slide``: a bundle folder (``python -m data_tools build``) or ``None`` for the id's registered
     slide (``register(..., slide=...)``, e.g. a scenario's recipe) or else the embedded sample slide
-    (bundles are built on first use). ``overrides``: any static setting
-    (``action_mode``, ``obs_mode``, ``with_position``, ``reward``, ``auto_reset``, ``augment``; ``tile_size``
-    only for the sample slide, where it selects another cached bundle) or ``EnvParams`` field
+    (bundles are built on first use). ``overrides``: the options of :class:`histojax.make_options.MakeOptions`,
+    any static setting (``action_mode``, ``obs_mode``, ``with_position``, ``reward``, ``auto_reset``,
+    ``augment``; ``tile_size`` only for the sample slide, where it selects another cached bundle) or ``EnvParams`` field
     (``max_steps_in_episode``, ``stride``, ``success_threshold``, ``step_cost``,
     ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``, ``start_level``), or the reading
     settings of :mod:`histojax.reading.tables`: ``read_budget`` (fraction of finest-level tissue views, for
@@ -253,12 +257,10 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     when it has them, e.g. ``data_tools dataset --labels`` or CAMELYON16's ``reference.csv``, else 1 when
     the bundle has tumour annotated).
     """
-    mode_settings = {k: overrides.pop(k) for k in MODE_SETTINGS if k in overrides}
-    spec = {**spec_of(env_id).settings, **overrides}
-    unknown = set(spec) - set(STATIC_FIELDS) - set(PARAM_FIELDS) - set(DATASET_FIELDS)
-    if unknown:
-        raise TypeError(f"make({env_id!r}) got unknown settings {sorted(unknown)}; "
-                        f"static: {STATIC_FIELDS}; params: {PARAM_FIELDS}")
+    given = MakeOptions.of(overrides, where=f"make({env_id!r})")  # TypeError naming an unknown setting
+    options = given.over(spec_of(env_id).options)
+    mode_settings = given.given(MODE)  # only as given: a registered id holds no mode settings
+    spec = options.given(STATIC, PARAMS, DATASET)
     _check_start_level(factory.action_mode(spec.get("action_mode", "discrete")), spec.get("start_level", 0),
                        f"make({env_id!r})")
     slides = _resolve_slides(env_id, spec, slide, slides, dataset, split, fold)
@@ -289,10 +291,9 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     else:
         arrays = stack_slides([a for a, _ in loaded], weights=slide_weights, consume=True)  # per-slide copies freed
     arrays = arrays.replace(start_cdf=jnp.asarray(start_cdf(arrays.start_logits)))  # once, not at every reset
-    static = {k: spec[k] for k in STATIC_FIELDS if k in spec}
-    static["tile_size"] = tile_size
-    validate_params({k: spec[k] for k in PARAM_FIELDS if k in spec}, tile_size, where=f"make({env_id!r})")
-    params = EnvParams(slide=arrays, **{k: spec[k] for k in PARAM_FIELDS if k in spec})
+    static = {**options.given(STATIC), "tile_size": tile_size}
+    validate_params(options.given(PARAMS), tile_size, where=f"make({env_id!r})")
+    params = EnvParams(slide=arrays, **options.given(PARAMS))
     bundles = tuple(b for _, b in loaded)
     env = HistoEnv(name=env_id, _default_params=params, _bundle=bundles[0], _bundles=bundles, **static)
     mode_data = env.action.prepare(env, params, bundles, **mode_settings)  # per-slide tables of a reading mode, once

@@ -3,7 +3,7 @@ one jittable function holding the whole run (``lax.scan`` over updates; each upd
 rollout of vmapped envs, GAE, minibatch epochs). Nothing here comes from ``baselines``: only
 ``histojax.make`` and histojax's ``LogWrapper`` (``histojax.adapters.jax``).
 
-    python examples/purejaxrl_ppo.py                       # Easy on the sample slide, 1 seed, ~2 min on 2 CPU cores
+    python examples/purejaxrl_ppo.py                       # Easy on the sample slide, 1 seed, 163,840 env steps
     python examples/purejaxrl_ppo.py --seeds 3 --total-timesteps 163840 --out ppo.json
 
 Observations: ``HistoJAX-Easy-v0`` with ``with_position=True`` gives ``{"pixels": (128, 128, 3) uint8,
@@ -15,7 +15,7 @@ Seeds run one after another through the same compiled ``train`` (``jax.jit(train
 key); PureJaxRL's ``jax.vmap(train)`` over keys also works in principle, but a vmapped orthogonal
 initialiser (a batched QR) compiles very slowly on XLA's CPU backend.
 
-Prints, per seed, the success rate of the last update's finished training episodes and an evaluation
+Figures against ``baselines.ppo``: docs/results/examples.md. Prints, per seed, the success rate of the last update's finished training episodes and an evaluation
 of the trained policy on fresh episodes (sampled actions): success rate, mean return, mean length.
 """
 from __future__ import annotations

@@ -15,8 +15,9 @@ Seeds run one after another through the same compiled ``train`` (``jax.jit(train
 key); PureJaxRL's ``jax.vmap(train)`` over keys also works in principle, but a vmapped orthogonal
 initialiser (a batched QR) compiles very slowly on XLA's CPU backend.
 
-Figures against ``baselines.ppo``: docs/results/examples.md. Prints, per seed, the success rate of the last update's finished training episodes and an evaluation
+Prints, per seed, the success rate of the last update's finished training episodes and an evaluation
 of the trained policy on fresh episodes (sampled actions): success rate, mean return, mean length.
+Figures against ``baselines.ppo``: docs/results/examples.md.
 """
 from __future__ import annotations
 

@@ -410,3 +410,35 @@ def test_cached_view_terms_score_as_the_features():
         st_ = h.add_terms(st_, flat_t[i:i + 5], flat_m[i:i + 5])
     assert float(h.logit_terms(st_)) == pytest.approx(float(h.score(g, m)), abs=1e-4)
     assert float(h.score_terms(terms, np.zeros((6, 7), bool))) == pytest.approx(-0.9)
+
+
+def _with_folds(cohort, tmp_path, k=3) -> Path:
+    spec = json.loads((cohort["root"] / "dataset.json").read_text())
+    train = [str(cohort["root"] / e) for e in spec["train"]]
+    tum = [e for e in train if "tumour" in e]
+    nor = [e for e in train if "normal" in e]
+    lists = [sorted(tum[i::k] + nor[i::k]) for i in range(k)]
+    ds = tmp_path / "folded"
+    ds.mkdir()
+    (ds / "dataset.json").write_text(json.dumps({**spec, "train": train, "test": [], "folds": {
+        "k": k, "pool": "train", "seed": 0, "lists": lists}}))
+    return ds
+
+
+def test_fold_refusals_are_one_line(cohort, tmp_path, capsys):
+    ds = _with_folds(cohort, tmp_path)
+    assert _main(["--dataset", str(ds), "--out", str(tmp_path / "h"), "--fold", "3", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "fold=3 is out of range" in err and not (tmp_path / "h").exists()
+    assert _main(["--dataset", str(cohort["root"]), "--out", str(tmp_path / "h"), "--fold", "0", "--quiet"]) == 2
+    assert "has no folds" in capsys.readouterr().err
+
+
+@pytest.mark.slow
+def test_a_fold_trains_on_the_other_folds(cohort, tmp_path, capsys):
+    ds = _with_folds(cohort, tmp_path)
+    out = tmp_path / "h"
+    assert _main(["--dataset", str(ds), "--out", str(out), "--fold", "1", "--quiet", "--steps", "40", "--hidden", "32",
+                  "--eval-every", "20", "--lr", "5e-3", "--batch", "8", "--views", "64"]) == 0
+    cfg = json.loads((out / "config.json").read_text())  # fold 1's train side: the other two folds, 21 slides
+    assert cfg["fitted_on"]["slides"] + cfg["chosen_on"]["validation_slides"] == 21

@@ -235,23 +235,21 @@ def batch(rng, slides: list[dict], size: int, views: int, attention: list | None
     return x, m, y
 
 
-def attention_of(head, slides: list[dict], chunk: int = 1 << 15) -> list[np.ndarray]:
-    """Each slide's attention logits ``(N,)`` float32 under ``head`` (in chunks of ``chunk`` views, one compiled
-    shape)."""
+def attention_of(head, slides: list[dict], chunk: int = 1 << 16) -> list[np.ndarray]:
+    """Each slide's attention logits ``(N,)`` float32 under ``head``: every slide's views in one flat array, in
+    chunks of ``chunk`` rows (one compiled shape; only the last chunk is padded)."""
     import jax
 
     fn = jax.jit(lambda hd, x: hd.attention_logits(hd.embed(x)))
-    out = []
-    for s in slides:
-        f = np.asarray(s["features"])
-        parts = []
-        for i in range(0, len(f), chunk):
-            part = f[i:i + chunk]
-            pad = np.zeros((chunk, f.shape[1]), np.float32)
-            pad[:len(part)] = part
-            parts.append(np.asarray(fn(head, pad))[:len(part)])
-        out.append(np.concatenate(parts))
-    return out
+    sizes = [len(s["features"]) for s in slides]
+    flat = np.concatenate([np.asarray(s["features"]) for s in slides])
+    out = np.empty(len(flat), np.float32)
+    for i in range(0, len(flat), chunk):
+        part = flat[i:i + chunk]
+        if len(part) < chunk:
+            part = np.concatenate([part, np.zeros((chunk - len(part), flat.shape[1]), part.dtype)])
+        out[i:i + chunk] = np.asarray(fn(head, part))[:min(chunk, len(flat) - i)]
+    return np.split(out, np.cumsum(sizes)[:-1])
 
 
 # ----------------------------------------------------------------------------- scoring many slides

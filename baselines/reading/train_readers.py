@@ -1,25 +1,34 @@
-"""Learned readers trained with SASHA's reward (:class:`histojax.adapters.head_reward.HeadReward`), scored on
-validation slides with the same head as every other reader:
+"""Train learned readers on any dataset through any slide head, with SASHA's reward
+(:class:`histojax.adapters.head_reward.HeadReward`), and score them on validation slides with the same head as
+every other reader. A baseline with a ``histojax train``-style command line::
 
-    python -m baselines.reading.train_readers --dataset DIR --head HEAD --out runs/set-readers \\
-        [--algo ppo|ppo_rnn] [--seeds 3] [--total-steps N] [--read-budget 0.2] [--gain log] [--final 1] \\
-        [--read-cost 0] [--val-fraction 0.3] [--compare NAME RUN] [-- TRAINER OPTIONS]
+    python -m baselines.reading.train_readers --dataset DIR --head HEAD --seeds 3 --total-steps N --out DIR \\
+        [--algo ppo|ppo_rnn] [--fold I] [--resume] [--read-budget 0.2] [--gain log] [--final 1] [--read-cost 0] \\
+        [--val-fraction 0.3] [--env ID] [--levels N] [--compare NAME RUN] [-- TRAINER OPTIONS]
 
-1. Holds back a validation share of ``DIR``'s training split (:func:`baselines.validation.split_train`,
-   per class) and writes ``OUT/dataset.json``: the same bundles, splits ``train`` (what is kept),
-   ``validation`` and ``test`` (never read here), and ``OUT/validation-set/dataset.json`` whose ``test``
-   split is the validation slides (what the scoring step reads; it holds no test slide).
-2. Trains the cell-set reader (``glimpse`` with ``step_obs=True``, the ``-v2`` ids:
+``DIR``: any dataset ``histojax dataset`` or ``histojax c16`` builds, with any encoder's feature grids (pcam-cnn,
+your own ``--encoder module:function``, or ``.h5`` features imported from TRIDENT / CLAM); ``HEAD``: any slide
+head folder (the learned attention-MIL head of :mod:`baselines.reading.learned_head_fit` for any features, or a
+pcam-cnn logit head). The env id is ``HistoJAX-Reading-v0`` (any dataset; ``--env HistoJAX-C16-Diagnosis-v2``
+still trains on a C16 set as before), its zoom levels the most the bundles were built for, up to 5 (``--levels``).
+
+1. Holds back a validation share of ``DIR``'s training split (``--fold I``: of fold I's train side;
+   :func:`baselines.validation.split_train`, per class) and writes ``OUT/dataset.json``: the same bundles, splits
+   ``train`` (what is kept), ``validation`` and ``test`` (never read here), and
+   ``OUT/validation-set/dataset.json`` whose ``test`` split is the validation slides (what the scoring step reads;
+   it holds no test slide).
+2. Trains the cell-set reader (``glimpse`` with ``step_obs=True``:
    :class:`baselines.networks.CellSetActorCritic`, or its recurrent twin with ``--algo ppo_rnn``) on
-   the kept training slides, the env wrapped in ``HeadReward(env, head, gain, final, read_cost)``; the
-   trainer's run folder ``OUT/<algo>`` (``log.csv``, ``curve.png``, ``params.msgpack``, ``config.json``)
-   plus ``OUT/<algo>/head_reward.json`` (the reward's settings) and ``OUT/<algo>/curve-seeds.png`` / ``.csv``
-   (the learning curve as mean ± std over seeds: :func:`seed_curve`).
+   the kept training slides, the env wrapped in ``HeadReward(env, head, gain, final, read_cost)``, with the
+   trainer's progress lines and checkpoints; the trainer's run folder ``OUT/<algo>`` (``log.csv``, ``curve.png``,
+   ``params.msgpack``, ``config.json``) plus ``OUT/<algo>/head_reward.json`` (the reward's settings) and
+   ``OUT/<algo>/curve-seeds.png`` / ``.csv`` (the learning curve as mean ± std over seeds: :func:`seed_curve`).
+   ``--resume`` continues a stopped run of the same ``OUT`` from its last checkpoint (``OUT/<algo>/checkpoint``).
 3. Scores the trained seeds with :mod:`baselines.reading.readers` on the **validation** split at 5/10/20/50 %
    (overview only, random, scripted, the learned reader, read everything; the same head for every row):
    ``OUT/validation/readers.csv``, ``readers.png``, ``readers.json``.
 
-**Navigators** (``--action-mode discrete`` or ``continuous``, e.g. on ``HistoJAX-C16-Diagnosis-v2``): the
+**Navigators** (``--action-mode discrete`` or ``continuous``): the
 same training, the env wrapped in ``HeadReward`` (it tracks the finest views the navigator stood on; with
 ``HeadReward`` the head declares, the navigator's own declare only ends the episode; no ``read_budget``),
 and the scoring step is :mod:`baselines.reading.diagnosis` on the validation split instead: each seed rolled
@@ -37,9 +46,24 @@ import time
 from pathlib import Path
 
 from histojax import compile_cache
+from histojax.registry import READING_ID
 
-ENV_ID = "HistoJAX-C16-Diagnosis-v2"
+ENV_ID = READING_ID
+MAX_LEVELS = 5  # zoom levels the reading id uses at most (the C16 ids' five)
 NAVIGATION_MODES = ("discrete", "continuous")
+
+
+def dataset_levels(dataset: Path, spec: dict, most: int = MAX_LEVELS) -> int:
+    """The most zoom levels (≤ ``most``) the first training bundle of ``dataset`` was built for (its
+    ``metadata.json``'s ``level_sets``; 3 when it records none), read through the checked loader."""
+    from data_tools.bundle_format import read_metadata
+
+    entries = spec.get("train") or []
+    if not entries:
+        return 3
+    bundle = Path(entries[0]) if Path(entries[0]).is_absolute() else dataset / entries[0]
+    sets = [int(n) for n in (read_metadata(bundle).level_sets or []) if int(n) <= most]
+    return max(sets) if sets else 3
 
 
 def is_navigator(action_mode: str) -> bool:
@@ -48,18 +72,21 @@ def is_navigator(action_mode: str) -> bool:
     return action_mode.split(":")[0] in NAVIGATION_MODES
 
 
-def split_dataset(dataset: Path, out: Path, fraction: float, seed: int) -> Path:
-    """``out/dataset.json``: ``dataset``'s spec with its training split cut into ``train`` and
-    ``validation`` (bundle paths made absolute); returns ``out``."""
+def split_dataset(dataset: Path, out: Path, fraction: float, seed: int, fold: int | None = None) -> Path:
+    """``out/dataset.json``: ``dataset``'s spec (``fold=i``: fold i's sides) with its training split cut into
+    ``train`` and ``validation`` (bundle paths made absolute); returns ``out``. ``HistojaxDataError`` naming the
+    file on a missing, edited or malformed ``dataset.json``."""
+    from baselines.reading.head_fit import read_spec
     from baselines.validation import split_train
 
-    spec = json.loads((dataset / "dataset.json").read_text())
+    spec = read_spec(dataset, fold)  # its seal checked; fold i's sides
     kept, val = split_train(spec, fraction, seed)
     absolute = lambda entries: [str((dataset / e).resolve()) if not Path(e).is_absolute() else e  # noqa: E731
                                 for e in entries]
     derived = {**spec, "train": absolute(kept), "validation": absolute(val), "test": absolute(spec.get("test") or []),
                "derived_from": str(dataset.resolve()),
-               "validation_split": {"fraction": fraction, "seed": seed, "rule": "baselines.validation.split_train"}}
+               "validation_split": {"fraction": fraction, "seed": seed, "rule": "baselines.validation.split_train",
+                                    **({"fold": fold} if fold is not None else {})}}
     # the envs know the splits train / test: the validation slides are scored as the test split of a second
     # folder (OUT/validation-set), which holds no test slide at all
     scoring = {**derived, "test": derived["validation"], "validation": [], "note_split": "test = the validation slides"}
@@ -147,7 +174,13 @@ def main(argv=None) -> int:
     p.add_argument("--head", required=True)
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--algo", choices=("ppo", "ppo_rnn"), default="ppo")
-    p.add_argument("--env", default=ENV_ID)
+    p.add_argument("--env", default=ENV_ID, help=f"env id (default {ENV_ID}: any dataset)")
+    p.add_argument("--levels", type=int, default=None,
+                   help=f"zoom levels (default: the most the bundles were built for, up to {MAX_LEVELS})")
+    p.add_argument("--fold", type=int, default=None, metavar="I",
+                   help="a dataset built with --folds K: train on fold I's train side (minus the validation share)")
+    p.add_argument("--resume", action="store_true",
+                   help="continue the stopped run in OUT/<algo> from its last checkpoint (its own config)")
     p.add_argument("--action-mode", default="glimpse:1")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--total-steps", type=int, default=200_000, help="env steps per seed")
@@ -173,9 +206,23 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
+    from data_tools.errors import HistojaxDataError
+
     navigator = is_navigator(args.action_mode)
-    data = split_dataset(args.dataset, args.out, args.val_fraction, args.split_seed)
     run_dir = args.out / args.algo
+    if args.resume and not (run_dir / "checkpoint").is_dir():
+        print(f"error: {run_dir}: no checkpoint to resume (no {run_dir / 'checkpoint'}); start the run without "
+              "--resume", file=sys.stderr)
+        return 2
+    try:
+        if args.resume and (args.out / "dataset.json").is_file():
+            data = args.out  # the split the stopped run trained on
+        else:
+            data = split_dataset(args.dataset, args.out, args.val_fraction, args.split_seed, args.fold)
+        levels = args.levels or dataset_levels(args.dataset, json.loads((data / "dataset.json").read_text()))
+    except (HistojaxDataError, ValueError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
     t0 = time.perf_counter()
     if not args.skip_training:
         module = __import__(f"baselines.{args.algo}", fromlist=["main"])
@@ -183,13 +230,16 @@ def main(argv=None) -> int:
         original = with_head_reward(head, gain, args.final, args.read_cost)
         try:
             env_kwargs = {"dataset": str(data), "split": "train"}
+            if args.env == READING_ID:  # any dataset: the levels its bundles were built for
+                env_kwargs["n_levels"] = levels
             if not navigator:   # a navigator's episode reads what it stands on: no reading budget
                 env_kwargs["read_budget"] = args.read_budget
-            trainer_argv = ["--env", args.env, "--dataset", str(data), "--split", "train",
-                            "--action-mode", args.action_mode, "--obs", "features", "--seeds", str(args.seeds),
-                            "--total-steps", str(args.total_steps), "--num-envs", str(args.num_envs),
-                            "--set", f"env_kwargs={json.dumps(env_kwargs)}",
-                            "--out", str(run_dir), *extra]
+            trainer_argv = (["--resume", str(run_dir)] if args.resume else
+                            ["--env", args.env, "--dataset", str(data), "--split", "train",
+                             "--action-mode", args.action_mode, "--obs", "features", "--seeds", str(args.seeds),
+                             "--total-steps", str(args.total_steps), "--num-envs", str(args.num_envs),
+                             "--set", f"env_kwargs={json.dumps(env_kwargs)}",
+                             "--out", str(run_dir), *extra])
             code = module.main(trainer_argv)
         finally:
             common.make_env = original

@@ -32,7 +32,9 @@ reported over all test slides and over normal vs micro/macro (ITC-only slides le
 scores it above every normal test slide.
 
 Writes ``readers.csv`` (one row per reader × budget), ``lesions.csv`` (per test tumour slide),
-``readers.json`` and ``readers.png``.
+``readers.json``, ``readers.png`` and, per trained reader, reading maps ``reading_<reader>_tumour.png`` /
+``_normal.png`` (:func:`reading_map`: the head's per-view scores beside the views the reader read, at the budget
+nearest 10 %).
 """
 from __future__ import annotations
 
@@ -447,6 +449,54 @@ def plot(rows: list[dict], path, title: str = "") -> Path:
     return outputs.save_figure(fig, path)
 
 
+def reading_map(slide: dict, mask: np.ndarray, path, reader: str = "", head_name: str = "", budget=None) -> Path:
+    """A PNG of where a reader read on one slide, beside what the head sees: left the head's per-view scores of
+    the finest tissue views (``slide["logits"]``: a learned head's calibrated instance logits, a logit head's view
+    logit), right the views read (``mask (H, W)`` bool) over the tissue; tumour views (from the annotation, when
+    the slide has one) outlined on both. Returns the path."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    tissue = slide["tissue"]
+    scores = np.where(tissue, slide["logits"], np.nan)
+    tumour = tumour_views(slide)
+    mask = np.asarray(mask, bool) & tissue
+    h, w = tissue.shape
+    fig = Figure(figsize=(11.0, 4.6 * h / max(w, 1) + 1.2), dpi=100, layout="constrained")
+    FigureCanvasAgg(fig)
+    left, right = fig.subplots(1, 2)
+    im = left.imshow(scores, cmap="magma", interpolation="nearest")
+    fig.colorbar(im, ax=left, fraction=0.04, label="head's per-view score (logit)")
+    left.set_title(f"per-view scores of {head_name or 'the head'}", fontsize="small")
+    shown = np.where(tissue, 0.25, 0.0) + np.where(mask, 0.75, 0.0)
+    right.imshow(shown, cmap="Blues", vmin=0, vmax=1, interpolation="nearest")
+    fraction = mask.sum() / max(1, tissue.sum())
+    right.set_title(f"{reader or 'reader'}: {mask.sum()} views read ({fraction:.1%} of tissue"
+                    + (f", budget {budget:.0%}" if budget is not None else "") + ")", fontsize="small")
+    for ax in (left, right):
+        if tumour.any():
+            ax.contour(tumour.astype(float), levels=[0.5], colors="#2ecc71", linewidths=1.2)
+        ax.set_xticks([])
+        ax.set_yticks([])
+    fig.suptitle(f"{slide['name']}: {'tumour' if slide['label'] else 'normal'} slide"
+                 + (" (green: tumour views)" if tumour.any() else ""), fontsize="medium")
+    return outputs.save_figure(fig, path)
+
+
+def write_reading_maps(out: Path, slides: list[dict], name: str, masks: list[np.ndarray], head_name: str,
+                       budget: float) -> list[Path]:
+    """:func:`reading_map` of a reader's masks on the first tumour and the first normal slide:
+    ``out/reading_<reader>_tumour.png`` / ``_normal.png``."""
+    safe = "".join(c if c.isalnum() else "-" for c in name).strip("-") or "reader"
+    written = []
+    for label, word in ((1, "tumour"), (0, "normal")):
+        i = next((k for k, s in enumerate(slides) if s["label"] == label), None)
+        if i is not None:
+            written.append(reading_map(slides[i], masks[i], out / f"reading_{safe}_{word}.png", name, head_name,
+                                       budget))
+    return written
+
+
 def add_arguments(p) -> None:
     """The options of ``python -m baselines.reading.readers``."""
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; pcam-cnn feature grids)")
@@ -577,6 +627,7 @@ def run(args, parser=None) -> int:
     if not slides or len({s["label"] for s in slides}) < 2:
         return print_error(f"{args.dataset}: split {args.split!r} needs tumour and normal slides to score an AUC")
     results = scripted_results(head, slides, args.budgets, args.seeds, args.cell_level, progress=True)
+    maps = {}
     for name, run_dir in args.reader:
         try:
             masks = policy_masks(run_dir, args.dataset, slides, args.split, args.budgets, args.policy_seeds,
@@ -584,10 +635,14 @@ def run(args, parser=None) -> int:
         except (OSError, ValueError, HistojaxDataError) as e:
             return print_error(f"--reader {name}: {e}")
         add_reader(results, head, slides, name, masks, "learned")
+        maps[name] = masks
     rows = rows_from_results(results, slides)
     lesions = lesion_rows(slides, results)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
+    b = min(args.budgets, key=lambda v: abs(v - 0.1))  # reading maps at the budget nearest 10 %
+    for name, masks in maps.items():  # a trained reader's first seed: where it read beside the head's scores
+        write_reading_maps(out, slides, name, masks[float(b)][0], head.name, b)
     write_csv(rows, out / "readers.csv")
     write_csv(lesions, out / "lesions.csv")
     wall = time.perf_counter() - t0

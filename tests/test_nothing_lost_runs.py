@@ -262,3 +262,106 @@ def test_the_budget_curve_refuses_bad_options_in_one_line(small_dataset, tmp_pat
     line = _one_line(capsys)
     assert words in line, line
     assert not (tmp_path / "bc").exists()
+
+
+# ----------------------------------------------------------------------------- run folders: nothing overwritten, one writer
+TRAIN = ["train", "--env", "HistoJAX-Easy-v0", "--total-steps", "512", "--seeds", "1"]
+
+
+def _finished_run(folder: Path) -> Path:
+    (folder / "checkpoint").mkdir(parents=True)
+    for name in ("params.msgpack", "log.csv", "log.json", "curve.png"):
+        (folder / name).write_bytes(b"a finished run's " + name.encode())
+    (folder / "config.json").write_text(json.dumps({"env_id": "HistoJAX-Easy-v0", "seed": 0}))
+    (folder / "checkpoint" / "config.json").write_text(json.dumps({"env_id": "HistoJAX-Easy-v0", "seed": 0}))
+    return folder
+
+
+def _contents(folder: Path) -> dict:
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
+            and p.name != ".histojax-run.lock"}
+
+
+@pytest.mark.parametrize("what", ["users-notes", "slide-head", "finished-run"])
+def test_train_out_refuses_a_folder_it_would_overwrite(tmp_path, capsys, what):
+    from histojax.cli import main
+
+    out = tmp_path / "exp"
+    if what == "users-notes":
+        out.mkdir()
+        (out / "config.json").write_text('{"my": "notes"}')
+    elif what == "slide-head":
+        _logit_head(out)
+    else:
+        _finished_run(out)
+    before = _contents(out)
+    assert main([*TRAIN, "--out", str(out)]) == 2
+    line = _one_line(capsys)
+    assert str(out) in line and "--overwrite" in line, line
+    assert _contents(out) == before
+    if what != "finished-run":  # --overwrite replaces only a run's own files: a user's or a head's are refused still
+        assert main([*TRAIN, "--out", str(out), "--overwrite"]) == 2
+        assert "did not write" in _one_line(capsys)
+        assert _contents(out) == before
+
+
+def test_overwrite_replaces_only_a_runs_own_state_and_keeps_its_results_until_the_new_ones(tmp_path):
+    from baselines.common import run_folder
+
+    out = _finished_run(tmp_path / "exp")
+    assert run_folder.claim(out, {"env_id": "HistoJAX-Easy-v0", "seed": 7}, overwrite=True) == out
+    run_folder.release(out)
+    assert not (out / "checkpoint").exists() and (out / "params.msgpack").read_bytes().startswith(b"a finished")
+
+
+def test_an_unfinished_run_of_the_same_config_may_start_again_another_configs_is_refused(tmp_path, capsys):
+    from baselines.common import run_folder
+
+    out = tmp_path / "exp"
+    (out / "checkpoint").mkdir(parents=True)
+    (out / "checkpoint" / "config.json").write_text(json.dumps({"env_id": "HistoJAX-Easy-v0", "seed": 0, "lr": 1e-3}))
+    assert run_folder.claim(out, {"env_id": "HistoJAX-Easy-v0", "seed": 0}) == out
+    run_folder.release(out)
+    with pytest.raises(run_folder.RunFolderError, match="unfinished run of another config.*--resume.*--overwrite"):
+        run_folder.claim(out, {"env_id": "HistoJAX-Easy-v0", "seed": 7})
+
+
+def test_the_default_run_folder_is_never_overwritten_the_next_free_number_is_taken(tmp_path, monkeypatch):
+    from baselines.common import run_folder
+
+    monkeypatch.chdir(tmp_path)
+    first = _finished_run(Path("runs/ppo-HistoJAX-Easy-v0"))
+    before = _contents(first)
+    got = run_folder.claim(first, {"env_id": "HistoJAX-Easy-v0", "seed": 0}, default=True)
+    run_folder.release(got)
+    assert got == Path("runs/ppo-HistoJAX-Easy-v0-2") and _contents(first) == before
+
+
+def test_one_writer_per_run_folder_and_a_killed_writer_leaves_no_lock(tmp_path, capsys):
+    import subprocess
+    import sys
+
+    from baselines.common import run_folder
+    from histojax.cli import main
+
+    out = tmp_path / "run"
+    out.mkdir()
+    holder = subprocess.Popen([sys.executable, "-c", (
+        "import fcntl, os, sys, time\n"
+        f"fd = os.open({str(out / run_folder.LOCK)!r}, os.O_RDWR | os.O_CREAT)\n"
+        "fcntl.flock(fd, fcntl.LOCK_EX); os.write(fd, str(os.getpid()).encode()); print('held', flush=True)\n"
+        "time.sleep(120)\n")], stdout=subprocess.PIPE, text=True)
+    try:
+        assert holder.stdout.readline().strip() == "held"
+        assert main([*TRAIN, "--out", str(out)]) == 2
+        line = _one_line(capsys)
+        assert "another training run" in line and str(out) in line, line
+        (out / "checkpoint").mkdir()
+        (out / "checkpoint" / "config.json").write_text(json.dumps({"algo": "ppo", "env_id": "HistoJAX-Easy-v0"}))
+        assert main(["train", "--resume", str(out)]) == 2
+        assert "another training run" in _one_line(capsys)
+    finally:
+        holder.kill()
+        holder.wait()
+    assert run_folder.claim(out, {"algo": "ppo", "env_id": "HistoJAX-Easy-v0"}) == out  # the OS dropped the lock
+    run_folder.release(out)

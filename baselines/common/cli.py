@@ -6,8 +6,12 @@ import functools
 import json
 from pathlib import Path
 
+import jax
+
 from baselines import distributed
-from data_tools.cli_output import build_parser, command_main, positive_float
+from baselines.common import run_folder
+from data_tools.cli_output import build_parser, command_main, positive_float, print_error
+from data_tools.errors import HistojaxDataError
 from baselines.common.runner import resume_config, run_and_save
 
 
@@ -47,7 +51,12 @@ def add_arguments(p, defaults: dict) -> None:
     distributed.add_arguments(p)
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
                    help="any other config entry, value parsed as JSON (e.g. --set ent_coef=0.02)")
-    p.add_argument("--out", default=None, help="run folder (default runs/<algo>-<env>)")
+    p.add_argument("--out", default=None,
+                   help="run folder (default runs/<algo>-<env>, or the next free runs/<algo>-<env>-N when that one "
+                        "is used); a folder holding anything but an unfinished run of this config is refused")
+    p.add_argument("--overwrite", action="store_true",
+                   help="replace the run in --out (only the files histojax wrote there; its final files stay until "
+                        "the new run's are written)")
     if "checkpoint_every" in defaults:
         p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
                        help=f"save the whole training state to OUT/checkpoint/ every N updates "
@@ -104,14 +113,32 @@ def train_and_save(algo: str, make_train_fn, args, defaults: dict, unit: str) ->
     checkpoint with :func:`finish_run`."""
     if getattr(args, "resume", None) is not None:
         run = Path(args.resume)
-        config = resume_config(run, algo)
-        run_and_save(algo, make_train_fn, config, run, unit, resume=True)
+        try:
+            if not run.is_dir():
+                raise run_folder.RunFolderError(run, "no such run folder; nothing to resume")
+            run_folder.lock(run)  # one writer per run folder: a second --resume / --out RUN is refused
+            config = resume_config(run, algo)
+        except HistojaxDataError as e:
+            return print_error(e)
+        try:
+            run_and_save(algo, make_train_fn, config, run, unit, resume=True)
+        finally:
+            run_folder.release(run)
         return 0
     config = config_from_args(args, defaults=defaults)
     if (args.coordinator is not None or args.distributed) and "devices" not in defaults:
         raise SystemExit("several processes (--coordinator / --distributed) are supported by the PPO baseline only")
     distributed.from_args(args)
-    run_and_save(algo, make_train_fn, config, Path(args.out or f"runs/{algo}-{config['env_id']}"), unit)
+    out = Path(args.out or f"runs/{algo}-{config['env_id']}")
+    if jax.process_index() == 0:  # the process that writes the run's files holds its folder
+        try:
+            out = run_folder.claim(out, config, overwrite=getattr(args, "overwrite", False), default=args.out is None)
+        except HistojaxDataError as e:
+            return print_error(e)
+    try:
+        run_and_save(algo, make_train_fn, config, out, unit)
+    finally:
+        run_folder.release(out)
     return 0
 
 

@@ -1,0 +1,180 @@
+"""Run folders: which folder a training run may write, and one writer per folder.
+
+A run folder holds only what histojax wrote there (:data:`RUN_ENTRIES`): ``log.csv``, ``log.json``,
+``curve.png``, ``params.msgpack``, ``config.json``, ``checkpoint/``, TensorBoard events, ``process-N/``,
+``eval/`` and the lock file. :func:`claim` decides, before anything is written:
+
+* an absent or empty folder: the run starts there;
+* the folder of an *unfinished* run (``checkpoint/`` but no ``params.msgpack``) of the same config: the run starts
+  again there (``--resume`` continues it instead);
+* anything else (a finished run, another config's unfinished run, a user's file, a slide head folder) is refused in
+  one line naming the folder and what it holds, suggesting ``--overwrite``. ``--overwrite`` replaces only entries
+  histojax wrote (a user's file there is still refused); the previous run's final files stay until the new run's
+  are written as a whole;
+* the default folder ``runs/<algo>-<env>`` is never overwritten: when it holds something, the run goes to the first
+  free ``runs/<algo>-<env>-2``, ``-3``, ... (as Stable-Baselines3 numbers its log folders ``PPO_1``, ``PPO_2``).
+
+One writer per run folder: :func:`claim` takes an exclusive ``fcntl.flock`` on ``RUN/.histojax-run.lock`` and
+holds it until the process ends (the operating system drops the lock of a killed process, so a killed run never
+leaves its folder locked). A second ``train --out RUN`` or ``--resume RUN`` while one holds it is refused in one
+line.
+"""
+from __future__ import annotations
+
+import fcntl
+import json
+import os
+import re
+import shutil
+from pathlib import Path
+
+from data_tools.errors import HistojaxDataError
+
+LOCK = ".histojax-run.lock"
+"""The lock file inside a run folder (held with ``fcntl.flock`` while a run writes there)."""
+FINAL = ("log.csv", "log.json", "curve.png", "params.msgpack", "config.json")
+"""A finished run's files (written as a whole at its end)."""
+RUN_ENTRIES = re.compile(r"^(log\.csv|log\.json|curve\.png|params\.msgpack|config\.json|checkpoint|eval|"
+                         r"process-\d+|events\.out\.tfevents\..+|\.histojax-run\.lock|\..+\.tmp-[0-9a-f]{8})$")
+"""Names histojax writes in a run folder (temporaries of an atomic write included)."""
+MAX_NUMBERED = 1000
+"""The most numbered default folders (``runs/<algo>-<env>-N``) tried."""
+
+_HELD: dict[str, int] = {}  # run folder (resolved) -> the open lock file descriptor, held until the process ends
+
+
+class RunFolderError(HistojaxDataError):
+    """A run folder a training run may not write (file named, one line)."""
+
+
+def _is_run_config(path: Path) -> bool:
+    """Whether ``path`` is a run's ``config.json`` as a trainer writes it: a JSON object naming its ``env_id``."""
+    try:
+        config = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return False
+    return isinstance(config, dict) and isinstance(config.get("env_id"), str)
+
+
+def foreign_entries(out: Path) -> list[str]:
+    """The entries of ``out`` that histojax does not write in a run folder (a user's files), sorted: names a run
+    never holds, and a ``config.json`` / ``checkpoint/config.json`` that is not a run's config (a user's notes,
+    a slide head's config)."""
+    foreign = [n for n in os.listdir(out) if not RUN_ENTRIES.match(n)]
+    for name in ("config.json", "checkpoint/config.json"):
+        if (out / name).exists() and not _is_run_config(out / name):
+            foreign.append(name)
+    if (out / "checkpoint").exists() and not (out / "checkpoint").is_dir():
+        foreign.append("checkpoint")
+    return sorted(set(foreign))
+
+
+def _checkpoint_config(out: Path) -> dict | None:
+    try:
+        config = json.loads((out / "checkpoint" / "config.json").read_text())
+    except (OSError, ValueError):
+        return None
+    return config if isinstance(config, dict) else None
+
+
+def _same(saved: dict, config: dict) -> bool:
+    """Whether the checkpoint's full config ``saved`` is a run of ``config`` (the command's entries, which the
+    trainer completes with its own): every entry of ``config`` equal in ``saved``."""
+    norm = lambda v: json.dumps(v, sort_keys=True, default=str)  # noqa: E731
+    return all(k in saved and norm(saved[k]) == norm(v) for k, v in config.items())
+
+
+def lock(out: Path) -> None:
+    """Take the exclusive lock of the run folder ``out`` (created if absent) for the rest of this process;
+    ``RunFolderError`` naming the folder when another process holds it. Taking it twice in one process is a no-op."""
+    out = Path(out)
+    key = os.path.realpath(out)
+    if key in _HELD:
+        return
+    try:
+        out.mkdir(parents=True, exist_ok=True)
+        fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | os.O_CLOEXEC, 0o644)
+    except OSError as e:
+        raise RunFolderError(out, f"cannot be written ({e.strerror or e}); choose another --out") from None
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+    except OSError:
+        try:
+            holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
+        finally:
+            os.close(fd)
+        raise RunFolderError(out, f"another training run (process {holder}) is writing this run folder (it holds "
+                                  f"{LOCK}); wait for it to end, or choose another --out") from None
+    os.ftruncate(fd, 0)
+    os.write(fd, f"{os.getpid()}\n".encode())
+    _HELD[key] = fd
+
+
+def release(out: Path) -> None:
+    """Drop this process's lock of the run folder ``out`` (the end of a run; a process that ends drops it too)."""
+    fd = _HELD.pop(os.path.realpath(Path(out)), None)
+    if fd is not None:
+        os.close(fd)
+
+
+def _state(out: Path, config: dict) -> str:
+    """``"empty"``, ``"unfinished-same"`` (a checkpoint of ``config``, no final params), ``"finished"``,
+    ``"unfinished-other"`` or ``"foreign"`` (entries histojax does not write)."""
+    names = [n for n in os.listdir(out) if n != LOCK]
+    if not names:
+        return "empty"
+    if foreign_entries(out):
+        return "foreign"
+    if (out / "params.msgpack").exists():
+        return "finished"
+    saved = _checkpoint_config(out)
+    if saved is not None and _same(saved, config):
+        return "unfinished-same"
+    return "unfinished-other"
+
+
+def claim(out, config: dict, overwrite: bool = False, default: bool = False) -> Path:
+    """The folder a new run of ``config`` writes, locked (:func:`lock`) and checked (module doc). ``default``:
+    ``out`` is the default ``runs/<algo>-<env>``, so a used one moves the run to the next free numbered folder.
+    ``RunFolderError`` naming the folder, one line, when it may not be written. Returns the folder."""
+    out = Path(out)
+    if default and not overwrite:
+        for n in range(1, MAX_NUMBERED + 1):
+            candidate = out if n == 1 else out.with_name(f"{out.name}-{n}")
+            if candidate.is_dir() and not candidate.is_symlink() and _state(candidate, config) not in (
+                    "empty", "unfinished-same"):
+                continue
+            if candidate.exists() and not candidate.is_dir():
+                continue
+            try:
+                return claim(candidate, config)
+            except RunFolderError:
+                continue  # held by another run: the next number
+        raise RunFolderError(out, f"{out}-2 ... {out}-{MAX_NUMBERED} are all used; choose a folder with --out")
+    if out.is_symlink() or (out.exists() and not out.is_dir()):
+        raise RunFolderError(out, "is a file or a link, not a run folder; choose another --out")
+    lock(out)
+    state = _state(out, config)
+    if state in ("empty", "unfinished-same"):
+        if state == "unfinished-same":
+            print(f"{out} holds an unfinished run of this config: starting it again (histojax train --resume {out} "
+                  "would continue it)", flush=True)
+        return out
+    foreign = foreign_entries(out)
+    if foreign:
+        release(out)
+        raise RunFolderError(out, f"holds files histojax did not write (e.g. {foreign[0]!r}); refusing to train "
+                                  "into it (choose another --out; --overwrite replaces only a run's own files)")
+    if not overwrite:
+        release(out)
+        what = "a finished run (params.msgpack)" if state == "finished" else "an unfinished run of another config"
+        raise RunFolderError(out, f"holds {what}; refusing to overwrite it: choose another --out, continue an "
+                                  "unfinished run with --resume, or replace it with --overwrite")
+    for name in ("checkpoint", "eval"):  # the old run's state: replaced; its final files stay until the new ones
+        if (out / name).is_dir() and not (out / name).is_symlink():
+            shutil.rmtree(out / name)
+    for name in os.listdir(out):
+        if name.startswith(("events.out.tfevents.", "process-")):
+            path = out / name
+            shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
+    return out

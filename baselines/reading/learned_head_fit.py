@@ -235,14 +235,16 @@ def batch(rng, slides: list[dict], size: int, views: int, attention: list | None
     return x, m, y
 
 
-def attention_of(head, slides: list[dict], chunk: int = 1 << 16) -> list[np.ndarray]:
-    """Each slide's attention logits ``(N,)`` float32 under ``head``: every slide's views in one flat array, in
-    chunks of ``chunk`` rows (one compiled shape; only the last chunk is padded)."""
+def attention_of(head, slides: list[dict], chunk: int = 1 << 16, flat: np.ndarray | None = None) -> list[np.ndarray]:
+    """Each slide's attention logits ``(N,)`` float32 under ``head``: every slide's views in one flat array
+    (``flat``, the slides' features concatenated, when the caller keeps one), in chunks of ``chunk`` rows (one
+    compiled shape; only the last chunk is padded)."""
     import jax
 
     fn = jax.jit(lambda hd, x: hd.attention_logits(hd.embed(x)))
     sizes = [len(s["features"]) for s in slides]
-    flat = np.concatenate([np.asarray(s["features"]) for s in slides])
+    if flat is None:
+        flat = np.concatenate([np.asarray(s["features"]) for s in slides])
     out = np.empty(len(flat), np.float32)
     for i in range(0, len(flat), chunk):
         part = flat[i:i + chunk]
@@ -375,6 +377,7 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
     rng = np.random.default_rng(10_000 + seed)
     curve, losses, best, best_key = [], [], head0, (-1.0, -1.0)
     attention = None
+    flat = np.concatenate([np.asarray(s["features"]) for s in train_slides]) if top_share > 0 else None
     bar = tqdm(range(steps), desc=f"{structure['hidden']} units, seed {seed}", disable=not progress,
                file=sys.stderr, leave=False)
     for i in bar:
@@ -384,7 +387,7 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
         if (i + 1) % eval_every == 0 or i + 1 == steps:
             head = head0.replace(params={**tp, **frozen})
             if top_share > 0 and i + 1 < steps:
-                attention = attention_of(head, train_slides)
+                attention = attention_of(head, train_slides, flat=flat)
             row = {"step": i + 1, "loss": float(np.mean(losses[-eval_every:]))}
             if val is not None:
                 row.update(val.aucs(head, draws=2))

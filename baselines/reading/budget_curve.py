@@ -21,6 +21,11 @@ mean fraction actually read, AUC, accuracy at 0.5, slides, the standard deviatio
 over seeds — random reader orders, or the first ``--policy-seeds`` seeds (default 3) of a trained
 policy — and a trained policy's fields of view per episode) and ``budget_curve.png``.
 
+``--fold I`` (a dataset built with ``--folds K``): the head trained on fold I's train side, scored on its held-out
+side. ``--all-folds``: that for every fold (:func:`fold_rows`), the CSV's rows of each fold (column ``fold``) and one
+``fold = mean`` row per method × budget (:func:`summary_rows`: means over folds, ``*_std`` the std over folds); the
+plot draws the means with ± bands over folds.
+
 The curve with one slide head with spatial context for every row (overview only, random, scripted and
 trained readers, read everything; the CAMELYON lesion table) is ``python -m baselines.reading.readers``
 (:mod:`baselines.reading.readers`, head fitted by :mod:`baselines.reading.head_fit`).
@@ -38,6 +43,7 @@ import optax
 from flax.core.scope import LazyRng
 
 from baselines import outputs
+from baselines.folds import SUMMARY, dataset_folds, mean_std, scored_side, with_fold
 from data_tools.metrics import accuracy, roc_auc
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
@@ -388,7 +394,7 @@ def policy_rows(run, dataset, name: str, heads: dict, tables, labels, budgets=BU
     seeds = max(1, min(policy_seeds, run_seeds(run)))
     per = {}  # (method, budget) -> [(auc, accuracy, fraction, fields)] per seed
     for seed in range(seeds):
-        for b, reads in policy_reads(run, dataset, "test", budgets, seed=seed, fold=fold).items():
+        for b, reads in policy_reads(run, dataset, scored_side(dataset, fold), budgets, seed=seed, fold=fold).items():
             x, m = bags([{**t, "instance_cell": np.arange(len(t["instances"]))} for t in tables], [r[0] for r in reads])
             fraction = float(np.mean([r[2] for r in reads]))
             fields = float(np.mean([r[3] for r in reads]))
@@ -410,9 +416,10 @@ def policy_rows(run, dataset, name: str, heads: dict, tables, labels, budgets=BU
 def write_csv(rows: list[dict], path) -> Path:
     """One line per method × budget."""
     path = Path(path)
+    folds = ["fold"] if any("fold" in r for r in rows) else []  # --all-folds: the fold (or ``mean``) first
     with outputs.open_text(path) as f:
-        w = csv.DictWriter(f, fieldnames=["method", "budget", "fraction_read", "auc", "accuracy", "slides", "auc_std",
-                                          "accuracy_std", "seeds", "fields_of_view"], restval="")
+        w = csv.DictWriter(f, fieldnames=folds + ["method", "budget", "fraction_read", "auc", "accuracy", "slides",
+                                                  "auc_std", "accuracy_std", "seeds", "fields_of_view"], restval="")
         w.writeheader()
         for r in rows:
             w.writerow({k: ("" if isinstance(v, float) and v != v else f"{v:.4f}" if isinstance(v, float) else v)
@@ -527,6 +534,10 @@ def add_arguments(p) -> None:
     p.add_argument("--fold", type=int, default=None, metavar="I",
                    help="a dataset built with --folds K: train on fold I's train side, score its test side "
                         "(make(..., fold=I)); not with --folds")
+    p.add_argument("--all-folds", action="store_true",
+                   help="a dataset built with --folds K: the curve of every fold I = 0 ... K-1 (as --fold I), and "
+                        "each figure's mean ± std over the folds (per-fold rows and a 'mean' row per method × budget "
+                        "in the CSV; the plot draws the means); a --ppo RUN holding {fold} is one run per fold")
     p.add_argument("--ppo", nargs=2, action="append", default=[], metavar=("NAME", "RUN"),
                    help="also a trained policy (run folder of `python -m baselines.ppo` or `python -m baselines.ppo_rnn` "
                         "in a glimpse or zoom_select mode) on the test split: its own diagnosis and the MIL head "
@@ -548,7 +559,8 @@ MAX_STEPS = 10_000_000
 def check_options(args) -> str | None:
     """The first problem of the budget curve's options (one line naming the option), or None: budgets in
     ``(0, 1]``, ``--seeds`` / ``--policy-seeds`` in ``[1, MAX_SEEDS]``, ``--steps`` in ``[1, MAX_STEPS]``, ``--folds``
-    0 (the dataset's split) or from 2 to the dataset's number of slides, not with ``--fold``."""
+    0 (the dataset's split) or from 2 to the dataset's number of slides, not with ``--fold``; ``--all-folds`` on a
+    dataset with folds, not with ``--folds`` or ``--fold``."""
     import math
 
     if not args.budgets:
@@ -560,6 +572,11 @@ def check_options(args) -> str | None:
                              ("--steps", args.steps, MAX_STEPS)):
         if not 1 <= value <= top:
             return f"{name} {value}: must be a whole number from 1 to {top:,}"
+    if getattr(args, "all_folds", False):
+        if args.folds or args.fold is not None:
+            return (f"--all-folds scores every fold the dataset records; not with --{'folds' if args.folds else 'fold'}"
+                    f" {args.folds or args.fold}")
+        dataset_folds(args.dataset)  # one line for a dataset without folds
     if args.folds and args.fold is not None:
         return ("give --folds K (cross-validation inside the curve) or --fold I (a fold the dataset records), "
                 "not both")
@@ -573,6 +590,37 @@ def check_options(args) -> str | None:
             return (f"--folds {args.folds}: {Path(args.dataset) / 'dataset.json'} lists {n} slides, so at most "
                     f"{n} folds (each fold needs a slide to score)")
     return None
+
+
+def fold_rows(args, level: int, fold: int | None):
+    """``(rows, train, test)`` of one fold: the head trained on fold ``fold``'s train side, every method scored on
+    its held-out side (``fold=None``: the dataset's train / test split); a ``--ppo`` run folder holding ``{fold}``
+    is that fold's run. ``train``, ``test``: ``(tables, labels)`` as :func:`load_split` gives them."""
+    train = load_split(args.dataset, "train", args.env, level, fold=fold)
+    test = load_split(args.dataset, scored_side(args.dataset, fold), args.env, level, fold=fold)
+    policies = [(name, run if fold is None else with_fold(run, fold)) for name, run in args.ppo]
+    rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps, policies=policies,
+                       dataset=args.dataset, policy_seeds=args.policy_seeds, max_dim=view_logit_dim(args.dataset),
+                       fold=fold)
+    return rows, train, test
+
+
+def summary_rows(rows: list[dict]) -> list[dict]:
+    """One ``fold = "mean"`` row per method × budget of per-fold ``rows`` (each with a ``fold``): the mean over folds
+    of the fraction read, AUC, accuracy and fields of view, ``auc_std`` / ``accuracy_std`` their standard deviation
+    over folds (not over seeds), ``slides`` the slides scored over all folds, ``seeds`` those of one fold."""
+    groups: dict = {}
+    for r in rows:
+        groups.setdefault((r["method"], r["budget"]), []).append(r)
+    out = []
+    for (method, budget), rs in groups.items():
+        (auc, auc_std), (acc, acc_std) = (mean_std([r[m] for r in rs]) for m in ("auc", "accuracy"))
+        out.append({"fold": SUMMARY, "method": method, "budget": budget,
+                    "fraction_read": mean_std([r["fraction_read"] for r in rs])[0], "auc": auc, "accuracy": acc,
+                    "slides": sum(r["slides"] for r in rs), "auc_std": auc_std, "accuracy_std": acc_std,
+                    "seeds": max(r["seeds"] for r in rs),
+                    "fields_of_view": mean_std([r["fields_of_view"] for r in rs])[0]})
+    return out
 
 
 def run(args, parser=None) -> int:
@@ -591,20 +639,29 @@ def run(args, parser=None) -> int:
         tables, labels = load_split(args.dataset, "all", args.env, level)
         rows = cross_validated_rows(tables, labels, args.folds, args.budgets, seeds=args.seeds, steps=args.steps)
         split = f"{len(labels)} slides, {args.folds}-fold cross-validation"
+    elif getattr(args, "all_folds", False):
+        k = dataset_folds(args.dataset)[0]
+        rows, scored = [], 0
+        for i in range(k):
+            print(f"fold {i} of {k} (0 to {k - 1}) ...", flush=True)
+            part, _, test = fold_rows(args, level, i)
+            rows += [{"fold": i, **r} for r in part]
+            scored += len(test[1])
+        rows += summary_rows(rows)
+        split = f"mean ± std over {k} folds ({scored} slides scored)"
     else:
-        train = load_split(args.dataset, "train", args.env, level, fold=args.fold)
-        test = load_split(args.dataset, "test", args.env, level, fold=args.fold)
-        rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps, policies=args.ppo,
-                           dataset=args.dataset, policy_seeds=args.policy_seeds, max_dim=view_logit_dim(args.dataset),
-                           fold=args.fold)
+        rows, train, test = fold_rows(args, level, args.fold)
         split = f"{len(train[1])} train / {len(test[1])} test slides"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     csv_path = write_csv(rows, out / "budget_curve.csv")
     title = f"{Path(args.dataset).name}: {split}, glimpse level {level} of {args.env}"
-    png = plot(rows, out / "budget_curve.png", title)
+    shown = [r for r in rows if r.get("fold", SUMMARY) == SUMMARY]  # --all-folds: the means over folds
+    png = plot(shown, out / "budget_curve.png", title)
+    if len(shown) < len(rows):
+        print(f"mean ± std over folds (the rows of each fold: {csv_path})")
     print(f"{'method':32s} {'budget':>6s} {'read':>6s} {'AUC':>15s} {'acc':>15s} {'fields':>6s}")
-    for r in rows:
+    for r in shown:
         print(f"{r['method']:32s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {r['auc']:6.3f} ± {r['auc_std']:5.3f} "
               f"{r['accuracy']:6.3f} ± {r['accuracy_std']:5.3f} {r['fields_of_view']:6.1f}")
     print(f"wrote {csv_path} and {png}")

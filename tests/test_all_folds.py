@@ -1,0 +1,124 @@
+"""``--all-folds``: the budget curve and ``histojax evaluate`` run their one-fold path (``--fold I``) on every fold of a
+dataset built with ``--folds K`` and report each figure as its mean ± std over folds (per-fold rows kept, a summary
+row added); a dataset without folds is refused in one line, with nothing written."""
+from __future__ import annotations
+
+import csv
+import json
+import shutil
+
+import numpy as np
+import pytest
+import tifffile
+
+from baselines import folds
+from baselines.reading import budget_curve
+from data_tools.__main__ import main as data_main
+from data_tools.datasets.build import write_dataset_index
+from histojax.registry import dataset_slides
+from histojax.sample import SAMPLE_SLIDE
+
+CURVE = ["--env", "HistoJAX-Easy-v0", "--glimpse-level", "1", "--budgets", "0.25", "0.5", "--seeds", "1",
+         "--steps", "20"]
+
+
+@pytest.fixture(scope="module")
+def folded(tmp_path_factory):
+    """7 slides (4 tumour, 3 normal; t0 and t1 one patient), the colour-stats feature grid, ``--folds 2``; and the
+    same dataset without folds (``plain``)."""
+    root = tmp_path_factory.mktemp("all-folds")
+    with tifffile.TiffFile(SAMPLE_SLIDE) as tif:
+        pixels = tif.pages[0].asarray()
+    slides = root / "S"
+    slides.mkdir()
+    rows = ["slide,label,patient"]
+    for i, (name, label) in enumerate([("t0", 1), ("t1", 1), ("t2", 1), ("t3", 1), ("n0", 0), ("n1", 0), ("n2", 0)]):
+        y, x = 320 + i * 160, 768 + (i * 64) % 512
+        tifffile.imwrite(slides / f"{name}.tif", np.ascontiguousarray(pixels[y:y + 256, x:x + 320, :3]),
+                         photometric="rgb", resolution=(2e4, 2e4), resolutionunit="CENTIMETER")
+        rows.append(f"{name},{label},{'PT' if name in ('t0', 't1') else name.upper()}")
+    (root / "labels.csv").write_text("\n".join(rows) + "\n")
+    out = root / "ds"
+    assert data_main(["dataset", str(slides), "--out", str(out), "--labels", str(root / "labels.csv"), "--levels",
+                      "3", "--tile-size", "64", "--quiet", "--folds", "2", "--encoder", "colour-stats"]) == 0
+    plain = root / "plain"
+    shutil.copytree(out, plain)
+    ds = json.loads((plain / "dataset.json").read_text())
+    del ds["folds"]
+    write_dataset_index(plain, ds)  # sealed again: a dataset built without --folds
+    return out, plain
+
+
+def test_mean_std_over_the_defined_folds():
+    assert folds.mean_std([0.5, 1.0]) == (0.75, 0.25)
+    assert folds.mean_std([0.5, float("nan"), 1.0]) == (0.75, 0.25)  # a fold without an AUC does not count
+    m, s = folds.mean_std([float("nan")])
+    assert m != m and s != s
+    assert folds.with_fold("runs/ppo-fold{fold}", 3) == "runs/ppo-fold3" and folds.with_fold("runs/a", 3) == "runs/a"
+
+
+def test_budget_curve_all_folds_refuses_a_dataset_without_folds(folded, tmp_path, capsys):
+    _, plain = folded
+    assert budget_curve.main(["--dataset", str(plain), *CURVE, "--all-folds", "--out", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--all-folds" in err and "dataset.json has no folds" in err, err
+    assert "--folds K" in err and not (tmp_path / "o").exists()
+    for extra in (["--fold", "0"], ["--folds", "2"]):
+        assert budget_curve.main(["--dataset", str(folded[0]), *CURVE, "--all-folds", *extra,
+                                  "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and f"not with {extra[0]} {extra[1]}" in err, err
+        assert not (tmp_path / "o").exists()
+
+
+def test_budget_curve_all_folds_is_the_one_fold_path_on_every_fold(folded, tmp_path, monkeypatch, capsys):
+    """Each fold's rows come from the one-fold path on that fold's sides (the head's training rows stubbed: the
+    real head is the slow test's), and the ``mean`` rows are their mean ± std over folds."""
+    out, _ = folded
+    seen = []
+
+    def rows_of_the_fold(train, test, budgets, fold=None, **kw):
+        seen.append((fold, len(train[1]), len(test[1]), kw["policies"]))
+        auc = 0.6 + 0.2 * fold  # 0.6 on fold 0, 0.8 on fold 1
+        return [{"method": "random reader + MIL", "budget": b, "fraction_read": b, "auc": auc, "accuracy": 0.5,
+                 "slides": len(test[1]), "auc_std": 0.0, "accuracy_std": 0.0, "seeds": 1,
+                 "fields_of_view": float("nan")} for b in budgets]
+
+    monkeypatch.setattr(budget_curve, "budget_rows", rows_of_the_fold)
+    assert budget_curve.main(["--dataset", str(out), *CURVE, "--all-folds", "--ppo", "agent", "runs/ppo-fold{fold}",
+                              "--out", str(tmp_path)]) == 0
+    sizes = [len(dataset_slides(out, "test", i)) for i in range(2)]
+    assert [s[:3] for s in seen] == [(0, 7 - sizes[0], sizes[0]), (1, 7 - sizes[1], sizes[1])]
+    assert [s[3] for s in seen] == [[("agent", "runs/ppo-fold0")], [("agent", "runs/ppo-fold1")]]  # a run per fold
+    with open(tmp_path / "budget_curve.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["fold"] for r in rows] == ["0", "0", "1", "1", "mean", "mean"]
+    mean = [r for r in rows if r["fold"] == "mean"]
+    assert [float(r["auc"]) for r in mean] == [0.7, 0.7] and [float(r["auc_std"]) for r in mean] == [0.1, 0.1]
+    assert [int(r["slides"]) for r in mean] == [7, 7] and (tmp_path / "budget_curve.png").is_file()
+    assert "mean ± std over folds" in capsys.readouterr().out
+
+
+def test_budget_curve_without_all_folds_writes_no_fold_column(folded, tmp_path, monkeypatch):
+    monkeypatch.setattr(budget_curve, "budget_rows", lambda train, test, budgets, **kw: [
+        {"method": "MIL, read everything", "budget": 1.0, "fraction_read": 1.0, "auc": 1.0, "accuracy": 1.0,
+         "slides": len(test[1]), "auc_std": 0.0, "accuracy_std": 0.0, "seeds": 1, "fields_of_view": float("nan")}])
+    assert budget_curve.main(["--dataset", str(folded[0]), *CURVE, "--fold", "1", "--out", str(tmp_path)]) == 0
+    assert (tmp_path / "budget_curve.csv").read_text().startswith("method,budget,")
+
+
+@pytest.mark.slow  # two folds of the real head and readers, then --fold 1 alone: about a minute on 2 cores
+def test_budget_curve_all_folds_rows_equal_the_fold_runs(folded, tmp_path):
+    out, _ = folded
+    assert budget_curve.main(["--dataset", str(out), *CURVE, "--all-folds", "--out", str(tmp_path / "all")]) == 0
+    assert budget_curve.main(["--dataset", str(out), *CURVE, "--fold", "1", "--out", str(tmp_path / "one")]) == 0
+    with open(tmp_path / "all" / "budget_curve.csv") as f:
+        every = list(csv.DictReader(f))
+    with open(tmp_path / "one" / "budget_curve.csv") as f:
+        one = list(csv.DictReader(f))
+    assert [{k: v for k, v in r.items() if k != "fold"} for r in every if r["fold"] == "1"] == one
+    for r in (r for r in every if r["fold"] == "mean"):
+        per = [float(x["auc"]) for x in every if x["fold"] in ("0", "1") and x["method"] == r["method"]
+               and x["budget"] == r["budget"]]
+        assert float(r["auc"]) == pytest.approx(np.mean(per), abs=1e-4)
+        assert float(r["auc_std"]) == pytest.approx(np.std(per), abs=1e-4)

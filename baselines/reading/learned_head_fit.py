@@ -14,7 +14,10 @@ reads: all its tissue with probability 0.25, else cells of 4 × 4 views each rea
 log-uniformly in [2 %, 100 %]; at most ``--views`` of the views read are kept, so a step costs the same on any
 slide size: ``--top-share`` of them (default half) the views of highest attention under the model being
 trained (refreshed every ``--eval-every`` steps: a small tumour's views dominate the pooling of the whole read,
-and a uniform draw of 512 of 10,000 views would mostly miss them), the rest drawn uniformly. Slide-level log loss.
+and a uniform draw of 512 of 10,000 views would mostly miss them), the rest drawn uniformly. Loss: the slide-level
+log loss plus ``--instance-weight`` (default 0.5) × an instance loss on the instance logits (the per-view
+scores; MI-Net / CLAM style): every view of a normal slide is normal, and the highest view of a tumour slide read
+whole is tumour.
 
 **Choice on validation only** (:data:`CANDIDATES`, ``--hidden``): each candidate structure is trained for
 ``--steps`` steps; its validation AUC reading everything (ties: reading random 10 %) is measured every
@@ -205,8 +208,9 @@ def draw_fraction(rng) -> float | None:
 
 
 def batch(rng, slides: list[dict], size: int, views: int, attention: list | None = None,
-          top_share: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """``(x (size, views, D) float32, mask (size, views) bool, y (size,) float32)``: ``size`` slides drawn with
+          top_share: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """``(x (size, views, D) float32, mask (size, views) bool, y (size,) float32, full (size,) bool)``: ``size``
+    slides drawn with
     classes balanced, each read at random (:func:`draw_fraction`). Of a read larger than ``views`` views, the
     ``top_share`` with the highest ``attention`` (per slide ``(N,)``, the model's own, refreshed while training;
     None: none) are kept and the rest drawn uniformly: the views that dominate the attention pooling of the whole
@@ -217,10 +221,13 @@ def batch(rng, slides: list[dict], size: int, views: int, attention: list | None
     x = np.zeros((size, views, d), np.float32)
     m = np.zeros((size, views), bool)
     y = np.zeros(size, np.float32)
+    full = np.zeros(size, bool)
     for b in range(size):
         i = int(rng.choice(pos if b % 2 == 0 else neg))
         s = slides[i]
-        idx = np.flatnonzero(random_read(rng, s, draw_fraction(rng)))
+        fraction = draw_fraction(rng)
+        full[b] = fraction is None
+        idx = np.flatnonzero(random_read(rng, s, fraction))
         if idx.size > views:
             n_top = int(views * top_share) if attention is not None else 0
             if n_top:
@@ -232,7 +239,7 @@ def batch(rng, slides: list[dict], size: int, views: int, attention: list | None
         x[b, :idx.size] = s["features"][idx]
         m[b, :idx.size] = True
         y[b] = s["label"]
-    return x, m, y
+    return x, m, y, full
 
 
 def attention_of(head, slides: list[dict], chunk: int = 1 << 16, flat: np.ndarray | None = None) -> list[np.ndarray]:
@@ -337,7 +344,8 @@ def standardisation(slides: list[dict], limit: int = 200_000, seed: int = 0) -> 
 
 def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: int = 0, steps: int = 600,
           batch_size: int = 16, views: int = 512, lr: float = 2e-3, weight_decay: float = 1e-4,
-          eval_every: int = 50, top_share: float = 0.5, progress: bool = True) -> tuple:
+          eval_every: int = 50, top_share: float = 0.5, instance_weight: float = 0.5,
+          progress: bool = True) -> tuple:
     """Train a :class:`LearnedHead` of ``structure`` (``hidden``, ``attention``, ``layers``) on ``train_slides``
     (see the module doc); every ``eval_every`` steps score it on ``val`` (a :class:`FlatSet`) and refresh the
     training views' attention that :func:`batch` keeps its ``top_share`` of views by. Returns
@@ -363,14 +371,27 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
     opt = optax.adamw(lr, weight_decay=weight_decay)
     state = opt.init(tp)
 
-    def loss_fn(tp, x, m, y):
+    def bag(head, x, m):
+        h = head.embed(x)
+        u = head.raw_logit(h)
+        slide = head.logit(head.add(head.init_state(), h, head.attention_logits(h), m))
+        top = jnp.max(jnp.where(m, u, -1e30))
+        neg = jnp.sum(jnp.where(m, jax.nn.softplus(u), 0.0)) / jnp.maximum(m.sum(), 1)
+        return slide, top, neg
+
+    def loss_fn(tp, x, m, y, full):
         head = head0.replace(params={**tp, **frozen})
-        logits = jax.vmap(head.score_views)(x, m)
-        return optax.sigmoid_binary_cross_entropy(logits, y).mean()
+        logits, top, neg = jax.vmap(lambda a, b: bag(head, a, b))(x, m)
+        slide_loss = optax.sigmoid_binary_cross_entropy(logits, y).mean()
+        # instances (MI-Net / CLAM-style): every view of a normal slide is normal; the top view of a tumour slide
+        # read whole is tumour. Trains the per-view score and helps when tumour is a few views of thousands.
+        pos = jnp.where(full & (y > 0), optax.sigmoid_binary_cross_entropy(top, 1.0), 0.0)
+        inst = jnp.where(y > 0, pos, neg).mean()
+        return slide_loss + instance_weight * inst
 
     @jax.jit
-    def step(tp, st, x, m, y):
-        loss, g = jax.value_and_grad(loss_fn)(tp, x, m, y)
+    def step(tp, st, x, m, y, full):
+        loss, g = jax.value_and_grad(loss_fn)(tp, x, m, y, full)
         upd, st = opt.update(g, st, tp)
         return optax.apply_updates(tp, upd), st, loss
 
@@ -381,8 +402,8 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
     bar = tqdm(range(steps), desc=f"{structure['hidden']} units, seed {seed}", disable=not progress,
                file=sys.stderr, leave=False)
     for i in bar:
-        x, m, y = batch(rng, train_slides, batch_size, views, attention, top_share)
-        tp, state, loss = step(tp, state, x, m, y)
+        x, m, y, full = batch(rng, train_slides, batch_size, views, attention, top_share)
+        tp, state, loss = step(tp, state, x, m, y, full)
         losses.append(float(loss))
         if (i + 1) % eval_every == 0 or i + 1 == steps:
             head = head0.replace(params={**tp, **frozen})
@@ -461,6 +482,8 @@ def add_arguments(p) -> None:
     p.add_argument("--top-share", type=float, default=0.5,
                    help="share of the kept views taken by the model's highest attention, refreshed every "
                         "--eval-every steps (default 0.5; 0 = all drawn uniformly)")
+    p.add_argument("--instance-weight", type=float, default=0.5,
+                   help="weight of the instance loss beside the slide loss (default 0.5; 0 = slide loss only)")
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--weight-decay", type=float, default=1e-4)
     p.add_argument("--eval-every", type=int, default=50, help="validation scoring every N steps (default 50)")
@@ -512,7 +535,8 @@ def run(args, parser=None) -> int:
         name = f"{c['hidden']} units"
         head, curve = train(train_slides, val, c, seed=args.seed, steps=args.steps, batch_size=args.batch,
                             views=args.views, lr=args.lr, weight_decay=args.weight_decay,
-                            eval_every=args.eval_every, top_share=args.top_share, progress=progress)
+                            eval_every=args.eval_every, top_share=args.top_share,
+                            instance_weight=args.instance_weight, progress=progress)
         top = max(curve, key=lambda r: (r["full"], r["read 0.1"]))
         results[name] = {**c, "best_step": top["step"], "validation_auc": round(top["full"], 4),
                          "validation_auc_read_0.1": round(top["read 0.1"], 4)}
@@ -540,7 +564,7 @@ def run(args, parser=None) -> int:
             "calibration": {"slope": round(float(head.cal_a), 5), "intercept": round(float(head.cal_b), 5),
                             "fitted_on": "validation slides, reading everything and reading random 10 % (pooled)"},
             "training": {"steps": args.steps, "batch_slides": args.batch, "views_per_slide": args.views,
-                         "top_attention_share": args.top_share,
+                         "top_attention_share": args.top_share, "instance_weight": args.instance_weight,
                          "lr": args.lr, "weight_decay": args.weight_decay, "optimizer": "adamw",
                          "reads": f"all tissue with p={P_FULL}, else {CELL}x{CELL}-view cells at log-uniform "
                                   f"[{MIN_READ}, 1]"},

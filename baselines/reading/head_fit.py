@@ -8,7 +8,9 @@ training split minus a validation share (:func:`baselines.validation.split_train
 slide with its tissue donor; ``--val-fraction`` 0.2, ``--seed`` 0) and scored by its AUC on that
 validation share; the best one (ties: the higher training AUC, then the simplest, in the order listed) is re-calibrated on the
 whole training split and saved to ``--out`` (``config.json`` records every candidate's validation AUC).
-The test split is never read.
+The test split is never read. **Refused** (one line naming ``dataset.json``, nothing saved): fewer than
+:data:`MIN_SLIDES_PER_CLASS` training slides of a class after the validation share, a chosen head whose
+validation AUC is below 0.5 or whose calibration slope is not positive (:func:`check_head`).
 
 Also the data loading every head-based tool shares: :func:`load_slides` reads, straight from each
 bundle (no env), the finest level's view-logit map ``(H, W)``, its tissue views ``(H, W)`` (as the
@@ -34,6 +36,8 @@ from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
 
 TOPS = (1, 3)
+MIN_SLIDES_PER_CLASS = 5
+"""Fewest training slides of each class (after the validation share is held back) a head fit accepts."""
 
 
 class HeadDataError(HistojaxDataError):
@@ -263,6 +267,31 @@ def choose(train: list[dict], val: list[dict], cands) -> tuple[object, list[dict
     return best, table
 
 
+def check_classes(dataset, train: list[dict], least: int = MIN_SLIDES_PER_CLASS) -> None:
+    """Refuse (:class:`HeadDataError` naming ``dataset.json``) fewer than ``least`` training slides of either
+    class once the validation share is held back."""
+    for cls, what in ((1, "tumour"), (0, "normal")):
+        n = sum(int(s["label"] == cls) for s in train)
+        if n < least:
+            raise HeadDataError(Path(dataset) / "dataset.json", f"{n} {what} training slides after the validation "
+                                f"share is held back; a slide head needs at least {least} of each class "
+                                "(MIN_SLIDES_PER_CLASS)")
+
+
+def check_head(dataset, validation_auc: float, slope: float) -> None:
+    """Refuse (:class:`HeadDataError` naming ``dataset.json``; nothing is saved) a chosen head whose validation AUC
+    is below 0.5 (it ranks tumour below normal: e.g. a feature entry that is no tumour logit) or whose calibration
+    slope is negative (a higher statistic would mean less tumour)."""
+    where = Path(dataset) / "dataset.json"
+    if not validation_auc >= 0.5:
+        raise HeadDataError(where, f"the chosen head's validation AUC is {validation_auc:.3f} (< 0.5: it ranks tumour "
+                                   "below normal; is the feature entry a tumour logit? fit a learned head on any "
+                                   "features: python -m baselines.reading.learned_head_fit); nothing saved")
+    if not slope > 0:
+        raise HeadDataError(where, f"the chosen head's calibration slope is {slope:.3f} (not > 0: more evidence "
+                                   "would mean less tumour); nothing saved")
+
+
 def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3, 4, 5),
         dim: int = pcam_cnn.VIEW_LOGIT, progress: bool = False, minus_median: bool = False, fold: int | None = None):
     """Choose and fit the head of ``dataset`` (see the module doc); saved to ``out`` when given. ``fold=i``: on
@@ -280,11 +309,13 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
     by_name = {s["name"]: s for s in train}
     tr = [by_name[Path(n).name] for n in kept]
     va = [by_name[Path(n).name] for n in held]
+    check_classes(dataset, tr)
     encoders = {s["encoder"] for s in train}
     encoder = encoders.pop() if len(encoders) == 1 else None
     best, table = choose(tr, va, candidates(ks, dim, encoder, minus_median))
     head = calibrated(best, train, grid_shape(train))
     chosen = next(r for r in table if r["name"] == best.name)
+    check_head(dataset, chosen["validation_auc"], float(head.a))
     info = {"fitted_on": {"dataset": str(Path(dataset).resolve()), "split": "train", "slides": len(train),
                           "tumour_slides": int(sum(s["label"] for s in train)), **({"fold": fold} if fold is not None
                                                                                   else {})},

@@ -47,14 +47,24 @@ import time
 from pathlib import Path
 from types import SimpleNamespace
 
+import jax
+import jax.numpy as jnp
 import numpy as np
+import optax
+from tqdm import tqdm
 
 from baselines.metrics import roc_auc
+from baselines.reading.readers import lesion_of
 from baselines.validation import split_train
+from data_tools.annotations import load_annotations
 from data_tools.bundle_format import (load_array, load_feature_levels, own_file, read_metadata, stable_read,
                                       verify_metadata)
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
+from histojax.reading.heads import files
+from histojax.reading.heads.learned import KIND, LearnedHead, init_params
+from histojax.reading.tables import grid, tissue_views
+from histojax.slide import slide_label_from_metadata
 
 MIN_SLIDES_PER_CLASS = 5
 """Fewest training slides of each class (after the validation share is held out) a fit accepts."""
@@ -97,8 +107,6 @@ def read_spec(dataset, fold: int | None = None) -> dict:
 def slide_label(spec: dict, name: str, metadata) -> int:
     """A slide's label as the env reads it: ``dataset.json``'s ``labels`` when it names the slide, else the
     bundle's own (tumour annotated or not)."""
-    from histojax.slide import slide_label_from_metadata
-
     labels = spec.get("labels")
     if isinstance(labels, dict):
         for key, value in labels.items():
@@ -112,8 +120,6 @@ def load_views(bundle, label: int | None = None, spec: dict | None = None, verif
     grid's cell under each tissue view), ``yx (N, 2)`` int32 view rows / columns, ``shape (gh, gw)`` of the
     finest view grid, ``label``, ``name``, ``encoder``, ``mpp``, ``tile``, ``bundle``. ``FitError`` naming the
     bundle on anything missing or corrupt."""
-    from histojax.reading.tables import grid, tissue_views
-
     bundle = Path(bundle)
 
     def read():
@@ -156,8 +162,6 @@ def load_views(bundle, label: int | None = None, spec: dict | None = None, verif
 
 def load_split(dataset, entries, spec: dict, progress: bool = True, desc: str = "loading") -> list[dict]:
     """:func:`load_views` of every entry of ``entries`` (paths relative to ``dataset`` or absolute)."""
-    from tqdm import tqdm
-
     out = []
     for rel in tqdm(entries, desc=desc, disable=not progress, file=sys.stderr, leave=False):
         bundle = Path(rel) if Path(rel).is_absolute() else Path(dataset) / rel
@@ -246,8 +250,6 @@ def attention_of(head, slides: list[dict], chunk: int = 1 << 16, flat: np.ndarra
     """Each slide's attention logits ``(N,)`` float32 under ``head``: every slide's views in one flat array
     (``flat``, the slides' features concatenated, when the caller keeps one), in chunks of ``chunk`` rows (one
     compiled shape; only the last chunk is padded)."""
-    import jax
-
     fn = jax.jit(lambda hd, x: hd.attention_logits(hd.embed(x)))
     sizes = [len(s["features"]) for s in slides]
     if flat is None:
@@ -274,8 +276,6 @@ class FlatSet:
         self._fns = {}
 
     def _fn(self, head):
-        import jax
-        import jax.numpy as jnp
 
         key = (head.features_dim, head.hidden, head.attention, head.layers)
         if key not in self._fns:
@@ -351,13 +351,6 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
     training views' attention that :func:`batch` keeps its ``top_share`` of views by. Returns
     ``(best_head, curve)``: the checkpoint with the best validation AUC reading everything (ties: reading 10 %;
     the last one when ``val`` is None) and ``curve`` (rows of step, training loss, validation AUCs)."""
-    import jax
-    import jax.numpy as jnp
-    import optax
-    from tqdm import tqdm
-
-    from histojax.reading.heads.learned import LearnedHead, init_params
-
     d = int(train_slides[0]["features"].shape[1])
     mu, sd = standardisation(train_slides, seed=seed)
     p = float(np.clip(np.mean([s["label"] for s in train_slides]), 1e-3, 1 - 1e-3))
@@ -425,8 +418,6 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
 def calibrate(head, val: FlatSet, seed: int = 7):
     """``head`` with Platt scaling fitted on ``val``'s raw logits reading everything and reading random 10 %
     (pooled); returns ``(head, slope)``."""
-    import jax.numpy as jnp
-
     raw = head.replace(cal_a=jnp.float32(1.0), cal_b=jnp.float32(0.0))
     rng = np.random.default_rng(seed)
     s = np.concatenate([val.logits(raw), val.logits(raw, val.masks(rng, 0.1))])
@@ -501,10 +492,7 @@ def run(args, parser=None) -> int:
         return score_command(args)
     if not args.out:
         return print_error("--out is required to fit a head")
-    import jax
 
-    from histojax.reading.heads import files
-    from histojax.reading.heads.learned import KIND
 
     t0 = time.perf_counter()
     progress = not args.quiet
@@ -621,9 +609,6 @@ def lesion_classes(slides: list[dict]) -> list[str]:
     """Each slide's lesion class as :func:`baselines.reading.readers.lesion_of` defines it (``normal`` for label
     0; ``ITC`` / ``micro`` / ``macro`` by the largest lesion's diameter; ``unknown`` without polygons), the
     annotation read from the bundle's own ``annotations.geojson``."""
-    from baselines.reading.readers import lesion_of
-    from data_tools.annotations import load_annotations
-
     out = []
     for s in slides:
         if not s["label"]:
@@ -641,7 +626,6 @@ def lesion_classes(slides: list[dict]) -> list[str]:
 def score_command(args) -> int:
     """``--score HEAD --split S``: AUC of the saved head on split ``S`` reading everything, over all slides and
     without ITC-only slides."""
-    from histojax.reading.heads.learned import LearnedHead
 
     try:
         head = LearnedHead.load(args.score)

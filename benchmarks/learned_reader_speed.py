@@ -1,0 +1,118 @@
+"""Set-reader PPO through a head against a navigator's PPO through the same head, on the same slides, back to back
+in one process: env steps/s of each (and their ratio), the env wrapped in
+:class:`~histojax.adapters.head_reward.HeadReward` as ``baselines.reading.train_readers`` wraps it, under
+``HistoJAX-Reading-v0`` (any dataset, any encoder's features; the levels the bundles were built for)::
+
+    python -m benchmarks.learned_reader_speed --dataset DIR --head HEAD [--reader glimpse:1] [--num-envs 32]
+        [--updates 3] [--repeats 3] [--json out.json]
+
+With the learned attention-MIL head the reward is running sums (a step adds the views it newly read). Each
+setting is compiled once, then ``--updates`` PPO updates of 1 seed are timed ``--repeats`` times, the two
+settings interleaved; the median of each is printed with the ratio reader / navigator (the target is ≥ 0.5).
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import sys
+import time
+from pathlib import Path
+
+
+def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: int, budget: float, levels: int):
+    """``(run, steps)``: a compiled PPO program (1 seed, ``updates`` updates of ``num_envs`` × 64 steps) of
+    ``action_mode`` on ``dataset``'s train split through ``head``'s reward, and the env steps one run takes."""
+    import jax
+
+    from baselines import common, ppo
+    from baselines.reading.train_readers import is_navigator
+    from histojax.adapters.head_reward import HeadReward
+    from histojax.registry import READING_ID
+
+    original = common.make_env
+
+    def make_env(config, auto_reset=True, mesh=None):
+        env, params = original(config, auto_reset=auto_reset, mesh=mesh)
+        return HeadReward(env, head, gain="fidelity", final=0.0, params=params), params
+
+    common.make_env = make_env
+    try:
+        kw = {"dataset": str(dataset), "split": "train", "n_levels": levels}
+        if not is_navigator(action_mode):
+            kw["read_budget"] = budget
+        config = {**ppo.DEFAULTS, "env_id": READING_ID, "action_mode": action_mode, "obs_mode": "features",
+                  "num_envs": num_envs, "num_steps": 64, "total_timesteps": num_envs * 64 * updates,
+                  "print_progress": False, "num_seeds": 1, "env_kwargs": kw}
+        train = ppo.make_train(config)
+        keys = jax.random.split(jax.random.key(0), 1)
+        t0 = time.perf_counter()
+        compiled = train.compile(keys)
+        compile_s = time.perf_counter() - t0
+    finally:
+        common.make_env = original
+
+    def run() -> float:
+        t0 = time.perf_counter()
+        jax.block_until_ready(compiled(keys))
+        return time.perf_counter() - t0
+    return run, num_envs * 64 * train.num_updates, compile_s
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(prog="python -m benchmarks.learned_reader_speed", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--dataset", required=True, type=Path, help="a dataset folder (its train split is used)")
+    p.add_argument("--head", required=True, help="a slide head folder (e.g. a learned head)")
+    p.add_argument("--reader", default="glimpse:1", help="the set reader's action mode (default glimpse:1)")
+    p.add_argument("--navigator", default="discrete", help="the navigator's action mode (default discrete)")
+    p.add_argument("--num-envs", type=int, default=32)
+    p.add_argument("--updates", type=int, default=3)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--budget", type=float, default=0.1)
+    p.add_argument("--json", type=Path)
+    args = p.parse_args(argv)
+    from baselines.reading.head_fit import read_spec
+    from baselines.reading.train_readers import dataset_levels
+    from data_tools.errors import HistojaxDataError
+    from histojax.reading import heads
+
+    try:
+        head = heads.load(args.head)
+        levels = dataset_levels(args.dataset, read_spec(args.dataset))
+    except (HistojaxDataError, ValueError, OSError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    import jax
+
+    rows = {}
+    for name, mode in (("navigator", args.navigator), ("set reader", args.reader)):
+        run, steps, compile_s = compiled_row(args.dataset, head, mode, args.num_envs, args.updates, args.budget, levels)
+        rows[name] = {"action_mode": mode, "run": run, "steps": steps, "compile_s": round(compile_s, 1), "walls": []}
+    for _ in range(args.repeats):  # interleaved: both see the same machine load
+        for r in rows.values():
+            r["walls"].append(r["run"]())
+    out = []
+    print(f"{'policy':12s} {'mode':12s} {'envs':>5s} {'median steps/s':>15s} {'runs steps/s':>24s} {'compile s':>9s}")
+    for name, r in rows.items():
+        rates = [r["steps"] / w for w in r["walls"]]
+        row = {"policy": name, "action_mode": r["action_mode"], "num_envs": args.num_envs, "env_steps": r["steps"],
+               "median_steps_per_s": round(statistics.median(rates)), "steps_per_s": [round(x) for x in rates],
+               "compile_s": r["compile_s"]}
+        out.append(row)
+        print(f"{name:12s} {r['action_mode']:12s} {args.num_envs:5d} {row['median_steps_per_s']:15d} "
+              f"{', '.join(str(x) for x in row['steps_per_s']):>24s} {r['compile_s']:9.1f}")
+    ratio = out[1]["median_steps_per_s"] / max(1, out[0]["median_steps_per_s"])
+    meta = {"dataset": str(args.dataset), "head": args.head, "head_kind": head.kind, "levels": levels,
+            "machine": f"{platform.machine()}, {jax.device_count()} × {jax.devices()[0].platform}",
+            "jax": jax.__version__, "date": time.strftime("%Y-%m-%d"), "reader_over_navigator": round(ratio, 3)}
+    print(f"set reader / navigator: {ratio:.2f} (target >= 0.5)")
+    print(json.dumps(meta))
+    if args.json:
+        args.json.write_text(json.dumps({"meta": meta, "rows": out}, indent=1) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

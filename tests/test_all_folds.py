@@ -122,3 +122,78 @@ def test_budget_curve_all_folds_rows_equal_the_fold_runs(folded, tmp_path):
                and x["budget"] == r["budget"]]
         assert float(r["auc"]) == pytest.approx(np.mean(per), abs=1e-4)
         assert float(r["auc_std"]) == pytest.approx(np.std(per), abs=1e-4)
+
+
+# ------------------------------------------------------------------ histojax evaluate --all-folds
+def test_evaluate_all_folds_refuses_a_dataset_without_folds(folded, tmp_path, capsys):
+    from baselines import evaluate
+
+    _, plain = folded
+    for extra, words in (([], "dataset.json has no folds"), (["--fold", "0"], "not with --fold 0")):
+        ds = plain if not extra else folded[0]
+        assert evaluate.main(["--env", "HistoJAX-Easy-v0", "--dataset", str(ds), "--all-folds", *extra,
+                              "--out", str(tmp_path / "o")]) == 2
+        err = capsys.readouterr().err.strip()
+        assert len(err.splitlines()) == 1 and "--all-folds" in err and words in err, err
+        assert not (tmp_path / "o").exists()
+
+
+def test_evaluate_all_folds_is_the_one_fold_run_on_every_fold(folded, tmp_path, monkeypatch, capsys):
+    """Each fold is ``evaluate --fold I`` (its held-out side, in OUT/foldI; the rollouts stubbed: the real ones are
+    the slow test's); OUT/eval.csv keeps each fold's rows and adds a mean and a std row per policy."""
+    from baselines.evaluate import cli
+
+    out, _ = folded
+    seen = []
+
+    def scored(config, params, out=None, **kw):
+        env_kwargs = config["env_kwargs"]
+        seen.append((env_kwargs["fold"], env_kwargs["split"], env_kwargs["dataset"], out))
+        f = env_kwargs["fold"]
+        return {"random": {"episodes": 4, "success_rate": 0.25 + 0.5 * f, "mean_return": 1.0, "mean_length": 10.0,
+                           "mean_steps_to_success": float("nan"), "mean_fraction_read": 0.5,
+                           "mean_fields_of_view": 3.0, "diagnosis_auc": 0.6 + 0.2 * f}}
+
+    monkeypatch.setattr(cli, "evaluate", scored)
+    assert cli.main(["--env", "HistoJAX-Easy-v0", "--dataset", str(out), "--all-folds", "--episodes", "4",
+                     "--out", str(tmp_path)]) == 0
+    assert [s[:3] for s in seen] == [(0, "test", str(out)), (1, "test", str(out))]
+    assert [s[3] for s in seen] == [tmp_path / "fold0", tmp_path / "fold1"]
+    assert all((tmp_path / f"fold{i}" / "eval.json").is_file() for i in range(2))  # each fold as --fold I writes it
+    with open(tmp_path / "eval.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert [r["fold"] for r in rows] == ["0", "1", "mean", "std"]
+    mean, std = rows[2], rows[3]
+    assert float(mean["success_rate"]) == 0.5 and float(std["success_rate"]) == 0.25
+    assert float(mean["diagnosis_auc"]) == pytest.approx(0.7) and float(std["diagnosis_auc"]) == pytest.approx(0.1)
+    assert mean["mean_steps_to_success"] == "" and mean["episodes"] == "8"  # undefined on every fold: empty
+    record = json.loads((tmp_path / "eval.json").read_text())
+    assert record["folds"] == 2 and [f["fold"] for f in record["per_fold"]] == [0, 1]
+    assert record["summary"]["random"]["diagnosis_auc_std"] == pytest.approx(0.1)
+    assert record["summary"]["random"]["mean_steps_to_success"] is None
+    assert "mean ± std over 2 folds" in capsys.readouterr().out
+
+
+def test_evaluate_fold_scores_the_folds_held_out_side(folded):
+    from baselines.evaluate.cli import with_dataset
+
+    out, _ = folded
+    config = with_dataset({"env_id": "HistoJAX-Easy-v0", "env_kwargs": {}}, str(out), None, 1)
+    assert config["env_kwargs"] == {"dataset": str(out), "split": "test", "fold": 1}
+    trained = {"env_id": "HistoJAX-Easy-v0", "env_kwargs": {"dataset": str(out), "fold": 0}}
+    assert with_dataset(trained, None, None, 1)["env_kwargs"]["fold"] == 1  # --fold I over the fold it trained on
+
+
+@pytest.mark.slow  # two folds of real rollouts (random and scripted policies): about 1.5 minutes on 2 cores
+def test_evaluate_all_folds_runs_the_reference_policies(folded, tmp_path):
+    from baselines import evaluate
+
+    out, _ = folded
+    assert evaluate.main(["--env", "HistoJAX-Easy-v0", "--dataset", str(out), "--all-folds", "--episodes", "2",
+                          "--out", str(tmp_path)]) == 0
+    record = json.loads((tmp_path / "eval.json").read_text())
+    for policy in ("random", "scripted"):
+        per = [json.loads((tmp_path / f"fold{i}" / "eval.json").read_text())["results"] for i in range(2)]
+        reads = [next(iter(r.values()))[policy]["mean_fraction_read"] for r in per]
+        assert record["summary"][policy]["mean_fraction_read"] == pytest.approx(np.mean(reads))
+        assert record["summary"][policy]["mean_fraction_read_std"] == pytest.approx(np.std(reads))

@@ -12,6 +12,8 @@ from data_tools.cli_output import positive_int
 from baselines.evaluate.checks import (check_config, check_params_tree, grid_refusal, head_reward_settings,
                                        provenance_warnings, refuse_not_an_agent, resolve_head)
 from baselines.evaluate.scoring import evaluate
+from baselines.evaluate.all_folds import run_all_folds
+from baselines.folds import scored_side
 
 
 
@@ -42,10 +44,11 @@ def resolve_slides(slides: list[str], config: dict) -> list[str]:
     return [str(Path(dataset) / rel) for rel in test]
 
 
-def with_dataset(config: dict, dataset=None, split: str | None = None) -> dict:
+def with_dataset(config: dict, dataset=None, split: str | None = None, fold: int | None = None) -> dict:
     """``config`` scoring ``split`` of ``dataset`` (default split ``"test"``) in place of the slides it
-    trained on; only ``split`` given: the same dataset, another split. Unchanged when neither is given."""
-    if dataset is None and split is None:
+    trained on; only ``split`` given: the same dataset, another split. ``fold``: that side of fold ``fold``
+    (default: its held-out side, ``make(..., fold=)``). Unchanged when none is given."""
+    if dataset is None and split is None and fold is None:
         return config
     kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("slides", "slide_weights")}
     if dataset is not None:
@@ -53,8 +56,11 @@ def with_dataset(config: dict, dataset=None, split: str | None = None) -> dict:
             raise _usage_exit(f"--dataset {dataset}: no dataset.json there")
         kw["dataset"] = str(dataset)
     elif "dataset" not in kw:
-        raise _usage_exit("--split: this checkpoint was not trained on a dataset; give --dataset DIR too")
-    kw["split"] = split or "test"
+        raise _usage_exit(f"{'--split' if split is not None else '--fold'}: this checkpoint was not trained on a "
+                          "dataset; give --dataset DIR too")
+    if fold is not None:
+        kw["fold"] = fold
+    kw["split"] = split or scored_side(kw["dataset"], kw.get("fold"))
     return {**config, "env_kwargs": kw, "slide": None}
 
 
@@ -97,6 +103,12 @@ def add_arguments(p) -> None:
                         "e.g. a published agent on any C16-style dataset")
     p.add_argument("--split", default=None, choices=("train", "test", "all"),
                    help="split of the dataset to score (default: test with --dataset, else the checkpoint's)")
+    p.add_argument("--fold", type=int, default=None, metavar="I",
+                   help="a dataset built with --folds K: score fold I's held-out side (make(..., fold=I))")
+    p.add_argument("--all-folds", action="store_true",
+                   help="a dataset built with --folds K: evaluate every fold I = 0 ... K-1 (as --fold I, in "
+                        "OUT/foldI) and report each figure's mean ± std over the folds (OUT/eval.json, eval.csv); a "
+                        "CHECKPOINT holding {fold} (runs/ppo-fold{fold}) is the run trained on each fold")
     p.add_argument("--episodes", type=positive_int, default=256,
                    help="episodes per policy (per seed for the learned one), at least 1")
     p.add_argument("--seed", type=int, default=0)
@@ -132,6 +144,8 @@ def run(args, parser) -> int:
     """Evaluate on parsed ``args``: tables, eval.json, eval.csv, trajectory pictures and reading maps."""
     if args.checkpoint is None and args.env is None:
         parser.error("give a CHECKPOINT or --env")
+    if getattr(args, "all_folds", False):  # the one-fold run below, on every fold
+        return run_all_folds(args, parser, one_fold, default_out)
     warnings = []
     settings, where = None, None
     if args.checkpoint is not None:
@@ -154,7 +168,8 @@ def run(args, parser) -> int:
     trained = dict(config)
     if args.env:
         config["env_id"] = args.env
-    config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None))
+    config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None),
+                          getattr(args, "fold", None))
     if run is not None:
         warnings += provenance_warnings(trained, config, run / "config.json")
     head, head_dir = None, None
@@ -205,6 +220,12 @@ def run(args, parser) -> int:
                             r.get("diagnosis_auc", ""), r.get("diagnosis_auc_no_itc", "")])
     print(f"\nwrote {out}/eval.json, eval.csv, trajectory_*.png, reading_*.png, trajectory.gif")
     return 0
+
+
+def one_fold(args, parser) -> int:
+    """:func:`run` on the parsed ``args`` of one fold (``--all-folds`` runs it per fold; inside :func:`run` the name
+    ``run`` is the run folder)."""
+    return run(args, parser)
 
 
 def main(argv=None) -> int:

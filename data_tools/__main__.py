@@ -254,7 +254,7 @@ def _command(args) -> int | None:
                               n_normal=args.normal_slides, seed=args.seed, test_fraction=args.test_fraction,
                               features=args.encoder or args.features, progress=not args.quiet, workers=args.jobs,
                               no_pixels=args.no_pixels, test_patches=args.test_patches,
-                              shard=parse_shard(args.shard) if args.shard else None, merge=args.merge,
+                              shard=parse_shard(args.shard) if args.shard is not None else None, merge=args.merge,
                               folds=args.folds)
         for name, reason in sorted(ds["failed"].items()):
             print(f"FAILED {name}: {reason}", file=sys.stderr)

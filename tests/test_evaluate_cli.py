@@ -138,7 +138,7 @@ def test_print_table_shows_auc_and_fraction_read(capsys):
 def test_split_warnings_say_why_a_split_cannot_be_scored():
     params = lambda labels: types.SimpleNamespace(slide=types.SimpleNamespace(slide_label=np.array(labels)))  # noqa: E731
     assert "AUC is undefined" in evaluate.split_warnings(None, params([1, 1]), "classification", "s")[0]
-    assert "0 % by construction" in evaluate.split_warnings(None, params([0, 0]), "detection", "s")[0]
+    assert "success rate is undefined: one class" in evaluate.split_warnings(None, params([0, 0]), "detection", "s")[0]
     assert evaluate.split_warnings(None, params([0, 1]), "classification", "s") == []
     assert evaluate.split_warnings(None, params([0, 1]), "detection", "s") == []
 
@@ -203,12 +203,15 @@ def test_evaluate_command_table_warnings_and_pictures(tmp_path, capsys):
     assert "AUC is undefined" in captured.err
     assert "evaluating HistoJAX-Easy-v0 on embedded sample slide" in captured.err and "ppo (greedy): 2" in captured.err
     header, greedy = [line.split() for line in captured.out.splitlines() if line.startswith(("policy", "ppo (gr"))]
-    assert header[-3:] == ["read", "fields", "AUC"] and greedy[-1] == "nan"  # one class: no AUC, and it says why
+    assert header[-3:] == ["read", "fields", "AUC"] and greedy[-1] == "undef."  # one class: no AUC, and it says why
+    assert "undef.: undefined: one class" in captured.out
     names = {p.name for p in (run / "eval").iterdir()}
     assert {"eval.json", "eval.csv", "trajectory_ppo_greedy.png", "reading_ppo_greedy_tumour.png",
             "trajectory.gif"} <= names
-    record = json.loads((run / "eval" / "eval.json").read_text())
+    record = json.loads((run / "eval" / "eval.json").read_text(), parse_constant=lambda c: pytest.fail(c))  # no NaN
     assert any("hiden" in w for w in record["warnings"]) and any("AUC is undefined" in w for w in record["warnings"])
+    assert all(r["diagnosis_auc"] is None for rows in record["results"].values() for r in rows.values()
+               if "diagnosis_auc" in r)
 
 
 @pytest.mark.parametrize("argv", [["--episodes", "0"], ["--episodes", "-3"]])

@@ -365,3 +365,73 @@ def test_one_writer_per_run_folder_and_a_killed_writer_leaves_no_lock(tmp_path, 
         holder.wait()
     assert run_folder.claim(out, {"algo": "ppo", "env_id": "HistoJAX-Easy-v0"}) == out  # the OS dropped the lock
     run_folder.release(out)
+
+
+# ----------------------------------------------------------------------------- undefined results say so
+def test_one_class_figures_print_undefined_and_write_null(tmp_path, capsys):
+    import types
+
+    from baselines.evaluate.checks import one_class, undefined_figures
+    from baselines.evaluate.cli import json_safe, print_table
+
+    params = lambda labels: types.SimpleNamespace(slide=types.SimpleNamespace(slide_label=np.array(labels)))  # noqa: E731
+    assert one_class(params([0, 0])) == 0 and one_class(params([1])) == 1 and one_class(params([0, 1])) is None
+    row = {"episodes": 8, "success_rate": 1.0, "mean_return": 0.1, "mean_length": 2.0, "mean_steps_to_success": 2.0,
+           "mean_fraction_read": 0.1, "mean_fields_of_view": 1.0, "success_rate_per_seed": [1.0]}
+    rows = undefined_figures({"ppo (greedy)": dict(row), "random": dict(row)}, "detection", 0)  # no tumour slide
+    assert rows["random"]["success_rate"] is None and rows["random"]["success_rate_per_seed"] == [None]
+    diag = undefined_figures({"ppo (greedy)": {**row, "diagnosis_auc": float("nan")}}, "classification", 1)
+    assert diag["ppo (greedy)"]["diagnosis_auc"] is None and diag["ppo (greedy)"]["success_rate"] == 1.0
+    print_table("t", rows)
+    out = capsys.readouterr().out
+    assert "100.0%" not in out and "undef.: undefined: one class" in out
+    text = json.dumps(json_safe({"results": rows, "x": float("nan"), "y": [np.float32("inf")]}), allow_nan=False)
+    assert json.loads(text)["x"] is None and "NaN" not in text
+
+
+# ----------------------------------------------------------------------------- words
+@pytest.mark.parametrize("episodes", ["99999999999999999999", str(2 ** 31), str(2 ** 63)])
+def test_evaluate_refuses_a_huge_episode_count_in_one_line(episodes, capsys):
+    from histojax.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main(["evaluate", "--env", "HistoJAX-Easy-v0", "--episodes", episodes])
+    assert e.value.code == 2
+    assert "--episodes" in _one_line(capsys)
+
+
+def test_checkpoint_every_below_zero_is_refused(tmp_path, capsys):
+    from histojax.cli import main
+
+    with pytest.raises(SystemExit) as e:
+        main([*TRAIN, "--checkpoint-every", "-1", "--out", str(tmp_path / "r")])
+    assert e.value.code == 2 and "--checkpoint-every" in _one_line(capsys)
+    assert not (tmp_path / "r").exists()
+
+
+def test_an_empty_shard_is_refused(tmp_path, capsys):
+    from data_tools.__main__ import main as data_main
+
+    (tmp_path / "slides").mkdir()
+    for argv in (["dataset", str(tmp_path / "slides"), "--out", str(tmp_path / "ds"), "--shard", ""],):
+        assert data_main(argv) == 2
+        assert "--shard ''" in _one_line(capsys)
+
+
+def test_a_published_agent_without_its_training_dataset_says_so_and_suggests_dataset(tmp_path, capsys, monkeypatch):
+    from histojax.cli import main
+
+    monkeypatch.chdir(tmp_path)  # runs/r6/ref/validation, recorded in its config.json, is not here
+    assert main(["evaluate", str(ROOT / "baselines" / "published" / "c16-v1-diagnosis"), "--episodes", "2"]) == 2
+    line = _one_line(capsys)
+    assert "runs/r6/ref/validation, which does not exist here" in line and "--dataset" in line, line
+    assert "not a dataset folder" not in line
+
+
+def test_head_fit_on_an_all_normal_training_split_says_so(work, tmp_path, capsys):
+    spec = json.loads((work / "dataset.json").read_text())
+    spec["train"] = [e for e in spec["train"] if "normal" in e]
+    (work / "dataset.json").write_text(json.dumps(spec))
+    assert head_fit.main(["--dataset", str(work), "--out", str(tmp_path / "h")]) == 2
+    line = _one_line(capsys)
+    assert "holds only normal slides" in line and "--val-fraction" not in line, line

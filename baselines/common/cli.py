@@ -2,6 +2,7 @@
 ``--resume RUN``, and ``python -m baselines.<algo>``'s entry point."""
 from __future__ import annotations
 
+import argparse
 import functools
 import json
 from pathlib import Path
@@ -17,6 +18,17 @@ from baselines.common.runner import resume_config, run_and_save
 
 
 # ----------------------------------------------------------------------------- the command line and a run
+def non_negative_int(text: str) -> int:
+    """argparse type: a whole number >= 0 (``--checkpoint-every``: 0 saves only at the end)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not a whole number") from None
+    if value < 0:
+        raise argparse.ArgumentTypeError(f"{text!r} must be >= 0 (0: a checkpoint only at the end)")
+    return value
+
+
 def add_arguments(p, defaults: dict) -> None:
     """Declare a trainer's options on the parser (or argument group) ``p``, with ``defaults`` its
     config defaults: the one declaration behind ``python -m baselines.ppo|dqn|ppo_rnn``,
@@ -58,7 +70,7 @@ def add_arguments(p, defaults: dict) -> None:
                    help="replace the run in --out (only the files histojax wrote there; its final files stay until "
                         "the new run's are written)")
     if "checkpoint_every" in defaults:
-        p.add_argument("--checkpoint-every", type=int, default=None, metavar="N",
+        p.add_argument("--checkpoint-every", type=non_negative_int, default=None, metavar="N",
                        help=f"save the whole training state to OUT/checkpoint/ every N updates "
                             f"(default {defaults['checkpoint_every']}; 0: only at the end)")
         p.add_argument("--resume", default=None, metavar="RUN",

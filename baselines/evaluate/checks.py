@@ -49,21 +49,52 @@ def check_config(config, path) -> list[str]:
     return warnings
 
 
+UNDEFINED = "undefined: one class"
+"""What the table prints (and ``eval.json`` records as ``null``) for a figure the slides scored cannot define."""
+
+
+def one_class(env_params) -> int | None:
+    """The one slide label (0 normal, 1 tumour) when every slide of ``env_params`` has it, else None."""
+    if getattr(env_params.slide, "slide_label", None) is None:
+        return None
+    labels = np.asarray(jax.device_get(env_params.slide.slide_label)).ravel()
+    return int(labels[0]) if labels.size and len(set(labels.tolist())) == 1 else None
+
+
+def undefined_figures(rows: dict, task: str, single: int | None) -> dict:
+    """``rows`` with the figures one class of slides cannot define set to None (printed :data:`UNDEFINED`, written
+    ``null``): the diagnosis AUCs when every slide is of one class; a detection run's success rate and steps to
+    success when no slide has tumour (no target exists to reach)."""
+    if single is None:
+        return rows
+    for row in rows.values():
+        for r in [row, *row.get("per_seed", [])]:
+            for key in ("diagnosis_auc", "diagnosis_auc_no_itc"):
+                if key in r:
+                    r[key] = None
+            if task != "classification" and single == 0:
+                r["success_rate"] = None
+                r["mean_steps_to_success"] = None
+                if "success_rate_per_seed" in r:
+                    r["success_rate_per_seed"] = [None] * len(r["success_rate_per_seed"])
+    return rows
+
+
 def split_warnings(env, env_params, task: str, where: str) -> list[str]:
     """Why a set of slides cannot be scored: a diagnosis needs tumour and normal slides for an AUC; detection
     needs a slide with tumour (no target can be reached on the others)."""
-    if getattr(env_params.slide, "slide_label", None) is None:
+    single = one_class(env_params)
+    if single is None:
         return []
-    labels = np.asarray(jax.device_get(env_params.slide.slide_label)).ravel()
-    n = labels.size
-    if task == "classification" and len(set(labels.tolist())) < 2:
-        kind = "tumour" if labels.size and labels[0] else "normal"
+    n = np.asarray(jax.device_get(env_params.slide.slide_label)).size
+    if task == "classification":
+        kind = "tumour" if single else "normal"
         return [f"{where}: all {n} slide{'s' if n > 1 else ''} {'are' if n > 1 else 'is'} {kind}: the diagnosis AUC "
-                "is undefined (it needs tumour and normal slides); only the accuracy of the declared diagnosis "
+                f"is {UNDEFINED} (it needs tumour and normal slides); only the accuracy of the declared diagnosis "
                 "means something"]
-    if task != "classification" and not labels.any():
-        return [f"{where}: no slide here has tumour annotated: no policy can reach a target, so every success "
-                "rate is 0 % by construction; score a split with tumour slides"]
+    if not single:
+        return [f"{where}: no slide here has tumour annotated: no policy can reach a target, so the success rate is "
+                f"{UNDEFINED} (normal slides only); score a split with tumour slides"]
     return []
 
 
@@ -101,7 +132,7 @@ def provenance_warnings(trained: dict, scored: dict, config_path) -> list[str]:
     elif s_mpp and not t_rec and c16(s_rec):
         out.append(f"{config_path}: its training dataset {t_ds} is not here and config.json records no scale, so the "
                    f"scale cannot be checked: {s_ds} is at {float(s_mpp):.3g} µm/px ({s_rec.get('variant', '?')} "
-                   "variant); the published c16-v1 agents trained on the full set (1.94 µm/px)")
+                   "variant); the published C16 agents (c16-v1-* and c16-v2-*) trained on the full set (1.94 µm/px)")
     return out
 
 

@@ -2,14 +2,18 @@
 chosen, the printed table, ``eval.json`` and ``eval.csv``."""
 from __future__ import annotations
 
+import argparse
 import csv
 import json
 import sys
 from pathlib import Path
 
+import numpy as np
+
 from baselines import common, outputs
 from data_tools.cli_output import positive_int
-from baselines.evaluate.checks import (check_config, check_params_tree, grid_refusal, head_reward_settings,
+from data_tools.errors import HistojaxDataError
+from baselines.evaluate.checks import (UNDEFINED, check_config, check_params_tree, grid_refusal, head_reward_settings,
                                        provenance_warnings, refuse_not_an_agent, resolve_head)
 from baselines.evaluate.scoring import evaluate
 from baselines.evaluate.all_folds import run_all_folds
@@ -64,6 +68,33 @@ def with_dataset(config: dict, dataset=None, split: str | None = None, fold: int
     return {**config, "env_kwargs": kw, "slide": None}
 
 
+MAX_EPISODES = 1 << 24
+"""The most episodes per policy ``--episodes`` takes (16,777,216: the rollouts index episodes with int32)."""
+
+
+def episode_count(text: str) -> int:
+    """argparse type of ``--episodes``: a whole number from 1 to :data:`MAX_EPISODES`."""
+    value = positive_int(text)
+    if value > MAX_EPISODES:
+        raise argparse.ArgumentTypeError(f"{text!r} is more than the {MAX_EPISODES:,} episodes per policy an "
+                                         "evaluation runs")
+    return value
+
+
+def json_safe(value):
+    """``value`` (JSON-able dicts, lists, numbers) with every non-finite float (NaN: a mean over no episode, an
+    undefined figure) replaced by None, so ``json.dumps(..., allow_nan=False)`` writes valid JSON (``null``)."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, (float, np.floating)):
+        return float(value) if np.isfinite(value) else None
+    if isinstance(value, np.integer):
+        return int(value)
+    return value
+
+
 def print_table(title: str, rows: dict, head: str | None = None) -> None:
     """The printed table: per policy episodes, success, mean return / length, steps to success, mean fraction
     of the slide read and fields of view; with a diagnosis score (``diagnosis_auc``), its AUC too, and
@@ -74,12 +105,20 @@ def print_table(title: str, rows: dict, head: str | None = None) -> None:
     print(f"\n{title}")
     print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}"
           f" {'read':>6} {'fields':>6}" + (f" {'AUC':>6}" if auc else "") + (f" {'AUC w/o ITC':>11}" if no_itc else ""))
+    def fig(v, width: int, spec: str) -> str:
+        return f"{'undef.':>{width}}" if v is None else f"{v:>{width}{spec}}"
+
+    undefined = False
     for name, r in rows.items():
-        cell = f" {r['diagnosis_auc']:>6.3f}" if "diagnosis_auc" in r else f" {'-':>6}"
-        cell2 = f" {r['diagnosis_auc_no_itc']:>11.3f}" if "diagnosis_auc_no_itc" in r else f" {'-':>11}"
-        print(f"{name:<22} {r['episodes']:>8} {r['success_rate']:>8.1%} {r['mean_return']:>11.3f} "
-              f"{r['mean_length']:>11.1f} {r['mean_steps_to_success']:>16.1f} {r['mean_fraction_read']:>6.1%} "
-              f"{r['mean_fields_of_view']:>6.1f}" + (cell if auc else "") + (cell2 if no_itc else ""))
+        cell = f" {fig(r['diagnosis_auc'], 6, '.3f')}" if "diagnosis_auc" in r else f" {'-':>6}"
+        cell2 = f" {fig(r['diagnosis_auc_no_itc'], 11, '.3f')}" if "diagnosis_auc_no_itc" in r else f" {'-':>11}"
+        undefined |= any(r.get(k, 0) is None for k in ("success_rate", "diagnosis_auc", "diagnosis_auc_no_itc"))
+        print(f"{name:<22} {r['episodes']:>8} {fig(r['success_rate'], 8, '.1%')} {r['mean_return']:>11.3f} "
+              f"{r['mean_length']:>11.1f} {fig(r['mean_steps_to_success'], 16, '.1f')} "
+              f"{r['mean_fraction_read']:>6.1%} {r['mean_fields_of_view']:>6.1f}"
+              + (cell if auc else "") + (cell2 if no_itc else ""))
+    if undefined:
+        print(f"undef.: {UNDEFINED} (the slides scored are all of one class; see the warning above)")
     if head:
         print(f"the head declares: the policy chooses where to read, then the slide head {head} scores the finest "
               "views read; success: the head's diagnosis was right; AUC: of the head's score over the episodes "
@@ -109,8 +148,8 @@ def add_arguments(p) -> None:
                    help="a dataset built with --folds K: evaluate every fold I = 0 ... K-1 (as --fold I, in "
                         "OUT/foldI) and report each figure's mean ± std over the folds (OUT/eval.json, eval.csv); a "
                         "CHECKPOINT holding {fold} (runs/ppo-fold{fold}) is the run trained on each fold")
-    p.add_argument("--episodes", type=positive_int, default=256,
-                   help="episodes per policy (per seed for the learned one), at least 1")
+    p.add_argument("--episodes", type=episode_count, default=256,
+                   help=f"episodes per policy (per seed for the learned one), 1 to {MAX_EPISODES:,}")
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--with-position", action="store_true", help="(reference rows only) observation with position")
     p.add_argument("--action-mode", default="discrete", help="(reference rows only)")
@@ -170,6 +209,13 @@ def run(args, parser) -> int:
         config["env_id"] = args.env
     config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None),
                           getattr(args, "fold", None))
+    recorded = (config.get("env_kwargs") or {}).get("dataset")
+    if run is not None and getattr(args, "dataset", None) is None and isinstance(recorded, str) \
+            and not (Path(recorded) / "dataset.json").is_file():
+        raise HistojaxDataError(run / "config.json", f"records the dataset it trained on as {recorded}, which does not "
+                                "exist here (a folder of the machine it was trained on): give --dataset DIR, a "
+                                "dataset of the same kind (e.g. `python -m data_tools c16 ... --out DIR` for a C16 "
+                                "agent)")
     if run is not None:
         warnings += provenance_warnings(trained, config, run / "config.json")
     head, head_dir = None, None
@@ -208,16 +254,17 @@ def run(args, parser) -> int:
     record = {"env_id": config["env_id"], "results": results, "warnings": warnings}
     if head is not None:
         record["head"] = {"folder": str(head_dir), "name": head.name, "reward": settings}
-    outputs.write_text(out / "eval.json", json.dumps(record, indent=2))
+    outputs.write_text(out / "eval.json", json.dumps(json_safe(record), indent=2, allow_nan=False))  # NaN: null
     with outputs.open_text(out / "eval.csv") as f:
         w = csv.writer(f)
         w.writerow(["slide", "policy", "episodes", "success_rate", "mean_return", "mean_length", "mean_steps_to_success",
                     "mean_fraction_read", "mean_fields_of_view", "diagnosis_auc", "diagnosis_auc_no_itc"])
         for slide, rows in results.items():
             for name, r in rows.items():
-                w.writerow([slide, name, r["episodes"], r["success_rate"], r["mean_return"], r["mean_length"],
-                            r["mean_steps_to_success"], r["mean_fraction_read"], r["mean_fields_of_view"],
-                            r.get("diagnosis_auc", ""), r.get("diagnosis_auc_no_itc", "")])
+                w.writerow(["" if v is None else v for v in (
+                    slide, name, r["episodes"], r["success_rate"], r["mean_return"], r["mean_length"],
+                    r["mean_steps_to_success"], r["mean_fraction_read"], r["mean_fields_of_view"],
+                    r.get("diagnosis_auc", ""), r.get("diagnosis_auc_no_itc", ""))])
     print(f"\nwrote {out}/eval.json, eval.csv, trajectory_*.png, reading_*.png, trajectory.gif")
     return 0
 

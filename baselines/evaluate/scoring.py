@@ -13,7 +13,7 @@ from baselines.evaluate.rollout import check_fits, episode_labels, eval_env, per
 from baselines.evaluate.policies import (diagnosis_actions, learned_policy, map_follower_policy, network_for,
                                          scripted_features_policy, scripted_policy, seeds_policy)
 from baselines.evaluate.heads import head_env, head_scored
-from baselines.evaluate.checks import split_warnings
+from baselines.evaluate.checks import one_class, split_warnings, undefined_figures
 from baselines.evaluate.pictures import write_pictures
 
 
@@ -54,7 +54,8 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     base = env
     while not hasattr(base, "task") and hasattr(base, "_env"):
         base = base._env
-    for w in split_warnings(env, env_params, getattr(base, "task", "detection"),
+    task = getattr(base, "task", "detection")
+    for w in split_warnings(env, env_params, task,
                             f"{len(names)} slide{'s' if len(names) > 1 else ''} ({', '.join(names[:3])}"
                             f"{', ...' if len(names) > 3 else ''})"):
         say(f"warning: {w}")
@@ -91,7 +92,7 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             rows[f"{label} ({name})"] = row
             episodes[f"{label} ({name})"] = pooled
     if not references:
-        return rows
+        return undefined_figures(rows, task, one_class(env_params))
     say(f"  random: {num_episodes} episodes ...")
     space = env.action_space()
     rand = lambda k, obs: jax.vmap(space.sample)(jax.random.split(k, jax.tree.leaves(obs)[0].shape[0]))  # noqa: E731
@@ -122,4 +123,4 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     if out is not None:
         say(f"  pictures to {out} ...")
         write_pictures(picture_env, env_params, episodes, Path(out), config["env_id"])
-    return rows
+    return undefined_figures(rows, task, one_class(env_params))

@@ -304,6 +304,13 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
     from baselines.validation import split_train
 
     spec = read_spec(dataset, fold)
+    classes = {_label(spec, Path(e).name) for e in spec["train"]}
+    if len(classes) == 1 and None not in classes:  # labels from dataset.json: one class, refused before loading
+        kind = "tumour" if classes.pop() else "normal"
+        where = f"fold {fold}'s train side" if fold is not None else "the train split"
+        raise HeadDataError(Path(dataset) / "dataset.json", f"{where} holds only {kind} slides ({len(spec['train'])}): "
+                                                            "a head is fitted on tumour and normal slides; give a "
+                                                            "dataset whose training slides hold both")
     kept, held = split_train(spec, val_fraction, seed)
     train = load_slides(dataset, spec["train"], spec, dim, progress=progress)
     by_name = {s["name"]: s for s in train}

@@ -95,7 +95,7 @@ def run(args) -> int:
         tile_size=args.tile_size, magnification_range=args.magnification_range, storage=args.storage,
         label_map=label_map, encoder=args.encoder, features_from=args.features_from, patch_size=args.patch_size,
         patch_level=args.patch_level, no_pixels=args.no_pixels, test_fraction=args.test_fraction, seed=args.seed,
-        jobs=args.jobs, shard=parse_shard(args.shard) if args.shard else None, restart=args.restart,
+        jobs=args.jobs, shard=parse_shard(args.shard) if args.shard is not None else None, restart=args.restart,
         allow_unmatched=args.allow_unmatched_annotations, progress=not args.quiet, reader=args.reader,
         folds=args.folds)
     s = summary

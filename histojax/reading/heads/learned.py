@@ -24,7 +24,7 @@ adds newly read views only).
 
 Pure JAX, jittable, vmappable over slides padded to one grid (padding is never read)::
 
-    head = LearnedHead.load("baselines/published/c16-v3-learned-head")
+    head = LearnedHead.load("runs/learned-head")   # saved by baselines.reading.learned_head_fit
     logit = head.score(grid_features, read_mask)          # (H, W, D), (H, W) bool -> () float32
     scores = head.view_logits(grid_features)              # (H, W) float32 per-view scores
     st = head.init_state()

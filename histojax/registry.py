@@ -220,8 +220,8 @@ def check_dataset(folder, spec: dict, env_id: str) -> None:
                           f"textured from disjoint PCam patch pools); this one is format {ds.get('format', 1)}: {fix}")
     # any recorded encoder's grids (pcam-cnn by default; your own with --encoder module:function), not none
     if want_encoder is not None and spec.get("obs_mode", "pixels") == "features" and not ds.get("encoder"):
-        raise BundleError(index, f"{env_id} observes {want_encoder} features; this dataset's feature grids are "
-                          f"{ds.get('encoder')!r}: {fix}")
+        raise BundleError(index, f"{env_id} observes {want_encoder} features, and this dataset records no feature "
+                          f"grids (built without --features): {fix}")
 
 
 def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES,

@@ -412,7 +412,7 @@ def test_v1_ids_need_a_format_2_dataset_with_pcam_cnn_features(small, tmp_path):
                                                   "test": [str(small / b) for b in ds["test"]]}))
     with pytest.raises(BundleError, match="format >= 2.*use the -v0 id"):
         histojax.make("HistoJAX-C16-Hard-v1", dataset=old)
-    with pytest.raises(BundleError, match="pcam-cnn features; this dataset's feature grids are None"):
+    with pytest.raises(BundleError, match="pcam-cnn features, and this dataset records no feature grids"):
         histojax.make("HistoJAX-C16-Hard-v1", dataset=small)
 
 

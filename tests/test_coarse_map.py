@@ -81,7 +81,7 @@ def test_map_settings_are_checked(dataset):
         _make(dataset, action_mode="discrete:map")
     with pytest.raises(TypeError, match="map_feature is for discrete:map only"):
         _make(dataset, action_mode="discrete:memory", map_feature=ENTRY)
-    with pytest.raises(ValueError, match=r"map_feature=99 is not an entry of these slides' \d+-entry features"):
+    with pytest.raises(ValueError, match=r"map_feature=99: .*metadata.json: its .* feature grid has \d+ entries"):
         _make(dataset, action_mode="discrete:map", map_feature=99)
     with pytest.raises(ValueError, match="map_level=5 is not one of the 3 levels"):
         _make(dataset, action_mode="discrete:map", map_feature=ENTRY, map_level=5)

@@ -435,3 +435,42 @@ def test_head_fit_on_an_all_normal_training_split_says_so(work, tmp_path, capsys
     assert head_fit.main(["--dataset", str(work), "--out", str(tmp_path / "h")]) == 2
     line = _one_line(capsys)
     assert "holds only normal slides" in line and "--val-fraction" not in line, line
+
+
+def test_a_c16_agent_on_other_features_names_the_dataset_and_the_encoder_it_needs(tmp_path):
+    from baselines.evaluate.checks import encoder_refusal
+
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    (ds / "dataset.json").write_text(json.dumps({"encoder": "colour-stats", "train": [], "test": []}))
+    config = {"env_id": "HistoJAX-C16-Diagnosis-v1", "obs_mode": "features", "env_kwargs": {"dataset": str(ds)}}
+    line = encoder_refusal(config, "published/c16-v1-diagnosis/config.json")
+    assert "observes pcam-cnn features" in line and str(ds / "dataset.json") in line and "'colour-stats'" in line
+    assert "params.msgpack" not in line
+    (ds / "dataset.json").write_text(json.dumps({"encoder": "pcam-cnn", "train": [], "test": []}))
+    assert encoder_refusal(config, "c.json") is None
+    assert encoder_refusal({**config, "env_id": "HistoJAX-Easy-v0"}, "c.json") is None
+
+
+def test_a_dataset_without_feature_grids_is_named_not_none(tmp_path):
+    from data_tools.errors import BundleError
+    from histojax import registry
+
+    (tmp_path / "dataset.json").write_text(json.dumps({"kind": "histojax dataset", "train": [], "test": []}))
+    with pytest.raises(BundleError) as e:
+        registry.check_dataset(tmp_path, registry.spec_of("HistoJAX-C16-Diagnosis-v1").settings,
+                               "HistoJAX-C16-Diagnosis-v1")
+    assert "records no feature grids" in str(e.value) and "None" not in str(e.value)
+    assert str(tmp_path / "dataset.json") in str(e.value)
+
+
+def test_a_coarse_map_entry_the_features_lack_names_the_bundle(tmp_path):
+    import types
+
+    from histojax.reading.coarse_map import coarse_maps
+
+    params = types.SimpleNamespace(slide=types.SimpleNamespace(features=np.zeros((10, 11), np.float32)))
+    bundle = types.SimpleNamespace(path=tmp_path / "b", metadata={"features": {"encoder": "colour-stats"}})
+    with pytest.raises(ValueError) as e:
+        coarse_maps(None, params, [bundle], 62)
+    assert f"{tmp_path / 'b'}/metadata.json" in str(e.value) and "colour-stats" in str(e.value)

@@ -123,5 +123,5 @@ def test_v1_ids_refuse_a_dataset_without_feature_grids_but_take_any_encoders(tmp
         (tmp_path / "dataset.json").write_text(json.dumps({**base, "encoder": encoder}))
         check_dataset(tmp_path, C16_V1, "HistoJAX-C16-Hard-v1")
     (tmp_path / "dataset.json").write_text(json.dumps({**base, "encoder": None}))
-    with pytest.raises(HistojaxDataError, match="pcam-cnn features; this dataset's feature grids are None"):
+    with pytest.raises(HistojaxDataError, match="pcam-cnn features, and this dataset records no feature grids"):
         check_dataset(tmp_path, C16_V1, "HistoJAX-C16-Hard-v1")

@@ -136,6 +136,30 @@ def provenance_warnings(trained: dict, scored: dict, config_path) -> list[str]:
     return out
 
 
+def encoder_refusal(config: dict, config_path) -> str | None:
+    """Why an agent of an id that observes one encoder's features (the C16 -v1 / -v2 ids: pcam-cnn) cannot score
+    the dataset in ``config`` (its ``env_kwargs.dataset``), or None: the dataset's ``dataset.json`` records other
+    features (or none). One line naming the agent's config, the dataset file and what to build; said before any
+    network is loaded, instead of the parameter shapes that would not fit."""
+    from histojax import registry
+
+    env_id = config.get("env_id")
+    want = registry.spec_of(env_id).settings.get("dataset_encoder") if env_id in registry.registered_envs() else None
+    dataset = (config.get("env_kwargs") or {}).get("dataset")
+    if not want or not dataset or config.get("obs_mode", "features") != "features":
+        return None
+    index = Path(dataset) / "dataset.json"
+    try:
+        have = json.loads(index.read_text()).get("encoder")
+    except (OSError, ValueError, AttributeError):
+        return None
+    if have == want:
+        return None
+    return (f"{config_path}: this agent ({config['env_id']}) observes {want} features; {index} holds "
+            f"{'no feature grids' if not have else repr(have) + ' features'}: score it on a dataset built with "
+            f"--encoder {want} (e.g. `python -m data_tools c16 ... --features`), or train an agent on these features")
+
+
 # ----------------------------------------------------------------------------- published readers
 SET_READER = "c16-v2-set-reader"  # the published cell-set reader: reads slides of any size
 

@@ -13,7 +13,7 @@ import numpy as np
 from baselines import common, outputs
 from data_tools.cli_output import positive_int
 from data_tools.errors import HistojaxDataError
-from baselines.evaluate.checks import (UNDEFINED, check_config, check_params_tree, grid_refusal, head_reward_settings,
+from baselines.evaluate.checks import (UNDEFINED, check_config, encoder_refusal, check_params_tree, grid_refusal, head_reward_settings,
                                        provenance_warnings, refuse_not_an_agent, resolve_head)
 from baselines.evaluate.scoring import evaluate
 from baselines.evaluate.all_folds import run_all_folds
@@ -210,6 +210,8 @@ def run(args, parser) -> int:
     config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None),
                           getattr(args, "fold", None))
     recorded = (config.get("env_kwargs") or {}).get("dataset")
+    if run is not None and (refusal := encoder_refusal(config, run / "config.json")):
+        raise HistojaxDataError(None, refusal)
     if run is not None and getattr(args, "dataset", None) is None and isinstance(recorded, str) \
             and not (Path(recorded) / "dataset.json").is_file():
         raise HistojaxDataError(run / "config.json", f"records the dataset it trained on as {recorded}, which does not "

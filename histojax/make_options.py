@@ -74,6 +74,8 @@ class MakeOptions:
     read_slots: int = option(MODE, "glimpse: slots of the cells-read list of a step observation")
     map_feature: int = option(MODE, "discrete:map: the feature entry the coarse map shows")
     map_level: int = option(MODE, "discrete:map: the level of the coarse map")
+    map_head: str = option(MODE, "discrete:map: a slide head folder whose per-view scores the coarse map shows "
+                                 "(instead of map_feature)")
     # dataset: how make draws and checks a dataset's slides
     tumour_slides_only: bool = option(DATASET, "detection: reset draws only slides with tumour annotated")
     dataset_format: int = option(DATASET, "the least dataset.json format this id needs")

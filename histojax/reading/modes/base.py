@@ -127,12 +127,15 @@ class Navigation(ActionMode):
         return self.coarse_map  # the map is built from the slides' feature grids
 
     def prepare(self, env, params, bundles, track_reading: bool = False, read_budget: float | None = None,
-                map_feature: int | None = None, map_level: int = -3):
-        """``map_feature`` / ``map_level`` (``coarse_map=True`` only): the feature entry and the level of the
-        coarse map (:func:`histojax.reading.coarse_map.coarse_maps`)."""
-        if self.coarse_map != (map_feature is not None):
-            raise TypeError(f"{self.name}:map needs map_feature=ENTRY (the feature entry its coarse map shows), and "
-                            f"map_feature is for {self.name}:map only")
+                map_feature: int | None = None, map_level: int = -3, map_head=None):
+        """``map_feature`` / ``map_head`` / ``map_level`` (``coarse_map=True`` only): the feature entry, or the slide
+        head (a folder or a loaded head) whose per-view scores the coarse map shows, and the level of the coarse map
+        (:func:`histojax.reading.coarse_map.coarse_maps`)."""
+        if map_feature is not None and map_head is not None:
+            raise TypeError(f"{self.name}:map shows map_feature=ENTRY or map_head=HEAD, not both")
+        if self.coarse_map != (map_feature is not None or map_head is not None):
+            raise TypeError(f"{self.name}:map needs map_feature=ENTRY (the feature entry its coarse map shows) or "
+                            f"map_head=HEAD (a slide head's per-view scores), and they are for {self.name}:map only")
         if not (self.memory or track_reading):
             if read_budget is not None:
                 raise TypeError(f"read_budget needs track_reading=True (or {self.name} with memory=True)")
@@ -141,7 +144,8 @@ class Navigation(ActionMode):
         if self.coarse_map:
             from histojax.reading.coarse_map import coarse_maps
 
-            tables = tables.replace(coarse_map=jnp.asarray(coarse_maps(env, params, bundles, map_feature, map_level)))
+            tables = tables.replace(coarse_map=jnp.asarray(coarse_maps(env, params, bundles, map_feature, map_level,
+                                                                       head=map_head)))
         return tables
 
     def init_memory(self, env, state, params):

@@ -16,6 +16,7 @@ stored as ``features_projection.npy`` (``features_projection_mean.npy``).
 from __future__ import annotations
 
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -23,6 +24,7 @@ from tqdm.auto import tqdm
 
 from data_tools.bundle_format import load_bundle, load_tiled_level, read_metadata, remove_partial
 from data_tools.errors import BundleError
+from data_tools.features.encoders import encoder_scale
 from data_tools.features.store import level_grids, save_array, update_metadata
 
 PARTIAL = "features.partial"
@@ -114,6 +116,9 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
     if dtype not in ("float16", "float32"):
         raise BundleError(bundle, f"dtype must be float16 or float32, got {dtype!r}")
     encoder = load_encoder(encoder_name, image_size=image_size)
+    scale = encoder_scale(encoder.name, (metadata.get("source") or {}).get("mpp"))
+    if scale is not None and scale["warning"]:  # one line naming the bundle; recorded in features.encoder_scale
+        warnings.warn(f"{bundle / 'metadata.json'}: {scale['warning']}", stacklevel=2)
     if dim is not None and not 1 <= dim <= encoder.dim:
         raise BundleError(bundle, f"--dim must be between 1 and the encoder's {encoder.dim}, got {dim}")
     grids = level_grids(metadata, stride)
@@ -194,6 +199,7 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
         "grid": "cell (gy, gx) of level KK = the view with top-left (gx*stride, gy*stride) px of that level",
         "levels": levels,
         **(encoder.record() if hasattr(encoder, "record") else {}),  # your own: name, version, module:function
+        **({"encoder_scale": scale} if scale is not None else {}),  # a built-in encoder's scale against the slide's
     }
     update_metadata(bundle, features, written)
     remove_partial(partial)

@@ -474,3 +474,23 @@ def test_a_coarse_map_entry_the_features_lack_names_the_bundle(tmp_path):
     with pytest.raises(ValueError) as e:
         coarse_maps(None, params, [bundle], 62)
     assert f"{tmp_path / 'b'}/metadata.json" in str(e.value) and "colour-stats" in str(e.value)
+
+
+def test_a_read_only_run_folder_is_named_not_a_temporary(tmp_path, monkeypatch, capsys):
+    """(Permissions do not bind root, so the refusal to create the lock file is simulated.)"""
+    from baselines.common import run_folder
+    from histojax.cli import main
+
+    out = tmp_path / "ro"
+    out.mkdir()
+    real_open = os.open
+
+    def read_only(path, flags, *a):
+        if str(path).startswith(str(out)) and flags & os.O_CREAT:
+            raise PermissionError(13, "Permission denied", str(path))
+        return real_open(path, flags, *a)
+
+    monkeypatch.setattr(run_folder.os, "open", read_only)
+    assert main([*TRAIN, "--out", str(out)]) == 2
+    line = _one_line(capsys)
+    assert line.startswith(f"error: {out}: cannot be written (Permission denied)") and ".tmp-" not in line, line

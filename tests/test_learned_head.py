@@ -434,11 +434,23 @@ def test_fold_refusals_are_one_line(cohort, tmp_path, capsys):
     assert "has no folds" in capsys.readouterr().err
 
 
-@pytest.mark.slow
-def test_a_fold_trains_on_the_other_folds(cohort, tmp_path, capsys):
+class _Stop(Exception):
+    pass
+
+
+def test_a_fold_trains_and_validates_on_the_other_folds(cohort, tmp_path, monkeypatch):
     ds = _with_folds(cohort, tmp_path)
-    out = tmp_path / "h"
-    assert _main(["--dataset", str(ds), "--out", str(out), "--fold", "1", "--quiet", "--steps", "40", "--hidden", "32",
-                  "--eval-every", "20", "--lr", "5e-3", "--batch", "8", "--views", "64"]) == 0
-    cfg = json.loads((out / "config.json").read_text())  # fold 1's train side: the other two folds, 21 slides
-    assert cfg["fitted_on"]["slides"] + cfg["chosen_on"]["validation_slides"] == 21
+    folds = json.loads((ds / "dataset.json").read_text())["folds"]["lists"]
+    seen = {}
+
+    def spy(train_slides, val, *args, **kwargs):
+        seen["train"] = [s["name"] for s in train_slides]
+        seen["val"] = [s["name"] for s in val.slides]
+        raise _Stop
+
+    monkeypatch.setattr(fit, "train", spy)
+    with pytest.raises(_Stop):
+        _main(["--dataset", str(ds), "--out", str(tmp_path / "h"), "--fold", "1", "--quiet"])
+    other = {Path(e).name for i, lst in enumerate(folds) if i != 1 for e in lst}
+    assert set(seen["train"]) | set(seen["val"]) == other and not set(seen["train"]) & set(seen["val"])
+    assert {Path(e).name for e in folds[1]}.isdisjoint(seen["train"] + seen["val"])  # fold 1 is never read

@@ -128,7 +128,13 @@ def _report(out: Path, dataset: dict, failed: dict, summary: dict) -> int:
     if folds:
         print(f"{folds['k']} folds over the {'slides' if folds['pool'] == 'all' else 'train side'}: "
               + ", ".join(str(len(lst)) for lst in folds["lists"]) + " slides (" + folds["grouped_by"] + ")")
+    labels = {Path(str(k)).name: v for k, v in (dataset.get("labels") or {}).items()}
     for side in ("train", "test"):
+        classes = {labels.get(Path(str(e)).name) for e in dataset[side]} - {None}
+        if dataset[side] and len(classes) == 1:
+            print(f"note: the {side} split holds only {'tumour' if classes.pop() else 'normal'} slides "
+                  f"({len(dataset[side])}" + ("; others failed" if failed else "") + "): its AUC is undefined, and "
+                  "anything that scores AUC on it refuses it; give more slides, --test-fraction or a split column")
         if not dataset[side]:
             print(f"note: the {side} split is empty (split rule: {dataset.get('split_rule')}"
                   + ("; its slides failed" if failed else "") + "): no policy can be "

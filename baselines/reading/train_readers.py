@@ -72,6 +72,18 @@ def is_navigator(action_mode: str) -> bool:
     return action_mode.split(":")[0] in NAVIGATION_MODES
 
 
+def scale_warning(dataset: Path, spec: dict) -> str | None:
+    """The one-line warning repeated from ``dataset.json``'s ``encoder_scale`` (written by ``histojax dataset``)
+    when slides lie outside the built-in encoder's training scale, else None."""
+    rec = spec.get("encoder_scale") if isinstance(spec.get("encoder_scale"), dict) else {}
+    out = rec.get("slides_out_of_scale") or {}
+    if not out:
+        return None
+    return (f"warning: {Path(dataset) / 'dataset.json'}: {len(out)} slide(s) are more than {rec.get('tolerance')}x "
+            f"from the {rec.get('encoder_mpp')} µm/px {rec.get('encoder')} was trained at, or of unknown scale "
+            f"(e.g. {next(iter(out))}): the head and reader read features that may not mean what they mean there")
+
+
 def split_dataset(dataset: Path, out: Path, fraction: float, seed: int, fold: int | None = None) -> Path:
     """``out/dataset.json``: ``dataset``'s spec (``fold=i``: fold i's sides) with its training split cut into
     ``train`` and ``validation`` (bundle paths made absolute); returns ``out``. ``HistojaxDataError`` naming the
@@ -219,7 +231,11 @@ def main(argv=None) -> int:
             data = args.out  # the split the stopped run trained on
         else:
             data = split_dataset(args.dataset, args.out, args.val_fraction, args.split_seed, args.fold)
-        levels = args.levels or dataset_levels(args.dataset, json.loads((data / "dataset.json").read_text()))
+        spec = json.loads((data / "dataset.json").read_text())
+        levels = args.levels or dataset_levels(args.dataset, spec)
+        warning = scale_warning(args.dataset, spec)
+        if warning:
+            print(warning, file=sys.stderr)
     except (HistojaxDataError, ValueError, OSError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

@@ -41,3 +41,26 @@ def test_features_warn_and_record(tmp_path):
     assert len(lines) == 1 and lines[0].startswith(str(bundle / "metadata.json")) and "\n" not in lines[0]
     rec = read_metadata(bundle)["features"]["encoder_scale"]
     assert rec["ok"] is False and rec["encoder_mpp"] == pytest.approx(1.944)
+
+
+def test_dataset_scale_warns_on_mixed_and_far_slides():
+    from data_tools.features.encoders import dataset_scale
+
+    rec, lines = dataset_scale("pcam-cnn", {"a": 1.9, "b": 0.5, "c": None})
+    assert len(lines) == 2 and "mix scales" in lines[0]
+    assert "a is 1.9 µm/px, b 0.5 µm/px" in lines[0] and "2 of 3 slides" in lines[1]
+    assert rec["slides_out_of_scale"] == {"b": 0.5, "c": None} and rec["tolerance"] == 1.5
+    rec, lines = dataset_scale("pcam-cnn", {"a": 1.9, "b": 2.2})
+    assert lines == [] and rec["slides_out_of_scale"] == {}
+    rec, lines = dataset_scale("imported", {"a": 0.25, "b": 0.5})  # no training scale; the mix still warned
+    assert rec is None and len(lines) == 1 and "mix scales" in lines[0]
+
+
+def test_dataset_json_records_the_encoder_scale(tmp_path):
+    from data_tools.datasets.build import write_dataset_json
+
+    plan = {"options": {"encoder": "pcam-cnn"}, "slides": {"a": {"split": "train", "label": 1, "mpp": 0.5},
+                                                           "b": {"split": "test", "label": 0, "mpp": 1.944}}}
+    ds = write_dataset_json(tmp_path, plan, {"a": {"name": "a"}, "b": {"name": "b"}}, {})
+    assert ds["encoder_scale"]["slides_out_of_scale"] == {"a": 0.5}
+    assert (tmp_path / "dataset.json").read_text().count("encoder_scale") == 1

@@ -31,6 +31,7 @@ import resource
 import shutil
 import time
 import uuid
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -43,6 +44,7 @@ from data_tools.datasets.locks import (RUN_LOCK, LockHeld, RunLock, bundle_lock_
 from data_tools.datasets.split import (fold_lists, folds_record, kfold_split, patient_groups, read_patient_column,
                                        seeded_split, shard_names)
 from data_tools.errors import HistojaxDataError
+from data_tools.features.encoders import dataset_scale
 
 KIND = "histojax dataset of real slides (data_tools dataset)"
 MPP_TOLERANCE = 0.05  # relative: slides within 5 % µm/px share one --magnification-range
@@ -459,6 +461,9 @@ def write_dataset_json(out, plan: dict, records: dict[str, dict], failed: dict[s
         **({"folds": fold_lists(plan["folds"], names)} if plan.get("folds") else {}),
         **(extra or {}),
     }
+    scale, _ = dataset_scale(dataset["encoder"], {n: plan["slides"][n].get("mpp") for n in names})
+    if scale is not None:  # a built-in encoder's scale against the slides' (warned when the plan was made)
+        dataset["encoder_scale"] = scale
     return write_dataset_index(out, dataset)
 
 
@@ -647,6 +652,8 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
 
         check_feature_dims(h5s[e.name.lower()] for e in entries if e.name.lower() in h5s)
     mpps = check_scales(entries, magnification_range, reader)
+    for line in dataset_scale(_encoder_of({"encoder": encoder, "features_from": features_from}), mpps)[1]:
+        warnings.warn(f"{slides_dir}: {line}", stacklevel=2)  # one line each; recorded in dataset.json
     options = {"levels": sorted(set(int(v) for v in levels)), "tile_size": int(tile_size),
                "magnification_range": magnification_range, "storage": storage, "label_map": label_map or None,
                "encoder": encoder,

@@ -40,3 +40,29 @@ def encoder_scale(encoder: str, slide_mpp) -> dict | None:
     return {"encoder_mpp": want, "slide_mpp": mpp if known else None, "factor": round(factor, 3) if known else None,
             "tolerance": SCALE_TOLERANCE, "ok": bool(ok), "warning": warning}
 
+
+def dataset_scale(encoder: str | None, mpps: dict) -> tuple[dict | None, list[str]]:
+    """``(record, warnings)`` of a dataset's slide scales ``mpps`` (name → µm/px or None): ``warnings`` one
+    sentence each — slides whose µm/px differ by more than :data:`SCALE_TOLERANCE` between them (a mixed dataset),
+    and slides far from (or of unknown scale for) a built-in ``encoder``'s training scale (:func:`encoder_scale`);
+    ``record`` (for ``dataset.json``'s ``encoder_scale``; None for an encoder without a training scale): the
+    encoder's µm/px, the tolerance, and the slides out of it (name → µm/px or None)."""
+    warnings_ = []
+    known = {n: float(m) for n, m in mpps.items() if isinstance(m, (int, float)) and m and m > 0}
+    if len(known) > 1:
+        lo, hi = min(known, key=known.get), max(known, key=known.get)
+        if known[hi] > known[lo] * SCALE_TOLERANCE:
+            warnings_.append(f"the slides mix scales: {hi} is {known[hi]:.3g} µm/px, {lo} {known[lo]:.3g} µm/px "
+                             f"(more than {SCALE_TOLERANCE}x apart): one encoder sees them at different scales")
+    want = ENCODER_MPP.get(str(encoder))
+    if want is None:
+        return None, warnings_
+    out = {n: known.get(n) for n in mpps if not encoder_scale(encoder, known.get(n))["ok"]}
+    if out:
+        name = next(iter(out))
+        first = f"{name} at {out[name]:.3g} µm/px" if out[name] else f"{name} of unknown µm/px"
+        warnings_.append(f"{len(out)} of {len(mpps)} slides are more than {SCALE_TOLERANCE}x from the {want} µm/px "
+                         f"{encoder} was trained at, or of unknown scale (e.g. {first}): their features may not mean "
+                         "what they mean at its scale")
+    return {"encoder": encoder, "encoder_mpp": want, "tolerance": SCALE_TOLERANCE, "slides_out_of_scale": out}, warnings_
+

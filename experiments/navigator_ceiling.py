@@ -20,6 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
+from baselines.reading.csv_files import write_csv
+from baselines.reading.orders import logit_order, random_order, read_mask, search_order
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 
@@ -39,14 +41,14 @@ def at_ceiling(head, slides: list[dict], results: dict, ceilings: np.ndarray, le
     key = float(np.median(ceilings))
     tables = [readers.cell_table(s, level) for s in slides]
     tumour = [readers.tumour_views(s) for s in slides]
-    orders = {"logit reader": [readers.logit_order(c) for c in tables],
-              "search reader": [readers.search_order(s, c, limit=float(b) + 0.01)
+    orders = {"logit reader": [logit_order(c) for c in tables],
+              "search reader": [search_order(s, c, limit=float(b) + 0.01)
                                 for s, c, b in zip(slides, tables, ceilings)]}
     for name, ords in orders.items():
-        masks = [[readers.read_mask(c, s["tissue"], o, float(b))[0]
+        masks = [[read_mask(c, s["tissue"], o, float(b))[0]
                   for s, c, o, b in zip(slides, tables, ords, ceilings)]]
         readers.add_reader(results, head, slides, f"{name}, per-slide ceiling", {key: masks}, "scripted", tumour)
-    masks = [[readers.read_mask(c, s["tissue"], readers.random_order(c, np.random.default_rng(1000 * k + i)),
+    masks = [[read_mask(c, s["tissue"], random_order(c, np.random.default_rng(1000 * k + i)),
                                 float(b))[0] for i, (s, c, b) in enumerate(zip(slides, tables, ceilings))]
              for k in range(seeds)]
     readers.add_reader(results, head, slides, "random reader, per-slide ceiling", {key: masks}, "random", tumour)
@@ -85,7 +87,7 @@ def run(args, parser=None) -> int:
     rows = readers.rows_from_results(results, slides)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    readers.write_csv(rows, out / "readers.csv")
+    write_csv(rows, out / "readers.csv")
     wall = time.perf_counter() - t0
     summary = {"dataset": str(args.dataset), "split": args.split, "head": str(args.head), "max_steps": args.max_steps,
                "slides": len(slides), "tissue_views_median": float(np.median(views)),

@@ -303,7 +303,7 @@ def test_navigation_memory_observation(bundle):
 
 
 def test_offline_reader_reads_as_the_env(glimpse):
-    from baselines.reading.budget_curve import read_cells
+    from baselines.reading.orders import read_cells
 
     env, params = glimpse
     table = env.action.host_tables(env, params, env.bundles)[0]
@@ -322,7 +322,9 @@ def test_offline_reader_reads_as_the_env(glimpse):
 
 
 def test_budget_rows_csv_and_png(tmp_path):
-    from baselines.reading.budget_curve import budget_rows, plot, write_csv
+    from baselines.reading.budget_curve import budget_rows
+    from baselines.reading.csv_files import write_curve_csv
+    from baselines.reading.plots import plot_curve
 
     rng = np.random.default_rng(0)
 
@@ -340,8 +342,8 @@ def test_budget_rows_csv_and_png(tmp_path):
     rows = budget_rows((tables[:8], labels[:8]), (tables[8:], labels[8:]), budgets=(0.25, 0.5), seeds=2, steps=30)
     assert {r["method"] for r in rows} == {"MIL, read everything", "random reader + MIL", "attention reader + MIL"}
     assert all(r["fraction_read"] <= r["budget"] + 1e-9 and 0 <= r["auc"] <= 1 for r in rows)
-    assert write_csv(rows, tmp_path / "c.csv").read_text().count("\n") == len(rows) + 1
-    assert plot(rows, tmp_path / "c.png").stat().st_size > 1000
+    assert write_curve_csv(rows, tmp_path / "c.csv").read_text().count("\n") == len(rows) + 1
+    assert plot_curve(rows, tmp_path / "c.png").stat().st_size > 1000
 
 
 def test_max_logit_rows_find_a_small_focus_that_attention_dilutes():

@@ -16,6 +16,8 @@ import numpy as np
 import pytest
 
 from baselines.reading import head_fit, readers
+from baselines.reading.lesions import CLASSES, lesion_class
+from baselines.reading.orders import logit_order, random_order, read_mask, search_order
 from data_tools.bundle_format import sha256, write_metadata
 from histojax.reading.heads import score, score_logits
 from histojax.reading.heads.logit import SlideHead, neighbourhood_mean
@@ -177,7 +179,7 @@ def test_fit_command_refuses_a_folder_without_dataset_json(tmp_path, capsys):
 # ----------------------------------------------------------------------------- lesions and readers
 def test_lesion_classes_follow_camelyon_thresholds(dataset):
     test = head_fit.load_slides(dataset, "test")
-    got = {s["name"]: readers.lesion_class(s) for s in test}
+    got = {s["name"]: lesion_class(s) for s in test}
     for name, (cls, mm) in got.items():
         if "normal" in name:
             assert cls == "normal"
@@ -195,15 +197,15 @@ def test_scripted_readers_respect_the_budget_and_follow_the_logits(dataset, fitt
     for s in test:
         cells = readers.cell_table(s, 1)
         assert cells["cell_views"].sum() == s["tissue"].sum() == cells["total"]
-        search = readers.search_order(s, cells)
+        search = search_order(s, cells)
         assert sorted(search) == sorted(np.flatnonzero(cells["valid"]))  # every valid cell once
         for b in (0.05, 0.2):
-            for order in (readers.logit_order(cells), search, readers.random_order(cells, np.random.default_rng(0))):
-                mask, fraction = readers.read_mask(cells, s["tissue"], order, b)
+            for order in (logit_order(cells), search, random_order(cells, np.random.default_rng(0))):
+                mask, fraction = read_mask(cells, s["tissue"], order, b)
                 assert mask.sum() == pytest.approx(fraction * cells["total"]) and fraction <= b + 1e-9
                 assert not (mask & ~s["tissue"]).any()
-        if s["label"] and readers.lesion_class(s)[0] != "ITC":  # the coarse logits point at the block
-            mask, _ = readers.read_mask(cells, s["tissue"], readers.logit_order(cells), 0.05)
+        if s["label"] and lesion_class(s)[0] != "ITC":  # the coarse logits point at the block
+            mask, _ = read_mask(cells, s["tissue"], logit_order(cells), 0.05)
             assert (mask & readers.tumour_views(s)).any()
         flat = np.flatnonzero(s["tissue"].reshape(-1))
         pick = np.asarray([0, 5, len(flat) - 1])
@@ -265,7 +267,7 @@ def test_lesion_census_of_the_shipped_annotations(capsys):
     every = read_ncrf(SHIPPED_DIR)
     assert sorted(r["slide"] for r in rows) == sorted(n for n in every if every[n].is_tumour_slide)
     for r in rows:
-        assert r["split"] in ("train", "test") and r["class"] in readers.CLASSES
+        assert r["split"] in ("train", "test") and r["class"] in CLASSES
         assert (r["class"] == "ITC") == (r["diameter_mm"] < 0.2) and (r["class"] == "macro") == (r["diameter_mm"] > 2)
     assert ceiling.main(["--lesions", str(SHIPPED_DIR)]) == 0
     assert "| test |" in capsys.readouterr().out

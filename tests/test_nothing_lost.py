@@ -248,14 +248,15 @@ def test_checkpoint_on_a_full_disk_keeps_the_previous_one(tmp_path, monkeypatch)
 
 def test_figures_and_tables_on_a_full_disk_leave_no_partial_file(tmp_path, monkeypatch):
     from baselines import outputs
-    from baselines.reading import budget_curve
+    from baselines.reading.csv_files import write_curve_csv
+    from baselines.reading.plots import plot_curve
 
     rows = [{"method": "random", "budget": 0.1, "fraction_read": 0.1, "auc": 0.5, "accuracy": 0.5, "slides": 4}]
-    budget_curve.write_csv(rows, tmp_path / "budget_curve.csv")
+    write_curve_csv(rows, tmp_path / "budget_curve.csv")
     before = (tmp_path / "budget_curve.csv").read_bytes()
     _fail_mid_write(monkeypatch, outputs, after=10)
     with pytest.raises(OSError, match="No space left"):
-        budget_curve.write_csv(rows * 50, tmp_path / "budget_curve.csv")
+        write_curve_csv(rows * 50, tmp_path / "budget_curve.csv")
     monkeypatch.undo()
     assert (tmp_path / "budget_curve.csv").read_bytes() == before
 
@@ -268,7 +269,7 @@ def test_figures_and_tables_on_a_full_disk_leave_no_partial_file(tmp_path, monke
 
     monkeypatch.setattr(bundle_format.os, "replace", full)
     with pytest.raises(OSError, match="No space left"):
-        budget_curve.plot(rows, tmp_path / "budget_curve.png")
+        plot_curve(rows, tmp_path / "budget_curve.png")
     monkeypatch.setattr(bundle_format.os, "replace", real_replace)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["budget_curve.csv"]
 

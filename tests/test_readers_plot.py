@@ -2,7 +2,7 @@
 (a reader that declares at the overview reads 0 % at every budget: one label, not four on top of each other)."""
 from __future__ import annotations
 
-from baselines.reading.readers import coincident_points, plot
+from baselines.reading.plots import coincident_points, plot_readers
 
 
 def test_coincident_points_are_merged_with_their_budgets():
@@ -24,7 +24,7 @@ def test_plot_writes_one_label_per_spot(tmp_path, monkeypatch):
              "auc_std": 0.0, "auc_no_itc": 0.9, "auc_no_itc_std": 0.0}]
     rows += [{"reader": "lazy", "kind": "learned", "budget": b, "fraction_read": 0.0, "auc": 0.5, "auc_std": 0.0,
               "auc_no_itc": 0.5, "auc_no_itc_std": 0.0} for b in (0.05, 0.1, 0.2, 0.5)]
-    out = plot(rows, tmp_path / "readers.png", "t")
+    out = plot_readers(rows, tmp_path / "readers.png", "t")
     assert out.exists()
     learned = [t for t in texts if "read" in t and "budget" in t]
     assert learned == ["budget 5%/10%/20%/50%: 0.0% read"] * 2  # once per panel (all slides, ITC left out)

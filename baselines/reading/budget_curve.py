@@ -13,8 +13,8 @@ on the *training* slides' finest-level tissue views:
   rolled greedily by :func:`baselines.evaluate.run_episodes` at each budget: its own diagnosis
   (``NAME``) and the same head on what it read (``NAME reader + MIL``).
 
-A reader reads cells of ``action_mode=Glimpse(level)`` exactly as the env does (:func:`read_cells`
-follows :meth:`histojax.reading.modes.glimpse.Glimpse.apply`: a cell is read when it still fits in the budget;
+A reader reads cells of ``action_mode=Glimpse(level)`` exactly as the env does
+(:func:`baselines.reading.orders.read_cells` follows :meth:`histojax.reading.modes.glimpse.Glimpse.apply`: a cell is read when it still fits in the budget;
 the first pick that does not fit ends the episode), at budgets of ``--budgets`` (fractions of the
 slide's finest-level tissue views). Writes ``budget_curve.csv`` (one row per method × budget:
 mean fraction actually read, AUC, accuracy at 0.5, slides, the standard deviations of AUC and accuracy
@@ -32,7 +32,6 @@ trained readers, read everything; the CAMELYON lesion table) is ``python -m base
 """
 from __future__ import annotations
 
-import csv
 import dataclasses
 from pathlib import Path
 
@@ -42,7 +41,10 @@ import numpy as np
 import optax
 from flax.core.scope import LazyRng
 
-from baselines import outputs
+from baselines.reading.budgets import BUDGETS
+from baselines.reading.csv_files import write_curve_csv
+from baselines.reading.orders import attention_order, random_order, read_cells
+from baselines.reading.plots import plot_curve
 from baselines.folds import SUMMARY, dataset_folds, mean_std, scored_side, with_fold
 from data_tools.metrics import accuracy, roc_auc
 from data_tools.cli_output import command_main, print_error
@@ -50,7 +52,6 @@ from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
 from histojax.reading.heads.mil import attention_pool, attention_weights
 
-BUDGETS = (0.05, 0.1, 0.2, 0.5)
 
 
 def load_split(dataset, split: str, env_id: str, level: int, verify: bool = True, fold: int | None = None):
@@ -205,38 +206,6 @@ def bags(tables: list[dict], read: list[np.ndarray] | None = None):
         x[i, : len(c)] = c
         m[i, : max(len(c), 1)] = True
     return x, m
-
-
-def read_cells(table: dict, order, budget: float) -> tuple[np.ndarray, float]:
-    """Cells read when picking ``order`` (cell indices) under ``budget``, as the glimpse env reads:
-    an unread valid cell is read if ``read + its views <= floor(budget · total)``; the first one that
-    does not fit ends the reading. Returns ``(cells read, fraction of tissue views read)``."""
-    limit = int(np.floor(budget * table["total"] + 1e-4))
-    done, read = [], 0
-    for c in order:
-        c = int(c)
-        if not table["valid"][c] or c in done:
-            continue
-        n = int(table["cell_views"][c])
-        if read + n > limit:
-            break
-        done.append(c)
-        read += n
-        if read >= limit:
-            break
-    return np.asarray(done, np.int64), read / table["total"]
-
-
-def random_order(table: dict, rng) -> np.ndarray:
-    """The valid cells in a uniformly random order."""
-    return rng.permutation(np.flatnonzero(table["valid"]))
-
-
-def attention_order(table: dict, head: MILClassifier) -> np.ndarray:
-    """The valid cells by the head's attention on their low-resolution features, highest first."""
-    cells = np.flatnonzero(table["valid"])
-    att = head.attention(table["cells"][cells])
-    return cells[np.argsort(-att, kind="stable")]
 
 
 def reader_scores(tables, head: MILClassifier, orders, budget: float) -> tuple[np.ndarray, np.ndarray]:
@@ -413,98 +382,6 @@ def policy_rows(run, dataset, name: str, heads: dict, tables, labels, budgets=BU
     return rows
 
 
-def write_csv(rows: list[dict], path) -> Path:
-    """One line per method × budget."""
-    path = Path(path)
-    folds = ["fold"] if any("fold" in r for r in rows) else []  # --all-folds: the fold (or ``mean``) first
-    with outputs.open_text(path) as f:
-        w = csv.DictWriter(f, fieldnames=folds + ["method", "budget", "fraction_read", "auc", "accuracy", "slides",
-                                                  "auc_std", "accuracy_std", "seeds", "fields_of_view"], restval="")
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: ("" if isinstance(v, float) and v != v else f"{v:.4f}" if isinstance(v, float) else v)
-                        for k, v in r.items()})
-    return path
-
-
-def method_kind(method: str) -> str:
-    """The reader kind of a row's method: ``everything``, ``random``, ``scripted`` (attention / logit readers)
-    or ``learned`` (a trained policy, its own diagnosis or a head on what it read)."""
-    n = method.lower()
-    if "read everything" in n:
-        return "everything"
-    if n.startswith("random reader"):
-        return "random"
-    if n.startswith(("attention reader", "logit reader")):
-        return "scripted"
-    return "learned"
-
-
-FAMILIES = {"everything": ["#1f4e9c", "#5d8fd6"], "random": ["#5f6a6a", "#a6acaf"],
-            "scripted": ["#1e8449", "#58d68d", "#0e6251"],
-            "learned": ["#c0392b", "#e67e22", "#8e44ad", "#d35400", "#e84393", "#a04000", "#f1948a", "#6c3483"]}
-
-
-def plot(rows: list[dict], path, title: str = "") -> Path:
-    """AUC and accuracy against the fraction actually read: one colour family per reader kind (blues: read
-    everything, dashed; greys: random reader with a ± band over reading orders; greens: scripted readers;
-    warm colours: trained policies, each drawn at the fraction it actually read, labelled, with a ± band over
-    seeds); line style per head (solid: MIL, dashed: max logit, dotted: the policy's own diagnosis). A
-    policy that reads nothing is one marked point at 0, not four piled up."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    methods = list(dict.fromkeys(r["method"] for r in rows))
-    fig = Figure(figsize=(11.5, 7.0), dpi=110, layout="constrained")
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(2, 1, sharex=True)
-    for ax, metric in zip(axes, ("auc", "accuracy")):
-        used: dict = {}
-        zero: dict = {}  # trained readers that read nothing, grouped by their score (drawn once per score)
-        for name in methods:
-            kind = method_kind(name)
-            family = FAMILIES[kind]
-            colour = family[used.get(kind, 0) % len(family)]
-            used[kind] = used.get(kind, 0) + 1
-            style = "--" if ("max logit" in name or "max view logit" in name) else (
-                ":" if kind == "learned" and " + " not in name else "-")
-            mine = sorted((r for r in rows if r["method"] == name), key=lambda r: (r["fraction_read"], r["budget"]))
-            x = np.asarray([r["fraction_read"] for r in mine])
-            y = np.asarray([r[metric] for r in mine])
-            e = np.nan_to_num(np.asarray([r.get(f"{metric}_std", 0.0) for r in mine], np.float64))
-            if kind == "everything":
-                ax.axhline(y[0], color=colour, linestyle=style, linewidth=1.3, label=f"{name} ({y[0]:.3f})")
-                continue
-            if kind == "learned" and (x < 1e-6).all():  # declares at the overview: one point at 0
-                zero.setdefault(round(float(y.mean()), 3), []).append((name, float(e.mean()), colour))
-                continue
-            ax.plot(x, y, ("s" if kind == "learned" else "o"), linestyle=style, color=colour, linewidth=1.6,
-                    markersize=4.5, label=name)
-            if (e > 0).any():
-                ax.fill_between(x, y - e, y + e, color=colour, alpha=0.15, linewidth=0)
-            if kind == "learned" and metric == "auc":
-                ax.annotate(f"{name}: {x[-1]:.1%} read", (x[-1], y[-1]), textcoords="offset points", xytext=(6, 4),
-                            fontsize="x-small", color=colour)
-        for k, (y0, group) in enumerate(sorted(zero.items())):
-            name, err, colour = group[0]
-            text = f"{name}: reads 0 %" if len(group) == 1 else f"{len(group)} rows reading 0 % ({y0:.3f})"
-            ax.errorbar([0.0], [y0], yerr=[err], fmt="*", markersize=12, color=colour, capsize=3,
-                        label=name + (f" and {len(group) - 1} more" if len(group) > 1 else "") + " (reads 0 %)")
-            ax.annotate(text, (0.0, y0), textcoords="offset points", xytext=(8, 4 - 10 * (k % 2)),
-                        fontsize="x-small", color=colour)
-        ax.set_xlim(-0.02, 1.02)
-        ax.set_ylabel(metric.upper() if metric == "auc" else metric)
-        low = min([r[metric] - (r.get(f"{metric}_std") or 0.0) for r in rows if r[metric] == r[metric]] + [0.5])
-        ax.set_ylim(max(0.0, low - 0.05), 1.02)
-        ax.grid(True, color="#dddddd", linewidth=0.6)
-    axes[0].legend(loc="upper left", bbox_to_anchor=(1.01, 1.0), fontsize="small", frameon=False)
-    axes[-1].set_xlabel("fraction of finest-level tissue views actually read (mean per episode)")
-    axes[-1].set_xticks([0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 1.0], ["0", "10 %", "20 %", "30 %", "40 %", "50 %", "100 %"])
-    if title:
-        fig.suptitle(title, fontsize="medium")
-    return outputs.save_figure(fig, path)
-
-
 def compute_missing_features(dataset, encoder: str) -> None:
     """Compute the feature grid (``encoder``, float32) of every bundle in ``dataset`` that has none."""
     from data_tools.bundle import read_metadata
@@ -654,10 +531,10 @@ def run(args, parser=None) -> int:
         split = f"{len(train[1])} train / {len(test[1])} test slides"
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    csv_path = write_csv(rows, out / "budget_curve.csv")
+    csv_path = write_curve_csv(rows, out / "budget_curve.csv")
     title = f"{Path(args.dataset).name}: {split}, glimpse level {level} of {args.env}"
     shown = [r for r in rows if r.get("fold", SUMMARY) == SUMMARY]  # --all-folds: the means over folds
-    png = plot(shown, out / "budget_curve.png", title)
+    png = plot_curve(shown, out / "budget_curve.png", title)
     if len(shown) < len(rows):
         print(f"mean ± std over folds (the rows of each fold: {csv_path})")
     print(f"{'method':32s} {'budget':>6s} {'read':>6s} {'AUC':>15s} {'acc':>15s} {'fields':>6s}")

@@ -24,6 +24,8 @@ from pathlib import Path
 
 import numpy as np
 
+from baselines.reading.csv_files import write_csv
+from baselines.reading.plots import plot_readers
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 
@@ -128,12 +130,12 @@ def run(args, parser=None) -> int:
     rows = readers.rows_from_results(results, slides)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    readers.write_csv(rows, out / "readers.csv")
+    write_csv(rows, out / "readers.csv")
     wall = time.perf_counter() - t0
     outputs.write_text(out / "readers.json", json.dumps(
         {"dataset": str(args.dataset), "split": args.split, "head": str(args.head), "head_name": head.name,
          "navigators": args.navigator, "sampled": bool(args.sampled), "wall_s": round(wall, 1), "rows": rows}, indent=1, default=float))
-    png = readers.plot(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split: navigators "
+    png = plot_readers(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split: navigators "
                                                    f"through head {head.name}")
     readers.print_tables(rows, [])
     print(f"wrote {out}/readers.csv, readers.json and {png} in {wall:.0f} s")

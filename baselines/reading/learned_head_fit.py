@@ -54,7 +54,7 @@ import optax
 from tqdm import tqdm
 
 from baselines.metrics import roc_auc
-from baselines.reading.readers import lesion_of
+from baselines.reading.lesions import lesion_of
 from baselines.validation import split_train
 from data_tools.annotations import load_annotations
 from data_tools.bundle_format import (load_array, load_feature_levels, own_file, read_metadata, stable_read,
@@ -606,7 +606,7 @@ def check_alike(dataset, slides: list[dict]) -> None:
 
 # ----------------------------------------------------------------------------- scoring a split
 def lesion_classes(slides: list[dict]) -> list[str]:
-    """Each slide's lesion class as :func:`baselines.reading.readers.lesion_of` defines it (``normal`` for label
+    """Each slide's lesion class as :func:`baselines.reading.lesions.lesion_of` defines it (``normal`` for label
     0; ``ITC`` / ``micro`` / ``macro`` by the largest lesion's diameter; ``unknown`` without polygons), the
     annotation read from the bundle's own ``annotations.geojson``."""
     out = []

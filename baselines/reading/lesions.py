@@ -1,5 +1,6 @@
-"""CAMELYON lesion classes of a tumour annotation (a leaf module: shapely geometry in, class out), used by the
-readers' lesion table and by ``evaluate``'s per-lesion rows."""
+"""CAMELYON lesion classes of a tumour annotation (a leaf module: shapely geometry in, class out) and of a slide
+(:func:`lesion_class`), used by the readers' lesion table, the learned head's fit and ``evaluate``'s per-lesion
+rows."""
 from __future__ import annotations
 
 import numpy as np
@@ -25,3 +26,15 @@ def lesion_of(geom, mpp: float) -> tuple[str, float]:
     parts = list(getattr(geom, "geoms", [geom]))
     mm = max(longest_diameter_px(p) for p in parts) * mpp / 1000.0
     return ("ITC" if mm < ITC_MM else "micro" if mm <= MACRO_MM else "macro"), mm
+
+
+CLASSES = ("ITC", "micro", "macro")
+
+
+def lesion_class(slide: dict) -> tuple[str, float]:
+    """``(class, largest lesion's longest diameter in mm)`` of a slide: ``"normal"`` for a label-0 slide,
+    else ``ITC`` / ``micro`` / ``macro`` by CAMELYON's thresholds (0.2 and 2 mm). Lesions are the connected
+    pieces of the tumour annotation; a tumour slide without polygons is ``"unknown"``."""
+    if not slide["label"]:
+        return "normal", 0.0
+    return lesion_of(slide.get("tumour"), slide["mpp"])

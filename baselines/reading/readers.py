@@ -21,7 +21,7 @@ views; the same head (:mod:`histojax.reading.heads.logit`, fitted by :mod:`basel
 
 **Cells** are the views of bundle level ``--cell-level`` (default: the level whose downsample is nearest 4,
 so that a cell covers about 4 × 4 finest views; on the C16 sets, level 3, ×3.67); a cell is valid when a finest tissue view lies under
-it. A reader reads cells as the ``glimpse`` env does (:func:`baselines.reading.budget_curve.read_cells`): a cell
+it. A reader reads cells as the ``glimpse`` env does (:func:`baselines.reading.orders.read_cells`): a cell
 is read while its tissue views still fit in ``floor(budget · tissue views)``; the first pick that does
 not fit ends the reading. Fractions are of the slide's finest-level tissue views.
 
@@ -38,7 +38,6 @@ nearest 10 %).
 """
 from __future__ import annotations
 
-import csv
 import json
 import sys
 import time
@@ -50,28 +49,20 @@ import numpy as np
 from baselines import outputs
 from data_tools.metrics import accuracy, roc_auc
 from histojax.adapters.head_reward import pools_views
-from baselines.reading.lesions import lesion_of
+from baselines.reading.budgets import BUDGETS
+from baselines.reading.csv_files import write_csv
+from baselines.reading.lesions import CLASSES, lesion_class
+from baselines.reading.orders import logit_order, random_order, read_mask, search_order
+from baselines.reading.plots import plot_readers
 from data_tools.bundle_format import read_metadata, verify_metadata
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from histojax import compile_cache
 
-BUDGETS = (0.05, 0.1, 0.2, 0.5)
-CLASSES = ("ITC", "micro", "macro")
-SEARCH_THRESHOLD = 1.0  # pcam-cnn view logit; the scripted features policy's threshold (chosen on v1 validation)
 KINDS = ("overview", "random", "scripted", "learned", "everything")
 
 
 # ----------------------------------------------------------------------------- lesions
-def lesion_class(slide: dict) -> tuple[str, float]:
-    """``(class, largest lesion's longest diameter in mm)`` of a slide: ``"normal"`` for a label-0 slide,
-    else ``ITC`` / ``micro`` / ``macro`` by CAMELYON's thresholds (0.2 and 2 mm). Lesions are the connected
-    pieces of the tumour annotation; a tumour slide without polygons is ``"unknown"``."""
-    if not slide["label"]:
-        return "normal", 0.0
-    return lesion_of(slide.get("tumour"), slide["mpp"])
-
-
 def tumour_views(slide: dict) -> np.ndarray:
     """``(H, W)`` bool: the finest views that overlap the slide's tumour polygons."""
     import shapely
@@ -131,61 +122,6 @@ def cell_level_for(dataset: Path, spec: dict, split: str, target: float = 4.0) -
     if len(ds) < 2:
         raise HeadDataError(meta_file, "one level only: no coarser cells to read by")
     return 1 + int(np.argmin([abs(np.log(d / target)) for d in ds[1:]]))
-
-
-def random_order(cells: dict, rng) -> np.ndarray:
-    """The valid cells in a uniformly random order."""
-    return rng.permutation(np.flatnonzero(cells["valid"]))
-
-
-def logit_order(cells: dict) -> np.ndarray:
-    """The valid cells by their low-resolution logit, highest first (ties by index)."""
-    v = np.flatnonzero(cells["valid"])
-    return v[np.argsort(-cells["logit"][v], kind="stable")]
-
-
-def search_order(slide: dict, cells: dict, threshold: float = SEARCH_THRESHOLD, limit: float = 1.0) -> np.ndarray:
-    """The logit order, but after reading a cell whose hottest finest view logit exceeds ``threshold``
-    its unread valid neighbours (8-connected) are read next, hottest evidence first. Stops after
-    ``limit`` of the tissue views (the largest budget needs no more)."""
-    ch, cw = cells["grid"]
-    valid = cells["valid"]
-    hot = np.full(valid.shape, -np.inf)  # per cell: evidence from read neighbours
-    np.maximum.at(hot, cells["cell"][slide["tissue"]], slide["logits"][slide["tissue"]])
-    cell_max = hot.copy()  # the hottest tissue view under each cell (known once read)
-    hot[:] = -np.inf
-    base = logit_order(cells)
-    done = np.zeros(valid.shape, bool)
-    order, pos, views, stop = [], 0, 0, limit * cells["total"]
-    while views < stop:
-        frontier = np.where(done | ~valid, -np.inf, hot)
-        c = int(np.argmax(frontier))
-        if not frontier[c] > -np.inf:
-            while pos < len(base) and done[base[pos]]:
-                pos += 1
-            if pos == len(base):
-                break
-            c = int(base[pos])
-        done[c] = True
-        order.append(c)
-        views += int(cells["cell_views"][c])
-        if cell_max[c] > threshold:
-            y, x = divmod(c, cw)
-            for dy in (-1, 0, 1):
-                for dx in (-1, 0, 1):
-                    if (dy or dx) and 0 <= y + dy < ch and 0 <= x + dx < cw:
-                        n = (y + dy) * cw + x + dx
-                        hot[n] = max(hot[n], cell_max[c])
-    return np.asarray(order, np.int64)
-
-
-def read_mask(cells: dict, tissue: np.ndarray, order, budget: float) -> tuple[np.ndarray, float]:
-    """``(mask (H, W) bool, fraction read)`` of the tissue views under the cells read picking ``order``
-    at ``budget`` (the glimpse env's rule: :func:`baselines.reading.budget_curve.read_cells`)."""
-    from baselines.reading.budget_curve import read_cells
-
-    read, fraction = read_cells(cells, order, budget)
-    return np.isin(cells["cell"], read) & tissue, fraction
 
 
 def masks_from_instances(slide: dict, instances) -> np.ndarray:
@@ -372,83 +308,6 @@ def lesion_rows(slides: list[dict], results: dict | None = None, head=None) -> l
 
 
 # ----------------------------------------------------------------------------- output
-def write_csv(rows: list[dict], path) -> Path:
-    """Rows as CSV (floats to 4 decimals)."""
-    path = Path(path)
-    with outputs.open_text(path) as f:
-        w = csv.DictWriter(f, fieldnames=list(rows[0]) if rows else ["reader"])
-        w.writeheader()
-        for r in rows:
-            w.writerow({k: (f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()})
-    return path
-
-
-FAMILIES = {"overview": ["#000000"], "random": ["#7f8c8d"], "scripted": ["#1e8449", "#58d68d", "#0e6251"],
-            "learned": ["#c0392b", "#e67e22", "#8e44ad", "#d35400", "#e84393"], "everything": ["#1f4e9c"]}
-
-
-def coincident_points(x, y, budgets, places: int = 3) -> list[tuple[float, float, list[float]]]:
-    """Points ``(x, y)`` merged where they coincide to ``places`` decimals (a reader that reads the same at
-    several budgets): ``[(x, y, [budgets...])]`` in first-seen order, so each spot is labelled once."""
-    out: dict[tuple, list] = {}
-    for xi, yi, b in zip(x, y, budgets):
-        out.setdefault((round(float(xi), places), round(float(yi), places)), [float(xi), float(yi), []])[2].append(float(b))
-    return [tuple(v) for v in out.values()]
-
-
-def plot(rows: list[dict], path, title: str = "") -> Path:
-    """AUC against the fraction actually read, over all slides (left) and without ITC-only slides (right):
-    one colour family per reader kind (grey: random, greens: scripted, warm colours: learned, each point
-    drawn at the fraction it read and labelled), ± bands over seeds / reading orders, the overview-only
-    point marked at 0, reading everything dashed."""
-    from matplotlib.backends.backend_agg import FigureCanvasAgg
-    from matplotlib.figure import Figure
-
-    fig = Figure(figsize=(13.0, 5.2), dpi=110, layout="constrained")
-    FigureCanvasAgg(fig)
-    axes = fig.subplots(1, 2, sharey=True)
-    readers_ = list(dict.fromkeys(r["reader"] for r in rows))
-    lo = min(min(r["auc"] - r["auc_std"], r["auc_no_itc"] - r["auc_no_itc_std"]) for r in rows)
-    for ax, metric, label in zip(axes, ("auc", "auc_no_itc"), ("all slides", "ITC-only slides left out")):
-        used = {}
-        for name in readers_:
-            mine = sorted((r for r in rows if r["reader"] == name), key=lambda r: r["fraction_read"])
-            kind = mine[0]["kind"]
-            family = FAMILIES.get(kind, ["#444444"])
-            colour = family[used.get(kind, 0) % len(family)]
-            used[kind] = used.get(kind, 0) + 1
-            x = np.asarray([r["fraction_read"] for r in mine])
-            y = np.asarray([r[metric] for r in mine])
-            e = np.asarray([r[f"{metric}_std"] for r in mine])
-            if kind == "everything":
-                ax.axhline(y[0], color=colour, linestyle="--", linewidth=1.4, label=f"{name} ({y[0]:.3f})")
-                continue
-            if kind == "overview":
-                ax.plot(x, y, marker="*", markersize=15, color=colour, linestyle="none",
-                        label=f"{name} ({y[0]:.3f}, reads 0 %)")
-                ax.annotate("overview only", (x[0], y[0]), textcoords="offset points", xytext=(9, -4), fontsize="small")
-                continue
-            ax.plot(x, y, "s-" if kind == "learned" else "o-", color=colour, linewidth=1.8, markersize=5,
-                    label=name + (" (± std over orders)" if kind == "random" else ""))
-            if (e > 0).any():
-                ax.fill_between(x, y - e, y + e, color=colour, alpha=0.2, linewidth=0)
-            if kind == "learned":  # each point at the fraction it read, labelled by its budget(s) once
-                for j, (xi, yi, budgets) in enumerate(coincident_points(x, y, [r["budget"] for r in mine])):
-                    text = f"budget {'/'.join(f'{b:.0%}' for b in budgets)}: {xi:.1%} read"
-                    ax.annotate(text, (xi, yi), textcoords="offset points", xytext=(5, 6 if j % 2 else -12),
-                                fontsize="x-small", color=colour)
-        ax.set_xlim(-0.02, max([0.55] + [r["fraction_read"] + 0.03 for r in rows if r["kind"] != "everything"]))
-        ax.set_ylim(max(0.0, min(0.5, lo - 0.05)), 1.01)
-        ax.set_xlabel("fraction of finest-level tissue views actually read (mean per episode)")
-        ax.set_title(label, fontsize="medium")
-        ax.grid(True, color="#dddddd", linewidth=0.6)
-    axes[0].set_ylabel("slide AUC (same head for every reader)")
-    axes[1].legend(loc="lower right", fontsize="small", framealpha=0.9)
-    if title:
-        fig.suptitle(title, fontsize="medium")
-    return outputs.save_figure(fig, path)
-
-
 def reading_map(slide: dict, mask: np.ndarray, path, reader: str = "", head_name: str = "", budget=None) -> Path:
     """A PNG of where a reader read on one slide, beside what the head sees: left the head's per-view scores of
     the finest tissue views (``slide["logits"]``: a learned head's calibrated instance logits, a logit head's view
@@ -651,7 +510,7 @@ def run(args, parser=None) -> int:
          "head": str(args.head), "head_name": head.name,
          "cell_level": args.cell_level, "seeds": args.seeds, "wall_s": round(wall, 1), "rows": rows,
          "lesions": lesions}, indent=1, default=float))
-    png = plot(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split ({len(slides)} slides): "
+    png = plot_readers(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split ({len(slides)} slides): "
                                           f"head {head.name}")
     print_tables(rows, lesions)
     print(f"wrote {out}/readers.csv, lesions.csv, readers.json and {png} in {wall:.0f} s")

@@ -465,7 +465,7 @@ def test_mode_names_resolve_apart_from_the_base_classes():
     from histojax.reading.modes import base, factory
 
     imported = set()
-    for node in ast.walk(ast.parse(inspect.getsource(modes))):
+    for node in ast.walk(ast.parse(inspect.getsource(base))):
         if isinstance(node, ast.ImportFrom):
             imported |= {node.module or ""} | {f"{node.module}.{a.name}" for a in node.names}
         elif isinstance(node, ast.Import):
@@ -473,7 +473,7 @@ def test_mode_names_resolve_apart_from_the_base_classes():
     assert not {m for m in imported if "glimpse" in m or "zoom_select" in m or "mode_registry" in m}
     assert isinstance(factory.action_mode("glimpse:2"), Glimpse)
     assert factory.action_mode("zoom_select:4") == ZoomSelect(k=4)
-    assert not hasattr(modes, "action_mode")
+    assert not hasattr(base, "action_mode")
 
 
 def test_budget_curve_mil_is_the_heads_gated_attention():

@@ -144,7 +144,7 @@ def test_head_saves_and_loads(tmp_path):
     assert float(back.a) == pytest.approx(0.8) and float(back.prior_logit) == pytest.approx(0.2)
     assert json.loads((tmp_path / "h" / "config.json").read_text())["chosen_on"] == {"validation_auc": 0.9}
     (tmp_path / "h" / "params.json").write_text("{\"a\": 1}")
-    with pytest.raises(ValueError, match="config.json: malformed"):
+    with pytest.raises(ValueError, match="params.json: lacks 'b'"):
         SlideHead.load(tmp_path / "h")
     with pytest.raises(ValueError, match="config.json: missing"):
         SlideHead.load(tmp_path / "nothing")
@@ -259,7 +259,7 @@ def test_lesion_census_of_the_shipped_annotations(capsys):
 
     from data_tools.ncrf import SHIPPED_DIR, read_ncrf
 
-    path = Path(__file__).resolve().parents[1] / "benchmarks" / "c16_slide_ceiling.py"
+    path = Path(__file__).resolve().parents[1] / "experiments" / "c16_slide_ceiling.py"
     spec = importlib.util.spec_from_file_location("c16_slide_ceiling", path)
     ceiling = importlib.util.module_from_spec(spec)
     spec.loader.exec_module(ceiling)

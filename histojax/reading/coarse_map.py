@@ -77,7 +77,12 @@ def coarse_maps(env, params, bundles, feature: int | None, level: int = -3, head
         if want is not None and int(want) != dim:
             raise ValueError(f"map_head: a head of {want}-d features; these slides' features have {dim} entries")
     elif feature is None or not 0 <= int(feature) < dim:
-        raise ValueError(f"map_feature={feature} is not an entry of these slides' {dim}-entry features")
+        first = getattr(bundles[0], "path", None) if len(bundles) else None
+        encoder = ((getattr(bundles[0], "metadata", None) or {}).get("features") or {}).get("encoder") if first else None
+        where = f"{first}/metadata.json: its {encoder or 'unnamed'} feature grid has" if first else "these slides have"
+        raise ValueError(f"map_feature={feature}: {where} {dim} entries (0..{dim - 1}), no entry {feature}; a coarse "
+                         f"map of entry {feature} needs features that hold it (entry 62 is pcam-cnn's view logit: "
+                         "build the dataset with --encoder pcam-cnn)")
     n = int(env.n_levels)
     z = level_index(max(int(level), -n) if int(level) < 0 else int(level), n)
     return np.stack([slide_map(slide, bundle, env.tile_size, None if head is not None else int(feature), z, head)

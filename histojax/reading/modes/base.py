@@ -133,9 +133,12 @@ class Navigation(ActionMode):
         (:func:`histojax.reading.coarse_map.coarse_maps`)."""
         if map_feature is not None and map_head is not None:
             raise TypeError(f"{self.name}:map shows map_feature=ENTRY or map_head=HEAD, not both")
-        if self.coarse_map != (map_feature is not None or map_head is not None):
+        if self.coarse_map and map_feature is None and map_head is None:
             raise TypeError(f"{self.name}:map needs map_feature=ENTRY (the feature entry its coarse map shows) or "
-                            f"map_head=HEAD (a slide head's per-view scores), and they are for {self.name}:map only")
+                            "map_head=HEAD (a slide head's per-view scores)")
+        if not self.coarse_map and (map_feature is not None or map_head is not None):
+            given = "map_feature" if map_feature is not None else "map_head"
+            raise TypeError(f"{given} is for {self.name}:map only")
         if not (self.memory or track_reading):
             if read_budget is not None:
                 raise TypeError(f"read_budget needs track_reading=True (or {self.name} with memory=True)")

@@ -17,7 +17,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import baselines.reading.learned_head_fit as fit
-from baselines.metrics import roc_auc
+from data_tools.metrics import roc_auc
 from baselines.validation import split_train
 from histojax.reading.heads import files
 from histojax.reading.heads.learned import KIND, LearnedHead, init_params, param_shapes
@@ -264,6 +264,7 @@ def fitted(cohort):
     return head, slope, te, curve
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_the_fit_finds_the_planted_direction(cohort, fitted):
     head, slope, test, curve = fitted
     assert slope > 0 and len(curve) == 6
@@ -283,6 +284,7 @@ def test_the_fit_finds_the_planted_direction(cohort, fitted):
     assert np.abs(cohort["direction"]).max() < 0.6
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_loader_reads_views_through_the_checked_bundle_loader(cohort):
     root = cohort["root"]
     name = cohort["names"]["train"][0]
@@ -304,6 +306,7 @@ def _main(argv) -> int:
     return fit._main()(argv)
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_too_few_slides_per_class_is_refused(cohort, tmp_path, capsys):
     spec = json.loads((cohort["root"] / "dataset.json").read_text())
     tum = [e for e in spec["train"] if "tumour" in e][:4]
@@ -425,6 +428,7 @@ def _with_folds(cohort, tmp_path, k=3) -> Path:
     return ds
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_fold_refusals_are_one_line(cohort, tmp_path, capsys):
     ds = _with_folds(cohort, tmp_path)
     assert _main(["--dataset", str(ds), "--out", str(tmp_path / "h"), "--fold", "3", "--quiet"]) == 2
@@ -438,6 +442,7 @@ class _Stop(Exception):
     pass
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_a_fold_trains_and_validates_on_the_other_folds(cohort, tmp_path, monkeypatch):
     ds = _with_folds(cohort, tmp_path)
     folds = json.loads((ds / "dataset.json").read_text())["folds"]["lists"]

@@ -271,6 +271,7 @@ def _edit_a_label(work: Path) -> None:
 def test_every_reader_of_a_dataset_refuses_an_edited_dataset_json(built, tmp_path):
     import histojax
     from baselines.reading.head_fit import read_spec
+    from baselines.reading.learned_head_fit import read_spec as learned_read_spec
     from data_tools.errors import BundleError
     from histojax.registry import dataset_labels, dataset_slides
 
@@ -279,7 +280,7 @@ def test_every_reader_of_a_dataset_refuses_an_edited_dataset_json(built, tmp_pat
     assert len(dataset_slides(work, "train")) == 2 and read_spec(work)["labels"]["s1"] == 0  # sealed, unedited
     _edit_a_label(work)
     for read in (lambda: dataset_slides(work, "train"), lambda: dataset_labels(work), lambda: read_spec(work),
-                 lambda: histojax.make("HistoJAX-Easy-v0", dataset=work)):
+                 lambda: learned_read_spec(work), lambda: histojax.make("HistoJAX-Easy-v0", dataset=work)):
         with pytest.raises(BundleError) as e:  # before: the edited label was used
             read()
         line = str(e.value)

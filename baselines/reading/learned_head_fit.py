@@ -53,7 +53,8 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from baselines.metrics import roc_auc
+from baselines.reading.head_fit import HeadDataError
+from baselines.reading.head_fit import read_spec as read_sealed_spec
 from baselines.reading.lesions import lesion_of
 from baselines.validation import split_train
 from data_tools.annotations import load_annotations
@@ -61,6 +62,7 @@ from data_tools.bundle_format import (load_array, load_feature_levels, own_file,
                                       verify_metadata)
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
+from data_tools.metrics import roc_auc
 from histojax.reading.heads import files
 from histojax.reading.heads.learned import KIND, LearnedHead, init_params
 from histojax.reading.tables import grid, tissue_views
@@ -84,24 +86,10 @@ def read_spec(dataset, fold: int | None = None) -> dict:
     """``dataset.json`` of ``dataset`` (``FitError`` naming it when missing, malformed or without a train list).
     ``fold=i`` (a dataset built with ``--folds K``): its train / validation / test lists are fold i's sides
     (:func:`histojax.registry.with_fold`; no folds or a fold out of range: ``FitError`` naming the file)."""
-    path = Path(dataset) / "dataset.json"
     try:
-        spec = json.loads(path.read_text())
-    except FileNotFoundError:
-        raise FitError(path, "missing (not a dataset folder: build one with `histojax dataset` or "
-                             "`python -m data_tools c16`)") from None
-    except (OSError, ValueError) as e:
-        raise FitError(path, f"unreadable ({' '.join(str(e).split())[:120]})") from None
-    if not isinstance(spec, dict) or not isinstance(spec.get("train"), list):
-        raise FitError(path, "has no \"train\" list of bundles")
-    if fold is not None:
-        from histojax.registry import with_fold  # jax with it: only when a fold is asked for
-
-        try:
-            spec = with_fold(spec, fold, path)
-        except HistojaxDataError as e:
-            raise FitError(path, e.problem) from None
-    return spec
+        return read_sealed_spec(dataset, fold)  # its seal checked: an edited label or split is refused
+    except HeadDataError as e:
+        raise FitError(e.path, e.problem) from None
 
 
 def slide_label(spec: dict, name: str, metadata) -> int:

@@ -55,6 +55,7 @@ def _histojax(args, env, cwd):
                           text=True, timeout=120)
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_command_creates_the_documented_folder_and_the_flag_keeps_it_off(tmp_path):
     """End to end through ``histojax`` (the environment variable's path is the same: test_flag_and_env_turn_it_off)."""
     folder = tmp_path / "xdg" / "histojax" / "jax"
@@ -80,6 +81,7 @@ print("hits", len(hits))
 """
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_second_process_hits_the_cache(tmp_path):
     folder = tmp_path / "xdg" / "histojax" / "jax"
     runs = [subprocess.run([sys.executable, "-c", PROGRAM], env=_env(tmp_path), cwd=ROOT, capture_output=True,

@@ -63,6 +63,7 @@ def test_the_learned_head_is_pooled_incrementally(setups):
         assert s["fast"].tables.terms.shape[-1] == 2
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 @settings(deadline=None, max_examples=6, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(mode=st.sampled_from(["glimpse", "navigator"]), seed=st.integers(0, 2**31 - 1))
 def test_incremental_reward_equals_rescoring_the_read_set(setups, mode, seed):

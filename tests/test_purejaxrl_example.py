@@ -34,6 +34,7 @@ def test_flatten_obs_shapes(example):
     assert example.flatten_obs(np.full((2, 128, 128, 3), 255, np.uint8)).shape == (2, 768)
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_small_budget_runs_finite_and_shaped(example):
     out = jax.jit(example.make_train(SMALL))(jax.random.PRNGKey(0))
     metrics = jax.device_get(out["metrics"])

@@ -137,7 +137,7 @@ class Navigation(ActionMode):
             raise TypeError(f"{self.name}:map needs map_feature=ENTRY (the feature entry its coarse map shows) or "
                             "map_head=HEAD (a slide head's per-view scores)")
         if not self.coarse_map and (map_feature is not None or map_head is not None):
-            given = "map_feature" if map_feature is not None else "map_head"
+            given = "map_feature" if map_feature is not None else "map_head=HEAD (a slide head's per-view map)"
             raise TypeError(f"{given} is for {self.name}:map only")
         if not (self.memory or track_reading):
             if read_budget is not None:

@@ -986,13 +986,53 @@ def bundle_damage(path) -> str | None:
     return None
 
 
-def own_file(bundle, name: str, what: str = "file") -> Path:
-    """``BUNDLE/NAME`` after checking that the entry is the bundle's own regular file: a plain name
-    (:func:`safe_name`), present, not a symbolic link (``os.lstat``), a regular file (not a FIFO, device or
-    folder) whose resolved path lies in the bundle folder. Else a ``BundleError`` naming the bundle and the
-    entry: a bundle never reads a file outside itself (``ln -s /etc/passwd BUNDLE/tissue.npy`` is refused)."""
+def not_regular(st: os.stat_result) -> str | None:
+    """None when ``st`` (an ``os.lstat`` result) is a regular file; else what the entry is instead (``"a symbolic
+    link"``, ``"a FIFO"``, ``"a folder"``, ``"a device"``, ``"a socket"``): the one regular-file guard every reader
+    of a user's files shares (bundles here, slide heads in :mod:`histojax.reading.heads.files`). A FIFO would block
+    ``open``; a link may point anywhere."""
     import stat
 
+    mode = st.st_mode
+    if stat.S_ISREG(mode):
+        return None
+    if stat.S_ISLNK(mode):
+        return "a symbolic link"
+    if stat.S_ISFIFO(mode):
+        return "a FIFO"
+    if stat.S_ISDIR(mode):
+        return "a folder"
+    if stat.S_ISCHR(mode) or stat.S_ISBLK(mode):
+        return "a device"
+    return "a socket" if stat.S_ISSOCK(mode) else "not a regular file"
+
+
+class ChangedFileError(OSError):
+    """The file opened is not the regular file :func:`not_regular` checked (swapped in between)."""
+
+
+def open_regular(path, st: os.stat_result):
+    """``path`` opened for binary reading (a file object), after :func:`not_regular` passed on its ``lstat``
+    result ``st``: opened with ``O_NOFOLLOW | O_NONBLOCK`` (a link put there since fails with ``ELOOP``; a FIFO
+    never blocks) and ``fstat``-ed again. ``ChangedFileError`` when what was opened is not a regular file or not
+    the same file as ``st`` (device, inode); ``OSError`` when it cannot be opened."""
+    import stat
+
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+    f = os.fdopen(fd, "rb")
+    now = os.fstat(f.fileno())
+    if not stat.S_ISREG(now.st_mode) or (now.st_dev, now.st_ino) != (st.st_dev, st.st_ino):
+        f.close()
+        raise ChangedFileError(f"{path}: not the regular file checked (it changed while it was opened)")
+    return f
+
+
+def own_file(bundle, name: str, what: str = "file") -> Path:
+    """``BUNDLE/NAME`` after checking that the entry is the bundle's own regular file: a plain name
+    (:func:`safe_name`), present, not a symbolic link, a FIFO, a device or a folder (``os.lstat``,
+    :func:`not_regular`), whose resolved path lies in the bundle folder. Else a ``BundleError`` naming the bundle
+    and the entry: a bundle never reads a file outside itself (``ln -s /etc/passwd BUNDLE/tissue.npy`` is
+    refused)."""
     bundle = Path(bundle)
     file = bundle / safe_name(name, bundle / METADATA)
     try:
@@ -1001,14 +1041,15 @@ def own_file(bundle, name: str, what: str = "file") -> Path:
         raise BundleError(bundle, f"missing {what} {name}; rebuild the bundle") from None
     except OSError as e:
         raise BundleError(bundle, f"entry {name!r} cannot be read ({e.strerror or e}); rebuild the bundle") from None
-    if stat.S_ISLNK(st.st_mode):
+    kind = not_regular(st)
+    if kind == "a symbolic link":
         try:
             target = os.readlink(file)
         except OSError:
             target = "?"
         raise BundleError(bundle, f"entry {name!r} is a symbolic link (to {target}), not the bundle's own file; "
                           "refusing to read it (rebuild the bundle)")
-    if not stat.S_ISREG(st.st_mode):
+    if kind is not None:
         raise BundleError(bundle, f"entry {name!r} is not a regular file; refusing to read it (rebuild the bundle)")
     if os.path.realpath(file.parent) != os.path.realpath(bundle):
         raise BundleError(bundle, f"entry {name!r} resolves outside the bundle; refusing to read it")

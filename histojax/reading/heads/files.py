@@ -32,14 +32,13 @@ import json
 import math
 import os
 import shutil
-import stat
 import uuid
 import zipfile
 from pathlib import Path
 
 import numpy as np
 
-from data_tools.bundle_format import replace_folder
+from data_tools.bundle_format import ChangedFileError, not_regular, open_regular, replace_folder
 
 CONFIG = "config.json"
 PARAMS = "params.npz"
@@ -65,8 +64,9 @@ class HeadFileError(ValueError):
 
 # ----------------------------------------------------------------------------- guarded reads
 def read_regular(path, max_bytes: int, what: str = "file") -> bytes:
-    """The bytes of ``path`` after checking it is a regular file (not a link, FIFO, device or folder) of at most
-    ``max_bytes`` bytes; ``HeadFileError`` naming it otherwise (or when it is missing)."""
+    """The bytes of ``path`` after checking it is a regular file (not a link, FIFO, device or folder: the bundles'
+    guard, :func:`data_tools.bundle_format.not_regular` and :func:`~data_tools.bundle_format.open_regular`) of at
+    most ``max_bytes`` bytes; ``HeadFileError`` naming it otherwise (or when it is missing)."""
     path = Path(path)
     try:
         st = os.lstat(path)
@@ -74,22 +74,24 @@ def read_regular(path, max_bytes: int, what: str = "file") -> bytes:
         raise HeadFileError(path, f"missing (a slide head folder holds {CONFIG} and its parameters)") from None
     except OSError as e:
         raise HeadFileError(path, f"cannot be read ({e.strerror or e})") from None
-    if stat.S_ISLNK(st.st_mode):
+    kind = not_regular(st)
+    if kind == "a symbolic link":
         raise HeadFileError(path, f"is a symbolic link, not the head's own {what}; refusing to read it")
-    if not stat.S_ISREG(st.st_mode):
+    if kind is not None:
         raise HeadFileError(path, f"is not a regular file (a FIFO, device or folder); refusing to read it as the "
                                   f"head's {what}")
     if st.st_size > max_bytes:
         raise HeadFileError(path, f"{st.st_size:,} bytes, more than the {max_bytes:,} a head's {what} may have; "
                                   "refusing to read it")
     try:
-        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+        f = open_regular(path, st)
+    except ChangedFileError:
+        raise HeadFileError(path, "changed while it was opened (not the regular file checked); refusing to read it") \
+            from None
     except OSError as e:
         raise HeadFileError(path, f"cannot be opened ({e.strerror or e})") from None
-    with os.fdopen(fd, "rb") as f:
+    with f:
         now = os.fstat(f.fileno())
-        if not stat.S_ISREG(now.st_mode) or (now.st_dev, now.st_ino) != (st.st_dev, st.st_ino):
-            raise HeadFileError(path, "changed while it was opened (not the regular file checked); refusing to read it")
         data = f.read(min(now.st_size, max_bytes) + 1)  # its size, not the cap: a small file costs no more
     if len(data) > min(now.st_size, max_bytes):
         raise HeadFileError(path, "grew while it was read; refusing it")

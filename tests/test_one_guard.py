@@ -47,3 +47,23 @@ def test_open_regular_refuses_a_file_swapped_after_the_check(tmp_path):
         bundle_format.open_regular(tmp_path / "a", st)
     with bundle_format.open_regular(tmp_path / "a", os.lstat(tmp_path / "a")) as f:
         assert f.read() == b"b"
+
+
+# ----------------------------------------------------------------------------- one slide loader
+def test_both_head_fits_read_a_bundle_through_one_loader(tmp_path):
+    """head_fit.load_slide and learned_head_fit.load_views share head_fit.read_bundle (read, verify, feature levels)
+    and head_fit.finest_views (view -> feature cell, tissue views): the same views and vectors."""
+    import numpy as np
+
+    from baselines.reading import head_fit, learned_head_fit
+    from learned_fixture import make_cohort
+
+    assert learned_head_fit.read_bundle is head_fit.read_bundle
+    assert learned_head_fit.finest_views is head_fit.finest_views
+    c = make_cohort(tmp_path / "ds", tumour=1, normal=1, test_tumour=0, test_normal=0, dim=8)
+    bundle = c["root"] / "bundles" / c["names"]["train"][0]
+    grid = head_fit.load_slide(bundle, dim=0, grid=True)
+    views = learned_head_fit.load_views(bundle)
+    ys, xs = views["yx"].T
+    assert grid["tissue"].sum() == len(views["features"]) and grid["tissue"][ys, xs].all()
+    np.testing.assert_array_equal(grid["features"][ys, xs], views["features"])

@@ -82,7 +82,8 @@ def _label(spec: dict, name: str) -> int | None:
 
 
 def read_bundle(bundle, levels=(0,), verify: bool = True) -> tuple:
-    """The arrays the head tools read from one bundle, through the checked loader ``histojax.make`` uses
+    """The arrays every head tool reads from one bundle (:func:`load_slide` here and
+    :func:`baselines.reading.learned_head_fit.load_views`), through the checked loader ``histojax.make`` uses
     (:mod:`data_tools.bundle_format`): ``metadata.json`` read and its seal checked, every file the bundle's own
     regular file inside it (no symbolic link, no path outside the bundle), its SHA-256 checked (``verify``).
     Returns ``(metadata, {level: (gh, gw, D) feature grid}, stride, tissue (h, w) mask)`` for bundle ``levels``.
@@ -97,8 +98,9 @@ def read_bundle(bundle, levels=(0,), verify: bool = True) -> tuple:
             verify_metadata(bundle, meta)
         feats = meta.get("features") or {}
         if not feats.get("levels"):
-            raise HeadDataError(bundle / "metadata.json", "has no feature grids: run `python -m data_tools features "
-                                                          f"{bundle} --encoder pcam-cnn`")
+            raise HeadDataError(bundle / "metadata.json", "has no feature grids: compute them with `histojax features "
+                                f"{bundle} --encoder NAME` or import them with `histojax import-features {bundle} "
+                                "FILE.h5`")
         if any(not 0 <= lv < len(feats["levels"]) for lv in levels):
             raise HeadDataError(bundle / "metadata.json", f"has feature grids of {len(feats['levels'])} levels, "
                                                           f"not of levels {levels}")
@@ -107,6 +109,23 @@ def read_bundle(bundle, levels=(0,), verify: bool = True) -> tuple:
         return meta, dict(zip(levels, grids)), stride, tissue
 
     return stable_read(bundle, read)
+
+
+def finest_views(meta, grid_shape, stride: int, tissue_mask) -> tuple:
+    """The finest level's views of a bundle read by :func:`read_bundle` and where each lies on its finest feature
+    grid (of ``grid_shape`` ``(gh, gw, ...)``, ``stride`` px apart): ``(tissue (H, W) bool, fy (H,) int, fx (W,)
+    int, tile px)``; view ``(y, x)`` reads feature cell ``(fy[y], fx[x])`` (the cell under the view's centre), and
+    ``tissue`` marks the views the reading modes count (:func:`histojax.reading.tables.tissue_views`)."""
+    from histojax.reading.tables import grid as view_grid, tissue_views
+
+    tile = int(meta["tile_size"])
+    width, height = int(meta["levels"][0]["width"]), int(meta["levels"][0]["height"])
+    gh, gw = view_grid(width, height, tile, tile)
+    fy = np.clip((np.arange(gh) * tile + stride // 2) // stride, 0, grid_shape[0] - 1)
+    fx = np.clip((np.arange(gw) * tile + stride // 2) // stride, 0, grid_shape[1] - 1)
+    tissue = tissue_views(SimpleNamespace(tissue=tissue_mask),
+                          SimpleNamespace(downsample=[1.0], level_width=[width], level_height=[height]), tile)
+    return tissue, fy, fx, tile
 
 
 def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,),
@@ -119,7 +138,6 @@ def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT,
     (``label``, or when None the bundle's own: tumour annotated or not, as the env reads it), ``bundle``; with
     ``grid`` also ``features (H, W, D)`` float16 (the finest grid, one row per finest view)."""
     from data_tools.annotations import load_annotations
-    from histojax.reading.tables import grid as view_grid, tissue_views
 
     bundle = Path(bundle)
     meta_file = bundle / "metadata.json"
@@ -130,18 +148,12 @@ def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT,
 
             label = int(slide_label_from_metadata(meta))
         feats = meta["features"]
-        tile = int(meta["tile_size"])
-        width, height = int(meta["levels"][0]["width"]), int(meta["levels"][0]["height"])
         if not 0 <= dim < int(feats.get("dim", 0)):
             raise HeadDataError(meta_file, f"features have {feats.get('dim')} entries, no entry {dim}")
-        gh, gw = view_grid(width, height, tile, tile)
         fg = grids[0]
-        fy = np.clip((np.arange(gh) * tile + stride // 2) // stride, 0, fg.shape[0] - 1)
-        fx = np.clip((np.arange(gw) * tile + stride // 2) // stride, 0, fg.shape[1] - 1)
+        tissue, fy, fx, tile = finest_views(meta, fg.shape, stride, tissue_mask)
         logits = np.asarray(fg[:, :, dim], np.float32)[fy[:, None], fx[None, :]]
         full = np.asarray(fg, np.float16)[fy[:, None], fx[None, :]] if grid else None
-        tissue = tissue_views(SimpleNamespace(tissue=tissue_mask),
-                              SimpleNamespace(downsample=[1.0], level_width=[width], level_height=[height]), tile)
         coarse, downsample = {}, {}
         for lv in levels:
             if lv == 0:

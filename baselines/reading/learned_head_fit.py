@@ -45,7 +45,6 @@ import json
 import sys
 import time
 from pathlib import Path
-from types import SimpleNamespace
 
 import jax
 import jax.numpy as jnp
@@ -53,19 +52,17 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from baselines.reading.head_fit import HeadDataError
+from baselines.reading.head_fit import HeadDataError, finest_views, read_bundle
 from baselines.reading.head_fit import read_spec as read_sealed_spec
 from baselines.reading.lesions import lesion_of
 from baselines.validation import split_train
 from data_tools.annotations import load_annotations
-from data_tools.bundle_format import (load_array, load_feature_levels, own_file, read_metadata, stable_read,
-                                      verify_metadata)
+from data_tools.bundle_format import own_file
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import roc_auc
 from histojax.reading.heads import files
 from histojax.reading.heads.learned import KIND, LearnedHead, init_params
-from histojax.reading.tables import grid, tissue_views
 from histojax.slide import slide_label_from_metadata
 
 MIN_SLIDES_PER_CLASS = 5
@@ -109,28 +106,11 @@ def load_views(bundle, label: int | None = None, spec: dict | None = None, verif
     finest view grid, ``label``, ``name``, ``encoder``, ``mpp``, ``tile``, ``bundle``. ``FitError`` naming the
     bundle on anything missing or corrupt."""
     bundle = Path(bundle)
-
-    def read():
-        meta = read_metadata(bundle)
-        if verify:
-            verify_metadata(bundle, meta)
-        feats = meta.get("features") or {}
-        if not feats.get("levels"):
-            raise FitError(bundle, "has no feature grid: compute one with `histojax features BUNDLE --encoder NAME` "
-                                   "or import one with `histojax import-features BUNDLE FILE.h5`")
-        grids, stride = load_feature_levels(bundle, meta, [0], verify=verify)
-        tissue = load_array(bundle, meta.tissue_file, meta, verify)
-        return meta, grids[0], stride, tissue
-
     try:
-        meta, fg, stride, tissue_mask = stable_read(bundle, read)
-        tile = int(meta["tile_size"])
-        width, height = int(meta["levels"][0]["width"]), int(meta["levels"][0]["height"])
-        gh, gw = grid(width, height, tile, tile)
-        tissue = tissue_views(SimpleNamespace(tissue=tissue_mask),
-                              SimpleNamespace(downsample=[1.0], level_width=[width], level_height=[height]), tile)
-        fy = np.clip((np.arange(gh) * tile + stride // 2) // stride, 0, fg.shape[0] - 1)
-        fx = np.clip((np.arange(gw) * tile + stride // 2) // stride, 0, fg.shape[1] - 1)
+        meta, grids, stride, tissue_mask = read_bundle(bundle, (0,), verify)  # the head tools' one checked read
+        fg = grids[0]
+        tissue, fy, fx, tile = finest_views(meta, fg.shape, stride, tissue_mask)
+        gh, gw = tissue.shape
         ys, xs = np.nonzero(tissue)
         features = np.asarray(fg[fy[ys], fx[xs]], np.float16)
         lab = slide_label(spec or {}, bundle.name, meta) if label is None else int(label)

@@ -51,6 +51,7 @@ import numpy as np  # noqa: E402
 
 from benchmarks.throughput import full_step_rollout  # noqa: E402
 from data_tools.cli_output import command_main, positive_float  # noqa: E402
+from data_tools.errors import HistojaxDataError  # noqa: E402
 import histojax  # noqa: E402
 
 GIB = 2**30
@@ -389,7 +390,7 @@ def run(args, parser=None) -> int:
     def env_features():
         try:
             bundle = feature_bundle()
-        except (ImportError, FileNotFoundError, OSError) as e:
+        except (ImportError, OSError, HistojaxDataError) as e:  # e.g. EfficientNet weights not installed
             return skipped(f"no {args.features_encoder} feature grid: {type(e).__name__}: {e}")
         env, params = histojax.make(args.env, slide=bundle, obs_mode="features")
         return {"env_id": args.env, "encoder": args.features_encoder, "dim": int(params.slide.features.shape[1]),

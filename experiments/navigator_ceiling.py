@@ -14,13 +14,13 @@ ceiling``). Writes ``OUT/readers.csv`` and ``OUT/ceiling.json``.
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 
-from baselines.reading.csv_files import write_csv
+from baselines.reading import readers
+from baselines.reading.diagnosis import score_split, write_results
 from baselines.reading.orders import logit_order, random_order, read_mask, search_order
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
@@ -34,14 +34,12 @@ def ceiling_fractions(slides: list[dict], max_steps: int) -> np.ndarray:
 
 
 def at_ceiling(head, slides: list[dict], results: dict, ceilings: np.ndarray, level: int, seeds: int) -> float:
-    """Add the random (``seeds`` orders), logit and search readers, each reading up to its slide's own
-    ``ceilings[i]`` fraction, to ``results`` under the budget ``median(ceilings)``; returns that key."""
-    from baselines.reading import readers
-
+    """Add the random (``seeds`` orders), logit (a learned head's: score) and search readers, each reading up to its
+    slide's own ``ceilings[i]`` fraction, to ``results`` under the budget ``median(ceilings)``; returns that key."""
     key = float(np.median(ceilings))
     tables = [readers.cell_table(s, level) for s in slides]
     tumour = [readers.tumour_views(s) for s in slides]
-    orders = {"logit reader": [logit_order(c) for c in tables],
+    orders = {readers.score_reader_name(head): [logit_order(c) for c in tables],
               "search reader": [search_order(s, c, limit=float(b) + 0.01)
                                 for s, c, b in zip(slides, tables, ceilings)]}
     for name, ords in orders.items():
@@ -57,8 +55,8 @@ def at_ceiling(head, slides: list[dict], results: dict, ceilings: np.ndarray, le
 
 def add_arguments(p) -> None:
     """The options of ``python -m experiments.navigator_ceiling``."""
-    p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; pcam-cnn feature grids)")
-    p.add_argument("--head", required=True, help="slide head folder")
+    p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; feature grids the head reads)")
+    p.add_argument("--head", required=True, help="slide head folder (any kind histojax.reading.heads.load reads)")
     p.add_argument("--split", default="test", help="split scored (default test)")
     p.add_argument("--max-steps", type=int, default=200, help="steps per navigator episode (default 200)")
     p.add_argument("--budgets", type=float, nargs="+", default=[0.005, 0.01, 0.02], help="fractions read")
@@ -68,33 +66,24 @@ def add_arguments(p) -> None:
 
 def run(args, parser=None) -> int:
     """Print the ceiling fractions and the readers' AUC at them; CSV and JSON in ``args.out``."""
-    from baselines import outputs
-    from baselines.reading import readers
-
     if args.max_steps < 1 or args.seeds < 1 or not all(0.0 < b <= 1.0 for b in args.budgets):
         return print_error("--max-steps and --seeds must be ≥ 1 and --budgets in (0, 1]")
     t0 = time.perf_counter()
     try:
-        head, level, slides = readers.load_split(args.dataset, args.head, args.split)
+        head, level, slides, results = score_split(args.dataset, args.head, args.split, args.budgets, args.seeds)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
-    if not slides or len({s["label"] for s in slides}) < 2:
-        return print_error(f"{args.dataset}: split {args.split!r} needs tumour and normal slides to score an AUC")
     ceilings = ceiling_fractions(slides, args.max_steps)
     views = np.asarray([int(s["tissue"].sum()) for s in slides])
-    results = readers.scripted_results(head, slides, args.budgets, args.seeds, level)
     key = at_ceiling(head, slides, results, ceilings, level, args.seeds)
-    rows = readers.rows_from_results(results, slides)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_csv(rows, out / "readers.csv")
     wall = time.perf_counter() - t0
-    summary = {"dataset": str(args.dataset), "split": args.split, "head": str(args.head), "max_steps": args.max_steps,
-               "slides": len(slides), "tissue_views_median": float(np.median(views)),
-               "tissue_views_min": int(views.min()), "tissue_views_max": int(views.max()),
-               "ceiling_median": float(np.median(ceilings)), "ceiling_min": float(ceilings.min()),
-               "ceiling_max": float(ceilings.max()), "ceiling_key": key, "wall_s": round(wall, 1), "rows": rows}
-    outputs.write_text(out / "ceiling.json", json.dumps(summary, indent=1, default=float))
+    rows = write_results(out, results, slides, {
+        "dataset": str(args.dataset), "split": args.split, "head": str(args.head), "max_steps": args.max_steps,
+        "slides": len(slides), "tissue_views_median": float(np.median(views)), "tissue_views_min": int(views.min()),
+        "tissue_views_max": int(views.max()), "ceiling_median": float(np.median(ceilings)),
+        "ceiling_min": float(ceilings.min()), "ceiling_max": float(ceilings.max()), "ceiling_key": key,
+        "wall_s": round(wall, 1)}, "ceiling.json")
     print(f"{len(slides)} slides: finest tissue views median {np.median(views):.0f} (min {views.min()}, max "
           f"{views.max()}); {args.max_steps} views = {100 * np.median(ceilings):.3f} % of a slide's finest tissue "
           f"(median; min {100 * ceilings.min():.3f} %, max {100 * ceilings.max():.3f} %)")

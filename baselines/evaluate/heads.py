@@ -13,23 +13,46 @@ from baselines.evaluate.rollout import episode_labels
 
 
 
+def encoder_family(name) -> str | None:
+    """An encoder name as heads compare it: features imported from ``.h5`` files (``imported:FILE``: one name per
+    slide) are one family, ``"imported"``; any other name is itself."""
+    return "imported" if isinstance(name, str) and name.startswith("imported:") else name
+
+
+def check_head_features(head, encoders: list[str], dim: int) -> None:
+    """Refuse (``ValueError``, one line) a slide head that cannot read these slides' features: the slides hold
+    another encoder's features than the head records (``imported:*`` names are one family), or features of the wrong
+    length (``dim`` entries) — a head that reads every entry (``features_dim``: the learned attention-MIL head) needs
+    exactly its length, a logit head (``dim``: the entry of the view logit) an entry it reads. Any head kind
+    :func:`histojax.reading.heads.load` reads."""
+    want = getattr(head, "encoder", None)
+    if want and any(encoder_family(e) != encoder_family(want) for e in encoders):
+        fit = ("python -m baselines.reading.learned_head_fit" if hasattr(head, "features_dim")
+               else "python -m baselines.reading.head_fit, or learned_head_fit for any encoder")
+        raise ValueError(f"a slide head for {want} features; these slides hold {', '.join(encoders)} features "
+                         f"(fit a head on them: {fit})")
+    length = getattr(head, "features_dim", None)
+    if length is not None:
+        if int(length) != dim:
+            raise ValueError(f"the slide head ({head.kind}) reads {length}-d feature vectors; these slides' features "
+                             f"have {dim} entries: fit a head on them (python -m baselines.reading.learned_head_fit)")
+    elif not 0 <= int(head.dim) < dim:
+        raise ValueError(f"the slide head reads feature entry {head.dim} ({want or 'its encoder'}'s view "
+                         f"logit); these slides' features have {dim} entries: score slides embedded with "
+                         f"{want or 'the encoder the head was fitted on'}")
+
+
 def head_env(env, env_params, head, settings: dict | None = None):
-    """``(env wrapped in HeadReward, lesion classes per slide or None)`` for :func:`evaluate` with a head.
-    ``settings``: ``gain``, ``final``, ``read_cost`` of a run's ``head_reward.json`` (None: no head reward
-    terms, the env's own reward). ``ValueError`` (one line) when the slides' features do not carry the
-    head's view logit."""
+    """``(env wrapped in HeadReward, lesion classes per slide or None)`` for :func:`evaluate` with a head (any kind
+    :func:`histojax.reading.heads.load` reads: a pcam-cnn logit head, a pooled-statistics or MIL head, or the learned
+    attention-MIL head of any encoder's features). ``settings``: ``gain``, ``final``, ``read_cost`` of a run's
+    ``head_reward.json`` (None: no head reward terms, the env's own reward). ``ValueError`` (one line) when the
+    slides' features are not the head's (:func:`check_head_features`)."""
     from histojax.adapters.head_reward import HeadReward
 
     encoders = sorted({str((b.metadata.get("features") or {}).get("encoder")) for b in env.bundles} - {"None"})
-    if head.encoder and any(e != head.encoder for e in encoders):
-        raise ValueError(f"a slide head for {head.encoder} features; these slides hold {', '.join(encoders)} features "
-                         "(fit a head on them: python -m baselines.reading.head_fit)")
     features = getattr(env_params.slide, "features", None)
-    dim = int(np.shape(features)[-1]) if features is not None else 0
-    if head.dim >= dim:
-        raise ValueError(f"the slide head reads feature entry {head.dim} ({head.encoder or 'its encoder'}'s view "
-                         f"logit); these slides' features have {dim} entries: score slides embedded with "
-                         f"{head.encoder or 'the encoder the head was fitted on'}")
+    check_head_features(head, encoders, int(np.shape(features)[-1]) if features is not None else 0)
     if settings:
         gain = settings.get("gain")
         wrapped = HeadReward(env, head, gain=None if gain in (None, "none", False) else gain,

@@ -29,7 +29,9 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     its config describes; ``progress``: a line on stderr per policy as it runs. A warning when the slides
     cannot be scored (:func:`split_warnings`) is printed with ``progress`` and appended to ``warnings``.
 
-    ``head`` (a :class:`histojax.reading.heads.logit.SlideHead`): **the head declares** — every row's episodes run in the
+    ``head`` (any slide head :func:`histojax.reading.heads.load` reads: a pcam-cnn logit head or a head learned
+    from any encoder's features; its reading maps show its per-view scores beside where the agent read): **the
+    head declares** — every row's episodes run in the
     env wrapped in :class:`histojax.adapters.head_reward.HeadReward` (``head_reward``: the run's reward settings
     ``gain``, ``final``, ``read_cost`` from its ``head_reward.json``, so the return is the one it trained
     for; without them the env's own reward), the policy only chooses where to read (its declaring
@@ -122,5 +124,5 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             print(f"scripted policy skipped: {e}")  # observation without pixels
     if out is not None:
         say(f"  pictures to {out} ...")
-        write_pictures(picture_env, env_params, episodes, Path(out), config["env_id"])
+        write_pictures(picture_env, env_params, episodes, Path(out), config["env_id"], head=head)
     return undefined_figures(rows, task, one_class(env_params))

@@ -7,11 +7,18 @@ A trained navigator (a run folder of ``python -m baselines.ppo`` / ``ppo_rnn`` i
 of the split (each of its first ``--policy-seeds`` seeds; ``--sampled``: its sampled policy) by
 :func:`baselines.evaluate.run_episodes`,
 with reading tracked; the **finest-level tissue views it stood on** make its read mask, and the slide
-head (:mod:`histojax.reading.heads.logit`) scores them: the slide's diagnosis no longer comes from the navigator's
-own declaring action (which can memorise overviews), only from what it read. The rows join the
-one-head budget curve (:mod:`baselines.reading.readers`: overview only, random and scripted readers, read
-everything, at the fraction the navigator actually read) in ``OUT/readers.csv``, ``readers.json``,
-``readers.png``.
+head scores them: the slide's diagnosis no longer comes from the navigator's own declaring action (which can
+memorise overviews), only from what it read. ``--head`` is any head folder :func:`histojax.reading.heads.load`
+reads: a pcam-cnn logit head (``c16-v2-head``, ``c16-v2-head-mil``) or a head learned from any encoder's features
+(``learned-attention-mil``, :mod:`baselines.reading.learned_head_fit`; its scripted row is the *score reader*:
+cells by the head's per-view score). The rows join the one-head budget curve (:mod:`baselines.reading.readers`:
+overview only, random and scripted readers, read everything, at the fraction the navigator actually read) in
+``OUT/readers.csv``, ``readers.json``, ``readers.png``. A split of one class is refused in one line (its AUC is
+undefined: one class), nothing written.
+
+:func:`score_split` and :func:`write_results` are the scoring loop this command and
+``experiments.navigator_ceiling`` share: the split loaded through the head, the one-class refusal, the scripted
+readers' rows, and the CSV and JSON written.
 
 In an env, :class:`histojax.adapters.head_reward.HeadReward` gives the same score step by step
 (``info["head_score"]``: at the episode's end, the navigator's diagnosis by the head).
@@ -24,10 +31,43 @@ from pathlib import Path
 
 import numpy as np
 
+from baselines import outputs
+from baselines.evaluate.checks import UNDEFINED
+from baselines.reading import readers
+from baselines.reading.budgets import BUDGETS
 from baselines.reading.csv_files import write_csv
 from baselines.reading.plots import plot_readers
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
+
+
+def score_split(dataset, head_path, split: str = "test", budgets=BUDGETS, seeds: int = 5,
+                fold: int | None = None) -> tuple:
+    """The scoring every head diagnosis starts from: ``(head, cell level, slides, results)`` with ``head`` any
+    head folder (:func:`histojax.reading.heads.load`), ``slides`` the split's slides read for it
+    (:func:`baselines.reading.readers.load_split`) and ``results`` the scripted readers' rows at ``budgets``
+    (fractions of a slide's finest tissue views; ``seeds`` random orders): :func:`baselines.reading.readers.scripted_results`.
+    A split without slides of both classes is a ``HistojaxDataError`` naming ``dataset.json``, one line: its AUC is
+    :data:`~baselines.evaluate.checks.UNDEFINED`."""
+    head, level, slides = readers.load_split(dataset, head_path, split, fold=fold)
+    labels = {int(s["label"]) for s in slides}
+    if len(labels) < 2:
+        only = "no slides" if not labels else f"only {'tumour' if labels.pop() else 'normal'} slides ({len(slides)})"
+        raise HistojaxDataError(Path(dataset) / "dataset.json", f"split {split!r}"
+                                + (f" (fold {fold})" if fold is not None else "") + f" holds {only}: its AUC is "
+                                f"{UNDEFINED}; score a split with tumour and normal slides")
+    return head, level, slides, readers.scripted_results(head, slides, budgets, seeds, level)
+
+
+def write_results(out, results: dict, slides: list[dict], record: dict, json_name: str = "readers.json") -> list[dict]:
+    """The rows of ``results`` (:func:`baselines.reading.readers.rows_from_results`) written to ``OUT/readers.csv``
+    and, with ``record`` (the run's settings), to ``OUT/<json_name>``; returns the rows."""
+    rows = readers.rows_from_results(results, slides)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    write_csv(rows, out / "readers.csv")
+    outputs.write_text(out / json_name, json.dumps({**record, "rows": rows}, indent=1, default=float))
+    return rows
 
 
 def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bool = True,
@@ -79,21 +119,21 @@ def navigator_masks(run, dataset, slides: list[dict], split: str = "test", seeds
     :func:`baselines.reading.readers.add_reader`; ``slides`` are :func:`baselines.reading.head_fit.load_slides` of the split;
     ``greedy=False``: sampled episodes (key = the seed)."""
     from baselines.reading.budget_curve import run_seeds
-    from baselines.reading.readers import masks_from_instances
 
     per_seed = []
     for seed in range(max(1, min(seeds, run_seeds(run)))):
         reads = navigator_reads(run, dataset, split, seed, greedy=greedy, fold=fold)
         if len(reads) != len(slides):
             raise ValueError(f"{run}: {len(reads)} episodes for {len(slides)} slides of split {split!r}")
-        per_seed.append([masks_from_instances(s, r) for s, r in zip(slides, reads)])
+        per_seed.append([readers.masks_from_instances(s, r) for s, r in zip(slides, reads)])
     return {1.0: per_seed}
 
 
 def add_arguments(p) -> None:
     """The options of ``python -m baselines.reading.diagnosis``."""
-    p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; pcam-cnn feature grids)")
-    p.add_argument("--head", required=True, help="slide head folder (python -m baselines.reading.head_fit)")
+    p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; feature grids the head reads)")
+    p.add_argument("--head", required=True, help="slide head folder, any kind histojax.reading.heads.load reads "
+                                                  "(baselines.reading.head_fit or learned_head_fit)")
     p.add_argument("--navigator", nargs=2, action="append", required=True, metavar=("NAME", "RUN"),
                    help="a trained navigator's run folder (discrete / continuous mode); repeatable")
     p.add_argument("--split", default="test", help="split scored (default test)")
@@ -108,17 +148,12 @@ def add_arguments(p) -> None:
 
 def run(args, parser=None) -> int:
     """Score each navigator through the head beside the readers; CSV, JSON, PNG in ``args.out``."""
-    from baselines import outputs
-    from baselines.reading import readers
-
     t0 = time.perf_counter()
     try:
-        head, level, slides = readers.load_split(args.dataset, args.head, args.split, fold=args.fold)
+        head, level, slides, results = score_split(args.dataset, args.head, args.split, seeds=args.seeds,
+                                                   fold=args.fold)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
-    if not slides or len({s["label"] for s in slides}) < 2:
-        return print_error(f"{args.dataset}: split {args.split!r} needs tumour and normal slides to score an AUC")
-    results = readers.scripted_results(head, slides, seeds=args.seeds, level=level)
     for name, run_dir in args.navigator:
         try:
             masks = navigator_masks(run_dir, args.dataset, slides, args.split, args.policy_seeds,
@@ -127,14 +162,11 @@ def run(args, parser=None) -> int:
             return print_error(f"--navigator {name}: {e}")
         how = ", sampled" if args.sampled else ""
         readers.add_reader(results, head, slides, f"{name} (head declares{how})", masks, "learned")
-    rows = readers.rows_from_results(results, slides)
     out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    write_csv(rows, out / "readers.csv")
     wall = time.perf_counter() - t0
-    outputs.write_text(out / "readers.json", json.dumps(
-        {"dataset": str(args.dataset), "split": args.split, "head": str(args.head), "head_name": head.name,
-         "navigators": args.navigator, "sampled": bool(args.sampled), "wall_s": round(wall, 1), "rows": rows}, indent=1, default=float))
+    rows = write_results(out, results, slides, {
+        "dataset": str(args.dataset), "split": args.split, "head": str(args.head), "head_name": head.name,
+        "head_kind": head.kind, "navigators": args.navigator, "sampled": bool(args.sampled), "wall_s": round(wall, 1)})
     png = plot_readers(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split: navigators "
                                                    f"through head {head.name}")
     readers.print_tables(rows, [])

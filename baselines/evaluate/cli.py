@@ -17,6 +17,7 @@ from baselines.evaluate.checks import (UNDEFINED, check_config, encoder_refusal,
                                        provenance_warnings, refuse_not_an_agent, resolve_head)
 from baselines.evaluate.scoring import evaluate
 from baselines.evaluate.all_folds import run_all_folds
+from baselines.reading.head_fit import scale_warning
 from baselines.folds import scored_side
 
 
@@ -220,6 +221,9 @@ def run(args, parser) -> int:
                                 "agent)")
     if run is not None:
         warnings += provenance_warnings(trained, config, run / "config.json")
+    scored = (config.get("env_kwargs") or {}).get("dataset")
+    if isinstance(scored, str) and (line := scale_warning(scored)):
+        warnings.append(line)  # the encoder-scale warning the dataset's dataset.json records, repeated
     head, head_dir = None, None
     if getattr(args, "head", None) or settings:
         from histojax.reading import heads

@@ -9,6 +9,7 @@ import jax
 import numpy as np
 
 from data_tools.errors import HistojaxDataError
+from baselines.evaluate.checks import UNDEFINED, one_class
 from baselines.evaluate.rollout import episode_labels
 
 
@@ -61,6 +62,21 @@ def head_env(env, env_params, head, settings: dict | None = None):
     else:
         wrapped = HeadReward(env, head, gain=None, final=0.0, env_reward=True, params=env_params)
     return wrapped, lesion_classes(env, env_params)
+
+
+def refuse_one_class(config: dict, env_params, slide=None) -> None:
+    """Refuse (``HistojaxDataError``, one line naming the dataset's ``dataset.json`` or the slide) to score through a
+    head slides that are all of one class: what the head declares is scored by an AUC, and one class leaves it
+    undefined (:data:`~baselines.evaluate.checks.UNDEFINED`), not 1.000 or ``nan``."""
+    single = one_class(env_params)
+    if single is None:
+        return
+    kw = config.get("env_kwargs") or {}
+    n = int(np.size(np.asarray(jax.device_get(env_params.slide.slide_label))))
+    where = Path(kw["dataset"]) / "dataset.json" if kw.get("dataset") and slide is None else Path(slide or "slide")
+    split = f"its {kw.get('split', 'train')!r} split" if kw.get("dataset") and slide is None else "the slides scored"
+    raise HistojaxDataError(where, f"{split} holds only {'tumour' if single else 'normal'} slides ({n}): the head's "
+                            f"AUC is {UNDEFINED}; score a split with tumour and normal slides (--split, --dataset)")
 
 
 def head_scored(ep: dict, env_params, classes) -> dict:

@@ -12,7 +12,7 @@ from baselines.networks import is_discrete as policy_is_discrete
 from baselines.evaluate.rollout import check_fits, episode_labels, eval_env, per_episode_params, run_episodes, summarise
 from baselines.evaluate.policies import (diagnosis_actions, learned_policy, map_follower_policy, network_for,
                                          scripted_features_policy, scripted_policy, seeds_policy)
-from baselines.evaluate.heads import head_env, head_scored
+from baselines.evaluate.heads import head_env, head_scored, refuse_one_class
 from baselines.evaluate.checks import one_class, split_warnings, undefined_figures
 from baselines.evaluate.pictures import write_pictures
 
@@ -39,7 +39,8 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     ``success`` is the head's diagnosis right, ``diagnosis_auc`` the AUC of its score and
     ``diagnosis_auc_no_itc`` the same without ITC-only slides (when every tumour slide's lesion class is
     known, :func:`lesion_classes`). Episode ``e`` of each policy reads slide ``e mod S``: every slide
-    equally often."""
+    equally often. Slides of one class are refused through a head (``HistojaxDataError``, one line: the head's
+    AUC is undefined: one class), before any episode runs."""
     if num_episodes < 1:
         raise ValueError(f"num_episodes must be at least 1, got {num_episodes}")
     config, (env, env_params) = eval_env(config, slide, augment)
@@ -47,6 +48,7 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     picture_env, classes = env, None
     if head is not None:
         env, classes = head_env(env, env_params, head, head_reward)
+        refuse_one_class(config, env_params, slide)
     mode = config["action_mode"]
     key = jax.random.PRNGKey(seed)
     rows, episodes = {}, {}

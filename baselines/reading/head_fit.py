@@ -70,6 +70,38 @@ def read_spec(dataset, fold: int | None = None) -> dict:
     return spec
 
 
+def scale_warning(dataset, spec: dict | None = None) -> str | None:
+    """The encoder-scale warning ``dataset.json`` records (``encoder_scale``, written by ``histojax dataset`` /
+    ``c16``: slides more than its ``tolerance`` (1.5×) from the µm/px a built-in encoder was trained at, or of
+    unknown scale), as one line naming the file, for every tool that reads the dataset to repeat (the head fits,
+    ``histojax evaluate``); None when it records none. ``spec``: the dataset.json already read (default: read here;
+    unreadable: None, the tool's own reading says why)."""
+    path = Path(dataset) / "dataset.json"
+    if spec is None:
+        try:
+            spec = json.loads(path.read_text())
+        except (OSError, ValueError):
+            return None
+    rec = spec.get("encoder_scale") if isinstance(spec, dict) else None
+    out = rec.get("slides_out_of_scale") if isinstance(rec, dict) else None
+    if not isinstance(out, dict) or not out:
+        return None
+    name, mpp = next(iter(out.items()))
+    first = f"{name} at {float(mpp):.3g} µm/px" if isinstance(mpp, (int, float)) else f"{name} of unknown µm/px"
+    return (f"{path}: {len(out)} slide(s) are more than {rec.get('tolerance')}x from the {rec.get('encoder_mpp')} "
+            f"µm/px {rec.get('encoder')} was trained at, or of unknown scale (e.g. {first}): their features may not "
+            "mean what they mean at its scale, nor the head fitted on them")
+
+
+def warn_scale(dataset, spec: dict | None = None) -> str | None:
+    """Print :func:`scale_warning` on stderr as ``warning: ...`` (one line) when the dataset records one; returns
+    it."""
+    line = scale_warning(dataset, spec)
+    if line:
+        print(f"warning: {line}", file=sys.stderr, flush=True)
+    return line
+
+
 def _label(spec: dict, name: str) -> int | None:
     """The slide label as the env reads it: ``dataset.json``'s ``"labels"`` (by bundle name) when it has them,
     else None (the bundle's own metadata decides: :func:`load_slide`)."""
@@ -316,6 +348,7 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
     from baselines.validation import split_train
 
     spec = read_spec(dataset, fold)
+    warn_scale(dataset, spec)  # the encoder-scale warning dataset.json records, repeated
     classes = {_label(spec, Path(e).name) for e in spec["train"]}
     if len(classes) == 1 and None not in classes:  # labels from dataset.json: one class, refused before loading
         kind = "tumour" if classes.pop() else "normal"

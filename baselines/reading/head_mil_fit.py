@@ -14,6 +14,14 @@ and ``mil-features`` (:class:`histojax.reading.heads.mil.MilHead`, :func:`train_
 everything and reading random cells (10 %, 20 %); the best mean validation AUC (reading everything) is refitted on
 the whole training split (seed 0) and saved to ``--out`` (``config.json`` records every candidate's figures beside
 the 2 × 2-mean head's). ``--table FILE`` keeps the validation figures, so a re-run only fits what is missing.
+
+**Guards**, as :mod:`baselines.reading.head_fit` and :mod:`baselines.reading.learned_head_fit` have them (one line
+naming ``dataset.json``, exit 2, no head saved): fewer than :data:`MIN_SLIDES_PER_CLASS` training slides of a class
+once the validation share is held back (checked from ``dataset.json``'s labels before any slide is read when it has
+them); a chosen candidate whose mean validation AUC (reading everything) is below 0.5 or undefined, or whose
+validation slope is negative (:func:`validation_aucs`' ``slope``: the 1-D logistic regression of the labels on its
+slide logits; :func:`baselines.reading.head_fit.check_head`). The encoder-scale warning ``dataset.json`` records is
+repeated (:func:`baselines.reading.head_fit.warn_scale`).
 """
 from __future__ import annotations
 
@@ -22,7 +30,8 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.reading.head_fit import HeadDataError, load_slide, read_spec, _label
+from baselines.reading.head_fit import (MIN_SLIDES_PER_CLASS, HeadDataError, check_classes, check_head, load_slide,
+                                        logistic_fit, read_spec, warn_scale, _label)
 from data_tools.features import pcam_cnn
 
 
@@ -293,12 +302,14 @@ def dense_scores(head, slides: list[dict], masks: np.ndarray, shape, chunk: int 
 
 
 def validation_aucs(head, slides: list[dict], shape, fractions=(0.1, 0.2), draws: int = 5, seed: int = 123) -> dict:
-    """``{"full": AUC reading every tissue view, "read 0.1": mean AUC over ``draws`` random cell reads, …}`` of
+    """``{"full": AUC reading every tissue view, "slope": the 1-D logistic slope of the labels on those slide logits
+    (negative: a higher logit means less tumour), "read 0.1": mean AUC over ``draws`` random cell reads, …}`` of
     ``head`` on ``slides`` (the same masks for every head: ``seed``)."""
     from data_tools.metrics import roc_auc
 
     y = [s["label"] for s in slides]
-    out = {"full": round(roc_auc(dense_scores(head, slides, dense_reads(None, slides, shape, None), shape), y), 4)}
+    full = dense_scores(head, slides, dense_reads(None, slides, shape, None), shape)
+    out = {"full": round(roc_auc(full, y), 4), "slope": round(float(logistic_fit(full, y)[0]), 4)}
     rng = np.random.default_rng(seed)
     for f in fractions:
         aucs = [roc_auc(dense_scores(head, slides, dense_reads(rng, slides, shape, f), shape), y) for _ in range(draws)]
@@ -352,12 +363,17 @@ def run(args, parser=None) -> int:
     t0 = time.perf_counter()
     try:
         spec = read_spec(args.dataset, args.fold)
+        warn_scale(args.dataset, spec)  # the encoder-scale warning dataset.json records, repeated
         kept, held = split_train(spec, args.val_fraction, args.seed)
+        known = [_label(spec, Path(n).name) for n in kept]
+        if None not in known:  # labels in dataset.json: too few of a class refused before any slide is read
+            check_classes(args.dataset, [{"label": v} for v in known], MIN_SLIDES_PER_CLASS)
         slides = cache_grids(args.dataset, spec["train"], args.cache)
+        by = {s["name"]: s for s in slides}
+        tr, va = [by[Path(n).name] for n in kept], [by[Path(n).name] for n in held]
+        check_classes(args.dataset, tr, MIN_SLIDES_PER_CLASS)
     except (HeadDataError, ValueError, OSError) as e:
         return print_error(e)
-    by = {s["name"]: s for s in slides}
-    tr, va = [by[Path(n).name] for n in kept], [by[Path(n).name] for n in held]
     shape = (max(s["tissue"].shape[0] for s in slides), max(s["tissue"].shape[1] for s in slides))
     table_file = Path(args.table) if args.table else None
     table = json.loads(table_file.read_text()) if table_file and table_file.is_file() else {}
@@ -377,14 +393,19 @@ def run(args, parser=None) -> int:
             print(f"  {key} seed {seed}: {rows[-1]}", file=sys.stderr, flush=True)
             if table_file:
                 table_file.write_text(json.dumps(table, indent=1))
-    summary = {k: {m: [float(np.mean([r[m] for r in v])), float(np.std([r[m] for r in v]))] for m in v[0]
-                   if m not in ("seed", "seconds")} | {"seeds": len(v)} for k, v in table.items()}
+    summary = {k: {m: [float(np.mean([r[m] for r in v if m in r])), float(np.std([r[m] for r in v if m in r]))]
+                   for m in {m for r in v for m in r} - {"seed", "seconds"}} | {"seeds": len(v)}
+               for k, v in table.items()}  # rows of an older --table may lack "slope": the mean of those that have it
     best = max((k for k in summary if k != ref and k.split(",")[0] in args.candidates),
                key=lambda k: summary[k]["full"][0])
     print("| candidate | fits | validation AUC, read everything | random 10 % | random 20 % |\n|---|---|---|---|---|")
     for k, v in summary.items():
         print(f"| {k} | {v['seeds']} | {v['full'][0]:.3f} ± {v['full'][1]:.3f} | {v['read 0.1'][0]:.3f} | "
               f"{v['read 0.2'][0]:.3f} |")
+    try:  # an inverted or backwards choice is refused before the refit: nothing saved
+        check_head(args.dataset, summary[best]["full"][0], summary[best].get("slope", [1.0])[0])
+    except HeadDataError as e:
+        return print_error(e)
     name = best.split(",")[0]
     head = candidate_head(name, slides, shape, 0, args.steps)
     info = {"fitted_on": {"dataset": str(Path(args.dataset).resolve()), "split": "train", "slides": len(slides),

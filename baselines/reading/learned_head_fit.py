@@ -52,7 +52,8 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from baselines.reading.head_fit import HeadDataError, finest_views, read_bundle
+from baselines.evaluate.checks import UNDEFINED
+from baselines.reading.head_fit import HeadDataError, finest_views, read_bundle, warn_scale
 from baselines.reading.head_fit import read_spec as read_sealed_spec
 from baselines.reading.lesions import lesion_of
 from baselines.validation import split_train
@@ -467,6 +468,7 @@ def run(args, parser=None) -> int:
     try:
         files.check_replaceable(args.out, KIND)  # before any work: a folder of other files is refused now
         spec = read_spec(args.dataset, args.fold)
+        warn_scale(args.dataset, spec)  # the encoder-scale warning dataset.json records, repeated
         if not 0.0 < args.val_fraction < 1.0:
             raise FitError(Path(args.dataset) / "dataset.json", f"--val-fraction {args.val_fraction} is not in (0, 1)")
         try:
@@ -593,18 +595,22 @@ def lesion_classes(slides: list[dict]) -> list[str]:
 
 def score_command(args) -> int:
     """``--score HEAD --split S``: AUC of the saved head on split ``S`` reading everything, over all slides and
-    without ITC-only slides."""
+    without ITC-only slides, as one JSON line (an AUC one class leaves undefined: ``null`` and a note saying so).
+    A split of one class is refused in one line naming ``dataset.json`` (its AUC is undefined: one class)."""
 
     try:
         head = LearnedHead.load(args.score)
         spec = read_spec(args.dataset, args.fold)
+        warn_scale(args.dataset, spec)
         entries = spec.get(args.split)
         if not isinstance(entries, list) or not entries:
             raise FitError(Path(args.dataset) / "dataset.json", f"has no {args.split!r} split")
         slides = load_split(args.dataset, entries, spec, not args.quiet, f"{args.split} slides")
         if len({s["label"] for s in slides}) < 2:
-            raise FitError(Path(args.dataset) / "dataset.json", f"the {args.split!r} split holds one class only "
-                                                                "(AUC is undefined)")
+            raise FitError(Path(args.dataset) / "dataset.json", f"the {args.split!r} split holds only "
+                                                                f"{'tumour' if slides[0]['label'] else 'normal'} "
+                                                                f"slides ({len(slides)}): its AUC is {UNDEFINED}; "
+                                                                "score a split with tumour and normal slides")
         if slides[0]["features"].shape[1] != head.features_dim:
             raise FitError(slides[0]["bundle"], f"{slides[0]['features'].shape[1]}-d features; the head reads "
                                                 f"{head.features_dim}-d")
@@ -617,11 +623,14 @@ def score_command(args) -> int:
     keep = np.asarray([c != "ITC" for c in classes])
     y = flat.labels
     auc_all = roc_auc(logits, y)
-    auc_no_itc = roc_auc(logits[keep], y[keep])
+    no_itc = len(set(y[keep].tolist())) == 2  # every tumour slide ITC-only: one class left, the AUC undefined
     counts = {c: classes.count(c) for c in sorted(set(classes))}
-    print(json.dumps({"head": str(args.score), "split": args.split, "slides": len(slides), "classes": counts,
-                      "auc": round(auc_all, 4), "auc_without_itc": round(auc_no_itc, 4),
-                      "accuracy": round(float(np.mean((logits > 0) == (y > 0))), 4)}))
+    record = {"head": str(args.score), "split": args.split, "slides": len(slides), "classes": counts,
+              "auc": round(auc_all, 4), "auc_without_itc": round(roc_auc(logits[keep], y[keep]), 4) if no_itc else None,
+              "accuracy": round(float(np.mean((logits > 0) == (y > 0))), 4)}
+    if not no_itc:
+        record["auc_without_itc_note"] = f"{UNDEFINED} (every tumour slide of the split is ITC-only)"
+    print(json.dumps(record, allow_nan=False))  # undefined: null, never a bare NaN
     return 0
 
 

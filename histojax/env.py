@@ -80,13 +80,13 @@ import jax.numpy as jnp
 from flax import struct
 
 from histojax import augment as dihedral
-from histojax import actions, rewards, spaces
+from histojax import actions, gymnax_classes, rewards, spaces
 from histojax.reading.modes import base, factory
 from histojax.slide import SlideArrays
 from histojax.views import view_tumour_fraction
 
 try:  # gymnax is optional; code that can ask ``isinstance(env, Environment)`` has it installed
-    from gymnax.environments.environment import Environment as _GymnaxEnvironment
+    _GymnaxEnvironment = gymnax_classes.load("environment").Environment  # not all of gymnax
 except ImportError:
     _GymnaxEnvironment = object
 

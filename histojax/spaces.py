@@ -22,8 +22,10 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-try:
-    from gymnax.environments import spaces as _gymnax_spaces
+from histojax import gymnax_classes
+
+try:  # gymnax's spaces module alone, not all of gymnax (see histojax.gymnax_classes)
+    _gymnax_spaces = gymnax_classes.load("spaces")
 except ImportError:  # gymnax is optional: the stand-ins below
     _gymnax_spaces = None
 

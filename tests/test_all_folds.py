@@ -9,14 +9,12 @@ import shutil
 
 import numpy as np
 import pytest
-import tifffile
 
 from baselines import folds
 from baselines.reading import budget_curve
-from data_tools.__main__ import main as data_main
 from data_tools.datasets.build import write_dataset_index
 from histojax.registry import dataset_slides
-from histojax.sample import SAMPLE_SLIDE
+from fold_helpers import build_folded
 
 CURVE = ["--env", "HistoJAX-Easy-v0", "--glimpse-level", "1", "--budgets", "0.25", "0.5", "--seeds", "1",
          "--steps", "20"]
@@ -27,20 +25,7 @@ def folded(tmp_path_factory):
     """7 slides (4 tumour, 3 normal; t0 and t1 one patient), the colour-stats feature grid, ``--folds 2``; and the
     same dataset without folds (``plain``)."""
     root = tmp_path_factory.mktemp("all-folds")
-    with tifffile.TiffFile(SAMPLE_SLIDE) as tif:
-        pixels = tif.pages[0].asarray()
-    slides = root / "S"
-    slides.mkdir()
-    rows = ["slide,label,patient"]
-    for i, (name, label) in enumerate([("t0", 1), ("t1", 1), ("t2", 1), ("t3", 1), ("n0", 0), ("n1", 0), ("n2", 0)]):
-        y, x = 320 + i * 160, 768 + (i * 64) % 512
-        tifffile.imwrite(slides / f"{name}.tif", np.ascontiguousarray(pixels[y:y + 256, x:x + 320, :3]),
-                         photometric="rgb", resolution=(2e4, 2e4), resolutionunit="CENTIMETER")
-        rows.append(f"{name},{label},{'PT' if name in ('t0', 't1') else name.upper()}")
-    (root / "labels.csv").write_text("\n".join(rows) + "\n")
-    out = root / "ds"
-    assert data_main(["dataset", str(slides), "--out", str(out), "--labels", str(root / "labels.csv"), "--levels",
-                      "3", "--tile-size", "64", "--quiet", "--folds", "2", "--encoder", "colour-stats"]) == 0
+    out = build_folded(root, encoder="colour-stats")
     plain = root / "plain"
     shutil.copytree(out, plain)
     ds = json.loads((plain / "dataset.json").read_text())

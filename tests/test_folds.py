@@ -7,9 +7,7 @@ import collections
 import json
 import shutil
 
-import numpy as np
 import pytest
-import tifffile
 
 import histojax
 from data_tools.__main__ import main as data_main
@@ -17,7 +15,7 @@ from data_tools.datasets.build import write_dataset_index
 from data_tools.datasets.split import kfold_split, patient_groups, read_patient_column
 from data_tools.errors import BundleError, HistojaxDataError
 from histojax.registry import dataset_slides
-from histojax.sample import SAMPLE_SLIDE
+from fold_helpers import build_folded
 
 
 # ------------------------------------------------------------------ the fold rule
@@ -80,22 +78,7 @@ def test_the_patient_column_is_read(tmp_path):
 @pytest.fixture(scope="module")
 def folded(tmp_path_factory):
     """A 7-slide dataset (4 tumour, 3 normal by the label table; t0 and t1 one patient) with --folds 2."""
-    root = tmp_path_factory.mktemp("folds")
-    with tifffile.TiffFile(SAMPLE_SLIDE) as tif:
-        pixels = tif.pages[0].asarray()
-    slides = root / "S"
-    slides.mkdir()
-    rows = ["slide,label,patient"]
-    for i, (name, label) in enumerate([("t0", 1), ("t1", 1), ("t2", 1), ("t3", 1), ("n0", 0), ("n1", 0), ("n2", 0)]):
-        y, x = 320 + i * 160, 768 + (i * 64) % 512
-        tifffile.imwrite(slides / f"{name}.tif", np.ascontiguousarray(pixels[y:y + 256, x:x + 320, :3]),
-                         photometric="rgb", resolution=(2e4, 2e4), resolutionunit="CENTIMETER")
-        rows.append(f"{name},{label},{'PT' if name in ('t0', 't1') else name.upper()}")
-    (root / "labels.csv").write_text("\n".join(rows) + "\n")
-    out = root / "ds"
-    assert data_main(["dataset", str(slides), "--out", str(out), "--labels", str(root / "labels.csv"), "--levels",
-                      "3", "--tile-size", "64", "--quiet", "--folds", "2"]) == 0
-    return out
+    return build_folded(tmp_path_factory.mktemp("folds"))
 
 
 def test_dataset_json_records_the_folds(folded):

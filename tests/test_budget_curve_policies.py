@@ -15,7 +15,7 @@ import pytest
 
 from baselines import common, evaluate, ppo_rnn
 
-from baselines.reading import budget_curve
+from baselines.reading import budget_curve, pipeline
 from baselines.networks import ScannedGRU
 from slide_helpers import synth_feature_dataset
 
@@ -74,9 +74,9 @@ def test_budget_curve_draws_a_recurrent_run(dataset, runs, tmp_path):
 @pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_a_policy_is_scored_by_every_slide_head(dataset, runs):
     """With a max-logit head (pcam-cnn datasets), a policy's reads are scored by it too, beside the MIL."""
-    train = budget_curve.load_split(dataset, "train", "HistoJAX-Easy-v0", 1)
-    test = budget_curve.load_split(dataset, "test", "HistoJAX-Easy-v0", 1)
-    rows = budget_curve.budget_rows(train, test, budgets=(0.5,), seeds=1, steps=10, dataset=dataset,
+    train = pipeline.load_split(dataset, "train", env_id="HistoJAX-Easy-v0", level=1)
+    test = pipeline.load_split(dataset, "test", env_id="HistoJAX-Easy-v0", level=1)
+    rows = budget_curve.budget_rows((train.tables, train.labels), (test.tables, test.labels), budgets=(0.5,), seeds=1, steps=10, dataset=dataset,
                                     policies=[("GRU glimpse", runs["glimpse:1"])], policy_seeds=1, max_dim=0)
     by = {r["method"]: r for r in rows}
     for name in ("GRU glimpse", "GRU glimpse reader + MIL", "GRU glimpse reader + max logit"):
@@ -91,7 +91,7 @@ def glimpse_reads(dataset, runs):
 
 def test_recurrent_evaluation_respects_the_reading_budget(dataset, runs, glimpse_reads):
     zoom_reads = budget_curve.policy_reads(runs["zoom_select"], dataset, "test", BUDGETS)
-    tables, _ = budget_curve.load_split(dataset, "test", "HistoJAX-Easy-v0", 1)
+    tables = pipeline.load_split(dataset, "test", env_id="HistoJAX-Easy-v0", level=1).tables
     for budget in BUDGETS:
         assert len(glimpse_reads[budget]) == len(zoom_reads[budget]) == len(tables)
         for (read, score, fraction, fields), table in zip(glimpse_reads[budget], tables):
@@ -150,7 +150,7 @@ def test_a_policy_read_masks_are_scored_by_the_slide_head(dataset, runs, glimpse
     from histojax.reading.heads.logit import SlideHead
 
     slides = head_fit.load_slides(dataset, "test", dim=0)
-    tables, _ = budget_curve.load_split(dataset, "test", "HistoJAX-Easy-v0", 1)
+    tables = pipeline.load_split(dataset, "test", env_id="HistoJAX-Easy-v0", level=1).tables
     for t, s in zip(tables, slides):  # the env's instances are the tissue views in raster order, as masks count them
         assert t["total"] == s["tissue"].sum()
         np.testing.assert_allclose(t["instances"][:, 0], s["logits"][s["tissue"]], rtol=1e-6)

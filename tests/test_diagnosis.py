@@ -321,78 +321,6 @@ def test_offline_reader_reads_as_the_env(glimpse):
         assert sorted(np.flatnonzero(np.asarray(state.memory.revealed))) == sorted(cells.tolist())
 
 
-def test_budget_rows_csv_and_png(tmp_path):
-    from baselines.reading.budget_curve import budget_rows
-    from baselines.reading.csv_files import write_curve_csv
-    from baselines.reading.plots import plot_curve
-
-    rng = np.random.default_rng(0)
-
-    def slide(label):
-        cell = np.repeat(np.arange(8), 4)
-        x = rng.normal(size=(32, 3)).astype(np.float32)
-        if label:
-            x[cell == 5] += 3.0  # one cell of "tumour"
-        low = np.stack([x[cell == c].mean(0) for c in range(8)])
-        return {"instances": x, "instance_cell": cell, "cells": low, "valid": np.ones(8, bool),
-                "cell_views": np.full(8, 4), "total": 32}
-
-    labels = np.array([0, 1] * 6)
-    tables = [slide(y) for y in labels]
-    rows = budget_rows((tables[:8], labels[:8]), (tables[8:], labels[8:]), budgets=(0.25, 0.5), seeds=2, steps=30)
-    assert {r["method"] for r in rows} == {"MIL, read everything", "random reader + MIL", "attention reader + MIL"}
-    assert all(r["fraction_read"] <= r["budget"] + 1e-9 and 0 <= r["auc"] <= 1 for r in rows)
-    assert write_curve_csv(rows, tmp_path / "c.csv").read_text().count("\n") == len(rows) + 1
-    assert plot_curve(rows, tmp_path / "c.png").stat().st_size > 1000
-
-
-def test_max_logit_rows_find_a_small_focus_that_attention_dilutes():
-    """The max-pooling rows (a fixed instance logit, as pcam-cnn's ``max l``): one tumour view among 400 sets
-    the slide's score; the logit reader reads the cell whose overview logit is highest first, so it finds the
-    focus at the smallest budget; the calibration makes scores probabilities without changing their order."""
-    from baselines.reading.budget_curve import MAX_LOGIT_NAMES, MaxLogitHead, bags, budget_rows, method_scores
-    from data_tools.metrics import roc_auc
-
-    rng = np.random.default_rng(0)
-
-    def slide(label, k):
-        cell = np.repeat(np.arange(20), 20)
-        x = rng.normal(size=(400, 4)).astype(np.float32)
-        x[:, 3] = rng.normal(-4.0, 1.0, 400)  # the logit: tissue far below 0
-        if label:
-            x[k * 20 + 3, 3] = 6.0  # one tumour view in cell k
-        low = np.stack([x[cell == c].max(0) for c in range(20)])  # the overview sees the focus, faintly
-        return {"instances": x, "instance_cell": cell, "cells": low, "valid": np.ones(20, bool),
-                "cell_views": np.full(20, 20), "total": 400}
-
-    labels = np.array([0, 1] * 8)
-    tables = [slide(y, i % 20) for i, y in enumerate(labels)]
-    head = MaxLogitHead.fit(*bags(tables[:8]), labels[:8], dim=3)
-    x, m = bags(tables[8:])
-    assert roc_auc(head.raw(x, m), labels[8:]) == 1.0
-    assert np.array_equal(np.argsort(head.scores(x, m)), np.argsort(head.raw(x, m)))  # calibration keeps order
-    assert ((head.scores(x, m) > 0.5) == labels[8:]).all()
-    scores = method_scores(head, tables[8:], budgets=(0.05,), seeds=3, names=MAX_LOGIT_NAMES)
-    assert roc_auc(scores[(MAX_LOGIT_NAMES[2], 0.05)][0][0], labels[8:]) == 1.0  # one cell read: the right one
-    rows = budget_rows((tables[:8], labels[:8]), (tables[8:], labels[8:]), budgets=(0.05,), seeds=2, steps=30,
-                       max_dim=3)
-    assert set(MAX_LOGIT_NAMES) <= {r["method"] for r in rows}
-
-
-def test_cross_validation_scores_every_slide_once():
-    from baselines.reading.budget_curve import cross_validated_rows
-
-    rng = np.random.default_rng(1)
-    labels = np.array([0, 1] * 4)
-    tables = []
-    for y in labels:
-        x = rng.normal(size=(8, 2)).astype(np.float32) + 2.0 * y
-        tables.append({"instances": x, "instance_cell": np.arange(8), "cells": x, "valid": np.ones(8, bool),
-                       "cell_views": np.ones(8, int), "total": 8})
-    rows = cross_validated_rows(tables, labels, folds=2, budgets=(0.5,), seeds=1, steps=20)
-    assert all(r["slides"] == 8 for r in rows) and len(rows) == 3
-
-
 # ----------------------------------------------------------------------------- step observation (step_obs=True, -v2)
 def test_step_observation_holds_what_the_full_one_does(bundle):
     """``step_obs=True``: the same trajectory as the full (v1) observation, and the full observation is
@@ -474,26 +402,3 @@ def test_mode_names_resolve_apart_from_the_base_classes():
     assert isinstance(factory.action_mode("glimpse:2"), Glimpse)
     assert factory.action_mode("zoom_select:4") == ZoomSelect(k=4)
     assert not hasattr(base, "action_mode")
-
-
-def test_budget_curve_mil_is_the_heads_gated_attention():
-    """The budget curve's "read everything" classifier is histojax.reading.heads.mil's gated attention (one MIL):
-    its batched bag scores equal attention_pool on each bag alone, its attention sums to 1 and leaves unread
-    instances at 0, and training separates bags whose tumour instances carry a signal."""
-    from baselines.reading.budget_curve import train_mil
-    from histojax.reading.heads.mil import attention_pool, attention_weights
-
-    rng = np.random.default_rng(0)
-    bags = rng.normal(size=(24, 12, 6)).astype(np.float32)
-    masks = rng.random((24, 12)) < 0.8
-    masks[:, 0] = True
-    labels = np.arange(24) % 2
-    bags[labels == 1, :3, 2] += 3.0
-    head = train_mil(bags, masks, labels, steps=150)
-    p = head.scores(bags, masks)
-    alone = [float(jax.nn.sigmoid(attention_pool(head.params, jnp.asarray(b), jnp.asarray(m))[0]))
-             for b, m in zip(bags, masks)]
-    np.testing.assert_allclose(p, alone, rtol=1e-5, atol=1e-6)
-    att = np.asarray(attention_weights(head.params, jnp.asarray(bags[1]), jnp.asarray(masks[1])))
-    assert att.sum() == pytest.approx(1.0, abs=1e-5) and np.all(att[~masks[1]] == 0)
-    assert p[labels == 1].min() > p[labels == 0].max()

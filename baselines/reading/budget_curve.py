@@ -1,25 +1,34 @@
 """AUC and accuracy against the fraction of the slide read: ``python -m baselines.reading.budget_curve``.
 
-Methods, all scored on the test slides of a dataset with the same gated-attention MIL head
-(:class:`MILClassifier`: the gated attention of :func:`histojax.reading.heads.mil.attention_pool`), trained once
-on the *training* slides' finest-level tissue views:
+The budget curve is the reading pipeline (:mod:`baselines.reading.pipeline`: one loader, one run loop over readers
+× budgets) on the env's glimpse cells, every slide head scoring the views read as a set (:func:`bag_scores`, the
+head protocol of :mod:`histojax.reading.heads`). Methods, scored on the test slides of a dataset:
 
-* ``MIL, read everything`` — the head on every finest-level tissue view (the ceiling; fraction 1);
+* ``MIL, read everything`` — a gated-attention MIL head (:func:`train_mil`: a ``learned-attention-mil`` head, the
+  gated attention of :func:`histojax.reading.heads.mil.attention_pool`) trained once on the *training* slides'
+  finest-level tissue views, on every finest-level tissue view (the ceiling; fraction 1);
 * ``random reader + MIL`` — glimpse cells picked uniformly at random (``--seeds`` orders);
 * ``attention reader + MIL`` — cells picked by the MIL attention on their *low-resolution* features,
   highest first (what the agent could know before reading);
+* on pcam-cnn features, the same three rows of the max-logit head (:func:`fit_max_logit`: a logit head, the
+  largest view logit read, calibrated), its cells ordered by their own logit (``logit reader + max logit``);
+* ``--head DIR`` (a learned head, :mod:`baselines.reading.learned_head_fit`): its rows ``learned head, read
+  everything``, ``random reader + learned head`` and ``score reader + learned head`` — cells by the head's per-view
+  score of their coarse features, highest first (the score reader);
 * ``--ppo NAME RUN`` — a trained policy in a ``glimpse`` or ``zoom_select`` mode, feed-forward
   (``baselines.ppo``) or recurrent (``baselines.ppo_rnn``, detected from its ``config.json``),
-  rolled greedily by :func:`baselines.evaluate.run_episodes` at each budget: its own diagnosis
-  (``NAME``) and the same head on what it read (``NAME reader + MIL``).
+  rolled greedily by :func:`baselines.evaluate.run_episodes` at each budget
+  (:func:`baselines.reading.pipeline.policy_reads`): its own diagnosis (``NAME``) and every head on what it read
+  (``NAME reader + MIL``, ``+ max logit``, ``+ learned head``).
 
 A reader reads cells of ``action_mode=Glimpse(level)`` exactly as the env does
-(:func:`baselines.reading.orders.read_cells` follows :meth:`histojax.reading.modes.glimpse.Glimpse.apply`: a cell is read when it still fits in the budget;
-the first pick that does not fit ends the episode), at budgets of ``--budgets`` (fractions of the
-slide's finest-level tissue views). Writes ``budget_curve.csv`` (one row per method × budget:
-mean fraction actually read, AUC, accuracy at 0.5, slides, the standard deviations of AUC and accuracy
+(:func:`baselines.reading.orders.read_cells` follows :meth:`histojax.reading.modes.glimpse.Glimpse.apply`: a cell is
+read when it still fits in the budget; the first pick that does not fit ends the episode), at budgets of
+``--budgets`` (fractions of the slide's finest-level tissue views). Writes ``budget_curve.csv`` (one row per method ×
+budget: mean fraction actually read, AUC, accuracy at 0.5, slides, the standard deviations of AUC and accuracy
 over seeds — random reader orders, or the first ``--policy-seeds`` seeds (default 3) of a trained
-policy — and a trained policy's fields of view per episode) and ``budget_curve.png``.
+policy — and a trained policy's fields of view per episode) and ``budget_curve.png``. A scored split of one class
+is refused in one line naming ``dataset.json`` (its AUC is undefined).
 
 ``--fold I`` (a dataset built with ``--folds K``): the head trained on fold I's train side, scored on its held-out
 side. ``--all-folds``: that for every fold (:func:`fold_rows`), the CSV's rows of each fold (column ``fold``) and one
@@ -28,11 +37,10 @@ plot draws the means with ± bands over folds.
 
 The curve with one slide head with spatial context for every row (overview only, random, scripted and
 trained readers, read everything; the CAMELYON lesion table) is ``python -m baselines.reading.readers``
-(:mod:`baselines.reading.readers`, head fitted by :mod:`baselines.reading.head_fit`).
+(:mod:`baselines.reading.readers`, the same pipeline on a bundle level's cells).
 """
 from __future__ import annotations
 
-import dataclasses
 from pathlib import Path
 
 import jax
@@ -43,58 +51,19 @@ from flax.core.scope import LazyRng
 
 from baselines.reading.budgets import BUDGETS
 from baselines.reading.csv_files import write_curve_csv
-from baselines.reading.orders import attention_order, random_order, read_cells
+from baselines.reading.orders import attention_order, score_order
+from baselines.reading.pipeline import check_two_classes, load_split, policy_reads, random_orders, read_all, run_seeds
 from baselines.reading.plots import plot_curve
 from baselines.folds import SUMMARY, dataset_folds, mean_std, scored_side, with_fold
 from data_tools.metrics import accuracy, roc_auc
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
-from histojax.reading.heads.mil import attention_pool, attention_weights
-
-
-
-def load_split(dataset, split: str, env_id: str, level: int, verify: bool = True, fold: int | None = None):
-    """``(tables, labels)`` of a dataset split (``fold=i``: fold i's side of it, ``make(..., fold=i)``):
-    :meth:`Glimpse.host_tables` per slide and 0/1 labels. Read by ``histojax.make`` (the checked bundle loader:
-    no links, nothing outside a bundle, checksums verified unless ``verify=False``)."""
-    import histojax
-    from histojax.reading.modes.glimpse import Glimpse
-
-    env, params = histojax.make(env_id, dataset=dataset, split=split, obs_mode="features",
-                                task="classification", verify=verify, fold=fold)  # not the glimpse mode: it would make the
-    glimpse = Glimpse(level=level)                                      # device tables, unused here, a second time
-    glimpse.validate(env)
-    tables = glimpse.host_tables(env, params, env.bundles)
-    labels = np.atleast_1d(np.asarray(params.slide.slide_label)).astype(int)
-    return tables, labels
-
-
-@dataclasses.dataclass
-class MILClassifier:
-    """The "read everything" slide classifier: a gated-attention MIL (Ilse, Tomczak & Welling, ICML 2018) —
-    :func:`histojax.reading.heads.mil.attention_pool`, the pooling of the trained slide heads — with ``params``
-    holding its input standardisation (``mu``, ``sd`` of ``(D,)``) and its weights. Fitted by :func:`train_mil`."""
-
-    params: dict
-
-    def scores(self, bags: np.ndarray, masks: np.ndarray) -> np.ndarray:
-        """Tumour probability in ``[0, 1]`` of each bag: ``(B, N, D), (B, N) → (B,)``."""
-        return np.asarray(jax.nn.sigmoid(_bag_logits(self.params, jnp.asarray(bags, jnp.float32),
-                                                     jnp.asarray(masks, bool))))
-
-    def attention(self, instances: np.ndarray) -> np.ndarray:
-        """The attention weights ``(N,)`` (summing to 1) the classifier gives ``instances (N, D)`` read
-        as one bag: what a scripted reader ranks cells by (higher = read first)."""
-        x = jnp.asarray(instances, jnp.float32)
-        return np.asarray(attention_weights(self.params, x, jnp.ones(x.shape[0], bool)))
-
-
-def _bag_logits(params: dict, bags: jax.Array, masks: jax.Array) -> jax.Array:
-    """Slide logits ``(B,)`` of padded bags ``(B, N, D)`` with validity masks ``(B, N)``."""
-    b, n, d = bags.shape
-    return attention_pool(params, bags.reshape(b * n, d), masks.reshape(-1), jnp.repeat(jnp.arange(b), n), b)
-
+from histojax.adapters.head_reward import pools_views
+from histojax.reading import heads
+from histojax.reading.heads.learned import LearnedHead
+from histojax.reading.heads.logit import SlideHead
+from histojax.reading.heads.mil import attention_pool
 
 def _init_params(key: jax.Array, d: int, hidden: int, attention: int) -> dict:
     """The starting weights: LeCun-normal kernels and zero biases, drawn from ``key`` as flax's ``nn.Dense``
@@ -109,10 +78,20 @@ def _init_params(key: jax.Array, d: int, hidden: int, attention: int) -> dict:
             "wa": kernel(3, (attention, 1))[:, 0], "wc": kernel(4, (hidden, 1))[:, 0], "bc": jnp.zeros(())}
 
 
+def _bag_logits(params: dict, bags: jax.Array, masks: jax.Array) -> jax.Array:
+    """Slide logits ``(B,)`` of padded bags ``(B, N, D)`` with validity masks ``(B, N)`` (the training loss's
+    batched gated attention, :func:`histojax.reading.heads.mil.attention_pool`)."""
+    b, n, d = bags.shape
+    return attention_pool(params, bags.reshape(b * n, d), masks.reshape(-1), jnp.repeat(jnp.arange(b), n), b)
+
+
 def train_mil(bags: np.ndarray, masks: np.ndarray, labels: np.ndarray, steps: int = 400, lr: float = 3e-3,
-              seed: int = 0, hidden: int = 64, attention: int = 32) -> MILClassifier:
-    """Fit a :class:`MILClassifier` on ``bags (B, N, D)``, ``masks (B, N)``, 0/1 ``labels (B,)`` (full batch,
-    Adam, ``steps`` updates). Inputs are standardised by the valid instances' mean / std (fixed, not trained)."""
+              seed: int = 0, hidden: int = 64, attention: int = 32) -> LearnedHead:
+    """The "read everything" slide head: a gated-attention MIL (Ilse, Tomczak & Welling, ICML 2018) fitted on
+    ``bags (B, N, D)``, ``masks (B, N)``, 0/1 ``labels (B,)`` (full batch, Adam, ``steps`` updates; inputs
+    standardised by the valid instances' mean / std, fixed). Returned as the head of kind
+    ``learned-attention-mil`` (:class:`~histojax.reading.heads.learned.LearnedHead`: one layer, no calibration,
+    the training split's log odds as prior), so it is scored through the head protocol (:func:`bag_scores`)."""
     bags = np.asarray(bags, np.float32)
     masks = np.asarray(masks, bool)
     valid = bags[masks]
@@ -134,43 +113,33 @@ def train_mil(bags: np.ndarray, masks: np.ndarray, labels: np.ndarray, steps: in
 
     for _ in range(steps):
         params, state, _ = update(params, state)
-    return MILClassifier({**params, **fixed})
+    return LearnedHead(params={**params, **fixed}, prior_logit=jnp.float32(_log_odds(labels)),
+                       features_dim=int(bags.shape[-1]), hidden=hidden, attention=attention, layers=1, encoder=None)
 
 
-@dataclasses.dataclass
-class MaxLogitHead:
-    """Max-pooling MIL with a fixed instance classifier: a slide's score is the largest tumour logit of the views
-    it read, read from feature ``dim`` (pcam-cnn's embedding holds its view's tumour logit at
-    :data:`PCAM_CNN_VIEW_LOGIT`). Nothing is learned from slides but a 1-D logistic calibration ``(a, b)`` on the
-    training split, so that ``scores`` are probabilities (accuracy at 0.5); AUC does not depend on it. The same
-    interface as :class:`MILClassifier` (``scores``, ``attention``)."""
+def _log_odds(labels) -> float:
+    """The log odds of tumour of 0/1 ``labels`` (clipped away from 0 and 1)."""
+    p = float(np.clip(np.mean(np.asarray(labels, np.float64)), 1e-3, 1 - 1e-3))
+    return float(np.log(p / (1 - p)))
 
-    dim: int
-    a: float = 1.0
-    b: float = 0.0
 
-    def raw(self, bags: np.ndarray, masks: np.ndarray) -> np.ndarray:
-        """The largest logit of each bag's valid instances ``(B,)`` (−1e9 for an empty bag)."""
-        return np.where(masks, bags[..., self.dim], -1e9).max(axis=-1)
-
-    def scores(self, bags: np.ndarray, masks: np.ndarray) -> np.ndarray:
-        return 1.0 / (1.0 + np.exp(-np.clip(self.a * self.raw(bags, masks) + self.b, -60, 60)))
-
-    def attention(self, instances: np.ndarray) -> np.ndarray:
-        """Cells ranked by their own low-resolution logit: the reader zooms where the overview looks like tumour."""
-        return np.asarray(instances)[:, self.dim]
-
-    @classmethod
-    def fit(cls, bags: np.ndarray, masks: np.ndarray, labels, dim: int, steps: int = 2000) -> "MaxLogitHead":
-        """Calibrate ``(a, b)`` by logistic regression of ``labels`` on the training bags' max logits."""
-        x, y = cls(dim).raw(bags, masks).astype(np.float64), np.asarray(labels, np.float64)
-        mu, sd = x.mean(), x.std() + 1e-9
-        z, w, c = (x - mu) / sd, 0.0, 0.0
-        for _ in range(steps):  # plain gradient descent on the mean log loss (convex, 2 parameters)
-            p = 1.0 / (1.0 + np.exp(-(w * z + c)))
-            w -= 0.5 * float(np.mean((p - y) * z))
-            c -= 0.5 * float(np.mean(p - y))
-        return cls(dim, a=w / sd, b=c - w * mu / sd)
+def fit_max_logit(bags: np.ndarray, masks: np.ndarray, labels, dim: int, steps: int = 2000) -> SlideHead:
+    """Max-pooling MIL with a fixed instance classifier: the logit head
+    (:class:`~histojax.reading.heads.logit.SlideHead`, ``k=1``, ``top=1``) whose slide score is the largest tumour
+    logit (feature ``dim``: pcam-cnn holds its view's tumour logit at :data:`PCAM_CNN_VIEW_LOGIT`) of the views
+    read. Nothing is learned from slides but the 1-D logistic calibration ``(a, b)`` of ``labels (B,)`` on the
+    training ``bags (B, N, D)`` / ``masks (B, N)``' max logits (plain gradient descent, ``steps``), so that scores
+    are probabilities (accuracy at 0.5); AUC does not depend on it."""
+    x = np.where(masks, bags[..., dim], -1e9).max(axis=-1).astype(np.float64)
+    y = np.asarray(labels, np.float64)
+    mu, sd = x.mean(), x.std() + 1e-9
+    z, w, c = (x - mu) / sd, 0.0, 0.0
+    for _ in range(steps):  # plain gradient descent on the mean log loss (convex, 2 parameters)
+        p = 1.0 / (1.0 + np.exp(-(w * z + c)))
+        w -= 0.5 * float(np.mean((p - y) * z))
+        c -= 0.5 * float(np.mean(p - y))
+    return SlideHead(a=jnp.float32(w / sd), b=jnp.float32(c - w * mu / sd), prior_logit=jnp.float32(_log_odds(y)),
+                     dim=int(dim), k=1, top=1, encoder=None)
 
 
 PCAM_CNN_VIEW_LOGIT = pcam_cnn.VIEW_LOGIT  # 62
@@ -208,30 +177,36 @@ def bags(tables: list[dict], read: list[np.ndarray] | None = None):
     return x, m
 
 
-def reader_scores(tables, head: MILClassifier, orders, budget: float) -> tuple[np.ndarray, np.ndarray]:
-    """The head's scores ``(B,)`` on what a reader (one cell order per slide) reads at ``budget``, and
-    the fractions read ``(B,)``."""
-    reads = [read_cells(t, o, budget) for t, o in zip(tables, orders)]
-    x, m = bags(tables, [r[0] for r in reads])
-    return head.scores(x, m), np.asarray([r[1] for r in reads])
+_set_logits = jax.jit(jax.vmap(heads.score, in_axes=(None, 0, 0)))
 
 
-def method_scores(head: MILClassifier, tables, budgets=BUDGETS, seeds: int = 5,
-                  names=("MIL, read everything", "random reader + MIL", "attention reader + MIL")) -> dict:
-    """``{(method, budget): (scores (seeds, B), fractions (seeds, B))}`` of every method on ``tables``;
-    ``names``: the rows' names (reading everything, the random reader, the head-ordered reader)."""
-    x, m = bags(tables)
-    out = {(names[0], 1.0): (head.scores(x, m)[None], np.ones((1, len(tables))))}
-    for b in budgets:
-        runs = [reader_scores(tables, head, [random_order(t, np.random.default_rng(s * 1000 + i))
-                                             for i, t in enumerate(tables)], b) for s in range(seeds)]
-        out[(names[1], b)] = tuple(np.stack(r) for r in zip(*runs))
-        scores, fractions = reader_scores(tables, head, [attention_order(t, head) for t in tables], b)
-        out[(names[2], b)] = (scores[None], fractions[None])
-    return out
+def bag_scores(head, bags: np.ndarray, masks: np.ndarray) -> np.ndarray:
+    """Tumour probabilities ``(B,)`` in ``[0, 1]`` of padded bags ``(B, N, D)`` read where ``masks (B, N)``, by any
+    head of the protocol of :mod:`histojax.reading.heads` (:func:`~histojax.reading.heads.score` of each bag as a
+    grid of one column, ``(N, 1, D)``: no view has a neighbour, so a logit head pools the views themselves)."""
+    x = jnp.asarray(bags, jnp.float32)[:, :, None, :]
+    return np.asarray(jax.nn.sigmoid(_set_logits(head, x, jnp.asarray(masks, bool)[:, :, None])), np.float64)
 
 
+MIL_NAMES = ("MIL, read everything", "random reader + MIL", "attention reader + MIL")
 MAX_LOGIT_NAMES = ("max view logit, read everything", "random reader + max logit", "logit reader + max logit")
+HEAD_NAMES = ("learned head, read everything", "random reader + learned head", "score reader + learned head")
+"""The rows of each slide head: reading everything, the random reader, and the reader its cells are ordered by
+(the MIL's attention, the max-logit head's view logit, a ``--head``'s per-view score: the score reader)."""
+
+
+def method_scores(head, tables, budgets=BUDGETS, seeds: int = 5, names=MIL_NAMES, order=None) -> dict:
+    """``{(method, budget): (scores (seeds, B), fractions (seeds, B))}`` of every method on ``tables`` through
+    ``head`` (:func:`bag_scores`), read by :func:`baselines.reading.pipeline.read_all`; ``names``: the rows' names
+    (reading everything, the random reader, the head-ordered reader); ``order(table, head)``: the cell order of
+    the last (default: the head's attention when it pools views by attention, else its per-view score)."""
+    order = order or (attention_order if pools_views(head) else score_order)
+    x, m = bags(tables)
+    out = {(names[0], 1.0): (bag_scores(head, x, m)[None], np.ones((1, len(tables))))}
+    readers = {names[1]: random_orders(tables, seeds), names[2]: [[order(t, head) for t in tables]]}
+    read = read_all(tables, readers, budgets, lambda cells: {"scores": bag_scores(head, *bags(tables, cells))})
+    out.update({key: (r["scores"], r["fractions"]) for key, r in read.items()})
+    return out
 
 
 def rows_from_scores(scores: dict, labels) -> list[dict]:
@@ -249,19 +224,24 @@ def rows_from_scores(scores: dict, labels) -> list[dict]:
 
 
 def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, policies=(), dataset=None,
-                policy_seeds: int = 3, max_dim: int | None = None, fold: int | None = None):
-    """Train the head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``
-    (with ``max_dim``, the rows of :class:`MaxLogitHead` on that feature too);
+                policy_seeds: int = 3, max_dim: int | None = None, fold: int | None = None, head=None):
+    """Train the MIL head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``
+    (with ``max_dim``, the rows of the max-logit head, :func:`fit_max_logit`, on that feature too; with ``head``,
+    a saved head that pools views by attention — a learned head, ``--head`` — its rows :data:`HEAD_NAMES`, its
+    cells read by its per-view score: the score reader);
     ``policies``: ``(name, run folder)`` of trained PPO policies, rolled on ``dataset``'s test split."""
-    head = train_mil(*bags(train[0]), train[1], steps=steps)
-    rows = rows_from_scores(method_scores(head, test[0], budgets, seeds), test[1])
-    heads = {"MIL": head}
+    mil = train_mil(*bags(train[0]), train[1], steps=steps)
+    rows = rows_from_scores(method_scores(mil, test[0], budgets, seeds), test[1])
+    curve_heads = {"MIL": mil}
     if max_dim is not None:
-        top = MaxLogitHead.fit(*bags(train[0]), train[1], max_dim)
+        top = fit_max_logit(*bags(train[0]), train[1], max_dim)
         rows += rows_from_scores(method_scores(top, test[0], budgets, seeds, MAX_LOGIT_NAMES), test[1])
-        heads["max logit"] = top
+        curve_heads["max logit"] = top
+    if head is not None:
+        rows += rows_from_scores(method_scores(head, test[0], budgets, seeds, HEAD_NAMES, score_order), test[1])
+        curve_heads["learned head"] = head
     for name, run in policies:
-        rows += policy_rows(run, dataset, name, heads, test[0], test[1], budgets, policy_seeds, fold=fold)
+        rows += policy_rows(run, dataset, name, curve_heads, test[0], test[1], budgets, policy_seeds, fold=fold)
     return rows
 
 
@@ -282,81 +262,10 @@ def cross_validated_rows(tables, labels, folds: int, budgets=BUDGETS, seeds: int
     return rows_from_scores(pooled, labels[order])
 
 
-def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None = None, seed: int = 0,
-                 fold: int | None = None) -> dict:
-    """Roll a trained policy greedily, once on every slide of ``dataset``'s ``split`` at each of
-    ``budgets``, with :func:`baselines.evaluate.run_episodes` (one jitted program for all slides and
-    budgets). ``run``: a run folder of ``python -m baselines.ppo`` (feed-forward) or ``python -m
-    baselines.ppo_rnn`` (GRU; ``"algo": "ppo_rnn"`` in its ``config.json``: its hidden state is carried
-    through each episode) in a ``glimpse`` or ``zoom_select`` mode; its seed ``seed`` (default the first).
-
-    Returns ``{budget: [(read, own_score, fraction_read) per slide]}``: the finest tissue views it
-    read (indices into the slide's ``host_tables`` instances), its own tumour score
-    (``p(tumour) / (p(tumour) + p(no tumour))`` of its policy at the step it declared, or at its last
-    step; see :func:`baselines.evaluate.learned_policy`), the fraction read and the fields of view
-    (env steps that looked at the slide) of the episode."""
-    import jax
-
-    from baselines import common, evaluate
-
-    params, config = common.load_checkpoint(run)
-    n_seeds = jax.tree.leaves(params)[0].shape[0]
-    if not 0 <= seed < n_seeds:
-        raise ValueError(f"{run} has {n_seeds} seed(s), not a seed {seed}")
-    params = jax.tree.map(lambda a: a[seed], params)
-    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides", "fold")}
-    config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split,
-                                       **({"fold": fold} if fold is not None else {})}}  # fold: the slides scored
-    if env_id:
-        config["env_id"] = env_id
-    config, (env, env_params) = evaluate.eval_env(config)
-    if not hasattr(env_params.mode_data, "read_budget") or getattr(env.action, "name", "") not in ("glimpse",
-                                                                                                   "zoom_select"):
-        raise ValueError(f"{run}: a policy of action mode {config['action_mode']!r}; the budget curve takes "
-                         f"glimpse or zoom_select policies")
-    n = env.num_actions
-    policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config["action_mode"], greedy=True,
-                                     declare=(n - 2, n - 1))
-    n_slides = len(env.bundles)
-    budgets = [float(b) for b in budgets]
-    slides = np.tile(np.arange(n_slides), len(budgets))
-    per_episode, axes = evaluate.per_episode_params(env_params, slides, np.repeat(budgets, n_slides))
-    ep = evaluate.run_episodes(env, per_episode, policy, jax.random.key(0), len(slides), params_axes=axes,
-                               final=True)
-    assert (ep["slide"] == slides).all()
-    memory, scores = ep["final_state"].memory, ep["final_memory"][1]
-    tables = env.action.host_tables(env, env_params, env.bundles) if hasattr(env.action, "host_tables") else None
-    seen_tables = env_params.mode_data
-    out = {b: [] for b in budgets}
-    for e, i in enumerate(slides):
-        if tables is not None:  # glimpse: the instances under the revealed cells
-            read = np.isin(tables[i]["instance_cell"], np.flatnonzero(np.asarray(memory.revealed[e])))
-        else:  # zoom_select: the finest tissue views seen
-            f = env.n_levels - 1
-            start = int(seen_tables.grid_offset[i, f])
-            size = int(seen_tables.grid_width[i, f] * seen_tables.grid_height[i, f])
-            from histojax.reading.tables import seen_flags  # seen is a bit set
-
-            seen = seen_flags(memory.seen[e], start, size)
-            read = seen[np.asarray(seen_tables.tissue[i])[:size]]
-        out[budgets[e // n_slides]].append((np.flatnonzero(read), float(scores[e]), float(ep["fraction_read"][e]),
-                                            float(ep["fields_of_view"][e])))
-    return out
-
-
-def run_seeds(run) -> int:
-    """How many seeds a run folder's ``params.msgpack`` holds."""
-    import jax
-
-    from baselines import common
-
-    return int(jax.tree.leaves(common.load_checkpoint(run)[0])[0].shape[0])
-
-
-def policy_rows(run, dataset, name: str, heads: dict, tables, labels, budgets=BUDGETS,
+def policy_rows(run, dataset, name: str, slide_heads: dict, tables, labels, budgets=BUDGETS,
                 policy_seeds: int = 3, fold: int | None = None) -> list[dict]:
     """Rows for a trained policy (feed-forward or recurrent, see :func:`policy_reads`) at ``budgets``:
-    its own diagnosis (``name``) and each slide head on what it read (``heads``: ``{"MIL": head, ...}``;
+    its own diagnosis (``name``) and each slide head on what it read (``slide_heads``: ``{"MIL": head, ...}``;
     rows ``name reader + MIL``, ``name reader + max logit``, ...), each the mean
     (and ``*_std``) over its first ``policy_seeds`` seeds (as many as the run has, if fewer), with
     the mean fraction read and fields of view per episode."""
@@ -368,7 +277,8 @@ def policy_rows(run, dataset, name: str, heads: dict, tables, labels, budgets=BU
             fraction = float(np.mean([r[2] for r in reads]))
             fields = float(np.mean([r[3] for r in reads]))
             own = np.asarray([r[1] for r in reads])
-            scored = [(name, own)] + [(f"{name} reader + {h}", head.scores(x, m)) for h, head in heads.items()]
+            scored = [(name, own)] + [(f"{name} reader + {h}", bag_scores(head, x, m))
+                                      for h, head in slide_heads.items()]
             for method, s in scored:
                 per.setdefault((method, float(b)), []).append(
                     (roc_auc(s, labels), accuracy(s, labels), fraction, fields))
@@ -419,6 +329,11 @@ def add_arguments(p) -> None:
                    help="also a trained policy (run folder of `python -m baselines.ppo` or `python -m baselines.ppo_rnn` "
                         "in a glimpse or zoom_select mode) on the test split: its own diagnosis and the MIL head "
                         "on what it read")
+    p.add_argument("--head", default=None, metavar="DIR",
+                   help="also a saved slide head that pools the views it reads by attention (a learned head: "
+                        "python -m baselines.reading.learned_head_fit): its rows (read everything, random reader, "
+                        "score reader: cells by its per-view score of their coarse features), and each --ppo run "
+                        "scored by it")
     p.add_argument("--policy-seeds", type=int, default=3,
                    help="seeds of each --ppo run scored (mean ± std; default 3, or as many as the run has)")
     p.add_argument("--compute-features", metavar="ENCODER", default=None,
@@ -469,17 +384,39 @@ def check_options(args) -> str | None:
     return None
 
 
+def load_head(path, tables):
+    """The ``--head`` folder's head for the curve (``None`` without one): a head that pools the views it reads by
+    attention (a learned head: its rows score views as sets) reading ``tables``' feature length. ``ValueError``, one
+    line naming the folder or its ``config.json``, otherwise."""
+    if path is None:
+        return None
+    head = heads.load(path)
+    if not pools_views(head):
+        raise ValueError(f"{Path(path) / 'config.json'}: a {head.kind} head pools neighbourhoods of the view grid; the "
+                         "budget curve scores the views read as a set: give a learned head (python -m "
+                         "baselines.reading.learned_head_fit), or score this one with python -m baselines.reading.readers")
+    d = int(tables[0]["instances"].shape[-1]) if tables else head.features_dim
+    if head.features_dim != d:
+        raise ValueError(f"{Path(path) / 'config.json'}: the head reads {head.features_dim}-d features; the dataset's "
+                         f"are {d}-d (fit a head on it: python -m baselines.reading.learned_head_fit)")
+    return head
+
+
 def fold_rows(args, level: int, fold: int | None):
     """``(rows, train, test)`` of one fold: the head trained on fold ``fold``'s train side, every method scored on
     its held-out side (``fold=None``: the dataset's train / test split); a ``--ppo`` run folder holding ``{fold}``
-    is that fold's run. ``train``, ``test``: ``(tables, labels)`` as :func:`load_split` gives them."""
-    train = load_split(args.dataset, "train", args.env, level, fold=fold)
-    test = load_split(args.dataset, scored_side(args.dataset, fold), args.env, level, fold=fold)
+    is that fold's run. ``train``, ``test``: ``(tables, labels)`` of :func:`baselines.reading.pipeline.load_split`.
+    A held-out side of one class is refused (:func:`baselines.reading.pipeline.check_two_classes`)."""
+    side = scored_side(args.dataset, fold)
+    test = load_split(args.dataset, side, env_id=args.env, level=level, fold=fold)
+    check_two_classes(args.dataset, side, test.labels, fold)
+    train = load_split(args.dataset, "train", env_id=args.env, level=level, fold=fold)
+    head = load_head(getattr(args, "head", None), test.tables)
     policies = [(name, run if fold is None else with_fold(run, fold)) for name, run in args.ppo]
-    rows = budget_rows(train, test, args.budgets, seeds=args.seeds, steps=args.steps, policies=policies,
-                       dataset=args.dataset, policy_seeds=args.policy_seeds, max_dim=view_logit_dim(args.dataset),
-                       fold=fold)
-    return rows, train, test
+    rows = budget_rows((train.tables, train.labels), (test.tables, test.labels), args.budgets, seeds=args.seeds,
+                       steps=args.steps, policies=policies, dataset=args.dataset, policy_seeds=args.policy_seeds,
+                       max_dim=view_logit_dim(args.dataset), fold=fold, head=head)
+    return rows, (train.tables, train.labels), (test.tables, test.labels)
 
 
 def summary_rows(rows: list[dict]) -> list[dict]:
@@ -500,6 +437,31 @@ def summary_rows(rows: list[dict]) -> list[dict]:
     return out
 
 
+def curve_rows(args, level: int) -> tuple[list[dict], str]:
+    """``(rows, what was scored)`` of the curve's options: ``--folds K`` cross-validation over all slides,
+    ``--all-folds`` every fold and the means, else the split (or ``--fold I``)."""
+    if args.folds:
+        every = load_split(args.dataset, "all", env_id=args.env, level=level)
+        check_two_classes(args.dataset, "all", every.labels)
+        if getattr(args, "head", None):
+            raise ValueError("--head: not with --folds (cross-validation trains its own MIL on each fold)")
+        rows = cross_validated_rows(every.tables, every.labels, args.folds, args.budgets, seeds=args.seeds,
+                                    steps=args.steps)
+        return rows, f"{len(every.labels)} slides, {args.folds}-fold cross-validation"
+    if getattr(args, "all_folds", False):
+        k = dataset_folds(args.dataset)[0]
+        rows, scored = [], 0
+        for i in range(k):
+            print(f"fold {i} of {k} (0 to {k - 1}) ...", flush=True)
+            part, _, test = fold_rows(args, level, i)
+            rows += [{"fold": i, **r} for r in part]
+            scored += len(test[1])
+        rows += summary_rows(rows)
+        return rows, f"mean ± std over {k} folds ({scored} slides scored)"
+    rows, train, test = fold_rows(args, level, args.fold)
+    return rows, f"{len(train[1])} train / {len(test[1])} test slides"
+
+
 def run(args, parser=None) -> int:
     """The budget curve on parsed ``args``: CSV and PNG in ``args.out``. Bad options: one line, exit 2
     (:func:`check_options`)."""
@@ -512,23 +474,10 @@ def run(args, parser=None) -> int:
         return print_error(problem)
     if args.compute_features:
         compute_missing_features(args.dataset, args.compute_features)
-    if args.folds:
-        tables, labels = load_split(args.dataset, "all", args.env, level)
-        rows = cross_validated_rows(tables, labels, args.folds, args.budgets, seeds=args.seeds, steps=args.steps)
-        split = f"{len(labels)} slides, {args.folds}-fold cross-validation"
-    elif getattr(args, "all_folds", False):
-        k = dataset_folds(args.dataset)[0]
-        rows, scored = [], 0
-        for i in range(k):
-            print(f"fold {i} of {k} (0 to {k - 1}) ...", flush=True)
-            part, _, test = fold_rows(args, level, i)
-            rows += [{"fold": i, **r} for r in part]
-            scored += len(test[1])
-        rows += summary_rows(rows)
-        split = f"mean ± std over {k} folds ({scored} slides scored)"
-    else:
-        rows, train, test = fold_rows(args, level, args.fold)
-        split = f"{len(train[1])} train / {len(test[1])} test slides"
+    try:
+        rows, split = curve_rows(args, level)
+    except (HistojaxDataError, ValueError) as e:  # e.g. a scored split of one class: its AUC is undefined
+        return print_error(e)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     csv_path = write_curve_csv(rows, out / "budget_curve.csv")

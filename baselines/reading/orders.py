@@ -2,6 +2,7 @@
 (:mod:`baselines.reading.readers`) and the budget curve (:mod:`baselines.reading.budget_curve`). A cell table
 (``cells``) holds ``valid (C,)`` and ``cell_views (C,)`` per cell and ``total`` tissue views; the readers' tables
 also ``cell (H, W)``, ``logit (C,)`` and ``grid``, the budget curve's ``cells (C, D)`` (each cell's coarse features).
+The run loop that reads them at every budget is :func:`baselines.reading.pipeline.read_all`.
 """
 from __future__ import annotations
 
@@ -57,10 +58,21 @@ def search_order(slide: dict, cells: dict, threshold: float = SEARCH_THRESHOLD, 
 
 
 def attention_order(table: dict, head) -> np.ndarray:
-    """The valid cells by the head's attention on their low-resolution features, highest first."""
+    """The valid cells by the head's attention on their low-resolution features ``cells (C, D)``, highest first: a
+    head that pools the views it reads by attention (its :meth:`view_terms`' attention logit; the softmax weights of
+    the cells read as one bag rank the same)."""
     cells = np.flatnonzero(table["valid"])
-    att = head.attention(table["cells"][cells])
+    att = np.asarray(head.view_terms(np.asarray(table["cells"][cells], np.float32)))[:, 0]
     return cells[np.argsort(-att, kind="stable")]
+
+
+def score_order(table: dict, head) -> np.ndarray:
+    """The valid cells by the head's per-view score (:meth:`view_logits`, any head of the protocol of
+    :mod:`histojax.reading.heads`) of their low-resolution features ``cells (C, D)``, highest first: the score reader
+    (a logit head's per-view score is its feature entry: the logit reader)."""
+    cells = np.flatnonzero(table["valid"])
+    score = np.asarray(head.view_logits(np.asarray(table["cells"][cells], np.float32)))
+    return cells[np.argsort(-score, kind="stable")]
 
 
 def read_cells(table: dict, order, budget: float) -> tuple[np.ndarray, float]:

@@ -1,8 +1,10 @@
 """Scripted readers, CAMELYON lesion classes and the budget curve with one slide head for every row:
 ``python -m baselines.reading.readers --dataset DIR --head DIR --out DIR``.
 
-Every reader produces, per slide and budget, a **read mask** ``(H, W)`` bool over the finest-level
-views; the same head (:mod:`histojax.reading.heads.logit`, fitted by :mod:`baselines.reading.head_fit`) scores every mask:
+The readers are the reading pipeline (:mod:`baselines.reading.pipeline`: one loader of a split's slides, one run
+loop over readers × budgets) on the cells of a bundle level; the budget curve (:mod:`baselines.reading.budget_curve`)
+is the same pipeline on the env's glimpse cells. Every reader produces, per slide and budget, a **read mask**
+``(H, W)`` bool over the finest-level views; the same head (:mod:`histojax.reading.heads.logit`, fitted by :mod:`baselines.reading.head_fit`) scores every mask:
 
 * ``overview only`` — nothing of the finest level is read (fraction 0): the head applied to the cell
   grid's own low-resolution logits (the overview every reader sees before reading);
@@ -17,7 +19,7 @@ views; the same head (:mod:`histojax.reading.heads.logit`, fitted by :mod:`basel
   around the best cells;
 * ``read everything`` — every tissue view (fraction 1);
 * learned readers — any reader's masks, added with :func:`add_reader` (e.g. from
-  :func:`baselines.reading.budget_curve.policy_reads` through :func:`masks_from_instances`).
+  :func:`baselines.reading.pipeline.policy_reads` through :func:`masks_from_instances`).
 
 **Cells** are the views of bundle level ``--cell-level`` (default: the level whose downsample is nearest 4,
 so that a cell covers about 4 × 4 finest views; on the C16 sets, level 3, ×3.67); a cell is valid when a finest tissue view lies under
@@ -52,12 +54,16 @@ from histojax.adapters.head_reward import pools_views
 from baselines.reading.budgets import BUDGETS
 from baselines.reading.csv_files import write_csv
 from baselines.reading.lesions import CLASSES, lesion_class
-from baselines.reading.orders import logit_order, random_order, read_mask, search_order
+from baselines.reading import pipeline
+from baselines.reading.head_fit import HeadDataError
+from baselines.reading.orders import logit_order, search_order
+from baselines.reading.head_fit import padded
+from baselines.reading.pipeline import cell_level_for, encoder_family  # noqa: F401  (cell_level_for: readers' API)
 from baselines.reading.plots import plot_readers
-from data_tools.bundle_format import read_metadata, verify_metadata
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from histojax import compile_cache
+from histojax.reading.heads import score_batch
 
 KINDS = ("overview", "random", "scripted", "learned", "everything")
 
@@ -102,32 +108,10 @@ def cell_table(slide: dict, level: int) -> dict:
             "grid": (ch, cw), "total": max(1, int(slide["tissue"].sum()))}
 
 
-def cell_level_for(dataset: Path, spec: dict, split: str, target: float = 4.0) -> int:
-    """The bundle level (≥ 1) whose downsample is nearest ``target`` (geometric distance), read from the split's
-    first bundle."""
-    from baselines.reading.head_fit import HeadDataError
-
-    entries = spec.get(split) or []
-    if not entries:
-        raise HeadDataError(dataset / "dataset.json", f"has no slides in split {split!r}")
-    rel = entries[0]
-    bundle = Path(rel) if Path(rel).is_absolute() else dataset / rel
-    meta_file = bundle / "metadata.json"
-    try:
-        meta = read_metadata(bundle)  # the checked loader's: the bundle's own metadata.json, its fields checked
-        verify_metadata(bundle, meta)
-        ds = meta.downsamples
-    except OSError as e:
-        raise HeadDataError(meta_file, f"unreadable level list ({type(e).__name__}: {e})") from None
-    if len(ds) < 2:
-        raise HeadDataError(meta_file, "one level only: no coarser cells to read by")
-    return 1 + int(np.argmin([abs(np.log(d / target)) for d in ds[1:]]))
-
-
 def masks_from_instances(slide: dict, instances) -> np.ndarray:
     """A read mask ``(H, W)`` from indices into the slide's tissue views in raster order (what
     :meth:`histojax.reading.modes.glimpse.Glimpse.host_tables` calls ``instances`` and
-    :func:`baselines.reading.budget_curve.policy_reads` returns as ``read``)."""
+    :func:`baselines.reading.pipeline.policy_reads` returns as ``read``)."""
     flat = np.flatnonzero(slide["tissue"].reshape(-1))
     mask = np.zeros(slide["tissue"].size, bool)
     mask[flat[np.asarray(instances, np.int64)]] = True
@@ -137,13 +121,11 @@ def masks_from_instances(slide: dict, instances) -> np.ndarray:
 def policy_masks(run, dataset, slides: list[dict], split: str = "test", budgets=BUDGETS, seeds: int = 3,
                  fold: int | None = None) -> dict:
     """A trained ``glimpse`` / ``zoom_select`` policy's read masks, ``{budget: [masks per slide] per seed}``
-    (its first ``seeds`` seeds, rolled greedily by :func:`baselines.reading.budget_curve.policy_reads` on
+    (its first ``seeds`` seeds, rolled greedily by :func:`baselines.reading.pipeline.policy_reads` on
     ``dataset``'s ``split``, whose slides ``slides`` are, in the same order): ready for :func:`add_reader`."""
-    from baselines.reading.budget_curve import policy_reads, run_seeds
-
     out = {float(b): [] for b in budgets}
-    for seed in range(max(1, min(seeds, run_seeds(run)))):
-        for b, reads in policy_reads(run, dataset, split, budgets, seed=seed, fold=fold).items():
+    for seed in range(max(1, min(seeds, pipeline.run_seeds(run)))):
+        for b, reads in pipeline.policy_reads(run, dataset, split, budgets, seed=seed, fold=fold).items():
             if len(reads) != len(slides):
                 raise ValueError(f"{run}: {len(reads)} episodes for {len(slides)} slides of split {split!r}")
             out[float(b)].append([masks_from_instances(s, r[0]) for s, r in zip(slides, reads)])
@@ -163,17 +145,12 @@ def padded_terms(terms: list[np.ndarray]) -> np.ndarray:
 def terms_scores(head, terms: list[np.ndarray], masks: list[np.ndarray]) -> np.ndarray:
     """An attention-pooling head's slide logits ``(B,)`` from cached per-view terms ``(H, W, 2)`` read where
     ``masks (H, W)`` (:meth:`~histojax.reading.heads.learned.LearnedHead.score_terms`)."""
-    from baselines.reading.head_fit import padded
-
     return np.asarray(jax.jit(jax.vmap(head.score_terms))(padded_terms(terms), padded(list(masks), False)))
 
 
 def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray:
     """The head's slide logits ``(B,)`` on ``masks`` (a head that reads every feature entry: from the slides'
     cached ``terms``, :func:`with_head_scores`)."""
-    from baselines.reading.head_fit import padded
-    from histojax.reading.heads import score_batch
-
     if pools_views(head):
         return terms_scores(head, [s["terms"] for s in slides], masks)
     return np.asarray(score_batch(head, padded([s["logits"] for s in slides], 0.0), padded(list(masks), False)))
@@ -181,9 +158,6 @@ def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray
 
 def overview_scores(head, slides: list[dict], level: int) -> np.ndarray:
     """The head on each slide's cell-level logits over its valid cells (nothing of the finest level read)."""
-    from baselines.reading.head_fit import padded
-    from histojax.reading.heads import score_batch
-
     logits, masks = [], []
     for s in slides:
         c = cell_table(s, level)
@@ -230,8 +204,9 @@ def score_reader_name(head) -> str:
 
 def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, level: int = 3,
                      progress: bool = False) -> dict:
-    """The reference rows: overview only, random reader (``seeds`` orders), logit reader, search reader,
-    read everything."""
+    """The reference rows: overview only, random reader (``seeds`` orders), logit (score) reader, search reader,
+    read everything; the readers' orders read at every budget by the pipeline's run loop
+    (:func:`baselines.reading.pipeline.read_all`) and their read masks scored by ``head`` (:func:`head_scores`)."""
     results = new_results()
     tumour = [tumour_views(s) for s in slides]
     n = len(slides)
@@ -240,19 +215,17 @@ def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, 
     add_reader(results, head, slides, "read everything", {1.0: [[s["tissue"] for s in slides]]}, "everything", tumour)
     tables = [cell_table(s, level) for s in slides]
     top = max(budgets)
-    orders = {score_reader_name(head): [logit_order(c) for c in tables],
-              "search reader": [search_order(s, c, limit=top + 0.01) for s, c in zip(slides, tables)]}
-    randoms = [[random_order(c, np.random.default_rng(1000 * k + i)) for i, c in enumerate(tables)] for k in range(seeds)]
-    for b in budgets:
-        masks = {name: [[read_mask(c, s["tissue"], o, b)[0] for s, c, o in zip(slides, tables, ords)]]
-                 for name, ords in orders.items()}
-        masks["random reader"] = [[read_mask(c, s["tissue"], o, b)[0] for s, c, o in zip(slides, tables, ords)]
-                                  for ords in randoms]
-        for name in ("random reader", score_reader_name(head), "search reader"):
-            add_reader(results, head, slides, name, {b: masks[name]}, "random" if name == "random reader" else "scripted",
-                       tumour)
-        if progress:
-            print(f"  budget {b:.2f} scored", file=sys.stderr, flush=True)
+    readers = {"random reader": pipeline.random_orders(tables, seeds),
+               score_reader_name(head): [[logit_order(c) for c in tables]],
+               "search reader": [[search_order(s, c, limit=top + 0.01) for s, c in zip(slides, tables)]]}
+    kinds = {name: "random" if name == "random reader" else "scripted" for name in readers}
+
+    def score(cells: list[np.ndarray]) -> dict:
+        masks = [np.isin(c["cell"], r) & s["tissue"] for c, r, s in zip(tables, cells, slides)]
+        return {"scores": head_scores(head, slides, masks),
+                "tumour_read": np.asarray([bool((m & t).any()) for m, t in zip(masks, tumour)])}
+
+    results.update(pipeline.read_all(tables, readers, budgets, score, kinds, progress=progress))
     return results
 
 
@@ -376,95 +349,12 @@ def add_arguments(p) -> None:
 
 
 def load_split(dataset, head_path, split: str, cell_level: int | None = None, fold: int | None = None) -> tuple:
-    """``(head, cell_level, slides)``: the slide head loaded from ``head_path`` and ``split``'s slides of
-    ``dataset`` as :func:`baselines.reading.head_fit.load_slides` gives them (the finest level and the cell level:
-    ``cell_level``, default :func:`cell_level_for`). Raises ``HistojaxDataError`` / ``ValueError`` naming the file."""
-    from baselines.reading.head_fit import load_slides, read_spec
-    from histojax.reading import heads
-
-    head = heads.load(head_path)
-    spec = read_spec(dataset, fold)  # fold=i: fold i's sides (a dataset built with --folds K)
-    if cell_level is None:
-        cell_level = cell_level_for(Path(dataset), spec, split)
-    if pools_views(head):
-        return head, cell_level, load_feature_slides(dataset, split, spec, head, cell_level, progress=True)
-    return head, cell_level, load_slides(dataset, split, spec, head.dim, levels=(0, cell_level), progress=True)
-
-
-def encoder_family(name) -> str | None:
-    """An encoder name as heads compare it: features imported from ``.h5`` files (``imported:FILE``) are one
-    family, ``"imported"``; any other name is itself."""
-    return "imported" if isinstance(name, str) and name.startswith("imported:") else name
-
-
-def with_head_scores(slide: dict, head, grids: dict) -> dict:
-    """``slide`` (:func:`baselines.reading.head_fit.load_slide` with ``grid=True``) scored by a head that reads
-    every feature entry: ``logits (H, W)`` its per-view scores of the finest views, ``terms (H, W, 2)`` their
-    cached attention and instance logits, and per coarse level in ``grids`` (``{level: (h, w, D)}``) ``coarse``
-    the per-view scores and ``coarse_terms`` the terms of the cells' own feature vectors. The finest feature
-    grid is dropped. ``HeadDataError`` naming the bundle when the features are not the head's length."""
-    from baselines.reading.head_fit import HeadDataError
-
-    feats = np.asarray(slide.pop("features"), np.float32)
-    d = int(getattr(head, "features_dim", feats.shape[-1]))
-    if feats.shape[-1] != d:
-        raise HeadDataError(slide["bundle"], f"{feats.shape[-1]}-d features; the head reads {d}-d features "
-                                             "(fit a head on this dataset: python -m baselines.reading.learned_head_fit)")
-    score = jax.jit(head.view_terms)
-    terms = np.asarray(score(feats))
-    slide.update(terms=terms, logits=np.asarray(head.calibrate(terms[..., 1]), np.float32), coarse={}, coarse_terms={})
-    for lv, g in grids.items():
-        t = np.asarray(score(np.asarray(g, np.float32)))
-        slide["coarse_terms"][lv] = t
-        slide["coarse"][lv] = np.asarray(head.calibrate(t[..., 1]), np.float32)
-    return slide
-
-
-def tumour_geometry(bundle):
-    """The tumour geometry (shapely, finest px) of a bundle's annotations, or None when it has none or its
-    annotation file holds no polygon (a slide labelled in a label table needs none); read through the bundle's
-    own file (:func:`data_tools.bundle_format.own_file`)."""
-    import os
-
-    from data_tools.annotations import AnnotationError, load_annotations
-    from data_tools.bundle_format import ANNOTATIONS, own_file
-
-    if not os.path.lexists(Path(bundle) / ANNOTATIONS):
-        return None
-    path = own_file(Path(bundle), ANNOTATIONS, "annotations")
-    try:
-        return load_annotations(path).tumour
-    except AnnotationError as e:
-        if "no polygons" in str(e):
-            return None
-        raise
-
-
-def load_feature_slides(dataset, split, spec: dict, head, cell_level: int, progress: bool = False) -> list[dict]:
-    """:func:`baselines.reading.head_fit.load_slide` of every bundle of ``split`` for a head that reads every
-    feature entry (:func:`with_head_scores`: per-view scores and terms of the finest views and of the cells of
-    bundle level ``cell_level``), through the checked bundle loader."""
-    from baselines.reading.head_fit import HeadDataError, _label, load_slide, read_bundle
-
-    dataset = Path(dataset)
-    entries = spec.get(split) if isinstance(split, str) else list(split)
-    if entries is None:
-        raise HeadDataError(dataset / "dataset.json", f"has no {split!r} split")
-    out = []
-    for i, rel in enumerate(entries):
-        bundle = Path(rel) if Path(rel).is_absolute() else dataset / rel
-        label = _label(spec, Path(rel).name)
-        if label is None:  # the bundle's own label: tumour annotated or not
-            s = load_slide(bundle, None, 0, (0,), grid=True)
-        else:  # a label table's label; tumour polygons where the bundle has any (slide-level labels need none)
-            s = load_slide(bundle, 0, 0, (0,), grid=True)
-            s.update(label=int(label), tumour=tumour_geometry(bundle) if label else None)
-        meta, grids, _, _ = read_bundle(bundle, (cell_level,))
-        s["downsample"] = {cell_level: float(meta["levels"][cell_level]["downsample"])}
-        out.append(with_head_scores(s, head, grids))
-        if progress and (i + 1) % 20 == 0:
-            print(f"  loaded {i + 1}/{len(entries)} slides", file=sys.stderr, flush=True)
-    return out
+    """``(head, cell_level, slides)`` of :func:`baselines.reading.pipeline.load_split` with a head (the one loader):
+    the slide head loaded from ``head_path`` and ``split``'s slides of ``dataset`` with the finest level and the
+    cells of bundle level ``cell_level`` (default :func:`~baselines.reading.pipeline.cell_level_for`). Raises
+    ``HistojaxDataError`` / ``ValueError`` naming the file."""
+    split = pipeline.load_split(dataset, split, fold=fold, head=head_path, cell_level=cell_level, progress=True)
+    return split.head, split.cell_level, split.slides
 
 
 def run(args, parser=None) -> int:
@@ -483,8 +373,9 @@ def run(args, parser=None) -> int:
     if other:
         return print_error(f"{args.head}: a head for {head.encoder} features; {args.dataset} holds {', '.join(other)} "
                            "features (fit a head on it: python -m baselines.reading.head_fit)")
-    if not slides or len({s["label"] for s in slides}) < 2:
-        return print_error(f"{args.dataset}: split {args.split!r} needs tumour and normal slides to score an AUC")
+    problem = pipeline.one_class_problem(args.split, [s["label"] for s in slides], args.fold)
+    if problem:
+        return print_error(HeadDataError(Path(args.dataset) / "dataset.json", problem))
     results = scripted_results(head, slides, args.budgets, args.seeds, args.cell_level, progress=True)
     maps = {}
     for name, run_dir in args.reader:

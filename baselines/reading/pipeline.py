@@ -1,0 +1,312 @@
+"""The one reading pipeline behind the readers (:mod:`baselines.reading.readers`) and the budget curve
+(:mod:`baselines.reading.budget_curve`): one loader of a split's slides, one run loop over readers × budgets, and
+the trained readers' roll-outs. Both commands are this pipeline with their own heads and tables:
+
+1. :func:`load_split` reads a split (``fold=i``: fold i's side of it) through the checked bundle loader (no links,
+   nothing outside a bundle, checksums verified) into a :class:`Split`: its 0/1 ``labels (B,)`` and per slide a
+   cell table (:mod:`baselines.reading.orders`: ``valid (C,)``, ``cell_views (C,)``, ``total``). With a head
+   (the readers) the cells are a bundle level's views and each slide is the finest grid
+   (:func:`baselines.reading.head_fit.load_slide`: ``tissue``, ``logits``, tumour polygons, µm/px); with a
+   scenario and glimpse level (the budget curve) the cells are the env's glimpse cells
+   (:meth:`histojax.reading.modes.glimpse.Glimpse.host_tables`: ``instances (V, D)`` of the finest tissue views).
+2. :func:`check_two_classes` refuses, in one line naming ``dataset.json``, a scored split that holds one class:
+   its AUC is undefined.
+3. :func:`read_all` is the run loop: every reader's cell orders read at every budget by the glimpse env's rule
+   (:func:`baselines.reading.orders.read_cells`) and scored by a callback (the head on what was read).
+4. :func:`policy_reads` rolls a trained ``glimpse`` / ``zoom_select`` policy at every budget (:func:`run_seeds`: its
+   seeds).
+"""
+from __future__ import annotations
+
+import dataclasses
+import sys
+from pathlib import Path
+
+import jax
+import numpy as np
+
+from baselines.reading.budgets import BUDGETS
+from baselines.reading.head_fit import HeadDataError, _label, load_slide, load_slides, read_bundle, read_spec
+from baselines.reading.orders import random_order, read_cells
+from data_tools.bundle_format import read_metadata, verify_metadata
+from histojax.adapters.head_reward import pools_views
+
+
+@dataclasses.dataclass
+class Split:
+    """A split's slides ready for reading. ``labels (B,)`` int 0/1; ``slides``: per slide a dict — the readers'
+    finest grid (:func:`baselines.reading.head_fit.load_slide`) or the budget curve's glimpse cell table
+    (:meth:`~histojax.reading.modes.glimpse.Glimpse.host_tables`); ``head``: the head loaded (readers), ``None``
+    otherwise; ``cell_level``: the bundle level (readers) or scenario level (budget curve) of the cells;
+    ``dataset``, ``split``, ``fold``: where the slides came from."""
+
+    dataset: Path
+    split: str
+    labels: np.ndarray
+    slides: list
+    cell_level: int
+    head: object = None
+    fold: int | None = None
+
+    @property
+    def tables(self) -> list:
+        """The slides' cell tables (the budget curve's name for :attr:`slides`)."""
+        return self.slides
+
+
+def load_split(dataset, split: str, *, fold: int | None = None, head=None, cell_level: int | None = None,
+               env_id: str | None = None, level: int | None = None, verify: bool = True,
+               progress: bool = False) -> Split:
+    """The one loader of a split's slides, through the checked bundle loader (``ValueError`` /
+    ``HistojaxDataError`` naming the file on anything malformed).
+
+    * ``env_id`` and ``level`` (the budget curve): ``histojax.make(env_id, dataset=..., split=..., fold=...)`` and the
+      glimpse cell tables of scenario level ``level`` per slide, labels from the env (``verify``: checksums).
+    * ``head`` (a head folder or a loaded head; the readers): ``dataset.json`` read with its seal checked, each
+      bundle read by :func:`baselines.reading.head_fit.load_slide` with the finest level and the cells of bundle
+      level ``cell_level`` (default :func:`cell_level_for`: downsample nearest 4); a head that reads every feature
+      entry gets its per-view scores and cached terms (:func:`with_head_scores`), a logit head its entry."""
+    dataset = Path(dataset)
+    if env_id is not None:
+        tables, labels = _glimpse_tables(dataset, split, env_id, int(level), verify, fold)
+        return Split(dataset, split, labels, tables, int(level), None, fold)
+    if head is None:
+        raise ValueError("load_split: give a head (the readers' cells) or env_id and level (the glimpse cells)")
+    from histojax.reading import heads
+
+    head = heads.load(head) if isinstance(head, (str, Path)) else head
+    spec = read_spec(dataset, fold)  # fold=i: fold i's sides (a dataset built with --folds K)
+    if cell_level is None:
+        cell_level = cell_level_for(dataset, spec, split)
+    if pools_views(head):
+        slides = load_feature_slides(dataset, split, spec, head, cell_level, progress=progress)
+    else:
+        slides = load_slides(dataset, split, spec, head.dim, levels=(0, cell_level), progress=progress)
+    labels = np.asarray([s["label"] for s in slides], int)
+    return Split(dataset, split, labels, slides, cell_level, head, fold)
+
+
+def _glimpse_tables(dataset: Path, split: str, env_id: str, level: int, verify: bool, fold: int | None):
+    """``(tables, labels)``: :meth:`Glimpse.host_tables` of ``split``'s slides at scenario level ``level`` and their
+    0/1 labels ``(B,)``, read by ``histojax.make`` (the checked bundle loader)."""
+    import histojax
+    from histojax.reading.modes.glimpse import Glimpse
+
+    env, params = histojax.make(env_id, dataset=dataset, split=split, obs_mode="features",
+                                task="classification", verify=verify, fold=fold)  # not the glimpse mode: it would make the
+    glimpse = Glimpse(level=level)                                      # device tables, unused here, a second time
+    glimpse.validate(env)
+    tables = glimpse.host_tables(env, params, env.bundles)
+    labels = np.atleast_1d(np.asarray(params.slide.slide_label)).astype(int)
+    return tables, labels
+
+
+def one_class_problem(split: str, labels, fold: int | None = None) -> str | None:
+    """What is wrong with a scored split whose 0/1 ``labels (B,)`` hold one class (or none): its AUC is undefined,
+    never printed as 1.000 or nan. ``None`` when both classes are there."""
+    labels = np.asarray(labels)
+    if len(labels) and len(set(labels.tolist())) > 1:
+        return None
+    which = f"split {split!r}" + (f" (fold {fold})" if fold is not None else "")
+    held = f"only {'tumour' if labels[0] else 'normal'} slides ({len(labels)})" if len(labels) else "no slides"
+    return (f"{which} holds {held}: its AUC is undefined: one class; scoring needs tumour and normal slides "
+            "(rebuild the dataset or score another split)")
+
+
+def check_two_classes(dataset, split: str, labels, fold: int | None = None) -> None:
+    """Refuse a scored split that holds one class: :class:`~baselines.reading.head_fit.HeadDataError`, one line
+    naming ``dataset.json`` (:func:`one_class_problem`)."""
+    problem = one_class_problem(split, labels, fold)
+    if problem:
+        raise HeadDataError(Path(dataset) / "dataset.json", problem)
+
+
+# ----------------------------------------------------------------------------- the run loop
+def random_orders(tables: list[dict], seeds: int) -> list[list[np.ndarray]]:
+    """``seeds`` × slides random cell orders: seed ``k`` of slide ``i`` drawn from ``default_rng(1000 k + i)`` (the
+    random reader of both the readers and the budget curve)."""
+    return [[random_order(t, np.random.default_rng(1000 * k + i)) for i, t in enumerate(tables)] for k in range(seeds)]
+
+
+def read_all(tables: list[dict], readers: dict, budgets, score, kinds: dict | None = None, progress: bool = False) -> dict:
+    """The run loop over budgets × readers: each reader's orders read as the glimpse env reads
+    (:func:`~baselines.reading.orders.read_cells`) and scored.
+
+    ``readers``: ``{name: [orders per slide] per seed}`` (an order: cell indices ``(C',)`` int); ``score``: called
+    with the cells read per slide (a list of ``(c,)`` int arrays), returns ``{"scores": (B,), ...}`` (any other
+    per-slide arrays are kept too); ``kinds``: ``{name: kind}`` (plot colour family). Returns ``{(name, budget):
+    {"kind", "fractions" (seeds, B), "scores" (seeds, B), ...}}`` in budget-then-reader order (the rows' order)."""
+    out = {}
+    for b in budgets:
+        for name, per_seed in readers.items():
+            fractions, parts = [], []
+            for orders in per_seed:
+                reads = [read_cells(t, o, b) for t, o in zip(tables, orders)]
+                fractions.append(np.asarray([r[1] for r in reads]))
+                parts.append(score([r[0] for r in reads]))
+            entry = {"kind": (kinds or {}).get(name, "scripted"), "fractions": np.stack(fractions)}
+            entry.update({k: np.stack([p[k] for p in parts]) for k in parts[0]})
+            out[(name, float(b))] = entry
+        if progress:
+            print(f"  budget {b:.2f} scored", file=sys.stderr, flush=True)
+    return out
+
+
+# ----------------------------------------------------------------------------- the readers' slides
+def cell_level_for(dataset: Path, spec: dict, split: str, target: float = 4.0) -> int:
+    """The bundle level (≥ 1) whose downsample is nearest ``target`` (geometric distance), read from the split's
+    first bundle."""
+    entries = spec.get(split) or []
+    if not entries:
+        raise HeadDataError(Path(dataset) / "dataset.json", f"has no slides in split {split!r}")
+    rel = entries[0]
+    bundle = Path(rel) if Path(rel).is_absolute() else Path(dataset) / rel
+    meta_file = bundle / "metadata.json"
+    try:
+        meta = read_metadata(bundle)  # the checked loader's: the bundle's own metadata.json, its fields checked
+        verify_metadata(bundle, meta)
+        ds = meta.downsamples
+    except OSError as e:
+        raise HeadDataError(meta_file, f"unreadable level list ({type(e).__name__}: {e})") from None
+    if len(ds) < 2:
+        raise HeadDataError(meta_file, "one level only: no coarser cells to read by")
+    return 1 + int(np.argmin([abs(np.log(d / target)) for d in ds[1:]]))
+
+
+def encoder_family(name) -> str | None:
+    """An encoder name as heads compare it: features imported from ``.h5`` files (``imported:FILE``) are one
+    family, ``"imported"``; any other name is itself."""
+    return "imported" if isinstance(name, str) and name.startswith("imported:") else name
+
+
+def with_head_scores(slide: dict, head, grids: dict) -> dict:
+    """``slide`` (:func:`baselines.reading.head_fit.load_slide` with ``grid=True``) scored by a head that reads
+    every feature entry: ``logits (H, W)`` its per-view scores of the finest views, ``terms (H, W, 2)`` their
+    cached attention and instance logits, and per coarse level in ``grids`` (``{level: (h, w, D)}``) ``coarse``
+    the per-view scores and ``coarse_terms`` the terms of the cells' own feature vectors. The finest feature
+    grid is dropped. ``HeadDataError`` naming the bundle when the features are not the head's length."""
+    feats = np.asarray(slide.pop("features"), np.float32)
+    d = int(getattr(head, "features_dim", feats.shape[-1]))
+    if feats.shape[-1] != d:
+        raise HeadDataError(slide["bundle"], f"{feats.shape[-1]}-d features; the head reads {d}-d features "
+                                             "(fit a head on this dataset: python -m baselines.reading.learned_head_fit)")
+    score = jax.jit(head.view_terms)
+    terms = np.asarray(score(feats))
+    slide.update(terms=terms, logits=np.asarray(head.calibrate(terms[..., 1]), np.float32), coarse={}, coarse_terms={})
+    for lv, g in grids.items():
+        t = np.asarray(score(np.asarray(g, np.float32)))
+        slide["coarse_terms"][lv] = t
+        slide["coarse"][lv] = np.asarray(head.calibrate(t[..., 1]), np.float32)
+    return slide
+
+
+def tumour_geometry(bundle):
+    """The tumour geometry (shapely, finest px) of a bundle's annotations, or None when it has none or its
+    annotation file holds no polygon (a slide labelled in a label table needs none); read through the bundle's
+    own file (:func:`data_tools.bundle_format.own_file`)."""
+    import os
+
+    from data_tools.annotations import AnnotationError, load_annotations
+    from data_tools.bundle_format import ANNOTATIONS, own_file
+
+    if not os.path.lexists(Path(bundle) / ANNOTATIONS):
+        return None
+    path = own_file(Path(bundle), ANNOTATIONS, "annotations")
+    try:
+        return load_annotations(path).tumour
+    except AnnotationError as e:
+        if "no polygons" in str(e):
+            return None
+        raise
+
+
+def load_feature_slides(dataset, split, spec: dict, head, cell_level: int, progress: bool = False) -> list[dict]:
+    """:func:`baselines.reading.head_fit.load_slide` of every bundle of ``split`` for a head that reads every
+    feature entry (:func:`with_head_scores`: per-view scores and terms of the finest views and of the cells of
+    bundle level ``cell_level``), through the checked bundle loader."""
+    dataset = Path(dataset)
+    entries = spec.get(split) if isinstance(split, str) else list(split)
+    if entries is None:
+        raise HeadDataError(dataset / "dataset.json", f"has no {split!r} split")
+    out = []
+    for i, rel in enumerate(entries):
+        bundle = Path(rel) if Path(rel).is_absolute() else dataset / rel
+        label = _label(spec, Path(rel).name)
+        if label is None:  # the bundle's own label: tumour annotated or not
+            s = load_slide(bundle, None, 0, (0,), grid=True)
+        else:  # a label table's label; tumour polygons where the bundle has any (slide-level labels need none)
+            s = load_slide(bundle, 0, 0, (0,), grid=True)
+            s.update(label=int(label), tumour=tumour_geometry(bundle) if label else None)
+        meta, grids, _, _ = read_bundle(bundle, (cell_level,))
+        s["downsample"] = {cell_level: float(meta["levels"][cell_level]["downsample"])}
+        out.append(with_head_scores(s, head, grids))
+        if progress and (i + 1) % 20 == 0:
+            print(f"  loaded {i + 1}/{len(entries)} slides", file=sys.stderr, flush=True)
+    return out
+
+
+# ----------------------------------------------------------------------------- trained readers
+def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None = None, seed: int = 0,
+                 fold: int | None = None) -> dict:
+    """Roll a trained policy greedily, once on every slide of ``dataset``'s ``split`` at each of
+    ``budgets``, with :func:`baselines.evaluate.run_episodes` (one jitted program for all slides and
+    budgets). ``run``: a run folder of ``python -m baselines.ppo`` (feed-forward) or ``python -m
+    baselines.ppo_rnn`` (GRU; ``"algo": "ppo_rnn"`` in its ``config.json``: its hidden state is carried
+    through each episode) in a ``glimpse`` or ``zoom_select`` mode; its seed ``seed`` (default the first).
+
+    Returns ``{budget: [(read, own_score, fraction_read, fields_of_view) per slide]}``: the finest tissue views it
+    read (indices into the slide's ``host_tables`` instances), its own tumour score
+    (``p(tumour) / (p(tumour) + p(no tumour))`` of its policy at the step it declared, or at its last
+    step; see :func:`baselines.evaluate.learned_policy`), the fraction read and the fields of view
+    (env steps that looked at the slide) of the episode."""
+    from baselines import common, evaluate
+    from histojax.reading.tables import seen_flags  # seen is a bit set
+
+    params, config = common.load_checkpoint(run)
+    n_seeds = jax.tree.leaves(params)[0].shape[0]
+    if not 0 <= seed < n_seeds:
+        raise ValueError(f"{run} has {n_seeds} seed(s), not a seed {seed}")
+    params = jax.tree.map(lambda a: a[seed], params)
+    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides", "fold")}
+    config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split,
+                                       **({"fold": fold} if fold is not None else {})}}  # fold: the slides scored
+    if env_id:
+        config["env_id"] = env_id
+    config, (env, env_params) = evaluate.eval_env(config)
+    if not hasattr(env_params.mode_data, "read_budget") or getattr(env.action, "name", "") not in ("glimpse",
+                                                                                                   "zoom_select"):
+        raise ValueError(f"{run}: a policy of action mode {config['action_mode']!r}; the budget curve takes "
+                         f"glimpse or zoom_select policies")
+    n = env.num_actions
+    policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config["action_mode"], greedy=True,
+                                     declare=(n - 2, n - 1))
+    n_slides = len(env.bundles)
+    budgets = [float(b) for b in budgets]
+    slides = np.tile(np.arange(n_slides), len(budgets))
+    per_episode, axes = evaluate.per_episode_params(env_params, slides, np.repeat(budgets, n_slides))
+    ep = evaluate.run_episodes(env, per_episode, policy, jax.random.key(0), len(slides), params_axes=axes,
+                               final=True)
+    assert (ep["slide"] == slides).all()
+    memory, scores = ep["final_state"].memory, ep["final_memory"][1]
+    tables = env.action.host_tables(env, env_params, env.bundles) if hasattr(env.action, "host_tables") else None
+    seen_tables = env_params.mode_data
+    out = {b: [] for b in budgets}
+    for e, i in enumerate(slides):
+        if tables is not None:  # glimpse: the instances under the revealed cells
+            read = np.isin(tables[i]["instance_cell"], np.flatnonzero(np.asarray(memory.revealed[e])))
+        else:  # zoom_select: the finest tissue views seen
+            f = env.n_levels - 1
+            start = int(seen_tables.grid_offset[i, f])
+            size = int(seen_tables.grid_width[i, f] * seen_tables.grid_height[i, f])
+            seen = seen_flags(memory.seen[e], start, size)
+            read = seen[np.asarray(seen_tables.tissue[i])[:size]]
+        out[budgets[e // n_slides]].append((np.flatnonzero(read), float(scores[e]), float(ep["fraction_read"][e]),
+                                            float(ep["fields_of_view"][e])))
+    return out
+
+
+def run_seeds(run) -> int:
+    """How many seeds a run folder's ``params.msgpack`` holds."""
+    from baselines import common
+
+    return int(jax.tree.leaves(common.load_checkpoint(run)[0])[0].shape[0])

@@ -178,6 +178,49 @@ def published_path(name: str) -> Path:
         return path
 
 
+def is_published(run: Path) -> bool:
+    """Whether the run folder ``run`` is a published agent: inside ``baselines/published`` or holding the
+    ``published.json`` that ``python -m baselines.publish`` writes."""
+    run = Path(run)
+    try:
+        inside = run.resolve().is_relative_to(PUBLISHED.resolve())
+    except OSError:
+        inside = False
+    return inside or (run / "published.json").is_file()
+
+
+def published_dataset_refusal(run: Path, config: dict) -> str | None:
+    """Why a published agent (:func:`is_published`) is not scored without ``--dataset``, as one line naming its
+    ``config.json``, the dataset it needs and how to build one; None for any other run. The dataset path its
+    ``config.json`` records (``env_kwargs.dataset``) is the machine it was trained on: kept as provenance, never
+    used unasked, even when a folder of that name exists here (it may hold other slides, another split or
+    scale)."""
+    from histojax import registry
+
+    if not is_published(run):
+        return None
+    recorded = (config.get("env_kwargs") or {}).get("dataset")
+    env_id = str(config.get("env_id", ""))
+    encoder = (registry.spec_of(env_id).settings.get("dataset_encoder")
+               if env_id in registry.registered_envs() else None) or "the same"
+    if recorded and not (Path(str(recorded)) / "dataset.json").is_file():
+        said = f"records the dataset it trained on as {recorded}, which does not exist here (a folder of the machine it "
+        said += "was trained on)"
+    elif recorded:
+        said = (f"records the dataset it trained on as {recorded} (a folder of the machine it was trained on, kept as "
+                "provenance: a published agent is never scored on it unasked)")
+    else:
+        said = "records no dataset"
+    if "-C16-" in env_id:
+        need = (f"a CAMELYON16 dataset with {encoder} feature grids, e.g. the small one (6 slides, about a minute: "
+                "`histojax c16 --small --features --out c16-small`) or the true-scale set it trained on (`histojax c16 "
+                "--out c16-full --annotations ... --patches ... --features`; docs/c16-benchmark.md#build-it)")
+    else:
+        need = (f"a dataset with {encoder} features of the kind it trained on (`histojax dataset SLIDES --out DIR "
+                "--encoder NAME`; docs/your-own-slides.md)")
+    return f"{Path(run) / 'config.json'}: a published agent; its config.json {said}: give --dataset DIR, {need}"
+
+
 def refuse_not_an_agent(path: Path) -> None:
     """Refuse, in one line saying why and what to use instead, a published folder that was retired
     (:data:`RETIRED`; the folder is gone) and a slide head folder (``histojax.reading.heads``: it scores what a

@@ -14,7 +14,8 @@ from baselines import common, outputs
 from data_tools.cli_output import positive_int
 from data_tools.errors import HistojaxDataError
 from baselines.evaluate.checks import (UNDEFINED, check_config, encoder_refusal, check_params_tree, grid_refusal, head_reward_settings,
-                                       provenance_warnings, refuse_not_an_agent, resolve_head)
+                                       provenance_warnings, published_dataset_refusal, refuse_not_an_agent,
+                                       resolve_head)
 from baselines.evaluate.scoring import evaluate
 from baselines.evaluate.all_folds import run_all_folds
 from baselines.reading.head_fit import scale_warning
@@ -206,6 +207,8 @@ def run(args, parser) -> int:
         params, config, run, label = None, {"action_mode": args.action_mode, "with_position": args.with_position,
                                             "obs_mode": "pixels", "hidden": 256}, None, "none"
     trained = dict(config)
+    if run is not None and getattr(args, "dataset", None) is None and (refusal := published_dataset_refusal(run, config)):
+        raise HistojaxDataError(None, refusal)  # its recorded dataset is provenance, never used unasked
     if args.env:
         config["env_id"] = args.env
     config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None),

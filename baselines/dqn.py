@@ -30,7 +30,9 @@ from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
 class DQNConfig(common.EnvConfig):
-    """DQN's settings (``config.json`` records them, ``--set KEY=VALUE`` changes any; discrete actions only)."""
+    """DQN's settings, typed (``config.json`` records them, :meth:`as_dict`; ``--set KEY=VALUE`` changes any;
+    :meth:`from_dict` refuses an unknown entry or a wrong type in one line; discrete actions only). Steps are env
+    steps, ``buffer_size`` counts transitions of all envs, ``hidden`` is the network's width."""
 
     algo: str = "dqn"                    # the trainer (recorded in config.json)
     num_envs: int = 32                   # parallel envs per seed
@@ -58,7 +60,7 @@ class DQNConfig(common.EnvConfig):
                                          # buffer included (0: only the end)
 
 
-DEFAULTS = dataclasses.asdict(DQNConfig())
+DEFAULTS = DQNConfig.defaults()  # the record of the default config (config.json's entries)
 
 
 # ----------------------------------------------------------------------------- targets
@@ -132,30 +134,32 @@ def buffer_sample(buf: Buffer, key, batch_size: int, n: int):
 
 
 # ----------------------------------------------------------------------------- training
-def make_train(config: dict):
-    """A jitted ``train(keys)`` (vmapped over seeds) like :func:`baselines.ppo.make_train`."""
-    config = {**DEFAULTS, **common.canonical_config(config)}
-    if config["action_mode"] != "discrete":
-        raise ValueError("DQN needs action_mode='discrete'")
-    if config.get("devices") is not None:
+def make_train(config):
+    """A jitted ``train(keys)`` (vmapped over seeds) like :func:`baselines.ppo.make_train`. ``config``: a
+    :class:`DQNConfig`, or a dict made into one (:meth:`DQNConfig.from_dict`); ``train.train_config`` is it,
+    ``train.config`` its record (``config.json``)."""
+    if isinstance(config, dict) and config.get("devices") is not None:
         raise ValueError("DQN does not shard over devices (devices / --devices is PPO only)")
+    config = DQNConfig.coerce(config, where="dqn.make_train")
+    if config.action_mode != "discrete":
+        raise ValueError("DQN needs action_mode='discrete'")
     env, env_params = common.make_env(config)
     env = LogWrapper(env)
     num_actions = env.action_space().n
-    network = QNetwork(num_actions, hidden=config["hidden"])
-    num_envs = config["num_envs"]
-    rows = max(config["buffer_size"] // num_envs, config["n_step"] + 2)
-    per_log = config["iterations_per_log"]
-    num_logs = max(1, config["total_timesteps"] // (num_envs * per_log))
+    network = QNetwork(num_actions, hidden=config.hidden)
+    num_envs = config.num_envs
+    rows = max(config.buffer_size // num_envs, config.n_step + 2)
+    per_log = config.iterations_per_log
+    num_logs = max(1, config.total_timesteps // (num_envs * per_log))
     total_iters = num_logs * per_log
-    progress = common.Progress(config["num_seeds"], num_logs, per_log * num_envs, config["log_every"],
-                               name=f"dqn {config['env_id']}")
-    n, gamma = config["n_step"], config["gamma"]
-    tx = optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]), optax.adam(config["lr"]))
+    progress = common.Progress(config.num_seeds, num_logs, per_log * num_envs, config.log_every,
+                               name=f"dqn {config.env_id}")
+    n, gamma = config.n_step, config.gamma
+    tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.lr))
 
     def epsilon(it):
-        frac = jnp.clip(it / (config["eps_fraction"] * total_iters), 0.0, 1.0)
-        return config["eps_start"] + frac * (config["eps_end"] - config["eps_start"])
+        frac = jnp.clip(it / (config.eps_fraction * total_iters), 0.0, 1.0)
+        return config.eps_start + frac * (config.eps_end - config.eps_start)
 
     def loss_fn(params, target_params, batch):
         obs_t, a_t, rewards, dones, obs_n = batch
@@ -164,7 +168,7 @@ def make_train(config: dict):
         q_next_online = network.apply(params, obs_n)
         q_next_target = network.apply(target_params, obs_n)
         target = jax.lax.stop_gradient(td_targets(rewards, dones, q_next_online, q_next_target, gamma,
-                                                  config["double_q"]))
+                                                  config.double_q))
         return optax.huber_loss(q_sa, target).mean(), q_sa.mean()
 
     init_params = common.params_initialiser(env, network, num_envs)
@@ -195,17 +199,17 @@ def make_train(config: dict):
 
             def learn(args):
                 params, target_params, opt_state, grad_steps = args
-                batch = buffer_sample(buf, k_sample, config["batch_size"], n)
+                batch = buffer_sample(buf, k_sample, config.batch_size, n)
                 (loss, q_mean), grads = jax.value_and_grad(loss_fn, has_aux=True)(params, target_params, batch)
                 updates, opt_state = tx.update(grads, opt_state, params)
                 params = optax.apply_updates(params, updates)
                 grad_steps = grad_steps + 1
-                refresh = grad_steps % config["target_update_every"] == 0
+                refresh = grad_steps % config.target_update_every == 0
                 target_params = jax.tree.map(lambda t, p: jnp.where(refresh, p, t), target_params, params)
                 return (params, target_params, opt_state, grad_steps), (loss, q_mean)
 
-            can_learn = ((buf.filled * num_envs >= config["learning_starts"]) & (buf.filled > n)
-                         & (it % config["train_every"] == 0))
+            can_learn = ((buf.filled * num_envs >= config.learning_starts) & (buf.filled > n)
+                         & (it % config.train_every == 0))
             (params, target_params, opt_state, grad_steps), (loss, q_mean) = jax.lax.cond(
                 can_learn, learn, lambda a: (a, (zero, zero)), (params, target_params, opt_state, grad_steps))
             keep = {k: info[k] for k in ("returned_episode", "returned_episode_returns",
@@ -218,7 +222,7 @@ def make_train(config: dict):
         learned = jnp.maximum(out["learned"].sum(), 1.0)
         metrics = {**common.episode_stats(out["info"]), "loss": out["loss"].sum() / learned,
                    "q": out["q"].sum() / learned, "epsilon": epsilon(its[-1])}
-        if config["print_progress"]:
+        if config.print_progress:
             ack = common.report(progress, block, metrics)
             metrics = {**metrics, "episodes": metrics["episodes"] + ack}
         return carry, metrics
@@ -229,7 +233,7 @@ def make_train(config: dict):
         return {"params": carry[0], "metrics": metrics}
 
     run = common.seeds_runner(train, init_params, env_params, config, progress, env=env)
-    run.env, run.env_params, run.network, run.config = env, env_params, network, config
+    run.env, run.env_params, run.network, run.train_config, run.config = env, env_params, network, config, config.as_dict()
     run.num_updates, run.steps_per_update = num_logs, per_log * num_envs
     # the pieces of a run in chunks with checkpoints (common.run_chunked)
     run.init_params, run.init_runner, run.update, run.runner_params = (init_params, init_runner, update,
@@ -238,7 +242,7 @@ def make_train(config: dict):
 
 
 # python -m baselines.dqn and histojax train --algo dqn: options, command, entry point
-add_arguments, run, main = common.trainer_command("dqn", make_train, DEFAULTS, "log blocks", __doc__)
+add_arguments, run, main = common.trainer_command("dqn", make_train, DQNConfig, "log blocks", __doc__)
 
 
 if __name__ == "__main__":

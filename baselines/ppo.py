@@ -52,7 +52,9 @@ from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig(common.EnvConfig):
-    """PPO's settings (``config.json`` records them, ``--set KEY=VALUE`` changes any)."""
+    """PPO's settings, typed (``config.json`` records them, :meth:`as_dict`; ``--set KEY=VALUE`` changes any;
+    :meth:`from_dict` makes one from a dict and refuses an unknown entry or a wrong type in one line). Steps are
+    env steps, widths are units of a dense layer; ``lr`` is Adam's step size, the coefficients are loss weights."""
 
     algo: str = "ppo"                    # the trainer (recorded in config.json)
     num_envs: int = 64                   # parallel envs per seed
@@ -82,7 +84,14 @@ class PPOConfig(common.EnvConfig):
     shard_slides: bool = False           # with devices: split the dataset's slides over them
 
 
-DEFAULTS = dataclasses.asdict(PPOConfig())
+DEFAULTS = PPOConfig.defaults()  # the record of the default config (config.json's entries)
+
+
+def settings(config) -> PPOConfig:
+    """``config`` as a :class:`PPOConfig` (itself, or a subclass's, when it is one): a dict, e.g. a recorded
+    ``config.json``, through :meth:`~baselines.common.config.EnvConfig.from_dict` with entries PPO has not ignored
+    (an evaluated run's record may hold other trainers' entries)."""
+    return config if isinstance(config, PPOConfig) else PPOConfig.from_dict(config, strict=False)
 
 
 LOG_KEYS = ("returned_episode", "returned_episode_returns", "returned_episode_lengths", "returned_episode_success")
@@ -101,16 +110,17 @@ class Transition(NamedTuple):
     first: object = None   # recurrent PPO: obs is the first of an episode (reset the memory first)
 
 
-def make_network(config: dict, env, network_cls=ActorCritic):
+def make_network(config, env, network_cls=ActorCritic):
     """``network_cls`` (an actor-critic) sized for ``env``'s action space: ``n`` logits for discrete
-    actions, the Box size for continuous ones; width ``config["hidden"]``; feature observations
-    standardised by ``config["obs_norm"]`` when it holds numbers (``{"mean", "std"}``). For a ``glimpse``
+    actions, the Box size for continuous ones; width ``hidden``; feature observations
+    standardised by ``obs_norm`` when it holds numbers (``{"mean", "std"}``). For a ``glimpse``
     env with ``step_obs=True`` (the ``-v2`` ids) the cell-set reader of the same kind (feed-forward or
     recurrent, :class:`~baselines.networks.CellSetActorCritic`), holding ``env``'s episode tables: its
     parameters fit any slide size, so the same parameters run on another dataset's env."""
+    config = settings(config)
     space = env.action_space()
-    action_dim = space.n if is_discrete(config["action_mode"]) else int(np.prod(space.shape))
-    norm = config.get("obs_norm")
+    action_dim = space.n if is_discrete(config.action_mode) else int(np.prod(space.shape))
+    norm = config.obs_norm
     if isinstance(norm, dict):
         norm = (tuple(float(v) for v in norm["mean"]), tuple(float(v) for v in norm["std"]))
     elif norm is not None:
@@ -119,9 +129,9 @@ def make_network(config: dict, env, network_cls=ActorCritic):
         cls = {ActorCritic: CellSetActorCritic, RecurrentActorCritic: RecurrentCellSetActorCritic}.get(network_cls)
         if cls is None:
             raise ValueError(f"{network_cls.__name__} cannot read a step_obs glimpse env; use PPO or recurrent PPO")
-        return cls(action_dim=action_dim, tables=EpisodeTables(env.episode_tables()), action_mode=config["action_mode"],
-                   hidden=config["hidden"], obs_norm=norm, cell_hidden=config.get("cell_hidden", 32))
-    return network_cls(action_dim=action_dim, action_mode=config["action_mode"], hidden=config["hidden"],
+        return cls(action_dim=action_dim, tables=EpisodeTables(env.episode_tables()), action_mode=config.action_mode,
+                   hidden=config.hidden, obs_norm=norm, cell_hidden=config.cell_hidden)
+    return network_cls(action_dim=action_dim, action_mode=config.action_mode, hidden=config.hidden,
                        obs_norm=norm)
 
 
@@ -142,21 +152,24 @@ def dataset_normaliser(slide, eps: float = 1e-3) -> dict:
     return {"mean": mean.tolist(), "std": std.tolist()}
 
 
-def resolve_obs_norm(config: dict, env_params) -> dict:
-    """``config`` with ``obs_norm="dataset"`` replaced by :func:`dataset_normaliser` of the training
-    env's slides (so ``config.json`` records the numbers and evaluation on other slides uses them)."""
-    if config.get("obs_norm") == "dataset":
-        return {**config, "obs_norm": dataset_normaliser(env_params.slide)}
+def resolve_obs_norm(config, env_params):
+    """``config`` (a :class:`PPOConfig` or its dict; the same kind back) with ``obs_norm="dataset"`` replaced by
+    :func:`dataset_normaliser` of the training env's slides (so ``config.json`` records the numbers and evaluation
+    on other slides uses them)."""
+    if settings(config).obs_norm == "dataset":
+        norm = dataset_normaliser(env_params.slide)
+        return config.replace(obs_norm=norm) if isinstance(config, PPOConfig) else {**config, "obs_norm": norm}
     return config
 
 
-def entropy_coef(config: dict, update_index, num_updates: int):
+def entropy_coef(config, update_index, num_updates: int):
     """The entropy coefficient at update ``update_index``: ``ent_coef``, or with ``ent_coef_final``
     a linear anneal from ``ent_coef`` (first update) to ``ent_coef_final`` (last update)."""
-    if config.get("ent_coef_final") is None:
-        return config["ent_coef"]
+    config = settings(config)
+    if config.ent_coef_final is None:
+        return config.ent_coef
     frac = jnp.clip(update_index / max(num_updates - 1, 1), 0.0, 1.0)
-    return config["ent_coef"] + frac * (config["ent_coef_final"] - config["ent_coef"])
+    return config.ent_coef + frac * (config.ent_coef_final - config.ent_coef)
 
 
 def gae(traj: Transition, last_value, gamma: float, lam: float):
@@ -171,32 +184,34 @@ def gae(traj: Transition, last_value, gamma: float, lam: float):
     return advantages, advantages + traj.value
 
 
-def make_optimizer(config: dict, num_updates: int):
+def make_optimizer(config, num_updates: int):
     """Adam with global-norm clipping; the learning rate decays linearly to 0 over
     ``num_updates`` updates of ``num_minibatches × update_epochs`` steps (``anneal_lr``)."""
+    config = settings(config)
     def lr_schedule(count):
-        frac = 1.0 - (count // (config["num_minibatches"] * config["update_epochs"])) / num_updates
-        return config["lr"] * frac
+        frac = 1.0 - (count // (config.num_minibatches * config.update_epochs)) / num_updates
+        return config.lr * frac
 
-    return optax.chain(optax.clip_by_global_norm(config["max_grad_norm"]),
-                       optax.adam(lr_schedule if config["anneal_lr"] else config["lr"], eps=1e-5))
+    return optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
+                       optax.adam(lr_schedule if config.anneal_lr else config.lr, eps=1e-5))
 
 
-def clipped_loss(pi, value, traj, adv, target, config: dict, ent_coef=None):
+def clipped_loss(pi, value, traj, adv, target, config, ent_coef=None):
     """PPO's loss on a minibatch (any batch shape): clipped policy objective on normalised
     advantages, clipped value loss, entropy bonus. ``pi``/``value``: the network's outputs for
     ``traj.obs`` now; ``traj.action``/``traj.log_prob``/``traj.value``: from the rollout.
-    ``ent_coef``: the entropy coefficient now (:func:`entropy_coef`; default ``config["ent_coef"]``).
+    ``ent_coef``: the entropy coefficient now (:func:`entropy_coef`; default ``ent_coef``).
     Returns ``(total, (pg_loss, v_loss, entropy, approx_kl))``."""
-    mode = config["action_mode"]
+    config = settings(config)
+    mode = config.action_mode
     log_prob = policy_log_prob(pi, traj.action, mode)
-    v_clipped = traj.value + jnp.clip(value - traj.value, -config["clip_eps"], config["clip_eps"])
+    v_clipped = traj.value + jnp.clip(value - traj.value, -config.clip_eps, config.clip_eps)
     v_loss = 0.5 * jnp.maximum((value - target) ** 2, (v_clipped - target) ** 2).mean()
     ratio = jnp.exp(log_prob - traj.log_prob)
     adv = (adv - adv.mean()) / (adv.std() + 1e-8)
-    pg_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config["clip_eps"], 1 + config["clip_eps"]) * adv).mean()
+    pg_loss = -jnp.minimum(ratio * adv, jnp.clip(ratio, 1 - config.clip_eps, 1 + config.clip_eps) * adv).mean()
     entropy = policy_entropy(pi, mode).mean()
-    total = pg_loss + config["vf_coef"] * v_loss - (config["ent_coef"] if ent_coef is None else ent_coef) * entropy
+    total = pg_loss + config.vf_coef * v_loss - (config.ent_coef if ent_coef is None else ent_coef) * entropy
     approx_kl = ((ratio - 1) - (log_prob - traj.log_prob)).mean()
     return total, (pg_loss, v_loss, entropy, approx_kl)
 
@@ -221,19 +236,19 @@ def run_epochs(state, key, loss_fn, minibatches, epochs: int):
     return state, key, aux
 
 
-def update_metrics(info: dict, aux, progress, update_index, config: dict) -> dict:
+def update_metrics(info: dict, aux, progress, update_index, config) -> dict:
     """One update's metrics: episode statistics of the rollout's ``info`` and the means of the
-    losses ``aux`` (from :func:`clipped_loss`); printed through ``progress`` when asked."""
+    losses ``aux`` (from :func:`clipped_loss`); printed through ``progress`` when asked (``print_progress``)."""
     pg_loss, v_loss, entropy, kl = (a.mean() for a in aux)
     metrics = {**common.episode_stats(info), "pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy,
                "approx_kl": kl}
-    if config["print_progress"]:
+    if settings(config).print_progress:
         ack = common.report(progress, update_index, metrics)
         metrics = {**metrics, "episodes": metrics["episodes"] + ack}
     return metrics
 
 
-def make_train(config: dict):
+def make_train(config):
     """A jitted ``train(keys)`` running ``len(keys)`` seeds in one program (``jax.vmap`` over keys,
     or ``lax.map`` with ``vmap_seeds=False``) and
     returning ``{"params": seeds-stacked params, "metrics": {name: (seeds, updates)}}``.
@@ -242,11 +257,16 @@ def make_train(config: dict):
     and the pieces of ``train`` for trainers that run it in phases (:mod:`baselines.rotation`):
     ``train.init_params(key, env_params)``, ``train.init_state(params)`` and
     ``train.run_updates(state, key, env_params, first_update, n_updates)`` (unjitted, one seed).
-    ``config["devices"] = N`` shards the env batch over ``N`` devices (``train.mesh``)."""
-    config = {**DEFAULTS, **common.canonical_config(config)}
-    num_envs, num_steps = config["num_envs"], config["num_steps"]
-    mesh = common.batch_mesh(config["devices"], num_envs)
-    sharded = bool(config["shard_slides"])
+    ``devices = N`` shards the env batch over ``N`` devices (``train.mesh``).
+
+    ``config``: a :class:`PPOConfig`, or a dict made into one with :meth:`PPOConfig.from_dict` (an unknown entry
+    or a wrong type is refused in one line). It stays typed until the env and the network are built;
+    ``train.train_config`` is the config as trained (``obs_norm`` resolved, the env's shapes pinned) and
+    ``train.config`` its record, the ``config.json`` the run writes (:meth:`PPOConfig.as_dict`)."""
+    config = PPOConfig.coerce(config, where="ppo.make_train")
+    num_envs, num_steps = config.num_envs, config.num_steps
+    mesh = common.batch_mesh(config.devices, num_envs)
+    sharded = bool(config.shard_slides)
     if sharded and mesh is None:
         raise ValueError("shard_slides=True splits the slides over the devices: give devices=N too")
     env, env_params = common.make_env(config, mesh=mesh)
@@ -256,17 +276,17 @@ def make_train(config: dict):
     reset_all = common.env_vmap(env.reset, 1, mesh, sharded)
     step_all = common.env_vmap(env.step, 3, mesh, sharded)
     network = make_network(config, env)
-    mode = config["action_mode"]
-    num_updates = max(1, config["total_timesteps"] // (num_envs * num_steps))
+    mode = config.action_mode
+    num_updates = max(1, config.total_timesteps // (num_envs * num_steps))
     batch = num_envs * num_steps
-    minibatch = batch // config["num_minibatches"]
-    assert minibatch * config["num_minibatches"] == batch, "num_envs * num_steps must divide by num_minibatches"
+    minibatch = batch // config.num_minibatches
+    assert minibatch * config.num_minibatches == batch, "num_envs * num_steps must divide by num_minibatches"
     if mesh is not None and minibatch % mesh.size:
         raise ValueError(f"the minibatch ({minibatch} = num_envs * num_steps / num_minibatches) must divide "
                          f"by devices={mesh.size}")
     shard = functools.partial(common.shard_batch, mesh)  # identity without devices
-    progress = common.Progress(config["num_seeds"], num_updates, batch, config["log_every"],
-                               name=f"ppo {config['env_id']}")
+    progress = common.Progress(config.num_seeds, num_updates, batch, config.log_every,
+                               name=f"ppo {config.env_id}")
 
     init_params = common.params_initialiser(env, network, num_envs, reset_all)
 
@@ -304,7 +324,7 @@ def make_train(config: dict):
 
         (state, env_state, obs, key), traj = jax.lax.scan(env_step, carry, None, num_steps)
         _, last_value = policy(obs)
-        advantages, targets = gae(traj, last_value, config["gamma"], config["gae_lambda"])
+        advantages, targets = gae(traj, last_value, config.gamma, config.gae_lambda)
 
         def loss_fn(params, mb):
             traj, adv, target = mb
@@ -315,10 +335,10 @@ def make_train(config: dict):
         def minibatches(k_perm):
             flat = jax.tree.map(lambda a: a.reshape(batch, *a.shape[2:]), (traj, advantages, targets))
             perm = jax.random.permutation(k_perm, batch)
-            mbs = jax.tree.map(lambda a: a[perm].reshape(config["num_minibatches"], minibatch, *a.shape[1:]), flat)
+            mbs = jax.tree.map(lambda a: a[perm].reshape(config.num_minibatches, minibatch, *a.shape[1:]), flat)
             return shard(mbs, axis=1)  # each minibatch split over the devices
 
-        state, key, aux = run_epochs(state, key, loss_fn, minibatches, config["update_epochs"])
+        state, key, aux = run_epochs(state, key, loss_fn, minibatches, config.update_epochs)
         metrics = update_metrics(traj.info, aux, progress, update_index, config)
         return (state, env_state, obs, key), metrics
 
@@ -339,8 +359,8 @@ def make_train(config: dict):
     run.init_params, run.init_state, run.run_updates, run.progress = init_params, init_state, run_updates, progress
     # the pieces of a run in chunks with checkpoints (common.run_chunked)
     run.init_runner, run.update, run.runner_params = init_runner, update, lambda runner: runner[0].params
-    run.env, run.env_params, run.network, run.num_updates, run.config = env, env_params, network, num_updates, config
-    run.steps_per_update = batch
+    run.env, run.env_params, run.network, run.num_updates = env, env_params, network, num_updates
+    run.train_config, run.config, run.steps_per_update = config, config.as_dict(), batch
     return run
 
 
@@ -355,7 +375,7 @@ def config_from_args(args, defaults=DEFAULTS) -> dict:
 
 
 # python -m baselines.ppo and histojax train --algo ppo: options, command, entry point
-add_arguments, run, main = common.trainer_command("ppo", make_train, DEFAULTS, "updates", __doc__)
+add_arguments, run, main = common.trainer_command("ppo", make_train, PPOConfig, "updates", __doc__)
 
 
 if __name__ == "__main__":

@@ -20,6 +20,7 @@ ratio is 1 before the first gradient step). Minibatches are sets of whole env se
 """
 from __future__ import annotations
 
+import dataclasses
 import sys
 
 import jax
@@ -32,11 +33,24 @@ from baselines.networks import (RecurrentActorCritic, ScannedGRU, network_step, 
 from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
 
-DEFAULTS = {**{k: v for k, v in ppo.DEFAULTS.items() if k != "devices"},
-            "algo": "ppo_rnn", "num_minibatches": 4, "hidden": 128}
+
+@dataclasses.dataclass(frozen=True)
+class PPORNNConfig(ppo.PPOConfig):
+    """Recurrent PPO's settings: :class:`baselines.ppo.PPOConfig`'s with its own defaults (``hidden``: the GRU's
+    width; ``num_minibatches`` splits the ``num_envs`` env sequences). ``devices`` is refused (one device) and not
+    recorded in ``config.json``."""
+
+    algo: str = "ppo_rnn"                # the trainer (recorded in config.json)
+    num_minibatches: int = 4             # minibatches of whole env sequences (num_envs must divide by it)
+    hidden: int = 128                    # GRU and dense width
+
+    RECORDED_WITHOUT = ("devices",)
 
 
-def make_network(config: dict, env) -> RecurrentActorCritic:
+DEFAULTS = PPORNNConfig.defaults()  # the record of the default config (config.json's entries)
+
+
+def make_network(config, env) -> RecurrentActorCritic:
     """The GRU actor-critic for ``env``'s action space (discrete: ``n`` logits; continuous: Box size)."""
     return ppo.make_network(config, env, RecurrentActorCritic)
 
@@ -74,27 +88,28 @@ def replay(network, params, h_start, traj: ppo.Transition):
     return pi, value
 
 
-def make_train(config: dict):
+def make_train(config):
     """A jitted ``train(keys)`` for ``len(keys)`` seeds, returning ``{"params": seeds-stacked params,
     "metrics": {name: (seeds, updates)}}`` as :func:`baselines.ppo.make_train` (same attributes:
-    ``env``, ``env_params``, ``network``, ``num_updates``, ``config``, ``steps_per_update``)."""
-    config = {**DEFAULTS, **common.canonical_config(config)}
-    if config.get("devices") is not None:
+    ``env``, ``env_params``, ``network``, ``num_updates``, ``config``, ``train_config``, ``steps_per_update``).
+    ``config``: a :class:`PPORNNConfig`, or a dict made into one (:meth:`~PPORNNConfig.from_dict`)."""
+    config = PPORNNConfig.coerce(config, where="ppo_rnn.make_train")
+    if config.devices is not None:
         raise ValueError("ppo_rnn does not shard over devices; drop devices (use baselines.ppo for that)")
     env, env_params = common.make_env(config)
     config = common.pin_env_shapes(ppo.resolve_obs_norm(config, env_params), env_params)
     common.check_rollout_memory(env, env_params, config)
     env = LogWrapper(env)
     network = make_network(config, env)
-    mode, hidden = config["action_mode"], config["hidden"]
-    num_envs, num_steps, n_mb = config["num_envs"], config["num_steps"], config["num_minibatches"]
+    mode, hidden = config.action_mode, config.hidden
+    num_envs, num_steps, n_mb = config.num_envs, config.num_steps, config.num_minibatches
     if num_envs % n_mb:
         raise ValueError(f"num_envs={num_envs} must divide by num_minibatches={n_mb} (minibatches are "
                          f"whole env sequences)")
-    num_updates = max(1, config["total_timesteps"] // (num_envs * num_steps))
+    num_updates = max(1, config.total_timesteps // (num_envs * num_steps))
     batch = num_envs * num_steps
-    progress = common.Progress(config["num_seeds"], num_updates, batch, config["log_every"],
-                               name=f"ppo_rnn {config['env_id']}")
+    progress = common.Progress(config.num_seeds, num_updates, batch, config.log_every,
+                               name=f"ppo_rnn {config.env_id}")
 
     init_params = common.params_initialiser(
         env, network, num_envs, inputs=lambda obs: (ScannedGRU.initial_state(num_envs, hidden),
@@ -116,7 +131,7 @@ def make_train(config: dict):
         (env_state, obs, first, h, key), traj = rollout(network, env, state.params, env_params,
                                                         (env_state, obs, first, h0, key), num_steps, mode)
         _, _, last_value = network_step(network, state.params, h, obs, first)
-        advantages, targets = ppo.gae(traj, last_value, config["gamma"], config["gae_lambda"])
+        advantages, targets = ppo.gae(traj, last_value, config.gamma, config.gae_lambda)
 
         def loss_fn(params, mb):
             h_start, traj, adv, target = mb
@@ -131,7 +146,7 @@ def make_train(config: dict):
             return (jax.tree.map(lambda a: split(a, 0), h0),
                     *jax.tree.map(lambda a: split(a, 1), (traj, advantages, targets)))
 
-        state, key, aux = ppo.run_epochs(state, key, loss_fn, minibatches, config["update_epochs"])
+        state, key, aux = ppo.run_epochs(state, key, loss_fn, minibatches, config.update_epochs)
         metrics = ppo.update_metrics(traj.info, aux, progress, update_index, config)
         return (state, env_state, obs, first, h, key), metrics
 
@@ -141,8 +156,8 @@ def make_train(config: dict):
         return {"params": state.params, "metrics": metrics}
 
     run = common.seeds_runner(train, init_params, env_params, config, progress, env=env)
-    run.env, run.env_params, run.network, run.num_updates, run.config = env, env_params, network, num_updates, config
-    run.steps_per_update = batch
+    run.env, run.env_params, run.network, run.num_updates = env, env_params, network, num_updates
+    run.train_config, run.config, run.steps_per_update = config, config.as_dict(), batch
     # the pieces of a run in chunks with checkpoints (common.run_chunked)
     run.init_params, run.init_runner, run.update, run.runner_params = (init_params, init_runner, update,
                                                                        lambda runner: runner[0].params)
@@ -150,7 +165,7 @@ def make_train(config: dict):
 
 
 # python -m baselines.ppo_rnn and histojax train --algo ppo_rnn: options, command, entry point
-add_arguments, run, main = common.trainer_command("ppo_rnn", make_train, DEFAULTS, "updates", __doc__)
+add_arguments, run, main = common.trainer_command("ppo_rnn", make_train, PPORNNConfig, "updates", __doc__)
 
 
 if __name__ == "__main__":

@@ -11,6 +11,7 @@ import jax
 
 from baselines import distributed
 from baselines.common import run_folder
+from baselines.common.config import ConfigError, EnvConfig
 from data_tools.cli_output import build_parser, command_main, positive_float, print_error
 from data_tools.errors import HistojaxDataError
 from baselines.common.runner import resume_config, run_and_save
@@ -119,17 +120,19 @@ def config_from_args(args, defaults: dict) -> dict:
     return config
 
 
-def train_and_save(algo: str, make_train_fn, args, defaults: dict, unit: str) -> int:
+def train_and_save(algo: str, make_train_fn, args, config_class: type[EnvConfig], unit: str) -> int:
     """The command of a baseline (shared by every algorithm file), on ``args`` parsed with
-    :func:`add_arguments`: compile, train all seeds in one program, then write logs, curve and
-    checkpoint with :func:`finish_run`."""
+    :func:`add_arguments`: the typed config (``config_class``, e.g. :class:`~baselines.ppo.PPOConfig`) made once
+    from the options (an entry of the wrong type is one line, exit 2), then compile, train all seeds in one program,
+    and write logs, curve and checkpoint with :func:`finish_run`."""
+    defaults = config_class.defaults()
     if getattr(args, "resume", None) is not None:
         run = Path(args.resume)
         try:
             if not run.is_dir():
                 raise run_folder.RunFolderError(run, "no such run folder; nothing to resume")
             run_folder.lock(run)  # one writer per run folder: a second --resume / --out RUN is refused
-            config = resume_config(run, algo)
+            config = resume_config(run, algo, config_class)
         except HistojaxDataError as e:
             return print_error(e)
         try:
@@ -137,14 +140,18 @@ def train_and_save(algo: str, make_train_fn, args, defaults: dict, unit: str) ->
         finally:
             run_folder.release(run)
         return 0
-    config = config_from_args(args, defaults=defaults)
+    try:
+        config = config_class.from_dict(config_from_args(args, defaults=defaults), where="the options (--set)")
+    except ConfigError as e:
+        return print_error(e)
     if (args.coordinator is not None or args.distributed) and "devices" not in defaults:
         raise SystemExit("several processes (--coordinator / --distributed) are supported by the PPO baseline only")
     distributed.from_args(args)
-    out = Path(args.out or f"runs/{algo}-{config['env_id']}")
+    out = Path(args.out or f"runs/{algo}-{config.env_id}")
     if jax.process_index() == 0:  # the process that writes the run's files holds its folder
         try:
-            out = run_folder.claim(out, config, overwrite=getattr(args, "overwrite", False), default=args.out is None)
+            out = run_folder.claim(out, config.as_dict(), overwrite=getattr(args, "overwrite", False),
+                                   default=args.out is None)
         except HistojaxDataError as e:
             return print_error(e)
     try:
@@ -154,15 +161,16 @@ def train_and_save(algo: str, make_train_fn, args, defaults: dict, unit: str) ->
     return 0
 
 
-def trainer_command(algo: str, make_train_fn, defaults: dict, unit: str, doc: str):
+def trainer_command(algo: str, make_train_fn, config_class: type[EnvConfig], unit: str, doc: str):
     """A trainer module's command: ``(add_arguments, run, main)`` for ``python -m baselines.<algo>`` and
-    ``histojax train --algo <algo>``, the options :func:`add_arguments` with the trainer's ``defaults``."""
+    ``histojax train --algo <algo>``, the options :func:`add_arguments` with the defaults of the trainer's typed
+    config ``config_class``."""
     def add(parser) -> None:
         """The trainer's options (:func:`baselines.common.add_arguments` with its defaults)."""
-        add_arguments(parser, defaults)
+        add_arguments(parser, config_class.defaults())
 
     def run(args, parser=None) -> int:
         """Train on parsed ``args`` and write the run folder (:func:`train_and_save`)."""
-        return train_and_save(algo, make_train_fn, args, defaults, unit)
+        return train_and_save(algo, make_train_fn, args, config_class, unit)
 
     return add, run, command_main(add, run, f"python -m baselines.{algo}", doc)

@@ -23,21 +23,22 @@ def device_memory_bytes() -> int:
     return int(os.sysconf("SC_PHYS_PAGES") * os.sysconf("SC_PAGE_SIZE"))
 
 
-def check_rollout_memory(env, env_params, config: dict) -> int:
+def check_rollout_memory(env, env_params, config) -> int:
     """Refuse, before compiling, a run whose rollout buffer cannot fit the device: one observation's bytes
-    × ``num_steps`` × ``num_envs`` × the seeds run at once (``num_seeds`` with ``vmap_seeds``), ×2 for the
+    × ``num_steps`` × ``num_envs`` × the seeds run at once (``num_seeds`` with ``vmap_seeds``; ``config`` the
+    trainer's typed config, e.g. :class:`~baselines.ppo.PPOConfig`), ×2 for the
     shuffled minibatch copy. Returns that estimate (bytes); raises ``ValueError`` naming the figures and
     what to lower when it exceeds the device's memory (:func:`device_memory_bytes`). E.g. ``glimpse:2`` on
     the full C16 set observes ~2.9 MB a step: 35 GB of rollouts at 64 envs × 64 steps × 3 seeds."""
     from histojax.reading.modes.glimpse import observation_bytes
 
     obs = observation_bytes(env, env_params)
-    seeds = config.get("num_seeds", 1) if config.get("vmap_seeds", True) else 1
-    need = 2 * obs * config["num_steps"] * config["num_envs"] * seeds
+    seeds = config.num_seeds if config.vmap_seeds else 1
+    need = 2 * obs * config.num_steps * config.num_envs * seeds
     have = device_memory_bytes()
     if need > have:
         raise ValueError(f"the rollouts of this run need about {need / 2**30:.1f} GiB ({obs:,} bytes an observation "
-                         f"× num_steps {config['num_steps']} × num_envs {config['num_envs']} × {seeds} seed(s) at "
+                         f"× num_steps {config.num_steps} × num_envs {config.num_envs} × {seeds} seed(s) at "
                          f"once × 2), more than this device's {have / 2**30:.1f} GiB: lower num_envs / num_steps, "
                          "set vmap_seeds=false, or observe less (e.g. a coarser glimpse level)")
     return need

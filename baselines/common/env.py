@@ -2,87 +2,55 @@
 parameter initialisation, episode statistics and the random agent's reference figures."""
 from __future__ import annotations
 
-import dataclasses
-
 import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh
 
 import histojax
+from baselines.common.config import EnvConfig, canonical_config
 from histojax.adapters.jax import LogWrapper
 
 
 
-@dataclasses.dataclass(frozen=True)
-class EnvConfig:
-    """The settings every trainer shares: which trainer, and the env it trains on (spelled as
-    ``histojax.make`` spells them). Each algorithm file's config (``PPOConfig``, ``DQNConfig``) adds its own."""
-
-    algo: str = ""                       # the trainer (recorded in config.json)
-    env_id: str = "HistoJAX-Easy-v0"     # registered env id
-    slide: str | None = None             # bundle folder; None: the id's slide (the sample slide)
-    action_mode: str = "discrete"        # the env's action_mode
-    obs_mode: str = "pixels"             # the env's obs_mode
-    with_position: bool = False          # observation dict with the view position
-    reward: str | None = None            # reward preset; None: the env's
-    max_steps_in_episode: int | None = None  # None: the id's
-    env_kwargs: dict | None = None       # any other histojax.make keyword
-
-
-OLDER_SPELLINGS = {"obs": "obs_mode"}  # config keys of older runs → the env's spelling
-
-
-def canonical_config(config: dict) -> dict:
-    """``config`` with older key spellings renamed to the env's (``obs`` → ``obs_mode``); a copy."""
-    out = dict(config)
-    for old, new in OLDER_SPELLINGS.items():
-        if old in out:
-            value = out.pop(old)
-            out.setdefault(new, value)
-    return out
-
-
-def env_overrides(config: dict) -> dict:
-    """The ``histojax.make`` overrides named in a trainer config."""
-    kw = {"action_mode": config.get("action_mode", "discrete"),
-          "with_position": bool(config.get("with_position", False))}
-    obs = canonical_config(config).get("obs_mode", "pixels")
-    if obs != "pixels":
-        kw["obs_mode"] = obs  # e.g. "features" once the env has it
-    for k in ("reward", "max_steps_in_episode"):
-        if config.get(k) is not None:
-            kw[k] = config[k]
-    kw.update(config.get("env_kwargs") or {})
-    return kw
-
-
-def pin_env_shapes(config: dict, env_params) -> dict:
-    """``config`` with the env's slide-dependent shapes recorded in ``env_kwargs``, so that the saved
-    run rebuilds the same observation and action spaces on other slides: for ``glimpse``, the padded
-    cell grid (``glimpse_grid``; otherwise it is the largest grid of the slides loaded, and a policy
-    trained on one dataset would not fit another's). Unchanged for the other modes."""
+def pin_env_shapes(config, env_params):
+    """``config`` (an :class:`~baselines.common.config.EnvConfig` or its dict; the same kind back) with the env's
+    slide-dependent shapes recorded in ``env_kwargs``, so that the saved run rebuilds the same observation and action
+    spaces on other slides: for ``glimpse``, the padded cell grid (``glimpse_grid``, cells; otherwise it is the
+    largest grid of the slides loaded, and a policy trained on one dataset would not fit another's). Unchanged for
+    the other modes."""
     from histojax.reading.modes.glimpse import GlimpseTables
 
     tables = getattr(env_params, "mode_data", None)
     if not isinstance(tables, GlimpseTables) or tables.step_obs:  # step_obs: cell-set policies fit any grid
         return config
-    kw = dict(config.get("env_kwargs") or {})
+    typed = isinstance(config, EnvConfig)
+    kw = dict((config.env_kwargs if typed else config.get("env_kwargs")) or {})
     kw.setdefault("glimpse_grid", [int(v) for v in np.asarray(tables.grid)])
-    return {**config, "env_kwargs": kw}
+    return config.replace(env_kwargs=kw) if typed else {**config, "env_kwargs": kw}
 
 
-def make_env(config: dict, auto_reset: bool = True, mesh: Mesh | None = None):
-    """``(env, params)`` for ``config["env_id"]`` on ``config["slide"]`` (None = sample slide).
-    With ``config["shard_slides"]`` and a ``mesh``, the slides are split over its devices
-    (:func:`histojax.sharding.make_sharded`); without a mesh they all load on one device."""
-    if config.get("shard_slides") and mesh is not None:
+def env_config(config) -> tuple[EnvConfig, bool]:
+    """``(the env settings of config, whether it splits the slides over devices)`` for a trainer config (typed, or
+    its dict: its env entries are read, the others left to the trainer)."""
+    if isinstance(config, EnvConfig):
+        return config, bool(getattr(config, "shard_slides", False))
+    env_part = {k: v for k, v in canonical_config(config).items() if k in EnvConfig.field_names()}
+    return EnvConfig.from_dict(env_part), bool(config.get("shard_slides"))
+
+
+def make_env(config, auto_reset: bool = True, mesh: Mesh | None = None):
+    """``(env, params)`` for ``config``'s env (a trainer config, typed or its dict): ``histojax.make`` of its
+    ``env_id`` with its :meth:`~baselines.common.config.EnvConfig.make_arguments` (the slide or dataset, and the
+    typed :class:`~histojax.make_options.MakeOptions`). With ``shard_slides`` and a ``mesh``, the slides are split
+    over its devices (:func:`histojax.sharding.make_sharded`); without a mesh they all load on one device."""
+    config, shard_slides = env_config(config)
+    arguments, options = config.make_arguments(auto_reset)
+    if shard_slides and mesh is not None:
         from histojax.sharding import make_sharded
 
-        return make_sharded(config["env_id"], mesh, slide=config.get("slide"), auto_reset=auto_reset,
-                            **env_overrides(config))
-    return histojax.make(config["env_id"], slide=config.get("slide"), auto_reset=auto_reset,
-                         **env_overrides(config))
+        return make_sharded(config.env_id, mesh, **arguments, **options.given())
+    return histojax.make(config.env_id, **arguments, **options.given())
 
 
 def env_vmap(fn, num_args: int, mesh: Mesh | None = None, sharded_slides: bool = False):

@@ -14,7 +14,7 @@ from flax import serialization
 
 from baselines import outputs
 from data_tools.errors import HistojaxDataError
-from baselines.common.env import canonical_config
+from baselines.common.config import canonical_config
 
 
 

@@ -18,15 +18,17 @@ from data_tools.errors import HistojaxDataError
 from baselines.curves import plot_curves
 from baselines.common.logs import (Progress, _count, _tensorboard_scalars, finite_mean, save_checkpoint, smooth,
                                    tensorboard_writer, write_logs)
-from baselines.common.env import canonical_config, random_agent_reference
+from baselines.common.config import ConfigError, canonical_config
+from baselines.common.env import random_agent_reference
 from baselines.common.devices import replicate_on
 
 
 
-def seeds_runner(train, init_params, env_params, config: dict, progress: Progress, mesh: Mesh | None = None,
+def seeds_runner(train, init_params, env_params, config, progress: Progress, mesh: Mesh | None = None,
                  env=None):
     """One jitted program over all seeds: ``run(keys, params=None)`` trains ``len(keys)`` seeds
-    (``jax.vmap`` over keys, or ``lax.map`` with ``config["vmap_seeds"] = False``) on
+    (``jax.vmap`` over keys, or ``lax.map`` with ``config.vmap_seeds = False``; ``config`` the trainer's typed
+    config, :class:`~baselines.common.config.EnvConfig`) on
     ``env_params`` (or ``params``); ``run.compile(keys)`` compiles ahead of time and returns the
     same call. With a ``mesh`` (:func:`batch_mesh`) the keys and env params (slide arrays) are
     placed replicated on its devices; ``train`` shards the env batch itself (:func:`shard_batch`).
@@ -44,7 +46,7 @@ def seeds_runner(train, init_params, env_params, config: dict, progress: Progres
         # Initial parameters always via lax.map: jit(vmap(init)) of the orthogonal initialisers
         # (batched QR) never finished on jaxlib 0.10's CPU backend.
         params = jax.lax.map(lambda k: init_params(k, p), keys)
-        if config["vmap_seeds"]:
+        if config.vmap_seeds:
             return jax.vmap(train, in_axes=(0, None, 0))(keys, p, params)
         return jax.lax.map(lambda kp: train(kp[0], p, kp[1]), (keys, params))
 
@@ -303,9 +305,11 @@ def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_
     return summary
 
 
-def resume_config(run: Path, algo: str) -> dict:
+def resume_config(run: Path, algo: str, config_class=None):
     """The config of the run to resume in folder ``run`` (``run/checkpoint/config.json``, written when it
-    started). A missing or unreadable file, or another trainer's run, raises HistojaxDataError naming it."""
+    started): its dict, or typed as ``config_class`` (e.g. :class:`~baselines.ppo.PPOConfig`) when given. A missing
+    or unreadable file, another trainer's run, or (typed) an entry the trainer has not or of the wrong type raises
+    HistojaxDataError naming it."""
     path = Path(run) / CHECKPOINT_DIR / "config.json"
     try:
         config = json.loads(path.read_text(encoding="utf-8"))
@@ -318,7 +322,12 @@ def resume_config(run: Path, algo: str) -> dict:
         raise HistojaxDataError(path, "not a run config (a JSON object)")
     if config.get("algo", algo) != algo:
         raise HistojaxDataError(path, f"a {config['algo']} run; resume it with --algo {config['algo']}")
-    return canonical_config(config)
+    if config_class is None:
+        return canonical_config(config)
+    try:
+        return config_class.from_dict(config, where=str(path))
+    except ConfigError as e:
+        raise HistojaxDataError(path, e.detail) from None
 
 
 def compile_and_run(train, keys) -> tuple[dict, float, float]:
@@ -332,13 +341,13 @@ def compile_and_run(train, keys) -> tuple[dict, float, float]:
     return result, compile_s, time.perf_counter() - t0
 
 
-def run_and_save(algo: str, make_train_fn, config: dict, out: Path, unit: str = "updates", resume: bool = False,
+def run_and_save(algo: str, make_train_fn, config, out: Path, unit: str = "updates", resume: bool = False,
                  on_checkpoint=None):
-    """Make, compile and run the trainer for ``config`` (all seeds in one program, compile time
-    measured apart), then :func:`finish_run` into ``out``. A trainer that runs in chunks (PPO,
+    """Make, compile and run the trainer for ``config`` (its typed config, or a dict ``make_train_fn`` makes one of;
+    all seeds in one program, compile time measured apart), then :func:`finish_run` into ``out``. A trainer that runs in chunks (PPO,
     recurrent PPO, DQN: ``train.init_runner``) saves its whole state to ``out/checkpoint/`` every
     ``checkpoint_every`` updates (:func:`run_chunked`); ``resume`` continues from there.
-    Returns ``(config, params, summary)`` with the trainer's full config."""
+    Returns ``(config, params, summary)`` with the trainer's full config (its record, ``config.json``'s dict)."""
     train = make_train_fn(config)
     config = train.config
     if config.get("shard_slides"):

@@ -1,0 +1,129 @@
+"""The trainers' typed configs (``PPOConfig``, ``DQNConfig``, ``PPORNNConfig``): every published agent's
+``config.json`` loads and records back the same, an unknown entry or a wrong type is one line naming it, and
+``make_train`` given a dict builds what it builds from the typed config."""
+from __future__ import annotations
+
+import dataclasses
+import json
+from pathlib import Path
+
+import pytest
+
+from baselines import common, dqn, ppo, ppo_rnn
+from baselines.common.config import ConfigError
+
+PUBLISHED = Path(__file__).resolve().parents[1] / "baselines" / "published"
+CLASSES = {"ppo": ppo.PPOConfig, "ppo_rnn": ppo_rnn.PPORNNConfig, "dqn": dqn.DQNConfig}
+DEFAULTS = {"ppo": ppo.DEFAULTS, "ppo_rnn": ppo_rnn.DEFAULTS, "dqn": dqn.DEFAULTS}
+TRAINER_CONFIGS = sorted(p for p in PUBLISHED.glob("*/config.json") if "algo" in json.loads(p.read_text()))
+TINY = dict(env_id="HistoJAX-Easy-v0", with_position=True, num_envs=4, num_steps=8, total_timesteps=64,
+            update_epochs=1, num_minibatches=2, hidden=16, num_seeds=1, print_progress=False)
+
+
+def test_the_published_agents_are_found():
+    assert len(TRAINER_CONFIGS) >= 5  # c16-v1-*, c16-v2-head-navigator, c16-v2-set-reader (heads have no "algo")
+
+
+@pytest.mark.parametrize("path", TRAINER_CONFIGS, ids=lambda p: p.parent.name)
+def test_every_published_config_round_trips(path):
+    """Each published trainer config loads, and its record is what the trainer wrote before the configs were
+    typed: the trainer's defaults completed with the file's entries (every entry kept as it is)."""
+    recorded = json.loads(path.read_text())
+    config = CLASSES[recorded["algo"]].from_dict(recorded, where=str(path))
+    assert config.as_dict() == {**DEFAULTS[recorded["algo"]], **recorded}
+    assert type(config).from_dict(config.as_dict()) == config
+    assert json.loads(json.dumps(config.as_dict())) == config.as_dict()  # JSON as it is
+
+
+def test_defaults_and_record_order_are_those_of_before():
+    """``DEFAULTS`` is the default config's record: the fields in order, no ``seed`` (recorded last, when set);
+    recurrent PPO's lacks ``devices`` and has its own ``algo``, ``hidden`` and ``num_minibatches``."""
+    assert list(ppo.DEFAULTS)[:3] == ["algo", "env_id", "slide"] and "seed" not in ppo.DEFAULTS
+    assert list(ppo_rnn.DEFAULTS) == [k for k in ppo.DEFAULTS if k != "devices"]
+    assert (ppo_rnn.DEFAULTS["algo"], ppo_rnn.DEFAULTS["hidden"], ppo_rnn.DEFAULTS["num_minibatches"]) == (
+        "ppo_rnn", 128, 4)
+    record = ppo.PPOConfig(seed=3).as_dict()
+    assert list(record)[-1] == "seed" and record["seed"] == 3
+    assert ppo.PPOConfig.from_dict({"obs": "features"}).obs_mode == "features"  # the older spelling
+
+
+def test_an_unknown_entry_is_refused_in_one_line_naming_it():
+    with pytest.raises(ConfigError, match=r"^run/config\.json: unknown config entry 'lrr' for ppo "
+                                          r"\(did you mean 'lr'\?\); known: ") as e:
+        ppo.PPOConfig.from_dict({"lrr": 0.1}, where="run/config.json")
+    assert "\n" not in str(e.value)
+    with pytest.raises(ConfigError, match="unknown config entry 'num_steps' for dqn"):
+        dqn.DQNConfig.from_dict({**ppo.DEFAULTS, "algo": "dqn"})
+    with pytest.raises(ConfigError, match="unknown config entry 'bogus'"):
+        ppo.make_train({**TINY, "bogus": 1})
+    assert ppo.PPOConfig.from_dict({"bogus": 1}, strict=False) == ppo.PPOConfig()  # a record read leniently
+
+
+@pytest.mark.parametrize("entry, value, words", [
+    ("lr", "fast", "lr='fast' must be a number, not a str"),
+    ("num_envs", 4.0, "num_envs=4.0 must be a whole number, not a float"),
+    ("anneal_lr", 1, "anneal_lr=1 must be true or false, not a int"),
+    ("env_kwargs", [1], "env_kwargs=[1] must be an object or null, not a list"),
+    ("devices", "2", "devices='2' must be a whole number or null, not a str"),
+])
+def test_a_wrong_type_is_refused_in_one_line(entry, value, words):
+    with pytest.raises(ConfigError) as e:
+        ppo.PPOConfig.from_dict({entry: value}, where="the options (--set)")
+    assert str(e.value) == f"the options (--set): {words}"
+
+
+def test_a_number_where_a_float_goes_and_null_where_allowed_load():
+    config = ppo.PPOConfig.from_dict({"lr": 1, "ent_coef_final": None, "max_steps_in_episode": None, "devices": 2})
+    assert config.lr == 1 and config.devices == 2
+
+
+def test_resume_refuses_a_checkpoint_config_of_a_wrong_type_naming_the_file(tmp_path):
+    (tmp_path / "checkpoint").mkdir()
+    path = tmp_path / "checkpoint" / "config.json"
+    path.write_text(json.dumps({**ppo.DEFAULTS, "num_envs": "many"}))
+    with pytest.raises(common.HistojaxDataError, match=r"config\.json: num_envs='many' must be a whole number"):
+        common.resume_config(tmp_path, "ppo", ppo.PPOConfig)
+    path.write_text(json.dumps({**ppo.DEFAULTS, "seed": 2}))
+    assert common.resume_config(tmp_path, "ppo", ppo.PPOConfig) == ppo.PPOConfig(seed=2)
+
+
+def test_the_command_line_refuses_a_wrong_type_in_one_line(tmp_path, capsys):
+    assert ppo.main(["--set", 'lr="fast"', "--out", str(tmp_path / "run")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == "error: the options (--set): lr='fast' must be a number, not a str"
+    assert not (tmp_path / "run").exists()
+
+
+@pytest.mark.parametrize("module, extra", [(ppo, {}), (ppo_rnn, {}),
+                                           (dqn, {"buffer_size": 64, "batch_size": 8, "learning_starts": 16,
+                                                  "iterations_per_log": 4})])
+def test_make_train_of_a_dict_equals_make_train_of_the_typed_config(module, extra):
+    """``make_train`` converts a dict once at its top: the built config (typed and recorded), env and network
+    are those of the typed config (no training run)."""
+    entries = {k: v for k, v in {**TINY, **extra}.items() if k in module.DEFAULTS}
+    cls = {ppo: ppo.PPOConfig, ppo_rnn: ppo_rnn.PPORNNConfig, dqn: dqn.DQNConfig}[module]
+    from_dict, typed = module.make_train(dict(entries, seed=5)), module.make_train(cls(**entries, seed=5))
+    assert isinstance(typed.train_config, cls) and from_dict.train_config == typed.train_config
+    assert from_dict.config == typed.config == typed.train_config.as_dict()
+    assert from_dict.config == {**module.DEFAULTS, **entries, "seed": 5}
+    assert from_dict.network == typed.network and from_dict.num_updates == typed.num_updates
+    assert type(from_dict.env) is type(typed.env)
+
+
+def test_the_env_is_made_through_make_options():
+    """A config's env settings become ``make``'s own arguments and the typed ``MakeOptions``; an ``env_kwargs``
+    entry ``make`` has not is ``make``'s one line."""
+    config = ppo.PPOConfig(action_mode="glimpse:1", obs_mode="features", reward="sparse", max_steps_in_episode=9,
+                           env_kwargs={"dataset": "DS", "split": "test", "read_budget": 0.25})
+    arguments, options = config.make_arguments(auto_reset=False)
+    assert arguments == {"slide": None, "dataset": "DS", "split": "test"}
+    assert options.given() == {"action_mode": "glimpse:1", "obs_mode": "features", "with_position": False,
+                               "reward": "sparse", "auto_reset": False, "max_steps_in_episode": 9,
+                               "read_budget": 0.25}
+    with pytest.raises(TypeError, match=r"make\('HistoJAX-Easy-v0'\) got unknown settings \['bogus'\]"):
+        ppo.PPOConfig(env_kwargs={"bogus": 1}).make_arguments()
+
+
+def test_configs_are_frozen():
+    with pytest.raises(dataclasses.FrozenInstanceError):
+        ppo.PPOConfig().lr = 1.0

@@ -177,15 +177,12 @@ def bags(tables: list[dict], read: list[np.ndarray] | None = None):
     return x, m
 
 
-_set_logits = jax.jit(jax.vmap(heads.score, in_axes=(None, 0, 0)))
-
-
 def bag_scores(head, bags: np.ndarray, masks: np.ndarray) -> np.ndarray:
     """Tumour probabilities ``(B,)`` in ``[0, 1]`` of padded bags ``(B, N, D)`` read where ``masks (B, N)``, by any
-    head of the protocol of :mod:`histojax.reading.heads` (:func:`~histojax.reading.heads.score` of each bag as a
-    grid of one column, ``(N, 1, D)``: no view has a neighbour, so a logit head pools the views themselves)."""
-    x = jnp.asarray(bags, jnp.float32)[:, :, None, :]
-    return np.asarray(jax.nn.sigmoid(_set_logits(head, x, jnp.asarray(masks, bool)[:, :, None])), np.float64)
+    head of the protocol of :mod:`histojax.reading.heads` (:func:`~histojax.reading.heads.score_sets`: each bag a
+    set of views, no view with a neighbour, so a logit head pools the views themselves)."""
+    logits = heads.score_sets(head, jnp.asarray(bags, jnp.float32), jnp.asarray(masks, bool))
+    return np.asarray(jax.nn.sigmoid(logits), np.float64)
 
 
 MIL_NAMES = ("MIL, read everything", "random reader + MIL", "attention reader + MIL")

@@ -20,6 +20,7 @@ from pathlib import Path
 from typing import Protocol, runtime_checkable
 
 import jax
+import jax.numpy as jnp
 
 from histojax.reading.heads import files, learned, logit, mil
 
@@ -27,7 +28,8 @@ from histojax.reading.heads import files, learned, logit, mil
 @runtime_checkable
 class SlideHeadProtocol(Protocol):
     """What every slide head provides. ``kind``: the string saved in ``config.json``; ``name``: a short
-    description; ``dim``: the feature entry of the view tumour logit."""
+    description (a logit head also has ``dim``, the feature entry of its view tumour logit; a learned head has
+    ``features_dim``, the length of the feature vectors it reads)."""
 
     kind: str
 
@@ -85,6 +87,17 @@ def probability(head: SlideHeadProtocol, grid_features: jax.Array, read_mask: ja
     """``sigmoid(score(...))``: the slide's tumour probability ``()`` in [0, 1]."""
     return jax.nn.sigmoid(score(head, grid_features, read_mask))
 
+
+def score_set(head: SlideHeadProtocol, views: jax.Array, mask: jax.Array) -> jax.Array:
+    """Slide tumour logit ``()`` float32 from a set of views without their grid, ``views (N, D)`` read where
+    ``mask (N,)`` bool: :func:`score` of a grid of one column ``(N, 1, D)``, so no view has a neighbour (a logit head
+    pools the views themselves; an attention head is unchanged by the layout)."""
+    return score(head, jnp.asarray(views)[:, None, :], jnp.asarray(mask, bool)[:, None])
+
+
+score_sets = jax.jit(jax.vmap(score_set, in_axes=(None, 0, 0)))
+"""Jitted :func:`score_set` over padded bags: ``(B, N, D)`` views, ``(B, N)`` masks (False on padding) → ``(B,)``
+logits."""
 
 score_batch = jax.jit(jax.vmap(score_logits, in_axes=(None, 0, 0)))
 """Jitted :func:`score_logits` over a batch: ``(B, H, W)`` logits, ``(B, H, W)`` masks → ``(B,)`` logits

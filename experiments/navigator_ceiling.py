@@ -8,9 +8,11 @@ A navigator stands on one view per step, so a ``--max-steps`` episode reads at m
 tissue views of a slide (fewer: it also zooms and moves over views it has read). Prints, over the split's
 slides, the finest tissue views per slide and the fraction ``max_steps / views`` (median, min, max), then the
 head's AUC (all slides; ITC-only slides left out) for the readers of :mod:`baselines.reading.readers` (overview only,
-random reader over ``--seeds`` orders, logit reader, search reader, read everything) at ``--budgets``, and
-each reader at **each slide's own ceiling** (``max_steps`` views of that slide: the row ``budget = median
-ceiling``). Writes ``OUT/readers.csv`` and ``OUT/ceiling.json``.
+random reader over ``--seeds`` orders, logit reader — a learned head's score reader —, search reader, read
+everything) at ``--budgets``, and each reader at **each slide's own ceiling** (``max_steps`` views of that slide: the
+row ``budget = median ceiling``). Writes ``OUT/readers.csv`` and ``OUT/ceiling.json``. ``--head``: any head folder
+:func:`histojax.reading.heads.load` reads; the split is scored by the loop :mod:`baselines.reading.diagnosis` shares
+(:func:`~baselines.reading.diagnosis.score_split`: a split of one class refused, its AUC undefined).
 """
 from __future__ import annotations
 

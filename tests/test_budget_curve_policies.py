@@ -86,11 +86,11 @@ def test_a_policy_is_scored_by_every_slide_head(dataset, runs):
 
 @pytest.fixture(scope="module")
 def glimpse_reads(dataset, runs):
-    return budget_curve.policy_reads(runs["glimpse:1"], dataset, "test", BUDGETS)
+    return pipeline.policy_reads(runs["glimpse:1"], dataset, "test", BUDGETS)
 
 
 def test_recurrent_evaluation_respects_the_reading_budget(dataset, runs, glimpse_reads):
-    zoom_reads = budget_curve.policy_reads(runs["zoom_select"], dataset, "test", BUDGETS)
+    zoom_reads = pipeline.policy_reads(runs["zoom_select"], dataset, "test", BUDGETS)
     tables = pipeline.load_split(dataset, "test", env_id="HistoJAX-Easy-v0", level=1).tables
     for budget in BUDGETS:
         assert len(glimpse_reads[budget]) == len(zoom_reads[budget]) == len(tables)
@@ -109,7 +109,7 @@ def test_recurrent_evaluation_respects_the_reading_budget(dataset, runs, glimpse
 @pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_recurrent_evaluation_jit_equals_no_jit(dataset, runs, glimpse_reads):
     with jax.disable_jit():
-        plain = budget_curve.policy_reads(runs["glimpse:1"], dataset, "test", BUDGETS[-1:])
+        plain = pipeline.policy_reads(runs["glimpse:1"], dataset, "test", BUDGETS[-1:])
     for (read, score, fraction, _), (read0, score0, fraction0, _) in zip(plain[BUDGETS[-1]], glimpse_reads[BUDGETS[-1]]):
         np.testing.assert_array_equal(read, read0)
         assert score == pytest.approx(score0, abs=1e-5) and fraction == pytest.approx(fraction0, abs=1e-6)

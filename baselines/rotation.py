@@ -41,7 +41,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from baselines import common, ppo
-from data_tools.cli_output import command_main
+from data_tools.cli_output import command_main, print_error
 from histojax.registry import make, slide_paths
 from histojax.sharding import PER_SLIDE, host_leaves, on_host, pad_leaf
 from histojax.slide import SlideArrays, stack_slides
@@ -151,33 +151,33 @@ def build_set(store: SlideStore, indices: list[int], cap: dict, device) -> Slide
                           device)
 
 
-def train_rotating(config: dict, budget_bytes: int, resident: int | None = None, rotate_every: int = 4,
+def train_rotating(config, budget_bytes: int, resident: int | None = None, rotate_every: int = 4,
                    source: str = "memory", keys=None, set_seed: int = 0) -> dict:
-    """PPO (``config`` as :func:`baselines.ppo.make_train`) on a dataset with at most two sets of
+    """PPO (``config`` as :func:`baselines.ppo.make_train`: a :class:`~baselines.ppo.PPOConfig` or its dict) on a dataset with at most two sets of
     ``resident`` slides on the device (see the module doc). The dataset is the one ``config``
     names (``slide`` / ``env_kwargs`` ``slides`` or ``dataset``). Returns ``{"params",
     "metrics": {name: (seeds, updates)}, "rotation": {measured bytes and the plan}, "env",
-    "env_params" (on set 0), "config"}``."""
-    config = {**ppo.DEFAULTS, **common.canonical_config(config)}
-    if config.get("devices") is not None or config.get("shard_slides"):
+    "env_params" (on set 0), "config" (the record of the config trained, as ``config.json`` holds it)}``."""
+    config = ppo.PPOConfig.coerce(config, where="rotation.train_rotating")
+    if config.devices is not None or config.shard_slides:
         raise ValueError("rotating slides runs on one device (no devices / shard_slides)")
     kw = common.env_overrides(config)
-    paths = slide_paths(config["env_id"], slide=config.get("slide"), slides=kw.pop("slides", None),
+    paths = slide_paths(config.env_id, slide=config.slide, slides=kw.pop("slides", None),
                         dataset=kw.pop("dataset", None), split=kw.pop("split", "train"), fold=kw.pop("fold", None),
                         **kw)
-    store = SlideStore(config["env_id"], paths, source=source, **kw)
+    store = SlideStore(config.env_id, paths, source=source, **kw)
     k, sets, cap, set_bytes = choose_resident(store, budget_bytes, resident, set_seed)
-    batch = config["num_envs"] * config["num_steps"]
-    num_updates = max(1, config["total_timesteps"] // batch)
+    batch = config.num_envs * config.num_steps
+    num_updates = max(1, config.total_timesteps // batch)
     phases = math.ceil(num_updates / rotate_every)
-    env_kwargs = {a: b for a, b in (config.get("env_kwargs") or {}).items() if a not in ("slides", "dataset", "split", "fold")}
-    config = {**config, "total_timesteps": phases * rotate_every * batch, "slide": paths[0], "env_kwargs": env_kwargs}
+    env_kwargs = {a: b for a, b in (config.env_kwargs or {}).items() if a not in ("slides", "dataset", "split", "fold")}
+    config = config.replace(total_timesteps=phases * rotate_every * batch, slide=paths[0], env_kwargs=env_kwargs)
     with on_host():  # the env and the jittable pieces; their own env params (one slide) stay off the accelerator
         train = ppo.make_train(config)
     device = jax.devices()[0]
     base = train.env_params
-    num_seeds = config["num_seeds"]
-    keys = jax.random.split(jax.random.PRNGKey(config.get("seed", 0)), num_seeds) if keys is None else keys
+    num_seeds = config.num_seeds
+    keys = jax.random.split(jax.random.PRNGKey(config.seed or 0), num_seeds) if keys is None else keys
 
     @jax.jit
     def init_states(keys, env_params):
@@ -225,7 +225,7 @@ def train_rotating(config: dict, budget_bytes: int, resident: int | None = None,
                 "compile_seconds": compile_seconds,
                 "env_steps_per_second": phases * rotate_every * batch * num_seeds / train_seconds}
     return {"params": states.params, "metrics": metrics, "rotation": rotation, "env": train.env,
-            "env_params": base.replace(slide=current), "config": config, "steps_per_update": batch}
+            "env_params": base.replace(slide=current), "config": config.as_dict(), "steps_per_update": batch}
 
 
 def add_arguments(p) -> None:
@@ -245,8 +245,11 @@ def run(args, parser) -> int:
         parser.error("--budget-mb is required")
     if args.coordinator is not None or args.distributed:
         raise SystemExit("baselines.rotation runs in one process (no --coordinator / --distributed)")
-    config = ppo.config_from_args(args)
-    out = Path(args.out or f"runs/rotation-{config['env_id']}")
+    try:
+        config = ppo.PPOConfig.from_dict(ppo.config_from_args(args), where="the options (--set)")
+    except common.ConfigError as e:
+        return print_error(e)
+    out = Path(args.out or f"runs/rotation-{config.env_id}")
     result = train_rotating(config, int(args.budget_mb * 2**20), args.resident, args.rotate_every, args.source)
     rot = result["rotation"]
     print(f"resident sets: K={rot['resident_slides']} of {rot['num_slides']} slides, {rot['phases']} phases of "

@@ -61,11 +61,11 @@ def child(argv: list[str]) -> None:
     """In a fresh process: the cache on (as the command line turns it on), the trainer config of ``argv`` made and
     its whole training program compiled ahead of time; prints ``{"compile_seconds", "make_seconds"}`` as JSON."""
     compile_cache.setup([])
-    config = ppo.config_from_args(ppo.parse_args(argv))
+    config = ppo.PPOConfig.from_dict(ppo.config_from_args(ppo.parse_args(argv)), where="the options (--set)")
     t0 = time.perf_counter()
     train = ppo.make_train(config)
     make_s = time.perf_counter() - t0
-    keys = jax.random.split(jax.random.PRNGKey(0), config["num_seeds"])
+    keys = jax.random.split(jax.random.PRNGKey(0), config.num_seeds)
     t0 = time.perf_counter()
     train.compile(keys)
     print(json.dumps({"compile_seconds": time.perf_counter() - t0, "make_seconds": make_s}))

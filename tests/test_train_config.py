@@ -72,6 +72,12 @@ def test_a_wrong_type_is_refused_in_one_line(entry, value, words):
     assert str(e.value) == f"the options (--set): {words}"
 
 
+def test_a_stopped_runs_notes_load_and_are_not_kept():
+    """``experiments.checkpoint_to_run`` notes in config.json where a stopped run stopped: such a folder loads."""
+    config = ppo.PPOConfig.from_dict({**ppo.DEFAULTS, "stopped_at_update": 7, "checkpoint_train_seconds": 1.5})
+    assert config == ppo.PPOConfig() and config.as_dict() == ppo.DEFAULTS
+
+
 def test_a_number_where_a_float_goes_and_null_where_allowed_load():
     config = ppo.PPOConfig.from_dict({"lr": 1, "ent_coef_final": None, "max_steps_in_episode": None, "devices": 2})
     assert config.lr == 1 and config.devices == 2

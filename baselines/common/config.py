@@ -29,6 +29,11 @@ MAKE_ARGUMENTS = ("slide", "verify", "max_device_bytes", "slides", "slide_weight
 """``histojax.make``'s own arguments (the slides and how they load) that ``env_kwargs`` may hold beside its options."""
 
 
+RECORD_NOTES = ("stopped_at_update", "checkpoint_train_seconds")
+"""Entries a run folder's ``config.json`` may hold beside the settings, about the run rather than for it
+(``experiments.checkpoint_to_run`` notes where a stopped run stopped): read without a word, not kept."""
+
+
 class ConfigError(ValueError):
     """A trainer config that cannot be made: an unknown entry or a value of the wrong type. ``str``: one line,
     ``"WHERE: DETAIL"`` (``where`` the file or the call, ``detail`` the entry and what is wrong)."""
@@ -119,7 +124,7 @@ class EnvConfig:
     @classmethod
     def from_dict(cls, config: dict, where: str = "config", strict: bool = True):
         """The config of ``config`` (a ``config.json`` object, a command line's entries, or ``make_train``'s dict):
-        older spellings renamed, entries it lacks at their defaults. ``ConfigError`` naming ``where`` and the entry,
+        older spellings renamed, entries it lacks at their defaults, a run's notes (:data:`RECORD_NOTES`) dropped. ``ConfigError`` naming ``where`` and the entry,
         one line, for an entry this trainer does not have (unless ``strict=False``: then ignored) or a value of the
         wrong type (``"lr": "fast"``; an int is accepted for a float)."""
         if isinstance(config, EnvConfig):
@@ -128,7 +133,7 @@ class EnvConfig:
             raise ConfigError(where, f"a config is an object of settings, not a {type(config).__name__}")
         config = canonical_config(config)
         names, hints = cls.field_names(), cls._hints()
-        unknown = [k for k in config if k not in names]
+        unknown = [k for k in config if k not in names and k not in RECORD_NOTES]
         if unknown and strict:
             key = unknown[0]
             close = difflib.get_close_matches(str(key), names, n=1)

@@ -8,7 +8,8 @@ curve, and the navigator's diagnosis through a head. Each is a command, ``python
 - ``diagnosis``: navigators scored through a head beside the readers.
 - ``train_readers``: readers and navigators trained with the head reward, then scored.
 
-The readers and the budget curve share one set of pieces (leaf modules, no command): ``budgets`` (the default
-reading budgets), ``orders`` (the scripted readers' cell orders and the glimpse env's reading rule), ``lesions``
-(CAMELYON lesion classes), ``plots`` (their figures) and ``csv_files`` (their tables).
+The readers and the budget curve are one pipeline, ``pipeline`` (the one loader of a split's slides, the one run loop
+over readers × budgets, the one-class refusal, trained readers' roll-outs), with one set of pieces (leaf modules, no
+command): ``budgets`` (the default reading budgets), ``orders`` (the scripted readers' cell orders and the glimpse
+env's reading rule), ``lesions`` (CAMELYON lesion classes), ``plots`` (their figures) and ``csv_files`` (their tables).
 """

@@ -65,6 +65,7 @@ def test_an_unknown_entry_is_refused_in_one_line_naming_it():
     ("anneal_lr", 1, "anneal_lr=1 must be true or false, not a int"),
     ("env_kwargs", [1], "env_kwargs=[1] must be an object or null, not a list"),
     ("devices", "2", "devices='2' must be a whole number or null, not a str"),
+    ("slide", 3, "slide=3 must be a string or a path or null, not a int"),
 ])
 def test_a_wrong_type_is_refused_in_one_line(entry, value, words):
     with pytest.raises(ConfigError) as e:
@@ -79,8 +80,9 @@ def test_a_stopped_runs_notes_load_and_are_not_kept():
 
 
 def test_a_number_where_a_float_goes_and_null_where_allowed_load():
-    config = ppo.PPOConfig.from_dict({"lr": 1, "ent_coef_final": None, "max_steps_in_episode": None, "devices": 2})
-    assert config.lr == 1 and config.devices == 2
+    config = ppo.PPOConfig.from_dict({"lr": 1, "ent_coef_final": None, "max_steps_in_episode": None, "devices": 2,
+                                      "slide": Path("bundle")})
+    assert config.lr == 1 and config.devices == 2 and config.slide == Path("bundle")  # a slide folder as a Path
 
 
 def test_resume_refuses_a_checkpoint_config_of_a_wrong_type_naming_the_file(tmp_path):

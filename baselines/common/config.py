@@ -16,6 +16,7 @@ import copy
 import dataclasses
 import difflib
 import functools
+import os
 import types
 import typing
 from typing import Any, ClassVar
@@ -54,7 +55,7 @@ def canonical_config(config: dict) -> dict:
 
 
 _NAMES = {bool: "true or false", int: "a whole number", float: "a number", str: "a string", dict: "an object",
-          type(None): "null"}
+          type(None): "null", os.PathLike: "a path"}
 
 
 def _fits(value, hint) -> bool:
@@ -97,7 +98,7 @@ class EnvConfig:
 
     algo: str = ""                       # the trainer (recorded in config.json)
     env_id: str = "HistoJAX-Easy-v0"     # registered env id
-    slide: str | None = None             # bundle folder; None: the id's slide (the sample slide)
+    slide: str | os.PathLike | None = None  # bundle folder; None: the id's slide (the sample slide)
     action_mode: str = "discrete"        # the env's action_mode
     obs_mode: str = "pixels"             # the env's obs_mode
     with_position: bool = False          # observation dict with the view position

@@ -32,10 +32,10 @@ from pathlib import Path
 import numpy as np
 
 from baselines import outputs
-from baselines.evaluate.checks import UNDEFINED
 from baselines.reading import readers
 from baselines.reading.budgets import BUDGETS
 from baselines.reading.csv_files import write_csv
+from baselines.reading.pipeline import check_two_classes, run_seeds
 from baselines.reading.plots import plot_readers
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
@@ -48,14 +48,9 @@ def score_split(dataset, head_path, split: str = "test", budgets=BUDGETS, seeds:
     (:func:`baselines.reading.readers.load_split`) and ``results`` the scripted readers' rows at ``budgets``
     (fractions of a slide's finest tissue views; ``seeds`` random orders): :func:`baselines.reading.readers.scripted_results`.
     A split without slides of both classes is a ``HistojaxDataError`` naming ``dataset.json``, one line: its AUC is
-    :data:`~baselines.evaluate.checks.UNDEFINED`."""
+    undefined: one class (:func:`baselines.reading.pipeline.check_two_classes`, as the readers refuse it)."""
     head, level, slides = readers.load_split(dataset, head_path, split, fold=fold)
-    labels = {int(s["label"]) for s in slides}
-    if len(labels) < 2:
-        only = "no slides" if not labels else f"only {'tumour' if labels.pop() else 'normal'} slides ({len(slides)})"
-        raise HistojaxDataError(Path(dataset) / "dataset.json", f"split {split!r}"
-                                + (f" (fold {fold})" if fold is not None else "") + f" holds {only}: its AUC is "
-                                f"{UNDEFINED}; score a split with tumour and normal slides")
+    check_two_classes(dataset, split, [int(s["label"]) for s in slides], fold)  # the readers' own refusal
     return head, level, slides, readers.scripted_results(head, slides, budgets, seeds, level)
 
 
@@ -118,8 +113,6 @@ def navigator_masks(run, dataset, slides: list[dict], split: str = "test", seeds
     """``{1.0: [[read mask (H, W) per slide] per seed]}`` of a navigator (no budget: key 1.0), ready for
     :func:`baselines.reading.readers.add_reader`; ``slides`` are :func:`baselines.reading.head_fit.load_slides` of the split;
     ``greedy=False``: sampled episodes (key = the seed)."""
-    from baselines.reading.budget_curve import run_seeds
-
     per_seed = []
     for seed in range(max(1, min(seeds, run_seeds(run)))):
         reads = navigator_reads(run, dataset, split, seed, greedy=greedy, fold=fold)

@@ -23,8 +23,9 @@ PYTEST := $(PY) -m pytest -q -n $(TEST_WORKERS) --dist loadfile
 test: $(STAMP)
 	$(PYTEST)
 
+# HISTOJAX_TEST_ALL=1: the hypothesis tests draw their full example counts (tests/hypothesis_examples.py)
 test-all: integrations
-	$(PYTEST) -m ''
+	HISTOJAX_TEST_ALL=1 $(PYTEST) -m ''
 
 # Stable-Baselines3 (with torch, heavy) and rejax: not in `make test`'s install; their tests skip without them
 integrations: $(STAMP)

@@ -16,9 +16,11 @@ from hypothesis import strategies as st
 
 import histojax
 from histojax import STAY, ZOOM_IN, ZOOM_OUT
+from hypothesis_examples import examples
 
 T_STEPS = 30
-SETTINGS = settings(deadline=None, max_examples=40, derandomize=True)
+# 40 examples each under `make test-all`, 10 in `make test`
+SETTINGS = settings(deadline=None, max_examples=examples(40, 10), derandomize=True)
 actions_strategy = st.lists(st.integers(-2, 9), min_size=T_STEPS, max_size=T_STEPS)  # includes invalid codes
 
 
@@ -132,7 +134,7 @@ def _vmapped_step(env):
     return jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
 
 
-@settings(deadline=None, max_examples=10, derandomize=True)
+@settings(deadline=None, max_examples=examples(10, 3), derandomize=True)
 @given(actions=st.lists(st.integers(0, 6), min_size=12, max_size=12), seed=st.integers(0, 2**31 - 1))
 def test_jitted_equals_not_jitted_and_same_key_same_trajectory(actions, seed):
     env, params, step, _ = scenario("HistoJAX-Medium-v0")

@@ -14,6 +14,12 @@ is made findable wherever the folder goes: a head published in ``baselines/publi
 
 Choose the run (and ``--seed``) on validation results (``c16_reference.py --val-fraction``), never
 on the test split.
+
+A published folder carries no path of the machine it was trained on: the dataset and slides in ``config.json``
+(``env_kwargs.dataset``, ``env_kwargs.slides``, ``slide``) are written as ``null`` and named instead, by folder name
+and in words (``--trained-on TEXT``: what the dataset is and the command that builds it), in ``published.json``'s
+``trained_on``; ``source_run`` is the run's folder name; ``head_reward.json`` and a copied head keep folder names
+only. ``histojax evaluate NAME --dataset DIR`` scores it on any dataset of the kind it trained on.
 """
 from __future__ import annotations
 
@@ -29,9 +35,11 @@ from data_tools.errors import HistojaxDataError
 
 
 def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str | None = None,
-            chosen_by: dict | None = None) -> Path:
+            chosen_by: dict | None = None, trained_on: str | None = None) -> Path:
     """Copy run folder ``run``'s checkpoint into ``root/name`` (``seed``: keep only that seed's
-    parameters, still with a leading seed axis of 1); returns the folder."""
+    parameters, still with a leading seed axis of 1); returns the folder. No path of this machine is written
+    (:func:`portable_config`): the dataset it trained on is named in ``published.json``'s ``trained_on`` by
+    folder name, split and ``trained_on`` (words: what it is and how to build it)."""
     run = Path(run)
     if not (run / "params.msgpack").is_file() or not (run / "config.json").is_file():
         raise ValueError(f"{run}: not a run folder (needs params.msgpack and config.json)")
@@ -39,19 +47,31 @@ def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str |
         raise ValueError(f"bad name {name!r}: one folder name")
     # the slide head of a reader trained with SASHA's reward, found before anything is written
     head = published_head(run) if (run / "head_reward.json").is_file() else None
+    try:
+        config = json.loads((run / "config.json").read_text())
+    except ValueError as e:
+        raise ValueError(f"{run / 'config.json'}: not JSON ({e})") from None
+    if not isinstance(config, dict):
+        raise ValueError(f"{run / 'config.json'}: not an object of settings")
+    config, where = portable_config(config)
+    head_config = None
+    if head is not None and head[1] is not None:  # a head copied beside the reader: its config read before writing
+        try:
+            head_config = portable_head_config(json.loads((head[1] / "config.json").read_text()))
+        except ValueError as e:
+            raise ValueError(f"{head[1] / 'config.json'}: not JSON ({e})") from None
     dest = Path(root) / name
     dest.mkdir(parents=True, exist_ok=True)
     if seed is None:
-        for f in ("params.msgpack", "config.json"):  # whole or absent (baselines.outputs)
-            outputs.write_bytes(dest / f, (run / f).read_bytes())
+        outputs.write_bytes(dest / "params.msgpack", (run / "params.msgpack").read_bytes())  # whole or absent
+        outputs.write_text(dest / "config.json", json.dumps(config, indent=2))
         seeds = None
     else:
-        params, config = common.load_checkpoint(run)
+        params, _ = common.load_checkpoint(run)
         n = jax.tree.leaves(params)[0].shape[0]
         if not 0 <= seed < n:
             raise ValueError(f"{run} has {n} seed(s); --seed {seed} is not one of them")
-        common.save_checkpoint(dest, jax.tree.map(lambda a: a[seed:seed + 1], params),
-                               {**json.loads((run / "config.json").read_text()), "num_seeds": 1})
+        common.save_checkpoint(dest, jax.tree.map(lambda a: a[seed:seed + 1], params), {**config, "num_seeds": 1})
         seeds = [seed]
     for f in ("log.csv", "curve.png"):  # the learning curve, when the run has one
         if (run / f).is_file():
@@ -60,16 +80,67 @@ def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str |
         record, copy = head
         if copy is not None:
             (dest / "head").mkdir(exist_ok=True)
-            for f in ("config.json", "params.json"):
-                outputs.write_bytes(dest / "head" / f, (copy / f).read_bytes())
+            for f in ("params.json", "params.npz"):  # whichever the head's kind keeps
+                if (copy / f).is_file():
+                    outputs.write_bytes(dest / "head" / f, (copy / f).read_bytes())
+            outputs.write_text(dest / "head" / "config.json", json.dumps(head_config, indent=1) + "\n")
         outputs.write_text(dest / "head_reward.json", json.dumps(record, indent=1) + "\n")
     summary = None
     if (run / "log.json").is_file():
         summary = json.loads((run / "log.json").read_text()).get("summary")
-    record = {"name": name, "source_run": str(run.resolve()), "seeds": seeds, "training_summary": summary,
-              "chosen_by": chosen_by, "note": note}
+    if trained_on:
+        where["what"] = trained_on
+    record = {"name": name, "source_run": run_name(run, config), "seeds": seeds, "trained_on": where or None,
+              "training_summary": summary, "chosen_by": chosen_by, "note": note}
     outputs.write_text(dest / "published.json", json.dumps(record, indent=1))
     return dest
+
+
+def folder_name(path) -> str:
+    """The last part of ``path`` (a folder of some machine), as a name that is no path."""
+    return Path(str(path)).name
+
+
+def run_name(run: Path, config: dict) -> str:
+    """``run``'s folder name, with its parent's when the run is a trainer's subfolder (``OUT/ppo`` of
+    ``baselines.reading.train_readers``: ``nav-map-fid/ppo``): names, never a path of this machine."""
+    run = run.resolve()
+    if run.name in (str(config.get("algo") or ""), "ppo", "ppo_rnn", "dqn") and run.parent.name:
+        return f"{run.parent.name}/{run.name}"
+    return run.name
+
+
+def portable_config(config: dict) -> tuple[dict, dict]:
+    """``(config, trained_on)``: a run's ``config.json`` object with the paths of the machine it trained on
+    written as ``null`` (``env_kwargs.dataset``, ``env_kwargs.slides``, ``slide``), and what they named as folder
+    names (``trained_on``: ``dataset``, ``split``, ``fold``, ``slides``, ``slide``; empty when none)."""
+    config = dict(config)
+    kw = dict(config.get("env_kwargs") or {}) if isinstance(config.get("env_kwargs"), dict) else None
+    where: dict = {}
+    if kw is not None:
+        if isinstance(kw.get("dataset"), str) and kw["dataset"]:
+            where["dataset"] = folder_name(kw["dataset"])
+            where["split"] = kw.get("split", "train")
+            if kw.get("fold") is not None:
+                where["fold"] = kw["fold"]
+            kw["dataset"] = None
+        if isinstance(kw.get("slides"), (list, tuple)) and kw["slides"]:
+            where["slides"] = [folder_name(s) for s in kw["slides"]]
+            kw["slides"] = None
+        config["env_kwargs"] = kw
+    if isinstance(config.get("slide"), str) and config["slide"]:
+        where["slide"] = folder_name(config["slide"])
+        config["slide"] = None
+    return config, where
+
+
+def portable_head_config(config):
+    """A slide head's ``config.json`` object with the dataset it was fitted on (``fitted_on.dataset``, written
+    by the head fits as an absolute path) reduced to its folder name."""
+    if isinstance(config, dict) and isinstance(config.get("fitted_on"), dict) \
+            and isinstance(config["fitted_on"].get("dataset"), str):
+        config = {**config, "fitted_on": {**config["fitted_on"], "dataset": folder_name(config["fitted_on"]["dataset"])}}
+    return config
 
 
 def published_head(run: Path) -> tuple[dict, Path | None]:
@@ -81,10 +152,12 @@ def published_head(run: Path) -> tuple[dict, Path | None]:
 
     record, where = head_reward_settings(run, {})
     head = resolve_head(record["head"], run, where).resolve()
+    if isinstance(record.get("dataset"), str):  # the folder trained on, by name (no path of this machine)
+        record = {**record, "dataset": folder_name(record["dataset"])}
     if head.is_relative_to(PUBLISHED.resolve()):
-        return {**record, "head": f"baselines/published/{head.relative_to(PUBLISHED.resolve()).as_posix()}",
-                "head_source": record["head"]}, None
-    return {**record, "head": "head", "head_source": record["head"]}, head
+        published = f"baselines/published/{head.relative_to(PUBLISHED.resolve()).as_posix()}"
+        return {**record, "head": published, "head_source": published}, None
+    return {**record, "head": "head", "head_source": folder_name(record["head"])}, head
 
 
 def main(argv=None) -> int:
@@ -97,10 +170,14 @@ def main(argv=None) -> int:
     p.add_argument("--chosen-by", default=None,
                    help="how the run and seed were chosen, kept in published.json as chosen_by.by (e.g. 'validation "
                         "AUC at 10 %% read, 3 seeds'); never the test split")
+    p.add_argument("--trained-on", default=None,
+                   help="what the dataset it trained on is and the command that builds it, kept in published.json as "
+                        "trained_on.what (e.g. 'CAMELYON16 true-scale set, train split: histojax c16 --features ... "
+                        "--out DIR'); its folder name and split are kept anyway, its path never")
     args = p.parse_args(argv)
     try:
         dest = publish(args.run, args.name, args.root, args.seed, args.note,
-                       chosen_by={"by": args.chosen_by} if args.chosen_by else None)
+                       chosen_by={"by": args.chosen_by} if args.chosen_by else None, trained_on=args.trained_on)
     except (OSError, ValueError, HistojaxDataError) as e:
         raise SystemExit(f"publish: {e}") from None
     print(f"published {args.run} as {dest}; score it with: histojax evaluate {dest} --dataset DIR")

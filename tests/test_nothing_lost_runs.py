@@ -421,8 +421,14 @@ def test_an_empty_shard_is_refused(tmp_path, capsys):
 def test_a_published_agent_without_its_training_dataset_says_so_and_suggests_dataset(tmp_path, capsys, monkeypatch):
     from histojax.cli import main
 
+    import shutil
+
     monkeypatch.chdir(tmp_path)  # runs/r6/ref/validation, recorded in its config.json, is not here
-    assert main(["evaluate", str(ROOT / "baselines" / "published" / "c16-v1-diagnosis"), "--episodes", "2"]) == 2
+    agent = shutil.copytree(ROOT / "baselines" / "published" / "c16-v1-diagnosis", tmp_path / "agent")
+    config = json.loads((agent / "config.json").read_text())  # published before: its training path recorded
+    (agent / "config.json").write_text(json.dumps({**config, "env_kwargs": {**config["env_kwargs"],
+                                                                            "dataset": "runs/r6/ref/validation"}}))
+    assert main(["evaluate", str(agent), "--episodes", "2"]) == 2
     line = _one_line(capsys)
     assert "runs/r6/ref/validation, which does not exist here" in line and "--dataset" in line, line
     assert "not a dataset folder" not in line

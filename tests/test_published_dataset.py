@@ -1,5 +1,5 @@
-"""A published agent's config.json records the dataset of the machine it was trained on (/work/c16-full,
-/work/scratch/..., runs/r6/...): kept as provenance, never used unasked. ``histojax evaluate`` of a published agent
+"""A published agent's config.json records no path of the machine it was trained on (published.json names the
+dataset in words); one published before recorded its path: kept as provenance, never used unasked. ``histojax evaluate`` of a published agent
 without ``--dataset`` says in one line which dataset it needs and how to build it (exit 2, nothing written), also
 when a folder of the recorded name exists here; with ``--dataset`` it is scored there."""
 from __future__ import annotations
@@ -28,8 +28,8 @@ def test_every_published_agent_names_the_dataset_it_needs(name, tmp_path, capsys
     out = tmp_path / "eval"
     assert histojax_main(["evaluate", str(PUBLISHED / name), "--episodes", "2", "--out", str(out)]) == 2
     line = _one_line(capsys)
-    recorded = json.loads((PUBLISHED / name / "config.json").read_text())["env_kwargs"]["dataset"]
-    assert f"{PUBLISHED / name / 'config.json'}: a published agent" in line and recorded in line
+    assert json.loads((PUBLISHED / name / "config.json").read_text())["env_kwargs"]["dataset"] is None  # no path
+    assert f"{PUBLISHED / name / 'config.json'}: a published agent" in line and "records no dataset" in line
     assert "give --dataset DIR" in line and "histojax c16 --small --features --out c16-small" in line
     assert "pcam-cnn" in line and "docs/c16-benchmark.md#build-it" in line
     assert not out.exists()

@@ -13,7 +13,9 @@ TINY_PPO = dict(env_id="HistoJAX-Easy-v0", with_position=True, num_envs=4, num_s
                 update_epochs=1, num_minibatches=2, hidden=32, num_seeds=2, print_progress=False)
 
 
-@pytest.mark.parametrize("vmap_seeds", [False, True])
+# the default (seeds vmapped) in `make test`; seeds one after another (lax.map) under `make test-all`, whose
+# runner path tests/test_resume.py::test_driver_killed_and_resumed_equals_the_uninterrupted_run[False] covers
+@pytest.mark.parametrize("vmap_seeds", [pytest.param(False, marks=pytest.mark.slow), True])
 def test_tiny_ppo_runs_jitted_with_finite_losses(vmap_seeds):
     train = ppo.make_train({**TINY_PPO, "vmap_seeds": vmap_seeds})
     keys = jax.random.split(jax.random.PRNGKey(0), 2)

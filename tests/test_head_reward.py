@@ -19,6 +19,7 @@ from histojax.reading import tables as reading_tables
 from histojax.reading.heads import score_logits
 from histojax.reading.heads.logit import SlideHead
 from histojax.adapters.head_reward import HeadReward
+from hypothesis_examples import examples
 from slide_helpers import synth_feature_dataset
 
 STEPS, ENVS = 14, 3
@@ -328,7 +329,7 @@ def incremental_pair(dataset, request):
     return roll, c
 
 
-@settings(max_examples=8, deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
+@settings(max_examples=examples(8, 3), deadline=None, suppress_health_check=[HealthCheck.function_scoped_fixture])
 @given(seed=st.integers(0, 2**31 - 1), declare_rate=st.sampled_from([0.0, 0.05]))
 def test_windowed_score_equals_scoring_the_whole_grid(incremental_pair, seed, declare_rate):
     """Re-scoring only the 3 × 3 cells around each revealed cell gives the very floats of scoring the whole

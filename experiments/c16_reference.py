@@ -59,6 +59,7 @@ sys.path.insert(0, str(ROOT))
 
 from baselines import common, outputs, ppo, ppo_rnn  # noqa: E402
 from baselines.evaluate import evaluate  # noqa: E402
+from baselines.run_config import read_run_config  # noqa: E402
 
 SCENARIOS = ("Easy", "Medium", "Hard", "Diagnosis")
 METHODS = ("random", "scripted", "ppo-pixels", "ppo-features", "ppo-rnn")
@@ -173,15 +174,16 @@ def trained_cell(method: str, dataset: Path, env_id: str, env_kwargs: dict, step
     t0 = time.perf_counter()
     trainer.main(argv)
     train_wall = time.perf_counter() - t0
-    params, config = common.load_checkpoint(out)
-    config["env_kwargs"] = {**train_kwargs, "dataset": str(dataset), "split": "test"}
-    config["env_kwargs"].pop("augment", None)
+    params, record = common.load_checkpoint(out)
+    config = read_run_config(record, Path(out) / "config.json")
+    config = config.replace(env_kwargs={k: v for k, v in {**train_kwargs, "dataset": str(dataset), "split": "test"}.items()
+                                        if k != "augment"})
     t0 = time.perf_counter()
     rows = evaluate(config, params, num_episodes=episodes, label=settings["trainer"], references=False)
     name = f"{settings['trainer']} (sampled)"
     validation = None
     if train_dataset is not None:
-        config["env_kwargs"]["dataset"] = str(train_dataset)  # its "test" list: the validation slides
+        config = config.replace(env_kwargs={**config.env_kwargs, "dataset": str(train_dataset)})  # its "test" list: the validation slides
         validation = evaluate(config, params, num_episodes=episodes, label=settings["trainer"], references=False)[name]
     summary = json.loads((out / "log.json").read_text())["summary"]
     return {**rows[name], "greedy": rows[f"{settings['trainer']} (greedy)"], "validation": validation,

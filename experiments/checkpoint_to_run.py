@@ -20,6 +20,9 @@ from pathlib import Path
 
 import numpy as np
 
+from baselines.run_config import read_run_config
+from data_tools.errors import HistojaxDataError
+
 
 def params_from_leaves(template, leaves: list[np.ndarray], n_seeds: int):
     """The parameters in a runner state's flat ``leaves``: the first run of consecutive leaves whose shapes
@@ -49,17 +52,17 @@ def main(argv=None) -> int:
 
     folder = args.run / common.CHECKPOINT_DIR
     try:
-        config = json.loads((folder / "config.json").read_text())
+        config = read_run_config(folder / "config.json")
         state = serialization.msgpack_restore((folder / "runner.msgpack").read_bytes())
-    except (OSError, ValueError) as e:
+    except (OSError, ValueError, HistojaxDataError) as e:
         print(f"error: {folder}: no readable checkpoint ({e})", file=sys.stderr)
         return 2
-    if config.get("algo", "ppo") != "ppo":
-        print(f"error: {folder}: a {config.get('algo')} run; this reads PPO runs", file=sys.stderr)
+    if config.algo != "ppo":
+        print(f"error: {folder}: a {config.algo} run; this reads PPO runs", file=sys.stderr)
         return 2
     leaves = [state["leaves"][str(i)] for i in range(len(state["leaves"]))]
-    n_seeds, update = int(config["num_seeds"]), int(state["update"])
-    kw = dict(config.get("env_kwargs") or {})
+    n_seeds, update = int(config.num_seeds), int(state["update"])
+    kw = dict(config.env_kwargs or {})
     with tempfile.TemporaryDirectory() as tmp:
         if kw.get("dataset"):  # the network's shapes from one slide of the run's dataset
             spec = json.loads((Path(kw["dataset"]) / "dataset.json").read_text())
@@ -68,7 +71,7 @@ def main(argv=None) -> int:
             first = str(first if Path(first).is_absolute() else (root / first).resolve())
             (Path(tmp) / "dataset.json").write_text(json.dumps({**spec, "train": [first], "test": [first]}))
             kw = {**kw, "dataset": tmp, "split": "train"}
-        small = {**config, "env_kwargs": kw, **({"dataset": tmp} if config.get("dataset") else {})}
+        small = config.replace(env_kwargs=kw)
         env, env_params = common.make_env(small)
         network = make_network(small, env)
         obs, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), 2), env_params)
@@ -79,15 +82,16 @@ def main(argv=None) -> int:
         print(f"error: {folder}: {e}", file=sys.stderr)
         return 2
     metrics = {k: np.asarray(v) for k, v in state["metrics"].items()}
-    steps_per_update = int(config["num_envs"]) * int(config["num_steps"])
+    steps_per_update = int(config.num_envs) * int(config.num_steps)
     steps = (np.arange(update) + 1) * steps_per_update
     out = args.out or args.run
     out.mkdir(parents=True, exist_ok=True)
-    config = {**config, "total_timesteps": int(steps[-1]), "stopped_at_update": update,
+    config = config.replace(total_timesteps=int(steps[-1]))
+    record = {**config.as_dict(), "stopped_at_update": update,  # the run's notes (RECORD_NOTES) beside it
               "checkpoint_train_seconds": float(state["train_seconds"])}
     k = max(1, update // 40)
     tail = slice(max(0, update - k), None)
-    summary = {"algo": "ppo", "env_id": config["env_id"], "env_steps_per_seed": int(steps[-1]), "seeds": n_seeds,
+    summary = {"algo": "ppo", "env_id": config.env_id, "env_steps_per_seed": int(steps[-1]), "seeds": n_seeds,
                "train_seconds": float(state["train_seconds"]), "stopped_at_update": update,
                "planned_updates": int(state["num_updates"]),
                "env_steps_per_second_all_seeds": float(steps[-1] * n_seeds / max(1e-9, float(state["train_seconds"]))),
@@ -96,9 +100,9 @@ def main(argv=None) -> int:
     common.plot_curves(out / "curve.png", steps, {"mean return": common.smooth(metrics["return"], k),
                                                   "success rate": common.smooth(metrics["success"], k),
                                                   "mean length": common.smooth(metrics["length"], k)},
-                       title=f"PPO on {config['env_id']} ({config['action_mode']}), {n_seeds} seeds, "
+                       title=f"PPO on {config.env_id} ({config.action_mode}), {n_seeds} seeds, "
                              f"stopped at update {update}/{state['num_updates']}")
-    common.save_checkpoint(out, params, config)
+    common.save_checkpoint(out, params, record)
     print(f"{out}: update {update}/{state['num_updates']}, {steps[-1]:,} env steps/seed x {n_seeds} seeds in "
           f"{state['train_seconds']:.0f} s ({summary['env_steps_per_second_all_seeds']:,.0f} env steps/s); "
           f"final return {summary['final']['return']:.4f}; wrote params.msgpack, config.json, log.csv, curve.png")

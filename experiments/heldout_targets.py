@@ -36,6 +36,8 @@ sys.path.insert(0, str(ROOT))
 
 from baselines import common, ppo  # noqa: E402
 from baselines.evaluate import evaluate  # noqa: E402
+from baselines.run_config import read_run_config  # noqa: E402
+from data_tools.errors import HistojaxDataError  # noqa: E402
 
 TARGETS = {"Easy": 0.90, "Medium": 0.70, "Hard": 0.50}
 DEFAULT_STEPS = {"Easy": 262_144, "Medium": 786_432, "Hard": 1_048_576}
@@ -75,7 +77,8 @@ def run_scenario(name: str, dataset: Path, heldout: list, steps: int, seeds: int
     else:
         print(f"reusing {run} (same scenario, dataset, steps and seeds)")
     summary = json.loads((run / "log.json").read_text())["summary"]
-    params, config = common.load_checkpoint(run)
+    params, record = common.load_checkpoint(run)
+    config = read_run_config(record, run / "config.json")
     same_training = previous is not None and previous.get("train_seconds") == summary["train_seconds"]
     per_slide = {}
     for group, bundle in heldout:
@@ -106,11 +109,11 @@ def run_scenario(name: str, dataset: Path, heldout: list, steps: int, seeds: int
 
 def _same_run(run: Path, env_id: str, kwargs: dict, steps: int, seeds: int) -> bool:
     try:
-        config = json.loads((run / "config.json").read_text())
+        config = read_run_config(run / "config.json")
         summary = json.loads((run / "log.json").read_text())["summary"]
-    except (OSError, ValueError, KeyError):
+    except (OSError, ValueError, KeyError, HistojaxDataError):
         return False
-    return (config.get("env_id") == env_id and config.get("env_kwargs") == kwargs and config.get("with_position")
+    return (config.env_id == env_id and config.env_kwargs == kwargs and config.with_position
             and summary.get("env_steps_per_seed") == steps and summary.get("seeds") == seeds)
 
 

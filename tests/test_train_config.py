@@ -135,3 +135,66 @@ def test_the_env_is_made_through_make_options():
 def test_configs_are_frozen():
     with pytest.raises(dataclasses.FrozenInstanceError):
         ppo.PPOConfig().lr = 1.0
+
+
+# ----------------------------------------------------------------------------- a run's recorded config, read leniently
+from baselines.run_config import read_run_config  # noqa: E402
+from data_tools.errors import HistojaxDataError  # noqa: E402
+
+
+@pytest.mark.parametrize("path", TRAINER_CONFIGS, ids=lambda p: p.parent.name)
+def test_every_published_config_reads_as_its_trainers_config_without_a_word(path):
+    warnings = []
+    config = read_run_config(path, warnings=warnings)
+    recorded = json.loads(path.read_text())
+    assert type(config) is CLASSES[recorded["algo"]] and warnings == []
+    assert config == CLASSES[recorded["algo"]].from_dict(recorded)
+    assert read_run_config(path.parent) == config  # the run folder holding it reads the same
+    assert read_run_config(config) is config
+
+
+def test_a_record_without_algo_is_ppos_or_dqns_when_it_records_a_replay_buffer(tmp_path):
+    ppo_record = {k: v for k, v in ppo.DEFAULTS.items() if k != "algo"}
+    config = read_run_config(ppo_record)
+    assert type(config) is ppo.PPOConfig and config.algo == "ppo"
+    dqn_record = {k: v for k, v in dqn.DEFAULTS.items() if k != "algo"}
+    config = read_run_config(dqn_record)
+    assert type(config) is dqn.DQNConfig and config.algo == "dqn"
+    assert type(read_run_config({"algo": "ppo_rnn", "hidden": 32})) is ppo_rnn.PPORNNConfig
+    (tmp_path / "config.json").write_text(json.dumps({"env_id": "HistoJAX-Easy-v0", "obs": "features"}))
+    config = read_run_config(tmp_path)  # an older run: no algo, obs spelled "obs"
+    assert type(config) is ppo.PPOConfig and config.obs_mode == "features"
+
+
+def test_an_unknown_key_is_a_warning_naming_the_file_not_a_refusal(tmp_path):
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({**ppo.DEFAULTS, "hiden": 64, "zzz": "x"}))
+    warnings = []
+    config = read_run_config(path, warnings=warnings)
+    assert config == ppo.PPOConfig()  # read, the unknown keys ignored
+    assert warnings == [f"{path}: unknown key 'hiden' ignored (did you mean 'hidden'?)",
+                        f"{path}: unknown key 'zzz' ignored"]
+    # another trainer's entries are known (no warning) and ignored by this one
+    warnings = []
+    assert read_run_config({**ppo.DEFAULTS, "eps_end": 0.1}, "c.json", warnings) == ppo.PPOConfig()
+    assert warnings == []
+
+
+@pytest.mark.parametrize("entry, value", [("lr", "fast"), ("num_envs", 2.5), ("with_position", "yes"),
+                                          ("hidden", 0), ("action_mode", 3), ("env_kwargs", [1])])
+def test_a_wrong_type_is_one_line_naming_the_file(tmp_path, entry, value):
+    path = tmp_path / "config.json"
+    path.write_text(json.dumps({**ppo.DEFAULTS, entry: value}))
+    with pytest.raises(HistojaxDataError) as e:
+        read_run_config(path)
+    text = str(e.value)
+    assert "\n" not in text and text.startswith(f"{path}: ") and entry in text
+
+
+def test_a_record_that_is_not_an_object_or_not_json_is_one_line_naming_the_file(tmp_path):
+    path = tmp_path / "config.json"
+    for text in ("[1, 2]", "{not json"):
+        path.write_text(text)
+        with pytest.raises(HistojaxDataError) as e:
+            read_run_config(path)
+        assert "\n" not in str(e.value) and str(e.value).startswith(f"{path}: ")

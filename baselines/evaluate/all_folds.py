@@ -11,6 +11,7 @@ from pathlib import Path
 
 from baselines import outputs
 from baselines.folds import SUMMARY, dataset_folds, mean_std, with_fold
+from baselines.run_config import read_run_config
 from data_tools.errors import HistojaxDataError
 
 FIGURES = ("success_rate", "mean_return", "mean_length", "mean_steps_to_success", "mean_fraction_read",
@@ -27,8 +28,8 @@ def fold_dataset(args) -> str:
         run = Path(with_fold(args.checkpoint, 0))
         run = run if run.is_dir() else run.parent
         try:
-            recorded = (json.loads((run / "config.json").read_text()).get("env_kwargs") or {}).get("dataset")
-        except (OSError, ValueError, AttributeError):
+            recorded = (read_run_config(run / "config.json").env_kwargs or {}).get("dataset")
+        except HistojaxDataError:  # unreadable or not a config: the one-fold run names it
             recorded = None
         if isinstance(recorded, str):
             return recorded
@@ -70,8 +71,8 @@ def trained_fold(checkpoint) -> int | None:
     run = Path(checkpoint)
     run = run if run.is_dir() else run.parent
     try:
-        fold = (json.loads((run / "config.json").read_text()).get("env_kwargs") or {}).get("fold")
-    except (OSError, ValueError, AttributeError):
+        fold = (read_run_config(run / "config.json").env_kwargs or {}).get("fold")
+    except HistojaxDataError:
         return None
     return fold if isinstance(fold, int) and not isinstance(fold, bool) else None
 

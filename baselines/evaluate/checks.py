@@ -10,42 +10,19 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from baselines import common
 from baselines.published_agents import PUBLISHED
+from baselines.run_config import known_config_keys, read_run_config
 from data_tools.errors import HistojaxDataError
 
 
 
-# every key a trainer writes into config.json (the trainers' defaults) and the older spellings
-def known_config_keys() -> set[str]:
-    """The ``config.json`` keys some trainer writes (its defaults), ``seed``, and older spellings."""
-    from baselines import dqn, ppo, ppo_rnn
-
-    return {*ppo.DEFAULTS, *dqn.DEFAULTS, *ppo_rnn.DEFAULTS, "seed", *common.OLDER_SPELLINGS}
-
-
 def check_config(config, path) -> list[str]:
-    """Refuse a ``config.json`` that is not an object or whose ``hidden`` is not a positive whole number
-    (``HistojaxDataError`` naming ``path``); return one warning per key no trainer writes (a misspelling is
-    otherwise ignored without a word), naming the closest known key."""
-    import difflib
-
-    if not isinstance(config, dict):
-        raise HistojaxDataError(path, f"holds a JSON {type(config).__name__}, not an object of settings "
-                                "(the config.json a trainer writes); train again or restore it")
-    hidden = config.get("hidden", 256)
-    if isinstance(hidden, bool) or not isinstance(hidden, int) or hidden < 1:
-        raise HistojaxDataError(path, f"hidden={hidden!r}: the network width must be a whole number of at least 1")
-    mode = config.get("action_mode", "discrete")
-    if not isinstance(mode, str):
-        raise HistojaxDataError(path, f"action_mode={mode!r}: must be a string such as 'discrete' or 'glimpse:1'")
-    if not isinstance(config.get("env_kwargs") or {}, dict):
-        raise HistojaxDataError(path, f"env_kwargs={config['env_kwargs']!r}: must be an object of make() settings")
-    known = known_config_keys()
-    warnings = []
-    for key in sorted(set(config) - known):
-        close = difflib.get_close_matches(key, sorted(known), n=1)
-        warnings.append(f"{path}: unknown key {key!r} ignored" + (f" (did you mean {close[0]!r}?)" if close else ""))
+    """Refuse a ``config.json`` that is not an object or whose ``hidden`` is not a positive whole number, or a value
+    of the wrong type (``HistojaxDataError`` naming ``path``); return one warning per key no trainer writes (a
+    misspelling is otherwise ignored without a word), naming the closest known key
+    (:func:`baselines.run_config.read_run_config`'s checks)."""
+    warnings: list[str] = []
+    read_run_config(config, path, warnings)
     return warnings
 
 
@@ -110,7 +87,8 @@ def provenance_warnings(trained: dict, scored: dict, config_path) -> list[str]:
     """Warnings when a checkpoint is scored on slides it trained on, or at another scale than it trained at,
     from what its ``config.json`` records (``trained``: env_kwargs ``dataset`` and ``split``) and the
     ``dataset.json`` of the set scored (``scored``: the evaluation's config)."""
-    t_kw, s_kw = trained.get("env_kwargs") or {}, scored.get("env_kwargs") or {}
+    trained, scored = read_run_config(trained), read_run_config(scored)
+    t_kw, s_kw = trained.env_kwargs or {}, scored.env_kwargs or {}
     t_ds, s_ds = t_kw.get("dataset"), s_kw.get("dataset")
     if not t_ds or not s_ds:
         return []
@@ -120,7 +98,7 @@ def provenance_warnings(trained: dict, scored: dict, config_path) -> list[str]:
     same = Path(t_ds).resolve() == Path(s_ds).resolve()
     c16 = lambda rec, env_id="": "CAMELYON16" in str(rec.get("kind", "")) or "-C16-" in env_id  # noqa: E731
     out = []
-    if overlap and (same or (c16(s_rec) and c16(t_rec, str(trained.get("env_id", ""))))):
+    if overlap and (same or (c16(s_rec) and c16(t_rec, str(trained.env_id)))):
         why = "the same dataset" if same else ("a CAMELYON16 set: its split is fixed by slide, so its "
                                                f"{s_split} split holds slides this agent trained on")
         out.append(f"{config_path}: trained on the {t_split} split of {t_ds}; scored on the {s_split} split of "
@@ -143,10 +121,11 @@ def encoder_refusal(config: dict, config_path) -> str | None:
     network is loaded, instead of the parameter shapes that would not fit."""
     from histojax import registry
 
-    env_id = config.get("env_id")
+    config = read_run_config(config)
+    env_id = config.env_id
     want = registry.spec_of(env_id).settings.get("dataset_encoder") if env_id in registry.registered_envs() else None
-    dataset = (config.get("env_kwargs") or {}).get("dataset")
-    if not want or not dataset or config.get("obs_mode", "features") != "features":
+    dataset = (config.env_kwargs or {}).get("dataset")
+    if not want or not dataset or config.obs_mode != "features":
         return None
     index = Path(dataset) / "dataset.json"
     try:
@@ -155,7 +134,7 @@ def encoder_refusal(config: dict, config_path) -> str | None:
         return None
     if have == want:
         return None
-    return (f"{config_path}: this agent ({config['env_id']}) observes {want} features; {index} holds "
+    return (f"{config_path}: this agent ({config.env_id}) observes {want} features; {index} holds "
             f"{'no feature grids' if not have else repr(have) + ' features'}: score it on a dataset built with "
             f"--encoder {want} (e.g. `python -m data_tools c16 ... --features`), or train an agent on these features")
 
@@ -199,8 +178,9 @@ def published_dataset_refusal(run: Path, config: dict) -> str | None:
 
     if not is_published(run):
         return None
-    recorded = (config.get("env_kwargs") or {}).get("dataset")
-    env_id = str(config.get("env_id", ""))
+    config = read_run_config(config)
+    recorded = (config.env_kwargs or {}).get("dataset")
+    env_id = str(config.env_id)
     encoder = (registry.spec_of(env_id).settings.get("dataset_encoder")
                if env_id in registry.registered_envs() else None) or "the same"
     if recorded and not (Path(str(recorded)) / "dataset.json").is_file():

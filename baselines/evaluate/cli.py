@@ -20,6 +20,7 @@ from baselines.evaluate.scoring import evaluate
 from baselines.evaluate.all_folds import run_all_folds
 from baselines.reading.head_fit import scale_warning
 from baselines.folds import scored_side
+from baselines.run_config import read_record, read_run_config
 
 
 
@@ -31,12 +32,13 @@ def _usage_exit(message: str) -> SystemExit:
     return exit_
 
 
-def resolve_slides(slides: list[str], config: dict) -> list[str]:
+def resolve_slides(slides: list[str], config) -> list[str]:
     """Bundle paths to evaluate: ``slides`` as given, or for ``["held-out"]`` the ``"test"`` list of
-    the ``dataset.json`` the checkpoint was trained on (``config["env_kwargs"]["dataset"]``)."""
+    the ``dataset.json`` the checkpoint was trained on (``config.env_kwargs["dataset"]``; ``config`` typed or its
+    record)."""
     if list(slides) != ["held-out"]:
         return list(slides)
-    dataset = (config.get("env_kwargs") or {}).get("dataset")
+    dataset = (read_run_config(config).env_kwargs or {}).get("dataset")
     if not dataset:
         raise _usage_exit("--slides held-out: this checkpoint was not trained on a dataset (env_kwargs has no "
                           "'dataset'); give bundle folders instead")
@@ -50,13 +52,15 @@ def resolve_slides(slides: list[str], config: dict) -> list[str]:
     return [str(Path(dataset) / rel) for rel in test]
 
 
-def with_dataset(config: dict, dataset=None, split: str | None = None, fold: int | None = None) -> dict:
-    """``config`` scoring ``split`` of ``dataset`` (default split ``"test"``) in place of the slides it
-    trained on; only ``split`` given: the same dataset, another split. ``fold``: that side of fold ``fold``
-    (default: its held-out side, ``make(..., fold=)``). Unchanged when none is given."""
+def with_dataset(config, dataset=None, split: str | None = None, fold: int | None = None):
+    """``config`` (a run's typed config, or its record: the same kind back) scoring ``split`` of ``dataset``
+    (default split ``"test"``) in place of the slides it trained on; only ``split`` given: the same dataset, another
+    split. ``fold``: that side of fold ``fold`` (default: its held-out side, ``make(..., fold=)``). Unchanged when
+    none is given."""
     if dataset is None and split is None and fold is None:
         return config
-    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("slides", "slide_weights")}
+    typed = read_run_config(config)
+    kw = {k: v for k, v in (typed.env_kwargs or {}).items() if k not in ("slides", "slide_weights")}
     if dataset is not None:
         if not (Path(dataset) / "dataset.json").is_file():
             raise _usage_exit(f"--dataset {dataset}: no dataset.json there")
@@ -67,7 +71,9 @@ def with_dataset(config: dict, dataset=None, split: str | None = None, fold: int
     if fold is not None:
         kw["fold"] = fold
     kw["split"] = split or scored_side(kw["dataset"], kw.get("fold"))
-    return {**config, "env_kwargs": kw, "slide": None}
+    if isinstance(config, dict):
+        return {**config, "env_kwargs": kw, "slide": None}
+    return typed.replace(env_kwargs=kw, slide=None)
 
 
 MAX_EPISODES = 1 << 24
@@ -194,26 +200,27 @@ def run(args, parser) -> int:
         run = Path(args.checkpoint)
         run = run if run.is_dir() else run.parent
         try:  # a config.json that is not an object is named before loading (which would fail on it in its own words)
-            raw = json.loads((run / "config.json").read_text())
-        except (OSError, ValueError):
+            raw = read_record(run / "config.json")
+        except HistojaxDataError:
             raw = {}  # unreadable: load_checkpoint names the file and why
         check_config(raw, run / "config.json")
-        params, config = common.load_checkpoint(args.checkpoint)
-        warnings += check_config(config, run / "config.json")
+        params, record = common.load_checkpoint(args.checkpoint)
+        config = read_run_config(record, run / "config.json", warnings)  # typed; unknown keys: warnings
         check_params_tree(params, run / "params.msgpack")
-        label = config.get("algo") or ("dqn" if "buffer_size" in config else "ppo")
-        settings, where = head_reward_settings(run, config)
+        label = config.algo
+        settings, where = head_reward_settings(run, record)
     else:
-        params, config, run, label = None, {"action_mode": args.action_mode, "with_position": args.with_position,
-                                            "obs_mode": "pixels", "hidden": 256}, None, "none"
-    trained = dict(config)
+        params, config, run, label = None, read_run_config({"action_mode": args.action_mode,
+                                                            "with_position": args.with_position,
+                                                            "obs_mode": "pixels", "hidden": 256}), None, "none"
+    trained = config
     if run is not None and getattr(args, "dataset", None) is None and (refusal := published_dataset_refusal(run, config)):
         raise HistojaxDataError(None, refusal)  # its recorded dataset is provenance, never used unasked
     if args.env:
-        config["env_id"] = args.env
+        config = config.replace(env_id=args.env)
     config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None),
                           getattr(args, "fold", None))
-    recorded = (config.get("env_kwargs") or {}).get("dataset")
+    recorded = (config.env_kwargs or {}).get("dataset")
     if run is not None and (refusal := encoder_refusal(config, run / "config.json")):
         raise HistojaxDataError(None, refusal)
     if run is not None and getattr(args, "dataset", None) is None and isinstance(recorded, str) \
@@ -224,7 +231,7 @@ def run(args, parser) -> int:
                                 "agent)")
     if run is not None:
         warnings += provenance_warnings(trained, config, run / "config.json")
-    scored = (config.get("env_kwargs") or {}).get("dataset")
+    scored = (config.env_kwargs or {}).get("dataset")
     if isinstance(scored, str) and (line := scale_warning(scored)):
         warnings.append(line)  # the encoder-scale warning the dataset's dataset.json records, repeated
     head, head_dir = None, None
@@ -239,15 +246,15 @@ def run(args, parser) -> int:
                             f"is {head.name!r}")
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
-    out = Path(args.out) if args.out else default_out(run, config["env_id"])
-    slides = resolve_slides(args.slide, config) if args.slide else [config.get("slide")]
+    out = Path(args.out) if args.out else default_out(run, config.env_id)
+    slides = resolve_slides(args.slide, config) if args.slide else [config.slide]
     results = {}
     for i, slide in enumerate(slides):
         sub = out if len(slides) == 1 else out / f"slide{i}"
-        dataset = (config.get("env_kwargs") or {}).get("dataset")
-        name = slide or (f"dataset {dataset} ({(config.get('env_kwargs') or {}).get('split', 'train')} split)"
+        dataset = (config.env_kwargs or {}).get("dataset")
+        name = slide or (f"dataset {dataset} ({(config.env_kwargs or {}).get('split', 'train')} split)"
                          if dataset else "embedded sample slide")
-        print(f"evaluating {config['env_id']} on {name} ({i + 1} of {len(slides)}), {args.episodes} episodes per "
+        print(f"evaluating {config.env_id} on {name} ({i + 1} of {len(slides)}), {args.episodes} episodes per "
               "policy ...", file=sys.stderr, flush=True)
         try:
             rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub,
@@ -255,12 +262,12 @@ def run(args, parser) -> int:
                             head=head, head_reward=settings if not getattr(args, "head", None) else None)
         except ValueError as e:
             raise grid_refusal(e, run) from None
-        print_table(f"{config['env_id']} on {name} ({args.episodes} episodes per policy"
+        print_table(f"{config.env_id} on {name} ({args.episodes} episodes per policy"
                     f"{' per seed' if params is not None else ''})", rows,
                     head=f"{head.name!r} ({head_dir})" if head is not None else None)
         results[name] = rows
     out.mkdir(parents=True, exist_ok=True)
-    record = {"env_id": config["env_id"], "results": results, "warnings": warnings}
+    record = {"env_id": config.env_id, "results": results, "warnings": warnings}
     if head is not None:
         record["head"] = {"folder": str(head_dir), "name": head.name, "reward": settings}
     outputs.write_text(out / "eval.json", json.dumps(json_safe(record), indent=2, allow_nan=False))  # NaN: null

@@ -11,13 +11,9 @@ import numpy as np
 from data_tools.errors import HistojaxDataError
 from baselines.evaluate.checks import UNDEFINED, one_class
 from baselines.evaluate.rollout import episode_labels
+from baselines.run_config import read_run_config
+from histojax.reading.heads import encoder_family
 
-
-
-def encoder_family(name) -> str | None:
-    """An encoder name as heads compare it: features imported from ``.h5`` files (``imported:FILE``: one name per
-    slide) are one family, ``"imported"``; any other name is itself."""
-    return "imported" if isinstance(name, str) and name.startswith("imported:") else name
 
 
 def check_head_features(head, encoders: list[str], dim: int) -> None:
@@ -64,14 +60,14 @@ def head_env(env, env_params, head, settings: dict | None = None):
     return wrapped, lesion_classes(env, env_params)
 
 
-def refuse_one_class(config: dict, env_params, slide=None) -> None:
+def refuse_one_class(config, env_params, slide=None) -> None:
     """Refuse (``HistojaxDataError``, one line naming the dataset's ``dataset.json`` or the slide) to score through a
     head slides that are all of one class: what the head declares is scored by an AUC, and one class leaves it
     undefined (:data:`~baselines.evaluate.checks.UNDEFINED`), not 1.000 or ``nan``."""
     single = one_class(env_params)
     if single is None:
         return
-    kw = config.get("env_kwargs") or {}
+    kw = read_run_config(config).env_kwargs or {}
     n = int(np.size(np.asarray(jax.device_get(env_params.slide.slide_label))))
     where = Path(kw["dataset"]) / "dataset.json" if kw.get("dataset") and slide is None else Path(slide or "slide")
     split = f"its {kw.get('split', 'train')!r} split" if kw.get("dataset") and slide is None else "the slides scored"

@@ -6,7 +6,9 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
+from baselines.dqn import DQNConfig
 from baselines.ppo import make_network
+from baselines.run_config import read_run_config
 from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, RecurrentCellSetActorCritic, ScannedGRU,
                                 policy_mode, policy_sample, preprocess_obs, rollout_apply, rollout_step)
 from baselines.networks import is_discrete as policy_is_discrete
@@ -198,8 +200,12 @@ def seeds_policy(make_policy, params_seeds, num_seeds: int):
     return policy
 
 
-def network_for(config: dict, env):
+def network_for(config, env):
+    """The network of a run's config (typed, or its record: :func:`baselines.run_config.read_run_config`) sized for
+    ``env``: a :class:`QNetwork` of ``hidden`` units for a DQN run, else PPO's actor-critic (recurrent for
+    ``ppo_rnn``; the cell-set reader on a ``step_obs`` glimpse env, :func:`baselines.ppo.make_network`)."""
+    config = read_run_config(config)
     space = env.action_space()
-    if config.get("algo") == "dqn" or "buffer_size" in config:
-        return QNetwork(space.n, hidden=config["hidden"])
-    return make_network(config, env, RecurrentActorCritic if config.get("algo") == "ppo_rnn" else ActorCritic)
+    if isinstance(config, DQNConfig):
+        return QNetwork(space.n, hidden=config.hidden)
+    return make_network(config, env, RecurrentActorCritic if config.algo == "ppo_rnn" else ActorCritic)

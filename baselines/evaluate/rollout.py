@@ -9,6 +9,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from baselines import common
+from baselines.run_config import read_run_config
 from data_tools.metrics import accuracy, roc_auc
 from data_tools.errors import HistojaxDataError
 from histojax.reading import tables as reading_tables
@@ -155,24 +156,27 @@ def trajectory(ep: dict, i: int):
     return ep["z"][: n + 1, i], ep["x"][: n + 1, i], ep["y"][: n + 1, i]
 
 
-def eval_env(config: dict, slide=None, augment: bool = False):
+def eval_env(config, slide=None, augment: bool = False):
     """``(config, (env, env_params))``: the checkpoint's env as :func:`evaluate` runs it — on
     ``slide`` when given (it replaces a training dataset), without auto-reset, without training-time
     view augmentation unless ``augment``, and with reading tracked
-    (:func:`histojax.reading.tables.with_tracking`) for the efficiency metrics."""
-    config = {**config, "slide": slide if slide is not None else config.get("slide")}
-    if config.get("env_kwargs"):
+    (:func:`histojax.reading.tables.with_tracking`) for the efficiency metrics. ``config``: the run's typed config
+    or its record (:func:`baselines.run_config.read_run_config`); the typed config of that env comes back."""
+    config = read_run_config(config)
+    config = config.replace(slide=slide if slide is not None else config.slide)
+    if config.env_kwargs:
         drop = {"augment"} if not augment else set()
         if slide is not None:  # a given slide replaces a training dataset
             drop |= {"dataset", "split", "fold", "slides", "slide_weights"}
-        config["env_kwargs"] = {k: v for k, v in config["env_kwargs"].items() if k not in drop}
+        config = config.replace(env_kwargs={k: v for k, v in config.env_kwargs.items() if k not in drop})
     return config, reading_tables.with_tracking(*common.make_env(config, auto_reset=False))
 
 
-def check_fits(policy, env, env_params, num_seeds: int, config: dict, source=None) -> None:
+def check_fits(policy, env, env_params, num_seeds: int, config, source=None) -> None:
     """Trace (no compute) ``policy`` on one observation per seed: parameters that do not fit the network
     the config describes (``hidden``, ``action_mode``, the env's spaces changed since training) raise
     ``HistojaxDataError`` naming the checkpoint, not a flax traceback."""
+    config = read_run_config(config)
     keys = jax.random.split(jax.random.PRNGKey(0), num_seeds)
     try:
         def probe():
@@ -185,5 +189,5 @@ def check_fits(policy, env, env_params, num_seeds: int, config: dict, source=Non
         where = Path(source) / "params.msgpack" if source is not None else "the checkpoint"
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
         raise HistojaxDataError(where, f"its parameters do not fit the network its config.json describes "
-                                f"(algo {config.get('algo', 'ppo')}, hidden={config.get('hidden')}, action_mode="
-                                f"{config.get('action_mode')!r}, on {config.get('env_id')}): {first[:300]}") from e
+                                f"(algo {config.algo}, hidden={getattr(config, 'hidden', None)}, action_mode="
+                                f"{config.action_mode!r}, on {config.env_id}): {first[:300]}") from e

@@ -18,10 +18,11 @@ from baselines.evaluate.pictures import write_pictures
 
 
 
-def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
+def evaluate(config, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
              label: str = "learned", augment: bool = False, references: bool = True, source=None,
              progress: bool = False, warnings: list | None = None, head=None, head_reward: dict | None = None) -> dict:
-    """Rows for the learned policy (greedy and sampled; seeds pooled), the random agent and the
+    """Rows (``config``: the run's typed config or its record) for the learned policy (greedy and sampled; seeds
+    pooled), the random agent and the
     scripted policy (``references=False``: without these two) on one slide; writes trajectory
     pictures and reading maps to ``out`` when given (:func:`write_pictures`). Training-time view
     augmentation (``env_kwargs["augment"]``) is switched off unless ``augment=True``: a slide is
@@ -49,7 +50,7 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
     if head is not None:
         env, classes = head_env(env, env_params, head, head_reward)
         refuse_one_class(config, env_params, slide)
-    mode = config["action_mode"]
+    mode = config.action_mode
     key = jax.random.PRNGKey(seed)
     rows, episodes = {}, {}
     params_seeds = params
@@ -126,5 +127,5 @@ def evaluate(config: dict, params, slide=None, num_episodes: int = 256, seed: in
             print(f"scripted policy skipped: {e}")  # observation without pixels
     if out is not None:
         say(f"  pictures to {out} ...")
-        write_pictures(picture_env, env_params, episodes, Path(out), config["env_id"], head=head)
+        write_pictures(picture_env, env_params, episodes, Path(out), config.env_id, head=head)
     return undefined_figures(rows, task, one_class(env_params))

@@ -37,6 +37,7 @@ from baselines.reading.budgets import BUDGETS
 from baselines.reading.csv_files import write_csv
 from baselines.reading.pipeline import check_two_classes, run_seeds
 from baselines.reading.plots import plot_readers
+from baselines.run_config import read_run_config
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 
@@ -75,22 +76,23 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
     from baselines import common, evaluate
     from histojax.reading.tables import SeenMemory, seen_flags
 
-    params, config = common.load_checkpoint(run)
+    params, record = common.load_checkpoint(run)
+    config = read_run_config(record, (Path(run) if Path(run).is_dir() else Path(run).parent) / "config.json")
     n_seeds = jax.tree.leaves(params)[0].shape[0]
     if not 0 <= seed < n_seeds:
         raise ValueError(f"{run} has {n_seeds} seed(s), not a seed {seed}")
-    if str(config.get("action_mode")).partition(":")[0] not in ("discrete", "continuous"):  # ":memory", ":map" too
-        raise ValueError(f"{run}: a policy of action mode {config.get('action_mode')!r}; a navigator moves in "
+    if config.action_mode.partition(":")[0] not in ("discrete", "continuous"):  # ":memory", ":map" too
+        raise ValueError(f"{run}: a policy of action mode {config.action_mode!r}; a navigator moves in "
                          "discrete or continuous mode, :memory and :map included (readers: python -m baselines.reading.readers "
                          "--reader)")
     params = jax.tree.map(lambda a: a[seed], params)
-    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides", "fold")}
-    config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split,
-                                       **({"fold": fold} if fold is not None else {})}}  # fold: the slides scored
+    kw = {k: v for k, v in (config.env_kwargs or {}).items() if k not in ("dataset", "split", "slides", "fold")}
+    config = config.replace(env_kwargs={**kw, "dataset": str(dataset), "split": split,
+                                        **({"fold": fold} if fold is not None else {})})  # fold: the slides scored
     config, (env, env_params) = evaluate.eval_env(config)
-    policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config["action_mode"], greedy=greedy,
+    policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config.action_mode, greedy=greedy,
                                      declare=evaluate.diagnosis_actions(env, evaluate.network_for(config, env),
-                                                                        config["action_mode"]))
+                                                                        config.action_mode))
     n_slides = max(1, len(env.bundles))
     slides = np.arange(n_slides)
     per_episode, axes = evaluate.per_episode_params(env_params, slides)

@@ -29,6 +29,7 @@ from baselines.reading.budgets import BUDGETS
 from baselines.reading.head_fit import HeadDataError, _label, load_slide, load_slides, read_bundle, read_spec
 from baselines.reading.orders import random_order, read_cells
 from data_tools.bundle_format import read_metadata, verify_metadata
+from baselines.run_config import read_run_config
 from histojax.adapters.head_reward import pools_views
 
 
@@ -173,12 +174,6 @@ def cell_level_for(dataset: Path, spec: dict, split: str, target: float = 4.0) -
     return 1 + int(np.argmin([abs(np.log(d / target)) for d in ds[1:]]))
 
 
-def encoder_family(name) -> str | None:
-    """An encoder name as heads compare it: features imported from ``.h5`` files (``imported:FILE``) are one
-    family, ``"imported"``; any other name is itself."""
-    return "imported" if isinstance(name, str) and name.startswith("imported:") else name
-
-
 def with_head_scores(slide: dict, head, grids: dict) -> dict:
     """``slide`` (:func:`baselines.reading.head_fit.load_slide` with ``grid=True``) scored by a head that reads
     every feature entry: ``logits (H, W)`` its per-view scores of the finest views, ``terms (H, W, 2)`` their
@@ -262,23 +257,24 @@ def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None =
     from baselines import common, evaluate
     from histojax.reading.tables import seen_flags  # seen is a bit set
 
-    params, config = common.load_checkpoint(run)
+    params, record = common.load_checkpoint(run)
+    config = read_run_config(record, (Path(run) if Path(run).is_dir() else Path(run).parent) / "config.json")
     n_seeds = jax.tree.leaves(params)[0].shape[0]
     if not 0 <= seed < n_seeds:
         raise ValueError(f"{run} has {n_seeds} seed(s), not a seed {seed}")
     params = jax.tree.map(lambda a: a[seed], params)
-    kw = {k: v for k, v in (config.get("env_kwargs") or {}).items() if k not in ("dataset", "split", "slides", "fold")}
-    config = {**config, "env_kwargs": {**kw, "dataset": str(dataset), "split": split,
-                                       **({"fold": fold} if fold is not None else {})}}  # fold: the slides scored
+    kw = {k: v for k, v in (config.env_kwargs or {}).items() if k not in ("dataset", "split", "slides", "fold")}
+    config = config.replace(env_kwargs={**kw, "dataset": str(dataset), "split": split,
+                                        **({"fold": fold} if fold is not None else {})})  # fold: the slides scored
     if env_id:
-        config["env_id"] = env_id
+        config = config.replace(env_id=env_id)
     config, (env, env_params) = evaluate.eval_env(config)
     if not hasattr(env_params.mode_data, "read_budget") or getattr(env.action, "name", "") not in ("glimpse",
                                                                                                    "zoom_select"):
-        raise ValueError(f"{run}: a policy of action mode {config['action_mode']!r}; the budget curve takes "
+        raise ValueError(f"{run}: a policy of action mode {config.action_mode!r}; the budget curve takes "
                          f"glimpse or zoom_select policies")
     n = env.num_actions
-    policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config["action_mode"], greedy=True,
+    policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config.action_mode, greedy=True,
                                      declare=(n - 2, n - 1))
     n_slides = len(env.bundles)
     budgets = [float(b) for b in budgets]

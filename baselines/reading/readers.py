@@ -58,12 +58,12 @@ from baselines.reading import pipeline
 from baselines.reading.head_fit import HeadDataError
 from baselines.reading.orders import logit_order, search_order
 from baselines.reading.head_fit import padded
-from baselines.reading.pipeline import cell_level_for, encoder_family  # noqa: F401  (cell_level_for: readers' API)
+from baselines.reading.pipeline import cell_level_for  # noqa: F401  (cell_level_for: readers' API)
 from baselines.reading.plots import plot_readers
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from histojax import compile_cache
-from histojax.reading.heads import score_batch
+from histojax.reading.heads import encoder_family, score_batch
 
 KINDS = ("overview", "random", "scripted", "learned", "everything")
 

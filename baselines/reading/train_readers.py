@@ -45,6 +45,9 @@ import sys
 import time
 from pathlib import Path
 
+from baselines.reading import head_fit
+from baselines.run_config import read_run_config
+from data_tools.errors import HistojaxDataError
 from histojax import compile_cache
 from histojax.registry import READING_ID
 
@@ -74,24 +77,19 @@ def is_navigator(action_mode: str) -> bool:
 
 def scale_warning(dataset: Path, spec: dict) -> str | None:
     """The one-line warning repeated from ``dataset.json``'s ``encoder_scale`` (written by ``histojax dataset``)
-    when slides lie outside the built-in encoder's training scale, else None."""
-    rec = spec.get("encoder_scale") if isinstance(spec.get("encoder_scale"), dict) else {}
-    out = rec.get("slides_out_of_scale") or {}
-    if not out:
-        return None
-    return (f"warning: {Path(dataset) / 'dataset.json'}: {len(out)} slide(s) are more than {rec.get('tolerance')}x "
-            f"from the {rec.get('encoder_mpp')} µm/px {rec.get('encoder')} was trained at, or of unknown scale "
-            f"(e.g. {next(iter(out))}): the head and reader read features that may not mean what they mean there")
+    when slides lie outside the built-in encoder's training scale, as printed (``warning: ...``; the words of
+    :func:`baselines.reading.head_fit.scale_warning`, which every tool reading a dataset repeats), else None."""
+    line = head_fit.scale_warning(dataset, spec)
+    return f"warning: {line}" if line else None
 
 
 def split_dataset(dataset: Path, out: Path, fraction: float, seed: int, fold: int | None = None) -> Path:
     """``out/dataset.json``: ``dataset``'s spec (``fold=i``: fold i's sides) with its training split cut into
     ``train`` and ``validation`` (bundle paths made absolute); returns ``out``. ``HistojaxDataError`` naming the
     file on a missing, edited or malformed ``dataset.json``."""
-    from baselines.reading.head_fit import read_spec
     from baselines.validation import split_train
 
-    spec = read_spec(dataset, fold)  # its seal checked; fold i's sides
+    spec = head_fit.read_spec(dataset, fold)  # its seal checked; fold i's sides
     kept, val = split_train(spec, fraction, seed)
     absolute = lambda entries: [str((dataset / e).resolve()) if not Path(e).is_absolute() else e  # noqa: E731
                                 for e in entries]
@@ -167,9 +165,9 @@ def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tup
         ax.grid(alpha=0.4)
     axes[0].legend(fontsize="small")
     axes[1].set_xlabel("env steps per seed")
-    cfg = json.loads((run_dir / "config.json").read_text()) if (run_dir / "config.json").is_file() else {}
-    fig.suptitle(f"{cfg.get('algo', '').upper()} {cfg.get('env_id', run_dir.name)} {cfg.get('action_mode', '')}, "
-                 f"head reward: running mean over {smooth} log points", fontsize="small")
+    cfg = read_run_config(run_dir) if (run_dir / "config.json").is_file() else None
+    title = f"{cfg.algo.upper()} {cfg.env_id} {cfg.action_mode}" if cfg is not None else f" {run_dir.name} "
+    fig.suptitle(f"{title}, head reward: running mean over {smooth} log points", fontsize="small")
     fig.tight_layout()
     fig.savefig(png, dpi=110)
     plt.close(fig)
@@ -218,8 +216,6 @@ def main(argv=None) -> int:
     except ValueError as e:
         print(f"error: {e}", file=sys.stderr)
         return 2
-    from data_tools.errors import HistojaxDataError
-
     navigator = is_navigator(args.action_mode)
     run_dir = args.out / args.algo
     if args.resume and not (run_dir / "checkpoint").is_dir():

@@ -55,6 +55,13 @@ HEADS: dict[str, type] = {logit.KIND: logit.SlideHead, mil.KIND_MIL: mil.MilHead
 """kind (``config.json``'s ``"kind"``) -> head class."""
 
 
+def encoder_family(name) -> str | None:
+    """An encoder name as heads compare it (a head reads the features of the encoder it was fitted on): features
+    imported from ``.h5`` files (``imported:FILE``: one name per slide) are one family, ``"imported"``; any other
+    name (or None) is itself."""
+    return "imported" if isinstance(name, str) and name.startswith("imported:") else name
+
+
 def load(folder) -> SlideHeadProtocol:
     """Read the slide head saved in ``folder``, of the class its ``config.json``'s ``kind`` names, through the
     guarded reader (:mod:`histojax.reading.heads.files`). ``ValueError`` naming the file, one line, on anything

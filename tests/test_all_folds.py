@@ -131,8 +131,8 @@ def test_evaluate_all_folds_is_the_one_fold_run_on_every_fold(folded, tmp_path, 
     out, _ = folded
     seen = []
 
-    def scored(config, params, out=None, **kw):
-        env_kwargs = config["env_kwargs"]
+    def scored(config, params, out=None, **kw):  # config: the run's typed config (baselines.run_config)
+        env_kwargs = config.env_kwargs
         seen.append((env_kwargs["fold"], env_kwargs["split"], env_kwargs["dataset"], out))
         f = env_kwargs["fold"]
         return {"random": {"episodes": 4, "success_rate": 0.25 + 0.5 * f, "mean_return": 1.0, "mean_length": 10.0,

@@ -10,6 +10,7 @@ from hypothesis import strategies as st
 import histojax
 from histojax import actions
 from histojax import augment as A
+from hypothesis_examples import examples
 
 MOVES = (actions.UP, actions.DOWN, actions.LEFT, actions.RIGHT)
 
@@ -48,7 +49,7 @@ def test_move_table_is_a_permutation_that_inverts_the_view_turn():
         assert int(A.discrete_to_slide(code, 5)) == code
 
 
-@settings(deadline=None, max_examples=40)
+@settings(deadline=None, max_examples=examples(40, 16))
 @given(o=st.integers(0, 7), a=st.sampled_from(MOVES), fx=st.floats(0.3, 0.7), fy=st.floats(0.3, 0.7))
 def test_a_move_in_the_agents_frame_slides_what_it_sees(envs, o, a, fx, fy):
     """After RIGHT (in the agent's frame, stride ½ view) the right half of the old view is the left
@@ -71,7 +72,7 @@ def test_a_move_in_the_agents_frame_slides_what_it_sees(envs, o, a, fx, fy):
     assert np.sign(np.round(p1[:2] - p0[:2], 6)).tolist() == list(d)
 
 
-@settings(deadline=None, max_examples=30)
+@settings(deadline=None, max_examples=examples(30, 12))
 @given(o=st.integers(0, 7), a=st.integers(0, 6), seed=st.integers(0, 2**31 - 1))
 def test_augmented_step_is_the_plain_step_seen_turned(envs, o, a, seed):
     plain, aug, params, step_plain, step_aug = envs

@@ -71,7 +71,12 @@ def _equal(a, b):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
-@pytest.mark.parametrize("which", ["glimpse", "zoom"])
+# glimpse in `make test`, zoom_select under `make test-all` (for zoom_select in `make test`: test_zoom_select_children,
+# test_zoom_select_counts_finest_views_read here and tests/test_reading_auto_reset.py::test_vmap_equals_loop[zoom_runs])
+ZOOM_SLOW = pytest.param("zoom", marks=pytest.mark.slow)
+
+
+@pytest.mark.parametrize("which", ["glimpse", ZOOM_SLOW])
 def test_jit_equals_no_jit(which, request):
     env, params = request.getfixturevalue(which)
     rollout = request.getfixturevalue(f"{which}_rollout")
@@ -83,7 +88,7 @@ def test_jit_equals_no_jit(which, request):
     _equal(jitted, plain)
 
 
-@pytest.mark.parametrize("which", ["glimpse", "zoom"])
+@pytest.mark.parametrize("which", ["glimpse", ZOOM_SLOW])
 def test_vmap_equals_loop(which, request):
     env, params = request.getfixturevalue(which)
     rollout = request.getfixturevalue(f"{which}_rollout")

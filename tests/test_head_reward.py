@@ -7,6 +7,8 @@ One tiny synthetic dataset (made here: 2 tumour + 2 tumour-free slides of 320 ×
 Easy levels, ``colour-stats`` features; the head reads feature entry 0 as its view logit)."""
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -49,6 +51,13 @@ def navigation(dataset):
     return env, params, HeadReward(env, HEAD, gain="prob", final=0.5, read_cost=0.0)
 
 
+@functools.lru_cache(maxsize=None)
+def _jit(fn):
+    """``jax.jit(fn)``, one per function for the module: the tests stepping the ``glimpse`` fixture's wrapper compile
+    its step once, not once per test (a bound method is the same key while its object lives)."""
+    return jax.jit(fn)
+
+
 def _finest(env, params):
     """Per slide, host: (view logits (H, W), tissue (H, W)) — the head's inputs, straight from the bundles."""
     out = []
@@ -70,7 +79,7 @@ def test_glimpse_reward_is_the_heads_gain_by_hand(glimpse):
     finest = _finest(env, params)
     host = env.action.host_tables(env, params, env.bundles)
     labels = np.asarray(params.slide.slide_label)
-    step = jax.jit(wrapped.step)
+    step = _jit(wrapped.step)
     inner_step = jax.jit(env.step_env)
     obs, state = jax.jit(wrapped.reset)(jax.random.key(3), params)
     rng = np.random.default_rng(0)
@@ -184,7 +193,7 @@ def test_vmap_equals_a_loop_and_the_key_fixes_the_trajectory(glimpse):
     keys = jax.random.split(jax.random.key(7), ENVS)
     reset_v = jax.jit(jax.vmap(wrapped.reset, in_axes=(0, None)))
     step_v = jax.jit(jax.vmap(wrapped.step, in_axes=(0, 0, 0, None)))
-    step_1 = jax.jit(wrapped.step)
+    step_1 = _jit(wrapped.step)
     c = int(params.mode_data.valid.shape[-1])
 
     def roll(seed):
@@ -215,7 +224,7 @@ def test_wrapped_states_are_the_unwrapped_envs(glimpse):
     c = int(params.mode_data.valid.shape[-1])
     obs_w, st_w = wrapped.reset(jax.random.key(11), params)
     obs_e, st_e = env.reset(jax.random.key(11), params)
-    step_w, step_e = jax.jit(wrapped.step), jax.jit(env.step)
+    step_w, step_e = _jit(wrapped.step), jax.jit(env.step)
     for t in range(25):
         a = (7 * t + 3) % (c + 2)
         k = jax.random.key(300 + t)

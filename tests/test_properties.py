@@ -134,7 +134,7 @@ def _vmapped_step(env):
     return jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
 
 
-@settings(deadline=None, max_examples=examples(10, 3), derandomize=True)
+@settings(deadline=None, max_examples=examples(10, 2), derandomize=True)
 @given(actions=st.lists(st.integers(0, 6), min_size=12, max_size=12), seed=st.integers(0, 2**31 - 1))
 def test_jitted_equals_not_jitted_and_same_key_same_trajectory(actions, seed):
     env, params, step, _ = scenario("HistoJAX-Medium-v0")

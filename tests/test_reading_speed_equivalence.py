@@ -106,7 +106,12 @@ if RECORD:
         np.savez_compressed(REFERENCE, **out)
 
 
-@pytest.mark.parametrize("name", list(MODES))
+# discrete:memory (the navigator with the reading memory) and glimpse (a cell reader) in `make test`; plain
+# discrete, discrete with tracked reading and zoom_select under `make test-all`
+DEFAULT_RUN = ("discrete_memory", "glimpse")
+
+
+@pytest.mark.parametrize("name", [n if n in DEFAULT_RUN else pytest.param(n, marks=pytest.mark.slow) for n in MODES])
 def test_trajectories_equal_the_recorded_reference(name, bundles):
     want = np.load(REFERENCE)
     got = _record(name, bundles)

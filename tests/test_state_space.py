@@ -34,8 +34,10 @@ def _all_contained(space, states) -> bool:
     return bool(jax.vmap(space.contains)(flat).all())
 
 
+# Hard (continuous moves, augmentation) and Medium (no auto-reset) in `make test`; Easy's plain discrete case,
+# the path the other two extend, under `make test-all`
 @pytest.mark.parametrize("env_id, overrides", [
-    ("HistoJAX-Easy-v0", {}),
+    pytest.param("HistoJAX-Easy-v0", {}, marks=pytest.mark.slow),
     ("HistoJAX-Hard-v0", {"action_mode": "continuous", "augment": True}),
     ("HistoJAX-Medium-v0", {"auto_reset": False, "max_steps_in_episode": 20}),
 ])

@@ -11,7 +11,7 @@ import jax
 import numpy as np
 
 from baselines.published_agents import PUBLISHED
-from baselines.run_config import known_config_keys, read_run_config
+from baselines.run_config import known_config_keys, read_run_config  # noqa: F401  (known_config_keys: evaluate's API)
 from data_tools.errors import HistojaxDataError
 
 

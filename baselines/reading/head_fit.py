@@ -217,18 +217,22 @@ def load_slides(dataset, split, spec: dict | None = None, dim: int = pcam_cnn.VI
                 progress: bool = False) -> list[dict]:
     """:func:`load_slide` of every bundle of ``split`` (``"train"``, ``"test"``, or a list of entries of
     ``dataset.json``'s lists)."""
+    spec = spec or read_spec(Path(dataset))
+    return [load_slide(bundle, label, dim, levels) for bundle, label in split_bundles(dataset, split, spec, progress)]
+
+
+def split_bundles(dataset, split, spec: dict, progress: bool = False):
+    """The bundles of ``split`` (a split name of ``dataset.json``, or a list of its entries) with their label
+    table's label (``None``: the bundle's own), one ``(bundle folder, label)`` at a time; says every 20 slides
+    on stderr when ``progress``. A split ``dataset.json`` does not have is one line naming the file."""
     dataset = Path(dataset)
-    spec = spec or read_spec(dataset)
     entries = spec.get(split) if isinstance(split, str) else list(split)
     if entries is None:
         raise HeadDataError(dataset / "dataset.json", f"has no {split!r} split")
-    out = []
     for i, rel in enumerate(entries):
-        bundle = Path(rel) if Path(rel).is_absolute() else dataset / rel
-        out.append(load_slide(bundle, _label(spec, Path(rel).name), dim, levels))
+        yield (Path(rel) if Path(rel).is_absolute() else dataset / rel), _label(spec, Path(rel).name)
         if progress and (i + 1) % 20 == 0:
             print(f"  loaded {i + 1}/{len(entries)} slides", file=sys.stderr, flush=True)
-    return out
 
 
 def padded(arrays: list[np.ndarray], fill=0, shape: tuple[int, int] | None = None) -> np.ndarray:

@@ -26,7 +26,7 @@ import jax
 import numpy as np
 
 from baselines.reading.budgets import BUDGETS
-from baselines.reading.head_fit import HeadDataError, _label, load_slide, load_slides, read_bundle, read_spec
+from baselines.reading.head_fit import HeadDataError, load_slide, load_slides, read_bundle, read_spec, split_bundles
 from baselines.reading.orders import random_order, read_cells
 from data_tools.bundle_format import read_metadata, verify_metadata
 from baselines.run_config import read_run_config
@@ -219,14 +219,8 @@ def load_feature_slides(dataset, split, spec: dict, head, cell_level: int, progr
     """:func:`baselines.reading.head_fit.load_slide` of every bundle of ``split`` for a head that reads every
     feature entry (:func:`with_head_scores`: per-view scores and terms of the finest views and of the cells of
     bundle level ``cell_level``), through the checked bundle loader."""
-    dataset = Path(dataset)
-    entries = spec.get(split) if isinstance(split, str) else list(split)
-    if entries is None:
-        raise HeadDataError(dataset / "dataset.json", f"has no {split!r} split")
     out = []
-    for i, rel in enumerate(entries):
-        bundle = Path(rel) if Path(rel).is_absolute() else dataset / rel
-        label = _label(spec, Path(rel).name)
+    for bundle, label in split_bundles(dataset, split, spec, progress):
         if label is None:  # the bundle's own label: tumour annotated or not
             s = load_slide(bundle, None, 0, (0,), grid=True)
         else:  # a label table's label; tumour polygons where the bundle has any (slide-level labels need none)
@@ -235,8 +229,6 @@ def load_feature_slides(dataset, split, spec: dict, head, cell_level: int, progr
         meta, grids, _, _ = read_bundle(bundle, (cell_level,))
         s["downsample"] = {cell_level: float(meta["levels"][cell_level]["downsample"])}
         out.append(with_head_scores(s, head, grids))
-        if progress and (i + 1) % 20 == 0:
-            print(f"  loaded {i + 1}/{len(entries)} slides", file=sys.stderr, flush=True)
     return out
 
 

@@ -40,17 +40,18 @@ def test_registered_encoders_include_pcam_cnn():
     assert {"colour-stats", "efficientnet-lite0"} <= set(ENCODERS)
 
 
-def test_any_image_size_patch_or_view():
+# a patch (48 px) and a view (128 px) in `make test`; the size between under `make test-all`
+@pytest.mark.parametrize("side", [48, pytest.param(96, marks=pytest.mark.slow), 128])
+def test_any_image_size_patch_or_view(side):
     enc = load_encoder("pcam-cnn")
     rng = np.random.default_rng(1)
-    for side in (48, 96, 128):
-        x = rng.integers(0, 256, (3, side, side, 3), dtype=np.uint8)
-        emb, logit = np.asarray(enc.embed(x)), np.asarray(enc.logits(x))
-        assert emb.shape == (3, pcam_cnn.DIM) and logit.shape == (3,)
-        assert np.isfinite(emb).all()
-        np.testing.assert_allclose(emb[:, -2], logit, rtol=1e-5, atol=1e-5)  # mean of the logit map
-        assert (emb[:, -1] >= emb[:, -2] - 1e-5).all()                        # its max
-        np.testing.assert_array_equal(np.asarray(enc.embed(x)), emb)         # deterministic
+    x = rng.integers(0, 256, (3, side, side, 3), dtype=np.uint8)
+    emb, logit = np.asarray(enc.embed(x)), np.asarray(enc.logits(x))
+    assert emb.shape == (3, pcam_cnn.DIM) and logit.shape == (3,)
+    assert np.isfinite(emb).all()
+    np.testing.assert_allclose(emb[:, -2], logit, rtol=1e-5, atol=1e-5)  # mean of the logit map
+    assert (emb[:, -1] >= emb[:, -2] - 1e-5).all()                        # its max
+    np.testing.assert_array_equal(np.asarray(enc.embed(x)), emb)         # deterministic
 
 
 def test_a_view_of_tumour_scores_above_a_view_of_normal_tissue(bank):

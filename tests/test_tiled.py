@@ -21,6 +21,7 @@ from data_tools.bundle import FORMAT_VERSION, TILED_FORMAT_VERSION, build_bundle
 from data_tools.errors import BundleError
 from histojax.slide import stack_slides
 from histojax.views import view_pixels, view_tumour_fraction
+from hypothesis_examples import examples
 
 DATA = Path(histojax.__file__).parent / "data"
 SVS, XML = DATA / "CMU-1-Small-Region.svs", DATA / "CMU-1-Small-Region.target.xml"
@@ -114,7 +115,7 @@ def test_corner_and_edge_views_equal_dense(hard):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-@settings(deadline=None, max_examples=60, derandomize=True)
+@settings(deadline=None, max_examples=examples(60, 20), derandomize=True)
 @given(z=st.integers(0, 6), fx=st.floats(0, 1), fy=st.floats(0, 1), aligned=st.booleans())
 def test_views_match_dense(hard, z, fx, fy, aligned):
     """For any (z, x, y): keep-all = dense exactly; with a shared blank tile the pixels equal dense

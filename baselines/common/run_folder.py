@@ -21,13 +21,16 @@ line.
 """
 from __future__ import annotations
 
+import errno
 import fcntl
 import json
 import os
 import re
 import shutil
+import stat
 from pathlib import Path
 
+from data_tools.bundle_format import ChangedFileError, not_regular, open_regular
 from data_tools.errors import HistojaxDataError
 
 LOCK = ".histojax-run.lock"
@@ -47,20 +50,75 @@ class RunFolderError(HistojaxDataError):
     """A run folder a training run may not write (file named, one line)."""
 
 
-def _is_run_config(path: Path) -> bool:
-    """Whether ``path`` is a run's ``config.json`` as a trainer writes it: a JSON object naming its ``env_id``."""
+MAX_CONFIG_BYTES = 16 << 20
+"""A run's ``config.json`` larger than this (16 MiB; a trainer writes about 1 KB) is not read."""
+
+
+def read_own(path, what: str, max_bytes: int | None = None) -> bytes:
+    """The bytes of a run folder's own file ``path`` (``what`` it is, for the message): a regular file, not a
+    symbolic link (it may point anywhere), a FIFO (``open`` would block forever), a device or a folder, of at most
+    ``max_bytes`` bytes when given. ``RunFolderError`` naming it otherwise; ``OSError`` (e.g. missing) as ``open``
+    raises it."""
+    path = Path(path)
+    st = os.lstat(path)
+    kind = not_regular(st)
+    if kind is not None:
+        raise RunFolderError(path, f"is {kind}, not the run's own {what}; refusing to read it (restore the file "
+                                   "histojax wrote, or train again)")
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise RunFolderError(path, f"{st.st_size:,} bytes, more than a run's {what} holds ({max_bytes:,}); refusing "
+                                   "to read it")
     try:
-        config = json.loads(path.read_text())
-    except (OSError, ValueError):
+        f = open_regular(path, st)
+    except ChangedFileError:
+        raise RunFolderError(path, f"changed while it was opened; refusing to read it as the run's {what}") from None
+    with f:
+        return f.read() if max_bytes is None else f.read(max_bytes + 1)
+
+
+def _is_run_config(path: Path) -> bool:
+    """Whether ``path`` is a run's ``config.json`` as a trainer writes it: a regular file (never a link or a FIFO,
+    which would block the read) holding a JSON object that names its ``env_id``."""
+    try:
+        config = json.loads(read_own(path, "config", MAX_CONFIG_BYTES))
+    except (OSError, ValueError, HistojaxDataError):  # not a regular file, too large, not JSON: not a run's config
         return False
     return isinstance(config, dict) and isinstance(config.get("env_id"), str)
 
 
+INSIDE = {"checkpoint": re.compile(r"^(runner\.msgpack|checkpoint\.json|config\.json|\..+\.tmp-[0-9a-f]{8})$"),
+          "eval": re.compile(r"^(eval\.json|eval\.csv|trajectory\.gif|trajectory_.+\.png|reading_.+\.png|slide\d+|"
+                             r"fold\d+|\..+\.tmp-[0-9a-f]{8})$"),
+          "process": re.compile(r"^(params\.msgpack|config\.json|\..+\.tmp-[0-9a-f]{8})$")}
+"""Names histojax writes inside a run folder's ``checkpoint/``, ``eval/`` (and its ``slideN/``, ``foldN/``) and
+``process-N/``: what ``--overwrite`` may remove there."""
+
+
+def _foreign_inside(folder: Path, names: re.Pattern, prefix: str) -> list[str]:
+    """The entries below ``folder`` (a run's ``checkpoint/``, ``eval/`` or ``process-N/``) that histojax does not
+    write there, as ``prefix/NAME``: a name it never writes, a link, a FIFO or other non-file, a folder where it
+    writes none."""
+    foreign = []
+    for name in sorted(os.listdir(folder)):
+        path, where = folder / name, f"{prefix}/{name}"
+        if path.is_symlink() or not names.match(name):
+            foreign.append(where)
+        elif path.is_dir():
+            if re.match(r"^(slide|fold)\d+$", name):
+                foreign += _foreign_inside(path, names, where)
+            else:
+                foreign.append(where)
+        elif not path.is_file():
+            foreign.append(where)
+    return foreign
+
+
 def foreign_entries(out: Path) -> list[str]:
     """The entries of ``out`` that histojax does not write in a run folder (a user's files), sorted: names a run
-    never holds, and a ``config.json`` / ``checkpoint/config.json`` that is not a run's config (a user's notes,
+    never holds, a symbolic link of any name (a run writes none: ``checkpoint`` linked elsewhere would write
+    there), and a ``config.json`` / ``checkpoint/config.json`` that is not a run's config (a user's notes,
     a slide head's config)."""
-    foreign = [n for n in os.listdir(out) if not RUN_ENTRIES.match(n)]
+    foreign = [n for n in os.listdir(out) if not RUN_ENTRIES.match(n) or (n != LOCK and (out / n).is_symlink())]
     for name in ("config.json", "checkpoint/config.json"):
         if (out / name).exists() and not _is_run_config(out / name):
             foreign.append(name)
@@ -71,8 +129,8 @@ def foreign_entries(out: Path) -> list[str]:
 
 def _checkpoint_config(out: Path) -> dict | None:
     try:
-        config = json.loads((out / "checkpoint" / "config.json").read_text())
-    except (OSError, ValueError):
+        config = json.loads(read_own(out / "checkpoint" / "config.json", "config", MAX_CONFIG_BYTES))
+    except (OSError, ValueError, HistojaxDataError):
         return None
     return config if isinstance(config, dict) else None
 
@@ -93,9 +151,17 @@ def lock(out: Path) -> None:
         return
     try:
         out.mkdir(parents=True, exist_ok=True)
-        fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | os.O_CLOEXEC, 0o644)
+        fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | os.O_CLOEXEC
+                     | getattr(os, "O_NONBLOCK", 0), 0o644)  # a FIFO there never blocks the open
     except OSError as e:
+        if e.errno == errno.ELOOP:
+            raise RunFolderError(out / LOCK, "is a symbolic link, not the run folder's lock file; remove it or choose "
+                                             "another --out") from None
         raise RunFolderError(out, f"cannot be written ({e.strerror or e}); choose another --out") from None
+    if not stat.S_ISREG(os.fstat(fd).st_mode):
+        os.close(fd)
+        raise RunFolderError(out / LOCK, "is not a regular file (a FIFO, device or socket), not the run folder's lock "
+                                         "file; remove it or choose another --out")
     try:
         fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
     except OSError:
@@ -170,6 +236,15 @@ def claim(out, config: dict, overwrite: bool = False, default: bool = False) -> 
         what = "a finished run (params.msgpack)" if state == "finished" else "an unfinished run of another config"
         raise RunFolderError(out, f"holds {what}; refusing to overwrite it: choose another --out, continue an "
                                   "unfinished run with --resume, or replace it with --overwrite")
+    inside = []  # a user's file inside the old run's folders: never removed (refused before anything is)
+    for name in sorted(os.listdir(out)):
+        kind = "process" if re.match(r"^process-\d+$", name) else name
+        if kind in INSIDE and (out / name).is_dir():
+            inside += _foreign_inside(out / name, INSIDE[kind], name)
+    if inside:
+        release(out)
+        raise RunFolderError(out, f"holds files histojax did not write (e.g. {inside[0]!r}) in the old run's "
+                                  "folders, which --overwrite would remove; move them out first or choose another --out")
     for name in ("checkpoint", "eval"):  # the old run's state: replaced; its final files stay until the new ones
         if (out / name).is_dir() and not (out / name).is_symlink():
             shutil.rmtree(out / name)

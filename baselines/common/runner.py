@@ -18,6 +18,7 @@ from data_tools.errors import HistojaxDataError
 from baselines.curves import plot_curves
 from baselines.common.logs import (Progress, _count, _tensorboard_scalars, finite_mean, save_checkpoint, smooth,
                                    tensorboard_writer, write_logs)
+from baselines.common import run_folder
 from baselines.common.config import ConfigError, canonical_config
 from baselines.common.env import random_agent_reference
 from baselines.common.devices import replicate_on
@@ -194,7 +195,9 @@ def load_runner(folder: Path, template, num_updates: int, chunk: int, config: di
     HistojaxDataError naming it."""
     path = Path(folder) / "runner.msgpack"
     try:
-        state = serialization.msgpack_restore(path.read_bytes())
+        state = serialization.msgpack_restore(run_folder.read_own(path, "checkpoint"))  # never a FIFO or a link
+    except HistojaxDataError:
+        raise
     except OSError as e:
         raise HistojaxDataError(path, f"cannot read the run's checkpoint ({e.strerror or e}); nothing to resume") from e
     except Exception as e:  # msgpack's errors share no base
@@ -311,8 +314,8 @@ def resume_config(run: Path, algo: str, config_class=None):
     or unreadable file, another trainer's run, or (typed) an entry the trainer has not or of the wrong type raises
     HistojaxDataError naming it."""
     path = Path(run) / CHECKPOINT_DIR / "config.json"
-    try:
-        config = json.loads(path.read_text(encoding="utf-8"))
+    try:  # the run's own regular file: a FIFO would block the read, a link may point anywhere
+        config = json.loads(run_folder.read_own(path, "config", run_folder.MAX_CONFIG_BYTES).decode("utf-8"))
     except OSError as e:
         raise HistojaxDataError(path, f"cannot read the run's config ({e.strerror or e}): not a run started with "
                                       "checkpoints, nothing to resume") from e

@@ -1,0 +1,142 @@
+"""A second hostile pass over run folders: a link inside a run folder (``checkpoint`` linked elsewhere), a user's
+file inside the old run's ``checkpoint/``, ``eval/`` or ``process-N/`` under ``--overwrite``, a lock file that is a
+FIFO or a link, and a FIFO or a link where ``--resume`` reads the checkpoint. Each is one line naming the file; none
+blocks, none deletes or writes outside the folder. No training runs here (the checks come before it)."""
+from __future__ import annotations
+
+import contextlib
+import json
+import os
+import signal
+from pathlib import Path
+
+import pytest
+
+from baselines.common import run_folder
+from baselines.common.run_folder import RunFolderError, claim, release
+from baselines.common.runner import load_runner, resume_config
+from data_tools.errors import HistojaxDataError
+
+CONFIG = {"algo": "ppo", "env_id": "HistoJAX-Easy-v0"}
+
+
+class Blocked(Exception):
+    """Raised in a block that blocked too long (not an ``OSError``: no ``except OSError`` swallows it)."""
+
+
+@contextlib.contextmanager
+def at_most(seconds: int):
+    """Fail (:class:`Blocked`) instead of hanging when the block blocks longer than ``seconds``."""
+    def _raise(*_):
+        raise Blocked(f"blocked for more than {seconds} s")
+
+    old = signal.signal(signal.SIGALRM, _raise)
+    signal.alarm(seconds)
+    try:
+        yield
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+
+
+def _finished(out: Path) -> Path:
+    out.mkdir()
+    (out / "params.msgpack").write_bytes(b"old params")
+    (out / "config.json").write_text(json.dumps(CONFIG))
+    return out
+
+
+def test_a_checkpoint_folder_linked_elsewhere_is_refused_even_with_overwrite(tmp_path):
+    """Was: claimed with --overwrite (the link kept), and the run's checkpoints written into the linked folder."""
+    out, elsewhere = tmp_path / "run", tmp_path / "elsewhere"
+    out.mkdir()
+    elsewhere.mkdir()
+    (out / "checkpoint").symlink_to(elsewhere)
+    for overwrite in (False, True):
+        with pytest.raises(RunFolderError, match=r"holds files histojax did not write \(e\.g\. 'checkpoint'\)"):
+            claim(out, CONFIG, overwrite=overwrite)
+    assert (out / "checkpoint").is_symlink() and list(elsewhere.iterdir()) == []
+    (out / "checkpoint").unlink()
+    (out / "params.msgpack").symlink_to(tmp_path / "users.bin")  # a final file linked to a user's file
+    with pytest.raises(RunFolderError, match="'params.msgpack'"):
+        claim(out, CONFIG, overwrite=True)
+
+
+@pytest.mark.parametrize("sub", ["checkpoint", "eval", "eval/slide1", "process-0"])
+def test_overwrite_keeps_a_users_file_inside_the_old_runs_folders(tmp_path, sub):
+    """Was: --overwrite removed RUN/checkpoint, RUN/eval and RUN/process-N whole, a user's file inside them too."""
+    out = _finished(tmp_path / "run")
+    (out / sub).mkdir(parents=True)
+    (out / sub / "thesis.txt").write_text("mine")
+    with pytest.raises(RunFolderError) as e:
+        claim(out, CONFIG, overwrite=True)
+    line = str(e.value)
+    assert f"'{sub}/thesis.txt'" in line and "--overwrite would remove" in line and "\n" not in line
+    assert (out / sub / "thesis.txt").read_text() == "mine" and (out / "params.msgpack").is_file()
+
+
+def test_overwrite_still_replaces_what_a_run_and_its_evaluation_wrote(tmp_path):
+    out = _finished(tmp_path / "run")
+    for name in ("checkpoint/runner.msgpack", "checkpoint/config.json", "checkpoint/checkpoint.json",
+                 "eval/eval.json", "eval/eval.csv", "eval/trajectory.gif", "eval/trajectory_ppo_greedy.png",
+                 "eval/reading_ppo_greedy_maps.png", "eval/slide0/eval.json", "process-0/params.msgpack",
+                 "checkpoint/.runner.msgpack.tmp-0123abcd"):
+        (out / name).parent.mkdir(parents=True, exist_ok=True)
+        (out / name).write_text(json.dumps(CONFIG) if name.endswith("config.json") else "x")
+    assert claim(out, CONFIG, overwrite=True) == out
+    release(out)
+    assert not (out / "checkpoint").exists() and not (out / "eval").exists() and not (out / "process-0").exists()
+    assert (out / "params.msgpack").is_file()  # the old final files stay until the new run's are written
+
+
+def test_a_lock_file_that_is_a_fifo_or_a_link_is_one_line(tmp_path):
+    """Was: a FIFO lock file gave "OSError: [Errno 22] Invalid argument" (a traceback of `histojax train`)."""
+    out = tmp_path / "run"
+    out.mkdir()
+    os.mkfifo(out / run_folder.LOCK)
+    with at_most(10), pytest.raises(RunFolderError, match="is not a regular file .*not the run folder's lock file"):
+        claim(out, CONFIG)
+    (out / run_folder.LOCK).unlink()
+    (out / run_folder.LOCK).symlink_to(tmp_path / "elsewhere")
+    with pytest.raises(RunFolderError, match=r"\.histojax-run\.lock: is a symbolic link"):
+        claim(out, CONFIG)
+    assert not (tmp_path / "elsewhere").exists()
+
+
+def test_a_fifo_config_json_in_the_run_folder_is_refused_not_waited_on(tmp_path):
+    """Was: `histojax train --out R` with R/config.json a FIFO blocked for ever reading it."""
+    out = tmp_path / "run"
+    out.mkdir()
+    os.mkfifo(out / "config.json")
+    with at_most(10), pytest.raises(RunFolderError, match="'config.json'"):
+        claim(out, CONFIG, overwrite=True)
+
+
+def _unfinished(out: Path) -> Path:
+    (out / "checkpoint").mkdir(parents=True)
+    (out / "checkpoint" / "config.json").write_text(json.dumps(CONFIG))
+    return out
+
+
+def test_resume_reads_no_fifo_and_no_link(tmp_path):
+    """Was: `histojax train --resume R` with R/checkpoint/config.json or runner.msgpack a FIFO blocked for ever
+    (killed at 90 s); runner.msgpack linked to another run's checkpoint was resumed from it without a word."""
+    run = _unfinished(tmp_path / "run")
+    os.mkfifo(run / "checkpoint" / "runner.msgpack")
+    with at_most(10), pytest.raises(HistojaxDataError, match=r"runner\.msgpack: is a FIFO, not the run's own checkpoint"):
+        load_runner(run / "checkpoint", None, 1, 1)
+    (run / "checkpoint" / "runner.msgpack").unlink()
+    (tmp_path / "other.msgpack").write_bytes(b"\x80")
+    (run / "checkpoint" / "runner.msgpack").symlink_to(tmp_path / "other.msgpack")
+    with pytest.raises(HistojaxDataError, match="is a symbolic link, not the run's own checkpoint"):
+        load_runner(run / "checkpoint", None, 1, 1)
+    (run / "checkpoint" / "config.json").unlink()
+    os.mkfifo(run / "checkpoint" / "config.json")
+    with at_most(10), pytest.raises(HistojaxDataError, match=r"config\.json: is a FIFO, not the run's own config"):
+        resume_config(run, "ppo")
+    (run / "checkpoint" / "config.json").unlink()
+    (run / "checkpoint" / "config.json").write_text(" " * (run_folder.MAX_CONFIG_BYTES + 1))
+    with pytest.raises(HistojaxDataError, match="more than a run's config holds"):
+        resume_config(run, "ppo")
+    (run / "checkpoint" / "config.json").write_text(json.dumps(CONFIG))
+    assert resume_config(run, "ppo")["env_id"] == "HistoJAX-Easy-v0"  # the run's own file still reads

@@ -46,11 +46,13 @@ def test_a_rollout_too_big_for_the_device_is_refused_before_compiling(monkeypatc
     assert ppo.make_train({**TINY_PPO, "num_seeds": 2, "vmap_seeds": True}).num_updates == 2
 
 
-def test_networks_shapes_pixels_dict_vector_and_continuous():
+# `make test-all` (two network compiles, over a minute on 2 loaded cores): in `make test` the discrete ActorCritic
+# on pooled pixels and the position runs in test_tiny_ppo_runs_jitted_with_finite_losses[True]
+@pytest.mark.slow
+def test_networks_shapes_pixels_dict_and_continuous():
     key = jax.random.PRNGKey(0)
     px = jnp.zeros((3, 128, 128, 3), jnp.uint8)
     pooled = networks.preprocess_obs(px)
-    assert pooled.shape == (3, 32, 32, 3) and pooled.dtype == jnp.uint8
     obs = {"pixels": pooled, "position": jnp.zeros((3, 3))}
     net = networks.ActorCritic(7, hidden=32)
     logits, value = jax.jit(lambda o: net.apply(net.init(key, o), o))(obs)
@@ -58,6 +60,13 @@ def test_networks_shapes_pixels_dict_vector_and_continuous():
     cont = networks.ActorCritic(3, "continuous", hidden=32)
     (mean, log_std), value = jax.jit(lambda o: cont.apply(cont.init(key, o), o))(px)  # 128 px pooled inside
     assert mean.shape == (3, 3) and log_std.shape == (3,)
+
+
+def test_networks_shapes_pooling_vector_and_patch_convolution():
+    key = jax.random.PRNGKey(0)
+    px = jnp.zeros((3, 128, 128, 3), jnp.uint8)
+    pooled = networks.preprocess_obs(px)
+    assert pooled.shape == (3, 32, 32, 3) and pooled.dtype == jnp.uint8
     q = networks.QNetwork(7, hidden=32)
     vec = jnp.zeros((3, 10))
     assert jax.jit(lambda o: q.apply(q.init(key, o), o))(vec).shape == (3, 7)

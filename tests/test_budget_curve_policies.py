@@ -22,6 +22,14 @@ from slide_helpers import synth_feature_dataset
 BUDGETS = (0.1, 0.25, 0.5)
 STEPS = 8
 
+# The whole module runs under `make test-all`: its fixture compiles the recurrent trainer and two reading rollouts
+# (over two minutes on 2 loaded cores before any test). In `make test` the same paths run smaller:
+# a recurrent reader evaluated by baselines.evaluate.learned_policy / run_episodes
+# (tests/test_set_policy.py::test_evaluate_runs_a_set_reader_on_a_wider_slide[True]), the GRU state and the recurrent
+# loss (tests/test_ppo_rnn.py), a reader's reads scored through a slide head (tests/test_evaluate_readers.py) and
+# the readers command's scripted rows (tests/test_head.py::test_readers_command_writes_the_curve).
+pytestmark = pytest.mark.slow
+
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory):
@@ -51,7 +59,6 @@ def runs(dataset, tmp_path_factory):
     return {"glimpse:1": root / "glimpse", "zoom_select": root / "zoom"}
 
 
-@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_budget_curve_draws_a_recurrent_run(dataset, runs, tmp_path):
     assert common.load_checkpoint(runs["glimpse:1"])[1]["algo"] == "ppo_rnn"
     assert budget_curve.main(["--dataset", str(dataset), "--env", "HistoJAX-Easy-v0", "--glimpse-level", "1",
@@ -71,7 +78,6 @@ def test_budget_curve_draws_a_recurrent_run(dataset, runs, tmp_path):
     assert (tmp_path / "budget_curve.png").stat().st_size > 1000
 
 
-@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_a_policy_is_scored_by_every_slide_head(dataset, runs):
     """With a max-logit head (pcam-cnn datasets), a policy's reads are scored by it too, beside the MIL."""
     train = pipeline.load_split(dataset, "train", env_id="HistoJAX-Easy-v0", level=1)
@@ -106,7 +112,6 @@ def test_recurrent_evaluation_respects_the_reading_budget(dataset, runs, glimpse
             assert 0.0 <= score <= 1.0
 
 
-@pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_recurrent_evaluation_jit_equals_no_jit(dataset, runs, glimpse_reads):
     with jax.disable_jit():
         plain = pipeline.policy_reads(runs["glimpse:1"], dataset, "test", BUDGETS[-1:])

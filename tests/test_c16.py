@@ -184,6 +184,10 @@ def test_memory_budget_error_names_what_to_change(small):
         histojax.make("HistoJAX-C16-Hard-v0", dataset=small, max_device_bytes=2**20, verify=False)
 
 
+# `make test-all`: in `make test` a SIGKILLed build resuming is tests/test_dataset_command.py::
+# test_a_sigkilled_run_resumes (the per-slide step c16 shares) and c16's own leftovers after a kill are
+# test_c16_leaves_no_lock_no_partial_features_and_no_stale_temporaries there
+@pytest.mark.slow
 def test_killed_run_leaves_no_temporaries_and_resumes(small, tmp_path):
     """SIGKILL a generator mid-run; the next run removes what it left and skips the finished slides."""
     from data_tools.datasets.c16 import make_c16_dataset
@@ -287,6 +291,10 @@ def test_pool_features_equal_the_views_they_describe(small, tmp_path):
         np.testing.assert_allclose(grid, direct, atol=1e-6)
 
 
+# `make test-all` (three builds of the set): in `make test` c16 --no-pixels builds the shared small set
+# (conftest.py's c16_small, read by tests/test_folds.py) and the dataset command's --no-pixels path is
+# tests/test_dataset_command.py's, with pixel mode refused by tests/test_evaluate_cli.py's no-pixels test
+@pytest.mark.slow
 def test_feature_only_bundles(small, tmp_path):
     """``--no-pixels``: after the feature grid the RGB pools of every level but the coarsest are deleted; the
     features env is unchanged, pixel mode is refused naming what to do, rendering still works, and the
@@ -435,6 +443,10 @@ def test_the_full_sets_sides_share_no_patch():
         assert (in_test_pool(names, [int(v) for v in labels]) == (side == "test")).all(), side
 
 
+# `make test-all` (over a minute on 2 loaded cores): in `make test` the per-slide step it goes through is covered by
+# tests/test_dataset_command.py (test_shards_are_disjoint_and_the_last_writes_dataset_json,
+# test_a_bundle_locked_by_another_process_is_skipped, and its failed-slide tests)
+@pytest.mark.slow
 def test_shards_build_disjoint_slides_and_the_last_writes_dataset_json(small, tmp_path, monkeypatch):
     """`c16 --shard I/N` goes through the dataset command's per-slide step: shard 0/2 builds its half and
     writes no dataset.json; a slide held by another process is skipped (busy); a failing slide is recorded

@@ -30,6 +30,7 @@ import math
 import os
 import re
 import shutil
+import stat
 import uuid
 from dataclasses import dataclass
 from pathlib import Path
@@ -458,7 +459,8 @@ def metadata_digest(metadata: dict) -> str:
 
 DATASET_DIGEST = "dataset_sha256"
 """Key of ``dataset.json``'s seal (``histojax dataset``, ``c16``): the SHA-256 of the rest (as :func:`metadata_digest`)."""
-MAX_DATASET_JSON_BYTES = 1 << 30  # bytes: far above any cohort's index (a few hundred bytes per slide)
+MAX_DATASET_JSON_BYTES = 256 << 20  # bytes: far above any cohort's index (a few hundred bytes per slide); read, it
+# takes about 4.4× its size (a 200 MB file peaked at 885 MB RSS)
 
 
 def read_dataset_json(folder, _depth: int = 0) -> dict:
@@ -468,13 +470,29 @@ def read_dataset_json(folder, _depth: int = 0) -> dict:
     sealed dataset (``baselines.validation``: a ``validation.source`` record; the readers' ``derived_from``)
     carries its source's seal: the source's seal is checked and the labels must be the source's. Files without a
     seal (``data_tools synth``, older builds) are read as they are. ``FileNotFoundError``, ``OSError`` and
-    ``json.JSONDecodeError`` pass as ``json.loads(path.read_text())`` raises them. Returns the JSON value."""
+    ``json.JSONDecodeError`` pass as ``json.loads(path.read_text())`` raises them; a ``BundleError`` naming the
+    file when it is not a regular file (a FIFO would block the read for ever; a folder, a device), larger than
+    :data:`MAX_DATASET_JSON_BYTES`, or not a JSON object. Returns the object."""
     path = Path(folder) / "dataset.json"
-    if path.is_file() and path.stat().st_size > MAX_DATASET_JSON_BYTES:
-        raise BundleError(path, f"is {path.stat().st_size / 2**20:.0f} MiB, more than a dataset index holds "
+    st = os.stat(path)  # a link to a regular file is read (the user's choice); FileNotFoundError as before
+    if not stat.S_ISREG(st.st_mode):
+        raise BundleError(path, f"is {not_regular(st)}, not a dataset index file; refusing to read it (rebuild the "
+                          "dataset, or give the folder histojax wrote)")
+    if st.st_size > MAX_DATASET_JSON_BYTES:
+        raise BundleError(path, f"is {st.st_size / 2**20:.0f} MiB, more than a dataset index holds "
                           f"({MAX_DATASET_JSON_BYTES // 2**20} MiB); not a histojax dataset.json")
-    spec = json.loads(path.read_text())
-    if not isinstance(spec, dict) or DATASET_DIGEST not in spec:
+    fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))  # swapped for a FIFO since: never blocks
+    with os.fdopen(fd, "rb") as f:
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise BundleError(path, "changed while it was opened (not a regular file now); refusing to read it")
+        data = f.read(MAX_DATASET_JSON_BYTES + 1)
+    if len(data) > MAX_DATASET_JSON_BYTES:
+        raise BundleError(path, f"grew past {MAX_DATASET_JSON_BYTES // 2**20} MiB while it was read; refusing it")
+    spec = json.loads(data.decode("utf-8"))
+    if not isinstance(spec, dict):
+        raise BundleError(path, f"holds a JSON {type(spec).__name__}, not a dataset index (an object with the "
+                          "train and test splits histojax writes); rebuild the dataset")
+    if DATASET_DIGEST not in spec:
         return spec
     validation = spec.get("validation")
     source = spec.get("derived_from") or (validation.get("source") if isinstance(validation, dict) else None)

@@ -140,3 +140,53 @@ def test_resume_reads_no_fifo_and_no_link(tmp_path):
         resume_config(run, "ppo")
     (run / "checkpoint" / "config.json").write_text(json.dumps(CONFIG))
     assert resume_config(run, "ppo")["env_id"] == "HistoJAX-Easy-v0"  # the run's own file still reads
+
+
+# ----------------------------------------------------------------------------- the dataset seal's file
+def _sealed(folder: Path) -> Path:
+    from data_tools.bundle_format import DATASET_DIGEST, metadata_digest
+
+    folder.mkdir()
+    spec = {"kind": "histojax dataset of real slides (data_tools dataset)", "train": ["bundles/s1"],
+            "test": ["bundles/s2"], "labels": {"s1": 0, "s2": 1}}
+    (folder / "dataset.json").write_text(json.dumps({**spec, DATASET_DIGEST: metadata_digest(spec)}))
+    return folder
+
+
+def test_a_dataset_json_that_is_a_fifo_a_folder_or_not_an_object_is_one_line(tmp_path):
+    """Was: a FIFO dataset.json blocked make, the head fits and evaluate --dataset for ever (killed at 40 s); a folder
+    gave IsADirectoryError and a JSON list AttributeError ('list' object has no attribute 'get') from make."""
+    from data_tools.bundle_format import read_dataset_json
+    from data_tools.errors import BundleError
+    from histojax.registry import dataset_slides
+
+    ds = _sealed(tmp_path / "ds")
+    assert read_dataset_json(ds)["labels"] == {"s1": 0, "s2": 1}
+    (ds / "dataset.json").unlink()
+    os.mkfifo(ds / "dataset.json")
+    for read in (lambda: read_dataset_json(ds), lambda: dataset_slides(ds, "train")):
+        with at_most(10), pytest.raises(BundleError, match=r"dataset\.json: is a FIFO, not a dataset index file"):
+            read()
+    (ds / "dataset.json").unlink()
+    (ds / "dataset.json").mkdir()
+    with pytest.raises(BundleError, match="is a folder, not a dataset index file"):
+        dataset_slides(ds, "train")
+    (ds / "dataset.json").rmdir()
+    (ds / "dataset.json").write_text("[1, 2]")
+    with pytest.raises(BundleError, match="holds a JSON list, not a dataset index"):
+        dataset_slides(ds, "train")
+
+
+def test_a_dataset_json_linked_to_a_regular_file_is_read_with_its_seal_checked(tmp_path):
+    from data_tools.bundle_format import read_dataset_json
+    from data_tools.errors import BundleError
+
+    other = _sealed(tmp_path / "other")
+    ds = tmp_path / "ds"
+    ds.mkdir()
+    (ds / "dataset.json").symlink_to(other / "dataset.json")
+    assert read_dataset_json(ds)["labels"]["s2"] == 1
+    spec = json.loads((other / "dataset.json").read_text())
+    (other / "dataset.json").write_text(json.dumps({**spec, "labels": {"s1": 1, "s2": 1}}))  # edited, seal kept
+    with pytest.raises(BundleError, match="does not match its seal"):
+        read_dataset_json(ds)

@@ -190,3 +190,22 @@ def test_a_dataset_json_linked_to_a_regular_file_is_read_with_its_seal_checked(t
     (other / "dataset.json").write_text(json.dumps({**spec, "labels": {"s1": 1, "s2": 1}}))  # edited, seal kept
     with pytest.raises(BundleError, match="does not match its seal"):
         read_dataset_json(ds)
+
+
+# ----------------------------------------------------------------------------- a head's params.json, named as such
+def test_a_heads_params_json_is_named_as_its_parameters_not_its_config(tmp_path):
+    """Was: a linked or NaN-holding params.json was called "the head's own config" / "a head config"."""
+    import shutil
+
+    from baselines.published_agents import PUBLISHED
+    from histojax.reading import heads
+
+    head = shutil.copytree(PUBLISHED / "c16-v2-head", tmp_path / "head")
+    (head / "params.json").unlink()
+    (head / "params.json").symlink_to(PUBLISHED / "c16-v2-head" / "params.json")
+    with pytest.raises(ValueError, match=r"params\.json: is a symbolic link, not the head's own parameters"):
+        heads.load(head)
+    (head / "params.json").unlink()
+    (head / "params.json").write_text('{"a": NaN, "b": 0.0, "prior_logit": 0.0}')
+    with pytest.raises(ValueError, match=r"params\.json: not valid JSON \(NaN is not a number a head's parameters"):
+        heads.load(head)

@@ -133,23 +133,25 @@ def _unique(pairs):
     return out
 
 
-def read_config(path, max_bytes: int = MAX_CONFIG_BYTES, max_depth: int = MAX_JSON_DEPTH) -> dict:
-    """The JSON object in ``path`` (a head's ``config.json``), read through :func:`read_regular`: UTF-8, nested at
-    most ``max_depth`` deep, no NaN / Infinity, no repeated key. ``HeadFileError`` naming the file otherwise."""
-    data = read_regular(path, max_bytes, "config")
+def read_config(path, max_bytes: int = MAX_CONFIG_BYTES, max_depth: int = MAX_JSON_DEPTH, what: str = "config") -> dict:
+    """The JSON object in ``path`` (a head's ``config.json``; ``what="parameters"``: its ``params.json``, named so in
+    the messages), read through :func:`read_regular`: UTF-8, nested at most ``max_depth`` deep, no NaN / Infinity,
+    no repeated key. ``HeadFileError`` naming the file otherwise."""
+    data = read_regular(path, max_bytes, what)
     try:
         text = data.decode("utf-8")
     except UnicodeDecodeError as e:
         raise HeadFileError(path, f"not UTF-8 text ({e.reason} at byte {e.start})") from None
     depth = json_depth(text)
     if depth > max_depth:
-        raise HeadFileError(path, f"JSON nested {depth} deep, more than the {max_depth} a head config may be")
+        raise HeadFileError(path, f"JSON nested {depth} deep, more than the {max_depth} a head {what} may be")
     try:
         cfg = json.loads(text, parse_constant=_no_constant, object_pairs_hook=_unique)
     except (ValueError, RecursionError) as e:  # JSONDecodeError is a ValueError; so is an over-long integer
-        raise HeadFileError(path, f"not valid JSON ({' '.join(str(e).split())[:160]})") from None
+        detail = " ".join(str(e).split())[:160].replace("a head config may hold", f"a head's {what} may hold")
+        raise HeadFileError(path, f"not valid JSON ({detail})") from None
     if not isinstance(cfg, dict):
-        raise HeadFileError(path, f"holds a JSON {type(cfg).__name__}, not an object (a head config)")
+        raise HeadFileError(path, f"holds a JSON {type(cfg).__name__}, not an object (a head {what})")
     return cfg
 
 

@@ -133,7 +133,7 @@ class SlideHead:
         top = files.field(cfg, "top", int, cfg_file, lo=1, hi=MAX_TOP)
         minus_median = files.field(cfg, "minus_median", bool, cfg_file, default=False)
         encoder = files.field(cfg, "encoder", (str, type(None)), cfg_file, default=None)
-        par = files.read_config(par_file, max_bytes=MAX_PARAMS_JSON_BYTES)
+        par = files.read_config(par_file, max_bytes=MAX_PARAMS_JSON_BYTES, what="parameters")
         a, b, prior = (files.field(par, n, float, par_file, lo=-MAX_PARAM, hi=MAX_PARAM)
                        for n in ("a", "b", "prior_logit"))
         known = {"kind", "format", "dim", "k", "top", "minus_median", "encoder", "name", "input", "output"}

@@ -9,6 +9,8 @@ Two tiny synthetic datasets (made here, no third-party data): training slides of
 """
 from __future__ import annotations
 
+import functools
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -55,8 +57,20 @@ def envs(slides):
     return _make([slides["a"], slides["b"]]), _make([slides["big"]])
 
 
+@functools.lru_cache(maxsize=None)
+def _vreset(env):
+    """``env.reset`` vmapped over keys, jitted once per env for the module (not run op by op in each test)."""
+    return jax.jit(jax.vmap(env.reset, in_axes=(0, None)))
+
+
+@functools.lru_cache(maxsize=None)
+def _vstep(env):
+    """``env.step`` vmapped over envs (params shared), jitted once per env for the module."""
+    return jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))
+
+
 def _batch_reset(env, params, key):
-    return jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, ENVS), params)
+    return _vreset(env)(jax.random.split(key, ENVS), params)
 
 
 def _reader_for_the_wider_slide(envs, recurrent: bool):
@@ -158,8 +172,7 @@ def test_rollout_apply_computes_the_cell_keys_once_with_the_same_outputs(envs):
         for a, b in zip(policy(obs), plain(obs)):
             np.testing.assert_allclose(np.asarray(a), np.asarray(b), rtol=1e-6, atol=1e-6)
         action = jax.random.randint(jax.random.key(10 + t), (ENVS,), 0, c + 2)
-        obs, state, *_ = jax.vmap(env_a.step, in_axes=(0, 0, 0, None))(
-            jax.random.split(jax.random.key(20 + t), ENVS), state, action, pa)
+        obs, state, *_ = _vstep(env_a)(jax.random.split(jax.random.key(20 + t), ENVS), state, action, pa)
 
 
 def test_pointer_logits_are_every_pickable_cells_key_against_the_query(envs):
@@ -209,8 +222,8 @@ def test_recurrent_rollout_step_computes_the_cell_keys_once_with_the_same_output
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-6)
         h = a[0]
         action = jax.random.randint(jax.random.key(30 + t), (ENVS,), 0, c + 2)
-        obs, state, _, term, trunc, _ = jax.vmap(env_a.step, in_axes=(0, 0, 0, None))(
-            jax.random.split(jax.random.key(40 + t), ENVS), state, action, pa)
+        obs, state, _, term, trunc, _ = _vstep(env_a)(jax.random.split(jax.random.key(40 + t), ENVS), state, action,
+                                                      pa)
         first = term | trunc
 
 

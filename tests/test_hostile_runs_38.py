@@ -83,6 +83,10 @@ def test_overwrite_still_replaces_what_a_run_and_its_evaluation_wrote(tmp_path):
                  "checkpoint/.runner.msgpack.tmp-0123abcd"):
         (out / name).parent.mkdir(parents=True, exist_ok=True)
         (out / name).write_text(json.dumps(CONFIG) if name.endswith("config.json") else "x")
+    from data_tools.bundle_format import mark_temporary
+
+    mark_temporary(out / "checkpoint" / ".runner.msgpack.tmp-89abcdef")  # a killed run's atomic write
+    (out / "checkpoint" / ".runner.msgpack.tmp-89abcdef" / "runner.msgpack").write_text("half")
     assert claim(out, CONFIG, overwrite=True) == out
     release(out)
     assert not (out / "checkpoint").exists() and not (out / "eval").exists() and not (out / "process-0").exists()

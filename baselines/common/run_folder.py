@@ -30,7 +30,7 @@ import shutil
 import stat
 from pathlib import Path
 
-from data_tools.bundle_format import ChangedFileError, not_regular, open_regular
+from data_tools.bundle_format import ChangedFileError, is_our_temporary, not_regular, open_regular
 from data_tools.errors import HistojaxDataError
 
 LOCK = ".histojax-run.lock"
@@ -106,7 +106,7 @@ def _foreign_inside(folder: Path, names: re.Pattern, prefix: str) -> list[str]:
         elif path.is_dir():
             if re.match(r"^(slide|fold)\d+$", name):
                 foreign += _foreign_inside(path, names, where)
-            else:
+            elif not (".tmp-" in name and is_our_temporary(path)):  # an interrupted atomic write's marked folder
                 foreign.append(where)
         elif not path.is_file():
             foreign.append(where)

@@ -29,7 +29,9 @@ def test_every_published_agent_names_the_dataset_it_needs(name, tmp_path, capsys
     assert histojax_main(["evaluate", str(PUBLISHED / name), "--episodes", "2", "--out", str(out)]) == 2
     line = _one_line(capsys)
     assert json.loads((PUBLISHED / name / "config.json").read_text())["env_kwargs"]["dataset"] is None  # no path
-    assert f"{PUBLISHED / name / 'config.json'}: a published agent" in line and "records no dataset" in line
+    assert f"{PUBLISHED / name / 'config.json'}: a published agent" in line
+    assert "records no path of the machine it was trained on; its published.json says it trained on" in line
+    assert json.loads((PUBLISHED / name / "published.json").read_text())["trained_on"]["what"] in line
     assert "give --dataset DIR" in line and "histojax c16 --small --features --out c16-small" in line
     assert "pcam-cnn" in line and "docs/c16-benchmark.md#build-it" in line
     assert not out.exists()

@@ -153,3 +153,14 @@ def test_publish_of_a_run_with_a_published_head_names_it_in_the_repository(run, 
 def test_the_readme_says_so():
     text = (PUBLISHED / "README.md").read_text()
     assert "trained_on" in text and "no path of the machine" in text and "/work/" not in text
+
+
+def test_split_or_fold_without_dataset_on_a_config_of_no_dataset_path_is_one_line(capsys):
+    """Was: a published config.json copied without its published.json, evaluated with --fold 0 and no --dataset:
+    "expected str, bytes or os.PathLike object, not NoneType"."""
+    _, config = common.load_checkpoint(PUBLISHED / "c16-v1-diagnosis")
+    for kw in ({"fold": 0}, {"split": "test"}):
+        with pytest.raises(SystemExit) as e:
+            with_dataset(config, **kw)
+        assert e.value.code == 2
+        assert "records no dataset it trained on; give --dataset DIR too" in capsys.readouterr().err

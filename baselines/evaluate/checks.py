@@ -168,6 +168,23 @@ def is_published(run: Path) -> bool:
     return inside or (run / "published.json").is_file()
 
 
+def published_trained_on(run: Path) -> str | None:
+    """What a published agent's ``published.json`` says it trained on (``trained_on``: ``what``, else the dataset's
+    name and split), or None when it names nothing (or cannot be read)."""
+    try:
+        record = json.loads((Path(run) / "published.json").read_text())
+    except (OSError, ValueError):
+        return None
+    where = record.get("trained_on") if isinstance(record, dict) else None
+    if not isinstance(where, dict):
+        return None
+    if isinstance(where.get("what"), str) and where["what"]:
+        return where["what"]
+    if isinstance(where.get("dataset"), str):
+        return f"the {where.get('split', 'train')} split of a dataset named {where['dataset']!r}"
+    return None
+
+
 def published_dataset_refusal(run: Path, config: dict) -> str | None:
     """Why a published agent (:func:`is_published`) is not scored without ``--dataset``, as one line naming its
     ``config.json``, the dataset it needs and how to build one; None for any other run. The dataset path its
@@ -189,6 +206,8 @@ def published_dataset_refusal(run: Path, config: dict) -> str | None:
     elif recorded:
         said = (f"records the dataset it trained on as {recorded} (a folder of the machine it was trained on, kept as "
                 "provenance: a published agent is never scored on it unasked)")
+    elif isinstance(trained_on := published_trained_on(run), str):
+        said = f"records no path of the machine it was trained on; its published.json says it trained on {trained_on}"
     else:
         said = "records no dataset"
     if "-C16-" in env_id:

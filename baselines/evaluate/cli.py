@@ -65,9 +65,9 @@ def with_dataset(config, dataset=None, split: str | None = None, fold: int | Non
         if not (Path(dataset) / "dataset.json").is_file():
             raise _usage_exit(f"--dataset {dataset}: no dataset.json there")
         kw["dataset"] = str(dataset)
-    elif "dataset" not in kw:
-        raise _usage_exit(f"{'--split' if split is not None else '--fold'}: this checkpoint was not trained on a "
-                          "dataset; give --dataset DIR too")
+    elif not kw.get("dataset"):  # none, or null (a published config.json names no path: published.json names it)
+        raise _usage_exit(f"{'--split' if split is not None else '--fold'}: this checkpoint records no dataset it "
+                          "trained on; give --dataset DIR too")
     if fold is not None:
         kw["fold"] = fold
     kw["split"] = split or scored_side(kw["dataset"], kw.get("fold"))

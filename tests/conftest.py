@@ -9,11 +9,6 @@ os.environ.setdefault("HISTOJAX_CACHE", tempfile.mkdtemp(prefix="histojax-test-c
 # Commands run by the tests (in process or as subprocesses) leave ~/.cache/histojax/jax alone: JAX's persistent
 # compilation cache is off unless a test turns it on in its own folder (tests/test_compile_cache.py).
 os.environ.setdefault("HISTOJAX_NO_COMPILE_CACHE", "1")
-# Most of the suite's time is XLA compiling small programs for the CPU: LLVM's optimisation level 0 compiles them
-# faster (about 10-20 % of the suite's time). XLA does not reassociate floating point at any level (fast math
-# is off), so the programs compute the same numbers; tests/test_reading_speed_equivalence.py compares
-# trajectories with recorded ones under it. Subprocesses of the tests inherit it. A user's XLA_FLAGS is kept.
-os.environ.setdefault("XLA_FLAGS", "--xla_backend_optimization_level=0")
 
 import pytest  # noqa: E402
 

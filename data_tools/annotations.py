@@ -478,8 +478,19 @@ def _read_geojson(path, label_map, default_label) -> list[tuple[str, list[Polygo
 
 
 def _as_multipolygon(geom) -> MultiPolygon:
+    """The polygonal parts of ``geom`` as one *valid* MultiPolygon. Parts picked out of a GeometryCollection may
+    overlap or share an edge, which a MultiPolygon's parts may not: they are unioned then (and repaired once more
+    if rounding still leaves the union invalid)."""
     parts = _polygonal_parts(geom)
-    return MultiPolygon(parts) if parts else _EMPTY
+    if not parts:
+        return _EMPTY
+    multi = MultiPolygon(parts)
+    for repair in (shapely.union_all, shapely.make_valid, lambda g: g.buffer(0)):
+        if multi.is_valid:
+            return multi
+        parts = _polygonal_parts(repair(parts if repair is shapely.union_all else multi))
+        multi = MultiPolygon(parts) if parts else _EMPTY
+    return multi if multi.is_valid else _EMPTY
 
 
 def _is_xml(path) -> bool:
@@ -558,9 +569,13 @@ def load_annotations(
     if frame is not None and not tumour and _subtract(_union_parts(by_label["tumour"]), _union_parts(
             by_label["exclusion"])):
         raise AnnotationError(path, f"annotation lies outside the slide {w}x{h}")
+    tumour_geom, exclusion_geom = _multipolygon(tumour), _multipolygon(exclusion)
+    if not exclusion_geom.is_empty and tumour_geom.intersection(exclusion_geom).area > 0:
+        # tangled parts whose repair re-united them over the exclusion (found by `make fuzz`): cut once more
+        tumour_geom = _as_multipolygon(shapely.difference(tumour_geom, exclusion_geom))
     return Annotations(
-        tumour=_multipolygon(tumour),
-        exclusion=_multipolygon(exclusion),
+        tumour=tumour_geom,
+        exclusion=exclusion_geom,
         tissue=_multipolygon(tissue),
         n_polygons=n_polygons,
         unknown_groups=tuple(unknown),

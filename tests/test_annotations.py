@@ -363,3 +363,23 @@ def test_geojson_round_trip_keeps_geometry(tmp_path):
     assert back.tumour.area == pytest.approx(ann.tumour.area, rel=1e-9)
     assert back.exclusion.area == pytest.approx(ann.exclusion.area, rel=1e-9)
     assert back.tumour.symmetric_difference(ann.tumour).area < 1e-3
+
+
+def test_overlapping_pieces_after_repair_give_one_valid_area(tmp_path):
+    """`make fuzz` (GeoJSON hostile geometry): a repaired bow-tie tumour, clipped to the slide and cut by an exclusion,
+    came back as a MultiPolygon whose parts overlapped: invalid, with a negative area (-20.5 px²)."""
+    import json as _json
+    import warnings as _warnings
+
+    polygons = [[(0, 0), (0, 0), (0, 1)], [(0, 6), (-1, -1), (34, 241)], [(0, 64), (2, 0), (-1, -1), (34, 241)]]
+    feats = [{"type": "Feature", "properties": {"label": "exclusion" if i == 2 else "tumour"},
+              "geometry": {"type": "Polygon", "coordinates": [[list(p) for p in pts]]}}
+             for i, pts in enumerate(polygons)]
+    path = tmp_path / "tangled.geojson"
+    path.write_text(_json.dumps({"type": "FeatureCollection", "features": feats}))
+    with _warnings.catch_warnings():
+        _warnings.simplefilter("ignore")  # repaired, dropped and clipped polygons are noted; not the point here
+        ann = load_annotations(path, slide_size=(5000, 5000))
+    for geom in (ann.tumour, ann.exclusion, ann.tissue):
+        assert geom.is_valid and geom.area >= 0
+    assert ann.tumour.area > 0 and ann.tumour.intersection(ann.exclusion).area <= 1e-6 * ann.exclusion.area

@@ -485,10 +485,11 @@ def _as_multipolygon(geom) -> MultiPolygon:
     if not parts:
         return _EMPTY
     multi = MultiPolygon(parts)
-    for repair in (shapely.union_all, shapely.make_valid, lambda g: g.buffer(0)):
+    for repair in (lambda: _robust(shapely.union_all, parts), lambda: shapely.make_valid(multi),
+                   lambda: multi.buffer(0)):
         if multi.is_valid:
             return multi
-        parts = _polygonal_parts(repair(parts if repair is shapely.union_all else multi))
+        parts = _polygonal_parts(repair())
         multi = MultiPolygon(parts) if parts else _EMPTY
     return multi if multi.is_valid else _EMPTY
 
@@ -570,9 +571,9 @@ def load_annotations(
             by_label["exclusion"])):
         raise AnnotationError(path, f"annotation lies outside the slide {w}x{h}")
     tumour_geom, exclusion_geom = _multipolygon(tumour), _multipolygon(exclusion)
-    if not exclusion_geom.is_empty and tumour_geom.intersection(exclusion_geom).area > 0:
+    if not exclusion_geom.is_empty and _robust(shapely.intersection, tumour_geom, exclusion_geom).area > 0:
         # tangled parts whose repair re-united them over the exclusion (found by `make fuzz`): cut once more
-        tumour_geom = _as_multipolygon(shapely.difference(tumour_geom, exclusion_geom))
+        tumour_geom = _as_multipolygon(_robust(shapely.difference, tumour_geom, exclusion_geom))
     return Annotations(
         tumour=tumour_geom,
         exclusion=exclusion_geom,
@@ -611,7 +612,7 @@ def _subtract(parts: list[Polygon], cut: list[Polygon]) -> list[Polygon]:
     hit = set(a.tolist())
     whole = _multipolygon(cut)
     return [p for i, p in enumerate(parts) if i not in hit] + [
-        q for i in sorted(hit) for q in _polygonal_parts(shapely.difference(parts[i], whole))]
+        q for i in sorted(hit) for q in _polygonal_parts(_robust(shapely.difference, parts[i], whole))]
 
 
 def _multipolygon(parts: list[Polygon]) -> MultiPolygon:
@@ -620,7 +621,17 @@ def _multipolygon(parts: list[Polygon]) -> MultiPolygon:
     if not parts:
         return _EMPTY
     geom = MultiPolygon(parts)
-    return geom if geom.is_valid else _as_multipolygon(shapely.union_all(parts))
+    return geom if geom.is_valid else _as_multipolygon(_robust(shapely.union_all, parts))
+
+
+def _robust(overlay, *args):
+    """``overlay(*args)`` (a shapely overlay: union_all, difference, intersection); where GEOS meets a rounding
+    conflict in near-degenerate repaired parts (``TopologyException``, found by ``make fuzz``), the same overlay
+    with snap rounding to 10⁻⁶ px, which GEOS computes robustly."""
+    try:
+        return overlay(*args)
+    except shapely.errors.GEOSException:
+        return overlay(*args, grid_size=1e-6)
 
 
 def annotations_to_geojson(ann: Annotations) -> dict:

@@ -631,7 +631,13 @@ def _robust(overlay, *args):
     try:
         return overlay(*args)
     except shapely.errors.GEOSException:
+        pass
+    try:
         return overlay(*args, grid_size=1e-6)
+    except shapely.errors.GEOSException:  # a part GEOS reads as invalid: repair each input, then snap-round
+        valid = [shapely.make_valid(a) if isinstance(a, shapely.Geometry) else [shapely.make_valid(g) for g in a]
+                 for a in args]
+        return overlay(*valid, grid_size=1e-6)
 
 
 def annotations_to_geojson(ann: Annotations) -> dict:

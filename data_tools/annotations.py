@@ -489,7 +489,10 @@ def _as_multipolygon(geom) -> MultiPolygon:
                    lambda: multi.buffer(0)):
         if multi.is_valid:
             return multi
-        parts = _polygonal_parts(repair())
+        try:
+            parts = _polygonal_parts(repair())
+        except shapely.errors.GEOSException:  # no valid union: the next repair
+            continue
         multi = MultiPolygon(parts) if parts else _EMPTY
     return multi if multi.is_valid else _EMPTY
 
@@ -563,21 +566,26 @@ def load_annotations(
             warnings.warn(
                 f"{source}: {outside} polygon(s) extend beyond the slide {w}x{h}; clipped to it", stacklevel=2
             )
-    exclusion = _union_parts(_clip(by_label["exclusion"], frame))
-    tissue = _union_parts(_clip(by_label["tissue"], frame))
-    # subtracted after clipping, from the very exclusion returned: tumour and exclusion never overlap
-    tumour = _subtract(_union_parts(_clip(by_label["tumour"], frame)), exclusion)
-    if frame is not None and not tumour and _subtract(_union_parts(by_label["tumour"]), _union_parts(
-            by_label["exclusion"])):
-        raise AnnotationError(path, f"annotation lies outside the slide {w}x{h}")
-    tumour_geom, exclusion_geom = _multipolygon(tumour), _multipolygon(exclusion)
-    if not exclusion_geom.is_empty and _robust(shapely.intersection, tumour_geom, exclusion_geom).area > 0:
-        # tangled parts whose repair re-united them over the exclusion (found by `make fuzz`): cut once more
-        tumour_geom = _as_multipolygon(_robust(shapely.difference, tumour_geom, exclusion_geom))
+    try:
+        exclusion = _union_parts(_clip(by_label["exclusion"], frame))
+        tissue = _union_parts(_clip(by_label["tissue"], frame))
+        # subtracted after clipping, from the very exclusion returned: tumour and exclusion never overlap
+        tumour = _subtract(_union_parts(_clip(by_label["tumour"], frame)), exclusion)
+        if frame is not None and not tumour and _subtract(_union_parts(by_label["tumour"]), _union_parts(
+                by_label["exclusion"])):
+            raise AnnotationError(path, f"annotation lies outside the slide {w}x{h}")
+        tumour_geom, exclusion_geom = _multipolygon(tumour), _multipolygon(exclusion)
+        if not exclusion_geom.is_empty and _robust(shapely.intersection, tumour_geom, exclusion_geom).area > 0:
+            # tangled parts whose repair re-united them over the exclusion (found by `make fuzz`): cut once more
+            tumour_geom = _as_multipolygon(_robust(shapely.difference, tumour_geom, exclusion_geom))
+        tissue_geom = _multipolygon(tissue)
+    except shapely.errors.GEOSException as e:  # _robust found no valid overlay: one line, not a traceback
+        raise AnnotationError(path, f"polygons whose overlay GEOS cannot compute ({e}); repair or simplify "
+                                    "them in the annotation tool") from None
     return Annotations(
         tumour=tumour_geom,
         exclusion=exclusion_geom,
-        tissue=_multipolygon(tissue),
+        tissue=tissue_geom,
         n_polygons=n_polygons,
         unknown_groups=tuple(unknown),
         source=source,
@@ -588,7 +596,8 @@ def _clip(polys: list[Polygon], frame) -> list[Polygon]:
     """``polys`` clipped to ``frame`` (None: unchanged); only those not inside it are overlaid."""
     if frame is None:
         return polys
-    return [q for p in polys for q in ([p] if frame.contains(p) else _polygonal_parts(shapely.intersection(p, frame)))]
+    return [q for p in polys
+            for q in ([p] if frame.contains(p) else _polygonal_parts(_robust(shapely.intersection, p, frame)))]
 
 
 def _union_parts(polys: list[Polygon]) -> list[Polygon]:
@@ -600,7 +609,7 @@ def _union_parts(polys: list[Polygon]) -> list[Polygon]:
     alone = np.ones(len(polys), bool)
     alone[a[a != b]] = False
     rest = [p for p, k in zip(polys, alone) if not k]
-    return [p for p, k in zip(polys, alone) if k] + (_polygonal_parts(shapely.union_all(rest)) if rest else [])
+    return [p for p, k in zip(polys, alone) if k] + (_polygonal_parts(_robust(shapely.union_all, rest)) if rest else [])
 
 
 def _subtract(parts: list[Polygon], cut: list[Polygon]) -> list[Polygon]:
@@ -625,19 +634,31 @@ def _multipolygon(parts: list[Polygon]) -> MultiPolygon:
 
 
 def _robust(overlay, *args):
-    """``overlay(*args)`` (a shapely overlay: union_all, difference, intersection); where GEOS meets a rounding
-    conflict in near-degenerate repaired parts (``TopologyException``, found by ``make fuzz``), the same overlay
-    with snap rounding to 10⁻⁶ px, which GEOS computes robustly."""
-    try:
-        return overlay(*args)
-    except shapely.errors.GEOSException:
-        pass
-    try:
-        return overlay(*args, grid_size=1e-6)
-    except shapely.errors.GEOSException:  # a part GEOS reads as invalid: repair each input, then snap-round
-        valid = [shapely.make_valid(a) if isinstance(a, shapely.Geometry) else [shapely.make_valid(g) for g in a]
-                 for a in args]
-        return overlay(*valid, grid_size=1e-6)
+    """``overlay(*args)`` (a shapely overlay: union_all, difference, intersection) as a *valid* geometry. GEOS's
+    floating-point overlay of near-degenerate repaired parts can raise (``TopologyException``) or, worse, return
+    an invalid polygon (a collapsed shell with a "hole" outside it, area -12,835 px² where the true difference
+    is empty; both found by ``make fuzz``). Either way the same overlay is redone with snap rounding to
+    10⁻⁶ px, which GEOS computes robustly, and, where GEOS still refuses a part, on inputs each repaired with
+    ``make_valid`` first. Raises ``shapely.errors.GEOSException`` when no way gives a valid result (the caller
+    turns it into one :class:`AnnotationError` line)."""
+    def valid_inputs():
+        return [shapely.make_valid(a) if isinstance(a, shapely.Geometry) else [shapely.make_valid(g) for g in a]
+                for a in args]
+
+    attempts = (lambda: overlay(*args), lambda: overlay(*args, grid_size=1e-6),
+                lambda: overlay(*valid_inputs(), grid_size=1e-6))
+    problem = None
+    for attempt in attempts:
+        try:
+            result = attempt()
+        except shapely.errors.GEOSException as e:
+            problem = e
+            continue
+        if result.is_valid:
+            return result
+        problem = shapely.errors.GEOSException(f"{overlay.__name__} gave an invalid geometry "
+                                               f"({shapely.is_valid_reason(result)})")
+    raise problem
 
 
 def annotations_to_geojson(ann: Annotations) -> dict:

@@ -32,6 +32,7 @@ import re
 import shutil
 import stat
 import uuid
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -463,13 +464,21 @@ MAX_DATASET_JSON_BYTES = 256 << 20  # bytes: far above any cohort's index (a few
 # takes about 4.4× its size (a 200 MB file peaked at 885 MB RSS)
 
 
+SEALING_KINDS = ("histojax dataset of real slides (data_tools dataset)",
+                 "histojax true-scale CAMELYON16 benchmark (data_tools c16)")
+"""``kind`` of the ``dataset.json`` files ``histojax dataset`` and ``c16`` write, sealed since 2026-11; one of them
+without a seal is an older build or a seal removed by hand (a warning says so once per file)."""
+_UNSEALED_WARNED: set[str] = set()
+
+
 def read_dataset_json(folder, _depth: int = 0) -> dict:
     """``FOLDER/dataset.json`` read with its seal checked: the one reader of a dataset's index for ``make``, the head
     fits and ``histojax evaluate --dataset``. A file that carries a seal (:data:`DATASET_DIGEST`) must match it: an
     edit since histojax wrote it (a label, a split) is a ``BundleError`` naming the file. A split derived from a
     sealed dataset (``baselines.validation``: a ``validation.source`` record; the readers' ``derived_from``)
     carries its source's seal: the source's seal is checked and the labels must be the source's. Files without a
-    seal (``data_tools synth``, older builds) are read as they are. ``FileNotFoundError``, ``OSError`` and
+    seal (``data_tools synth``, older builds) are read as they are; one of a kind ``histojax dataset`` or ``c16``
+    writes (:data:`SEALING_KINDS`) with a warning, once per file, that its labels are unchecked. ``FileNotFoundError``, ``OSError`` and
     ``json.JSONDecodeError`` pass as ``json.loads(path.read_text())`` raises them; a ``BundleError`` naming the
     file when it is not a regular file (a FIFO would block the read for ever; a folder, a device), larger than
     :data:`MAX_DATASET_JSON_BYTES`, or not a JSON object. Returns the object."""
@@ -493,6 +502,11 @@ def read_dataset_json(folder, _depth: int = 0) -> dict:
         raise BundleError(path, f"holds a JSON {type(spec).__name__}, not a dataset index (an object with the "
                           "train and test splits histojax writes); rebuild the dataset")
     if DATASET_DIGEST not in spec:
+        if spec.get("kind") in SEALING_KINDS and str(path.resolve()) not in _UNSEALED_WARNED:
+            _UNSEALED_WARNED.add(str(path.resolve()))
+            warnings.warn(f"{path}: carries no seal ({DATASET_DIGEST}): written before histojax sealed its dataset "
+                          "indexes, or the seal was removed; its labels and splits are read unchecked. Rebuild it "
+                          "with the command that made it to seal it", stacklevel=2)
         return spec
     validation = spec.get("validation")
     source = spec.get("derived_from") or (validation.get("source") if isinstance(validation, dict) else None)

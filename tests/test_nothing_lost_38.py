@@ -287,6 +287,31 @@ def test_every_reader_of_a_dataset_refuses_an_edited_dataset_json(built, tmp_pat
         assert "\n" not in line and str(work / "dataset.json") in line and "seal" in line
 
 
+def test_a_seal_removed_by_hand_is_said(built, tmp_path):
+    """A dataset.json of a kind histojax seals, with its seal key deleted and a label edited, was read as an
+    older unsealed index without a word: now one warning naming the file, once per file."""
+    import warnings as _warnings
+
+    from data_tools import bundle_format
+    from histojax.registry import dataset_labels
+
+    work = tmp_path / "unsealed"
+    shutil.copytree(built, work)
+    index = work / "dataset.json"
+    ds = json.loads(index.read_text())
+    ds.pop("dataset_sha256")
+    ds["labels"]["s1"] = 1
+    index.write_text(json.dumps(ds))
+    bundle_format._UNSEALED_WARNED.discard(str(index.resolve()))
+    with pytest.warns(UserWarning, match="carries no seal") as caught:
+        dataset_labels(work)
+    line = str(caught[0].message)
+    assert "\n" not in line and str(index) in line and "unchecked" in line
+    with _warnings.catch_warnings():
+        _warnings.simplefilter("error")
+        dataset_labels(work)  # said once per file
+
+
 def test_a_validation_split_of_a_sealed_dataset_reads_and_its_labels_are_checked(built, tmp_path):
     from baselines.validation import write_validation_dataset
     from data_tools.bundle_format import read_dataset_json

@@ -37,7 +37,7 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import (DATASET_DIGEST, bundle_damage, foreign_entries, mark_temporary, metadata_digest, read_metadata,
+from data_tools.bundle_format import (DATASET_DIGEST, SEALING_KINDS, bundle_damage, foreign_entries, mark_temporary, metadata_digest, read_metadata,
                                       replace_folder, write_json)
 from data_tools.datasets.locks import (RUN_LOCK, LockHeld, RunLock, bundle_lock_path, clean_partial_features, clean_stale,
                                       file_lock)
@@ -475,7 +475,7 @@ def _encoder_of(options: dict) -> str | None:
     return encoder_name(options.get("encoder")) or ("imported" if options.get("features_from") else None)
 
 
-OUR_KINDS = (KIND, "histojax true-scale CAMELYON16 benchmark (data_tools c16)")
+OUR_KINDS = SEALING_KINDS
 """``kind`` of the ``dataset.json`` files histojax wrote before they were sealed."""
 
 

@@ -213,3 +213,21 @@ def test_a_heads_params_json_is_named_as_its_parameters_not_its_config(tmp_path)
     (head / "params.json").write_text('{"a": NaN, "b": 0.0, "prior_logit": 0.0}')
     with pytest.raises(ValueError, match=r"params\.json: not valid JSON \(NaN is not a number a head's parameters"):
         heads.load(head)
+
+
+def test_an_unknown_entry_in_a_heads_params_json_is_refused(tmp_path):
+    """Was: ``{"a": …, "b": …, "prior_logit": …, "scale": 10}`` loaded and "scale" was ignored without a word."""
+    import json
+    import shutil
+
+    from baselines.published_agents import PUBLISHED
+    from histojax.reading import heads
+
+    head = shutil.copytree(PUBLISHED / "c16-v2-head", tmp_path / "head")
+    params = json.loads((head / "params.json").read_text())
+    (head / "params.json").write_text(json.dumps({**params, "scale": 10}))
+    with pytest.raises(ValueError, match=r"params\.json: unknown entry 'scale'") as e:
+        heads.load(head)
+    assert "\n" not in str(e.value)
+    (head / "params.json").write_text(json.dumps(params))
+    assert heads.load(head).dim == 62  # the same file without it loads

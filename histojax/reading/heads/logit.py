@@ -116,7 +116,7 @@ class SlideHead:
         """Read a head saved by :meth:`save` through the guarded reader (:mod:`histojax.reading.heads.files`:
         regular files of bounded size, bounded JSON nesting, strict types): ``kind`` this one, ``format``
         :data:`FORMAT`, ``dim`` an int in ``[0, MAX_DIM]``, ``k`` in ``[1, MAX_K]``, ``top`` in ``[1, MAX_TOP]``,
-        ``minus_median`` a JSON bool, ``a``, ``b``, ``prior_logit`` finite with magnitude at most
+        ``minus_median`` a JSON bool, ``a``, ``b``, ``prior_logit`` (and nothing else) finite with magnitude at most
         :data:`MAX_PARAM` (so ``a · s + b`` stays finite in float32). ``ValueError``
         (:class:`~histojax.reading.heads.files.HeadFileError`) naming the file, one line, on anything else."""
         folder = Path(folder)
@@ -136,6 +136,10 @@ class SlideHead:
         par = files.read_config(par_file, max_bytes=MAX_PARAMS_JSON_BYTES, what="parameters")
         a, b, prior = (files.field(par, n, float, par_file, lo=-MAX_PARAM, hi=MAX_PARAM)
                        for n in ("a", "b", "prior_logit"))
+        unknown = sorted(set(par) - {"a", "b", "prior_logit"})
+        if unknown:  # a typo or another tool's parameter would otherwise be ignored without a word
+            raise files.HeadFileError(par_file, f"unknown entry {unknown[0]!r} (a {KIND} head's parameters are "
+                                                "a, b and prior_logit); remove it or refit the head")
         known = {"kind", "format", "dim", "k", "top", "minus_median", "encoder", "name", "input", "output"}
         info = json.dumps({key: v for key, v in cfg.items() if key not in known})
         return cls(a=jnp.float32(a), b=jnp.float32(b), prior_logit=jnp.float32(prior), dim=dim, k=k, top=top,

@@ -331,7 +331,7 @@ def write_reading_maps(out: Path, slides: list[dict], name: str, masks: list[np.
 
 def add_arguments(p) -> None:
     """The options of ``python -m baselines.reading.readers``."""
-    p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; pcam-cnn feature grids)")
+    p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; feature grids of any encoder)")
     p.add_argument("--head", required=True, help="slide head folder (python -m baselines.reading.head_fit)")
     p.add_argument("--split", default="test", help="split scored (default test)")
     p.add_argument("--fold", type=int, default=None, metavar="I",

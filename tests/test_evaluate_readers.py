@@ -208,7 +208,9 @@ def _kind(folder: Path) -> str:
     if not folder.exists():
         return "retired"
     config = json.loads((folder / "config.json").read_text())
-    if config.get("kind") in ("neighbourhood-pooled-logit", "pooled-statistics", "attention-mil"):  # slide heads
+    from histojax.reading.heads import HEADS
+
+    if config.get("kind") in HEADS:  # slide heads of every kind
         return "head"
     if str(config.get("action_mode", "")).startswith("glimpse") and (config.get("env_kwargs") or {}).get("glimpse_grid"):
         return "flat glimpse"

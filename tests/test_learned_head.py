@@ -459,3 +459,27 @@ def test_a_fold_trains_and_validates_on_the_other_folds(cohort, tmp_path, monkey
     other = {Path(e).name for i, lst in enumerate(folds) if i != 1 for e in lst}
     assert set(seen["train"]) | set(seen["val"]) == other and not set(seen["train"]) & set(seen["val"])
     assert {Path(e).name for e in folds[1]}.isdisjoint(seen["train"] + seen["val"])  # fold 1 is never read
+
+
+def test_the_published_learned_head_loads_and_scores_any_c16_grid():
+    """``baselines/published/c16-v2-learned-head`` (fitted on c16-full's pcam-cnn features): loads through the one
+    head loader, scores a grid of any size batched as one by one, and its per-view scores are the calibrated
+    instance logits of the views; nothing read scores its prior."""
+    from baselines.published_agents import PUBLISHED
+    from histojax.reading import heads
+
+    head = heads.load(PUBLISHED / "c16-v2-learned-head")
+    assert isinstance(head, LearnedHead) and head.features_dim == 64 and head.encoder == "pcam-cnn"
+    config = json.loads((PUBLISHED / "c16-v2-learned-head" / "config.json").read_text())
+    assert config["fitted_on"]["dataset"] == "c16-full" and "test" not in config["fitted_on"]["split"]
+    rng = np.random.default_rng(0)
+    for hw in ((7, 5), (31, 64)):  # slides of any shape
+        grid = jnp.asarray(rng.normal(size=(*hw, 64)), jnp.float32)
+        mask = jnp.asarray(rng.random(hw) < 0.3)
+        logit = float(heads.score(head, grid, mask))
+        assert np.isfinite(logit)
+        assert float(heads.score(head, grid, jnp.zeros(hw, bool))) == pytest.approx(float(head.prior_logit))
+        views = head.view_logits(grid)
+        assert views.shape == hw and bool(jnp.all(jnp.isfinite(views)))
+        st_ = head.add_views(head.init_state(), grid.reshape(-1, 64), mask.reshape(-1))
+        assert float(head.logit(st_)) == pytest.approx(logit, abs=1e-4)

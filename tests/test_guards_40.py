@@ -143,6 +143,15 @@ def test_score_writes_null_for_an_auc_one_class_leaves_undefined(cohort, capsys,
     record = json.loads(line, parse_constant=lambda c: pytest.fail(f"bare {c} in the JSON: {line}"))
     assert record["auc_without_itc"] is None and "undefined: one class" in record["auc_without_itc_note"]
     assert 0.0 <= record["auc"] <= 1.0
+    assert set(record["found"]) == {"ITC"} and record["found"]["ITC"].endswith("/2")
+
+
+def test_found_above_every_normal_slide_counts_per_class():
+    from baselines.reading.learned_head_fit import found_above_normal
+
+    classes = ["normal", "normal", "macro", "micro", "micro", "ITC"]
+    assert found_above_normal([0.0, 1.0, 2.0, 1.0, 3.0, -1.0], classes) == {"ITC": "0/1", "micro": "1/2",
+                                                                            "macro": "1/1"}
 
 
 def test_evaluate_refuses_head_rows_on_one_class(cohort):

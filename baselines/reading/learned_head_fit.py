@@ -593,9 +593,22 @@ def lesion_classes(slides: list[dict]) -> list[str]:
     return out
 
 
+def found_above_normal(logits, classes: list[str]) -> dict[str, str]:
+    """Per lesion class (``ITC``, ``micro``, ``macro``, ``unknown``): ``"k/n"``, how many of its ``n`` tumour slides
+    score above every normal slide of the split (the readers' lesion table: a slide the head finds at any
+    threshold that flags no normal slide). ``logits`` ``(N,)``, ``classes`` as :func:`lesion_classes`."""
+    logits = np.asarray(logits, float)
+    normal = [v for v, c in zip(logits, classes) if c == "normal"]
+    top = max(normal) if normal else -np.inf
+    return {c: f"{sum(v > top for v, k in zip(logits, classes) if k == c)}/{classes.count(c)}"
+            for c in ("ITC", "micro", "macro", "unknown") if c in classes}
+
+
 def score_command(args) -> int:
     """``--score HEAD --split S``: AUC of the saved head on split ``S`` reading everything, over all slides and
-    without ITC-only slides, as one JSON line (an AUC one class leaves undefined: ``null`` and a note saying so).
+    without ITC-only slides, and per lesion class the tumour slides found above every normal slide
+    (:func:`found_above_normal`), as one JSON line (an AUC one class leaves undefined: ``null`` and a note
+    saying so).
     A split of one class is refused in one line naming ``dataset.json`` (its AUC is undefined: one class)."""
 
     try:
@@ -627,7 +640,8 @@ def score_command(args) -> int:
     counts = {c: classes.count(c) for c in sorted(set(classes))}
     record = {"head": str(args.score), "split": args.split, "slides": len(slides), "classes": counts,
               "auc": round(auc_all, 4), "auc_without_itc": round(roc_auc(logits[keep], y[keep]), 4) if no_itc else None,
-              "accuracy": round(float(np.mean((logits > 0) == (y > 0))), 4)}
+              "accuracy": round(float(np.mean((logits > 0) == (y > 0))), 4),
+              "found": found_above_normal(logits, classes)}
     if not no_itc:
         record["auc_without_itc_note"] = f"{UNDEFINED} (every tumour slide of the split is ITC-only)"
     print(json.dumps(record, allow_nan=False))  # undefined: null, never a bare NaN

@@ -239,6 +239,11 @@ def test_readers_command_writes_the_curve(dataset, fitted, tmp_path, capsys):
                              {0.1: [[s["tissue"] for s in test], [np.zeros_like(s["tissue"]) for s in test]]})
     row = readers.rows_from_results(res, test)[0]
     assert row["seeds"] == 2 and row["fraction_read"] == pytest.approx(0.5) and row["kind"] == "learned"
+    assert len(row["auc_per_seed"]) == 2 and np.mean(row["auc_per_seed"]) == pytest.approx(row["auc"], abs=1e-4)
+    assert row["auc_per_seed"][1] == 0.5  # nothing read: every slide scores the prior
+    assert "auc_per_seed" not in readers.csv_rows([row])[0]  # one number per CSV cell; the list in readers.json
+    with open(tmp_path / "readers.csv") as f:
+        assert "auc_per_seed" not in next(csv.DictReader(f))
 
 
 def test_readers_command_refuses_a_bad_head(dataset, tmp_path, capsys):

@@ -61,7 +61,7 @@ def write_results(out, results: dict, slides: list[dict], record: dict, json_nam
     rows = readers.rows_from_results(results, slides)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(rows, out / "readers.csv")
+    write_csv(readers.csv_rows(rows), out / "readers.csv")
     outputs.write_text(out / json_name, json.dumps({**record, "rows": rows}, indent=1, default=float))
     return rows
 

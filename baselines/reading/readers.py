@@ -231,7 +231,8 @@ def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, 
 
 def rows_from_results(results: dict, slides: list[dict]) -> list[dict]:
     """One row per ``(reader, budget)``: fraction read (mean, min, 10/50/90th percentiles, max over episodes),
-    AUC over all slides and without ITC-only slides, accuracy at 0.5 (mean ± std over seeds), and per lesion
+    AUC over all slides and without ITC-only slides, accuracy at 0.5 (mean ± std over seeds; ``auc_per_seed``
+    each seed's AUC, kept in ``readers.json``: what a seed is chosen by on validation), and per lesion
     class the slides on which the reader read tumour and those the head found (mean over seeds)."""
     labels = np.asarray([s["label"] for s in slides])
     classes = [lesion_class(s)[0] for s in slides]
@@ -248,7 +249,8 @@ def rows_from_results(results: dict, slides: list[dict]) -> list[dict]:
                "fraction_p90": float(np.percentile(f, 90)), "fraction_max": float(f.max()),
                "auc": float(aucs.mean()), "auc_std": float(aucs.std()),
                "auc_no_itc": float(aucs_no_itc.mean()), "auc_no_itc_std": float(aucs_no_itc.std()),
-               "accuracy": float(accs.mean()), "accuracy_std": float(accs.std())}
+               "accuracy": float(accs.mean()), "accuracy_std": float(accs.std()),
+               "auc_per_seed": [round(float(a), 4) for a in aucs]}
         for c in CLASSES:
             idx = np.asarray([k == c for k in classes])
             top_normal = s[:, labels == 0].max(1, keepdims=True) if (labels == 0).any() else np.full((len(s), 1), -np.inf)
@@ -257,6 +259,12 @@ def rows_from_results(results: dict, slides: list[dict]) -> list[dict]:
             row[f"{c}_found"] = float((s[:, idx] > top_normal).sum(1).mean()) if idx.any() else 0.0
         rows.append(row)
     return rows
+
+
+def csv_rows(rows: list[dict]) -> list[dict]:
+    """``rows`` (:func:`rows_from_results`) as ``readers.csv`` holds them: one number per cell (the per-seed
+    lists stay in ``readers.json``)."""
+    return [{k: v for k, v in r.items() if k != "auc_per_seed"} for r in rows]
 
 
 def lesion_rows(slides: list[dict], results: dict | None = None, head=None) -> list[dict]:
@@ -393,7 +401,7 @@ def run(args, parser=None) -> int:
     b = min(args.budgets, key=lambda v: abs(v - 0.1))  # reading maps at the budget nearest 10 %
     for name, masks in maps.items():  # a trained reader's first seed: where it read beside the head's scores
         write_reading_maps(out, slides, name, masks[float(b)][0], head.name, b)
-    write_csv(rows, out / "readers.csv")
+    write_csv(csv_rows(rows), out / "readers.csv")
     write_csv(lesions, out / "lesions.csv")
     wall = time.perf_counter() - t0
     outputs.write_text(out / "readers.json", json.dumps(

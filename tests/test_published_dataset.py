@@ -22,7 +22,7 @@ def _one_line(capsys) -> str:
 
 
 @pytest.mark.parametrize("name", ["c16-v1-diagnosis", "c16-v1-hard-navigator", "c16-v1-zoom-reader",
-                                  "c16-v2-set-reader", "c16-v2-head-navigator"])
+                                  "c16-v2-set-reader", "c16-v2-head-navigator", "c16-v2-learned-set-reader"])
 def test_every_published_agent_names_the_dataset_it_needs(name, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "eval"

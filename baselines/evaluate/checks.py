@@ -210,7 +210,9 @@ def published_dataset_refusal(run: Path, config: dict) -> str | None:
         said = f"records no path of the machine it was trained on; its published.json says it trained on {trained_on}"
     else:
         said = "records no dataset"
-    if "-C16-" in env_id:
+    if encoder == "the same":  # an any-dataset id: the features its head reads (head_reward.json names the head)
+        encoder = _head_encoder(run) or encoder
+    if "-C16-" in env_id or _trained_on_c16(run):
         need = (f"a CAMELYON16 dataset with {encoder} feature grids, e.g. the small one (6 slides, about a minute: "
                 "`histojax c16 --small --features --out c16-small`) or the true-scale set it trained on (`histojax c16 "
                 "--out c16-full --annotations ... --patches ... --features`; docs/c16-benchmark.md#build-it)")
@@ -218,6 +220,27 @@ def published_dataset_refusal(run: Path, config: dict) -> str | None:
         need = (f"a dataset with {encoder} features of the kind it trained on (`histojax dataset SLIDES --out DIR "
                 "--encoder NAME`; docs/your-own-slides.md)")
     return f"{Path(run) / 'config.json'}: a published agent; its config.json {said}: give --dataset DIR, {need}"
+
+
+def _trained_on_c16(run: Path) -> bool:
+    """True when the agent's ``published.json`` names a C16 dataset it trained on (``trained_on.dataset``
+    ``c16-…``): a CAMELYON16 set is what to build, whatever its env id."""
+    try:
+        where = json.loads((Path(run) / "published.json").read_text()).get("trained_on")
+    except (OSError, ValueError, AttributeError):
+        return False
+    return isinstance(where, dict) and str(where.get("dataset", "")).startswith("c16")
+
+
+def _head_encoder(run: Path) -> str | None:
+    """The encoder of the slide head named in the agent's ``head_reward.json`` (None without one, or unread)."""
+    try:
+        head = json.loads((Path(run) / "head_reward.json").read_text()).get("head")
+        folder = Path(str(head)) if Path(str(head)).is_absolute() else Path(__file__).resolve().parents[2] / str(head)
+        encoder = json.loads((folder / "config.json").read_text()).get("encoder")
+    except (OSError, ValueError, AttributeError, TypeError):
+        return None
+    return encoder if isinstance(encoder, str) and encoder else None
 
 
 def refuse_not_an_agent(path: Path) -> None:

@@ -168,15 +168,22 @@ def is_published(run: Path) -> bool:
     return inside or (run / "published.json").is_file()
 
 
-def published_trained_on(run: Path) -> str | None:
-    """What a published agent's ``published.json`` says it trained on (``trained_on``: ``what``, else the dataset's
-    name and split), or None when it names nothing (or cannot be read)."""
+def published_trained_record(run: Path) -> dict | None:
+    """The ``trained_on`` object of a published agent's ``published.json``, or None when there is none (or the
+    file cannot be read)."""
     try:
         record = json.loads((Path(run) / "published.json").read_text())
     except (OSError, ValueError):
         return None
     where = record.get("trained_on") if isinstance(record, dict) else None
-    if not isinstance(where, dict):
+    return where if isinstance(where, dict) else None
+
+
+def published_trained_on(run: Path) -> str | None:
+    """What a published agent's ``published.json`` says it trained on (``trained_on``: ``what``, else the dataset's
+    name and split), or None when it names nothing (or cannot be read)."""
+    where = published_trained_record(run)
+    if where is None:
         return None
     if isinstance(where.get("what"), str) and where["what"]:
         return where["what"]
@@ -212,7 +219,8 @@ def published_dataset_refusal(run: Path, config: dict) -> str | None:
         said = "records no dataset"
     if encoder == "the same":  # an any-dataset id: the features its head reads (head_reward.json names the head)
         encoder = _head_encoder(run) or encoder
-    if "-C16-" in env_id or _trained_on_c16(run):
+    trained_on_c16 = str((published_trained_record(run) or {}).get("dataset", "")).startswith("c16")
+    if "-C16-" in env_id or trained_on_c16:  # a C16 set is what to build, whatever the env id
         need = (f"a CAMELYON16 dataset with {encoder} feature grids, e.g. the small one (6 slides, about a minute: "
                 "`histojax c16 --small --features --out c16-small`) or the true-scale set it trained on (`histojax c16 "
                 "--out c16-full --annotations ... --patches ... --features`; docs/c16-benchmark.md#build-it)")
@@ -222,23 +230,15 @@ def published_dataset_refusal(run: Path, config: dict) -> str | None:
     return f"{Path(run) / 'config.json'}: a published agent; its config.json {said}: give --dataset DIR, {need}"
 
 
-def _trained_on_c16(run: Path) -> bool:
-    """True when the agent's ``published.json`` names a C16 dataset it trained on (``trained_on.dataset``
-    ``c16-…``): a CAMELYON16 set is what to build, whatever its env id."""
-    try:
-        where = json.loads((Path(run) / "published.json").read_text()).get("trained_on")
-    except (OSError, ValueError, AttributeError):
-        return False
-    return isinstance(where, dict) and str(where.get("dataset", "")).startswith("c16")
-
-
 def _head_encoder(run: Path) -> str | None:
-    """The encoder of the slide head named in the agent's ``head_reward.json`` (None without one, or unread)."""
+    """The encoder of the slide head named in the agent's ``head_reward.json`` (:func:`head_reward_settings`,
+    :func:`resolve_head`); None without one, or when it cannot be read."""
     try:
-        head = json.loads((Path(run) / "head_reward.json").read_text()).get("head")
-        folder = Path(str(head)) if Path(str(head)).is_absolute() else Path(__file__).resolve().parents[2] / str(head)
-        encoder = json.loads((folder / "config.json").read_text()).get("encoder")
-    except (OSError, ValueError, AttributeError, TypeError):
+        record, where = head_reward_settings(Path(run), {})
+        if record is None:
+            return None
+        encoder = json.loads((resolve_head(record["head"], Path(run), where) / "config.json").read_text()).get("encoder")
+    except (OSError, ValueError, AttributeError, HistojaxDataError):
         return None
     return encoder if isinstance(encoder, str) and encoder else None
 

@@ -475,10 +475,6 @@ def _encoder_of(options: dict) -> str | None:
     return encoder_name(options.get("encoder")) or ("imported" if options.get("features_from") else None)
 
 
-OUR_KINDS = SEALING_KINDS
-"""``kind`` of the ``dataset.json`` files histojax wrote before they were sealed."""
-
-
 def dataset_json_is_ours(path) -> bool:
     """True when ``path`` (a ``dataset.json``) is absent or provably written by histojax: sealed with a digest
     that matches, or (written before the seal) a JSON object of a histojax kind with ``train`` / ``test``
@@ -493,7 +489,7 @@ def dataset_json_is_ours(path) -> bool:
         return False
     if DATASET_DIGEST in old:
         return old[DATASET_DIGEST] == metadata_digest({k: v for k, v in old.items() if k != DATASET_DIGEST})
-    return old.get("kind") in OUR_KINDS and isinstance(old.get("train"), list) \
+    return old.get("kind") in SEALING_KINDS and isinstance(old.get("train"), list) \
         and isinstance(old.get("test"), list) and isinstance(old.get("labels"), dict) \
         and isinstance(old.get("slides"), list)
 

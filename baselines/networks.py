@@ -240,7 +240,7 @@ def network_step(network: RecurrentActorCritic, params, h, obs, first, cell_keys
 
 def rollout_step(network: nn.Module, params):
     """``(h, obs, first) -> network_step(network, params, h, obs, first)`` for the many steps of a rollout
-    with the same ``params``; a :class:`RecurrentCellSetActorCritic`'s per-slide cell keys are computed here
+    with the same ``params``; a :class:`RecurrentCellSetActorCritic`'s per-cell tables (:class:`CellEncoder`) are computed here
     once (as :func:`rollout_apply` does for the feed-forward reader)."""
     keys = network.apply(params, None, None, None) if isinstance(network, RecurrentCellSetActorCritic) else None
     return lambda h, obs, first: network_step(network, params, h, obs, first, cell_keys=keys)
@@ -261,24 +261,43 @@ class QNetwork(nn.Module):
 # ----------------------------------------------------------------------------- reader policies over a set of cells
 class EpisodeTables:
     """The per-slide tables of an env (:meth:`histojax.env.HistoEnv.episode_tables`: ``cells (S, C, D)``,
-    ``valid``, ``cost`` ``(S, C)``, ``position (S, C, 2)``) held by a cell-set network, which indexes them
-    with the observation's ``slide``. Compared and hashed by identity (a flax module attribute must
-    hash; the arrays travel into the jitted program as constants of the network that holds them)."""
+    ``valid``, ``cost`` ``(S, C)``, ``position (S, C, 2)``, ``summaries (S, C, 2D)``) held by a cell-set network,
+    which indexes them with the observation's ``slide``. Compared and hashed by identity (a flax module attribute
+    must hash; what the network reads travels into the jitted program as constants of the network).
+
+    A padded grid is mostly padding and off-tissue cells (on the C16 set 105 valid cells of 1,330 a slide on
+    average), so the valid cells of all slides are packed here, once, on the host, into one flat list of ``N``
+    cells in slide order (``flat``: each cell's fixed inputs, ``N`` rows); a network computes its per-cell layers
+    over these ``N`` rows only, never over the ``S × C`` grid or the ``S × V`` padded lists."""
 
     def __init__(self, tables: dict):
         self.tables = {k: jnp.asarray(v) for k, v in tables.items()}
-        # the valid cells of each slide, packed: a network computes keys and logits for these only (a
-        # padded grid is mostly padding and off-tissue cells: on the C16 set 105 valid cells of 1,330 on average)
         valid = np.asarray(self.tables["valid"]) > 0                      # (S, C)
         s, c = valid.shape
-        packed = np.full((s, max(1, int(valid.sum(1).max()))), c, np.int32)
+        counts = valid.sum(1)
+        packed = np.full((s, max(1, int(counts.max()))), c, np.int32)
         slot = np.zeros((s, c), np.int32)
         for row in range(s):
             cells = np.flatnonzero(valid[row])
             packed[row, : cells.size] = cells
             slot[row, cells] = np.arange(cells.size)
+        n = int(counts.sum())
+        start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32)
+        slide_of, cell_of = np.nonzero(valid)                              # row-major: slide order, cells ascending
+        flat = {"cells": np.asarray(self.tables["cells"], np.float32)[slide_of, cell_of],
+                "cost": np.asarray(self.tables["cost"], np.float32)[slide_of, cell_of],
+                "position": np.asarray(self.tables["position"], np.float32)[slide_of, cell_of]}
+        if "summaries" in self.tables:
+            flat["summaries"] = np.asarray(self.tables["summaries"], np.float32)[slide_of, cell_of]
+        self.flat = {k: jnp.asarray(v) for k, v in flat.items()}         # (N, ...) each valid cell's fixed inputs
+        self.flat_slide = jnp.asarray(slide_of.astype(np.int32))          # (N,) its slide
+        self.inv_count = jnp.asarray(1.0 / np.maximum(counts, 1), jnp.float32)  # (S,) 1 / valid cells of the slide
         self.valid_cells = jnp.asarray(packed)  # (S, V) int32 cell index of each packed entry; C = none
         self.valid_slot = jnp.asarray(slot)     # (S, C) int32 packed entry of each valid cell (0 elsewhere)
+        rows = np.where(packed < c, start[:, None] + np.arange(packed.shape[1])[None, :], n)
+        self.packed_rows = jnp.asarray(rows.astype(np.int32))            # (S, V) flat row of each entry; N = none
+        self.cell_rows = jnp.asarray(np.where(valid, start[:, None] + slot, n).astype(np.int32))  # (S, C); N = none
+        self.num_flat = n
 
     def __getitem__(self, key):
         return self.tables[key]
@@ -294,16 +313,39 @@ def uses_cell_sets(env) -> bool:
     return bool(getattr(env, "step_obs", False)) and bool(env.episode_tables())
 
 
+class SplitDense(nn.Module):
+    """A dense layer over the concatenation of several inputs (``kernel (F1 + F2 + …, n)``, ``bias (n,)``: the
+    parameters of ``nn.Dense`` over the concatenated input, initialised alike), applied part by part:
+    ``Σ_j x_j @ kernel[rows of part j] + bias``, so that each part can be computed where it is cheapest."""
+
+    features: int
+    kernel_init: object = nn.initializers.orthogonal(np.sqrt(2))
+
+    @nn.compact
+    def __call__(self, *parts):
+        sizes = [int(p.shape[-1]) for p in parts]
+        kernel = self.param("kernel", self.kernel_init, (sum(sizes), self.features), jnp.float32)
+        bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), jnp.float32)
+        out, at = bias, 0
+        for p, size in zip(parts, sizes):
+            out = out + jnp.asarray(p, jnp.float32) @ kernel[at:at + size]
+            at += size
+        return out
+
+
 class CellEncoder(nn.Module):
     """Step observation + episode tables → ``((cell keys (B, V, Hc), their cells (B, V)), context input
     (B, F), pickable (B, C) bool)``. One network shared by all cells embeds each valid cell from what is
-    fixed for it during an episode (coarse features, validity, cost, position) into a key; this runs once
-    per call over every slide's valid cells (``S × V``, packed by :class:`EpisodeTables`: ``V`` is the most
-    valid cells of a slide, index ``C`` marks an empty entry; not per env) and each env gathers its slide's
-    keys. ``obs=None`` returns those per-slide keys and their mean, ``((S, V, Hc), (S, Hc))``, and ``cell_keys=``
-    takes them back (a rollout computes them once per parameter update: :func:`rollout_apply`). The ``K`` read slots are
-    embedded from their summaries and their cells' keys and pooled (mean, max); with the slide's mean
-    key, the view entry and the budget left they make the context input."""
+    fixed for it during an episode (coarse features, validity, cost, position) into a key, and gives each
+    cell the pre-activation it would have as a read slot (its summary and its key through ``slot_in``); this
+    runs once per call over the ``N`` valid cells of all slides (packed by :class:`EpisodeTables`; not per env,
+    not per padded cell) and each env gathers its slide's keys (``V``: the most valid cells of a slide) and its
+    read slots' rows. ``obs=None`` returns those per-cell tables ``(keys (N + 1, Hc), slot rows (N + 1, Hc), the
+    slides' mean keys (S, Hc))`` (row ``N``: zeros, for an empty entry) and ``cell_keys=`` takes them back (a
+    rollout computes them once per parameter update: :func:`rollout_apply`). The ``K`` read slots (their cells
+    from the observation's ``read_cells``; their summaries are the tables' ``summaries`` of those cells, what the
+    observation's ``read_summaries`` holds) are pooled (mean, max); with the slide's mean key, the view entry and
+    the budget left they make the context input."""
 
     hidden: int                 # width of the per-cell layers (Hc)
     tables: EpisodeTables
@@ -318,38 +360,41 @@ class CellEncoder(nn.Module):
         norm = (lambda x: x) if self.obs_norm is None else (  # noqa: E731
             lambda x: (x - jnp.asarray(self.obs_norm[0], jnp.float32)) / jnp.asarray(self.obs_norm[1], jnp.float32))
         valid = t["valid"]                                                # (S, C)
-        c = valid.shape[-1]
-        packed = t.valid_cells                                            # (S, V): each slide's valid cells
+        s, c = valid.shape
         if cell_keys is None:
-            fixed = jnp.concatenate([norm(t["cells"]), valid[..., None], t["cost"][..., None] * 10.0, t["position"]], -1)
-            fixed = jnp.take_along_axis(fixed, jnp.minimum(packed, c - 1)[..., None], axis=1)  # (S, V, F)
+            f = t.flat
+            n = t.num_flat
+            fixed = jnp.concatenate([norm(f["cells"]), jnp.ones((n, 1), jnp.float32), f["cost"][:, None] * 10.0,
+                                     f["position"]], -1)                  # (N, F): valid cells only
             keys = nn.relu(dense(self.hidden, "cell_in")(fixed))
-            keys = nn.relu(dense(self.hidden, "cell_mid")(keys))          # (S, V, Hc): every slide's valid cells, once
-            on = (packed < c).astype(jnp.float32)
-            slide_mean = jnp.einsum("sv,svh->sh", on / jnp.maximum(on.sum(-1, keepdims=True), 1.0), keys)
+            keys = nn.relu(dense(self.hidden, "cell_mid")(keys))          # (N, Hc): every valid cell, once
+            slide_mean = jax.ops.segment_sum(keys, t.flat_slide, s, indices_are_sorted=True) * t.inv_count[:, None]
+            d = f["summaries"].shape[-1] // 2
+            slot_rows = SplitDense(self.hidden, name="slot_in")(norm(f["summaries"][:, :d]),
+                                                                norm(f["summaries"][:, d:]), keys)  # (N, Hc)
+            zero = jnp.zeros((1, self.hidden), jnp.float32)
+            keys, slot_rows = jnp.concatenate([keys, zero]), jnp.concatenate([slot_rows, zero])
         else:
-            keys, slide_mean = cell_keys
+            keys, slot_rows, slide_mean = cell_keys
         if obs is None:
-            return keys, slide_mean
+            return keys, slot_rows, slide_mean
         i = jnp.asarray(obs["slide"], jnp.int32)
         b = i.shape[0]
         where = jnp.asarray(obs["read_cells"], jnp.int32)                # (B, K), C = empty
         filled = (where < c).astype(jnp.float32)
-        summaries = jnp.asarray(obs["read_summaries"], jnp.float32)      # (B, K, 2D)
-        d = summaries.shape[-1] // 2
-        summaries = jnp.concatenate([norm(summaries[..., :d]), norm(summaries[..., d:])], -1)
-        slot_keys = keys[i[:, None], t.valid_slot[i[:, None], jnp.minimum(where, c - 1)]]  # (B, K, Hc)
-        slots = nn.relu(dense(self.hidden, "slot_in")(jnp.concatenate([summaries, slot_keys], -1)))
+        slots = nn.relu(slot_rows[t.cell_rows[i[:, None], jnp.minimum(where, c - 1)]])  # (B, K, Hc)
         n_read = filled.sum(-1, keepdims=True)
-        slot_mean = (slots * filled[..., None]).sum(1) / jnp.maximum(n_read, 1.0)
+        # a contraction, not a product then a sum: XLA's CPU backend runs the latter 50x slower at (B, K, Hc)
+        slot_mean = jnp.einsum("bk,bkh->bh", filled, slots) / jnp.maximum(n_read, 1.0)
         slot_max = jnp.where(filled[..., None] > 0, slots, 0.0).max(1)
+        d = int(jnp.shape(obs["read_summaries"])[-1]) // 2
         view = [jnp.asarray(v, jnp.float32).reshape(b, -1) for k, v in sorted(obs.items())
                 if k not in ("slide", "read_bits", "read_cells", "read_summaries")]
         view = [norm(v) if v.shape[-1] == d else v for v in view]
         context_in = jnp.concatenate([slide_mean[i], slot_mean, slot_max, n_read / where.shape[-1], *view], -1)
         read = unpack_bits(jnp.asarray(obs["read_bits"]), c)            # (B, C) bool
         pickable = (valid[i] > 0) & ~read
-        return (keys[i], packed[i]), context_in, pickable
+        return (keys[t.packed_rows[i]], t.valid_cells[i]), context_in, pickable
 
 
 def cell_logits(module: nn.Module, keys, context, pickable):
@@ -379,8 +424,8 @@ class CellSetActorCritic(nn.Module):
     masked), and the two declaring actions from the context. Its parameters do not depend on ``C``: one policy runs on any
     slide size and any dataset (build it with that env's tables), and its cost grows with ``C``.
     ``action_dim`` is unused (the env's ``C + 2``), kept so that trainers build it as the others.
-    ``apply(params, None)`` gives the per-slide cell keys, which ``apply(params, obs, cell_keys=...)``
-    takes back (the same outputs; a rollout with fixed parameters computes them once: :func:`rollout_apply`)."""
+    ``apply(params, None)`` gives the per-cell tables (keys, slot rows, slide means: :class:`CellEncoder`), which
+    ``apply(params, obs, cell_keys=...)`` takes back (the same outputs; a rollout with fixed parameters computes them once: :func:`rollout_apply`)."""
 
     action_dim: int
     tables: EpisodeTables
@@ -392,7 +437,7 @@ class CellSetActorCritic(nn.Module):
     @nn.compact
     def __call__(self, obs, cell_keys=None):
         encoded = CellEncoder(self.cell_hidden, self.tables, self.obs_norm)(obs, cell_keys)
-        if obs is None:  # the per-slide cell keys only (see CellEncoder)
+        if obs is None:  # the per-cell tables only (see CellEncoder)
             return encoded
         keys, context_in, pickable = encoded
         context = nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)),
@@ -416,7 +461,7 @@ class RecurrentCellSetActorCritic(nn.Module):
     @nn.compact
     def __call__(self, h, obs, resets, cell_keys=None):
         encoder = CellEncoder(self.cell_hidden, self.tables, self.obs_norm)
-        if obs is None:  # the per-slide cell keys only (see CellEncoder)
+        if obs is None:  # the per-cell tables only (see CellEncoder)
             return encoder(None, cell_keys)
         t, b = resets.shape
         flat = jax.tree.map(lambda a: jnp.reshape(a, (t * b, *jnp.shape(a)[2:])), obs)
@@ -430,8 +475,8 @@ class RecurrentCellSetActorCritic(nn.Module):
 
 def rollout_apply(network: nn.Module, params):
     """``obs -> network.apply(params, obs)`` for the many calls of a rollout with the same ``params``. For a
-    :class:`CellSetActorCritic` the per-slide cell keys (every slide's cells, the reader's largest cost) are
-    computed here once instead of at every step; the outputs are those of ``network.apply(params, obs)``."""
+    :class:`CellSetActorCritic` the per-cell tables (every valid cell's key and slot row, the reader's largest
+    cost: :class:`CellEncoder`) are computed here once instead of at every step; the outputs are those of ``network.apply(params, obs)``."""
     if isinstance(network, CellSetActorCritic):
         keys = network.apply(params, None)
         return lambda obs: network.apply(params, obs, cell_keys=keys)
@@ -441,6 +486,29 @@ def rollout_apply(network: nn.Module, params):
 # ----------------------------------------------------------------------------- distributions
 def categorical_sample(key, logits):
     return jax.random.categorical(key, logits)
+
+
+def inverse_cdf_sample(key, logits, block: int = 32):
+    """One draw per row of ``logits (..., n)`` from ``softmax(logits)`` by inverse CDF, with **one** uniform per
+    row (``jax.random.categorical`` draws ``n`` Gumbel numbers a row: most of a set reader's rollout step over
+    ``C + 2`` actions on the CPU). The probabilities are summed in blocks of ``block``: a block is picked by its
+    cumulative mass, then an entry inside it, O(n). An entry of probability 0 (a masked cell) is never drawn.
+    Returns int32 ``(...)``. The same distribution as :func:`categorical_sample`, not the same draws."""
+    n = logits.shape[-1]
+    nb = -(-n // block)
+    p = jax.nn.softmax(jnp.asarray(logits, jnp.float32), -1)
+    p = jnp.pad(p, [(0, 0)] * (p.ndim - 1) + [(0, nb * block - n)]).reshape(*p.shape[:-1], nb, block)
+    mass = p.sum(-1)                                                     # (..., nb)
+    cum = jnp.cumsum(mass, -1)
+    u = jax.random.uniform(key, logits.shape[:-1], jnp.float32) * cum[..., -1]
+
+    def last_positive(a):  # the last index holding mass (rounding may carry a draw past it)
+        return a.shape[-1] - 1 - jnp.argmax(jnp.flip(a > 0, -1), -1)
+    b = jnp.minimum((cum <= u[..., None]).sum(-1), last_positive(mass))
+    rest = u - jnp.take_along_axis(cum - mass, b[..., None], -1)[..., 0]
+    inside = jnp.take_along_axis(p, b[..., None, None], -2)[..., 0, :]  # (..., block)
+    j = jnp.minimum((jnp.cumsum(inside, -1) <= rest[..., None]).sum(-1), last_positive(inside))
+    return (b * block + j).astype(jnp.int32)
 
 
 def categorical_log_prob(logits, action):
@@ -472,6 +540,16 @@ def policy_sample(key, pi, action_mode: str):
     if is_discrete(action_mode):
         return categorical_sample(key, pi)
     return gaussian_sample(key, *pi)
+
+
+def rollout_sampler(network: nn.Module, action_mode: str):
+    """``(key, pi) -> action``: how a trainer's rollout samples ``network``'s actions. A cell-set reader
+    (:class:`CellSetActorCritic`, :class:`RecurrentCellSetActorCritic`: ``C + 2`` actions, a thousand or more on a
+    true-scale slide) draws by inverse CDF (:func:`inverse_cdf_sample`, one uniform per env); every other policy
+    as :func:`policy_sample`. Evaluation samples with :func:`policy_sample` throughout."""
+    if isinstance(network, (CellSetActorCritic, RecurrentCellSetActorCritic)):
+        return inverse_cdf_sample
+    return lambda key, pi: policy_sample(key, pi, action_mode)
 
 
 def policy_mode(pi, action_mode: str):

@@ -45,8 +45,8 @@ from flax.training.train_state import TrainState
 
 from baselines import common
 from baselines.networks import (ActorCritic, CellSetActorCritic, EpisodeTables, RecurrentActorCritic,
-                                RecurrentCellSetActorCritic, is_discrete, policy_entropy, policy_log_prob, policy_sample,
-                                preprocess_obs, rollout_apply, uses_cell_sets)
+                                RecurrentCellSetActorCritic, is_discrete, policy_entropy, policy_log_prob,
+                                preprocess_obs, rollout_apply, rollout_sampler, uses_cell_sets)
 from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
 
@@ -277,6 +277,7 @@ def make_train(config):
     step_all = common.env_vmap(env.step, 3, mesh, sharded)
     network = make_network(config, env)
     mode = config.action_mode
+    sample = rollout_sampler(network, mode)
     num_updates = max(1, config.total_timesteps // (num_envs * num_steps))
     batch = num_envs * num_steps
     minibatch = batch // config.num_minibatches
@@ -312,7 +313,7 @@ def make_train(config):
             state, env_state, obs, key = carry
             key, k_act, k_step = jax.random.split(key, 3)
             pi, value = policy(obs)
-            action = policy_sample(k_act, pi, mode)
+            action = sample(k_act, pi)
             log_prob = policy_log_prob(pi, action, mode)
             next_obs, env_state, reward, term, trunc, info = step_all(
                 jax.random.split(k_step, num_envs), env_state, action, env_params)

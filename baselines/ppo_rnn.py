@@ -28,7 +28,7 @@ import jax.numpy as jnp
 from flax.training.train_state import TrainState
 
 from baselines import common, ppo
-from baselines.networks import (RecurrentActorCritic, ScannedGRU, network_step, policy_log_prob, policy_sample,
+from baselines.networks import (RecurrentActorCritic, ScannedGRU, network_step, policy_log_prob, rollout_sampler,
                                 preprocess_obs, rollout_step)
 from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
@@ -63,12 +63,13 @@ def rollout(network, env, params, env_params, carry, num_steps: int, action_mode
     ``(num_steps, B, ...)`` arrays; ``first`` of step ``t + 1`` is ``done`` of step ``t``."""
     num_envs = carry[2].shape[0]
     policy = rollout_step(network, params)  # the params are fixed during the rollout
+    sample = rollout_sampler(network, action_mode)
 
     def env_step(carry, _):
         env_state, obs, first, h, key = carry
         key, k_act, k_step = jax.random.split(key, 3)
         h, pi, value = policy(h, obs, first)
-        action = policy_sample(k_act, pi, action_mode)
+        action = sample(k_act, pi)
         log_prob = policy_log_prob(pi, action, action_mode)
         next_obs, env_state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
             jax.random.split(k_step, num_envs), env_state, action, env_params)

@@ -164,9 +164,9 @@ def test_rollout_apply_computes_the_cell_keys_once_with_the_same_outputs(envs):
     params = net.init(jax.random.key(5), obs)
     policy = jax.jit(rollout_apply(net, params))
     plain = jax.jit(lambda o: net.apply(params, o))
-    keys, mean = net.apply(params, None)
-    valid = np.asarray(pa.mode_data.valid) > 0  # keys of each slide's valid cells only, packed
-    assert keys.shape[:2] == (valid.shape[0], valid.sum(1).max()) and mean.shape == (keys.shape[0], keys.shape[-1])
+    keys, slot_rows, mean = net.apply(params, None)
+    valid = np.asarray(pa.mode_data.valid) > 0  # every valid cell of every slide once (and an empty row), packed
+    assert keys.shape[0] == slot_rows.shape[0] == valid.sum() + 1 and mean.shape == (valid.shape[0], keys.shape[-1])
     c = int(pa.mode_data.valid.shape[-1])
     for t in range(STEPS):
         for a, b in zip(policy(obs), plain(obs)):
@@ -200,6 +200,69 @@ def test_pointer_logits_are_every_pickable_cells_key_against_the_query(envs):
     assert pickable.sum() > 0
     np.testing.assert_allclose(got[pickable], by_hand[pickable], rtol=1e-4, atol=1e-5)
     assert (got[~pickable] == NEG).all()
+
+
+def test_read_slots_are_the_dense_layer_over_the_observed_summaries_and_keys(envs):
+    """The encoder computes each read slot from per-cell rows (its summary and key through ``slot_in``, once
+    per valid cell): the same as ``slot_in`` over the observation's own ``read_summaries`` ‖ the cell's key,
+    pooled (mean, max) over the filled slots, computed by hand on the dense ``(S, C)`` tables after a few reads."""
+    from baselines.networks import CellEncoder
+
+    (env_a, pa), _ = envs
+    net = ppo.make_network(CONFIG, env_a)
+    obs, state = _batch_reset(env_a, pa, jax.random.key(11))
+    params = net.init(jax.random.key(12), obs)
+    valid = np.asarray(pa.mode_data.valid)
+    for t in range(3):  # read three valid cells a slide (the first valid cells, by index)
+        slide = np.asarray(obs["slide"])
+        action = jnp.asarray([np.flatnonzero(valid[i])[t] for i in slide], jnp.int32)
+        obs, state, *_ = _vstep(env_a)(jax.random.split(jax.random.key(50 + t), ENVS), state, action, pa)
+    _, inter = net.apply(params, obs, capture_intermediates=lambda m, _: isinstance(m, CellEncoder),
+                         mutable=["intermediates"])
+    context_in = np.asarray(inter["intermediates"]["CellEncoder_0"]["__call__"][0][1])
+    enc = jax.tree.map(np.asarray, params["params"]["CellEncoder_0"])
+    t = env_a.episode_tables(pa)
+    fixed = np.concatenate([np.asarray(t["cells"]), np.asarray(t["valid"])[..., None],
+                            np.asarray(t["cost"])[..., None] * 10.0, np.asarray(t["position"])], -1)
+    relu = lambda x: np.maximum(x, 0.0)  # noqa: E731
+    keys = relu(fixed @ enc["cell_in"]["kernel"] + enc["cell_in"]["bias"])
+    keys = relu(keys @ enc["cell_mid"]["kernel"] + enc["cell_mid"]["bias"])          # (S, C, Hc)
+    slide, where = np.asarray(obs["slide"]), np.asarray(obs["read_cells"])
+    filled = where < valid.shape[1]
+    assert (filled.sum(1) == 3).all()
+    slot_in = np.concatenate([np.asarray(obs["read_summaries"], np.float32),
+                              keys[slide[:, None], np.minimum(where, valid.shape[1] - 1)]], -1)
+    slots = relu(slot_in @ enc["slot_in"]["kernel"] + enc["slot_in"]["bias"])       # (B, K, Hc)
+    mean = (slots * filled[..., None]).sum(1) / filled.sum(1, keepdims=True)
+    top = np.where(filled[..., None], slots, 0.0).max(1)
+    hc = keys.shape[-1]
+    np.testing.assert_allclose(context_in[:, hc:2 * hc], mean, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(context_in[:, 2 * hc:3 * hc], top, rtol=1e-4, atol=1e-5)
+    on = valid[slide] > 0
+    slide_mean = (keys[slide] * on[..., None]).sum(1) / on.sum(1, keepdims=True)
+    np.testing.assert_allclose(context_in[:, :hc], slide_mean, rtol=1e-4, atol=1e-5)
+
+
+def test_inverse_cdf_sampling_draws_the_softmax_distribution():
+    """The set readers' rollout sampler (one uniform per row) draws each action as often as
+    ``softmax(logits)`` says, never a masked one (``NEG``), on a row length that is not a multiple of its block,
+    and on a row whose mass lies in its last entry."""
+    from baselines.networks import inverse_cdf_sample
+
+    rng = np.random.default_rng(0)
+    logits = rng.normal(size=(3, 77)).astype(np.float32)
+    logits[0, ::3] = NEG
+    logits[1, :70] = NEG
+    logits[2, :] = NEG
+    logits[2, -1] = 0.0
+    draws = np.asarray(jax.jit(jax.vmap(lambda k: inverse_cdf_sample(k, jnp.asarray(logits))))(
+        jax.random.split(jax.random.key(0), 40_000)))                              # (draws, 3)
+    p = np.asarray(jax.nn.softmax(jnp.asarray(logits), -1))
+    for row in range(3):
+        freq = np.bincount(draws[:, row], minlength=77) / draws.shape[0]
+        assert freq[p[row] == 0].sum() == 0
+        assert np.abs(freq - p[row]).max() < 5 * np.sqrt(p[row].max() / draws.shape[0]) + 1e-3
+    assert (draws[:, 2] == 76).all()
 
 
 def test_recurrent_rollout_step_computes_the_cell_keys_once_with_the_same_outputs(envs):

@@ -293,7 +293,8 @@ class Glimpse(ActionMode):
         to index with the observation's ``slide`` (see the module doc): ``cells (S, C, D)`` float32
         low-resolution features, ``valid (S, C)`` float32 0/1, ``cost (S, C)`` float32 the fraction of
         the slide's tissue views that reading the cell reads, ``position (S, C, 2)`` float32 the cell's
-        centre ``(x, y)`` over the slide's own grid, in ``[0, 1]``."""
+        centre ``(x, y)`` over the slide's own grid, in ``[0, 1]``, and ``summaries (S, C, 2D)`` in the feature
+        bank's dtype: what a step observation's ``read_summaries`` shows for the cell once it is read."""
         t = params.mode_data
         c = t.valid.shape[-1]
         gy, gx = jnp.divmod(jnp.arange(c), t.grid[1])
@@ -301,7 +302,8 @@ class Glimpse(ActionMode):
         pos = jnp.stack([(gx[None] + 0.5) / cols, (gy[None] + 0.5) / rows], -1)
         return {"cells": t.cells, "valid": t.valid.astype(jnp.float32),
                 "cost": (t.cell_views.astype(jnp.float32) * t.inv_total[:, None]),
-                "position": jnp.clip(pos, 0.0, 1.0).astype(jnp.float32)}
+                "position": jnp.clip(pos, 0.0, 1.0).astype(jnp.float32),
+                "summaries": t.summaries.astype(summary_dtype(params))}
 
     def memory_space(self, env, params) -> dict:
         c, d = self.num_cells(params), int(params.mode_data.cells.shape[-1])

@@ -286,14 +286,12 @@ class EpisodeTables:
         slide_of, cell_of = np.nonzero(valid)                              # row-major: slide order, cells ascending
         flat = {"cells": np.asarray(self.tables["cells"], np.float32)[slide_of, cell_of],
                 "cost": np.asarray(self.tables["cost"], np.float32)[slide_of, cell_of],
-                "position": np.asarray(self.tables["position"], np.float32)[slide_of, cell_of]}
-        if "summaries" in self.tables:
-            flat["summaries"] = np.asarray(self.tables["summaries"], np.float32)[slide_of, cell_of]
+                "position": np.asarray(self.tables["position"], np.float32)[slide_of, cell_of],
+                "summaries": np.asarray(self.tables["summaries"], np.float32)[slide_of, cell_of]}
         self.flat = {k: jnp.asarray(v) for k, v in flat.items()}         # (N, ...) each valid cell's fixed inputs
         self.flat_slide = jnp.asarray(slide_of.astype(np.int32))          # (N,) its slide
         self.inv_count = jnp.asarray(1.0 / np.maximum(counts, 1), jnp.float32)  # (S,) 1 / valid cells of the slide
         self.valid_cells = jnp.asarray(packed)  # (S, V) int32 cell index of each packed entry; C = none
-        self.valid_slot = jnp.asarray(slot)     # (S, C) int32 packed entry of each valid cell (0 elsewhere)
         rows = np.where(packed < c, start[:, None] + np.arange(packed.shape[1])[None, :], n)
         self.packed_rows = jnp.asarray(rows.astype(np.int32))            # (S, V) flat row of each entry; N = none
         self.cell_rows = jnp.asarray(np.where(valid, start[:, None] + slot, n).astype(np.int32))  # (S, C); N = none

@@ -275,15 +275,12 @@ class EpisodeTables:
         valid = np.asarray(self.tables["valid"]) > 0                      # (S, C)
         s, c = valid.shape
         counts = valid.sum(1)
-        packed = np.full((s, max(1, int(counts.max()))), c, np.int32)
-        slot = np.zeros((s, c), np.int32)
-        for row in range(s):
-            cells = np.flatnonzero(valid[row])
-            packed[row, : cells.size] = cells
-            slot[row, cells] = np.arange(cells.size)
         n = int(counts.sum())
         start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32)
         slide_of, cell_of = np.nonzero(valid)                              # row-major: slide order, cells ascending
+        local = np.arange(n) - start[slide_of]                             # each valid cell's entry in its slide's list
+        packed = np.full((s, max(1, int(counts.max()))), c, np.int32)
+        packed[slide_of, local] = cell_of
         flat = {"cells": np.asarray(self.tables["cells"], np.float32)[slide_of, cell_of],
                 "cost": np.asarray(self.tables["cost"], np.float32)[slide_of, cell_of],
                 "position": np.asarray(self.tables["position"], np.float32)[slide_of, cell_of],
@@ -292,9 +289,12 @@ class EpisodeTables:
         self.flat_slide = jnp.asarray(slide_of.astype(np.int32))          # (N,) its slide
         self.inv_count = jnp.asarray(1.0 / np.maximum(counts, 1), jnp.float32)  # (S,) 1 / valid cells of the slide
         self.valid_cells = jnp.asarray(packed)  # (S, V) int32 cell index of each packed entry; C = none
-        rows = np.where(packed < c, start[:, None] + np.arange(packed.shape[1])[None, :], n)
-        self.packed_rows = jnp.asarray(rows.astype(np.int32))            # (S, V) flat row of each entry; N = none
-        self.cell_rows = jnp.asarray(np.where(valid, start[:, None] + slot, n).astype(np.int32))  # (S, C); N = none
+        rows = np.full(packed.shape, n, np.int32)
+        rows[slide_of, local] = np.arange(n)
+        self.packed_rows = jnp.asarray(rows)                              # (S, V) flat row of each entry; N = none
+        cell_rows = np.full((s, c), n, np.int32)
+        cell_rows[slide_of, cell_of] = np.arange(n)
+        self.cell_rows = jnp.asarray(cell_rows)                           # (S, C) flat row of each cell; N = none
         self.num_flat = n
 
     def __getitem__(self, key):

@@ -179,10 +179,9 @@ def published_trained_record(run: Path) -> dict | None:
     return where if isinstance(where, dict) else None
 
 
-def published_trained_on(run: Path) -> str | None:
-    """What a published agent's ``published.json`` says it trained on (``trained_on``: ``what``, else the dataset's
-    name and split), or None when it names nothing (or cannot be read)."""
-    where = published_trained_record(run)
+def published_trained_on(where: dict | None) -> str | None:
+    """What a published agent's ``trained_on`` record (:func:`published_trained_record`) says it trained on
+    (``what``, else the dataset's name and split), or None when it names nothing (or there is none)."""
     if where is None:
         return None
     if isinstance(where.get("what"), str) and where["what"]:
@@ -204,6 +203,7 @@ def published_dataset_refusal(run: Path, config: dict) -> str | None:
         return None
     config = read_run_config(config)
     recorded = (config.env_kwargs or {}).get("dataset")
+    where = published_trained_record(run)  # published.json's trained_on, read once
     env_id = str(config.env_id)
     encoder = (registry.spec_of(env_id).settings.get("dataset_encoder")
                if env_id in registry.registered_envs() else None) or "the same"
@@ -213,13 +213,13 @@ def published_dataset_refusal(run: Path, config: dict) -> str | None:
     elif recorded:
         said = (f"records the dataset it trained on as {recorded} (a folder of the machine it was trained on, kept as "
                 "provenance: a published agent is never scored on it unasked)")
-    elif isinstance(trained_on := published_trained_on(run), str):
+    elif isinstance(trained_on := published_trained_on(where), str):
         said = f"records no path of the machine it was trained on; its published.json says it trained on {trained_on}"
     else:
         said = "records no dataset"
     if encoder == "the same":  # an any-dataset id: the features its head reads (head_reward.json names the head)
         encoder = _head_encoder(run) or encoder
-    trained_on_c16 = str((published_trained_record(run) or {}).get("dataset", "")).startswith("c16")
+    trained_on_c16 = str((where or {}).get("dataset", "")).startswith("c16")
     if "-C16-" in env_id or trained_on_c16:  # a C16 set is what to build, whatever the env id
         need = (f"a CAMELYON16 dataset with {encoder} feature grids, e.g. the small one (6 slides, about a minute: "
                 "`histojax c16 --small --features --out c16-small`) or the true-scale set it trained on (`histojax c16 "

@@ -128,6 +128,7 @@ def test_checkpoint_round_trip(tmp_path):
     np.testing.assert_array_equal(out1, out2)
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_scripted_policy_runs_and_moves_toward_dark_stain():
     # a view whose dark stain is on the right: the policy (without exploration) moves RIGHT
     px = jnp.full((128, 128, 3), 240, jnp.uint8).at[:, 96:, :].set(60)

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_budget_rows_csv_and_png(tmp_path):
     from baselines.reading.budget_curve import budget_rows
     from baselines.reading.csv_files import write_curve_csv
@@ -36,6 +37,7 @@ def test_budget_rows_csv_and_png(tmp_path):
     assert plot_curve(rows, tmp_path / "c.png").stat().st_size > 1000
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_max_logit_rows_find_a_small_focus_that_attention_dilutes():
     """The max-pooling rows (a fixed instance logit, as pcam-cnn's ``max l``): one tumour view among 400 sets
     the slide's score; the logit reader reads the cell whose overview logit is highest first, so it finds the

@@ -32,6 +32,7 @@ def _argv(dataset, out, *extra):
             "--env-kwargs", f"Diagnosis={json.dumps({**SHORT, 'task': 'classification'})}", *extra]
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_reference_rows_are_written_and_kept_on_a_rerun(dataset, tmp_path, monkeypatch):
     out = tmp_path / "ref"
     assert c16_reference.main(_argv(dataset, out, "--methods", "random", "scripted", "--scenarios", "Easy")) == 0

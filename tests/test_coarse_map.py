@@ -118,6 +118,7 @@ def test_map_follower_walks_to_the_highest_unread_block():
     assert int(map_follower_policy(jax.random.key(0), cm_next, epsilon=0.0)) == histojax.LEFT
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_evaluate_scores_the_map_follower_through_the_head(dataset):
     """``evaluate`` through a head: the reference rows (random, the map follower) are scored by the head (AUC)."""
     from baselines.evaluate import evaluate

@@ -43,6 +43,7 @@ def quick_run(tmp_path_factory):
     return out, buf.getvalue()
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_quick_demo_writes_the_listed_files(quick_run):
     out, printed = quick_run
     summary = json.loads((out / "demo_summary.json").read_text())
@@ -67,6 +68,7 @@ def test_quick_demo_writes_the_listed_files(quick_run):
     assert leaves and all(a.shape[0] == 1 and np.isfinite(a).all() for a in leaves)
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_quick_demo_summary_numbers(quick_run):
     out, printed = quick_run
     summary = json.loads((out / "demo_summary.json").read_text())

@@ -105,6 +105,7 @@ def test_train_command_writes_loadable_weights_and_a_report(tmp_path):
     assert pcam_cnn.apply(variables, x)[0].shape == (2, pcam_cnn.DIM)
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_training_is_reproducible_from_its_seed():
     from data_tools.features.train_pcam_cnn import train
 

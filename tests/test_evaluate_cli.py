@@ -222,6 +222,7 @@ def test_no_episodes_is_a_usage_error(argv, capsys):
     assert f"--episodes: '{argv[1]}' must be >= 1" in _one_error_line(capsys)
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_checkpoint_that_does_not_fit_its_config(tmp_path, capsys):
     run = _checkpoint(tmp_path / "run", EASY, hidden=8)  # params of width 8, config says 16
     assert histojax_main(["evaluate", str(run), "--episodes", "1", "--out", str(tmp_path / "o")]) == 2

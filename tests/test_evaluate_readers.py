@@ -148,6 +148,7 @@ def test_publish_keeps_the_readers_head_and_curve(reader):
     assert (reader / "log.csv").is_file() and (reader / "config.json").is_file()
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_set_reader_is_scored_through_its_head_on_wider_and_taller_slides(data, reader, tmp_path, capsys):
     """Before: the policy's own declaring action scored the slide (no head, no AUC without ITC-only slides)."""
     small, big = _grid(data["small"]), _grid(data["big"])

@@ -163,6 +163,7 @@ def test_efficientnet_file_reads_and_fits_the_architecture():
 CAT, COFFEE = {281, 282, 283, 284, 285, 287}, {504, 967, 968}  # tabby … lynx; coffee mug, espresso, cup
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_classify_skimage_photos(tmp_path, capsys):
     import skimage.data
     from PIL import Image

@@ -152,6 +152,7 @@ def test_too_many_folds_for_the_dataset_is_one_line(folded, capsys):
     assert not (out / "plan.json").exists()
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_c16_folds_keep_a_tumour_slide_with_its_donor(c16_small):
     """``c16 --folds 2`` (the shared small set is built with it): folds of the train side, a tumour slide in the
     fold of the normal slide lending it tissue; ``make`` on a C16 id takes ``fold=``."""

@@ -150,6 +150,7 @@ def test_repair_cost_is_bounded_per_file(tmp_path, monkeypatch):
 # ------------------------------------------------------------------ 10. ASAP XML streamed
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_asap_xml_is_streamed_with_the_same_result(tmp_path, monkeypatch):
     """The reader no longer builds the whole tree (was 12x the file): the fixtures give the same geometry
     as the tree reader of before, and a 4 MB file of small annotations peaks (Python allocations) below

@@ -26,6 +26,7 @@ def store(small_slides):
     return rotation.SlideStore("HistoJAX-Easy-v0", small_slides, source="memory")
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_rotating_run_stays_under_the_device_budget(small_slides, store):
     dataset = store.nbytes()
     budget = dataset // 3

@@ -116,6 +116,7 @@ def test_make_dataset_split_is_disjoint(tmp_path):
         assert bundle.tumour[0].sum() > 0
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_cli_places_the_tumour_files_it_is_given(tmp_path, capsys):
     from data_tools.__main__ import main
 

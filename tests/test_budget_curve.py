@@ -87,6 +87,7 @@ def test_cross_validation_scores_every_slide_once():
     assert all(r["slides"] == 8 for r in rows) and len(rows) == 3
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_budget_curve_mil_is_the_heads_gated_attention():
     """The budget curve's "read everything" classifier is histojax.reading.heads.mil's gated attention (one MIL):
     its batched bag scores equal attention_pool on each bag alone, its attention sums to 1 and leaves unread

@@ -89,6 +89,7 @@ def test_ids_detection_and_diagnosis(small):
     assert float(reward) == pytest.approx((1.0 if right else -1.0) - 0.01)
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_detection_draws_tumour_slides_only_and_each_can_succeed(small):
     """Detection ids never start an episode on a normal slide (nothing to find there), the diagnosis id
     draws both kinds, and every tumour slide of the small variant has a finest view >= 50 % tumour (so

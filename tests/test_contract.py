@@ -26,8 +26,8 @@ def test_contract_of_registered_id(env_id):
     assert len(report.checks) >= 12
 
 
-@pytest.mark.parametrize("overrides", [
-    dict(action_mode="continuous", obs_mode="pixels_float", with_position=True),
+@pytest.mark.parametrize("overrides", [  # the continuous one under make test-all (make test under 10 min)
+    pytest.param(dict(action_mode="continuous", obs_mode="pixels_float", with_position=True), marks=pytest.mark.slow),
     dict(task="classification", with_position=True),
 ], ids=["continuous-float-position", "classification-position"])
 def test_contract_of_each_mode(overrides):

@@ -67,6 +67,7 @@ def test_validation_split_keeps_donor_pairs_and_both_classes_on_both_sides():
         split_train({"train": ["bundles/A"]}, 0.5)
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_validation_dataset_on_the_small_c16_variant(c16_small, tmp_path):
     """The derived dataset loads under the same id: train on its train list, validate on its test list."""
     import histojax
@@ -84,6 +85,7 @@ def test_validation_dataset_on_the_small_c16_variant(c16_small, tmp_path):
     assert sorted(b.path.name for b in env.bundles) == sorted(n.split("/")[-1] for n in v["validation"])
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_slide_ceiling_pools_view_logits_and_names_the_misses(c16_small, tmp_path):
     """experiments/c16_slide_ceiling.py: AUCs in [0, 1] on both splits, every test tumour slide listed with
     its area, and a dataset without pcam-cnn features refused naming the file."""

@@ -106,9 +106,9 @@ if RECORD:
         np.savez_compressed(REFERENCE, **out)
 
 
-# discrete:memory (the navigator with the reading memory) and glimpse (a cell reader) in `make test`; plain
-# discrete, discrete with tracked reading and zoom_select under `make test-all`
-DEFAULT_RUN = ("discrete_memory", "glimpse")
+# glimpse (a cell reader) in `make test`; plain discrete, discrete with the reading memory, discrete with tracked
+# reading and zoom_select under `make test-all`
+DEFAULT_RUN = ("glimpse",)
 
 
 @pytest.mark.parametrize("name", [n if n in DEFAULT_RUN else pytest.param(n, marks=pytest.mark.slow) for n in MODES])

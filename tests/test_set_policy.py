@@ -95,7 +95,7 @@ def test_the_other_slide_is_wider_and_taller(envs):
     assert other.mode_data.valid.shape[-1] > train.mode_data.valid.shape[-1]
 
 
-@pytest.mark.parametrize("recurrent", [False, True])
+@pytest.mark.parametrize("recurrent", [False, pytest.param(True, marks=pytest.mark.slow)])  # recurrent: make test-all
 def test_parameters_from_one_dataset_read_another(envs, recurrent):
     env_b, pb = envs[1]
     net_b, params = _reader_for_the_wider_slide(envs, recurrent)
@@ -290,7 +290,7 @@ def test_recurrent_rollout_step_computes_the_cell_keys_once_with_the_same_output
         first = term | trunc
 
 
-@pytest.mark.parametrize("recurrent", [False, True])
+@pytest.mark.parametrize("recurrent", [False, pytest.param(True, marks=pytest.mark.slow)])  # recurrent: make test-all
 def test_evaluate_runs_a_set_reader_on_a_wider_slide(envs, recurrent):
     """``baselines.evaluate.learned_policy`` (cell keys once per rollout) runs a feed-forward or recurrent
     set reader made on one dataset on the wider slide (sampled: an untrained reader), and it reads."""

@@ -73,6 +73,7 @@ def test_max_logit_rows_find_a_small_focus_that_attention_dilutes():
     assert set(MAX_LOGIT_NAMES) <= {r["method"] for r in rows}
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_cross_validation_scores_every_slide_once():
     from baselines.reading.budget_curve import cross_validated_rows
 

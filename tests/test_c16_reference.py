@@ -32,7 +32,6 @@ def _argv(dataset, out, *extra):
             "--env-kwargs", f"Diagnosis={json.dumps({**SHORT, 'task': 'classification'})}", *extra]
 
 
-@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_reference_rows_are_written_and_kept_on_a_rerun(dataset, tmp_path, monkeypatch):
     out = tmp_path / "ref"
     assert c16_reference.main(_argv(dataset, out, "--methods", "random", "scripted", "--scenarios", "Easy")) == 0
@@ -107,6 +106,7 @@ def test_every_method_end_to_end_on_a_tiny_budget(dataset, tmp_path):
     assert len(val["train"]) == 1 and len(val["validation"]) == 1
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_feature_only_dataset_runs_the_rows_that_need_no_pixels(dataset, tmp_path):
     """A dataset made with ``--no-pixels`` (``pixels_kept: false`` in dataset.json): random is evaluated on
     features, the scripted policy on features (zoom where the view's tumour logit is high), the rows

@@ -40,8 +40,9 @@ def test_registered_encoders_include_pcam_cnn():
     assert {"colour-stats", "efficientnet-lite0"} <= set(ENCODERS)
 
 
-# a patch (48 px) and a view (128 px) in `make test`; the size between under `make test-all`
-@pytest.mark.parametrize("side", [48, pytest.param(96, marks=pytest.mark.slow), 128])
+# a view (128 px) in `make test`; a patch (48 px) and the size between under `make test-all`
+@pytest.mark.parametrize("side", [pytest.param(48, marks=pytest.mark.slow), pytest.param(96, marks=pytest.mark.slow),
+                                  128])
 def test_any_image_size_patch_or_view(side):
     enc = load_encoder("pcam-cnn")
     rng = np.random.default_rng(1)

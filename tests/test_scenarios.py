@@ -116,6 +116,7 @@ def test_bad_toml_names_the_file(tmp_path, text, match):
     assert str(path) in str(e.value) and isinstance(e.value, ValueError)
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_multi_slide_scenario_with_a_split(tmp_path):
     import tifffile
 

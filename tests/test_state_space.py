@@ -79,6 +79,7 @@ def test_bounds_are_tight_and_the_check_can_fail():
     assert not bool(space.contains(object()))
 
 
+@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_dataset_states(small_slides):
     env, params = histojax.make("HistoJAX-Easy-v0", slides=small_slides)
     space = env.state_space(params)

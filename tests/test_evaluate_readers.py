@@ -141,7 +141,6 @@ def _grid(dataset) -> np.ndarray:
 
 
 # ----------------------------------------------------------------------------- the cell-set reader through its head
-@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_publish_keeps_the_readers_head_and_curve(reader):
     record = json.loads((reader / "head_reward.json").read_text())
     assert record["head"] == "head" and record["head_source"].endswith("head-fit")
@@ -149,7 +148,6 @@ def test_publish_keeps_the_readers_head_and_curve(reader):
     assert (reader / "log.csv").is_file() and (reader / "config.json").is_file()
 
 
-@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_set_reader_is_scored_through_its_head_on_wider_and_taller_slides(data, reader, tmp_path, capsys):
     """Before: the policy's own declaring action scored the slide (no head, no AUC without ITC-only slides)."""
     small, big = _grid(data["small"]), _grid(data["big"])
@@ -273,7 +271,6 @@ def test_published_agent_runs_on_wider_slides(name, data, tmp_path, capsys):
     assert "read" in header.split()
 
 
-@pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_a_head_that_is_not_there_is_one_line(reader, data, tmp_path, capsys):
     import shutil
 

@@ -290,7 +290,7 @@ def test_recurrent_rollout_step_computes_the_cell_keys_once_with_the_same_output
         first = term | trunc
 
 
-@pytest.mark.parametrize("recurrent", [False, pytest.param(True, marks=pytest.mark.slow)])  # recurrent: make test-all
+@pytest.mark.parametrize("recurrent", [False, True])
 def test_evaluate_runs_a_set_reader_on_a_wider_slide(envs, recurrent):
     """``baselines.evaluate.learned_policy`` (cell keys once per rollout) runs a feed-forward or recurrent
     set reader made on one dataset on the wider slide (sampled: an untrained reader), and it reads."""

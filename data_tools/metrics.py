@@ -22,3 +22,93 @@ def accuracy(scores, labels, threshold: float = 0.5) -> float:
     """Fraction of slides whose ``score >= threshold`` equals their 0/1 label."""
     s = np.asarray(scores, np.float64)
     return float(np.mean((s >= threshold) == np.asarray(labels).astype(bool)))
+
+
+#: The confidence level of every AUC interval histojax prints (two-sided).
+INTERVAL_LEVEL = 0.95
+_Z95 = 1.959963984540054
+
+
+def _newcombe_variance(theta: float, n_pos: int, n_neg: int) -> float:
+    """Hanley–McNeil variance of an AUC ``theta`` with Newcombe's N* = (n⁺ + n⁻)/2 − 1 for both
+    classes (Newcombe 2006, method 5)."""
+    n_star = (n_pos + n_neg) / 2.0 - 1.0
+    tail = (1.0 - theta) / (2.0 - theta) + theta / (1.0 + theta)
+    return theta * (1.0 - theta) / (n_pos * n_neg) * (1.0 + (n_star - 1.0) * tail)
+
+
+def auc_interval(auc: float, n_pos: int, n_neg: int, level: float = INTERVAL_LEVEL) -> tuple[float, float]:
+    """The 95 % interval over slides of an AUC measured on ``n_pos`` tumour and ``n_neg`` normal slides.
+
+    Newcombe's score-type interval for the Mann–Whitney AUC (Newcombe 2006, *Statistics in Medicine*
+    25:559, method 5): every θ in [0, 1] with |AUC − θ| ≤ z·√V(θ), V the Hanley–McNeil variance at θ
+    (not at the estimate). Unlike a percentile bootstrap or DeLong's interval, it stays wide when the
+    estimate is 1.0 on a few slides: AUC 1.0 on 2 tumour and 4 normal slides gives [0.556, 1.0].
+    Returns ``(nan, nan)`` when either class is empty or ``auc`` is NaN. Only the 95 % level is tabled.
+    """
+    if level != INTERVAL_LEVEL:
+        raise ValueError(f"only the {INTERVAL_LEVEL:.0%} interval is supported, not {level}")
+    if n_pos <= 0 or n_neg <= 0 or not np.isfinite(auc):
+        return float("nan"), float("nan")
+    z2 = _Z95 ** 2
+
+    def inside(theta: float) -> bool:
+        return (auc - theta) ** 2 <= z2 * _newcombe_variance(theta, n_pos, n_neg)
+
+    def edge(outer: float) -> float:  # bisect between the estimate (inside) and an outer end
+        if inside(outer):
+            return outer
+        lo, hi = auc, outer
+        for _ in range(60):
+            mid = 0.5 * (lo + hi)
+            lo, hi = (mid, hi) if inside(mid) else (lo, mid)
+        return lo
+
+    return float(edge(0.0)), float(edge(1.0))
+
+
+def roc_auc_with_interval(scores, labels) -> dict:
+    """AUC of ``scores`` for 0/1 ``labels`` with its 95 % interval over slides (:func:`auc_interval`).
+
+    Returns ``{"auc", "auc_low", "auc_high", "n_tumour", "n_normal"}``; the three AUC fields are NaN
+    when a class is missing (write them with :func:`json_number` so no JSON file holds ``NaN``)."""
+    y = np.asarray(labels).astype(bool)
+    auc = roc_auc(scores, y)
+    n_pos, n_neg = int(y.sum()), int((~y).sum())
+    low, high = auc_interval(auc, n_pos, n_neg)
+    return {"auc": auc, "auc_low": low, "auc_high": high, "n_tumour": n_pos, "n_normal": n_neg}
+
+
+def format_auc(auc: float, low: float, high: float) -> str:
+    """``"AUC 0.849 [0.741, 0.936]"`` — how every histojax command prints an AUC with its interval
+    (``"AUC undefined (one class)"`` when the AUC is NaN)."""
+    if not np.isfinite(auc):
+        return "AUC undefined (one class)"
+    return f"AUC {auc:.3f} [{low:.3f}, {high:.3f}]"
+
+
+def json_number(x):
+    """``x`` as a JSON-safe value: a finite float stays, NaN / ±inf become ``None`` (JSON ``null``)."""
+    if x is None:
+        return None
+    x = float(x)
+    return x if np.isfinite(x) else None
+
+
+#: Fewer slides than this in either class and the 95 % interval of a typical AUC (0.85) is wider than
+#: ±0.15 (:func:`auc_interval`: 13 + 13 slides give [0.643, 0.942]); such a split cannot rank readers or
+#: heads, and every command that scores or fits on one says so (:func:`small_split_warning`).
+SMALL_SPLIT_PER_CLASS = 13
+
+
+def small_split_warning(n_tumour: int, n_normal: int, where: str) -> str | None:
+    """One warning line when ``where`` (e.g. ``"the test split"``, ``"fold 2's validation share"``) holds
+    fewer than :data:`SMALL_SPLIT_PER_CLASS` slides of either class, naming the counts and what to do;
+    ``None`` when it is large enough."""
+    if min(n_tumour, n_normal) >= SMALL_SPLIT_PER_CLASS:
+        return None
+    low, high = auc_interval(0.85, max(n_tumour, 1), max(n_normal, 1))
+    return (f"warning: {where} holds {n_tumour} tumour and {n_normal} normal slides; an AUC of 0.85 on it has a "
+            f"95 % interval of [{low:.2f}, {high:.2f}] — too few to rank heads or readers (fewer than "
+            f"{SMALL_SPLIT_PER_CLASS} of a class). Use k folds (dataset --folds K, then --all-folds) or a larger "
+            f"--val-fraction, and report the interval beside the AUC.")

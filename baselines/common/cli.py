@@ -134,6 +134,7 @@ def train_and_save(algo: str, make_train_fn, args, config_class: type[EnvConfig]
             run_folder.lock(run)  # one writer per run folder: a second --resume / --out RUN is refused
             config = resume_config(run, algo, config_class)
         except HistojaxDataError as e:
+            run_folder.release(run)  # a refused resume leaves the folder as it was (no lock file)
             return print_error(e)
         try:
             run_and_save(algo, make_train_fn, config, run, unit, resume=True)

@@ -15,9 +15,13 @@ A run folder holds only what histojax wrote there (:data:`RUN_ENTRIES`): ``log.c
   free ``runs/<algo>-<env>-2``, ``-3``, ... (as Stable-Baselines3 numbers its log folders ``PPO_1``, ``PPO_2``).
 
 One writer per run folder: :func:`claim` takes an exclusive ``fcntl.flock`` on ``RUN/.histojax-run.lock`` and
-holds it until the process ends (the operating system drops the lock of a killed process, so a killed run never
-leaves its folder locked). A second ``train --out RUN`` or ``--resume RUN`` while one holds it is refused in one
-line.
+holds it until :func:`release` (or the process's end: the operating system drops the lock of a killed process, so
+a killed run never leaves its folder locked). A second ``train --out RUN`` or ``--resume RUN`` while one holds it
+is refused in one line.
+
+A refused command leaves the folder as it found it: :func:`claim` checks the folder before it creates it or the
+lock, :func:`release` removes the lock file, and removes the folder too when this process made it and it is
+still empty (a run refused after its claim, e.g. for a mistyped ``--fold``).
 """
 from __future__ import annotations
 
@@ -38,12 +42,18 @@ LOCK = ".histojax-run.lock"
 FINAL = ("log.csv", "log.json", "curve.png", "params.msgpack", "config.json")
 """A finished run's files (written as a whole at its end)."""
 RUN_ENTRIES = re.compile(r"^(log\.csv|log\.json|curve\.png|params\.msgpack|config\.json|checkpoint|eval|"
+                         r"eval-all-folds|head_reward\.json|curve-seeds\.png|curve-seeds\.csv|"
                          r"process-\d+|events\.out\.tfevents\..+|\.histojax-run\.lock|\..+\.tmp-[0-9a-f]{8})$")
-"""Names histojax writes in a run folder (temporaries of an atomic write included)."""
+"""Names histojax writes in a run folder (temporaries of an atomic write included): a trainer's files,
+``eval/`` and ``eval-all-folds/`` (``histojax evaluate RUN`` and ``--all-folds``), ``head_reward.json`` and
+``curve-seeds.*`` (``baselines.reading.train_readers``)."""
+STATE = ("checkpoint", "eval", "eval-all-folds", "head_reward.json", "curve-seeds.png", "curve-seeds.csv")
+"""What ``--overwrite`` removes before the new run (the old run's state and what was derived from it); its final
+files (:data:`FINAL`) stay until the new run's are written."""
 MAX_NUMBERED = 1000
 """The most numbered default folders (``runs/<algo>-<env>-N``) tried."""
 
-_HELD: dict[str, int] = {}  # run folder (resolved) -> the open lock file descriptor, held until the process ends
+_HELD: dict[str, tuple[int, Path, Path | None]] = {}  # run folder (resolved) -> (lock fd, folder, outermost folder made)
 
 
 class RunFolderError(HistojaxDataError):
@@ -89,9 +99,11 @@ def _is_run_config(path: Path) -> bool:
 INSIDE = {"checkpoint": re.compile(r"^(runner\.msgpack|checkpoint\.json|config\.json|\..+\.tmp-[0-9a-f]{8})$"),
           "eval": re.compile(r"^(eval\.json|eval\.csv|trajectory\.gif|trajectory_.+\.png|reading_.+\.png|slide\d+|"
                              r"fold\d+|\..+\.tmp-[0-9a-f]{8})$"),
+          "eval-all-folds": re.compile(r"^(eval\.json|eval\.csv|trajectory\.gif|trajectory_.+\.png|reading_.+\.png|"
+                                       r"slide\d+|fold\d+|\..+\.tmp-[0-9a-f]{8})$"),
           "process": re.compile(r"^(params\.msgpack|config\.json|\..+\.tmp-[0-9a-f]{8})$")}
 """Names histojax writes inside a run folder's ``checkpoint/``, ``eval/`` (and its ``slideN/``, ``foldN/``) and
-``process-N/``: what ``--overwrite`` may remove there."""
+``eval-all-folds/`` and ``process-N/``: what ``--overwrite`` may remove there."""
 
 
 def _foreign_inside(folder: Path, names: re.Pattern, prefix: str) -> list[str]:
@@ -143,44 +155,95 @@ def _same(saved: dict, config: dict) -> bool:
 
 
 def lock(out: Path) -> None:
-    """Take the exclusive lock of the run folder ``out`` (created if absent) for the rest of this process;
-    ``RunFolderError`` naming the folder when another process holds it. Taking it twice in one process is a no-op."""
+    """Take the exclusive lock of the run folder ``out`` (created if absent) for the rest of this process (or until
+    :func:`release`); ``RunFolderError`` naming the folder when another process holds it. Taking it twice in one
+    process is a no-op. A refusal leaves no lock file and no folder it created."""
     out = Path(out)
     key = os.path.realpath(out)
     if key in _HELD:
         return
-    try:
-        out.mkdir(parents=True, exist_ok=True)
-        fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | os.O_CLOEXEC
-                     | getattr(os, "O_NONBLOCK", 0), 0o644)  # a FIFO there never blocks the open
-    except OSError as e:
-        if e.errno == errno.ELOOP:
-            raise RunFolderError(out / LOCK, "is a symbolic link, not the run folder's lock file; remove it or choose "
-                                             "another --out") from None
-        raise RunFolderError(out, f"cannot be written ({e.strerror or e}); choose another --out") from None
-    if not stat.S_ISREG(os.fstat(fd).st_mode):
-        os.close(fd)
-        raise RunFolderError(out / LOCK, "is not a regular file (a FIFO, device or socket), not the run folder's lock "
-                                         "file; remove it or choose another --out")
-    try:
-        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
-    except OSError:
+    made = _first_missing(out)
+    for _ in range(20):  # a holder that releases removes the file: lock the file the name holds now
         try:
-            holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
-        finally:
+            out.mkdir(parents=True, exist_ok=True)
+            fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | os.O_CLOEXEC
+                         | getattr(os, "O_NONBLOCK", 0), 0o644)  # a FIFO there never blocks the open
+        except OSError as e:
+            _remove_made(out, made)
+            if e.errno == errno.ELOOP:
+                raise RunFolderError(out / LOCK, "is a symbolic link, not the run folder's lock file; remove it or "
+                                                 "choose another --out") from None
+            raise RunFolderError(out, f"cannot be written ({e.strerror or e}); choose another --out") from None
+        st = os.fstat(fd)
+        if not stat.S_ISREG(st.st_mode):
             os.close(fd)
-        raise RunFolderError(out, f"another training run (process {holder}) is writing this run folder (it holds "
-                                  f"{LOCK}); wait for it to end, or choose another --out") from None
+            raise RunFolderError(out / LOCK, "is not a regular file (a FIFO, device or socket), not the run folder's "
+                                             "lock file; remove it or choose another --out")
+        try:
+            fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
+        except OSError:
+            try:
+                holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
+            finally:
+                os.close(fd)
+            raise RunFolderError(out, f"another training run (process {holder}) is writing this run folder (it holds "
+                                      f"{LOCK}); wait for it to end, or choose another --out") from None
+        try:
+            now = os.lstat(out / LOCK)
+        except FileNotFoundError:
+            now = None
+        if now is not None and (now.st_dev, now.st_ino) == (st.st_dev, st.st_ino):
+            break
+        os.close(fd)  # the file was removed by the holder's release after our open: take the new one
+    else:
+        raise RunFolderError(out, f"its {LOCK} kept changing while it was taken; choose another --out")
     os.ftruncate(fd, 0)
     os.write(fd, f"{os.getpid()}\n".encode())
-    _HELD[key] = fd
+    _HELD[key] = (fd, out, made)
+
+
+def _first_missing(out: Path) -> Path | None:
+    """The outermost folder of ``out`` (``out`` itself or one of its parents) that does not exist yet: what
+    ``mkdir(parents=True)`` would create first; None when ``out`` exists."""
+    missing = None
+    for folder in (out, *out.parents):
+        if os.path.lexists(folder):
+            break
+        missing = folder
+    return missing
+
+
+def _remove_made(out: Path, made: Path | None) -> None:
+    """Remove the folder ``out`` and its parents up to ``made`` (the outermost this process created) while they
+    are empty: a refusal leaves no folder behind that the command created."""
+    if made is None:
+        return
+    for folder in (out, *out.parents):
+        try:
+            folder.rmdir()
+        except OSError:
+            return  # not empty (the run wrote something) or already gone
+        if folder == made:
+            return
 
 
 def release(out: Path) -> None:
-    """Drop this process's lock of the run folder ``out`` (the end of a run; a process that ends drops it too)."""
-    fd = _HELD.pop(os.path.realpath(Path(out)), None)
-    if fd is not None:
+    """Drop this process's lock of the run folder ``out`` (the end of a run, or a refusal): the lock file is
+    removed, and so is the folder when this process made it and it is now empty. A process that ends drops the
+    lock too (its file then stays until the next claim)."""
+    held = _HELD.pop(os.path.realpath(Path(out)), None)
+    if held is None:
+        return
+    fd, folder, made = held
+    try:
+        st, now = os.fstat(fd), os.lstat(folder / LOCK)
+        if (now.st_dev, now.st_ino) == (st.st_dev, st.st_ino):
+            os.unlink(folder / LOCK)  # removed while held: a process waiting on it re-opens the name (lock())
+    except OSError:
+        pass  # already gone
+    finally:
         os.close(fd)
+    _remove_made(folder, made)
 
 
 def _state(out: Path, config: dict) -> str:
@@ -197,6 +260,32 @@ def _state(out: Path, config: dict) -> str:
     if saved is not None and _same(saved, config):
         return "unfinished-same"
     return "unfinished-other"
+
+
+def _check(out: Path, config: dict, overwrite: bool) -> str:
+    """The state of the existing folder ``out`` (:func:`_state`) when a run of ``config`` may be written there
+    (with ``overwrite``: a finished run or another config's replaced); ``RunFolderError`` naming it otherwise.
+    Writes nothing."""
+    state = _state(out, config)
+    if state in ("empty", "unfinished-same"):
+        return state
+    foreign = foreign_entries(out)
+    if foreign:
+        raise RunFolderError(out, f"holds files histojax did not write (e.g. {foreign[0]!r}); refusing to train "
+                                  "into it (choose another --out; --overwrite replaces only a run's own files)")
+    if not overwrite:
+        what = "a finished run (params.msgpack)" if state == "finished" else "an unfinished run of another config"
+        raise RunFolderError(out, f"holds {what}; refusing to overwrite it: choose another --out, continue an "
+                                  "unfinished run with --resume, or replace it with --overwrite")
+    inside = []  # a user's file inside the old run's folders: never removed (refused before anything is)
+    for name in sorted(os.listdir(out)):
+        kind = "process" if re.match(r"^process-\d+$", name) else name
+        if kind in INSIDE and (out / name).is_dir():
+            inside += _foreign_inside(out / name, INSIDE[kind], name)
+    if inside:
+        raise RunFolderError(out, f"holds files histojax did not write (e.g. {inside[0]!r}) in the old run's "
+                                  "folders, which --overwrite would remove; move them out first or choose another --out")
+    return state
 
 
 def claim(out, config: dict, overwrite: bool = False, default: bool = False) -> Path:
@@ -219,35 +308,25 @@ def claim(out, config: dict, overwrite: bool = False, default: bool = False) -> 
         raise RunFolderError(out, f"{out}-2 ... {out}-{MAX_NUMBERED} are all used; choose a folder with --out")
     if out.is_symlink() or (out.exists() and not out.is_dir()):
         raise RunFolderError(out, "is a file or a link, not a run folder; choose another --out")
+    if out.is_dir():
+        _check(out, config, overwrite)  # refused before the lock is taken: the folder stays as it was
     lock(out)
-    state = _state(out, config)
+    try:
+        state = _check(out, config, overwrite)  # again under the lock: another process may have written meanwhile
+    except RunFolderError:
+        release(out)
+        raise
     if state in ("empty", "unfinished-same"):
         if state == "unfinished-same":
             print(f"{out} holds an unfinished run of this config: starting it again (histojax train --resume {out} "
                   "would continue it)", flush=True)
         return out
-    foreign = foreign_entries(out)
-    if foreign:
-        release(out)
-        raise RunFolderError(out, f"holds files histojax did not write (e.g. {foreign[0]!r}); refusing to train "
-                                  "into it (choose another --out; --overwrite replaces only a run's own files)")
-    if not overwrite:
-        release(out)
-        what = "a finished run (params.msgpack)" if state == "finished" else "an unfinished run of another config"
-        raise RunFolderError(out, f"holds {what}; refusing to overwrite it: choose another --out, continue an "
-                                  "unfinished run with --resume, or replace it with --overwrite")
-    inside = []  # a user's file inside the old run's folders: never removed (refused before anything is)
-    for name in sorted(os.listdir(out)):
-        kind = "process" if re.match(r"^process-\d+$", name) else name
-        if kind in INSIDE and (out / name).is_dir():
-            inside += _foreign_inside(out / name, INSIDE[kind], name)
-    if inside:
-        release(out)
-        raise RunFolderError(out, f"holds files histojax did not write (e.g. {inside[0]!r}) in the old run's "
-                                  "folders, which --overwrite would remove; move them out first or choose another --out")
-    for name in ("checkpoint", "eval"):  # the old run's state: replaced; its final files stay until the new ones
-        if (out / name).is_dir() and not (out / name).is_symlink():
-            shutil.rmtree(out / name)
+    for name in STATE:  # the old run's state: replaced; its final files stay until the new ones
+        path = out / name
+        if path.is_dir() and not path.is_symlink():
+            shutil.rmtree(path)
+        elif path.is_file() and not path.is_symlink():
+            path.unlink()
     for name in os.listdir(out):
         if name.startswith(("events.out.tfevents.", "process-")):
             path = out / name

@@ -13,7 +13,6 @@ import argparse
 import json
 from pathlib import Path
 
-import numpy as np
 
 from data_tools.bundle_format import level_grids, read_metadata
 from histojax.slide import select_levels, slide_device_bytes

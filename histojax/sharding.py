@@ -24,7 +24,6 @@ import dataclasses
 from contextlib import contextmanager
 
 import jax
-import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P

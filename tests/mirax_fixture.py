@@ -86,7 +86,7 @@ NONHIER_COUNT=0
 INDEXFILE=Index.dat
 HIER_0_NAME=Slide zoom level
 HIER_0_COUNT={len(levels)}
-""" + "".join(f"HIER_0_VAL_{k}=ZoomLevel_{k}\nHIER_0_VAL_{k}_SECTION=LAYER_0_LEVEL_{k}_SECTION\n" for k in range(len(levels))) + f"""
+""" + "".join(f"HIER_0_VAL_{k}=ZoomLevel_{k}\nHIER_0_VAL_{k}_SECTION=LAYER_0_LEVEL_{k}_SECTION\n" for k in range(len(levels))) + """
 [DATAFILE]
 FILE_COUNT=1
 FILE_0=Data0000.dat

@@ -4,7 +4,6 @@ and a generator killed mid-run. Geometry real CAMELYON16, pixels real PCam patch
 from __future__ import annotations
 
 import json
-import os
 import signal
 import subprocess
 import sys

@@ -16,7 +16,6 @@ import shutil
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 import pytest
 
 from baselines.reading import head_fit, head_mil_fit, learned_head_fit

@@ -19,7 +19,7 @@ from baselines.reading import head_fit, readers
 from baselines.reading.lesions import CLASSES, lesion_class
 from baselines.reading.orders import logit_order, random_order, read_mask, search_order
 from data_tools.bundle_format import sha256, write_metadata
-from histojax.reading.heads import score, score_logits
+from histojax.reading.heads import score
 from histojax.reading.heads.logit import SlideHead, neighbourhood_mean
 
 GH, GW, TILE, MPP, D = 24, 16, 16, 10.0, 64  # views; px per view; µm/px (a view is 160 µm)

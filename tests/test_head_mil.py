@@ -13,7 +13,6 @@ import pytest
 from baselines.reading import head_mil_fit
 from histojax.reading import heads
 from histojax.reading.heads import score, score_batch, score_logits
-from histojax.reading.heads.logit import SlideHead
 from histojax.reading.heads.mil import MilHead, StatsHead, load, statistics_of
 
 H, W, D = 13, 10, 8

@@ -13,7 +13,6 @@ from pathlib import Path
 import numpy as np
 import pytest
 import shapely
-from shapely.geometry import box
 
 import data_tools.annotations as annotations_module
 from data_tools.annotations import load_annotations

@@ -14,7 +14,7 @@ from histojax.slide import start_cdf
 @pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores
 def test_precomputed_cdf_gives_the_same_draw_as_the_logits():
     rng = np.random.default_rng(0)
-    draw = jax.jit(lambda k, l, c, s: (sample_index(k, l), sample_row(k, c, s), sample_row(k, c[s])))
+    draw = jax.jit(lambda k, lg, c, s: (sample_index(k, lg), sample_row(k, c, s), sample_row(k, c[s])))
     for trial in range(60):
         h, w = (int(v) for v in rng.integers(1, 40, 2))
         logits = np.where(rng.random((3, h, w)) < rng.random(), 0.0, -np.inf).astype(np.float32)

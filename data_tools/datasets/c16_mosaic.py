@@ -25,8 +25,6 @@ a few tile rows per level plus the (encoded) coarser levels.
 """
 from __future__ import annotations
 
-import math
-from pathlib import Path
 
 import numpy as np
 from scipy.ndimage import uniform_filter

@@ -159,8 +159,8 @@ def train(patches=None, seed: int = 0, epochs: int = 30, batch: int = 256, lr: f
     net = pcam_cnn.PcamCNN(train=True)
 
     def loss_fn(params, stats, x, y):
-        (f, l), new = net.apply({"params": params, "batch_stats": stats}, x, mutable=["batch_stats"])
-        logit = pcam_cnn.pool(f, l)[1]
+        (f, lg), new = net.apply({"params": params, "batch_stats": stats}, x, mutable=["batch_stats"])
+        logit = pcam_cnn.pool(f, lg)[1]
         return optax.sigmoid_binary_cross_entropy(logit, y.astype(jnp.float32)).mean(), new["batch_stats"]
 
     @jax.jit

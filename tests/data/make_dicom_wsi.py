@@ -137,10 +137,11 @@ def _write(index: int, level: np.ndarray, mpp_um: float, syntax: str, order: lis
     tiles = _frames(level)
     keys = sorted(tiles, key=lambda k: (k[1], k[0])) if order is None else order
     if syntax == JPEGBaseline8Bit:
-        encode = lambda t: imagecodecs.jpeg8_encode(t, level=90, colorspace="RGB", outcolorspace="YCBCR",
-                                                    subsampling="422")
+        def encode(t):
+            return imagecodecs.jpeg8_encode(t, level=90, colorspace="RGB", outcolorspace="YCBCR", subsampling="422")
     else:
-        encode = lambda t: imagecodecs.jpeg2k_encode(t, level=50, codecformat="J2K", colorspace="SRGB")
+        def encode(t):
+            return imagecodecs.jpeg2k_encode(t, level=50, codecformat="J2K", colorspace="SRGB")
     ds.NumberOfFrames = len(keys)
     ds.DimensionOrganizationType = "TILED_FULL" if order is None else "TILED_SPARSE"
     if order is not None:

@@ -105,6 +105,69 @@ def slots_needed(cell_views: np.ndarray, valid: np.ndarray, total: np.ndarray, r
     return most
 
 
+def smallest_cells(cell_views, valid) -> np.ndarray:
+    """Host: per slide ``(S,)`` float64, the finest-level tissue views of its smallest valid cell (``cell_views``,
+    ``valid``: ``(S, C)`` or a list of ``(C,)``); ``inf`` for a slide without a valid cell."""
+    out = []
+    for views, ok in zip(cell_views, valid):
+        views, ok = np.asarray(views), np.asarray(ok, bool)
+        out.append(float(views[ok].min()) if ok.any() else np.inf)
+    return np.asarray(out, np.float64)
+
+
+def smallest_budgets(cell_views, valid, total) -> np.ndarray:
+    """Host: per slide ``(S,)`` float64, the smallest reading budget (a fraction of the slide's finest-level tissue
+    views) at which one cell can be read by :func:`budget_views`' rule: its smallest valid cell's views
+    (:func:`smallest_cells`) over its ``total`` views ``(S,)``; ``inf`` for a slide without a valid cell. Below it an
+    episode on that slide reads nothing."""
+    total = np.maximum(np.atleast_1d(np.asarray(total, np.float64)).reshape(-1), 1.0)
+    return smallest_cells(cell_views, valid) / total
+
+
+def _percent_up(fraction: float) -> str:
+    """``fraction`` as a percentage rounded up to 0.1 % (a budget that reads, printed so it still reads)."""
+    return f"{np.ceil(fraction * 1000.0 - 1e-6) / 10.0:.1f} %"
+
+
+def _percent(fraction: float) -> str:
+    return f"{fraction * 100:.3g} %"
+
+
+def unreadable_warning(names, cell_views, valid, total, budgets, where: str = "") -> str | None:
+    """One line when at some of ``budgets`` (fractions in ``(0, 1]``) nothing can be read on some slides (their
+    smallest cell holds more finest-level tissue views than the budget allows: :func:`budget_views`' rule,
+    :func:`smallest_cells`): which budgets, how many of the ``S`` slides, the slides' ``names`` (at the smallest such
+    budget; five named, then a count) and the nearest budget that reads a cell on every slide
+    (:func:`smallest_budgets`). What a reader scores there is the overview alone (nothing read on any slide: AUC
+    0.500). ``cell_views``, ``valid``: ``(S, C)``; ``total``: ``(S,)``. ``where``: said first (e.g. the run's
+    folder). ``None`` when every budget reads something on every slide."""
+    cells = smallest_cells(cell_views, valid)
+    total = np.atleast_1d(np.asarray(total)).reshape(-1)
+    names = list(names)
+    empty = []
+    for b in sorted({float(b) for b in budgets}):
+        allowed = np.floor(np.float32(b) * total.astype(np.float32) + np.float32(1e-4))  # budget_views, on the host
+        idx = np.flatnonzero(allowed < cells)
+        if idx.size:
+            empty.append((b, idx))
+    if not empty:
+        return None
+    b0, idx0 = empty[0]
+    shown = ", ".join(str(names[i]) for i in idx0[:5]) + (f" and {idx0.size - 5} more" if idx0.size > 5 else "")
+    need = smallest_budgets(cell_views, valid, total)
+    finite = need[np.isfinite(need)]
+    nearest = (f"the nearest budget that reads a cell on every slide is {_percent_up(float(finite.max()))}"
+               if finite.size else "no slide has a cell to read")
+    if len(empty) == 1:
+        said = f"at read budget {_percent(b0)} on {idx0.size} of {cells.size} slides ({shown})"
+    else:
+        said = (f"at read budgets {', '.join(_percent(b) for b, _ in empty)} on "
+                f"{', '.join(str(i.size) for _, i in empty)} of {cells.size} slides (at {_percent(b0)}: {shown})")
+    return (f"{where + ': ' if where else ''}nothing can be read {said}: each of their cells holds more tissue views "
+            "than the budget allows, so what is scored there is the overview alone (AUC 0.500 where no slide reads "
+            f"anything); {nearest}")
+
+
 @dataclasses.dataclass(frozen=True)
 class Glimpse(ActionMode):
     """SASHA-style cell picking (see the module doc). ``level``: the cell grid's scenario level."""
@@ -184,7 +247,7 @@ class Glimpse(ActionMode):
             tissue = reading_tables.tissue_views(bundle, slide, t).reshape(-1)
             cell = reading_tables.cell_of_views(slide, t, g, s, (gh, gw)).reshape(-1)
             feats = reading_tables.finest_view_features(slide, t).reshape(tissue.shape[0], -1)
-            d, n = feats.shape[1], gh * gw
+            n = gh * gw
             mean, mx, count = cell_summaries(feats[tissue], cell[tissue], n)
             low = reading_tables.feature_rows(slide, int(np.asarray(slide.feature_offset)[g]) + np.arange(n))
             gy, gx = np.divmod(np.arange(n), gw)

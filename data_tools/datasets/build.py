@@ -41,8 +41,8 @@ from data_tools.bundle_format import (DATASET_DIGEST, SEALING_KINDS, bundle_dama
                                       replace_folder, write_json)
 from data_tools.datasets.locks import (RUN_LOCK, LockHeld, RunLock, bundle_lock_path, clean_partial_features, clean_stale,
                                       file_lock)
-from data_tools.datasets.split import (fold_lists, folds_record, kfold_split, patient_groups, read_patient_column,
-                                       seeded_split, shard_names)
+from data_tools.datasets.split import (fold_lists, folds_record, kfold_split, patient_groups, patients_on_both_sides,
+                                       read_patient_column, seeded_split, shard_names)
 from data_tools.errors import HistojaxDataError
 from data_tools.features.encoders import dataset_scale
 
@@ -109,18 +109,28 @@ def make_plan(entries, slides_dir, options: dict, test_fraction: float, seed: in
     if fixed and len(fixed) != len(entries):
         loose = [e.name for e in entries if not e.split]
         raise HistojaxDataError(loose[0], f"{len(loose)} slide(s) have no split while others do (e.g. {loose[:3]})")
+    every, grouped_by = patient_groups([e.name for e in entries], patients)
+    several = len(set(every.values())) < len(every)  # some patient has two slides or more
     if fixed:
         split = fixed
         rule = "given (CAMELYON16 official split or the label table's split column)"
+        for patient, sides in patients_on_both_sides(split, every).items():
+            where = "; ".join(f"{side}: {', '.join(names)}" for side, names in sorted(sides.items()))
+            warnings.warn(f"the given split puts patient {patient} on both sides ({where}): its figures on the test "
+                          "side are not patient-held-out; move the patient's slides to one side", stacklevel=2)
     else:
-        train, test = seeded_split([e.name for e in entries], {e.name: e.label for e in entries}, test_fraction, seed)
+        train, test = seeded_split([e.name for e in entries], {e.name: e.label for e in entries}, test_fraction, seed,
+                                   every if several else None)  # one slide each: the split it always had
         split = {**{n: "train" for n in train}, **{n: "test" for n in test}}
         rule = f"seeded (seed {seed}), stratified by label, {test_fraction:.0%} of each label in test"
+        if several:  # a cohort of one slide per patient keeps the rule (and the split) it always had
+            rule += f", the slides of one patient on one side ({grouped_by})"
     slides = {e.name: {"path": _rel(e.path, slides_dir),
                        "annotation": None if e.annotation is None else _rel(e.annotation, slides_dir),
                        "annotation_kind": e.annotation_kind, "label": int(e.label), "label_source": e.label_source,
                        "split": split[e.name]} for e in entries}
     plan = {"kind": KIND, "options": options, "split_rule": rule, "slides": slides}
+    plan["split_grouped_by"] = grouped_by  # a plan written before it (no such key) is still agreed to: _agree
     if folds is not None:
         pool = [n for n in slides if not fixed or split[n] == "train"]
         groups, grouped_by = patient_groups(pool, patients)
@@ -168,6 +178,8 @@ def _agree(out: Path, plan: dict, restart: bool = False) -> None:
     path = out / "plan.json"
     if path.exists() or path.is_symlink():
         old = read_plan(out)
+        if "split_grouped_by" not in old:  # written before splits were grouped by patient: the same split agrees
+            old = {**old, "split_grouped_by": plan.get("split_grouped_by")}
         if not restart and old != plan:
             what = [k for k in ("options", "slides", "split_rule", "folds") if old.get(k) != plan.get(k)]
             detail = ""
@@ -451,7 +463,9 @@ def write_dataset_json(out, plan: dict, records: dict[str, dict], failed: dict[s
     out = Path(out)
     names = sorted(records)
     dataset = {
-        "kind": plan.get("kind", KIND), "split_rule": plan.get("split_rule"), "options": plan.get("options"),
+        "kind": plan.get("kind", KIND), "split_rule": plan.get("split_rule"),
+        "split_grouped_by": plan.get("split_grouped_by", "one slide per patient (built before patient grouping)"),
+        "options": plan.get("options"),
         "encoder": _encoder_of(plan.get("options") or {}),
         "train": [f"bundles/{n}" for n in names if plan["slides"][n]["split"] == "train"],
         "test": [f"bundles/{n}" for n in names if plan["slides"][n]["split"] == "test"],
@@ -657,7 +671,7 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
                "patch_size": patch_size, "patch_level": patch_level, "no_pixels": bool(no_pixels),
                "test_fraction": test_fraction, "seed": int(seed),
                **({"reader": reader} if reader not in (None, "auto") else {})}  # absent: plans of before stay equal
-    patients = read_patient_column(labels) if labels is not None and folds is not None else None
+    patients = read_patient_column(labels) if labels is not None else None  # the split and folds by patient
     plan = make_plan(entries, slides_dir, options, test_fraction, seed, folds=folds, patients=patients)
     for n, m in mpps.items():
         plan["slides"][n]["mpp"] = m

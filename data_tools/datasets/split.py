@@ -220,14 +220,23 @@ def read_patient_column(path) -> dict[str, str]:
     if name_col is None or patient_col is None:
         return {}
     out: dict[str, str] = {}
+    first: dict[str, tuple[int, str]] = {}  # case-folded name -> (row, name as written) of its first row
     for i, row in enumerate(rows[1:], start=2):
         name = slide_key(row[name_col]) if len(row) > name_col else ""
         patient = row[patient_col].strip() if len(row) > patient_col else ""
         if name and not patient:
             raise HistojaxDataError(path, f"row {i}: the {rows[0][patient_col].strip()} cell of {name!r} is empty; "
                                           "give every slide its patient or drop the column")
-        if name:
-            out[name] = patient
+        if not name:
+            continue
+        if name.lower() in first:
+            j, was = first[name.lower()]
+            if out[was] != patient:
+                raise HistojaxDataError(path, f"rows {j} and {i} list slide {name!r} with two patients ({out[was]!r} "
+                                              f"and {patient!r}); a slide belongs to one patient: keep one row")
+            continue
+        first[name.lower()] = (i, name)
+        out[name] = patient
     return out
 
 
@@ -246,6 +255,15 @@ def patient_groups(names, patients: dict[str, str] | None = None) -> tuple[dict[
             out[n], rule = f"slide:{n}", "one slide per patient"
         used.add(rule)
     return out, "; ".join(sorted(used)) or "one slide per patient"
+
+
+def patients_on_both_sides(split: dict[str, str], groups: dict[str, str]) -> dict[str, dict[str, list[str]]]:
+    """The patients a given split puts on more than one side: ``{patient: {side: [slide names]}}`` (``split``: name
+    → side, ``groups``: name → patient key as :func:`patient_groups` gives it; one-slide "patients" never count)."""
+    sides: dict[str, dict[str, list[str]]] = {}
+    for n in sorted(split):
+        sides.setdefault(groups.get(n, f"slide:{n}"), {}).setdefault(split[n], []).append(n)
+    return {g.split(":", 1)[1]: v for g, v in sorted(sides.items()) if len(v) > 1}
 
 
 def kfold_split(names, labels: dict[str, int], k: int, seed: int,
@@ -326,4 +344,4 @@ def shard_names(names, shard: tuple[int, int] | None) -> list[str]:
 
 
 __all__ = ["PATIENT_COLUMNS", "TCGA_BARCODE", "fold_lists", "folds_record", "grouped_split", "kfold_split", "parse_label", "parse_shard",
-           "patient_groups", "read_label_table", "read_patient_column", "seeded_split", "shard_names", "slide_key"]
+           "patient_groups", "patients_on_both_sides", "read_label_table", "read_patient_column", "seeded_split", "shard_names", "slide_key"]

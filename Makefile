@@ -4,17 +4,23 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-all test-integrations integrations bench bench-histogym bench-large reference-quick contract fuzz fuzz-cohort clean bench-gpu test-min
+.PHONY: demo lint test test-all test-integrations integrations bench bench-histogym bench-large reference-quick contract fuzz fuzz-cohort clean bench-gpu test-min
 
 $(STAMP): pyproject.toml
 	@command -v $(PYTHON) >/dev/null 2>&1 || { echo "need $(PYTHON) (Python 3.11) on PATH, or run: make PYTHON=python3 ..."; exit 1; }
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install --quiet --upgrade pip
-	$(PY) -m pip install --quiet -e '.[test,features,dicom,openslide]'
+	$(PY) -m pip install --quiet -e '.[test,lint,features,dicom,openslide]'
 	touch $(STAMP)
 
 demo: $(STAMP)
 	$(PY) -m baselines.demo
+
+# ruff (pyproject.toml's [tool.ruff]): the lint rules, then the formatter's check (it changes no file;
+# `.venv/bin/ruff format .` formats the tree); .ci/run runs this before `make test`
+lint: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
 
 # two pytest workers, one test file each at a time (module fixtures built once): 6 min instead of 9 on 2 cores
 TEST_WORKERS ?= 2

@@ -28,6 +28,7 @@ import warnings
 import numpy as np
 
 from data_tools.errors import SlideError
+from data_tools.slide_limits import MAX_TILES, check_size
 from data_tools.slides import LevelInfo, SlideReader, _check_levels
 
 __all__ = ["DicomSlideReader", "is_dicom", "INSTALL_HINT"]
@@ -272,6 +273,14 @@ class _FrameLevel:
         if int(ds.BitsAllocated) != 8 or int(ds.SamplesPerPixel) not in (1, 3):
             raise SlideError(path, f"{ds.BitsAllocated}-bit pixels of {ds.SamplesPerPixel} samples; 8-bit grey or "
                                    "RGB needed")
+        try:  # the shared limits, before any array of the declared sizes is made
+            check_size(path, int(ds.TotalPixelMatrixColumns), int(ds.TotalPixelMatrixRows), "the image")
+            check_size(path, int(ds.Columns), int(ds.Rows), "a frame")
+            frames = int(ds.get("NumberOfFrames") or 1)
+        except (TypeError, ValueError) as exc:
+            raise SlideError(path, f"a size attribute is not a number ({exc})") from exc
+        if not 0 < frames <= MAX_TILES:
+            raise SlideError(path, f"declares {frames:,} frames, outside the limit of 1..{MAX_TILES:,}")
         why = [] if image_type else ["no ImageType (0008,0008)"]
         long_uids = [k for k in ("StudyInstanceUID", "SeriesInstanceUID", "SOPInstanceUID", "FrameOfReferenceUID")
                      if len(str(ds.get(k) or "")) > 64]

@@ -19,14 +19,21 @@ naming the path, in one line.
 """
 from __future__ import annotations
 
+import json
 import math
 import os
+import re
+import signal
 import stat
+import subprocess
+import sys
 
 import numpy as np
 
 from data_tools.dicom import _dicom_files, is_dicom
 from data_tools.errors import SlideError
+from data_tools.mirax import check_mirax
+from data_tools.slide_limits import MAX_LEVELS, MAX_PIXELS, MAX_SIDE
 from data_tools.slides import LevelInfo, SlideReader, _check_levels
 
 __all__ = ["INSTALL_HINT", "OPENSLIDE_EXTENSIONS", "OpenSlideReader", "openslide_available", "openslide_module"]
@@ -88,12 +95,15 @@ class OpenSlideReader(SlideReader):
             what = "a folder" if stat.S_ISDIR(mode) else "not a regular file (a FIFO, socket or device)"
             raise SlideError(self.path, f"is {what}: OpenSlide opens one slide file (for MIRAX the .mrxs, its "
                                         "data folder beside it)")
+        if self.path.lower().endswith(".mrxs"):  # its Slidedat.ini's sizes, before OpenSlide sizes arrays by them
+            check_mirax(self.path)
         try:
             vendor = openslide.OpenSlide.detect_format(self.path)
             if vendor is None:
                 raise SlideError(self.path, "format not recognised by OpenSlide (not a slide it reads, or corrupt); "
                                             "OpenSlide reads Aperio SVS, MIRAX, Hamamatsu, Leica SCN, Philips TIFF, "
                                             "Sakura, Ventana, DICOM WSI and tiled TIFF")
+            _probe(self.path)  # in a child process first: a file that makes OpenSlide abort takes only the child
             self._tif = openslide.OpenSlide(self.path)
             self.format = f"openslide-{vendor}"
             props = self._tif.properties
@@ -134,6 +144,94 @@ class OpenSlideReader(SlideReader):
         if rgba.shape != (y1 - gy, x1 - gx, 4):
             raise SlideError(self.path, f"level {level} decoded to {rgba.shape}, not RGBA of {x1 - gx}×{y1 - gy} px")
         return _on_white(rgba[y0 - gy:, x0 - gx:])
+
+
+PROBE_TIMEOUT_S = 300
+"""Seconds the child process that first opens a slide with OpenSlide may take."""
+PROBE_MEMORY_BYTES = 8 << 30
+"""Address space of that child (bytes): a file that makes OpenSlide allocate more is refused, not swapped in."""
+
+_PROBE_CODE = r"""
+import json, sys
+sys.path.pop(0)  # not the working folder's modules
+try:
+    import resource
+    resource.setrlimit(resource.RLIMIT_AS, (int(sys.argv[2]), int(sys.argv[2])))
+except Exception:
+    pass
+import openslide
+path, side, pixels, levels = sys.argv[1], int(sys.argv[3]), int(sys.argv[4]), int(sys.argv[5])
+try:
+    s = openslide.OpenSlide(path)
+except Exception as exc:
+    print(json.dumps({"error": type(exc).__name__}))
+    sys.exit(0)
+dims = [tuple(int(v) for v in d) for d in s.level_dimensions]
+sane = 0 < len(dims) <= levels and dims[0][0] * dims[0][1] <= pixels and all(0 < w <= side and 0 < h <= side
+                                                                          for w, h in dims)
+if sane:  # one pixel of the coarsest level, as the reader does at open
+    w, h = dims[-1]
+    ds = s.level_downsamples[-1]
+    try:
+        s.read_region((int((w - 1) * ds), int((h - 1) * ds)), len(dims) - 1, (1, 1))
+    except Exception:
+        pass
+print(json.dumps({"levels": dims}))
+"""
+_probed: dict[tuple, bool] = {}
+
+
+def _identity(path: str) -> tuple:
+    """What the probe of ``path`` depends on: its real path and the size and mtime of it and of the files of a
+    MIRAX data folder beside it."""
+    from data_tools.mirax import data_folder
+
+    files = [path]
+    folder = data_folder(path)
+    if path.lower().endswith(".mrxs") and folder.is_dir():
+        files += sorted(str(f) for f in folder.iterdir())[:10_000]
+    out = [os.path.realpath(path)]
+    for f in files:
+        try:
+            st = os.stat(f)
+            out.append((f, st.st_ino, st.st_size, st.st_mtime_ns))
+        except OSError:
+            out.append((f, None))
+    return tuple(out)
+
+
+def _probe(path: str) -> None:
+    """Open ``path`` with OpenSlide in a child process (and read one pixel of its coarsest level when its sizes are
+    within the shared limits) before this process does: a file that makes OpenSlide abort (GLib's "overflow
+    allocating"), crash or run out of its :data:`PROBE_MEMORY_BYTES` kills only the child, and is refused here in one
+    :class:`SlideError` line naming it. A file OpenSlide merely refuses is left to the open that follows (which says
+    why); a child that cannot start is passed over. Successes are remembered per file identity (size, mtime)."""
+    key = _identity(path)
+    if key in _probed:
+        return
+    argv = [sys.executable, "-c", _PROBE_CODE, path, str(PROBE_MEMORY_BYTES), str(MAX_SIDE), str(MAX_PIXELS),
+            str(MAX_LEVELS)]
+    try:
+        proc = subprocess.run(argv, capture_output=True, text=True, errors="replace", timeout=PROBE_TIMEOUT_S,
+                              stdin=subprocess.DEVNULL)
+    except subprocess.TimeoutExpired:
+        raise SlideError(path, f"OpenSlide did not open it within {PROBE_TIMEOUT_S} s (in a separate process, now "
+                               "stopped): a corrupt or hostile file") from None
+    except OSError:
+        return  # no child process here: open it in this one, as before
+    if proc.returncode < 0:
+        sig = -proc.returncode
+        if sig == signal.SIGINT:
+            raise KeyboardInterrupt
+        name = signal.Signals(sig).name if sig in signal.Signals._value2member_map_ else f"signal {sig}"
+        said = [ln.strip() for ln in proc.stderr.splitlines() if ln.strip()]
+        last = re.sub(r"^\(process:\d+\): |\b\d\d:\d\d:\d\d\.\d+: ", "", said[-1]) if said else ""
+        why = f": {last[:200]}" if last else ""
+        raise SlideError(path, f"OpenSlide crashed opening it ({name}{why}); it was opened in a separate process, so "
+                               "only that process stopped: a corrupt or hostile file, or sizes OpenSlide cannot "
+                               "hold in memory")
+    if proc.returncode == 0:
+        _probed[key] = True
 
 
 _ALIGN_TOLERANCE = 1e-3  # level px: OpenSlide's interpolation then moves a pixel by under 1/1000 of a step

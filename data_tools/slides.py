@@ -31,14 +31,12 @@ import numpy as np
 import tifffile
 
 from data_tools.errors import SlideError
+from data_tools.slide_limits import MAX_SIDE, check_level_sizes, check_size
 
 __all__ = ["MAX_DECODE_BYTES", "LevelInfo", "SlideReader", "describe"]
 
 MAX_DECODE_BYTES = 4 * 1024**3
 """Default limit (bytes of decoded RGB, H * W * 3) for :meth:`SlideReader.read_level`."""
-
-MAX_SIDE = 1_000_000
-"""Largest accepted image width or height, in pixels."""
 
 _SUPPORTED = ("histojax reads Aperio SVS, pyramidal TIFF and BigTIFF, OME-TIFF, Akoya QPTIFF, Hamamatsu NDPI "
               "and DICOM WSI")
@@ -354,8 +352,7 @@ def _pyramid_pages(path: str, tif: tifffile.TiffFile) -> list[tifffile.TiffPage]
 def _validate_page(path: str, level: int, page: tifffile.TiffPage) -> None:
     """Refuse absurd sizes and pixel formats that do not map cleanly to 8-bit RGB."""
     w, h = page.imagewidth, page.imagelength
-    if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE):
-        raise SlideError(path, f"level {level} has absurd size {w}×{h} px (allowed 1..{MAX_SIDE} a side)")
+    check_size(path, w, h, f"level {level}")  # the limits every reader shares (level 0: its area too)
     if page.imagedepth != 1:
         raise SlideError(path, f"unsupported: level {level} is a volume (depth {page.imagedepth})")
     if page.is_tiled:
@@ -424,7 +421,9 @@ def _level_infos(pages: list[tifffile.TiffPage]) -> list[LevelInfo]:
 
 def _check_levels(path: str, levels: list[LevelInfo]) -> None:
     """Refuse an inconsistent pyramid: every level must be smaller than the one before it and keep
-    level 0's aspect ratio (within 2 % or 2 px of rounding)."""
+    level 0's aspect ratio (within 2 % or 2 px of rounding); and stay within the limits every reader shares
+    (:mod:`data_tools.slide_limits`: sides, level-0 area, level and tile counts)."""
+    check_level_sizes(path, levels)
     w0, h0 = levels[0].width, levels[0].height
     for i in range(1, len(levels)):
         prev, lv = levels[i - 1], levels[i]

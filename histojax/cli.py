@@ -55,6 +55,9 @@ COMMANDS = {  # histojax <command>: the module whose add_arguments and run it is
     "bench": "benchmarks.throughput",
 }
 ALGOS = ("ppo", "dqn", "ppo_rnn")  # histojax train --algo NAME: baselines.NAME
+INTERNAL_HINT = " (HISTOJAX_DEBUG=1 shows the traceback)"
+"""Ends the line of an error that is not a user error (a ``ValueError`` / ``TypeError`` from inside): user errors
+(``HistojaxDataError``, file-system errors) are one line without it."""
 
 
 def main(argv=None) -> int:
@@ -73,8 +76,29 @@ def main(argv=None) -> int:
         except (HistojaxDataError, FileNotFoundError, ValueError, TypeError, OSError) as e:
             if os.environ.get("HISTOJAX_DEBUG"):
                 raise
-            text = os_error_text(e) if isinstance(e, OSError) else e
-            return print_error(text, " (HISTOJAX_DEBUG=1 shows the traceback)")
+            if isinstance(e, OSError):  # a user's file or folder (read-only, missing, disk full): the line says it
+                return print_error(os_error_text(e))
+            return print_error(e, "" if user_error(e) else INTERNAL_HINT)
+
+
+def user_error(e: BaseException) -> bool:
+    """Whether ``e`` is a user error the project words itself (printed without :data:`INTERNAL_HINT`): a
+    ``HistojaxDataError``, or a ``ValueError`` / ``TypeError`` raised by a line of the project's own packages (a
+    bad id or setting given to ``histojax.make``, a head file's field). One raised inside a library (NumPy, JAX)
+    is unexpected: its line keeps the hint."""
+    if isinstance(e, HistojaxDataError):
+        return True
+    tb = e.__traceback__
+    if tb is None:
+        return False
+    while tb.tb_next is not None:
+        tb = tb.tb_next
+    where = os.path.realpath(tb.tb_frame.f_code.co_filename)
+    return any(where.startswith(root + os.sep) for root in _OWN_ROOTS)
+
+
+_OWN_ROOTS = tuple(os.path.realpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", name))
+                   for name in ("histojax", "data_tools", "baselines", "benchmarks", "experiments"))
 
 
 def _dispatch(command: str, rest: list[str]) -> int:

@@ -172,6 +172,11 @@ def _check_out_apart(slides_dir: Path, out: Path) -> None:
                                      f"of its own, e.g. --out {src.name}-dataset beside it")
 
 
+PLAN_PARTS = {"options": "other options", "slides": "another cohort of slides", "split_rule": "another split rule",
+              "folds": "other folds (or none)"}
+"""How a refusal names each part of ``plan.json`` that differs from the command's."""
+
+
 def _agree(out: Path, plan: dict, restart: bool = False) -> None:
     """Write ``plan.json`` if absent (or, with ``restart``, over this tool's own plan); else refuse a run whose
     options or cohort differ (one line). A ``plan.json`` this tool did not write is never touched."""
@@ -180,8 +185,12 @@ def _agree(out: Path, plan: dict, restart: bool = False) -> None:
         old = read_plan(out)
         if "split_grouped_by" not in old:  # written before splits were grouped by patient: the same split agrees
             old = {**old, "split_grouped_by": plan.get("split_grouped_by")}
-        if not restart and old != plan:
-            what = [k for k in ("options", "slides", "split_rule", "folds") if old.get(k) != plan.get(k)]
+        if not restart and old != plan and plan.get("folds") and {**old, "folds": plan["folds"]} == plan:
+            # only the folds are new: they depend on the labels and patients alone, so no bundle is rebuilt
+            print(f"{path}: the folds are new ({plan['folds'].get('k', '?')} folds); every bundle is kept and "
+                  "dataset.json is written again with them", flush=True)
+        elif not restart and old != plan:
+            what = [PLAN_PARTS[k] for k in ("options", "slides", "split_rule", "folds") if old.get(k) != plan.get(k)]
             detail = ""
             if old.get("options") != plan.get("options"):
                 diff = sorted(k for k in set(old["options"]) | set(plan["options"])
@@ -191,7 +200,7 @@ def _agree(out: Path, plan: dict, restart: bool = False) -> None:
                 diff = sorted(k for k in set(old["slides"]) | set(plan["slides"])
                               if old["slides"].get(k) != plan["slides"].get(k))
                 detail = f" (slides {diff[:4]})"
-            raise HistojaxDataError(path, f"this dataset was started with a different {' and '.join(what)}{detail}; "
+            raise HistojaxDataError(path, f"this dataset was started with {' and '.join(what)}{detail}; "
                                           "use the same command, a new --out, or --restart")
     write_json(path, plan)
 

@@ -1,0 +1,34 @@
+"""The words of error lines: a user error is one line with no debug hint; only an unexpected error (raised inside
+a library) says how to see its traceback."""
+from __future__ import annotations
+
+import json
+
+from histojax import cli
+
+
+def _line(capsys) -> str:
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and err.startswith("error: "), err
+    return err
+
+
+def test_a_users_bad_folder_is_one_line_without_the_debug_hint(tmp_path, capsys):
+    (tmp_path / "ds").mkdir()  # not a dataset: a HistojaxDataError the command does not catch itself
+    assert cli.main(["train", "--env", "HistoJAX-Easy-v0", "--total-steps", "512", "--dataset", str(tmp_path / "ds"),
+                     "--out", str(tmp_path / "r")]) == 2
+    line = _line(capsys)
+    assert "no dataset.json" in line and "HISTOJAX_DEBUG" not in line, line
+
+
+def test_a_bad_setting_the_project_words_is_a_user_error_without_the_hint(tmp_path, capsys):
+    assert cli.main(["train", "--env", "HistoJAX-Nope-v0", "--total-steps", "512", "--out", str(tmp_path / "r")]) == 2
+    line = _line(capsys)
+    assert "unknown environment id" in line and "HISTOJAX_DEBUG" not in line, line
+    assert not (tmp_path / "r").exists()  # refused after its claim: the folder it made is gone
+
+
+def test_an_unexpected_error_from_inside_a_library_keeps_the_hint(monkeypatch, capsys):
+    monkeypatch.setattr(cli, "_dispatch", lambda command, rest: json.loads("{"))  # a ValueError raised in json
+    assert cli.main(["info", "x"]) == 2
+    assert _line(capsys).endswith("(HISTOJAX_DEBUG=1 shows the traceback)")

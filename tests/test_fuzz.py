@@ -609,3 +609,75 @@ def test_fuzz_feature_h5(tmp_path, feature_bundle, spec, patch_size, level):
             mask = np.load(work / lv["mask_file"])
             assert np.isfinite(grid).all() and not grid[~mask].any() and int(mask.sum()) == lv["covered"]
         assert any(lv["covered"] for lv in info["levels"])
+
+
+# ------------------------------------------------------------------ MIRAX Slidedat.ini (OpenSlide)
+# A MIRAX slide's sizes come from its Slidedat.ini; OpenSlide sizes its arrays from them in 32-bit arithmetic, and
+# an overflow made GLib abort the whole process. Every edit must give a slide that opens (and whose coarsest level
+# reads) or one SlideError line naming the .mrxs, in this process, never a dead process.
+MIRAX_KEYS = ("IMAGENUMBER_X", "IMAGENUMBER_Y", "CameraImageDivisionsPerSide", "OBJECTIVE_MAGNIFICATION", "HIER_COUNT",
+              "NONHIER_COUNT", "HIER_0_COUNT", "HIER_0_NAME", "HIER_0_VAL_0_SECTION", "FILE_COUNT", "FILE_0",
+              "INDEXFILE", "IMAGE_CONCAT_FACTOR", "OVERLAP_X", "OVERLAP_Y", "MICROMETER_PER_PIXEL_X",
+              "DIGITIZER_WIDTH", "DIGITIZER_HEIGHT", "IMAGE_FORMAT", "IMAGE_FILL_COLOR_BGR", "SLIDE_ID")
+MIRAX_VALUES = st.one_of(
+    st.integers(1, 4).map(str), st.integers(1, 600).map(str),  # plausible: slides that still open, other sizes
+    st.integers(-2**31 - 2, 2**31 + 2).map(str), st.integers(-10, 300).map(str),
+    st.sampled_from(["0", "-1", "1", "2", "3", "31", "32", "40000", "100000", "2147483647", "2147483648",
+                     "-2147483648", "4294967296", "1000000000", "2000000000", "nan", "inf", "-inf", "1e308", "0x10",
+                     "1_0", " 7 ", "", "PNG", "JPEG", "BMP24", "Slide zoom level", "Data0000.dat", "../../etc/passwd",
+                     "LAYER_0_LEVEL_1_SECTION"]),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr), st.text(max_size=6))
+
+
+@pytest.fixture(scope="module")
+def mirax_pristine(tmp_path_factory):
+    """A valid 256 × 256 px MIRAX slide (tests/mirax_fixture.py), two zoom levels."""
+    pytest.importorskip("openslide", reason="the optional extra histojax[openslide] is not installed")
+    from mirax_fixture import mirax
+
+    rng = np.random.default_rng(0)
+    path, _ = mirax(tmp_path_factory.mktemp("mirax-fuzz") / "m" / "slide.mrxs",
+                    rng.integers(0, 255, (256, 256, 3), dtype=np.uint8))
+    return path
+
+
+_mirax_case = collections.Counter()
+
+
+@FUZZ
+@given(edits=st.lists(st.tuples(st.sampled_from(MIRAX_KEYS), st.one_of(st.none(), MIRAX_VALUES),
+                                st.integers(0, 3)), min_size=0, max_size=5),
+       junk=st.one_of(st.none(), st.tuples(st.integers(0, 2000), st.binary(max_size=12))),
+       cut=st.one_of(st.none(), st.integers(0, 1500)))
+def test_fuzz_mirax_slidedat(tmp_path, mirax_pristine, edits, junk, cut):
+    import re
+    import shutil
+
+    _mirax_case["n"] += 1
+    folder = tmp_path / f"case{_mirax_case['n']}"  # a new file each case: nothing remembered about the last one
+    shutil.copytree(mirax_pristine.parent, folder)
+    path = folder / mirax_pristine.name
+    ini = path.with_suffix("") / "Slidedat.ini"
+    text = ini.read_text()
+    for key, value, which in edits:  # None: the key removed; which: the occurrence edited (a zoom level's section)
+        hits = list(re.finditer(rf"^{re.escape(key)}=.*$", text, flags=re.M))
+        if not hits:
+            continue
+        hit = hits[which % len(hits)]
+        text = text[:hit.start()] + ("" if value is None else f"{key}={value}") + text[hit.end():]
+    data = text.encode("utf-8", "surrogatepass")
+    if junk is not None:
+        pos, blob = junk
+        data = data[:pos % (len(data) + 1)] + blob + data[pos % (len(data) + 1):]
+    if cut is not None:
+        data = data[:cut]
+    ini.write_bytes(data)
+
+    def read():
+        with open_slide(path) as reader:
+            reader.read_level(len(reader.levels) - 1, max_bytes=64 * 2**20)
+
+    try:
+        outcome("mirax-slidedat", read)
+    except Exception as e:  # anything else is a crash of the reader: fail naming the Slidedat.ini
+        raise AssertionError(f"{type(e).__name__}: {e}\n--- Slidedat.ini ---\n{data[:3000]!r}") from e

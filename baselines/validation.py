@@ -92,6 +92,44 @@ def split_train(spec: dict, fraction: float, seed: int = 0) -> tuple[list[str], 
     return sorted(kept), sorted(val)
 
 
+MIN_VALIDATION_PER_CLASS = 3
+"""Fewest validation slides of each class a head fit accepts. With ``n`` tumour and ``n`` normal slides, a head that
+ranks at random reaches validation AUC 1.0 with probability ``1 / C(2n, n)``: 1 in 2 with one of each, 1 in 6 with
+two, 1 in 20 with three. Below three, choosing a candidate or a checkpoint by the best validation AUC picks lucky
+heads about as often as good ones (a fold fit chose AUC 1.000 on 3–4 slides and scored 0.167 on its test slides)."""
+
+
+def _known_label(spec: dict, name: str) -> int | None:
+    """A slide's 0/1 label from ``slides[].label`` or ``labels`` of ``dataset.json``; None when neither names it."""
+    for s in spec.get("slides", []):
+        if isinstance(s, dict) and _name(s.get("bundle", "")) == name and "label" in s:
+            return int(s["label"])
+    for k, v in (spec.get("labels") or {}).items():
+        if _name(k) == name:
+            return int(v)
+    return None
+
+
+def check_validation_share(spec: dict, held, where, fraction: float, fold: int | None = None,
+                           least: int = MIN_VALIDATION_PER_CLASS) -> None:
+    """Refuse, before any slide is read or any training, a validation share (``held``: entries of ``spec["train"]``)
+    with fewer than ``least`` slides of a class: ``ValueError`` in one line naming ``where`` (the ``dataset.json``),
+    the counts and the options (``--val-fraction``, more slides, ``--folds`` with fewer folds). Labels come from
+    ``dataset.json``; a share whose labels it does not give is left to the fit's own checks."""
+    labels = [_known_label(spec, _name(e)) for e in held]
+    if None in labels:
+        return
+    n_t, n_n = sum(labels), len(labels) - sum(labels)
+    if min(n_t, n_n) >= least:
+        return
+    side = f"fold {fold}'s train side" if fold is not None else "the train split"
+    raise ValueError(f"{where}: the validation share ({fraction:g} of {side}) holds {n_t} tumour and {n_n} normal "
+                     f"slides; choosing a head or checkpoint and calibrating it needs at least {least} of each (a "
+                     f"random head scores validation AUC 1.0 on fewer as often as 1 in 6): give a larger --val-fraction, "
+                     "or build the dataset with fewer --folds K (each fold's train side is larger), or add slides. "
+                     "Nothing was trained")
+
+
 def write_validation_dataset(dataset, fraction: float, seed: int, out) -> Path:
     """Write ``OUT/dataset.json``: the original's entries with ``"train"`` = the kept training slides,
     ``"test"`` = the validation slides (absolute bundle paths) and a ``"validation"`` record (source

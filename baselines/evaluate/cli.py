@@ -15,11 +15,14 @@ from data_tools.cli_output import positive_int
 from data_tools.errors import HistojaxDataError
 from baselines.evaluate.checks import (UNDEFINED, check_config, encoder_refusal, check_params_tree, grid_refusal, head_reward_settings,
                                        provenance_warnings, published_dataset_refusal, refuse_not_an_agent,
+                                       trained_record_warnings,
                                        resolve_head)
 from baselines.evaluate.scoring import evaluate
 from baselines.evaluate.all_folds import run_all_folds
 from baselines.reading.head_fit import scale_warning
+from baselines.reading.provenance import add_flag, check_scored, head_for_fold
 from baselines.folds import scored_side
+from baselines.published_agents import published_or_path
 from baselines.run_config import read_record, read_run_config
 
 
@@ -139,8 +142,9 @@ def print_table(title: str, rows: dict, head: str | None = None) -> None:
 
 def add_arguments(p) -> None:
     """The options of ``python -m baselines.evaluate`` and ``histojax evaluate``."""
-    p.add_argument("checkpoint", nargs="?", default=None,
-                   help="run folder or params.msgpack (omit with --env for reference rows only)")
+    p.add_argument("checkpoint", nargs="?", default=None, type=published_or_path,
+                   help="run folder or params.msgpack, or a published agent's name (histojax published lists them: "
+                        "c16-v2-set-reader); omit with --env for reference rows only")
     p.add_argument("--env", default=None, help="env id (default: the checkpoint's)")
     p.add_argument("--slide", "--slides", nargs="*", default=None,
                    help="bundle folder(s) (default: the checkpoint's slide), or 'held-out': the test split of "
@@ -166,10 +170,36 @@ def add_arguments(p) -> None:
                         "package such as baselines/published/NAME, or runs/eval-<env> without a checkpoint)")
     p.add_argument("--augment", action="store_true",
                    help="keep the checkpoint's training-time view augmentation (default: slides as they are)")
-    p.add_argument("--head", default=None,
-                   help="slide head folder (histojax.reading.heads) that declares: the policy only chooses where to read, "
-                        "the head scores what was read (default: the head a reader trained with SASHA's reward "
-                        "names in its head_reward.json; none for other checkpoints)")
+    p.add_argument("--head", default=None, type=published_or_path,
+                   help="slide head folder (histojax.reading.heads) or a published head's name (c16-v2-head) that "
+                        "declares: the policy only chooses where to read, the head scores what was read (default: "
+                        "the head a reader trained with SASHA's reward names in its head_reward.json; none for other "
+                        "checkpoints); with --fold I / --all-folds, a DIR holding {fold} or the folder of "
+                        "learned_head_fit --all-folds is fold I's head")
+    add_flag(p)
+
+
+def scored_names(config, slides=None) -> list[str]:
+    """The names of the slides ``evaluate`` scores: the bundle folders of ``slides`` (``--slides``), else the side
+    of the dataset ``config.env_kwargs`` names (``split``, ``fold``; ``"all"``: train and test); ``[]`` without a
+    dataset or when it cannot be read (the env's own loading says why)."""
+    kw = dict(config.env_kwargs or {})
+    if slides and "held-out" not in [str(s) for s in slides]:
+        return [Path(str(s)).name for s in slides]
+    if slides:  # held-out: the test split of the dataset it trained on
+        kw["split"] = "test"
+    dataset = kw.get("dataset")
+    if not isinstance(dataset, str):
+        return []
+    from baselines.reading.head_fit import read_spec
+
+    try:
+        spec = read_spec(dataset, kw.get("fold"))
+    except (HistojaxDataError, OSError, ValueError):
+        return []
+    split = kw.get("split", "train")
+    entries = (spec.get("train") or []) + (spec.get("test") or []) if split == "all" else spec.get(split) or []
+    return [Path(str(e)).name for e in entries]
 
 
 def default_out(run: Path | None, env_id: str) -> Path:
@@ -231,6 +261,7 @@ def run(args, parser) -> int:
                                 "agent)")
     if run is not None:
         warnings += provenance_warnings(trained, config, run / "config.json")
+        warnings += trained_record_warnings(run, config, run / "config.json")  # a published agent's scale, encoder
     scored = (config.env_kwargs or {}).get("dataset")
     if isinstance(scored, str) and (line := scale_warning(scored)):
         warnings.append(line)  # the encoder-scale warning the dataset's dataset.json records, repeated
@@ -238,8 +269,15 @@ def run(args, parser) -> int:
     if getattr(args, "head", None) or settings:
         from histojax.reading import heads
 
-        head_dir = Path(args.head) if getattr(args, "head", None) else resolve_head(settings["head"], run, where)
+        if getattr(args, "head", None):  # with --fold I (--all-folds): fold I's head of a per-fold folder / {fold}
+            head_dir = Path(args.head if args.fold is None else head_for_fold(args.head, args.fold))
+        else:
+            head_dir = resolve_head(settings["head"], run, where)
         head = heads.load(head_dir)  # ValueError naming the file: one line
+        scored = scored_names(config, args.slide)  # a slide the head was fitted on: refused (or warned, the flag)
+        if scored:
+            check_scored(head, head_dir, (config.env_kwargs or {}).get("dataset"), scored,
+                         getattr(args, "allow_fitting_slides", False))
         recorded = (settings or {}).get("head_name")
         if recorded and not getattr(args, "head", None) and recorded != head.name:
             warnings.append(f"{where}: the reader trained with the head {recorded!r}; the head found at {head_dir} "

@@ -41,6 +41,7 @@ trained readers, read everything; the CAMELYON lesion table) is ``python -m base
 """
 from __future__ import annotations
 
+import sys
 from pathlib import Path
 
 import jax
@@ -52,14 +53,18 @@ from flax.core.scope import LazyRng
 from baselines.reading.budgets import BUDGETS
 from baselines.reading.csv_files import write_curve_csv
 from baselines.reading.orders import attention_order, score_order
-from baselines.reading.pipeline import check_two_classes, load_split, policy_reads, random_orders, read_all, run_seeds
+from baselines.reading.pipeline import (check_two_classes, load_split, policy_reads, random_orders, read_all,
+                                        reader_auc, run_seeds)
 from baselines.reading.plots import plot_curve
+from baselines.reading.head_fit import read_spec
+from baselines.reading.provenance import add_flag, check_scored, head_for_fold
 from baselines.folds import SUMMARY, dataset_folds, mean_std, scored_side, with_fold
-from data_tools.metrics import accuracy, roc_auc
+from data_tools.metrics import accuracy, auc_interval, format_auc_runs, small_split_warning
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
-from histojax.adapters.head_reward import pools_views
+from histojax.reading.head_reward import pools_views
+from histojax.reading.modes.glimpse import unreadable_warning
 from histojax.reading import heads
 from histojax.reading.heads.learned import LearnedHead
 from histojax.reading.heads.logit import SlideHead
@@ -162,7 +167,7 @@ def view_logit_dim(dataset) -> int | None:
 
 def bags(tables: list[dict], read: list[np.ndarray] | None = None):
     """Padded MIL inputs ``(B, N, D)``, ``(B, N)`` of the slides' instances (only those under the
-    ``read[i]`` cells when given; a slide with nothing read gets one all-zero instance)."""
+    ``read[i]`` cells when given; a slide with nothing read has no valid instance, so a head scores it its prior)."""
     chosen = []
     for i, t in enumerate(tables):
         keep = np.ones(len(t["instances"]), bool) if read is None else np.isin(t["instance_cell"], read[i])
@@ -173,7 +178,7 @@ def bags(tables: list[dict], read: list[np.ndarray] | None = None):
     m = np.zeros((len(chosen), n), bool)
     for i, c in enumerate(chosen):
         x[i, : len(c)] = c
-        m[i, : max(len(c), 1)] = True
+        m[i, : len(c)] = True  # nothing read: no view, and the head scores its prior (as the readers score it)
     return x, m
 
 
@@ -206,26 +211,72 @@ def method_scores(head, tables, budgets=BUDGETS, seeds: int = 5, names=MIL_NAMES
     return out
 
 
-def rows_from_scores(scores: dict, labels) -> list[dict]:
-    """One row per ``(method, budget)``: mean fraction read, AUC and accuracy (mean and standard
-    deviation over seeds; one seed for a deterministic reader)."""
+def rows_from_scores(scores: dict, labels, logits: bool = False) -> list[dict]:
+    """One row per ``(method, budget)`` of ``{(method, budget): (scores (seeds, B), fractions (seeds, B))}``: mean
+    fraction read, AUC (:func:`baselines.reading.pipeline.reader_auc`, the readers' one AUC: mean and std over seeds,
+    ``auc_low`` / ``auc_high`` its 95 % interval over the slides) and accuracy at 0.5 (mean and std over seeds; one
+    seed for a deterministic reader). ``logits``: the scores are slide logits (accuracy of their sigmoid)."""
     rows = []
     for (method, b), (s, f) in scores.items():
-        aucs = np.asarray([roc_auc(row, labels) for row in s])
-        accs = np.asarray([accuracy(row, labels) for row in s])
+        auc = reader_auc(s, labels)
+        probs = 1 / (1 + np.exp(-np.asarray(s, np.float64))) if logits else s
+        accs = np.asarray([accuracy(row, labels) for row in probs])
         rows.append({"method": method, "budget": float(b), "fraction_read": float(f.mean()),
-                     "auc": float(aucs.mean()), "accuracy": float(accs.mean()), "slides": len(labels),
-                     "auc_std": float(aucs.std()), "accuracy_std": float(accs.std()), "seeds": len(s),
-                     "fields_of_view": float("nan")})
+                     "auc": auc["auc"], "accuracy": float(accs.mean()), "slides": len(labels),
+                     "auc_std": auc["auc_std"], "accuracy_std": float(accs.std()), "seeds": len(s),
+                     "fields_of_view": float("nan"), "auc_low": auc["auc_low"], "auc_high": auc["auc_high"],
+                     "tumour_slides": auc["n_tumour"]})
     return rows
 
 
+def glimpse_bundle_level(dataset, env_id: str, level: int, split: str, fold: int | None = None) -> tuple[int, float]:
+    """``(bundle level, downsample)`` of scenario level ``level`` of ``env_id`` on ``dataset``'s ``split`` (its first
+    bundle): the bundle level whose views are the glimpse cells, and its downsample from the finest scenario level."""
+    from data_tools.bundle_format import read_metadata, select_levels
+    from histojax.registry import dataset_slides, spec_of
+
+    bundle = dataset_slides(dataset, split, fold)[0]
+    meta = read_metadata(bundle)
+    chosen = select_levels(meta, spec_of(env_id).options.n_levels, bundle)
+    levels = meta["levels"]
+    return int(chosen[level]), float(levels[chosen[level]]["downsample"]) / float(levels[chosen[-1]]["downsample"])
+
+
+def cells_words(dataset, env_id: str, level: int, split: str = "test", fold: int | None = None) -> str:
+    """The cells the curve read, as the readers name theirs: ``"glimpse level 3 of HistoJAX-Medium-v0 = bundle level 2
+    (downsample 4, about 4 × 4 finest views a cell)"`` (``readers --cell-level 2`` reads the same cells)."""
+    try:
+        bundle_level, ds = glimpse_bundle_level(dataset, env_id, level, split, fold)
+    except (OSError, ValueError, KeyError, IndexError, HistojaxDataError):
+        return f"glimpse level {level} of {env_id}"
+    return (f"glimpse level {level} of {env_id} = bundle level {bundle_level} (downsample {ds:.3g}, about {ds:.3g} × "
+            f"{ds:.3g} finest views a cell)")
+
+
+def head_reader_rows(head, slides: list[dict], cell_level: int, budgets=BUDGETS, seeds: int = 5) -> list[dict]:
+    """The rows :data:`HEAD_NAMES` of a saved head (``--head``), computed by the readers
+    (:func:`baselines.reading.readers.scripted_results` on ``slides`` of
+    :func:`baselines.reading.pipeline.load_split` with the head, cells of bundle level ``cell_level``; the same
+    random orders, reading rule, head scores and AUC, :func:`~baselines.reading.pipeline.reader_auc`), so ``readers
+    --cell-level L`` and the curve print the same figures for the same head, slides, budgets and cells."""
+    from baselines.reading import readers
+
+    results = readers.scripted_results(head, slides, budgets, seeds, cell_level,
+                                       only=("read everything", "random reader", readers.score_reader_name(head)))
+    names = {"read everything": HEAD_NAMES[0], "random reader": HEAD_NAMES[1], readers.score_reader_name(head): HEAD_NAMES[2]}
+    labels = np.asarray([s["label"] for s in slides])
+    return rows_from_scores({(names[n], b): (r["scores"], r["fractions"]) for (n, b), r in results.items()}, labels,
+                            logits=True)
+
+
 def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, policies=(), dataset=None,
-                policy_seeds: int = 3, max_dim: int | None = None, fold: int | None = None, head=None):
+                policy_seeds: int = 3, max_dim: int | None = None, fold: int | None = None, head=None,
+                head_cells=None):
     """Train the MIL head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``
     (with ``max_dim``, the rows of the max-logit head, :func:`fit_max_logit`, on that feature too; with ``head``,
     a saved head that pools views by attention — a learned head, ``--head`` — its rows :data:`HEAD_NAMES`, its
-    cells read by its per-view score: the score reader);
+    cells read by its per-view score: the score reader, computed by the readers, :func:`head_reader_rows`, on
+    ``head_cells = (the readers' slides of the scored side, bundle level of the cells)``);
     ``policies``: ``(name, run folder)`` of trained PPO policies, rolled on ``dataset``'s test split."""
     mil = train_mil(*bags(train[0]), train[1], steps=steps)
     rows = rows_from_scores(method_scores(mil, test[0], budgets, seeds), test[1])
@@ -234,11 +285,16 @@ def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, 
         top = fit_max_logit(*bags(train[0]), train[1], max_dim)
         rows += rows_from_scores(method_scores(top, test[0], budgets, seeds, MAX_LOGIT_NAMES), test[1])
         curve_heads["max logit"] = top
+    reader_slides = None
     if head is not None:
-        rows += rows_from_scores(method_scores(head, test[0], budgets, seeds, HEAD_NAMES, score_order), test[1])
+        if head_cells is None:
+            raise ValueError("budget_rows: a head needs head_cells (the readers' slides and cell level)")
+        reader_slides, cell_level = head_cells
+        rows += head_reader_rows(head, reader_slides, cell_level, budgets, seeds)
         curve_heads["learned head"] = head
     for name, run in policies:
-        rows += policy_rows(run, dataset, name, curve_heads, test[0], test[1], budgets, policy_seeds, fold=fold)
+        rows += policy_rows(run, dataset, name, curve_heads, test[0], test[1], budgets, policy_seeds, fold=fold,
+                            reader_slides=reader_slides)
     return rows
 
 
@@ -260,33 +316,45 @@ def cross_validated_rows(tables, labels, folds: int, budgets=BUDGETS, seeds: int
 
 
 def policy_rows(run, dataset, name: str, slide_heads: dict, tables, labels, budgets=BUDGETS,
-                policy_seeds: int = 3, fold: int | None = None) -> list[dict]:
+                policy_seeds: int = 3, fold: int | None = None, reader_slides=None) -> list[dict]:
     """Rows for a trained policy (feed-forward or recurrent, see :func:`policy_reads`) at ``budgets``:
     its own diagnosis (``name``) and each slide head on what it read (``slide_heads``: ``{"MIL": head, ...}``;
     rows ``name reader + MIL``, ``name reader + max logit``, ...), each the mean
     (and ``*_std``) over its first ``policy_seeds`` seeds (as many as the run has, if fewer), with
-    the mean fraction read and fields of view per episode."""
+    the mean fraction read and fields of view per episode. ``reader_slides`` (the readers' slides of the same
+    side, :func:`head_reader_rows`): the learned head scores the reads as the readers' ``--reader`` rows do."""
     seeds = max(1, min(policy_seeds, run_seeds(run)))
-    per = {}  # (method, budget) -> [(auc, accuracy, fraction, fields)] per seed
+    per = {}  # (method, budget) -> [(scores (B,), fraction, fields)] per seed
     for seed in range(seeds):
         for b, reads in policy_reads(run, dataset, scored_side(dataset, fold), budgets, seed=seed, fold=fold).items():
             x, m = bags([{**t, "instance_cell": np.arange(len(t["instances"]))} for t in tables], [r[0] for r in reads])
             fraction = float(np.mean([r[2] for r in reads]))
             fields = float(np.mean([r[3] for r in reads]))
             own = np.asarray([r[1] for r in reads])
-            scored = [(name, own)] + [(f"{name} reader + {h}", bag_scores(head, x, m))
+            scored = [(name, own)] + [(f"{name} reader + {h}", _read_scores(h, head, x, m, reads, reader_slides))
                                       for h, head in slide_heads.items()]
             for method, s in scored:
-                per.setdefault((method, float(b)), []).append(
-                    (roc_auc(s, labels), accuracy(s, labels), fraction, fields))
+                per.setdefault((method, float(b)), []).append((s, fraction, fields))
     rows = []
     for (method, b), v in per.items():
-        a = np.asarray(v, np.float64)
-        rows.append({"method": method, "budget": b, "fraction_read": float(a[:, 2].mean()),
-                     "auc": float(a[:, 0].mean()), "accuracy": float(a[:, 1].mean()), "slides": len(labels),
-                     "auc_std": float(a[:, 0].std()), "accuracy_std": float(a[:, 1].std()), "seeds": len(v),
-                     "fields_of_view": float(a[:, 3].mean())})
+        scores = np.stack([s for s, _, _ in v])
+        fractions = np.asarray([f for _, f, _ in v], np.float64)
+        logits = reader_slides is not None and method.endswith(" + learned head")  # the readers' slide logits
+        row = rows_from_scores({(method, b): (scores, fractions)}, labels, logits=logits)[0]
+        rows.append({**row, "fields_of_view": float(np.mean([fv for _, _, fv in v]))})
     return rows
+
+
+def _read_scores(which: str, head, x, m, reads, reader_slides) -> np.ndarray:
+    """A slide head's scores ``(B,)`` of a policy's reads: the learned head's through the readers' scoring (slide
+    logits of :func:`baselines.reading.readers.head_scores` on the read masks) when their slides are given, else
+    :func:`bag_scores` (probabilities)."""
+    if which != "learned head" or reader_slides is None:
+        return bag_scores(head, x, m)
+    from baselines.reading import readers
+
+    masks = [readers.masks_from_instances(s, r[0]) for s, r in zip(reader_slides, reads)]
+    return np.asarray(readers.head_scores(head, reader_slides, masks), np.float64)
 
 
 def compute_missing_features(dataset, encoder: str) -> None:
@@ -330,7 +398,9 @@ def add_arguments(p) -> None:
                    help="also a saved slide head that pools the views it reads by attention (a learned head: "
                         "python -m baselines.reading.learned_head_fit): its rows (read everything, random reader, "
                         "score reader: cells by its per-view score of their coarse features), and each --ppo run "
-                        "scored by it")
+                        "scored by it; with --fold I / --all-folds, DIR holding {fold} or the folder of "
+                        "learned_head_fit --all-folds is fold I's head")
+    add_flag(p)
     p.add_argument("--policy-seeds", type=int, default=3,
                    help="seeds of each --ppo run scored (mean ± std; default 3, or as many as the run has)")
     p.add_argument("--compute-features", metavar="ENCODER", default=None,
@@ -392,11 +462,23 @@ def load_head(path, tables):
         raise ValueError(f"{Path(path) / 'config.json'}: a {head.kind} head pools neighbourhoods of the view grid; the "
                          "budget curve scores the views read as a set: give a learned head (python -m "
                          "baselines.reading.learned_head_fit), or score this one with python -m baselines.reading.readers")
+    if (problem := heads.encoder_mismatch(head, [t.get("encoder") for t in tables])) is not None:
+        raise ValueError(f"{Path(path) / 'config.json'}: {problem} (fit a head on them: python -m "
+                         "baselines.reading.learned_head_fit)")
     d = int(tables[0]["instances"].shape[-1]) if tables else head.features_dim
     if head.features_dim != d:
         raise ValueError(f"{Path(path) / 'config.json'}: the head reads {head.features_dim}-d features; the dataset's "
                          f"are {d}-d (fit a head on it: python -m baselines.reading.learned_head_fit)")
     return head
+
+
+def warn_small(labels, where: str) -> None:
+    """The small-split warning (:func:`data_tools.metrics.small_split_warning`) of the scored slides' 0/1 ``labels``,
+    one line on stderr, when they are too few to rank readers."""
+    labels = np.asarray(labels, int)
+    warning = small_split_warning(int(labels.sum()), int((1 - labels).sum()), where)
+    if warning:
+        print(warning, file=sys.stderr)
 
 
 def fold_rows(args, level: int, fold: int | None):
@@ -407,26 +489,52 @@ def fold_rows(args, level: int, fold: int | None):
     side = scored_side(args.dataset, fold)
     test = load_split(args.dataset, side, env_id=args.env, level=level, fold=fold)
     check_two_classes(args.dataset, side, test.labels, fold)
+    if not getattr(args, "all_folds", False):  # --all-folds: one warning for the pooled folds (curve_rows)
+        warn_small(test.labels, f"split {side!r}" + (f" (fold {fold})" if fold is not None else ""))
+    if (line := unreadable_warning([t.get("name", i) for i, t in enumerate(test.tables)],
+                                   [t["cell_views"] for t in test.tables], [t["valid"] for t in test.tables],
+                                   [t["total"] for t in test.tables], args.budgets,
+                                   "" if fold is None else f"fold {fold}")) is not None:
+        print(f"warning: {line}", file=sys.stderr, flush=True)  # a budget below every cell: the overview alone
     train = load_split(args.dataset, "train", env_id=args.env, level=level, fold=fold)
-    head = load_head(getattr(args, "head", None), test.tables)
+    head_dir = getattr(args, "head", None)
+    if head_dir is not None and fold is not None:
+        head_dir = head_for_fold(head_dir, fold)  # --head DIR of learned_head_fit --all-folds, or RUN{fold}: fold's head
+    head = load_head(head_dir, test.tables)
+    if head is not None:  # a head fitted or validated on a scored slide: refused (--allow-fitting-slides: warned)
+        check_scored(head, head_dir, args.dataset, read_spec(args.dataset, fold).get(side) or [],
+                     getattr(args, "allow_fitting_slides", False))
     policies = [(name, run if fold is None else with_fold(run, fold)) for name, run in args.ppo]
+    head_cells = None
+    if head is not None:  # the head's rows come from the readers, on the same cells (the glimpse level's bundle level)
+        cell_level = glimpse_bundle_level(args.dataset, args.env, level, side, fold)[0]
+        mine = load_split(args.dataset, side, fold=fold, head=head, cell_level=cell_level)
+        if [s["label"] for s in mine.slides] != [int(v) for v in test.labels]:
+            raise ValueError(f"{Path(args.dataset) / 'dataset.json'}: the readers' and the env's {side!r} slides differ")
+        head_cells = (mine.slides, cell_level)
     rows = budget_rows((train.tables, train.labels), (test.tables, test.labels), args.budgets, seeds=args.seeds,
                        steps=args.steps, policies=policies, dataset=args.dataset, policy_seeds=args.policy_seeds,
-                       max_dim=view_logit_dim(args.dataset), fold=fold, head=head)
+                       max_dim=view_logit_dim(args.dataset), fold=fold, head=head, head_cells=head_cells)
     return rows, (train.tables, train.labels), (test.tables, test.labels)
 
 
 def summary_rows(rows: list[dict]) -> list[dict]:
     """One ``fold = "mean"`` row per method × budget of per-fold ``rows`` (each with a ``fold``): the mean over folds
     of the fraction read, AUC, accuracy and fields of view, ``auc_std`` / ``accuracy_std`` their standard deviation
-    over folds (not over seeds), ``slides`` the slides scored over all folds, ``seeds`` those of one fold."""
+    over folds (not over seeds), ``slides`` the slides scored over all folds, ``seeds`` those of one fold;
+    ``auc_low`` / ``auc_high`` the 95 % interval of the mean AUC over the pooled held-out slides of all folds, each
+    slide once (:func:`data_tools.metrics.auc_interval` with the tumour and normal slides of every fold added)."""
     groups: dict = {}
     for r in rows:
         groups.setdefault((r["method"], r["budget"]), []).append(r)
     out = []
     for (method, budget), rs in groups.items():
         (auc, auc_std), (acc, acc_std) = (mean_std([r[m] for r in rs]) for m in ("auc", "accuracy"))
-        out.append({"fold": SUMMARY, "method": method, "budget": budget,
+        slides = sum(r["slides"] for r in rs)
+        tumour = sum(r["tumour_slides"] for r in rs) if all("tumour_slides" in r for r in rs) else None
+        low, high = auc_interval(auc, tumour, slides - tumour) if tumour is not None else (float("nan"),) * 2
+        out.append({"fold": SUMMARY, "method": method, "budget": budget, "auc_low": low, "auc_high": high,
+                    **({"tumour_slides": tumour} if tumour is not None else {}),
                     "fraction_read": mean_std([r["fraction_read"] for r in rs])[0], "auc": auc, "accuracy": acc,
                     "slides": sum(r["slides"] for r in rs), "auc_std": auc_std, "accuracy_std": acc_std,
                     "seeds": max(r["seeds"] for r in rs),
@@ -447,12 +555,14 @@ def curve_rows(args, level: int) -> tuple[list[dict], str]:
         return rows, f"{len(every.labels)} slides, {args.folds}-fold cross-validation"
     if getattr(args, "all_folds", False):
         k = dataset_folds(args.dataset)[0]
-        rows, scored = [], 0
+        rows, scored, pooled = [], 0, []
         for i in range(k):
             print(f"fold {i} of {k} (0 to {k - 1}) ...", flush=True)
             part, _, test = fold_rows(args, level, i)
             rows += [{"fold": i, **r} for r in part]
             scored += len(test[1])
+            pooled.extend(int(v) for v in test[1])
+        warn_small(pooled, f"the {k} folds' held-out slides together")
         rows += summary_rows(rows)
         return rows, f"mean ± std over {k} folds ({scored} slides scored)"
     rows, train, test = fold_rows(args, level, args.fold)
@@ -483,10 +593,15 @@ def run(args, parser=None) -> int:
     png = plot_curve(shown, out / "budget_curve.png", title)
     if len(shown) < len(rows):
         print(f"mean ± std over folds (the rows of each fold: {csv_path})")
-    print(f"{'method':32s} {'budget':>6s} {'read':>6s} {'AUC':>15s} {'acc':>15s} {'fields':>6s}")
+    fields = any(np.isfinite(r.get("fields_of_view", float("nan"))) for r in shown)  # no always-empty column
+    print(f"cells: {cells_words(args.dataset, args.env, level, scored_side(args.dataset, args.fold), args.fold)}")
+    print(f"{'method':32s} {'budget':>6s} {'read':>6s} {'AUC ± std over seeds [95 % interval over slides]':>44s} "
+          f"{'acc':>15s}" + (f" {'fields':>6s}" if fields else ""))
     for r in shown:
-        print(f"{r['method']:32s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {r['auc']:6.3f} ± {r['auc_std']:5.3f} "
-              f"{r['accuracy']:6.3f} ± {r['accuracy_std']:5.3f} {r['fields_of_view']:6.1f}")
+        auc = format_auc_runs(r["auc"], r["auc_std"], r.get("auc_low", float("nan")), r.get("auc_high", float("nan")),
+                              max(r["seeds"], 2 if r.get("fold") == SUMMARY else 1))
+        print(f"{r['method']:32s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {auc:>44s} "
+              f"{r['accuracy']:6.3f} ± {r['accuracy_std']:5.3f}" + (f" {r['fields_of_view']:6.1f}" if fields else ""))
     print(f"wrote {csv_path} and {png}")
     return 0
 

@@ -20,7 +20,7 @@ undefined: one class), nothing written.
 ``experiments.navigator_ceiling`` share: the split loaded through the head, the one-class refusal, the scripted
 readers' rows, and the CSV and JSON written.
 
-In an env, :class:`histojax.adapters.head_reward.HeadReward` gives the same score step by step
+In an env, :class:`histojax.reading.head_reward.HeadReward` gives the same score step by step
 (``info["head_score"]``: at the episode's end, the navigator's diagnosis by the head).
 """
 from __future__ import annotations
@@ -37,6 +37,7 @@ from baselines.reading.budgets import BUDGETS
 from baselines.reading.csv_files import write_csv
 from baselines.reading.pipeline import check_two_classes, run_seeds
 from baselines.reading.plots import plot_readers
+from baselines.reading.provenance import add_flag, check_scored
 from baselines.run_config import read_run_config
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
@@ -74,7 +75,7 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
     import jax
 
     from baselines import common, evaluate
-    from histojax.reading.tables import SeenMemory, seen_flags
+    from histojax.core.seen_views import SeenMemory, seen_flags
 
     params, record = common.load_checkpoint(run)
     config = read_run_config(record, (Path(run) if Path(run).is_dir() else Path(run).parent) / "config.json")
@@ -139,6 +140,7 @@ def add_arguments(p) -> None:
     p.add_argument("--sampled", action="store_true",
                    help="roll the navigators' sampled policies (key = the seed) instead of their greedy ones")
     p.add_argument("--out", default="runs/head-diagnosis", help="output folder (default runs/head-diagnosis)")
+    add_flag(p)
 
 
 def run(args, parser=None) -> int:
@@ -147,6 +149,8 @@ def run(args, parser=None) -> int:
     try:
         head, level, slides, results = score_split(args.dataset, args.head, args.split, seeds=args.seeds,
                                                    fold=args.fold)
+        check_scored(head, args.head, args.dataset, [s["name"] for s in slides],  # fitted on them: refused
+                     getattr(args, "allow_fitting_slides", False))
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     for name, run_dir in args.navigator:

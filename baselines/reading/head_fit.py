@@ -8,13 +8,16 @@ training split minus a validation share (:func:`baselines.validation.split_train
 slide with its tissue donor; ``--val-fraction`` 0.2, ``--seed`` 0) and scored by its AUC on that
 validation share; the best one (ties: the higher training AUC, then the simplest, in the order listed) is re-calibrated on the
 whole training split and saved to ``--out`` (``config.json`` records every candidate's validation AUC).
-The test split is never read. **Refused** (one line naming ``dataset.json``, nothing saved): fewer than
+The test split is never read. ``config.json`` records what the head was fitted on
+(:data:`baselines.reading.provenance.RECORD`: the dataset's seal, split, fold, fitting and validation slides).
+**Refused** (one line naming ``dataset.json``, nothing saved): a validation share with fewer than
+:data:`baselines.validation.MIN_VALIDATION_PER_CLASS` slides of a class (before any slide is read), fewer than
 :data:`MIN_SLIDES_PER_CLASS` training slides of a class after the validation share, a chosen head whose
 validation AUC is below 0.5 or whose calibration slope is not positive (:func:`check_head`).
 
 Also the data loading every head-based tool shares: :func:`load_slides` reads, straight from each
 bundle (no env), the finest level's view-logit map ``(H, W)``, its tissue views ``(H, W)`` (as the
-reading modes count them: :func:`histojax.reading.tables.tissue_views`), the coarser levels' logit maps and
+reading modes count them: :func:`histojax.core.seen_views.tissue_views`), the coarser levels' logit maps and
 the annotation's tumour geometry.
 """
 from __future__ import annotations
@@ -147,8 +150,8 @@ def finest_views(meta, grid_shape, stride: int, tissue_mask) -> tuple:
     """The finest level's views of a bundle read by :func:`read_bundle` and where each lies on its finest feature
     grid (of ``grid_shape`` ``(gh, gw, ...)``, ``stride`` px apart): ``(tissue (H, W) bool, fy (H,) int, fx (W,)
     int, tile px)``; view ``(y, x)`` reads feature cell ``(fy[y], fx[x])`` (the cell under the view's centre), and
-    ``tissue`` marks the views the reading modes count (:func:`histojax.reading.tables.tissue_views`)."""
-    from histojax.reading.tables import grid as view_grid, tissue_views
+    ``tissue`` marks the views the reading modes count (:func:`histojax.core.seen_views.tissue_views`)."""
+    from histojax.core.seen_views import grid as view_grid, tissue_views
 
     tile = int(meta["tile_size"])
     width, height = int(meta["levels"][0]["width"]), int(meta["levels"][0]["height"])
@@ -349,7 +352,8 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
 
     import jax
 
-    from baselines.validation import split_train
+    from baselines.reading.provenance import RECORD, fit_record
+    from baselines.validation import check_validation_share, split_train
 
     spec = read_spec(dataset, fold)
     warn_scale(dataset, spec)  # the encoder-scale warning dataset.json records, repeated
@@ -361,6 +365,7 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
                                                             "a head is fitted on tumour and normal slides; give a "
                                                             "dataset whose training slides hold both")
     kept, held = split_train(spec, val_fraction, seed)
+    check_validation_share(spec, held, Path(dataset) / "dataset.json", val_fraction, fold)  # before any slide is read
     train = load_slides(dataset, spec["train"], spec, dim, progress=progress)
     by_name = {s["name"]: s for s in train}
     tr = [by_name[Path(n).name] for n in kept]
@@ -377,6 +382,8 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
                                                                                   else {})},
             "chosen_on": {"validation_fraction": val_fraction, "seed": seed, "train_slides": len(tr),
                           "validation_slides": len(va), "validation_auc": chosen["validation_auc"]},
+            # re-calibrated on the whole train side: every train slide is a fitting slide, the share validated too
+            RECORD: fit_record(dataset, spec, fold, spec["train"], held),
             "candidates": table, "date": datetime.date.today().isoformat(), "jax": jax.__version__}
     head = head.replace(info=json.dumps(info))
     if out is not None:

@@ -16,12 +16,15 @@ the whole training split (seed 0) and saved to ``--out`` (``config.json`` record
 the 2 × 2-mean head's). ``--table FILE`` keeps the validation figures, so a re-run only fits what is missing.
 
 **Guards**, as :mod:`baselines.reading.head_fit` and :mod:`baselines.reading.learned_head_fit` have them (one line
-naming ``dataset.json``, exit 2, no head saved): fewer than :data:`MIN_SLIDES_PER_CLASS` training slides of a class
+naming ``dataset.json``, exit 2, no head saved): a validation share with fewer than
+:data:`baselines.validation.MIN_VALIDATION_PER_CLASS` slides of a class (before any slide is read); fewer than
+:data:`MIN_SLIDES_PER_CLASS` training slides of a class
 once the validation share is held back (checked from ``dataset.json``'s labels before any slide is read when it has
 them); a chosen candidate whose mean validation AUC (reading everything) is below 0.5 or undefined, or whose
 validation slope is negative (:func:`validation_aucs`' ``slope``: the 1-D logistic regression of the labels on its
 slide logits; :func:`baselines.reading.head_fit.check_head`). The encoder-scale warning ``dataset.json`` records is
-repeated (:func:`baselines.reading.head_fit.warn_scale`).
+repeated (:func:`baselines.reading.head_fit.warn_scale`). ``config.json`` records what the head was fitted on
+(:data:`baselines.reading.provenance.RECORD`).
 """
 from __future__ import annotations
 
@@ -356,7 +359,8 @@ def run(args, parser=None) -> int:
 
     import jax
 
-    from baselines.validation import split_train
+    from baselines.reading.provenance import RECORD, fit_record
+    from baselines.validation import check_validation_share, split_train
     from data_tools.cli_output import print_error
     from histojax.reading.heads.logit import SlideHead
 
@@ -365,6 +369,7 @@ def run(args, parser=None) -> int:
         spec = read_spec(args.dataset, args.fold)
         warn_scale(args.dataset, spec)  # the encoder-scale warning dataset.json records, repeated
         kept, held = split_train(spec, args.val_fraction, args.seed)
+        check_validation_share(spec, held, Path(args.dataset) / "dataset.json", args.val_fraction, args.fold)
         known = [_label(spec, Path(n).name) for n in kept]
         if None not in known:  # labels in dataset.json: too few of a class refused before any slide is read
             check_classes(args.dataset, [{"label": v} for v in known], MIN_SLIDES_PER_CLASS)
@@ -415,6 +420,8 @@ def run(args, parser=None) -> int:
                           "validation_slides": len(va), "candidate": best,
                           "validation_auc": round(summary[best]["full"][0], 4),
                           "reference_validation_auc": summary[ref]["full"][0]},
+            # refitted on the whole train side: every train slide is a fitting slide, the share validated too
+            RECORD: fit_record(args.dataset, spec, args.fold, spec["train"], held),
             "candidates": summary, "date": datetime.date.today().isoformat(), "jax": jax.__version__}
     head = head.replace(info=json.dumps(info))
     head.save(args.out)

@@ -2,7 +2,7 @@
 ``python -m baselines.reading.learned_head_fit --dataset DIR --out DIR [--seed S] [--val-fraction F]``.
 
 **Data.** The finest level's feature vector of every tissue view (the views the readers count:
-:func:`histojax.reading.tables.tissue_views`) of each training slide, read through the bundle's checked
+:func:`histojax.core.seen_views.tissue_views`) of each training slide, read through the bundle's checked
 loader (:func:`data_tools.bundle_format.load_feature_levels`: metadata digest and array checksums verified).
 No feature entry is special: any encoder, any ``D``. The validation share is
 :func:`baselines.validation.split_train` (``--val-fraction`` 0.2, ``--split-seed`` 0, as the other head fits);
@@ -20,20 +20,28 @@ scores; MI-Net / CLAM style): every view of a normal slide is normal, and the hi
 whole is tumour.
 
 **Choice on validation only** (:data:`CANDIDATES`, ``--hidden``): each candidate structure is trained for
-``--steps`` steps; its validation AUC reading everything (ties: reading random 10 %) is measured every
-``--eval-every`` steps and the best checkpoint over candidates and steps is kept. **Calibration**: a Platt
+``--steps`` steps; its validation AUC reading everything and its validation log loss are measured every
+``--eval-every`` steps, and the checkpoint kept over candidates and steps is the one of highest validation AUC
+**smoothed** over neighbouring checks (:func:`smooth_curve`; ties: the lower validation loss, then the AUC reading
+random 10 %): on a few validation slides one lucky check no longer wins. **Calibration**: a Platt
 scaling ``c·s + d`` fitted on the validation slides' logits (reading everything and reading random 10 %,
 pooled). The prior (nothing read) is the training split's log odds of tumour.
 
-**Guards** (one line naming the dataset, exit 2, nothing saved): fewer than :data:`MIN_SLIDES_PER_CLASS`
-training slides of either class after the validation share is held out; a validation split with one class;
+**Guards** (one line naming the dataset, exit 2, nothing saved): a validation share with fewer than
+:data:`baselines.validation.MIN_VALIDATION_PER_CLASS` slides of a class (before anything is read or trained);
+fewer than :data:`MIN_SLIDES_PER_CLASS` training slides of either class after the validation share is held out;
+a validation split with one class;
 a chosen head whose validation AUC is below 0.5 (inverted) or whose calibration slope is negative.
 
 Saved to ``--out`` (:meth:`LearnedHead.save`, atomic; never over a folder of other files): ``config.json``
-(structure, the fit, every candidate's validation figures), ``params.npz`` and ``learning_curve.png``.
+(structure, the fit, every candidate's validation figures, and what it was fitted on:
+:data:`baselines.reading.provenance.RECORD`, the dataset's seal, split, fold and the fitting and validation slides),
+``params.npz`` and ``learning_curve.png``. ``--all-folds`` (a dataset built with ``--folds K``): one head per fold,
+``OUT/fold0`` … ``OUT/fold{K-1}``, each fitted on the other folds (as ``--fold I --out OUT/foldI``).
 
 ``--score HEAD --split test`` scores a saved head on a split reading everything: AUC over all slides and
-without ITC-only slides (lesion classes as :mod:`baselines.reading.readers` defines them). ``--rotate SEED``
+without ITC-only slides (lesion classes as :mod:`baselines.reading.readers` defines them). A split holding slides
+the head was fitted or validated on is refused (``--allow-fitting-slides``: scored, with a warning). ``--rotate SEED``
 multiplies every feature vector by a fixed random orthogonal matrix (drawn from ``SEED``) before fitting or
 scoring: a check that nothing depends on which entry holds what.
 """
@@ -56,7 +64,9 @@ from baselines.evaluate.checks import UNDEFINED
 from baselines.reading.head_fit import HeadDataError, finest_views, read_bundle, warn_scale
 from baselines.reading.head_fit import read_spec as read_sealed_spec
 from baselines.reading.lesions import lesion_of
-from baselines.validation import split_train
+from histojax.reading.heads import encoder_mismatch
+from baselines.reading.provenance import RECORD, add_flag, check_scored, fit_record
+from baselines.validation import check_validation_share, split_train
 from data_tools.annotations import load_annotations
 from data_tools.bundle_format import own_file
 from data_tools.cli_output import command_main, print_error
@@ -270,7 +280,12 @@ class FlatSet:
     def logits(self, head, mask: np.ndarray | None = None) -> np.ndarray:
         """``(B,)`` slide logits of ``head`` reading ``mask`` (default every tissue view)."""
         mask = np.ones(len(self.x), bool) if mask is None else mask
-        return np.asarray(self._fn(head)(head, self.x, self.seg, mask))
+        return files.check_finite_logits(head, self._fn(head)(head, self.x, self.seg, mask))  # one line naming params.npz
+
+    def log_loss(self, head) -> float:
+        """Mean log loss (nats) of ``head``'s slide logits reading everything against the slides' labels."""
+        z = self.logits(head).astype(np.float64)
+        return float(np.mean(np.logaddexp(0.0, np.where(self.labels > 0, -z, z))))
 
     def aucs(self, head, fractions=(0.1,), draws: int = 3, seed: int = 123) -> dict:
         """``{"full": AUC reading everything, "read 0.1": mean AUC over ``draws`` random reads, ...}``."""
@@ -358,7 +373,7 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
         return optax.apply_updates(tp, upd), st, loss
 
     rng = np.random.default_rng(10_000 + seed)
-    curve, losses, best, best_key = [], [], head0, (-1.0, -1.0)
+    curve, losses, best, checkpoints = [], [], head0, []
     attention = None
     flat = np.concatenate([np.asarray(s["features"]) for s in train_slides]) if top_share > 0 else None
     bar = tqdm(range(steps), desc=f"{structure['hidden']} units, seed {seed}", disable=not progress,
@@ -374,14 +389,38 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
             row = {"step": i + 1, "loss": float(np.mean(losses[-eval_every:]))}
             if val is not None:
                 row.update(val.aucs(head, draws=2))
-                key = (row["full"], row["read 0.1"])
-                if key > best_key:
-                    best, best_key = head, key
+                row["validation_loss"] = val.log_loss(head)
+                checkpoints.append(head)
                 bar.set_postfix(loss=f"{row['loss']:.3f}", val=f"{row['full']:.3f}")
             else:
                 best = head
             curve.append(row)
+    if checkpoints:
+        smooth_curve(curve)
+        best = checkpoints[max(range(len(curve)), key=lambda i: choice_key(curve[i]))]
     return best, curve
+
+
+SMOOTH = 1
+"""Checks on each side the checkpoint choice averages the validation AUC over (:func:`smooth_curve`)."""
+
+
+def smooth_curve(curve: list[dict], width: int = SMOOTH) -> list[dict]:
+    """Add ``smoothed`` to each row of ``curve``: the mean validation AUC reading everything over the row and its
+    ``width`` neighbours on each side (fewer at the ends). On a few validation slides the AUC jumps between checks (a
+    fold's curve went 0.17, 1.0, 0.5 ...); one lucky check is no longer chosen over a plateau."""
+    full = [r["full"] for r in curve]
+    for i, r in enumerate(curve):
+        window = [v for v in full[max(0, i - width): i + width + 1] if v == v]
+        r["smoothed"] = float(np.mean(window)) if window else float("nan")
+    return curve
+
+
+def choice_key(row: dict) -> tuple:
+    """How a checkpoint is chosen: the highest smoothed validation AUC (:func:`smooth_curve`, rounded to 1e-6 so
+    equal plateaus tie), then the lowest validation log loss reading everything, then the higher AUC reading 10 %."""
+    sm = row.get("smoothed", row["full"])
+    return (round(sm, 6) if sm == sm else -1.0, -row.get("validation_loss", 0.0), row["read 0.1"])
 
 
 def calibrate(head, val: FlatSet, seed: int = 7):
@@ -452,6 +491,10 @@ def add_arguments(p) -> None:
     p.add_argument("--score", default=None, metavar="HEAD", help="score the saved head HEAD on --split instead "
                                                                   "of fitting")
     p.add_argument("--split", default="test", help="split --score reads (default test)")
+    p.add_argument("--all-folds", action="store_true",
+                   help="a dataset built with --folds K: fit one head per fold, OUT/fold0 ... OUT/fold{K-1} (each as "
+                        "--fold I --out OUT/foldI)")
+    add_flag(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
 
@@ -461,6 +504,8 @@ def run(args, parser=None) -> int:
         return score_command(args)
     if not args.out:
         return print_error("--out is required to fit a head")
+    if getattr(args, "all_folds", False):
+        return all_folds_command(args, parser)
 
 
     t0 = time.perf_counter()
@@ -475,6 +520,7 @@ def run(args, parser=None) -> int:
             kept, held = split_train(spec, args.val_fraction, args.split_seed)
         except ValueError as e:
             raise FitError(Path(args.dataset) / "dataset.json", str(e)) from None
+        check_validation_share(spec, held, Path(args.dataset) / "dataset.json", args.val_fraction, args.fold)
         train_slides = load_split(args.dataset, kept, spec, progress, "training slides")
         val_slides = load_split(args.dataset, held, spec, progress, "validation slides")
         check_classes(args.dataset, train_slides, val_slides)
@@ -495,14 +541,16 @@ def run(args, parser=None) -> int:
                             views=args.views, lr=args.lr, weight_decay=args.weight_decay,
                             eval_every=args.eval_every, top_share=args.top_share,
                             instance_weight=args.instance_weight, progress=progress)
-        top = max(curve, key=lambda r: (r["full"], r["read 0.1"]))
+        top = max(curve, key=choice_key)  # the checkpoint train() returned
         results[name] = {**c, "best_step": top["step"], "validation_auc": round(top["full"], 4),
+                         "validation_auc_smoothed": round(top["smoothed"], 4),
+                         "validation_loss": round(top["validation_loss"], 4),
                          "validation_auc_read_0.1": round(top["read 0.1"], 4)}
         curves[name] = curve
-        print(f"  {name}: validation AUC {top['full']:.3f} reading everything, {top['read 0.1']:.3f} reading 10 % "
-              f"(step {top['step']})", flush=True)
-        if best is None or (top["full"], top["read 0.1"]) > best[0]:
-            best = ((top["full"], top["read 0.1"]), name, head)
+        print(f"  {name}: validation AUC {top['full']:.3f} reading everything ({top['smoothed']:.3f} over "
+              f"neighbouring checks), {top['read 0.1']:.3f} reading 10 % (step {top['step']})", flush=True)
+        if best is None or choice_key(top) > best[0]:
+            best = (choice_key(top), name, head)
     _, chosen, head = best
     raw_auc = val.aucs(head, fractions=())["full"]  # before calibration: a negative slope would hide an inversion
     head, slope = calibrate(head, val)
@@ -526,6 +574,7 @@ def run(args, parser=None) -> int:
                          "lr": args.lr, "weight_decay": args.weight_decay, "optimizer": "adamw",
                          "reads": f"all tissue with p={P_FULL}, else {CELL}x{CELL}-view cells at log-uniform "
                                   f"[{MIN_READ}, 1]"},
+            RECORD: fit_record(args.dataset, spec, args.fold, kept, held),
             "candidates": results, "wall_seconds": round(wall, 1), "load_seconds": round(t_load, 1),
             "date": datetime.date.today().isoformat(), "jax": jax.__version__,
             "command": "python -m baselines.reading.learned_head_fit " + " ".join(sys.argv[1:])}
@@ -627,6 +676,9 @@ def score_command(args) -> int:
         if slides[0]["features"].shape[1] != head.features_dim:
             raise FitError(slides[0]["bundle"], f"{slides[0]['features'].shape[1]}-d features; the head reads "
                                                 f"{head.features_dim}-d")
+        if (problem := encoder_mismatch(head, [s.get("encoder") for s in slides])) is not None:
+            raise FitError(Path(args.score) / "config.json", f"{problem} ({args.dataset}): fit a head on them")
+        check_scored(head, args.score, args.dataset, entries, getattr(args, "allow_fitting_slides", False))
     except (HistojaxDataError, ValueError, OSError) as e:
         return print_error(e)
     q = rotation(args.rotate, head.features_dim) if args.rotate is not None else None
@@ -645,6 +697,31 @@ def score_command(args) -> int:
     if not no_itc:
         record["auc_without_itc_note"] = f"{UNDEFINED} (every tumour slide of the split is ITC-only)"
     print(json.dumps(record, allow_nan=False))  # undefined: null, never a bare NaN
+    return 0
+
+
+def all_folds_command(args, parser=None) -> int:
+    """``--all-folds --out OUT``: :func:`run` with ``--fold I --out OUT/foldI`` for every fold I of the dataset (its
+    ``--folds K``); stops at the first fold refused (its one line). Prints each fold's chosen head."""
+    import copy
+
+    from baselines.folds import dataset_folds
+
+    if args.fold is not None:
+        return print_error(f"--all-folds fits every fold the dataset records; not with --fold {args.fold}")
+    try:
+        k, _ = dataset_folds(args.dataset)
+    except HistojaxDataError as e:
+        return print_error(e)
+    for i in range(k):
+        one = copy.copy(args)
+        one.all_folds, one.fold, one.out = False, i, str(Path(args.out) / f"fold{i}")
+        print(f"fold {i} of {k}: fitting on the other {k - 1} folds -> {one.out}", flush=True)
+        code = run(one, parser)
+        if code:
+            return code
+    print(f"fitted {k} heads, one per fold: {args.out}/fold0 ... fold{k - 1} (budget-curve / evaluate --all-folds "
+          f"--head {args.out} use fold I's head on fold I)")
     return 0
 
 

@@ -49,8 +49,8 @@ import jax
 import numpy as np
 
 from baselines import outputs
-from data_tools.metrics import accuracy, roc_auc
-from histojax.adapters.head_reward import pools_views
+from data_tools.metrics import accuracy, format_auc_runs, json_safe, small_split_warning
+from histojax.reading.head_reward import pools_views
 from baselines.reading.budgets import BUDGETS
 from baselines.reading.csv_files import write_csv
 from baselines.reading.lesions import CLASSES, lesion_class
@@ -59,11 +59,14 @@ from baselines.reading.head_fit import HeadDataError
 from baselines.reading.orders import logit_order, search_order
 from baselines.reading.head_fit import padded
 from baselines.reading.pipeline import cell_level_for  # noqa: F401  (cell_level_for: readers' API)
+from baselines.reading.pipeline import reader_auc
 from baselines.reading.plots import plot_readers
+from baselines.reading.provenance import add_flag, check_scored
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from histojax import compile_cache
-from histojax.reading.heads import encoder_family, score_batch
+from histojax.reading.heads import same_encoder, score_batch
+from histojax.reading.heads.files import check_finite_logits
 
 KINDS = ("overview", "random", "scripted", "learned", "everything")
 
@@ -145,7 +148,8 @@ def padded_terms(terms: list[np.ndarray]) -> np.ndarray:
 def terms_scores(head, terms: list[np.ndarray], masks: list[np.ndarray]) -> np.ndarray:
     """An attention-pooling head's slide logits ``(B,)`` from cached per-view terms ``(H, W, 2)`` read where
     ``masks (H, W)`` (:meth:`~histojax.reading.heads.learned.LearnedHead.score_terms`)."""
-    return np.asarray(jax.jit(jax.vmap(head.score_terms))(padded_terms(terms), padded(list(masks), False)))
+    return check_finite_logits(head, jax.jit(jax.vmap(head.score_terms))(padded_terms(terms),
+                                                                         padded(list(masks), False)))
 
 
 def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray:
@@ -153,7 +157,8 @@ def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray
     cached ``terms``, :func:`with_head_scores`)."""
     if pools_views(head):
         return terms_scores(head, [s["terms"] for s in slides], masks)
-    return np.asarray(score_batch(head, padded([s["logits"] for s in slides], 0.0), padded(list(masks), False)))
+    return check_finite_logits(head, score_batch(head, padded([s["logits"] for s in slides], 0.0),
+                                                 padded(list(masks), False)))
 
 
 def overview_scores(head, slides: list[dict], level: int) -> np.ndarray:
@@ -165,7 +170,7 @@ def overview_scores(head, slides: list[dict], level: int) -> np.ndarray:
         masks.append(c["valid"].reshape(c["grid"]))
     if pools_views(head):  # the head on the cells' own coarse feature vectors
         return terms_scores(head, [s["coarse_terms"][level] for s in slides], masks)
-    return np.asarray(score_batch(head, padded(logits, 0.0), padded(masks, False)))
+    return check_finite_logits(head, score_batch(head, padded(logits, 0.0), padded(masks, False)))
 
 
 def new_results() -> dict:
@@ -202,22 +207,40 @@ def score_reader_name(head) -> str:
     return "score reader" if pools_views(head) else "logit reader"
 
 
+def unreadable_line(slides: list[dict], tables: list[dict], budgets) -> str | None:
+    """The line (:func:`histojax.reading.modes.glimpse.unreadable_warning`) naming the slides where some of
+    ``budgets`` reads no cell of ``tables`` (:func:`cell_table`), with the nearest budget that reads one on every
+    slide; ``None`` when every budget reads something everywhere."""
+    from histojax.reading.modes.glimpse import unreadable_warning
+
+    return unreadable_warning([s.get("name", i) for i, s in enumerate(slides)], [t["cell_views"] for t in tables],
+                              [t["valid"] for t in tables], [t["total"] for t in tables], budgets)
+
+
 def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, level: int = 3,
-                     progress: bool = False) -> dict:
+                     progress: bool = False, only=None) -> dict:
     """The reference rows: overview only, random reader (``seeds`` orders), logit (score) reader, search reader,
     read everything; the readers' orders read at every budget by the pipeline's run loop
-    (:func:`baselines.reading.pipeline.read_all`) and their read masks scored by ``head`` (:func:`head_scores`)."""
+    (:func:`baselines.reading.pipeline.read_all`) and their read masks scored by ``head`` (:func:`head_scores`).
+    ``only``: the names of the rows wanted (default all)."""
+    want = (lambda name: True) if only is None else (lambda name: name in only)  # noqa: E731
     results = new_results()
     tumour = [tumour_views(s) for s in slides]
     n = len(slides)
-    results[("overview only", 0.0)] = {"kind": "overview", "scores": overview_scores(head, slides, level)[None],
-                                       "fractions": np.zeros((1, n)), "tumour_read": np.zeros((1, n), bool)}
-    add_reader(results, head, slides, "read everything", {1.0: [[s["tissue"] for s in slides]]}, "everything", tumour)
+    if want("overview only"):
+        results[("overview only", 0.0)] = {"kind": "overview", "scores": overview_scores(head, slides, level)[None],
+                                           "fractions": np.zeros((1, n)), "tumour_read": np.zeros((1, n), bool)}
+    if want("read everything"):
+        add_reader(results, head, slides, "read everything", {1.0: [[s["tissue"] for s in slides]]}, "everything",
+                   tumour)
     tables = [cell_table(s, level) for s in slides]
+    if (line := unreadable_line(slides, tables, budgets)) is not None:
+        print(f"warning: {line}", file=sys.stderr, flush=True)
     top = max(budgets)
-    readers = {"random reader": pipeline.random_orders(tables, seeds),
-               score_reader_name(head): [[logit_order(c) for c in tables]],
-               "search reader": [[search_order(s, c, limit=top + 0.01) for s, c in zip(slides, tables)]]}
+    readers = {"random reader": lambda: pipeline.random_orders(tables, seeds),
+               score_reader_name(head): lambda: [[logit_order(c) for c in tables]],
+               "search reader": lambda: [[search_order(s, c, limit=top + 0.01) for s, c in zip(slides, tables)]]}
+    readers = {name: orders() for name, orders in readers.items() if want(name)}
     kinds = {name: "random" if name == "random reader" else "scripted" for name in readers}
 
     def score(cells: list[np.ndarray]) -> dict:
@@ -240,17 +263,18 @@ def rows_from_results(results: dict, slides: list[dict]) -> list[dict]:
     rows = []
     for (name, b), r in results.items():
         s, f, t = r["scores"], r["fractions"], r["tumour_read"]
-        aucs = np.asarray([roc_auc(x, labels) for x in s])
-        aucs_no_itc = np.asarray([roc_auc(x[no_itc], labels[no_itc]) for x in s])
+        every, kept = reader_auc(s, labels), reader_auc(s[:, no_itc], labels[no_itc])
         accs = np.asarray([accuracy(1 / (1 + np.exp(-x)), labels) for x in s])
         row = {"reader": name, "kind": r["kind"], "budget": b, "seeds": len(s), "slides": len(labels),
                "fraction_read": float(f.mean()), "fraction_min": float(f.min()),
                "fraction_p10": float(np.percentile(f, 10)), "fraction_median": float(np.median(f)),
                "fraction_p90": float(np.percentile(f, 90)), "fraction_max": float(f.max()),
-               "auc": float(aucs.mean()), "auc_std": float(aucs.std()),
-               "auc_no_itc": float(aucs_no_itc.mean()), "auc_no_itc_std": float(aucs_no_itc.std()),
+               "auc": every["auc"], "auc_std": every["auc_std"], "auc_low": every["auc_low"],
+               "auc_high": every["auc_high"],
+               "auc_no_itc": kept["auc"], "auc_no_itc_std": kept["auc_std"], "auc_no_itc_low": kept["auc_low"],
+               "auc_no_itc_high": kept["auc_high"],
                "accuracy": float(accs.mean()), "accuracy_std": float(accs.std()),
-               "auc_per_seed": [round(float(a), 4) for a in aucs]}
+               "auc_per_seed": [round(float(a), 4) for a in every["auc_per_run"]]}
         for c in CLASSES:
             idx = np.asarray([k == c for k in classes])
             top_normal = s[:, labels == 0].max(1, keepdims=True) if (labels == 0).any() else np.full((len(s), 1), -np.inf)
@@ -354,6 +378,16 @@ def add_arguments(p) -> None:
                         "glimpse or zoom_select mode): the head on what it reads at each budget")
     p.add_argument("--policy-seeds", type=int, default=3, help="seeds of each --reader run (default 3, or fewer)")
     p.add_argument("--out", default="runs/readers", help="output folder (default runs/readers)")
+    add_flag(p)
+
+
+def cells_words(slides: list[dict], level: int) -> str:
+    """What the cells are, for the printout and ``readers.json``: ``"bundle level 2 (downsample 4, about 4 × 4
+    finest views a cell)"``, the same words as the budget curve's (:func:`baselines.reading.budget_curve`)."""
+    ds = slides[0]["downsample"].get(level) if slides else None
+    if not ds:
+        return f"bundle level {level}"
+    return f"bundle level {level} (downsample {ds:.3g}, about {ds:.3g} × {ds:.3g} finest views a cell)"
 
 
 def load_split(dataset, head_path, split: str, cell_level: int | None = None, fold: int | None = None) -> tuple:
@@ -374,16 +408,23 @@ def run(args, parser=None) -> int:
     t0 = time.perf_counter()
     try:
         head, args.cell_level, slides = load_split(args.dataset, args.head, args.split, args.cell_level, args.fold)
+        check_scored(head, args.head, args.dataset, [s["name"] for s in slides],  # fitted on them: refused
+                     getattr(args, "allow_fitting_slides", False))
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     other = sorted({str(s["encoder"]) for s in slides
-                    if head.encoder and encoder_family(s["encoder"]) != encoder_family(head.encoder)})
+                    if head.encoder and not same_encoder(head.encoder, s["encoder"])})
     if other:
         return print_error(f"{args.head}: a head for {head.encoder} features; {args.dataset} holds {', '.join(other)} "
                            "features (fit a head on it: python -m baselines.reading.head_fit)")
     problem = pipeline.one_class_problem(args.split, [s["label"] for s in slides], args.fold)
     if problem:
         return print_error(HeadDataError(Path(args.dataset) / "dataset.json", problem))
+    cells = cells_words(slides, args.cell_level)
+    warning = small_split_warning(int(sum(s["label"] for s in slides)), int(sum(1 - s["label"] for s in slides)),
+                                  f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else ""))
+    if warning:
+        print(warning, file=sys.stderr)
     results = scripted_results(head, slides, args.budgets, args.seeds, args.cell_level, progress=True)
     maps = {}
     for name, run_dir in args.reader:
@@ -404,13 +445,14 @@ def run(args, parser=None) -> int:
     write_csv(csv_rows(rows), out / "readers.csv")
     write_csv(lesions, out / "lesions.csv")
     wall = time.perf_counter() - t0
-    outputs.write_text(out / "readers.json", json.dumps(
+    outputs.write_text(out / "readers.json", json.dumps(json_safe(
         {"dataset": str(args.dataset), "split": args.split, **({"fold": args.fold} if args.fold is not None else {}),
          "head": str(args.head), "head_name": head.name,
-         "cell_level": args.cell_level, "seeds": args.seeds, "wall_s": round(wall, 1), "rows": rows,
-         "lesions": lesions}, indent=1, default=float))
+         "cell_level": args.cell_level, "cells": cells, "seeds": args.seeds, "wall_s": round(wall, 1), "rows": rows,
+         "lesions": lesions}), indent=1, allow_nan=False))
     png = plot_readers(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split ({len(slides)} slides): "
                                           f"head {head.name}")
+    print(f"cells: {cells}")
     print_tables(rows, lesions)
     print(f"wrote {out}/readers.csv, lesions.csv, readers.json and {png} in {wall:.0f} s")
     return 0
@@ -418,11 +460,13 @@ def run(args, parser=None) -> int:
 
 def print_tables(rows: list[dict], lesions: list[dict], budget: float = 0.1) -> None:
     """The curve as a markdown table, then the lesion table at ``budget`` (and reading everything)."""
-    print("| reader | budget | read (mean, p10–p90) | AUC | AUC without ITC-only | accuracy |\n|---|---|---|---|---|---|")
+    print("| reader | budget | read (mean, p10–p90) | AUC [95 % interval] | AUC without ITC-only | accuracy |\n"
+          "|---|---|---|---|---|---|")
     for r in rows:
         print(f"| {r['reader']} | {r['budget']:.2f} | {r['fraction_read']:.3f} ({r['fraction_p10']:.3f}–"
-              f"{r['fraction_p90']:.3f}) | {r['auc']:.3f} ± {r['auc_std']:.3f} | {r['auc_no_itc']:.3f} ± "
-              f"{r['auc_no_itc_std']:.3f} | {r['accuracy']:.3f} |")
+              f"{r['fraction_p90']:.3f}) | {format_auc_runs(r['auc'], r['auc_std'], r['auc_low'], r['auc_high'], r['seeds'])} | "
+              f"{format_auc_runs(r['auc_no_itc'], r['auc_no_itc_std'], r['auc_no_itc_low'], r['auc_no_itc_high'], r['seeds'])}"
+              f" | {r['accuracy']:.3f} |")
     print(f"\nper lesion class: slides; read tumour / found by the head (above every normal slide), budget {budget:.2f}")
     print("| reader | " + " | ".join(CLASSES) + " |\n|---|" + "---|" * len(CLASSES))
     for r in rows:

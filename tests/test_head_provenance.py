@@ -1,0 +1,216 @@
+"""Heads that know what they were fitted on, on a small cohort: a fit whose validation share is too small is refused
+before any training; a fitted head records the dataset, split, fold and its fitting and validation slides; every
+scorer refuses a head on a slide it was fitted or validated on (``--allow-fitting-slides``: warned); published and
+older heads (no record) are taken as fitted on the train split; ``learned_head_fit --all-folds`` fits one head per
+fold and each fold's head is the one that scores that fold.
+
+The cohort (:func:`learned_fixture.make_cohort`, TRIDENT-layout 16-d features): 18 training slides (9 tumour, 9
+normal), 6 test slides (3 + 3) and three folds over all 24 (4 + 4 each)."""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from baselines.reading import learned_head_fit as fit
+from baselines.reading import provenance
+from baselines.validation import MIN_VALIDATION_PER_CLASS, check_validation_share, split_train
+from learned_fixture import make_cohort
+
+FAST = ["--steps", "100", "--eval-every", "20", "--hidden", "32", "--batch", "8", "--views", "64", "--quiet"]
+
+
+def _main(argv):
+    return fit._main()(argv)
+
+
+@pytest.fixture(scope="module")
+def small(tmp_path_factory):
+    """The small cohort with three folds over every slide (``dataset.json``'s ``folds``, pool ``all``)."""
+    c = make_cohort(tmp_path_factory.mktemp("provenance") / "ds", tumour=9, normal=9, test_tumour=3, test_normal=3,
+                    dim=16, signal=4.0)
+    spec = json.loads((c["root"] / "dataset.json").read_text())
+    every = spec["train"] + spec["test"]
+    tum, nor = [e for e in every if "tumour" in e], [e for e in every if "normal" in e]
+    spec["folds"] = {"k": 3, "pool": "all", "seed": 0, "lists": [sorted(tum[i::3] + nor[i::3]) for i in range(3)]}
+    (c["root"] / "dataset.json").write_text(json.dumps(spec))
+    return c
+
+
+def _untrained(train_slides, val, structure, seed=0, **kwargs):
+    """:func:`fit.train` without the training (its initial head and a one-row curve): the fit's bookkeeping, cheaply."""
+    import jax
+    import jax.numpy as jnp
+
+    from histojax.reading.heads.learned import LearnedHead, init_params
+
+    d = int(train_slides[0]["features"].shape[1])
+    mu, sd = fit.standardisation(train_slides)
+    params = init_params(jax.random.PRNGKey(seed), d, structure["hidden"], structure["attention"], structure["layers"],
+                         mu, sd)
+    head = LearnedHead(params=params, prior_logit=jnp.float32(0.0), features_dim=d, hidden=structure["hidden"],
+                       attention=structure["attention"], layers=structure["layers"],
+                       encoder=train_slides[0].get("encoder"))
+    return head, [{"step": 1, "loss": 0.7, "full": 0.5, "read 0.1": 0.5, "validation_loss": 0.7, "smoothed": 0.5}]
+
+
+@pytest.fixture(scope="module")
+def head(small, tmp_path_factory):
+    """A learned head "fitted" (untrained: :func:`_untrained`, the guards on its figures off) by the command on the
+    train split with a validation share of 0.4 (4 + 4 slides): what the command records, without its training."""
+    out = tmp_path_factory.mktemp("provenance-head") / "h"
+    with pytest.MonkeyPatch.context() as mp:
+        mp.setattr(fit, "train", _untrained)
+        mp.setattr(fit, "check_head", lambda *a, **k: None)
+        assert _main(["--dataset", str(small["root"]), "--out", str(out), "--val-fraction", "0.4", *FAST]) == 0
+    return out
+
+
+def test_a_validation_share_too_small_is_refused_before_any_slide_is_read(small, tmp_path, capsys, monkeypatch):
+    def never(*a, **k):
+        raise AssertionError("read or trained before the validation share was checked")
+
+    monkeypatch.setattr(fit, "load_split", never)
+    monkeypatch.setattr(fit, "train", never)
+    root = small["root"]
+    assert _main(["--dataset", str(root), "--out", str(tmp_path / "h"), "--quiet"]) == 2  # 0.2 of 9 + 9: 2 + 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1, err
+    assert "2 tumour and 2 normal" in err and "--val-fraction" in err and "--folds" in err and str(root) in err
+    assert not (tmp_path / "h").exists()
+    assert _main(["--dataset", str(root), "--out", str(tmp_path / "h"), "--fold", "0", "--quiet"]) == 2
+    assert "fold 0's train side" in capsys.readouterr().err
+
+
+def test_the_logit_and_mil_fits_refuse_the_same_share(small):
+    from baselines.reading import head_fit
+
+    with pytest.raises(ValueError, match="holds 2 tumour and 2 normal"):
+        head_fit.fit(small["root"], None, val_fraction=0.2)
+    spec = json.loads((small["root"] / "dataset.json").read_text())
+    kept, held = split_train(spec, 0.4, 0)
+    check_validation_share(spec, held, "x", 0.4)  # 4 + 4: accepted
+    assert MIN_VALIDATION_PER_CLASS == 3
+
+
+def test_the_head_records_the_dataset_split_and_its_slides(small, head):
+    cfg = json.loads((head / "config.json").read_text())
+    rec = cfg[provenance.RECORD]
+    spec = json.loads((small["root"] / "dataset.json").read_text())
+    kept, held = split_train(spec, 0.4, 0)
+    assert rec["fitted"] == sorted(Path(e).name for e in kept)
+    assert rec["validation"] == sorted(Path(e).name for e in held)
+    assert rec["split"] == "train" and rec["fold"] is None
+    assert rec["dataset"]["folder"] == str(small["root"].resolve()) and "seal" in rec["dataset"]
+    assert not set(rec["fitted"]) & set(small["names"]["test"])
+
+
+def test_score_refuses_the_heads_own_slides_and_warns_with_the_flag(small, head, capsys):
+    root = str(small["root"])
+    assert _main(["--dataset", root, "--score", str(head), "--split", "train", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and str(head / "config.json") in err and "--allow-fitting-slides" in err, err
+    assert "fitted on 10" in err and "validated on 8" in err
+    assert _main(["--dataset", root, "--score", str(head), "--split", "train", "--allow-fitting-slides",
+                  "--quiet"]) == 0
+    out, err = capsys.readouterr()
+    assert json.loads(out.strip().splitlines()[-1])["slides"] == 18 and "warning:" in err and "not held out" in err
+    assert _main(["--dataset", root, "--score", str(head), "--split", "test", "--quiet"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    # a fold's held-out side holding training slides of the head: refused too
+    assert _main(["--dataset", root, "--score", str(head), "--fold", "1", "--quiet"]) == 2
+    assert "not held out" in capsys.readouterr().err
+
+
+def test_readers_refuse_the_heads_own_slides(small, head, tmp_path, capsys):
+    from baselines.reading import readers
+
+    argv = ["--dataset", str(small["root"]), "--head", str(head), "--split", "train", "--out", str(tmp_path / "r"),
+            "--budgets", "0.5", "--seeds", "1"]
+    assert readers.main(argv) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--allow-fitting-slides" in err and not (tmp_path / "r").exists(), err
+
+
+def test_every_scorer_takes_the_flag():
+    import argparse
+
+    from baselines.evaluate.cli import add_arguments as evaluate_args
+    from baselines.reading import budget_curve, diagnosis, readers
+
+    for add in (evaluate_args, budget_curve.add_arguments, diagnosis.add_arguments, readers.add_arguments,
+                fit.add_arguments):
+        p = argparse.ArgumentParser()
+        add(p)
+        assert "--allow-fitting-slides" in p.format_help(), add.__module__
+
+
+class _Head:
+    def __init__(self, info):
+        self.info = json.dumps(info)
+
+
+def test_a_head_without_a_record_is_taken_as_fitted_on_the_train_split(small, capsys):
+    """Published and older heads record a fit (``fitted_on``) but no slides: the scored dataset's train split (as the
+    published C16 heads were fitted on c16-full's) counts as fitted; a head built in code has seen nothing."""
+    root = small["root"]
+    legacy = _Head({"fitted_on": {"dataset": "c16-full", "split": "train"}})
+    fitted, validated, source = provenance.overlap(legacy, root, small["names"]["train"][:3] + small["names"]["test"])
+    assert source == "assumed" and fitted == sorted(small["names"]["train"][:3]) and validated == []
+    provenance.check_scored(legacy, "h", root, small["names"]["test"])  # the test split: scored as before
+    with pytest.raises(provenance.FittingSlidesError, match="records no slides"):
+        provenance.check_scored(legacy, "h", root, small["names"]["train"][:1])
+    assert provenance.overlap(_Head({}), root, small["names"]["train"])[:2] == ([], [])
+
+
+def test_the_published_c16_heads_score_the_c16_test_split_but_not_its_train_split(tmp_path):
+    from baselines.published_agents import PUBLISHED
+    from histojax.reading import heads
+
+    spec = {"kind": "c16 stand-in", "train": ["bundles/tumor_001", "bundles/normal_001"],
+            "test": ["bundles/test_001"], "labels": {}}
+    (tmp_path / "dataset.json").write_text(json.dumps(spec))
+    h = heads.load(PUBLISHED / "c16-v2-learned-head")
+    provenance.check_scored(h, "h", tmp_path, spec["test"])
+    with pytest.raises(provenance.FittingSlidesError):
+        provenance.check_scored(h, "h", tmp_path, spec["train"])
+
+
+def test_each_fold_resolves_its_own_head(tmp_path):
+    assert provenance.head_for_fold("runs/h-fold{fold}", 2) == "runs/h-fold2"
+    for i in range(2):
+        (tmp_path / "all" / f"fold{i}").mkdir(parents=True)
+        (tmp_path / "all" / f"fold{i}" / "config.json").write_text("{}")
+    assert provenance.head_for_fold(tmp_path / "all", 1) == str(tmp_path / "all" / "fold1")
+    (tmp_path / "one").mkdir()
+    (tmp_path / "one" / "config.json").write_text("{}")
+    assert provenance.head_for_fold(tmp_path / "one", 1) == str(tmp_path / "one")
+
+
+def test_smoothed_choice_passes_over_a_lucky_check():
+    """A validation curve that jumps to 1.0 once on a few slides (0.17, 1.0, 0.5, 0.83, 0.83, 0.83): the checkpoint
+    kept is on the plateau, not the lucky check; equal plateaus go to the lower validation loss."""
+    curve = [{"step": 10 * (i + 1), "full": v, "read 0.1": 0.5, "validation_loss": loss}
+             for i, (v, loss) in enumerate([(0.17, 0.7), (1.0, 0.69), (0.5, 0.6), (0.83, 0.5), (0.83, 0.4),
+                                            (0.83, 0.45)])]
+    fit.smooth_curve(curve)
+    best = max(curve, key=fit.choice_key)
+    assert best["step"] == 50, [(r["step"], r["smoothed"]) for r in curve]
+    assert np.isclose(curve[1]["smoothed"], (0.17 + 1.0 + 0.5) / 3)
+
+
+@pytest.mark.slow  # three fits, then each scored on every fold (about 40 s on 2 cores); make test-all
+def test_all_folds_fits_one_head_per_fold_and_each_scores_only_its_fold(small, tmp_path, capsys):
+    root, out = str(small["root"]), tmp_path / "heads"
+    assert _main(["--dataset", root, "--out", str(out), "--all-folds", "--val-fraction", "0.4", *FAST]) == 0
+    for i in range(3):
+        rec = json.loads((out / f"fold{i}" / "config.json").read_text())[provenance.RECORD]
+        assert rec["fold"] == i
+        held_out = {Path(e).name for e in json.loads((small["root"] / "dataset.json").read_text())["folds"]["lists"][i]}
+        assert held_out.isdisjoint(rec["fitted"] + rec["validation"])
+        head_i = provenance.head_for_fold(out, i)
+        assert _main(["--dataset", root, "--score", head_i, "--fold", str(i), "--quiet"]) == 0
+        assert _main(["--dataset", root, "--score", head_i, "--fold", str((i + 1) % 3), "--quiet"]) == 2
+    capsys.readouterr()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import argparse
 import os
 import platform
+import sys
 from pathlib import Path
 
 import jax
@@ -20,7 +21,9 @@ import jax.numpy as jnp
 
 import histojax
 from histojax.sample import sample_feature_bundle
-from benchmarks.throughput import full_step_rollout, measure
+
+sys.path.insert(0, str(Path(__file__).resolve().parents[1]))  # benchmarks/ is not installed: run from the clone
+from benchmarks.throughput import full_step_rollout, measure  # noqa: E402
 
 HISTOGYM_STEPS_PER_S = (13.0, 60.0)
 

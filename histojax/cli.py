@@ -12,12 +12,15 @@
     histojax train [--algo ppo|dqn|ppo_rnn]   pure-JAX baselines (`python -m baselines.ppo|dqn|ppo_rnn`);
                                       --dataset DIR --split S; --resume RUN continues a killed run
     histojax evaluate CHECKPOINT      success rate, return, steps to success, trajectory pictures; a reader:
-                                      AUC through its slide head (--head DIR), fraction read; --dataset DIR
+                                      AUC through its slide head (--head DIR), fraction read; --dataset DIR;
+                                      CHECKPOINT a run folder or a published agent's name (c16-v2-set-reader)
+    histojax published [NAME]         the published agents and slide heads and what each was trained on
     histojax rotation --budget-mb MB  PPO on a dataset larger than the device, slides rotated through it
     histojax budget-curve --dataset DS   diagnosis AUC against the fraction of the slide read
     histojax reproduce [--quick]      the paper's tables: every algorithm trained, evaluated, tabulated
     histojax contract [ENV_ID ...]    the environment contract check (`make contract`, histojax.testing)
-    histojax bench                    environment throughput (steps/s) against memory bandwidth
+    histojax bench                    environment throughput (steps/s) against memory bandwidth (from a
+                                      source checkout: the wheel does not install benchmarks/)
 
 Compiled programs are kept in JAX's persistent compilation cache (~/.cache/histojax/jax, or
 $XDG_CACHE_HOME/histojax/jax), so a second run starts warm; --no-compile-cache (any command) or
@@ -31,12 +34,18 @@ them (:func:`data_tools.cli_output.run_command`). `histojax <command> --help` li
 Units: positions and sizes are pixels (level-0 px for annotations and regions, px of the
 current level for views); `--tile-size` is the view side in px. User errors (bad files, unknown
 ids or settings) print one line and exit with status 2; HISTOJAX_DEBUG=1 shows tracebacks.
+
+The commands' packages (``data_tools``, ``baselines``) are top-level names installed beside ``histojax``; they
+are only ever imported from there (:func:`own_package_refusal`): ``python -m histojax.cli`` puts the working
+folder first on the import path, where a folder of the same name would otherwise be imported instead.
 """
 from __future__ import annotations
 
 import importlib
+import importlib.util
 import os
 import sys
+from pathlib import Path
 
 from data_tools.cli_output import one_line_messages, os_error_text, print_error, run_command
 from data_tools.errors import HistojaxDataError
@@ -48,6 +57,7 @@ COMMANDS = {  # histojax <command>: the module whose add_arguments and run it is
     **{name: "data_tools.__main__" for name in DATA_COMMANDS},
     "demo": "baselines.demo",
     "evaluate": "baselines.evaluate",
+    "published": "baselines.published_agents",
     "rotation": "baselines.rotation",
     "budget-curve": "baselines.reading.budget_curve",
     "reproduce": "baselines.reproduce",
@@ -111,13 +121,56 @@ def _dispatch(command: str, rest: list[str]) -> int:
             rest = rest[:i] + rest[i + 2:]
         if algo not in ALGOS:
             return print_error(f"--algo must be one of {', '.join(ALGOS)}, got {algo!r}")
+        if refusal := own_package_refusal("data_tools") or own_package_refusal("baselines"):
+            return print_error(refusal)
         return _run(importlib.import_module(f"baselines.{algo}"), rest, f"histojax train --algo {algo}")
     if command not in COMMANDS:
         return print_error(f"unknown command {command!r}; one of: {', '.join([*COMMANDS, 'train'])}")
+    for name in ("data_tools", COMMANDS[command].split(".")[0]):
+        if refusal := own_package_refusal(name):
+            return print_error(refusal)
     module = importlib.import_module(COMMANDS[command])
     if command in DATA_COMMANDS:  # one parser with the data commands as its subcommands
         return _run(module, [command, *rest], "histojax")
     return _run(module, rest, f"histojax {command}")
+
+
+HOME = Path(__file__).resolve().parents[1]
+"""The folder ``histojax`` is installed in (site-packages, or a source checkout): the commands' packages are
+imported from here and nowhere else."""
+
+
+def package_home(name: str) -> Path | None:
+    """The folder the top-level package ``name`` is (or would be) imported from: the parent of its package folder;
+    None when it cannot be imported. Found without importing it."""
+    module = sys.modules.get(name)
+    spec = module.__spec__ if module is not None else importlib.util.find_spec(name)
+    if spec is None:
+        return None
+    if spec.origin not in (None, "namespace"):  # a regular package: .../name/__init__.py
+        return Path(spec.origin).resolve().parent.parent
+    places = list(spec.submodule_search_locations or [])  # a namespace package: a folder without __init__.py
+    return Path(places[0]).resolve().parent if places else None
+
+
+def own_package_refusal(name: str) -> str | None:
+    """One line when the top-level package ``name`` a command needs would not be histojax's own (from
+    :data:`HOME`): a folder of that name in the working folder first on the import path (``python -m``), or the
+    package not installed (``benchmarks``: a wheel does not install it, ``histojax bench`` runs from a source
+    checkout, where it is found beside ``histojax``); None when it is histojax's own."""
+    home = package_home(name)
+    if home is None and name == "benchmarks" and (HOME / "benchmarks" / "throughput.py").is_file():
+        sys.path.append(str(HOME))  # a source checkout whose install does not map benchmarks: its own folder
+        home = package_home(name)
+    if home == HOME:
+        return None
+    if home is None and name == "benchmarks":
+        return ("histojax bench runs from a source checkout: the wheel does not install benchmarks/ "
+                "(in a clone of the repository: make bench, or python benchmarks/throughput.py)")
+    if home is None:
+        return f"{HOME / name}: not installed beside histojax (reinstall histojax: pip install histojax)"
+    return (f"{home / name}: a folder named {name} in the import path ahead of histojax's own ({HOME / name}); "
+            "python -m puts the working folder first: run the histojax command, or from another folder")
 
 
 def _resumed_algo(rest: list[str]) -> str | None:

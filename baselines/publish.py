@@ -110,10 +110,30 @@ def run_name(run: Path, config: dict) -> str:
     return run.name
 
 
+def dataset_scale_record(dataset) -> dict:
+    """``{"mpp", "encoder"}`` of the dataset folder ``dataset`` as its ``dataset.json`` records them (``scale.mpp``:
+    µm per level-0 px of its slides; ``encoder``: its feature grids'), for ``trained_on``: what ``histojax evaluate``
+    compares with the dataset it scores; only the fields it records (``{}`` when it cannot be read)."""
+    try:
+        record = json.loads((Path(dataset) / "dataset.json").read_text())
+    except (OSError, ValueError):
+        return {}
+    if not isinstance(record, dict):
+        return {}
+    out = {}
+    mpp = (record.get("scale") or {}).get("mpp") if isinstance(record.get("scale"), dict) else None
+    if isinstance(mpp, (int, float)) and mpp > 0:
+        out["mpp"] = float(mpp)
+    if isinstance(record.get("encoder"), str) and record["encoder"]:
+        out["encoder"] = record["encoder"]
+    return out
+
+
 def portable_config(config: dict) -> tuple[dict, dict]:
     """``(config, trained_on)``: a run's ``config.json`` object with the paths of the machine it trained on
     written as ``null`` (``env_kwargs.dataset``, ``env_kwargs.slides``, ``slide``), and what they named as folder
-    names (``trained_on``: ``dataset``, ``split``, ``fold``, ``slides``, ``slide``; empty when none)."""
+    names (``trained_on``: ``dataset``, ``split``, ``fold``, ``slides``, ``slide``; empty when none), with the dataset's
+    scale and encoder when its ``dataset.json`` is readable (:func:`dataset_scale_record`)."""
     config = dict(config)
     kw = dict(config.get("env_kwargs") or {}) if isinstance(config.get("env_kwargs"), dict) else None
     where: dict = {}
@@ -121,6 +141,7 @@ def portable_config(config: dict) -> tuple[dict, dict]:
         if isinstance(kw.get("dataset"), str) and kw["dataset"]:
             where["dataset"] = folder_name(kw["dataset"])
             where["split"] = kw.get("split", "train")
+            where.update(dataset_scale_record(kw["dataset"]))
             if kw.get("fold") is not None:
                 where["fold"] = kw["fold"]
             kw["dataset"] = None

@@ -289,7 +289,7 @@ def test_loader_reads_views_through_the_checked_bundle_loader(cohort):
     root = cohort["root"]
     name = cohort["names"]["train"][0]
     s = fit.load_views(root / "bundles" / name, spec=fit.read_spec(root))
-    assert s["features"].shape == (14 * 18, 48) and s["label"] == 1 and s["encoder"] == f"imported:{name}.h5"
+    assert s["features"].shape == (14 * 18, 48) and s["label"] == 1 and s["encoder"] == "imported:ds/features/*.h5"
     arr = root / "bundles" / name / "features_00.npy"
     data = bytearray(arr.read_bytes())
     data[-1] ^= 0xFF
@@ -377,6 +377,17 @@ def test_the_command_fits_saves_and_scores(cohort, tmp_path, capsys):
     assert _main(["--dataset", str(cohort["root"]), "--out", str(tmp_path / "user"), "--quiet", "--steps", "20",
                   "--hidden", "32", "--eval-every", "10"]) == 2
     assert os.listdir(tmp_path / "user") == ["a.txt"]
+
+
+def test_score_refuses_a_head_of_another_import_folder(cohort, tmp_path, capsys):
+    """Was: ``--score`` compared no encoder, and a head recorded one slide's file (``imported:NAME.h5``), so a head
+    fitted on another encoder's 48-d import scored these slides without a word."""
+    head = small_head(dim=48).replace(encoder="imported:20x_256px_0px_overlap/features_uni_v1/*.h5")
+    head.save(tmp_path / "h")
+    assert _main(["--dataset", str(cohort["root"]), "--score", str(tmp_path / "h"), "--split", "test", "--quiet"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert "a slide head for imported:20x_256px_0px_overlap/features_uni_v1/*.h5 features" in err
+    assert "these slides hold imported:ds/features/*.h5 features" in err and len(err.splitlines()) == 1
 
 
 def test_param_shapes_cover_every_saved_array():

@@ -111,6 +111,48 @@ def provenance_warnings(trained: dict, scored: dict, config_path) -> list[str]:
         out.append(f"{config_path}: its training dataset {t_ds} is not here and config.json records no scale, so the "
                    f"scale cannot be checked: {s_ds} is at {float(s_mpp):.3g} µm/px ({s_rec.get('variant', '?')} "
                    "variant); the published C16 agents (c16-v1-* and c16-v2-*) trained on the full set (1.94 µm/px)")
+    t_enc, s_enc = t_rec.get("encoder"), s_rec.get("encoder")
+    if t_enc and s_enc and not same_encoder(t_enc, s_enc):
+        out.append(f"{config_path}: trained on {t_enc} features ({t_ds}); {s_ds} holds {s_enc} features: another "
+                   "encoder than it trained on")
+    return out
+
+
+def same_encoder(a, b) -> bool:
+    """Whether two recorded encoder names (a dataset's, a head's, a bundle's) name one encoder: equal, or features
+    imported from ``.h5`` files where either record names only the family (``imported``, or one slide's file
+    ``imported:NAME.h5`` as older imports recorded) and so cannot tell two imports apart
+    (:func:`histojax.reading.heads.same_encoder`)."""
+    from histojax.reading.heads import same_encoder as same
+
+    return same(a, b)
+
+
+def trained_record_warnings(run, scored: dict, config_path) -> list[str]:
+    """Warnings when a published agent (its ``published.json``'s ``trained_on``: ``mpp``, ``encoder``) is scored on
+    a dataset (``scored``: the evaluation's config; its ``env_kwargs.dataset``'s ``dataset.json``) at another scale
+    (µm/px) or of another encoder than it trained on; the published config.json names no dataset path, so
+    :func:`provenance_warnings` cannot compare them. ``[]`` when the record or the dataset says nothing."""
+    where = published_trained_record(Path(run)) if run is not None else None
+    s_ds = (read_run_config(scored).env_kwargs or {}).get("dataset")
+    if not where or not s_ds:
+        return []
+    s_rec = _dataset_record(s_ds)
+    t_mpp, s_mpp = where.get("mpp"), (s_rec.get("scale") or {}).get("mpp")
+    named = f"{where['dataset']!r}" if isinstance(where.get("dataset"), str) else "its training dataset"
+    out = []
+    try:
+        t_mpp, s_mpp = (None if v is None else float(v) for v in (t_mpp, s_mpp))
+    except (TypeError, ValueError):
+        t_mpp = s_mpp = None
+    if t_mpp and s_mpp and abs(t_mpp - s_mpp) > 1e-3 * t_mpp:
+        out.append(f"{config_path}: a published agent trained at {t_mpp:.3g} µm/px ({named}, its published.json); "
+                   f"scored at {s_mpp:.3g} µm/px ({s_ds}): another scale than it trained at, so its cells, views and "
+                   "reading budget hold other tissue (score it on a dataset at its scale)")
+    t_enc, s_enc = where.get("encoder"), s_rec.get("encoder")
+    if isinstance(t_enc, str) and isinstance(s_enc, str) and not same_encoder(t_enc, s_enc):
+        out.append(f"{config_path}: a published agent trained on {t_enc} features ({named}, its published.json); "
+                   f"{s_ds} holds {s_enc} features: another encoder than it trained on")
     return out
 
 

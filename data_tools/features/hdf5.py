@@ -267,6 +267,16 @@ def tissue_coverage(bundle: Path, metadata, mask: np.ndarray, level: int, stride
     return int((views & mask).sum()), int(views.sum())
 
 
+def imported_encoder(h5_path) -> str:
+    """The encoder name features imported from ``h5_path`` record: ``imported:`` and the file's folder with the one
+    above it, the layout the exporting tool wrote (TRIDENT ``20x_256px_0px_overlap/features_uni_v1/*.h5``, CLAM
+    ``RESULTS/h5_files/*.h5``), so that two encoders' features of one length stay apart and every slide of one
+    import records one name (its own file is ``import.file``)."""
+    folder = Path(h5_path).resolve().parent
+    parts = [p for p in (folder.parent.name, folder.name) if p]
+    return f"imported:{'/'.join(parts) or '.'}/*.h5"
+
+
 def import_features(bundle, h5_path, patch_size: int | None = None, level: int | None = None,
                     downsample: float | None = None, stride: int | None = None, dtype: str = "float16",
                     max_bytes: int = MAX_IMPORT_BYTES) -> dict:
@@ -337,7 +347,7 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
         written += [names["file"], names["mask_file"]]
         levels.append({**names, "grid": list(grid), "covered": int(mask.sum())})
     result = {
-        "encoder": f"imported:{h5_path.name}", "dim": int(dim), "stride": stride, "dtype": dtype,
+        "encoder": imported_encoder(h5_path), "dim": int(dim), "stride": stride, "dtype": dtype,
         "projection": None, "source": "imported",
         "import": {"file": h5_path.name, "sha256": sha256(h5_path), "n_patches": int(n), **info},
         "grid": "cell (gy, gx) of level KK = the view with top-left (gx*stride, gy*stride) px of that level",
@@ -348,4 +358,4 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
 
 
 __all__ = ["MAX_IMPORT_BYTES", "MIN_TISSUE_COVERAGE", "FeatureFileError", "check_feature_dims", "feature_dim",
-           "import_features", "overlap_count", "patches_to_grid", "read_patch_features", "tissue_coverage"]
+           "import_features", "imported_encoder", "overlap_count", "patches_to_grid", "read_patch_features", "tissue_coverage"]

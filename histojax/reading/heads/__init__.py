@@ -62,6 +62,36 @@ def encoder_family(name) -> str | None:
     return "imported" if isinstance(name, str) and name.startswith("imported:") else name
 
 
+def _imported_folder(name) -> bool:
+    """Whether an encoder name of imported features names their folder and file layout
+    (``imported:FOLDER/SUBFOLDER/*.h5``, :func:`data_tools.features.hdf5.imported_encoder`), not only the family
+    (``imported``) or one slide's file (``imported:NAME.h5``, as imports before it recorded)."""
+    return isinstance(name, str) and name.startswith("imported:") and name.endswith("/*.h5")
+
+
+def same_encoder(a, b) -> bool:
+    """Whether two recorded encoder names (a head's, a dataset's, a bundle's feature grid's) name one encoder's
+    features: equal names; or, for features imported from ``.h5`` files (:func:`encoder_family` ``imported``), the
+    same folder and file layout when both record it, else (either names only the family or one slide's file, which
+    cannot tell two imports apart) the family alone. An unknown name (None, empty) is not a difference."""
+    if not a or not b or a == b:
+        return True
+    if encoder_family(a) != encoder_family(b):
+        return False
+    return not (_imported_folder(a) and _imported_folder(b))
+
+
+def encoder_mismatch(head, encoders) -> str | None:
+    """What is wrong, in words, when ``head`` (its recorded ``encoder``) scores slides whose feature grids record
+    ``encoders`` (names, one per slide or per kind): ``"a slide head for X features; these slides hold Y features"``,
+    or ``None`` when every one is the head's (:func:`same_encoder`) or the head records none."""
+    want = getattr(head, "encoder", None)
+    other = sorted({str(e) for e in encoders if e and not same_encoder(want, e)})
+    if not want or not other:
+        return None
+    return f"a slide head for {want} features; these slides hold {', '.join(other)} features"
+
+
 def load(folder) -> SlideHeadProtocol:
     """Read the slide head saved in ``folder``, of the class its ``config.json``'s ``kind`` names, through the
     guarded reader (:mod:`histojax.reading.heads.files`). ``ValueError`` naming the file, one line, on anything

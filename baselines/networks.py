@@ -100,7 +100,7 @@ class MLP(nn.Module):
 
 def is_discrete(action_mode: str) -> bool:
     """True for the action modes with a ``Discrete`` space: ``"discrete"``, ``"glimpse[:LEVEL]"`` and
-    ``"zoom_select[:K]"`` (see :mod:`histojax.reading.modes.base`); the others are continuous."""
+    ``"zoom_select[:K]"`` (see :mod:`histojax.core.modes.factory`); the others are continuous."""
     return action_mode.partition(":")[0] in ("discrete", "glimpse", "zoom_select")
 
 

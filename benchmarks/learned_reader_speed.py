@@ -1,6 +1,6 @@
 """Set-reader PPO through a head against a navigator's PPO through the same head, on the same slides, back to back
 in one process: env steps/s of each (and their ratio), the env wrapped in
-:class:`~histojax.adapters.head_reward.HeadReward` as ``baselines.reading.train_readers`` wraps it, under
+:class:`~histojax.reading.head_reward.HeadReward` as ``baselines.reading.train_readers`` wraps it, under
 ``HistoJAX-Reading-v0`` (any dataset, any encoder's features; the levels the bundles were built for)::
 
     python -m benchmarks.learned_reader_speed --dataset DIR --head HEAD [--reader glimpse:1] [--num-envs 32]
@@ -28,7 +28,7 @@ def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: 
 
     from baselines import common, ppo
     from baselines.reading.train_readers import is_navigator
-    from histojax.adapters.head_reward import HeadReward
+    from histojax.reading.head_reward import HeadReward
     from histojax.registry import READING_ID
 
     original = common.make_env

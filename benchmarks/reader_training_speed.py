@@ -1,6 +1,6 @@
 """How fast the set reader trains with SASHA's reward: PPO env steps/s of the cell-set reader
 (``glimpse`` with ``step_obs=True``, :class:`~baselines.networks.CellSetActorCritic`) on a dataset's
-training slides, the env wrapped in :class:`~histojax.adapters.head_reward.HeadReward` exactly as
+training slides, the env wrapped in :class:`~histojax.reading.head_reward.HeadReward` exactly as
 ``baselines.reading.train_readers`` wraps it, under four settings measured in one run:
 
 * ``whole grid, keys every step``: the head re-scores the whole finest grid at every step
@@ -33,7 +33,7 @@ def one_row(dataset: Path, head_dir: str, action_mode: str, num_envs: int, minib
 
     from baselines import common, ppo
     from histojax.reading import heads
-    from histojax.adapters.head_reward import HeadReward
+    from histojax.reading.head_reward import HeadReward
 
     head = heads.load(head_dir)
     original_make, original_apply = common.make_env, ppo.rollout_apply

@@ -244,7 +244,9 @@ def features_env(env, params, make_kwargs: dict, dim: int = 1280):
     """``(env, params, note)`` with ``obs_mode="features"``, or ``(None, None, note)`` if this
     histojax has no feature observations. Uses the bundle's feature grid if it has one, else
     attaches a random float16 grid (``dim``-d, stride = tile size) to the slide in memory."""
-    if "features" not in getattr(hx_env, "OBS_MODES", ()):
+    from histojax.core.modes.factory import OBS_MODES
+
+    if "features" not in OBS_MODES:
         return None, None, "this histojax has no obs_mode='features': feature rows skipped"
     from data_tools.errors import HistojaxDataError
 

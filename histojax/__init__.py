@@ -4,6 +4,7 @@
     obs, state = env.reset(key, params)
     obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
 """
+import histojax.reading.modes  # noqa: F401  (registers the reading modes in the core's mode names; first)
 from histojax.actions import ACTION_NAMES, DOWN, LEFT, RIGHT, STAY, UP, ZOOM_IN, ZOOM_OUT
 from histojax.adapters.jax import GymnaxV0Wrapper, LogWrapper
 from histojax.env import EnvParams, EnvState, HistoEnv

@@ -15,7 +15,7 @@ import jax
 import jax.numpy as jnp
 from jax.experimental import checkify
 
-from histojax.reading.modes.base import Navigation
+from histojax.core.modes.base import Navigation
 from histojax.rewards import classification_bounds, reward_bounds
 
 

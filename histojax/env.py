@@ -81,7 +81,7 @@ from flax import struct
 
 from histojax import augment as dihedral
 from histojax import actions, gymnax_classes, rewards, spaces
-from histojax.reading.modes import base, factory
+from histojax.core.modes import base, factory
 from histojax.slide import SlideArrays
 from histojax.views import view_tumour_fraction
 
@@ -90,8 +90,6 @@ try:  # gymnax is optional; code that can ask ``isinstance(env, Environment)`` h
 except ImportError:
     _GymnaxEnvironment = object
 
-ACTION_MODES = tuple(factory.ACTION_MODES)
-OBS_MODES = tuple(factory.OBS_MODES)
 TASKS = ("detection", "classification")
 view_features = base.view_features  # public name kept: the feature vector of a view
 
@@ -176,8 +174,8 @@ class HistoEnv(_GymnaxEnvironment):
 
     n_levels: int
     tile_size: int = 128
-    action_mode: Any = "discrete"   # a name in ACTION_MODES or a histojax.reading.modes.base.ActionMode object
-    obs_mode: Any = "pixels"        # a name in OBS_MODES or a histojax.reading.modes.base.ObsMode object
+    action_mode: Any = "discrete"   # a name in histojax.core.modes.factory.ACTION_MODES or an ActionMode object
+    obs_mode: Any = "pixels"        # a name in histojax.core.modes.factory.OBS_MODES or an ObsMode object
     with_position: bool = False
     reward: str = "dense"
     auto_reset: bool = True
@@ -216,7 +214,7 @@ class HistoEnv(_GymnaxEnvironment):
             raise ValueError(f"augment=True cannot turn action_mode={action.name!r}; use 'discrete' or 'continuous'")
         action.validate(self)
 
-    # ----------------------------------------------------------------- the modes (histojax.reading.modes.base)
+    # ----------------------------------------------------------------- the modes (histojax.core.modes.base)
     @property
     def action(self) -> base.ActionMode:
         """The action mode object ``action_mode`` names."""

@@ -67,7 +67,7 @@ class MakeOptions:
     random_start: bool = option(PARAMS, "False: HistoGym's fixed start, top-left of the coarsest level")
     start_level: int = option(PARAMS, "navigation modes: the level episodes start at")
     diagnosis_reward: float = option(PARAMS, "classification: + for a right diagnosis, - for a wrong one")
-    # mode: the action mode's prepare (histojax.reading.modes)
+    # mode: the action mode's prepare (histojax.core.modes.base and the reading modes)
     read_budget: float = option(MODE, "fraction of finest-level tissue views an episode may read")
     track_reading: bool = option(MODE, "pan/zoom modes report fraction_read and fields_of_view in info")
     glimpse_grid: tuple = option(MODE, "glimpse: the padded cell grid (H, W)")

@@ -39,14 +39,14 @@ import numpy as np
 
 from data_tools.bundle_format import read_dataset_json
 from data_tools.errors import BundleError
-from histojax.reading.modes import factory
+from histojax.core.modes import factory
 from histojax.env import EnvParams, HistoEnv
 from histojax.make_options import DATASET, MODE, PARAMS, STATIC, MakeOptions
-from histojax.reading.modes.base import Navigation
+from histojax.core.modes.base import Navigation
 from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, check_alike, load_slide, stack_slides, start_cdf
 
 # the names of make's options by where they go, derived from the one typed set (histojax.make_options.MakeOptions):
-# static HistoEnv settings, EnvParams fields, the action mode's prepare settings (histojax.reading.modes.base),
+# static HistoEnv settings, EnvParams fields, the action mode's prepare settings (histojax.core.modes.base),
 # and how make draws a dataset's slides (``tumour_slides_only``: reset draws only slides with tumour annotated;
 # ``dataset_format`` / ``dataset_encoder``: the least ``dataset.json`` "format" and the feature encoder a dataset
 # must have for this id, an older dataset refused naming the command that rebuilds it)
@@ -236,7 +236,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     ``augment``; ``tile_size`` only for the sample slide, where it selects another cached bundle) or ``EnvParams`` field
     (``max_steps_in_episode``, ``stride``, ``success_threshold``, ``step_cost``,
     ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``random_start``, ``start_level``), or the reading
-    settings of :mod:`histojax.reading.tables`: ``read_budget`` (fraction of finest-level tissue views, for
+    settings of :mod:`histojax.core.seen_views`: ``read_budget`` (fraction of finest-level tissue views, for
     ``action_mode="glimpse"`` / ``"zoom_select"``, or with tracking) and ``track_reading=True`` (the
     pan/zoom modes then report ``fraction_read`` and ``fields_of_view`` in ``info``), and for ``glimpse``,
     ``glimpse_grid=(H, W)``, the padded cell grid (default: the largest of the slides loaded; the

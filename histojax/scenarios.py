@@ -199,7 +199,7 @@ def scenario_from_dict(data: dict, base: Path | None = None, where=None) -> Scen
     relative paths are taken from ``base``. Errors name ``where``."""
     from data_tools.annotations import LABELS
     from histojax import rewards
-    from histojax.env import ACTION_MODES, OBS_MODES
+    from histojax.core.modes.factory import ACTION_MODES as action_modes, OBS_MODES as obs_modes
     from histojax.registry import PARAM_FIELDS
 
     if not isinstance(data, dict):
@@ -224,8 +224,8 @@ def scenario_from_dict(data: dict, base: Path | None = None, where=None) -> Scen
     check("tile_size", lambda v: is_int(v) and v >= 8, "an integer >= 8 (view size in px)")
     check("max_steps_in_episode", lambda v: is_int(v) and v >= 1, "an integer >= 1")
     check("reward", lambda v: v in rewards.PRESETS, f"one of {rewards.PRESETS}")
-    check("obs_mode", lambda v: v in OBS_MODES, f"one of {OBS_MODES}")
-    check("action_mode", lambda v: v in ACTION_MODES, f"one of {ACTION_MODES}")
+    check("obs_mode", lambda v: v in obs_modes, f"one of {tuple(obs_modes)}")
+    check("action_mode", lambda v: v in action_modes, f"one of {tuple(action_modes)}")
     check("with_position", lambda v: isinstance(v, bool), "true or false")
     check("label_map", lambda v: isinstance(v, dict) and all(x in LABELS for x in v.values()),
           f"a table mapping annotation groups to one of {LABELS}")

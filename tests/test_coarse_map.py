@@ -12,8 +12,8 @@ import numpy as np
 import pytest
 
 import histojax
-from histojax.reading import tables as reading_tables
-from histojax.reading.modes.base import view_features
+from histojax.core import seen_views
+from histojax.core.modes.base import view_features
 from slide_helpers import synth_feature_dataset
 
 ENTRY = 2
@@ -31,11 +31,11 @@ def _make(dataset, **kw):
 def _by_hand(env, params, level: int) -> list[np.ndarray]:
     """Per slide: each block's largest entry over the level-``level`` views that share a finest tissue view's
     centre, read one by one with the env's feature lookup; blocks without tissue: the slide's lowest."""
-    t, f, m = env.tile_size, env.n_levels - 1, reading_tables.VISITED_MAP
+    t, f, m = env.tile_size, env.n_levels - 1, seen_views.VISITED_MAP
     maps = []
-    for slide, bundle in reading_tables.per_slide(params, env.bundles):
+    for slide, bundle in seen_views.per_slide(params, env.bundles):
         ds = np.asarray(slide.downsample, np.float64)
-        tissue = reading_tables.tissue_views(bundle, slide, t)
+        tissue = seen_views.tissue_views(bundle, slide, t)
         gh, gw = tissue.shape
         blocks = {}
         for fy, fx in zip(*np.nonzero(tissue)):

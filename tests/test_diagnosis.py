@@ -291,8 +291,8 @@ def test_navigation_tracks_reading_without_changing_trajectories(bundle):
 
 
 def test_navigation_memory_observation(bundle):
-    from histojax.reading.modes.factory import action_mode
-    from histojax.reading.modes.base import Continuous, Discrete
+    from histojax.core.modes.factory import action_mode
+    from histojax.core.modes.base import Continuous, Discrete
 
     env, params = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode=Discrete(memory=True))
     obs, _ = env.reset(jax.random.key(0), params)
@@ -390,12 +390,13 @@ def test_default_slots_hold_every_cell_the_budget_allows(bundle):
 
 
 def test_mode_names_resolve_apart_from_the_base_classes():
-    """``histojax.reading.modes.base`` holds the base classes that ``glimpse`` and ``zoom_select`` import; the names
-    resolve in ``histojax.reading.modes.factory``, so ``modes`` imports neither reading mode (no circle)."""
+    """``histojax.core.modes.base`` holds the base classes that ``glimpse`` and ``zoom_select`` import; the names
+    resolve in ``histojax.core.modes.factory``, where the reading stack registers its modes, so the core imports
+    neither reading mode (no circle)."""
     import ast
     import inspect
 
-    from histojax.reading.modes import base, factory
+    from histojax.core.modes import base, factory
 
     imported = set()
     for node in ast.walk(ast.parse(inspect.getsource(base))):

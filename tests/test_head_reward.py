@@ -1,4 +1,4 @@
-"""SASHA's reward through a slide head (histojax.adapters.head_reward.HeadReward): the reward is the head's score
+"""SASHA's reward through a slide head (histojax.reading.head_reward.HeadReward): the reward is the head's score
 difference computed by hand from what was read (glimpse cells revealed; a navigator's finest views), the
 final diagnosis bonus and the reading cost; vmap of step equals a loop; the same key gives the same
 trajectory; the wrapped env's states are the unwrapped env's.
@@ -17,10 +17,11 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import histojax
+from histojax.core import seen_views
 from histojax.reading import tables as reading_tables
 from histojax.reading.heads import score_logits
 from histojax.reading.heads.logit import SlideHead
-from histojax.adapters.head_reward import HeadReward
+from histojax.reading.head_reward import HeadReward
 from hypothesis_examples import examples
 from slide_helpers import synth_feature_dataset
 
@@ -61,9 +62,9 @@ def _jit(fn):
 def _finest(env, params):
     """Per slide, host: (view logits (H, W), tissue (H, W)) — the head's inputs, straight from the bundles."""
     out = []
-    for slide, bundle in reading_tables.per_slide(params, env.bundles):
+    for slide, bundle in seen_views.per_slide(params, env.bundles):
         out.append((reading_tables.finest_view_features(slide, env.tile_size)[..., HEAD.dim],
-                    reading_tables.tissue_views(bundle, slide, env.tile_size)))
+                    seen_views.tissue_views(bundle, slide, env.tile_size)))
     return out
 
 
@@ -290,8 +291,8 @@ def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(datase
     ep = evaluate.run_episodes(env, per, policy, jax.random.key(0), n, params_axes=axes)
     f, t = env.n_levels - 1, env.tile_size
     finest_total = 0
-    for e, (slide, bundle) in enumerate(reading_tables.per_slide(env_params, env.bundles)):
-        tissue = reading_tables.tissue_views(bundle, slide, t)
+    for e, (slide, bundle) in enumerate(seen_views.per_slide(env_params, env.bundles)):
+        tissue = seen_views.tissue_views(bundle, slide, t)
         mask = np.zeros(tissue.shape, bool)
         steps = int(ep["length"][e]) + 1
         for z, x, y in zip(ep["z"][:steps, e], ep["x"][:steps, e], ep["y"][:steps, e]):

@@ -1,4 +1,4 @@
-"""SASHA's reward through the learned attention-MIL head (histojax.adapters.head_reward.HeadReward with a
+"""SASHA's reward through the learned attention-MIL head (histojax.reading.head_reward.HeadReward with a
 :class:`~histojax.reading.heads.learned.LearnedHead`): the wrapper keeps running sums and adds only the views a
 step newly reads (a glimpse cell, a navigator's new finest view); after every step of any trajectory its logit
 equals the head rescoring the whole read set from the feature grid, and its rewards equal those of the wrapper
@@ -16,7 +16,8 @@ from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import histojax
-from histojax.adapters.head_reward import HeadReward, pools_views
+from histojax.reading.head_reward import HeadReward, pools_views
+from histojax.core import seen_views
 from histojax.reading import tables as reading_tables
 from histojax.reading.heads.learned import LearnedHead, init_params
 from slide_helpers import synth_feature_dataset
@@ -49,7 +50,7 @@ def setups(tmp_path_factory):
         fast = HeadReward(env, head, gain="fidelity", final=1.0, read_cost=0.01)
         whole = HeadReward(env, head, gain="fidelity", final=1.0, read_cost=0.01, incremental_score=False)
         grids = [reading_tables.finest_view_features(s, env.tile_size).astype(np.float32)
-                 for s, _ in reading_tables.per_slide(params, env.bundles)]
+                 for s, _ in seen_views.per_slide(params, env.bundles)]
         out[name] = dict(env=env, params=params, head=head, fast=fast, whole=whole, grids=grids,
                          fast_step=jax.jit(fast.step), whole_step=jax.jit(whole.step),
                          fast_reset=jax.jit(fast.reset), whole_reset=jax.jit(whole.reset),

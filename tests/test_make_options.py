@@ -10,7 +10,8 @@ import pytest
 import histojax
 from histojax.env import EnvParams, HistoEnv
 from histojax.make_options import DATASET, KINDS, MODE, PARAMS, STATIC, UNSET, MakeOptions
-from histojax.reading.modes import base, glimpse, zoom_select
+from histojax.core.modes import base
+from histojax.reading.modes import glimpse, zoom_select
 from histojax.registry import DATASET_FIELDS, MODE_SETTINGS, PARAM_FIELDS, STATIC_FIELDS, EnvSpec
 
 

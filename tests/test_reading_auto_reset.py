@@ -18,8 +18,8 @@ import pytest
 
 import histojax
 from histojax.reading.modes.glimpse import Glimpse
-from histojax.reading.modes.base import ActionMode
-from histojax.reading.tables import seen_flags
+from histojax.core.modes.base import ActionMode
+from histojax.core.seen_views import seen_flags
 from histojax.reading.modes.zoom_select import ZoomSelect
 
 TILE, STEPS, ENVS, EPISODE = 32, 30, 6, 7

@@ -45,7 +45,7 @@ def add_arguments(p, defaults: dict) -> None:
                    help="with --dataset built with --folds K: train on fold I's train side (the other K - 1 folds); "
                         "make(..., fold=I)")
     p.add_argument("--action-mode", default="discrete",
-                   help="discrete | continuous | glimpse[:LEVEL] | zoom_select[:K] (histojax.reading.modes.base)")
+                   help="discrete | continuous | glimpse[:LEVEL] | zoom_select[:K] (histojax.core.modes.factory)")
     p.add_argument("--obs-mode", "--obs", dest="obs_mode", default="pixels",
                    help="the env's obs_mode: pixels | features | ... (--obs: the older spelling)")
     p.add_argument("--with-position", action="store_true", help="observation dict with the view position")

@@ -1,4 +1,4 @@
-"""Head scoring: readers whose slide head declares (SASHA's reward, ``histojax.adapters.head_reward``), the head's
+"""Head scoring: readers whose slide head declares (SASHA's reward, ``histojax.reading.head_reward``), the head's
 score per episode and its AUC, with and without ITC-only slides (CAMELYON's lesion classes)."""
 from __future__ import annotations
 
@@ -12,19 +12,18 @@ from data_tools.errors import HistojaxDataError
 from baselines.evaluate.checks import UNDEFINED, one_class
 from baselines.evaluate.rollout import episode_labels
 from baselines.run_config import read_run_config
-from histojax.reading.heads import encoder_family, same_encoder  # noqa: F401  (encoder_family: this module's API)
+from histojax.reading.heads import encoder_family
 
 
 
 def check_head_features(head, encoders: list[str], dim: int) -> None:
     """Refuse (``ValueError``, one line) a slide head that cannot read these slides' features: the slides hold
-    another encoder's features than the head records (:func:`histojax.reading.heads.same_encoder`: imported features
-    by their folder and file layout), or features of the wrong
+    another encoder's features than the head records (``imported:*`` names are one family), or features of the wrong
     length (``dim`` entries) — a head that reads every entry (``features_dim``: the learned attention-MIL head) needs
     exactly its length, a logit head (``dim``: the entry of the view logit) an entry it reads. Any head kind
     :func:`histojax.reading.heads.load` reads."""
     want = getattr(head, "encoder", None)
-    if want and any(not same_encoder(want, e) for e in encoders):
+    if want and any(encoder_family(e) != encoder_family(want) for e in encoders):
         fit = ("python -m baselines.reading.learned_head_fit" if hasattr(head, "features_dim")
                else "python -m baselines.reading.head_fit, or learned_head_fit for any encoder")
         raise ValueError(f"a slide head for {want} features; these slides hold {', '.join(encoders)} features "
@@ -46,7 +45,7 @@ def head_env(env, env_params, head, settings: dict | None = None):
     attention-MIL head of any encoder's features). ``settings``: ``gain``, ``final``, ``read_cost`` of a run's
     ``head_reward.json`` (None: no head reward terms, the env's own reward). ``ValueError`` (one line) when the
     slides' features are not the head's (:func:`check_head_features`)."""
-    from histojax.adapters.head_reward import HeadReward
+    from histojax.reading.head_reward import HeadReward
 
     encoders = sorted({str((b.metadata.get("features") or {}).get("encoder")) for b in env.bundles} - {"None"})
     features = getattr(env_params.slide, "features", None)
@@ -77,7 +76,7 @@ def refuse_one_class(config, env_params, slide=None) -> None:
 
 
 def head_scored(ep: dict, env_params, classes) -> dict:
-    """:func:`run_episodes` output of a :class:`~histojax.adapters.head_reward.HeadReward` env with the head's
+    """:func:`run_episodes` output of a :class:`~histojax.reading.head_reward.HeadReward` env with the head's
     diagnosis in the fields :func:`summarise` scores: ``tumour_score`` (the head's p(tumour) of what was
     read), ``label``, ``success`` (the head right) and, with ``classes``, ``lesion`` per episode."""
     ep["tumour_score"] = 1.0 / (1.0 + np.exp(-np.asarray(ep["head_score"], np.float64)))

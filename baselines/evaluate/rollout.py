@@ -12,7 +12,7 @@ from baselines import common
 from baselines.run_config import read_run_config
 from data_tools.metrics import accuracy, roc_auc
 from data_tools.errors import HistojaxDataError
-from histojax.reading import tables as reading_tables
+from histojax.core import seen_views
 
 
 
@@ -24,7 +24,7 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
     once the episode has ended (so it holds what the policy had at the episode's last step).
     Returns numpy ``return, success, length`` and ``slide`` (the slide index of a multi-slide env)
     per episode, ``fraction_read`` and ``fields_of_view`` at its end (NaN / -1 when the env does not
-    track reading; see :func:`histojax.reading.tables.with_tracking`) and the ``(steps+1, E)`` trajectories
+    track reading; see :func:`histojax.core.seen_views.with_tracking`) and the ``(steps+1, E)`` trajectories
     ``z, x, y``: entry 0 the view at reset, entry ``t`` the view after step ``t`` (frozen after the
     episode ended).
 
@@ -34,7 +34,7 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
     ``final_state`` (the env states at the episodes' ends) and ``final_memory`` (the policy's
     memory; ``()`` for a feed-forward policy), as pytrees of numpy arrays.
 
-    An env wrapped in :class:`histojax.adapters.head_reward.HeadReward` also gives per episode ``head_score``
+    An env wrapped in :class:`histojax.reading.head_reward.HeadReward` also gives per episode ``head_score``
     (the slide head's tumour logit of what the episode read, at its last step) and ``head_correct``
     (the head's diagnosis right); ``NaN`` / False for other envs. Trajectories and ``final_state`` are
     the wrapped env's own states."""
@@ -160,7 +160,7 @@ def eval_env(config, slide=None, augment: bool = False):
     """``(config, (env, env_params))``: the checkpoint's env as :func:`evaluate` runs it — on
     ``slide`` when given (it replaces a training dataset), without auto-reset, without training-time
     view augmentation unless ``augment``, and with reading tracked
-    (:func:`histojax.reading.tables.with_tracking`) for the efficiency metrics. ``config``: the run's typed config
+    (:func:`histojax.core.seen_views.with_tracking`) for the efficiency metrics. ``config``: the run's typed config
     or its record (:func:`baselines.run_config.read_run_config`); the typed config of that env comes back."""
     config = read_run_config(config)
     config = config.replace(slide=slide if slide is not None else config.slide)
@@ -169,7 +169,7 @@ def eval_env(config, slide=None, augment: bool = False):
         if slide is not None:  # a given slide replaces a training dataset
             drop |= {"dataset", "split", "fold", "slides", "slide_weights"}
         config = config.replace(env_kwargs={k: v for k, v in config.env_kwargs.items() if k not in drop})
-    return config, reading_tables.with_tracking(*common.make_env(config, auto_reset=False))
+    return config, seen_views.with_tracking(*common.make_env(config, auto_reset=False))
 
 
 def check_fits(policy, env, env_params, num_seeds: int, config, source=None) -> None:

@@ -30,7 +30,7 @@ from baselines.reading.head_fit import HeadDataError, load_slide, load_slides, r
 from baselines.reading.orders import random_order, read_cells
 from data_tools.bundle_format import read_metadata, verify_metadata
 from baselines.run_config import read_run_config
-from histojax.adapters.head_reward import pools_views
+from histojax.reading.head_reward import pools_views
 
 
 @dataclasses.dataclass
@@ -98,8 +98,6 @@ def _glimpse_tables(dataset: Path, split: str, env_id: str, level: int, verify: 
     glimpse = Glimpse(level=level)                                      # device tables, unused here, a second time
     glimpse.validate(env)
     tables = glimpse.host_tables(env, params, env.bundles)
-    for table, bundle in zip(tables, env.bundles):  # the slide's name and encoder: what a head and a warning check
-        table.update(name=Path(bundle.path).name, encoder=(bundle.metadata.get("features") or {}).get("encoder"))
     labels = np.atleast_1d(np.asarray(params.slide.slide_label)).astype(int)
     return tables, labels
 
@@ -249,7 +247,7 @@ def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None =
     step; see :func:`baselines.evaluate.learned_policy`), the fraction read and the fields of view
     (env steps that looked at the slide) of the episode."""
     from baselines import common, evaluate
-    from histojax.reading.tables import seen_flags  # seen is a bit set
+    from histojax.core.seen_views import seen_flags  # seen is a bit set
 
     params, record = common.load_checkpoint(run)
     config = read_run_config(record, (Path(run) if Path(run).is_dir() else Path(run).parent) / "config.json")

@@ -1,5 +1,5 @@
 """Train learned readers on any dataset through any slide head, with SASHA's reward
-(:class:`histojax.adapters.head_reward.HeadReward`), and score them on validation slides with the same head as
+(:class:`histojax.reading.head_reward.HeadReward`), and score them on validation slides with the same head as
 every other reader. A baseline with a ``histojax train``-style command line::
 
     python -m baselines.reading.train_readers --dataset DIR --head HEAD --seeds 3 --total-steps N --out DIR \\
@@ -110,9 +110,9 @@ def split_dataset(dataset: Path, out: Path, fraction: float, seed: int, fold: in
 
 def with_head_reward(head, gain, final: float, read_cost: float):
     """Make :func:`baselines.common.make_env` (which every trainer calls) return the env wrapped in
-    :class:`~histojax.adapters.head_reward.HeadReward`; returns the original to restore."""
+    :class:`~histojax.reading.head_reward.HeadReward`; returns the original to restore."""
     from baselines import common
-    from histojax.adapters.head_reward import HeadReward
+    from histojax.reading.head_reward import HeadReward
 
     original = common.make_env
 

@@ -1,10 +1,12 @@
-"""The reading stack: what a reader sees, what it has read, and how a slide is scored from it.
+"""The reading stack, on top of the env core (:mod:`histojax.core`): how a slide is read and scored.
 
-- :mod:`histojax.reading.modes`: the action and observation modes (``base``: the base classes and the
-  pan/zoom modes; ``glimpse`` and ``zoom_select``: the reading modes; ``factory``: the names ``make`` takes).
-- :mod:`histojax.reading.tables`: the per-slide tables and the seen-views memory the modes keep.
+- :mod:`histojax.reading.modes`: the reading modes (``glimpse``, ``zoom_select``); importing the package registers
+  them in the core's mode names (:mod:`histojax.core.modes.factory`).
+- :mod:`histojax.reading.tables`: the reading modes' per-slide tables (cells over finest views, view features).
 - :mod:`histojax.reading.coarse_map`: the coarse feature map a ``discrete:map`` navigator sees.
 - :mod:`histojax.reading.heads`: slide heads (one protocol, one ``load``), scoring a slide from the views read.
+- :mod:`histojax.reading.head_reward`: SASHA's reward through a slide head, a gymnax-style reward wrapper.
 
-The head reward (a wrapper) is :mod:`histojax.adapters.head_reward`.
+The navigation and observation modes every env uses, and the seen-views memory behind ``fraction_read``, are the
+core's (:mod:`histojax.core.modes`, :mod:`histojax.core.seen_views`).
 """

@@ -1,14 +1,14 @@
 """The coarse map of a navigating mode with ``coarse_map=True`` (``action_mode="discrete:map"`` /
 ``"continuous:map"``): one feature entry of a coarse level (``map_feature``), or a slide head's per-view score of
 the coarse level's feature vectors (``map_head``: e.g. a learned attention-MIL head's instance logit, any
-encoder), laid out on the 16 × 16 blocks of the visited map (:mod:`histojax.reading.tables`), so that a navigator
+encoder), laid out on the 16 × 16 blocks of the visited map (:mod:`histojax.core.seen_views`), so that a navigator
 sees where on the slide to go, as a cell-set reader sees its cells' coarse features.
 
 Block ``(by, bx)`` holds the largest value of feature entry ``feature`` (e.g. the view logit of the
 ``pcam-cnn`` encoder, entry 62) over the level-``level`` views under the block's finest tissue views:
 finest view ``(fy, fx)`` of block ``(fy·16 // gh, fx·16 // gw)`` takes the level-``level`` view that
 shares its centre (the feature-grid cell nearest that view's top-left corner, as
-:func:`histojax.reading.modes.base.view_features` reads it). A block without tissue holds the slide's lowest value. The
+:func:`histojax.core.modes.base.view_features` reads it). A block without tissue holds the slide's lowest value. The
 map is built once per slide on the host; it carries nothing from the finest level but the tissue mask
 (which comes from the slide's thumbnail).
 """
@@ -17,7 +17,7 @@ from __future__ import annotations
 import numpy as np
 
 from histojax.reading import heads as slide_heads
-from histojax.reading.tables import VISITED_MAP, level_geometry, per_slide, tissue_views
+from histojax.core.seen_views import VISITED_MAP, level_geometry, per_slide, tissue_views
 
 
 def level_index(level: int, n_levels: int) -> int:

@@ -4,7 +4,7 @@ lies under them at the finest level, diagnose.
 **Cells** are the feature-grid views of scenario level ``level`` (default 0, the coarsest; the
 grid step is the bundle's feature stride, ``T`` px by default), padded to the dataset's largest
 grid ``Gh × Gw`` (``C = Gh·Gw`` cells, index ``gy·Gw + gx``). A cell is *valid* when it lies on the
-slide and at least one finest-level tissue view lies under it (:mod:`histojax.reading.tables`).
+slide and at least one finest-level tissue view lies under it (:mod:`histojax.core.seen_views`).
 
 **Actions** ``Discrete(C + 2)``: ``i < C`` picks cell ``i``; ``C`` declares no tumour, ``C + 1``
 declares tumour (``task="classification"`` only). Picking a valid, unread cell *reveals* it: the
@@ -45,8 +45,9 @@ import numpy as np
 from flax import struct
 
 from histojax import spaces
+from histojax.core import seen_views
+from histojax.core.modes.base import ActionMode, Move, _declared_score
 from histojax.reading import tables as reading_tables
-from histojax.reading.modes.base import ActionMode, Move, _declared_score
 
 
 @struct.dataclass
@@ -226,7 +227,7 @@ class Glimpse(ActionMode):
         ``instances=False``: without ``instances`` / ``instance_cell`` (what ``prepare`` needs)."""
         t, g = env.tile_size, self.level
         per = []
-        for slide, bundle in reading_tables.per_slide(params, bundles):
+        for slide, bundle in seen_views.per_slide(params, bundles):
             if slide.features is None:
                 raise ValueError(f"action_mode='glimpse' needs feature grids: run `python -m data_tools features "
                                  f"{bundle.path}`")
@@ -243,8 +244,8 @@ class Glimpse(ActionMode):
                                      "train on slides that include one this large, or pass a larger glimpse_grid")
             big_h, big_w = gh_max, gw_max
         out = []
-        for (slide, _), (bundle, s, gh, gw) in zip(reading_tables.per_slide(params, bundles), per):
-            tissue = reading_tables.tissue_views(bundle, slide, t).reshape(-1)
+        for (slide, _), (bundle, s, gh, gw) in zip(seen_views.per_slide(params, bundles), per):
+            tissue = seen_views.tissue_views(bundle, slide, t).reshape(-1)
             cell = reading_tables.cell_of_views(slide, t, g, s, (gh, gw)).reshape(-1)
             feats = reading_tables.finest_view_features(slide, t).reshape(tissue.shape[0], -1)
             n = gh * gw

@@ -15,7 +15,7 @@ read), the counts, and the finest tissue views read per block of the visited map
 updated at each step, so the observation never recounts the slide's views). Both carry an episode
 stamp (:class:`ZoomMemory`), so the auto-reset starts an episode without writing the whole memory.
 **Observation**: the observation mode's entry, plus ``visited (16, 16)`` float32, the coarse
-visited map of :mod:`histojax.reading.tables` (the fraction of the finest tissue views read in each of
+visited map of :mod:`histojax.core.seen_views` (the fraction of the finest tissue views read in each of
 16 × 16 blocks of the slide), and ``position (3,)`` as ``with_position`` gives it. Bytes per
 observation: ``4·(256 + 3) = 1036`` plus the view.
 
@@ -33,8 +33,8 @@ import jax.numpy as jnp
 from flax import struct
 
 from histojax import actions, spaces
-from histojax.reading import tables as reading_tables
-from histojax.reading.modes.base import ActionMode, Move, _declared_score
+from histojax.core import seen_views
+from histojax.core.modes.base import ActionMode, Move, _declared_score
 
 
 @struct.dataclass
@@ -47,7 +47,7 @@ class ZoomMemory:
     writes one word and one block whatever the slide's size. Read the bits and counts through
     :attr:`seen` and :attr:`block_read` (they apply the stamps; any leading batch axes are fine)."""
 
-    words: jnp.ndarray        # (⌈V/32⌉,) uint32 raw bits: views of every level's grid seen (histojax.reading.tables.see)
+    words: jnp.ndarray        # (⌈V/32⌉,) uint32 raw bits: views of every level's grid seen (histojax.core.seen_views.see)
     stamp: jnp.ndarray        # (⌈V/32⌉,) int32 the episode that last wrote each word
     views_read: jnp.ndarray   # () int32 finest-level tissue views seen
     fields: jnp.ndarray       # () int32 distinct views seen, any level
@@ -86,17 +86,17 @@ class ZoomSelect(ActionMode):
     def space(self, env, params):
         return spaces.Discrete(self.num_actions(env))
 
-    def prepare(self, env, params, bundles, read_budget: float = 1.0) -> reading_tables.SeenTables:
-        return reading_tables.seen_tables(env, params, bundles, read_budget)
+    def prepare(self, env, params, bundles, read_budget: float = 1.0) -> seen_views.SeenTables:
+        return seen_views.seen_tables(env, params, bundles, read_budget)
 
     def init_memory(self, env, state, params) -> ZoomMemory:
         zero = jnp.zeros((), jnp.int32)
         path = jnp.zeros((env.n_levels,), jnp.int32)
         words = params.mode_data.seen_zero
-        blocks = reading_tables.block_zero(params.mode_data)
+        blocks = seen_views.block_zero(params.mode_data)
         memory = ZoomMemory(words=words, stamp=jnp.zeros(words.shape, jnp.int32), views_read=zero, fields=zero,
                             block_raw=blocks, block_stamp=blocks, path_x=path, path_y=path, episode=zero)
-        return reading_tables.see(params.mode_data, memory, state.slide_index, state.z, state.x, state.y, env)
+        return seen_views.see(params.mode_data, memory, state.slide_index, state.z, state.x, state.y, env)
 
     def auto_reset_memory(self, env, done, memory, state, params) -> ZoomMemory:
         """A new episode where ``done``: ``episode`` + 1 (every word and block goes stale at once), counts and
@@ -110,9 +110,9 @@ class ZoomSelect(ActionMode):
                                path_x=jnp.where(done, 0, memory.path_x), path_y=jnp.where(done, 0, memory.path_y))
         if env.n_levels == 1:  # the start view is a finest view: it may be read (a block of the visited map counts it)
             return jax.tree.map(lambda a, b: jnp.where(done, a, b),
-                                reading_tables.see(params.mode_data, fresh, state.slide_index, state.z, state.x, state.y, env),
+                                seen_views.see(params.mode_data, fresh, state.slide_index, state.z, state.x, state.y, env),
                                 memory)
-        index, _ = reading_tables._grid_index(params.mode_data, state.slide_index, state.z, state.x, state.y, env.tile_size)
+        index, _ = seen_views._grid_index(params.mode_data, state.slide_index, state.z, state.x, state.y, env.tile_size)
         word = jnp.where(done, index // 32, memory.words.shape[-1])  # out of range where not done: dropped
         bit = jnp.left_shift(jnp.uint32(1), (index % 32).astype(jnp.uint32))
         return fresh.replace(words=memory.words.at[word].set(bit, mode="drop"),
@@ -146,17 +146,17 @@ class ZoomSelect(ActionMode):
         diagnosis = jnp.where(a == d + 1, 1, jnp.where(a == d, 0, -1)).astype(jnp.int32)
         if env.task != "classification":
             diagnosis = jnp.full((), -1, jnp.int32)
-        memory = reading_tables.see(params.mode_data, mem, state.slide_index, z, x, y, env)
+        memory = seen_views.see(params.mode_data, mem, state.slide_index, z, x, y, env)
         return Move(z, x, y, diagnosis, _declared_score(diagnosis), memory)
 
     def budget_spent(self, env, state, params) -> jax.Array:
-        return reading_tables.budget_spent(params.mode_data, state.memory, state.slide_index)
+        return seen_views.budget_spent(params.mode_data, state.memory, state.slide_index)
 
     def memory_obs(self, env, state, params) -> dict:
-        return reading_tables.visited_obs(env, state, params)
+        return seen_views.visited_obs(env, state, params)
 
     def memory_space(self, env, params) -> dict:
-        return reading_tables.visited_space(params)
+        return seen_views.visited_space(params)
 
     def reading_info(self, env, state, params) -> dict:
-        return reading_tables.reading_info(params.mode_data, state.memory, state.slide_index)
+        return seen_views.reading_info(params.mode_data, state.memory, state.slide_index)

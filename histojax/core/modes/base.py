@@ -8,12 +8,12 @@ per-slide tables in ``EnvParams.mode_data`` (``prepare``, called once by ``make`
 to the observation (``memory_obs``). An **observation mode** turns a state into the view's
 observation and declares its space.
 
-Adding a mode is one new object (a frozen, hashable dataclass, so the env stays a valid static
-argument of ``jax.jit``) plus an entry in :data:`histojax.reading.modes.factory.ACTION_MODES` /
-:data:`~histojax.reading.modes.factory.OBS_MODES`: the strings users pass to ``make(...,
-action_mode="discrete")`` are resolved there (:func:`histojax.reading.modes.factory.action_mode`,
-:func:`~histojax.reading.modes.factory.obs_mode`), apart from these base classes, which ``glimpse`` and
-``zoom_select`` import.
+This module holds the base classes, the pan/zoom navigation modes (``Discrete``, ``Continuous``) and the
+observation modes (``Pixels``, ``Features``): the env core's own. The reading modes (``glimpse``,
+``zoom_select``) subclass :class:`ActionMode` in :mod:`histojax.reading.modes`. Adding a mode is one new object (a
+frozen, hashable dataclass, so the env stays a valid static argument of ``jax.jit``) plus its name in
+:mod:`histojax.core.modes.factory` (:func:`~histojax.core.modes.factory.register_action_mode`), where the strings
+users pass to ``make(..., action_mode="discrete")`` are resolved.
 """
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from jax import lax
 
 from histojax import actions, spaces
-from histojax.reading import tables as reading_tables
+from histojax.core import seen_views
 from histojax import augment as dihedral
 from histojax.views import view_pixels
 
@@ -116,10 +116,10 @@ class Navigation(ActionMode):
     """Base of the pan/zoom modes. They keep no memory unless asked: ``make(..., track_reading=True)``
     (``fraction_read`` / ``fields_of_view`` in ``info``; ``read_budget`` truncates) or
     ``memory=True`` (that, plus the coarse ``visited`` map and ``position`` in the observation; see
-    :mod:`histojax.reading.tables`). Without either the state and the trajectories are HistoGym's."""
+    :mod:`histojax.core.seen_views`). Without either the state and the trajectories are HistoGym's."""
 
     memory: bool = False
-    coarse_map: bool = False   # with memory: the observation also holds ``coarse_map (16, 16)`` (histojax.reading.coarse_map)
+    coarse_map: bool = False   # with memory: the observation also holds ``coarse_map (16, 16)`` (built by the reading stack)
     supports_augment = True
 
     @property
@@ -130,7 +130,7 @@ class Navigation(ActionMode):
                 map_feature: int | None = None, map_level: int = -3, map_head=None):
         """``map_feature`` / ``map_head`` / ``map_level`` (``coarse_map=True`` only): the feature entry, or the slide
         head (a folder or a loaded head) whose per-view scores the coarse map shows, and the level of the coarse map
-        (:func:`histojax.reading.coarse_map.coarse_maps`)."""
+        (:func:`histojax.core.seen_views.coarse_maps`, the builder the reading stack registers)."""
         if map_feature is not None and map_head is not None:
             raise TypeError(f"{self.name}:map shows map_feature=ENTRY or map_head=HEAD, not both")
         if self.coarse_map and map_feature is None and map_head is None:
@@ -143,36 +143,34 @@ class Navigation(ActionMode):
             if read_budget is not None:
                 raise TypeError(f"read_budget needs track_reading=True (or {self.name} with memory=True)")
             return None
-        tables = reading_tables.seen_tables(env, params, bundles, 1.0 if read_budget is None else read_budget)
+        tables = seen_views.seen_tables(env, params, bundles, 1.0 if read_budget is None else read_budget)
         if self.coarse_map:
-            from histojax.reading.coarse_map import coarse_maps
-
-            tables = tables.replace(coarse_map=jnp.asarray(coarse_maps(env, params, bundles, map_feature, map_level,
-                                                                       head=map_head)))
+            tables = tables.replace(coarse_map=jnp.asarray(seen_views.coarse_maps(env, params, bundles, map_feature,
+                                                                            map_level, head=map_head)))
         return tables
 
     def init_memory(self, env, state, params):
-        return None if params.mode_data is None else reading_tables.init_seen(params.mode_data, state, env)
+        return None if params.mode_data is None else seen_views.init_seen(params.mode_data, state, env)
 
     def _seen(self, env, state, params, z, x, y):
         if state.memory is None:
             return None
-        return reading_tables.see(params.mode_data, state.memory, state.slide_index, z, x, y, env)
+        return seen_views.see(params.mode_data, state.memory, state.slide_index, z, x, y, env)
 
     def budget_spent(self, env, state, params) -> jax.Array:
         if state.memory is None:
             return super().budget_spent(env, state, params)
-        return reading_tables.budget_spent(params.mode_data, state.memory, state.slide_index)
+        return seen_views.budget_spent(params.mode_data, state.memory, state.slide_index)
 
     def reading_info(self, env, state, params) -> dict:
         if state.memory is None:
             return {}
-        return reading_tables.reading_info(params.mode_data, state.memory, state.slide_index)
+        return seen_views.reading_info(params.mode_data, state.memory, state.slide_index)
 
     def memory_obs(self, env, state, params) -> dict:
         if not self.memory:
             return {}
-        obs = reading_tables.visited_obs(env, state, params)
+        obs = seen_views.visited_obs(env, state, params)
         if self.coarse_map:
             obs["coarse_map"] = params.mode_data.coarse_map[state.slide_index]
         return obs
@@ -180,9 +178,9 @@ class Navigation(ActionMode):
     def memory_space(self, env, params) -> dict:
         if not self.memory:
             return {}
-        space = reading_tables.visited_space(params)
+        space = seen_views.visited_space(params)
         if self.coarse_map:
-            space["coarse_map"] = spaces.Box(-jnp.inf, jnp.inf, (reading_tables.VISITED_MAP, reading_tables.VISITED_MAP), jnp.float32)
+            space["coarse_map"] = spaces.Box(-jnp.inf, jnp.inf, (seen_views.VISITED_MAP, seen_views.VISITED_MAP), jnp.float32)
         return space
 
 

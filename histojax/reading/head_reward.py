@@ -2,7 +2,7 @@
 
 HistoGym's reward (and histojax's default) is unchanged unless an env is wrapped::
 
-    from histojax.adapters.head_reward import HeadReward
+    from histojax.reading.head_reward import HeadReward
     from histojax.reading import heads
 
     env, params = histojax.make("HistoJAX-C16-Diagnosis-v2", action_mode="glimpse", read_budget=0.1)
@@ -32,7 +32,7 @@ After every step the wrapper scores **what has been read so far** with the head
 memory ``revealed``, mapped to the finest grid as :meth:`histojax.reading.modes.glimpse.Glimpse.host_tables` does);
 for every other mode (navigation, ``zoom_select``) the wrapper keeps its own bit set of the
 finest-level views the episode's view stood on (the grid view nearest the view's top-left corner, as
-:func:`histojax.reading.tables.see` counts them), so the wrapped env is unchanged.
+:func:`histojax.core.seen_views.see` counts them), so the wrapped env is unchanged.
 
 **The navigator's diagnosis through the head**: ``info["head_score"]`` is the head's slide logit of
 what the episode has read after the step (at the step where ``terminated | truncated``, the episode's
@@ -64,8 +64,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
-from histojax.reading import tables as reading_tables
 from histojax.adapters.jax import Wrapper
+from histojax.core import seen_views
+from histojax.reading import tables as reading_tables
 from histojax.reading.heads import score_logits
 from histojax.reading.heads.learned import PoolState
 from histojax.reading.heads.logit import SlideHead, neighbourhood_mean
@@ -147,7 +148,7 @@ def build_tables(env, head: SlideHead, params=None, windows: bool | None = None)
     glimpse = getattr(env.action, "name", "") == "glimpse"
     pooled = pools_views(head)
     rows, all_terms = [], []
-    for slide, bundle in reading_tables.per_slide(params, bundles):
+    for slide, bundle in seen_views.per_slide(params, bundles):
         if slide.features is None:
             raise ValueError(f"{bundle.path}: the slide head reads feature grids; run `python -m data_tools features "
                              f"{bundle.path}`")
@@ -157,7 +158,7 @@ def build_tables(env, head: SlideHead, params=None, windows: bool | None = None)
             terms = np.asarray(head.view_terms(feats), np.float32)
         else:
             logits, terms = feats[..., head.dim], None
-        tissue = reading_tables.tissue_views(bundle, slide, t)
+        tissue = seen_views.tissue_views(bundle, slide, t)
         cell = np.zeros(tissue.shape, np.int64)
         starts = None
         if glimpse:

@@ -12,18 +12,19 @@ from data_tools.errors import HistojaxDataError
 from baselines.evaluate.checks import UNDEFINED, one_class
 from baselines.evaluate.rollout import episode_labels
 from baselines.run_config import read_run_config
-from histojax.reading.heads import encoder_family
+from histojax.reading.heads import encoder_family, same_encoder  # noqa: F401  (encoder_family: this module's API)
 
 
 
 def check_head_features(head, encoders: list[str], dim: int) -> None:
     """Refuse (``ValueError``, one line) a slide head that cannot read these slides' features: the slides hold
-    another encoder's features than the head records (``imported:*`` names are one family), or features of the wrong
+    another encoder's features than the head records (:func:`histojax.reading.heads.same_encoder`: imported features
+    by their folder and file layout), or features of the wrong
     length (``dim`` entries) — a head that reads every entry (``features_dim``: the learned attention-MIL head) needs
     exactly its length, a logit head (``dim``: the entry of the view logit) an entry it reads. Any head kind
     :func:`histojax.reading.heads.load` reads."""
     want = getattr(head, "encoder", None)
-    if want and any(encoder_family(e) != encoder_family(want) for e in encoders):
+    if want and any(not same_encoder(want, e) for e in encoders):
         fit = ("python -m baselines.reading.learned_head_fit" if hasattr(head, "features_dim")
                else "python -m baselines.reading.head_fit, or learned_head_fit for any encoder")
         raise ValueError(f"a slide head for {want} features; these slides hold {', '.join(encoders)} features "

@@ -18,6 +18,20 @@ from baselines.evaluate.pictures import write_pictures
 
 
 
+def unreadable_at_budget(env_params, names) -> str | None:
+    """The line of :func:`histojax.reading.modes.glimpse.unreadable_warning` for a glimpse env's reading budget
+    (``env_params.mode_data``: its cells and ``read_budget``) on the slides ``names``; ``None`` for other modes or
+    when a cell can be read on every slide."""
+    from histojax.reading.modes.glimpse import unreadable_warning
+
+    tables = getattr(env_params, "mode_data", None)
+    if not all(hasattr(tables, k) for k in ("cell_views", "valid", "total_views", "read_budget")):
+        return None
+    budget = float(np.asarray(tables.read_budget))
+    return unreadable_warning(names, np.asarray(tables.cell_views), np.asarray(tables.valid),
+                              np.asarray(tables.total_views), [budget])
+
+
 def evaluate(config, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
              label: str = "learned", augment: bool = False, references: bool = True, source=None,
              progress: bool = False, warnings: list | None = None, head=None, head_reward: dict | None = None) -> dict:
@@ -66,6 +80,11 @@ def evaluate(config, params, slide=None, num_episodes: int = 256, seed: int = 0,
         say(f"warning: {w}")
         if warnings is not None:
             warnings.append(w)
+    if (w := unreadable_at_budget(env_params, names)) is not None:  # a budget below every cell: the overview alone
+        say(f"warning: {w}")
+        if warnings is not None:
+            warnings.append(w)
+
     def episodes_of(policy, k, n):  # n episodes; through a head, episode e reads slide e mod S
         if head is None:
             return run_episodes(env, env_params, policy, k, n, final=declare is not None)

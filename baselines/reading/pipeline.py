@@ -98,6 +98,8 @@ def _glimpse_tables(dataset: Path, split: str, env_id: str, level: int, verify: 
     glimpse = Glimpse(level=level)                                      # device tables, unused here, a second time
     glimpse.validate(env)
     tables = glimpse.host_tables(env, params, env.bundles)
+    for table, bundle in zip(tables, env.bundles):  # the slide's name and encoder: what a head and a warning check
+        table.update(name=Path(bundle.path).name, encoder=(bundle.metadata.get("features") or {}).get("encoder"))
     labels = np.atleast_1d(np.asarray(params.slide.slide_label)).astype(int)
     return tables, labels
 

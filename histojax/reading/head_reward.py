@@ -68,6 +68,7 @@ from histojax.adapters.jax import Wrapper
 from histojax.core import seen_views
 from histojax.reading import tables as reading_tables
 from histojax.reading.heads import score_logits
+from histojax.reading.heads.files import check_finite_logits
 from histojax.reading.heads.learned import PoolState
 from histojax.reading.heads.logit import SlideHead, neighbourhood_mean
 
@@ -188,6 +189,7 @@ def build_tables(env, head: SlideHead, params=None, windows: bool | None = None)
         for j, tr in enumerate(all_terms):
             terms[j, : tr.shape[0], : tr.shape[1]] = tr
         full = jax.jit(jax.vmap(head.score_terms))(jnp.asarray(terms), tissue)
+        check_finite_logits(head, full, "full-read slide logits")  # one line naming params.npz, before any step
         extra["terms"] = jnp.asarray(terms)
         if glimpse:  # a revealed cell's views lie in its rows x columns: cut a window of the largest cell's size
             row_start = np.stack([r[4][0] for r in rows]).astype(np.int32)

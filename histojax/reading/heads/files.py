@@ -62,6 +62,21 @@ class HeadFileError(ValueError):
         super().__init__(f"{self.path}: {problem}")
 
 
+def check_finite_logits(head, logits, what: str = "slide logits"):
+    """``logits`` (any shape) as a NumPy array (its dtype kept) when every entry is finite; else
+    ``HeadFileError`` naming the parameters file of ``head`` (its ``source`` folder's ``params.npz``, or the head's
+    name when it was not loaded from a folder), one line: a head whose values overflow scores every slide alike (an AUC of 0.5 or 1.0
+    that means nothing). What every host-side scorer of a head's logits calls before it uses them."""
+    values = np.asarray(logits)
+    if values.size and not np.all(np.isfinite(values)):
+        bad = int(np.size(values) - np.count_nonzero(np.isfinite(values)))
+        source = getattr(head, "source", None)
+        where = Path(source) / PARAMS if source else f"{PARAMS} of the head {getattr(head, 'name', head)!r}"
+        raise HeadFileError(where, f"scores {bad} of {values.size} {what} non-finite (inf or NaN): its parameters "
+                                   "are out of a fitted head's range; refit the head (learned_head_fit)")
+    return values
+
+
 # ----------------------------------------------------------------------------- guarded reads
 def read_regular(path, max_bytes: int, what: str = "file") -> bytes:
     """The bytes of ``path`` after checking it is a regular file (not a link, FIFO, device or folder: the bundles'

@@ -59,6 +59,12 @@ FORMAT = 1
 NEG = -1e30  # the running maximum of a slide with nothing read (finite: exp(NEG - NEG) is 1, not nan)
 MAX_DIM = 1 << 16
 MAX_UNITS = 4096
+MAX_PARAM = 1e6
+"""The largest magnitude of any array entry read (weights, biases, ``mu``, ``cal_a``, ``cal_b``, ``prior_logit``),
+as the logit heads bound theirs: a fitted head's are a few units (weight decay; a calibration of a few units)."""
+MIN_SD = 1e-4
+"""The smallest standardisation ``sd`` read: the fit adds 1e-3 to every feature's standard deviation, so a
+smaller one is not a fitted head's (``x / 1e-40`` overflows float32)."""
 
 
 class PoolState(NamedTuple):
@@ -92,7 +98,7 @@ class LearnedHead:
     ``cal_a · s + cal_b``), ``prior_logit`` (nothing read). Static: ``features_dim`` (D; not ``dim``, which the logit
     heads use for the entry they read: this head reads none on its own), ``hidden`` (H), ``attention``
     (A), ``layers`` (1 or 2), ``encoder`` (the features' encoder, as recorded in the bundles), ``info`` (JSON text
-    of the fit, merged into config.json)."""
+    of the fit, merged into config.json), ``source`` (the folder it was loaded from; None for a head in memory)."""
 
     params: dict
     cal_a: jax.Array = 1.0
@@ -104,6 +110,7 @@ class LearnedHead:
     layers: int = struct.field(pytree_node=False, default=1)
     encoder: str | None = struct.field(pytree_node=False, default=None)
     info: str = struct.field(pytree_node=False, default="{}")
+    source: str | None = struct.field(pytree_node=False, default=None)
     kind = KIND
 
     @property
@@ -254,14 +261,20 @@ class LearnedHead:
         layers = files.field(cfg, "layers", int, cfg_file, lo=1, hi=2)
         encoder = files.field(cfg, "encoder", (str, type(None)), cfg_file, default=None)
         arrays = files.read_arrays(folder / files.PARAMS, param_shapes(dim, hidden, att, layers))
-        if np.any(arrays["sd"] <= 0):
-            raise files.HeadFileError(folder / files.PARAMS, "array sd holds values <= 0 (a standard deviation)")
+        if np.any(arrays["sd"] < MIN_SD):
+            raise files.HeadFileError(folder / files.PARAMS, f"array sd holds values below {MIN_SD:g} (a feature's "
+                                                             "standard deviation, at least 1e-3 in a fitted head)")
+        for name, arr in arrays.items():
+            if arr.size and float(np.max(np.abs(arr))) > MAX_PARAM:
+                raise files.HeadFileError(folder / files.PARAMS, f"array {name} holds values of magnitude up to "
+                                                                 f"{float(np.max(np.abs(arr))):.3g}, beyond {MAX_PARAM:g} "
+                                                                 "(a fitted head's are a few units); refusing it")
         known = {"kind", "format", "features_dim", "hidden", "attention", "layers", "encoder", "name", "input", "output", "files"}
         info = json.dumps({k: v for k, v in cfg.items() if k not in known})
         params = {k: jnp.asarray(v) for k, v in arrays.items() if k not in SCALARS}
         return cls(params=params, cal_a=jnp.float32(arrays["cal_a"]), cal_b=jnp.float32(arrays["cal_b"]),
                    prior_logit=jnp.float32(arrays["prior_logit"]), features_dim=dim, hidden=hidden, attention=att,
-                   layers=layers, encoder=encoder, info=info)
+                   layers=layers, encoder=encoder, info=info, source=str(folder))
 
 
 def init_params(key: jax.Array, dim: int, hidden: int = 64, attention: int = 32, layers: int = 1,

@@ -65,8 +65,9 @@ class HeadFileError(ValueError):
 def check_finite_logits(head, logits, what: str = "slide logits"):
     """``logits`` (any shape) as a NumPy array (its dtype kept) when every entry is finite; else
     ``HeadFileError`` naming the parameters file of ``head`` (its ``source`` folder's ``params.npz``, or the head's
-    name when it was not loaded from a folder), one line: a head whose values overflow scores every slide alike (an AUC of 0.5 or 1.0
-    that means nothing). What every host-side scorer of a head's logits calls before it uses them."""
+    name when it was not loaded from a folder), one line: a head whose values overflow scores every slide alike
+    (an AUC of 0.5 or 1.0 that means nothing). What every host-side scorer of a head's logits calls before it uses
+    them."""
     values = np.asarray(logits)
     if values.size and not np.all(np.isfinite(values)):
         bad = int(np.size(values) - np.count_nonzero(np.isfinite(values)))

@@ -265,10 +265,11 @@ class LearnedHead:
             raise files.HeadFileError(folder / files.PARAMS, f"array sd holds values below {MIN_SD:g} (a feature's "
                                                              "standard deviation, at least 1e-3 in a fitted head)")
         for name, arr in arrays.items():
-            if arr.size and float(np.max(np.abs(arr))) > MAX_PARAM:
+            top = float(np.max(np.abs(arr))) if arr.size else 0.0
+            if top > MAX_PARAM:
                 raise files.HeadFileError(folder / files.PARAMS, f"array {name} holds values of magnitude up to "
-                                                                 f"{float(np.max(np.abs(arr))):.3g}, beyond {MAX_PARAM:g} "
-                                                                 "(a fitted head's are a few units); refusing it")
+                                                                 f"{top:.3g}, beyond {MAX_PARAM:g} (a fitted head's "
+                                                                 "are a few units); refusing it")
         known = {"kind", "format", "features_dim", "hidden", "attention", "layers", "encoder", "name", "input", "output", "files"}
         info = json.dumps({k: v for k, v in cfg.items() if k not in known})
         params = {k: jnp.asarray(v) for k, v in arrays.items() if k not in SCALARS}

@@ -260,7 +260,7 @@ class QNetwork(nn.Module):
 
 # ----------------------------------------------------------------------------- reader policies over a set of cells
 class EpisodeTables:
-    """The per-slide tables of an env (:meth:`histojax.env.HistoEnv.episode_tables`: ``cells (S, C, D)``,
+    """The per-slide tables of an env (:meth:`histojax.core.env.HistoEnv.episode_tables`: ``cells (S, C, D)``,
     ``valid``, ``cost`` ``(S, C)``, ``position (S, C, 2)``, ``summaries (S, C, 2D)``) held by a cell-set network,
     which indexes them with the observation's ``slide``. Compared and hashed by identity (a flax module attribute
     must hash; what the network reads travels into the jitted program as constants of the network).

@@ -137,7 +137,7 @@ def make_network(config, env, network_cls=ActorCritic):
 
 def dataset_normaliser(slide, eps: float = 1e-3) -> dict:
     """``{"mean", "std"}`` (lists of ``D`` floats) of every feature vector of every level of the
-    slide(s) ``slide`` (:class:`histojax.slide.SlideArrays`, one slide or a stacked dataset: only each
+    slide(s) ``slide`` (:class:`histojax.core.slide.SlideArrays`, one slide or a stacked dataset: only each
     slide's own rows count, not the padding); ``std`` at least ``eps``. For a training env this is a
     fixed per-dataset normaliser computed from the training slides only."""
     if slide.features is None:

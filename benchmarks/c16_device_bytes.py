@@ -15,7 +15,7 @@ from pathlib import Path
 
 
 from data_tools.bundle_format import level_grids, read_metadata
-from histojax.slide import select_levels, slide_device_bytes
+from histojax.core.slide import select_levels, slide_device_bytes
 
 
 def feature_grid_bytes(meta: dict, chosen: list[int], dim: int, itemsize: int = 2) -> int:

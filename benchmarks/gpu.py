@@ -256,7 +256,7 @@ def device_memory(info: dict) -> int | None:
 def dataset_item(folder: Path, obs_mode: str, args, budget: Budget, memory: int | None) -> dict:
     """Env steps/s and device bytes of ``folder``'s train split in ``obs_mode``."""
     from data_tools.bundle_format import read_metadata
-    from histojax.slide import select_levels, slide_device_bytes
+    from histojax.core.slide import select_levels, slide_device_bytes
 
     ds = json.loads((folder / "dataset.json").read_text())
     env_id = f"HistoJAX-C16-{args.c16_level}-v0"

@@ -21,8 +21,8 @@ import numpy as np
 
 from data_tools.cli_output import command_main, positive_float
 import histojax
-from histojax import actions as act
-from histojax.views import view_tumour_fraction
+from histojax.core import actions as act
+from histojax.core.views import view_tumour_fraction
 
 
 def memcpy_bandwidth(nbytes: int = 256 * 2**20, repeats: int = 5) -> float:

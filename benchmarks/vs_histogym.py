@@ -19,7 +19,7 @@
     features ≥ 10,000×).
 (d) The batched crop's bandwidth (view bytes/s at batch 1024) against numpy's memory-copy
     bandwidth measured in the same run (target ≥ 50 %), plus alternative crop formulations
-    (:func:`crop_alternatives`), each checked for exactness against ``histojax.views.view_pixels``
+    (:func:`crop_alternatives`), each checked for exactness against ``histojax.core.views.view_pixels``
     and timed alone and inside the full step.
 
     python benchmarks/vs_histogym.py [--quick] [--slide FILE --annotations FILE] [--env HistoJAX-Medium-v0]
@@ -45,9 +45,9 @@ from jax import lax
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run as a script from anywhere
 
 import histojax  # noqa: E402
-import histojax.env as hx_env  # noqa: E402
+import histojax.core.env as hx_env  # noqa: E402
 from benchmarks.throughput import full_step_rollout, measure, memcpy_bandwidth  # noqa: E402
-from histojax.views import view_pixels  # noqa: E402
+from histojax.core.views import view_pixels  # noqa: E402
 
 PIXEL_TARGET = 1_000
 FEATURE_TARGET = 10_000

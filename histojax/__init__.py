@@ -5,12 +5,12 @@
     obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
 """
 import histojax.reading.modes  # noqa: F401  (registers the reading modes in the core's mode names; first)
-from histojax.actions import ACTION_NAMES, DOWN, LEFT, RIGHT, STAY, UP, ZOOM_IN, ZOOM_OUT
+from histojax.core.actions import ACTION_NAMES, DOWN, LEFT, RIGHT, STAY, UP, ZOOM_IN, ZOOM_OUT
 from histojax.adapters.jax import GymnaxV0Wrapper, LogWrapper
-from histojax.env import EnvParams, EnvState, HistoEnv
+from histojax.core.env import EnvParams, EnvState, HistoEnv
 from histojax.registry import make, register, registered_envs
 from histojax.scenarios import Scenario, load_scenario, register_scenario
-from histojax.slide import SlideArrays, load_slide
+from histojax.core.slide import SlideArrays, load_slide
 
 __version__ = "0.1.0"
 __all__ = [

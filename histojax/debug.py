@@ -16,7 +16,7 @@ import jax.numpy as jnp
 from jax.experimental import checkify
 
 from histojax.core.modes.base import Navigation
-from histojax.rewards import classification_bounds, reward_bounds
+from histojax.core.rewards import classification_bounds, reward_bounds
 
 
 def _check_state(env, state, params):

@@ -3,8 +3,8 @@
 :class:`MakeOptions` is a frozen dataclass whose fields are every keyword setting ``make`` (and a registered id's
 :class:`~histojax.registry.EnvSpec`) takes beyond the slides; each field says in its metadata where it goes:
 
-* ``"static"`` — a :class:`~histojax.env.HistoEnv` setting, fixed at trace time (``action_mode``, ``n_levels``, …);
-* ``"params"`` — an :class:`~histojax.env.EnvParams` field, a traced value (``max_steps_in_episode``, …);
+* ``"static"`` — a :class:`~histojax.core.env.HistoEnv` setting, fixed at trace time (``action_mode``, ``n_levels``, …);
+* ``"params"`` — an :class:`~histojax.core.env.EnvParams` field, a traced value (``max_steps_in_episode``, …);
 * ``"mode"`` — a setting of the action mode's ``prepare`` (``read_budget``, ``glimpse_grid``, …);
 * ``"dataset"`` — how ``make`` draws and checks a dataset's slides (``tumour_slides_only``, …).
 
@@ -49,7 +49,7 @@ class MakeOptions:
     action_mode: Any = option(STATIC, "discrete | continuous | glimpse[:LEVEL] | zoom_select[:K] | an ActionMode")
     obs_mode: Any = option(STATIC, "pixels | features | …, or an ObsMode")
     with_position: bool = option(STATIC, "observation dict with the view position")
-    reward: str = option(STATIC, "reward preset (histojax.rewards.PRESETS)")
+    reward: str = option(STATIC, "reward preset (histojax.core.rewards.PRESETS)")
     auto_reset: bool = option(STATIC, "reset inside step at the end of an episode")
     n_levels: int = option(STATIC, "levels of the pyramid the agent moves through")
     task: str = option(STATIC, "detection | classification")

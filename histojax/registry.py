@@ -40,10 +40,10 @@ import numpy as np
 from data_tools.bundle_format import read_dataset_json
 from data_tools.errors import BundleError
 from histojax.core.modes import factory
-from histojax.env import EnvParams, HistoEnv
+from histojax.core.env import EnvParams, HistoEnv
 from histojax.make_options import DATASET, MODE, PARAMS, STATIC, MakeOptions
 from histojax.core.modes.base import Navigation
-from histojax.slide import DEFAULT_MAX_DEVICE_BYTES, check_alike, load_slide, stack_slides, start_cdf
+from histojax.core.slide import DEFAULT_MAX_DEVICE_BYTES, check_alike, load_slide, stack_slides, start_cdf
 
 # the names of make's options by where they go, derived from the one typed set (histojax.make_options.MakeOptions):
 # static HistoEnv settings, EnvParams fields, the action mode's prepare settings (histojax.core.modes.base),
@@ -244,7 +244,7 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     The slide's arrays are put on the device once and returned inside ``params``; a slide
     needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error. It bounds the
     arrays put on the device, not the process's host memory (on the CPU backend, where they are host
-    memory, ``make`` peaks at about 1.6× them; see :func:`histojax.slide.load_slide`).
+    memory, ``make`` peaks at about 1.6× them; see :func:`histojax.core.slide.load_slide`).
     ``verify`` checks every array's SHA-256 against the bundle metadata.
 
     Datasets: ``slides=[bundle, ...]`` (any sizes, same tile size) or ``dataset=FOLDER`` holding a

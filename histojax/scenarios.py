@@ -198,7 +198,7 @@ def scenario_from_dict(data: dict, base: Path | None = None, where=None) -> Scen
     """Validate a scenario mapping (as read from TOML/JSON) and build a :class:`Scenario`;
     relative paths are taken from ``base``. Errors name ``where``."""
     from data_tools.annotations import LABELS
-    from histojax import rewards
+    from histojax.core import rewards
     from histojax.core.modes.factory import ACTION_MODES as action_modes, OBS_MODES as obs_modes
     from histojax.registry import PARAM_FIELDS
 

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from data_tools.cli_output import command_main
-from histojax import actions
+from histojax.core import actions
 
 
 @dataclasses.dataclass

@@ -8,8 +8,8 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import histojax
-from histojax import actions
-from histojax import augment as A
+from histojax.core import actions
+from histojax.core import augment as A
 from hypothesis_examples import examples
 
 MOVES = (actions.UP, actions.DOWN, actions.LEFT, actions.RIGHT)

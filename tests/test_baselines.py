@@ -146,7 +146,7 @@ def test_scripted_policy_runs_and_moves_toward_dark_stain():
 
 def test_scripted_features_policy_reads_the_view_logit_not_the_noisy_cell():
     # pcam-cnn's embedding: entry 62 is the view's tumour logit (mean l), 63 its most tumour-like cell
-    from histojax import actions
+    from histojax.core import actions
 
     feats = jnp.zeros(64).at[62].set(3.0).at[63].set(-5.0)
     obs = {"features": feats, "position": jnp.array([0.5, 0.5, 0.0])}

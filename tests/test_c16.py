@@ -140,7 +140,7 @@ def test_feature_mode_holds_no_pixels(small, tmp_path):
 
     import histojax
     from data_tools.bundle import read_metadata
-    from histojax.slide import select_levels, slide_device_bytes
+    from histojax.core.slide import select_levels, slide_device_bytes
 
     ds = tmp_path / "ds"
     shutil.copytree(small, ds)
@@ -161,7 +161,7 @@ def test_feature_mode_holds_no_pixels(small, tmp_path):
                                                 s.feature_stride, s.slide_label, s.slide_logits))
     assert leaves - small_arrays == expected
     assert leaves < sum(int(a.nbytes) for a in jax.tree.leaves(params_p.slide))
-    from histojax.views import view_tumour_fraction
+    from histojax.core.views import view_tumour_fraction
 
     rng = np.random.default_rng(0)
     for i in range(12):  # the tumour tables agree with pixel mode's, view by view

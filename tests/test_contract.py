@@ -11,7 +11,7 @@ import jax.numpy as jnp
 import pytest
 
 import histojax
-from histojax.env import HistoEnv
+from histojax.core.env import HistoEnv
 from histojax.testing import check_contract, check_env
 
 SMALL = dict(batch=4, steps=8, jit_steps=2)

@@ -9,7 +9,7 @@ import tifffile
 
 import histojax
 from data_tools.bundle import build_bundle
-from histojax.actions import DECLARE_NO_TUMOUR, DECLARE_TUMOUR, STAY
+from histojax.core.actions import DECLARE_NO_TUMOUR, DECLARE_TUMOUR, STAY
 from histojax.sample import SAMPLE_ANNOTATIONS, SAMPLE_SLIDE
 
 KEY = jax.random.PRNGKey(0)

@@ -14,7 +14,7 @@ import pytest
 from PIL import Image
 
 from baselines import common, evaluate
-from histojax import actions
+from histojax.core import actions
 from histojax.cli import main as histojax_main
 from histojax.render import _canvas, render_trajectory, slide_name, trajectory_figure
 

@@ -278,7 +278,7 @@ def feature_env(feature_bundle):
 
 def test_env_observation_equals_encoder_on_the_view(feature_env, feature_bundle):
     from data_tools.features.efficientnet import load_encoder
-    from histojax.env import EnvState
+    from histojax.core.env import EnvState
 
     env, params = feature_env
     assert params.slide.pixels is None and params.slide.tile_pool is None  # feature-only layout
@@ -306,7 +306,7 @@ def test_contract_of_the_feature_observation_mode(feature_env):
 
 
 def test_off_grid_views_snap_to_the_nearest_cell(feature_env):
-    from histojax.env import view_features
+    from histojax.core.env import view_features
 
     env, params = feature_env
     slide = params.slide

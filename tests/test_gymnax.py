@@ -284,7 +284,7 @@ def test_without_gymnax_the_stand_in_spaces_work():
 import sys
 sys.modules["gymnax"] = None  # as if gymnax were not installed
 import jax, jax.numpy as jnp, histojax
-from histojax import spaces
+from histojax.core import spaces
 assert not spaces.GYMNAX and histojax.HistoEnv.__mro__[1] is object
 env = histojax.HistoEnv(n_levels=3, with_position=True)
 assert type(env.action_space()) is spaces.Discrete and env.action_space().n == 7

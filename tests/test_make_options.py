@@ -8,7 +8,7 @@ import inspect
 import pytest
 
 import histojax
-from histojax.env import EnvParams, HistoEnv
+from histojax.core.env import EnvParams, HistoEnv
 from histojax.make_options import DATASET, KINDS, MODE, PARAMS, STATIC, UNSET, MakeOptions
 from histojax.core.modes import base
 from histojax.reading.modes import glimpse, zoom_select

@@ -13,8 +13,8 @@ import numpy as np
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
-from histojax.slide import summed_area_table
-from histojax.views import box_fraction
+from histojax.core.slide import summed_area_table
+from histojax.core.views import box_fraction
 
 SIDE = 200_000
 T = 128

@@ -19,7 +19,7 @@ from hypothesis import strategies as st
 import histojax
 from data_tools.annotations import load_annotations
 from data_tools.bundle import build_bundle
-from histojax.views import view_tumour_fraction
+from histojax.core.views import view_tumour_fraction
 
 DATA = Path(__file__).parent / "data" / "annotations"
 SCALE = 1 / 16  # tumor_039's 26k × 22k px tumour box becomes ~1.6k × 1.4k px

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import histojax
-from histojax.slide import stack_slides
+from histojax.core.slide import stack_slides
 
 
 @pytest.fixture(scope="module")

@@ -7,8 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from histojax.env import sample_index, sample_row
-from histojax.slide import start_cdf
+from histojax.core.env import sample_index, sample_row
+from histojax.core.slide import start_cdf
 
 
 @pytest.mark.slow  # `make test-all`; keeps `make test` under 10 minutes on 2 cores

@@ -8,7 +8,7 @@ import numpy as np
 import pytest
 
 import histojax
-from histojax import spaces
+from histojax.core import spaces
 
 
 def _states(env, params, n_envs: int = 16, n_steps: int = 120, seed: int = 0):

@@ -19,8 +19,8 @@ from hypothesis import strategies as st
 import histojax
 from data_tools.bundle import FORMAT_VERSION, TILED_FORMAT_VERSION, build_bundle, load_bundle, read_metadata
 from data_tools.errors import BundleError
-from histojax.slide import stack_slides
-from histojax.views import view_pixels, view_tumour_fraction
+from histojax.core.slide import stack_slides
+from histojax.core.views import view_pixels, view_tumour_fraction
 from hypothesis_examples import examples
 
 DATA = Path(histojax.__file__).parent / "data"

@@ -13,7 +13,7 @@ from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, Rec
                                 policy_mode, policy_sample, preprocess_obs, rollout_apply, rollout_step)
 from baselines.networks import is_discrete as policy_is_discrete
 from data_tools.features import pcam_cnn
-from histojax import actions
+from histojax.core import actions
 
 
 

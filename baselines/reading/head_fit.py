@@ -179,7 +179,7 @@ def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT,
     try:
         meta, grids, stride, tissue_mask = read_bundle(bundle, sorted({0, *levels}))
         if label is None:
-            from histojax.slide import slide_label_from_metadata
+            from histojax.core.slide import slide_label_from_metadata
 
             label = int(slide_label_from_metadata(meta))
         feats = meta["features"]

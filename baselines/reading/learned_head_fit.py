@@ -74,7 +74,7 @@ from data_tools.errors import HistojaxDataError
 from data_tools.metrics import roc_auc
 from histojax.reading.heads import files
 from histojax.reading.heads.learned import KIND, LearnedHead, init_params
-from histojax.slide import slide_label_from_metadata
+from histojax.core.slide import slide_label_from_metadata
 
 MIN_SLIDES_PER_CLASS = 5
 """Fewest training slides of each class (after the validation share is held out) a fit accepts."""

@@ -16,7 +16,7 @@ HistoGym code (gym 0.21 API)           :mod:`histojax.adapters.histogym` —
 =====================================  ==========================================
 
 Each name has one import path, the module above. Every bridge takes its
-spaces from the env and converts them with :mod:`histojax.spaces` (``to_gymnasium``, ``to_numpy``);
+spaces from the env and converts them with :mod:`histojax.core.spaces` (``to_gymnasium``, ``to_numpy``);
 none declares a space of its own. Only :mod:`histojax.adapters.jax` is imported with histojax: the
 others need their optional extras (``pip install 'histojax[gymnasium]'`` / ``'histojax[sb3]'``).
 """

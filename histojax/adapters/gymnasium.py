@@ -25,8 +25,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from histojax.env import HistoEnv
-from histojax.spaces import to_gymnasium
+from histojax.core.env import HistoEnv
+from histojax.core.spaces import to_gymnasium
 
 
 def _without_autoreset(env: HistoEnv) -> HistoEnv:
@@ -42,7 +42,7 @@ def settings_only(env: HistoEnv) -> HistoEnv:
 
 def single_spaces(env: HistoEnv, params):
     """Gymnasium ``(observation_space, action_space)`` of one environment: the env's own spaces
-    converted (:func:`histojax.spaces.to_gymnasium`)."""
+    converted (:func:`histojax.core.spaces.to_gymnasium`)."""
     return to_gymnasium(env.observation_space(params)), to_gymnasium(env.action_space(params))
 
 

@@ -37,8 +37,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from histojax import actions, spaces
-from histojax.spaces import NumpyBox as Box, NumpyDiscrete as Discrete  # noqa: F401  (gym-style, numpy)
+from histojax.core import actions, spaces
+from histojax.core.spaces import NumpyBox as Box, NumpyDiscrete as Discrete  # noqa: F401  (gym-style, numpy)
 
 SCENARIOS = {"easy": "HistoJAX-Easy-v0", "medium": "HistoJAX-Medium-v0", "hard": "HistoJAX-Hard-v0"}
 RENDER_MODES = ("human", "save", "rgb_array")

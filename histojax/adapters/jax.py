@@ -9,7 +9,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from histojax.env import HistoEnv
+from histojax.core.env import HistoEnv
 
 
 class Wrapper:

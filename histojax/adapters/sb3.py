@@ -25,7 +25,7 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from histojax.adapters.gymnasium import (_reset_batch, _without_autoreset, numpy_copy, seeded_keys, select,
                                         settings_only, single_spaces, split_keys, without_final_observation)
-from histojax.env import HistoEnv
+from histojax.core.env import HistoEnv
 
 
 @functools.partial(jax.jit, static_argnums=0)

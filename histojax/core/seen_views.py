@@ -25,7 +25,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from histojax.slide import MIN_START_TISSUE, summed_area_table
+from histojax.core.slide import MIN_START_TISSUE, summed_area_table
 
 VISITED_MAP = 16  # the coarse visited map is VISITED_MAP × VISITED_MAP blocks of the slide
 
@@ -244,7 +244,7 @@ def visited_obs(env, state, params) -> dict:
 
 def visited_space(params) -> dict:
     """Spaces of :func:`visited_obs`."""
-    from histojax import spaces
+    from histojax.core import spaces
 
     return {"visited": spaces.Box(0.0, 1.0, (VISITED_MAP, VISITED_MAP), jnp.float32),
             "position": spaces.Box(0.0, 1.0, (3,), jnp.float32)}

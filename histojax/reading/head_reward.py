@@ -50,7 +50,7 @@ state three running sums (:class:`~histojax.reading.heads.learned.PoolState`): a
 it newly read (a glimpse cell's views, cut from a window of the largest cell's size; a navigator's one new view),
 O(views newly read), the same logit as rescoring the whole read set to float rounding.
 
-The wrapper does the auto-reset itself (the same keys as :meth:`histojax.env.HistoEnv.step`, so a
+The wrapper does the auto-reset itself (the same keys as :meth:`histojax.core.env.HistoEnv.step`, so a
 trajectory's env states are the unwrapped env's), and its tables (each slide's finest view logits,
 tissue views and cells, host-built once) are those of the slides of the params it was made with
 (``params``, default the env's own): step it with those params. Pure and jittable: no host

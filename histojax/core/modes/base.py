@@ -24,10 +24,10 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from histojax import actions, spaces
+from histojax.core import actions, spaces
 from histojax.core import seen_views
-from histojax import augment as dihedral
-from histojax.views import view_pixels
+from histojax.core import augment as dihedral
+from histojax.core.views import view_pixels
 
 
 class Move(NamedTuple):
@@ -74,7 +74,7 @@ class ActionMode:
         return None
 
     def auto_reset_memory(self, env, done, memory, state, params):
-        """The memory :meth:`histojax.env.HistoEnv.step` keeps after its auto-reset: a fresh episode's at
+        """The memory :meth:`histojax.core.env.HistoEnv.step` keeps after its auto-reset: a fresh episode's at
         ``state`` (the state kept, the new episode's where ``done``) where ``done`` (bool scalar), else
         ``memory``, the stepped one. By default a select over the whole memory; a mode whose memory is
         large overrides it to write only what a new episode changes."""
@@ -94,7 +94,7 @@ class ActionMode:
 
     def episode_tables(self, env, params) -> dict:
         """Per-slide arrays fixed during an episode, for a policy to index with the observation's slide
-        (:meth:`histojax.env.HistoEnv.episode_tables`); ``{}``: none."""
+        (:meth:`histojax.core.env.HistoEnv.episode_tables`); ``{}``: none."""
         return {}
 
     def budget_spent(self, env, state, params) -> jax.Array:

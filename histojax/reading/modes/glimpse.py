@@ -44,7 +44,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from histojax import spaces
+from histojax.core import spaces
 from histojax.core import seen_views
 from histojax.core.modes.base import ActionMode, Move, _declared_score
 from histojax.reading import tables as reading_tables

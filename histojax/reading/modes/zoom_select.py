@@ -32,7 +32,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from histojax import actions, spaces
+from histojax.core import actions, spaces
 from histojax.core import seen_views
 from histojax.core.modes.base import ActionMode, Move, _declared_score
 

@@ -25,7 +25,7 @@ read from the bundle's feature grid (see :func:`view_features`). ``with_position
 ``{"pixels" (or "features"): ..., "position": (x_centre / W_z, y_centre / H_z, z / (n_levels - 1))}``
 with the position float32 in ``[0, 1]``.
 
-**Rewards**: see :mod:`histojax.rewards` (``"histogym"``, ``"sparse"``, ``"dense"``).
+**Rewards**: see :mod:`histojax.core.rewards` (``"histogym"``, ``"sparse"``, ``"dense"``).
 
 **Tasks**: ``task="detection"`` (default) — find the tumour, as above. ``task="classification"`` —
 diagnose the slide: discrete actions add DECLARE_NO_TUMOUR=7 and DECLARE_TUMOUR=8 (continuous: a
@@ -41,7 +41,7 @@ position; see :mod:`histojax.reading.modes.glimpse`). Navigation observations ar
 
 **Augmentation**: ``augment=True`` shows each episode in one of 8 orientations (90° turns ×
 mirror) drawn at reset: the view and the position are turned and the agent's moves are read in
-its turned frame (see :mod:`histojax.augment`); state, rewards and termination stay in the
+its turned frame (see :mod:`histojax.core.augment`); state, rewards and termination stay in the
 slide's frame. Pixel observations only.
 
 **Datasets**: ``make(..., slides=[bundle, ...])`` (or ``dataset=FOLDER`` with a ``dataset.json``)
@@ -68,7 +68,7 @@ observation. ``info`` always has gymnax 1.0's keys ``terminated``, ``truncated``
 
 **gymnax**: with gymnax installed, ``HistoEnv`` is a subclass of
 ``gymnax.environments.environment.Environment`` and its spaces are gymnax's classes (see
-:mod:`histojax.spaces`); code that asks ``isinstance`` has imported gymnax, so it always gets yes.
+:mod:`histojax.core.spaces`); code that asks ``isinstance`` has imported gymnax, so it always gets yes.
 """
 from __future__ import annotations
 
@@ -79,11 +79,11 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from histojax import augment as dihedral
-from histojax import actions, gymnax_classes, rewards, spaces
+from histojax.core import augment as dihedral
+from histojax.core import actions, gymnax_classes, rewards, spaces
 from histojax.core.modes import base, factory
-from histojax.slide import SlideArrays
-from histojax.views import view_tumour_fraction
+from histojax.core.slide import SlideArrays
+from histojax.core.views import view_tumour_fraction
 
 try:  # gymnax is optional; code that can ask ``isinstance(env, Environment)`` has it installed
     _GymnaxEnvironment = gymnax_classes.load("environment").Environment  # not all of gymnax
@@ -105,7 +105,7 @@ def sample_index(key: jax.Array, logits: jax.Array) -> jax.Array:
 
 
 def sample_row(key: jax.Array, cdf: jax.Array, row=None) -> jax.Array:
-    """:func:`sample_index` from cumulative weights computed beforehand (:func:`histojax.slide.start_cdf`):
+    """:func:`sample_index` from cumulative weights computed beforehand (:func:`histojax.core.slide.start_cdf`):
     ``cdf`` ``(N,)``, or ``(S, N)`` with ``row`` picking one slide's row. The same draw (one uniform
     number, ``searchsorted(side="right")``) as a binary search of ⌈log2(N + 1)⌉ scalar reads, so a
     vmapped reset neither copies the row out nor passes over its N entries."""

@@ -11,7 +11,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from histojax.slide import SlideArrays
+from histojax.core.slide import SlideArrays
 
 
 def view_pixels(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.Array, tile_size: int) -> jax.Array:
@@ -30,7 +30,7 @@ def view_pixels(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.Array, ti
 def view_tumour_fraction(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.Array, tile_size: int) -> jax.Array:
     """Fraction in ``[0, 1]`` (float32) of the view's pixels that are tumour, from the summed-area
     table of level ``z``: four lookups, O(1) whatever the view size (uint32 arithmetic modulo
-    2**32, exact for any level size; see :mod:`histojax.slide`)."""
+    2**32, exact for any level size; see :mod:`histojax.core.slide`)."""
     if slide.sat_pool is not None:  # tiled (with or without pixels)
         return _tiled_tumour_fraction(slide, z, x, y, tile_size)
     stride = slide.level_width[z] + 1

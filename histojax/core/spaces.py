@@ -22,9 +22,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from histojax import gymnax_classes
+from histojax.core import gymnax_classes
 
-try:  # gymnax's spaces module alone, not all of gymnax (see histojax.gymnax_classes)
+try:  # gymnax's spaces module alone, not all of gymnax (see histojax.core.gymnax_classes)
     _gymnax_spaces = gymnax_classes.load("spaces")
 except ImportError:  # gymnax is optional: the stand-ins below
     _gymnax_spaces = None

@@ -25,7 +25,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from histojax import actions
+from histojax.core import actions
 
 NUM_ORIENTATIONS = 8
 _ROT = np.array([[0, -1], [1, 0]], np.int32)    # 90° turn in image coords (x right, y down)
@@ -93,7 +93,7 @@ def discrete_to_slide(action: jax.Array, orientation: jax.Array) -> jax.Array:
 def continuous_to_slide(action: jax.Array, orientation: jax.Array) -> jax.Array:
     """A continuous action ``(dx, dy, dzoom[, diagnosis])`` taken in ``orientation`` with its move
     ``(dx, dy)`` turned into the slide's frame (``M_o⁻¹ (dx, dy)``), after NaN → 0 and clipping to
-    ``[-1, 1]`` as :func:`histojax.actions.continuous_deltas` does. float32."""
+    ``[-1, 1]`` as :func:`histojax.core.actions.continuous_deltas` does. float32."""
     a = jnp.clip(jnp.nan_to_num(jnp.asarray(action, jnp.float32), nan=0.0, posinf=1.0, neginf=-1.0), -1.0, 1.0)
     inv = jnp.asarray(_INVERSES.astype(np.float32))[orientation]
     return a.at[:2].set(inv @ a[:2])

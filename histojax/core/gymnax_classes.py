@@ -3,7 +3,7 @@
 ``import gymnax`` runs ``gymnax/environments/__init__.py``, which imports all of gymnax's own
 environments and, through them, seaborn and scipy.stats: about 2 s of every process's start on a
 2-core CPU, paid by each ``histojax`` command. histojax needs two of gymnax's modules,
-``gymnax.environments.environment`` (the base class of :class:`histojax.env.HistoEnv`) and
+``gymnax.environments.environment`` (the base class of :class:`histojax.core.env.HistoEnv`) and
 ``gymnax.environments.spaces``; neither imports anything else of gymnax.
 
 :func:`load` executes those two files under their own module names and registers them in

@@ -17,12 +17,12 @@ A *tiled* slide (a bundle built with ``storage="tiled"``, for gigapixel slides) 
 ``tumour_sat`` ``None`` and instead:
   * ``tile_pool`` — ``(N, T, T, 3)`` uint8 RGB tiles of all levels (each level's tile 0 is blank white,
     shared by its background tiles; pool tile 0 is uniform and the last tile is a spare blank one,
-    which the view's row slices rely on, see :func:`histojax.views.view_pixels`);
+    which the view's row slices rely on, see :func:`histojax.core.views.view_pixels`);
   * ``tile_index`` — ``(G,)`` int32, level ``z``'s ``gh × gw`` grid of pool indices row-major from
     ``tile_offset[z]`` with ``gw = tile_grid_width[z]``;
   * ``sat_pool`` — ``(M, T+1, T+1)`` uint32 local summed-area tables of each tile's tumour mask, and
     ``sat_index`` ``(G,)`` int32 laid out like ``tile_index``.
-A view then covers at most 2 × 2 tiles (see :mod:`histojax.views`).
+A view then covers at most 2 × 2 tiles (see :mod:`histojax.core.views`).
 
 **Feature-only layout** (``load_slide(..., pixels=False)``, what ``make`` does for ``obs_mode="features"``):
 no pixels reach the device at all — ``pixels`` and ``tile_pool`` / ``tile_index`` are ``None``; only the
@@ -235,7 +235,7 @@ def box_sums(sat: np.ndarray, size: int) -> np.ndarray:
 
 def start_cdf(logits) -> np.ndarray:
     """The cumulative start weights ``cumsum(exp(logits − max))`` over the flattened start positions (per
-    slide for stacked ``(S, H, W)`` logits), float32: exactly what :func:`histojax.env.sample_index`
+    slide for stacked ``(S, H, W)`` logits), float32: exactly what :func:`histojax.core.env.sample_index`
     would compute from the logits at every reset (start weights are 1 or 0, so the sums are exact
     integers), computed once on the host instead (the auto-reset runs in every step, and on a
     true-scale slide the coarsest level has ~500,000 start positions)."""

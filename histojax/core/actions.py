@@ -5,7 +5,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 
-from histojax.slide import SlideArrays
+from histojax.core.slide import SlideArrays
 
 UP, DOWN, LEFT, RIGHT, ZOOM_IN, ZOOM_OUT, STAY = range(7)
 DECLARE_NO_TUMOUR, DECLARE_TUMOUR = 7, 8  # task="classification" only

@@ -77,7 +77,7 @@ def add_arguments(p) -> None:
                        help="tiled: MiB of RGB per band of a level read at a time (default 96)")
     build.add_argument("--overwrite", action="store_true", help="replace an existing bundle")
     add_reader_argument(build)
-    build.add_argument("--quiet", action="store_true", help="no progress bar")
+    build.add_argument("--quiet", action="store_true", help="no progress bar and no level table: one line")
     synth = sub.add_parser("synth", help="make semi-synthetic slides (synthetic pixels, real CAMELYON16 "
                                          "tumour geometry) and their bundles, with a train/test split")
     synth.add_argument("out_dir", help="output folder (slides/, bundles/, previews/, dataset.json)")
@@ -231,7 +231,8 @@ def _command(args) -> int | None:
         meta = read_metadata(out)
         print(f"wrote {out}: {len(meta.levels)} levels"
               + (f", region {meta.region['box']} of the slide" if meta.region else ""))
-        print(_info(str(out)))
+        if not args.quiet:  # --quiet: the one line above (`info BUNDLE` prints the level table)
+            print(_info(str(out)))
     elif args.command == "synth":
         from data_tools.datasets.synth import make_dataset
 

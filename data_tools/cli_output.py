@@ -9,6 +9,7 @@ import argparse
 import contextlib
 import logging
 import math
+import re
 import sys
 import warnings
 
@@ -16,9 +17,20 @@ USER_ERROR = 2
 LOGGERS = ("tifffile", "imagecodecs")  # libraries whose log records would otherwise print free-form lines
 
 
+_INSIDE_TEMPORARY = re.compile(r"(^|[/\\\s'\"(])\.([^/\\\s]+?)\.tmp-[0-9a-f]{8}(?=[/\\])")
+
+
+def without_temporaries(text) -> str:
+    """``text`` with every path inside one of histojax's hidden temporary folders (``bundles/.NAME.tmp-XXXXXXXX/
+    metadata.json``, where a bundle is built before it is renamed into place) named by the folder it becomes
+    (``bundles/NAME/metadata.json``): a user never sees the temporary, only the bundle."""
+    return _INSIDE_TEMPORARY.sub(r"\1\2", str(text))
+
+
 def one_line(text) -> str:
-    """``text`` with every run of whitespace (newlines included) made one space."""
-    return " ".join(str(text).split())
+    """``text`` with every run of whitespace (newlines included) made one space, and paths inside a hidden
+    temporary folder named by the folder it becomes (:func:`without_temporaries`)."""
+    return " ".join(without_temporaries(text).split())
 
 
 def print_error(error, hint: str = "") -> int:

@@ -95,3 +95,11 @@ def test_bad_levels_is_usage_error(tmp_path):
     assert "Traceback" not in proc.stderr
     assert "--levels" in proc.stderr
     assert list(tmp_path.iterdir()) == []
+
+
+def test_build_quiet_prints_one_line(built):
+    """``build --quiet``: the one ``wrote ...`` line, no level table (``info BUNDLE`` prints it); before, the table
+    came with it."""
+    _, proc = built
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stdout.strip().splitlines() == [proc.stdout.strip()] and proc.stdout.startswith("wrote "), proc.stdout

@@ -118,7 +118,9 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
     encoder = load_encoder(encoder_name, image_size=image_size)
     scale = encoder_scale(encoder.name, (metadata.get("source") or {}).get("mpp"))
     if scale is not None and scale["warning"]:  # one line naming the bundle; recorded in features.encoder_scale
-        warnings.warn(f"{bundle / 'metadata.json'}: {scale['warning']}", stacklevel=2)
+        from data_tools.cli_output import without_temporaries  # the bundle, not the folder it is built in
+
+        warnings.warn(f"{without_temporaries(bundle / 'metadata.json')}: {scale['warning']}", stacklevel=2)
     if dim is not None and not 1 <= dim <= encoder.dim:
         raise BundleError(bundle, f"--dim must be between 1 and the encoder's {encoder.dim}, got {dim}")
     grids = level_grids(metadata, stride)

@@ -345,11 +345,16 @@ def head_reward_settings(run: Path, config: dict) -> tuple[dict | None, Path | N
 
 
 def resolve_head(recorded: str, run: Path, where) -> Path:
-    """The slide head folder a run names (``recorded``): as given when absolute; else beside the run, in the
-    working folder, in the repository, or a published head of that name. ``HistojaxDataError`` naming
-    ``where`` (the file that names it) when none holds a ``config.json``."""
+    """The slide head folder a run names (``recorded``): as given when absolute; a published head's own name
+    (``baselines/published/NAME``, as the published agents record theirs) is the installed package's copy first,
+    so a folder of that name under the working folder is never taken for it (name it ``./baselines/published/NAME``
+    or by an absolute path to use it); else beside the run, in the working folder, in the repository, or a
+    published head of that name. ``HistojaxDataError`` naming ``where`` (the file that names it) when none holds a
+    ``config.json``."""
     p = Path(recorded)
     tries = [p] if p.is_absolute() else [run / p, p, Path(__file__).resolve().parents[2] / p]
+    if str(recorded).startswith("baselines/published/"):  # the package's own name for a shipped head
+        tries.insert(0, PUBLISHED / Path(str(recorded)[len("baselines/published/"):]))
     tries.append(PUBLISHED / p.name)
     for c in tries:
         if (c / "config.json").is_file():

@@ -112,3 +112,49 @@ def small_split_warning(n_tumour: int, n_normal: int, where: str) -> str | None:
             f"95 % interval of [{low:.2f}, {high:.2f}] — too few to rank heads or readers (fewer than "
             f"{SMALL_SPLIT_PER_CLASS} of a class). Use k folds (dataset --folds K, then --all-folds) or a larger "
             f"--val-fraction, and report the interval beside the AUC.")
+
+
+def auc_over_runs(scores, labels) -> dict:
+    """The AUC of several runs (random reader orders, policy seeds) on the same slides, with its 95 % interval.
+
+    ``scores (R, B)``: each run's per-slide scores of the ``B`` slides whose 0/1 ``labels (B,)`` are given (a 1-D
+    ``(B,)`` is one run). Returns ``{"auc": mean over runs, "auc_std": std over runs, "auc_low", "auc_high",
+    "auc_per_run": [R], "n_tumour", "n_normal"}``: the interval is :func:`auc_interval` of the mean AUC over the
+    ``B`` slides, each counted once (the runs share their slides, so they add no slides; the std says how much
+    the runs differ). NaN fields when a class is missing."""
+    s = np.atleast_2d(np.asarray(scores, np.float64))
+    y = np.asarray(labels).astype(bool)
+    aucs = np.asarray([roc_auc(row, y) for row in s])
+    auc = float(aucs.mean())
+    n_pos, n_neg = int(y.sum()), int((~y).sum())
+    low, high = auc_interval(auc, n_pos, n_neg)
+    return {"auc": auc, "auc_std": float(aucs.std()), "auc_low": low, "auc_high": high,
+            "auc_per_run": [float(a) for a in aucs], "n_tumour": n_pos, "n_normal": n_neg}
+
+
+def format_auc_runs(auc: float, std: float, low: float, high: float, runs: int = 2) -> str:
+    """``"AUC 0.849 ± 0.035 [0.741, 0.936]"`` (mean ± std over ``runs`` seeds or folds, then the 95 % interval
+    over the slides); one run: :func:`format_auc`."""
+    if runs <= 1 or not np.isfinite(std):
+        return format_auc(auc, low, high)
+    if not np.isfinite(auc):
+        return format_auc(auc, low, high)
+    return f"AUC {auc:.3f} ± {std:.3f} [{low:.3f}, {high:.3f}]"
+
+
+def json_safe(value):
+    """``value`` (dicts, lists, tuples, numpy scalars and arrays nested) with every NaN / ±inf float replaced by
+    ``None``, ready for ``json.dumps(..., allow_nan=False)``: no JSON file histojax writes holds ``NaN``."""
+    if isinstance(value, dict):
+        return {k: json_safe(v) for k, v in value.items()}
+    if isinstance(value, (list, tuple)):
+        return [json_safe(v) for v in value]
+    if isinstance(value, np.ndarray):
+        return json_safe(value.tolist())
+    if isinstance(value, (bool, np.bool_)):
+        return bool(value)
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        return json_number(value)
+    return value

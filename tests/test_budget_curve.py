@@ -166,6 +166,17 @@ def test_the_score_reader_is_a_row_of_the_curve_of_a_learned_head(cohort, tmp_pa
     assert float(score["auc"]) == 1.0
     assert float(score["auc"]) >= float(rows[("random reader + learned head", 0.1)]["auc"])
     assert (out / "budget_curve.png").stat().st_size > 1000
+    # one scoring path: the readers on the same cells (glimpse level 1 of Easy-v0 is bundle level 1) give the head's
+    # rows the same figures, to the last digit (tests/test_one_scoring_path.py: more budgets, a non-zero prior)
+    from baselines.reading import readers
+
+    assert readers.main(["--dataset", str(cohort["root"]), "--head", str(head_dir), "--split", "test", "--seeds", "2",
+                         "--cell-level", "1", "--budgets", "0.1", "0.5", "--out", str(tmp_path / "readers")]) == 0
+    mine = {(r["reader"], float(r["budget"])): r for r in _rows(tmp_path / "readers" / "readers.csv")}
+    for reader, method in (("random reader", "random reader + learned head"), ("score reader", "score reader + learned head")):
+        for b in (0.1, 0.5):
+            for field in ("auc", "auc_std", "auc_low", "auc_high", "fraction_read", "accuracy"):
+                assert mine[(reader, b)][field] == rows[(method, b)][field], (reader, b, field)
 
 
 def test_a_head_the_curve_cannot_score_as_a_set_is_one_line(cohort, tmp_path, capsys):

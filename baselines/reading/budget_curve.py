@@ -233,7 +233,8 @@ def glimpse_bundle_level(dataset, env_id: str, level: int, split: str, fold: int
     """``(bundle level, downsample)`` of scenario level ``level`` of ``env_id`` on ``dataset``'s ``split`` (its first
     bundle): the bundle level whose views are the glimpse cells, and its downsample from the finest scenario level."""
     from data_tools.bundle_format import read_metadata, select_levels
-    from histojax.registry import dataset_slides, spec_of
+    from histojax.datasets import dataset_slides
+    from histojax.registry import spec_of
 
     bundle = dataset_slides(dataset, split, fold)[0]
     meta = read_metadata(bundle)
@@ -361,7 +362,7 @@ def compute_missing_features(dataset, encoder: str) -> None:
     """Compute the feature grid (``encoder``, float32) of every bundle in ``dataset`` that has none."""
     from data_tools.bundle import read_metadata
     from data_tools.features.grid import compute_features
-    from histojax.registry import dataset_slides
+    from histojax.datasets import dataset_slides
 
     for bundle in dataset_slides(dataset, "all"):
         if not read_metadata(bundle).get("features"):
@@ -442,7 +443,7 @@ def check_options(args) -> str | None:
     if args.folds < 0 or args.folds == 1:
         return f"--folds {args.folds}: give 0 (use the dataset's train / test split) or K >= 2 folds"
     if args.folds:
-        from histojax.registry import dataset_slides
+        from histojax.datasets import dataset_slides
 
         n = len(dataset_slides(args.dataset, "all"))
         if args.folds > n:
@@ -489,8 +490,6 @@ def fold_rows(args, level: int, fold: int | None):
     side = scored_side(args.dataset, fold)
     test = load_split(args.dataset, side, env_id=args.env, level=level, fold=fold)
     check_two_classes(args.dataset, side, test.labels, fold)
-    if not getattr(args, "all_folds", False):  # --all-folds: one warning for the pooled folds (curve_rows)
-        warn_small(test.labels, f"split {side!r}" + (f" (fold {fold})" if fold is not None else ""))
     if (line := unreadable_warning([t.get("name", i) for i, t in enumerate(test.tables)],
                                    [t["cell_views"] for t in test.tables], [t["valid"] for t in test.tables],
                                    [t["total"] for t in test.tables], args.budgets,
@@ -515,6 +514,8 @@ def fold_rows(args, level: int, fold: int | None):
     rows = budget_rows((train.tables, train.labels), (test.tables, test.labels), args.budgets, seeds=args.seeds,
                        steps=args.steps, policies=policies, dataset=args.dataset, policy_seeds=args.policy_seeds,
                        max_dim=view_logit_dim(args.dataset), fold=fold, head=head, head_cells=head_cells)
+    if not getattr(args, "all_folds", False):  # once scored (a refusal stays one line); --all-folds: curve_rows warns
+        warn_small(test.labels, f"split {side!r}" + (f" (fold {fold})" if fold is not None else ""))
     return rows, (train.tables, train.labels), (test.tables, test.labels)
 
 

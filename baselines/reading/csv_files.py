@@ -8,8 +8,9 @@ from pathlib import Path
 from baselines import outputs
 
 CURVE_COLUMNS = ["method", "budget", "fraction_read", "auc", "accuracy", "slides", "auc_std", "accuracy_std", "seeds",
-                 "fields_of_view"]
-"""The budget curve's columns (:func:`write_curve_csv`)."""
+                 "fields_of_view", "auc_low", "auc_high", "tumour_slides"]
+"""The budget curve's columns (:func:`write_curve_csv`): ``auc_low`` / ``auc_high`` the AUC's 95 % interval over the
+slides, ``tumour_slides`` how many of ``slides`` are tumour slides; ``fields_of_view`` only when a row has one."""
 
 
 def write_csv(rows: list[dict], path, columns: list[str] | None = None, blank_nan: bool = False) -> Path:
@@ -28,6 +29,14 @@ def write_csv(rows: list[dict], path, columns: list[str] | None = None, blank_na
 
 def write_curve_csv(rows: list[dict], path) -> Path:
     """The budget curve's CSV: one line per method × budget (:data:`CURVE_COLUMNS`; with ``--all-folds`` a ``fold``
-    column first: the fold, or ``mean``), NaN (no fields of view for a scripted reader) empty."""
+    column first: the fold, or ``mean``), NaN (no fields of view for a scripted reader) empty; the fields-of-view
+    column only when some row has one (a trained policy's), never a column that is always empty."""
     folds = ["fold"] if any("fold" in r for r in rows) else []
-    return write_csv(rows, path, folds + CURVE_COLUMNS, blank_nan=True)
+    columns = [c for c in CURVE_COLUMNS if c != "fields_of_view" or any(_defined(r.get(c)) for r in rows)]
+    return write_csv([{k: v for k, v in r.items() if k in columns or k == "fold"} for r in rows], path,
+                     folds + columns, blank_nan=True)
+
+
+def _defined(value) -> bool:
+    """Whether a CSV figure is there: not missing, not NaN."""
+    return value is not None and not (isinstance(value, float) and value != value)

@@ -125,6 +125,17 @@ def check_two_classes(dataset, split: str, labels, fold: int | None = None) -> N
 
 
 # ----------------------------------------------------------------------------- the run loop
+def reader_auc(scores, labels) -> dict:
+    """The one AUC of a reader, for the readers and the budget curve alike: ``scores (seeds, B)`` its per-slide
+    scores (logits or probabilities: the AUC depends on their order only) of each seed (random order, policy seed)
+    on the ``B`` slides of 0/1 ``labels (B,)``. Returns :func:`data_tools.metrics.auc_over_runs`: ``auc`` (mean over
+    seeds), ``auc_std`` (std over seeds), ``auc_low`` / ``auc_high`` (the 95 % interval over the ``B`` slides),
+    ``auc_per_run``, ``n_tumour``, ``n_normal``."""
+    from data_tools.metrics import auc_over_runs
+
+    return auc_over_runs(scores, labels)
+
+
 def random_orders(tables: list[dict], seeds: int) -> list[list[np.ndarray]]:
     """``seeds`` × slides random cell orders: seed ``k`` of slide ``i`` drawn from ``default_rng(1000 k + i)`` (the
     random reader of both the readers and the budget curve)."""

@@ -421,10 +421,6 @@ def run(args, parser=None) -> int:
     if problem:
         return print_error(HeadDataError(Path(args.dataset) / "dataset.json", problem))
     cells = cells_words(slides, args.cell_level)
-    warning = small_split_warning(int(sum(s["label"] for s in slides)), int(sum(1 - s["label"] for s in slides)),
-                                  f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else ""))
-    if warning:
-        print(warning, file=sys.stderr)
     results = scripted_results(head, slides, args.budgets, args.seeds, args.cell_level, progress=True)
     maps = {}
     for name, run_dir in args.reader:
@@ -437,6 +433,10 @@ def run(args, parser=None) -> int:
         maps[name] = masks
     rows = rows_from_results(results, slides)
     lesions = lesion_rows(slides, results)
+    warning = small_split_warning(int(sum(s["label"] for s in slides)), int(sum(1 - s["label"] for s in slides)),
+                                  f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else ""))
+    if warning:  # once scored: a refusal above stays one line
+        print(warning, file=sys.stderr)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     b = min(args.budgets, key=lambda v: abs(v - 0.1))  # reading maps at the budget nearest 10 %

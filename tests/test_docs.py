@@ -1,7 +1,7 @@
 """The documentation's commands and links are real.
 
-Every line of every ```bash block in README.md, docs/*.md (guides) and docs/results/*.md (measured figures) is
-checked:
+Every line of every ```bash block in README.md, CONTRIBUTING.md, docs/*.md (guides) and docs/results/*.md
+(measured figures) is checked:
 
 * ``make T`` — ``T`` is a target of the Makefile;
 * ``pip install -e '.[x]'`` / ``pip install 'histojax[x]'`` — the extras exist in pyproject.toml;
@@ -35,7 +35,7 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 GUIDES = sorted((ROOT / "docs").glob("*.md"))            # guides: short and current (no dated run records)
 RESULTS = sorted((ROOT / "docs" / "results").glob("*.md"))  # dated measured figures, one page per topic
-PAGES = [ROOT / "README.md", *GUIDES, *RESULTS]
+PAGES = [ROOT / "README.md", ROOT / "CONTRIBUTING.md", *GUIDES, *RESULTS]
 GUIDE_MAX_LINES = 300
 
 # Pages written in parallel on other branches, linked before they are merged. Links to these may

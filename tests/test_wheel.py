@@ -1,6 +1,7 @@
 """A wheel that installs: the package data the code opens is declared in pyproject.toml (fast), and a
-wheel built from the tree, installed into a fresh venv and run from outside the source tree, runs the
-README's quick start and ``histojax demo --no-train`` (slow, ``make test-all``)."""
+wheel built from the tree, installed into a fresh venv and run from outside the source tree, installs only the
+top-level packages the ``histojax`` command needs, reaches the published agents by name, and runs the README's
+quick start and ``histojax demo --no-train`` from an empty folder (slow, ``make test-all``)."""
 from __future__ import annotations
 
 import fnmatch
@@ -26,7 +27,8 @@ REQUIRED = ("histojax/data/CMU-1-Small-Region.svs", "histojax/data/CMU-1-Small-R
             "data_tools/features/pcam_cnn.msgpack", "data_tools/features/pcam_cnn.json",
             "data_tools/pcam/bank.npz", "data_tools/camelyon16/tumor_009.xml",
             "data_tools/camelyon16/bench_normal_004.xml", "data_tools/camelyon16/ncrf/Tumor_072.json",
-            "baselines/published/c16-v2-head/config.json")
+            "baselines/published/c16-v2-head/config.json", "histojax/py.typed")
+TOP_LEVEL = {"histojax", "data_tools", "baselines"}  # benchmarks/ and experiments/ run from the repository only
 
 
 def _pyproject() -> dict:
@@ -105,6 +107,9 @@ def test_wheel_installs_and_runs_outside_the_tree(tmp_path):
     names = set(zipfile.ZipFile(wheel).namelist())
     missing = [f for f in REQUIRED if f not in names]
     assert not missing, f"the wheel lacks {missing}"
+    top = {n.split("/")[0] for n in names if not n.split("/")[0].endswith(".dist-info")}
+    assert top == TOP_LEVEL, f"the wheel's top-level names are {sorted(top)}, not {sorted(TOP_LEVEL)}"
+    assert any(n.endswith(".dist-info/LICENSE") or n.endswith(".dist-info/licenses/LICENSE") for n in names)
 
     venv = tmp_path / "venv"
     subprocess.run([sys.executable, "-m", "venv", "--without-pip", str(venv)], check=True, timeout=120)
@@ -126,11 +131,33 @@ def test_wheel_installs_and_runs_outside_the_tree(tmp_path):
     assert where.returncode == 0, where.stderr[-3000:]
     for line in where.stdout.split():
         assert Path(line).is_relative_to(venv), f"imported from outside the installed wheel: {line}"
+    absent = subprocess.run([str(py), "-c", "import importlib.util as u; print(u.find_spec('benchmarks'), "
+                             "u.find_spec('experiments'))"], cwd=run_dir, env=env, capture_output=True, text=True,
+                            timeout=120)
+    assert absent.stdout.split() == ["None", "None"], absent.stdout + absent.stderr[-3000:]
+
+    histojax_command = str(venv / "bin" / "histojax")
+    r = subprocess.run([histojax_command, "published"], cwd=run_dir, env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 0, r.stderr[-3000:]
+    published = sorted(p.name for p in (ROOT / "baselines" / "published").iterdir() if p.is_dir())
+    listed = [line.split()[0] for line in r.stdout.splitlines()[3:] if line.strip()]
+    assert listed == published and str(venv) in r.stdout.splitlines()[0], r.stdout
+    r = subprocess.run([histojax_command, "evaluate", "c16-v2-set-reader"], cwd=run_dir, env=env,
+                       capture_output=True, text=True, timeout=300)  # found by name; without --dataset: refused
+    assert r.returncode == 2 and f"{Path(site) / 'baselines' / 'published' / 'c16-v2-set-reader'}" in r.stderr, (
+        r.stderr[-3000:])
+    assert "a published agent; its config.json records no path" in r.stderr, r.stderr[-3000:]
+    r = subprocess.run([histojax_command, "bench"], cwd=run_dir, env=env, capture_output=True, text=True,
+                       timeout=300)
+    assert r.returncode == 2 and "histojax bench runs from a source checkout" in r.stderr, r.stderr[-3000:]
 
     r = subprocess.run([str(py), "-c", _readme_quick_start()], cwd=run_dir, env=env, capture_output=True, text=True,
                        timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
-    r = subprocess.run([str(venv / "bin" / "histojax"), "demo", "--no-train", "--out", "demo-out"], cwd=run_dir,
-                       env=env, capture_output=True, text=True, timeout=600)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    r = subprocess.run([histojax_command, "demo", "--no-train", "--out", "demo-out"], cwd=empty, env=env,
+                       capture_output=True, text=True, timeout=600)
     assert r.returncode == 0, r.stderr[-3000:]
-    assert "HistoJAX-Easy-v0" in r.stdout and (run_dir / "demo-out" / "demo_trajectory.png").is_file()
+    assert "HistoJAX-Easy-v0" in r.stdout and (empty / "demo-out" / "demo_trajectory.png").is_file()

@@ -39,7 +39,7 @@ ENV_ID = "HistoJAX-C16-Diagnosis-v2"
 
 def dataset_bundles(folder) -> list[str]:
     """Every bundle of a dataset folder's ``dataset.json`` (train then test)."""
-    from histojax.registry import dataset_slides
+    from histojax.datasets import dataset_slides
 
     paths = []
     for split in ("train", "test"):

@@ -34,7 +34,7 @@ def main(argv=None) -> int:
     import histojax
     from baselines import ppo
     from histojax import sharding
-    from histojax.registry import dataset_slides
+    from histojax.datasets import dataset_slides
 
     if args.dataset:
         paths = [str(s) for s in dataset_slides(args.dataset, "all")]

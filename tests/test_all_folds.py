@@ -13,7 +13,7 @@ import pytest
 from baselines import folds
 from baselines.reading import budget_curve
 from data_tools.datasets.build import write_dataset_index
-from histojax.registry import dataset_slides
+from histojax.datasets import dataset_slides
 from fold_helpers import build_folded
 
 CURVE = ["--env", "HistoJAX-Easy-v0", "--glimpse-level", "1", "--budgets", "0.25", "0.5", "--seeds", "1",

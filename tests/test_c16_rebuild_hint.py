@@ -6,7 +6,8 @@ import shlex
 import pytest
 
 from data_tools.errors import BundleError
-from histojax.registry import check_dataset, spec_of
+from histojax.datasets import check_dataset
+from histojax.registry import spec_of
 
 
 def _hint(tmp_path, **recorded) -> list[str]:

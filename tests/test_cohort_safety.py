@@ -146,7 +146,7 @@ def test_restart_keeps_dataset_json_loadable_during_the_rebuild(built, cohort, t
     """``--restart`` no longer deletes dataset.json first: ``make(dataset=...)`` works while slides rebuild,
     and a rebuild that fails leaves the old bundles."""
     import data_tools.bundle
-    from histojax.registry import dataset_slides
+    from histojax.datasets import dataset_slides
 
     slides, labels = cohort
     work = tmp_path / "o"
@@ -424,7 +424,7 @@ def test_make_during_a_first_build_says_it_is_being_built(tmp_path):
     """Before dataset.json exists, ``make(dataset=...)`` says the folder is being built, naming a slide lock,
     not "not a dataset folder ... make one with synth"."""
     from data_tools.datasets.locks import bundle_lock_path, file_lock
-    from histojax.registry import dataset_slides
+    from histojax.datasets import dataset_slides
 
     out = tmp_path / "o"
     (out / "bundles").mkdir(parents=True)

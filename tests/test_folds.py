@@ -14,7 +14,7 @@ from data_tools.__main__ import main as data_main
 from data_tools.datasets.build import write_dataset_index
 from data_tools.datasets.split import kfold_split, patient_groups, read_patient_column
 from data_tools.errors import BundleError, HistojaxDataError
-from histojax.registry import dataset_slides
+from histojax.datasets import dataset_slides
 from fold_helpers import build_folded
 
 

@@ -162,7 +162,7 @@ def test_a_dataset_json_that_is_a_fifo_a_folder_or_not_an_object_is_one_line(tmp
     gave IsADirectoryError and a JSON list AttributeError ('list' object has no attribute 'get') from make."""
     from data_tools.bundle_format import read_dataset_json
     from data_tools.errors import BundleError
-    from histojax.registry import dataset_slides
+    from histojax.datasets import dataset_slides
 
     ds = _sealed(tmp_path / "ds")
     assert read_dataset_json(ds)["labels"] == {"s1": 0, "s2": 1}

@@ -273,7 +273,7 @@ def test_every_reader_of_a_dataset_refuses_an_edited_dataset_json(built, tmp_pat
     from baselines.reading.head_fit import read_spec
     from baselines.reading.learned_head_fit import read_spec as learned_read_spec
     from data_tools.errors import BundleError
-    from histojax.registry import dataset_labels, dataset_slides
+    from histojax.datasets import dataset_labels, dataset_slides
 
     work = tmp_path / "o"
     shutil.copytree(built, work)
@@ -293,7 +293,7 @@ def test_a_seal_removed_by_hand_is_said(built, tmp_path):
     import warnings as _warnings
 
     from data_tools import bundle_format
-    from histojax.registry import dataset_labels
+    from histojax.datasets import dataset_labels
 
     work = tmp_path / "unsealed"
     shutil.copytree(built, work)

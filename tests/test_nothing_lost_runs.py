@@ -460,11 +460,11 @@ def test_a_c16_agent_on_other_features_names_the_dataset_and_the_encoder_it_need
 
 def test_a_dataset_without_feature_grids_is_named_not_none(tmp_path):
     from data_tools.errors import BundleError
-    from histojax import registry
+    from histojax import datasets, registry
 
     (tmp_path / "dataset.json").write_text(json.dumps({"kind": "histojax dataset", "train": [], "test": []}))
     with pytest.raises(BundleError) as e:
-        registry.check_dataset(tmp_path, registry.spec_of("HistoJAX-C16-Diagnosis-v1").settings,
+        datasets.check_dataset(tmp_path, registry.spec_of("HistoJAX-C16-Diagnosis-v1").settings,
                                "HistoJAX-C16-Diagnosis-v1")
     assert "records no feature grids" in str(e.value) and "None" not in str(e.value)
     assert str(tmp_path / "dataset.json") in str(e.value)

@@ -116,7 +116,8 @@ def test_c16_small_with_your_own_encoder_and_the_v1_ids_observe_it(tmp_path):
 
 
 def test_v1_ids_refuse_a_dataset_without_feature_grids_but_take_any_encoders(tmp_path):
-    from histojax.registry import C16_V1, check_dataset
+    from histojax.datasets import check_dataset
+    from histojax.registry import C16_V1
 
     base = {"kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)", "format": 2}
     for encoder in ("pcam-cnn", "tiny-colour", "imported"):

@@ -127,9 +127,12 @@ def navigator_masks(run, dataset, slides: list[dict], split: str = "test", seeds
 
 def add_arguments(p) -> None:
     """The options of ``python -m baselines.reading.diagnosis``."""
+    from baselines.published_agents import published_or_path
+
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; feature grids the head reads)")
-    p.add_argument("--head", required=True, help="slide head folder, any kind histojax.reading.heads.load reads "
-                                                  "(baselines.reading.head_fit or learned_head_fit)")
+    p.add_argument("--head", required=True, type=published_or_path,
+                   help="slide head folder, any kind histojax.reading.heads.load reads (baselines.reading.head_fit or "
+                        "learned_head_fit), or a published head's name")
     p.add_argument("--navigator", nargs=2, action="append", required=True, metavar=("NAME", "RUN"),
                    help="a trained navigator's run folder (discrete / continuous mode); repeatable")
     p.add_argument("--split", default="test", help="split scored (default test)")

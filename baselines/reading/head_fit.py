@@ -51,7 +51,7 @@ def read_spec(dataset, fold: int | None = None) -> dict:
     """The dataset's ``dataset.json`` (``HeadDataError`` naming it when missing or malformed; a ``BundleError``
     naming it when it does not match its seal, :func:`data_tools.bundle_format.read_dataset_json`). ``fold=i``
     (a dataset built with ``--folds K``): its ``train`` / ``validation`` / ``test`` lists are fold i's sides
-    (:func:`histojax.registry.with_fold`: train = the other folds); no folds or a fold out of range is a
+    (:func:`histojax.datasets.with_fold`: train = the other folds); no folds or a fold out of range is a
     ``HeadDataError`` naming the file."""
     path = Path(dataset) / "dataset.json"
     try:
@@ -64,7 +64,7 @@ def read_spec(dataset, fold: int | None = None) -> dict:
     if not isinstance(spec, dict) or not isinstance(spec.get("train"), list):
         raise HeadDataError(path, "has no \"train\" list of bundles")
     if fold is not None:
-        from histojax.registry import with_fold  # jax with it: only when a fold is asked for
+        from histojax.datasets import with_fold
 
         try:
             spec = with_fold(spec, fold, path)

@@ -93,7 +93,7 @@ class FitError(HistojaxDataError):
 def read_spec(dataset, fold: int | None = None) -> dict:
     """``dataset.json`` of ``dataset`` (``FitError`` naming it when missing, malformed or without a train list).
     ``fold=i`` (a dataset built with ``--folds K``): its train / validation / test lists are fold i's sides
-    (:func:`histojax.registry.with_fold`; no folds or a fold out of range: ``FitError`` naming the file)."""
+    (:func:`histojax.datasets.with_fold`; no folds or a fold out of range: ``FitError`` naming the file)."""
     try:
         return read_sealed_spec(dataset, fold)  # its seal checked: an edited label or split is refused
     except HeadDataError as e:

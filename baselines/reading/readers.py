@@ -363,8 +363,11 @@ def write_reading_maps(out: Path, slides: list[dict], name: str, masks: list[np.
 
 def add_arguments(p) -> None:
     """The options of ``python -m baselines.reading.readers``."""
+    from baselines.published_agents import published_or_path
+
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; feature grids of any encoder)")
-    p.add_argument("--head", required=True, help="slide head folder (python -m baselines.reading.head_fit)")
+    p.add_argument("--head", required=True, type=published_or_path,
+                   help="slide head folder (python -m baselines.reading.head_fit) or a published head's name")
     p.add_argument("--split", default="test", help="split scored (default test)")
     p.add_argument("--fold", type=int, default=None, metavar="I",
                    help="a dataset built with --folds K: score fold I's side of --split (test / validation = fold I)")

@@ -175,13 +175,15 @@ def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tup
 
 
 def main(argv=None) -> int:
+    from baselines.published_agents import published_or_path
+
     argv = list(sys.argv[1:] if argv is None else argv)
     extra = argv[argv.index("--") + 1:] if "--" in argv else []
     argv = argv[: argv.index("--")] if "--" in argv else argv
     p = argparse.ArgumentParser(prog="python -m baselines.reading.train_readers", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
     p.add_argument("--dataset", required=True, type=Path)
-    p.add_argument("--head", required=True)
+    p.add_argument("--head", required=True, type=published_or_path)
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--algo", choices=("ppo", "ppo_rnn"), default="ppo")
     p.add_argument("--env", default=ENV_ID, help=f"env id (default {ENV_ID}: any dataset)")

@@ -372,6 +372,8 @@ def compute_missing_features(dataset, encoder: str) -> None:
 
 def add_arguments(p) -> None:
     """The options of ``python -m baselines.reading.budget_curve`` and ``histojax budget-curve``."""
+    from baselines.published_agents import published_or_path
+
     p.add_argument("--dataset", required=True, help="dataset folder with dataset.json (train / test split) whose "
                                                    "bundles have feature grids")
     p.add_argument("--env", default="HistoJAX-Medium-v0", help="scenario id (its levels; default HistoJAX-Medium-v0)")
@@ -395,7 +397,7 @@ def add_arguments(p) -> None:
                    help="also a trained policy (run folder of `python -m baselines.ppo` or `python -m baselines.ppo_rnn` "
                         "in a glimpse or zoom_select mode) on the test split: its own diagnosis and the MIL head "
                         "on what it read")
-    p.add_argument("--head", default=None, metavar="DIR",
+    p.add_argument("--head", default=None, metavar="DIR", type=published_or_path,
                    help="also a saved slide head that pools the views it reads by attention (a learned head: "
                         "python -m baselines.reading.learned_head_fit): its rows (read everything, random reader, "
                         "score reader: cells by its per-view score of their coarse features), and each --ppo run "

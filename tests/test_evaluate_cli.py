@@ -60,7 +60,9 @@ def test_pictures_of_a_two_slide_evaluation_show_the_episodes_slide(two_slide_en
     assert {p.name for p in written} == {"trajectory_random.png", "reading_random_tumour.png", "trajectory.gif"}
     i = evaluate.pictures._shown_episode(ep)
     z, x, y = evaluate.trajectory(ep, i)
-    title = f"HistoJAX-Easy-v0, random, {len(z) - 1} steps, target {'reached' if ep['success'][i] else 'not reached'}"
+    picked = evaluate.pictures.picked_words(ep, i)  # how it was picked among the 4 episodes, in the title
+    assert picked.endswith("among 4 episodes") if ep["success"][i] else picked.startswith("none of 4 episodes")
+    title = f"HistoJAX-Easy-v0, random, {len(z) - 1} steps, {'success' if ep['success'][i] else 'no success'} ({picked})"
     on = [render_trajectory(env, z, x, y, slide_index=s, title=title) for s in (0, 1)]
     with Image.open(tmp_path / "trajectory_random.png") as im:
         drawn = np.asarray(im.convert("RGB"))

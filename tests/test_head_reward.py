@@ -113,6 +113,8 @@ def test_glimpse_reward_is_the_heads_gain_by_hand(glimpse):
         np.testing.assert_allclose(float(info["head_score"]), after, rtol=1e-5, atol=1e-5)
         np.testing.assert_allclose(float(reward), expected, rtol=1e-4, atol=1e-4)
         assert int(info["head_views"]) == views_after
+        # success: the head right at the episode's end (what evaluate and the trainer's progress call success)
+        assert bool(info["success"]) == (done and (after >= 0) == (label == 1)) and "env_success" in info
         seen_read += views_after > views_before
         seen_end += done
         if done:  # a fresh episode: nothing read, the head's prior

@@ -344,6 +344,16 @@ def compile_and_run(train, keys) -> tuple[dict, float, float]:
     return result, compile_s, time.perf_counter() - t0
 
 
+def seeds_line(algo: str, config: dict, num_updates: int, steps_per_update: int, unit: str = "updates") -> str:
+    """The first line a training prints: how many seeds it trains (``--seeds``, default 4) and that the env steps
+    (``--total-steps``) are per seed, with the total over the seeds, e.g. ``PPO on HistoJAX-Easy-v0: 4 seeds
+    (--seeds), 65,536 env steps each (--total-steps is per seed; 262,144 in all): 32 updates x 2,048 env steps``."""
+    seeds, per = int(config["num_seeds"]), int(num_updates) * int(steps_per_update)
+    return (f"{algo.upper()} on {config['env_id']}: {seeds} seed{'s' if seeds != 1 else ''} (--seeds), {per:,} env steps "
+            f"{'each' if seeds != 1 else ''} (--total-steps is per seed; {seeds * per:,} in all): {num_updates} {unit} x "
+            f"{steps_per_update:,} env steps").replace(" steps  (", " steps (")
+
+
 def run_and_save(algo: str, make_train_fn, config, out: Path, unit: str = "updates", resume: bool = False,
                  on_checkpoint=None):
     """Make, compile and run the trainer for ``config`` (its typed config, or a dict ``make_train_fn`` makes one of;
@@ -366,13 +376,11 @@ def run_and_save(algo: str, make_train_fn, config, out: Path, unit: str = "updat
         raise ValueError(f"{algo} runs on several processes cannot resume (no checkpoints along the way)")
     if chunked:
         chunk, n_chunks = chunk_plan(train.num_updates, config.get("checkpoint_every"))
-        print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps "
-              f"x {config['num_seeds']} seeds, checkpoint every {chunk} {unit} in {out}/{CHECKPOINT_DIR}; "
-              "compiling ...", flush=True)
+        print(f"{seeds_line(algo, config, train.num_updates, train.steps_per_update, unit)}, checkpoint every {chunk} "
+              f"{unit} in {out}/{CHECKPOINT_DIR}; compiling ...", flush=True)
         result, compile_s, train_s = run_chunked(train, out, keys, resume=resume, on_checkpoint=on_checkpoint)
     else:
-        print(f"{algo.upper()} on {config['env_id']}: {train.num_updates} {unit} x {train.steps_per_update} env steps "
-              f"x {config['num_seeds']} seeds; compiling ...", flush=True)
+        print(f"{seeds_line(algo, config, train.num_updates, train.steps_per_update, unit)}; compiling ...", flush=True)
         result, compile_s, train_s = compile_and_run(train, keys)
     if jax.process_index() > 0:  # several processes: process 0 writes the run, the others their parameters
         save_checkpoint(out / f"process-{jax.process_index()}", result["params"], config)

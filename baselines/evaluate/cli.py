@@ -132,7 +132,10 @@ def print_table(title: str, rows: dict, head: str | None = None) -> None:
         print(f"undef.: {UNDEFINED} (the slides scored are all of one class; see the warning above)")
     if head:
         print(f"the head declares: the policy chooses where to read, then the slide head {head} scores the finest "
-              "views read; success: the head's diagnosis was right; AUC: of the head's score over the episodes "
+              "views read; success: the head's diagnosis at the episode's end (p(tumour) >= 0.5 read as tumour) "
+              "matched the slide's label, i.e. its accuracy at 0.5, which a head calling every slide normal reaches "
+              "on a split of mostly normal slides (the AUC is the figure that ranks); AUC: of the head's score over "
+              "the episodes "
               "(each slide equally often)" + ("; AUC w/o ITC: ITC-only tumour slides left out" if no_itc else "")
               + " (read: mean fraction of the slide's tissue views read)")
     elif auc:

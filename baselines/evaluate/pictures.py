@@ -82,9 +82,19 @@ def _shown_episode(ep: dict, among=None) -> int:
     return int(hit[0] if hit.size else among[0])
 
 
+def picked_words(ep: dict, i: int) -> str:
+    """How episode ``i`` (:func:`_shown_episode`) was picked among ``ep``'s episodes, for a picture's title:
+    ``"1 of 187 successes among 1,024 episodes"``, or ``"none of 1,024 episodes succeeded: the first"`` (a picture
+    of a success says nothing about the success rate)."""
+    n, hits = int(ep["success"].size), int(np.asarray(ep["success"]).astype(bool).sum())
+    if not bool(ep["success"][i]):
+        return f"none of {n:,} episodes succeeded: the first" if n > 1 else "the only episode"
+    return f"1 of {hits:,} success{'es' if hits != 1 else ''} among {n:,} episode{'s' if n != 1 else ''}"
+
+
 def write_pictures(env, env_params, episodes: dict, out: Path, env_id: str, head=None) -> list[Path]:
     """For every policy of ``episodes`` (:func:`run_episodes` output by name): ``trajectory_<policy>.png`` of
-    one episode on its own slide (the first that reached its target, else the first), ``trajectory.gif`` of
+    one episode on its own slide (the first that succeeded, else the first; its title says so: :func:`picked_words`), ``trajectory.gif`` of
     the first policy's, and reading maps ``reading_<policy>_tumour.png`` / ``_normal.png`` (where it read on
     the first episode of a tumour and of a normal slide, with its tumour score when it has one; with ``head``, the
     head's per-view scores beside it: :func:`reading_with_scores`). Returns the paths written."""
@@ -97,7 +107,7 @@ def write_pictures(env, env_params, episodes: dict, out: Path, env_id: str, head
         path = out / f"trajectory_{_tag(name)}.png"
         render_trajectory(env, z, x, y, path=path, slide_index=s,
                           title=f"{env_id}, {name}, {len(z) - 1} steps, "
-                                f"target {'reached' if ep['success'][i] else 'not reached'}")
+                                f"{'success' if ep['success'][i] else 'no success'} ({picked_words(ep, i)})")
         written.append(path)
         known = getattr(env_params.slide, "slide_label", None) is not None
         labels = episode_labels(env_params, ep["slide"]) if known else np.full(ep["slide"].shape, -1)

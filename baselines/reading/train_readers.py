@@ -20,7 +20,8 @@ still trains on a C16 set as before), its zoom levels the most the bundles were 
 2. Trains the cell-set reader (``glimpse`` with ``step_obs=True``:
    :class:`baselines.networks.CellSetActorCritic`, or its recurrent twin with ``--algo ppo_rnn``) on
    the kept training slides, the env wrapped in ``HeadReward(env, head, gain, final, read_cost)``, with the
-   trainer's progress lines and checkpoints; the trainer's run folder ``OUT/<algo>`` (``log.csv``, ``curve.png``,
+   trainer's progress lines (``return``: the head reward; ``success``: the head's diagnosis right at the episode's
+   end, as ``histojax evaluate`` reports it: :func:`progress_words`) and checkpoints; the trainer's run folder ``OUT/<algo>`` (``log.csv``, ``curve.png``,
    ``params.msgpack``, ``config.json``) plus ``OUT/<algo>/head_reward.json`` (the reward's settings) and
    ``OUT/<algo>/curve-seeds.png`` / ``.csv`` (the learning curve as mean ± std over seeds: :func:`seed_curve`).
    ``--resume`` continues a stopped run of the same ``OUT`` from its last checkpoint (``OUT/<algo>/checkpoint``).
@@ -54,6 +55,20 @@ from histojax.registry import READING_ID
 ENV_ID = READING_ID
 MAX_LEVELS = 5  # zoom levels the reading id uses at most (the C16 ids' five)
 NAVIGATION_MODES = ("discrete", "continuous")
+
+
+def progress_words(gain: str, final: float, read_cost: float) -> str:
+    """What the trainer's progress lines mean here, said once before them: ``return`` is the head reward it optimises
+    (``gain`` per read, ``final`` when the head is right at the end, minus ``read_cost`` per read), ``success`` the
+    head's diagnosis right at the episode's end (:class:`histojax.reading.head_reward.HeadReward`'s ``success``, what
+    ``histojax evaluate`` reports through the head), never the env's own declared diagnosis."""
+    terms = [f"the head's {gain} gain per read" if gain != "none" else None,
+             f"{final:g} when the head is right at the end" if final else None,
+             f"minus {read_cost:g} per read" if read_cost else None]
+    said = ", ".join(t for t in terms if t) or "no term (gain none, final 0)"
+    return (f"progress lines: return = the head reward per episode ({said}); success = the head's diagnosis right at "
+            "the episode's end (p(tumour) >= 0.5 is the slide's label), as histojax evaluate reports it through the "
+            "head; the AUC on validation slides follows training")
 
 
 def dataset_levels(dataset: Path, spec: dict, most: int = MAX_LEVELS) -> int:
@@ -239,6 +254,7 @@ def main(argv=None) -> int:
         return 2
     t0 = time.perf_counter()
     if not args.skip_training:
+        print(progress_words(args.gain, args.final, args.read_cost), flush=True)
         module = __import__(f"baselines.{args.algo}", fromlist=["main"])
         gain = None if args.gain == "none" else args.gain
         original = with_head_reward(head, gain, args.final, args.read_cost)

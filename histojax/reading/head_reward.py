@@ -38,6 +38,9 @@ finest-level views the episode's view stood on (the grid view nearest the view's
 what the episode has read after the step (at the step where ``terminated | truncated``, the episode's
 diagnosis by the head: the navigator chooses where to look, the head declares);
 ``info["head_correct"]`` whether it is right, ``info["head_views"]`` the finest tissue views read.
+``info["success"]`` is the head's diagnosis right at the episode's end (``terminated | truncated`` and
+``head_correct``): what a trainer's progress lines and ``histojax evaluate`` through a head call success; the
+wrapped env's own success (a declared diagnosis right, a target reached) is ``info["env_success"]``.
 
 **Cost**: with a max-pooling :class:`~histojax.reading.heads.logit.SlideHead` (``top=1``, no median, e.g. the published
 ``c16-v2-head``) a step re-scores only the window of the 3 × 3 cells (navigators: blocks of ``BLOCK × BLOCK``
@@ -442,7 +445,10 @@ class HeadReward(Wrapper):
         head_reward = reward.astype(jnp.float32)
         if self.env_reward:
             reward = reward + env_r
-        info = {**info, "head_score": logit, "head_correct": correct, "head_views": views, "head_reward": head_reward}
+        # success: the head's diagnosis right at the episode's end (what histojax evaluate calls success through a
+        # head); the env's own success (a declared diagnosis, a target reached) stays in env_success
+        info = {**info, "env_success": info.get("success", jnp.bool_(False)), "success": done & correct,
+                "head_score": logit, "head_correct": correct, "head_views": views, "head_reward": head_reward}
         new = HeadRewardState(env_state=env_st, visited=visited, logit=logit, views=views, cell_best=cell_best,
                               pool=pool)
         if not self._env.auto_reset:

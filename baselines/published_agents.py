@@ -14,6 +14,8 @@ from pathlib import Path
 
 PUBLISHED = Path(__file__).resolve().parent / "published"
 """``baselines/published``: one folder per published agent or slide head."""
+PACKAGE_NAME = "baselines/published/"
+"""How docs and published records name a folder of :data:`PUBLISHED` (``baselines/published/NAME``)."""
 
 
 def published_names() -> list[str]:
@@ -23,13 +25,15 @@ def published_names() -> list[str]:
 
 
 def published_or_path(text: str) -> str:
-    """A run or head folder given on a command line: ``text`` itself when it names an existing file or folder or
-    is not a bare name; the installed package's ``baselines/published/NAME`` when ``text`` is the bare ``NAME`` of
-    a published agent or head (no ``/``, nothing of that name in the working folder), so ``histojax evaluate
-    c16-v2-set-reader`` works from any folder, the wheel's included. argparse ``type=`` of such arguments."""
-    if not text or "/" in text or os.sep in text or Path(text).exists():
+    """A run or head folder given on a command line: the installed package's ``baselines/published/NAME`` when
+    ``text`` is the bare ``NAME`` of a published agent or head, or its package name ``baselines/published/NAME``
+    (so ``histojax evaluate c16-v2-set-reader`` works from any folder, the wheel's included, and a folder of that
+    name under the working folder is never taken for it: name that one ``./NAME``); else ``text`` as given.
+    argparse ``type=`` of such arguments."""
+    name = text[len(PACKAGE_NAME):].rstrip("/") if text.startswith(PACKAGE_NAME) else text
+    if not name or "/" in name or os.sep in name or name in (".", ".."):
         return text
-    folder = PUBLISHED / text
+    folder = PUBLISHED / name
     return str(folder) if (folder / "config.json").is_file() else text
 
 

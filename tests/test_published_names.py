@@ -46,14 +46,19 @@ def test_an_unknown_published_name_is_one_line(capsys):
     assert "c16-v2-set-reader" in err
 
 
-def test_a_bare_published_name_is_the_packaged_folder(tmp_path, monkeypatch):
+def test_a_published_name_is_the_packaged_folder_from_any_working_folder(tmp_path, monkeypatch):
     monkeypatch.chdir(tmp_path)
-    assert published_or_path("c16-v2-set-reader") == str(PUBLISHED / "c16-v2-set-reader")
+    packaged = "baselines/published/c16-v2-set-reader"
+    for given in ("c16-v2-set-reader", packaged, packaged + "/"):
+        assert published_or_path(given) == str(PUBLISHED / "c16-v2-set-reader"), given
     assert published_or_path("c16-v2-head") == str(PUBLISHED / "c16-v2-head")
-    for given in ("runs/c16-v2-set-reader", "c16-v9-nothing", "runs/ppo-fold{fold}", ""):
-        assert published_or_path(given) == given  # a path, or no published name: as given
-    (tmp_path / "c16-v2-set-reader").mkdir()  # a folder of the user's of that name is what the user names
-    assert published_or_path("c16-v2-set-reader") == "c16-v2-set-reader"
+    for given in ("runs/c16-v2-set-reader", "./c16-v2-set-reader", "c16-v9-nothing", "runs/ppo-fold{fold}", "",
+                  "baselines/published/", "c16-v1-glimpse-reader"):  # a path, or no published name: as given
+        assert published_or_path(given) == given
+    (tmp_path / "c16-v2-set-reader").mkdir()  # a folder of that name here is not taken for the published agent
+    (tmp_path / "c16-v2-set-reader" / "config.json").write_text("{}")
+    assert published_or_path("c16-v2-set-reader") == str(PUBLISHED / "c16-v2-set-reader")
+    assert published_or_path("./c16-v2-set-reader") == "./c16-v2-set-reader"  # named by its path: that one
 
 
 def test_evaluate_by_name_reaches_the_published_agent_from_any_folder(tmp_path, monkeypatch, capsys):
@@ -94,3 +99,24 @@ def test_bench_outside_a_source_checkout_says_where_it_runs(monkeypatch, tmp_pat
     assert cli.own_package_refusal("benchmarks").startswith("histojax bench runs from a source checkout")
     monkeypatch.undo()
     assert cli.own_package_refusal("benchmarks") is None and cli.own_package_refusal("baselines") is None
+
+
+def test_an_own_encoder_from_the_working_folder_goes_last_on_the_import_path(tmp_path, monkeypatch):
+    """``--encoder my_encoders:fn`` found only in the working folder puts that folder on ``sys.path`` (worker
+    processes import it too), last: a folder there named like histojax's own packages is not imported in their
+    place afterwards."""
+    import os
+
+    from data_tools.features.custom import load_custom_encoder
+
+    (tmp_path / "wf_encoders.py").write_text(
+        "import numpy as np\n\n\ndef enc(images):\n    return np.zeros((len(images), 4), np.float32)\n")
+    monkeypatch.chdir(tmp_path)
+    monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", os.getcwd(), str(tmp_path))])
+    load_custom_encoder.cache_clear()
+    try:
+        assert load_custom_encoder("wf_encoders:enc").dim == 4
+        assert sys.path[-1] == str(tmp_path) and sys.path.count(str(tmp_path)) == 1
+    finally:
+        load_custom_encoder.cache_clear()
+        sys.modules.pop("wf_encoders", None)

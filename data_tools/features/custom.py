@@ -37,14 +37,15 @@ def is_custom(spec) -> bool:
 def _import_module(module_name: str):
     """``importlib.import_module``, looking in the working folder too (as ``python -m`` does; the ``histojax``
     script's path holds only its own folder): the working folder is put on ``sys.path`` when the module is
-    not found elsewhere, so worker processes started later find it as well."""
+    not found elsewhere, so worker processes started later find it as well; last, so that a folder there named
+    like one of histojax's own packages is never imported in their place."""
     try:
         return importlib.import_module(module_name)
     except ModuleNotFoundError as e:
         cwd = os.getcwd()
         if e.name != module_name.split(".")[0] or cwd in sys.path or "" in sys.path:
             raise
-        sys.path.insert(0, cwd)
+        sys.path.append(cwd)
         return importlib.import_module(module_name)
 
 

@@ -354,7 +354,10 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
 
     from baselines.reading.provenance import RECORD, fit_record
     from baselines.validation import check_validation_share, split_train
+    from histojax.reading.heads.files import check_writable
 
+    if out is not None:
+        check_writable(out)  # a folder that cannot be written: refused before any slide is read
     spec = read_spec(dataset, fold)
     warn_scale(dataset, spec)  # the encoder-scale warning dataset.json records, repeated
     classes = {_label(spec, Path(e).name) for e in spec["train"]}

@@ -362,10 +362,12 @@ def run(args, parser=None) -> int:
     from baselines.reading.provenance import RECORD, fit_record
     from baselines.validation import check_validation_share, split_train
     from data_tools.cli_output import print_error
+    from histojax.reading.heads.files import check_writable
     from histojax.reading.heads.logit import SlideHead
 
     t0 = time.perf_counter()
     try:
+        check_writable(args.out)  # a folder that cannot be written: refused before any slide is read
         spec = read_spec(args.dataset, args.fold)
         warn_scale(args.dataset, spec)  # the encoder-scale warning dataset.json records, repeated
         kept, held = split_train(spec, args.val_fraction, args.seed)

@@ -32,6 +32,7 @@ import json
 import math
 import os
 import shutil
+import tempfile
 import uuid
 import zipfile
 from pathlib import Path
@@ -268,10 +269,32 @@ def read_arrays(path, shapes: dict, max_bytes: int = MAX_PARAMS_BYTES) -> dict:
 
 
 # ----------------------------------------------------------------------------- atomic writes
+def check_writable(folder) -> None:
+    """Refuse (``HeadFileError`` naming ``folder``, one line) a head folder this process cannot write, before any
+    fit: a probe file is made and removed where a save writes (``folder`` when it is a folder, and the nearest
+    existing folder above it, where the atomic save makes its temporary). Nothing is left behind; a read-only
+    file system refuses root too, which ``os.access`` would not say."""
+    folder = Path(folder)
+    above = folder.parent
+    while not os.path.lexists(above) and above != above.parent:
+        above = above.parent
+    for place in ([folder] if folder.is_dir() and not folder.is_symlink() else []) + [above]:
+        try:
+            fd, probe = tempfile.mkstemp(prefix=".histojax-write-check-", dir=place)
+        except OSError as e:
+            where = "" if place == folder else f" (its folder {place} is not writable)"
+            raise HeadFileError(folder, f"cannot be written: {e.strerror or e}{where}; choose another --out "
+                                        "(checked before fitting: nothing was fitted)") from None
+        os.close(fd)
+        os.unlink(probe)
+
+
 def check_replaceable(folder, kind: str) -> None:
     """Refuse (``HeadFileError``) to replace ``folder`` unless it is absent, empty, or a head folder of ``kind``
-    holding only the files its ``config.json`` lists (``"files"``) besides ``config.json`` itself."""
+    holding only the files its ``config.json`` lists (``"files"``) besides ``config.json`` itself; and unless it
+    can be written (:func:`check_writable`)."""
     folder = Path(folder)
+    check_writable(folder)
     if not (folder.exists() or folder.is_symlink()):
         return
     if folder.is_symlink() or not folder.is_dir():

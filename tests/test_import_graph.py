@@ -7,6 +7,9 @@ circles as well as top-level ones). ``from pkg import name`` is an edge to ``pkg
 of the repository, else to ``pkg`` itself. The implicit import of a parent package (``import a.b`` runs
 ``a/__init__``) is not counted: every package's ``__init__`` imports its own modules, and counting it would make
 every package a circle.
+
+Inside ``histojax``, the env core (``histojax.core``) is a floor under the reading stack (``histojax.reading``):
+no core module imports it, and ``histojax.make`` reaches no reading module on its way to the jitted step.
 """
 from __future__ import annotations
 
@@ -132,6 +135,54 @@ def test_imports_point_down_the_floors():
     up = [f"{modules[m].relative_to(ROOT)}:{line}: {m} imports {t}"
           for m, edges in import_graph().items() for t, line in edges.items() if _floor(t) > _floor(m)]
     assert not up, "imports from a higher floor:\n" + "\n".join(up)
+
+
+def _reach(graph: dict[str, dict[str, int]], start: str) -> dict[str, list[str]]:
+    """``{module: the import path from start to it}`` of every module ``start`` imports, directly or not."""
+    paths, todo = {start: [start]}, [start]
+    while todo:
+        m = todo.pop()
+        for t in graph.get(m, ()):
+            if t not in paths:
+                paths[t] = paths[m] + [t]
+                todo.append(t)
+    return paths
+
+
+def test_env_core_imports_nothing_from_the_reading_stack():
+    """The env core (``histojax.core``: the env, its step modules and the navigation and observation modes) is a
+    floor under the reading stack: no core module imports ``histojax.reading``, directly or through another
+    module (the reading modes register themselves into the core's mode names instead)."""
+    graph = import_graph()
+    core = [m for m in graph if m == "histojax.core" or m.startswith("histojax.core.")]
+    assert "histojax.core.env" in core and "histojax.core.modes.factory" in core
+    up = [f"{m} imports {t}" for m in core for t in graph[m] if t == "histojax.reading" or t.startswith("histojax.reading.")]
+    assert not up, "the env core imports the reading stack:\n" + "\n".join(up)
+
+
+@pytest.mark.parametrize("start", ["histojax.registry", "histojax.core.env"])
+def test_make_to_the_jitted_step_meets_no_reading_module(start):
+    """``histojax.make`` (the registry) and the env it makes reach, through every import, no module of the reading
+    stack: a reader following ``make`` to ``step`` stays on the core floor."""
+    reached = _reach(import_graph(), start)
+    bad = [" -> ".join(p) for m, p in reached.items() if m.startswith("histojax.reading")]
+    assert not bad, "reaches the reading stack:\n" + "\n".join(bad)
+
+
+def test_the_core_rule_can_fail(tmp_path):
+    """An upward import hidden in a function of a core module is seen, so the two tests above can fail."""
+    for top in FLOORS:
+        (tmp_path / top).mkdir()
+    core, reading = tmp_path / "histojax" / "core", tmp_path / "histojax" / "reading"
+    core.mkdir()
+    reading.mkdir()
+    for d in (tmp_path / "histojax", core, reading):
+        (d / "__init__.py").write_text("")
+    (reading / "glimpse.py").write_text("from histojax.core import env\n")
+    (core / "env.py").write_text("def f():\n    from histojax.reading import glimpse\n    return glimpse\n")
+    graph = import_graph(tmp_path)
+    assert "histojax.reading.glimpse" in graph["histojax.core.env"]
+    assert "histojax.reading.glimpse" in _reach(graph, "histojax.core.env")
 
 
 @pytest.mark.parametrize("floor", FLOORS)

@@ -20,7 +20,6 @@ naming the path, in one line.
 from __future__ import annotations
 
 import hashlib
-import json
 import math
 import os
 import re

@@ -4,7 +4,6 @@ weight and the calibration), and every host-side scorer refuses non-finite logit
 from __future__ import annotations
 
 import io
-import zipfile
 
 import jax
 import numpy as np

@@ -49,10 +49,10 @@ def enough(tmp_path_factory):
 
 
 # ----------------------------------------------------------------------------- head_mil_fit's guards
-def test_mil_fit_refuses_too_few_slides_per_class_before_reading(small, tmp_path, capsys):
-    out, cache = tmp_path / "head", tmp_path / "cache.npz"
-    assert head_mil_fit._main()(["--dataset", str(small), "--cache", str(cache), "--out", str(out),
-                                 "--candidates", "stats", "--seeds", "1"]) == 2
+def test_mil_fit_refuses_too_few_slides_per_class_before_reading(enough, tmp_path, capsys):
+    out, cache = tmp_path / "head", tmp_path / "cache.npz"  # 10 per class, 6 of each held back: 4 < 5 to train on
+    assert head_mil_fit._main()(["--dataset", str(enough), "--cache", str(cache), "--out", str(out),
+                                 "--candidates", "stats", "--seeds", "1", "--val-fraction", "0.6"]) == 2
     err = _err(capsys)
     assert len(err) == 1 and "dataset.json" in err[0] and f"at least {head_fit.MIN_SLIDES_PER_CLASS}" in err[0], err
     assert not out.exists() and not cache.exists()  # refused from dataset.json's labels: no slide read, no cache
@@ -66,7 +66,7 @@ def test_mil_fit_refuses_an_inverted_or_backwards_choice(enough, tmp_path, capsy
     monkeypatch.setattr(head_mil_fit, "validation_aucs", fake)
     out = tmp_path / "head"
     assert head_mil_fit._main()(["--dataset", str(enough), "--cache", str(tmp_path / "c.npz"), "--out", str(out),
-                                 "--candidates", "stats", "--seeds", "1"]) == 2
+                                 "--candidates", "stats", "--seeds", "1", "--val-fraction", "0.3"]) == 2
     err = [line for line in _err(capsys) if not line.startswith("  stats")]
     assert len(err) == 1 and words in err[0] and "nothing saved" in err[0] and "dataset.json" in err[0], err
     assert not out.exists()

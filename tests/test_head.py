@@ -95,7 +95,7 @@ def dataset(tmp_path_factory):
 @pytest.fixture(scope="module")
 def fitted(dataset, tmp_path_factory):
     out = tmp_path_factory.mktemp("head")
-    head, table = head_fit.fit(dataset, out, ks=(1, 3), minus_median=True)
+    head, table = head_fit.fit(dataset, out, ks=(1, 3), minus_median=True, val_fraction=0.3)  # 3 + 3 validate
     return out, head, table
 
 

@@ -21,10 +21,10 @@ def test_check_head_refuses_inverted_and_negative_slopes(tmp_path):
 
 
 def test_too_few_slides_per_class_is_refused_naming_the_minimum(tmp_path, capsys):
-    ds = make_dataset(tmp_path / "ds", n_train=6, n_test=2)  # 3 per class, one each held back: 2 < 5
+    ds = make_dataset(tmp_path / "ds", n_train=20, n_test=2)  # 10 per class, 6 each held back: 4 < 5
     out = tmp_path / "head"
-    assert head_fit.main(["--dataset", str(ds), "--out", str(out), "--ks", "1"]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
+    assert head_fit.main(["--dataset", str(ds), "--out", str(out), "--ks", "1", "--val-fraction", "0.6"]) == 2
+    err = [line for line in capsys.readouterr().err.strip().splitlines() if "loaded" not in line]  # progress
     assert len(err) == 1 and "dataset.json" in err[0] and f"at least {head_fit.MIN_SLIDES_PER_CLASS}" in err[0]
     assert not out.exists()
 
@@ -38,7 +38,7 @@ def test_an_inverted_choice_is_refused_and_nothing_saved(tmp_path, capsys, monke
         return best, [{**r, "validation_auc": 0.333} for r in table]
     monkeypatch.setattr(head_fit, "choose", inverted)
     out = tmp_path / "head"
-    assert head_fit.main(["--dataset", str(ds), "--out", str(out), "--ks", "1"]) == 2
+    assert head_fit.main(["--dataset", str(ds), "--out", str(out), "--ks", "1", "--val-fraction", "0.3"]) == 2
     err = [line for line in capsys.readouterr().err.strip().splitlines() if "loaded" not in line]  # progress
     assert len(err) == 1 and "validation AUC is 0.333" in err[0] and "nothing saved" in err[0]
     assert not out.exists()

@@ -388,6 +388,11 @@ def test_score_refuses_a_head_of_another_import_folder(cohort, tmp_path, capsys)
     err = capsys.readouterr().err.strip()
     assert "a slide head for imported:20x_256px_0px_overlap/features_uni_v1/*.h5 features" in err
     assert "these slides hold imported:ds/features/*.h5 features" in err and len(err.splitlines()) == 1
+    from baselines.reading import diagnosis
+    from data_tools.errors import HistojaxDataError
+
+    with pytest.raises(HistojaxDataError, match=r"h/config.json: a slide head for .*features_uni_v1.*ds/features"):
+        diagnosis.score_split(cohort["root"], tmp_path / "h", "test", budgets=(0.1,), seeds=1)  # diagnosis, navigators
 
 
 def test_param_shapes_cover_every_saved_array():
@@ -466,7 +471,7 @@ def test_a_fold_trains_and_validates_on_the_other_folds(cohort, tmp_path, monkey
 
     monkeypatch.setattr(fit, "train", spy)
     with pytest.raises(_Stop):
-        _main(["--dataset", str(ds), "--out", str(tmp_path / "h"), "--fold", "1", "--quiet"])
+        _main(["--dataset", str(ds), "--out", str(tmp_path / "h"), "--fold", "1", "--val-fraction", "0.3", "--quiet"])
     other = {Path(e).name for i, lst in enumerate(folds) if i != 1 for e in lst}
     assert set(seen["train"]) | set(seen["val"]) == other and not set(seen["train"]) & set(seen["val"])
     assert {Path(e).name for e in folds[1]}.isdisjoint(seen["train"] + seen["val"])  # fold 1 is never read

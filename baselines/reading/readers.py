@@ -410,9 +410,12 @@ def run(args, parser=None) -> int:
         return print_error("--seeds and --cell-level must be ≥ 1")
     t0 = time.perf_counter()
     try:
-        head, args.cell_level, slides = load_split(args.dataset, args.head, args.split, args.cell_level, args.fold)
-        check_scored(head, args.head, args.dataset, [s["name"] for s in slides],  # fitted on them: refused
+        from histojax.reading import heads
+
+        head = heads.load(args.head)  # a head fitted on the scored slides: refused before they are read
+        check_scored(head, args.head, args.dataset, pipeline.read_spec(args.dataset, args.fold).get(args.split) or [],
                      getattr(args, "allow_fitting_slides", False))
+        head, args.cell_level, slides = load_split(args.dataset, head, args.split, args.cell_level, args.fold)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     other = sorted({str(s["encoder"]) for s in slides

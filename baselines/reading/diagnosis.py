@@ -41,6 +41,7 @@ from baselines.reading.provenance import add_flag, check_scored
 from baselines.run_config import read_run_config
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
+from histojax.reading.heads import encoder_mismatch
 
 
 def score_split(dataset, head_path, split: str = "test", budgets=BUDGETS, seeds: int = 5,
@@ -50,8 +51,12 @@ def score_split(dataset, head_path, split: str = "test", budgets=BUDGETS, seeds:
     (:func:`baselines.reading.readers.load_split`) and ``results`` the scripted readers' rows at ``budgets``
     (fractions of a slide's finest tissue views; ``seeds`` random orders): :func:`baselines.reading.readers.scripted_results`.
     A split without slides of both classes is a ``HistojaxDataError`` naming ``dataset.json``, one line: its AUC is
-    undefined: one class (:func:`baselines.reading.pipeline.check_two_classes`, as the readers refuse it)."""
+    undefined: one class (:func:`baselines.reading.pipeline.check_two_classes`, as the readers refuse it); so is a
+    head of another encoder's features (:func:`histojax.reading.heads.encoder_mismatch`), naming its ``config.json``."""
     head, level, slides = readers.load_split(dataset, head_path, split, fold=fold)
+    if (problem := encoder_mismatch(head, [s.get("encoder") for s in slides])) is not None:  # as the readers refuse it
+        raise HistojaxDataError(Path(str(head_path)) / "config.json", f"{problem} ({dataset}): fit a head on them "
+                                "(python -m baselines.reading.learned_head_fit)")
     check_two_classes(dataset, split, [int(s["label"]) for s in slides], fold)  # the readers' own refusal
     return head, level, slides, readers.scripted_results(head, slides, budgets, seeds, level)
 

@@ -76,6 +76,14 @@ def add_arguments(p) -> None:
     build.add_argument("--band-mb", type=positive_float, default=None,
                        help="tiled: MiB of RGB per band of a level read at a time (default 96)")
     build.add_argument("--overwrite", action="store_true", help="replace an existing bundle")
+    build.add_argument("--mpp", type=positive_float, default=None, metavar="UM",
+                       help="the slide's µm per level-0 px, when its file states none or a wrong one (0.25 at 40x, "
+                            "0.5 at 20x); recorded in the bundle")
+    build.add_argument("--encoder", default=None, metavar="NAME",
+                       help="also embed the bundle's feature grid with this encoder (pcam-cnn, colour-stats, "
+                            "efficientnet-lite0, or module:function): one command instead of build + features")
+    build.add_argument("--features", action="store_true",
+                       help="also embed the feature grid with pcam-cnn (the default encoder, as c16 --features)")
     add_reader_argument(build)
     build.add_argument("--quiet", action="store_true", help="no progress bar and no level table: one line")
     synth = sub.add_parser("synth", help="make semi-synthetic slides (synthetic pixels, real CAMELYON16 "
@@ -219,6 +227,11 @@ def _command(args) -> int | None:
             from data_tools.annotations import check_label_map
 
             check_label_map(label_map)
+        encoder = args.encoder or ("pcam-cnn" if args.features else None)
+        if encoder is not None:
+            from data_tools.features import encoder_record
+
+            encoder_record(encoder)  # an unknown or broken encoder refused before the build
         out = build_bundle(args.slide, args.out, annotations_path=args.annotations,
                            level_sets=args.levels or LEVEL_SETS, tile_size=args.tile_size,
                            magnification_range=args.magnification_range, label_map=label_map,
@@ -227,10 +240,16 @@ def _command(args) -> int | None:
                            region_margin=args.region_margin, storage=args.storage,
                            share_background=not args.keep_all_tiles,
                            band_bytes=None if args.band_mb is None else int(args.band_mb * 2**20),
-                           reader=args.reader)
+                           reader=args.reader, mpp=args.mpp)
+        if encoder is not None:
+            from data_tools.features.grid import compute_features
+
+            compute_features(out, encoder_name=encoder, progress=not args.quiet)
         meta = read_metadata(out)
         print(f"wrote {out}: {len(meta.levels)} levels"
-              + (f", region {meta.region['box']} of the slide" if meta.region else ""))
+              + (f", region {meta.region['box']} of the slide" if meta.region else "")
+              + (f", {meta.source['mpp']:.4g} µm/px (given)" if args.mpp is not None else "")
+              + (f", {meta.features['encoder']} feature grid" if encoder is not None else ""))
         if not args.quiet:  # --quiet: the one line above (`info BUNDLE` prints the level table)
             print(_info(str(out)))
     elif args.command == "synth":

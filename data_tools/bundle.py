@@ -164,6 +164,7 @@ def build_bundle(
     share_background: bool = True,
     band_bytes: int | None = None,
     reader: str | None = None,
+    mpp: float | None = None,
 ) -> Path:
     """Build a slide bundle at ``out_dir`` from a slide file and an optional annotation file.
 
@@ -188,8 +189,12 @@ def build_bundle(
 
     ``reader``: what reads the slide (:data:`data_tools.slide_readers.READERS`: ``"auto"``, the default; ``"native"``;
     ``"openslide"``, any slide through OpenSlide 4).
+
+    ``mpp``: the slide's µm per level-0 px, for a file that states none or a wrong one (``--mpp``); recorded in
+    ``metadata["source"]`` as ``mpp`` with ``mpp_from`` ``"given"`` and the file's own value as ``mpp_in_file``.
     """
     slide_path, out_dir = Path(slide_path), Path(out_dir)
+    check_mpp(out_dir, mpp)
     if out_dir.exists() and not overwrite:
         raise BundleError(out_dir, "already exists; pass overwrite=True (--overwrite) to replace it")
     check_replaceable(out_dir)
@@ -223,7 +228,7 @@ def build_bundle(
             tmp.mkdir(exist_ok=True)
             _build_into(tmp, slide_path, out_dir, annotations_path, level_sets, tile_size, magnification_range,
                         label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
-                        band_bytes, reader)
+                        band_bytes, reader, mpp)
         return out_dir
     except OSError as e:
         e = as_disk_full(e) or e  # numpy's short write ("N requested and M written"): the disk is full
@@ -235,7 +240,7 @@ def build_bundle(
 
 def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, level_sets, tile_size, magnification_range,
                 label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
-                band_bytes, reader=None) -> None:
+                band_bytes, reader=None, mpp=None) -> None:
     """The body of :func:`build_bundle`: write the bundle into ``tmp`` (called with the build lock held, inside
     :func:`data_tools.bundle_format.atomic_folder`, which renames it to ``out_dir`` or removes it)."""
     from data_tools.annotations import annotations_to_geojson, load_annotations
@@ -245,6 +250,9 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
     import shapely.geometry
 
     with open_slide(slide_path, reader) as reader:
+        mpp_in_file = reader.mpp
+        if mpp is not None:  # the user's µm/px for a file that states none or a wrong one
+            reader.mpp = float(mpp)
         width0, height0 = reader.dimensions
         ann = None
         if annotations_path is not None:
@@ -345,6 +353,7 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
             "source": {
                 "file": slide_path.name, "sha256": sha256(slide_path), "format": reader.format,
                 "width": width0, "height": height0, "mpp": reader.mpp,
+                **({} if mpp is None else {"mpp_from": "given", "mpp_in_file": mpp_in_file}),
             },
             "annotations": None if annotations_path is None else {
                 "file": Path(annotations_path).name, "sha256": sha256(Path(annotations_path)),
@@ -445,6 +454,44 @@ def remove_stale_builds(out_dir) -> list[Path]:
     return stale + [out_dir.parent / n.split(" (")[0] for n in others]
 
 
-__all__ = ["check_zoom", "Bundle", "FORMAT_VERSION", "LEVEL_SETS", "STORAGES", "TILED_FORMAT_VERSION", "level_device_bytes", "Region", "build_bundle", "bundle_downsamples", "resolve_region",
+MPP_RANGE = (0.01, 100.0)
+"""µm per level-0 px a given ``--mpp`` may be (scanners: ~0.1 to ~10; outside it, likely nm or mm)."""
+
+
+def check_mpp(where, mpp) -> None:
+    """Refuse (:class:`BundleError` naming ``where``) a given µm/px that is not a number within :data:`MPP_RANGE`;
+    None (not given) passes."""
+    if mpp is None:
+        return
+    try:
+        value = float(mpp)
+    except (TypeError, ValueError):
+        value = float("nan")
+    if not (math.isfinite(value) and MPP_RANGE[0] <= value <= MPP_RANGE[1]):
+        raise BundleError(where, f"--mpp {mpp!r} is not a µm per level-0 px between {MPP_RANGE[0]:g} and "
+                                 f"{MPP_RANGE[1]:g} (0.25 at 40x, 0.5 at 20x): micrometres per pixel, not nm or mm")
+
+
+def set_mpp(bundle, mpp: float) -> dict:
+    """Record ``mpp`` (µm per level-0 px, given by the user) as the bundle's scale: ``source.mpp`` (the file's own
+    value kept as ``source.mpp_in_file``, ``mpp_from`` ``"given"``) and each level's ``mpp`` (``mpp × downsample``);
+    ``metadata.json`` is rewritten, sealed (its seal checked first). Returns the new metadata."""
+    from data_tools.bundle_format import verify_metadata
+
+    bundle = Path(bundle)
+    check_mpp(bundle, mpp)
+    metadata = dict(read_metadata(bundle))
+    verify_metadata(bundle, metadata)  # a hand edit is refused, never resealed
+    source = dict(metadata.get("source") or {})
+    if source.get("mpp_from") != "given":
+        source["mpp_in_file"] = source.get("mpp")
+    source.update(mpp=float(mpp), mpp_from="given")
+    levels = [{**lv, "mpp": float(mpp) * float(lv["downsample"])} for lv in metadata["levels"]]
+    metadata = {**metadata, "source": source, "levels": levels}
+    write_metadata(bundle, metadata)
+    return metadata
+
+
+__all__ = ["check_mpp", "set_mpp", "check_zoom", "Bundle", "FORMAT_VERSION", "LEVEL_SETS", "STORAGES", "TILED_FORMAT_VERSION", "level_device_bytes", "Region", "build_bundle", "bundle_downsamples", "resolve_region",
            "default_magnification_range", "level_downsamples", "level_size", "load_bundle", "read_metadata",
            "build_lock", "remove_stale_builds"]

@@ -20,8 +20,12 @@ def test_paths_inside_a_temporary_are_named_by_the_bundle():
     assert one_line("removed bundles/.Tumor.tmp-3e5f6d9c beside it") == "removed bundles/.Tumor.tmp-3e5f6d9c beside it"
 
 
-def test_the_encoder_scale_warning_names_the_bundle_not_its_temporary(tmp_path):
+def test_the_encoder_scale_warning_names_the_bundle_not_its_temporary(tmp_path, monkeypatch):
+    import types
+
     import tifffile
+
+    import data_tools.features.efficientnet as efficientnet
 
     from data_tools.bundle import build_bundle
     from data_tools.errors import BundleError
@@ -33,6 +37,8 @@ def test_the_encoder_scale_warning_names_the_bundle_not_its_temporary(tmp_path):
     built = build_bundle(tmp_path / "s.tif", tmp_path / "b", level_sets=(3,), tile_size=32, progress=False)
     temporary = tmp_path / "bundles" / ".Tumor_094.tmp-3e5f6d9c"
     shutil.copytree(built, temporary)
+    # the warning comes from the encoder's name and the bundle: a stand-in spares loading pcam-cnn
+    monkeypatch.setattr(efficientnet, "load_encoder", lambda name, **kw: types.SimpleNamespace(name=name, dim=64))
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         with pytest.raises(BundleError):  # dim 0: refused right after the warning, before any view is encoded

@@ -65,14 +65,15 @@ def _rel(path: Path, root: Path) -> str:
         return str(Path(path).resolve())
 
 
-def check_scales(entries, magnification_range, reader: str | None = None) -> dict[str, float | None]:
-    """µm/px of every slide; with one ``magnification_range`` for all, slides whose level-0 µm/px differ by
-    more than 5 % (or some unknown) are an error naming two of them: one range would give them different
-    physical scales."""
+def check_scales(entries, magnification_range, reader: str | None = None,
+                 mpp: float | None = None) -> dict[str, float | None]:
+    """µm/px of every slide (``mpp``: the one given for all, ``--mpp``, instead of what the files state); with one
+    ``magnification_range`` for all, slides whose level-0 µm/px differ by more than 5 % (or some unknown) are an
+    error naming two of them: one range would give them different physical scales."""
     from data_tools.slide_readers import open_slide
 
     mpps: dict[str, float | None] = {}
-    for e in entries:
+    for e in ([] if mpp is not None else entries):
         try:
             with open_slide(e.path, reader) as slide:
                 mpps[e.name] = slide.mpp
@@ -80,6 +81,8 @@ def check_scales(entries, magnification_range, reader: str | None = None) -> dic
             mpps[e.name] = None  # unreadable: fails (with its reason) when built
         except Exception:  # noqa: BLE001 - any reader trouble shows up again, as a one-line failure, when built
             mpps[e.name] = None
+    if mpp is not None:
+        mpps = {e.name: float(mpp) for e in entries}
     if magnification_range is not None:
         known = {n: m for n, m in mpps.items() if m}
         unknown = [e for e in entries if not mpps.get(e.name)]
@@ -427,7 +430,7 @@ def _build(out, name, slide, opts, slides_dir, bundle, key, h5, progress) -> dic
         warnings.simplefilter("always")
         build_bundle(path, bundle, annotations_path=ann, level_sets=opts["levels"], tile_size=opts["tile_size"],
                      magnification_range=opts["magnification_range"], storage=opts["storage"], overwrite=True,
-                     progress=progress, label_map=opts["label_map"], reader=opts.get("reader"))
+                     progress=progress, label_map=opts["label_map"], reader=opts.get("reader"), mpp=opts.get("mpp"))
     notes = sorted({_one_line(w.message) for w in caught})
     meta = read_metadata(bundle)
     tissue = np.load(bundle / meta.tissue_file, allow_pickle=False)
@@ -635,7 +638,7 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
                   patch_level: int | None = None, no_pixels: bool = False, test_fraction: float = 0.25,
                   seed: int = 0, jobs: int = 1, shard: tuple[int, int] | None = None, restart: bool = False,
                   allow_unmatched: bool = False, progress: bool = True, reader: str | None = None,
-                  folds: int | None = None) -> dict:
+                  folds: int | None = None, mpp: float | None = None) -> dict:
     """Build (or finish) the dataset ``out`` from the slides under ``slides_dir`` (see the module doc and
     :mod:`data_tools.datasets.discover`). ``levels`` / ``tile_size`` (px) / ``magnification_range`` (the
     coarsest downsample; default each slide's own) / ``storage`` / ``label_map``: as ``build``.
@@ -646,7 +649,9 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     (name → reason), ``dataset`` (the ``dataset.json`` dict, or None when slides remain), seconds,
     slides per minute and the peak resident memory of one job (bytes). ``reader``: what reads the slides
     (:data:`data_tools.slide_readers.READERS`; recorded in the options when not ``"auto"``). ``folds``: K cross-validation
-    folds recorded in ``dataset.json`` (:func:`make_plan`; patients from the ``labels`` table's patient column)."""
+    folds recorded in ``dataset.json`` (:func:`make_plan`; patients from the ``labels`` table's patient column).
+    ``mpp``: µm per level-0 px of every slide, for files that state none or a wrong one (``--mpp``; recorded in the
+    options, each bundle and ``dataset.json``)."""
     from data_tools.datasets.discover import discover
 
     slides_dir, out = Path(slides_dir), Path(out)
@@ -656,6 +661,9 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
         raise HistojaxDataError(None, "give --encoder or --features-from, not both")
     if no_pixels:
         storage = "tiled"
+    from data_tools.bundle import check_mpp
+
+    check_mpp(slides_dir, mpp)  # before anything is read
     from data_tools.features import encoder_record
 
     if encoder is not None:  # a built-in name, or your own module:function, probed (a broken one refused)
@@ -670,7 +678,7 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
         from data_tools.features.hdf5 import check_feature_dims
 
         check_feature_dims(h5s[e.name.lower()] for e in entries if e.name.lower() in h5s)
-    mpps = check_scales(entries, magnification_range, reader)
+    mpps = check_scales(entries, magnification_range, reader, mpp)
     for line in dataset_scale(_encoder_of({"encoder": encoder, "features_from": features_from}), mpps)[1]:
         warnings.warn(f"{slides_dir}: {line}", stacklevel=2)  # one line each; recorded in dataset.json
     options = {"levels": sorted(set(int(v) for v in levels)), "tile_size": int(tile_size),
@@ -679,7 +687,8 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
                "features_from": None if features_from is None else str(Path(features_from).resolve()),
                "patch_size": patch_size, "patch_level": patch_level, "no_pixels": bool(no_pixels),
                "test_fraction": test_fraction, "seed": int(seed),
-               **({"reader": reader} if reader not in (None, "auto") else {})}  # absent: plans of before stay equal
+               **({"reader": reader} if reader not in (None, "auto") else {}),  # absent: plans of before stay equal
+               **({"mpp": float(mpp)} if mpp is not None else {})}
     patients = read_patient_column(labels) if labels is not None else None  # the split and folds by patient
     plan = make_plan(entries, slides_dir, options, test_fraction, seed, folds=folds, patients=patients)
     for n, m in mpps.items():

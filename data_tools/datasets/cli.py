@@ -33,6 +33,9 @@ def add_subcommand(sub, levels_type) -> None:
     p.add_argument("--magnification-range", type=finite_float, default=None,
                    help="coarsest downsample for every slide (default: each slide's own; the slides must then "
                         "share their µm/px)")
+    p.add_argument("--mpp", type=float, default=None, metavar="UM",
+                   help="every slide's µm per level-0 px, for files that state none or a wrong one (0.25 at 40x, 0.5 "
+                        "at 20x; one scanner's slides); recorded in each bundle and dataset.json")
     p.add_argument("--storage", choices=("dense", "tiled", "auto"), default="auto",
                    help="as build (default auto: tiled above 256 MiB, as gigapixel slides need)")
     p.add_argument("--label-map", help="JSON object mapping annotation group to tumour/exclusion/tissue/ignore")
@@ -97,7 +100,7 @@ def run(args) -> int:
         patch_level=args.patch_level, no_pixels=args.no_pixels, test_fraction=args.test_fraction, seed=args.seed,
         jobs=args.jobs, shard=parse_shard(args.shard) if args.shard is not None else None, restart=args.restart,
         allow_unmatched=args.allow_unmatched_annotations, progress=not args.quiet, reader=args.reader,
-        folds=args.folds)
+        folds=args.folds, mpp=args.mpp)
     s = summary
     print(f"{'shard ' + '/'.join(map(str, s['shard'])) + ': ' if s['shard'] else ''}{len(s['built'])} built, "
           f"{len(s['resumed'])} already done, {len(s['failed'])} failed"

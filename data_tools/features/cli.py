@@ -31,6 +31,9 @@ def add_subcommands(sub) -> None:
     f.add_argument("--image-size", type=int, default=224,
                    help="encoder input size; views are resized to it (default 224, the training size; 0 = as is)")
     f.add_argument("--dtype", choices=("float16", "float32"), default="float16", help="stored dtype (default float16)")
+    f.add_argument("--mpp", type=float, default=None, metavar="UM",
+                   help="the slide's µm per level-0 px, when the bundle records none or a wrong one (0.25 at 40x, 0.5 "
+                        "at 20x): recorded in the bundle (metadata source.mpp, each level's mpp) before the grid")
     f.add_argument("--quiet", action="store_true", help="no progress bar")
 
     i = sub.add_parser("import-features", help="map CLAM/TRIDENT patch features (HDF5: coords, features) onto a "
@@ -91,6 +94,11 @@ def run(args) -> None:
     if not args.bundle:
         raise HistojaxDataError(None, "features needs a BUNDLE folder (or --check IMAGE)")
     from data_tools.features.grid import compute_features
+
+    if args.mpp is not None:  # the scale the encoder-scale check and the bundle's readers then use
+        from data_tools.bundle import set_mpp
+
+        set_mpp(Path(args.bundle), args.mpp)
 
     start = time.perf_counter()
     info = compute_features(Path(args.bundle), encoder_name=args.encoder, dim=args.dim, projection=args.projection,

@@ -116,7 +116,8 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
     if dtype not in ("float16", "float32"):
         raise BundleError(bundle, f"dtype must be float16 or float32, got {dtype!r}")
     encoder = load_encoder(encoder_name, image_size=image_size)
-    scale = encoder_scale(encoder.name, (metadata.get("source") or {}).get("mpp"))
+    scale = encoder_scale(encoder.name, (metadata.get("source") or {}).get("mpp"),
+                          [lv.downsample for lv in metadata.levels])
     if scale is not None and scale["warning"]:  # one line naming the bundle; recorded in features.encoder_scale
         from data_tools.cli_output import without_temporaries  # the bundle, not the folder it is built in
 

@@ -32,3 +32,17 @@ def test_an_unexpected_error_from_inside_a_library_keeps_the_hint(monkeypatch, c
     monkeypatch.setattr(cli, "_dispatch", lambda command, rest: json.loads("{"))  # a ValueError raised in json
     assert cli.main(["info", "x"]) == 2
     assert _line(capsys).endswith("(HISTOJAX_DEBUG=1 shows the traceback)")
+
+
+def test_the_published_learned_set_reader_names_the_encoder_mismatch_first(tmp_path):
+    from baselines.evaluate.checks import encoder_refusal
+    from baselines.published_agents import PUBLISHED
+
+    agent = PUBLISHED / "c16-v2-learned-set-reader" / "config.json"
+    (tmp_path / "dataset.json").write_text(json.dumps({"encoder": "colour-stats"}))
+    config = json.loads(agent.read_text())
+    config["env_kwargs"] = {**(config.get("env_kwargs") or {}), "dataset": str(tmp_path)}
+    line = encoder_refusal(config, agent)  # said before the env is made (where a missing downsample would speak)
+    assert line is not None and "slide head of pcam-cnn features" in line and "'colour-stats' features" in line, line
+    (tmp_path / "dataset.json").write_text(json.dumps({"encoder": "pcam-cnn"}))
+    assert encoder_refusal(config, agent) is None

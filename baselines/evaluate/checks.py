@@ -163,9 +163,15 @@ def encoder_refusal(config: dict, config_path) -> str | None:
     network is loaded, instead of the parameter shapes that would not fit."""
     from histojax import registry
 
+    from histojax.reading.heads import same_encoder
+
     config = read_run_config(config)
     env_id = config.env_id
     want = registry.spec_of(env_id).settings.get("dataset_encoder") if env_id in registry.registered_envs() else None
+    what = f"observes {want} features"
+    if not want and config_path is not None:  # an id of any encoder: the head it scores through reads one
+        want = _head_encoder(Path(config_path).parent)
+        what = f"scores what it reads through a slide head of {want} features (its head_reward.json)"
     dataset = (config.env_kwargs or {}).get("dataset")
     if not want or not dataset or config.obs_mode != "features":
         return None
@@ -174,9 +180,9 @@ def encoder_refusal(config: dict, config_path) -> str | None:
         have = json.loads(index.read_text()).get("encoder")
     except (OSError, ValueError, AttributeError):
         return None
-    if have == want:
-        return None
-    return (f"{config_path}: this agent ({config.env_id}) observes {want} features; {index} holds "
+    if have == want or (have and same_encoder(have, want)) or (not have and what.startswith("scores")):
+        return None  # a dataset that records no encoder: the head's own check names what its bundles hold
+    return (f"{config_path}: this agent ({config.env_id}) {what}; {index} holds "
             f"{'no feature grids' if not have else repr(have) + ' features'}: score it on a dataset built with "
             f"--encoder {want} (e.g. `python -m data_tools c16 ... --features`), or train an agent on these features")
 

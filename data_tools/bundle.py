@@ -224,11 +224,14 @@ def build_bundle(
             raise BundleError(out_dir, "already exists; pass overwrite=True (--overwrite) to replace it")
         check_replaceable(out_dir)
         remove_stale_builds(out_dir)
-        with atomic_folder(out_dir) as tmp:
+        from data_tools.peak_memory import PeakRSS
+
+        # the build's own peak memory, not the process's (earlier work in a long process does not count)
+        with atomic_folder(out_dir) as tmp, PeakRSS() as peak:
             tmp.mkdir(exist_ok=True)
             _build_into(tmp, slide_path, out_dir, annotations_path, level_sets, tile_size, magnification_range,
                         label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
-                        band_bytes, reader, mpp)
+                        band_bytes, reader, mpp, peak)
         return out_dir
     except OSError as e:
         e = as_disk_full(e) or e  # numpy's short write ("N requested and M written"): the disk is full
@@ -240,7 +243,7 @@ def build_bundle(
 
 def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, level_sets, tile_size, magnification_range,
                 label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
-                band_bytes, reader=None, mpp=None) -> None:
+                band_bytes, reader=None, mpp=None, peak=None) -> None:
     """The body of :func:`build_bundle`: write the bundle into ``tmp`` (called with the build lock held, inside
     :func:`data_tools.bundle_format.atomic_folder`, which renames it to ``out_dir`` or removes it)."""
     from data_tools.annotations import annotations_to_geojson, load_annotations
@@ -345,6 +348,9 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
         geojson = annotations_to_geojson(ann) if ann is not None else {"type": "FeatureCollection", "features": []}
         (tmp / ANNOTATIONS).write_text(json.dumps(geojson))
         files = sorted(p.name for p in tmp.iterdir() if p.name != TEMP_MARKER)  # not the temporary's marker
+        if build_stats is not None and peak is not None:  # recorded as the build's peak (data_tools.peak_memory)
+            peak.stop()
+            build_stats.update(peak_rss_bytes=peak.bytes, peak_rss_method=peak.method)
         metadata = {
             "format_version": FORMAT_VERSION if storage == "dense" else TILED_FORMAT_VERSION,
             "storage": storage,

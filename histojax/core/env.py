@@ -1,74 +1,12 @@
-"""HistoEnv: a whole-slide image read like a microscope — pan, zoom in, zoom out — as pure JAX.
-
-gymnax 1.0 contract::
+"""HistoEnv: a whole-slide image read like a microscope — pan, zoom in, zoom out — as pure JAX, with gymnax 1.0's
+contract::
 
     obs, state = env.reset(key, params)
     obs, state, reward, terminated, truncated, info = env.step(key, state, action, params)
 
-Four entry points, gymnax's: ``reset`` and ``step`` (``params`` optional, ``step`` auto-resets) for
-users; ``reset_env`` and ``step_env`` (no auto-reset, ``params`` required), what gymnax's
-``Environment`` subclasses override and its wrappers call.
-
-**State** (``EnvState``, int32 scalars): level ``z`` (0 = coarsest, ``n_levels - 1`` = finest),
-``x, y`` the view's top-left corner in px of level ``z``, ``t`` steps taken this episode,
-``slide_index`` (0 for one slide), ``orientation`` (0 unless ``augment=True``).
-
-**Actions**: ``action_mode="discrete"`` — ``Discrete(7)`` with HistoGym's codes UP=0, DOWN=1,
-LEFT=2, RIGHT=3, ZOOM_IN=4, ZOOM_OUT=5, STAY=6 (moves go ``stride`` view widths; out-of-range codes
-act as STAY). ``action_mode="continuous"`` — ``Box(-1, 1, (3,))``: ``(dx, dy)`` in view widths
-(× ``stride``), ``dzoom`` > 0.5 zooms in, < −0.5 zooms out; NaN acts as 0. Zoom keeps the view's
-centre; positions are clamped inside the level after every move and zoom.
-
-**Observations**: ``obs_mode="pixels"`` — the view, ``(T, T, 3)`` uint8; ``"pixels_float"`` — the
-same as float32 in ``[0, 1]``; ``"features"`` — the ``(D,)`` float32 feature vector of the view,
-read from the bundle's feature grid (see :func:`view_features`). ``with_position=True`` gives a dict
-``{"pixels" (or "features"): ..., "position": (x_centre / W_z, y_centre / H_z, z / (n_levels - 1))}``
-with the position float32 in ``[0, 1]``.
-
-**Rewards**: see :mod:`histojax.core.rewards` (``"histogym"``, ``"sparse"``, ``"dense"``).
-
-**Tasks**: ``task="detection"`` (default) — find the tumour, as above. ``task="classification"`` —
-diagnose the slide: discrete actions add DECLARE_NO_TUMOUR=7 and DECLARE_TUMOUR=8 (continuous: a
-4th component, > 0.5 declares tumour, < −0.5 no tumour); declaring ends the episode with
-``+diagnosis_reward`` if it matches the slide label, ``−diagnosis_reward`` if not; every step costs
-``step_cost``; ``info["success"]`` is a right diagnosis. Slide labels come from the annotations
-(tumour annotated → 1) or ``make(..., labels=CSV or dict)``.
-
-**Per-episode data out of every step**: ``step_obs=True`` (the ``-v2`` ids) makes a reading mode's
-observation carry only what a step changes; what is fixed for a slide during an episode comes once,
-from :meth:`HistoEnv.episode_tables` (``glimpse``: the cells' coarse features, validity, cost and
-position; see :mod:`histojax.reading.modes.glimpse`). Navigation observations are the same either way.
-
-**Augmentation**: ``augment=True`` shows each episode in one of 8 orientations (90° turns ×
-mirror) drawn at reset: the view and the position are turned and the agent's moves are read in
-its turned frame (see :mod:`histojax.core.augment`); state, rewards and termination stay in the
-slide's frame. Pixel observations only.
-
-**Datasets**: ``make(..., slides=[bundle, ...])`` (or ``dataset=FOLDER`` with a ``dataset.json``)
-stacks slides of any sizes into one ``SlideArrays``; ``reset`` draws a slide (uniformly or by
-``slide_weights``) and ``state.slide_index`` says which.
-
-**Episodes**: start at the coarsest level on a random tissue view (or top-left with
-``random_start=False``); the navigation modes can start at another level with ``start_level``
-(``-1``: the finest; the start view is centred on that coarsest view, as a zoom keeps the centre;
-the reading modes always start at the coarsest level); terminate on success (not for ``"histogym"``); truncate when ``t``
-reaches ``max_steps_in_episode`` (never reported as termination). With ``auto_reset=True``
-(default) ``step`` starts a new episode after the last one, returning the first observation of the
-new episode and the last one of the old in ``info["final_observation"]`` (gymnax 1.0's semantics).
-``step`` selects the state first (the new episode's where one ended; the action mode starts its
-reading memory's new episode, ``ActionMode.auto_reset_memory``, which for ``zoom_select`` writes one
-word, not the memory) and observes it once; the
-stepped state's observation for ``info["final_observation"]`` is a separate computation that a
-jitted caller which never reads it does not pay for (XLA drops it). ``final_observation=False``
-keeps the key, which gymnax's wrappers read, as an empty ``(0,)`` array per observation leaf
-(code that does use it fails at trace time instead of reading a wrong view), so it costs nothing
-even without jit. With ``auto_reset=False`` it is the returned
-observation. ``info`` always has gymnax 1.0's keys ``terminated``, ``truncated`` and
-``final_observation``, plus ``discount`` (0 on termination), ``tumour_fraction`` and ``success``.
-
-**gymnax**: with gymnax installed, ``HistoEnv`` is a subclass of
-``gymnax.environments.environment.Environment`` and its spaces are gymnax's classes (see
-:mod:`histojax.core.spaces`); code that asks ``isinstance`` has imported gymnax, so it always gets yes.
+What the state, the actions, the observations, the rewards, the tasks, the episodes and ``info`` are is the
+specification, ``docs/specification.md``; the modes are :mod:`histojax.core.modes`, the rewards
+:mod:`histojax.core.rewards`, the augmentation :mod:`histojax.core.augment`, the slide arrays :mod:`histojax.core.slide`.
 """
 from __future__ import annotations
 

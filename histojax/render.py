@@ -382,10 +382,8 @@ def reading_map_figure(env, params, record, slide_index: int | None = None, scor
         if len(z) - 1 <= 10:
             bar.set_ticks(range(len(z)))
     handles = [Line2D([], [], color=_rgb(TUMOUR_COLOUR), linewidth=1.5, label="tumour")] if rings else []
-    levels = sorted({int(v[0][0]) for v in views})
     handles.append(Rectangle((0, 0), 1, 1, facecolor=(0.5, 0.5, 0.5, 0.45), edgecolor="grey",
-                             label=f"{_count(len(views), 'view')} visited in {_count(len(z) - 1, 'step')} (levels {levels}; "
-                                   "fill: darker at finer levels)"))
+                             label=visited_words(views, len(z) - 1, env.n_levels)))
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(0.0, -0.12), fontsize="small", frameon=False)
     ax.set_title(_titled("\n".join(t for t in (title, _label_and_score(params, slide_index, score)) if t),
                          env, slide_index), fontsize="medium")
@@ -394,6 +392,17 @@ def reading_map_figure(env, params, record, slide_index: int | None = None, scor
 
 def _count(n: int, noun: str) -> str:
     return f"{n} {noun}{'' if n == 1 else 's'}"
+
+
+def visited_words(views, steps: int, n_levels: int) -> str:
+    """The reading map's legend for the views an episode stood on (``views``: :func:`reading_order`'s
+    ``((z, x, y), first step, ...)``) in ``steps`` steps, with how many lie at the finest level ``n_levels − 1``:
+    only those count as read (the fraction read is of the finest level's tissue views), so a map of coarse views
+    says why it stands beside "0 % read"."""
+    levels = sorted({int(v[0][0]) for v in views})
+    finest = sum(int(v[0][0]) == n_levels - 1 for v in views)
+    return (f"{_count(len(views), 'view')} stood on in {_count(steps, 'step')} (levels {levels}; fill: darker at "
+            f"finer levels)\n{finest} of them at the finest level ({n_levels - 1}), the only views counted as read")
 
 
 def _label_and_score(params, slide_index: int, score) -> str:

@@ -61,15 +61,27 @@ def test_contract_skips_an_id_without_its_data(monkeypatch, tmp_path):
     assert report.skipped and "dataset.json" in report.skipped and not report.checks
 
 
+def _c16_contract_dataset(tmp_path_factory):
+    """The small C16 dataset with the data every C16 id observes: pixels (v0) and the pcam-cnn feature grids
+    the v1 / v2 ids and the reading id observe (``histojax c16 --small --features``), built once per session."""
+    from data_tools.datasets.c16 import make_c16_dataset
+
+    out = tmp_path_factory.getbasetemp() / "c16-contract-features"
+    if not (out / "dataset.json").is_file():
+        make_c16_dataset(out, small=True, features=True, progress=False)
+    return out
+
+
 @pytest.mark.slow
 @pytest.mark.parametrize("env_id", [i for i in histojax.registered_envs() if i not in DEFAULT_IDS])
 def test_contract_of_every_other_registered_id(env_id, tmp_path_factory, monkeypatch):
-    if env_id.startswith("HistoJAX-C16-"):
-        from data_tools.datasets.c16 import make_c16_dataset
+    from histojax.registry import READING_ID
 
-        out = tmp_path_factory.getbasetemp() / "c16-contract"
-        if not (out / "dataset.json").is_file():
-            make_c16_dataset(out, small=True, progress=False)
+    if env_id.startswith("HistoJAX-C16-") or env_id == READING_ID:
+        out = _c16_contract_dataset(tmp_path_factory)
         monkeypatch.setenv("HISTOJAX_C16_DATASET", str(out))
-    (report,) = check_contract([env_id], **SMALL)
-    assert report.skipped is None and report.ok, report.failures
+    if env_id == READING_ID:  # it reads a dataset of the caller's (no default slides): the small C16 set
+        report = check_env(*histojax.make(env_id, dataset=str(out)), **SMALL)
+    else:
+        (report,) = check_contract([env_id], **SMALL)
+    assert report.skipped is None and report.ok, report.skipped or report.failures

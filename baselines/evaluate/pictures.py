@@ -64,11 +64,22 @@ def reading_with_scores(env, env_params, head, record: dict, slide_index: int, s
         right.add_patch(Rectangle((x0, y0), x1 - x0, y1 - y0, fill=False, edgecolor="#00c8ff", linewidth=1.0))
     for ring in tumour_rings(env, slide_index):
         right.plot(ring[:, 0], ring[:, 1], color="#2ecc71", linewidth=1.2)
-    right.set_title(f"per-view scores of {head.name}; cyan: views the agent stood on ({len(seen)}); green: tumour",
-                    fontsize="small")
+    right.set_xlim(0, gw * cell)  # a view box larger than the grid (the overview at reset) is cut at its edge
+    right.set_ylim(gh * cell, 0)
+    right.set_title(panel_title(head.name, len(seen)), fontsize="small")
     right.set_xticks([])
     right.set_yticks([])
     return outputs.save_figure(fig, path)
+
+
+def panel_title(head_name: str, stood_on: int, width: int = 60) -> str:
+    """The title of the head's panel beside a reading map, wrapped to lines of at most ``width`` characters so
+    that no word of it is cut at the figure's edge: the head, then what the outlines mean."""
+    import textwrap
+
+    return "\n".join([*textwrap.wrap(f"per-view scores of {head_name}", width),
+                      *textwrap.wrap(f"cyan: the {stood_on} view{'' if stood_on == 1 else 's'} the agent stood on; "
+                                     "green: tumour", width)])
 
 
 def _tag(name: str) -> str:

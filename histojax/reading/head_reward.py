@@ -198,8 +198,10 @@ def build_tables(env, head: SlideHead, params=None, windows: bool | None = None)
             row_start = np.stack([r[4][0] for r in rows]).astype(np.int32)
             col_start = np.stack([r[4][1] for r in rows]).astype(np.int32)
             win = (max(1, int(np.diff(row_start, axis=1).max())), max(1, int(np.diff(col_start, axis=1).max())))
-            grow = lambda a, fill: np.pad(a, ((0, 0), (0, win[0]), (0, win[1])) + ((0, 0),) * (a.ndim - 3),  # noqa: E731
-                                          constant_values=fill)
+
+            def grow(a, fill):
+                return np.pad(a, ((0, 0), (0, win[0]), (0, win[1])) + ((0, 0),) * (a.ndim - 3), constant_values=fill)
+
             extra.update(win_terms=jnp.asarray(grow(terms, 0.0)), win_tissue=jnp.asarray(grow(np.asarray(tissue), False)),
                          win_cell=jnp.asarray(grow(cells, -1), jnp.int32), row_start=jnp.asarray(row_start),
                          col_start=jnp.asarray(col_start), window=win)

@@ -30,6 +30,7 @@ import numpy as np
 import histojax
 from baselines import common, outputs
 from data_tools.cli_output import command_main
+from data_tools.metrics import json_safe
 from histojax.render import animate, render_trajectory
 
 ENV_ID = "HistoJAX-Easy-v0"
@@ -192,7 +193,7 @@ def run_demo(out="out", total_steps: int | None = None, seed: int = 0, quick: bo
     summary["wall_seconds"] = time.perf_counter() - t_start
     summary["files"] = files
     path = out / "demo_summary.json"
-    outputs.write_text(path, json.dumps(summary, indent=2, default=_json_default))
+    outputs.write_text(path, json.dumps(json_safe(summary), indent=2, default=_json_default, allow_nan=False))
     files[str(path)] = "this summary as JSON"
     print_summary(summary)
     return summary

@@ -32,6 +32,7 @@ import jax
 from baselines import common, outputs
 from baselines.published_agents import PUBLISHED
 from data_tools.errors import HistojaxDataError
+from data_tools.metrics import json_safe
 
 
 def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str | None = None,
@@ -64,7 +65,7 @@ def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str |
     dest.mkdir(parents=True, exist_ok=True)
     if seed is None:
         outputs.write_bytes(dest / "params.msgpack", (run / "params.msgpack").read_bytes())  # whole or absent
-        outputs.write_text(dest / "config.json", json.dumps(config, indent=2))
+        outputs.write_text(dest / "config.json", json.dumps(json_safe(config), indent=2, allow_nan=False))
         seeds = None
     else:
         params, _ = common.load_checkpoint(run)
@@ -83,8 +84,9 @@ def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str |
             for f in ("params.json", "params.npz"):  # whichever the head's kind keeps
                 if (copy / f).is_file():
                     outputs.write_bytes(dest / "head" / f, (copy / f).read_bytes())
-            outputs.write_text(dest / "head" / "config.json", json.dumps(head_config, indent=1) + "\n")
-        outputs.write_text(dest / "head_reward.json", json.dumps(record, indent=1) + "\n")
+            outputs.write_text(dest / "head" / "config.json", json.dumps(json_safe(head_config), indent=1,
+                                                                         allow_nan=False) + "\n")
+        outputs.write_text(dest / "head_reward.json", json.dumps(json_safe(record), indent=1, allow_nan=False) + "\n")
     summary = None
     if (run / "log.json").is_file():
         summary = json.loads((run / "log.json").read_text()).get("summary")
@@ -92,7 +94,7 @@ def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str |
         where["what"] = trained_on
     record = {"name": name, "source_run": run_name(run, config), "seeds": seeds, "trained_on": where or None,
               "training_summary": summary, "chosen_by": chosen_by, "note": note}
-    outputs.write_text(dest / "published.json", json.dumps(record, indent=1))
+    outputs.write_text(dest / "published.json", json.dumps(json_safe(record), indent=1, allow_nan=False))
     return dest
 
 

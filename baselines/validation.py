@@ -143,7 +143,7 @@ def write_validation_dataset(dataset, fraction: float, seed: int, out) -> Path:
     if isinstance(spec.get("labels"), dict):  # keyed by bundle path or name: keep the names working
         derived["labels"] = {_name(k): v for k, v in spec["labels"].items()}
     out.mkdir(parents=True, exist_ok=True)
-    text = json.dumps(derived, indent=1)
+    text = json.dumps(derived, indent=1, allow_nan=False)
     index = out / "dataset.json"
     if not index.is_file() or index.read_text() != text:
         outputs.write_text(index, text)

@@ -346,7 +346,7 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
                     np.save(tmp / REGION, pad(allowed, tile_size, False), allow_pickle=False)
         cache = None
         geojson = annotations_to_geojson(ann) if ann is not None else {"type": "FeatureCollection", "features": []}
-        (tmp / ANNOTATIONS).write_text(json.dumps(geojson))
+        (tmp / ANNOTATIONS).write_text(json.dumps(geojson, allow_nan=False))
         files = sorted(p.name for p in tmp.iterdir() if p.name != TEMP_MARKER)  # not the temporary's marker
         if build_stats is not None and peak is not None:  # recorded as the build's peak (data_tools.peak_memory)
             peak.stop()

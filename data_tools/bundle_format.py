@@ -444,7 +444,7 @@ def save_array(path, array: np.ndarray) -> None:
 def write_json(path, data) -> None:
     """Write ``data`` as JSON (indent 1) atomically onto ``path`` (see :func:`atomic_file`)."""
     with atomic_file(path) as tmp, open(tmp, "w") as f:
-        json.dump(data, f, indent=1)
+        json.dump(data, f, indent=1, allow_nan=False)
 
 
 METADATA_DIGEST = "metadata_sha256"  # the SHA-256 of the rest of metadata.json (see metadata_digest)
@@ -454,7 +454,7 @@ def metadata_digest(metadata: dict) -> str:
     """Hex SHA-256 of ``metadata`` without its :data:`METADATA_DIGEST` entry, serialised canonically
     (sorted keys, no spaces; floats as Python writes them, which JSON reads back exactly)."""
     body = {k: v for k, v in metadata.items() if k != METADATA_DIGEST}
-    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":"),
+    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":"),  # json-not-written (a digest)
                                      allow_nan=True).encode()).hexdigest()
 
 

@@ -32,7 +32,7 @@ def patch_record(folder: Path) -> dict[str, np.ndarray]:
         out[side] = np.array(sorted(keys))
         counts[side] = len(ds[side])
     out["slides"] = np.array([counts["train"], counts["test"]])
-    out["pool_rule"] = np.array(json.dumps(ds["patch_pools"]["rule"]))
+    out["pool_rule"] = np.array(json.dumps(ds["patch_pools"]["rule"]))  # json-not-written (an npz entry)
     return out
 
 

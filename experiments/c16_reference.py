@@ -60,6 +60,7 @@ sys.path.insert(0, str(ROOT))
 from baselines import common, outputs, ppo, ppo_rnn  # noqa: E402
 from baselines.evaluate import evaluate  # noqa: E402
 from baselines.run_config import read_run_config  # noqa: E402
+from data_tools.metrics import auc_interval, json_safe  # noqa: E402
 
 SCENARIOS = ("Easy", "Medium", "Hard", "Diagnosis")
 METHODS = ("random", "scripted", "ppo-pixels", "ppo-features", "ppo-rnn")
@@ -169,7 +170,7 @@ def trained_cell(method: str, dataset: Path, env_id: str, env_kwargs: dict, step
     if augment and settings["obs_mode"] == "pixels":
         train_kwargs["augment"] = True
     argv = ["--env", env_id, "--obs-mode", settings["obs_mode"], "--with-position", "--seeds", str(seeds),
-            "--total-steps", str(steps), "--out", str(out), "--set", f"env_kwargs={json.dumps(train_kwargs)}",
+            "--total-steps", str(steps), "--out", str(out), "--set", f"env_kwargs={json.dumps(train_kwargs)}",  # json-not-written (an option)
             "--set", "print_progress=false", *extra]
     t0 = time.perf_counter()
     trainer.main(argv)
@@ -213,6 +214,17 @@ def _num(v) -> str:
     return "–" if v is None or v != v else f"{v:.1f}"
 
 
+def _interval(cell: dict, stats: dict | None) -> str:
+    """`` [low, high]``: the 95 % interval over the test slides of the Diagnosis AUC shown (the mean over seeds, or
+    the one run's), from the slides the evaluation scored; empty for a record without their counts."""
+    n_tumour, n_normal = cell.get("diagnosis_tumour_slides"), cell.get("diagnosis_normal_slides")
+    auc = stats["auc"]["mean"] if stats and "auc" in stats else cell.get("diagnosis_auc")
+    if not n_tumour or not n_normal or auc is None or auc != auc:
+        return ""
+    low, high = auc_interval(float(auc), int(n_tumour), int(n_normal))
+    return f" [{low:.3f}, {high:.3f}]"
+
+
 def _pm(stats: dict | None, name: str, fmt) -> str | None:
     """``mean ± std`` over seeds of ``stats[name]`` (:func:`seed_stats`), or None without it."""
     if not stats or name not in stats:
@@ -247,7 +259,7 @@ def markdown(cells: dict, methods: list[str], scenarios: list[str], meta: dict) 
             st = c.get("seeds")
             if s == "Diagnosis":
                 row += [_pm(st, "accuracy", _pct) or _pct(c["success_rate"]),
-                        _pm(st, "auc", _num2) or _num2(c.get("diagnosis_auc"))]
+                        (_pm(st, "auc", _num2) or _num2(c.get("diagnosis_auc"))) + _interval(c, st)]
             else:
                 d = c.get("tumour_slides", c)
                 row += [_pm(st, "success", _pct) or _pct(d["success_rate"]),
@@ -271,7 +283,8 @@ def markdown(cells: dict, methods: list[str], scenarios: list[str], meta: dict) 
               f"{meta['episodes']} test episodes per seed (per policy for random / scripted). Trained rows: the "
               f"sampled policy, mean ± std over seeds. Steps: mean episode length of the successful episodes. "
               f"Diagnosis AUC: of the policy's p(tumour) = p(DECLARE_TUMOUR) / (p(DECLARE_TUMOUR) + "
-              f"p(DECLARE_NO_TUMOUR)) at the step it declared (or its last step), over test episodes. Learning "
+              f"p(DECLARE_NO_TUMOUR)) at the step it declared (or its last step), over test episodes; [low, high]: "
+              f"its 95 % interval over the test slides (Newcombe's, of the mean over seeds). Learning "
               f"curves: `<out>/<method>-<scenario>/curve.png` and `log.csv`.",
               f"Machine: {platform.machine()}, {jax.device_count()} {jax.devices()[0].platform} device(s), "
               f"JAX {jax.__version__}. Total wall time of the cells: {meta['wall_s']:,.0f} s."]
@@ -404,7 +417,7 @@ def main(argv=None) -> int:
 
     def save():
         meta["wall_s"] = total_wall(cells)
-        outputs.write_text(store, json.dumps({"meta": meta, "cells": cells}, indent=1, default=float))
+        outputs.write_text(store, json.dumps(json_safe({"meta": meta, "cells": cells}), indent=1, default=float, allow_nan=False))
         text = markdown(cells, args.methods, args.scenarios, meta)
         outputs.write_text(out / "reference.md", text + "\n")
         return text

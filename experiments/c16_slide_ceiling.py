@@ -32,7 +32,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.metrics import roc_auc
+from data_tools.metrics import auc_interval, format_auc, json_safe, roc_auc
 from baselines.validation import split_train
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
@@ -225,7 +225,7 @@ def main(argv=None) -> int:
             print(f"| {r['slide']} | {r['class']} | {r['diameter_mm']:.3f} | {r['area_mm2']:.3f} |")
         if args.json and not args.dataset:
             args.json.parent.mkdir(parents=True, exist_ok=True)
-            args.json.write_text(json.dumps({"lesions": census}, indent=1, default=float))
+            args.json.write_text(json.dumps(json_safe({"lesions": census}), indent=1, default=float, allow_nan=False))
         if not args.dataset:
             return 0
     if not args.dataset:
@@ -240,13 +240,18 @@ def main(argv=None) -> int:
     levels = [lv for lv in args.levels if all(lv in s["grids"] for s in train + test)]
     a_train, a_test = pooled_aucs(train, levels), pooled_aucs(test, levels)
     print(f"slide AUC of pooled pcam-cnn view logits ({len(train)} train, {len(test)} test slides)")
-    print("| level | entry | statistic | train AUC | test AUC |\n|---|---|---|---|---|")
+    n_test = (sum(s["label"] for s in test), sum(1 - s["label"] for s in test))  # the interval's tumour, normal slides
+    print("| level | entry | statistic | train AUC | test AUC [95 % interval over the test slides] |\n"
+          "|---|---|---|---|---|")
     for key in a_train:
-        print(f"| {key[0]} | {key[1]} | {key[2]} | {a_train[key]:.3f} | {a_test[key]:.3f} |")
+        print(f"| {key[0]} | {key[1]} | {key[2]} | {a_train[key]:.3f} | "
+              f"{format_auc(a_test[key], *auc_interval(a_test[key], *n_test))} |")
     best = max(a_train, key=lambda k: a_train[k])
     lv, entry, stat = best
     normal_top = max(pool(s["grids"][lv], ENTRIES[entry], stat) for s in test if s["label"] == 0)
-    print(f"\nbest on train: level {lv}, {entry}, {stat} (test AUC {a_test[best]:.3f}); highest test normal slide: "
+    shown = format_auc(a_test[best], *auc_interval(a_test[best], *n_test))
+    print(f"\nbest on train: level {lv}, {entry}, {stat} (test {shown}"
+          f"); highest test normal slide: "
           f"{normal_top:.2f}")
     print("| test tumour slide | score | tumour area (mm²) | above every normal |\n|---|---|---|---|")
     rows = []
@@ -255,7 +260,8 @@ def main(argv=None) -> int:
         area = s["tumour_area_px"] * s["mpp"] ** 2 / 1e6
         rows.append({"slide": s["name"], "score": score, "tumour_area_mm2": area, "above_normals": score > normal_top})
         print(f"| {s['name']} | {score:.2f} | {area:.3f} | {'yes' if score > normal_top else 'no'} |")
-    result = {"pooled": [{"level": k[0], "entry": k[1], "stat": k[2], "train_auc": a_train[k], "test_auc": a_test[k]}
+    result = {"pooled": [{"level": k[0], "entry": k[1], "stat": k[2], "train_auc": a_train[k], "test_auc": a_test[k],
+                          **dict(zip(("test_auc_low", "test_auc_high"), auc_interval(a_test[k], *n_test)))}
                          for k in a_train],
               "best_on_train": {"level": lv, "entry": entry, "stat": stat, "test_auc": a_test[best]},
               "test_tumour_slides": rows}
@@ -271,7 +277,7 @@ def main(argv=None) -> int:
               f"({pr['test']['mean l max']:.3f})")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
-        args.json.write_text(json.dumps(result, indent=1, default=float))
+        args.json.write_text(json.dumps(json_safe(result), indent=1, default=float, allow_nan=False))
     return 0
 
 

@@ -69,7 +69,7 @@ def main(argv=None) -> int:
             root = Path(kw["dataset"])
             first = next(iter(spec[kw.get("split", "train")]))
             first = str(first if Path(first).is_absolute() else (root / first).resolve())
-            (Path(tmp) / "dataset.json").write_text(json.dumps({**spec, "train": [first], "test": [first]}))
+            (Path(tmp) / "dataset.json").write_text(json.dumps({**spec, "train": [first], "test": [first]}, allow_nan=False))
             kw = {**kw, "dataset": tmp, "split": "train"}
         small = config.replace(env_kwargs=kw)
         env, env_params = common.make_env(small)

@@ -82,7 +82,7 @@ def main(argv=None) -> int:
         row["views_per_s_128px"] = round(views_per_second(enc, seconds=args.seconds,
                                                            batch=64 if enc.dim > 64 else 512))
         rows.append(row)
-        print(json.dumps(row), flush=True)
+        print(json.dumps(row), flush=True)  # json-not-written (printed)
     result = {"patches": str(args.patches), "fit_patches": len(fit_idx), "test_patches": len(test_idx),
               "command": "python -m experiments.encoder_patches " + " ".join(argv if argv is not None else sys.argv[1:]),
               "rows": rows}

@@ -38,6 +38,7 @@ from baselines import common, ppo  # noqa: E402
 from baselines.evaluate import evaluate  # noqa: E402
 from baselines.run_config import read_run_config  # noqa: E402
 from data_tools.errors import HistojaxDataError  # noqa: E402
+from data_tools.metrics import json_safe  # noqa: E402
 
 TARGETS = {"Easy": 0.90, "Medium": 0.70, "Hard": 0.50}
 DEFAULT_STEPS = {"Easy": 262_144, "Medium": 786_432, "Hard": 1_048_576}
@@ -70,7 +71,7 @@ def run_scenario(name: str, dataset: Path, heldout: list, steps: int, seeds: int
     run = out / f"ppo-{name.lower()}"
     kwargs = {"dataset": str(dataset), "split": "train", "augment": True}
     argv = ["--env", env_id, "--with-position", "--seeds", str(seeds), "--total-steps", str(steps),
-            "--out", str(run), "--set", f"env_kwargs={json.dumps(kwargs)}", *extra_args]
+            "--out", str(run), "--set", f"env_kwargs={json.dumps(kwargs)}", *extra_args]  # json-not-written (an option)
     if not (reuse and _same_run(run, env_id, kwargs, steps, seeds)):
         ppo.main(argv)
         previous = None
@@ -185,7 +186,7 @@ def main(argv=None) -> int:
                                      previous.get(name))
         text = markdown(results, dataset)
         (out / "targets.md").write_text(text + "\n")
-        (out / "targets.json").write_text(json.dumps({**previous, **results}, indent=1))
+        (out / "targets.json").write_text(json.dumps(json_safe({**previous, **results}), indent=1, allow_nan=False))
     print("\n" + text)
     print(f"\ntotal {time.perf_counter() - t0:.0f} s; wrote {out}/targets.md, targets.json")
     return 0

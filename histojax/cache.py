@@ -45,7 +45,7 @@ def cached_bundle(slide, annotations=None, tile_size: int = 128, level_sets=None
 
     level_sets = tuple(sorted(level_sets or LEVEL_SETS))
     if name is None:
-        key = json.dumps({
+        key = json.dumps({  # json-not-written (a cache key)
             "slide": file_digest(slide), "annotations": None if annotations is None else file_digest(annotations),
             "tile_size": tile_size, "levels": level_sets, "label_map": label_map,
             "region": None if region is None else dataclasses.asdict(region), "format": FORMAT_VERSION,

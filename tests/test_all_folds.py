@@ -137,7 +137,8 @@ def test_evaluate_all_folds_is_the_one_fold_run_on_every_fold(folded, tmp_path, 
         f = env_kwargs["fold"]
         return {"random": {"episodes": 4, "success_rate": 0.25 + 0.5 * f, "mean_return": 1.0, "mean_length": 10.0,
                            "mean_steps_to_success": float("nan"), "mean_fraction_read": 0.5,
-                           "mean_fields_of_view": 3.0, "diagnosis_auc": 0.6 + 0.2 * f}}
+                           "mean_fields_of_view": 3.0, "diagnosis_auc": 0.6 + 0.2 * f,
+                           "diagnosis_tumour_slides": 2, "diagnosis_normal_slides": 3 + f}}
 
     monkeypatch.setattr(cli, "evaluate", scored)
     assert cli.main(["--env", "HistoJAX-Easy-v0", "--dataset", str(out), "--all-folds", "--episodes", "4",
@@ -156,7 +157,14 @@ def test_evaluate_all_folds_is_the_one_fold_run_on_every_fold(folded, tmp_path, 
     assert record["folds"] == 2 and [f["fold"] for f in record["per_fold"]] == [0, 1]
     assert record["summary"]["random"]["diagnosis_auc_std"] == pytest.approx(0.1)
     assert record["summary"]["random"]["mean_steps_to_success"] is None
-    assert "mean ± std over 2 folds" in capsys.readouterr().out
+    # the interval of the mean over the held-out slides of both folds pooled: 4 tumour, 7 normal
+    from data_tools.metrics import auc_interval
+
+    low, high = auc_interval(0.7, 4, 7)
+    assert record["summary"]["random"]["diagnosis_auc_low"] == pytest.approx(low)
+    assert float(mean["diagnosis_auc_high"]) == pytest.approx(high, abs=1e-6)
+    printed = capsys.readouterr().out
+    assert "mean ± std over 2 folds" in printed and f"diagnosis_auc 0.700 ± 0.100 [{low:.3f}, {high:.3f}]" in printed
 
 
 def test_evaluate_fold_scores_the_folds_held_out_side(folded):

@@ -131,10 +131,11 @@ def test_gif_of_a_feature_only_slide_shows_a_feature_heat_map(two_slides, colour
 def test_print_table_shows_auc_and_fraction_read(capsys):
     row = {"episodes": 8, "success_rate": 0.461, "mean_return": 0.1, "mean_length": 2.0, "mean_steps_to_success": 2.0,
            "mean_fraction_read": 0.1, "mean_fields_of_view": 1.0}
-    evaluate.print_table("t", {"ppo (greedy)": {**row, "diagnosis_auc": 1.0}, "random": row})
+    evaluate.print_table("t", {"ppo (greedy)": {**row, "diagnosis_auc": 1.0, "diagnosis_auc_low": 0.585,
+                                                "diagnosis_auc_high": 1.0}, "random": row})
     lines = capsys.readouterr().out.splitlines()
-    assert lines[2].split()[-3:] == ["read", "fields", "AUC"]
-    assert lines[3].split()[-3:] == ["10.0%", "1.0", "1.000"] and lines[4].split()[-1] == "-"
+    assert lines[2].split()[-6:] == ["read", "fields", "AUC", "[95", "%", "interval]"]
+    assert lines[3].split()[-5:] == ["10.0%", "1.0", "1.000", "[0.585,", "1.000]"] and lines[4].split()[-1] == "-"
 
 
 def test_split_warnings_say_why_a_split_cannot_be_scored():

@@ -157,7 +157,7 @@ def test_set_reader_is_scored_through_its_head_on_wider_and_taller_slides(data, 
                           "--out", str(out)]) == 0
     printed = capsys.readouterr().out.splitlines()
     header = next(line for line in printed if line.startswith("policy"))
-    assert header.split()[-6:] == ["read", "fields", "AUC", "AUC", "w/o", "ITC"]
+    assert header.split()[-11:] == ["read", "fields", "AUC", "[95", "%", "interval]", "AUC", "w/o", "ITC", "[95", "%]"]
     assert any(line.startswith("the head declares") and "'3x3 mean, max'" in line for line in printed)
     rows = json.loads((out / "eval.json").read_text())
     (table,) = rows["results"].values()
@@ -165,7 +165,9 @@ def test_set_reader_is_scored_through_its_head_on_wider_and_taller_slides(data, 
     assert set(table) == {"ppo (greedy)", "ppo (sampled)", "random"}
     for name, row in table.items():
         line = next(line for line in printed if line.startswith(name))
-        assert line.split()[-2:] == [f"{row['diagnosis_auc']:.3f}", f"{row['diagnosis_auc_no_itc']:.3f}"]
+        assert " ".join(line.split()[-6:]) == (f"{row['diagnosis_auc']:.3f} [{row['diagnosis_auc_low']:.3f}, "
+                             f"{row['diagnosis_auc_high']:.3f}] {row['diagnosis_auc_no_itc']:.3f} "
+                             f"[{row['diagnosis_auc_no_itc_low']:.3f}, {row['diagnosis_auc_no_itc_high']:.3f}]"), line
         assert f"{row['mean_fraction_read']:.1%}" in line
         assert 0.0 <= row["diagnosis_auc"] <= 1.0 and 0.0 <= row["diagnosis_auc_no_itc"] <= 1.0
         assert 0.0 <= row["mean_fraction_read"] <= 0.2 + 0.05  # the budget (one cell may overshoot it)

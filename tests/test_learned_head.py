@@ -6,6 +6,7 @@ from __future__ import annotations
 import io
 import json
 import os
+import re
 import zipfile
 from pathlib import Path
 
@@ -369,8 +370,15 @@ def test_the_command_fits_saves_and_scores(cohort, tmp_path, capsys):
     assert cfg["kind"] == KIND and cfg["chosen_on"]["validation_auc"] >= 0.5 and cfg["calibration"]["slope"] > 0
     capsys.readouterr()
     assert _main(["--dataset", str(cohort["root"]), "--score", str(out), "--split", "test", "--quiet"]) == 0
-    res = json.loads(capsys.readouterr().out.strip().splitlines()[-1])
+    printed = capsys.readouterr()
+    res = json.loads(printed.out.strip().splitlines()[-1])
     assert res["auc"] >= 0.9 and res["slides"] == 8
+    # the AUC's 95 % interval over the 8 slides beside it, and the word that 4 + 4 slides cannot rank heads
+    assert res["auc_low"] < res["auc"] <= res["auc_high"] <= 1.0 and res["auc_high"] - res["auc_low"] > 0.2
+    shown = re.search(r"AUC (\d\.\d{3}) \[(\d\.\d{3}), (\d\.\d{3})\] reading everything", printed.err)
+    assert shown and np.allclose([float(v) for v in shown.groups()], [res["auc"], res["auc_low"], res["auc_high"]],
+                                 atol=6e-4), printed.err
+    assert "holds 4 tumour and 4 normal slides" in printed.err
     # a second fit into the same folder replaces it; into a folder of user files is refused
     (tmp_path / "user").mkdir()
     (tmp_path / "user" / "a.txt").write_text("x")

@@ -36,8 +36,8 @@ def both(tmp_path_factory):
 
     printed = {}
     for name, call in (("readers", lambda: readers.main([
-            "--dataset", str(cohort["root"]), "--head", str(head), "--split", "test", "--seeds", "3", "--cell-level", "1",
-            "--budgets", *BUDGETS, "--out", str(root / "readers")])),
+            "--dataset", str(cohort["root"]), "--head", str(head), "--split", "test", "--seeds", "3",
+            "--cell-level", "1", "--budgets", *BUDGETS, "--out", str(root / "readers")])),
             ("curve", lambda: budget_curve.main([
                 "--dataset", str(cohort["root"]), "--env", "HistoJAX-Easy-v0", "--glimpse-level", "1", "--seeds", "3",
                 "--steps", "5", "--budgets", *BUDGETS, "--head", str(head), "--out", str(root / "curve")]))):

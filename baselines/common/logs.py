@@ -14,6 +14,7 @@ from flax import serialization
 
 from baselines import outputs
 from data_tools.errors import HistojaxDataError
+from data_tools.metrics import json_safe
 from baselines.common.config import canonical_config
 
 
@@ -75,7 +76,7 @@ def save_checkpoint(out: Path, params, config: dict, name: str = "params.msgpack
     path = out / name
     w = stage or outputs
     w.write_bytes(path, serialization.msgpack_serialize(jax.tree.map(np.asarray, jax.device_get(params))))
-    w.write_text(out / "config.json", json.dumps(config, indent=2, default=str))
+    w.write_text(out / "config.json", json.dumps(json_safe(config), indent=2, default=str, allow_nan=False))
     return path
 
 
@@ -123,7 +124,7 @@ def write_logs(out: Path, steps: np.ndarray, metrics: dict, summary: dict, stage
                         _fmt(finite_mean(col["length"])), _fmt(finite_mean(col["steps_to_success"]))])
     data = {"summary": summary, "step": [int(s) for s in steps],
             "per_seed": {k: np.asarray(v).tolist() for k, v in metrics.items()}}
-    files.write_text(out / "log.json", json.dumps(data, default=_json_default))
+    files.write_text(out / "log.json", json.dumps(json_safe(data), default=_json_default, allow_nan=False))  # NaN: null
 
 
 def _fmt(v):

@@ -150,7 +150,7 @@ def _checkpoint_config(out: Path) -> dict | None:
 def _same(saved: dict, config: dict) -> bool:
     """Whether the checkpoint's full config ``saved`` is a run of ``config`` (the command's entries, which the
     trainer completes with its own): every entry of ``config`` equal in ``saved``."""
-    norm = lambda v: json.dumps(v, sort_keys=True, default=str)  # noqa: E731
+    norm = lambda v: json.dumps(v, sort_keys=True, default=str)  # noqa: E731  # json-not-written (compared)
     return all(k in saved and norm(saved[k]) == norm(v) for k, v in config.items())
 
 

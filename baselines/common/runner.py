@@ -22,6 +22,7 @@ from baselines.common import run_folder
 from baselines.common.config import ConfigError, canonical_config
 from baselines.common.env import random_agent_reference
 from baselines.common.devices import replicate_on
+from data_tools.metrics import json_safe
 
 
 
@@ -177,7 +178,8 @@ def save_runner(folder: Path, runners, update: int, metrics: dict, train_seconds
     outputs.write_text(folder / "checkpoint.json", json.dumps(
         {"update": int(update), "num_updates": int(num_updates), "checkpoint_every": int(chunk),
          "train_seconds": round(float(train_seconds), 3), "saved": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-         "resume": f"histojax train --algo {config.get('algo', 'ppo')} --resume {folder.parent}"}, indent=1))
+         "resume": f"histojax train --algo {config.get('algo', 'ppo')} --resume {folder.parent}"}, indent=1,
+        allow_nan=False))
     return path
 
 
@@ -185,7 +187,7 @@ def config_digest(config: dict) -> str:
     """SHA-256 of a run config (JSON, keys sorted): ties a checkpoint to the run that wrote it."""
     import hashlib
 
-    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()
+    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()  # json-not-written (a hash)
 
 
 def load_runner(folder: Path, template, num_updates: int, chunk: int, config: dict | None = None):
@@ -241,7 +243,7 @@ def run_chunked(train, out: Path, keys=None, resume: bool = False, on_checkpoint
         compile_s = 0.0
     else:
         folder.mkdir(parents=True, exist_ok=True)
-        outputs.write_text(folder / "config.json", json.dumps(config, indent=2, default=str))
+        outputs.write_text(folder / "config.json", json.dumps(json_safe(config), indent=2, default=str, allow_nan=False))
         t0 = time.perf_counter()
         runners = jax.block_until_ready(start(keys))
         compile_s, train_s, done, metrics = time.perf_counter() - t0, 0.0, 0, {}

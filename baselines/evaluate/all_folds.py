@@ -13,10 +13,13 @@ from baselines import outputs
 from baselines.folds import SUMMARY, dataset_folds, mean_std, with_fold
 from baselines.run_config import read_run_config
 from data_tools.errors import HistojaxDataError
+from data_tools.metrics import auc_interval
 
 FIGURES = ("success_rate", "mean_return", "mean_length", "mean_steps_to_success", "mean_fraction_read",
            "mean_fields_of_view", "diagnosis_auc", "diagnosis_auc_no_itc")
 """The figures of an evaluation row summarised over folds (each as its mean and ``<figure>_std``)."""
+INTERVAL = ("diagnosis_auc_low", "diagnosis_auc_high")
+"""The AUC's 95 % interval over slides: each fold's own, and for the mean that over the pooled held-out slides."""
 
 
 def fold_dataset(args) -> str:
@@ -40,7 +43,9 @@ def fold_dataset(args) -> str:
 def summarise_folds(per_fold: list[dict]) -> dict:
     """``{policy: {figure: mean, figure_std: std, "episodes": total, "folds": n}}`` over ``per_fold`` (one
     ``{policy: row}`` per fold, rows as ``eval.json`` holds them: an undefined figure is None); the mean and std
-    (``ddof=0``) are over the folds that define the figure, ``folds`` the folds that scored the policy."""
+    (``ddof=0``) are over the folds that define the figure, ``folds`` the folds that scored the policy;
+    ``diagnosis_auc_low`` / ``_high``: the 95 % interval of the mean AUC over the pooled held-out slides of all folds
+    (each slide once), when every fold records its slide counts."""
     out: dict = {}
     for policy in dict.fromkeys(p for rows in per_fold for p in rows):
         rows = [r[policy] for r in per_fold if policy in r]
@@ -48,6 +53,13 @@ def summarise_folds(per_fold: list[dict]) -> dict:
         for figure in FIGURES:
             if any(figure in r for r in rows):
                 summary[figure], summary[f"{figure}_std"] = mean_std([r.get(figure) for r in rows])
+        counts = [(r.get("diagnosis_tumour_slides"), r.get("diagnosis_normal_slides")) for r in rows]
+        if summary.get("diagnosis_auc") is not None and counts and all(a and b for a, b in counts):
+            # the interval of the mean over the held-out slides of all folds pooled, each slide once
+            summary["diagnosis_tumour_slides"] = sum(a for a, _ in counts)
+            summary["diagnosis_normal_slides"] = sum(b for _, b in counts)
+            summary["diagnosis_auc_low"], summary["diagnosis_auc_high"] = auc_interval(
+                summary["diagnosis_auc"], summary["diagnosis_tumour_slides"], summary["diagnosis_normal_slides"])
         out[policy] = summary
     return out
 
@@ -122,16 +134,18 @@ def run_all_folds(args, parser, run_one, default_out) -> int:
          "warnings": warnings, "per_fold": records}), indent=2, allow_nan=False))
     with outputs.open_text(out / "eval.csv") as f:
         w = csv.writer(f)
-        w.writerow(["fold", "policy", "episodes", *FIGURES])
+        w.writerow(["fold", "policy", "episodes", *FIGURES, *INTERVAL])
         for i, rows in enumerate(per_fold):
             for policy, r in rows.items():
-                w.writerow([i, policy, r.get("episodes", ""), *(_number(r.get(x)) for x in FIGURES)])
+                w.writerow([i, policy, r.get("episodes", ""), *(_number(r.get(x)) for x in FIGURES + INTERVAL)])
         for policy, s in summary.items():
-            w.writerow([SUMMARY, policy, s["episodes"], *(_number(s.get(x)) for x in FIGURES)])
-            w.writerow(["std", policy, "", *(_number(s.get(f"{x}_std")) for x in FIGURES)])
+            w.writerow([SUMMARY, policy, s["episodes"], *(_number(s.get(x)) for x in FIGURES + INTERVAL)])
+            w.writerow(["std", policy, "", *(_number(s.get(f"{x}_std")) for x in FIGURES), *([""] * len(INTERVAL))])
     print(f"\nmean ± std over {k} folds ({split} side of each fold of {dataset}):")
     for policy, s in summary.items():
-        shown = [f"{x} {s[x]:.3f} ± {s[x + '_std']:.3f}" for x in FIGURES if x in s and s[x] == s[x]]
+        shown = [f"{x} {s[x]:.3f} ± {s[x + '_std']:.3f}" + (f" [{s['diagnosis_auc_low']:.3f}, "
+                 f"{s['diagnosis_auc_high']:.3f}]" if x == "diagnosis_auc" and s.get("diagnosis_auc_low") is not None
+                 else "") for x in FIGURES if x in s and s[x] is not None and s[x] == s[x]]
         print(f"{policy:<22} " + ", ".join(shown))
     print(f"\nwrote {out}/eval.json and eval.csv (mean ± std over folds; each fold's own files in {out}/fold0 ...)")
     return 0

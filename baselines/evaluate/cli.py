@@ -12,6 +12,7 @@ import numpy as np
 
 from baselines import common, outputs
 from data_tools.cli_output import positive_int
+from data_tools.metrics import format_auc
 from data_tools.errors import HistojaxDataError
 from baselines.evaluate.checks import (UNDEFINED, check_config, encoder_refusal, check_params_tree, grid_refusal, head_reward_settings,
                                        provenance_warnings, published_dataset_refusal, refuse_not_an_agent,
@@ -115,14 +116,24 @@ def print_table(title: str, rows: dict, head: str | None = None) -> None:
     no_itc = any("diagnosis_auc_no_itc" in r for r in rows.values())
     print(f"\n{title}")
     print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}"
-          f" {'read':>6} {'fields':>6}" + (f" {'AUC':>6}" if auc else "") + (f" {'AUC w/o ITC':>11}" if no_itc else ""))
+          f" {'read':>6} {'fields':>6}" + (f" {'AUC [95 % interval]':>21}" if auc else "")
+          + (f" {'AUC w/o ITC [95 %]':>21}" if no_itc else ""))
     def fig(v, width: int, spec: str) -> str:
         return f"{'undef.':>{width}}" if v is None else f"{v:>{width}{spec}}"
 
+    def auc_cell(r: dict, key: str) -> str:  # "0.849 [0.741, 0.936]" (format_auc without its word)
+        if key not in r:
+            return f" {'-':>21}"
+        if r[key] is None:
+            return f" {'undef.':>21}"
+        low, high = r.get(key + "_low"), r.get(key + "_high")
+        if low is None or high is None:  # a record without its interval
+            return f" {r[key]:>21.3f}"
+        return f" {format_auc(r[key], low, high)[4:]:>21}"
+
     undefined = False
     for name, r in rows.items():
-        cell = f" {fig(r['diagnosis_auc'], 6, '.3f')}" if "diagnosis_auc" in r else f" {'-':>6}"
-        cell2 = f" {fig(r['diagnosis_auc_no_itc'], 11, '.3f')}" if "diagnosis_auc_no_itc" in r else f" {'-':>11}"
+        cell, cell2 = auc_cell(r, "diagnosis_auc"), auc_cell(r, "diagnosis_auc_no_itc")
         undefined |= any(r.get(k, 0) is None for k in ("success_rate", "diagnosis_auc", "diagnosis_auc_no_itc"))
         print(f"{name:<22} {r['episodes']:>8} {fig(r['success_rate'], 8, '.1%')} {r['mean_return']:>11.3f} "
               f"{r['mean_length']:>11.1f} {fig(r['mean_steps_to_success'], 16, '.1f')} "
@@ -315,13 +326,16 @@ def run(args, parser) -> int:
     with outputs.open_text(out / "eval.csv") as f:
         w = csv.writer(f)
         w.writerow(["slide", "policy", "episodes", "success_rate", "mean_return", "mean_length", "mean_steps_to_success",
-                    "mean_fraction_read", "mean_fields_of_view", "diagnosis_auc", "diagnosis_auc_no_itc"])
+                    "mean_fraction_read", "mean_fields_of_view", "diagnosis_auc", "diagnosis_auc_no_itc",
+                    "diagnosis_auc_low", "diagnosis_auc_high", "diagnosis_auc_no_itc_low", "diagnosis_auc_no_itc_high"])
         for slide, rows in results.items():
             for name, r in rows.items():
                 w.writerow(["" if v is None else v for v in (
                     slide, name, r["episodes"], r["success_rate"], r["mean_return"], r["mean_length"],
                     r["mean_steps_to_success"], r["mean_fraction_read"], r["mean_fields_of_view"],
-                    r.get("diagnosis_auc", ""), r.get("diagnosis_auc_no_itc", ""))])
+                    r.get("diagnosis_auc", ""), r.get("diagnosis_auc_no_itc", ""), r.get("diagnosis_auc_low", ""),
+                    r.get("diagnosis_auc_high", ""), r.get("diagnosis_auc_no_itc_low", ""),
+                    r.get("diagnosis_auc_no_itc_high", ""))])
     print(f"\nwrote {out}/eval.json, eval.csv, trajectory_*.png, reading_*.png, trajectory.gif")
     return 0
 

@@ -10,7 +10,7 @@ import numpy as np
 
 from baselines import common
 from baselines.run_config import read_run_config
-from data_tools.metrics import accuracy, roc_auc
+from data_tools.metrics import accuracy, auc_interval, roc_auc
 from data_tools.errors import HistojaxDataError
 from histojax.core import seen_views
 
@@ -126,6 +126,21 @@ def episode_labels(env_params, slides) -> np.ndarray:
     return (np.full(np.shape(slides), int(label)) if label.ndim == 0 else label[np.asarray(slides)]).astype(int)
 
 
+def slides_interval(auc: float, ep: dict, keep=None) -> tuple[float, float]:
+    """The 95 % interval over slides of an AUC over episodes (:func:`data_tools.metrics.auc_interval`): the
+    tumour and normal counts are the distinct slides the episodes (where ``keep``) played, not the episodes, since
+    an episode again on a slide adds no slide."""
+    return auc_interval(auc, *slide_counts(ep, keep))
+
+
+def slide_counts(ep: dict, keep=None) -> tuple[int, int]:
+    """``(tumour, normal)``: the distinct slides of each class the episodes (where ``keep``) played."""
+    keep = np.ones(len(ep["label"]), bool) if keep is None else np.asarray(keep, bool)
+    slide = np.asarray(ep["slide"] if "slide" in ep else np.arange(len(ep["label"])))[keep]
+    label = np.asarray(ep["label"])[keep].astype(bool)
+    return len(set(slide[label].tolist())), len(set(slide[~label].tolist()))
+
+
 def summarise(ep: dict, slide_names=None) -> dict:
     """Episodes, success rate, mean return, mean length and mean steps to success (over the
     successful episodes) of :func:`run_episodes`' output; with ``slide_names`` (one per slide of a
@@ -138,10 +153,14 @@ def summarise(ep: dict, slide_names=None) -> dict:
            "mean_fields_of_view": float(np.mean(ep["fields_of_view"])) if "fields_of_view" in ep else float("nan")}
     if "tumour_score" in ep:  # diagnosis: AUC of the policy's p(tumour), accuracy of thresholding it at 0.5
         row["diagnosis_auc"] = roc_auc(ep["tumour_score"], ep["label"])
+        row["diagnosis_auc_low"], row["diagnosis_auc_high"] = slides_interval(row["diagnosis_auc"], ep)
+        row["diagnosis_tumour_slides"], row["diagnosis_normal_slides"] = slide_counts(ep)
         row["score_accuracy"] = accuracy(ep["tumour_score"], ep["label"])
     if "lesion" in ep:  # ITC-only slides left out (CAMELYON's isolated tumour cells)
         keep = ep["lesion"] != "ITC"
         row["diagnosis_auc_no_itc"] = roc_auc(ep["tumour_score"][keep], ep["label"][keep])
+        row["diagnosis_auc_no_itc_low"], row["diagnosis_auc_no_itc_high"] = slides_interval(
+            row["diagnosis_auc_no_itc"], ep, keep)
     if slide_names is not None and len(slide_names) > 1:
         row["by_slide"] = {name: {"episodes": int((ep["slide"] == i).sum()),
                                   "successes": int(s[ep["slide"] == i].sum()),

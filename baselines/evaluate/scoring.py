@@ -18,6 +18,20 @@ from baselines.evaluate.pictures import write_pictures
 
 
 
+def small_split_words(env_params, scored: bool) -> str | None:
+    """The small-split warning (:func:`data_tools.metrics.small_split_warning`, one line) of the slides an AUC is
+    scored on (``scored``: a diagnosis, or a head declaring), when either class has too few slides to rank; None
+    otherwise (and for one class, which :func:`~baselines.evaluate.checks.split_warnings` reports)."""
+    from data_tools.metrics import small_split_warning
+
+    if not scored or getattr(env_params.slide, "slide_label", None) is None:
+        return None
+    labels = np.asarray(jax.device_get(env_params.slide.slide_label)).ravel().astype(int)
+    if len(set(labels.tolist())) < 2:
+        return None
+    return small_split_warning(int(labels.sum()), int((1 - labels).sum()), f"the {labels.size} slides scored")
+
+
 def unreadable_at_budget(env_params, names) -> str | None:
     """The line of :func:`histojax.reading.modes.glimpse.unreadable_warning` for a glimpse env's reading budget
     (``env_params.mode_data``: its cells and ``read_budget``) on the slides ``names``; ``None`` for other modes or
@@ -78,6 +92,10 @@ def evaluate(config, params, slide=None, num_episodes: int = 256, seed: int = 0,
                             f"{len(names)} slide{'s' if len(names) > 1 else ''} ({', '.join(names[:3])}"
                             f"{', ...' if len(names) > 3 else ''})"):
         say(f"warning: {w}")
+        if warnings is not None:
+            warnings.append(w)
+    if (w := small_split_words(env_params, task == "classification" or head is not None)) is not None:  # too few slides to rank: one line
+        say(w)
         if warnings is not None:
             warnings.append(w)
     if (w := unreadable_at_budget(env_params, names)) is not None:  # a budget below every cell: the overview alone

@@ -264,7 +264,8 @@ def head_reader_rows(head, slides: list[dict], cell_level: int, budgets=BUDGETS,
 
     results = readers.scripted_results(head, slides, budgets, seeds, cell_level,
                                        only=("read everything", "random reader", readers.score_reader_name(head)))
-    names = {"read everything": HEAD_NAMES[0], "random reader": HEAD_NAMES[1], readers.score_reader_name(head): HEAD_NAMES[2]}
+    names = {"read everything": HEAD_NAMES[0], "random reader": HEAD_NAMES[1],
+             readers.score_reader_name(head): HEAD_NAMES[2]}
     labels = np.asarray([s["label"] for s in slides])
     return rows_from_scores({(names[n], b): (r["scores"], r["fractions"]) for (n, b), r in results.items()}, labels,
                             logits=True)
@@ -490,6 +491,12 @@ def fold_rows(args, level: int, fold: int | None):
     is that fold's run. ``train``, ``test``: ``(tables, labels)`` of :func:`baselines.reading.pipeline.load_split`.
     A held-out side of one class is refused (:func:`baselines.reading.pipeline.check_two_classes`)."""
     side = scored_side(args.dataset, fold)
+    head_dir = getattr(args, "head", None)
+    if head_dir is not None and fold is not None:
+        head_dir = head_for_fold(head_dir, fold)  # --head DIR of learned_head_fit --all-folds, or RUN{fold}: fold's head
+    if head_dir is not None:  # a head fitted or validated on a scored slide: refused before any slide is read
+        check_scored(heads.load(head_dir), head_dir, args.dataset, read_spec(args.dataset, fold).get(side) or [],
+                     getattr(args, "allow_fitting_slides", False))  # --allow-fitting-slides: a warning
     test = load_split(args.dataset, side, env_id=args.env, level=level, fold=fold)
     check_two_classes(args.dataset, side, test.labels, fold)
     if (line := unreadable_warning([t.get("name", i) for i, t in enumerate(test.tables)],
@@ -498,13 +505,7 @@ def fold_rows(args, level: int, fold: int | None):
                                    "" if fold is None else f"fold {fold}")) is not None:
         print(f"warning: {line}", file=sys.stderr, flush=True)  # a budget below every cell: the overview alone
     train = load_split(args.dataset, "train", env_id=args.env, level=level, fold=fold)
-    head_dir = getattr(args, "head", None)
-    if head_dir is not None and fold is not None:
-        head_dir = head_for_fold(head_dir, fold)  # --head DIR of learned_head_fit --all-folds, or RUN{fold}: fold's head
     head = load_head(head_dir, test.tables)
-    if head is not None:  # a head fitted or validated on a scored slide: refused (--allow-fitting-slides: warned)
-        check_scored(head, head_dir, args.dataset, read_spec(args.dataset, fold).get(side) or [],
-                     getattr(args, "allow_fitting_slides", False))
     policies = [(name, run if fold is None else with_fold(run, fold)) for name, run in args.ppo]
     head_cells = None
     if head is not None:  # the head's rows come from the readers, on the same cells (the glimpse level's bundle level)

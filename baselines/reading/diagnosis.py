@@ -26,6 +26,7 @@ In an env, :class:`histojax.reading.head_reward.HeadReward` gives the same score
 from __future__ import annotations
 
 import json
+import sys
 import time
 from pathlib import Path
 
@@ -41,6 +42,7 @@ from baselines.reading.provenance import add_flag, check_scored
 from baselines.run_config import read_run_config
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
+from data_tools.metrics import json_safe, small_split_warning
 from histojax.reading.heads import encoder_mismatch
 
 
@@ -68,7 +70,7 @@ def write_results(out, results: dict, slides: list[dict], record: dict, json_nam
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     write_csv(readers.csv_rows(rows), out / "readers.csv")
-    outputs.write_text(out / json_name, json.dumps({**record, "rows": rows}, indent=1, default=float))
+    outputs.write_text(out / json_name, json.dumps(json_safe({**record, "rows": rows}), indent=1, allow_nan=False))
     return rows
 
 
@@ -155,10 +157,13 @@ def run(args, parser=None) -> int:
     """Score each navigator through the head beside the readers; CSV, JSON, PNG in ``args.out``."""
     t0 = time.perf_counter()
     try:
+        from baselines.reading.head_fit import read_spec
+        from histojax.reading import heads
+
+        check_scored(heads.load(args.head), args.head, args.dataset,  # fitted on them: refused before any is read
+                     read_spec(args.dataset, args.fold).get(args.split) or [], getattr(args, "allow_fitting_slides", False))
         head, level, slides, results = score_split(args.dataset, args.head, args.split, seeds=args.seeds,
                                                    fold=args.fold)
-        check_scored(head, args.head, args.dataset, [s["name"] for s in slides],  # fitted on them: refused
-                     getattr(args, "allow_fitting_slides", False))
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     for name, run_dir in args.navigator:
@@ -176,7 +181,13 @@ def run(args, parser=None) -> int:
         "head_kind": head.kind, "navigators": args.navigator, "sampled": bool(args.sampled), "wall_s": round(wall, 1)})
     png = plot_readers(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split: navigators "
                                                    f"through head {head.name}")
+    print(f"cells: {readers.cells_words(slides, level)}")
     readers.print_tables(rows, [])
+    labels = [int(s["label"]) for s in slides]
+    warning = small_split_warning(sum(labels), len(labels) - sum(labels),
+                                  f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else ""))
+    if warning:
+        print(warning, file=sys.stderr)
     print(f"wrote {out}/readers.csv, readers.json and {png} in {wall:.0f} s")
     return 0
 

@@ -31,7 +31,7 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from data_tools.metrics import roc_auc
+from data_tools.metrics import auc_interval, format_auc, json_number, json_safe, roc_auc, small_split_warning
 from data_tools.bundle_format import (ANNOTATIONS, load_array, load_feature_levels, own_file, read_dataset_json,
                                       read_metadata, stable_read, verify_metadata)
 from data_tools.cli_output import command_main, print_error
@@ -308,8 +308,10 @@ def choose(train: list[dict], val: list[dict], cands) -> tuple[object, list[dict
         h = calibrated(c, train, shape)
         auc_va = round(roc_auc(statistics(h, val, shape=shape), y_va), 4)
         auc_tr = round(roc_auc(statistics(h, train, shape=shape), y_tr), 4)
+        low, high = auc_interval(auc_va, int(np.sum(y_va)), len(y_va) - int(np.sum(y_va)))
         table.append({"name": c.name, "k": c.k, "top": c.top, "minus_median": c.minus_median,
-                      "train_auc": auc_tr, "validation_auc": auc_va})
+                      "train_auc": auc_tr, "validation_auc": auc_va, "validation_auc_low": json_number(low),
+                      "validation_auc_high": json_number(high)})
         if (auc_va, auc_tr) > best_key:
             best, best_key = c, (auc_va, auc_tr)
     if best is None:
@@ -374,6 +376,10 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
     tr = [by_name[Path(n).name] for n in kept]
     va = [by_name[Path(n).name] for n in held]
     check_classes(dataset, tr)
+    n_tumour = int(sum(s["label"] for s in va))
+    if (warning := small_split_warning(n_tumour, len(va) - n_tumour, "the validation share"
+                                       + (f" of fold {fold}" if fold is not None else ""))) is not None:
+        print(warning, file=sys.stderr)  # the candidate is chosen on it
     encoders = {s["encoder"] for s in train}
     encoder = encoders.pop() if len(encoders) == 1 else None
     best, table = choose(tr, va, candidates(ks, dim, encoder, minus_median))
@@ -388,7 +394,7 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
             # re-calibrated on the whole train side: every train slide is a fitting slide, the share validated too
             RECORD: fit_record(dataset, spec, fold, spec["train"], held),
             "candidates": table, "date": datetime.date.today().isoformat(), "jax": jax.__version__}
-    head = head.replace(info=json.dumps(info))
+    head = head.replace(info=json.dumps(json_safe(info), allow_nan=False))
     if out is not None:
         head.save(out)
     return head, table
@@ -421,9 +427,11 @@ def run(args, parser=None) -> int:
                           minus_median=args.minus_median, fold=args.fold)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
-    print("| candidate | train AUC | validation AUC |\n|---|---|---|")
+    print("| candidate | train AUC | validation AUC [95 % interval over the validation slides] |\n|---|---|---|")
     for r in table:
-        print(f"| {r['name']} | {r['train_auc']:.3f} | {r['validation_auc']:.3f} |")
+        low, high = (float("nan") if v is None else v
+                     for v in (r.get("validation_auc_low"), r.get("validation_auc_high")))
+        print(f"| {r['name']} | {r['train_auc']:.3f} | {format_auc(r['validation_auc'], low, high)} |")
     print(f"chosen: {head.name} (slide logit = {float(head.a):.3f} · s + {float(head.b):.3f}); saved to {args.out} "
           f"in {time.perf_counter() - t0:.0f} s")
     return 0

@@ -36,6 +36,7 @@ import numpy as np
 from baselines.reading.head_fit import (MIN_SLIDES_PER_CLASS, HeadDataError, check_classes, check_head, load_slide,
                                         logistic_fit, read_spec, warn_scale, _label)
 from data_tools.features import pcam_cnn
+from data_tools.metrics import json_safe
 
 
 def load_grid(bundle, label=None, dim: int = pcam_cnn.VIEW_LOGIT) -> dict:
@@ -399,16 +400,25 @@ def run(args, parser=None) -> int:
             rows.append({**validation_aucs(h, va, shape), "seed": seed, "seconds": round(time.perf_counter() - t)})
             print(f"  {key} seed {seed}: {rows[-1]}", file=sys.stderr, flush=True)
             if table_file:
-                table_file.write_text(json.dumps(table, indent=1))
+                table_file.write_text(json.dumps(json_safe(table), indent=1, allow_nan=False))
     summary = {k: {m: [float(np.mean([r[m] for r in v if m in r])), float(np.std([r[m] for r in v if m in r]))]
                    for m in {m for r in v for m in r} - {"seed", "seconds"}} | {"seeds": len(v)}
                for k, v in table.items()}  # rows of an older --table may lack "slope": the mean of those that have it
     best = max((k for k in summary if k != ref and k.split(",")[0] in args.candidates),
                key=lambda k: summary[k]["full"][0])
-    print("| candidate | fits | validation AUC, read everything | random 10 % | random 20 % |\n|---|---|---|---|---|")
+    from data_tools.metrics import auc_interval, format_auc_runs, small_split_warning
+
+    n_tumour = int(sum(s["label"] for s in va))
+    n_normal = len(va) - n_tumour
+    print("| candidate | fits | validation AUC, read everything (± std over fits [95 % interval over the validation "
+          "slides]) | random 10 % | random 20 % |\n|---|---|---|---|---|")
     for k, v in summary.items():
-        print(f"| {k} | {v['seeds']} | {v['full'][0]:.3f} ± {v['full'][1]:.3f} | {v['read 0.1'][0]:.3f} | "
-              f"{v['read 0.2'][0]:.3f} |")
+        low, high = auc_interval(v["full"][0], n_tumour, n_normal)
+        print(f"| {k} | {v['seeds']} | {format_auc_runs(v['full'][0], v['full'][1], low, high, v['seeds'])} | "
+              f"{v['read 0.1'][0]:.3f} | {v['read 0.2'][0]:.3f} |")
+    if (warning := small_split_warning(n_tumour, n_normal, "the validation share"
+                                       + (f" of fold {args.fold}" if args.fold is not None else ""))) is not None:
+        print(warning, file=sys.stderr)  # the candidate is chosen on it
     try:  # an inverted or backwards choice is refused before the refit: nothing saved
         check_head(args.dataset, summary[best]["full"][0], summary[best].get("slope", [1.0])[0])
     except HeadDataError as e:
@@ -421,11 +431,13 @@ def run(args, parser=None) -> int:
             "chosen_on": {"validation_fraction": args.val_fraction, "seed": args.seed, "train_slides": len(tr),
                           "validation_slides": len(va), "candidate": best,
                           "validation_auc": round(summary[best]["full"][0], 4),
+                          **dict(zip(("validation_auc_low", "validation_auc_high"), (round(v, 4) for v in auc_interval(
+                              summary[best]["full"][0], n_tumour, n_normal)))),
                           "reference_validation_auc": summary[ref]["full"][0]},
             # refitted on the whole train side: every train slide is a fitting slide, the share validated too
             RECORD: fit_record(args.dataset, spec, args.fold, spec["train"], held),
             "candidates": summary, "date": datetime.date.today().isoformat(), "jax": jax.__version__}
-    head = head.replace(info=json.dumps(info))
+    head = head.replace(info=json.dumps(json_safe(info), allow_nan=False))
     head.save(args.out)
     print(f"chosen: {head.name}; saved to {args.out} in {time.perf_counter() - t0:.0f} s")
     return 0

@@ -71,7 +71,8 @@ from data_tools.annotations import load_annotations
 from data_tools.bundle_format import own_file
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
-from data_tools.metrics import roc_auc
+from data_tools.metrics import (auc_interval, format_auc, json_safe, roc_auc, roc_auc_with_interval,
+                                small_split_warning)
 from histojax.reading.heads import files
 from histojax.reading.heads.learned import KIND, LearnedHead, init_params
 from histojax.core.slide import slide_label_from_metadata
@@ -530,6 +531,10 @@ def run(args, parser=None) -> int:
     q = rotation(args.rotate, train_slides[0]["features"].shape[1]) if args.rotate is not None else None
     train_slides, val_slides = rotate(train_slides, q), rotate(val_slides, q)
     val = FlatSet(val_slides)
+    n_val_tumour = int(sum(s["label"] for s in val_slides))
+    if (warning := small_split_warning(n_val_tumour, len(val_slides) - n_val_tumour, "the validation share"
+                                       + (f" of fold {args.fold}" if args.fold is not None else ""))) is not None:
+        print(warning, file=sys.stderr)  # the checkpoint and calibration are chosen on it
     structures = [c for c in CANDIDATES if c["hidden"] in args.hidden]
     if not structures:
         return print_error(f"--hidden {args.hidden}: none of the candidate sizes {[c['hidden'] for c in CANDIDATES]}")
@@ -547,7 +552,8 @@ def run(args, parser=None) -> int:
                          "validation_loss": round(top["validation_loss"], 4),
                          "validation_auc_read_0.1": round(top["read 0.1"], 4)}
         curves[name] = curve
-        print(f"  {name}: validation AUC {top['full']:.3f} reading everything ({top['smoothed']:.3f} over "
+        print(f"  {name}: validation {format_auc(top['full'], *val_interval(val, top['full']))} reading everything "
+              f"({top['smoothed']:.3f} over "
               f"neighbouring checks), {top['read 0.1']:.3f} reading 10 % (step {top['step']})", flush=True)
         if best is None or choice_key(top) > best[0]:
             best = (choice_key(top), name, head)
@@ -566,6 +572,8 @@ def run(args, parser=None) -> int:
             "chosen_on": {"validation_fraction": args.val_fraction, "split_seed": args.split_seed,
                           "validation_slides": len(val_slides), "candidate": chosen,
                           "validation_auc": round(final["full"], 4),
+                          **dict(zip(("validation_auc_low", "validation_auc_high"),
+                                     (round(v, 4) for v in val_interval(val, final["full"])))),
                           "validation_auc_read_0.1": round(final["read 0.1"], 4)},
             "calibration": {"slope": round(float(head.cal_a), 5), "intercept": round(float(head.cal_b), 5),
                             "fitted_on": "validation slides, reading everything and reading random 10 % (pooled)"},
@@ -578,15 +586,21 @@ def run(args, parser=None) -> int:
             "candidates": results, "wall_seconds": round(wall, 1), "load_seconds": round(t_load, 1),
             "date": datetime.date.today().isoformat(), "jax": jax.__version__,
             "command": "python -m baselines.reading.learned_head_fit " + " ".join(sys.argv[1:])}
-    head = head.replace(info=json.dumps(info))
+    head = head.replace(info=json.dumps(json_safe(info), allow_nan=False))
     try:
         head.save(args.out, extras={"learning_curve.png": curve_png(curves, f"{Path(args.dataset).name}: {head.name}")})
     except (ValueError, HistojaxDataError, OSError) as e:
         return print_error(e)
-    print(f"validation AUC {final['full']:.3f} reading everything, {final['read 0.1']:.3f} reading 10 % "
-          f"({len(val_slides)} slides); calibration slope {slope:.3f}")
+    print(f"validation {format_auc(final['full'], *val_interval(val, final['full']))} reading everything, "
+          f"{final['read 0.1']:.3f} reading 10 % ({len(val_slides)} slides); calibration slope {slope:.3f}")
     print(f"chosen: {head.name} ({chosen}); saved to {args.out} in {wall:.0f} s")
     return 0
+
+
+def val_interval(val, auc: float) -> tuple[float, float]:
+    """The 95 % interval over the validation slides of a validation AUC (:func:`data_tools.metrics.auc_interval`)."""
+    y = np.asarray(val.labels).astype(bool)
+    return auc_interval(auc, int(y.sum()), int((~y).sum()))
 
 
 def check_head(where, auc: float, slope: float) -> None:
@@ -687,15 +701,25 @@ def score_command(args) -> int:
     classes = lesion_classes(slides)
     keep = np.asarray([c != "ITC" for c in classes])
     y = flat.labels
-    auc_all = roc_auc(logits, y)
+    every = roc_auc_with_interval(logits, y)
     no_itc = len(set(y[keep].tolist())) == 2  # every tumour slide ITC-only: one class left, the AUC undefined
+    kept = roc_auc_with_interval(logits[keep], y[keep])
     counts = {c: classes.count(c) for c in sorted(set(classes))}
+    rounded = lambda v: None if not np.isfinite(v) else round(float(v), 4)  # noqa: E731
     record = {"head": str(args.score), "split": args.split, "slides": len(slides), "classes": counts,
-              "auc": round(auc_all, 4), "auc_without_itc": round(roc_auc(logits[keep], y[keep]), 4) if no_itc else None,
+              "auc": rounded(every["auc"]), "auc_low": rounded(every["auc_low"]), "auc_high": rounded(every["auc_high"]),
+              "auc_without_itc": rounded(kept["auc"]) if no_itc else None,
+              "auc_without_itc_low": rounded(kept["auc_low"]) if no_itc else None,
+              "auc_without_itc_high": rounded(kept["auc_high"]) if no_itc else None,
               "accuracy": round(float(np.mean((logits > 0) == (y > 0))), 4),
               "found": found_above_normal(logits, classes)}
     if not no_itc:
         record["auc_without_itc_note"] = f"{UNDEFINED} (every tumour slide of the split is ITC-only)"
+    where = f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else "")
+    print(f"{where}: {format_auc(every['auc'], every['auc_low'], every['auc_high'])} reading everything, over "
+          f"{every['n_tumour']} tumour and {every['n_normal']} normal slides", file=sys.stderr)
+    if (warning := small_split_warning(every["n_tumour"], every["n_normal"], where)) is not None:
+        print(warning, file=sys.stderr)
     print(json.dumps(record, allow_nan=False))  # undefined: null, never a bare NaN
     return 0
 

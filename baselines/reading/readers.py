@@ -469,10 +469,10 @@ def print_tables(rows: list[dict], lesions: list[dict], budget: float = 0.1) -> 
     print("| reader | budget | read (mean, p10–p90) | AUC [95 % interval] | AUC without ITC-only | accuracy |\n"
           "|---|---|---|---|---|---|")
     for r in rows:
+        every, kept = (format_auc_runs(r[k], r[f"{k}_std"], r[f"{k}_low"], r[f"{k}_high"], r["seeds"])
+                       for k in ("auc", "auc_no_itc"))
         print(f"| {r['reader']} | {r['budget']:.2f} | {r['fraction_read']:.3f} ({r['fraction_p10']:.3f}–"
-              f"{r['fraction_p90']:.3f}) | {format_auc_runs(r['auc'], r['auc_std'], r['auc_low'], r['auc_high'], r['seeds'])} | "
-              f"{format_auc_runs(r['auc_no_itc'], r['auc_no_itc_std'], r['auc_no_itc_low'], r['auc_no_itc_high'], r['seeds'])}"
-              f" | {r['accuracy']:.3f} |")
+              f"{r['fraction_p90']:.3f}) | {every} | {kept} | {r['accuracy']:.3f} |")
     print(f"\nper lesion class: slides; read tumour / found by the head (above every normal slide), budget {budget:.2f}")
     print("| reader | " + " | ".join(CLASSES) + " |\n|---|" + "---|" * len(CLASSES))
     for r in rows:

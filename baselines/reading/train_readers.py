@@ -27,7 +27,8 @@ still trains on a C16 set as before), its zoom levels the most the bundles were 
    ``--resume`` continues a stopped run of the same ``OUT`` from its last checkpoint (``OUT/<algo>/checkpoint``).
 3. Scores the trained seeds with :mod:`baselines.reading.readers` on the **validation** split at 5/10/20/50 %
    (overview only, random, scripted, the learned reader, read everything; the same head for every row):
-   ``OUT/validation/readers.csv``, ``readers.png``, ``readers.json``.
+   ``OUT/validation/readers.csv``, ``readers.png``, ``readers.json``. A head fitted on the training split saw these
+   slides: they are scored with ``--allow-fitting-slides`` (one warning says so), to compare readers, not the head.
 
 **Navigators** (``--action-mode discrete`` or ``continuous``): the
 same training, the env wrapped in ``HeadReward`` (it tracks the finest views the navigator stood on; with
@@ -118,7 +119,7 @@ def split_dataset(dataset: Path, out: Path, fraction: float, seed: int, fold: in
     for folder, obj in ((out, derived), (out / "validation-set", scoring)):
         folder.mkdir(parents=True, exist_ok=True)
         tmp = folder / ".dataset.json.tmp"
-        tmp.write_text(json.dumps(obj, indent=1))
+        tmp.write_text(json.dumps(obj, indent=1, allow_nan=False))
         tmp.replace(folder / "dataset.json")
     return out
 
@@ -268,7 +269,7 @@ def main(argv=None) -> int:
                             ["--env", args.env, "--dataset", str(data), "--split", "train",
                              "--action-mode", args.action_mode, "--obs", "features", "--seeds", str(args.seeds),
                              "--total-steps", str(args.total_steps), "--num-envs", str(args.num_envs),
-                             "--set", f"env_kwargs={json.dumps(env_kwargs)}",
+                             "--set", f"env_kwargs={json.dumps(env_kwargs)}",  # json-not-written (an option)
                              "--out", str(run_dir), *extra])
             code = module.main(trainer_argv)
         finally:
@@ -279,7 +280,8 @@ def main(argv=None) -> int:
             {"head": str(args.head), "head_name": head.name, "gain": gain, "final": args.final,
              "read_cost": args.read_cost, "read_budget": None if navigator else args.read_budget,
              "action_mode": args.action_mode, "train_wall_s": round(time.perf_counter() - t0, 1),
-             "dataset": str(data), "validation_fraction": args.val_fraction, "split_seed": args.split_seed}, indent=1) + "\n")
+             "dataset": str(data), "validation_fraction": args.val_fraction, "split_seed": args.split_seed}, indent=1,
+            allow_nan=False) + "\n")
     if (run_dir / "log.json").is_file():
         seed_curve(run_dir, run_dir / "curve-seeds.png", run_dir / "curve-seeds.csv")
     t1 = time.perf_counter()
@@ -289,12 +291,14 @@ def main(argv=None) -> int:
         code = diagnosis.main(["--dataset", str(data / "validation-set"), "--head", str(args.head),
                                     "--split", "test", "--navigator", f"navigator ({args.algo}, head reward)",
                                     str(run_dir), *[a for name, r in args.compare for a in ("--navigator", name, r)],
-                                    "--policy-seeds", str(args.seeds), "--out", str(args.out / "validation")])
+                                    "--policy-seeds", str(args.seeds), "--out", str(args.out / "validation"),
+                                    "--allow-fitting-slides"])  # the head saw them: compares readers, says so
         print(f"training {t1 - t0:.0f} s, scoring on validation {time.perf_counter() - t1:.0f} s")
         return code
     code = readers.main(["--dataset", str(data / "validation-set"), "--head", str(args.head), "--split", "test",
                          "--reader", f"set reader ({args.algo}, head reward)", str(run_dir),
-                         "--policy-seeds", str(args.seeds), "--out", str(args.out / "validation")])
+                         "--policy-seeds", str(args.seeds), "--out", str(args.out / "validation"),
+                         "--allow-fitting-slides"])  # the head was fitted on the whole train split: a warning says so
     print(f"training {t1 - t0:.0f} s, scoring on validation {time.perf_counter() - t1:.0f} s")
     return code
 

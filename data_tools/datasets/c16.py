@@ -101,7 +101,7 @@ def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, 
     finally:
         bar.close()
     summary = f"geometry real CAMELYON16 {slide.name}, pixels real PCam patches arranged by histojax"
-    tiff.with_suffix(".geojson").write_text(json.dumps(_geojson(lay.tumour, lay.tissue, summary)))
+    tiff.with_suffix(".geojson").write_text(json.dumps(_geojson(lay.tumour, lay.tissue, summary), allow_nan=False))
     area = float(lay.size[0]) * lay.size[1]
     prov = {"settings": settings, "note": PIXELS_NOTE, "licence": LICENCE, "summary": summary, **lay.provenance,
             "stain_od_factors": texture.stain, "patch_pool": pool,

@@ -143,7 +143,34 @@ def _report(out: Path, dataset: dict, failed: dict, summary: dict) -> int:
                   + ("; its slides failed" if failed else "") + "): no policy can be "
                   + ("trained" if side == "train" else "scored") + " on it; give more slides, --test-fraction or a "
                   "split column")
+    for line in small_split_lines(dataset, labels):
+        print(line)
     return 1 if failed or kept else 0
+
+
+def small_split_lines(dataset: dict, labels: dict) -> list[str]:
+    """The small-split warnings of a written ``dataset.json`` (:func:`data_tools.metrics.small_split_warning`): one
+    line for the test split and one for the folds (their smallest held-out fold), when either class there has too
+    few slides to rank heads or readers; a one-class or empty split has its own note above."""
+    from data_tools.metrics import small_split_warning
+
+    def counts(entries) -> tuple[int, int]:
+        y = [labels.get(Path(str(e)).name) for e in entries]
+        return sum(v == 1 for v in y), sum(v == 0 for v in y)
+
+    out = []
+    tumour, normal = counts(dataset.get("test") or [])
+    if tumour and normal and (w := small_split_warning(tumour, normal, "the test split")):
+        out.append(w)
+    folds = dataset.get("folds") or {}
+    if folds.get("lists"):
+        sizes = [counts(lst) for lst in folds["lists"]]
+        i = min(range(len(sizes)), key=lambda k: min(sizes[k]))
+        if min(sizes[i]) and (w := small_split_warning(*sizes[i], f"fold {i}, the smallest of the {folds['k']} "
+                                                       "folds,")):
+            out.append(w.replace("Use k folds (dataset --folds K, then --all-folds)",
+                                 "Report the mean over folds (--all-folds) with the interval of the pooled slides"))
+    return out
 
 
 __all__ = ["add_subcommand", "run"]

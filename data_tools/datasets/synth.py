@@ -461,7 +461,7 @@ def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int 
                 level, factor = _halve(level), factor * 2
 
     geojson_path = out_tiff.with_suffix(".geojson")
-    geojson_path.write_text(json.dumps(_geojson(tumour, tissue, source_line)))
+    geojson_path.write_text(json.dumps(_geojson(tumour, tissue, source_line), allow_nan=False))
     area = width * height
     mean = lambda key, n: (stats[key] / n).round(1).tolist() if n else None  # noqa: E731
     provenance.update({
@@ -474,7 +474,7 @@ def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int 
         "seconds": round(time.perf_counter() - t_start, 2),
         "tiff_bytes": out_tiff.stat().st_size,
     })
-    out_tiff.with_suffix(".provenance.json").write_text(json.dumps(provenance, indent=1))
+    out_tiff.with_suffix(".provenance.json").write_text(json.dumps(provenance, indent=1, allow_nan=False))
     return provenance
 
 
@@ -611,5 +611,5 @@ def make_dataset(out_dir, n_slides: int = 8, size=(4096, 4096), seed: int = 0, t
         "seconds": round(time.perf_counter() - t0, 2),
     }
     out_dir.mkdir(parents=True, exist_ok=True)
-    (out_dir / "dataset.json").write_text(json.dumps(dataset, indent=1))
+    (out_dir / "dataset.json").write_text(json.dumps(dataset, indent=1, allow_nan=False))
     return dataset

@@ -199,7 +199,7 @@ def make_large_slide(out_tiff, size=100_000, tissue_fraction: float = 0.1, seed:
                 tif.write(level_tiles(k, w, h), shape=(h, w, 3), dtype=np.uint8, subfiletype=1,
                           resolution=(px_per_cm / f, px_per_cm / f), **options)
     geojson_path = out_tiff.with_suffix(".geojson")
-    geojson_path.write_text(json.dumps(_geojson(tumour, tissue, source_line)))
+    geojson_path.write_text(json.dumps(_geojson(tumour, tissue, source_line), allow_nan=False))
     area = float(width) * height
     provenance = {
         "kind": "large semi-synthetic slide (histojax data_tools.datasets.synth_large)",
@@ -212,5 +212,5 @@ def make_large_slide(out_tiff, size=100_000, tissue_fraction: float = 0.1, seed:
         "tile_counts": counts, "tiff_bytes": out_tiff.stat().st_size,
         "seconds": round(time.perf_counter() - t_start, 2),
     }
-    out_tiff.with_suffix(".provenance.json").write_text(json.dumps(provenance, indent=1))
+    out_tiff.with_suffix(".provenance.json").write_text(json.dumps(provenance, indent=1, allow_nan=False))
     return provenance

@@ -137,7 +137,7 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
         if not same:  # another encoder, stride or slide: start over (only histojax's chunks are removed)
             remove_partial(partial)
     partial.mkdir(exist_ok=True)
-    settings_file.write_text(json.dumps(settings))
+    settings_file.write_text(json.dumps(settings, allow_nan=False))
 
     # one list of items over all levels (finest first), cut into batches of ``batch``: small coarse levels
     # share batches instead of each padding its own. Items are the grid's views, or, for a tiled bundle

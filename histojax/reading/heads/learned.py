@@ -271,7 +271,7 @@ class LearnedHead:
                                                                  f"{top:.3g}, beyond {MAX_PARAM:g} (a fitted head's "
                                                                  "are a few units); refusing it")
         known = {"kind", "format", "features_dim", "hidden", "attention", "layers", "encoder", "name", "input", "output", "files"}
-        info = json.dumps({k: v for k, v in cfg.items() if k not in known})
+        info = json.dumps({k: v for k, v in cfg.items() if k not in known})  # json-not-written: files.save writes it
         params = {k: jnp.asarray(v) for k, v in arrays.items() if k not in SCALARS}
         return cls(params=params, cal_a=jnp.float32(arrays["cal_a"]), cal_b=jnp.float32(arrays["cal_b"]),
                    prior_logit=jnp.float32(arrays["prior_logit"]), features_dim=dim, hidden=hidden, attention=att,

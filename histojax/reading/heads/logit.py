@@ -88,7 +88,7 @@ class SlideHead:
         params = {"a": float(self.a), "b": float(self.b), "prior_logit": float(self.prior_logit)}
         for name, obj in (("params.json", params), ("config.json", self.config())):
             tmp = folder / f".{name}.tmp"
-            tmp.write_text(json.dumps(obj, indent=1, default=_plain) + "\n")
+            tmp.write_text(json.dumps(obj, indent=1, default=_plain, allow_nan=False) + "\n")
             tmp.replace(folder / name)
         return folder
 
@@ -141,7 +141,7 @@ class SlideHead:
             raise files.HeadFileError(par_file, f"unknown entry {unknown[0]!r} (a {KIND} head's parameters are "
                                                 "a, b and prior_logit); remove it or refit the head")
         known = {"kind", "format", "dim", "k", "top", "minus_median", "encoder", "name", "input", "output"}
-        info = json.dumps({key: v for key, v in cfg.items() if key not in known})
+        info = json.dumps({key: v for key, v in cfg.items() if key not in known})  # json-not-written: save writes it
         return cls(a=jnp.float32(a), b=jnp.float32(b), prior_logit=jnp.float32(prior), dim=dim, k=k, top=top,
                    minus_median=minus_median, encoder=encoder, info=info)
 

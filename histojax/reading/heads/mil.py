@@ -154,7 +154,7 @@ class _Saved:
         np.savez(tmp, **arrays)
         tmp.replace(folder / "params.npz")
         tmp = folder / ".config.json.tmp"
-        tmp.write_text(json.dumps(self.config(), indent=1, default=_plain) + "\n")
+        tmp.write_text(json.dumps(self.config(), indent=1, default=_plain, allow_nan=False) + "\n")
         tmp.replace(folder / "config.json")
         return folder
 
@@ -309,7 +309,7 @@ def load(folder):
     encoder = files.field(cfg, "encoder", (str, type(None)), cfg_file, default=None)
     known = {"kind", "format", "dim", "ks", "inputs", "feature_k", "hidden", "thresholds", "tops", "encoder",
              "name", "input", "output"}
-    info = json.dumps({k: v for k, v in cfg.items() if k not in known})
+    info = json.dumps({k: v for k, v in cfg.items() if k not in known})  # json-not-written: save writes it
     if kind == KIND_STATS:
         for key, want in (("thresholds", THRESHOLDS), ("tops", TOPS)):
             got = files.field(cfg, key, list, cfg_file, default=list(want))

@@ -113,8 +113,9 @@ def run_name(run: Path, config: dict) -> str:
 
 
 def dataset_scale_record(dataset) -> dict:
-    """``{"mpp", "encoder"}`` of the dataset folder ``dataset`` as its ``dataset.json`` records them (``scale.mpp``:
-    µm per level-0 px of its slides; ``encoder``: its feature grids'), for ``trained_on``: what ``histojax evaluate``
+    """``{"mpp", "encoder"}`` of the dataset folder ``dataset`` as its ``dataset.json`` records them (``mpp``:
+    µm per level-0 px of its slides, :func:`baselines.evaluate.checks.dataset_mpp`; ``encoder``: its feature
+    grids'), for ``trained_on``: what ``histojax evaluate``
     compares with the dataset it scores; only the fields it records (``{}`` when it cannot be read)."""
     try:
         record = json.loads((Path(dataset) / "dataset.json").read_text())
@@ -122,10 +123,12 @@ def dataset_scale_record(dataset) -> dict:
         return {}
     if not isinstance(record, dict):
         return {}
+    from baselines.evaluate.checks import dataset_mpp
+
     out = {}
-    mpp = (record.get("scale") or {}).get("mpp") if isinstance(record.get("scale"), dict) else None
-    if isinstance(mpp, (int, float)) and mpp > 0:
-        out["mpp"] = float(mpp)
+    mpp = dataset_mpp(record)  # scale.mpp (histojax c16), else the median of the slides' (histojax dataset)
+    if mpp is not None:
+        out["mpp"] = mpp
     if isinstance(record.get("encoder"), str) and record["encoder"]:
         out["encoder"] = record["encoder"]
     return out

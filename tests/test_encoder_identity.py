@@ -101,3 +101,24 @@ def test_publish_records_the_datasets_scale_and_encoder(tmp_path):
     d = _dataset(tmp_path, "set", 0.5, encoder=UNI)
     assert dataset_scale_record(d) == {"mpp": 0.5, "encoder": UNI}
     assert dataset_scale_record(tmp_path / "gone") == {}
+
+
+def test_a_dataset_of_your_own_slides_is_compared_by_its_slides_median_scale(tmp_path):
+    """``histojax dataset`` records each slide's µm/px, not a ``scale``: its median is the dataset's scale."""
+    from baselines.evaluate.checks import dataset_mpp, provenance_warnings
+
+    def own(name, mpps):
+        d = tmp_path / name
+        d.mkdir()
+        slides = [{"name": f"s{i}", "mpp": m} for i, m in enumerate(mpps)]
+        (d / "dataset.json").write_text(json.dumps({"kind": "histojax dataset", "train": [], "test": [], "slides": slides}))
+        return str(d)
+
+    at20, at40 = own("at20", [0.50, 0.49, 0.51]), own("at40", [0.25, 0.25, 0.26])
+    assert dataset_mpp(json.loads((Path(at20) / "dataset.json").read_text())) == 0.5
+    trained = {"env_id": "HistoJAX-Reading-v0", "env_kwargs": {"dataset": at20, "split": "train"}}
+    (line,) = provenance_warnings(trained, {"env_kwargs": {"dataset": at40, "split": "test"}}, "c.json")
+    assert "trained at 0.5 µm/px" in line and "scored at 0.25 µm/px" in line
+    near = own("near", [0.51, 0.505])  # a percent or two apart: one scanner's spread, not another scale
+    assert provenance_warnings(trained, {"env_kwargs": {"dataset": near, "split": "test"}}, "c.json") == []
+    assert dataset_scale_record(at40) == {"mpp": 0.25}

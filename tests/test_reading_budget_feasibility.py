@@ -25,7 +25,8 @@ def test_smallest_budget_is_the_smallest_cell_over_the_slide():
 
 def test_one_line_names_the_slides_and_the_nearest_budget_that_reads():
     line = unreadable_warning(["a", "b", "c"], VIEWS, VALID, TOTAL, [0.05, 0.2, 0.6], where="runs/x")
-    assert line.startswith("runs/x: nothing can be read at read budgets 5 %, 20 % on 3, 1 of 3 slides (at 5 %: a, b, c)")
+    assert line.startswith("runs/x: nothing can be read at read budgets 5 %, 20 % on 3, 1 of 3 slides "
+                           "(at 5 %: a, b, c)")
     assert "the overview alone" in line and "the nearest budget that reads a cell on every slide is 50.0 %" in line
     assert "\n" not in line
     one = unreadable_warning(["a", "b", "c"], VIEWS, VALID, TOTAL, [0.1])

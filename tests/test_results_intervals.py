@@ -16,7 +16,8 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.mark.parametrize("page", sorted(HEADLINES))
 def test_each_page_carries_its_table_of_intervals(page):
     text = (ROOT / "docs" / "results" / f"{page}.md").read_text()
-    assert page_table(page) in text, f"docs/results/{page}.md: rerun python -m experiments.results_intervals --page {page}"
+    rerun = f"python -m experiments.results_intervals --page {page}"
+    assert page_table(page) in text, f"docs/results/{page}.md: its table differs from {rerun}'s"
     assert "How to read an interval" in text and "(../reading.md)" in text
 
 
@@ -34,4 +35,5 @@ def test_a_mean_over_seeds_gets_the_interval_of_its_mean_on_the_splits_counts(ca
     low, high = auc_interval(0.793, 25, 34)
     assert f"[{low:.3f}, {high:.3f}] (of the mean)" in row
     assert main(["0.865", "25", "34"]) == 0
-    assert re.fullmatch(r"AUC 0\.865 \[0\.7\d\d, 0\.9\d\d\] on 25 tumour and 34 normal slides\n", capsys.readouterr().out)
+    printed = capsys.readouterr().out
+    assert re.fullmatch(r"AUC 0\.865 \[0\.7\d\d, 0\.9\d\d\] on 25 tumour and 34 normal slides\n", printed)

@@ -351,9 +351,10 @@ def seeds_line(algo: str, config: dict, num_updates: int, steps_per_update: int,
     (``--total-steps``) are per seed, with the total over the seeds, e.g. ``PPO on HistoJAX-Easy-v0: 4 seeds
     (--seeds), 65,536 env steps each (--total-steps is per seed; 262,144 in all): 32 updates x 2,048 env steps``."""
     seeds, per = int(config["num_seeds"]), int(num_updates) * int(steps_per_update)
-    return (f"{algo.upper()} on {config['env_id']}: {seeds} seed{'s' if seeds != 1 else ''} (--seeds), {per:,} env steps "
-            f"{'each' if seeds != 1 else ''} (--total-steps is per seed; {seeds * per:,} in all): {num_updates} {unit} x "
-            f"{steps_per_update:,} env steps").replace(" steps  (", " steps (")
+    each = " each" if seeds != 1 else ""
+    return (f"{algo.upper()} on {config['env_id']}: {seeds} seed{'s' if seeds != 1 else ''} (--seeds), {per:,} env "
+            f"steps{each} (--total-steps is per seed; {seeds * per:,} in all): {num_updates} {unit} x "
+            f"{steps_per_update:,} env steps")
 
 
 def run_and_save(algo: str, make_train_fn, config, out: Path, unit: str = "updates", resume: bool = False,

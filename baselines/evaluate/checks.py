@@ -103,8 +103,8 @@ def provenance_warnings(trained: dict, scored: dict, config_path) -> list[str]:
                                                f"{s_split} split holds slides this agent trained on")
         out.append(f"{config_path}: trained on the {t_split} split of {t_ds}; scored on the {s_split} split of "
                    f"{s_ds} ({why}): these figures are not held-out; score --split test")
-    t_mpp, s_mpp = (t_rec.get("scale") or {}).get("mpp"), (s_rec.get("scale") or {}).get("mpp")
-    if t_mpp and s_mpp and abs(float(t_mpp) - float(s_mpp)) > 1e-6 * float(t_mpp):
+    t_mpp, s_mpp = dataset_mpp(t_rec), dataset_mpp(s_rec)
+    if t_mpp and s_mpp and abs(float(t_mpp) - float(s_mpp)) > SCALE_TOLERANCE * float(t_mpp):
         out.append(f"{config_path}: trained at {float(t_mpp):.3g} µm/px ({t_ds}); scored at {float(s_mpp):.3g} µm/px "
                    f"({s_ds}): another scale than it trained at")
     elif s_mpp and not t_rec and c16(s_rec):
@@ -116,6 +116,24 @@ def provenance_warnings(trained: dict, scored: dict, config_path) -> list[str]:
         out.append(f"{config_path}: trained on {t_enc} features ({t_ds}); {s_ds} holds {s_enc} features: another "
                    "encoder than it trained on")
     return out
+
+
+SCALE_TOLERANCE = 0.05
+"""Two datasets whose µm per level-0 px differ by more than this share are at another scale (slides of one scanner
+differ by a percent or two; the C16 variants by factors of 2 and 4)."""
+
+
+def dataset_mpp(record: dict) -> float | None:
+    """The µm per level-0 px of a ``dataset.json`` record: its ``scale.mpp`` (``histojax c16``), else the median of its
+    slides' ``mpp`` (``histojax dataset`` records each slide's); None when it records none."""
+    scale = record.get("scale") if isinstance(record.get("scale"), dict) else {}
+    mpp = scale.get("mpp")
+    if isinstance(mpp, (int, float)) and not isinstance(mpp, bool) and mpp > 0:
+        return float(mpp)
+    slides = record.get("slides") if isinstance(record.get("slides"), list) else []
+    each = [float(r["mpp"]) for r in slides if isinstance(r, dict) and isinstance(r.get("mpp"), (int, float))
+            and not isinstance(r.get("mpp"), bool) and r["mpp"] > 0]
+    return float(np.median(each)) if each else None
 
 
 def same_encoder(a, b) -> bool:
@@ -138,14 +156,14 @@ def trained_record_warnings(run, scored: dict, config_path) -> list[str]:
     if not where or not s_ds:
         return []
     s_rec = _dataset_record(s_ds)
-    t_mpp, s_mpp = where.get("mpp"), (s_rec.get("scale") or {}).get("mpp")
+    t_mpp, s_mpp = where.get("mpp"), dataset_mpp(s_rec)
     named = f"{where['dataset']!r}" if isinstance(where.get("dataset"), str) else "its training dataset"
     out = []
     try:
         t_mpp, s_mpp = (None if v is None else float(v) for v in (t_mpp, s_mpp))
     except (TypeError, ValueError):
         t_mpp = s_mpp = None
-    if t_mpp and s_mpp and abs(t_mpp - s_mpp) > 1e-3 * t_mpp:
+    if t_mpp and s_mpp and abs(t_mpp - s_mpp) > SCALE_TOLERANCE * t_mpp:
         out.append(f"{config_path}: a published agent trained at {t_mpp:.3g} µm/px ({named}, its published.json); "
                    f"scored at {s_mpp:.3g} µm/px ({s_ds}): another scale than it trained at, so its cells, views and "
                    "reading budget hold other tissue (score it on a dataset at its scale)")

@@ -105,7 +105,8 @@ def picked_words(ep: dict, i: int) -> str:
 
 def write_pictures(env, env_params, episodes: dict, out: Path, env_id: str, head=None) -> list[Path]:
     """For every policy of ``episodes`` (:func:`run_episodes` output by name): ``trajectory_<policy>.png`` of
-    one episode on its own slide (the first that succeeded, else the first; its title says so: :func:`picked_words`), ``trajectory.gif`` of
+    one episode on its own slide (the first that succeeded, else the first; its title says so: :func:`picked_words`),
+    ``trajectory.gif`` of
     the first policy's, and reading maps ``reading_<policy>_tumour.png`` / ``_normal.png`` (where it read on
     the first episode of a tumour and of a normal slide, with its tumour score when it has one; with ``head``, the
     head's per-view scores beside it: :func:`reading_with_scores`). Returns the paths written."""

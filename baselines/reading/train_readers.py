@@ -21,7 +21,8 @@ still trains on a C16 set as before), its zoom levels the most the bundles were 
    :class:`baselines.networks.CellSetActorCritic`, or its recurrent twin with ``--algo ppo_rnn``) on
    the kept training slides, the env wrapped in ``HeadReward(env, head, gain, final, read_cost)``, with the
    trainer's progress lines (``return``: the head reward; ``success``: the head's diagnosis right at the episode's
-   end, as ``histojax evaluate`` reports it: :func:`progress_words`) and checkpoints; the trainer's run folder ``OUT/<algo>`` (``log.csv``, ``curve.png``,
+   end, as ``histojax evaluate`` reports it: :func:`progress_words`) and checkpoints; the trainer's run folder
+   ``OUT/<algo>`` (``log.csv``, ``curve.png``,
    ``params.msgpack``, ``config.json``) plus ``OUT/<algo>/head_reward.json`` (the reward's settings) and
    ``OUT/<algo>/curve-seeds.png`` / ``.csv`` (the learning curve as mean ± std over seeds: :func:`seed_curve`).
    ``--resume`` continues a stopped run of the same ``OUT`` from its last checkpoint (``OUT/<algo>/checkpoint``).

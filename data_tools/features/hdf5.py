@@ -365,4 +365,5 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
 
 
 __all__ = ["MAX_IMPORT_BYTES", "MIN_TISSUE_COVERAGE", "FeatureFileError", "check_feature_dims", "feature_dim",
-           "import_features", "imported_encoder", "overlap_count", "patches_to_grid", "read_patch_features", "tissue_coverage"]
+           "import_features", "imported_encoder", "overlap_count", "patches_to_grid", "read_patch_features",
+           "tissue_coverage"]

@@ -215,3 +215,34 @@ def test_all_folds_fits_one_head_per_fold_and_each_scores_only_its_fold(small, t
     assert _main(["--dataset", root, "--score", head_0, "--fold", "0", "--quiet"]) == 0
     assert _main(["--dataset", root, "--score", head_0, "--fold", "1", "--quiet"]) == 2  # fold 0's head saw fold 1
     assert "fitted on fold 0" in capsys.readouterr().err
+
+
+def test_evaluate_refuses_a_head_on_its_own_slides(small, head, tmp_path, capsys):
+    from histojax.cli import main as histojax_main
+
+    argv = ["evaluate", "--env", "HistoJAX-Reading-v0", "--action-mode", "glimpse:1", "--dataset", str(small["root"]),
+            "--episodes", "1", "--head", str(head), "--out", str(tmp_path / "ev")]
+    assert histojax_main([*argv, "--split", "train"]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
+    assert len(err) == 1 and str(head / "config.json") in err[0] and "--allow-fitting-slides" in err[0], err
+    assert not (tmp_path / "ev").exists()
+
+
+def test_budget_curve_refuses_one_head_over_folds_it_was_fitted_on(small, head, tmp_path, capsys):
+    """``budget-curve --all-folds --head H`` with H fitted on the train split (most of every fold's held-out slides):
+    refused at fold 0, before any slide is read."""
+    from baselines.reading import budget_curve
+
+    assert budget_curve.main(["--dataset", str(small["root"]), "--head", str(head), "--all-folds",
+                              "--out", str(tmp_path / "bc")]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
+    assert len(err) == 1 and "--allow-fitting-slides" in err[0] and str(head / "config.json") in err[0], err
+
+
+def test_diagnosis_refuses_the_heads_own_slides(small, head, tmp_path, capsys):
+    from baselines.reading import diagnosis
+
+    assert diagnosis.main(["--dataset", str(small["root"]), "--head", str(head), "--split", "train",
+                           "--navigator", "nav", str(tmp_path / "no-run"), "--out", str(tmp_path / "d")]) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
+    assert len(err) == 1 and "--allow-fitting-slides" in err[0], err

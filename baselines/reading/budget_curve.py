@@ -27,7 +27,10 @@ read when it still fits in the budget; the first pick that does not fit ends the
 ``--budgets`` (fractions of the slide's finest-level tissue views). Writes ``budget_curve.csv`` (one row per method ×
 budget: mean fraction actually read, AUC, accuracy at 0.5, slides, the standard deviations of AUC and accuracy
 over seeds — random reader orders, or the first ``--policy-seeds`` seeds (default 3) of a trained
-policy — and a trained policy's fields of view per episode) and ``budget_curve.png``. A scored split of one class
+policy —, ``auc_low`` / ``auc_high`` the AUC's 95 % interval over the slides, ``tumour_slides``, and a trained
+policy's fields of view per episode, a column written only when a row has it) and ``budget_curve.png``. It prints
+the cells read (:func:`cells_words`); a ``--head``'s rows are the readers' (:func:`head_reader_rows`), so ``readers
+--cell-level L`` on the bundle level printed gives the same AUC. A scored split of one class
 is refused in one line naming ``dataset.json`` (its AUC is undefined).
 
 ``--fold I`` (a dataset built with ``--folds K``): the head trained on fold I's train side, scored on its held-out
@@ -512,7 +515,8 @@ def fold_rows(args, level: int, fold: int | None):
         cell_level = glimpse_bundle_level(args.dataset, args.env, level, side, fold)[0]
         mine = load_split(args.dataset, side, fold=fold, head=head, cell_level=cell_level)
         if [s["label"] for s in mine.slides] != [int(v) for v in test.labels]:
-            raise ValueError(f"{Path(args.dataset) / 'dataset.json'}: the readers' and the env's {side!r} slides differ")
+            raise ValueError(f"{Path(args.dataset) / 'dataset.json'}: the readers' and the env's {side!r} slides "
+                             "differ")
         head_cells = (mine.slides, cell_level)
     rows = budget_rows((train.tables, train.labels), (test.tables, test.labels), args.budgets, seeds=args.seeds,
                        steps=args.steps, policies=policies, dataset=args.dataset, policy_seeds=args.policy_seeds,

@@ -296,12 +296,36 @@ class EpisodeTables:
         cell_rows[slide_of, cell_of] = np.arange(n)
         self.cell_rows = jnp.asarray(cell_rows)                           # (S, C) flat row of each cell; N = none
         self.num_flat = n
+        self.flat_start = jnp.asarray(start)                              # (S,) flat row of each slide's first cell
+        self.counts = jnp.asarray(counts.astype(np.int32))                # (S,) valid cells of each slide
+        self.flat_slide_none = jnp.asarray(np.append(slide_of, s).astype(np.int32))  # (N + 1,) row N: slide S
+        self._inputs = {}
+
+    def row_inputs(self, obs_norm) -> tuple:
+        """The per-cell layers' inputs of the ``N`` valid cells and a zero row ``N`` (float32, normalised by
+        ``obs_norm``, computed once on the host per ``obs_norm``): ``(fixed (N + 1, F)`` — features, 1, cost × 10,
+        position —, ``summary means (N + 1, D)``, ``summary maxima (N + 1, D))``."""
+        key = None if obs_norm is None else tuple(np.asarray(a, np.float32).tobytes() for a in obs_norm)
+        if key not in self._inputs:
+            def norm(x):
+                if obs_norm is None:
+                    return x
+                return (x - np.asarray(obs_norm[0], np.float32)) / np.asarray(obs_norm[1], np.float32)
+            f = {k: np.asarray(v, np.float32) for k, v in self.flat.items()}
+            n = self.num_flat
+            fixed = np.concatenate([norm(f["cells"]), np.ones((n, 1), np.float32), f["cost"][:, None] * np.float32(10.0),
+                                    f["position"]], -1)
+            d = f["summaries"].shape[-1] // 2
+            parts = (fixed, norm(f["summaries"][:, :d]), norm(f["summaries"][:, d:]))
+            self._inputs[key] = tuple(np.concatenate([p, np.zeros((1, p.shape[1]), np.float32)]) for p in parts)
+        return tuple(jnp.asarray(a) for a in self._inputs[key])  # numpy held: a traced program takes them as constants
 
     def __getitem__(self, key):
         return self.tables[key]
 
 
 NEG = -1e9  # the logit of a cell the policy may not pick (invalid, padding, already read)
+CELL_CHUNK = 512  # rows of one block of the per-cell layers over a batch's slides (CellEncoder.batch_tables)
 
 
 def uses_cell_sets(env) -> bool:
@@ -331,14 +355,90 @@ class SplitDense(nn.Module):
         return out
 
 
+def cell_layers(p: dict, fixed, means, maxima):
+    """The per-cell layers of :class:`CellEncoder` over rows of their inputs (``fixed (R, F)``, ``means``,
+    ``maxima (R, D)``, as :meth:`EpisodeTables.row_inputs`) with its parameters ``p`` (``cell_in``, ``cell_mid``,
+    ``slot_in``: each ``{"kernel", "bias"}``): ``(keys (R, Hc), slot rows (R, Hc))``, the same operations in the
+    same order as the modules."""
+    keys = nn.relu(fixed @ p["cell_in"]["kernel"] + p["cell_in"]["bias"])
+    keys = nn.relu(keys @ p["cell_mid"]["kernel"] + p["cell_mid"]["bias"])
+    k, d = p["slot_in"]["kernel"], means.shape[-1]
+    slot = p["slot_in"]["bias"] + means @ k[:d]
+    slot = slot + maxima @ k[d:2 * d]
+    return keys, slot + keys @ k[2 * d:]
+
+
+def _chunks(order, n, chunk: int):
+    """``(trips (), rows of trip k)``: the ``n`` live entries of ``order`` in blocks of ``chunk``."""
+    def rows(k):
+        return jax.lax.dynamic_slice(order, (k * chunk,), (chunk,)), (k * chunk + jnp.arange(chunk)) < n
+    return rows
+
+
+def _gathered_forward(p, inputs, order, n, chunk: int):
+    hc = p["cell_mid"]["kernel"].shape[-1]
+    rows = _chunks(order, n, chunk)
+
+    def body(carry):
+        k, keys_out, slot_out = carry
+        r, live = rows(k)
+        keys, slot = cell_layers(p, *(a[r] for a in inputs))
+        keys_out = jax.lax.dynamic_update_slice(keys_out, jnp.where(live[:, None], keys, 0.0), (k * chunk, 0))
+        slot_out = jax.lax.dynamic_update_slice(slot_out, jnp.where(live[:, None], slot, 0.0), (k * chunk, 0))
+        return k + 1, keys_out, slot_out
+
+    zero = jnp.zeros((order.shape[0], hc), jnp.float32)
+    _, keys, slot = jax.lax.while_loop(lambda c: c[0] * chunk < n, body, (jnp.int32(0), zero, zero))
+    return keys, slot
+
+
+@functools.partial(jax.custom_vjp, nondiff_argnums=(4,))
+def gathered_cell_layers(p, inputs, order, n, chunk: int):
+    """:func:`cell_layers` over the rows ``order[:n]`` of ``inputs`` only (``order (R,)`` int32, ``R`` a multiple
+    of ``chunk``, entries past ``n`` anything in range; ``n`` traced): ``(keys (R, Hc), slot rows (R, Hc))``, row
+    ``j < n`` that of input row ``order[j]``, rows ``≥ n`` zeros. The work runs in blocks of ``chunk`` rows while
+    ``k · chunk < n`` (a ``lax.while_loop``: the cost follows ``n``, not ``R``); the gradient (parameters only)
+    recomputes each block in a second such loop. Pure and jittable; under ``vmap`` the trips are the batch's
+    largest."""
+    return _gathered_forward(p, inputs, order, n, chunk)
+
+
+def _gathered_fwd(p, inputs, order, n, chunk):
+    return _gathered_forward(p, inputs, order, n, chunk), (p, inputs, order, n)
+
+
+def _gathered_bwd(chunk, res, g):
+    p, inputs, order, n = res
+    g_keys, g_slot = g
+    hc = g_keys.shape[-1]
+    rows = _chunks(order, n, chunk)
+
+    def body(carry):
+        k, acc = carry
+        r, live = rows(k)
+        x = tuple(a[r] for a in inputs)
+        cot = tuple(jnp.where(live[:, None], jax.lax.dynamic_slice(a, (k * chunk, 0), (chunk, hc)), 0.0)
+                    for a in (g_keys, g_slot))
+        _, vjp = jax.vjp(lambda q: cell_layers(q, *x), p)
+        (dp,) = vjp(cot)
+        return k + 1, jax.tree.map(jnp.add, acc, dp)
+
+    _, dp = jax.lax.while_loop(lambda c: c[0] * chunk < n, body, (jnp.int32(0), jax.tree.map(jnp.zeros_like, p)))
+    return dp, None, None, None
+
+
+gathered_cell_layers.defvjp(_gathered_fwd, _gathered_bwd)
+
+
 class CellEncoder(nn.Module):
     """Step observation + episode tables → ``((cell keys (B, V, Hc), their cells (B, V)), context input
     (B, F), pickable (B, C) bool)``. One network shared by all cells embeds each valid cell from what is
     fixed for it during an episode (coarse features, validity, cost, position) into a key, and gives each
-    cell the pre-activation it would have as a read slot (its summary and its key through ``slot_in``); this
-    runs once per call over the ``N`` valid cells of all slides (packed by :class:`EpisodeTables`; not per env,
-    not per padded cell) and each env gathers its slide's keys (``V``: the most valid cells of a slide) and its
-    read slots' rows. ``obs=None`` returns those per-cell tables ``(keys (N + 1, Hc), slot rows (N + 1, Hc), the
+    cell the pre-activation it would have as a read slot (its summary and its key through ``slot_in``); given
+    observations this runs once per call over the valid cells of the slides the batch shows only
+    (:meth:`batch_tables`; ``batch_cells=False``: over the ``N`` valid cells of all slides, packed by
+    :class:`EpisodeTables`, as ``obs=None`` does; the same numbers), never per env or per padded cell, and each env
+    gathers its slide's keys (``V``: the most valid cells of a slide) and its read slots' rows. ``obs=None`` returns those per-cell tables ``(keys (N + 1, Hc), slot rows (N + 1, Hc), the
     slides' mean keys (S, Hc))`` (row ``N``: zeros, for an empty entry) and ``cell_keys=`` takes them back (a
     rollout computes them once per parameter update: :func:`rollout_apply`). The ``K`` read slots (their cells
     from the observation's ``read_cells``; their summaries are the tables' ``summaries`` of those cells, what the
@@ -348,12 +448,40 @@ class CellEncoder(nn.Module):
     hidden: int                 # width of the per-cell layers (Hc)
     tables: EpisodeTables
     obs_norm: tuple | None = None
+    batch_cells: bool = True    # per-cell layers over the cells of the batch's slides only (see batch_tables)
+
+    def batch_tables(self, slides):
+        """The per-cell tables of the slides in a batch only, from this encoder's parameters (bound, not
+        initialising): ``slides (B,)`` int32 → ``(keys (R, Hc), slot rows (R, Hc), mean keys (S, Hc), shift (S,))``.
+        The valid cells of the slides present (``n`` of the ``N``, in flat order) take rows ``0 … n − 1``
+        (:func:`gathered_cell_layers`: the work follows ``n``), row ``N`` is zeros (``R > N``, static); a cell of a
+        present slide at flat row ``f`` of slide ``i`` is at row ``f − shift[i]``. Mean keys of slides not present
+        are zeros. The same numbers as the tables of all slides (``obs=None``) where a batch reads them."""
+        t = self.tables
+        s = t.inv_count.shape[0]
+        p = self.variables["params"]
+        p = {k: p[k] for k in ("cell_in", "cell_mid", "slot_in")}
+        chunk = min(CELL_CHUNK, t.num_flat + 1)
+        r = -(-(t.num_flat + 1) // chunk) * chunk
+        present = jnp.zeros((s,), bool).at[slides].set(True)
+        need = present[t.flat_slide]                                      # (N,)
+        n = need.sum(dtype=jnp.int32)
+        order = jnp.nonzero(need, size=r, fill_value=t.num_flat)[0].astype(jnp.int32)  # (R,) flat rows, N after n
+        keys, slot_rows = gathered_cell_layers(p, t.row_inputs(self.obs_norm), order, n, chunk)
+        here = jnp.where(present, t.counts, 0)
+        shift = t.flat_start - (jnp.cumsum(here) - here)                  # flat row - local row, present slides
+        slide_mean = jax.ops.segment_sum(keys, t.flat_slide_none[order], s + 1, indices_are_sorted=True)[:s]
+        return keys, slot_rows, slide_mean * t.inv_count[:, None], shift
 
     @nn.compact
     def __call__(self, obs, cell_keys=None):
         from histojax.reading.modes.glimpse import unpack_bits
 
         t = self.tables
+        batch = cell_keys is None and obs is not None and self.batch_cells and not self.is_initializing()
+        if batch:
+            keys, slot_rows, slide_mean, shift = self.batch_tables(jnp.asarray(obs["slide"], jnp.int32))
+            cell_keys = keys, slot_rows, slide_mean
         dense = lambda n, name: nn.Dense(n, kernel_init=nn.initializers.orthogonal(np.sqrt(2)), name=name)  # noqa: E731
         norm = (lambda x: x) if self.obs_norm is None else (  # noqa: E731
             lambda x: (x - jnp.asarray(self.obs_norm[0], jnp.float32)) / jnp.asarray(self.obs_norm[1], jnp.float32))
@@ -380,7 +508,12 @@ class CellEncoder(nn.Module):
         b = i.shape[0]
         where = jnp.asarray(obs["read_cells"], jnp.int32)                # (B, K), C = empty
         filled = (where < c).astype(jnp.float32)
-        slots = nn.relu(slot_rows[t.cell_rows[i[:, None], jnp.minimum(where, c - 1)]])  # (B, K, Hc)
+        key_rows, slot_at = t.packed_rows[i], t.cell_rows[i[:, None], jnp.minimum(where, c - 1)]  # flat rows, N = none
+        if batch:  # rows of the batch's tables
+            none = t.num_flat
+            key_rows = jnp.where(key_rows < none, key_rows - shift[i][:, None], none)
+            slot_at = jnp.where(slot_at < none, slot_at - shift[i][:, None], none)
+        slots = nn.relu(slot_rows[slot_at])                               # (B, K, Hc)
         n_read = filled.sum(-1, keepdims=True)
         # a contraction, not a product then a sum: XLA's CPU backend runs the latter 50x slower at (B, K, Hc)
         slot_mean = jnp.einsum("bk,bkh->bh", filled, slots) / jnp.maximum(n_read, 1.0)
@@ -392,7 +525,7 @@ class CellEncoder(nn.Module):
         context_in = jnp.concatenate([slide_mean[i], slot_mean, slot_max, n_read / where.shape[-1], *view], -1)
         read = unpack_bits(jnp.asarray(obs["read_bits"]), c)            # (B, C) bool
         pickable = (valid[i] > 0) & ~read
-        return (keys[t.packed_rows[i]], t.valid_cells[i]), context_in, pickable
+        return (keys[key_rows], t.valid_cells[i]), context_in, pickable
 
 
 def cell_logits(module: nn.Module, keys, context, pickable):
@@ -431,10 +564,11 @@ class CellSetActorCritic(nn.Module):
     hidden: int = 256           # the context's width (config "hidden")
     obs_norm: tuple | None = None
     cell_hidden: int = 32       # the per-cell layers' width (config "cell_hidden")
+    batch_cells: bool = True    # given observations, the per-cell layers over their slides' cells only (CellEncoder)
 
     @nn.compact
     def __call__(self, obs, cell_keys=None):
-        encoded = CellEncoder(self.cell_hidden, self.tables, self.obs_norm)(obs, cell_keys)
+        encoded = CellEncoder(self.cell_hidden, self.tables, self.obs_norm, self.batch_cells)(obs, cell_keys)
         if obs is None:  # the per-cell tables only (see CellEncoder)
             return encoded
         keys, context_in, pickable = encoded
@@ -455,10 +589,11 @@ class RecurrentCellSetActorCritic(nn.Module):
     hidden: int = 128           # the context's and the GRU's width (config "hidden")
     obs_norm: tuple | None = None
     cell_hidden: int = 32       # the per-cell layers' width (config "cell_hidden")
+    batch_cells: bool = True    # given observations, the per-cell layers over their slides' cells only (CellEncoder)
 
     @nn.compact
     def __call__(self, h, obs, resets, cell_keys=None):
-        encoder = CellEncoder(self.cell_hidden, self.tables, self.obs_norm)
+        encoder = CellEncoder(self.cell_hidden, self.tables, self.obs_norm, self.batch_cells)
         if obs is None:  # the per-cell tables only (see CellEncoder)
             return encoder(None, cell_keys)
         t, b = resets.shape

@@ -4,16 +4,21 @@ in one process: env steps/s of each (and their ratio), the env wrapped in
 ``HistoJAX-Reading-v0`` (any dataset, any encoder's features; the levels the bundles were built for)::
 
     python -m benchmarks.learned_reader_speed --dataset DIR --head HEAD [--reader glimpse:1] [--num-envs 32]
-        [--updates 3] [--repeats 3] [--json out.json]
+        [--updates 3] [--repeats 3] [--all-cells] [--json out.json]
 
 With the learned attention-MIL head the reward is running sums (a step adds the views it newly read). Each
 setting is compiled once, then ``--updates`` PPO updates of 1 seed are timed ``--repeats`` times, the two
 settings interleaved; the median of each is printed with the ratio reader / navigator (the target is ≥ 0.5).
+``--all-cells`` adds a third row, the set reader with its per-cell layers over the valid cells of all training
+slides in every minibatch (``batch_cells=False``: how it trained before they ran over the minibatch's slides only;
+the same parameters and outputs), so the two are compared in one process. ``benchmarks.synthetic_reading_set``
+builds a set of any number of slides to run it on.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import os
 import platform
 import statistics
 import sys
@@ -21,9 +26,11 @@ import time
 from pathlib import Path
 
 
-def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: int, budget: float, levels: int):
-    """``(run, steps)``: a compiled PPO program (1 seed, ``updates`` updates of ``num_envs`` × 64 steps) of
-    ``action_mode`` on ``dataset``'s train split through ``head``'s reward, and the env steps one run takes."""
+def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: int, budget: float, levels: int,
+                 all_cells: bool = False):
+    """``(run, steps, compile_s)``: a compiled PPO program (1 seed, ``updates`` updates of ``num_envs`` × 64 steps)
+    of ``action_mode`` on ``dataset``'s train split through ``head``'s reward, the env steps one run takes and the
+    compile time. ``all_cells``: a set reader's per-cell layers over all slides' cells (``batch_cells=False``)."""
     import jax
 
     from baselines import common, ppo
@@ -31,13 +38,17 @@ def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: 
     from histojax.reading.head_reward import HeadReward
     from histojax.registry import READING_ID
 
-    original = common.make_env
+    original, original_network = common.make_env, ppo.make_network
 
     def make_env(config, auto_reset=True, mesh=None):
         env, params = original(config, auto_reset=auto_reset, mesh=mesh)
         return HeadReward(env, head, gain="fidelity", final=0.0, params=params), params
 
-    common.make_env = make_env
+    def make_network(config, env, network_cls=None):
+        net = original_network(config, env) if network_cls is None else original_network(config, env, network_cls)
+        return net.clone(batch_cells=False) if all_cells and hasattr(net, "batch_cells") else net
+
+    common.make_env, ppo.make_network = make_env, make_network
     try:
         kw = {"dataset": str(dataset), "split": "train", "n_levels": levels}
         if not is_navigator(action_mode):
@@ -51,12 +62,13 @@ def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: 
         compiled = train.compile(keys)
         compile_s = time.perf_counter() - t0
     finally:
-        common.make_env = original
+        common.make_env, ppo.make_network = original, original_network
 
-    def run() -> float:
-        t0 = time.perf_counter()
+    def run() -> tuple[float, float]:
+        """One timed run: ``(wall s, CPU s of this process)``."""
+        t0, c0 = time.perf_counter(), time.process_time()
         jax.block_until_ready(compiled(keys))
-        return time.perf_counter() - t0
+        return time.perf_counter() - t0, time.process_time() - c0
     return run, num_envs * 64 * train.num_updates, compile_s
 
 
@@ -71,6 +83,8 @@ def main(argv=None) -> int:
     p.add_argument("--updates", type=int, default=3)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--budget", type=float, default=0.1)
+    p.add_argument("--all-cells", action="store_true",
+                   help="also time the set reader with its per-cell layers over all slides' cells in every minibatch")
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
     from baselines.reading.head_fit import read_spec
@@ -87,27 +101,49 @@ def main(argv=None) -> int:
     import jax
 
     rows = {}
-    for name, mode in (("navigator", args.navigator), ("set reader", args.reader)):
-        run, steps, compile_s = compiled_row(args.dataset, head, mode, args.num_envs, args.updates, args.budget, levels)
-        rows[name] = {"action_mode": mode, "run": run, "steps": steps, "compile_s": round(compile_s, 1), "walls": []}
-    for _ in range(args.repeats):  # interleaved: both see the same machine load
+    settings = [("navigator", args.navigator, False), ("set reader", args.reader, False)]
+    if args.all_cells:
+        settings.append(("set reader, all cells", args.reader, True))
+    for name, mode, all_cells in settings:
+        run, steps, compile_s = compiled_row(args.dataset, head, mode, args.num_envs, args.updates, args.budget, levels,
+                                             all_cells)
+        rows[name] = {"action_mode": mode, "run": run, "steps": steps, "compile_s": round(compile_s, 1), "walls": [],
+                      "cells": ("all slides'" if all_cells else "the minibatch's slides'") if name != "navigator"
+                      else None}
+    for _ in range(args.repeats):  # interleaved: all see the same machine load
         for r in rows.values():
-            r["walls"].append(r["run"]())
+            wall, cpu = r["run"]()
+            r["walls"].append(wall)
+            r.setdefault("cpus", []).append(cpu)
     out = []
-    print(f"{'policy':12s} {'mode':12s} {'envs':>5s} {'median steps/s':>15s} {'runs steps/s':>24s} {'compile s':>9s}")
+    print(f"{'policy':22s} {'mode':12s} {'envs':>5s} {'median steps/s':>15s} {'runs steps/s':>36s} "
+          f"{'steps/CPU-s':>12s} {'compile s':>9s}")
     for name, r in rows.items():
         rates = [r["steps"] / w for w in r["walls"]]
+        cpu_rates = [r["steps"] / max(c, 1e-9) for c in r["cpus"]]  # steps per CPU-second: less hurt by other load
         row = {"policy": name, "action_mode": r["action_mode"], "num_envs": args.num_envs, "env_steps": r["steps"],
+               **({"per_cell_layers_over": r["cells"] + " cells"} if r["cells"] else {}),
                "median_steps_per_s": round(statistics.median(rates)), "steps_per_s": [round(x) for x in rates],
-               "compile_s": r["compile_s"]}
+               "compile_s": r["compile_s"], "median_steps_per_cpu_s": round(statistics.median(cpu_rates)),
+               "steps_per_cpu_s": [round(x) for x in cpu_rates]}
         out.append(row)
-        print(f"{name:12s} {r['action_mode']:12s} {args.num_envs:5d} {row['median_steps_per_s']:15d} "
-              f"{', '.join(str(x) for x in row['steps_per_s']):>24s} {r['compile_s']:9.1f}")
+        print(f"{name:22s} {r['action_mode']:12s} {args.num_envs:5d} {row['median_steps_per_s']:15d} "
+              f"{', '.join(str(x) for x in row['steps_per_s']):>36s} {row['median_steps_per_cpu_s']:12d} "
+              f"{r['compile_s']:9.1f}")
     ratio = out[1]["median_steps_per_s"] / max(1, out[0]["median_steps_per_s"])
     meta = {"dataset": str(args.dataset), "head": args.head, "head_kind": head.kind, "levels": levels,
+            "training_slides": len(read_spec(args.dataset)["train"]),
             "machine": f"{platform.machine()}, {jax.device_count()} × {jax.devices()[0].platform}",
-            "jax": jax.__version__, "date": time.strftime("%Y-%m-%d"), "reader_over_navigator": round(ratio, 3)}
+            "jax": jax.__version__, "date": time.strftime("%Y-%m-%d"), "load_average_1min_at_end": os.getloadavg()[0],
+            "reader_over_navigator": round(ratio, 3),
+            "reader_over_navigator_cpu": round(out[1]["median_steps_per_cpu_s"] / max(1, out[0]["median_steps_per_cpu_s"]), 3)}
     print(f"set reader / navigator: {ratio:.2f} (target >= 0.5)")
+    if args.all_cells:
+        meta["all_cells_reader_over_navigator"] = round(out[2]["median_steps_per_s"] / max(1, out[0]["median_steps_per_s"]),
+                                                        3)
+        meta["all_cells_reader_over_navigator_cpu"] = round(
+            out[2]["median_steps_per_cpu_s"] / max(1, out[0]["median_steps_per_cpu_s"]), 3)
+        print(f"set reader over all slides' cells / navigator: {meta['all_cells_reader_over_navigator']:.2f}")
     print(json.dumps(meta))
     if args.json:
         args.json.write_text(json.dumps({"meta": meta, "rows": out}, indent=1) + "\n")

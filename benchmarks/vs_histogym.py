@@ -45,7 +45,7 @@ from jax import lax
 sys.path.insert(0, str(Path(__file__).resolve().parent.parent))  # run as a script from anywhere
 
 import histojax  # noqa: E402
-import histojax.core.env as hx_env  # noqa: E402
+import histojax.core.modes.base as hx_modes  # noqa: E402  (the pixel observation looks view_pixels up here)
 from benchmarks.throughput import full_step_rollout, measure, memcpy_bandwidth  # noqa: E402
 from histojax.core.views import view_pixels  # noqa: E402
 
@@ -411,12 +411,12 @@ def check_exact(slide, crop, prepared, n_levels: int, t: int, n: int = 512) -> b
 @contextlib.contextmanager
 def patched_view(crop):
     """Temporarily make the env's observation use ``crop`` (module-level name looked up at trace time)."""
-    old = hx_env.view_pixels
-    hx_env.view_pixels = crop
+    old = hx_modes.view_pixels
+    hx_modes.view_pixels = crop
     try:
         yield
     finally:
-        hx_env.view_pixels = old
+        hx_modes.view_pixels = old
 
 
 def crop_alternatives(env, params, batch: int, seconds: float, bandwidth: float, full_step: bool = True) -> list[dict]:

@@ -306,7 +306,7 @@ def test_contract_of_the_feature_observation_mode(feature_env):
 
 
 def test_off_grid_views_snap_to_the_nearest_cell(feature_env):
-    from histojax.core.env import view_features
+    from histojax.core.modes.base import view_features
 
     env, params = feature_env
     slide = params.slide

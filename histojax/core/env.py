@@ -29,7 +29,6 @@ except ImportError:
     _GymnaxEnvironment = object
 
 TASKS = ("detection", "classification")
-view_features = base.view_features  # public name kept: the feature vector of a view
 
 
 def sample_index(key: jax.Array, logits: jax.Array) -> jax.Array:

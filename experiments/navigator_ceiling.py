@@ -16,6 +16,7 @@ row ``budget = median ceiling``). Writes ``OUT/readers.csv`` and ``OUT/ceiling.j
 """
 from __future__ import annotations
 
+import sys
 import time
 from pathlib import Path
 
@@ -26,6 +27,7 @@ from baselines.reading.diagnosis import score_split, write_results
 from baselines.reading.orders import logit_order, random_order, read_mask, search_order
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
+from data_tools.metrics import small_split_warning
 
 
 def ceiling_fractions(slides: list[dict], max_steps: int) -> np.ndarray:
@@ -90,6 +92,9 @@ def run(args, parser=None) -> int:
           f"{views.max()}); {args.max_steps} views = {100 * np.median(ceilings):.3f} % of a slide's finest tissue "
           f"(median; min {100 * ceilings.min():.3f} %, max {100 * ceilings.max():.3f} %)")
     readers.print_tables(rows, [])
+    labels = [int(s["label"]) for s in slides]
+    if (warning := small_split_warning(sum(labels), len(labels) - sum(labels), f"split {args.split!r}")) is not None:
+        print(warning, file=sys.stderr)
     print(f"wrote {out}/readers.csv and ceiling.json in {wall:.0f} s")
     return 0
 

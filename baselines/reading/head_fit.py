@@ -376,16 +376,16 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
     tr = [by_name[Path(n).name] for n in kept]
     va = [by_name[Path(n).name] for n in held]
     check_classes(dataset, tr)
-    n_tumour = int(sum(s["label"] for s in va))
-    if (warning := small_split_warning(n_tumour, len(va) - n_tumour, "the validation share"
-                                       + (f" of fold {fold}" if fold is not None else ""))) is not None:
-        print(warning, file=sys.stderr)  # the candidate is chosen on it
     encoders = {s["encoder"] for s in train}
     encoder = encoders.pop() if len(encoders) == 1 else None
     best, table = choose(tr, va, candidates(ks, dim, encoder, minus_median))
     head = calibrated(best, train, grid_shape(train))
     chosen = next(r for r in table if r["name"] == best.name)
     check_head(dataset, chosen["validation_auc"], float(head.a))
+    n_tumour = int(sum(s["label"] for s in va))
+    if (warning := small_split_warning(n_tumour, len(va) - n_tumour, "the validation share"
+                                       + (f" of fold {fold}" if fold is not None else ""))) is not None:
+        print(warning, file=sys.stderr)  # the candidate was chosen on it (after the refusals: those stay one line)
     info = {"fitted_on": {"dataset": str(Path(dataset).resolve()), "split": "train", "slides": len(train),
                           "tumour_slides": int(sum(s["label"] for s in train)), **({"fold": fold} if fold is not None
                                                                                   else {})},

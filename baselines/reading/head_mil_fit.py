@@ -416,13 +416,13 @@ def run(args, parser=None) -> int:
         low, high = auc_interval(v["full"][0], n_tumour, n_normal)
         print(f"| {k} | {v['seeds']} | {format_auc_runs(v['full'][0], v['full'][1], low, high, v['seeds'])} | "
               f"{v['read 0.1'][0]:.3f} | {v['read 0.2'][0]:.3f} |")
-    if (warning := small_split_warning(n_tumour, n_normal, "the validation share"
-                                       + (f" of fold {args.fold}" if args.fold is not None else ""))) is not None:
-        print(warning, file=sys.stderr)  # the candidate is chosen on it
     try:  # an inverted or backwards choice is refused before the refit: nothing saved
         check_head(args.dataset, summary[best]["full"][0], summary[best].get("slope", [1.0])[0])
     except HeadDataError as e:
         return print_error(e)
+    if (warning := small_split_warning(n_tumour, n_normal, "the validation share"
+                                       + (f" of fold {args.fold}" if args.fold is not None else ""))) is not None:
+        print(warning, file=sys.stderr)  # the candidate was chosen on it (a refusal above stays one line)
     name = best.split(",")[0]
     head = candidate_head(name, slides, shape, 0, args.steps)
     info = {"fitted_on": {"dataset": str(Path(args.dataset).resolve()), "split": "train", "slides": len(slides),

@@ -531,10 +531,6 @@ def run(args, parser=None) -> int:
     q = rotation(args.rotate, train_slides[0]["features"].shape[1]) if args.rotate is not None else None
     train_slides, val_slides = rotate(train_slides, q), rotate(val_slides, q)
     val = FlatSet(val_slides)
-    n_val_tumour = int(sum(s["label"] for s in val_slides))
-    if (warning := small_split_warning(n_val_tumour, len(val_slides) - n_val_tumour, "the validation share"
-                                       + (f" of fold {args.fold}" if args.fold is not None else ""))) is not None:
-        print(warning, file=sys.stderr)  # the checkpoint and calibration are chosen on it
     structures = [c for c in CANDIDATES if c["hidden"] in args.hidden]
     if not structures:
         return print_error(f"--hidden {args.hidden}: none of the candidate sizes {[c['hidden'] for c in CANDIDATES]}")
@@ -565,6 +561,10 @@ def run(args, parser=None) -> int:
         check_head(Path(args.dataset) / "dataset.json", raw_auc, slope)
     except FitError as e:
         return print_error(e)
+    n_val_tumour = int(sum(s["label"] for s in val_slides))
+    if (warning := small_split_warning(n_val_tumour, len(val_slides) - n_val_tumour, "the validation share"
+                                       + (f" of fold {args.fold}" if args.fold is not None else ""))) is not None:
+        print(warning, file=sys.stderr)  # the checkpoint and calibration were chosen on it (a refusal stays one line)
     wall = time.perf_counter() - t0
     info = {"fitted_on": {"dataset": str(Path(args.dataset).resolve()), "split": "train (minus validation)",
                           "slides": len(train_slides), "tumour_slides": int(sum(s["label"] for s in train_slides)),
@@ -707,7 +707,8 @@ def score_command(args) -> int:
     counts = {c: classes.count(c) for c in sorted(set(classes))}
     rounded = lambda v: None if not np.isfinite(v) else round(float(v), 4)  # noqa: E731
     record = {"head": str(args.score), "split": args.split, "slides": len(slides), "classes": counts,
-              "auc": rounded(every["auc"]), "auc_low": rounded(every["auc_low"]), "auc_high": rounded(every["auc_high"]),
+              "auc": rounded(every["auc"]), "auc_low": rounded(every["auc_low"]),
+              "auc_high": rounded(every["auc_high"]),
               "auc_without_itc": rounded(kept["auc"]) if no_itc else None,
               "auc_without_itc_low": rounded(kept["auc_low"]) if no_itc else None,
               "auc_without_itc_high": rounded(kept["auc_high"]) if no_itc else None,

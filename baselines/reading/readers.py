@@ -33,6 +33,8 @@ reported over all test slides and over normal vs micro/macro (ITC-only slides le
 *reads tumour* on a slide when a view it read overlaps the tumour; the head *finds* a slide when it
 scores it above every normal test slide.
 
+Every AUC is :func:`baselines.reading.pipeline.reader_auc` (mean ± std over seeds, ``auc_low`` / ``auc_high`` its 95 %
+interval over the slides), the one the budget curve's ``--head`` rows use too; the cells read are printed.
 Writes ``readers.csv`` (one row per reader × budget), ``lesions.csv`` (per test tumour slide),
 ``readers.json``, ``readers.png`` and, per trained reader, reading maps ``reading_<reader>_tumour.png`` /
 ``_normal.png`` (:func:`reading_map`: the head's per-view scores beside the views the reader read, at the budget

@@ -88,6 +88,8 @@ def test_dataset_json_records_the_folds(folded):
     lists = folds["lists"]
     assert sorted(n for lst in lists for n in lst) == sorted(ds["train"] + ds["test"])  # a partition of the slides
     assert any("bundles/t0" in lst and "bundles/t1" in lst for lst in lists)  # one patient, one fold
+    assert ("bundles/t0" in ds["test"]) == ("bundles/t1" in ds["test"])  # and one side of the default split
+    assert ds["split_grouped_by"] == folds["grouped_by"] and "one patient on one side" in ds["split_rule"]
     for lst in lists:  # both labels in each fold
         assert {ds["labels"][n.split("/")[1]] for n in lst} == {0, 1}
 

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import csv
 import json
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -162,6 +163,9 @@ def test_fit_chooses_spatial_context_on_validation(fitted, dataset):
     assert cfg["k"] == 3 and cfg["chosen_on"]["validation_slides"] >= 2 and len(cfg["candidates"]) == 8
     spec = json.loads((dataset / "dataset.json").read_text())
     assert cfg["fitted_on"]["slides"] == len(spec["train"])  # training slides only
+    seen = cfg["slides_seen"]  # re-calibrated on the whole train split: every train slide fitted, 3 + 3 validated
+    assert seen["fitted"] == sorted(Path(e).name for e in spec["train"]) and len(seen["validation"]) == 6
+    assert set(seen["validation"]) <= set(seen["fitted"]) and seen["fold"] is None and seen["split"] == "train"
     test = head_fit.load_slides(dataset, "test")
     logits = readers.head_scores(SlideHead.load(out), test, [s["tissue"] for s in test])
     labels = [s["label"] for s in test]

@@ -6,6 +6,7 @@ fold and each fold's head is the one that scores that fold.
 
 The cohort (:func:`learned_fixture.make_cohort`, TRIDENT-layout 16-d features): 18 training slides (9 tumour, 9
 normal), 6 test slides (3 + 3) and three folds over all 24 (4 + 4 each)."""
+
 from __future__ import annotations
 
 import json
@@ -29,8 +30,15 @@ def _main(argv):
 @pytest.fixture(scope="module")
 def small(tmp_path_factory):
     """The small cohort with three folds over every slide (``dataset.json``'s ``folds``, pool ``all``)."""
-    c = make_cohort(tmp_path_factory.mktemp("provenance") / "ds", tumour=9, normal=9, test_tumour=3, test_normal=3,
-                    dim=16, signal=4.0)
+    c = make_cohort(
+        tmp_path_factory.mktemp("provenance") / "ds",
+        tumour=9,
+        normal=9,
+        test_tumour=3,
+        test_normal=3,
+        dim=16,
+        signal=4.0,
+    )
     spec = json.loads((c["root"] / "dataset.json").read_text())
     every = spec["train"] + spec["test"]
     tum, nor = [e for e in every if "tumour" in e], [e for e in every if "normal" in e]
@@ -48,11 +56,18 @@ def _untrained(train_slides, val, structure, seed=0, **kwargs):
 
     d = int(train_slides[0]["features"].shape[1])
     mu, sd = fit.standardisation(train_slides)
-    params = init_params(jax.random.PRNGKey(seed), d, structure["hidden"], structure["attention"], structure["layers"],
-                         mu, sd)
-    head = LearnedHead(params=params, prior_logit=jnp.float32(0.0), features_dim=d, hidden=structure["hidden"],
-                       attention=structure["attention"], layers=structure["layers"],
-                       encoder=train_slides[0].get("encoder"))
+    params = init_params(
+        jax.random.PRNGKey(seed), d, structure["hidden"], structure["attention"], structure["layers"], mu, sd
+    )
+    head = LearnedHead(
+        params=params,
+        prior_logit=jnp.float32(0.0),
+        features_dim=d,
+        hidden=structure["hidden"],
+        attention=structure["attention"],
+        layers=structure["layers"],
+        encoder=train_slides[0].get("encoder"),
+    )
     return head, [{"step": 1, "loss": 0.7, "full": 0.5, "read 0.1": 0.5, "validation_loss": 0.7, "smoothed": 0.5}]
 
 
@@ -113,8 +128,9 @@ def test_score_refuses_the_heads_own_slides_and_warns_with_the_flag(small, head,
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and str(head / "config.json") in err and "--allow-fitting-slides" in err, err
     assert "fitted on 10" in err and "validated on 8" in err
-    assert _main(["--dataset", root, "--score", str(head), "--split", "train", "--allow-fitting-slides",
-                  "--quiet"]) == 0
+    assert (
+        _main(["--dataset", root, "--score", str(head), "--split", "train", "--allow-fitting-slides", "--quiet"]) == 0
+    )
     out, err = capsys.readouterr()
     assert json.loads(out.strip().splitlines()[-1])["slides"] == 18 and "warning:" in err and "not held out" in err
     assert _main(["--dataset", root, "--score", str(head), "--split", "test", "--quiet"]) == 0
@@ -127,8 +143,20 @@ def test_score_refuses_the_heads_own_slides_and_warns_with_the_flag(small, head,
 def test_readers_refuse_the_heads_own_slides(small, head, tmp_path, capsys):
     from baselines.reading import readers
 
-    argv = ["--dataset", str(small["root"]), "--head", str(head), "--split", "train", "--out", str(tmp_path / "r"),
-            "--budgets", "0.5", "--seeds", "1"]
+    argv = [
+        "--dataset",
+        str(small["root"]),
+        "--head",
+        str(head),
+        "--split",
+        "train",
+        "--out",
+        str(tmp_path / "r"),
+        "--budgets",
+        "0.5",
+        "--seeds",
+        "1",
+    ]
     assert readers.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--allow-fitting-slides" in err and not (tmp_path / "r").exists(), err
@@ -140,8 +168,13 @@ def test_every_scorer_takes_the_flag():
     from baselines.evaluate.cli import add_arguments as evaluate_args
     from baselines.reading import budget_curve, diagnosis, readers
 
-    for add in (evaluate_args, budget_curve.add_arguments, diagnosis.add_arguments, readers.add_arguments,
-                fit.add_arguments):
+    for add in (
+        evaluate_args,
+        budget_curve.add_arguments,
+        diagnosis.add_arguments,
+        readers.add_arguments,
+        fit.add_arguments,
+    ):
         p = argparse.ArgumentParser()
         add(p)
         assert "--allow-fitting-slides" in p.format_help(), add.__module__
@@ -169,8 +202,12 @@ def test_the_published_c16_heads_score_the_c16_test_split_but_not_its_train_spli
     from baselines.published_agents import PUBLISHED
     from histojax.reading import heads
 
-    spec = {"kind": "c16 stand-in", "train": ["bundles/tumor_001", "bundles/normal_001"],
-            "test": ["bundles/test_001"], "labels": {}}
+    spec = {
+        "kind": "c16 stand-in",
+        "train": ["bundles/tumor_001", "bundles/normal_001"],
+        "test": ["bundles/test_001"],
+        "labels": {},
+    }
     (tmp_path / "dataset.json").write_text(json.dumps(spec))
     h = heads.load(PUBLISHED / "c16-v2-learned-head")
     provenance.check_scored(h, "h", tmp_path, spec["test"])
@@ -192,9 +229,10 @@ def test_each_fold_resolves_its_own_head(tmp_path):
 def test_smoothed_choice_passes_over_a_lucky_check():
     """A validation curve that jumps to 1.0 once on a few slides (0.17, 1.0, 0.5, 0.83, 0.83, 0.83): the checkpoint
     kept is on the plateau, not the lucky check; equal plateaus go to the lower validation loss."""
-    curve = [{"step": 10 * (i + 1), "full": v, "read 0.1": 0.5, "validation_loss": loss}
-             for i, (v, loss) in enumerate([(0.17, 0.7), (1.0, 0.69), (0.5, 0.6), (0.83, 0.5), (0.83, 0.4),
-                                            (0.83, 0.45)])]
+    curve = [
+        {"step": 10 * (i + 1), "full": v, "read 0.1": 0.5, "validation_loss": loss}
+        for i, (v, loss) in enumerate([(0.17, 0.7), (1.0, 0.69), (0.5, 0.6), (0.83, 0.5), (0.83, 0.4), (0.83, 0.45)])
+    ]
     fit.smooth_curve(curve)
     best = max(curve, key=fit.choice_key)
     assert best["step"] == 50, [(r["step"], r["smoothed"]) for r in curve]
@@ -220,8 +258,21 @@ def test_all_folds_fits_one_head_per_fold_and_each_scores_only_its_fold(small, t
 def test_evaluate_refuses_a_head_on_its_own_slides(small, head, tmp_path, capsys):
     from histojax.cli import main as histojax_main
 
-    argv = ["evaluate", "--env", "HistoJAX-Reading-v0", "--action-mode", "glimpse:1", "--dataset", str(small["root"]),
-            "--episodes", "1", "--head", str(head), "--out", str(tmp_path / "ev")]
+    argv = [
+        "evaluate",
+        "--env",
+        "HistoJAX-Reading-v0",
+        "--action-mode",
+        "glimpse:1",
+        "--dataset",
+        str(small["root"]),
+        "--episodes",
+        "1",
+        "--head",
+        str(head),
+        "--out",
+        str(tmp_path / "ev"),
+    ]
     assert histojax_main([*argv, "--split", "train"]) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
     assert len(err) == 1 and str(head / "config.json") in err[0] and "--allow-fitting-slides" in err[0], err
@@ -233,8 +284,12 @@ def test_budget_curve_refuses_one_head_over_folds_it_was_fitted_on(small, head, 
     refused at fold 0, before any slide is read."""
     from baselines.reading import budget_curve
 
-    assert budget_curve.main(["--dataset", str(small["root"]), "--head", str(head), "--all-folds",
-                              "--out", str(tmp_path / "bc")]) == 2
+    assert (
+        budget_curve.main(
+            ["--dataset", str(small["root"]), "--head", str(head), "--all-folds", "--out", str(tmp_path / "bc")]
+        )
+        == 2
+    )
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
     assert len(err) == 1 and "--allow-fitting-slides" in err[0] and str(head / "config.json") in err[0], err
 
@@ -242,7 +297,23 @@ def test_budget_curve_refuses_one_head_over_folds_it_was_fitted_on(small, head, 
 def test_diagnosis_refuses_the_heads_own_slides(small, head, tmp_path, capsys):
     from baselines.reading import diagnosis
 
-    assert diagnosis.main(["--dataset", str(small["root"]), "--head", str(head), "--split", "train",
-                           "--navigator", "nav", str(tmp_path / "no-run"), "--out", str(tmp_path / "d")]) == 2
+    assert (
+        diagnosis.main(
+            [
+                "--dataset",
+                str(small["root"]),
+                "--head",
+                str(head),
+                "--split",
+                "train",
+                "--navigator",
+                "nav",
+                str(tmp_path / "no-run"),
+                "--out",
+                str(tmp_path / "d"),
+            ]
+        )
+        == 2
+    )
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
     assert len(err) == 1 and "--allow-fitting-slides" in err[0], err

@@ -2,6 +2,7 @@
 the TCGA barcode's patient), as the folds do; a slide listed with two patients is refused; a given split that puts
 one patient on both sides is warned about; dataset.json records how the split was grouped. Pure planning: no slide
 is read."""
+
 from __future__ import annotations
 
 import warnings
@@ -17,8 +18,18 @@ from data_tools.errors import HistojaxDataError
 
 def _entries(root: Path, rows):
     """Discovered-slide stand-ins: ``rows`` of ``(name, label, split or None)``."""
-    return [SimpleNamespace(name=n, label=lab, split=sp, path=root / f"{n}.svs", annotation=None,
-                            annotation_kind=None, label_source="table") for n, lab, sp in rows]
+    return [
+        SimpleNamespace(
+            name=n,
+            label=lab,
+            split=sp,
+            path=root / f"{n}.svs",
+            annotation=None,
+            annotation_kind=None,
+            label_source="table",
+        )
+        for n, lab, sp in rows
+    ]
 
 
 def _tcga_cohort(root):
@@ -63,8 +74,9 @@ def test_one_slide_per_patient_keeps_the_split_it_always_had(tmp_path):
     rows = [(f"slide{i:02d}", int(i < 7), None) for i in range(20)]
     labels = {n: lab for n, lab, _ in rows}
     before = seeded_split([n for n, _, _ in rows], labels, 0.25, 3)
-    plan = make_plan(_entries(tmp_path, rows), tmp_path, {}, 0.25, 3,
-                     patients={n: f"P{i}" for i, (n, _, _) in enumerate(rows)})
+    plan = make_plan(
+        _entries(tmp_path, rows), tmp_path, {}, 0.25, 3, patients={n: f"P{i}" for i, (n, _, _) in enumerate(rows)}
+    )
     assert sorted(n for n, r in plan["slides"].items() if r["split"] == "test") == before[1]
     assert plan["split_rule"] == "seeded (seed 3), stratified by label, 25% of each label in test"
 
@@ -81,8 +93,12 @@ def test_a_slide_listed_with_two_patients_is_refused_in_one_line(tmp_path):
 
 
 def test_a_given_split_with_a_patient_on_both_sides_is_warned_naming_the_patient(tmp_path):
-    rows = [("TCGA-AA-0001-01Z-00-DX1", 1, "train"), ("TCGA-AA-0001-11Z-00-DX1", 0, "test"),
-            ("TCGA-AA-0002-01Z-00-DX1", 1, "test"), ("TCGA-AA-0003-01Z-00-DX1", 0, "train")]
+    rows = [
+        ("TCGA-AA-0001-01Z-00-DX1", 1, "train"),
+        ("TCGA-AA-0001-11Z-00-DX1", 0, "test"),
+        ("TCGA-AA-0002-01Z-00-DX1", 1, "test"),
+        ("TCGA-AA-0003-01Z-00-DX1", 0, "train"),
+    ]
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
         plan = make_plan(_entries(tmp_path, rows), tmp_path, {}, 0.25, 0)

@@ -19,6 +19,7 @@ every C16 set shares). So scoring their test split works as before, and a fold's
 train split is refused like any other fitting slide. A head that records no fit at all (built in code, uncalibrated)
 has seen no slide.
 """
+
 from __future__ import annotations
 
 import json
@@ -52,8 +53,11 @@ def dataset_identity(dataset, spec: dict | None = None) -> dict:
         except (OSError, ValueError):
             spec = {}
     seal = spec.get(DATASET_DIGEST) if isinstance(spec, dict) else None
-    return {"folder": str(Path(dataset).resolve()), "kind": spec.get("kind") if isinstance(spec, dict) else None,
-            "seal": seal}
+    return {
+        "folder": str(Path(dataset).resolve()),
+        "kind": spec.get("kind") if isinstance(spec, dict) else None,
+        "seal": seal,
+    }
 
 
 def fit_record(dataset, spec: dict, fold: int | None, fitted, validation, split: str = "train") -> dict:
@@ -67,8 +71,13 @@ def fit_record(dataset, spec: dict, fold: int | None, fitted, validation, split:
         base = read_dataset_json(dataset)  # the index itself (spec may be a fold's sides)
     except (OSError, ValueError):
         base = spec
-    return {"dataset": dataset_identity(dataset, base), "split": split, "fold": fold,
-            "fitted": sorted({_name(e) for e in fitted}), "validation": sorted({_name(e) for e in validation})}
+    return {
+        "dataset": dataset_identity(dataset, base),
+        "split": split,
+        "fold": fold,
+        "fitted": sorted({_name(e) for e in fitted}),
+        "validation": sorted({_name(e) for e in validation}),
+    }
 
 
 def head_config(head) -> dict:
@@ -90,7 +99,7 @@ def slides_seen(head, dataset) -> tuple[set[str], set[str], str]:
     rec = info.get(RECORD)
     if isinstance(rec, dict):
         return set(map(str, rec.get("fitted") or [])), set(map(str, rec.get("validation") or [])), "recorded"
-    if "fitted_on" not in info:
+    if "fitted_on" not in info or dataset is None:  # no dataset named (bundle folders given): nothing to assume
         return set(), set(), "none"
     from data_tools.bundle_format import read_dataset_json
 
@@ -121,16 +130,24 @@ def check_scored(head, head_dir, dataset, scored, allow: bool = False, what: str
     parts = ([f"fitted on {len(fitted)}"] if fitted else []) + ([f"validated on {len(validated)}"] if validated else [])
     rec = head_config(head).get(RECORD) or {}
     fold = rec.get("fold") if isinstance(rec, dict) else None
-    how = ("" if source == "recorded" else " (it records no slides: taken as fitted on this dataset's train split, "
-           "as published and older heads were)")
-    problem = (f"the head was {' and '.join(parts)} of the {n} slides it {what} (e.g. {', '.join(seen[:3])})"
-               f"{how}{f'; it was fitted on fold {fold}' if fold is not None else ''}: figures on them are not held "
-               "out")
+    how = (
+        ""
+        if source == "recorded"
+        else " (it records no slides: taken as fitted on this dataset's train split, as published and older heads were)"
+    )
+    problem = (
+        f"the head was {' and '.join(parts)} of the {n} slides it {what} (e.g. {', '.join(seen[:3])})"
+        f"{how}{f'; it was fitted on fold {fold}' if fold is not None else ''}: figures on them are not held "
+        "out"
+    )
     where = Path(head_dir) / "config.json" if head_dir is not None else None
     if not allow:
-        raise FittingSlidesError(where, f"{problem}; score slides it has not seen (the test split, or the held-out "
-                                        f"fold of the head fitted on that fold), or pass {FLAG} to score them with a "
-                                        "warning")
+        raise FittingSlidesError(
+            where,
+            f"{problem}; score slides it has not seen (the test split, or the held-out "
+            f"fold of the head fitted on that fold), or pass {FLAG} to score them with a "
+            "warning",
+        )
     line = f"{where}: {problem} ({FLAG} given)" if where else f"{problem} ({FLAG} given)"
     print(f"warning: {line}", file=sys.stderr, flush=True)
     return line
@@ -138,9 +155,13 @@ def check_scored(head, head_dir, dataset, scored, allow: bool = False, what: str
 
 def add_flag(p) -> None:
     """Add :data:`FLAG` to a scorer's argument parser."""
-    p.add_argument(FLAG, dest="allow_fitting_slides", action="store_true",
-                   help="score slides the head was fitted or validated on, with a warning (refused by default: "
-                        "figures on them are not held out)")
+    p.add_argument(
+        FLAG,
+        dest="allow_fitting_slides",
+        action="store_true",
+        help="score slides the head was fitted or validated on, with a warning (refused by default: "
+        "figures on them are not held out)",
+    )
 
 
 def head_for_fold(head, fold: int) -> str:
@@ -156,5 +177,16 @@ def head_for_fold(head, fold: int) -> str:
     return text
 
 
-__all__ = ["FLAG", "RECORD", "FittingSlidesError", "add_flag", "check_scored", "dataset_identity", "fit_record",
-           "head_config", "head_for_fold", "overlap", "slides_seen"]
+__all__ = [
+    "FLAG",
+    "RECORD",
+    "FittingSlidesError",
+    "add_flag",
+    "check_scored",
+    "dataset_identity",
+    "fit_record",
+    "head_config",
+    "head_for_fold",
+    "overlap",
+    "slides_seen",
+]

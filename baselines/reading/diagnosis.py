@@ -158,8 +158,11 @@ def run(args, parser=None) -> int:
     t0 = time.perf_counter()
     try:
         from baselines.reading.head_fit import read_spec
+        from baselines.reading.provenance import head_for_fold
         from histojax.reading import heads
 
+        if args.fold is not None:  # the folder of learned_head_fit --all-folds (or DIR{fold}): fold I's head
+            args.head = head_for_fold(args.head, args.fold)
         check_scored(heads.load(args.head), args.head, args.dataset,  # fitted on them: refused before any is read
                      read_spec(args.dataset, args.fold).get(args.split) or [], getattr(args, "allow_fitting_slides", False))
         head, level, slides, results = score_split(args.dataset, args.head, args.split, seeds=args.seeds,

@@ -65,7 +65,7 @@ from baselines.reading.head_fit import HeadDataError, finest_views, read_bundle,
 from baselines.reading.head_fit import read_spec as read_sealed_spec
 from baselines.reading.lesions import lesion_of
 from histojax.reading.heads import encoder_mismatch
-from baselines.reading.provenance import RECORD, add_flag, check_scored, fit_record
+from baselines.reading.provenance import RECORD, add_flag, check_scored, fit_record, head_for_fold
 from baselines.validation import check_validation_share, split_train
 from data_tools.annotations import load_annotations
 from data_tools.bundle_format import own_file
@@ -674,6 +674,8 @@ def score_command(args) -> int:
     saying so).
     A split of one class is refused in one line naming ``dataset.json`` (its AUC is undefined: one class)."""
 
+    if args.fold is not None:  # the folder of --all-folds (or DIR{fold}): fold I's head
+        args.score = head_for_fold(args.score, args.fold)
     try:
         head = LearnedHead.load(args.score)
         spec = read_spec(args.dataset, args.fold)

@@ -63,7 +63,7 @@ from baselines.reading.head_fit import padded
 from baselines.reading.pipeline import cell_level_for  # noqa: F401  (cell_level_for: readers' API)
 from baselines.reading.pipeline import reader_auc
 from baselines.reading.plots import plot_readers
-from baselines.reading.provenance import add_flag, check_scored
+from baselines.reading.provenance import add_flag, check_scored, head_for_fold
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from histojax import compile_cache
@@ -414,6 +414,8 @@ def run(args, parser=None) -> int:
     try:
         from histojax.reading import heads
 
+        if args.fold is not None:  # the folder of learned_head_fit --all-folds (or DIR{fold}): fold I's head
+            args.head = head_for_fold(args.head, args.fold)
         head = heads.load(args.head)  # a head fitted on the scored slides: refused before they are read
         check_scored(head, args.head, args.dataset, pipeline.read_spec(args.dataset, args.fold).get(args.split) or [],
                      getattr(args, "allow_fitting_slides", False))

@@ -127,6 +127,8 @@ def _report(out: Path, dataset: dict, failed: dict, summary: dict) -> int:
     kept = dataset.get("kept_after_failed_rebuild") or {}
     for name, reason in kept.items():
         print(f"  rebuild of {name} failed, its previous bundle is kept: {reason}")
+    if "one patient on one side" in str(dataset.get("split_rule")):  # patients of several slides kept together
+        print(f"split by patient ({dataset.get('split_grouped_by')}): no patient in both train and test")
     folds = dataset.get("folds")
     if folds:
         print(f"{folds['k']} folds over the {'slides' if folds['pool'] == 'all' else 'train side'}: "

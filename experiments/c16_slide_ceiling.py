@@ -271,10 +271,14 @@ def main(argv=None) -> int:
         kept, val = [s for s in train if s["name"] not in held], [s for s in train if s["name"] in held]
         result["probe"] = probe(kept, val, test, positive=args.probe_positive)
         pr = result["probe"]
+        n_val = (sum(s["label"] for s in val), sum(1 - s["label"] for s in val))
+
+        def shown(auc: float, n) -> str:  # "0.849 [0.741, 0.936]": the AUC and its 95 % interval over the slides
+            return format_auc(auc, *auc_interval(auc, *n))[4:]
         print(f"\nMLP view probe (trained on {len(kept)} slides' finest views: {pr['positive_views']} tumour, "
-              f"{pr['negative_views']} tumour-free): validation AUC {pr['validation']['probe max']:.3f} (plain mean-l "
-              f"max {pr['validation']['mean l max']:.3f}), test {pr['test']['probe max']:.3f} "
-              f"({pr['test']['mean l max']:.3f})")
+              f"{pr['negative_views']} tumour-free): validation AUC {shown(pr['validation']['probe max'], n_val)} "
+              f"(plain mean-l max {shown(pr['validation']['mean l max'], n_val)}), test "
+              f"{shown(pr['test']['probe max'], n_test)} ({shown(pr['test']['mean l max'], n_test)})")
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(json_safe(result), indent=1, default=float, allow_nan=False))

@@ -100,7 +100,8 @@ def test_slide_ceiling_pools_view_logits_and_names_the_misses(c16_small, tmp_pat
     assert ceiling.main(["--dataset", str(folder), "--levels", "0", "1", "--json", str(out)]) == 0
     r = json.loads(out.read_text())
     assert {p["level"] for p in r["pooled"]} == {0, 1}
-    assert all(0.0 <= p["test_auc"] <= 1.0 or p["test_auc"] != p["test_auc"] for p in r["pooled"])
+    assert all(p["test_auc"] is None or 0.0 <= p["test_auc"] <= 1.0 for p in r["pooled"])  # undefined: null
+    assert all(p["test_auc"] is None or p["test_auc_low"] <= p["test_auc"] <= p["test_auc_high"] for p in r["pooled"])
     ds = json.loads((folder / "dataset.json").read_text())
     tumour_test = sorted(n.split("/")[-1] for n in ds["test"] if ds["labels"][n.split("/")[-1]])
     assert sorted(t["slide"] for t in r["test_tumour_slides"]) == tumour_test

@@ -5,16 +5,14 @@ from __future__ import annotations
 
 import resource
 import sys
-from pathlib import Path
-
 import numpy as np
 import pytest
+import tifffile
 
 from data_tools.bundle import build_bundle
 from data_tools.bundle_format import read_metadata
 from data_tools.peak_memory import PeakRSS
 
-SVS = Path(__file__).resolve().parents[1] / "histojax" / "data" / "CMU-1-Small-Region.svs"
 SPIKE = 400 * 2**20
 
 
@@ -23,7 +21,11 @@ def test_a_build_after_a_memory_spike_records_its_own_peak(tmp_path):
     spike = np.ones(SPIKE // 8)  # earlier work in the process: 400 MiB resident, then freed
     del spike
     lifetime = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
-    out = build_bundle(SVS, tmp_path / "b", level_sets=(3,), storage="tiled", progress=False)
+    image = np.full((512, 640, 3), 235, np.uint8)
+    image[100:400, 120:500] = [190, 80, 150]
+    tifffile.imwrite(tmp_path / "s.tif", image, photometric="rgb")
+    out = build_bundle(tmp_path / "s.tif", tmp_path / "b", level_sets=(3,), tile_size=64, storage="tiled",
+                       progress=False)
     build = read_metadata(out)["build"]
     assert build["peak_rss_method"] in ("VmHWM", "sampled")
     assert 0 < build["peak_rss_bytes"] < lifetime - SPIKE // 2, (build, lifetime)

@@ -557,6 +557,36 @@ BUNDLE_EXTRAS = ("features.partial",)
 unfinished feature grid (:mod:`data_tools.features`)."""
 
 
+LEFT_RUN_LOCK = ".histojax-run.lock"
+"""The lock file ``histojax train`` took in a folder it then refused (histojax 0.1.0 left it behind; now removed on
+refusal): :func:`left_run_lock` tells such a leftover, which never makes a bundle or a head folder foreign."""
+
+
+def left_run_lock(path) -> bool:
+    """Whether ``path`` is a leftover run lock (:data:`LEFT_RUN_LOCK`): a small regular file (no link, no FIFO)
+    holding only a process id, that no process holds (an ``fcntl.flock`` on it is free)."""
+    import fcntl
+
+    path = Path(path)
+    try:
+        st = os.lstat(path)
+        if path.name != LEFT_RUN_LOCK or not stat.S_ISREG(st.st_mode) or st.st_size > 64:
+            return False
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0) | getattr(os, "O_NONBLOCK", 0))
+    except OSError:
+        return False
+    try:
+        if not re.fullmatch(rb"\d*\s*", os.read(fd, 65)):
+            return False
+        fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)  # held by a run: not a leftover
+        fcntl.flock(fd, fcntl.LOCK_UN)
+        return True
+    except OSError:
+        return False
+    finally:
+        os.close(fd)
+
+
 def foreign_entries(out_dir) -> list[str]:
     """The entries of the folder ``out_dir`` that histojax cannot prove it wrote as a bundle: everything when
     ``metadata.json`` is absent, not a regular file, or not a bundle's metadata (a JSON object with a known
@@ -581,6 +611,8 @@ def foreign_entries(out_dir) -> list[str]:
     for name in entries:
         p = out_dir / name
         if name.startswith(".") and ".tmp-" in name and is_our_temporary(p):
+            continue
+        if name == LEFT_RUN_LOCK and left_run_lock(p):  # a refused `train --out` of histojax 0.1.0 left it
             continue
         if name not in known or p.is_symlink() or (name != PARTIAL and not p.is_file()):
             foreign.append(name)

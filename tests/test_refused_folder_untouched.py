@@ -129,3 +129,42 @@ def test_a_users_file_inside_eval_all_folds_is_still_refused(tmp_path):
     with pytest.raises(run_folder.RunFolderError, match="eval-all-folds/fold0/thesis.txt"):
         run_folder.claim(run, {"env_id": "HistoJAX-Easy-v0", "seed": 7}, overwrite=True)
     assert _tree(run) == before
+
+
+def _leftover_lock(folder: Path) -> Path:
+    lock = folder / run_folder.LOCK
+    lock.write_text("12345\n")  # what a refused `train --out` of histojax 0.1.0 left behind
+    return lock
+
+
+def test_a_lock_left_by_an_older_refused_train_never_makes_a_bundle_foreign(tmp_path):
+    import fcntl
+
+    from data_tools.bundle_format import FORMAT_VERSION, METADATA, foreign_entries
+
+    bundle = tmp_path / "b"
+    bundle.mkdir()
+    (bundle / METADATA).write_text(json.dumps({"format_version": FORMAT_VERSION, "checksums": {}}))
+    lock = _leftover_lock(bundle)
+    assert foreign_entries(bundle) == []  # build --overwrite replaces it, the leftover with it
+    fd = os.open(lock, os.O_RDWR)
+    try:
+        fcntl.flock(fd, fcntl.LOCK_EX)  # held by a run: not a leftover
+        assert foreign_entries(bundle) == [run_folder.LOCK]
+    finally:
+        os.close(fd)
+    lock.write_text("my notes")  # a user's file of that name: foreign
+    assert foreign_entries(bundle) == [run_folder.LOCK]
+
+
+def test_a_lock_left_by_an_older_refused_train_never_blocks_a_head_refit(tmp_path):
+    import jax
+
+    from histojax.reading.heads.learned import LearnedHead, init_params
+
+    head = LearnedHead(params=init_params(jax.random.PRNGKey(0), 4, hidden=4, attention=2), features_dim=4, hidden=4,
+                       attention=2)
+    folder = head.save(tmp_path / "head")
+    _leftover_lock(folder)
+    head.save(folder)  # the refit: refused before ("holds files the head there did not write")
+    assert sorted(os.listdir(folder)) == ["config.json", "params.npz"]

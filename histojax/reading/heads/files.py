@@ -39,7 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.bundle_format import ChangedFileError, not_regular, open_regular, replace_folder
+from data_tools.bundle_format import ChangedFileError, left_run_lock, not_regular, open_regular, replace_folder
 
 CONFIG = "config.json"
 PARAMS = "params.npz"
@@ -299,7 +299,7 @@ def check_replaceable(folder, kind: str) -> None:
         return
     if folder.is_symlink() or not folder.is_dir():
         raise HeadFileError(folder, "is a link or a file, not a head folder; refusing to replace it")
-    entries = sorted(p.name for p in folder.iterdir())
+    entries = sorted(p.name for p in folder.iterdir() if not left_run_lock(p))  # a leftover lock: replaced too
     if not entries:
         return
     if CONFIG not in entries:

@@ -196,3 +196,27 @@ def test_readers_command_adds_a_trained_reader(dataset, runs, tmp_path):
                for r in mine)
     assert {r["reader"] for r in rows} >= {"overview only", "random reader", "logit reader", "search reader",
                                            "read everything"}
+
+
+def test_a_policy_through_a_learned_head_scores_as_in_the_readers(dataset, runs):
+    """One scoring path for trained readers too: the curve's ``NAME reader + learned head`` rows (its reads scored by
+    the readers' code, ``reader_slides``) equal the readers' ``--reader NAME RUN`` rows, to the last digit."""
+    from baselines.reading import readers
+    from test_budget_curve import planted_head
+
+    test = pipeline.load_split(dataset, "test", env_id="HistoJAX-Easy-v0", level=1)
+    d = int(test.tables[0]["instances"].shape[1])
+    head = planted_head(np.eye(d)[0]).replace(prior_logit=jnp.float32(0.3))  # not the score of a zero view
+    level = budget_curve.glimpse_bundle_level(dataset, "HistoJAX-Easy-v0", 1, "test")[0]
+    mine = pipeline.load_split(dataset, "test", head=head, cell_level=level)
+    curve = budget_curve.policy_rows(runs["glimpse:1"], dataset, "GRU", {"learned head": head}, test.tables,
+                                     test.labels, BUDGETS, policy_seeds=2, reader_slides=mine.slides)
+    curve = {r["budget"]: r for r in curve if r["method"] == "GRU reader + learned head"}
+    masks = readers.policy_masks(runs["glimpse:1"], dataset, mine.slides, "test", BUDGETS, seeds=2)
+    theirs = {r["budget"]: r for r in readers.rows_from_results(readers.add_reader({}, head, mine.slides, "GRU", masks),
+                                                                 mine.slides)}
+    assert sorted(curve) == sorted(theirs) == list(BUDGETS)
+    for b in BUDGETS:
+        for field in ("auc", "auc_std", "auc_low", "auc_high", "accuracy", "seeds"):
+            assert curve[b][field] == theirs[b][field], (b, field)
+        assert curve[b]["fraction_read"] == pytest.approx(theirs[b]["fraction_read"])

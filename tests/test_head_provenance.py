@@ -317,3 +317,27 @@ def test_diagnosis_refuses_the_heads_own_slides(small, head, tmp_path, capsys):
     )
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
     assert len(err) == 1 and "--allow-fitting-slides" in err[0], err
+
+
+def test_evaluate_all_folds_refuses_one_head_fitted_on_the_folds_slides(small, head, tmp_path, capsys):
+    from histojax.cli import main as histojax_main
+
+    argv = [
+        "evaluate",
+        "--env",
+        "HistoJAX-Reading-v0",
+        "--action-mode",
+        "glimpse:1",
+        "--dataset",
+        str(small["root"]),
+        "--episodes",
+        "1",
+        "--head",
+        str(head),
+        "--all-folds",
+        "--out",
+        str(tmp_path / "ev"),
+    ]
+    assert histojax_main(argv) == 2
+    err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
+    assert len(err) == 1 and "--allow-fitting-slides" in err[0] and "not held out" in err[0], err

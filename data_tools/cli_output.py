@@ -119,6 +119,17 @@ def positive_int(text: str) -> int:
     return value
 
 
+def seed_int(text: str) -> int:
+    """argparse type: a random seed, an integer in ``[0, 2**32)`` (NumPy's generators refuse a negative one)."""
+    try:
+        value = int(text)
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
+    if not 0 <= value < 2 ** 32:
+        raise argparse.ArgumentTypeError(f"{text!r} must be in [0, 2**32)")
+    return value
+
+
 # ----------------------------------------------------------------------------- one parser per command
 def build_parser(add_arguments, prog: str | None = None, description: str | None = None,
                  one_line: bool = True) -> argparse.ArgumentParser:

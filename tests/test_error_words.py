@@ -46,3 +46,14 @@ def test_the_published_learned_set_reader_names_the_encoder_mismatch_first(tmp_p
     assert line is not None and "slide head of pcam-cnn features" in line and "'colour-stats' features" in line, line
     (tmp_path / "dataset.json").write_text(json.dumps({"encoder": "pcam-cnn"}))
     assert encoder_refusal(config, agent) is None
+
+
+def test_a_negative_seed_is_a_usage_error_not_an_internal_one(tmp_path, capsys):
+    import pytest
+
+    with pytest.raises(SystemExit) as e:
+        cli.main(["dataset", str(tmp_path), "--out", str(tmp_path / "ds"), "--seed", "-1"])
+    assert e.value.code == 2
+    line = _line(capsys)
+    assert "--seed: '-1' must be in [0, 2**32)" in line and "HISTOJAX_DEBUG" not in line, line
+    assert not (tmp_path / "ds").exists()

@@ -9,7 +9,7 @@ from __future__ import annotations
 import json
 from pathlib import Path
 
-from data_tools.cli_output import finite_float, positive_int
+from data_tools.cli_output import finite_float, positive_int, seed_int
 
 
 def add_subcommand(sub, levels_type) -> None:
@@ -54,7 +54,7 @@ def add_subcommand(sub, levels_type) -> None:
     p.add_argument("--test-fraction", type=float, default=0.25,
                    help="share of each label in the seeded test split (default 0.25; ignored when the layout or "
                         "the label table gives the split)")
-    p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--seed", type=seed_int, default=0, help="seed of the split and the folds (default 0)")
     p.add_argument("--folds", type=int, default=None, metavar="K",
                    help="also write K cross-validation folds to dataset.json: stratified by label, seeded, the slides "
                         "of one patient in one fold (a patient column in --labels, or TCGA barcodes); over every slide "

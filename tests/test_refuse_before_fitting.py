@@ -49,3 +49,14 @@ def test_the_write_check_leaves_nothing_and_passes_a_writable_folder(tmp_path):
     (tmp_path / "h").mkdir()
     files.check_writable(tmp_path / "h")
     assert sorted(os.listdir(tmp_path)) == ["h"] and os.listdir(tmp_path / "h") == []
+
+
+def test_a_learned_fit_of_no_candidate_size_is_refused_before_reading_the_dataset(tmp_path, capsys, monkeypatch):
+    from baselines.reading import learned_head_fit
+
+    monkeypatch.setattr(learned_head_fit, "read_spec", lambda *a, **k: pytest.fail("read the dataset first"))
+    main = learned_head_fit.main if hasattr(learned_head_fit, "main") else learned_head_fit._main()
+    assert main(["--dataset", str(tmp_path / "ds"), "--out", str(tmp_path / "h"), "--hidden", "7"]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err.startswith("error: --hidden [7]: none of the candidate sizes") and len(err.splitlines()) == 1, err
+    assert os.listdir(tmp_path) == []

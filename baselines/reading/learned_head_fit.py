@@ -507,8 +507,9 @@ def run(args, parser=None) -> int:
         return print_error("--out is required to fit a head")
     if getattr(args, "all_folds", False):
         return all_folds_command(args, parser)
-
-
+    structures = [c for c in CANDIDATES if c["hidden"] in args.hidden]
+    if not structures:  # refused before any slide is read
+        return print_error(f"--hidden {args.hidden}: none of the candidate sizes {[c['hidden'] for c in CANDIDATES]}")
     t0 = time.perf_counter()
     progress = not args.quiet
     try:
@@ -531,9 +532,6 @@ def run(args, parser=None) -> int:
     q = rotation(args.rotate, train_slides[0]["features"].shape[1]) if args.rotate is not None else None
     train_slides, val_slides = rotate(train_slides, q), rotate(val_slides, q)
     val = FlatSet(val_slides)
-    structures = [c for c in CANDIDATES if c["hidden"] in args.hidden]
-    if not structures:
-        return print_error(f"--hidden {args.hidden}: none of the candidate sizes {[c['hidden'] for c in CANDIDATES]}")
     t_load = time.perf_counter() - t0
     results, curves, best = {}, {}, None
     for c in structures:

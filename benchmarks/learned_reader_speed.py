@@ -87,7 +87,7 @@ def main(argv=None) -> int:
                    help="also time the set reader with its per-cell layers over all slides' cells in every minibatch")
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
-    from baselines.reading.head_fit import read_spec
+    from baselines.reading.slides import read_spec
     from baselines.reading.train_readers import dataset_levels
     from data_tools.errors import HistojaxDataError
     from histojax.reading import heads

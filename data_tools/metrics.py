@@ -87,6 +87,11 @@ def format_auc(auc: float, low: float, high: float) -> str:
     return f"AUC {auc:.3f} [{low:.3f}, {high:.3f}]"
 
 
+UNDEFINED = "undefined: one class"
+"""What a table prints (and a JSON record holds as ``null``) for a figure the slides scored cannot define: an AUC of
+slides of one class (``histojax evaluate``, the learned head's fit)."""
+
+
 def json_number(x):
     """``x`` as a JSON-safe value: a finite float stays, NaN / ±inf become ``None`` (JSON ``null``)."""
     if x is None:

@@ -191,7 +191,7 @@ def test_the_head_scores_what_each_episode_read(data):
     ep = evaluate.head_scored(ep, env_params, classes)
     assert ep["slide"].tolist() == [0, 1, 2, 3] * 2 and ep["lesion"].tolist() == classes * 2
     host = env.action.host_tables(env, env_params, env.bundles)
-    from baselines.reading.head_fit import load_slide
+    from baselines.reading.slides import load_slide
 
     for e in range(n):
         i = int(ep["slide"][e])

@@ -187,7 +187,7 @@ def test_trainers_take_fold(folded):
 
 
 def test_head_fits_and_readers_read_the_fold(folded):
-    from baselines.reading.head_fit import HeadDataError, read_spec
+    from baselines.reading.slides import HeadDataError, read_spec
 
     lists = json.loads((folded / "dataset.json").read_text())["folds"]["lists"]
     spec = read_spec(folded, 0)  # head_fit, head_mil_fit, readers, diagnosis: --fold I

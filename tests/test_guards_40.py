@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import pytest
 
 from baselines.reading import head_fit, head_mil_fit, learned_head_fit
+from baselines.reading.slides import read_spec
 from histojax.reading.heads.learned import LearnedHead, init_params
 from learned_fixture import make_cohort
 from test_head import make_dataset
@@ -73,7 +74,7 @@ def test_mil_fit_refuses_an_inverted_or_backwards_choice(enough, tmp_path, capsy
 
 
 def test_mil_validation_figures_carry_the_slope(enough, tmp_path):
-    spec = head_fit.read_spec(enough)
+    spec = read_spec(enough)
     slides = head_mil_fit.cache_grids(enough, spec["train"][:8], tmp_path / "c.npz", progress=False)
     shape = (max(s["tissue"].shape[0] for s in slides), max(s["tissue"].shape[1] for s in slides))
     from histojax.reading.heads.logit import SlideHead

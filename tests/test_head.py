@@ -16,7 +16,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines.reading import head_fit, readers
+from baselines.reading import head_fit, readers, slides
 from baselines.reading.lesions import CLASSES, lesion_class
 from baselines.reading.orders import logit_order, random_order, read_mask, search_order
 from data_tools.bundle_format import sha256, write_metadata
@@ -166,7 +166,7 @@ def test_fit_chooses_spatial_context_on_validation(fitted, dataset):
     seen = cfg["slides_seen"]  # re-calibrated on the whole train split: every train slide fitted, 3 + 3 validated
     assert seen["fitted"] == sorted(Path(e).name for e in spec["train"]) and len(seen["validation"]) == 6
     assert set(seen["validation"]) <= set(seen["fitted"]) and seen["fold"] is None and seen["split"] == "train"
-    test = head_fit.load_slides(dataset, "test")
+    test = slides.load_slides(dataset, "test")
     logits = readers.head_scores(SlideHead.load(out), test, [s["tissue"] for s in test])
     labels = [s["label"] for s in test]
     from data_tools.metrics import roc_auc
@@ -182,7 +182,7 @@ def test_fit_command_refuses_a_folder_without_dataset_json(tmp_path, capsys):
 
 # ----------------------------------------------------------------------------- lesions and readers
 def test_lesion_classes_follow_camelyon_thresholds(dataset):
-    test = head_fit.load_slides(dataset, "test")
+    test = slides.load_slides(dataset, "test")
     got = {s["name"]: lesion_class(s) for s in test}
     for name, (cls, mm) in got.items():
         if "normal" in name:
@@ -197,7 +197,7 @@ def test_lesion_classes_follow_camelyon_thresholds(dataset):
 
 def test_scripted_readers_respect_the_budget_and_follow_the_logits(dataset, fitted):
     _, head, _ = fitted
-    test = head_fit.load_slides(dataset, "test", levels=(0, 1))
+    test = slides.load_slides(dataset, "test", levels=(0, 1))
     for s in test:
         cells = readers.cell_table(s, 1)
         assert cells["cell_views"].sum() == s["tissue"].sum() == cells["total"]
@@ -238,7 +238,7 @@ def test_readers_command_writes_the_curve(dataset, fitted, tmp_path, capsys):
         assert len(list(csv.DictReader(f))) == 5
     assert (tmp_path / "readers.png").stat().st_size > 10_000
     # a learned reader's masks join the same table, scored by the same head
-    test = head_fit.load_slides(dataset, "test")
+    test = slides.load_slides(dataset, "test")
     res = readers.add_reader(readers.new_results(), head, test, "my reader",
                              {0.1: [[s["tissue"] for s in test], [np.zeros_like(s["tissue"]) for s in test]]})
     row = readers.rows_from_results(res, test)[0]

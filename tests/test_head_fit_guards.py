@@ -6,16 +6,17 @@ from __future__ import annotations
 import pytest
 
 from baselines.reading import head_fit
+from baselines.reading.slides import HeadDataError
 from test_head import make_dataset
 
 
 def test_check_head_refuses_inverted_and_negative_slopes(tmp_path):
-    with pytest.raises(head_fit.HeadDataError, match=r"validation AUC is 0\.333 \(< 0\.5") as e:
+    with pytest.raises(HeadDataError, match=r"validation AUC is 0\.333 \(< 0\.5") as e:
         head_fit.check_head(tmp_path, 0.333, 1.0)
     assert str(e.value).startswith(str(tmp_path / "dataset.json")) and len(str(e.value).splitlines()) == 1
-    with pytest.raises(head_fit.HeadDataError, match=r"slope is -0\.208"):
+    with pytest.raises(HeadDataError, match=r"slope is -0\.208"):
         head_fit.check_head(tmp_path, 0.9, -0.208)
-    with pytest.raises(head_fit.HeadDataError, match="AUC is nan"):
+    with pytest.raises(HeadDataError, match="AUC is nan"):
         head_fit.check_head(tmp_path, float("nan"), 1.0)
     head_fit.check_head(tmp_path, 0.5, 0.1)  # accepted
 

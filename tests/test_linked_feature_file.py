@@ -1,6 +1,6 @@
 """Every head fit and bundle reader of ``baselines.reading`` refuses a feature file that is a symbolic link out
 of its bundle, in one line naming the bundle and the entry, through the one checked loader
-(:func:`baselines.reading.head_fit.read_bundle`)."""
+(:func:`baselines.reading.slides.read_bundle`)."""
 from __future__ import annotations
 
 import json
@@ -28,14 +28,14 @@ def linked(tmp_path_factory):
 
 
 def _readers():
-    from baselines.reading import head_fit, head_mil_fit, learned_head_fit, pipeline
+    from baselines.reading import head_mil_fit, learned_head_fit, pipeline, slides
 
     return {
-        "head_fit.load_slides (the logit fit)": lambda ds: head_fit.load_slides(ds, ["bundles/t0"], dim=0),
+        "slides.load_slides (the logit fit)": lambda ds: slides.load_slides(ds, ["bundles/t0"], dim=0),
         "head_mil_fit.load_grid": lambda ds: head_mil_fit.load_grid(ds / "bundles" / "t0", 0, dim=0),
         "learned_head_fit.load_split": lambda ds: learned_head_fit.load_split(ds, ["bundles/t0"], {}, progress=False),
         "pipeline.load_feature_slides (readers, budget curve)": lambda ds: pipeline.load_feature_slides(
-            ds, ["bundles/t0"], head_fit.read_spec(ds), None, 1),
+            ds, ["bundles/t0"], slides.read_spec(ds), None, 1),
     }
 
 

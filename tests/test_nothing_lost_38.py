@@ -270,7 +270,7 @@ def _edit_a_label(work: Path) -> None:
 
 def test_every_reader_of_a_dataset_refuses_an_edited_dataset_json(built, tmp_path):
     import histojax
-    from baselines.reading.head_fit import read_spec
+    from baselines.reading.slides import read_spec
     from baselines.reading.learned_head_fit import read_spec as learned_read_spec
     from data_tools.errors import BundleError
     from histojax.datasets import dataset_labels, dataset_slides

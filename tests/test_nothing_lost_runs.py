@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from baselines.reading import head_fit, head_mil_fit, readers
+from baselines.reading import head_fit, head_mil_fit, readers, slides
 from data_tools.errors import HistojaxDataError
 from test_head import make_dataset
 
@@ -78,8 +78,8 @@ def _flip_a_feature(ds: Path, tmp_path: Path) -> Path:
                                             (_flip_a_feature, "checksum mismatch")])
 def test_the_head_tools_read_bundles_through_the_checked_loader(work, tmp_path, damage, words):
     bundle = damage(work, tmp_path)
-    for read in (lambda: head_fit.load_slide(bundle), lambda: head_mil_fit.load_grid(bundle),
-                 lambda: head_fit.load_slides(work, "train")):
+    for read in (lambda: slides.load_slide(bundle), lambda: head_mil_fit.load_grid(bundle),
+                 lambda: slides.load_slides(work, "train")):
         with pytest.raises(HistojaxDataError) as e:
             read()
         assert words in str(e.value) and str(bundle) in str(e.value), e.value
@@ -100,7 +100,7 @@ def test_readers_cell_level_reads_the_checked_metadata(work, tmp_path):
     meta = json.loads((bundle / "metadata.json").read_text())
     meta["levels"][1]["downsample"] = 3.0  # edited after the build: the seal no longer matches
     (bundle / "metadata.json").write_text(json.dumps(meta))
-    spec = head_fit.read_spec(work)
+    spec = slides.read_spec(work)
     with pytest.raises(HistojaxDataError, match="digest mismatch"):
         readers.cell_level_for(work, spec, "train")
 

@@ -52,17 +52,17 @@ def test_open_regular_refuses_a_file_swapped_after_the_check(tmp_path):
 # ----------------------------------------------------------------------------- one slide loader
 def test_both_head_fits_read_a_bundle_through_one_loader(tmp_path):
     """head_fit.load_slide and learned_head_fit.load_views share head_fit.read_bundle (read, verify, feature levels)
-    and head_fit.finest_views (view -> feature cell, tissue views): the same views and vectors."""
+    and slides.finest_views (view -> feature cell, tissue views): the same views and vectors."""
     import numpy as np
 
-    from baselines.reading import head_fit, learned_head_fit
+    from baselines.reading import learned_head_fit, slides
     from learned_fixture import make_cohort
 
-    assert learned_head_fit.read_bundle is head_fit.read_bundle
-    assert learned_head_fit.finest_views is head_fit.finest_views
+    assert learned_head_fit.read_bundle is slides.read_bundle
+    assert learned_head_fit.finest_views is slides.finest_views
     c = make_cohort(tmp_path / "ds", tumour=1, normal=1, test_tumour=0, test_normal=0, dim=8)
     bundle = c["root"] / "bundles" / c["names"]["train"][0]
-    grid = head_fit.load_slide(bundle, dim=0, grid=True)
+    grid = slides.load_slide(bundle, dim=0, grid=True)
     views = learned_head_fit.load_views(bundle)
     ys, xs = views["yx"].T
     assert grid["tissue"].sum() == len(views["features"]) and grid["tissue"][ys, xs].all()

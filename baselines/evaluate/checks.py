@@ -13,6 +13,7 @@ import numpy as np
 from baselines.published_agents import PUBLISHED
 from baselines.run_config import known_config_keys, read_run_config  # noqa: F401  (known_config_keys: evaluate's API)
 from data_tools.errors import HistojaxDataError
+from data_tools.metrics import UNDEFINED
 
 
 
@@ -24,10 +25,6 @@ def check_config(config, path) -> list[str]:
     warnings: list[str] = []
     read_run_config(config, path, warnings)
     return warnings
-
-
-UNDEFINED = "undefined: one class"
-"""What the table prints (and ``eval.json`` records as ``null``) for a figure the slides scored cannot define."""
 
 
 def one_class(env_params) -> int | None:

@@ -12,15 +12,15 @@ import numpy as np
 
 from baselines import common, outputs
 from data_tools.cli_output import positive_int
-from data_tools.metrics import format_auc
+from data_tools.metrics import UNDEFINED, format_auc
 from data_tools.errors import HistojaxDataError
-from baselines.evaluate.checks import (UNDEFINED, check_config, encoder_refusal, check_params_tree, grid_refusal, head_reward_settings,
+from baselines.evaluate.checks import (check_config, encoder_refusal, check_params_tree, grid_refusal, head_reward_settings,
                                        provenance_warnings, published_dataset_refusal, refuse_not_an_agent,
                                        trained_record_warnings,
                                        resolve_head)
 from baselines.evaluate.scoring import evaluate
 from baselines.evaluate.all_folds import run_all_folds
-from baselines.reading.head_fit import scale_warning
+from baselines.reading.slides import scale_warning
 from baselines.reading.provenance import add_flag, check_scored, head_for_fold
 from baselines.folds import scored_side
 from baselines.published_agents import published_or_path
@@ -205,7 +205,7 @@ def scored_names(config, slides=None) -> list[str]:
     dataset = kw.get("dataset")
     if not isinstance(dataset, str):
         return []
-    from baselines.reading.head_fit import read_spec
+    from baselines.reading.slides import read_spec
 
     try:
         spec = read_spec(dataset, kw.get("fold"))

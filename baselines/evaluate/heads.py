@@ -9,7 +9,8 @@ import jax
 import numpy as np
 
 from data_tools.errors import HistojaxDataError
-from baselines.evaluate.checks import UNDEFINED, one_class
+from baselines.evaluate.checks import one_class
+from data_tools.metrics import UNDEFINED
 from baselines.evaluate.rollout import episode_labels
 from baselines.run_config import read_run_config
 from histojax.reading.heads import encoder_family, same_encoder  # noqa: F401  (encoder_family: this module's API)
@@ -64,7 +65,7 @@ def head_env(env, env_params, head, settings: dict | None = None):
 def refuse_one_class(config, env_params, slide=None) -> None:
     """Refuse (``HistojaxDataError``, one line naming the dataset's ``dataset.json`` or the slide) to score through a
     head slides that are all of one class: what the head declares is scored by an AUC, and one class leaves it
-    undefined (:data:`~baselines.evaluate.checks.UNDEFINED`), not 1.000 or ``nan``."""
+    undefined (:data:`~data_tools.metrics.UNDEFINED`), not 1.000 or ``nan``."""
     single = one_class(env_params)
     if single is None:
         return

@@ -59,7 +59,7 @@ from baselines.reading.orders import attention_order, score_order
 from baselines.reading.pipeline import (check_two_classes, load_split, policy_reads, random_orders, read_all,
                                         reader_auc, run_seeds)
 from baselines.reading.plots import plot_curve
-from baselines.reading.head_fit import read_spec
+from baselines.reading.slides import read_spec
 from baselines.reading.provenance import add_flag, check_scored, head_for_fold
 from baselines.folds import SUMMARY, dataset_folds, mean_std, scored_side, with_fold
 from data_tools.metrics import accuracy, auc_interval, format_auc_runs, small_split_warning

@@ -121,7 +121,7 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
 def navigator_masks(run, dataset, slides: list[dict], split: str = "test", seeds: int = 1,
                     greedy: bool = True, fold: int | None = None) -> dict:
     """``{1.0: [[read mask (H, W) per slide] per seed]}`` of a navigator (no budget: key 1.0), ready for
-    :func:`baselines.reading.readers.add_reader`; ``slides`` are :func:`baselines.reading.head_fit.load_slides` of the split;
+    :func:`baselines.reading.readers.add_reader`; ``slides`` are :func:`baselines.reading.slides.load_slides` of the split;
     ``greedy=False``: sampled episodes (key = the seed)."""
     per_seed = []
     for seed in range(max(1, min(seeds, run_seeds(run)))):
@@ -157,7 +157,7 @@ def run(args, parser=None) -> int:
     """Score each navigator through the head beside the readers; CSV, JSON, PNG in ``args.out``."""
     t0 = time.perf_counter()
     try:
-        from baselines.reading.head_fit import read_spec
+        from baselines.reading.slides import read_spec
         from baselines.reading.provenance import head_for_fold
         from histojax.reading import heads
 

@@ -2,7 +2,7 @@
 validation share: ``python -m baselines.reading.head_mil_fit --dataset DIR --cache FILE.npz --out DIR``.
 
 Data: the finest level's full feature grid ``(H, W, D)`` of every training slide and its tissue views,
-read once from the bundles (as :func:`baselines.reading.head_fit.load_slide` reads them: one row per finest
+read once from the bundles (as :func:`baselines.reading.slides.load_slide` reads them: one row per finest
 view) and cached to ``--cache`` (a ``.npz``; re-used when it holds the same slides). The validation share
 is :func:`baselines.validation.split_train` with ``--val-fraction`` / ``--seed`` (the same as
 :mod:`baselines.reading.head_fit`'s defaults, 0.2 / 0), so the candidates here are scored on the same validation
@@ -23,7 +23,7 @@ once the validation share is held back (checked from ``dataset.json``'s labels b
 them); a chosen candidate whose mean validation AUC (reading everything) is below 0.5 or undefined, or whose
 validation slope is negative (:func:`validation_aucs`' ``slope``: the 1-D logistic regression of the labels on its
 slide logits; :func:`baselines.reading.head_fit.check_head`). The encoder-scale warning ``dataset.json`` records is
-repeated (:func:`baselines.reading.head_fit.warn_scale`). ``config.json`` records what the head was fitted on
+repeated (:func:`baselines.reading.slides.warn_scale`). ``config.json`` records what the head was fitted on
 (:data:`baselines.reading.provenance.RECORD`).
 """
 from __future__ import annotations
@@ -33,14 +33,14 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.reading.head_fit import (MIN_SLIDES_PER_CLASS, HeadDataError, check_classes, check_head, load_slide,
-                                        logistic_fit, read_spec, warn_scale, _label)
+from baselines.reading.head_fit import MIN_SLIDES_PER_CLASS, check_classes, check_head, logistic_fit
+from baselines.reading.slides import HeadDataError, load_slide, read_spec, spec_label, warn_scale
 from data_tools.features import pcam_cnn
 from data_tools.metrics import json_safe
 
 
 def load_grid(bundle, label=None, dim: int = pcam_cnn.VIEW_LOGIT) -> dict:
-    """:func:`baselines.reading.head_fit.load_slide` with ``grid=True`` (read through the checked bundle loader):
+    """:func:`baselines.reading.slides.load_slide` with ``grid=True`` (read through the checked bundle loader):
     plus ``features (H, W, D)`` float16, the finest feature grid with one row per finest view (the same view →
     feature-cell mapping as ``logits``; ``features[..., dim]`` equals ``logits``)."""
     return load_slide(bundle, label, dim, grid=True)
@@ -68,7 +68,7 @@ def cache_grids(dataset, entries, cache, progress: bool = True, extra=None) -> l
     out, arrays = [], {}
     for i, rel in enumerate(entries):
         bundle = Path(rel) if Path(rel).is_absolute() else dataset / rel
-        s = load_grid(bundle, _label(spec, Path(rel).name))
+        s = load_grid(bundle, spec_label(spec, Path(rel).name))
         d = {"name": s["name"], "label": s["label"], "features": s["features"], "tissue": s["tissue"]}
         for key, v in (extra(s) if extra else {}).items():
             d[key] = np.asarray(v)
@@ -373,7 +373,7 @@ def run(args, parser=None) -> int:
         warn_scale(args.dataset, spec)  # the encoder-scale warning dataset.json records, repeated
         kept, held = split_train(spec, args.val_fraction, args.seed)
         check_validation_share(spec, held, Path(args.dataset) / "dataset.json", args.val_fraction, args.fold)
-        known = [_label(spec, Path(n).name) for n in kept]
+        known = [spec_label(spec, Path(n).name) for n in kept]
         if None not in known:  # labels in dataset.json: too few of a class refused before any slide is read
             check_classes(args.dataset, [{"label": v} for v in known], MIN_SLIDES_PER_CLASS)
         slides = cache_grids(args.dataset, spec["train"], args.cache)

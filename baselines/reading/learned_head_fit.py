@@ -60,9 +60,8 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from baselines.evaluate.checks import UNDEFINED
-from baselines.reading.head_fit import HeadDataError, finest_views, read_bundle, warn_scale
-from baselines.reading.head_fit import read_spec as read_sealed_spec
+from baselines.reading.slides import HeadDataError, finest_views, read_bundle, warn_scale
+from baselines.reading.slides import read_spec as read_sealed_spec
 from baselines.reading.lesions import lesion_of
 from histojax.reading.heads import encoder_mismatch
 from baselines.reading.provenance import RECORD, add_flag, check_scored, fit_record, head_for_fold
@@ -71,7 +70,7 @@ from data_tools.annotations import load_annotations
 from data_tools.bundle_format import own_file
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
-from data_tools.metrics import (auc_interval, format_auc, json_safe, roc_auc, roc_auc_with_interval,
+from data_tools.metrics import (UNDEFINED, auc_interval, format_auc, json_safe, roc_auc, roc_auc_with_interval,
                                 small_split_warning)
 from histojax.reading.heads import files
 from histojax.reading.heads.learned import KIND, LearnedHead, init_params

@@ -6,7 +6,7 @@ the trained readers' roll-outs. Both commands are this pipeline with their own h
    nothing outside a bundle, checksums verified) into a :class:`Split`: its 0/1 ``labels (B,)`` and per slide a
    cell table (:mod:`baselines.reading.orders`: ``valid (C,)``, ``cell_views (C,)``, ``total``). With a head
    (the readers) the cells are a bundle level's views and each slide is the finest grid
-   (:func:`baselines.reading.head_fit.load_slide`: ``tissue``, ``logits``, tumour polygons, µm/px); with a
+   (:func:`baselines.reading.slides.load_slide`: ``tissue``, ``logits``, tumour polygons, µm/px); with a
    scenario and glimpse level (the budget curve) the cells are the env's glimpse cells
    (:meth:`histojax.reading.modes.glimpse.Glimpse.host_tables`: ``instances (V, D)`` of the finest tissue views).
 2. :func:`check_two_classes` refuses, in one line naming ``dataset.json``, a scored split that holds one class:
@@ -26,7 +26,7 @@ import jax
 import numpy as np
 
 from baselines.reading.budgets import BUDGETS
-from baselines.reading.head_fit import HeadDataError, load_slide, load_slides, read_bundle, read_spec, split_bundles
+from baselines.reading.slides import HeadDataError, load_slide, load_slides, read_bundle, read_spec, split_bundles
 from baselines.reading.orders import random_order, read_cells
 from data_tools.bundle_format import read_metadata, verify_metadata
 from baselines.run_config import read_run_config
@@ -36,7 +36,7 @@ from histojax.reading.head_reward import pools_views
 @dataclasses.dataclass
 class Split:
     """A split's slides ready for reading. ``labels (B,)`` int 0/1; ``slides``: per slide a dict — the readers'
-    finest grid (:func:`baselines.reading.head_fit.load_slide`) or the budget curve's glimpse cell table
+    finest grid (:func:`baselines.reading.slides.load_slide`) or the budget curve's glimpse cell table
     (:meth:`~histojax.reading.modes.glimpse.Glimpse.host_tables`); ``head``: the head loaded (readers), ``None``
     otherwise; ``cell_level``: the bundle level (readers) or scenario level (budget curve) of the cells;
     ``dataset``, ``split``, ``fold``: where the slides came from."""
@@ -64,7 +64,7 @@ def load_split(dataset, split: str, *, fold: int | None = None, head=None, cell_
     * ``env_id`` and ``level`` (the budget curve): ``histojax.make(env_id, dataset=..., split=..., fold=...)`` and the
       glimpse cell tables of scenario level ``level`` per slide, labels from the env (``verify``: checksums).
     * ``head`` (a head folder or a loaded head; the readers): ``dataset.json`` read with its seal checked, each
-      bundle read by :func:`baselines.reading.head_fit.load_slide` with the finest level and the cells of bundle
+      bundle read by :func:`baselines.reading.slides.load_slide` with the finest level and the cells of bundle
       level ``cell_level`` (default :func:`cell_level_for`: downsample nearest 4); a head that reads every feature
       entry gets its per-view scores and cached terms (:func:`with_head_scores`), a logit head its entry."""
     dataset = Path(dataset)
@@ -117,7 +117,7 @@ def one_class_problem(split: str, labels, fold: int | None = None) -> str | None
 
 
 def check_two_classes(dataset, split: str, labels, fold: int | None = None) -> None:
-    """Refuse a scored split that holds one class: :class:`~baselines.reading.head_fit.HeadDataError`, one line
+    """Refuse a scored split that holds one class: :class:`~baselines.reading.slides.HeadDataError`, one line
     naming ``dataset.json`` (:func:`one_class_problem`)."""
     problem = one_class_problem(split, labels, fold)
     if problem:
@@ -188,7 +188,7 @@ def cell_level_for(dataset: Path, spec: dict, split: str, target: float = 4.0) -
 
 
 def with_head_scores(slide: dict, head, grids: dict) -> dict:
-    """``slide`` (:func:`baselines.reading.head_fit.load_slide` with ``grid=True``) scored by a head that reads
+    """``slide`` (:func:`baselines.reading.slides.load_slide` with ``grid=True``) scored by a head that reads
     every feature entry: ``logits (H, W)`` its per-view scores of the finest views, ``terms (H, W, 2)`` their
     cached attention and instance logits, and per coarse level in ``grids`` (``{level: (h, w, D)}``) ``coarse``
     the per-view scores and ``coarse_terms`` the terms of the cells' own feature vectors. The finest feature
@@ -229,7 +229,7 @@ def tumour_geometry(bundle):
 
 
 def load_feature_slides(dataset, split, spec: dict, head, cell_level: int, progress: bool = False) -> list[dict]:
-    """:func:`baselines.reading.head_fit.load_slide` of every bundle of ``split`` for a head that reads every
+    """:func:`baselines.reading.slides.load_slide` of every bundle of ``split`` for a head that reads every
     feature entry (:func:`with_head_scores`: per-view scores and terms of the finest views and of the cells of
     bundle level ``cell_level``), through the checked bundle loader."""
     out = []

@@ -57,9 +57,9 @@ from baselines.reading.budgets import BUDGETS
 from baselines.reading.csv_files import write_csv
 from baselines.reading.lesions import CLASSES, lesion_class
 from baselines.reading import pipeline
-from baselines.reading.head_fit import HeadDataError
+from baselines.reading.slides import HeadDataError
 from baselines.reading.orders import logit_order, search_order
-from baselines.reading.head_fit import padded
+from baselines.reading.slides import padded
 from baselines.reading.pipeline import cell_level_for  # noqa: F401  (cell_level_for: readers' API)
 from baselines.reading.pipeline import reader_auc
 from baselines.reading.plots import plot_readers

@@ -48,7 +48,7 @@ import sys
 import time
 from pathlib import Path
 
-from baselines.reading import head_fit
+from baselines.reading import slides
 from baselines.run_config import read_run_config
 from data_tools.errors import HistojaxDataError
 from histojax import compile_cache
@@ -95,8 +95,8 @@ def is_navigator(action_mode: str) -> bool:
 def scale_warning(dataset: Path, spec: dict) -> str | None:
     """The one-line warning repeated from ``dataset.json``'s ``encoder_scale`` (written by ``histojax dataset``)
     when slides lie outside the built-in encoder's training scale, as printed (``warning: ...``; the words of
-    :func:`baselines.reading.head_fit.scale_warning`, which every tool reading a dataset repeats), else None."""
-    line = head_fit.scale_warning(dataset, spec)
+    :func:`baselines.reading.slides.scale_warning`, which every tool reading a dataset repeats), else None."""
+    line = slides.scale_warning(dataset, spec)
     return f"warning: {line}" if line else None
 
 
@@ -106,7 +106,7 @@ def split_dataset(dataset: Path, out: Path, fraction: float, seed: int, fold: in
     file on a missing, edited or malformed ``dataset.json``."""
     from baselines.validation import split_train
 
-    spec = head_fit.read_spec(dataset, fold)  # its seal checked; fold i's sides
+    spec = slides.read_spec(dataset, fold)  # its seal checked; fold i's sides
     kept, val = split_train(spec, fraction, seed)
     absolute = lambda entries: [str((dataset / e).resolve()) if not Path(e).is_absolute() else e  # noqa: E731
                                 for e in entries]

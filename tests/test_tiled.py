@@ -247,7 +247,7 @@ def test_cli_build_tiled(tmp_path, capsys):
 
     out = tmp_path / "cli"
     assert main(["build", str(SVS), "--annotations", str(XML), "--out", str(out), "--levels", "3",
-                 "--storage", "tiled", "--quiet"]) == 0
+                 "--storage", "tiled"]) == 0  # not --quiet: that prints only the `wrote` line, no level table
     text = capsys.readouterr().out
     assert "(tiled)" in text and "pool tiles" in text
     assert json.loads((out / "metadata.json").read_text())["storage"] == "tiled"

@@ -13,6 +13,12 @@ thumbnail ...: names and sizes in :attr:`OpenSlideReader.associated`). Regions o
 transparent pixels OpenSlide returns where a scanner stored nothing, are white (255), as the native readers
 give them.
 
+A file is never given to OpenSlide in this process first: a MIRAX slide's ``Slidedat.ini`` is checked against the
+limits every reader shares (:mod:`data_tools.mirax`, :mod:`data_tools.slide_limits`), then every slide is opened in a
+child process (:func:`_probe`), so that a file that makes OpenSlide abort (GLib's "overflow allocating") or crash
+stops only that child and is refused here in one line; the levels OpenSlide reports are checked against the same
+limits.
+
 Units as in :mod:`data_tools.slides`: pixels of the level read, ``downsample`` in level-0 px per level px,
 ``mpp`` in µm per level-0 px. Every problem with the file raises :class:`data_tools.errors.SlideError`
 naming the path, in one line.

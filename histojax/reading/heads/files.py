@@ -63,6 +63,26 @@ class HeadFileError(ValueError):
         super().__init__(f"{self.path}: {problem}")
 
 
+MAX_ARRAY_VALUE = 1e6
+"""The largest magnitude of any entry of a head's ``params.npz`` (weights, biases, means, calibration,
+``prior_logit``), as the logit heads bound ``a``, ``b`` and ``prior_logit``: a fitted head's are a few units."""
+
+
+def check_magnitudes(arrays: dict, path, min_sd: float) -> None:
+    """Refuse (``HeadFileError`` naming ``path``, one line) the arrays of a head's ``params.npz`` (name -> array)
+    with an entry beyond :data:`MAX_ARRAY_VALUE` in magnitude, or a standardisation ``sd`` below ``min_sd`` (what
+    the head's fit adds to every standard deviation, or less): finite but absurd values that would score every
+    slide −inf or NaN (``x / 1e-40``, ``3e38 · s``)."""
+    if "sd" in arrays and np.any(arrays["sd"] < min_sd):
+        raise HeadFileError(path, f"array sd holds values below {min_sd:g} (a feature's standard deviation, at "
+                                  f"least {min_sd:g} in a fitted head)")
+    for name, arr in arrays.items():
+        top = float(np.max(np.abs(arr))) if np.size(arr) else 0.0
+        if top > MAX_ARRAY_VALUE:
+            raise HeadFileError(path, f"array {name} holds values of magnitude up to {top:.3g}, beyond "
+                                      f"{MAX_ARRAY_VALUE:g} (a fitted head's are a few units); refusing it")
+
+
 def check_finite_logits(head, logits, what: str = "slide logits"):
     """``logits`` (any shape) as a NumPy array (its dtype kept) when every entry is finite; else
     ``HeadFileError`` naming the parameters file of ``head`` (its ``source`` folder's ``params.npz``, or the head's

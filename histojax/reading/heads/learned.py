@@ -59,7 +59,7 @@ FORMAT = 1
 NEG = -1e30  # the running maximum of a slide with nothing read (finite: exp(NEG - NEG) is 1, not nan)
 MAX_DIM = 1 << 16
 MAX_UNITS = 4096
-MAX_PARAM = 1e6
+MAX_PARAM = files.MAX_ARRAY_VALUE
 """The largest magnitude of any array entry read (weights, biases, ``mu``, ``cal_a``, ``cal_b``, ``prior_logit``),
 as the logit heads bound theirs: a fitted head's are a few units (weight decay; a calibration of a few units)."""
 MIN_SD = 1e-4
@@ -261,15 +261,7 @@ class LearnedHead:
         layers = files.field(cfg, "layers", int, cfg_file, lo=1, hi=2)
         encoder = files.field(cfg, "encoder", (str, type(None)), cfg_file, default=None)
         arrays = files.read_arrays(folder / files.PARAMS, param_shapes(dim, hidden, att, layers))
-        if np.any(arrays["sd"] < MIN_SD):
-            raise files.HeadFileError(folder / files.PARAMS, f"array sd holds values below {MIN_SD:g} (a feature's "
-                                                             "standard deviation, at least 1e-3 in a fitted head)")
-        for name, arr in arrays.items():
-            top = float(np.max(np.abs(arr))) if arr.size else 0.0
-            if top > MAX_PARAM:
-                raise files.HeadFileError(folder / files.PARAMS, f"array {name} holds values of magnitude up to "
-                                                                 f"{top:.3g}, beyond {MAX_PARAM:g} (a fitted head's "
-                                                                 "are a few units); refusing it")
+        files.check_magnitudes(arrays, folder / files.PARAMS, MIN_SD)  # finite but absurd: refused as well
         known = {"kind", "format", "features_dim", "hidden", "attention", "layers", "encoder", "name", "input", "output", "files"}
         info = json.dumps({k: v for k, v in cfg.items() if k not in known})  # json-not-written: files.save writes it
         params = {k: jnp.asarray(v) for k, v in arrays.items() if k not in SCALARS}

@@ -51,6 +51,8 @@ THRESHOLDS = (0.0, 1.0, 2.0)   # view-logit thresholds of the counts in StatsHea
 TOPS = (1, 3)
 MAX_UNITS = 4096
 """The most hidden or attention units a MIL head may have."""
+MIN_SD = 1e-7
+"""The smallest standardisation ``sd`` read (the fits add 1e-6 or 1e-3 to every standard deviation)."""
 
 
 def logit_instances(logits: jax.Array, mask: jax.Array, ks) -> jax.Array:
@@ -319,6 +321,7 @@ def load(folder):
         arrays = files.read_arrays(par_file, param_shapes(kind, len(ks)))
         if not np.all(arrays["sd"] > 0):
             raise files.HeadFileError(par_file, "array sd holds values <= 0 (a standard deviation)")
+        files.check_magnitudes(arrays, par_file, MIN_SD)
         params = {k: jnp.asarray(arrays[k]) for k in ("mu", "sd", "w", "b")}
         return StatsHead(params=params, prior_logit=jnp.float32(arrays["prior_logit"]), dim=dim, ks=ks,
                          encoder=encoder, info=info)
@@ -337,6 +340,7 @@ def load(folder):
         raise files.HeadFileError(par_file, f"{what} (inputs, hidden and attention units must agree)")
     if not np.all(arrays["sd"] > 0):
         raise files.HeadFileError(par_file, "array sd holds values <= 0 (a standard deviation)")
+    files.check_magnitudes(arrays, par_file, MIN_SD)
     params = {k: jnp.asarray(v) for k, v in arrays.items() if k != "prior_logit"}
     return MilHead(params=params, prior_logit=jnp.float32(arrays["prior_logit"]), dim=dim, ks=ks, inputs=inputs,
                    feature_k=fk, hidden=hidden, encoder=encoder, info=info)

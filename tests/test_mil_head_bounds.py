@@ -1,0 +1,28 @@
+"""A MIL head's parameters (the published ``pooled-statistics`` head here; ``attention-mil`` heads alike) are
+bounded on load as the learned and logit heads' are: finite but absurd values are refused in one line naming
+``params.npz`` and the array."""
+from __future__ import annotations
+
+import io
+import shutil
+
+import numpy as np
+import pytest
+
+from baselines.published_agents import PUBLISHED
+from histojax.reading.heads import files, mil
+
+
+@pytest.mark.parametrize("name, value", [("w", 1e30), ("prior_logit", 3e38), ("sd", 1e-40), ("mu", -1e9)])
+def test_absurd_but_finite_values_of_the_published_mil_head_are_refused(tmp_path, name, value):
+    folder = tmp_path / "head"
+    shutil.copytree(PUBLISHED / "c16-v2-head-mil", folder)
+    with np.load(folder / files.PARAMS) as z:
+        arrays = {k: z[k] for k in z.files}
+    mil.load(folder)  # as published: loads
+    arrays[name] = np.full(arrays[name].shape, value, np.float32)
+    buf = io.BytesIO()
+    np.savez(buf, **arrays)
+    (folder / files.PARAMS).write_bytes(buf.getvalue())
+    with pytest.raises(files.HeadFileError, match=rf"params\.npz: array {name} holds values"):
+        mil.load(folder)

@@ -28,7 +28,9 @@ import jax.numpy as jnp
 import numpy as np
 
 import histojax
-from baselines import common, outputs
+from baselines import outputs
+from baselines.common.env import make_random_rollout
+from baselines.harness.runner import run_and_save
 from data_tools.cli_output import command_main
 from data_tools.metrics import json_safe
 from histojax.render import animate, render_trajectory
@@ -94,7 +96,7 @@ def random_agent_table(num_envs: int = 256, num_steps: int = 400, seed: int = 0,
     key = jax.random.PRNGKey(seed)
     for env_id in scenarios:
         env, params = histojax.make(env_id)
-        rollout = common.make_random_rollout(env, num_envs, num_steps)
+        rollout = make_random_rollout(env, num_envs, num_steps)
         t0 = time.perf_counter()
         jax.block_until_ready(rollout(key, params))
         compile_s = time.perf_counter() - t0
@@ -135,12 +137,12 @@ def print_banner() -> None:
 
 def train_ppo(config: dict, out: Path) -> tuple[dict, object, dict]:
     """Compile and run PPO for ``config`` (one program over its seeds), then write logs, curve
-    and checkpoint to ``out`` (:func:`baselines.common.run_and_save`). Returns ``(config, params, summary)``."""
+    and checkpoint to ``out`` (:func:`baselines.harness.runner.run_and_save`). Returns ``(config, params, summary)``."""
     from baselines import ppo
 
     print(f"\nPPO (pixels + view position, {config['num_envs']} envs, seed {config['seed']}), a line every "
           f"{config['log_every']} updates:", flush=True)
-    return common.run_and_save("ppo", ppo.make_train, config, out)
+    return run_and_save("ppo", ppo.make_train, config, out)
 
 
 def evaluate_policy(config: dict, params, episodes: int, seed: int, out: Path) -> dict:

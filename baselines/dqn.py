@@ -23,13 +23,17 @@ import jax.numpy as jnp
 import optax
 from flax import struct
 
-from baselines import common
+from baselines.common.config import EnvConfig
+from baselines.common.env import episode_stats, make_env, params_initialiser, reset_envs
+from baselines.harness.cli import trainer_command
+from baselines.harness.logs import Progress, report
+from baselines.harness.runner import seeds_runner
 from baselines.networks import QNetwork, preprocess_obs
 from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
-class DQNConfig(common.EnvConfig):
+class DQNConfig(EnvConfig):
     """DQN's settings, typed (``config.json`` records them, :meth:`as_dict`; ``--set KEY=VALUE`` changes any;
     :meth:`from_dict` refuses an unknown entry or a wrong type in one line; discrete actions only). Steps are env
     steps, ``buffer_size`` counts transitions of all envs, ``hidden`` is the network's width."""
@@ -143,7 +147,7 @@ def make_train(config):
     config = DQNConfig.coerce(config, where="dqn.make_train")
     if config.action_mode != "discrete":
         raise ValueError("DQN needs action_mode='discrete'")
-    env, env_params = common.make_env(config)
+    env, env_params = make_env(config)
     env = LogWrapper(env)
     num_actions = env.action_space().n
     network = QNetwork(num_actions, hidden=config.hidden)
@@ -152,7 +156,7 @@ def make_train(config):
     per_log = config.iterations_per_log
     num_logs = max(1, config.total_timesteps // (num_envs * per_log))
     total_iters = num_logs * per_log
-    progress = common.Progress(config.num_seeds, num_logs, per_log * num_envs, config.log_every,
+    progress = Progress(config.num_seeds, num_logs, per_log * num_envs, config.log_every,
                                name=f"dqn {config.env_id}")
     n, gamma = config.n_step, config.gamma
     tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.lr))
@@ -171,12 +175,12 @@ def make_train(config):
                                                   config.double_q))
         return optax.huber_loss(q_sa, target).mean(), q_sa.mean()
 
-    init_params = common.params_initialiser(env, network, num_envs)
+    init_params = params_initialiser(env, network, num_envs)
 
     def init_runner(key, env_params, params):
         """One seed's runner state before the first iteration: ``(params, target params, optimizer state,
         replay buffer, env states, observations, key, gradient steps)`` with the envs freshly reset."""
-        key, _, obs, env_state = common.reset_envs(env, key, env_params, num_envs)
+        key, _, obs, env_state = reset_envs(env, key, env_params, num_envs)
         return (params, params, tx.init(params), buffer_init(obs, rows, num_envs), env_state, obs, key,
                 jnp.zeros((), jnp.int32))
 
@@ -220,10 +224,10 @@ def make_train(config):
         its = block * per_log + jnp.arange(per_log)
         carry, out = jax.lax.scan(iteration, carry, its)
         learned = jnp.maximum(out["learned"].sum(), 1.0)
-        metrics = {**common.episode_stats(out["info"]), "loss": out["loss"].sum() / learned,
+        metrics = {**episode_stats(out["info"]), "loss": out["loss"].sum() / learned,
                    "q": out["q"].sum() / learned, "epsilon": epsilon(its[-1])}
         if config.print_progress:
-            ack = common.report(progress, block, metrics)
+            ack = report(progress, block, metrics)
             metrics = {**metrics, "episodes": metrics["episodes"] + ack}
         return carry, metrics
 
@@ -232,17 +236,17 @@ def make_train(config):
         carry, metrics = jax.lax.scan(lambda c, b: update(c, b, env_params), carry, jnp.arange(num_logs))
         return {"params": carry[0], "metrics": metrics}
 
-    run = common.seeds_runner(train, init_params, env_params, config, progress, env=env)
+    run = seeds_runner(train, init_params, env_params, config, progress, env=env)
     run.env, run.env_params, run.network, run.train_config, run.config = env, env_params, network, config, config.as_dict()
     run.num_updates, run.steps_per_update = num_logs, per_log * num_envs
-    # the pieces of a run in chunks with checkpoints (common.run_chunked)
+    # the pieces of a run in chunks with checkpoints (baselines.harness.runner.run_chunked)
     run.init_params, run.init_runner, run.update, run.runner_params = (init_params, init_runner, update,
                                                                        lambda runner: runner[0])
     return run
 
 
 # python -m baselines.dqn and histojax train --algo dqn: options, command, entry point
-add_arguments, run, main = common.trainer_command("dqn", make_train, DQNConfig, "log blocks", __doc__)
+add_arguments, run, main = trainer_command("dqn", make_train, DQNConfig, "log blocks", __doc__)
 
 
 if __name__ == "__main__":

@@ -8,7 +8,7 @@ success rate, mean episode length, mean steps to success), ``curve.png`` (learni
 mean and min–max band, random agent dashed), ``params.msgpack`` + ``config.json`` (the trained
 parameters of every seed, flax msgpack; ``python -m baselines.evaluate runs/ppo-easy``), and
 ``checkpoint/``: the whole training state every ``checkpoint_every`` updates, from which ``--resume
-runs/ppo-easy`` continues a killed run to the uninterrupted result (:func:`baselines.common.run_chunked`).
+runs/ppo-easy`` continues a killed run to the uninterrupted result (:func:`baselines.harness.runner.run_chunked`).
 
 Seeds: ``make_train`` returns one jitted program for all seeds: ``jax.vmap`` over the keys
 (default), or ``vmap_seeds=False`` to run them one after another with ``lax.map`` in the same
@@ -43,7 +43,13 @@ import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
-from baselines import common
+from baselines.common.config import EnvConfig
+from baselines.common.devices import batch_mesh, check_rollout_memory, shard_batch
+from baselines.common.env import env_vmap, episode_stats, make_env, params_initialiser, pin_env_shapes, reset_envs
+from baselines.harness import cli
+from baselines.harness.cli import trainer_command
+from baselines.harness.logs import Progress, report
+from baselines.harness.runner import seeds_runner
 from baselines.networks import (ActorCritic, CellSetActorCritic, EpisodeTables, RecurrentActorCritic,
                                 RecurrentCellSetActorCritic, is_discrete, policy_entropy, policy_log_prob,
                                 preprocess_obs, rollout_apply, rollout_sampler, uses_cell_sets)
@@ -51,7 +57,7 @@ from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
 
 @dataclasses.dataclass(frozen=True)
-class PPOConfig(common.EnvConfig):
+class PPOConfig(EnvConfig):
     """PPO's settings, typed (``config.json`` records them, :meth:`as_dict`; ``--set KEY=VALUE`` changes any;
     :meth:`from_dict` makes one from a dict and refuses an unknown entry or a wrong type in one line). Steps are
     env steps, widths are units of a dense layer; ``lr`` is Adam's step size, the coefficients are loss weights."""
@@ -240,10 +246,10 @@ def update_metrics(info: dict, aux, progress, update_index, config) -> dict:
     """One update's metrics: episode statistics of the rollout's ``info`` and the means of the
     losses ``aux`` (from :func:`clipped_loss`); printed through ``progress`` when asked (``print_progress``)."""
     pg_loss, v_loss, entropy, kl = (a.mean() for a in aux)
-    metrics = {**common.episode_stats(info), "pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy,
+    metrics = {**episode_stats(info), "pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy,
                "approx_kl": kl}
     if settings(config).print_progress:
-        ack = common.report(progress, update_index, metrics)
+        ack = report(progress, update_index, metrics)
         metrics = {**metrics, "episodes": metrics["episodes"] + ack}
     return metrics
 
@@ -265,16 +271,16 @@ def make_train(config):
     ``train.config`` its record, the ``config.json`` the run writes (:meth:`PPOConfig.as_dict`)."""
     config = PPOConfig.coerce(config, where="ppo.make_train")
     num_envs, num_steps = config.num_envs, config.num_steps
-    mesh = common.batch_mesh(config.devices, num_envs)
+    mesh = batch_mesh(config.devices, num_envs)
     sharded = bool(config.shard_slides)
     if sharded and mesh is None:
         raise ValueError("shard_slides=True splits the slides over the devices: give devices=N too")
-    env, env_params = common.make_env(config, mesh=mesh)
-    config = common.pin_env_shapes(resolve_obs_norm(config, env_params), env_params)
-    common.check_rollout_memory(env, env_params, config)
+    env, env_params = make_env(config, mesh=mesh)
+    config = pin_env_shapes(resolve_obs_norm(config, env_params), env_params)
+    check_rollout_memory(env, env_params, config)
     env = LogWrapper(env)
-    reset_all = common.env_vmap(env.reset, 1, mesh, sharded)
-    step_all = common.env_vmap(env.step, 3, mesh, sharded)
+    reset_all = env_vmap(env.reset, 1, mesh, sharded)
+    step_all = env_vmap(env.step, 3, mesh, sharded)
     network = make_network(config, env)
     mode = config.action_mode
     sample = rollout_sampler(network, mode)
@@ -285,11 +291,11 @@ def make_train(config):
     if mesh is not None and minibatch % mesh.size:
         raise ValueError(f"the minibatch ({minibatch} = num_envs * num_steps / num_minibatches) must divide "
                          f"by devices={mesh.size}")
-    shard = functools.partial(common.shard_batch, mesh)  # identity without devices
-    progress = common.Progress(config.num_seeds, num_updates, batch, config.log_every,
+    shard = functools.partial(shard_batch, mesh)  # identity without devices
+    progress = Progress(config.num_seeds, num_updates, batch, config.log_every,
                                name=f"ppo {config.env_id}")
 
-    init_params = common.params_initialiser(env, network, num_envs, reset_all)
+    init_params = params_initialiser(env, network, num_envs, reset_all)
 
     tx = make_optimizer(config, num_updates)
 
@@ -300,7 +306,7 @@ def make_train(config):
     def init_runner(key, env_params, params):
         """One seed's runner state before the first update: ``(train state, env states, observations, key)``
         with the envs freshly reset."""
-        key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs, reset_all)
+        key, _, obs0, env_state = reset_envs(env, key, env_params, num_envs, reset_all)
         obs0, env_state = shard((obs0, env_state))
         return init_state(params), env_state, obs0, key
 
@@ -356,9 +362,9 @@ def make_train(config):
         state, _, metrics = run_updates(init_state(params), key, env_params, 0, num_updates)
         return {"params": state.params, "metrics": metrics}
 
-    run = common.seeds_runner(train, init_params, env_params, config, progress, mesh, env=env)
+    run = seeds_runner(train, init_params, env_params, config, progress, mesh, env=env)
     run.init_params, run.init_state, run.run_updates, run.progress = init_params, init_state, run_updates, progress
-    # the pieces of a run in chunks with checkpoints (common.run_chunked)
+    # the pieces of a run in chunks with checkpoints (baselines.harness.runner.run_chunked)
     run.init_runner, run.update, run.runner_params = init_runner, update, lambda runner: runner[0].params
     run.env, run.env_params, run.network, run.num_updates = env, env_params, network, num_updates
     run.train_config, run.config, run.steps_per_update = config, config.as_dict(), batch
@@ -366,17 +372,17 @@ def make_train(config):
 
 
 def parse_args(argv=None, defaults=DEFAULTS, description=__doc__):
-    """The baselines' command line (:func:`baselines.common.parse_args`) with PPO's defaults."""
-    return common.parse_args(argv, defaults, description)
+    """The baselines' command line (:func:`baselines.harness.cli.parse_args`) with PPO's defaults."""
+    return cli.parse_args(argv, defaults, description)
 
 
 def config_from_args(args, defaults=DEFAULTS) -> dict:
-    """The config of parsed arguments (:func:`baselines.common.config_from_args`) with PPO's defaults."""
-    return common.config_from_args(args, defaults)
+    """The config of parsed arguments (:func:`baselines.harness.cli.config_from_args`) with PPO's defaults."""
+    return cli.config_from_args(args, defaults)
 
 
 # python -m baselines.ppo and histojax train --algo ppo: options, command, entry point
-add_arguments, run, main = common.trainer_command("ppo", make_train, PPOConfig, "updates", __doc__)
+add_arguments, run, main = trainer_command("ppo", make_train, PPOConfig, "updates", __doc__)
 
 
 if __name__ == "__main__":

@@ -27,7 +27,12 @@ import jax
 import jax.numpy as jnp
 from flax.training.train_state import TrainState
 
-from baselines import common, ppo
+from baselines import ppo
+from baselines.common.devices import check_rollout_memory
+from baselines.common.env import make_env, params_initialiser, pin_env_shapes, reset_envs
+from baselines.harness.cli import trainer_command
+from baselines.harness.logs import Progress
+from baselines.harness.runner import seeds_runner
 from baselines.networks import (RecurrentActorCritic, ScannedGRU, network_step, policy_log_prob, rollout_sampler,
                                 preprocess_obs, rollout_step)
 from histojax import compile_cache
@@ -97,9 +102,9 @@ def make_train(config):
     config = PPORNNConfig.coerce(config, where="ppo_rnn.make_train")
     if config.devices is not None:
         raise ValueError("ppo_rnn does not shard over devices; drop devices (use baselines.ppo for that)")
-    env, env_params = common.make_env(config)
-    config = common.pin_env_shapes(ppo.resolve_obs_norm(config, env_params), env_params)
-    common.check_rollout_memory(env, env_params, config)
+    env, env_params = make_env(config)
+    config = pin_env_shapes(ppo.resolve_obs_norm(config, env_params), env_params)
+    check_rollout_memory(env, env_params, config)
     env = LogWrapper(env)
     network = make_network(config, env)
     mode, hidden = config.action_mode, config.hidden
@@ -109,10 +114,10 @@ def make_train(config):
                          f"whole env sequences)")
     num_updates = max(1, config.total_timesteps // (num_envs * num_steps))
     batch = num_envs * num_steps
-    progress = common.Progress(config.num_seeds, num_updates, batch, config.log_every,
+    progress = Progress(config.num_seeds, num_updates, batch, config.log_every,
                                name=f"ppo_rnn {config.env_id}")
 
-    init_params = common.params_initialiser(
+    init_params = params_initialiser(
         env, network, num_envs, inputs=lambda obs: (ScannedGRU.initial_state(num_envs, hidden),
                                                      jax.tree.map(lambda a: a[None], obs),
                                                      jnp.ones((1, num_envs), bool)))
@@ -122,7 +127,7 @@ def make_train(config):
     def init_runner(key, env_params, params):
         """One seed's runner state before the first update: ``(train state, env states, observations,
         first flags, GRU states, key)`` with the envs freshly reset."""
-        key, _, obs0, env_state = common.reset_envs(env, key, env_params, num_envs)
+        key, _, obs0, env_state = reset_envs(env, key, env_params, num_envs)
         state = TrainState.create(apply_fn=network.apply, params=params, tx=tx)
         return state, env_state, obs0, jnp.ones(num_envs, bool), ScannedGRU.initial_state(num_envs, hidden), key
 
@@ -156,17 +161,17 @@ def make_train(config):
         (state, *_), metrics = jax.lax.scan(lambda c, i: update(c, i, env_params), carry, jnp.arange(num_updates))
         return {"params": state.params, "metrics": metrics}
 
-    run = common.seeds_runner(train, init_params, env_params, config, progress, env=env)
+    run = seeds_runner(train, init_params, env_params, config, progress, env=env)
     run.env, run.env_params, run.network, run.num_updates = env, env_params, network, num_updates
     run.train_config, run.config, run.steps_per_update = config, config.as_dict(), batch
-    # the pieces of a run in chunks with checkpoints (common.run_chunked)
+    # the pieces of a run in chunks with checkpoints (baselines.harness.runner.run_chunked)
     run.init_params, run.init_runner, run.update, run.runner_params = (init_params, init_runner, update,
                                                                        lambda runner: runner[0].params)
     return run
 
 
 # python -m baselines.ppo_rnn and histojax train --algo ppo_rnn: options, command, entry point
-add_arguments, run, main = common.trainer_command("ppo_rnn", make_train, PPORNNConfig, "updates", __doc__)
+add_arguments, run, main = trainer_command("ppo_rnn", make_train, PPORNNConfig, "updates", __doc__)
 
 
 if __name__ == "__main__":

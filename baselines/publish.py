@@ -29,7 +29,8 @@ from pathlib import Path
 
 import jax
 
-from baselines import common, outputs
+from baselines import outputs
+from baselines.harness.logs import load_checkpoint, save_checkpoint
 from baselines.published_agents import PUBLISHED
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import json_safe
@@ -68,11 +69,11 @@ def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str |
         outputs.write_text(dest / "config.json", json.dumps(json_safe(config), indent=2, allow_nan=False))
         seeds = None
     else:
-        params, _ = common.load_checkpoint(run)
+        params, _ = load_checkpoint(run)
         n = jax.tree.leaves(params)[0].shape[0]
         if not 0 <= seed < n:
             raise ValueError(f"{run} has {n} seed(s); --seed {seed} is not one of them")
-        common.save_checkpoint(dest, jax.tree.map(lambda a: a[seed:seed + 1], params), {**config, "num_seeds": 1})
+        save_checkpoint(dest, jax.tree.map(lambda a: a[seed:seed + 1], params), {**config, "num_seeds": 1})
         seeds = [seed]
     for f in ("log.csv", "curve.png"):  # the learning curve, when the run has one
         if (run / f).is_file():

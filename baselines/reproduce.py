@@ -25,7 +25,8 @@ from pathlib import Path
 
 import jax
 
-from baselines import common, dqn, outputs, ppo
+from baselines import dqn, outputs, ppo
+from baselines.harness.logs import load_checkpoint
 from baselines.evaluate import evaluate
 from data_tools.cli_output import command_main
 
@@ -46,7 +47,7 @@ def run_cell(algo: str, env_id: str, action_mode: str, obs: str, slide, budget: 
     t0 = time.perf_counter()
     (ppo if algo == "ppo" else dqn).main(argv)
     wall = time.perf_counter() - t0
-    params, config = common.load_checkpoint(out)
+    params, config = load_checkpoint(out)
     rows = evaluate(config, params, num_episodes=budget["episodes"], out=out / "eval", label=algo)
     name = f"{algo} (sampled)" if f"{algo} (sampled)" in rows else f"{algo} (greedy)"
     row = rows[name]

@@ -40,7 +40,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from baselines import common, ppo
+from baselines import ppo
+from baselines.common.config import ConfigError, env_overrides
+from baselines.harness.runner import finish_run
 from data_tools.cli_output import command_main, print_error
 from histojax.registry import make, slide_paths
 from histojax.sharding import PER_SLIDE, host_leaves, on_host, pad_leaf
@@ -161,7 +163,7 @@ def train_rotating(config, budget_bytes: int, resident: int | None = None, rotat
     config = ppo.PPOConfig.coerce(config, where="rotation.train_rotating")
     if config.devices is not None or config.shard_slides:
         raise ValueError("rotating slides runs on one device (no devices / shard_slides)")
-    kw = common.env_overrides(config)
+    kw = env_overrides(config)
     paths = slide_paths(config.env_id, slide=config.slide, slides=kw.pop("slides", None),
                         dataset=kw.pop("dataset", None), split=kw.pop("split", "train"), fold=kw.pop("fold", None),
                         **kw)
@@ -247,7 +249,7 @@ def run(args, parser) -> int:
         raise SystemExit("baselines.rotation runs in one process (no --coordinator / --distributed)")
     try:
         config = ppo.PPOConfig.from_dict(ppo.config_from_args(args), where="the options (--set)")
-    except common.ConfigError as e:
+    except ConfigError as e:
         return print_error(e)
     out = Path(args.out or f"runs/rotation-{config.env_id}")
     result = train_rotating(config, int(args.budget_mb * 2**20), args.resident, args.rotate_every, args.source)
@@ -256,7 +258,7 @@ def run(args, parser) -> int:
           f"{rot['rotate_every']} updates; dataset {rot['dataset_bytes']:,} bytes, budget {rot['budget_bytes']:,}, bound {rot['bound_bytes']:,}, resident peak {rot['resident_peak_bytes']:,}, "
           f"all live arrays at peak {rot['live_peak_bytes']:,} (before the first set {rot['baseline_bytes']:,}, "
           f"train state {rot['train_state_bytes']:,})")
-    common.finish_run("ppo", result["config"], out, result["params"], result["metrics"], result["steps_per_update"],
+    finish_run("ppo", result["config"], out, result["params"], result["metrics"], result["steps_per_update"],
                    rot["train_seconds"], rot["compile_seconds"], env_and_params=(result["env"], result["env_params"]))
     return 0
 

@@ -210,7 +210,7 @@ def env_rows(env, params, args, budget: Budget, view_bytes: int | None, bandwidt
 
 def ppo_item(obs_mode: str, slide, args) -> dict:
     """PPO end-to-end env steps/s on ``HistoJAX-Easy-v0`` (compile apart)."""
-    from baselines.common import compile_and_run
+    from baselines.harness.runner import compile_and_run
     from baselines.ppo import make_train
 
     config = {"env_id": "HistoJAX-Easy-v0", "obs_mode": obs_mode, "slide": None if slide is None else str(slide),

@@ -33,12 +33,12 @@ def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: 
     compile time. ``all_cells``: a set reader's per-cell layers over all slides' cells (``batch_cells=False``)."""
     import jax
 
-    from baselines import common, ppo
+    from baselines import ppo
     from baselines.reading.train_readers import is_navigator
     from histojax.reading.head_reward import HeadReward
     from histojax.registry import READING_ID
 
-    original, original_network = common.make_env, ppo.make_network
+    original, original_network = ppo.make_env, ppo.make_network
 
     def make_env(config, auto_reset=True, mesh=None):
         env, params = original(config, auto_reset=auto_reset, mesh=mesh)
@@ -48,7 +48,7 @@ def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: 
         net = original_network(config, env) if network_cls is None else original_network(config, env, network_cls)
         return net.clone(batch_cells=False) if all_cells and hasattr(net, "batch_cells") else net
 
-    common.make_env, ppo.make_network = make_env, make_network
+    ppo.make_env, ppo.make_network = make_env, make_network
     try:
         kw = {"dataset": str(dataset), "split": "train", "n_levels": levels}
         if not is_navigator(action_mode):
@@ -62,7 +62,7 @@ def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: 
         compiled = train.compile(keys)
         compile_s = time.perf_counter() - t0
     finally:
-        common.make_env, ppo.make_network = original, original_network
+        ppo.make_env, ppo.make_network = original, original_network
 
     def run() -> tuple[float, float]:
         """One timed run: ``(wall s, CPU s of this process)``."""

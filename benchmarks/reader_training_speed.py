@@ -31,19 +31,19 @@ def one_row(dataset: Path, head_dir: str, action_mode: str, num_envs: int, minib
     """PPO env steps/s of one setting (1 seed, ``updates`` updates of ``num_envs`` × 64 steps)."""
     import jax
 
-    from baselines import common, ppo
+    from baselines import ppo
     from histojax.reading import heads
     from histojax.reading.head_reward import HeadReward
 
     head = heads.load(head_dir)
-    original_make, original_apply = common.make_env, ppo.rollout_apply
+    original_make, original_apply = ppo.make_env, ppo.rollout_apply
 
     def make_env(config, auto_reset=True, mesh=None):
         env, params = original_make(config, auto_reset=auto_reset, mesh=mesh)
         return HeadReward(env, head, gain="fidelity", final=0.0, params=params,
                           incremental_score=None if windowed else False), params
 
-    common.make_env = make_env
+    ppo.make_env = make_env
     if not keys_once:  # the rollout as before: every step recomputes every slide's cell keys
         ppo.rollout_apply = lambda network, params: (lambda obs: network.apply(params, obs))
     try:
@@ -62,7 +62,7 @@ def one_row(dataset: Path, head_dir: str, action_mode: str, num_envs: int, minib
         jax.block_until_ready(compiled(keys))
         wall = time.perf_counter() - t0
     finally:
-        common.make_env, ppo.rollout_apply = original_make, original_apply
+        ppo.make_env, ppo.rollout_apply = original_make, original_apply
     steps = num_envs * 64 * train.num_updates
     return {"num_envs": num_envs, "num_minibatches": minibatches, "windowed_head": windowed, "keys_once": keys_once,
             "env_steps": steps, "wall_s": round(wall, 2), "steps_per_s": round(steps / wall),

@@ -25,7 +25,7 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.distributed import cpu_child_env
+from baselines.harness.distributed import cpu_child_env
 
 ROOT = Path(__file__).resolve().parents[1]
 PPO_ARGS = ["--env", "HistoJAX-Easy-v0", "--seeds", "1", "--num-envs", "8", "--set", "num_steps=16",
@@ -65,7 +65,7 @@ def load_params(path: Path) -> list[np.ndarray]:
     """The parameter arrays of a checkpoint folder, in tree order."""
     import jax
 
-    from baselines.common import load_checkpoint
+    from baselines.harness.logs import load_checkpoint
 
     params, _ = load_checkpoint(path)
     return [np.asarray(a) for a in jax.tree.leaves(params)]

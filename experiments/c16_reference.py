@@ -57,7 +57,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from baselines import common, outputs, ppo, ppo_rnn  # noqa: E402
+from baselines import outputs, ppo, ppo_rnn  # noqa: E402
+from baselines.harness.logs import load_checkpoint  # noqa: E402
 from baselines.evaluate import evaluate  # noqa: E402
 from baselines.run_config import read_run_config  # noqa: E402
 from data_tools.metrics import auc_interval, json_safe  # noqa: E402
@@ -175,7 +176,7 @@ def trained_cell(method: str, dataset: Path, env_id: str, env_kwargs: dict, step
     t0 = time.perf_counter()
     trainer.main(argv)
     train_wall = time.perf_counter() - t0
-    params, record = common.load_checkpoint(out)
+    params, record = load_checkpoint(out)
     config = read_run_config(record, Path(out) / "config.json")
     config = config.replace(env_kwargs={k: v for k, v in {**train_kwargs, "dataset": str(dataset), "split": "test"}.items()
                                         if k != "augment"})

@@ -46,11 +46,14 @@ def main(argv=None) -> int:
     import jax
     from flax import serialization
 
-    from baselines import common
+    from baselines.common.env import make_env
+    from baselines.harness.curves import plot_curves
+    from baselines.harness.logs import finite_mean, save_checkpoint, smooth, write_logs
+    from baselines.harness.runner import CHECKPOINT_DIR
     from baselines.networks import preprocess_obs
     from baselines.ppo import make_network
 
-    folder = args.run / common.CHECKPOINT_DIR
+    folder = args.run / CHECKPOINT_DIR
     try:
         config = read_run_config(folder / "config.json")
         state = serialization.msgpack_restore((folder / "runner.msgpack").read_bytes())
@@ -72,7 +75,7 @@ def main(argv=None) -> int:
             (Path(tmp) / "dataset.json").write_text(json.dumps({**spec, "train": [first], "test": [first]}, allow_nan=False))
             kw = {**kw, "dataset": tmp, "split": "train"}
         small = config.replace(env_kwargs=kw)
-        env, env_params = common.make_env(small)
+        env, env_params = make_env(small)
         network = make_network(small, env)
         obs, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), 2), env_params)
         template = network.init(jax.random.key(0), preprocess_obs(obs))
@@ -95,14 +98,14 @@ def main(argv=None) -> int:
                "train_seconds": float(state["train_seconds"]), "stopped_at_update": update,
                "planned_updates": int(state["num_updates"]),
                "env_steps_per_second_all_seeds": float(steps[-1] * n_seeds / max(1e-9, float(state["train_seconds"]))),
-               "final": {n: common.finite_mean(metrics[n][:, tail]) for n in ("return", "success", "length")}}
-    common.write_logs(out, steps, metrics, summary)
-    common.plot_curves(out / "curve.png", steps, {"mean return": common.smooth(metrics["return"], k),
-                                                  "success rate": common.smooth(metrics["success"], k),
-                                                  "mean length": common.smooth(metrics["length"], k)},
+               "final": {n: finite_mean(metrics[n][:, tail]) for n in ("return", "success", "length")}}
+    write_logs(out, steps, metrics, summary)
+    plot_curves(out / "curve.png", steps, {"mean return": smooth(metrics["return"], k),
+                                                  "success rate": smooth(metrics["success"], k),
+                                                  "mean length": smooth(metrics["length"], k)},
                        title=f"PPO on {config.env_id} ({config.action_mode}), {n_seeds} seeds, "
                              f"stopped at update {update}/{state['num_updates']}")
-    common.save_checkpoint(out, params, record)
+    save_checkpoint(out, params, record)
     print(f"{out}: update {update}/{state['num_updates']}, {steps[-1]:,} env steps/seed x {n_seeds} seeds in "
           f"{state['train_seconds']:.0f} s ({summary['env_steps_per_second_all_seeds']:,.0f} env steps/s); "
           f"final return {summary['final']['return']:.4f}; wrote params.msgpack, config.json, log.csv, curve.png")

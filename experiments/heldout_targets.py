@@ -34,7 +34,8 @@ import numpy as np
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from baselines import common, ppo  # noqa: E402
+from baselines import ppo  # noqa: E402
+from baselines.harness.logs import load_checkpoint  # noqa: E402
 from baselines.evaluate import evaluate  # noqa: E402
 from baselines.run_config import read_run_config  # noqa: E402
 from data_tools.errors import HistojaxDataError  # noqa: E402
@@ -78,7 +79,7 @@ def run_scenario(name: str, dataset: Path, heldout: list, steps: int, seeds: int
     else:
         print(f"reusing {run} (same scenario, dataset, steps and seeds)")
     summary = json.loads((run / "log.json").read_text())["summary"]
-    params, record = common.load_checkpoint(run)
+    params, record = load_checkpoint(run)
     config = read_run_config(record, run / "config.json")
     same_training = previous is not None and previous.get("train_seconds") == summary["train_seconds"]
     per_slide = {}

@@ -90,7 +90,8 @@ def test_one_class_split_is_refused_by_the_shared_loop(cohort, tmp_path, capsys)
 @pytest.fixture(scope="module")
 def navigator(cohort):
     """A freshly initialised PPO navigator (discrete mode) on the cohort's 3-level bundles."""
-    from baselines import common, ppo
+    from baselines import ppo
+    from baselines.harness.logs import save_checkpoint
 
     config = dict(env_id="HistoJAX-Reading-v0", obs_mode="features", action_mode="discrete", num_envs=2, num_steps=4,
                   total_timesteps=8, hidden=8, num_minibatches=1, update_epochs=1, num_seeds=1, print_progress=False,
@@ -98,7 +99,7 @@ def navigator(cohort):
     train = ppo.make_train(config)
     params = train.init_params(jax.random.key(0), train.env_params)
     run = cohort["tmp"] / "nav"
-    common.save_checkpoint(run, jax.tree.map(lambda a: a[None], params), train.config)
+    save_checkpoint(run, jax.tree.map(lambda a: a[None], params), train.config)
     return run
 
 

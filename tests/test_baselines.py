@@ -7,7 +7,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines import common, dqn, evaluate, networks, ppo
+from baselines import dqn, evaluate, networks, ppo
+from baselines.harness.logs import load_checkpoint, save_checkpoint
 
 TINY_PPO = dict(env_id="HistoJAX-Easy-v0", with_position=True, num_envs=4, num_steps=8, total_timesteps=64,
                 update_epochs=1, num_minibatches=2, hidden=32, num_seeds=2, print_progress=False)
@@ -34,15 +35,16 @@ def test_tiny_ppo_runs_jitted_with_finite_losses(vmap_seeds):
 def test_a_rollout_too_big_for_the_device_is_refused_before_compiling(monkeypatch):
     """glimpse:2 on the full C16 set compiled for 10 minutes and then died allocating 35 GB; now the trainers
     refuse such a run at once, with the figures and what to lower."""
-    from baselines import common, ppo_rnn
+    from baselines import ppo_rnn
+    from baselines.common import devices
 
     obs = 128 * 128 * 3 + 3 * 4  # a pixel view (uint8) and the position (3 float32), bytes
     need = 2 * obs * TINY_PPO["num_steps"] * TINY_PPO["num_envs"] * 2
-    monkeypatch.setattr(common.devices, "device_memory_bytes", lambda: need - 1)
+    monkeypatch.setattr(devices, "device_memory_bytes", lambda: need - 1)
     for trainer in (ppo, ppo_rnn):
         with pytest.raises(ValueError, match=r"rollouts of this run need .* lower num_envs / num_steps"):
             trainer.make_train({**TINY_PPO, "num_seeds": 2})
-    monkeypatch.setattr(common.devices, "device_memory_bytes", lambda: need)
+    monkeypatch.setattr(devices, "device_memory_bytes", lambda: need)
     assert ppo.make_train({**TINY_PPO, "num_seeds": 2, "vmap_seeds": True}).num_updates == 2
 
 
@@ -117,8 +119,8 @@ def test_checkpoint_round_trip(tmp_path):
     obs = {"pixels": jnp.zeros((1, 32, 32, 3), jnp.uint8), "position": jnp.zeros((1, 3))}
     params = jax.jit(lambda ks: jax.lax.map(lambda k: net.init(k, obs), ks))(jax.random.split(jax.random.PRNGKey(3), 2))
     config = {**ppo.DEFAULTS, "hidden": 16}
-    common.save_checkpoint(tmp_path, params, config)
-    loaded, cfg = common.load_checkpoint(tmp_path)
+    save_checkpoint(tmp_path, params, config)
+    loaded, cfg = load_checkpoint(tmp_path)
     assert cfg["hidden"] == 16
     assert jax.tree.structure(loaded) == jax.tree.structure(params)
     for a, b in zip(jax.tree.leaves(loaded), jax.tree.leaves(params)):
@@ -168,7 +170,7 @@ def test_tiny_dqn_and_evaluate_cli(tmp_path):
     out = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 1)))
     loss = np.asarray(out["metrics"]["loss"])
     assert loss.shape == (1, 4) and np.isfinite(loss).all() and loss[0, -1] > 0
-    common.save_checkpoint(tmp_path, out["params"], train.config)
+    save_checkpoint(tmp_path, out["params"], train.config)
     assert evaluate.main([str(tmp_path), "--episodes", "4", "--out", str(tmp_path / "eval")]) == 0
     assert (tmp_path / "eval" / "eval.json").is_file() and (tmp_path / "eval" / "trajectory.gif").is_file()
 
@@ -183,7 +185,7 @@ def test_tiny_ppo_continuous_actions():
 
 def test_random_agent_reference_row():
     """The random-agent reference drawn on every learning curve (uses histojax.demo's rollout)."""
-    from baselines.common import random_agent_reference
+    from baselines.common.env import random_agent_reference
 
     ref = random_agent_reference({"env_id": "HistoJAX-Easy-v0", "with_position": True}, num_envs=8, num_steps=50)
     assert 0.0 <= ref["success"] <= 1.0 and np.isfinite(ref["return"])

@@ -13,7 +13,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines import common, evaluate, ppo_rnn
+from baselines import evaluate, ppo_rnn
+from baselines.common.env import params_initialiser
+from baselines.harness.logs import load_checkpoint, save_checkpoint
 
 from baselines.reading import budget_curve, pipeline
 from baselines.networks import ScannedGRU
@@ -50,17 +52,17 @@ def runs(dataset, tmp_path_factory):
     root = tmp_path_factory.mktemp("runs")
     train = ppo_rnn.make_train({**_config(dataset, "glimpse:1"), "num_seeds": 3})
     result = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 3)))
-    common.save_checkpoint(root / "glimpse", result["params"], train.config)
+    save_checkpoint(root / "glimpse", result["params"], train.config)
     zoom = ppo_rnn.make_train(_config(dataset, "zoom_select"))
-    init = common.params_initialiser(zoom.env, zoom.network, 1, inputs=lambda obs: (
+    init = params_initialiser(zoom.env, zoom.network, 1, inputs=lambda obs: (
         ScannedGRU.initial_state(1, 16), jax.tree.map(lambda a: a[None], obs), jnp.ones((1, 1), bool)))
     params = init(jax.random.PRNGKey(1), zoom.env_params)
-    common.save_checkpoint(root / "zoom", jax.tree.map(lambda a: a[None], params), zoom.config)
+    save_checkpoint(root / "zoom", jax.tree.map(lambda a: a[None], params), zoom.config)
     return {"glimpse:1": root / "glimpse", "zoom_select": root / "zoom"}
 
 
 def test_budget_curve_draws_a_recurrent_run(dataset, runs, tmp_path):
-    assert common.load_checkpoint(runs["glimpse:1"])[1]["algo"] == "ppo_rnn"
+    assert load_checkpoint(runs["glimpse:1"])[1]["algo"] == "ppo_rnn"
     assert budget_curve.main(["--dataset", str(dataset), "--env", "HistoJAX-Easy-v0", "--glimpse-level", "1",
                               "--budgets", *map(str, BUDGETS), "--seeds", "1", "--steps", "20",
                               "--ppo", "GRU glimpse", str(runs["glimpse:1"]), "--out", str(tmp_path)]) == 0
@@ -124,7 +126,7 @@ def test_recurrent_policy_carries_its_hidden_state(dataset, runs):
     """The evaluation's own score equals that of a step-by-step rollout carrying the GRU state by hand."""
     from baselines.networks import network_step, preprocess_obs
 
-    params, config = common.load_checkpoint(runs["glimpse:1"])
+    params, config = load_checkpoint(runs["glimpse:1"])
     params = jax.tree.map(lambda a: a[0], params)
     config = {**config, "env_kwargs": {**config["env_kwargs"], "split": "test"}}
     _, (env, env_params) = evaluate.eval_env(config)

@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from baselines import common, demo
+from baselines import demo
+from baselines.harness.logs import load_checkpoint
 
 # --quick trains 3 updates; the last may finish no successful episode (NaN steps to success)
 pytestmark = [pytest.mark.filterwarnings("ignore:Mean of empty slice:RuntimeWarning"),
@@ -62,7 +63,7 @@ def test_quick_demo_writes_the_listed_files(quick_run):
     _check_image(out / "demo_trajectory.gif", "GIF", min_frames=2)  # a random episode moves
     _check_image(ev / "trajectory.gif", "GIF")  # (an untrained policy may stand still: frames merge)
     # the checkpoint loads and is the demo's configuration
-    params, config = common.load_checkpoint(run)
+    params, config = load_checkpoint(run)
     assert config["env_id"] == "HistoJAX-Easy-v0" and config["with_position"] is True and config["seed"] == 0
     leaves = [np.asarray(a) for a in jax.tree.leaves(params)]
     assert leaves and all(a.shape[0] == 1 and np.isfinite(a).all() for a in leaves)

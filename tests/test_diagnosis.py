@@ -156,7 +156,7 @@ def test_glimpse_grid_pins_the_spaces_to_another_dataset(glimpse, bundle):
     """``glimpse_grid``: the cells padded to a given grid (a policy trained elsewhere fits), the same
     reading of every real cell; a slide too large for it refused naming the bundle; the trainers record
     the grid of their slides in the config they save."""
-    from baselines import common
+    from baselines.common.env import pin_env_shapes
 
     env, params = glimpse
     h, w = (int(v) for v in np.asarray(params.mode_data.grid))
@@ -173,11 +173,11 @@ def test_glimpse_grid_pins_the_spaces_to_another_dataset(glimpse, bundle):
     with pytest.raises(ValueError, match=f"{bundle.name}.*do not fit glimpse_grid"):
         histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
                       task="classification", glimpse_grid=(h - 1, w))
-    config = common.pin_env_shapes({"env_kwargs": {"read_budget": 0.5}}, params)
+    config = pin_env_shapes({"env_kwargs": {"read_budget": 0.5}}, params)
     assert config["env_kwargs"] == {"read_budget": 0.5, "glimpse_grid": [h, w]}
     _, zoom_params = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode="zoom_select",
                                    task="classification")
-    assert common.pin_env_shapes({"a": 1}, zoom_params) == {"a": 1}
+    assert pin_env_shapes({"a": 1}, zoom_params) == {"a": 1}
 
 
 def test_repicking_reveals_nothing_new(glimpse):

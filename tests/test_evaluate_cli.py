@@ -13,7 +13,9 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from baselines import common, evaluate
+from baselines import evaluate
+from baselines.common.env import make_env
+from baselines.harness.logs import save_checkpoint
 from histojax.core import actions
 from histojax.cli import main as histojax_main
 from histojax.render import _canvas, render_trajectory, slide_name, trajectory_figure
@@ -180,11 +182,11 @@ def _checkpoint(folder: Path, config: dict, hidden: int | None = None) -> Path:
     from baselines.networks import preprocess_obs
     from baselines.ppo import make_network
 
-    env, env_params = common.make_env(config)
+    env, env_params = make_env(config)
     network = make_network({**config, "hidden": hidden or config["hidden"]}, env)
     obs, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.PRNGKey(0), 2), env_params)
     params = network.init(jax.random.PRNGKey(0), preprocess_obs(obs))
-    common.save_checkpoint(folder, jax.tree.map(lambda a: a[None], params), config)
+    save_checkpoint(folder, jax.tree.map(lambda a: a[None], params), config)
     return folder
 
 
@@ -297,7 +299,7 @@ def test_glimpse_policy_on_a_slide_wider_than_its_grid_is_one_line(two_slides, c
     run = tmp_path / "run"
     config = {**EASY, "action_mode": "glimpse:1", "obs_mode": "features", "algo": "ppo",
               "env_kwargs": {"task": "classification", "slides": [str(bundle)], "glimpse_grid": [1, 1]}}
-    common.save_checkpoint(run, {"params": {"w": np.zeros((1, 2), np.float32)}}, config)
+    save_checkpoint(run, {"params": {"w": np.zeros((1, 2), np.float32)}}, config)
     assert evaluate.main([str(run), "--episodes", "1", "--out", str(tmp_path / "o")]) == 2
     line = _one_error_line(capsys)
     assert str(bundle) in line and "do not fit glimpse_grid=[1, 1]" in line

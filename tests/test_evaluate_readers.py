@@ -20,7 +20,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines import common, evaluate
+from baselines import evaluate
+from baselines.common.env import make_env
+from baselines.harness.logs import save_checkpoint
 from baselines.publish import publish
 from baselines.published_agents import PUBLISHED
 from histojax.cli import main as histojax_main
@@ -111,12 +113,12 @@ def reader(data, tmp_path_factory) -> Path:
 
     tmp = tmp_path_factory.mktemp("reader")
     config = {**READER, "env_kwargs": {"dataset": str(data["small"]), "split": "train", "read_budget": 0.2}}
-    env, env_params = common.make_env(config)
+    env, env_params = make_env(config)
     network = make_network(config, env)
     obs, _ = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(jax.random.key(0), 2), env_params)
     params = network.init(jax.random.key(0), preprocess_obs(obs))
     run = tmp / "run"
-    common.save_checkpoint(run, jax.tree.map(lambda a: a[None], params), config)
+    save_checkpoint(run, jax.tree.map(lambda a: a[None], params), config)
     (run / "log.csv").write_text("env_steps,mean_return\n0,0.0\n")
     HEAD.save(tmp / "head-fit")
     (run / "head_reward.json").write_text(json.dumps({"head": str(tmp / "head-fit"), "head_name": HEAD.name,

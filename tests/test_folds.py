@@ -175,15 +175,17 @@ def test_c16_folds_keep_a_tumour_slide_with_its_donor(c16_small):
 
 # ------------------------------------------------------------------ --fold on the trainers, head fits and readers
 def test_trainers_take_fold(folded):
-    from baselines import common, ppo
+    from baselines import ppo
+    from baselines.common.env import make_env
+    from baselines.harness.cli import config_from_args
 
     args = ppo.parse_args(["--env", "HistoJAX-Easy-v0", "--dataset", str(folded), "--fold", "1"])
-    config = common.config_from_args(args, ppo.DEFAULTS)
+    config = config_from_args(args, ppo.DEFAULTS)
     assert config["env_kwargs"]["fold"] == 1
-    env, _ = common.make_env({**config, "env_kwargs": {**config["env_kwargs"], "verify": False}})
+    env, _ = make_env({**config, "env_kwargs": {**config["env_kwargs"], "verify": False}})
     assert sorted(b.path.name for b in env.bundles) == sorted(p.name for p in dataset_slides(folded, "train", 1))
     with pytest.raises(SystemExit, match="--fold needs --dataset DIR"):
-        common.config_from_args(ppo.parse_args(["--fold", "0"]), ppo.DEFAULTS)
+        config_from_args(ppo.parse_args(["--fold", "0"]), ppo.DEFAULTS)
 
 
 def test_head_fits_and_readers_read_the_fold(folded):

@@ -8,20 +8,22 @@ import warnings
 import numpy as np
 import pytest
 
-from baselines import common, ppo
+from baselines import ppo
+from baselines.harness.logs import finite_extreme, finite_mean, load_checkpoint, smooth
+from baselines.harness.runner import run_and_save
 
 
 def test_finite_mean_and_extremes_say_nan_without_warnings():
     with warnings.catch_warnings():
         warnings.simplefilter("error")
-        assert np.isnan(common.finite_mean([np.nan, np.nan]))
-        assert common.finite_mean([1.0, np.nan, 3.0]) == 2.0
-        m = common.finite_mean(np.array([[np.nan, np.nan], [1.0, np.nan]]), axis=1)
+        assert np.isnan(finite_mean([np.nan, np.nan]))
+        assert finite_mean([1.0, np.nan, 3.0]) == 2.0
+        m = finite_mean(np.array([[np.nan, np.nan], [1.0, np.nan]]), axis=1)
         assert np.isnan(m[0]) and m[1] == 1.0
-        assert np.isnan(common.finite_extreme([np.nan], np.min))
-        assert common.finite_extreme([2.0, np.nan, -1.0], np.min) == -1.0
-        assert common.finite_extreme([2.0, np.nan, -1.0], np.max) == 2.0
-        s = common.smooth(np.array([[np.nan, np.nan, 1.0], [np.nan, 2.0, np.nan]]), 2)
+        assert np.isnan(finite_extreme([np.nan], np.min))
+        assert finite_extreme([2.0, np.nan, -1.0], np.min) == -1.0
+        assert finite_extreme([2.0, np.nan, -1.0], np.max) == 2.0
+        s = smooth(np.array([[np.nan, np.nan, 1.0], [np.nan, 2.0, np.nan]]), 2)
         assert np.isnan(s[0, 0]) and np.isnan(s[0, 1]) and s[0, 2] == 1.0 and s[1, 2] == 2.0
 
 
@@ -33,7 +35,7 @@ def test_tiny_hard_run_where_no_episode_ends_writes_its_logs_without_warnings(tm
                   update_epochs=1, num_minibatches=2, hidden=16, num_seeds=2, print_progress=True, log_every=1)
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
-        _, _, summary = common.run_and_save("ppo", ppo.make_train, config, tmp_path / "run")
+        _, _, summary = run_and_save("ppo", ppo.make_train, config, tmp_path / "run")
     assert np.isnan(summary["final"]["steps_to_success"])
     assert (tmp_path / "run" / "log.csv").read_text().count("\n") == 5
 
@@ -165,11 +167,11 @@ def test_publish_a_tiny_ppo_and_score_it_on_a_dataset(c16_small, tmp_path):
                   env_kwargs={"dataset": str(folder), "split": "train"}, num_envs=8, num_steps=32,
                   total_timesteps=2048, num_minibatches=4, update_epochs=1, hidden=32, num_seeds=2, seed=0,
                   print_progress=False)
-    common.run_and_save("ppo", ppo.make_train, config, tmp_path / "run")
+    run_and_save("ppo", ppo.make_train, config, tmp_path / "run")
     dest = publish(tmp_path / "run", "tiny-easy", root=tmp_path / "published", seed=1)
     record = json.loads((dest / "published.json").read_text())
     assert record["seeds"] == [1] and record["training_summary"]["seeds"] == 2
-    params, cfg = common.load_checkpoint(dest)
+    params, cfg = load_checkpoint(dest)
     assert cfg["num_seeds"] == 1 and all(a.shape[0] == 1 for a in __import__("jax").tree.leaves(params))
     assert evaluate.main([str(dest), "--dataset", str(folder), "--split", "test", "--episodes", "4",
                           "--out", str(tmp_path / "eval")]) == 0
@@ -190,13 +192,13 @@ def test_published_agents_load_with_their_config():
 
     import jax
 
-    from baselines import common
+    from baselines.harness.logs import load_checkpoint
 
     root = Path(__file__).resolve().parents[1] / "baselines" / "published"
     runs = sorted(p for p in root.iterdir() if (p / "params.msgpack").is_file())
     assert {p.name for p in runs} >= {"c16-v1-hard-navigator", "c16-v1-diagnosis"}
     for run in runs:
-        params, config = common.load_checkpoint(run)
+        params, config = load_checkpoint(run)
         version = run.name.split("-")[1]
         c16_id = config["env_id"].startswith("HistoJAX-C16-") and config["env_id"].endswith(f"-{version}")
         reading_stack = config["env_id"] == "HistoJAX-Reading-v0" and version == "v2"  # the any-dataset id

@@ -271,7 +271,8 @@ def test_bad_settings_are_refused(glimpse):
 def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(dataset, tmp_path):
     """baselines.reading.diagnosis: the read mask of a (freshly initialised) navigator is the set of finest
     tissue views its (sampled) trajectory stood on, recomputed here from the trajectory's (z, x, y)."""
-    from baselines import common, evaluate, ppo
+    from baselines import evaluate, ppo
+    from baselines.harness.logs import load_checkpoint, save_checkpoint
     from baselines.reading import diagnosis
 
     config = dict(env_id="HistoJAX-Easy-v0", obs_mode="features", action_mode="discrete", num_envs=2, num_steps=4,
@@ -279,10 +280,10 @@ def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(datase
                   max_steps_in_episode=30, env_kwargs={"dataset": str(dataset), "task": "classification"})
     train = ppo.make_train(config)
     params = train.init_params(jax.random.key(0), train.env_params)
-    common.save_checkpoint(tmp_path / "nav", jax.tree.map(lambda a: a[None], params), train.config)
+    save_checkpoint(tmp_path / "nav", jax.tree.map(lambda a: a[None], params), train.config)
     reads = diagnosis.navigator_reads(tmp_path / "nav", dataset, "train", seed=0, greedy=False)
     # the same episodes, by hand: the run's env and policy, the finest views on the trajectory
-    _, cfg = common.load_checkpoint(tmp_path / "nav")
+    _, cfg = load_checkpoint(tmp_path / "nav")
     cfg = {**cfg, "env_kwargs": {**cfg["env_kwargs"], "dataset": str(dataset), "split": "train"}}
     cfg, (env, env_params) = evaluate.eval_env(cfg)
     net = evaluate.network_for(cfg, env)

@@ -12,9 +12,9 @@ from pathlib import Path
 
 import pytest
 
-from baselines.common import run_folder
-from baselines.common.run_folder import RunFolderError, claim, release
-from baselines.common.runner import load_runner, resume_config
+from baselines.harness import run_folder
+from baselines.harness.run_folder import RunFolderError, claim, release
+from baselines.harness.runner import load_runner, resume_config
 from data_tools.errors import HistojaxDataError
 
 CONFIG = {"algo": "ppo", "env_id": "HistoJAX-Easy-v0"}

@@ -229,18 +229,19 @@ def _fail_mid_write(monkeypatch, module, after: int = 100):
 def test_checkpoint_on_a_full_disk_keeps_the_previous_one(tmp_path, monkeypatch):
     """Was: a run on a full disk left a truncated params.msgpack. Now the previous checkpoint (or none)
     stays, with no temporary file beside it."""
-    from baselines import common, outputs
+    from baselines import outputs
+    from baselines.harness.logs import load_checkpoint, save_checkpoint, write_logs
 
     old = {"w": np.arange(1000, dtype=np.float32)}
-    common.save_checkpoint(tmp_path, old, {"env_id": "HistoJAX-Easy-v0"})
+    save_checkpoint(tmp_path, old, {"env_id": "HistoJAX-Easy-v0"})
     _fail_mid_write(monkeypatch, outputs)
     with pytest.raises(OSError, match="No space left"):
-        common.save_checkpoint(tmp_path, {"w": np.zeros(1000, np.float32)}, {"env_id": "HistoJAX-Easy-v0"})
+        save_checkpoint(tmp_path, {"w": np.zeros(1000, np.float32)}, {"env_id": "HistoJAX-Easy-v0"})
     with pytest.raises(OSError, match="No space left"):
-        common.write_logs(tmp_path / "fresh", np.arange(3), {k: np.zeros((1, 3)) for k in
+        write_logs(tmp_path / "fresh", np.arange(3), {k: np.zeros((1, 3)) for k in
                                                              ("return", "success", "length", "steps_to_success")}, {})
     monkeypatch.undo()
-    params, _ = common.load_checkpoint(tmp_path)
+    params, _ = load_checkpoint(tmp_path)
     np.testing.assert_array_equal(np.asarray(params["w"]), old["w"])
     assert sorted(p.name for p in tmp_path.iterdir()) == ["config.json", "fresh", "params.msgpack"]
     assert list((tmp_path / "fresh").iterdir()) == []
@@ -276,10 +277,10 @@ def test_figures_and_tables_on_a_full_disk_leave_no_partial_file(tmp_path, monke
 
 def test_evaluate_on_a_truncated_checkpoint_names_the_file(tmp_path, capsys):
     """Was: "Unpack failed: incomplete input", naming no file. Now one error line naming params.msgpack."""
-    from baselines import common
+    from baselines.harness.logs import save_checkpoint
     from histojax.cli import main
 
-    path = common.save_checkpoint(tmp_path / "run", {"w": np.arange(1000, dtype=np.float32)},
+    path = save_checkpoint(tmp_path / "run", {"w": np.arange(1000, dtype=np.float32)},
                                   {"env_id": "HistoJAX-Easy-v0"})
     path.write_bytes(path.read_bytes()[:2000])
     assert main(["evaluate", str(tmp_path / "run")]) == 2

@@ -309,7 +309,7 @@ def test_train_out_refuses_a_folder_it_would_overwrite(tmp_path, capsys, what):
 
 
 def test_overwrite_replaces_only_a_runs_own_state_and_keeps_its_results_until_the_new_ones(tmp_path):
-    from baselines.common import run_folder
+    from baselines.harness import run_folder
 
     out = _finished_run(tmp_path / "exp")
     assert run_folder.claim(out, {"env_id": "HistoJAX-Easy-v0", "seed": 7}, overwrite=True) == out
@@ -318,7 +318,7 @@ def test_overwrite_replaces_only_a_runs_own_state_and_keeps_its_results_until_th
 
 
 def test_an_unfinished_run_of_the_same_config_may_start_again_another_configs_is_refused(tmp_path, capsys):
-    from baselines.common import run_folder
+    from baselines.harness import run_folder
 
     out = tmp_path / "exp"
     (out / "checkpoint").mkdir(parents=True)
@@ -330,7 +330,7 @@ def test_an_unfinished_run_of_the_same_config_may_start_again_another_configs_is
 
 
 def test_the_default_run_folder_is_never_overwritten_the_next_free_number_is_taken(tmp_path, monkeypatch):
-    from baselines.common import run_folder
+    from baselines.harness import run_folder
 
     monkeypatch.chdir(tmp_path)
     first = _finished_run(Path("runs/ppo-HistoJAX-Easy-v0"))
@@ -344,7 +344,7 @@ def test_one_writer_per_run_folder_and_a_killed_writer_leaves_no_lock(tmp_path, 
     import subprocess
     import sys
 
-    from baselines.common import run_folder
+    from baselines.harness import run_folder
     from histojax.cli import main
 
     out = tmp_path / "run"
@@ -487,7 +487,7 @@ def test_a_coarse_map_entry_the_features_lack_names_the_bundle(tmp_path):
 
 def test_a_read_only_run_folder_is_named_not_a_temporary(tmp_path, monkeypatch, capsys):
     """(Permissions do not bind root, so the refusal to create the lock file is simulated.)"""
-    from baselines.common import run_folder
+    from baselines.harness import run_folder
     from histojax.cli import main
 
     out = tmp_path / "ro"

@@ -51,7 +51,7 @@ def test_open_regular_refuses_a_file_swapped_after_the_check(tmp_path):
 
 # ----------------------------------------------------------------------------- one slide loader
 def test_both_head_fits_read_a_bundle_through_one_loader(tmp_path):
-    """head_fit.load_slide and learned_head_fit.load_views share head_fit.read_bundle (read, verify, feature levels)
+    """slides.load_slide and learned_head_fit.load_views share slides.read_bundle (read, verify, feature levels)
     and slides.finest_views (view -> feature cell, tissue views): the same views and vectors."""
     import numpy as np
 

@@ -8,7 +8,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines import common, evaluate, networks, ppo_rnn
+from baselines import evaluate, networks, ppo_rnn
+from baselines.common.env import make_env, params_initialiser, reset_envs
+from baselines.harness.logs import load_checkpoint, save_checkpoint
 
 
 def _scaled(params, factor):
@@ -72,20 +74,20 @@ def test_loss_replays_the_rollouts_log_probs_across_episode_ends():
     sequence with ``first`` reproduces the rollout's log-probabilities; resetting on ``done`` of
     the same step instead (as PureJaxRL's ppo_rnn loss does) would not."""
     config = {**ppo_rnn.DEFAULTS, "with_position": True, "max_steps_in_episode": 4, "hidden": 16}
-    env, env_params = common.make_env(config)
+    env, env_params = make_env(config)
     from histojax.adapters.jax import LogWrapper
 
     env = LogWrapper(env)
     net = ppo_rnn.make_network(config, env)
     n = 2
-    init = common.params_initialiser(env, net, n, inputs=lambda o: (networks.ScannedGRU.initial_state(n, 16),
+    init = params_initialiser(env, net, n, inputs=lambda o: (networks.ScannedGRU.initial_state(n, 16),
                                                                     jax.tree.map(lambda a: a[None], o),
                                                                     jnp.ones((1, n), bool)))
 
     @jax.jit
     def go(key):
         params = _scaled(init(key, env_params), 2.0)
-        key, _, obs, env_state = common.reset_envs(env, key, env_params, n)
+        key, _, obs, env_state = reset_envs(env, key, env_params, n)
         h0 = jax.random.normal(key, (n, 16))  # a state carried over from an earlier rollout
         carry = (env_state, obs, jnp.zeros(n, bool), h0, key)
         _, traj = ppo_rnn.rollout(net, env, params, env_params, carry, 12, "discrete")
@@ -112,8 +114,8 @@ def test_short_run_beats_the_random_agent_and_evaluates_from_its_checkpoint(tmp_
     train = ppo_rnn.make_train(config)
     out = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 1)))
     assert np.isfinite(np.asarray(out["metrics"]["pg_loss"])).all()
-    common.save_checkpoint(tmp_path / "run", out["params"], train.config)
-    params, loaded = common.load_checkpoint(tmp_path / "run")
+    save_checkpoint(tmp_path / "run", out["params"], train.config)
+    params, loaded = load_checkpoint(tmp_path / "run")
     assert loaded["algo"] == "ppo_rnn"
     rows = evaluate.evaluate(loaded, params, num_episodes=64, label="ppo_rnn")
     learned, rand = rows["ppo_rnn (sampled)"], rows["random"]

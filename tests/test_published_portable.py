@@ -13,7 +13,8 @@ import numpy as np
 import pytest
 from flax import serialization
 
-from baselines import common, ppo, ppo_rnn
+from baselines import ppo, ppo_rnn
+from baselines.harness.logs import load_checkpoint
 from baselines.evaluate.checks import published_dataset_refusal
 from baselines.evaluate.cli import with_dataset
 from baselines.publish import main as publish_main
@@ -70,7 +71,7 @@ def test_no_published_file_holds_a_path_of_the_training_machine():
 
 @pytest.mark.parametrize("run", AGENTS, ids=lambda p: p.name)
 def test_every_published_agent_names_its_dataset_and_reads_its_config(run, tmp_path):
-    params, config = common.load_checkpoint(run)
+    params, config = load_checkpoint(run)
     assert config["env_kwargs"]["dataset"] is None and config["slide"] is None
     record = json.loads((run / "published.json").read_text())
     trained = record["trained_on"]
@@ -129,7 +130,7 @@ def test_publish_writes_no_path_of_this_machine(run, tmp_path, seed):
     assert record["source_run"] == "r1/ppo"
     assert record["trained_on"] == {"dataset": "my-set", "split": "train", "slides": ["b1"], "slide": "bundle",
                                     "what": "my slides, train split: histojax dataset SLIDES --out DIR"}
-    params, config = common.load_checkpoint(dest)
+    params, config = load_checkpoint(dest)
     assert config["env_kwargs"] == {"dataset": None, "split": "train", "slides": None, "read_budget": 0.1}
     assert config["slide"] is None and ppo.PPOConfig.from_dict(config).env_kwargs["read_budget"] == 0.1
     assert params["params"]["w"].shape[0] == (2 if seed is None else 1)
@@ -158,7 +159,7 @@ def test_the_readme_says_so():
 def test_split_or_fold_without_dataset_on_a_config_of_no_dataset_path_is_one_line(capsys):
     """Was: a published config.json copied without its published.json, evaluated with --fold 0 and no --dataset:
     "expected str, bytes or os.PathLike object, not NoneType"."""
-    _, config = common.load_checkpoint(PUBLISHED / "c16-v1-diagnosis")
+    _, config = load_checkpoint(PUBLISHED / "c16-v1-diagnosis")
     for kw in ({"fold": 0}, {"split": "test"}):
         with pytest.raises(SystemExit) as e:
             with_dataset(config, **kw)

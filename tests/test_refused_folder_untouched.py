@@ -8,7 +8,7 @@ from pathlib import Path
 
 import pytest
 
-from baselines.common import run_folder
+from baselines.harness import run_folder
 
 TRAIN = ["train", "--env", "HistoJAX-Easy-v0", "--total-steps", "512", "--seeds", "1"]
 

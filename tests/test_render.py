@@ -6,7 +6,7 @@ import jax
 import numpy as np
 from PIL import Image
 
-from baselines.curves import curves_figure, plot_curves
+from baselines.harness.curves import curves_figure, plot_curves
 from histojax.render import (animate, level_colour, reading_map_figure, render_trajectory, slide_name,
                              trajectory_figure)
 

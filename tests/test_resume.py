@@ -12,7 +12,11 @@ import jax
 import numpy as np
 import pytest
 
-from baselines import common, dqn, outputs, ppo, ppo_rnn
+from baselines import dqn, outputs, ppo, ppo_rnn
+from baselines.common.config import env_overrides
+from baselines.harness.logs import _tensorboard_scalars, tensorboard_writer
+from baselines.harness.runner import chunk_plan, chunked_runner, finish_run, load_runner, run_and_save, run_chunked, save_runner
+from data_tools.errors import HistojaxDataError
 
 TINY = dict(env_id="HistoJAX-Easy-v0", with_position=True, num_envs=4, num_steps=8, total_timesteps=4 * 8 * 5,
             update_epochs=1, num_minibatches=2, hidden=16, num_seeds=2, print_progress=False, checkpoint_every=2)
@@ -31,19 +35,19 @@ def _kill_after(update: int):
 
 def _no_reference(monkeypatch):
     # the random-agent reference of the curves compiles its own rollout; not what is tested here
-    monkeypatch.setattr(common.runner, "random_agent_reference", lambda *a, **k: {"return": 0.0, "success": 0.0})
+    monkeypatch.setattr("baselines.harness.runner.random_agent_reference", lambda *a, **k: {"return": 0.0, "success": 0.0})
 
 
 def _straight_and_resumed(tmp_path, algo: str, make_train, config: dict, kill_at: int):
     """(params straight, params killed at ``kill_at`` then resumed, the two run folders); one trainer object,
     so its chunk compiles once (a resumed process compiles the same program again)."""
     train = make_train(config)
-    _, straight, _ = common.run_and_save(algo, lambda c: train, config, tmp_path / "straight")
+    _, straight, _ = run_and_save(algo, lambda c: train, config, tmp_path / "straight")
     with pytest.raises(Killed):
-        common.run_and_save(algo, lambda c: train, config, tmp_path / "killed", on_checkpoint=_kill_after(kill_at))
+        run_and_save(algo, lambda c: train, config, tmp_path / "killed", on_checkpoint=_kill_after(kill_at))
     saved = json.loads((tmp_path / "killed" / "checkpoint" / "checkpoint.json").read_text())
     assert saved["update"] == kill_at and not (tmp_path / "killed" / "params.msgpack").exists()
-    _, resumed, _ = common.run_and_save(algo, lambda c: train, config, tmp_path / "killed", resume=True)
+    _, resumed, _ = run_and_save(algo, lambda c: train, config, tmp_path / "killed", resume=True)
     return straight, resumed, tmp_path / "straight", tmp_path / "killed", train
 
 
@@ -56,14 +60,14 @@ def _assert_bitwise_equal(a, b):
 
 
 def test_chunk_plan_even_chunks_no_more_than_every():
-    assert common.chunk_plan(122, 100) == (61, 2)
-    assert common.chunk_plan(5, 2) == (2, 3)     # 6 slots, the last skipped
-    assert common.chunk_plan(10, 0) == (10, 1)   # 0: one chunk, a checkpoint at the end only
-    assert common.chunk_plan(10, None) == (10, 1)
-    assert common.chunk_plan(3, 50) == (3, 1)
+    assert chunk_plan(122, 100) == (61, 2)
+    assert chunk_plan(5, 2) == (2, 3)     # 6 slots, the last skipped
+    assert chunk_plan(10, 0) == (10, 1)   # 0: one chunk, a checkpoint at the end only
+    assert chunk_plan(10, None) == (10, 1)
+    assert chunk_plan(3, 50) == (3, 1)
     for n in range(1, 40):
         for every in range(1, 12):
-            chunk, k = common.chunk_plan(n, every)
+            chunk, k = chunk_plan(n, every)
             assert chunk <= every and chunk * k >= n > chunk * (k - 1) and chunk * k - n < k
 
 
@@ -106,24 +110,24 @@ def test_driver_killed_and_resumed_equals_the_uninterrupted_run(tmp_path, vmap_s
     and every update's metrics equal the straight run's bit for bit; the chunk is traced once, not again on
     resume; the runner state saved holds the update counter (the skipped updates did not run)."""
     toy = _Toy(vmap_seeds=vmap_seeds)
-    straight, _, _ = common.run_chunked(toy, tmp_path / "straight")
+    straight, _, _ = run_chunked(toy, tmp_path / "straight")
     traces = toy.traces
     assert straight["metrics"]["loss"].shape == (2, 7) and np.isfinite(straight["metrics"]["loss"]).all()
     for kill_at in (3, 6):
         out = tmp_path / f"killed-{kill_at}"
         with pytest.raises(Killed):
-            common.run_chunked(toy, out, on_checkpoint=_kill_after(kill_at))
-        resumed, _, _ = common.run_chunked(toy, out, resume=True)
+            run_chunked(toy, out, on_checkpoint=_kill_after(kill_at))
+        resumed, _, _ = run_chunked(toy, out, resume=True)
         _assert_bitwise_equal(straight["params"], resumed["params"])
         for k in straight["metrics"]:
             np.testing.assert_array_equal(straight["metrics"][k], resumed["metrics"][k])
     assert toy.traces == traces  # compiled once: neither the kill nor the resume traced the chunk again
     start, _ = toy.chunked
-    runners, done, metrics, _ = common.load_runner(tmp_path / "straight" / "checkpoint",
+    runners, done, metrics, _ = load_runner(tmp_path / "straight" / "checkpoint",
                                                    start.template(jax.random.split(jax.random.PRNGKey(0), 2)), 7, 3)
     assert done == 7 and np.asarray(runners[2]).tolist() == [7, 7] and metrics["loss"].shape == (2, 7)
     # a different run (not resumed) really differs: the comparison above can fail
-    other, _, _ = common.run_chunked(_Toy(num_updates=6, vmap_seeds=vmap_seeds), tmp_path / "other")
+    other, _, _ = run_chunked(_Toy(num_updates=6, vmap_seeds=vmap_seeds), tmp_path / "other")
     assert not np.array_equal(np.asarray(other["params"]["w"]), np.asarray(straight["params"]["w"]))
 
 
@@ -176,8 +180,8 @@ def test_recurrent_ppo_and_dqn_resume_equal_the_uninterrupted_run(tmp_path, monk
 def test_tensorboard_events_beside_log_csv(tmp_path):
     """With tensorboardX installed, the seed means of each update's metrics go to event files in the run folder."""
     pytest.importorskip("tensorboardX")
-    writer = common.tensorboard_writer(tmp_path)
-    common.logs._tensorboard_scalars(writer, {"success": np.array([[0.0, 0.5], [1.0, np.nan]])}, 3, 100)
+    writer = tensorboard_writer(tmp_path)
+    _tensorboard_scalars(writer, {"success": np.array([[0.0, 0.5], [1.0, np.nan]])}, 3, 100)
     writer.close()
     from tensorboardX.proto import event_pb2
 
@@ -233,21 +237,21 @@ def test_a_checkpoint_of_another_config_is_refused(tmp_path):
     """A runner state whose arrays do not fit the config (e.g. another width) names the file, not a flax error."""
     train = ppo.make_train(TINY)
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    start, _ = common.chunked_runner(train)
+    start, _ = chunked_runner(train)
     template = start.template(keys)
     fake = jax.tree.map(lambda s: np.zeros(s.shape, s.dtype), template)
-    common.save_runner(tmp_path, fake, 2, {}, 0.0, train.config, train.num_updates, start.size)
-    runners, done, _, _ = common.load_runner(tmp_path, template, train.num_updates, start.size)
+    save_runner(tmp_path, fake, 2, {}, 0.0, train.config, train.num_updates, start.size)
+    runners, done, _, _ = load_runner(tmp_path, template, train.num_updates, start.size)
     assert done == 2
     wider = ppo.make_train({**TINY, "hidden": 32})
-    with pytest.raises(common.HistojaxDataError, match="do not match the runner state"):
-        common.load_runner(tmp_path, common.chunked_runner(wider)[0].template(keys), train.num_updates, start.size)
-    with pytest.raises(common.HistojaxDataError, match="saved for 5 updates in chunks of 2"):
-        common.load_runner(tmp_path, template, train.num_updates, 3)
+    with pytest.raises(HistojaxDataError, match="do not match the runner state"):
+        load_runner(tmp_path, chunked_runner(wider)[0].template(keys), train.num_updates, start.size)
+    with pytest.raises(HistojaxDataError, match="saved for 5 updates in chunks of 2"):
+        load_runner(tmp_path, template, train.num_updates, 3)
     # the same shapes but another config (a new run started in the folder, killed before its first checkpoint)
-    common.load_runner(tmp_path, template, train.num_updates, start.size, train.config)
-    with pytest.raises(common.HistojaxDataError, match="written by a run of another config"):
-        common.load_runner(tmp_path, template, train.num_updates, start.size, {**train.config, "lr": 1e-3})
+    load_runner(tmp_path, template, train.num_updates, start.size, train.config)
+    with pytest.raises(HistojaxDataError, match="written by a run of another config"):
+        load_runner(tmp_path, template, train.num_updates, start.size, {**train.config, "lr": 1e-3})
 
 
 def _full_disk_on(monkeypatch, name: str):
@@ -288,13 +292,13 @@ def test_a_run_on_a_full_disk_keeps_the_previous_runs_files_together_and_names_t
     out = tmp_path / "run"
     metrics = {k: np.full((1, 3), 0.5) for k in ("return", "success", "length", "steps_to_success")}
     config = {**ppo.DEFAULTS, **TINY}
-    common.finish_run("ppo", config, out, {"w": np.arange(10, dtype=np.float32)}, metrics, 32, 1.0, 1.0)
+    finish_run("ppo", config, out, {"w": np.arange(10, dtype=np.float32)}, metrics, 32, 1.0, 1.0)
     before = {p.name: p.read_bytes() for p in out.iterdir()}
     assert sorted(before) == ["config.json", "curve.png", "log.csv", "log.json", "params.msgpack"]
     _full_disk_on(monkeypatch, "params.msgpack")
     new = {k: np.zeros((1, 5)) for k in metrics}
     with pytest.raises(OSError) as e:
-        common.finish_run("ppo", {**config, "lr": 1e-3}, out, {"w": np.zeros(10, np.float32)}, new, 32, 1.0, 1.0)
+        finish_run("ppo", {**config, "lr": 1e-3}, out, {"w": np.zeros(10, np.float32)}, new, 32, 1.0, 1.0)
     assert e.value.errno == errno.ENOSPC and e.value.filename == str(out / "params.msgpack")
     monkeypatch.undo()
     assert {p.name: p.read_bytes() for p in out.iterdir()} == before
@@ -304,7 +308,7 @@ def test_train_dataset_and_split_options_reach_make():
     args = ppo.parse_args(["--dataset", "DS", "--split", "test", "--set", "env_kwargs={\"tumour_slides_only\": true}"])
     config = ppo.config_from_args(args)
     assert config["env_kwargs"] == {"tumour_slides_only": True, "dataset": "DS", "split": "test"}
-    assert common.env_overrides(config)["dataset"] == "DS" and common.env_overrides(config)["split"] == "test"
+    assert env_overrides(config)["dataset"] == "DS" and env_overrides(config)["split"] == "test"
     with pytest.raises(SystemExit, match="--split needs --dataset"):
         ppo.config_from_args(ppo.parse_args(["--split", "test"]))
     assert ppo.config_from_args(ppo.parse_args(["--checkpoint-every", "7"]))["checkpoint_every"] == 7

@@ -54,7 +54,7 @@ def test_updates_without_an_ended_episode_are_skipped_not_spread(tmp_path):
 
 def test_progress_lines_say_n_a_where_no_episode_ended(capsys):
     """The trainers' progress line shows ``n/a``, not ``nan``, for an update in which no episode ended."""
-    from baselines.common import Progress
+    from baselines.harness.logs import Progress
 
     progress = Progress(num_seeds=2, num_updates=2, steps_per_update=64, every=1, name="ppo test")
     nan = np.full(2, np.nan)

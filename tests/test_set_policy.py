@@ -17,7 +17,8 @@ import numpy as np
 import pytest
 
 import histojax
-from baselines import common, ppo, ppo_rnn
+from baselines import ppo, ppo_rnn
+from baselines.common.env import pin_env_shapes
 from baselines.networks import NEG, ScannedGRU, network_step
 
 TILE, ENVS, STEPS = 32, 4, 6
@@ -134,7 +135,7 @@ def test_parameters_from_one_dataset_read_another(envs, recurrent):
 
 def test_trainers_do_not_pin_the_cell_grid(envs):
     (_, pa), _ = envs
-    assert common.pin_env_shapes({"env_kwargs": {}}, pa) == {"env_kwargs": {}}
+    assert pin_env_shapes({"env_kwargs": {}}, pa) == {"env_kwargs": {}}
 
 
 @pytest.mark.slow

@@ -31,8 +31,9 @@ import jax
 import numpy as np
 import pytest
 
-from baselines import common, dqn, ppo
-from baselines.distributed import cpu_child_env
+from baselines import dqn, ppo
+from baselines.common.devices import batch_mesh
+from baselines.harness.distributed import cpu_child_env
 
 ROOT = Path(__file__).resolve().parents[1]
 TINY = dict(env_id="HistoJAX-Easy-v0", num_envs=8, num_steps=16, total_timesteps=384, update_epochs=1,
@@ -117,8 +118,8 @@ def test_clear_errors_for_bad_device_counts():
     with pytest.raises(ValueError, match=f"xla_force_host_platform_device_count={too_many}"):
         ppo.make_train({**TINY, "num_envs": 8 * too_many, "devices": too_many})
     with pytest.raises(ValueError, match="devices must be >= 1"):
-        common.batch_mesh(0, 8)
-    assert common.batch_mesh(None, 8) is None
+        batch_mesh(0, 8)
+    assert batch_mesh(None, 8) is None
     with pytest.raises(ValueError, match="PPO only"):
         dqn.make_train({"devices": 1})
 

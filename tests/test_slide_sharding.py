@@ -25,7 +25,7 @@ import numpy as np
 import pytest
 
 from baselines import ppo
-from baselines.distributed import cpu_child_env
+from baselines.harness.distributed import cpu_child_env
 from histojax import sharding
 
 ROOT = Path(__file__).resolve().parents[1]

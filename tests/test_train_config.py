@@ -9,7 +9,8 @@ from pathlib import Path
 
 import pytest
 
-from baselines import common, dqn, ppo, ppo_rnn
+from baselines import dqn, ppo, ppo_rnn
+from baselines.harness.runner import resume_config
 from baselines.common.config import ConfigError
 
 PUBLISHED = Path(__file__).resolve().parents[1] / "baselines" / "published"
@@ -89,10 +90,10 @@ def test_resume_refuses_a_checkpoint_config_of_a_wrong_type_naming_the_file(tmp_
     (tmp_path / "checkpoint").mkdir()
     path = tmp_path / "checkpoint" / "config.json"
     path.write_text(json.dumps({**ppo.DEFAULTS, "num_envs": "many"}))
-    with pytest.raises(common.HistojaxDataError, match=r"config\.json: num_envs='many' must be a whole number"):
-        common.resume_config(tmp_path, "ppo", ppo.PPOConfig)
+    with pytest.raises(HistojaxDataError, match=r"config\.json: num_envs='many' must be a whole number"):
+        resume_config(tmp_path, "ppo", ppo.PPOConfig)
     path.write_text(json.dumps({**ppo.DEFAULTS, "seed": 2}))
-    assert common.resume_config(tmp_path, "ppo", ppo.PPOConfig) == ppo.PPOConfig(seed=2)
+    assert resume_config(tmp_path, "ppo", ppo.PPOConfig) == ppo.PPOConfig(seed=2)
 
 
 def test_the_command_line_refuses_a_wrong_type_in_one_line(tmp_path, capsys):

@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from baselines.common.runner import seeds_line
+from baselines.harness.runner import seeds_line
 from baselines.evaluate.pictures import picked_words
 from baselines.reading.train_readers import progress_words
 

@@ -10,7 +10,8 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines import common, outputs
+from baselines import outputs
+from baselines.harness.logs import load_checkpoint
 from data_tools.cli_output import positive_int
 from data_tools.metrics import UNDEFINED, format_auc
 from data_tools.errors import HistojaxDataError
@@ -224,7 +225,7 @@ def default_out(run: Path | None, env_id: str) -> Path:
 
     if run is None:
         return Path("runs") / f"eval-{env_id}"
-    package = [Path(__file__).resolve().parents[1], Path(common.__file__).resolve().parents[2] / "histojax"]
+    package = [Path(__file__).resolve().parents[1], Path(__file__).resolve().parents[2] / "histojax"]
     inside = any(run.resolve().is_relative_to(p) for p in package)
     if inside or not os.access(run, os.W_OK):
         return Path("runs") / f"eval-{run.resolve().name}"
@@ -248,7 +249,7 @@ def run(args, parser) -> int:
         except HistojaxDataError:
             raw = {}  # unreadable: load_checkpoint names the file and why
         check_config(raw, run / "config.json")
-        params, record = common.load_checkpoint(args.checkpoint)
+        params, record = load_checkpoint(args.checkpoint)
         config = read_run_config(record, run / "config.json", warnings)  # typed; unknown keys: warnings
         check_params_tree(params, run / "params.msgpack")
         label = config.algo

@@ -8,7 +8,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from baselines import common
+from baselines.common.env import make_env
 from baselines.run_config import read_run_config
 from data_tools.metrics import accuracy, auc_interval, roc_auc
 from data_tools.errors import HistojaxDataError
@@ -188,7 +188,7 @@ def eval_env(config, slide=None, augment: bool = False):
         if slide is not None:  # a given slide replaces a training dataset
             drop |= {"dataset", "split", "fold", "slides", "slide_weights"}
         config = config.replace(env_kwargs={k: v for k, v in config.env_kwargs.items() if k not in drop})
-    return config, seen_views.with_tracking(*common.make_env(config, auto_reset=False))
+    return config, seen_views.with_tracking(*make_env(config, auto_reset=False))
 
 
 def check_fits(policy, env, env_params, num_seeds: int, config, source=None) -> None:

@@ -81,10 +81,11 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
     that one greedy (``greedy=False``: sampled, key ``seed``) episode of ``run``'s seed ``seed`` stood on."""
     import jax
 
-    from baselines import common, evaluate
+    from baselines import evaluate
+    from baselines.harness.logs import load_checkpoint
     from histojax.core.seen_views import SeenMemory, seen_flags
 
-    params, record = common.load_checkpoint(run)
+    params, record = load_checkpoint(run)
     config = read_run_config(record, (Path(run) if Path(run).is_dir() else Path(run).parent) / "config.json")
     n_seeds = jax.tree.leaves(params)[0].shape[0]
     if not 0 <= seed < n_seeds:

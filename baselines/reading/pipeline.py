@@ -259,10 +259,11 @@ def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None =
     (``p(tumour) / (p(tumour) + p(no tumour))`` of its policy at the step it declared, or at its last
     step; see :func:`baselines.evaluate.learned_policy`), the fraction read and the fields of view
     (env steps that looked at the slide) of the episode."""
-    from baselines import common, evaluate
+    from baselines import evaluate
+    from baselines.harness.logs import load_checkpoint
     from histojax.core.seen_views import seen_flags  # seen is a bit set
 
-    params, record = common.load_checkpoint(run)
+    params, record = load_checkpoint(run)
     config = read_run_config(record, (Path(run) if Path(run).is_dir() else Path(run).parent) / "config.json")
     n_seeds = jax.tree.leaves(params)[0].shape[0]
     if not 0 <= seed < n_seeds:
@@ -308,6 +309,6 @@ def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None =
 
 def run_seeds(run) -> int:
     """How many seeds a run folder's ``params.msgpack`` holds."""
-    from baselines import common
+    from baselines.harness.logs import load_checkpoint
 
-    return int(jax.tree.leaves(common.load_checkpoint(run)[0])[0].shape[0])
+    return int(jax.tree.leaves(load_checkpoint(run)[0])[0].shape[0])

@@ -126,19 +126,32 @@ def split_dataset(dataset: Path, out: Path, fraction: float, seed: int, fold: in
 
 
 def with_head_reward(head, gain, final: float, read_cost: float):
-    """Make :func:`baselines.common.make_env` (which every trainer calls) return the env wrapped in
-    :class:`~histojax.reading.head_reward.HeadReward`; returns the original to restore."""
-    from baselines import common
-    from histojax.reading.head_reward import HeadReward
+    """Make the trainers' and the evaluation roll-out's :func:`~baselines.common.env.make_env` (the name each of
+    :data:`ENV_MAKERS` calls) return the env wrapped in :class:`~histojax.reading.head_reward.HeadReward`; returns
+    a function that restores the originals."""
+    import importlib
 
-    original = common.make_env
+    from baselines.common.env import make_env as original
+    from histojax.reading.head_reward import HeadReward
 
     def make_env(config, auto_reset=True, mesh=None):
         env, params = original(config, auto_reset=auto_reset, mesh=mesh)
         return HeadReward(env, head, gain=gain, final=final, read_cost=read_cost, params=params), params
 
-    common.make_env = make_env
-    return original
+    modules = [importlib.import_module(name) for name in ENV_MAKERS]
+    for module in modules:
+        module.make_env = make_env
+
+    def restore():
+        for module in modules:
+            module.make_env = original
+
+    return restore
+
+
+ENV_MAKERS = ("baselines.ppo", "baselines.ppo_rnn", "baselines.dqn", "baselines.evaluate.rollout")
+"""The modules whose ``make_env`` (:func:`baselines.common.env.make_env`, imported by name) makes a trainer's or a
+roll-out's env: :func:`with_head_reward` wraps it in each."""
 
 
 def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tuple[Path, Path]:
@@ -225,8 +238,6 @@ def main(argv=None) -> int:
                    help="navigation modes: another navigator scored beside on validation (repeatable)")
     args = p.parse_args(argv)
 
-    from baselines import common
-
     from baselines.reading import readers
     from histojax.reading import heads
 
@@ -259,7 +270,7 @@ def main(argv=None) -> int:
         print(progress_words(args.gain, args.final, args.read_cost), flush=True)
         module = __import__(f"baselines.{args.algo}", fromlist=["main"])
         gain = None if args.gain == "none" else args.gain
-        original = with_head_reward(head, gain, args.final, args.read_cost)
+        restore = with_head_reward(head, gain, args.final, args.read_cost)
         try:
             env_kwargs = {"dataset": str(data), "split": "train"}
             if args.env == READING_ID:  # any dataset: the levels its bundles were built for
@@ -274,7 +285,7 @@ def main(argv=None) -> int:
                              "--out", str(run_dir), *extra])
             code = module.main(trainer_argv)
         finally:
-            common.make_env = original
+            restore()
         if code:
             return code
         (run_dir / "head_reward.json").write_text(json.dumps(

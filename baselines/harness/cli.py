@@ -9,12 +9,11 @@ from pathlib import Path
 
 import jax
 
-from baselines import distributed
-from baselines.common import run_folder
+from baselines.harness import distributed, run_folder
 from baselines.common.config import ConfigError, EnvConfig
 from data_tools.cli_output import build_parser, command_main, positive_float, print_error
 from data_tools.errors import HistojaxDataError
-from baselines.common.runner import resume_config, run_and_save
+from baselines.harness.runner import resume_config, run_and_save
 
 
 
@@ -167,7 +166,7 @@ def trainer_command(algo: str, make_train_fn, config_class: type[EnvConfig], uni
     ``histojax train --algo <algo>``, the options :func:`add_arguments` with the defaults of the trainer's typed
     config ``config_class``."""
     def add(parser) -> None:
-        """The trainer's options (:func:`baselines.common.add_arguments` with its defaults)."""
+        """The trainer's options (:func:`add_arguments` with its defaults)."""
         add_arguments(parser, config_class.defaults())
 
     def run(args, parser=None) -> int:

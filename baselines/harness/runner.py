@@ -15,10 +15,10 @@ from jax.sharding import Mesh
 
 from baselines import outputs
 from data_tools.errors import HistojaxDataError
-from baselines.curves import plot_curves
-from baselines.common.logs import (Progress, _count, _tensorboard_scalars, finite_mean, save_checkpoint, smooth,
+from baselines.harness.curves import plot_curves
+from baselines.harness.logs import (Progress, _count, _tensorboard_scalars, finite_mean, save_checkpoint, smooth,
                                    tensorboard_writer, write_logs)
-from baselines.common import run_folder
+from baselines.harness import run_folder
 from baselines.common.config import ConfigError, canonical_config
 from baselines.common.env import random_agent_reference
 from baselines.common.devices import replicate_on

@@ -26,3 +26,13 @@ def test_absurd_but_finite_values_of_the_published_mil_head_are_refused(tmp_path
     (folder / files.PARAMS).write_bytes(buf.getvalue())
     with pytest.raises(files.HeadFileError, match=rf"params\.npz: array {name} holds values"):
         mil.load(folder)
+
+
+def test_the_mil_fit_scorer_refuses_non_finite_slide_logits():
+    from baselines.reading.head_mil_fit import dense_scores
+
+    head = mil.load(PUBLISHED / "c16-v2-head-mil")
+    d = int(head.dim) + 1
+    slides = [{"features": np.full((4, 4, d), np.inf, np.float32), "tissue": np.ones((4, 4), bool), "label": 1}]
+    with pytest.raises(files.HeadFileError, match=r"params\.npz of the head .*: scores 1 of 1 slide logits non-finite"):
+        dense_scores(head, slides, np.ones((1, 4, 4), bool), (4, 4))

@@ -302,7 +302,9 @@ def dense_scores(head, slides: list[dict], masks: np.ndarray, shape, chunk: int 
         m = np.zeros((len(part),) + tuple(shape), bool)
         m[:len(part)] = masks[i:i + chunk]
         out.append(np.asarray(f(g, m)))
-    return np.concatenate(out)
+    from histojax.reading.heads.files import check_finite_logits
+
+    return check_finite_logits(head, np.concatenate(out))  # one line naming params.npz, never an AUC of NaNs
 
 
 def validation_aucs(head, slides: list[dict], shape, fractions=(0.1, 0.2), draws: int = 5, seed: int = 123) -> dict:

@@ -1,4 +1,4 @@
-"""Trained slide heads beside :class:`histojax.reading.heads.logit.SlideHead`: an attention-MIL over neighbourhood-pooled
+"""Trained slide heads beside :class:`histojax.reading.heads.logit.LogitHead`: an attention-MIL over neighbourhood-pooled
 views (:class:`MilHead`) and a logistic model of pooled statistics (:class:`StatsHead`).
 
 Both score a slide from what has been read, with the protocol of :mod:`histojax.reading.heads` (they are what
@@ -32,6 +32,7 @@ partial reads. Saved as a folder: ``config.json`` (``kind``, ``format``, structu
 """
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -137,28 +138,19 @@ def statistics_of(logits: jax.Array, mask: jax.Array, ks=(1, 2, 3, 4)) -> jax.Ar
     return jnp.where(n > 0, s, 0.0)
 
 
-class _Saved:
-    """Save / config helpers shared by the two heads."""
+class _Saved(files.SavedHead):
+    """Save / load / scoring helpers shared by the two heads (``config.json`` through :class:`files.SavedHead`)."""
 
-    def config(self) -> dict:
-        """The structure as saved in ``config.json``."""
-        return {"kind": self.KIND, "format": FORMAT, **self._structure(), "encoder": self.encoder, "name": self.name,
-                "input": "finest-level feature grid (H, W, D) and read mask (H, W) bool of read tissue views",
-                "output": "slide tumour logit (sigmoid: probability)", **json.loads(self.info)}
+    FORMAT = FORMAT
 
     def save(self, folder) -> Path:
-        """Write ``folder/config.json`` and ``folder/params.npz``; returns the folder."""
-        folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
+        """Write ``folder/params.npz`` (the arrays and ``prior_logit``, float32) and ``folder/config.json``; returns
+        the folder."""
         arrays = {k: np.asarray(v, np.float32) for k, v in self.params.items()}
         arrays["prior_logit"] = np.asarray(self.prior_logit, np.float32)
-        tmp = folder / ".params.tmp.npz"
-        np.savez(tmp, **arrays)
-        tmp.replace(folder / "params.npz")
-        tmp = folder / ".config.json.tmp"
-        tmp.write_text(json.dumps(self.config(), indent=1, default=_plain, allow_nan=False) + "\n")
-        tmp.replace(folder / "config.json")
-        return folder
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        return self.write(folder, files.PARAMS, buf.getvalue())
 
     @classmethod
     def load(cls, folder):
@@ -202,6 +194,7 @@ class MilHead(_Saved):
     hidden: int = struct.field(pytree_node=False, default=64)
     encoder: str | None = struct.field(pytree_node=False, default="pcam-cnn")
     info: str = struct.field(pytree_node=False, default="{}")
+    source: str | None = struct.field(pytree_node=False, default=None)  # the folder loaded from (error lines)
     KIND = KIND_MIL
     kind = KIND_MIL
 
@@ -213,7 +206,8 @@ class MilHead(_Saved):
             what += f" + {self.feature_k}x{self.feature_k} feature means"
         return f"attention-MIL over {what}, {self.hidden} units"
 
-    def _structure(self) -> dict:
+    def structure(self) -> dict:
+        """The structure entries of ``config.json`` (:meth:`files.SavedHead.config`)."""
         return {"dim": self.dim, "ks": list(self.ks), "inputs": self.inputs, "feature_k": self.feature_k,
                 "hidden": self.hidden}
 
@@ -249,6 +243,7 @@ class StatsHead(_Saved):
     ks: tuple = struct.field(pytree_node=False, default=(1, 2, 3, 4))
     encoder: str | None = struct.field(pytree_node=False, default="pcam-cnn")
     info: str = struct.field(pytree_node=False, default="{}")
+    source: str | None = struct.field(pytree_node=False, default=None)  # the folder loaded from (error lines)
     KIND = KIND_STATS
     kind = KIND_STATS
 
@@ -256,7 +251,8 @@ class StatsHead(_Saved):
     def name(self) -> str:
         return f"logistic over pooled statistics ({min(self.ks)}-{max(self.ks)} means, top-1/3, counts, views read)"
 
-    def _structure(self) -> dict:
+    def structure(self) -> dict:
+        """The structure entries of ``config.json`` (:meth:`files.SavedHead.config`)."""
         return {"dim": self.dim, "ks": list(self.ks), "thresholds": list(THRESHOLDS), "tops": list(TOPS)}
 
     def _score(self, logits, features, read_mask) -> jax.Array:
@@ -264,12 +260,6 @@ class StatsHead(_Saved):
         s = (statistics_of(logits, mask, self.ks) - self.params["mu"]) / self.params["sd"]
         out = s @ self.params["w"] + self.params["b"]
         return jnp.where(jnp.any(mask), out, self.prior_logit).astype(jnp.float32)
-
-
-def _plain(v):
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    return str(v)
 
 
 MAX_KS = 8
@@ -324,7 +314,7 @@ def load(folder):
         files.check_magnitudes(arrays, par_file, MIN_SD)
         params = {k: jnp.asarray(arrays[k]) for k in ("mu", "sd", "w", "b")}
         return StatsHead(params=params, prior_logit=jnp.float32(arrays["prior_logit"]), dim=dim, ks=ks,
-                         encoder=encoder, info=info)
+                         encoder=encoder, info=info, source=str(folder))
     inputs = files.field(cfg, "inputs", str, cfg_file)
     if inputs not in ("logit", "features"):
         raise files.HeadFileError(cfg_file, f"'inputs' is {inputs[:40]!r}, not 'logit' or 'features'")
@@ -343,4 +333,4 @@ def load(folder):
     files.check_magnitudes(arrays, par_file, MIN_SD)
     params = {k: jnp.asarray(v) for k, v in arrays.items() if k != "prior_logit"}
     return MilHead(params=params, prior_logit=jnp.float32(arrays["prior_logit"]), dim=dim, ks=ks, inputs=inputs,
-                   feature_k=fk, hidden=hidden, encoder=encoder, info=info)
+                   feature_k=fk, hidden=hidden, encoder=encoder, info=info, source=str(folder))

@@ -77,9 +77,9 @@ def test_mil_validation_figures_carry_the_slope(enough, tmp_path):
     spec = read_spec(enough)
     slides = head_mil_fit.cache_grids(enough, spec["train"][:8], tmp_path / "c.npz", progress=False)
     shape = (max(s["tissue"].shape[0] for s in slides), max(s["tissue"].shape[1] for s in slides))
-    from histojax.reading.heads.logit import SlideHead
+    from histojax.reading.heads.logit import LogitHead
 
-    good = head_mil_fit.validation_aucs(SlideHead(k=1, top=1), slides, shape, fractions=(), draws=1)
+    good = head_mil_fit.validation_aucs(LogitHead(k=1, top=1), slides, shape, fractions=(), draws=1)
     assert set(good) == {"full", "slope"} and good["slope"] > 0  # entry 62 is the stand-in's view logit
 
 
@@ -167,3 +167,14 @@ def test_evaluate_refuses_head_rows_on_one_class(cohort):
         evaluate(config, None, num_episodes=1, head=heads.load(cohort["head"]))
     assert str(e.value).startswith(str(cohort["one"] / "dataset.json")) and len(str(e.value).splitlines()) == 1
     assert "only tumour slides (2)" in str(e.value)
+
+
+@pytest.mark.slow  # a whole MIL fit (about 25 s on 2 cores); the record's default tests: test_head_provenance.py, test_head.py
+def test_mil_fit_records_the_slides_it_was_fitted_and_chosen_on(enough, tmp_path):
+    out = tmp_path / "head"
+    assert head_mil_fit._main()(["--dataset", str(enough), "--cache", str(tmp_path / "c.npz"), "--out", str(out),
+                                 "--candidates", "stats", "--seeds", "1", "--val-fraction", "0.3"]) == 0
+    seen = json.loads((out / "config.json").read_text())["slides_seen"]
+    spec = json.loads((enough / "dataset.json").read_text())
+    assert seen["fitted"] == sorted(e.split("/")[-1] for e in spec["train"]) and len(seen["validation"]) == 6
+    assert seen["split"] == "train" and seen["fold"] is None and "seal" in seen["dataset"]

@@ -5,7 +5,8 @@ older heads (no record) are taken as fitted on the train split; ``learned_head_f
 fold and each fold's head is the one that scores that fold.
 
 The cohort (:func:`learned_fixture.make_cohort`, TRIDENT-layout 16-d features): 18 training slides (9 tumour, 9
-normal), 6 test slides (3 + 3) and three folds over all 24 (4 + 4 each)."""
+normal), 6 test slides (3 + 3), a patient with two slides (:data:`PATIENT`) and three folds over all 24 (4 + 4 each,
+dealt by the folds' own patient grouping)."""
 
 from __future__ import annotations
 
@@ -20,6 +21,8 @@ from baselines.reading import provenance
 from baselines.validation import MIN_VALIDATION_PER_CLASS, check_validation_share, split_train
 from learned_fixture import make_cohort
 
+PATIENT = {"s00_tumour": "P1", "s01_tumour": "P1"}
+"""The cohort's one patient with two slides (both tumour, both training slides)."""
 FAST = ["--steps", "100", "--eval-every", "20", "--hidden", "32", "--batch", "8", "--views", "64", "--quiet"]
 
 
@@ -39,10 +42,13 @@ def small(tmp_path_factory):
         dim=16,
         signal=4.0,
     )
+    from data_tools.datasets.split import fold_lists, folds_record, kfold_split, patient_groups
+
     spec = json.loads((c["root"] / "dataset.json").read_text())
-    every = spec["train"] + spec["test"]
-    tum, nor = [e for e in every if "tumour" in e], [e for e in every if "normal" in e]
-    spec["folds"] = {"k": 3, "pool": "all", "seed": 0, "lists": [sorted(tum[i::3] + nor[i::3]) for i in range(3)]}
+    names = [Path(e).name for e in spec["train"] + spec["test"]]
+    groups, how = patient_groups(names, PATIENT)  # the folds' own grouping: the patient's two slides in one fold
+    fold = kfold_split(names, spec["labels"], 3, 0, groups)
+    spec["folds"] = fold_lists(folds_record(fold, 3, 0, "all", how), names)
     (c["root"] / "dataset.json").write_text(json.dumps(spec))
     return c
 
@@ -341,3 +347,19 @@ def test_evaluate_all_folds_refuses_one_head_fitted_on_the_folds_slides(small, h
     assert histojax_main(argv) == 2
     err = [line for line in capsys.readouterr().err.splitlines() if line.startswith("error")]
     assert len(err) == 1 and "--allow-fitting-slides" in err[0] and "not held out" in err[0], err
+
+
+def test_the_patients_two_slides_share_a_fold_and_a_fold_head_refuses_both(small, tmp_path, capsys, monkeypatch):
+    lists = json.loads((small["root"] / "dataset.json").read_text())["folds"]["lists"]
+    assert [len(lst) for lst in lists] == [8, 8, 8]
+    home = [i for i, lst in enumerate(lists) if "bundles/s00_tumour" in lst]
+    assert len(home) == 1 and "bundles/s01_tumour" in lists[home[0]]
+    other = (home[0] + 1) % 3  # a head fitted on fold `other`'s train side saw both of the patient's slides
+    monkeypatch.setattr(fit, "train", _untrained)
+    monkeypatch.setattr(fit, "check_head", lambda *a, **k: None)
+    root, out = str(small["root"]), tmp_path / "h"
+    assert _main(["--dataset", root, "--out", str(out), "--fold", str(other), "--val-fraction", "0.4", *FAST]) == 0
+    rec = json.loads((out / "config.json").read_text())[provenance.RECORD]
+    assert {"s00_tumour", "s01_tumour"} <= set(rec["fitted"] + rec["validation"]) and rec["fold"] == other
+    assert _main(["--dataset", root, "--score", str(out), "--fold", str(home[0]), "--quiet"]) == 2
+    assert "not held out" in capsys.readouterr().err

@@ -202,6 +202,11 @@ def test_a_head_without_a_record_is_taken_as_fitted_on_the_train_split(small, ca
     with pytest.raises(provenance.FittingSlidesError, match="records no slides"):
         provenance.check_scored(legacy, "h", root, small["names"]["train"][:1])
     assert provenance.overlap(_Head({}), root, small["names"]["train"])[:2] == ([], [])
+    older_fold_head = _Head({"fitted_on": {"split": "train", "fold": 0}})  # fitted on folds 1 and 2, test slides too
+    lists = json.loads((root / "dataset.json").read_text())["folds"]["lists"]
+    seen = provenance.overlap(older_fold_head, root, small["names"]["test"])[0]
+    assert seen == sorted(Path(e).name for e in lists[1] + lists[2] if Path(e).name in small["names"]["test"])
+    assert seen  # some test slides lie in folds 1 and 2
 
 
 def test_the_published_c16_heads_score_the_c16_test_split_but_not_its_train_split(tmp_path):

@@ -13,7 +13,8 @@ Slides are matched **by name** (the bundle's folder name), whatever dataset fold
 dataset (another encoder, another scale, the C16 small set) holds the same slides under the same names.
 
 **Heads without the record** (published heads, heads fitted before it): a head whose ``config.json`` records a fit
-(``fitted_on``) is taken to have been fitted on the scored dataset's **train split** (the whole one, without folds):
+(``fitted_on``) is taken to have been fitted on the scored dataset's **train split** (the whole one, without folds;
+an older fold fit whose ``fitted_on`` records its ``fold``: that fold's train side, the other folds):
 how every head fit worked before, and how the published C16 heads were fitted (on ``c16-full``'s train split, which
 every C16 set shares). So scoring their test split works as before, and a fold's held-out side that lies in the
 train split is refused like any other fitting slide. A head that records no fit at all (built in code, uncalibrated)
@@ -107,6 +108,14 @@ def slides_seen(head, dataset) -> tuple[set[str], set[str], str]:
         spec = read_dataset_json(dataset)
     except (OSError, ValueError):
         return set(), set(), "none"
+    fold = (info.get("fitted_on") or {}).get("fold") if isinstance(info.get("fitted_on"), dict) else None
+    if isinstance(fold, int) and not isinstance(fold, bool):  # an older fold fit: the other folds' slides
+        from histojax.datasets import with_fold
+
+        try:
+            spec = with_fold(spec, fold)
+        except (HistojaxDataError, ValueError):
+            pass  # the dataset has no such fold: its train split, as for any older head
     return {_name(e) for e in spec.get("train") or []}, set(), "assumed"
 
 

@@ -21,7 +21,7 @@ import numpy as np
 from histojax.reading.heads import score_logits
 
 from histojax.reading.heads.learned import LearnedHead, init_params
-from histojax.reading.heads.logit import SlideHead
+from histojax.reading.heads.logit import LogitHead
 
 
 def timed(fn, *args, repeats: int = 20) -> float:
@@ -54,7 +54,7 @@ def main(argv=None) -> int:
     print(f"JAX {jax.__version__} on {jax.devices()[0].platform}; {args.batch} slides of {h} × {w} views")
     print("| k | batched: slides/s | one slide: µs per call |\n|---|---|---|")
     for k in args.ks:
-        head = SlideHead(k=k)
+        head = LogitHead(k=k)
         batched = jax.jit(jax.vmap(score_logits, in_axes=(None, 0, 0)))
         single = jax.jit(score_logits)
         tb = timed(batched, head, logits, masks, repeats=args.repeats)

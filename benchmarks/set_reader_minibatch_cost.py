@@ -44,7 +44,7 @@ def main(argv=None) -> int:
     p.add_argument("--repeats", type=int, default=15)
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
-    from baselines.reading.head_fit import read_spec
+    from baselines.reading.slides import read_spec
     from baselines.reading.train_readers import dataset_levels
     from data_tools.errors import HistojaxDataError
 

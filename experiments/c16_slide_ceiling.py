@@ -173,7 +173,7 @@ def lesion_census(annotations, test_fraction: float = 0.25, seed: int = 0) -> li
     CAMELYON16 level 0 (0.243 µm/px)."""
     import shapely
 
-    from baselines.reading.lesions import lesion_of
+    from baselines.reading.slides import lesion_of
     from data_tools.datasets.c16_layout import C16_MPP, OWN_TISSUE, donor_for
     from data_tools.datasets.split import grouped_split
     from data_tools.ncrf import read_ncrf

@@ -15,7 +15,7 @@ import pytest
 
 from baselines.evaluate.heads import check_head_features, encoder_family
 from histojax.reading.heads.learned import LearnedHead, init_params
-from histojax.reading.heads.logit import SlideHead
+from histojax.reading.heads.logit import LogitHead
 from learned_fixture import make_cohort
 
 DIM = 16
@@ -48,7 +48,7 @@ def test_head_features_check_reads_any_head():
         check_head_features(learned, ["imported:b.h5"], 64)
     with pytest.raises(ValueError, match="for imported:a.h5 features; these slides hold pcam-cnn"):
         check_head_features(learned, ["pcam-cnn"], 8)
-    logit = SlideHead(dim=62, k=2, top=1, encoder="pcam-cnn")
+    logit = LogitHead(dim=62, k=2, top=1, encoder="pcam-cnn")
     check_head_features(logit, ["pcam-cnn"], 64)
     with pytest.raises(ValueError, match="reads feature entry 62"):
         check_head_features(logit, ["pcam-cnn"], 16)

@@ -183,9 +183,9 @@ def test_a_head_the_curve_cannot_score_as_a_set_is_one_line(cohort, tmp_path, ca
     """A logit head (neighbourhoods of the view grid) and a learned head of another feature length: one line naming
     the head's config.json, exit 2, nothing written."""
     from baselines.reading import budget_curve
-    from histojax.reading.heads.logit import SlideHead
+    from histojax.reading.heads.logit import LogitHead
 
-    logit = SlideHead(dim=0, k=3, encoder=None).save(tmp_path / "logit")
+    logit = LogitHead(dim=0, k=3, encoder=None).save(tmp_path / "logit")
     other = planted_head(np.eye(8)[0]).save(tmp_path / "other")
     for head, words in ((logit, "pools neighbourhoods"), (other, "8-d features")):
         out = tmp_path / f"out-{head.name}"

@@ -155,7 +155,7 @@ def test_a_policy_read_masks_are_scored_by_the_slide_head(dataset, runs, glimpse
     count the same views as the env did, and add_reader scores them with one slide head (histojax.reading.heads.logit)."""
     from baselines.reading import head_fit, readers
     from baselines.reading.slides import load_slides
-    from histojax.reading.heads.logit import SlideHead
+    from histojax.reading.heads.logit import LogitHead
 
     slides = load_slides(dataset, "test", dim=0)
     tables = pipeline.load_split(dataset, "test", env_id="HistoJAX-Easy-v0", level=1).tables
@@ -170,7 +170,7 @@ def test_a_policy_read_masks_are_scored_by_the_slide_head(dataset, runs, glimpse
         for m, s, (read, _, fraction, _) in zip(masks[b][0], slides, glimpse_reads[b]):
             assert m.shape == s["tissue"].shape and not (m & ~s["tissue"]).any()
             assert m.sum() == len(read) == pytest.approx(fraction * s["tissue"].sum())
-    head = head_fit.calibrated(SlideHead(dim=0, k=3, encoder=None), load_slides(dataset, "train", dim=0))
+    head = head_fit.calibrated(LogitHead(dim=0, k=3, encoder=None), load_slides(dataset, "train", dim=0))
     res = readers.add_reader(readers.new_results(), head, slides, "GRU glimpse", masks)
     rows = readers.rows_from_results(res, slides)
     assert [r["budget"] for r in rows] == list(BUDGETS) and all(r["kind"] == "learned" for r in rows)
@@ -185,9 +185,9 @@ def test_readers_command_adds_a_trained_reader(dataset, runs, tmp_path):
     scored by the same head (here on the training split, which holds both classes)."""
     from baselines.reading import head_fit, readers
     from baselines.reading.slides import load_slides
-    from histojax.reading.heads.logit import SlideHead
+    from histojax.reading.heads.logit import LogitHead
 
-    head_fit.calibrated(SlideHead(dim=0, k=3, encoder=None), load_slides(dataset, "train", dim=0)).save(
+    head_fit.calibrated(LogitHead(dim=0, k=3, encoder=None), load_slides(dataset, "train", dim=0)).save(
         tmp_path / "head")
     assert readers.main(["--dataset", str(dataset), "--head", str(tmp_path / "head"), "--split", "train",
                          "--budgets", "0.25", "0.5", "--seeds", "1", "--reader", "GRU glimpse", str(runs["glimpse:1"]),

@@ -122,9 +122,9 @@ def test_map_follower_walks_to_the_highest_unread_block():
 def test_evaluate_scores_the_map_follower_through_the_head(dataset):
     """``evaluate`` through a head: the reference rows (random, the map follower) are scored by the head (AUC)."""
     from baselines.evaluate import evaluate
-    from histojax.reading.heads.logit import SlideHead
+    from histojax.reading.heads.logit import LogitHead
 
-    head = SlideHead(a=jnp.float32(1.0), b=jnp.float32(0.0), prior_logit=jnp.float32(0.0), dim=ENTRY, k=1, top=1,
+    head = LogitHead(cal_a=jnp.float32(1.0), cal_b=jnp.float32(0.0), prior_logit=jnp.float32(0.0), dim=ENTRY, k=1, top=1,
                      encoder=None)
     config = {"env_id": "HistoJAX-Easy-v0", "action_mode": "discrete:map", "obs_mode": "features",
               "max_steps_in_episode": 12,

@@ -11,7 +11,7 @@ import pytest
 import histojax
 from histojax.reading.coarse_map import coarse_maps
 from histojax.reading.heads.learned import LearnedHead, init_params
-from histojax.reading.heads.logit import SlideHead
+from histojax.reading.heads.logit import LogitHead
 from slide_helpers import synth_feature_dataset
 
 
@@ -26,7 +26,7 @@ def _make(dataset, **kw):
 
 
 def test_a_logit_heads_map_is_its_entrys_map(dataset, tmp_path):
-    folder = SlideHead(a=jnp.float32(1.0), b=jnp.float32(0.0), prior_logit=jnp.float32(0.0), dim=2, k=1, top=1,
+    folder = LogitHead(cal_a=jnp.float32(1.0), cal_b=jnp.float32(0.0), prior_logit=jnp.float32(0.0), dim=2, k=1, top=1,
                        encoder=None).save(tmp_path / "logit-head")
     _, by_entry = _make(dataset, map_feature=2)
     _, by_head = _make(dataset, map_head=str(folder))

@@ -26,12 +26,12 @@ from baselines.harness.logs import save_checkpoint
 from baselines.publish import publish
 from baselines.published_agents import PUBLISHED
 from histojax.cli import main as histojax_main
-from histojax.reading.heads.logit import SlideHead
+from histojax.reading.heads.logit import LogitHead
 
 D, LOGIT, TILE, MPP = 64, 62, 16, 2.0
 READER = {"algo": "ppo", "env_id": "HistoJAX-C16-Diagnosis-v2", "action_mode": "glimpse:1", "obs_mode": "features",
           "with_position": False, "hidden": 16, "cell_hidden": 8, "obs_norm": None, "num_seeds": 1}
-HEAD = SlideHead(a=jnp.float32(1.0), b=jnp.float32(0.0), prior_logit=jnp.float32(-0.5), dim=LOGIT, k=3, top=1,
+HEAD = LogitHead(cal_a=jnp.float32(1.0), cal_b=jnp.float32(0.0), prior_logit=jnp.float32(-0.5), dim=LOGIT, k=3, top=1,
                  encoder="pcam-cnn")
 
 
@@ -146,7 +146,7 @@ def _grid(dataset) -> np.ndarray:
 def test_publish_keeps_the_readers_head_and_curve(reader):
     record = json.loads((reader / "head_reward.json").read_text())
     assert record["head"] == "head" and record["head_source"].endswith("head-fit")
-    assert SlideHead.load(reader / "head").name == HEAD.name
+    assert LogitHead.load(reader / "head").name == HEAD.name
     assert (reader / "log.csv").is_file() and (reader / "config.json").is_file()
 
 

@@ -17,11 +17,11 @@ import numpy as np
 import pytest
 
 from baselines.reading import head_fit, readers, slides
-from baselines.reading.lesions import CLASSES, lesion_class
+from baselines.reading.slides import CLASSES, lesion_class
 from baselines.reading.orders import logit_order, random_order, read_mask, search_order
 from data_tools.bundle_format import sha256, write_metadata
 from histojax.reading.heads import score
-from histojax.reading.heads.logit import SlideHead, neighbourhood_mean
+from histojax.reading.heads.logit import LogitHead, neighbourhood_mean
 
 GH, GW, TILE, MPP, D = 24, 16, 16, 10.0, 64  # views; px per view; µm/px (a view is 160 µm)
 # (name, lesion (y, x, h, w) in views or None, polygon side in px when smaller than the block)
@@ -120,7 +120,7 @@ def test_score_is_jittable_padding_free_and_empty_gives_the_prior():
     rng = np.random.default_rng(2)
     g = rng.normal(size=(10, 6, 64)).astype(np.float32)
     m = rng.random((10, 6)) < 0.5
-    head = SlideHead(a=jnp.float32(1.5), b=jnp.float32(-2.0), prior_logit=jnp.float32(-0.7), k=3, top=3,
+    head = LogitHead(cal_a=jnp.float32(1.5), cal_b=jnp.float32(-2.0), prior_logit=jnp.float32(-0.7), k=3, top=3,
                      minus_median=True)
     plain = float(score(head, g, m))
     assert float(jax.jit(score)(head, g, m)) == pytest.approx(plain, abs=1e-5)
@@ -137,18 +137,18 @@ def test_score_is_jittable_padding_free_and_empty_gives_the_prior():
 
 
 def test_head_saves_and_loads(tmp_path):
-    head = SlideHead(a=jnp.float32(0.8), b=jnp.float32(0.1), prior_logit=jnp.float32(0.2), k=2, top=1,
+    head = LogitHead(cal_a=jnp.float32(0.8), cal_b=jnp.float32(0.1), prior_logit=jnp.float32(0.2), k=2, top=1,
                      info=json.dumps({"chosen_on": {"validation_auc": 0.9}}))
     head.save(tmp_path / "h")
-    back = SlideHead.load(tmp_path / "h")
+    back = LogitHead.load(tmp_path / "h")
     assert (back.k, back.top, back.minus_median, back.dim) == (2, 1, False, 62)
-    assert float(back.a) == pytest.approx(0.8) and float(back.prior_logit) == pytest.approx(0.2)
+    assert float(back.cal_a) == pytest.approx(0.8) and float(back.prior_logit) == pytest.approx(0.2)
     assert json.loads((tmp_path / "h" / "config.json").read_text())["chosen_on"] == {"validation_auc": 0.9}
     (tmp_path / "h" / "params.json").write_text("{\"a\": 1}")
     with pytest.raises(ValueError, match="params.json: lacks 'b'"):
-        SlideHead.load(tmp_path / "h")
+        LogitHead.load(tmp_path / "h")
     with pytest.raises(ValueError, match="config.json: missing"):
-        SlideHead.load(tmp_path / "nothing")
+        LogitHead.load(tmp_path / "nothing")
 
 
 # ----------------------------------------------------------------------------- fitting
@@ -167,7 +167,7 @@ def test_fit_chooses_spatial_context_on_validation(fitted, dataset):
     assert seen["fitted"] == sorted(Path(e).name for e in spec["train"]) and len(seen["validation"]) == 6
     assert set(seen["validation"]) <= set(seen["fitted"]) and seen["fold"] is None and seen["split"] == "train"
     test = slides.load_slides(dataset, "test")
-    logits = readers.head_scores(SlideHead.load(out), test, [s["tissue"] for s in test])
+    logits = readers.head_scores(LogitHead.load(out), test, [s["tissue"] for s in test])
     labels = [s["label"] for s in test]
     from data_tools.metrics import roc_auc
     assert roc_auc(logits, labels) == 1.0
@@ -254,7 +254,7 @@ def test_readers_command_refuses_a_bad_head(dataset, tmp_path, capsys):
     assert readers.main(["--dataset", str(dataset), "--head", str(tmp_path), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "config.json: missing" in err[0]
-    SlideHead(encoder="uni").save(tmp_path / "uni")  # a head for another encoder's features
+    LogitHead(encoder="uni").save(tmp_path / "uni")  # a head for another encoder's features
     assert readers.main(["--dataset", str(dataset), "--head", str(tmp_path / "uni"), "--out", str(tmp_path / "o")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "a head for uni features" in err[0] and "pcam-cnn" in err[0]

@@ -20,13 +20,13 @@ import histojax
 from histojax.core import seen_views
 from histojax.reading import tables as reading_tables
 from histojax.reading.heads import score_logits
-from histojax.reading.heads.logit import SlideHead
+from histojax.reading.heads.logit import LogitHead
 from histojax.reading.head_reward import HeadReward
 from hypothesis_examples import examples
 from slide_helpers import synth_feature_dataset
 
 STEPS, ENVS = 14, 3
-HEAD = SlideHead(a=jnp.float32(1.5), b=jnp.float32(-0.2), prior_logit=jnp.float32(0.3), dim=0, k=3, top=1,
+HEAD = LogitHead(cal_a=jnp.float32(1.5), cal_b=jnp.float32(-0.2), prior_logit=jnp.float32(0.3), dim=0, k=3, top=1,
                  encoder=None)
 
 

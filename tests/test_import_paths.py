@@ -66,6 +66,9 @@ GONE = {
     "baselines.common.logs": "baselines.harness.logs",
     "baselines.curves": "baselines.harness.curves",
     "baselines.distributed": "baselines.harness.distributed",
+    # small leaf modules folded into their users
+    "baselines.reading.budgets": "baselines.reading.pipeline",
+    "baselines.reading.lesions": "baselines.reading.slides",
 }
 
 # names that left a module which still exists: old module -> (the one module of the names, the names)
@@ -79,6 +82,7 @@ MOVED_NAMES = {
                                    ("read_spec", "scale_warning", "warn_scale", "read_bundle", "finest_views",
                                     "load_slide", "load_slides", "split_bundles", "_label")),
     "baselines.evaluate.checks": ("data_tools.metrics", ("UNDEFINED",)),
+    "histojax.reading.heads.logit": ("the same module, named for what it is: LogitHead", ("SlideHead",)),
 }
 
 

@@ -107,9 +107,9 @@ def test_readers_cell_level_reads_the_checked_metadata(work, tmp_path):
 
 # ----------------------------------------------------------------------------- head folders: one guarded reader
 def _logit_head(folder: Path, **cfg) -> Path:
-    from histojax.reading.heads.logit import SlideHead
+    from histojax.reading.heads.logit import LogitHead
 
-    SlideHead(a=2.0, b=-4.0, prior_logit=-0.3, dim=62, k=2, top=1).save(folder)
+    LogitHead(cal_a=2.0, cal_b=-4.0, prior_logit=-0.3, dim=62, k=2, top=1).save(folder)
     params = {k: cfg.pop(k) for k in ("a", "b", "prior_logit") if k in cfg}
     if cfg:
         c = json.loads((folder / "config.json").read_text())

@@ -6,7 +6,7 @@ import jax.numpy as jnp
 
 from baselines.reading import readers
 from data_tools.datasets.cli import _report
-from histojax.reading.heads.logit import SlideHead
+from histojax.reading.heads.logit import LogitHead
 from test_head import make_dataset
 
 
@@ -22,7 +22,7 @@ def test_the_dataset_summary_says_a_split_holds_one_class(tmp_path, capsys):
 
 def test_readers_refuse_a_one_class_split(tmp_path, capsys):
     ds = make_dataset(tmp_path / "ds", n_train=4, n_test=1)  # the test split: one tumour slide
-    head = SlideHead(a=jnp.float32(1.0), b=jnp.float32(0.0), prior_logit=jnp.float32(0.0), dim=62, k=1, top=1,
+    head = LogitHead(cal_a=jnp.float32(1.0), cal_b=jnp.float32(0.0), prior_logit=jnp.float32(0.0), dim=62, k=1, top=1,
                      encoder="pcam-cnn").save(tmp_path / "head")
     out = tmp_path / "readers"
     assert readers.main(["--dataset", str(ds), "--head", str(head), "--split", "test", "--out", str(out)]) == 2

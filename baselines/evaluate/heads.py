@@ -91,10 +91,10 @@ def head_scored(ep: dict, env_params, classes) -> dict:
 
 def lesion_classes(env, env_params) -> list[str] | None:
     """CAMELYON's lesion class of each slide of ``env`` (``normal``, ``ITC``, ``micro``, ``macro``:
-    :func:`baselines.reading.lesions.lesion_of` on the bundle's tumour polygons at its µm/px), or None when a tumour
+    :func:`baselines.reading.slides.lesion_of` on the bundle's tumour polygons at its µm/px), or None when a tumour
     slide's class cannot be known (no polygons, no µm/px)."""
     from data_tools.annotations import load_annotations
-    from baselines.reading.lesions import lesion_of
+    from baselines.reading.slides import lesion_of
 
     labels = np.atleast_1d(np.asarray(jax.device_get(env_params.slide.slide_label))).astype(int)
     out = []

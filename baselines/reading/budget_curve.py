@@ -53,7 +53,7 @@ import numpy as np
 import optax
 from flax.core.scope import LazyRng
 
-from baselines.reading.budgets import BUDGETS
+from baselines.reading.pipeline import BUDGETS
 from baselines.reading.csv_files import write_curve_csv
 from baselines.reading.orders import attention_order, score_order
 from baselines.reading.pipeline import (check_two_classes, load_split, policy_reads, random_orders, read_all,
@@ -70,7 +70,7 @@ from histojax.reading.head_reward import pools_views
 from histojax.reading.modes.glimpse import unreadable_warning
 from histojax.reading import heads
 from histojax.reading.heads.learned import LearnedHead
-from histojax.reading.heads.logit import SlideHead
+from histojax.reading.heads.logit import LogitHead
 from histojax.reading.heads.mil import attention_pool
 
 def _init_params(key: jax.Array, d: int, hidden: int, attention: int) -> dict:
@@ -131,9 +131,9 @@ def _log_odds(labels) -> float:
     return float(np.log(p / (1 - p)))
 
 
-def fit_max_logit(bags: np.ndarray, masks: np.ndarray, labels, dim: int, steps: int = 2000) -> SlideHead:
+def fit_max_logit(bags: np.ndarray, masks: np.ndarray, labels, dim: int, steps: int = 2000) -> LogitHead:
     """Max-pooling MIL with a fixed instance classifier: the logit head
-    (:class:`~histojax.reading.heads.logit.SlideHead`, ``k=1``, ``top=1``) whose slide score is the largest tumour
+    (:class:`~histojax.reading.heads.logit.LogitHead`, ``k=1``, ``top=1``) whose slide score is the largest tumour
     logit (feature ``dim``: pcam-cnn holds its view's tumour logit at :data:`PCAM_CNN_VIEW_LOGIT`) of the views
     read. Nothing is learned from slides but the 1-D logistic calibration ``(a, b)`` of ``labels (B,)`` on the
     training ``bags (B, N, D)`` / ``masks (B, N)``' max logits (plain gradient descent, ``steps``), so that scores
@@ -146,7 +146,7 @@ def fit_max_logit(bags: np.ndarray, masks: np.ndarray, labels, dim: int, steps: 
         p = 1.0 / (1.0 + np.exp(-(w * z + c)))
         w -= 0.5 * float(np.mean((p - y) * z))
         c -= 0.5 * float(np.mean(p - y))
-    return SlideHead(a=jnp.float32(w / sd), b=jnp.float32(c - w * mu / sd), prior_logit=jnp.float32(_log_odds(y)),
+    return LogitHead(cal_a=jnp.float32(w / sd), cal_b=jnp.float32(c - w * mu / sd), prior_logit=jnp.float32(_log_odds(y)),
                      dim=int(dim), k=1, top=1, encoder=None)
 
 

@@ -34,7 +34,7 @@ import numpy as np
 
 from baselines import outputs
 from baselines.reading import readers
-from baselines.reading.budgets import BUDGETS
+from baselines.reading.pipeline import BUDGETS
 from baselines.reading.csv_files import write_csv
 from baselines.reading.pipeline import check_two_classes, run_seeds
 from baselines.reading.plots import plot_readers

@@ -73,20 +73,20 @@ def candidates(ks=(1, 2, 3, 4, 5), dim: int = pcam_cnn.VIEW_LOGIT, encoder: str 
     read views' median subtracted when ``minus_median``: off by default, because the median of what was read
     depends on where a reader looked — a reader that reads only hot cells has a hot median — so such a head
     scores a good reader's reads lower than a random reader's)."""
-    from histojax.reading.heads.logit import SlideHead
+    from histojax.reading.heads.logit import LogitHead
 
-    return [SlideHead(dim=dim, k=int(k), top=t, minus_median=m, encoder=encoder)
+    return [LogitHead(dim=dim, k=int(k), top=t, minus_median=m, encoder=encoder)
             for k in ks for t in TOPS for m in ((False, True) if minus_median else (False,))]
 
 
 def calibrated(head, slides: list[dict], shape: tuple[int, int] | None = None):
-    """``head`` with ``(a, b)`` fitted on ``slides`` (reading everything) and the prior log odds."""
+    """``head`` with its calibration ``(cal_a, cal_b)`` fitted on ``slides`` (reading everything) and the prior log odds."""
     import jax.numpy as jnp
 
     labels = np.asarray([s["label"] for s in slides])
     a, b = logistic_fit(statistics(head, slides, shape=shape), labels)
     p = np.clip(labels.mean(), 1e-3, 1 - 1e-3)
-    return head.replace(a=jnp.float32(a), b=jnp.float32(b), prior_logit=jnp.float32(np.log(p / (1 - p))))
+    return head.replace(cal_a=jnp.float32(a), cal_b=jnp.float32(b), prior_logit=jnp.float32(np.log(p / (1 - p))))
 
 
 def choose(train: list[dict], val: list[dict], cands) -> tuple[object, list[dict]]:
@@ -172,7 +172,7 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
     best, table = choose(tr, va, candidates(ks, dim, encoder, minus_median))
     head = calibrated(best, train, grid_shape(train))
     chosen = next(r for r in table if r["name"] == best.name)
-    check_head(dataset, chosen["validation_auc"], float(head.a))
+    check_head(dataset, chosen["validation_auc"], float(head.cal_a))
     n_tumour = int(sum(s["label"] for s in va))
     if (warning := small_split_warning(n_tumour, len(va) - n_tumour, "the validation share"
                                        + (f" of fold {fold}" if fold is not None else ""))) is not None:
@@ -223,7 +223,7 @@ def run(args, parser=None) -> int:
         low, high = (float("nan") if v is None else v
                      for v in (r.get("validation_auc_low"), r.get("validation_auc_high")))
         print(f"| {r['name']} | {r['train_auc']:.3f} | {format_auc(r['validation_auc'], low, high)} |")
-    print(f"chosen: {head.name} (slide logit = {float(head.a):.3f} · s + {float(head.b):.3f}); saved to {args.out} "
+    print(f"chosen: {head.name} (slide logit = {float(head.cal_a):.3f} · s + {float(head.cal_b):.3f}); saved to {args.out} "
           f"in {time.perf_counter() - t0:.0f} s")
     return 0
 

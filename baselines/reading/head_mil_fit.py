@@ -366,7 +366,7 @@ def run(args, parser=None) -> int:
     from baselines.validation import check_validation_share, split_train
     from data_tools.cli_output import print_error
     from histojax.reading.heads.files import check_writable
-    from histojax.reading.heads.logit import SlideHead
+    from histojax.reading.heads.logit import LogitHead
 
     t0 = time.perf_counter()
     try:
@@ -389,7 +389,7 @@ def run(args, parser=None) -> int:
     table = json.loads(table_file.read_text()) if table_file and table_file.is_file() else {}
     ref = "2x2 mean, max (c16-v2-head)"
     if ref not in table:
-        table[ref] = [validation_aucs(SlideHead(k=2, top=1), va, shape)]
+        table[ref] = [validation_aucs(LogitHead(k=2, top=1), va, shape)]
     data = None
     for name in args.candidates:
         key = name if name == "stats" else f"{name}, {args.steps} steps"

@@ -62,7 +62,7 @@ from tqdm import tqdm
 
 from baselines.reading.slides import HeadDataError, finest_views, read_bundle, warn_scale
 from baselines.reading.slides import read_spec as read_sealed_spec
-from baselines.reading.lesions import lesion_of
+from baselines.reading.slides import lesion_of
 from histojax.reading.heads import encoder_mismatch
 from baselines.reading.provenance import RECORD, add_flag, check_scored, fit_record, head_for_fold
 from baselines.validation import check_validation_share, split_train
@@ -636,7 +636,7 @@ def check_alike(dataset, slides: list[dict]) -> None:
 
 # ----------------------------------------------------------------------------- scoring a split
 def lesion_classes(slides: list[dict]) -> list[str]:
-    """Each slide's lesion class as :func:`baselines.reading.lesions.lesion_of` defines it (``normal`` for label
+    """Each slide's lesion class as :func:`baselines.reading.slides.lesion_of` defines it (``normal`` for label
     0; ``ITC`` / ``micro`` / ``macro`` by the largest lesion's diameter; ``unknown`` without polygons), the
     annotation read from the bundle's own ``annotations.geojson``."""
     out = []

@@ -25,12 +25,15 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from baselines.reading.budgets import BUDGETS
 from baselines.reading.slides import HeadDataError, load_slide, load_slides, read_bundle, read_spec, split_bundles
 from baselines.reading.orders import random_order, read_cells
 from data_tools.bundle_format import read_metadata, verify_metadata
 from baselines.run_config import read_run_config
 from histojax.reading.head_reward import pools_views
+
+BUDGETS = (0.05, 0.1, 0.2, 0.5)
+"""Fractions of a slide's finest-level tissue views a reader may read (5, 10, 20, 50 %): the default budgets of
+``python -m baselines.reading.readers`` and ``python -m baselines.reading.budget_curve``."""
 
 
 @dataclasses.dataclass

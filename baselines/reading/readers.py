@@ -53,9 +53,9 @@ import numpy as np
 from baselines import outputs
 from data_tools.metrics import accuracy, format_auc_runs, json_safe, small_split_warning
 from histojax.reading.head_reward import pools_views
-from baselines.reading.budgets import BUDGETS
+from baselines.reading.pipeline import BUDGETS
 from baselines.reading.csv_files import write_csv
-from baselines.reading.lesions import CLASSES, lesion_class
+from baselines.reading.slides import CLASSES, lesion_class
 from baselines.reading import pipeline
 from baselines.reading.slides import HeadDataError
 from baselines.reading.orders import logit_order, search_order

@@ -42,7 +42,7 @@ diagnosis by the head: the navigator chooses where to look, the head declares);
 ``head_correct``): what a trainer's progress lines and ``histojax evaluate`` through a head call success; the
 wrapped env's own success (a declared diagnosis right, a target reached) is ``info["env_success"]``.
 
-**Cost**: with a max-pooling :class:`~histojax.reading.heads.logit.SlideHead` (``top=1``, no median, e.g. the published
+**Cost**: with a max-pooling :class:`~histojax.reading.heads.logit.LogitHead` (``top=1``, no median, e.g. the published
 ``c16-v2-head``) a step re-scores only the window of the 3 × 3 cells (navigators: blocks of ``BLOCK × BLOCK``
 finest views) around what it read, giving the same floats as scoring the whole finest grid, at a cost that
 does not grow with the slide (:func:`incremental`; ``incremental_score=False`` scores the whole grid).
@@ -73,7 +73,7 @@ from histojax.reading import tables as reading_tables
 from histojax.reading.heads import score_logits
 from histojax.reading.heads.files import check_finite_logits
 from histojax.reading.heads.learned import PoolState
-from histojax.reading.heads.logit import SlideHead, neighbourhood_mean
+from histojax.reading.heads.logit import LogitHead, neighbourhood_mean
 
 GAINS = ("log", "prob", "fidelity")
 
@@ -88,7 +88,7 @@ class HeadTables:
     grid: jnp.ndarray        # (S, 2) int32 (gh, gw) each slide's own finest grid
     label: jnp.ndarray       # (S,) int32 slide label (1 tumour)
     full_logit: jnp.ndarray  # (S,) float32 the head's slide logit with every tissue view read
-    # glimpse with a max-pooling SlideHead only (else None): the same grids padded by ``k`` views above / left
+    # glimpse with a max-pooling LogitHead only (else None): the same grids padded by ``k`` views above / left
     # and a window's size below / right, and each cell row's / column's first finest row / column, so that
     # a step re-scores only the window around the cell it revealed (see :meth:`HeadReward._score_incremental`)
     win_logits: jnp.ndarray | None = None   # (S, H + pad_h, W + pad_w) float32
@@ -127,11 +127,11 @@ def block_side(head) -> int:
 
 def incremental(head) -> bool:
     """Whether a step can re-score only a window around what it read (exactly the full score): a
-    :class:`~histojax.reading.heads.logit.SlideHead` that pools by the maximum (``top=1``, no median), whose neighbourhood
+    :class:`~histojax.reading.heads.logit.LogitHead` that pools by the maximum (``top=1``, no median), whose neighbourhood
     means change only near newly read views. A ``glimpse`` step reveals at most one cell, a navigator's step
     stands on at most one new finest view; either way the window is the 3 × 3 cells (blocks of
     ``BLOCK × BLOCK`` finest views for navigators) around it."""
-    return bool(isinstance(head, SlideHead) and head.top == 1 and not head.minus_median)
+    return bool(isinstance(head, LogitHead) and head.top == 1 and not head.minus_median)
 
 
 def pools_views(head) -> bool:
@@ -141,7 +141,7 @@ def pools_views(head) -> bool:
     return all(hasattr(head, a) for a in ("view_terms", "add_terms", "logit_terms", "init_terms_state"))
 
 
-def build_tables(env, head: SlideHead, params=None, windows: bool | None = None) -> HeadTables:
+def build_tables(env, head: LogitHead, params=None, windows: bool | None = None) -> HeadTables:
     """Host-built :class:`HeadTables` of ``env``'s slides (``params``: default ``env.default_params``);
     ``windows`` (default :func:`incremental`): also the padded grids of the incremental score."""
     params = env.default_params if params is None else params
@@ -242,7 +242,7 @@ class HeadReward(Wrapper):
     same logits as scoring the whole grid, at a cost that does not grow with the slide; ``False``: score
     the whole finest grid every step)."""
 
-    def __init__(self, env, head: SlideHead, gain: str | None = "log", final: float = 1.0, read_cost: float = 0.0,
+    def __init__(self, env, head: LogitHead, gain: str | None = "log", final: float = 1.0, read_cost: float = 0.0,
                  env_reward: bool = False, params=None, incremental_score: bool | None = None):
         super().__init__(env)
         if gain is True:
@@ -263,7 +263,7 @@ class HeadReward(Wrapper):
         self.incremental = (not self.pooled) and (incremental(head) if incremental_score is None
                                                   else bool(incremental_score))
         if self.incremental and not incremental(head):
-            raise ValueError("incremental_score needs a SlideHead with top=1 and no median, or a head that pools "
+            raise ValueError("incremental_score needs a LogitHead with top=1 and no median, or a head that pools "
                              "the read views by attention")
         self.tables = build_tables(env, head, params, windows=self.incremental)
         tb = self.tables
@@ -374,7 +374,7 @@ class HeadReward(Wrapper):
         else:
             views = before.views + new.astype(jnp.int32)
         s = cell_best.max()
-        logit = jnp.where(views > 0, head.a * s + head.b, head.prior_logit).astype(jnp.float32)
+        logit = jnp.where(views > 0, head.cal_a * s + head.cal_b, head.prior_logit).astype(jnp.float32)
         return logit, views, cell_best
 
     def _wrap(self, env_state) -> HeadRewardState:

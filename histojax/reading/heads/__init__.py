@@ -9,7 +9,7 @@ by the ``kind`` in its ``config.json`` (:data:`HEADS`)::
     head = heads.load("baselines/published/c16-v2-head")
     logit = heads.score(head, grid_features, read_mask)      # (H, W, D), (H, W) bool -> () float32
 
-Kinds: ``neighbourhood-pooled-logit`` (:class:`~histojax.reading.heads.logit.SlideHead`, a calibrated pooled
+Kinds: ``neighbourhood-pooled-logit`` (:class:`~histojax.reading.heads.logit.LogitHead`, a calibrated pooled
 view logit), ``attention-mil`` and ``pooled-statistics`` (:class:`~histojax.reading.heads.mil.MilHead`,
 :class:`~histojax.reading.heads.mil.StatsHead`, trained heads), ``learned-attention-mil``
 (:class:`~histojax.reading.heads.learned.LearnedHead`, an attention-MIL learned from any encoder's features).
@@ -50,7 +50,7 @@ class SlideHeadProtocol(Protocol):
         """Read a head of this class's kind; ``ValueError`` naming the file, one line, on anything malformed."""
 
 
-HEADS: dict[str, type] = {logit.KIND: logit.SlideHead, mil.KIND_MIL: mil.MilHead, mil.KIND_STATS: mil.StatsHead,
+HEADS: dict[str, type] = {logit.KIND: logit.LogitHead, mil.KIND_MIL: mil.MilHead, mil.KIND_STATS: mil.StatsHead,
                           learned.KIND: learned.LearnedHead}
 """kind (``config.json``'s ``"kind"``) -> head class."""
 

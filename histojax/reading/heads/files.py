@@ -371,7 +371,7 @@ def save_folder(folder, config: dict, arrays: dict, extras: dict | None = None) 
         for name, data in extras.items():
             (tmp / name).write_bytes(data)
         cfg = {**config, "files": [PARAMS, *sorted(extras)]}
-        (tmp / CONFIG).write_text(json.dumps(cfg, indent=1, default=_plain, allow_nan=False) + "\n")
+        (tmp / CONFIG).write_text(json_text(cfg))
         for name in os.listdir(tmp):
             if name != TEMP_MARKER:
                 with open(tmp / name, "rb+") as f:
@@ -384,9 +384,51 @@ def save_folder(folder, config: dict, arrays: dict, extras: dict | None = None) 
     return folder
 
 
-def _plain(v):
+def json_value(v):
+    """``json.dumps``'s ``default`` for every head file: a NumPy scalar as its Python number, an array as a list,
+    anything else as its text."""
     if isinstance(v, (np.floating, np.integer)):
         return v.item()
     if isinstance(v, np.ndarray):
         return v.tolist()
     return str(v)
+
+
+def json_text(obj) -> str:
+    """``obj`` as a head file's JSON text (indented, strict: no NaN / Infinity, :func:`json_value` for NumPy
+    values), ending in a newline."""
+    return json.dumps(obj, indent=1, default=json_value, allow_nan=False) + "\n"
+
+
+INPUT = "finest-level feature grid (H, W, D) and read mask (H, W) bool of read tissue views"
+"""What every head reads (``config.json``'s ``input``)."""
+
+
+class SavedHead:
+    """The files every head class shares: :meth:`config` (``config.json``: ``kind``, ``format``, the class's
+    :meth:`structure`, ``encoder``, ``name``, ``input``, ``output`` and the fit's ``info``, in that order) and
+    :meth:`write` (the parameters file then ``config.json``, each through a temporary file renamed onto it). A
+    head class sets ``kind``, ``FORMAT`` and maybe ``OUTPUT``, and has ``structure()``, ``encoder``, ``name`` and
+    ``info`` (JSON text of an object)."""
+
+    OUTPUT = "slide tumour logit (sigmoid: probability)"
+
+    def structure(self) -> dict:
+        """The head's own structure entries of ``config.json`` (its sizes and options)."""
+        raise NotImplementedError
+
+    def config(self) -> dict:
+        """The structure as saved in ``config.json``."""
+        return {"kind": self.kind, "format": self.FORMAT, **self.structure(), "encoder": self.encoder,
+                "name": self.name, "input": INPUT, "output": self.OUTPUT, **json.loads(self.info)}
+
+    def write(self, folder, params_name: str, params: bytes) -> Path:
+        """Write ``folder/params_name`` (``params``) and ``folder/config.json`` (:meth:`config`); returns the
+        folder."""
+        folder = Path(folder)
+        folder.mkdir(parents=True, exist_ok=True)
+        for name, data in ((params_name, params), (CONFIG, json_text(self.config()).encode())):
+            tmp = folder / f".{name}.tmp"
+            tmp.write_bytes(data)
+            tmp.replace(folder / name)
+        return folder

@@ -91,7 +91,7 @@ SCALARS = ("cal_a", "cal_b", "prior_logit")
 
 
 @struct.dataclass
-class LearnedHead:
+class LearnedHead(files.SavedHead):
     """A gated-attention MIL head over any encoder's features (see the module doc). Leaves: ``params`` (dict of
     arrays: ``mu``, ``sd`` ``(D,)``; ``w1 (D, H)``, ``b1``; optional ``w2 (H, H)``, ``b2``; ``V``, ``U``
     ``(H, A)``, ``bV``, ``bU``, ``wa (A,)``; ``wc (H,)``, ``bc ()``), ``cal_a`` / ``cal_b`` (calibration: logit =
@@ -221,14 +221,13 @@ class LearnedHead:
                          "(H, W, D), not score_logits with a logit map")
 
     # ------------------------------------------------------------------ files
-    def config(self) -> dict:
-        """The structure as saved in ``config.json``."""
-        return {"kind": KIND, "format": FORMAT, "features_dim": int(self.features_dim), "hidden": int(self.hidden),
-                "attention": int(self.attention), "layers": int(self.layers), "encoder": self.encoder,
-                "name": self.name,
-                "input": "finest-level feature grid (H, W, D) and read mask (H, W) bool of read tissue views",
-                "output": "slide tumour logit (sigmoid: probability); per-view scores: calibrated instance logits",
-                **json.loads(self.info)}
+    FORMAT = FORMAT
+    OUTPUT = "slide tumour logit (sigmoid: probability); per-view scores: calibrated instance logits"
+
+    def structure(self) -> dict:
+        """The structure entries of ``config.json`` (:meth:`files.SavedHead.config`)."""
+        return {"features_dim": int(self.features_dim), "hidden": int(self.hidden), "attention": int(self.attention),
+                "layers": int(self.layers)}
 
     def arrays(self) -> dict:
         """Every array saved in ``params.npz`` (name -> float32 numpy array)."""

@@ -5,7 +5,7 @@ does not take the plain maximum of the view logits: it first averages each read 
 read views of its ``k × k`` neighbourhood (views not read, and views off tissue, count for nothing),
 then pools the neighbourhood means of the read views (the mean of the ``top`` largest; ``top=1`` is
 the maximum), optionally minus the median logit of the read views (a slide-level offset: staining or
-tissue type that raises every view), and maps that statistic ``s`` to a slide logit ``a · s + b``
+tissue type that raises every view), and maps that statistic ``s`` to a slide logit ``cal_a · s + cal_b``
 (a logistic calibration fitted on training slides: :mod:`baselines.reading.head_fit`). A slide with nothing
 read scores ``prior_logit`` (the training split's log odds of tumour).
 
@@ -13,14 +13,14 @@ Pure JAX and jittable (``jax.jit(heads.score)``, ``jax.vmap`` over slides padded
 simply never read); no host callbacks, no data-dependent Python control flow::
 
     from histojax.reading import heads
-    head = heads.load("baselines/published/c16-v2-head")      # a SlideHead (its config.json's kind)
+    head = heads.load("baselines/published/c16-v2-head")      # a LogitHead (its config.json's kind)
     logit = heads.score(head, grid_features, read_mask)      # (H, W, D), (H, W) bool -> () float32
 
 ``grid_features`` is the feature grid of the slide's finest level (one row per finest-level view,
 ``D`` entries; entry ``head.dim`` is the view's tumour logit — pcam-cnn's ``mean l``, entry 62), and
-``read_mask`` marks the views read that hold tissue. :meth:`SlideHead.score_logits` takes the ``(H, W)`` logit
+``read_mask`` marks the views read that hold tissue. :meth:`LogitHead.score_logits` takes the ``(H, W)`` logit
 map directly. Saved as a folder: ``config.json`` (the head's structure and how it was fitted and chosen)
-and ``params.json`` (``a``, ``b``, ``prior_logit``).
+and ``params.json`` (``a``, ``b``, ``prior_logit``: the calibration's keys in the file are ``a`` and ``b``).
 """
 from __future__ import annotations
 
@@ -29,7 +29,6 @@ from pathlib import Path
 
 import jax
 import jax.numpy as jnp
-import numpy as np
 from flax import struct
 
 from histojax.reading.heads import files
@@ -43,23 +42,25 @@ MAX_K = 64
 MAX_TOP = 1 << 20
 """The most views a head may pool the mean of (``top``)."""
 MAX_PARAM = 1e6
-"""The largest magnitude of ``a``, ``b`` and ``prior_logit`` read: with view logits in float16's range (±65,504)
-``a · s + b`` stays far inside float32 (a fitted calibration is a few units)."""
+"""The largest magnitude of ``cal_a``, ``cal_b`` and ``prior_logit`` read: with view logits in float16's range
+(±65,504) ``cal_a · s + cal_b`` stays far inside float32 (a fitted calibration is a few units)."""
 MAX_PARAMS_JSON_BYTES = 1 << 16
 """``params.json`` (three numbers) larger than this (64 KiB) is refused unread."""
 
 
 @struct.dataclass
-class SlideHead:
-    """A fitted head (a pytree: ``a``, ``b``, ``prior_logit`` are leaves; the structure is static).
+class LogitHead(files.SavedHead):
+    """The neighbourhood-pooled logit head, fitted (a pytree: ``cal_a``, ``cal_b``, ``prior_logit`` are leaves;
+    the structure is static).
 
     ``dim``: feature entry of the view tumour logit; ``k``: neighbourhood side in views (1 = none);
     ``top``: pool the mean of the ``top`` largest neighbourhood means; ``minus_median``: subtract the
-    read views' median logit; ``a``, ``b``: calibration (slide logit = ``a · s + b``); ``prior_logit``:
+    read views' median logit; ``cal_a``, ``cal_b``: calibration (slide logit = ``cal_a · s + cal_b``, as in
+    every head; ``params.json`` keeps them as ``a`` and ``b``); ``prior_logit``:
     the score of a slide with nothing read; ``info``: a JSON object (text) recording the fit, merged into config.json."""
 
-    a: jnp.ndarray = 1.0
-    b: jnp.ndarray = 0.0
+    cal_a: jnp.ndarray = 1.0
+    cal_b: jnp.ndarray = 0.0
     prior_logit: jnp.ndarray = 0.0
     dim: int = struct.field(pytree_node=False, default=62)
     k: int = struct.field(pytree_node=False, default=3)
@@ -74,25 +75,18 @@ class SlideHead:
         parts = [f"{self.k}x{self.k} mean" if self.k > 1 else "view logit", "max" if self.top == 1 else f"top-{self.top}"]
         return ", ".join(parts + (["minus median"] if self.minus_median else []))
 
-    def config(self) -> dict:
-        """The structure as saved in ``config.json``."""
-        return {"kind": KIND, "format": FORMAT, "dim": int(self.dim), "k": int(self.k), "top": int(self.top),
-                "minus_median": bool(self.minus_median), "encoder": self.encoder, "name": self.name,
-                "input": "finest-level feature grid (H, W, D) and read mask (H, W) bool of read tissue views",
-                "output": "slide tumour logit (sigmoid: probability)", **json.loads(self.info)}
+    def structure(self) -> dict:
+        """The structure entries of ``config.json`` (:meth:`files.SavedHead.config`)."""
+        return {"dim": int(self.dim), "k": int(self.k), "top": int(self.top), "minus_median": bool(self.minus_median)}
 
     def save(self, folder) -> Path:
-        """Write ``folder/config.json`` and ``folder/params.json``; returns the folder."""
-        folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
-        params = {"a": float(self.a), "b": float(self.b), "prior_logit": float(self.prior_logit)}
-        for name, obj in (("params.json", params), ("config.json", self.config())):
-            tmp = folder / f".{name}.tmp"
-            tmp.write_text(json.dumps(obj, indent=1, default=_plain, allow_nan=False) + "\n")
-            tmp.replace(folder / name)
-        return folder
+        """Write ``folder/params.json`` (``a``, ``b``: the calibration's keys in the file; ``prior_logit``) and
+        ``folder/config.json``; returns the folder."""
+        params = {"a": float(self.cal_a), "b": float(self.cal_b), "prior_logit": float(self.prior_logit)}
+        return self.write(folder, "params.json", files.json_text(params).encode())
 
     kind = KIND
+    FORMAT = FORMAT
 
     def view_logits(self, grid_features: jax.Array) -> jax.Array:
         """The per-view scores the head pools: ``(H, W)`` tumour logits, entry ``dim`` of ``(H, W, D)`` features.
@@ -104,7 +98,7 @@ class SlideHead:
     def score_logits(self, logits: jax.Array, read_mask: jax.Array) -> jax.Array:
         """Slide tumour logit ``()`` float32 from a ``(H, W)`` view-logit map and the read mask ``(H, W)`` bool."""
         s = statistic(self, logits, read_mask)
-        return jnp.where(jnp.any(read_mask), self.a * s + self.b, self.prior_logit).astype(jnp.float32)
+        return jnp.where(jnp.any(read_mask), self.cal_a * s + self.cal_b, self.prior_logit).astype(jnp.float32)
 
     def score(self, grid_features: jax.Array, read_mask: jax.Array) -> jax.Array:
         """Slide tumour logit ``()`` float32 from the finest-level feature grid ``(H, W, D)`` and the read
@@ -112,12 +106,13 @@ class SlideHead:
         return self.score_logits(self.view_logits(grid_features), read_mask)
 
     @classmethod
-    def load(cls, folder) -> "SlideHead":
+    def load(cls, folder) -> "LogitHead":
         """Read a head saved by :meth:`save` through the guarded reader (:mod:`histojax.reading.heads.files`:
         regular files of bounded size, bounded JSON nesting, strict types): ``kind`` this one, ``format``
         :data:`FORMAT`, ``dim`` an int in ``[0, MAX_DIM]``, ``k`` in ``[1, MAX_K]``, ``top`` in ``[1, MAX_TOP]``,
-        ``minus_median`` a JSON bool, ``a``, ``b``, ``prior_logit`` (and nothing else) finite with magnitude at most
-        :data:`MAX_PARAM` (so ``a · s + b`` stays finite in float32). ``ValueError``
+        ``minus_median`` a JSON bool, ``params.json``'s ``a``, ``b`` (read as ``cal_a``, ``cal_b``) and ``prior_logit``
+        (and nothing else) finite with magnitude at most :data:`MAX_PARAM` (so the slide logit stays finite in
+        float32). ``ValueError``
         (:class:`~histojax.reading.heads.files.HeadFileError`) naming the file, one line, on anything else."""
         folder = Path(folder)
         cfg_file, par_file = folder / files.CONFIG, folder / "params.json"
@@ -142,7 +137,7 @@ class SlideHead:
                                                 "a, b and prior_logit); remove it or refit the head")
         known = {"kind", "format", "dim", "k", "top", "minus_median", "encoder", "name", "input", "output"}
         info = json.dumps({key: v for key, v in cfg.items() if key not in known})  # json-not-written: save writes it
-        return cls(a=jnp.float32(a), b=jnp.float32(b), prior_logit=jnp.float32(prior), dim=dim, k=k, top=top,
+        return cls(cal_a=jnp.float32(a), cal_b=jnp.float32(b), prior_logit=jnp.float32(prior), dim=dim, k=k, top=top,
                    minus_median=minus_median, encoder=encoder, info=info)
 
 
@@ -154,12 +149,6 @@ def check_dim(head, d: int) -> None:
         raise ValueError(f"this slide head ({head.kind}, {head.name}) reads feature entry {head.dim} "
                          f"(its encoder {head.encoder!r}), but the features have {d} entries (0..{d - 1}): it was "
                          "fitted on another encoder's features; use a head fitted on these features")
-
-
-def _plain(v):
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    return str(v)
 
 
 def neighbourhood_mean(logits: jax.Array, mask: jax.Array, k: int) -> jax.Array:
@@ -178,9 +167,9 @@ def neighbourhood_mean(logits: jax.Array, mask: jax.Array, k: int) -> jax.Array:
     return box(x) / jnp.maximum(box(m), 1.0)
 
 
-def statistic(head: SlideHead, logits: jax.Array, mask: jax.Array) -> jax.Array:
+def statistic(head: LogitHead, logits: jax.Array, mask: jax.Array) -> jax.Array:
     """The head's pooled statistic ``s`` (before calibration) of a ``(H, W)`` logit map over the read
-    views ``mask (H, W)`` bool; ``-inf``-free: 0 when nothing is read (see :meth:`SlideHead.score_logits`)."""
+    views ``mask (H, W)`` bool; ``-inf``-free: 0 when nothing is read (see :meth:`LogitHead.score_logits`)."""
     mask = jnp.asarray(mask, bool)
     nb = neighbourhood_mean(logits, mask, head.k).reshape(-1)
     flat = mask.reshape(-1)

@@ -1,4 +1,4 @@
-"""Trained slide heads beside :class:`histojax.reading.heads.logit.SlideHead`: an attention-MIL over neighbourhood-pooled
+"""Trained slide heads beside :class:`histojax.reading.heads.logit.LogitHead`: an attention-MIL over neighbourhood-pooled
 views (:class:`MilHead`) and a logistic model of pooled statistics (:class:`StatsHead`).
 
 Both score a slide from what has been read, with the protocol of :mod:`histojax.reading.heads` (they are what
@@ -32,6 +32,7 @@ partial reads. Saved as a folder: ``config.json`` (``kind``, ``format``, structu
 """
 from __future__ import annotations
 
+import io
 import json
 from pathlib import Path
 
@@ -137,28 +138,19 @@ def statistics_of(logits: jax.Array, mask: jax.Array, ks=(1, 2, 3, 4)) -> jax.Ar
     return jnp.where(n > 0, s, 0.0)
 
 
-class _Saved:
-    """Save / config helpers shared by the two heads."""
+class _Saved(files.SavedHead):
+    """Save / load / scoring helpers shared by the two heads (``config.json`` through :class:`files.SavedHead`)."""
 
-    def config(self) -> dict:
-        """The structure as saved in ``config.json``."""
-        return {"kind": self.KIND, "format": FORMAT, **self._structure(), "encoder": self.encoder, "name": self.name,
-                "input": "finest-level feature grid (H, W, D) and read mask (H, W) bool of read tissue views",
-                "output": "slide tumour logit (sigmoid: probability)", **json.loads(self.info)}
+    FORMAT = FORMAT
 
     def save(self, folder) -> Path:
-        """Write ``folder/config.json`` and ``folder/params.npz``; returns the folder."""
-        folder = Path(folder)
-        folder.mkdir(parents=True, exist_ok=True)
+        """Write ``folder/params.npz`` (the arrays and ``prior_logit``, float32) and ``folder/config.json``; returns
+        the folder."""
         arrays = {k: np.asarray(v, np.float32) for k, v in self.params.items()}
         arrays["prior_logit"] = np.asarray(self.prior_logit, np.float32)
-        tmp = folder / ".params.tmp.npz"
-        np.savez(tmp, **arrays)
-        tmp.replace(folder / "params.npz")
-        tmp = folder / ".config.json.tmp"
-        tmp.write_text(json.dumps(self.config(), indent=1, default=_plain, allow_nan=False) + "\n")
-        tmp.replace(folder / "config.json")
-        return folder
+        buf = io.BytesIO()
+        np.savez(buf, **arrays)
+        return self.write(folder, files.PARAMS, buf.getvalue())
 
     @classmethod
     def load(cls, folder):
@@ -214,7 +206,8 @@ class MilHead(_Saved):
             what += f" + {self.feature_k}x{self.feature_k} feature means"
         return f"attention-MIL over {what}, {self.hidden} units"
 
-    def _structure(self) -> dict:
+    def structure(self) -> dict:
+        """The structure entries of ``config.json`` (:meth:`files.SavedHead.config`)."""
         return {"dim": self.dim, "ks": list(self.ks), "inputs": self.inputs, "feature_k": self.feature_k,
                 "hidden": self.hidden}
 
@@ -258,7 +251,8 @@ class StatsHead(_Saved):
     def name(self) -> str:
         return f"logistic over pooled statistics ({min(self.ks)}-{max(self.ks)} means, top-1/3, counts, views read)"
 
-    def _structure(self) -> dict:
+    def structure(self) -> dict:
+        """The structure entries of ``config.json`` (:meth:`files.SavedHead.config`)."""
         return {"dim": self.dim, "ks": list(self.ks), "thresholds": list(THRESHOLDS), "tops": list(TOPS)}
 
     def _score(self, logits, features, read_mask) -> jax.Array:
@@ -266,12 +260,6 @@ class StatsHead(_Saved):
         s = (statistics_of(logits, mask, self.ks) - self.params["mu"]) / self.params["sd"]
         out = s @ self.params["w"] + self.params["b"]
         return jnp.where(jnp.any(mask), out, self.prior_logit).astype(jnp.float32)
-
-
-def _plain(v):
-    if isinstance(v, (np.floating, np.integer)):
-        return v.item()
-    return str(v)
 
 
 MAX_KS = 8

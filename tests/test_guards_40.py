@@ -19,6 +19,7 @@ import jax.numpy as jnp
 import pytest
 
 from baselines.reading import head_fit, head_mil_fit, learned_head_fit
+from baselines.reading.fitting import MIN_SLIDES_PER_CLASS
 from baselines.reading.slides import read_spec
 from histojax.reading.heads.learned import LearnedHead, init_params
 from learned_fixture import make_cohort
@@ -55,7 +56,7 @@ def test_mil_fit_refuses_too_few_slides_per_class_before_reading(enough, tmp_pat
     assert head_mil_fit._main()(["--dataset", str(enough), "--cache", str(cache), "--out", str(out),
                                  "--candidates", "stats", "--seeds", "1", "--val-fraction", "0.6"]) == 2
     err = _err(capsys)
-    assert len(err) == 1 and "dataset.json" in err[0] and f"at least {head_fit.MIN_SLIDES_PER_CLASS}" in err[0], err
+    assert len(err) == 1 and "dataset.json" in err[0] and f"at least {MIN_SLIDES_PER_CLASS}" in err[0], err
     assert not out.exists() and not cache.exists()  # refused from dataset.json's labels: no slide read, no cache
 
 

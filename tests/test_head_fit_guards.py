@@ -5,20 +5,20 @@ from __future__ import annotations
 
 import pytest
 
-from baselines.reading import head_fit
+from baselines.reading import fitting, head_fit
 from baselines.reading.slides import HeadDataError
 from test_head import make_dataset
 
 
 def test_check_head_refuses_inverted_and_negative_slopes(tmp_path):
     with pytest.raises(HeadDataError, match=r"validation AUC is 0\.333 \(< 0\.5") as e:
-        head_fit.check_head(tmp_path, 0.333, 1.0)
+        fitting.check_head(tmp_path, 0.333, 1.0)
     assert str(e.value).startswith(str(tmp_path / "dataset.json")) and len(str(e.value).splitlines()) == 1
     with pytest.raises(HeadDataError, match=r"slope is -0\.208"):
-        head_fit.check_head(tmp_path, 0.9, -0.208)
+        fitting.check_head(tmp_path, 0.9, -0.208)
     with pytest.raises(HeadDataError, match="AUC is nan"):
-        head_fit.check_head(tmp_path, float("nan"), 1.0)
-    head_fit.check_head(tmp_path, 0.5, 0.1)  # accepted
+        fitting.check_head(tmp_path, float("nan"), 1.0)
+    fitting.check_head(tmp_path, 0.5, 0.1)  # accepted
 
 
 def test_too_few_slides_per_class_is_refused_naming_the_minimum(tmp_path, capsys):
@@ -26,7 +26,7 @@ def test_too_few_slides_per_class_is_refused_naming_the_minimum(tmp_path, capsys
     out = tmp_path / "head"
     assert head_fit.main(["--dataset", str(ds), "--out", str(out), "--ks", "1", "--val-fraction", "0.6"]) == 2
     err = [line for line in capsys.readouterr().err.strip().splitlines() if "loaded" not in line]  # progress
-    assert len(err) == 1 and "dataset.json" in err[0] and f"at least {head_fit.MIN_SLIDES_PER_CLASS}" in err[0]
+    assert len(err) == 1 and "dataset.json" in err[0] and f"at least {fitting.MIN_SLIDES_PER_CLASS}" in err[0]
     assert not out.exists()
 
 

@@ -78,9 +78,10 @@ MOVED_NAMES = {
                           "batch_mesh", "shard_batch", "Progress", "report", "save_checkpoint", "load_checkpoint",
                           "seeds_runner", "run_chunked", "run_and_save", "load_runner", "trainer_command",
                           "parse_args", "config_from_args", "plot_curves", "HistojaxDataError")),
-    "baselines.reading.head_fit": ("baselines.reading.slides",
+    "baselines.reading.head_fit": ("baselines.reading.slides (loaders), baselines.reading.fitting (fit rules)",
                                    ("read_spec", "scale_warning", "warn_scale", "read_bundle", "finest_views",
-                                    "load_slide", "load_slides", "split_bundles", "_label")),
+                                    "load_slide", "load_slides", "split_bundles", "_label", "logistic_fit",
+                                    "check_classes", "check_head", "MIN_SLIDES_PER_CLASS")),
     "baselines.evaluate.checks": ("data_tools.metrics", ("UNDEFINED",)),
     "histojax.reading.heads.logit": ("the same module, named for what it is: LogitHead", ("SlideHead",)),
 }

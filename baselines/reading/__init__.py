@@ -15,6 +15,8 @@ curve, and the navigator's diagnosis through a head. Each is a command, ``python
 
 The commands stand on libraries (no command imports another command's module for a loader):
 
+- ``fitting``: the rules the logit and MIL head fits share (fewest slides per class, the chosen head's refusal, the
+  1-D logistic calibration).
 - ``slides``: the slide loaders every head-based tool shares (``read_spec``, ``load_slide(s)``, ``read_bundle``,
   ``finest_views``, ``scale_warning``, ``HeadDataError``) and the CAMELYON lesion classes of a loaded slide.
 - ``pipeline``: the readers and the budget curve as one pipeline (the default reading ``BUDGETS``, the one loader of

@@ -12,8 +12,9 @@ The test split is never read. ``config.json`` records what the head was fitted o
 (:data:`baselines.reading.provenance.RECORD`: the dataset's seal, split, fold, fitting and validation slides).
 **Refused** (one line naming ``dataset.json``, nothing saved): a validation share with fewer than
 :data:`baselines.validation.MIN_VALIDATION_PER_CLASS` slides of a class (before any slide is read), fewer than
-:data:`MIN_SLIDES_PER_CLASS` training slides of a class after the validation share, a chosen head whose
-validation AUC is below 0.5 or whose calibration slope is not positive (:func:`check_head`).
+:data:`~baselines.reading.fitting.MIN_SLIDES_PER_CLASS` training slides of a class after the validation share, a
+chosen head whose validation AUC is below 0.5 or whose calibration slope is not positive
+(:func:`baselines.reading.fitting.check_head`).
 
 The slides are read by the loaders every head-based tool shares (:mod:`baselines.reading.slides`).
 """
@@ -26,6 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
+from baselines.reading.fitting import check_classes, check_head, logistic_fit
 from baselines.reading.slides import HeadDataError, load_slides, padded, read_spec, spec_label, warn_scale
 from data_tools.metrics import auc_interval, format_auc, json_number, json_safe, roc_auc, small_split_warning
 from data_tools.cli_output import command_main, print_error
@@ -33,10 +35,6 @@ from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
 
 TOPS = (1, 3)
-MIN_SLIDES_PER_CLASS = 5
-"""Fewest training slides of each class (after the validation share is held back) a head fit accepts."""
-
-
 
 
 def statistics(head, slides: list[dict], masks: list[np.ndarray] | None = None,
@@ -52,19 +50,6 @@ def statistics(head, slides: list[dict], masks: list[np.ndarray] | None = None,
 def grid_shape(slides: list[dict]) -> tuple[int, int]:
     """The largest finest grid ``(H, W)`` of ``slides``."""
     return max(s["logits"].shape[0] for s in slides), max(s["logits"].shape[1] for s in slides)
-
-
-def logistic_fit(x, y, steps: int = 3000) -> tuple[float, float]:
-    """``(a, b)`` minimising the mean log loss of ``sigmoid(a · x + b)`` against 0/1 ``y`` (convex, 2 parameters;
-    a small L2 penalty keeps ``a`` finite when the classes separate)."""
-    x, y = np.asarray(x, np.float64), np.asarray(y, np.float64)
-    mu, sd = x.mean(), x.std() + 1e-9
-    z, w, c = (x - mu) / sd, 0.0, 0.0
-    for _ in range(steps):
-        p = 1.0 / (1.0 + np.exp(-np.clip(w * z + c, -60, 60)))
-        w -= 0.5 * (float(np.mean((p - y) * z)) + 1e-3 * w)
-        c -= 0.5 * float(np.mean(p - y))
-    return w / sd, c - w * mu / sd
 
 
 def candidates(ks=(1, 2, 3, 4, 5), dim: int = pcam_cnn.VIEW_LOGIT, encoder: str | None = pcam_cnn.NAME,
@@ -109,31 +94,6 @@ def choose(train: list[dict], val: list[dict], cands) -> tuple[object, list[dict
         raise ValueError(f"the validation share ({len(val)} slides, labels {sorted(set(y_va))}) needs tumour and "
                          "normal slides to choose a head: use a larger --val-fraction or another --seed")
     return best, table
-
-
-def check_classes(dataset, train: list[dict], least: int = MIN_SLIDES_PER_CLASS) -> None:
-    """Refuse (:class:`HeadDataError` naming ``dataset.json``) fewer than ``least`` training slides of either
-    class once the validation share is held back."""
-    for cls, what in ((1, "tumour"), (0, "normal")):
-        n = sum(int(s["label"] == cls) for s in train)
-        if n < least:
-            raise HeadDataError(Path(dataset) / "dataset.json", f"{n} {what} training slides after the validation "
-                                f"share is held back; a slide head needs at least {least} of each class "
-                                "(MIN_SLIDES_PER_CLASS)")
-
-
-def check_head(dataset, validation_auc: float, slope: float) -> None:
-    """Refuse (:class:`HeadDataError` naming ``dataset.json``; nothing is saved) a chosen head whose validation AUC
-    is below 0.5 (it ranks tumour below normal: e.g. a feature entry that is no tumour logit) or whose calibration
-    slope is negative (a higher statistic would mean less tumour)."""
-    where = Path(dataset) / "dataset.json"
-    if not validation_auc >= 0.5:
-        raise HeadDataError(where, f"the chosen head's validation AUC is {validation_auc:.3f} (< 0.5: it ranks tumour "
-                                   "below normal; is the feature entry a tumour logit? fit a learned head on any "
-                                   "features: python -m baselines.reading.learned_head_fit); nothing saved")
-    if not slope > 0:
-        raise HeadDataError(where, f"the chosen head's calibration slope is {slope:.3f} (not > 0: more evidence "
-                                   "would mean less tumour); nothing saved")
 
 
 def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3, 4, 5),

@@ -22,7 +22,7 @@ naming ``dataset.json``, exit 2, no head saved): a validation share with fewer t
 once the validation share is held back (checked from ``dataset.json``'s labels before any slide is read when it has
 them); a chosen candidate whose mean validation AUC (reading everything) is below 0.5 or undefined, or whose
 validation slope is negative (:func:`validation_aucs`' ``slope``: the 1-D logistic regression of the labels on its
-slide logits; :func:`baselines.reading.head_fit.check_head`). The encoder-scale warning ``dataset.json`` records is
+slide logits; :func:`baselines.reading.fitting.check_head`). The encoder-scale warning ``dataset.json`` records is
 repeated (:func:`baselines.reading.slides.warn_scale`). ``config.json`` records what the head was fitted on
 (:data:`baselines.reading.provenance.RECORD`).
 """
@@ -33,7 +33,7 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.reading.head_fit import MIN_SLIDES_PER_CLASS, check_classes, check_head, logistic_fit
+from baselines.reading.fitting import MIN_SLIDES_PER_CLASS, check_classes, check_head, logistic_fit
 from baselines.reading.slides import HeadDataError, load_slide, read_spec, spec_label, warn_scale
 from data_tools.features import pcam_cnn
 from data_tools.metrics import json_safe

@@ -16,7 +16,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from baselines.reading import head_fit, head_mil_fit, readers, slides
+from baselines.reading import head_fit, head_mil_fit, pipeline, readers, slides
 from data_tools.errors import HistojaxDataError
 from test_head import make_dataset
 
@@ -102,7 +102,7 @@ def test_readers_cell_level_reads_the_checked_metadata(work, tmp_path):
     (bundle / "metadata.json").write_text(json.dumps(meta))
     spec = slides.read_spec(work)
     with pytest.raises(HistojaxDataError, match="digest mismatch"):
-        readers.cell_level_for(work, spec, "train")
+        pipeline.cell_level_for(work, spec, "train")
 
 
 # ----------------------------------------------------------------------------- head folders: one guarded reader

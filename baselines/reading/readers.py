@@ -60,7 +60,6 @@ from baselines.reading import pipeline
 from baselines.reading.slides import HeadDataError
 from baselines.reading.orders import logit_order, search_order
 from baselines.reading.slides import padded
-from baselines.reading.pipeline import cell_level_for  # noqa: F401  (cell_level_for: readers' API)
 from baselines.reading.pipeline import reader_auc
 from baselines.reading.plots import plot_readers
 from baselines.reading.provenance import add_flag, check_scored, head_for_fold

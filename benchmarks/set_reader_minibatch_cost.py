@@ -82,19 +82,20 @@ def main(argv=None) -> int:
     net_params = jax.jit(nets["all slides"].init)(jax.random.key(1), obs)
     action = jnp.asarray([np.flatnonzero(valid[sl])[0] for sl in slides], jnp.int32)
 
-    def loss(q, net):
+    def loss(q, net, obs):
         logits, value = net.apply(q, obs)
         logp = jax.nn.log_softmax(logits)
         return -jnp.take_along_axis(logp, action[:, None], -1).sum() + (value ** 2).sum()
 
-    grads = {name: jax.jit(jax.grad(lambda q, n=net: loss(q, n))) for name, net in nets.items()}
+    # the observations an argument, as in PPO's update (not constants of the program)
+    grads = {name: jax.jit(jax.grad(lambda q, o, n=net: loss(q, n, o))) for name, net in nets.items()}
     for g in grads.values():
-        jax.block_until_ready(g(net_params))
+        jax.block_until_ready(g(net_params, obs))
     times = {name: [] for name in grads}
     for _ in range(args.repeats):
         for name, g in grads.items():
             t0 = time.perf_counter()
-            jax.block_until_ready(g(net_params))
+            jax.block_until_ready(g(net_params, obs))
             times[name].append(time.perf_counter() - t0)
     present = np.unique(slides)
     out = {"dataset": str(args.dataset), "training_slides": s, "valid_cells": int(valid.sum()), "minibatch": b,

@@ -158,7 +158,8 @@ def add_arguments(p) -> None:
 
     _add_feature_commands(sub)  # features, import-features
     _train_encoder_arguments(sub.add_parser(
-        "train-encoder", help="train the pcam-cnn encoder on the PCam training pool (minutes on 2 CPU cores)"))
+        "train-encoder", help="train the pcam-cnn encoder (or --arch pcam-cnn96, at 96 px) on the PCam training pool "
+                         "(minutes on 2 CPU cores; about an hour for pcam-cnn96)"))
 
 
 def _info(path: str, reader: str = "auto") -> str:

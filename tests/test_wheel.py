@@ -25,6 +25,7 @@ ROOT = Path(__file__).resolve().parents[1]
 # what the code opens through Path(__file__) / importlib.resources: every wheel must carry these
 REQUIRED = ("histojax/data/CMU-1-Small-Region.svs", "histojax/data/CMU-1-Small-Region.target.xml",
             "data_tools/features/pcam_cnn.msgpack", "data_tools/features/pcam_cnn.json",
+            "data_tools/features/pcam_cnn96.msgpack", "data_tools/features/pcam_cnn96.json",
             "data_tools/pcam/bank.npz", "data_tools/camelyon16/tumor_009.xml",
             "data_tools/camelyon16/bench_normal_004.xml", "data_tools/camelyon16/ncrf/Tumor_072.json",
             "baselines/published/c16-v2-head/config.json", "histojax/py.typed")

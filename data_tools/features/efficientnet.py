@@ -224,8 +224,9 @@ class Encoder:
 def load_encoder(name: str = NAME, image_size: int | None = TRAIN_SIZE, weights=None) -> Encoder:
     """The encoder ``name`` (one of ``data_tools.features.ENCODERS``). ``"efficientnet-lite0"``: ImageNet
     weights, inputs resized to ``image_size`` (default 224, the training size; None feeds views at their own
-    size). ``"colour-stats"`` (:mod:`data_tools.features.colour`) and ``"pcam-cnn"``
-    (:mod:`data_tools.features.pcam_cnn`, ``weights`` default the shipped file) take views at their own size
+    size). ``"colour-stats"`` (:mod:`data_tools.features.colour`), ``"pcam-cnn"``
+    (:mod:`data_tools.features.pcam_cnn`, ``weights`` default the shipped file) and ``"pcam-cnn96"``
+    (:mod:`data_tools.features.pcam_cnn96`, at 0.97 µm/px) take views at their own size
     and ignore ``image_size``. Cached."""
     from data_tools.features import ENCODERS, colour, custom, pcam_cnn
 
@@ -235,6 +236,10 @@ def load_encoder(name: str = NAME, image_size: int | None = TRAIN_SIZE, weights=
         return colour.load_colour_encoder(Encoder)
     if name == pcam_cnn.NAME:  # fed at its own size: trained at the benchmark's scale, any image size
         return pcam_cnn.load_pcam_encoder(Encoder, weights)
+    if name == "pcam-cnn96":  # the same family at PCam's native 0.97 µm/px
+        from data_tools.features import pcam_cnn96
+
+        return pcam_cnn.load_pcam_encoder(Encoder, weights, pcam_cnn96.NAME)
     if name != NAME:
         raise ValueError(f"unknown encoder {name!r}; available: {', '.join(ENCODERS)}")
     path = Path(weights) if weights is not None else default_weights_path()

@@ -4,12 +4,15 @@
 ENCODERS = {
     "pcam-cnn": (64, "histojax's own CNN trained on the PCam training pool at the C16 scale (default of c16; "
                      "weights shipped; docs/encoder-pcam-cnn.md)"),
+    "pcam-cnn96": (64, "the pcam-cnn family at PCam's native scale (96-px patches, 0.97 µm/px: c16 --downsample 4; "
+                       "weights shipped; docs/encoder-pcam-cnn96.md)"),
     "colour-stats": (8, "8 colour statistics of the view (no weights; fast, blind to tumour across slides)"),
     "efficientnet-lite0": (1280, "ImageNet EfficientNet-Lite0 (weights from the 'features' extra)"),
 }
 
-ENCODER_MPP = {"pcam-cnn": 1.944}
-"""µm per input px each built-in encoder was trained at (pcam-cnn: CAMELYON16 level 0 / 8, PCam's scale)."""
+ENCODER_MPP = {"pcam-cnn": 1.944, "pcam-cnn96": 0.972}
+"""µm per input px each built-in encoder was trained at (pcam-cnn: CAMELYON16 level 0 / 8, PCam's patches halved;
+pcam-cnn96: level 0 / 4, PCam's own scale)."""
 SCALE_TOLERANCE = 1.5
 """A slide whose µm/px differs from its encoder's by more than this factor (either way) is warned about."""
 

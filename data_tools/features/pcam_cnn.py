@@ -24,6 +24,7 @@ the cells makes it work on a single patch as on a whole view:
 """
 from __future__ import annotations
 
+import dataclasses
 import functools
 from pathlib import Path
 
@@ -48,11 +49,12 @@ class PcamCNN(nn.Module):
     updates the batch's statistics (``mutable=["batch_stats"]``) instead of the running ones."""
 
     train: bool = False
+    layers: tuple = LAYERS   # (channels, kernel, stride) of each ReLU conv (an :class:`Arch`'s ``layers``)
 
     @nn.compact
     def __call__(self, images):
         x = (images.astype(jnp.float32) / 255.0 - 0.5) / 0.25
-        for i, (c, k, s) in enumerate(LAYERS):
+        for i, (c, k, s) in enumerate(self.layers):
             x = nn.Conv(c, (k, k), strides=(s, s), padding="SAME", use_bias=False, name=f"conv{i}")(x)
             x = nn.relu(nn.BatchNorm(use_running_average=not self.train, momentum=0.9, name=f"bn{i}")(x))
         f = nn.Conv(CHANNELS, (1, 1), name="features")(x)
@@ -67,14 +69,35 @@ def pool(f: jax.Array, logit: jax.Array) -> tuple[jax.Array, jax.Array]:
     return emb, logit.mean(axis=(1, 2))
 
 
-def init_variables(seed: int = 0) -> dict:
-    """Fresh (untrained) variables, He-initialised by flax's defaults."""
-    return PcamCNN().init(jax.random.PRNGKey(seed), jnp.zeros((1, PATCH_PX, PATCH_PX, 3), jnp.uint8))
+@dataclasses.dataclass(frozen=True)
+class Arch:
+    """One trained network of this family: its registered ``name``, conv ``layers`` ((channels, kernel, stride)
+    of each ReLU conv), the scale it reads (``mpp``, µm per input px), a PCam patch's size there (``patch_px``)
+    and its shipped ``weights``. The output (``DIM`` = 64 numbers, :func:`pool`) is the same for every one."""
+
+    name: str
+    layers: tuple
+    mpp: float
+    patch_px: int
+    weights: Path
+
+    def module(self, train: bool = False) -> PcamCNN:
+        """The flax module of this architecture."""
+        return PcamCNN(train=train, layers=self.layers)
 
 
-def apply(variables, images) -> tuple[jax.Array, jax.Array]:
-    """``(embedding (B, DIM), tumour logit (B,))`` of uint8 images ``(B, H, W, 3)`` at the benchmark scale."""
-    return pool(*PcamCNN().apply(variables, images))
+PCAM_CNN = Arch(NAME, LAYERS, SCALE_MPP, PATCH_PX, WEIGHTS)
+ARCHS = {NAME: PCAM_CNN}   # more are added by their modules (data_tools.features.pcam_cnn96)
+
+
+def init_variables(seed: int = 0, arch: Arch = PCAM_CNN) -> dict:
+    """Fresh (untrained) variables of ``arch``, He-initialised by flax's defaults."""
+    return arch.module().init(jax.random.PRNGKey(seed), jnp.zeros((1, arch.patch_px, arch.patch_px, 3), jnp.uint8))
+
+
+def apply(variables, images, arch: Arch = PCAM_CNN) -> tuple[jax.Array, jax.Array]:
+    """``(embedding (B, DIM), tumour logit (B,))`` of uint8 images ``(B, H, W, 3)`` at ``arch``'s scale."""
+    return pool(*arch.module().apply(variables, images))
 
 
 def to_benchmark_scale(images, mpp: float) -> jax.Array:
@@ -94,38 +117,41 @@ def to_benchmark_scale(images, mpp: float) -> jax.Array:
     return jnp.clip(jnp.round(out), 0, 255).astype(jnp.uint8)
 
 
-def read_weights(path=None) -> dict:
-    """The shipped (or given) msgpack weights, checked against the architecture; ``WeightsError`` naming the
-    file when missing, unreadable or of another shape."""
+def read_weights(path=None, arch: Arch = PCAM_CNN) -> dict:
+    """The shipped (or given) msgpack weights of ``arch``, checked against the architecture; ``WeightsError``
+    naming the file when missing, unreadable or of another shape."""
     from flax import serialization
 
     from data_tools.features.torch_weights import WeightsError
 
-    path = Path(path) if path is not None else WEIGHTS
-    template = init_variables()
+    path = Path(path) if path is not None else arch.weights
+    template = init_variables(arch=arch)
     try:
         raw = path.read_bytes()
     except OSError as e:
-        raise WeightsError(path, f"cannot read the pcam-cnn weights ({e.strerror or e}); "
+        raise WeightsError(path, f"cannot read the {arch.name} weights ({e.strerror or e}); "
                            "retrain them with `python -m data_tools train-encoder`") from None
     try:
         state = serialization.msgpack_restore(raw)
         variables = serialization.from_state_dict(template, state)
     except Exception as e:  # msgpack/flax raise assorted types on a corrupt or foreign file
-        raise WeightsError(path, f"not pcam-cnn weights ({type(e).__name__}: {e})") from None
+        raise WeightsError(path, f"not {arch.name} weights ({type(e).__name__}: {e})") from None
     for a, b in zip(jax.tree_util.tree_leaves(template), jax.tree_util.tree_leaves(variables)):
         if a.shape != b.shape:
             raise WeightsError(path, f"weights of shape {b.shape} where the architecture has {a.shape}")
     return jax.tree_util.tree_map(jnp.asarray, variables)
 
 
-@functools.lru_cache(maxsize=2)
-def load_pcam_encoder(encoder_class, weights=None):
-    """The ``pcam-cnn`` encoder as an ``efficientnet.Encoder`` (views fed at their own size)."""
-    variables = read_weights(weights)
-    return encoder_class(name=NAME, dim=DIM, image_size=None, variables=variables,
-                         _embed=jax.jit(lambda v, x: apply(v, x)[0]), _logits=jax.jit(lambda v, x: apply(v, x)[1]))
+@functools.lru_cache(maxsize=4)
+def load_pcam_encoder(encoder_class, weights=None, name: str = NAME):
+    """The encoder ``name`` of this family (``pcam-cnn``, ``pcam-cnn96``) as an ``efficientnet.Encoder`` (views fed
+    at their own size)."""
+    arch = ARCHS[name]
+    variables = read_weights(weights, arch)
+    return encoder_class(name=arch.name, dim=DIM, image_size=None, variables=variables,
+                         _embed=jax.jit(lambda v, x: apply(v, x, arch)[0]),
+                         _logits=jax.jit(lambda v, x: apply(v, x, arch)[1]))
 
 
-__all__ = ["CHANNELS", "DIM", "NAME", "PATCH_PX", "PcamCNN", "SCALE_MPP", "WEIGHTS", "apply", "init_variables",
+__all__ = ["ARCHS", "Arch", "CHANNELS", "DIM", "NAME", "PATCH_PX", "PCAM_CNN", "PcamCNN", "SCALE_MPP", "WEIGHTS", "apply", "init_variables",
            "load_pcam_encoder", "read_weights", "to_benchmark_scale"]

@@ -3,7 +3,8 @@ on), and each encoder's embedding speed on 128-px views. The model card's figure
 (docs/encoder-pcam-cnn.md).
 
 For each encoder, patches are shown at the benchmark's scale (96 px → 48 px, 1.94 µm/px; EfficientNet-Lite0
-resizes them to its 224 px). Scores: ``pcam-cnn``'s own tumour logit (no fitting), and for every encoder a
+resizes them to its 224 px), except ``pcam-cnn96``, trained at PCam's own scale, which sees them at 96 px.
+Scores: ``pcam-cnn``'s and ``pcam-cnn96``'s own tumour logit (no fitting), and for every encoder a
 linear probe (L2 logistic regression) fitted on ``--fit`` training-pool patches and scored on ``--test``
 test-pool patches, on PCam's own colours and on a fixed mosaic-like stain (the C16 mosaic's stain jitter and
 colour matching). Speed: views/s of ``embed`` on uint8 ``(B, 128, 128, 3)`` after one call compiled it.
@@ -60,9 +61,13 @@ def main(argv=None) -> int:
     rng = np.random.default_rng(0)
     fit_idx = np.sort(rng.choice(len(train_pool), min(args.fit, len(train_pool)), replace=False))
     test_idx = np.sort(rng.choice(len(test_pool), min(args.test, len(test_pool)), replace=False))
-    x_fit, y_fit = box_half(train_pool.decode(fit_idx)), train_pool.labels[fit_idx].astype(np.float64)
-    x_test, y_test = box_half(test_pool.decode(test_idx)), test_pool.labels[test_idx]
-    variants = {"raw": x_test, "mosaic": stained_copy(x_test, y_test, 99)}
+    from data_tools.features.encoders import ENCODER_MPP
+
+    fit96, test96 = train_pool.decode(fit_idx), test_pool.decode(test_idx)
+    y_fit, y_test = train_pool.labels[fit_idx].astype(np.float64), test_pool.labels[test_idx]
+    # every encoder at 48 px (1.94 µm/px) but those trained at PCam's own 0.97 µm/px, which see the 96-px patches
+    at48 = (box_half(fit96), {"raw": box_half(test96), "mosaic": stained_copy(box_half(test96), y_test, 99)})
+    at96 = (fit96, {"raw": test96, "mosaic": stained_copy(test96, y_test, 99, shift=8)})
     rows = []
     for name in args.encoders or list(ENCODERS):
         try:
@@ -71,12 +76,13 @@ def main(argv=None) -> int:
             rows.append({"encoder": name, "skipped": f"{type(e).__name__}: {e}"})
             continue
         t0 = time.perf_counter()
+        x_fit, variants = at96 if ENCODER_MPP.get(name) == 0.972 else at48
         probe = fit_logistic(embed_all(enc, x_fit), y_fit)
         row = {"encoder": name, "dim": enc.dim}
         for v, x in variants.items():
             z = embed_all(enc, x)
             row[f"probe_auc_{v}"] = round(auc(probe(z), y_test), 4)
-            if name == "pcam-cnn":
+            if name in ("pcam-cnn", "pcam-cnn96"):
                 row[f"logit_auc_{v}"] = round(auc(np.asarray(enc.logits(x)), y_test), 4)
         row["embed_seconds"] = round(time.perf_counter() - t0, 1)
         row["views_per_s_128px"] = round(views_per_second(enc, seconds=args.seconds,

@@ -117,7 +117,7 @@ def single_level_tiff(pyramid: Path, out: Path, tile: int = 512) -> Path:
     import numpy as np
     import tifffile
 
-    from data_tools.slide_readers import open_slide
+    from data_tools.slide_files.open import open_slide
 
     with open_slide(pyramid) as r:
         w, h = r.dimensions

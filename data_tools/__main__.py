@@ -163,7 +163,7 @@ def add_arguments(p) -> None:
 
 
 def _info(path: str, reader: str = "auto") -> str:
-    from data_tools.dicom import is_dicom
+    from data_tools.slide_files.dicom import is_dicom
 
     if Path(path).is_dir() and not is_dicom(path):
         from data_tools.bundle_format import read_metadata
@@ -181,8 +181,8 @@ def _info(path: str, reader: str = "auto") -> str:
                             f"{lv['sat_pool_tiles']:,} SAT tiles; dense would be "
                             f"{lv['dense_device_bytes'] / 2**20:.1f} MiB)" if lv.is_tiled else ""))
         return "\n".join(lines)
-    from data_tools.slide_readers import open_slide
-    from data_tools.slides import describe
+    from data_tools.slide_files.open import open_slide
+    from data_tools.slide_files.base import describe
 
     with open_slide(path, reader) as slide:
         return describe(slide)

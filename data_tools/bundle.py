@@ -187,7 +187,7 @@ def build_bundle(
     than 256 MiB on the device). ``share_background=False`` keeps every tile of a tiled bundle (exactly
     the dense pixels); ``band_bytes`` bounds the RGB bytes of one band (default 96 MiB).
 
-    ``reader``: what reads the slide (:data:`data_tools.slide_readers.READERS`: ``"auto"``, the default; ``"native"``;
+    ``reader``: what reads the slide (:data:`data_tools.slide_files.open.READERS`: ``"auto"``, the default; ``"native"``;
     ``"openslide"``, any slide through OpenSlide 4).
 
     ``mpp``: the slide's µm per level-0 px, for a file that states none or a wrong one (``--mpp``); recorded in
@@ -248,8 +248,8 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
     :func:`data_tools.bundle_format.atomic_folder`, which renames it to ``out_dir`` or removes it)."""
     from data_tools.annotations import annotations_to_geojson, load_annotations
     from data_tools.masks import rasterize, tissue_mask
-    from data_tools.slide_readers import open_slide
-    from data_tools.slides import MAX_DECODE_BYTES
+    from data_tools.slide_files.open import open_slide
+    from data_tools.slide_files.tiff import MAX_DECODE_BYTES
     import shapely.geometry
 
     with open_slide(slide_path, reader) as reader:

@@ -119,7 +119,7 @@ def tiff_views(folder: Path, split: str, per_class: int, seed: int = 0, min_tiss
     import shapely
 
     from data_tools.annotations import load_annotations
-    from data_tools.slide_readers import open_slide
+    from data_tools.slide_files.open import open_slide
 
     ds = json.loads((folder / "dataset.json").read_text())
     wanted = {Path(b).name for b in (ds["train"] + ds["test"] if split == "all" else ds[split])}

@@ -7,7 +7,7 @@ import tifffile
 
 from data_tools.annotations import load_annotations
 from data_tools.errors import SlideError
-from data_tools.slide_readers import open_slide
+from data_tools.slide_files.open import open_slide
 
 
 def test_unknown_compression_is_a_slide_error(tmp_path):
@@ -49,8 +49,8 @@ def test_inconsistent_sub_levels_are_left_out(tmp_path, second):
 @pytest.mark.parametrize("sizes", [[(64, 64), (96, 96)], [(64, 64), (64, 64)], [(64, 64), (32, 10)]])
 def test_inconsistent_level_lists_are_refused(sizes):
     """Our own guard, for readers that do list such levels: larger, equal or distorted levels."""
-    from data_tools.slides import LevelInfo, _check_levels
+    from data_tools.slide_files.base import LevelInfo, check_levels
 
     levels = [LevelInfo(w, h, 64 / w, None, "NONE") for w, h in sizes]
     with pytest.raises(SlideError, match="inconsistent pyramid"):
-        _check_levels("odd.tif", levels)
+        check_levels("odd.tif", levels)

@@ -74,7 +74,7 @@ def test_fifos_named_like_a_slide_annotation_labels_or_features_are_never_opened
         from data_tools.datasets.split import read_label_table
         from data_tools.errors import HistojaxDataError
         from data_tools.features.hdf5 import read_patch_features
-        from data_tools.slide_readers import open_slide
+        from data_tools.slide_files.open import open_slide
         S = Path({str(slides)!r})
         skipped = []
         with warnings.catch_warnings(record=True) as caught:
@@ -172,7 +172,7 @@ def test_tiff_based_extensions_are_read_and_other_formats_listed_as_skipped(tmp_
     """Was: ``.qptiff`` (and BigTIFF ``.btf`` / ``.tf8``) were passed over without a word, as were MIRAX and
     other formats histojax cannot read. Now the TIFF-based ones are slides (and MIRAX, read through OpenSlide); the
     rest are listed with why."""
-    from data_tools.slide_readers import open_slide
+    from data_tools.slide_files.open import open_slide
 
     slides = tmp_path / "S"
     _tif(slides / "akoya.qptiff")

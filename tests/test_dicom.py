@@ -20,7 +20,7 @@ pytest.importorskip("wsidicom", reason="the dicom extra is not installed: pip in
 from data_tools.__main__ import main as data_tools_main  # noqa: E402
 from data_tools.bundle import build_bundle, load_bundle  # noqa: E402
 from data_tools.errors import SlideError  # noqa: E402
-from data_tools.slide_readers import open_slide  # noqa: E402
+from data_tools.slide_files.open import open_slide  # noqa: E402
 
 DATA = Path(__file__).parent / "data"
 FIXTURE = DATA / "dicom-wsi"

@@ -27,7 +27,7 @@ from hypothesis import strategies as st
 
 from data_tools.annotations import MAX_COORDINATE, load_annotations
 from data_tools.errors import AnnotationError, BundleError, SlideError
-from data_tools.slide_readers import open_slide
+from data_tools.slide_files.open import open_slide
 
 EXAMPLES = int(os.environ.get("HISTOJAX_FUZZ_EXAMPLES", "60"))
 FUZZ = settings(max_examples=EXAMPLES, deadline=None, database=None,

@@ -279,7 +279,7 @@ def test_info_fails_on_a_tiff_without_tile_offsets_with_one_error_line(tmp_path)
     """Was: `info` exited 0; `build` printed tifffile's log lines around the error."""
     path = _without_tile_offsets(tmp_path / "notiles.tif")
     with pytest.raises(SlideError, match="offsets"):
-        from data_tools.slide_readers import open_slide
+        from data_tools.slide_files.open import open_slide
 
         open_slide(path)
     for args in (("info", path), ("build", path, "--out", tmp_path / "b")):

@@ -69,6 +69,13 @@ GONE = {
     # small leaf modules folded into their users
     "baselines.reading.budgets": "baselines.reading.pipeline",
     "baselines.reading.lesions": "baselines.reading.slides",
+    # slide-file readers under one name ("reader" elsewhere is a reading policy)
+    "data_tools.slides": "data_tools.slide_files.tiff",
+    "data_tools.slide_readers": "data_tools.slide_files.open",
+    "data_tools.dicom": "data_tools.slide_files.dicom",
+    "data_tools.openslide_reader": "data_tools.slide_files.openslide",
+    "data_tools.mirax": "data_tools.slide_files.mirax",
+    "data_tools.slide_limits": "data_tools.slide_files.limits",
 }
 
 # names that left a module which still exists: old module -> (the one module of the names, the names)
@@ -84,6 +91,8 @@ MOVED_NAMES = {
                                     "check_classes", "check_head", "MIN_SLIDES_PER_CLASS")),
     "baselines.evaluate.checks": ("data_tools.metrics", ("UNDEFINED",)),
     "histojax.reading.heads.logit": ("the same module, named for what it is: LogitHead", ("SlideHead",)),
+    "data_tools.slide_files.tiff": ("data_tools.slide_files.base", ("LevelInfo", "describe", "check_levels",
+                                                                   "_check_levels")),
 }
 
 

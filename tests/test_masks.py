@@ -12,7 +12,7 @@ from shapely.affinity import rotate
 from shapely.geometry import MultiPolygon, Polygon, box
 
 from data_tools.masks import rasterize, tissue_mask
-from data_tools.slide_readers import open_slide
+from data_tools.slide_files.open import open_slide
 
 ROOT = Path(__file__).resolve().parents[1]
 SVS = ROOT / "histojax" / "data" / "CMU-1-Small-Region.svs"

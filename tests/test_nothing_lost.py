@@ -299,7 +299,7 @@ def test_dicom_without_image_type_is_read_from_its_frame_positions():
     without ImageType). Now each frame is placed where its plane position says: the stored tiles equal
     those of the source instance, the absent ones are white, and a warning names what was missing."""
     pytest.importorskip("wsidicom")
-    from data_tools.slide_readers import open_slide
+    from data_tools.slide_files.open import open_slide
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -334,7 +334,7 @@ def test_dicom_missing_an_essential_attribute_is_refused_naming_it(tmp_path, att
 
     from data_tools.__main__ import main
     from data_tools.errors import SlideError
-    from data_tools.slide_readers import open_slide
+    from data_tools.slide_files.open import open_slide
 
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")  # the fixture's 65-character UIDs

@@ -1,4 +1,4 @@
-"""The OpenSlide 4 backend (data_tools.openslide_reader): the same levels and pixels as the native readers on the
+"""The OpenSlide 4 backend (data_tools.slide_files.openslide): the same levels and pixels as the native readers on the
 fixtures here (Aperio SVS, tiled pyramidal TIFF, DICOM WSI), a MIRAX slide written from OpenSlide's description of
 the format (tests/mirax_fixture.py), one-line errors for bad files, the missing-extra line, and ``--reader
 openslide`` through ``info`` / ``build`` / ``dataset``.
@@ -19,7 +19,7 @@ import pytest
 import tifffile
 
 from data_tools.errors import SlideError
-from data_tools.slide_readers import open_slide
+from data_tools.slide_files.open import open_slide
 
 openslide = pytest.importorskip("openslide", reason="the optional extra histojax[openslide] is not installed")
 

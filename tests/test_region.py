@@ -11,7 +11,7 @@ import shapely
 from data_tools.annotations import load_annotations
 from data_tools.bundle import build_bundle, default_magnification_range, load_bundle
 from data_tools.errors import BundleError
-from data_tools.slide_readers import open_slide
+from data_tools.slide_files.open import open_slide
 from histojax.sample import SAMPLE_ANNOTATIONS, SAMPLE_SLIDE
 
 MARGIN = 300

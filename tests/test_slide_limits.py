@@ -1,4 +1,4 @@
-"""One set of size limits for every slide reader (data_tools.slide_limits), and scanner files that never take the
+"""One set of size limits for every slide reader (data_tools.slide_files.limits), and scanner files that never take the
 process down: a MIRAX slide whose Slidedat.ini declares absurd sizes is refused before OpenSlide allocates (it made
 GLib abort the whole process, rc 134, no file named), any OpenSlide slide is opened first in a child process that can
 die alone, and ``dataset`` builds every other slide of the folder.
@@ -18,9 +18,9 @@ import numpy as np
 import pytest
 import tifffile
 
-from data_tools import slide_limits
+from data_tools.slide_files import limits as slide_limits
 from data_tools.errors import SlideError
-from data_tools.slide_readers import open_slide
+from data_tools.slide_files.open import open_slide
 
 ROOT = Path(__file__).resolve().parents[1]
 SVS = ROOT / "histojax" / "data" / "CMU-1-Small-Region.svs"
@@ -81,9 +81,9 @@ def mirax_cases(tmp_path_factory, mirax_pixels):
 
 _OPEN_ALL = r"""
 import json, sys
-import data_tools.openslide_reader as reader
+import data_tools.slide_files.openslide as reader
 from data_tools.errors import SlideError
-from data_tools.slide_readers import open_slide
+from data_tools.slide_files.open import open_slide
 if sys.argv[1] == "no-precheck":
     reader.check_mirax = lambda path: None  # only the child-process probe and the limits after opening stand
 out = {}
@@ -105,11 +105,11 @@ def _open_in_child(paths, mode="checked"):
 
 
 def test_one_definition_of_the_limits_for_every_reader():
-    from data_tools import dicom, mirax, openslide_reader, slides
+    from data_tools.slide_files import dicom, mirax, openslide, tiff
 
-    assert slides.MAX_SIDE is slide_limits.MAX_SIDE == 1_000_000
-    for module in (slides, dicom, openslide_reader, mirax):  # each reader's checks go through the shared module
-        assert "slide_limits" in Path(module.__file__).read_text()
+    assert tiff.MAX_SIDE is slide_limits.MAX_SIDE == 1_000_000
+    for module in (tiff, dicom, openslide, mirax):  # each reader's checks go through the shared module
+        assert "slide_files.limits" in Path(module.__file__).read_text()
 
 
 def test_absurd_mirax_headers_are_one_line_naming_the_file(mirax_cases):
@@ -168,19 +168,19 @@ def test_the_tiff_reader_applies_the_same_area_limit(tmp_path):
 
 def test_the_limits_hold_for_every_reader_on_reported_levels():
     """The check every reader runs on the levels it found (TIFF, DICOM, OpenSlide): level count, sides, tiles."""
-    from data_tools.slides import LevelInfo, _check_levels
+    from data_tools.slide_files.base import LevelInfo, check_levels
 
     def levels(n, w=1000, tile=(256, 256)):
         return [LevelInfo(width=max(1, w >> k), height=max(1, w >> k), downsample=2.0**k, tile_size=tile,
                           compression="x") for k in range(n)]
 
-    _check_levels("ok.tif", levels(8))
+    check_levels("ok.tif", levels(8))
     with pytest.raises(SlideError, match="65 pyramid levels, over the limit of 64"):
-        _check_levels("many.tif", levels(65, w=2**70))
+        check_levels("many.tif", levels(65, w=2**70))
     with pytest.raises(SlideError, match=r"level 0's tile declares 2,000,000×2,000,000 px"):
-        _check_levels("tile.tif", levels(2, tile=(2_000_000, 2_000_000)))
+        check_levels("tile.tif", levels(2, tile=(2_000_000, 2_000_000)))
     with pytest.raises(SlideError, match=r"level 0 declares 100,000,000,000 tiles of 1×1 px, over"):
-        _check_levels("tiles.tif", [LevelInfo(width=1_000_000, height=100_000, downsample=1.0, tile_size=(1, 1),
+        check_levels("tiles.tif", [LevelInfo(width=1_000_000, height=100_000, downsample=1.0, tile_size=(1, 1),
                                               compression="x")])
 
 

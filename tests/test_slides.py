@@ -1,4 +1,4 @@
-"""Tests for data_tools.slides: reading SVS / pyramidal TIFF / OME-TIFF as 8-bit RGB."""
+"""Tests for data_tools.slide_files.tiff: reading SVS / pyramidal TIFF / OME-TIFF as 8-bit RGB."""
 from __future__ import annotations
 
 from pathlib import Path
@@ -11,13 +11,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from data_tools.errors import SlideError
-from data_tools.slides import (
-    MAX_DECODE_BYTES,
-    LevelInfo,
-    SlideReader,
-    describe,
-)
-from data_tools.slide_readers import open_slide
+from data_tools.slide_files.base import LevelInfo, describe
+from data_tools.slide_files.tiff import MAX_DECODE_BYTES, SlideReader
+from data_tools.slide_files.open import open_slide
 
 ROOT = Path(__file__).resolve().parents[1]
 SVS = ROOT / "histojax" / "data" / "CMU-1-Small-Region.svs"

@@ -10,7 +10,7 @@ import tifffile
 
 from data_tools.annotations import load_annotations
 from data_tools.bundle import build_bundle, load_bundle
-from data_tools.slide_readers import open_slide
+from data_tools.slide_files.open import open_slide
 from data_tools.datasets.synth import make_dataset, make_semisynthetic_slide, tissue_files, tumour_files
 
 SIZE = (1024, 1024)

@@ -305,7 +305,7 @@ def test_region_bundles_tiled_equal_dense(tmp_path, region):
 
 def test_cli_synth_large(tmp_path, capsys):
     from data_tools.__main__ import main
-    from data_tools.slide_readers import open_slide
+    from data_tools.slide_files.open import open_slide
 
     out = tmp_path / "large.tif"
     assert main(["synth-large", str(out), "--size", "2048", "--tissue-fraction", "0.2", "--quiet"]) == 0

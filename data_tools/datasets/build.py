@@ -70,7 +70,7 @@ def check_scales(entries, magnification_range, reader: str | None = None,
     """µm/px of every slide (``mpp``: the one given for all, ``--mpp``, instead of what the files state); with one
     ``magnification_range`` for all, slides whose level-0 µm/px differ by more than 5 % (or some unknown) are an
     error naming two of them: one range would give them different physical scales."""
-    from data_tools.slide_readers import open_slide
+    from data_tools.slide_files.open import open_slide
 
     mpps: dict[str, float | None] = {}
     for e in ([] if mpp is not None else entries):
@@ -648,7 +648,7 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     ``shard``: ``(I, N)``. Returns a summary: ``built`` / ``resumed`` / ``busy`` names, ``failed``
     (name → reason), ``dataset`` (the ``dataset.json`` dict, or None when slides remain), seconds,
     slides per minute and the peak resident memory of one job (bytes). ``reader``: what reads the slides
-    (:data:`data_tools.slide_readers.READERS`; recorded in the options when not ``"auto"``). ``folds``: K cross-validation
+    (:data:`data_tools.slide_files.open.READERS`; recorded in the options when not ``"auto"``). ``folds``: K cross-validation
     folds recorded in ``dataset.json`` (:func:`make_plan`; patients from the ``labels`` table's patient column).
     ``mpp``: µm per level-0 px of every slide, for files that state none or a wrong one (``--mpp``; recorded in the
     options, each bundle and ``dataset.json``)."""

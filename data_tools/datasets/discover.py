@@ -25,7 +25,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from data_tools.datasets.split import read_label_table, slide_key
-from data_tools.dicom import is_dicom
+from data_tools.slide_files.dicom import is_dicom
 from data_tools.errors import HistojaxDataError
 
 SLIDE_EXTENSIONS = (".svs", ".tif", ".tiff", ".ndpi", ".qptiff", ".btf", ".tf8", ".tf2",

@@ -488,7 +488,7 @@ def save_preview(tiff, geojson, out_png, max_side: int = 1024) -> Path:
     from PIL import Image, ImageDraw
 
     from data_tools.annotations import load_annotations
-    from data_tools.slide_readers import open_slide
+    from data_tools.slide_files.open import open_slide
 
     with open_slide(tiff) as reader:
         k = next((i for i, lv in enumerate(reader.levels) if max(lv.width, lv.height) <= max_side),

@@ -173,7 +173,7 @@ def reference_levels() -> tuple[list[np.ndarray], float]:
     """The (H, W, 3) uint8 pixels of the fixture's 3 levels before encoding (absent tiles white),
     and the level-0 µm/px."""
     sys.path.insert(0, str(ROOT))
-    from data_tools.slide_readers import open_slide
+    from data_tools.slide_files.open import open_slide
 
     with open_slide(SOURCE) as reader:
         x0, y0, x1, y1 = CROP

@@ -1,6 +1,6 @@
 """Read DICOM whole-slide images (VL Whole Slide Microscopy) as 8-bit RGB, through wsidicom.
 
-This module's one job: give a DICOM WSI the interface of :class:`data_tools.slides.SlideReader`
+This module's one job: give a DICOM WSI the interface of :class:`data_tools.slide_files.tiff.SlideReader`
 (``levels``, ``mpp``, ``read_level``, ``read_region``), so that ``data_tools info`` / ``build``
 (dense and tiled) read it like a TIFF. wsidicom (Apache-2.0, the optional extra ``dicom``:
 ``pip install 'histojax[dicom]'``) parses the instances and decodes the frames (JPEG, JPEG 2000,
@@ -16,7 +16,7 @@ too), each instance is read with pydicom instead, as pathml does: its frames pla
 Functional Groups' plane positions (row-major for ``TILED_FULL``), decoded with imagecodecs, with one
 warning saying why; an instance missing an attribute needed to place its frames is refused naming it.
 
-Units as in :mod:`data_tools.slides`: pixels of the level read, ``downsample`` in level-0 px per
+Units as in :mod:`data_tools.slide_files.tiff`: pixels of the level read, ``downsample`` in level-0 px per
 level px, ``mpp`` in µm per level-0 px. Every problem with the files raises
 :class:`data_tools.errors.SlideError` naming the path, in one line.
 """
@@ -28,8 +28,9 @@ import warnings
 import numpy as np
 
 from data_tools.errors import SlideError
-from data_tools.slide_limits import MAX_TILES, check_size
-from data_tools.slides import LevelInfo, SlideReader, _check_levels
+from data_tools.slide_files.limits import MAX_TILES, check_size
+from data_tools.slide_files.base import LevelInfo, check_levels
+from data_tools.slide_files.tiff import SlideReader
 
 __all__ = ["DicomSlideReader", "is_dicom", "INSTALL_HINT"]
 
@@ -102,7 +103,7 @@ def _series_files(path: str) -> list[str]:
 class DicomSlideReader(SlideReader):
     """An open DICOM WSI (a folder of instances, or one instance file and its series).
 
-    Attributes as :class:`data_tools.slides.SlideReader`; ``format`` is ``"dicom-wsi"``; ``levels``
+    Attributes as :class:`data_tools.slide_files.tiff.SlideReader`; ``format`` is ``"dicom-wsi"``; ``levels``
     are the levels of the first pyramid, finest first, ``tile_size`` their frame size and
     ``compression`` named from the transfer syntax (``"JPEG"``, ``"JPEG2000"``, ``"NONE"`` ...).
     """
@@ -130,7 +131,7 @@ class DicomSlideReader(SlideReader):
             self._tif = WsiDicom.open(files)
             self._levels = sorted(self._tif.levels, key=lambda lv: lv.size.width, reverse=True)
             self.levels = _level_infos(self._levels)
-            _check_levels(self.path, self.levels)
+            check_levels(self.path, self.levels)
             self.mpp = _mpp(self._tif)
             for k, lv in enumerate(self.levels):  # the last frame of a TILED_FULL instance: catches truncation
                 self._decode_window(k, lv.width - 1, lv.height - 1, lv.width, lv.height)
@@ -166,7 +167,7 @@ class DicomSlideReader(SlideReader):
         self.levels = [LevelInfo(width=lv.width, height=lv.height,
                                  downsample=1.0 if k == 0 else (w0 / lv.width + h0 / lv.height) / 2.0,
                                  tile_size=lv.tile, compression=lv.compression) for k, lv in enumerate(levels)]
-        _check_levels(self.path, self.levels)
+        check_levels(self.path, self.levels)
         self.mpp = levels[0].mpp
         warnings.warn(f"{self.path}: wsidicom cannot open it ({'; '.join(why) or problem}); read with pydicom, "
                       "each frame where its plane position says", stacklevel=5)

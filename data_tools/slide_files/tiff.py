@@ -1,5 +1,5 @@
 """Read whole-slide image files (Aperio SVS, pyramidal TIFF, OME-TIFF) as 8-bit RGB; DICOM WSI in
-:mod:`data_tools.dicom`, behind the same interface (:func:`data_tools.slide_readers.open_slide` picks).
+:mod:`data_tools.slide_files.dicom`, behind the same interface (:func:`data_tools.slide_files.open.open_slide` picks).
 
 This module's one job: open a slide file with tifffile, list its pyramid levels,
 and decode whole levels or rectangular regions of a level into ``(H, W, 3)``
@@ -25,15 +25,14 @@ import os
 import re
 import stat
 import warnings
-from dataclasses import dataclass
-
 import numpy as np
 import tifffile
 
 from data_tools.errors import SlideError
-from data_tools.slide_limits import MAX_SIDE, check_level_sizes, check_size
+from data_tools.slide_files.base import LevelInfo, check_levels
+from data_tools.slide_files.limits import MAX_SIDE, check_size
 
-__all__ = ["MAX_DECODE_BYTES", "LevelInfo", "SlideReader", "describe"]
+__all__ = ["MAX_DECODE_BYTES", "SlideReader"]
 
 MAX_DECODE_BYTES = 4 * 1024**3
 """Default limit (bytes of decoded RGB, H * W * 3) for :meth:`SlideReader.read_level`."""
@@ -54,29 +53,6 @@ _OME_UNIT_UM = {
     "µm": 1.0, "μm": 1.0, "um": 1.0, "micron": 1.0,
     "nm": 1e-3, "pm": 1e-6, "Å": 1e-4, "mm": 1e3, "cm": 1e4, "m": 1e6,
 }
-
-
-@dataclass(frozen=True)
-class LevelInfo:
-    """One pyramid level of a slide.
-
-    Attributes:
-        width: width of this level in pixels.
-        height: height of this level in pixels.
-        downsample: level-0 pixels per pixel of this level (1.0 for level 0),
-            the mean of the width and height ratios (OpenSlide's convention).
-        tile_size: ``(tile width, tile height)`` in pixels, or ``None`` when the
-            level is stored in strips.
-        compression: TIFF compression name as tifffile spells it, e.g. ``"JPEG"``,
-            ``"JPEG2000"``, ``"APERIO_JPEG2000_RGB"``, ``"NONE"``, ``"LZW"``,
-            ``"ADOBE_DEFLATE"``.
-    """
-
-    width: int
-    height: int
-    downsample: float
-    tile_size: tuple[int, int] | None
-    compression: str
 
 
 class SlideReader:
@@ -100,7 +76,7 @@ class SlideReader:
             self.format = _detect_format(self._tif)
             self._pages = _pyramid_pages(self.path, self._tif)
             self.levels = _level_infos(self._pages)
-            _check_levels(self.path, self.levels)
+            check_levels(self.path, self.levels)
             self.mpp = _find_mpp(self._tif, self.format, self._pages[0])
         except SlideError:
             self.close()
@@ -268,27 +244,6 @@ class SlideReader:
         return rgb
 
 
-def describe(reader: SlideReader) -> str:
-    """Multi-line human-readable summary: file, format, µm/px, one line per level."""
-    mpp = "unknown" if reader.mpp is None else f"{reader.mpp:.4g} µm/px (level 0)"
-    lines = [
-        f"file: {reader.path}",
-        f"format: {reader.format}",
-        f"mpp: {mpp}",
-        f"levels: {len(reader.levels)}",
-    ]
-    for i, lv in enumerate(reader.levels):
-        tiles = "stripped" if lv.tile_size is None else f"tiles {lv.tile_size[0]}×{lv.tile_size[1]}"
-        lines.append(
-            f"  level {i}: {lv.width}×{lv.height} px, downsample {lv.downsample:.3f}, "
-            f"{tiles}, {lv.compression}"
-        )
-    associated = getattr(reader, "associated", None)  # OpenSlide's label / macro / thumbnail images
-    if associated:
-        lines.append("associated images: " + ", ".join(f"{n} {w}×{h} px" for n, (w, h) in associated.items()))
-    return "\n".join(lines)
-
-
 # ---------------------------------------------------------------------------
 # opening
 
@@ -307,7 +262,7 @@ def _check_signature(path: str) -> None:
     except OSError as exc:
         raise SlideError(path, f"cannot read file: {exc}") from exc
     if head[128:132] == b"DICM":
-        raise SlideError(path, "is DICOM: open it with data_tools.slide_readers.open_slide, not SlideReader")
+        raise SlideError(path, "is DICOM: open it with data_tools.slide_files.open.open_slide, not SlideReader")
     if head[:4] not in _TIFF_MAGICS:
         raise SlideError(path, f"format not recognised (not a TIFF file); {_SUPPORTED}")
 
@@ -417,23 +372,6 @@ def _level_infos(pages: list[tifffile.TiffPage]) -> list[LevelInfo]:
             )
         )
     return infos
-
-
-def _check_levels(path: str, levels: list[LevelInfo]) -> None:
-    """Refuse an inconsistent pyramid: every level must be smaller than the one before it and keep
-    level 0's aspect ratio (within 2 % or 2 px of rounding); and stay within the limits every reader shares
-    (:mod:`data_tools.slide_limits`: sides, level-0 area, level and tile counts)."""
-    check_level_sizes(path, levels)
-    w0, h0 = levels[0].width, levels[0].height
-    for i in range(1, len(levels)):
-        prev, lv = levels[i - 1], levels[i]
-        if lv.width > prev.width or lv.height > prev.height or (lv.width, lv.height) == (prev.width, prev.height):
-            raise SlideError(path, f"inconsistent pyramid: level {i} is {lv.width}×{lv.height} px, not smaller than "
-                             f"level {i - 1} ({prev.width}×{prev.height}); rewrite the pyramid or keep only level 0")
-        expected_h = lv.width * h0 / w0
-        if abs(lv.height - expected_h) > max(2.0, 0.02 * expected_h):
-            raise SlideError(path, f"inconsistent pyramid: level {i} ({lv.width}×{lv.height} px) does not keep the "
-                             f"aspect ratio of level 0 ({w0}×{h0}); rewrite the pyramid or keep only level 0")
 
 
 # ---------------------------------------------------------------------------

@@ -4,7 +4,7 @@ OpenSlide's MIRAX reader (``src/openslide-vendor-mirax.c``) sizes its arrays fro
 integer arithmetic: ``IMAGENUMBER_X=2000000000`` (or 40000 × 40000 camera images, or ``DIGITIZER_WIDTH=1000000000``)
 overflows and GLib aborts the whole process ("overflow allocating ..."), which no ``try`` can catch. This module
 reads the numbers OpenSlide reads, the way GLib's key-file parser reads them, and refuses the slide against the
-limits every slide reader shares (:mod:`data_tools.slide_limits`) in one :class:`~data_tools.errors.SlideError`
+limits every slide reader shares (:mod:`data_tools.slide_files.limits`) in one :class:`~data_tools.errors.SlideError`
 line naming the ``.mrxs`` file, before OpenSlide allocates anything. Keys that are missing or not numbers are left
 to OpenSlide, which refuses them itself without crashing.
 
@@ -19,8 +19,8 @@ import re
 from pathlib import Path
 
 from data_tools.errors import SlideError
-from data_tools.slide_limits import MAX_LEVELS, MAX_TILES, check_size
-from data_tools.slides import LevelInfo, _check_levels
+from data_tools.slide_files.limits import MAX_LEVELS, MAX_TILES, check_size
+from data_tools.slide_files.base import LevelInfo, check_levels
 
 __all__ = ["MAX_DATA_FILES", "MAX_IMAGE_PIXELS", "SLIDEDAT_MAX_BYTES", "check_mirax", "data_folder"]
 
@@ -174,6 +174,6 @@ def check_mirax(path) -> None:
                                 downsample=float(2 ** (exponent - sections[0][2])), tile_size=None,
                                 compression="openslide"))
     try:
-        _check_levels(path, levels)
+        check_levels(path, levels)
     except SlideError as e:
         raise SlideError(path, f"its Slidedat.ini declares a pyramid histojax refuses: {e.problem}") from None

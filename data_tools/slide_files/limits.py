@@ -37,7 +37,7 @@ def check_size(path, width: int, height: int, what: str = "level 0") -> None:
 
 
 def check_level_sizes(path, levels) -> None:
-    """Refuse a pyramid (``levels``: :class:`data_tools.slides.LevelInfo`, finest first) with more than
+    """Refuse a pyramid (``levels``: :class:`data_tools.slide_files.base.LevelInfo`, finest first) with more than
     ``MAX_LEVELS`` levels, a level or tile side outside ``1..MAX_SIDE``, a level-0 area over ``MAX_PIXELS``, or a
     level of more than ``MAX_TILES`` tiles. One :class:`SlideError` line naming ``path``."""
     if not levels:

@@ -1,5 +1,5 @@
 """Read whole-slide images through OpenSlide 4 (the optional extra ``openslide``), behind the interface of
-:class:`data_tools.slides.SlideReader` (``levels``, ``mpp``, ``read_level``, ``read_region``).
+:class:`data_tools.slide_files.tiff.SlideReader` (``levels``, ``mpp``, ``read_level``, ``read_region``).
 
 This module's one job: give the formats the native readers do not read (3DHISTECH MIRAX ``.mrxs``, Leica
 ``.scn``, Ventana ``.bif``, Hamamatsu ``.vms`` / ``.vmu``, Sakura ``.svslide``, Philips TIFF) the same
@@ -14,12 +14,12 @@ transparent pixels OpenSlide returns where a scanner stored nothing, are white (
 give them.
 
 A file is never given to OpenSlide in this process first: a MIRAX slide's ``Slidedat.ini`` is checked against the
-limits every reader shares (:mod:`data_tools.mirax`, :mod:`data_tools.slide_limits`), then every slide is opened in a
+limits every reader shares (:mod:`data_tools.slide_files.mirax`, :mod:`data_tools.slide_files.limits`), then every slide is opened in a
 child process (:func:`_probe`), so that a file that makes OpenSlide abort (GLib's "overflow allocating") or crash
 stops only that child and is refused here in one line; the levels OpenSlide reports are checked against the same
 limits.
 
-Units as in :mod:`data_tools.slides`: pixels of the level read, ``downsample`` in level-0 px per level px,
+Units as in :mod:`data_tools.slide_files.tiff`: pixels of the level read, ``downsample`` in level-0 px per level px,
 ``mpp`` in µm per level-0 px. Every problem with the file raises :class:`data_tools.errors.SlideError`
 naming the path, in one line.
 """
@@ -36,11 +36,12 @@ import sys
 
 import numpy as np
 
-from data_tools.dicom import _dicom_files, is_dicom
+from data_tools.slide_files.dicom import _dicom_files, is_dicom
 from data_tools.errors import SlideError
-from data_tools.mirax import check_mirax
-from data_tools.slide_limits import MAX_LEVELS, MAX_PIXELS, MAX_SIDE
-from data_tools.slides import LevelInfo, SlideReader, _check_levels
+from data_tools.slide_files.mirax import check_mirax
+from data_tools.slide_files.limits import MAX_LEVELS, MAX_PIXELS, MAX_SIDE
+from data_tools.slide_files.base import LevelInfo, check_levels
+from data_tools.slide_files.tiff import SlideReader
 
 __all__ = ["INSTALL_HINT", "OPENSLIDE_EXTENSIONS", "OpenSlideReader", "openslide_available", "openslide_module"]
 
@@ -73,7 +74,7 @@ def _one_line(exc: BaseException) -> str:
 class OpenSlideReader(SlideReader):
     """An open slide read by OpenSlide.
 
-    Attributes as :class:`data_tools.slides.SlideReader`; ``format`` is ``"openslide-"`` + OpenSlide's
+    Attributes as :class:`data_tools.slide_files.tiff.SlideReader`; ``format`` is ``"openslide-"`` + OpenSlide's
     vendor (``"openslide-mirax"``, ``"openslide-aperio"``, ``"openslide-generic-tiff"`` ...); ``levels``
     are OpenSlide's, finest first, with its tile size where it reports one and ``compression``
     ``"openslide"`` (OpenSlide does not say); ``associated`` maps each associated image's name (``"label"``,
@@ -114,7 +115,7 @@ class OpenSlideReader(SlideReader):
             self.format = f"openslide-{vendor}"
             props = self._tif.properties
             self.levels = _level_infos(self._tif, props)
-            _check_levels(self.path, self.levels)
+            check_levels(self.path, self.levels)
             self.mpp = _mpp(props)
             self.associated = {name: tuple(int(v) for v in img.size)
                                for name, img in self._tif.associated_images.items()}
@@ -190,7 +191,7 @@ _probed: dict[tuple, bool] = {}
 def _identity(path: str) -> tuple:
     """What the probe of ``path`` depends on: its real path and the size and mtime of it and of the files of a
     MIRAX data folder beside it."""
-    from data_tools.mirax import data_folder
+    from data_tools.slide_files.mirax import data_folder
 
     files = [path]
     folder = data_folder(path)

@@ -1,16 +1,16 @@
-"""Which reader opens a slide: :func:`open_slide` picks the native TIFF reader (:mod:`data_tools.slides`), the DICOM
-WSI reader (:mod:`data_tools.dicom`) or OpenSlide (:mod:`data_tools.openslide_reader`), all behind
-:class:`data_tools.slides.SlideReader`'s interface. Kept apart from the readers so that they import only their
+"""Which reader opens a slide: :func:`open_slide` picks the native TIFF reader (:mod:`data_tools.slide_files.tiff`), the DICOM
+WSI reader (:mod:`data_tools.slide_files.dicom`) or OpenSlide (:mod:`data_tools.slide_files.openslide`), all behind
+:class:`data_tools.slide_files.tiff.SlideReader`'s interface. Kept apart from the readers so that they import only their
 base class (no import circle)."""
 from __future__ import annotations
 
 import os
 import stat
 
-from data_tools.dicom import DicomSlideReader, is_dicom
+from data_tools.slide_files.dicom import DicomSlideReader, is_dicom
 from data_tools.errors import SlideError
-from data_tools.openslide_reader import OPENSLIDE_EXTENSIONS, OpenSlideReader, openslide_available, openslide_module
-from data_tools.slides import SlideReader
+from data_tools.slide_files.openslide import OPENSLIDE_EXTENSIONS, OpenSlideReader, openslide_available, openslide_module
+from data_tools.slide_files.tiff import SlideReader
 
 READERS = ("auto", "native", "openslide")
 """What :func:`open_slide` may read a slide with (``--reader``): ``auto`` (the native readers, OpenSlide for the
@@ -19,8 +19,8 @@ formats they do not read), ``native`` (tifffile / wsidicom only) or ``openslide`
 
 def open_slide(path: str | os.PathLike, reader: str | None = "auto") -> SlideReader:
     """Open a slide (SVS, pyramidal TIFF, OME-TIFF file; DICOM WSI file or folder, see
-    :mod:`data_tools.dicom`; MIRAX, SCN, BIF, VMS / VMU, SVSlide and Philips TIFF through OpenSlide, see
-    :mod:`data_tools.openslide_reader`); raises SlideError if unreadable.
+    :mod:`data_tools.slide_files.dicom`; MIRAX, SCN, BIF, VMS / VMU, SVSlide and Philips TIFF through OpenSlide, see
+    :mod:`data_tools.slide_files.openslide`); raises SlideError if unreadable.
 
     ``reader``: ``"auto"`` (or None; the native readers, OpenSlide for the formats they do not read),
     ``"native"`` or ``"openslide"`` (any slide through OpenSlide: needs ``histojax[openslide]``)."""

@@ -31,7 +31,7 @@ from pathlib import Path
 import jax
 
 from baselines import ppo
-from data_tools.datasets.synth import make_dataset
+from data_tools.datasets.synth.dataset import make_dataset
 from data_tools.features.grid import compute_features
 from histojax import compile_cache
 

@@ -151,7 +151,7 @@ def main(argv=None) -> int:
             print(f"{r['stage']:58s} {r['rss_gb']:7.2f} {r['peak_gb']:8.2f} {held:>8s} {r['s']:6.0f}")
         return 0
     from data_tools.bundle import build_bundle
-    from data_tools.datasets.synth_large import make_large_slide
+    from data_tools.datasets.synth.large_slide import make_large_slide
 
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)

@@ -1,5 +1,5 @@
 """The gigapixel case end to end, nothing to download: write a large semi-synthetic pyramidal TIFF
-(``data_tools.datasets.synth_large``: mostly glass, real CAMELYON16 tissue and tumour outlines, synthetic pixels),
+(``data_tools.datasets.synth.large_slide``: mostly glass, real CAMELYON16 tissue and tumour outlines, synthetic pixels),
 build it into a tiled bundle (streamed, in a child process so its peak RSS is its own), and run the
 env at full resolution.
 
@@ -124,7 +124,7 @@ def main() -> None:
 
     # 1. the TIFF
     if not (args.reuse and tif.is_file()):
-        from data_tools.datasets.synth_large import make_large_slide
+        from data_tools.datasets.synth.large_slide import make_large_slide
 
         t0 = time.perf_counter()
         prov = make_large_slide(tif, size=args.size, tissue_fraction=args.tissue_fraction)

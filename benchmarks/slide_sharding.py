@@ -39,7 +39,7 @@ def main(argv=None) -> int:
     if args.dataset:
         paths = [str(s) for s in dataset_slides(args.dataset, "all")]
     else:
-        from data_tools.datasets.synth import make_dataset
+        from data_tools.datasets.synth.dataset import make_dataset
 
         root = Path(tempfile.mkdtemp(prefix="histojax-slide-sharding-"))
         ds = make_dataset(root, n_slides=args.slides, size=(args.size, args.size), seed=0, tile_size=32,

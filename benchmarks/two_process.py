@@ -94,7 +94,7 @@ def main(argv=None) -> int:
     elif args.dataset:
         env_kwargs = {"dataset": str(Path(args.dataset).resolve()), "split": "all"}
     else:
-        from data_tools.datasets.synth import make_dataset
+        from data_tools.datasets.synth.dataset import make_dataset
 
         ds = make_dataset(out / "dataset", n_slides=8, size=(320, 256), seed=0, tile_size=32, level_sets=(3,),
                           progress=False, previews=False)

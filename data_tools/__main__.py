@@ -254,7 +254,7 @@ def _command(args) -> int | None:
         if not args.quiet:  # --quiet: the one line above (`info BUNDLE` prints the level table)
             print(_info(str(out)))
     elif args.command == "synth":
-        from data_tools.datasets.synth import make_dataset
+        from data_tools.datasets.synth.dataset import make_dataset
 
         ds = make_dataset(args.out_dir, n_slides=args.slides, size=(args.size, args.size), seed=args.seed,
                           tile_size=args.tile_size, tissue=args.tissue, progress=not args.quiet,
@@ -293,7 +293,7 @@ def _command(args) -> int | None:
         if ds["failed"]:
             return 1
     elif args.command == "synth-large":
-        from data_tools.datasets.synth_large import make_large_slide
+        from data_tools.datasets.synth.large_slide import make_large_slide
 
         prov = make_large_slide(args.out, size=args.size, tissue_fraction=args.tissue_fraction, seed=args.seed,
                                 progress=not args.quiet)

@@ -26,7 +26,7 @@ def sample_envs():
 def small_slides(tmp_path_factory):
     """Bundle paths of 8 small semi-synthetic slides (320 × 256 px, tile 32, Easy levels; a few
     seconds to build), for the sharding and rotation tests."""
-    from data_tools.datasets.synth import make_dataset
+    from data_tools.datasets.synth.dataset import make_dataset
 
     root = tmp_path_factory.mktemp("small-slides")
     ds = make_dataset(root, n_slides=8, size=(320, 256), seed=0, tile_size=32, level_sets=(3,), progress=False,

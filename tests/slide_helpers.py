@@ -46,7 +46,7 @@ def synth_feature_dataset(root: Path, n_slides: int, negatives: int) -> Path:
     """A ``data_tools synth`` dataset in ``root`` (``n_slides`` tumour + ``negatives`` normal slides, 320 × 256 px,
     32-px views, Easy's 3 levels, seed 0) with the cheap ``colour-stats`` feature grids; returns ``root``."""
     from baselines.reading.budget_curve import compute_missing_features
-    from data_tools.datasets.synth import make_dataset
+    from data_tools.datasets.synth.dataset import make_dataset
 
     make_dataset(root, n_slides=n_slides, negatives=negatives, size=(320, 256), seed=0, tile_size=32,
                  level_sets=(3,), progress=False, previews=False)

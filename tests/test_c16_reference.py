@@ -14,7 +14,7 @@ SHORT = {"max_steps_in_episode": 10}
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory, colour_feature_grid):
-    from data_tools.datasets.synth import make_dataset
+    from data_tools.datasets.synth.dataset import make_dataset
 
     root = tmp_path_factory.mktemp("c16ref") / "ds"
     spec = make_dataset(root, n_slides=4, size=(256, 256), seed=1, tile_size=32, level_sets=(3,), progress=False,

@@ -27,7 +27,7 @@ EASY = {"env_id": "HistoJAX-Easy-v0", "action_mode": "discrete", "obs_mode": "pi
 @pytest.fixture(scope="module")
 def two_slides(tmp_path_factory):
     """Two small semi-synthetic bundles (320 × 256 px, tile 32, Easy levels) that look different."""
-    from data_tools.datasets.synth import make_dataset
+    from data_tools.datasets.synth.dataset import make_dataset
 
     root = tmp_path_factory.mktemp("two-slides")
     ds = make_dataset(root, n_slides=2, size=(320, 256), seed=3, tile_size=32, level_sets=(3,), progress=False,
@@ -282,7 +282,7 @@ def test_make_refuses_bundles_of_two_encoders_naming_both(two_slides, colour_fea
 
 def test_make_names_two_bundles_of_different_tile_sizes(two_slides, tmp_path):
     import histojax
-    from data_tools.datasets.synth import make_dataset
+    from data_tools.datasets.synth.dataset import make_dataset
     from data_tools.errors import BundleError
 
     ds = make_dataset(tmp_path, n_slides=1, size=(640, 512), seed=3, tile_size=64, level_sets=(3,), progress=False,

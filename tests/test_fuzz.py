@@ -225,7 +225,7 @@ def fuzz_bundle(tmp_path_factory):
     a working copy that each example edits; the example restores what it changed from ``pristine``."""
     import shutil
 
-    from data_tools.datasets.synth import make_dataset
+    from data_tools.datasets.synth.dataset import make_dataset
 
     root = tmp_path_factory.mktemp("fuzz-bundle")
     ds = make_dataset(root, n_slides=2, size=(320, 256), seed=0, tile_size=32, level_sets=(3,), progress=False,

@@ -1,4 +1,4 @@
-"""Semi-synthetic slides (data_tools.datasets.synth): synthetic pixels on real CAMELYON16 geometry."""
+"""Semi-synthetic slides (data_tools.datasets.synth.dataset): synthetic pixels on real CAMELYON16 geometry."""
 from __future__ import annotations
 
 import json
@@ -11,7 +11,7 @@ import tifffile
 from data_tools.annotations import load_annotations
 from data_tools.bundle import build_bundle, load_bundle
 from data_tools.slide_files.open import open_slide
-from data_tools.datasets.synth import make_dataset, make_semisynthetic_slide, tissue_files, tumour_files
+from data_tools.datasets.synth.dataset import make_dataset, make_semisynthetic_slide, tissue_files, tumour_files
 
 SIZE = (1024, 1024)
 

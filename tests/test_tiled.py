@@ -201,7 +201,7 @@ def test_device_bytes_and_budget(bundles, hard):
 def test_much_glass_needs_far_fewer_bytes(tmp_path):
     """A slide that is 90 % glass: the tiled bundle's device bytes are a fraction of the dense ones, and
     within 2x of the tissue tiles' bytes."""
-    from data_tools.datasets.synth_large import make_large_slide
+    from data_tools.datasets.synth.large_slide import make_large_slide
 
     tif = tmp_path / "glassy.tif"
     make_large_slide(tif, size=4096, tissue_fraction=0.1, progress=False)
@@ -258,7 +258,7 @@ def test_cli_build_tiled(tmp_path, capsys):
 def test_gigapixel_style_slide_end_to_end(tmp_path, size):
     """synth-large at 20,000 and at the full 100,000 px → tiled bundle (streamed) → the env at full
     resolution (the 100k case takes about 5 minutes and 4 GB of RAM on 2 cores)."""
-    from data_tools.datasets.synth_large import make_large_slide
+    from data_tools.datasets.synth.large_slide import make_large_slide
 
     tif = tmp_path / "large.tif"
     prov = make_large_slide(tif, size=size, tissue_fraction=0.1, progress=False)

@@ -74,7 +74,7 @@ def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, 
     """Write ``slides/NAME.tif`` (+ ``.geojson``, ``.provenance.json``) unless a finished one with the same
     settings (the donor of its tissue and its patch pool included) is there; returns its provenance.
     ``bank``: the patches this slide may draw (its split's pool); ``pool``: that pool's name."""
-    from data_tools.datasets.synth import _geojson
+    from data_tools.datasets.synth.dataset import _geojson
 
     folder = out_dir / "slides"
     folder.mkdir(parents=True, exist_ok=True)

@@ -66,7 +66,7 @@ def _multi(geom) -> MultiPolygon:
 def own_tissue_outline(name: str):
     """The tissue outline (level-0 px, same frame) of a tumour slide that has one shipped, else None."""
     from data_tools.annotations import load_annotations
-    from data_tools.datasets.synth import CAMELYON16_DIR
+    from data_tools.datasets.synth.dataset import CAMELYON16_DIR
 
     file = OWN_TISSUE.get(name)
     if file is None or not (CAMELYON16_DIR / file).is_file():

@@ -144,7 +144,7 @@ def write_slide_tiff(lay: SlideLayout, texture: Texture, out_tiff, description: 
     import imagecodecs
     import tifffile
 
-    from data_tools.datasets.synth_large import _classify
+    from data_tools.datasets.synth.large_slide import _classify
 
     t = TIFF_TILE
     width, height = lay.size

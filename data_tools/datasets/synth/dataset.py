@@ -49,7 +49,7 @@ from data_tools.errors import AnnotationError
 __all__ = ["CAMELYON16_DIR", "CAMELYON16_MPP", "make_dataset", "make_semisynthetic_slide", "save_preview",
            "tissue_files", "tumour_files"]
 
-CAMELYON16_DIR = Path(__file__).resolve().parents[1] / "camelyon16"
+CAMELYON16_DIR = Path(__file__).resolve().parents[2] / "camelyon16"
 """Bundled CAMELYON16 annotations (see ``LICENSES.md`` there)."""
 CAMELYON16_MPP = 0.243
 """Approximate µm per level-0 px of the CAMELYON16 scans (40×); used to state the canvas µm/px."""

@@ -1,10 +1,10 @@
 """A gigapixel test slide nobody has to download: a pyramidal JPEG-tiled TIFF of any size (100,000 ×
 100,000 px by default), mostly glass, with a real CAMELYON16 tissue outline and a real CAMELYON16 tumour
-inside it. PIXELS ARE SYNTHETIC, GEOMETRY IS REAL (as :mod:`data_tools.datasets.synth`, whose texture code
+inside it. PIXELS ARE SYNTHETIC, GEOMETRY IS REAL (as :mod:`data_tools.datasets.synth.dataset`, whose texture code
 makes the tiles here).
 
 Written tile by tile with bounded memory: a small bank of 256 × 256 texture tiles (normal tissue and
-tumour, made once by :func:`data_tools.datasets.synth._strips` on a 1024 × 1024 canvas) and one constant glass
+tumour, made once by :func:`data_tools.datasets.synth.dataset._strips` on a 1024 × 1024 canvas) and one constant glass
 tile are JPEG-encoded once; every TIFF tile wholly on glass, wholly normal tissue or wholly tumour is
 one of those encoded tiles (picked by a hash of its position), and only tiles crossing a boundary are
 composed pixel by pixel (pixel-centre rule on the polygons clipped to the tile) and encoded. Every
@@ -27,7 +27,7 @@ from shapely.geometry import box
 from tqdm.auto import tqdm
 
 from data_tools.bundle_format import atomic_file, sha256
-from data_tools.datasets.synth import (CAMELYON16_MPP, GLASS, LICENCE_NOTE, MIN_LEVEL_SIDE, PIXELS_NOTE, TIFF_TILE, _geojson,
+from data_tools.datasets.synth.dataset import (CAMELYON16_MPP, GLASS, LICENCE_NOTE, MIN_LEVEL_SIDE, PIXELS_NOTE, TIFF_TILE, _geojson,
                               _polygonal, _strips, tissue_files, tumour_files)
 
 __all__ = ["make_large_slide"]
@@ -202,7 +202,7 @@ def make_large_slide(out_tiff, size=100_000, tissue_fraction: float = 0.1, seed:
     geojson_path.write_text(json.dumps(_geojson(tumour, tissue, source_line), allow_nan=False))
     area = float(width) * height
     provenance = {
-        "kind": "large semi-synthetic slide (histojax data_tools.datasets.synth_large)",
+        "kind": "large semi-synthetic slide (histojax data_tools.datasets.synth.large_slide)",
         "note": PIXELS_NOTE, "licence": LICENCE_NOTE, "summary": source_line,
         "tumour_source": {"file": tumour_xml.name, "sha256": sha256(tumour_xml)},
         "tissue_source": {"file": tissue_xml.name, "sha256": sha256(tissue_xml)},

@@ -125,7 +125,7 @@ def test_trajectories_equal_the_recorded_reference(name, bundles):
 
 
 # ----------------------------------------------------------------------------- the cell-set reader's per-cell layers
-# Given observations, the set reader (baselines.networks.CellSetActorCritic) runs its per-cell layers over the valid
+# Given observations, the set reader (baselines.cell_set_networks.CellSetActorCritic) runs its per-cell layers over the valid
 # cells of the slides in the batch only (CellEncoder.batch_tables, batch_cells=True); before, over those of all
 # slides (batch_cells=False, still what the rollout's tables use). Both must give the same outputs and gradients.
 SET_SLIDES = ("a", "b", "a", "b", "a")  # 5 slides; a batch of 2 envs leaves at least 3 out
@@ -160,10 +160,10 @@ def test_set_reader_per_cell_layers_run_over_the_batch_slides_only(set_reader, m
     """The batch's tables: the keys and slot rows of the valid cells of the slides present, in flat order, then
     zeros (their count is the work done); the mean keys of those slides equal the all-slides tables', the others are
     zeros. Blocks of 5 rows: several trips of the loop and a partial last block."""
-    from baselines import networks
-    from baselines.networks import CellEncoder
+    from baselines import cell_set_networks
+    from baselines.cell_set_networks import CellEncoder
 
-    monkeypatch.setattr(networks, "CELL_CHUNK", 5)
+    monkeypatch.setattr(cell_set_networks, "CELL_CHUNK", 5)
     env, params, net, p, obs = set_reader
     enc = CellEncoder(net.cell_hidden, net.tables, net.obs_norm)
     v = {"params": p["params"]["CellEncoder_0"]}
@@ -192,9 +192,9 @@ def test_set_reader_outputs_and_gradients_equal_the_all_slides_path(set_reader, 
     """The set reader's logits, value and the gradient of a PPO-like loss through them, per-cell layers over the
     batch's slides (blocks of 5 rows) against over all slides (``batch_cells=False``), to float rounding; also
     vmapped over two parameter sets, as PPO runs seeds."""
-    from baselines import networks
+    from baselines import cell_set_networks
 
-    monkeypatch.setattr(networks, "CELL_CHUNK", 5)
+    monkeypatch.setattr(cell_set_networks, "CELL_CHUNK", 5)
     env, params, net, p, obs = set_reader
     old = net.clone(batch_cells=False)
     action = jnp.asarray([np.flatnonzero(np.asarray(params.mode_data.valid)[i])[0] for i in np.asarray(obs["slide"])])
@@ -203,7 +203,7 @@ def test_set_reader_outputs_and_gradients_equal_the_all_slides_path(set_reader, 
         logits, value = network.apply(q, obs)
         logp = jax.nn.log_softmax(logits)
         return -jnp.take_along_axis(logp, action[:, None], -1).sum() + (value ** 2).sum() - (jnp.exp(logp) * jnp.where(
-            logits > networks.NEG, logp, 0.0)).sum()
+            logits > cell_set_networks.NEG, logp, 0.0)).sum()
 
     @jax.jit
     def run(q):  # one program: outputs, and gradients vmapped over two parameter sets, by both paths

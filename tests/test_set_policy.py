@@ -1,4 +1,4 @@
-"""Reader policies over a set of cells (``baselines.networks.CellSetActorCritic`` and its recurrent
+"""Reader policies over a set of cells (``baselines.cell_set_networks.CellSetActorCritic`` and its recurrent
 twin) for ``glimpse`` with ``step_obs=True``: parameters made on one dataset run on a dataset whose
 slide is wider and taller than any of its slides, the pointer masks what cannot be picked, and the
 trainers no longer pin the cell grid.
@@ -19,7 +19,8 @@ import pytest
 import histojax
 from baselines import ppo, ppo_rnn
 from baselines.common.env import pin_env_shapes
-from baselines.networks import NEG, ScannedGRU, network_step
+from baselines.cell_set_networks import NEG
+from baselines.networks import ScannedGRU, network_step
 
 TILE, ENVS, STEPS = 32, 4, 6
 CONFIG = {"env_id": "HistoJAX-Easy-v0", "action_mode": "glimpse:1", "obs_mode": "features", "hidden": 32,
@@ -207,7 +208,7 @@ def test_read_slots_are_the_dense_layer_over_the_observed_summaries_and_keys(env
     """The encoder computes each read slot from per-cell rows (its summary and key through ``slot_in``, once
     per valid cell): the same as ``slot_in`` over the observation's own ``read_summaries`` ‖ the cell's key,
     pooled (mean, max) over the filled slots, computed by hand on the dense ``(S, C)`` tables after a few reads."""
-    from baselines.networks import CellEncoder
+    from baselines.cell_set_networks import CellEncoder
 
     (env_a, pa), _ = envs
     net = ppo.make_network(CONFIG, env_a)

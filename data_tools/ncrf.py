@@ -46,7 +46,7 @@ def _union(polys) -> MultiPolygon:
 
 def parse_ncrf(name: str, raw: bytes, where) -> NcrfSlide:
     """Parse one NCRF JSON document (``raw`` bytes) into an :class:`NcrfSlide`; errors name ``where``."""
-    from data_tools.bundle_format import text_digest
+    from data_tools.bundle_files.format import text_digest
 
     try:
         data = json.loads(raw)

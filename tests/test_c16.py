@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from data_tools.bundle_format import mark_temporary
+from data_tools.bundle_files.writes import mark_temporary
 import shapely
 
 from data_tools.errors import AnnotationError, BundleError, HistojaxDataError
@@ -272,7 +272,7 @@ def test_pool_features_equal_the_views_they_describe(small, tmp_path):
     once); every cell still equals the encoder applied to that cell's view, looked up directly."""
     import shutil
 
-    from data_tools.bundle_format import load_bundle, read_metadata
+    from data_tools.bundle_files.reading import load_bundle, read_metadata
     from data_tools.features.colour import colour_stats
     from data_tools.features.grid import compute_features
 
@@ -302,7 +302,7 @@ def test_feature_only_bundles(small, tmp_path):
     import shutil
 
     import histojax
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_files.reading import read_metadata
     from data_tools.datasets.c16 import make_c16_dataset
 
     out = tmp_path / "ds"

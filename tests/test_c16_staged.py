@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data_tools.bundle_format import load_bundle, read_metadata
+from data_tools.bundle_files.reading import load_bundle, read_metadata
 from data_tools.errors import HistojaxDataError
 
 NAME = "Normal_042"       # a slide of SMALL_SLIDES, train side at seeds 0 and 1

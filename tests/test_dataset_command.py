@@ -17,7 +17,7 @@ import jax
 import numpy as np
 import pytest
 
-from data_tools.bundle_format import mark_temporary
+from data_tools.bundle_files.writes import mark_temporary
 import tifffile
 
 from data_tools.__main__ import main as data_main
@@ -101,7 +101,7 @@ def test_camelyon16_as_downloaded_official_split_and_labels(c16_dataset):
     assert ds["test"] == ["bundles/test_001", "bundles/test_002"]
     assert ds["labels"] == {"normal_001": 0, "normal_002": 0, "test_001": 1, "test_002": 0, "tumor_001": 1,
                             "tumor_002": 1}
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_files.reading import read_metadata
 
     meta = read_metadata(out / "bundles" / "tumor_001")
     # _0 → tumour, _2 → exclusion: the exclusion holes are cut out of the tumour

@@ -77,6 +77,9 @@ GONE = {
     "data_tools.openslide_reader": "data_tools.slide_files.openslide",
     "data_tools.mirax": "data_tools.slide_files.mirax",
     "data_tools.slide_limits": "data_tools.slide_files.limits",
+    # the bundle format split along its sections: format (names, geometry, typed metadata, checksums), writes,
+    # seals, safe_files, reading (the verified read); drop_pixels moved to the writer, data_tools.bundle
+    "data_tools.bundle_format": "data_tools.bundle_files.format",
 }
 
 # names that left a module which still exists: old module -> (the one module of the names, the names)

@@ -12,7 +12,7 @@ import pytest
 
 import encoder_helpers
 from data_tools.__main__ import main as data_main
-from data_tools.bundle_format import read_metadata
+from data_tools.bundle_files.reading import read_metadata
 from data_tools.errors import HistojaxDataError
 
 SPEC = "encoder_helpers:tiny_colour"

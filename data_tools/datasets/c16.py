@@ -29,7 +29,9 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import atomic_file, bundle_damage, read_metadata, sha256, write_json
+from data_tools.bundle_files.format import sha256
+from data_tools.bundle_files.reading import bundle_damage, read_metadata
+from data_tools.bundle_files.writes import atomic_file, write_json
 from data_tools.datasets.c16_layout import C16_MPP, donor_for, layout
 from data_tools.datasets.c16_inputs import check_known_inputs, differing_lines
 from data_tools.datasets.c16_mosaic import PIXELS_NOTE, Texture, write_slide_tiff
@@ -162,12 +164,13 @@ def _link_bundle(bundle: Path, into: Path) -> None:
     so a feature step that was killed resumes): arrays hard-linked (no copy on disk; histojax never writes
     into a bundle's file, it writes a new file and renames it, so the two folders never change each other's
     files), other files copied; a filesystem without hard links gets copies. Only the bundle's own regular
-    files are taken (:func:`data_tools.bundle_format.own_file`); links, folders and hidden temporaries of
+    files are taken (:func:`data_tools.bundle_files.safe_files.own_file`); links, folders and hidden temporaries of
     killed writes are left out."""
     import os
     import shutil
 
-    from data_tools.bundle_format import BundleError, own_file
+    from data_tools.bundle_files.safe_files import own_file
+    from data_tools.errors import BundleError
 
     def put(src_dir: Path, dst_dir: Path) -> None:
         dst_dir.mkdir(exist_ok=True)  # the staged temporary exists already (holding histojax's marker)
@@ -196,7 +199,7 @@ def _link_bundle(bundle: Path, into: Path) -> None:
 def _feature_layout_bytes(meta) -> int | None:
     """Device bytes of the slide in the feature-only layout with every bundle level (tumour tables and the
     feature grid; None without a feature grid)."""
-    from data_tools.bundle_format import slide_device_bytes
+    from data_tools.bundle_files.format import slide_device_bytes
 
     if not meta.features:
         return None
@@ -246,7 +249,7 @@ def _one_slide(job, bundle: Path) -> dict:
 
     clean_partial_features(bundle)  # a kill during the feature step, then a rerun: no empty features.partial/
     if no_pixels and len(meta.pixel_levels) > 1:
-        from data_tools.bundle_format import drop_pixels
+        from data_tools.bundle import drop_pixels
 
         drop_pixels(bundle)
         meta = read_metadata(bundle)

@@ -166,7 +166,7 @@ def train(patches=None, seed: int = 0, epochs: int = 30, batch: int = 256, lr: f
     import functools
     import pickle
 
-    from data_tools.bundle_format import atomic_file
+    from data_tools.bundle_files.writes import atomic_file
 
     t0 = time.perf_counter()
     arch_ = get_arch(arch)
@@ -363,7 +363,7 @@ def save_weights(variables, out, report: dict) -> Path:
     """Write ``out`` (msgpack) and ``out.json`` (the report) atomically."""
     from flax import serialization
 
-    from data_tools.bundle_format import atomic_file, write_json
+    from data_tools.bundle_files.writes import atomic_file, write_json
 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

@@ -291,7 +291,7 @@ def _with(args, **changes):
 
 def small_c16(out: Path) -> Path:
     """The small C16 variant with ``colour-stats`` features, built into ``out`` once (seconds)."""
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     if not (out / "dataset.json").is_file():
         make_c16_dataset(out, small=True, features="colour-stats", progress=False)

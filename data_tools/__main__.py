@@ -266,7 +266,7 @@ def _command(args) -> int | None:
                   f"{s['finest_views_ge50']}/{s['finest_views']} finest views >= 50 % tumour, "
                   f"mean RGB tumour {s['tumour_mean_rgb']} vs normal {s['normal_tissue_mean_rgb']}")
     elif args.command == "c16":
-        from data_tools.datasets.c16 import make_c16_dataset
+        from data_tools.datasets.c16.dataset import make_c16_dataset
 
         from data_tools.datasets.split import parse_shard
 

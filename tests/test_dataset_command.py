@@ -370,7 +370,7 @@ def test_table_labels_reach_the_diagnosis_task_and_jobs_build_in_parallel(tmp_pa
 def test_c16_leaves_no_lock_no_partial_features_and_no_stale_temporaries(tmp_path):
     """Issue 26 item 13: after a successful run no lock file; a kill during the feature step and a
     rerun leave no ``features.partial/``; stale temporaries of names not built again are removed."""
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = tmp_path / "c16"
     make_c16_dataset(out, small=True, n_tumour=1, n_normal=1, features="colour-stats", progress=False)

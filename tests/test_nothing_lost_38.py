@@ -110,7 +110,7 @@ def test_a_dataset_rerun_keeps_the_users_entries_named_like_temporaries(built, c
 
 
 def test_c16_cleaning_keeps_the_users_entries_named_like_temporaries(tmp_path):
-    from data_tools.datasets.c16 import clean_stale
+    from data_tools.datasets.c16.dataset import clean_stale
 
     before = _users_entries(tmp_path / "bundles")
     slides = _users_entries(tmp_path / "slides")
@@ -202,7 +202,7 @@ def test_a_dataset_rerun_rebuilds_a_bundle_whose_checksum_does_not_match(built, 
 @pytest.mark.slow  # about 20 s: two small c16 builds
 def test_a_c16_rerun_rebuilds_a_bundle_whose_checksum_does_not_match(tmp_path):
     from data_tools.bundle_files.reading import load_bundle
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = tmp_path / "c16"
     make_c16_dataset(out, small=True, n_tumour=1, n_normal=1, progress=False)

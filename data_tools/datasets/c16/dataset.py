@@ -2,7 +2,7 @@
 
 GEOMETRY IS REAL CAMELYON16 (NCRF polygons, every tumour at its true size relative to the tissue and
 the view), PIXELS ARE REAL PatchCamelyon PATCHES ARRANGED BY US (a mosaic, see
-:mod:`data_tools.datasets.c16_mosaic`), NOT SCANNED SLIDES. Geometry: :mod:`data_tools.datasets.c16_layout`.
+:mod:`data_tools.datasets.c16.mosaic`), NOT SCANNED SLIDES. Geometry: :mod:`data_tools.datasets.c16.layout`.
 
 Layout of ``OUT``: ``slides/NAME.tif`` (pyramidal JPEG-tiled TIFF) with ``NAME.geojson`` (tumour and
 tissue, output px) and ``NAME.provenance.json`` beside it, ``bundles/NAME/`` (tiled bundles) and
@@ -32,9 +32,9 @@ from tqdm.auto import tqdm
 from data_tools.bundle_files.format import sha256
 from data_tools.bundle_files.reading import bundle_damage, read_metadata
 from data_tools.bundle_files.writes import atomic_file, write_json
-from data_tools.datasets.c16_layout import C16_MPP, donor_for, layout
-from data_tools.datasets.c16_inputs import check_known_inputs, differing_lines
-from data_tools.datasets.c16_mosaic import PIXELS_NOTE, Texture, write_slide_tiff
+from data_tools.datasets.c16.layout import C16_MPP, donor_for, layout
+from data_tools.datasets.c16.inputs import check_known_inputs, differing_lines
+from data_tools.datasets.c16.mosaic import PIXELS_NOTE, Texture, write_slide_tiff
 from data_tools.datasets.split import grouped_split as split_slides  # one home for splits (data_tools.datasets)
 from data_tools.errors import HistojaxDataError
 from data_tools.datasets.pcam_bank import CITATION, load_bank
@@ -63,7 +63,7 @@ def clean_stale(out_dir: Path) -> list[str]:
 
 
 def _slide_settings(name, downsample, seed, bank, jpeg_quality, sha, donor=None, pool=None) -> dict:
-    from data_tools.datasets import c16_mosaic
+    from data_tools.datasets.c16 import mosaic as c16_mosaic
 
     return {"name": name, "downsample": float(downsample), "seed": int(seed), "bank": bank.source,
             "bank_patches": len(bank), "jpeg_quality": int(jpeg_quality), "polygons_sha256": sha,
@@ -343,7 +343,7 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     (this run's ``built`` / ``busy`` / ``failed`` names); while slides of other shards are missing, nothing is
     written and the dict holds only ``dataset_written: False``, ``missing``, ``failed`` and ``run``.
     """
-    from data_tools.datasets.c16_layout import OWN_TISSUE
+    from data_tools.datasets.c16.layout import OWN_TISSUE
     from data_tools.features import encoder_record
     from data_tools.ncrf import SHIPPED_DIR, read_ncrf
     from data_tools.datasets.pcam_bank import pool_rule, split_pools

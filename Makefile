@@ -39,11 +39,11 @@ integrations: $(STAMP)
 
 test-integrations: integrations
 	$(PY) -c "import stable_baselines3, rejax"  # the tests below skip without them: fail here instead
-	$(PY) -m pytest -q -rs tests/test_sb3.py tests/test_rejax.py tests/test_gymnax.py tests/test_gymnasium.py
+	$(PY) -m pytest -q -rs tests/adapters/test_sb3.py tests/adapters/test_rejax.py tests/adapters/test_gymnax.py tests/adapters/test_gymnasium.py
 
 # the lowest declared versions (requirements-min.txt = pyproject.toml's floors) in their own venv, core tests
 MIN_VENV := .venv-min
-MIN_TESTS ?= tests/test_env.py tests/test_properties.py tests/test_baselines.py tests/test_diagnosis.py tests/test_min_versions.py
+MIN_TESTS ?= tests/env/test_env.py tests/env/test_properties.py tests/training/test_ppo_and_dqn.py tests/reading/test_diagnosis.py tests/project/test_min_versions.py
 test-min:
 	test -x $(MIN_VENV)/bin/python || $(PYTHON) -m venv $(MIN_VENV)
 	$(MIN_VENV)/bin/python -m pip install --quiet --upgrade pip
@@ -52,11 +52,11 @@ test-min:
 	$(MIN_VENV)/bin/python -m pytest -q $(MIN_TESTS)
 
 fuzz: $(STAMP)
-	HISTOJAX_FUZZ_EXAMPLES=10000 $(PY) -m pytest -q -s tests/test_fuzz.py
+	HISTOJAX_FUZZ_EXAMPLES=10000 $(PY) -m pytest -q -s tests/hostile_inputs/test_fuzz.py
 
 # the cohort path's targets only (labels CSV, --shard strings, imported .h5 features), 10,000 cases each
 fuzz-cohort: $(STAMP)
-	HISTOJAX_FUZZ_EXAMPLES=10000 $(PY) -m pytest -q -s tests/test_fuzz.py -k "labels_csv or shard or feature_h5"
+	HISTOJAX_FUZZ_EXAMPLES=10000 $(PY) -m pytest -q -s tests/hostile_inputs/test_fuzz.py -k "labels_csv or shard or feature_h5"
 
 bench: $(STAMP)
 	$(PY) benchmarks/throughput.py

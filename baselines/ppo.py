@@ -50,9 +50,9 @@ from baselines.harness import cli
 from baselines.harness.cli import trainer_command
 from baselines.harness.logs import Progress, report
 from baselines.harness.runner import seeds_runner
-from baselines.networks import (ActorCritic, CellSetActorCritic, EpisodeTables, RecurrentActorCritic,
-                                RecurrentCellSetActorCritic, is_discrete, policy_entropy, policy_log_prob,
-                                preprocess_obs, rollout_apply, rollout_sampler, uses_cell_sets)
+from baselines.cell_set_networks import CellSetActorCritic, EpisodeTables, RecurrentCellSetActorCritic, uses_cell_sets
+from baselines.networks import (ActorCritic, RecurrentActorCritic, is_discrete, policy_entropy, policy_log_prob,
+                                preprocess_obs, rollout_apply, rollout_sampler)
 from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
 
@@ -121,7 +121,7 @@ def make_network(config, env, network_cls=ActorCritic):
     actions, the Box size for continuous ones; width ``hidden``; feature observations
     standardised by ``obs_norm`` when it holds numbers (``{"mean", "std"}``). For a ``glimpse``
     env with ``step_obs=True`` (the ``-v2`` ids) the cell-set reader of the same kind (feed-forward or
-    recurrent, :class:`~baselines.networks.CellSetActorCritic`), holding ``env``'s episode tables: its
+    recurrent, :class:`~baselines.cell_set_networks.CellSetActorCritic`), holding ``env``'s episode tables: its
     parameters fit any slide size, so the same parameters run on another dataset's env."""
     config = settings(config)
     space = env.action_space()

@@ -1,6 +1,6 @@
 """Every GPU figure the project owes, from one command, in one process, under one time budget
 (``make bench-gpu``). It also runs on a CPU at smaller sizes (``--tiny``), which is how
-``tests/test_bench_gpu.py`` keeps it from rotting.
+``tests/training/test_bench_gpu.py`` keeps it from rotting.
 
 Sections, in the order they run (each is measured, or says why it was skipped):
 

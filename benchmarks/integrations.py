@@ -3,8 +3,8 @@
 Prints env steps per second (random actions, pixel observations, host numpy arrays out) of
 Gymnasium's ``SyncVectorEnv`` over ``GymnasiumEnv``\\ s against ``GymnasiumVectorEnv`` (one jitted
 ``vmap``), and, with the ``sb3`` extra, SB3's ``DummyVecEnv`` over ``GymnasiumEnv``\\ s against
-``SB3VecEnv``. Both pairs give the same arrays for the same seeds and actions (tests/test_gymnasium.py,
-tests/test_sb3.py); only the speed differs.
+``SB3VecEnv``. Both pairs give the same arrays for the same seeds and actions (tests/adapters/test_gymnasium.py,
+tests/adapters/test_sb3.py); only the speed differs.
 
     python benchmarks/integrations.py [--env HistoJAX-Easy-v0] [--num-envs 16] [--seconds 2.0]
 """

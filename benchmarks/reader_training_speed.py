@@ -1,5 +1,5 @@
 """How fast the set reader trains with SASHA's reward: PPO env steps/s of the cell-set reader
-(``glimpse`` with ``step_obs=True``, :class:`~baselines.networks.CellSetActorCritic`) on a dataset's
+(``glimpse`` with ``step_obs=True``, :class:`~baselines.cell_set_networks.CellSetActorCritic`) on a dataset's
 training slides, the env wrapped in :class:`~histojax.reading.head_reward.HeadReward` exactly as
 ``baselines.reading.train_readers`` wraps it, under four settings measured in one run:
 

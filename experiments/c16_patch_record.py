@@ -2,7 +2,7 @@
 
 Reads every ``slides/NAME.provenance.json`` of the dataset (``patch_names`` per label, ``patch_pool``)
 and writes ``OUT`` (``.npz``): for each side, the sorted ``label/name`` keys of every patch used.
-``tests/test_c16.py`` checks the full set's record (``tests/data/c16_full_patch_names.npz``, made by
+``tests/data_pipeline/test_c16.py`` checks the full set's record (``tests/data/c16_full_patch_names.npz``, made by
 this script on the full set built in docs/c16-benchmark.md): no patch on both sides, each side's
 patches in its pool by the rule recorded in ``dataset.json``.
 

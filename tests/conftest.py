@@ -1,13 +1,26 @@
-"""Shared fixtures. Bundles built during the tests go to a per-session cache folder."""
+"""Shared fixtures. Bundles built during the tests go to a per-session cache folder.
+
+The tests live in folders by subject (``env/``, ``reading/``, ``data_pipeline/``, ``training/``, ``adapters/``,
+``hostile_inputs/``, ``project/``); the builders beside this file (``slide_helpers``, ``learned_fixture``, …) and the
+builders one test module lends another (``test_head.make_dataset``, ``test_budget_curve.planted_head``, …) are
+imported by module name, so this folder and every subject folder are on ``sys.path`` before any test module loads.
+"""
 from __future__ import annotations
 
 import os
+import sys
 import tempfile
+from pathlib import Path
+
+_HERE = Path(__file__).resolve().parent
+for _folder in [_HERE, *sorted(p for p in _HERE.iterdir() if p.is_dir() and any(p.glob("test_*.py")))]:
+    if str(_folder) not in sys.path:
+        sys.path.insert(0, str(_folder))
 
 # Before histojax is imported anywhere: keep the user's ~/.cache untouched and start clean.
 os.environ.setdefault("HISTOJAX_CACHE", tempfile.mkdtemp(prefix="histojax-test-cache-"))
 # Commands run by the tests (in process or as subprocesses) leave ~/.cache/histojax/jax alone: JAX's persistent
-# compilation cache is off unless a test turns it on in its own folder (tests/test_compile_cache.py).
+# compilation cache is off unless a test turns it on in its own folder (tests/env/test_compile_cache.py).
 os.environ.setdefault("HISTOJAX_NO_COMPILE_CACHE", "1")
 
 import pytest  # noqa: E402

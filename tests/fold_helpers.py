@@ -1,4 +1,4 @@
-"""The small folded dataset of the fold tests (``tests/test_folds.py``, ``tests/test_all_folds.py``), built once here."""
+"""The small folded dataset of the fold tests (``tests/data_pipeline/test_folds.py``, ``tests/reading/test_all_folds.py``), built once here."""
 from __future__ import annotations
 
 from pathlib import Path

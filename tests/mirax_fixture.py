@@ -1,4 +1,4 @@
-"""Write a tiny valid 3DHISTECH MIRAX slide (``.mrxs`` + its data folder) for tests/test_openslide.py, following
+"""Write a tiny valid 3DHISTECH MIRAX slide (``.mrxs`` + its data folder) for tests/data_pipeline/test_openslide.py, following
 OpenSlide's MIRAX reader (src/openslide-vendor-mirax.c: Slidedat.ini keys, Index.dat layout) and its format notes.
 
 The slide: ``IMAGENUMBER_X`` × ``IMAGENUMBER_Y`` camera images of ``tile`` px (one per camera position:

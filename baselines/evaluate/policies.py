@@ -9,8 +9,9 @@ import jax.numpy as jnp
 from baselines.dqn import DQNConfig
 from baselines.ppo import make_network
 from baselines.run_config import read_run_config
-from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, RecurrentCellSetActorCritic, ScannedGRU,
-                                policy_mode, policy_sample, preprocess_obs, rollout_apply, rollout_step)
+from baselines.cell_set_networks import RecurrentCellSetActorCritic
+from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, policy_mode, policy_sample,
+                                preprocess_obs, rollout_apply, rollout_step)
 from baselines.networks import is_discrete as policy_is_discrete
 from data_tools.features import pcam_cnn
 from histojax.core import actions

@@ -18,7 +18,7 @@ still trains on a C16 set as before), its zoom levels the most the bundles were 
    ``OUT/validation-set/dataset.json`` whose ``test`` split is the validation slides (what the scoring step reads;
    it holds no test slide).
 2. Trains the cell-set reader (``glimpse`` with ``step_obs=True``:
-   :class:`baselines.networks.CellSetActorCritic`, or its recurrent twin with ``--algo ppo_rnn``) on
+   :class:`baselines.cell_set_networks.CellSetActorCritic`, or its recurrent twin with ``--algo ppo_rnn``) on
    the kept training slides, the env wrapped in ``HeadReward(env, head, gain, final, read_cost)``, with the
    trainer's progress lines (``return``: the head reward; ``success``: the head's diagnosis right at the episode's
    end, as ``histojax evaluate`` reports it: :func:`progress_words`) and checkpoints; the trainer's run folder

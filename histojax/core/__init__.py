@@ -6,6 +6,6 @@
 - :mod:`histojax.core.seen_views`: the finest-level views, the tissue views and the seen-views memory that
   ``fraction_read`` and the ``visited`` map count.
 
-Nothing here imports :mod:`histojax.reading` (``tests/test_import_graph.py`` holds it): the reading stack sits on
+Nothing here imports :mod:`histojax.reading` (``tests/project/test_import_graph.py`` holds it): the reading stack sits on
 top of the core and plugs its modes and its coarse map in when it is imported.
 """

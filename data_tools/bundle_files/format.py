@@ -31,7 +31,12 @@ import numpy as np
 
 from data_tools.errors import BundleError
 
-__all__ = ["ANNOTATIONS", "BundleMetadata", "FEATURES_COMMAND", "FORMAT_VERSION", "LEVEL_SETS", "LevelMeta", "MAX_FLAT_PIXELS", "METADATA", "READ_VERSIONS", "REGION", "STORAGES", "TILED_FORMAT_VERSION", "TISSUE", "bundle_downsamples", "default_magnification_range", "device_bytes", "feature_bytes", "file_digest", "grid_shape", "level_device_bytes", "level_downsamples", "level_files", "level_grids", "level_size", "select_levels", "sha256", "slide_device_bytes", "text_digest", "tiled_level_files", "tumour_table_bytes"]
+__all__ = ["ANNOTATIONS", "BundleMetadata", "FEATURES_COMMAND", "FORMAT_VERSION", "LEVEL_SETS", "LevelMeta",
+           "MAX_FLAT_PIXELS", "METADATA", "READ_VERSIONS", "REGION", "STORAGES", "TILED_FORMAT_VERSION", "TISSUE",
+           "bundle_downsamples", "default_magnification_range", "device_bytes", "feature_bytes", "file_digest",
+           "grid_shape", "level_device_bytes", "level_downsamples", "level_files", "level_grids", "level_size",
+           "select_levels", "sha256", "slide_device_bytes", "text_digest", "tiled_level_files",
+           "tumour_table_bytes"]
 
 
 FORMAT_VERSION = 1        # dense bundles (pixels_KK.npy / tumour_KK.npy)

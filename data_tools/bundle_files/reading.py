@@ -20,7 +20,8 @@ from data_tools.bundle_files.format import BundleMetadata, FEATURES_COMMAND, MET
 from data_tools.bundle_files.safe_files import own_file, safe_name, stable_read
 from data_tools.bundle_files.seals import verify_metadata
 
-__all__ = ["Bundle", "MIN_TILE_SIZE", "TiledLevel", "bundle_damage", "check_fields", "check_mask", "load_array", "load_bundle", "load_feature_levels", "load_tiled_level", "read_metadata"]
+__all__ = ["Bundle", "MIN_TILE_SIZE", "TiledLevel", "bundle_damage", "check_fields", "check_mask", "load_array",
+           "load_bundle", "load_feature_levels", "load_tiled_level", "read_metadata"]
 
 
 @dataclass

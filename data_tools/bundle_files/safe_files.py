@@ -9,7 +9,6 @@ import os
 import stat
 from pathlib import Path
 
-
 from data_tools.errors import BundleError
 from data_tools.bundle_files.format import METADATA
 

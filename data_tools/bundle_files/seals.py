@@ -12,13 +12,13 @@ import stat
 import warnings
 from pathlib import Path
 
-
 from data_tools.errors import BundleError
 from data_tools.bundle_files.format import METADATA
 from data_tools.bundle_files.safe_files import not_regular
 from data_tools.bundle_files.writes import write_json
 
-__all__ = ["DATASET_DIGEST", "MAX_DATASET_JSON_BYTES", "METADATA_DIGEST", "SEALING_KINDS", "metadata_digest", "read_dataset_json", "verify_metadata", "write_metadata"]
+__all__ = ["DATASET_DIGEST", "MAX_DATASET_JSON_BYTES", "METADATA_DIGEST", "SEALING_KINDS", "metadata_digest",
+           "read_dataset_json", "verify_metadata", "write_metadata"]
 
 
 METADATA_DIGEST = "metadata_sha256"  # the SHA-256 of the rest of metadata.json (see metadata_digest)

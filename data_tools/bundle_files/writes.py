@@ -21,7 +21,10 @@ import numpy as np
 from data_tools.errors import BundleError
 from data_tools.bundle_files.format import METADATA, READ_VERSIONS
 
-__all__ = ["BUNDLE_EXTRAS", "LEFT_RUN_LOCK", "PARTIAL", "PARTIAL_ENTRY", "RENAME_EXCHANGE", "SHORT_WRITE", "TEMP_MARKER", "TEMP_MARKER_TEXT", "TEMP_NAME", "as_disk_full", "atomic_file", "atomic_folder", "check_replaceable", "foreign_entries", "is_our_temporary", "left_run_lock", "mark_temporary", "partial_foreign", "remove_partial", "remove_temporary", "replace_folder", "save_array", "write_json"]
+__all__ = ["BUNDLE_EXTRAS", "LEFT_RUN_LOCK", "PARTIAL", "PARTIAL_ENTRY", "RENAME_EXCHANGE", "SHORT_WRITE",
+           "TEMP_MARKER", "TEMP_MARKER_TEXT", "TEMP_NAME", "as_disk_full", "atomic_file", "atomic_folder",
+           "check_replaceable", "foreign_entries", "is_our_temporary", "left_run_lock", "mark_temporary",
+           "partial_foreign", "remove_partial", "remove_temporary", "replace_folder", "save_array", "write_json"]
 
 
 TEMP_MARKER = ".histojax-temporary"

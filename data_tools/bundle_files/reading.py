@@ -16,7 +16,8 @@ from pathlib import Path
 import numpy as np
 
 from data_tools.errors import BundleError
-from data_tools.bundle_files.format import BundleMetadata, FEATURES_COMMAND, METADATA, READ_VERSIONS, TILED_FORMAT_VERSION, level_grids
+from data_tools.bundle_files.format import (BundleMetadata, FEATURES_COMMAND, METADATA, READ_VERSIONS, TILED_FORMAT_VERSION,
+                                           level_grids)
 from data_tools.bundle_files.safe_files import own_file, safe_name, stable_read
 from data_tools.bundle_files.seals import verify_metadata
 

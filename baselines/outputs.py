@@ -1,6 +1,6 @@
 """Atomic writes of every output of the baselines (checkpoints, logs, tables, figures): each file is
 written to a temporary sibling, fsync-ed and ``os.replace``-d onto its name
-(:func:`data_tools.bundle_format.atomic_file`), so a full disk or a killed run leaves the previous
+(:func:`data_tools.bundle_files.writes.atomic_file`), so a full disk or a killed run leaves the previous
 file or none, never half of one. :func:`staged` does the same for a set of files as a whole (a
 training run's ``log.csv``, ``log.json``, ``curve.png``, ``params.msgpack``, ``config.json``): all are
 written to temporary siblings first and renamed into place only once every one is whole, so a run that
@@ -12,7 +12,7 @@ import os
 import uuid
 from pathlib import Path
 
-from data_tools.bundle_format import atomic_file
+from data_tools.bundle_files.writes import atomic_file
 
 __all__ = ["Stage", "atomic_file", "open_text", "save_figure", "staged", "write_bytes", "write_text"]
 

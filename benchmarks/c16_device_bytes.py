@@ -14,7 +14,8 @@ import json
 from pathlib import Path
 
 
-from data_tools.bundle_format import level_grids, read_metadata
+from data_tools.bundle_files.format import level_grids
+from data_tools.bundle_files.reading import read_metadata
 from histojax.core.slide import select_levels, slide_device_bytes
 
 

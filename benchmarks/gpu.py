@@ -103,7 +103,7 @@ def encoder_names() -> list[str]:
 
 def colour_feature_bundle(out: Path) -> Path:
     """A copy of the sample bundle at ``out`` with a ``colour-stats`` feature grid (seconds on a CPU)."""
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_files.reading import read_metadata
     from data_tools.features.grid import compute_features
     from histojax.sample import sample_bundle
 
@@ -255,7 +255,7 @@ def device_memory(info: dict) -> int | None:
 
 def dataset_item(folder: Path, obs_mode: str, args, budget: Budget, memory: int | None) -> dict:
     """Env steps/s and device bytes of ``folder``'s train split in ``obs_mode``."""
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_files.reading import read_metadata
     from histojax.core.slide import select_levels, slide_device_bytes
 
     ds = json.loads((folder / "dataset.json").read_text())
@@ -291,7 +291,7 @@ def _with(args, **changes):
 
 def small_c16(out: Path) -> Path:
     """The small C16 variant with ``colour-stats`` features, built into ``out`` once (seconds)."""
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     if not (out / "dataset.json").is_file():
         make_c16_dataset(out, small=True, features="colour-stats", progress=False)

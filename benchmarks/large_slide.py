@@ -145,7 +145,7 @@ def main() -> None:
                         str(tif.with_suffix(".geojson")), "--out", str(bundle), "--levels", str(args.levels),
                         "--tile-size", str(args.tile_size), "--storage", "tiled", "--overwrite"], check=True)
         results["build_seconds"] = round(time.perf_counter() - t0, 1)
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_files.reading import read_metadata
 
     meta = read_metadata(bundle)
     t = meta.tile_size

@@ -166,7 +166,7 @@ def _info(path: str, reader: str = "auto") -> str:
     from data_tools.slide_files.dicom import is_dicom
 
     if Path(path).is_dir() and not is_dicom(path):
-        from data_tools.bundle_format import read_metadata
+        from data_tools.bundle_files.reading import read_metadata
 
         meta = read_metadata(path)
         lines = [f"bundle {path}: format v{meta.format_version} ({meta.storage}), "
@@ -221,7 +221,7 @@ def _command(args) -> int | None:
         print(_info(args.slide, args.reader))
     elif args.command == "build":
         from data_tools.bundle import LEVEL_SETS, build_bundle
-        from data_tools.bundle_format import read_metadata
+        from data_tools.bundle_files.reading import read_metadata
 
         label_map = json.loads(args.label_map) if args.label_map else None
         if label_map is not None:
@@ -266,7 +266,7 @@ def _command(args) -> int | None:
                   f"{s['finest_views_ge50']}/{s['finest_views']} finest views >= 50 % tumour, "
                   f"mean RGB tumour {s['tumour_mean_rgb']} vs normal {s['normal_tissue_mean_rgb']}")
     elif args.command == "c16":
-        from data_tools.datasets.c16 import make_c16_dataset
+        from data_tools.datasets.c16.dataset import make_c16_dataset
 
         from data_tools.datasets.split import parse_shard
 

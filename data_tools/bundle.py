@@ -32,11 +32,14 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from data_tools.errors import BundleError
-from data_tools.bundle_format import (  # noqa: F401  (re-exported: the format's names, as before)
-    ANNOTATIONS, FORMAT_VERSION, LEVEL_SETS, REGION, TISSUE, MAX_FLAT_PIXELS, METADATA, READ_VERSIONS, STORAGES, TILED_FORMAT_VERSION, Bundle,
-    atomic_folder, bundle_downsamples, check_replaceable, default_magnification_range, device_bytes, level_device_bytes,
-    level_downsamples, level_files, level_size, load_bundle, read_metadata, sha256, write_metadata, TEMP_MARKER,
-    as_disk_full)
+from data_tools.bundle_files.format import (  # noqa: F401  (re-exported: the format's names, as before)
+    ANNOTATIONS, FORMAT_VERSION, LEVEL_SETS, REGION, TISSUE, MAX_FLAT_PIXELS, METADATA, READ_VERSIONS,
+    FEATURES_COMMAND, STORAGES, TILED_FORMAT_VERSION, bundle_downsamples, default_magnification_range, device_bytes,
+    level_device_bytes, level_downsamples, level_files, level_size,
+    sha256)
+from data_tools.bundle_files.reading import Bundle, load_bundle, read_metadata
+from data_tools.bundle_files.seals import write_metadata
+from data_tools.bundle_files.writes import atomic_folder, check_replaceable, TEMP_MARKER, as_disk_full
 from data_tools.raster import pad, resample
 
 
@@ -245,7 +248,7 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
                 label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
                 band_bytes, reader=None, mpp=None, peak=None) -> None:
     """The body of :func:`build_bundle`: write the bundle into ``tmp`` (called with the build lock held, inside
-    :func:`data_tools.bundle_format.atomic_folder`, which renames it to ``out_dir`` or removes it)."""
+    :func:`data_tools.bundle_files.writes.atomic_folder`, which renames it to ``out_dir`` or removes it)."""
     from data_tools.annotations import annotations_to_geojson, load_annotations
     from data_tools.masks import rasterize, tissue_mask
     from data_tools.slide_files.open import open_slide
@@ -447,10 +450,10 @@ def remove_stale_builds(out_dir) -> list[Path]:
     """Remove the hidden ``.NAME.tmp-*`` / ``.NAME.old-*`` folders beside ``out_dir`` left by builds that were
     killed (call it holding :func:`build_lock`: every live build of ``out_dir`` holds it, so any such folder
     belongs to a dead one) — only folders histojax marked as its temporaries
-    (:func:`data_tools.bundle_format.is_our_temporary`; a user's file or folder of that name stays) — and the
+    (:func:`data_tools.bundle_files.writes.is_our_temporary`; a user's file or folder of that name stays) — and the
     leftovers of killed builds of other names beside it that no live process holds
     (:func:`data_tools.datasets.locks.clean_stale_builds`). Returns the paths removed."""
-    from data_tools.bundle_format import remove_temporary
+    from data_tools.bundle_files.writes import remove_temporary
     from data_tools.datasets.locks import clean_stale_builds
 
     out_dir = Path(out_dir)
@@ -482,7 +485,7 @@ def set_mpp(bundle, mpp: float) -> dict:
     """Record ``mpp`` (µm per level-0 px, given by the user) as the bundle's scale: ``source.mpp`` (the file's own
     value kept as ``source.mpp_in_file``, ``mpp_from`` ``"given"``) and each level's ``mpp`` (``mpp × downsample``);
     ``metadata.json`` is rewritten, sealed (its seal checked first). Returns the new metadata."""
-    from data_tools.bundle_format import verify_metadata
+    from data_tools.bundle_files.seals import verify_metadata
 
     bundle = Path(bundle)
     check_mpp(bundle, mpp)
@@ -501,3 +504,37 @@ def set_mpp(bundle, mpp: float) -> dict:
 __all__ = ["check_mpp", "set_mpp", "check_zoom", "Bundle", "FORMAT_VERSION", "LEVEL_SETS", "STORAGES", "TILED_FORMAT_VERSION", "level_device_bytes", "Region", "build_bundle", "bundle_downsamples", "resolve_region",
            "default_magnification_range", "level_downsamples", "level_size", "load_bundle", "read_metadata",
            "build_lock", "remove_stale_builds"]
+
+
+def drop_pixels(folder) -> int:
+    """Delete the RGB tile pools of every level of the tiled bundle at ``folder`` but its coarsest (kept for
+    thumbnails), leaving tumour tables, index grids, tissue and feature grids: a feature-only bundle
+    (``obs_mode="features"`` needs no pixels; ``obs_mode="pixels"`` is then refused, naming the levels).
+    The recorded ``device_bytes`` stay those of the pixel layout. ``metadata.json`` is rewritten first
+    (atomically), then the files are deleted, so a crash leaves at most unreferenced files.
+    Returns the bytes freed on disk."""
+    folder = Path(folder)
+    metadata = read_metadata(folder)
+    if not metadata.is_tiled:
+        raise BundleError(folder, "only tiled bundles can drop their pixels")
+    if not metadata.features:
+        raise BundleError(folder, f"has no feature grid; compute one first (`{FEATURES_COMMAND}`), a bundle "
+                          "without pixels and features is of no use")
+    levels, files = [], []
+    for k, lv in enumerate(metadata["levels"]):
+        lv = dict(lv)
+        if k < len(metadata["levels"]) - 1 and lv.get("tiles"):
+            files.append(lv["tiles"])
+            lv["tiles"] = None
+        levels.append(lv)
+    checksums = {k: v for k, v in metadata.checksums.items() if k not in files}
+    write_metadata(folder, {**metadata, "levels": levels, "checksums": checksums,
+                            "pixels_dropped": "RGB tile pools of every level but the coarsest deleted "
+                                              "(feature-only bundle); device_bytes is the pixel layout's"})
+    freed = 0
+    for name in files:
+        f = folder / name
+        if f.is_file():
+            freed += f.stat().st_size
+            f.unlink()
+    return freed

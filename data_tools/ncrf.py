@@ -4,7 +4,7 @@ of the CC0 CAMELYON16 ground truth), read from a folder of ``*.json`` files or a
 Each file is ``{"positive": [{"name", "vertices": [[x, y], ...]}], "negative": [...]}`` in integer
 level-0 px of the original slide (0.243 µm/px). On ``Tumor_*`` slides ``positive`` is tumour and
 ``negative`` exclusion holes; on ``Normal_*`` slides only ``negative`` polygons exist: machine-traced
-tissue outlines (every vertex on a 128-px grid of level 0), which :mod:`data_tools.datasets.c16` uses as tissue.
+tissue outlines (every vertex on a 128-px grid of level 0), which :mod:`data_tools.datasets.c16.dataset` uses as tissue.
 """
 from __future__ import annotations
 
@@ -46,7 +46,7 @@ def _union(polys) -> MultiPolygon:
 
 def parse_ncrf(name: str, raw: bytes, where) -> NcrfSlide:
     """Parse one NCRF JSON document (``raw`` bytes) into an :class:`NcrfSlide`; errors name ``where``."""
-    from data_tools.bundle_format import text_digest
+    from data_tools.bundle_files.format import text_digest
 
     try:
         data = json.loads(raw)

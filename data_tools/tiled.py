@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.bundle_format import REGION, TISSUE, TiledLevel, tiled_level_files  # noqa: F401  (TiledLevel: the reader side)
+from data_tools.bundle_files.format import REGION, TISSUE, tiled_level_files  # noqa: F401  (TiledLevel: the reader side)
+from data_tools.bundle_files.reading import TiledLevel
 
 BAND_BYTES = 96 * 2**20        # RGB bytes of one band of a level (plus the source window and copies)
 MAX_WINDOW_BYTES = 64 * 2**20  # source RGB bytes read at once for a band (a band is read in strips below it)

@@ -219,7 +219,7 @@ def main(argv=None) -> int:
             print(f"| {r['input']} | {r['pooled_auc']:.3f} | {r['loso_auc']:.3f} | "
                   f"{'–' if r['own_logit_auc'] is None else format(r['own_logit_auc'], '.3f')} |")
         if args.out:
-            from data_tools.bundle_format import write_json
+            from data_tools.bundle_files.writes import write_json
 
             write_json(args.out, {"summary": head, "rows": rows, "per_class": args.per_class,
                                   "command": "python -m experiments.c16_sanity " + " ".join(argv or [])})

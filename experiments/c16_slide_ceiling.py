@@ -174,7 +174,7 @@ def lesion_census(annotations, test_fraction: float = 0.25, seed: int = 0) -> li
     import shapely
 
     from baselines.reading.slides import lesion_of
-    from data_tools.datasets.c16_layout import C16_MPP, OWN_TISSUE, donor_for
+    from data_tools.datasets.c16.layout import C16_MPP, OWN_TISSUE, donor_for
     from data_tools.datasets.split import grouped_split
     from data_tools.ncrf import read_ncrf
 

@@ -102,7 +102,7 @@ def main(argv=None) -> int:
         print(f"| {r['encoder']} | {r['dim']} | {own} | {r['probe_auc_raw']:.3f} / {r['probe_auc_mosaic']:.3f} | "
               f"{r['views_per_s_128px']:,} |")
     if args.out:
-        from data_tools.bundle_format import write_json
+        from data_tools.bundle_files.writes import write_json
 
         write_json(args.out, result)
     return 0

@@ -13,7 +13,7 @@ import json
 import os
 from pathlib import Path
 
-from data_tools.bundle_format import FORMAT_VERSION, LEVEL_SETS, METADATA, file_digest, text_digest
+from data_tools.bundle_files.format import FORMAT_VERSION, LEVEL_SETS, METADATA, file_digest, text_digest
 from data_tools.errors import BundleError
 
 
@@ -24,7 +24,7 @@ def cache_dir() -> Path:
 
 def _sealed(bundle: Path) -> bool:
     """True when the bundle's ``metadata.json`` carries its digest (built by this version of histojax)."""
-    from data_tools.bundle_format import METADATA_DIGEST
+    from data_tools.bundle_files.seals import METADATA_DIGEST
 
     try:
         return METADATA_DIGEST in json.loads((bundle / METADATA).read_text())

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.bundle_format import read_dataset_json
+from data_tools.bundle_files.seals import read_dataset_json
 from data_tools.errors import BundleError
 
 

@@ -10,7 +10,9 @@ from pathlib import Path
 import numpy as np
 from PIL import Image, ImageDraw
 
-from data_tools.bundle_format import ANNOTATIONS, atomic_file, own_file
+from data_tools.bundle_files.format import ANNOTATIONS
+from data_tools.bundle_files.safe_files import own_file
+from data_tools.bundle_files.writes import atomic_file
 
 TUMOUR_COLOUR = (0, 170, 0)
 START_COLOUR = (0, 200, 255)

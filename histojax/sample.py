@@ -17,7 +17,7 @@ SAMPLE_ANNOTATIONS = DATA / "CMU-1-Small-Region.target.xml"
 def sample_bundle(tile_size: int = 128, progress: bool = True) -> Path:
     """Path to the bundle of the embedded sample slide at ``tile_size`` px views (levels for
     3, 5 and 7 zoom levels), building it into the cache the first time (a few seconds)."""
-    from data_tools.bundle_format import FORMAT_VERSION, text_digest
+    from data_tools.bundle_files.format import FORMAT_VERSION, text_digest
 
     digest = text_digest(SAMPLE_SLIDE.read_bytes() + SAMPLE_ANNOTATIONS.read_bytes(), 12)
     return cached_bundle(SAMPLE_SLIDE, SAMPLE_ANNOTATIONS, tile_size=tile_size, progress=progress, storage="dense",
@@ -30,7 +30,8 @@ def sample_feature_bundle() -> Path:
     import shutil
     import time
 
-    from data_tools.bundle_format import atomic_folder, read_metadata
+    from data_tools.bundle_files.reading import read_metadata
+    from data_tools.bundle_files.writes import atomic_folder
     from data_tools.features.grid import compute_features
 
     source = sample_bundle()

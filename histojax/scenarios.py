@@ -43,7 +43,7 @@ import re
 from pathlib import Path
 from typing import Any
 
-from data_tools.bundle_format import file_digest  # noqa: F401  (re-exported)
+from data_tools.bundle_files.format import file_digest  # noqa: F401  (re-exported)
 from data_tools.errors import HistojaxDataError
 from histojax.cache import cached_bundle  # noqa: F401  (re-exported)
 

@@ -34,7 +34,8 @@ import shutil
 import stat
 from pathlib import Path
 
-from data_tools.bundle_format import ChangedFileError, is_our_temporary, not_regular, open_regular
+from data_tools.bundle_files.safe_files import ChangedFileError, not_regular, open_regular
+from data_tools.bundle_files.writes import is_our_temporary
 from data_tools.errors import HistojaxDataError
 
 LOCK = ".histojax-run.lock"

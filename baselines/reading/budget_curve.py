@@ -235,7 +235,8 @@ def rows_from_scores(scores: dict, labels, logits: bool = False) -> list[dict]:
 def glimpse_bundle_level(dataset, env_id: str, level: int, split: str, fold: int | None = None) -> tuple[int, float]:
     """``(bundle level, downsample)`` of scenario level ``level`` of ``env_id`` on ``dataset``'s ``split`` (its first
     bundle): the bundle level whose views are the glimpse cells, and its downsample from the finest scenario level."""
-    from data_tools.bundle_format import read_metadata, select_levels
+    from data_tools.bundle_files.format import select_levels
+    from data_tools.bundle_files.reading import read_metadata
     from histojax.datasets import dataset_slides
     from histojax.registry import spec_of
 

@@ -3,7 +3,7 @@
 
 **Data.** The finest level's feature vector of every tissue view (the views the readers count:
 :func:`histojax.core.seen_views.tissue_views`) of each training slide, read through the bundle's checked
-loader (:func:`data_tools.bundle_format.load_feature_levels`: metadata digest and array checksums verified).
+loader (:func:`data_tools.bundle_files.reading.load_feature_levels`: metadata digest and array checksums verified).
 No feature entry is special: any encoder, any ``D``. The validation share is
 :func:`baselines.validation.split_train` (``--val-fraction`` 0.2, ``--split-seed`` 0, as the other head fits);
 the test split is never read while fitting.
@@ -67,7 +67,7 @@ from histojax.reading.heads import encoder_mismatch
 from baselines.reading.provenance import RECORD, add_flag, check_scored, fit_record, head_for_fold
 from baselines.validation import check_validation_share, split_train
 from data_tools.annotations import load_annotations
-from data_tools.bundle_format import own_file
+from data_tools.bundle_files.safe_files import own_file
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import (UNDEFINED, auc_interval, format_auc, json_safe, roc_auc, roc_auc_with_interval,

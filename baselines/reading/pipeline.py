@@ -27,7 +27,8 @@ import numpy as np
 
 from baselines.reading.slides import HeadDataError, load_slide, load_slides, read_bundle, read_spec, split_bundles
 from baselines.reading.orders import random_order, read_cells
-from data_tools.bundle_format import read_metadata, verify_metadata
+from data_tools.bundle_files.reading import read_metadata
+from data_tools.bundle_files.seals import verify_metadata
 from baselines.run_config import read_run_config
 from histojax.reading.head_reward import pools_views
 
@@ -214,11 +215,12 @@ def with_head_scores(slide: dict, head, grids: dict) -> dict:
 def tumour_geometry(bundle):
     """The tumour geometry (shapely, finest px) of a bundle's annotations, or None when it has none or its
     annotation file holds no polygon (a slide labelled in a label table needs none); read through the bundle's
-    own file (:func:`data_tools.bundle_format.own_file`)."""
+    own file (:func:`data_tools.bundle_files.safe_files.own_file`)."""
     import os
 
     from data_tools.annotations import AnnotationError, load_annotations
-    from data_tools.bundle_format import ANNOTATIONS, own_file
+    from data_tools.bundle_files.format import ANNOTATIONS
+    from data_tools.bundle_files.safe_files import own_file
 
     if not os.path.lexists(Path(bundle) / ANNOTATIONS):
         return None

@@ -46,7 +46,7 @@ def _name(entry) -> str:
 def dataset_identity(dataset, spec: dict | None = None) -> dict:
     """``{"folder", "kind", "seal"}`` of a dataset: its resolved folder, ``dataset.json``'s ``kind`` and seal
     (``dataset_sha256``, None for an unsealed index; a derived validation split: its source's seal)."""
-    from data_tools.bundle_format import DATASET_DIGEST, read_dataset_json
+    from data_tools.bundle_files.seals import DATASET_DIGEST, read_dataset_json
 
     if spec is None:
         try:
@@ -66,7 +66,7 @@ def fit_record(dataset, spec: dict, fold: int | None, fitted, validation, split:
     of its ``dataset.json`` as read without a fold), ``split`` and ``fold`` fitted on, and the sorted slide names of
     ``fitted`` (the slides whose labels trained or calibrated it) and ``validation`` (the slides that chose its
     candidate or checkpoint, or calibrated it), each a list of ``dataset.json`` entries or names."""
-    from data_tools.bundle_format import read_dataset_json
+    from data_tools.bundle_files.seals import read_dataset_json
 
     try:
         base = read_dataset_json(dataset)  # the index itself (spec may be a fold's sides)
@@ -102,7 +102,7 @@ def slides_seen(head, dataset) -> tuple[set[str], set[str], str]:
         return set(map(str, rec.get("fitted") or [])), set(map(str, rec.get("validation") or [])), "recorded"
     if "fitted_on" not in info or dataset is None:  # no dataset named (bundle folders given): nothing to assume
         return set(), set(), "none"
-    from data_tools.bundle_format import read_dataset_json
+    from data_tools.bundle_files.seals import read_dataset_json
 
     try:
         spec = read_dataset_json(dataset)

@@ -18,8 +18,10 @@ from types import SimpleNamespace
 
 import numpy as np
 
-from data_tools.bundle_format import (ANNOTATIONS, load_array, load_feature_levels, own_file, read_dataset_json,
-                                      read_metadata, stable_read, verify_metadata)
+from data_tools.bundle_files.format import ANNOTATIONS
+from data_tools.bundle_files.reading import load_array, load_feature_levels, read_metadata
+from data_tools.bundle_files.safe_files import own_file, stable_read
+from data_tools.bundle_files.seals import read_dataset_json, verify_metadata
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
 
@@ -30,7 +32,7 @@ class HeadDataError(HistojaxDataError):
 
 def read_spec(dataset, fold: int | None = None) -> dict:
     """The dataset's ``dataset.json`` (``HeadDataError`` naming it when missing or malformed; a ``BundleError``
-    naming it when it does not match its seal, :func:`data_tools.bundle_format.read_dataset_json`). ``fold=i``
+    naming it when it does not match its seal, :func:`data_tools.bundle_files.seals.read_dataset_json`). ``fold=i``
     (a dataset built with ``--folds K``): its ``train`` / ``validation`` / ``test`` lists are fold i's sides
     (:func:`histojax.datasets.with_fold`: train = the other folds); no folds or a fold out of range is a
     ``HeadDataError`` naming the file."""
@@ -100,11 +102,11 @@ def spec_label(spec: dict, name: str) -> int | None:
 def read_bundle(bundle, levels=(0,), verify: bool = True) -> tuple:
     """The arrays every head tool reads from one bundle (:func:`load_slide` here and
     :func:`baselines.reading.learned_head_fit.load_views`), through the checked loader ``histojax.make`` uses
-    (:mod:`data_tools.bundle_format`): ``metadata.json`` read and its seal checked, every file the bundle's own
+    (:mod:`data_tools.bundle_files.reading`): ``metadata.json`` read and its seal checked, every file the bundle's own
     regular file inside it (no symbolic link, no path outside the bundle), its SHA-256 checked (``verify``).
     Returns ``(metadata, {level: (gh, gw, D) feature grid}, stride, tissue (h, w) mask)`` for bundle ``levels``.
     A ``BundleError`` (or :class:`HeadDataError`) naming the bundle's file otherwise; a folder swapped by a
-    concurrent rebuild is read again (:func:`data_tools.bundle_format.stable_read`)."""
+    concurrent rebuild is read again (:func:`data_tools.bundle_files.safe_files.stable_read`)."""
     bundle = Path(bundle)
     levels = [int(lv) for lv in levels]
 

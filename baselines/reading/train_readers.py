@@ -76,7 +76,7 @@ def progress_words(gain: str, final: float, read_cost: float) -> str:
 def dataset_levels(dataset: Path, spec: dict, most: int = MAX_LEVELS) -> int:
     """The most zoom levels (≤ ``most``) the first training bundle of ``dataset`` was built for (its
     ``metadata.json``'s ``level_sets``; 3 when it records none), read through the checked loader."""
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_files.reading import read_metadata
 
     entries = spec.get("train") or []
     if not entries:

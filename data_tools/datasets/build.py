@@ -37,8 +37,9 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import (DATASET_DIGEST, SEALING_KINDS, bundle_damage, foreign_entries, mark_temporary, metadata_digest, read_metadata,
-                                      replace_folder, write_json)
+from data_tools.bundle_files.reading import bundle_damage, read_metadata
+from data_tools.bundle_files.seals import DATASET_DIGEST, SEALING_KINDS, metadata_digest
+from data_tools.bundle_files.writes import foreign_entries, mark_temporary, replace_folder, write_json
 from data_tools.datasets.locks import (RUN_LOCK, LockHeld, RunLock, bundle_lock_path, clean_partial_features, clean_stale,
                                       file_lock)
 from data_tools.datasets.split import (fold_lists, folds_record, kfold_split, patient_groups, patients_on_both_sides,
@@ -261,7 +262,7 @@ def _clear_failed(out: Path, name: str) -> None:
 
 def check_bundle_folder(bundle: Path) -> None:
     """Refuse (``HistojaxDataError`` naming the folder and a file) a ``bundles/NAME`` that is not absent, empty
-    or a bundle histojax wrote (:func:`data_tools.bundle_format.foreign_entries`): a folder of the user's files
+    or a bundle histojax wrote (:func:`data_tools.bundle_files.writes.foreign_entries`): a folder of the user's files
     inside ``--out`` is never replaced nor removed."""
     if not (bundle.exists() or bundle.is_symlink()):
         return
@@ -285,12 +286,12 @@ def run_locked(out, name: str, work, current=None, staged: bool = False) -> dict
     A ``bundles/NAME`` holding files histojax did not write fails the slide at once, untouched
     (:func:`check_bundle_folder`). ``staged``: ``work(folder) -> record`` builds the bundle into the hidden
     ``bundles/.NAME.tmp-*`` given, swapped onto ``bundles/NAME`` once whole
-    (:func:`data_tools.bundle_format.replace_folder`); a build error (:data:`BUILD_ERRORS`) removes only
+    (:func:`data_tools.bundle_files.writes.replace_folder`); a build error (:data:`BUILD_ERRORS`) removes only
     that temporary, so a previous bundle and its record stay as they were. Not ``staged``:
     ``work() -> record`` builds ``bundles/NAME`` in place and a build error removes it (only when histojax
     wrote every file in it). The record goes to ``records/NAME.json``, a failure to
     ``records/failed/NAME.json`` with its one-line reason. A current record resumes only while its bundle is
-    whole (:func:`data_tools.bundle_format.bundle_damage`: every checksum checked); a damaged one is built again.
+    whole (:func:`data_tools.bundle_files.reading.bundle_damage`: every checksum checked); a damaged one is built again.
     Returns ``{"name", "status": "built" | "resumed" | "failed" | "busy", "reason"?, "record"?, "kept"?,
     "damaged"?}`` (``kept``: a failed rebuild left the previous bundle; ``damaged``: why a finished bundle was
     built again).
@@ -454,7 +455,7 @@ def _build(out, name, slide, opts, slides_dir, bundle, key, h5, progress) -> dic
         compute_features(bundle, encoder_name=opts["encoder"], progress=progress, verify=False)
     clean_partial_features(bundle)
     if opts["no_pixels"]:
-        from data_tools.bundle_format import drop_pixels
+        from data_tools.bundle import drop_pixels
 
         drop_pixels(bundle)
     meta = read_metadata(bundle)

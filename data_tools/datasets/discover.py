@@ -353,7 +353,7 @@ def ncrf_to_geojson(path: Path, out: Path) -> Path:
     tumour slides; on slides without ``positive`` polygons, ``negative`` is tissue), atomically."""
     from shapely.geometry import mapping
 
-    from data_tools.bundle_format import write_json
+    from data_tools.bundle_files.writes import write_json
     from data_tools.ncrf import parse_ncrf
 
     s = parse_ncrf(slide_key(path.name), path.read_bytes(), path)

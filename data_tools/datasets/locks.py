@@ -11,7 +11,7 @@ Leftovers of killed runs — ``.NAME.tmp-*`` / ``.NAME.old-*`` siblings of any b
 and the chunks in ``features.partial/`` of a bundle whose feature grid is finished — are removed by
 :func:`clean_stale` only when nobody holds the locks of ``NAME`` (a live build's temporaries are left
 alone) and only when histojax can prove it made them: every temporary folder it creates holds its marker
-(:func:`data_tools.bundle_format.mark_temporary`). A file or folder of such a name without the marker is the
+(:func:`data_tools.bundle_files.writes.mark_temporary`). A file or folder of such a name without the marker is the
 user's: neither removed nor renamed.
 """
 from __future__ import annotations
@@ -24,15 +24,15 @@ import re
 import shutil
 from pathlib import Path
 
-from data_tools.bundle_format import TEMP_MARKER, is_our_temporary, partial_foreign, remove_partial
+from data_tools.bundle_files.writes import TEMP_MARKER, is_our_temporary, partial_foreign, remove_partial
 from data_tools.errors import HistojaxDataError
 
 STALE = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-[0-9a-zA-Z]+$")
-"""Hidden temporaries of :func:`data_tools.bundle_format.atomic_folder` / ``atomic_file``."""
+"""Hidden temporaries of :func:`data_tools.bundle_files.writes.atomic_folder` / ``atomic_file``."""
 LOCK_FILE = re.compile(r"^\.(?P<name>.+)\.(?:dataset-)?lock$")
 """Lock files of :func:`file_lock` (``.NAME.dataset-lock``) and of the bundle builder (``.NAME.lock``)."""
 BUILD_TEMP = re.compile(r"^\.(?P<name>.+)\.(?P<kind>tmp|old)-[0-9a-f]{8}$")
-"""A temporary (or moved-aside) bundle folder of :func:`data_tools.bundle_format.atomic_folder`."""
+"""A temporary (or moved-aside) bundle folder of :func:`data_tools.bundle_files.writes.atomic_folder`."""
 
 
 class LockHeld(HistojaxDataError):
@@ -259,7 +259,7 @@ def clean_stale_builds(folder, keep=()) -> list[str]:
 
 
 def clean_partial_features(bundle) -> bool:
-    """Remove what histojax wrote in ``BUNDLE/features.partial`` (:func:`data_tools.bundle_format.remove_partial`)
+    """Remove what histojax wrote in ``BUNDLE/features.partial`` (:func:`data_tools.bundle_files.writes.remove_partial`)
     when it holds no chunk or the bundle's feature grid is finished (its metadata names an encoder); a file
     there histojax did not write stays (and so does the folder). Returns whether the folder is gone. Call
     holding the bundle's lock."""

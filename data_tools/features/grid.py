@@ -22,7 +22,8 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import load_bundle, load_tiled_level, read_metadata, remove_partial
+from data_tools.bundle_files.reading import load_bundle, load_tiled_level, read_metadata
+from data_tools.bundle_files.writes import remove_partial
 from data_tools.errors import BundleError
 from data_tools.features.encoders import encoder_scale
 from data_tools.features.store import level_grids, save_array, update_metadata

@@ -29,7 +29,8 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.bundle_format import read_metadata, sha256
+from data_tools.bundle_files.format import sha256
+from data_tools.bundle_files.reading import read_metadata
 from data_tools.errors import BundleError, HistojaxDataError
 from data_tools.features.store import level_grids, save_array, update_metadata
 

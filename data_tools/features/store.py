@@ -1,5 +1,5 @@
 """Feature grids inside a slide bundle: writing them (the grid geometry, the atomic file writes and the
-verified read are the bundle format's, :mod:`data_tools.bundle_format`, re-exported here).
+verified read are the bundle format's, :mod:`data_tools.bundle_files`, re-exported here).
 
 For each bundle level ``KK`` (finest first, as in ``metadata["levels"]``), ``features_KK.npy`` is a
 ``(gh, gw, D)`` array: cell ``(gy, gx)`` describes the view (``tile_size`` px square) whose
@@ -14,8 +14,10 @@ from __future__ import annotations
 
 from pathlib import Path
 
-from data_tools.bundle_format import (  # noqa: F401  (re-exported: grid geometry, atomic save and the read)
-    FEATURES_COMMAND, grid_shape, level_grids, load_feature_levels, read_metadata, save_array, sha256, write_metadata)
+from data_tools.bundle_files.format import FEATURES_COMMAND, grid_shape, level_grids, sha256  # noqa: F401  (re-exported: grid geometry, atomic save and the read)
+from data_tools.bundle_files.reading import load_feature_levels, read_metadata
+from data_tools.bundle_files.seals import write_metadata
+from data_tools.bundle_files.writes import save_array
 
 
 def update_metadata(bundle: Path, features: dict, written: list[str]) -> dict:

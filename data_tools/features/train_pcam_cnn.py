@@ -7,7 +7,7 @@ never read for training or for choosing anything; the training pool is cut once 
 ``--val-fraction``) into the patches fitted and a validation set on which the epoch is chosen.
 
 Each patch is shown at the benchmark's scale (96 px → 48 px by 2 × 2 box averaging, as the mosaic's
-``Image.BOX`` resize does) with the mosaic's own variation (:mod:`data_tools.datasets.c16_mosaic`): a batch is
+``Image.BOX`` resize does) with the mosaic's own variation (:mod:`data_tools.datasets.c16.mosaic`): a batch is
 cut into ``GROUPS`` "slides", each with its own stain (per-channel optical-density factor in
 ``STAIN_RANGE`` times a density factor in ``DENSITY_RANGE``) and, with probability ``P_MATCH``, the
 mosaic's colour matching (tumour patches' mean RGB moved ``COLOUR_MATCH`` of the way to the group's
@@ -27,7 +27,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.datasets.c16_mosaic import COLOUR_MATCH, DENSITY_RANGE, STAIN_RANGE
+from data_tools.datasets.c16.mosaic import COLOUR_MATCH, DENSITY_RANGE, STAIN_RANGE
 
 GROUPS = 4          # stain groups ("slides") per batch
 P_MATCH = 0.6       # a group's chance of the mosaic's tumour colour matching
@@ -166,7 +166,7 @@ def train(patches=None, seed: int = 0, epochs: int = 30, batch: int = 256, lr: f
     import functools
     import pickle
 
-    from data_tools.bundle_format import atomic_file
+    from data_tools.bundle_files.writes import atomic_file
 
     t0 = time.perf_counter()
     arch_ = get_arch(arch)
@@ -363,7 +363,7 @@ def save_weights(variables, out, report: dict) -> Path:
     """Write ``out`` (msgpack) and ``out.json`` (the report) atomically."""
     from flax import serialization
 
-    from data_tools.bundle_format import atomic_file, write_json
+    from data_tools.bundle_files.writes import atomic_file, write_json
 
     out = Path(out)
     out.parent.mkdir(parents=True, exist_ok=True)

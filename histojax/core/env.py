@@ -170,7 +170,7 @@ class HistoEnv(_GymnaxEnvironment):
 
     @property
     def bundles(self) -> tuple:
-        """The host bundles (:class:`data_tools.bundle_format.Bundle`: metadata, thumbnails, levels coarsest
+        """The host bundles (:class:`data_tools.bundle_files.reading.Bundle`: metadata, thumbnails, levels coarsest
         first) of the env's slides, one per slide, read-only: for rendering and inspection. Empty for an env
         made without data (``histojax.adapters.gymnasium.settings_only``). Copy an env with one change with
         ``dataclasses.replace(env, setting=value)``; its bundles go with it."""

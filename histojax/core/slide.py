@@ -38,10 +38,11 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from data_tools.bundle_format import (  # noqa: F401  (select_levels, *_bytes: re-exported, their home is the format)
-    Bundle, BundleMetadata, feature_bytes, load_bundle, load_feature_levels, read_metadata, select_levels, stable_read,
-    verify_metadata,
-    slide_device_bytes, tumour_table_bytes)
+from data_tools.bundle_files.format import (  # noqa: F401  (select_levels, *_bytes: re-exported, their home is the format)
+    BundleMetadata, feature_bytes, select_levels, slide_device_bytes, tumour_table_bytes)
+from data_tools.bundle_files.reading import Bundle, load_bundle, load_feature_levels, read_metadata
+from data_tools.bundle_files.safe_files import stable_read
+from data_tools.bundle_files.seals import verify_metadata
 from data_tools.errors import BundleError
 
 DEFAULT_MAX_DEVICE_BYTES = 4 * 2**30  # the memory budget of one slide on the device

@@ -10,7 +10,7 @@ import pytest
 import tifffile
 
 from data_tools.bundle import build_bundle
-from data_tools.bundle_format import read_metadata
+from data_tools.bundle_files.reading import read_metadata
 from data_tools.peak_memory import PeakRSS
 
 SPIKE = 400 * 2**20

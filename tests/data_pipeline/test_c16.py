@@ -15,7 +15,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from data_tools.bundle_format import mark_temporary
+from data_tools.bundle_files.writes import mark_temporary
 import shapely
 
 from data_tools.errors import AnnotationError, BundleError, HistojaxDataError
@@ -25,7 +25,7 @@ ROOT = Path(__file__).resolve().parents[2]
 
 @pytest.fixture(scope="module")
 def small(tmp_path_factory) -> Path:
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = tmp_path_factory.mktemp("c16") / "small"
     make_c16_dataset(out, small=True, progress=False)
@@ -190,7 +190,7 @@ def test_memory_budget_error_names_what_to_change(small):
 @pytest.mark.slow
 def test_killed_run_leaves_no_temporaries_and_resumes(small, tmp_path):
     """SIGKILL a generator mid-run; the next run removes what it left and skips the finished slides."""
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = tmp_path / "killed"
     (out / "slides").mkdir(parents=True)
@@ -215,7 +215,7 @@ def test_killed_run_leaves_no_temporaries_and_resumes(small, tmp_path):
 
 
 def test_bad_inputs_name_the_file(tmp_path):
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
     from data_tools.ncrf import read_ncrf
     from data_tools.datasets.pcam_bank import load_bank
 
@@ -249,7 +249,7 @@ def test_benchmark_scale_build_of_the_shipped_slides(tmp_path):
     micro- and macro-metastases findable at the finest level, and the Hard env over all six."""
     import histojax
     from data_tools.annotations import load_annotations
-    from data_tools.datasets.c16 import SMALL_SLIDES, make_c16_dataset
+    from data_tools.datasets.c16.dataset import SMALL_SLIDES, make_c16_dataset
     from data_tools.ncrf import SHIPPED_DIR, read_ncrf
 
     ds = make_c16_dataset(tmp_path / "d8", names=list(SMALL_SLIDES), progress=False, workers=2)
@@ -272,7 +272,7 @@ def test_pool_features_equal_the_views_they_describe(small, tmp_path):
     once); every cell still equals the encoder applied to that cell's view, looked up directly."""
     import shutil
 
-    from data_tools.bundle_format import load_bundle, read_metadata
+    from data_tools.bundle_files.reading import load_bundle, read_metadata
     from data_tools.features.colour import colour_stats
     from data_tools.features.grid import compute_features
 
@@ -302,8 +302,8 @@ def test_feature_only_bundles(small, tmp_path):
     import shutil
 
     import histojax
-    from data_tools.bundle_format import read_metadata
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.bundle_files.reading import read_metadata
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = tmp_path / "ds"
     shutil.copytree(small, out)
@@ -370,7 +370,7 @@ def test_a_subset_keeps_the_whole_sets_split_donor_and_slides(small, tmp_path):
     set, and on the whole set's folder leaves the other slides and the split as they were."""
     import shutil
 
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     whole = json.loads((small / "dataset.json").read_text())
     alone = tmp_path / "alone"
@@ -393,7 +393,7 @@ def test_a_subset_keeps_the_whole_sets_split_donor_and_slides(small, tmp_path):
 def test_test_slides_from_another_patch_set(tmp_path):
     """--test-patches: the test slides are textured from that set alone (here: the shipped bank's test pool
     written out as a folder, a stand-in for PCam's own test split)."""
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
     from data_tools.datasets.pcam_bank import load_bank, split_pools
 
     _, pool = split_pools(load_bank())
@@ -452,10 +452,10 @@ def test_shards_build_disjoint_slides_and_the_last_writes_dataset_json(small, tm
     writes no dataset.json; a slide held by another process is skipped (busy); a failing slide is recorded
     with its reason while the rest build; the last shard writes dataset.json (the failure under `failed`,
     exit status 1); `--merge` after a clean rebuild of the failed slide completes the set."""
-    from data_tools.datasets import c16
+    from data_tools.datasets.c16 import dataset as c16
     from data_tools.datasets.locks import bundle_lock_path, file_lock
     from data_tools.datasets.split import shard_names
-    from data_tools.datasets.c16 import SMALL_SLIDES, make_c16_dataset
+    from data_tools.datasets.c16.dataset import SMALL_SLIDES, make_c16_dataset
 
     out = tmp_path / "sharded"
     halves = [shard_names(SMALL_SLIDES, (i, 2)) for i in range(2)]

@@ -8,8 +8,8 @@ from pathlib import Path
 
 import pytest
 
-from data_tools.datasets.c16 import make_c16_dataset
-from data_tools.datasets.c16_inputs import KNOWN_INPUTS, check_known_inputs, differing_lines
+from data_tools.datasets.c16.dataset import make_c16_dataset
+from data_tools.datasets.c16.inputs import KNOWN_INPUTS, check_known_inputs, differing_lines
 from data_tools.errors import HistojaxDataError
 
 ROOT = Path(__file__).resolve().parents[2]

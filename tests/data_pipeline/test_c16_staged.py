@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data_tools.bundle_format import load_bundle, read_metadata
+from data_tools.bundle_files.reading import load_bundle, read_metadata
 from data_tools.errors import HistojaxDataError
 
 NAME = "Normal_042"       # a slide of SMALL_SLIDES, train side at seeds 0 and 1
@@ -23,7 +23,7 @@ TINY = "encoder_helpers:tiny_colour"
 
 @pytest.fixture(scope="module")
 def built(tmp_path_factory) -> Path:
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = tmp_path_factory.mktemp("c16staged") / "c16"
     make_c16_dataset(out, small=True, names=[NAME, TEST_NAME], progress=False)
@@ -75,7 +75,7 @@ def _check_kept(out: Path, before: tuple[dict, bytes], name: str = NAME) -> None
 def test_a_failed_rebuild_keeps_the_previous_bundle_and_its_record(built, tmp_path, monkeypatch):
     """Another seed remakes the slide, so its bundle is written again; the disk fills after the bundle
     writer's first file. Then, the disk freed, a rerun builds and swaps in the new bundle."""
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = _copy(built, tmp_path)
     before, index = _state(out), (out / "dataset.json").read_bytes()
@@ -101,7 +101,7 @@ def test_adding_features_that_fail_leaves_the_pixel_bundle_untouched(built, tmp_
     grid computed there; the disk fills after the first feature chunk. The old bundle's files (the very
     inodes the staged folder shared) are unchanged, and the rerun adds the grid, the old files still whole."""
     import data_tools.features.grid as grid
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = _copy(built, tmp_path)
     before = {n: _state(out, n) for n in (NAME, TEST_NAME)}
@@ -128,7 +128,7 @@ def test_adding_features_that_fail_leaves_the_pixel_bundle_untouched(built, tmp_
 def test_a_rerun_resumes_finished_bundles_without_touching_them(built, tmp_path):
     """The on-disk format is unchanged: a rerun of the same command reuses a finished bundle (same files,
     same inodes) and its record."""
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = _copy(built, tmp_path)
     bundle = out / "bundles" / NAME

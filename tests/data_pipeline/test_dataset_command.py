@@ -17,7 +17,7 @@ import jax
 import numpy as np
 import pytest
 
-from data_tools.bundle_format import mark_temporary
+from data_tools.bundle_files.writes import mark_temporary
 import tifffile
 
 from data_tools.__main__ import main as data_main
@@ -101,7 +101,7 @@ def test_camelyon16_as_downloaded_official_split_and_labels(c16_dataset):
     assert ds["test"] == ["bundles/test_001", "bundles/test_002"]
     assert ds["labels"] == {"normal_001": 0, "normal_002": 0, "test_001": 1, "test_002": 0, "tumor_001": 1,
                             "tumor_002": 1}
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_files.reading import read_metadata
 
     meta = read_metadata(out / "bundles" / "tumor_001")
     # _0 → tumour, _2 → exclusion: the exclusion holes are cut out of the tumour
@@ -370,7 +370,7 @@ def test_table_labels_reach_the_diagnosis_task_and_jobs_build_in_parallel(tmp_pa
 def test_c16_leaves_no_lock_no_partial_features_and_no_stale_temporaries(tmp_path):
     """After a successful run no lock file; a kill during the feature step and a
     rerun leave no ``features.partial/``; stale temporaries of names not built again are removed."""
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = tmp_path / "c16"
     make_c16_dataset(out, small=True, n_tumour=1, n_normal=1, features="colour-stats", progress=False)

@@ -8,7 +8,7 @@ import warnings
 import numpy as np
 import pytest
 
-from data_tools.bundle_format import read_metadata
+from data_tools.bundle_files.reading import read_metadata
 from data_tools.features.encoders import ENCODER_MPP, SCALE_TOLERANCE, encoder_scale
 
 

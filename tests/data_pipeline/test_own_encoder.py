@@ -12,7 +12,7 @@ import pytest
 
 import encoder_helpers
 from data_tools.__main__ import main as data_main
-from data_tools.bundle_format import read_metadata
+from data_tools.bundle_files.reading import read_metadata
 from data_tools.errors import HistojaxDataError
 
 SPEC = "encoder_helpers:tiny_colour"
@@ -103,7 +103,7 @@ def test_c16_small_with_your_own_encoder_and_the_v1_ids_observe_it(tmp_path):
     import jax
 
     import histojax
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = tmp_path / "c16"
     ds = make_c16_dataset(out, small=True, features=SPEC, no_pixels=True, progress=False)

@@ -16,7 +16,7 @@ import pytest
 import tifffile
 
 from data_tools.__main__ import main
-from data_tools.bundle_format import load_bundle, read_metadata
+from data_tools.bundle_files.reading import load_bundle, read_metadata
 from data_tools.features.encoders import encoder_scale
 
 ROOT = Path(__file__).resolve().parents[2]

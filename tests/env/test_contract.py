@@ -64,7 +64,7 @@ def test_contract_skips_an_id_without_its_data(monkeypatch, tmp_path):
 def _c16_contract_dataset(tmp_path_factory):
     """The small C16 dataset with the data every C16 id observes: pixels (v0) and the pcam-cnn feature grids
     the v1 / v2 ids and the reading id observe (``histojax c16 --small --features``), built once per session."""
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = tmp_path_factory.getbasetemp() / "c16-contract-features"
     if not (out / "dataset.json").is_file():

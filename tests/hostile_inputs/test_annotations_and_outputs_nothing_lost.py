@@ -261,17 +261,17 @@ def test_figures_and_tables_on_a_full_disk_leave_no_partial_file(tmp_path, monke
     monkeypatch.undo()
     assert (tmp_path / "budget_curve.csv").read_bytes() == before
 
-    import data_tools.bundle_format as bundle_format
+    import data_tools.bundle_files.writes as writes
 
-    real_replace = bundle_format.os.replace
+    real_replace = writes.os.replace
 
     def full(src, dst):  # the figure is drawn, then the disk is full before it is in place
         raise OSError(28, "No space left on device")
 
-    monkeypatch.setattr(bundle_format.os, "replace", full)
+    monkeypatch.setattr(writes.os, "replace", full)
     with pytest.raises(OSError, match="No space left"):
         plot_curve(rows, tmp_path / "budget_curve.png")
-    monkeypatch.setattr(bundle_format.os, "replace", real_replace)
+    monkeypatch.setattr(writes.os, "replace", real_replace)
     assert sorted(p.name for p in tmp_path.iterdir()) == ["budget_curve.csv"]
 
 

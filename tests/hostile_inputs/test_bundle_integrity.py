@@ -13,7 +13,9 @@ import pytest
 
 import data_tools.bundle
 from data_tools.bundle import METADATA, build_bundle, load_bundle
-from data_tools.bundle_format import METADATA_DIGEST, atomic_folder, metadata_digest, sha256, write_metadata
+from data_tools.bundle_files.format import sha256
+from data_tools.bundle_files.seals import METADATA_DIGEST, metadata_digest, write_metadata
+from data_tools.bundle_files.writes import atomic_folder
 from data_tools.errors import BundleError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -153,7 +155,7 @@ def test_malformed_metadata_field_names_metadata_json(copy, edit, message):
 @pytest.mark.parametrize("entry", ["/etc/passwd", "../copy/pixels_00.npy", "..", "sub/pixels_00.npy", ""])
 def test_file_entries_must_stay_inside_the_bundle(copy, entry, monkeypatch):
     opened = []
-    monkeypatch.setattr(data_tools.bundle_format, "sha256", lambda p: opened.append(p) or "x")
+    monkeypatch.setattr("data_tools.bundle_files.format.sha256", lambda p: opened.append(p) or "x")
     meta = _meta(copy)
     meta["levels"][0]["pixels"] = entry
     write_metadata(copy, meta)  # even a sealed bundle may only name its own files
@@ -261,7 +263,7 @@ def test_a_file_vanishing_mid_swap_is_read_again(tmp_path):
     """The CI failure of the test above: a reader's ``open`` met the instant between the old folder's rename
     aside and the new one's rename into place (``FileNotFoundError``, not a ``BundleError``). ``stable_read``
     reads again while a rebuild is under way, and raises at once when none is."""
-    from data_tools.bundle_format import stable_read
+    from data_tools.bundle_files.safe_files import stable_read
 
     target = tmp_path / "live"
     target.mkdir()

@@ -22,11 +22,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from data_tools.bundle_format import mark_temporary
+from data_tools.bundle_files.writes import mark_temporary
 import tifffile
 
 from data_tools.__main__ import main as data_main
-from data_tools.bundle_format import load_bundle, read_metadata
+from data_tools.bundle_files.reading import load_bundle, read_metadata
 from data_tools.datasets.build import build_dataset
 from data_tools.errors import BundleError, HistojaxDataError
 from histojax.sample import SAMPLE_SLIDE
@@ -351,10 +351,10 @@ def test_another_tools_plan_json_is_one_line_and_untouched(cohort, tmp_path, cap
 
 
 def test_a_full_disk_names_the_file(cohort, tmp_path, capsys, monkeypatch):
-    import data_tools.bundle_format as bundle_format
+    import data_tools.bundle_files.writes as writes
 
     slides, labels = cohort
-    monkeypatch.setattr(bundle_format.os, "fsync", _full_disk)
+    monkeypatch.setattr(writes.os, "fsync", _full_disk)
     line = _one_error(["dataset", str(slides), "--out", str(tmp_path / "o"), "--labels", str(labels), "--levels", "3",
                        "--quiet"], capsys)
     assert "No space left on device" in line and "plan.json" in line  # before: "error: No space left on device"

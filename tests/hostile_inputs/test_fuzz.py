@@ -254,7 +254,9 @@ mask_dtypes = st.sampled_from(["uint8", "uint8", "bool", "int8", "int16", "uint1
        scale=st.sampled_from([2, 7, 255, 256]), reshape=st.booleans(), reseal=st.booleans(), verify=st.booleans(),
        seed=st.integers(0, 2**16))
 def test_fuzz_bundle_mask_values(fuzz_bundle, name, dtype, values, scale, reshape, reseal, verify, seed):
-    from data_tools.bundle_format import load_bundle, sha256, write_metadata
+    from data_tools.bundle_files.format import sha256
+    from data_tools.bundle_files.reading import load_bundle
+    from data_tools.bundle_files.seals import write_metadata
 
     pristine, work = fuzz_bundle
     try:
@@ -310,7 +312,8 @@ def _paths(node, prefix=()):
 @given(pick=st.integers(0, 10**6), value=JSON_EDIT_VALUES, delete=st.booleans(), reseal=st.booleans(),
        verify=st.booleans())
 def test_fuzz_bundle_metadata_edits(fuzz_bundle, pick, value, delete, reseal, verify):
-    from data_tools.bundle_format import METADATA_DIGEST, load_bundle, write_metadata
+    from data_tools.bundle_files.reading import load_bundle
+    from data_tools.bundle_files.seals import METADATA_DIGEST, write_metadata
 
     pristine, work = fuzz_bundle
     try:

@@ -83,7 +83,7 @@ def test_overwrite_still_replaces_what_a_run_and_its_evaluation_wrote(tmp_path):
                  "checkpoint/.runner.msgpack.tmp-0123abcd"):
         (out / name).parent.mkdir(parents=True, exist_ok=True)
         (out / name).write_text(json.dumps(CONFIG) if name.endswith("config.json") else "x")
-    from data_tools.bundle_format import mark_temporary
+    from data_tools.bundle_files.writes import mark_temporary
 
     mark_temporary(out / "checkpoint" / ".runner.msgpack.tmp-89abcdef")  # a killed run's atomic write
     (out / "checkpoint" / ".runner.msgpack.tmp-89abcdef" / "runner.msgpack").write_text("half")
@@ -148,7 +148,7 @@ def test_resume_reads_no_fifo_and_no_link(tmp_path):
 
 # ----------------------------------------------------------------------------- the dataset seal's file
 def _sealed(folder: Path) -> Path:
-    from data_tools.bundle_format import DATASET_DIGEST, metadata_digest
+    from data_tools.bundle_files.seals import DATASET_DIGEST, metadata_digest
 
     folder.mkdir()
     spec = {"kind": "histojax dataset of real slides (data_tools dataset)", "train": ["bundles/s1"],
@@ -160,7 +160,7 @@ def _sealed(folder: Path) -> Path:
 def test_a_dataset_json_that_is_a_fifo_a_folder_or_not_an_object_is_one_line(tmp_path):
     """Was: a FIFO dataset.json blocked make, the head fits and evaluate --dataset for ever (killed at 40 s); a folder
     gave IsADirectoryError and a JSON list AttributeError ('list' object has no attribute 'get') from make."""
-    from data_tools.bundle_format import read_dataset_json
+    from data_tools.bundle_files.seals import read_dataset_json
     from data_tools.errors import BundleError
     from histojax.datasets import dataset_slides
 
@@ -182,7 +182,7 @@ def test_a_dataset_json_that_is_a_fifo_a_folder_or_not_an_object_is_one_line(tmp
 
 
 def test_a_dataset_json_linked_to_a_regular_file_is_read_with_its_seal_checked(tmp_path):
-    from data_tools.bundle_format import read_dataset_json
+    from data_tools.bundle_files.seals import read_dataset_json
     from data_tools.errors import BundleError
 
     other = _sealed(tmp_path / "other")

@@ -1,5 +1,5 @@
-"""One regular-file guard for every reader of a user's files: bundles (data_tools.bundle_format.own_file) and slide
-head folders (histojax.reading.heads.files.read_regular) both use data_tools.bundle_format.not_regular /
+"""One regular-file guard for every reader of a user's files: bundles (data_tools.bundle_files.safe_files.own_file) and slide
+head folders (histojax.reading.heads.files.read_regular) both use data_tools.bundle_files.safe_files.not_regular /
 open_regular (the lower floor), so a link, a FIFO or a folder is refused alike, in one line naming the file."""
 from __future__ import annotations
 
@@ -7,7 +7,7 @@ import os
 
 import pytest
 
-from data_tools import bundle_format
+from data_tools.bundle_files import safe_files
 from data_tools.errors import BundleError
 from histojax.reading.heads import files
 
@@ -15,7 +15,7 @@ posix_only = pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs need a 
 
 
 def test_heads_read_through_the_bundles_guard():
-    assert files.not_regular is bundle_format.not_regular and files.open_regular is bundle_format.open_regular
+    assert files.not_regular is safe_files.not_regular and files.open_regular is safe_files.open_regular
 
 
 @posix_only
@@ -24,7 +24,7 @@ def test_not_regular_names_what_the_entry_is(tmp_path):
     os.symlink(tmp_path / "f", tmp_path / "l")
     os.mkfifo(tmp_path / "p")
     (tmp_path / "d").mkdir()
-    kinds = {n: bundle_format.not_regular(os.lstat(tmp_path / n)) for n in ("f", "l", "p", "d")}
+    kinds = {n: safe_files.not_regular(os.lstat(tmp_path / n)) for n in ("f", "l", "p", "d")}
     assert kinds == {"f": None, "l": "a symbolic link", "p": "a FIFO", "d": "a folder"}
 
 
@@ -35,7 +35,7 @@ def test_a_fifo_is_refused_by_both_readers_without_blocking(tmp_path):
         files.read_config(tmp_path / "config.json")
     assert len(str(e.value).splitlines()) == 1 and str(tmp_path / "config.json") in str(e.value)
     with pytest.raises(BundleError, match="not a regular file"):
-        bundle_format.own_file(tmp_path, "config.json")
+        safe_files.own_file(tmp_path, "config.json")
 
 
 def test_open_regular_refuses_a_file_swapped_after_the_check(tmp_path):
@@ -43,9 +43,9 @@ def test_open_regular_refuses_a_file_swapped_after_the_check(tmp_path):
     (tmp_path / "b").write_bytes(b"b")
     st = os.lstat(tmp_path / "a")
     os.replace(tmp_path / "b", tmp_path / "a")  # another inode now stands at the checked path
-    with pytest.raises(bundle_format.ChangedFileError):
-        bundle_format.open_regular(tmp_path / "a", st)
-    with bundle_format.open_regular(tmp_path / "a", os.lstat(tmp_path / "a")) as f:
+    with pytest.raises(safe_files.ChangedFileError):
+        safe_files.open_regular(tmp_path / "a", st)
+    with safe_files.open_regular(tmp_path / "a", os.lstat(tmp_path / "a")) as f:
         assert f.read() == b"b"
 
 

@@ -140,7 +140,8 @@ def _leftover_lock(folder: Path) -> Path:
 def test_a_lock_left_by_an_older_refused_train_never_makes_a_bundle_foreign(tmp_path):
     import fcntl
 
-    from data_tools.bundle_format import FORMAT_VERSION, METADATA, foreign_entries
+    from data_tools.bundle_files.format import FORMAT_VERSION, METADATA
+    from data_tools.bundle_files.writes import foreign_entries
 
     bundle = tmp_path / "b"
     bundle.mkdir()

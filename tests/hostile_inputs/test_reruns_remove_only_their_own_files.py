@@ -18,7 +18,7 @@ import pytest
 import tifffile
 
 from data_tools.__main__ import main as data_main
-from data_tools.bundle_format import mark_temporary
+from data_tools.bundle_files.writes import mark_temporary
 from data_tools.datasets.build import build_dataset
 from histojax.sample import SAMPLE_SLIDE
 from slide_helpers import pyramid
@@ -110,7 +110,7 @@ def test_a_dataset_rerun_keeps_the_users_entries_named_like_temporaries(built, c
 
 
 def test_c16_cleaning_keeps_the_users_entries_named_like_temporaries(tmp_path):
-    from data_tools.datasets.c16 import clean_stale
+    from data_tools.datasets.c16.dataset import clean_stale
 
     before = _users_entries(tmp_path / "bundles")
     slides = _users_entries(tmp_path / "slides")
@@ -173,7 +173,7 @@ def test_cleaning_features_partial_removes_only_histojaxs_chunks(built, tmp_path
 
 # ------------------------------------------------------------------ 7. a corrupt bundle is rebuilt by a rerun
 def _flip_a_byte(bundle: Path) -> Path:
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_files.reading import read_metadata
 
     name = sorted(n for n in read_metadata(bundle)["checksums"] if n.endswith(".npy"))[0]
     data = bytearray((bundle / name).read_bytes())
@@ -184,7 +184,8 @@ def _flip_a_byte(bundle: Path) -> Path:
 
 @pytest.mark.parametrize("restart", [False, True])
 def test_a_dataset_rerun_rebuilds_a_bundle_whose_checksum_does_not_match(built, cohort, tmp_path, restart):
-    from data_tools.bundle_format import BundleError, load_bundle
+    from data_tools.bundle_files.reading import load_bundle
+    from data_tools.errors import BundleError
 
     slides, labels = cohort
     work = tmp_path / "o"
@@ -200,8 +201,8 @@ def test_a_dataset_rerun_rebuilds_a_bundle_whose_checksum_does_not_match(built, 
 
 @pytest.mark.slow  # about 20 s: two small c16 builds
 def test_a_c16_rerun_rebuilds_a_bundle_whose_checksum_does_not_match(tmp_path):
-    from data_tools.bundle_format import load_bundle
-    from data_tools.datasets.c16 import make_c16_dataset
+    from data_tools.bundle_files.reading import load_bundle
+    from data_tools.datasets.c16.dataset import make_c16_dataset
 
     out = tmp_path / "c16"
     make_c16_dataset(out, small=True, n_tumour=1, n_normal=1, progress=False)
@@ -216,7 +217,7 @@ def test_a_c16_rerun_rebuilds_a_bundle_whose_checksum_does_not_match(tmp_path):
 def test_a_dataset_run_with_other_options_is_refused_while_the_first_holds_the_folder(cohort, tmp_path, capsys,
                                                                                       monkeypatch):
     import data_tools.datasets.build as build_module
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_files.reading import read_metadata
 
     slides, labels = cohort
     out = tmp_path / "o"
@@ -292,7 +293,7 @@ def test_a_seal_removed_by_hand_is_said(built, tmp_path):
     older unsealed index without a word: now one warning naming the file, once per file."""
     import warnings as _warnings
 
-    from data_tools import bundle_format
+    from data_tools.bundle_files import seals
     from histojax.datasets import dataset_labels
 
     work = tmp_path / "unsealed"
@@ -302,7 +303,7 @@ def test_a_seal_removed_by_hand_is_said(built, tmp_path):
     ds.pop("dataset_sha256")
     ds["labels"]["s1"] = 1
     index.write_text(json.dumps(ds))
-    bundle_format._UNSEALED_WARNED.discard(str(index.resolve()))
+    seals._UNSEALED_WARNED.discard(str(index.resolve()))
     with pytest.warns(UserWarning, match="carries no seal") as caught:
         dataset_labels(work)
     line = str(caught[0].message)
@@ -314,7 +315,7 @@ def test_a_seal_removed_by_hand_is_said(built, tmp_path):
 
 def test_a_validation_split_of_a_sealed_dataset_reads_and_its_labels_are_checked(built, tmp_path):
     from baselines.validation import write_validation_dataset
-    from data_tools.bundle_format import read_dataset_json
+    from data_tools.bundle_files.seals import read_dataset_json
     from data_tools.errors import BundleError
 
     val = write_validation_dataset(built, 0.5, 0, tmp_path / "val")
@@ -368,7 +369,7 @@ def one_bundle(tmp_path_factory, cohort):
 
 
 def test_an_own_encoder_overflowing_float16_is_refused(own_encoders, one_bundle, tmp_path, capsys):
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_files.reading import read_metadata
 
     bundle = shutil.copytree(one_bundle, tmp_path / "b")
     line = _one_error(["features", str(bundle), "--encoder", f"{own_encoders}:huge", "--quiet"], capsys)
@@ -467,7 +468,7 @@ def test_a_short_write_says_no_space_left_on_device(tmp_path, monkeypatch):
 
     import numpy.lib.format
 
-    from data_tools.bundle_format import save_array
+    from data_tools.bundle_files.writes import save_array
 
     def short_write(*args, **kwargs):
         raise OSError("2612862 requested and 2514816 written")  # numpy's words on a full disk, no errno

@@ -10,9 +10,9 @@ ROOT = pathlib.Path(__file__).resolve().parents[2]
 
 # old path -> the one path of the same names
 GONE = {
-    "data_tools.c16": "data_tools.datasets.c16",
-    "data_tools.c16_layout": "data_tools.datasets.c16_layout",
-    "data_tools.c16_mosaic": "data_tools.datasets.c16_mosaic",
+    "data_tools.c16": "data_tools.datasets.c16.dataset",
+    "data_tools.c16_layout": "data_tools.datasets.c16.layout",
+    "data_tools.c16_mosaic": "data_tools.datasets.c16.mosaic",
     "data_tools.pcam_bank": "data_tools.datasets.pcam_bank",
     "data_tools.synth": "data_tools.datasets.synth.dataset",
     "data_tools.synth_large": "data_tools.datasets.synth.large_slide",
@@ -77,6 +77,13 @@ GONE = {
     "data_tools.openslide_reader": "data_tools.slide_files.openslide",
     "data_tools.mirax": "data_tools.slide_files.mirax",
     "data_tools.slide_limits": "data_tools.slide_files.limits",
+    # the bundle format split along its sections: format (names, geometry, typed metadata, checksums), writes,
+    # seals, safe_files, reading (the verified read); drop_pixels moved to the writer, data_tools.bundle
+    "data_tools.bundle_format": "data_tools.bundle_files.format",
+    # the CAMELYON16 benchmark's modules, one subpackage
+    "data_tools.datasets.c16_inputs": "data_tools.datasets.c16.inputs",
+    "data_tools.datasets.c16_layout": "data_tools.datasets.c16.layout",
+    "data_tools.datasets.c16_mosaic": "data_tools.datasets.c16.mosaic",
 }
 
 # names that left a module which still exists: old module -> (the one module of the names, the names)

@@ -19,7 +19,8 @@ import pytest
 from baselines.reading import head_fit, readers, slides
 from baselines.reading.slides import CLASSES, lesion_class
 from baselines.reading.orders import logit_order, random_order, read_mask, search_order
-from data_tools.bundle_format import sha256, write_metadata
+from data_tools.bundle_files.format import sha256
+from data_tools.bundle_files.seals import write_metadata
 from histojax.reading.heads import score
 from histojax.reading.heads.logit import LogitHead, neighbourhood_mean
 

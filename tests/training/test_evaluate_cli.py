@@ -258,7 +258,7 @@ def test_foreign_msgpack_and_bad_configs(tmp_path, capsys):
 # ----------------------------------------------------------------------------- make over unlike bundles
 def test_make_refuses_bundles_of_two_encoders_naming_both(two_slides, colour_feature_grid, tmp_path):
     import histojax
-    from data_tools.bundle_format import read_metadata
+    from data_tools.bundle_files.reading import read_metadata
     from data_tools.errors import BundleError
     from data_tools.features.store import update_metadata
 
@@ -311,7 +311,7 @@ def test_pixels_of_a_feature_only_dataset_bundle_point_to_histojax_dataset(two_s
     `data_tools c16 ... --slides`, a command that cannot remake a user's own slides)."""
     import histojax
     from data_tools.bundle import build_bundle
-    from data_tools.bundle_format import drop_pixels
+    from data_tools.bundle import drop_pixels
     from data_tools.datasets.build import KIND
     from data_tools.errors import BundleError
     from data_tools.features.grid import compute_features

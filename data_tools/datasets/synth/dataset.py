@@ -43,7 +43,8 @@ from shapely import affinity
 from shapely.geometry import MultiPolygon, Polygon, box, mapping
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import atomic_file, sha256
+from data_tools.bundle_files.format import sha256
+from data_tools.bundle_files.writes import atomic_file
 from data_tools.errors import AnnotationError
 
 __all__ = ["CAMELYON16_DIR", "CAMELYON16_MPP", "make_dataset", "make_semisynthetic_slide", "save_preview",

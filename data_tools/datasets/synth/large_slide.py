@@ -26,7 +26,8 @@ from shapely import affinity
 from shapely.geometry import box
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import atomic_file, sha256
+from data_tools.bundle_files.format import sha256
+from data_tools.bundle_files.writes import atomic_file
 from data_tools.datasets.synth.dataset import (CAMELYON16_MPP, GLASS, LICENCE_NOTE, MIN_LEVEL_SIDE, PIXELS_NOTE, TIFF_TILE, _geojson,
                               _polygonal, _strips, tissue_files, tumour_files)
 

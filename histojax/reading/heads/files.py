@@ -3,7 +3,7 @@
 A head folder holds ``config.json`` (the head's kind, format and structure: a JSON object) and its parameters
 (``params.npz``: named float arrays), and maybe files its writer listed in ``config.json``'s ``"files"`` (a
 learning curve, a README). Head folders come from other people (a published head, a colleague's run), so
-reading one follows the bundle rules (:func:`data_tools.bundle_format.own_file`):
+reading one follows the bundle rules (:func:`data_tools.bundle_files.safe_files.own_file`):
 
 * **Regular files only.** Each file is ``lstat``-ed before it is opened: a symbolic link, a FIFO, a device
   or a folder is refused (a FIFO would block ``open``; a link may point anywhere). It is then opened with
@@ -22,7 +22,7 @@ Any problem raises :class:`HeadFileError` (a ``ValueError``): one line naming th
 
 :func:`save_folder` writes a head atomically: into a marked temporary folder beside the target
 (``.NAME.tmp-XXXXXXXX``, holding :data:`TEMP_MARKER`), ``config.json`` last (it records every file the head
-wrote), then renamed into place in one step (:func:`data_tools.bundle_format.replace_folder`). It never
+wrote), then renamed into place in one step (:func:`data_tools.bundle_files.writes.replace_folder`). It never
 replaces a folder that holds anything else: user files, a head of another kind, a link or a plain file.
 """
 from __future__ import annotations
@@ -39,7 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.bundle_format import ChangedFileError, left_run_lock, not_regular, open_regular, replace_folder
+from data_tools.bundle_files.safe_files import ChangedFileError, not_regular, open_regular
+from data_tools.bundle_files.writes import left_run_lock, replace_folder
 
 CONFIG = "config.json"
 PARAMS = "params.npz"
@@ -102,7 +103,7 @@ def check_finite_logits(head, logits, what: str = "slide logits"):
 # ----------------------------------------------------------------------------- guarded reads
 def read_regular(path, max_bytes: int, what: str = "file") -> bytes:
     """The bytes of ``path`` after checking it is a regular file (not a link, FIFO, device or folder: the bundles'
-    guard, :func:`data_tools.bundle_format.not_regular` and :func:`~data_tools.bundle_format.open_regular`) of at
+    guard, :func:`data_tools.bundle_files.safe_files.not_regular` and :func:`~data_tools.bundle_files.safe_files.open_regular`) of at
     most ``max_bytes`` bytes; ``HeadFileError`` naming it otherwise (or when it is missing)."""
     path = Path(path)
     try:

@@ -2,7 +2,7 @@
 
 GEOMETRY IS REAL CAMELYON16 (NCRF polygons, every tumour at its true size relative to the tissue and
 the view), PIXELS ARE REAL PatchCamelyon PATCHES ARRANGED BY US (a mosaic, see
-:mod:`data_tools.datasets.c16_mosaic`), NOT SCANNED SLIDES. Geometry: :mod:`data_tools.datasets.c16_layout`.
+:mod:`data_tools.datasets.c16.mosaic`), NOT SCANNED SLIDES. Geometry: :mod:`data_tools.datasets.c16.layout`.
 
 Layout of ``OUT``: ``slides/NAME.tif`` (pyramidal JPEG-tiled TIFF) with ``NAME.geojson`` (tumour and
 tissue, output px) and ``NAME.provenance.json`` beside it, ``bundles/NAME/`` (tiled bundles) and
@@ -29,10 +29,12 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.bundle_format import atomic_file, bundle_damage, read_metadata, sha256, write_json
-from data_tools.datasets.c16_layout import C16_MPP, donor_for, layout
-from data_tools.datasets.c16_inputs import check_known_inputs, differing_lines
-from data_tools.datasets.c16_mosaic import PIXELS_NOTE, Texture, write_slide_tiff
+from data_tools.bundle_files.format import sha256
+from data_tools.bundle_files.reading import bundle_damage, read_metadata
+from data_tools.bundle_files.writes import atomic_file, write_json
+from data_tools.datasets.c16.layout import C16_MPP, donor_for, layout
+from data_tools.datasets.c16.inputs import check_known_inputs, differing_lines
+from data_tools.datasets.c16.mosaic import PIXELS_NOTE, Texture, write_slide_tiff
 from data_tools.datasets.split import grouped_split as split_slides  # one home for splits (data_tools.datasets)
 from data_tools.errors import HistojaxDataError
 from data_tools.datasets.pcam_bank import CITATION, load_bank
@@ -61,7 +63,7 @@ def clean_stale(out_dir: Path) -> list[str]:
 
 
 def _slide_settings(name, downsample, seed, bank, jpeg_quality, sha, donor=None, pool=None) -> dict:
-    from data_tools.datasets import c16_mosaic
+    from data_tools.datasets.c16 import mosaic as c16_mosaic
 
     return {"name": name, "downsample": float(downsample), "seed": int(seed), "bank": bank.source,
             "bank_patches": len(bank), "jpeg_quality": int(jpeg_quality), "polygons_sha256": sha,
@@ -162,12 +164,13 @@ def _link_bundle(bundle: Path, into: Path) -> None:
     so a feature step that was killed resumes): arrays hard-linked (no copy on disk; histojax never writes
     into a bundle's file, it writes a new file and renames it, so the two folders never change each other's
     files), other files copied; a filesystem without hard links gets copies. Only the bundle's own regular
-    files are taken (:func:`data_tools.bundle_format.own_file`); links, folders and hidden temporaries of
+    files are taken (:func:`data_tools.bundle_files.safe_files.own_file`); links, folders and hidden temporaries of
     killed writes are left out."""
     import os
     import shutil
 
-    from data_tools.bundle_format import BundleError, own_file
+    from data_tools.bundle_files.safe_files import own_file
+    from data_tools.errors import BundleError
 
     def put(src_dir: Path, dst_dir: Path) -> None:
         dst_dir.mkdir(exist_ok=True)  # the staged temporary exists already (holding histojax's marker)
@@ -196,7 +199,7 @@ def _link_bundle(bundle: Path, into: Path) -> None:
 def _feature_layout_bytes(meta) -> int | None:
     """Device bytes of the slide in the feature-only layout with every bundle level (tumour tables and the
     feature grid; None without a feature grid)."""
-    from data_tools.bundle_format import slide_device_bytes
+    from data_tools.bundle_files.format import slide_device_bytes
 
     if not meta.features:
         return None
@@ -246,7 +249,7 @@ def _one_slide(job, bundle: Path) -> dict:
 
     clean_partial_features(bundle)  # a kill during the feature step, then a rerun: no empty features.partial/
     if no_pixels and len(meta.pixel_levels) > 1:
-        from data_tools.bundle_format import drop_pixels
+        from data_tools.bundle import drop_pixels
 
         drop_pixels(bundle)
         meta = read_metadata(bundle)
@@ -340,7 +343,7 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     (this run's ``built`` / ``busy`` / ``failed`` names); while slides of other shards are missing, nothing is
     written and the dict holds only ``dataset_written: False``, ``missing``, ``failed`` and ``run``.
     """
-    from data_tools.datasets.c16_layout import OWN_TISSUE
+    from data_tools.datasets.c16.layout import OWN_TISSUE
     from data_tools.features import encoder_record
     from data_tools.ncrf import SHIPPED_DIR, read_ncrf
     from data_tools.datasets.pcam_bank import pool_rule, split_pools

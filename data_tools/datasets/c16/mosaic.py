@@ -29,7 +29,7 @@ from __future__ import annotations
 import numpy as np
 from scipy.ndimage import uniform_filter
 
-from data_tools.datasets.c16_layout import SlideLayout
+from data_tools.datasets.c16.layout import SlideLayout
 from data_tools.datasets.pcam_bank import PATCH, PatchBank
 
 TIFF_TILE = 256

@@ -13,6 +13,7 @@ rollout with fixed parameters computes their per-cell tables once (``KEYS_ONLY``
 of the call that returns only those tables; :func:`baselines.networks.rollout_apply` /
 :func:`~baselines.networks.rollout_step`).
 """
+
 from __future__ import annotations
 
 import functools
@@ -23,6 +24,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from baselines.networks import ScannedGRU
+
 
 class EpisodeTables:
     """The per-slide tables of an env (:meth:`histojax.core.env.HistoEnv.episode_tables`: ``cells (S, C, D)``,
@@ -37,32 +39,34 @@ class EpisodeTables:
 
     def __init__(self, tables: dict):
         self.tables = {k: jnp.asarray(v) for k, v in tables.items()}
-        valid = np.asarray(self.tables["valid"]) > 0                      # (S, C)
+        valid = np.asarray(self.tables["valid"]) > 0  # (S, C)
         s, c = valid.shape
         counts = valid.sum(1)
         n = int(counts.sum())
         start = np.concatenate([[0], np.cumsum(counts)[:-1]]).astype(np.int32)
-        slide_of, cell_of = np.nonzero(valid)                              # row-major: slide order, cells ascending
-        local = np.arange(n) - start[slide_of]                             # each valid cell's entry in its slide's list
+        slide_of, cell_of = np.nonzero(valid)  # row-major: slide order, cells ascending
+        local = np.arange(n) - start[slide_of]  # each valid cell's entry in its slide's list
         packed = np.full((s, max(1, int(counts.max()))), c, np.int32)
         packed[slide_of, local] = cell_of
-        flat = {"cells": np.asarray(self.tables["cells"], np.float32)[slide_of, cell_of],
-                "cost": np.asarray(self.tables["cost"], np.float32)[slide_of, cell_of],
-                "position": np.asarray(self.tables["position"], np.float32)[slide_of, cell_of],
-                "summaries": np.asarray(self.tables["summaries"], np.float32)[slide_of, cell_of]}
-        self.flat = {k: jnp.asarray(v) for k, v in flat.items()}         # (N, ...) each valid cell's fixed inputs
-        self.flat_slide = jnp.asarray(slide_of.astype(np.int32))          # (N,) its slide
+        flat = {
+            "cells": np.asarray(self.tables["cells"], np.float32)[slide_of, cell_of],
+            "cost": np.asarray(self.tables["cost"], np.float32)[slide_of, cell_of],
+            "position": np.asarray(self.tables["position"], np.float32)[slide_of, cell_of],
+            "summaries": np.asarray(self.tables["summaries"], np.float32)[slide_of, cell_of],
+        }
+        self.flat = {k: jnp.asarray(v) for k, v in flat.items()}  # (N, ...) each valid cell's fixed inputs
+        self.flat_slide = jnp.asarray(slide_of.astype(np.int32))  # (N,) its slide
         self.inv_count = jnp.asarray(1.0 / np.maximum(counts, 1), jnp.float32)  # (S,) 1 / valid cells of the slide
         self.valid_cells = jnp.asarray(packed)  # (S, V) int32 cell index of each packed entry; C = none
         rows = np.full(packed.shape, n, np.int32)
         rows[slide_of, local] = np.arange(n)
-        self.packed_rows = jnp.asarray(rows)                              # (S, V) flat row of each entry; N = none
+        self.packed_rows = jnp.asarray(rows)  # (S, V) flat row of each entry; N = none
         cell_rows = np.full((s, c), n, np.int32)
         cell_rows[slide_of, cell_of] = np.arange(n)
-        self.cell_rows = jnp.asarray(cell_rows)                           # (S, C) flat row of each cell; N = none
+        self.cell_rows = jnp.asarray(cell_rows)  # (S, C) flat row of each cell; N = none
         self.num_flat = n
-        self.flat_start = jnp.asarray(start)                              # (S,) flat row of each slide's first cell
-        self.counts = jnp.asarray(counts.astype(np.int32))                # (S,) valid cells of each slide
+        self.flat_start = jnp.asarray(start)  # (S,) flat row of each slide's first cell
+        self.counts = jnp.asarray(counts.astype(np.int32))  # (S,) valid cells of each slide
         self.flat_slide_none = jnp.asarray(np.append(slide_of, s).astype(np.int32))  # (N + 1,) row N: slide S
         self._inputs = {}
 
@@ -72,14 +76,18 @@ class EpisodeTables:
         position —, ``summary means (N + 1, D)``, ``summary maxima (N + 1, D))``."""
         key = None if obs_norm is None else tuple(np.asarray(a, np.float32).tobytes() for a in obs_norm)
         if key not in self._inputs:
+
             def norm(x):
                 if obs_norm is None:
                     return x
                 return (x - np.asarray(obs_norm[0], np.float32)) / np.asarray(obs_norm[1], np.float32)
+
             f = {k: np.asarray(v, np.float32) for k, v in self.flat.items()}
             n = self.num_flat
-            fixed = np.concatenate([norm(f["cells"]), np.ones((n, 1), np.float32), f["cost"][:, None] * np.float32(10.0),
-                                    f["position"]], -1)
+            fixed = np.concatenate(
+                [norm(f["cells"]), np.ones((n, 1), np.float32), f["cost"][:, None] * np.float32(10.0), f["position"]],
+                -1,
+            )
             d = f["summaries"].shape[-1] // 2
             parts = (fixed, norm(f["summaries"][:, :d]), norm(f["summaries"][:, d:]))
             self._inputs[key] = tuple(np.concatenate([p, np.zeros((1, p.shape[1]), np.float32)]) for p in parts)
@@ -115,7 +123,7 @@ class SplitDense(nn.Module):
         bias = self.param("bias", nn.initializers.zeros_init(), (self.features,), jnp.float32)
         out, at = bias, 0
         for p, size in zip(parts, sizes):
-            out = out + jnp.asarray(p, jnp.float32) @ kernel[at:at + size]
+            out = out + jnp.asarray(p, jnp.float32) @ kernel[at : at + size]
             at += size
         return out
 
@@ -129,14 +137,16 @@ def cell_layers(p: dict, fixed, means, maxima):
     keys = nn.relu(keys @ p["cell_mid"]["kernel"] + p["cell_mid"]["bias"])
     k, d = p["slot_in"]["kernel"], means.shape[-1]
     slot = p["slot_in"]["bias"] + means @ k[:d]
-    slot = slot + maxima @ k[d:2 * d]
-    return keys, slot + keys @ k[2 * d:]
+    slot = slot + maxima @ k[d : 2 * d]
+    return keys, slot + keys @ k[2 * d :]
 
 
 def _chunks(order, n, chunk: int):
     """``(trips (), rows of trip k)``: the ``n`` live entries of ``order`` in blocks of ``chunk``."""
+
     def rows(k):
         return jax.lax.dynamic_slice(order, (k * chunk,), (chunk,)), (k * chunk + jnp.arange(chunk)) < n
+
     return rows
 
 
@@ -182,8 +192,10 @@ def _gathered_bwd(chunk, res, g):
         k, acc = carry
         r, live = rows(k)
         x = tuple(a[r] for a in inputs)
-        cot = tuple(jnp.where(live[:, None], jax.lax.dynamic_slice(a, (k * chunk, 0), (chunk, hc)), 0.0)
-                    for a in (g_keys, g_slot))
+        cot = tuple(
+            jnp.where(live[:, None], jax.lax.dynamic_slice(a, (k * chunk, 0), (chunk, hc)), 0.0)
+            for a in (g_keys, g_slot)
+        )
         _, vjp = jax.vjp(lambda q: cell_layers(q, *x), p)
         (dp,) = vjp(cot)
         return k + 1, jax.tree.map(jnp.add, acc, dp)
@@ -210,10 +222,10 @@ class CellEncoder(nn.Module):
     observation's ``read_summaries`` holds) are pooled (mean, max); with the slide's mean key, the view entry and
     the budget left they make the context input."""
 
-    hidden: int                 # width of the per-cell layers (Hc)
+    hidden: int  # width of the per-cell layers (Hc)
     tables: EpisodeTables
     obs_norm: tuple | None = None
-    batch_cells: bool = True    # per-cell layers over the cells of the batch's slides only (see batch_tables)
+    batch_cells: bool = True  # per-cell layers over the cells of the batch's slides only (see batch_tables)
 
     def batch_tables(self, slides):
         """The per-cell tables of the slides in a batch only, from this encoder's parameters (bound, not
@@ -229,12 +241,12 @@ class CellEncoder(nn.Module):
         chunk = min(CELL_CHUNK, t.num_flat + 1)
         r = -(-(t.num_flat + 1) // chunk) * chunk
         present = jnp.zeros((s,), bool).at[slides].set(True)
-        need = present[t.flat_slide]                                      # (N,)
+        need = present[t.flat_slide]  # (N,)
         n = need.sum(dtype=jnp.int32)
         order = jnp.nonzero(need, size=r, fill_value=t.num_flat)[0].astype(jnp.int32)  # (R,) flat rows, N after n
         keys, slot_rows = gathered_cell_layers(p, t.row_inputs(self.obs_norm), order, n, chunk)
         here = jnp.where(present, t.counts, 0)
-        shift = t.flat_start - (jnp.cumsum(here) - here)                  # flat row - local row, present slides
+        shift = t.flat_start - (jnp.cumsum(here) - here)  # flat row - local row, present slides
         slide_mean = jax.ops.segment_sum(keys, t.flat_slide_none[order], s + 1, indices_are_sorted=True)[:s]
         return keys, slot_rows, slide_mean * t.inv_count[:, None], shift
 
@@ -248,21 +260,29 @@ class CellEncoder(nn.Module):
             keys, slot_rows, slide_mean, shift = self.batch_tables(jnp.asarray(obs["slide"], jnp.int32))
             cell_keys = keys, slot_rows, slide_mean
         dense = lambda n, name: nn.Dense(n, kernel_init=nn.initializers.orthogonal(np.sqrt(2)), name=name)  # noqa: E731
-        norm = (lambda x: x) if self.obs_norm is None else (  # noqa: E731
-            lambda x: (x - jnp.asarray(self.obs_norm[0], jnp.float32)) / jnp.asarray(self.obs_norm[1], jnp.float32))
-        valid = t["valid"]                                                # (S, C)
+        norm = (
+            (lambda x: x)
+            if self.obs_norm is None
+            # noqa: E731
+            else (
+                lambda x: (x - jnp.asarray(self.obs_norm[0], jnp.float32)) / jnp.asarray(self.obs_norm[1], jnp.float32)
+            )
+        )
+        valid = t["valid"]  # (S, C)
         s, c = valid.shape
         if cell_keys is None:
             f = t.flat
             n = t.num_flat
-            fixed = jnp.concatenate([norm(f["cells"]), jnp.ones((n, 1), jnp.float32), f["cost"][:, None] * 10.0,
-                                     f["position"]], -1)                  # (N, F): valid cells only
+            fixed = jnp.concatenate(
+                [norm(f["cells"]), jnp.ones((n, 1), jnp.float32), f["cost"][:, None] * 10.0, f["position"]], -1
+            )  # (N, F): valid cells only
             keys = nn.relu(dense(self.hidden, "cell_in")(fixed))
-            keys = nn.relu(dense(self.hidden, "cell_mid")(keys))          # (N, Hc): every valid cell, once
+            keys = nn.relu(dense(self.hidden, "cell_mid")(keys))  # (N, Hc): every valid cell, once
             slide_mean = jax.ops.segment_sum(keys, t.flat_slide, s, indices_are_sorted=True) * t.inv_count[:, None]
             d = f["summaries"].shape[-1] // 2
-            slot_rows = SplitDense(self.hidden, name="slot_in")(norm(f["summaries"][:, :d]),
-                                                                norm(f["summaries"][:, d:]), keys)  # (N, Hc)
+            slot_rows = SplitDense(self.hidden, name="slot_in")(
+                norm(f["summaries"][:, :d]), norm(f["summaries"][:, d:]), keys
+            )  # (N, Hc)
             zero = jnp.zeros((1, self.hidden), jnp.float32)
             keys, slot_rows = jnp.concatenate([keys, zero]), jnp.concatenate([slot_rows, zero])
         else:
@@ -271,24 +291,27 @@ class CellEncoder(nn.Module):
             return keys, slot_rows, slide_mean
         i = jnp.asarray(obs["slide"], jnp.int32)
         b = i.shape[0]
-        where = jnp.asarray(obs["read_cells"], jnp.int32)                # (B, K), C = empty
+        where = jnp.asarray(obs["read_cells"], jnp.int32)  # (B, K), C = empty
         filled = (where < c).astype(jnp.float32)
         key_rows, slot_at = t.packed_rows[i], t.cell_rows[i[:, None], jnp.minimum(where, c - 1)]  # flat rows, N = none
         if batch:  # rows of the batch's tables
             none = t.num_flat
             key_rows = jnp.where(key_rows < none, key_rows - shift[i][:, None], none)
             slot_at = jnp.where(slot_at < none, slot_at - shift[i][:, None], none)
-        slots = nn.relu(slot_rows[slot_at])                               # (B, K, Hc)
+        slots = nn.relu(slot_rows[slot_at])  # (B, K, Hc)
         n_read = filled.sum(-1, keepdims=True)
         # a contraction, not a product then a sum: XLA's CPU backend runs the latter 50x slower at (B, K, Hc)
         slot_mean = jnp.einsum("bk,bkh->bh", filled, slots) / jnp.maximum(n_read, 1.0)
         slot_max = jnp.where(filled[..., None] > 0, slots, 0.0).max(1)
         d = int(jnp.shape(obs["read_summaries"])[-1]) // 2
-        view = [jnp.asarray(v, jnp.float32).reshape(b, -1) for k, v in sorted(obs.items())
-                if k not in ("slide", "read_bits", "read_cells", "read_summaries")]
+        view = [
+            jnp.asarray(v, jnp.float32).reshape(b, -1)
+            for k, v in sorted(obs.items())
+            if k not in ("slide", "read_bits", "read_cells", "read_summaries")
+        ]
         view = [norm(v) if v.shape[-1] == d else v for v in view]
         context_in = jnp.concatenate([slide_mean[i], slot_mean, slot_max, n_read / where.shape[-1], *view], -1)
-        read = unpack_bits(jnp.asarray(obs["read_bits"]), c)            # (B, C) bool
+        read = unpack_bits(jnp.asarray(obs["read_bits"]), c)  # (B, C) bool
         pickable = (valid[i] > 0) & ~read
         return (keys[key_rows], t.valid_cells[i]), context_in, pickable
 
@@ -305,10 +328,12 @@ def cell_logits(module: nn.Module, keys, context, pickable):
     rows = jnp.arange(cells.shape[0])[:, None]
     per_cell = jnp.full(pickable.shape, NEG, packed.dtype).at[rows, cells].set(packed, mode="drop")
     per_cell = jnp.where(pickable, per_cell, NEG)
-    declare = nn.Dense(2, kernel_init=nn.initializers.orthogonal(0.01), bias_init=nn.initializers.zeros,
-                       name="declare")(nn.tanh(nn.Dense(module.hidden // 2, name="declare_in")(context)))
+    declare = nn.Dense(
+        2, kernel_init=nn.initializers.orthogonal(0.01), bias_init=nn.initializers.zeros, name="declare"
+    )(nn.tanh(nn.Dense(module.hidden // 2, name="declare_in")(context)))
     value = nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0), name="value")(
-        nn.tanh(nn.Dense(module.hidden // 2, name="value_in")(context)))[..., 0]
+        nn.tanh(nn.Dense(module.hidden // 2, name="value_in")(context))
+    )[..., 0]
     return jnp.concatenate([per_cell, declare], -1), value
 
 
@@ -323,15 +348,15 @@ class CellSetActorCritic(nn.Module):
     ``apply(params, None)`` gives the per-cell tables (keys, slot rows, slide means: :class:`CellEncoder`), which
     ``apply(params, obs, cell_keys=...)`` takes back (the same outputs; a rollout with fixed parameters computes them once: :func:`baselines.networks.rollout_apply`)."""
 
-    KEYS_ONLY = (None,)         # apply(params, None): the per-cell tables only (rollout_apply computes them once)
+    KEYS_ONLY = (None,)  # apply(params, None): the per-cell tables only (rollout_apply computes them once)
 
     action_dim: int
     tables: EpisodeTables
     action_mode: str = "glimpse"
-    hidden: int = 256           # the context's width (config "hidden")
+    hidden: int = 256  # the context's width (config "hidden")
     obs_norm: tuple | None = None
-    cell_hidden: int = 32       # the per-cell layers' width (config "cell_hidden")
-    batch_cells: bool = True    # given observations, the per-cell layers over their slides' cells only (CellEncoder)
+    cell_hidden: int = 32  # the per-cell layers' width (config "cell_hidden")
+    batch_cells: bool = True  # given observations, the per-cell layers over their slides' cells only (CellEncoder)
 
     @nn.compact
     def __call__(self, obs, cell_keys=None):
@@ -339,8 +364,9 @@ class CellSetActorCritic(nn.Module):
         if obs is None:  # the per-cell tables only (see CellEncoder)
             return encoded
         keys, context_in, pickable = encoded
-        context = nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)),
-                                   name="context")(context_in))
+        context = nn.relu(
+            nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)), name="context")(context_in)
+        )
         return cell_logits(self, keys, context, pickable)
 
 
@@ -355,10 +381,10 @@ class RecurrentCellSetActorCritic(nn.Module):
     action_dim: int
     tables: EpisodeTables
     action_mode: str = "glimpse"
-    hidden: int = 128           # the context's and the GRU's width (config "hidden")
+    hidden: int = 128  # the context's and the GRU's width (config "hidden")
     obs_norm: tuple | None = None
-    cell_hidden: int = 32       # the per-cell layers' width (config "cell_hidden")
-    batch_cells: bool = True    # given observations, the per-cell layers over their slides' cells only (CellEncoder)
+    cell_hidden: int = 32  # the per-cell layers' width (config "cell_hidden")
+    batch_cells: bool = True  # given observations, the per-cell layers over their slides' cells only (CellEncoder)
 
     @nn.compact
     def __call__(self, h, obs, resets, cell_keys=None):
@@ -368,8 +394,9 @@ class RecurrentCellSetActorCritic(nn.Module):
         t, b = resets.shape
         flat = jax.tree.map(lambda a: jnp.reshape(a, (t * b, *jnp.shape(a)[2:])), obs)
         keys, context_in, pickable = encoder(flat, cell_keys)
-        x = nn.relu(nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)),
-                             name="context")(context_in))
+        x = nn.relu(
+            nn.Dense(self.hidden, kernel_init=nn.initializers.orthogonal(np.sqrt(2)), name="context")(context_in)
+        )
         h, y = ScannedGRU(self.hidden)(h, (x.reshape(t, b, -1), resets.astype(bool)))
         logits, value = cell_logits(self, keys, y.reshape(t * b, -1), pickable)
         return h, logits.reshape(t, b, -1), value.reshape(t, b)

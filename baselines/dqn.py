@@ -13,6 +13,7 @@ env. A sample is a (row, env) pair whose ``n`` following rows are written; its n
 stops at the first episode end (auto-reset puts the next episode's first observation after it,
 which the zero discount then ignores). Time limits count as episode ends, as in PPO.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -32,36 +33,37 @@ from baselines.networks import QNetwork, preprocess_obs
 from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
 
+
 @dataclasses.dataclass(frozen=True)
 class DQNConfig(EnvConfig):
     """DQN's settings, typed (``config.json`` records them, :meth:`as_dict`; ``--set KEY=VALUE`` changes any;
     :meth:`from_dict` refuses an unknown entry or a wrong type in one line; discrete actions only). Steps are env
     steps, ``buffer_size`` counts transitions of all envs, ``hidden`` is the network's width."""
 
-    algo: str = "dqn"                    # the trainer (recorded in config.json)
-    num_envs: int = 32                   # parallel envs per seed
-    total_timesteps: int = 200_000       # env steps per seed
-    buffer_size: int = 32_768            # replay rows (transitions of all envs)
+    algo: str = "dqn"  # the trainer (recorded in config.json)
+    num_envs: int = 32  # parallel envs per seed
+    total_timesteps: int = 200_000  # env steps per seed
+    buffer_size: int = 32_768  # replay rows (transitions of all envs)
     batch_size: int = 128
-    n_step: int = 3                      # n-step returns
-    gamma: float = 0.99                  # discount
-    lr: float = 2.5e-4                   # Adam learning rate
+    n_step: int = 3  # n-step returns
+    gamma: float = 0.99  # discount
+    lr: float = 2.5e-4  # Adam learning rate
     max_grad_norm: float = 10.0
-    learning_starts: int = 2_048         # env steps before the first update
-    train_every: int = 1                 # iterations per gradient step
-    target_update_every: int = 250       # gradient steps per target-network copy
-    eps_start: float = 1.0               # epsilon-greedy schedule
+    learning_starts: int = 2_048  # env steps before the first update
+    train_every: int = 1  # iterations per gradient step
+    target_update_every: int = 250  # gradient steps per target-network copy
+    eps_start: float = 1.0  # epsilon-greedy schedule
     eps_end: float = 0.05
-    eps_fraction: float = 0.4            # fraction of the run the schedule takes
+    eps_fraction: float = 0.4  # fraction of the run the schedule takes
     double_q: bool = True
-    hidden: int = 256                    # network width
+    hidden: int = 256  # network width
     num_seeds: int = 1
-    vmap_seeds: bool = True              # all seeds in one vmapped program
+    vmap_seeds: bool = True  # all seeds in one vmapped program
     iterations_per_log: int = 50
-    log_every: int = 2                   # log blocks per progress line
+    log_every: int = 2  # log blocks per progress line
     print_progress: bool = True
-    checkpoint_every: int = 25           # log blocks between checkpoints of the whole training state, replay
-                                         # buffer included (0: only the end)
+    checkpoint_every: int = 25  # log blocks between checkpoints of the whole training state, replay
+    # buffer included (0: only the end)
 
 
 DEFAULTS = DQNConfig.defaults()  # the record of the default config (config.json's entries)
@@ -74,14 +76,16 @@ def n_step_return(rewards, dones, gamma: float, bootstrap):
     ``rewards, dones``: ``(n, ...)`` (the reward of step ``k`` and whether the episode ended at
     it); ``bootstrap``: ``(...)`` the value of the state after the n-th step. Returns ``(G,
     discount)`` where ``discount = γ^n Π(1 − d)`` is the weight the bootstrap got."""
+
     def body(carry, x):
         g, disc = carry
         r, d = x
         return (g + disc * r, disc * gamma * (1.0 - d)), None
 
     ones = jnp.ones_like(bootstrap, jnp.float32)
-    (g, disc), _ = jax.lax.scan(body, (jnp.zeros_like(ones), ones),
-                                (jnp.asarray(rewards, jnp.float32), jnp.asarray(dones, jnp.float32)))
+    (g, disc), _ = jax.lax.scan(
+        body, (jnp.zeros_like(ones), ones), (jnp.asarray(rewards, jnp.float32), jnp.asarray(dones, jnp.float32))
+    )
     return g + disc * bootstrap, disc
 
 
@@ -100,12 +104,12 @@ def td_targets(rewards, dones, q_online_next, q_target_next, gamma: float, doubl
 # ----------------------------------------------------------------------------- buffer
 @struct.dataclass
 class Buffer:
-    obs: object           # (rows, envs, ...) preprocessed observations
-    action: jnp.ndarray   # (rows, envs)
-    reward: jnp.ndarray   # (rows, envs)
-    done: jnp.ndarray     # (rows, envs)
+    obs: object  # (rows, envs, ...) preprocessed observations
+    action: jnp.ndarray  # (rows, envs)
+    reward: jnp.ndarray  # (rows, envs)
+    done: jnp.ndarray  # (rows, envs)
     pointer: jnp.ndarray  # next row to write
-    filled: jnp.ndarray   # rows written so far (≤ rows)
+    filled: jnp.ndarray  # rows written so far (≤ rows)
 
 
 def buffer_init(obs_example, rows: int, num_envs: int) -> Buffer:
@@ -118,8 +122,14 @@ def buffer_add(buf: Buffer, obs, action, reward, done) -> Buffer:
     rows = buf.reward.shape[0]
     p = buf.pointer
     put = lambda store, x: store.at[p].set(x.astype(store.dtype))  # noqa: E731
-    return Buffer(jax.tree.map(put, buf.obs, obs), put(buf.action, action), put(buf.reward, reward),
-                  put(buf.done, done), (p + 1) % rows, jnp.minimum(buf.filled + 1, rows))
+    return Buffer(
+        jax.tree.map(put, buf.obs, obs),
+        put(buf.action, action),
+        put(buf.reward, reward),
+        put(buf.done, done),
+        (p + 1) % rows,
+        jnp.minimum(buf.filled + 1, rows),
+    )
 
 
 def buffer_sample(buf: Buffer, key, batch_size: int, n: int):
@@ -156,8 +166,7 @@ def make_train(config):
     per_log = config.iterations_per_log
     num_logs = max(1, config.total_timesteps // (num_envs * per_log))
     total_iters = num_logs * per_log
-    progress = Progress(config.num_seeds, num_logs, per_log * num_envs, config.log_every,
-                               name=f"dqn {config.env_id}")
+    progress = Progress(config.num_seeds, num_logs, per_log * num_envs, config.log_every, name=f"dqn {config.env_id}")
     n, gamma = config.n_step, config.gamma
     tx = optax.chain(optax.clip_by_global_norm(config.max_grad_norm), optax.adam(config.lr))
 
@@ -171,8 +180,7 @@ def make_train(config):
         q_sa = jnp.take_along_axis(q, a_t[:, None], axis=-1)[:, 0]
         q_next_online = network.apply(params, obs_n)
         q_next_target = network.apply(target_params, obs_n)
-        target = jax.lax.stop_gradient(td_targets(rewards, dones, q_next_online, q_next_target, gamma,
-                                                  config.double_q))
+        target = jax.lax.stop_gradient(td_targets(rewards, dones, q_next_online, q_next_target, gamma, config.double_q))
         return optax.huber_loss(q_sa, target).mean(), q_sa.mean()
 
     init_params = params_initialiser(env, network, num_envs)
@@ -181,8 +189,16 @@ def make_train(config):
         """One seed's runner state before the first iteration: ``(params, target params, optimizer state,
         replay buffer, env states, observations, key, gradient steps)`` with the envs freshly reset."""
         key, _, obs, env_state = reset_envs(env, key, env_params, num_envs)
-        return (params, params, tx.init(params), buffer_init(obs, rows, num_envs), env_state, obs, key,
-                jnp.zeros((), jnp.int32))
+        return (
+            params,
+            params,
+            tx.init(params),
+            buffer_init(obs, rows, num_envs),
+            env_state,
+            obs,
+            key,
+            jnp.zeros((), jnp.int32),
+        )
 
     def update(carry, block, env_params):
         """One log block (``iterations_per_log`` iterations) of a runner state ``carry``
@@ -196,7 +212,8 @@ def make_train(config):
             explore = jax.random.uniform(k_eps, (num_envs,)) < epsilon(it)
             action = jnp.where(explore, jax.random.randint(k_rand, (num_envs,), 0, num_actions), q.argmax(-1))
             next_obs, env_state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(k_step, num_envs), env_state, action, env_params)
+                jax.random.split(k_step, num_envs), env_state, action, env_params
+            )
             done = jnp.logical_or(term, trunc)
             buf = buffer_add(buf, obs, action, reward, done)
             next_obs = preprocess_obs(next_obs)
@@ -212,20 +229,33 @@ def make_train(config):
                 target_params = jax.tree.map(lambda t, p: jnp.where(refresh, p, t), target_params, params)
                 return (params, target_params, opt_state, grad_steps), (loss, q_mean)
 
-            can_learn = ((buf.filled * num_envs >= config.learning_starts) & (buf.filled > n)
-                         & (it % config.train_every == 0))
+            can_learn = (
+                (buf.filled * num_envs >= config.learning_starts) & (buf.filled > n) & (it % config.train_every == 0)
+            )
             (params, target_params, opt_state, grad_steps), (loss, q_mean) = jax.lax.cond(
-                can_learn, learn, lambda a: (a, (zero, zero)), (params, target_params, opt_state, grad_steps))
-            keep = {k: info[k] for k in ("returned_episode", "returned_episode_returns",
-                                         "returned_episode_lengths", "returned_episode_success")}
+                can_learn, learn, lambda a: (a, (zero, zero)), (params, target_params, opt_state, grad_steps)
+            )
+            keep = {
+                k: info[k]
+                for k in (
+                    "returned_episode",
+                    "returned_episode_returns",
+                    "returned_episode_lengths",
+                    "returned_episode_success",
+                )
+            }
             out = {"info": keep, "loss": loss, "q": q_mean, "learned": can_learn.astype(jnp.float32)}
             return (params, target_params, opt_state, buf, env_state, next_obs, key, grad_steps), out
 
         its = block * per_log + jnp.arange(per_log)
         carry, out = jax.lax.scan(iteration, carry, its)
         learned = jnp.maximum(out["learned"].sum(), 1.0)
-        metrics = {**episode_stats(out["info"]), "loss": out["loss"].sum() / learned,
-                   "q": out["q"].sum() / learned, "epsilon": epsilon(its[-1])}
+        metrics = {
+            **episode_stats(out["info"]),
+            "loss": out["loss"].sum() / learned,
+            "q": out["q"].sum() / learned,
+            "epsilon": epsilon(its[-1]),
+        }
         if config.print_progress:
             ack = report(progress, block, metrics)
             metrics = {**metrics, "episodes": metrics["episodes"] + ack}
@@ -237,11 +267,21 @@ def make_train(config):
         return {"params": carry[0], "metrics": metrics}
 
     run = seeds_runner(train, init_params, env_params, config, progress, env=env)
-    run.env, run.env_params, run.network, run.train_config, run.config = env, env_params, network, config, config.as_dict()
+    run.env, run.env_params, run.network, run.train_config, run.config = (
+        env,
+        env_params,
+        network,
+        config,
+        config.as_dict(),
+    )
     run.num_updates, run.steps_per_update = num_logs, per_log * num_envs
     # the pieces of a run in chunks with checkpoints (baselines.harness.runner.run_chunked)
-    run.init_params, run.init_runner, run.update, run.runner_params = (init_params, init_runner, update,
-                                                                       lambda runner: runner[0])
+    run.init_params, run.init_runner, run.update, run.runner_params = (
+        init_params,
+        init_runner,
+        update,
+        lambda runner: runner[0],
+    )
     return run
 
 

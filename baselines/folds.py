@@ -1,6 +1,7 @@
 """Every fold of a dataset built with ``--folds K``: which folds there are, which side of each is scored, and each
 figure as its mean ± std over folds. The budget curve's and ``histojax evaluate``'s ``--all-folds`` run their one-fold
 path (``--fold I``) for I = 0 … K − 1 and summarise it here (a leaf module: it imports no other command)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -23,14 +24,18 @@ def dataset_folds(dataset, option: str = "--all-folds") -> tuple[int, str]:
     try:
         spec = read_dataset_json(dataset)
     except FileNotFoundError:
-        raise HistojaxDataError(None, f"{option}: {path}: no such file (give a dataset folder built by "
-                                      "`histojax dataset`)") from None
+        raise HistojaxDataError(
+            None, f"{option}: {path}: no such file (give a dataset folder built by `histojax dataset`)"
+        ) from None
     except (OSError, ValueError) as e:
         raise HistojaxDataError(None, f"{option}: {path}: cannot be read ({e})") from None
     folds = spec.get("folds") if isinstance(spec, dict) else None
     if not isinstance(folds, dict) or not isinstance(folds.get("lists"), list) or len(folds["lists"]) < 2:
-        raise HistojaxDataError(None, f"{option}: {path} has no folds; build the dataset with `histojax dataset "
-                                      "... --folds K` (or `c16 --folds K`), or drop " + option)
+        raise HistojaxDataError(
+            None,
+            f"{option}: {path} has no folds; build the dataset with `histojax dataset "
+            "... --folds K` (or `c16 --folds K`), or drop " + option,
+        )
     return len(folds["lists"]), ("test" if folds.get("pool") == "all" else "validation")
 
 

@@ -16,6 +16,7 @@ pure functions here (no distrax dependency). The reader networks over a set of c
 ``step_obs=True``) are :mod:`baselines.cell_set_networks`; the rollout helpers here (:func:`rollout_apply`,
 :func:`rollout_step`, :func:`rollout_sampler`) serve both.
 """
+
 from __future__ import annotations
 
 import functools
@@ -47,11 +48,13 @@ def preprocess_obs(obs):
     """What replay buffers store: pixels pooled to ``POOLED_SIZE`` and rounded back to uint8
     (16× smaller for 128-px views; the torso's first step is the same pooling, so the network
     sees the same input up to rounding). Vector entries pass through."""
+
     def one(x):
         x = jnp.asarray(x)
         if x.ndim >= 4 and x.dtype == jnp.uint8:
             return jnp.round(pool_pixels(x)).astype(jnp.uint8)
         return x
+
     if isinstance(obs, dict):
         return {k: (one(v) if k == "pixels" else v) for k, v in obs.items()}
     return one(obs)
@@ -121,6 +124,7 @@ def normalise_features(obs, obs_norm):
 
     def norm(x):
         return (jnp.asarray(x, jnp.float32) - mean) / std
+
     if isinstance(obs, dict):
         return {k: (norm(v) if k == "features" else v) for k, v in obs.items()}
     obs = jnp.asarray(obs)
@@ -179,8 +183,7 @@ def policy_value_heads(module: nn.Module, h: jax.Array):
     a = nn.tanh(nn.Dense(module.hidden // 2, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(h))
     c = nn.tanh(nn.Dense(module.hidden // 2, kernel_init=nn.initializers.orthogonal(np.sqrt(2)))(h))
     value = nn.Dense(1, kernel_init=nn.initializers.orthogonal(1.0))(c)[..., 0]
-    out = nn.Dense(module.action_dim, kernel_init=nn.initializers.orthogonal(0.01),
-                   bias_init=nn.initializers.zeros)(a)
+    out = nn.Dense(module.action_dim, kernel_init=nn.initializers.orthogonal(0.01), bias_init=nn.initializers.zeros)(a)
     if is_discrete(module.action_mode):
         return out, value
     log_std = module.param("log_std", nn.initializers.constant(-0.5), (module.action_dim,))
@@ -288,12 +291,13 @@ def inverse_cdf_sample(key, logits, block: int = 32):
     nb = -(-n // block)
     p = jax.nn.softmax(jnp.asarray(logits, jnp.float32), -1)
     p = jnp.pad(p, [(0, 0)] * (p.ndim - 1) + [(0, nb * block - n)]).reshape(*p.shape[:-1], nb, block)
-    mass = p.sum(-1)                                                     # (..., nb)
+    mass = p.sum(-1)  # (..., nb)
     cum = jnp.cumsum(mass, -1)
     u = jax.random.uniform(key, logits.shape[:-1], jnp.float32) * cum[..., -1]
 
     def last_positive(a):  # the last index holding mass (rounding may carry a draw past it)
         return a.shape[-1] - 1 - jnp.argmax(jnp.flip(a > 0, -1), -1)
+
     b = jnp.minimum((cum <= u[..., None]).sum(-1), last_positive(mass))
     rest = u - jnp.take_along_axis(cum - mass, b[..., None], -1)[..., 0]
     inside = jnp.take_along_axis(p, b[..., None, None], -2)[..., 0, :]  # (..., block)
@@ -317,7 +321,7 @@ def gaussian_sample(key, mean, log_std):
 
 def gaussian_log_prob(mean, log_std, action):
     z = (action - mean) * jnp.exp(-log_std)
-    return (-0.5 * z ** 2 - log_std - 0.5 * jnp.log(2 * jnp.pi)).sum(-1)
+    return (-0.5 * z**2 - log_std - 0.5 * jnp.log(2 * jnp.pi)).sum(-1)
 
 
 def gaussian_entropy(mean, log_std):

@@ -5,6 +5,7 @@ file or none, never half of one. :func:`staged` does the same for a set of files
 training run's ``log.csv``, ``log.json``, ``curve.png``, ``params.msgpack``, ``config.json``): all are
 written to temporary siblings first and renamed into place only once every one is whole, so a run that
 fails while writing keeps the previous run's files side by side, not a new log beside old parameters."""
+
 from __future__ import annotations
 
 import contextlib

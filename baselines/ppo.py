@@ -30,6 +30,7 @@ Observations are pooled to 32 px before they are stored (see :func:`networks.pre
 so a rollout of 64 envs × 64 steps needs ~13 MB, not ~200 MB. Time limits are treated as episode
 ends in GAE (no bootstrap from the final observation), as in PureJaxRL.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -43,6 +44,7 @@ import numpy as np
 import optax
 from flax.training.train_state import TrainState
 
+from baselines.cell_set_networks import CellSetActorCritic, EpisodeTables, RecurrentCellSetActorCritic, uses_cell_sets
 from baselines.common.config import EnvConfig
 from baselines.common.devices import batch_mesh, check_rollout_memory, shard_batch
 from baselines.common.env import env_vmap, episode_stats, make_env, params_initialiser, pin_env_shapes, reset_envs
@@ -50,11 +52,19 @@ from baselines.harness import cli
 from baselines.harness.cli import trainer_command
 from baselines.harness.logs import Progress, report
 from baselines.harness.runner import seeds_runner
-from baselines.cell_set_networks import CellSetActorCritic, EpisodeTables, RecurrentCellSetActorCritic, uses_cell_sets
-from baselines.networks import (ActorCritic, RecurrentActorCritic, is_discrete, policy_entropy, policy_log_prob,
-                                preprocess_obs, rollout_apply, rollout_sampler)
+from baselines.networks import (
+    ActorCritic,
+    RecurrentActorCritic,
+    is_discrete,
+    policy_entropy,
+    policy_log_prob,
+    preprocess_obs,
+    rollout_apply,
+    rollout_sampler,
+)
 from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
+
 
 @dataclasses.dataclass(frozen=True)
 class PPOConfig(EnvConfig):
@@ -62,32 +72,32 @@ class PPOConfig(EnvConfig):
     :meth:`from_dict` makes one from a dict and refuses an unknown entry or a wrong type in one line). Steps are
     env steps, widths are units of a dense layer; ``lr`` is Adam's step size, the coefficients are loss weights."""
 
-    algo: str = "ppo"                    # the trainer (recorded in config.json)
-    num_envs: int = 64                   # parallel envs per seed
-    num_steps: int = 64                  # env steps per env per update
-    total_timesteps: int = 500_000       # env steps per seed
+    algo: str = "ppo"  # the trainer (recorded in config.json)
+    num_envs: int = 64  # parallel envs per seed
+    num_steps: int = 64  # env steps per env per update
+    total_timesteps: int = 500_000  # env steps per seed
     update_epochs: int = 2
     num_minibatches: int = 8
-    lr: float = 3e-4                     # Adam learning rate
-    anneal_lr: bool = True               # linear decay to 0
-    gamma: float = 0.99                  # discount
+    lr: float = 3e-4  # Adam learning rate
+    anneal_lr: bool = True  # linear decay to 0
+    gamma: float = 0.99  # discount
     gae_lambda: float = 0.95
     clip_eps: float = 0.2
     ent_coef: float = 0.01
     ent_coef_final: float | None = None  # entropy coefficient at the last update (linear from ent_coef); None: constant
-    obs_norm: object = None              # feature observations standardised: None, "dataset" (mean / std of the
-                                         # training env's feature grids, recorded as numbers), or {"mean", "std"}
+    obs_norm: object = None  # feature observations standardised: None, "dataset" (mean / std of the
+    # training env's feature grids, recorded as numbers), or {"mean", "std"}
     vf_coef: float = 0.5
     max_grad_norm: float = 0.5
-    hidden: int = 256                    # network width
-    cell_hidden: int = 32                # cell-set readers (glimpse, step_obs): width of the layers shared by the cells
+    hidden: int = 256  # network width
+    cell_hidden: int = 32  # cell-set readers (glimpse, step_obs): width of the layers shared by the cells
     num_seeds: int = 1
-    vmap_seeds: bool = True              # all seeds in one vmapped program
-    log_every: int = 4                   # updates per progress line
+    vmap_seeds: bool = True  # all seeds in one vmapped program
+    log_every: int = 4  # updates per progress line
     print_progress: bool = True
-    checkpoint_every: int = 50           # updates between checkpoints of the whole training state (0: only the end)
-    devices: int | None = None           # shard the env batch over the first N devices
-    shard_slides: bool = False           # with devices: split the dataset's slides over them
+    checkpoint_every: int = 50  # updates between checkpoints of the whole training state (0: only the end)
+    devices: int | None = None  # shard the env batch over the first N devices
+    shard_slides: bool = False  # with devices: split the dataset's slides over them
 
 
 DEFAULTS = PPOConfig.defaults()  # the record of the default config (config.json's entries)
@@ -106,14 +116,14 @@ LOG_KEYS = ("returned_episode", "returned_episode_returns", "returned_episode_le
 class Transition(NamedTuple):
     """One rollout step (arrays with the env batch axis; time-major once scanned)."""
 
-    done: jnp.ndarray      # float: this step ended the episode (GAE)
+    done: jnp.ndarray  # float: this step ended the episode (GAE)
     action: jnp.ndarray
     value: jnp.ndarray
     reward: jnp.ndarray
     log_prob: jnp.ndarray
     obs: object
     info: dict
-    first: object = None   # recurrent PPO: obs is the first of an episode (reset the memory first)
+    first: object = None  # recurrent PPO: obs is the first of an episode (reset the memory first)
 
 
 def make_network(config, env, network_cls=ActorCritic):
@@ -135,10 +145,15 @@ def make_network(config, env, network_cls=ActorCritic):
         cls = {ActorCritic: CellSetActorCritic, RecurrentActorCritic: RecurrentCellSetActorCritic}.get(network_cls)
         if cls is None:
             raise ValueError(f"{network_cls.__name__} cannot read a step_obs glimpse env; use PPO or recurrent PPO")
-        return cls(action_dim=action_dim, tables=EpisodeTables(env.episode_tables()), action_mode=config.action_mode,
-                   hidden=config.hidden, obs_norm=norm, cell_hidden=config.cell_hidden)
-    return network_cls(action_dim=action_dim, action_mode=config.action_mode, hidden=config.hidden,
-                       obs_norm=norm)
+        return cls(
+            action_dim=action_dim,
+            tables=EpisodeTables(env.episode_tables()),
+            action_mode=config.action_mode,
+            hidden=config.hidden,
+            obs_norm=norm,
+            cell_hidden=config.cell_hidden,
+        )
+    return network_cls(action_dim=action_dim, action_mode=config.action_mode, hidden=config.hidden, obs_norm=norm)
 
 
 def dataset_normaliser(slide, eps: float = 1e-3) -> dict:
@@ -147,8 +162,10 @@ def dataset_normaliser(slide, eps: float = 1e-3) -> dict:
     slide's own rows count, not the padding); ``std`` at least ``eps``. For a training env this is a
     fixed per-dataset normaliser computed from the training slides only."""
     if slide.features is None:
-        raise ValueError("obs_norm='dataset' needs feature observations (obs_mode='features'; the slides have no "
-                         "feature grids loaded)")
+        raise ValueError(
+            "obs_norm='dataset' needs feature observations (obs_mode='features'; the slides have no "
+            "feature grids loaded)"
+        )
     feats = np.asarray(jax.device_get(slide.features), np.float64)
     widths = np.asarray(jax.device_get(slide.feature_grid_width)).reshape(-1, np.shape(slide.feature_grid_width)[-1])
     heights = np.asarray(jax.device_get(slide.feature_grid_height)).reshape(widths.shape)
@@ -180,6 +197,7 @@ def entropy_coef(config, update_index, num_updates: int):
 
 def gae(traj: Transition, last_value, gamma: float, lam: float):
     """Generalised advantage estimates and value targets over a time-major trajectory."""
+
     def body(carry, t):
         adv, next_value = carry
         delta = t.reward + gamma * next_value * (1 - t.done) - t.value
@@ -194,12 +212,15 @@ def make_optimizer(config, num_updates: int):
     """Adam with global-norm clipping; the learning rate decays linearly to 0 over
     ``num_updates`` updates of ``num_minibatches × update_epochs`` steps (``anneal_lr``)."""
     config = settings(config)
+
     def lr_schedule(count):
         frac = 1.0 - (count // (config.num_minibatches * config.update_epochs)) / num_updates
         return config.lr * frac
 
-    return optax.chain(optax.clip_by_global_norm(config.max_grad_norm),
-                       optax.adam(lr_schedule if config.anneal_lr else config.lr, eps=1e-5))
+    return optax.chain(
+        optax.clip_by_global_norm(config.max_grad_norm),
+        optax.adam(lr_schedule if config.anneal_lr else config.lr, eps=1e-5),
+    )
 
 
 def clipped_loss(pi, value, traj, adv, target, config, ent_coef=None):
@@ -227,6 +248,7 @@ def run_epochs(state, key, loss_fn, minibatches, epochs: int):
     ``minibatches(k)`` (a pytree with a leading minibatch axis, shuffled with ``k``) and one gradient
     step of ``loss_fn(params, mb) -> (loss, aux)`` per minibatch. Returns ``(state, key, aux)``
     with ``aux`` stacked ``(epochs, minibatches, ...)``."""
+
     def epoch(carry, _):
         state, key = carry
         key, k_perm = jax.random.split(key)
@@ -246,8 +268,7 @@ def update_metrics(info: dict, aux, progress, update_index, config) -> dict:
     """One update's metrics: episode statistics of the rollout's ``info`` and the means of the
     losses ``aux`` (from :func:`clipped_loss`); printed through ``progress`` when asked (``print_progress``)."""
     pg_loss, v_loss, entropy, kl = (a.mean() for a in aux)
-    metrics = {**episode_stats(info), "pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy,
-               "approx_kl": kl}
+    metrics = {**episode_stats(info), "pg_loss": pg_loss, "v_loss": v_loss, "entropy": entropy, "approx_kl": kl}
     if settings(config).print_progress:
         ack = report(progress, update_index, metrics)
         metrics = {**metrics, "episodes": metrics["episodes"] + ack}
@@ -289,11 +310,11 @@ def make_train(config):
     minibatch = batch // config.num_minibatches
     assert minibatch * config.num_minibatches == batch, "num_envs * num_steps must divide by num_minibatches"
     if mesh is not None and minibatch % mesh.size:
-        raise ValueError(f"the minibatch ({minibatch} = num_envs * num_steps / num_minibatches) must divide "
-                         f"by devices={mesh.size}")
+        raise ValueError(
+            f"the minibatch ({minibatch} = num_envs * num_steps / num_minibatches) must divide by devices={mesh.size}"
+        )
     shard = functools.partial(shard_batch, mesh)  # identity without devices
-    progress = Progress(config.num_seeds, num_updates, batch, config.log_every,
-                               name=f"ppo {config.env_id}")
+    progress = Progress(config.num_seeds, num_updates, batch, config.log_every, name=f"ppo {config.env_id}")
 
     init_params = params_initialiser(env, network, num_envs, reset_all)
 
@@ -322,7 +343,8 @@ def make_train(config):
             action = sample(k_act, pi)
             log_prob = policy_log_prob(pi, action, mode)
             next_obs, env_state, reward, term, trunc, info = step_all(
-                jax.random.split(k_step, num_envs), env_state, action, env_params)
+                jax.random.split(k_step, num_envs), env_state, action, env_params
+            )
             keep = {k: info[k] for k in LOG_KEYS}
             done = jnp.logical_or(term, trunc).astype(jnp.float32)
             t = shard(Transition(done, action, value, reward, log_prob, obs, keep))
@@ -336,8 +358,7 @@ def make_train(config):
         def loss_fn(params, mb):
             traj, adv, target = mb
             pi, value = network.apply(params, traj.obs)
-            return clipped_loss(pi, value, traj, adv, target, config,
-                                entropy_coef(config, update_index, num_updates))
+            return clipped_loss(pi, value, traj, adv, target, config, entropy_coef(config, update_index, num_updates))
 
         def minibatches(k_perm):
             flat = jax.tree.map(lambda a: a.reshape(batch, *a.shape[2:]), (traj, advantages, targets))
@@ -354,8 +375,9 @@ def make_train(config):
         ``first_update`` (the index of the first, for progress) may be traced."""
         _, env_state, obs0, key = init_runner(key, env_params, state.params)
         carry = (state, env_state, obs0, key)
-        (state, _, _, key), metrics = jax.lax.scan(lambda c, i: update(c, i, env_params), carry,
-                                                   first_update + jnp.arange(n_updates))
+        (state, _, _, key), metrics = jax.lax.scan(
+            lambda c, i: update(c, i, env_params), carry, first_update + jnp.arange(n_updates)
+        )
         return state, key, metrics
 
     def train(key, env_params, params):

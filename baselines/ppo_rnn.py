@@ -18,6 +18,7 @@ rollout with the same ``first`` flags, so the replayed log-probabilities equal t
 ratio is 1 before the first gradient step). Minibatches are sets of whole env sequences
 (``num_envs`` must divide by ``num_minibatches``). ``--devices`` is not supported here.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -33,8 +34,15 @@ from baselines.common.env import make_env, params_initialiser, pin_env_shapes, r
 from baselines.harness.cli import trainer_command
 from baselines.harness.logs import Progress
 from baselines.harness.runner import seeds_runner
-from baselines.networks import (RecurrentActorCritic, ScannedGRU, network_step, policy_log_prob, rollout_sampler,
-                                preprocess_obs, rollout_step)
+from baselines.networks import (
+    RecurrentActorCritic,
+    ScannedGRU,
+    network_step,
+    policy_log_prob,
+    preprocess_obs,
+    rollout_sampler,
+    rollout_step,
+)
 from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
 
@@ -45,9 +53,9 @@ class PPORNNConfig(ppo.PPOConfig):
     width; ``num_minibatches`` splits the ``num_envs`` env sequences). ``devices`` is refused (one device) and not
     recorded in ``config.json``."""
 
-    algo: str = "ppo_rnn"                # the trainer (recorded in config.json)
-    num_minibatches: int = 4             # minibatches of whole env sequences (num_envs must divide by it)
-    hidden: int = 128                    # GRU and dense width
+    algo: str = "ppo_rnn"  # the trainer (recorded in config.json)
+    num_minibatches: int = 4  # minibatches of whole env sequences (num_envs must divide by it)
+    hidden: int = 128  # GRU and dense width
 
     RECORDED_WITHOUT = ("devices",)
 
@@ -77,10 +85,12 @@ def rollout(network, env, params, env_params, carry, num_steps: int, action_mode
         action = sample(k_act, pi)
         log_prob = policy_log_prob(pi, action, action_mode)
         next_obs, env_state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-            jax.random.split(k_step, num_envs), env_state, action, env_params)
+            jax.random.split(k_step, num_envs), env_state, action, env_params
+        )
         done = jnp.logical_or(term, trunc)
-        t = ppo.Transition(done.astype(jnp.float32), action, value, reward, log_prob, obs,
-                           {k: info[k] for k in ppo.LOG_KEYS}, first)
+        t = ppo.Transition(
+            done.astype(jnp.float32), action, value, reward, log_prob, obs, {k: info[k] for k in ppo.LOG_KEYS}, first
+        )
         return (env_state, preprocess_obs(next_obs), done, h, key), t
 
     return jax.lax.scan(env_step, carry, None, num_steps)
@@ -110,17 +120,23 @@ def make_train(config):
     mode, hidden = config.action_mode, config.hidden
     num_envs, num_steps, n_mb = config.num_envs, config.num_steps, config.num_minibatches
     if num_envs % n_mb:
-        raise ValueError(f"num_envs={num_envs} must divide by num_minibatches={n_mb} (minibatches are "
-                         f"whole env sequences)")
+        raise ValueError(
+            f"num_envs={num_envs} must divide by num_minibatches={n_mb} (minibatches are whole env sequences)"
+        )
     num_updates = max(1, config.total_timesteps // (num_envs * num_steps))
     batch = num_envs * num_steps
-    progress = Progress(config.num_seeds, num_updates, batch, config.log_every,
-                               name=f"ppo_rnn {config.env_id}")
+    progress = Progress(config.num_seeds, num_updates, batch, config.log_every, name=f"ppo_rnn {config.env_id}")
 
     init_params = params_initialiser(
-        env, network, num_envs, inputs=lambda obs: (ScannedGRU.initial_state(num_envs, hidden),
-                                                     jax.tree.map(lambda a: a[None], obs),
-                                                     jnp.ones((1, num_envs), bool)))
+        env,
+        network,
+        num_envs,
+        inputs=lambda obs: (
+            ScannedGRU.initial_state(num_envs, hidden),
+            jax.tree.map(lambda a: a[None], obs),
+            jnp.ones((1, num_envs), bool),
+        ),
+    )
 
     tx = ppo.make_optimizer(config, num_updates)
 
@@ -134,23 +150,27 @@ def make_train(config):
     def update(carry, update_index, env_params):
         """One recurrent PPO update of a runner state ``carry`` (:func:`init_runner`): ``(carry, metrics)``."""
         state, env_state, obs, first, h0, key = carry
-        (env_state, obs, first, h, key), traj = rollout(network, env, state.params, env_params,
-                                                        (env_state, obs, first, h0, key), num_steps, mode)
+        (env_state, obs, first, h, key), traj = rollout(
+            network, env, state.params, env_params, (env_state, obs, first, h0, key), num_steps, mode
+        )
         _, _, last_value = network_step(network, state.params, h, obs, first)
         advantages, targets = ppo.gae(traj, last_value, config.gamma, config.gae_lambda)
 
         def loss_fn(params, mb):
             h_start, traj, adv, target = mb
             pi, value = replay(network, params, h_start, traj)
-            return ppo.clipped_loss(pi, value, traj, adv, target, config,
-                                    ppo.entropy_coef(config, update_index, num_updates))
+            return ppo.clipped_loss(
+                pi, value, traj, adv, target, config, ppo.entropy_coef(config, update_index, num_updates)
+            )
 
         def minibatches(k_perm):  # whole env sequences: shuffle and split the env axis
             perm = jax.random.permutation(k_perm, num_envs)
             # env axis: 0 for the start states, 1 for the time-major rollout
             split = lambda a, axis: jnp.stack(jnp.split(jnp.take(a, perm, axis=axis), n_mb, axis=axis))  # noqa: E731
-            return (jax.tree.map(lambda a: split(a, 0), h0),
-                    *jax.tree.map(lambda a: split(a, 1), (traj, advantages, targets)))
+            return (
+                jax.tree.map(lambda a: split(a, 0), h0),
+                *jax.tree.map(lambda a: split(a, 1), (traj, advantages, targets)),
+            )
 
         state, key, aux = ppo.run_epochs(state, key, loss_fn, minibatches, config.update_epochs)
         metrics = ppo.update_metrics(traj.info, aux, progress, update_index, config)
@@ -165,8 +185,12 @@ def make_train(config):
     run.env, run.env_params, run.network, run.num_updates = env, env_params, network, num_updates
     run.train_config, run.config, run.steps_per_update = config, config.as_dict(), batch
     # the pieces of a run in chunks with checkpoints (baselines.harness.runner.run_chunked)
-    run.init_params, run.init_runner, run.update, run.runner_params = (init_params, init_runner, update,
-                                                                       lambda runner: runner[0].params)
+    run.init_params, run.init_runner, run.update, run.runner_params = (
+        init_params,
+        init_runner,
+        update,
+        lambda runner: runner[0].params,
+    )
     return run
 
 

@@ -21,6 +21,7 @@ and in words (``--trained-on TEXT``: what the dataset is and the command that bu
 ``trained_on``; ``source_run`` is the run's folder name; ``head_reward.json`` and a copied head keep folder names
 only. ``histojax evaluate NAME --dataset DIR`` scores it on any dataset of the kind it trained on.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -36,8 +37,15 @@ from data_tools.errors import HistojaxDataError
 from data_tools.metrics import json_safe
 
 
-def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str | None = None,
-            chosen_by: dict | None = None, trained_on: str | None = None) -> Path:
+def publish(
+    run,
+    name: str,
+    root=PUBLISHED,
+    seed: int | None = None,
+    note: str | None = None,
+    chosen_by: dict | None = None,
+    trained_on: str | None = None,
+) -> Path:
     """Copy run folder ``run``'s checkpoint into ``root/name`` (``seed``: keep only that seed's
     parameters, still with a leading seed axis of 1); returns the folder. No path of this machine is written
     (:func:`portable_config`): the dataset it trained on is named in ``published.json``'s ``trained_on`` by
@@ -73,7 +81,7 @@ def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str |
         n = jax.tree.leaves(params)[0].shape[0]
         if not 0 <= seed < n:
             raise ValueError(f"{run} has {n} seed(s); --seed {seed} is not one of them")
-        save_checkpoint(dest, jax.tree.map(lambda a: a[seed:seed + 1], params), {**config, "num_seeds": 1})
+        save_checkpoint(dest, jax.tree.map(lambda a: a[seed : seed + 1], params), {**config, "num_seeds": 1})
         seeds = [seed]
     for f in ("log.csv", "curve.png"):  # the learning curve, when the run has one
         if (run / f).is_file():
@@ -85,16 +93,24 @@ def publish(run, name: str, root=PUBLISHED, seed: int | None = None, note: str |
             for f in ("params.json", "params.npz"):  # whichever the head's kind keeps
                 if (copy / f).is_file():
                     outputs.write_bytes(dest / "head" / f, (copy / f).read_bytes())
-            outputs.write_text(dest / "head" / "config.json", json.dumps(json_safe(head_config), indent=1,
-                                                                         allow_nan=False) + "\n")
+            outputs.write_text(
+                dest / "head" / "config.json", json.dumps(json_safe(head_config), indent=1, allow_nan=False) + "\n"
+            )
         outputs.write_text(dest / "head_reward.json", json.dumps(json_safe(record), indent=1, allow_nan=False) + "\n")
     summary = None
     if (run / "log.json").is_file():
         summary = json.loads((run / "log.json").read_text()).get("summary")
     if trained_on:
         where["what"] = trained_on
-    record = {"name": name, "source_run": run_name(run, config), "seeds": seeds, "trained_on": where or None,
-              "training_summary": summary, "chosen_by": chosen_by, "note": note}
+    record = {
+        "name": name,
+        "source_run": run_name(run, config),
+        "seeds": seeds,
+        "trained_on": where or None,
+        "training_summary": summary,
+        "chosen_by": chosen_by,
+        "note": note,
+    }
     outputs.write_text(dest / "published.json", json.dumps(json_safe(record), indent=1, allow_nan=False))
     return dest
 
@@ -164,9 +180,15 @@ def portable_config(config: dict) -> tuple[dict, dict]:
 def portable_head_config(config):
     """A slide head's ``config.json`` object with the dataset it was fitted on (``fitted_on.dataset``, written
     by the head fits as an absolute path) reduced to its folder name."""
-    if isinstance(config, dict) and isinstance(config.get("fitted_on"), dict) \
-            and isinstance(config["fitted_on"].get("dataset"), str):
-        config = {**config, "fitted_on": {**config["fitted_on"], "dataset": folder_name(config["fitted_on"]["dataset"])}}
+    if (
+        isinstance(config, dict)
+        and isinstance(config.get("fitted_on"), dict)
+        and isinstance(config["fitted_on"].get("dataset"), str)
+    ):
+        config = {
+            **config,
+            "fitted_on": {**config["fitted_on"], "dataset": folder_name(config["fitted_on"]["dataset"])},
+        }
     return config
 
 
@@ -194,17 +216,30 @@ def main(argv=None) -> int:
     p.add_argument("--seed", type=int, default=None, help="keep only this seed (default: every seed)")
     p.add_argument("--root", default=str(PUBLISHED), help="default baselines/published")
     p.add_argument("--note", default=None, help="free text kept in published.json (e.g. the validation numbers)")
-    p.add_argument("--chosen-by", default=None,
-                   help="how the run and seed were chosen, kept in published.json as chosen_by.by (e.g. 'validation "
-                        "AUC at 10 %% read, 3 seeds'); never the test split")
-    p.add_argument("--trained-on", default=None,
-                   help="what the dataset it trained on is and the command that builds it, kept in published.json as "
-                        "trained_on.what (e.g. 'CAMELYON16 true-scale set, train split: histojax c16 --features ... "
-                        "--out DIR'); its folder name and split are kept anyway, its path never")
+    p.add_argument(
+        "--chosen-by",
+        default=None,
+        help="how the run and seed were chosen, kept in published.json as chosen_by.by (e.g. 'validation "
+        "AUC at 10 %% read, 3 seeds'); never the test split",
+    )
+    p.add_argument(
+        "--trained-on",
+        default=None,
+        help="what the dataset it trained on is and the command that builds it, kept in published.json as "
+        "trained_on.what (e.g. 'CAMELYON16 true-scale set, train split: histojax c16 --features ... "
+        "--out DIR'); its folder name and split are kept anyway, its path never",
+    )
     args = p.parse_args(argv)
     try:
-        dest = publish(args.run, args.name, args.root, args.seed, args.note,
-                       chosen_by={"by": args.chosen_by} if args.chosen_by else None, trained_on=args.trained_on)
+        dest = publish(
+            args.run,
+            args.name,
+            args.root,
+            args.seed,
+            args.note,
+            chosen_by={"by": args.chosen_by} if args.chosen_by else None,
+            trained_on=args.trained_on,
+        )
     except (OSError, ValueError, HistojaxDataError) as e:
         raise SystemExit(f"publish: {e}") from None
     print(f"published {args.run} as {dest}; score it with: histojax evaluate {dest} --dataset DIR")

@@ -6,6 +6,7 @@ the command that lists them with what each was trained on.
     histojax evaluate NAME --dataset DIR   evaluate one by name (``baselines/published/NAME`` of the installed package)
 
 A leaf of ``baselines``: ``evaluate`` and ``publish`` both read it, so neither imports the other back."""
+
 from __future__ import annotations
 
 import json
@@ -30,7 +31,7 @@ def published_or_path(text: str) -> str:
     (so ``histojax evaluate c16-v2-set-reader`` works from any folder, the wheel's included, and a folder of that
     name under the working folder is never taken for it: name that one ``./NAME``); else ``text`` as given.
     argparse ``type=`` of such arguments."""
-    name = text[len(PACKAGE_NAME):].rstrip("/") if text.startswith(PACKAGE_NAME) else text
+    name = text[len(PACKAGE_NAME) :].rstrip("/") if text.startswith(PACKAGE_NAME) else text
     if not name or "/" in name or os.sep in name or name in (".", ".."):
         return text
     folder = PUBLISHED / name
@@ -64,17 +65,40 @@ def describe(name: str) -> dict:
         kind, record = "agent", _json(folder / "published.json")
         fitted = record.get("trained_on") or {}
         head = _json(folder / "head_reward.json").get("head")
-        what = ", ".join(str(v) for v in (config.get("algo"), config.get("env_id"), config.get("action_mode"),
-                                          config.get("obs_mode")) if v)
+        what = ", ".join(
+            str(v)
+            for v in (config.get("algo"), config.get("env_id"), config.get("action_mode"), config.get("obs_mode"))
+            if v
+        )
         what += f"; diagnoses through {Path(head).name}" if isinstance(head, str) and head else ""
         chosen = record.get("chosen_by") or {}
-        detail = [(label, str(text)) for label, text in (("slides", fitted.get("what")), ("build", fitted.get("build")),
-                                                         ("chosen by", chosen.get("by"))) if text]
+        detail = [
+            (label, str(text))
+            for label, text in (
+                ("slides", fitted.get("what")),
+                ("build", fitted.get("build")),
+                ("chosen by", chosen.get("by")),
+            )
+            if text
+        ]
     fitted = fitted if isinstance(fitted, dict) else {}
-    trained_on = ", ".join(str(v) for v in (fitted.get("dataset"), fitted.get("split"),
-                                            f"{fitted['slides']} slides" if fitted.get("slides") else None) if v)
-    return {"name": name, "kind": kind, "what": what, "trained_on": trained_on or "not recorded", "detail": detail,
-            "folder": str(folder)}
+    trained_on = ", ".join(
+        str(v)
+        for v in (
+            fitted.get("dataset"),
+            fitted.get("split"),
+            f"{fitted['slides']} slides" if fitted.get("slides") else None,
+        )
+        if v
+    )
+    return {
+        "name": name,
+        "kind": kind,
+        "what": what,
+        "trained_on": trained_on or "not recorded",
+        "detail": detail,
+        "folder": str(folder),
+    }
 
 
 def add_arguments(p) -> None:
@@ -90,8 +114,10 @@ def run(args, parser) -> int:
     names = published_names()
     if args.name is not None:
         if args.name not in names:
-            return print_error(f"no published agent or head is named {args.name!r}; the published ones: "
-                               f"{', '.join(names) or 'none (no baselines/published in this installation)'}")
+            return print_error(
+                f"no published agent or head is named {args.name!r}; the published ones: "
+                f"{', '.join(names) or 'none (no baselines/published in this installation)'}"
+            )
         d = describe(args.name)
         print(f"{d['name']} ({d['kind']}): {d['what']}\ntrained on: {d['trained_on']}")
         for label, text in d["detail"]:
@@ -101,8 +127,10 @@ def run(args, parser) -> int:
     rows = [describe(n) for n in names]
     width = max([len(r["name"]) for r in rows] + [4])
     trained = max([len(r["trained_on"]) for r in rows] + [10])
-    print(f"published agents and slide heads ({PUBLISHED}); evaluate an agent by name: histojax evaluate NAME "
-          "--dataset DIR; one in full: histojax published NAME\n")
+    print(
+        f"published agents and slide heads ({PUBLISHED}); evaluate an agent by name: histojax evaluate NAME "
+        "--dataset DIR; one in full: histojax published NAME\n"
+    )
     print(f"{'name':<{width}}  {'kind':<5}  {'trained on':<{trained}}  what")
     for r in rows:
         print(f"{r['name']:<{width}}  {r['kind']:<5}  {r['trained_on']:<{trained}}  {r['what']}")

@@ -16,6 +16,7 @@ level), mean return, mean steps to success, and wall time (training + compile).
 ``--quick`` uses tiny budgets (a smoke run of the whole grid in minutes, far from converged);
 the default budgets take hours on 2 CPU cores.
 """
+
 from __future__ import annotations
 
 import json
@@ -26,8 +27,8 @@ from pathlib import Path
 import jax
 
 from baselines import dqn, outputs, ppo
-from baselines.harness.logs import load_checkpoint
 from baselines.evaluate import evaluate
+from baselines.harness.logs import load_checkpoint
 from data_tools.cli_output import command_main
 
 BUDGETS = {  # env steps per seed, seeds, evaluation episodes
@@ -39,9 +40,23 @@ SCENARIOS = ("HistoJAX-Easy-v0", "HistoJAX-Medium-v0", "HistoJAX-Hard-v0")
 
 def run_cell(algo: str, env_id: str, action_mode: str, obs: str, slide, budget: dict, out: Path) -> dict:
     """Train one cell and evaluate it; returns the row (success, return, steps, seconds)."""
-    argv = ["--env", env_id, "--action-mode", action_mode, "--obs-mode", obs, "--with-position",
-            "--seeds", str(budget["seeds"]), "--total-steps", str(budget["steps"]), "--out", str(out),
-            "--set", "print_progress=false"]
+    argv = [
+        "--env",
+        env_id,
+        "--action-mode",
+        action_mode,
+        "--obs-mode",
+        obs,
+        "--with-position",
+        "--seeds",
+        str(budget["seeds"]),
+        "--total-steps",
+        str(budget["steps"]),
+        "--out",
+        str(out),
+        "--set",
+        "print_progress=false",
+    ]
     if slide is not None:
         argv += ["--slide", str(slide)]
     t0 = time.perf_counter()
@@ -52,18 +67,25 @@ def run_cell(algo: str, env_id: str, action_mode: str, obs: str, slide, budget: 
     name = f"{algo} (sampled)" if f"{algo} (sampled)" in rows else f"{algo} (greedy)"
     row = rows[name]
     summary = json.loads((out / "log.json").read_text()).get("summary", {})
-    return {"policy": name, "success": row["success_rate"], "return": row["mean_return"],
-            "steps_to_success": row["mean_steps_to_success"], "wall_s": wall,
-            "train_steps_per_s": summary.get("env_steps_per_second_all_seeds"),
-            "random_success": rows["random"]["success_rate"]}
+    return {
+        "policy": name,
+        "success": row["success_rate"],
+        "return": row["mean_return"],
+        "steps_to_success": row["mean_steps_to_success"],
+        "wall_s": wall,
+        "train_steps_per_s": summary.get("env_steps_per_second_all_seeds"),
+        "random_success": rows["random"]["success_rate"],
+    }
 
 
 def _fmt_row(label: str, r: dict | None, note: str = "") -> str:
     if r is None:
         return f"| {label} | n/a | | | | {note} |"
     steps = "–" if r["steps_to_success"] != r["steps_to_success"] else f"{r['steps_to_success']:.1f}"
-    return (f"| {label} | {r['success']:.0%} | {r['return']:.2f} | {steps} | {r['wall_s']:.0f} s | "
-            f"random agent {r['random_success']:.0%}{'; ' + note if note else ''} |")
+    return (
+        f"| {label} | {r['success']:.0%} | {r['return']:.2f} | {steps} | {r['wall_s']:.0f} s | "
+        f"random agent {r['random_success']:.0%}{'; ' + note if note else ''} |"
+    )
 
 
 HEADER = "| cell | success | mean return | steps to success | wall time | notes |\n|---|---|---|---|---|---|"
@@ -122,10 +144,14 @@ def run(args, parser=None) -> int:
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     t0 = time.perf_counter()
-    lines = [f"## Reproduced tables ({mode}: {budget['steps']:,} env steps × {budget['seeds']} seed(s) per cell, "
-             f"{budget['episodes']} evaluation episodes per seed)", "",
-             f"Machine: {platform.machine()}, {jax.device_count()} {jax.devices()[0].platform} device(s), "
-             f"JAX {jax.__version__}. Success = target reached at the finest level on fresh episodes.", ""]
+    lines = [
+        f"## Reproduced tables ({mode}: {budget['steps']:,} env steps × {budget['seeds']} seed(s) per cell, "
+        f"{budget['episodes']} evaluation episodes per seed)",
+        "",
+        f"Machine: {platform.machine()}, {jax.device_count()} {jax.devices()[0].platform} device(s), "
+        f"JAX {jax.__version__}. Success = target reached at the finest level on fresh episodes.",
+        "",
+    ]
     if 1 in args.tables:
         lines += table1(budget, out) + [""]
     if 2 in args.tables:

@@ -27,6 +27,7 @@ How it works (:func:`train_rotating`):
 
 One device only (no ``devices`` / ``shard_slides``); every seed trains on the same sets.
 """
+
 from __future__ import annotations
 
 import concurrent.futures
@@ -44,9 +45,9 @@ from baselines import ppo
 from baselines.common.config import ConfigError, env_overrides
 from baselines.harness.runner import finish_run
 from data_tools.cli_output import command_main, print_error
+from histojax.core.slide import SlideArrays, stack_slides
 from histojax.registry import make, slide_paths
 from histojax.sharding import PER_SLIDE, host_leaves, on_host, pad_leaf
-from histojax.core.slide import SlideArrays, stack_slides
 
 
 def live_device_bytes(device=None) -> int:
@@ -138,8 +139,10 @@ def choose_resident(store: SlideStore, budget_bytes: int, k: int | None, seed: i
         nbytes = capacity_bytes(store, cap)
         if 2 * nbytes <= budget_bytes:
             return kk, sets, cap, nbytes
-    raise ValueError(f"two resident sets of K={candidates[-1]} slide(s) need {2 * nbytes:,} bytes on the device, "
-                     f"more than the budget of {budget_bytes:,}: use fewer resident slides or a larger budget")
+    raise ValueError(
+        f"two resident sets of K={candidates[-1]} slide(s) need {2 * nbytes:,} bytes on the device, "
+        f"more than the budget of {budget_bytes:,}: use fewer resident slides or a larger budget"
+    )
 
 
 def build_set(store: SlideStore, indices: list[int], cap: dict, device) -> SlideArrays:
@@ -149,12 +152,18 @@ def build_set(store: SlideStore, indices: list[int], cap: dict, device) -> Slide
     leaves = host_leaves(stacked)
     del stacked
     padded = {name: pad_leaf(a, cap[name], name) for name, a in leaves.items()}
-    return jax.device_put(SlideArrays(**{f.name: padded.get(f.name) for f in dataclasses.fields(SlideArrays)}),
-                          device)
+    return jax.device_put(SlideArrays(**{f.name: padded.get(f.name) for f in dataclasses.fields(SlideArrays)}), device)
 
 
-def train_rotating(config, budget_bytes: int, resident: int | None = None, rotate_every: int = 4,
-                   source: str = "memory", keys=None, set_seed: int = 0) -> dict:
+def train_rotating(
+    config,
+    budget_bytes: int,
+    resident: int | None = None,
+    rotate_every: int = 4,
+    source: str = "memory",
+    keys=None,
+    set_seed: int = 0,
+) -> dict:
     """PPO (``config`` as :func:`baselines.ppo.make_train`: a :class:`~baselines.ppo.PPOConfig` or its dict) on a dataset with at most two sets of
     ``resident`` slides on the device (see the module doc). The dataset is the one ``config``
     names (``slide`` / ``env_kwargs`` ``slides`` or ``dataset``). Returns ``{"params",
@@ -164,9 +173,15 @@ def train_rotating(config, budget_bytes: int, resident: int | None = None, rotat
     if config.devices is not None or config.shard_slides:
         raise ValueError("rotating slides runs on one device (no devices / shard_slides)")
     kw = env_overrides(config)
-    paths = slide_paths(config.env_id, slide=config.slide, slides=kw.pop("slides", None),
-                        dataset=kw.pop("dataset", None), split=kw.pop("split", "train"), fold=kw.pop("fold", None),
-                        **kw)
+    paths = slide_paths(
+        config.env_id,
+        slide=config.slide,
+        slides=kw.pop("slides", None),
+        dataset=kw.pop("dataset", None),
+        split=kw.pop("split", "train"),
+        fold=kw.pop("fold", None),
+        **kw,
+    )
     store = SlideStore(config.env_id, paths, source=source, **kw)
     k, sets, cap, set_bytes = choose_resident(store, budget_bytes, resident, set_seed)
     batch = config.num_envs * config.num_steps
@@ -218,16 +233,35 @@ def train_rotating(config, budget_bytes: int, resident: int | None = None, rotat
     train_seconds = time.perf_counter() - t0
     stats = device.memory_stats() or {}
     metrics = jax.tree.map(lambda *a: np.concatenate([np.asarray(x) for x in a], axis=1), *metrics)
-    rotation = {"budget_bytes": int(budget_bytes), "num_slides": len(paths), "resident_slides": k, "sets": sets,
-                "rotate_every": rotate_every, "phases": phases, "set_bytes": int(set_bytes), "bound_bytes": int(2 * set_bytes),
-                "dataset_bytes": int(store.nbytes()), "resident_peak_bytes": int(resident_peak),
-                "live_peak_bytes": int(live_peak), "baseline_bytes": int(baseline),
-                "train_state_bytes": int(state_bytes), "source": source,
-                "device_peak_bytes_in_use": stats.get("peak_bytes_in_use"), "train_seconds": train_seconds,
-                "compile_seconds": compile_seconds,
-                "env_steps_per_second": phases * rotate_every * batch * num_seeds / train_seconds}
-    return {"params": states.params, "metrics": metrics, "rotation": rotation, "env": train.env,
-            "env_params": base.replace(slide=current), "config": config.as_dict(), "steps_per_update": batch}
+    rotation = {
+        "budget_bytes": int(budget_bytes),
+        "num_slides": len(paths),
+        "resident_slides": k,
+        "sets": sets,
+        "rotate_every": rotate_every,
+        "phases": phases,
+        "set_bytes": int(set_bytes),
+        "bound_bytes": int(2 * set_bytes),
+        "dataset_bytes": int(store.nbytes()),
+        "resident_peak_bytes": int(resident_peak),
+        "live_peak_bytes": int(live_peak),
+        "baseline_bytes": int(baseline),
+        "train_state_bytes": int(state_bytes),
+        "source": source,
+        "device_peak_bytes_in_use": stats.get("peak_bytes_in_use"),
+        "train_seconds": train_seconds,
+        "compile_seconds": compile_seconds,
+        "env_steps_per_second": phases * rotate_every * batch * num_seeds / train_seconds,
+    }
+    return {
+        "params": states.params,
+        "metrics": metrics,
+        "rotation": rotation,
+        "env": train.env,
+        "env_params": base.replace(slide=current),
+        "config": config.as_dict(),
+        "steps_per_update": batch,
+    }
 
 
 def add_arguments(p) -> None:
@@ -254,12 +288,23 @@ def run(args, parser) -> int:
     out = Path(args.out or f"runs/rotation-{config.env_id}")
     result = train_rotating(config, int(args.budget_mb * 2**20), args.resident, args.rotate_every, args.source)
     rot = result["rotation"]
-    print(f"resident sets: K={rot['resident_slides']} of {rot['num_slides']} slides, {rot['phases']} phases of "
-          f"{rot['rotate_every']} updates; dataset {rot['dataset_bytes']:,} bytes, budget {rot['budget_bytes']:,}, bound {rot['bound_bytes']:,}, resident peak {rot['resident_peak_bytes']:,}, "
-          f"all live arrays at peak {rot['live_peak_bytes']:,} (before the first set {rot['baseline_bytes']:,}, "
-          f"train state {rot['train_state_bytes']:,})")
-    finish_run("ppo", result["config"], out, result["params"], result["metrics"], result["steps_per_update"],
-                   rot["train_seconds"], rot["compile_seconds"], env_and_params=(result["env"], result["env_params"]))
+    print(
+        f"resident sets: K={rot['resident_slides']} of {rot['num_slides']} slides, {rot['phases']} phases of "
+        f"{rot['rotate_every']} updates; dataset {rot['dataset_bytes']:,} bytes, budget {rot['budget_bytes']:,}, bound {rot['bound_bytes']:,}, resident peak {rot['resident_peak_bytes']:,}, "
+        f"all live arrays at peak {rot['live_peak_bytes']:,} (before the first set {rot['baseline_bytes']:,}, "
+        f"train state {rot['train_state_bytes']:,})"
+    )
+    finish_run(
+        "ppo",
+        result["config"],
+        out,
+        result["params"],
+        result["metrics"],
+        result["steps_per_update"],
+        rot["train_seconds"],
+        rot["compile_seconds"],
+        env_and_params=(result["env"], result["env_params"]),
+    )
     return 0
 
 

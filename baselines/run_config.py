@@ -9,6 +9,7 @@ records ``buffer_size``, as older DQN runs did); an entry no trainer writes is a
 closest known entry, not a refusal; entries of another trainer are ignored. What cannot be read is one line naming
 the file (``HistojaxDataError``): a record that is not an object, a value of the wrong type, a network width that is
 not a whole number of at least 1."""
+
 from __future__ import annotations
 
 import difflib
@@ -60,8 +61,11 @@ def check_record(record, where) -> None:
     ``hidden`` is not a whole number of at least 1, whose ``action_mode`` is not a string or whose ``env_kwargs`` is
     not an object."""
     if not isinstance(record, dict):
-        raise HistojaxDataError(where, f"holds a JSON {type(record).__name__}, not an object of settings "
-                                "(the config.json a trainer writes); train again or restore it")
+        raise HistojaxDataError(
+            where,
+            f"holds a JSON {type(record).__name__}, not an object of settings "
+            "(the config.json a trainer writes); train again or restore it",
+        )
     hidden = record.get("hidden", 256)
     if isinstance(hidden, bool) or not isinstance(hidden, int) or hidden < 1:
         raise HistojaxDataError(where, f"hidden={hidden!r}: the network width must be a whole number of at least 1")

@@ -14,6 +14,7 @@ final report.
 
     python -m baselines.validation --dataset DIR --fraction 0.2 --seed 0 --out DIR/validation-0.2-0
 """
+
 from __future__ import annotations
 
 import argparse
@@ -34,14 +35,18 @@ def units(spec: dict) -> list[list[str]]:
     a tumour slide with its tissue donor when the donor is a training slide too, else one slide."""
     train = list(spec.get("train", []))
     by_name = {_name(t): t for t in train}
-    donor = {_name(s["bundle"]): s.get("tissue_donor") for s in spec.get("slides", [])
-             if isinstance(s, dict) and "bundle" in s}
+    donor = {
+        _name(s["bundle"]): s.get("tissue_donor")
+        for s in spec.get("slides", [])
+        if isinstance(s, dict) and "bundle" in s
+    }
     parent = {n: n for n in by_name}
 
     def find(n):
         while parent[n] != n:
             n = parent[n]
         return n
+
     for n in by_name:
         d = donor.get(n)
         if d and d in by_name:
@@ -73,8 +78,9 @@ def split_train(spec: dict, fraction: float, seed: int = 0) -> tuple[list[str], 
         raise ValueError(f"the validation fraction must be in (0, 1), got {fraction}")
     groups = units(spec)
     if len(groups) < 2:
-        raise ValueError(f"a validation split needs at least two training slides (units); this dataset has "
-                         f"{len(groups)}")
+        raise ValueError(
+            f"a validation split needs at least two training slides (units); this dataset has {len(groups)}"
+        )
     rng = np.random.default_rng(seed)
     kept, val = [], []
     for cls in (1, 0):
@@ -110,8 +116,9 @@ def _known_label(spec: dict, name: str) -> int | None:
     return None
 
 
-def check_validation_share(spec: dict, held, where, fraction: float, fold: int | None = None,
-                           least: int = MIN_VALIDATION_PER_CLASS) -> None:
+def check_validation_share(
+    spec: dict, held, where, fraction: float, fold: int | None = None, least: int = MIN_VALIDATION_PER_CLASS
+) -> None:
     """Refuse, before any slide is read or any training, a validation share (``held``: entries of ``spec["train"]``)
     with fewer than ``least`` slides of a class: ``ValueError`` in one line naming ``where`` (the ``dataset.json``),
     the counts and the options (``--val-fraction``, more slides, ``--folds`` with fewer folds). Labels come from
@@ -123,11 +130,13 @@ def check_validation_share(spec: dict, held, where, fraction: float, fold: int |
     if min(n_t, n_n) >= least:
         return
     side = f"fold {fold}'s train side" if fold is not None else "the train split"
-    raise ValueError(f"{where}: the validation share ({fraction:g} of {side}) holds {n_t} tumour and {n_n} normal "
-                     f"slides; choosing a head or checkpoint and calibrating it needs at least {least} of each (a "
-                     f"random head scores validation AUC 1.0 on fewer as often as 1 in 6): give a larger --val-fraction, "
-                     "or build the dataset with fewer --folds K (each fold's train side is larger), or add slides. "
-                     "Nothing was trained")
+    raise ValueError(
+        f"{where}: the validation share ({fraction:g} of {side}) holds {n_t} tumour and {n_n} normal "
+        f"slides; choosing a head or checkpoint and calibrating it needs at least {least} of each (a "
+        f"random head scores validation AUC 1.0 on fewer as often as 1 in 6): give a larger --val-fraction, "
+        "or build the dataset with fewer --folds K (each fold's train side is larger), or add slides. "
+        "Nothing was trained"
+    )
 
 
 def write_validation_dataset(dataset, fraction: float, seed: int, out) -> Path:
@@ -137,9 +146,12 @@ def write_validation_dataset(dataset, fraction: float, seed: int, out) -> Path:
     dataset, out = Path(dataset).resolve(), Path(out)
     spec = json.loads((dataset / "dataset.json").read_text())
     kept, val = split_train(spec, fraction, seed)
-    derived = {**spec, "train": [str(dataset / t) for t in kept], "test": [str(dataset / t) for t in val],
-               "validation": {"source": str(dataset), "fraction": fraction, "seed": seed, "train": kept,
-                              "validation": val}}
+    derived = {
+        **spec,
+        "train": [str(dataset / t) for t in kept],
+        "test": [str(dataset / t) for t in val],
+        "validation": {"source": str(dataset), "fraction": fraction, "seed": seed, "train": kept, "validation": val},
+    }
     if isinstance(spec.get("labels"), dict):  # keyed by bundle path or name: keep the names working
         derived["labels"] = {_name(k): v for k, v in spec["labels"].items()}
     out.mkdir(parents=True, exist_ok=True)

@@ -7,12 +7,12 @@ only a subset was built).
 
     python benchmarks/c16_device_bytes.py --dataset DIR [--dim 1280] [--extrapolate 239]
 """
+
 from __future__ import annotations
 
 import argparse
 import json
 from pathlib import Path
-
 
 from data_tools.bundle_files.format import level_grids
 from data_tools.bundle_files.reading import read_metadata
@@ -40,15 +40,21 @@ def main(argv=None) -> int:
         pix = [slide_device_bytes(m, select_levels(m, n), pixels=True) for m in metas]
         tab = [slide_device_bytes(m, select_levels(m, n), pixels=False) for m in metas]
         feat = [feature_grid_bytes(m, select_levels(m, n), args.dim) for m in metas]
-        line = (f"{n} levels: pixel mode {sum(pix) / gib:.2f} GiB; feature mode {(sum(tab) + sum(feat)) / gib:.2f} GiB "
-                f"(tumour tables {sum(tab) / gib:.3f} GiB + {args.dim}-d float16 feature grids {sum(feat) / gib:.2f} GiB)")
+        line = (
+            f"{n} levels: pixel mode {sum(pix) / gib:.2f} GiB; feature mode {(sum(tab) + sum(feat)) / gib:.2f} GiB "
+            f"(tumour tables {sum(tab) / gib:.3f} GiB + {args.dim}-d float16 feature grids {sum(feat) / gib:.2f} GiB)"
+        )
         if args.extrapolate:
             f = args.extrapolate / len(metas)
-            line += (f"; x{f:.1f} to {args.extrapolate} slides: pixel {f * sum(pix) / gib:.1f} GiB, "
-                     f"feature {f * (sum(tab) + sum(feat)) / gib:.1f} GiB")
+            line += (
+                f"; x{f:.1f} to {args.extrapolate} slides: pixel {f * sum(pix) / gib:.1f} GiB, "
+                f"feature {f * (sum(tab) + sum(feat)) / gib:.1f} GiB"
+            )
         print(line)
-    print(f"largest slide, 7 levels, pixel mode: {max(slide_device_bytes(m, select_levels(m, 7)) for m in metas) / gib:.2f}"
-          f" GiB; pixel pools above 2**31 px (6 GiB RGB) cannot be indexed with int32 in one env")
+    print(
+        f"largest slide, 7 levels, pixel mode: {max(slide_device_bytes(m, select_levels(m, 7)) for m in metas) / gib:.2f}"
+        f" GiB; pixel pools above 2**31 px (6 GiB RGB) cannot be indexed with int32 in one env"
+    )
     return 0
 
 

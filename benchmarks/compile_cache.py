@@ -16,6 +16,7 @@ cache turned on as the command line turns it on, and compiles its whole training
 imports and building the env. The cache lives in a temporary folder (``HISTOJAX_COMPILE_CACHE``), so the
 user's cache is not touched. Prints a table.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -40,8 +41,17 @@ STEPS_PER_UPDATE = {"demo PPO": 64 * 64, "reader PPO": 32 * 64}
 
 def build_reader_dataset(root: Path) -> Path:
     """A small semi-synthetic dataset with colour-stats feature grids in ``root`` (seconds); returns ``root``."""
-    ds = make_dataset(root, n_slides=4, negatives=4, size=(320, 256), seed=0, tile_size=32, level_sets=(3,),
-                      progress=False, previews=False)
+    ds = make_dataset(
+        root,
+        n_slides=4,
+        negatives=4,
+        size=(320, 256),
+        seed=0,
+        tile_size=32,
+        level_sets=(3,),
+        progress=False,
+        previews=False,
+    )
     for s in ds["slides"]:
         compute_features(root / s["bundle"], encoder_name="colour-stats", batch=64, progress=False, dtype="float32")
     return root
@@ -52,9 +62,23 @@ def trainer_argv(case: str, dataset: Path, updates: int) -> list[str]:
     common = ["--seeds", "1", "--total-steps", str(updates * STEPS_PER_UPDATE[case]), "--set", "print_progress=false"]
     if case == "demo PPO":
         return ["--env", "HistoJAX-Easy-v0", "--with-position", "--num-envs", "64", *common]
-    return ["--env", "HistoJAX-Easy-v0", "--dataset", str(dataset), "--split", "train", "--action-mode", "glimpse:1",
-            "--obs", "features", "--num-envs", "32",
-            "--set", 'env_kwargs={"step_obs": true, "task": "classification", "read_budget": 0.3}', *common]
+    return [
+        "--env",
+        "HistoJAX-Easy-v0",
+        "--dataset",
+        str(dataset),
+        "--split",
+        "train",
+        "--action-mode",
+        "glimpse:1",
+        "--obs",
+        "features",
+        "--num-envs",
+        "32",
+        "--set",
+        'env_kwargs={"step_obs": true, "task": "classification", "read_budget": 0.3}',
+        *common,
+    ]
 
 
 def child(argv: list[str]) -> None:
@@ -77,8 +101,9 @@ def run_once(argv: list[str], cache: Path) -> dict:
     env = {k: v for k, v in os.environ.items() if k != compile_cache.OFF_ENV}
     env[compile_cache.DIR_ENV] = str(cache)
     t0 = time.perf_counter()
-    r = subprocess.run([sys.executable, "-m", "benchmarks.compile_cache", "--child", *argv], env=env,
-                       capture_output=True, text=True)
+    r = subprocess.run(
+        [sys.executable, "-m", "benchmarks.compile_cache", "--child", *argv], env=env, capture_output=True, text=True
+    )
     wall = time.perf_counter() - t0
     if r.returncode:
         raise SystemExit(f"compiling {' '.join(argv)} failed:\n{r.stderr[-3000:]}")
@@ -105,10 +130,19 @@ def main(argv=None) -> int:
             for start in ("empty cache", "warm cache"):
                 row = {"case": case, "start": start, **run_once(trainer_argv(case, dataset, args.updates), cache)}
                 rows.append(row)
-                print(f"{case:<11} {start:<12} compile {row['compile_seconds']:6.1f} s   whole process "
-                      f"{row['wall_seconds']:6.1f} s   cache entries {row['cache_entries']}", flush=True)
-    result = {"rows": rows, "updates": args.updates, "machine": platform.platform(), "cpus": os.cpu_count(),
-              "python": platform.python_version(), "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime())}
+                print(
+                    f"{case:<11} {start:<12} compile {row['compile_seconds']:6.1f} s   whole process "
+                    f"{row['wall_seconds']:6.1f} s   cache entries {row['cache_entries']}",
+                    flush=True,
+                )
+    result = {
+        "rows": rows,
+        "updates": args.updates,
+        "machine": platform.platform(),
+        "cpus": os.cpu_count(),
+        "python": platform.python_version(),
+        "date": time.strftime("%Y-%m-%d %H:%M UTC", time.gmtime()),
+    }
     if args.json:
         args.json.write_text(json.dumps(result, indent=1))
     return 0

@@ -6,6 +6,7 @@ logits at every reset as before (``start_cdf=None``; the auto-reset runs in ever
     python benchmarks/dataset_throughput.py --dataset DIR [--env HistoJAX-C16-Easy-v0] [--split train]
                                             [--obs-mode features] [--batches 64 256 1024] [--env-steps 16384]
 """
+
 from __future__ import annotations
 
 import os
@@ -18,9 +19,9 @@ import jax
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
+import histojax  # noqa: E402
 from benchmarks.throughput import full_step_rollout  # noqa: E402
 from data_tools.cli_output import command_main  # noqa: E402
-import histojax  # noqa: E402
 
 
 def measure(env, params, batch: int, env_steps: int) -> float:
@@ -45,16 +46,21 @@ def add_arguments(p) -> None:
 
 def run(args, parser=None) -> int:
     t0 = time.perf_counter()
-    env, params = histojax.make(args.env, dataset=args.dataset, split=args.split, obs_mode=args.obs_mode,
-                                with_position=True)
+    env, params = histojax.make(
+        args.env, dataset=args.dataset, split=args.split, obs_mode=args.obs_mode, with_position=True
+    )
     made = time.perf_counter() - t0
     s = params.slide
     device = sum(int(a.nbytes) for a in jax.tree.leaves(s))
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-          f"JAX {jax.__version__} on {jax.devices()[0].platform}")
-    print(f"{args.env} on {args.dataset} ({args.split}: {s.num_slides} slides, obs_mode={args.obs_mode}); "
-          f"make {made:.1f} s, {device / 2**30:.2f} GiB on the device; start positions per slide: "
-          f"{s.start_logits.shape[-2]}×{s.start_logits.shape[-1]}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"JAX {jax.__version__} on {jax.devices()[0].platform}"
+    )
+    print(
+        f"{args.env} on {args.dataset} ({args.split}: {s.num_slides} slides, obs_mode={args.obs_mode}); "
+        f"make {made:.1f} s, {device / 2**30:.2f} GiB on the device; start positions per slide: "
+        f"{s.start_logits.shape[-2]}×{s.start_logits.shape[-1]}"
+    )
     old = params.replace(slide=s.replace(start_cdf=None))
     print(f"{'batch':>6} {'steps/s (start_cdf)':>20} {'steps/s (per reset)':>20}")
     for batch in args.batches:

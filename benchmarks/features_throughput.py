@@ -8,6 +8,7 @@ polygon overlap per step, one Python env).
 
     python benchmarks/features_throughput.py [--env HistoJAX-Hard-v0] [--batches 1024 4096] [--seconds 1.0]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,10 +39,14 @@ def main(argv=None) -> int:
     bundle = Path(args.bundle) if args.bundle else sample_feature_bundle()
     env, params = histojax.make(args.env, slide=bundle, obs_mode="features")
     d, dtype = params.slide.features.shape[1], params.slide.features.dtype
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-          f"JAX {jax.__version__} on {jax.devices()[0].platform}")
-    print(f"{args.env} on {bundle.name} ({env.n_levels} levels), feature observations ({d},) "
-          f"stored as {jnp.dtype(dtype).name}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"JAX {jax.__version__} on {jax.devices()[0].platform}"
+    )
+    print(
+        f"{args.env} on {bundle.name} ({env.n_levels} levels), feature observations ({d},) "
+        f"stored as {jnp.dtype(dtype).name}"
+    )
     lo, hi = HISTOGYM_STEPS_PER_S
     print(f"{'batch':>6} {'features steps/s':>17} {'x HistoGym (13-60 steps/s)':>28}")
     for batch in args.batches:

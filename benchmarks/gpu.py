@@ -32,6 +32,7 @@ for start-up); once it is spent, the items left are skipped and named as skipped
     python benchmarks/gpu.py --tiny --out /tmp/gpu-tiny            # CPU, seconds
     python benchmarks/gpu.py --dataset c16-full --levels 7 --out benchmarks/results/gpu-c16-full
 """
+
 from __future__ import annotations
 
 import json
@@ -49,10 +50,10 @@ import jax  # noqa: E402
 import jax.numpy as jnp  # noqa: E402
 import numpy as np  # noqa: E402
 
+import histojax  # noqa: E402
 from benchmarks.throughput import full_step_rollout  # noqa: E402
 from data_tools.cli_output import command_main, positive_float  # noqa: E402
 from data_tools.errors import HistojaxDataError  # noqa: E402
-import histojax  # noqa: E402
 
 GIB = 2**30
 # device bytes of the full true-scale C16 set (docs/c16-benchmark.md, benchmarks/c16_device_bytes.py)
@@ -120,10 +121,16 @@ def machine(argv) -> dict:
     import jaxlib
 
     dev = jax.devices()[0]
-    info = {"platform": dev.platform, "device_kind": dev.device_kind, "device_count": jax.device_count(),
-            "jax": jax.__version__, "jaxlib": jaxlib.__version__, "python": platform.python_version(),
-            "host": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
-            "command": " ".join(["python", "benchmarks/gpu.py", *argv])}
+    info = {
+        "platform": dev.platform,
+        "device_kind": dev.device_kind,
+        "device_count": jax.device_count(),
+        "jax": jax.__version__,
+        "jaxlib": jaxlib.__version__,
+        "python": platform.python_version(),
+        "host": f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores",
+        "command": " ".join(["python", "benchmarks/gpu.py", *argv]),
+    }
     try:
         stats = dev.memory_stats() or {}
     except Exception:  # CPU backends may not report
@@ -131,8 +138,12 @@ def machine(argv) -> dict:
     info["device_memory_bytes"] = int(stats["bytes_limit"]) if "bytes_limit" in stats else None
     if shutil.which("nvidia-smi"):
         try:
-            out = subprocess.run(["nvidia-smi", "--query-gpu=name,driver_version,memory.total",
-                                  "--format=csv,noheader"], capture_output=True, text=True, timeout=30).stdout
+            out = subprocess.run(
+                ["nvidia-smi", "--query-gpu=name,driver_version,memory.total", "--format=csv,noheader"],
+                capture_output=True,
+                text=True,
+                timeout=30,
+            ).stdout
             name, driver, memory = [s.strip() for s in out.splitlines()[0].split(",")]
             info.update(gpu=name, driver=driver, gpu_memory=memory)
         except Exception as e:  # noqa: BLE001 - report, do not fail the run
@@ -213,18 +224,35 @@ def ppo_item(obs_mode: str, slide, args) -> dict:
     from baselines.harness.runner import compile_and_run
     from baselines.ppo import make_train
 
-    config = {"env_id": "HistoJAX-Easy-v0", "obs_mode": obs_mode, "slide": None if slide is None else str(slide),
-              "num_envs": args.ppo_envs, "num_steps": args.ppo_steps, "num_minibatches": 4,
-              "total_timesteps": args.ppo_envs * args.ppo_steps * args.ppo_updates, "hidden": args.ppo_hidden,
-              "num_seeds": 1, "print_progress": False, "log_every": 10**9}
+    config = {
+        "env_id": "HistoJAX-Easy-v0",
+        "obs_mode": obs_mode,
+        "slide": None if slide is None else str(slide),
+        "num_envs": args.ppo_envs,
+        "num_steps": args.ppo_steps,
+        "num_minibatches": 4,
+        "total_timesteps": args.ppo_envs * args.ppo_steps * args.ppo_updates,
+        "hidden": args.ppo_hidden,
+        "num_seeds": 1,
+        "print_progress": False,
+        "log_every": 10**9,
+    }
     run = make_train(config)
     keys = jax.random.split(jax.random.PRNGKey(0), 1)
     out, compile_s, train_s = compile_and_run(run, keys)
     steps = run.num_updates * run.steps_per_update
     success = float(np.asarray(out["metrics"]["success"])[0, -1])  # NaN when no episode ended
-    return {"obs_mode": obs_mode, "num_envs": args.ppo_envs, "num_steps": args.ppo_steps, "updates": run.num_updates,
-            "env_steps": steps, "train_s": train_s, "compile_s": compile_s, "steps_per_s": steps / train_s,
-            "last_update_success": success}
+    return {
+        "obs_mode": obs_mode,
+        "num_envs": args.ppo_envs,
+        "num_steps": args.ppo_steps,
+        "updates": run.num_updates,
+        "env_steps": steps,
+        "train_s": train_s,
+        "compile_s": compile_s,
+        "steps_per_s": steps / train_s,
+        "last_update_success": success,
+    }
 
 
 def encoder_item(name: str, args) -> dict:
@@ -245,8 +273,13 @@ def encoder_item(name: str, args) -> dict:
         calls += 1
         if time.perf_counter() - t0 >= args.seconds:
             break
-    return {"dim": encoder.dim, "image_size": encoder.image_size, "batch": args.encoder_batch, "compile_s": compile_s,
-            "views_per_s": calls * args.encoder_batch / (time.perf_counter() - t0)}
+    return {
+        "dim": encoder.dim,
+        "image_size": encoder.image_size,
+        "batch": args.encoder_batch,
+        "compile_s": compile_s,
+        "views_per_s": calls * args.encoder_batch / (time.perf_counter() - t0),
+    }
 
 
 def device_memory(info: dict) -> int | None:
@@ -266,12 +299,19 @@ def dataset_item(folder: Path, obs_mode: str, args, budget: Budget, memory: int 
         if all(len(m.pixel_levels) == len(m["levels"]) for m in metas):
             need = sum(slide_device_bytes(m, select_levels(m, n_levels), pixels=True) for m in metas)
             if need > 0.9 * memory:
-                return skipped(f"pixel mode needs {need / GIB:.1f} GiB, more than 90 % of the device's "
-                               f"{memory / GIB:.1f} GiB")
+                return skipped(
+                    f"pixel mode needs {need / GIB:.1f} GiB, more than 90 % of the device's {memory / GIB:.1f} GiB"
+                )
     t0 = time.perf_counter()
     try:
-        env, params = histojax.make(env_id, dataset=str(folder), split=args.split, obs_mode=obs_mode,
-                                    with_position=True, max_device_bytes=memory or 64 * GIB)
+        env, params = histojax.make(
+            env_id,
+            dataset=str(folder),
+            split=args.split,
+            obs_mode=obs_mode,
+            with_position=True,
+            max_device_bytes=memory or 64 * GIB,
+        )
     except Exception as e:  # noqa: BLE001 - a refused mode is a reason, not a crash
         if obs_mode == "pixels" or is_oom(e):
             return skipped(f"make refused it: {type(e).__name__}: {str(e).splitlines()[0][:200]}")
@@ -279,8 +319,15 @@ def dataset_item(folder: Path, obs_mode: str, args, budget: Budget, memory: int 
     made = time.perf_counter() - t0
     device = sum(int(a.nbytes) for a in jax.tree.leaves(params.slide))
     table = env_rows(env, params, _with(args, max_batch=args.dataset_max_batch), budget, None, None)
-    return {"env_id": env_id, "split": args.split, "slides": int(params.slide.num_slides), "obs_mode": obs_mode,
-            "device_bytes": device, "make_s": made, **table}
+    return {
+        "env_id": env_id,
+        "split": args.split,
+        "slides": int(params.slide.num_slides),
+        "obs_mode": obs_mode,
+        "device_bytes": device,
+        "make_s": made,
+        **table,
+    }
 
 
 def _with(args, **changes):
@@ -301,30 +348,57 @@ def small_c16(out: Path) -> Path:
 # ----------------------------------------------------------------------------- the run
 def add_arguments(p) -> None:
     p.add_argument("--out", default="benchmarks/results/gpu", help="folder for gpu.json and gpu.md")
-    p.add_argument("--tiny", action="store_true",
-                   help="CPU-sized settings (seconds): max batch 16, 0.05 s per figure, 4 MiB copy, tiny PPO, "
-                        "colour-stats features, EfficientNet skipped")
+    p.add_argument(
+        "--tiny",
+        action="store_true",
+        help="CPU-sized settings (seconds): max batch 16, 0.05 s per figure, 4 MiB copy, tiny PPO, "
+        "colour-stats features, EfficientNet skipped",
+    )
     p.add_argument("--time-budget", type=positive_float, default=480.0, help="seconds for the whole run (default 480)")
     p.add_argument("--max-batch", type=int, default=None, help="largest env batch (default 65536; --tiny 16)")
-    p.add_argument("--seconds", type=positive_float, default=None, help="timed seconds per figure (default 1; --tiny 0.05)")
-    p.add_argument("--env-steps", type=int, default=None,
-                   help="env steps per timed call, split over the batch (default 65536; --tiny 256)")
-    p.add_argument("--copy-mb", type=int, default=None, help="MiB copied for the bandwidth bound (default 1024; --tiny 4)")
+    p.add_argument(
+        "--seconds", type=positive_float, default=None, help="timed seconds per figure (default 1; --tiny 0.05)"
+    )
+    p.add_argument(
+        "--env-steps",
+        type=int,
+        default=None,
+        help="env steps per timed call, split over the batch (default 65536; --tiny 256)",
+    )
+    p.add_argument(
+        "--copy-mb", type=int, default=None, help="MiB copied for the bandwidth bound (default 1024; --tiny 4)"
+    )
     p.add_argument("--env", default="HistoJAX-Hard-v0", help="env of the batch sweep (sample slide)")
-    p.add_argument("--features-encoder", default=None,
-                   help="feature grid of the sweep's feature rows: efficientnet-lite0 (default) or colour-stats (--tiny)")
+    p.add_argument(
+        "--features-encoder",
+        default=None,
+        help="feature grid of the sweep's feature rows: efficientnet-lite0 (default) or colour-stats (--tiny)",
+    )
     p.add_argument("--ppo-envs", type=int, default=None, help="PPO envs (default 4096; --tiny 8)")
     p.add_argument("--ppo-steps", type=int, default=None, help="PPO steps per update (default 64; --tiny 4)")
     p.add_argument("--ppo-updates", type=int, default=None, help="PPO updates timed (default 8; --tiny 1)")
     p.add_argument("--ppo-hidden", type=int, default=None, help="PPO network width (default 256; --tiny 16)")
     p.add_argument("--encoder-batch", type=int, default=None, help="views per encoder call (default 1024; --tiny 4)")
-    p.add_argument("--skip-encoders", nargs="*", default=None, metavar="NAME",
-                   help="encoders not measured (default none; --tiny efficientnet-lite0)")
-    p.add_argument("--dataset", default=None, help="C16 dataset folder (default: build the small variant in OUT/c16-small)")
+    p.add_argument(
+        "--skip-encoders",
+        nargs="*",
+        default=None,
+        metavar="NAME",
+        help="encoders not measured (default none; --tiny efficientnet-lite0)",
+    )
+    p.add_argument(
+        "--dataset", default=None, help="C16 dataset folder (default: build the small variant in OUT/c16-small)"
+    )
     p.add_argument("--split", default="train", choices=("train", "test"))
-    p.add_argument("--c16-level", default="Easy", choices=("Easy", "Medium", "Hard"),
-                   help="HistoJAX-C16-<level>-v0: 3 / 5 / 7 levels")
-    p.add_argument("--dataset-max-batch", type=int, default=None, help="largest dataset batch (default 16384; --tiny 16)")
+    p.add_argument(
+        "--c16-level",
+        default="Easy",
+        choices=("Easy", "Medium", "Hard"),
+        help="HistoJAX-C16-<level>-v0: 3 / 5 / 7 levels",
+    )
+    p.add_argument(
+        "--dataset-max-batch", type=int, default=None, help="largest dataset batch (default 16384; --tiny 16)"
+    )
     p.add_argument("--no-dataset-pixels", action="store_true", help="skip the dataset's pixel mode")
 
 
@@ -341,11 +415,20 @@ def argparse_defaults(tiny: bool = True):
 
 def _defaults(args) -> None:
     tiny = args.tiny
-    for name, big, small in [("max_batch", 65536, 16), ("seconds", 1.0, 0.05), ("env_steps", 65536, 256), ("copy_mb", 1024, 4),
-                             ("features_encoder", "efficientnet-lite0", "colour-stats"), ("ppo_envs", 4096, 8),
-                             ("ppo_steps", 64, 4), ("ppo_updates", 8, 1), ("ppo_hidden", 256, 16),
-                             ("encoder_batch", 1024, 4), ("skip_encoders", [], ["efficientnet-lite0"]),
-                             ("dataset_max_batch", 16384, 16)]:
+    for name, big, small in [
+        ("max_batch", 65536, 16),
+        ("seconds", 1.0, 0.05),
+        ("env_steps", 65536, 256),
+        ("copy_mb", 1024, 4),
+        ("features_encoder", "efficientnet-lite0", "colour-stats"),
+        ("ppo_envs", 4096, 8),
+        ("ppo_steps", 64, 4),
+        ("ppo_updates", 8, 1),
+        ("ppo_hidden", 256, 16),
+        ("encoder_batch", 1024, 4),
+        ("skip_encoders", [], ["efficientnet-lite0"]),
+        ("dataset_max_batch", 16384, 16),
+    ]:
         if getattr(args, name) is None:
             setattr(args, name, small if tiny else big)
 
@@ -355,8 +438,10 @@ def run(args, parser=None) -> int:
     budget = Budget(args.time_budget)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
-    report: dict = {"machine": machine(sys.argv[1:] if _ARGV is None else _ARGV),
-                    "settings": {k: v for k, v in vars(args).items()}}
+    report: dict = {
+        "machine": machine(sys.argv[1:] if _ARGV is None else _ARGV),
+        "settings": {k: v for k, v in vars(args).items()},
+    }
 
     def timed(section: str, fn):
         """Run ``fn()`` into ``report[section]`` unless the budget is spent; print progress."""
@@ -371,6 +456,7 @@ def run(args, parser=None) -> int:
     def copy():
         bw = copy_bandwidth(args.copy_mb * 2**20, args.seconds)
         return {"bytes": args.copy_mb * 2**20, "bytes_per_s": bw}
+
     timed("copy", copy)
     bandwidth = report["copy"].get("bytes_per_s")
 
@@ -378,7 +464,11 @@ def run(args, parser=None) -> int:
     def env_pixels():
         env, params = histojax.make(args.env)
         view_bytes = env.tile_size**2 * 3
-        return {"env_id": args.env, "view_bytes": view_bytes, **env_rows(env, params, args, budget, view_bytes, bandwidth)}
+        return {
+            "env_id": args.env,
+            "view_bytes": view_bytes,
+            **env_rows(env, params, args, budget, view_bytes, bandwidth),
+        }
 
     def feature_bundle():
         if args.features_encoder == "colour-stats":
@@ -393,8 +483,12 @@ def run(args, parser=None) -> int:
         except (ImportError, OSError, HistojaxDataError) as e:  # e.g. EfficientNet weights not installed
             return skipped(f"no {args.features_encoder} feature grid: {type(e).__name__}: {e}")
         env, params = histojax.make(args.env, slide=bundle, obs_mode="features")
-        return {"env_id": args.env, "encoder": args.features_encoder, "dim": int(params.slide.features.shape[1]),
-                **env_rows(env, params, args, budget, None, None)}
+        return {
+            "env_id": args.env,
+            "encoder": args.features_encoder,
+            "dim": int(params.slide.features.shape[1]),
+            **env_rows(env, params, args, budget, None, None),
+        }
 
     timed("env_pixels", env_pixels)
     timed("env_features", env_features)
@@ -420,6 +514,7 @@ def run(args, parser=None) -> int:
             else:
                 result[name] = encoder_item(name, args)
         return result
+
     timed("encoders", encoders)
 
     # 6. the C16 dataset
@@ -463,47 +558,74 @@ def _memory(m: dict) -> str:
 def markdown(r: dict) -> str:
     """The report as one markdown page (what docs/results/benchmarks.md takes once measured on a GPU)."""
     m = r["machine"]
-    lines = ["# histojax GPU benchmark (`benchmarks/gpu.py`)", "",
-             f"- device: {m.get('gpu', m['device_kind'])} ({m['platform']}, {m['device_count']} device(s)); "
-             f"driver {m.get('driver', '—')}; memory {_memory(m)}",
-             f"- JAX {m['jax']}, jaxlib {m['jaxlib']}, Python {m['python']}; host {m['host']}",
-             f"- command: `{m['command']}`; total {r['total_s']:.0f} s", ""]
+    lines = [
+        "# histojax GPU benchmark (`benchmarks/gpu.py`)",
+        "",
+        f"- device: {m.get('gpu', m['device_kind'])} ({m['platform']}, {m['device_count']} device(s)); "
+        f"driver {m.get('driver', '—')}; memory {_memory(m)}",
+        f"- JAX {m['jax']}, jaxlib {m['jaxlib']}, Python {m['python']}; host {m['host']}",
+        f"- command: `{m['command']}`; total {r['total_s']:.0f} s",
+        "",
+    ]
 
     def skip_line(name, sec):
         return f"**{name}: skipped** — {sec['skipped']}"
 
     c = r["copy"]
-    lines += ["## Memory-copy bound", "",
-              skip_line("copy", c) if "skipped" in c else
-              f"jitted `x + 1` over {c['bytes'] / 2**20:,.0f} MiB of uint8: **{c['bytes_per_s'] / 1e9:,.1f} GB/s**", ""]
-    for key, title in (("env_pixels", "Env steps/s, pixel observations"), ("env_features", "Env steps/s, feature observations")):
+    lines += [
+        "## Memory-copy bound",
+        "",
+        skip_line("copy", c)
+        if "skipped" in c
+        else f"jitted `x + 1` over {c['bytes'] / 2**20:,.0f} MiB of uint8: **{c['bytes_per_s'] / 1e9:,.1f} GB/s**",
+        "",
+    ]
+    for key, title in (
+        ("env_pixels", "Env steps/s, pixel observations"),
+        ("env_features", "Env steps/s, feature observations"),
+    ):
         sec = r[key]
         lines += [f"## {title}", ""]
         if "skipped" in sec:
             lines += [skip_line(key, sec), ""]
             continue
         extra = f", {sec['encoder']} {sec['dim']}-d" if "encoder" in sec else f", {sec['view_bytes']:,} B per view"
-        lines += [f"`{sec['env_id']}`, sample slide{extra}; `lax.scan` over `vmap(step)`, random actions, auto-reset.", ""]
+        lines += [
+            f"`{sec['env_id']}`, sample slide{extra}; `lax.scan` over `vmap(step)`, random actions, auto-reset.",
+            "",
+        ]
         if key == "env_pixels":
             lines += ["| batch | steps/s | copy bound, views/s | of bound |", "|---|---|---|---|"]
-            lines += [f"| {x['batch']:,} | {_f(x['steps_per_s'])} | {_f(x.get('copy_bound_views_per_s'))} | "
-                      f"{x['of_copy_bound']:.1%} |" if "of_copy_bound" in x else
-                      f"| {x['batch']:,} | {_f(x['steps_per_s'])} | — | — |" for x in sec["rows"]]
+            lines += [
+                f"| {x['batch']:,} | {_f(x['steps_per_s'])} | {_f(x.get('copy_bound_views_per_s'))} | "
+                f"{x['of_copy_bound']:.1%} |"
+                if "of_copy_bound" in x
+                else f"| {x['batch']:,} | {_f(x['steps_per_s'])} | — | — |"
+                for x in sec["rows"]
+            ]
         else:
-            lines += ["| batch | steps/s |", "|---|---|"] + [f"| {x['batch']:,} | {_f(x['steps_per_s'])} |" for x in sec["rows"]]
+            lines += ["| batch | steps/s |", "|---|---|"] + [
+                f"| {x['batch']:,} | {_f(x['steps_per_s'])} |" for x in sec["rows"]
+            ]
         if sec["stopped"]:
             lines += ["", f"Stopped: {sec['stopped']}."]
         lines += [""]
-    lines += ["## PPO end to end (`HistoJAX-Easy-v0`)", "", "| obs | envs × steps × updates | env steps/s | compile s | last-update success |",
-              "|---|---|---|---|---|"]
+    lines += [
+        "## PPO end to end (`HistoJAX-Easy-v0`)",
+        "",
+        "| obs | envs × steps × updates | env steps/s | compile s | last-update success |",
+        "|---|---|---|---|---|",
+    ]
     for key in ("ppo_features", "ppo_pixels"):
         sec = r[key]
         if "skipped" in sec:
             lines.append(f"| {key[4:]} | skipped: {sec['skipped']} | | | |")
         else:
             succ = "—" if not sec["last_update_success"] >= 0 else f"{sec['last_update_success']:.1%}"
-            lines.append(f"| {sec['obs_mode']} | {sec['num_envs']} × {sec['num_steps']} × {sec['updates']} | "
-                         f"{_f(sec['steps_per_s'])} | {sec['compile_s']:.1f} | {succ} |")
+            lines.append(
+                f"| {sec['obs_mode']} | {sec['num_envs']} × {sec['num_steps']} × {sec['updates']} | "
+                f"{_f(sec['steps_per_s'])} | {sec['compile_s']:.1f} | {succ} |"
+            )
     lines += ["", "## Encoders (128-px uint8 views)", ""]
     enc = r["encoders"]
     if "skipped" in enc:
@@ -511,19 +633,30 @@ def markdown(r: dict) -> str:
     else:
         lines += ["| encoder | dim | input px | batch | views/s | compile s |", "|---|---|---|---|---|---|"]
         for name, sec in enc.items():
-            lines.append(f"| {name} | skipped: {sec['skipped']} | | | | |" if "skipped" in sec else
-                         f"| {name} | {sec['dim']} | {sec['image_size'] or 128} | {sec['batch']} | "
-                         f"{_f(sec['views_per_s'])} | {sec['compile_s']:.1f} |")
+            lines.append(
+                f"| {name} | skipped: {sec['skipped']} | | | | |"
+                if "skipped" in sec
+                else f"| {name} | {sec['dim']} | {sec['image_size'] or 128} | {sec['batch']} | "
+                f"{_f(sec['views_per_s'])} | {sec['compile_s']:.1f} |"
+            )
     lines += [""]
-    for key, title in (("dataset_features", "C16 dataset, feature mode"), ("dataset_pixels", "C16 dataset, pixel mode")):
+    for key, title in (
+        ("dataset_features", "C16 dataset, feature mode"),
+        ("dataset_pixels", "C16 dataset, pixel mode"),
+    ):
         sec = r[key]
         lines += [f"## {title}", ""]
         if "skipped" in sec:
             lines += [skip_line(key, sec), ""]
             continue
-        lines += [f"`{sec['env_id']}` on `{sec['dataset']}` ({sec['split']}: {sec['slides']} slides), "
-                  f"{sec['device_bytes'] / GIB:.3f} GiB ({sec['device_bytes']:,} B) of slide arrays on the device; "
-                  f"make {sec['make_s']:.1f} s.", "", "| batch | steps/s |", "|---|---|"]
+        lines += [
+            f"`{sec['env_id']}` on `{sec['dataset']}` ({sec['split']}: {sec['slides']} slides), "
+            f"{sec['device_bytes'] / GIB:.3f} GiB ({sec['device_bytes']:,} B) of slide arrays on the device; "
+            f"make {sec['make_s']:.1f} s.",
+            "",
+            "| batch | steps/s |",
+            "|---|---|",
+        ]
         lines += [f"| {x['batch']:,} | {_f(x['steps_per_s'])} |" for x in sec["rows"]]
         if sec["stopped"]:
             lines += ["", f"Stopped: {sec['stopped']}."]

@@ -9,6 +9,7 @@ time excluded; the mask reads a random half of the views). Then the same for the
 (:mod:`histojax.reading.heads.learned`, ``--dim`` features, 64 units) three ways: from the feature grid
 ``(H, W, D)``; from its cached view terms ``(H, W, 2)`` (attention and instance logit, computed once per
 slide); and one incremental step that adds 16 newly read views to each slide's running sums."""
+
 from __future__ import annotations
 
 import argparse
@@ -19,7 +20,6 @@ import jax.numpy as jnp
 import numpy as np
 
 from histojax.reading.heads import score_logits
-
 from histojax.reading.heads.learned import LearnedHead, init_params
 from histojax.reading.heads.logit import LogitHead
 
@@ -37,15 +37,25 @@ def timed(fn, *args, repeats: int = 20) -> float:
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--grid", type=int, nargs=2, default=[256, 128], metavar=("H", "W"),
-                   help="finest views per slide (default 256 × 128, a large C16 slide)")
+    p.add_argument(
+        "--grid",
+        type=int,
+        nargs=2,
+        default=[256, 128],
+        metavar=("H", "W"),
+        help="finest views per slide (default 256 × 128, a large C16 slide)",
+    )
     p.add_argument("--batch", type=int, default=64)
     p.add_argument("--ks", type=int, nargs="+", default=[1, 3, 5])
     p.add_argument("--repeats", type=int, default=20)
     p.add_argument("--dim", type=int, default=64, help="feature entries of the learned head's rows (default 64)")
-    p.add_argument("--feature-batch", type=int, default=8,
-                   help="slides per batched call of the learned head on feature grids (default 8: 64 of them "
-                        "are 0.5 GB of float32 at 256 x 128 x 64)")
+    p.add_argument(
+        "--feature-batch",
+        type=int,
+        default=8,
+        help="slides per batched call of the learned head on feature grids (default 8: 64 of them "
+        "are 0.5 GB of float32 at 256 x 128 x 64)",
+    )
     args = p.parse_args(argv)
     h, w = args.grid
     rng = np.random.default_rng(0)
@@ -72,8 +82,10 @@ def learned_rows(args, masks, rng) -> None:
     grids = jnp.asarray(rng.normal(size=(fb, h, w, args.dim)).astype(np.float32))
     terms = jax.jit(jax.vmap(head.view_terms))(grids)
     terms = jnp.concatenate([terms] * -(-args.batch // fb))[: args.batch]
-    print(f"\nlearned head ({args.dim}-d features, 64 units): {h} × {w} views per slide\n"
-          "| input | batch | batched: slides/s | one slide: µs per call |\n|---|---|---|---|")
+    print(
+        f"\nlearned head ({args.dim}-d features, 64 units): {h} × {w} views per slide\n"
+        "| input | batch | batched: slides/s | one slide: µs per call |\n|---|---|---|---|"
+    )
     by_features = jax.jit(jax.vmap(head.score))
     tb = timed(by_features, grids, masks[:fb], repeats=args.repeats)
     ts = timed(jax.jit(head.score), grids[0], masks[0], repeats=args.repeats)
@@ -86,8 +98,10 @@ def learned_rows(args, masks, rng) -> None:
     new = terms[:, :4, :4].reshape(args.batch, 16, 2)
     step = jax.jit(jax.vmap(lambda s, t, m: head.logit_terms(head.add_terms(s, t, m))))
     tb = timed(step, states, new, jnp.ones((args.batch, 16), bool), repeats=args.repeats)
-    print(f"| incremental: 16 new views per slide | {args.batch} | {args.batch / tb:,.0f} (steps/s) | "
-          f"{tb / args.batch * 1e6:,.1f} (per slide) |")
+    print(
+        f"| incremental: 16 new views per slide | {args.batch} | {args.batch / tb:,.0f} (steps/s) | "
+        f"{tb / args.batch * 1e6:,.1f} (per slide) |"
+    )
 
 
 if __name__ == "__main__":

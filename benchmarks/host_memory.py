@@ -14,6 +14,7 @@
 
     python benchmarks/host_memory.py --reader /work/c16-full [--mode glimpse:2] [--num-envs 256]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -105,8 +106,11 @@ def reader_memory(dataset, mode: str, num_envs: int, steps: int, updates: int) -
     """Run the reader-training stages in a child process: its rows (stage, rss_gb, peak_gb, held_gb, s)."""
     import json
 
-    done = subprocess.run([sys.executable, "-c", _READER, str(dataset), mode, str(num_envs), str(steps),
-                           str(updates)], stdout=subprocess.PIPE, text=True)  # stages printed live on stderr
+    done = subprocess.run(
+        [sys.executable, "-c", _READER, str(dataset), mode, str(num_envs), str(steps), str(updates)],
+        stdout=subprocess.PIPE,
+        text=True,
+    )  # stages printed live on stderr
     if done.returncode != 0:
         raise SystemExit(f"host_memory: reader training failed (exit status {done.returncode})")
     return json.loads(done.stdout.strip().splitlines()[-1])
@@ -122,8 +126,9 @@ def single_level_tiff(pyramid: Path, out: Path, tile: int = 512) -> Path:
     with open_slide(pyramid) as r:
         w, h = r.dimensions
         tiles = (r.read_region(0, x, y, tile, tile) for y in range(0, h, tile) for x in range(0, w, tile))
-        tifffile.imwrite(out, tiles, shape=(h, w, 3), dtype=np.uint8, tile=(tile, tile), photometric="rgb",
-                         compression="jpeg")
+        tifffile.imwrite(
+            out, tiles, shape=(h, w, 3), dtype=np.uint8, tile=(tile, tile), photometric="rgb", compression="jpeg"
+        )
     return out
 
 
@@ -141,8 +146,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     if args.reader is not None:
         if not (args.reader / "dataset.json").is_file():
-            print(f"host_memory: {args.reader}: no dataset.json (make one with python -m data_tools c16 ...)",
-                  file=sys.stderr)
+            print(
+                f"host_memory: {args.reader}: no dataset.json (make one with python -m data_tools c16 ...)",
+                file=sys.stderr,
+            )
             return 2
         print(f"reader training on {args.reader}, {args.mode}, {args.num_envs} envs:")
         print(f"{'stage':58s} {'RSS GB':>7s} {'peak GB':>8s} {'held GB':>8s} {'s':>6s}")
@@ -160,8 +167,14 @@ def main(argv=None) -> int:
         make_large_slide(slide, size=args.size, tissue_fraction=0.1, seed=0, progress=False)
     bundle = out / f"dense{args.size}"
     if not bundle.exists():
-        build_bundle(slide, bundle, annotations_path=slide.with_suffix(".geojson"), tile_size=64,
-                     magnification_range=16, progress=False)
+        build_bundle(
+            slide,
+            bundle,
+            annotations_path=slide.with_suffix(".geojson"),
+            tile_size=64,
+            magnification_range=16,
+            progress=False,
+        )
     subprocess.run([sys.executable, "-c", _MAKE, str(bundle)], check=True)
     if args.single:
         pyramid = out / f"pyramid{args.single}.tif"

@@ -8,6 +8,7 @@ tests/adapters/test_sb3.py); only the speed differs.
 
     python benchmarks/integrations.py [--env HistoJAX-Easy-v0] [--num-envs 16] [--seconds 2.0]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -48,17 +49,27 @@ def main() -> None:
     env, params = histojax.make(args.env)
     n = args.num_envs
     print(f"{args.env}, {n} envs, pixels; {platform.processor() or platform.machine()}, {os.cpu_count()} CPUs")
-    rows = [("gymnasium SyncVectorEnv(GymnasiumEnv x n)",
-             lambda: gymnasium.vector.SyncVectorEnv([lambda: GymnasiumEnv(env, params) for _ in range(n)]), False),
-            ("histojax GymnasiumVectorEnv", lambda: GymnasiumVectorEnv(env, n, params), False)]
+    rows = [
+        (
+            "gymnasium SyncVectorEnv(GymnasiumEnv x n)",
+            lambda: gymnasium.vector.SyncVectorEnv([lambda: GymnasiumEnv(env, params) for _ in range(n)]),
+            False,
+        ),
+        ("histojax GymnasiumVectorEnv", lambda: GymnasiumVectorEnv(env, n, params), False),
+    ]
     try:
         from stable_baselines3.common.vec_env import DummyVecEnv
 
         from histojax.adapters.sb3 import SB3VecEnv
 
-        rows += [("sb3 DummyVecEnv(GymnasiumEnv x n)",
-                  lambda: DummyVecEnv([lambda: GymnasiumEnv(env, params) for _ in range(n)]), True),
-                 ("histojax SB3VecEnv", lambda: SB3VecEnv(env, n, params), True)]
+        rows += [
+            (
+                "sb3 DummyVecEnv(GymnasiumEnv x n)",
+                lambda: DummyVecEnv([lambda: GymnasiumEnv(env, params) for _ in range(n)]),
+                True,
+            ),
+            ("histojax SB3VecEnv", lambda: SB3VecEnv(env, n, params), True),
+        ]
     except ImportError:
         print("(stable-baselines3 not installed: pip install -e '.[sb3]' for the SB3 rows)")
     for name, build, sb3 in rows:

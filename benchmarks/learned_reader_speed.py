@@ -14,6 +14,7 @@ slides in every minibatch (``batch_cells=False``: how it trained before they ran
 the same parameters and outputs), so the two are compared in one process. ``benchmarks.synthetic_reading_set``
 builds a set of any number of slides to run it on.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,8 +27,16 @@ import time
 from pathlib import Path
 
 
-def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: int, budget: float, levels: int,
-                 all_cells: bool = False):
+def compiled_row(
+    dataset: Path,
+    head,
+    action_mode: str,
+    num_envs: int,
+    updates: int,
+    budget: float,
+    levels: int,
+    all_cells: bool = False,
+):
     """``(run, steps, compile_s)``: a compiled PPO program (1 seed, ``updates`` updates of ``num_envs`` × 64 steps)
     of ``action_mode`` on ``dataset``'s train split through ``head``'s reward, the env steps one run takes and the
     compile time. ``all_cells``: a set reader's per-cell layers over all slides' cells (``batch_cells=False``)."""
@@ -53,9 +62,18 @@ def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: 
         kw = {"dataset": str(dataset), "split": "train", "n_levels": levels}
         if not is_navigator(action_mode):
             kw["read_budget"] = budget
-        config = {**ppo.DEFAULTS, "env_id": READING_ID, "action_mode": action_mode, "obs_mode": "features",
-                  "num_envs": num_envs, "num_steps": 64, "total_timesteps": num_envs * 64 * updates,
-                  "print_progress": False, "num_seeds": 1, "env_kwargs": kw}
+        config = {
+            **ppo.DEFAULTS,
+            "env_id": READING_ID,
+            "action_mode": action_mode,
+            "obs_mode": "features",
+            "num_envs": num_envs,
+            "num_steps": 64,
+            "total_timesteps": num_envs * 64 * updates,
+            "print_progress": False,
+            "num_seeds": 1,
+            "env_kwargs": kw,
+        }
         train = ppo.make_train(config)
         keys = jax.random.split(jax.random.key(0), 1)
         t0 = time.perf_counter()
@@ -69,12 +87,16 @@ def compiled_row(dataset: Path, head, action_mode: str, num_envs: int, updates: 
         t0, c0 = time.perf_counter(), time.process_time()
         jax.block_until_ready(compiled(keys))
         return time.perf_counter() - t0, time.process_time() - c0
+
     return run, num_envs * 64 * train.num_updates, compile_s
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.learned_reader_speed", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.learned_reader_speed",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--dataset", required=True, type=Path, help="a dataset folder (its train split is used)")
     p.add_argument("--head", required=True, help="a slide head folder (e.g. a learned head)")
     p.add_argument("--reader", default="glimpse:1", help="the set reader's action mode (default glimpse:1)")
@@ -83,8 +105,11 @@ def main(argv=None) -> int:
     p.add_argument("--updates", type=int, default=3)
     p.add_argument("--repeats", type=int, default=3)
     p.add_argument("--budget", type=float, default=0.1)
-    p.add_argument("--all-cells", action="store_true",
-                   help="also time the set reader with its per-cell layers over all slides' cells in every minibatch")
+    p.add_argument(
+        "--all-cells",
+        action="store_true",
+        help="also time the set reader with its per-cell layers over all slides' cells in every minibatch",
+    )
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
     from baselines.reading.slides import read_spec
@@ -105,44 +130,72 @@ def main(argv=None) -> int:
     if args.all_cells:
         settings.append(("set reader, all cells", args.reader, True))
     for name, mode, all_cells in settings:
-        run, steps, compile_s = compiled_row(args.dataset, head, mode, args.num_envs, args.updates, args.budget, levels,
-                                             all_cells)
-        rows[name] = {"action_mode": mode, "run": run, "steps": steps, "compile_s": round(compile_s, 1), "walls": [],
-                      "cells": ("all slides'" if all_cells else "the minibatch's slides'") if name != "navigator"
-                      else None}
+        run, steps, compile_s = compiled_row(
+            args.dataset, head, mode, args.num_envs, args.updates, args.budget, levels, all_cells
+        )
+        rows[name] = {
+            "action_mode": mode,
+            "run": run,
+            "steps": steps,
+            "compile_s": round(compile_s, 1),
+            "walls": [],
+            "cells": ("all slides'" if all_cells else "the minibatch's slides'") if name != "navigator" else None,
+        }
     for _ in range(args.repeats):  # interleaved: all see the same machine load
         for r in rows.values():
             wall, cpu = r["run"]()
             r["walls"].append(wall)
             r.setdefault("cpus", []).append(cpu)
     out = []
-    print(f"{'policy':22s} {'mode':12s} {'envs':>5s} {'median steps/s':>15s} {'runs steps/s':>36s} "
-          f"{'steps/CPU-s':>12s} {'compile s':>9s}")
+    print(
+        f"{'policy':22s} {'mode':12s} {'envs':>5s} {'median steps/s':>15s} {'runs steps/s':>36s} "
+        f"{'steps/CPU-s':>12s} {'compile s':>9s}"
+    )
     for name, r in rows.items():
         rates = [r["steps"] / w for w in r["walls"]]
         cpu_rates = [r["steps"] / max(c, 1e-9) for c in r["cpus"]]  # steps per CPU-second: less hurt by other load
-        row = {"policy": name, "action_mode": r["action_mode"], "num_envs": args.num_envs, "env_steps": r["steps"],
-               **({"per_cell_layers_over": r["cells"] + " cells"} if r["cells"] else {}),
-               "median_steps_per_s": round(statistics.median(rates)), "steps_per_s": [round(x) for x in rates],
-               "compile_s": r["compile_s"], "median_steps_per_cpu_s": round(statistics.median(cpu_rates)),
-               "steps_per_cpu_s": [round(x) for x in cpu_rates]}
+        row = {
+            "policy": name,
+            "action_mode": r["action_mode"],
+            "num_envs": args.num_envs,
+            "env_steps": r["steps"],
+            **({"per_cell_layers_over": r["cells"] + " cells"} if r["cells"] else {}),
+            "median_steps_per_s": round(statistics.median(rates)),
+            "steps_per_s": [round(x) for x in rates],
+            "compile_s": r["compile_s"],
+            "median_steps_per_cpu_s": round(statistics.median(cpu_rates)),
+            "steps_per_cpu_s": [round(x) for x in cpu_rates],
+        }
         out.append(row)
-        print(f"{name:22s} {r['action_mode']:12s} {args.num_envs:5d} {row['median_steps_per_s']:15d} "
-              f"{', '.join(str(x) for x in row['steps_per_s']):>36s} {row['median_steps_per_cpu_s']:12d} "
-              f"{r['compile_s']:9.1f}")
+        print(
+            f"{name:22s} {r['action_mode']:12s} {args.num_envs:5d} {row['median_steps_per_s']:15d} "
+            f"{', '.join(str(x) for x in row['steps_per_s']):>36s} {row['median_steps_per_cpu_s']:12d} "
+            f"{r['compile_s']:9.1f}"
+        )
     ratio = out[1]["median_steps_per_s"] / max(1, out[0]["median_steps_per_s"])
-    meta = {"dataset": str(args.dataset), "head": args.head, "head_kind": head.kind, "levels": levels,
-            "training_slides": len(read_spec(args.dataset)["train"]),
-            "machine": f"{platform.machine()}, {jax.device_count()} × {jax.devices()[0].platform}",
-            "jax": jax.__version__, "date": time.strftime("%Y-%m-%d"), "load_average_1min_at_end": os.getloadavg()[0],
-            "reader_over_navigator": round(ratio, 3),
-            "reader_over_navigator_cpu": round(out[1]["median_steps_per_cpu_s"] / max(1, out[0]["median_steps_per_cpu_s"]), 3)}
+    meta = {
+        "dataset": str(args.dataset),
+        "head": args.head,
+        "head_kind": head.kind,
+        "levels": levels,
+        "training_slides": len(read_spec(args.dataset)["train"]),
+        "machine": f"{platform.machine()}, {jax.device_count()} × {jax.devices()[0].platform}",
+        "jax": jax.__version__,
+        "date": time.strftime("%Y-%m-%d"),
+        "load_average_1min_at_end": os.getloadavg()[0],
+        "reader_over_navigator": round(ratio, 3),
+        "reader_over_navigator_cpu": round(
+            out[1]["median_steps_per_cpu_s"] / max(1, out[0]["median_steps_per_cpu_s"]), 3
+        ),
+    }
     print(f"set reader / navigator: {ratio:.2f} (target >= 0.5)")
     if args.all_cells:
-        meta["all_cells_reader_over_navigator"] = round(out[2]["median_steps_per_s"] / max(1, out[0]["median_steps_per_s"]),
-                                                        3)
+        meta["all_cells_reader_over_navigator"] = round(
+            out[2]["median_steps_per_s"] / max(1, out[0]["median_steps_per_s"]), 3
+        )
         meta["all_cells_reader_over_navigator_cpu"] = round(
-            out[2]["median_steps_per_cpu_s"] / max(1, out[0]["median_steps_per_cpu_s"]), 3)
+            out[2]["median_steps_per_cpu_s"] / max(1, out[0]["median_steps_per_cpu_s"]), 3
+        )
         print(f"set reader over all slides' cells / navigator: {meta['all_cells_reader_over_navigator']:.2f}")
     print(json.dumps(meta))
     if args.json:

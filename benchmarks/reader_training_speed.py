@@ -16,6 +16,7 @@ training slides, the env wrapped in :class:`~histojax.reading.head_reward.HeadRe
 
 Each row is compiled first (compile time printed), then ``--updates`` PPO updates of 1 seed are timed.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -26,8 +27,17 @@ import time
 from pathlib import Path
 
 
-def one_row(dataset: Path, head_dir: str, action_mode: str, num_envs: int, minibatches: int, updates: int,
-            budget: float, windowed: bool, keys_once: bool) -> dict:
+def one_row(
+    dataset: Path,
+    head_dir: str,
+    action_mode: str,
+    num_envs: int,
+    minibatches: int,
+    updates: int,
+    budget: float,
+    windowed: bool,
+    keys_once: bool,
+) -> dict:
     """PPO env steps/s of one setting (1 seed, ``updates`` updates of ``num_envs`` × 64 steps)."""
     import jax
 
@@ -40,17 +50,27 @@ def one_row(dataset: Path, head_dir: str, action_mode: str, num_envs: int, minib
 
     def make_env(config, auto_reset=True, mesh=None):
         env, params = original_make(config, auto_reset=auto_reset, mesh=mesh)
-        return HeadReward(env, head, gain="fidelity", final=0.0, params=params,
-                          incremental_score=None if windowed else False), params
+        return HeadReward(
+            env, head, gain="fidelity", final=0.0, params=params, incremental_score=None if windowed else False
+        ), params
 
     ppo.make_env = make_env
     if not keys_once:  # the rollout as before: every step recomputes every slide's cell keys
-        ppo.rollout_apply = lambda network, params: (lambda obs: network.apply(params, obs))
+        ppo.rollout_apply = lambda network, params: lambda obs: network.apply(params, obs)
     try:
-        config = {**ppo.DEFAULTS, "env_id": "HistoJAX-C16-Diagnosis-v2", "action_mode": action_mode,
-                  "obs_mode": "features", "num_envs": num_envs, "num_steps": 64, "num_minibatches": minibatches,
-                  "total_timesteps": num_envs * 64 * updates, "print_progress": False, "num_seeds": 1,
-                  "env_kwargs": {"dataset": str(dataset), "split": "train", "read_budget": budget}}
+        config = {
+            **ppo.DEFAULTS,
+            "env_id": "HistoJAX-C16-Diagnosis-v2",
+            "action_mode": action_mode,
+            "obs_mode": "features",
+            "num_envs": num_envs,
+            "num_steps": 64,
+            "num_minibatches": minibatches,
+            "total_timesteps": num_envs * 64 * updates,
+            "print_progress": False,
+            "num_seeds": 1,
+            "env_kwargs": {"dataset": str(dataset), "split": "train", "read_budget": budget},
+        }
         t0 = time.perf_counter()
         train = ppo.make_train(config)
         t_make = time.perf_counter() - t0
@@ -64,14 +84,25 @@ def one_row(dataset: Path, head_dir: str, action_mode: str, num_envs: int, minib
     finally:
         ppo.make_env, ppo.rollout_apply = original_make, original_apply
     steps = num_envs * 64 * train.num_updates
-    return {"num_envs": num_envs, "num_minibatches": minibatches, "windowed_head": windowed, "keys_once": keys_once,
-            "env_steps": steps, "wall_s": round(wall, 2), "steps_per_s": round(steps / wall),
-            "compile_s": round(t_compile, 1), "make_s": round(t_make, 1)}
+    return {
+        "num_envs": num_envs,
+        "num_minibatches": minibatches,
+        "windowed_head": windowed,
+        "keys_once": keys_once,
+        "env_steps": steps,
+        "wall_s": round(wall, 2),
+        "steps_per_s": round(steps / wall),
+        "compile_s": round(t_compile, 1),
+        "make_s": round(t_make, 1),
+    }
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.reader_training_speed", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.reader_training_speed",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--dataset", required=True, type=Path, help="a dataset folder (its train split is used)")
     p.add_argument("--head", required=True, help="a slide head folder (e.g. baselines/published/c16-v2-head)")
     p.add_argument("--action-mode", default="glimpse:2")
@@ -89,22 +120,31 @@ def main(argv=None) -> int:
         return 2
     import jax
 
-    settings = [("whole grid, keys every step", args.num_envs, args.minibatches, False, False),
-                ("windowed head", args.num_envs, args.minibatches, True, False),
-                ("windowed head + keys once", args.num_envs, args.minibatches, True, True),
-                ("windowed head + keys once, larger batch", args.big_envs, args.big_minibatches, True, True)]
+    settings = [
+        ("whole grid, keys every step", args.num_envs, args.minibatches, False, False),
+        ("windowed head", args.num_envs, args.minibatches, True, False),
+        ("windowed head + keys once", args.num_envs, args.minibatches, True, True),
+        ("windowed head + keys once, larger batch", args.big_envs, args.big_minibatches, True, True),
+    ]
     if args.skip_before:
         settings = settings[1:]
     rows = []
     print(f"{'setting':42s} {'envs':>5s} {'mb':>3s} {'steps/s':>9s} {'compile s':>9s}")
     for name, envs, mbs, windowed, once in settings:
-        row = {"setting": name, **one_row(args.dataset, args.head, args.action_mode, envs, mbs, args.updates,
-                                          args.budget, windowed, once)}
+        row = {
+            "setting": name,
+            **one_row(args.dataset, args.head, args.action_mode, envs, mbs, args.updates, args.budget, windowed, once),
+        }
         rows.append(row)
         print(f"{name:42s} {envs:5d} {mbs:3d} {row['steps_per_s']:9d} {row['compile_s']:9.1f}", flush=True)
-    meta = {"dataset": str(args.dataset), "head": args.head, "action_mode": args.action_mode,
-            "machine": f"{platform.machine()}, {jax.device_count()} × {jax.devices()[0].platform}",
-            "jax": jax.__version__, "date": time.strftime("%Y-%m-%d")}
+    meta = {
+        "dataset": str(args.dataset),
+        "head": args.head,
+        "action_mode": args.action_mode,
+        "machine": f"{platform.machine()}, {jax.device_count()} × {jax.devices()[0].platform}",
+        "jax": jax.__version__,
+        "date": time.strftime("%Y-%m-%d"),
+    }
     print(json.dumps(meta))
     if args.json:
         args.json.write_text(json.dumps({"meta": meta, "rows": rows}, indent=1) + "\n")

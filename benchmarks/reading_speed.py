@@ -20,6 +20,7 @@ times (best of each): ``vs_navigation_paired``, a ratio that a load changing dur
 ``glimpse:1-full`` is ``glimpse:1`` with the full observation of the ``-v1`` ids (``step_obs=False``) and,
 for PPO, the flat network that observation needs: the reading mode as it was before ``-v2``.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -77,8 +78,9 @@ def _env_program(env, params, batch: int, steps: int):
             state, acc = carry
             ka, ks = jax.random.split(k)
             action = jax.random.randint(ka, (batch,), 0, n)
-            obs, state, r, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(jax.random.split(ks, batch), state, action,
-                                                                              params)
+            obs, state, r, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                jax.random.split(ks, batch), state, action, params
+            )
             acc = acc + r.sum() + sum(jnp.sum(x.astype(jnp.float32)) for x in jax.tree.leaves(obs))
             return (state, acc), None
 
@@ -102,8 +104,14 @@ def one_env(dataset, mode: str, batch: int, steps: int, budget: float, paired: i
     t0 = time.perf_counter()
     env, params = histojax.make(ENV_ID, slides=paths, **_overrides(mode, budget))
     made = time.perf_counter() - t0
-    out = {"kind": "env", "mode": mode, "batch": batch, "slides": len(paths), "make_s": made,
-           "obs_bytes": observation_bytes(env, params)}
+    out = {
+        "kind": "env",
+        "mode": mode,
+        "batch": batch,
+        "slides": len(paths),
+        "make_s": made,
+        "obs_bytes": observation_bytes(env, params),
+    }
     if mode.startswith("glimpse") and not mode.endswith("-full"):
         t0 = time.perf_counter()
         env.action.prepare(env, params, env.bundles, read_budget=budget)
@@ -132,10 +140,19 @@ def one_ppo(dataset, mode: str, batch: int, steps: int, updates: int, budget: fl
 
     paths = dataset_bundles(dataset)
     ov = _overrides(mode, budget)
-    config = {"env_id": ENV_ID, "action_mode": ov.pop("action_mode"), "obs_mode": "features",
-              "env_kwargs": {"slides": paths, **ov}, "num_envs": batch, "num_steps": steps,
-              "total_timesteps": batch * steps * updates, "num_minibatches": 4, "update_epochs": 2,
-              "print_progress": False, "num_seeds": 1}
+    config = {
+        "env_id": ENV_ID,
+        "action_mode": ov.pop("action_mode"),
+        "obs_mode": "features",
+        "env_kwargs": {"slides": paths, **ov},
+        "num_envs": batch,
+        "num_steps": steps,
+        "total_timesteps": batch * steps * updates,
+        "num_minibatches": 4,
+        "update_epochs": 2,
+        "print_progress": False,
+        "num_seeds": 1,
+    }
     t0 = time.perf_counter()
     train = ppo.make_train(config)
     call = train.compile(jax.random.split(jax.random.key(0), 1))
@@ -143,15 +160,39 @@ def one_ppo(dataset, mode: str, batch: int, steps: int, updates: int, budget: fl
     t0 = time.perf_counter()
     jax.block_until_ready(call(jax.random.split(jax.random.key(0), 1)))
     took = time.perf_counter() - t0
-    return {"kind": "ppo", "mode": mode, "batch": batch, "network": type(train.network).__name__,
-            "compile_s": compiled, "steps_per_s": batch * steps * train.num_updates / took,
-            "peak_rss_gb": peak_rss_gb()}
+    return {
+        "kind": "ppo",
+        "mode": mode,
+        "batch": batch,
+        "network": type(train.network).__name__,
+        "compile_s": compiled,
+        "steps_per_s": batch * steps * train.num_updates / took,
+        "peak_rss_gb": peak_rss_gb(),
+    }
 
 
 def _child(args, kind: str, mode: str, batch: int) -> dict:
-    cmd = [sys.executable, "-m", "benchmarks.reading_speed", "--dataset", str(args.dataset), "--one", kind, mode,
-           str(batch), "--env-steps", str(args.env_steps), "--ppo-steps", str(args.ppo_steps),
-           "--ppo-updates", str(args.ppo_updates), "--budget", str(args.budget), "--paired", str(args.paired)]
+    cmd = [
+        sys.executable,
+        "-m",
+        "benchmarks.reading_speed",
+        "--dataset",
+        str(args.dataset),
+        "--one",
+        kind,
+        mode,
+        str(batch),
+        "--env-steps",
+        str(args.env_steps),
+        "--ppo-steps",
+        str(args.ppo_steps),
+        "--ppo-updates",
+        str(args.ppo_updates),
+        "--budget",
+        str(args.budget),
+        "--paired",
+        str(args.paired),
+    ]
     done = subprocess.run(cmd, capture_output=True, text=True)
     if done.returncode != 0:
         tail = (done.stderr or done.stdout).strip().splitlines()[-1:] or ["(no output)"]
@@ -169,27 +210,39 @@ def main(argv=None) -> int:
     parser.add_argument("--ppo-updates", type=int, default=2)
     parser.add_argument("--budget", type=float, default=0.1)
     parser.add_argument("--skip-ppo", action="store_true")
-    parser.add_argument("--paired", type=int, default=0,
-                        help="env rows: also time navigation in the same process, in turn with the mode, this many "
-                             "times (ratio 'paired'); 0: off")
+    parser.add_argument(
+        "--paired",
+        type=int,
+        default=0,
+        help="env rows: also time navigation in the same process, in turn with the mode, this many "
+        "times (ratio 'paired'); 0: off",
+    )
     parser.add_argument("--json", type=Path, help="also write the rows here")
     parser.add_argument("--one", nargs=3, metavar=("KIND", "MODE", "BATCH"), help=argparse.SUPPRESS)
     args = parser.parse_args(argv)
     if not (args.dataset / "dataset.json").is_file():
-        print(f"reading_speed: {args.dataset}: no dataset.json (make one with python -m data_tools c16 ...)",
-              file=sys.stderr)
+        print(
+            f"reading_speed: {args.dataset}: no dataset.json (make one with python -m data_tools c16 ...)",
+            file=sys.stderr,
+        )
         return 2
     if args.one:
         kind, mode, batch = args.one[0], args.one[1], int(args.one[2])
-        row = (one_env(args.dataset, mode, batch, args.env_steps, args.budget, args.paired) if kind == "env" else
-               one_ppo(args.dataset, mode, batch, args.ppo_steps, args.ppo_updates, args.budget))
+        row = (
+            one_env(args.dataset, mode, batch, args.env_steps, args.budget, args.paired)
+            if kind == "env"
+            else one_ppo(args.dataset, mode, batch, args.ppo_steps, args.ppo_updates, args.budget)
+        )
         print(json.dumps(row))
         return 0
     import jax
 
     t_start = time.perf_counter()
-    print(f"# reading_speed on {args.dataset} ({len(dataset_bundles(args.dataset))} slides), jax {jax.__version__}, "
-          f"{platform.machine()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}", flush=True)
+    print(
+        f"# reading_speed on {args.dataset} ({len(dataset_bundles(args.dataset))} slides), jax {jax.__version__}, "
+        f"{platform.machine()}, {time.strftime('%Y-%m-%d %H:%M UTC', time.gmtime())}",
+        flush=True,
+    )
     rows = []
     kinds = ["env"] + ([] if args.skip_ppo else ["ppo"])
     for kind in kinds:
@@ -202,15 +255,19 @@ def main(argv=None) -> int:
                 if base and "steps_per_s" in row:
                     row["vs_navigation"] = row["steps_per_s"] / base
                 rows.append(row)
-                extra = "".join(f"  {k} {row[k]:.3g}" if isinstance(row[k], float) else f"  {k} {row[k]}"
-                                for k in ("vs_navigation_paired", "obs_bytes", "cells", "host_tables_s", "network",
-                                          "peak_rss_gb")
-                                if k in row)
+                extra = "".join(
+                    f"  {k} {row[k]:.3g}" if isinstance(row[k], float) else f"  {k} {row[k]}"
+                    for k in ("vs_navigation_paired", "obs_bytes", "cells", "host_tables_s", "network", "peak_rss_gb")
+                    if k in row
+                )
                 if "error" in row:
                     print(f"{kind:4s} {mode:12s} batch {batch:5d}  error: {row['error']}", flush=True)
                 else:
-                    print(f"{kind:4s} {mode:12s} batch {batch:5d}  {row['steps_per_s']:12,.0f} steps/s  "
-                          f"x{row.get('vs_navigation', float('nan')):.3f} of navigation{extra}", flush=True)
+                    print(
+                        f"{kind:4s} {mode:12s} batch {batch:5d}  {row['steps_per_s']:12,.0f} steps/s  "
+                        f"x{row.get('vs_navigation', float('nan')):.3f} of navigation{extra}",
+                        flush=True,
+                    )
     print(f"# wall time {time.perf_counter() - t_start:.0f} s")
     if args.json:
         args.json.write_text(json.dumps(rows, indent=1))

@@ -11,6 +11,7 @@ reset's). The gradient of a PPO-like loss (log-probability of one action, valueÂ
 timed ``--repeats`` times, interleaved; printed: the slides and valid cells the minibatch holds and the median and
 least milliseconds of each path.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -23,20 +24,24 @@ from pathlib import Path
 import numpy as np
 
 
-def minibatch_slides(rng, slides: int, envs: int = 64, steps: int = 64, minibatches: int = 8,
-                     episode: int = 11) -> np.ndarray:
+def minibatch_slides(
+    rng, slides: int, envs: int = 64, steps: int = 64, minibatches: int = 8, episode: int = 11
+) -> np.ndarray:
     """The slide of each of the ``envs Â· steps / minibatches`` samples of one shuffled PPO minibatch: each env's
     ``steps`` run through episodes of ``episode`` steps, each on a slide drawn uniformly from ``slides``."""
     slide = np.empty((steps, envs), np.int64)
     for e in range(envs):
         for t in range(0, steps, episode):
-            slide[t:t + episode, e] = rng.integers(slides)
-    return slide.reshape(-1)[rng.permutation(steps * envs)][:steps * envs // minibatches]
+            slide[t : t + episode, e] = rng.integers(slides)
+    return slide.reshape(-1)[rng.permutation(steps * envs)][: steps * envs // minibatches]
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.set_reader_minibatch_cost", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.set_reader_minibatch_cost",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--dataset", required=True, type=Path, help="a dataset folder (its train split is used)")
     p.add_argument("--reader", default="glimpse:1", help="the set reader's action mode (default glimpse:1)")
     p.add_argument("--budget", type=float, default=0.1)
@@ -60,10 +65,22 @@ def main(argv=None) -> int:
     from baselines import ppo
     from histojax.registry import READING_ID
 
-    env, params = histojax.make(READING_ID, dataset=str(args.dataset), split="train", n_levels=levels,
-                                action_mode=args.reader, obs_mode="features", read_budget=args.budget)
-    config = {**ppo.DEFAULTS, "env_id": READING_ID, "action_mode": args.reader, "obs_mode": "features",
-              "obs_norm": None}
+    env, params = histojax.make(
+        READING_ID,
+        dataset=str(args.dataset),
+        split="train",
+        n_levels=levels,
+        action_mode=args.reader,
+        obs_mode="features",
+        read_budget=args.budget,
+    )
+    config = {
+        **ppo.DEFAULTS,
+        "env_id": READING_ID,
+        "action_mode": args.reader,
+        "obs_mode": "features",
+        "obs_norm": None,
+    }
     nets = {"minibatch's slides": ppo.make_network(config, env)}
     nets["all slides"] = nets["minibatch's slides"].clone(batch_cells=False)
     obs0, _ = env.reset(jax.random.key(0), params)
@@ -85,7 +102,7 @@ def main(argv=None) -> int:
     def loss(q, net, obs):
         logits, value = net.apply(q, obs)
         logp = jax.nn.log_softmax(logits)
-        return -jnp.take_along_axis(logp, action[:, None], -1).sum() + (value ** 2).sum()
+        return -jnp.take_along_axis(logp, action[:, None], -1).sum() + (value**2).sum()
 
     # the observations an argument, as in PPO's update (not constants of the program)
     grads = {name: jax.jit(jax.grad(lambda q, o, n=net: loss(q, n, o))) for name, net in nets.items()}
@@ -98,15 +115,32 @@ def main(argv=None) -> int:
             jax.block_until_ready(g(net_params, obs))
             times[name].append(time.perf_counter() - t0)
     present = np.unique(slides)
-    out = {"dataset": str(args.dataset), "training_slides": s, "valid_cells": int(valid.sum()), "minibatch": b,
-           "slides_in_minibatch": len(present), "cells_of_minibatch_slides": int(valid[present].sum()),
-           "jax": jax.__version__, "date": time.strftime("%Y-%m-%d"),
-           "grad_ms": {name: {"median": round(1e3 * statistics.median(v), 1), "min": round(1e3 * min(v), 1),
-                              "runs": [round(1e3 * x, 1) for x in v]} for name, v in times.items()}}
-    print(f"{s} training slides ({out['valid_cells']:,} valid cells); a minibatch of {b} holds {len(present)} slides "
-          f"({out['cells_of_minibatch_slides']:,} valid cells)")
+    out = {
+        "dataset": str(args.dataset),
+        "training_slides": s,
+        "valid_cells": int(valid.sum()),
+        "minibatch": b,
+        "slides_in_minibatch": len(present),
+        "cells_of_minibatch_slides": int(valid[present].sum()),
+        "jax": jax.__version__,
+        "date": time.strftime("%Y-%m-%d"),
+        "grad_ms": {
+            name: {
+                "median": round(1e3 * statistics.median(v), 1),
+                "min": round(1e3 * min(v), 1),
+                "runs": [round(1e3 * x, 1) for x in v],
+            }
+            for name, v in times.items()
+        },
+    }
+    print(
+        f"{s} training slides ({out['valid_cells']:,} valid cells); a minibatch of {b} holds {len(present)} slides "
+        f"({out['cells_of_minibatch_slides']:,} valid cells)"
+    )
     for name, r in out["grad_ms"].items():
-        print(f"per-cell layers over {name + ' cells':28s} gradient {r['median']:8.1f} ms median, {r['min']:8.1f} least")
+        print(
+            f"per-cell layers over {name + ' cells':28s} gradient {r['median']:8.1f} ms median, {r['min']:8.1f} least"
+        )
     if args.json:
         args.json.write_text(json.dumps(out, indent=1) + "\n")
     return 0

@@ -8,6 +8,7 @@ addressable shards) and the per-device argument bytes of the compiled PPO progra
 Without ``--dataset`` a dataset of 8 semi-synthetic slides (``--size`` px, tile 32, Easy levels)
 is built in a temporary folder.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -25,8 +26,9 @@ def main(argv=None) -> int:
     p.add_argument("--size", type=int, default=1024, help="side of the built slides, px")
     args = p.parse_args(argv)
     if "jax" not in sys.modules and "xla_force_host_platform_device_count" not in os.environ.get("XLA_FLAGS", ""):
-        os.environ["XLA_FLAGS"] = (os.environ.get("XLA_FLAGS", "") +
-                                   f" --xla_force_host_platform_device_count={args.devices}").strip()
+        os.environ["XLA_FLAGS"] = (
+            os.environ.get("XLA_FLAGS", "") + f" --xla_force_host_platform_device_count={args.devices}"
+        ).strip()
     import jax
     import numpy as np
     from jax.sharding import Mesh
@@ -42,8 +44,16 @@ def main(argv=None) -> int:
         from data_tools.datasets.synth.dataset import make_dataset
 
         root = Path(tempfile.mkdtemp(prefix="histojax-slide-sharding-"))
-        ds = make_dataset(root, n_slides=args.slides, size=(args.size, args.size), seed=0, tile_size=32,
-                          level_sets=(3,), progress=False, previews=False)
+        ds = make_dataset(
+            root,
+            n_slides=args.slides,
+            size=(args.size, args.size),
+            seed=0,
+            tile_size=32,
+            level_sets=(3,),
+            progress=False,
+            previews=False,
+        )
         paths = [str(root / s["bundle"]) for s in ds["slides"]]
     n = args.devices
     devices = jax.devices()
@@ -55,18 +65,33 @@ def main(argv=None) -> int:
     _, params = sharding.make_sharded("HistoJAX-Easy-v0", mesh, slides=paths)
     per = sharding.device_bytes(params.slide)
     print(f"the dataset on one device: {whole_bytes:,} bytes")
-    print("sharded, per device: " + ", ".join(f"{per[d]:,}" for d in mesh.devices.flat) +
-          f" bytes ({max(per.values()) / whole_bytes:.1%} of the dataset each; 1/{n} = {1 / n:.1%})")
+    print(
+        "sharded, per device: "
+        + ", ".join(f"{per[d]:,}" for d in mesh.devices.flat)
+        + f" bytes ({max(per.values()) / whole_bytes:.1%} of the dataset each; 1/{n} = {1 / n:.1%})"
+    )
     del params
-    config = dict(env_id="HistoJAX-Easy-v0", num_envs=8 * n, num_steps=16, total_timesteps=16 * 8 * n,
-                  update_epochs=1, num_minibatches=2, hidden=32, num_seeds=1, print_progress=False, devices=n,
-                  env_kwargs={"slides": paths})
+    config = dict(
+        env_id="HistoJAX-Easy-v0",
+        num_envs=8 * n,
+        num_steps=16,
+        total_timesteps=16 * 8 * n,
+        update_epochs=1,
+        num_minibatches=2,
+        hidden=32,
+        num_seeds=1,
+        print_progress=False,
+        devices=n,
+        env_kwargs={"slides": paths},
+    )
     keys = jax.random.split(jax.random.PRNGKey(0), 1)
     for shard in (False, True):
         train = ppo.make_train({**config, "shard_slides": shard})
         stats = train.compile(keys).exe.memory_analysis()
-        print(f"PPO --devices {n}{' --shard-slides' if shard else ''}: compiled program's arguments per device "
-              f"{stats.argument_size_in_bytes:,} bytes, temporaries {stats.temp_size_in_bytes:,}")
+        print(
+            f"PPO --devices {n}{' --shard-slides' if shard else ''}: compiled program's arguments per device "
+            f"{stats.argument_size_in_bytes:,} bytes, temporaries {stats.temp_size_in_bytes:,}"
+        )
         del train
     return 0
 

@@ -12,6 +12,7 @@ cells a slide (105). Writes ``DIR/dataset.json`` (``train``: ``slides`` slides, 
 ``DIR/bundles/``, and ``DIR/head`` (a learned head of the published one's size, 32 units, 16 attention units,
 random parameters: its reward costs what a fitted head's does). Only numbers made here; no third-party data.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,7 +33,7 @@ def _template(root: Path, size: int) -> Path:
     from data_tools.bundle import build_bundle
 
     image = np.full((size, size, 3), 245, np.uint8)
-    image[TILE:size - TILE, TILE:size - TILE] = [230, 160, 200]  # tissue, a one-view margin of glass
+    image[TILE : size - TILE, TILE : size - TILE] = [230, 160, 200]  # tissue, a one-view margin of glass
     tifffile.imwrite(root / "template.tif", image, photometric="rgb")
     return build_bundle(root / "template.tif", root / "template", level_sets=(3,), tile_size=TILE, progress=False)
 
@@ -40,12 +41,11 @@ def _template(root: Path, size: int) -> Path:
 def build(out, slides: int, size: int = 1280, dim: int = 64, seed: int = 0) -> Path:
     """Build ``slides`` training slides (and 2 test slides) of ``size`` × ``size`` px under ``out`` with ``dim``-d
     features, and the head ``out/head``; returns ``out``. Refuses an ``out`` that already holds a dataset.json."""
+    import h5py
     import jax
 
     from data_tools.features.hdf5 import import_features
     from histojax.reading.heads.learned import LearnedHead, init_params
-
-    import h5py
 
     out = Path(out)
     if (out / "dataset.json").exists():
@@ -68,7 +68,7 @@ def build(out, slides: int, size: int = 1280, dim: int = 64, seed: int = 0) -> P
                 h, w = rng.integers(2, 6, 2)
                 y0, x0 = rng.integers(1, g - 1 - h), rng.integers(1, g - 1 - w)
                 m = np.zeros((g, g), bool)
-                m[y0:y0 + h, x0:x0 + w] = True
+                m[y0 : y0 + h, x0 : x0 + w] = True
                 z[:, 0] += 3.0 * m.ravel()
             h5 = Path(tmp) / f"{name}.h5"
             with h5py.File(h5, "w") as f:
@@ -80,16 +80,24 @@ def build(out, slides: int, size: int = 1280, dim: int = 64, seed: int = 0) -> P
             h5.unlink()
             spec[split].append(f"bundles/{name}")
             spec["labels"][name] = label
-    head = LearnedHead(params=init_params(jax.random.PRNGKey(seed), dim, 32, 16, 1), features_dim=dim, hidden=32,
-                       attention=16, encoder="imported:s0000_normal.h5")
+    head = LearnedHead(
+        params=init_params(jax.random.PRNGKey(seed), dim, 32, 16, 1),
+        features_dim=dim,
+        hidden=32,
+        attention=16,
+        encoder="imported:s0000_normal.h5",
+    )
     head.save(out / "head")
     (out / "dataset.json").write_text(json.dumps(spec, indent=1) + "\n")
     return out
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m benchmarks.synthetic_reading_set", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m benchmarks.synthetic_reading_set",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--slides", type=int, default=200, help="training slides (default 200)")
     p.add_argument("--size", type=int, default=1280, help="slide side in px, a multiple of 128 (default 1280)")

@@ -8,6 +8,7 @@ memory-bound: each step copies a 128×128×3 view).
 
     python benchmarks/throughput.py [--env HistoJAX-Hard-v0] [--batches 1 64 1024 4096] [--seconds 1.0]
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -19,8 +20,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from data_tools.cli_output import command_main, positive_float
 import histojax
+from data_tools.cli_output import command_main, positive_float
 from histojax.core import actions as act
 from histojax.core.views import view_tumour_fraction
 
@@ -42,6 +43,7 @@ def full_step_rollout(env, batch: int, steps: int):
     ``batch`` envs (any obs mode). Each step's observation batch is written into the scan carry,
     so XLA must materialise every view of every step (reading only a part of it would let XLA
     gather just that part), without adding a reduction over the pixels to the timed work."""
+
     def run(key, params):
         obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, batch), params)
 
@@ -49,7 +51,8 @@ def full_step_rollout(env, batch: int, steps: int):
             state, _, checksum = carry
             a = jax.random.randint(key, (batch,), 0, 7)
             obs, state, reward, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(key, batch), state, a, params)
+                jax.random.split(key, batch), state, a, params
+            )
             return (state, obs, checksum + reward.sum()), None
 
         carry, _ = jax.lax.scan(body, (state, obs, jnp.float32(0)), jax.random.split(key, steps))
@@ -108,15 +111,19 @@ def run(args, parser=None) -> int:
     env, params = histojax.make(args.env)
     view_bytes = env.tile_size**2 * 3
     bandwidth = memcpy_bandwidth()
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-          f"JAX {jax.__version__} on {jax.devices()[0].platform}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+        f"JAX {jax.__version__} on {jax.devices()[0].platform}"
+    )
     print(f"{args.env} on CMU-1-Small-Region ({env.n_levels} levels, {env.tile_size} px views)")
     print(f"numpy memory copy: {bandwidth / 1e9:.2f} GB/s")
     lean = dataclasses.replace(env, final_observation=False)  # one view per step instead of two
     print("pixels: full step with auto-reset (two views per step: the next and info['final_observation']);")
     print("lean: final_observation=False (one view per step); view GB/s counts the views extracted")
-    print(f"{'batch':>6} {'pixels steps/s':>15} {'lean steps/s':>13} {'lean view GB/s':>15} {'of memcpy':>10} "
-          f"{'reward-only steps/s':>20}")
+    print(
+        f"{'batch':>6} {'pixels steps/s':>15} {'lean steps/s':>13} {'lean view GB/s':>15} {'of memcpy':>10} "
+        f"{'reward-only steps/s':>20}"
+    )
     for batch in args.batches:
         sps = measure(full_step_rollout, env, params, batch, args.seconds)
         lps = measure(full_step_rollout, lean, params, batch, args.seconds)
@@ -124,7 +131,6 @@ def run(args, parser=None) -> int:
         gbs = lps * view_bytes
         print(f"{batch:>6} {sps:>15,.0f} {lps:>13,.0f} {gbs / 1e9:>15.2f} {gbs / bandwidth:>10.1%} {rps:>20,.0f}")
     return 0
-
 
 
 main = command_main(add_arguments, run, "python benchmarks/throughput.py", __doc__)

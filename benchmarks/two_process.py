@@ -12,6 +12,7 @@ devices) and checks the parameters agree (``rtol=1e-5, atol=1e-7``).
 Without ``--dataset`` a dataset of 8 small semi-synthetic slides is built in a temporary folder.
 Exit status 0 when all checks pass.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -28,8 +29,24 @@ import numpy as np
 from baselines.harness.distributed import cpu_child_env
 
 ROOT = Path(__file__).resolve().parents[1]
-PPO_ARGS = ["--env", "HistoJAX-Easy-v0", "--seeds", "1", "--num-envs", "8", "--set", "num_steps=16",
-            "--set", "num_minibatches=2", "--set", "update_epochs=1", "--set", "hidden=32", "--set", "log_every=1"]
+PPO_ARGS = [
+    "--env",
+    "HistoJAX-Easy-v0",
+    "--seeds",
+    "1",
+    "--num-envs",
+    "8",
+    "--set",
+    "num_steps=16",
+    "--set",
+    "num_minibatches=2",
+    "--set",
+    "update_epochs=1",
+    "--set",
+    "hidden=32",
+    "--set",
+    "log_every=1",
+]
 
 
 def free_port() -> int:
@@ -79,7 +96,9 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--processes", type=int, default=2)
     p.add_argument("--local-devices", type=int, default=1, help="CPU devices per process")
-    p.add_argument("--dataset", default=None, help="a dataset folder (dataset.json); default: 8 small slides built here")
+    p.add_argument(
+        "--dataset", default=None, help="a dataset folder (dataset.json); default: 8 small slides built here"
+    )
     p.add_argument("--slides", nargs="*", default=None, help="bundle folders instead of --dataset")
     p.add_argument("--total-steps", type=int, default=384, help="env steps (3 PPO updates of 8 envs x 16 steps)")
     p.add_argument("--timeout", type=float, default=600.0, help="seconds before every process is killed")
@@ -96,16 +115,47 @@ def main(argv=None) -> int:
     else:
         from data_tools.datasets.synth.dataset import make_dataset
 
-        ds = make_dataset(out / "dataset", n_slides=8, size=(320, 256), seed=0, tile_size=32, level_sets=(3,),
-                          progress=False, previews=False)
+        ds = make_dataset(
+            out / "dataset",
+            n_slides=8,
+            size=(320, 256),
+            seed=0,
+            tile_size=32,
+            level_sets=(3,),
+            progress=False,
+            previews=False,
+        )
         env_kwargs = {"slides": [str(out / "dataset" / s["bundle"]) for s in ds["slides"]]}
     n, local = args.processes, args.local_devices
     devices = n * local
-    base = [sys.executable, "-m", "baselines.ppo", *PPO_ARGS, "--total-steps", str(args.total_steps),
-            "--devices", str(devices), "--shard-slides", "--set", "env_kwargs=" + json.dumps(env_kwargs)]
+    base = [
+        sys.executable,
+        "-m",
+        "baselines.ppo",
+        *PPO_ARGS,
+        "--total-steps",
+        str(args.total_steps),
+        "--devices",
+        str(devices),
+        "--shard-slides",
+        "--set",
+        "env_kwargs=" + json.dumps(env_kwargs),
+    ]
     port = free_port()
-    commands = [base + ["--coordinator", f"127.0.0.1:{port}", "--num-processes", str(n), "--process-id", str(i),
-                        "--out", str(out / "multi")] for i in range(n)]
+    commands = [
+        base
+        + [
+            "--coordinator",
+            f"127.0.0.1:{port}",
+            "--num-processes",
+            str(n),
+            "--process-id",
+            str(i),
+            "--out",
+            str(out / "multi"),
+        ]
+        for i in range(n)
+    ]
     logs = [out / f"process-{i}.log" for i in range(n)]
     print(f"{n} processes x {local} CPU device(s), coordinator 127.0.0.1:{port}, logs in {out}", flush=True)
     t0 = time.perf_counter()
@@ -126,22 +176,27 @@ def main(argv=None) -> int:
     for i in range(1, n):
         other = load_params(out / "multi" / f"process-{i}")
         same = len(other) == len(first) and all(np.array_equal(a, b) for a, b in zip(first, other))
-        print(f"process {i} parameters {'identical to' if same else 'DIFFER from'} process 0's "
-              f"({sum(a.size for a in first):,} values)")
+        print(
+            f"process {i} parameters {'identical to' if same else 'DIFFER from'} process 0's "
+            f"({sum(a.size for a in first):,} values)"
+        )
         ok &= same
     if args.compare_single:
         log = out / "single.log"
         t0 = time.perf_counter()
-        codes = run_all([base + ["--out", str(out / "single")]], [cpu_child_env(devices, args.fast_compile)], [log],
-                        args.timeout)
+        codes = run_all(
+            [base + ["--out", str(out / "single")]], [cpu_child_env(devices, args.fast_compile)], [log], args.timeout
+        )
         if codes != [0]:
             print(f"--- single process (exit {codes[0]}):\n{tail(log)}\nFAILED")
             return 1
         single = load_params(out / "single")
         diff = max(float(np.max(np.abs(a - b))) for a, b in zip(first, single))
         close = all(np.allclose(a, b, rtol=1e-5, atol=1e-7) for a, b in zip(first, single))
-        print(f"one process with {devices} devices: {time.perf_counter() - t0:.1f} s; max |difference| of the "
-              f"parameters {diff:.3g} ({'agree' if close else 'DISAGREE'})")
+        print(
+            f"one process with {devices} devices: {time.perf_counter() - t0:.1f} s; max |difference| of the "
+            f"parameters {diff:.3g} ({'agree' if close else 'DISAGREE'})"
+        )
         ok &= close
     print("OK" if ok else "FAILED")
     return 0 if ok else 1

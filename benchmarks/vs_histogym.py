@@ -26,6 +26,7 @@
 
 Needs the ``bench`` extra (``pip install -e '.[bench]'``: openslide-python, openslide-bin).
 """
+
 from __future__ import annotations
 
 import argparse
@@ -84,8 +85,7 @@ class HistoGymStyleEnv:
 
     UP, DOWN, LEFT, RIGHT, ZOOM_IN, ZOOM_OUT, STAY = range(7)
 
-    def __init__(self, slide_path, annotation_path, tile_size: int = 128, overlap: int = 1,
-                 max_step: int = 2000):
+    def __init__(self, slide_path, annotation_path, tile_size: int = 128, overlap: int = 1, max_step: int = 2000):
         import openslide
         from openslide.deepzoom import DeepZoomGenerator
 
@@ -97,14 +97,15 @@ class HistoGymStyleEnv:
         self.max_z = self.dz.level_count - 1
         coords = histogym_polygons(annotation_path)
         w0, h0 = self.dz.level_dimensions[-1]
-        self.coords_dz = [[[(x * w / w0, y * h / h0) for x, y in poly] for poly in coords]
-                          for (w, h) in self.dz.level_dimensions]
+        self.coords_dz = [
+            [[(x * w / w0, y * h / h0) for x, y in poly] for poly in coords] for (w, h) in self.dz.level_dimensions
+        ]
         self.agent_pos = self._init_position()
         self.bound = self._all_bounds()
         self.count = 0
         self.log = open(os.devnull, "w")
-        self.seconds_read = 0.0      # tile read + resize + numpy conversion
-        self.seconds_overlap = 0.0   # the shapely reward
+        self.seconds_read = 0.0  # tile read + resize + numpy conversion
+        self.seconds_overlap = 0.0  # the shapely reward
         self.finest_steps = 0
 
     def _init_position(self):
@@ -234,9 +235,15 @@ def histogym_steps_per_s(slide_path, annotation_path, tile_size: int, steps: int
         if done:
             env.reset()
     elapsed = time.perf_counter() - t0
-    return {"sps": steps / elapsed, "seconds": elapsed, "read_ms": 1e3 * env.seconds_read / steps,
-            "overlap_ms": 1e3 * env.seconds_overlap / max(env.finest_steps, 1),
-            "finest": env.finest_steps / steps, "levels": (env.min_z, env.max_z), "return": total}
+    return {
+        "sps": steps / elapsed,
+        "seconds": elapsed,
+        "read_ms": 1e3 * env.seconds_read / steps,
+        "overlap_ms": 1e3 * env.seconds_overlap / max(env.finest_steps, 1),
+        "finest": env.finest_steps / steps,
+        "levels": (env.min_z, env.max_z),
+        "return": total,
+    }
 
 
 # --------------------------------------------------------------------------- (b) histojax envs
@@ -267,11 +274,18 @@ def features_env(env, params, make_kwargs: dict, dim: int = 1280):
         feature_offset=jnp.asarray(np.concatenate([[0], np.cumsum(sizes)[:-1]]), jnp.int32),
         feature_grid_width=jnp.asarray([g[1] for g in grids], jnp.int32),
         feature_grid_height=jnp.asarray([g[0] for g in grids], jnp.int32),
-        feature_stride=jnp.asarray(t, jnp.int32))
+        feature_stride=jnp.asarray(t, jnp.int32),
+    )
     params = params.replace(slide=slide)
     env = dataclasses.replace(env, obs_mode="features", _default_params=params)
-    return env, params, (f"no feature grid in the bundle: a random float16 {dim}-d grid (stride {t} px, "
-                         f"{int(sizes.sum())} views) attached in memory (the step's cost does not depend on values)")
+    return (
+        env,
+        params,
+        (
+            f"no feature grid in the bundle: a random float16 {dim}-d grid (stride {t} px, "
+            f"{int(sizes.sum())} views) attached in memory (the step's cost does not depend on values)"
+        ),
+    )
 
 
 QUICK_STEPS = None  # --quick: env-steps per timed call (throughput.measure uses 200,000)
@@ -289,9 +303,11 @@ def step_breakdown(env, params, fenv, fparams, batch: int, seconds: float) -> li
     """Full step at ``batch`` (observations materialised): as is (auto-reset, start drawn by
     inverting the cumulative start weights), with one view per step (``final_observation=False``),
     and without auto-reset."""
-    variants = [("as is (auto-reset)", lambda e: e),
-                ("final_observation=False", lambda e: dataclasses.replace(e, final_observation=False)),
-                ("auto_reset=False", lambda e: dataclasses.replace(e, auto_reset=False))]
+    variants = [
+        ("as is (auto-reset)", lambda e: e),
+        ("final_observation=False", lambda e: dataclasses.replace(e, final_observation=False)),
+        ("auto_reset=False", lambda e: dataclasses.replace(e, auto_reset=False)),
+    ]
     out = []
     for name, variant in variants:
         pix = timed(full_step_rollout, variant(env), params, batch, seconds)
@@ -330,7 +346,7 @@ def _prepare_padded(slide):
     off, w, h = (np.asarray(a) for a in (slide.level_offset, slide.level_width, slide.level_height))
     stack = np.zeros((len(w), h.max(), w.max(), 3), np.uint8)
     for k in range(len(w)):
-        stack[k, :h[k], :w[k]] = pix[off[k]:off[k] + h[k] * w[k]].reshape(h[k], w[k], 3)
+        stack[k, : h[k], : w[k]] = pix[off[k] : off[k] + h[k] * w[k]].reshape(h[k], w[k], 3)
     return slide.replace(pixels=jnp.asarray(stack))
 
 
@@ -360,6 +376,7 @@ def _random_positions(slide, key, batch, n_levels, t):
 def crop_rollout(crop, batch: int, steps: int, n_levels: int, t: int):
     """Crop alone: ``steps`` batches of ``batch`` random views; every view is materialised (the
     batch of views is the scan carry) and one pixel of each consumed."""
+
     def run(key, slide):
         def body(carry, key):
             _, checksum = carry
@@ -375,6 +392,7 @@ def crop_rollout(crop, batch: int, steps: int, n_levels: int, t: int):
 
 def positions_rollout(batch: int, steps: int, n_levels: int, t: int):
     """The random positions alone (subtracted from the crop timings)."""
+
     def run(key, slide):
         def body(total, key):
             z, x, y = _random_positions(slide, key, batch, n_levels, t)
@@ -432,8 +450,14 @@ def crop_alternatives(env, params, batch: int, seconds: float, bandwidth: float,
         exact = check_exact(params.slide, crop, prepared, n, t)
         vps = _time(crop_rollout(crop, batch, steps, n, t), (prepared,), seconds, steps * batch)
         crop_only = 1.0 / max(1.0 / vps - 1.0 / base, 1e-12)  # minus drawing random positions
-        row = {"name": name, "exact": exact, "views_per_s": vps, "crop_views_per_s": crop_only,
-               "crop_bw": crop_only * view_bytes / bandwidth, "device_bytes": prepared.pixels.nbytes}
+        row = {
+            "name": name,
+            "exact": exact,
+            "views_per_s": vps,
+            "crop_views_per_s": crop_only,
+            "crop_bw": crop_only * view_bytes / bandwidth,
+            "device_bytes": prepared.pixels.nbytes,
+        }
         if full_step:
             p2 = params.replace(slide=prepared)
             with patched_view(crop):
@@ -462,16 +486,23 @@ def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--slide", default=None, help="slide file (default: the embedded CMU-1-Small-Region.svs)")
     p.add_argument("--annotations", default=None, help="its ASAP XML or GeoJSON annotation")
-    p.add_argument("--env", default="HistoJAX-Medium-v0",
-                   help="histojax scenario (default Medium: 5 levels, as HistoGym's 5 DeepZoom levels "
-                        "of the sample slide at 128 px)")
+    p.add_argument(
+        "--env",
+        default="HistoJAX-Medium-v0",
+        help="histojax scenario (default Medium: 5 levels, as HistoGym's 5 DeepZoom levels "
+        "of the sample slide at 128 px)",
+    )
     p.add_argument("--tile-size", type=int, default=128)
     p.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024, 4096])
     p.add_argument("--histogym-steps", type=int, default=2000)
     p.add_argument("--seconds", type=float, default=3.0, help="minimum timed seconds per histojax measurement")
     p.add_argument("--crop-batch", type=int, default=1024)
     p.add_argument("--no-crop-step", action="store_true", help="time the crop alternatives alone only")
-    p.add_argument("--quick", action="store_true", help="short run (< 3 min): 100 HistoGym steps, 0.3 s and 20,000 env-steps per call")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="short run (< 3 min): 100 HistoGym steps, 0.3 s and 20,000 env-steps per call",
+    )
     args = p.parse_args(argv)
     if args.quick:
         global QUICK_STEPS
@@ -481,9 +512,11 @@ def main(argv=None) -> int:
     slide_path, ann_path, bundle = slide_and_bundle(args)
     bandwidth = memcpy_bandwidth()
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
-    print(f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores "
-          f"(load average {load[0]:.1f} at start: shared while measuring), Python {platform.python_version()}, "
-          f"JAX {jax.__version__} on {jax.devices()[0].platform}")
+    print(
+        f"machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores "
+        f"(load average {load[0]:.1f} at start: shared while measuring), Python {platform.python_version()}, "
+        f"JAX {jax.__version__} on {jax.devices()[0].platform}"
+    )
     print(f"slide: {Path(slide_path).name}, annotation: {Path(ann_path).name}")
     print(f"numpy memory copy: {bandwidth / 1e9:.2f} GB/s")
 
@@ -491,18 +524,24 @@ def main(argv=None) -> int:
     import openslide
 
     hg = histogym_steps_per_s(slide_path, ann_path, args.tile_size, args.histogym_steps)
-    print(f"\n(a) HistoGym-style loop (OpenSlide {openslide.__library_version__}, openslide-python "
-          f"{openslide.__version__}, DeepZoom levels {hg['levels'][0]}..{hg['levels'][1]}, {args.tile_size} px, "
-          f"{args.histogym_steps} random steps in {hg['seconds']:.1f} s):")
-    print(f"    {hg['sps']:,.0f} steps/s; tile read + resize + numpy {hg['read_ms']:.2f} ms/step; "
-          f"shapely overlap {hg['overlap_ms']:.2f} ms per finest-level step ({hg['finest']:.0%} of steps)")
+    print(
+        f"\n(a) HistoGym-style loop (OpenSlide {openslide.__library_version__}, openslide-python "
+        f"{openslide.__version__}, DeepZoom levels {hg['levels'][0]}..{hg['levels'][1]}, {args.tile_size} px, "
+        f"{args.histogym_steps} random steps in {hg['seconds']:.1f} s):"
+    )
+    print(
+        f"    {hg['sps']:,.0f} steps/s; tile read + resize + numpy {hg['read_ms']:.2f} ms/step; "
+        f"shapely overlap {hg['overlap_ms']:.2f} ms per finest-level step ({hg['finest']:.0%} of steps)"
+    )
 
     # (b)
     make_kwargs = dict(slide=bundle, reward="histogym", tile_size=args.tile_size)
     env, params = histojax.make(args.env, **make_kwargs)
     fenv, fparams, fnote = features_env(env, params, make_kwargs)
-    print(f"\n(b) histojax {args.env} ({env.n_levels} levels, {env.tile_size} px views, reward='histogym', "
-          f"auto-reset), lax.scan over vmap(step), >= {args.seconds:g} s per measurement")
+    print(
+        f"\n(b) histojax {args.env} ({env.n_levels} levels, {env.tile_size} px views, reward='histogym', "
+        f"auto-reset), lax.scan over vmap(step), >= {args.seconds:g} s per measurement"
+    )
     print(f"    features: {fnote}")
     view_bytes = env.tile_size**2 * 3
     rows = []
@@ -510,13 +549,20 @@ def main(argv=None) -> int:
         sps = timed(full_step_rollout, env, params, batch, args.seconds)
         fsps = timed(full_step_rollout, fenv, fparams, batch, args.seconds) if fenv else None
         rows.append((batch, sps, fsps))
-        print(f"    batch {batch:>5}: pixels {sps:>12,.0f} steps/s" +
-              (f", features {fsps:>12,.0f} steps/s" if fsps else ""), flush=True)
+        print(
+            f"    batch {batch:>5}: pixels {sps:>12,.0f} steps/s"
+            + (f", features {fsps:>12,.0f} steps/s" if fsps else ""),
+            flush=True,
+        )
 
     # (c)
-    print(f"\n(c) histojax / HistoGym-style (HistoGym-style = {hg['sps']:,.0f} steps/s); "
-          f"targets: pixels >= {PIXEL_TARGET:,}x, features >= {FEATURE_TARGET:,}x")
-    print(f"    {'batch':>6} {'pixels steps/s':>15} {'ratio':>10} {'':>4} {'features steps/s':>17} {'ratio':>10} {'':>4}")
+    print(
+        f"\n(c) histojax / HistoGym-style (HistoGym-style = {hg['sps']:,.0f} steps/s); "
+        f"targets: pixels >= {PIXEL_TARGET:,}x, features >= {FEATURE_TARGET:,}x"
+    )
+    print(
+        f"    {'batch':>6} {'pixels steps/s':>15} {'ratio':>10} {'':>4} {'features steps/s':>17} {'ratio':>10} {'':>4}"
+    )
     for batch, sps, fsps in rows:
         r = sps / hg["sps"]
         line = f"    {batch:>6} {sps:>15,.0f} {r:>9,.0f}x {'ok' if r >= PIXEL_TARGET else 'MISS':>4}"
@@ -529,24 +575,35 @@ def main(argv=None) -> int:
     at = {b: s for b, s, _ in rows}
     if args.crop_batch in at:
         gbs = at[args.crop_batch] * view_bytes
-        print(f"\n(d) full step at batch {args.crop_batch}: view bytes {gbs / 1e9:.2f} GB/s = "
-              f"{gbs / bandwidth:.0%} of memcpy {bandwidth / 1e9:.2f} GB/s (target >= {BANDWIDTH_TARGET:.0%})")
+        print(
+            f"\n(d) full step at batch {args.crop_batch}: view bytes {gbs / 1e9:.2f} GB/s = "
+            f"{gbs / bandwidth:.0%} of memcpy {bandwidth / 1e9:.2f} GB/s (target >= {BANDWIDTH_TARGET:.0%})"
+        )
     else:
         print(f"\n(d) (batch {args.crop_batch} not among --batches: full-step bandwidth not measured)")
     alts = crop_alternatives(env, params, args.crop_batch, args.seconds, bandwidth, full_step=not args.no_crop_step)
-    print(f"    crop formulations at batch {args.crop_batch} (crop alone: random views, each materialised, "
-          f"time of drawing positions subtracted):")
-    print(f"    {'formulation':<26} {'exact':>5} {'crop views/s':>13} {'crop GB/s':>10} {'of memcpy':>9} "
-          f"{'full step/s':>12} {'layout MB':>9}")
+    print(
+        f"    crop formulations at batch {args.crop_batch} (crop alone: random views, each materialised, "
+        f"time of drawing positions subtracted):"
+    )
+    print(
+        f"    {'formulation':<26} {'exact':>5} {'crop views/s':>13} {'crop GB/s':>10} {'of memcpy':>9} "
+        f"{'full step/s':>12} {'layout MB':>9}"
+    )
     for a in alts:
         step = f"{a['step_sps']:>12,.0f}" if "step_sps" in a else f"{'-':>12}"
-        print(f"    {a['name']:<26} {str(a['exact']):>5} {a['crop_views_per_s']:>13,.0f} "
-              f"{a['crop_views_per_s'] * view_bytes / 1e9:>10.2f} {a['crop_bw']:>9.0%} {step} "
-              f"{a['device_bytes'] / 2**20:>9.1f}")
+        print(
+            f"    {a['name']:<26} {str(a['exact']):>5} {a['crop_views_per_s']:>13,.0f} "
+            f"{a['crop_views_per_s'] * view_bytes / 1e9:>10.2f} {a['crop_bw']:>9.0%} {step} "
+            f"{a['device_bytes'] / 2**20:>9.1f}"
+        )
     print(f"\n(e) where the step's time goes at batch {args.crop_batch} (observations materialised as the scan carry):")
     for name, pix, feat in step_breakdown(env, params, fenv, fparams, args.crop_batch, args.seconds):
-        print(f"    {name:<40} pixels {pix:>12,.0f} steps/s ({pix / hg['sps']:>8,.0f}x)" +
-              (f", features {feat:>12,.0f} steps/s ({feat / hg['sps']:>9,.0f}x)" if feat else ""), flush=True)
+        print(
+            f"    {name:<40} pixels {pix:>12,.0f} steps/s ({pix / hg['sps']:>8,.0f}x)"
+            + (f", features {feat:>12,.0f} steps/s ({feat / hg['sps']:>9,.0f}x)" if feat else ""),
+            flush=True,
+        )
     load = os.getloadavg() if hasattr(os, "getloadavg") else (float("nan"),) * 3
     print(f"\nload average at the end: {load[0]:.1f} on {os.cpu_count()} cores")
     return 0

@@ -15,6 +15,7 @@ A group/class name not in the label map gives the label ``unknown:<name>``; such
 polygons are dropped by :func:`load_annotations` with one warning per file.
 All bad input raises :class:`~data_tools.errors.AnnotationError` naming the file.
 """
+
 from __future__ import annotations
 
 import json
@@ -62,8 +63,15 @@ DEFAULT_LABEL_MAP: dict[str, str] = {
 _POLYGON_TYPES = {"polygon", "spline", "rectangle"}
 _POINT_TYPES = {"pointset", "dot", "point", "measurement"}  # ASAP types without area: skipped (warned if tumour)
 _AREA_LABELS = ("tumour", "exclusion")  # labels whose lost geometry changes the reward: every loss is warned
-_GEOMETRY_TYPES = {"Polygon", "MultiPolygon", "GeometryCollection", "Point", "MultiPoint", "LineString",
-                   "MultiLineString"}
+_GEOMETRY_TYPES = {
+    "Polygon",
+    "MultiPolygon",
+    "GeometryCollection",
+    "Point",
+    "MultiPoint",
+    "LineString",
+    "MultiLineString",
+}
 _EMPTY = MultiPolygon()
 
 
@@ -168,8 +176,11 @@ def _polygon(path, what: str, shell, holes, notes: dict[str, list[str]]) -> list
             if any(isinstance(v, float) and not math.isfinite(v) for v in (x, y)):
                 raise AnnotationError(path, f"{what}: non-finite coordinate ({x}, {y})")
             if abs(x) > MAX_COORDINATE or abs(y) > MAX_COORDINATE:  # exact for ints of any size (JSON 10**400)
-                raise AnnotationError(path, f"{what}: coordinate ({_short(x)}, {_short(y)}) is beyond ±2^31 "
-                                      "level-0 px, outside any slide (wrong units?)")
+                raise AnnotationError(
+                    path,
+                    f"{what}: coordinate ({_short(x)}, {_short(y)}) is beyond ±2^31 "
+                    "level-0 px, outside any slide (wrong units?)",
+                )
             pts.append((float(x), float(y)))
         if len(pts) > 1 and pts[0] == pts[-1]:
             pts.pop()
@@ -221,12 +232,18 @@ def _repair(path, what: str, poly: Polygon, rings, notes: dict) -> list[Polygon]
     left = MAX_FILE_REPAIR_CROSSINGS - spent
     count = _edge_crossings(rings, min(MAX_REPAIR_CROSSINGS, left))
     if count > MAX_REPAIR_CROSSINGS:
-        raise AnnotationError(path, f"{what}: {sum(map(len, rings))} vertices whose edges cross each other more "
-                              f"than {MAX_REPAIR_CROSSINGS:,} times; too tangled to repair, redraw or simplify it")
+        raise AnnotationError(
+            path,
+            f"{what}: {sum(map(len, rings))} vertices whose edges cross each other more "
+            f"than {MAX_REPAIR_CROSSINGS:,} times; too tangled to repair, redraw or simplify it",
+        )
     if count > left:
-        raise AnnotationError(path, f"{what}: the invalid polygons up to this one cross their own edges more than "
-                              f"{MAX_FILE_REPAIR_CROSSINGS:,} times in all ({len(notes['repaired'])} repaired "
-                              "before it); too tangled to repair in one file, redraw or simplify them")
+        raise AnnotationError(
+            path,
+            f"{what}: the invalid polygons up to this one cross their own edges more than "
+            f"{MAX_FILE_REPAIR_CROSSINGS:,} times in all ({len(notes['repaired'])} repaired "
+            "before it); too tangled to repair in one file, redraw or simplify them",
+        )
     notes["crossings"] = spent + count
     return _polygonal_parts(shapely.make_valid(poly, method="structure", keep_collapsed=False))
 
@@ -302,8 +319,9 @@ def _read_asap_xml(path, label_map) -> list[tuple[str, list[Polygon]]]:
     index = 0
     try:
         with open(path, "rb") as f:
-            for event, elem in SafeET.iterparse(f, events=("start", "end"), forbid_dtd=True,
-                                                 forbid_entities=True, forbid_external=True):
+            for event, elem in SafeET.iterparse(
+                f, events=("start", "end"), forbid_dtd=True, forbid_entities=True, forbid_external=True
+            ):
                 if event == "start":
                     if not stack and elem.tag != "ASAP_Annotations":
                         raise AnnotationError(path, f"not ASAP XML (root element <{elem.tag}>)")
@@ -354,8 +372,9 @@ def _asap_annotation(path, i: int, ann, lmap, notes) -> tuple[str, list[Polygon]
             return None
         notes["untyped"].append(f"{what} (Type {ann.get('Type')!r})")
     if len({order for order, _ in coords}) != len(coords):
-        warnings.warn(f"{path}: {what}: duplicate Order values; vertices with equal Order kept in file order",
-                      stacklevel=4)
+        warnings.warn(
+            f"{path}: {what}: duplicate Order values; vertices with equal Order kept in file order", stacklevel=4
+        )
     shell = [xy for _, xy in sorted(coords, key=lambda t: t[0])]  # stable: ties stay in file order
     if kind == "rectangle" and len(shell) == 2:
         (x0, y0), (x1, y1) = shell
@@ -408,8 +427,9 @@ def _geometry_polygons(geom, skipped: list[str], closed: list[str]) -> list[list
         return list(coords) if isinstance(coords, list) else [coords]
     if kind == "GeometryCollection":
         members = geom.get("geometries")
-        return [p for g in (members if isinstance(members, list) else []) for p in
-                _geometry_polygons(g, skipped, closed)]
+        return [
+            p for g in (members if isinstance(members, list) else []) for p in _geometry_polygons(g, skipped, closed)
+        ]
     if kind in ("LineString", "MultiLineString"):
         lines = [coords] if kind == "LineString" else (coords if isinstance(coords, list) else [])
         out = []
@@ -485,8 +505,11 @@ def _as_multipolygon(geom) -> MultiPolygon:
     if not parts:
         return _EMPTY
     multi = MultiPolygon(parts)
-    for repair in (lambda: _robust(shapely.union_all, parts), lambda: shapely.make_valid(multi),
-                   lambda: multi.buffer(0)):
+    for repair in (
+        lambda: _robust(shapely.union_all, parts),
+        lambda: shapely.make_valid(multi),
+        lambda: multi.buffer(0),
+    ):
         if multi.is_valid:
             return multi
         try:
@@ -571,8 +594,11 @@ def load_annotations(
         tissue = _union_parts(_clip(by_label["tissue"], frame))
         # subtracted after clipping, from the very exclusion returned: tumour and exclusion never overlap
         tumour = _subtract(_union_parts(_clip(by_label["tumour"], frame)), exclusion)
-        if frame is not None and not tumour and _subtract(_union_parts(by_label["tumour"]), _union_parts(
-                by_label["exclusion"])):
+        if (
+            frame is not None
+            and not tumour
+            and _subtract(_union_parts(by_label["tumour"]), _union_parts(by_label["exclusion"]))
+        ):
             raise AnnotationError(path, f"annotation lies outside the slide {w}x{h}")
         tumour_geom, exclusion_geom = _multipolygon(tumour), _multipolygon(exclusion)
         if not exclusion_geom.is_empty and _robust(shapely.intersection, tumour_geom, exclusion_geom).area > 0:
@@ -580,8 +606,9 @@ def load_annotations(
             tumour_geom = _as_multipolygon(_robust(shapely.difference, tumour_geom, exclusion_geom))
         tissue_geom = _multipolygon(tissue)
     except shapely.errors.GEOSException as e:  # _robust found no valid overlay: one line, not a traceback
-        raise AnnotationError(path, f"polygons whose overlay GEOS cannot compute ({e}); repair or simplify "
-                                    "them in the annotation tool") from None
+        raise AnnotationError(
+            path, f"polygons whose overlay GEOS cannot compute ({e}); repair or simplify them in the annotation tool"
+        ) from None
     return Annotations(
         tumour=tumour_geom,
         exclusion=exclusion_geom,
@@ -596,8 +623,11 @@ def _clip(polys: list[Polygon], frame) -> list[Polygon]:
     """``polys`` clipped to ``frame`` (None: unchanged); only those not inside it are overlaid."""
     if frame is None:
         return polys
-    return [q for p in polys
-            for q in ([p] if frame.contains(p) else _polygonal_parts(_robust(shapely.intersection, p, frame)))]
+    return [
+        q
+        for p in polys
+        for q in ([p] if frame.contains(p) else _polygonal_parts(_robust(shapely.intersection, p, frame)))
+    ]
 
 
 def _union_parts(polys: list[Polygon]) -> list[Polygon]:
@@ -621,7 +651,8 @@ def _subtract(parts: list[Polygon], cut: list[Polygon]) -> list[Polygon]:
     hit = set(a.tolist())
     whole = _multipolygon(cut)
     return [p for i, p in enumerate(parts) if i not in hit] + [
-        q for i in sorted(hit) for q in _polygonal_parts(_robust(shapely.difference, parts[i], whole))]
+        q for i in sorted(hit) for q in _polygonal_parts(_robust(shapely.difference, parts[i], whole))
+    ]
 
 
 def _multipolygon(parts: list[Polygon]) -> MultiPolygon:
@@ -641,12 +672,18 @@ def _robust(overlay, *args):
     10⁻⁶ px, which GEOS computes robustly, and, where GEOS still refuses a part, on inputs each repaired with
     ``make_valid`` first. Raises ``shapely.errors.GEOSException`` when no way gives a valid result (the caller
     turns it into one :class:`AnnotationError` line)."""
-    def valid_inputs():
-        return [shapely.make_valid(a) if isinstance(a, shapely.Geometry) else [shapely.make_valid(g) for g in a]
-                for a in args]
 
-    attempts = (lambda: overlay(*args), lambda: overlay(*args, grid_size=1e-6),
-                lambda: overlay(*valid_inputs(), grid_size=1e-6))
+    def valid_inputs():
+        return [
+            shapely.make_valid(a) if isinstance(a, shapely.Geometry) else [shapely.make_valid(g) for g in a]
+            for a in args
+        ]
+
+    attempts = (
+        lambda: overlay(*args),
+        lambda: overlay(*args, grid_size=1e-6),
+        lambda: overlay(*valid_inputs(), grid_size=1e-6),
+    )
     problem = None
     for attempt in attempts:
         try:
@@ -656,8 +693,9 @@ def _robust(overlay, *args):
             continue
         if result.is_valid:
             return result
-        problem = shapely.errors.GEOSException(f"{overlay.__name__} gave an invalid geometry "
-                                               f"({shapely.is_valid_reason(result)})")
+        problem = shapely.errors.GEOSException(
+            f"{overlay.__name__} gave an invalid geometry ({shapely.is_valid_reason(result)})"
+        )
     raise problem
 
 

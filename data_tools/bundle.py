@@ -16,6 +16,7 @@ Levels are at downsamples ``R ** (k / (n - 1))`` for each requested level count
 Medium and Hard. Arrays are read with ``allow_pickle=False``; every file's
 SHA-256 is recorded and checked on load.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -31,15 +32,31 @@ from pathlib import Path
 import numpy as np
 from tqdm.auto import tqdm
 
-from data_tools.errors import BundleError
 from data_tools.bundle_files.format import (  # noqa: F401  (re-exported: the format's names, as before)
-    ANNOTATIONS, FORMAT_VERSION, LEVEL_SETS, REGION, TISSUE, MAX_FLAT_PIXELS, METADATA, READ_VERSIONS,
-    FEATURES_COMMAND, STORAGES, TILED_FORMAT_VERSION, bundle_downsamples, default_magnification_range, device_bytes,
-    level_device_bytes, level_downsamples, level_files, level_size,
-    sha256)
+    ANNOTATIONS,
+    FEATURES_COMMAND,
+    FORMAT_VERSION,
+    LEVEL_SETS,
+    MAX_FLAT_PIXELS,
+    METADATA,
+    READ_VERSIONS,
+    REGION,
+    STORAGES,
+    TILED_FORMAT_VERSION,
+    TISSUE,
+    bundle_downsamples,
+    default_magnification_range,
+    device_bytes,
+    level_device_bytes,
+    level_downsamples,
+    level_files,
+    level_size,
+    sha256,
+)
 from data_tools.bundle_files.reading import Bundle, load_bundle, read_metadata
 from data_tools.bundle_files.seals import write_metadata
-from data_tools.bundle_files.writes import atomic_folder, check_replaceable, TEMP_MARKER, as_disk_full
+from data_tools.bundle_files.writes import TEMP_MARKER, as_disk_full, atomic_folder, check_replaceable
+from data_tools.errors import BundleError
 from data_tools.raster import pad, resample
 
 
@@ -49,9 +66,9 @@ class Region:
     ``polygon`` (slide px) limits it further when ``kind == "polygon"``."""
 
     box: tuple[int, int, int, int]
-    kind: str                    # "rectangle", "polygon" or "group"
-    polygon: object = None       # shapely (Multi)Polygon for kind "polygon"
-    group: str | None = None     # the annotation group/label of kind "group"
+    kind: str  # "rectangle", "polygon" or "group"
+    polygon: object = None  # shapely (Multi)Polygon for kind "polygon"
+    group: str | None = None  # the annotation group/label of kind "group"
     margin: float = 0.0
 
     @property
@@ -75,8 +92,9 @@ def _group_geometry(name: str, annotations_path, label_map, ann):
     label = _resolve_label_map(label_map).get(name.strip().lower())
     if label in ("tumour", "exclusion", "tissue") and ann is not None:
         if getattr(ann, label).is_empty:
-            raise BundleError(annotations_path, f"region group {name!r}: the annotation has no {label} polygon "
-                              "inside the slide")
+            raise BundleError(
+                annotations_path, f"region group {name!r}: the annotation has no {label} polygon inside the slide"
+            )
         return getattr(ann, label)
     parse = parse_asap_xml if _is_xml(annotations_path) else parse_geojson
     with warnings.catch_warnings():
@@ -89,8 +107,16 @@ def _group_geometry(name: str, annotations_path, label_map, ann):
     return shapely.union_all(polys)
 
 
-def resolve_region(region, slide_size: tuple[int, int], annotations_path=None, label_map=None, ann=None,
-                   margin: float = 0.0, tile_size: int = 1, where=None) -> Region:
+def resolve_region(
+    region,
+    slide_size: tuple[int, int],
+    annotations_path=None,
+    label_map=None,
+    ann=None,
+    margin: float = 0.0,
+    tile_size: int = 1,
+    where=None,
+) -> Region:
     """Turn ``region`` into a :class:`Region` clipped to the slide.
 
     ``region`` is ``(x0, y0, x1, y1)`` in level-0 px, a shapely (Multi)Polygon in level-0 px, or the
@@ -119,18 +145,28 @@ def resolve_region(region, slide_size: tuple[int, int], annotations_path=None, l
             bounds = tuple(float(v) for v in region)
         except (TypeError, ValueError):
             bounds = ()
-        if len(bounds) != 4 or not all(math.isfinite(v) for v in bounds) \
-                or bounds[2] <= bounds[0] or bounds[3] <= bounds[1]:
-            raise BundleError(where, f"region {region!r} must be (x0, y0, x1, y1) with x0 < x1 and y0 < y1 "
-                              "(level-0 px), a shapely polygon, or an annotation group name")
+        if (
+            len(bounds) != 4
+            or not all(math.isfinite(v) for v in bounds)
+            or bounds[2] <= bounds[0]
+            or bounds[3] <= bounds[1]
+        ):
+            raise BundleError(
+                where,
+                f"region {region!r} must be (x0, y0, x1, y1) with x0 < x1 and y0 < y1 "
+                "(level-0 px), a shapely polygon, or an annotation group name",
+            )
         kind = "rectangle"
     if kind != "polygon":
         bounds = (bounds[0] - margin, bounds[1] - margin, bounds[2] + margin, bounds[3] + margin)
     x0, y0 = max(0, math.floor(bounds[0])), max(0, math.floor(bounds[1]))
     x1, y1 = min(slide_size[0], math.ceil(bounds[2])), min(slide_size[1], math.ceil(bounds[3]))
     if x1 - x0 < tile_size or y1 - y0 < tile_size:
-        raise BundleError(where, f"region ({x0}, {y0}, {x1}, {y1}) inside the slide {slide_size[0]}×{slide_size[1]} "
-                          f"is smaller than one {tile_size}-px view; choose a larger region")
+        raise BundleError(
+            where,
+            f"region ({x0}, {y0}, {x1}, {y1}) inside the slide {slide_size[0]}×{slide_size[1]} "
+            f"is smaller than one {tile_size}-px view; choose a larger region",
+        )
     return Region(box=(x0, y0, x1, y1), kind=kind, polygon=polygon, group=group, margin=float(margin))
 
 
@@ -145,8 +181,10 @@ def _crop_annotations(ann, region: Region):
 
     x0, y0, x1, y1 = region.box
     clip = region.polygon if region.polygon is not None else shapely.box(x0, y0, x1, y1)
-    moved = {name: _as_multipolygon(translate(shapely.intersection(getattr(ann, name), clip), -x0, -y0))
-             for name in ("tumour", "exclusion", "tissue")}
+    moved = {
+        name: _as_multipolygon(translate(shapely.intersection(getattr(ann, name), clip), -x0, -y0))
+        for name in ("tumour", "exclusion", "tissue")
+    }
     return _dc.replace(ann, **moved)
 
 
@@ -204,8 +242,9 @@ def build_bundle(
     if tile_size < 8:
         raise BundleError(out_dir, f"tile size {tile_size} px is too small (minimum 8)")
     if magnification_range is not None and not (math.isfinite(magnification_range) and magnification_range >= 1):
-        raise BundleError(out_dir, f"magnification range {magnification_range} must be a finite number >= 1 "
-                          "(the coarsest downsample)")
+        raise BundleError(
+            out_dir, f"magnification range {magnification_range} must be a finite number >= 1 (the coarsest downsample)"
+        )
     level_sets = tuple(sorted(set(int(n) for n in level_sets)))
     if storage not in STORAGES:
         raise BundleError(out_dir, f"storage must be one of {STORAGES}, got {storage!r}")
@@ -232,28 +271,64 @@ def build_bundle(
         # the build's own peak memory, not the process's (earlier work in a long process does not count)
         with atomic_folder(out_dir) as tmp, PeakRSS() as peak:
             tmp.mkdir(exist_ok=True)
-            _build_into(tmp, slide_path, out_dir, annotations_path, level_sets, tile_size, magnification_range,
-                        label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
-                        band_bytes, reader, mpp, peak)
+            _build_into(
+                tmp,
+                slide_path,
+                out_dir,
+                annotations_path,
+                level_sets,
+                tile_size,
+                magnification_range,
+                label_map,
+                progress,
+                max_decode_bytes,
+                region,
+                region_margin,
+                storage,
+                share_background,
+                band_bytes,
+                reader,
+                mpp,
+                peak,
+            )
         return out_dir
     except OSError as e:
         e = as_disk_full(e) or e  # numpy's short write ("N requested and M written"): the disk is full
-        raise BundleError(out_dir, f"cannot write the bundle ({e.strerror or e}"
-                          + (f": {e.filename}" if e.filename else "") + ")") from None
+        raise BundleError(
+            out_dir, f"cannot write the bundle ({e.strerror or e}" + (f": {e.filename}" if e.filename else "") + ")"
+        ) from None
     finally:
         lock.__exit__(None, None, None)
 
 
-def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, level_sets, tile_size, magnification_range,
-                label_map, progress, max_decode_bytes, region, region_margin, storage, share_background,
-                band_bytes, reader=None, mpp=None, peak=None) -> None:
+def _build_into(
+    tmp: Path,
+    slide_path: Path,
+    out_dir: Path,
+    annotations_path,
+    level_sets,
+    tile_size,
+    magnification_range,
+    label_map,
+    progress,
+    max_decode_bytes,
+    region,
+    region_margin,
+    storage,
+    share_background,
+    band_bytes,
+    reader=None,
+    mpp=None,
+    peak=None,
+) -> None:
     """The body of :func:`build_bundle`: write the bundle into ``tmp`` (called with the build lock held, inside
     :func:`data_tools.bundle_files.writes.atomic_folder`, which renames it to ``out_dir`` or removes it)."""
+    import shapely.geometry
+
     from data_tools.annotations import annotations_to_geojson, load_annotations
     from data_tools.masks import rasterize, tissue_mask
     from data_tools.slide_files.open import open_slide
     from data_tools.slide_files.tiff import MAX_DECODE_BYTES
-    import shapely.geometry
 
     with open_slide(slide_path, reader) as reader:
         mpp_in_file = reader.mpp
@@ -265,8 +340,16 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
             ann = load_annotations(annotations_path, label_map=label_map, slide_size=(width0, height0))
         reg = None
         if region is not None:
-            reg = resolve_region(region, (width0, height0), annotations_path, label_map, ann,
-                                 margin=region_margin, tile_size=tile_size, where=slide_path)
+            reg = resolve_region(
+                region,
+                (width0, height0),
+                annotations_path,
+                label_map,
+                ann,
+                margin=region_margin,
+                tile_size=tile_size,
+                where=slide_path,
+            )
             width0, height0 = reg.width, reg.height
             if ann is not None:
                 ann = _crop_annotations(ann, reg)
@@ -285,38 +368,67 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
             from data_tools.tiled import BAND_BYTES, build_tiled_levels
 
             levels_meta, build_stats = build_tiled_levels(
-                reader, tmp, downsamples, sizes, tile_size, ann=ann, reg=reg, share_background=share_background,
-                band_bytes=band_bytes or BAND_BYTES, progress=progress, mpp=reader.mpp)
+                reader,
+                tmp,
+                downsamples,
+                sizes,
+                tile_size,
+                ann=ann,
+                reg=reg,
+                share_background=share_background,
+                band_bytes=band_bytes or BAND_BYTES,
+                progress=progress,
+                mpp=reader.mpp,
+            )
         elif total > MAX_FLAT_PIXELS:
-            raise BundleError(slide_path, f"the {len(sizes)} levels would hold {total:,} px "
-                              f"({total * 7 / 2**30:.1f} GiB on the device with their masks), more than the "
-                              f"{MAX_FLAT_PIXELS:,} px one dense slide array can index: use fewer levels "
-                              "(--levels), a larger --magnification-range start, or a coarser slide")
+            raise BundleError(
+                slide_path,
+                f"the {len(sizes)} levels would hold {total:,} px "
+                f"({total * 7 / 2**30:.1f} GiB on the device with their masks), more than the "
+                f"{MAX_FLAT_PIXELS:,} px one dense slide array can index: use fewer levels "
+                "(--levels), a larger --magnification-range start, or a coarser slide",
+            )
         if storage == "dense":
             levels_meta = []
         cache: tuple[int, np.ndarray] | None = None
-        bar = tqdm(downsamples if storage == "dense" else [], desc=f"building {out_dir.name}", unit="level",
-                   disable=not progress or storage != "dense")
+        bar = tqdm(
+            downsamples if storage == "dense" else [],
+            desc=f"building {out_dir.name}",
+            unit="level",
+            disable=not progress or storage != "dense",
+        )
         for k, d in enumerate(bar):
             # the coarsest source level that is still at least as fine as the target
-            src = max((i for i, lv in enumerate(reader.levels) if lv.downsample <= d * (1 + 1e-6)),
-                      key=lambda i: reader.levels[i].downsample)
+            src = max(
+                (i for i, lv in enumerate(reader.levels) if lv.downsample <= d * (1 + 1e-6)),
+                key=lambda i: reader.levels[i].downsample,
+            )
             ds = reader.levels[src].downsample
             if cache is None or cache[0] != src:
                 cache = None  # free the previous level before decoding the next
                 if reg is None:
                     cache = (src, reader.read_level(src, max_bytes=max_decode_bytes or MAX_DECODE_BYTES))
                 else:  # only the region's window of the source level
-                    win = (math.floor(reg.box[0] / ds), math.floor(reg.box[1] / ds),
-                           math.ceil(reg.box[2] / ds), math.ceil(reg.box[3] / ds))
+                    win = (
+                        math.floor(reg.box[0] / ds),
+                        math.floor(reg.box[1] / ds),
+                        math.ceil(reg.box[2] / ds),
+                        math.ceil(reg.box[3] / ds),
+                    )
                     needed = (win[2] - win[0]) * (win[3] - win[1]) * 3
                     if needed > (max_decode_bytes or MAX_DECODE_BYTES):
-                        raise BundleError(slide_path, f"region window of level {src} needs {needed:,} bytes, "
-                                          "over the decode limit; use a smaller region")
+                        raise BundleError(
+                            slide_path,
+                            f"region window of level {src} needs {needed:,} bytes, "
+                            "over the decode limit; use a smaller region",
+                        )
                     cache = (src, reader.read_region(src, win[0], win[1], win[2] - win[0], win[3] - win[1]))
             size = level_size(width0, height0, d)
-            offset = (0.0, 0.0) if reg is None else (reg.box[0] / ds - math.floor(reg.box[0] / ds),
-                                                     reg.box[1] / ds - math.floor(reg.box[1] / ds))
+            offset = (
+                (0.0, 0.0)
+                if reg is None
+                else (reg.box[0] / ds - math.floor(reg.box[0] / ds), reg.box[1] / ds - math.floor(reg.box[1] / ds))
+            )
             content = resample(cache[1], ds, d, size, offset)
             inside = None
             if reg is not None and reg.polygon is not None:
@@ -333,12 +445,18 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
             names = level_files(k)
             np.save(tmp / names["pixels"], pixels, allow_pickle=False)
             np.save(tmp / names["tumour"], tumour, allow_pickle=False)
-            levels_meta.append({
-                "downsample": d, "width": int(pixels.shape[1]), "height": int(pixels.shape[0]),
-                "content_width": size[0], "content_height": size[1],
-                "mpp": None if reader.mpp is None else reader.mpp * d,
-                "tumour_pixels": int(tumour.sum()), **names,
-            })
+            levels_meta.append(
+                {
+                    "downsample": d,
+                    "width": int(pixels.shape[1]),
+                    "height": int(pixels.shape[0]),
+                    "content_width": size[0],
+                    "content_height": size[1],
+                    "mpp": None if reader.mpp is None else reader.mpp * d,
+                    "tumour_pixels": int(tumour.sum()),
+                    **names,
+                }
+            )
             if k == len(downsamples) - 1:
                 tissue = tissue_mask(pixels[: size[1], : size[0]])
                 if inside is not None:
@@ -360,13 +478,21 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
             "device_bytes": sum(level_device_bytes(lv) for lv in levels_meta),
             **({} if build_stats is None else {"build": build_stats}),
             "source": {
-                "file": slide_path.name, "sha256": sha256(slide_path), "format": reader.format,
-                "width": width0, "height": height0, "mpp": reader.mpp,
+                "file": slide_path.name,
+                "sha256": sha256(slide_path),
+                "format": reader.format,
+                "width": width0,
+                "height": height0,
+                "mpp": reader.mpp,
                 **({} if mpp is None else {"mpp_from": "given", "mpp_in_file": mpp_in_file}),
             },
-            "annotations": None if annotations_path is None else {
-                "file": Path(annotations_path).name, "sha256": sha256(Path(annotations_path)),
-                "unknown_groups": list(ann.unknown_groups), "n_polygons": dict(ann.n_polygons),
+            "annotations": None
+            if annotations_path is None
+            else {
+                "file": Path(annotations_path).name,
+                "sha256": sha256(Path(annotations_path)),
+                "unknown_groups": list(ann.unknown_groups),
+                "n_polygons": dict(ann.n_polygons),
                 "tumour_area_px": float(ann.tumour.area),
             },
             "label_map": label_map or {},
@@ -375,32 +501,45 @@ def _build_into(tmp: Path, slide_path: Path, out_dir: Path, annotations_path, le
             "level_sets": list(level_sets),
             "levels": levels_meta,
             "tissue": {"file": TISSUE, "level": len(levels_meta) - 1},
-            "region": None if reg is None else {
-                "box": list(reg.box), "kind": reg.kind, "group": reg.group, "margin": reg.margin,
+            "region": None
+            if reg is None
+            else {
+                "box": list(reg.box),
+                "kind": reg.kind,
+                "group": reg.group,
+                "margin": reg.margin,
                 "polygon": None if reg.polygon is None else shapely.geometry.mapping(reg.polygon),
-                "mask": REGION, "level": len(levels_meta) - 1,
+                "mask": REGION,
+                "level": len(levels_meta) - 1,
             },
             "checksums": {name: sha256(tmp / name) for name in files},
         }
         write_metadata(tmp, metadata)
 
 
-def check_zoom(where, size0: tuple[int, int], downsamples: list[float], sizes: list[tuple[int, int]],
-               tile_size: int) -> None:
+def check_zoom(
+    where, size0: tuple[int, int], downsamples: list[float], sizes: list[tuple[int, int]], tile_size: int
+) -> None:
     """Refuse level choices with which zooming would do nothing: a single level (magnification range 1, or a
     slide smaller than one view), or two levels of the same size once padded to one ``tile_size`` view
     (a range so large that the coarse levels shrink below one view)."""
     if len(downsamples) < 2:
-        hint = (f"the slide ({size0[0]}×{size0[1]} px) is smaller than two {tile_size}-px views: use a smaller "
-                "--tile-size" if min(size0) < 2 * tile_size else "use a --magnification-range above 1")
+        hint = (
+            f"the slide ({size0[0]}×{size0[1]} px) is smaller than two {tile_size}-px views: use a smaller --tile-size"
+            if min(size0) < 2 * tile_size
+            else "use a --magnification-range above 1"
+        )
         raise BundleError(where, f"magnification range {downsamples[-1]:g} gives a single zoom level; {hint}")
     padded = [(max(w, tile_size), max(h, tile_size)) for w, h in sizes]
     for (d0, p0), (d1, p1) in zip(zip(downsamples, padded), zip(downsamples[1:], padded[1:])):
         if p0 == p1:
             best = default_magnification_range(*size0, tile_size)
-            raise BundleError(where, f"levels at downsample {d0:.4g} and {d1:.4g} are both {p1[0]}×{p1[1]} px once "
-                              f"padded to one {tile_size}-px view, so zooming between them does nothing; use a "
-                              f"--magnification-range of at most {best:g} or a smaller --tile-size")
+            raise BundleError(
+                where,
+                f"levels at downsample {d0:.4g} and {d1:.4g} are both {p1[0]}×{p1[1]} px once "
+                f"padded to one {tile_size}-px view, so zooming between them does nothing; use a "
+                f"--magnification-range of at most {best:g} or a smaller --tile-size",
+            )
 
 
 def _lock_path(out_dir: Path) -> Path:
@@ -477,8 +616,11 @@ def check_mpp(where, mpp) -> None:
     except (TypeError, ValueError):
         value = float("nan")
     if not (math.isfinite(value) and MPP_RANGE[0] <= value <= MPP_RANGE[1]):
-        raise BundleError(where, f"--mpp {mpp!r} is not a µm per level-0 px between {MPP_RANGE[0]:g} and "
-                                 f"{MPP_RANGE[1]:g} (0.25 at 40x, 0.5 at 20x): micrometres per pixel, not nm or mm")
+        raise BundleError(
+            where,
+            f"--mpp {mpp!r} is not a µm per level-0 px between {MPP_RANGE[0]:g} and "
+            f"{MPP_RANGE[1]:g} (0.25 at 40x, 0.5 at 20x): micrometres per pixel, not nm or mm",
+        )
 
 
 def set_mpp(bundle, mpp: float) -> dict:
@@ -501,9 +643,28 @@ def set_mpp(bundle, mpp: float) -> dict:
     return metadata
 
 
-__all__ = ["check_mpp", "set_mpp", "check_zoom", "Bundle", "FORMAT_VERSION", "LEVEL_SETS", "STORAGES", "TILED_FORMAT_VERSION", "level_device_bytes", "Region", "build_bundle", "bundle_downsamples", "resolve_region",
-           "default_magnification_range", "level_downsamples", "level_size", "load_bundle", "read_metadata",
-           "build_lock", "remove_stale_builds"]
+__all__ = [
+    "check_mpp",
+    "set_mpp",
+    "check_zoom",
+    "Bundle",
+    "FORMAT_VERSION",
+    "LEVEL_SETS",
+    "STORAGES",
+    "TILED_FORMAT_VERSION",
+    "level_device_bytes",
+    "Region",
+    "build_bundle",
+    "bundle_downsamples",
+    "resolve_region",
+    "default_magnification_range",
+    "level_downsamples",
+    "level_size",
+    "load_bundle",
+    "read_metadata",
+    "build_lock",
+    "remove_stale_builds",
+]
 
 
 def drop_pixels(folder) -> int:
@@ -518,8 +679,11 @@ def drop_pixels(folder) -> int:
     if not metadata.is_tiled:
         raise BundleError(folder, "only tiled bundles can drop their pixels")
     if not metadata.features:
-        raise BundleError(folder, f"has no feature grid; compute one first (`{FEATURES_COMMAND}`), a bundle "
-                          "without pixels and features is of no use")
+        raise BundleError(
+            folder,
+            f"has no feature grid; compute one first (`{FEATURES_COMMAND}`), a bundle "
+            "without pixels and features is of no use",
+        )
     levels, files = [], []
     for k, lv in enumerate(metadata["levels"]):
         lv = dict(lv)
@@ -528,9 +692,16 @@ def drop_pixels(folder) -> int:
             lv["tiles"] = None
         levels.append(lv)
     checksums = {k: v for k, v in metadata.checksums.items() if k not in files}
-    write_metadata(folder, {**metadata, "levels": levels, "checksums": checksums,
-                            "pixels_dropped": "RGB tile pools of every level but the coarsest deleted "
-                                              "(feature-only bundle); device_bytes is the pixel layout's"})
+    write_metadata(
+        folder,
+        {
+            **metadata,
+            "levels": levels,
+            "checksums": checksums,
+            "pixels_dropped": "RGB tile pools of every level but the coarsest deleted "
+            "(feature-only bundle); device_bytes is the pixel layout's",
+        },
+    )
     freed = 0
     for name in files:
         f = folder / name

@@ -3,6 +3,7 @@
 A command's stderr is then ``warning: ...`` lines (each once) followed, on a user error, by one
 ``error: ...`` line, with no traceback; the exit status of a user error is 2.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -125,14 +126,15 @@ def seed_int(text: str) -> int:
         value = int(text)
     except ValueError:
         raise argparse.ArgumentTypeError(f"{text!r} is not an integer") from None
-    if not 0 <= value < 2 ** 32:
+    if not 0 <= value < 2**32:
         raise argparse.ArgumentTypeError(f"{text!r} must be in [0, 2**32)")
     return value
 
 
 # ----------------------------------------------------------------------------- one parser per command
-def build_parser(add_arguments, prog: str | None = None, description: str | None = None,
-                 one_line: bool = True) -> argparse.ArgumentParser:
+def build_parser(
+    add_arguments, prog: str | None = None, description: str | None = None, one_line: bool = True
+) -> argparse.ArgumentParser:
     """The one place the project's command parsers are made: ``add_arguments(parser)`` — the command
     module's own function, the only place its options are declared — fills a new parser. Both
     ``histojax <command>`` and ``python -m <module>`` come here with the same function. ``one_line``:
@@ -144,8 +146,9 @@ def build_parser(add_arguments, prog: str | None = None, description: str | None
     return parser
 
 
-def run_command(add_arguments, run, argv=None, prog: str | None = None, doc: str | None = None,
-                one_line: bool = True) -> int:
+def run_command(
+    add_arguments, run, argv=None, prog: str | None = None, doc: str | None = None, one_line: bool = True
+) -> int:
     """Run a command: ``add_arguments(parser)`` declares its options, ``run(args, parser) -> int`` runs
     it on the parsed ``args`` (``parser.error`` for usage errors found after parsing). Parses ``argv``
     (default ``sys.argv[1:]``) with :func:`build_parser`, described by the first paragraph of ``doc``
@@ -159,6 +162,7 @@ def run_command(add_arguments, run, argv=None, prog: str | None = None, doc: str
 def command_main(add_arguments, run, prog: str, doc: str | None = None, one_line: bool = False):
     """A command module's ``main(argv=None) -> int`` (``python -m MODULE``): :func:`run_command` with
     the module's ``add_arguments`` and ``run``; ``histojax <command>`` calls the same two functions."""
+
     def main(argv=None) -> int:
         return run_command(add_arguments, run, argv, prog=prog, doc=doc, one_line=one_line)
 
@@ -168,7 +172,11 @@ def command_main(add_arguments, run, prog: str, doc: str | None = None, one_line
 
 def add_reader_argument(p) -> None:
     """``--reader auto|native|openslide`` on the parser ``p`` (``info``, ``build``, ``dataset``)."""
-    p.add_argument("--reader", choices=("auto", "native", "openslide"), default="auto",
-                   help="what reads the slides: auto (default: tifffile / wsidicom, OpenSlide for MIRAX, SCN, BIF, "
-                        "VMS / VMU, SVSlide and Philips TIFF), native, or openslide (any slide through OpenSlide 4; "
-                        "pip install 'histojax[openslide]')")
+    p.add_argument(
+        "--reader",
+        choices=("auto", "native", "openslide"),
+        default="auto",
+        help="what reads the slides: auto (default: tifffile / wsidicom, OpenSlide for MIRAX, SCN, BIF, "
+        "VMS / VMU, SVSlide and Philips TIFF), native, or openslide (any slide through OpenSlide 4; "
+        "pip install 'histojax[openslide]')",
+    )

@@ -3,6 +3,7 @@
 Every error names the file it is about and the problem, in one line, so a CLI
 can print it without a traceback.
 """
+
 from __future__ import annotations
 
 import os

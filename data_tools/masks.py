@@ -4,13 +4,13 @@ Pixel convention: pixel (row i, column j) of a level with downsample ``d`` cover
 level-0 pixels ``[j*d, (j+1)*d) × [i*d, (i+1)*d)``; it counts as inside a polygon
 when its centre ``((j+0.5)*d, (i+0.5)*d)`` (level-0 px) lies inside.
 """
+
 from __future__ import annotations
 
 import numpy as np
 import shapely
 from skimage.color import rgb2hsv
 from skimage.filters import threshold_otsu
-
 
 CHUNK_POINTS = 1 << 22  # pixel centres tested per call: bounds the temporary memory (~100 MB)
 

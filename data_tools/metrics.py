@@ -1,4 +1,5 @@
 """Slide-level diagnosis metrics: ROC AUC and accuracy of per-slide scores in ``[0, 1]``."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -50,7 +51,7 @@ def auc_interval(auc: float, n_pos: int, n_neg: int, level: float = INTERVAL_LEV
         raise ValueError(f"only the {INTERVAL_LEVEL:.0%} interval is supported, not {level}")
     if n_pos <= 0 or n_neg <= 0 or not np.isfinite(auc):
         return float("nan"), float("nan")
-    z2 = _Z95 ** 2
+    z2 = _Z95**2
 
     def inside(theta: float) -> bool:
         return (auc - theta) ** 2 <= z2 * _newcombe_variance(theta, n_pos, n_neg)
@@ -113,10 +114,12 @@ def small_split_warning(n_tumour: int, n_normal: int, where: str) -> str | None:
     if min(n_tumour, n_normal) >= SMALL_SPLIT_PER_CLASS:
         return None
     low, high = auc_interval(0.85, max(n_tumour, 1), max(n_normal, 1))
-    return (f"warning: {where} holds {n_tumour} tumour and {n_normal} normal slides; an AUC of 0.85 on it has a "
-            f"95 % interval of [{low:.2f}, {high:.2f}] — too few to rank heads or readers (fewer than "
-            f"{SMALL_SPLIT_PER_CLASS} of a class). Use k folds (dataset --folds K, then --all-folds) or a larger "
-            f"--val-fraction, and report the interval beside the AUC.")
+    return (
+        f"warning: {where} holds {n_tumour} tumour and {n_normal} normal slides; an AUC of 0.85 on it has a "
+        f"95 % interval of [{low:.2f}, {high:.2f}] — too few to rank heads or readers (fewer than "
+        f"{SMALL_SPLIT_PER_CLASS} of a class). Use k folds (dataset --folds K, then --all-folds) or a larger "
+        f"--val-fraction, and report the interval beside the AUC."
+    )
 
 
 def auc_over_runs(scores, labels) -> dict:
@@ -133,8 +136,15 @@ def auc_over_runs(scores, labels) -> dict:
     auc = float(aucs.mean())
     n_pos, n_neg = int(y.sum()), int((~y).sum())
     low, high = auc_interval(auc, n_pos, n_neg)
-    return {"auc": auc, "auc_std": float(aucs.std()), "auc_low": low, "auc_high": high,
-            "auc_per_run": [float(a) for a in aucs], "n_tumour": n_pos, "n_normal": n_neg}
+    return {
+        "auc": auc,
+        "auc_std": float(aucs.std()),
+        "auc_low": low,
+        "auc_high": high,
+        "auc_per_run": [float(a) for a in aucs],
+        "n_tumour": n_pos,
+        "n_normal": n_neg,
+    }
 
 
 def format_auc_runs(auc: float, std: float, low: float, high: float, runs: int = 2) -> str:

@@ -6,6 +6,7 @@ level-0 px of the original slide (0.243 µm/px). On ``Tumor_*`` slides ``positiv
 ``negative`` exclusion holes; on ``Normal_*`` slides only ``negative`` polygons exist: machine-traced
 tissue outlines (every vertex on a 128-px grid of level 0), which :mod:`data_tools.datasets.c16.dataset` uses as tissue.
 """
+
 from __future__ import annotations
 
 import json
@@ -26,10 +27,10 @@ SHIPPED_DIR = Path(__file__).resolve().parent / "camelyon16" / "ncrf"
 class NcrfSlide:
     """One slide's polygons in level-0 px: ``positive`` / ``negative`` unions (MultiPolygon)."""
 
-    name: str            # e.g. "Tumor_001"
+    name: str  # e.g. "Tumor_001"
     positive: MultiPolygon
     negative: MultiPolygon
-    source: str          # file name the polygons came from
+    source: str  # file name the polygons came from
     sha256: str
 
     @property
@@ -39,8 +40,11 @@ class NcrfSlide:
 
 def _union(polys) -> MultiPolygon:
     valid = [shapely.make_valid(p) for p in polys]
-    parts = [p for p in shapely.get_parts(shapely.union_all(valid)) if p.geom_type == "Polygon" and p.area > 0] \
-        if valid else []
+    parts = (
+        [p for p in shapely.get_parts(shapely.union_all(valid)) if p.geom_type == "Polygon" and p.area > 0]
+        if valid
+        else []
+    )
     return MultiPolygon(parts) if parts else MultiPolygon()
 
 
@@ -68,8 +72,13 @@ def parse_ncrf(name: str, raw: bytes, where) -> NcrfSlide:
             if len(verts) >= 3:
                 polys.append(Polygon(verts))
         groups[key] = _union(polys)
-    return NcrfSlide(name=name, positive=groups["positive"], negative=groups["negative"], source=f"{name}.json",
-                     sha256=text_digest(raw, 64))
+    return NcrfSlide(
+        name=name,
+        positive=groups["positive"],
+        negative=groups["negative"],
+        source=f"{name}.json",
+        sha256=text_digest(raw, 64),
+    )
 
 
 def read_ncrf(source, names=None) -> dict[str, NcrfSlide]:

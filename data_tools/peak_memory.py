@@ -12,6 +12,7 @@ pytest worker, a notebook, a dataset job that built other slides first) it repor
 
 Resetting ``VmHWM`` also resets what ``ru_maxrss`` reports afterwards in this process. Bytes throughout.
 """
+
 from __future__ import annotations
 
 import os

@@ -3,6 +3,7 @@
 (Their own module so :mod:`data_tools.bundle` and :mod:`data_tools.tiled` both import them without
 importing each other.)
 """
+
 from __future__ import annotations
 
 import math
@@ -11,16 +12,26 @@ import numpy as np
 from PIL import Image
 
 
-def resample(source: np.ndarray, source_downsample: float, downsample: float, size: tuple[int, int],
-             offset: tuple[float, float] = (0.0, 0.0)) -> np.ndarray:
+def resample(
+    source: np.ndarray,
+    source_downsample: float,
+    downsample: float,
+    size: tuple[int, int],
+    offset: tuple[float, float] = (0.0, 0.0),
+) -> np.ndarray:
     """Area-average ``source`` (a level at ``source_downsample``) to a level at ``downsample`` of ``size`` (W, H);
     ``offset`` is where the output's top-left corner lies in ``source`` (px of the source). Returns uint8."""
     scale = downsample / source_downsample
     width, height = size
     ox, oy = offset
-    if (math.isclose(scale, 1.0) and ox == int(ox) and oy == int(oy)
-            and source.shape[1] >= width + ox and source.shape[0] >= height + oy):
-        return np.ascontiguousarray(source[int(oy):int(oy) + height, int(ox):int(ox) + width])
+    if (
+        math.isclose(scale, 1.0)
+        and ox == int(ox)
+        and oy == int(oy)
+        and source.shape[1] >= width + ox
+        and source.shape[0] >= height + oy
+    ):
+        return np.ascontiguousarray(source[int(oy) : int(oy) + height, int(ox) : int(ox) + width])
     box = (ox, oy, min(ox + width * scale, source.shape[1]), min(oy + height * scale, source.shape[0]))
     image = Image.fromarray(source).resize((width, height), resample=Image.Resampling.BOX, box=box)
     return np.asarray(image, dtype=np.uint8)

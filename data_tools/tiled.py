@@ -23,6 +23,7 @@ rasterised per band (pixel-centre rule, tiles wholly inside or outside the polyg
 geometrically, only boundary tiles tested pixel by pixel), and the pools are appended to ``.npy``
 files whose header is rewritten with the final count, so memory stays bounded by the band size.
 """
+
 from __future__ import annotations
 
 import math
@@ -34,10 +35,10 @@ import numpy as np
 from data_tools.bundle_files.format import REGION, TISSUE, tiled_level_files  # noqa: F401  (TiledLevel: the reader side)
 from data_tools.bundle_files.reading import TiledLevel
 
-BAND_BYTES = 96 * 2**20        # RGB bytes of one band of a level (plus the source window and copies)
+BAND_BYTES = 96 * 2**20  # RGB bytes of one band of a level (plus the source window and copies)
 MAX_WINDOW_BYTES = 64 * 2**20  # source RGB bytes read at once for a band (a band is read in strips below it)
-SATURATED_FRACTION = 0.005     # a tile with more saturated px than this (sampled) counts as tissue
-HEADER_BYTES = 128             # fixed .npy header size of the appended pools (rewritten at the end)
+SATURATED_FRACTION = 0.005  # a tile with more saturated px than this (sampled) counts as tissue
+HEADER_BYTES = 128  # fixed .npy header size of the appended pools (rewritten at the end)
 AUTO_TILED_BYTES = 256 * 2**20  # storage="auto": tiled when the dense levels would need more device bytes
 
 
@@ -94,8 +95,9 @@ def local_sats(masks: np.ndarray) -> np.ndarray:
 # ---------------------------------------------------------------------------- geometry per band
 
 
-def tumour_band(geometry, width: int, height: int, r0: int, r1: int, downsample: float, tile_size: int,
-                n_cols: int) -> tuple[np.ndarray, np.ndarray]:
+def tumour_band(
+    geometry, width: int, height: int, r0: int, r1: int, downsample: float, tile_size: int, n_cols: int
+) -> tuple[np.ndarray, np.ndarray]:
     """Tumour mask ``(r1 - r0, n_cols * T)`` of level rows ``r0..r1`` (a band of whole tile rows; px
     outside the ``width × height`` content are 0) and the per-tile state ``(rows of tiles, n_cols)``
     int8: 0 no tumour, 1 every px tumour, 2 mixed.
@@ -108,12 +110,13 @@ def tumour_band(geometry, width: int, height: int, r0: int, r1: int, downsample:
     t = tile_size
     n_rows = (r1 - r0 + t - 1) // t
     mask = np.zeros((n_rows * t, n_cols * t), dtype=bool)
-    rows_valid = np.clip(np.minimum(r0 + (np.arange(n_rows) + 1) * t, min(r1, height)) - (r0 + np.arange(n_rows) * t),
-                         0, t)
+    rows_valid = np.clip(
+        np.minimum(r0 + (np.arange(n_rows) + 1) * t, min(r1, height)) - (r0 + np.arange(n_rows) * t), 0, t
+    )
     cols_valid = np.clip(np.minimum((np.arange(n_cols) + 1) * t, width) - np.arange(n_cols) * t, 0, t)
     state = np.zeros((n_rows, n_cols), dtype=np.int8)
     if geometry is None or geometry.is_empty:
-        return mask[:r1 - r0], state
+        return mask[: r1 - r0], state
     ty, tx = np.meshgrid(np.arange(n_rows), np.arange(n_cols), indexing="ij")
     valid = (rows_valid[ty] > 0) & (cols_valid[tx] > 0)
     # the hull of each tile's (content) pixel centres, in level-0 px
@@ -147,7 +150,7 @@ def tumour_band(geometry, width: int, height: int, r0: int, r1: int, downsample:
     counts = mask.reshape(n_rows, t, n_cols, t).sum(axis=(1, 3))
     area = rows_valid[:, None] * cols_valid[None, :]
     state[:] = np.where(counts == 0, 0, np.where((counts == area) & (area == t * t), 1, 2))
-    return mask[:r1 - r0], state
+    return mask[: r1 - r0], state
 
 
 def saturation_threshold(tissue_reference: np.ndarray) -> float:
@@ -180,8 +183,10 @@ def tiled_level_bytes(n_tiles: int, n_sat_tiles: int, grid: tuple[int, int], til
 
 def _source_level(reader, d: float) -> int:
     """The coarsest source level that is still at least as fine as downsample ``d``."""
-    return max((i for i, lv in enumerate(reader.levels) if lv.downsample <= d * (1 + 1e-6)),
-               key=lambda i: reader.levels[i].downsample)
+    return max(
+        (i for i, lv in enumerate(reader.levels) if lv.downsample <= d * (1 + 1e-6)),
+        key=lambda i: reader.levels[i].downsample,
+    )
 
 
 def _bands(reader, d: float, size, tile_size: int, reg, band_bytes: int):
@@ -213,14 +218,24 @@ def _bands(reader, d: float, size, tile_size: int, reg, band_bytes: int):
             wx1 = min(math.ceil(rx0 + cw * scale), reader.levels[src].width)
             wy1 = min(math.ceil(ry0 + (r0 + a0 + n) * scale), reader.levels[src].height)
             window = reader.read_region(src, wx0, wy0, wx1 - wx0, wy1 - wy0)
-            band[a0:a0 + n, :cw] = _resample(window, ds, d, (cw, n), (rx0 - wx0, sy0 - wy0))
+            band[a0 : a0 + n, :cw] = _resample(window, ds, d, (cw, n), (rx0 - wx0, sy0 - wy0))
             del window
         yield r0, r1, band
 
 
-def build_tiled_levels(reader, tmp: Path, downsamples, sizes, tile_size: int, ann=None, reg=None,
-                       share_background: bool = True, band_bytes: int = BAND_BYTES, progress: bool = True,
-                       mpp=None) -> tuple[list[dict], dict]:
+def build_tiled_levels(
+    reader,
+    tmp: Path,
+    downsamples,
+    sizes,
+    tile_size: int,
+    ann=None,
+    reg=None,
+    share_background: bool = True,
+    band_bytes: int = BAND_BYTES,
+    progress: bool = True,
+    mpp=None,
+) -> tuple[list[dict], dict]:
     """Write the tiled levels (``downsamples`` finest first, content ``sizes``) of a bundle into ``tmp``
     plus ``tissue.npy`` (and ``region.npy`` for a region bundle); returns ``(levels metadata, stats)``.
     The coarsest level is made first (it is small, held whole): its Otsu tissue mask decides, with a
@@ -242,8 +257,11 @@ def build_tiled_levels(reader, tmp: Path, downsamples, sizes, tile_size: int, an
     kc = n - 1
     dc, (cwc, chc) = downsamples[kc], sizes[kc]
     if max(cwc, t) * max(chc, t) * 3 > 4 * AUTO_TILED_BYTES:
-        raise BundleError(reader.path, f"the coarsest level ({cwc}×{chc} px) is too large for a tiled bundle's "
-                          "tissue mask; use a larger --magnification-range")
+        raise BundleError(
+            reader.path,
+            f"the coarsest level ({cwc}×{chc} px) is too large for a tiled bundle's "
+            "tissue mask; use a larger --magnification-range",
+        )
     coarse = np.concatenate([b for _, _, b in _bands(reader, dc, (cwc, chc), t, reg, band_bytes)])
     inside_c = None
     if polygon is not None:
@@ -290,29 +308,37 @@ def build_tiled_levels(reader, tmp: Path, downsamples, sizes, tile_size: int, an
         pool = PoolWriter(tmp / names["tiles"], (t, t, 3), np.uint8)
         sat_pool = PoolWriter(tmp / names["sat_tiles"], (t + 1, t + 1), np.uint32)
         try:
-            pool.append(np.full((1, t, t, 3), 255, np.uint8))          # 0: blank white
-            sat_pool.append(np.zeros((1, t + 1, t + 1), np.uint32))    # 0: no tumour
-            sat_pool.append(full_sat_tile(t)[None])                    # 1: all tumour
+            pool.append(np.full((1, t, t, 3), 255, np.uint8))  # 0: blank white
+            sat_pool.append(np.zeros((1, t + 1, t + 1), np.uint32))  # 0: no tumour
+            sat_pool.append(full_sat_tile(t)[None])  # 1: all tumour
             index = np.zeros((gh, gw), dtype=np.int32)
             sat_index = np.zeros((gh, gw), dtype=np.int32)
             tumour_px = 0
             if k == kc:
-                bands = ((r0, min(height, r0 + 4096 * t), coarse[r0:r0 + 4096 * t]) for r0 in range(0, height, 4096 * t))
+                bands = (
+                    (r0, min(height, r0 + 4096 * t), coarse[r0 : r0 + 4096 * t]) for r0 in range(0, height, 4096 * t)
+                )
             else:
                 bands = _bands(reader, d, (cw, ch), t, reg, band_bytes)
             per_band = max(1, band_bytes // (gw * t * t * 3))
-            bar = tqdm(bands, total=-(-gh // per_band) if k != kc else 1, unit="band", disable=not progress,
-                       desc=f"level {k} (downsample {d:.4g}, {width}×{height} px, tiled)")
+            bar = tqdm(
+                bands,
+                total=-(-gh // per_band) if k != kc else 1,
+                unit="band",
+                disable=not progress,
+                desc=f"level {k} (downsample {d:.4g}, {width}×{height} px, tiled)",
+            )
             for r0, r1, band in bar:
                 ty0, n_rows = r0 // t, -(-(r1 - r0) // t)
                 if polygon is not None and k != kc:
                     inside = tumour_band(polygon, cw, ch, r0, r1, d, t, gw)[0]
-                    band[~inside[:, :band.shape[1]]] = 255
+                    band[~inside[:, : band.shape[1]]] = 255
                 mask, state = tumour_band(tumour_geom, cw, ch, r0, r1, d, t, gw)
                 tumour_px += int(mask.sum())
                 if band.shape[0] < n_rows * t:  # the last band: pad to whole tiles
-                    band = np.concatenate([band, np.full((n_rows * t - band.shape[0],) + band.shape[1:], 255,
-                                                         np.uint8)])
+                    band = np.concatenate(
+                        [band, np.full((n_rows * t - band.shape[0],) + band.shape[1:], 255, np.uint8)]
+                    )
                     mask = np.concatenate([mask, np.zeros((n_rows * t - mask.shape[0], mask.shape[1]), bool)])
                 tiles = band.reshape(n_rows, t, gw, t, 3).swapaxes(1, 2).reshape(n_rows * gw, t, t, 3)
                 if share_background:
@@ -324,35 +350,57 @@ def build_tiled_levels(reader, tmp: Path, downsamples, sizes, tile_size: int, an
                 flat_keep = keep.ravel()
                 if flat_keep.any():
                     first = pool.append(tiles[flat_keep])
-                    index[ty0:ty0 + n_rows].ravel()[flat_keep] = np.arange(first, first + int(flat_keep.sum()))
+                    index[ty0 : ty0 + n_rows].ravel()[flat_keep] = np.arange(first, first + int(flat_keep.sum()))
                 mixed = (state == 2).ravel()
-                sat_index[ty0:ty0 + n_rows][state == 1] = 1
+                sat_index[ty0 : ty0 + n_rows][state == 1] = 1
                 if mixed.any():
                     masks = mask.reshape(n_rows, t, gw, t).swapaxes(1, 2).reshape(n_rows * gw, t, t)[mixed]
                     first = sat_pool.append(local_sats(masks))
-                    sat_index[ty0:ty0 + n_rows].ravel()[mixed] = np.arange(first, first + int(mixed.sum()))
+                    sat_index[ty0 : ty0 + n_rows].ravel()[mixed] = np.arange(first, first + int(mixed.sum()))
                 del band, tiles, mask
         finally:
             pool.close()
             sat_pool.close()
         if pool.count >= 2**31 // (t * t) or sat_pool.count * (t + 1) ** 2 >= 2**31:
-            raise BundleError(reader.path, f"level {k} needs {pool.count:,} tiles, too many for int32 indexing; "
-                              "use a coarser finest level")
+            raise BundleError(
+                reader.path,
+                f"level {k} needs {pool.count:,} tiles, too many for int32 indexing; use a coarser finest level",
+            )
         np.save(tmp / names["tile_index"], index, allow_pickle=False)
         np.save(tmp / names["sat_index"], sat_index, allow_pickle=False)
         nbytes = tiled_level_bytes(pool.count, sat_pool.count, (gh, gw), t)
         levels_meta[k] = {
-            "downsample": d, "width": int(width), "height": int(height), "content_width": cw, "content_height": ch,
-            "mpp": None if mpp is None else mpp * d, "tumour_pixels": tumour_px, "storage": "tiled",
-            "grid": [gh, gw], "pool_tiles": pool.count, "sat_pool_tiles": sat_pool.count,
-            "kept_tiles": int((index > 0).sum()), "device_bytes": nbytes,
-            "dense_device_bytes": 3 * width * height + 4 * (width + 1) * (height + 1), **names,
+            "downsample": d,
+            "width": int(width),
+            "height": int(height),
+            "content_width": cw,
+            "content_height": ch,
+            "mpp": None if mpp is None else mpp * d,
+            "tumour_pixels": tumour_px,
+            "storage": "tiled",
+            "grid": [gh, gw],
+            "pool_tiles": pool.count,
+            "sat_pool_tiles": sat_pool.count,
+            "kept_tiles": int((index > 0).sum()),
+            "device_bytes": nbytes,
+            "dense_device_bytes": 3 * width * height + 4 * (width + 1) * (height + 1),
+            **names,
         }
         stats["seconds_per_level"][k] = round(time.perf_counter() - t0, 2)
     stats["peak_rss_bytes"] = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024
     return levels_meta, stats
 
 
-__all__ = ["AUTO_TILED_BYTES", "BAND_BYTES", "MAX_WINDOW_BYTES", "PoolWriter", "TiledLevel", "build_tiled_levels", "full_sat_tile",
-           "local_sats", "tiled_level_bytes",
-           "saturation_threshold", "tumour_band"]
+__all__ = [
+    "AUTO_TILED_BYTES",
+    "BAND_BYTES",
+    "MAX_WINDOW_BYTES",
+    "PoolWriter",
+    "TiledLevel",
+    "build_tiled_levels",
+    "full_sat_tile",
+    "local_sats",
+    "tiled_level_bytes",
+    "saturation_threshold",
+    "tumour_band",
+]

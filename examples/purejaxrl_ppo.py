@@ -19,6 +19,7 @@ Prints, per seed, the success rate of the last update's finished training episod
 of the trained policy on fresh episodes (sampled actions): success rate, mean return, mean length.
 Figures against ``baselines.ppo``: docs/results/examples.md.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -163,11 +164,19 @@ def make_train(config: dict):
 
                 rng, _rng = jax.random.split(rng)
                 rng_step = jax.random.split(_rng, config["NUM_ENVS"])
-                obsv, env_state, reward, terminated, truncated, info = jax.vmap(
-                    env.step, in_axes=(0, 0, 0, None))(rng_step, env_state, action, env_params)
+                obsv, env_state, reward, terminated, truncated, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                    rng_step, env_state, action, env_params
+                )
                 done = jnp.logical_or(terminated, truncated)
-                info = {k: info[k] for k in ("returned_episode", "returned_episode_returns",
-                                             "returned_episode_lengths", "returned_episode_success")}
+                info = {
+                    k: info[k]
+                    for k in (
+                        "returned_episode",
+                        "returned_episode_returns",
+                        "returned_episode_lengths",
+                        "returned_episode_success",
+                    )
+                }
                 transition = Transition(done, action, value, reward, log_prob, last_obs, info)
                 return (train_state, env_state, flatten_obs(obsv), rng), transition
 
@@ -185,8 +194,9 @@ def make_train(config: dict):
                     gae = delta + config["GAMMA"] * config["GAE_LAMBDA"] * (1 - done) * gae
                     return (gae, value), gae
 
-                _, advantages = jax.lax.scan(_get_advantages, (jnp.zeros_like(last_val), last_val), traj_batch,
-                                             reverse=True, unroll=16)
+                _, advantages = jax.lax.scan(
+                    _get_advantages, (jnp.zeros_like(last_val), last_val), traj_batch, reverse=True, unroll=16
+                )
                 return advantages, advantages + traj_batch.value
 
             advantages, targets = _calculate_gae(traj_batch, last_val)
@@ -202,7 +212,8 @@ def make_train(config: dict):
 
                         # CALCULATE VALUE LOSS
                         value_pred_clipped = traj_batch.value + (value - traj_batch.value).clip(
-                            -config["CLIP_EPS"], config["CLIP_EPS"])
+                            -config["CLIP_EPS"], config["CLIP_EPS"]
+                        )
                         value_losses = jnp.square(value - targets)
                         value_losses_clipped = jnp.square(value_pred_clipped - targets)
                         value_loss = 0.5 * jnp.maximum(value_losses, value_losses_clipped).mean()
@@ -231,7 +242,8 @@ def make_train(config: dict):
                 batch = jax.tree.map(lambda x: x.reshape((batch_size,) + x.shape[2:]), batch)
                 shuffled_batch = jax.tree.map(lambda x: jnp.take(x, permutation, axis=0), batch)
                 minibatches = jax.tree.map(
-                    lambda x: jnp.reshape(x, [config["NUM_MINIBATCHES"], -1] + list(x.shape[1:])), shuffled_batch)
+                    lambda x: jnp.reshape(x, [config["NUM_MINIBATCHES"], -1] + list(x.shape[1:])), shuffled_batch
+                )
                 train_state, total_loss = jax.lax.scan(_update_minbatch, train_state, minibatches)
                 return (train_state, traj_batch, advantages, targets, rng), total_loss
 
@@ -268,7 +280,8 @@ def make_evaluate(config: dict, num_episodes: int = 256):
             logits, _ = network.apply(params, flatten_obs(obs))
             action = jax.random.categorical(k_act, logits)
             obs2, state2, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(k_step, num_episodes), state, action, env_params)
+                jax.random.split(k_step, num_episodes), state, action, env_params
+            )
             live = ~done
             ret = ret + jnp.where(live, reward, 0.0)
             length = length + live
@@ -303,8 +316,13 @@ def main(argv=None) -> dict:
     p.add_argument("--eval-episodes", type=int, default=256)
     p.add_argument("--out", default=None, help="JSON file for the per-seed figures")
     args = p.parse_args(argv)
-    config = {**CONFIG, "ENV_ID": args.env, "TOTAL_TIMESTEPS": args.total_timesteps,
-              "NUM_ENVS": args.num_envs, "NUM_STEPS": args.num_steps}
+    config = {
+        **CONFIG,
+        "ENV_ID": args.env,
+        "TOTAL_TIMESTEPS": args.total_timesteps,
+        "NUM_ENVS": args.num_envs,
+        "NUM_STEPS": args.num_steps,
+    }
     t0 = time.perf_counter()
     key0 = jax.random.PRNGKey(args.seed)
     train = jax.jit(make_train(config)).lower(key0).compile()  # compiled once, run per seed
@@ -317,12 +335,19 @@ def main(argv=None) -> dict:
         out = jax.block_until_ready(train(jax.random.PRNGKey(seed)))
         train_s = time.perf_counter() - t
         ev = jax.device_get(evaluate(out["runner_state"][0].params, jax.random.PRNGKey(10_000 + seed)))
-        row = {"seed": seed, "train_seconds": train_s, "train_success_last_update": final_training_success(
-            out["metrics"]), **{f"eval_{k}": float(v) for k, v in ev.items()}}
+        row = {
+            "seed": seed,
+            "train_seconds": train_s,
+            "train_success_last_update": final_training_success(out["metrics"]),
+            **{f"eval_{k}": float(v) for k, v in ev.items()},
+        }
         rows.append(row)
-        print(f"seed {seed}: {train_s:.0f} s, training success (last update) {row['train_success_last_update']:.1%}, "
-              f"eval success {row['eval_success']:.1%}, return {row['eval_return']:.2f}, "
-              f"length {row['eval_length']:.1f}", flush=True)
+        print(
+            f"seed {seed}: {train_s:.0f} s, training success (last update) {row['train_success_last_update']:.1%}, "
+            f"eval success {row['eval_success']:.1%}, return {row['eval_return']:.2f}, "
+            f"length {row['eval_length']:.1f}",
+            flush=True,
+        )
     result = {"config": config, "seeds": rows, "compile_seconds": compile_s, "wall_seconds": time.perf_counter() - t0}
     if args.out:
         with open(args.out, "w") as f:

@@ -7,6 +7,7 @@ Optional extra (needs torch): ``pip install -e '.[sb3]'``, then
 
 The pure-JAX baselines are much faster; this shows that SB3 code runs unchanged.
 """
+
 from __future__ import annotations
 
 import argparse

@@ -6,6 +6,7 @@ XML of many tangled polygons, and peak RSS of loading a large ASAP XML of many s
 ``--repo`` measures another checkout's ``data_tools`` (e.g. a ``git archive`` of an older commit) with
 the same files. Each measurement runs in a fresh subprocess; files are written to a temporary folder.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -42,9 +43,11 @@ def tangled_xml(path: Path, n_polygons: int, n_vertices: int) -> Path:
         f.write("<ASAP_Annotations><Annotations>")
         for i in range(n_polygons):
             pts = np.random.default_rng(i).integers(0, 10_000, (n_vertices, 2)).tolist()
-            f.write(f'<Annotation Name="A{i}" Type="Polygon" PartOfGroup="metastasis"><Coordinates>'
-                    + "".join(f'<Coordinate Order="{j}" X="{x}" Y="{y}" />' for j, (x, y) in enumerate(pts))
-                    + "</Coordinates></Annotation>")
+            f.write(
+                f'<Annotation Name="A{i}" Type="Polygon" PartOfGroup="metastasis"><Coordinates>'
+                + "".join(f'<Coordinate Order="{j}" X="{x}" Y="{y}" />' for j, (x, y) in enumerate(pts))
+                + "</Coordinates></Annotation>"
+            )
         f.write("</Annotations></ASAP_Annotations>")
     return path
 
@@ -56,12 +59,16 @@ def big_xml(path: Path, mib: float) -> Path:
         f.write('<?xml version="1.0"?>\n<ASAP_Annotations>\n\t<Annotations>\n')
         for i in range(n):
             cx, cy = 300.0 * (i % 300) + 150, 300.0 * (i // 300) + 150
-            f.write(f'\t\t<Annotation Name="Annotation {i}" Type="Polygon" PartOfGroup="metastasis" '
-                    'Color="#F4FA58">\n\t\t\t<Coordinates>\n')
+            f.write(
+                f'\t\t<Annotation Name="Annotation {i}" Type="Polygon" PartOfGroup="metastasis" '
+                'Color="#F4FA58">\n\t\t\t<Coordinates>\n'
+            )
             for j in range(100):
                 t = 2 * math.pi * j / 100
-                f.write(f'\t\t\t\t<Coordinate Order="{j}" X="{cx + 100 * math.cos(t):.4f}" '
-                        f'Y="{cy + 100 * math.sin(t):.4f}" />\n')
+                f.write(
+                    f'\t\t\t\t<Coordinate Order="{j}" X="{cx + 100 * math.cos(t):.4f}" '
+                    f'Y="{cy + 100 * math.sin(t):.4f}" />\n'
+                )
             f.write("\t\t\t</Coordinates>\n\t\t</Annotation>\n")
         f.write("\t</Annotations>\n\t<AnnotationGroups />\n</ASAP_Annotations>\n")
     return path
@@ -81,8 +88,10 @@ def main() -> int:
     args = p.parse_args()
     with tempfile.TemporaryDirectory() as tmp:
         t = tangled_xml(Path(tmp) / "tangled.xml", args.tangled, args.vertices)
-        print(f"{args.tangled} tangled polygons of {args.vertices} vertices ({t.stat().st_size / 1e3:.0f} KB): "
-              f"{measure(args.repo, t)}")
+        print(
+            f"{args.tangled} tangled polygons of {args.vertices} vertices ({t.stat().st_size / 1e3:.0f} KB): "
+            f"{measure(args.repo, t)}"
+        )
         t.unlink()
         b = big_xml(Path(tmp) / "big.xml", args.big_mb)
         print(f"ASAP XML of {b.stat().st_size / 2**20:.0f} MiB: {measure(args.repo, b)}")

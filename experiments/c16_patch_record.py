@@ -8,6 +8,7 @@ patches in its pool by the rule recorded in ``dataset.json``.
 
     python -m experiments.c16_patch_record --dataset c16-full --out tests/data/c16_full_patch_names.npz
 """
+
 from __future__ import annotations
 
 import argparse
@@ -43,8 +44,10 @@ def main(argv=None) -> int:
     args = p.parse_args(argv)
     rec = patch_record(Path(args.dataset))
     np.savez_compressed(args.out, **rec)
-    print(f"wrote {args.out}: {len(rec['train'])} patches on {rec['slides'][0]} train slides, {len(rec['test'])} on "
-          f"{rec['slides'][1]} test slides, {len(set(rec['train']) & set(rec['test']))} on both")
+    print(
+        f"wrote {args.out}: {len(rec['train'])} patches on {rec['slides'][0]} train slides, {len(rec['test'])} on "
+        f"{rec['slides'][1]} test slides, {len(set(rec['train']) & set(rec['test']))} on both"
+    )
     return 0
 
 

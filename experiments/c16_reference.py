@@ -42,6 +42,7 @@ rerun with the same dataset, env id, settings and budget keeps it (``--redo`` re
 table (``OUT/reference.md``) is rewritten after every cell and printed at the end. This is a
 benchmark (hours of CPU at real budgets), never a test; ``--quick`` is its smoke slice.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -58,8 +59,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from baselines import outputs, ppo, ppo_rnn  # noqa: E402
-from baselines.harness.logs import load_checkpoint  # noqa: E402
 from baselines.evaluate import evaluate  # noqa: E402
+from baselines.harness.logs import load_checkpoint  # noqa: E402
 from baselines.run_config import read_run_config  # noqa: E402
 from data_tools.metrics import auc_interval, json_safe  # noqa: E402
 
@@ -87,11 +88,20 @@ def cell_key(method: str, scenario: str) -> str:
     return f"{method}/{scenario}"
 
 
-def cell_budget(dataset: Path, env_id: str, env_kwargs: dict, method: str, steps: int, seeds: int,
-                episodes: int, extra: list[str], rnn_obs: str, validation: dict | None = None) -> dict:
+def cell_budget(
+    dataset: Path,
+    env_id: str,
+    env_kwargs: dict,
+    method: str,
+    steps: int,
+    seeds: int,
+    episodes: int,
+    extra: list[str],
+    rnn_obs: str,
+    validation: dict | None = None,
+) -> dict:
     """What a stored cell must match to be kept on a rerun."""
-    budget = {"dataset": str(Path(dataset).resolve()), "env_id": env_id, "env_kwargs": env_kwargs,
-              "episodes": episodes}
+    budget = {"dataset": str(Path(dataset).resolve()), "env_id": env_id, "env_kwargs": env_kwargs, "episodes": episodes}
     if method not in REFERENCE:
         budget.update(steps=steps, seeds=seeds, set=list(extra), **method_settings(method, rnn_obs))
         if validation:
@@ -107,17 +117,25 @@ def seed_stats(row: dict, labels: dict, scenario: str) -> dict:
     if not per:
         return {}
     if scenario == "Diagnosis":
-        values = {"accuracy": [r["success_rate"] for r in per],
-                  "auc": [r.get("diagnosis_auc", float("nan")) for r in per]}
+        values = {
+            "accuracy": [r["success_rate"] for r in per],
+            "auc": [r.get("diagnosis_auc", float("nan")) for r in per],
+        }
     else:
         t = [on_tumour_slides(r, labels) for r in per]
-        values = {"success": [r["success_rate"] for r in t], "steps_to_success": [r["mean_steps_to_success"] for r in t]}
+        values = {
+            "success": [r["success_rate"] for r in t],
+            "steps_to_success": [r["mean_steps_to_success"] for r in t],
+        }
     out = {}
     for k, v in values.items():
         a = np.asarray(v, np.float64)
         ok = a[np.isfinite(a)]
-        out[k] = {"mean": float(ok.mean()) if ok.size else float("nan"),
-                  "std": float(ok.std()) if ok.size else float("nan"), "per_seed": a.tolist()}
+        out[k] = {
+            "mean": float(ok.mean()) if ok.size else float("nan"),
+            "std": float(ok.std()) if ok.size else float("nan"),
+            "per_seed": a.tolist(),
+        }
     return out
 
 
@@ -125,8 +143,11 @@ def slide_labels(spec: dict) -> dict:
     """Bundle folder name → 1 (tumour) / 0 (normal) from ``dataset.json``: its ``slides[].label``
     entries, or its ``labels`` mapping; empty when it has neither (then every slide counts as a
     tumour slide, as for ``data_tools synth``)."""
-    labels = {Path(s["bundle"]).name: int(s["label"]) for s in spec.get("slides", [])
-              if isinstance(s, dict) and "bundle" in s and "label" in s}
+    labels = {
+        Path(s["bundle"]).name: int(s["label"])
+        for s in spec.get("slides", [])
+        if isinstance(s, dict) and "bundle" in s and "label" in s
+    }
     if not labels and isinstance(spec.get("labels"), dict):
         labels = {Path(k).name: int(v) for k, v in spec["labels"].items()}
     return labels
@@ -142,24 +163,46 @@ def on_tumour_slides(row: dict, labels: dict) -> dict:
     keep = [v for name, v in by.items() if labels.get(name, 1) == 1]
     n, wins = sum(v["episodes"] for v in keep), sum(v["successes"] for v in keep)
     steps = sum(v["steps_to_success_sum"] for v in keep)
-    return {"episodes": n, "success_rate": wins / n if n else float("nan"),
-            "mean_steps_to_success": steps / wins if wins else float("nan")}
+    return {
+        "episodes": n,
+        "success_rate": wins / n if n else float("nan"),
+        "mean_steps_to_success": steps / wins if wins else float("nan"),
+    }
 
 
-def reference_cells(dataset: Path, env_id: str, env_kwargs: dict, episodes: int, seed: int = 0,
-                    obs_mode: str = "pixels") -> dict:
+def reference_cells(
+    dataset: Path, env_id: str, env_kwargs: dict, episodes: int, seed: int = 0, obs_mode: str = "pixels"
+) -> dict:
     """Random and scripted rows on the test split (``obs_mode`` + position; the scripted policy needs
     pixels, so a features evaluation has the random row only), ``episodes`` episodes each."""
-    config = {"env_id": env_id, "with_position": True, "action_mode": "discrete", "obs_mode": obs_mode, "hidden": 256,
-              "env_kwargs": {**env_kwargs, "dataset": str(dataset), "split": "test"}}
+    config = {
+        "env_id": env_id,
+        "with_position": True,
+        "action_mode": "discrete",
+        "obs_mode": obs_mode,
+        "hidden": 256,
+        "env_kwargs": {**env_kwargs, "dataset": str(dataset), "split": "test"},
+    }
     t0 = time.perf_counter()
     rows = evaluate(config, None, num_episodes=episodes, seed=seed)
     wall = time.perf_counter() - t0
     return {name: {**row, "wall_s": wall} for name, row in rows.items()}
 
 
-def trained_cell(method: str, dataset: Path, env_id: str, env_kwargs: dict, steps: int, seeds: int, episodes: int,
-                 out: Path, extra: list[str], rnn_obs: str, augment: bool, train_dataset: Path | None = None) -> dict:
+def trained_cell(
+    method: str,
+    dataset: Path,
+    env_id: str,
+    env_kwargs: dict,
+    steps: int,
+    seeds: int,
+    episodes: int,
+    out: Path,
+    extra: list[str],
+    rnn_obs: str,
+    augment: bool,
+    train_dataset: Path | None = None,
+) -> dict:
     """Train ``method`` on the train split of ``train_dataset`` (default ``dataset``; a validation
     dataset of :mod:`baselines.validation` holds part of the training slides back) into ``out``,
     evaluate its sampled (and greedy) policy on the test split of ``dataset`` and, with a
@@ -170,30 +213,57 @@ def trained_cell(method: str, dataset: Path, env_id: str, env_kwargs: dict, step
     train_kwargs = {**env_kwargs, "dataset": str(train_dataset or dataset), "split": "train"}
     if augment and settings["obs_mode"] == "pixels":
         train_kwargs["augment"] = True
-    argv = ["--env", env_id, "--obs-mode", settings["obs_mode"], "--with-position", "--seeds", str(seeds),
-            "--total-steps", str(steps), "--out", str(out), "--set", f"env_kwargs={json.dumps(train_kwargs)}",  # json-not-written (an option)
-            "--set", "print_progress=false", *extra]
+    argv = [
+        "--env",
+        env_id,
+        "--obs-mode",
+        settings["obs_mode"],
+        "--with-position",
+        "--seeds",
+        str(seeds),
+        "--total-steps",
+        str(steps),
+        "--out",
+        str(out),
+        "--set",
+        f"env_kwargs={json.dumps(train_kwargs)}",  # json-not-written (an option)
+        "--set",
+        "print_progress=false",
+        *extra,
+    ]
     t0 = time.perf_counter()
     trainer.main(argv)
     train_wall = time.perf_counter() - t0
     params, record = load_checkpoint(out)
     config = read_run_config(record, Path(out) / "config.json")
-    config = config.replace(env_kwargs={k: v for k, v in {**train_kwargs, "dataset": str(dataset), "split": "test"}.items()
-                                        if k != "augment"})
+    config = config.replace(
+        env_kwargs={
+            k: v for k, v in {**train_kwargs, "dataset": str(dataset), "split": "test"}.items() if k != "augment"
+        }
+    )
     t0 = time.perf_counter()
     rows = evaluate(config, params, num_episodes=episodes, label=settings["trainer"], references=False)
     name = f"{settings['trainer']} (sampled)"
     validation = None
     if train_dataset is not None:
-        config = config.replace(env_kwargs={**config.env_kwargs, "dataset": str(train_dataset)})  # its "test" list: the validation slides
+        config = config.replace(
+            env_kwargs={**config.env_kwargs, "dataset": str(train_dataset)}
+        )  # its "test" list: the validation slides
         validation = evaluate(config, params, num_episodes=episodes, label=settings["trainer"], references=False)[name]
     summary = json.loads((out / "log.json").read_text())["summary"]
-    return {**rows[name], "greedy": rows[f"{settings['trainer']} (greedy)"], "validation": validation,
-            "train_wall_s": train_wall, "eval_wall_s": time.perf_counter() - t0,
-            "train_success_final": summary["final"]["success"],
-            "train_steps_per_s": summary["env_steps_per_second_all_seeds"],
-            "compile_s": summary.get("compile_seconds"),
-            "run": str(out), "curve_png": str(out / "curve.png"), "curve_csv": str(out / "log.csv")}
+    return {
+        **rows[name],
+        "greedy": rows[f"{settings['trainer']} (greedy)"],
+        "validation": validation,
+        "train_wall_s": train_wall,
+        "eval_wall_s": time.perf_counter() - t0,
+        "train_success_final": summary["final"]["success"],
+        "train_steps_per_s": summary["env_steps_per_second_all_seeds"],
+        "compile_s": summary.get("compile_seconds"),
+        "run": str(out),
+        "curve_png": str(out / "curve.png"),
+        "curve_csv": str(out / "log.csv"),
+    }
 
 
 def total_wall(cells: dict) -> float:
@@ -259,12 +329,16 @@ def markdown(cells: dict, methods: list[str], scenarios: list[str], meta: dict) 
                 continue
             st = c.get("seeds")
             if s == "Diagnosis":
-                row += [_pm(st, "accuracy", _pct) or _pct(c["success_rate"]),
-                        (_pm(st, "auc", _num2) or _num2(c.get("diagnosis_auc"))) + _interval(c, st)]
+                row += [
+                    _pm(st, "accuracy", _pct) or _pct(c["success_rate"]),
+                    (_pm(st, "auc", _num2) or _num2(c.get("diagnosis_auc"))) + _interval(c, st),
+                ]
             else:
                 d = c.get("tumour_slides", c)
-                row += [_pm(st, "success", _pct) or _pct(d["success_rate"]),
-                        _pm(st, "steps_to_success", _num) or _num(d["mean_steps_to_success"])]
+                row += [
+                    _pm(st, "success", _pct) or _pct(d["success_rate"]),
+                    _pm(st, "steps_to_success", _num) or _num(d["mean_steps_to_success"]),
+                ]
             wall += c.get("train_wall_s", 0.0)
             if c.get("train_steps_per_s"):
                 rates.append(c["train_steps_per_s"])
@@ -273,22 +347,29 @@ def markdown(cells: dict, methods: list[str], scenarios: list[str], meta: dict) 
         row.append(f"{wall:,.0f} s" if m not in REFERENCE and ran else "–")
         lines.append("| " + " | ".join(row) + " |")
     val = meta.get("validation")
-    lines += ["", f"Dataset `{meta['dataset']}` (test split: {meta['test_slides']} slides, "
-              f"{meta['test_tumour_slides']} with tumour; train split: {meta['train_slides']}"
-              + (f", of which {len(val['validation'])} held back for validation (fraction {val['fraction']}, seed "
-                 f"{val['seed']}; trained rows train on the other {len(val['train'])})" if val else "")
-              + "). Detection "
-              f"success counts the episodes on test tumour slides only (a normal slide has nothing to find); "
-              f"{meta['reachable']} Env ids: " + ", ".join(f"{s} `{meta['env_ids'][s]}`" for s in scenarios) + ".",
-              f"Budget per trained cell: {meta['steps']} env steps per seed × {meta['seeds']} seed(s); "
-              f"{meta['episodes']} test episodes per seed (per policy for random / scripted). Trained rows: the "
-              f"sampled policy, mean ± std over seeds. Steps: mean episode length of the successful episodes. "
-              f"Diagnosis AUC: of the policy's p(tumour) = p(DECLARE_TUMOUR) / (p(DECLARE_TUMOUR) + "
-              f"p(DECLARE_NO_TUMOUR)) at the step it declared (or its last step), over test episodes; [low, high]: "
-              f"its 95 % interval over the test slides (Newcombe's, of the mean over seeds). Learning "
-              f"curves: `<out>/<method>-<scenario>/curve.png` and `log.csv`.",
-              f"Machine: {platform.machine()}, {jax.device_count()} {jax.devices()[0].platform} device(s), "
-              f"JAX {jax.__version__}. Total wall time of the cells: {meta['wall_s']:,.0f} s."]
+    lines += [
+        "",
+        f"Dataset `{meta['dataset']}` (test split: {meta['test_slides']} slides, "
+        f"{meta['test_tumour_slides']} with tumour; train split: {meta['train_slides']}"
+        + (
+            f", of which {len(val['validation'])} held back for validation (fraction {val['fraction']}, seed "
+            f"{val['seed']}; trained rows train on the other {len(val['train'])})"
+            if val
+            else ""
+        )
+        + "). Detection "
+        f"success counts the episodes on test tumour slides only (a normal slide has nothing to find); "
+        f"{meta['reachable']} Env ids: " + ", ".join(f"{s} `{meta['env_ids'][s]}`" for s in scenarios) + ".",
+        f"Budget per trained cell: {meta['steps']} env steps per seed × {meta['seeds']} seed(s); "
+        f"{meta['episodes']} test episodes per seed (per policy for random / scripted). Trained rows: the "
+        f"sampled policy, mean ± std over seeds. Steps: mean episode length of the successful episodes. "
+        f"Diagnosis AUC: of the policy's p(tumour) = p(DECLARE_TUMOUR) / (p(DECLARE_TUMOUR) + "
+        f"p(DECLARE_NO_TUMOUR)) at the step it declared (or its last step), over test episodes; [low, high]: "
+        f"its 95 % interval over the test slides (Newcombe's, of the mean over seeds). Learning "
+        f"curves: `<out>/<method>-<scenario>/curve.png` and `log.csv`.",
+        f"Machine: {platform.machine()}, {jax.device_count()} {jax.devices()[0].platform} device(s), "
+        f"JAX {jax.__version__}. Total wall time of the cells: {meta['wall_s']:,.0f} s.",
+    ]
     return "\n".join(lines)
 
 
@@ -330,25 +411,46 @@ def quick_dataset(out: Path) -> tuple[Path, str]:
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dataset", default=None, help="dataset folder with dataset.json (train/test split by slide)")
-    p.add_argument("--quick", action="store_true",
-                   help="a small slice of every table in minutes on 2 CPU cores: the small C16 variant built on the "
-                        "fly (OUT/data), 8,192 env steps per seed, 3 seeds, 16 episodes, small networks")
+    p.add_argument(
+        "--quick",
+        action="store_true",
+        help="a small slice of every table in minutes on 2 CPU cores: the small C16 variant built on the "
+        "fly (OUT/data), 8,192 env steps per seed, 3 seeds, 16 episodes, small networks",
+    )
     p.add_argument("--version", default="v1", choices=("v0", "v1"), help="C16 env ids HistoJAX-C16-*-VERSION")
-    p.add_argument("--val-fraction", type=float, default=0.2,
-                   help="share of the training slides held back for validation (tumour slides and their tissue "
-                        "donors kept together; 0: train on every training slide)")
+    p.add_argument(
+        "--val-fraction",
+        type=float,
+        default=0.2,
+        help="share of the training slides held back for validation (tumour slides and their tissue "
+        "donors kept together; 0: train on every training slide)",
+    )
     p.add_argument("--val-seed", type=int, default=0, help="seed of the validation draw")
     p.add_argument("--scenarios", nargs="+", default=list(SCENARIOS), choices=SCENARIOS)
     p.add_argument("--methods", nargs="+", default=list(METHODS), choices=METHODS)
-    p.add_argument("--steps", type=int, nargs="+", default=[262_144],
-                   help="env steps per seed of each trained cell: one value, or one per scenario")
+    p.add_argument(
+        "--steps",
+        type=int,
+        nargs="+",
+        default=[262_144],
+        help="env steps per seed of each trained cell: one value, or one per scenario",
+    )
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--episodes", type=int, default=128, help="test episodes per seed (per policy for the references)")
     p.add_argument("--env", action="append", default=[], metavar="SCENARIO=ID", help="env id of a scenario")
-    p.add_argument("--env-kwargs", action="append", default=[], metavar="SCENARIO=JSON",
-                   help="extra histojax.make settings of a scenario (JSON object)")
-    p.add_argument("--rnn-obs", default="features", choices=("features", "pixels"),
-                   help="observation of the recurrent PPO (with the view position)")
+    p.add_argument(
+        "--env-kwargs",
+        action="append",
+        default=[],
+        metavar="SCENARIO=JSON",
+        help="extra histojax.make settings of a scenario (JSON object)",
+    )
+    p.add_argument(
+        "--rnn-obs",
+        default="features",
+        choices=("features", "pixels"),
+        help="observation of the recurrent PPO (with the view position)",
+    )
     p.add_argument("--no-augment", action="store_true", help="train pixel policies without dihedral view augmentation")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="passed to every trainer")
     p.add_argument("--out", default="runs/c16-reference")
@@ -392,33 +494,54 @@ def main(argv=None) -> int:
         try:
             val_dataset = write_validation_dataset(dataset, args.val_fraction, args.val_seed, out / "validation")
         except ValueError as e:
-            raise SystemExit(f"--val-fraction {args.val_fraction}: {e} (give --val-fraction 0 to train on every "
-                             f"training slide)") from None
+            raise SystemExit(
+                f"--val-fraction {args.val_fraction}: {e} (give --val-fraction 0 to train on every training slide)"
+            ) from None
         validation = json.loads((val_dataset / "dataset.json").read_text())["validation"]
     test_names = [Path(t).name for t in spec["test"]]
     tumour_test = [n for n in test_names if labels.get(n, 1) == 1]
-    views = {Path(s["bundle"]).name: s["finest_views_ge50"] for s in spec.get("slides", [])
-             if isinstance(s, dict) and "finest_views_ge50" in s and "bundle" in s}
-    reachable = (f"{sum(views.get(n, 0) > 0 for n in tumour_test)} of the {len(tumour_test)} test tumour slides "
-                 f"have a finest-level view ≥ 50 % tumour on the bundle's grid (dataset.json "
-                 f"`finest_views_ge50`)." if views else "")
+    views = {
+        Path(s["bundle"]).name: s["finest_views_ge50"]
+        for s in spec.get("slides", [])
+        if isinstance(s, dict) and "finest_views_ge50" in s and "bundle" in s
+    }
+    reachable = (
+        f"{sum(views.get(n, 0) > 0 for n in tumour_test)} of the {len(tumour_test)} test tumour slides "
+        f"have a finest-level view ≥ 50 % tumour on the bundle's grid (dataset.json "
+        f"`finest_views_ge50`)."
+        if views
+        else ""
+    )
     pixels_kept = spec.get("pixels_kept", True)
     needs_pixels = {"ppo-pixels"} | ({"ppo-rnn"} if args.rnn_obs == "pixels" else set())
     no_pixels_note = ""
     if not pixels_kept:
         gib = spec.get("device_bytes", {}).get("pixels", 0) / 2**30
-        no_pixels_note = (f" The dataset keeps no pixels (`data_tools c16 --no-pixels`, features "
-                          f"`{spec.get('encoder')}`), so the rows that need them ({', '.join(sorted(needs_pixels))}) "
-                          f"were not run; with their pixels, every level of every bundle would need {gib:,.1f} GiB on the device "
-                          f"(per level set: `benchmarks/c16_device_bytes.py`).")
-    meta = {"dataset": str(dataset), "train_slides": len(spec["train"]), "test_slides": len(spec["test"]),
-            "test_tumour_slides": len(tumour_test), "reachable": reachable + no_pixels_note,
-            "env_ids": env_ids, "steps": ", ".join(f"{s} {steps[s]:,}" for s in args.scenarios),
-            "seeds": args.seeds, "episodes": args.episodes, "wall_s": 0.0, "validation": validation}
+        no_pixels_note = (
+            f" The dataset keeps no pixels (`data_tools c16 --no-pixels`, features "
+            f"`{spec.get('encoder')}`), so the rows that need them ({', '.join(sorted(needs_pixels))}) "
+            f"were not run; with their pixels, every level of every bundle would need {gib:,.1f} GiB on the device "
+            f"(per level set: `benchmarks/c16_device_bytes.py`)."
+        )
+    meta = {
+        "dataset": str(dataset),
+        "train_slides": len(spec["train"]),
+        "test_slides": len(spec["test"]),
+        "test_tumour_slides": len(tumour_test),
+        "reachable": reachable + no_pixels_note,
+        "env_ids": env_ids,
+        "steps": ", ".join(f"{s} {steps[s]:,}" for s in args.scenarios),
+        "seeds": args.seeds,
+        "episodes": args.episodes,
+        "wall_s": 0.0,
+        "validation": validation,
+    }
 
     def save():
         meta["wall_s"] = total_wall(cells)
-        outputs.write_text(store, json.dumps(json_safe({"meta": meta, "cells": cells}), indent=1, default=float, allow_nan=False))
+        outputs.write_text(
+            store, json.dumps(json_safe({"meta": meta, "cells": cells}), indent=1, default=float, allow_nan=False)
+        )
         text = markdown(cells, args.methods, args.scenarios, meta)
         outputs.write_text(out / "reference.md", text + "\n")
         return text
@@ -428,27 +551,57 @@ def main(argv=None) -> int:
         for m in args.methods:
             if m == "scripted" and s == "Diagnosis" or (not pixels_kept and m in needs_pixels):
                 continue
-            budget = cell_budget(dataset, env_ids[s], kw, m, steps[s], args.seeds, args.episodes, args.set, args.rnn_obs,
-                                 validation)
+            budget = cell_budget(
+                dataset, env_ids[s], kw, m, steps[s], args.seeds, args.episodes, args.set, args.rnn_obs, validation
+            )
             key = cell_key(m, s)
             if key in cells and cells[key].get("budget") == budget:
                 print(f"kept {key} from {store}")
                 continue
             print(f"\n=== {key} ({env_ids[s]}) ===", flush=True)
             if m in REFERENCE:
-                rows = reference_cells(dataset, env_ids[s], kw, args.episodes,
-                                       obs_mode="pixels" if pixels_kept else "features")
+                rows = reference_cells(
+                    dataset, env_ids[s], kw, args.episodes, obs_mode="pixels" if pixels_kept else "features"
+                )
                 for ref in REFERENCE:
                     if ref in rows and ref in args.methods and not (ref == "scripted" and s == "Diagnosis"):
-                        cells[cell_key(ref, s)] = {**rows[ref], "tumour_slides": on_tumour_slides(rows[ref], labels),
-                                                   "budget": cell_budget(
-                            dataset, env_ids[s], kw, ref, steps[s], args.seeds, args.episodes, args.set, args.rnn_obs)}
+                        cells[cell_key(ref, s)] = {
+                            **rows[ref],
+                            "tumour_slides": on_tumour_slides(rows[ref], labels),
+                            "budget": cell_budget(
+                                dataset,
+                                env_ids[s],
+                                kw,
+                                ref,
+                                steps[s],
+                                args.seeds,
+                                args.episodes,
+                                args.set,
+                                args.rnn_obs,
+                            ),
+                        }
             else:
                 run = out / f"{m}-{s.lower()}"
-                c = trained_cell(m, dataset, env_ids[s], kw, steps[s], args.seeds, args.episodes, run, extra,
-                                 args.rnn_obs, not args.no_augment, train_dataset=val_dataset)
-                cells[key] = {**c, "tumour_slides": on_tumour_slides(c, labels), "seeds": seed_stats(c, labels, s),
-                              "budget": budget}
+                c = trained_cell(
+                    m,
+                    dataset,
+                    env_ids[s],
+                    kw,
+                    steps[s],
+                    args.seeds,
+                    args.episodes,
+                    run,
+                    extra,
+                    args.rnn_obs,
+                    not args.no_augment,
+                    train_dataset=val_dataset,
+                )
+                cells[key] = {
+                    **c,
+                    "tumour_slides": on_tumour_slides(c, labels),
+                    "seeds": seed_stats(c, labels, s),
+                    "budget": budget,
+                }
                 if c.get("validation"):
                     cells[key]["validation"] = {**c["validation"], "seeds": seed_stats(c["validation"], labels, s)}
             save()

@@ -11,6 +11,7 @@ AUC ≤ 0.80 on our slides (real PCam: ~0.79) and clearly more with EfficientNet
 
     python -m experiments.c16_sanity --dataset DIR [--patches pcam_train_patches.tar.gz] [--per-class 300]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -44,7 +45,9 @@ def fit_logistic(x: np.ndarray, y: np.ndarray, l2: float = 1.0):
         p = 1 / (1 + np.exp(-s))
         nll = np.logaddexp(0, s) - y * s
         g = z.T @ (p - y) / len(y)
-        return nll.mean() + 0.5 * l2 * w[:d] @ w[:d] / len(y), np.concatenate([g + l2 * w[:d] / len(y), [np.mean(p - y)]])
+        return nll.mean() + 0.5 * l2 * w[:d] @ w[:d] / len(y), np.concatenate(
+            [g + l2 * w[:d] / len(y), [np.mean(p - y)]]
+        )
 
     w = minimize(loss, np.zeros(d + 1), jac=True, method="L-BFGS-B").x
     return lambda xx: ((xx - mu) / sd) @ w[:d] + w[d]
@@ -110,8 +113,7 @@ def dataset_views(folder: Path, per_class: int, seed: int = 0, min_tissue: float
     return np.stack(views), np.array(labels), groups
 
 
-def tiff_views(folder: Path, split: str, per_class: int, seed: int = 0, min_tissue: float = 0.5,
-               slides=None):
+def tiff_views(folder: Path, split: str, per_class: int, seed: int = 0, min_tissue: float = 0.5, slides=None):
     """Like :func:`dataset_views`, for the slides of ``split`` (``"train"``, ``"test"`` or ``"all"``), read from
     the dataset's TIFFs (level 0, grid-aligned 128-px views) and GeoJSON polygons, so it works on
     feature-only datasets: views ≥ 50 % tumour (label 1) and tumour-free views ≥ ``min_tissue`` inside
@@ -183,27 +185,47 @@ def encoder_table(views: np.ndarray, y: np.ndarray, groups, encoders, seed: int 
     own = {}
     for name in encoders:
         enc = load_encoder(name)
-        emb = np.concatenate([np.asarray(enc.embed(views[i:i + 256]), np.float32) for i in range(0, len(views), 256)])
+        emb = np.concatenate([np.asarray(enc.embed(views[i : i + 256]), np.float32) for i in range(0, len(views), 256)])
         inputs[f"{name} ({enc.dim})"] = emb
         if name == "pcam-cnn":
             own[f"{name} ({enc.dim})"] = auc(emb[:, -2], y)
-    return [{"input": k, "pooled_auc": round(cv_auc(x, y, None, seed=seed), 3),
-             "loso_auc": round(loso_auc(x, y, groups), 3),
-             "own_logit_auc": round(own[k], 3) if k in own else None} for k, x in inputs.items()]
+    return [
+        {
+            "input": k,
+            "pooled_auc": round(cv_auc(x, y, None, seed=seed), 3),
+            "loso_auc": round(loso_auc(x, y, groups), 3),
+            "own_logit_auc": round(own[k], 3) if k in own else None,
+        }
+        for k, x in inputs.items()
+    ]
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dataset", required=True, help="a data_tools c16 dataset folder")
-    p.add_argument("--patches", default=None, help="real PCam patches (folder/.tar.gz/bank .npz; default: shipped bank)")
+    p.add_argument(
+        "--patches", default=None, help="real PCam patches (folder/.tar.gz/bank .npz; default: shipped bank)"
+    )
     p.add_argument("--per-class", type=int, default=300, help="views per slide and class (default 300)")
-    p.add_argument("--min-tissue", type=float, default=0.5,
-                   help="a tumour-free view counts as tissue with at least this fraction inside the tissue polygon (0.5)")
-    p.add_argument("--embed", type=int, default=600, help="views (and patches) per class embedded by "
-                                                        "EfficientNet-Lite0 (default 600; 0 skips it)")
-    p.add_argument("--split", default=None, choices=("train", "test", "all"),
-                   help="read the views of this split from the TIFFs (works on feature-only datasets) and print the "
-                        "table of mean RGB and --encoders, pooled and leave-one-slide-out")
+    p.add_argument(
+        "--min-tissue",
+        type=float,
+        default=0.5,
+        help="a tumour-free view counts as tissue with at least this fraction inside the tissue polygon (0.5)",
+    )
+    p.add_argument(
+        "--embed",
+        type=int,
+        default=600,
+        help="views (and patches) per class embedded by EfficientNet-Lite0 (default 600; 0 skips it)",
+    )
+    p.add_argument(
+        "--split",
+        default=None,
+        choices=("train", "test", "all"),
+        help="read the views of this split from the TIFFs (works on feature-only datasets) and print the "
+        "table of mean RGB and --encoders, pooled and leave-one-slide-out",
+    )
     p.add_argument("--encoders", nargs="+", default=["colour-stats", "pcam-cnn"])
     p.add_argument("--out", default=None, help="with --split: write the table as JSON here")
     args = p.parse_args(argv)
@@ -211,18 +233,31 @@ def main(argv=None) -> int:
         t0 = time.perf_counter()
         views, y, groups = tiff_views(Path(args.dataset), args.split, args.per_class, min_tissue=args.min_tissue)
         rows = encoder_table(views, y, groups, args.encoders)
-        head = (f"{args.split} split of {args.dataset}: {int(y.sum())} tumour views (>= 50 %), {int((y == 0).sum())} "
-                f"tumour-free tissue views, {len(set(groups))} slides ({time.perf_counter() - t0:.0f} s)")
-        print(head + "\n\n| input | linear AUC, pooled (2-fold over views) | linear AUC, leave one slide out | "
-              "own tumour logit AUC |\n|---|---|---|---|")
+        head = (
+            f"{args.split} split of {args.dataset}: {int(y.sum())} tumour views (>= 50 %), {int((y == 0).sum())} "
+            f"tumour-free tissue views, {len(set(groups))} slides ({time.perf_counter() - t0:.0f} s)"
+        )
+        print(
+            head + "\n\n| input | linear AUC, pooled (2-fold over views) | linear AUC, leave one slide out | "
+            "own tumour logit AUC |\n|---|---|---|---|"
+        )
         for r in rows:
-            print(f"| {r['input']} | {r['pooled_auc']:.3f} | {r['loso_auc']:.3f} | "
-                  f"{'–' if r['own_logit_auc'] is None else format(r['own_logit_auc'], '.3f')} |")
+            print(
+                f"| {r['input']} | {r['pooled_auc']:.3f} | {r['loso_auc']:.3f} | "
+                f"{'–' if r['own_logit_auc'] is None else format(r['own_logit_auc'], '.3f')} |"
+            )
         if args.out:
             from data_tools.bundle_files.writes import write_json
 
-            write_json(args.out, {"summary": head, "rows": rows, "per_class": args.per_class,
-                                  "command": "python -m experiments.c16_sanity " + " ".join(argv or [])})
+            write_json(
+                args.out,
+                {
+                    "summary": head,
+                    "rows": rows,
+                    "per_class": args.per_class,
+                    "command": "python -m experiments.c16_sanity " + " ".join(argv or []),
+                },
+            )
         return 0
     from data_tools.datasets.pcam_bank import load_bank
 
@@ -233,10 +268,14 @@ def main(argv=None) -> int:
     py = bank.labels.astype(int)
     rgb_ours = views.reshape(len(views), -1, 3).mean(1)
     rgb_pcam = patches.reshape(len(patches), -1, 3).mean(1)
-    print(f"dataset {args.dataset}: {int(y.sum())} tumour views (≥ 50 %), {int((y == 0).sum())} tumour-free tissue "
-          f"views from {len(set(groups))} slides; PCam: {len(py)} patches ({bank.source})")
-    print(f"mean RGB + logistic regression, AUC: our slides {cv_auc(rgb_ours, y, groups):.3f} (2-fold by slide), "
-          f"real PCam patches {cv_auc(rgb_pcam, py, None):.3f} (2-fold random)")
+    print(
+        f"dataset {args.dataset}: {int(y.sum())} tumour views (≥ 50 %), {int((y == 0).sum())} tumour-free tissue "
+        f"views from {len(set(groups))} slides; PCam: {len(py)} patches ({bank.source})"
+    )
+    print(
+        f"mean RGB + logistic regression, AUC: our slides {cv_auc(rgb_ours, y, groups):.3f} (2-fold by slide), "
+        f"real PCam patches {cv_auc(rgb_pcam, py, None):.3f} (2-fold random)"
+    )
     if args.embed:
         from data_tools.features.efficientnet import load_encoder
 
@@ -246,9 +285,9 @@ def main(argv=None) -> int:
         def embed(images):
             out = []
             for i in range(0, len(images), 64):
-                batch = images[i:i + 64]
+                batch = images[i : i + 64]
                 pad = np.concatenate([batch, np.zeros((64 - len(batch),) + batch.shape[1:], np.uint8)])
-                out.append(np.asarray(enc.embed(pad), np.float32)[:len(batch)])
+                out.append(np.asarray(enc.embed(pad), np.float32)[: len(batch)])
             return np.concatenate(out)
 
         def sample(labels, n):
@@ -256,9 +295,11 @@ def main(argv=None) -> int:
 
         si, pi = sample(y, args.embed), sample(py, args.embed)
         e_ours, e_pcam = embed(views[si]), embed(patches[pi])
-        print(f"EfficientNet-Lite0 (1280-d) + logistic regression, AUC: our slides "
-              f"{cv_auc(e_ours, y[si], [groups[i] for i in si]):.3f} ({len(si)} views), real PCam "
-              f"{cv_auc(e_pcam, py[pi], None):.3f} ({len(pi)} patches)")
+        print(
+            f"EfficientNet-Lite0 (1280-d) + logistic regression, AUC: our slides "
+            f"{cv_auc(e_ours, y[si], [groups[i] for i in si]):.3f} ({len(si)} views), real PCam "
+            f"{cv_auc(e_pcam, py[pi], None):.3f} ({len(pi)} patches)"
+        )
     print(f"({time.perf_counter() - t0:.0f} s)")
     return 0
 

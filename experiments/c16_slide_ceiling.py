@@ -23,6 +23,7 @@ negatives) on the train split minus a validation share held back as ``c16_refere
 
     python -m experiments.c16_slide_ceiling --lesions camelyon16_ncrf_train.tar.gz
 """
+
 from __future__ import annotations
 
 import argparse
@@ -32,10 +33,10 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.metrics import auc_interval, format_auc, json_safe, roc_auc
 from baselines.validation import split_train
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
+from data_tools.metrics import auc_interval, format_auc, json_safe, roc_auc
 
 STATS = ("top1", "top3", "top10", "n>2")
 ENTRIES = {"mean l": pcam_cnn.VIEW_LOGIT, "max l": pcam_cnn.MAX_CELL_LOGIT}
@@ -56,13 +57,23 @@ def slide_grids(dataset: Path, split: str, meta: dict | None = None) -> list[dic
         m = json.loads((bundle / "metadata.json").read_text())
         feats = m.get("features") or {}
         if feats.get("encoder") != pcam_cnn.NAME:
-            raise CeilingError(bundle / "metadata.json", f"features are {feats.get('encoder')!r}, not pcam-cnn; "
-                               f"run `python -m data_tools features {bundle} --encoder pcam-cnn`")
+            raise CeilingError(
+                bundle / "metadata.json",
+                f"features are {feats.get('encoder')!r}, not pcam-cnn; "
+                f"run `python -m data_tools features {bundle} --encoder pcam-cnn`",
+            )
         grids = {k: np.load(bundle / lv["file"]).astype(np.float32) for k, lv in enumerate(feats["levels"])}
-        out.append({"name": name, "label": int(meta["labels"][name]), "bundle": bundle,
-                    "mpp": float(m["source"].get("mpp") or float("nan")),
-                    "tumour_area_px": float(m["annotations"].get("tumour_area_px") or 0.0),
-                    "stride": int(feats["stride"]), "grids": grids})
+        out.append(
+            {
+                "name": name,
+                "label": int(meta["labels"][name]),
+                "bundle": bundle,
+                "mpp": float(m["source"].get("mpp") or float("nan")),
+                "tumour_area_px": float(m["annotations"].get("tumour_area_px") or 0.0),
+                "stride": int(feats["stride"]),
+                "grids": grids,
+            }
+        )
     return out
 
 
@@ -77,8 +88,12 @@ def pool(grid: np.ndarray, entry: int, stat: str) -> float:
 def pooled_aucs(slides: list[dict], levels) -> dict:
     """``{(level, entry name, stat): AUC}`` over ``slides``."""
     y = [s["label"] for s in slides]
-    return {(lv, e, st): roc_auc([pool(s["grids"][lv], i, st) for s in slides], y)
-            for lv in levels for e, i in ENTRIES.items() for st in STATS}
+    return {
+        (lv, e, st): roc_auc([pool(s["grids"][lv], i, st) for s in slides], y)
+        for lv in levels
+        for e, i in ENTRIES.items()
+        for st in STATS
+    }
 
 
 def view_tumour_fraction(bundle: Path, shape: tuple[int, int], stride: int) -> np.ndarray:
@@ -100,8 +115,15 @@ def view_tumour_fraction(bundle: Path, shape: tuple[int, int], stride: int) -> n
     return frac.reshape(shape).astype(np.float32)
 
 
-def probe(train: list[dict], val: list[dict], test: list[dict], positive: float = 0.25, hidden: int = 32,
-          epochs: int = 6, seed: int = 0) -> dict:
+def probe(
+    train: list[dict],
+    val: list[dict],
+    test: list[dict],
+    positive: float = 0.25,
+    hidden: int = 32,
+    epochs: int = 6,
+    seed: int = 0,
+) -> dict:
     """Train an MLP view classifier on ``train``'s finest views (labels from the polygons) and return the
     slide AUC of its max over views on ``val`` and ``test`` (and of the plain ``mean l`` maximum)."""
     import jax
@@ -112,8 +134,11 @@ def probe(train: list[dict], val: list[dict], test: list[dict], positive: float 
     xs, ys = [], []
     for s in train:
         g = s["grids"][0]
-        frac = view_tumour_fraction(s["bundle"], g.shape[:2], s["stride"]).ravel() if s["label"] else np.zeros(
-            g.shape[0] * g.shape[1], np.float32)
+        frac = (
+            view_tumour_fraction(s["bundle"], g.shape[:2], s["stride"]).ravel()
+            if s["label"]
+            else np.zeros(g.shape[0] * g.shape[1], np.float32)
+        )
         xs.append(g.reshape(-1, g.shape[-1]))
         ys.append(frac)
     x, y = np.concatenate(xs), np.concatenate(ys)
@@ -127,8 +152,12 @@ def probe(train: list[dict], val: list[dict], test: list[dict], positive: float 
     w_pos = len(neg) / max(1, len(pos))
     k1, k2 = jax.random.split(jax.random.PRNGKey(seed))
     d = x.shape[1]
-    params = {"w1": jax.random.normal(k1, (d, hidden)) / np.sqrt(d), "b1": jnp.zeros(hidden),
-              "w2": jax.random.normal(k2, (hidden,)) / np.sqrt(hidden), "b2": jnp.zeros(())}
+    params = {
+        "w1": jax.random.normal(k1, (d, hidden)) / np.sqrt(d),
+        "b1": jnp.zeros(hidden),
+        "w2": jax.random.normal(k2, (hidden,)) / np.sqrt(hidden),
+        "b2": jnp.zeros(()),
+    }
 
     def logit(p, v):
         return jax.nn.relu(v @ p["w1"] + p["b1"]) @ p["w2"] + p["b2"]
@@ -149,7 +178,7 @@ def probe(train: list[dict], val: list[dict], test: list[dict], positive: float 
     for _ in range(epochs):
         perm = rng.permutation(len(xb))
         for i in range(0, len(perm) - 4095, 4096):
-            b = perm[i:i + 4096]
+            b = perm[i : i + 4096]
             params, state = update(params, state, xb[b], yb[b])
 
     def slide_max(s):
@@ -160,8 +189,10 @@ def probe(train: list[dict], val: list[dict], test: list[dict], positive: float 
     out = {"positive_views": int(len(pos)), "negative_views": int(len(neg)), "hidden": hidden, "epochs": epochs}
     for name, part in (("validation", val), ("test", test)):
         labels = [s["label"] for s in part]
-        out[name] = {"probe max": roc_auc([slide_max(s) for s in part], labels),
-                     "mean l max": roc_auc([pool(s["grids"][0], pcam_cnn.VIEW_LOGIT, "top1") for s in part], labels)}
+        out[name] = {
+            "probe max": roc_auc([slide_max(s) for s in part], labels),
+            "mean l max": roc_auc([pool(s["grids"][0], pcam_cnn.VIEW_LOGIT, "top1") for s in part], labels),
+        }
     return out
 
 
@@ -187,8 +218,15 @@ def lesion_census(annotations, test_fraction: float = 0.25, seed: int = 0) -> li
     for n in tumours:
         geom = shapely.difference(every[n].positive, every[n].negative)
         cls, mm = lesion_of(geom, C16_MPP)
-        rows.append({"slide": n, "split": "test" if n in set(test) else "train", "class": cls, "diameter_mm": mm,
-                     "area_mm2": float(geom.area) * C16_MPP ** 2 / 1e6})
+        rows.append(
+            {
+                "slide": n,
+                "split": "test" if n in set(test) else "train",
+                "class": cls,
+                "diameter_mm": mm,
+                "area_mm2": float(geom.area) * C16_MPP**2 / 1e6,
+            }
+        )
     return rows
 
 
@@ -197,16 +235,23 @@ def print_census(rows: list[dict]) -> None:
     print("| split | tumour slides | ITC (< 0.2 mm) | micro (0.2–2 mm) | macro (> 2 mm) |\n|---|---|---|---|---|")
     for split in ("train", "test"):
         mine = [r for r in rows if r["split"] == split]
-        print(f"| {split} | {len(mine)} | " + " | ".join(str(sum(r["class"] == c for r in mine))
-                                                         for c in ("ITC", "micro", "macro")) + " |")
+        print(
+            f"| {split} | {len(mine)} | "
+            + " | ".join(str(sum(r["class"] == c for r in mine)) for c in ("ITC", "micro", "macro"))
+            + " |"
+        )
 
 
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--dataset", type=Path, help="a pcam-cnn dataset (required unless --lesions only)")
-    p.add_argument("--lesions", metavar="ANNOTATIONS", default=None,
-                   help="print the CAMELYON lesion classes of every tumour slide of this NCRF source (as given to "
-                        "`data_tools c16 --annotations`) by split, from the geometry alone, and stop unless --dataset")
+    p.add_argument(
+        "--lesions",
+        metavar="ANNOTATIONS",
+        default=None,
+        help="print the CAMELYON lesion classes of every tumour slide of this NCRF source (as given to "
+        "`data_tools c16 --annotations`) by split, from the geometry alone, and stop unless --dataset",
+    )
     p.add_argument("--levels", type=int, nargs="+", default=[0, 1, 2, 3], help="bundle levels (0 = finest)")
     p.add_argument("--probe", action="store_true", help="also train the MLP view probe (a minute on 2 cores)")
     p.add_argument("--probe-positive", type=float, default=0.25)
@@ -241,18 +286,20 @@ def main(argv=None) -> int:
     a_train, a_test = pooled_aucs(train, levels), pooled_aucs(test, levels)
     print(f"slide AUC of pooled pcam-cnn view logits ({len(train)} train, {len(test)} test slides)")
     n_test = (sum(s["label"] for s in test), sum(1 - s["label"] for s in test))  # the interval's tumour, normal slides
-    print("| level | entry | statistic | train AUC | test AUC [95 % interval over the test slides] |\n"
-          "|---|---|---|---|---|")
+    print(
+        "| level | entry | statistic | train AUC | test AUC [95 % interval over the test slides] |\n"
+        "|---|---|---|---|---|"
+    )
     for key in a_train:
-        print(f"| {key[0]} | {key[1]} | {key[2]} | {a_train[key]:.3f} | "
-              f"{format_auc(a_test[key], *auc_interval(a_test[key], *n_test))} |")
+        print(
+            f"| {key[0]} | {key[1]} | {key[2]} | {a_train[key]:.3f} | "
+            f"{format_auc(a_test[key], *auc_interval(a_test[key], *n_test))} |"
+        )
     best = max(a_train, key=lambda k: a_train[k])
     lv, entry, stat = best
     normal_top = max(pool(s["grids"][lv], ENTRIES[entry], stat) for s in test if s["label"] == 0)
     shown = format_auc(a_test[best], *auc_interval(a_test[best], *n_test))
-    print(f"\nbest on train: level {lv}, {entry}, {stat} (test {shown}"
-          f"); highest test normal slide: "
-          f"{normal_top:.2f}")
+    print(f"\nbest on train: level {lv}, {entry}, {stat} (test {shown}); highest test normal slide: {normal_top:.2f}")
     print("| test tumour slide | score | tumour area (mm²) | above every normal |\n|---|---|---|---|")
     rows = []
     for s in sorted((s for s in test if s["label"] == 1), key=lambda s: s["tumour_area_px"]):
@@ -260,11 +307,21 @@ def main(argv=None) -> int:
         area = s["tumour_area_px"] * s["mpp"] ** 2 / 1e6
         rows.append({"slide": s["name"], "score": score, "tumour_area_mm2": area, "above_normals": score > normal_top})
         print(f"| {s['name']} | {score:.2f} | {area:.3f} | {'yes' if score > normal_top else 'no'} |")
-    result = {"pooled": [{"level": k[0], "entry": k[1], "stat": k[2], "train_auc": a_train[k], "test_auc": a_test[k],
-                          **dict(zip(("test_auc_low", "test_auc_high"), auc_interval(a_test[k], *n_test)))}
-                         for k in a_train],
-              "best_on_train": {"level": lv, "entry": entry, "stat": stat, "test_auc": a_test[best]},
-              "test_tumour_slides": rows}
+    result = {
+        "pooled": [
+            {
+                "level": k[0],
+                "entry": k[1],
+                "stat": k[2],
+                "train_auc": a_train[k],
+                "test_auc": a_test[k],
+                **dict(zip(("test_auc_low", "test_auc_high"), auc_interval(a_test[k], *n_test))),
+            }
+            for k in a_train
+        ],
+        "best_on_train": {"level": lv, "entry": entry, "stat": stat, "test_auc": a_test[best]},
+        "test_tumour_slides": rows,
+    }
     if args.probe:
         _, held = split_train(spec, args.val_fraction, 0)  # per class, tissue donors with their tumour slide
         held = {Path(h).name for h in held}
@@ -275,10 +332,13 @@ def main(argv=None) -> int:
 
         def shown(auc: float, n) -> str:  # "0.849 [0.741, 0.936]": the AUC and its 95 % interval over the slides
             return format_auc(auc, *auc_interval(auc, *n))[4:]
-        print(f"\nMLP view probe (trained on {len(kept)} slides' finest views: {pr['positive_views']} tumour, "
-              f"{pr['negative_views']} tumour-free): validation AUC {shown(pr['validation']['probe max'], n_val)} "
-              f"(plain mean-l max {shown(pr['validation']['mean l max'], n_val)}), test "
-              f"{shown(pr['test']['probe max'], n_test)} ({shown(pr['test']['mean l max'], n_test)})")
+
+        print(
+            f"\nMLP view probe (trained on {len(kept)} slides' finest views: {pr['positive_views']} tumour, "
+            f"{pr['negative_views']} tumour-free): validation AUC {shown(pr['validation']['probe max'], n_val)} "
+            f"(plain mean-l max {shown(pr['validation']['mean l max'], n_val)}), test "
+            f"{shown(pr['test']['probe max'], n_test)} ({shown(pr['test']['mean l max'], n_test)})"
+        )
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(json_safe(result), indent=1, default=float, allow_nan=False))

@@ -10,6 +10,7 @@ seed's whole training state after the last finished chunk. This writes ``OUT/par
 ``OUT`` defaults to ``RUN``. The parameters are found in the runner state by their shapes: the network the
 config makes (built on one slide of the run's dataset), every leaf with the seeds on axis 0.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -38,8 +39,11 @@ def params_from_leaves(template, leaves: list[np.ndarray], n_seeds: int):
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m experiments.checkpoint_to_run", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m experiments.checkpoint_to_run",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("run", type=Path)
     p.add_argument("--out", type=Path, default=None)
     args = p.parse_args(argv)
@@ -72,7 +76,9 @@ def main(argv=None) -> int:
             root = Path(kw["dataset"])
             first = next(iter(spec[kw.get("split", "train")]))
             first = str(first if Path(first).is_absolute() else (root / first).resolve())
-            (Path(tmp) / "dataset.json").write_text(json.dumps({**spec, "train": [first], "test": [first]}, allow_nan=False))
+            (Path(tmp) / "dataset.json").write_text(
+                json.dumps({**spec, "train": [first], "test": [first]}, allow_nan=False)
+            )
             kw = {**kw, "dataset": tmp, "split": "train"}
         small = config.replace(env_kwargs=kw)
         env, env_params = make_env(small)
@@ -90,25 +96,42 @@ def main(argv=None) -> int:
     out = args.out or args.run
     out.mkdir(parents=True, exist_ok=True)
     config = config.replace(total_timesteps=int(steps[-1]))
-    record = {**config.as_dict(), "stopped_at_update": update,  # the run's notes (RECORD_NOTES) beside it
-              "checkpoint_train_seconds": float(state["train_seconds"])}
+    record = {
+        **config.as_dict(),
+        "stopped_at_update": update,  # the run's notes (RECORD_NOTES) beside it
+        "checkpoint_train_seconds": float(state["train_seconds"]),
+    }
     k = max(1, update // 40)
     tail = slice(max(0, update - k), None)
-    summary = {"algo": "ppo", "env_id": config.env_id, "env_steps_per_seed": int(steps[-1]), "seeds": n_seeds,
-               "train_seconds": float(state["train_seconds"]), "stopped_at_update": update,
-               "planned_updates": int(state["num_updates"]),
-               "env_steps_per_second_all_seeds": float(steps[-1] * n_seeds / max(1e-9, float(state["train_seconds"]))),
-               "final": {n: finite_mean(metrics[n][:, tail]) for n in ("return", "success", "length")}}
+    summary = {
+        "algo": "ppo",
+        "env_id": config.env_id,
+        "env_steps_per_seed": int(steps[-1]),
+        "seeds": n_seeds,
+        "train_seconds": float(state["train_seconds"]),
+        "stopped_at_update": update,
+        "planned_updates": int(state["num_updates"]),
+        "env_steps_per_second_all_seeds": float(steps[-1] * n_seeds / max(1e-9, float(state["train_seconds"]))),
+        "final": {n: finite_mean(metrics[n][:, tail]) for n in ("return", "success", "length")},
+    }
     write_logs(out, steps, metrics, summary)
-    plot_curves(out / "curve.png", steps, {"mean return": smooth(metrics["return"], k),
-                                                  "success rate": smooth(metrics["success"], k),
-                                                  "mean length": smooth(metrics["length"], k)},
-                       title=f"PPO on {config.env_id} ({config.action_mode}), {n_seeds} seeds, "
-                             f"stopped at update {update}/{state['num_updates']}")
+    plot_curves(
+        out / "curve.png",
+        steps,
+        {
+            "mean return": smooth(metrics["return"], k),
+            "success rate": smooth(metrics["success"], k),
+            "mean length": smooth(metrics["length"], k),
+        },
+        title=f"PPO on {config.env_id} ({config.action_mode}), {n_seeds} seeds, "
+        f"stopped at update {update}/{state['num_updates']}",
+    )
     save_checkpoint(out, params, record)
-    print(f"{out}: update {update}/{state['num_updates']}, {steps[-1]:,} env steps/seed x {n_seeds} seeds in "
-          f"{state['train_seconds']:.0f} s ({summary['env_steps_per_second_all_seeds']:,.0f} env steps/s); "
-          f"final return {summary['final']['return']:.4f}; wrote params.msgpack, config.json, log.csv, curve.png")
+    print(
+        f"{out}: update {update}/{state['num_updates']}, {steps[-1]:,} env steps/seed x {n_seeds} seeds in "
+        f"{state['train_seconds']:.0f} s ({summary['env_steps_per_second_all_seeds']:,.0f} env steps/s); "
+        f"final return {summary['final']['return']:.4f}; wrote params.msgpack, config.json, log.csv, curve.png"
+    )
     return 0
 
 

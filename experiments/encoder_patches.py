@@ -11,6 +11,7 @@ colour matching). Speed: views/s of ``embed`` on uint8 ``(B, 128, 128, 3)`` afte
 
     python -m experiments.encoder_patches --patches pcam_train_patches.tar.gz [--fit 2000] [--test 3000]
 """
+
 from __future__ import annotations
 
 import argparse
@@ -27,7 +28,7 @@ sys.path.insert(0, str(ROOT))
 
 def embed_all(encoder, images: np.ndarray, batch: int = 256) -> np.ndarray:
     """float32 ``(N, D)`` embeddings of uint8 images, ``batch`` at a time."""
-    return np.concatenate([np.asarray(encoder.embed(images[i:i + batch])) for i in range(0, len(images), batch)])
+    return np.concatenate([np.asarray(encoder.embed(images[i : i + batch])) for i in range(0, len(images), batch)])
 
 
 def views_per_second(encoder, batch: int = 512, seconds: float = 3.0, side: int = 128) -> float:
@@ -51,11 +52,11 @@ def main(argv=None) -> int:
     p.add_argument("--out", default=None, help="write the figures as JSON here")
     args = p.parse_args(argv)
 
-    from experiments.c16_sanity import auc, fit_logistic
+    from data_tools.datasets.pcam_bank import load_bank, split_pools
     from data_tools.features import ENCODERS
     from data_tools.features.efficientnet import load_encoder
     from data_tools.features.train_pcam_cnn import box_half, stained_copy
-    from data_tools.datasets.pcam_bank import load_bank, split_pools
+    from experiments.c16_sanity import auc, fit_logistic
 
     train_pool, test_pool = split_pools(load_bank(args.patches))
     rng = np.random.default_rng(0)
@@ -85,22 +86,29 @@ def main(argv=None) -> int:
             if name in ("pcam-cnn", "pcam-cnn96"):
                 row[f"logit_auc_{v}"] = round(auc(np.asarray(enc.logits(x)), y_test), 4)
         row["embed_seconds"] = round(time.perf_counter() - t0, 1)
-        row["views_per_s_128px"] = round(views_per_second(enc, seconds=args.seconds,
-                                                           batch=64 if enc.dim > 64 else 512))
+        row["views_per_s_128px"] = round(views_per_second(enc, seconds=args.seconds, batch=64 if enc.dim > 64 else 512))
         rows.append(row)
         print(json.dumps(row), flush=True)  # json-not-written (printed)
-    result = {"patches": str(args.patches), "fit_patches": len(fit_idx), "test_patches": len(test_idx),
-              "command": "python -m experiments.encoder_patches " + " ".join(argv if argv is not None else sys.argv[1:]),
-              "rows": rows}
-    print("\n| encoder | D | own logit AUC (PCam / mosaic colours) | linear-probe AUC (PCam / mosaic) | "
-          "128-px views/s |\n|---|---|---|---|---|")
+    result = {
+        "patches": str(args.patches),
+        "fit_patches": len(fit_idx),
+        "test_patches": len(test_idx),
+        "command": "python -m experiments.encoder_patches " + " ".join(argv if argv is not None else sys.argv[1:]),
+        "rows": rows,
+    }
+    print(
+        "\n| encoder | D | own logit AUC (PCam / mosaic colours) | linear-probe AUC (PCam / mosaic) | "
+        "128-px views/s |\n|---|---|---|---|---|"
+    )
     for r in rows:
         if "skipped" in r:
             print(f"| {r['encoder']} | – | skipped: {r['skipped']} | | |")
             continue
         own = f"{r['logit_auc_raw']:.3f} / {r['logit_auc_mosaic']:.3f}" if "logit_auc_raw" in r else "–"
-        print(f"| {r['encoder']} | {r['dim']} | {own} | {r['probe_auc_raw']:.3f} / {r['probe_auc_mosaic']:.3f} | "
-              f"{r['views_per_s_128px']:,} |")
+        print(
+            f"| {r['encoder']} | {r['dim']} | {own} | {r['probe_auc_raw']:.3f} / {r['probe_auc_mosaic']:.3f} | "
+            f"{r['views_per_s_128px']:,} |"
+        )
     if args.out:
         from data_tools.bundle_files.writes import write_json
 

@@ -18,6 +18,7 @@ used, another pixel seed). ``--reuse`` evaluates finished run folders again inst
 ``targets.json`` to ``--out`` and prints the table. Training throughput is printed with and without
 compile time. This is a benchmark (hours of CPU at full budgets), not a test.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -35,8 +36,8 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from baselines import ppo  # noqa: E402
-from baselines.harness.logs import load_checkpoint  # noqa: E402
 from baselines.evaluate import evaluate  # noqa: E402
+from baselines.harness.logs import load_checkpoint  # noqa: E402
 from baselines.run_config import read_run_config  # noqa: E402
 from data_tools.errors import HistojaxDataError  # noqa: E402
 from data_tools.metrics import json_safe  # noqa: E402
@@ -48,8 +49,23 @@ DEFAULT_STEPS = {"Easy": 262_144, "Medium": 786_432, "Hard": 1_048_576}
 def ensure_dataset(path: Path, slides: int, size: int) -> dict:
     """``dataset.json`` of ``path``, making the slide set first if it is missing."""
     if not (path / "dataset.json").exists():
-        subprocess.run([sys.executable, "-m", "data_tools", "synth", str(path), "--slides", str(slides),
-                        "--size", str(size), "--seed", "0"], check=True, cwd=ROOT)
+        subprocess.run(
+            [
+                sys.executable,
+                "-m",
+                "data_tools",
+                "synth",
+                str(path),
+                "--slides",
+                str(slides),
+                "--size",
+                str(size),
+                "--seed",
+                "0",
+            ],
+            check=True,
+            cwd=ROOT,
+        )
     return json.loads((path / "dataset.json").read_text())
 
 
@@ -63,16 +79,38 @@ def heldout_slides(dataset: Path, spec: dict, extra: list[Path]) -> list[tuple[s
     return slides
 
 
-def run_scenario(name: str, dataset: Path, heldout: list, steps: int, seeds: int, episodes: int, out: Path,
-                 extra_args: list[str], reuse: bool = False, previous: dict | None = None) -> dict:
+def run_scenario(
+    name: str,
+    dataset: Path,
+    heldout: list,
+    steps: int,
+    seeds: int,
+    episodes: int,
+    out: Path,
+    extra_args: list[str],
+    reuse: bool = False,
+    previous: dict | None = None,
+) -> dict:
     """Train on the train split (or, with ``reuse``, take a finished run folder trained with the same
     scenario, dataset, steps and seeds), evaluate on each held-out slide (with ``reuse``, rows of
     ``previous`` results of the same training run are kept); returns the scenario's result."""
     env_id = f"HistoJAX-{name}-v0"
     run = out / f"ppo-{name.lower()}"
     kwargs = {"dataset": str(dataset), "split": "train", "augment": True}
-    argv = ["--env", env_id, "--with-position", "--seeds", str(seeds), "--total-steps", str(steps),
-            "--out", str(run), "--set", f"env_kwargs={json.dumps(kwargs)}", *extra_args]  # json-not-written (an option)
+    argv = [
+        "--env",
+        env_id,
+        "--with-position",
+        "--seeds",
+        str(seeds),
+        "--total-steps",
+        str(steps),
+        "--out",
+        str(run),
+        "--set",
+        f"env_kwargs={json.dumps(kwargs)}",
+        *extra_args,
+    ]  # json-not-written (an option)
     if not (reuse and _same_run(run, env_id, kwargs, steps, seeds)):
         ppo.main(argv)
         previous = None
@@ -88,25 +126,36 @@ def run_scenario(name: str, dataset: Path, heldout: list, steps: int, seeds: int
         if old is not None and old["random"]["episodes"] == episodes:
             per_slide[bundle.name] = {**old, "group": group}
             continue
-        rows = evaluate(config, params, slide=str(bundle), num_episodes=episodes,
-                        out=run / "eval" / bundle.name, label="ppo")
-        per_slide[bundle.name] = {"group": group, **{k: rows[k] for k in ("ppo (sampled)", "ppo (greedy)", "random",
-                                                                           "scripted") if k in rows}}
+        rows = evaluate(
+            config, params, slide=str(bundle), num_episodes=episodes, out=run / "eval" / bundle.name, label="ppo"
+        )
+        per_slide[bundle.name] = {
+            "group": group,
+            **{k: rows[k] for k in ("ppo (sampled)", "ppo (greedy)", "random", "scripted") if k in rows},
+        }
 
     def mean(key, group=None):
         vals = [r[key]["success_rate"] for r in per_slide.values() if group in (None, r["group"])]
         return float(np.mean(vals)) if vals else float("nan")
 
-    return {"env_id": env_id, "steps_per_seed": steps, "seeds": seeds, "target": TARGETS[name],
-            "heldout_success_sampled": mean("ppo (sampled)"), "heldout_success_greedy": mean("ppo (greedy)"),
-            "test_split_success_sampled": mean("ppo (sampled)", "test split"),
-            "unseen_geometry_success_sampled": mean("ppo (sampled)", "unseen geometry"),
-            "random_success": mean("random"), "scripted_success": mean("scripted"),
-            "train_success_final": summary["final"]["success"],
-            "train_seconds": summary["train_seconds"], "compile_seconds": summary["compile_seconds"],
-            "steps_per_s": summary["env_steps_per_second_all_seeds"],
-            "steps_per_s_with_compile": steps * seeds / (summary["train_seconds"] + summary["compile_seconds"]),
-            "per_slide": per_slide}
+    return {
+        "env_id": env_id,
+        "steps_per_seed": steps,
+        "seeds": seeds,
+        "target": TARGETS[name],
+        "heldout_success_sampled": mean("ppo (sampled)"),
+        "heldout_success_greedy": mean("ppo (greedy)"),
+        "test_split_success_sampled": mean("ppo (sampled)", "test split"),
+        "unseen_geometry_success_sampled": mean("ppo (sampled)", "unseen geometry"),
+        "random_success": mean("random"),
+        "scripted_success": mean("scripted"),
+        "train_success_final": summary["final"]["success"],
+        "train_seconds": summary["train_seconds"],
+        "compile_seconds": summary["compile_seconds"],
+        "steps_per_s": summary["env_steps_per_second_all_seeds"],
+        "steps_per_s_with_compile": steps * seeds / (summary["train_seconds"] + summary["compile_seconds"]),
+        "per_slide": per_slide,
+    }
 
 
 def _same_run(run: Path, env_id: str, kwargs: dict, steps: int, seeds: int) -> bool:
@@ -115,34 +164,52 @@ def _same_run(run: Path, env_id: str, kwargs: dict, steps: int, seeds: int) -> b
         summary = json.loads((run / "log.json").read_text())["summary"]
     except (OSError, ValueError, KeyError, HistojaxDataError):
         return False
-    return (config.env_id == env_id and config.env_kwargs == kwargs and config.with_position
-            and summary.get("env_steps_per_seed") == steps and summary.get("seeds") == seeds)
+    return (
+        config.env_id == env_id
+        and config.env_kwargs == kwargs
+        and config.with_position
+        and summary.get("env_steps_per_seed") == steps
+        and summary.get("seeds") == seeds
+    )
 
 
 def markdown(results: dict, dataset: Path) -> str:
-    lines = ["| scenario | target | held-out success (sampled; all held-out slides) | test split | unseen geometry | "
-             "greedy | random agent | scripted | "
-             "steps to success (PPO sampled / random) | "
-             "train success | env steps/s (w/o, with compile) | steps × seeds |", "|" + "---|" * 12]
+    lines = [
+        "| scenario | target | held-out success (sampled; all held-out slides) | test split | unseen geometry | "
+        "greedy | random agent | scripted | "
+        "steps to success (PPO sampled / random) | "
+        "train success | env steps/s (w/o, with compile) | steps × seeds |",
+        "|" + "---|" * 12,
+    ]
     for name, r in results.items():
         ok = "met" if r["heldout_success_sampled"] >= r["target"] else "NOT met"
-        steps = {k: np.nanmean([v[k]["mean_steps_to_success"] for v in r["per_slide"].values()])
-                 for k in ("ppo (sampled)", "random")}
+        steps = {
+            k: np.nanmean([v[k]["mean_steps_to_success"] for v in r["per_slide"].values()])
+            for k in ("ppo (sampled)", "random")
+        }
         pct = lambda v: "–" if v is None or v != v else f"{v:.1%}"  # noqa: E731
-        lines.append(f"| {name} | ≥ {r['target']:.0%} | **{r['heldout_success_sampled']:.1%}** ({ok}) | "
-                     f"{pct(r.get('test_split_success_sampled'))} | {pct(r.get('unseen_geometry_success_sampled'))} | "
-                     f"{r['heldout_success_greedy']:.1%} | {r['random_success']:.1%} | {r['scripted_success']:.1%} | "
-                     f"{steps['ppo (sampled)']:.1f} / {steps['random']:.1f} | "
-                     f"{r['train_success_final']:.1%} | {r['steps_per_s']:,.0f} / {r['steps_per_s_with_compile']:,.0f} | "
-                     f"{r['steps_per_seed']:,} × {r['seeds']} |")
+        lines.append(
+            f"| {name} | ≥ {r['target']:.0%} | **{r['heldout_success_sampled']:.1%}** ({ok}) | "
+            f"{pct(r.get('test_split_success_sampled'))} | {pct(r.get('unseen_geometry_success_sampled'))} | "
+            f"{r['heldout_success_greedy']:.1%} | {r['random_success']:.1%} | {r['scripted_success']:.1%} | "
+            f"{steps['ppo (sampled)']:.1f} / {steps['random']:.1f} | "
+            f"{r['train_success_final']:.1%} | {r['steps_per_s']:,.0f} / {r['steps_per_s_with_compile']:,.0f} | "
+            f"{r['steps_per_seed']:,} × {r['seeds']} |"
+        )
     lines += ["", "Per held-out slide (sampled policy success):", ""]
     for name, r in results.items():
-        cells = ", ".join(f"{s}{' (unseen geometry)' if v.get('group') == 'unseen geometry' else ''} "
-                          f"{v['ppo (sampled)']['success_rate']:.1%}" for s, v in r["per_slide"].items())
+        cells = ", ".join(
+            f"{s}{' (unseen geometry)' if v.get('group') == 'unseen geometry' else ''} "
+            f"{v['ppo (sampled)']['success_rate']:.1%}"
+            for s, v in r["per_slide"].items()
+        )
         lines.append(f"- {name}: {cells}")
-    lines += ["", f"Dataset {dataset} (pixels synthetic, geometry real CAMELYON16; split by slide). "
-              f"Machine: {platform.machine()}, {jax.device_count()} {jax.devices()[0].platform} device(s), "
-              f"JAX {jax.__version__}."]
+    lines += [
+        "",
+        f"Dataset {dataset} (pixels synthetic, geometry real CAMELYON16; split by slide). "
+        f"Machine: {platform.machine()}, {jax.device_count()} {jax.devices()[0].platform} device(s), "
+        f"JAX {jax.__version__}.",
+    ]
     return "\n".join(lines)
 
 
@@ -156,9 +223,14 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", type=int, default=2)
     p.add_argument("--episodes", type=int, default=128, help="evaluation episodes per seed and test slide")
     p.add_argument("--out", default="runs/heldout")
-    p.add_argument("--extra-dataset", nargs="*", default=[], metavar="DATASET",
-                   help="more held-out slides: every slide of these slide sets (e.g. made with "
-                        "`data_tools synth --tumour-xml` from annotations the training slides never used)")
+    p.add_argument(
+        "--extra-dataset",
+        nargs="*",
+        default=[],
+        metavar="DATASET",
+        help="more held-out slides: every slide of these slide sets (e.g. made with "
+        "`data_tools synth --tumour-xml` from annotations the training slides never used)",
+    )
     p.add_argument("--report-only", action="store_true", help="rewrite targets.md from --out's targets.json")
     p.add_argument("--reuse", action="store_true", help="evaluate finished runs in --out again instead of retraining")
     p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE", help="passed to baselines.ppo")
@@ -183,8 +255,9 @@ def main(argv=None) -> int:
     results = {}
     t0 = time.perf_counter()
     for name, n in zip(args.scenarios, steps):
-        results[name] = run_scenario(name, dataset, heldout, n, args.seeds, args.episodes, out, extra, args.reuse,
-                                     previous.get(name))
+        results[name] = run_scenario(
+            name, dataset, heldout, n, args.seeds, args.episodes, out, extra, args.reuse, previous.get(name)
+        )
         text = markdown(results, dataset)
         (out / "targets.md").write_text(text + "\n")
         (out / "targets.json").write_text(json.dumps(json_safe({**previous, **results}), indent=1, allow_nan=False))

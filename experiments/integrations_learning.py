@@ -18,6 +18,7 @@ Budgets: rejax 100 k env steps (16 envs, rejax's defaults otherwise, as in the s
 100 k env steps (16 envs, ``n_steps=64``, SB3's defaults otherwise; one run, evaluated at 20 k and again
 after training on to 100 k). Evaluation: ``--episodes`` episodes (default 1024), each from its own reset.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -114,25 +115,34 @@ def rejax_rows(env, params, seed: int, episodes: int) -> list[dict]:
         logits = algo.actor.apply(ts.actor_ts.params, obs[None], method="_action_dist").logits
         return jnp.argmax(logits[0])
 
-    base = {"agent": "rejax 0.1.3 PPO", "steps": int(ts.global_step), "train_s": wall,
-            "rejax_eval": " ".join(f"{r:.2f}" for r in curve)}
+    base = {
+        "agent": "rejax 0.1.3 PPO",
+        "steps": int(ts.global_step),
+        "train_s": wall,
+        "rejax_eval": " ".join(f"{r:.2f}" for r in curve),
+    }
     key = jax.random.PRNGKey(20_000 + seed)
-    return [{**base, "policy": "sampled", **evaluate_jax(env, params, sampled, key, episodes)},
-            {**base, "policy": "greedy", **evaluate_jax(env, params, greedy, key, episodes)}]
+    return [
+        {**base, "policy": "sampled", **evaluate_jax(env, params, sampled, key, episodes)},
+        {**base, "policy": "greedy", **evaluate_jax(env, params, greedy, key, episodes)},
+    ]
 
 
 def evaluate_sb3(model, slide: str, seed: int, episodes: int, deterministic: bool, num_envs: int = 64) -> dict:
     """``episodes`` episodes of an SB3 model on :class:`SB3VecEnv` (``episodes / num_envs`` per sub-env)."""
     from histojax.adapters.sb3 import make_sb3_vec_env
 
-    venv = make_sb3_vec_env(ENV_ID, num_envs=num_envs, slide=slide, max_steps_in_episode=MAX_STEPS,
-                            obs_mode="features")
+    venv = make_sb3_vec_env(ENV_ID, num_envs=num_envs, slide=slide, max_steps_in_episode=MAX_STEPS, obs_mode="features")
     venv.seed(30_000 + seed)
     obs = venv.reset()
     per_env = -(-episodes // num_envs)
     acc = np.zeros(num_envs)
-    rets, succ, lens, steps = [[] for _ in range(num_envs)], [[] for _ in range(num_envs)], \
-        [[] for _ in range(num_envs)], np.zeros(num_envs, int)
+    rets, succ, lens, steps = (
+        [[] for _ in range(num_envs)],
+        [[] for _ in range(num_envs)],
+        [[] for _ in range(num_envs)],
+        np.zeros(num_envs, int),
+    )
     while min(len(r) for r in rets) < per_env:
         action, _ = model.predict(obs, deterministic=deterministic)
         obs, reward, done, infos = venv.step(action)
@@ -146,8 +156,7 @@ def evaluate_sb3(model, slide: str, seed: int, episodes: int, deterministic: boo
             acc[i], steps[i] = 0.0, 0
     venv.close()
     flat = lambda xs: np.concatenate([np.asarray(x, float) for x in xs])  # noqa: E731
-    return {"return": float(flat(rets).mean()), "success": float(flat(succ).mean()),
-            "length": float(flat(lens).mean())}
+    return {"return": float(flat(rets).mean()), "success": float(flat(succ).mean()), "length": float(flat(lens).mean())}
 
 
 def sb3_rows(slide: str, seed: int, episodes: int) -> list[dict]:
@@ -160,19 +169,28 @@ def sb3_rows(slide: str, seed: int, episodes: int) -> list[dict]:
 
     from histojax.adapters.sb3 import make_sb3_vec_env
 
-    venv = VecMonitor(make_sb3_vec_env(ENV_ID, num_envs=16, slide=slide, max_steps_in_episode=MAX_STEPS,
-                                       obs_mode="features"))
+    venv = VecMonitor(
+        make_sb3_vec_env(ENV_ID, num_envs=16, slide=slide, max_steps_in_episode=MAX_STEPS, obs_mode="features")
+    )
     model = PPO("MlpPolicy", venv, n_steps=64, seed=seed)
     rows, wall = [], 0.0
     for budget in (20_000, 100_000):
         start = time.perf_counter()
         model.learn(total_timesteps=budget - model.num_timesteps, reset_num_timesteps=False)
         wall += time.perf_counter() - start
-        base = {"agent": f"SB3 {stable_baselines3.__version__} PPO MlpPolicy (torch {torch.__version__})",
-                "steps": int(model.num_timesteps), "train_s": wall}
+        base = {
+            "agent": f"SB3 {stable_baselines3.__version__} PPO MlpPolicy (torch {torch.__version__})",
+            "steps": int(model.num_timesteps),
+            "train_s": wall,
+        }
         for deterministic in (True, False):
-            rows.append({**base, "policy": "deterministic" if deterministic else "sampled",
-                         **evaluate_sb3(model, slide, seed, episodes, deterministic)})
+            rows.append(
+                {
+                    **base,
+                    "policy": "deterministic" if deterministic else "sampled",
+                    **evaluate_sb3(model, slide, seed, episodes, deterministic),
+                }
+            )
     return rows
 
 
@@ -180,14 +198,21 @@ def show(row: dict) -> None:
     """One printed line per measured row (flushed: the runs are long)."""
     extra = f"  rejax eval curve: {row['rejax_eval']}" if "rejax_eval" in row else ""
     train = f"  trained {row['steps']:,} env steps in {row['train_s']:.0f} s" if "steps" in row else ""
-    print(f"{row['agent']:<48} {row.get('policy', ''):<13} return {row['return']:6.2f}  success "
-          f"{100 * row['success']:5.1f} %  length {row['length']:5.1f}{train}{extra}", flush=True)
+    print(
+        f"{row['agent']:<48} {row.get('policy', ''):<13} return {row['return']:6.2f}  success "
+        f"{100 * row['success']:5.1f} %  length {row['length']:5.1f}{train}{extra}",
+        flush=True,
+    )
 
 
 def main() -> None:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    p.add_argument("--slide", required=True, help="bundle folder with a feature grid; made from the sample "
-                   "slide's bundle (features computed) when it does not exist")
+    p.add_argument(
+        "--slide",
+        required=True,
+        help="bundle folder with a feature grid; made from the sample "
+        "slide's bundle (features computed) when it does not exist",
+    )
     p.add_argument("--algo", nargs="+", choices=["random", "rejax", "sb3"], default=["random", "rejax", "sb3"])
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--episodes", type=int, default=1024, help="evaluation episodes per policy")
@@ -202,9 +227,11 @@ def main() -> None:
     except Exception as e:  # a bundle without features, or no bundle: one line naming it
         print(str(e) if args.slide in str(e) else f"{args.slide}: {e}", file=sys.stderr)
         raise SystemExit(2)
-    print(f"{ENV_ID}, max_steps_in_episode={MAX_STEPS}, obs_mode='features' {env.observation_space(params).shape}; "
-          f"jax {jax.__version__}; {platform.machine()}; seed {args.seed}; {args.episodes} evaluation episodes",
-          flush=True)
+    print(
+        f"{ENV_ID}, max_steps_in_episode={MAX_STEPS}, obs_mode='features' {env.observation_space(params).shape}; "
+        f"jax {jax.__version__}; {platform.machine()}; seed {args.seed}; {args.episodes} evaluation episodes",
+        flush=True,
+    )
     start = time.perf_counter()
     if "random" in args.algo:
         show({"agent": "random actions", **random_row(env, params, args.seed, args.episodes)})

@@ -14,6 +14,7 @@ row ``budget = median ceiling``). Writes ``OUT/readers.csv`` and ``OUT/ceiling.j
 :func:`histojax.reading.heads.load` reads; the split is scored by the loop :mod:`baselines.reading.diagnosis` shares
 (:func:`~baselines.reading.diagnosis.score_split`: a split of one class refused, its AUC undefined).
 """
+
 from __future__ import annotations
 
 import sys
@@ -43,16 +44,20 @@ def at_ceiling(head, slides: list[dict], results: dict, ceilings: np.ndarray, le
     key = float(np.median(ceilings))
     tables = [readers.cell_table(s, level) for s in slides]
     tumour = [readers.tumour_views(s) for s in slides]
-    orders = {readers.score_reader_name(head): [logit_order(c) for c in tables],
-              "search reader": [search_order(s, c, limit=float(b) + 0.01)
-                                for s, c, b in zip(slides, tables, ceilings)]}
+    orders = {
+        readers.score_reader_name(head): [logit_order(c) for c in tables],
+        "search reader": [search_order(s, c, limit=float(b) + 0.01) for s, c, b in zip(slides, tables, ceilings)],
+    }
     for name, ords in orders.items():
-        masks = [[read_mask(c, s["tissue"], o, float(b))[0]
-                  for s, c, o, b in zip(slides, tables, ords, ceilings)]]
+        masks = [[read_mask(c, s["tissue"], o, float(b))[0] for s, c, o, b in zip(slides, tables, ords, ceilings)]]
         readers.add_reader(results, head, slides, f"{name}, per-slide ceiling", {key: masks}, "scripted", tumour)
-    masks = [[read_mask(c, s["tissue"], random_order(c, np.random.default_rng(1000 * k + i)),
-                                float(b))[0] for i, (s, c, b) in enumerate(zip(slides, tables, ceilings))]
-             for k in range(seeds)]
+    masks = [
+        [
+            read_mask(c, s["tissue"], random_order(c, np.random.default_rng(1000 * k + i)), float(b))[0]
+            for i, (s, c, b) in enumerate(zip(slides, tables, ceilings))
+        ]
+        for k in range(seeds)
+    ]
     readers.add_reader(results, head, slides, "random reader, per-slide ceiling", {key: masks}, "random", tumour)
     return key
 
@@ -82,15 +87,32 @@ def run(args, parser=None) -> int:
     key = at_ceiling(head, slides, results, ceilings, level, args.seeds)
     out = Path(args.out)
     wall = time.perf_counter() - t0
-    rows = write_results(out, results, slides, {
-        "dataset": str(args.dataset), "split": args.split, "head": str(args.head), "max_steps": args.max_steps,
-        "slides": len(slides), "tissue_views_median": float(np.median(views)), "tissue_views_min": int(views.min()),
-        "tissue_views_max": int(views.max()), "ceiling_median": float(np.median(ceilings)),
-        "ceiling_min": float(ceilings.min()), "ceiling_max": float(ceilings.max()), "ceiling_key": key,
-        "wall_s": round(wall, 1)}, "ceiling.json")
-    print(f"{len(slides)} slides: finest tissue views median {np.median(views):.0f} (min {views.min()}, max "
-          f"{views.max()}); {args.max_steps} views = {100 * np.median(ceilings):.3f} % of a slide's finest tissue "
-          f"(median; min {100 * ceilings.min():.3f} %, max {100 * ceilings.max():.3f} %)")
+    rows = write_results(
+        out,
+        results,
+        slides,
+        {
+            "dataset": str(args.dataset),
+            "split": args.split,
+            "head": str(args.head),
+            "max_steps": args.max_steps,
+            "slides": len(slides),
+            "tissue_views_median": float(np.median(views)),
+            "tissue_views_min": int(views.min()),
+            "tissue_views_max": int(views.max()),
+            "ceiling_median": float(np.median(ceilings)),
+            "ceiling_min": float(ceilings.min()),
+            "ceiling_max": float(ceilings.max()),
+            "ceiling_key": key,
+            "wall_s": round(wall, 1),
+        },
+        "ceiling.json",
+    )
+    print(
+        f"{len(slides)} slides: finest tissue views median {np.median(views):.0f} (min {views.min()}, max "
+        f"{views.max()}); {args.max_steps} views = {100 * np.median(ceilings):.3f} % of a slide's finest tissue "
+        f"(median; min {100 * ceilings.min():.3f} %, max {100 * ceilings.max():.3f} %)"
+    )
     readers.print_tables(rows, [])
     labels = [int(s["label"]) for s in slides]
     if (warning := small_split_warning(sum(labels), len(labels) - sum(labels), f"split {args.split!r}")) is not None:

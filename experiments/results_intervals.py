@@ -11,6 +11,7 @@ many tumour and normal slides.
 A figure given as mean ± std over seeds (or reading orders) gets the interval of the mean's AUC on the split's counts:
 the spread over slides of one AUC of that value, not an interval of the mean over seeds.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -131,8 +132,11 @@ def page_table(page: str) -> str:
 
 
 def main(argv=None) -> int:
-    p = argparse.ArgumentParser(prog="python -m experiments.results_intervals", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m experiments.results_intervals",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("figure", nargs="*", help="AUC N_TUMOUR N_NORMAL: one interval")
     p.add_argument("--page", choices=sorted(HEADLINES), default=None, help="one page's table (default: every page)")
     args = p.parse_args(argv)

@@ -39,6 +39,7 @@ The commands' packages (``data_tools``, ``baselines``) are top-level names insta
 are only ever imported from there (:func:`own_package_refusal`): ``python -m histojax.cli`` puts the working
 folder first on the import path, where a folder of the same name would otherwise be imported instead.
 """
+
 from __future__ import annotations
 
 import importlib
@@ -51,8 +52,17 @@ from data_tools.cli_output import one_line_messages, os_error_text, print_error,
 from data_tools.errors import HistojaxDataError
 from histojax import compile_cache
 
-DATA_COMMANDS = ("info", "build", "features", "import-features", "synth", "synth-large", "c16", "dataset",
-                 "train-encoder")
+DATA_COMMANDS = (
+    "info",
+    "build",
+    "features",
+    "import-features",
+    "synth",
+    "synth-large",
+    "c16",
+    "dataset",
+    "train-encoder",
+)
 COMMANDS = {  # histojax <command>: the module whose add_arguments and run it is
     **{name: "data_tools.__main__" for name in DATA_COMMANDS},
     "demo": "baselines.demo",
@@ -107,8 +117,10 @@ def user_error(e: BaseException) -> bool:
     return any(where.startswith(root + os.sep) for root in _OWN_ROOTS)
 
 
-_OWN_ROOTS = tuple(os.path.realpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", name))
-                   for name in ("histojax", "data_tools", "baselines", "benchmarks", "experiments"))
+_OWN_ROOTS = tuple(
+    os.path.realpath(os.path.join(os.path.dirname(os.path.abspath(__file__)), "..", name))
+    for name in ("histojax", "data_tools", "baselines", "benchmarks", "experiments")
+)
 
 
 def _dispatch(command: str, rest: list[str]) -> int:
@@ -118,7 +130,7 @@ def _dispatch(command: str, rest: list[str]) -> int:
         if "--algo" in rest:
             i = rest.index("--algo")
             algo = rest[i + 1] if i + 1 < len(rest) else ""
-            rest = rest[:i] + rest[i + 2:]
+            rest = rest[:i] + rest[i + 2 :]
         if algo not in ALGOS:
             return print_error(f"--algo must be one of {', '.join(ALGOS)}, got {algo!r}")
         if refusal := own_package_refusal("data_tools") or own_package_refusal("baselines"):
@@ -165,12 +177,16 @@ def own_package_refusal(name: str) -> str | None:
     if home == HOME:
         return None
     if home is None and name == "benchmarks":
-        return ("histojax bench runs from a source checkout: the wheel does not install benchmarks/ "
-                "(in a clone of the repository: make bench, or python benchmarks/throughput.py)")
+        return (
+            "histojax bench runs from a source checkout: the wheel does not install benchmarks/ "
+            "(in a clone of the repository: make bench, or python benchmarks/throughput.py)"
+        )
     if home is None:
         return f"{HOME / name}: not installed beside histojax (reinstall histojax: pip install histojax)"
-    return (f"{home / name}: a folder named {name} in the import path ahead of histojax's own ({HOME / name}); "
-            "python -m puts the working folder first: run the histojax command, or from another folder")
+    return (
+        f"{home / name}: a folder named {name} in the import path ahead of histojax's own ({HOME / name}); "
+        "python -m puts the working folder first: run the histojax command, or from another folder"
+    )
 
 
 def _resumed_algo(rest: list[str]) -> str | None:
@@ -182,7 +198,9 @@ def _resumed_algo(rest: list[str]) -> str | None:
     if "--resume" not in rest or rest.index("--resume") + 1 >= len(rest):
         return None
     try:
-        algo = json.loads((Path(rest[rest.index("--resume") + 1]) / "checkpoint" / "config.json").read_text()).get("algo")
+        algo = json.loads((Path(rest[rest.index("--resume") + 1]) / "checkpoint" / "config.json").read_text()).get(
+            "algo"
+        )
     except (OSError, ValueError, AttributeError):
         return None
     return algo if algo in ALGOS else None

@@ -13,6 +13,7 @@ The folder can be deleted at any time (it is only a cache; JAX does not bound it
 Importing ``histojax`` never turns the cache on: library users call ``jax.config.update(
 "jax_compilation_cache_dir", ...)`` themselves, or :func:`enable`.
 """
+
 from __future__ import annotations
 
 import os

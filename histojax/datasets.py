@@ -8,6 +8,7 @@ refuses one older than an id needs, naming the command that rebuilds it; :func:`
 ``slide`` / ``slides`` / ``dataset`` / ``split`` / ``fold`` into the bundle paths it loads. ``make`` and the
 registration of ids are :mod:`histojax.registry`'s; this module does not import it.
 """
+
 from __future__ import annotations
 
 import csv
@@ -18,7 +19,6 @@ import numpy as np
 
 from data_tools.bundle_files.seals import read_dataset_json
 from data_tools.errors import BundleError
-
 
 C16_DATASET_VARIABLE = "HISTOJAX_C16_DATASET"
 
@@ -34,12 +34,15 @@ def c16_dataset(spec: dict) -> Path:
     folder = Path(given) if given else cache_dir() / "c16"
     if not (folder / "dataset.json").is_file():
         embed = spec.get("dataset_encoder") is not None  # the -v1 ids observe pcam-cnn features: build them too
-        raise BundleError(folder, "no C16 dataset here (no dataset.json): the HistoJAX-C16-* ids need one. Make the "
-                          f"small one with `python -m data_tools c16 --small{' --features' * embed} --out DIR` "
-                          f"({'a minute' if embed else 'seconds'}) or the full one with "
-                          "`python -m data_tools c16 --annotations camelyon16_ncrf_train.tar.gz --patches "
-                          f"pcam_train_patches.tar.gz{' --no-pixels' * embed} --out DIR`, then pass make(id, dataset=DIR) "
-                          f"or set {C16_DATASET_VARIABLE}=DIR")
+        raise BundleError(
+            folder,
+            "no C16 dataset here (no dataset.json): the HistoJAX-C16-* ids need one. Make the "
+            f"small one with `python -m data_tools c16 --small{' --features' * embed} --out DIR` "
+            f"({'a minute' if embed else 'seconds'}) or the full one with "
+            "`python -m data_tools c16 --annotations camelyon16_ncrf_train.tar.gz --patches "
+            f"pcam_train_patches.tar.gz{' --no-pixels' * embed} --out DIR`, then pass make(id, dataset=DIR) "
+            f"or set {C16_DATASET_VARIABLE}=DIR",
+        )
     return folder
 
 
@@ -48,9 +51,18 @@ def _c16_rebuild_command(folder, ds: dict) -> str:
     (``--small`` or the sources and scale, split seed, held-out patches, subset, pixels or not), with features."""
     import shlex
 
-    opts = ["--small"] if ds.get("variant") == "small" else [
-        "--annotations", str(ds.get("annotations")), "--patches", str(ds.get("patches")),
-        "--downsample", str((ds.get("scale") or {}).get("downsample_from_camelyon16_level0", 8.0))]
+    opts = (
+        ["--small"]
+        if ds.get("variant") == "small"
+        else [
+            "--annotations",
+            str(ds.get("annotations")),
+            "--patches",
+            str(ds.get("patches")),
+            "--downsample",
+            str((ds.get("scale") or {}).get("downsample_from_camelyon16_level0", 8.0)),
+        ]
+    )
     test = (ds.get("patch_pools") or {}).get("test") or {}
     opts += ["--test-patches", str(test.get("source"))] if test.get("other_patch_set") else []
     opts += ["--slides", *sorted(ds.get("labels") or {})] if ds.get("variant") == "subset" else []
@@ -74,18 +86,28 @@ def check_dataset(folder, spec: dict, env_id: str) -> None:
         return  # dataset_slides reports a missing or malformed index
     mosaic = str(ds.get("kind", "")).startswith("histojax true-scale CAMELYON16")
     if mosaic:
-        fix = (f"rebuild it with `{_c16_rebuild_command(folder, ds)}` (its recorded options; the encoder is "
-               f"pcam-cnn by default), or use the -v0 id")
+        fix = (
+            f"rebuild it with `{_c16_rebuild_command(folder, ds)}` (its recorded options; the encoder is "
+            f"pcam-cnn by default), or use the -v0 id"
+        )
     else:  # a cohort of scanned slides (`histojax dataset`): no patch pools to share, only the encoder matters
-        fix = (f"rebuild it with `histojax dataset SLIDES_DIR --out {folder} --encoder {want_encoder} ...` (same "
-               f"options), or use the -v0 id")
+        fix = (
+            f"rebuild it with `histojax dataset SLIDES_DIR --out {folder} --encoder {want_encoder} ...` (same "
+            f"options), or use the -v0 id"
+        )
     if want_format is not None and mosaic and int(ds.get("format", 1)) < want_format:
-        raise BundleError(index, f"{env_id} needs a dataset of format >= {want_format} (train and test slides "
-                          f"textured from disjoint PCam patch pools); this one is format {ds.get('format', 1)}: {fix}")
+        raise BundleError(
+            index,
+            f"{env_id} needs a dataset of format >= {want_format} (train and test slides "
+            f"textured from disjoint PCam patch pools); this one is format {ds.get('format', 1)}: {fix}",
+        )
     # any recorded encoder's grids (pcam-cnn by default; your own with --encoder module:function), not none
     if want_encoder is not None and spec.get("obs_mode", "pixels") == "features" and not ds.get("encoder"):
-        raise BundleError(index, f"{env_id} observes {want_encoder} features, and this dataset records no feature "
-                          f"grids (built without --features): {fix}")
+        raise BundleError(
+            index,
+            f"{env_id} observes {want_encoder} features, and this dataset records no feature "
+            f"grids (built without --features): {fix}",
+        )
 
 
 def tumour_slide_weights(arrays: list, paths: list, weights=None) -> list[float] | None:
@@ -93,16 +115,19 @@ def tumour_slide_weights(arrays: list, paths: list, weights=None) -> list[float]
     for one slide with tumour; ``ValueError`` when no slide has tumour."""
     has_tumour = [int(a.slide_label) == 1 for a in arrays]
     if not any(has_tumour):
-        raise ValueError(f"detection needs a slide with tumour annotated; none of the {len(paths)} slides has any "
-                         f"({', '.join(Path(p).name for p in paths[:4])}{', ...' if len(paths) > 4 else ''})")
+        raise ValueError(
+            f"detection needs a slide with tumour annotated; none of the {len(paths)} slides has any "
+            f"({', '.join(Path(p).name for p in paths[:4])}{', ...' if len(paths) > 4 else ''})"
+        )
     if len(arrays) == 1:
         return weights
     base = [1.0] * len(arrays) if weights is None else [float(w) for w in weights]
     return [w if t else 0.0 for w, t in zip(base, has_tumour)]
 
 
-def resolve_slides(env_id: str, registered, spec: dict, slide, slides, dataset, split: str,
-                   fold: int | None = None) -> list:
+def resolve_slides(
+    env_id: str, registered, spec: dict, slide, slides, dataset, split: str, fold: int | None = None
+) -> list:
     """``slides`` / ``dataset`` / ``slide`` / the id's registered slide or dataset (``registered``: the
     ``slide`` of its :class:`histojax.registry.EnvSpec`, a path, a list or a recipe) / the sample slide, as a
     non-empty list of bundle paths. ``spec``: the id's settings as ``make`` resolved them; ``env_id`` names it in
@@ -110,8 +135,10 @@ def resolve_slides(env_id: str, registered, spec: dict, slide, slides, dataset, 
     if dataset is None and slide is None and slides is None and registered is c16_dataset:
         dataset = c16_dataset(spec)
     if fold is not None and dataset is None:
-        raise ValueError(f"fold={fold!r} picks a fold of a dataset built with --folds K: give dataset=DIR (or an id "
-                         "whose slides are a dataset)")
+        raise ValueError(
+            f"fold={fold!r} picks a fold of a dataset built with --folds K: give dataset=DIR (or an id "
+            "whose slides are a dataset)"
+        )
     if dataset is not None:
         check_dataset(dataset, spec, env_id)
         slides = dataset_slides(dataset, split, fold)
@@ -147,12 +174,21 @@ def dataset_slides(folder, split: str = "train", fold: int | None = None) -> lis
     except FileNotFoundError:
         if (folder / "plan.json").is_file():  # a `histojax dataset` build that has not written dataset.json yet
             locks = sorted(p.name for p in (folder / "bundles").glob(".*.dataset-lock"))
-            raise BundleError(folder, "no dataset.json yet: the dataset is being built by `histojax dataset` ("
-                              + (f"{len(locks)} slide lock(s) held, e.g. bundles/{locks[0]}" if locks else
-                                 "plan.json written, not every slide recorded") + "); wait for the run, or finish it "
-                              f"with `histojax dataset --merge --out {folder}`") from None
-        raise BundleError(folder, "not a dataset folder (no dataset.json); make one with "
-                          "`python -m data_tools synth` or pass slides=[...]") from None
+            raise BundleError(
+                folder,
+                "no dataset.json yet: the dataset is being built by `histojax dataset` ("
+                + (
+                    f"{len(locks)} slide lock(s) held, e.g. bundles/{locks[0]}"
+                    if locks
+                    else "plan.json written, not every slide recorded"
+                )
+                + "); wait for the run, or finish it "
+                f"with `histojax dataset --merge --out {folder}`",
+            ) from None
+        raise BundleError(
+            folder,
+            "not a dataset folder (no dataset.json); make one with `python -m data_tools synth` or pass slides=[...]",
+        ) from None
     except json.JSONDecodeError as e:
         raise BundleError(index, f"malformed JSON ({e})") from None
     if fold is not None:
@@ -164,9 +200,12 @@ def dataset_slides(folder, split: str = "train", fold: int | None = None) -> lis
     else:
         raise ValueError(f"split must be 'train', 'test' or 'all', got {split!r}")
     if isinstance(names, list) and not names and spec.get("variant") == "subset":
-        raise BundleError(index, f"the {split!r} split of this subset is empty: a subset keeps the whole set's split, "
-                          f"and none of its slides is on the {split} side; build some with `python -m data_tools c16 "
-                          f"--slides NAME ...` on the same --out (see the 'test' / 'train' lists of the full set)")
+        raise BundleError(
+            index,
+            f"the {split!r} split of this subset is empty: a subset keeps the whole set's split, "
+            f"and none of its slides is on the {split} side; build some with `python -m data_tools c16 "
+            f"--slides NAME ...` on the same --out (see the 'test' / 'train' lists of the full set)",
+        )
     if not isinstance(names, list) or not names:
         raise BundleError(index, f"no {split!r} list of bundles")
     return [folder / n for n in names]
@@ -180,8 +219,11 @@ def with_fold(spec: dict, fold, index="dataset.json") -> dict:
     for a dataset without folds or a fold out of range."""
     folds = spec.get("folds")
     if not isinstance(folds, dict) or not isinstance(folds.get("lists"), list):
-        raise BundleError(index, f"fold={fold!r}: this dataset has no folds; build it with `histojax dataset ... "
-                          "--folds K` (or `c16 --folds K`), or drop fold")
+        raise BundleError(
+            index,
+            f"fold={fold!r}: this dataset has no folds; build it with `histojax dataset ... "
+            "--folds K` (or `c16 --folds K`), or drop fold",
+        )
     k = len(folds["lists"])
     if isinstance(fold, bool) or not isinstance(fold, (int, np.integer)) or not 0 <= int(fold) < k:
         raise BundleError(index, f"fold={fold!r} is out of range: this dataset has {k} folds (0 to {k - 1})")
@@ -205,8 +247,11 @@ def fold_slides(folder, spec: dict, split: str, fold) -> list[Path]:
     if split in ("train", "validation", "val") or (split == "test" and spec["folds"].get("pool") == "all"):
         names = sides["validation" if split == "val" else split]
     elif split == "test":
-        raise BundleError(index, f"fold={fold}: this dataset's folds cut its train side (its test set is fixed): fold "
-                          f"{fold}'s held-out slides are split='validation'; the test set is split='test' without fold")
+        raise BundleError(
+            index,
+            f"fold={fold}: this dataset's folds cut its train side (its test set is fixed): fold "
+            f"{fold}'s held-out slides are split='validation'; the test set is split='test' without fold",
+        )
     else:
         raise ValueError(f"with fold=, split must be 'train', 'validation' or 'test', got {split!r}")
     if not names:

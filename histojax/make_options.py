@@ -12,6 +12,7 @@ A field not given holds :data:`UNSET` (the id's registered value, else the env's
 settings (a scenario file, a trainer's ``env_kwargs``, ``--set key=value``) become options through
 :meth:`MakeOptions.of`, which refuses an unknown name in one line.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -74,8 +75,9 @@ class MakeOptions:
     read_slots: int = option(MODE, "glimpse: slots of the cells-read list of a step observation")
     map_feature: int = option(MODE, "discrete:map: the feature entry the coarse map shows")
     map_level: int = option(MODE, "discrete:map: the level of the coarse map")
-    map_head: str = option(MODE, "discrete:map: a slide head folder whose per-view scores the coarse map shows "
-                                 "(instead of map_feature)")
+    map_head: str = option(
+        MODE, "discrete:map: a slide head folder whose per-view scores the coarse map shows (instead of map_feature)"
+    )
     # dataset: how make draws and checks a dataset's slides
     tumour_slides_only: bool = option(DATASET, "detection: reset draws only slides with tumour annotated")
     dataset_format: int = option(DATASET, "the least dataset.json format this id needs")
@@ -92,8 +94,10 @@ class MakeOptions:
         (and the static and params names) when a name is not an option of ``allowed`` kinds."""
         unknown = set(settings) - set(cls.names(*allowed))
         if unknown:
-            raise TypeError(f"{where} got unknown settings {sorted(unknown)}; "
-                            f"static: {cls.names(STATIC)}; params: {cls.names(PARAMS)}")
+            raise TypeError(
+                f"{where} got unknown settings {sorted(unknown)}; "
+                f"static: {cls.names(STATIC)}; params: {cls.names(PARAMS)}"
+            )
         return cls(**settings)
 
     def given(self, *kinds: str) -> dict:

@@ -29,6 +29,7 @@ modes' observations carry only what a step changes (``step_obs=True``; :meth:`Hi
 Which slides an id loads (dataset folders, splits, folds, labels, the C16 ids' default dataset) is
 :mod:`histojax.datasets`; this module keeps the registration of ids and ``make``.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -37,12 +38,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from histojax.core.modes import factory
 from histojax.core.env import EnvParams, HistoEnv
-from histojax.make_options import DATASET, MODE, PARAMS, STATIC, MakeOptions
+from histojax.core.modes import factory
 from histojax.core.modes.base import Navigation
 from histojax.core.slide import DEFAULT_MAX_DEVICE_BYTES, check_alike, load_slide, stack_slides, start_cdf
 from histojax.datasets import c16_dataset, dataset_labels, label_of, resolve_slides, tumour_slide_weights
+from histojax.make_options import DATASET, MODE, PARAMS, STATIC, MakeOptions
 
 # the names of make's options by where they go, derived from the one typed set (histojax.make_options.MakeOptions):
 # static HistoEnv settings, EnvParams fields, the action mode's prepare settings (histojax.core.modes.base),
@@ -124,40 +125,90 @@ register("HistoJAX-Hard-v0", n_levels=7, max_steps_in_episode=300)
 # refused with the command that rebuilds it (it keeps loading under v0).
 C16_V1 = dict(dataset_format=2, dataset_encoder="pcam-cnn", obs_mode="features")
 for _name, _levels, _steps in (("Easy", 3, 100), ("Medium", 5, 200), ("Hard", 7, 300)):
-    register(f"HistoJAX-C16-{_name}-v0", slide=c16_dataset, n_levels=_levels, max_steps_in_episode=_steps,
-             tumour_slides_only=True)
-    register(f"HistoJAX-C16-{_name}-v1", slide=c16_dataset, n_levels=_levels, max_steps_in_episode=_steps,
-             tumour_slides_only=True, **C16_V1)
+    register(
+        f"HistoJAX-C16-{_name}-v0",
+        slide=c16_dataset,
+        n_levels=_levels,
+        max_steps_in_episode=_steps,
+        tumour_slides_only=True,
+    )
+    register(
+        f"HistoJAX-C16-{_name}-v1",
+        slide=c16_dataset,
+        n_levels=_levels,
+        max_steps_in_episode=_steps,
+        tumour_slides_only=True,
+        **C16_V1,
+    )
 register("HistoJAX-C16-Diagnosis-v0", slide=c16_dataset, n_levels=5, max_steps_in_episode=200, task="classification")
-register("HistoJAX-C16-Diagnosis-v1", slide=c16_dataset, n_levels=5, max_steps_in_episode=200, task="classification",
-         **C16_V1)
+register(
+    "HistoJAX-C16-Diagnosis-v1",
+    slide=c16_dataset,
+    n_levels=5,
+    max_steps_in_episode=200,
+    task="classification",
+    **C16_V1,
+)
 # v2: v1's datasets and defaults; the reading modes observe per step only what changed (step_obs=True: for
 # glimpse the cells read, their summaries in K slots, the read bits, the budget left and the slide index; the
 # slides' cell tables come once from env.episode_tables). Navigation observes the same as under v1. The v1 ids
 # keep v1's observation, so policies trained on them (the c16-v1 published readers) still load and run.
 for _name, _levels, _steps in (("Easy", 3, 100), ("Medium", 5, 200), ("Hard", 7, 300)):
-    register(f"HistoJAX-C16-{_name}-v2", slide=c16_dataset, n_levels=_levels, max_steps_in_episode=_steps,
-             tumour_slides_only=True, step_obs=True, **C16_V1)
-register("HistoJAX-C16-Diagnosis-v2", slide=c16_dataset, n_levels=5, max_steps_in_episode=200, task="classification",
-         step_obs=True, **C16_V1)
+    register(
+        f"HistoJAX-C16-{_name}-v2",
+        slide=c16_dataset,
+        n_levels=_levels,
+        max_steps_in_episode=_steps,
+        tumour_slides_only=True,
+        step_obs=True,
+        **C16_V1,
+    )
+register(
+    "HistoJAX-C16-Diagnosis-v2",
+    slide=c16_dataset,
+    n_levels=5,
+    max_steps_in_episode=200,
+    task="classification",
+    step_obs=True,
+    **C16_V1,
+)
 
 
 def _reading_dataset(spec: dict):
     """The reading ids have no default slides: one clear error asking for ``dataset=``."""
-    raise ValueError("HistoJAX-Reading-v0 reads a dataset of your own: make('HistoJAX-Reading-v0', dataset=DIR) with "
-                     "DIR from `histojax dataset`, `histojax c16` or imported .h5 features (any encoder)")
+    raise ValueError(
+        "HistoJAX-Reading-v0 reads a dataset of your own: make('HistoJAX-Reading-v0', dataset=DIR) with "
+        "DIR from `histojax dataset`, `histojax c16` or imported .h5 features (any encoder)"
+    )
 
 
 # Reading on any dataset (any encoder's feature grids, imported .h5 included): the cell-set reader's -v2
 # observation (step_obs) on a classification task, five zoom levels (n_levels= for bundles built with fewer)
 READING_ID = "HistoJAX-Reading-v0"
-register(READING_ID, slide=_reading_dataset, n_levels=5, max_steps_in_episode=200, task="classification",
-         step_obs=True, obs_mode="features")
+register(
+    READING_ID,
+    slide=_reading_dataset,
+    n_levels=5,
+    max_steps_in_episode=200,
+    task="classification",
+    step_obs=True,
+    obs_mode="features",
+)
 
 
-def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES,
-         slides=None, slide_weights=None, dataset=None, split: str = "train", labels=None, fold: int | None = None,
-         **overrides):
+def make(
+    env_id: str,
+    slide=None,
+    verify: bool = True,
+    max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES,
+    slides=None,
+    slide_weights=None,
+    dataset=None,
+    split: str = "train",
+    labels=None,
+    fold: int | None = None,
+    **overrides,
+):
     """Make ``(env, params)`` for a registered id.
 
     ``slide``: a bundle folder (``python -m data_tools build``) or ``None`` for the id's registered
@@ -192,8 +243,9 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     options = given.over(spec_of(env_id).options)
     mode_settings = given.given(MODE)  # only as given: a registered id holds no mode settings
     spec = options.given(STATIC, PARAMS, DATASET)
-    _check_start_level(factory.action_mode(spec.get("action_mode", "discrete")), spec.get("start_level", 0),
-                       f"make({env_id!r})")
+    _check_start_level(
+        factory.action_mode(spec.get("action_mode", "discrete")), spec.get("start_level", 0), f"make({env_id!r})"
+    )
     slides = resolve_slides(env_id, spec_of(env_id).slide, spec, slide, slides, dataset, split, fold)
     if labels is None and dataset is not None and spec.get("task", "detection") == "classification":
         labels = dataset_labels(dataset)  # a label table's or CAMELYON16's labels, not just "annotated"
@@ -202,8 +254,9 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     check_alike(slides, features=features)  # bundles that cannot make one dataset, named before any array is read
     loaded, budget = [], max_device_bytes
     for path in slides:  # obs_mode="features": the feature-only layout, no pixels on the device
-        arrays, bundle = load_slide(path, spec["n_levels"], verify=verify, max_device_bytes=budget, features=features,
-                                    pixels=not feature_obs)
+        arrays, bundle = load_slide(
+            path, spec["n_levels"], verify=verify, max_device_bytes=budget, features=features, pixels=not feature_obs
+        )
         budget -= sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
         loaded.append((arrays, bundle))
     tile_sizes = {b.tile_size for _, b in loaded}
@@ -211,8 +264,10 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
         raise ValueError(f"the slides were built with different tile sizes {sorted(tile_sizes)}; rebuild them alike")
     tile_size = tile_sizes.pop()
     if spec.get("tile_size", tile_size) != tile_size:
-        raise ValueError(f"bundle {slides[0]} was built with tile size {tile_size}; rebuild it with "
-                         f"--tile-size {spec['tile_size']} or drop the override")
+        raise ValueError(
+            f"bundle {slides[0]} was built with tile size {tile_size}; rebuild it with "
+            f"--tile-size {spec['tile_size']} or drop the override"
+        )
     if labels is not None:
         loaded = [(a.replace(slide_label=jnp.int32(label_of(b, labels))), b) for a, b in loaded]
     if spec.get("tumour_slides_only") and spec.get("task", "detection") == "detection":
@@ -234,11 +289,13 @@ def make(env_id: str, slide=None, verify: bool = True, max_device_bytes: int = D
     return env, params
 
 
-def slide_paths(env_id: str, slide=None, slides=None, dataset=None, split: str = "train", fold: int | None = None,
-                **overrides) -> list:
+def slide_paths(
+    env_id: str, slide=None, slides=None, dataset=None, split: str = "train", fold: int | None = None, **overrides
+) -> list:
     """The bundle paths ``make`` would load for these arguments (one for a single slide)."""
-    return resolve_slides(env_id, spec_of(env_id).slide, {**spec_of(env_id).settings, **overrides}, slide, slides,
-                          dataset, split, fold)
+    return resolve_slides(
+        env_id, spec_of(env_id).slide, {**spec_of(env_id).settings, **overrides}, slide, slides, dataset, split, fold
+    )
 
 
 MAX_STRIDE_PX = 2**30  # a move of stride × tile_size px plus a position (< 2**30 px) stays inside int32
@@ -250,6 +307,7 @@ def validate_params(values: dict, tile_size: int, where: str = "make") -> None:
     ``max_steps_in_episode`` an integer in ``[1, 2**31 - 2]``, ``success_threshold`` in ``(0, 1]``,
     rewards (``step_cost``, ``success_bonus``, ``histogym_scale``, ``dense_weight``, ``diagnosis_reward``)
     finite, ``random_start`` a bool, ``start_level`` a whole number. Raises ValueError naming the field."""
+
     def bad(field, value, rule):
         raise ValueError(f"{where}: {field}={value!r} {rule}")
 
@@ -269,10 +327,15 @@ def validate_params(values: dict, tile_size: int, where: str = "make") -> None:
         if not np.isfinite(v).all():
             bad(field, values[field], "must be finite")
         if field == "stride" and not ((v * tile_size >= 1).all() and (v * tile_size <= MAX_STRIDE_PX).all()):
-            bad(field, values[field], f"must be > 0 view widths with 1 <= stride × tile_size ({tile_size}) <= 2**30 px "
-                "(a move of stride × tile_size px must stay inside int32)")
-        if field == "max_steps_in_episode" and not ((v == np.round(v)).all() and (v >= 1).all()
-                                                    and (v <= 2**31 - 2).all()):
+            bad(
+                field,
+                values[field],
+                f"must be > 0 view widths with 1 <= stride × tile_size ({tile_size}) <= 2**30 px "
+                "(a move of stride × tile_size px must stay inside int32)",
+            )
+        if field == "max_steps_in_episode" and not (
+            (v == np.round(v)).all() and (v >= 1).all() and (v <= 2**31 - 2).all()
+        ):
             bad(field, values[field], "must be a whole number of steps in [1, 2**31 - 2]")
         if field == "start_level" and not ((v == np.round(v)).all() and (np.abs(v) <= 2**31 - 1).all()):
             bad(field, values[field], "must be a whole level number (0 = coarsest, -1 = finest)")
@@ -290,8 +353,10 @@ def check_params(env, params, where: str = "params") -> None:
     values = {k: getattr(params, k) for k in PARAM_FIELDS}
     if any(isinstance(v, jax.core.Tracer) for v in values.values()):
         raise TypeError(f"{where}: check_params runs on the host, not inside jit; use histojax.debug.checked")
-    values = {k: v.addressable_data(0) if isinstance(v, jax.Array) and not v.is_fully_addressable else v
-              for k, v in values.items()}  # replicated over several processes: this process's copy
+    values = {
+        k: v.addressable_data(0) if isinstance(v, jax.Array) and not v.is_fully_addressable else v
+        for k, v in values.items()
+    }  # replicated over several processes: this process's copy
     validate_params(values, env.tile_size, where=where)
     _check_start_level(env.action, values["start_level"], where)
 
@@ -300,7 +365,7 @@ def _check_start_level(mode, start_level, where: str) -> None:
     """``ValueError`` for a ``start_level`` other than 0 with a reading mode (its episodes start at the coarsest
     level; the env would ignore it)."""
     if not isinstance(mode, Navigation) and np.any(np.asarray(start_level) != 0):
-        raise ValueError(f"{where}: start_level={start_level!r} is for the navigation modes (discrete, continuous); "
-                         f"{mode.name!r} episodes start at the coarsest level")
-
-
+        raise ValueError(
+            f"{where}: start_level={start_level!r} is for the navigation modes (discrete, continuous); "
+            f"{mode.name!r} episodes start at the coarsest level"
+        )

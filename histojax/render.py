@@ -1,6 +1,7 @@
 """Pictures on the host: the slide thumbnail, the tumour outline, view boxes (Pillow), trajectories
 (matplotlib, Agg canvas: no display needed) and GIFs (Pillow). Not jittable and not meant to be: call
 with concrete states."""
+
 from __future__ import annotations
 
 import json
@@ -48,7 +49,9 @@ def _canvas(env, max_side: int, slide_index: int = 0):
     with_pixels = [i for i, p in enumerate(bundle.pixels) if getattr(p, "has_pixels", True)]  # coarsest first
     k = next((i for i in with_pixels if max(bundle.pixels[i].shape[:2]) >= max_side), with_pixels[-1])
     level = np.asarray(bundle.pixels[k])
-    fit = max_side / max(level.shape[:2])  # < 1: shrunk; > 1 (a feature-only bundle keeps its coarsest level only): grown
+    fit = max_side / max(
+        level.shape[:2]
+    )  # < 1: shrunk; > 1 (a feature-only bundle keeps its coarsest level only): grown
     size = (max(1, round(level.shape[1] * fit)), max(1, round(level.shape[0] * fit)))
     image = Image.fromarray(level).resize(size, Image.Resampling.BOX if fit <= 1 else Image.Resampling.BICUBIC)
     return image, size[0] / (level.shape[1] * bundle.downsamples[k])
@@ -70,8 +73,9 @@ def tumour_rings(env, slide_index: int = 0) -> list[np.ndarray]:
             continue
         geom = shapely.geometry.shape(feature["geometry"])
         for poly in getattr(geom, "geoms", [geom]):
-            rings += [np.asarray(ring.coords, np.float64) for ring in [poly.exterior, *poly.interiors]
-                      if len(ring.coords) > 1]
+            rings += [
+                np.asarray(ring.coords, np.float64) for ring in [poly.exterior, *poly.interiors] if len(ring.coords) > 1
+            ]
     return rings
 
 
@@ -145,23 +149,43 @@ def _draw_path(ax, env, z, boxes, centres) -> None:
 
     colour = lambda k: _rgb(level_colour(int(k), env.n_levels))  # noqa: E731
     for (left, top, right, bottom), zi in zip(boxes, z):
-        ax.add_patch(Rectangle((left, top), right - left, bottom - top, fill=False, edgecolor=colour(zi),
-                               linewidth=0.9))
+        ax.add_patch(
+            Rectangle((left, top), right - left, bottom - top, fill=False, edgecolor=colour(zi), linewidth=0.9)
+        )
     if len(centres) > 1:
-        ax.add_collection(LineCollection(np.stack([centres[:-1], centres[1:]], axis=1),
-                                         colors=[colour(k) for k in z[1:]], linewidths=2.2))
+        ax.add_collection(
+            LineCollection(
+                np.stack([centres[:-1], centres[1:]], axis=1), colors=[colour(k) for k in z[1:]], linewidths=2.2
+            )
+        )
     if len(centres):
         left, top, right, bottom = boxes[-1]
-        ax.add_patch(Rectangle((left, top), right - left, bottom - top, fill=False, edgecolor=_rgb(END_COLOUR),
-                               linewidth=2.5))
+        ax.add_patch(
+            Rectangle((left, top), right - left, bottom - top, fill=False, edgecolor=_rgb(END_COLOUR), linewidth=2.5)
+        )
 
 
 def _path_markers(ax, centres, n_steps: int, marker: float = 1.0) -> list:
     """The start ring and the end square (``marker`` scales them); returns their legend handles."""
-    start = ax.plot(*centres[0], marker="o", markersize=15 * marker, markerfacecolor="none", markeredgewidth=3,
-                    markeredgecolor=_rgb(START_COLOUR), linestyle="none", label="start")[0]
-    end = ax.plot(*centres[-1], marker="s", markersize=9 * marker, color=_rgb(END_COLOUR), markeredgecolor="black",
-                  linestyle="none", label=f"end (after {_count(n_steps, 'step')})")[0]
+    start = ax.plot(
+        *centres[0],
+        marker="o",
+        markersize=15 * marker,
+        markerfacecolor="none",
+        markeredgewidth=3,
+        markeredgecolor=_rgb(START_COLOUR),
+        linestyle="none",
+        label="start",
+    )[0]
+    end = ax.plot(
+        *centres[-1],
+        marker="s",
+        markersize=9 * marker,
+        color=_rgb(END_COLOUR),
+        markeredgecolor="black",
+        linestyle="none",
+        label=f"end (after {_count(n_steps, 'step')})",
+    )[0]
     return [start, end]
 
 
@@ -183,8 +207,9 @@ def inset_box(boxes, width0: float, height0: float, small: float = 0.1, min_zoom
     return cx - side / 2, cy - side / 2, cx + side / 2, cy + side / 2
 
 
-def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 640,
-                      slide_index: int | None = None, inset: bool = True):
+def trajectory_figure(
+    env, z, x=None, y=None, title: str = "", max_side: int = 640, slide_index: int | None = None, inset: bool = True
+):
     """A matplotlib Figure (Agg canvas attached) of one trajectory over the thumbnail of the episode's own
     slide: sequences ``z, x, y`` of one episode (first entry: the view at reset), or a stacked ``EnvState``
     (e.g. from ``lax.scan``) as ``z``; ``slide_index`` (default: the state's ``slide_index``, else 0) picks the
@@ -224,8 +249,15 @@ def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 6
     downsamples = bundle_of(env, slide_index).downsamples
     for k in range(env.n_levels):
         seen = "" if k in set(z.tolist()) else ", not visited"
-        handles.append(Line2D([], [], color=_rgb(level_colour(k, env.n_levels)), linewidth=2.2,
-                              label=f"level {k}: downsample {downsamples[k]:.3g}{seen}"))
+        handles.append(
+            Line2D(
+                [],
+                [],
+                color=_rgb(level_colour(k, env.n_levels)),
+                linewidth=2.2,
+                label=f"level {k}: downsample {downsamples[k]:.3g}{seen}",
+            )
+        )
     if len(centres):
         handles += _path_markers(ax, centres, len(z) - 1)
     ax.set_xlim(0, width0)
@@ -234,13 +266,22 @@ def trajectory_figure(env, z, x=None, y=None, title: str = "", max_side: int = 6
     ax.set_ylabel("y (level-0 px)")
     zoom = inset_box(boxes, width0, height0) if inset else None
     if zoom is not None:
+
         def path(axin):
             _draw_path(axin, env, z, boxes, centres)
             _path_markers(axin, centres, len(z) - 1, marker=0.7)
 
         _inset(ax, env, slide_index, zoom, rings, width0, height0, path)
-    ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(1.02, 1.0), fontsize="small", frameon=False,
-              title="views (boxes) and path", title_fontsize="small", alignment="left")
+    ax.legend(
+        handles=handles,
+        loc="upper left",
+        bbox_to_anchor=(1.02, 1.0),
+        fontsize="small",
+        frameon=False,
+        title="views (boxes) and path",
+        title_fontsize="small",
+        alignment="left",
+    )
     ax.set_title(_titled(title, env, slide_index), fontsize="medium")
     return fig
 
@@ -280,8 +321,17 @@ def figure_rgb(fig) -> np.ndarray:
         return np.asarray(image.convert("RGB"))
 
 
-def render_trajectory(env, z, x=None, y=None, path=None, title: str = "", max_side: int = 640,
-                      slide_index: int | None = None, inset: bool = True) -> np.ndarray:
+def render_trajectory(
+    env,
+    z,
+    x=None,
+    y=None,
+    path=None,
+    title: str = "",
+    max_side: int = 640,
+    slide_index: int | None = None,
+    inset: bool = True,
+) -> np.ndarray:
     """Draw a trajectory over the thumbnail (:func:`trajectory_figure`): sequences ``z, x, y`` of one
     episode, or a stacked ``EnvState`` as the only positional argument after ``env``. Saves a PNG to
     ``path`` when given. Returns the RGB uint8 picture ``(H, W, 3)``."""
@@ -294,7 +344,6 @@ def _save(picture: np.ndarray, path) -> np.ndarray:
         with atomic_file(path) as tmp:  # the previous picture or the new one, never half of one
             Image.fromarray(picture).save(tmp, format="PNG")
     return picture
-
 
 
 # ----------------------------------------------------------------------------- reading map
@@ -323,8 +372,9 @@ def reading_order(z, x, y) -> list[tuple[tuple[int, int, int], int, int]]:
     return [(view, first[view], count[view]) for view in first]
 
 
-def reading_map_figure(env, params, record, slide_index: int | None = None, score=None, title: str = "",
-                       max_side: int = 640):
+def reading_map_figure(
+    env, params, record, slide_index: int | None = None, score=None, title: str = "", max_side: int = 640
+):
     """A matplotlib Figure of **where a policy read** on one slide: over the thumbnail of the episode's slide,
     each distinct view it visited (from the per-step record ``record``, see :func:`reading_record`) is a box
     filled by the step it was first visited (colour bar; step 0 is the view at reset) with a dot at its
@@ -340,8 +390,11 @@ def reading_map_figure(env, params, record, slide_index: int | None = None, scor
     from matplotlib.patches import Rectangle
 
     if slide_index is None:
-        slide_index = int(np.asarray(record.get("slide", 0) if isinstance(record, dict) else
-                                     getattr(record, "slide_index", 0)).ravel()[0])
+        slide_index = int(
+            np.asarray(
+                record.get("slide", 0) if isinstance(record, dict) else getattr(record, "slide_index", 0)
+            ).ravel()[0]
+        )
     z, x, y = reading_record(record)
     views = reading_order(z, x, y)
     image, scale = _canvas(env, max_side, slide_index)
@@ -362,12 +415,22 @@ def reading_map_figure(env, params, record, slide_index: int | None = None, scor
         for ((zi, _, _), first, _), (left, top, right, bottom) in zip(views, boxes):
             c = cmap(norm(first))
             fill = 0.12 + 0.4 * zi / max(env.n_levels - 1, 1)  # coarse views (large boxes) lighter, fine ones solid
-            on.add_patch(Rectangle((left, top), right - left, bottom - top, facecolor=(*c[:3], fill), edgecolor=c,
-                                   linewidth=1.2))
+            on.add_patch(
+                Rectangle((left, top), right - left, bottom - top, facecolor=(*c[:3], fill), edgecolor=c, linewidth=1.2)
+            )
         if boxes:
             b = np.asarray(boxes)
-            return on.scatter((b[:, 0] + b[:, 2]) / 2, (b[:, 1] + b[:, 3]) / 2, c=[v[1] for v in views], cmap=cmap,
-                              norm=norm, s=18, edgecolors="white", linewidths=0.6, zorder=3)
+            return on.scatter(
+                (b[:, 0] + b[:, 2]) / 2,
+                (b[:, 1] + b[:, 3]) / 2,
+                c=[v[1] for v in views],
+                cmap=cmap,
+                norm=norm,
+                s=18,
+                edgecolors="white",
+                linewidths=0.6,
+                zorder=3,
+            )
         return None
 
     dots = draw(ax)
@@ -384,11 +447,21 @@ def reading_map_figure(env, params, record, slide_index: int | None = None, scor
         if len(z) - 1 <= 10:
             bar.set_ticks(range(len(z)))
     handles = [Line2D([], [], color=_rgb(TUMOUR_COLOUR), linewidth=1.5, label="tumour")] if rings else []
-    handles.append(Rectangle((0, 0), 1, 1, facecolor=(0.5, 0.5, 0.5, 0.45), edgecolor="grey",
-                             label=visited_words(views, len(z) - 1, env.n_levels)))
+    handles.append(
+        Rectangle(
+            (0, 0),
+            1,
+            1,
+            facecolor=(0.5, 0.5, 0.5, 0.45),
+            edgecolor="grey",
+            label=visited_words(views, len(z) - 1, env.n_levels),
+        )
+    )
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(0.0, -0.12), fontsize="small", frameon=False)
-    ax.set_title(_titled("\n".join(t for t in (title, _label_and_score(params, slide_index, score)) if t),
-                         env, slide_index), fontsize="medium")
+    ax.set_title(
+        _titled("\n".join(t for t in (title, _label_and_score(params, slide_index, score)) if t), env, slide_index),
+        fontsize="medium",
+    )
     return fig
 
 
@@ -403,8 +476,10 @@ def visited_words(views, steps: int, n_levels: int) -> str:
     says why it stands beside "0 % read"."""
     levels = sorted({int(v[0][0]) for v in views})
     finest = sum(int(v[0][0]) == n_levels - 1 for v in views)
-    return (f"{_count(len(views), 'view')} stood on in {_count(steps, 'step')} (levels {levels}; fill: darker at "
-            f"finer levels)\n{finest} of them at the finest level ({n_levels - 1}), the only views counted as read")
+    return (
+        f"{_count(len(views), 'view')} stood on in {_count(steps, 'step')} (levels {levels}; fill: darker at "
+        f"finer levels)\n{finest} of them at the finest level ({n_levels - 1}), the only views counted as read"
+    )
 
 
 def _label_and_score(params, slide_index: int, score) -> str:
@@ -420,12 +495,12 @@ def _label_and_score(params, slide_index: int, score) -> str:
     return ", ".join(parts)
 
 
-def render_reading_map(env, params, record, slide_index: int | None = None, score=None, path=None, title: str = "",
-                       max_side: int = 640) -> np.ndarray:
+def render_reading_map(
+    env, params, record, slide_index: int | None = None, score=None, path=None, title: str = "", max_side: int = 640
+) -> np.ndarray:
     """Draw :func:`reading_map_figure` (where a policy read on one slide; ``record`` the episode's per-step
     ``z, x, y``); saves a PNG to ``path`` when given. Returns the RGB uint8 picture ``(H, W, 3)``."""
-    fig = reading_map_figure(env, params, record, slide_index=slide_index, score=score, title=title,
-                             max_side=max_side)
+    fig = reading_map_figure(env, params, record, slide_index=slide_index, score=score, title=title, max_side=max_side)
     return _save(figure_rgb(fig), path)
 
 
@@ -444,11 +519,14 @@ def feature_heatmap(env, params, slide_index: int, z: int):
     s = slides.select(int(slide_index))
     off = int(np.asarray(s.feature_offset)[z])
     gw, gh = int(np.asarray(s.feature_grid_width)[z]), int(np.asarray(s.feature_grid_height)[z])
-    grid = np.asarray(s.features[off:off + gw * gh], np.float32).reshape(gh, gw, -1)
+    grid = np.asarray(s.features[off : off + gw * gh], np.float32).reshape(gh, gw, -1)
     encoder = (dict(bundle_of(env, slide_index).metadata).get("features") or {}).get("encoder") or "unknown encoder"
     if str(encoder).startswith(pcam_cnn.NAME) and grid.shape[-1] > pcam_cnn.VIEW_LOGIT:
-        return grid[..., pcam_cnn.VIEW_LOGIT], int(np.asarray(s.feature_stride)), \
-            f"tumour logit ({encoder}, feature {pcam_cnn.VIEW_LOGIT})"
+        return (
+            grid[..., pcam_cnn.VIEW_LOGIT],
+            int(np.asarray(s.feature_stride)),
+            f"tumour logit ({encoder}, feature {pcam_cnn.VIEW_LOGIT})",
+        )
     flat = grid.reshape(-1, grid.shape[-1])
     values = np.linalg.norm(grid - np.median(flat, axis=0), axis=-1)
     return values, int(np.asarray(s.feature_stride)), f"|features - median| ({encoder}: no tumour logit)"
@@ -466,7 +544,7 @@ def _heat_panel(heat, x: int, y: int, tile: int, side: int, limits) -> Image.Ima
     gh, gw = values.shape
     y0, x0 = fy - r, fx - r
     ys, xs = slice(max(0, y0), min(gh, y0 + window.shape[0])), slice(max(0, x0), min(gw, x0 + window.shape[1]))
-    window[ys.start - y0:ys.stop - y0, xs.start - x0:xs.stop - x0] = values[ys, xs]
+    window[ys.start - y0 : ys.stop - y0, xs.start - x0 : xs.stop - x0] = values[ys, xs]
     lo, hi = limits
     rgba = colormaps["YlOrRd"](np.clip((window - lo) / max(hi - lo, 1e-9), 0, 1))  # low: pale, high: dark red
     rgb = (rgba[..., :3] * 255).astype(np.uint8)
@@ -474,15 +552,25 @@ def _heat_panel(heat, x: int, y: int, tile: int, side: int, limits) -> Image.Ima
     panel = Image.fromarray(rgb).resize((side, side), Image.NEAREST)
     draw = ImageDraw.Draw(panel)
     cell = side / window.shape[0]
-    draw.rectangle([r * cell, r * cell, (r + per_view) * cell - 1, (r + per_view) * cell - 1], outline=(0, 200, 255),
-                   width=3)
+    draw.rectangle(
+        [r * cell, r * cell, (r + per_view) * cell - 1, (r + per_view) * cell - 1], outline=(0, 200, 255), width=3
+    )
     draw.rectangle([0, 0, side, 14], fill=(255, 255, 255))
     draw.text((3, 2), f"{label}: {lo:.2g} to {hi:.2g}", fill=(0, 0, 0))
     return panel
 
 
-def animate(env, z, x=None, y=None, path="trajectory.gif", fps: int = 4, max_side: int = 480,
-            slide_index: int | None = None, params=None) -> Path:
+def animate(
+    env,
+    z,
+    x=None,
+    y=None,
+    path="trajectory.gif",
+    fps: int = 4,
+    max_side: int = 480,
+    slide_index: int | None = None,
+    params=None,
+) -> Path:
     """Write a GIF (Pillow, no ffmpeg) of a trajectory (``z, x, y`` sequences, first entry the view at
     reset, or a stacked ``EnvState``) on its own slide (``slide_index``, default the state's, else 0):
     each frame shows the thumbnail with the current view box beside the view itself. A feature-only
@@ -502,7 +590,7 @@ def animate(env, z, x=None, y=None, path="trajectory.gif", fps: int = 4, max_sid
         level = bundle.pixels[zi]
         side = overview.height
         if getattr(level, "has_pixels", True):
-            view = Image.fromarray(np.asarray(level[yi:yi + env.tile_size, xi:xi + env.tile_size]))
+            view = Image.fromarray(np.asarray(level[yi : yi + env.tile_size, xi : xi + env.tile_size]))
             view = view.resize((side, side), Image.NEAREST)
         else:  # a feature-only bundle keeps no pixels at this level: its features as a heat map
             if zi not in heats:

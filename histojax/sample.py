@@ -3,6 +3,7 @@
 The annotation shipped with it is an illustrative *navigation target* drawn on visible
 epithelium for the demo — not a diagnosis.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -20,8 +21,14 @@ def sample_bundle(tile_size: int = 128, progress: bool = True) -> Path:
     from data_tools.bundle_files.format import FORMAT_VERSION, text_digest
 
     digest = text_digest(SAMPLE_SLIDE.read_bytes() + SAMPLE_ANNOTATIONS.read_bytes(), 12)
-    return cached_bundle(SAMPLE_SLIDE, SAMPLE_ANNOTATIONS, tile_size=tile_size, progress=progress, storage="dense",
-                         name=f"cmu-1-small-region-t{tile_size}-v{FORMAT_VERSION}-{digest}")
+    return cached_bundle(
+        SAMPLE_SLIDE,
+        SAMPLE_ANNOTATIONS,
+        tile_size=tile_size,
+        progress=progress,
+        storage="dense",
+        name=f"cmu-1-small-region-t{tile_size}-v{FORMAT_VERSION}-{digest}",
+    )
 
 
 def sample_feature_bundle() -> Path:

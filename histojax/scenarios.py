@@ -35,6 +35,7 @@ is built into a bundle in the cache (:func:`histojax.cache.cached_bundle`) the f
 and reused after. Several slides make a dataset (``reset`` draws one);
 ``make(id, split="train" | "test" | "all")`` picks the scenario's ``train`` / ``test`` lists.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -53,8 +54,23 @@ except ModuleNotFoundError:  # pragma: no cover - Python 3.10
     import tomli as tomllib  # type: ignore[no-redef]
 
 DEFAULT_MAX_STEPS = {3: 100, 5: 200, 7: 300}
-_KEYS = ("id", "slides", "n_levels", "levels", "tile_size", "reward", "obs_mode", "action_mode", "with_position",
-         "max_steps_in_episode", "label_map", "region", "params", "train", "test")
+_KEYS = (
+    "id",
+    "slides",
+    "n_levels",
+    "levels",
+    "tile_size",
+    "reward",
+    "obs_mode",
+    "action_mode",
+    "with_position",
+    "max_steps_in_episode",
+    "label_map",
+    "region",
+    "params",
+    "train",
+    "test",
+)
 
 
 class ScenarioError(HistojaxDataError, ValueError):
@@ -100,7 +116,7 @@ class Scenario:
     """A registered environment as data (see the module doc for every field)."""
 
     id: str
-    slides: tuple[SlideSource, ...] | None = None   # None: the embedded sample slide
+    slides: tuple[SlideSource, ...] | None = None  # None: the embedded sample slide
     n_levels: int = 3
     tile_size: int = 128
     reward: str = "dense"
@@ -113,7 +129,7 @@ class Scenario:
     params: dict[str, Any] = dataclasses.field(default_factory=dict)
     train: tuple[str, ...] = ()
     test: tuple[str, ...] = ()
-    source: str | None = None                       # the file it was loaded from
+    source: str | None = None  # the file it was loaded from
 
     @property
     def levels(self) -> int:
@@ -123,9 +139,16 @@ class Scenario:
     def spec(self) -> dict:
         """The :class:`histojax.registry.EnvSpec` settings of this scenario."""
         steps = self.max_steps_in_episode or DEFAULT_MAX_STEPS.get(self.n_levels, 50 * self.n_levels)
-        return dict(n_levels=self.n_levels, tile_size=self.tile_size, reward=self.reward, obs_mode=self.obs_mode,
-                    action_mode=self.action_mode, with_position=self.with_position,
-                    max_steps_in_episode=steps, **self.params)
+        return dict(
+            n_levels=self.n_levels,
+            tile_size=self.tile_size,
+            reward=self.reward,
+            obs_mode=self.obs_mode,
+            action_mode=self.action_mode,
+            with_position=self.with_position,
+            max_steps_in_episode=steps,
+            **self.params,
+        )
 
 
 # ----------------------------------------------------------------------------- loading
@@ -157,8 +180,10 @@ def _slide_source(item, base, where) -> SlideSource:
                 _fail(where, "a bundle already holds its annotations; give 'slide' + 'annotations' instead")
             return SlideSource(bundle=_path(item["bundle"], base, where, "bundle"))
         ann = item.get("annotations")
-        return SlideSource(slide=_path(item["slide"], base, where, "slide"),
-                           annotations=None if ann is None else _path(ann, base, where, "annotations"))
+        return SlideSource(
+            slide=_path(item["slide"], base, where, "slide"),
+            annotations=None if ann is None else _path(ann, base, where, "annotations"),
+        )
     _fail(where, f"slides entry {item!r} must be a path or a table with 'slide'/'bundle'")
 
 
@@ -170,8 +195,11 @@ def _region(value, where) -> RegionRule | None:
     extra = set(value) - {"box", "group", "polygon", "margin"}
     given = [k for k in ("box", "group", "polygon") if k in value]
     if extra or len(given) != 1:
-        _fail(where, f"region must have exactly one of 'box', 'group', 'polygon' (and optional 'margin'), "
-                     f"got keys {sorted(value)}")
+        _fail(
+            where,
+            f"region must have exactly one of 'box', 'group', 'polygon' (and optional 'margin'), "
+            f"got keys {sorted(value)}",
+        )
     margin = value.get("margin", 0.0)
     if isinstance(margin, bool) or not isinstance(margin, (int, float)) or margin < 0:
         _fail(where, f"region margin must be a number >= 0 (level-0 px), got {margin!r}")
@@ -190,8 +218,11 @@ def _region(value, where) -> RegionRule | None:
             raise ValueError
         return RegionRule(polygon=poly, margin=float(margin))
     except (TypeError, ValueError):
-        _fail(where, f"region {given[0]} = {value[given[0]]!r} is malformed (box: [x0, y0, x1, y1] with "
-                     "x0 < x1, y0 < y1; group: a name; polygon: at least 3 [x, y] vertices)")
+        _fail(
+            where,
+            f"region {given[0]} = {value[given[0]]!r} is malformed (box: [x0, y0, x1, y1] with "
+            "x0 < x1, y0 < y1; group: a name; polygon: at least 3 [x, y] vertices)",
+        )
 
 
 def scenario_from_dict(data: dict, base: Path | None = None, where=None) -> Scenario:
@@ -199,7 +230,8 @@ def scenario_from_dict(data: dict, base: Path | None = None, where=None) -> Scen
     relative paths are taken from ``base``. Errors name ``where``."""
     from data_tools.annotations import LABELS
     from histojax.core import rewards
-    from histojax.core.modes.factory import ACTION_MODES as action_modes, OBS_MODES as obs_modes
+    from histojax.core.modes.factory import ACTION_MODES as action_modes
+    from histojax.core.modes.factory import OBS_MODES as obs_modes
     from histojax.registry import PARAM_FIELDS
 
     if not isinstance(data, dict):
@@ -227,13 +259,22 @@ def scenario_from_dict(data: dict, base: Path | None = None, where=None) -> Scen
     check("obs_mode", lambda v: v in obs_modes, f"one of {tuple(obs_modes)}")
     check("action_mode", lambda v: v in action_modes, f"one of {tuple(action_modes)}")
     check("with_position", lambda v: isinstance(v, bool), "true or false")
-    check("label_map", lambda v: isinstance(v, dict) and all(x in LABELS for x in v.values()),
-          f"a table mapping annotation groups to one of {LABELS}")
-    check("params", lambda v: isinstance(v, dict) and set(v) <= set(PARAM_FIELDS) - {"max_steps_in_episode"},
-          f"a table of EnvParams fields among {[f for f in PARAM_FIELDS if f != 'max_steps_in_episode']}")
+    check(
+        "label_map",
+        lambda v: isinstance(v, dict) and all(x in LABELS for x in v.values()),
+        f"a table mapping annotation groups to one of {LABELS}",
+    )
+    check(
+        "params",
+        lambda v: isinstance(v, dict) and set(v) <= set(PARAM_FIELDS) - {"max_steps_in_episode"},
+        f"a table of EnvParams fields among {[f for f in PARAM_FIELDS if f != 'max_steps_in_episode']}",
+    )
     for split in ("train", "test"):
-        check(split, lambda v: isinstance(v, list) and all(isinstance(x, (str, int)) for x in v),
-              "a list of slide names or indices")
+        check(
+            split,
+            lambda v: isinstance(v, list) and all(isinstance(x, (str, int)) for x in v),
+            "a list of slide names or indices",
+        )
     slides = data.get("slides")
     if slides is not None:
         if isinstance(slides, (str, dict)):
@@ -242,13 +283,20 @@ def scenario_from_dict(data: dict, base: Path | None = None, where=None) -> Scen
             _fail(where, "slides must be a non-empty list (leave it out for the embedded sample slide)")
         slides = tuple(_slide_source(s, base, where) for s in slides)
     return Scenario(
-        id=data["id"].strip(), slides=slides,
-        n_levels=data.get("n_levels", data.get("levels", 3)), tile_size=data.get("tile_size", 128), reward=data.get("reward", "dense"),
-        obs_mode=data.get("obs_mode", "pixels"), action_mode=data.get("action_mode", "discrete"),
-        with_position=data.get("with_position", False), max_steps_in_episode=data.get("max_steps_in_episode"),
-        label_map=data.get("label_map"), region=_region(data.get("region"), where),
+        id=data["id"].strip(),
+        slides=slides,
+        n_levels=data.get("n_levels", data.get("levels", 3)),
+        tile_size=data.get("tile_size", 128),
+        reward=data.get("reward", "dense"),
+        obs_mode=data.get("obs_mode", "pixels"),
+        action_mode=data.get("action_mode", "discrete"),
+        with_position=data.get("with_position", False),
+        max_steps_in_episode=data.get("max_steps_in_episode"),
+        label_map=data.get("label_map"),
+        region=_region(data.get("region"), where),
         params=dict(data.get("params", {})),
-        train=tuple(str(x) for x in data.get("train", ())), test=tuple(str(x) for x in data.get("test", ())),
+        train=tuple(str(x) for x in data.get("train", ())),
+        test=tuple(str(x) for x in data.get("test", ())),
         source=None if where is None else str(where),
     )
 
@@ -292,12 +340,19 @@ def _recipe(scenario: Scenario):
 
         n, tile = int(spec["n_levels"]), int(spec.get("tile_size", scenario.tile_size))
         level_sets = LEVEL_SETS if n in LEVEL_SETS else (n,)
+
         def one(source: SlideSource):
             if source.bundle is not None:
                 return source.bundle
-            return cached_bundle(source.slide, source.annotations, tile_size=tile, level_sets=level_sets,
-                                 label_map=scenario.label_map, region=scenario.region,
-                                 prefix=f"scenario-{_slug(scenario.id)}")
+            return cached_bundle(
+                source.slide,
+                source.annotations,
+                tile_size=tile,
+                level_sets=level_sets,
+                label_map=scenario.label_map,
+                region=scenario.region,
+                prefix=f"scenario-{_slug(scenario.id)}",
+            )
 
         if scenario.slides is None:
             if scenario.region is None and not scenario.label_map and n in LEVEL_SETS:
@@ -322,9 +377,12 @@ def register_scenario(scenario_or_path) -> Scenario:
     scenario = scenario_or_path if isinstance(scenario_or_path, Scenario) else load_scenario(scenario_or_path)
     where = scenario.source or scenario.id
     if scenario.region is not None and scenario.slides is not None and scenario.slides[0].bundle is not None:
-        raise ScenarioError(where, "a region rule needs the slide file (a bundle is already cut); give "
-                            "{slide = ..., annotations = ...} or build the region with "
-                            "`python -m data_tools build SLIDE --region ...`")
+        raise ScenarioError(
+            where,
+            "a region rule needs the slide file (a bundle is already cut); give "
+            "{slide = ..., annotations = ...} or build the region with "
+            "`python -m data_tools build SLIDE --region ...`",
+        )
     names = {s.name for s in scenario.slides or ()} | {"0"} | ({"sample"} if scenario.slides is None else set())
     for split in (*scenario.train, *scenario.test):
         if split not in names:
@@ -340,8 +398,20 @@ def register_scenario(scenario_or_path) -> Scenario:
 TARGET_MARGIN = 300  # level-0 px around the embedded slide's target annotation
 
 for _name, _levels in (("Easy", 3), ("Medium", 5), ("Hard", 7)):
-    register_scenario(Scenario(id=f"HistoJAX-{_name}-Region-v0", n_levels=_levels,
-                               region=RegionRule(group="tumour", margin=TARGET_MARGIN)))
+    register_scenario(
+        Scenario(
+            id=f"HistoJAX-{_name}-Region-v0", n_levels=_levels, region=RegionRule(group="tumour", margin=TARGET_MARGIN)
+        )
+    )
 
-__all__ = ["RegionRule", "Scenario", "ScenarioError", "SlideSource", "cached_bundle", "file_digest",
-           "load_scenario", "register_scenario", "scenario_from_dict"]
+__all__ = [
+    "RegionRule",
+    "Scenario",
+    "ScenarioError",
+    "SlideSource",
+    "cached_bundle",
+    "file_digest",
+    "load_scenario",
+    "register_scenario",
+    "scenario_from_dict",
+]

@@ -18,6 +18,7 @@ slide is ``groups[d][state.slide_index]`` (:func:`slide_groups`).
 Several processes (``jax.distributed.initialize``): each process loads only the groups of the
 mesh devices it addresses; the padded shapes are agreed with one small all-gather.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -31,17 +32,32 @@ from jax.sharding import PartitionSpec as P
 from histojax.core.slide import SlideArrays
 
 # leaves of a stacked SlideArrays with one row per slide (the others are flat pools / tables)
-PER_SLIDE = ("level_offset", "level_width", "level_height", "downsample", "sat_offset", "start_logits",
-             "feature_offset", "feature_grid_width", "feature_grid_height", "feature_stride", "slide_label",
-             "slide_logits", "tile_offset", "tile_grid_width")
+PER_SLIDE = (
+    "level_offset",
+    "level_width",
+    "level_height",
+    "downsample",
+    "sat_offset",
+    "start_logits",
+    "feature_offset",
+    "feature_grid_width",
+    "feature_grid_height",
+    "feature_stride",
+    "slide_label",
+    "slide_logits",
+    "tile_offset",
+    "tile_grid_width",
+)
 
 
 def round_robin(items: list, n: int) -> list[list]:
     """``items`` dealt to ``n`` groups: group ``d`` = ``items[d::n]`` (sizes differ by at most 1).
     Raises ``ValueError`` when there are fewer items than groups."""
     if len(items) < n:
-        raise ValueError(f"{len(items)} slide(s) cannot be sharded over {n} devices: every device needs at "
-                         "least one slide (use fewer devices, or more slides)")
+        raise ValueError(
+            f"{len(items)} slide(s) cannot be sharded over {n} devices: every device needs at "
+            "least one slide (use fewer devices, or more slides)"
+        )
     return [list(items[d::n]) for d in range(n)]
 
 
@@ -60,8 +76,11 @@ def pad_leaf(a: np.ndarray, shape: tuple, name: str) -> np.ndarray:
 
 def host_leaves(slide: SlideArrays) -> dict[str, np.ndarray]:
     """The non-None leaves of a ``SlideArrays`` as host numpy arrays (copies), by field name."""
-    return {f.name: np.array(getattr(slide, f.name)) for f in dataclasses.fields(slide)
-            if getattr(slide, f.name) is not None and f.name != "start_cdf"}  # derived: padding changes it
+    return {
+        f.name: np.array(getattr(slide, f.name))
+        for f in dataclasses.fields(slide)
+        if getattr(slide, f.name) is not None and f.name != "start_cdf"
+    }  # derived: padding changes it
 
 
 def _global_shapes(local: list[dict[str, np.ndarray]]) -> dict[str, tuple]:
@@ -77,7 +96,7 @@ def _global_shapes(local: list[dict[str, np.ndarray]]) -> dict[str, tuple]:
     shapes, i = {}, 0
     for n in names:
         k = local[0][n].ndim
-        shapes[n] = tuple(int(v) for v in flat[i:i + k])
+        shapes[n] = tuple(int(v) for v in flat[i : i + k])
         i += k
     return shapes
 
@@ -127,6 +146,7 @@ def vmap_local(fn, mesh: Mesh, num_args: int, axis: str = "batch"):
     mesh device ``d`` with that device's slides (``params.slide`` a sharded dataset, see
     :func:`place_groups`). Outputs keep the env batch axis, split the same way. Works under
     ``jax.vmap`` (e.g. over seeds) and inside ``jit``."""
+
     def per_device(params, *args):
         params = params.replace(slide=local_view(params.slide))
         return jax.vmap(fn, in_axes=(0,) * num_args + (None,))(*args, params)
@@ -134,8 +154,13 @@ def vmap_local(fn, mesh: Mesh, num_args: int, axis: str = "batch"):
     def call(*args):
         *batched, params = args
         assert len(batched) == num_args, (len(batched), num_args)
-        mapped = jax.shard_map(per_device, mesh=mesh, in_specs=(param_specs(params, axis),) + (P(axis),) * num_args,
-                               out_specs=P(axis), check_vma=False)
+        mapped = jax.shard_map(
+            per_device,
+            mesh=mesh,
+            in_specs=(param_specs(params, axis),) + (P(axis),) * num_args,
+            out_specs=P(axis),
+            check_vma=False,
+        )
         return mapped(params, *batched)
 
     return call
@@ -153,8 +178,16 @@ def slide_groups(paths: list, mesh: Mesh) -> list[list]:
     return round_robin(list(paths), mesh.size)
 
 
-def make_sharded(env_id: str, mesh: Mesh, axis: str = "batch", slide=None, slides=None, dataset=None,
-                 split: str = "train", **overrides):
+def make_sharded(
+    env_id: str,
+    mesh: Mesh,
+    axis: str = "batch",
+    slide=None,
+    slides=None,
+    dataset=None,
+    split: str = "train",
+    **overrides,
+):
     """``(env, params)`` like :func:`histojax.make` but with the slides sharded over ``mesh``:
     the dataset's bundles (``slides=``, ``dataset=``, or the id's registered dataset) are dealt
     round-robin to the mesh devices (:func:`slide_groups`); each process loads only its devices'
@@ -165,8 +198,9 @@ def make_sharded(env_id: str, mesh: Mesh, axis: str = "batch", slide=None, slide
 
     kwargs = {k: overrides.pop(k) for k in ("verify", "max_device_bytes", "labels", "slide_weights") if k in overrides}
     if kwargs.get("slide_weights") is not None:
-        raise ValueError("slide_weights are not supported with sharded slides (each device draws uniformly "
-                         "among its own slides)")
+        raise ValueError(
+            "slide_weights are not supported with sharded slides (each device draws uniformly among its own slides)"
+        )
     kwargs.pop("slide_weights", None)
     paths = slide_paths(env_id, slide=slide, slides=slides, dataset=dataset, split=split, **overrides)
     groups = slide_groups(paths, mesh)

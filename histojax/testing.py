@@ -22,6 +22,7 @@ What is checked, for one env and its params (what a user of gymnax-style code re
 
 Each configuration compiles ``reset`` / ``step`` once and the batched scan once; budgets are small.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -74,19 +75,26 @@ def zoom_action(env, direction: int):
 def _contains(space, obs) -> bool:
     """``obs`` inside ``space`` with its shape and dtype (a dict member by member)."""
     if hasattr(space, "spaces"):
-        return isinstance(obs, dict) and set(obs) == set(space.spaces) and all(
-            _contains(space.spaces[k], obs[k]) for k in obs)
+        return (
+            isinstance(obs, dict)
+            and set(obs) == set(space.spaces)
+            and all(_contains(space.spaces[k], obs[k]) for k in obs)
+        )
     obs = jnp.asarray(obs)
-    return (tuple(obs.shape) == tuple(space.shape) and jnp.dtype(obs.dtype) == jnp.dtype(space.dtype)
-            and bool(space.contains(obs)))
+    return (
+        tuple(obs.shape) == tuple(space.shape)
+        and jnp.dtype(obs.dtype) == jnp.dtype(space.dtype)
+        and bool(space.contains(obs))
+    )
 
 
 def _same(a, b) -> bool:
     return all(bool(jnp.all(x == y)) for x, y in zip(jax.tree.leaves(a), jax.tree.leaves(b)))
 
 
-def check_env(env, params=None, *, batch: int = 16, steps: int = 32, jit_steps: int = 5, seed: int = 0,
-              label: str | None = None) -> ContractReport:
+def check_env(
+    env, params=None, *, batch: int = 16, steps: int = 32, jit_steps: int = 5, seed: int = 0, label: str | None = None
+) -> ContractReport:
     """Check ``env`` (with ``params``, default ``env.default_params``) against the contract in the module
     doc; ``batch`` envs × ``steps`` random steps in the scan, ``jit_steps`` steps compared with
     ``jax.disable_jit``. Returns a :class:`ContractReport` (it raises nothing on a failed check)."""
@@ -100,11 +108,17 @@ def check_env(env, params=None, *, batch: int = 16, steps: int = 32, jit_steps: 
         report.check(f"state.{f}", hasattr(state, f), "EnvState lacks field")
     if env.action_mode == "discrete" and env.task == "detection":
         report.check("7 actions", getattr(act_space, "n", None) == 7, f"n={getattr(act_space, 'n', None)}")
-    report.check("reset obs in space", _contains(obs_space, obs),
-                 f"obs={jax.tree.map(lambda a: (a.shape, a.dtype), obs)} space={obs_space}")
+    report.check(
+        "reset obs in space",
+        _contains(obs_space, obs),
+        f"obs={jax.tree.map(lambda a: (a.shape, a.dtype), obs)} space={obs_space}",
+    )
     out = step(key, state, act_space.sample(key), params)
-    report.check("6-tuple step", isinstance(out, tuple) and len(out) == 6,
-                 f"len={len(out) if isinstance(out, tuple) else type(out)}")
+    report.check(
+        "6-tuple step",
+        isinstance(out, tuple) and len(out) == 6,
+        f"len={len(out) if isinstance(out, tuple) else type(out)}",
+    )
 
     zoom_in, zoom_out = zoom_action(env, +1), zoom_action(env, -1)
     if zoom_in is not None:
@@ -126,24 +140,33 @@ def check_env(env, params=None, *, batch: int = 16, steps: int = 32, jit_steps: 
     def body(st, k):
         ka, ks = jax.random.split(k)
         acts = jax.vmap(act_space.sample)(jax.random.split(ka, batch))
-        o, st, r, te, tr, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(jax.random.split(ks, batch), st,
-                                                                               acts, params)
+        o, st, r, te, tr, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            jax.random.split(ks, batch), st, acts, params
+        )
         inside = jax.vmap(lambda x: jnp.asarray(obs_space.contains(x)))(o)
         return st, (r, st.z, st.x, st.y, inside)
 
     try:
         _, st_b = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, batch), params)
         _, (rs, zb, xb, yb, inside) = jax.jit(lambda s, ks: jax.lax.scan(body, s, ks))(
-            st_b, jax.random.split(key, steps))
+            st_b, jax.random.split(key, steps)
+        )
         slide = params.slide
         widths, heights = np.asarray(slide.level_width), np.asarray(slide.level_height)
         if widths.ndim == 2:  # a dataset: the largest slide's bounds
             widths, heights = widths.max(axis=0), heights.max(axis=0)
         zb, xb, yb = np.asarray(zb), np.asarray(xb), np.asarray(yb)
         report.check("vmap+scan finite rewards", bool(jnp.all(jnp.isfinite(rs))), "non-finite reward")
-        report.check("positions inside the level", bool(
-            (xb >= 0).all() and (yb >= 0).all() and (xb <= widths[zb] - env.tile_size).all()
-            and (yb <= heights[zb] - env.tile_size).all()), "x/y outside [0, level size - tile_size]")
+        report.check(
+            "positions inside the level",
+            bool(
+                (xb >= 0).all()
+                and (yb >= 0).all()
+                and (xb <= widths[zb] - env.tile_size).all()
+                and (yb <= heights[zb] - env.tile_size).all()
+            ),
+            "x/y outside [0, level size - tile_size]",
+        )
         report.check("vmap+scan obs in space", bool(jnp.all(inside)), "an observation left the space")
     except Exception as e:  # noqa: BLE001  (a crash is a failed check, reported with its cause)
         report.check("vmap+scan", False, repr(e)[:200])

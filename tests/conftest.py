@@ -5,6 +5,7 @@ The tests live in folders by subject (``env/``, ``reading/``, ``data_pipeline/``
 builders one test module lends another (``test_head.make_dataset``, ``test_budget_curve.planted_head``, …) are
 imported by module name, so this folder and every subject folder are on ``sys.path`` before any test module loads.
 """
+
 from __future__ import annotations
 
 import os
@@ -31,8 +32,7 @@ def sample_envs():
     """``{env_id: (env, params)}`` for the three built-in scenarios on the embedded slide."""
     import histojax
 
-    return {env_id: histojax.make(env_id) for env_id in
-            ("HistoJAX-Easy-v0", "HistoJAX-Medium-v0", "HistoJAX-Hard-v0")}
+    return {env_id: histojax.make(env_id) for env_id in ("HistoJAX-Easy-v0", "HistoJAX-Medium-v0", "HistoJAX-Hard-v0")}
 
 
 @pytest.fixture(scope="session")
@@ -42,8 +42,9 @@ def small_slides(tmp_path_factory):
     from data_tools.datasets.synth.dataset import make_dataset
 
     root = tmp_path_factory.mktemp("small-slides")
-    ds = make_dataset(root, n_slides=8, size=(320, 256), seed=0, tile_size=32, level_sets=(3,), progress=False,
-                      previews=False)
+    ds = make_dataset(
+        root, n_slides=8, size=(320, 256), seed=0, tile_size=32, level_sets=(3,), progress=False, previews=False
+    )
     return [str(root / s["bundle"]) for s in ds["slides"]]
 
 
@@ -73,8 +74,18 @@ def _colour_feature_grid(src, dest=None):
         save_array(dest / f"features_{k:02d}.npy", grid)
         written.append(f"features_{k:02d}.npy")
         levels.append({"file": f"features_{k:02d}.npy", "grid": [gh, gw]})
-    update_metadata(dest, {"encoder": "mean-std-rgb (tests)", "dim": 6, "stride": tile, "dtype": "float32",
-                           "projection": None, "levels": levels}, written)
+    update_metadata(
+        dest,
+        {
+            "encoder": "mean-std-rgb (tests)",
+            "dim": 6,
+            "stride": tile,
+            "dtype": "float32",
+            "projection": None,
+            "levels": levels,
+        },
+        written,
+    )
     return dest
 
 

@@ -1,5 +1,6 @@
 """Tiny encoders for tests/data_pipeline/test_own_encoder.py (``--encoder encoder_helpers:NAME``): one that keeps the
 rules (``uint8 (N, H, W, 3) → float32 (N, D)``) and one for each rule broken."""
+
 from __future__ import annotations
 
 import jax

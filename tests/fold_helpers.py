@@ -1,4 +1,5 @@
 """The small folded dataset of the fold tests (``tests/data_pipeline/test_folds.py``, ``tests/reading/test_all_folds.py``), built once here."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -24,12 +25,35 @@ def build_folded(root: Path, folds: int = 2, encoder: str | None = None) -> Path
     rows = ["slide,label,patient"]
     for i, (name, label) in enumerate(SLIDES):
         y, x = 320 + i * 160, 768 + (i * 64) % 512
-        tifffile.imwrite(slides / f"{name}.tif", np.ascontiguousarray(pixels[y:y + 256, x:x + 320, :3]),
-                         photometric="rgb", resolution=(2e4, 2e4), resolutionunit="CENTIMETER")
+        tifffile.imwrite(
+            slides / f"{name}.tif",
+            np.ascontiguousarray(pixels[y : y + 256, x : x + 320, :3]),
+            photometric="rgb",
+            resolution=(2e4, 2e4),
+            resolutionunit="CENTIMETER",
+        )
         rows.append(f"{name},{label},{'PT' if name in ('t0', 't1') else name.upper()}")
     (root / "labels.csv").write_text("\n".join(rows) + "\n")
     out = root / "ds"
-    assert data_main(["dataset", str(slides), "--out", str(out), "--labels", str(root / "labels.csv"), "--levels",
-                      "3", "--tile-size", "64", "--quiet", "--folds", str(folds),
-                      *(["--encoder", encoder] if encoder else [])]) == 0
+    assert (
+        data_main(
+            [
+                "dataset",
+                str(slides),
+                "--out",
+                str(out),
+                "--labels",
+                str(root / "labels.csv"),
+                "--levels",
+                "3",
+                "--tile-size",
+                "64",
+                "--quiet",
+                "--folds",
+                str(folds),
+                *(["--encoder", encoder] if encoder else []),
+            ]
+        )
+        == 0
+    )
     return out

@@ -1,5 +1,6 @@
 """How many examples a hypothesis test draws: a few in ``make test`` (the default run stays under 10 minutes on
 2 CPU cores), the full count under ``make test-all``, which sets ``HISTOJAX_TEST_ALL=1``."""
+
 from __future__ import annotations
 
 import os

@@ -8,6 +8,7 @@ slide's tumour views (a rectangle of views, tumour slides only) and whose entry 
 stain-like nuisance), ``Q`` a random orthogonal matrix, so the tumour direction is ``Q[0]``, spread over every
 entry. Labels are in ``dataset.json``'s ``labels``.
 """
+
 from __future__ import annotations
 
 import json
@@ -37,8 +38,16 @@ def _template(root: Path) -> Path:
     return build_bundle(root / "template.tif", root / "template", level_sets=(3,), tile_size=TILE, progress=False)
 
 
-def make_cohort(root, tumour: int = 16, normal: int = 16, test_tumour: int = 4, test_normal: int = 4,
-                dim: int = 48, signal: float = 2.5, seed: int = 0) -> dict:
+def make_cohort(
+    root,
+    tumour: int = 16,
+    normal: int = 16,
+    test_tumour: int = 4,
+    test_normal: int = 4,
+    dim: int = 48,
+    signal: float = 2.5,
+    seed: int = 0,
+) -> dict:
     """Build the cohort under ``root`` (``dataset.json``, ``bundles/``, ``features/*.h5``); returns ``{"root",
     "q" (D, D), "direction" (D,), "tumour" {name: (16, 20) bool tumour views}, "names" {"train": [...], "test":
     [...]}}``."""
@@ -55,8 +64,7 @@ def make_cohort(root, tumour: int = 16, normal: int = 16, test_tumour: int = 4, 
     ys, xs = np.meshgrid(np.arange(gh), np.arange(gw), indexing="ij")
     coords = np.stack([xs.ravel() * TILE, ys.ravel() * TILE], 1)
     (root / "features").mkdir(exist_ok=True)
-    plan = ([("train", 1)] * tumour + [("train", 0)] * normal + [("test", 1)] * test_tumour
-            + [("test", 0)] * test_normal)
+    plan = [("train", 1)] * tumour + [("train", 0)] * normal + [("test", 1)] * test_tumour + [("test", 0)] * test_normal
     spec = {"kind": "learned-head test cohort", "train": [], "test": [], "labels": {}}
     masks = {}
     for i, (split, label) in enumerate(plan):
@@ -67,7 +75,7 @@ def make_cohort(root, tumour: int = 16, normal: int = 16, test_tumour: int = 4, 
         if label:
             h, w = rng.integers(2, 5, 2)
             y0, x0 = rng.integers(1, 15 - h), rng.integers(1, 19 - w)
-            m[y0:y0 + h, x0:x0 + w] = True
+            m[y0 : y0 + h, x0 : x0 + w] = True
         z = rng.normal(size=(gh * gw, dim))
         z[:, 0] += signal * m.ravel()
         z[:, 1] += rng.normal(0, 1.5)
@@ -82,5 +90,10 @@ def make_cohort(root, tumour: int = 16, normal: int = 16, test_tumour: int = 4, 
         masks[name] = m
     shutil.rmtree(template)
     (root / "dataset.json").write_text(json.dumps(spec, indent=1))
-    return {"root": root, "q": q, "direction": q[0], "tumour": masks,
-            "names": {s: [Path(e).name for e in spec[s]] for s in ("train", "test")}}
+    return {
+        "root": root,
+        "q": q,
+        "direction": q[0],
+        "tumour": masks,
+        "names": {s: [Path(e).name for e in spec[s]] for s in ("train", "test")},
+    }

@@ -10,6 +10,7 @@ averaged 2 × 2, ``IMAGE_CONCAT_FACTOR=1``: one image per 2 × 2 of level 0), ev
 per zoom level) and the non-hierarchical root (0: no records); each level pointer → ``(0, page)``, the page
 ``(count, next = 0)`` then ``count`` records ``(image index = y · IMAGENUMBER_X + x, offset, length, file 0)``.
 """
+
 from __future__ import annotations
 
 import io
@@ -37,7 +38,7 @@ def mirax(path, rgb: np.ndarray, tile: int = 128, mpp: float = 0.25):
         ents = []
         for y in range(0, ny, concat):
             for x in range(0, nx, concat):
-                t = img[y // concat * tile:(y // concat + 1) * tile, x // concat * tile:(x // concat + 1) * tile]
+                t = img[y // concat * tile : (y // concat + 1) * tile, x // concat * tile : (x // concat + 1) * tile]
                 buf = io.BytesIO()
                 Image.fromarray(np.ascontiguousarray(t)).save(buf, "PNG")
                 ents.append((y * nx + x, blob.tell(), len(buf.getvalue()), 0))
@@ -60,7 +61,8 @@ def mirax(path, rgb: np.ndarray, tile: int = 128, mpp: float = 0.25):
             out += struct.pack("<iiii", *e)
         struct.pack_into("<i", out, table + 4 * k, hdr)
     (data_dir / "Index.dat").write_bytes(bytes(out))
-    sections = "".join(f"""
+    sections = "".join(
+        f"""
 [LAYER_0_LEVEL_{k}_SECTION]
 IMAGE_CONCAT_FACTOR={k}
 OVERLAP_X=0
@@ -71,8 +73,11 @@ IMAGE_FILL_COLOR_BGR=16777215
 DIGITIZER_WIDTH={tile}
 DIGITIZER_HEIGHT={tile}
 IMAGE_FORMAT=PNG
-""" for k in range(len(levels)))
-    (data_dir / "Slidedat.ini").write_text(f"""[GENERAL]
+"""
+        for k in range(len(levels))
+    )
+    (data_dir / "Slidedat.ini").write_text(
+        f"""[GENERAL]
 SLIDE_VERSION=01.02
 SLIDE_ID={slide_id}
 IMAGENUMBER_X={nx}
@@ -86,10 +91,17 @@ NONHIER_COUNT=0
 INDEXFILE=Index.dat
 HIER_0_NAME=Slide zoom level
 HIER_0_COUNT={len(levels)}
-""" + "".join(f"HIER_0_VAL_{k}=ZoomLevel_{k}\nHIER_0_VAL_{k}_SECTION=LAYER_0_LEVEL_{k}_SECTION\n" for k in range(len(levels))) + """
+"""
+        + "".join(
+            f"HIER_0_VAL_{k}=ZoomLevel_{k}\nHIER_0_VAL_{k}_SECTION=LAYER_0_LEVEL_{k}_SECTION\n"
+            for k in range(len(levels))
+        )
+        + """
 [DATAFILE]
 FILE_COUNT=1
 FILE_0=Data0000.dat
-""" + sections)
+"""
+        + sections
+    )
     path.write_bytes(b"")  # the .mrxs itself: OpenSlide needs it to exist
     return path, levels

@@ -1,4 +1,5 @@
 """Small slide files for the tests, shared by the test modules that import them."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -32,9 +33,9 @@ def tiny_feature_bundle(root: Path, seed: int, tile: int = 32) -> Path:
     from data_tools.features.grid import compute_features
 
     rng = np.random.default_rng(seed)
-    image = np.full((768, 1024, 3), 245, np.uint8)                      # glass
-    image[80:680, 60:940] = [230, 160, 200]                              # pink tissue
-    image[200:360, 600:840] = [120, 40, 140]                             # purple "tumour"
+    image = np.full((768, 1024, 3), 245, np.uint8)  # glass
+    image[80:680, 60:940] = [230, 160, 200]  # pink tissue
+    image[200:360, 600:840] = [120, 40, 140]  # purple "tumour"
     image = np.clip(image.astype(int) + rng.integers(-8, 9, image.shape), 0, 255).astype(np.uint8)
     tifffile.imwrite(root / "tiny.tif", image, photometric="rgb")
     path = build_bundle(root / "tiny.tif", root / "bundle", level_sets=(3,), tile_size=tile, progress=False)
@@ -48,7 +49,16 @@ def synth_feature_dataset(root: Path, n_slides: int, negatives: int) -> Path:
     from baselines.reading.budget_curve import compute_missing_features
     from data_tools.datasets.synth.dataset import make_dataset
 
-    make_dataset(root, n_slides=n_slides, negatives=negatives, size=(320, 256), seed=0, tile_size=32,
-                 level_sets=(3,), progress=False, previews=False)
+    make_dataset(
+        root,
+        n_slides=n_slides,
+        negatives=negatives,
+        size=(320, 256),
+        seed=0,
+        tile_size=32,
+        level_sets=(3,),
+        progress=False,
+        previews=False,
+    )
     compute_missing_features(root, "colour-stats")
     return root

@@ -10,6 +10,7 @@ A config is made once at the entry (the command line, or ``make_train`` given a 
 resumed runs and published agents keep loading: ``from_dict(as_dict())`` gives the config back, and every
 ``config.json`` a trainer wrote loads (older spellings such as ``obs`` renamed; entries it lacks take the defaults).
 """
+
 from __future__ import annotations
 
 import copy
@@ -25,8 +26,17 @@ from histojax.make_options import MakeOptions
 
 OLDER_SPELLINGS = {"obs": "obs_mode"}  # config keys of older runs → the env's spelling
 
-MAKE_ARGUMENTS = ("slide", "verify", "max_device_bytes", "slides", "slide_weights", "dataset", "split", "labels",
-                  "fold")
+MAKE_ARGUMENTS = (
+    "slide",
+    "verify",
+    "max_device_bytes",
+    "slides",
+    "slide_weights",
+    "dataset",
+    "split",
+    "labels",
+    "fold",
+)
 """``histojax.make``'s own arguments (the slides and how they load) that ``env_kwargs`` may hold beside its options."""
 
 
@@ -54,8 +64,15 @@ def canonical_config(config: dict) -> dict:
     return out
 
 
-_NAMES = {bool: "true or false", int: "a whole number", float: "a number", str: "a string", dict: "an object",
-          type(None): "null", os.PathLike: "a path"}
+_NAMES = {
+    bool: "true or false",
+    int: "a whole number",
+    float: "a number",
+    str: "a string",
+    dict: "an object",
+    type(None): "null",
+    os.PathLike: "a path",
+}
 
 
 def _fits(value, hint) -> bool:
@@ -96,15 +113,15 @@ class EnvConfig:
     e.g. ``read_budget`` as a fraction of tissue views, ``glimpse_grid`` in cells) and its own arguments
     (:data:`MAKE_ARGUMENTS`: ``dataset`` folder, ``split``, ``fold``, ...)."""
 
-    algo: str = ""                       # the trainer (recorded in config.json)
-    env_id: str = "HistoJAX-Easy-v0"     # registered env id
+    algo: str = ""  # the trainer (recorded in config.json)
+    env_id: str = "HistoJAX-Easy-v0"  # registered env id
     slide: str | os.PathLike | None = None  # bundle folder; None: the id's slide (the sample slide)
-    action_mode: str = "discrete"        # the env's action_mode
-    obs_mode: str = "pixels"             # the env's obs_mode
-    with_position: bool = False          # observation dict with the view position
-    reward: str | None = None            # reward preset; None: the env's
+    action_mode: str = "discrete"  # the env's action_mode
+    obs_mode: str = "pixels"  # the env's obs_mode
+    with_position: bool = False  # observation dict with the view position
+    reward: str | None = None  # reward preset; None: the env's
     max_steps_in_episode: int | None = None  # env steps before truncation; None: the id's
-    env_kwargs: dict | None = None       # any other histojax.make keyword
+    env_kwargs: dict | None = None  # any other histojax.make keyword
     # the first seed (PRNGKey(seed) is split into num_seeds keys); None: 0, and not recorded
     seed: int | None = dataclasses.field(default=None, metadata={"recorded_last": True})
 
@@ -139,9 +156,12 @@ class EnvConfig:
             key = unknown[0]
             close = difflib.get_close_matches(str(key), names, n=1)
             algo = config.get("algo") or cls.__dataclass_fields__["algo"].default or "this trainer"
-            raise ConfigError(where, f"unknown config entry {key!r} for {algo}"
-                              + (f" (did you mean {close[0]!r}?)" if close else "")
-                              + f"; known: {', '.join(names)}")
+            raise ConfigError(
+                where,
+                f"unknown config entry {key!r} for {algo}"
+                + (f" (did you mean {close[0]!r}?)" if close else "")
+                + f"; known: {', '.join(names)}",
+            )
         values = {k: copy.deepcopy(v) for k, v in config.items() if k in names}
         for k, v in values.items():
             if not _fits(v, hints[k]):
@@ -196,7 +216,9 @@ class EnvConfig:
 def env_overrides(config) -> dict:
     """The ``histojax.make`` overrides named in a trainer config (an :class:`EnvConfig` or its dict)."""
     if isinstance(config, dict):
-        config = EnvConfig.from_dict({k: v for k, v in canonical_config(config).items() if k in EnvConfig.field_names()})
+        config = EnvConfig.from_dict(
+            {k: v for k, v in canonical_config(config).items() if k in EnvConfig.field_names()}
+        )
     kw = {"action_mode": config.action_mode, "with_position": bool(config.with_position)}
     if config.obs_mode != "pixels":
         kw["obs_mode"] = config.obs_mode  # e.g. "features" once the env has it

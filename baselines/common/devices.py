@@ -1,5 +1,6 @@
 """Devices: the accelerator's memory (a rollout that cannot fit is refused before it runs) and sharding the env
 batch over devices (``--devices N``)."""
+
 from __future__ import annotations
 
 import os
@@ -9,7 +10,6 @@ import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding
 from jax.sharding import PartitionSpec as P
-
 
 
 def device_memory_bytes() -> int:
@@ -37,10 +37,12 @@ def check_rollout_memory(env, env_params, config) -> int:
     need = 2 * obs * config.num_steps * config.num_envs * seeds
     have = device_memory_bytes()
     if need > have:
-        raise ValueError(f"the rollouts of this run need about {need / 2**30:.1f} GiB ({obs:,} bytes an observation "
-                         f"× num_steps {config.num_steps} × num_envs {config.num_envs} × {seeds} seed(s) at "
-                         f"once × 2), more than this device's {have / 2**30:.1f} GiB: lower num_envs / num_steps, "
-                         "set vmap_seeds=false, or observe less (e.g. a coarser glimpse level)")
+        raise ValueError(
+            f"the rollouts of this run need about {need / 2**30:.1f} GiB ({obs:,} bytes an observation "
+            f"× num_steps {config.num_steps} × num_envs {config.num_envs} × {seeds} seed(s) at "
+            f"once × 2), more than this device's {have / 2**30:.1f} GiB: lower num_envs / num_steps, "
+            "set vmap_seeds=false, or observe less (e.g. a coarser glimpse level)"
+        )
     return need
 
 
@@ -54,13 +56,13 @@ def batch_mesh(devices: int | None, num_envs: int) -> Mesh | None:
     if n < 1:
         raise ValueError(f"devices must be >= 1, got {n}")
     if num_envs % n:
-        raise ValueError(f"num_envs={num_envs} must divide by devices={n} (each device steps "
-                         f"num_envs / devices envs)")
+        raise ValueError(f"num_envs={num_envs} must divide by devices={n} (each device steps num_envs / devices envs)")
     if n > len(available):
         raise ValueError(
             f"devices={n} but only {len(available)} {available[0].platform} device(s) are visible; on "
             f"CPU set XLA_FLAGS=--xla_force_host_platform_device_count={n} before jax is imported "
-            f"(several hosts: call jax.distributed.initialize() first)")
+            f"(several hosts: call jax.distributed.initialize() first)"
+        )
     return Mesh(np.array(available[:n]), ("batch",))
 
 
@@ -86,4 +88,5 @@ def replicate_on(mesh: Mesh, tree):
         # a Python scalar as a weakly typed jax array first: with several processes device_put compares
         # the value across processes, and a Python float (float64) never equals its float32 copy
         return jax.device_put(jnp.asarray(x) if isinstance(x, (bool, int, float)) else x, replicated)
+
     return jax.tree.map(put, tree)

@@ -1,5 +1,6 @@
 """The env a trainer trains on, made from its config (spelled as ``histojax.make`` spells it): vmapped resets,
 parameter initialisation, episode statistics and the random agent's reference figures."""
+
 from __future__ import annotations
 
 import jax
@@ -10,7 +11,6 @@ from jax.sharding import Mesh
 import histojax
 from baselines.common.config import EnvConfig, canonical_config
 from histojax.adapters.jax import LogWrapper
-
 
 
 def pin_env_shapes(config, env_params):
@@ -82,9 +82,11 @@ def params_initialiser(env, network, num_envs: int, reset_all=None, inputs=None)
     """``init_params(key, env_params)``: the network's parameters for a trainer's key, made on the
     first observations of :func:`reset_envs` (``network.init(key, *inputs(obs))``; by default the
     observations alone)."""
+
     def init_params(key, env_params):
         _, k_init, obs, _ = reset_envs(env, key, env_params, num_envs, reset_all)
         return network.init(k_init, *(inputs(obs) if inputs is not None else (obs,)))
+
     return init_params
 
 
@@ -122,7 +124,8 @@ def make_random_rollout(env, num_envs: int, num_steps: int):
             key_act, key_step = jax.random.split(key)
             action = jax.vmap(space.sample)(jax.random.split(key_act, num_envs))
             obs, state, reward, _, _, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(key_step, num_envs), state, action, params)
+                jax.random.split(key_step, num_envs), state, action, params
+            )
             keep = ("returned_episode", "returned_episode_returns", "returned_episode_success")
             # the observations go into the carry, so every view is really extracted (a random agent
             # ignores them, and XLA would otherwise skip the crop and overstate steps/s)
@@ -134,8 +137,9 @@ def make_random_rollout(env, num_envs: int, num_steps: int):
     return jax.jit(rollout)
 
 
-def random_agent_reference(config: dict, num_envs: int = 256, num_steps: int = 400, seed: int = 0,
-                           env_and_params=None) -> dict:
+def random_agent_reference(
+    config: dict, num_envs: int = 256, num_steps: int = 400, seed: int = 0, env_and_params=None
+) -> dict:
     """Episode statistics of the uniform random agent on the same env (for the curves): the
     trainer's ``env_and_params`` when given (for slides sharded over devices, those of this
     process's first device), else the env made from ``config``."""

@@ -33,24 +33,85 @@ trainer writes.
 
 
 Modules: ``policies``, ``rollout``, ``heads``, ``pictures``, ``checks``, ``scoring``, ``cli``."""
+
 from __future__ import annotations
 
-from baselines.evaluate.policies import (stain_offset, scripted_policy, scripted_features_policy, map_follower_policy,
-                                         learned_policy, seeds_policy, diagnosis_actions, network_for)
-from baselines.evaluate.rollout import (run_episodes, per_episode_params, episode_labels, summarise, trajectory,
-                                        eval_env, check_fits)
+from baselines.evaluate.checks import (
+    RETIRED,
+    SET_READER,
+    check_config,
+    check_params_tree,
+    grid_refusal,
+    head_reward_settings,
+    known_config_keys,
+    provenance_warnings,
+    published_path,
+    refuse_not_an_agent,
+    resolve_head,
+    split_warnings,
+)
+from baselines.evaluate.cli import add_arguments, default_out, main, print_table, resolve_slides, run, with_dataset
 from baselines.evaluate.heads import head_env, head_scored, lesion_classes
 from baselines.evaluate.pictures import write_pictures
-from baselines.evaluate.checks import (known_config_keys, check_config, split_warnings, provenance_warnings,
-                                       check_params_tree, SET_READER, RETIRED, published_path, refuse_not_an_agent,
-                                       grid_refusal, head_reward_settings, resolve_head)
+from baselines.evaluate.policies import (
+    diagnosis_actions,
+    learned_policy,
+    map_follower_policy,
+    network_for,
+    scripted_features_policy,
+    scripted_policy,
+    seeds_policy,
+    stain_offset,
+)
+from baselines.evaluate.rollout import (
+    check_fits,
+    episode_labels,
+    eval_env,
+    per_episode_params,
+    run_episodes,
+    summarise,
+    trajectory,
+)
 from baselines.evaluate.scoring import evaluate
-from baselines.evaluate.cli import resolve_slides, with_dataset, print_table, add_arguments, default_out, run, main
 
-__all__ = ['RETIRED', 'SET_READER', 'add_arguments', 'check_config', 'check_fits', 'check_params_tree', 'default_out',
-           'diagnosis_actions', 'episode_labels', 'eval_env', 'evaluate', 'grid_refusal', 'head_env',
-           'head_reward_settings', 'head_scored', 'known_config_keys', 'learned_policy', 'lesion_classes', 'main',
-           'map_follower_policy', 'network_for', 'per_episode_params', 'print_table', 'provenance_warnings',
-           'published_path', 'refuse_not_an_agent', 'resolve_head', 'resolve_slides', 'run', 'run_episodes',
-           'scripted_features_policy', 'scripted_policy', 'seeds_policy', 'split_warnings', 'stain_offset', 'summarise',
-           'trajectory', 'with_dataset', 'write_pictures']
+__all__ = [
+    "RETIRED",
+    "SET_READER",
+    "add_arguments",
+    "check_config",
+    "check_fits",
+    "check_params_tree",
+    "default_out",
+    "diagnosis_actions",
+    "episode_labels",
+    "eval_env",
+    "evaluate",
+    "grid_refusal",
+    "head_env",
+    "head_reward_settings",
+    "head_scored",
+    "known_config_keys",
+    "learned_policy",
+    "lesion_classes",
+    "main",
+    "map_follower_policy",
+    "network_for",
+    "per_episode_params",
+    "print_table",
+    "provenance_warnings",
+    "published_path",
+    "refuse_not_an_agent",
+    "resolve_head",
+    "resolve_slides",
+    "run",
+    "run_episodes",
+    "scripted_features_policy",
+    "scripted_policy",
+    "seeds_policy",
+    "split_warnings",
+    "stain_offset",
+    "summarise",
+    "trajectory",
+    "with_dataset",
+    "write_pictures",
+]

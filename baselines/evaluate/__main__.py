@@ -1,4 +1,5 @@
 """``python -m baselines.evaluate``: the same command as ``histojax evaluate``."""
+
 from baselines.evaluate.cli import main
 
 if __name__ == "__main__":

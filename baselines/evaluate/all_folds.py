@@ -1,6 +1,7 @@
 """``histojax evaluate --all-folds``: the one-fold evaluation (``--fold I``) on every fold I = 0 … K − 1 of a
 dataset built with ``--folds K``, each in ``OUT/foldI`` as ``--fold I --out OUT/foldI`` writes it, and each
 figure's mean ± std over the folds in ``OUT/eval.json`` and ``OUT/eval.csv`` (:func:`run_all_folds`)."""
+
 from __future__ import annotations
 
 import argparse
@@ -15,8 +16,16 @@ from baselines.run_config import read_run_config
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import auc_interval
 
-FIGURES = ("success_rate", "mean_return", "mean_length", "mean_steps_to_success", "mean_fraction_read",
-           "mean_fields_of_view", "diagnosis_auc", "diagnosis_auc_no_itc")
+FIGURES = (
+    "success_rate",
+    "mean_return",
+    "mean_length",
+    "mean_steps_to_success",
+    "mean_fraction_read",
+    "mean_fields_of_view",
+    "diagnosis_auc",
+    "diagnosis_auc_no_itc",
+)
 """The figures of an evaluation row summarised over folds (each as its mean and ``<figure>_std``)."""
 INTERVAL = ("diagnosis_auc_low", "diagnosis_auc_high")
 """The AUC's 95 % interval over slides: each fold's own, and for the mean that over the pooled held-out slides."""
@@ -36,8 +45,11 @@ def fold_dataset(args) -> str:
             recorded = None
         if isinstance(recorded, str):
             return recorded
-    raise HistojaxDataError(None, "--all-folds: give --dataset DIR, a dataset built with `histojax dataset ... "
-                                  "--folds K` (the checkpoint records none)")
+    raise HistojaxDataError(
+        None,
+        "--all-folds: give --dataset DIR, a dataset built with `histojax dataset ... "
+        "--folds K` (the checkpoint records none)",
+    )
 
 
 def summarise_folds(per_fold: list[dict]) -> dict:
@@ -59,7 +71,8 @@ def summarise_folds(per_fold: list[dict]) -> dict:
             summary["diagnosis_tumour_slides"] = sum(a for a, _ in counts)
             summary["diagnosis_normal_slides"] = sum(b for _, b in counts)
             summary["diagnosis_auc_low"], summary["diagnosis_auc_high"] = auc_interval(
-                summary["diagnosis_auc"], summary["diagnosis_tumour_slides"], summary["diagnosis_normal_slides"])
+                summary["diagnosis_auc"], summary["diagnosis_tumour_slides"], summary["diagnosis_normal_slides"]
+            )
         out[policy] = summary
     return out
 
@@ -106,21 +119,34 @@ def run_all_folds(args, parser, run_one, default_out) -> int:
     if args.out:
         out = Path(args.out)
     else:
-        base = default_out(None if first is None else (first if first.is_dir() else first.parent),
-                           args.env or "folds")
+        base = default_out(None if first is None else (first if first.is_dir() else first.parent), args.env or "folds")
         out = base.parent / f"{base.name}-all-folds"
     per_fold, records, warnings = [], [], []
     for i in range(k):
         checkpoint = None if args.checkpoint is None else with_fold(args.checkpoint, i)
         trained = None if checkpoint is None else trained_fold(checkpoint)
         if trained is not None and trained != i:
-            warnings.append(f"{checkpoint} trained on fold {trained}'s train side, which holds fold {i}'s slides: "
-                            f"its fold {i} figures are not held-out; give one run per fold (CHECKPOINT with {{fold}})")
+            warnings.append(
+                f"{checkpoint} trained on fold {trained}'s train side, which holds fold {i}'s slides: "
+                f"its fold {i} figures are not held-out; give one run per fold (CHECKPOINT with {{fold}})"
+            )
             print(f"warning: {warnings[-1]}", file=sys.stderr)
-        print(f"fold {i} of {k} (0 to {k - 1}): {checkpoint or 'reference policies'} on its {split} side",
-              file=sys.stderr, flush=True)
-        one = argparse.Namespace(**{**vars(args), "checkpoint": checkpoint, "dataset": dataset, "split": split,
-                                    "fold": i, "all_folds": False, "out": str(out / f"fold{i}")})
+        print(
+            f"fold {i} of {k} (0 to {k - 1}): {checkpoint or 'reference policies'} on its {split} side",
+            file=sys.stderr,
+            flush=True,
+        )
+        one = argparse.Namespace(
+            **{
+                **vars(args),
+                "checkpoint": checkpoint,
+                "dataset": dataset,
+                "split": split,
+                "fold": i,
+                "all_folds": False,
+                "out": str(out / f"fold{i}"),
+            }
+        )
         code = run_one(one, parser)
         if code:
             return code
@@ -129,9 +155,24 @@ def run_all_folds(args, parser, run_one, default_out) -> int:
         per_fold.append(rows)
         records.append({"fold": i, "checkpoint": checkpoint, "out": str(out / f"fold{i}"), **record})
     summary = summarise_folds(per_fold)
-    outputs.write_text(out / "eval.json", json.dumps(_finite(
-        {"env_id": records[0]["env_id"], "dataset": dataset, "split": split, "folds": k, "summary": summary,
-         "warnings": warnings, "per_fold": records}), indent=2, allow_nan=False))
+    outputs.write_text(
+        out / "eval.json",
+        json.dumps(
+            _finite(
+                {
+                    "env_id": records[0]["env_id"],
+                    "dataset": dataset,
+                    "split": split,
+                    "folds": k,
+                    "summary": summary,
+                    "warnings": warnings,
+                    "per_fold": records,
+                }
+            ),
+            indent=2,
+            allow_nan=False,
+        ),
+    )
     with outputs.open_text(out / "eval.csv") as f:
         w = csv.writer(f)
         w.writerow(["fold", "policy", "episodes", *FIGURES, *INTERVAL])
@@ -143,9 +184,16 @@ def run_all_folds(args, parser, run_one, default_out) -> int:
             w.writerow(["std", policy, "", *(_number(s.get(f"{x}_std")) for x in FIGURES), *([""] * len(INTERVAL))])
     print(f"\nmean ± std over {k} folds ({split} side of each fold of {dataset}):")
     for policy, s in summary.items():
-        shown = [f"{x} {s[x]:.3f} ± {s[x + '_std']:.3f}" + (f" [{s['diagnosis_auc_low']:.3f}, "
-                 f"{s['diagnosis_auc_high']:.3f}]" if x == "diagnosis_auc" and s.get("diagnosis_auc_low") is not None
-                 else "") for x in FIGURES if x in s and s[x] is not None and s[x] == s[x]]
+        shown = [
+            f"{x} {s[x]:.3f} ± {s[x + '_std']:.3f}"
+            + (
+                f" [{s['diagnosis_auc_low']:.3f}, {s['diagnosis_auc_high']:.3f}]"
+                if x == "diagnosis_auc" and s.get("diagnosis_auc_low") is not None
+                else ""
+            )
+            for x in FIGURES
+            if x in s and s[x] is not None and s[x] == s[x]
+        ]
         print(f"{policy:<22} " + ", ".join(shown))
     print(f"\nwrote {out}/eval.json and eval.csv (mean ± std over folds; each fold's own files in {out}/fold0 ...)")
     return 0

@@ -2,6 +2,7 @@
 parameter tree, the slides scored against those trained on (split, scale), retired published agents and
 slide head folders given as agents, flat glimpse policies on slides too large for their grid, and the slide
 head a reader names."""
+
 from __future__ import annotations
 
 import json
@@ -14,7 +15,6 @@ from baselines.published_agents import PUBLISHED
 from baselines.run_config import known_config_keys, read_run_config  # noqa: F401  (known_config_keys: evaluate's API)
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import UNDEFINED
-
 
 
 def check_config(config, path) -> list[str]:
@@ -63,12 +63,16 @@ def split_warnings(env, env_params, task: str, where: str) -> list[str]:
     n = np.asarray(jax.device_get(env_params.slide.slide_label)).size
     if task == "classification":
         kind = "tumour" if single else "normal"
-        return [f"{where}: all {n} slide{'s' if n > 1 else ''} {'are' if n > 1 else 'is'} {kind}: the diagnosis AUC "
-                f"is {UNDEFINED} (it needs tumour and normal slides); only the accuracy of the declared diagnosis "
-                "means something"]
+        return [
+            f"{where}: all {n} slide{'s' if n > 1 else ''} {'are' if n > 1 else 'is'} {kind}: the diagnosis AUC "
+            f"is {UNDEFINED} (it needs tumour and normal slides); only the accuracy of the declared diagnosis "
+            "means something"
+        ]
     if not single:
-        return [f"{where}: no slide here has tumour annotated: no policy can reach a target, so the success rate is "
-                f"{UNDEFINED} (normal slides only); score a split with tumour slides"]
+        return [
+            f"{where}: no slide here has tumour annotated: no policy can reach a target, so the success rate is "
+            f"{UNDEFINED} (normal slides only); score a split with tumour slides"
+        ]
     return []
 
 
@@ -96,22 +100,36 @@ def provenance_warnings(trained: dict, scored: dict, config_path) -> list[str]:
     c16 = lambda rec, env_id="": "CAMELYON16" in str(rec.get("kind", "")) or "-C16-" in env_id  # noqa: E731
     out = []
     if overlap and (same or (c16(s_rec) and c16(t_rec, str(trained.env_id)))):
-        why = "the same dataset" if same else ("a CAMELYON16 set: its split is fixed by slide, so its "
-                                               f"{s_split} split holds slides this agent trained on")
-        out.append(f"{config_path}: trained on the {t_split} split of {t_ds}; scored on the {s_split} split of "
-                   f"{s_ds} ({why}): these figures are not held-out; score --split test")
+        why = (
+            "the same dataset"
+            if same
+            else (
+                "a CAMELYON16 set: its split is fixed by slide, so its "
+                f"{s_split} split holds slides this agent trained on"
+            )
+        )
+        out.append(
+            f"{config_path}: trained on the {t_split} split of {t_ds}; scored on the {s_split} split of "
+            f"{s_ds} ({why}): these figures are not held-out; score --split test"
+        )
     t_mpp, s_mpp = dataset_mpp(t_rec), dataset_mpp(s_rec)
     if t_mpp and s_mpp and abs(float(t_mpp) - float(s_mpp)) > SCALE_TOLERANCE * float(t_mpp):
-        out.append(f"{config_path}: trained at {float(t_mpp):.3g} µm/px ({t_ds}); scored at {float(s_mpp):.3g} µm/px "
-                   f"({s_ds}): another scale than it trained at")
+        out.append(
+            f"{config_path}: trained at {float(t_mpp):.3g} µm/px ({t_ds}); scored at {float(s_mpp):.3g} µm/px "
+            f"({s_ds}): another scale than it trained at"
+        )
     elif s_mpp and not t_rec and c16(s_rec):
-        out.append(f"{config_path}: its training dataset {t_ds} is not here and config.json records no scale, so the "
-                   f"scale cannot be checked: {s_ds} is at {float(s_mpp):.3g} µm/px ({s_rec.get('variant', '?')} "
-                   "variant); the published C16 agents (c16-v1-* and c16-v2-*) trained on the full set (1.94 µm/px)")
+        out.append(
+            f"{config_path}: its training dataset {t_ds} is not here and config.json records no scale, so the "
+            f"scale cannot be checked: {s_ds} is at {float(s_mpp):.3g} µm/px ({s_rec.get('variant', '?')} "
+            "variant); the published C16 agents (c16-v1-* and c16-v2-*) trained on the full set (1.94 µm/px)"
+        )
     t_enc, s_enc = t_rec.get("encoder"), s_rec.get("encoder")
     if t_enc and s_enc and not same_encoder(t_enc, s_enc):
-        out.append(f"{config_path}: trained on {t_enc} features ({t_ds}); {s_ds} holds {s_enc} features: another "
-                   "encoder than it trained on")
+        out.append(
+            f"{config_path}: trained on {t_enc} features ({t_ds}); {s_ds} holds {s_enc} features: another "
+            "encoder than it trained on"
+        )
     return out
 
 
@@ -128,8 +146,14 @@ def dataset_mpp(record: dict) -> float | None:
     if isinstance(mpp, (int, float)) and not isinstance(mpp, bool) and mpp > 0:
         return float(mpp)
     slides = record.get("slides") if isinstance(record.get("slides"), list) else []
-    each = [float(r["mpp"]) for r in slides if isinstance(r, dict) and isinstance(r.get("mpp"), (int, float))
-            and not isinstance(r.get("mpp"), bool) and r["mpp"] > 0]
+    each = [
+        float(r["mpp"])
+        for r in slides
+        if isinstance(r, dict)
+        and isinstance(r.get("mpp"), (int, float))
+        and not isinstance(r.get("mpp"), bool)
+        and r["mpp"] > 0
+    ]
     return float(np.median(each)) if each else None
 
 
@@ -161,13 +185,17 @@ def trained_record_warnings(run, scored: dict, config_path) -> list[str]:
     except (TypeError, ValueError):
         t_mpp = s_mpp = None
     if t_mpp and s_mpp and abs(t_mpp - s_mpp) > SCALE_TOLERANCE * t_mpp:
-        out.append(f"{config_path}: a published agent trained at {t_mpp:.3g} µm/px ({named}, its published.json); "
-                   f"scored at {s_mpp:.3g} µm/px ({s_ds}): another scale than it trained at, so its cells, views and "
-                   "reading budget hold other tissue (score it on a dataset at its scale)")
+        out.append(
+            f"{config_path}: a published agent trained at {t_mpp:.3g} µm/px ({named}, its published.json); "
+            f"scored at {s_mpp:.3g} µm/px ({s_ds}): another scale than it trained at, so its cells, views and "
+            "reading budget hold other tissue (score it on a dataset at its scale)"
+        )
     t_enc, s_enc = where.get("encoder"), s_rec.get("encoder")
     if isinstance(t_enc, str) and isinstance(s_enc, str) and not same_encoder(t_enc, s_enc):
-        out.append(f"{config_path}: a published agent trained on {t_enc} features ({named}, its published.json); "
-                   f"{s_ds} holds {s_enc} features: another encoder than it trained on")
+        out.append(
+            f"{config_path}: a published agent trained on {t_enc} features ({named}, its published.json); "
+            f"{s_ds} holds {s_enc} features: another encoder than it trained on"
+        )
     return out
 
 
@@ -177,7 +205,6 @@ def encoder_refusal(config: dict, config_path) -> str | None:
     features (or none). One line naming the agent's config, the dataset file and what to build; said before any
     network is loaded, instead of the parameter shapes that would not fit."""
     from histojax import registry
-
     from histojax.reading.heads import same_encoder
 
     config = read_run_config(config)
@@ -197,9 +224,11 @@ def encoder_refusal(config: dict, config_path) -> str | None:
         return None
     if have == want or (have and same_encoder(have, want)) or (not have and what.startswith("scores")):
         return None  # a dataset that records no encoder: the head's own check names what its bundles hold
-    return (f"{config_path}: this agent ({config.env_id}) {what}; {index} holds "
-            f"{'no feature grids' if not have else repr(have) + ' features'}: score it on a dataset built with "
-            f"--encoder {want} (e.g. `python -m data_tools c16 ... --features`), or train an agent on these features")
+    return (
+        f"{config_path}: this agent ({config.env_id}) {what}; {index} holds "
+        f"{'no feature grids' if not have else repr(have) + ' features'}: score it on a dataset built with "
+        f"--encoder {want} (e.g. `python -m data_tools c16 ... --features`), or train an agent on these features"
+    )
 
 
 # ----------------------------------------------------------------------------- published readers
@@ -207,8 +236,13 @@ SET_READER = "c16-v2-set-reader"  # the published cell-set reader: reads slides 
 
 
 # published folders retired, with what replaced them: `histojax evaluate` on the old path names the new one
-RETIRED = {"c16-v1-glimpse-reader": (SET_READER, "a flat glimpse policy over a padded 16 × 14 cell grid, it could "
-                                                 "not read a slide wider or taller than that grid")}
+RETIRED = {
+    "c16-v1-glimpse-reader": (
+        SET_READER,
+        "a flat glimpse policy over a padded 16 × 14 cell grid, it could "
+        "not read a slide wider or taller than that grid",
+    )
+}
 
 
 def published_path(name: str) -> Path:
@@ -268,14 +302,19 @@ def published_dataset_refusal(run: Path, config: dict) -> str | None:
     recorded = (config.env_kwargs or {}).get("dataset")
     where = published_trained_record(run)  # published.json's trained_on, read once
     env_id = str(config.env_id)
-    encoder = (registry.spec_of(env_id).settings.get("dataset_encoder")
-               if env_id in registry.registered_envs() else None) or "the same"
+    encoder = (
+        registry.spec_of(env_id).settings.get("dataset_encoder") if env_id in registry.registered_envs() else None
+    ) or "the same"
     if recorded and not (Path(str(recorded)) / "dataset.json").is_file():
-        said = f"records the dataset it trained on as {recorded}, which does not exist here (a folder of the machine it "
+        said = (
+            f"records the dataset it trained on as {recorded}, which does not exist here (a folder of the machine it "
+        )
         said += "was trained on)"
     elif recorded:
-        said = (f"records the dataset it trained on as {recorded} (a folder of the machine it was trained on, kept as "
-                "provenance: a published agent is never scored on it unasked)")
+        said = (
+            f"records the dataset it trained on as {recorded} (a folder of the machine it was trained on, kept as "
+            "provenance: a published agent is never scored on it unasked)"
+        )
     elif isinstance(trained_on := published_trained_on(where), str):
         said = f"records no path of the machine it was trained on; its published.json says it trained on {trained_on}"
     else:
@@ -284,12 +323,16 @@ def published_dataset_refusal(run: Path, config: dict) -> str | None:
         encoder = _head_encoder(run) or encoder
     trained_on_c16 = str((where or {}).get("dataset", "")).startswith("c16")
     if "-C16-" in env_id or trained_on_c16:  # a C16 set is what to build, whatever the env id
-        need = (f"a CAMELYON16 dataset with {encoder} feature grids, e.g. the small one (6 slides, about a minute: "
-                "`histojax c16 --small --features --out c16-small`) or the true-scale set it trained on (`histojax c16 "
-                "--out c16-full --annotations ... --patches ... --features`; docs/c16-benchmark.md#build-it)")
+        need = (
+            f"a CAMELYON16 dataset with {encoder} feature grids, e.g. the small one (6 slides, about a minute: "
+            "`histojax c16 --small --features --out c16-small`) or the true-scale set it trained on (`histojax c16 "
+            "--out c16-full --annotations ... --patches ... --features`; docs/c16-benchmark.md#build-it)"
+        )
     else:
-        need = (f"a dataset with {encoder} features of the kind it trained on (`histojax dataset SLIDES --out DIR "
-                "--encoder NAME`; docs/your-own-slides.md)")
+        need = (
+            f"a dataset with {encoder} features of the kind it trained on (`histojax dataset SLIDES --out DIR "
+            "--encoder NAME`; docs/your-own-slides.md)"
+        )
     return f"{Path(run) / 'config.json'}: a published agent; its config.json {said}: give --dataset DIR, {need}"
 
 
@@ -300,7 +343,9 @@ def _head_encoder(run: Path) -> str | None:
         record, where = head_reward_settings(Path(run), {})
         if record is None:
             return None
-        encoder = json.loads((resolve_head(record["head"], Path(run), where) / "config.json").read_text()).get("encoder")
+        encoder = json.loads((resolve_head(record["head"], Path(run), where) / "config.json").read_text()).get(
+            "encoder"
+        )
     except (OSError, ValueError, AttributeError, HistojaxDataError):
         return None
     return encoder if isinstance(encoder, str) and encoder else None
@@ -315,17 +360,23 @@ def refuse_not_an_agent(path: Path) -> None:
     name = path.parent.name if path.name == "params.msgpack" else path.name
     if not path.exists() and name in RETIRED:
         new, why = RETIRED[name]
-        raise HistojaxDataError(path, f"the published agent {name} was retired ({why}); its results stay in "
-                                f"docs/results/c16.md; use {published_path(new)}, which reads slides of any "
-                                f"size: histojax evaluate {published_path(new)} --dataset DIR")
+        raise HistojaxDataError(
+            path,
+            f"the published agent {name} was retired ({why}); its results stay in "
+            f"docs/results/c16.md; use {published_path(new)}, which reads slides of any "
+            f"size: histojax evaluate {published_path(new)} --dataset DIR",
+        )
     try:
         kind = json.loads((path / "config.json").read_text()).get("kind") if path.is_dir() else None
     except (OSError, ValueError, AttributeError):
         kind = None
     if kind in HEADS:
-        raise HistojaxDataError(path, "a slide head, not an agent: it scores what a reader read, it does not act; "
-                                f"score a reader through it: histojax evaluate READER --head {path} --dataset DIR "
-                                f"(or python -m baselines.reading.readers --head {path} --dataset DIR)")
+        raise HistojaxDataError(
+            path,
+            "a slide head, not an agent: it scores what a reader read, it does not act; "
+            f"score a reader through it: histojax evaluate READER --head {path} --dataset DIR "
+            f"(or python -m baselines.reading.readers --head {path} --dataset DIR)",
+        )
 
 
 def grid_refusal(error: ValueError, run) -> ValueError:
@@ -337,12 +388,16 @@ def grid_refusal(error: ValueError, run) -> ValueError:
         return error
     where = text.split(" (the grid a policy was trained with)")[0]
     set_reader = published_path(SET_READER)
-    use = (f"use the cell-set reader, which reads slides of any size: histojax evaluate {set_reader} --dataset DIR"
-           if set_reader.is_dir() else
-           "use a cell-set reader, which reads slides of any size (the -v2 ids; python -m baselines.reading.train_readers "
-           "trains one)")
-    return ValueError(f"{where}: {run} is a flat glimpse policy over the padded cell grid it trained on, so it cannot "
-                      f"read a slide wider or taller than that grid; {use}")
+    use = (
+        f"use the cell-set reader, which reads slides of any size: histojax evaluate {set_reader} --dataset DIR"
+        if set_reader.is_dir()
+        else "use a cell-set reader, which reads slides of any size (the -v2 ids; python -m baselines.reading.train_readers "
+        "trains one)"
+    )
+    return ValueError(
+        f"{where}: {run} is a flat glimpse policy over the padded cell grid it trained on, so it cannot "
+        f"read a slide wider or taller than that grid; {use}"
+    )
 
 
 def head_reward_settings(run: Path, config: dict) -> tuple[dict | None, Path | None]:
@@ -356,8 +411,10 @@ def head_reward_settings(run: Path, config: dict) -> tuple[dict | None, Path | N
         except (OSError, ValueError) as e:
             raise HistojaxDataError(f, f"unreadable ({type(e).__name__}: {e})") from None
         if not isinstance(record, dict) or not isinstance(record.get("head"), str) or not record["head"]:
-            raise HistojaxDataError(f, "names no slide head (a 'head' folder, as baselines.reading.train_readers writes it); "
-                                    "give --head DIR")
+            raise HistojaxDataError(
+                f,
+                "names no slide head (a 'head' folder, as baselines.reading.train_readers writes it); give --head DIR",
+            )
         return record, f
     record = config.get("head_reward")
     if isinstance(record, dict) and isinstance(record.get("head"), str) and record["head"]:
@@ -375,19 +432,25 @@ def resolve_head(recorded: str, run: Path, where) -> Path:
     p = Path(recorded)
     tries = [p] if p.is_absolute() else [run / p, p, Path(__file__).resolve().parents[2] / p]
     if str(recorded).startswith("baselines/published/"):  # the package's own name for a shipped head
-        tries.insert(0, PUBLISHED / Path(str(recorded)[len("baselines/published/"):]))
+        tries.insert(0, PUBLISHED / Path(str(recorded)[len("baselines/published/") :]))
     tries.append(PUBLISHED / p.name)
     for c in tries:
         if (c / "config.json").is_file():
             return c
-    raise HistojaxDataError(where, f"names the slide head {recorded!r}, which is not here (looked beside the run, in "
-                            "the working folder and in baselines/published); give --head DIR, e.g. --head "
-                            f"{published_path('c16-v2-head')}")
+    raise HistojaxDataError(
+        where,
+        f"names the slide head {recorded!r}, which is not here (looked beside the run, in "
+        "the working folder and in baselines/published); give --head DIR, e.g. --head "
+        f"{published_path('c16-v2-head')}",
+    )
 
 
 def check_params_tree(params, path) -> None:
     """Refuse a checkpoint that holds no parameter arrays stacked over seeds (a foreign msgpack)."""
     leaves = jax.tree.leaves(params) if isinstance(params, dict) else []
     if not leaves or any(np.ndim(a) < 1 for a in leaves) or len({np.shape(a)[0] for a in leaves}) != 1:
-        raise HistojaxDataError(path, "not a histojax checkpoint (no network parameters stacked over seeds, as the "
-                                "trainers write them); give the params.msgpack of a histojax training run")
+        raise HistojaxDataError(
+            path,
+            "not a histojax checkpoint (no network parameters stacked over seeds, as the "
+            "trainers write them); give the params.msgpack of a histojax training run",
+        )

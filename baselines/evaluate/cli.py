@@ -1,5 +1,6 @@
 """The command line of ``python -m baselines.evaluate`` and ``histojax evaluate``: options, slides and dataset
 chosen, the printed table, ``eval.json`` and ``eval.csv``."""
+
 from __future__ import annotations
 
 import argparse
@@ -11,22 +12,29 @@ from pathlib import Path
 import numpy as np
 
 from baselines import outputs
-from baselines.harness.logs import load_checkpoint
-from data_tools.cli_output import positive_int
-from data_tools.metrics import UNDEFINED, format_auc
-from data_tools.errors import HistojaxDataError
-from baselines.evaluate.checks import (check_config, encoder_refusal, check_params_tree, grid_refusal, head_reward_settings,
-                                       provenance_warnings, published_dataset_refusal, refuse_not_an_agent,
-                                       trained_record_warnings,
-                                       resolve_head)
-from baselines.evaluate.scoring import evaluate
 from baselines.evaluate.all_folds import run_all_folds
-from baselines.reading.slides import scale_warning
-from baselines.reading.provenance import add_flag, check_scored, head_for_fold
+from baselines.evaluate.checks import (
+    check_config,
+    check_params_tree,
+    encoder_refusal,
+    grid_refusal,
+    head_reward_settings,
+    provenance_warnings,
+    published_dataset_refusal,
+    refuse_not_an_agent,
+    resolve_head,
+    trained_record_warnings,
+)
+from baselines.evaluate.scoring import evaluate
 from baselines.folds import scored_side
+from baselines.harness.logs import load_checkpoint
 from baselines.published_agents import published_or_path
+from baselines.reading.provenance import add_flag, check_scored, head_for_fold
+from baselines.reading.slides import scale_warning
 from baselines.run_config import read_record, read_run_config
-
+from data_tools.cli_output import positive_int
+from data_tools.errors import HistojaxDataError
+from data_tools.metrics import UNDEFINED, format_auc
 
 
 def _usage_exit(message: str) -> SystemExit:
@@ -45,8 +53,10 @@ def resolve_slides(slides: list[str], config) -> list[str]:
         return list(slides)
     dataset = (read_run_config(config).env_kwargs or {}).get("dataset")
     if not dataset:
-        raise _usage_exit("--slides held-out: this checkpoint was not trained on a dataset (env_kwargs has no "
-                          "'dataset'); give bundle folders instead")
+        raise _usage_exit(
+            "--slides held-out: this checkpoint was not trained on a dataset (env_kwargs has no "
+            "'dataset'); give bundle folders instead"
+        )
     spec_path = Path(dataset) / "dataset.json"
     try:
         test = json.loads(spec_path.read_text())["test"]
@@ -71,8 +81,10 @@ def with_dataset(config, dataset=None, split: str | None = None, fold: int | Non
             raise _usage_exit(f"--dataset {dataset}: no dataset.json there")
         kw["dataset"] = str(dataset)
     elif not kw.get("dataset"):  # none, or null (a published config.json names no path: published.json names it)
-        raise _usage_exit(f"{'--split' if split is not None else '--fold'}: this checkpoint records no dataset it "
-                          "trained on; give --dataset DIR too")
+        raise _usage_exit(
+            f"{'--split' if split is not None else '--fold'}: this checkpoint records no dataset it "
+            "trained on; give --dataset DIR too"
+        )
     if fold is not None:
         kw["fold"] = fold
     kw["split"] = split or scored_side(kw["dataset"], kw.get("fold"))
@@ -89,8 +101,9 @@ def episode_count(text: str) -> int:
     """argparse type of ``--episodes``: a whole number from 1 to :data:`MAX_EPISODES`."""
     value = positive_int(text)
     if value > MAX_EPISODES:
-        raise argparse.ArgumentTypeError(f"{text!r} is more than the {MAX_EPISODES:,} episodes per policy an "
-                                         "evaluation runs")
+        raise argparse.ArgumentTypeError(
+            f"{text!r} is more than the {MAX_EPISODES:,} episodes per policy an evaluation runs"
+        )
     return value
 
 
@@ -116,9 +129,13 @@ def print_table(title: str, rows: dict, head: str | None = None) -> None:
     auc = any("diagnosis_auc" in r for r in rows.values())
     no_itc = any("diagnosis_auc_no_itc" in r for r in rows.values())
     print(f"\n{title}")
-    print(f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}"
-          f" {'read':>6} {'fields':>6}" + (f" {'AUC [95 % interval]':>21}" if auc else "")
-          + (f" {'AUC w/o ITC [95 %]':>21}" if no_itc else ""))
+    print(
+        f"{'policy':<22} {'episodes':>8} {'success':>8} {'mean return':>11} {'mean length':>11} {'steps to success':>16}"
+        f" {'read':>6} {'fields':>6}"
+        + (f" {'AUC [95 % interval]':>21}" if auc else "")
+        + (f" {'AUC w/o ITC [95 %]':>21}" if no_itc else "")
+    )
+
     def fig(v, width: int, spec: str) -> str:
         return f"{'undef.':>{width}}" if v is None else f"{v:>{width}{spec}}"
 
@@ -136,61 +153,108 @@ def print_table(title: str, rows: dict, head: str | None = None) -> None:
     for name, r in rows.items():
         cell, cell2 = auc_cell(r, "diagnosis_auc"), auc_cell(r, "diagnosis_auc_no_itc")
         undefined |= any(r.get(k, 0) is None for k in ("success_rate", "diagnosis_auc", "diagnosis_auc_no_itc"))
-        print(f"{name:<22} {r['episodes']:>8} {fig(r['success_rate'], 8, '.1%')} {r['mean_return']:>11.3f} "
-              f"{r['mean_length']:>11.1f} {fig(r['mean_steps_to_success'], 16, '.1f')} "
-              f"{r['mean_fraction_read']:>6.1%} {r['mean_fields_of_view']:>6.1f}"
-              + (cell if auc else "") + (cell2 if no_itc else ""))
+        print(
+            f"{name:<22} {r['episodes']:>8} {fig(r['success_rate'], 8, '.1%')} {r['mean_return']:>11.3f} "
+            f"{r['mean_length']:>11.1f} {fig(r['mean_steps_to_success'], 16, '.1f')} "
+            f"{r['mean_fraction_read']:>6.1%} {r['mean_fields_of_view']:>6.1f}"
+            + (cell if auc else "")
+            + (cell2 if no_itc else "")
+        )
     if undefined:
         print(f"undef.: {UNDEFINED} (the slides scored are all of one class; see the warning above)")
     if head:
-        print(f"the head declares: the policy chooses where to read, then the slide head {head} scores the finest "
-              "views read; success: the head's diagnosis at the episode's end (p(tumour) >= 0.5 read as tumour) "
-              "matched the slide's label, i.e. its accuracy at 0.5, which a head calling every slide normal reaches "
-              "on a split of mostly normal slides (the AUC is the figure that ranks); AUC: of the head's score over "
-              "the episodes "
-              "(each slide equally often)" + ("; AUC w/o ITC: ITC-only tumour slides left out" if no_itc else "")
-              + " (read: mean fraction of the slide's tissue views read)")
+        print(
+            f"the head declares: the policy chooses where to read, then the slide head {head} scores the finest "
+            "views read; success: the head's diagnosis at the episode's end (p(tumour) >= 0.5 read as tumour) "
+            "matched the slide's label, i.e. its accuracy at 0.5, which a head calling every slide normal reaches "
+            "on a split of mostly normal slides (the AUC is the figure that ranks); AUC: of the head's score over "
+            "the episodes "
+            "(each slide equally often)"
+            + ("; AUC w/o ITC: ITC-only tumour slides left out" if no_itc else "")
+            + " (read: mean fraction of the slide's tissue views read)"
+        )
     elif auc:
-        print("success: the diagnosis declared was right; AUC: of the policy's tumour score over the slides "
-              "(read: mean fraction of the slide's tissue views read)")
+        print(
+            "success: the diagnosis declared was right; AUC: of the policy's tumour score over the slides "
+            "(read: mean fraction of the slide's tissue views read)"
+        )
 
 
 def add_arguments(p) -> None:
     """The options of ``python -m baselines.evaluate`` and ``histojax evaluate``."""
-    p.add_argument("checkpoint", nargs="?", default=None, type=published_or_path,
-                   help="run folder or params.msgpack, or a published agent's name (histojax published lists them: "
-                        "c16-v2-set-reader); omit with --env for reference rows only")
+    p.add_argument(
+        "checkpoint",
+        nargs="?",
+        default=None,
+        type=published_or_path,
+        help="run folder or params.msgpack, or a published agent's name (histojax published lists them: "
+        "c16-v2-set-reader); omit with --env for reference rows only",
+    )
     p.add_argument("--env", default=None, help="env id (default: the checkpoint's)")
-    p.add_argument("--slide", "--slides", nargs="*", default=None,
-                   help="bundle folder(s) (default: the checkpoint's slide), or 'held-out': the test split of "
-                        "the dataset the checkpoint trained on")
-    p.add_argument("--dataset", default=None,
-                   help="score on this dataset folder (dataset.json) instead of the one the checkpoint trained on, "
-                        "e.g. a published agent on any C16-style dataset")
-    p.add_argument("--split", default=None, choices=("train", "test", "all"),
-                   help="split of the dataset to score (default: test with --dataset, else the checkpoint's)")
-    p.add_argument("--fold", type=int, default=None, metavar="I",
-                   help="a dataset built with --folds K: score fold I's held-out side (make(..., fold=I))")
-    p.add_argument("--all-folds", action="store_true",
-                   help="a dataset built with --folds K: evaluate every fold I = 0 ... K-1 (as --fold I, in "
-                        "OUT/foldI) and report each figure's mean ± std over the folds (OUT/eval.json, eval.csv); a "
-                        "CHECKPOINT holding {fold} (runs/ppo-fold{fold}) is the run trained on each fold")
-    p.add_argument("--episodes", type=episode_count, default=256,
-                   help=f"episodes per policy (per seed for the learned one), 1 to {MAX_EPISODES:,}")
+    p.add_argument(
+        "--slide",
+        "--slides",
+        nargs="*",
+        default=None,
+        help="bundle folder(s) (default: the checkpoint's slide), or 'held-out': the test split of "
+        "the dataset the checkpoint trained on",
+    )
+    p.add_argument(
+        "--dataset",
+        default=None,
+        help="score on this dataset folder (dataset.json) instead of the one the checkpoint trained on, "
+        "e.g. a published agent on any C16-style dataset",
+    )
+    p.add_argument(
+        "--split",
+        default=None,
+        choices=("train", "test", "all"),
+        help="split of the dataset to score (default: test with --dataset, else the checkpoint's)",
+    )
+    p.add_argument(
+        "--fold",
+        type=int,
+        default=None,
+        metavar="I",
+        help="a dataset built with --folds K: score fold I's held-out side (make(..., fold=I))",
+    )
+    p.add_argument(
+        "--all-folds",
+        action="store_true",
+        help="a dataset built with --folds K: evaluate every fold I = 0 ... K-1 (as --fold I, in "
+        "OUT/foldI) and report each figure's mean ± std over the folds (OUT/eval.json, eval.csv); a "
+        "CHECKPOINT holding {fold} (runs/ppo-fold{fold}) is the run trained on each fold",
+    )
+    p.add_argument(
+        "--episodes",
+        type=episode_count,
+        default=256,
+        help=f"episodes per policy (per seed for the learned one), 1 to {MAX_EPISODES:,}",
+    )
     p.add_argument("--seed", type=int, default=0)
     p.add_argument("--with-position", action="store_true", help="(reference rows only) observation with position")
     p.add_argument("--action-mode", default="discrete", help="(reference rows only)")
-    p.add_argument("--out", default=None,
-                   help="output folder (default <run>/eval, or runs/eval-<run name> for a run inside the installed "
-                        "package such as baselines/published/NAME, or runs/eval-<env> without a checkpoint)")
-    p.add_argument("--augment", action="store_true",
-                   help="keep the checkpoint's training-time view augmentation (default: slides as they are)")
-    p.add_argument("--head", default=None, type=published_or_path,
-                   help="slide head folder (histojax.reading.heads) or a published head's name (c16-v2-head) that "
-                        "declares: the policy only chooses where to read, the head scores what was read (default: "
-                        "the head a reader trained with SASHA's reward names in its head_reward.json; none for other "
-                        "checkpoints); with --fold I / --all-folds, a DIR holding {fold} or the folder of "
-                        "learned_head_fit --all-folds is fold I's head")
+    p.add_argument(
+        "--out",
+        default=None,
+        help="output folder (default <run>/eval, or runs/eval-<run name> for a run inside the installed "
+        "package such as baselines/published/NAME, or runs/eval-<env> without a checkpoint)",
+    )
+    p.add_argument(
+        "--augment",
+        action="store_true",
+        help="keep the checkpoint's training-time view augmentation (default: slides as they are)",
+    )
+    p.add_argument(
+        "--head",
+        default=None,
+        type=published_or_path,
+        help="slide head folder (histojax.reading.heads) or a published head's name (c16-v2-head) that "
+        "declares: the policy only chooses where to read, the head scores what was read (default: "
+        "the head a reader trained with SASHA's reward names in its head_reward.json; none for other "
+        "checkpoints); with --fold I / --all-folds, a DIR holding {fold} or the folder of "
+        "learned_head_fit --all-folds is fold I's head",
+    )
     add_flag(p)
 
 
@@ -255,25 +319,47 @@ def run(args, parser) -> int:
         label = config.algo
         settings, where = head_reward_settings(run, record)
     else:
-        params, config, run, label = None, read_run_config({"action_mode": args.action_mode,
-                                                            "with_position": args.with_position,
-                                                            "obs_mode": "pixels", "hidden": 256}), None, "none"
+        params, config, run, label = (
+            None,
+            read_run_config(
+                {
+                    "action_mode": args.action_mode,
+                    "with_position": args.with_position,
+                    "obs_mode": "pixels",
+                    "hidden": 256,
+                }
+            ),
+            None,
+            "none",
+        )
     trained = config
-    if run is not None and getattr(args, "dataset", None) is None and (refusal := published_dataset_refusal(run, config)):
+    if (
+        run is not None
+        and getattr(args, "dataset", None) is None
+        and (refusal := published_dataset_refusal(run, config))
+    ):
         raise HistojaxDataError(None, refusal)  # its recorded dataset is provenance, never used unasked
     if args.env:
         config = config.replace(env_id=args.env)
-    config = with_dataset(config, getattr(args, "dataset", None), getattr(args, "split", None),
-                          getattr(args, "fold", None))
+    config = with_dataset(
+        config, getattr(args, "dataset", None), getattr(args, "split", None), getattr(args, "fold", None)
+    )
     recorded = (config.env_kwargs or {}).get("dataset")
     if run is not None and (refusal := encoder_refusal(config, run / "config.json")):
         raise HistojaxDataError(None, refusal)
-    if run is not None and getattr(args, "dataset", None) is None and isinstance(recorded, str) \
-            and not (Path(recorded) / "dataset.json").is_file():
-        raise HistojaxDataError(run / "config.json", f"records the dataset it trained on as {recorded}, which does not "
-                                "exist here (a folder of the machine it was trained on): give --dataset DIR, a "
-                                "dataset of the same kind (e.g. `python -m data_tools c16 ... --out DIR` for a C16 "
-                                "agent)")
+    if (
+        run is not None
+        and getattr(args, "dataset", None) is None
+        and isinstance(recorded, str)
+        and not (Path(recorded) / "dataset.json").is_file()
+    ):
+        raise HistojaxDataError(
+            run / "config.json",
+            f"records the dataset it trained on as {recorded}, which does not "
+            "exist here (a folder of the machine it was trained on): give --dataset DIR, a "
+            "dataset of the same kind (e.g. `python -m data_tools c16 ... --out DIR` for a C16 "
+            "agent)",
+        )
     if run is not None:
         warnings += provenance_warnings(trained, config, run / "config.json")
         warnings += trained_record_warnings(run, config, run / "config.json")  # a published agent's scale, encoder
@@ -291,12 +377,18 @@ def run(args, parser) -> int:
         head = heads.load(head_dir)  # ValueError naming the file: one line
         scored = scored_names(config, args.slide)  # a slide the head was fitted on: refused (or warned, the flag)
         if scored:
-            check_scored(head, head_dir, (config.env_kwargs or {}).get("dataset"), scored,
-                         getattr(args, "allow_fitting_slides", False))
+            check_scored(
+                head,
+                head_dir,
+                (config.env_kwargs or {}).get("dataset"),
+                scored,
+                getattr(args, "allow_fitting_slides", False),
+            )
         recorded = (settings or {}).get("head_name")
         if recorded and not getattr(args, "head", None) and recorded != head.name:
-            warnings.append(f"{where}: the reader trained with the head {recorded!r}; the head found at {head_dir} "
-                            f"is {head.name!r}")
+            warnings.append(
+                f"{where}: the reader trained with the head {recorded!r}; the head found at {head_dir} is {head.name!r}"
+            )
     for w in warnings:
         print(f"warning: {w}", file=sys.stderr)
     out = Path(args.out) if args.out else default_out(run, config.env_id)
@@ -305,19 +397,40 @@ def run(args, parser) -> int:
     for i, slide in enumerate(slides):
         sub = out if len(slides) == 1 else out / f"slide{i}"
         dataset = (config.env_kwargs or {}).get("dataset")
-        name = slide or (f"dataset {dataset} ({(config.env_kwargs or {}).get('split', 'train')} split)"
-                         if dataset else "embedded sample slide")
-        print(f"evaluating {config.env_id} on {name} ({i + 1} of {len(slides)}), {args.episodes} episodes per "
-              "policy ...", file=sys.stderr, flush=True)
+        name = slide or (
+            f"dataset {dataset} ({(config.env_kwargs or {}).get('split', 'train')} split)"
+            if dataset
+            else "embedded sample slide"
+        )
+        print(
+            f"evaluating {config.env_id} on {name} ({i + 1} of {len(slides)}), {args.episodes} episodes per policy ...",
+            file=sys.stderr,
+            flush=True,
+        )
         try:
-            rows = evaluate(config, params, slide=slide, num_episodes=args.episodes, seed=args.seed, out=sub,
-                            label=label, augment=args.augment, source=run, progress=True, warnings=warnings,
-                            head=head, head_reward=settings if not getattr(args, "head", None) else None)
+            rows = evaluate(
+                config,
+                params,
+                slide=slide,
+                num_episodes=args.episodes,
+                seed=args.seed,
+                out=sub,
+                label=label,
+                augment=args.augment,
+                source=run,
+                progress=True,
+                warnings=warnings,
+                head=head,
+                head_reward=settings if not getattr(args, "head", None) else None,
+            )
         except ValueError as e:
             raise grid_refusal(e, run) from None
-        print_table(f"{config.env_id} on {name} ({args.episodes} episodes per policy"
-                    f"{' per seed' if params is not None else ''})", rows,
-                    head=f"{head.name!r} ({head_dir})" if head is not None else None)
+        print_table(
+            f"{config.env_id} on {name} ({args.episodes} episodes per policy"
+            f"{' per seed' if params is not None else ''})",
+            rows,
+            head=f"{head.name!r} ({head_dir})" if head is not None else None,
+        )
         results[name] = rows
     out.mkdir(parents=True, exist_ok=True)
     record = {"env_id": config.env_id, "results": results, "warnings": warnings}
@@ -326,17 +439,49 @@ def run(args, parser) -> int:
     outputs.write_text(out / "eval.json", json.dumps(json_safe(record), indent=2, allow_nan=False))  # NaN: null
     with outputs.open_text(out / "eval.csv") as f:
         w = csv.writer(f)
-        w.writerow(["slide", "policy", "episodes", "success_rate", "mean_return", "mean_length", "mean_steps_to_success",
-                    "mean_fraction_read", "mean_fields_of_view", "diagnosis_auc", "diagnosis_auc_no_itc",
-                    "diagnosis_auc_low", "diagnosis_auc_high", "diagnosis_auc_no_itc_low", "diagnosis_auc_no_itc_high"])
+        w.writerow(
+            [
+                "slide",
+                "policy",
+                "episodes",
+                "success_rate",
+                "mean_return",
+                "mean_length",
+                "mean_steps_to_success",
+                "mean_fraction_read",
+                "mean_fields_of_view",
+                "diagnosis_auc",
+                "diagnosis_auc_no_itc",
+                "diagnosis_auc_low",
+                "diagnosis_auc_high",
+                "diagnosis_auc_no_itc_low",
+                "diagnosis_auc_no_itc_high",
+            ]
+        )
         for slide, rows in results.items():
             for name, r in rows.items():
-                w.writerow(["" if v is None else v for v in (
-                    slide, name, r["episodes"], r["success_rate"], r["mean_return"], r["mean_length"],
-                    r["mean_steps_to_success"], r["mean_fraction_read"], r["mean_fields_of_view"],
-                    r.get("diagnosis_auc", ""), r.get("diagnosis_auc_no_itc", ""), r.get("diagnosis_auc_low", ""),
-                    r.get("diagnosis_auc_high", ""), r.get("diagnosis_auc_no_itc_low", ""),
-                    r.get("diagnosis_auc_no_itc_high", ""))])
+                w.writerow(
+                    [
+                        "" if v is None else v
+                        for v in (
+                            slide,
+                            name,
+                            r["episodes"],
+                            r["success_rate"],
+                            r["mean_return"],
+                            r["mean_length"],
+                            r["mean_steps_to_success"],
+                            r["mean_fraction_read"],
+                            r["mean_fields_of_view"],
+                            r.get("diagnosis_auc", ""),
+                            r.get("diagnosis_auc_no_itc", ""),
+                            r.get("diagnosis_auc_low", ""),
+                            r.get("diagnosis_auc_high", ""),
+                            r.get("diagnosis_auc_no_itc_low", ""),
+                            r.get("diagnosis_auc_no_itc_high", ""),
+                        )
+                    ]
+                )
     print(f"\nwrote {out}/eval.json, eval.csv, trajectory_*.png, reading_*.png, trajectory.gif")
     return 0
 

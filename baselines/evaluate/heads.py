@@ -1,5 +1,6 @@
 """Head scoring: readers whose slide head declares (SASHA's reward, ``histojax.reading.head_reward``), the head's
 score per episode and its AUC, with and without ITC-only slides (CAMELYON's lesion classes)."""
+
 from __future__ import annotations
 
 import json
@@ -8,13 +9,12 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from data_tools.errors import HistojaxDataError
 from baselines.evaluate.checks import one_class
-from data_tools.metrics import UNDEFINED
 from baselines.evaluate.rollout import episode_labels
 from baselines.run_config import read_run_config
+from data_tools.errors import HistojaxDataError
+from data_tools.metrics import UNDEFINED
 from histojax.reading.heads import encoder_family, same_encoder  # noqa: F401  (encoder_family: this module's API)
-
 
 
 def check_head_features(head, encoders: list[str], dim: int) -> None:
@@ -26,19 +26,28 @@ def check_head_features(head, encoders: list[str], dim: int) -> None:
     :func:`histojax.reading.heads.load` reads."""
     want = getattr(head, "encoder", None)
     if want and any(not same_encoder(want, e) for e in encoders):
-        fit = ("python -m baselines.reading.learned_head_fit" if hasattr(head, "features_dim")
-               else "python -m baselines.reading.head_fit, or learned_head_fit for any encoder")
-        raise ValueError(f"a slide head for {want} features; these slides hold {', '.join(encoders)} features "
-                         f"(fit a head on them: {fit})")
+        fit = (
+            "python -m baselines.reading.learned_head_fit"
+            if hasattr(head, "features_dim")
+            else "python -m baselines.reading.head_fit, or learned_head_fit for any encoder"
+        )
+        raise ValueError(
+            f"a slide head for {want} features; these slides hold {', '.join(encoders)} features "
+            f"(fit a head on them: {fit})"
+        )
     length = getattr(head, "features_dim", None)
     if length is not None:
         if int(length) != dim:
-            raise ValueError(f"the slide head ({head.kind}) reads {length}-d feature vectors; these slides' features "
-                             f"have {dim} entries: fit a head on them (python -m baselines.reading.learned_head_fit)")
+            raise ValueError(
+                f"the slide head ({head.kind}) reads {length}-d feature vectors; these slides' features "
+                f"have {dim} entries: fit a head on them (python -m baselines.reading.learned_head_fit)"
+            )
     elif not 0 <= int(head.dim) < dim:
-        raise ValueError(f"the slide head reads feature entry {head.dim} ({want or 'its encoder'}'s view "
-                         f"logit); these slides' features have {dim} entries: score slides embedded with "
-                         f"{want or 'the encoder the head was fitted on'}")
+        raise ValueError(
+            f"the slide head reads feature entry {head.dim} ({want or 'its encoder'}'s view "
+            f"logit); these slides' features have {dim} entries: score slides embedded with "
+            f"{want or 'the encoder the head was fitted on'}"
+        )
 
 
 def head_env(env, env_params, head, settings: dict | None = None):
@@ -54,9 +63,14 @@ def head_env(env, env_params, head, settings: dict | None = None):
     check_head_features(head, encoders, int(np.shape(features)[-1]) if features is not None else 0)
     if settings:
         gain = settings.get("gain")
-        wrapped = HeadReward(env, head, gain=None if gain in (None, "none", False) else gain,
-                             final=float(settings.get("final") or 0.0), read_cost=float(settings.get("read_cost") or 0.0),
-                             params=env_params)
+        wrapped = HeadReward(
+            env,
+            head,
+            gain=None if gain in (None, "none", False) else gain,
+            final=float(settings.get("final") or 0.0),
+            read_cost=float(settings.get("read_cost") or 0.0),
+            params=env_params,
+        )
     else:
         wrapped = HeadReward(env, head, gain=None, final=0.0, env_reward=True, params=env_params)
     return wrapped, lesion_classes(env, env_params)
@@ -73,8 +87,11 @@ def refuse_one_class(config, env_params, slide=None) -> None:
     n = int(np.size(np.asarray(jax.device_get(env_params.slide.slide_label))))
     where = Path(kw["dataset"]) / "dataset.json" if kw.get("dataset") and slide is None else Path(slide or "slide")
     split = f"its {kw.get('split', 'train')!r} split" if kw.get("dataset") and slide is None else "the slides scored"
-    raise HistojaxDataError(where, f"{split} holds only {'tumour' if single else 'normal'} slides ({n}): the head's "
-                            f"AUC is {UNDEFINED}; score a split with tumour and normal slides (--split, --dataset)")
+    raise HistojaxDataError(
+        where,
+        f"{split} holds only {'tumour' if single else 'normal'} slides ({n}): the head's "
+        f"AUC is {UNDEFINED}; score a split with tumour and normal slides (--split, --dataset)",
+    )
 
 
 def head_scored(ep: dict, env_params, classes) -> dict:
@@ -93,8 +110,8 @@ def lesion_classes(env, env_params) -> list[str] | None:
     """CAMELYON's lesion class of each slide of ``env`` (``normal``, ``ITC``, ``micro``, ``macro``:
     :func:`baselines.reading.slides.lesion_of` on the bundle's tumour polygons at its µm/px), or None when a tumour
     slide's class cannot be known (no polygons, no µm/px)."""
-    from data_tools.annotations import load_annotations
     from baselines.reading.slides import lesion_of
+    from data_tools.annotations import load_annotations
 
     labels = np.atleast_1d(np.asarray(jax.device_get(env_params.slide.slide_label))).astype(int)
     out = []

@@ -2,6 +2,7 @@
 and ``trajectory.gif`` of one episode (``histojax.render``). Through a slide head (``evaluate --head``, or a reader's
 own head), each reading map also shows the head's per-view scores of the slide's finest views beside where the
 agent read (:func:`head_scores_map`, :func:`reading_with_scores`)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -9,9 +10,8 @@ from pathlib import Path
 import numpy as np
 
 from baselines import outputs
-from histojax.render import (animate, bundle_of, render_reading_map, render_trajectory, tumour_rings,
-                             view_box_level0)
 from baselines.evaluate.rollout import episode_labels, trajectory
+from histojax.render import animate, bundle_of, render_reading_map, render_trajectory, tumour_rings, view_box_level0
 
 
 def head_scores_map(env, env_params, head, slide_index: int) -> tuple[np.ndarray, float] | None:
@@ -25,9 +25,11 @@ def head_scores_map(env, env_params, head, slide_index: int) -> tuple[np.ndarray
     z = env.n_levels - 1
     off = int(np.asarray(s.feature_offset)[z])
     gw, gh = int(np.asarray(s.feature_grid_width)[z]), int(np.asarray(s.feature_grid_height)[z])
-    grid = np.asarray(s.features[off:off + gw * gh], np.float32).reshape(gh, gw, -1)
+    grid = np.asarray(s.features[off : off + gw * gh], np.float32).reshape(gh, gw, -1)
     want = getattr(head, "features_dim", None)
-    if (want is not None and grid.shape[-1] != want) or (want is None and not 0 <= getattr(head, "dim", -1) < grid.shape[-1]):
+    if (want is not None and grid.shape[-1] != want) or (
+        want is None and not 0 <= getattr(head, "dim", -1) < grid.shape[-1]
+    ):
         return None
     cell = float(np.asarray(s.feature_stride)) * float(bundle_of(env, slide_index).downsamples[z])
     return np.asarray(head.view_logits(grid), np.float32), cell
@@ -77,9 +79,14 @@ def panel_title(head_name: str, stood_on: int, width: int = 60) -> str:
     that no word of it is cut at the figure's edge: the head, then what the outlines mean."""
     import textwrap
 
-    return "\n".join([*textwrap.wrap(f"per-view scores of {head_name}", width),
-                      *textwrap.wrap(f"cyan: the {stood_on} view{'' if stood_on == 1 else 's'} the agent stood on; "
-                                     "green: tumour", width)])
+    return "\n".join(
+        [
+            *textwrap.wrap(f"per-view scores of {head_name}", width),
+            *textwrap.wrap(
+                f"cyan: the {stood_on} view{'' if stood_on == 1 else 's'} the agent stood on; green: tumour", width
+            ),
+        ]
+    )
 
 
 def _tag(name: str) -> str:
@@ -117,9 +124,16 @@ def write_pictures(env, env_params, episodes: dict, out: Path, env_id: str, head
         z, x, y = trajectory(ep, i)
         s = int(ep["slide"][i])
         path = out / f"trajectory_{_tag(name)}.png"
-        render_trajectory(env, z, x, y, path=path, slide_index=s,
-                          title=f"{env_id}, {name}, {len(z) - 1} steps, "
-                                f"{'success' if ep['success'][i] else 'no success'} ({picked_words(ep, i)})")
+        render_trajectory(
+            env,
+            z,
+            x,
+            y,
+            path=path,
+            slide_index=s,
+            title=f"{env_id}, {name}, {len(z) - 1} steps, "
+            f"{'success' if ep['success'][i] else 'no success'} ({picked_words(ep, i)})",
+        )
         written.append(path)
         known = getattr(env_params.slide, "slide_label", None) is not None
         labels = episode_labels(env_params, ep["slide"]) if known else np.full(ep["slide"].shape, -1)
@@ -128,20 +142,32 @@ def write_pictures(env, env_params, episodes: dict, out: Path, env_id: str, head
             if not on.size:
                 continue
             j = int(on[0])
-            score = float(ep["tumour_score"][j]) if "tumour_score" in ep else \
-                ("target reached" if ep["success"][j] else "target not reached")
+            score = (
+                float(ep["tumour_score"][j])
+                if "tumour_score" in ep
+                else ("target reached" if ep["success"][j] else "target not reached")
+            )
             path = out / f"reading_{_tag(name)}_{kind}.png"
             record = {"z": ep["z"][:, j], "x": ep["x"][:, j], "y": ep["y"][:, j], "length": ep["length"][j]}
             if head is not None:
-                reading_with_scores(env, env_params, head, record, int(ep["slide"][j]), score, path,
-                                    f"{env_id}, {name}")
+                reading_with_scores(
+                    env, env_params, head, record, int(ep["slide"][j]), score, path, f"{env_id}, {name}"
+                )
             else:
-                render_reading_map(env, env_params, record, slide_index=int(ep["slide"][j]), score=score, path=path,
-                                   title=f"{env_id}, {name}")
+                render_reading_map(
+                    env,
+                    env_params,
+                    record,
+                    slide_index=int(ep["slide"][j]),
+                    score=score,
+                    path=path,
+                    title=f"{env_id}, {name}",
+                )
             written.append(path)
     first = next(iter(episodes))
     ep = episodes[first]
     i = _shown_episode(ep)
-    written.append(animate(env, *trajectory(ep, i), out / "trajectory.gif", slide_index=int(ep["slide"][i]),
-                           params=env_params))
+    written.append(
+        animate(env, *trajectory(ep, i), out / "trajectory.gif", slide_index=int(ep["slide"][i]), params=env_params)
+    )
     return written

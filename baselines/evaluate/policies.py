@@ -1,21 +1,30 @@
 """The policies an evaluation scores: the reference policies (scripted coarse-to-fine on pixels or features,
 the coarse-map follower) and a checkpoint's learned policy (greedy or sampled, pooled over its seeds), each a
 ``policy(key, obs)`` (or ``policy(key, obs, memory)`` for a recurrent one) of a batch of observations."""
+
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 
+from baselines.cell_set_networks import RecurrentCellSetActorCritic
 from baselines.dqn import DQNConfig
+from baselines.networks import (
+    ActorCritic,
+    QNetwork,
+    RecurrentActorCritic,
+    ScannedGRU,
+    policy_mode,
+    policy_sample,
+    preprocess_obs,
+    rollout_apply,
+    rollout_step,
+)
+from baselines.networks import is_discrete as policy_is_discrete
 from baselines.ppo import make_network
 from baselines.run_config import read_run_config
-from baselines.cell_set_networks import RecurrentCellSetActorCritic
-from baselines.networks import (ActorCritic, QNetwork, RecurrentActorCritic, ScannedGRU, policy_mode, policy_sample,
-                                preprocess_obs, rollout_apply, rollout_step)
-from baselines.networks import is_discrete as policy_is_discrete
 from data_tools.features import pcam_cnn
 from histojax.core import actions
-
 
 
 # ----------------------------------------------------------------------------- scripted policy
@@ -27,7 +36,7 @@ def stain_offset(pixels, grid: int = 4, sharpen: float = 4.0):
     t = pixels.shape[0]
     score = 1.0 - (pixels[..., 0] + pixels[..., 1]) / 510.0
     cells = score.reshape(grid, t // grid, grid, t // grid).mean(axis=(1, 3))
-    w = cells ** sharpen + 1e-6
+    w = cells**sharpen + 1e-6
     centres = (jnp.arange(grid) + 0.5) / grid - 0.5
     ox = (w.sum(0) * centres).sum() / w.sum()
     oy = (w.sum(1) * centres).sum() / w.sum()
@@ -51,9 +60,11 @@ def scripted_policy(key, obs, action_mode: str = "discrete", centred: float = 0.
     k1, k2, k3 = jax.random.split(key, 3)
     is_centred = jnp.maximum(jnp.abs(ox), jnp.abs(oy)) < centred
     if action_mode.partition(":")[0] == "discrete":  # "discrete" or "discrete:memory"
-        move = jnp.where(jnp.abs(ox) >= jnp.abs(oy),
-                         jnp.where(ox > 0, actions.RIGHT, actions.LEFT),
-                         jnp.where(oy > 0, actions.DOWN, actions.UP))
+        move = jnp.where(
+            jnp.abs(ox) >= jnp.abs(oy),
+            jnp.where(ox > 0, actions.RIGHT, actions.LEFT),
+            jnp.where(oy > 0, actions.DOWN, actions.UP),
+        )
         rand_move = jax.random.randint(k1, (), 0, 4)
         centred_action = jnp.where(finest, rand_move, actions.ZOOM_IN)
         a = jnp.where(is_centred, centred_action, move)
@@ -63,8 +74,9 @@ def scripted_policy(key, obs, action_mode: str = "discrete", centred: float = 0.
     return jnp.stack([2 * ox + jitter[0], 2 * oy + jitter[1], zoom])
 
 
-def scripted_features_policy(key, obs, tumour_index: int = pcam_cnn.VIEW_LOGIT, threshold: float = 1.0,
-                             epsilon: float = 0.1):
+def scripted_features_policy(
+    key, obs, tumour_index: int = pcam_cnn.VIEW_LOGIT, threshold: float = 1.0, epsilon: float = 0.1
+):
     """Coarse-to-fine on feature observations (discrete actions; one env), from the observation only:
     the view's tumour logit is ``features[tumour_index]`` (pcam-cnn: entry 62, ``mean l``, the view's
     tumour logit; entry 63, ``max l``, its most tumour-like cell, is noisier). Above ``threshold``
@@ -103,13 +115,15 @@ def map_follower_policy(key, obs, travel_level: float = 0.5, read_enough: float 
     finest = level >= 1.0 - 1e-6
     inside = (jnp.abs(dx) < 0.5 / m) & (jnp.abs(dy) < 0.5 / m)
     far = jnp.maximum(jnp.abs(dx), jnp.abs(dy)) > 2.0 / m
-    toward = jnp.where(jnp.abs(dx) >= jnp.abs(dy), jnp.where(dx > 0, actions.RIGHT, actions.LEFT),
-                       jnp.where(dy > 0, actions.DOWN, actions.UP))
+    toward = jnp.where(
+        jnp.abs(dx) >= jnp.abs(dy),
+        jnp.where(dx > 0, actions.RIGHT, actions.LEFT),
+        jnp.where(dy > 0, actions.DOWN, actions.UP),
+    )
     k1, k2, k3 = jax.random.split(key, 3)
     wander = jax.random.randint(k1, (), 0, 4)
     at_finest = jnp.where(far, actions.ZOOM_OUT, jnp.where(inside, wander, toward))
-    above = jnp.where(far & (level > travel_level + 1e-6), actions.ZOOM_OUT,
-                      jnp.where(inside, actions.ZOOM_IN, toward))
+    above = jnp.where(far & (level > travel_level + 1e-6), actions.ZOOM_OUT, jnp.where(inside, actions.ZOOM_IN, toward))
     a = jnp.where(finest, at_finest, above)
     return jnp.where(jax.random.uniform(k2) < epsilon, jax.random.randint(k3, (), 0, 4), a).astype(jnp.int32)
 
@@ -165,12 +179,15 @@ def learned_policy(network, params, action_mode: str, greedy: bool, declare: tup
         def scoring_policy(key, obs, memory):
             action, h, pi = act(key, obs, memory[0])
             return action, (h, jax.nn.sigmoid(pi[:, yes] - pi[:, no]))
+
         scoring_policy.initial_memory = lambda n: (initial_h(n), jnp.full(n, 0.5, jnp.float32))
         return scoring_policy
     if recurrent:
+
         def recurrent_policy(key, obs, h):
             action, h, _ = act(key, obs, h)
             return action, h
+
         recurrent_policy.initial_memory = initial_h
         return recurrent_policy
     return lambda key, obs: act(key, obs, ())[0]
@@ -185,19 +202,25 @@ def seeds_policy(make_policy, params_seeds, num_seeds: int):
     merge = lambda a: a.reshape(a.shape[0] * a.shape[1], *a.shape[2:])  # noqa: E731
     probe = make_policy(jax.tree.map(lambda a: a[0], params_seeds))
     if hasattr(probe, "initial_memory"):
+
         def policy(key, obs, memory):
             def one(p, k, o, m):
                 return make_policy(p)(k, o, m)
-            a, m = jax.vmap(one)(params_seeds, jax.random.split(key, num_seeds), jax.tree.map(split, obs),
-                                 jax.tree.map(split, memory))
+
+            a, m = jax.vmap(one)(
+                params_seeds, jax.random.split(key, num_seeds), jax.tree.map(split, obs), jax.tree.map(split, memory)
+            )
             return merge(a), jax.tree.map(merge, m)
+
         policy.initial_memory = probe.initial_memory
         return policy
 
     def policy(key, obs):
-        a = jax.vmap(lambda p, k, o: make_policy(p)(k, o))(params_seeds, jax.random.split(key, num_seeds),
-                                                         jax.tree.map(split, obs))
+        a = jax.vmap(lambda p, k, o: make_policy(p)(k, o))(
+            params_seeds, jax.random.split(key, num_seeds), jax.tree.map(split, obs)
+        )
         return merge(a)
+
     return policy
 
 

@@ -1,5 +1,6 @@
 """Episodes without auto-reset: one batch of episodes per policy (:func:`run_episodes`), per-episode slides and
 read budgets, the per-policy summary (success, return, length, fraction read), and the evaluation env."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -10,10 +11,9 @@ import numpy as np
 
 from baselines.common.env import make_env
 from baselines.run_config import read_run_config
-from data_tools.metrics import accuracy, auc_interval, roc_auc
 from data_tools.errors import HistojaxDataError
+from data_tools.metrics import accuracy, auc_interval, roc_auc
 from histojax.core import seen_views
-
 
 
 # ----------------------------------------------------------------------------- rollouts
@@ -67,7 +67,8 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
             length = length + active
             success = success | (info["success"] & active)
             keep = lambda old, new: jax.tree.map(  # noqa: E731
-                lambda a, b: jnp.where(done.reshape(-1, *([1] * (a.ndim - 1))), a, b), old, new)
+                lambda a, b: jnp.where(done.reshape(-1, *([1] * (a.ndim - 1))), a, b), old, new
+            )
             state, obs, memory = keep(state, state2), keep(obs, obs2), keep(memory, memory2)
             read = jnp.where(active, info.get("fraction_read", read), read)
             fields = jnp.where(active, info.get("fields_of_view", fields), fields)
@@ -75,23 +76,55 @@ def run_episodes(env, env_params, policy, key, num_episodes: int, params_axes=No
             right = jnp.where(active, info.get("head_correct", right), right)
             done = done | term | trunc
             view = inner(state)
-            return ((obs, state, done, ret, length, success, memory), (read, fields, head, right)), (view.z, view.x,
-                                                                                                     view.y)
+            return ((obs, state, done, ret, length, success, memory), (read, fields, head, right)), (
+                view.z,
+                view.x,
+                view.y,
+            )
 
         memory = policy.initial_memory(num_episodes) if recurrent else ()
-        carry = ((obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool), memory),
-                 (jnp.full(num_episodes, jnp.nan, jnp.float32), jnp.full(num_episodes, -1, jnp.int32),
-                  jnp.full(num_episodes, jnp.nan, jnp.float32), jnp.zeros(num_episodes, bool)))
+        carry = (
+            (obs, state, jnp.zeros(num_episodes, bool), zeros, zeros, jnp.zeros(num_episodes, bool), memory),
+            (
+                jnp.full(num_episodes, jnp.nan, jnp.float32),
+                jnp.full(num_episodes, -1, jnp.int32),
+                jnp.full(num_episodes, jnp.nan, jnp.float32),
+                jnp.zeros(num_episodes, bool),
+            ),
+        )
         ((_, state, _, ret, length, success, memory), (read, fields, head, right)), (z, x, y) = jax.lax.scan(
-            body, carry, jax.random.split(key, max_steps))
+            body, carry, jax.random.split(key, max_steps)
+        )
         state = inner(state)
         cat = lambda a0, a: jnp.concatenate([a0[None], a])  # noqa: E731
-        return (ret, success, length, state.slide_index, read, fields, cat(start.z, z), cat(start.x, x),
-                cat(start.y, y), head, right), (state, memory)
+        return (
+            ret,
+            success,
+            length,
+            state.slide_index,
+            read,
+            fields,
+            cat(start.z, z),
+            cat(start.x, x),
+            cat(start.y, y),
+            head,
+            right,
+        ), (state, memory)
 
     out, (state, memory) = jax.device_get(go(key, env_params))
-    names = ("return", "success", "length", "slide", "fraction_read", "fields_of_view", "z", "x", "y", "head_score",
-             "head_correct")
+    names = (
+        "return",
+        "success",
+        "length",
+        "slide",
+        "fraction_read",
+        "fields_of_view",
+        "z",
+        "x",
+        "y",
+        "head_score",
+        "head_correct",
+    )
     episodes = dict(zip(names, (np.asarray(a) for a in out)))
     if final:
         episodes["final_state"], episodes["final_memory"] = state, memory
@@ -146,11 +179,15 @@ def summarise(ep: dict, slide_names=None) -> dict:
     successful episodes) of :func:`run_episodes`' output; with ``slide_names`` (one per slide of a
     multi-slide env) also ``by_slide``: ``{name: {"episodes", "successes"}}`` for the slides drawn."""
     s = ep["success"].astype(bool)
-    row = {"episodes": int(s.size), "success_rate": float(s.mean()), "mean_return": float(ep["return"].mean()),
-           "mean_length": float(ep["length"].mean()),
-           "mean_steps_to_success": float(ep["length"][s].mean()) if s.any() else float("nan"),
-           "mean_fraction_read": float(np.mean(ep["fraction_read"])) if "fraction_read" in ep else float("nan"),
-           "mean_fields_of_view": float(np.mean(ep["fields_of_view"])) if "fields_of_view" in ep else float("nan")}
+    row = {
+        "episodes": int(s.size),
+        "success_rate": float(s.mean()),
+        "mean_return": float(ep["return"].mean()),
+        "mean_length": float(ep["length"].mean()),
+        "mean_steps_to_success": float(ep["length"][s].mean()) if s.any() else float("nan"),
+        "mean_fraction_read": float(np.mean(ep["fraction_read"])) if "fraction_read" in ep else float("nan"),
+        "mean_fields_of_view": float(np.mean(ep["fields_of_view"])) if "fields_of_view" in ep else float("nan"),
+    }
     if "tumour_score" in ep:  # diagnosis: AUC of the policy's p(tumour), accuracy of thresholding it at 0.5
         row["diagnosis_auc"] = roc_auc(ep["tumour_score"], ep["label"])
         row["diagnosis_auc_low"], row["diagnosis_auc_high"] = slides_interval(row["diagnosis_auc"], ep)
@@ -160,12 +197,18 @@ def summarise(ep: dict, slide_names=None) -> dict:
         keep = ep["lesion"] != "ITC"
         row["diagnosis_auc_no_itc"] = roc_auc(ep["tumour_score"][keep], ep["label"][keep])
         row["diagnosis_auc_no_itc_low"], row["diagnosis_auc_no_itc_high"] = slides_interval(
-            row["diagnosis_auc_no_itc"], ep, keep)
+            row["diagnosis_auc_no_itc"], ep, keep
+        )
     if slide_names is not None and len(slide_names) > 1:
-        row["by_slide"] = {name: {"episodes": int((ep["slide"] == i).sum()),
-                                  "successes": int(s[ep["slide"] == i].sum()),
-                                  "steps_to_success_sum": float(ep["length"][s & (ep["slide"] == i)].sum())}
-                           for i, name in enumerate(slide_names) if (ep["slide"] == i).any()}
+        row["by_slide"] = {
+            name: {
+                "episodes": int((ep["slide"] == i).sum()),
+                "successes": int(s[ep["slide"] == i].sum()),
+                "steps_to_success_sum": float(ep["length"][s & (ep["slide"] == i)].sum()),
+            }
+            for i, name in enumerate(slide_names)
+            if (ep["slide"] == i).any()
+        }
     return row
 
 
@@ -198,15 +241,20 @@ def check_fits(policy, env, env_params, num_seeds: int, config, source=None) -> 
     config = read_run_config(config)
     keys = jax.random.split(jax.random.PRNGKey(0), num_seeds)
     try:
+
         def probe():
             obs, _ = jax.vmap(env.reset, in_axes=(0, None))(keys, env_params)
             if hasattr(policy, "initial_memory"):
                 return policy(keys[0], obs, policy.initial_memory(num_seeds))
             return policy(keys[0], obs)
+
         jax.eval_shape(probe)
     except Exception as e:  # flax's ScopeParamShapeError, KeyError of a missing layer, ...: no common base
         where = Path(source) / "params.msgpack" if source is not None else "the checkpoint"
         first = str(e).strip().splitlines()[0] if str(e).strip() else type(e).__name__
-        raise HistojaxDataError(where, f"its parameters do not fit the network its config.json describes "
-                                f"(algo {config.algo}, hidden={getattr(config, 'hidden', None)}, action_mode="
-                                f"{config.action_mode!r}, on {config.env_id}): {first[:300]}") from e
+        raise HistojaxDataError(
+            where,
+            f"its parameters do not fit the network its config.json describes "
+            f"(algo {config.algo}, hidden={getattr(config, 'hidden', None)}, action_mode="
+            f"{config.action_mode!r}, on {config.env_id}): {first[:300]}",
+        ) from e

@@ -1,4 +1,5 @@
 """Score a checkpoint and the reference policies on slides: one row per policy (:func:`evaluate`)."""
+
 from __future__ import annotations
 
 import sys
@@ -7,15 +8,21 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from baselines.evaluate.checks import one_class, split_warnings, undefined_figures
+from baselines.evaluate.heads import head_env, head_scored, refuse_one_class
+from baselines.evaluate.pictures import write_pictures
+from baselines.evaluate.policies import (
+    diagnosis_actions,
+    learned_policy,
+    map_follower_policy,
+    network_for,
+    scripted_features_policy,
+    scripted_policy,
+    seeds_policy,
+)
+from baselines.evaluate.rollout import check_fits, episode_labels, eval_env, per_episode_params, run_episodes, summarise
 from baselines.networks import QNetwork
 from baselines.networks import is_discrete as policy_is_discrete
-from baselines.evaluate.rollout import check_fits, episode_labels, eval_env, per_episode_params, run_episodes, summarise
-from baselines.evaluate.policies import (diagnosis_actions, learned_policy, map_follower_policy, network_for,
-                                         scripted_features_policy, scripted_policy, seeds_policy)
-from baselines.evaluate.heads import head_env, head_scored, refuse_one_class
-from baselines.evaluate.checks import one_class, split_warnings, undefined_figures
-from baselines.evaluate.pictures import write_pictures
-
 
 
 def small_split_words(env_params, scored: bool) -> str | None:
@@ -42,13 +49,27 @@ def unreadable_at_budget(env_params, names) -> str | None:
     if not all(hasattr(tables, k) for k in ("cell_views", "valid", "total_views", "read_budget")):
         return None
     budget = float(np.asarray(tables.read_budget))
-    return unreadable_warning(names, np.asarray(tables.cell_views), np.asarray(tables.valid),
-                              np.asarray(tables.total_views), [budget])
+    return unreadable_warning(
+        names, np.asarray(tables.cell_views), np.asarray(tables.valid), np.asarray(tables.total_views), [budget]
+    )
 
 
-def evaluate(config, params, slide=None, num_episodes: int = 256, seed: int = 0, out: Path | None = None,
-             label: str = "learned", augment: bool = False, references: bool = True, source=None,
-             progress: bool = False, warnings: list | None = None, head=None, head_reward: dict | None = None) -> dict:
+def evaluate(
+    config,
+    params,
+    slide=None,
+    num_episodes: int = 256,
+    seed: int = 0,
+    out: Path | None = None,
+    label: str = "learned",
+    augment: bool = False,
+    references: bool = True,
+    source=None,
+    progress: bool = False,
+    warnings: list | None = None,
+    head=None,
+    head_reward: dict | None = None,
+) -> dict:
     """Rows (``config``: the run's typed config or its record) for the learned policy (greedy and sampled; seeds
     pooled), the random agent and the
     scripted policy (``references=False``: without these two) on one slide; writes trajectory
@@ -88,13 +109,19 @@ def evaluate(config, params, slide=None, num_episodes: int = 256, seed: int = 0,
     while not hasattr(base, "task") and hasattr(base, "_env"):
         base = base._env
     task = getattr(base, "task", "detection")
-    for w in split_warnings(env, env_params, task,
-                            f"{len(names)} slide{'s' if len(names) > 1 else ''} ({', '.join(names[:3])}"
-                            f"{', ...' if len(names) > 3 else ''})"):
+    for w in split_warnings(
+        env,
+        env_params,
+        task,
+        f"{len(names)} slide{'s' if len(names) > 1 else ''} ({', '.join(names[:3])}"
+        f"{', ...' if len(names) > 3 else ''})",
+    ):
         say(f"warning: {w}")
         if warnings is not None:
             warnings.append(w)
-    if (w := small_split_words(env_params, task == "classification" or head is not None)) is not None:  # too few slides to rank: one line
+    if (
+        w := small_split_words(env_params, task == "classification" or head is not None)
+    ) is not None:  # too few slides to rank: one line
         say(w)
         if warnings is not None:
             warnings.append(w)
@@ -116,8 +143,9 @@ def evaluate(config, params, slide=None, num_episodes: int = 256, seed: int = 0,
         declare = diagnosis_actions(env, network, mode) if head is None else None  # through a head: it declares
         for name, greedy in variants:
             # every seed in one program (one compile): episodes [s E, (s + 1) E) run seed s's policy
-            policy = seeds_policy(lambda p: learned_policy(network, p, mode, greedy, declare=declare),
-                                  params_seeds, num_seeds)
+            policy = seeds_policy(
+                lambda p: learned_policy(network, p, mode, greedy, declare=declare), params_seeds, num_seeds
+            )
             check_fits(policy, env, env_params, num_seeds, config, source)
             say(f"  {label} ({name}): {num_episodes * num_seeds} episodes ...")
             ep = episodes_of(policy, jax.random.fold_in(key, 100), num_episodes * num_seeds)
@@ -125,8 +153,9 @@ def evaluate(config, params, slide=None, num_episodes: int = 256, seed: int = 0,
                 ep["tumour_score"] = np.asarray(ep.pop("final_memory")[1], np.float64)
                 ep["label"] = episode_labels(env_params, ep["slide"])
                 ep.pop("final_state")
-            per_seed = [{k: v[..., s * num_episodes:(s + 1) * num_episodes] for k, v in ep.items()}
-                        for s in range(num_seeds)]
+            per_seed = [
+                {k: v[..., s * num_episodes : (s + 1) * num_episodes] for k, v in ep.items()} for s in range(num_seeds)
+            ]
             pooled = {k: np.concatenate([e[k] for e in per_seed], axis=-1) for k in per_seed[0]}
             row = summarise(pooled, names)
             row["success_rate_per_seed"] = [summarise(e)["success_rate"] for e in per_seed]
@@ -151,9 +180,11 @@ def evaluate(config, params, slide=None, num_episodes: int = 256, seed: int = 0,
     elif env.obs_mode == "features" and policy_is_discrete(mode) and diagnosis_actions(env, None, mode) is None:
         one_env = scripted_features_policy
     if one_env is not None:
+
         def scripted(k, obs):
             n = jax.tree.leaves(obs)[0].shape[0]
             return jax.vmap(one_env)(jax.random.split(k, n), obs)
+
         try:
             say(f"  {what}: {num_episodes} episodes ...")
             episodes["scripted"] = episodes_of(scripted, jax.random.fold_in(key, 2), num_episodes)

@@ -1,5 +1,6 @@
 """The trainers' shared command line: options, the config they make (``--set key=value``, ``--dataset``),
 ``--resume RUN``, and ``python -m baselines.<algo>``'s entry point."""
+
 from __future__ import annotations
 
 import argparse
@@ -9,12 +10,11 @@ from pathlib import Path
 
 import jax
 
-from baselines.harness import distributed, run_folder
 from baselines.common.config import ConfigError, EnvConfig
+from baselines.harness import distributed, run_folder
+from baselines.harness.runner import resume_config, run_and_save
 from data_tools.cli_output import build_parser, command_main, positive_float, print_error
 from data_tools.errors import HistojaxDataError
-from baselines.harness.runner import resume_config, run_and_save
-
 
 
 # ----------------------------------------------------------------------------- the command line and a run
@@ -35,18 +35,36 @@ def add_arguments(p, defaults: dict) -> None:
     ``histojax train --algo ...`` and ``baselines.rotation``."""
     p.add_argument("--env", default=defaults["env_id"], help="registered env id")
     p.add_argument("--slide", default=None, help="bundle folder (default: the embedded sample slide)")
-    p.add_argument("--dataset", default=None, metavar="DIR",
-                   help="a dataset folder (histojax dataset / data_tools c16 / synth; its dataset.json): "
-                        "train on its slides (make(env, dataset=DIR))")
-    p.add_argument("--split", default=None, metavar="S",
-                   help="with --dataset: the split to train on (default: the env's, 'train')")
-    p.add_argument("--fold", type=int, default=None, metavar="I",
-                   help="with --dataset built with --folds K: train on fold I's train side (the other K - 1 folds); "
-                        "make(..., fold=I)")
-    p.add_argument("--action-mode", default="discrete",
-                   help="discrete | continuous | glimpse[:LEVEL] | zoom_select[:K] (histojax.core.modes.factory)")
-    p.add_argument("--obs-mode", "--obs", dest="obs_mode", default="pixels",
-                   help="the env's obs_mode: pixels | features | ... (--obs: the older spelling)")
+    p.add_argument(
+        "--dataset",
+        default=None,
+        metavar="DIR",
+        help="a dataset folder (histojax dataset / data_tools c16 / synth; its dataset.json): "
+        "train on its slides (make(env, dataset=DIR))",
+    )
+    p.add_argument(
+        "--split", default=None, metavar="S", help="with --dataset: the split to train on (default: the env's, 'train')"
+    )
+    p.add_argument(
+        "--fold",
+        type=int,
+        default=None,
+        metavar="I",
+        help="with --dataset built with --folds K: train on fold I's train side (the other K - 1 folds); "
+        "make(..., fold=I)",
+    )
+    p.add_argument(
+        "--action-mode",
+        default="discrete",
+        help="discrete | continuous | glimpse[:LEVEL] | zoom_select[:K] (histojax.core.modes.factory)",
+    )
+    p.add_argument(
+        "--obs-mode",
+        "--obs",
+        dest="obs_mode",
+        default="pixels",
+        help="the env's obs_mode: pixels | features | ... (--obs: the older spelling)",
+    )
     p.add_argument("--with-position", action="store_true", help="observation dict with the view position")
     p.add_argument("--reward", default=None, help="reward preset (default: the env's, 'dense')")
     p.add_argument("--seeds", type=int, default=4)
@@ -54,29 +72,56 @@ def add_arguments(p, defaults: dict) -> None:
     p.add_argument("--total-steps", type=int, default=defaults["total_timesteps"], help="env steps per seed")
     p.add_argument("--num-envs", type=int, default=defaults["num_envs"])
     p.add_argument("--lr", type=positive_float, default=defaults["lr"], help="learning rate (finite, > 0)")
-    p.add_argument("--devices", type=int, default=None,
-                   help="shard the env batch over the first N devices (PPO; on CPU set "
-                        "XLA_FLAGS=--xla_force_host_platform_device_count=N)")
-    p.add_argument("--shard-slides", action="store_true",
-                   help="with --devices N: split the dataset's slides over the devices (each device holds and "
-                        "draws only its own slides; docs/scaling.md)")
+    p.add_argument(
+        "--devices",
+        type=int,
+        default=None,
+        help="shard the env batch over the first N devices (PPO; on CPU set "
+        "XLA_FLAGS=--xla_force_host_platform_device_count=N)",
+    )
+    p.add_argument(
+        "--shard-slides",
+        action="store_true",
+        help="with --devices N: split the dataset's slides over the devices (each device holds and "
+        "draws only its own slides; docs/scaling.md)",
+    )
     distributed.add_arguments(p)
-    p.add_argument("--set", action="append", default=[], metavar="KEY=VALUE",
-                   help="any other config entry, value parsed as JSON (e.g. --set ent_coef=0.02)")
-    p.add_argument("--out", default=None,
-                   help="run folder (default runs/<algo>-<env>, or the next free runs/<algo>-<env>-N when that one "
-                        "is used); a folder holding anything but an unfinished run of this config is refused")
-    p.add_argument("--overwrite", action="store_true",
-                   help="replace the run in --out (only the files histojax wrote there; its final files stay until "
-                        "the new run's are written)")
+    p.add_argument(
+        "--set",
+        action="append",
+        default=[],
+        metavar="KEY=VALUE",
+        help="any other config entry, value parsed as JSON (e.g. --set ent_coef=0.02)",
+    )
+    p.add_argument(
+        "--out",
+        default=None,
+        help="run folder (default runs/<algo>-<env>, or the next free runs/<algo>-<env>-N when that one "
+        "is used); a folder holding anything but an unfinished run of this config is refused",
+    )
+    p.add_argument(
+        "--overwrite",
+        action="store_true",
+        help="replace the run in --out (only the files histojax wrote there; its final files stay until "
+        "the new run's are written)",
+    )
     if "checkpoint_every" in defaults:
-        p.add_argument("--checkpoint-every", type=non_negative_int, default=None, metavar="N",
-                       help=f"save the whole training state to OUT/checkpoint/ every N updates "
-                            f"(default {defaults['checkpoint_every']}; 0: only at the end)")
-        p.add_argument("--resume", default=None, metavar="RUN",
-                       help="continue the killed run in folder RUN from its last checkpoint, with its own "
-                            "config (RUN/checkpoint/config.json; other options are ignored); the result equals an "
-                            "uninterrupted run's")
+        p.add_argument(
+            "--checkpoint-every",
+            type=non_negative_int,
+            default=None,
+            metavar="N",
+            help=f"save the whole training state to OUT/checkpoint/ every N updates "
+            f"(default {defaults['checkpoint_every']}; 0: only at the end)",
+        )
+        p.add_argument(
+            "--resume",
+            default=None,
+            metavar="RUN",
+            help="continue the killed run in folder RUN from its last checkpoint, with its own "
+            "config (RUN/checkpoint/config.json; other options are ignored); the result equals an "
+            "uninterrupted run's",
+        )
 
 
 def parse_args(argv=None, defaults: dict | None = None, description: str = ""):
@@ -87,10 +132,20 @@ def parse_args(argv=None, defaults: dict | None = None, description: str = ""):
 
 def config_from_args(args, defaults: dict) -> dict:
     """The trainer config of parsed arguments: ``defaults`` with the options and ``--set`` entries applied."""
-    config = {**defaults, "env_id": args.env, "slide": args.slide, "action_mode": args.action_mode,
-              "obs_mode": args.obs_mode, "with_position": args.with_position, "reward": args.reward,
-              "num_seeds": args.seeds, "seed": args.seed, "total_timesteps": args.total_steps,
-              "num_envs": args.num_envs, "lr": args.lr}
+    config = {
+        **defaults,
+        "env_id": args.env,
+        "slide": args.slide,
+        "action_mode": args.action_mode,
+        "obs_mode": args.obs_mode,
+        "with_position": args.with_position,
+        "reward": args.reward,
+        "num_seeds": args.seeds,
+        "seed": args.seed,
+        "total_timesteps": args.total_steps,
+        "num_envs": args.num_envs,
+        "lr": args.lr,
+    }
     if getattr(args, "checkpoint_every", None) is not None:
         config["checkpoint_every"] = args.checkpoint_every
     if args.devices is not None:
@@ -112,10 +167,15 @@ def config_from_args(args, defaults: dict) -> dict:
     fold = getattr(args, "fold", None)
     if getattr(args, "dataset", None) is not None or getattr(args, "split", None) is not None or fold is not None:
         if args.dataset is None:
-            raise SystemExit(f"{'--split' if getattr(args, 'split', None) is not None else '--fold'} needs --dataset DIR")
-        config["env_kwargs"] = {**(config.get("env_kwargs") or {}), "dataset": args.dataset,
-                                **({"split": args.split} if args.split is not None else {}),
-                                **({"fold": fold} if fold is not None else {})}
+            raise SystemExit(
+                f"{'--split' if getattr(args, 'split', None) is not None else '--fold'} needs --dataset DIR"
+            )
+        config["env_kwargs"] = {
+            **(config.get("env_kwargs") or {}),
+            "dataset": args.dataset,
+            **({"split": args.split} if args.split is not None else {}),
+            **({"fold": fold} if fold is not None else {}),
+        }
     return config
 
 
@@ -150,8 +210,9 @@ def train_and_save(algo: str, make_train_fn, args, config_class: type[EnvConfig]
     out = Path(args.out or f"runs/{algo}-{config.env_id}")
     if jax.process_index() == 0:  # the process that writes the run's files holds its folder
         try:
-            out = run_folder.claim(out, config.as_dict(), overwrite=getattr(args, "overwrite", False),
-                                   default=args.out is None)
+            out = run_folder.claim(
+                out, config.as_dict(), overwrite=getattr(args, "overwrite", False), default=args.out is None
+            )
         except HistojaxDataError as e:
             return print_error(e)
     try:
@@ -165,6 +226,7 @@ def trainer_command(algo: str, make_train_fn, config_class: type[EnvConfig], uni
     """A trainer module's command: ``(add_arguments, run, main)`` for ``python -m baselines.<algo>`` and
     ``histojax train --algo <algo>``, the options :func:`add_arguments` with the defaults of the trainer's typed
     config ``config_class``."""
+
     def add(parser) -> None:
         """The trainer's options (:func:`add_arguments` with its defaults)."""
         add_arguments(parser, config_class.defaults())

@@ -1,6 +1,7 @@
 """Learning-curve pictures with matplotlib (Agg canvas, no display needed): one panel per metric,
 the seed mean as a line, the seeds' min–max as a band, the random agent as a dashed reference line,
 the x axis in env steps per seed."""
+
 from __future__ import annotations
 
 import warnings
@@ -41,8 +42,7 @@ def curves_figure(steps, panels: dict, title: str = "", reference: dict | None =
             lo, hi = np.nanmin(arr, axis=0), np.nanmax(arr, axis=0)
         seeds = arr.shape[0]
         if seeds > 1:
-            ax.fill_between(steps, lo, hi, color=BAND_COLOUR, alpha=0.6, linewidth=0,
-                            label=f"{seeds} seeds (min–max)")
+            ax.fill_between(steps, lo, hi, color=BAND_COLOUR, alpha=0.6, linewidth=0, label=f"{seeds} seeds (min–max)")
         ax.plot(steps, mean, color=MEAN_COLOUR, linewidth=1.8, label="mean over seeds" if seeds > 1 else "1 seed")
         ok = np.isfinite(mean)
         alone = ok & ~np.concatenate([[False], ok[:-1]]) & ~np.concatenate([ok[1:], [False]])

@@ -1,5 +1,6 @@
 """What a run writes and prints: progress lines, checkpoints (flax.serialization msgpack), logs (CSV / JSON),
 TensorBoard scalars, and the NaN-aware means and smoothing they use."""
+
 from __future__ import annotations
 
 import csv
@@ -13,10 +14,9 @@ import numpy as np
 from flax import serialization
 
 from baselines import outputs
+from baselines.common.config import canonical_config
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import json_safe
-from baselines.common.config import canonical_config
-
 
 
 class Progress:
@@ -43,11 +43,17 @@ class Progress:
         m = {k: finite_mean(v) for k, v in metrics.items()}
         steps = (update + 1) * self.steps_per_update
         dt = time.perf_counter() - self.t0
-        extra = "  ".join(f"{k} {_number(v, '.4g')}" for k, v in m.items()
-                          if k not in ("return", "success", "steps_to_success", "episodes"))
-        print(f"[{self.name}, {seed}] update {update + 1}/{self.num_updates}  env steps/seed {steps:,}  "
-              f"return {_number(m['return'], '.3f')}  success {_number(m['success'], '.1%')}  "
-              f"steps-to-success {_number(m['steps_to_success'], '.1f')}  {extra}  ({dt:.0f} s)", flush=True)
+        extra = "  ".join(
+            f"{k} {_number(v, '.4g')}"
+            for k, v in m.items()
+            if k not in ("return", "success", "steps_to_success", "episodes")
+        )
+        print(
+            f"[{self.name}, {seed}] update {update + 1}/{self.num_updates}  env steps/seed {steps:,}  "
+            f"return {_number(m['return'], '.3f')}  success {_number(m['success'], '.1%')}  "
+            f"steps-to-success {_number(m['steps_to_success'], '.1f')}  {extra}  ({dt:.0f} s)",
+            flush=True,
+        )
 
 
 def _number(value: float, spec: str) -> str:
@@ -62,8 +68,9 @@ def report(progress: Progress, update, metrics: dict):
     under ``vmap`` calls once per seed, slicing device arrays from the callback thread, which
     stalled a 2-seed CPU run). Returns an int32 zero that the caller must use (add it to a
     metric) so the callback is not removed as dead code."""
-    return jax.pure_callback(progress, jax.ShapeDtypeStruct((), jnp.int32), update, metrics,
-                             vmap_method="broadcast_all")
+    return jax.pure_callback(
+        progress, jax.ShapeDtypeStruct((), jnp.int32), update, metrics, vmap_method="broadcast_all"
+    )
 
 
 # ----------------------------------------------------------------------------- checkpoints
@@ -115,15 +122,35 @@ def write_logs(out: Path, steps: np.ndarray, metrics: dict, summary: dict, stage
     keys = [k for k in ("return", "success", "length", "steps_to_success") if k in metrics]
     with files.open_text(out / "log.csv") as f:
         w = csv.writer(f)
-        w.writerow(["step", "mean_return", "success_rate", "success_rate_min_seed", "success_rate_max_seed",
-                    "mean_length", "mean_steps_to_success"])
+        w.writerow(
+            [
+                "step",
+                "mean_return",
+                "success_rate",
+                "success_rate_min_seed",
+                "success_rate_max_seed",
+                "mean_length",
+                "mean_steps_to_success",
+            ]
+        )
         for i, s in enumerate(steps):
             col = {k: np.asarray(metrics[k])[:, i] for k in keys}
-            w.writerow([int(s), _fmt(finite_mean(col["return"])), _fmt(finite_mean(col["success"])),
-                        _fmt(finite_extreme(col["success"], np.min)), _fmt(finite_extreme(col["success"], np.max)),
-                        _fmt(finite_mean(col["length"])), _fmt(finite_mean(col["steps_to_success"]))])
-    data = {"summary": summary, "step": [int(s) for s in steps],
-            "per_seed": {k: np.asarray(v).tolist() for k, v in metrics.items()}}
+            w.writerow(
+                [
+                    int(s),
+                    _fmt(finite_mean(col["return"])),
+                    _fmt(finite_mean(col["success"])),
+                    _fmt(finite_extreme(col["success"], np.min)),
+                    _fmt(finite_extreme(col["success"], np.max)),
+                    _fmt(finite_mean(col["length"])),
+                    _fmt(finite_mean(col["steps_to_success"])),
+                ]
+            )
+    data = {
+        "summary": summary,
+        "step": [int(s) for s in steps],
+        "per_seed": {k: np.asarray(v).tolist() for k, v in metrics.items()},
+    }
     files.write_text(out / "log.json", json.dumps(json_safe(data), default=_json_default, allow_nan=False))  # NaN: null
 
 
@@ -173,7 +200,7 @@ def smooth(a: np.ndarray, k: int) -> np.ndarray:
         return a
     out = np.full_like(a, np.nan, dtype=np.float64)
     for i in range(a.shape[-1]):
-        w = a[..., max(0, i - k + 1): i + 1]
+        w = a[..., max(0, i - k + 1) : i + 1]
         out[..., i] = finite_mean(w, axis=-1)
     return out
 

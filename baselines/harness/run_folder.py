@@ -23,6 +23,7 @@ A refused command leaves the folder as it found it: :func:`claim` checks the fol
 lock, :func:`release` removes the lock file, and removes the folder too when this process made it and it is
 still empty (a run refused after its claim, e.g. for a mistyped ``--fold``).
 """
+
 from __future__ import annotations
 
 import errno
@@ -42,9 +43,11 @@ LOCK = ".histojax-run.lock"
 """The lock file inside a run folder (held with ``fcntl.flock`` while a run writes there)."""
 FINAL = ("log.csv", "log.json", "curve.png", "params.msgpack", "config.json")
 """A finished run's files (written as a whole at its end)."""
-RUN_ENTRIES = re.compile(r"^(log\.csv|log\.json|curve\.png|params\.msgpack|config\.json|checkpoint|eval|"
-                         r"eval-all-folds|head_reward\.json|curve-seeds\.png|curve-seeds\.csv|"
-                         r"process-\d+|events\.out\.tfevents\..+|\.histojax-run\.lock|\..+\.tmp-[0-9a-f]{8})$")
+RUN_ENTRIES = re.compile(
+    r"^(log\.csv|log\.json|curve\.png|params\.msgpack|config\.json|checkpoint|eval|"
+    r"eval-all-folds|head_reward\.json|curve-seeds\.png|curve-seeds\.csv|"
+    r"process-\d+|events\.out\.tfevents\..+|\.histojax-run\.lock|\..+\.tmp-[0-9a-f]{8})$"
+)
 """Names histojax writes in a run folder (temporaries of an atomic write included): a trainer's files,
 ``eval/`` and ``eval-all-folds/`` (``histojax evaluate RUN`` and ``--all-folds``), ``head_reward.json`` and
 ``curve-seeds.*`` (``baselines.reading.train_readers``)."""
@@ -54,7 +57,9 @@ files (:data:`FINAL`) stay until the new run's are written."""
 MAX_NUMBERED = 1000
 """The most numbered default folders (``runs/<algo>-<env>-N``) tried."""
 
-_HELD: dict[str, tuple[int, Path, Path | None]] = {}  # run folder (resolved) -> (lock fd, folder, outermost folder made)
+_HELD: dict[
+    str, tuple[int, Path, Path | None]
+] = {}  # run folder (resolved) -> (lock fd, folder, outermost folder made)
 
 
 class RunFolderError(HistojaxDataError):
@@ -74,11 +79,15 @@ def read_own(path, what: str, max_bytes: int | None = None) -> bytes:
     st = os.lstat(path)
     kind = not_regular(st)
     if kind is not None:
-        raise RunFolderError(path, f"is {kind}, not the run's own {what}; refusing to read it (restore the file "
-                                   "histojax wrote, or train again)")
+        raise RunFolderError(
+            path,
+            f"is {kind}, not the run's own {what}; refusing to read it (restore the file "
+            "histojax wrote, or train again)",
+        )
     if max_bytes is not None and st.st_size > max_bytes:
-        raise RunFolderError(path, f"{st.st_size:,} bytes, more than a run's {what} holds ({max_bytes:,}); refusing "
-                                   "to read it")
+        raise RunFolderError(
+            path, f"{st.st_size:,} bytes, more than a run's {what} holds ({max_bytes:,}); refusing to read it"
+        )
     try:
         f = open_regular(path, st)
     except ChangedFileError:
@@ -97,12 +106,18 @@ def _is_run_config(path: Path) -> bool:
     return isinstance(config, dict) and isinstance(config.get("env_id"), str)
 
 
-INSIDE = {"checkpoint": re.compile(r"^(runner\.msgpack|checkpoint\.json|config\.json|\..+\.tmp-[0-9a-f]{8})$"),
-          "eval": re.compile(r"^(eval\.json|eval\.csv|trajectory\.gif|trajectory_.+\.png|reading_.+\.png|slide\d+|"
-                             r"fold\d+|\..+\.tmp-[0-9a-f]{8})$"),
-          "eval-all-folds": re.compile(r"^(eval\.json|eval\.csv|trajectory\.gif|trajectory_.+\.png|reading_.+\.png|"
-                                       r"slide\d+|fold\d+|\..+\.tmp-[0-9a-f]{8})$"),
-          "process": re.compile(r"^(params\.msgpack|config\.json|\..+\.tmp-[0-9a-f]{8})$")}
+INSIDE = {
+    "checkpoint": re.compile(r"^(runner\.msgpack|checkpoint\.json|config\.json|\..+\.tmp-[0-9a-f]{8})$"),
+    "eval": re.compile(
+        r"^(eval\.json|eval\.csv|trajectory\.gif|trajectory_.+\.png|reading_.+\.png|slide\d+|"
+        r"fold\d+|\..+\.tmp-[0-9a-f]{8})$"
+    ),
+    "eval-all-folds": re.compile(
+        r"^(eval\.json|eval\.csv|trajectory\.gif|trajectory_.+\.png|reading_.+\.png|"
+        r"slide\d+|fold\d+|\..+\.tmp-[0-9a-f]{8})$"
+    ),
+    "process": re.compile(r"^(params\.msgpack|config\.json|\..+\.tmp-[0-9a-f]{8})$"),
+}
 """Names histojax writes inside a run folder's ``checkpoint/``, ``eval/`` (and its ``slideN/``, ``foldN/``) and
 ``eval-all-folds/`` and ``process-N/``: what ``--overwrite`` may remove there."""
 
@@ -167,19 +182,26 @@ def lock(out: Path) -> None:
     for _ in range(20):  # a holder that releases removes the file: lock the file the name holds now
         try:
             out.mkdir(parents=True, exist_ok=True)
-            fd = os.open(out / LOCK, os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | os.O_CLOEXEC
-                         | getattr(os, "O_NONBLOCK", 0), 0o644)  # a FIFO there never blocks the open
+            fd = os.open(
+                out / LOCK,
+                os.O_RDWR | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0) | os.O_CLOEXEC | getattr(os, "O_NONBLOCK", 0),
+                0o644,
+            )  # a FIFO there never blocks the open
         except OSError as e:
             _remove_made(out, made)
             if e.errno == errno.ELOOP:
-                raise RunFolderError(out / LOCK, "is a symbolic link, not the run folder's lock file; remove it or "
-                                                 "choose another --out") from None
+                raise RunFolderError(
+                    out / LOCK, "is a symbolic link, not the run folder's lock file; remove it or choose another --out"
+                ) from None
             raise RunFolderError(out, f"cannot be written ({e.strerror or e}); choose another --out") from None
         st = os.fstat(fd)
         if not stat.S_ISREG(st.st_mode):
             os.close(fd)
-            raise RunFolderError(out / LOCK, "is not a regular file (a FIFO, device or socket), not the run folder's "
-                                             "lock file; remove it or choose another --out")
+            raise RunFolderError(
+                out / LOCK,
+                "is not a regular file (a FIFO, device or socket), not the run folder's "
+                "lock file; remove it or choose another --out",
+            )
         try:
             fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
         except OSError:
@@ -187,8 +209,11 @@ def lock(out: Path) -> None:
                 holder = os.read(fd, 64).decode(errors="replace").strip() or "?"
             finally:
                 os.close(fd)
-            raise RunFolderError(out, f"another training run (process {holder}) is writing this run folder (it holds "
-                                      f"{LOCK}); wait for it to end, or choose another --out") from None
+            raise RunFolderError(
+                out,
+                f"another training run (process {holder}) is writing this run folder (it holds "
+                f"{LOCK}); wait for it to end, or choose another --out",
+            ) from None
         try:
             now = os.lstat(out / LOCK)
         except FileNotFoundError:
@@ -272,20 +297,29 @@ def _check(out: Path, config: dict, overwrite: bool) -> str:
         return state
     foreign = foreign_entries(out)
     if foreign:
-        raise RunFolderError(out, f"holds files histojax did not write (e.g. {foreign[0]!r}); refusing to train "
-                                  "into it (choose another --out; --overwrite replaces only a run's own files)")
+        raise RunFolderError(
+            out,
+            f"holds files histojax did not write (e.g. {foreign[0]!r}); refusing to train "
+            "into it (choose another --out; --overwrite replaces only a run's own files)",
+        )
     if not overwrite:
         what = "a finished run (params.msgpack)" if state == "finished" else "an unfinished run of another config"
-        raise RunFolderError(out, f"holds {what}; refusing to overwrite it: choose another --out, continue an "
-                                  "unfinished run with --resume, or replace it with --overwrite")
+        raise RunFolderError(
+            out,
+            f"holds {what}; refusing to overwrite it: choose another --out, continue an "
+            "unfinished run with --resume, or replace it with --overwrite",
+        )
     inside = []  # a user's file inside the old run's folders: never removed (refused before anything is)
     for name in sorted(os.listdir(out)):
         kind = "process" if re.match(r"^process-\d+$", name) else name
         if kind in INSIDE and (out / name).is_dir():
             inside += _foreign_inside(out / name, INSIDE[kind], name)
     if inside:
-        raise RunFolderError(out, f"holds files histojax did not write (e.g. {inside[0]!r}) in the old run's "
-                                  "folders, which --overwrite would remove; move them out first or choose another --out")
+        raise RunFolderError(
+            out,
+            f"holds files histojax did not write (e.g. {inside[0]!r}) in the old run's "
+            "folders, which --overwrite would remove; move them out first or choose another --out",
+        )
     return state
 
 
@@ -297,8 +331,11 @@ def claim(out, config: dict, overwrite: bool = False, default: bool = False) -> 
     if default and not overwrite:
         for n in range(1, MAX_NUMBERED + 1):
             candidate = out if n == 1 else out.with_name(f"{out.name}-{n}")
-            if candidate.is_dir() and not candidate.is_symlink() and _state(candidate, config) not in (
-                    "empty", "unfinished-same"):
+            if (
+                candidate.is_dir()
+                and not candidate.is_symlink()
+                and _state(candidate, config) not in ("empty", "unfinished-same")
+            ):
                 continue
             if candidate.exists() and not candidate.is_dir():
                 continue
@@ -319,8 +356,11 @@ def claim(out, config: dict, overwrite: bool = False, default: bool = False) -> 
         raise
     if state in ("empty", "unfinished-same"):
         if state == "unfinished-same":
-            print(f"{out} holds an unfinished run of this config: starting it again (histojax train --resume {out} "
-                  "would continue it)", flush=True)
+            print(
+                f"{out} holds an unfinished run of this config: starting it again (histojax train --resume {out} "
+                "would continue it)",
+                flush=True,
+            )
         return out
     for name in STATE:  # the old run's state: replaced; its final files stay until the new ones
         path = out / name

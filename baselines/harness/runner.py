@@ -1,5 +1,6 @@
 """Running a trainer: seeds vmapped (or sharded), updates in chunks with a runner state saved after each
 (``RUN/checkpoint/``) so a stopped run resumes where it stopped, and the run's outputs at the end."""
+
 from __future__ import annotations
 
 import functools
@@ -14,20 +15,26 @@ from flax import serialization
 from jax.sharding import Mesh
 
 from baselines import outputs
-from data_tools.errors import HistojaxDataError
-from baselines.harness.curves import plot_curves
-from baselines.harness.logs import (Progress, _count, _tensorboard_scalars, finite_mean, save_checkpoint, smooth,
-                                   tensorboard_writer, write_logs)
-from baselines.harness import run_folder
 from baselines.common.config import ConfigError, canonical_config
-from baselines.common.env import random_agent_reference
 from baselines.common.devices import replicate_on
+from baselines.common.env import random_agent_reference
+from baselines.harness import run_folder
+from baselines.harness.curves import plot_curves
+from baselines.harness.logs import (
+    Progress,
+    _count,
+    _tensorboard_scalars,
+    finite_mean,
+    save_checkpoint,
+    smooth,
+    tensorboard_writer,
+    write_logs,
+)
+from data_tools.errors import HistojaxDataError
 from data_tools.metrics import json_safe
 
 
-
-def seeds_runner(train, init_params, env_params, config, progress: Progress, mesh: Mesh | None = None,
-                 env=None):
+def seeds_runner(train, init_params, env_params, config, progress: Progress, mesh: Mesh | None = None, env=None):
     """One jitted program over all seeds: ``run(keys, params=None)`` trains ``len(keys)`` seeds
     (``jax.vmap`` over keys, or ``lax.map`` with ``config.vmap_seeds = False``; ``config`` the trainer's typed
     config, :class:`~baselines.common.config.EnvConfig`) on
@@ -70,6 +77,7 @@ def seeds_runner(train, init_params, env_params, config, progress: Progress, mes
         def call(keys, p=None):
             progress.t0 = time.perf_counter()
             return exe(place(keys), params if p is None else place(checked(p)))
+
         call.exe = exe
         return call
 
@@ -78,7 +86,7 @@ def seeds_runner(train, init_params, env_params, config, progress: Progress, mes
 
 
 # ----------------------------------------------------------------------------- chunks, checkpoints, resume
-CHECKPOINT_DIR = "checkpoint"     # RUN/checkpoint/: runner.msgpack, checkpoint.json, config.json
+CHECKPOINT_DIR = "checkpoint"  # RUN/checkpoint/: runner.msgpack, checkpoint.json, config.json
 
 
 RUNNER_FORMAT = 1
@@ -97,13 +105,16 @@ def scan_updates(update, carry, first_update, n_updates: int, num_updates: int):
     """``lax.scan`` of ``update(carry, i) -> (carry, metrics)`` over ``i = first_update + arange(n_updates)``;
     an ``i ≥ num_updates`` is skipped (``lax.cond``: the carry is kept, its metrics are NaN), so the last,
     shorter chunk of a run runs in the same compiled program as the others."""
+
     def skip(c, i):
         shapes = jax.eval_shape(update, c, i)[1]
-        return c, jax.tree.map(lambda s: jnp.full(s.shape, jnp.nan if jnp.issubdtype(s.dtype, jnp.inexact) else 0,
-                                                  s.dtype), shapes)
+        return c, jax.tree.map(
+            lambda s: jnp.full(s.shape, jnp.nan if jnp.issubdtype(s.dtype, jnp.inexact) else 0, s.dtype), shapes
+        )
 
     def body(c, i):
         return jax.lax.cond(i < num_updates, update, skip, c, i)
+
     return jax.lax.scan(body, carry, first_update + jnp.arange(n_updates))
 
 
@@ -133,6 +144,7 @@ def chunked_runner(train):
     def chunk_all(runners, p, first):
         def one(r):
             return scan_updates(lambda c, i: train.update(c, i, p), r, first, size, train.num_updates)
+
         if config["vmap_seeds"]:
             return jax.vmap(one)(runners)
         return jax.lax.map(one, runners)
@@ -160,8 +172,9 @@ def chunked_runner(train):
     return start, chunk
 
 
-def save_runner(folder: Path, runners, update: int, metrics: dict, train_seconds: float, config: dict,
-                num_updates: int, chunk: int) -> Path:
+def save_runner(
+    folder: Path, runners, update: int, metrics: dict, train_seconds: float, config: dict, num_updates: int, chunk: int
+) -> Path:
     """Write a run's state after ``update`` updates into ``folder`` (``RUN/checkpoint``): ``runner.msgpack``
     (flax msgpack: every array of the seeds' runner states, the metrics so far, the update index), then
     ``checkpoint.json`` (a summary for people). Each file atomically; the msgpack holds all that
@@ -169,17 +182,32 @@ def save_runner(folder: Path, runners, update: int, metrics: dict, train_seconds
     folder = Path(folder)
     folder.mkdir(parents=True, exist_ok=True)
     leaves = jax.tree.leaves(jax.device_get(runners))
-    state = {"format": RUNNER_FORMAT, "update": int(update), "num_updates": int(num_updates), "chunk": int(chunk),
-             "config_sha256": config_digest(config),
-             "train_seconds": float(train_seconds),
-             "leaves": {str(i): np.asarray(a) for i, a in enumerate(leaves)},
-             "metrics": {k: np.asarray(v) for k, v in metrics.items()}}
+    state = {
+        "format": RUNNER_FORMAT,
+        "update": int(update),
+        "num_updates": int(num_updates),
+        "chunk": int(chunk),
+        "config_sha256": config_digest(config),
+        "train_seconds": float(train_seconds),
+        "leaves": {str(i): np.asarray(a) for i, a in enumerate(leaves)},
+        "metrics": {k: np.asarray(v) for k, v in metrics.items()},
+    }
     path = outputs.write_bytes(folder / "runner.msgpack", serialization.msgpack_serialize(state))
-    outputs.write_text(folder / "checkpoint.json", json.dumps(
-        {"update": int(update), "num_updates": int(num_updates), "checkpoint_every": int(chunk),
-         "train_seconds": round(float(train_seconds), 3), "saved": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
-         "resume": f"histojax train --algo {config.get('algo', 'ppo')} --resume {folder.parent}"}, indent=1,
-        allow_nan=False))
+    outputs.write_text(
+        folder / "checkpoint.json",
+        json.dumps(
+            {
+                "update": int(update),
+                "num_updates": int(num_updates),
+                "checkpoint_every": int(chunk),
+                "train_seconds": round(float(train_seconds), 3),
+                "saved": time.strftime("%Y-%m-%dT%H:%M:%S%z"),
+                "resume": f"histojax train --algo {config.get('algo', 'ppo')} --resume {folder.parent}",
+            },
+            indent=1,
+            allow_nan=False,
+        ),
+    )
     return path
 
 
@@ -187,7 +215,9 @@ def config_digest(config: dict) -> str:
     """SHA-256 of a run config (JSON, keys sorted): ties a checkpoint to the run that wrote it."""
     import hashlib
 
-    return hashlib.sha256(json.dumps(config, sort_keys=True, default=str).encode()).hexdigest()  # json-not-written (a hash)
+    return hashlib.sha256(
+        json.dumps(config, sort_keys=True, default=str).encode()
+    ).hexdigest()  # json-not-written (a hash)
 
 
 def load_runner(folder: Path, template, num_updates: int, chunk: int, config: dict | None = None):
@@ -205,23 +235,35 @@ def load_runner(folder: Path, template, num_updates: int, chunk: int, config: di
     except Exception as e:  # msgpack's errors share no base
         raise HistojaxDataError(path, f"not a readable checkpoint, truncated or corrupt ({e})") from e
     if not isinstance(state, dict) or state.get("format") != RUNNER_FORMAT or "leaves" not in state:
-        raise HistojaxDataError(path, "not a histojax training checkpoint (no runner state of format "
-                                      f"{RUNNER_FORMAT})")
+        raise HistojaxDataError(path, f"not a histojax training checkpoint (no runner state of format {RUNNER_FORMAT})")
     if config is not None and state.get("config_sha256") != config_digest(config):
-        raise HistojaxDataError(path, f"written by a run of another config than {Path(folder) / 'config.json'} (a new "
-                                      "run started in this folder before its first checkpoint?); train again")
+        raise HistojaxDataError(
+            path,
+            f"written by a run of another config than {Path(folder) / 'config.json'} (a new "
+            "run started in this folder before its first checkpoint?); train again",
+        )
     if (state["num_updates"], state["chunk"]) != (num_updates, chunk):
-        raise HistojaxDataError(path, f"saved for {state['num_updates']} updates in chunks of {state['chunk']}, "
-                                      f"but the run's config.json makes {num_updates} in chunks of {chunk}")
+        raise HistojaxDataError(
+            path,
+            f"saved for {state['num_updates']} updates in chunks of {state['chunk']}, "
+            f"but the run's config.json makes {num_updates} in chunks of {chunk}",
+        )
     want, treedef = jax.tree.flatten(template)
     got = [state["leaves"].get(str(i)) for i in range(len(want))]
     if len(state["leaves"]) != len(want) or any(
-            g is None or tuple(np.shape(g)) != tuple(w.shape) or np.asarray(g).dtype != w.dtype
-            for g, w in zip(got, want)):
-        raise HistojaxDataError(path, "its arrays do not match the runner state of the run's config.json "
-                                      "(another trainer, network or env); train again")
-    return (jax.tree.unflatten(treedef, [jnp.asarray(g) for g in got]), int(state["update"]),
-            {k: np.asarray(v) for k, v in state["metrics"].items()}, float(state["train_seconds"]))
+        g is None or tuple(np.shape(g)) != tuple(w.shape) or np.asarray(g).dtype != w.dtype for g, w in zip(got, want)
+    ):
+        raise HistojaxDataError(
+            path,
+            "its arrays do not match the runner state of the run's config.json "
+            "(another trainer, network or env); train again",
+        )
+    return (
+        jax.tree.unflatten(treedef, [jnp.asarray(g) for g in got]),
+        int(state["update"]),
+        {k: np.asarray(v) for k, v in state["metrics"].items()},
+        float(state["train_seconds"]),
+    )
 
 
 def run_chunked(train, out: Path, keys=None, resume: bool = False, on_checkpoint=None):
@@ -243,7 +285,9 @@ def run_chunked(train, out: Path, keys=None, resume: bool = False, on_checkpoint
         compile_s = 0.0
     else:
         folder.mkdir(parents=True, exist_ok=True)
-        outputs.write_text(folder / "config.json", json.dumps(json_safe(config), indent=2, default=str, allow_nan=False))
+        outputs.write_text(
+            folder / "config.json", json.dumps(json_safe(config), indent=2, default=str, allow_nan=False)
+        )
         t0 = time.perf_counter()
         runners = jax.block_until_ready(start(keys))
         compile_s, train_s, done, metrics = time.perf_counter() - t0, 0.0, 0, {}
@@ -271,8 +315,17 @@ def run_chunked(train, out: Path, keys=None, resume: bool = False, on_checkpoint
     return {"params": train.runner_params(runners), "metrics": metrics}, compile_s, train_s
 
 
-def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_per_update: int,
-               train_seconds: float, compile_seconds: float, env_and_params=None) -> dict:
+def finish_run(
+    algo: str,
+    config: dict,
+    out: Path,
+    params,
+    metrics: dict,
+    steps_per_update: int,
+    train_seconds: float,
+    compile_seconds: float,
+    env_and_params=None,
+) -> dict:
     """Logs, curve, checkpoint and a printed summary (shared by PPO and DQN). ``env_and_params``:
     the trainer's, for the random-agent reference of slides sharded over devices."""
     metrics = {k: np.asarray(v) for k, v in jax.device_get(metrics).items()}
@@ -283,28 +336,49 @@ def finish_run(algo: str, config: dict, out: Path, params, metrics: dict, steps_
     final = {name: finite_mean(metrics[name][:, tail]) for name in ("return", "success", "length", "steps_to_success")}
     final_per_seed = {name: finite_mean(metrics[name][:, tail], axis=1).tolist() for name in ("return", "success")}
     ref = random_agent_reference(config, env_and_params=env_and_params)
-    summary = {"algo": algo, "env_id": config["env_id"], "env_steps_per_seed": int(steps[-1]),
-               "seeds": int(metrics["success"].shape[0]), "train_seconds": train_seconds,
-               "compile_seconds": compile_seconds,
-               "env_steps_per_second_all_seeds": float(steps[-1] * metrics["success"].shape[0] / train_seconds),
-               "final_window_updates": k, "final": final, "final_per_seed": final_per_seed,
-               "random_agent": ref}
-    panels = {"mean return": smooth(metrics["return"], k), "success rate": smooth(metrics["success"], k),
-              "mean steps to success": smooth(metrics["steps_to_success"], k)}
-    title = (f"{algo.upper()} on {config['env_id']} ({config['action_mode']}, obs {config['obs_mode']}"
-             f"{' + position' if config['with_position'] else ''}), {_count(metrics['success'].shape[0], 'seed')}")
+    summary = {
+        "algo": algo,
+        "env_id": config["env_id"],
+        "env_steps_per_seed": int(steps[-1]),
+        "seeds": int(metrics["success"].shape[0]),
+        "train_seconds": train_seconds,
+        "compile_seconds": compile_seconds,
+        "env_steps_per_second_all_seeds": float(steps[-1] * metrics["success"].shape[0] / train_seconds),
+        "final_window_updates": k,
+        "final": final,
+        "final_per_seed": final_per_seed,
+        "random_agent": ref,
+    }
+    panels = {
+        "mean return": smooth(metrics["return"], k),
+        "success rate": smooth(metrics["success"], k),
+        "mean steps to success": smooth(metrics["steps_to_success"], k),
+    }
+    title = (
+        f"{algo.upper()} on {config['env_id']} ({config['action_mode']}, obs {config['obs_mode']}"
+        f"{' + position' if config['with_position'] else ''}), {_count(metrics['success'].shape[0], 'seed')}"
+    )
     # the run's files as a whole: on a full disk (the error names the file) the previous run's stay together
     with outputs.staged() as stage:
         write_logs(out, steps, metrics, summary, stage=stage)
         with stage.writing(out / "curve.png") as tmp:
-            plot_curves(tmp, steps, panels, title=title,
-                        reference={"mean return": ref["return"], "success rate": ref["success"]})
+            plot_curves(
+                tmp,
+                steps,
+                panels,
+                title=title,
+                reference={"mean return": ref["return"], "success rate": ref["success"]},
+            )
         save_checkpoint(out, params, config, stage=stage)
-    print(f"\n{algo} {config['env_id']}: {steps[-1]:,} env steps/seed x {summary['seeds']} seeds in "
-          f"{train_seconds:.0f} s (+{compile_seconds:.0f} s compile), "
-          f"{summary['env_steps_per_second_all_seeds']:,.0f} env steps/s")
-    print(f"final (last {k} updates, training policy): return {final['return']:.3f}  success {final['success']:.1%}  "
-          f"mean length {final['length']:.1f}  steps to success {final['steps_to_success']:.1f}")
+    print(
+        f"\n{algo} {config['env_id']}: {steps[-1]:,} env steps/seed x {summary['seeds']} seeds in "
+        f"{train_seconds:.0f} s (+{compile_seconds:.0f} s compile), "
+        f"{summary['env_steps_per_second_all_seeds']:,.0f} env steps/s"
+    )
+    print(
+        f"final (last {k} updates, training policy): return {final['return']:.3f}  success {final['success']:.1%}  "
+        f"mean length {final['length']:.1f}  steps to success {final['steps_to_success']:.1f}"
+    )
     print(f"random agent: return {ref['return']:.3f}  success {ref['success']:.1%}")
     print(f"wrote {out}/log.csv, log.json, curve.png, params.msgpack, config.json")
     return summary
@@ -319,8 +393,10 @@ def resume_config(run: Path, algo: str, config_class=None):
     try:  # the run's own regular file: a FIFO would block the read, a link may point anywhere
         config = json.loads(run_folder.read_own(path, "config", run_folder.MAX_CONFIG_BYTES).decode("utf-8"))
     except OSError as e:
-        raise HistojaxDataError(path, f"cannot read the run's config ({e.strerror or e}): not a run started with "
-                                      "checkpoints, nothing to resume") from e
+        raise HistojaxDataError(
+            path,
+            f"cannot read the run's config ({e.strerror or e}): not a run started with checkpoints, nothing to resume",
+        ) from e
     except ValueError as e:
         raise HistojaxDataError(path, f"not valid JSON, truncated or corrupt ({e})") from e
     if not isinstance(config, dict):
@@ -352,13 +428,16 @@ def seeds_line(algo: str, config: dict, num_updates: int, steps_per_update: int,
     (--seeds), 65,536 env steps each (--total-steps is per seed; 262,144 in all): 32 updates x 2,048 env steps``."""
     seeds, per = int(config["num_seeds"]), int(num_updates) * int(steps_per_update)
     each = " each" if seeds != 1 else ""
-    return (f"{algo.upper()} on {config['env_id']}: {seeds} seed{'s' if seeds != 1 else ''} (--seeds), {per:,} env "
-            f"steps{each} (--total-steps is per seed; {seeds * per:,} in all): {num_updates} {unit} x "
-            f"{steps_per_update:,} env steps")
+    return (
+        f"{algo.upper()} on {config['env_id']}: {seeds} seed{'s' if seeds != 1 else ''} (--seeds), {per:,} env "
+        f"steps{each} (--total-steps is per seed; {seeds * per:,} in all): {num_updates} {unit} x "
+        f"{steps_per_update:,} env steps"
+    )
 
 
-def run_and_save(algo: str, make_train_fn, config, out: Path, unit: str = "updates", resume: bool = False,
-                 on_checkpoint=None):
+def run_and_save(
+    algo: str, make_train_fn, config, out: Path, unit: str = "updates", resume: bool = False, on_checkpoint=None
+):
     """Make, compile and run the trainer for ``config`` (its typed config, or a dict ``make_train_fn`` makes one of;
     all seeds in one program, compile time measured apart), then :func:`finish_run` into ``out``. A trainer that runs in chunks (PPO,
     recurrent PPO, DQN: ``train.init_runner``) saves its whole state to ``out/checkpoint/`` every
@@ -371,24 +450,41 @@ def run_and_save(algo: str, make_train_fn, config, out: Path, unit: str = "updat
 
         n, nbytes = local_slides(train.env_params.slide)
         per = device_bytes(train.env_params.slide)
-        print(f"process {jax.process_index()} of {jax.process_count()}: {n} slide(s), {nbytes:,} bytes of slide arrays "
-              f"on its {len(per)} device(s), {max(per.values()):,} on each", flush=True)
+        print(
+            f"process {jax.process_index()} of {jax.process_count()}: {n} slide(s), {nbytes:,} bytes of slide arrays "
+            f"on its {len(per)} device(s), {max(per.values()):,} on each",
+            flush=True,
+        )
     keys = jax.random.split(jax.random.PRNGKey(config.get("seed", 0)), config["num_seeds"])
     chunked = hasattr(train, "init_runner") and jax.process_count() == 1
     if resume and not chunked:
         raise ValueError(f"{algo} runs on several processes cannot resume (no checkpoints along the way)")
     if chunked:
         chunk, n_chunks = chunk_plan(train.num_updates, config.get("checkpoint_every"))
-        print(f"{seeds_line(algo, config, train.num_updates, train.steps_per_update, unit)}, checkpoint every {chunk} "
-              f"{unit} in {out}/{CHECKPOINT_DIR}; compiling ...", flush=True)
+        print(
+            f"{seeds_line(algo, config, train.num_updates, train.steps_per_update, unit)}, checkpoint every {chunk} "
+            f"{unit} in {out}/{CHECKPOINT_DIR}; compiling ...",
+            flush=True,
+        )
         result, compile_s, train_s = run_chunked(train, out, keys, resume=resume, on_checkpoint=on_checkpoint)
     else:
         print(f"{seeds_line(algo, config, train.num_updates, train.steps_per_update, unit)}; compiling ...", flush=True)
         result, compile_s, train_s = compile_and_run(train, keys)
     if jax.process_index() > 0:  # several processes: process 0 writes the run, the others their parameters
         save_checkpoint(out / f"process-{jax.process_index()}", result["params"], config)
-        print(f"process {jax.process_index()}: {train_s:.1f} s; wrote {out}/process-{jax.process_index()}/params.msgpack")
+        print(
+            f"process {jax.process_index()}: {train_s:.1f} s; wrote {out}/process-{jax.process_index()}/params.msgpack"
+        )
         return config, result["params"], None
-    summary = finish_run(algo, config, out, result["params"], result["metrics"], train.steps_per_update, train_s,
-                         compile_s, env_and_params=(train.env, train.env_params))
+    summary = finish_run(
+        algo,
+        config,
+        out,
+        result["params"],
+        result["metrics"],
+        train.steps_per_update,
+        train_s,
+        compile_s,
+        env_and_params=(train.env, train.env_params),
+    )
     return config, result["params"], summary

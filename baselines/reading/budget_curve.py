@@ -42,6 +42,7 @@ The curve with one slide head with spatial context for every row (overview only,
 trained readers, read everything; the CAMELYON lesion table) is ``python -m baselines.reading.readers``
 (:mod:`baselines.reading.readers`, the same pipeline on a bundle level's cells).
 """
+
 from __future__ import annotations
 
 import sys
@@ -53,25 +54,33 @@ import numpy as np
 import optax
 from flax.core.scope import LazyRng
 
-from baselines.reading.pipeline import BUDGETS
+from baselines.folds import SUMMARY, dataset_folds, mean_std, scored_side, with_fold
 from baselines.reading.csv_files import write_curve_csv
 from baselines.reading.orders import attention_order, score_order
-from baselines.reading.pipeline import (check_two_classes, load_split, policy_reads, random_orders, read_all,
-                                        reader_auc, run_seeds)
+from baselines.reading.pipeline import (
+    BUDGETS,
+    check_two_classes,
+    load_split,
+    policy_reads,
+    random_orders,
+    read_all,
+    reader_auc,
+    run_seeds,
+)
 from baselines.reading.plots import plot_curve
-from baselines.reading.slides import read_spec
 from baselines.reading.provenance import add_flag, check_scored, head_for_fold
-from baselines.folds import SUMMARY, dataset_folds, mean_std, scored_side, with_fold
-from data_tools.metrics import accuracy, auc_interval, format_auc_runs, small_split_warning
+from baselines.reading.slides import read_spec
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
-from histojax.reading.head_reward import pools_views
-from histojax.reading.modes.glimpse import unreadable_warning
+from data_tools.metrics import accuracy, auc_interval, format_auc_runs, small_split_warning
 from histojax.reading import heads
+from histojax.reading.head_reward import pools_views
 from histojax.reading.heads.learned import LearnedHead
 from histojax.reading.heads.logit import LogitHead
 from histojax.reading.heads.mil import attention_pool
+from histojax.reading.modes.glimpse import unreadable_warning
+
 
 def _init_params(key: jax.Array, d: int, hidden: int, attention: int) -> dict:
     """The starting weights: LeCun-normal kernels and zero biases, drawn from ``key`` as flax's ``nn.Dense``
@@ -81,9 +90,18 @@ def _init_params(key: jax.Array, d: int, hidden: int, attention: int) -> dict:
 
     def kernel(i, shape):
         return init(LazyRng.create(LazyRng.create(key, f"Dense_{i}"), 1).as_jax_rng(), shape)
-    return {"w1": kernel(0, (d, hidden)), "b1": jnp.zeros(hidden), "V": kernel(1, (hidden, attention)),
-            "bV": jnp.zeros(attention), "U": kernel(2, (hidden, attention)), "bU": jnp.zeros(attention),
-            "wa": kernel(3, (attention, 1))[:, 0], "wc": kernel(4, (hidden, 1))[:, 0], "bc": jnp.zeros(())}
+
+    return {
+        "w1": kernel(0, (d, hidden)),
+        "b1": jnp.zeros(hidden),
+        "V": kernel(1, (hidden, attention)),
+        "bV": jnp.zeros(attention),
+        "U": kernel(2, (hidden, attention)),
+        "bU": jnp.zeros(attention),
+        "wa": kernel(3, (attention, 1))[:, 0],
+        "wc": kernel(4, (hidden, 1))[:, 0],
+        "bc": jnp.zeros(()),
+    }
 
 
 def _bag_logits(params: dict, bags: jax.Array, masks: jax.Array) -> jax.Array:
@@ -93,8 +111,16 @@ def _bag_logits(params: dict, bags: jax.Array, masks: jax.Array) -> jax.Array:
     return attention_pool(params, bags.reshape(b * n, d), masks.reshape(-1), jnp.repeat(jnp.arange(b), n), b)
 
 
-def train_mil(bags: np.ndarray, masks: np.ndarray, labels: np.ndarray, steps: int = 400, lr: float = 3e-3,
-              seed: int = 0, hidden: int = 64, attention: int = 32) -> LearnedHead:
+def train_mil(
+    bags: np.ndarray,
+    masks: np.ndarray,
+    labels: np.ndarray,
+    steps: int = 400,
+    lr: float = 3e-3,
+    seed: int = 0,
+    hidden: int = 64,
+    attention: int = 32,
+) -> LearnedHead:
     """The "read everything" slide head: a gated-attention MIL (Ilse, Tomczak & Welling, ICML 2018) fitted on
     ``bags (B, N, D)``, ``masks (B, N)``, 0/1 ``labels (B,)`` (full batch, Adam, ``steps`` updates; inputs
     standardised by the valid instances' mean / std, fixed). Returned as the head of kind
@@ -121,8 +147,15 @@ def train_mil(bags: np.ndarray, masks: np.ndarray, labels: np.ndarray, steps: in
 
     for _ in range(steps):
         params, state, _ = update(params, state)
-    return LearnedHead(params={**params, **fixed}, prior_logit=jnp.float32(_log_odds(labels)),
-                       features_dim=int(bags.shape[-1]), hidden=hidden, attention=attention, layers=1, encoder=None)
+    return LearnedHead(
+        params={**params, **fixed},
+        prior_logit=jnp.float32(_log_odds(labels)),
+        features_dim=int(bags.shape[-1]),
+        hidden=hidden,
+        attention=attention,
+        layers=1,
+        encoder=None,
+    )
 
 
 def _log_odds(labels) -> float:
@@ -146,8 +179,15 @@ def fit_max_logit(bags: np.ndarray, masks: np.ndarray, labels, dim: int, steps: 
         p = 1.0 / (1.0 + np.exp(-(w * z + c)))
         w -= 0.5 * float(np.mean((p - y) * z))
         c -= 0.5 * float(np.mean(p - y))
-    return LogitHead(cal_a=jnp.float32(w / sd), cal_b=jnp.float32(c - w * mu / sd), prior_logit=jnp.float32(_log_odds(y)),
-                     dim=int(dim), k=1, top=1, encoder=None)
+    return LogitHead(
+        cal_a=jnp.float32(w / sd),
+        cal_b=jnp.float32(c - w * mu / sd),
+        prior_logit=jnp.float32(_log_odds(y)),
+        dim=int(dim),
+        k=1,
+        top=1,
+        encoder=None,
+    )
 
 
 PCAM_CNN_VIEW_LOGIT = pcam_cnn.VIEW_LOGIT  # 62
@@ -224,11 +264,23 @@ def rows_from_scores(scores: dict, labels, logits: bool = False) -> list[dict]:
         auc = reader_auc(s, labels)
         probs = 1 / (1 + np.exp(-np.asarray(s, np.float64))) if logits else s
         accs = np.asarray([accuracy(row, labels) for row in probs])
-        rows.append({"method": method, "budget": float(b), "fraction_read": float(f.mean()),
-                     "auc": auc["auc"], "accuracy": float(accs.mean()), "slides": len(labels),
-                     "auc_std": auc["auc_std"], "accuracy_std": float(accs.std()), "seeds": len(s),
-                     "fields_of_view": float("nan"), "auc_low": auc["auc_low"], "auc_high": auc["auc_high"],
-                     "tumour_slides": auc["n_tumour"]})
+        rows.append(
+            {
+                "method": method,
+                "budget": float(b),
+                "fraction_read": float(f.mean()),
+                "auc": auc["auc"],
+                "accuracy": float(accs.mean()),
+                "slides": len(labels),
+                "auc_std": auc["auc_std"],
+                "accuracy_std": float(accs.std()),
+                "seeds": len(s),
+                "fields_of_view": float("nan"),
+                "auc_low": auc["auc_low"],
+                "auc_high": auc["auc_high"],
+                "tumour_slides": auc["n_tumour"],
+            }
+        )
     return rows
 
 
@@ -254,8 +306,10 @@ def cells_words(dataset, env_id: str, level: int, split: str = "test", fold: int
         bundle_level, ds = glimpse_bundle_level(dataset, env_id, level, split, fold)
     except (OSError, ValueError, KeyError, IndexError, HistojaxDataError):
         return f"glimpse level {level} of {env_id}"
-    return (f"glimpse level {level} of {env_id} = bundle level {bundle_level} (downsample {ds:.3g}, about {ds:.3g} × "
-            f"{ds:.3g} finest views a cell)")
+    return (
+        f"glimpse level {level} of {env_id} = bundle level {bundle_level} (downsample {ds:.3g}, about {ds:.3g} × "
+        f"{ds:.3g} finest views a cell)"
+    )
 
 
 def head_reader_rows(head, slides: list[dict], cell_level: int, budgets=BUDGETS, seeds: int = 5) -> list[dict]:
@@ -266,18 +320,39 @@ def head_reader_rows(head, slides: list[dict], cell_level: int, budgets=BUDGETS,
     --cell-level L`` and the curve print the same figures for the same head, slides, budgets and cells."""
     from baselines.reading import readers
 
-    results = readers.scripted_results(head, slides, budgets, seeds, cell_level,
-                                       only=("read everything", "random reader", readers.score_reader_name(head)))
-    names = {"read everything": HEAD_NAMES[0], "random reader": HEAD_NAMES[1],
-             readers.score_reader_name(head): HEAD_NAMES[2]}
+    results = readers.scripted_results(
+        head,
+        slides,
+        budgets,
+        seeds,
+        cell_level,
+        only=("read everything", "random reader", readers.score_reader_name(head)),
+    )
+    names = {
+        "read everything": HEAD_NAMES[0],
+        "random reader": HEAD_NAMES[1],
+        readers.score_reader_name(head): HEAD_NAMES[2],
+    }
     labels = np.asarray([s["label"] for s in slides])
-    return rows_from_scores({(names[n], b): (r["scores"], r["fractions"]) for (n, b), r in results.items()}, labels,
-                            logits=True)
+    return rows_from_scores(
+        {(names[n], b): (r["scores"], r["fractions"]) for (n, b), r in results.items()}, labels, logits=True
+    )
 
 
-def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, policies=(), dataset=None,
-                policy_seeds: int = 3, max_dim: int | None = None, fold: int | None = None, head=None,
-                head_cells=None):
+def budget_rows(
+    train,
+    test,
+    budgets=BUDGETS,
+    seeds: int = 5,
+    steps: int = 400,
+    policies=(),
+    dataset=None,
+    policy_seeds: int = 3,
+    max_dim: int | None = None,
+    fold: int | None = None,
+    head=None,
+    head_cells=None,
+):
     """Train the MIL head on ``train = (tables, labels)`` and score every method on ``test`` at ``budgets``
     (with ``max_dim``, the rows of the max-logit head, :func:`fit_max_logit`, on that feature too; with ``head``,
     a saved head that pools views by attention — a learned head, ``--head`` — its rows :data:`HEAD_NAMES`, its
@@ -299,8 +374,18 @@ def budget_rows(train, test, budgets=BUDGETS, seeds: int = 5, steps: int = 400, 
         rows += head_reader_rows(head, reader_slides, cell_level, budgets, seeds)
         curve_heads["learned head"] = head
     for name, run in policies:
-        rows += policy_rows(run, dataset, name, curve_heads, test[0], test[1], budgets, policy_seeds, fold=fold,
-                            reader_slides=reader_slides)
+        rows += policy_rows(
+            run,
+            dataset,
+            name,
+            curve_heads,
+            test[0],
+            test[1],
+            budgets,
+            policy_seeds,
+            fold=fold,
+            reader_slides=reader_slides,
+        )
     return rows
 
 
@@ -321,8 +406,18 @@ def cross_validated_rows(tables, labels, folds: int, budgets=BUDGETS, seeds: int
     return rows_from_scores(pooled, labels[order])
 
 
-def policy_rows(run, dataset, name: str, slide_heads: dict, tables, labels, budgets=BUDGETS,
-                policy_seeds: int = 3, fold: int | None = None, reader_slides=None) -> list[dict]:
+def policy_rows(
+    run,
+    dataset,
+    name: str,
+    slide_heads: dict,
+    tables,
+    labels,
+    budgets=BUDGETS,
+    policy_seeds: int = 3,
+    fold: int | None = None,
+    reader_slides=None,
+) -> list[dict]:
     """Rows for a trained policy (feed-forward or recurrent, see :func:`policy_reads`) at ``budgets``:
     its own diagnosis (``name``) and each slide head on what it read (``slide_heads``: ``{"MIL": head, ...}``;
     rows ``name reader + MIL``, ``name reader + max logit``, ...), each the mean
@@ -337,8 +432,10 @@ def policy_rows(run, dataset, name: str, slide_heads: dict, tables, labels, budg
             fraction = float(np.mean([r[2] for r in reads]))
             fields = float(np.mean([r[3] for r in reads]))
             own = np.asarray([r[1] for r in reads])
-            scored = [(name, own)] + [(f"{name} reader + {h}", _read_scores(h, head, x, m, reads, reader_slides))
-                                      for h, head in slide_heads.items()]
+            scored = [(name, own)] + [
+                (f"{name} reader + {h}", _read_scores(h, head, x, m, reads, reader_slides))
+                for h, head in slide_heads.items()
+            ]
             for method, s in scored:
                 per.setdefault((method, float(b)), []).append((s, fraction, fields))
     rows = []
@@ -379,41 +476,81 @@ def add_arguments(p) -> None:
     """The options of ``python -m baselines.reading.budget_curve`` and ``histojax budget-curve``."""
     from baselines.published_agents import published_or_path
 
-    p.add_argument("--dataset", required=True, help="dataset folder with dataset.json (train / test split) whose "
-                                                   "bundles have feature grids")
+    p.add_argument(
+        "--dataset",
+        required=True,
+        help="dataset folder with dataset.json (train / test split) whose bundles have feature grids",
+    )
     p.add_argument("--env", default="HistoJAX-Medium-v0", help="scenario id (its levels; default HistoJAX-Medium-v0)")
-    p.add_argument("--glimpse-level", type=int, default=3,
-                   help="scenario level of the glimpse cells (default 3: one above the finest of the 5 levels of "
-                        "HistoJAX-Medium-v0)")
-    p.add_argument("--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)")
+    p.add_argument(
+        "--glimpse-level",
+        type=int,
+        default=3,
+        help="scenario level of the glimpse cells (default 3: one above the finest of the 5 levels of "
+        "HistoJAX-Medium-v0)",
+    )
+    p.add_argument(
+        "--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)"
+    )
     p.add_argument("--seeds", type=int, default=5, help="random reader orders per slide (default 5)")
     p.add_argument("--steps", type=int, default=400, help="MIL training steps (default 400)")
-    p.add_argument("--folds", type=int, default=0,
-                   help="K-fold cross-validation over all the dataset's slides instead of its train/test split "
-                        "(for small datasets; default 0 = use the split)")
-    p.add_argument("--fold", type=int, default=None, metavar="I",
-                   help="a dataset built with --folds K: train on fold I's train side, score its test side "
-                        "(make(..., fold=I)); not with --folds")
-    p.add_argument("--all-folds", action="store_true",
-                   help="a dataset built with --folds K: the curve of every fold I = 0 ... K-1 (as --fold I), and "
-                        "each figure's mean ± std over the folds (per-fold rows and a 'mean' row per method × budget "
-                        "in the CSV; the plot draws the means); a --ppo RUN holding {fold} is one run per fold")
-    p.add_argument("--ppo", nargs=2, action="append", default=[], metavar=("NAME", "RUN"),
-                   help="also a trained policy (run folder of `python -m baselines.ppo` or `python -m baselines.ppo_rnn` "
-                        "in a glimpse or zoom_select mode) on the test split: its own diagnosis and the MIL head "
-                        "on what it read")
-    p.add_argument("--head", default=None, metavar="DIR", type=published_or_path,
-                   help="also a saved slide head that pools the views it reads by attention (a learned head: "
-                        "python -m baselines.reading.learned_head_fit): its rows (read everything, random reader, "
-                        "score reader: cells by its per-view score of their coarse features), and each --ppo run "
-                        "scored by it; with --fold I / --all-folds, DIR holding {fold} or the folder of "
-                        "learned_head_fit --all-folds is fold I's head")
+    p.add_argument(
+        "--folds",
+        type=int,
+        default=0,
+        help="K-fold cross-validation over all the dataset's slides instead of its train/test split "
+        "(for small datasets; default 0 = use the split)",
+    )
+    p.add_argument(
+        "--fold",
+        type=int,
+        default=None,
+        metavar="I",
+        help="a dataset built with --folds K: train on fold I's train side, score its test side "
+        "(make(..., fold=I)); not with --folds",
+    )
+    p.add_argument(
+        "--all-folds",
+        action="store_true",
+        help="a dataset built with --folds K: the curve of every fold I = 0 ... K-1 (as --fold I), and "
+        "each figure's mean ± std over the folds (per-fold rows and a 'mean' row per method × budget "
+        "in the CSV; the plot draws the means); a --ppo RUN holding {fold} is one run per fold",
+    )
+    p.add_argument(
+        "--ppo",
+        nargs=2,
+        action="append",
+        default=[],
+        metavar=("NAME", "RUN"),
+        help="also a trained policy (run folder of `python -m baselines.ppo` or `python -m baselines.ppo_rnn` "
+        "in a glimpse or zoom_select mode) on the test split: its own diagnosis and the MIL head "
+        "on what it read",
+    )
+    p.add_argument(
+        "--head",
+        default=None,
+        metavar="DIR",
+        type=published_or_path,
+        help="also a saved slide head that pools the views it reads by attention (a learned head: "
+        "python -m baselines.reading.learned_head_fit): its rows (read everything, random reader, "
+        "score reader: cells by its per-view score of their coarse features), and each --ppo run "
+        "scored by it; with --fold I / --all-folds, DIR holding {fold} or the folder of "
+        "learned_head_fit --all-folds is fold I's head",
+    )
     add_flag(p)
-    p.add_argument("--policy-seeds", type=int, default=3,
-                   help="seeds of each --ppo run scored (mean ± std; default 3, or as many as the run has)")
-    p.add_argument("--compute-features", metavar="ENCODER", default=None,
-                   help="first compute the feature grid of every bundle of the dataset that has none with this "
-                        "encoder (e.g. colour-stats; see `python -m data_tools features --help`)")
+    p.add_argument(
+        "--policy-seeds",
+        type=int,
+        default=3,
+        help="seeds of each --ppo run scored (mean ± std; default 3, or as many as the run has)",
+    )
+    p.add_argument(
+        "--compute-features",
+        metavar="ENCODER",
+        default=None,
+        help="first compute the feature grid of every bundle of the dataset that has none with this "
+        "encoder (e.g. colour-stats; see `python -m data_tools features --help`)",
+    )
     p.add_argument("--out", default="runs/budget_curve", help="output folder (default runs/budget_curve)")
 
 
@@ -435,18 +572,22 @@ def check_options(args) -> str | None:
     bad = [b for b in args.budgets if not (math.isfinite(b) and 0 < b <= 1)]
     if bad:
         return f"--budgets: {bad[0]:g} is not a fraction of the slide read; each budget must be in (0, 1]"
-    for name, value, top in (("--seeds", args.seeds, MAX_SEEDS), ("--policy-seeds", args.policy_seeds, MAX_SEEDS),
-                             ("--steps", args.steps, MAX_STEPS)):
+    for name, value, top in (
+        ("--seeds", args.seeds, MAX_SEEDS),
+        ("--policy-seeds", args.policy_seeds, MAX_SEEDS),
+        ("--steps", args.steps, MAX_STEPS),
+    ):
         if not 1 <= value <= top:
             return f"{name} {value}: must be a whole number from 1 to {top:,}"
     if getattr(args, "all_folds", False):
         if args.folds or args.fold is not None:
-            return (f"--all-folds scores every fold the dataset records; not with --{'folds' if args.folds else 'fold'}"
-                    f" {args.folds or args.fold}")
+            return (
+                f"--all-folds scores every fold the dataset records; not with --{'folds' if args.folds else 'fold'}"
+                f" {args.folds or args.fold}"
+            )
         dataset_folds(args.dataset)  # one line for a dataset without folds
     if args.folds and args.fold is not None:
-        return ("give --folds K (cross-validation inside the curve) or --fold I (a fold the dataset records), "
-                "not both")
+        return "give --folds K (cross-validation inside the curve) or --fold I (a fold the dataset records), not both"
     if args.folds < 0 or args.folds == 1:
         return f"--folds {args.folds}: give 0 (use the dataset's train / test split) or K >= 2 folds"
     if args.folds:
@@ -454,8 +595,10 @@ def check_options(args) -> str | None:
 
         n = len(dataset_slides(args.dataset, "all"))
         if args.folds > n:
-            return (f"--folds {args.folds}: {Path(args.dataset) / 'dataset.json'} lists {n} slides, so at most "
-                    f"{n} folds (each fold needs a slide to score)")
+            return (
+                f"--folds {args.folds}: {Path(args.dataset) / 'dataset.json'} lists {n} slides, so at most "
+                f"{n} folds (each fold needs a slide to score)"
+            )
     return None
 
 
@@ -467,16 +610,22 @@ def load_head(path, tables):
         return None
     head = heads.load(path)
     if not pools_views(head):
-        raise ValueError(f"{Path(path) / 'config.json'}: a {head.kind} head pools neighbourhoods of the view grid; the "
-                         "budget curve scores the views read as a set: give a learned head (python -m "
-                         "baselines.reading.learned_head_fit), or score this one with python -m baselines.reading.readers")
+        raise ValueError(
+            f"{Path(path) / 'config.json'}: a {head.kind} head pools neighbourhoods of the view grid; the "
+            "budget curve scores the views read as a set: give a learned head (python -m "
+            "baselines.reading.learned_head_fit), or score this one with python -m baselines.reading.readers"
+        )
     if (problem := heads.encoder_mismatch(head, [t.get("encoder") for t in tables])) is not None:
-        raise ValueError(f"{Path(path) / 'config.json'}: {problem} (fit a head on them: python -m "
-                         "baselines.reading.learned_head_fit)")
+        raise ValueError(
+            f"{Path(path) / 'config.json'}: {problem} (fit a head on them: python -m "
+            "baselines.reading.learned_head_fit)"
+        )
     d = int(tables[0]["instances"].shape[-1]) if tables else head.features_dim
     if head.features_dim != d:
-        raise ValueError(f"{Path(path) / 'config.json'}: the head reads {head.features_dim}-d features; the dataset's "
-                         f"are {d}-d (fit a head on it: python -m baselines.reading.learned_head_fit)")
+        raise ValueError(
+            f"{Path(path) / 'config.json'}: the head reads {head.features_dim}-d features; the dataset's "
+            f"are {d}-d (fit a head on it: python -m baselines.reading.learned_head_fit)"
+        )
     return head
 
 
@@ -497,16 +646,29 @@ def fold_rows(args, level: int, fold: int | None):
     side = scored_side(args.dataset, fold)
     head_dir = getattr(args, "head", None)
     if head_dir is not None and fold is not None:
-        head_dir = head_for_fold(head_dir, fold)  # --head DIR of learned_head_fit --all-folds, or RUN{fold}: fold's head
+        head_dir = head_for_fold(
+            head_dir, fold
+        )  # --head DIR of learned_head_fit --all-folds, or RUN{fold}: fold's head
     if head_dir is not None:  # a head fitted or validated on a scored slide: refused before any slide is read
-        check_scored(heads.load(head_dir), head_dir, args.dataset, read_spec(args.dataset, fold).get(side) or [],
-                     getattr(args, "allow_fitting_slides", False))  # --allow-fitting-slides: a warning
+        check_scored(
+            heads.load(head_dir),
+            head_dir,
+            args.dataset,
+            read_spec(args.dataset, fold).get(side) or [],
+            getattr(args, "allow_fitting_slides", False),
+        )  # --allow-fitting-slides: a warning
     test = load_split(args.dataset, side, env_id=args.env, level=level, fold=fold)
     check_two_classes(args.dataset, side, test.labels, fold)
-    if (line := unreadable_warning([t.get("name", i) for i, t in enumerate(test.tables)],
-                                   [t["cell_views"] for t in test.tables], [t["valid"] for t in test.tables],
-                                   [t["total"] for t in test.tables], args.budgets,
-                                   "" if fold is None else f"fold {fold}")) is not None:
+    if (
+        line := unreadable_warning(
+            [t.get("name", i) for i, t in enumerate(test.tables)],
+            [t["cell_views"] for t in test.tables],
+            [t["valid"] for t in test.tables],
+            [t["total"] for t in test.tables],
+            args.budgets,
+            "" if fold is None else f"fold {fold}",
+        )
+    ) is not None:
         print(f"warning: {line}", file=sys.stderr, flush=True)  # a budget below every cell: the overview alone
     train = load_split(args.dataset, "train", env_id=args.env, level=level, fold=fold)
     head = load_head(head_dir, test.tables)
@@ -516,12 +678,24 @@ def fold_rows(args, level: int, fold: int | None):
         cell_level = glimpse_bundle_level(args.dataset, args.env, level, side, fold)[0]
         mine = load_split(args.dataset, side, fold=fold, head=head, cell_level=cell_level)
         if [s["label"] for s in mine.slides] != [int(v) for v in test.labels]:
-            raise ValueError(f"{Path(args.dataset) / 'dataset.json'}: the readers' and the env's {side!r} slides "
-                             "differ")
+            raise ValueError(
+                f"{Path(args.dataset) / 'dataset.json'}: the readers' and the env's {side!r} slides differ"
+            )
         head_cells = (mine.slides, cell_level)
-    rows = budget_rows((train.tables, train.labels), (test.tables, test.labels), args.budgets, seeds=args.seeds,
-                       steps=args.steps, policies=policies, dataset=args.dataset, policy_seeds=args.policy_seeds,
-                       max_dim=view_logit_dim(args.dataset), fold=fold, head=head, head_cells=head_cells)
+    rows = budget_rows(
+        (train.tables, train.labels),
+        (test.tables, test.labels),
+        args.budgets,
+        seeds=args.seeds,
+        steps=args.steps,
+        policies=policies,
+        dataset=args.dataset,
+        policy_seeds=args.policy_seeds,
+        max_dim=view_logit_dim(args.dataset),
+        fold=fold,
+        head=head,
+        head_cells=head_cells,
+    )
     if not getattr(args, "all_folds", False):  # once scored (a refusal stays one line); --all-folds: curve_rows warns
         warn_small(test.labels, f"split {side!r}" + (f" (fold {fold})" if fold is not None else ""))
     return rows, (train.tables, train.labels), (test.tables, test.labels)
@@ -542,12 +716,24 @@ def summary_rows(rows: list[dict]) -> list[dict]:
         slides = sum(r["slides"] for r in rs)
         tumour = sum(r["tumour_slides"] for r in rs) if all("tumour_slides" in r for r in rs) else None
         low, high = auc_interval(auc, tumour, slides - tumour) if tumour is not None else (float("nan"),) * 2
-        out.append({"fold": SUMMARY, "method": method, "budget": budget, "auc_low": low, "auc_high": high,
-                    **({"tumour_slides": tumour} if tumour is not None else {}),
-                    "fraction_read": mean_std([r["fraction_read"] for r in rs])[0], "auc": auc, "accuracy": acc,
-                    "slides": sum(r["slides"] for r in rs), "auc_std": auc_std, "accuracy_std": acc_std,
-                    "seeds": max(r["seeds"] for r in rs),
-                    "fields_of_view": mean_std([r["fields_of_view"] for r in rs])[0]})
+        out.append(
+            {
+                "fold": SUMMARY,
+                "method": method,
+                "budget": budget,
+                "auc_low": low,
+                "auc_high": high,
+                **({"tumour_slides": tumour} if tumour is not None else {}),
+                "fraction_read": mean_std([r["fraction_read"] for r in rs])[0],
+                "auc": auc,
+                "accuracy": acc,
+                "slides": sum(r["slides"] for r in rs),
+                "auc_std": auc_std,
+                "accuracy_std": acc_std,
+                "seeds": max(r["seeds"] for r in rs),
+                "fields_of_view": mean_std([r["fields_of_view"] for r in rs])[0],
+            }
+        )
     return out
 
 
@@ -559,8 +745,9 @@ def curve_rows(args, level: int) -> tuple[list[dict], str]:
         check_two_classes(args.dataset, "all", every.labels)
         if getattr(args, "head", None):
             raise ValueError("--head: not with --folds (cross-validation trains its own MIL on each fold)")
-        rows = cross_validated_rows(every.tables, every.labels, args.folds, args.budgets, seeds=args.seeds,
-                                    steps=args.steps)
+        rows = cross_validated_rows(
+            every.tables, every.labels, args.folds, args.budgets, seeds=args.seeds, steps=args.steps
+        )
         return rows, f"{len(every.labels)} slides, {args.folds}-fold cross-validation"
     if getattr(args, "all_folds", False):
         k = dataset_folds(args.dataset)[0]
@@ -604,13 +791,22 @@ def run(args, parser=None) -> int:
         print(f"mean ± std over folds (the rows of each fold: {csv_path})")
     fields = any(np.isfinite(r.get("fields_of_view", float("nan"))) for r in shown)  # no always-empty column
     print(f"cells: {cells_words(args.dataset, args.env, level, scored_side(args.dataset, args.fold), args.fold)}")
-    print(f"{'method':32s} {'budget':>6s} {'read':>6s} {'AUC ± std over seeds [95 % interval over slides]':>44s} "
-          f"{'acc':>15s}" + (f" {'fields':>6s}" if fields else ""))
+    print(
+        f"{'method':32s} {'budget':>6s} {'read':>6s} {'AUC ± std over seeds [95 % interval over slides]':>44s} "
+        f"{'acc':>15s}" + (f" {'fields':>6s}" if fields else "")
+    )
     for r in shown:
-        auc = format_auc_runs(r["auc"], r["auc_std"], r.get("auc_low", float("nan")), r.get("auc_high", float("nan")),
-                              max(r["seeds"], 2 if r.get("fold") == SUMMARY else 1))
-        print(f"{r['method']:32s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {auc:>44s} "
-              f"{r['accuracy']:6.3f} ± {r['accuracy_std']:5.3f}" + (f" {r['fields_of_view']:6.1f}" if fields else ""))
+        auc = format_auc_runs(
+            r["auc"],
+            r["auc_std"],
+            r.get("auc_low", float("nan")),
+            r.get("auc_high", float("nan")),
+            max(r["seeds"], 2 if r.get("fold") == SUMMARY else 1),
+        )
+        print(
+            f"{r['method']:32s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {auc:>44s} "
+            f"{r['accuracy']:6.3f} ± {r['accuracy_std']:5.3f}" + (f" {r['fields_of_view']:6.1f}" if fields else "")
+        )
     print(f"wrote {csv_path} and {png}")
     return 0
 

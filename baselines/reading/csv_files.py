@@ -1,5 +1,6 @@
 """The CSV files of the reading baselines: the readers' and lesion tables (columns as the rows give them) and the
 budget curve (its fixed columns, ``fold`` first with ``--all-folds``), floats to 4 decimals."""
+
 from __future__ import annotations
 
 import csv
@@ -7,8 +8,21 @@ from pathlib import Path
 
 from baselines import outputs
 
-CURVE_COLUMNS = ["method", "budget", "fraction_read", "auc", "accuracy", "slides", "auc_std", "accuracy_std", "seeds",
-                 "fields_of_view", "auc_low", "auc_high", "tumour_slides"]
+CURVE_COLUMNS = [
+    "method",
+    "budget",
+    "fraction_read",
+    "auc",
+    "accuracy",
+    "slides",
+    "auc_std",
+    "accuracy_std",
+    "seeds",
+    "fields_of_view",
+    "auc_low",
+    "auc_high",
+    "tumour_slides",
+]
 """The budget curve's columns (:func:`write_curve_csv`): ``auc_low`` / ``auc_high`` the AUC's 95 % interval over the
 slides, ``tumour_slides`` how many of ``slides`` are tumour slides; ``fields_of_view`` only when a row has one."""
 
@@ -22,8 +36,18 @@ def write_csv(rows: list[dict], path, columns: list[str] | None = None, blank_na
         w = csv.DictWriter(f, fieldnames=columns or (list(rows[0]) if rows else ["reader"]), restval="")
         w.writeheader()
         for r in rows:
-            w.writerow({k: ("" if blank_nan and isinstance(v, float) and v != v
-                            else f"{v:.4f}" if isinstance(v, float) else v) for k, v in r.items()})
+            w.writerow(
+                {
+                    k: (
+                        ""
+                        if blank_nan and isinstance(v, float) and v != v
+                        else f"{v:.4f}"
+                        if isinstance(v, float)
+                        else v
+                    )
+                    for k, v in r.items()
+                }
+            )
     return path
 
 
@@ -33,8 +57,12 @@ def write_curve_csv(rows: list[dict], path) -> Path:
     column only when some row has one (a trained policy's), never a column that is always empty."""
     folds = ["fold"] if any("fold" in r for r in rows) else []
     columns = [c for c in CURVE_COLUMNS if c != "fields_of_view" or any(_defined(r.get(c)) for r in rows)]
-    return write_csv([{k: v for k, v in r.items() if k in columns or k == "fold"} for r in rows], path,
-                     folds + columns, blank_nan=True)
+    return write_csv(
+        [{k: v for k, v in r.items() if k in columns or k == "fold"} for r in rows],
+        path,
+        folds + columns,
+        blank_nan=True,
+    )
 
 
 def _defined(value) -> bool:

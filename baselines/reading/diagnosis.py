@@ -23,6 +23,7 @@ readers' rows, and the CSV and JSON written.
 In an env, :class:`histojax.reading.head_reward.HeadReward` gives the same score step by step
 (``info["head_score"]``: at the episode's end, the navigator's diagnosis by the head).
 """
+
 from __future__ import annotations
 
 import json
@@ -34,9 +35,8 @@ import numpy as np
 
 from baselines import outputs
 from baselines.reading import readers
-from baselines.reading.pipeline import BUDGETS
 from baselines.reading.csv_files import write_csv
-from baselines.reading.pipeline import check_two_classes, run_seeds
+from baselines.reading.pipeline import BUDGETS, check_two_classes, run_seeds
 from baselines.reading.plots import plot_readers
 from baselines.reading.provenance import add_flag, check_scored
 from baselines.run_config import read_run_config
@@ -46,8 +46,9 @@ from data_tools.metrics import json_safe, small_split_warning
 from histojax.reading.heads import encoder_mismatch
 
 
-def score_split(dataset, head_path, split: str = "test", budgets=BUDGETS, seeds: int = 5,
-                fold: int | None = None) -> tuple:
+def score_split(
+    dataset, head_path, split: str = "test", budgets=BUDGETS, seeds: int = 5, fold: int | None = None
+) -> tuple:
     """The scoring every head diagnosis starts from: ``(head, cell level, slides, results)`` with ``head`` any
     head folder (:func:`histojax.reading.heads.load`), ``slides`` the split's slides read for it
     (:func:`baselines.reading.readers.load_split`) and ``results`` the scripted readers' rows at ``budgets``
@@ -57,8 +58,10 @@ def score_split(dataset, head_path, split: str = "test", budgets=BUDGETS, seeds:
     head of another encoder's features (:func:`histojax.reading.heads.encoder_mismatch`), naming its ``config.json``."""
     head, level, slides = readers.load_split(dataset, head_path, split, fold=fold)
     if (problem := encoder_mismatch(head, [s.get("encoder") for s in slides])) is not None:  # as the readers refuse it
-        raise HistojaxDataError(Path(str(head_path)) / "config.json", f"{problem} ({dataset}): fit a head on them "
-                                "(python -m baselines.reading.learned_head_fit)")
+        raise HistojaxDataError(
+            Path(str(head_path)) / "config.json",
+            f"{problem} ({dataset}): fit a head on them (python -m baselines.reading.learned_head_fit)",
+        )
     check_two_classes(dataset, split, [int(s["label"]) for s in slides], fold)  # the readers' own refusal
     return head, level, slides, readers.scripted_results(head, slides, budgets, seeds, level)
 
@@ -74,8 +77,9 @@ def write_results(out, results: dict, slides: list[dict], record: dict, json_nam
     return rows
 
 
-def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bool = True,
-                    fold: int | None = None) -> list[np.ndarray]:
+def navigator_reads(
+    run, dataset, split: str = "test", seed: int = 0, greedy: bool = True, fold: int | None = None
+) -> list[np.ndarray]:
     """Per slide of ``dataset``'s ``split`` (in its order): the indices of the finest tissue views (in the
     slide's raster order of tissue views, as :func:`baselines.reading.readers.masks_from_instances` takes them)
     that one greedy (``greedy=False``: sampled, key ``seed``) episode of ``run``'s seed ``seed`` stood on."""
@@ -91,17 +95,24 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
     if not 0 <= seed < n_seeds:
         raise ValueError(f"{run} has {n_seeds} seed(s), not a seed {seed}")
     if config.action_mode.partition(":")[0] not in ("discrete", "continuous"):  # ":memory", ":map" too
-        raise ValueError(f"{run}: a policy of action mode {config.action_mode!r}; a navigator moves in "
-                         "discrete or continuous mode, :memory and :map included (readers: python -m baselines.reading.readers "
-                         "--reader)")
+        raise ValueError(
+            f"{run}: a policy of action mode {config.action_mode!r}; a navigator moves in "
+            "discrete or continuous mode, :memory and :map included (readers: python -m baselines.reading.readers "
+            "--reader)"
+        )
     params = jax.tree.map(lambda a: a[seed], params)
     kw = {k: v for k, v in (config.env_kwargs or {}).items() if k not in ("dataset", "split", "slides", "fold")}
-    config = config.replace(env_kwargs={**kw, "dataset": str(dataset), "split": split,
-                                        **({"fold": fold} if fold is not None else {})})  # fold: the slides scored
+    config = config.replace(
+        env_kwargs={**kw, "dataset": str(dataset), "split": split, **({"fold": fold} if fold is not None else {})}
+    )  # fold: the slides scored
     config, (env, env_params) = evaluate.eval_env(config)
-    policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config.action_mode, greedy=greedy,
-                                     declare=evaluate.diagnosis_actions(env, evaluate.network_for(config, env),
-                                                                        config.action_mode))
+    policy = evaluate.learned_policy(
+        evaluate.network_for(config, env),
+        params,
+        config.action_mode,
+        greedy=greedy,
+        declare=evaluate.diagnosis_actions(env, evaluate.network_for(config, env), config.action_mode),
+    )
     n_slides = max(1, len(env.bundles))
     slides = np.arange(n_slides)
     per_episode, axes = evaluate.per_episode_params(env_params, slides)
@@ -119,8 +130,9 @@ def navigator_reads(run, dataset, split: str = "test", seed: int = 0, greedy: bo
     return out
 
 
-def navigator_masks(run, dataset, slides: list[dict], split: str = "test", seeds: int = 1,
-                    greedy: bool = True, fold: int | None = None) -> dict:
+def navigator_masks(
+    run, dataset, slides: list[dict], split: str = "test", seeds: int = 1, greedy: bool = True, fold: int | None = None
+) -> dict:
     """``{1.0: [[read mask (H, W) per slide] per seed]}`` of a navigator (no budget: key 1.0), ready for
     :func:`baselines.reading.readers.add_reader`; ``slides`` are :func:`baselines.reading.slides.load_slides` of the split;
     ``greedy=False``: sampled episodes (key = the seed)."""
@@ -138,18 +150,36 @@ def add_arguments(p) -> None:
     from baselines.published_agents import published_or_path
 
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; feature grids the head reads)")
-    p.add_argument("--head", required=True, type=published_or_path,
-                   help="slide head folder, any kind histojax.reading.heads.load reads (baselines.reading.head_fit or "
-                        "learned_head_fit), or a published head's name")
-    p.add_argument("--navigator", nargs=2, action="append", required=True, metavar=("NAME", "RUN"),
-                   help="a trained navigator's run folder (discrete / continuous mode); repeatable")
+    p.add_argument(
+        "--head",
+        required=True,
+        type=published_or_path,
+        help="slide head folder, any kind histojax.reading.heads.load reads (baselines.reading.head_fit or "
+        "learned_head_fit), or a published head's name",
+    )
+    p.add_argument(
+        "--navigator",
+        nargs=2,
+        action="append",
+        required=True,
+        metavar=("NAME", "RUN"),
+        help="a trained navigator's run folder (discrete / continuous mode); repeatable",
+    )
     p.add_argument("--split", default="test", help="split scored (default test)")
-    p.add_argument("--fold", type=int, default=None, metavar="I",
-                   help="a dataset built with --folds K: score fold I's side of --split (test / validation = fold I)")
+    p.add_argument(
+        "--fold",
+        type=int,
+        default=None,
+        metavar="I",
+        help="a dataset built with --folds K: score fold I's side of --split (test / validation = fold I)",
+    )
     p.add_argument("--policy-seeds", type=int, default=1, help="seeds of each run (default 1)")
     p.add_argument("--seeds", type=int, default=5, help="random reader orders (default 5)")
-    p.add_argument("--sampled", action="store_true",
-                   help="roll the navigators' sampled policies (key = the seed) instead of their greedy ones")
+    p.add_argument(
+        "--sampled",
+        action="store_true",
+        help="roll the navigators' sampled policies (key = the seed) instead of their greedy ones",
+    )
     p.add_argument("--out", default="runs/head-diagnosis", help="output folder (default runs/head-diagnosis)")
     add_flag(p)
 
@@ -158,38 +188,61 @@ def run(args, parser=None) -> int:
     """Score each navigator through the head beside the readers; CSV, JSON, PNG in ``args.out``."""
     t0 = time.perf_counter()
     try:
-        from baselines.reading.slides import read_spec
         from baselines.reading.provenance import head_for_fold
+        from baselines.reading.slides import read_spec
         from histojax.reading import heads
 
         if args.fold is not None:  # the folder of learned_head_fit --all-folds (or DIR{fold}): fold I's head
             args.head = head_for_fold(args.head, args.fold)
-        check_scored(heads.load(args.head), args.head, args.dataset,  # fitted on them: refused before any is read
-                     read_spec(args.dataset, args.fold).get(args.split) or [], getattr(args, "allow_fitting_slides", False))
-        head, level, slides, results = score_split(args.dataset, args.head, args.split, seeds=args.seeds,
-                                                   fold=args.fold)
+        check_scored(
+            heads.load(args.head),
+            args.head,
+            args.dataset,  # fitted on them: refused before any is read
+            read_spec(args.dataset, args.fold).get(args.split) or [],
+            getattr(args, "allow_fitting_slides", False),
+        )
+        head, level, slides, results = score_split(
+            args.dataset, args.head, args.split, seeds=args.seeds, fold=args.fold
+        )
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     for name, run_dir in args.navigator:
         try:
-            masks = navigator_masks(run_dir, args.dataset, slides, args.split, args.policy_seeds,
-                                    greedy=not args.sampled, fold=args.fold)
+            masks = navigator_masks(
+                run_dir, args.dataset, slides, args.split, args.policy_seeds, greedy=not args.sampled, fold=args.fold
+            )
         except (OSError, ValueError, HistojaxDataError) as e:
             return print_error(f"--navigator {name}: {e}")
         how = ", sampled" if args.sampled else ""
         readers.add_reader(results, head, slides, f"{name} (head declares{how})", masks, "learned")
     out = Path(args.out)
     wall = time.perf_counter() - t0
-    rows = write_results(out, results, slides, {
-        "dataset": str(args.dataset), "split": args.split, "head": str(args.head), "head_name": head.name,
-        "head_kind": head.kind, "navigators": args.navigator, "sampled": bool(args.sampled), "wall_s": round(wall, 1)})
-    png = plot_readers(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split: navigators "
-                                                   f"through head {head.name}")
+    rows = write_results(
+        out,
+        results,
+        slides,
+        {
+            "dataset": str(args.dataset),
+            "split": args.split,
+            "head": str(args.head),
+            "head_name": head.name,
+            "head_kind": head.kind,
+            "navigators": args.navigator,
+            "sampled": bool(args.sampled),
+            "wall_s": round(wall, 1),
+        },
+    )
+    png = plot_readers(
+        rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split: navigators through head {head.name}"
+    )
     print(f"cells: {readers.cells_words(slides, level)}")
     readers.print_tables(rows, [])
     labels = [int(s["label"]) for s in slides]
-    warning = small_split_warning(sum(labels), len(labels) - sum(labels),
-                                  f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else ""))
+    warning = small_split_warning(
+        sum(labels),
+        len(labels) - sum(labels),
+        f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else ""),
+    )
     if warning:
         print(warning, file=sys.stderr)
     print(f"wrote {out}/readers.csv, readers.json and {png} in {wall:.0f} s")

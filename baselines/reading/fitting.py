@@ -1,6 +1,7 @@
 """The rules the head fits share (``head_fit`` and ``head_mil_fit``): the fewest training slides of a class a fit
 accepts (:func:`check_classes`), the refusal of a chosen head that ranks tumour below normal or whose calibration
 slope is not positive (:func:`check_head`), and the 1-D logistic calibration they fit (:func:`logistic_fit`)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -32,9 +33,12 @@ def check_classes(dataset, train: list[dict], least: int = MIN_SLIDES_PER_CLASS)
     for cls, what in ((1, "tumour"), (0, "normal")):
         n = sum(int(s["label"] == cls) for s in train)
         if n < least:
-            raise HeadDataError(Path(dataset) / "dataset.json", f"{n} {what} training slides after the validation "
-                                f"share is held back; a slide head needs at least {least} of each class "
-                                "(MIN_SLIDES_PER_CLASS)")
+            raise HeadDataError(
+                Path(dataset) / "dataset.json",
+                f"{n} {what} training slides after the validation "
+                f"share is held back; a slide head needs at least {least} of each class "
+                "(MIN_SLIDES_PER_CLASS)",
+            )
 
 
 def check_head(dataset, validation_auc: float, slope: float) -> None:
@@ -43,9 +47,15 @@ def check_head(dataset, validation_auc: float, slope: float) -> None:
     slope is negative (a higher statistic would mean less tumour)."""
     where = Path(dataset) / "dataset.json"
     if not validation_auc >= 0.5:
-        raise HeadDataError(where, f"the chosen head's validation AUC is {validation_auc:.3f} (< 0.5: it ranks tumour "
-                                   "below normal; is the feature entry a tumour logit? fit a learned head on any "
-                                   "features: python -m baselines.reading.learned_head_fit); nothing saved")
+        raise HeadDataError(
+            where,
+            f"the chosen head's validation AUC is {validation_auc:.3f} (< 0.5: it ranks tumour "
+            "below normal; is the feature entry a tumour logit? fit a learned head on any "
+            "features: python -m baselines.reading.learned_head_fit); nothing saved",
+        )
     if not slope > 0:
-        raise HeadDataError(where, f"the chosen head's calibration slope is {slope:.3f} (not > 0: more evidence "
-                                   "would mean less tumour); nothing saved")
+        raise HeadDataError(
+            where,
+            f"the chosen head's calibration slope is {slope:.3f} (not > 0: more evidence "
+            "would mean less tumour); nothing saved",
+        )

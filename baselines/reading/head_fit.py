@@ -18,6 +18,7 @@ chosen head whose validation AUC is below 0.5 or whose calibration slope is not 
 
 The slides are read by the loaders every head-based tool shares (:mod:`baselines.reading.slides`).
 """
+
 from __future__ import annotations
 
 import json
@@ -29,22 +30,24 @@ import numpy as np
 
 from baselines.reading.fitting import check_classes, check_head, logistic_fit
 from baselines.reading.slides import HeadDataError, load_slides, padded, read_spec, spec_label, warn_scale
-from data_tools.metrics import auc_interval, format_auc, json_number, json_safe, roc_auc, small_split_warning
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
+from data_tools.metrics import auc_interval, format_auc, json_number, json_safe, roc_auc, small_split_warning
 
 TOPS = (1, 3)
 
 
-def statistics(head, slides: list[dict], masks: list[np.ndarray] | None = None,
-               shape: tuple[int, int] | None = None) -> np.ndarray:
+def statistics(
+    head, slides: list[dict], masks: list[np.ndarray] | None = None, shape: tuple[int, int] | None = None
+) -> np.ndarray:
     """The head's pooled statistic ``(B,)`` of each slide over ``masks`` (default its tissue views)."""
     from histojax.reading.heads.logit import statistic_batch
 
     masks = [s["tissue"] for s in slides] if masks is None else masks
-    return np.asarray(statistic_batch(head, padded([s["logits"] for s in slides], 0.0, shape),
-                                      padded(list(masks), False, shape)))
+    return np.asarray(
+        statistic_batch(head, padded([s["logits"] for s in slides], 0.0, shape), padded(list(masks), False, shape))
+    )
 
 
 def grid_shape(slides: list[dict]) -> tuple[int, int]:
@@ -52,16 +55,21 @@ def grid_shape(slides: list[dict]) -> tuple[int, int]:
     return max(s["logits"].shape[0] for s in slides), max(s["logits"].shape[1] for s in slides)
 
 
-def candidates(ks=(1, 2, 3, 4, 5), dim: int = pcam_cnn.VIEW_LOGIT, encoder: str | None = pcam_cnn.NAME,
-               minus_median: bool = False) -> list:
+def candidates(
+    ks=(1, 2, 3, 4, 5), dim: int = pcam_cnn.VIEW_LOGIT, encoder: str | None = pcam_cnn.NAME, minus_median: bool = False
+) -> list:
     """The candidate heads (uncalibrated), simplest first: for each ``k``, top-1 then top-3 (each also with the
     read views' median subtracted when ``minus_median``: off by default, because the median of what was read
     depends on where a reader looked — a reader that reads only hot cells has a hot median — so such a head
     scores a good reader's reads lower than a random reader's)."""
     from histojax.reading.heads.logit import LogitHead
 
-    return [LogitHead(dim=dim, k=int(k), top=t, minus_median=m, encoder=encoder)
-            for k in ks for t in TOPS for m in ((False, True) if minus_median else (False,))]
+    return [
+        LogitHead(dim=dim, k=int(k), top=t, minus_median=m, encoder=encoder)
+        for k in ks
+        for t in TOPS
+        for m in ((False, True) if minus_median else (False,))
+    ]
 
 
 def calibrated(head, slides: list[dict], shape: tuple[int, int] | None = None):
@@ -85,19 +93,39 @@ def choose(train: list[dict], val: list[dict], cands) -> tuple[object, list[dict
         auc_va = round(roc_auc(statistics(h, val, shape=shape), y_va), 4)
         auc_tr = round(roc_auc(statistics(h, train, shape=shape), y_tr), 4)
         low, high = auc_interval(auc_va, int(np.sum(y_va)), len(y_va) - int(np.sum(y_va)))
-        table.append({"name": c.name, "k": c.k, "top": c.top, "minus_median": c.minus_median,
-                      "train_auc": auc_tr, "validation_auc": auc_va, "validation_auc_low": json_number(low),
-                      "validation_auc_high": json_number(high)})
+        table.append(
+            {
+                "name": c.name,
+                "k": c.k,
+                "top": c.top,
+                "minus_median": c.minus_median,
+                "train_auc": auc_tr,
+                "validation_auc": auc_va,
+                "validation_auc_low": json_number(low),
+                "validation_auc_high": json_number(high),
+            }
+        )
         if (auc_va, auc_tr) > best_key:
             best, best_key = c, (auc_va, auc_tr)
     if best is None:
-        raise ValueError(f"the validation share ({len(val)} slides, labels {sorted(set(y_va))}) needs tumour and "
-                         "normal slides to choose a head: use a larger --val-fraction or another --seed")
+        raise ValueError(
+            f"the validation share ({len(val)} slides, labels {sorted(set(y_va))}) needs tumour and "
+            "normal slides to choose a head: use a larger --val-fraction or another --seed"
+        )
     return best, table
 
 
-def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3, 4, 5),
-        dim: int = pcam_cnn.VIEW_LOGIT, progress: bool = False, minus_median: bool = False, fold: int | None = None):
+def fit(
+    dataset,
+    out=None,
+    val_fraction: float = 0.2,
+    seed: int = 0,
+    ks=(1, 2, 3, 4, 5),
+    dim: int = pcam_cnn.VIEW_LOGIT,
+    progress: bool = False,
+    minus_median: bool = False,
+    fold: int | None = None,
+):
     """Choose and fit the head of ``dataset`` (see the module doc); saved to ``out`` when given. ``fold=i``: on
     fold i's train side (the other folds) of a dataset built with ``--folds K``.
     Returns ``(head, table of candidates)``."""
@@ -117,9 +145,12 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
     if len(classes) == 1 and None not in classes:  # labels from dataset.json: one class, refused before loading
         kind = "tumour" if classes.pop() else "normal"
         where = f"fold {fold}'s train side" if fold is not None else "the train split"
-        raise HeadDataError(Path(dataset) / "dataset.json", f"{where} holds only {kind} slides ({len(spec['train'])}): "
-                                                            "a head is fitted on tumour and normal slides; give a "
-                                                            "dataset whose training slides hold both")
+        raise HeadDataError(
+            Path(dataset) / "dataset.json",
+            f"{where} holds only {kind} slides ({len(spec['train'])}): "
+            "a head is fitted on tumour and normal slides; give a "
+            "dataset whose training slides hold both",
+        )
     kept, held = split_train(spec, val_fraction, seed)
     check_validation_share(spec, held, Path(dataset) / "dataset.json", val_fraction, fold)  # before any slide is read
     train = load_slides(dataset, spec["train"], spec, dim, progress=progress)
@@ -134,17 +165,33 @@ def fit(dataset, out=None, val_fraction: float = 0.2, seed: int = 0, ks=(1, 2, 3
     chosen = next(r for r in table if r["name"] == best.name)
     check_head(dataset, chosen["validation_auc"], float(head.cal_a))
     n_tumour = int(sum(s["label"] for s in va))
-    if (warning := small_split_warning(n_tumour, len(va) - n_tumour, "the validation share"
-                                       + (f" of fold {fold}" if fold is not None else ""))) is not None:
+    if (
+        warning := small_split_warning(
+            n_tumour, len(va) - n_tumour, "the validation share" + (f" of fold {fold}" if fold is not None else "")
+        )
+    ) is not None:
         print(warning, file=sys.stderr)  # the candidate was chosen on it (after the refusals: those stay one line)
-    info = {"fitted_on": {"dataset": str(Path(dataset).resolve()), "split": "train", "slides": len(train),
-                          "tumour_slides": int(sum(s["label"] for s in train)), **({"fold": fold} if fold is not None
-                                                                                  else {})},
-            "chosen_on": {"validation_fraction": val_fraction, "seed": seed, "train_slides": len(tr),
-                          "validation_slides": len(va), "validation_auc": chosen["validation_auc"]},
-            # re-calibrated on the whole train side: every train slide is a fitting slide, the share validated too
-            RECORD: fit_record(dataset, spec, fold, spec["train"], held),
-            "candidates": table, "date": datetime.date.today().isoformat(), "jax": jax.__version__}
+    info = {
+        "fitted_on": {
+            "dataset": str(Path(dataset).resolve()),
+            "split": "train",
+            "slides": len(train),
+            "tumour_slides": int(sum(s["label"] for s in train)),
+            **({"fold": fold} if fold is not None else {}),
+        },
+        "chosen_on": {
+            "validation_fraction": val_fraction,
+            "seed": seed,
+            "train_slides": len(tr),
+            "validation_slides": len(va),
+            "validation_auc": chosen["validation_auc"],
+        },
+        # re-calibrated on the whole train side: every train slide is a fitting slide, the share validated too
+        RECORD: fit_record(dataset, spec, fold, spec["train"], held),
+        "candidates": table,
+        "date": datetime.date.today().isoformat(),
+        "jax": jax.__version__,
+    }
     head = head.replace(info=json.dumps(json_safe(info), allow_nan=False))
     if out is not None:
         head.save(out)
@@ -155,17 +202,33 @@ def add_arguments(p) -> None:
     """The options of ``python -m baselines.reading.head_fit``."""
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json with a train split; feature grids)")
     p.add_argument("--out", required=True, help="folder to save the head in (config.json, params.json)")
-    p.add_argument("--val-fraction", type=float, default=0.2, help="share of training slides held back to choose "
-                                                                    "among the candidates (default 0.2)")
+    p.add_argument(
+        "--val-fraction",
+        type=float,
+        default=0.2,
+        help="share of training slides held back to choose among the candidates (default 0.2)",
+    )
     p.add_argument("--seed", type=int, default=0, help="seed of the validation split (default 0)")
-    p.add_argument("--fold", type=int, default=None, metavar="I",
-                   help="a dataset built with --folds K: fit on fold I's train side (the other K - 1 folds)")
+    p.add_argument(
+        "--fold",
+        type=int,
+        default=None,
+        metavar="I",
+        help="a dataset built with --folds K: fit on fold I's train side (the other K - 1 folds)",
+    )
     p.add_argument("--ks", type=int, nargs="+", default=[1, 2, 3, 4, 5], help="neighbourhood sides to try (views)")
-    p.add_argument("--minus-median", action="store_true",
-                   help="also try each candidate minus the read views' median logit (off by default: it depends on "
-                        "where a reader looked)")
-    p.add_argument("--dim", type=int, default=pcam_cnn.VIEW_LOGIT,
-                   help=f"feature entry holding the view tumour logit (default {pcam_cnn.VIEW_LOGIT}: pcam-cnn's)")
+    p.add_argument(
+        "--minus-median",
+        action="store_true",
+        help="also try each candidate minus the read views' median logit (off by default: it depends on "
+        "where a reader looked)",
+    )
+    p.add_argument(
+        "--dim",
+        type=int,
+        default=pcam_cnn.VIEW_LOGIT,
+        help=f"feature entry holding the view tumour logit (default {pcam_cnn.VIEW_LOGIT}: pcam-cnn's)",
+    )
 
 
 def run(args, parser=None) -> int:
@@ -174,17 +237,29 @@ def run(args, parser=None) -> int:
         return print_error(f"--ks: neighbourhood sides must be ≥ 1, got {args.ks}")
     t0 = time.perf_counter()
     try:
-        head, table = fit(args.dataset, args.out, args.val_fraction, args.seed, args.ks, args.dim, progress=True,
-                          minus_median=args.minus_median, fold=args.fold)
+        head, table = fit(
+            args.dataset,
+            args.out,
+            args.val_fraction,
+            args.seed,
+            args.ks,
+            args.dim,
+            progress=True,
+            minus_median=args.minus_median,
+            fold=args.fold,
+        )
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
     print("| candidate | train AUC | validation AUC [95 % interval over the validation slides] |\n|---|---|---|")
     for r in table:
-        low, high = (float("nan") if v is None else v
-                     for v in (r.get("validation_auc_low"), r.get("validation_auc_high")))
+        low, high = (
+            float("nan") if v is None else v for v in (r.get("validation_auc_low"), r.get("validation_auc_high"))
+        )
         print(f"| {r['name']} | {r['train_auc']:.3f} | {format_auc(r['validation_auc'], low, high)} |")
-    print(f"chosen: {head.name} (slide logit = {float(head.cal_a):.3f} · s + {float(head.cal_b):.3f}); saved to {args.out} "
-          f"in {time.perf_counter() - t0:.0f} s")
+    print(
+        f"chosen: {head.name} (slide logit = {float(head.cal_a):.3f} · s + {float(head.cal_b):.3f}); saved to {args.out} "
+        f"in {time.perf_counter() - t0:.0f} s"
+    )
     return 0
 
 

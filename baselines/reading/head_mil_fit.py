@@ -26,6 +26,7 @@ slide logits; :func:`baselines.reading.fitting.check_head`). The encoder-scale w
 repeated (:func:`baselines.reading.slides.warn_scale`). ``config.json`` records what the head was fitted on
 (:data:`baselines.reading.provenance.RECORD`).
 """
+
 from __future__ import annotations
 
 import sys
@@ -62,7 +63,7 @@ def cache_grids(dataset, entries, cache, progress: bool = True, extra=None) -> l
                 d = {"name": n, "label": int(z["labels"][i]), "features": z[f"f{i}"], "tissue": z[f"t{i}"]}
                 for key in z.files:
                     if key.startswith(f"x{i}_"):
-                        d[key[len(f"x{i}_"):]] = z[key]
+                        d[key[len(f"x{i}_") :]] = z[key]
                 out.append(d)
             return out
     out, arrays = [], {}
@@ -85,16 +86,25 @@ def cache_grids(dataset, entries, cache, progress: bool = True, extra=None) -> l
 
 
 # ----------------------------------------------------------------------------- training data, sparse
-OFFSETS = (-1, 0, 1, 2)   # the 4 × 4 window holding every k × k window of histojax.reading.heads.logit.neighbourhood_mean, k ≤ 4
-CELL = 4                  # random reads pick cells of CELL × CELL views (a reader's cell is about 4 × 4 views)
+OFFSETS = (
+    -1,
+    0,
+    1,
+    2,
+)  # the 4 × 4 window holding every k × k window of histojax.reading.heads.logit.neighbourhood_mean, k ≤ 4
+CELL = 4  # random reads pick cells of CELL × CELL views (a reader's cell is about 4 × 4 views)
 
 
 def window_slots(k: int) -> list[int]:
     """Slots (of the ``OFFSETS × OFFSETS`` neighbour table) inside the ``k × k`` window of
     :func:`histojax.reading.heads.logit.neighbourhood_mean` (rows / columns ``-(k-1)//2 … k//2``)."""
     lo, hi = -((k - 1) // 2), k // 2
-    return [i * len(OFFSETS) + j for i, dy in enumerate(OFFSETS) for j, dx in enumerate(OFFSETS)
-            if lo <= dy <= hi and lo <= dx <= hi]
+    return [
+        i * len(OFFSETS) + j
+        for i, dy in enumerate(OFFSETS)
+        for j, dx in enumerate(OFFSETS)
+        if lo <= dy <= hi and lo <= dx <= hi
+    ]
 
 
 def bags(slides: list[dict], dim: int = pcam_cnn.VIEW_LOGIT) -> dict:
@@ -122,10 +132,17 @@ def bags(slides: list[dict], dim: int = pcam_cnn.VIEW_LOGIT) -> dict:
         base += ys.size
         cbase += nc
     x = np.concatenate(xs + [np.zeros((1, xs[0].shape[1]), np.float32)])
-    return {"x": x, "logit": x[:, dim], "seg": np.concatenate(segs).astype(np.int32),
-            "nbr": np.concatenate(nbrs).astype(np.int32), "cell": np.concatenate(cells).astype(np.int32),
-            "cell_seg": np.concatenate(cell_seg).astype(np.int32),
-            "labels": np.asarray([s["label"] for s in slides], np.float32), "n": n_total, "b": len(slides)}
+    return {
+        "x": x,
+        "logit": x[:, dim],
+        "seg": np.concatenate(segs).astype(np.int32),
+        "nbr": np.concatenate(nbrs).astype(np.int32),
+        "cell": np.concatenate(cells).astype(np.int32),
+        "cell_seg": np.concatenate(cell_seg).astype(np.int32),
+        "labels": np.asarray([s["label"] for s in slides], np.float32),
+        "n": n_total,
+        "b": len(slides),
+    }
 
 
 def random_reads(key, data: dict, p_full: float = 0.3, lo: float = 0.02, hi: float = 0.8):
@@ -149,7 +166,7 @@ def sparse_instances(head, data: dict, mask):
 
     m = jnp.concatenate([mask, jnp.zeros(1, bool)]).astype(jnp.float32)
     nbr = data["nbr"]
-    mn = m[nbr]                                   # (N, 16)
+    mn = m[nbr]  # (N, 16)
     ln = (data["logit"] * m)[nbr]
     cols = []
     for k in head.ks:
@@ -170,15 +187,31 @@ def init_mil(key, n_in: int, hidden: int = 64, att: int = 32, mu=None, sd=None) 
 
     ks = jax.random.split(key, 5)
     g = jax.nn.initializers.glorot_uniform()
-    return {"mu": jnp.zeros(n_in) if mu is None else jnp.asarray(mu, jnp.float32),
-            "sd": jnp.ones(n_in) if sd is None else jnp.asarray(sd, jnp.float32),
-            "w1": g(ks[0], (n_in, hidden)), "b1": jnp.zeros(hidden), "V": g(ks[1], (hidden, att)), "bV": jnp.zeros(att),
-            "U": g(ks[2], (hidden, att)), "bU": jnp.zeros(att), "wa": g(ks[3], (att, 1))[:, 0],
-            "wc": g(ks[4], (hidden, 1))[:, 0], "bc": jnp.zeros(())}
+    return {
+        "mu": jnp.zeros(n_in) if mu is None else jnp.asarray(mu, jnp.float32),
+        "sd": jnp.ones(n_in) if sd is None else jnp.asarray(sd, jnp.float32),
+        "w1": g(ks[0], (n_in, hidden)),
+        "b1": jnp.zeros(hidden),
+        "V": g(ks[1], (hidden, att)),
+        "bV": jnp.zeros(att),
+        "U": g(ks[2], (hidden, att)),
+        "bU": jnp.zeros(att),
+        "wa": g(ks[3], (att, 1))[:, 0],
+        "wc": g(ks[4], (hidden, 1))[:, 0],
+        "bc": jnp.zeros(()),
+    }
 
 
-def train_mil(head, data: dict, seed: int = 0, steps: int = 400, lr: float = 3e-3, weight_decay: float = 1e-4,
-              p_full: float = 0.3, log_every: int = 0):
+def train_mil(
+    head,
+    data: dict,
+    seed: int = 0,
+    steps: int = 400,
+    lr: float = 3e-3,
+    weight_decay: float = 1e-4,
+    p_full: float = 0.3,
+    log_every: int = 0,
+):
     """Train ``head`` (a :class:`histojax.reading.heads.mil.MilHead` whose params fix the structure) on the flat
     training views ``data`` (:func:`bags`) with optax AdamW, full batch, a fresh random read mask per slide
     each step (:func:`random_reads`); slide-level log loss. Returns ``(head, losses)``."""
@@ -250,8 +283,15 @@ def padded_logits(slides: list[dict], shape, dim: int = pcam_cnn.VIEW_LOGIT) -> 
     return out
 
 
-def fit_stats(slides: list[dict], shape, seed: int = 0, masks_per_slide: int = 12, l2: float = 1e-2,
-              p_full: float = 0.3, ks=(1, 2, 3, 4)):
+def fit_stats(
+    slides: list[dict],
+    shape,
+    seed: int = 0,
+    masks_per_slide: int = 12,
+    l2: float = 1e-2,
+    p_full: float = 0.3,
+    ks=(1, 2, 3, 4),
+):
     """A :class:`histojax.reading.heads.mil.StatsHead` fitted (L2-penalised logistic regression, standardised
     statistics) on ``slides`` read ``masks_per_slide`` times each: all tissue with probability ``p_full``,
     else random cells at a fraction ``U(0.02, 0.8)``."""
@@ -279,8 +319,12 @@ def fit_stats(slides: list[dict], shape, seed: int = 0, masks_per_slide: int = 1
         w -= 0.3 * (z.T @ (p - y) / len(y) + l2 * w)
         b -= 0.3 * float(np.mean(p - y))
     pr = float(np.clip(np.mean([s["label"] for s in slides]), 1e-3, 1 - 1e-3))
-    params = {"mu": jnp.asarray(mu, jnp.float32), "sd": jnp.asarray(sd, jnp.float32),
-              "w": jnp.asarray(w, jnp.float32), "b": jnp.float32(b)}
+    params = {
+        "mu": jnp.asarray(mu, jnp.float32),
+        "sd": jnp.asarray(sd, jnp.float32),
+        "w": jnp.asarray(w, jnp.float32),
+        "b": jnp.float32(b),
+    }
     return StatsHead(params=params, prior_logit=jnp.float32(np.log(pr / (1 - pr))), ks=tuple(ks))
 
 
@@ -295,12 +339,12 @@ def dense_scores(head, slides: list[dict], masks: np.ndarray, shape, chunk: int 
     f = jax.jit(jax.vmap(lambda g, m: score(head, g, m)))
     out = []
     for i in range(0, len(slides), chunk):
-        part = slides[i:i + chunk]
+        part = slides[i : i + chunk]
         g = np.zeros((len(part),) + tuple(shape) + (part[0]["features"].shape[-1],), np.float32)
         for j, s in enumerate(part):
             g[j, : s["features"].shape[0], : s["features"].shape[1]] = s["features"]
         m = np.zeros((len(part),) + tuple(shape), bool)
-        m[:len(part)] = masks[i:i + chunk]
+        m[: len(part)] = masks[i : i + chunk]
         out.append(np.asarray(f(g, m)))
     from histojax.reading.heads.files import check_finite_logits
 
@@ -345,12 +389,20 @@ def add_arguments(p) -> None:
     p.add_argument("--candidates", nargs="+", default=list(CANDIDATES), choices=CANDIDATES)
     p.add_argument("--seeds", type=int, default=3, help="fits per candidate (default 3)")
     p.add_argument("--steps", type=int, default=150, help="training steps of the MIL candidates (default 150)")
-    p.add_argument("--table", default=None, help="JSON file of validation results: rows already there are re-used, "
-                                                 "new rows written to it")
+    p.add_argument(
+        "--table",
+        default=None,
+        help="JSON file of validation results: rows already there are re-used, new rows written to it",
+    )
     p.add_argument("--val-fraction", type=float, default=0.2)
     p.add_argument("--seed", type=int, default=0, help="seed of the validation split (default 0, as head_fit)")
-    p.add_argument("--fold", type=int, default=None, metavar="I",
-                   help="a dataset built with --folds K: fit on fold I's train side (the other K - 1 folds)")
+    p.add_argument(
+        "--fold",
+        type=int,
+        default=None,
+        metavar="I",
+        help="a dataset built with --folds K: fit on fold I's train side (the other K - 1 folds)",
+    )
 
 
 def run(args, parser=None) -> int:
@@ -403,42 +455,73 @@ def run(args, parser=None) -> int:
             print(f"  {key} seed {seed}: {rows[-1]}", file=sys.stderr, flush=True)
             if table_file:
                 table_file.write_text(json.dumps(json_safe(table), indent=1, allow_nan=False))
-    summary = {k: {m: [float(np.mean([r[m] for r in v if m in r])), float(np.std([r[m] for r in v if m in r]))]
-                   for m in {m for r in v for m in r} - {"seed", "seconds"}} | {"seeds": len(v)}
-               for k, v in table.items()}  # rows of an older --table may lack "slope": the mean of those that have it
-    best = max((k for k in summary if k != ref and k.split(",")[0] in args.candidates),
-               key=lambda k: summary[k]["full"][0])
+    summary = {
+        k: {
+            m: [float(np.mean([r[m] for r in v if m in r])), float(np.std([r[m] for r in v if m in r]))]
+            for m in {m for r in v for m in r} - {"seed", "seconds"}
+        }
+        | {"seeds": len(v)}
+        for k, v in table.items()
+    }  # rows of an older --table may lack "slope": the mean of those that have it
+    best = max(
+        (k for k in summary if k != ref and k.split(",")[0] in args.candidates), key=lambda k: summary[k]["full"][0]
+    )
     from data_tools.metrics import auc_interval, format_auc_runs, small_split_warning
 
     n_tumour = int(sum(s["label"] for s in va))
     n_normal = len(va) - n_tumour
-    print("| candidate | fits | validation AUC, read everything (± std over fits [95 % interval over the validation "
-          "slides]) | random 10 % | random 20 % |\n|---|---|---|---|---|")
+    print(
+        "| candidate | fits | validation AUC, read everything (± std over fits [95 % interval over the validation "
+        "slides]) | random 10 % | random 20 % |\n|---|---|---|---|---|"
+    )
     for k, v in summary.items():
         low, high = auc_interval(v["full"][0], n_tumour, n_normal)
-        print(f"| {k} | {v['seeds']} | {format_auc_runs(v['full'][0], v['full'][1], low, high, v['seeds'])} | "
-              f"{v['read 0.1'][0]:.3f} | {v['read 0.2'][0]:.3f} |")
+        print(
+            f"| {k} | {v['seeds']} | {format_auc_runs(v['full'][0], v['full'][1], low, high, v['seeds'])} | "
+            f"{v['read 0.1'][0]:.3f} | {v['read 0.2'][0]:.3f} |"
+        )
     try:  # an inverted or backwards choice is refused before the refit: nothing saved
         check_head(args.dataset, summary[best]["full"][0], summary[best].get("slope", [1.0])[0])
     except HeadDataError as e:
         return print_error(e)
-    if (warning := small_split_warning(n_tumour, n_normal, "the validation share"
-                                       + (f" of fold {args.fold}" if args.fold is not None else ""))) is not None:
+    if (
+        warning := small_split_warning(
+            n_tumour, n_normal, "the validation share" + (f" of fold {args.fold}" if args.fold is not None else "")
+        )
+    ) is not None:
         print(warning, file=sys.stderr)  # the candidate was chosen on it (a refusal above stays one line)
     name = best.split(",")[0]
     head = candidate_head(name, slides, shape, 0, args.steps)
-    info = {"fitted_on": {"dataset": str(Path(args.dataset).resolve()), "split": "train", "slides": len(slides),
-                          "tumour_slides": int(sum(s["label"] for s in slides)), "seed": 0,
-                          **({"fold": args.fold} if args.fold is not None else {})},
-            "chosen_on": {"validation_fraction": args.val_fraction, "seed": args.seed, "train_slides": len(tr),
-                          "validation_slides": len(va), "candidate": best,
-                          "validation_auc": round(summary[best]["full"][0], 4),
-                          **dict(zip(("validation_auc_low", "validation_auc_high"), (round(v, 4) for v in auc_interval(
-                              summary[best]["full"][0], n_tumour, n_normal)))),
-                          "reference_validation_auc": summary[ref]["full"][0]},
-            # refitted on the whole train side: every train slide is a fitting slide, the share validated too
-            RECORD: fit_record(args.dataset, spec, args.fold, spec["train"], held),
-            "candidates": summary, "date": datetime.date.today().isoformat(), "jax": jax.__version__}
+    info = {
+        "fitted_on": {
+            "dataset": str(Path(args.dataset).resolve()),
+            "split": "train",
+            "slides": len(slides),
+            "tumour_slides": int(sum(s["label"] for s in slides)),
+            "seed": 0,
+            **({"fold": args.fold} if args.fold is not None else {}),
+        },
+        "chosen_on": {
+            "validation_fraction": args.val_fraction,
+            "seed": args.seed,
+            "train_slides": len(tr),
+            "validation_slides": len(va),
+            "candidate": best,
+            "validation_auc": round(summary[best]["full"][0], 4),
+            **dict(
+                zip(
+                    ("validation_auc_low", "validation_auc_high"),
+                    (round(v, 4) for v in auc_interval(summary[best]["full"][0], n_tumour, n_normal)),
+                )
+            ),
+            "reference_validation_auc": summary[ref]["full"][0],
+        },
+        # refitted on the whole train side: every train slide is a fitting slide, the share validated too
+        RECORD: fit_record(args.dataset, spec, args.fold, spec["train"], held),
+        "candidates": summary,
+        "date": datetime.date.today().isoformat(),
+        "jax": jax.__version__,
+    }
     head = head.replace(info=json.dumps(json_safe(info), allow_nan=False))
     head.save(args.out)
     print(f"chosen: {head.name}; saved to {args.out} in {time.perf_counter() - t0:.0f} s")

@@ -45,6 +45,7 @@ the head was fitted or validated on is refused (``--allow-fitting-slides``: scor
 multiplies every feature vector by a fixed random orthogonal matrix (drawn from ``SEED``) before fitting or
 scoring: a check that nothing depends on which entry holds what.
 """
+
 from __future__ import annotations
 
 import datetime
@@ -60,27 +61,32 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
-from baselines.reading.slides import HeadDataError, finest_views, read_bundle, warn_scale
-from baselines.reading.slides import read_spec as read_sealed_spec
-from baselines.reading.slides import lesion_of
-from histojax.reading.heads import encoder_mismatch
 from baselines.reading.provenance import RECORD, add_flag, check_scored, fit_record, head_for_fold
+from baselines.reading.slides import HeadDataError, finest_views, lesion_of, read_bundle, warn_scale
+from baselines.reading.slides import read_spec as read_sealed_spec
 from baselines.validation import check_validation_share, split_train
 from data_tools.annotations import load_annotations
 from data_tools.bundle_files.safe_files import own_file
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
-from data_tools.metrics import (UNDEFINED, auc_interval, format_auc, json_safe, roc_auc, roc_auc_with_interval,
-                                small_split_warning)
-from histojax.reading.heads import files
-from histojax.reading.heads.learned import KIND, LearnedHead, init_params
+from data_tools.metrics import (
+    UNDEFINED,
+    auc_interval,
+    format_auc,
+    json_safe,
+    roc_auc,
+    roc_auc_with_interval,
+    small_split_warning,
+)
 from histojax.core.slide import slide_label_from_metadata
+from histojax.reading.heads import encoder_mismatch, files
+from histojax.reading.heads.learned import KIND, LearnedHead, init_params
 
 MIN_SLIDES_PER_CLASS = 5
 """Fewest training slides of each class (after the validation share is held out) a fit accepts."""
-CELL = 4                  # random reads pick cells of CELL × CELL views (a reader's cell is about 4 × 4 views)
-P_FULL = 0.25             # share of training reads that read all tissue
-MIN_READ = 0.02           # smallest random read fraction
+CELL = 4  # random reads pick cells of CELL × CELL views (a reader's cell is about 4 × 4 views)
+P_FULL = 0.25  # share of training reads that read all tissue
+MIN_READ = 0.02  # smallest random read fraction
 CANDIDATES = ({"hidden": 32, "attention": 16, "layers": 1}, {"hidden": 64, "attention": 32, "layers": 1})
 """The structures tried (``--hidden`` picks among them by hidden size)."""
 
@@ -134,9 +140,17 @@ def load_views(bundle, label: int | None = None, spec: dict | None = None, verif
     if not np.all(np.isfinite(features)):
         raise FitError(bundle, "non-finite feature values on tissue views (or beyond float16's range)")
     mpp = (meta.get("source") or {}).get("mpp")
-    return {"name": bundle.name, "label": lab, "features": features, "yx": np.stack([ys, xs], 1).astype(np.int32),
-            "shape": (int(gh), int(gw)), "encoder": (meta.get("features") or {}).get("encoder"),
-            "mpp": float(mpp) if isinstance(mpp, (int, float)) else float("nan"), "tile": tile, "bundle": bundle}
+    return {
+        "name": bundle.name,
+        "label": lab,
+        "features": features,
+        "yx": np.stack([ys, xs], 1).astype(np.int32),
+        "shape": (int(gh), int(gw)),
+        "encoder": (meta.get("features") or {}).get("encoder"),
+        "mpp": float(mpp) if isinstance(mpp, (int, float)) else float("nan"),
+        "tile": tile,
+        "bundle": bundle,
+    }
 
 
 def load_split(dataset, entries, spec: dict, progress: bool = True, desc: str = "loading") -> list[dict]:
@@ -190,8 +204,9 @@ def draw_fraction(rng) -> float | None:
     return None if rng.random() < P_FULL else float(np.exp(rng.uniform(np.log(MIN_READ), 0.0)))
 
 
-def batch(rng, slides: list[dict], size: int, views: int, attention: list | None = None,
-          top_share: float = 0.5) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+def batch(
+    rng, slides: list[dict], size: int, views: int, attention: list | None = None, top_share: float = 0.5
+) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """``(x (size, views, D) float32, mask (size, views) bool, y (size,) float32, full (size,) bool)``: ``size``
     slides drawn with
     classes balanced, each read at random (:func:`draw_fraction`). Of a read larger than ``views`` views, the
@@ -219,8 +234,8 @@ def batch(rng, slides: list[dict], size: int, views: int, attention: list | None
                 idx = np.concatenate([top, rng.choice(rest, views - n_top, replace=False)])
             else:
                 idx = rng.choice(idx, views, replace=False)
-        x[b, :idx.size] = s["features"][idx]
-        m[b, :idx.size] = True
+        x[b, : idx.size] = s["features"][idx]
+        m[b, : idx.size] = True
         y[b] = s["label"]
     return x, m, y, full
 
@@ -235,10 +250,10 @@ def attention_of(head, slides: list[dict], chunk: int = 1 << 16, flat: np.ndarra
         flat = np.concatenate([np.asarray(s["features"]) for s in slides])
     out = np.empty(len(flat), np.float32)
     for i in range(0, len(flat), chunk):
-        part = flat[i:i + chunk]
+        part = flat[i : i + chunk]
         if len(part) < chunk:
             part = np.concatenate([part, np.zeros((chunk - len(part), flat.shape[1]), part.dtype)])
-        out[i:i + chunk] = np.asarray(fn(head, part))[:min(chunk, len(flat) - i)]
+        out[i : i + chunk] = np.asarray(fn(head, part))[: min(chunk, len(flat) - i)]
     return np.split(out, np.cumsum(sizes)[:-1])
 
 
@@ -280,7 +295,9 @@ class FlatSet:
     def logits(self, head, mask: np.ndarray | None = None) -> np.ndarray:
         """``(B,)`` slide logits of ``head`` reading ``mask`` (default every tissue view)."""
         mask = np.ones(len(self.x), bool) if mask is None else mask
-        return files.check_finite_logits(head, self._fn(head)(head, self.x, self.seg, mask))  # one line naming params.npz
+        return files.check_finite_logits(
+            head, self._fn(head)(head, self.x, self.seg, mask)
+        )  # one line naming params.npz
 
     def log_loss(self, head) -> float:
         """Mean log loss (nats) of ``head``'s slide logits reading everything against the slides' labels."""
@@ -292,8 +309,9 @@ class FlatSet:
         out = {"full": roc_auc(self.logits(head), self.labels)}
         rng = np.random.default_rng(seed)
         for f in fractions:
-            out[f"read {f:g}"] = float(np.mean([roc_auc(self.logits(head, self.masks(rng, f)), self.labels)
-                                                for _ in range(draws)]))
+            out[f"read {f:g}"] = float(
+                np.mean([roc_auc(self.logits(head, self.masks(rng, f)), self.labels) for _ in range(draws)])
+            )
         return out
 
 
@@ -326,10 +344,21 @@ def standardisation(slides: list[dict], limit: int = 200_000, seed: int = 0) -> 
     return x.mean(0), x.std(0) + 1e-3
 
 
-def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: int = 0, steps: int = 600,
-          batch_size: int = 16, views: int = 512, lr: float = 2e-3, weight_decay: float = 1e-4,
-          eval_every: int = 50, top_share: float = 0.5, instance_weight: float = 0.5,
-          progress: bool = True) -> tuple:
+def train(
+    train_slides: list[dict],
+    val: FlatSet | None,
+    structure: dict,
+    seed: int = 0,
+    steps: int = 600,
+    batch_size: int = 16,
+    views: int = 512,
+    lr: float = 2e-3,
+    weight_decay: float = 1e-4,
+    eval_every: int = 50,
+    top_share: float = 0.5,
+    instance_weight: float = 0.5,
+    progress: bool = True,
+) -> tuple:
     """Train a :class:`LearnedHead` of ``structure`` (``hidden``, ``attention``, ``layers``) on ``train_slides``
     (see the module doc); every ``eval_every`` steps score it on ``val`` (a :class:`FlatSet`) and refresh the
     training views' attention that :func:`batch` keeps its ``top_share`` of views by. Returns
@@ -338,11 +367,18 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
     d = int(train_slides[0]["features"].shape[1])
     mu, sd = standardisation(train_slides, seed=seed)
     p = float(np.clip(np.mean([s["label"] for s in train_slides]), 1e-3, 1 - 1e-3))
-    params = init_params(jax.random.PRNGKey(seed), d, structure["hidden"], structure["attention"],
-                         structure["layers"], mu, sd)
-    head0 = LearnedHead(params=params, prior_logit=jnp.float32(np.log(p / (1 - p))), features_dim=d,
-                        hidden=structure["hidden"], attention=structure["attention"], layers=structure["layers"],
-                        encoder=train_slides[0].get("encoder"))
+    params = init_params(
+        jax.random.PRNGKey(seed), d, structure["hidden"], structure["attention"], structure["layers"], mu, sd
+    )
+    head0 = LearnedHead(
+        params=params,
+        prior_logit=jnp.float32(np.log(p / (1 - p))),
+        features_dim=d,
+        hidden=structure["hidden"],
+        attention=structure["attention"],
+        layers=structure["layers"],
+        encoder=train_slides[0].get("encoder"),
+    )
     frozen = {"mu": params["mu"], "sd": params["sd"]}
     tp = {k: v for k, v in params.items() if k not in frozen}
     opt = optax.adamw(lr, weight_decay=weight_decay)
@@ -376,8 +412,13 @@ def train(train_slides: list[dict], val: FlatSet | None, structure: dict, seed: 
     curve, losses, best, checkpoints = [], [], head0, []
     attention = None
     flat = np.concatenate([np.asarray(s["features"]) for s in train_slides]) if top_share > 0 else None
-    bar = tqdm(range(steps), desc=f"{structure['hidden']} units, seed {seed}", disable=not progress,
-               file=sys.stderr, leave=False)
+    bar = tqdm(
+        range(steps),
+        desc=f"{structure['hidden']} units, seed {seed}",
+        disable=not progress,
+        file=sys.stderr,
+        leave=False,
+    )
     for i in bar:
         x, m, y, full = batch(rng, train_slides, batch_size, views, attention, top_share)
         tp, state, loss = step(tp, state, x, m, y, full)
@@ -411,7 +452,7 @@ def smooth_curve(curve: list[dict], width: int = SMOOTH) -> list[dict]:
     fold's curve went 0.17, 1.0, 0.5 ...); one lucky check is no longer chosen over a plateau."""
     full = [r["full"] for r in curve]
     for i, r in enumerate(curve):
-        window = [v for v in full[max(0, i - width): i + width + 1] if v == v]
+        window = [v for v in full[max(0, i - width) : i + width + 1] if v == v]
         r["smoothed"] = float(np.mean(window)) if window else float("nan")
     return curve
 
@@ -447,7 +488,7 @@ def curve_png(curves: dict, title: str) -> bytes:
         st = [r["step"] for r in rows]
         ax1.plot(st, [r["loss"] for r in rows], label=name)
         if rows and "full" in rows[0]:
-            line, = ax2.plot(st, [r["full"] for r in rows], label=f"{name}, all read")
+            (line,) = ax2.plot(st, [r["full"] for r in rows], label=f"{name}, all read")
             ax2.plot(st, [r["read 0.1"] for r in rows], ls="--", color=line.get_color(), label=f"{name}, 10 % read")
     ax1.set(xlabel="step", ylabel="training log loss (random reads)")
     ax2.set(xlabel="step", ylabel="validation AUC")
@@ -467,33 +508,61 @@ def add_arguments(p) -> None:
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json with a train split; feature grids)")
     p.add_argument("--out", help="folder to save the chosen head in (config.json, params.npz, learning_curve.png)")
     p.add_argument("--seed", type=int, default=0, help="training seed (initialisation, batches; default 0)")
-    p.add_argument("--val-fraction", type=float, default=0.2, help="share of training slides held out for "
-                                                                      "validation (default 0.2)")
+    p.add_argument(
+        "--val-fraction", type=float, default=0.2, help="share of training slides held out for validation (default 0.2)"
+    )
     p.add_argument("--split-seed", type=int, default=0, help="seed of the validation split (default 0, as head_fit)")
-    p.add_argument("--fold", type=int, default=None, metavar="I",
-                   help="a dataset built with --folds K: fit on fold I's train side (the other K - 1 folds); "
-                        "--score: fold I's side of --split")
-    p.add_argument("--hidden", type=int, nargs="+", default=[c["hidden"] for c in CANDIDATES],
-                   help="hidden sizes to try (of %s; default all)" % [c["hidden"] for c in CANDIDATES])
+    p.add_argument(
+        "--fold",
+        type=int,
+        default=None,
+        metavar="I",
+        help="a dataset built with --folds K: fit on fold I's train side (the other K - 1 folds); "
+        "--score: fold I's side of --split",
+    )
+    p.add_argument(
+        "--hidden",
+        type=int,
+        nargs="+",
+        default=[c["hidden"] for c in CANDIDATES],
+        help="hidden sizes to try (of %s; default all)" % [c["hidden"] for c in CANDIDATES],
+    )
     p.add_argument("--steps", type=int, default=600, help="training steps per candidate (default 600)")
     p.add_argument("--batch", type=int, default=16, help="slides per step (default 16)")
     p.add_argument("--views", type=int, default=512, help="read views kept per slide per step (default 512)")
-    p.add_argument("--top-share", type=float, default=0.5,
-                   help="share of the kept views taken by the model's highest attention, refreshed every "
-                        "--eval-every steps (default 0.5; 0 = all drawn uniformly)")
-    p.add_argument("--instance-weight", type=float, default=0.5,
-                   help="weight of the instance loss beside the slide loss (default 0.5; 0 = slide loss only)")
+    p.add_argument(
+        "--top-share",
+        type=float,
+        default=0.5,
+        help="share of the kept views taken by the model's highest attention, refreshed every "
+        "--eval-every steps (default 0.5; 0 = all drawn uniformly)",
+    )
+    p.add_argument(
+        "--instance-weight",
+        type=float,
+        default=0.5,
+        help="weight of the instance loss beside the slide loss (default 0.5; 0 = slide loss only)",
+    )
     p.add_argument("--lr", type=float, default=2e-3)
     p.add_argument("--weight-decay", type=float, default=1e-4)
     p.add_argument("--eval-every", type=int, default=50, help="validation scoring every N steps (default 50)")
-    p.add_argument("--rotate", type=int, default=None, metavar="SEED",
-                   help="multiply the features by a fixed random orthogonal matrix drawn from SEED")
-    p.add_argument("--score", default=None, metavar="HEAD", help="score the saved head HEAD on --split instead "
-                                                                  "of fitting")
+    p.add_argument(
+        "--rotate",
+        type=int,
+        default=None,
+        metavar="SEED",
+        help="multiply the features by a fixed random orthogonal matrix drawn from SEED",
+    )
+    p.add_argument(
+        "--score", default=None, metavar="HEAD", help="score the saved head HEAD on --split instead of fitting"
+    )
     p.add_argument("--split", default="test", help="split --score reads (default test)")
-    p.add_argument("--all-folds", action="store_true",
-                   help="a dataset built with --folds K: fit one head per fold, OUT/fold0 ... OUT/fold{K-1} (each as "
-                        "--fold I --out OUT/foldI)")
+    p.add_argument(
+        "--all-folds",
+        action="store_true",
+        help="a dataset built with --folds K: fit one head per fold, OUT/fold0 ... OUT/fold{K-1} (each as "
+        "--fold I --out OUT/foldI)",
+    )
     add_flag(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
 
@@ -535,19 +604,37 @@ def run(args, parser=None) -> int:
     results, curves, best = {}, {}, None
     for c in structures:
         name = f"{c['hidden']} units"
-        head, curve = train(train_slides, val, c, seed=args.seed, steps=args.steps, batch_size=args.batch,
-                            views=args.views, lr=args.lr, weight_decay=args.weight_decay,
-                            eval_every=args.eval_every, top_share=args.top_share,
-                            instance_weight=args.instance_weight, progress=progress)
+        head, curve = train(
+            train_slides,
+            val,
+            c,
+            seed=args.seed,
+            steps=args.steps,
+            batch_size=args.batch,
+            views=args.views,
+            lr=args.lr,
+            weight_decay=args.weight_decay,
+            eval_every=args.eval_every,
+            top_share=args.top_share,
+            instance_weight=args.instance_weight,
+            progress=progress,
+        )
         top = max(curve, key=choice_key)  # the checkpoint train() returned
-        results[name] = {**c, "best_step": top["step"], "validation_auc": round(top["full"], 4),
-                         "validation_auc_smoothed": round(top["smoothed"], 4),
-                         "validation_loss": round(top["validation_loss"], 4),
-                         "validation_auc_read_0.1": round(top["read 0.1"], 4)}
+        results[name] = {
+            **c,
+            "best_step": top["step"],
+            "validation_auc": round(top["full"], 4),
+            "validation_auc_smoothed": round(top["smoothed"], 4),
+            "validation_loss": round(top["validation_loss"], 4),
+            "validation_auc_read_0.1": round(top["read 0.1"], 4),
+        }
         curves[name] = curve
-        print(f"  {name}: validation {format_auc(top['full'], *val_interval(val, top['full']))} reading everything "
-              f"({top['smoothed']:.3f} over "
-              f"neighbouring checks), {top['read 0.1']:.3f} reading 10 % (step {top['step']})", flush=True)
+        print(
+            f"  {name}: validation {format_auc(top['full'], *val_interval(val, top['full']))} reading everything "
+            f"({top['smoothed']:.3f} over "
+            f"neighbouring checks), {top['read 0.1']:.3f} reading 10 % (step {top['step']})",
+            flush=True,
+        )
         if best is None or choice_key(top) > best[0]:
             best = (choice_key(top), name, head)
     _, chosen, head = best
@@ -559,37 +646,71 @@ def run(args, parser=None) -> int:
     except FitError as e:
         return print_error(e)
     n_val_tumour = int(sum(s["label"] for s in val_slides))
-    if (warning := small_split_warning(n_val_tumour, len(val_slides) - n_val_tumour, "the validation share"
-                                       + (f" of fold {args.fold}" if args.fold is not None else ""))) is not None:
+    if (
+        warning := small_split_warning(
+            n_val_tumour,
+            len(val_slides) - n_val_tumour,
+            "the validation share" + (f" of fold {args.fold}" if args.fold is not None else ""),
+        )
+    ) is not None:
         print(warning, file=sys.stderr)  # the checkpoint and calibration were chosen on it (a refusal stays one line)
     wall = time.perf_counter() - t0
-    info = {"fitted_on": {"dataset": str(Path(args.dataset).resolve()), "split": "train (minus validation)",
-                          "slides": len(train_slides), "tumour_slides": int(sum(s["label"] for s in train_slides)),
-                          "seed": args.seed, "rotation_seed": args.rotate},
-            "chosen_on": {"validation_fraction": args.val_fraction, "split_seed": args.split_seed,
-                          "validation_slides": len(val_slides), "candidate": chosen,
-                          "validation_auc": round(final["full"], 4),
-                          **dict(zip(("validation_auc_low", "validation_auc_high"),
-                                     (round(v, 4) for v in val_interval(val, final["full"])))),
-                          "validation_auc_read_0.1": round(final["read 0.1"], 4)},
-            "calibration": {"slope": round(float(head.cal_a), 5), "intercept": round(float(head.cal_b), 5),
-                            "fitted_on": "validation slides, reading everything and reading random 10 % (pooled)"},
-            "training": {"steps": args.steps, "batch_slides": args.batch, "views_per_slide": args.views,
-                         "top_attention_share": args.top_share, "instance_weight": args.instance_weight,
-                         "lr": args.lr, "weight_decay": args.weight_decay, "optimizer": "adamw",
-                         "reads": f"all tissue with p={P_FULL}, else {CELL}x{CELL}-view cells at log-uniform "
-                                  f"[{MIN_READ}, 1]"},
-            RECORD: fit_record(args.dataset, spec, args.fold, kept, held),
-            "candidates": results, "wall_seconds": round(wall, 1), "load_seconds": round(t_load, 1),
-            "date": datetime.date.today().isoformat(), "jax": jax.__version__,
-            "command": "python -m baselines.reading.learned_head_fit " + " ".join(sys.argv[1:])}
+    info = {
+        "fitted_on": {
+            "dataset": str(Path(args.dataset).resolve()),
+            "split": "train (minus validation)",
+            "slides": len(train_slides),
+            "tumour_slides": int(sum(s["label"] for s in train_slides)),
+            "seed": args.seed,
+            "rotation_seed": args.rotate,
+        },
+        "chosen_on": {
+            "validation_fraction": args.val_fraction,
+            "split_seed": args.split_seed,
+            "validation_slides": len(val_slides),
+            "candidate": chosen,
+            "validation_auc": round(final["full"], 4),
+            **dict(
+                zip(
+                    ("validation_auc_low", "validation_auc_high"),
+                    (round(v, 4) for v in val_interval(val, final["full"])),
+                )
+            ),
+            "validation_auc_read_0.1": round(final["read 0.1"], 4),
+        },
+        "calibration": {
+            "slope": round(float(head.cal_a), 5),
+            "intercept": round(float(head.cal_b), 5),
+            "fitted_on": "validation slides, reading everything and reading random 10 % (pooled)",
+        },
+        "training": {
+            "steps": args.steps,
+            "batch_slides": args.batch,
+            "views_per_slide": args.views,
+            "top_attention_share": args.top_share,
+            "instance_weight": args.instance_weight,
+            "lr": args.lr,
+            "weight_decay": args.weight_decay,
+            "optimizer": "adamw",
+            "reads": f"all tissue with p={P_FULL}, else {CELL}x{CELL}-view cells at log-uniform [{MIN_READ}, 1]",
+        },
+        RECORD: fit_record(args.dataset, spec, args.fold, kept, held),
+        "candidates": results,
+        "wall_seconds": round(wall, 1),
+        "load_seconds": round(t_load, 1),
+        "date": datetime.date.today().isoformat(),
+        "jax": jax.__version__,
+        "command": "python -m baselines.reading.learned_head_fit " + " ".join(sys.argv[1:]),
+    }
     head = head.replace(info=json.dumps(json_safe(info), allow_nan=False))
     try:
         head.save(args.out, extras={"learning_curve.png": curve_png(curves, f"{Path(args.dataset).name}: {head.name}")})
     except (ValueError, HistojaxDataError, OSError) as e:
         return print_error(e)
-    print(f"validation {format_auc(final['full'], *val_interval(val, final['full']))} reading everything, "
-          f"{final['read 0.1']:.3f} reading 10 % ({len(val_slides)} slides); calibration slope {slope:.3f}")
+    print(
+        f"validation {format_auc(final['full'], *val_interval(val, final['full']))} reading everything, "
+        f"{final['read 0.1']:.3f} reading 10 % ({len(val_slides)} slides); calibration slope {slope:.3f}"
+    )
     print(f"chosen: {head.name} ({chosen}); saved to {args.out} in {wall:.0f} s")
     return 0
 
@@ -604,11 +725,15 @@ def check_head(where, auc: float, slope: float) -> None:
     """Refuse (``FitError`` naming ``where``) a head whose validation AUC (uncalibrated, reading everything) is below
     0.5 or undefined, or whose calibration slope is negative: it ranks or points the wrong way."""
     if not auc >= 0.5:
-        raise FitError(where, f"the chosen head's validation AUC is {auc:.3f} (< 0.5: it ranks tumour below normal); "
-                              "nothing saved")
+        raise FitError(
+            where, f"the chosen head's validation AUC is {auc:.3f} (< 0.5: it ranks tumour below normal); nothing saved"
+        )
     if slope < 0:
-        raise FitError(where, f"the chosen head's calibration slope on validation is {slope:.3f} (negative: its "
-                              "logit points the wrong way); nothing saved")
+        raise FitError(
+            where,
+            f"the chosen head's calibration slope on validation is {slope:.3f} (negative: its "
+            "logit points the wrong way); nothing saved",
+        )
 
 
 def check_classes(dataset, train_slides: list[dict], val_slides: list[dict]) -> None:
@@ -618,11 +743,17 @@ def check_classes(dataset, train_slides: list[dict], val_slides: list[dict]) -> 
     for cls, what in ((1, "tumour"), (0, "normal")):
         n = sum(int(s["label"] == cls) for s in train_slides)
         if n < MIN_SLIDES_PER_CLASS:
-            raise FitError(where, f"{n} {what} training slides after the validation share is held out; a learned "
-                                  f"head needs at least {MIN_SLIDES_PER_CLASS} of each class")
+            raise FitError(
+                where,
+                f"{n} {what} training slides after the validation share is held out; a learned "
+                f"head needs at least {MIN_SLIDES_PER_CLASS} of each class",
+            )
     if len({int(s["label"]) for s in val_slides}) < 2:
-        raise FitError(where, "the validation share holds one class only (its AUC is undefined); use a larger "
-                              "--val-fraction or more slides")
+        raise FitError(
+            where,
+            "the validation share holds one class only (its AUC is undefined); use a larger "
+            "--val-fraction or more slides",
+        )
 
 
 def check_alike(dataset, slides: list[dict]) -> None:
@@ -630,8 +761,11 @@ def check_alike(dataset, slides: list[dict]) -> None:
     d = slides[0]["features"].shape[1]
     for s in slides[1:]:
         if s["features"].shape[1] != d:
-            raise FitError(s["bundle"], f"{s['features'].shape[1]}-d features, but {slides[0]['bundle']} has {d}-d: "
-                                        "one head reads one encoder's features")
+            raise FitError(
+                s["bundle"],
+                f"{s['features'].shape[1]}-d features, but {slides[0]['bundle']} has {d}-d: "
+                "one head reads one encoder's features",
+            )
 
 
 # ----------------------------------------------------------------------------- scoring a split
@@ -660,8 +794,11 @@ def found_above_normal(logits, classes: list[str]) -> dict[str, str]:
     logits = np.asarray(logits, float)
     normal = [v for v, c in zip(logits, classes) if c == "normal"]
     top = max(normal) if normal else -np.inf
-    return {c: f"{sum(v > top for v, k in zip(logits, classes) if k == c)}/{classes.count(c)}"
-            for c in ("ITC", "micro", "macro", "unknown") if c in classes}
+    return {
+        c: f"{sum(v > top for v, k in zip(logits, classes) if k == c)}/{classes.count(c)}"
+        for c in ("ITC", "micro", "macro", "unknown")
+        if c in classes
+    }
 
 
 def score_command(args) -> int:
@@ -682,13 +819,18 @@ def score_command(args) -> int:
             raise FitError(Path(args.dataset) / "dataset.json", f"has no {args.split!r} split")
         slides = load_split(args.dataset, entries, spec, not args.quiet, f"{args.split} slides")
         if len({s["label"] for s in slides}) < 2:
-            raise FitError(Path(args.dataset) / "dataset.json", f"the {args.split!r} split holds only "
-                                                                f"{'tumour' if slides[0]['label'] else 'normal'} "
-                                                                f"slides ({len(slides)}): its AUC is {UNDEFINED}; "
-                                                                "score a split with tumour and normal slides")
+            raise FitError(
+                Path(args.dataset) / "dataset.json",
+                f"the {args.split!r} split holds only "
+                f"{'tumour' if slides[0]['label'] else 'normal'} "
+                f"slides ({len(slides)}): its AUC is {UNDEFINED}; "
+                "score a split with tumour and normal slides",
+            )
         if slides[0]["features"].shape[1] != head.features_dim:
-            raise FitError(slides[0]["bundle"], f"{slides[0]['features'].shape[1]}-d features; the head reads "
-                                                f"{head.features_dim}-d")
+            raise FitError(
+                slides[0]["bundle"],
+                f"{slides[0]['features'].shape[1]}-d features; the head reads {head.features_dim}-d",
+            )
         if (problem := encoder_mismatch(head, [s.get("encoder") for s in slides])) is not None:
             raise FitError(Path(args.score) / "config.json", f"{problem} ({args.dataset}): fit a head on them")
         check_scored(head, args.score, args.dataset, entries, getattr(args, "allow_fitting_slides", False))
@@ -705,19 +847,28 @@ def score_command(args) -> int:
     kept = roc_auc_with_interval(logits[keep], y[keep])
     counts = {c: classes.count(c) for c in sorted(set(classes))}
     rounded = lambda v: None if not np.isfinite(v) else round(float(v), 4)  # noqa: E731
-    record = {"head": str(args.score), "split": args.split, "slides": len(slides), "classes": counts,
-              "auc": rounded(every["auc"]), "auc_low": rounded(every["auc_low"]),
-              "auc_high": rounded(every["auc_high"]),
-              "auc_without_itc": rounded(kept["auc"]) if no_itc else None,
-              "auc_without_itc_low": rounded(kept["auc_low"]) if no_itc else None,
-              "auc_without_itc_high": rounded(kept["auc_high"]) if no_itc else None,
-              "accuracy": round(float(np.mean((logits > 0) == (y > 0))), 4),
-              "found": found_above_normal(logits, classes)}
+    record = {
+        "head": str(args.score),
+        "split": args.split,
+        "slides": len(slides),
+        "classes": counts,
+        "auc": rounded(every["auc"]),
+        "auc_low": rounded(every["auc_low"]),
+        "auc_high": rounded(every["auc_high"]),
+        "auc_without_itc": rounded(kept["auc"]) if no_itc else None,
+        "auc_without_itc_low": rounded(kept["auc_low"]) if no_itc else None,
+        "auc_without_itc_high": rounded(kept["auc_high"]) if no_itc else None,
+        "accuracy": round(float(np.mean((logits > 0) == (y > 0))), 4),
+        "found": found_above_normal(logits, classes),
+    }
     if not no_itc:
         record["auc_without_itc_note"] = f"{UNDEFINED} (every tumour slide of the split is ITC-only)"
     where = f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else "")
-    print(f"{where}: {format_auc(every['auc'], every['auc_low'], every['auc_high'])} reading everything, over "
-          f"{every['n_tumour']} tumour and {every['n_normal']} normal slides", file=sys.stderr)
+    print(
+        f"{where}: {format_auc(every['auc'], every['auc_low'], every['auc_high'])} reading everything, over "
+        f"{every['n_tumour']} tumour and {every['n_normal']} normal slides",
+        file=sys.stderr,
+    )
     if (warning := small_split_warning(every["n_tumour"], every["n_normal"], where)) is not None:
         print(warning, file=sys.stderr)
     print(json.dumps(record, allow_nan=False))  # undefined: null, never a bare NaN
@@ -744,8 +895,10 @@ def all_folds_command(args, parser=None) -> int:
         code = run(one, parser)
         if code:
             return code
-    print(f"fitted {k} heads, one per fold: {args.out}/fold0 ... fold{k - 1} (budget-curve / evaluate --all-folds "
-          f"--head {args.out} use fold I's head on fold I)")
+    print(
+        f"fitted {k} heads, one per fold: {args.out}/fold0 ... fold{k - 1} (budget-curve / evaluate --all-folds "
+        f"--head {args.out} use fold I's head on fold I)"
+    )
     return 0
 
 

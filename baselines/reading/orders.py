@@ -4,6 +4,7 @@
 also ``cell (H, W)``, ``logit (C,)`` and ``grid``, the budget curve's ``cells (C, D)`` (each cell's coarse features).
 The run loop that reads them at every budget is :func:`baselines.reading.pipeline.read_all`.
 """
+
 from __future__ import annotations
 
 import numpy as np

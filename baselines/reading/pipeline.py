@@ -16,6 +16,7 @@ the trained readers' roll-outs. Both commands are this pipeline with their own h
 4. :func:`policy_reads` rolls a trained ``glimpse`` / ``zoom_select`` policy at every budget (:func:`run_seeds`: its
    seeds).
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -25,11 +26,11 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from baselines.reading.slides import HeadDataError, load_slide, load_slides, read_bundle, read_spec, split_bundles
 from baselines.reading.orders import random_order, read_cells
+from baselines.reading.slides import HeadDataError, load_slide, load_slides, read_bundle, read_spec, split_bundles
+from baselines.run_config import read_run_config
 from data_tools.bundle_files.reading import read_metadata
 from data_tools.bundle_files.seals import verify_metadata
-from baselines.run_config import read_run_config
 from histojax.reading.head_reward import pools_views
 
 BUDGETS = (0.05, 0.1, 0.2, 0.5)
@@ -59,9 +60,18 @@ class Split:
         return self.slides
 
 
-def load_split(dataset, split: str, *, fold: int | None = None, head=None, cell_level: int | None = None,
-               env_id: str | None = None, level: int | None = None, verify: bool = True,
-               progress: bool = False) -> Split:
+def load_split(
+    dataset,
+    split: str,
+    *,
+    fold: int | None = None,
+    head=None,
+    cell_level: int | None = None,
+    env_id: str | None = None,
+    level: int | None = None,
+    verify: bool = True,
+    progress: bool = False,
+) -> Split:
     """The one loader of a split's slides, through the checked bundle loader (``ValueError`` /
     ``HistojaxDataError`` naming the file on anything malformed).
 
@@ -97,9 +107,10 @@ def _glimpse_tables(dataset: Path, split: str, env_id: str, level: int, verify: 
     import histojax
     from histojax.reading.modes.glimpse import Glimpse
 
-    env, params = histojax.make(env_id, dataset=dataset, split=split, obs_mode="features",
-                                task="classification", verify=verify, fold=fold)  # not the glimpse mode: it would make the
-    glimpse = Glimpse(level=level)                                      # device tables, unused here, a second time
+    env, params = histojax.make(
+        env_id, dataset=dataset, split=split, obs_mode="features", task="classification", verify=verify, fold=fold
+    )  # not the glimpse mode: it would make the
+    glimpse = Glimpse(level=level)  # device tables, unused here, a second time
     glimpse.validate(env)
     tables = glimpse.host_tables(env, params, env.bundles)
     for table, bundle in zip(tables, env.bundles):  # the slide's name and encoder: what a head and a warning check
@@ -116,8 +127,10 @@ def one_class_problem(split: str, labels, fold: int | None = None) -> str | None
         return None
     which = f"split {split!r}" + (f" (fold {fold})" if fold is not None else "")
     held = f"only {'tumour' if labels[0] else 'normal'} slides ({len(labels)})" if len(labels) else "no slides"
-    return (f"{which} holds {held}: its AUC is undefined: one class; scoring needs tumour and normal slides "
-            "(rebuild the dataset or score another split)")
+    return (
+        f"{which} holds {held}: its AUC is undefined: one class; scoring needs tumour and normal slides "
+        "(rebuild the dataset or score another split)"
+    )
 
 
 def check_two_classes(dataset, split: str, labels, fold: int | None = None) -> None:
@@ -146,7 +159,9 @@ def random_orders(tables: list[dict], seeds: int) -> list[list[np.ndarray]]:
     return [[random_order(t, np.random.default_rng(1000 * k + i)) for i, t in enumerate(tables)] for k in range(seeds)]
 
 
-def read_all(tables: list[dict], readers: dict, budgets, score, kinds: dict | None = None, progress: bool = False) -> dict:
+def read_all(
+    tables: list[dict], readers: dict, budgets, score, kinds: dict | None = None, progress: bool = False
+) -> dict:
     """The run loop over budgets × readers: each reader's orders read as the glimpse env reads
     (:func:`~baselines.reading.orders.read_cells`) and scored.
 
@@ -200,8 +215,11 @@ def with_head_scores(slide: dict, head, grids: dict) -> dict:
     feats = np.asarray(slide.pop("features"), np.float32)
     d = int(getattr(head, "features_dim", feats.shape[-1]))
     if feats.shape[-1] != d:
-        raise HeadDataError(slide["bundle"], f"{feats.shape[-1]}-d features; the head reads {d}-d features "
-                                             "(fit a head on this dataset: python -m baselines.reading.learned_head_fit)")
+        raise HeadDataError(
+            slide["bundle"],
+            f"{feats.shape[-1]}-d features; the head reads {d}-d features "
+            "(fit a head on this dataset: python -m baselines.reading.learned_head_fit)",
+        )
     score = jax.jit(head.view_terms)
     terms = np.asarray(score(feats))
     slide.update(terms=terms, logits=np.asarray(head.calibrate(terms[..., 1]), np.float32), coarse={}, coarse_terms={})
@@ -251,8 +269,9 @@ def load_feature_slides(dataset, split, spec: dict, head, cell_level: int, progr
 
 
 # ----------------------------------------------------------------------------- trained readers
-def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None = None, seed: int = 0,
-                 fold: int | None = None) -> dict:
+def policy_reads(
+    run, dataset, split: str, budgets=BUDGETS, env_id: str | None = None, seed: int = 0, fold: int | None = None
+) -> dict:
     """Roll a trained policy greedily, once on every slide of ``dataset``'s ``split`` at each of
     ``budgets``, with :func:`baselines.evaluate.run_episodes` (one jitted program for all slides and
     budgets). ``run``: a run folder of ``python -m baselines.ppo`` (feed-forward) or ``python -m
@@ -275,24 +294,29 @@ def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None =
         raise ValueError(f"{run} has {n_seeds} seed(s), not a seed {seed}")
     params = jax.tree.map(lambda a: a[seed], params)
     kw = {k: v for k, v in (config.env_kwargs or {}).items() if k not in ("dataset", "split", "slides", "fold")}
-    config = config.replace(env_kwargs={**kw, "dataset": str(dataset), "split": split,
-                                        **({"fold": fold} if fold is not None else {})})  # fold: the slides scored
+    config = config.replace(
+        env_kwargs={**kw, "dataset": str(dataset), "split": split, **({"fold": fold} if fold is not None else {})}
+    )  # fold: the slides scored
     if env_id:
         config = config.replace(env_id=env_id)
     config, (env, env_params) = evaluate.eval_env(config)
-    if not hasattr(env_params.mode_data, "read_budget") or getattr(env.action, "name", "") not in ("glimpse",
-                                                                                                   "zoom_select"):
-        raise ValueError(f"{run}: a policy of action mode {config.action_mode!r}; the budget curve takes "
-                         f"glimpse or zoom_select policies")
+    if not hasattr(env_params.mode_data, "read_budget") or getattr(env.action, "name", "") not in (
+        "glimpse",
+        "zoom_select",
+    ):
+        raise ValueError(
+            f"{run}: a policy of action mode {config.action_mode!r}; the budget curve takes "
+            f"glimpse or zoom_select policies"
+        )
     n = env.num_actions
-    policy = evaluate.learned_policy(evaluate.network_for(config, env), params, config.action_mode, greedy=True,
-                                     declare=(n - 2, n - 1))
+    policy = evaluate.learned_policy(
+        evaluate.network_for(config, env), params, config.action_mode, greedy=True, declare=(n - 2, n - 1)
+    )
     n_slides = len(env.bundles)
     budgets = [float(b) for b in budgets]
     slides = np.tile(np.arange(n_slides), len(budgets))
     per_episode, axes = evaluate.per_episode_params(env_params, slides, np.repeat(budgets, n_slides))
-    ep = evaluate.run_episodes(env, per_episode, policy, jax.random.key(0), len(slides), params_axes=axes,
-                               final=True)
+    ep = evaluate.run_episodes(env, per_episode, policy, jax.random.key(0), len(slides), params_axes=axes, final=True)
     assert (ep["slide"] == slides).all()
     memory, scores = ep["final_state"].memory, ep["final_memory"][1]
     tables = env.action.host_tables(env, env_params, env.bundles) if hasattr(env.action, "host_tables") else None
@@ -307,8 +331,9 @@ def policy_reads(run, dataset, split: str, budgets=BUDGETS, env_id: str | None =
             size = int(seen_tables.grid_width[i, f] * seen_tables.grid_height[i, f])
             seen = seen_flags(memory.seen[e], start, size)
             read = seen[np.asarray(seen_tables.tissue[i])[:size]]
-        out[budgets[e // n_slides]].append((np.flatnonzero(read), float(scores[e]), float(ep["fraction_read"][e]),
-                                            float(ep["fields_of_view"][e])))
+        out[budgets[e // n_slides]].append(
+            (np.flatnonzero(read), float(scores[e]), float(ep["fraction_read"][e]), float(ep["fields_of_view"][e]))
+        )
     return out
 
 

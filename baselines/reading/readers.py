@@ -40,6 +40,7 @@ Writes ``readers.csv`` (one row per reader × budget), ``lesions.csv`` (per test
 ``_normal.png`` (:func:`reading_map`: the head's per-view scores beside the views the reader read, at the budget
 nearest 10 %).
 """
+
 from __future__ import annotations
 
 import json
@@ -51,21 +52,18 @@ import jax
 import numpy as np
 
 from baselines import outputs
-from data_tools.metrics import accuracy, format_auc_runs, json_safe, small_split_warning
-from histojax.reading.head_reward import pools_views
-from baselines.reading.pipeline import BUDGETS
-from baselines.reading.csv_files import write_csv
-from baselines.reading.slides import CLASSES, lesion_class
 from baselines.reading import pipeline
-from baselines.reading.slides import HeadDataError
+from baselines.reading.csv_files import write_csv
 from baselines.reading.orders import logit_order, search_order
-from baselines.reading.slides import padded
-from baselines.reading.pipeline import reader_auc
+from baselines.reading.pipeline import BUDGETS, reader_auc
 from baselines.reading.plots import plot_readers
 from baselines.reading.provenance import add_flag, check_scored, head_for_fold
+from baselines.reading.slides import CLASSES, HeadDataError, lesion_class, padded
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
+from data_tools.metrics import accuracy, format_auc_runs, json_safe, small_split_warning
 from histojax import compile_cache
+from histojax.reading.head_reward import pools_views
 from histojax.reading.heads import same_encoder, score_batch
 from histojax.reading.heads.files import check_finite_logits
 
@@ -108,8 +106,14 @@ def cell_table(slide: dict, level: int) -> dict:
     cx = np.clip(((np.arange(w) + 0.5) * slide["tile"] // step).astype(np.int64), 0, cw - 1)
     cell = cy[:, None] * cw + cx[None, :]
     counts = np.bincount(cell[slide["tissue"]], minlength=ch * cw)
-    return {"cell": cell, "cell_views": counts, "valid": counts > 0, "logit": coarse.reshape(-1).astype(np.float64),
-            "grid": (ch, cw), "total": max(1, int(slide["tissue"].sum()))}
+    return {
+        "cell": cell,
+        "cell_views": counts,
+        "valid": counts > 0,
+        "logit": coarse.reshape(-1).astype(np.float64),
+        "grid": (ch, cw),
+        "total": max(1, int(slide["tissue"].sum())),
+    }
 
 
 def masks_from_instances(slide: dict, instances) -> np.ndarray:
@@ -122,8 +126,9 @@ def masks_from_instances(slide: dict, instances) -> np.ndarray:
     return mask.reshape(slide["tissue"].shape)
 
 
-def policy_masks(run, dataset, slides: list[dict], split: str = "test", budgets=BUDGETS, seeds: int = 3,
-                 fold: int | None = None) -> dict:
+def policy_masks(
+    run, dataset, slides: list[dict], split: str = "test", budgets=BUDGETS, seeds: int = 3, fold: int | None = None
+) -> dict:
     """A trained ``glimpse`` / ``zoom_select`` policy's read masks, ``{budget: [masks per slide] per seed}``
     (its first ``seeds`` seeds, rolled greedily by :func:`baselines.reading.pipeline.policy_reads` on
     ``dataset``'s ``split``, whose slides ``slides`` are, in the same order): ready for :func:`add_reader`."""
@@ -149,8 +154,9 @@ def padded_terms(terms: list[np.ndarray]) -> np.ndarray:
 def terms_scores(head, terms: list[np.ndarray], masks: list[np.ndarray]) -> np.ndarray:
     """An attention-pooling head's slide logits ``(B,)`` from cached per-view terms ``(H, W, 2)`` read where
     ``masks (H, W)`` (:meth:`~histojax.reading.heads.learned.LearnedHead.score_terms`)."""
-    return check_finite_logits(head, jax.jit(jax.vmap(head.score_terms))(padded_terms(terms),
-                                                                         padded(list(masks), False)))
+    return check_finite_logits(
+        head, jax.jit(jax.vmap(head.score_terms))(padded_terms(terms), padded(list(masks), False))
+    )
 
 
 def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray:
@@ -158,8 +164,9 @@ def head_scores(head, slides: list[dict], masks: list[np.ndarray]) -> np.ndarray
     cached ``terms``, :func:`with_head_scores`)."""
     if pools_views(head):
         return terms_scores(head, [s["terms"] for s in slides], masks)
-    return check_finite_logits(head, score_batch(head, padded([s["logits"] for s in slides], 0.0),
-                                                 padded(list(masks), False)))
+    return check_finite_logits(
+        head, score_batch(head, padded([s["logits"] for s in slides], 0.0), padded(list(masks), False))
+    )
 
 
 def overview_scores(head, slides: list[dict], level: int) -> np.ndarray:
@@ -180,8 +187,15 @@ def new_results() -> dict:
     return {}
 
 
-def add_reader(results: dict, head, slides: list[dict], name: str, masks_by_budget: dict, kind: str = "learned",
-               tumour: list[np.ndarray] | None = None) -> dict:
+def add_reader(
+    results: dict,
+    head,
+    slides: list[dict],
+    name: str,
+    masks_by_budget: dict,
+    kind: str = "learned",
+    tumour: list[np.ndarray] | None = None,
+) -> dict:
     """Score a reader's read masks with ``head`` and add its rows to ``results``.
 
     ``masks_by_budget``: ``{budget: [masks of seed 0, masks of seed 1, ...]}``, each a list of ``(H, W)``
@@ -197,8 +211,12 @@ def add_reader(results: dict, head, slides: list[dict], name: str, masks_by_budg
             scores.append(head_scores(head, slides, masks))
             fractions.append(np.asarray([m.sum() for m in masks]) / total)
             found.append(np.asarray([bool((m & t).any()) for m, t in zip(masks, tumour)]))
-        results[(name, float(budget))] = {"kind": kind, "scores": np.stack(scores), "fractions": np.stack(fractions),
-                                          "tumour_read": np.stack(found)}
+        results[(name, float(budget))] = {
+            "kind": kind,
+            "scores": np.stack(scores),
+            "fractions": np.stack(fractions),
+            "tumour_read": np.stack(found),
+        }
     return results
 
 
@@ -214,12 +232,18 @@ def unreadable_line(slides: list[dict], tables: list[dict], budgets) -> str | No
     slide; ``None`` when every budget reads something everywhere."""
     from histojax.reading.modes.glimpse import unreadable_warning
 
-    return unreadable_warning([s.get("name", i) for i, s in enumerate(slides)], [t["cell_views"] for t in tables],
-                              [t["valid"] for t in tables], [t["total"] for t in tables], budgets)
+    return unreadable_warning(
+        [s.get("name", i) for i, s in enumerate(slides)],
+        [t["cell_views"] for t in tables],
+        [t["valid"] for t in tables],
+        [t["total"] for t in tables],
+        budgets,
+    )
 
 
-def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, level: int = 3,
-                     progress: bool = False, only=None) -> dict:
+def scripted_results(
+    head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, level: int = 3, progress: bool = False, only=None
+) -> dict:
     """The reference rows: overview only, random reader (``seeds`` orders), logit (score) reader, search reader,
     read everything; the readers' orders read at every budget by the pipeline's run loop
     (:func:`baselines.reading.pipeline.read_all`) and their read masks scored by ``head`` (:func:`head_scores`).
@@ -229,25 +253,34 @@ def scripted_results(head, slides: list[dict], budgets=BUDGETS, seeds: int = 5, 
     tumour = [tumour_views(s) for s in slides]
     n = len(slides)
     if want("overview only"):
-        results[("overview only", 0.0)] = {"kind": "overview", "scores": overview_scores(head, slides, level)[None],
-                                           "fractions": np.zeros((1, n)), "tumour_read": np.zeros((1, n), bool)}
+        results[("overview only", 0.0)] = {
+            "kind": "overview",
+            "scores": overview_scores(head, slides, level)[None],
+            "fractions": np.zeros((1, n)),
+            "tumour_read": np.zeros((1, n), bool),
+        }
     if want("read everything"):
-        add_reader(results, head, slides, "read everything", {1.0: [[s["tissue"] for s in slides]]}, "everything",
-                   tumour)
+        add_reader(
+            results, head, slides, "read everything", {1.0: [[s["tissue"] for s in slides]]}, "everything", tumour
+        )
     tables = [cell_table(s, level) for s in slides]
     if (line := unreadable_line(slides, tables, budgets)) is not None:
         print(f"warning: {line}", file=sys.stderr, flush=True)
     top = max(budgets)
-    readers = {"random reader": lambda: pipeline.random_orders(tables, seeds),
-               score_reader_name(head): lambda: [[logit_order(c) for c in tables]],
-               "search reader": lambda: [[search_order(s, c, limit=top + 0.01) for s, c in zip(slides, tables)]]}
+    readers = {
+        "random reader": lambda: pipeline.random_orders(tables, seeds),
+        score_reader_name(head): lambda: [[logit_order(c) for c in tables]],
+        "search reader": lambda: [[search_order(s, c, limit=top + 0.01) for s, c in zip(slides, tables)]],
+    }
     readers = {name: orders() for name, orders in readers.items() if want(name)}
     kinds = {name: "random" if name == "random reader" else "scripted" for name in readers}
 
     def score(cells: list[np.ndarray]) -> dict:
         masks = [np.isin(c["cell"], r) & s["tissue"] for c, r, s in zip(tables, cells, slides)]
-        return {"scores": head_scores(head, slides, masks),
-                "tumour_read": np.asarray([bool((m & t).any()) for m, t in zip(masks, tumour)])}
+        return {
+            "scores": head_scores(head, slides, masks),
+            "tumour_read": np.asarray([bool((m & t).any()) for m, t in zip(masks, tumour)]),
+        }
 
     results.update(pipeline.read_all(tables, readers, budgets, score, kinds, progress=progress))
     return results
@@ -266,19 +299,35 @@ def rows_from_results(results: dict, slides: list[dict]) -> list[dict]:
         s, f, t = r["scores"], r["fractions"], r["tumour_read"]
         every, kept = reader_auc(s, labels), reader_auc(s[:, no_itc], labels[no_itc])
         accs = np.asarray([accuracy(1 / (1 + np.exp(-x)), labels) for x in s])
-        row = {"reader": name, "kind": r["kind"], "budget": b, "seeds": len(s), "slides": len(labels),
-               "fraction_read": float(f.mean()), "fraction_min": float(f.min()),
-               "fraction_p10": float(np.percentile(f, 10)), "fraction_median": float(np.median(f)),
-               "fraction_p90": float(np.percentile(f, 90)), "fraction_max": float(f.max()),
-               "auc": every["auc"], "auc_std": every["auc_std"], "auc_low": every["auc_low"],
-               "auc_high": every["auc_high"],
-               "auc_no_itc": kept["auc"], "auc_no_itc_std": kept["auc_std"], "auc_no_itc_low": kept["auc_low"],
-               "auc_no_itc_high": kept["auc_high"],
-               "accuracy": float(accs.mean()), "accuracy_std": float(accs.std()),
-               "auc_per_seed": [round(float(a), 4) for a in every["auc_per_run"]]}
+        row = {
+            "reader": name,
+            "kind": r["kind"],
+            "budget": b,
+            "seeds": len(s),
+            "slides": len(labels),
+            "fraction_read": float(f.mean()),
+            "fraction_min": float(f.min()),
+            "fraction_p10": float(np.percentile(f, 10)),
+            "fraction_median": float(np.median(f)),
+            "fraction_p90": float(np.percentile(f, 90)),
+            "fraction_max": float(f.max()),
+            "auc": every["auc"],
+            "auc_std": every["auc_std"],
+            "auc_low": every["auc_low"],
+            "auc_high": every["auc_high"],
+            "auc_no_itc": kept["auc"],
+            "auc_no_itc_std": kept["auc_std"],
+            "auc_no_itc_low": kept["auc_low"],
+            "auc_no_itc_high": kept["auc_high"],
+            "accuracy": float(accs.mean()),
+            "accuracy_std": float(accs.std()),
+            "auc_per_seed": [round(float(a), 4) for a in every["auc_per_run"]],
+        }
         for c in CLASSES:
             idx = np.asarray([k == c for k in classes])
-            top_normal = s[:, labels == 0].max(1, keepdims=True) if (labels == 0).any() else np.full((len(s), 1), -np.inf)
+            top_normal = (
+                s[:, labels == 0].max(1, keepdims=True) if (labels == 0).any() else np.full((len(s), 1), -np.inf)
+            )
             row[f"{c}_slides"] = int(idx.sum())
             row[f"{c}_tumour_read"] = float(t[:, idx].sum(1).mean()) if idx.any() else 0.0
             row[f"{c}_found"] = float((s[:, idx] > top_normal).sum(1).mean()) if idx.any() else 0.0
@@ -304,8 +353,13 @@ def lesion_rows(slides: list[dict], results: dict | None = None, head=None) -> l
             continue
         cls, mm = lesion_class(s)
         area = float(s["tumour"].area) * s["mpp"] ** 2 / 1e6 if s.get("tumour") is not None else float("nan")
-        row = {"slide": s["name"], "class": cls, "diameter_mm": mm, "area_mm2": area,
-               "tumour_views": int(tumour_views(s).sum())}
+        row = {
+            "slide": s["name"],
+            "class": cls,
+            "diameter_mm": mm,
+            "area_mm2": area,
+            "tumour_views": int(tumour_views(s).sum()),
+        }
         if every is not None:
             row["head_logit"] = float(every["scores"][0][i])
             row["above_every_normal"] = bool(top_normal is None or row["head_logit"] > top_normal)
@@ -336,20 +390,28 @@ def reading_map(slide: dict, mask: np.ndarray, path, reader: str = "", head_name
     shown = np.where(tissue, 0.25, 0.0) + np.where(mask, 0.75, 0.0)
     right.imshow(shown, cmap="Blues", vmin=0, vmax=1, interpolation="nearest")
     fraction = mask.sum() / max(1, tissue.sum())
-    right.set_title(f"{reader or 'reader'}: {mask.sum()} views read ({fraction:.1%} of tissue"
-                    + (f", budget {budget:.0%}" if budget is not None else "") + ")", fontsize="small")
+    right.set_title(
+        f"{reader or 'reader'}: {mask.sum()} views read ({fraction:.1%} of tissue"
+        + (f", budget {budget:.0%}" if budget is not None else "")
+        + ")",
+        fontsize="small",
+    )
     for ax in (left, right):
         if tumour.any():
             ax.contour(tumour.astype(float), levels=[0.5], colors="#2ecc71", linewidths=1.2)
         ax.set_xticks([])
         ax.set_yticks([])
-    fig.suptitle(f"{slide['name']}: {'tumour' if slide['label'] else 'normal'} slide"
-                 + (" (green: tumour views)" if tumour.any() else ""), fontsize="medium")
+    fig.suptitle(
+        f"{slide['name']}: {'tumour' if slide['label'] else 'normal'} slide"
+        + (" (green: tumour views)" if tumour.any() else ""),
+        fontsize="medium",
+    )
     return outputs.save_figure(fig, path)
 
 
-def write_reading_maps(out: Path, slides: list[dict], name: str, masks: list[np.ndarray], head_name: str,
-                       budget: float) -> list[Path]:
+def write_reading_maps(
+    out: Path, slides: list[dict], name: str, masks: list[np.ndarray], head_name: str, budget: float
+) -> list[Path]:
     """:func:`reading_map` of a reader's masks on the first tumour and the first normal slide:
     ``out/reading_<reader>_tumour.png`` / ``_normal.png``."""
     safe = "".join(c if c.isalnum() else "-" for c in name).strip("-") or "reader"
@@ -357,8 +419,9 @@ def write_reading_maps(out: Path, slides: list[dict], name: str, masks: list[np.
     for label, word in ((1, "tumour"), (0, "normal")):
         i = next((k for k, s in enumerate(slides) if s["label"] == label), None)
         if i is not None:
-            written.append(reading_map(slides[i], masks[i], out / f"reading_{safe}_{word}.png", name, head_name,
-                                       budget))
+            written.append(
+                reading_map(slides[i], masks[i], out / f"reading_{safe}_{word}.png", name, head_name, budget)
+            )
     return written
 
 
@@ -367,19 +430,40 @@ def add_arguments(p) -> None:
     from baselines.published_agents import published_or_path
 
     p.add_argument("--dataset", required=True, help="dataset folder (dataset.json; feature grids of any encoder)")
-    p.add_argument("--head", required=True, type=published_or_path,
-                   help="slide head folder (python -m baselines.reading.head_fit) or a published head's name")
+    p.add_argument(
+        "--head",
+        required=True,
+        type=published_or_path,
+        help="slide head folder (python -m baselines.reading.head_fit) or a published head's name",
+    )
     p.add_argument("--split", default="test", help="split scored (default test)")
-    p.add_argument("--fold", type=int, default=None, metavar="I",
-                   help="a dataset built with --folds K: score fold I's side of --split (test / validation = fold I)")
-    p.add_argument("--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)")
+    p.add_argument(
+        "--fold",
+        type=int,
+        default=None,
+        metavar="I",
+        help="a dataset built with --folds K: score fold I's side of --split (test / validation = fold I)",
+    )
+    p.add_argument(
+        "--budgets", type=float, nargs="+", default=list(BUDGETS), help="fractions read (default 5/10/20/50 %%)"
+    )
     p.add_argument("--seeds", type=int, default=5, help="random reader orders (default 5)")
-    p.add_argument("--cell-level", type=int, default=None,
-                   help="bundle level of the cells (default: the level whose downsample is nearest 4, so that a cell "
-                        "covers about 4 × 4 finest views)")
-    p.add_argument("--reader", nargs=2, action="append", default=[], metavar=("NAME", "RUN"),
-                   help="also a trained reader (run folder of `python -m baselines.ppo` or `baselines.ppo_rnn` in a "
-                        "glimpse or zoom_select mode): the head on what it reads at each budget")
+    p.add_argument(
+        "--cell-level",
+        type=int,
+        default=None,
+        help="bundle level of the cells (default: the level whose downsample is nearest 4, so that a cell "
+        "covers about 4 × 4 finest views)",
+    )
+    p.add_argument(
+        "--reader",
+        nargs=2,
+        action="append",
+        default=[],
+        metavar=("NAME", "RUN"),
+        help="also a trained reader (run folder of `python -m baselines.ppo` or `baselines.ppo_rnn` in a "
+        "glimpse or zoom_select mode): the head on what it reads at each budget",
+    )
     p.add_argument("--policy-seeds", type=int, default=3, help="seeds of each --reader run (default 3, or fewer)")
     p.add_argument("--out", default="runs/readers", help="output folder (default runs/readers)")
     add_flag(p)
@@ -416,16 +500,22 @@ def run(args, parser=None) -> int:
         if args.fold is not None:  # the folder of learned_head_fit --all-folds (or DIR{fold}): fold I's head
             args.head = head_for_fold(args.head, args.fold)
         head = heads.load(args.head)  # a head fitted on the scored slides: refused before they are read
-        check_scored(head, args.head, args.dataset, pipeline.read_spec(args.dataset, args.fold).get(args.split) or [],
-                     getattr(args, "allow_fitting_slides", False))
+        check_scored(
+            head,
+            args.head,
+            args.dataset,
+            pipeline.read_spec(args.dataset, args.fold).get(args.split) or [],
+            getattr(args, "allow_fitting_slides", False),
+        )
         head, args.cell_level, slides = load_split(args.dataset, head, args.split, args.cell_level, args.fold)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
-    other = sorted({str(s["encoder"]) for s in slides
-                    if head.encoder and not same_encoder(head.encoder, s["encoder"])})
+    other = sorted({str(s["encoder"]) for s in slides if head.encoder and not same_encoder(head.encoder, s["encoder"])})
     if other:
-        return print_error(f"{args.head}: a head for {head.encoder} features; {args.dataset} holds {', '.join(other)} "
-                           "features (fit a head on it: python -m baselines.reading.head_fit)")
+        return print_error(
+            f"{args.head}: a head for {head.encoder} features; {args.dataset} holds {', '.join(other)} "
+            "features (fit a head on it: python -m baselines.reading.head_fit)"
+        )
     problem = pipeline.one_class_problem(args.split, [s["label"] for s in slides], args.fold)
     if problem:
         return print_error(HeadDataError(Path(args.dataset) / "dataset.json", problem))
@@ -434,16 +524,20 @@ def run(args, parser=None) -> int:
     maps = {}
     for name, run_dir in args.reader:
         try:
-            masks = policy_masks(run_dir, args.dataset, slides, args.split, args.budgets, args.policy_seeds,
-                                 fold=args.fold)
+            masks = policy_masks(
+                run_dir, args.dataset, slides, args.split, args.budgets, args.policy_seeds, fold=args.fold
+            )
         except (OSError, ValueError, HistojaxDataError) as e:
             return print_error(f"--reader {name}: {e}")
         add_reader(results, head, slides, name, masks, "learned")
         maps[name] = masks
     rows = rows_from_results(results, slides)
     lesions = lesion_rows(slides, results)
-    warning = small_split_warning(int(sum(s["label"] for s in slides)), int(sum(1 - s["label"] for s in slides)),
-                                  f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else ""))
+    warning = small_split_warning(
+        int(sum(s["label"] for s in slides)),
+        int(sum(1 - s["label"] for s in slides)),
+        f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else ""),
+    )
     if warning:  # once scored: a refusal above stays one line
         print(warning, file=sys.stderr)
     out = Path(args.out)
@@ -454,13 +548,33 @@ def run(args, parser=None) -> int:
     write_csv(csv_rows(rows), out / "readers.csv")
     write_csv(lesions, out / "lesions.csv")
     wall = time.perf_counter() - t0
-    outputs.write_text(out / "readers.json", json.dumps(json_safe(
-        {"dataset": str(args.dataset), "split": args.split, **({"fold": args.fold} if args.fold is not None else {}),
-         "head": str(args.head), "head_name": head.name,
-         "cell_level": args.cell_level, "cells": cells, "seeds": args.seeds, "wall_s": round(wall, 1), "rows": rows,
-         "lesions": lesions}), indent=1, allow_nan=False))
-    png = plot_readers(rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split ({len(slides)} slides): "
-                                          f"head {head.name}")
+    outputs.write_text(
+        out / "readers.json",
+        json.dumps(
+            json_safe(
+                {
+                    "dataset": str(args.dataset),
+                    "split": args.split,
+                    **({"fold": args.fold} if args.fold is not None else {}),
+                    "head": str(args.head),
+                    "head_name": head.name,
+                    "cell_level": args.cell_level,
+                    "cells": cells,
+                    "seeds": args.seeds,
+                    "wall_s": round(wall, 1),
+                    "rows": rows,
+                    "lesions": lesions,
+                }
+            ),
+            indent=1,
+            allow_nan=False,
+        ),
+    )
+    png = plot_readers(
+        rows,
+        out / "readers.png",
+        f"{Path(args.dataset).name}, {args.split} split ({len(slides)} slides): head {head.name}",
+    )
     print(f"cells: {cells}")
     print_tables(rows, lesions)
     print(f"wrote {out}/readers.csv, lesions.csv, readers.json and {png} in {wall:.0f} s")
@@ -469,19 +583,32 @@ def run(args, parser=None) -> int:
 
 def print_tables(rows: list[dict], lesions: list[dict], budget: float = 0.1) -> None:
     """The curve as a markdown table, then the lesion table at ``budget`` (and reading everything)."""
-    print("| reader | budget | read (mean, p10–p90) | AUC [95 % interval] | AUC without ITC-only | accuracy |\n"
-          "|---|---|---|---|---|---|")
+    print(
+        "| reader | budget | read (mean, p10–p90) | AUC [95 % interval] | AUC without ITC-only | accuracy |\n"
+        "|---|---|---|---|---|---|"
+    )
     for r in rows:
-        every, kept = (format_auc_runs(r[k], r[f"{k}_std"], r[f"{k}_low"], r[f"{k}_high"], r["seeds"])
-                       for k in ("auc", "auc_no_itc"))
-        print(f"| {r['reader']} | {r['budget']:.2f} | {r['fraction_read']:.3f} ({r['fraction_p10']:.3f}–"
-              f"{r['fraction_p90']:.3f}) | {every} | {kept} | {r['accuracy']:.3f} |")
-    print(f"\nper lesion class: slides; read tumour / found by the head (above every normal slide), budget {budget:.2f}")
+        every, kept = (
+            format_auc_runs(r[k], r[f"{k}_std"], r[f"{k}_low"], r[f"{k}_high"], r["seeds"])
+            for k in ("auc", "auc_no_itc")
+        )
+        print(
+            f"| {r['reader']} | {r['budget']:.2f} | {r['fraction_read']:.3f} ({r['fraction_p10']:.3f}–"
+            f"{r['fraction_p90']:.3f}) | {every} | {kept} | {r['accuracy']:.3f} |"
+        )
+    print(
+        f"\nper lesion class: slides; read tumour / found by the head (above every normal slide), budget {budget:.2f}"
+    )
     print("| reader | " + " | ".join(CLASSES) + " |\n|---|" + "---|" * len(CLASSES))
     for r in rows:
         if abs(r["budget"] - budget) < 1e-9 or r["kind"] in ("overview", "everything"):
-            print(f"| {r['reader']} ({r['budget']:.2f}) | " + " | ".join(
-                f"{r[c + '_slides']}: {r[c + '_tumour_read']:.1f} / {r[c + '_found']:.1f}" for c in CLASSES) + " |")
+            print(
+                f"| {r['reader']} ({r['budget']:.2f}) | "
+                + " | ".join(
+                    f"{r[c + '_slides']}: {r[c + '_tumour_read']:.1f} / {r[c + '_found']:.1f}" for c in CLASSES
+                )
+                + " |"
+            )
 
 
 main = command_main(add_arguments, run, "python -m baselines.reading.readers", __doc__)

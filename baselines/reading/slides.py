@@ -8,6 +8,7 @@ loader) the finest level's view-logit map ``(H, W)``, its tissue views ``(H, W)`
 Also the CAMELYON lesion class of a tumour annotation (:func:`lesion_of`: shapely geometry in, class out) and of a
 loaded slide (:func:`lesion_class`), used by the readers' lesion table, the learned head's fit and ``evaluate``'s
 per-lesion rows."""
+
 from __future__ import annotations
 
 import json
@@ -40,12 +41,15 @@ def read_spec(dataset, fold: int | None = None) -> dict:
     try:
         spec = read_dataset_json(dataset)  # its seal checked: an edited label or split is refused, naming the file
     except FileNotFoundError:
-        raise HeadDataError(path, "missing (not a dataset folder: build one with `python -m data_tools c16` or "
-                                  "`python -m data_tools dataset`)") from None
+        raise HeadDataError(
+            path,
+            "missing (not a dataset folder: build one with `python -m data_tools c16` or "
+            "`python -m data_tools dataset`)",
+        ) from None
     except (OSError, json.JSONDecodeError) as e:
         raise HeadDataError(path, f"unreadable ({e})") from None
     if not isinstance(spec, dict) or not isinstance(spec.get("train"), list):
-        raise HeadDataError(path, "has no \"train\" list of bundles")
+        raise HeadDataError(path, 'has no "train" list of bundles')
     if fold is not None:
         from histojax.datasets import with_fold
 
@@ -74,9 +78,11 @@ def scale_warning(dataset, spec: dict | None = None) -> str | None:
         return None
     name, mpp = next(iter(out.items()))
     first = f"{name} at {float(mpp):.3g} µm/px" if isinstance(mpp, (int, float)) else f"{name} of unknown µm/px"
-    return (f"{path}: {len(out)} slide(s) are more than {rec.get('tolerance')}x from the {rec.get('encoder_mpp')} "
-            f"µm/px {rec.get('encoder')} was trained at, or of unknown scale (e.g. {first}): their features may not "
-            "mean what they mean at its scale, nor the head fitted on them")
+    return (
+        f"{path}: {len(out)} slide(s) are more than {rec.get('tolerance')}x from the {rec.get('encoder_mpp')} "
+        f"µm/px {rec.get('encoder')} was trained at, or of unknown scale (e.g. {first}): their features may not "
+        "mean what they mean at its scale, nor the head fitted on them"
+    )
 
 
 def warn_scale(dataset, spec: dict | None = None) -> str | None:
@@ -116,12 +122,16 @@ def read_bundle(bundle, levels=(0,), verify: bool = True) -> tuple:
             verify_metadata(bundle, meta)
         feats = meta.get("features") or {}
         if not feats.get("levels"):
-            raise HeadDataError(bundle / "metadata.json", "has no feature grids: compute them with `histojax features "
-                                f"{bundle} --encoder NAME` or import them with `histojax import-features {bundle} "
-                                "FILE.h5`")
+            raise HeadDataError(
+                bundle / "metadata.json",
+                "has no feature grids: compute them with `histojax features "
+                f"{bundle} --encoder NAME` or import them with `histojax import-features {bundle} "
+                "FILE.h5`",
+            )
         if any(not 0 <= lv < len(feats["levels"]) for lv in levels):
-            raise HeadDataError(bundle / "metadata.json", f"has feature grids of {len(feats['levels'])} levels, "
-                                                          f"not of levels {levels}")
+            raise HeadDataError(
+                bundle / "metadata.json", f"has feature grids of {len(feats['levels'])} levels, not of levels {levels}"
+            )
         grids, stride = load_feature_levels(bundle, meta, levels, verify=verify)
         tissue = load_array(bundle, meta.tissue_file, meta, verify)
         return meta, dict(zip(levels, grids)), stride, tissue
@@ -134,20 +144,25 @@ def finest_views(meta, grid_shape, stride: int, tissue_mask) -> tuple:
     grid (of ``grid_shape`` ``(gh, gw, ...)``, ``stride`` px apart): ``(tissue (H, W) bool, fy (H,) int, fx (W,)
     int, tile px)``; view ``(y, x)`` reads feature cell ``(fy[y], fx[x])`` (the cell under the view's centre), and
     ``tissue`` marks the views the reading modes count (:func:`histojax.core.seen_views.tissue_views`)."""
-    from histojax.core.seen_views import grid as view_grid, tissue_views
+    from histojax.core.seen_views import grid as view_grid
+    from histojax.core.seen_views import tissue_views
 
     tile = int(meta["tile_size"])
     width, height = int(meta["levels"][0]["width"]), int(meta["levels"][0]["height"])
     gh, gw = view_grid(width, height, tile, tile)
     fy = np.clip((np.arange(gh) * tile + stride // 2) // stride, 0, grid_shape[0] - 1)
     fx = np.clip((np.arange(gw) * tile + stride // 2) // stride, 0, grid_shape[1] - 1)
-    tissue = tissue_views(SimpleNamespace(tissue=tissue_mask),
-                          SimpleNamespace(downsample=[1.0], level_width=[width], level_height=[height]), tile)
+    tissue = tissue_views(
+        SimpleNamespace(tissue=tissue_mask),
+        SimpleNamespace(downsample=[1.0], level_width=[width], level_height=[height]),
+        tile,
+    )
     return tissue, fy, fx, tile
 
 
-def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,),
-               grid: bool = False) -> dict:
+def load_slide(
+    bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,), grid: bool = False
+) -> dict:
     """One bundle's arrays, read through :func:`read_bundle` (the checked loader): ``logits (H, W)`` float32
     (entry ``dim`` of the finest level's views), ``tissue (H, W)`` bool, ``coarse {level: (h, w) float32}`` for
     each bundle level in ``levels`` > 0 (cell ``(cy, cx)`` of level ``L`` covers finest views
@@ -189,9 +204,20 @@ def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT,
         raise HeadDataError(bundle, f"unreadable bundle ({type(e).__name__}: {e})") from None
     if not np.all(np.isfinite(logits[tissue])):
         raise HeadDataError(bundle / feats["levels"][0]["file"], "non-finite feature values on tissue views")
-    out = {"name": bundle.name, "label": int(label), "bundle": bundle, "logits": logits, "tissue": tissue,
-           "coarse": coarse, "downsample": downsample, "mpp": float((meta.get("source") or {}).get("mpp") or "nan"),
-           "tile": tile, "stride": stride, "tumour": tumour, "encoder": feats.get("encoder")}
+    out = {
+        "name": bundle.name,
+        "label": int(label),
+        "bundle": bundle,
+        "logits": logits,
+        "tissue": tissue,
+        "coarse": coarse,
+        "downsample": downsample,
+        "mpp": float((meta.get("source") or {}).get("mpp") or "nan"),
+        "tile": tile,
+        "stride": stride,
+        "tumour": tumour,
+        "encoder": feats.get("encoder"),
+    }
     if grid:
         if not np.all(np.isfinite(full[tissue])):
             raise HeadDataError(bundle / feats["levels"][0]["file"], "non-finite feature values on tissue views")
@@ -199,8 +225,9 @@ def load_slide(bundle, label: int | None = None, dim: int = pcam_cnn.VIEW_LOGIT,
     return out
 
 
-def load_slides(dataset, split, spec: dict | None = None, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,),
-                progress: bool = False) -> list[dict]:
+def load_slides(
+    dataset, split, spec: dict | None = None, dim: int = pcam_cnn.VIEW_LOGIT, levels=(0,), progress: bool = False
+) -> list[dict]:
     """:func:`load_slide` of every bundle of ``split`` (``"train"``, ``"test"``, or a list of entries of
     ``dataset.json``'s lists)."""
     spec = spec or read_spec(Path(dataset))
@@ -232,17 +259,19 @@ def padded(arrays: list[np.ndarray], fill=0, shape: tuple[int, int] | None = Non
 
 
 # ------------------------------------------------------------------ CAMELYON lesion classes of a loaded slide
-ITC_MM, MACRO_MM = 0.2, 2.0   # CAMELYON's thresholds: isolated tumour cells below 0.2 mm, macro-metastases above 2 mm
+ITC_MM, MACRO_MM = 0.2, 2.0  # CAMELYON's thresholds: isolated tumour cells below 0.2 mm, macro-metastases above 2 mm
 
 
 def longest_diameter_px(geom) -> float:
     """The longest distance between two points of a polygon (px): the diameter of its convex hull."""
-    hull = np.asarray(geom.convex_hull.exterior.coords if geom.convex_hull.geom_type == "Polygon"
-                      else geom.convex_hull.coords, np.float64)
+    hull = np.asarray(
+        geom.convex_hull.exterior.coords if geom.convex_hull.geom_type == "Polygon" else geom.convex_hull.coords,
+        np.float64,
+    )
     if len(hull) < 2:
         return 0.0
     d = hull[:, None, :] - hull[None, :, :]
-    return float(np.sqrt((d ** 2).sum(-1)).max())
+    return float(np.sqrt((d**2).sum(-1)).max())
 
 
 def lesion_of(geom, mpp: float) -> tuple[str, float]:

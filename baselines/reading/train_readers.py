@@ -40,6 +40,7 @@ it read, plus any ``--compare NAME RUN`` navigator (e.g. a published one) scored
 
 Prints wall times (training, compile, scoring) and env steps per second.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -64,13 +65,17 @@ def progress_words(gain: str, final: float, read_cost: float) -> str:
     (``gain`` per read, ``final`` when the head is right at the end, minus ``read_cost`` per read), ``success`` the
     head's diagnosis right at the episode's end (:class:`histojax.reading.head_reward.HeadReward`'s ``success``, what
     ``histojax evaluate`` reports through the head), never the env's own declared diagnosis."""
-    terms = [f"the head's {gain} gain per read" if gain != "none" else None,
-             f"{final:g} when the head is right at the end" if final else None,
-             f"minus {read_cost:g} per read" if read_cost else None]
+    terms = [
+        f"the head's {gain} gain per read" if gain != "none" else None,
+        f"{final:g} when the head is right at the end" if final else None,
+        f"minus {read_cost:g} per read" if read_cost else None,
+    ]
     said = ", ".join(t for t in terms if t) or "no term (gain none, final 0)"
-    return (f"progress lines: return = the head reward per episode ({said}); success = the head's diagnosis right at "
-            "the episode's end (p(tumour) >= 0.5 is the slide's label), as histojax evaluate reports it through the "
-            "head; the AUC on validation slides follows training")
+    return (
+        f"progress lines: return = the head reward per episode ({said}); success = the head's diagnosis right at "
+        "the episode's end (p(tumour) >= 0.5 is the slide's label), as histojax evaluate reports it through the "
+        "head; the AUC on validation slides follows training"
+    )
 
 
 def dataset_levels(dataset: Path, spec: dict, most: int = MAX_LEVELS) -> int:
@@ -108,12 +113,23 @@ def split_dataset(dataset: Path, out: Path, fraction: float, seed: int, fold: in
 
     spec = slides.read_spec(dataset, fold)  # its seal checked; fold i's sides
     kept, val = split_train(spec, fraction, seed)
-    absolute = lambda entries: [str((dataset / e).resolve()) if not Path(e).is_absolute() else e  # noqa: E731
-                                for e in entries]
-    derived = {**spec, "train": absolute(kept), "validation": absolute(val), "test": absolute(spec.get("test") or []),
-               "derived_from": str(dataset.resolve()),
-               "validation_split": {"fraction": fraction, "seed": seed, "rule": "baselines.validation.split_train",
-                                    **({"fold": fold} if fold is not None else {})}}
+
+    def absolute(entries):
+        return [str((dataset / e).resolve()) if not Path(e).is_absolute() else e for e in entries]
+
+    derived = {
+        **spec,
+        "train": absolute(kept),
+        "validation": absolute(val),
+        "test": absolute(spec.get("test") or []),
+        "derived_from": str(dataset.resolve()),
+        "validation_split": {
+            "fraction": fraction,
+            "seed": seed,
+            "rule": "baselines.validation.split_train",
+            **({"fold": fold} if fold is not None else {}),
+        },
+    }
     # the envs know the splits train / test: the validation slides are scored as the test split of a second
     # folder (OUT/validation-set), which holds no test slide at all
     scoring = {**derived, "test": derived["validation"], "validation": [], "note_split": "test = the validation slides"}
@@ -160,13 +176,14 @@ def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tup
     update in which no episode ended logs NaN): ``csv_path`` (step, return mean, std, per seed; length mean,
     std) and ``png``. Steps are env steps per seed."""
     import matplotlib
+
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
     import numpy as np
 
     log = json.loads((run_dir / "log.json").read_text())
     steps = np.asarray(log["step"], float)
-    ret = np.asarray(log["per_seed"]["return"], float)       # (seeds, points)
+    ret = np.asarray(log["per_seed"]["return"], float)  # (seeds, points)
     length = np.asarray(log["per_seed"]["length"], float)
     if ret.shape[-1] != len(steps):  # stored (points, seeds): make it (seeds, points)
         ret, length = ret.T, length.T
@@ -178,14 +195,21 @@ def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tup
         total = np.stack([np.convolve(np.where(k, r, 0.0), kernel, mode="valid") for r, k in zip(a, seen)])
         count = np.stack([np.convolve(k.astype(float), kernel, mode="valid") for k in seen])
         return np.where(count > 0, total / np.maximum(count, 1), np.nan)
-    x = steps[smooth - 1:]
+
+    x = steps[smooth - 1 :]
     r, n = sm(ret), sm(length)
     with open(csv_path, "w") as f:
-        f.write("env_steps_per_seed,return_mean,return_std," + ",".join(f"return_seed{i}" for i in range(len(r)))
-                + ",length_mean,length_std\n")
+        f.write(
+            "env_steps_per_seed,return_mean,return_std,"
+            + ",".join(f"return_seed{i}" for i in range(len(r)))
+            + ",length_mean,length_std\n"
+        )
         for j in range(len(x)):
-            f.write(f"{int(x[j])},{r[:, j].mean():.4f},{r[:, j].std():.4f},"
-                    + ",".join(f"{v:.4f}" for v in r[:, j]) + f",{n[:, j].mean():.3f},{n[:, j].std():.3f}\n")
+            f.write(
+                f"{int(x[j])},{r[:, j].mean():.4f},{r[:, j].std():.4f},"
+                + ",".join(f"{v:.4f}" for v in r[:, j])
+                + f",{n[:, j].mean():.3f},{n[:, j].std():.3f}\n"
+            )
     fig, axes = plt.subplots(2, 1, figsize=(8, 6), sharex=True)
     for ax, a, label in ((axes[0], r, "head-reward return"), (axes[1], n, "episode length (steps)")):
         m, sd = a.mean(0), a.std(0)
@@ -208,21 +232,36 @@ def main(argv=None) -> int:
     from baselines.published_agents import published_or_path
 
     argv = list(sys.argv[1:] if argv is None else argv)
-    extra = argv[argv.index("--") + 1:] if "--" in argv else []
+    extra = argv[argv.index("--") + 1 :] if "--" in argv else []
     argv = argv[: argv.index("--")] if "--" in argv else argv
-    p = argparse.ArgumentParser(prog="python -m baselines.reading.train_readers", description=__doc__,
-                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p = argparse.ArgumentParser(
+        prog="python -m baselines.reading.train_readers",
+        description=__doc__,
+        formatter_class=argparse.RawDescriptionHelpFormatter,
+    )
     p.add_argument("--dataset", required=True, type=Path)
     p.add_argument("--head", required=True, type=published_or_path)
     p.add_argument("--out", required=True, type=Path)
     p.add_argument("--algo", choices=("ppo", "ppo_rnn"), default="ppo")
     p.add_argument("--env", default=ENV_ID, help=f"env id (default {ENV_ID}: any dataset)")
-    p.add_argument("--levels", type=int, default=None,
-                   help=f"zoom levels (default: the most the bundles were built for, up to {MAX_LEVELS})")
-    p.add_argument("--fold", type=int, default=None, metavar="I",
-                   help="a dataset built with --folds K: train on fold I's train side (minus the validation share)")
-    p.add_argument("--resume", action="store_true",
-                   help="continue the stopped run in OUT/<algo> from its last checkpoint (its own config)")
+    p.add_argument(
+        "--levels",
+        type=int,
+        default=None,
+        help=f"zoom levels (default: the most the bundles were built for, up to {MAX_LEVELS})",
+    )
+    p.add_argument(
+        "--fold",
+        type=int,
+        default=None,
+        metavar="I",
+        help="a dataset built with --folds K: train on fold I's train side (minus the validation share)",
+    )
+    p.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue the stopped run in OUT/<algo> from its last checkpoint (its own config)",
+    )
     p.add_argument("--action-mode", default="glimpse:1")
     p.add_argument("--seeds", type=int, default=3)
     p.add_argument("--total-steps", type=int, default=200_000, help="env steps per seed")
@@ -234,8 +273,14 @@ def main(argv=None) -> int:
     p.add_argument("--val-fraction", type=float, default=0.3)
     p.add_argument("--split-seed", type=int, default=0)
     p.add_argument("--skip-training", action="store_true", help="score the run already in OUT/<algo>")
-    p.add_argument("--compare", nargs=2, action="append", default=[], metavar=("NAME", "RUN"),
-                   help="navigation modes: another navigator scored beside on validation (repeatable)")
+    p.add_argument(
+        "--compare",
+        nargs=2,
+        action="append",
+        default=[],
+        metavar=("NAME", "RUN"),
+        help="navigation modes: another navigator scored beside on validation (repeatable)",
+    )
     args = p.parse_args(argv)
 
     from baselines.reading import readers
@@ -249,8 +294,10 @@ def main(argv=None) -> int:
     navigator = is_navigator(args.action_mode)
     run_dir = args.out / args.algo
     if args.resume and not (run_dir / "checkpoint").is_dir():
-        print(f"error: {run_dir}: no checkpoint to resume (no {run_dir / 'checkpoint'}); start the run without "
-              "--resume", file=sys.stderr)
+        print(
+            f"error: {run_dir}: no checkpoint to resume (no {run_dir / 'checkpoint'}); start the run without --resume",
+            file=sys.stderr,
+        )
         return 2
     try:
         if args.resume and (args.out / "dataset.json").is_file():
@@ -275,42 +322,105 @@ def main(argv=None) -> int:
             env_kwargs = {"dataset": str(data), "split": "train"}
             if args.env == READING_ID:  # any dataset: the levels its bundles were built for
                 env_kwargs["n_levels"] = levels
-            if not navigator:   # a navigator's episode reads what it stands on: no reading budget
+            if not navigator:  # a navigator's episode reads what it stands on: no reading budget
                 env_kwargs["read_budget"] = args.read_budget
-            trainer_argv = (["--resume", str(run_dir)] if args.resume else
-                            ["--env", args.env, "--dataset", str(data), "--split", "train",
-                             "--action-mode", args.action_mode, "--obs", "features", "--seeds", str(args.seeds),
-                             "--total-steps", str(args.total_steps), "--num-envs", str(args.num_envs),
-                             "--set", f"env_kwargs={json.dumps(env_kwargs)}",  # json-not-written (an option)
-                             "--out", str(run_dir), *extra])
+            trainer_argv = (
+                ["--resume", str(run_dir)]
+                if args.resume
+                else [
+                    "--env",
+                    args.env,
+                    "--dataset",
+                    str(data),
+                    "--split",
+                    "train",
+                    "--action-mode",
+                    args.action_mode,
+                    "--obs",
+                    "features",
+                    "--seeds",
+                    str(args.seeds),
+                    "--total-steps",
+                    str(args.total_steps),
+                    "--num-envs",
+                    str(args.num_envs),
+                    "--set",
+                    f"env_kwargs={json.dumps(env_kwargs)}",  # json-not-written (an option)
+                    "--out",
+                    str(run_dir),
+                    *extra,
+                ]
+            )
             code = module.main(trainer_argv)
         finally:
             restore()
         if code:
             return code
-        (run_dir / "head_reward.json").write_text(json.dumps(
-            {"head": str(args.head), "head_name": head.name, "gain": gain, "final": args.final,
-             "read_cost": args.read_cost, "read_budget": None if navigator else args.read_budget,
-             "action_mode": args.action_mode, "train_wall_s": round(time.perf_counter() - t0, 1),
-             "dataset": str(data), "validation_fraction": args.val_fraction, "split_seed": args.split_seed}, indent=1,
-            allow_nan=False) + "\n")
+        (run_dir / "head_reward.json").write_text(
+            json.dumps(
+                {
+                    "head": str(args.head),
+                    "head_name": head.name,
+                    "gain": gain,
+                    "final": args.final,
+                    "read_cost": args.read_cost,
+                    "read_budget": None if navigator else args.read_budget,
+                    "action_mode": args.action_mode,
+                    "train_wall_s": round(time.perf_counter() - t0, 1),
+                    "dataset": str(data),
+                    "validation_fraction": args.val_fraction,
+                    "split_seed": args.split_seed,
+                },
+                indent=1,
+                allow_nan=False,
+            )
+            + "\n"
+        )
     if (run_dir / "log.json").is_file():
         seed_curve(run_dir, run_dir / "curve-seeds.png", run_dir / "curve-seeds.csv")
     t1 = time.perf_counter()
     if navigator:
         from baselines.reading import diagnosis
 
-        code = diagnosis.main(["--dataset", str(data / "validation-set"), "--head", str(args.head),
-                                    "--split", "test", "--navigator", f"navigator ({args.algo}, head reward)",
-                                    str(run_dir), *[a for name, r in args.compare for a in ("--navigator", name, r)],
-                                    "--policy-seeds", str(args.seeds), "--out", str(args.out / "validation"),
-                                    "--allow-fitting-slides"])  # the head saw them: compares readers, says so
+        code = diagnosis.main(
+            [
+                "--dataset",
+                str(data / "validation-set"),
+                "--head",
+                str(args.head),
+                "--split",
+                "test",
+                "--navigator",
+                f"navigator ({args.algo}, head reward)",
+                str(run_dir),
+                *[a for name, r in args.compare for a in ("--navigator", name, r)],
+                "--policy-seeds",
+                str(args.seeds),
+                "--out",
+                str(args.out / "validation"),
+                "--allow-fitting-slides",
+            ]
+        )  # the head saw them: compares readers, says so
         print(f"training {t1 - t0:.0f} s, scoring on validation {time.perf_counter() - t1:.0f} s")
         return code
-    code = readers.main(["--dataset", str(data / "validation-set"), "--head", str(args.head), "--split", "test",
-                         "--reader", f"set reader ({args.algo}, head reward)", str(run_dir),
-                         "--policy-seeds", str(args.seeds), "--out", str(args.out / "validation"),
-                         "--allow-fitting-slides"])  # the head was fitted on the whole train split: a warning says so
+    code = readers.main(
+        [
+            "--dataset",
+            str(data / "validation-set"),
+            "--head",
+            str(args.head),
+            "--split",
+            "test",
+            "--reader",
+            f"set reader ({args.algo}, head reward)",
+            str(run_dir),
+            "--policy-seeds",
+            str(args.seeds),
+            "--out",
+            str(args.out / "validation"),
+            "--allow-fitting-slides",
+        ]
+    )  # the head was fitted on the whole train split: a warning says so
     print(f"training {t1 - t0:.0f} s, scoring on validation {time.perf_counter() - t1:.0f} s")
     return code
 

@@ -21,6 +21,7 @@ plus ``tissue.npy`` (bool, coarsest level), ``annotations.geojson`` (level-0 px)
 Every file's SHA-256 is recorded in ``metadata["checksums"]`` and checked on load; arrays are read
 with ``allow_pickle=False``.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -31,15 +32,41 @@ import numpy as np
 
 from data_tools.errors import BundleError
 
-__all__ = ["ANNOTATIONS", "BundleMetadata", "FEATURES_COMMAND", "FORMAT_VERSION", "LEVEL_SETS", "LevelMeta",
-           "MAX_FLAT_PIXELS", "METADATA", "READ_VERSIONS", "REGION", "STORAGES", "TILED_FORMAT_VERSION", "TISSUE",
-           "bundle_downsamples", "default_magnification_range", "device_bytes", "feature_bytes", "file_digest",
-           "grid_shape", "level_device_bytes", "level_downsamples", "level_files", "level_grids", "level_size",
-           "select_levels", "sha256", "slide_device_bytes", "text_digest", "tiled_level_files",
-           "tumour_table_bytes"]
+__all__ = [
+    "ANNOTATIONS",
+    "BundleMetadata",
+    "FEATURES_COMMAND",
+    "FORMAT_VERSION",
+    "LEVEL_SETS",
+    "LevelMeta",
+    "MAX_FLAT_PIXELS",
+    "METADATA",
+    "READ_VERSIONS",
+    "REGION",
+    "STORAGES",
+    "TILED_FORMAT_VERSION",
+    "TISSUE",
+    "bundle_downsamples",
+    "default_magnification_range",
+    "device_bytes",
+    "feature_bytes",
+    "file_digest",
+    "grid_shape",
+    "level_device_bytes",
+    "level_downsamples",
+    "level_files",
+    "level_grids",
+    "level_size",
+    "select_levels",
+    "sha256",
+    "slide_device_bytes",
+    "text_digest",
+    "tiled_level_files",
+    "tumour_table_bytes",
+]
 
 
-FORMAT_VERSION = 1        # dense bundles (pixels_KK.npy / tumour_KK.npy)
+FORMAT_VERSION = 1  # dense bundles (pixels_KK.npy / tumour_KK.npy)
 
 
 TILED_FORMAT_VERSION = 2  # tiled bundles (tile pools + index grids, see data_tools.tiled)
@@ -79,8 +106,12 @@ def level_files(k: int) -> dict[str, str]:
 
 def tiled_level_files(k: int) -> dict[str, str]:
     """File names of tiled bundle level ``k``: tile pool, tile index, SAT pool, SAT index."""
-    return {"tiles": f"tiles_{k:02d}.npy", "tile_index": f"tile_index_{k:02d}.npy",
-            "sat_tiles": f"sat_tiles_{k:02d}.npy", "sat_index": f"sat_index_{k:02d}.npy"}
+    return {
+        "tiles": f"tiles_{k:02d}.npy",
+        "tile_index": f"tile_index_{k:02d}.npy",
+        "sat_tiles": f"sat_tiles_{k:02d}.npy",
+        "sat_index": f"sat_index_{k:02d}.npy",
+    }
 
 
 # ----------------------------------------------------------------------------- level geometry
@@ -291,9 +322,12 @@ def select_levels(metadata: dict, n_levels: int, where="") -> list[int]:
     for d in level_downsamples(n_levels, metadata["magnification_range"]):
         match = [k for k, a in enumerate(available) if math.isclose(a, d, rel_tol=1e-6)]
         if not match:
-            raise BundleError(where or None, f"bundle has no level at downsample {d:.4g} needed for {n_levels} "
-                              f"zoom levels (it was built for {metadata.get('level_sets')}); rebuild with "
-                              f"`python -m data_tools build ... --levels {n_levels}`")
+            raise BundleError(
+                where or None,
+                f"bundle has no level at downsample {d:.4g} needed for {n_levels} "
+                f"zoom levels (it was built for {metadata.get('level_sets')}); rebuild with "
+                f"`python -m data_tools build ... --levels {n_levels}`",
+            )
         chosen.append(match[0])
     return chosen
 
@@ -307,8 +341,9 @@ def feature_bytes(metadata: dict, chosen: list[int], where=None) -> int:
     try:
         return sum(int(np.prod(info["levels"][k]["grid"])) * int(info["dim"]) * itemsize for k in chosen)
     except (KeyError, IndexError, TypeError):
-        raise BundleError(where, "metadata['features'] is malformed; recompute with "
-                          "`python -m data_tools features BUNDLE`") from None
+        raise BundleError(
+            where, "metadata['features'] is malformed; recompute with `python -m data_tools features BUNDLE`"
+        ) from None
 
 
 def tumour_table_bytes(level: dict, tile_size: int) -> int:
@@ -320,8 +355,9 @@ def tumour_table_bytes(level: dict, tile_size: int) -> int:
     return 4 * (int(level["width"]) + 1) * (int(level["height"]) + 1)
 
 
-def slide_device_bytes(metadata: dict, chosen: list[int], pixels: bool = True, features: bool = False,
-                       where=None) -> int:
+def slide_device_bytes(
+    metadata: dict, chosen: list[int], pixels: bool = True, features: bool = False, where=None
+) -> int:
     """Device bytes of bundle levels ``chosen`` (from the metadata, nothing read): pixels and tumour tables
     (``pixels=False``: tumour tables only), plus the feature grids when ``features``; start weights are
     small (the coarsest level) and not counted."""
@@ -329,7 +365,7 @@ def slide_device_bytes(metadata: dict, chosen: list[int], pixels: bool = True, f
     if pixels:
         needed = sum(level_device_bytes(metadata["levels"][k]) for k in chosen)
         if metadata.get("storage") == "tiled":
-            needed += 3 * t ** 2  # the spare tile at the end of the pool
+            needed += 3 * t**2  # the spare tile at the end of the pool
     else:
         needed = sum(tumour_table_bytes(metadata["levels"][k], t) for k in chosen)
     return needed + (feature_bytes(metadata, chosen, where) if features else 0)

@@ -3,6 +3,7 @@ checked (:func:`read_metadata`, :func:`check_fields`), every array checked again
 (:func:`load_array`) and read with ``allow_pickle=False``, and the host-side :class:`Bundle` returned
 (:func:`load_bundle`); :func:`bundle_damage` says what is wrong with a bundle without raising.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -15,14 +16,31 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.errors import BundleError
-from data_tools.bundle_files.format import (BundleMetadata, FEATURES_COMMAND, METADATA, READ_VERSIONS, TILED_FORMAT_VERSION,
-                                           level_grids)
+from data_tools.bundle_files.format import (
+    FEATURES_COMMAND,
+    METADATA,
+    READ_VERSIONS,
+    TILED_FORMAT_VERSION,
+    BundleMetadata,
+    level_grids,
+)
 from data_tools.bundle_files.safe_files import own_file, safe_name, stable_read
 from data_tools.bundle_files.seals import verify_metadata
+from data_tools.errors import BundleError
 
-__all__ = ["Bundle", "MIN_TILE_SIZE", "TiledLevel", "bundle_damage", "check_fields", "check_mask", "load_array",
-           "load_bundle", "load_feature_levels", "load_tiled_level", "read_metadata"]
+__all__ = [
+    "Bundle",
+    "MIN_TILE_SIZE",
+    "TiledLevel",
+    "bundle_damage",
+    "check_fields",
+    "check_mask",
+    "load_array",
+    "load_bundle",
+    "load_feature_levels",
+    "load_tiled_level",
+    "read_metadata",
+]
 
 
 @dataclass
@@ -31,7 +49,7 @@ class TiledLevel:
     ``(H, W, 3)`` (or, for tumour, ``(H, W)``) array for ``shape``, 2-D slicing and ``np.asarray``
     (materialised on demand: only for small levels or crops)."""
 
-    pool: np.ndarray   # (N, T, T, 3) uint8 or (M, T+1, T+1) uint32 local SATs
+    pool: np.ndarray  # (N, T, T, 3) uint8 or (M, T+1, T+1) uint32 local SATs
     index: np.ndarray  # (gh, gw) int32
     height: int
     width: int
@@ -75,15 +93,18 @@ class TiledLevel:
         ids = self.index[ty0:ty1, tx0:tx1]
         tiles = self._tiles(ids).reshape(ids.shape + (t, t) + self.shape[2:])
         full = np.moveaxis(tiles, 2, 1).reshape((ids.shape[0] * t, ids.shape[1] * t) + self.shape[2:])
-        return np.ascontiguousarray(full[y0 - ty0 * t:y1 - ty0 * t, x0 - tx0 * t:x1 - tx0 * t])
+        return np.ascontiguousarray(full[y0 - ty0 * t : y1 - ty0 * t, x0 - tx0 * t : x1 - tx0 * t])
 
     def __getitem__(self, key):
         if not isinstance(key, tuple):
             key = (key,)
         key = key + (slice(None),) * (2 - len(key))
         rows, cols = key[0], key[1]
-        if not (isinstance(rows, slice) and isinstance(cols, slice)) or rows.step not in (None, 1) \
-                or cols.step not in (None, 1):
+        if (
+            not (isinstance(rows, slice) and isinstance(cols, slice))
+            or rows.step not in (None, 1)
+            or cols.step not in (None, 1)
+        ):
             return np.asarray(self)[key]
         y0, y1, _ = rows.indices(self.height)
         x0, x1, _ = cols.indices(self.width)
@@ -109,9 +130,9 @@ class Bundle:
 
     path: Path
     metadata: BundleMetadata
-    pixels: list[np.ndarray]   # (H, W, 3) uint8 per level (tiled bundles: lazy TiledLevel)
-    tumour: list[np.ndarray]   # (H, W) uint8 0/1 per level (tiled bundles: TiledLevel of local SATs)
-    tissue: np.ndarray         # (H, W) bool at the coarsest bundle level
+    pixels: list[np.ndarray]  # (H, W, 3) uint8 per level (tiled bundles: lazy TiledLevel)
+    tumour: list[np.ndarray]  # (H, W) uint8 0/1 per level (tiled bundles: TiledLevel of local SATs)
+    tissue: np.ndarray  # (H, W) bool at the coarsest bundle level
     region: np.ndarray | None = None  # (H, W) bool at the coarsest level: allowed view centres (region bundles)
 
     @property
@@ -132,8 +153,9 @@ def read_metadata(path) -> BundleMetadata:
     path = Path(path)
     meta_file = path / METADATA
     if not meta_file.is_file() and not meta_file.is_symlink():
-        raise BundleError(path, f"not a slide bundle (no {METADATA}); build one with "
-                          "`python -m data_tools build SLIDE --out DIR`")
+        raise BundleError(
+            path, f"not a slide bundle (no {METADATA}); build one with `python -m data_tools build SLIDE --out DIR`"
+        )
     own_file(path, METADATA, "metadata")
     try:
         metadata = json.loads(meta_file.read_text())
@@ -142,8 +164,11 @@ def read_metadata(path) -> BundleMetadata:
     if not isinstance(metadata, dict):
         raise BundleError(meta_file, "metadata is not a JSON object; rebuild the bundle")
     if metadata.get("format_version") not in READ_VERSIONS:
-        raise BundleError(path, f"bundle format version {metadata.get('format_version')!r}, this histojax reads "
-                          f"versions {READ_VERSIONS}; rebuild it with `python -m data_tools build`")
+        raise BundleError(
+            path,
+            f"bundle format version {metadata.get('format_version')!r}, this histojax reads "
+            f"versions {READ_VERSIONS}; rebuild it with `python -m data_tools build`",
+        )
     if (metadata.get("storage", "dense") == "tiled") != (metadata["format_version"] == TILED_FORMAT_VERSION):
         raise BundleError(meta_file, "storage and format version disagree; rebuild the bundle")
     for key in ("tile_size", "levels", "checksums", "magnification_range", "tissue"):
@@ -167,6 +192,7 @@ def _is_number(v) -> bool:
 def check_fields(where, metadata: dict) -> None:
     """Check the types and ranges of the fields readers use (tile size, levels, file names, tissue), so a
     malformed ``metadata.json`` is refused naming it instead of failing later inside numpy."""
+
     def bad(problem):
         raise BundleError(where, f"{problem}; rebuild the bundle")
 
@@ -204,8 +230,9 @@ def check_fields(where, metadata: dict) -> None:
     if "level" in tissue and tissue["level"] != len(levels) - 1:
         bad(f"tissue level {tissue['level']!r} is not the coarsest level {len(levels) - 1}")
     region = metadata.get("region")
-    if region is not None and (not isinstance(region, dict) or (region.get("mask") is not None
-                                                                  and not safe_name(region["mask"], where))):
+    if region is not None and (
+        not isinstance(region, dict) or (region.get("mask") is not None and not safe_name(region["mask"], where))
+    ):
         bad("region must be a record")
     if not isinstance(metadata["checksums"], dict):
         bad("checksums must be a record of file name -> SHA-256")
@@ -219,8 +246,9 @@ def load_array(path, name: str, metadata: dict, verify: bool, mmap: bool = False
     try:
         fd = os.open(file, os.O_RDONLY | getattr(os, "O_NOFOLLOW", 0))  # a link put there since: refused (ELOOP)
     except OSError as e:
-        raise BundleError(path, f"entry {name!r} cannot be opened as the bundle's own file ({e.strerror or e}); "
-                          "rebuild the bundle") from None
+        raise BundleError(
+            path, f"entry {name!r} cannot be opened as the bundle's own file ({e.strerror or e}); rebuild the bundle"
+        ) from None
     with os.fdopen(fd, "rb") as f:
         if verify:
             h = hashlib.sha256()
@@ -271,8 +299,9 @@ def check_mask(file, array, shape, kind: str = "0/1") -> None:
     """Refuse a mask whose shape is not ``shape`` or whose values are not 0/1 (``kind`` names what it holds):
     another program's 0/255 mask would count every tumour pixel 255 times."""
     if array.shape != tuple(shape):
-        raise BundleError(file, f"{kind} mask of shape {array.shape}, expected {tuple(shape)} from the metadata; "
-                          "rebuild the bundle")
+        raise BundleError(
+            file, f"{kind} mask of shape {array.shape}, expected {tuple(shape)} from the metadata; rebuild the bundle"
+        )
     if array.dtype == np.bool_:
         return
     if array.dtype.kind not in "ui":
@@ -280,8 +309,11 @@ def check_mask(file, array, shape, kind: str = "0/1") -> None:
     top = int(np.max(array)) if array.size else 0
     low = int(np.min(array)) if array.size else 0
     if top > 1 or low < 0:
-        raise BundleError(file, f"{kind} mask holds values in [{low}, {top}], expected 0/1 (a 0/255 mask from "
-                          "another program?); rebuild the bundle")
+        raise BundleError(
+            file,
+            f"{kind} mask holds values in [{low}, {top}], expected 0/1 (a 0/255 mask from "
+            "another program?); rebuild the bundle",
+        )
 
 
 def load_tiled_level(path, lv: dict, metadata: dict, verify: bool, kind: str) -> TiledLevel:
@@ -296,19 +328,26 @@ def load_tiled_level(path, lv: dict, metadata: dict, verify: bool, kind: str) ->
     pool = np.zeros((0, *item), dtype) if dropped else load_array(path, lv[pool_name], metadata, verify, mmap=True)
     index = load_array(path, lv[index_name], metadata, verify)
     grid = (-(-lv["height"] // t), -(-lv["width"] // t))
-    if pool.shape[1:] != item or pool.dtype != dtype or index.shape != grid or index.dtype != np.int32 \
-            or (not dropped and (pool.shape[0] < 1 or (index.size and (index.min() < 0
-                                                                       or index.max() >= pool.shape[0])))):
-        raise BundleError(path / (lv[pool_name] or lv[index_name]),
-                          "tile pool or index disagrees with metadata; rebuild the bundle")
+    if (
+        pool.shape[1:] != item
+        or pool.dtype != dtype
+        or index.shape != grid
+        or index.dtype != np.int32
+        or (not dropped and (pool.shape[0] < 1 or (index.size and (index.min() < 0 or index.max() >= pool.shape[0]))))
+    ):
+        raise BundleError(
+            path / (lv[pool_name] or lv[index_name]), "tile pool or index disagrees with metadata; rebuild the bundle"
+        )
     if kind == "tumour" and pool.shape[0] and int(np.max(pool[:, t, t])) > t * t:
-        raise BundleError(path / lv[pool_name], f"a tumour tile counts more than {t * t} px (its mask is not 0/1); "
-                          "rebuild the bundle")
+        raise BundleError(
+            path / lv[pool_name], f"a tumour tile counts more than {t * t} px (its mask is not 0/1); rebuild the bundle"
+        )
     return TiledLevel(pool=pool, index=index, height=int(lv["height"]), width=int(lv["width"]), kind=kind)
 
 
-def load_bundle(path, verify: bool = True, levels: list[int] | None = None, mmap: bool = False,
-                metadata: dict | None = None) -> Bundle:
+def load_bundle(
+    path, verify: bool = True, levels: list[int] | None = None, mmap: bool = False, metadata: dict | None = None
+) -> Bundle:
     """Load the bundle at ``path`` (host numpy arrays); ``levels`` selects bundle level indices
     (finest first, as in the metadata; default all). Checksums are verified unless ``verify=False``.
     ``mmap=True`` memory-maps the dense level arrays (read-only) instead of reading them into memory.
@@ -316,6 +355,7 @@ def load_bundle(path, verify: bool = True, levels: list[int] | None = None, mmap
     checked with :func:`verify_metadata`) it; without it the metadata's digest is checked (``verify``) and a
     folder swapped by a concurrent rebuild is read again (:func:`stable_read`)."""
     if metadata is None:  # a bundle swapped by a rebuild while we read is read again, whole
+
         def read():
             meta = read_metadata(path)
             if verify:
@@ -335,16 +375,24 @@ def load_bundle(path, verify: bool = True, levels: list[int] | None = None, mmap
             continue
         pixels.append(load_array(path, lv["pixels"], metadata, verify, mmap=mmap))
         tumour.append(load_array(path, lv["tumour"], metadata, verify, mmap=mmap))
-        for name, array, shape in ((lv["pixels"], pixels[-1], (lv["height"], lv["width"], 3)),
-                                   (lv["tumour"], tumour[-1], (lv["height"], lv["width"]))):
+        for name, array, shape in (
+            (lv["pixels"], pixels[-1], (lv["height"], lv["width"], 3)),
+            (lv["tumour"], tumour[-1], (lv["height"], lv["width"])),
+        ):
             if array.shape != shape or array.dtype != np.uint8:
-                raise BundleError(path / name, f"array {array.shape} {array.dtype} disagrees with the metadata "
-                                  f"({shape} uint8); rebuild the bundle")
+                raise BundleError(
+                    path / name,
+                    f"array {array.shape} {array.dtype} disagrees with the metadata "
+                    f"({shape} uint8); rebuild the bundle",
+                )
         check_mask(path / lv["tumour"], tumour[-1], (lv["height"], lv["width"]), "tumour")
         recorded = lv.get("tumour_pixels")
         if recorded is not None and recorded != int(np.sum(tumour[-1], dtype=np.int64)):
-            raise BundleError(path / METADATA, f"level {k} records {recorded!r} tumour px, {lv['tumour']} holds "
-                              f"{int(np.sum(tumour[-1], dtype=np.int64))}; rebuild the bundle")
+            raise BundleError(
+                path / METADATA,
+                f"level {k} records {recorded!r} tumour px, {lv['tumour']} holds "
+                f"{int(np.sum(tumour[-1], dtype=np.int64))}; rebuild the bundle",
+            )
     coarsest = metadata["levels"][-1]
     tissue = load_array(path, metadata.tissue_file, metadata, verify)
     check_mask(path / metadata.tissue_file, tissue, (coarsest["height"], coarsest["width"]), "tissue")
@@ -363,9 +411,12 @@ def load_feature_levels(bundle, metadata: dict, levels: list[int], verify: bool 
     bundle = Path(bundle)
     info = metadata.get("features")
     if not info:
-        raise BundleError(bundle, "has no feature grid (needed for obs_mode='features'); compute one with "
-                          f"`python -m data_tools features {bundle}` or import one with "
-                          f"`python -m data_tools import-features {bundle} FILE.h5 --patch-size P --level L`")
+        raise BundleError(
+            bundle,
+            "has no feature grid (needed for obs_mode='features'); compute one with "
+            f"`python -m data_tools features {bundle}` or import one with "
+            f"`python -m data_tools import-features {bundle} FILE.h5 --patch-size P --level L`",
+        )
     stride, dim = int(info["stride"]), int(info["dim"])
     expected = level_grids(metadata, stride)
     arrays = []
@@ -373,7 +424,10 @@ def load_feature_levels(bundle, metadata: dict, levels: list[int], verify: bool 
         entry = info["levels"][k]
         array = load_array(bundle, entry["file"], metadata, verify)
         if array.shape != (*expected[k], dim) or array.dtype.kind != "f":
-            raise BundleError(bundle / entry["file"], f"feature grid of shape {array.shape} ({array.dtype}), expected "
-                              f"{(*expected[k], dim)} floats; recompute it with `{FEATURES_COMMAND}`")
+            raise BundleError(
+                bundle / entry["file"],
+                f"feature grid of shape {array.shape} ({array.dtype}), expected "
+                f"{(*expected[k], dim)} floats; recompute it with `{FEATURES_COMMAND}`",
+            )
         arrays.append(array)
     return arrays, stride

@@ -3,14 +3,15 @@
 file; a file that changes between the check and the open is refused), and :func:`stable_read`, which reads a
 bundle again when a concurrent rebuild swapped it mid-read.
 """
+
 from __future__ import annotations
 
 import os
 import stat
 from pathlib import Path
 
-from data_tools.errors import BundleError
 from data_tools.bundle_files.format import METADATA
+from data_tools.errors import BundleError
 
 __all__ = ["ChangedFileError", "not_regular", "open_regular", "own_file", "safe_name", "stable_read"]
 
@@ -18,8 +19,15 @@ __all__ = ["ChangedFileError", "not_regular", "open_regular", "own_file", "safe_
 def safe_name(name, where) -> str:
     """``name`` if it is a plain file name inside the bundle folder (no folder part, not ``.``/``..``),
     else ``BundleError``: metadata may only point at the bundle's own files."""
-    if not isinstance(name, str) or not name or name in (".", "..") or "/" in name or "\\" in name \
-            or "\0" in name or Path(name).name != name:
+    if (
+        not isinstance(name, str)
+        or not name
+        or name in (".", "..")
+        or "/" in name
+        or "\\" in name
+        or "\0" in name
+        or Path(name).name != name
+    ):
         raise BundleError(where, f"file entry {name!r} is not a file name inside the bundle; rebuild the bundle")
     return name
 
@@ -83,8 +91,11 @@ def own_file(bundle, name: str, what: str = "file") -> Path:
             target = os.readlink(file)
         except OSError:
             target = "?"
-        raise BundleError(bundle, f"entry {name!r} is a symbolic link (to {target}), not the bundle's own file; "
-                          "refusing to read it (rebuild the bundle)")
+        raise BundleError(
+            bundle,
+            f"entry {name!r} is a symbolic link (to {target}), not the bundle's own file; "
+            "refusing to read it (rebuild the bundle)",
+        )
     if kind is not None:
         raise BundleError(bundle, f"entry {name!r} is not a regular file; refusing to read it (rebuild the bundle)")
     if os.path.realpath(file.parent) != os.path.realpath(bundle):
@@ -129,9 +140,9 @@ def stable_read(path, read, attempts: int = 12):
         except (BundleError, OSError):  # OSError: a file vanished between the rename aside and the new folder's
             if last or (_identity(path) == before and not _rebuilding(path)):
                 raise
-            time.sleep(0.005 * 2 ** attempt)
+            time.sleep(0.005 * 2**attempt)
             continue
         if last or _identity(path) == before:
             return result
-        time.sleep(0.005 * 2 ** attempt)
+        time.sleep(0.005 * 2**attempt)
     raise AssertionError("unreachable")

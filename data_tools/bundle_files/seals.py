@@ -3,6 +3,7 @@
 one reader of a dataset's index), so an edit of any field after histojax wrote it is refused in one line naming
 the file.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -12,13 +13,21 @@ import stat
 import warnings
 from pathlib import Path
 
-from data_tools.errors import BundleError
 from data_tools.bundle_files.format import METADATA
 from data_tools.bundle_files.safe_files import not_regular
 from data_tools.bundle_files.writes import write_json
+from data_tools.errors import BundleError
 
-__all__ = ["DATASET_DIGEST", "MAX_DATASET_JSON_BYTES", "METADATA_DIGEST", "SEALING_KINDS", "metadata_digest",
-           "read_dataset_json", "verify_metadata", "write_metadata"]
+__all__ = [
+    "DATASET_DIGEST",
+    "MAX_DATASET_JSON_BYTES",
+    "METADATA_DIGEST",
+    "SEALING_KINDS",
+    "metadata_digest",
+    "read_dataset_json",
+    "verify_metadata",
+    "write_metadata",
+]
 
 
 METADATA_DIGEST = "metadata_sha256"  # the SHA-256 of the rest of metadata.json (see metadata_digest)
@@ -28,8 +37,14 @@ def metadata_digest(metadata: dict) -> str:
     """Hex SHA-256 of ``metadata`` without its :data:`METADATA_DIGEST` entry, serialised canonically
     (sorted keys, no spaces; floats as Python writes them, which JSON reads back exactly)."""
     body = {k: v for k, v in metadata.items() if k != METADATA_DIGEST}
-    return hashlib.sha256(json.dumps(body, sort_keys=True, separators=(",", ":"),  # json-not-written (a digest)
-                                     allow_nan=True).encode()).hexdigest()
+    return hashlib.sha256(
+        json.dumps(
+            body,
+            sort_keys=True,
+            separators=(",", ":"),  # json-not-written (a digest)
+            allow_nan=True,
+        ).encode()
+    ).hexdigest()
 
 
 DATASET_DIGEST = "dataset_sha256"
@@ -40,8 +55,10 @@ MAX_DATASET_JSON_BYTES = 256 << 20  # bytes: far above any cohort's index (a few
 # takes about 4.4× its size (a 200 MB file peaked at 885 MB RSS)
 
 
-SEALING_KINDS = ("histojax dataset of real slides (data_tools dataset)",
-                 "histojax true-scale CAMELYON16 benchmark (data_tools c16)")
+SEALING_KINDS = (
+    "histojax dataset of real slides (data_tools dataset)",
+    "histojax true-scale CAMELYON16 benchmark (data_tools c16)",
+)
 """``kind`` of the ``dataset.json`` files ``histojax dataset`` and ``c16`` write, sealed since 2026-11; one of them
 without a seal is an older build or a seal removed by hand (a warning says so once per file)."""
 
@@ -63,11 +80,17 @@ def read_dataset_json(folder, _depth: int = 0) -> dict:
     path = Path(folder) / "dataset.json"
     st = os.stat(path)  # a link to a regular file is read (the user's choice); FileNotFoundError as before
     if not stat.S_ISREG(st.st_mode):
-        raise BundleError(path, f"is {not_regular(st)}, not a dataset index file; refusing to read it (rebuild the "
-                          "dataset, or give the folder histojax wrote)")
+        raise BundleError(
+            path,
+            f"is {not_regular(st)}, not a dataset index file; refusing to read it (rebuild the "
+            "dataset, or give the folder histojax wrote)",
+        )
     if st.st_size > MAX_DATASET_JSON_BYTES:
-        raise BundleError(path, f"is {st.st_size / 2**20:.0f} MiB, more than a dataset index holds "
-                          f"({MAX_DATASET_JSON_BYTES // 2**20} MiB); not a histojax dataset.json")
+        raise BundleError(
+            path,
+            f"is {st.st_size / 2**20:.0f} MiB, more than a dataset index holds "
+            f"({MAX_DATASET_JSON_BYTES // 2**20} MiB); not a histojax dataset.json",
+        )
     fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))  # swapped for a FIFO since: never blocks
     with os.fdopen(fd, "rb") as f:
         if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
@@ -77,14 +100,20 @@ def read_dataset_json(folder, _depth: int = 0) -> dict:
         raise BundleError(path, f"grew past {MAX_DATASET_JSON_BYTES // 2**20} MiB while it was read; refusing it")
     spec = json.loads(data.decode("utf-8"))
     if not isinstance(spec, dict):
-        raise BundleError(path, f"holds a JSON {type(spec).__name__}, not a dataset index (an object with the "
-                          "train and test splits histojax writes); rebuild the dataset")
+        raise BundleError(
+            path,
+            f"holds a JSON {type(spec).__name__}, not a dataset index (an object with the "
+            "train and test splits histojax writes); rebuild the dataset",
+        )
     if DATASET_DIGEST not in spec:
         if spec.get("kind") in SEALING_KINDS and str(path.resolve()) not in _UNSEALED_WARNED:
             _UNSEALED_WARNED.add(str(path.resolve()))
-            warnings.warn(f"{path}: carries no seal ({DATASET_DIGEST}): written before histojax sealed its dataset "
-                          "indexes, or the seal was removed; its labels and splits are read unchecked. Rebuild it "
-                          "with the command that made it to seal it", stacklevel=2)
+            warnings.warn(
+                f"{path}: carries no seal ({DATASET_DIGEST}): written before histojax sealed its dataset "
+                "indexes, or the seal was removed; its labels and splits are read unchecked. Rebuild it "
+                "with the command that made it to seal it",
+                stacklevel=2,
+            )
         return spec
     validation = spec.get("validation")
     source = spec.get("derived_from") or (validation.get("source") if isinstance(validation, dict) else None)
@@ -97,13 +126,19 @@ def read_dataset_json(folder, _depth: int = 0) -> dict:
             theirs = {Path(str(k)).name: v for k, v in base["labels"].items()}
             changed = [k for k, v in spec["labels"].items() if theirs.get(Path(str(k)).name, v) != v]
             if changed:
-                raise BundleError(path, f"labels differ from those of the sealed dataset it was split from ({source}; "
-                                  f"e.g. {changed[0]!r}): edited since; split it again from {source}")
+                raise BundleError(
+                    path,
+                    f"labels differ from those of the sealed dataset it was split from ({source}; "
+                    f"e.g. {changed[0]!r}): edited since; split it again from {source}",
+                )
         return spec
     if spec[DATASET_DIGEST] != metadata_digest({k: v for k, v in spec.items() if k != DATASET_DIGEST}):
-        raise BundleError(path, f"does not match its seal ({DATASET_DIGEST}): edited after histojax wrote it (a label, "
-                          "a split or a slide record); restore it or rebuild it with the command that made it "
-                          "(`histojax dataset SLIDES --out DIR`, `python -m data_tools c16 ... --out DIR`)")
+        raise BundleError(
+            path,
+            f"does not match its seal ({DATASET_DIGEST}): edited after histojax wrote it (a label, "
+            "a split or a slide record); restore it or rebuild it with the command that made it "
+            "(`histojax dataset SLIDES --out DIR`, `python -m data_tools c16 ... --out DIR`)",
+        )
     return spec
 
 
@@ -122,9 +157,15 @@ def verify_metadata(path, metadata: dict) -> None:
     if recorded is None:
         import warnings
 
-        warnings.warn(f"{path}: metadata.json is not sealed (bundle built before histojax sealed metadata); "
-                      "only its cross-checks against the arrays are verified, rebuild the bundle to verify "
-                      "every field", stacklevel=3)
+        warnings.warn(
+            f"{path}: metadata.json is not sealed (bundle built before histojax sealed metadata); "
+            "only its cross-checks against the arrays are verified, rebuild the bundle to verify "
+            "every field",
+            stacklevel=3,
+        )
     elif recorded != metadata_digest(metadata):
-        raise BundleError(Path(path) / METADATA, f"metadata digest mismatch ({METADATA_DIGEST}): metadata.json "
-                          "was edited after the build; rebuild the bundle")
+        raise BundleError(
+            Path(path) / METADATA,
+            f"metadata digest mismatch ({METADATA_DIGEST}): metadata.json "
+            "was edited after the build; rebuild the bundle",
+        )

@@ -5,6 +5,7 @@ temporaries from a user's files (:data:`TEMP_MARKER`), and the checks that an ou
 user's before it is replaced (:func:`foreign_entries`, :func:`check_replaceable`). A full disk is one error naming
 the file (:func:`as_disk_full`); a killed write leaves the previous file (or none).
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -18,13 +19,34 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.errors import BundleError
 from data_tools.bundle_files.format import METADATA, READ_VERSIONS
+from data_tools.errors import BundleError
 
-__all__ = ["BUNDLE_EXTRAS", "LEFT_RUN_LOCK", "PARTIAL", "PARTIAL_ENTRY", "RENAME_EXCHANGE", "SHORT_WRITE",
-           "TEMP_MARKER", "TEMP_MARKER_TEXT", "TEMP_NAME", "as_disk_full", "atomic_file", "atomic_folder",
-           "check_replaceable", "foreign_entries", "is_our_temporary", "left_run_lock", "mark_temporary",
-           "partial_foreign", "remove_partial", "remove_temporary", "replace_folder", "save_array", "write_json"]
+__all__ = [
+    "BUNDLE_EXTRAS",
+    "LEFT_RUN_LOCK",
+    "PARTIAL",
+    "PARTIAL_ENTRY",
+    "RENAME_EXCHANGE",
+    "SHORT_WRITE",
+    "TEMP_MARKER",
+    "TEMP_MARKER_TEXT",
+    "TEMP_NAME",
+    "as_disk_full",
+    "atomic_file",
+    "atomic_folder",
+    "check_replaceable",
+    "foreign_entries",
+    "is_our_temporary",
+    "left_run_lock",
+    "mark_temporary",
+    "partial_foreign",
+    "remove_partial",
+    "remove_temporary",
+    "replace_folder",
+    "save_array",
+    "write_json",
+]
 
 
 TEMP_MARKER = ".histojax-temporary"
@@ -170,8 +192,9 @@ def foreign_entries(out_dir) -> list[str]:
     its checksums list, :data:`BUNDLE_EXTRAS` nor a hidden ``.NAME.tmp-*`` of an interrupted atomic write.
     Empty when the folder is a bundle as histojax wrote it (or is empty)."""
     out_dir = Path(out_dir)
-    entries = sorted(p.name for p in out_dir.iterdir() if not (p.name == TEMP_MARKER and p.is_file()
-                                                                and not p.is_symlink()))
+    entries = sorted(
+        p.name for p in out_dir.iterdir() if not (p.name == TEMP_MARKER and p.is_file() and not p.is_symlink())
+    )
     meta = out_dir / METADATA
     try:
         if meta.is_symlink() or not meta.is_file():
@@ -179,8 +202,11 @@ def foreign_entries(out_dir) -> list[str]:
         metadata = json.loads(meta.read_text())
     except (OSError, ValueError):
         return entries
-    if not isinstance(metadata, dict) or metadata.get("format_version") not in READ_VERSIONS \
-            or not isinstance(metadata.get("checksums"), dict):
+    if (
+        not isinstance(metadata, dict)
+        or metadata.get("format_version") not in READ_VERSIONS
+        or not isinstance(metadata.get("checksums"), dict)
+    ):
         return entries
     known = {METADATA, *BUNDLE_EXTRAS, *(k for k in metadata["checksums"] if isinstance(k, str))}
     foreign = []
@@ -250,19 +276,29 @@ def check_replaceable(out_dir) -> None:
     if not (out_dir.exists() or out_dir.is_symlink()):
         return
     if out_dir.is_symlink() or not out_dir.is_dir():
-        raise BundleError(out_dir, "is a file, not a bundle folder; refusing to overwrite it (remove it yourself "
-                          "or choose another --out)")
+        raise BundleError(
+            out_dir,
+            "is a file, not a bundle folder; refusing to overwrite it (remove it yourself or choose another --out)",
+        )
     if not any(p.name != TEMP_MARKER for p in out_dir.iterdir()):
         return
     if (out_dir / "dataset.json").exists() or (out_dir / "dataset.json").is_symlink():
-        raise BundleError(out_dir, "holds a dataset.json (a dataset folder, not a bundle); refusing to overwrite "
-                          "it (choose another --out)")
+        raise BundleError(
+            out_dir,
+            "holds a dataset.json (a dataset folder, not a bundle); refusing to overwrite it (choose another --out)",
+        )
     foreign = foreign_entries(out_dir)
     if foreign:
-        what = (f"no readable {METADATA}" if METADATA in foreign or not (out_dir / METADATA).is_file()
-                else f"{len(foreign)} file(s) its {METADATA} does not list, e.g. {foreign[0]!r}")
-        raise BundleError(out_dir, f"is a folder of other files, not a histojax bundle ({what}); refusing to "
-                          "overwrite it (remove them yourself or choose another --out)")
+        what = (
+            f"no readable {METADATA}"
+            if METADATA in foreign or not (out_dir / METADATA).is_file()
+            else f"{len(foreign)} file(s) its {METADATA} does not list, e.g. {foreign[0]!r}"
+        )
+        raise BundleError(
+            out_dir,
+            f"is a folder of other files, not a histojax bundle ({what}); refusing to "
+            "overwrite it (remove them yourself or choose another --out)",
+        )
 
 
 RENAME_EXCHANGE = 2  # renameat2 flag (Linux >= 3.15): swap two paths atomically

@@ -22,6 +22,7 @@ holding its own lock, so two processes never build one bundle. The run that find
 recorded (or :func:`merge_dataset`) writes ``dataset.json``. A slide that fails is recorded with its
 reason and the others still build.
 """
+
 from __future__ import annotations
 
 import functools
@@ -40,10 +41,25 @@ from tqdm.auto import tqdm
 from data_tools.bundle_files.reading import bundle_damage, read_metadata
 from data_tools.bundle_files.seals import DATASET_DIGEST, SEALING_KINDS, metadata_digest
 from data_tools.bundle_files.writes import foreign_entries, mark_temporary, replace_folder, write_json
-from data_tools.datasets.locks import (RUN_LOCK, LockHeld, RunLock, bundle_lock_path, clean_partial_features, clean_stale,
-                                      file_lock)
-from data_tools.datasets.split import (fold_lists, folds_record, kfold_split, patient_groups, patients_on_both_sides,
-                                       read_patient_column, seeded_split, shard_names)
+from data_tools.datasets.locks import (
+    RUN_LOCK,
+    LockHeld,
+    RunLock,
+    bundle_lock_path,
+    clean_partial_features,
+    clean_stale,
+    file_lock,
+)
+from data_tools.datasets.split import (
+    fold_lists,
+    folds_record,
+    kfold_split,
+    patient_groups,
+    patients_on_both_sides,
+    read_patient_column,
+    seeded_split,
+    shard_names,
+)
 from data_tools.errors import HistojaxDataError
 from data_tools.features.encoders import dataset_scale
 
@@ -55,8 +71,10 @@ def _fingerprint(path: Path) -> dict:
     """Cheap identity of a slide file or DICOM folder: size in bytes and mtime (ns) of its files."""
     files = sorted(path.rglob("*")) if path.is_dir() else [path]
     stats = [f.stat() for f in files if f.is_file()]
-    return {"bytes": int(sum(s.st_size for s in stats)),
-            "mtime_ns": int(max((s.st_mtime_ns for s in stats), default=0))}
+    return {
+        "bytes": int(sum(s.st_size for s in stats)),
+        "mtime_ns": int(max((s.st_mtime_ns for s in stats), default=0)),
+    }
 
 
 def _rel(path: Path, root: Path) -> str:
@@ -66,15 +84,16 @@ def _rel(path: Path, root: Path) -> str:
         return str(Path(path).resolve())
 
 
-def check_scales(entries, magnification_range, reader: str | None = None,
-                 mpp: float | None = None) -> dict[str, float | None]:
+def check_scales(
+    entries, magnification_range, reader: str | None = None, mpp: float | None = None
+) -> dict[str, float | None]:
     """µm/px of every slide (``mpp``: the one given for all, ``--mpp``, instead of what the files state); with one
     ``magnification_range`` for all, slides whose level-0 µm/px differ by more than 5 % (or some unknown) are an
     error naming two of them: one range would give them different physical scales."""
     from data_tools.slide_files.open import open_slide
 
     mpps: dict[str, float | None] = {}
-    for e in ([] if mpp is not None else entries):
+    for e in [] if mpp is not None else entries:
         try:
             with open_slide(e.path, reader) as slide:
                 mpps[e.name] = slide.mpp
@@ -88,22 +107,34 @@ def check_scales(entries, magnification_range, reader: str | None = None,
         known = {n: m for n, m in mpps.items() if m}
         unknown = [e for e in entries if not mpps.get(e.name)]
         if known and unknown:
-            raise HistojaxDataError(unknown[0].path, f"has no µm/px while {next(iter(known))} has "
-                                    f"{next(iter(known.values())):.4g}: one --magnification-range "
-                                    f"{magnification_range:g} would mix scales; build them in separate datasets")
+            raise HistojaxDataError(
+                unknown[0].path,
+                f"has no µm/px while {next(iter(known))} has "
+                f"{next(iter(known.values())):.4g}: one --magnification-range "
+                f"{magnification_range:g} would mix scales; build them in separate datasets",
+            )
         if known:
             lo, hi = min(known, key=known.get), max(known, key=known.get)
             if known[hi] > known[lo] * (1 + MPP_TOLERANCE):
-                raise HistojaxDataError(next(e.path for e in entries if e.name == hi),
-                                        f"is {known[hi]:.4g} µm/px but {lo} is {known[lo]:.4g} µm/px: one "
-                                        f"--magnification-range {magnification_range:g} would give their levels "
-                                        "different physical scales; omit it (each slide its own range) or build "
-                                        "them in separate datasets")
+                raise HistojaxDataError(
+                    next(e.path for e in entries if e.name == hi),
+                    f"is {known[hi]:.4g} µm/px but {lo} is {known[lo]:.4g} µm/px: one "
+                    f"--magnification-range {magnification_range:g} would give their levels "
+                    "different physical scales; omit it (each slide its own range) or build "
+                    "them in separate datasets",
+                )
     return mpps
 
 
-def make_plan(entries, slides_dir, options: dict, test_fraction: float, seed: int, folds: int | None = None,
-              patients: dict[str, str] | None = None) -> dict:
+def make_plan(
+    entries,
+    slides_dir,
+    options: dict,
+    test_fraction: float,
+    seed: int,
+    folds: int | None = None,
+    patients: dict[str, str] | None = None,
+) -> dict:
     """The cohort and options every shard must agree on: slide → (path relative to ``slides_dir``,
     annotation, label, split); with ``folds`` (K), ``folds``: K folds stratified by label, the slides of one
     patient (``patients``: name → patient from the label table, else a TCGA barcode's) in one fold, over every
@@ -120,19 +151,34 @@ def make_plan(entries, slides_dir, options: dict, test_fraction: float, seed: in
         rule = "given (CAMELYON16 official split or the label table's split column)"
         for patient, sides in patients_on_both_sides(split, every).items():
             where = "; ".join(f"{side}: {', '.join(names)}" for side, names in sorted(sides.items()))
-            warnings.warn(f"the given split puts patient {patient} on both sides ({where}): its figures on the test "
-                          "side are not patient-held-out; move the patient's slides to one side", stacklevel=2)
+            warnings.warn(
+                f"the given split puts patient {patient} on both sides ({where}): its figures on the test "
+                "side are not patient-held-out; move the patient's slides to one side",
+                stacklevel=2,
+            )
     else:
-        train, test = seeded_split([e.name for e in entries], {e.name: e.label for e in entries}, test_fraction, seed,
-                                   every if several else None)  # one slide each: the split it always had
+        train, test = seeded_split(
+            [e.name for e in entries],
+            {e.name: e.label for e in entries},
+            test_fraction,
+            seed,
+            every if several else None,
+        )  # one slide each: the split it always had
         split = {**{n: "train" for n in train}, **{n: "test" for n in test}}
         rule = f"seeded (seed {seed}), stratified by label, {test_fraction:.0%} of each label in test"
         if several:  # a cohort of one slide per patient keeps the rule (and the split) it always had
             rule += f", the slides of one patient on one side ({grouped_by})"
-    slides = {e.name: {"path": _rel(e.path, slides_dir),
-                       "annotation": None if e.annotation is None else _rel(e.annotation, slides_dir),
-                       "annotation_kind": e.annotation_kind, "label": int(e.label), "label_source": e.label_source,
-                       "split": split[e.name]} for e in entries}
+    slides = {
+        e.name: {
+            "path": _rel(e.path, slides_dir),
+            "annotation": None if e.annotation is None else _rel(e.annotation, slides_dir),
+            "annotation_kind": e.annotation_kind,
+            "label": int(e.label),
+            "label_source": e.label_source,
+            "split": split[e.name],
+        }
+        for e in entries
+    }
     plan = {"kind": KIND, "options": options, "split_rule": rule, "slides": slides}
     plan["split_grouped_by"] = grouped_by  # a plan written before it (no such key) is still agreed to: _agree
     if folds is not None:
@@ -153,16 +199,30 @@ def read_plan(out) -> dict:
     except FileNotFoundError:
         raise HistojaxDataError(out, "no plan.json: not a dataset started by `histojax dataset`") from None
     except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
-        raise HistojaxDataError(path, f"unreadable ({_one_line(e)}); not a histojax dataset plan, refusing "
-                                      "to touch it: choose another --out") from None
+        raise HistojaxDataError(
+            path,
+            f"unreadable ({_one_line(e)}); not a histojax dataset plan, refusing to touch it: choose another --out",
+        ) from None
     slides = plan.get("slides") if isinstance(plan, dict) else None
-    if not isinstance(plan, dict) or plan.get("kind") != KIND or not isinstance(plan.get("options"), dict) \
-            or not isinstance(slides, dict) \
-            or not all(isinstance(v, dict) and {"split", "label", "path"} <= set(v) for v in slides.values()):
-        found = f"kind {plan.get('kind')!r}" if isinstance(plan, dict) and "kind" in plan else \
-            f"slides {type(slides).__name__}" if isinstance(plan, dict) else type(plan).__name__
-        raise HistojaxDataError(path, f"is not a histojax dataset plan ({found}; another tool's file?); "
-                                      "refusing to touch it: choose another --out")
+    if (
+        not isinstance(plan, dict)
+        or plan.get("kind") != KIND
+        or not isinstance(plan.get("options"), dict)
+        or not isinstance(slides, dict)
+        or not all(isinstance(v, dict) and {"split", "label", "path"} <= set(v) for v in slides.values())
+    ):
+        found = (
+            f"kind {plan.get('kind')!r}"
+            if isinstance(plan, dict) and "kind" in plan
+            else f"slides {type(slides).__name__}"
+            if isinstance(plan, dict)
+            else type(plan).__name__
+        )
+        raise HistojaxDataError(
+            path,
+            f"is not a histojax dataset plan ({found}; another tool's file?); "
+            "refusing to touch it: choose another --out",
+        )
     return plan
 
 
@@ -172,12 +232,19 @@ def _check_out_apart(slides_dir: Path, out: Path) -> None:
     src, dst = Path(slides_dir).resolve(), Path(out).resolve()
     if src == dst or dst in src.parents:
         where = "is the folder of slides itself" if src == dst else f"holds the folder of slides {slides_dir}"
-        raise HistojaxDataError(out, f"--out {where}: the dataset (bundles, records, dataset.json) needs a folder "
-                                     f"of its own, e.g. --out {src.name}-dataset beside it")
+        raise HistojaxDataError(
+            out,
+            f"--out {where}: the dataset (bundles, records, dataset.json) needs a folder "
+            f"of its own, e.g. --out {src.name}-dataset beside it",
+        )
 
 
-PLAN_PARTS = {"options": "other options", "slides": "another cohort of slides", "split_rule": "another split rule",
-              "folds": "other folds (or none)"}
+PLAN_PARTS = {
+    "options": "other options",
+    "slides": "another cohort of slides",
+    "split_rule": "another split rule",
+    "folds": "other folds (or none)",
+}
 """How a refusal names each part of ``plan.json`` that differs from the command's."""
 
 
@@ -191,29 +258,43 @@ def _agree(out: Path, plan: dict, restart: bool = False) -> None:
             old = {**old, "split_grouped_by": plan.get("split_grouped_by")}
         if not restart and old != plan and plan.get("folds") and {**old, "folds": plan["folds"]} == plan:
             # only the folds are new: they depend on the labels and patients alone, so no bundle is rebuilt
-            print(f"{path}: the folds are new ({plan['folds'].get('k', '?')} folds); every bundle is kept and "
-                  "dataset.json is written again with them", flush=True)
+            print(
+                f"{path}: the folds are new ({plan['folds'].get('k', '?')} folds); every bundle is kept and "
+                "dataset.json is written again with them",
+                flush=True,
+            )
         elif not restart and old != plan:
             what = [PLAN_PARTS[k] for k in ("options", "slides", "split_rule", "folds") if old.get(k) != plan.get(k)]
             detail = ""
             if old.get("options") != plan.get("options"):
-                diff = sorted(k for k in set(old["options"]) | set(plan["options"])
-                              if old["options"].get(k) != plan["options"].get(k))
+                diff = sorted(
+                    k
+                    for k in set(old["options"]) | set(plan["options"])
+                    if old["options"].get(k) != plan["options"].get(k)
+                )
                 detail = f" (options {diff})"
             elif old.get("slides") != plan.get("slides"):
-                diff = sorted(k for k in set(old["slides"]) | set(plan["slides"])
-                              if old["slides"].get(k) != plan["slides"].get(k))
+                diff = sorted(
+                    k for k in set(old["slides"]) | set(plan["slides"]) if old["slides"].get(k) != plan["slides"].get(k)
+                )
                 detail = f" (slides {diff[:4]})"
-            raise HistojaxDataError(path, f"this dataset was started with {' and '.join(what)}{detail}; "
-                                          "use the same command, a new --out, or --restart")
+            raise HistojaxDataError(
+                path,
+                f"this dataset was started with {' and '.join(what)}{detail}; "
+                "use the same command, a new --out, or --restart",
+            )
     write_json(path, plan)
 
 
 def _settings_key(name: str, slide: dict, options: dict, slides_dir: Path) -> dict:
-    return {"slide": slide, "options": options,
-            "fingerprint": _fingerprint(slides_dir / slide["path"]),
-            "annotation_fingerprint": None if slide["annotation"] is None
-            else _fingerprint(slides_dir / slide["annotation"])}
+    return {
+        "slide": slide,
+        "options": options,
+        "fingerprint": _fingerprint(slides_dir / slide["path"]),
+        "annotation_fingerprint": None
+        if slide["annotation"] is None
+        else _fingerprint(slides_dir / slide["annotation"]),
+    }
 
 
 def record_path(out: Path, name: str, failed: bool = False) -> Path:
@@ -267,12 +348,17 @@ def check_bundle_folder(bundle: Path) -> None:
     if not (bundle.exists() or bundle.is_symlink()):
         return
     if bundle.is_symlink() or not bundle.is_dir():
-        raise HistojaxDataError(bundle, "is not a bundle folder (a file or a link); refusing to replace it: move it "
-                                        "away or choose another --out")
+        raise HistojaxDataError(
+            bundle,
+            "is not a bundle folder (a file or a link); refusing to replace it: move it away or choose another --out",
+        )
     foreign = foreign_entries(bundle)
     if foreign:
-        raise HistojaxDataError(bundle, f"holds {len(foreign)} file(s) histojax did not write (e.g. {foreign[0]!r}); "
-                                        "refusing to replace or remove them: move them away or choose another --out")
+        raise HistojaxDataError(
+            bundle,
+            f"holds {len(foreign)} file(s) histojax did not write (e.g. {foreign[0]!r}); "
+            "refusing to replace or remove them: move them away or choose another --out",
+        )
 
 
 BUILD_ERRORS = (HistojaxDataError, OSError, ValueError, MemoryError)
@@ -308,8 +394,11 @@ def run_locked(out, name: str, work, current=None, staged: bool = False) -> dict
     tmp = bundle.parent / f".{name}.tmp-{uuid.uuid4().hex[:8]}"  # where a staged build writes
 
     def failed(e: BaseException) -> dict:
-        reason = _one_line(e) if not (isinstance(e, OSError) and e.filename is None) \
+        reason = (
+            _one_line(e)
+            if not (isinstance(e, OSError) and e.filename is None)
             else f"{bundle}: {_one_line(e.strerror or e)}"
+        )
         reason = reason.replace(str(tmp), str(bundle))  # name the bundle, not its hidden temporary
         kept = staged and read_record(out, name) is not None and (bundle / "metadata.json").is_file()
         write_json(record_path(out, name, failed=True), {"name": name, "reason": reason, "previous_kept": kept})
@@ -359,9 +448,11 @@ def run_locked(out, name: str, work, current=None, staged: bool = False) -> dict
 def run_summary(results: list[dict]) -> dict:
     """This run's slides by the status :func:`run_locked` gave them: ``built`` / ``resumed`` / ``busy`` names
     and ``failed`` (name → reason)."""
-    return {**{k: [r["name"] for r in results if r["status"] == k] for k in ("built", "resumed", "busy")},
-            "failed": {r["name"]: r["reason"] for r in results if r["status"] == "failed"},
-            "kept": [r["name"] for r in results if r["status"] == "failed" and r.get("kept")]}
+    return {
+        **{k: [r["name"] for r in results if r["status"] == k] for k in ("built", "resumed", "busy")},
+        "failed": {r["name"]: r["reason"] for r in results if r["status"] == "failed"},
+        "kept": [r["name"] for r in results if r["status"] == "failed" and r.get("kept")],
+    }
 
 
 def collect_records(out, names, current=None) -> tuple[dict[str, dict], dict[str, str], list[str]]:
@@ -373,8 +464,11 @@ def collect_records(out, names, current=None) -> tuple[dict[str, dict], dict[str
     records, failed, missing = {}, {}, []
     for name in names:
         rec = read_record(out, name)
-        if rec is not None and (current is None or current(rec)) \
-                and (out / "bundles" / name / "metadata.json").is_file():
+        if (
+            rec is not None
+            and (current is None or current(rec))
+            and (out / "bundles" / name / "metadata.json").is_file()
+        ):
             records[name] = {k: v for k, v in rec.items() if k != "settings"}
             continue
         bad = read_record(out, name, failed=True)
@@ -402,9 +496,15 @@ def build_one(job: dict) -> dict:
     out, name, slide, opts = Path(job["out"]), job["name"], job["slide"], job["options"]
     slides_dir = Path(job["slides_dir"])
     key = _settings_key(name, slide, opts, slides_dir)
-    return run_locked(out, name, lambda folder: _build(out, name, slide, opts, slides_dir, folder, key, job.get("h5"),
-                                                       job.get("progress", False)),
-                      current=lambda rec: rec.get("settings") == key, staged=True)
+    return run_locked(
+        out,
+        name,
+        lambda folder: _build(
+            out, name, slide, opts, slides_dir, folder, key, job.get("h5"), job.get("progress", False)
+        ),
+        current=lambda rec: rec.get("settings") == key,
+        staged=True,
+    )
 
 
 def _one_line(e: BaseException) -> str:
@@ -429,9 +529,20 @@ def _build(out, name, slide, opts, slides_dir, bundle, key, h5, progress) -> dic
         raise HistojaxDataError(path, f"no feature file {name}.h5 in --features-from {opts['features_from']}")
     with warnings.catch_warnings(record=True) as caught:
         warnings.simplefilter("always")
-        build_bundle(path, bundle, annotations_path=ann, level_sets=opts["levels"], tile_size=opts["tile_size"],
-                     magnification_range=opts["magnification_range"], storage=opts["storage"], overwrite=True,
-                     progress=progress, label_map=opts["label_map"], reader=opts.get("reader"), mpp=opts.get("mpp"))
+        build_bundle(
+            path,
+            bundle,
+            annotations_path=ann,
+            level_sets=opts["levels"],
+            tile_size=opts["tile_size"],
+            magnification_range=opts["magnification_range"],
+            storage=opts["storage"],
+            overwrite=True,
+            progress=progress,
+            label_map=opts["label_map"],
+            reader=opts.get("reader"),
+            mpp=opts.get("mpp"),
+        )
     notes = sorted({_one_line(w.message) for w in caught})
     meta = read_metadata(bundle)
     tissue = np.load(bundle / meta.tissue_file, allow_pickle=False)
@@ -439,12 +550,16 @@ def _build(out, name, slide, opts, slides_dir, bundle, key, h5, progress) -> dic
         raise HistojaxDataError(path, "no tissue found (the coarsest level is blank glass): not a usable slide")
     tumour_px = float((meta.annotations or {}).get("tumour_area_px") or 0.0)
     if slide["label"] == 1 and slide["label_source"].startswith("annotated") and tumour_px <= 0:
-        raise HistojaxDataError(ann, "annotation has no tumour polygon (groups map to "
-                                f"{(meta.annotations or {}).get('n_polygons')}); label the slide in --labels or "
-                                "fix --label-map")
+        raise HistojaxDataError(
+            ann,
+            "annotation has no tumour polygon (groups map to "
+            f"{(meta.annotations or {}).get('n_polygons')}); label the slide in --labels or "
+            "fix --label-map",
+        )
     if slide["label"] == 0 and tumour_px > 0:
-        raise HistojaxDataError(ann, f"marks {tumour_px:.0f} px² of tumour but the slide is labelled normal "
-                                     f"({slide['label_source']})")
+        raise HistojaxDataError(
+            ann, f"marks {tumour_px:.0f} px² of tumour but the slide is labelled normal ({slide['label_source']})"
+        )
     if h5 is not None:
         from data_tools.features.hdf5 import import_features
 
@@ -459,14 +574,26 @@ def _build(out, name, slide, opts, slides_dir, bundle, key, h5, progress) -> dic
 
         drop_pixels(bundle)
     meta = read_metadata(bundle)
-    return {"name": name, "bundle": f"bundles/{name}", "source": slide["path"], "label": slide["label"],
-            "label_source": slide["label_source"], "split": slide["split"], "settings": key,
-            "format": meta.source.get("format"), "width": meta.source.get("width"),
-            "height": meta.source.get("height"), "mpp": meta.source.get("mpp"), "storage": meta.storage,
-            "tumour_area_level0_px2": tumour_px, "encoder": (meta.features or {}).get("encoder"),
-            "pixels_kept": len(meta.pixel_levels) == len(meta.levels),
-            "bundle_bytes": sum(f.stat().st_size for f in bundle.rglob("*") if f.is_file()),
-            "device_bytes_pixels": meta.device_bytes, "notes": notes}
+    return {
+        "name": name,
+        "bundle": f"bundles/{name}",
+        "source": slide["path"],
+        "label": slide["label"],
+        "label_source": slide["label_source"],
+        "split": slide["split"],
+        "settings": key,
+        "format": meta.source.get("format"),
+        "width": meta.source.get("width"),
+        "height": meta.source.get("height"),
+        "mpp": meta.source.get("mpp"),
+        "storage": meta.storage,
+        "tumour_area_level0_px2": tumour_px,
+        "encoder": (meta.features or {}).get("encoder"),
+        "pixels_kept": len(meta.pixel_levels) == len(meta.levels),
+        "bundle_bytes": sum(f.stat().st_size for f in bundle.rglob("*") if f.is_file()),
+        "device_bytes_pixels": meta.device_bytes,
+        "notes": notes,
+    }
 
 
 def write_dataset_json(out, plan: dict, records: dict[str, dict], failed: dict[str, str], extra=None) -> dict:
@@ -476,7 +603,8 @@ def write_dataset_json(out, plan: dict, records: dict[str, dict], failed: dict[s
     out = Path(out)
     names = sorted(records)
     dataset = {
-        "kind": plan.get("kind", KIND), "split_rule": plan.get("split_rule"),
+        "kind": plan.get("kind", KIND),
+        "split_rule": plan.get("split_rule"),
         "split_grouped_by": plan.get("split_grouped_by", "one slide per patient (built before patient grouping)"),
         "options": plan.get("options"),
         "encoder": _encoder_of(plan.get("options") or {}),
@@ -516,9 +644,13 @@ def dataset_json_is_ours(path) -> bool:
         return False
     if DATASET_DIGEST in old:
         return old[DATASET_DIGEST] == metadata_digest({k: v for k, v in old.items() if k != DATASET_DIGEST})
-    return old.get("kind") in SEALING_KINDS and isinstance(old.get("train"), list) \
-        and isinstance(old.get("test"), list) and isinstance(old.get("labels"), dict) \
+    return (
+        old.get("kind") in SEALING_KINDS
+        and isinstance(old.get("train"), list)
+        and isinstance(old.get("test"), list)
+        and isinstance(old.get("labels"), dict)
         and isinstance(old.get("slides"), list)
+    )
 
 
 def check_dataset_json(out) -> None:
@@ -526,8 +658,11 @@ def check_dataset_json(out) -> None:
     (:func:`dataset_json_is_ours`): it is never overwritten."""
     path = Path(out) / "dataset.json"
     if not dataset_json_is_ours(path):
-        raise HistojaxDataError(path, "was not written by histojax dataset or c16 (or was edited since); refusing to "
-                                      "overwrite it: move it away or choose another --out")
+        raise HistojaxDataError(
+            path,
+            "was not written by histojax dataset or c16 (or was edited since); refusing to "
+            "overwrite it: move it away or choose another --out",
+        )
 
 
 def write_dataset_index(out, dataset: dict) -> dict:
@@ -553,15 +688,21 @@ def check_scorable(out, plan: dict, records: dict, failed: dict[str, str]) -> No
         lost = [n for n in planned if n not in records]
         why = "; ".join(f"{n}: {failed[n]}" for n in lost[:2] if n in failed)[:300]
         if planned and not built:
-            raise HistojaxDataError(out, f"the {side} split would hold no slide: all {len(planned)} of its slides "
-                                         f"failed ({why}); dataset.json not written (built slides are kept): fix "
-                                         "them and rerun")
+            raise HistojaxDataError(
+                out,
+                f"the {side} split would hold no slide: all {len(planned)} of its slides "
+                f"failed ({why}); dataset.json not written (built slides are kept): fix "
+                "them and rerun",
+            )
         tumour = [n for n in planned if int(plan["slides"][n]["label"]) == 1]
         if tumour and not any(n in records for n in tumour):
             why = "; ".join(f"{n}: {failed[n]}" for n in tumour[:2] if n in failed)[:300]
-            raise HistojaxDataError(out, f"the {side} split would hold no tumour slide: its {len(tumour)} tumour "
-                                         f"slide(s) failed ({why}), so it cannot be scored; dataset.json not "
-                                         "written (built slides are kept): fix them and rerun")
+            raise HistojaxDataError(
+                out,
+                f"the {side} split would hold no tumour slide: its {len(tumour)} tumour "
+                f"slide(s) failed ({why}), so it cannot be scored; dataset.json not "
+                "written (built slides are kept): fix them and rerun",
+            )
 
 
 def merge_dataset(out) -> tuple[dict | None, list[str], dict[str, str]]:
@@ -591,8 +732,11 @@ def merge_dataset(out) -> tuple[dict | None, list[str], dict[str, str]]:
     check_scorable(out, plan, records, failed)
     if plan["slides"] and not records:  # every slide failed (none planned for test): no dataset of 0 slides
         why = "; ".join(f"{n}: {failed[n]}" for n in sorted(failed)[:2])[:300]
-        raise HistojaxDataError(out, f"no slide of this dataset is built: all {len(plan['slides'])} failed ({why}); "
-                                     "dataset.json not written: fix them and rerun")
+        raise HistojaxDataError(
+            out,
+            f"no slide of this dataset is built: all {len(plan['slides'])} failed ({why}); "
+            "dataset.json not written: fix them and rerun",
+        )
     extra = {"kept_after_failed_rebuild": kept} if kept else None
     return write_dataset_json(out, plan, records, failed, extra), [], failed
 
@@ -613,14 +757,18 @@ def _hold_run(out: Path, plan: dict) -> None:
             same = False
     run = RunLock(out / RUN_LOCK)
     if not run.claim(exclusive=not same):
-        raise HistojaxDataError(out, "another histojax dataset run is building this folder with other options "
-                                     "(or another cohort); wait for it to finish (or stop it), then rerun, or "
-                                     "choose another --out")
+        raise HistojaxDataError(
+            out,
+            "another histojax dataset run is building this folder with other options "
+            "(or another cohort); wait for it to finish (or stop it), then rerun, or "
+            "choose another --out",
+        )
     _HELD.append(run)
 
 
 def _releasing_run_lock(build):
     """Release the run locks :func:`build_dataset` took (:func:`_hold_run`) however it ends."""
+
     @functools.wraps(build)
     def wrapper(*args, **kwargs):
         depth = len(_HELD)
@@ -629,17 +777,38 @@ def _releasing_run_lock(build):
         finally:
             while len(_HELD) > depth:
                 _HELD.pop().release()
+
     return wrapper
 
 
 @_releasing_run_lock
-def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 5, 7), tile_size: int = 128,
-                  magnification_range: float | None = None, storage: str = "auto", label_map=None,
-                  encoder: str | None = None, features_from=None, patch_size: int | None = None,
-                  patch_level: int | None = None, no_pixels: bool = False, test_fraction: float = 0.25,
-                  seed: int = 0, jobs: int = 1, shard: tuple[int, int] | None = None, restart: bool = False,
-                  allow_unmatched: bool = False, progress: bool = True, reader: str | None = None,
-                  folds: int | None = None, mpp: float | None = None) -> dict:
+def build_dataset(
+    slides_dir,
+    out,
+    *,
+    labels=None,
+    annotations=None,
+    levels=(3, 5, 7),
+    tile_size: int = 128,
+    magnification_range: float | None = None,
+    storage: str = "auto",
+    label_map=None,
+    encoder: str | None = None,
+    features_from=None,
+    patch_size: int | None = None,
+    patch_level: int | None = None,
+    no_pixels: bool = False,
+    test_fraction: float = 0.25,
+    seed: int = 0,
+    jobs: int = 1,
+    shard: tuple[int, int] | None = None,
+    restart: bool = False,
+    allow_unmatched: bool = False,
+    progress: bool = True,
+    reader: str | None = None,
+    folds: int | None = None,
+    mpp: float | None = None,
+) -> dict:
     """Build (or finish) the dataset ``out`` from the slides under ``slides_dir`` (see the module doc and
     :mod:`data_tools.datasets.discover`). ``levels`` / ``tile_size`` (px) / ``magnification_range`` (the
     coarsest downsample; default each slide's own) / ``storage`` / ``label_map``: as ``build``.
@@ -672,8 +841,14 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     _check_out_apart(slides_dir, out)
     t0 = time.perf_counter()
     skipped: list = []  # files discovery passed over, with why (each also a warning): "skipped" in the summary
-    entries = discover(slides_dir, annotations_dir=annotations, labels_csv=labels, skip=[out],
-                       allow_unmatched=allow_unmatched, skipped=skipped)
+    entries = discover(
+        slides_dir,
+        annotations_dir=annotations,
+        labels_csv=labels,
+        skip=[out],
+        allow_unmatched=allow_unmatched,
+        skipped=skipped,
+    )
     h5s = h5_index(features_from) if features_from else None
     if h5s:  # one encoder's features: files of different D refused before anything is built
         from data_tools.features.hdf5 import check_feature_dims
@@ -682,14 +857,22 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     mpps = check_scales(entries, magnification_range, reader, mpp)
     for line in dataset_scale(_encoder_of({"encoder": encoder, "features_from": features_from}), mpps)[1]:
         warnings.warn(f"{slides_dir}: {line}", stacklevel=2)  # one line each; recorded in dataset.json
-    options = {"levels": sorted(set(int(v) for v in levels)), "tile_size": int(tile_size),
-               "magnification_range": magnification_range, "storage": storage, "label_map": label_map or None,
-               "encoder": encoder,
-               "features_from": None if features_from is None else str(Path(features_from).resolve()),
-               "patch_size": patch_size, "patch_level": patch_level, "no_pixels": bool(no_pixels),
-               "test_fraction": test_fraction, "seed": int(seed),
-               **({"reader": reader} if reader not in (None, "auto") else {}),  # absent: plans of before stay equal
-               **({"mpp": float(mpp)} if mpp is not None else {})}
+    options = {
+        "levels": sorted(set(int(v) for v in levels)),
+        "tile_size": int(tile_size),
+        "magnification_range": magnification_range,
+        "storage": storage,
+        "label_map": label_map or None,
+        "encoder": encoder,
+        "features_from": None if features_from is None else str(Path(features_from).resolve()),
+        "patch_size": patch_size,
+        "patch_level": patch_level,
+        "no_pixels": bool(no_pixels),
+        "test_fraction": test_fraction,
+        "seed": int(seed),
+        **({"reader": reader} if reader not in (None, "auto") else {}),  # absent: plans of before stay equal
+        **({"mpp": float(mpp)} if mpp is not None else {}),
+    }
     patients = read_patient_column(labels) if labels is not None else None  # the split and folds by patient
     plan = make_plan(entries, slides_dir, options, test_fraction, seed, folds=folds, patients=patients)
     for n, m in mpps.items():
@@ -703,16 +886,26 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
         # --restart keeps dataset.json: the dataset stays loadable until the new one replaces it
         _agree(out, plan, restart=restart)
         _HELD[-1].share()
-    removed = clean_stale(out / "bundles") + [f"annotations/{n}" for n in clean_stale(out / "annotations",
-                                                                                      lock_folder=out / "bundles")]
+    removed = clean_stale(out / "bundles") + [
+        f"annotations/{n}" for n in clean_stale(out / "annotations", lock_folder=out / "bundles")
+    ]
     for sub in ("records", "records/failed"):
         removed += [f"{sub}/{n}" for n in clean_stale(out / sub, finished_features=False, lock_folder=out / "bundles")]
     if removed and progress:
         print(f"removed {len(removed)} leftovers of an interrupted run: {', '.join(removed[:5])}")
     mine = shard_names(plan["slides"], shard)
-    jobs_list = [{"out": str(out), "name": n, "slide": plan["slides"][n], "options": options,
-                  "slides_dir": str(slides_dir), "progress": progress and jobs <= 1,
-                  "h5": None if h5s is None else h5s.get(n.lower())} for n in mine]
+    jobs_list = [
+        {
+            "out": str(out),
+            "name": n,
+            "slide": plan["slides"][n],
+            "options": options,
+            "slides_dir": str(slides_dir),
+            "progress": progress and jobs <= 1,
+            "h5": None if h5s is None else h5s.get(n.lower()),
+        }
+        for n in mine
+    ]
     results = []
     bar = tqdm(total=len(jobs_list), desc="dataset slides", unit="slide", disable=not progress)
     if jobs <= 1:
@@ -722,13 +915,19 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
     else:
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor, as_completed
+        from concurrent.futures.process import BrokenProcessPool
 
         from data_tools.datasets.workers import die_with_parent, stop_workers_on_sigterm
 
-        from concurrent.futures.process import BrokenProcessPool
-
-        with ProcessPoolExecutor(jobs, mp_context=multiprocessing.get_context("spawn"), initializer=die_with_parent,
-                                 initargs=(os.getpid(),)) as pool, stop_workers_on_sigterm(pool):
+        with (
+            ProcessPoolExecutor(
+                jobs,
+                mp_context=multiprocessing.get_context("spawn"),
+                initializer=die_with_parent,
+                initargs=(os.getpid(),),
+            ) as pool,
+            stop_workers_on_sigterm(pool),
+        ):
             futures = {pool.submit(build_one, job): job["name"] for job in jobs_list}
             try:
                 for fut in as_completed(futures):
@@ -737,22 +936,51 @@ def build_dataset(slides_dir, out, *, labels=None, annotations=None, levels=(3, 
             except BrokenProcessPool:
                 done = {r["name"] for r in results}
                 left = [n for n in futures.values() if n not in done]
-                raise HistojaxDataError(out, f"a --jobs worker process died (killed, e.g. out of memory) while "
-                                             f"{len(left)} slide(s) were unfinished (e.g. {', '.join(left[:3])}); "
-                                             "finished slides are kept: rerun to resume, with fewer --jobs if memory "
-                                             "ran out") from None
+                raise HistojaxDataError(
+                    out,
+                    f"a --jobs worker process died (killed, e.g. out of memory) while "
+                    f"{len(left)} slide(s) were unfinished (e.g. {', '.join(left[:3])}); "
+                    "finished slides are kept: rerun to resume, with fewer --jobs if memory "
+                    "ran out",
+                ) from None
     bar.close()
     dataset, missing, failed = merge_dataset(out)
     built = [r for r in results if r["status"] == "built"]
     seconds = time.perf_counter() - t0
-    return {**run_summary(results),
-            "failed_all": failed, "missing": missing, "dataset": dataset, "seconds": round(seconds, 2),
-            "slides_per_minute": round(60 * len(built) / seconds, 2) if built else None,
-            "peak_rss_bytes_per_job": max([r["record"]["peak_rss_bytes"] for r in built] or [0]),
-            "shard": shard, "n_slides": len(plan["slides"]), "n_mine": len(mine),
-            "skipped": [str(item) for item in skipped]}
+    return {
+        **run_summary(results),
+        "failed_all": failed,
+        "missing": missing,
+        "dataset": dataset,
+        "seconds": round(seconds, 2),
+        "slides_per_minute": round(60 * len(built) / seconds, 2) if built else None,
+        "peak_rss_bytes_per_job": max([r["record"]["peak_rss_bytes"] for r in built] or [0]),
+        "shard": shard,
+        "n_slides": len(plan["slides"]),
+        "n_mine": len(mine),
+        "skipped": [str(item) for item in skipped],
+    }
 
 
-__all__ = ["BUILD_ERRORS", "DATASET_DIGEST", "build_dataset", "build_one", "check_bundle_folder", "check_dataset_json",
-           "check_scales", "check_scorable", "collect_records", "dataset_json_is_ours", "h5_index", "make_plan",
-           "merge_dataset", "read_plan", "read_record", "record_path", "run_locked", "run_summary", "write_dataset_index", "write_dataset_json"]
+__all__ = [
+    "BUILD_ERRORS",
+    "DATASET_DIGEST",
+    "build_dataset",
+    "build_one",
+    "check_bundle_folder",
+    "check_dataset_json",
+    "check_scales",
+    "check_scorable",
+    "collect_records",
+    "dataset_json_is_ours",
+    "h5_index",
+    "make_plan",
+    "merge_dataset",
+    "read_plan",
+    "read_record",
+    "record_path",
+    "run_locked",
+    "run_summary",
+    "write_dataset_index",
+    "write_dataset_json",
+]

@@ -16,6 +16,7 @@ CAMELYON16 as downloaded (``training/tumor/*.tif``, ``training/normal/*.tif``,
 recognised: labels from the folder (training) and ``reference.csv`` (testing), split = the official
 one.
 """
+
 from __future__ import annotations
 
 import errno
@@ -25,16 +26,35 @@ from dataclasses import dataclass, field
 from pathlib import Path
 
 from data_tools.datasets.split import read_label_table, slide_key
-from data_tools.slide_files.dicom import is_dicom
 from data_tools.errors import HistojaxDataError
+from data_tools.slide_files.dicom import is_dicom
 
-SLIDE_EXTENSIONS = (".svs", ".tif", ".tiff", ".ndpi", ".qptiff", ".btf", ".tf8", ".tf2",
-                    ".mrxs", ".scn", ".bif", ".vms", ".vmu", ".svslide")
+SLIDE_EXTENSIONS = (
+    ".svs",
+    ".tif",
+    ".tiff",
+    ".ndpi",
+    ".qptiff",
+    ".btf",
+    ".tf8",
+    ".tf2",
+    ".mrxs",
+    ".scn",
+    ".bif",
+    ".vms",
+    ".vmu",
+    ".svslide",
+)
 """Slide files searched (tifffile reads TIFF, BigTIFF, OME-TIFF, Akoya QPTIFF, Hamamatsu NDPI; OpenSlide, the extra
 ``histojax[openslide]``, reads MIRAX, Leica SCN, Ventana BIF, Hamamatsu VMS / VMU and Sakura SVSlide)."""
 ANNOTATION_EXTENSIONS = (".xml", ".geojson", ".json")
-OTHER_SLIDE_FORMATS = {".vsi": "Olympus VSI", ".czi": "Zeiss CZI", ".isyntax": "Philips iSyntax",
-                       ".kfb": "KFBio KFB", ".sdpc": "SQRAY SDPC"}
+OTHER_SLIDE_FORMATS = {
+    ".vsi": "Olympus VSI",
+    ".czi": "Zeiss CZI",
+    ".isyntax": "Philips iSyntax",
+    ".kfb": "KFBio KFB",
+    ".sdpc": "SQRAY SDPC",
+}
 """Whole-slide formats histojax does not read: listed as skipped with the format named (convert them to
 pyramidal TIFF / OME-TIFF first, e.g. with ``bfconvert`` or ``vips``)."""
 
@@ -99,8 +119,13 @@ def _unreadable(path: Path, e: OSError) -> str:
 
 
 def _file_kind(mode: int) -> str:
-    for test, name in ((stat.S_ISFIFO, "a FIFO"), (stat.S_ISSOCK, "a socket"), (stat.S_ISCHR, "a character device"),
-                       (stat.S_ISBLK, "a block device"), (stat.S_ISDIR, "a folder")):
+    for test, name in (
+        (stat.S_ISFIFO, "a FIFO"),
+        (stat.S_ISSOCK, "a socket"),
+        (stat.S_ISCHR, "a character device"),
+        (stat.S_ISBLK, "a block device"),
+        (stat.S_ISDIR, "a folder"),
+    ):
         if test(mode):
             return name
     return "not a regular file"
@@ -110,9 +135,11 @@ def _other_file_reason(name: str) -> str:
     low = name.lower()
     ext = os.path.splitext(low)[1]
     if ext in OTHER_SLIDE_FORMATS:
-        return (f"a {OTHER_SLIDE_FORMATS[ext]} slide, a format histojax does not read (it reads SVS, TIFF / BigTIFF, "
-                "OME-TIFF, QPTIFF, NDPI, DICOM WSI and, through OpenSlide, MIRAX, SCN, BIF, VMS / VMU, SVSlide); "
-                "convert it to a pyramidal TIFF")
+        return (
+            f"a {OTHER_SLIDE_FORMATS[ext]} slide, a format histojax does not read (it reads SVS, TIFF / BigTIFF, "
+            "OME-TIFF, QPTIFF, NDPI, DICOM WSI and, through OpenSlide, MIRAX, SCN, BIF, VMS / VMU, SVSlide); "
+            "convert it to a pyramidal TIFF"
+        )
     if ext == ".dcm":
         return "named .dcm but not a DICOM file"
     if ext == ".csv":
@@ -188,8 +215,11 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
             identity[p] = (st.st_dev, st.st_ino)
             regular[f] = p
         known = SLIDE_EXTENSIONS + ANNOTATION_EXTENSIONS + (".csv", ".h5")
-        dicom = {f for f, p in regular.items()  # .dcm, no extension, or a UID as the name (1.2.840.....)
-                 if (f.lower().endswith(".dcm") or not f.lower().endswith(known)) and is_dicom(p)}
+        dicom = {
+            f
+            for f, p in regular.items()  # .dcm, no extension, or a UID as the name (1.2.840.....)
+            if (f.lower().endswith(".dcm") or not f.lower().endswith(known)) and is_dicom(p)
+        }
         if dicom:
             slides.append(here)
         in_bundle = (here / "metadata.json").is_file()  # a bundle's own files are not the user's slides
@@ -221,8 +251,9 @@ def _walk(root: Path, skip, skipped: list[Skipped]):
     return once(slides), once(annotations)
 
 
-def by_name(paths, what: str, hint: str = "names identify slides, rename one or build the folders separately"
-            ) -> dict[str, Path]:
+def by_name(
+    paths, what: str, hint: str = "names identify slides, rename one or build the folders separately"
+) -> dict[str, Path]:
     """Paths keyed by lower-cased slide name; two files of one name in two folders are an error naming both,
     then ``hint``."""
     out: dict[str, Path] = {}
@@ -240,8 +271,15 @@ def camelyon16_layout(root: Path) -> bool:
     return any((root / p).is_dir() for p in ("training/tumor", "training/normal", "testing/images"))
 
 
-def discover(root, annotations_dir=None, labels_csv=None, skip=(), allow_unmatched: bool = False,
-             skipped: list | None = None, warn_skipped: bool = True) -> list[SlideEntry]:
+def discover(
+    root,
+    annotations_dir=None,
+    labels_csv=None,
+    skip=(),
+    allow_unmatched: bool = False,
+    skipped: list | None = None,
+    warn_skipped: bool = True,
+) -> list[SlideEntry]:
     """The cohort under ``root`` (see the module doc), sorted by name. Errors (one line, naming the
     file): no slides; two slides or annotations of one name; an annotation naming no slide (unless
     ``allow_unmatched``); a label table naming unknown slides or missing some; CAMELYON16 testing
@@ -260,13 +298,19 @@ def discover(root, annotations_dir=None, labels_csv=None, skip=(), allow_unmatch
         _, more = _walk(Path(annotations_dir), list(skip), skipped)
         ann_paths += more
     kinds = {p: _annotation_kind(p) for p in ann_paths}
-    skipped += [Skipped(p, f"a {p.suffix} file that is not an ASAP XML, GeoJSON or NCRF JSON annotation")
-                for p, k in kinds.items() if not k]
+    skipped += [
+        Skipped(p, f"a {p.suffix} file that is not an ASAP XML, GeoJSON or NCRF JSON annotation")
+        for p, k in kinds.items()
+        if not k
+    ]
     ann_paths = [p for p in ann_paths if kinds[p]]
     used = {_real(labels_csv)} if labels_csv is not None else set()  # tables read: not skipped
     c16 = camelyon16_layout(root)
-    skipped[:] = [item for item in skipped if _real(item.path) not in used
-                  and not (c16 and item.path.name.lower() == "reference.csv")]
+    skipped[:] = [
+        item
+        for item in skipped
+        if _real(item.path) not in used and not (c16 and item.path.name.lower() == "reference.csv")
+    ]
     if warn_skipped:
         import warnings
 
@@ -278,11 +322,14 @@ def discover(root, annotations_dir=None, labels_csv=None, skip=(), allow_unmatch
     anns = by_name(ann_paths, "annotation files")
     orphans = sorted(set(anns) - set(slides))
     if orphans and not allow_unmatched:
-        raise HistojaxDataError(anns[orphans[0]], f"annotation for a slide that is not in {root} ({len(orphans)} "
-                                f"such: {', '.join(anns[k].name for k in orphans[:4])}"
-                                f"{', ...' if len(orphans) > 4 else ''}); a misspelt name would make a tumour "
-                                "slide look normal. Pass --allow-unmatched-annotations if only part of the "
-                                "cohort is here")
+        raise HistojaxDataError(
+            anns[orphans[0]],
+            f"annotation for a slide that is not in {root} ({len(orphans)} "
+            f"such: {', '.join(anns[k].name for k in orphans[:4])}"
+            f"{', ...' if len(orphans) > 4 else ''}); a misspelt name would make a tumour "
+            "slide look normal. Pass --allow-unmatched-annotations if only part of the "
+            "cohort is here",
+        )
     entries = []
     for key, path in sorted(slides.items()):
         e = SlideEntry(name=slide_key(path.name), path=path)
@@ -305,8 +352,10 @@ def _camelyon16_labels(root: Path, entries: list[SlideEntry]) -> None:
     if testing:
         found = sorted(root.rglob("reference.csv"))
         if not found:
-            raise HistojaxDataError(root / "testing" / "reference.csv",
-                                    f"missing: the labels of the {len(testing)} CAMELYON16 testing slides come from it")
+            raise HistojaxDataError(
+                root / "testing" / "reference.csv",
+                f"missing: the labels of the {len(testing)} CAMELYON16 testing slides come from it",
+            )
         reference = {k.lower(): v for k, v in read_label_table(found[0])[0].items()}
     for e in entries:
         parts = [p.lower() for p in e.path.relative_to(root).parts[:-1]]
@@ -321,8 +370,11 @@ def _camelyon16_labels(root: Path, entries: list[SlideEntry]) -> None:
             e.label = reference[e.name.lower()]
             e.label_source = f"CAMELYON16 {found[0].name}"
         else:
-            raise HistojaxDataError(e.path, "not in training/tumor, training/normal or testing/images of the "
-                                            "CAMELYON16 layout; its label would be a guess")
+            raise HistojaxDataError(
+                e.path,
+                "not in training/tumor, training/normal or testing/images of the "
+                "CAMELYON16 layout; its label would be a guess",
+            )
 
 
 def _table_labels(path: Path, entries: list[SlideEntry]) -> None:
@@ -333,12 +385,17 @@ def _table_labels(path: Path, entries: list[SlideEntry]) -> None:
     names = {e.name.lower() for e in entries}
     unknown = sorted(set(labels) - names)
     if unknown:
-        raise HistojaxDataError(path, f"names {len(unknown)} slide(s) that are not in the folder: "
-                                      f"{', '.join(unknown[:4])}{', ...' if len(unknown) > 4 else ''}")
+        raise HistojaxDataError(
+            path,
+            f"names {len(unknown)} slide(s) that are not in the folder: "
+            f"{', '.join(unknown[:4])}{', ...' if len(unknown) > 4 else ''}",
+        )
     missing = sorted(e.name for e in entries if e.name.lower() not in labels)
     if missing:
-        raise HistojaxDataError(path, f"has no label for {len(missing)} slide(s): {', '.join(missing[:4])}"
-                                      f"{', ...' if len(missing) > 4 else ''}")
+        raise HistojaxDataError(
+            path,
+            f"has no label for {len(missing)} slide(s): {', '.join(missing[:4])}{', ...' if len(missing) > 4 else ''}",
+        )
     for e in entries:
         new = labels[e.name.lower()]
         if e.split is not None and e.label != new:  # a layout label (CAMELYON16 folder) disagrees
@@ -357,15 +414,27 @@ def ncrf_to_geojson(path: Path, out: Path) -> Path:
     from data_tools.ncrf import parse_ncrf
 
     s = parse_ncrf(slide_key(path.name), path.read_bytes(), path)
-    pairs = [("tumour", s.positive), ("exclusion", s.negative)] if not s.positive.is_empty \
-        else [("tissue", s.negative)]
-    doc = {"type": "FeatureCollection", "features": [
-        {"type": "Feature", "properties": {"label": label, "source": path.name}, "geometry": mapping(g)}
-        for label, g in pairs if not g.is_empty]}
+    pairs = [("tumour", s.positive), ("exclusion", s.negative)] if not s.positive.is_empty else [("tissue", s.negative)]
+    doc = {
+        "type": "FeatureCollection",
+        "features": [
+            {"type": "Feature", "properties": {"label": label, "source": path.name}, "geometry": mapping(g)}
+            for label, g in pairs
+            if not g.is_empty
+        ],
+    }
     out.parent.mkdir(parents=True, exist_ok=True)
     write_json(out, doc)
     return out
 
 
-__all__ = ["ANNOTATION_EXTENSIONS", "OTHER_SLIDE_FORMATS", "SLIDE_EXTENSIONS", "SlideEntry", "Skipped",
-           "camelyon16_layout", "discover", "ncrf_to_geojson"]
+__all__ = [
+    "ANNOTATION_EXTENSIONS",
+    "OTHER_SLIDE_FORMATS",
+    "SLIDE_EXTENSIONS",
+    "SlideEntry",
+    "Skipped",
+    "camelyon16_layout",
+    "discover",
+    "ncrf_to_geojson",
+]

@@ -14,6 +14,7 @@ alone) and only when histojax can prove it made them: every temporary folder it 
 (:func:`data_tools.bundle_files.writes.mark_temporary`). A file or folder of such a name without the marker is the
 user's: neither removed nor renamed.
 """
+
 from __future__ import annotations
 
 import contextlib
@@ -186,8 +187,9 @@ def clean_stale(folder, finished_features: bool = True, lock_folder=None) -> lis
             continue
         names = dict.fromkeys([m["name"], m["name"].split(".")[0]])
         with contextlib.ExitStack() as stack:
-            if not all(stack.enter_context(_free(locks / f".{n}.{kind}"))
-                       for n in names for kind in ("dataset-lock", "lock")):
+            if not all(
+                stack.enter_context(_free(locks / f".{n}.{kind}")) for n in names for kind in ("dataset-lock", "lock")
+            ):
                 continue
             target = folder / m["name"]
             if m["kind"] == "old" and not (target.exists() or target.is_symlink()):
@@ -245,7 +247,9 @@ def clean_stale_builds(folder, keep=()) -> list[str]:
         if not m or m["name"] in keep or not is_our_temporary(p):
             continue  # not a temporary histojax marked: not ours to judge
         with contextlib.ExitStack() as stack:
-            if not all(stack.enter_context(_free(folder / f".{m['name']}.{kind}")) for kind in ("dataset-lock", "lock")):
+            if not all(
+                stack.enter_context(_free(folder / f".{m['name']}.{kind}")) for kind in ("dataset-lock", "lock")
+            ):
                 continue
             target = folder / m["name"]
             if m["kind"] == "old" and not (target.exists() or target.is_symlink()):
@@ -279,5 +283,14 @@ def clean_partial_features(bundle) -> bool:
     return False
 
 
-__all__ = ["LockHeld", "RUN_LOCK", "RunLock", "bundle_lock_path", "clean_lock_files", "clean_partial_features", "clean_stale",
-           "clean_stale_builds", "file_lock"]
+__all__ = [
+    "LockHeld",
+    "RUN_LOCK",
+    "RunLock",
+    "bundle_lock_path",
+    "clean_lock_files",
+    "clean_partial_features",
+    "clean_stale",
+    "clean_stale_builds",
+    "file_lock",
+]

@@ -6,6 +6,7 @@ those a slide uses. Sources: the small bank shipped in the package (``data_tools
 500 + 500 patches, the JPEG bytes as distributed), a folder laid out ``.../0/*.jpg`` and ``.../1/*.jpg``
 (e.g. the unpacked ``pcam_train_patches.tar.gz``), or such a ``.tar.gz`` itself.
 """
+
 from __future__ import annotations
 
 import tarfile
@@ -17,10 +18,12 @@ import numpy as np
 from data_tools.errors import HistojaxDataError
 
 SHIPPED_BANK = Path(__file__).resolve().parents[1] / "pcam" / "bank.npz"
-PATCH = 96          # px a side
-PATCH_MPP = 0.972   # µm per px (CAMELYON16 level 0, 0.243 µm/px, downsampled 4×)
-CITATION = ("B. S. Veeling, J. Linmans, J. Winkens, T. Cohen, M. Welling. Rotation Equivariant CNNs for Digital "
-            "Pathology. MICCAI 2018 (PatchCamelyon, CC0 1.0)")
+PATCH = 96  # px a side
+PATCH_MPP = 0.972  # µm per px (CAMELYON16 level 0, 0.243 µm/px, downsampled 4×)
+CITATION = (
+    "B. S. Veeling, J. Linmans, J. Winkens, T. Cohen, M. Welling. Rotation Equivariant CNNs for Digital "
+    "Pathology. MICCAI 2018 (PatchCamelyon, CC0 1.0)"
+)
 
 
 @dataclass(frozen=True)
@@ -47,7 +50,7 @@ class PatchBank:
 
         out = np.empty((len(indices), PATCH, PATCH, 3), np.uint8)
         for j, i in enumerate(indices):
-            img = imagecodecs.jpeg8_decode(self.blob[self.offsets[i]:self.offsets[i + 1]].tobytes())
+            img = imagecodecs.jpeg8_decode(self.blob[self.offsets[i] : self.offsets[i + 1]].tobytes())
             if img.shape != (PATCH, PATCH, 3):
                 raise HistojaxDataError(self.source, f"patch {self.names[i]} is {img.shape}, not 96×96 RGB")
             out[j] = img
@@ -56,8 +59,10 @@ class PatchBank:
     def take(self, indices, source: str | None = None) -> "PatchBank":
         """A bank of the patches at ``indices`` (in that order), JPEG bytes shared by copy."""
         indices = np.asarray(indices, np.int64)
-        items = [(str(self.names[i]), int(self.labels[i]), self.blob[self.offsets[i]:self.offsets[i + 1]].tobytes())
-                 for i in indices]
+        items = [
+            (str(self.names[i]), int(self.labels[i]), self.blob[self.offsets[i] : self.offsets[i + 1]].tobytes())
+            for i in indices
+        ]
         return _from_items(items, source or self.source)
 
     def save(self, path) -> Path:
@@ -70,10 +75,13 @@ class PatchBank:
 def _from_items(items: list[tuple[str, int, bytes]], source: str) -> PatchBank:
     items = sorted(items, key=lambda it: (it[1], it[0]))
     sizes = np.array([len(b) for _, _, b in items], np.int64)
-    return PatchBank(blob=np.frombuffer(b"".join(b for _, _, b in items), np.uint8).copy(),
-                     offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
-                     labels=np.array([lab for _, lab, _ in items], np.uint8),
-                     names=np.array([n for n, _, _ in items], dtype="U64"), source=source)
+    return PatchBank(
+        blob=np.frombuffer(b"".join(b for _, _, b in items), np.uint8).copy(),
+        offsets=np.concatenate([[0], np.cumsum(sizes)]).astype(np.int64),
+        labels=np.array([lab for _, lab, _ in items], np.uint8),
+        names=np.array([n for n, _, _ in items], dtype="U64"),
+        source=source,
+    )
 
 
 def _label_of(parts) -> int | None:
@@ -89,8 +97,9 @@ def load_bank(source=None) -> PatchBank:
     if path.is_file() and path.suffix == ".npz":
         try:
             with np.load(path, allow_pickle=False) as z:
-                bank = PatchBank(blob=z["blob"], offsets=z["offsets"], labels=z["labels"], names=z["names"],
-                                 source=str(path))
+                bank = PatchBank(
+                    blob=z["blob"], offsets=z["offsets"], labels=z["labels"], names=z["names"], source=str(path)
+                )
         except (OSError, ValueError, KeyError) as e:
             raise HistojaxDataError(path, f"not a patch bank .npz ({e})") from None
     elif path.is_dir():
@@ -120,15 +129,20 @@ def load_bank(source=None) -> PatchBank:
 def subsample(bank: PatchBank, per_class: int, seed: int = 0) -> PatchBank:
     """A bank of ``per_class`` patches of each label drawn without replacement (for shipping a small bank)."""
     rng = np.random.default_rng(seed)
-    keep = np.sort(np.concatenate([rng.choice(bank.indices(lab), min(per_class, len(bank.indices(lab))),
-                                              replace=False) for lab in (0, 1)]))
-    items = [(str(bank.names[i]), int(bank.labels[i]), bank.blob[bank.offsets[i]:bank.offsets[i + 1]].tobytes())
-             for i in keep]
+    keep = np.sort(
+        np.concatenate(
+            [rng.choice(bank.indices(lab), min(per_class, len(bank.indices(lab))), replace=False) for lab in (0, 1)]
+        )
+    )
+    items = [
+        (str(bank.names[i]), int(bank.labels[i]), bank.blob[bank.offsets[i] : bank.offsets[i + 1]].tobytes())
+        for i in keep
+    ]
     return _from_items(items, f"{bank.source} (subsample of {per_class} per class, seed {seed})")
 
 
-POOL_SEED = 0              # the seed of the train/test patch-pool rule (recorded in dataset.json)
-POOL_TEST_FRACTION = 0.5   # share of the patches of each class in the test pool
+POOL_SEED = 0  # the seed of the train/test patch-pool rule (recorded in dataset.json)
+POOL_TEST_FRACTION = 0.5  # share of the patches of each class in the test pool
 
 
 def in_test_pool(names, labels, seed: int = POOL_SEED, test_fraction: float = POOL_TEST_FRACTION) -> np.ndarray:
@@ -149,23 +163,43 @@ def in_test_pool(names, labels, seed: int = POOL_SEED, test_fraction: float = PO
 
 def pool_rule(seed: int = POOL_SEED, test_fraction: float = POOL_TEST_FRACTION) -> dict:
     """The pool rule of :func:`in_test_pool` as recorded in ``dataset.json``."""
-    return {"rule": "test pool iff int(sha256(f'{seed}:{label}/{name}')[:8]) / 2**64 < test_fraction",
-            "seed": int(seed), "test_fraction": float(test_fraction)}
+    return {
+        "rule": "test pool iff int(sha256(f'{seed}:{label}/{name}')[:8]) / 2**64 < test_fraction",
+        "seed": int(seed),
+        "test_fraction": float(test_fraction),
+    }
 
 
-def split_pools(bank: PatchBank, seed: int = POOL_SEED,
-                test_fraction: float = POOL_TEST_FRACTION) -> tuple[PatchBank, PatchBank]:
+def split_pools(
+    bank: PatchBank, seed: int = POOL_SEED, test_fraction: float = POOL_TEST_FRACTION
+) -> tuple[PatchBank, PatchBank]:
     """``(training pool, test pool)`` of ``bank`` by :func:`in_test_pool`; ``HistojaxDataError`` naming the
     bank when a pool would lack one of the two classes."""
     test = in_test_pool(bank.names, bank.labels, seed, test_fraction)
-    pools = (bank.take(np.flatnonzero(~test), f"{bank.source} [training pool]"),
-             bank.take(np.flatnonzero(test), f"{bank.source} [test pool]"))
+    pools = (
+        bank.take(np.flatnonzero(~test), f"{bank.source} [training pool]"),
+        bank.take(np.flatnonzero(test), f"{bank.source} [test pool]"),
+    )
     for pool in pools:
         for label in (0, 1):
             if not (pool.labels == label).any():
-                raise HistojaxDataError(bank.source, f"too few patches: the {pool.source.rsplit('[', 1)[-1][:-1]} "
-                                        f"has none labelled {label}")
+                raise HistojaxDataError(
+                    bank.source, f"too few patches: the {pool.source.rsplit('[', 1)[-1][:-1]} has none labelled {label}"
+                )
     return pools
 
 
-__all__ = ["CITATION", "POOL_SEED", "POOL_TEST_FRACTION", "in_test_pool", "pool_rule", "split_pools", "PATCH", "PATCH_MPP", "PatchBank", "SHIPPED_BANK", "load_bank", "subsample"]
+__all__ = [
+    "CITATION",
+    "POOL_SEED",
+    "POOL_TEST_FRACTION",
+    "in_test_pool",
+    "pool_rule",
+    "split_pools",
+    "PATCH",
+    "PATCH_MPP",
+    "PatchBank",
+    "SHIPPED_BANK",
+    "load_bank",
+    "subsample",
+]

@@ -1,4 +1,5 @@
 """Labels, train/test splits and shards of a dataset (shared by ``data_tools dataset`` and ``c16``)."""
+
 from __future__ import annotations
 
 import csv
@@ -24,15 +25,37 @@ def parse_label(value: str, where, row: int) -> int:
         return 1
     if v in NEGATIVE:
         return 0
-    raise HistojaxDataError(where, f"row {row}: label {value!r} is neither tumour (1, Tumor, positive) nor normal "
-                                   "(0, Normal, negative)")
+    raise HistojaxDataError(
+        where, f"row {row}: label {value!r} is neither tumour (1, Tumor, positive) nor normal (0, Normal, negative)"
+    )
 
 
 def slide_key(text: str) -> str:
     """A slide name as matched across files: the file name without its slide extension(s)."""
     name = Path(str(text).strip()).name
-    for ext in (".ome.tiff", ".ome.tif", ".qptiff", ".tiff", ".tif", ".btf", ".tf8", ".tf2", ".svs", ".ndpi", ".mrxs",
-                ".scn", ".bif", ".vms", ".vmu", ".svslide", ".dcm", ".h5", ".xml", ".geojson", ".json"):
+    for ext in (
+        ".ome.tiff",
+        ".ome.tif",
+        ".qptiff",
+        ".tiff",
+        ".tif",
+        ".btf",
+        ".tf8",
+        ".tf2",
+        ".svs",
+        ".ndpi",
+        ".mrxs",
+        ".scn",
+        ".bif",
+        ".vms",
+        ".vmu",
+        ".svslide",
+        ".dcm",
+        ".h5",
+        ".xml",
+        ".geojson",
+        ".json",
+    ):
         if name.lower().endswith(ext):
             return name[: -len(ext)]
     return name
@@ -53,8 +76,11 @@ def _label_table_text(path: Path) -> str:
         if not stat.S_ISREG(st.st_mode):
             raise HistojaxDataError(path, "the label table is not a regular file (a folder, FIFO or device)")
         if st.st_size > MAX_LABEL_TABLE_BYTES:
-            raise HistojaxDataError(path, f"the label table is {st.st_size / 2**20:.0f} MiB, over the "
-                                          f"{MAX_LABEL_TABLE_BYTES // 2**20} MiB a table of slide labels needs")
+            raise HistojaxDataError(
+                path,
+                f"the label table is {st.st_size / 2**20:.0f} MiB, over the "
+                f"{MAX_LABEL_TABLE_BYTES // 2**20} MiB a table of slide labels needs",
+            )
         data = path.read_bytes()
     except OSError as e:
         raise HistojaxDataError(path, f"cannot read the label table ({e.strerror or e})") from None
@@ -65,12 +91,16 @@ def _label_table_text(path: Path) -> str:
     try:
         text = data.decode(encoding)
     except UnicodeDecodeError as e:
-        raise HistojaxDataError(path, f"the label table is not {'UTF-16' if encoding == 'utf-16' else 'UTF-8'} text "
-                                      f"(byte {data[e.start]:#04x} at offset {e.start}); save it as UTF-8 (UTF-8 "
-                                      "with a BOM and UTF-16 with a BOM are read too)") from None
+        raise HistojaxDataError(
+            path,
+            f"the label table is not {'UTF-16' if encoding == 'utf-16' else 'UTF-8'} text "
+            f"(byte {data[e.start]:#04x} at offset {e.start}); save it as UTF-8 (UTF-8 "
+            "with a BOM and UTF-16 with a BOM are read too)",
+        ) from None
     if "\x00" in text:
-        raise HistojaxDataError(path, "the label table holds NUL characters: not a text table (UTF-16 without a "
-                                      "BOM? save it as UTF-8)")
+        raise HistojaxDataError(
+            path, "the label table holds NUL characters: not a text table (UTF-16 without a BOM? save it as UTF-8)"
+        )
     return text
 
 
@@ -98,8 +128,11 @@ def read_label_table(path) -> tuple[dict[str, int], dict[str, str]]:
     if name_col is None and label_col is None:  # no header: name,label,...
         name_col, label_col, start = 0, 1, 0
     elif name_col is None or label_col is None:
-        raise HistojaxDataError(path, f"the header {rows[0]} needs a slide column (one of {NAME_COLUMNS}) and a "
-                                      f"label column (one of {LABEL_COLUMNS})")
+        raise HistojaxDataError(
+            path,
+            f"the header {rows[0]} needs a slide column (one of {NAME_COLUMNS}) and a "
+            f"label column (one of {LABEL_COLUMNS})",
+        )
     else:
         start = 1
     labels: dict[str, int] = {}
@@ -121,13 +154,19 @@ def read_label_table(path) -> tuple[dict[str, int], dict[str, str]]:
         if key in first:
             j, was = first[key]
             if labels[was] != label:
-                raise HistojaxDataError(path, f"rows {j} ({was!r}, label {labels[was]}) and {i} ({name!r}, label "
-                                              f"{label}) name one slide (names are matched ignoring case) with "
-                                              "different labels; keep one row")
+                raise HistojaxDataError(
+                    path,
+                    f"rows {j} ({was!r}, label {labels[was]}) and {i} ({name!r}, label "
+                    f"{label}) name one slide (names are matched ignoring case) with "
+                    "different labels; keep one row",
+                )
             if splits.get(was) != split:
-                raise HistojaxDataError(path, f"rows {j} ({was!r}, split {splits.get(was)}) and {i} ({name!r}, split "
-                                              f"{split}) name one slide (names are matched ignoring case) with "
-                                              "different splits; keep one row")
+                raise HistojaxDataError(
+                    path,
+                    f"rows {j} ({was!r}, split {splits.get(was)}) and {i} ({name!r}, split "
+                    f"{split}) name one slide (names are matched ignoring case) with "
+                    "different splits; keep one row",
+                )
             continue
         first[key] = (i, name)
         labels[name] = label
@@ -135,13 +174,17 @@ def read_label_table(path) -> tuple[dict[str, int], dict[str, str]]:
             splits[name] = split
     if splits and set(splits) != set(labels):
         missing = sorted(set(labels) - set(splits))
-        raise HistojaxDataError(path, f"the split column is empty for {len(missing)} slide(s), e.g. {missing[:3]}; "
-                                      "give every slide a split or none")
+        raise HistojaxDataError(
+            path,
+            f"the split column is empty for {len(missing)} slide(s), e.g. {missing[:3]}; "
+            "give every slide a split or none",
+        )
     return labels, splits
 
 
-def seeded_split(names, labels: dict[str, int], test_fraction: float, seed: int,
-                 groups: dict[str, str] | None = None) -> tuple[list[str], list[str]]:
+def seeded_split(
+    names, labels: dict[str, int], test_fraction: float, seed: int, groups: dict[str, str] | None = None
+) -> tuple[list[str], list[str]]:
     """Train/test by slide, stratified by label: for each label, ``floor(test_fraction · n)`` slides (at
     least one while the label has two or more) go to test in a seeded order. ``groups`` (name → group
     key) keeps slides of one group (e.g. a patient) on one side. Deterministic given ``seed`` and the
@@ -225,15 +268,21 @@ def read_patient_column(path) -> dict[str, str]:
         name = slide_key(row[name_col]) if len(row) > name_col else ""
         patient = row[patient_col].strip() if len(row) > patient_col else ""
         if name and not patient:
-            raise HistojaxDataError(path, f"row {i}: the {rows[0][patient_col].strip()} cell of {name!r} is empty; "
-                                          "give every slide its patient or drop the column")
+            raise HistojaxDataError(
+                path,
+                f"row {i}: the {rows[0][patient_col].strip()} cell of {name!r} is empty; "
+                "give every slide its patient or drop the column",
+            )
         if not name:
             continue
         if name.lower() in first:
             j, was = first[name.lower()]
             if out[was] != patient:
-                raise HistojaxDataError(path, f"rows {j} and {i} list slide {name!r} with two patients ({out[was]!r} "
-                                              f"and {patient!r}); a slide belongs to one patient: keep one row")
+                raise HistojaxDataError(
+                    path,
+                    f"rows {j} and {i} list slide {name!r} with two patients ({out[was]!r} "
+                    f"and {patient!r}); a slide belongs to one patient: keep one row",
+                )
             continue
         first[name.lower()] = (i, name)
         out[name] = patient
@@ -249,7 +298,7 @@ def patient_groups(names, patients: dict[str, str] | None = None) -> tuple[dict[
     for n in names:
         if n.lower() in given:
             out[n], rule = f"patient:{given[n.lower()]}", "the label table's patient column"
-        elif (m := TCGA_BARCODE.match(n)):
+        elif m := TCGA_BARCODE.match(n):
             out[n], rule = f"patient:{m.group(1).upper()}", "the TCGA barcode's patient (TCGA-XX-XXXX)"
         else:
             out[n], rule = f"slide:{n}", "one slide per patient"
@@ -266,8 +315,9 @@ def patients_on_both_sides(split: dict[str, str], groups: dict[str, str]) -> dic
     return {g.split(":", 1)[1]: v for g, v in sorted(sides.items()) if len(v) > 1}
 
 
-def kfold_split(names, labels: dict[str, int], k: int, seed: int,
-                groups: dict[str, str] | None = None) -> dict[str, int]:
+def kfold_split(
+    names, labels: dict[str, int], k: int, seed: int, groups: dict[str, str] | None = None
+) -> dict[str, int]:
     """Slide name → fold (0..k-1): ``k`` folds stratified by label, the slides of one group (a patient) in one
     fold. Groups (labelled by their highest label: a patient with a tumour slide counts as tumour) are dealt,
     largest first and then in a seeded order, each to the fold holding the fewest slides of its label (then the
@@ -287,8 +337,11 @@ def kfold_split(names, labels: dict[str, int], k: int, seed: int,
         count = sum(v == label for v in glabel.values())
         if count < k:
             kind = "tumour" if label == 1 else "normal"
-            raise HistojaxDataError(None, f"--folds {k} needs at least {k} {kind} patients (slides of one patient stay "
-                                          f"in one fold); there are {count}: give fewer folds")
+            raise HistojaxDataError(
+                None,
+                f"--folds {k} needs at least {k} {kind} patients (slides of one patient stay "
+                f"in one fold); there are {count}: give fewer folds",
+            )
     order = [keys[i] for i in np.random.default_rng([int(seed), 31]).permutation(len(keys))]
     order.sort(key=lambda g: -len(members[g]))  # stable: the seeded order within one size
     per_label = np.zeros((k, 2), dtype=np.int64)
@@ -307,9 +360,14 @@ def kfold_split(names, labels: dict[str, int], k: int, seed: int,
 def folds_record(fold: dict[str, int], k: int, seed: int, pool: str, grouped_by: str) -> dict:
     """The ``folds`` entry of a dataset plan: ``k``, the ``pool`` folded (``"all"`` slides, or ``"train"``: the
     train side of a fixed split), ``seed``, the grouping rule and ``fold`` (slide name → 0..k-1)."""
-    rule = (f"{k} folds, stratified by label, seeded (seed {seed}), slides of one patient in one fold ({grouped_by}); "
-            + ("fold i: test = fold i, train = the other folds" if pool == "all" else
-               "over the train side (the test set is fixed): fold i: validation = fold i, train = the other folds"))
+    rule = (
+        f"{k} folds, stratified by label, seeded (seed {seed}), slides of one patient in one fold ({grouped_by}); "
+        + (
+            "fold i: test = fold i, train = the other folds"
+            if pool == "all"
+            else "over the train side (the test set is fixed): fold i: validation = fold i, train = the other folds"
+        )
+    )
     return {"k": int(k), "pool": pool, "seed": int(seed), "grouped_by": grouped_by, "rule": rule, "fold": fold}
 
 
@@ -317,8 +375,9 @@ def fold_lists(folds: dict, built) -> dict:
     """``dataset.json``'s ``folds``: the plan's record (:func:`folds_record`) with ``lists`` (fold i → the
     ``bundles/NAME`` of its built slides, sorted) in place of ``fold``."""
     built = set(built)
-    lists = [[f"bundles/{n}" for n, i in sorted(folds["fold"].items()) if i == f and n in built]
-             for f in range(folds["k"])]
+    lists = [
+        [f"bundles/{n}" for n, i in sorted(folds["fold"].items()) if i == f and n in built] for f in range(folds["k"])
+    ]
     return {**{key: v for key, v in folds.items() if key != "fold"}, "lists": lists}
 
 
@@ -343,5 +402,20 @@ def shard_names(names, shard: tuple[int, int] | None) -> list[str]:
     return names[i::n]
 
 
-__all__ = ["PATIENT_COLUMNS", "TCGA_BARCODE", "fold_lists", "folds_record", "grouped_split", "kfold_split", "parse_label", "parse_shard",
-           "patient_groups", "patients_on_both_sides", "read_label_table", "read_patient_column", "seeded_split", "shard_names", "slide_key"]
+__all__ = [
+    "PATIENT_COLUMNS",
+    "TCGA_BARCODE",
+    "fold_lists",
+    "folds_record",
+    "grouped_split",
+    "kfold_split",
+    "parse_label",
+    "parse_shard",
+    "patient_groups",
+    "patients_on_both_sides",
+    "read_label_table",
+    "read_patient_column",
+    "seeded_split",
+    "shard_names",
+    "slide_key",
+]

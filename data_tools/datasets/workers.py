@@ -7,6 +7,7 @@ parent dies (Linux ``prctl(PR_SET_PDEATHSIG, SIGKILL)``) and, on every system, s
 that exits the worker within half a second of its parent's death. :func:`stop_workers_on_sigterm`
 makes ``SIGTERM`` of the parent terminate the workers before it exits (status 143).
 """
+
 from __future__ import annotations
 
 import contextlib

@@ -20,8 +20,11 @@ def encoder_record(spec: str) -> dict:
     if is_custom(spec):
         return load_custom_encoder(spec).record()
     if spec not in ENCODERS:
-        raise HistojaxDataError(None, f"--encoder {spec!r}: use one of {', '.join(ENCODERS)}, or your own as "
-                                      "module:function (docs/your-own-slides.md#your-own-encoder)")
+        raise HistojaxDataError(
+            None,
+            f"--encoder {spec!r}: use one of {', '.join(ENCODERS)}, or your own as "
+            "module:function (docs/your-own-slides.md#your-own-encoder)",
+        )
     return {"encoder": spec}
 
 

@@ -9,6 +9,7 @@ encoder of the diagnosis benchmarks and tests (``python -m data_tools features B
 colour-stats``). For real slides use a learned encoder (``efficientnet-lite0``, or imported
 CLAM/TRIDENT features).
 """
+
 from __future__ import annotations
 
 import jax

@@ -14,6 +14,7 @@ Views are given at the bundle's tile size (128 px for the C16 benchmark), as ``n
 NumPy, JAX (or CPU PyTorch) array. Every call's result is checked: 2-D, one row per image, the same ``D`` on
 every call, ``float32`` and finite. An encoder that breaks a rule is refused with one line naming it.
 """
+
 from __future__ import annotations
 
 import functools
@@ -56,14 +57,18 @@ def _import(spec: str):
     try:
         module = _import_module(module_name)
     except ImportError as e:
-        raise HistojaxDataError(None, f"--encoder {spec}: cannot import {module_name!r} ({e}) from the working "
-                                      f"folder {os.getcwd()} nor the Python path: run from the folder holding "
-                                      f"{module_name.split('.')[0]}.py (or its package), or pip install it") from e
+        raise HistojaxDataError(
+            None,
+            f"--encoder {spec}: cannot import {module_name!r} ({e}) from the working "
+            f"folder {os.getcwd()} nor the Python path: run from the folder holding "
+            f"{module_name.split('.')[0]}.py (or its package), or pip install it",
+        ) from e
     except KeyboardInterrupt:
         raise
     except BaseException as e:  # noqa: BLE001 (the user's module: SystemExit(0) at import must not end us with 0)
-        raise HistojaxDataError(None, f"--encoder {spec}: importing {module_name!r} raised "
-                                      f"{type(e).__name__}: {e}") from e
+        raise HistojaxDataError(
+            None, f"--encoder {spec}: importing {module_name!r} raised {type(e).__name__}: {e}"
+        ) from e
     fn = module
     for part in attr.split("."):
         fn = getattr(fn, part, None)
@@ -86,15 +91,19 @@ class CustomEncoder:
         name = getattr(fn, "name", None)
         version = getattr(fn, "version", None)
         if name is not None and (not isinstance(name, str) or not name.strip()):
-            raise HistojaxDataError(None, f"--encoder {spec}: its name attribute must be a non-empty string, "
-                                          f"got {name!r}")
+            raise HistojaxDataError(
+                None, f"--encoder {spec}: its name attribute must be a non-empty string, got {name!r}"
+            )
         if version is not None and not isinstance(version, (str, int)):
             raise HistojaxDataError(None, f"--encoder {spec}: its version attribute must be a string, got {version!r}")
         self.name = name or spec
         self.version = None if version is None else str(version)
         if self.name in ENCODERS:
-            raise HistojaxDataError(None, f"--encoder {spec}: named {self.name!r}, a built-in encoder's name; "
-                                          "give it a name of its own (fn.name)")
+            raise HistojaxDataError(
+                None,
+                f"--encoder {spec}: named {self.name!r}, a built-in encoder's name; "
+                "give it a name of its own (fn.name)",
+            )
         self.dim = None  # set by the first call (the probe of load_custom_encoder)
 
     def __repr__(self):
@@ -111,19 +120,25 @@ class CustomEncoder:
             raise
         except BaseException as e:  # noqa: BLE001 (the user's code: any error, named; a SystemExit(0) too, which
             # would otherwise end `features` / `c16` with status 0 having written nothing)
-            raise HistojaxDataError(None, f"{self!r} failed on {images.shape[0]} views of "
-                                          f"{images.shape[1]}x{images.shape[2]} px: {type(e).__name__}: {e}") from e
+            raise HistojaxDataError(
+                None,
+                f"{self!r} failed on {images.shape[0]} views of "
+                f"{images.shape[1]}x{images.shape[2]} px: {type(e).__name__}: {e}",
+            ) from e
         try:
             arr = np.asarray(out)
         except Exception as e:  # noqa: BLE001
             raise HistojaxDataError(None, f"{self!r} returned a {type(out).__name__}, not an array") from e
         n = images.shape[0]
         if arr.ndim != 2 or arr.shape[0] != n or arr.shape[1] < 1:
-            raise HistojaxDataError(None, f"{self!r} returned shape {arr.shape} for {n} views; it must return "
-                                          f"(N, D) = ({n}, D) with D >= 1")
+            raise HistojaxDataError(
+                None, f"{self!r} returned shape {arr.shape} for {n} views; it must return (N, D) = ({n}, D) with D >= 1"
+            )
         if self.dim is not None and arr.shape[1] != self.dim:
-            raise HistojaxDataError(None, f"{self!r} returned D = {arr.shape[1]} after D = {self.dim} before; "
-                                          "every call must return the same D")
+            raise HistojaxDataError(
+                None,
+                f"{self!r} returned D = {arr.shape[1]} after D = {self.dim} before; every call must return the same D",
+            )
         if arr.dtype != np.float32:
             raise HistojaxDataError(None, f"{self!r} returned dtype {arr.dtype}; it must return float32")
         if not np.isfinite(arr).all():

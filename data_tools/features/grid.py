@@ -13,6 +13,7 @@ Optional reduction to ``dim`` < 1280: ``projection="random"`` — a seeded Gauss
 directions of this slide's embeddings (centred with their mean); the matrix (and the PCA mean) are
 stored as ``features_projection.npy`` (``features_projection_mean.npy``).
 """
+
 from __future__ import annotations
 
 import json
@@ -34,9 +35,16 @@ PROJECTIONS = ("random", "pca")
 
 def _settings(metadata: dict, encoder, stride: int, batch: int) -> dict:
     items = "pool tiles" if metadata.is_tiled and stride == metadata.tile_size else "views"
-    return {"encoder": encoder.name, "image_size": encoder.image_size, "stride": stride, "batch": batch, "items": items,
-            "tile_size": metadata.tile_size, "source_sha256": metadata.source["sha256"],
-            "levels": [[lv["width"], lv["height"], lv["downsample"]] for lv in metadata.levels]}
+    return {
+        "encoder": encoder.name,
+        "image_size": encoder.image_size,
+        "stride": stride,
+        "batch": batch,
+        "items": items,
+        "tile_size": metadata.tile_size,
+        "source_sha256": metadata.source["sha256"],
+        "levels": [[lv["width"], lv["height"], lv["downsample"]] for lv in metadata.levels],
+    }
 
 
 def _projection(raw: np.ndarray, dim: int | None, kind: str, seed: int):
@@ -65,10 +73,16 @@ def _items(bundle: Path, metadata, grids, stride: int, verify: bool):
         pools = [load_tiled_level(bundle, lv, metadata, verify, "pixels") for lv in metadata["levels"]]
         missing = [k for k, p in enumerate(pools) if not p.has_pixels]
         if missing:
-            raise BundleError(bundle, f"keeps no pixels at levels {missing} (a feature-only bundle); make the "
-                              "slide again with its pixels to compute another feature grid")
-        return ([int(p.pool.shape[0]) for p in pools], lambda k, ids: np.asarray(pools[k].pool[ids]),
-                lambda k, emb: emb[pools[k].index[:grids[k][0], :grids[k][1]].ravel()])
+            raise BundleError(
+                bundle,
+                f"keeps no pixels at levels {missing} (a feature-only bundle); make the "
+                "slide again with its pixels to compute another feature grid",
+            )
+        return (
+            [int(p.pool.shape[0]) for p in pools],
+            lambda k, ids: np.asarray(pools[k].pool[ids]),
+            lambda k, emb: emb[pools[k].index[: grids[k][0], : grids[k][1]].ravel()],
+        )
     cache: dict[int, np.ndarray] = {}
 
     def fetch(k, ids):
@@ -76,8 +90,12 @@ def _items(bundle: Path, metadata, grids, stride: int, verify: bool):
             cache.clear()  # one level in memory at a time (levels come finest first, in order)
             cache[k] = load_bundle(bundle, verify=verify, levels=[k]).pixels[0]
         gw = grids[k][1]
-        return np.stack([cache[k][(j // gw) * stride:(j // gw) * stride + tile,
-                                  (j % gw) * stride:(j % gw) * stride + tile] for j in ids])
+        return np.stack(
+            [
+                cache[k][(j // gw) * stride : (j // gw) * stride + tile, (j % gw) * stride : (j % gw) * stride + tile]
+                for j in ids
+            ]
+        )
 
     return [gh * gw for gh, gw in grids], fetch, lambda k, emb: emb
 
@@ -92,14 +110,27 @@ def check_storable(grids, dtype: str, bundle, encoder) -> None:
     top = max((float(np.abs(g).max(initial=0.0)) for g in grids), default=0.0)
     if top > float(np.finfo(np.float16).max):
         who = getattr(encoder, "spec", None) or getattr(encoder, "name", "the encoder")
-        raise BundleError(bundle, f"encoder {who} gives feature values up to {top:.3g}, beyond float16's ±65504 (they "
-                          "would be stored as infinity): scale them in the encoder, or store float32 (--dtype float32)")
+        raise BundleError(
+            bundle,
+            f"encoder {who} gives feature values up to {top:.3g}, beyond float16's ±65504 (they "
+            "would be stored as infinity): scale them in the encoder, or store float32 (--dtype float32)",
+        )
 
 
-def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int | None = None,
-                     projection: str = "random", seed: int = 0, stride: int | None = None, batch: int = 64,
-                     image_size: int | None = 224, dtype: str = "float16", progress: bool = True,
-                     max_chunks: int | None = None, verify: bool = True) -> dict | None:
+def compute_features(
+    bundle,
+    encoder_name: str = "efficientnet-lite0",
+    dim: int | None = None,
+    projection: str = "random",
+    seed: int = 0,
+    stride: int | None = None,
+    batch: int = 64,
+    image_size: int | None = 224,
+    dtype: str = "float16",
+    progress: bool = True,
+    max_chunks: int | None = None,
+    verify: bool = True,
+) -> dict | None:
     """Compute the feature grid of the bundle at ``bundle`` (see the module doc) and return the new
     ``metadata["features"]``. ``stride`` defaults to the tile size; ``image_size`` is the encoder's
     input size (views are resized to it; None feeds them at their own size). ``max_chunks`` stops
@@ -117,8 +148,9 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
     if dtype not in ("float16", "float32"):
         raise BundleError(bundle, f"dtype must be float16 or float32, got {dtype!r}")
     encoder = load_encoder(encoder_name, image_size=image_size)
-    scale = encoder_scale(encoder.name, (metadata.get("source") or {}).get("mpp"),
-                          [lv.downsample for lv in metadata.levels])
+    scale = encoder_scale(
+        encoder.name, (metadata.get("source") or {}).get("mpp"), [lv.downsample for lv in metadata.levels]
+    )
     if scale is not None and scale["warning"]:  # one line naming the bundle; recorded in features.encoder_scale
         from data_tools.cli_output import without_temporaries  # the bundle, not the folder it is built in
 
@@ -165,15 +197,18 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
             views = np.zeros((batch, tile, tile, 3), np.uint8)
             for k in np.unique(level):
                 views[np.flatnonzero(level == k)] = fetch(int(k), index[level == k] - starts[k])
-            save_array(chunk_file(c), np.asarray(encoder.embed(views), dtype=np.float32)[:len(index)])
+            save_array(chunk_file(c), np.asarray(encoder.embed(views), dtype=np.float32)[: len(index)])
             new += 1
             bar.update(1)
     finally:
         bar.close()
 
-    flat = (np.concatenate([np.load(chunk_file(c), allow_pickle=False) for c in range(n_chunks)]) if n_chunks
-            else np.zeros((0, encoder.dim), np.float32))
-    raw = [expand(k, flat[starts[k]:starts[k + 1]]) for k in range(len(grids))]
+    flat = (
+        np.concatenate([np.load(chunk_file(c), allow_pickle=False) for c in range(n_chunks)])
+        if n_chunks
+        else np.zeros((0, encoder.dim), np.float32)
+    )
+    raw = [expand(k, flat[starts[k] : starts[k + 1]]) for k in range(len(grids))]
     flat = np.concatenate(raw) if raw else flat
     matrix, mean = _projection(flat, dim, projection, seed)
     if matrix is not None:
@@ -197,9 +232,14 @@ def compute_features(bundle, encoder_name: str = "efficientnet-lite0", dim: int 
             save_array(bundle / proj["mean_file"], mean)
             written.append(proj["mean_file"])
     features = {
-        "encoder": encoder.name, "encoder_dim": encoder.dim, "image_size": encoder.image_size,
-        "dim": int(matrix.shape[1]) if matrix is not None else encoder.dim, "stride": stride,
-        "dtype": dtype, "projection": proj, "source": "computed",
+        "encoder": encoder.name,
+        "encoder_dim": encoder.dim,
+        "image_size": encoder.image_size,
+        "dim": int(matrix.shape[1]) if matrix is not None else encoder.dim,
+        "stride": stride,
+        "dtype": dtype,
+        "projection": proj,
+        "source": "computed",
         "grid": "cell (gy, gx) of level KK = the view with top-left (gx*stride, gy*stride) px of that level",
         "levels": levels,
         **(encoder.record() if hasattr(encoder, "record") else {}),  # your own: name, version, module:function

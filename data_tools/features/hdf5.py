@@ -22,6 +22,7 @@ at most :data:`MAX_IMPORT_BYTES` (4 GiB) of host memory for the features, the pa
 the grids; a patch larger than the whole slide, or a file whose patches all miss it, is refused; one covering under
 :data:`MIN_TISSUE_COVERAGE` (50 %) of the finest level's tissue views gives a warning.
 """
+
 from __future__ import annotations
 
 import math
@@ -72,17 +73,22 @@ def _layout(path: Path, f) -> tuple[tuple[int, ...], tuple[int, ...]]:
     for name in ("coords", "features"):
         ds = f.get(name) if name in f else None
         if not isinstance(ds, h5py.Dataset):
-            raise FeatureFileError(path, f"no {name!r} dataset (expected CLAM/TRIDENT layout: coords (N, 2), "
-                                   "features (N, D))")
+            raise FeatureFileError(
+                path, f"no {name!r} dataset (expected CLAM/TRIDENT layout: coords (N, 2), features (N, D))"
+            )
         if ds.dtype.kind not in "iuf":
-            raise FeatureFileError(path, f"{name} are not numbers (HDF5 type {ds.dtype}): expected coords (N, 2) and "
-                                         "features (N, D) of integers or floats")
+            raise FeatureFileError(
+                path,
+                f"{name} are not numbers (HDF5 type {ds.dtype}): expected coords (N, 2) and "
+                "features (N, D) of integers or floats",
+            )
         shape = tuple(int(v) for v in ds.shape or ())
         shapes[name] = shape[1:] if len(shape) == 3 and shape[0] == 1 else shape
     coords, features = shapes["coords"], shapes["features"]
     if len(coords) != 2 or coords[1] != 2 or len(features) != 2 or coords[0] != features[0]:
-        raise FeatureFileError(path, f"coords {coords} and features {features} do not match (expected (N, 2) and "
-                                     "(N, D))")
+        raise FeatureFileError(
+            path, f"coords {coords} and features {features} do not match (expected (N, 2) and (N, D))"
+        )
     if coords[0] == 0:
         raise FeatureFileError(path, "holds no patches (N = 0): an empty feature file")
     if features[1] == 0:
@@ -139,12 +145,20 @@ def check_feature_dims(paths) -> None:
         if first is None:
             first = (d, Path(p))
         elif d != first[0]:
-            raise FeatureFileError(p, f"has D = {d} features but {first[1]} has D = {first[0]}: one dataset takes "
-                                      "one encoder's features; point --features-from at one encoder's folder")
+            raise FeatureFileError(
+                p,
+                f"has D = {d} features but {first[1]} has D = {first[0]}: one dataset takes "
+                "one encoder's features; point --features-from at one encoder's folder",
+            )
 
 
-def read_patch_features(path, patch_size: int | None = None, level: int | None = None,
-                        downsample: float | None = None, max_bytes: int = MAX_IMPORT_BYTES):
+def read_patch_features(
+    path,
+    patch_size: int | None = None,
+    level: int | None = None,
+    downsample: float | None = None,
+    max_bytes: int = MAX_IMPORT_BYTES,
+):
     """``(coords (N, 2) float64 level-0 px, features (N, D) float32, extent E in level-0 px, info)``.
     Shapes, types and the memory the arrays need (at most ``max_bytes``) are checked before reading."""
     path = Path(path)
@@ -153,11 +167,15 @@ def read_patch_features(path, patch_size: int | None = None, level: int | None =
             (n, _), (_, d) = _layout(path, f)
             need = n * d * 4 + n * 2 * 8
             if need > max_bytes:
-                raise FeatureFileError(path, f"{n:,} patches × {d:,} features need {need / 2**30:.1f} GiB of host "
-                                             f"memory, over the import's limit of {max_bytes / 2**30:.1f} GiB")
+                raise FeatureFileError(
+                    path,
+                    f"{n:,} patches × {d:,} features need {need / 2**30:.1f} GiB of host "
+                    f"memory, over the import's limit of {max_bytes / 2**30:.1f} GiB",
+                )
             coords_ds = f["coords"]
-            attrs = {k: _attr(path, coords_ds, k) for k in ("patch_size", "patch_level", "downsample",
-                                                             "patch_size_level0")}
+            attrs = {
+                k: _attr(path, coords_ds, k) for k in ("patch_size", "patch_level", "downsample", "patch_size_level0")
+            }
             coords = np.asarray(coords_ds.astype(np.float64)[()]).reshape(n, 2)
             features = np.asarray(f["features"].astype(np.float32)[()]).reshape(n, d)
         except FeatureFileError:
@@ -169,29 +187,37 @@ def read_patch_features(path, patch_size: int | None = None, level: int | None =
     if not (np.isfinite(coords).all() and np.isfinite(features).all()):
         raise FeatureFileError(path, "coords or features hold NaN or infinity")
     if np.abs(coords).max() >= MAX_COORDINATE:
-        raise FeatureFileError(path, f"a coordinate is {coords.flat[np.abs(coords).argmax()]:g}, beyond ±2^31 "
-                                     "level-0 px: coords in other units?")
+        raise FeatureFileError(
+            path,
+            f"a coordinate is {coords.flat[np.abs(coords).argmax()]:g}, beyond ±2^31 "
+            "level-0 px: coords in other units?",
+        )
     level = level if level is not None else attrs["patch_level"]
     if patch_size is None and attrs["patch_size_level0"]:  # TRIDENT
         extent = attrs["patch_size_level0"]
     else:
         patch_size = patch_size if patch_size is not None else attrs["patch_size"]
         if patch_size is None:
-            raise FeatureFileError(path, "patch size unknown: pass --patch-size P (px at pyramid level "
-                                         "--patch-level L)")
+            raise FeatureFileError(
+                path, "patch size unknown: pass --patch-size P (px at pyramid level --patch-level L)"
+            )
         if not (level is None or (float(level) == int(level) and 0 <= level < 64)):
             raise FeatureFileError(path, f"patch level {level} is not a pyramid level (0, 1, 2 ...)")
         level = int(level or 0)
         ds = downsample if downsample is not None else attrs["downsample"]
         if ds is None:
             if level != 0:
-                raise FeatureFileError(path, f"the downsample of pyramid level {level} is unknown: pass --downsample "
-                                             "(import-features) or write the 'downsample' attribute on coords")
+                raise FeatureFileError(
+                    path,
+                    f"the downsample of pyramid level {level} is unknown: pass --downsample "
+                    "(import-features) or write the 'downsample' attribute on coords",
+                )
             ds = 1.0
         extent = float(patch_size) * float(ds)
     if not (math.isfinite(extent) and 0 < extent < MAX_COORDINATE):
-        raise FeatureFileError(path, f"patch extent {extent:g} level-0 px is not in (0, 2^31): is the patch size "
-                                     "right?")
+        raise FeatureFileError(
+            path, f"patch extent {extent:g} level-0 px is not in (0, 2^31): is the patch size right?"
+        )
     info = {"patch_size": patch_size, "level": level, "extent_level0": extent}
     return coords, features, extent, info
 
@@ -211,12 +237,16 @@ def overlap_count(coords: np.ndarray, extent: float, grid: tuple[int, int], view
         return 0.0
     _, x_lo, x_hi = _spans(coords, extent, gw, 0, view0, step0)
     _, y_lo, y_hi = _spans(coords, extent, gh, 1, view0, step0)
-    return float(np.sum(np.clip(x_hi - x_lo + 1, 0, None).astype(np.float64)
-                        * np.clip(y_hi - y_lo + 1, 0, None).astype(np.float64)))
+    return float(
+        np.sum(
+            np.clip(x_hi - x_lo + 1, 0, None).astype(np.float64) * np.clip(y_hi - y_lo + 1, 0, None).astype(np.float64)
+        )
+    )
 
 
-def patches_to_grid(coords: np.ndarray, features: np.ndarray, extent: float, grid: tuple[int, int],
-                    view0: float, step0: float) -> tuple[np.ndarray, np.ndarray]:
+def patches_to_grid(
+    coords: np.ndarray, features: np.ndarray, extent: float, grid: tuple[int, int], view0: float, step0: float
+) -> tuple[np.ndarray, np.ndarray]:
     """Overlap-weighted average of patch features on one level's grid: ``((gh, gw, D) float32, (gh, gw) bool)``.
     ``view0`` / ``step0``: the view's side and the grid step, both in level-0 px."""
     import scipy.sparse as sp
@@ -265,7 +295,7 @@ def tissue_coverage(bundle: Path, metadata, mask: np.ndarray, level: int, stride
     x1 = np.clip(np.ceil((np.arange(gw) * stride + metadata.tile_size) * scale).astype(np.int64), 0, tw)
     y0 = np.clip(np.floor(np.arange(gh) * stride * scale).astype(np.int64), 0, th)
     y1 = np.clip(np.ceil((np.arange(gh) * stride + metadata.tile_size) * scale).astype(np.int64), 0, th)
-    inside = (table[y1][:, x1] - table[y0][:, x1] - table[y1][:, x0] + table[y0][:, x0])
+    inside = table[y1][:, x1] - table[y0][:, x1] - table[y1][:, x0] + table[y0][:, x0]
     area = np.maximum((y1 - y0)[:, None] * (x1 - x0)[None, :], 1)
     views = inside / area >= 0.5
     if not views.any():  # scattered tissue (a few % of the slide): every view holding some
@@ -285,9 +315,16 @@ def imported_encoder(h5_path) -> str:
     return f"imported:{'/'.join(parts) or '.'}/*.h5"
 
 
-def import_features(bundle, h5_path, patch_size: int | None = None, level: int | None = None,
-                    downsample: float | None = None, stride: int | None = None, dtype: str = "float16",
-                    max_bytes: int = MAX_IMPORT_BYTES) -> dict:
+def import_features(
+    bundle,
+    h5_path,
+    patch_size: int | None = None,
+    level: int | None = None,
+    downsample: float | None = None,
+    stride: int | None = None,
+    dtype: str = "float16",
+    max_bytes: int = MAX_IMPORT_BYTES,
+) -> dict:
     """Map the patch features of ``h5_path`` onto every level of the bundle's grid (see the module doc),
     write ``features_KK.npy`` and ``features_mask_KK.npy``, update the metadata; returns
     ``metadata["features"]`` (its ``import`` record holds ``tissue_coverage``: covered and total tissue views
@@ -308,9 +345,12 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
         info["region_offset"] = list(metadata.region_offset)
     side = max(float(metadata.source.get("width") or 0), float(metadata.source.get("height") or 0))
     if side > 0 and extent > side:
-        raise FeatureFileError(h5_path, f"a patch of {extent:g} level-0 px is larger than the whole slide "
-                                        f"({metadata.source.get('width')}×{metadata.source.get('height')} level-0 px): "
-                                        "is the patch size (--patch-size / the patch_size attribute) right?")
+        raise FeatureFileError(
+            h5_path,
+            f"a patch of {extent:g} level-0 px is larger than the whole slide "
+            f"({metadata.source.get('width')}×{metadata.source.get('height')} level-0 px): "
+            "is the patch size (--patch-size / the patch_size attribute) right?",
+        )
     grids = level_grids(metadata, stride)
     n, dim = features.shape
     base = features.nbytes + coords.nbytes
@@ -320,10 +360,13 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
         pairs = overlap_count(coords, extent, grid, tile * d, stride * d)
         need = base + pairs * OVERLAP_ENTRY_BYTES + cells * dim * (4 + np.dtype(dtype).itemsize)
         if need > max_bytes:
-            raise FeatureFileError(h5_path, f"its {n:,} patches of {extent:g} level-0 px overlap {pairs:,.0f} views "
-                                            f"of a {grid[0]}×{grid[1]} grid: {need / 2**30:.1f} GiB of host memory, "
-                                            f"over the import's limit of {max_bytes / 2**30:.1f} GiB; is the patch "
-                                            "size (--patch-size / the patch_size attribute) right?")
+            raise FeatureFileError(
+                h5_path,
+                f"its {n:,} patches of {extent:g} level-0 px overlap {pairs:,.0f} views "
+                f"of a {grid[0]}×{grid[1]} grid: {need / 2**30:.1f} GiB of host memory, "
+                f"over the import's limit of {max_bytes / 2**30:.1f} GiB; is the patch "
+                "size (--patch-size / the patch_size attribute) right?",
+            )
     computed = []
     for lv, grid in zip(metadata.levels, grids):
         d = lv.downsample
@@ -332,21 +375,30 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
         w0 = metadata.levels[0].width * metadata.levels[0].downsample
         h0 = metadata.levels[0].height * metadata.levels[0].downsample
         lo, hi = coords.min(axis=0), coords.max(axis=0)
-        raise FeatureFileError(h5_path, f"none of its {n:,} patches lies on the slide ({w0:.0f}×{h0:.0f} level-0 px; "
-                                        f"coords span x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g}): coords of "
-                                        "another slide, or not in level-0 px?")
+        raise FeatureFileError(
+            h5_path,
+            f"none of its {n:,} patches lies on the slide ({w0:.0f}×{h0:.0f} level-0 px; "
+            f"coords span x {lo[0]:g}..{hi[0]:g}, y {lo[1]:g}..{hi[1]:g}): coords of "
+            "another slide, or not in level-0 px?",
+        )
     if dtype == "float16":
         top = max(float(np.abs(g).max(initial=0.0)) for g, _ in computed)
         if top > float(np.finfo(np.float16).max):
-            raise FeatureFileError(h5_path, f"feature values reach {top:.3g}, beyond float16's ±65504 (they would be "
-                                            "stored as infinity): scale the features, or import-features --dtype "
-                                            "float32")
+            raise FeatureFileError(
+                h5_path,
+                f"feature values reach {top:.3g}, beyond float16's ±65504 (they would be "
+                "stored as infinity): scale the features, or import-features --dtype "
+                "float32",
+            )
     coverage = tissue_coverage(bundle, metadata, computed[0][1], 0, stride)
     info["tissue_coverage"] = None if coverage is None else list(coverage)
     if coverage is not None and coverage[0] < MIN_TISSUE_COVERAGE * coverage[1]:
-        warnings.warn(f"{h5_path}: its patches cover {coverage[0]} of the {coverage[1]} tissue views of the finest "
-                      f"level ({coverage[0] / coverage[1]:.0%}, under {MIN_TISSUE_COVERAGE:.0%}): coords not in "
-                      "level-0 px of this slide, or the wrong patch size?", stacklevel=2)
+        warnings.warn(
+            f"{h5_path}: its patches cover {coverage[0]} of the {coverage[1]} tissue views of the finest "
+            f"level ({coverage[0] / coverage[1]:.0%}, under {MIN_TISSUE_COVERAGE:.0%}): coords not in "
+            "level-0 px of this slide, or the wrong patch size?",
+            stacklevel=2,
+        )
     written, levels = [], []
     for k, (grid, (grid_features, mask)) in enumerate(zip(grids, computed)):
         names = {"file": f"features_{k:02d}.npy", "mask_file": f"features_mask_{k:02d}.npy"}
@@ -355,8 +407,12 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
         written += [names["file"], names["mask_file"]]
         levels.append({**names, "grid": list(grid), "covered": int(mask.sum())})
     result = {
-        "encoder": imported_encoder(h5_path), "dim": int(dim), "stride": stride, "dtype": dtype,
-        "projection": None, "source": "imported",
+        "encoder": imported_encoder(h5_path),
+        "dim": int(dim),
+        "stride": stride,
+        "dtype": dtype,
+        "projection": None,
+        "source": "imported",
         "import": {"file": h5_path.name, "sha256": sha256(h5_path), "n_patches": int(n), **info},
         "grid": "cell (gy, gx) of level KK = the view with top-left (gx*stride, gy*stride) px of that level",
         "levels": levels,
@@ -365,6 +421,16 @@ def import_features(bundle, h5_path, patch_size: int | None = None, level: int |
     return result
 
 
-__all__ = ["MAX_IMPORT_BYTES", "MIN_TISSUE_COVERAGE", "FeatureFileError", "check_feature_dims", "feature_dim",
-           "import_features", "imported_encoder", "overlap_count", "patches_to_grid", "read_patch_features",
-           "tissue_coverage"]
+__all__ = [
+    "MAX_IMPORT_BYTES",
+    "MIN_TISSUE_COVERAGE",
+    "FeatureFileError",
+    "check_feature_dims",
+    "feature_dim",
+    "import_features",
+    "imported_encoder",
+    "overlap_count",
+    "patches_to_grid",
+    "read_patch_features",
+    "tissue_coverage",
+]

@@ -22,6 +22,7 @@ the cells makes it work on a single patch as on a whole view:
   are the tumour logit and its most tumour-like cell, so a linear head (or an agent) can read "how
   much" and "is there any" tumour in a view.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -35,11 +36,11 @@ import jax.numpy as jnp
 NAME = "pcam-cnn"
 CHANNELS = 31
 DIM = 2 * CHANNELS + 2
-VIEW_LOGIT = 2 * CHANNELS   # index of ``mean l`` (the view's tumour logit, the trained output) in ``embed``
-MAX_CELL_LOGIT = 2 * CHANNELS + 1   # index of ``max l`` (the most tumour-like cell: noisy over a slide)
-LAYERS = ((24, 4, 4), (48, 3, 2), (48, 3, 1), (64, 1, 1))   # (channels, kernel, stride) of each ReLU conv
-SCALE_MPP = 1.944   # µm per input px the encoder was trained at (CAMELYON16 level 0 / 8)
-PATCH_PX = 48       # a PCam patch (96 px at 0.972 µm/px) at that scale
+VIEW_LOGIT = 2 * CHANNELS  # index of ``mean l`` (the view's tumour logit, the trained output) in ``embed``
+MAX_CELL_LOGIT = 2 * CHANNELS + 1  # index of ``max l`` (the most tumour-like cell: noisy over a slide)
+LAYERS = ((24, 4, 4), (48, 3, 2), (48, 3, 1), (64, 1, 1))  # (channels, kernel, stride) of each ReLU conv
+SCALE_MPP = 1.944  # µm per input px the encoder was trained at (CAMELYON16 level 0 / 8)
+PATCH_PX = 48  # a PCam patch (96 px at 0.972 µm/px) at that scale
 WEIGHTS = Path(__file__).with_name("pcam_cnn.msgpack")
 
 
@@ -49,7 +50,7 @@ class PcamCNN(nn.Module):
     updates the batch's statistics (``mutable=["batch_stats"]``) instead of the running ones."""
 
     train: bool = False
-    layers: tuple = LAYERS   # (channels, kernel, stride) of each ReLU conv (an :class:`Arch`'s ``layers``)
+    layers: tuple = LAYERS  # (channels, kernel, stride) of each ReLU conv (an :class:`Arch`'s ``layers``)
 
     @nn.compact
     def __call__(self, images):
@@ -64,8 +65,10 @@ class PcamCNN(nn.Module):
 
 def pool(f: jax.Array, logit: jax.Array) -> tuple[jax.Array, jax.Array]:
     """Global pooling of the maps: ``(embedding (B, DIM), patch logit (B,))``."""
-    emb = jnp.concatenate([f.mean(axis=(1, 2)), f.max(axis=(1, 2)),
-                           logit.mean(axis=(1, 2))[:, None], logit.max(axis=(1, 2))[:, None]], axis=1)
+    emb = jnp.concatenate(
+        [f.mean(axis=(1, 2)), f.max(axis=(1, 2)), logit.mean(axis=(1, 2))[:, None], logit.max(axis=(1, 2))[:, None]],
+        axis=1,
+    )
     return emb, logit.mean(axis=(1, 2))
 
 
@@ -87,7 +90,7 @@ class Arch:
 
 
 PCAM_CNN = Arch(NAME, LAYERS, SCALE_MPP, PATCH_PX, WEIGHTS)
-ARCHS = {NAME: PCAM_CNN}   # more are added by their modules (data_tools.features.pcam_cnn96)
+ARCHS = {NAME: PCAM_CNN}  # more are added by their modules (data_tools.features.pcam_cnn96)
 
 
 def init_variables(seed: int = 0, arch: Arch = PCAM_CNN) -> dict:
@@ -129,8 +132,11 @@ def read_weights(path=None, arch: Arch = PCAM_CNN) -> dict:
     try:
         raw = path.read_bytes()
     except OSError as e:
-        raise WeightsError(path, f"cannot read the {arch.name} weights ({e.strerror or e}); "
-                           "retrain them with `python -m data_tools train-encoder`") from None
+        raise WeightsError(
+            path,
+            f"cannot read the {arch.name} weights ({e.strerror or e}); "
+            "retrain them with `python -m data_tools train-encoder`",
+        ) from None
     try:
         state = serialization.msgpack_restore(raw)
         variables = serialization.from_state_dict(template, state)
@@ -148,10 +154,30 @@ def load_pcam_encoder(encoder_class, weights=None, name: str = NAME):
     at their own size)."""
     arch = ARCHS[name]
     variables = read_weights(weights, arch)
-    return encoder_class(name=arch.name, dim=DIM, image_size=None, variables=variables,
-                         _embed=jax.jit(lambda v, x: apply(v, x, arch)[0]),
-                         _logits=jax.jit(lambda v, x: apply(v, x, arch)[1]))
+    return encoder_class(
+        name=arch.name,
+        dim=DIM,
+        image_size=None,
+        variables=variables,
+        _embed=jax.jit(lambda v, x: apply(v, x, arch)[0]),
+        _logits=jax.jit(lambda v, x: apply(v, x, arch)[1]),
+    )
 
 
-__all__ = ["ARCHS", "Arch", "CHANNELS", "DIM", "NAME", "PATCH_PX", "PCAM_CNN", "PcamCNN", "SCALE_MPP", "WEIGHTS", "apply", "init_variables",
-           "load_pcam_encoder", "read_weights", "to_benchmark_scale"]
+__all__ = [
+    "ARCHS",
+    "Arch",
+    "CHANNELS",
+    "DIM",
+    "NAME",
+    "PATCH_PX",
+    "PCAM_CNN",
+    "PcamCNN",
+    "SCALE_MPP",
+    "WEIGHTS",
+    "apply",
+    "init_variables",
+    "load_pcam_encoder",
+    "read_weights",
+    "to_benchmark_scale",
+]

@@ -12,6 +12,7 @@ channels), a 3×3 of stride 2 (48), a 3×3 (64), a 3×3 of stride 2 (96), a 3×3
 heads and pooling: ``embed`` → float32 ``(B, 64)`` = ``[mean f (31), max f (31), mean l, max l]``, ``logits`` →
 float32 ``(B,)`` = ``mean l``.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -20,8 +21,8 @@ from data_tools.features import pcam_cnn
 
 NAME = "pcam-cnn96"
 LAYERS = ((24, 4, 4), (48, 3, 2), (64, 3, 1), (96, 3, 2), (96, 3, 1), (64, 1, 1))
-SCALE_MPP = 0.972   # µm per input px (PCam's own scale; CAMELYON16 level 0 / 4)
-PATCH_PX = 96       # a PCam patch as distributed
+SCALE_MPP = 0.972  # µm per input px (PCam's own scale; CAMELYON16 level 0 / 4)
+PATCH_PX = 96  # a PCam patch as distributed
 DIM = pcam_cnn.DIM
 WEIGHTS = Path(__file__).with_name("pcam_cnn96.msgpack")
 ARCH = pcam_cnn.Arch(NAME, LAYERS, SCALE_MPP, PATCH_PX, WEIGHTS)

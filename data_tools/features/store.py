@@ -10,6 +10,7 @@ defaults to ``tile_size`` (views side by side). ``metadata["features"]`` records
 file's SHA-256 goes into ``metadata["checksums"]``. Files are written to a temporary name and
 ``os.replace``-d; ``metadata.json`` last, the same way.
 """
+
 from __future__ import annotations
 
 from pathlib import Path

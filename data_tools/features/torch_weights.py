@@ -15,6 +15,7 @@ Both of torch's formats are read:
     (magic number, protocol version, system info, the state dict with storages as persistent ids,
     the list of storage keys) followed, for each storage, by an int64 element count and its raw bytes.
 """
+
 from __future__ import annotations
 
 import collections
@@ -49,9 +50,16 @@ def _bfloat16():
 
 # typed storage class name → numpy dtype (little-endian, as torch writes them)
 _STORAGE_DTYPES = {
-    "DoubleStorage": "<f8", "FloatStorage": "<f4", "HalfStorage": "<f2", "LongStorage": "<i8",
-    "IntStorage": "<i4", "ShortStorage": "<i2", "CharStorage": "i1", "ByteStorage": "u1",
-    "BoolStorage": "?", "BFloat16Storage": "bfloat16",
+    "DoubleStorage": "<f8",
+    "FloatStorage": "<f4",
+    "HalfStorage": "<f2",
+    "LongStorage": "<i8",
+    "IntStorage": "<i4",
+    "ShortStorage": "<i2",
+    "CharStorage": "i1",
+    "ByteStorage": "u1",
+    "BoolStorage": "?",
+    "BFloat16Storage": "bfloat16",
 }
 
 
@@ -119,15 +127,19 @@ class _RestrictedUnpickler(pickle.Unpickler):
         try:
             return _ALLOWED[(module, name)]
         except (KeyError, TypeError):
-            raise UnsafeWeightsError(self.path, f"refusing to load: the pickle asks for {module}.{name}, which is "
-                                     "not a tensor-rebuild function, storage type or OrderedDict (a weights file "
-                                     "should hold tensors only; this one could run code)") from None
+            raise UnsafeWeightsError(
+                self.path,
+                f"refusing to load: the pickle asks for {module}.{name}, which is "
+                "not a tensor-rebuild function, storage type or OrderedDict (a weights file "
+                "should hold tensors only; this one could run code)",
+            ) from None
 
     def persistent_load(self, pid):
-        if not (isinstance(pid, tuple) and len(pid) >= 5 and pid[0] == "storage"
-                and isinstance(pid[1], _StorageType)):
-            raise UnsafeWeightsError(self.path, f"refusing to load: unexpected persistent id {str(pid)[:80]!r} "
-                                     "(only tensor storages are allowed)")
+        if not (isinstance(pid, tuple) and len(pid) >= 5 and pid[0] == "storage" and isinstance(pid[1], _StorageType)):
+            raise UnsafeWeightsError(
+                self.path,
+                f"refusing to load: unexpected persistent id {str(pid)[:80]!r} (only tensor storages are allowed)",
+            )
         storage_type, key, _location, numel = pid[1:5]
         key, numel = str(key), int(numel)
         if self.legacy and len(pid) > 5 and pid[5] is not None:
@@ -151,8 +163,9 @@ def _materialise(obj, path):
             last = obj.offset + sum((n - 1) * s for n, s in zip(obj.size, obj.stride))
             if last >= data.size:
                 raise WeightsError(path, "a tensor reaches past the end of its storage")
-        view = np.lib.stride_tricks.as_strided(data[obj.offset:], shape=obj.size,
-                                               strides=tuple(s * data.itemsize for s in obj.stride), writeable=False)
+        view = np.lib.stride_tricks.as_strided(
+            data[obj.offset :], shape=obj.size, strides=tuple(s * data.itemsize for s in obj.stride), writeable=False
+        )
         return np.array(view)  # a copy: the array owns its memory
     if isinstance(obj, dict):
         return collections.OrderedDict((k, _materialise(v, path)) for k, v in obj.items())
@@ -203,8 +216,10 @@ def _load_legacy(path: Path) -> dict:
             (numel,) = struct.unpack("<q", raw)
             nbytes = numel * storage.dtype.itemsize
             if numel != storage.numel or f.tell() + nbytes > size:
-                raise WeightsError(path, f"storage {key}: {numel} elements recorded, {storage.numel} expected, "
-                                   "or the file is truncated")
+                raise WeightsError(
+                    path,
+                    f"storage {key}: {numel} elements recorded, {storage.numel} expected, or the file is truncated",
+                )
             storage.data = np.frombuffer(f.read(nbytes), dtype=storage.dtype)
     return result
 
@@ -221,8 +236,20 @@ def load_state_dict(path) -> "collections.OrderedDict[str, np.ndarray]":
         state = _materialise(raw, path)
     except WeightsError:
         raise
-    except (pickle.UnpicklingError, EOFError, ValueError, TypeError, KeyError, AttributeError, IndexError,
-            OverflowError, struct.error, zipfile.BadZipFile, MemoryError, RecursionError) as e:
+    except (
+        pickle.UnpicklingError,
+        EOFError,
+        ValueError,
+        TypeError,
+        KeyError,
+        AttributeError,
+        IndexError,
+        OverflowError,
+        struct.error,
+        zipfile.BadZipFile,
+        MemoryError,
+        RecursionError,
+    ) as e:
         raise WeightsError(path, f"unreadable weights file ({type(e).__name__}: {e})") from None
     if not isinstance(state, dict) or not all(isinstance(v, np.ndarray) for v in state.values()):
         raise WeightsError(path, "not a state dict of tensors")

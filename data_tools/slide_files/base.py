@@ -50,12 +50,18 @@ def check_levels(path: str, levels: list[LevelInfo]) -> None:
     for i in range(1, len(levels)):
         prev, lv = levels[i - 1], levels[i]
         if lv.width > prev.width or lv.height > prev.height or (lv.width, lv.height) == (prev.width, prev.height):
-            raise SlideError(path, f"inconsistent pyramid: level {i} is {lv.width}×{lv.height} px, not smaller than "
-                             f"level {i - 1} ({prev.width}×{prev.height}); rewrite the pyramid or keep only level 0")
+            raise SlideError(
+                path,
+                f"inconsistent pyramid: level {i} is {lv.width}×{lv.height} px, not smaller than "
+                f"level {i - 1} ({prev.width}×{prev.height}); rewrite the pyramid or keep only level 0",
+            )
         expected_h = lv.width * h0 / w0
         if abs(lv.height - expected_h) > max(2.0, 0.02 * expected_h):
-            raise SlideError(path, f"inconsistent pyramid: level {i} ({lv.width}×{lv.height} px) does not keep the "
-                             f"aspect ratio of level 0 ({w0}×{h0}); rewrite the pyramid or keep only level 0")
+            raise SlideError(
+                path,
+                f"inconsistent pyramid: level {i} ({lv.width}×{lv.height} px) does not keep the "
+                f"aspect ratio of level 0 ({w0}×{h0}); rewrite the pyramid or keep only level 0",
+            )
 
 
 def describe(reader) -> str:
@@ -70,8 +76,7 @@ def describe(reader) -> str:
     for i, lv in enumerate(reader.levels):
         tiles = "stripped" if lv.tile_size is None else f"tiles {lv.tile_size[0]}×{lv.tile_size[1]}"
         lines.append(
-            f"  level {i}: {lv.width}×{lv.height} px, downsample {lv.downsample:.3f}, "
-            f"{tiles}, {lv.compression}"
+            f"  level {i}: {lv.width}×{lv.height} px, downsample {lv.downsample:.3f}, {tiles}, {lv.compression}"
         )
     associated = getattr(reader, "associated", None)  # OpenSlide's label / macro / thumbnail images
     if associated:

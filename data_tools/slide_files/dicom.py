@@ -20,6 +20,7 @@ Units as in :mod:`data_tools.slide_files.tiff`: pixels of the level read, ``down
 level px, ``mpp`` in µm per level-0 px. Every problem with the files raises
 :class:`data_tools.errors.SlideError` naming the path, in one line.
 """
+
 from __future__ import annotations
 
 import os
@@ -28,8 +29,8 @@ import warnings
 import numpy as np
 
 from data_tools.errors import SlideError
-from data_tools.slide_files.limits import MAX_TILES, check_size
 from data_tools.slide_files.base import LevelInfo, check_levels
+from data_tools.slide_files.limits import MAX_TILES, check_size
 from data_tools.slide_files.tiff import SlideReader
 
 __all__ = ["DicomSlideReader", "is_dicom", "INSTALL_HINT"]
@@ -39,12 +40,22 @@ _WSI_SOP_CLASS = "1.2.840.10008.5.1.4.1.1.77.1.6"
 _MAX_FILES = 10_000  # files looked at in a folder
 # transfer syntax UID -> compression name in the spelling LevelInfo uses for TIFF
 _COMPRESSIONS = {
-    "1.2.840.10008.1.2.1": "NONE", "1.2.840.10008.1.2": "NONE",
-    "1.2.840.10008.1.2.4.50": "JPEG", "1.2.840.10008.1.2.4.51": "JPEG", "1.2.840.10008.1.2.4.57": "JPEG",
-    "1.2.840.10008.1.2.4.70": "JPEG", "1.2.840.10008.1.2.4.80": "JPEGLS", "1.2.840.10008.1.2.4.81": "JPEGLS",
-    "1.2.840.10008.1.2.4.90": "JPEG2000", "1.2.840.10008.1.2.4.91": "JPEG2000",
-    "1.2.840.10008.1.2.4.201": "HTJ2K", "1.2.840.10008.1.2.4.202": "HTJ2K", "1.2.840.10008.1.2.4.203": "HTJ2K",
-    "1.2.840.10008.1.2.5": "RLE", "1.2.840.10008.1.2.4.110": "JPEGXL", "1.2.840.10008.1.2.4.112": "JPEGXL",
+    "1.2.840.10008.1.2.1": "NONE",
+    "1.2.840.10008.1.2": "NONE",
+    "1.2.840.10008.1.2.4.50": "JPEG",
+    "1.2.840.10008.1.2.4.51": "JPEG",
+    "1.2.840.10008.1.2.4.57": "JPEG",
+    "1.2.840.10008.1.2.4.70": "JPEG",
+    "1.2.840.10008.1.2.4.80": "JPEGLS",
+    "1.2.840.10008.1.2.4.81": "JPEGLS",
+    "1.2.840.10008.1.2.4.90": "JPEG2000",
+    "1.2.840.10008.1.2.4.91": "JPEG2000",
+    "1.2.840.10008.1.2.4.201": "HTJ2K",
+    "1.2.840.10008.1.2.4.202": "HTJ2K",
+    "1.2.840.10008.1.2.4.203": "HTJ2K",
+    "1.2.840.10008.1.2.5": "RLE",
+    "1.2.840.10008.1.2.4.110": "JPEGXL",
+    "1.2.840.10008.1.2.4.112": "JPEGXL",
 }
 
 
@@ -85,8 +96,11 @@ def _series_files(path: str) -> list[str]:
     except Exception as exc:  # pydicom errors: corrupt header
         raise SlideError(path, f"DICOM header unreadable ({type(exc).__name__}: {exc})") from exc
     if sop_class != _WSI_SOP_CLASS:
-        raise SlideError(path, f"a DICOM file but not a whole-slide image (SOP class {sop_class or 'missing'}, "
-                               "need VL Whole Slide Microscopy Image Storage)")
+        raise SlideError(
+            path,
+            f"a DICOM file but not a whole-slide image (SOP class {sop_class or 'missing'}, "
+            "need VL Whole Slide Microscopy Image Storage)",
+        )
     files = [path]
     for other in _dicom_files(os.path.dirname(os.path.abspath(path))):
         if os.path.samefile(other, path):
@@ -119,8 +133,12 @@ class DicomSlideReader(SlideReader):
         if not os.path.exists(self.path):
             raise SlideError(self.path, "file not found")
         with warnings.catch_warnings():  # pydicom warns for each UID over 64 characters; one warning says so
-            warnings.filterwarnings("ignore", message=r"The value length \(\d+\) exceeds the maximum length of 64 "
-                                    "allowed for VR UI", category=UserWarning)
+            warnings.filterwarnings(
+                "ignore",
+                message=r"The value length \(\d+\) exceeds the maximum length of 64 "
+                "allowed for VR UI",
+                category=UserWarning,
+            )
             self._open(WsiDicom)
 
     def _open(self, WsiDicom) -> None:  # noqa: N803 (the class)
@@ -151,26 +169,42 @@ class DicomSlideReader(SlideReader):
             try:
                 level = _FrameLevel.open(f)
             except SlideError as e:
-                raise SlideError(self.path, f"no readable VL Whole Slide Microscopy image (wsidicom: {problem}); "
-                                            f"{e.problem if os.path.samefile(e.path, self.path) else e}") from exc
+                raise SlideError(
+                    self.path,
+                    f"no readable VL Whole Slide Microscopy image (wsidicom: {problem}); "
+                    f"{e.problem if os.path.samefile(e.path, self.path) else e}",
+                ) from exc
             if level is not None:
                 levels.append(level)
         levels.sort(key=lambda lv: (-lv.width, -lv.height))
         levels = [lv for i, lv in enumerate(levels) if i == 0 or lv.width != levels[i - 1].width]  # focal planes
         if not levels:
-            raise SlideError(self.path, f"no readable VL Whole Slide Microscopy image (wsidicom: {problem}); "
-                                        "no pyramid level in it (only label / overview / thumbnail or non-WSI "
-                                        "instances)") from exc
+            raise SlideError(
+                self.path,
+                f"no readable VL Whole Slide Microscopy image (wsidicom: {problem}); "
+                "no pyramid level in it (only label / overview / thumbnail or non-WSI "
+                "instances)",
+            ) from exc
         why = sorted({w for lv in levels for w in lv.why})
         self._tif = _FrameLevels(levels)  # the open handle, as SlideReader expects one
         w0, h0 = levels[0].width, levels[0].height
-        self.levels = [LevelInfo(width=lv.width, height=lv.height,
-                                 downsample=1.0 if k == 0 else (w0 / lv.width + h0 / lv.height) / 2.0,
-                                 tile_size=lv.tile, compression=lv.compression) for k, lv in enumerate(levels)]
+        self.levels = [
+            LevelInfo(
+                width=lv.width,
+                height=lv.height,
+                downsample=1.0 if k == 0 else (w0 / lv.width + h0 / lv.height) / 2.0,
+                tile_size=lv.tile,
+                compression=lv.compression,
+            )
+            for k, lv in enumerate(levels)
+        ]
         check_levels(self.path, self.levels)
         self.mpp = levels[0].mpp
-        warnings.warn(f"{self.path}: wsidicom cannot open it ({'; '.join(why) or problem}); read with pydicom, "
-                      "each frame where its plane position says", stacklevel=5)
+        warnings.warn(
+            f"{self.path}: wsidicom cannot open it ({'; '.join(why) or problem}); read with pydicom, "
+            "each frame where its plane position says",
+            stacklevel=5,
+        )
         for k, lv in enumerate(self.levels):  # decode the last frame: catches truncation at open
             self._decode_window(k, lv.width - 1, lv.height - 1, lv.width, lv.height)
 
@@ -185,15 +219,21 @@ class DicomSlideReader(SlideReader):
         try:
             pixels = self._tif.read_region((x0, y0), lv.level, (x1 - x0, y1 - y0), as_array=True)
         except Exception as exc:  # wsidicom / codec / OS errors (e.g. a truncated file)
-            raise SlideError(self.path, f"cannot decode level {level} frames ({self.levels[level].compression}): "
-                                        f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}; "
-                                        "file truncated or corrupt") from exc
+            raise SlideError(
+                self.path,
+                f"cannot decode level {level} frames ({self.levels[level].compression}): "
+                f"{type(exc).__name__}: {str(exc).splitlines()[0] if str(exc) else ''}; "
+                "file truncated or corrupt",
+            ) from exc
         pixels = np.asarray(pixels)
         if pixels.ndim == 2:
             pixels = pixels[..., None]
         if pixels.shape[:2] != (y1 - y0, x1 - x0) or pixels.shape[2] not in (1, 3, 4) or pixels.dtype != np.uint8:
-            raise SlideError(self.path, f"level {level} decoded to {pixels.shape} {pixels.dtype}, not 8-bit "
-                                        f"grey / RGB of {x1 - x0}×{y1 - y0} px")
+            raise SlideError(
+                self.path,
+                f"level {level} decoded to {pixels.shape} {pixels.dtype}, not 8-bit "
+                f"grey / RGB of {x1 - x0}×{y1 - y0} px",
+            )
         if pixels.shape[2] == 1:
             pixels = np.repeat(pixels, 3, axis=2)
         return np.ascontiguousarray(pixels[..., :3])
@@ -215,17 +255,27 @@ def _level_infos(levels) -> list[LevelInfo]:
     for lv in levels:
         w, h = int(lv.size.width), int(lv.size.height)
         syntax = str(lv.default_instance.image_data.transfer_syntax)
-        infos.append(LevelInfo(
-            width=w, height=h, downsample=1.0 if (w, h) == (w0, h0) else (w0 / w + h0 / h) / 2.0,
-            tile_size=(int(lv.tile_size.width), int(lv.tile_size.height)),
-            compression=_COMPRESSIONS.get(syntax, syntax)))
+        infos.append(
+            LevelInfo(
+                width=w,
+                height=h,
+                downsample=1.0 if (w, h) == (w0, h0) else (w0 / w + h0 / h) / 2.0,
+                tile_size=(int(lv.tile_size.width), int(lv.tile_size.height)),
+                compression=_COMPRESSIONS.get(syntax, syntax),
+            )
+        )
     return infos
 
 
 # (keyword, tag) of the attributes without which the frames of an instance cannot be placed
-_ESSENTIAL = (("Rows", "(0028,0010)"), ("Columns", "(0028,0011)"), ("SamplesPerPixel", "(0028,0002)"),
-              ("BitsAllocated", "(0028,0100)"), ("TotalPixelMatrixColumns", "(0048,0006)"),
-              ("TotalPixelMatrixRows", "(0048,0007)"))
+_ESSENTIAL = (
+    ("Rows", "(0028,0010)"),
+    ("Columns", "(0028,0011)"),
+    ("SamplesPerPixel", "(0028,0002)"),
+    ("BitsAllocated", "(0028,0100)"),
+    ("TotalPixelMatrixColumns", "(0048,0006)"),
+    ("TotalPixelMatrixRows", "(0048,0007)"),
+)
 _NOT_PYRAMID = {"LABEL", "OVERVIEW", "THUMBNAIL"}  # ImageType value 3 of images that are no pyramid level
 
 
@@ -267,13 +317,17 @@ class _FrameLevel:
         if sop_class != _WSI_SOP_CLASS or (len(image_type) > 2 and image_type[2] in _NOT_PYRAMID):
             return None  # another kind of DICOM in the folder (annotations, segmentations), or no pyramid level
         if missing:
-            raise SlideError(path, f"missing the attribute {missing[0]}: cannot place the frames"
-                                   + (f" (also missing: {', '.join(missing[1:])})" if missing[1:] else ""))
+            raise SlideError(
+                path,
+                f"missing the attribute {missing[0]}: cannot place the frames"
+                + (f" (also missing: {', '.join(missing[1:])})" if missing[1:] else ""),
+            )
         if not has_pixels:
             raise SlideError(path, "missing the attribute PixelData (7FE0,0010): no frames")
         if int(ds.BitsAllocated) != 8 or int(ds.SamplesPerPixel) not in (1, 3):
-            raise SlideError(path, f"{ds.BitsAllocated}-bit pixels of {ds.SamplesPerPixel} samples; 8-bit grey or "
-                                   "RGB needed")
+            raise SlideError(
+                path, f"{ds.BitsAllocated}-bit pixels of {ds.SamplesPerPixel} samples; 8-bit grey or RGB needed"
+            )
         try:  # the shared limits, before any array of the declared sizes is made
             check_size(path, int(ds.TotalPixelMatrixColumns), int(ds.TotalPixelMatrixRows), "the image")
             check_size(path, int(ds.Columns), int(ds.Rows), "a frame")
@@ -283,8 +337,11 @@ class _FrameLevel:
         if not 0 < frames <= MAX_TILES:
             raise SlideError(path, f"declares {frames:,} frames, outside the limit of 1..{MAX_TILES:,}")
         why = [] if image_type else ["no ImageType (0008,0008)"]
-        long_uids = [k for k in ("StudyInstanceUID", "SeriesInstanceUID", "SOPInstanceUID", "FrameOfReferenceUID")
-                     if len(str(ds.get(k) or "")) > 64]
+        long_uids = [
+            k
+            for k in ("StudyInstanceUID", "SeriesInstanceUID", "SOPInstanceUID", "FrameOfReferenceUID")
+            if len(str(ds.get(k) or "")) > 64
+        ]
         why += [f"UIDs over 64 characters ({', '.join(long_uids)})"] if long_uids else []
         return cls(path, ds, _frame_positions(path, ds), why)
 
@@ -301,16 +358,18 @@ class _FrameLevel:
                     self._frames = list(generate_frames(ds.PixelData, number_of_frames=n))
                 else:
                     data, size = ds.PixelData, tw * th * int(ds.SamplesPerPixel)
-                    self._frames = [data[k * size:(k + 1) * size] for k in range(n)]
+                    self._frames = [data[k * size : (k + 1) * size] for k in range(n)]
             data = self._frames[i]
             if ds.file_meta.TransferSyntaxUID.is_encapsulated:
                 tile = np.asarray(imagecodecs.imread(data))
             else:
                 tile = np.frombuffer(data, np.uint8).reshape(th, tw, int(ds.SamplesPerPixel))
         except Exception as exc:  # pydicom / codec errors: a truncated or corrupt frame
-            raise SlideError(self.path, f"cannot decode frame {i} ({self.compression}): {type(exc).__name__}: "
-                                        f"{str(exc).splitlines()[0] if str(exc) else ''}; file truncated or corrupt"
-                             ) from exc
+            raise SlideError(
+                self.path,
+                f"cannot decode frame {i} ({self.compression}): {type(exc).__name__}: "
+                f"{str(exc).splitlines()[0] if str(exc) else ''}; file truncated or corrupt",
+            ) from exc
         if tile.ndim == 2:
             tile = tile[..., None]
         if tile.shape[:2] != (th, tw) or tile.dtype != np.uint8:
@@ -327,7 +386,7 @@ class _FrameLevel:
             fx, fy, frame = (int(v) for v in p[i])
             tile = self._frame(frame)
             ax0, ay0, ax1, ay1 = max(fx, x0), max(fy, y0), min(fx + tw, x1), min(fy + th, y1)
-            out[ay0 - y0:ay1 - y0, ax0 - x0:ax1 - x0] = tile[ay0 - fy:ay1 - fy, ax0 - fx:ax1 - fx]
+            out[ay0 - y0 : ay1 - y0, ax0 - x0 : ax1 - x0] = tile[ay0 - fy : ay1 - fy, ax0 - fx : ax1 - fx]
         return out
 
 
@@ -353,8 +412,11 @@ def _frame_positions(path: str, ds) -> np.ndarray:
         k = np.arange(min(n, cols * rows))
         return np.stack([k % cols * tw, k // cols * th, k], axis=1)
     if not per_frame:
-        raise SlideError(path, f"missing the attribute PerFrameFunctionalGroupsSequence (5200,9230): {organisation} "
-                               "frames without positions")
+        raise SlideError(
+            path,
+            f"missing the attribute PerFrameFunctionalGroupsSequence (5200,9230): {organisation} "
+            "frames without positions",
+        )
     if len(per_frame) != n:
         raise SlideError(path, f"PerFrameFunctionalGroupsSequence has {len(per_frame)} items for {n} frames")
     out, seen = [], set()
@@ -363,8 +425,11 @@ def _frame_positions(path: str, ds) -> np.ndarray:
             pos = item.PlanePositionSlideSequence[0]
             x, y = int(pos.ColumnPositionInTotalImagePixelMatrix) - 1, int(pos.RowPositionInTotalImagePixelMatrix) - 1
         except (AttributeError, IndexError, TypeError, ValueError) as exc:
-            raise SlideError(path, f"frame {i}: missing the attribute PlanePositionSlideSequence (0048,021A) with "
-                                   "Column / RowPositionInTotalImagePixelMatrix (0048,021E) / (0048,021F)") from exc
+            raise SlideError(
+                path,
+                f"frame {i}: missing the attribute PlanePositionSlideSequence (0048,021A) with "
+                "Column / RowPositionInTotalImagePixelMatrix (0048,021E) / (0048,021F)",
+            ) from exc
         if (x, y) not in seen:  # later focal planes / optical paths at the same position: the first kept
             seen.add((x, y))
             out.append((x, y, i))

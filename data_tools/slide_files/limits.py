@@ -4,6 +4,7 @@ anything that size is allocated, whichever reader opens it.
 
 Units: pixels of the level concerned; ``MAX_PIXELS`` counts level-0 pixels (width × height).
 """
+
 from __future__ import annotations
 
 from data_tools.errors import SlideError
@@ -29,11 +30,17 @@ def check_size(path, width: int, height: int, what: str = "level 0") -> None:
     0"``, ``"a tile"`` ...) with a side outside ``1..MAX_SIDE``, or, for level 0, an area over ``MAX_PIXELS``."""
     w, h = int(width), int(height)
     if not (0 < w <= MAX_SIDE and 0 < h <= MAX_SIDE):
-        raise SlideError(path, f"{what} declares {w:,}×{h:,} px, outside the limit of 1..{MAX_SIDE:,} px a side "
-                               "(corrupt header, or not a slide histojax reads)")
+        raise SlideError(
+            path,
+            f"{what} declares {w:,}×{h:,} px, outside the limit of 1..{MAX_SIDE:,} px a side "
+            "(corrupt header, or not a slide histojax reads)",
+        )
     if what == "level 0" and w * h > MAX_PIXELS:
-        raise SlideError(path, f"level 0 declares {w:,}×{h:,} px = {w * h:,} px, over the limit of {MAX_PIXELS:,} "
-                               "px (corrupt header, or not a slide histojax reads)")
+        raise SlideError(
+            path,
+            f"level 0 declares {w:,}×{h:,} px = {w * h:,} px, over the limit of {MAX_PIXELS:,} "
+            "px (corrupt header, or not a slide histojax reads)",
+        )
 
 
 def check_level_sizes(path, levels) -> None:
@@ -52,5 +59,6 @@ def check_level_sizes(path, levels) -> None:
             check_size(path, tw, th, f"level {k}'s tile")
             tiles = -(-int(lv.width) // int(tw)) * -(-int(lv.height) // int(th))
             if tiles > MAX_TILES:
-                raise SlideError(path, f"level {k} declares {tiles:,} tiles of {tw}×{th} px, over the limit of "
-                                       f"{MAX_TILES:,}")
+                raise SlideError(
+                    path, f"level {k} declares {tiles:,} tiles of {tw}×{th} px, over the limit of {MAX_TILES:,}"
+                )

@@ -10,6 +10,7 @@ to OpenSlide, which refuses them itself without crashing.
 
 Units: px of the level concerned (a camera image is ``DIGITIZER_WIDTH`` × ``DIGITIZER_HEIGHT`` px of its zoom level).
 """
+
 from __future__ import annotations
 
 import configparser
@@ -19,8 +20,8 @@ import re
 from pathlib import Path
 
 from data_tools.errors import SlideError
-from data_tools.slide_files.limits import MAX_LEVELS, MAX_TILES, check_size
 from data_tools.slide_files.base import LevelInfo, check_levels
+from data_tools.slide_files.limits import MAX_LEVELS, MAX_TILES, check_size
 
 __all__ = ["MAX_DATA_FILES", "MAX_IMAGE_PIXELS", "SLIDEDAT_MAX_BYTES", "check_mirax", "data_folder"]
 
@@ -55,7 +56,7 @@ def _int(cfg, group: str, key: str) -> int | None:
     if not m:
         return None
     value = int(m.group(1))
-    return value if -2**31 <= value < 2**31 else None
+    return value if -(2**31) <= value < 2**31 else None
 
 
 def _float(cfg, group: str, key: str) -> float | None:
@@ -85,8 +86,9 @@ def _read(ini: Path):
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError:
         return None
-    cfg = configparser.RawConfigParser(strict=False, interpolation=None, delimiters=("=",),
-                                       comment_prefixes=("#",), inline_comment_prefixes=None)
+    cfg = configparser.RawConfigParser(
+        strict=False, interpolation=None, delimiters=("=",), comment_prefixes=("#",), inline_comment_prefixes=None
+    )
     cfg.optionxform = str  # GLib keys are case-sensitive
     try:
         cfg.read_string(text)
@@ -107,9 +109,12 @@ def check_mirax(path) -> None:
     path = os.fspath(path)
     folder = data_folder(path)
     if not folder.is_dir():
-        raise SlideError(path, f"its data folder {folder.name}/ is missing (a MIRAX slide is the .mrxs file and the "
-                               "folder of the same name beside it, holding Slidedat.ini, Index.dat and the Data*.dat "
-                               "files: copy both)")
+        raise SlideError(
+            path,
+            f"its data folder {folder.name}/ is missing (a MIRAX slide is the .mrxs file and the "
+            "folder of the same name beside it, holding Slidedat.ini, Index.dat and the Data*.dat "
+            "files: copy both)",
+        )
     ini = folder / "Slidedat.ini"
     if not ini.is_file():
         raise SlideError(path, f"its data folder {folder.name}/ has no Slidedat.ini: not a whole MIRAX slide")
@@ -126,8 +131,10 @@ def check_mirax(path) -> None:
     if nx is None or ny is None or div is None or nx <= 0 or ny <= 0 or div <= 0:
         return
     if nx * ny > MAX_TILES:
-        refuse(f"IMAGENUMBER_X × IMAGENUMBER_Y = {nx:,} × {ny:,} = {nx * ny:,} camera images, over the limit of "
-               f"{MAX_TILES:,}")
+        refuse(
+            f"IMAGENUMBER_X × IMAGENUMBER_Y = {nx:,} × {ny:,} = {nx * ny:,} camera images, over the limit of "
+            f"{MAX_TILES:,}"
+        )
     files = _int(cfg, "DATAFILE", "FILE_COUNT")
     if files is not None and files > MAX_DATA_FILES:
         refuse(f"FILE_COUNT={files:,} data files, over the limit of {MAX_DATA_FILES:,}")
@@ -148,14 +155,17 @@ def check_mirax(path) -> None:
         ox, oy = _float(cfg, name, "OVERLAP_X"), _float(cfg, name, "OVERLAP_Y")
         if None in (w, h, concat, ox, oy) or w <= 0 or h <= 0 or concat < 0 or (k and concat == 0):
             return
-        check_size(path, w, h, f"a camera image of zoom level {k} (DIGITIZER_WIDTH × DIGITIZER_HEIGHT in "
-                               "Slidedat.ini)")
+        check_size(path, w, h, f"a camera image of zoom level {k} (DIGITIZER_WIDTH × DIGITIZER_HEIGHT in Slidedat.ini)")
         if w * h > MAX_IMAGE_PIXELS:
-            refuse(f"camera images of {w:,} × {h:,} px at zoom level {k}, over {MAX_IMAGE_PIXELS:,} px (OpenSlide "
-                   "decodes one into a buffer of 32-bit size)")
+            refuse(
+                f"camera images of {w:,} × {h:,} px at zoom level {k}, over {MAX_IMAGE_PIXELS:,} px (OpenSlide "
+                "decodes one into a buffer of 32-bit size)"
+            )
         if not (math.isfinite(ox) and math.isfinite(oy) and abs(ox) < w and abs(oy) < h):
-            refuse(f"an overlap of {ox:g} × {oy:g} px at zoom level {k} for camera images of {w:,} × {h:,} px "
-                   "(an overlap must be finite and smaller than the image)")
+            refuse(
+                f"an overlap of {ox:g} × {oy:g} px at zoom level {k} for camera images of {w:,} × {h:,} px "
+                "(an overlap must be finite and smaller than the image)"
+            )
         sections.append((w, h, concat, ox, oy))
     total = sum(s[2] for s in sections)
     if total > MAX_CONCAT_EXPONENT:
@@ -170,9 +180,15 @@ def check_mirax(path) -> None:
     levels, exponent = [], 0
     for k, (w, h, concat, _, _) in enumerate(sections):
         exponent += concat
-        levels.append(LevelInfo(width=base_w >> exponent, height=base_h >> exponent,
-                                downsample=float(2 ** (exponent - sections[0][2])), tile_size=None,
-                                compression="openslide"))
+        levels.append(
+            LevelInfo(
+                width=base_w >> exponent,
+                height=base_h >> exponent,
+                downsample=float(2 ** (exponent - sections[0][2])),
+                tile_size=None,
+                compression="openslide",
+            )
+        )
     try:
         check_levels(path, levels)
     except SlideError as e:

@@ -2,14 +2,20 @@
 WSI reader (:mod:`data_tools.slide_files.dicom`) or OpenSlide (:mod:`data_tools.slide_files.openslide`), all behind
 :class:`data_tools.slide_files.tiff.SlideReader`'s interface. Kept apart from the readers so that they import only their
 base class (no import circle)."""
+
 from __future__ import annotations
 
 import os
 import stat
 
-from data_tools.slide_files.dicom import DicomSlideReader, is_dicom
 from data_tools.errors import SlideError
-from data_tools.slide_files.openslide import OPENSLIDE_EXTENSIONS, OpenSlideReader, openslide_available, openslide_module
+from data_tools.slide_files.dicom import DicomSlideReader, is_dicom
+from data_tools.slide_files.openslide import (
+    OPENSLIDE_EXTENSIONS,
+    OpenSlideReader,
+    openslide_available,
+    openslide_module,
+)
 from data_tools.slide_files.tiff import SlideReader
 
 READERS = ("auto", "native", "openslide")

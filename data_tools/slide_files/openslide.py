@@ -23,6 +23,7 @@ Units as in :mod:`data_tools.slide_files.tiff`: pixels of the level read, ``down
 ``mpp`` in µm per level-0 px. Every problem with the file raises :class:`data_tools.errors.SlideError`
 naming the path, in one line.
 """
+
 from __future__ import annotations
 
 import hashlib
@@ -36,18 +37,24 @@ import sys
 
 import numpy as np
 
-from data_tools.slide_files.dicom import _dicom_files, is_dicom
 from data_tools.errors import SlideError
-from data_tools.slide_files.mirax import check_mirax
-from data_tools.slide_files.limits import MAX_LEVELS, MAX_PIXELS, MAX_SIDE
 from data_tools.slide_files.base import LevelInfo, check_levels
+from data_tools.slide_files.dicom import _dicom_files, is_dicom
+from data_tools.slide_files.limits import MAX_LEVELS, MAX_PIXELS, MAX_SIDE
+from data_tools.slide_files.mirax import check_mirax
 from data_tools.slide_files.tiff import SlideReader
 
 __all__ = ["INSTALL_HINT", "OPENSLIDE_EXTENSIONS", "OpenSlideReader", "openslide_available", "openslide_module"]
 
 INSTALL_HINT = "reading it needs the optional extra: pip install 'histojax[openslide]' (OpenSlide 4)"
-OPENSLIDE_EXTENSIONS = {".mrxs": "3DHISTECH MIRAX", ".scn": "Leica SCN", ".bif": "Ventana BIF",
-                        ".vms": "Hamamatsu VMS", ".vmu": "Hamamatsu VMU", ".svslide": "Sakura SVSlide"}
+OPENSLIDE_EXTENSIONS = {
+    ".mrxs": "3DHISTECH MIRAX",
+    ".scn": "Leica SCN",
+    ".bif": "Ventana BIF",
+    ".vms": "Hamamatsu VMS",
+    ".vmu": "Hamamatsu VMU",
+    ".svslide": "Sakura SVSlide",
+}
 """Slide files read through OpenSlide (the native readers do not read them): extension → format name."""
 
 
@@ -100,16 +107,20 @@ class OpenSlideReader(SlideReader):
             mode = os.stat(self.path).st_mode
         if not stat.S_ISREG(mode):
             what = "a folder" if stat.S_ISDIR(mode) else "not a regular file (a FIFO, socket or device)"
-            raise SlideError(self.path, f"is {what}: OpenSlide opens one slide file (for MIRAX the .mrxs, its "
-                                        "data folder beside it)")
+            raise SlideError(
+                self.path, f"is {what}: OpenSlide opens one slide file (for MIRAX the .mrxs, its data folder beside it)"
+            )
         if self.path.lower().endswith(".mrxs"):  # its Slidedat.ini's sizes, before OpenSlide sizes arrays by them
             check_mirax(self.path)
         try:
             vendor = openslide.OpenSlide.detect_format(self.path)
             if vendor is None:
-                raise SlideError(self.path, "format not recognised by OpenSlide (not a slide it reads, or corrupt); "
-                                            "OpenSlide reads Aperio SVS, MIRAX, Hamamatsu, Leica SCN, Philips TIFF, "
-                                            "Sakura, Ventana, DICOM WSI and tiled TIFF")
+                raise SlideError(
+                    self.path,
+                    "format not recognised by OpenSlide (not a slide it reads, or corrupt); "
+                    "OpenSlide reads Aperio SVS, MIRAX, Hamamatsu, Leica SCN, Philips TIFF, "
+                    "Sakura, Ventana, DICOM WSI and tiled TIFF",
+                )
             _probe(self.path)  # in a child process first: a file that makes OpenSlide abort takes only the child
             self._tif = openslide.OpenSlide(self.path)
             self.format = f"openslide-{vendor}"
@@ -117,8 +128,9 @@ class OpenSlideReader(SlideReader):
             self.levels = _level_infos(self._tif, props)
             check_levels(self.path, self.levels)
             self.mpp = _mpp(props)
-            self.associated = {name: tuple(int(v) for v in img.size)
-                               for name, img in self._tif.associated_images.items()}
+            self.associated = {
+                name: tuple(int(v) for v in img.size) for name, img in self._tif.associated_images.items()
+            }
             last = self.levels[-1]  # one pixel of the coarsest level: catches a broken file at open
             self._decode_window(len(self.levels) - 1, last.width - 1, last.height - 1, last.width, last.height)
         except SlideError:
@@ -126,8 +138,7 @@ class OpenSlideReader(SlideReader):
             raise
         except Exception as exc:  # OpenSlideError, OpenSlideUnsupportedFormatError, OS errors: never escape raw
             self.close()
-            raise SlideError(self.path, f"format not recognised or file corrupt (OpenSlide: {_one_line(exc)})") \
-                from exc
+            raise SlideError(self.path, f"format not recognised or file corrupt (OpenSlide: {_one_line(exc)})") from exc
 
     def __repr__(self) -> str:
         return f"OpenSlideReader({self.path!r}, format={self.format!r}, levels={len(self.levels)})"
@@ -146,11 +157,12 @@ class OpenSlideReader(SlideReader):
             region = self._tif.read_region((sx, sy), level, (x1 - gx, y1 - gy))
             rgba = np.asarray(region, dtype=np.uint8)
         except Exception as exc:  # OpenSlideError (a corrupt tile), OS errors
-            raise SlideError(self.path, f"cannot decode level {level} (OpenSlide: {_one_line(exc)}); file truncated "
-                                        "or corrupt") from exc
+            raise SlideError(
+                self.path, f"cannot decode level {level} (OpenSlide: {_one_line(exc)}); file truncated or corrupt"
+            ) from exc
         if rgba.shape != (y1 - gy, x1 - gx, 4):
             raise SlideError(self.path, f"level {level} decoded to {rgba.shape}, not RGBA of {x1 - gx}×{y1 - gy} px")
-        return _on_white(rgba[y0 - gy:, x0 - gx:])
+        return _on_white(rgba[y0 - gy :, x0 - gx :])
 
 
 PROBE_TIMEOUT_S = 300
@@ -219,14 +231,26 @@ def _probe(path: str) -> None:
     key = _identity(path)
     if key in _probed:
         return
-    argv = [sys.executable, "-c", _PROBE_CODE, path, str(PROBE_MEMORY_BYTES), str(MAX_SIDE), str(MAX_PIXELS),
-            str(MAX_LEVELS)]
+    argv = [
+        sys.executable,
+        "-c",
+        _PROBE_CODE,
+        path,
+        str(PROBE_MEMORY_BYTES),
+        str(MAX_SIDE),
+        str(MAX_PIXELS),
+        str(MAX_LEVELS),
+    ]
     try:
-        proc = subprocess.run(argv, capture_output=True, text=True, errors="replace", timeout=PROBE_TIMEOUT_S,
-                              stdin=subprocess.DEVNULL)
+        proc = subprocess.run(
+            argv, capture_output=True, text=True, errors="replace", timeout=PROBE_TIMEOUT_S, stdin=subprocess.DEVNULL
+        )
     except subprocess.TimeoutExpired:
-        raise SlideError(path, f"OpenSlide did not open it within {PROBE_TIMEOUT_S} s (in a separate process, now "
-                               "stopped): a corrupt or hostile file") from None
+        raise SlideError(
+            path,
+            f"OpenSlide did not open it within {PROBE_TIMEOUT_S} s (in a separate process, now "
+            "stopped): a corrupt or hostile file",
+        ) from None
     except OSError:
         return  # no child process here: open it in this one, as before
     if proc.returncode < 0:
@@ -237,9 +261,12 @@ def _probe(path: str) -> None:
         said = [ln.strip() for ln in proc.stderr.splitlines() if ln.strip()]
         last = re.sub(r"^\(process:\d+\): |\b\d\d:\d\d:\d\d\.\d+: ", "", said[-1]) if said else ""
         why = f": {last[:200]}" if last else ""
-        raise SlideError(path, f"OpenSlide crashed opening it ({name}{why}); it was opened in a separate process, so "
-                               "only that process stopped: a corrupt or hostile file, or sizes OpenSlide cannot "
-                               "hold in memory")
+        raise SlideError(
+            path,
+            f"OpenSlide crashed opening it ({name}{why}); it was opened in a separate process, so "
+            "only that process stopped: a corrupt or hostile file, or sizes OpenSlide cannot "
+            "hold in memory",
+        )
     if proc.returncode == 0:
         _probed[key] = True
 
@@ -285,8 +312,9 @@ def _level_infos(slide, props) -> list[LevelInfo]:
     for k, ((w, h), ds) in enumerate(zip(slide.level_dimensions, slide.level_downsamples)):
         tw, th = props.get(f"openslide.level[{k}].tile-width"), props.get(f"openslide.level[{k}].tile-height")
         tile = (int(tw), int(th)) if tw and th and tw.isdigit() and th.isdigit() else None
-        infos.append(LevelInfo(width=int(w), height=int(h), downsample=float(ds), tile_size=tile,
-                               compression="openslide"))
+        infos.append(
+            LevelInfo(width=int(w), height=int(h), downsample=float(ds), tile_size=tile, compression="openslide")
+        )
     if not infos:
         raise SlideError(None, "OpenSlide reports no level")
     return infos

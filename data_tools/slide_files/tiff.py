@@ -18,6 +18,7 @@ format, over the decode budget) raises :class:`data_tools.errors.SlideError`
 naming the file; mistakes in the arguments (level index out of range, negative
 region size) raise ``ValueError``.
 """
+
 from __future__ import annotations
 
 import math
@@ -25,6 +26,7 @@ import os
 import re
 import stat
 import warnings
+
 import numpy as np
 import tifffile
 
@@ -37,8 +39,9 @@ __all__ = ["MAX_DECODE_BYTES", "SlideReader"]
 MAX_DECODE_BYTES = 4 * 1024**3
 """Default limit (bytes of decoded RGB, H * W * 3) for :meth:`SlideReader.read_level`."""
 
-_SUPPORTED = ("histojax reads Aperio SVS, pyramidal TIFF and BigTIFF, OME-TIFF, Akoya QPTIFF, Hamamatsu NDPI "
-              "and DICOM WSI")
+_SUPPORTED = (
+    "histojax reads Aperio SVS, pyramidal TIFF and BigTIFF, OME-TIFF, Akoya QPTIFF, Hamamatsu NDPI and DICOM WSI"
+)
 _TIFF_MAGICS = (b"II*\x00", b"MM\x00*", b"II+\x00", b"MM\x00+")
 _JPEG_COMPRESSIONS = {6, 7, 34892, 33007}  # need JPEGTables / header when decoding
 
@@ -50,8 +53,16 @@ _RESUNIT_CENTIMETER = 3
 
 # micrometres per unit, for OME PhysicalSizeXUnit
 _OME_UNIT_UM = {
-    "µm": 1.0, "μm": 1.0, "um": 1.0, "micron": 1.0,
-    "nm": 1e-3, "pm": 1e-6, "Å": 1e-4, "mm": 1e3, "cm": 1e4, "m": 1e6,
+    "µm": 1.0,
+    "μm": 1.0,
+    "um": 1.0,
+    "micron": 1.0,
+    "nm": 1e-3,
+    "pm": 1e-6,
+    "Å": 1e-4,
+    "mm": 1e3,
+    "cm": 1e4,
+    "m": 1e6,
 }
 
 
@@ -85,8 +96,7 @@ class SlideReader:
             self.close()
             raise SlideError(
                 self.path,
-                f"format not recognised or file corrupt ({type(exc).__name__}: {exc}); "
-                f"{_SUPPORTED}",
+                f"format not recognised or file corrupt ({type(exc).__name__}: {exc}); {_SUPPORTED}",
             ) from exc
 
     # -- context manager -------------------------------------------------
@@ -183,8 +193,7 @@ class SlideReader:
         if len(offsets) != nsep * across * down or len(bytecounts) != len(offsets):
             raise SlideError(
                 self.path,
-                f"level {level}: {len(offsets)} tile/strip offsets, expected {nsep * across * down}; "
-                "file is corrupt",
+                f"level {level}: {len(offsets)} tile/strip offsets, expected {nsep * across * down}; file is corrupt",
             )
         raw = np.zeros((nsep, y1 - y0, x1 - x0, ncontig), dtype=page.dtype)
         missing = np.zeros((y1 - y0, x1 - x0), dtype=bool)  # tiles absent from the file
@@ -239,8 +248,11 @@ class SlideReader:
             rgb[missing] = 255
             if level not in self._warned_missing:
                 self._warned_missing.add(level)
-                warnings.warn(f"{self.path}: level {level} has tiles/strips absent from the file (offset or byte "
-                              "count 0); they are read as white", stacklevel=3)
+                warnings.warn(
+                    f"{self.path}: level {level} has tiles/strips absent from the file (offset or byte "
+                    "count 0); they are read as white",
+                    stacklevel=3,
+                )
         return rgb
 
 
@@ -319,9 +331,12 @@ def _validate_page(path: str, level: int, page: tifffile.TiffPage) -> None:
         seg_px = w * min(page.rowsperstrip or h, h)
     expected = _segment_count(page)
     if len(page.dataoffsets) != expected or len(page.databytecounts) != len(page.dataoffsets):
-        raise SlideError(path, f"level {level}: {len(page.dataoffsets)} tile/strip offsets and "
-                         f"{len(page.databytecounts)} byte counts, expected {expected} (offsets tag missing or short): "
-                         "file is corrupt")
+        raise SlideError(
+            path,
+            f"level {level}: {len(page.dataoffsets)} tile/strip offsets and "
+            f"{len(page.databytecounts)} byte counts, expected {expected} (offsets tag missing or short): "
+            "file is corrupt",
+        )
     samples = page.samplesperpixel
     dtype = page.dtype
     what = f"level {level}: {samples} samples / dtype {dtype} / photometric {page.photometric.name}"
@@ -342,9 +357,7 @@ def _validate_page(path: str, level: int, page: tifffile.TiffPage) -> None:
     if not ok:
         raise SlideError(path, unsupported)
     if seg_px * samples * dtype.itemsize > MAX_DECODE_BYTES:
-        raise SlideError(
-            path, f"level {level}: one tile/strip would decode to more than {MAX_DECODE_BYTES} bytes"
-        )
+        raise SlideError(path, f"level {level}: one tile/strip would decode to more than {MAX_DECODE_BYTES} bytes")
 
 
 def _segment_count(page: tifffile.TiffPage) -> int:

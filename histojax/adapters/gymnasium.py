@@ -15,6 +15,7 @@ Stable-Baselines3, Tianshou and other Gymnasium users.
 Each sub-environment has its own JAX key: ``seed`` ``s`` starts it at ``PRNGKey(s)`` as
 ``GymnasiumEnv.reset(seed=s)`` does, and every reset or step splits it once.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -82,6 +83,7 @@ def split_keys(keys: jax.Array):
 
 def select(mask: jax.Array, a, b):
     """Rows of the trees ``a`` where ``mask`` (shape ``(n,)``) is true, else of ``b``."""
+
     def pick(x, y):
         return jnp.where(mask.reshape(mask.shape + (1,) * (x.ndim - 1)), x, y)
 
@@ -117,8 +119,15 @@ def _step_batch_next(env: HistoEnv, keys, state, action, autoreset, params):
     obs_re, state_re = jax.vmap(env.reset, in_axes=(0, None))(subs, params)
     stepped = jnp.logical_not(autoreset)
     info = {k: select(stepped, v, jnp.zeros_like(v)) for k, v in without_final_observation(info).items()}
-    return (select(autoreset, obs_re, obs), select(autoreset, state_re, new), jnp.where(stepped, reward, 0.0),
-            term & stepped, trunc & stepped, info, keys)
+    return (
+        select(autoreset, obs_re, obs),
+        select(autoreset, state_re, new),
+        jnp.where(stepped, reward, 0.0),
+        term & stepped,
+        trunc & stepped,
+        info,
+        keys,
+    )
 
 
 class GymnasiumEnv(gymnasium.Env):
@@ -152,10 +161,10 @@ class GymnasiumEnv(gymnasium.Env):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         self._key, key = jax.random.split(self._key)
-        obs, self._state, reward, terminated, truncated, info = _step_one(self._static, key, self._state, action,
-                                                                          self.params)
-        info = {k: v.item() if np.ndim(v) == 0 else v
-                for k, v in numpy_copy(without_final_observation(info)).items()}
+        obs, self._state, reward, terminated, truncated, info = _step_one(
+            self._static, key, self._state, action, self.params
+        )
+        info = {k: v.item() if np.ndim(v) == 0 else v for k, v in numpy_copy(without_final_observation(info)).items()}
         return numpy_copy(obs), float(reward), bool(terminated), bool(truncated), info
 
     def render(self):
@@ -182,9 +191,9 @@ class GymnasiumVectorEnv(gymnasium.vector.VectorEnv):
         self.observation_space = gymnasium.vector.utils.batch_space(self.single_observation_space, self.num_envs)
         self.action_space = gymnasium.vector.utils.batch_space(self.single_action_space, self.num_envs)
         self.render_mode = render_mode
-        self._keys = None      # (n, 2) device keys, one per sub-environment
-        self._state = None     # batched EnvState on the device
-        self._obs = None       # batched observation on the device (kept for reset_mask)
+        self._keys = None  # (n, 2) device keys, one per sub-environment
+        self._state = None  # batched EnvState on the device
+        self._obs = None  # batched observation on the device (kept for reset_mask)
         self._autoreset = np.zeros(self.num_envs, dtype=bool)
         self._static = settings_only(self.env)
 
@@ -199,8 +208,9 @@ class GymnasiumVectorEnv(gymnasium.vector.VectorEnv):
         else:
             seeds = list(seed)
             if len(seeds) != self.num_envs:
-                raise ValueError(f"reset(seed=[...]) needs one seed per sub-environment ({self.num_envs}), "
-                                 f"got {len(seeds)}")
+                raise ValueError(
+                    f"reset(seed=[...]) needs one seed per sub-environment ({self.num_envs}), got {len(seeds)}"
+                )
         return seeded_keys(self._keys, seeds, mask, self.np_random)
 
     def reset(self, *, seed: int | list[int | None] | None = None, options: dict | None = None):
@@ -211,13 +221,16 @@ class GymnasiumVectorEnv(gymnasium.vector.VectorEnv):
         if mask is None or self._state is None:
             mask = np.ones(self.num_envs, dtype=bool)
         elif not (isinstance(mask, np.ndarray) and mask.dtype == np.bool_ and mask.shape == (self.num_envs,)):
-            raise ValueError(f"options['reset_mask'] must be a numpy bool array of shape ({self.num_envs},), "
-                             f"got {type(mask).__name__} {getattr(mask, 'dtype', '')} {getattr(mask, 'shape', '')}")
+            raise ValueError(
+                f"options['reset_mask'] must be a numpy bool array of shape ({self.num_envs},), "
+                f"got {type(mask).__name__} {getattr(mask, 'dtype', '')} {getattr(mask, 'shape', '')}"
+            )
         elif not mask.any():
             raise ValueError("options['reset_mask'] resets no sub-environment (all False)")
         keys = self._seed_keys(seed, mask)
-        self._obs, self._state, self._keys = _reset_batch(self._static, keys, jnp.asarray(mask), self._obs, self._state,
-                                                          self.params)
+        self._obs, self._state, self._keys = _reset_batch(
+            self._static, keys, jnp.asarray(mask), self._obs, self._state, self.params
+        )
         self._autoreset = self._autoreset & ~mask
         return numpy_copy(self._obs), {}
 
@@ -228,7 +241,8 @@ class GymnasiumVectorEnv(gymnasium.vector.VectorEnv):
             raise RuntimeError("call reset() before step()")
         autoreset = self._autoreset
         self._obs, self._state, reward, term, trunc, info, self._keys = _step_batch_next(
-            self._static, self._keys, self._state, jnp.asarray(actions), jnp.asarray(autoreset), self.params)
+            self._static, self._keys, self._state, jnp.asarray(actions), jnp.asarray(autoreset), self.params
+        )
         term, trunc = np.array(term), np.array(trunc)
         self._autoreset = term | trunc
         stepped = ~autoreset
@@ -253,8 +267,9 @@ def make_gymnasium_env(env_id: str, slide=None, render_mode: str | None = None, 
     return GymnasiumEnv(env, params, render_mode=render_mode)
 
 
-def make_gymnasium_vector_env(env_id: str, num_envs: int = 1, slide=None, render_mode: str | None = None,
-                              **overrides) -> GymnasiumVectorEnv:
+def make_gymnasium_vector_env(
+    env_id: str, num_envs: int = 1, slide=None, render_mode: str | None = None, **overrides
+) -> GymnasiumVectorEnv:
     """``histojax.make(env_id, slide, **overrides)`` as a :class:`GymnasiumVectorEnv` of ``num_envs``
     (what ``gymnasium.make_vec("histojax/<id>", num_envs)`` calls)."""
     from histojax.registry import make
@@ -272,14 +287,29 @@ def register_gymnasium_envs() -> None:
     for env_id in registered_envs():
         name = f"histojax/{env_id}"
         if name not in gymnasium.registry:
-            gymnasium.register(name, entry_point="histojax.adapters.gymnasium:make_gymnasium_env",
-                               vector_entry_point="histojax.adapters.gymnasium:make_gymnasium_vector_env",
-                               kwargs={"env_id": env_id}, disable_env_checker=True)
+            gymnasium.register(
+                name,
+                entry_point="histojax.adapters.gymnasium:make_gymnasium_env",
+                vector_entry_point="histojax.adapters.gymnasium:make_gymnasium_vector_env",
+                kwargs={"env_id": env_id},
+                disable_env_checker=True,
+            )
 
 
-
-__all__ = ["GymnasiumEnv", "GymnasiumVectorEnv", "make_gymnasium_env", "make_gymnasium_vector_env",
-           "numpy_copy", "register_gymnasium_envs", "seed_key", "seeded_keys", "select", "settings_only",
-           "single_spaces", "split_keys", "without_final_observation"]
+__all__ = [
+    "GymnasiumEnv",
+    "GymnasiumVectorEnv",
+    "make_gymnasium_env",
+    "make_gymnasium_vector_env",
+    "numpy_copy",
+    "register_gymnasium_envs",
+    "seed_key",
+    "seeded_keys",
+    "select",
+    "settings_only",
+    "single_spaces",
+    "split_keys",
+    "without_final_observation",
+]
 
 register_gymnasium_envs()

@@ -26,6 +26,7 @@ rather than DeepZoom tile indices; the zoom levels are histojax's scenarios (``s
 ``render(mode="rgb_array")`` returns the slide overview with the view drawn on it (the view itself
 is ``obs.transpose(1, 2, 0)``); ``"human"`` without a display saves the PNG instead, with a notice.
 """
+
 from __future__ import annotations
 
 import os
@@ -38,7 +39,8 @@ import jax.numpy as jnp
 import numpy as np
 
 from histojax.core import actions, spaces
-from histojax.core.spaces import NumpyBox as Box, NumpyDiscrete as Discrete  # noqa: F401  (gym-style, numpy)
+from histojax.core.spaces import NumpyBox as Box  # noqa: F401  (gym-style, numpy)
+from histojax.core.spaces import NumpyDiscrete as Discrete
 
 SCENARIOS = {"easy": "HistoJAX-Easy-v0", "medium": "HistoJAX-Medium-v0", "hard": "HistoJAX-Hard-v0"}
 RENDER_MODES = ("human", "save", "rgb_array")
@@ -49,8 +51,9 @@ def compat_bundle(img_path, xml_path, tile_size: int, progress: bool = True) -> 
     and Hard: ``cache_dir() / f"compat-{sha}"``, built on first use."""
     from histojax.cache import cached_bundle
 
-    return cached_bundle(img_path, xml_path, tile_size=int(tile_size), prefix="compat", progress=progress,
-                         storage="dense")
+    return cached_bundle(
+        img_path, xml_path, tile_size=int(tile_size), prefix="compat", progress=progress, storage="dense"
+    )
 
 
 def _has_display() -> bool:
@@ -66,9 +69,21 @@ class HistoEnv:
     UP, DOWN, LEFT, RIGHT, ZOOM_IN, ZOOM_OUT, STAY = range(7)
     metadata = {"render_modes": list(RENDER_MODES)}
 
-    def __init__(self, img_path, xml_path, tile_size, result_path, *, scenario: str = "easy",
-                 reward: str = "histogym", max_step: int = 2000, random_start: bool = False, seed: int = 0,
-                 progress: bool = True, **make_kwargs):
+    def __init__(
+        self,
+        img_path,
+        xml_path,
+        tile_size,
+        result_path,
+        *,
+        scenario: str = "easy",
+        reward: str = "histogym",
+        max_step: int = 2000,
+        random_start: bool = False,
+        seed: int = 0,
+        progress: bool = True,
+        **make_kwargs,
+    ):
         import histojax
 
         key = str(scenario).lower()
@@ -84,20 +99,27 @@ class HistoEnv:
         Path(result_path).mkdir(parents=True, exist_ok=True)
         self.bundle_path = compat_bundle(img_path, xml_path, self.tile_size, progress=progress)
         self.env, self.params = histojax.make(
-            SCENARIOS[key], slide=self.bundle_path, auto_reset=False, reward=reward,
-            max_steps_in_episode=self.max_step, random_start=random_start, **make_kwargs)
+            SCENARIOS[key],
+            slide=self.bundle_path,
+            auto_reset=False,
+            reward=reward,
+            max_steps_in_episode=self.max_step,
+            random_start=random_start,
+            **make_kwargs,
+        )
         self.n_actions = actions.NUM_DISCRETE_ACTIONS
         self.action_space = spaces.to_numpy(self.env.action_space(self.params), seed=seed)
         self.OBS_W = self.OBS_H = self.tile_size
-        self.observation_space = spaces.to_numpy(spaces.channel_first(self.env.observation_space(self.params)),
-                                                 seed=seed)
+        self.observation_space = spaces.to_numpy(
+            spaces.channel_first(self.env.observation_space(self.params)), seed=seed
+        )
         self._key = jax.random.PRNGKey(seed)
         self._reset = jax.jit(self._reset_fn)
         self._step = jax.jit(self._step_fn)
         self._human_notice = False
         self.count = 0
-        self.state = None        # the last observation, as in HistoGym
-        self.jax_state = None    # histojax's EnvState
+        self.state = None  # the last observation, as in HistoGym
+        self.jax_state = None  # histojax's EnvState
         self.agent_pos: list[int] = []
         self.reset()
 
@@ -182,8 +204,7 @@ class HistoEnv:
             reason = "no display"
         path = self._save(picture)
         if mode == "human" and not self._human_notice:
-            warnings.warn(f"render(mode='human'): {reason}; saving PNGs to {self.result_path} instead",
-                          stacklevel=2)
+            warnings.warn(f"render(mode='human'): {reason}; saving PNGs to {self.result_path} instead", stacklevel=2)
             self._human_notice = True
         return path
 
@@ -199,8 +220,10 @@ class HistoEnv:
         pass
 
     def __repr__(self) -> str:
-        return (f"HistoEnv({self.img_path!r}, {self.xml_path!r}, {self.tile_size}, {self.result_path!r}, "
-                f"scenario={self.scenario!r})")
+        return (
+            f"HistoEnv({self.img_path!r}, {self.xml_path!r}, {self.tile_size}, {self.result_path!r}, "
+            f"scenario={self.scenario!r})"
+        )
 
 
 __all__ = ["Box", "Discrete", "HistoEnv", "compat_bundle"]

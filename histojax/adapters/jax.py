@@ -1,6 +1,7 @@
 """Pure-JAX wrappers, for gymnax / PureJaxRL / rejax users (jittable, vmappable, like the env):
 episode statistics (PureJaxRL's :class:`LogWrapper` for the 6-value step) and the older gymnax
 5-value step (:class:`GymnaxV0Wrapper`: ``obs, state, reward, done, info``)."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -62,11 +63,13 @@ class LogWrapper(Wrapper):
             returned_episode_success=jnp.where(done, info["success"], state.returned_episode_success),
             timestep=state.timestep + 1,
         )
-        info = {**info,
-                "returned_episode_returns": state.returned_episode_returns,
-                "returned_episode_lengths": state.returned_episode_lengths,
-                "returned_episode_success": state.returned_episode_success,
-                "returned_episode": done}
+        info = {
+            **info,
+            "returned_episode_returns": state.returned_episode_returns,
+            "returned_episode_lengths": state.returned_episode_lengths,
+            "returned_episode_success": state.returned_episode_success,
+            "returned_episode": done,
+        }
         return obs, state, reward, terminated, truncated, info
 
 
@@ -94,7 +97,6 @@ class GymnaxV0Wrapper(Wrapper):
 def vmap_reset(env, num_envs: int):
     """``reset`` over ``num_envs`` keys split from one: ``fn(key, params) -> (obs, state)`` batched."""
     return lambda key, params: jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, num_envs), params)
-
 
 
 __all__ = ["GymnaxV0Wrapper", "LogEnvState", "LogWrapper", "Wrapper", "vmap_reset"]

@@ -15,6 +15,7 @@ are writable copies. ``infos[i]`` also holds ``tumour_fraction``, ``success``, `
 ``terminated`` and ``truncated`` as Python scalars. Episode returns for SB3's logger come from
 wrapping the adapter in ``VecMonitor``.
 """
+
 from __future__ import annotations
 
 import functools
@@ -23,8 +24,17 @@ import jax
 import numpy as np
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
-from histojax.adapters.gymnasium import (_reset_batch, _without_autoreset, numpy_copy, seeded_keys, select,
-                                        settings_only, single_spaces, split_keys, without_final_observation)
+from histojax.adapters.gymnasium import (
+    _reset_batch,
+    _without_autoreset,
+    numpy_copy,
+    seeded_keys,
+    select,
+    settings_only,
+    single_spaces,
+    split_keys,
+    without_final_observation,
+)
 from histojax.core.env import HistoEnv
 
 
@@ -38,8 +48,16 @@ def _step_batch_same(env: HistoEnv, keys, state, action, params):
     done = term | trunc
     keys_re, subs_re = split_keys(keys)
     obs_re, state_re = jax.vmap(env.reset, in_axes=(0, None))(subs_re, params)
-    return (select(done, obs_re, obs), select(done, state_re, new), reward, term, trunc,
-            without_final_observation(info), obs, select(done, keys_re, keys))
+    return (
+        select(done, obs_re, obs),
+        select(done, state_re, new),
+        reward,
+        term,
+        trunc,
+        without_final_observation(info),
+        obs,
+        select(done, keys_re, keys),
+    )
 
 
 class SB3VecEnv(VecEnv):
@@ -75,7 +93,8 @@ class SB3VecEnv(VecEnv):
         if self._state is None:
             raise RuntimeError("call reset() before step()")
         obs, self._state, reward, term, trunc, info, final_obs, self._keys = _step_batch_same(
-            self._static, self._keys, self._state, self._actions, self.params)
+            self._static, self._keys, self._state, self._actions, self.params
+        )
         term, trunc = np.array(term), np.array(trunc)
         dones = term | trunc
         info = numpy_copy(info)
@@ -126,8 +145,7 @@ class SB3VecEnv(VecEnv):
         return [False for _ in self._get_indices(indices)]
 
 
-def make_sb3_vec_env(env_id: str, num_envs: int, slide=None, render_mode: str | None = None,
-                     **overrides) -> SB3VecEnv:
+def make_sb3_vec_env(env_id: str, num_envs: int, slide=None, render_mode: str | None = None, **overrides) -> SB3VecEnv:
     """``histojax.make(env_id, slide, **overrides)`` as an :class:`SB3VecEnv` of ``num_envs``."""
     from histojax.registry import make
 

@@ -1,5 +1,6 @@
 """Actions → new ``(z, x, y)``. Positions are top-left corners in px of level ``z``
 (0 = coarsest); every result is clamped to ``[0, W_z - T] × [0, H_z - T]``."""
+
 from __future__ import annotations
 
 import jax

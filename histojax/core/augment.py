@@ -17,6 +17,7 @@ So the agent sees a consistent rotated/mirrored slide: after moving RIGHT in its
 the right of its view is now in the middle. An agent trained with ``augment=True`` sees 8 different
 layouts of every training slide, which keeps it from memorising where the tumour lies.
 """
+
 from __future__ import annotations
 
 import functools
@@ -28,7 +29,7 @@ import numpy as np
 from histojax.core import actions
 
 NUM_ORIENTATIONS = 8
-_ROT = np.array([[0, -1], [1, 0]], np.int32)    # 90° turn in image coords (x right, y down)
+_ROT = np.array([[0, -1], [1, 0]], np.int32)  # 90° turn in image coords (x right, y down)
 _MIRROR = np.array([[-1, 0], [0, 1]], np.int32)  # left ↔ right
 
 

@@ -8,6 +8,7 @@ What the state, the actions, the observations, the rewards, the tasks, the episo
 specification, ``docs/specification.md``; the modes are :mod:`histojax.core.modes`, the rewards
 :mod:`histojax.core.rewards`, the augmentation :mod:`histojax.core.augment`, the slide arrays :mod:`histojax.core.slide`.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -17,8 +18,8 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from histojax.core import augment as dihedral
 from histojax.core import actions, gymnax_classes, rewards, spaces
+from histojax.core import augment as dihedral
 from histojax.core.modes import base, factory
 from histojax.core.slide import SlideArrays
 from histojax.core.views import view_tumour_fraction
@@ -64,32 +65,32 @@ def sample_row(key: jax.Array, cdf: jax.Array, row=None) -> jax.Array:
 class EnvState:
     """The immutable state of one environment (units in the module doc)."""
 
-    z: jnp.ndarray            # () int32 level of the view, 0 = coarsest, n_levels - 1 = finest
-    x: jnp.ndarray            # () int32 view's top-left corner, px of level z
-    y: jnp.ndarray            # () int32
-    t: jnp.ndarray            # () int32 steps taken this episode
+    z: jnp.ndarray  # () int32 level of the view, 0 = coarsest, n_levels - 1 = finest
+    x: jnp.ndarray  # () int32 view's top-left corner, px of level z
+    y: jnp.ndarray  # () int32
+    t: jnp.ndarray  # () int32 steps taken this episode
     slide_index: jnp.ndarray  # () int32 which slide of the dataset (0 for one slide)
     orientation: jnp.ndarray = struct.field(default_factory=lambda: jnp.zeros((), jnp.int32))  # () int32 0..7 (augment)
-    memory: Any = None        # the action mode's reading memory (None for discrete / continuous)
+    memory: Any = None  # the action mode's reading memory (None for discrete / continuous)
 
 
 @struct.dataclass
 class EnvParams:
     """Dynamic settings (vmappable). The slide's device arrays travel here, never closed over."""
 
-    slide: SlideArrays                   # the slide (or stacked dataset) on the device
-    max_steps_in_episode: int = 200      # truncation at this many steps
-    stride: float = 1.0                  # move length in view widths
-    success_threshold: float = 0.5       # tumour fraction of the finest view that counts as found
-    step_cost: float = 0.01              # paid every step
-    success_bonus: float = 10.0          # paid on success ("sparse", "dense")
-    histogym_scale: float = 1000.0       # "histogym": reward per unit tumour fraction at the finest level
-    dense_weight: float = 1.0            # "dense": weight of the potential difference
-    random_start: bool = True            # False: HistoGym's fixed start at the top-left, coarsest level
-    start_level: int = 0                 # navigation modes: the level episodes start at (0 = coarsest, HistoGym's;
-                                         # -1 = finest; clipped to the levels), centred on the coarsest start view
-    diagnosis_reward: float = 1.0        # task="classification": +this for a right diagnosis, -this for a wrong one
-    mode_data: Any = None                # the action mode's per-slide tables (ActionMode.prepare); None for navigation
+    slide: SlideArrays  # the slide (or stacked dataset) on the device
+    max_steps_in_episode: int = 200  # truncation at this many steps
+    stride: float = 1.0  # move length in view widths
+    success_threshold: float = 0.5  # tumour fraction of the finest view that counts as found
+    step_cost: float = 0.01  # paid every step
+    success_bonus: float = 10.0  # paid on success ("sparse", "dense")
+    histogym_scale: float = 1000.0  # "histogym": reward per unit tumour fraction at the finest level
+    dense_weight: float = 1.0  # "dense": weight of the potential difference
+    random_start: bool = True  # False: HistoGym's fixed start at the top-left, coarsest level
+    start_level: int = 0  # navigation modes: the level episodes start at (0 = coarsest, HistoGym's;
+    # -1 = finest; clipped to the levels), centred on the coarsest start view
+    diagnosis_reward: float = 1.0  # task="classification": +this for a right diagnosis, -this for a wrong one
+    mode_data: Any = None  # the action mode's per-slide tables (ActionMode.prepare); None for navigation
 
 
 @dataclasses.dataclass(frozen=True, eq=False)
@@ -111,15 +112,15 @@ class HistoEnv(_GymnaxEnvironment):
 
     n_levels: int
     tile_size: int = 128
-    action_mode: Any = "discrete"   # a name in histojax.core.modes.factory.ACTION_MODES or an ActionMode object
-    obs_mode: Any = "pixels"        # a name in histojax.core.modes.factory.OBS_MODES or an ObsMode object
+    action_mode: Any = "discrete"  # a name in histojax.core.modes.factory.ACTION_MODES or an ActionMode object
+    obs_mode: Any = "pixels"  # a name in histojax.core.modes.factory.OBS_MODES or an ObsMode object
     with_position: bool = False
     reward: str = "dense"
     auto_reset: bool = True
     final_observation: bool = True
     task: str = "detection"
     augment: bool = False
-    step_obs: bool = False          # reading modes: a step observes what changed; per-episode tables apart
+    step_obs: bool = False  # reading modes: a step observes what changed; per-episode tables apart
     name: str = "HistoJAX-v0"
     _default_params: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
     _bundle: Any = dataclasses.field(default=None, compare=False, hash=False, repr=False)
@@ -145,8 +146,10 @@ class HistoEnv(_GymnaxEnvironment):
         if self.task not in TASKS:
             raise ValueError(f"task must be one of {TASKS}, got {self.task!r}")
         if self.augment and not observation.supports_augment:
-            raise ValueError("augment=True turns the view's pixels; a feature vector cannot be turned. "
-                             "Use obs_mode='pixels' (or 'pixels_float'), or compute features of turned views")
+            raise ValueError(
+                "augment=True turns the view's pixels; a feature vector cannot be turned. "
+                "Use obs_mode='pixels' (or 'pixels_float'), or compute features of turned views"
+            )
         if self.augment and not action.supports_augment:
             raise ValueError(f"augment=True cannot turn action_mode={action.name!r}; use 'discrete' or 'continuous'")
         action.validate(self)
@@ -211,14 +214,16 @@ class HistoEnv(_GymnaxEnvironment):
         def corner(spare):
             return spaces.Box(min(0, int(spare.min())), max(0, int(spare.max())), (), jnp.int32)
 
-        return spaces.Dict({
-            "z": spaces.Discrete(self.n_levels),
-            "x": corner(spare_x),
-            "y": corner(spare_y),
-            "t": spaces.Discrete(int(params.max_steps_in_episode) + 1),
-            "slide_index": spaces.Discrete(s.num_slides),
-            "orientation": spaces.Discrete(dihedral.NUM_ORIENTATIONS),
-        })
+        return spaces.Dict(
+            {
+                "z": spaces.Discrete(self.n_levels),
+                "x": corner(spare_x),
+                "y": corner(spare_y),
+                "t": spaces.Discrete(int(params.max_steps_in_episode) + 1),
+                "slide_index": spaces.Discrete(s.num_slides),
+                "orientation": spaces.Discrete(dihedral.NUM_ORIENTATIONS),
+            }
+        )
 
     def episode_tables(self, params: EnvParams | None = None) -> dict:
         """What is fixed for each slide during an episode, ``{name: (S, ...) array}`` for ``S`` slides, which
@@ -346,8 +351,15 @@ class HistoEnv(_GymnaxEnvironment):
             reward = rewards.classification_reward(params, declared, success)
             terminated = declared
             extra = {"score": move.score, "declared": declared}
-        new_state = EnvState(z=z, x=x, y=y, t=state.t + 1, slide_index=state.slide_index,
-                             orientation=state.orientation, memory=move.memory)
+        new_state = EnvState(
+            z=z,
+            x=x,
+            y=y,
+            t=state.t + 1,
+            slide_index=state.slide_index,
+            orientation=state.orientation,
+            memory=move.memory,
+        )
         truncated = jnp.logical_and(new_state.t >= params.max_steps_in_episode, jnp.logical_not(terminated))
         truncated = jnp.logical_or(truncated, self.action.budget_spent(self, new_state, params)) & ~terminated
         info = {
@@ -380,11 +392,13 @@ class HistoEnv(_GymnaxEnvironment):
     def _position(self, state: EnvState, slide: SlideArrays):
         """``(x_centre / W_z, y_centre / H_z, z / (n_levels - 1))`` float32 in ``[0, 1]``."""
         half = self.tile_size / 2.0
-        position = jnp.stack([
-            (state.x + half) / slide.level_width[state.z],
-            (state.y + half) / slide.level_height[state.z],
-            state.z / max(self.n_levels - 1, 1),
-        ]).astype(jnp.float32)
+        position = jnp.stack(
+            [
+                (state.x + half) / slide.level_width[state.z],
+                (state.y + half) / slide.level_height[state.z],
+                state.z / max(self.n_levels - 1, 1),
+            ]
+        ).astype(jnp.float32)
         return dihedral.orient_position(position, state.orientation) if self.augment else position
 
     # ----------------------------------------------------------------- host-side helpers

@@ -16,6 +16,7 @@ gymnax.environments.spaces.Discrete)`` answer as before, and gymnax's own enviro
 wrappers share the classes. When gymnax was imported before histojax, the modules already there
 are used unchanged.
 """
+
 from __future__ import annotations
 
 import importlib

@@ -11,6 +11,7 @@ mask); success means ``f >= success_threshold`` at the finest level. Constants l
   better); terminates on success. Range ``[-step_cost - dense_weight,
   -step_cost + dense_weight + success_bonus]``; defaults ``[-1.01, 10.99]``.
 """
+
 from __future__ import annotations
 
 import jax.numpy as jnp

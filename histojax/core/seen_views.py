@@ -18,6 +18,7 @@ as read. The observation's ``visited (16, 16)`` is the "coarse visited map": the
 16 × 16 equal blocks of finest-level views (block ``(fy·16 // gh, fx·16 // gw)``), each holding
 the fraction of its tissue views read (0 where it has none).
 """
+
 from __future__ import annotations
 
 import jax
@@ -59,8 +60,12 @@ def tissue_views(bundle, slide, tile_size: int) -> np.ndarray:
     y0, y1 = edges(gh)
     x0, x1 = np.clip(x0, 0, tw - 1), np.clip(x1, 1, tw)
     y0, y1 = np.clip(y0, 0, th - 1), np.clip(y1, 1, th)
-    count = (sat[y1[:, None], x1[None, :]] - sat[y0[:, None], x1[None, :]]
-             - sat[y1[:, None], x0[None, :]] + sat[y0[:, None], x0[None, :]])
+    count = (
+        sat[y1[:, None], x1[None, :]]
+        - sat[y0[:, None], x1[None, :]]
+        - sat[y1[:, None], x0[None, :]]
+        + sat[y0[:, None], x0[None, :]]
+    )
     area = (y1 - y0)[:, None] * (x1 - x0)[None, :]
     ok = count >= MIN_START_TISSUE * area
     return ok if ok.any() else np.ones_like(ok)
@@ -88,28 +93,27 @@ class SeenTables:
     """What a navigating episode can see, per slide of ``S`` (in ``EnvParams.mode_data``); views on
     stride-``T`` grids of every level."""
 
-    grid_offset: jnp.ndarray   # (S, n) int32 first index of level z's grid in the flat ``seen`` array
-    grid_width: jnp.ndarray    # (S, n) int32 columns of each level's grid
-    grid_height: jnp.ndarray   # (S, n) int32 rows of each level's grid
-    tissue: jnp.ndarray        # (S, Vf) bool: finest-level view v is a tissue view (flat, padded False)
-    coarse_cell: jnp.ndarray   # (S, Vf) int32 visited-map block of finest view v (padding: Gc, dropped)
+    grid_offset: jnp.ndarray  # (S, n) int32 first index of level z's grid in the flat ``seen`` array
+    grid_width: jnp.ndarray  # (S, n) int32 columns of each level's grid
+    grid_height: jnp.ndarray  # (S, n) int32 rows of each level's grid
+    tissue: jnp.ndarray  # (S, Vf) bool: finest-level view v is a tissue view (flat, padded False)
+    coarse_cell: jnp.ndarray  # (S, Vf) int32 visited-map block of finest view v (padding: Gc, dropped)
     coarse_views: jnp.ndarray  # (S, Gc) float32 tissue views in each block (≥ 1 to divide by), Gc = 16·16
-    total_views: jnp.ndarray   # (S,) int32 finest-level tissue views of the slide (≥ 1)
-    inv_total: jnp.ndarray     # (S,) float32 1 / total_views
-    inv_coarse: jnp.ndarray    # (S, Gc) float32 1 / coarse_views
-    read_budget: jnp.ndarray   # () float32 fraction of total_views after which the episode is truncated
-    seen_zero: jnp.ndarray     # (⌈V/32⌉,) uint32 all 0: a fresh ``seen`` bit set (V = the largest sum of grid sizes)
+    total_views: jnp.ndarray  # (S,) int32 finest-level tissue views of the slide (≥ 1)
+    inv_total: jnp.ndarray  # (S,) float32 1 / total_views
+    inv_coarse: jnp.ndarray  # (S, Gc) float32 1 / coarse_views
+    read_budget: jnp.ndarray  # () float32 fraction of total_views after which the episode is truncated
+    seen_zero: jnp.ndarray  # (⌈V/32⌉,) uint32 all 0: a fresh ``seen`` bit set (V = the largest sum of grid sizes)
     coarse_map: jnp.ndarray | None = None  # (S, 16, 16) float32 coarse map (see coarse_maps below), or None
-
 
 
 @struct.dataclass
 class SeenMemory:
     """What a navigating episode has seen (in ``EnvState.memory``)."""
 
-    seen: jnp.ndarray        # (⌈V/32⌉,) uint32 bits: view v of every level's grid seen (bit v % 32 of word v // 32)
+    seen: jnp.ndarray  # (⌈V/32⌉,) uint32 bits: view v of every level's grid seen (bit v % 32 of word v // 32)
     views_read: jnp.ndarray  # () int32 finest-level tissue views seen
-    fields: jnp.ndarray      # () int32 distinct views seen, any level
+    fields: jnp.ndarray  # () int32 distinct views seen, any level
     block_read: jnp.ndarray  # (Gc,) int32 finest tissue views read per block of the visited map (Gc = 16·16)
 
 
@@ -141,16 +145,28 @@ def seen_tables(env, params, bundles, read_budget: float = 1.0) -> SeenTables:
         rows["coarse"].append(coarse.astype(np.int32))
         rows["total"].append(max(1, int(tissue.sum())))
     return SeenTables(
-        grid_offset=jnp.asarray(np.stack(rows["offset"])), grid_width=jnp.asarray(np.stack(rows["width"])),
+        grid_offset=jnp.asarray(np.stack(rows["offset"])),
+        grid_width=jnp.asarray(np.stack(rows["width"])),
         grid_height=jnp.asarray(np.stack(rows["height"])),
         tissue=jnp.asarray(pad_stack(rows["tissue"], False)),
         coarse_cell=jnp.asarray(pad_stack(rows["coarse"], big_c)),
-        coarse_views=jnp.asarray(np.stack(coarse_views)), total_views=jnp.asarray(rows["total"], jnp.int32),
+        coarse_views=jnp.asarray(np.stack(coarse_views)),
+        total_views=jnp.asarray(rows["total"], jnp.int32),
         inv_total=jnp.asarray(1.0 / np.asarray(rows["total"], np.float64), jnp.float32),
         inv_coarse=jnp.asarray(1.0 / np.stack(coarse_views).astype(np.float64), jnp.float32),
         read_budget=jnp.float32(read_budget),
-        seen_zero=jnp.zeros((seen_words(max(int(o[-1]) + int(w[-1]) * int(h[-1]) for o, w, h in
-                                            zip(rows["offset"], rows["width"], rows["height"]))),), jnp.uint32))
+        seen_zero=jnp.zeros(
+            (
+                seen_words(
+                    max(
+                        int(o[-1]) + int(w[-1]) * int(h[-1])
+                        for o, w, h in zip(rows["offset"], rows["width"], rows["height"])
+                    )
+                ),
+            ),
+            jnp.uint32,
+        ),
+    )
 
 
 def seen_words(views: int) -> int:
@@ -162,13 +178,21 @@ def seen_flags(words, start: int, size: int) -> np.ndarray:
     """Host: ``(size,)`` bool, views ``start .. start + size - 1`` of a ``seen`` bit set ``words``
     (``(⌈V/32⌉,)`` uint32, e.g. one env's ``memory.seen``)."""
     bits = np.unpackbits(np.asarray(words).astype("<u4").view(np.uint8), bitorder="little").astype(bool)
-    return bits[start:start + size]
+    return bits[start : start + size]
+
 
 def init_seen(tables: SeenTables, state, env) -> SeenMemory:
     """A fresh :class:`SeenMemory` that has seen the start view of ``state``."""
     zero = jnp.zeros((), jnp.int32)
-    return see(tables, SeenMemory(seen=tables.seen_zero, views_read=zero, fields=zero, block_read=block_zero(tables)),
-               state.slide_index, state.z, state.x, state.y, env)
+    return see(
+        tables,
+        SeenMemory(seen=tables.seen_zero, views_read=zero, fields=zero, block_read=block_zero(tables)),
+        state.slide_index,
+        state.z,
+        state.x,
+        state.y,
+        env,
+    )
 
 
 def block_zero(tables: SeenTables) -> jax.Array:
@@ -204,22 +228,26 @@ def see(tables: SeenTables, memory, i, z, x, y, env):
     finest = z == env.n_levels - 1
     view = jnp.clip(local, 0, tables.tissue.shape[-1] - 1)
     read = new & finest & tables.tissue[i, view]
-    counts = dict(views_read=memory.views_read + read.astype(jnp.int32),
-                  fields=memory.fields + new.astype(jnp.int32))
+    counts = dict(views_read=memory.views_read + read.astype(jnp.int32), fields=memory.fields + new.astype(jnp.int32))
     block = tables.coarse_cell[i, view]  # Gc (dropped) for padding, which is never read
     if not stamped:
-        return memory.replace(seen=memory.seen.at[word].set(bits | bit), **counts,
-                              block_read=memory.block_read.at[block].add(read.astype(jnp.int32), mode="drop"))
+        return memory.replace(
+            seen=memory.seen.at[word].set(bits | bit),
+            **counts,
+            block_read=memory.block_read.at[block].add(read.astype(jnp.int32), mode="drop"),
+        )
     b = jnp.minimum(block, memory.block_raw.shape[-1] - 1)
     block_stamp = memory.block_stamp[b]
     held = jnp.where(block_stamp == memory.episode, memory.block_raw[b], 0)
     # stamps never exceed ``episode``, so the max is ``episode``; written from the value read, it makes XLA read
     # before it writes and update the stamps in place (a constant write let it copy the whole array first)
-    return memory.replace(words=memory.words.at[word].set(bits | bit),
-                          stamp=memory.stamp.at[word].set(jnp.maximum(word_stamp, memory.episode)),
-                          block_raw=memory.block_raw.at[block].set(held + read.astype(jnp.int32), mode="drop"),
-                          block_stamp=memory.block_stamp.at[block].set(jnp.maximum(block_stamp, memory.episode),
-                                                                       mode="drop"), **counts)
+    return memory.replace(
+        words=memory.words.at[word].set(bits | bit),
+        stamp=memory.stamp.at[word].set(jnp.maximum(word_stamp, memory.episode)),
+        block_raw=memory.block_raw.at[block].set(held + read.astype(jnp.int32), mode="drop"),
+        block_stamp=memory.block_stamp.at[block].set(jnp.maximum(block_stamp, memory.episode), mode="drop"),
+        **counts,
+    )
 
 
 def budget_spent(tables, memory, i) -> jax.Array:
@@ -230,24 +258,30 @@ def budget_spent(tables, memory, i) -> jax.Array:
 
 def reading_info(tables, memory, i) -> dict:
     """``fraction_read`` (float32) and ``fields_of_view`` (int32) for ``info``."""
-    return {"fraction_read": memory.views_read.astype(jnp.float32) * tables.inv_total[i],
-            "fields_of_view": memory.fields}
+    return {
+        "fraction_read": memory.views_read.astype(jnp.float32) * tables.inv_total[i],
+        "fields_of_view": memory.fields,
+    }
 
 
 def visited_obs(env, state, params) -> dict:
     """``visited (16, 16)`` float32 (the coarse visited map, see the module doc) and ``position (3,)``."""
     tables, i = params.mode_data, state.slide_index
     per_cell = state.memory.block_read.astype(jnp.float32)  # kept up to date by see(): 256 numbers, no recount
-    return {"visited": (per_cell * tables.inv_coarse[i]).reshape(VISITED_MAP, VISITED_MAP),
-            "position": env._position(state, params.slide.select(i))}
+    return {
+        "visited": (per_cell * tables.inv_coarse[i]).reshape(VISITED_MAP, VISITED_MAP),
+        "position": env._position(state, params.slide.select(i)),
+    }
 
 
 def visited_space(params) -> dict:
     """Spaces of :func:`visited_obs`."""
     from histojax.core import spaces
 
-    return {"visited": spaces.Box(0.0, 1.0, (VISITED_MAP, VISITED_MAP), jnp.float32),
-            "position": spaces.Box(0.0, 1.0, (3,), jnp.float32)}
+    return {
+        "visited": spaces.Box(0.0, 1.0, (VISITED_MAP, VISITED_MAP), jnp.float32),
+        "position": spaces.Box(0.0, 1.0, (3,), jnp.float32),
+    }
 
 
 def with_tracking(env, params):
@@ -278,6 +312,8 @@ def coarse_maps(env, params, bundles, feature, level: int = -3, head=None) -> np
     """``(S, 16, 16)`` float32: the coarse map of every slide, by the builder :func:`register_coarse_map` plugged in
     (``ValueError``, one line, when none is)."""
     if not _COARSE_MAP_BUILDER:
-        raise ValueError("a coarse map (action_mode discrete:map / continuous:map) is built by the reading stack: "
-                         "import histojax (it registers histojax.reading.coarse_map.coarse_maps)")
+        raise ValueError(
+            "a coarse map (action_mode discrete:map / continuous:map) is built by the reading stack: "
+            "import histojax (it registers histojax.reading.coarse_map.coarse_maps)"
+        )
     return _COARSE_MAP_BUILDER[0](env, params, bundles, feature, level, head=head)

@@ -29,6 +29,7 @@ no pixels reach the device at all — ``pixels`` and ``tile_pool`` / ``tile_inde
 tumour tables (``tumour_sat``, or ``sat_pool`` / ``sat_index`` with the grid geometry), the start
 weights and the feature grid are there.
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -39,7 +40,12 @@ import numpy as np
 from flax import struct
 
 from data_tools.bundle_files.format import (  # noqa: F401  (select_levels, *_bytes: re-exported, their home is the format)
-    BundleMetadata, feature_bytes, select_levels, slide_device_bytes, tumour_table_bytes)
+    BundleMetadata,
+    feature_bytes,
+    select_levels,
+    slide_device_bytes,
+    tumour_table_bytes,
+)
 from data_tools.bundle_files.reading import Bundle, load_bundle, load_feature_levels, read_metadata
 from data_tools.bundle_files.safe_files import stable_read
 from data_tools.bundle_files.seals import verify_metadata
@@ -55,31 +61,33 @@ class SlideArrays:
 
     pixels: jnp.ndarray | None  # (P, 3) uint8; None for a tiled slide
     level_offset: jnp.ndarray  # (n,) int32, first pixel row of each level in ``pixels``
-    level_width: jnp.ndarray   # (n,) int32, px
+    level_width: jnp.ndarray  # (n,) int32, px
     level_height: jnp.ndarray  # (n,) int32, px
-    downsample: jnp.ndarray    # (n,) float32, level-0 px per px of the level
+    downsample: jnp.ndarray  # (n,) float32, level-0 px per px of the level
     tumour_sat: jnp.ndarray | None  # (S,) uint32, modulo 2**32; None for a tiled slide
-    sat_offset: jnp.ndarray    # (n,) int32
+    sat_offset: jnp.ndarray  # (n,) int32
     start_logits: jnp.ndarray  # (Hc - T + 1, Wc - T + 1) float32
     # optional feature grid (``obs_mode="features"``; ``None`` when not loaded), see ``view_features``:
-    features: jnp.ndarray | None = None            # (F, D) float16/float32, level z's grid row-major from feature_offset[z]
-    feature_offset: jnp.ndarray | None = None      # (n,) int32, first row of each level in ``features``
+    features: jnp.ndarray | None = None  # (F, D) float16/float32, level z's grid row-major from feature_offset[z]
+    feature_offset: jnp.ndarray | None = None  # (n,) int32, first row of each level in ``features``
     feature_grid_width: jnp.ndarray | None = None  # (n,) int32, grid columns gw of each level
     feature_grid_height: jnp.ndarray | None = None  # (n,) int32, grid rows gh of each level
-    feature_stride: jnp.ndarray | None = None      # () int32, px of a level between grid positions
+    feature_stride: jnp.ndarray | None = None  # () int32, px of a level between grid positions
     # slide-level data; for a dataset of S slides (``stack_slides``) every per-level array above gets
     # a leading axis S (``(S, n)``, start_logits ``(S, Hmax, Wmax)``, feature_stride ``(S,)``):
-    slide_label: jnp.ndarray | None = None   # () or (S,) int32: 1 tumour, 0 no tumour (classification)
+    slide_label: jnp.ndarray | None = None  # () or (S,) int32: 1 tumour, 0 no tumour (classification)
     slide_logits: jnp.ndarray | None = None  # (S,) float32 log-weights of sampling each slide at reset
     # tiled slides (``pixels`` / ``tumour_sat`` None), see the module doc:
-    tile_pool: jnp.ndarray | None = None        # (N, T, T, 3) uint8
-    tile_index: jnp.ndarray | None = None       # (G,) int32 pool index per grid cell, all levels
-    tile_offset: jnp.ndarray | None = None      # (n,) int32 first grid cell of each level in tile_index / sat_index
+    tile_pool: jnp.ndarray | None = None  # (N, T, T, 3) uint8
+    tile_index: jnp.ndarray | None = None  # (G,) int32 pool index per grid cell, all levels
+    tile_offset: jnp.ndarray | None = None  # (n,) int32 first grid cell of each level in tile_index / sat_index
     tile_grid_width: jnp.ndarray | None = None  # (n,) int32 grid columns gw of each level
-    sat_pool: jnp.ndarray | None = None         # (M, T+1, T+1) uint32 local summed-area tables
-    sat_index: jnp.ndarray | None = None        # (G,) int32 SAT pool index per grid cell
+    sat_pool: jnp.ndarray | None = None  # (M, T+1, T+1) uint32 local summed-area tables
+    sat_index: jnp.ndarray | None = None  # (G,) int32 SAT pool index per grid cell
     # derived once by ``make`` (:func:`start_cdf`), so a reset does not redo it over the whole coarsest level:
-    start_cdf: jnp.ndarray | None = None  # (Hc'·Wc',) or (S, Hmax·Wmax) float32 cumulative start weights; None: per reset
+    start_cdf: jnp.ndarray | None = (
+        None  # (Hc'·Wc',) or (S, Hmax·Wmax) float32 cumulative start weights; None: per reset
+    )
 
     @property
     def is_tiled(self) -> bool:
@@ -104,12 +112,21 @@ class SlideArrays:
             return self
         pick = lambda a: None if a is None else a[index]  # noqa: E731
         return self.replace(
-            level_offset=pick(self.level_offset), level_width=pick(self.level_width),
-            level_height=pick(self.level_height), downsample=pick(self.downsample), sat_offset=pick(self.sat_offset),
-            start_logits=pick(self.start_logits), start_cdf=pick(self.start_cdf), feature_offset=pick(self.feature_offset),
-            feature_grid_width=pick(self.feature_grid_width), feature_grid_height=pick(self.feature_grid_height),
-            feature_stride=pick(self.feature_stride), slide_label=pick(self.slide_label),
-            tile_offset=pick(self.tile_offset), tile_grid_width=pick(self.tile_grid_width))
+            level_offset=pick(self.level_offset),
+            level_width=pick(self.level_width),
+            level_height=pick(self.level_height),
+            downsample=pick(self.downsample),
+            sat_offset=pick(self.sat_offset),
+            start_logits=pick(self.start_logits),
+            start_cdf=pick(self.start_cdf),
+            feature_offset=pick(self.feature_offset),
+            feature_grid_width=pick(self.feature_grid_width),
+            feature_grid_height=pick(self.feature_grid_height),
+            feature_stride=pick(self.feature_stride),
+            slide_label=pick(self.slide_label),
+            tile_offset=pick(self.tile_offset),
+            tile_grid_width=pick(self.tile_grid_width),
+        )
 
 
 def _log_weights(weights: np.ndarray) -> np.ndarray:
@@ -151,8 +168,9 @@ def stack_slides(slides: list[SlideArrays], weights=None, consume: bool = False)
         raise ValueError("either every slide of a dataset has its pixels on the device or none has")
     pix = slides[0].has_pixels
     if any(tiled) and not all(tiled):
-        raise ValueError("a dataset cannot mix dense and tiled slides: rebuild them all with the same "
-                         "--storage (dense or tiled)")
+        raise ValueError(
+            "a dataset cannot mix dense and tiled slides: rebuild them all with the same --storage (dense or tiled)"
+        )
     if all(tiled):
         pixel_base = sat_base = np.zeros(len(slides), np.int64)  # level_offset / sat_offset unused
         tile_base = np.cumsum([0] + [int(s.tile_pool.shape[0]) if pix else 0 for s in slides[:-1]])
@@ -163,12 +181,19 @@ def stack_slides(slides: list[SlideArrays], weights=None, consume: bool = False)
         n_sats = satp_base[-1] + slides[-1].sat_pool.shape[0]
         if any(int(s.sat_pool.shape[1]) != t + 1 for s in slides):
             raise ValueError("tiled slides of a dataset need the same tile size")
-        if n_tiles * t * t >= 2**31 or n_sats * (t + 1) ** 2 >= 2**31 or index_base[-1] + slides[-1].sat_index.shape[0] >= 2**31:
+        if (
+            n_tiles * t * t >= 2**31
+            or n_sats * (t + 1) ** 2 >= 2**31
+            or index_base[-1] + slides[-1].sat_index.shape[0] >= 2**31
+        ):
             raise ValueError("the dataset holds too many tiles for int32 indexing; use fewer slides or levels")
     else:
         pixel_base = np.cumsum([0] + [int(s.pixels.shape[0]) if pix else 0 for s in slides[:-1]])
         sat_base = np.cumsum([0] + [int(s.tumour_sat.shape[0]) for s in slides[:-1]])
-        if pixel_base[-1] + (slides[-1].pixels.shape[0] if pix else 0) >= 2**31 or sat_base[-1] + slides[-1].tumour_sat.shape[0] >= 2**31:
+        if (
+            pixel_base[-1] + (slides[-1].pixels.shape[0] if pix else 0) >= 2**31
+            or sat_base[-1] + slides[-1].tumour_sat.shape[0] >= 2**31
+        ):
             raise ValueError("the dataset holds too many pixels for int32 indexing; use fewer slides or levels")
     h = max(int(s.start_logits.shape[0]) for s in slides)
     w = max(int(s.start_logits.shape[1]) for s in slides)
@@ -258,7 +283,7 @@ def start_logits(tissue: np.ndarray, tile_size: int, region: np.ndarray | None =
         ok = frac >= min(MIN_START_TISSUE, frac.max())
     if region is not None:
         c = tile_size // 2
-        centre = np.asarray(region, dtype=bool)[c:c + frac.shape[0], c:c + frac.shape[1]]
+        centre = np.asarray(region, dtype=bool)[c : c + frac.shape[0], c : c + frac.shape[1]]
         if (ok & centre).any():
             ok = ok & centre
         elif centre.any():
@@ -277,15 +302,18 @@ def tiled_slide_arrays(bundle: Bundle, tile_size: int, pixels: bool = True) -> S
     n_tiles = sum(int(p.pool.shape[0]) for p in bundle.pixels) if pixels else 0
     n_sats = sum(int(m.pool.shape[0]) for m in bundle.tumour)
     if (n_tiles + 1) * tile_size**2 >= 2**31 or n_sats * (tile_size + 1) ** 2 >= 2**31 or grid_sizes.sum() >= 2**31:
-        raise BundleError(bundle.path, f"{n_tiles:,} tiles are too many for int32 indexing of the pool px in one "
-                          "slide (at most 2**31 px, 6 GiB of RGB); use fewer or coarser levels")
+        raise BundleError(
+            bundle.path,
+            f"{n_tiles:,} tiles are too many for int32 indexing of the pool px in one "
+            "slide (at most 2**31 px, 6 GiB of RGB); use fewer or coarser levels",
+        )
     t = tile_size
     tile_pool = np.empty((n_tiles + 1, t, t, 3), np.uint8) if pixels else None
     sat_pool = np.empty((n_sats, t + 1, t + 1), np.uint32)
     for p, m, b, c in zip(bundle.pixels, bundle.tumour, tile_base, sat_base):
         if pixels:
-            tile_pool[b:b + p.pool.shape[0]] = p.pool
-        sat_pool[c:c + m.pool.shape[0]] = m.pool
+            tile_pool[b : b + p.pool.shape[0]] = p.pool
+        sat_pool[c : c + m.pool.shape[0]] = m.pool
     if pixels:
         tile_pool[-1] = 255  # the spare tile the view's row slices may run into
     if pixels and n_tiles and np.ptp(tile_pool[0].reshape(-1, 3), axis=0).any():
@@ -295,19 +323,27 @@ def tiled_slide_arrays(bundle: Bundle, tile_size: int, pixels: bool = True) -> S
     downsample = BundleMetadata(bundle.metadata).downsamples
     zeros = jnp.zeros((n,), jnp.int32)
     arrays = SlideArrays(
-        pixels=None, tumour_sat=None, level_offset=zeros, sat_offset=zeros,
-        level_width=jnp.asarray(widths), level_height=jnp.asarray(heights),
+        pixels=None,
+        tumour_sat=None,
+        level_offset=zeros,
+        sat_offset=zeros,
+        level_width=jnp.asarray(widths),
+        level_height=jnp.asarray(heights),
         downsample=jnp.asarray(downsample, dtype=jnp.float32),
         start_logits=jnp.asarray(start_logits(bundle.tissue, tile_size, getattr(bundle, "region", None))),
         slide_label=jnp.asarray(slide_label_from_metadata(bundle.metadata), dtype=jnp.int32),
         tile_pool=jnp.asarray(tile_pool) if pixels else None,
-        tile_index=jnp.asarray(np.concatenate([p.index.ravel() + int(b) for p, b in zip(bundle.pixels, tile_base)])
-                               .astype(np.int32)) if pixels else None,
+        tile_index=jnp.asarray(
+            np.concatenate([p.index.ravel() + int(b) for p, b in zip(bundle.pixels, tile_base)]).astype(np.int32)
+        )
+        if pixels
+        else None,
         tile_offset=jnp.asarray(np.concatenate([[0], np.cumsum(grid_sizes)[:-1]]), dtype=jnp.int32),
         tile_grid_width=jnp.asarray([p.index.shape[1] for p in bundle.pixels], dtype=jnp.int32),
         sat_pool=jnp.asarray(sat_pool),
-        sat_index=jnp.asarray(np.concatenate([m.index.ravel() + int(c) for m, c in zip(bundle.tumour, sat_base)])
-                              .astype(np.int32)),
+        sat_index=jnp.asarray(
+            np.concatenate([m.index.ravel() + int(c) for m, c in zip(bundle.tumour, sat_base)]).astype(np.int32)
+        ),
     )
     # the memory-mapped pools and indices were copied: drop the file pages they read from this process's
     # resident memory (they stay readable); for a dataset they added about 0.8x the device bytes to RSS
@@ -346,17 +382,17 @@ def slide_arrays_from_bundle(bundle: Bundle, tile_size: int, pixels: bool = True
     if pixels:
         flat = np.empty((int(widths @ heights), 3), np.uint8)
         for p, o in zip(bundle.pixels, offsets):
-            flat[o:o + p.shape[0] * p.shape[1]] = np.asarray(p).reshape(-1, 3)
+            flat[o : o + p.shape[0] * p.shape[1]] = np.asarray(p).reshape(-1, 3)
             _release_pages(p)
         pixel_array = jax.device_put(flat, may_alias=False).block_until_ready()  # a copy: the host buffer can go
         del flat
     sat = np.empty(int(sat_sizes.sum()), np.uint32)
     for t, o, w, h in zip(bundle.tumour, sat_offsets, widths, heights):
-        s = sat[o:o + (h + 1) * (w + 1)].reshape(h + 1, w + 1)
+        s = sat[o : o + (h + 1) * (w + 1)].reshape(h + 1, w + 1)
         s[0], s[:, 0] = 0, 0
         for a in range(0, h, 256):  # row blocks: temporaries of 256 rows, not of the whole level
-            block = s[1 + a:1 + min(h, a + 256), 1:]
-            np.cumsum(np.asarray(t[a:a + 256]), axis=1, dtype=np.uint32, out=block)  # wraps mod 2**32, as documented
+            block = s[1 + a : 1 + min(h, a + 256), 1:]
+            np.cumsum(np.asarray(t[a : a + 256]), axis=1, dtype=np.uint32, out=block)  # wraps mod 2**32, as documented
             np.cumsum(block, axis=0, dtype=np.uint32, out=block)
             block += s[a, 1:]
         _release_pages(t)
@@ -384,9 +420,14 @@ def slide_label_from_metadata(metadata: dict) -> int:
 HOST_PEAK_FACTOR = 1.6  # make's peak RSS rise / device bytes on the CPU backend (benchmarks/host_memory.py)
 
 
-def load_slide(path, n_levels: int, verify: bool = True,
-               max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES, features=None,
-               pixels: bool = True) -> tuple[SlideArrays, Bundle]:
+def load_slide(
+    path,
+    n_levels: int,
+    verify: bool = True,
+    max_device_bytes: int = DEFAULT_MAX_DEVICE_BYTES,
+    features=None,
+    pixels: bool = True,
+) -> tuple[SlideArrays, Bundle]:
     """Load the ``n_levels`` zoom levels of the bundle at ``path`` onto the device.
 
     ``features``: ``None`` loads the bundle's feature grid if it has one (``python -m data_tools
@@ -413,14 +454,18 @@ def check_levels(path, metadata, chosen: list[int]) -> None:
     """Refuse scenario levels (bundle indices, coarsest first) between which zooming does nothing: the same
     bundle level twice (a bundle built with magnification range 1) or two levels of the same size."""
     t = int(metadata["tile_size"])
-    sizes = [(max(t, int(metadata["levels"][k]["width"])), max(t, int(metadata["levels"][k]["height"])))
-             for k in chosen]
+    sizes = [
+        (max(t, int(metadata["levels"][k]["width"])), max(t, int(metadata["levels"][k]["height"]))) for k in chosen
+    ]
     for a, b, size0, size in zip(chosen, chosen[1:], sizes, sizes[1:]):
         if a == b or size0 == size:
-            raise BundleError(path, f"{len(chosen)} zoom levels would show bundle levels of the same size "
-                              f"({size[0]}×{size[1]} px, magnification range {metadata['magnification_range']:g}, "
-                              f"tile {t} px): zooming would do nothing; rebuild it with a larger "
-                              "--magnification-range or a smaller --tile-size")
+            raise BundleError(
+                path,
+                f"{len(chosen)} zoom levels would show bundle levels of the same size "
+                f"({size[0]}×{size[1]} px, magnification range {metadata['magnification_range']:g}, "
+                f"tile {t} px): zooming would do nothing; rebuild it with a larger "
+                "--magnification-range or a smaller --tile-size",
+            )
 
 
 def _pixels_hint(path: Path) -> str:
@@ -433,15 +478,21 @@ def _pixels_hint(path: Path) -> str:
     except (OSError, ValueError, AttributeError):
         kind = ""
     if "data_tools dataset" in kind:
-        return ("with `histojax dataset ... --no-pixels`): use obs_mode='features', or build the dataset again with "
-                f"its pixels (the same `histojax dataset SLIDES --out {path.parent.parent}` command and options, "
-                "without --no-pixels)")
+        return (
+            "with `histojax dataset ... --no-pixels`): use obs_mode='features', or build the dataset again with "
+            f"its pixels (the same `histojax dataset SLIDES --out {path.parent.parent}` command and options, "
+            "without --no-pixels)"
+        )
     if "data_tools c16" in kind:
-        return ("with `python -m data_tools c16 --no-pixels`): use obs_mode='features', or make these slides "
-                "again with their pixels (the same `data_tools c16` command without --no-pixels, "
-                f"--slides {path.name})")
-    return ("with --no-pixels): use obs_mode='features', or build the bundle again with its pixels (the same "
-            "command without --no-pixels)")
+        return (
+            "with `python -m data_tools c16 --no-pixels`): use obs_mode='features', or make these slides "
+            "again with their pixels (the same `data_tools c16` command without --no-pixels, "
+            f"--slides {path.name})"
+        )
+    return (
+        "with --no-pixels): use obs_mode='features', or build the bundle again with its pixels (the same "
+        "command without --no-pixels)"
+    )
 
 
 def check_alike(paths, features: bool | None = None) -> None:
@@ -456,18 +507,24 @@ def check_alike(paths, features: bool | None = None) -> None:
     first, m0 = paths[0], metas[0]
     for path, m in zip(paths[1:], metas[1:]):
         if int(m["tile_size"]) != int(m0["tile_size"]):
-            raise BundleError(path, f"built with tile size {int(m['tile_size'])} px, but {first} with "
-                              f"{int(m0['tile_size'])} px: a dataset's bundles need one tile size; rebuild them alike "
-                              "(--tile-size)")
+            raise BundleError(
+                path,
+                f"built with tile size {int(m['tile_size'])} px, but {first} with "
+                f"{int(m0['tile_size'])} px: a dataset's bundles need one tile size; rebuild them alike "
+                "(--tile-size)",
+            )
     if features is False:
         return
     grids = [(p, m.features) for p, m in zip(paths, metas)]
     with_grid = [(p, f) for p, f in grids if f]
     if features and len(with_grid) != len(grids):
         lacking = next(p for p, f in grids if not f)
-        raise BundleError(lacking, f"has no feature grid, but {with_grid[0][0] if with_grid else 'none'} has one: "
-                          "every slide of a dataset observed through features needs one (`histojax features "
-                          f"{lacking}`)")
+        raise BundleError(
+            lacking,
+            f"has no feature grid, but {with_grid[0][0] if with_grid else 'none'} has one: "
+            "every slide of a dataset observed through features needs one (`histojax features "
+            f"{lacking}`)",
+        )
     if not with_grid:
         return
     (p0, f0) = with_grid[0]
@@ -479,9 +536,12 @@ def check_alike(paths, features: bool | None = None) -> None:
     describe = lambda f: f"encoder {f.get('encoder')!r}, {f.get('dim')}-d"  # noqa: E731
     for path, f in with_grid[1:]:  # grids not observed (features None) load too: their dimensions must agree
         if f.get("dim") != f0.get("dim") or (features and encoder_of(f) != encoder_of(f0)):
-            raise BundleError(path, f"its feature grid ({describe(f)}) is not of the same encoder as {p0}'s "
-                              f"({describe(f0)}): one env observes one encoder's features; recompute one of them "
-                              f"with the other's encoder (`histojax features BUNDLE --encoder NAME`)")
+            raise BundleError(
+                path,
+                f"its feature grid ({describe(f)}) is not of the same encoder as {p0}'s "
+                f"({describe(f0)}): one env observes one encoder's features; recompute one of them "
+                f"with the other's encoder (`histojax features BUNDLE --encoder NAME`)",
+            )
 
 
 def _load_slide(path: Path, n_levels: int, verify: bool, max_device_bytes: int, features, pixels: bool):
@@ -494,36 +554,58 @@ def _load_slide(path: Path, n_levels: int, verify: bool, max_device_bytes: int, 
     load_features = bool(features) or (features is None and bool(metadata.features)) or not pixels
     missing = [k for k in chosen if k not in metadata.pixel_levels]
     if pixels and missing:
-        raise BundleError(path, f"keeps no pixels at bundle levels {sorted(missing)} (a feature-only bundle, made "
-                          f"{_pixels_hint(path)}")
+        raise BundleError(
+            path,
+            f"keeps no pixels at bundle levels {sorted(missing)} (a feature-only bundle, made {_pixels_hint(path)}",
+        )
     needed = slide_device_bytes(metadata, chosen, pixels, load_features, path)
     if needed > max_device_bytes:
         finest = metadata.levels[chosen[-1]]
         what = "pixels, tumour tables" if pixels else "tumour tables"
-        raise BundleError(path, f"{n_levels} levels need {needed:,} bytes on the device ({what}"
-                          f"{' and feature grid' if load_features else ''}; finest level "
-                          f"{finest.width}×{finest.height} px), more than what is left of max_device_bytes="
-                          f"{max_device_bytes:,}: "
-                          + ("use obs_mode='features' (no pixels on the device), " if pixels else
-                             "recompute the feature grid with a smaller --dim or larger --stride, ")
-                          + "use fewer slides (split=, slides=) or levels, build from a coarser finest level, or "
-                          "raise max_device_bytes (it bounds the arrays put on the device, not host memory: on the "
-                          f"CPU backend make's peak RSS rise is about {HOST_PEAK_FACTOR}x these bytes)")
+        raise BundleError(
+            path,
+            f"{n_levels} levels need {needed:,} bytes on the device ({what}"
+            f"{' and feature grid' if load_features else ''}; finest level "
+            f"{finest.width}×{finest.height} px), more than what is left of max_device_bytes="
+            f"{max_device_bytes:,}: "
+            + (
+                "use obs_mode='features' (no pixels on the device), "
+                if pixels
+                else "recompute the feature grid with a smaller --dim or larger --stride, "
+            )
+            + "use fewer slides (split=, slides=) or levels, build from a coarser finest level, or "
+            "raise max_device_bytes (it bounds the arrays put on the device, not host memory: on the "
+            f"CPU backend make's peak RSS rise is about {HOST_PEAK_FACTOR}x these bytes)",
+        )
     coarsest = len(metadata.levels) - 1
     if chosen[0] != coarsest:
         raise BundleError(path, "the scenario's coarsest level is not the bundle's coarsest; rebuild the bundle")
-    bundle = load_bundle(path, verify=verify, levels=chosen, mmap=True,  # host copies: one flat array at a time
-                         metadata=metadata)
-    ordered = Bundle(path=bundle.path, metadata=metadata.with_levels(chosen),
-                     pixels=bundle.pixels, tumour=bundle.tumour, tissue=bundle.tissue, region=bundle.region)
+    bundle = load_bundle(
+        path,
+        verify=verify,
+        levels=chosen,
+        mmap=True,  # host copies: one flat array at a time
+        metadata=metadata,
+    )
+    ordered = Bundle(
+        path=bundle.path,
+        metadata=metadata.with_levels(chosen),
+        pixels=bundle.pixels,
+        tumour=bundle.tumour,
+        tissue=bundle.tissue,
+        region=bundle.region,
+    )
     arrays = slide_arrays_from_bundle(ordered, metadata.tile_size, pixels)
     if load_features:
         arrays = with_features(arrays, path, metadata, chosen, verify)
     allocated = sum(int(a.nbytes) for a in jax.tree.leaves(arrays))
     if allocated > max_device_bytes:  # what was really put on the device (start weights, labels, ... included)
-        raise BundleError(path, f"{n_levels} levels took {allocated:,} bytes on the device, more than "
-                          f"max_device_bytes={max_device_bytes:,} (a bound on the device arrays, not on host memory): "
-                          "use fewer levels or raise max_device_bytes")
+        raise BundleError(
+            path,
+            f"{n_levels} levels took {allocated:,} bytes on the device, more than "
+            f"max_device_bytes={max_device_bytes:,} (a bound on the device arrays, not on host memory): "
+            "use fewer levels or raise max_device_bytes",
+        )
     return arrays, ordered
 
 

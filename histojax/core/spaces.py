@@ -13,6 +13,7 @@ every bridge converts them here, never re-derives them: :func:`to_gymnasium` (Gy
 Stable-Baselines3) and :func:`to_numpy` (HistoGym's API: gym-style spaces of numpy values with their
 own seedable generator).
 """
+
 from __future__ import annotations
 
 from collections.abc import Mapping
@@ -62,6 +63,7 @@ if GYMNAX:
             return self.spaces[name]
 
 else:
+
     class Space:
         """Base of the stand-in spaces."""
 

@@ -5,6 +5,7 @@ For a tiled slide (``slide.tile_pool`` set; the branch is static) a view that ne
 tile-aligned covers at most 2 × 2 tiles: each view row is two ``T``-px slices (from its left and its
 right tile) and a select, and the tumour fraction sums at most four sub-boxes, each from its tile's
 local summed-area table. Still O(1) per view."""
+
 from __future__ import annotations
 
 import jax
@@ -19,8 +20,10 @@ def view_pixels(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.Array, ti
 
     The caller keeps ``(x, y)`` inside ``[0, W_z - T] × [0, H_z - T]``."""
     if not slide.has_pixels:
-        raise ValueError("this slide was loaded without pixels (the feature-only layout of obs_mode='features'); "
-                         "make the env with obs_mode='pixels' to see pixels")
+        raise ValueError(
+            "this slide was loaded without pixels (the feature-only layout of obs_mode='features'); "
+            "make the env with obs_mode='pixels' to see pixels"
+        )
     if slide.tile_pool is not None:
         return _tiled_view_pixels(slide, z, x, y, tile_size)
     rows = slide.level_offset[z] + (y + jnp.arange(tile_size)) * slide.level_width[z] + x
@@ -39,8 +42,9 @@ def view_tumour_fraction(slide: SlideArrays, z: jax.Array, x: jax.Array, y: jax.
     def at(row, col):
         return slide.tumour_sat[base + row * stride + col]
 
-    return box_fraction(at(y, x), at(y, x + tile_size), at(y + tile_size, x), at(y + tile_size, x + tile_size),
-                        tile_size * tile_size)
+    return box_fraction(
+        at(y, x), at(y, x + tile_size), at(y + tile_size, x), at(y + tile_size, x + tile_size), tile_size * tile_size
+    )
 
 
 def box_fraction(top_left, top_right, bottom_left, bottom_right, area: int) -> jax.Array:
@@ -70,13 +74,13 @@ def _tiled_view_pixels(slide: SlideArrays, z, x, y, tile_size: int) -> jax.Array
     which is uniform): those px are never selected, or equal the selected ones."""
     t = tile_size
     tx0, ty0, ox, oy, gw, gh = _tile_cells(slide, z, x, y, t)
-    r = oy + jnp.arange(t)                       # view rows in the 2-tile-high block, 0 .. 2T-2
+    r = oy + jnp.arange(t)  # view rows in the 2-tile-high block, 0 .. 2T-2
     ty = jnp.minimum(ty0 + r // t, gh - 1)
     rr = r % t
     cells = slide.tile_offset[z] + ty * gw
     left = slide.tile_index[cells + tx0]
     right = slide.tile_index[cells + jnp.minimum(tx0 + 1, gw - 1)]
-    flat = slide.tile_pool.reshape(-1, 3)        # (N*T*T, 3)
+    flat = slide.tile_pool.reshape(-1, 3)  # (N*T*T, 3)
     row = lambda start: lax.dynamic_slice(flat, (start, 0), (t, 3))  # noqa: E731
     from_left = jax.vmap(row)(left * (t * t) + rr * t + ox)
     from_right = jax.vmap(row)(right * (t * t) + rr * t + ox - t)

@@ -12,12 +12,13 @@ shares its centre (the feature-grid cell nearest that view's top-left corner, as
 map is built once per slide on the host; it carries nothing from the finest level but the tissue mask
 (which comes from the slide's thumbnail).
 """
+
 from __future__ import annotations
 
 import numpy as np
 
-from histojax.reading import heads as slide_heads
 from histojax.core.seen_views import VISITED_MAP, level_geometry, per_slide, tissue_views
+from histojax.reading import heads as slide_heads
 
 
 def level_index(level: int, n_levels: int) -> int:
@@ -42,9 +43,11 @@ def slide_map(slide, bundle, tile_size: int, feature: int | None, level: int, he
     lw, lh = int(np.asarray(slide.feature_grid_width)[level]), int(np.asarray(slide.feature_grid_height)[level])
     start = int(np.asarray(slide.feature_offset)[level])
     if head is not None:
-        values = np.asarray(head.view_logits(np.asarray(slide.features[start:start + lw * lh], np.float32)), np.float32)
+        values = np.asarray(
+            head.view_logits(np.asarray(slide.features[start : start + lw * lh], np.float32)), np.float32
+        )
     else:
-        values = np.asarray(slide.features[start:start + lw * lh, feature], np.float32)
+        values = np.asarray(slide.features[start : start + lw * lh, feature], np.float32)
     # the level-`level` view sharing the finest view's centre (px of level `level`), then its grid cell
     scale = ds[f] / ds[level]
     x = np.floor((fx * t + t / 2.0) * scale - t / 2.0).astype(np.int64)
@@ -68,8 +71,10 @@ def coarse_maps(env, params, bundles, feature: int | None, level: int = -3, head
     above the finest; clipped to the coarsest)."""
     features = getattr(params.slide, "features", None)
     if features is None:
-        raise ValueError("a coarse map needs the slides' feature grids: make the env with obs_mode='features' "
-                         "(or compute them: python -m data_tools features BUNDLE)")
+        raise ValueError(
+            "a coarse map needs the slides' feature grids: make the env with obs_mode='features' "
+            "(or compute them: python -m data_tools features BUNDLE)"
+        )
     dim = int(np.shape(features)[-1])
     if head is not None:
         head = slide_heads.load(head) if isinstance(head, str) or hasattr(head, "__fspath__") else head
@@ -78,12 +83,20 @@ def coarse_maps(env, params, bundles, feature: int | None, level: int = -3, head
             raise ValueError(f"map_head: a head of {want}-d features; these slides' features have {dim} entries")
     elif feature is None or not 0 <= int(feature) < dim:
         first = getattr(bundles[0], "path", None) if len(bundles) else None
-        encoder = ((getattr(bundles[0], "metadata", None) or {}).get("features") or {}).get("encoder") if first else None
+        encoder = (
+            ((getattr(bundles[0], "metadata", None) or {}).get("features") or {}).get("encoder") if first else None
+        )
         where = f"{first}/metadata.json: its {encoder or 'unnamed'} feature grid has" if first else "these slides have"
-        raise ValueError(f"map_feature={feature}: {where} {dim} entries (0..{dim - 1}), no entry {feature}; a coarse "
-                         f"map of entry {feature} needs features that hold it (entry 62 is pcam-cnn's view logit: "
-                         "build the dataset with --encoder pcam-cnn)")
+        raise ValueError(
+            f"map_feature={feature}: {where} {dim} entries (0..{dim - 1}), no entry {feature}; a coarse "
+            f"map of entry {feature} needs features that hold it (entry 62 is pcam-cnn's view logit: "
+            "build the dataset with --encoder pcam-cnn)"
+        )
     n = int(env.n_levels)
     z = level_index(max(int(level), -n) if int(level) < 0 else int(level), n)
-    return np.stack([slide_map(slide, bundle, env.tile_size, None if head is not None else int(feature), z, head)
-                     for slide, bundle in per_slide(params, bundles)])
+    return np.stack(
+        [
+            slide_map(slide, bundle, env.tile_size, None if head is not None else int(feature), z, head)
+            for slide, bundle in per_slide(params, bundles)
+        ]
+    )

@@ -59,6 +59,7 @@ tissue views and cells, host-built once) are those of the slides of the params i
 (``params``, default the env's own): step it with those params. Pure and jittable: no host
 callbacks, no data-dependent Python control flow; ``jax.vmap`` over envs like the env itself.
 """
+
 from __future__ import annotations
 
 from typing import Any
@@ -67,6 +68,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import struct
+
 from histojax.adapters.jax import Wrapper
 from histojax.core import seen_views
 from histojax.reading import tables as reading_tables
@@ -82,24 +84,24 @@ GAINS = ("log", "prob", "fidelity")
 class HeadTables:
     """Per slide ``S`` of the wrapped env, the finest-level grid padded to ``H × W``."""
 
-    logits: jnp.ndarray      # (S, H, W) float32 the head's view logit (feature entry head.dim) of each finest view
-    tissue: jnp.ndarray      # (S, H, W) bool finest tissue views (as the reading modes count them)
-    cell: jnp.ndarray        # (S, H, W) int32 glimpse cell (padded index) holding each view; 0 for other modes
-    grid: jnp.ndarray        # (S, 2) int32 (gh, gw) each slide's own finest grid
-    label: jnp.ndarray       # (S,) int32 slide label (1 tumour)
+    logits: jnp.ndarray  # (S, H, W) float32 the head's view logit (feature entry head.dim) of each finest view
+    tissue: jnp.ndarray  # (S, H, W) bool finest tissue views (as the reading modes count them)
+    cell: jnp.ndarray  # (S, H, W) int32 glimpse cell (padded index) holding each view; 0 for other modes
+    grid: jnp.ndarray  # (S, 2) int32 (gh, gw) each slide's own finest grid
+    label: jnp.ndarray  # (S,) int32 slide label (1 tumour)
     full_logit: jnp.ndarray  # (S,) float32 the head's slide logit with every tissue view read
     # glimpse with a max-pooling LogitHead only (else None): the same grids padded by ``k`` views above / left
     # and a window's size below / right, and each cell row's / column's first finest row / column, so that
     # a step re-scores only the window around the cell it revealed (see :meth:`HeadReward._score_incremental`)
-    win_logits: jnp.ndarray | None = None   # (S, H + pad_h, W + pad_w) float32
-    win_tissue: jnp.ndarray | None = None   # (S, H + pad_h, W + pad_w) bool
-    win_cell: jnp.ndarray | None = None     # (S, H + pad_h, W + pad_w) int32
-    row_start: jnp.ndarray | None = None    # (S, Gh + 1) int32 first finest row of each cell row (then the end)
-    col_start: jnp.ndarray | None = None    # (S, Gw + 1) int32 first finest column of each cell column
+    win_logits: jnp.ndarray | None = None  # (S, H + pad_h, W + pad_w) float32
+    win_tissue: jnp.ndarray | None = None  # (S, H + pad_h, W + pad_w) bool
+    win_cell: jnp.ndarray | None = None  # (S, H + pad_h, W + pad_w) int32
+    row_start: jnp.ndarray | None = None  # (S, Gh + 1) int32 first finest row of each cell row (then the end)
+    col_start: jnp.ndarray | None = None  # (S, Gw + 1) int32 first finest column of each cell column
     window: tuple = struct.field(pytree_node=False, default=(0, 0))  # (rows, cols) of the re-scored window
     # a head that pools by attention (pools_views) only: each finest view's cached (attention, instance logit)
-    terms: jnp.ndarray | None = None        # (S, H, W, 2) float32
-    win_terms: jnp.ndarray | None = None    # (S, H + rows, W + cols, 2) glimpse: padded by one cell's window
+    terms: jnp.ndarray | None = None  # (S, H, W, 2) float32
+    win_terms: jnp.ndarray | None = None  # (S, H + rows, W + cols, 2) glimpse: padded by one cell's window
 
 
 @struct.dataclass
@@ -107,14 +109,14 @@ class HeadRewardState:
     """The wrapped env's state plus what the head has scored."""
 
     env_state: Any
-    visited: jnp.ndarray     # (H·W,) bool finest views visited (non-glimpse modes; with the incremental score the
-                             # grid of the windows, (k + H + window) × (k + W + window)); (0,) for glimpse
-    logit: jnp.ndarray       # () float32 the head's slide logit of what has been read
-    views: jnp.ndarray       # () int32 finest tissue views read
+    visited: jnp.ndarray  # (H·W,) bool finest views visited (non-glimpse modes; with the incremental score the
+    # grid of the windows, (k + H + window) × (k + W + window)); (0,) for glimpse
+    logit: jnp.ndarray  # () float32 the head's slide logit of what has been read
+    views: jnp.ndarray  # () int32 finest tissue views read
     cell_best: jnp.ndarray = None  # (C,) float32 incremental score only: each cell's (navigators: block's)
-                                   # largest neighbourhood mean over its read views (-inf: none read); (0,) otherwise
+    # largest neighbourhood mean over its read views (-inf: none read); (0,) otherwise
     pool: PoolState | None = None  # attention-pooling heads (pools_views): the running sums (m, S, Σ e·u (1,))
-                                   # of the views read; a PoolState of empty arrays otherwise
+    # of the views read; a PoolState of empty arrays otherwise
 
 
 BLOCK = 8  # navigation modes: the incremental score keeps the best of each block of BLOCK × BLOCK finest views
@@ -154,8 +156,9 @@ def build_tables(env, head: LogitHead, params=None, windows: bool | None = None)
     rows, all_terms = [], []
     for slide, bundle in seen_views.per_slide(params, bundles):
         if slide.features is None:
-            raise ValueError(f"{bundle.path}: the slide head reads feature grids; run `python -m data_tools features "
-                             f"{bundle.path}`")
+            raise ValueError(
+                f"{bundle.path}: the slide head reads feature grids; run `python -m data_tools features {bundle.path}`"
+            )
         feats = reading_tables.finest_view_features(slide, t)
         if pooled:  # every entry read: per-view scores for the maps, cached terms for the reward
             logits = np.asarray(head.view_logits(feats), np.float32)
@@ -183,6 +186,7 @@ def build_tables(env, head: LogitHead, params=None, windows: bool | None = None)
         out = np.full((h, w), fill, a.dtype)
         out[: a.shape[0], : a.shape[1]] = a
         return out
+
     logits = jnp.asarray(np.stack([pad(r[0].astype(np.float32), 0.0) for r in rows]))
     tissue = jnp.asarray(np.stack([pad(r[1], False) for r in rows]))
     cells = np.stack([pad(r[2], 0) for r in rows])
@@ -202,9 +206,14 @@ def build_tables(env, head: LogitHead, params=None, windows: bool | None = None)
             def grow(a, fill):
                 return np.pad(a, ((0, 0), (0, win[0]), (0, win[1])) + ((0, 0),) * (a.ndim - 3), constant_values=fill)
 
-            extra.update(win_terms=jnp.asarray(grow(terms, 0.0)), win_tissue=jnp.asarray(grow(np.asarray(tissue), False)),
-                         win_cell=jnp.asarray(grow(cells, -1), jnp.int32), row_start=jnp.asarray(row_start),
-                         col_start=jnp.asarray(col_start), window=win)
+            extra.update(
+                win_terms=jnp.asarray(grow(terms, 0.0)),
+                win_tissue=jnp.asarray(grow(np.asarray(tissue), False)),
+                win_cell=jnp.asarray(grow(cells, -1), jnp.int32),
+                row_start=jnp.asarray(row_start),
+                col_start=jnp.asarray(col_start),
+                window=win,
+            )
     else:
         full = jax.jit(jax.vmap(lambda lg, ts: score_logits(head, lg, ts)))(logits, tissue)
     if not pooled and (incremental(head) if windows is None else windows):
@@ -223,14 +232,23 @@ def build_tables(env, head: LogitHead, params=None, windows: bool | None = None)
         # the re-scored window: the 3 × 3 cells around a revealed one, plus k views on every side
         win = (3 * int(np.diff(row_start, axis=1).max()) + 2 * k, 3 * int(np.diff(col_start, axis=1).max()) + 2 * k)
         grow = lambda a, fill: np.pad(a, ((0, 0), (k, win[0]), (k, win[1])), constant_values=fill)  # noqa: E731
-        extra = dict(win_logits=jnp.asarray(grow(np.asarray(logits), 0.0)),
-                     win_tissue=jnp.asarray(grow(np.asarray(tissue), False)),
-                     win_cell=jnp.asarray(grow(win_cells, 0), jnp.int32),
-                     row_start=jnp.asarray(row_start), col_start=jnp.asarray(col_start), window=win)
-    return HeadTables(logits=logits, tissue=tissue, cell=jnp.asarray(cells, jnp.int32),
-                      grid=jnp.asarray([r[1].shape for r in rows], jnp.int32),
-                      label=jnp.asarray([r[3] for r in rows], jnp.int32),
-                      full_logit=full.astype(jnp.float32), **extra)
+        extra = dict(
+            win_logits=jnp.asarray(grow(np.asarray(logits), 0.0)),
+            win_tissue=jnp.asarray(grow(np.asarray(tissue), False)),
+            win_cell=jnp.asarray(grow(win_cells, 0), jnp.int32),
+            row_start=jnp.asarray(row_start),
+            col_start=jnp.asarray(col_start),
+            window=win,
+        )
+    return HeadTables(
+        logits=logits,
+        tissue=tissue,
+        cell=jnp.asarray(cells, jnp.int32),
+        grid=jnp.asarray([r[1].shape for r in rows], jnp.int32),
+        label=jnp.asarray([r[3] for r in rows], jnp.int32),
+        full_logit=full.astype(jnp.float32),
+        **extra,
+    )
 
 
 class HeadReward(Wrapper):
@@ -242,16 +260,26 @@ class HeadReward(Wrapper):
     same logits as scoring the whole grid, at a cost that does not grow with the slide; ``False``: score
     the whole finest grid every step)."""
 
-    def __init__(self, env, head: LogitHead, gain: str | None = "log", final: float = 1.0, read_cost: float = 0.0,
-                 env_reward: bool = False, params=None, incremental_score: bool | None = None):
+    def __init__(
+        self,
+        env,
+        head: LogitHead,
+        gain: str | None = "log",
+        final: float = 1.0,
+        read_cost: float = 0.0,
+        env_reward: bool = False,
+        params=None,
+        incremental_score: bool | None = None,
+    ):
         super().__init__(env)
         if gain is True:
             gain = "log"
         if gain not in GAINS and gain not in (None, False):
             raise ValueError(f"gain must be one of {GAINS} or None, got {gain!r}")
         if not np.isfinite(float(final)) or not np.isfinite(float(read_cost)) or float(read_cost) < 0:
-            raise ValueError(f"final must be finite and read_cost finite and ≥ 0, got final={final}, "
-                             f"read_cost={read_cost}")
+            raise ValueError(
+                f"final must be finite and read_cost finite and ≥ 0, got final={final}, read_cost={read_cost}"
+            )
         self.head = head
         self.gain = gain or None
         self.final = float(final)
@@ -260,18 +288,22 @@ class HeadReward(Wrapper):
         self.glimpse = getattr(env.action, "name", "") == "glimpse"
         self.pooled = pools_views(head)  # attention pooling: running sums (O(views newly read)) unless told not to
         self.pool_incremental = self.pooled and incremental_score is not False
-        self.incremental = (not self.pooled) and (incremental(head) if incremental_score is None
-                                                  else bool(incremental_score))
+        self.incremental = (not self.pooled) and (
+            incremental(head) if incremental_score is None else bool(incremental_score)
+        )
         if self.incremental and not incremental(head):
-            raise ValueError("incremental_score needs a LogitHead with top=1 and no median, or a head that pools "
-                             "the read views by attention")
+            raise ValueError(
+                "incremental_score needs a LogitHead with top=1 and no median, or a head that pools "
+                "the read views by attention"
+            )
         self.tables = build_tables(env, head, params, windows=self.incremental)
         tb = self.tables
         # a navigator's visited views: the finest grid, or with the incremental score the windows' padded grid
         self._offset = int(head.k) if self.incremental else 0
         self._block = block_side(head)  # build_tables' navigator blocks
-        self._visited_grid = (tuple(tb.win_tissue.shape[1:]) if self.incremental and not self.glimpse
-                              else tuple(tb.tissue.shape[1:]))
+        self._visited_grid = (
+            tuple(tb.win_tissue.shape[1:]) if self.incremental and not self.glimpse else tuple(tb.tissue.shape[1:])
+        )
 
     # ------------------------------------------------------------------ head on a state
     def read_mask(self, env_state, visited) -> jax.Array:
@@ -281,7 +313,7 @@ class HeadReward(Wrapper):
             return env_state.memory.revealed[tb.cell[i]] & tb.tissue[i]
         h, w = tb.tissue.shape[1:]
         o = self._offset
-        return visited.reshape(self._visited_grid)[o:o + h, o:o + w] & tb.tissue[i]
+        return visited.reshape(self._visited_grid)[o : o + h, o : o + w] & tb.tissue[i]
 
     def _finest_view(self, env_state):
         """``(gy, gx, on finest level)``: the finest view under ``env_state``'s view (non-glimpse modes)."""
@@ -344,7 +376,7 @@ class HeadReward(Wrapper):
         lie in that window (navigators: the 3 × 3 blocks around the finest view stood on; ``visited`` after
         the step). The same floats as :meth:`_score` (the same sums of the same views)."""
         tb, head, i = self.tables, self.head, env_state.slide_index
-        big_w = tb.col_start.shape[1] - 1          # the padded cell grid (static)
+        big_w = tb.col_start.shape[1] - 1  # the padded cell grid (static)
         if self.glimpse:
             revealed = env_state.memory.revealed
             changed = revealed & ~before.env_state.memory.revealed
@@ -355,7 +387,7 @@ class HeadReward(Wrapper):
             new = finest & ~before.visited[self._visited_index(vy, vx)] & tb.tissue[i, vy, vx]
             c = (vy // self._block) * big_w + vx // self._block
         gy, gx = c // big_w, c % big_w
-        oy = tb.row_start[i, jnp.maximum(gy - 1, 0)]   # padded grid: k views above, so the window starts k higher
+        oy = tb.row_start[i, jnp.maximum(gy - 1, 0)]  # padded grid: k views above, so the window starts k higher
         ox = tb.col_start[i, jnp.maximum(gx - 1, 0)]
         cut = lambda a: jax.lax.dynamic_slice(a[i], (oy, ox), tb.window)  # noqa: E731
         cell, tissue = cut(tb.win_cell), cut(tb.win_tissue)
@@ -365,8 +397,10 @@ class HeadReward(Wrapper):
             read = jax.lax.dynamic_slice(visited.reshape(self._visited_grid), (oy, ox), tb.window) & tissue
         nb = neighbourhood_mean(cut(tb.win_logits), read, head.k)
         big_h = tb.row_start.shape[1] - 1
-        near = (jnp.clip(gy + jnp.array([-1, 0, 1]), 0, big_h - 1)[:, None] * big_w
-                + jnp.clip(gx + jnp.array([-1, 0, 1]), 0, big_w - 1)[None, :]).reshape(-1)      # (9,) cells
+        near = (
+            jnp.clip(gy + jnp.array([-1, 0, 1]), 0, big_h - 1)[:, None] * big_w
+            + jnp.clip(gx + jnp.array([-1, 0, 1]), 0, big_w - 1)[None, :]
+        ).reshape(-1)  # (9,) cells
         best = jnp.where((cell[None] == near[:, None, None]) & read[None], nb[None], -jnp.inf).max((1, 2))
         cell_best = jnp.where(new, before.cell_best.at[near].set(best), before.cell_best)
         if self.glimpse:
@@ -382,26 +416,43 @@ class HeadReward(Wrapper):
         empty = jnp.zeros((n,), bool)
         visited = self._visit(env_state, empty)
         if self.pool_incremental:  # a fresh episode: nothing read (glimpse), or the one view stood on (navigators)
-            nothing = HeadRewardState(env_state=env_state, visited=empty, views=jnp.zeros((), jnp.int32),
-                                      logit=jnp.asarray(self.head.prior_logit, jnp.float32),
-                                      cell_best=jnp.zeros((0,), jnp.float32), pool=self.head.init_terms_state())
+            nothing = HeadRewardState(
+                env_state=env_state,
+                visited=empty,
+                views=jnp.zeros((), jnp.int32),
+                logit=jnp.asarray(self.head.prior_logit, jnp.float32),
+                cell_best=jnp.zeros((0,), jnp.float32),
+                pool=self.head.init_terms_state(),
+            )
             if self.glimpse:
                 return nothing
             logit, views, pool = self._score_pooled(nothing, env_state, visited)
             return nothing.replace(visited=visited, logit=logit, views=views, pool=pool)
-        if self.incremental:  # a fresh episode: nothing read (a glimpse reset reveals nothing), or the one view stood on
+        if (
+            self.incremental
+        ):  # a fresh episode: nothing read (a glimpse reset reveals nothing), or the one view stood on
             cells = (self.tables.row_start.shape[1] - 1) * (self.tables.col_start.shape[1] - 1)
-            nothing = HeadRewardState(env_state=env_state, visited=empty, views=jnp.zeros((), jnp.int32),
-                                      logit=jnp.asarray(self.head.prior_logit, jnp.float32),
-                                      cell_best=jnp.full((cells,), -jnp.inf, jnp.float32), pool=self._no_pool())
+            nothing = HeadRewardState(
+                env_state=env_state,
+                visited=empty,
+                views=jnp.zeros((), jnp.int32),
+                logit=jnp.asarray(self.head.prior_logit, jnp.float32),
+                cell_best=jnp.full((cells,), -jnp.inf, jnp.float32),
+                pool=self._no_pool(),
+            )
             if self.glimpse:
                 return nothing
             logit, views, cell_best = self._score_incremental(nothing, env_state, visited)
             return nothing.replace(visited=visited, logit=logit, views=views, cell_best=cell_best)
         logit, views = self._score(env_state, visited)
-        return HeadRewardState(env_state=env_state, visited=visited, logit=logit, views=views,
-                               cell_best=jnp.zeros((0,), jnp.float32),
-                               pool=self.head.init_terms_state() if self.pooled else self._no_pool())
+        return HeadRewardState(
+            env_state=env_state,
+            visited=visited,
+            logit=logit,
+            views=views,
+            cell_best=jnp.zeros((0,), jnp.float32),
+            pool=self.head.init_terms_state() if self.pooled else self._no_pool(),
+        )
 
     def log_prob_true(self, logit, label) -> jax.Array:
         """``log p(label)`` of a slide logit (label 1: tumour)."""
@@ -436,7 +487,9 @@ class HeadReward(Wrapper):
         if self.gain == "log":
             reward = reward + self.log_prob_true(logit, label) - self.log_prob_true(state.logit, label)
         elif self.gain == "prob":
-            reward = reward + jnp.exp(self.log_prob_true(logit, label)) - jnp.exp(self.log_prob_true(state.logit, label))
+            reward = (
+                reward + jnp.exp(self.log_prob_true(logit, label)) - jnp.exp(self.log_prob_true(state.logit, label))
+            )
         elif self.gain == "fidelity":
             full = self.tables.full_logit[env_st.slide_index]
             reward = reward + jnp.abs(state.logit - full) - jnp.abs(logit - full)
@@ -449,10 +502,18 @@ class HeadReward(Wrapper):
             reward = reward + env_r
         # success: the head's diagnosis right at the episode's end (what histojax evaluate calls success through a
         # head); the env's own success (a declared diagnosis, a target reached) stays in env_success
-        info = {**info, "env_success": info.get("success", jnp.bool_(False)), "success": done & correct,
-                "head_score": logit, "head_correct": correct, "head_views": views, "head_reward": head_reward}
-        new = HeadRewardState(env_state=env_st, visited=visited, logit=logit, views=views, cell_best=cell_best,
-                              pool=pool)
+        info = {
+            **info,
+            "env_success": info.get("success", jnp.bool_(False)),
+            "success": done & correct,
+            "head_score": logit,
+            "head_correct": correct,
+            "head_views": views,
+            "head_reward": head_reward,
+        }
+        new = HeadRewardState(
+            env_state=env_st, visited=visited, logit=logit, views=views, cell_best=cell_best, pool=pool
+        )
         if not self._env.auto_reset:
             return obs_st, new, reward.astype(jnp.float32), terminated, truncated, {**info, "final_observation": obs_st}
         obs_re, env_re = self._env.reset_env(key_reset, params)

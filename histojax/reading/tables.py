@@ -7,6 +7,7 @@ A **cell grid** at level ``g`` with step ``s`` px puts each finest view under ex
 one holding the view's centre (``gx = clip(floor(cx_g / s), 0, gw_g − 1)``, ``cx_g`` the centre in px
 of level ``g``): a partition, so reading every cell reads every view once.
 """
+
 from __future__ import annotations
 
 import jax.numpy as jnp
@@ -37,8 +38,8 @@ def feature_rows(slide, rows: np.ndarray) -> np.ndarray:
     # padded to a power of two: one compiled gather per size class, not one per slide (each compiled
     # program stays in memory: hundreds of them held GBs of host memory for a full dataset)
     padded = np.zeros(1 << max(0, int(flat.size - 1).bit_length()), np.int32)
-    padded[:flat.size] = flat
-    picked = np.asarray(jnp.take(slide.features, jnp.asarray(padded), axis=0)[:flat.size], np.float32)
+    padded[: flat.size] = flat
+    picked = np.asarray(jnp.take(slide.features, jnp.asarray(padded), axis=0)[: flat.size], np.float32)
     return picked.reshape(*rows.shape, -1)
 
 

@@ -1,4 +1,5 @@
 """HistoGym's API (histojax.adapters.histogym): the paper's Listing 1 runs with only the import changed."""
+
 from __future__ import annotations
 
 import numpy as np
@@ -85,8 +86,16 @@ def test_render_modes_headless(env, result_dir, monkeypatch):
 def test_scenarios_and_bundle_reuse(result_dir):
     from histojax.adapters.histogym import HistoEnv
 
-    hard = HistoEnv(str(SAMPLE_SLIDE), str(SAMPLE_ANNOTATIONS), 128, str(result_dir), scenario="hard",
-                    reward="dense", max_step=5, seed=3)
+    hard = HistoEnv(
+        str(SAMPLE_SLIDE),
+        str(SAMPLE_ANNOTATIONS),
+        128,
+        str(result_dir),
+        scenario="hard",
+        reward="dense",
+        max_step=5,
+        seed=3,
+    )
     assert hard.env.n_levels == 7 and hard.env.reward == "dense"
     done, n = False, 0
     while not done:

@@ -1,4 +1,5 @@
 """The Gymnasium bridges: gymnasium's own env checker, and NEXT_STEP autoreset of the vector env."""
+
 from __future__ import annotations
 
 import warnings
@@ -13,8 +14,9 @@ import histojax  # noqa: E402
 from histojax.adapters.gymnasium import GymnasiumEnv, GymnasiumVectorEnv  # noqa: E402
 
 
-@pytest.mark.parametrize("overrides", [{}, {"with_position": True, "obs_mode": "pixels_float"},
-                                       {"action_mode": "continuous"}])
+@pytest.mark.parametrize(
+    "overrides", [{}, {"with_position": True, "obs_mode": "pixels_float"}, {"action_mode": "continuous"}]
+)
 def test_gymnasium_env_passes_check_env(overrides):
     genv = gymnasium.make("histojax/HistoJAX-Easy-v0", render_mode="rgb_array", **overrides)
     with warnings.catch_warnings():
@@ -75,8 +77,9 @@ def _assert_same(got, want):
     np.testing.assert_array_equal(trunc, trunc_w)
     assert set(info) == set(info_w)
     for k in info:
-        np.testing.assert_allclose(np.asarray(info[k], dtype=float), np.asarray(info_w[k], dtype=float), rtol=1e-6,
-                                   err_msg=k)
+        np.testing.assert_allclose(
+            np.asarray(info[k], dtype=float), np.asarray(info_w[k], dtype=float), rtol=1e-6, err_msg=k
+        )
 
 
 def test_vector_env_follows_sync_vector_env_step_for_step():
@@ -131,9 +134,11 @@ def test_bridges_copy_and_pickle():
     import pickle
 
     env, params = histojax.make("HistoJAX-Easy-v0")
-    for bridge, duplicate in ((GymnasiumEnv(env, params), lambda x: pickle.loads(pickle.dumps(x))),
-                              (GymnasiumVectorEnv(env, 2, params), lambda x: pickle.loads(pickle.dumps(x))),
-                              (GymnasiumVectorEnv(env, 2, params), copy.deepcopy)):
+    for bridge, duplicate in (
+        (GymnasiumEnv(env, params), lambda x: pickle.loads(pickle.dumps(x))),
+        (GymnasiumVectorEnv(env, 2, params), lambda x: pickle.loads(pickle.dumps(x))),
+        (GymnasiumVectorEnv(env, 2, params), copy.deepcopy),
+    ):
         bridge.reset(seed=4)
         twin = duplicate(bridge)
         action = bridge.action_space.sample()

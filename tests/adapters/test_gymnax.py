@@ -1,6 +1,7 @@
 """histojax as a gymnax environment: gymnax's own classes and wrappers run it unchanged, jit with the
 env as a static argument never confuses two envs, wrappers copy and pickle, and code written for the
 old 5-value step (PureJaxRL's shape) keeps its metrics small."""
+
 from __future__ import annotations
 
 import copy
@@ -59,7 +60,7 @@ def test_jit_with_static_env_keeps_each_envs_slide_and_settings(blank_bundle):
     for env, limit in ((a, 100), (b, 3), (a, 100)):
         obs, state, got_limit = first_look(env, KEY)
         z, x, y = int(state.z), int(state.x), int(state.y)
-        np.testing.assert_array_equal(np.asarray(obs), env.bundles[0].pixels[z][y:y + 128, x:x + 128])
+        np.testing.assert_array_equal(np.asarray(obs), env.bundles[0].pixels[z][y : y + 128, x : x + 128])
         assert int(got_limit) == limit
     assert a != b and hash(a) != hash(b)
 
@@ -117,8 +118,9 @@ def test_gymnax_purerl_wrappers_run_unchanged(easy):
     sticky = []
     for i in range(4):
         actions = jnp.full((3,), i % 7)
-        obs, state, reward, term, trunc, info = step(jax.random.split(jax.random.fold_in(KEY, i), 3), state,
-                                                     actions, params)
+        obs, state, reward, term, trunc, info = step(
+            jax.random.split(jax.random.fold_in(KEY, i), 3), state, actions, params
+        )
         sticky.append(np.asarray(state.env_state.last_action))
     assert obs.shape == (3, 128 * 128 * 3) and info["final_observation"].shape == (3, 128 * 128 * 3)
     assert bool(info["returned_episode"].all()) and (np.asarray(info["returned_episode_lengths"]) == 4).all()
@@ -231,11 +233,13 @@ def _make_train(num_envs: int, num_steps: int, num_updates: int):
                 logits, value = net.apply(weights, obs)
                 action = jax.random.categorical(k_act, logits)
                 next_obs, state, reward, done, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                    jax.random.split(k_step, num_envs), state, action, params)
+                    jax.random.split(k_step, num_envs), state, action, params
+                )
                 return (next_obs, state, key), (obs, action, reward, done, value, info)
 
             (obs, state, key), (b_obs, b_act, b_rew, b_done, b_val, info) = jax.lax.scan(
-                env_step, (obs, state, key), None, num_steps)
+                env_step, (obs, state, key), None, num_steps
+            )
 
             def loss(w):
                 logits, value = net.apply(w, b_obs)
@@ -294,6 +298,7 @@ assert bool(space.contains(obs)) and not bool(space.contains({**obs, "position":
 assert obs["pixels"].dtype == jnp.uint8 and obs["pixels"].shape == (128, 128, 3)
 print("ok")
 """
-    done = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ),
-                          timeout=300)
+    done = subprocess.run(
+        [sys.executable, "-c", code], capture_output=True, text=True, env=dict(os.environ), timeout=300
+    )
     assert done.returncode == 0 and done.stdout.strip() == "ok", done.stderr[-2000:]

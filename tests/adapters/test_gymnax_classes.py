@@ -1,5 +1,6 @@
 """histojax uses gymnax's own Environment and spaces classes without importing every gymnax environment
 (histojax.core.gymnax_classes), and a later ``import gymnax`` still gives all of gymnax with the same classes."""
+
 import subprocess
 import sys
 

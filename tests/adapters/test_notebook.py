@@ -1,5 +1,6 @@
 """examples/quickstart.ipynb runs top to bottom (nbclient, the ``test`` extra): make, step, vmap, a small PPO,
 evaluation, the pictures. About a minute of CPU: marked slow (``make test-all``)."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -18,8 +19,9 @@ def test_quickstart_notebook_runs_and_shows_what_it_says():
 
     nb = nbformat.read(NOTEBOOK, as_version=4)
     assert all(not c.get("outputs") for c in nb.cells if c.cell_type == "code")  # shipped without outputs
-    nbclient.NotebookClient(nb, timeout=600, kernel_name="python3",
-                            resources={"metadata": {"path": str(ROOT)}}).execute()
+    nbclient.NotebookClient(
+        nb, timeout=600, kernel_name="python3", resources={"metadata": {"path": str(ROOT)}}
+    ).execute()
     text = "\n".join(o.get("text", "") for c in nb.cells if c.cell_type == "code" for o in c.outputs)
     assert "env steps/s with 128 envs" in text
     assert "colour-stats features, 8 numbers per view" in text

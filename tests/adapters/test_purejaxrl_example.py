@@ -1,5 +1,6 @@
 """examples/purejaxrl_ppo.py: the single-file PPO in PureJaxRL's shape runs on a small budget with finite,
 shaped outputs (fast), and learns Easy on the sample slide (slow: minutes on 2 CPU cores)."""
+
 from __future__ import annotations
 
 import importlib.util
@@ -22,8 +23,15 @@ def example():
     return module
 
 
-SMALL = {"NUM_ENVS": 8, "NUM_STEPS": 16, "TOTAL_TIMESTEPS": 3 * 8 * 16, "NUM_MINIBATCHES": 2, "UPDATE_EPOCHS": 1,
-         "HIDDEN": 32, "ENV_KWARGS": {"with_position": True, "max_steps_in_episode": 10}}
+SMALL = {
+    "NUM_ENVS": 8,
+    "NUM_STEPS": 16,
+    "TOTAL_TIMESTEPS": 3 * 8 * 16,
+    "NUM_MINIBATCHES": 2,
+    "UPDATE_EPOCHS": 1,
+    "HIDDEN": 32,
+    "ENV_KWARGS": {"with_position": True, "max_steps_in_episode": 10},
+}
 
 
 def test_flatten_obs_shapes(example):
@@ -38,8 +46,12 @@ def test_flatten_obs_shapes(example):
 def test_small_budget_runs_finite_and_shaped(example):
     out = jax.jit(example.make_train(SMALL))(jax.random.PRNGKey(0))
     metrics = jax.device_get(out["metrics"])
-    for name in ("returned_episode", "returned_episode_returns", "returned_episode_lengths",
-                 "returned_episode_success"):
+    for name in (
+        "returned_episode",
+        "returned_episode_returns",
+        "returned_episode_lengths",
+        "returned_episode_success",
+    ):
         assert metrics[name].shape == (3, 16, 8), name
     assert np.isfinite(metrics["returned_episode_returns"]).all()
     assert metrics["returned_episode"].any()  # 10-step episodes end within 16 steps

@@ -1,6 +1,7 @@
 """Stable-Baselines3 (the ``sb3`` extra; ``make test-integrations``): SB3's env checker on the
 Gymnasium bridge, the ``VecEnv`` adapter step for step against SB3's own DummyVecEnv over
 bridges, and PPO learning on the adapter."""
+
 from __future__ import annotations
 
 import warnings
@@ -34,8 +35,9 @@ def _same(got, want):
     for info, info_w in zip(infos, infos_w):
         assert set(info) == set(info_w)
         for k in info:
-            np.testing.assert_allclose(np.asarray(info[k], dtype=float), np.asarray(info_w[k], dtype=float),
-                                       rtol=1e-6, err_msg=k)
+            np.testing.assert_allclose(
+                np.asarray(info[k], dtype=float), np.asarray(info_w[k], dtype=float), rtol=1e-6, err_msg=k
+            )
 
 
 def test_vec_env_adapter_follows_dummy_vec_env_step_for_step():

@@ -16,6 +16,7 @@ pyramid, each exercising something real DICOM WSI files do:
 painted white), so a test can check a reader puts every frame where its position says. Deterministic:
 fixed UIDs, no dates.
 """
+
 from __future__ import annotations
 
 import sys
@@ -68,8 +69,9 @@ def _base_dataset(index: int, level: np.ndarray, mpp_um: float, syntax: str) -> 
     ds.SeriesNumber, ds.InstanceNumber = 1, index + 1
     ds.Manufacturer = "histojax test fixture"
     ds.ManufacturerModelName = ds.DeviceSerialNumber = ds.SoftwareVersions = "tests/data/make_dicom_wsi.py"
-    ds.ImageType = ["ORIGINAL", "PRIMARY", "VOLUME", "NONE"] if index == 0 else \
-        ["DERIVED", "PRIMARY", "VOLUME", "RESAMPLED"]
+    ds.ImageType = (
+        ["ORIGINAL", "PRIMARY", "VOLUME", "NONE"] if index == 0 else ["DERIVED", "PRIMARY", "VOLUME", "RESAMPLED"]
+    )
     ds.BurnedInAnnotation = ds.SpecimenLabelInImage = "NO"
     ds.FocusMethod, ds.ExtendedDepthOfField = "AUTO", "NO"
     ds.VolumetricProperties = "VOLUME"
@@ -124,8 +126,8 @@ def _frames(level: np.ndarray) -> dict[tuple[int, int], np.ndarray]:
     for ty in range(-(-h // TILE)):
         for tx in range(-(-w // TILE)):
             tile = np.full((TILE, TILE, 3), 255, np.uint8)
-            part = level[ty * TILE:(ty + 1) * TILE, tx * TILE:(tx + 1) * TILE]
-            tile[:part.shape[0], :part.shape[1]] = part
+            part = level[ty * TILE : (ty + 1) * TILE, tx * TILE : (tx + 1) * TILE]
+            tile[: part.shape[0], : part.shape[1]] = part
             tiles[(tx, ty)] = tile
     return tiles
 
@@ -137,11 +139,14 @@ def _write(index: int, level: np.ndarray, mpp_um: float, syntax: str, order: lis
     tiles = _frames(level)
     keys = sorted(tiles, key=lambda k: (k[1], k[0])) if order is None else order
     if syntax == JPEGBaseline8Bit:
+
         def encode(t):
             return imagecodecs.jpeg8_encode(t, level=90, colorspace="RGB", outcolorspace="YCBCR", subsampling="422")
     else:
+
         def encode(t):
             return imagecodecs.jpeg2k_encode(t, level=50, codecformat="J2K", colorspace="SRGB")
+
     ds.NumberOfFrames = len(keys)
     ds.DimensionOrganizationType = "TILED_FULL" if order is None else "TILED_SPARSE"
     if order is not None:
@@ -184,7 +189,7 @@ def reference_levels() -> tuple[list[np.ndarray], float]:
         size = ((x1 - x0) // (DOWNSAMPLE * 2**k), (y1 - y0) // (DOWNSAMPLE * 2**k))
         levels.append(np.array(Image.fromarray(crop).resize(size, Image.Resampling.BOX)))
     for tx, ty in _absent(levels[1].shape):
-        levels[1][ty * TILE:(ty + 1) * TILE, tx * TILE:(tx + 1) * TILE] = 255
+        levels[1][ty * TILE : (ty + 1) * TILE, tx * TILE : (tx + 1) * TILE] = 255
     return levels, mpp
 
 

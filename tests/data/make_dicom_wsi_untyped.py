@@ -12,6 +12,7 @@ Run from the repository root: ``python tests/data/make_dicom_wsi_untyped.py``. T
 The frames are the source's JPEG frames, copied byte for byte (not re-encoded), so the pixels of a
 stored tile equal those of ``level0.dcm`` decoded. Deterministic.
 """
+
 from __future__ import annotations
 
 import sys
@@ -39,8 +40,10 @@ def main() -> int:
     keep, items = [], []
     for frame, item in zip(frames, ds.PerFrameFunctionalGroupsSequence):
         pos = item.PlanePositionSlideSequence[0]
-        tile = ((int(pos.ColumnPositionInTotalImagePixelMatrix) - 1) // TILE,
-                (int(pos.RowPositionInTotalImagePixelMatrix) - 1) // TILE)
+        tile = (
+            (int(pos.ColumnPositionInTotalImagePixelMatrix) - 1) // TILE,
+            (int(pos.RowPositionInTotalImagePixelMatrix) - 1) // TILE,
+        )
         if tile not in ABSENT:
             keep.append(frame)
             items.append(item)

@@ -3,6 +3,7 @@
 Expected values are computed here independently of the module: polygons are
 re-read from the raw files with a regex (XML) or json + shapely (GeoJSON).
 """
+
 from __future__ import annotations
 
 import json
@@ -37,9 +38,7 @@ CAMELYON17 = DATA / "camelyon17_patient_004_node_4.xml"
 TISSUE = DATA / "dtd_tumor_013.xml"
 QUPATH = DATA / "qupath05.geojson"
 
-_ANNOTATION_RE = re.compile(
-    r'<Annotation Name="([^"]*)" Type="(\w+)" PartOfGroup="([^"]*)".*?</Annotation>', re.S
-)
+_ANNOTATION_RE = re.compile(r'<Annotation Name="([^"]*)" Type="(\w+)" PartOfGroup="([^"]*)".*?</Annotation>', re.S)
 _COORD_RE = re.compile(r'<Coordinate Order="(\d+)" X="([^"]+)" Y="([^"]+)"')
 
 
@@ -247,8 +246,11 @@ def test_oversized_file_is_refused(tmp_path, monkeypatch):
         ("text.xml", _asap_xml([("Polygon", "metastasis", [(0, 0), ("abc", 0), (10, 10)])], "Txt"), "Txt0"),
         ("empty.xml", "", "empty"),
         ("blank.geojson", "  \n", "empty"),
-        ("points.xml", _asap_xml([("PointSet", "metastasis", SQUARE), ("Dot", "metastasis", SQUARE[:1])]),
-         "no polygons"),
+        (
+            "points.xml",
+            _asap_xml([("PointSet", "metastasis", SQUARE), ("Dot", "metastasis", SQUARE[:1])]),
+            "no polygons",
+        ),
         ("broken.xml", "<ASAP_Annotations><Annotations>", "malformed"),
         ("other.xml", "<html><body/></html>", "not ASAP"),
         ("nothing.geojson", '{"type": "FeatureCollection", "features": []}', "no polygons"),
@@ -372,9 +374,14 @@ def test_overlapping_pieces_after_repair_give_one_valid_area(tmp_path):
     import warnings as _warnings
 
     polygons = [[(0, 0), (0, 0), (0, 1)], [(0, 6), (-1, -1), (34, 241)], [(0, 64), (2, 0), (-1, -1), (34, 241)]]
-    feats = [{"type": "Feature", "properties": {"label": "exclusion" if i == 2 else "tumour"},
-              "geometry": {"type": "Polygon", "coordinates": [[list(p) for p in pts]]}}
-             for i, pts in enumerate(polygons)]
+    feats = [
+        {
+            "type": "Feature",
+            "properties": {"label": "exclusion" if i == 2 else "tumour"},
+            "geometry": {"type": "Polygon", "coordinates": [[list(p) for p in pts]]},
+        }
+        for i, pts in enumerate(polygons)
+    ]
     path = tmp_path / "tangled.geojson"
     path.write_text(_json.dumps({"type": "FeatureCollection", "features": feats}))
     with _warnings.catch_warnings():
@@ -386,15 +393,21 @@ def test_overlapping_pieces_after_repair_give_one_valid_area(tmp_path):
 
 
 def _asap_file(path, polygons, groups):
-    anns = "".join(f'<Annotation Name="g{i}" Type="Polygon" PartOfGroup="{g}"><Coordinates>'
-                   + "".join(f'<Coordinate Order="{j}" X="{x}" Y="{y}" />' for j, (x, y) in enumerate(pts))
-                   + "</Coordinates></Annotation>" for i, (pts, g) in enumerate(zip(polygons, groups)))
+    anns = "".join(
+        f'<Annotation Name="g{i}" Type="Polygon" PartOfGroup="{g}"><Coordinates>'
+        + "".join(f'<Coordinate Order="{j}" X="{x}" Y="{y}" />' for j, (x, y) in enumerate(pts))
+        + "</Coordinates></Annotation>"
+        for i, (pts, g) in enumerate(zip(polygons, groups))
+    )
     path.write_text(f"<ASAP_Annotations><Annotations>{anns}</Annotations></ASAP_Annotations>")
     return path
 
 
-FREE_HOLE = [[(0, 0)] * 4, [(0, 0), (0, 1627), (34, 0), (0, 321), (1, 0), (33, 1501)],
-             [(0, 1627), (34, 0), (1, 0), (33, 1501)]]
+FREE_HOLE = [
+    [(0, 0)] * 4,
+    [(0, 0), (0, 1627), (34, 0), (0, 321), (1, 0), (33, 1501)],
+    [(0, 1627), (34, 0), (1, 0), (33, 1501)],
+]
 
 
 def test_overlay_that_geos_gets_wrong_is_redone(tmp_path):
@@ -413,8 +426,9 @@ def test_overlay_that_geos_gets_wrong_is_redone(tmp_path):
         ann = load_annotations(path, slide_size=(5000, 5000))
     for geom in (ann.tumour, ann.exclusion, ann.tissue):
         assert geom.is_valid and geom.area >= 0
-    drawn = shapely.union_all([shapely.make_valid(Polygon(p), method="structure") for p in FREE_HOLE[1:]],
-                              grid_size=1e-6)
+    drawn = shapely.union_all(
+        [shapely.make_valid(Polygon(p), method="structure") for p in FREE_HOLE[1:]], grid_size=1e-6
+    )
     assert ann.tumour.intersection(ann.exclusion).area <= 1e-6 * ann.exclusion.area
     assert ann.tumour.area + ann.exclusion.area == pytest.approx(drawn.area, rel=1e-6)
 
@@ -427,8 +441,11 @@ def test_overlay_geos_cannot_compute_is_one_line(tmp_path, monkeypatch):
     def refuse(*args, **kwargs):
         raise shapely.errors.GEOSException("TopologyException: unable to assign free hole to a shell at 0 1627")
 
-    path = _asap_file(tmp_path / "refused.xml", [[(0, 0), (10, 0), (10, 10), (0, 10)],
-                                                 [(5, 5), (15, 5), (15, 15), (5, 15)]], ["_0", "_0"])
+    path = _asap_file(
+        tmp_path / "refused.xml",
+        [[(0, 0), (10, 0), (10, 10), (0, 10)], [(5, 5), (15, 5), (15, 15), (5, 15)]],
+        ["_0", "_0"],
+    )
     monkeypatch.setattr(shapely, "union_all", refuse)
     with pytest.raises(AnnotationError, match=r"refused\.xml.*overlay GEOS cannot compute"):
         load_annotations(path, slide_size=(100, 100))

@@ -1,12 +1,20 @@
 """The AUC interval every command prints: Newcombe's score interval, honest at AUC 1.0 on a few slides."""
+
 import json
 import math
 
 import numpy as np
 import pytest
 
-from data_tools.metrics import (SMALL_SPLIT_PER_CLASS, auc_interval, format_auc, json_number, roc_auc,
-                                roc_auc_with_interval, small_split_warning)
+from data_tools.metrics import (
+    SMALL_SPLIT_PER_CLASS,
+    auc_interval,
+    format_auc,
+    json_number,
+    roc_auc,
+    roc_auc_with_interval,
+    small_split_warning,
+)
 
 
 def test_perfect_separation_on_six_slides_is_not_a_point():

@@ -1,4 +1,5 @@
 """Tests for data_tools.bundle: building, checking and loading slide bundles (atomic writes, checksums)."""
+
 from __future__ import annotations
 
 import hashlib

@@ -1,6 +1,7 @@
 """The true-scale CAMELYON16 benchmark (``data_tools c16``): the small variant (the package's 6 NCRF files
 and 1,000-patch bank, downsample 32, ~5 s), its registered ids, the feature-only device layout,
 and a generator killed mid-run. Geometry real CAMELYON16, pixels real PCam patches arranged by us."""
+
 from __future__ import annotations
 
 import json
@@ -14,10 +15,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
-from data_tools.bundle_files.writes import mark_temporary
 import shapely
 
+from data_tools.bundle_files.writes import mark_temporary
 from data_tools.errors import AnnotationError, BundleError, HistojaxDataError
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -69,8 +69,12 @@ def test_every_tumour_keeps_its_true_size(small):
 def test_ids_detection_and_diagnosis(small):
     import histojax
 
-    for env_id, levels in (("HistoJAX-C16-Easy-v0", 3), ("HistoJAX-C16-Medium-v0", 5), ("HistoJAX-C16-Hard-v0", 7),
-                           ("HistoJAX-C16-Diagnosis-v0", 5)):
+    for env_id, levels in (
+        ("HistoJAX-C16-Easy-v0", 3),
+        ("HistoJAX-C16-Medium-v0", 5),
+        ("HistoJAX-C16-Hard-v0", 7),
+        ("HistoJAX-C16-Diagnosis-v0", 5),
+    ):
         env, params = histojax.make(env_id, dataset=small, split="test", verify=False)
         assert env.n_levels == levels and params.slide.num_slides == 2
     assert env.task == "classification" and env.num_actions == 9
@@ -128,9 +132,21 @@ def _random_features(bundle: Path, dim: int = 8) -> None:
         save_array(bundle / name, rng.standard_normal((*grid, dim)).astype(np.float16))
         levels.append({"file": name, "grid": list(grid)})
         written.append(name)
-    update_metadata(bundle, {"encoder": "random-test", "encoder_dim": dim, "image_size": None, "dim": dim,
-                             "stride": 128, "dtype": "float16", "projection": None, "source": "test",
-                             "levels": levels}, written)
+    update_metadata(
+        bundle,
+        {
+            "encoder": "random-test",
+            "encoder_dim": dim,
+            "image_size": None,
+            "dim": dim,
+            "stride": 128,
+            "dtype": "float16",
+            "projection": None,
+            "source": "test",
+            "levels": levels,
+        },
+        written,
+    )
 
 
 def test_feature_mode_holds_no_pixels(small, tmp_path):
@@ -146,19 +162,38 @@ def test_feature_mode_holds_no_pixels(small, tmp_path):
     shutil.copytree(small, ds)
     for b in (ds / "bundles").iterdir():
         _random_features(b)
-    env_f, params_f = histojax.make("HistoJAX-C16-Medium-v0", dataset=ds, split="train", obs_mode="features",
-                                    verify=False)
+    env_f, params_f = histojax.make(
+        "HistoJAX-C16-Medium-v0", dataset=ds, split="train", obs_mode="features", verify=False
+    )
     env_p, params_p = histojax.make("HistoJAX-C16-Medium-v0", dataset=ds, split="train", verify=False)
     s = params_f.slide
     assert s.pixels is None and s.tile_pool is None and s.tile_index is None and s.features is not None
     assert params_p.slide.tile_pool is not None
     leaves = sum(int(a.nbytes) for a in jax.tree.leaves(s))
-    expected = sum(slide_device_bytes(m, select_levels(m, 5), pixels=False, features=True)
-                   for m in (read_metadata(b.path) for b in env_f.bundles))
-    small_arrays = sum(int(a.nbytes) for a in (s.start_logits, s.start_cdf, s.level_offset, s.level_width, s.level_height,
-                                                s.downsample, s.sat_offset, s.tile_offset, s.tile_grid_width,
-                                                s.feature_offset, s.feature_grid_width, s.feature_grid_height,
-                                                s.feature_stride, s.slide_label, s.slide_logits))
+    expected = sum(
+        slide_device_bytes(m, select_levels(m, 5), pixels=False, features=True)
+        for m in (read_metadata(b.path) for b in env_f.bundles)
+    )
+    small_arrays = sum(
+        int(a.nbytes)
+        for a in (
+            s.start_logits,
+            s.start_cdf,
+            s.level_offset,
+            s.level_width,
+            s.level_height,
+            s.downsample,
+            s.sat_offset,
+            s.tile_offset,
+            s.tile_grid_width,
+            s.feature_offset,
+            s.feature_grid_width,
+            s.feature_grid_height,
+            s.feature_stride,
+            s.slide_label,
+            s.slide_logits,
+        )
+    )
     assert leaves - small_arrays == expected
     assert leaves < sum(int(a.nbytes) for a in jax.tree.leaves(params_p.slide))
     from histojax.core.views import view_tumour_fraction
@@ -170,10 +205,12 @@ def test_feature_mode_holds_no_pixels(small, tmp_path):
         w, h = (int(a[slide, z]) for a in (s.level_width, s.level_height))
         x, y = int(rng.integers(w - 127)), int(rng.integers(h - 127))
         args = (jnp.int32(z), jnp.int32(x), jnp.int32(y), 128)
-        assert float(view_tumour_fraction(s.select(slide), *args)) == \
-            float(view_tumour_fraction(params_p.slide.select(slide), *args))
-    obs, *_ = jax.jit(lambda k, p: env_f.step(k, env_f.reset(k, p)[1], jnp.int32(4), p))(jax.random.PRNGKey(3),
-                                                                                        params_f)
+        assert float(view_tumour_fraction(s.select(slide), *args)) == float(
+            view_tumour_fraction(params_p.slide.select(slide), *args)
+        )
+    obs, *_ = jax.jit(lambda k, p: env_f.step(k, env_f.reset(k, p)[1], jnp.int32(4), p))(
+        jax.random.PRNGKey(3), params_f
+    )
     assert obs.shape == (8,) and obs.dtype == jnp.float32
 
 
@@ -196,8 +233,12 @@ def test_killed_run_leaves_no_temporaries_and_resumes(small, tmp_path):
     (out / "slides").mkdir(parents=True)
     (out / "bundles").mkdir()
     mark_temporary(out / "bundles" / ".Old.tmp-deadbeef")  # as build_bundle leaves one when killed
-    proc = subprocess.Popen([sys.executable, "-m", "data_tools", "c16", "--small", "--quiet", "--out", str(out)],
-                            cwd=ROOT, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [sys.executable, "-m", "data_tools", "c16", "--small", "--quiet", "--out", str(out)],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         deadline = time.time() + 120
         while not (out / "slides" / "Tumor_072.provenance.json").is_file() and time.time() < deadline:
@@ -216,8 +257,8 @@ def test_killed_run_leaves_no_temporaries_and_resumes(small, tmp_path):
 
 def test_bad_inputs_name_the_file(tmp_path):
     from data_tools.datasets.c16.dataset import make_c16_dataset
-    from data_tools.ncrf import read_ncrf
     from data_tools.datasets.pcam_bank import load_bank
+    from data_tools.ncrf import read_ncrf
 
     bad = tmp_path / "ann"
     bad.mkdir()
@@ -285,8 +326,13 @@ def test_pool_features_equal_the_views_they_describe(small, tmp_path):
     for k in (0, len(meta.levels) // 2):
         grid = np.load(bundle / meta.features["levels"][k]["file"])
         gh, gw = grid.shape[:2]
-        views = np.stack([np.asarray(loaded.pixels[k][gy * t:(gy + 1) * t, gx * t:(gx + 1) * t])
-                          for gy in range(gh) for gx in range(gw)])
+        views = np.stack(
+            [
+                np.asarray(loaded.pixels[k][gy * t : (gy + 1) * t, gx * t : (gx + 1) * t])
+                for gy in range(gh)
+                for gx in range(gw)
+            ]
+        )
         direct = np.asarray(colour_stats(jnp.asarray(views))).reshape(gh, gw, -1)
         np.testing.assert_allclose(grid, direct, atol=1e-6)
 
@@ -401,7 +447,7 @@ def test_test_slides_from_another_patch_set(tmp_path):
     for i in range(len(pool)):
         f = other / str(int(pool.labels[i])) / f"x{pool.names[i]}"
         f.parent.mkdir(parents=True, exist_ok=True)
-        f.write_bytes(pool.blob[pool.offsets[i]:pool.offsets[i + 1]].tobytes())
+        f.write_bytes(pool.blob[pool.offsets[i] : pool.offsets[i + 1]].tobytes())
     out = tmp_path / "ds"
     ds = make_c16_dataset(out, small=True, names=["Tumor_072"], test_patches=other, progress=False)
     assert ds["patch_pools"]["test"]["other_patch_set"] and ds["patch_pools"]["test"]["source"] == str(other)
@@ -416,8 +462,16 @@ def test_v1_ids_need_a_format_2_dataset_with_pcam_cnn_features(small, tmp_path):
     ds.pop("dataset_sha256", None)  # a format-1 dataset was written before dataset.json was sealed
     old = tmp_path / "old"
     old.mkdir()
-    (old / "dataset.json").write_text(json.dumps({**ds, "format": 1, "train": [str(small / b) for b in ds["train"]],
-                                                  "test": [str(small / b) for b in ds["test"]]}))
+    (old / "dataset.json").write_text(
+        json.dumps(
+            {
+                **ds,
+                "format": 1,
+                "train": [str(small / b) for b in ds["train"]],
+                "test": [str(small / b) for b in ds["test"]],
+            }
+        )
+    )
     with pytest.raises(BundleError, match="format >= 2.*use the -v0 id"):
         histojax.make("HistoJAX-C16-Hard-v1", dataset=old)
     with pytest.raises(BundleError, match="pcam-cnn features, and this dataset records no feature grids"):
@@ -427,8 +481,10 @@ def test_v1_ids_need_a_format_2_dataset_with_pcam_cnn_features(small, tmp_path):
 FULL_RECORD = ROOT / "tests" / "data" / "c16_full_patch_names.npz"
 
 
-@pytest.mark.skipif(not FULL_RECORD.is_file(), reason="the full set's patch record is made by "
-                    "experiments/c16_patch_record.py after a full build")
+@pytest.mark.skipif(
+    not FULL_RECORD.is_file(),
+    reason="the full set's patch record is made by experiments/c16_patch_record.py after a full build",
+)
 def test_the_full_sets_sides_share_no_patch():
     """On the recorded patch names of the full true-scale set (239 slides; experiments/c16_patch_record.py):
     no patch textures both a train and a test slide, and each side's patches are in its pool."""
@@ -453,9 +509,9 @@ def test_shards_build_disjoint_slides_and_the_last_writes_dataset_json(small, tm
     with its reason while the rest build; the last shard writes dataset.json (the failure under `failed`,
     exit status 1); `--merge` after a clean rebuild of the failed slide completes the set."""
     from data_tools.datasets.c16 import dataset as c16
+    from data_tools.datasets.c16.dataset import SMALL_SLIDES, make_c16_dataset
     from data_tools.datasets.locks import bundle_lock_path, file_lock
     from data_tools.datasets.split import shard_names
-    from data_tools.datasets.c16.dataset import SMALL_SLIDES, make_c16_dataset
 
     out = tmp_path / "sharded"
     halves = [shard_names(SMALL_SLIDES, (i, 2)) for i in range(2)]
@@ -488,8 +544,12 @@ def test_shards_build_disjoint_slides_and_the_last_writes_dataset_json(small, tm
     assert all((out / "slides" / f"{n}.tif").stat().st_mtime_ns == t for n, t in made.items())  # not remade
 
     monkeypatch.setattr(c16, "make_bundle", real)
-    code = subprocess.run([sys.executable, "-m", "data_tools", "c16", "--small", "--quiet", "--out", str(out),
-                           "--merge"], cwd=ROOT, capture_output=True, text=True)
+    code = subprocess.run(
+        [sys.executable, "-m", "data_tools", "c16", "--small", "--quiet", "--out", str(out), "--merge"],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+    )
     assert code.returncode == 1 and f"FAILED {broken}: " in code.stderr  # merge builds nothing
     make_c16_dataset(out, small=True, progress=False, shard=(1, 2))  # the failed slide, fixed, is made again
     whole = json.loads((small / "dataset.json").read_text())

@@ -1,4 +1,5 @@
 """`data_tools c16` checks its .tar.gz inputs against the bytes the published C16 tables were built from."""
+
 from __future__ import annotations
 
 import io
@@ -27,8 +28,9 @@ def _tar_gz(path: Path, name: str = "train/Tumor_001.json", data: bytes = b"{}")
 def test_other_bytes_get_one_line_naming_the_input(tmp_path):
     other = _tar_gz(tmp_path / "camelyon16_ncrf_train.tar.gz")
     record = check_known_inputs(annotations=other, patches=None)
-    assert record == {"annotations": {"file": str(other), "sha256": record["annotations"]["sha256"],
-                                      "matches_published": False}}
+    assert record == {
+        "annotations": {"file": str(other), "sha256": record["annotations"]["sha256"], "matches_published": False}
+    }
     lines = differing_lines(record)
     assert len(lines) == 1 and "annotations" in lines[0] and str(other) in lines[0]
     assert "published tables were built from other inputs" in lines[0]
@@ -66,7 +68,9 @@ def test_known_sha256s_are_the_docs():
 
 @pytest.mark.skipif(not SHARED.is_dir(), reason="the two published inputs are not on this machine")
 def test_the_published_inputs_match():
-    record = check_known_inputs(annotations=SHARED / "annotations" / "camelyon16_ncrf_train.tar.gz",
-                                patches=SHARED / "pcam_train_patches.tar.gz")
+    record = check_known_inputs(
+        annotations=SHARED / "annotations" / "camelyon16_ncrf_train.tar.gz",
+        patches=SHARED / "pcam_train_patches.tar.gz",
+    )
     assert set(record) == {"annotations", "patches"}
     assert all(r["matches_published"] for r in record.values()) and differing_lines(record) == []

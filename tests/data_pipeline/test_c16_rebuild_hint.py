@@ -1,5 +1,6 @@
 """The v1 ids' rebuild hint keeps the options a C16 dataset was built with (dataset.json), so following it
 rebuilds the same set at the same scale instead of another one."""
+
 import json
 import shlex
 
@@ -11,11 +12,20 @@ from histojax.registry import spec_of
 
 
 def _hint(tmp_path, **recorded) -> list[str]:
-    ds = {"kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)", "format": 2, "encoder": None,
-          "pixels_kept": True, "seed": 0, "test_fraction": 0.25, "annotations": "/data/ncrf.tar.gz",
-          "patches": "/data/pcam.tar.gz", "scale": {"downsample_from_camelyon16_level0": 8.0},
-          "patch_pools": {"test": {"source": "/data/pcam.tar.gz", "other_patch_set": False}},
-          "variant": "full", "labels": {"Tumor_001": 1, "Normal_139": 0}}
+    ds = {
+        "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)",
+        "format": 2,
+        "encoder": None,
+        "pixels_kept": True,
+        "seed": 0,
+        "test_fraction": 0.25,
+        "annotations": "/data/ncrf.tar.gz",
+        "patches": "/data/pcam.tar.gz",
+        "scale": {"downsample_from_camelyon16_level0": 8.0},
+        "patch_pools": {"test": {"source": "/data/pcam.tar.gz", "other_patch_set": False}},
+        "variant": "full",
+        "labels": {"Tumor_001": 1, "Normal_139": 0},
+    }
     ds.update(recorded)
     (tmp_path / "dataset.json").write_text(json.dumps(ds))
     with pytest.raises(BundleError) as err:
@@ -34,18 +44,29 @@ def test_small_set_hint_keeps_small(tmp_path):
 
 
 def test_full_set_hint_keeps_sources_scale_and_pixels(tmp_path):
-    words = _hint(tmp_path, pixels_kept=False, scale={"downsample_from_camelyon16_level0": 4.0}, seed=3,
-                  test_fraction=0.3, patch_pools={"test": {"source": "/data/heldout", "other_patch_set": True}})
+    words = _hint(
+        tmp_path,
+        pixels_kept=False,
+        scale={"downsample_from_camelyon16_level0": 4.0},
+        seed=3,
+        test_fraction=0.3,
+        patch_pools={"test": {"source": "/data/heldout", "other_patch_set": True}},
+    )
     assert "--small" not in words and "--no-pixels" in words
-    for option, value in [("--annotations", "/data/ncrf.tar.gz"), ("--patches", "/data/pcam.tar.gz"),
-                          ("--downsample", "4.0"), ("--seed", "3"), ("--test-fraction", "0.3"),
-                          ("--test-patches", "/data/heldout")]:
+    for option, value in [
+        ("--annotations", "/data/ncrf.tar.gz"),
+        ("--patches", "/data/pcam.tar.gz"),
+        ("--downsample", "4.0"),
+        ("--seed", "3"),
+        ("--test-fraction", "0.3"),
+        ("--test-patches", "/data/heldout"),
+    ]:
         assert words[words.index(option) + 1] == value, (option, words)
 
 
 def test_subset_hint_names_its_slides(tmp_path):
     words = _hint(tmp_path, variant="subset")
-    assert words[words.index("--slides") + 1:words.index("--slides") + 3] == ["Normal_139", "Tumor_001"]
+    assert words[words.index("--slides") + 1 : words.index("--slides") + 3] == ["Normal_139", "Tumor_001"]
 
 
 def test_hint_parses_with_the_c16_command(tmp_path):

@@ -4,6 +4,7 @@ written, or while a feature grid is added to a built set) leaves the previous bu
 were, a ``dataset.json`` that failures would leave with no test slide (or no slide) is not written over the
 previous one, and the next run rebuilds. Two normal slides of the ``--small`` set (their own tissue, seconds to
 build: one on each side of the split); features from the tiny test encoder of tests/encoder_helpers.py."""
+
 from __future__ import annotations
 
 import errno
@@ -16,7 +17,7 @@ import pytest
 from data_tools.bundle_files.reading import load_bundle, read_metadata
 from data_tools.errors import HistojaxDataError
 
-NAME = "Normal_042"       # a slide of SMALL_SLIDES, train side at seeds 0 and 1
+NAME = "Normal_042"  # a slide of SMALL_SLIDES, train side at seeds 0 and 1
 TEST_NAME = "Normal_108"  # test side at seed 0
 TINY = "encoder_helpers:tiny_colour"
 
@@ -64,7 +65,7 @@ def _full_disk_after_first(monkeypatch, module, attr: str, inside: str) -> list:
 def _check_kept(out: Path, before: tuple[dict, bytes], name: str = NAME) -> None:
     bundle = out / "bundles" / name
     assert _state(out, name) == before  # before: the bundle removed and its record deleted
-    load_bundle(bundle)                 # whole and verified
+    load_bundle(bundle)  # whole and verified
     failure = json.loads((out / "records" / "failed" / f"{name}.json").read_text())
     reason = failure["reason"]
     assert f"bundles/{name}" in reason and "No space left on device" in reason and ".tmp-" not in reason
@@ -90,8 +91,10 @@ def test_a_failed_rebuild_keeps_the_previous_bundle_and_its_record(built, tmp_pa
     again = make_c16_dataset(out, small=True, names=[NAME], seed=1, progress=False)
     assert again["run"]["built"] == [NAME] and not again["run"]["failed"]
     assert json.loads((out / "records" / f"{NAME}.json").read_text())["settings"]["seed"] == 1
-    assert read_metadata(out / "bundles" / NAME)["metadata_sha256"] != json.loads(before[0]["metadata.json"])[
-        "metadata_sha256"]
+    assert (
+        read_metadata(out / "bundles" / NAME)["metadata_sha256"]
+        != json.loads(before[0]["metadata.json"])["metadata_sha256"]
+    )
     assert not (out / "records" / "failed" / f"{NAME}.json").exists()
     assert not list(out.rglob(".*.tmp-*")) and not list(out.rglob(".*lock"))
 

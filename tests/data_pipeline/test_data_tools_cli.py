@@ -1,4 +1,5 @@
 """Tests for the data_tools command line (`python -m data_tools info|build`), run as a subprocess."""
+
 from __future__ import annotations
 
 import subprocess
@@ -16,8 +17,13 @@ BROKEN = ROOT / "tests" / "data" / "broken.svs"
 
 
 def _run(*args) -> subprocess.CompletedProcess:
-    return subprocess.run([sys.executable, "-m", "data_tools", *map(str, args)], cwd=ROOT,
-                          capture_output=True, text=True, encoding="utf-8")
+    return subprocess.run(
+        [sys.executable, "-m", "data_tools", *map(str, args)],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        encoding="utf-8",
+    )
 
 
 def _one_line_error(proc: subprocess.CompletedProcess) -> str:
@@ -82,8 +88,9 @@ def test_info_broken_slide():
 @pytest.mark.parametrize("label_map", ["[1]", '{"Tumor": "bogus"}', "{not json"])
 def test_bad_label_map(tmp_path, label_map):
     out = tmp_path / "bundle"
-    proc = _run("build", SVS, "--annotations", TARGET, "--out", out, "--levels", "3", "--quiet",
-                "--label-map", label_map)
+    proc = _run(
+        "build", SVS, "--annotations", TARGET, "--out", out, "--levels", "3", "--quiet", "--label-map", label_map
+    )
     line = _one_line_error(proc)
     assert "--label-map" in line
     assert list(tmp_path.iterdir()) == []

@@ -6,6 +6,7 @@ CAMELYON16 stand-in has the official names and layout, with real CAMELYON16 ASAP
 metastasis polygons and exclusion holes) rescaled to fit the small slides and renamed to the
 original ``_0`` / ``_2`` groups.
 """
+
 from __future__ import annotations
 
 import json
@@ -16,17 +17,16 @@ from pathlib import Path
 import jax
 import numpy as np
 import pytest
-
-from data_tools.bundle_files.writes import mark_temporary
 import tifffile
+from slide_helpers import pyramid
 
 from data_tools.__main__ import main as data_main
+from data_tools.bundle_files.writes import mark_temporary
 from data_tools.datasets.build import build_dataset, merge_dataset
 from data_tools.datasets.locks import bundle_lock_path, clean_stale, file_lock
 from data_tools.datasets.split import read_label_table, seeded_split, shard_names
 from data_tools.errors import BundleError, HistojaxDataError
 from histojax.sample import SAMPLE_SLIDE
-from slide_helpers import pyramid
 
 DATA = Path(__file__).parents[1] / "data"
 C16_XML = DATA / "annotations" / "tumor_039.xml"
@@ -38,13 +38,11 @@ def pixels():
         return tif.pages[0].asarray()
 
 
-
-
 def crop(pixels, i: int, size=(640, 512)) -> np.ndarray:
     """A (H, W) = size crop of the real sample pixels (from its tissue-rich middle), different for each ``i``."""
     h, w = size
     y, x = 320 + (i * 160) % 1920, 768 + (i * 64) % 512
-    return np.ascontiguousarray(pixels[y:y + h, x:x + w, :3])
+    return np.ascontiguousarray(pixels[y : y + h, x : x + w, :3])
 
 
 def rescaled_xml(src: Path, out: Path, size: tuple[int, int], groups=None) -> Path:
@@ -99,8 +97,14 @@ def test_camelyon16_as_downloaded_official_split_and_labels(c16_dataset):
     ds = json.loads((out / "dataset.json").read_text())
     assert ds["train"] == ["bundles/normal_001", "bundles/normal_002", "bundles/tumor_001", "bundles/tumor_002"]
     assert ds["test"] == ["bundles/test_001", "bundles/test_002"]
-    assert ds["labels"] == {"normal_001": 0, "normal_002": 0, "test_001": 1, "test_002": 0, "tumor_001": 1,
-                            "tumor_002": 1}
+    assert ds["labels"] == {
+        "normal_001": 0,
+        "normal_002": 0,
+        "test_001": 1,
+        "test_002": 0,
+        "tumor_001": 1,
+        "tumor_002": 1,
+    }
     from data_tools.bundle_files.reading import read_metadata
 
     meta = read_metadata(out / "bundles" / "tumor_001")
@@ -117,7 +121,9 @@ def test_registered_c16_ids_accept_such_a_dataset(c16_dataset):
     assert params.slide.num_slides == 4
     env, params = histojax.make("HistoJAX-C16-Diagnosis-v0", dataset=out, split="test", verify=False)
     assert [int(v) for v in params.slide.slide_label] == [1, 0]  # reference.csv's labels
-    with pytest.raises(BundleError, match="observes pcam-cnn features.*histojax dataset SLIDES_DIR .*--encoder pcam-cnn"):
+    with pytest.raises(
+        BundleError, match="observes pcam-cnn features.*histojax dataset SLIDES_DIR .*--encoder pcam-cnn"
+    ):
         histojax.make("HistoJAX-C16-Hard-v1", dataset=out, verify=False)  # no feature grids: the fix named
 
 
@@ -174,7 +180,7 @@ def test_shards_are_disjoint_and_the_last_writes_dataset_json(camelyon16, tmp_pa
     assert s0["dataset"] is None and not (out / "dataset.json").exists()
     assert sorted(p.name for p in (out / "bundles").iterdir()) == sorted(parts[0])
     assert merge_dataset(out)[1] == sorted(parts[1] + parts[2])  # --merge before the others: missing listed
-    assert data_main([ "dataset", "--merge", "--out", str(out)]) == 2
+    assert data_main(["dataset", "--merge", "--out", str(out)]) == 2
     build_dataset(camelyon16, out, levels=(3,), shard=(2, 3), progress=False)
     s1 = build_dataset(camelyon16, out, levels=(3,), shard=(1, 3), progress=False)
     assert s1["dataset"] is not None and len(s1["dataset"]["train"]) + len(s1["dataset"]["test"]) == 6
@@ -221,8 +227,12 @@ def mixed(tmp_path_factory, pixels):
     feats = root / "trident" / "20x_256px_0px_overlap" / "features_conch_v15"
     feats.mkdir(parents=True)
     rng = np.random.default_rng(0)
-    for name, (w, h) in (("CMU-1-Small-Region", (2220, 2967)), ("kidney-48-5_IHC", (1493, 901)),
-                         ("case-7", (1024, 768)), ("crop-3", (512, 640))):
+    for name, (w, h) in (
+        ("CMU-1-Small-Region", (2220, 2967)),
+        ("kidney-48-5_IHC", (1493, 901)),
+        ("case-7", (1024, 768)),
+        ("crop-3", (512, 640)),
+    ):
         xs, ys = np.meshgrid(np.arange(0, w, 256), np.arange(0, h, 256))
         coords = np.stack([xs.ravel(), ys.ravel()], 1)
         with h5py.File(feats / f"{name}.h5", "w") as f:
@@ -236,8 +246,22 @@ def mixed(tmp_path_factory, pixels):
 def test_every_real_format_in_one_folder_with_trident_features(mixed, tmp_path):
     slides, trident = mixed
     out = tmp_path / "ds"
-    code = data_main(["dataset", str(slides), "--out", str(out), "--levels", "3", "--features-from", str(trident),
-                      "--no-pixels", "--quiet", "--test-fraction", "0.5"])
+    code = data_main(
+        [
+            "dataset",
+            str(slides),
+            "--out",
+            str(out),
+            "--levels",
+            "3",
+            "--features-from",
+            str(trident),
+            "--no-pixels",
+            "--quiet",
+            "--test-fraction",
+            "0.5",
+        ]
+    )
     assert code == 0
     ds = json.loads((out / "dataset.json").read_text())
     assert sorted(ds["labels"]) == ["CMU-1-Small-Region", "case-7", "crop-3", "kidney-48-5_IHC"]
@@ -258,8 +282,12 @@ def test_a_slide_without_features_fails_alone_and_the_exit_status_says_so(mixed,
     shutil.copytree(trident, feats)
     next(feats.rglob("crop-3.h5")).unlink()
     out = tmp_path / "ds"
-    assert data_main(["dataset", str(slides), "--out", str(out), "--levels", "3", "--features-from", str(feats),
-                      "--quiet"]) == 1
+    assert (
+        data_main(
+            ["dataset", str(slides), "--out", str(out), "--levels", "3", "--features-from", str(feats), "--quiet"]
+        )
+        == 1
+    )
     text = capsys.readouterr().out
     assert re.search(r"failed crop-3: .*no feature file crop-3\.h5", text)
     ds = json.loads((out / "dataset.json").read_text())
@@ -297,12 +325,14 @@ def test_a_label_table_naming_unknown_slides(tmp_path, pixels, capsys):
     slides = tmp_path / "slides"
     pyramid(slides / "a.tif", crop(pixels, 1))
     (tmp_path / "labels.csv").write_text("slide,label\na,1\nb,0\n")
-    err = _fail(["dataset", str(slides), "--out", str(tmp_path / "ds"), "--labels", str(tmp_path / "labels.csv")],
-                capsys)
+    err = _fail(
+        ["dataset", str(slides), "--out", str(tmp_path / "ds"), "--labels", str(tmp_path / "labels.csv")], capsys
+    )
     assert "labels.csv" in err and "not in the folder: b" in err
     (tmp_path / "labels.csv").write_text("slide,label\na,maybe\n")
-    assert "'maybe'" in _fail(["dataset", str(slides), "--out", str(tmp_path / "ds"), "--labels",
-                               str(tmp_path / "labels.csv")], capsys)
+    assert "'maybe'" in _fail(
+        ["dataset", str(slides), "--out", str(tmp_path / "ds"), "--labels", str(tmp_path / "labels.csv")], capsys
+    )
     assert not (tmp_path / "ds").exists()
 
 
@@ -393,9 +423,23 @@ def test_a_sigkilled_run_resumes(camelyon16, tmp_path):
     import time
 
     out = tmp_path / "ds"
-    proc = subprocess.Popen([sys.executable, "-m", "data_tools", "dataset", str(camelyon16), "--out", str(out),
-                             "--levels", "5,7", "--quiet"], cwd=Path(__file__).resolve().parents[2],
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "data_tools",
+            "dataset",
+            str(camelyon16),
+            "--out",
+            str(out),
+            "--levels",
+            "5,7",
+            "--quiet",
+        ],
+        cwd=Path(__file__).resolve().parents[2],
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     try:
         deadline = time.time() + 300
         while not list((out / "records").glob("*.json")) and time.time() < deadline and proc.poll() is None:

@@ -1,6 +1,7 @@
 """``histojax dataset --folds K`` on a finished dataset: the folds depend on the labels and patients alone, so
 ``dataset.json`` is written again with them and no bundle is rebuilt; a refused rerun names what differs in
 plain words."""
+
 from __future__ import annotations
 
 import json
@@ -26,12 +27,28 @@ def unfolded(tmp_path_factory):
     rows = ["slide,label"]
     for i, (name, label) in enumerate([("t0", 1), ("t1", 1), ("t2", 1), ("n0", 0), ("n1", 0), ("n2", 0)]):
         y, x = 320 + i * 160, 768 + (i * 64) % 512
-        tifffile.imwrite(slides / f"{name}.tif", np.ascontiguousarray(pixels[y:y + 256, x:x + 320, :3]),
-                         photometric="rgb", resolution=(2e4, 2e4), resolutionunit="CENTIMETER")
+        tifffile.imwrite(
+            slides / f"{name}.tif",
+            np.ascontiguousarray(pixels[y : y + 256, x : x + 320, :3]),
+            photometric="rgb",
+            resolution=(2e4, 2e4),
+            resolutionunit="CENTIMETER",
+        )
         rows.append(f"{name},{label}")
     (root / "labels.csv").write_text("\n".join(rows) + "\n")
-    command = ["dataset", str(slides), "--out", str(root / "ds"), "--labels", str(root / "labels.csv"),
-               "--levels", "3", "--tile-size", "64", "--quiet"]
+    command = [
+        "dataset",
+        str(slides),
+        "--out",
+        str(root / "ds"),
+        "--labels",
+        str(root / "labels.csv"),
+        "--levels",
+        "3",
+        "--tile-size",
+        "64",
+        "--quiet",
+    ]
     assert data_main(command) == 0
     return root / "ds", command
 

@@ -5,6 +5,7 @@ The fixture ``tests/data/dicom-wsi`` (written by ``tests/data/make_dicom_wsi.py`
 slide) has a column-by-column TILED_SPARSE JPEG level, a TILED_SPARSE JPEG 2000 level with two frames
 absent, and a TILED_FULL JPEG level.
 """
+
 from __future__ import annotations
 
 import importlib.util
@@ -62,10 +63,12 @@ def test_every_frame_where_its_position_says(reference):
             assert got.shape == ref.shape and got.dtype == np.uint8
             for ty in range(0, ref.shape[0], TILE):
                 for tx in range(0, ref.shape[1], TILE):
-                    err = np.abs(got[ty:ty + TILE, tx:tx + TILE].astype(int) - ref[ty:ty + TILE, tx:tx + TILE]).mean()
+                    err = np.abs(
+                        got[ty : ty + TILE, tx : tx + TILE].astype(int) - ref[ty : ty + TILE, tx : tx + TILE]
+                    ).mean()
                     assert err < 8, (k, tx, ty, err)
         level1 = reader.read_level(1)
-        assert (level1[:TILE, :TILE] == 255).all() and (level1[2 * TILE:, TILE:] == 255).all()
+        assert (level1[:TILE, :TILE] == 255).all() and (level1[2 * TILE :, TILE:] == 255).all()
         assert not (level1[:TILE, TILE:] == 255).all()
 
 
@@ -80,10 +83,23 @@ def test_region_outside_is_white_and_matches_level():
 def test_build_dense_and_tiled(tmp_path, reference):
     """A DICOM folder builds dense and tiled bundles that agree, with the annotated tumour."""
     ann = tmp_path / "tumour.geojson"
-    ann.write_text(json.dumps({"type": "FeatureCollection", "features": [{
-        "type": "Feature", "properties": {"classification": {"name": "Tumor"}},
-        "geometry": {"type": "Polygon", "coordinates": [[[100, 100], [300, 100], [300, 260], [100, 260], [100, 100]]]},
-    }]}))
+    ann.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    {
+                        "type": "Feature",
+                        "properties": {"classification": {"name": "Tumor"}},
+                        "geometry": {
+                            "type": "Polygon",
+                            "coordinates": [[[100, 100], [300, 100], [300, 260], [100, 260], [100, 100]]],
+                        },
+                    }
+                ],
+            }
+        )
+    )
     kw = dict(annotations_path=ann, tile_size=64, level_sets=(3,), progress=False)
     dense = load_bundle(build_bundle(FIXTURE, tmp_path / "dense", **kw))
     tiled = load_bundle(build_bundle(FIXTURE, tmp_path / "tiled", storage="tiled", share_background=False, **kw))

@@ -3,6 +3,7 @@
 The shipped 1,000-patch bank (``data_tools/pcam/bank.npz``, CC0, a subsample of the 20,000 patches the
 weights were trained on) is cut by the same pool rule: its test-pool patches are patches the shipped
 weights never saw, so their AUC here is a held-out figure (small: ~500 patches)."""
+
 from __future__ import annotations
 
 import json
@@ -11,9 +12,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
+from data_tools.datasets.pcam_bank import in_test_pool, load_bank, pool_rule, split_pools
 from data_tools.features import ENCODERS, pcam_cnn
 from data_tools.features.efficientnet import load_encoder
-from data_tools.datasets.pcam_bank import in_test_pool, load_bank, pool_rule, split_pools
 
 
 @pytest.fixture(scope="module")
@@ -41,8 +42,9 @@ def test_registered_encoders_include_pcam_cnn():
 
 
 # a view (128 px) in `make test`; a patch (48 px) and the size between under `make test-all`
-@pytest.mark.parametrize("side", [pytest.param(48, marks=pytest.mark.slow), pytest.param(96, marks=pytest.mark.slow),
-                                  128])
+@pytest.mark.parametrize(
+    "side", [pytest.param(48, marks=pytest.mark.slow), pytest.param(96, marks=pytest.mark.slow), 128]
+)
 def test_any_image_size_patch_or_view(side):
     enc = load_encoder("pcam-cnn")
     rng = np.random.default_rng(1)
@@ -51,8 +53,8 @@ def test_any_image_size_patch_or_view(side):
     assert emb.shape == (3, pcam_cnn.DIM) and logit.shape == (3,)
     assert np.isfinite(emb).all()
     np.testing.assert_allclose(emb[:, -2], logit, rtol=1e-5, atol=1e-5)  # mean of the logit map
-    assert (emb[:, -1] >= emb[:, -2] - 1e-5).all()                        # its max
-    np.testing.assert_array_equal(np.asarray(enc.embed(x)), emb)         # deterministic
+    assert (emb[:, -1] >= emb[:, -2] - 1e-5).all()  # its max
+    np.testing.assert_array_equal(np.asarray(enc.embed(x)), emb)  # deterministic
 
 
 def test_a_view_of_tumour_scores_above_a_view_of_normal_tissue(bank):
@@ -95,8 +97,10 @@ def test_train_command_writes_loadable_weights_and_a_report(tmp_path):
     from data_tools.__main__ import main
 
     out = tmp_path / "enc.msgpack"
-    assert main(["train-encoder", "--out", str(out), "--epochs", "1", "--max-patches", "64", "--batch", "32",
-                 "--quiet"]) == 0
+    assert (
+        main(["train-encoder", "--out", str(out), "--epochs", "1", "--max-patches", "64", "--batch", "32", "--quiet"])
+        == 0
+    )
     variables = pcam_cnn.read_weights(out)
     report = json.loads(out.with_suffix(".json").read_text())
     assert report["fitted_patches"] + report["validation_patches"] == 64

@@ -1,5 +1,6 @@
 """``pcam-cnn96``: the pcam-cnn family at PCam's native 0.97 µm/px (96-px patches), and the training machinery's
 options it was trained with (brightness jitter, checkpoint and resume, the linear probe of the model card)."""
+
 from __future__ import annotations
 
 import json
@@ -105,7 +106,7 @@ def test_an_interrupted_training_resumes_to_the_same_weights(tmp_path, monkeypat
 
     def interrupted(*a, **k):
         calls["n"] += 1
-        if calls["n"] > 2:   # both validation figures of epoch 1 pass; epoch 2's first one stops the run
+        if calls["n"] > 2:  # both validation figures of epoch 1 pass; epoch 2's first one stops the run
             raise KeyboardInterrupt
         return real(*a, **k)
 

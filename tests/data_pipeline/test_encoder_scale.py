@@ -1,6 +1,7 @@
 """A built-in encoder run on slides far from the scale it was trained at, or of unknown scale, is warned about in one
 line naming the bundle and recorded in its features metadata (``encoder_scale``); pcam-cnn: 1.944 µm/px, tolerance
 1.5x either way."""
+
 from __future__ import annotations
 
 import warnings
@@ -59,8 +60,10 @@ def test_dataset_scale_warns_on_mixed_and_far_slides():
 def test_dataset_json_records_the_encoder_scale(tmp_path):
     from data_tools.datasets.build import write_dataset_json
 
-    plan = {"options": {"encoder": "pcam-cnn"}, "slides": {"a": {"split": "train", "label": 1, "mpp": 0.5},
-                                                           "b": {"split": "test", "label": 0, "mpp": 1.944}}}
+    plan = {
+        "options": {"encoder": "pcam-cnn"},
+        "slides": {"a": {"split": "train", "label": 1, "mpp": 0.5}, "b": {"split": "test", "label": 0, "mpp": 1.944}},
+    }
     ds = write_dataset_json(tmp_path, plan, {"a": {"name": "a"}, "b": {"name": "b"}}, {})
     assert ds["encoder_scale"]["slides_out_of_scale"] == {"a": 0.5}
     assert (tmp_path / "dataset.json").read_text().count("encoder_scale") == 1

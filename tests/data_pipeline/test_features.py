@@ -3,6 +3,7 @@ grid of a bundle (computed, resumed, imported from HDF5) and ``obs_mode="feature
 
 Fast: the grid tests use a tiny synthetic bundle (32-px views fed to the encoder at 32 px, one
 compiled batch shape); the ImageNet check compiles one 224-px forward pass."""
+
 from __future__ import annotations
 
 import collections
@@ -38,8 +39,10 @@ class _Evil:
 
 
 def _legacy_header() -> bytes:
-    return b"".join(pickle.dumps(v, protocol=2) for v in
-                    (torch_weights.LEGACY_MAGIC, torch_weights.LEGACY_PROTOCOL, {"little_endian": True}))
+    return b"".join(
+        pickle.dumps(v, protocol=2)
+        for v in (torch_weights.LEGACY_MAGIC, torch_weights.LEGACY_PROTOCOL, {"little_endian": True})
+    )
 
 
 @pytest.mark.parametrize("layout", ["plain", "legacy", "zip"])
@@ -117,11 +120,13 @@ def test_zip_format_roundtrip(tmp_path, monkeypatch):
             return (rebuild, self.args)
 
     s0, s1 = Storage("0", base), Storage("1", longs)
-    state = collections.OrderedDict([
-        ("w", Tensor(s0, 0, (3, 4), (4, 1))),
-        ("w_t", Tensor(s0, 1, (2, 3), (1, 4))),  # a strided view (transpose of a sub-block)
-        ("n", Tensor(s1, 1, (), ())),
-    ])
+    state = collections.OrderedDict(
+        [
+            ("w", Tensor(s0, 0, (3, 4), (4, 1))),
+            ("w_t", Tensor(s0, 1, (2, 3), (1, 4))),  # a strided view (transpose of a sub-block)
+            ("n", Tensor(s1, 1, (), ())),
+        ]
+    )
 
     class P(pickle.Pickler):
         def persistent_id(self, obj):
@@ -154,8 +159,9 @@ def test_efficientnet_file_reads_and_fits_the_architecture():
     assert not any("_se_" in k for k in state)  # Lite: no squeeze-and-excitation
     variables = variables_from_torch(state)
     n_params = sum(v.size for v in jax.tree.leaves(variables["params"]))
-    assert n_params == sum(v.size for k, v in state.items() if not k.endswith(("running_mean", "running_var",
-                                                                                "num_batches_tracked")))
+    assert n_params == sum(
+        v.size for k, v in state.items() if not k.endswith(("running_mean", "running_var", "num_batches_tracked"))
+    )
     assert 4.6e6 < n_params < 4.7e6  # EfficientNet-Lite0: 4.65 M
 
 
@@ -253,8 +259,24 @@ def test_random_projection_and_pca(tiny_bundle, tmp_path, capsys):
     from data_tools.bundle import read_metadata
 
     bundle = _copy(tiny_bundle, tmp_path / "bundle")
-    assert main(["features", str(bundle), "--dim", "8", "--seed", "3", "--batch", str(BATCH), "--image-size", "0",
-                 "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "features",
+                str(bundle),
+                "--dim",
+                "8",
+                "--seed",
+                "3",
+                "--batch",
+                str(BATCH),
+                "--image-size",
+                "0",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     assert "62 views, dim 8" in capsys.readouterr().out
     info = read_metadata(bundle)["features"]
     raw_matrix = np.load(bundle / "features_projection.npy")
@@ -289,7 +311,7 @@ def test_env_observation_equals_encoder_on_the_view(feature_env, feature_bundle)
         s = EnvState(*(jnp.int32(v) for v in (z, gx * TILE, gy * TILE, 0, 0)))
         states.append(s)
         level = env.bundles[0].pixels[z]  # the host bundle, levels coarsest first as in the env
-        views.append(np.asarray(level[gy * TILE:gy * TILE + TILE, gx * TILE:gx * TILE + TILE]))
+        views.append(np.asarray(level[gy * TILE : gy * TILE + TILE, gx * TILE : gx * TILE + TILE]))
     batch = np.zeros((BATCH, TILE, TILE, 3), np.uint8)
     batch[: len(views)] = views
     direct = np.asarray(encoder.embed(batch))[: len(views)]
@@ -321,19 +343,27 @@ def test_off_grid_views_snap_to_the_nearest_cell(feature_env):
     np.testing.assert_array_equal(got, np.asarray(slide.features)[rows])
 
 
-@pytest.mark.parametrize("action_mode,reward,with_position", [("discrete", "dense", True),
-                                                               ("continuous", "histogym", False),
-                                                               ("discrete", "sparse", False)])
+@pytest.mark.parametrize(
+    "action_mode,reward,with_position",
+    [("discrete", "dense", True), ("continuous", "histogym", False), ("discrete", "sparse", False)],
+)
 def test_env_runs_in_every_mode(feature_bundle, action_mode, reward, with_position):
     import histojax
 
-    env, params = histojax.make("HistoJAX-Easy-v0", slide=feature_bundle, obs_mode="features",
-                                action_mode=action_mode, reward=reward, with_position=with_position)
+    env, params = histojax.make(
+        "HistoJAX-Easy-v0",
+        slide=feature_bundle,
+        obs_mode="features",
+        action_mode=action_mode,
+        reward=reward,
+        with_position=with_position,
+    )
     keys = jax.random.split(jax.random.PRNGKey(0), 8)
     obs, state = jax.vmap(env.reset, in_axes=(0, None))(keys, params)
     actions = jax.vmap(lambda k: env.action_space(params).sample(k))(keys)
     obs, state, reward_, term, trunc, info = jax.jit(jax.vmap(env.step, in_axes=(0, 0, 0, None)))(
-        keys, state, actions, params)
+        keys, state, actions, params
+    )
     feats = obs["features"] if with_position else obs
     assert feats.shape == (8, 1280) and feats.dtype == jnp.float32 and bool(jnp.isfinite(feats).all())
     if with_position:
@@ -367,8 +397,9 @@ def test_import_clam_hdf5(tiny_bundle, tmp_path):
     with h5py.File(h5, "w") as f:
         f.create_dataset("coords", data=coords).attrs.update({"patch_size": 64, "patch_level": 0})
         f.create_dataset("features", data=feats)
-    assert main(["import-features", str(bundle), str(h5), "--patch-size", "64", "--level", "0",
-                 "--dtype", "float32"]) == 0
+    assert (
+        main(["import-features", str(bundle), str(h5), "--patch-size", "64", "--level", "0", "--dtype", "float32"]) == 0
+    )
     meta = read_metadata(bundle)
     info = meta["features"]
     assert info["dim"] == 3 and info["source"] == "imported"
@@ -400,8 +431,7 @@ def test_gymnasium_bridge_with_feature_observations(feature_bundle):
 
     import histojax.adapters.gymnasium  # noqa: F401
 
-    genv = gymnasium.make("histojax/HistoJAX-Easy-v0", slide=feature_bundle, obs_mode="features",
-                          with_position=True)
+    genv = gymnasium.make("histojax/HistoJAX-Easy-v0", slide=feature_bundle, obs_mode="features", with_position=True)
     check_env(genv.unwrapped, skip_render_check=True)
     obs, _ = genv.reset(seed=0)
     assert obs["features"].shape == (1280,) and genv.observation_space.contains(obs)

@@ -1,6 +1,7 @@
 """k-fold cross-validation splits: ``histojax dataset … --folds K`` / ``c16 --folds K`` write K stratified,
 patient-grouped, seeded folds to ``dataset.json``; ``make(..., split=, fold=i)`` picks fold i's sides (train = the
 other folds; test / validation = fold i); a dataset without folds and an out-of-range fold are refused in a line."""
+
 from __future__ import annotations
 
 import collections
@@ -8,6 +9,7 @@ import json
 import shutil
 
 import pytest
+from fold_helpers import build_folded
 
 import histojax
 from data_tools.__main__ import main as data_main
@@ -15,7 +17,6 @@ from data_tools.datasets.build import write_dataset_index
 from data_tools.datasets.split import kfold_split, patient_groups, read_patient_column
 from data_tools.errors import BundleError, HistojaxDataError
 from histojax.datasets import dataset_slides
-from fold_helpers import build_folded
 
 
 # ------------------------------------------------------------------ the fold rule
@@ -38,9 +39,20 @@ def test_folds_are_deterministic_and_seeded():
 
 
 def test_slides_of_one_patient_stay_in_one_fold():
-    names = ["TCGA-A1-A0SB-01Z-00-DX1", "TCGA-A1-A0SB-01Z-00-DX2", "TCGA-A1-A0SD-01Z-00-DX1",
-             "TCGA-B6-A0RE-01Z-00-DX1", "TCGA-B6-A0RE-01Z-00-DX2", "TCGA-B6-A0RE-01Z-00-DX3",
-             "TCGA-C8-A12L-01Z-00-DX1", "TCGA-E2-A14N-01Z-00-DX1", "p1-a", "p1-b", "x", "y"]
+    names = [
+        "TCGA-A1-A0SB-01Z-00-DX1",
+        "TCGA-A1-A0SB-01Z-00-DX2",
+        "TCGA-A1-A0SD-01Z-00-DX1",
+        "TCGA-B6-A0RE-01Z-00-DX1",
+        "TCGA-B6-A0RE-01Z-00-DX2",
+        "TCGA-B6-A0RE-01Z-00-DX3",
+        "TCGA-C8-A12L-01Z-00-DX1",
+        "TCGA-E2-A14N-01Z-00-DX1",
+        "p1-a",
+        "p1-b",
+        "x",
+        "y",
+    ]
     labels = dict(zip(names, [1, 1, 0, 0, 0, 0, 1, 0, 1, 1, 0, 1]))  # 4 tumour and 4 normal patients
     groups, how = patient_groups(names, {"p1-a": "P1", "P1-B": "P1"})  # the table's names, matched ignoring case
     assert "TCGA barcode" in how and "patient column" in how
@@ -106,7 +118,8 @@ def test_make_fold_picks_the_sides(folded):
     assert [b.path.name for b in env._bundles] == sorted(n.split("/")[1] for n in lists[1])
     env, _ = histojax.make("HistoJAX-Easy-v0", dataset=folded, verify=False)  # no fold: the single split, as before
     assert sorted(b.path.name for b in env._bundles) == sorted(
-        n.split("/")[1] for n in json.loads((folded / "dataset.json").read_text())["train"])
+        n.split("/")[1] for n in json.loads((folded / "dataset.json").read_text())["train"]
+    )
 
 
 def test_fold_refusals_are_one_line(folded, tmp_path):
@@ -119,8 +132,11 @@ def test_fold_refusals_are_one_line(folded, tmp_path):
     ds = json.loads((plain / "dataset.json").read_text())
     del ds["folds"]
     write_dataset_index(plain, ds)  # sealed again: a dataset built without --folds
-    with pytest.raises(BundleError, match=r"fold=0: this dataset has no folds; build it with `histojax dataset "
-                                          r"\.\.\. --folds K`") as e:
+    with pytest.raises(
+        BundleError,
+        match=r"fold=0: this dataset has no folds; build it with `histojax dataset "
+        r"\.\.\. --folds K`",
+    ) as e:
         histojax.make("HistoJAX-Easy-v0", dataset=plain, fold=0, verify=False)
     assert "\n" not in str(e.value)
     with pytest.raises(ValueError, match="fold=0 picks a fold of a dataset"):
@@ -131,12 +147,33 @@ def test_folds_over_a_fixed_split_cut_the_train_side(folded, tmp_path):
     """A split column fixes the test set: the folds then cut the train side only (fold i = validation), and
     ``split="test"`` with a fold is refused (the fixed test set has no folds)."""
     slides = folded.parent / "S"
-    rows = ["slide,label,split"] + [f"t{j},1,{'test' if j == 3 else 'train'}" for j in range(4)] \
+    rows = (
+        ["slide,label,split"]
+        + [f"t{j},1,{'test' if j == 3 else 'train'}" for j in range(4)]
         + [f"n{j},0,{'test' if j == 2 else 'train'}" for j in range(3)]
+    )
     (tmp_path / "labels.csv").write_text("\n".join(rows) + "\n")
     out = tmp_path / "ds"
-    assert data_main(["dataset", str(slides), "--out", str(out), "--labels", str(tmp_path / "labels.csv"), "--levels",
-                      "3", "--tile-size", "64", "--quiet", "--folds", "2"]) == 0
+    assert (
+        data_main(
+            [
+                "dataset",
+                str(slides),
+                "--out",
+                str(out),
+                "--labels",
+                str(tmp_path / "labels.csv"),
+                "--levels",
+                "3",
+                "--tile-size",
+                "64",
+                "--quiet",
+                "--folds",
+                "2",
+            ]
+        )
+        == 0
+    )
     ds = json.loads((out / "dataset.json").read_text())
     assert ds["folds"]["pool"] == "train"
     assert sorted(n for lst in ds["folds"]["lists"] for n in lst) == sorted(ds["train"])
@@ -147,10 +184,27 @@ def test_folds_over_a_fixed_split_cut_the_train_side(folded, tmp_path):
 
 def test_too_many_folds_for_the_dataset_is_one_line(folded, capsys):
     out = folded.parent / "too-many"
-    code = data_main(["dataset", str(folded.parent / "S"), "--out", str(out), "--labels",
-                      str(folded.parent / "labels.csv"), "--levels", "3", "--quiet", "--folds", "4"])
+    code = data_main(
+        [
+            "dataset",
+            str(folded.parent / "S"),
+            "--out",
+            str(out),
+            "--labels",
+            str(folded.parent / "labels.csv"),
+            "--levels",
+            "3",
+            "--quiet",
+            "--folds",
+            "4",
+        ]
+    )
     err = capsys.readouterr().err.strip()
-    assert code == 2 and "--folds 4 needs at least 4 normal patients (slides of one patient stay in one fold); there are 3" in err and len(err.splitlines()) == 1
+    assert (
+        code == 2
+        and "--folds 4 needs at least 4 normal patients (slides of one patient stay in one fold); there are 3" in err
+        and len(err.splitlines()) == 1
+    )
     assert not (out / "plan.json").exists()
 
 

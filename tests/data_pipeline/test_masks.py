@@ -1,4 +1,5 @@
 """Tests for data_tools.masks: pixel-centre rasterisation of polygons and the Otsu tissue mask."""
+
 from __future__ import annotations
 
 from pathlib import Path

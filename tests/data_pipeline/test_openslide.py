@@ -7,6 +7,7 @@ Pixel tolerance: none. OpenSlide 4 and tifffile / wsidicom decode the same JPEG 
 here (both through libjpeg-turbo and OpenJPEG), so every comparison is exact; a level whose downsample is not a whole
 number (703 px → 352 px: 1.997) is read from a corner OpenSlide maps to a whole level pixel, else OpenSlide
 interpolates (up to 26 grey levels off before that was done)."""
+
 from __future__ import annotations
 
 import json
@@ -42,17 +43,28 @@ def _tiff(path: Path, rgb: np.ndarray, compression=None) -> Path:
         levels.append(np.ascontiguousarray(levels[-1][::2, ::2]))
     with tifffile.TiffWriter(path) as tif:
         for k, lv in enumerate(levels):
-            tif.write(lv, tile=(128, 128), photometric="rgb", compression=compression, subfiletype=1 if k else 0,
-                      resolution=(2e4 / 2**k, 2e4 / 2**k), resolutionunit="CENTIMETER", metadata=None)
+            tif.write(
+                lv,
+                tile=(128, 128),
+                photometric="rgb",
+                compression=compression,
+                subfiletype=1 if k else 0,
+                resolution=(2e4 / 2**k, 2e4 / 2**k),
+                resolutionunit="CENTIMETER",
+                metadata=None,
+            )
     return path
 
 
 @pytest.fixture(scope="module")
 def fixtures(tmp_path_factory):
     d = tmp_path_factory.mktemp("openslide")
-    return {"svs": SVS, "dicom": DICOM,
-            "tiff-deflate": _tiff(d / "deflate.tif", _gradient(601, 703), "zlib"),
-            "tiff-jpeg": _tiff(d / "jpeg.tif", _gradient(601, 703), "jpeg")}
+    return {
+        "svs": SVS,
+        "dicom": DICOM,
+        "tiff-deflate": _tiff(d / "deflate.tif", _gradient(601, 703), "zlib"),
+        "tiff-jpeg": _tiff(d / "jpeg.tif", _gradient(601, 703), "jpeg"),
+    }
 
 
 @pytest.mark.parametrize("name", ["svs", "tiff-deflate", "tiff-jpeg", "dicom"])
@@ -66,8 +78,11 @@ def test_openslide_reports_the_native_levels_and_pixels(fixtures, name):
         for k, lv in enumerate(a.levels):
             np.testing.assert_array_equal(b.read_level(k), a.read_level(k), err_msg=f"{name} level {k}")
             for x, y, w, h in ((37, 53, 101, 77), (lv.width - 50, lv.height - 40, 90, 90), (-10, -10, 30, 30)):
-                np.testing.assert_array_equal(b.read_region(k, x, y, w, h), a.read_region(k, x, y, w, h),
-                                              err_msg=f"{name} level {k} region {(x, y, w, h)}")
+                np.testing.assert_array_equal(
+                    b.read_region(k, x, y, w, h),
+                    a.read_region(k, x, y, w, h),
+                    err_msg=f"{name} level {k} region {(x, y, w, h)}",
+                )
 
 
 def test_non_whole_downsamples_are_read_without_interpolation(fixtures):
@@ -117,8 +132,9 @@ def test_without_the_extra_one_line_names_it(monkeypatch, tmp_path):
 
 
 def _cli(*args):
-    return subprocess.run([sys.executable, "-m", "data_tools", *map(str, args)], capture_output=True, text=True,
-                          cwd=ROOT, timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "data_tools", *map(str, args)], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
 
 
 def test_info_and_build_with_reader_openslide(fixtures, tmp_path):
@@ -128,16 +144,26 @@ def test_info_and_build_with_reader_openslide(fixtures, tmp_path):
     proc = _cli("info", BROKEN, "--reader", "openslide")
     assert proc.returncode == 2 and len(proc.stderr.strip().splitlines()) == 1 and "broken.svs" in proc.stderr
     for reader in ("native", "openslide"):
-        proc = _cli("build", fixtures["tiff-jpeg"], "--out", tmp_path / reader, "--levels", "3", "--storage", "tiled",
-                    "--quiet", "--reader", reader)
+        proc = _cli(
+            "build",
+            fixtures["tiff-jpeg"],
+            "--out",
+            tmp_path / reader,
+            "--levels",
+            "3",
+            "--storage",
+            "tiled",
+            "--quiet",
+            "--reader",
+            reader,
+        )
         assert proc.returncode == 0, proc.stderr
     meta = {r: json.loads((tmp_path / r / "metadata.json").read_text()) for r in ("native", "openslide")}
     assert meta["openslide"]["source"]["format"] == "openslide-generic-tiff"
     arrays = sorted(p.name for p in (tmp_path / "native").glob("*.npy"))
     assert len(arrays) >= 3
     for f in arrays:  # the same pixels, byte for byte
-        np.testing.assert_array_equal(np.load(tmp_path / "openslide" / f), np.load(tmp_path / "native" / f),
-                                      err_msg=f)
+        np.testing.assert_array_equal(np.load(tmp_path / "openslide" / f), np.load(tmp_path / "native" / f), err_msg=f)
 
 
 def test_dataset_with_reader_openslide_records_it(fixtures, tmp_path):
@@ -145,8 +171,19 @@ def test_dataset_with_reader_openslide_records_it(fixtures, tmp_path):
     slides.mkdir()
     for k in range(2):
         (slides / f"s{k}.tif").write_bytes(Path(fixtures["tiff-jpeg"]).read_bytes())
-    proc = _cli("dataset", slides, "--out", tmp_path / "o", "--levels", "3", "--quiet", "--test-fraction", "0",
-                "--reader", "openslide")
+    proc = _cli(
+        "dataset",
+        slides,
+        "--out",
+        tmp_path / "o",
+        "--levels",
+        "3",
+        "--quiet",
+        "--test-fraction",
+        "0",
+        "--reader",
+        "openslide",
+    )
     assert proc.returncode == 0, proc.stderr
     ds = json.loads((tmp_path / "o" / "dataset.json").read_text())
     assert ds["options"]["reader"] == "openslide"

@@ -2,15 +2,16 @@
 bundle (``data_tools features``) and the C16 small set (``c16``); its name, version and spec are recorded; the
 v1 ids observe it; an encoder that breaks a rule (shape, dtype, finiteness, an error, a built-in's name) is
 refused in one line naming it, exit 2."""
+
 from __future__ import annotations
 
 import json
 from pathlib import Path
 
+import encoder_helpers
 import numpy as np
 import pytest
 
-import encoder_helpers
 from data_tools.__main__ import main as data_main
 from data_tools.bundle_files.reading import read_metadata
 from data_tools.errors import HistojaxDataError
@@ -62,18 +63,24 @@ def test_features_grid_cell_equals_the_callable_on_the_view(tiny_bundle):
 def test_an_unnamed_callable_is_recorded_by_its_spec():
     from data_tools.features import encoder_record
 
-    assert encoder_record("encoder_helpers:unnamed") == {"encoder": "encoder_helpers:unnamed", "encoder_version": None,
-                                                         "encoder_spec": "encoder_helpers:unnamed"}
+    assert encoder_record("encoder_helpers:unnamed") == {
+        "encoder": "encoder_helpers:unnamed",
+        "encoder_version": None,
+        "encoder_spec": "encoder_helpers:unnamed",
+    }
 
 
-@pytest.mark.parametrize("name, problem", [
-    ("wrong_shape", r"returned shape \(2,\) for 2 views; it must return \(N, D\)"),
-    ("wrong_dtype", "returned dtype float64; it must return float32"),
-    ("not_finite", "returned NaN or infinite values for 1 of 2 views"),
-    ("raises", "failed on 2 views of 128x128 px: RuntimeError: weights not found"),
-    ("steals_a_name", "named 'pcam-cnn', a built-in encoder's name"),
-    ("no_such_function", "module 'encoder_helpers' has no 'no_such_function'"),
-])
+@pytest.mark.parametrize(
+    "name, problem",
+    [
+        ("wrong_shape", r"returned shape \(2,\) for 2 views; it must return \(N, D\)"),
+        ("wrong_dtype", "returned dtype float64; it must return float32"),
+        ("not_finite", "returned NaN or infinite values for 1 of 2 views"),
+        ("raises", "failed on 2 views of 128x128 px: RuntimeError: weights not found"),
+        ("steals_a_name", "named 'pcam-cnn', a built-in encoder's name"),
+        ("no_such_function", "module 'encoder_helpers' has no 'no_such_function'"),
+    ],
+)
 def test_a_broken_encoder_is_refused_in_one_line_naming_it(tiny_bundle, tmp_path, capsys, name, problem):
     spec = f"encoder_helpers:{name}"
     before = sorted(p.name for p in tiny_bundle.iterdir())

@@ -5,6 +5,7 @@ die alone, and ``dataset`` builds every other slide of the folder.
 
 The MIRAX slides are tests/mirax_fixture.py's, with one Slidedat.ini key edited. Cases that would abort the process
 on code without these checks run in a child Python, so that a regression fails the test instead of killing pytest."""
+
 from __future__ import annotations
 
 import json
@@ -18,8 +19,8 @@ import numpy as np
 import pytest
 import tifffile
 
-from data_tools.slide_files import limits as slide_limits
 from data_tools.errors import SlideError
+from data_tools.slide_files import limits as slide_limits
 from data_tools.slide_files.open import open_slide
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -33,7 +34,7 @@ def _edit_ini(folder: Path, **edits) -> None:
     text = ini.read_text()
     for key, value in edits.items():
         if key.startswith("LEVEL1_"):
-            key = key[len("LEVEL1_"):]
+            key = key[len("LEVEL1_") :]
             head, tail = text.split("[LAYER_0_LEVEL_1_SECTION]")
             tail = re.sub(rf"^{key}=.*$", f"{key}={value}", tail, count=1, flags=re.M)
             text = head + "[LAYER_0_LEVEL_1_SECTION]" + tail
@@ -63,8 +64,12 @@ def mirax_cases(tmp_path_factory, mirax_pixels):
         "forty-thousand-squared": {"IMAGENUMBER_X": 40_000, "IMAGENUMBER_Y": 40_000},
         "billion-px-camera-image": {"DIGITIZER_WIDTH": 1_000_000_000},
         "hundred-thousand-columns": {"IMAGENUMBER_X": 100_000},
-        "area-over-the-limit": {"IMAGENUMBER_X": 4000, "IMAGENUMBER_Y": 4000, "DIGITIZER_WIDTH": 200,
-                                "DIGITIZER_HEIGHT": 200},
+        "area-over-the-limit": {
+            "IMAGENUMBER_X": 4000,
+            "IMAGENUMBER_Y": 4000,
+            "DIGITIZER_WIDTH": 200,
+            "DIGITIZER_HEIGHT": 200,
+        },
         "million-zoom-levels": {"HIER_0_COUNT": 1_000_000},
         "two-billion-data-files": {"FILE_COUNT": 2_000_000_000},
         "nan-overlap": {"OVERLAP_X": "nan"},
@@ -98,8 +103,9 @@ print(json.dumps(out))
 
 
 def _open_in_child(paths, mode="checked"):
-    proc = subprocess.run([sys.executable, "-c", _OPEN_ALL, mode, *map(str, paths)], capture_output=True, text=True,
-                          cwd=ROOT, timeout=300)
+    proc = subprocess.run(
+        [sys.executable, "-c", _OPEN_ALL, mode, *map(str, paths)], capture_output=True, text=True, cwd=ROOT, timeout=300
+    )
     assert proc.returncode == 0, f"the process died (rc {proc.returncode}): {proc.stderr[-500:]}"
     return json.loads(proc.stdout)
 
@@ -139,8 +145,9 @@ def test_a_slide_that_makes_openslide_abort_kills_only_a_child_process(mirax_cas
     """Without the Slidedat.ini check, OpenSlide is first run in a child process: GLib's abort takes only that
     child, and the slide is refused naming the signal; sizes OpenSlide opens but the shared limits refuse
     (12,800,000 px a side) are refused after it reports them, with the native readers' words."""
-    got = _open_in_child([mirax_cases[n] for n in ("forty-thousand-squared", "hundred-thousand-columns", "good")],
-                         mode="no-precheck")
+    got = _open_in_child(
+        [mirax_cases[n] for n in ("forty-thousand-squared", "hundred-thousand-columns", "good")], mode="no-precheck"
+    )
     crashed = got[str(mirax_cases["forty-thousand-squared"])]
     assert crashed[0] == "refused" and "OpenSlide crashed opening it (SIGABRT" in crashed[1], crashed
     assert "\n" not in crashed[1]
@@ -159,10 +166,13 @@ def test_the_tiff_reader_applies_the_same_area_limit(tmp_path):
         offsets = [tags[name].valueoffset for name in ("ImageWidth", "ImageLength")]
     data = bytearray(path.read_bytes())
     for offset in offsets:
-        data[offset:offset + 4] = np.array([600_000], "<u4").tobytes()
+        data[offset : offset + 4] = np.array([600_000], "<u4").tobytes()
     path.write_bytes(bytes(data))
-    with pytest.raises(SlideError, match=r"vast\.tif: level 0 declares 600,000×600,000 px = .* over the limit of "
-                                         r"250,000,000,000 px"):
+    with pytest.raises(
+        SlideError,
+        match=r"vast\.tif: level 0 declares 600,000×600,000 px = .* over the limit of "
+        r"250,000,000,000 px",
+    ):
         open_slide(path)
 
 
@@ -171,8 +181,10 @@ def test_the_limits_hold_for_every_reader_on_reported_levels():
     from data_tools.slide_files.base import LevelInfo, check_levels
 
     def levels(n, w=1000, tile=(256, 256)):
-        return [LevelInfo(width=max(1, w >> k), height=max(1, w >> k), downsample=2.0**k, tile_size=tile,
-                          compression="x") for k in range(n)]
+        return [
+            LevelInfo(width=max(1, w >> k), height=max(1, w >> k), downsample=2.0**k, tile_size=tile, compression="x")
+            for k in range(n)
+        ]
 
     check_levels("ok.tif", levels(8))
     with pytest.raises(SlideError, match="65 pyramid levels, over the limit of 64"):
@@ -180,8 +192,9 @@ def test_the_limits_hold_for_every_reader_on_reported_levels():
     with pytest.raises(SlideError, match=r"level 0's tile declares 2,000,000×2,000,000 px"):
         check_levels("tile.tif", levels(2, tile=(2_000_000, 2_000_000)))
     with pytest.raises(SlideError, match=r"level 0 declares 100,000,000,000 tiles of 1×1 px, over"):
-        check_levels("tiles.tif", [LevelInfo(width=1_000_000, height=100_000, downsample=1.0, tile_size=(1, 1),
-                                              compression="x")])
+        check_levels(
+            "tiles.tif", [LevelInfo(width=1_000_000, height=100_000, downsample=1.0, tile_size=(1, 1), compression="x")]
+        )
 
 
 def test_a_mirax_without_its_data_folder_says_so(tmp_path):
@@ -204,9 +217,28 @@ def test_dataset_builds_every_other_slide_beside_a_hostile_mirax(mirax_cases, tm
         src = mirax_cases[name]
         shutil.copy(src, slides / src.name)
         shutil.copytree(src.with_suffix(""), slides / src.with_suffix("").name)
-    proc = subprocess.run([sys.executable, "-m", "data_tools", "dataset", str(slides), "--out", str(tmp_path / "o"),
-                           "--levels", "3", "--tile-size", "64", "--quiet", "--test-fraction", "0"],
-                          capture_output=True, text=True, cwd=ROOT, timeout=300)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            "-m",
+            "data_tools",
+            "dataset",
+            str(slides),
+            "--out",
+            str(tmp_path / "o"),
+            "--levels",
+            "3",
+            "--tile-size",
+            "64",
+            "--quiet",
+            "--test-fraction",
+            "0",
+        ],
+        capture_output=True,
+        text=True,
+        cwd=ROOT,
+        timeout=300,
+    )
     assert proc.returncode == 1, proc.stderr  # some slides failed, the rest built
     failed = [ln for ln in proc.stdout.splitlines() if "failed two-billion-columns" in ln]
     assert len(failed) == 1 and "two-billion-columns.mrxs: its Slidedat.ini declares" in failed[0], proc.stdout

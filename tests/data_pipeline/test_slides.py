@@ -1,4 +1,5 @@
 """Tests for data_tools.slide_files.tiff: reading SVS / pyramidal TIFF / OME-TIFF as 8-bit RGB."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -12,8 +13,8 @@ from hypothesis import strategies as st
 
 from data_tools.errors import SlideError
 from data_tools.slide_files.base import LevelInfo, describe
-from data_tools.slide_files.tiff import MAX_DECODE_BYTES, SlideReader
 from data_tools.slide_files.open import open_slide
+from data_tools.slide_files.tiff import MAX_DECODE_BYTES, SlideReader
 
 ROOT = Path(__file__).resolve().parents[2]
 SVS = ROOT / "histojax" / "data" / "CMU-1-Small-Region.svs"
@@ -195,7 +196,9 @@ def test_text_file(tmp_path):
 def test_dicom_file(tmp_path):
     path = tmp_path / "slide.dcm"
     path.write_bytes(b"\0" * 128 + b"DICM" + b"\0" * 200)
-    with pytest.raises(SlideError, match="slide.dcm: DICOM header unreadable|slide.dcm: a DICOM file but not a whole-slide image"):
+    with pytest.raises(
+        SlideError, match="slide.dcm: DICOM header unreadable|slide.dcm: a DICOM file but not a whole-slide image"
+    ):
         open_slide(path)
 
 
@@ -254,8 +257,16 @@ def test_zlib_pyramid_exact(zlib_pyramid):
 def test_ome_tiff(tmp_path):
     base = _image(512, 384, seed=2)
     path = tmp_path / "pyramid.ome.tif"
-    _write_pyramid(path, base, "zlib", ome=True, PhysicalSizeX=0.25, PhysicalSizeXUnit="µm",
-                   PhysicalSizeY=0.25, PhysicalSizeYUnit="µm")
+    _write_pyramid(
+        path,
+        base,
+        "zlib",
+        ome=True,
+        PhysicalSizeX=0.25,
+        PhysicalSizeXUnit="µm",
+        PhysicalSizeY=0.25,
+        PhysicalSizeYUnit="µm",
+    )
     with open_slide(path) as r:
         assert r.format == "ome-tiff"
         assert [lv.downsample for lv in r.levels] == [1.0, 2.0, 4.0]
@@ -268,8 +279,13 @@ def test_ome_tiff(tmp_path):
 
 def test_ome_nanometre_unit(tmp_path):
     path = tmp_path / "nm.ome.tif"
-    tifffile.imwrite(path, _image(64, 64), photometric="rgb", ome=True,
-                     metadata={"axes": "YXS", "PhysicalSizeX": 500, "PhysicalSizeXUnit": "nm"})
+    tifffile.imwrite(
+        path,
+        _image(64, 64),
+        photometric="rgb",
+        ome=True,
+        metadata={"axes": "YXS", "PhysicalSizeX": 500, "PhysicalSizeXUnit": "nm"},
+    )
     with open_slide(path) as r:
         assert r.mpp == pytest.approx(0.5)
 
@@ -277,8 +293,7 @@ def test_ome_nanometre_unit(tmp_path):
 def test_mpp_from_tiff_resolution(tmp_path):
     path = tmp_path / "res.tif"
     # 0.5 µm/px = 20000 px/cm
-    tifffile.imwrite(path, _image(64, 64), photometric="rgb", resolution=(20000, 20000),
-                     resolutionunit="CENTIMETER")
+    tifffile.imwrite(path, _image(64, 64), photometric="rgb", resolution=(20000, 20000), resolutionunit="CENTIMETER")
     with open_slide(path) as r:
         assert r.mpp == pytest.approx(0.5)
     path = tmp_path / "nores.tif"
@@ -304,8 +319,9 @@ def test_jpeg2000_tiled(tmp_path):
 def test_planar_separate_rgb(tmp_path):
     base = _image(200, 300)
     path = tmp_path / "planar.tif"
-    tifffile.imwrite(path, np.moveaxis(base, -1, 0), photometric="rgb", planarconfig="separate",
-                     tile=(64, 64), compression="zlib")
+    tifffile.imwrite(
+        path, np.moveaxis(base, -1, 0), photometric="rgb", planarconfig="separate", tile=(64, 64), compression="zlib"
+    )
     with open_slide(path) as r:
         assert np.array_equal(r.read_level(0), base)
         assert np.array_equal(r.read_region(0, 70, 30, 100, 100), base[30:130, 70:170])

@@ -4,6 +4,7 @@ and an encoder-scale warning that names the level whose µm/px matches the encod
 off scale. Before: none of the three commands took ``--mpp`` (a TCGA SVS without MPP stayed ``mpp: unknown``),
 ``build`` took no ``--encoder``, and the warning said "the slide is at 0.25 µm/px, 7.8x from ..." although its level
 at downsample 8 is at 2 µm/px."""
+
 from __future__ import annotations
 
 import json
@@ -43,8 +44,22 @@ def _run(capsys, *argv):
 
 
 def test_build_mpp_and_encoder_in_one_command(capsys, tmp_path, unscaled_slide):
-    rc, out, err = _run(capsys, "build", unscaled_slide, "--out", tmp_path / "b", "--levels", "3", "--tile-size", "64",
-                        "--quiet", "--mpp", "0.5", "--encoder", "colour-stats")
+    rc, out, err = _run(
+        capsys,
+        "build",
+        unscaled_slide,
+        "--out",
+        tmp_path / "b",
+        "--levels",
+        "3",
+        "--tile-size",
+        "64",
+        "--quiet",
+        "--mpp",
+        "0.5",
+        "--encoder",
+        "colour-stats",
+    )
     assert rc == 0, err
     assert out.strip() == f"wrote {tmp_path / 'b'}: 3 levels, 0.5 µm/px (given), colour-stats feature grid"
     meta = read_metadata(tmp_path / "b")
@@ -55,9 +70,11 @@ def test_build_mpp_and_encoder_in_one_command(capsys, tmp_path, unscaled_slide):
 
 
 def test_build_refuses_a_bad_mpp_or_encoder_before_building(capsys, tmp_path, unscaled_slide):
-    for argv, said in ((["--mpp", "250"], "not a µm per level-0 px between 0.01 and 100"),
-                       (["--mpp", "nan"], "not a finite number"),
-                       (["--encoder", "no-such-encoder"], "no-such-encoder")):
+    for argv, said in (
+        (["--mpp", "250"], "not a µm per level-0 px between 0.01 and 100"),
+        (["--mpp", "nan"], "not a finite number"),
+        (["--encoder", "no-such-encoder"], "no-such-encoder"),
+    ):
         rc, _, err = _run(capsys, "build", unscaled_slide, "--out", tmp_path / "b", "--quiet", *argv)
         assert rc == 2 and len(err.strip().splitlines()) == 1, err
         assert re.search(said, err), err
@@ -83,8 +100,22 @@ def test_dataset_mpp_states_every_slides_scale(capsys, tmp_path, unscaled_slide)
     slides = tmp_path / "S"
     slides.mkdir()
     (slides / "a.tif").symlink_to(unscaled_slide)
-    rc, _, err = _run(capsys, "dataset", slides, "--out", tmp_path / "o", "--levels", "3", "--tile-size", "64",
-                      "--quiet", "--test-fraction", "0", "--mpp", "0.5")
+    rc, _, err = _run(
+        capsys,
+        "dataset",
+        slides,
+        "--out",
+        tmp_path / "o",
+        "--levels",
+        "3",
+        "--tile-size",
+        "64",
+        "--quiet",
+        "--test-fraction",
+        "0",
+        "--mpp",
+        "0.5",
+    )
     assert rc == 0, err
     ds = json.loads((tmp_path / "o" / "dataset.json").read_text())
     assert ds["options"]["mpp"] == 0.5 and [s.get("mpp") for s in ds["slides"]] == [0.5]
@@ -102,8 +133,9 @@ def test_the_scale_warning_names_the_level_on_the_encoders_scale(tmp_path, monke
     from data_tools.errors import BundleError
     from data_tools.features.grid import compute_features
 
-    bundle = build_bundle(SVS, tmp_path / "b", level_sets=(5,), tile_size=64, progress=False, mpp=0.25,
-                          region=(0, 0, 1024, 1024))
+    bundle = build_bundle(
+        SVS, tmp_path / "b", level_sets=(5,), tile_size=64, progress=False, mpp=0.25, region=(0, 0, 1024, 1024)
+    )
     import types
 
     import data_tools.features.efficientnet as efficientnet

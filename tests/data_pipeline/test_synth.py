@@ -1,4 +1,5 @@
 """Semi-synthetic slides (data_tools.datasets.synth.dataset): synthetic pixels on real CAMELYON16 geometry."""
+
 from __future__ import annotations
 
 import json
@@ -10,8 +11,8 @@ import tifffile
 
 from data_tools.annotations import load_annotations
 from data_tools.bundle import build_bundle, load_bundle
-from data_tools.slide_files.open import open_slide
 from data_tools.datasets.synth.dataset import make_dataset, make_semisynthetic_slide, tissue_files, tumour_files
+from data_tools.slide_files.open import open_slide
 
 SIZE = (1024, 1024)
 
@@ -64,10 +65,10 @@ def test_bundle_mask_matches_geojson_and_tumour_is_purple(slide, tmp_path):
     tissue = rasterize(ann.tissue, SIZE[0], SIZE[1], 1.0)
     pixels = bundle.pixels[0][: SIZE[1], : SIZE[0]].astype(float)
     t, n = pixels[tumour].mean(axis=0), pixels[tissue & ~tumour].mean(axis=0)
-    assert t.sum() < n.sum() - 60                    # darker
-    assert t[2] - t[0] > n[2] - n[0] + 10            # more blue than red: haematoxylin
+    assert t.sum() < n.sum() - 60  # darker
+    assert t[2] - t[0] > n[2] - n[0] + 10  # more blue than red: haematoxylin
     glass = pixels[~tissue].mean(axis=0)
-    assert np.all(glass > 225)                       # near-white background
+    assert np.all(glass > 225)  # near-white background
     assert prov["tumour_mean_rgb"][0] < prov["normal_tissue_mean_rgb"][0]
 
 
@@ -83,13 +84,15 @@ def test_same_seed_same_pixels_other_seed_other_pixels(slide, tumour_xml, tmp_pa
         assert not np.array_equal(first, c.read_level(0))
     # same geometry whatever the seed (the tissue blob may differ)
     assert load_annotations(tiff.with_suffix(".geojson")).tumour.equals(
-        load_annotations(other.with_suffix(".geojson")).tumour)
+        load_annotations(other.with_suffix(".geojson")).tumour
+    )
 
 
 def test_tissue_outline_of_another_slide_and_orientation(tumour_xml, tmp_path):
     tiff = tmp_path / "t.tif"
-    prov = make_semisynthetic_slide(tumour_xml, tiff, size=(512, 384), seed=0, tissue_xml=tissue_files()[0],
-                                    orientation=5, progress=False)
+    prov = make_semisynthetic_slide(
+        tumour_xml, tiff, size=(512, 384), seed=0, tissue_xml=tissue_files()[0], orientation=5, progress=False
+    )
     assert prov["tissue_source"]["kind"] == "camelyon16"
     assert prov["tissue_source"]["same_slide_as_tumour"] is False
     assert "ANOTHER" in prov["tissue_source"]["how"]
@@ -100,8 +103,16 @@ def test_tissue_outline_of_another_slide_and_orientation(tumour_xml, tmp_path):
 
 
 def test_make_dataset_split_is_disjoint(tmp_path):
-    ds = make_dataset(tmp_path / "ds", n_slides=3, size=(256, 256), seed=1, tile_size=32,
-                      level_sets=(3,), progress=False, previews=False)
+    ds = make_dataset(
+        tmp_path / "ds",
+        n_slides=3,
+        size=(256, 256),
+        seed=1,
+        tile_size=32,
+        level_sets=(3,),
+        progress=False,
+        previews=False,
+    )
     assert len(ds["slides"]) == 3
     train, test = set(ds["train"]), set(ds["test"])
     assert train and test and not train & test
@@ -121,8 +132,24 @@ def test_cli_places_the_tumour_files_it_is_given(tmp_path, capsys):
     from data_tools.__main__ import main
 
     xml = Path(__file__).parents[1] / "data" / "annotations" / "tumor_039.xml"
-    assert main(["synth", str(tmp_path / "ds"), "--slides", "2", "--size", "1024", "--tile-size", "32",
-                 "--tumour-xml", str(xml), "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "synth",
+                str(tmp_path / "ds"),
+                "--slides",
+                "2",
+                "--size",
+                "1024",
+                "--tile-size",
+                "32",
+                "--tumour-xml",
+                str(xml),
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     ds = json.loads((tmp_path / "ds" / "dataset.json").read_text())
     assert [s["tumour_source"] for s in ds["slides"]] == ["tumor_039.xml", "tumor_039.xml"]
     assert [s["orientation"] for s in ds["slides"]] == [0, 5]  # the second is the file turned and mirrored

@@ -1,16 +1,17 @@
 """Dihedral augmentation (``make(..., augment=True)``): the agent sees a consistently turned or
 mirrored slide, and the slide-frame dynamics are those of the plain environment."""
+
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_examples import examples
 
 import histojax
 from histojax.core import actions
 from histojax.core import augment as A
-from hypothesis_examples import examples
 
 MOVES = (actions.UP, actions.DOWN, actions.LEFT, actions.RIGHT)
 
@@ -63,8 +64,12 @@ def test_a_move_in_the_agents_frame_slides_what_it_sees(envs, o, a, fx, fy):
     new_obs, s2, *_ = step(jax.random.PRNGKey(0), s, a, params)
     new = np.asarray(new_obs["pixels"])
     h = t // 2
-    expect = {actions.RIGHT: (new[:, :h], old[:, h:]), actions.LEFT: (new[:, h:], old[:, :h]),
-              actions.DOWN: (new[:h], old[h:]), actions.UP: (new[h:], old[:h])}[a]
+    expect = {
+        actions.RIGHT: (new[:, :h], old[:, h:]),
+        actions.LEFT: (new[:, h:], old[:, :h]),
+        actions.DOWN: (new[:h], old[h:]),
+        actions.UP: (new[h:], old[:h]),
+    }[a]
     np.testing.assert_array_equal(*expect)
     # the position seen moves the same way
     p0, p1 = np.asarray(aug.get_obs(s, params)["position"]), np.asarray(new_obs["position"])
@@ -80,8 +85,9 @@ def test_augmented_step_is_the_plain_step_seen_turned(envs, o, a, seed):
     s = s.replace(orientation=jnp.int32(o))
     key = jax.random.PRNGKey(seed + 1)
     obs_a, s_a, r_a, te_a, tr_a, info_a = step_aug(key, s, a, params)
-    obs_p, s_p, r_p, te_p, tr_p, info_p = step_plain(key, s.replace(orientation=jnp.int32(0)),
-                                                     A.discrete_to_slide(a, o), params)
+    obs_p, s_p, r_p, te_p, tr_p, info_p = step_plain(
+        key, s.replace(orientation=jnp.int32(0)), A.discrete_to_slide(a, o), params
+    )
     assert (int(s_a.z), int(s_a.x), int(s_a.y)) == (int(s_p.z), int(s_p.x), int(s_p.y))
     assert int(s_a.orientation) == o
     assert float(r_a) == float(r_p) and bool(te_a) == bool(te_p) and bool(tr_a) == bool(tr_p)

@@ -2,6 +2,7 @@
 is, that the flag and the environment variable turn it off, that the ``histojax`` command creates the
 folder where documented, and that a second process reads what the first wrote. Every test uses its own
 temporary folder (conftest.py turns the cache off for all other tests)."""
+
 from __future__ import annotations
 
 import os
@@ -36,8 +37,10 @@ def test_cache_dir_follows_xdg_then_home(monkeypatch, tmp_path):
     assert compile_cache.cache_dir() == tmp_path / "mine"
 
 
-@pytest.mark.parametrize("flag, env_value, on", [(False, None, True), (True, None, False), (False, "1", False),
-                                                 (False, "0", True), (True, "0", False)])
+@pytest.mark.parametrize(
+    "flag, env_value, on",
+    [(False, None, True), (True, None, False), (False, "1", False), (False, "0", True), (True, "0", False)],
+)
 def test_flag_and_env_turn_it_off(monkeypatch, flag, env_value, on):
     calls = []
     monkeypatch.setattr(compile_cache, "enable", lambda path=None: calls.append(path))
@@ -51,8 +54,9 @@ def test_flag_and_env_turn_it_off(monkeypatch, flag, env_value, on):
 
 
 def _histojax(args, env, cwd):
-    return subprocess.run([sys.executable, "-m", "histojax.cli", *args], env=env, cwd=cwd, capture_output=True,
-                          text=True, timeout=120)
+    return subprocess.run(
+        [sys.executable, "-m", "histojax.cli", *args], env=env, cwd=cwd, capture_output=True, text=True, timeout=120
+    )
 
 
 @pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
@@ -84,8 +88,12 @@ print("hits", len(hits))
 @pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_second_process_hits_the_cache(tmp_path):
     folder = tmp_path / "xdg" / "histojax" / "jax"
-    runs = [subprocess.run([sys.executable, "-c", PROGRAM], env=_env(tmp_path), cwd=ROOT, capture_output=True,
-                           text=True, timeout=120) for _ in range(2)]
+    runs = [
+        subprocess.run(
+            [sys.executable, "-c", PROGRAM], env=_env(tmp_path), cwd=ROOT, capture_output=True, text=True, timeout=120
+        )
+        for _ in range(2)
+    ]
     for r in runs:
         assert r.returncode == 0, r.stderr
     entries = sorted(p.name for p in folder.iterdir())

@@ -5,6 +5,7 @@ combined into two configurations; every other registered id (the C16 ids on the 
 under ``make test-all``. The feature observation mode is checked in tests/data_pipeline/test_features.py (it needs
 a feature grid). Each configuration compiles once, with small budgets.
 """
+
 from __future__ import annotations
 
 import jax.numpy as jnp
@@ -26,10 +27,16 @@ def test_contract_of_registered_id(env_id):
     assert len(report.checks) >= 12
 
 
-@pytest.mark.parametrize("overrides", [  # the continuous one under make test-all (make test under 10 min)
-    pytest.param(dict(action_mode="continuous", obs_mode="pixels_float", with_position=True), marks=pytest.mark.slow),
-    dict(task="classification", with_position=True),
-], ids=["continuous-float-position", "classification-position"])
+@pytest.mark.parametrize(
+    "overrides",
+    [  # the continuous one under make test-all (make test under 10 min)
+        pytest.param(
+            dict(action_mode="continuous", obs_mode="pixels_float", with_position=True), marks=pytest.mark.slow
+        ),
+        dict(task="classification", with_position=True),
+    ],
+    ids=["continuous-float-position", "classification-position"],
+)
 def test_contract_of_each_mode(overrides):
     env, params = histojax.make("HistoJAX-Easy-v0", **overrides)
     report = check_env(env, params, **SMALL)

@@ -1,4 +1,5 @@
 """Multi-slide datasets and the classification task."""
+
 from __future__ import annotations
 
 import jax
@@ -19,8 +20,9 @@ KEY = jax.random.PRNGKey(0)
 def two_slides(tmp_path_factory):
     """The sample slide (tumour annotated) and a smaller blank slide (no annotation), Easy levels."""
     root = tmp_path_factory.mktemp("dataset")
-    a = build_bundle(SAMPLE_SLIDE, root / "sample", annotations_path=SAMPLE_ANNOTATIONS, level_sets=(3,),
-                     progress=False)
+    a = build_bundle(
+        SAMPLE_SLIDE, root / "sample", annotations_path=SAMPLE_ANNOTATIONS, level_sets=(3,), progress=False
+    )
     rng = np.random.default_rng(1)
     tifffile.imwrite(root / "blank.tif", rng.integers(200, 255, (700, 900, 3), dtype=np.uint8), photometric="rgb")
     b = build_bundle(root / "blank.tif", root / "blank", level_sets=(3,), progress=False)
@@ -56,8 +58,9 @@ def test_observation_comes_from_the_state_slide(two_slides):
     root, a, b = two_slides
     env, params = histojax.make("HistoJAX-Easy-v0", slides=[a, b])
     for index, bundle in enumerate(env.bundles):
-        s = histojax.EnvState(z=jnp.int32(2), x=jnp.int32(100), y=jnp.int32(200), t=jnp.int32(0),
-                              slide_index=jnp.int32(index))
+        s = histojax.EnvState(
+            z=jnp.int32(2), x=jnp.int32(100), y=jnp.int32(200), t=jnp.int32(0), slide_index=jnp.int32(index)
+        )
         np.testing.assert_array_equal(np.asarray(env.get_obs(s, params)), bundle.pixels[2][200:328, 100:228])
     picture = env.render(s, params)
     assert picture.ndim == 3
@@ -78,8 +81,9 @@ def test_classification_rewards_a_right_diagnosis(two_slides):
     assert [int(v) for v in params.slide.slide_label] == [1, 0]  # from the annotations
     low, high = env.reward_range(params)
     for index, label in ((0, 1), (1, 0)):
-        s = histojax.EnvState(z=jnp.int32(0), x=jnp.int32(0), y=jnp.int32(0), t=jnp.int32(0),
-                              slide_index=jnp.int32(index))
+        s = histojax.EnvState(
+            z=jnp.int32(0), x=jnp.int32(0), y=jnp.int32(0), t=jnp.int32(0), slide_index=jnp.int32(index)
+        )
         right = DECLARE_TUMOUR if label else DECLARE_NO_TUMOUR
         wrong = DECLARE_NO_TUMOUR if label else DECLARE_TUMOUR
         _, _, r, term, trunc, info = env.step(KEY, s, right, params)
@@ -94,8 +98,9 @@ def test_classification_labels_override_and_continuous(two_slides, tmp_path):
     root, a, b = two_slides
     csv = tmp_path / "labels.csv"
     csv.write_text("slide,label\nsample,0\nblank,1\n")
-    env, params = histojax.make("HistoJAX-Easy-v0", slides=[a, b], task="classification", labels=csv,
-                                action_mode="continuous", auto_reset=False)
+    env, params = histojax.make(
+        "HistoJAX-Easy-v0", slides=[a, b], task="classification", labels=csv, action_mode="continuous", auto_reset=False
+    )
     assert [int(v) for v in params.slide.slide_label] == [0, 1]
     assert env.action_space(params).shape == (4,)
     s = histojax.EnvState(z=jnp.int32(0), x=jnp.int32(0), y=jnp.int32(0), t=jnp.int32(0), slide_index=jnp.int32(1))

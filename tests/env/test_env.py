@@ -1,4 +1,5 @@
 """The environment contract on the embedded slide: spaces, observations, dynamics, jit/vmap/scan."""
+
 from __future__ import annotations
 
 import chex
@@ -47,10 +48,11 @@ def test_spaces_use_gymnax_names(easy):
 def test_observation_is_the_view_of_the_level(easy):
     env, params = easy
     bundle = env.bundles[0]
-    state = histojax.EnvState(z=jnp.int32(1), x=jnp.int32(37), y=jnp.int32(211), t=jnp.int32(0),
-                              slide_index=jnp.int32(0))
+    state = histojax.EnvState(
+        z=jnp.int32(1), x=jnp.int32(37), y=jnp.int32(211), t=jnp.int32(0), slide_index=jnp.int32(0)
+    )
     obs = env.get_obs(state, params)
-    np.testing.assert_array_equal(np.asarray(obs), bundle.pixels[1][211:211 + 128, 37:37 + 128])
+    np.testing.assert_array_equal(np.asarray(obs), bundle.pixels[1][211 : 211 + 128, 37 : 37 + 128])
 
 
 def test_observation_modes(sample_envs):
@@ -68,11 +70,16 @@ def test_observation_modes(sample_envs):
 def test_discrete_moves_and_zoom(easy):
     env, params = easy
     step = jax.jit(histojax.HistoEnv(**{**env.__dict__, "auto_reset": False}).step)
-    s = histojax.EnvState(z=jnp.int32(1), x=jnp.int32(200), y=jnp.int32(300), t=jnp.int32(0),
-                          slide_index=jnp.int32(0))
-    expected = {UP: (1, 200, 172), DOWN: (1, 200, 428), LEFT: (1, 72, 300), RIGHT: (1, 328, 300), STAY: (1, 200, 300),
-                ZOOM_IN: (2, 4 * (200 + 64) - 64, 4 * (300 + 64) - 64), ZOOM_OUT: (0, round((200 + 64) / 4 - 64),
-                                                                                   round((300 + 64) / 4 - 64))}
+    s = histojax.EnvState(z=jnp.int32(1), x=jnp.int32(200), y=jnp.int32(300), t=jnp.int32(0), slide_index=jnp.int32(0))
+    expected = {
+        UP: (1, 200, 172),
+        DOWN: (1, 200, 428),
+        LEFT: (1, 72, 300),
+        RIGHT: (1, 328, 300),
+        STAY: (1, 200, 300),
+        ZOOM_IN: (2, 4 * (200 + 64) - 64, 4 * (300 + 64) - 64),
+        ZOOM_OUT: (0, round((200 + 64) / 4 - 64), round((300 + 64) / 4 - 64)),
+    }
     for action, (z, x, y) in expected.items():
         _, s2, *_ = step(KEY, s, action, params)
         got = (int(s2.z), int(s2.x), int(s2.y))
@@ -93,11 +100,12 @@ def test_continuous_actions():
     env, params = histojax.make("HistoJAX-Easy-v0", action_mode="continuous", auto_reset=False)
     space = env.action_space(params)
     assert space.shape == (3,)
-    s = histojax.EnvState(z=jnp.int32(2), x=jnp.int32(1000), y=jnp.int32(1000), t=jnp.int32(0),
-                          slide_index=jnp.int32(0))
+    s = histojax.EnvState(
+        z=jnp.int32(2), x=jnp.int32(1000), y=jnp.int32(1000), t=jnp.int32(0), slide_index=jnp.int32(0)
+    )
     _, s2, *_ = env.step(KEY, s, jnp.array([0.5, -1.0, 0.0]), params)
     assert (int(s2.z), int(s2.x), int(s2.y)) == (2, 1064, 872)
-    _, s3, *_ = env.step(KEY, s, jnp.array([0.0, 0.0, 0.9]), params)   # already finest: stays
+    _, s3, *_ = env.step(KEY, s, jnp.array([0.0, 0.0, 0.9]), params)  # already finest: stays
     assert int(s3.z) == 2
     _, s4, *_ = env.step(KEY, s, jnp.array([0.0, 0.0, -0.9]), params)
     assert int(s4.z) == 1
@@ -125,7 +133,7 @@ def test_success_terminates_at_finest_level_only(easy):
     # a finest-level view fully inside the target, and the same place one level coarser
     finest = bundle.tumour[-1]
     ys, xs = np.nonzero(finest[:-128, :-128])
-    inside = [(x, y) for x, y in zip(xs[::97], ys[::97]) if finest[y:y + 128, x:x + 128].mean() == 1.0]
+    inside = [(x, y) for x, y in zip(xs[::97], ys[::97]) if finest[y : y + 128, x : x + 128].mean() == 1.0]
     x, y = inside[0]
     s = histojax.EnvState(z=jnp.int32(2), x=jnp.int32(x), y=jnp.int32(y), t=jnp.int32(0), slide_index=jnp.int32(0))
     _, _, r, term, trunc, info = env.step(KEY, s, STAY, params)
@@ -145,7 +153,7 @@ def test_histogym_preset_never_terminates_and_pays_at_finest():
     x, y = int(xs[len(xs) // 2]) - 64, int(ys[len(ys) // 2]) - 64
     s = histojax.EnvState(z=jnp.int32(2), x=jnp.int32(x), y=jnp.int32(y), t=jnp.int32(0), slide_index=jnp.int32(0))
     _, _, r, term, trunc, info = env.step(KEY, s, STAY, params)
-    frac = finest[y:y + 128, x:x + 128].mean()
+    frac = finest[y : y + 128, x : x + 128].mean()
     assert not bool(term) and float(r) == pytest.approx(1000 * frac - 0.01, rel=1e-5)
     _, _, r0, *_ = env.step(KEY, s.replace(z=jnp.int32(1), x=jnp.int32(x // 4), y=jnp.int32(y // 4)), STAY, params)
     assert float(r0) == pytest.approx(-0.01)
@@ -162,7 +170,8 @@ def test_scan_over_vmap_and_no_retracing(easy):
         def body(state, key):
             action = jax.random.randint(key, (8,), 0, 7)
             _, state, reward, term, trunc, _ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(key, 8), state, action, params)
+                jax.random.split(key, 8), state, action, params
+            )
             return state, reward
 
         return jax.lax.scan(body, state, jax.random.split(key, 50))

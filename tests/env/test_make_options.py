@@ -1,5 +1,6 @@
 """``make``'s options are one typed set (histojax.make_options.MakeOptions): each field says where it goes, and
 the name lists the registry used to keep by hand are derived from it."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -9,8 +10,8 @@ import pytest
 
 import histojax
 from histojax.core.env import EnvParams, HistoEnv
-from histojax.make_options import DATASET, KINDS, MODE, PARAMS, STATIC, UNSET, MakeOptions
 from histojax.core.modes import base
+from histojax.make_options import DATASET, KINDS, MODE, PARAMS, STATIC, UNSET, MakeOptions
 from histojax.reading.modes import glimpse, zoom_select
 from histojax.registry import DATASET_FIELDS, MODE_SETTINGS, PARAM_FIELDS, STATIC_FIELDS, EnvSpec
 
@@ -23,9 +24,13 @@ def test_every_option_has_one_kind_and_the_kinds_cover_the_env():
     # static: exactly HistoEnv's trace-time settings (its name is the id)
     assert set(MakeOptions.names(STATIC)) == {f.name for f in dataclasses.fields(HistoEnv) if f.compare} - {"name"}
     # mode: every keyword an action mode's prepare takes
-    prepare_kw = {p for cls in (*vars(base).values(), *vars(glimpse).values(), *vars(zoom_select).values())
-                  if inspect.isclass(cls) and "prepare" in vars(cls)
-                  for p in list(inspect.signature(cls.prepare).parameters)[4:] if p != "settings"}
+    prepare_kw = {
+        p
+        for cls in (*vars(base).values(), *vars(glimpse).values(), *vars(zoom_select).values())
+        if inspect.isclass(cls) and "prepare" in vars(cls)
+        for p in list(inspect.signature(cls.prepare).parameters)[4:]
+        if p != "settings"
+    }
     assert prepare_kw and prepare_kw <= set(MakeOptions.names(MODE))
     assert (STATIC_FIELDS, PARAM_FIELDS, MODE_SETTINGS, DATASET_FIELDS) == tuple(MakeOptions.names(k) for k in KINDS)
 
@@ -43,18 +48,24 @@ def test_given_and_over():
 
 
 def test_an_unknown_setting_is_refused_naming_it():
-    with pytest.raises(TypeError, match=r"make\('HistoJAX-Easy-v0'\) got unknown settings \['bogus'\]; static: .*"
-                                        r"'action_mode'.*; params: .*'max_steps_in_episode'"):
+    with pytest.raises(
+        TypeError,
+        match=r"make\('HistoJAX-Easy-v0'\) got unknown settings \['bogus'\]; static: .*"
+        r"'action_mode'.*; params: .*'max_steps_in_episode'",
+    ):
         histojax.make("HistoJAX-Easy-v0", bogus=1)
     with pytest.raises(TypeError, match=r"unknown scenario settings \['read_budget'\]"):
         EnvSpec(id="X", settings={"n_levels": 3, "read_budget": 0.5})  # a mode setting is make's, per call
     assert EnvSpec(id="X", settings={"n_levels": 3, "max_steps_in_episode": 9}).options.given() == {
-        "n_levels": 3, "max_steps_in_episode": 9}
+        "n_levels": 3,
+        "max_steps_in_episode": 9,
+    }
 
 
 def test_make_sends_each_option_where_it_goes():
-    env, params = histojax.make("HistoJAX-Easy-v0", max_steps_in_episode=7, action_mode="zoom_select",
-                                read_budget=0.5, step_cost=0.02)
+    env, params = histojax.make(
+        "HistoJAX-Easy-v0", max_steps_in_episode=7, action_mode="zoom_select", read_budget=0.5, step_cost=0.02
+    )
     assert env.n_levels == 3 and env.action_mode == "zoom_select"  # the id's static setting, and one given
     assert int(params.max_steps_in_episode) == 7 and float(params.step_cost) == pytest.approx(0.02)
     assert params.mode_data is not None  # read_budget went to the mode's prepare

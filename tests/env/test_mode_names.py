@@ -1,6 +1,7 @@
 """The mode names ``make`` takes are one registry in the env core (``histojax.core.modes.factory``): the core
 registers its navigation and observation modes, the reading stack adds ``glimpse`` and ``zoom_select`` (and the
 coarse map's builder) when it is imported, so the core never imports ``histojax.reading``. No env is made here."""
+
 import ast
 import dataclasses
 import inspect
@@ -34,12 +35,15 @@ def test_the_reading_modes_are_registered_by_the_reading_stack():
     assert factory.action_mode("continuous:memory") == base.Continuous(memory=True)
 
 
-@pytest.mark.parametrize("name, message", [
-    ("glimpse:x", "the part after ':' must be a whole number"),
-    ("discrete:x", "action_mode must be one of ('discrete', 'continuous', 'glimpse', 'zoom_select'"),
-    ("discrete:", "glimpse:LEVEL, zoom_select:K"),
-    ("nothing", "discrete:memory, continuous:memory, discrete:map, continuous:map"),
-])
+@pytest.mark.parametrize(
+    "name, message",
+    [
+        ("glimpse:x", "the part after ':' must be a whole number"),
+        ("discrete:x", "action_mode must be one of ('discrete', 'continuous', 'glimpse', 'zoom_select'"),
+        ("discrete:", "glimpse:LEVEL, zoom_select:K"),
+        ("nothing", "discrete:memory, continuous:memory, discrete:map, continuous:map"),
+    ],
+)
 def test_a_wrong_mode_name_is_one_line(name, message):
     with pytest.raises(ValueError) as e:
         factory.action_mode(name)

@@ -6,6 +6,7 @@ views anywhere in it — ``S[i, j] = i · j`` (or the stripe count) in Python in
 2**32 — reduces them modulo 2**32 as the device table stores them, and checks that the lookup
 returns the exact fraction.
 """
+
 from __future__ import annotations
 
 import jax.numpy as jnp
@@ -57,6 +58,5 @@ def test_host_table_matches_cumsum_and_wraps_consistently():
     assert sat[-1, -1] == mask.sum() and sat.dtype == np.int64
     wrapped = (sat + 2**32 - 5).astype(np.uint64).astype(np.uint32)  # an offset that overflows every entry
     y, x = 17, 33
-    got = box_fraction(*(jnp.uint32(wrapped[r, c]) for r, c in ((y, x), (y, x + T), (y + T, x), (y + T, x + T))),
-                       T * T)
-    assert float(got) == mask[y:y + T, x:x + T].sum() / T**2
+    got = box_fraction(*(jnp.uint32(wrapped[r, c]) for r, c in ((y, x), (y, x + T), (y + T, x), (y + T, x + T))), T * T)
+    assert float(got) == mask[y : y + T, x : x + T].sum() / T**2

@@ -1,5 +1,6 @@
 """``EnvParams`` changed after ``make``: the host check names the field, and
 ``histojax.debug.checked`` catches the same values inside ``jit`` (compiled once for the module)."""
+
 from __future__ import annotations
 
 import jax
@@ -82,8 +83,13 @@ def test_trainer_and_evaluate_refuse_bad_params(easy):
 
     env, params = easy
     with pytest.raises(ValueError, match="evaluate: env params: stride="):
-        run_episodes(env, params.replace(stride=-3.0), lambda key, obs: jnp.zeros(obs.shape[0], jnp.int32),
-                     jax.random.key(0), num_episodes=2)
+        run_episodes(
+            env,
+            params.replace(stride=-3.0),
+            lambda key, obs: jnp.zeros(obs.shape[0], jnp.int32),
+            jax.random.key(0),
+            num_episodes=2,
+        )
 
 
 def test_gymnasium_adapter_refuses_bad_params(easy):
@@ -99,8 +105,19 @@ def test_ppo_trainer_refuses_bad_params():
     """``run(keys, params)`` of a trainer checks params given after make before compiling anything."""
     from baselines import ppo
 
-    train = ppo.make_train(dict(env_id="HistoJAX-Easy-v0", num_envs=4, num_steps=8, total_timesteps=64,
-                                update_epochs=1, num_minibatches=2, hidden=8, num_seeds=1, print_progress=False))
+    train = ppo.make_train(
+        dict(
+            env_id="HistoJAX-Easy-v0",
+            num_envs=4,
+            num_steps=8,
+            total_timesteps=64,
+            update_epochs=1,
+            num_minibatches=2,
+            hidden=8,
+            num_seeds=1,
+            print_progress=False,
+        )
+    )
     keys = jax.random.split(jax.random.key(0), 1)
     with pytest.raises(ValueError, match="train: env params: stride="):
         train(keys, train.env_params.replace(stride=float("nan")))

@@ -3,6 +3,7 @@
 Each jitted function below is compiled once for the module (fixed shapes), then called
 for every example: ``deadline=None`` because the first call compiles.
 """
+
 from __future__ import annotations
 
 import functools
@@ -13,10 +14,10 @@ import numpy as np
 import pytest
 from hypothesis import assume, given, settings
 from hypothesis import strategies as st
+from hypothesis_examples import examples
 
 import histojax
 from histojax import STAY, ZOOM_IN, ZOOM_OUT
-from hypothesis_examples import examples
 
 T_STEPS = 30
 # 40 examples each under `make test-all`, 10 in `make test`
@@ -102,7 +103,7 @@ def test_t_counts_steps_and_truncation_is_exactly_at_max_steps(max_steps, seed):
     trunc, t = np.asarray(trunc), np.asarray(states.t)
     assert not np.any(np.asarray(term))
     expected = np.zeros(T_STEPS, bool)
-    expected[max_steps - 1::max_steps] = True  # truncated at step max_steps, then again after each auto-reset
+    expected[max_steps - 1 :: max_steps] = True  # truncated at step max_steps, then again after each auto-reset
     np.testing.assert_array_equal(trunc, expected)
     # t grows by one per step and restarts at 0 after the auto-reset
     np.testing.assert_array_equal(t, np.where(expected, 0, (np.arange(T_STEPS) % max_steps) + 1))

@@ -1,4 +1,5 @@
 """Region bundles: a bundle of one rectangle (or polygon) of the slide is a region scenario."""
+
 from __future__ import annotations
 
 import json
@@ -27,8 +28,12 @@ def box(target):
     with open_slide(SAMPLE_SLIDE) as r:
         w, h = r.dimensions
     b = target.bounds
-    return (max(0, int(b[0]) - MARGIN), max(0, int(b[1]) - MARGIN), min(w, int(b[2]) + MARGIN),
-            min(h, int(b[3]) + MARGIN))
+    return (
+        max(0, int(b[0]) - MARGIN),
+        max(0, int(b[1]) - MARGIN),
+        min(w, int(b[2]) + MARGIN),
+        min(h, int(b[3]) + MARGIN),
+    )
 
 
 @pytest.fixture(scope="module")
@@ -80,8 +85,9 @@ def test_view_never_leaves_region(region_bundle, box):
         def body(state, k):
             ka, ks = jax.random.split(k)
             a = jax.random.randint(ka, (n_envs,), 0, 7)
-            _, state, reward, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(jax.random.split(ks, n_envs), state,
-                                                                               a, params)
+            _, state, reward, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+                jax.random.split(ks, n_envs), state, a, params
+            )
             return state, (state.z, state.x, state.y, reward)
 
         return jax.lax.scan(body, state, jax.random.split(key, n_steps))[1]
@@ -101,8 +107,14 @@ def test_polygon_region_starts_inside(tmp_path):
     import histojax
 
     poly = shapely.Polygon([(700, 1300), (2200, 1400), (1400, 2960)])
-    out = build_bundle(SAMPLE_SLIDE, tmp_path / "poly", annotations_path=SAMPLE_ANNOTATIONS, region=poly,
-                       level_sets=(3,), progress=False)
+    out = build_bundle(
+        SAMPLE_SLIDE,
+        tmp_path / "poly",
+        annotations_path=SAMPLE_ANNOTATIONS,
+        region=poly,
+        level_sets=(3,),
+        progress=False,
+    )
     meta = json.loads((out / "metadata.json").read_text())
     assert meta["region"]["kind"] == "polygon" and meta["region"]["box"] == [700, 1300, 2200, 2960]
     bundle = load_bundle(out)
@@ -119,29 +131,53 @@ def test_group_region_and_cli(tmp_path):
     from data_tools.__main__ import main
 
     out = tmp_path / "grp"
-    assert main(["build", str(SAMPLE_SLIDE), "--annotations", str(SAMPLE_ANNOTATIONS), "--out", str(out),
-                 "--region-group", "tumour", "--region-margin", "50", "--levels", "3", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "build",
+                str(SAMPLE_SLIDE),
+                "--annotations",
+                str(SAMPLE_ANNOTATIONS),
+                "--out",
+                str(out),
+                "--region-group",
+                "tumour",
+                "--region-margin",
+                "50",
+                "--levels",
+                "3",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     meta = json.loads((out / "metadata.json").read_text())
     assert meta["region"]["kind"] == "group" and meta["region"]["group"] == "tumour"
     assert meta["region"]["box"] == [1010, 1570, 1930, 2967]
     out2 = tmp_path / "box"
-    assert main(["build", str(SAMPLE_SLIDE), "--out", str(out2), "--region", "100,200,600,700", "--levels", "3",
-                 "--quiet"]) == 0
+    assert (
+        main(
+            ["build", str(SAMPLE_SLIDE), "--out", str(out2), "--region", "100,200,600,700", "--levels", "3", "--quiet"]
+        )
+        == 0
+    )
     assert json.loads((out2 / "metadata.json").read_text())["region"]["box"] == [100, 200, 600, 700]
     with pytest.raises(SystemExit):  # argparse: usage error, status 2
         main(["build", str(SAMPLE_SLIDE), "--out", str(tmp_path / "bad"), "--region", "1,2,3"])
     assert main(["build", str(SAMPLE_SLIDE), "--out", str(tmp_path / "bad"), "--region", "5000,5000,6000,6000"]) == 2
 
 
-@pytest.mark.parametrize("region, match", [
-    ((5000, 5000, 6000, 6000), "smaller than one"),
-    ((0, 0, 50, 50), "smaller than one"),
-    ((10, 10, 5, 500), "x0 < x1"),
-    ("tissue", "no tissue polygon"),
-    ("no-such-group", "no polygon in that group"),
-])
+@pytest.mark.parametrize(
+    "region, match",
+    [
+        ((5000, 5000, 6000, 6000), "smaller than one"),
+        ((0, 0, 50, 50), "smaller than one"),
+        ((10, 10, 5, 500), "x0 < x1"),
+        ("tissue", "no tissue polygon"),
+        ("no-such-group", "no polygon in that group"),
+    ],
+)
 def test_bad_regions(tmp_path, region, match):
     with pytest.raises(BundleError, match=match):
-        build_bundle(SAMPLE_SLIDE, tmp_path / "b", annotations_path=SAMPLE_ANNOTATIONS, region=region,
-                     progress=False)
+        build_bundle(SAMPLE_SLIDE, tmp_path / "b", annotations_path=SAMPLE_ANNOTATIONS, region=region, progress=False)
     assert not (tmp_path / "b").exists()

@@ -1,5 +1,6 @@
 """Pictures: trajectory PNG (matplotlib) and GIF from a scanned rollout, colours by level, a zoomed inset for
 views too small to see; learning curves."""
+
 from __future__ import annotations
 
 import jax
@@ -7,8 +8,7 @@ import numpy as np
 from PIL import Image
 
 from baselines.harness.curves import curves_figure, plot_curves
-from histojax.render import (animate, level_colour, reading_map_figure, render_trajectory, slide_name,
-                             trajectory_figure)
+from histojax.render import animate, level_colour, reading_map_figure, render_trajectory, slide_name, trajectory_figure
 
 
 def test_trajectory_png_and_gif_from_a_scan(sample_envs, tmp_path):
@@ -64,8 +64,11 @@ def test_learning_curves(tmp_path):
     fig = curves_figure(steps, panels, title="PPO, 3 seeds", reference={"success rate": 0.04})
     top, bottom = fig.axes
     assert top.get_ylabel() == "success rate" and bottom.get_xlabel() == "env steps per seed"
-    assert [t.get_text() for t in top.get_legend().get_texts()] == \
-        ["3 seeds (min–max)", "mean over seeds", "random agent (0.04)"]
+    assert [t.get_text() for t in top.get_legend().get_texts()] == [
+        "3 seeds (min–max)",
+        "mean over seeds",
+        "random agent (0.04)",
+    ]
     assert [t.get_text() for t in bottom.get_legend().get_texts()] == ["3 seeds (min–max)", "mean over seeds"]
     np.testing.assert_allclose(top.lines[0].get_ydata(), success.mean(axis=0))
     assert top.get_xlim() == (0, steps[-1])

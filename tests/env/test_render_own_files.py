@@ -1,5 +1,6 @@
 """Pictures read only a bundle's own files. A bundle whose ``annotations.geojson`` is a symbolic
 link to a file outside it is refused in one line naming the bundle and the entry, not followed."""
+
 from __future__ import annotations
 
 import json
@@ -24,8 +25,20 @@ def test_render_refuses_an_annotations_link_to_a_file_outside(tmp_path):
 
     outside = tmp_path / "elsewhere.geojson"  # a valid GeoJSON: before, it was read and drawn as the tumour
     square = [[0, 0], [50, 0], [50, 50], [0, 50], [0, 0]]
-    outside.write_text(json.dumps({"type": "FeatureCollection", "features": [
-        {"type": "Feature", "properties": {"label": "tumour"}, "geometry": {"type": "Polygon", "coordinates": [square]}}]}))
+    outside.write_text(
+        json.dumps(
+            {
+                "type": "FeatureCollection",
+                "features": [
+                    {
+                        "type": "Feature",
+                        "properties": {"label": "tumour"},
+                        "geometry": {"type": "Polygon", "coordinates": [square]},
+                    }
+                ],
+            }
+        )
+    )
     (bundle / "annotations.geojson").unlink()
     (bundle / "annotations.geojson").symlink_to(outside)
     for draw in (lambda: tumour_rings(env), lambda: render_trajectory(env, z, x, y)):

@@ -1,5 +1,6 @@
 """The reward's tumour fraction equals an independent shapely computation on real CAMELYON16
 geometry (tumor_039, with its exclusion holes), scaled onto a synthetic slide."""
+
 from __future__ import annotations
 
 import json
@@ -38,12 +39,23 @@ def camelyon_env(tmp_path_factory):
     width, height = int(geom.bounds[2]) + 60, int(geom.bounds[3]) + 50
     root = tmp_path_factory.mktemp("camelyon")
     rng = np.random.default_rng(0)
-    tifffile.imwrite(root / "synthetic.tif", rng.integers(150, 255, (height, width, 3), dtype=np.uint8),
-                     photometric="rgb", tile=(256, 256))
-    (root / "tumour.geojson").write_text(json.dumps({"type": "Feature", "properties": {"label": "tumour"},
-                                                     "geometry": shapely.geometry.mapping(geom)}))
-    bundle = build_bundle(root / "synthetic.tif", root / "bundle", annotations_path=root / "tumour.geojson",
-                          level_sets=(7,), tile_size=TILE, progress=False)
+    tifffile.imwrite(
+        root / "synthetic.tif",
+        rng.integers(150, 255, (height, width, 3), dtype=np.uint8),
+        photometric="rgb",
+        tile=(256, 256),
+    )
+    (root / "tumour.geojson").write_text(
+        json.dumps({"type": "Feature", "properties": {"label": "tumour"}, "geometry": shapely.geometry.mapping(geom)})
+    )
+    bundle = build_bundle(
+        root / "synthetic.tif",
+        root / "bundle",
+        annotations_path=root / "tumour.geojson",
+        level_sets=(7,),
+        tile_size=TILE,
+        progress=False,
+    )
     env, params = histojax.make("HistoJAX-Hard-v0", slide=bundle)
     fraction = jax.jit(lambda z, x, y, p: view_tumour_fraction(p.slide, z, x, y, TILE))
     return env, params, geom, fraction

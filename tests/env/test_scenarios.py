@@ -1,4 +1,5 @@
 """Scenarios as data: TOML/JSON → Scenario → registered id → make → step; built-in region ids."""
+
 from __future__ import annotations
 
 import json
@@ -68,9 +69,17 @@ def test_json_with_bundle_path_and_relative_paths(tmp_path):
 
     bundle = sample_bundle(progress=False)
     (tmp_path / "sub").mkdir()
-    (tmp_path / "sub" / "s.json").write_text(json.dumps({
-        "id": "Test-Json-Easy-v0", "slides": [str(bundle)], "levels": 3, "obs_mode": "pixels_float",
-        "train": [bundle.name]}))
+    (tmp_path / "sub" / "s.json").write_text(
+        json.dumps(
+            {
+                "id": "Test-Json-Easy-v0",
+                "slides": [str(bundle)],
+                "levels": 3,
+                "obs_mode": "pixels_float",
+                "train": [bundle.name],
+            }
+        )
+    )
     scenario = load_scenario(tmp_path / "sub" / "s.json")
     assert scenario.slides == (SlideSource(bundle=str(bundle)),)
     register_scenario(scenario)
@@ -97,17 +106,20 @@ def test_builtin_region_ids(env_id, levels):
     assert "HistoJAX-Medium-Region-v0" in histojax.registered_envs()
 
 
-@pytest.mark.parametrize("text, match", [
-    ('id = "A-v0"\nlevels = [3\n', "invalid TOML"),
-    ('levels = 3\n', "needs an 'id'"),
-    ('id = "A-v0"\nlevel = 3\n', "unknown scenario key"),
-    ('id = "A-v0"\nreward = "shiny"\n', "reward"),
-    ('id = "A-v0"\nlevels = 1\n', "levels"),
-    ('id = "A-v0"\n[region]\nbox = [1, 2, 3]\n', "region box"),
-    ('id = "A-v0"\n[region]\nbox = [0, 0, 9, 9]\ngroup = "t"\n', "exactly one"),
-    ('id = "A-v0"\n[label_map]\n"_0" = "cancer"\n', "label_map"),
-    ('id = "A-v0"\n[params]\nspeed = 2\n', "params"),
-])
+@pytest.mark.parametrize(
+    "text, match",
+    [
+        ('id = "A-v0"\nlevels = [3\n', "invalid TOML"),
+        ("levels = 3\n", "needs an 'id'"),
+        ('id = "A-v0"\nlevel = 3\n', "unknown scenario key"),
+        ('id = "A-v0"\nreward = "shiny"\n', "reward"),
+        ('id = "A-v0"\nlevels = 1\n', "levels"),
+        ('id = "A-v0"\n[region]\nbox = [1, 2, 3]\n', "region box"),
+        ('id = "A-v0"\n[region]\nbox = [0, 0, 9, 9]\ngroup = "t"\n', "exactly one"),
+        ('id = "A-v0"\n[label_map]\n"_0" = "cancer"\n', "label_map"),
+        ('id = "A-v0"\n[params]\nspeed = 2\n', "params"),
+    ],
+)
 def test_bad_toml_names_the_file(tmp_path, text, match):
     path = tmp_path / "bad_scenario.toml"
     path.write_text(text)
@@ -152,8 +164,9 @@ def test_missing_file_and_region_on_a_bundle(tmp_path):
     with pytest.raises(ScenarioError, match="cannot read"):
         load_scenario(tmp_path / "nope.toml")
     with pytest.raises(ValueError, match="needs the slide file"):
-        register_scenario(Scenario(id="R-v0", slides=(SlideSource(bundle=str(tmp_path)),),
-                                   region=load_scenario_region()))
+        register_scenario(
+            Scenario(id="R-v0", slides=(SlideSource(bundle=str(tmp_path)),), region=load_scenario_region())
+        )
 
 
 def load_scenario_region():

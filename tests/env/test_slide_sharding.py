@@ -14,6 +14,7 @@ small semi-synthetic slides built here, and save what the tests assert:
 * PPO trains on the sharded dataset (3 updates, finite losses, the parameters identical on all
   4 devices: XLA's gradient all-reduce).
 """
+
 from __future__ import annotations
 
 import json
@@ -107,8 +108,14 @@ json.dump(saved, open(out, "w"))
 def runs(small_slides, tmp_path_factory):
     out = tmp_path_factory.mktemp("shard-run") / "saved.json"
     env = cpu_child_env(4, fast_compile=True)
-    proc = subprocess.run([sys.executable, "-c", CHILD, json.dumps(small_slides), str(out)], env=env, cwd=ROOT,
-                          capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD, json.dumps(small_slides), str(out)],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
     return json.loads(out.read_text())
 

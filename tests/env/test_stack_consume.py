@@ -1,5 +1,6 @@
 """``stack_slides(..., consume=True)`` (what ``make`` uses for a dataset): the same stacked arrays, bit for bit,
 and the slides' own arrays deleted once stacked, so a dataset is not held twice in host memory."""
+
 from __future__ import annotations
 
 import jax

@@ -1,5 +1,6 @@
 """``EnvParams.start_level``: navigation episodes that start at another level than the coarsest,
 centred on the coarsest start view, inside the level; the default keeps HistoGym's start."""
+
 from __future__ import annotations
 
 import jax

@@ -1,5 +1,6 @@
 """Start positions drawn from cumulative weights computed once (``SlideArrays.start_cdf``, set by ``make``)
 are the very draws of the per-reset computation from the logits, so trajectories are unchanged."""
+
 from __future__ import annotations
 
 import jax

@@ -1,5 +1,6 @@
 """``env.state_space(params)``: a Dict of the
 EnvState fields with their bounds, containing every state reset and step produce."""
+
 from __future__ import annotations
 
 import jax
@@ -20,8 +21,9 @@ def _states(env, params, n_envs: int = 16, n_steps: int = 120, seed: int = 0):
     def body(state, key):
         k_act, k_step = jax.random.split(key)
         actions = jax.vmap(space.sample)(jax.random.split(k_act, n_envs))
-        _, state, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(jax.random.split(k_step, n_envs), state, actions,
-                                                                     params)
+        _, state, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
+            jax.random.split(k_step, n_envs), state, actions, params
+        )
         return state, state
 
     _, states = jax.jit(lambda s: jax.lax.scan(body, s, jax.random.split(jax.random.PRNGKey(seed + 1), n_steps)))(state)
@@ -36,11 +38,14 @@ def _all_contained(space, states) -> bool:
 
 # Hard (continuous moves, augmentation) and Medium (no auto-reset) in `make test`; Easy's plain discrete case,
 # the path the other two extend, under `make test-all`
-@pytest.mark.parametrize("env_id, overrides", [
-    pytest.param("HistoJAX-Easy-v0", {}, marks=pytest.mark.slow),
-    ("HistoJAX-Hard-v0", {"action_mode": "continuous", "augment": True}),
-    ("HistoJAX-Medium-v0", {"auto_reset": False, "max_steps_in_episode": 20}),
-])
+@pytest.mark.parametrize(
+    "env_id, overrides",
+    [
+        pytest.param("HistoJAX-Easy-v0", {}, marks=pytest.mark.slow),
+        ("HistoJAX-Hard-v0", {"action_mode": "continuous", "augment": True}),
+        ("HistoJAX-Medium-v0", {"auto_reset": False, "max_steps_in_episode": 20}),
+    ],
+)
 def test_states_of_reset_and_step_are_contained(env_id, overrides):
     env, params = histojax.make(env_id, **overrides)
     space = env.state_space(params)
@@ -70,10 +75,14 @@ def test_bounds_are_tight_and_the_check_can_fail():
     assert space.spaces["x"].high == int(np.max(s.level_width)) - env.tile_size
     assert space.spaces["y"].high == int(np.max(s.level_height)) - env.tile_size
     _, state = env.reset(jax.random.PRNGKey(0), params)
-    for bad in (state.replace(z=jnp.int32(env.n_levels)), state.replace(x=jnp.int32(-1)),
-                state.replace(y=jnp.int32(space.spaces["y"].high + 1)),
-                state.replace(t=jnp.int32(params.max_steps_in_episode + 1)),
-                state.replace(slide_index=jnp.int32(1)), state.replace(orientation=jnp.int32(8))):
+    for bad in (
+        state.replace(z=jnp.int32(env.n_levels)),
+        state.replace(x=jnp.int32(-1)),
+        state.replace(y=jnp.int32(space.spaces["y"].high + 1)),
+        state.replace(t=jnp.int32(params.max_steps_in_episode + 1)),
+        state.replace(slide_index=jnp.int32(1)),
+        state.replace(orientation=jnp.int32(8)),
+    ):
         assert not bool(space.contains(bad))
     assert not bool(space.contains({"z": 0}))  # a mapping with other keys
     assert not bool(space.contains(object()))

@@ -3,6 +3,7 @@
 The embedded sample slide is built dense and tiled (every tile kept, background shared, and built in
 one-tile-row bands); views are compared exactly. A gigapixel-style case (``synth-large``) is slow.
 """
+
 from __future__ import annotations
 
 import functools
@@ -15,13 +16,13 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from hypothesis_examples import examples
 
 import histojax
 from data_tools.bundle import FORMAT_VERSION, TILED_FORMAT_VERSION, build_bundle, load_bundle, read_metadata
 from data_tools.errors import BundleError
 from histojax.core.slide import stack_slides
 from histojax.core.views import view_pixels, view_tumour_fraction
-from hypothesis_examples import examples
 
 DATA = Path(histojax.__file__).parent / "data"
 SVS, XML = DATA / "CMU-1-Small-Region.svs", DATA / "CMU-1-Small-Region.target.xml"
@@ -48,8 +49,12 @@ def hard(bundles):
 
 @functools.lru_cache(maxsize=None)
 def _views_fn():
-    return jax.jit(jax.vmap(lambda s, z, x, y: (view_pixels(s, z, x, y, T), view_tumour_fraction(s, z, x, y, T)),
-                            in_axes=(None, 0, 0, 0)))
+    return jax.jit(
+        jax.vmap(
+            lambda s, z, x, y: (view_pixels(s, z, x, y, T), view_tumour_fraction(s, z, x, y, T)),
+            in_axes=(None, 0, 0, 0),
+        )
+    )
 
 
 def _random_views(slide, n, seed=0):
@@ -67,8 +72,12 @@ def test_metadata_and_versions(bundles):
     assert tiled["format_version"] == TILED_FORMAT_VERSION == 2 and tiled["storage"] == "tiled"
     for lv in tiled["levels"]:
         assert lv["storage"] == "tiled" and lv["pool_tiles"] >= 1 and lv["sat_pool_tiles"] >= 2
-        assert lv["device_bytes"] == lv["pool_tiles"] * T * T * 3 + lv["sat_pool_tiles"] * (T + 1) ** 2 * 4 \
+        assert (
+            lv["device_bytes"]
+            == lv["pool_tiles"] * T * T * 3
+            + lv["sat_pool_tiles"] * (T + 1) ** 2 * 4
             + 8 * lv["grid"][0] * lv["grid"][1]
+        )
     assert tiled["device_bytes"] == sum(lv["device_bytes"] for lv in tiled["levels"])
     assert tiled["build"]["peak_rss_bytes"] > 0
     # the kept tiles are the non-blank ones; every level of a keep-all bundle keeps its whole grid
@@ -147,8 +156,9 @@ def test_glass_views_are_white_and_tissue_views_exact(hard):
     kept = np.argwhere(index > 0)
     assert len(blank) and len(kept)
     for (ty, tx), white in [(blank[0], True), (kept[len(kept) // 2], False)]:
-        s = histojax.EnvState(z=jnp.int32(z), x=jnp.int32(tx * T), y=jnp.int32(ty * T), t=jnp.int32(0),
-                              slide_index=jnp.int32(0))
+        s = histojax.EnvState(
+            z=jnp.int32(z), x=jnp.int32(tx * T), y=jnp.int32(ty * T), t=jnp.int32(0), slide_index=jnp.int32(0)
+        )
         obs_s = np.asarray(env_s.get_obs(s, ps))
         obs_d = np.asarray(env_s.get_obs(s, pd))
         if white:
@@ -166,7 +176,8 @@ def _rollout(env, params, n_envs=16, n_steps=40):
             state = carry
             actions = jax.random.randint(k, (n_envs,), 0, 7)
             obs, state, reward, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(k, n_envs), state, actions, params)
+                jax.random.split(k, n_envs), state, actions, params
+            )
             return state, (state.z, state.x, state.y, reward, info["tumour_fraction"], obs.sum(axis=(1, 2, 3)))
 
         return jax.lax.scan(body, state, jax.random.split(key, n_steps))[1]
@@ -205,8 +216,14 @@ def test_much_glass_needs_far_fewer_bytes(tmp_path):
 
     tif = tmp_path / "glassy.tif"
     make_large_slide(tif, size=4096, tissue_fraction=0.1, progress=False)
-    out = build_bundle(tif, tmp_path / "b", annotations_path=tif.with_suffix(".geojson"), storage="tiled",
-                       level_sets=(3,), progress=False)
+    out = build_bundle(
+        tif,
+        tmp_path / "b",
+        annotations_path=tif.with_suffix(".geojson"),
+        storage="tiled",
+        level_sets=(3,),
+        progress=False,
+    )
     meta = read_metadata(out)
     assert meta["storage"] == "tiled"
     finest = meta["levels"][0]
@@ -227,8 +244,11 @@ def test_auto_is_dense_for_small_slides(tmp_path):
 def test_datasets_stack_tiled_and_refuse_mixing(bundles, hard):
     env, params = histojax.make("HistoJAX-Hard-v0", slides=[bundles["all"], bundles["shared"]])
     slide = params.slide
-    assert slide.num_slides == 2 and slide.tile_pool.shape[0] == hard["all"][1].slide.tile_pool.shape[0] \
-        + hard["shared"][1].slide.tile_pool.shape[0]
+    assert (
+        slide.num_slides == 2
+        and slide.tile_pool.shape[0]
+        == hard["all"][1].slide.tile_pool.shape[0] + hard["shared"][1].slide.tile_pool.shape[0]
+    )
     (_, pa), (_, ps) = hard["all"], hard["shared"]
     args = _random_views(pa.slide, 500, seed=3)
     for i, single in enumerate((pa, ps)):
@@ -246,8 +266,10 @@ def test_cli_build_tiled(tmp_path, capsys):
     from data_tools.__main__ import main
 
     out = tmp_path / "cli"
-    assert main(["build", str(SVS), "--annotations", str(XML), "--out", str(out), "--levels", "3",
-                 "--storage", "tiled"]) == 0  # not --quiet: that prints only the `wrote` line, no level table
+    assert (
+        main(["build", str(SVS), "--annotations", str(XML), "--out", str(out), "--levels", "3", "--storage", "tiled"])
+        == 0
+    )  # not --quiet: that prints only the `wrote` line, no level table
     text = capsys.readouterr().out
     assert "(tiled)" in text and "pool tiles" in text
     assert json.loads((out / "metadata.json").read_text())["storage"] == "tiled"
@@ -263,8 +285,14 @@ def test_gigapixel_style_slide_end_to_end(tmp_path, size):
     tif = tmp_path / "large.tif"
     prov = make_large_slide(tif, size=size, tissue_fraction=0.1, progress=False)
     assert prov["tiff_bytes"] < 200 * 2**20 * (size / 20_000) ** 2 and 0.05 < prov["tissue_fraction"] < 0.15
-    out = build_bundle(tif, tmp_path / "b", annotations_path=tif.with_suffix(".geojson"), storage="auto",
-                       level_sets=(3,), progress=False)
+    out = build_bundle(
+        tif,
+        tmp_path / "b",
+        annotations_path=tif.with_suffix(".geojson"),
+        storage="auto",
+        level_sets=(3,),
+        progress=False,
+    )
     meta = read_metadata(out)
     assert meta["storage"] == "tiled" and meta["build"]["peak_rss_bytes"] < 2 * 2**30
     finest = meta["levels"][0]
@@ -274,13 +302,18 @@ def test_gigapixel_style_slide_end_to_end(tmp_path, size):
     env, params = histojax.make("HistoJAX-Easy-v0", slide=out)
     # a finest-level view on the tumour has a positive fraction; the rollout runs jitted/vmapped/scanned
     b = load_bundle(out, verify=False, levels=[0])
-    ty, tx = np.argwhere(b.tumour[0].index == 1)[0] if (b.tumour[0].index == 1).any() \
+    ty, tx = (
+        np.argwhere(b.tumour[0].index == 1)[0]
+        if (b.tumour[0].index == 1).any()
         else np.argwhere(b.tumour[0].index > 0)[0]
-    s = histojax.EnvState(z=jnp.int32(2), x=jnp.int32(tx * T), y=jnp.int32(ty * T), t=jnp.int32(0),
-                          slide_index=jnp.int32(0))
+    )
+    s = histojax.EnvState(
+        z=jnp.int32(2), x=jnp.int32(tx * T), y=jnp.int32(ty * T), t=jnp.int32(0), slide_index=jnp.int32(0)
+    )
     assert float(view_tumour_fraction(params.slide, s.z, s.x, s.y, T)) > 0
-    np.testing.assert_array_equal(np.asarray(env.get_obs(s, params)), b.pixels[0][ty * T:(ty + 1) * T,
-                                                                                   tx * T:(tx + 1) * T])
+    np.testing.assert_array_equal(
+        np.asarray(env.get_obs(s, params)), b.pixels[0][ty * T : (ty + 1) * T, tx * T : (tx + 1) * T]
+    )
     z, *_ = _rollout(env, params, n_envs=64, n_steps=50)
     assert int(np.asarray(z).max()) == 2
 
@@ -294,8 +327,7 @@ def test_region_bundles_tiled_equal_dense(tmp_path, region):
         region = Polygon([(200, 300), (2000, 500), (1800, 2700), (400, 2400)])
     kw = dict(annotations_path=XML, level_sets=(3,), progress=False, region=region)
     dense = load_bundle(build_bundle(SVS, tmp_path / "d", **kw))
-    tiled = load_bundle(build_bundle(SVS, tmp_path / "t", storage="tiled", share_background=False, band_bytes=1,
-                                     **kw))
+    tiled = load_bundle(build_bundle(SVS, tmp_path / "t", storage="tiled", share_background=False, band_bytes=1, **kw))
     for k in range(len(dense.pixels)):
         np.testing.assert_array_equal(np.asarray(tiled.pixels[k]), dense.pixels[k])
         np.testing.assert_array_equal(np.asarray(tiled.tumour[k]), dense.tumour[k])

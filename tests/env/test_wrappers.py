@@ -1,4 +1,5 @@
 """LogWrapper statistics and the older 5-value step."""
+
 from __future__ import annotations
 
 import jax
@@ -21,8 +22,10 @@ def test_log_wrapper_counts_returns_and_lengths():
         total += float(reward)
     assert bool(trunc) and bool(info["returned_episode"])
     assert int(info["returned_episode_lengths"]) == 7
-    assert float(info["returned_episode_returns"]) == np.float32(total) or abs(
-        float(info["returned_episode_returns"]) - total) < 1e-3
+    assert (
+        float(info["returned_episode_returns"]) == np.float32(total)
+        or abs(float(info["returned_episode_returns"]) - total) < 1e-3
+    )
     assert float(state.episode_returns) == 0.0 and int(state.episode_lengths) == 0
     assert logged.action_space(params).n == 7  # attributes pass through
 

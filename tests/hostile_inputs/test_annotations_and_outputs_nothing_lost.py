@@ -2,6 +2,7 @@
 warning, huge JSON integers are an AnnotationError, the repair cost of a whole file is bounded, ASAP XML
 is streamed, outputs of training / evaluation are written atomically, and DICOM files without
 ``ImageType`` are read from their frame positions."""
+
 from __future__ import annotations
 
 import json
@@ -31,8 +32,11 @@ def _asap(path: Path, annotations: list[tuple[str | None, str, list]]) -> Path:
     """ASAP XML of (Type or None for no Type attribute, group, vertices) annotations."""
     body = "".join(
         f'<Annotation Name="A{i}"' + ("" if kind is None else f' Type="{kind}"') + f' PartOfGroup="{group}">'
-        "<Coordinates>" + "".join(f'<Coordinate Order="{j}" X="{x!r}" Y="{y!r}" />' for j, (x, y) in enumerate(pts))
-        + "</Coordinates></Annotation>" for i, (kind, group, pts) in enumerate(annotations))
+        "<Coordinates>"
+        + "".join(f'<Coordinate Order="{j}" X="{x!r}" Y="{y!r}" />' for j, (x, y) in enumerate(pts))
+        + "</Coordinates></Annotation>"
+        for i, (kind, group, pts) in enumerate(annotations)
+    )
     path.write_text(f"<ASAP_Annotations><Annotations>{body}</Annotations></ASAP_Annotations>")
     return path
 
@@ -60,20 +64,28 @@ def _load(path, **kwargs):
 def test_asap_annotation_without_a_known_type_is_read_as_a_polygon_with_a_warning(tmp_path, kind):
     """Was: the second of two tumour squares, without Type (or Type="Freehand"), was dropped without a
     word: tumour area halved. Now it is read as a polygon and the warning names it."""
-    path = _asap(tmp_path / "untyped.xml", [("Polygon", "metastasis", _square(0, 0)),
-                                            (kind, "metastasis", _square(200, 0))])
+    path = _asap(
+        tmp_path / "untyped.xml", [("Polygon", "metastasis", _square(0, 0)), (kind, "metastasis", _square(200, 0))]
+    )
     ann, messages = _load(path)
     assert ann.tumour.area == pytest.approx(20_000) and ann.n_polygons["tumour"] == 2
-    assert any("untyped.xml: 1 annotation(s) with no or an unknown Type read as polygons: annotation 1 ('A1')"
-               in m for m in messages), messages
+    assert any(
+        "untyped.xml: 1 annotation(s) with no or an unknown Type read as polygons: annotation 1 ('A1')" in m
+        for m in messages
+    ), messages
 
 
 def test_asap_tumour_annotations_without_area_are_counted_in_a_warning(tmp_path):
-    path = _asap(tmp_path / "points.xml", [("Polygon", "metastasis", _square(0, 0)),
-                                           ("PointSet", "metastasis", _square(200, 0)),
-                                           ("Dot", "_2", [(5.0, 5.0)]),
-                                           (None, "Tumor", [(1.0, 1.0), (9.0, 9.0)]),
-                                           ("Dot", "tissue", [(5.0, 5.0)])])  # not tumour: nothing lost
+    path = _asap(
+        tmp_path / "points.xml",
+        [
+            ("Polygon", "metastasis", _square(0, 0)),
+            ("PointSet", "metastasis", _square(200, 0)),
+            ("Dot", "_2", [(5.0, 5.0)]),
+            (None, "Tumor", [(1.0, 1.0), (9.0, 9.0)]),
+            ("Dot", "tissue", [(5.0, 5.0)]),
+        ],
+    )  # not tumour: nothing lost
     ann, messages = _load(path)
     assert ann.tumour.area == pytest.approx(10_000)
     lost = [m for m in messages if "without area" in m]
@@ -85,14 +97,17 @@ def test_geojson_lines_and_null_geometry_labelled_tumour_are_used_or_counted(tmp
     """Was: a LineString or "geometry": null labelled tumour was dropped without a word. Now a closed
     LineString is read as a polygon (with a warning), open lines, points and null are counted in one."""
     ring = [list(p) for p in _square(200, 0)]
-    path = _geojson(tmp_path / "lines.geojson", [
-        _feature({"type": "Polygon", "coordinates": [[list(p) for p in _square(0, 0)] + [[0, 0]]]}),
-        _feature({"type": "LineString", "coordinates": ring + [ring[0]]}),
-        _feature({"type": "LineString", "coordinates": ring}),
-        _feature(None),
-        _feature({"type": "Point", "coordinates": [5, 5]}, label="exclusion"),
-        _feature({"type": "Point", "coordinates": [5, 5]}, label="tissue"),
-    ])
+    path = _geojson(
+        tmp_path / "lines.geojson",
+        [
+            _feature({"type": "Polygon", "coordinates": [[list(p) for p in _square(0, 0)] + [[0, 0]]]}),
+            _feature({"type": "LineString", "coordinates": ring + [ring[0]]}),
+            _feature({"type": "LineString", "coordinates": ring}),
+            _feature(None),
+            _feature({"type": "Point", "coordinates": [5, 5]}, label="exclusion"),
+            _feature({"type": "Point", "coordinates": [5, 5]}, label="tissue"),
+        ],
+    )
     ann, messages = _load(path)
     assert ann.tumour.area == pytest.approx(20_000)
     assert any("1 closed LineString(s) read as polygons: feature 1 (LineString)" in m for m in messages), messages
@@ -107,7 +122,7 @@ def test_geojson_lines_and_null_geometry_labelled_tumour_are_used_or_counted(tmp
 def test_huge_json_integer_is_an_annotation_error_naming_the_file(tmp_path):
     """Was: an integer coordinate >= 10^309 raised OverflowError (float conversion)."""
     path = tmp_path / "huge.geojson"
-    path.write_text('{"type": "Polygon", "coordinates": [[[0, 0], [1' + "0" * 309 + ', 0], [5, 5], [0, 0]]]}')
+    path.write_text('{"type": "Polygon", "coordinates": [[[0, 0], [1' + "0" * 309 + ", 0], [5, 5], [0, 0]]]}")
     with pytest.raises(AnnotationError, match=r"huge\.geojson: feature 0: coordinate \(1000.*characters\), 0\).*2\^31"):
         load_annotations(path)
 
@@ -116,7 +131,7 @@ def test_huge_json_integer_is_one_line_exit_2_on_the_command_line(tmp_path, caps
     from data_tools.__main__ import main
 
     path = tmp_path / "huge.geojson"
-    path.write_text('{"type": "Polygon", "coordinates": [[[0, 0], [-1' + "0" * 400 + ', 0], [5, 5], [0, 0]]]}')
+    path.write_text('{"type": "Polygon", "coordinates": [[[0, 0], [-1' + "0" * 400 + ", 0], [5, 5], [0, 0]]]}")
     assert main(["build", str(SVS), "--annotations", str(path), "--out", str(tmp_path / "b"), "--quiet"]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("error: ") and "huge.geojson" in err[0] and len(err[0]) < 300, err
@@ -161,8 +176,10 @@ def test_asap_xml_is_streamed_with_the_same_result(tmp_path, monkeypatch):
         root = SafeET.parse(ANNOTATIONS / name)  # the tree, read independently of the module
         groups = {}
         for a in root.iterfind("./Annotations/Annotation"):
-            pts = sorted((int(c.get("Order")), float(c.get("X")), float(c.get("Y")))
-                         for c in a.iterfind("./Coordinates/Coordinate"))
+            pts = sorted(
+                (int(c.get("Order")), float(c.get("X")), float(c.get("Y")))
+                for c in a.iterfind("./Coordinates/Coordinate")
+            )
             poly = shapely.make_valid(shapely.Polygon([(x, y) for _, x, y in pts]), method="structure")
             groups.setdefault(a.get("PartOfGroup"), []).append(poly)
         expected[name] = {g: shapely.union_all(p).area for g, p in groups.items()}
@@ -181,8 +198,13 @@ def test_asap_xml_is_streamed_with_the_same_result(tmp_path, monkeypatch):
             assert ann.exclusion.area == pytest.approx(areas["negative"], rel=1e-9), name
 
     circle = [(50 * float(np.cos(t)), 50 * float(np.sin(t))) for t in np.linspace(0, 2 * np.pi, 100, endpoint=False)]
-    big = _asap(tmp_path / "big.xml", [("Polygon", "metastasis", [(x + 150.0 * (i % 40), y + 150.0 * (i // 40))
-                                                                  for x, y in circle]) for i in range(1000)])
+    big = _asap(
+        tmp_path / "big.xml",
+        [
+            ("Polygon", "metastasis", [(x + 150.0 * (i % 40), y + 150.0 * (i // 40)) for x, y in circle])
+            for i in range(1000)
+        ],
+    )
     size = big.stat().st_size
     assert size > 4 * 2**20
     tracemalloc.start()
@@ -209,7 +231,7 @@ def _fail_mid_write(monkeypatch, module, after: int = 100):
 
         def write(self, data):
             if len(data) > self.left:
-                self.f.write(data[:self.left])
+                self.f.write(data[: self.left])
                 raise OSError(errno.ENOSPC, "No space left on device")
             self.left -= len(data)
             return self.f.write(data)
@@ -238,8 +260,12 @@ def test_checkpoint_on_a_full_disk_keeps_the_previous_one(tmp_path, monkeypatch)
     with pytest.raises(OSError, match="No space left"):
         save_checkpoint(tmp_path, {"w": np.zeros(1000, np.float32)}, {"env_id": "HistoJAX-Easy-v0"})
     with pytest.raises(OSError, match="No space left"):
-        write_logs(tmp_path / "fresh", np.arange(3), {k: np.zeros((1, 3)) for k in
-                                                             ("return", "success", "length", "steps_to_success")}, {})
+        write_logs(
+            tmp_path / "fresh",
+            np.arange(3),
+            {k: np.zeros((1, 3)) for k in ("return", "success", "length", "steps_to_success")},
+            {},
+        )
     monkeypatch.undo()
     params, _ = load_checkpoint(tmp_path)
     np.testing.assert_array_equal(np.asarray(params["w"]), old["w"])
@@ -280,8 +306,7 @@ def test_evaluate_on_a_truncated_checkpoint_names_the_file(tmp_path, capsys):
     from baselines.harness.logs import save_checkpoint
     from histojax.cli import main
 
-    path = save_checkpoint(tmp_path / "run", {"w": np.arange(1000, dtype=np.float32)},
-                                  {"env_id": "HistoJAX-Easy-v0"})
+    path = save_checkpoint(tmp_path / "run", {"w": np.arange(1000, dtype=np.float32)}, {"env_id": "HistoJAX-Easy-v0"})
     path.write_bytes(path.read_bytes()[:2000])
     assert main(["evaluate", str(tmp_path / "run")]) == 2
     err = capsys.readouterr().err.strip().splitlines()
@@ -323,11 +348,14 @@ def test_dicom_without_image_type_is_read_from_its_frame_positions():
     assert (region[440:] == 255).all()
 
 
-@pytest.mark.parametrize("attribute, named", [
-    ("TotalPixelMatrixColumns", "TotalPixelMatrixColumns (0048,0006)"),
-    ("Rows", "Rows (0028,0010)"),
-    ("PerFrameFunctionalGroupsSequence", "PerFrameFunctionalGroupsSequence (5200,9230)"),
-])
+@pytest.mark.parametrize(
+    "attribute, named",
+    [
+        ("TotalPixelMatrixColumns", "TotalPixelMatrixColumns (0048,0006)"),
+        ("Rows", "Rows (0028,0010)"),
+        ("PerFrameFunctionalGroupsSequence", "PerFrameFunctionalGroupsSequence (5200,9230)"),
+    ],
+)
 def test_dicom_missing_an_essential_attribute_is_refused_naming_it(tmp_path, attribute, named, capsys):
     pytest.importorskip("wsidicom")
     import pydicom

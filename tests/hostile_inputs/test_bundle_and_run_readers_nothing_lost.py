@@ -6,6 +6,7 @@ train commands.
 
 The head tools read a small feature-only stand-in dataset (tests/reading/test_head.py's, with checksums and a sealed
 metadata.json as a build writes them)."""
+
 from __future__ import annotations
 
 import json
@@ -15,10 +16,10 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from test_head import make_dataset
 
 from baselines.reading import head_fit, head_mil_fit, pipeline, readers, slides
 from data_tools.errors import HistojaxDataError
-from test_head import make_dataset
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -73,13 +74,21 @@ def _flip_a_feature(ds: Path, tmp_path: Path) -> Path:
     return bundle
 
 
-@pytest.mark.parametrize("damage, words", [(_link_outside, "symbolic link"),
-                                            (_absolute_path_in_metadata, "metadata"),
-                                            (_flip_a_feature, "checksum mismatch")])
+@pytest.mark.parametrize(
+    "damage, words",
+    [
+        (_link_outside, "symbolic link"),
+        (_absolute_path_in_metadata, "metadata"),
+        (_flip_a_feature, "checksum mismatch"),
+    ],
+)
 def test_the_head_tools_read_bundles_through_the_checked_loader(work, tmp_path, damage, words):
     bundle = damage(work, tmp_path)
-    for read in (lambda: slides.load_slide(bundle), lambda: head_mil_fit.load_grid(bundle),
-                 lambda: slides.load_slides(work, "train")):
+    for read in (
+        lambda: slides.load_slide(bundle),
+        lambda: head_mil_fit.load_grid(bundle),
+        lambda: slides.load_slides(work, "train"),
+    ):
         with pytest.raises(HistojaxDataError) as e:
             read()
         assert words in str(e.value) and str(bundle) in str(e.value), e.value
@@ -128,8 +137,10 @@ def _stats_head(folder: Path) -> Path:
     from histojax.reading.heads.mil import StatsHead
 
     n = 4 * 2 + 3 + 1
-    StatsHead(params={"mu": jnp.zeros(n), "sd": jnp.ones(n), "w": jnp.full(n, 0.1), "b": jnp.float32(0.0)},
-              prior_logit=jnp.float32(-0.3)).save(folder)
+    StatsHead(
+        params={"mu": jnp.zeros(n), "sd": jnp.ones(n), "w": jnp.full(n, 0.1), "b": jnp.float32(0.0)},
+        prior_logit=jnp.float32(-0.3),
+    ).save(folder)
     return folder
 
 
@@ -139,16 +150,19 @@ def _load(folder):
     return heads.load(folder)
 
 
-@pytest.mark.parametrize("edit, words", [
-    ({"minus_median": "false"}, "'minus_median' is \"false\", not a bool"),
-    ({"k": 2.9}, "'k' is 2.9, not an int"),
-    ({"k": 1_000_000_000}, "'k' is 1000000000, outside [1, 64]"),
-    ({"format": 9}, "format 9; this version reads format 1"),
-    ({"format": "1"}, "'format' is \"1\", not an int"),
-    ({"dim": -1}, "'dim' is -1, outside"),
-    ({"a": 1e38, "b": -1e38}, "params.json: 'a' is 1e+38, outside"),
-    ({"b": [1, 2]}, "'b' is [1, 2], not a finite number"),
-])
+@pytest.mark.parametrize(
+    "edit, words",
+    [
+        ({"minus_median": "false"}, "'minus_median' is \"false\", not a bool"),
+        ({"k": 2.9}, "'k' is 2.9, not an int"),
+        ({"k": 1_000_000_000}, "'k' is 1000000000, outside [1, 64]"),
+        ({"format": 9}, "format 9; this version reads format 1"),
+        ({"format": "1"}, "'format' is \"1\", not an int"),
+        ({"dim": -1}, "'dim' is -1, outside"),
+        ({"a": 1e38, "b": -1e38}, "params.json: 'a' is 1e+38, outside"),
+        ({"b": [1, 2]}, "'b' is [1, 2], not a finite number"),
+    ],
+)
 def test_a_logit_head_config_is_read_strictly(tmp_path, edit, words):
     folder = _logit_head(tmp_path / "h", **edit)
     with pytest.raises(ValueError) as e:
@@ -243,17 +257,20 @@ def test_a_damaged_head_is_one_line_from_the_readers_command(small_dataset, tmp_
 
 
 # ----------------------------------------------------------------------------- the budget curve's options
-@pytest.mark.parametrize("options, words", [
-    (["--budgets", "0.1", "2"], "--budgets: 2 is not a fraction"),
-    (["--budgets", "-0.5"], "--budgets: -0.5 is not a fraction"),
-    (["--budgets", "nan"], "--budgets: nan"),
-    (["--steps", "-1"], "--steps -1: must be a whole number from 1"),
-    (["--seeds", "0"], "--seeds 0: must be"),
-    (["--policy-seeds", "0"], "--policy-seeds 0: must be"),
-    (["--folds", "100"], "--folds 100: "),
-    (["--folds", "1"], "--folds 1: give 0"),
-    (["--folds", "-3"], "--folds -3: give 0"),
-])
+@pytest.mark.parametrize(
+    "options, words",
+    [
+        (["--budgets", "0.1", "2"], "--budgets: 2 is not a fraction"),
+        (["--budgets", "-0.5"], "--budgets: -0.5 is not a fraction"),
+        (["--budgets", "nan"], "--budgets: nan"),
+        (["--steps", "-1"], "--steps -1: must be a whole number from 1"),
+        (["--seeds", "0"], "--seeds 0: must be"),
+        (["--policy-seeds", "0"], "--policy-seeds 0: must be"),
+        (["--folds", "100"], "--folds 100: "),
+        (["--folds", "1"], "--folds 1: give 0"),
+        (["--folds", "-3"], "--folds -3: give 0"),
+    ],
+)
 @pytest.mark.parametrize("command", ["module", "histojax"])
 def test_the_budget_curve_refuses_bad_options_in_one_line(small_dataset, tmp_path, capsys, options, words, command):
     from baselines.reading import budget_curve
@@ -281,8 +298,11 @@ def _finished_run(folder: Path) -> Path:
 
 
 def _contents(folder: Path) -> dict:
-    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()
-            and p.name != ".histojax-run.lock"}
+    return {
+        str(p.relative_to(folder)): p.read_bytes()
+        for p in sorted(folder.rglob("*"))
+        if p.is_file() and p.name != ".histojax-run.lock"
+    }
 
 
 @pytest.mark.parametrize("what", ["users-notes", "slide-head", "finished-run"])
@@ -349,11 +369,20 @@ def test_one_writer_per_run_folder_and_a_killed_writer_leaves_no_lock(tmp_path, 
 
     out = tmp_path / "run"
     out.mkdir()
-    holder = subprocess.Popen([sys.executable, "-c", (
-        "import fcntl, os, sys, time\n"
-        f"fd = os.open({str(out / run_folder.LOCK)!r}, os.O_RDWR | os.O_CREAT)\n"
-        "fcntl.flock(fd, fcntl.LOCK_EX); os.write(fd, str(os.getpid()).encode()); print('held', flush=True)\n"
-        "time.sleep(120)\n")], stdout=subprocess.PIPE, text=True)
+    holder = subprocess.Popen(
+        [
+            sys.executable,
+            "-c",
+            (
+                "import fcntl, os, sys, time\n"
+                f"fd = os.open({str(out / run_folder.LOCK)!r}, os.O_RDWR | os.O_CREAT)\n"
+                "fcntl.flock(fd, fcntl.LOCK_EX); os.write(fd, str(os.getpid()).encode()); print('held', flush=True)\n"
+                "time.sleep(120)\n"
+            ),
+        ],
+        stdout=subprocess.PIPE,
+        text=True,
+    )
     try:
         assert holder.stdout.readline().strip() == "held"
         assert main([*TRAIN, "--out", str(out)]) == 2
@@ -379,8 +408,16 @@ def test_one_class_figures_print_undefined_and_write_null(tmp_path, capsys):
 
     params = lambda labels: types.SimpleNamespace(slide=types.SimpleNamespace(slide_label=np.array(labels)))  # noqa: E731
     assert one_class(params([0, 0])) == 0 and one_class(params([1])) == 1 and one_class(params([0, 1])) is None
-    row = {"episodes": 8, "success_rate": 1.0, "mean_return": 0.1, "mean_length": 2.0, "mean_steps_to_success": 2.0,
-           "mean_fraction_read": 0.1, "mean_fields_of_view": 1.0, "success_rate_per_seed": [1.0]}
+    row = {
+        "episodes": 8,
+        "success_rate": 1.0,
+        "mean_return": 0.1,
+        "mean_length": 2.0,
+        "mean_steps_to_success": 2.0,
+        "mean_fraction_read": 0.1,
+        "mean_fields_of_view": 1.0,
+        "success_rate_per_seed": [1.0],
+    }
     rows = undefined_figures({"ppo (greedy)": dict(row), "random": dict(row)}, "detection", 0)  # no tumour slide
     assert rows["random"]["success_rate"] is None and rows["random"]["success_rate_per_seed"] == [None]
     diag = undefined_figures({"ppo (greedy)": {**row, "diagnosis_auc": float("nan")}}, "classification", 1)
@@ -393,7 +430,7 @@ def test_one_class_figures_print_undefined_and_write_null(tmp_path, capsys):
 
 
 # ----------------------------------------------------------------------------- words
-@pytest.mark.parametrize("episodes", ["99999999999999999999", str(2 ** 31), str(2 ** 63)])
+@pytest.mark.parametrize("episodes", ["99999999999999999999", str(2**31), str(2**63)])
 def test_evaluate_refuses_a_huge_episode_count_in_one_line(episodes, capsys):
     from histojax.cli import main
 
@@ -422,15 +459,16 @@ def test_an_empty_shard_is_refused(tmp_path, capsys):
 
 
 def test_a_published_agent_without_its_training_dataset_says_so_and_suggests_dataset(tmp_path, capsys, monkeypatch):
-    from histojax.cli import main
-
     import shutil
+
+    from histojax.cli import main
 
     monkeypatch.chdir(tmp_path)  # runs/r6/ref/validation, recorded in its config.json, is not here
     agent = shutil.copytree(ROOT / "baselines" / "published" / "c16-v1-diagnosis", tmp_path / "agent")
     config = json.loads((agent / "config.json").read_text())  # published before: its training path recorded
-    (agent / "config.json").write_text(json.dumps({**config, "env_kwargs": {**config["env_kwargs"],
-                                                                            "dataset": "runs/r6/ref/validation"}}))
+    (agent / "config.json").write_text(
+        json.dumps({**config, "env_kwargs": {**config["env_kwargs"], "dataset": "runs/r6/ref/validation"}})
+    )
     assert main(["evaluate", str(agent), "--episodes", "2"]) == 2
     line = _one_line(capsys)
     assert "runs/r6/ref/validation, which does not exist here" in line and "--dataset" in line, line
@@ -467,8 +505,9 @@ def test_a_dataset_without_feature_grids_is_named_not_none(tmp_path):
 
     (tmp_path / "dataset.json").write_text(json.dumps({"kind": "histojax dataset", "train": [], "test": []}))
     with pytest.raises(BundleError) as e:
-        datasets.check_dataset(tmp_path, registry.spec_of("HistoJAX-C16-Diagnosis-v1").settings,
-                               "HistoJAX-C16-Diagnosis-v1")
+        datasets.check_dataset(
+            tmp_path, registry.spec_of("HistoJAX-C16-Diagnosis-v1").settings, "HistoJAX-C16-Diagnosis-v1"
+        )
     assert "records no feature grids" in str(e.value) and "None" not in str(e.value)
     assert str(tmp_path / "dataset.json") in str(e.value)
 

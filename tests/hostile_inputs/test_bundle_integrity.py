@@ -1,5 +1,6 @@
 """Bundles refused instead of loaded wrong: mask values, sealed metadata, metadata fields and file
 names, unusable zoom levels, ``--overwrite`` of someone's files, and reads during a rebuild."""
+
 from __future__ import annotations
 
 import json
@@ -27,8 +28,9 @@ KIDNEY = ROOT / "tests" / "data" / "kidney-48-5_IHC.tif"
 @pytest.fixture(scope="module")
 def bundle(tmp_path_factory) -> Path:
     """The sample slide with its tumour target, Easy levels (3), 128-px views."""
-    return build_bundle(SVS, tmp_path_factory.mktemp("svs") / "bundle", annotations_path=TARGET, level_sets=(3,),
-                        progress=False)
+    return build_bundle(
+        SVS, tmp_path_factory.mktemp("svs") / "bundle", annotations_path=TARGET, level_sets=(3,), progress=False
+    )
 
 
 @pytest.fixture
@@ -137,14 +139,17 @@ def test_unsealed_metadata_warns_and_is_cross_checked(copy):
 
 
 # --------------------------------------------------------------------------- item 11: errors name the file
-@pytest.mark.parametrize("edit, message", [
-    (lambda m: m.update(tile_size=0), "tile_size 0 must be"),
-    (lambda m: m.update(tile_size="128"), "tile_size '128' must be"),
-    (lambda m: m["levels"][0].update(width=-4), "level 0 width -4"),
-    (lambda m: m["levels"][1].update(downsample=float("nan")), "level 1 downsample nan"),
-    (lambda m: m.update(levels=[]), "levels must be a non-empty list"),
-    (lambda m: m.update(magnification_range=0), "magnification_range 0"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda m: m.update(tile_size=0), "tile_size 0 must be"),
+        (lambda m: m.update(tile_size="128"), "tile_size '128' must be"),
+        (lambda m: m["levels"][0].update(width=-4), "level 0 width -4"),
+        (lambda m: m["levels"][1].update(downsample=float("nan")), "level 1 downsample nan"),
+        (lambda m: m.update(levels=[]), "levels must be a non-empty list"),
+        (lambda m: m.update(magnification_range=0), "magnification_range 0"),
+    ],
+)
 def test_malformed_metadata_field_names_metadata_json(copy, edit, message):
     _edit_metadata(copy, edit)
     for verify in (True, False):
@@ -177,11 +182,14 @@ def test_corrupt_npy_header_names_the_file(copy):
 
 
 # --------------------------------------------------------------------------- item 5: extreme build options
-@pytest.mark.parametrize("options, message", [
-    ({"magnification_range": 1e300}, "are both 128×128 px once padded"),
-    ({"magnification_range": 1.0}, "gives a single zoom level"),
-    ({"tile_size": 4096}, r"smaller than two 4096-px views"),
-])
+@pytest.mark.parametrize(
+    "options, message",
+    [
+        ({"magnification_range": 1e300}, "are both 128×128 px once padded"),
+        ({"magnification_range": 1.0}, "gives a single zoom level"),
+        ({"tile_size": 4096}, r"smaller than two 4096-px views"),
+    ],
+)
 def test_zoomless_builds_are_refused(tmp_path, options, message):
     out = tmp_path / "bundle"
     with pytest.raises(BundleError, match=message) as info:

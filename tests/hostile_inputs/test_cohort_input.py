@@ -6,6 +6,7 @@ refused when empty, mixed or off the slide, and warned about when they cover lit
 
 Hang tests run in a subprocess with a timeout, so a regression fails instead of hanging the suite.
 """
+
 from __future__ import annotations
 
 import os
@@ -40,18 +41,26 @@ def _tif(path: Path, size=(96, 128)) -> Path:
 
 
 def _asap(path: Path) -> Path:
-    path.write_text('<ASAP_Annotations><Annotations><Annotation Name="a" Type="Polygon" PartOfGroup="metastasis">'
-                    '<Coordinates><Coordinate Order="0" X="1" Y="1" /><Coordinate Order="1" X="20" Y="1" />'
-                    '<Coordinate Order="2" X="20" Y="20" /></Coordinates></Annotation></Annotations>'
-                    '</ASAP_Annotations>')
+    path.write_text(
+        '<ASAP_Annotations><Annotations><Annotation Name="a" Type="Polygon" PartOfGroup="metastasis">'
+        '<Coordinates><Coordinate Order="0" X="1" Y="1" /><Coordinate Order="1" X="20" Y="1" />'
+        '<Coordinate Order="2" X="20" Y="20" /></Coordinates></Annotation></Annotations>'
+        "</ASAP_Annotations>"
+    )
     return path
 
 
 def _run(script: str, timeout: float = 60) -> str:
     """Run ``script`` in a fresh interpreter; a hang past ``timeout`` s is a test failure, not a stuck suite."""
     try:
-        proc = subprocess.run([sys.executable, "-c", textwrap.dedent(script)], capture_output=True, text=True,
-                              timeout=timeout, env=ENV, cwd=ROOT)
+        proc = subprocess.run(
+            [sys.executable, "-c", textwrap.dedent(script)],
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            env=ENV,
+            cwd=ROOT,
+        )
     except subprocess.TimeoutExpired:
         pytest.fail(f"hung for {timeout} s (killed)")
     assert proc.returncode == 0, proc.stderr
@@ -162,8 +171,11 @@ def test_a_dicom_series_folder_is_one_slide(tmp_path):
     (uids / "README").write_text("exported")
     skipped = []
     entries = discover(tmp_path / "S", skipped=skipped, warn_skipped=False)
-    assert [(e.name, e.path) for e in entries] == [("case-7", series), ("export", uids),
-                                                   ("other", tmp_path / "S" / "other.tif")]
+    assert [(e.name, e.path) for e in entries] == [
+        ("case-7", series),
+        ("export", uids),
+        ("other", tmp_path / "S" / "other.tif"),
+    ]
     assert [s.path.name for s in skipped] == ["README"]
 
 
@@ -214,8 +226,10 @@ def test_the_label_table_and_reference_csv_in_the_slides_folder_are_not_skipped(
     (tmp_path / "S" / "labels.csv").write_text("s1,1\n")
     (tmp_path / "S" / "other.csv").write_text("s1,1\n")
     skipped = []
-    assert discover(tmp_path / "S", labels_csv=tmp_path / "S" / "labels.csv", skipped=skipped,
-                    warn_skipped=False)[0].label == 1
+    assert (
+        discover(tmp_path / "S", labels_csv=tmp_path / "S" / "labels.csv", skipped=skipped, warn_skipped=False)[0].label
+        == 1
+    )
     assert [s.path.name for s in skipped] == ["other.csv"] and "--labels" in skipped[0].reason
 
 
@@ -226,8 +240,9 @@ def test_labels_through_discovery_with_case_folded_twins(tmp_path):
         discover(tmp_path / "S", labels_csv=tmp_path / "labels.csv", warn_skipped=False)
 
 
-@pytest.mark.parametrize("encoding, ok", [("utf-8-sig", True), ("utf-16", True), ("latin-1", False),
-                                          ("utf-16-le", False), ("cp1252", False)])
+@pytest.mark.parametrize(
+    "encoding, ok", [("utf-8-sig", True), ("utf-16", True), ("latin-1", False), ("utf-16-le", False), ("cp1252", False)]
+)
 def test_label_table_encodings_are_read_or_named(tmp_path, encoding, ok):
     """Was: a UTF-16 or Latin-1 table gave "'utf-8' codec can't decode byte 0xff" with no file named."""
     p = tmp_path / "labels.csv"
@@ -312,16 +327,19 @@ def test_coordinates_in_the_wrong_units_warn_with_the_coverage(bundle, tmp_path,
     assert covered < 0.5 * total
 
 
-@pytest.mark.parametrize("case, match", [
-    ("n0", r"holds no patches \(N = 0\)"),
-    ("d0", r"features have D = 0 dimensions"),
-    ("strings", r"features are not numbers"),
-    ("outside", r"none of its 24 patches lies on the slide \(512×384 level-0 px"),
-    ("1e300", r"a coordinate is 1e\+300, beyond ±2\^31 level-0 px"),
-    ("no-size", r"pass --patch-size P \(px at pyramid level --patch-level L\)"),
-    ("attr", r"the 'patch_size' attribute of coords is not a number"),
-    ("float16", r"feature values reach [\d.]+e\+0[67], beyond float16's ±65504"),
-])
+@pytest.mark.parametrize(
+    "case, match",
+    [
+        ("n0", r"holds no patches \(N = 0\)"),
+        ("d0", r"features have D = 0 dimensions"),
+        ("strings", r"features are not numbers"),
+        ("outside", r"none of its 24 patches lies on the slide \(512×384 level-0 px"),
+        ("1e300", r"a coordinate is 1e\+300, beyond ±2\^31 level-0 px"),
+        ("no-size", r"pass --patch-size P \(px at pyramid level --patch-level L\)"),
+        ("attr", r"the 'patch_size' attribute of coords is not a number"),
+        ("float16", r"feature values reach [\d.]+e\+0[67], beyond float16's ±65504"),
+    ],
+)
 def test_feature_files_that_cannot_be_right_are_refused_naming_them(bundle, tmp_path, case, match):
     """Was: N = 0 and D = 0 built all-zero grids; coordinates all outside the slide gave "need at least one
     array to concatenate", one at 1e300 "invalid value encountered in cast", string features a raw
@@ -366,14 +384,18 @@ def test_a_huge_patch_count_is_refused_from_its_shape_before_reading(bundle, tmp
     h5 = tmp_path / "huge.h5"
     with h5py.File(h5, "w") as f:  # never written: the file holds no chunks, a few KB
         f.create_dataset("coords", shape=(20_000_000, 2), dtype="int32", chunks=(65536, 2), compression="gzip")
-        f.create_dataset("features", shape=(20_000_000, 64), dtype="float32", chunks=(4096, 64),
-                         compression="gzip").attrs["unused"] = 1
+        f.create_dataset(
+            "features", shape=(20_000_000, 64), dtype="float32", chunks=(4096, 64), compression="gzip"
+        ).attrs["unused"] = 1
         f["coords"].attrs["patch_size"] = 256
     assert h5.stat().st_size < 100_000
     tracemalloc.start()
     try:
-        with pytest.raises(FeatureFileError, match=r"huge\.h5: 20,000,000 patches × 64 features need 5\.1 GiB .*"
-                                                   r"limit of 4\.0 GiB"):
+        with pytest.raises(
+            FeatureFileError,
+            match=r"huge\.h5: 20,000,000 patches × 64 features need 5\.1 GiB .*"
+            r"limit of 4\.0 GiB",
+        ):
             import_features(_work(bundle, tmp_path), h5)
         peak = tracemalloc.get_traced_memory()[1]
     finally:
@@ -392,16 +414,23 @@ def test_a_patch_size_in_the_wrong_units_is_refused_before_the_overlap_table(bun
     coords = rng.integers(0, 32, (n, 2)).astype(np.int32)
     assert overlap_count(coords.astype(float), 1e9, (1000, 1000), 128.0, 128.0) == n * 1e6  # no overflow
     small = _h5(tmp_path / "s.h5", coords[:10], np.zeros((10, 1), np.float32), patch_size=1e9)
-    with pytest.raises(FeatureFileError, match=r"s\.h5: a patch of 1e\+09 level-0 px is larger than the whole slide "
-                                               r"\(512×384 level-0 px\)"):
+    with pytest.raises(
+        FeatureFileError,
+        match=r"s\.h5: a patch of 1e\+09 level-0 px is larger than the whole slide "
+        r"\(512×384 level-0 px\)",
+    ):
         import_features(_work(bundle, tmp_path), small)
     big = _h5(tmp_path / "big.h5", coords, np.zeros((n, 1), np.float32), patch_size=300)
-    with pytest.raises(FeatureFileError, match=r"big\.h5: its 200,000 patches of 300 level-0 px overlap [\d,]+ "
-                                               r"views of a 12×16 grid: \d+\.\d GiB .*limit of 0\.1 GiB"):
+    with pytest.raises(
+        FeatureFileError,
+        match=r"big\.h5: its 200,000 patches of 300 level-0 px overlap [\d,]+ "
+        r"views of a 12×16 grid: \d+\.\d GiB .*limit of 0\.1 GiB",
+    ):
         import_features(_work(bundle, tmp_path), big, max_bytes=100 * 2**20)
     with pytest.raises(FeatureFileError, match=r"patch extent 1e\+10 level-0 px is not in \(0, 2\^31\)"):
-        import_features(_work(bundle, tmp_path), _h5(tmp_path / "b2.h5", coords[:10], np.zeros((10, 1)),
-                                                     patch_size=1e10))
+        import_features(
+            _work(bundle, tmp_path), _h5(tmp_path / "b2.h5", coords[:10], np.zeros((10, 1)), patch_size=1e10)
+        )
 
 
 def test_mixed_feature_dimensions_are_refused_naming_two_files(tmp_path):
@@ -444,8 +473,14 @@ def tissue_tif(tmp_path_factory) -> Path:
 
 def _dataset_cli(args, timeout=240):
     try:
-        return subprocess.run([sys.executable, "-m", "data_tools", "dataset", *map(str, args)], capture_output=True,
-                              text=True, timeout=timeout, env=ENV, cwd=ROOT)
+        return subprocess.run(
+            [sys.executable, "-m", "data_tools", "dataset", *map(str, args)],
+            capture_output=True,
+            text=True,
+            timeout=timeout,
+            env=ENV,
+            cwd=ROOT,
+        )
     except subprocess.TimeoutExpired:
         pytest.fail(f"histojax dataset hung for {timeout} s (killed)")
 
@@ -465,8 +500,9 @@ def test_the_dataset_command_with_a_fifo_a_loop_and_other_formats(tissue_tif, tm
     assert proc.returncode == 0, proc.stderr
     warned = [line for line in proc.stderr.splitlines() if line.startswith("warning: ") and "skipped" in line]
     assert len(warned) == 4, proc.stderr
-    assert any("p.tif: skipped: a FIFO" in w for w in warned) and any("x.vsi: skipped: a Olympus VSI" in w
-                                                                         for w in warned)
+    assert any("p.tif: skipped: a FIFO" in w for w in warned) and any(
+        "x.vsi: skipped: a Olympus VSI" in w for w in warned
+    )
     assert sum("symlink loop" in w for w in warned) == 2
     import json
 

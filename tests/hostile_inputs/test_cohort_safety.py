@@ -7,6 +7,7 @@ parent, a split that failures left unscorable is refused, and the build side's o
 Stand-in slides are small pyramidal TIFFs cut from the real pixels of the embedded CMU-1-Small-Region.svs
 (CC0 1.0, see tests/data/LICENSES.md).
 """
+
 from __future__ import annotations
 
 import errno
@@ -21,20 +22,17 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
-from data_tools.bundle_files.writes import mark_temporary
 import tifffile
+from slide_helpers import pyramid
 
 from data_tools.__main__ import main as data_main
 from data_tools.bundle_files.reading import load_bundle, read_metadata
+from data_tools.bundle_files.writes import mark_temporary
 from data_tools.datasets.build import build_dataset
 from data_tools.errors import BundleError, HistojaxDataError
 from histojax.sample import SAMPLE_SLIDE
-from slide_helpers import pyramid
 
 ROOT = Path(__file__).resolve().parents[2]
-
-
 
 
 @pytest.fixture(scope="module")
@@ -45,7 +43,7 @@ def pixels():
 
 def crop(pixels, i: int) -> np.ndarray:
     y, x = 320 + (i * 160) % 1920, 768 + (i * 64) % 512
-    return np.ascontiguousarray(pixels[y:y + 640, x:x + 512, :3])
+    return np.ascontiguousarray(pixels[y : y + 640, x : x + 512, :3])
 
 
 BLANK = np.full((640, 512, 3), 242, np.uint8)  # glass only: fails with "no tissue found"
@@ -86,8 +84,9 @@ def _one_error(argv, capsys) -> str:
 
 
 def _tree(folder: Path) -> dict[str, bytes]:
-    return {str(p.relative_to(folder)): (p.read_bytes() if p.is_file() else b"<dir>")
-            for p in sorted(folder.rglob("*"))}
+    return {
+        str(p.relative_to(folder)): (p.read_bytes() if p.is_file() else b"<dir>") for p in sorted(folder.rglob("*"))
+    }
 
 
 # ------------------------------------------------------------------ 1. a user's folder inside --out
@@ -96,8 +95,9 @@ def test_a_users_folder_inside_out_is_never_removed(cohort, tmp_path, capsys):
     out = tmp_path / "o"
     (out / "bundles" / "s1").mkdir(parents=True)
     (out / "bundles" / "s1" / "thesis.txt").write_text("t")
-    code, text, err = _run(["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3",
-                            "--quiet"], capsys)
+    code, text, err = _run(
+        ["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3", "--quiet"], capsys
+    )
     assert (out / "bundles" / "s1" / "thesis.txt").read_text() == "t"  # before: removed when s1 failed
     assert sorted(p.name for p in (out / "bundles" / "s1").iterdir()) == ["thesis.txt"]
     assert code == 1 and "failed s1:" in text and "thesis.txt" in text and "did not write" in text
@@ -128,8 +128,9 @@ def test_a_failed_rebuild_keeps_the_previous_bundle_and_dataset_json(built, coho
         load_bundle(work / "bundles" / n)
     assert sorted(s["failed"]) == ["s1", "s2", "s3"] and sorted(s["kept"]) == ["s1", "s2", "s3"]
     # the reason names where it was writing (a full disk's OSError names no file): the bundle, not its temporary
-    assert all(f"bundles/{n}:" in r and "No space left on device" in r and ".tmp-" not in r
-               for n, r in s["failed"].items())
+    assert all(
+        f"bundles/{n}:" in r and "No space left on device" in r and ".tmp-" not in r for n, r in s["failed"].items()
+    )
     ds = json.loads((work / "dataset.json").read_text())
     assert ds["train"] == ["bundles/s1", "bundles/s2"] and ds["test"] == ["bundles/s3"]
     assert sorted(ds["kept_after_failed_rebuild"]) == ["s1", "s2", "s3"]
@@ -159,8 +160,9 @@ def test_restart_keeps_dataset_json_loadable_during_the_rebuild(built, cohort, t
 
     monkeypatch.setattr(data_tools.bundle, "build_bundle", check_then_fail)
     with pytest.raises(HistojaxDataError, match="the test split would hold no slide.*s3: .*No space left"):
-        build_dataset(slides, work, labels=labels, levels=(3,), restart=True, progress=False,
-                      seed=1)  # another seed: new options, every slide rebuilt, and every rebuild fails
+        build_dataset(
+            slides, work, labels=labels, levels=(3,), restart=True, progress=False, seed=1
+        )  # another seed: new options, every slide rebuilt, and every rebuild fails
     assert seen == [3, 3, 3]
     assert all((work / "bundles" / n / "metadata.json").is_file() for n in ("s1", "s2", "s3"))
     assert len(dataset_slides(work, "all")) == 3  # the old dataset.json stays, its bundles whole
@@ -173,8 +175,9 @@ def test_a_dataset_json_the_user_wrote_is_never_overwritten(cohort, built, tmp_p
     out = tmp_path / "o"
     out.mkdir()
     (out / "dataset.json").write_text("{}\n")
-    line = _one_error(["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3",
-                       "--quiet"], capsys)
+    line = _one_error(
+        ["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3", "--quiet"], capsys
+    )
     assert "dataset.json" in line and "not written by histojax dataset or c16" in line
     assert (out / "dataset.json").read_text() == "{}\n" and sorted(p.name for p in out.iterdir()) == ["dataset.json"]
     # one histojax wrote, then edited by hand: refused too; the same, as written: accepted
@@ -203,8 +206,9 @@ def test_build_overwrite_replaces_only_what_histojax_wrote(built, cohort, tmp_pa
         (out / ("metadata.json" if plant.startswith("empty") else "dataset.json")).write_text("")
     (out / "thesis.txt").write_text("years of work")
     before = _tree(out)
-    line = _one_error(["build", str(slides / "s2.tif"), "--out", str(out), "--overwrite", "--levels", "3",
-                       "--quiet"], capsys)
+    line = _one_error(
+        ["build", str(slides / "s2.tif"), "--out", str(out), "--overwrite", "--levels", "3", "--quiet"], capsys
+    )
     assert str(out) in line and "refusing to overwrite" in line
     assert _tree(out) == before  # before: the folder was wiped
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]
@@ -214,8 +218,9 @@ def test_build_overwrite_still_replaces_its_own_bundle(built, cohort, tmp_path, 
     slides, _ = cohort
     out = tmp_path / "f"
     shutil.copytree(built / "bundles" / "s1", out)
-    code, _, err = _run(["build", str(slides / "s2.tif"), "--out", str(out), "--overwrite", "--levels", "3",
-                         "--quiet"], capsys)
+    code, _, err = _run(
+        ["build", str(slides / "s2.tif"), "--out", str(out), "--overwrite", "--levels", "3", "--quiet"], capsys
+    )
     assert code == 0, err
     assert read_metadata(out).source["file"] == "s2.tif"
     assert sorted(p.name for p in tmp_path.iterdir()) == ["f"]
@@ -280,9 +285,27 @@ def _alive(pid: int) -> bool:
 @pytest.mark.parametrize("sig", [signal.SIGKILL, signal.SIGTERM])
 def test_jobs_workers_die_with_their_parent(cohort, tmp_path, sig):
     slides, labels = cohort
-    proc = subprocess.Popen([sys.executable, "-m", "data_tools", "dataset", str(slides), "--out", str(tmp_path / "o"),
-                             "--labels", str(labels), "--levels", "3", "--jobs", "2", "--quiet"], cwd=ROOT,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    proc = subprocess.Popen(
+        [
+            sys.executable,
+            "-m",
+            "data_tools",
+            "dataset",
+            str(slides),
+            "--out",
+            str(tmp_path / "o"),
+            "--labels",
+            str(labels),
+            "--levels",
+            "3",
+            "--jobs",
+            "2",
+            "--quiet",
+        ],
+        cwd=ROOT,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     workers: list[int] = []
     try:
         deadline = time.time() + 120
@@ -314,8 +337,20 @@ def test_failures_that_empty_the_test_split_are_refused(pixels, tmp_path, capsys
     pyramid(slides / "c.tif", BLANK)  # the one test slide fails: no tissue
     (tmp_path / "labels.csv").write_text("slide,label,split\na,0,train\nb,0,train\nc,0,test\n")
     out = tmp_path / "o"
-    line = _one_error(["dataset", str(slides), "--out", str(out), "--labels", str(tmp_path / "labels.csv"),
-                       "--levels", "3", "--quiet"], capsys)  # before: exit 0 (1) with 0 test slides
+    line = _one_error(
+        [
+            "dataset",
+            str(slides),
+            "--out",
+            str(out),
+            "--labels",
+            str(tmp_path / "labels.csv"),
+            "--levels",
+            "3",
+            "--quiet",
+        ],
+        capsys,
+    )  # before: exit 0 (1) with 0 test slides
     assert "the test split would hold no slide" in line and "c: " in line and "no tissue" in line
     assert not (out / "dataset.json").exists()
     assert (out / "bundles" / "a" / "metadata.json").is_file()  # the built slides are kept
@@ -324,8 +359,13 @@ def test_failures_that_empty_the_test_split_are_refused(pixels, tmp_path, capsys
 def test_failures_that_leave_no_tumour_slide_in_test_are_refused(pixels, tmp_path, capsys):
     from data_tools.datasets.build import check_scorable
 
-    plan = {"slides": {"a": {"split": "train", "label": 1}, "b": {"split": "test", "label": 1},
-                       "c": {"split": "test", "label": 0}}}
+    plan = {
+        "slides": {
+            "a": {"split": "train", "label": 1},
+            "b": {"split": "test", "label": 1},
+            "c": {"split": "test", "label": 0},
+        }
+    }
     with pytest.raises(HistojaxDataError, match="test split would hold no tumour slide.*b: no tissue"):
         check_scorable(tmp_path, plan, {"a": {}, "c": {}}, {"b": "no tissue"})
     check_scorable(tmp_path, plan, {"a": {}, "b": {}, "c": {}}, {})
@@ -339,13 +379,15 @@ def test_another_tools_plan_json_is_one_line_and_untouched(cohort, tmp_path, cap
     out.mkdir()
     (out / "plan.json").write_text(plan if isinstance(plan, str) else json.dumps(plan))
     before = _tree(out)
-    line = _one_error(["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3",
-                       "--quiet"], capsys)  # before: KeyError / "'int' object is not iterable" tracebacks
+    line = _one_error(
+        ["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3", "--quiet"], capsys
+    )  # before: KeyError / "'int' object is not iterable" tracebacks
     assert "plan.json" in line and "histojax dataset" in line
     assert _tree(out) == before
     for extra in ([], ["--restart"]):
-        assert "plan.json" in _one_error(["dataset", str(slides), "--out", str(out), "--levels", "3", "--quiet",
-                                          *extra], capsys)
+        assert "plan.json" in _one_error(
+            ["dataset", str(slides), "--out", str(out), "--levels", "3", "--quiet", *extra], capsys
+        )
     assert "plan.json" in _one_error(["dataset", "--merge", "--out", str(out)], capsys)
     assert _tree(out) == before
 
@@ -355,8 +397,10 @@ def test_a_full_disk_names_the_file(cohort, tmp_path, capsys, monkeypatch):
 
     slides, labels = cohort
     monkeypatch.setattr(writes.os, "fsync", _full_disk)
-    line = _one_error(["dataset", str(slides), "--out", str(tmp_path / "o"), "--labels", str(labels), "--levels", "3",
-                       "--quiet"], capsys)
+    line = _one_error(
+        ["dataset", str(slides), "--out", str(tmp_path / "o"), "--labels", str(labels), "--levels", "3", "--quiet"],
+        capsys,
+    )
     assert "No space left on device" in line and "plan.json" in line  # before: "error: No space left on device"
 
 
@@ -368,8 +412,20 @@ def test_record_names_never_collide(pixels, tmp_path, capsys):
     pyramid(slides / "y.tif", crop(pixels, 2))
     (tmp_path / "labels.csv").write_text("slide,label,split\nx,0,train\nx.failed,0,train\ny,0,test\n")
     out = tmp_path / "o"
-    code, text, err = _run(["dataset", str(slides), "--out", str(out), "--labels", str(tmp_path / "labels.csv"),
-                            "--levels", "3", "--quiet"], capsys)
+    code, text, err = _run(
+        [
+            "dataset",
+            str(slides),
+            "--out",
+            str(out),
+            "--labels",
+            str(tmp_path / "labels.csv"),
+            "--levels",
+            "3",
+            "--quiet",
+        ],
+        capsys,
+    )
     assert code == 1, err  # before: dataset.json never written
     ds = json.loads((out / "dataset.json").read_text())
     assert list(ds["failed"]) == ["x"] and ds["train"] == ["bundles/x.failed"]
@@ -430,8 +486,11 @@ def test_make_during_a_first_build_says_it_is_being_built(tmp_path):
     (out / "bundles").mkdir(parents=True)
     (out / "plan.json").write_text("{}")
     with file_lock(bundle_lock_path(out / "bundles" / "s1")):
-        with pytest.raises(BundleError, match=r"being built by `histojax dataset` \(1 slide lock\(s\) held, e\.g\. "
-                                              r"bundles/\.s1\.dataset-lock\).*--merge"):
+        with pytest.raises(
+            BundleError,
+            match=r"being built by `histojax dataset` \(1 slide lock\(s\) held, e\.g\. "
+            r"bundles/\.s1\.dataset-lock\).*--merge",
+        ):
             dataset_slides(out)
     with pytest.raises(BundleError, match="not every slide recorded"):
         dataset_slides(out)
@@ -458,8 +517,10 @@ def test_a_worker_killed_mid_build_is_one_line(cohort, tmp_path, capsys):
             time.sleep(0.05)
 
     threading.Thread(target=kill_a_worker, daemon=True).start()
-    line = _one_error(["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3",
-                       "--jobs", "2", "--quiet"], capsys)
+    line = _one_error(
+        ["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3", "--jobs", "2", "--quiet"],
+        capsys,
+    )
     assert killed and str(out) in line and "worker process died" in line and "rerun to resume" in line
     s = build_dataset(slides, out, labels=labels, levels=(3,), progress=False)
     assert s["dataset"] is not None and not s["failed"] and not list(out.rglob(".*.tmp-*"))

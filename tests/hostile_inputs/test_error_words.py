@@ -1,5 +1,6 @@
 """The words of error lines: a user error is one line with no debug hint; only an unexpected error (raised inside
 a library) says how to see its traceback."""
+
 from __future__ import annotations
 
 import json
@@ -15,8 +16,22 @@ def _line(capsys) -> str:
 
 def test_a_users_bad_folder_is_one_line_without_the_debug_hint(tmp_path, capsys):
     (tmp_path / "ds").mkdir()  # not a dataset: a HistojaxDataError the command does not catch itself
-    assert cli.main(["train", "--env", "HistoJAX-Easy-v0", "--total-steps", "512", "--dataset", str(tmp_path / "ds"),
-                     "--out", str(tmp_path / "r")]) == 2
+    assert (
+        cli.main(
+            [
+                "train",
+                "--env",
+                "HistoJAX-Easy-v0",
+                "--total-steps",
+                "512",
+                "--dataset",
+                str(tmp_path / "ds"),
+                "--out",
+                str(tmp_path / "r"),
+            ]
+        )
+        == 2
+    )
     line = _line(capsys)
     assert "no dataset.json" in line and "HISTOJAX_DEBUG" not in line, line
 

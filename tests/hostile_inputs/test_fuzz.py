@@ -11,6 +11,7 @@ raise the project's one-line error naming the file); the default `make test` run
 slide. The ``*-lost`` targets write tumour parts of area kinds (untyped ASAP annotations, closed
 LineStrings included) and kinds without area, and check that each is used or counted in the warning.
 """
+
 from __future__ import annotations
 
 import collections
@@ -30,9 +31,12 @@ from data_tools.errors import AnnotationError, BundleError, SlideError
 from data_tools.slide_files.open import open_slide
 
 EXAMPLES = int(os.environ.get("HISTOJAX_FUZZ_EXAMPLES", "60"))
-FUZZ = settings(max_examples=EXAMPLES, deadline=None, database=None,
-                suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large,
-                                       HealthCheck.function_scoped_fixture])
+FUZZ = settings(
+    max_examples=EXAMPLES,
+    deadline=None,
+    database=None,
+    suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large, HealthCheck.function_scoped_fixture],
+)
 COUNTS: dict[str, collections.Counter] = collections.defaultdict(collections.Counter)
 
 
@@ -58,33 +62,58 @@ def outcome(target: str, fn):
 
 
 # ------------------------------------------------------------------ ASAP XML
-numbers = st.one_of(st.floats(allow_nan=True, allow_infinity=True).map(repr), st.integers(-10**6, 10**7).map(str),
-                    st.sampled_from(["", "abc", "1e999", "-0", "0x10", "1,5", " 12 "]))
-coordinate = st.builds(lambda o, x, y: f'<Coordinate Order="{o}" X="{x}" Y="{y}" />',
-                       st.one_of(st.integers(-2, 40).map(str), st.just("x")), numbers, numbers)
+numbers = st.one_of(
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.integers(-(10**6), 10**7).map(str),
+    st.sampled_from(["", "abc", "1e999", "-0", "0x10", "1,5", " 12 "]),
+)
+coordinate = st.builds(
+    lambda o, x, y: f'<Coordinate Order="{o}" X="{x}" Y="{y}" />',
+    st.one_of(st.integers(-2, 40).map(str), st.just("x")),
+    numbers,
+    numbers,
+)
 clean_annotation = st.builds(
-    lambda t, g, pts: f'<Annotation Name="c" Type="{t}" PartOfGroup="{g}"><Coordinates>'
-                      + "".join(f'<Coordinate Order="{i}" X="{x}" Y="{y}" />' for i, (x, y) in enumerate(pts))
-                      + "</Coordinates></Annotation>",
-    st.sampled_from(["Polygon", "Spline"]), st.sampled_from(["metastasis", "_0", "Tumor", "_2"]),
-    st.lists(st.tuples(st.integers(0, 5000), st.integers(0, 5000)), min_size=3, max_size=10))
+    lambda t, g, pts: (
+        f'<Annotation Name="c" Type="{t}" PartOfGroup="{g}"><Coordinates>'
+        + "".join(f'<Coordinate Order="{i}" X="{x}" Y="{y}" />' for i, (x, y) in enumerate(pts))
+        + "</Coordinates></Annotation>"
+    ),
+    st.sampled_from(["Polygon", "Spline"]),
+    st.sampled_from(["metastasis", "_0", "Tumor", "_2"]),
+    st.lists(st.tuples(st.integers(0, 5000), st.integers(0, 5000)), min_size=3, max_size=10),
+)
 dirty_annotation = st.builds(
-    lambda t, g, cs: '<Annotation Name="a"' + ("" if t is None else f' Type="{t}"') + f' PartOfGroup="{g}">'
-                     f'<Coordinates>{"".join(cs)}</Coordinates></Annotation>',
+    lambda t, g, cs: (
+        '<Annotation Name="a"' + ("" if t is None else f' Type="{t}"') + f' PartOfGroup="{g}">'
+        f"<Coordinates>{''.join(cs)}</Coordinates></Annotation>"
+    ),
     st.sampled_from(["Polygon", "Spline", "Rectangle", "PointSet", "Dot", "", "Weird", "Freehand", None]),
     st.sampled_from(["metastasis", "_0", "_2", "negative", "Tumor", "None", "", "tissue", "zz"]),
-    st.lists(coordinate, max_size=12))
+    st.lists(coordinate, max_size=12),
+)
 annotation = st.one_of(clean_annotation, clean_annotation, dirty_annotation)
-prologue = st.sampled_from([
-    '<?xml version="1.0"?>', "", '<!DOCTYPE x [<!ENTITY a "aaaaaaaa">]>',
-    '<!DOCTYPE x [<!ENTITY e SYSTEM "file:///etc/passwd">]>', "\ufeff"])
+prologue = st.sampled_from(
+    [
+        '<?xml version="1.0"?>',
+        "",
+        '<!DOCTYPE x [<!ENTITY a "aaaaaaaa">]>',
+        '<!DOCTYPE x [<!ENTITY e SYSTEM "file:///etc/passwd">]>',
+        "\ufeff",
+    ]
+)
 
 
 @FUZZ
-@given(pro=prologue, anns=st.lists(annotation, max_size=6), cut=st.integers(0, 4000),
-       junk=st.binary(max_size=20), mode=st.sampled_from([0, 0, 1, 2]))
+@given(
+    pro=prologue,
+    anns=st.lists(annotation, max_size=6),
+    cut=st.integers(0, 4000),
+    junk=st.binary(max_size=20),
+    mode=st.sampled_from([0, 0, 1, 2]),
+)
 def test_fuzz_asap_xml(tmp_path, pro, anns, cut, junk, mode):
-    text = f'{pro}<ASAP_Annotations><Annotations>{"".join(anns)}</Annotations></ASAP_Annotations>'
+    text = f"{pro}<ASAP_Annotations><Annotations>{''.join(anns)}</Annotations></ASAP_Annotations>"
     data = text.encode("utf-8", "surrogatepass")
     if mode == 1:
         data = data[:cut]  # truncated
@@ -100,23 +129,51 @@ def test_fuzz_asap_xml(tmp_path, pro, anns, cut, junk, mode):
 huge_integers = st.integers(10**300, 10**400).flatmap(lambda v: st.sampled_from([v, -v]))  # beyond any float
 json_values = st.recursive(
     st.one_of(st.none(), st.booleans(), st.floats(allow_nan=False), st.integers(), st.text(max_size=8)),
-    lambda children: st.one_of(st.lists(children, max_size=5), st.dictionaries(st.text(max_size=8), children,
-                                                                                max_size=5)),
-    max_leaves=30)
+    lambda children: st.one_of(
+        st.lists(children, max_size=5), st.dictionaries(st.text(max_size=8), children, max_size=5)
+    ),
+    max_leaves=30,
+)
 rings = st.one_of(
     st.lists(st.lists(st.integers(0, 10**4), min_size=2, max_size=2), min_size=3, max_size=8).map(
-        lambda r: [r + [r[0]]]),  # a closed ring: often a valid polygon
-    st.lists(st.lists(st.one_of(st.floats(allow_nan=False, allow_infinity=False, width=32),
-                                st.integers(-10, 10**6), huge_integers), min_size=0, max_size=3), max_size=8))
-geometry = st.fixed_dictionaries({"type": st.sampled_from(["Polygon", "MultiPolygon", "Point", "LineString",
-                                                           "MultiLineString", "GeometryCollection", "x"]),
-                                  "coordinates": st.one_of(rings, st.lists(rings, max_size=3), json_values)})
-feature = st.fixed_dictionaries({"type": st.just("Feature"), "geometry": st.one_of(geometry, json_values),
-                                 "properties": st.one_of(json_values, st.fixed_dictionaries(
-                                     {"classification": st.fixed_dictionaries({"name": st.text(max_size=8)})}))})
-documents = st.one_of(json_values, geometry, feature,
-                      st.fixed_dictionaries({"type": st.just("FeatureCollection"),
-                                             "features": st.lists(st.one_of(feature, json_values), max_size=5)}))
+        lambda r: [r + [r[0]]]
+    ),  # a closed ring: often a valid polygon
+    st.lists(
+        st.lists(
+            st.one_of(
+                st.floats(allow_nan=False, allow_infinity=False, width=32), st.integers(-10, 10**6), huge_integers
+            ),
+            min_size=0,
+            max_size=3,
+        ),
+        max_size=8,
+    ),
+)
+geometry = st.fixed_dictionaries(
+    {
+        "type": st.sampled_from(
+            ["Polygon", "MultiPolygon", "Point", "LineString", "MultiLineString", "GeometryCollection", "x"]
+        ),
+        "coordinates": st.one_of(rings, st.lists(rings, max_size=3), json_values),
+    }
+)
+feature = st.fixed_dictionaries(
+    {
+        "type": st.just("Feature"),
+        "geometry": st.one_of(geometry, json_values),
+        "properties": st.one_of(
+            json_values, st.fixed_dictionaries({"classification": st.fixed_dictionaries({"name": st.text(max_size=8)})})
+        ),
+    }
+)
+documents = st.one_of(
+    json_values,
+    geometry,
+    feature,
+    st.fixed_dictionaries(
+        {"type": st.just("FeatureCollection"), "features": st.lists(st.one_of(feature, json_values), max_size=5)}
+    ),
+)
 
 
 @FUZZ
@@ -145,8 +202,10 @@ VALID_TIFF = _valid_tiff()
 
 
 @FUZZ
-@given(edits=st.lists(st.tuples(st.integers(0, 400), st.integers(0, 255)), min_size=1, max_size=8),
-       cut=st.one_of(st.none(), st.integers(0, len(VALID_TIFF))))
+@given(
+    edits=st.lists(st.tuples(st.integers(0, 400), st.integers(0, 255)), min_size=1, max_size=8),
+    cut=st.one_of(st.none(), st.integers(0, len(VALID_TIFF))),
+)
 def test_fuzz_tiff_header(tmp_path, edits, cut):
     data = bytearray(VALID_TIFF)
     header_end = min(len(data), 8 + 400)
@@ -167,29 +226,41 @@ def test_fuzz_tiff_header(tmp_path, edits, cut):
 # ------------------------------------------------------------------ hostile geometry, both readers
 small = st.integers(-100, 5100)
 extreme = st.one_of(
-    small, st.floats(min_value=-3e9, max_value=3e9, allow_nan=False),
+    small,
+    st.floats(min_value=-3e9, max_value=3e9, allow_nan=False),
     st.floats(min_value=-1.7e308, max_value=1.7e308, allow_nan=False),
     st.sampled_from([2.0**31, -(2.0**31), 2.0**31 + 1, 2147483647.5, 1e300, -1e300, 1.7e308, 5e-324, 1e9]),
-    huge_integers, st.sampled_from([2**31, -(2**31), 2**31 + 1, 10**309]))  # JSON integers: exact, any size
+    huge_integers,
+    st.sampled_from([2**31, -(2**31), 2**31 + 1, 10**309]),
+)  # JSON integers: exact, any size
 tangled = st.one_of(  # random vertices: mostly self-intersecting, in the slide or at extreme coordinates
     st.lists(st.tuples(small, small), min_size=3, max_size=60),
     st.lists(st.tuples(small, small), min_size=3, max_size=60),
-    st.lists(st.tuples(extreme, extreme), min_size=3, max_size=60))
+    st.lists(st.tuples(extreme, extreme), min_size=3, max_size=60),
+)
 SIDE = 5000
 
 
 def _geometry_file(tmp_path, fmt: str, polygons) -> object:
     if fmt == "xml":
-        anns = "".join(f'<Annotation Name="g{i}" Type="Polygon" PartOfGroup="{"_2" if i == 2 else "_0"}">'
-                       "<Coordinates>" + "".join(f'<Coordinate Order="{j}" X="{x!r}" Y="{y!r}" />'
-                                                 for j, (x, y) in enumerate(pts)) + "</Coordinates></Annotation>"
-                       for i, pts in enumerate(polygons))
+        anns = "".join(
+            f'<Annotation Name="g{i}" Type="Polygon" PartOfGroup="{"_2" if i == 2 else "_0"}">'
+            "<Coordinates>"
+            + "".join(f'<Coordinate Order="{j}" X="{x!r}" Y="{y!r}" />' for j, (x, y) in enumerate(pts))
+            + "</Coordinates></Annotation>"
+            for i, pts in enumerate(polygons)
+        )
         path = tmp_path / "fuzz.xml"
         path.write_text(f"<ASAP_Annotations><Annotations>{anns}</Annotations></ASAP_Annotations>")
     else:
-        feats = [{"type": "Feature", "properties": {"label": "exclusion" if i == 2 else "tumour"},
-                  "geometry": {"type": "Polygon", "coordinates": [[list(p) for p in pts]]}}
-                 for i, pts in enumerate(polygons)]
+        feats = [
+            {
+                "type": "Feature",
+                "properties": {"label": "exclusion" if i == 2 else "tumour"},
+                "geometry": {"type": "Polygon", "coordinates": [[list(p) for p in pts]]},
+            }
+            for i, pts in enumerate(polygons)
+        ]
         path = tmp_path / "fuzz.geojson"
         path.write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
     return path
@@ -228,11 +299,14 @@ def fuzz_bundle(tmp_path_factory):
     from data_tools.datasets.synth.dataset import make_dataset
 
     root = tmp_path_factory.mktemp("fuzz-bundle")
-    ds = make_dataset(root, n_slides=2, size=(320, 256), seed=0, tile_size=32, level_sets=(3,), progress=False,
-                      previews=False)
-    pristine = next(root / s["bundle"] for s in ds["slides"]
-                    if any(lv["tumour_pixels"] for lv in json.loads((root / s["bundle"] / "metadata.json")
-                                                                     .read_text())["levels"]))
+    ds = make_dataset(
+        root, n_slides=2, size=(320, 256), seed=0, tile_size=32, level_sets=(3,), progress=False, previews=False
+    )
+    pristine = next(
+        root / s["bundle"]
+        for s in ds["slides"]
+        if any(lv["tumour_pixels"] for lv in json.loads((root / s["bundle"] / "metadata.json").read_text())["levels"])
+    )
     work = root / "work"
     shutil.copytree(pristine, work)
     return pristine, work
@@ -250,9 +324,16 @@ mask_dtypes = st.sampled_from(["uint8", "uint8", "bool", "int8", "int16", "uint1
 
 
 @FUZZ
-@given(name=st.sampled_from(MASKS), dtype=mask_dtypes, values=st.sampled_from(["01", "scaled", "random", "negative"]),
-       scale=st.sampled_from([2, 7, 255, 256]), reshape=st.booleans(), reseal=st.booleans(), verify=st.booleans(),
-       seed=st.integers(0, 2**16))
+@given(
+    name=st.sampled_from(MASKS),
+    dtype=mask_dtypes,
+    values=st.sampled_from(["01", "scaled", "random", "negative"]),
+    scale=st.sampled_from([2, 7, 255, 256]),
+    reshape=st.booleans(),
+    reseal=st.booleans(),
+    verify=st.booleans(),
+    seed=st.integers(0, 2**16),
+)
 def test_fuzz_bundle_mask_values(fuzz_bundle, name, dtype, values, scale, reshape, reseal, verify, seed):
     from data_tools.bundle_files.format import sha256
     from data_tools.bundle_files.reading import load_bundle
@@ -262,8 +343,12 @@ def test_fuzz_bundle_mask_values(fuzz_bundle, name, dtype, values, scale, reshap
     try:
         original = np.load(pristine / name).astype(np.int64)
         rng = np.random.default_rng(seed)
-        mask = {"01": original, "scaled": original * scale, "random": rng.integers(0, scale + 1, original.shape),
-                "negative": original - rng.integers(0, 2, original.shape)}[values]
+        mask = {
+            "01": original,
+            "scaled": original * scale,
+            "random": rng.integers(0, scale + 1, original.shape),
+            "negative": original - rng.integers(0, 2, original.shape),
+        }[values]
         if reshape:
             mask = mask[: max(1, mask.shape[0] - 1 - seed % 5)]
         with warnings.catch_warnings():
@@ -290,11 +375,16 @@ def test_fuzz_bundle_mask_values(fuzz_bundle, name, dtype, values, scale, reshap
 
 
 JSON_EDIT_VALUES = st.one_of(
-    st.none(), st.booleans(), st.integers(-2**40, 2**40), st.sampled_from([0, 1, 7, 8, 64, 128, 2**31, -1]),
-    st.floats(allow_nan=True, allow_infinity=True), st.text(max_size=6),
+    st.none(),
+    st.booleans(),
+    st.integers(-(2**40), 2**40),
+    st.sampled_from([0, 1, 7, 8, 64, 128, 2**31, -1]),
+    st.floats(allow_nan=True, allow_infinity=True),
+    st.text(max_size=6),
     st.sampled_from(["/etc/passwd", "../x.npy", "..", "", "pixels_00.npy", "tumour_01.npy", "a/b.npy"]),
-    st.lists(st.integers(-3, 9), max_size=4), st.dictionaries(st.sampled_from(["file", "level"]),
-                                                              st.integers(-2, 5), max_size=2))
+    st.lists(st.integers(-3, 9), max_size=4),
+    st.dictionaries(st.sampled_from(["file", "level"]), st.integers(-2, 5), max_size=2),
+)
 
 
 def _paths(node, prefix=()):
@@ -309,8 +399,9 @@ def _paths(node, prefix=()):
 
 
 @FUZZ
-@given(pick=st.integers(0, 10**6), value=JSON_EDIT_VALUES, delete=st.booleans(), reseal=st.booleans(),
-       verify=st.booleans())
+@given(
+    pick=st.integers(0, 10**6), value=JSON_EDIT_VALUES, delete=st.booleans(), reseal=st.booleans(), verify=st.booleans()
+)
 def test_fuzz_bundle_metadata_edits(fuzz_bundle, pick, value, delete, reseal, verify):
     from data_tools.bundle_files.reading import load_bundle
     from data_tools.bundle_files.seals import METADATA_DIGEST, write_metadata
@@ -332,8 +423,9 @@ def test_fuzz_bundle_metadata_edits(fuzz_bundle, pick, value, delete, reseal, ve
         else:
             (work / "metadata.json").write_text(json.dumps(meta, allow_nan=True))
         original = json.loads((pristine / "metadata.json").read_text())
-        changed = {k: v for k, v in meta.items() if k != METADATA_DIGEST} != \
-            {k: v for k, v in original.items() if k != METADATA_DIGEST}
+        changed = {k: v for k, v in meta.items() if k != METADATA_DIGEST} != {
+            k: v for k, v in original.items() if k != METADATA_DIGEST
+        }
         loaded = []
         outcome("bundle-metadata", lambda: loaded.append(load_bundle(work, verify=verify)))
         if loaded and verify and not reseal:  # a hand edit never passes verification
@@ -344,11 +436,16 @@ def test_fuzz_bundle_metadata_edits(fuzz_bundle, pick, value, delete, reseal, ve
     finally:
         _restore(pristine, work, ["metadata.json"])
 
+
 # ------------------------------------------------------------------ nothing lost: tumour used or counted
-AREA_KINDS = {"xml": ["Polygon", "Spline", "Rectangle", None, "Freehand", ""],
-              "geojson": ["Polygon", "MultiPolygon", "closed LineString", "GeometryCollection"]}
-LOST_KINDS = {"xml": ["PointSet", "Dot", "Measurement", "few"],  # "few": no Type and < 3 vertices
-              "geojson": ["Point", "open LineString", "null", "MultiPoint", "x"]}
+AREA_KINDS = {
+    "xml": ["Polygon", "Spline", "Rectangle", None, "Freehand", ""],
+    "geojson": ["Polygon", "MultiPolygon", "closed LineString", "GeometryCollection"],
+}
+LOST_KINDS = {
+    "xml": ["PointSet", "Dot", "Measurement", "few"],  # "few": no Type and < 3 vertices
+    "geojson": ["Point", "open LineString", "null", "MultiPoint", "x"],
+}
 
 
 def _part_file(tmp_path, fmt: str, parts) -> object:
@@ -361,25 +458,31 @@ def _part_file(tmp_path, fmt: str, parts) -> object:
                 sq = [sq[0], sq[2]]
             typ = "" if kind in (None, "few") else f' Type="{kind}"'
             pts = sq[:2] if kind == "few" else sq
-            anns.append(f'<Annotation Name="p{i}"{typ} PartOfGroup="{group}"><Coordinates>'
-                        + "".join(f'<Coordinate Order="{j}" X="{x}" Y="{y}" />' for j, (x, y) in enumerate(pts))
-                        + "</Coordinates></Annotation>")
+            anns.append(
+                f'<Annotation Name="p{i}"{typ} PartOfGroup="{group}"><Coordinates>'
+                + "".join(f'<Coordinate Order="{j}" X="{x}" Y="{y}" />' for j, (x, y) in enumerate(pts))
+                + "</Coordinates></Annotation>"
+            )
         path = tmp_path / "parts.xml"
         path.write_text(f"<ASAP_Annotations><Annotations>{''.join(anns)}</Annotations></ASAP_Annotations>")
         return path
     feats = []
     for i, (kind, group) in enumerate(parts):
         ring = [[200 * i, 0], [200 * i + 100, 0], [200 * i + 100, 100], [200 * i, 100], [200 * i, 0]]
-        geometry = {"Polygon": {"type": "Polygon", "coordinates": [ring]},
-                    "MultiPolygon": {"type": "MultiPolygon", "coordinates": [[ring]]},
-                    "closed LineString": {"type": "LineString", "coordinates": ring},
-                    "GeometryCollection": {"type": "GeometryCollection",
-                                           "geometries": [{"type": "Polygon", "coordinates": [ring]},
-                                                          {"type": "Point", "coordinates": ring[0]}]},
-                    "Point": {"type": "Point", "coordinates": ring[0]},
-                    "MultiPoint": {"type": "MultiPoint", "coordinates": ring},
-                    "open LineString": {"type": "LineString", "coordinates": ring[:-1]},
-                    "null": None, "x": {"type": "x", "coordinates": ring}}[kind]
+        geometry = {
+            "Polygon": {"type": "Polygon", "coordinates": [ring]},
+            "MultiPolygon": {"type": "MultiPolygon", "coordinates": [[ring]]},
+            "closed LineString": {"type": "LineString", "coordinates": ring},
+            "GeometryCollection": {
+                "type": "GeometryCollection",
+                "geometries": [{"type": "Polygon", "coordinates": [ring]}, {"type": "Point", "coordinates": ring[0]}],
+            },
+            "Point": {"type": "Point", "coordinates": ring[0]},
+            "MultiPoint": {"type": "MultiPoint", "coordinates": ring},
+            "open LineString": {"type": "LineString", "coordinates": ring[:-1]},
+            "null": None,
+            "x": {"type": "x", "coordinates": ring},
+        }[kind]
         feats.append({"type": "Feature", "properties": {"label": group}, "geometry": geometry})
     path = tmp_path / "parts.geojson"
     path.write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
@@ -392,8 +495,13 @@ def _part_file(tmp_path, fmt: str, parts) -> object:
 def test_fuzz_tumour_is_used_or_counted(tmp_path, fmt, data):
     """Every part labelled tumour is either in the tumour area or counted in the 'without area' warning."""
     groups = {"xml": ["metastasis", "tissue"], "geojson": ["tumour", "tissue"]}[fmt]
-    parts = data.draw(st.lists(st.tuples(st.sampled_from(AREA_KINDS[fmt] + LOST_KINDS[fmt]),
-                                         st.sampled_from(groups)), min_size=1, max_size=8))
+    parts = data.draw(
+        st.lists(
+            st.tuples(st.sampled_from(AREA_KINDS[fmt] + LOST_KINDS[fmt]), st.sampled_from(groups)),
+            min_size=1,
+            max_size=8,
+        )
+    )
     path = _part_file(tmp_path, fmt, parts)
     used = sum(k in AREA_KINDS[fmt] and g == groups[0] for k, g in parts)
     lost = sum(k in LOST_KINDS[fmt] and g == groups[0] for k, g in parts)
@@ -432,13 +540,50 @@ def cohort_outcome(target: str, fn, path=None, word: str | None = None) -> bool:
     return True
 
 
-LABEL_CELLS = st.one_of(st.text(max_size=10), st.sampled_from(
-    ["1", "0", "Tumor", "normal", "NEG", "s1", "S1", "s1.tif", "S2.svs", "s3", "train", "test", "TEST", "", " ", "x",
-     "slide", "label", "split", "\ufeffslide", "s1\x00", '"s1"']))
-LABEL_HEADERS = st.sampled_from([None, ["slide", "label"], ["slide_id", "label", "split"], ["name", "class"],
-                                 ["slide"], ["label"], ["a", "b"], ["Slide", "Label", "Split"]])
-ENCODINGS = st.sampled_from(["utf-8", "utf-8", "utf-8-sig", "utf-16", "utf-16-le", "utf-16-be", "latin-1", "cp1252",
-                             "utf-32"])
+LABEL_CELLS = st.one_of(
+    st.text(max_size=10),
+    st.sampled_from(
+        [
+            "1",
+            "0",
+            "Tumor",
+            "normal",
+            "NEG",
+            "s1",
+            "S1",
+            "s1.tif",
+            "S2.svs",
+            "s3",
+            "train",
+            "test",
+            "TEST",
+            "",
+            " ",
+            "x",
+            "slide",
+            "label",
+            "split",
+            "\ufeffslide",
+            "s1\x00",
+            '"s1"',
+        ]
+    ),
+)
+LABEL_HEADERS = st.sampled_from(
+    [
+        None,
+        ["slide", "label"],
+        ["slide_id", "label", "split"],
+        ["name", "class"],
+        ["slide"],
+        ["label"],
+        ["a", "b"],
+        ["Slide", "Label", "Split"],
+    ]
+)
+ENCODINGS = st.sampled_from(
+    ["utf-8", "utf-8", "utf-8-sig", "utf-16", "utf-16-le", "utf-16-be", "latin-1", "cp1252", "utf-32"]
+)
 
 
 @pytest.fixture(scope="module")
@@ -451,17 +596,27 @@ def cohort_slides(tmp_path_factory):
     return root
 
 
-CLEAN_LABEL_ROWS = st.lists(st.lists(st.sampled_from(["s1", "S1", "s1.tif", "S2", "s2.svs", "s3", "S3.TIFF"]), min_size=1,
-                                     max_size=1).flatmap(lambda name: st.tuples(st.just(name[0]), st.sampled_from(
-                                         ["1", "0", "Tumor", "normal"]), st.sampled_from(["train", "test", ""]))
-                                                         .map(list)), min_size=1, max_size=5)
+CLEAN_LABEL_ROWS = st.lists(
+    st.lists(st.sampled_from(["s1", "S1", "s1.tif", "S2", "s2.svs", "s3", "S3.TIFF"]), min_size=1, max_size=1).flatmap(
+        lambda name: st.tuples(
+            st.just(name[0]), st.sampled_from(["1", "0", "Tumor", "normal"]), st.sampled_from(["train", "test", ""])
+        ).map(list)
+    ),
+    min_size=1,
+    max_size=5,
+)
 
 
 @FUZZ
-@given(header=LABEL_HEADERS, rows=st.one_of(st.lists(st.lists(LABEL_CELLS, max_size=4), max_size=6), CLEAN_LABEL_ROWS),
-       encoding=ENCODINGS,
-       quoting=st.sampled_from([0, 1, 2, 3]), mode=st.sampled_from([0, 0, 0, 1, 2]), cut=st.integers(0, 200),
-       junk=st.binary(max_size=8))
+@given(
+    header=LABEL_HEADERS,
+    rows=st.one_of(st.lists(st.lists(LABEL_CELLS, max_size=4), max_size=6), CLEAN_LABEL_ROWS),
+    encoding=ENCODINGS,
+    quoting=st.sampled_from([0, 1, 2, 3]),
+    mode=st.sampled_from([0, 0, 0, 1, 2]),
+    cut=st.integers(0, 200),
+    junk=st.binary(max_size=8),
+)
 def test_fuzz_labels_csv(tmp_path, cohort_slides, header, rows, encoding, quoting, mode, cut, junk):
     import csv
 
@@ -490,15 +645,27 @@ def test_fuzz_labels_csv(tmp_path, cohort_slides, header, rows, encoding, quotin
     cohort_outcome("labels-csv", lambda: discover(cohort_slides, labels_csv=path, warn_skipped=False), path)
 
 
-SHARD_PARTS = st.one_of(st.integers(-3, 12).map(str), st.integers(-10**30, 10**30).map(str), st.text(max_size=5),
-                        st.sampled_from(["", " 1", "1 ", "+1", "0x1", "1e3", "1.0", "١", "1_0", "nan", "inf", "9" * 5000]))
+SHARD_PARTS = st.one_of(
+    st.integers(-3, 12).map(str),
+    st.integers(-(10**30), 10**30).map(str),
+    st.text(max_size=5),
+    st.sampled_from(["", " 1", "1 ", "+1", "0x1", "1e3", "1.0", "١", "1_0", "nan", "inf", "9" * 5000]),
+)
 
 
 @FUZZ
-@given(text=st.one_of(st.text(max_size=12), st.builds(lambda i, n: f"{i}/{n}", st.integers(-2, 20), st.integers(-1, 20)),
-                      st.builds(lambda i, sep, n: f"{i}{sep}{n}", SHARD_PARTS,
-                                                      st.sampled_from(["/", "/", "//", " / ", "\\", "", "/0/"]),
-                                                      SHARD_PARTS)))
+@given(
+    text=st.one_of(
+        st.text(max_size=12),
+        st.builds(lambda i, n: f"{i}/{n}", st.integers(-2, 20), st.integers(-1, 20)),
+        st.builds(
+            lambda i, sep, n: f"{i}{sep}{n}",
+            SHARD_PARTS,
+            st.sampled_from(["/", "/", "//", " / ", "\\", "", "/0/"]),
+            SHARD_PARTS,
+        ),
+    )
+)
 def test_fuzz_shard(text):
     from data_tools.datasets.split import parse_shard, shard_names
 
@@ -525,13 +692,17 @@ def feature_bundle(tmp_path_factory):
     return build_bundle(root / "slide.tif", root / "bundle", level_sets=(3,), tile_size=32, progress=False)
 
 
-COORD_VALUES = st.one_of(st.integers(-64, 300), st.sampled_from([0, 32, 64, 1e300, -1e300, float("nan"), float("inf"),
-                                                                  2.0**31, 1e9, 2.5, -0.0]))
+COORD_VALUES = st.one_of(
+    st.integers(-64, 300),
+    st.sampled_from([0, 32, 64, 1e300, -1e300, float("nan"), float("inf"), 2.0**31, 1e9, 2.5, -0.0]),
+)
 FEATURE_VALUES = st.one_of(st.floats(-10, 10), st.sampled_from([0.0, 1e6, -1e30, float("nan"), float("inf"), 65504.0]))
-ATTRS = {"patch_size": [64, 32, 0, -5, 1e9, 1e10, float("nan"), float("inf"), "abc", [64, 64], [], True, 2.5],
-         "patch_level": [0, 1, -1, 2.5, 100, "x", float("nan")],
-         "downsample": [1, 2, 0, -1, float("nan"), 1e300, "x"],
-         "patch_size_level0": [64, 0, float("nan"), 1e12, -3]}
+ATTRS = {
+    "patch_size": [64, 32, 0, -5, 1e9, 1e10, float("nan"), float("inf"), "abc", [64, 64], [], True, 2.5],
+    "patch_level": [0, 1, -1, 2.5, 100, "x", float("nan")],
+    "downsample": [1, 2, 0, -1, float("nan"), 1e300, "x"],
+    "patch_size_level0": [64, 0, float("nan"), 1e12, -3],
+}
 
 
 @st.composite
@@ -542,18 +713,30 @@ def feature_files(draw):
         coords = np.array(draw(st.lists(st.integers(-40, 280), min_size=2 * n, max_size=2 * n))).reshape(n, 2)
         feats = np.array(draw(st.lists(st.floats(-100, 100), min_size=n * d, max_size=n * d))).reshape(n, d)
         attrs = {"patch_size": draw(st.sampled_from([16, 32, 64, 96]))}
-        return (coords, draw(st.sampled_from(["int32", "int64", "float32"])), feats,
-                draw(st.sampled_from(["float32", "float16", "float64"])), attrs, "both", None, 0)
+        return (
+            coords,
+            draw(st.sampled_from(["int32", "int64", "float32"])),
+            feats,
+            draw(st.sampled_from(["float32", "float16", "float64"])),
+            attrs,
+            "both",
+            None,
+            0,
+        )
     n = draw(st.sampled_from([0, 1, 2, 5, 12, 40]))
     d = draw(st.sampled_from([0, 1, 3, 8]))
     coord_shape = draw(st.sampled_from([(n, 2), (n, 2), (1, n, 2), (n, 3), (n,), (), (n, 2, 1)]))
     feat_shape = draw(st.sampled_from([(n, d), (n, d), (1, n, d), (n,), (n + 1, d), (d,)]))
     coord_dtype = draw(st.sampled_from(["int32", "int64", "float32", "float64", "float16", "uint8", "S4", "bool"]))
     feat_dtype = draw(st.sampled_from(["float32", "float32", "float16", "float64", "int8", "S3", "bool", "complex64"]))
-    coords = np.array(draw(st.lists(COORD_VALUES, min_size=int(np.prod(coord_shape)),
-                                    max_size=int(np.prod(coord_shape)))), dtype=np.float64).reshape(coord_shape)
-    feats = np.array(draw(st.lists(FEATURE_VALUES, min_size=int(np.prod(feat_shape)),
-                                   max_size=int(np.prod(feat_shape)))), dtype=np.float64).reshape(feat_shape)
+    coords = np.array(
+        draw(st.lists(COORD_VALUES, min_size=int(np.prod(coord_shape)), max_size=int(np.prod(coord_shape)))),
+        dtype=np.float64,
+    ).reshape(coord_shape)
+    feats = np.array(
+        draw(st.lists(FEATURE_VALUES, min_size=int(np.prod(feat_shape)), max_size=int(np.prod(feat_shape)))),
+        dtype=np.float64,
+    ).reshape(feat_shape)
     attrs = {k: draw(st.sampled_from(v)) for k, v in ATTRS.items() if draw(st.integers(0, 3)) == 0}
     if draw(st.integers(0, 2)) == 0:
         attrs.setdefault("patch_size", 64)
@@ -567,13 +750,20 @@ def _cast(values, dtype):
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         if dtype.startswith("S"):
-            return np.char.encode(np.char.mod("%g", values), "ascii").astype(dtype) if values.size else \
-                np.zeros(values.shape, dtype)
-        return np.nan_to_num(values).astype(dtype) if dtype.startswith(("int", "uint", "bool")) else values.astype(dtype)
+            return (
+                np.char.encode(np.char.mod("%g", values), "ascii").astype(dtype)
+                if values.size
+                else np.zeros(values.shape, dtype)
+            )
+        return (
+            np.nan_to_num(values).astype(dtype) if dtype.startswith(("int", "uint", "bool")) else values.astype(dtype)
+        )
 
 
 @FUZZ
-@given(spec=feature_files(), patch_size=st.sampled_from([None, None, 64, 1000000000]), level=st.sampled_from([None, 0, 1]))
+@given(
+    spec=feature_files(), patch_size=st.sampled_from([None, None, 64, 1000000000]), level=st.sampled_from([None, 0, 1])
+)
 def test_fuzz_feature_h5(tmp_path, feature_bundle, spec, patch_size, level):
     import shutil
 
@@ -595,7 +785,7 @@ def test_fuzz_feature_h5(tmp_path, feature_bundle, spec, patch_size, level):
     if damage:
         data = bytearray(path.read_bytes())
         if damage == "truncate":
-            data = data[:where % (len(data) + 1)]
+            data = data[: where % (len(data) + 1)]
         else:
             for k in range(8):
                 data[(where + 997 * k) % len(data)] ^= 0xFF
@@ -604,8 +794,9 @@ def test_fuzz_feature_h5(tmp_path, feature_bundle, spec, patch_size, level):
     if not work.exists():
         shutil.copytree(feature_bundle, work)
     result = []
-    if cohort_outcome("feature-h5", lambda: result.append(import_features(work, path, patch_size=patch_size,
-                                                                          level=level)), path):
+    if cohort_outcome(
+        "feature-h5", lambda: result.append(import_features(work, path, patch_size=patch_size, level=level)), path
+    ):
         info = result[0]
         for lv in info["levels"]:  # a finite grid, zero where the mask says no patch touched the view
             grid = np.load(work / lv["file"]).astype(np.float32)
@@ -618,18 +809,71 @@ def test_fuzz_feature_h5(tmp_path, feature_bundle, spec, patch_size, level):
 # A MIRAX slide's sizes come from its Slidedat.ini; OpenSlide sizes its arrays from them in 32-bit arithmetic, and
 # an overflow made GLib abort the whole process. Every edit must give a slide that opens (and whose coarsest level
 # reads) or one SlideError line naming the .mrxs, in this process, never a dead process.
-MIRAX_KEYS = ("IMAGENUMBER_X", "IMAGENUMBER_Y", "CameraImageDivisionsPerSide", "OBJECTIVE_MAGNIFICATION", "HIER_COUNT",
-              "NONHIER_COUNT", "HIER_0_COUNT", "HIER_0_NAME", "HIER_0_VAL_0_SECTION", "FILE_COUNT", "FILE_0",
-              "INDEXFILE", "IMAGE_CONCAT_FACTOR", "OVERLAP_X", "OVERLAP_Y", "MICROMETER_PER_PIXEL_X",
-              "DIGITIZER_WIDTH", "DIGITIZER_HEIGHT", "IMAGE_FORMAT", "IMAGE_FILL_COLOR_BGR", "SLIDE_ID")
+MIRAX_KEYS = (
+    "IMAGENUMBER_X",
+    "IMAGENUMBER_Y",
+    "CameraImageDivisionsPerSide",
+    "OBJECTIVE_MAGNIFICATION",
+    "HIER_COUNT",
+    "NONHIER_COUNT",
+    "HIER_0_COUNT",
+    "HIER_0_NAME",
+    "HIER_0_VAL_0_SECTION",
+    "FILE_COUNT",
+    "FILE_0",
+    "INDEXFILE",
+    "IMAGE_CONCAT_FACTOR",
+    "OVERLAP_X",
+    "OVERLAP_Y",
+    "MICROMETER_PER_PIXEL_X",
+    "DIGITIZER_WIDTH",
+    "DIGITIZER_HEIGHT",
+    "IMAGE_FORMAT",
+    "IMAGE_FILL_COLOR_BGR",
+    "SLIDE_ID",
+)
 MIRAX_VALUES = st.one_of(
-    st.integers(1, 4).map(str), st.integers(1, 600).map(str),  # plausible: slides that still open, other sizes
-    st.integers(-2**31 - 2, 2**31 + 2).map(str), st.integers(-10, 300).map(str),
-    st.sampled_from(["0", "-1", "1", "2", "3", "31", "32", "40000", "100000", "2147483647", "2147483648",
-                     "-2147483648", "4294967296", "1000000000", "2000000000", "nan", "inf", "-inf", "1e308", "0x10",
-                     "1_0", " 7 ", "", "PNG", "JPEG", "BMP24", "Slide zoom level", "Data0000.dat", "../../etc/passwd",
-                     "LAYER_0_LEVEL_1_SECTION"]),
-    st.floats(allow_nan=True, allow_infinity=True).map(repr), st.text(max_size=6))
+    st.integers(1, 4).map(str),
+    st.integers(1, 600).map(str),  # plausible: slides that still open, other sizes
+    st.integers(-(2**31) - 2, 2**31 + 2).map(str),
+    st.integers(-10, 300).map(str),
+    st.sampled_from(
+        [
+            "0",
+            "-1",
+            "1",
+            "2",
+            "3",
+            "31",
+            "32",
+            "40000",
+            "100000",
+            "2147483647",
+            "2147483648",
+            "-2147483648",
+            "4294967296",
+            "1000000000",
+            "2000000000",
+            "nan",
+            "inf",
+            "-inf",
+            "1e308",
+            "0x10",
+            "1_0",
+            " 7 ",
+            "",
+            "PNG",
+            "JPEG",
+            "BMP24",
+            "Slide zoom level",
+            "Data0000.dat",
+            "../../etc/passwd",
+            "LAYER_0_LEVEL_1_SECTION",
+        ]
+    ),
+    st.floats(allow_nan=True, allow_infinity=True).map(repr),
+    st.text(max_size=6),
+)
 
 
 @pytest.fixture(scope="module")
@@ -639,8 +883,9 @@ def mirax_pristine(tmp_path_factory):
     from mirax_fixture import mirax
 
     rng = np.random.default_rng(0)
-    path, _ = mirax(tmp_path_factory.mktemp("mirax-fuzz") / "m" / "slide.mrxs",
-                    rng.integers(0, 255, (256, 256, 3), dtype=np.uint8))
+    path, _ = mirax(
+        tmp_path_factory.mktemp("mirax-fuzz") / "m" / "slide.mrxs", rng.integers(0, 255, (256, 256, 3), dtype=np.uint8)
+    )
     return path
 
 
@@ -648,10 +893,15 @@ _mirax_case = collections.Counter()
 
 
 @settings(FUZZ, max_examples=EXAMPLES if "HISTOJAX_FUZZ_EXAMPLES" in os.environ else 12)  # ~0.25 s a case
-@given(edits=st.lists(st.tuples(st.sampled_from(MIRAX_KEYS), st.one_of(st.none(), MIRAX_VALUES),
-                                st.integers(0, 3)), min_size=0, max_size=5),
-       junk=st.one_of(st.none(), st.tuples(st.integers(0, 2000), st.binary(max_size=12))),
-       cut=st.one_of(st.none(), st.integers(0, 1500)))
+@given(
+    edits=st.lists(
+        st.tuples(st.sampled_from(MIRAX_KEYS), st.one_of(st.none(), MIRAX_VALUES), st.integers(0, 3)),
+        min_size=0,
+        max_size=5,
+    ),
+    junk=st.one_of(st.none(), st.tuples(st.integers(0, 2000), st.binary(max_size=12))),
+    cut=st.one_of(st.none(), st.integers(0, 1500)),
+)
 def test_fuzz_mirax_slidedat(tmp_path, mirax_pristine, edits, junk, cut):
     import re
     import shutil
@@ -667,11 +917,11 @@ def test_fuzz_mirax_slidedat(tmp_path, mirax_pristine, edits, junk, cut):
         if not hits:
             continue
         hit = hits[which % len(hits)]
-        text = text[:hit.start()] + ("" if value is None else f"{key}={value}") + text[hit.end():]
+        text = text[: hit.start()] + ("" if value is None else f"{key}={value}") + text[hit.end() :]
     data = text.encode("utf-8", "surrogatepass")
     if junk is not None:
         pos, blob = junk
-        data = data[:pos % (len(data) + 1)] + blob + data[pos % (len(data) + 1):]
+        data = data[: pos % (len(data) + 1)] + blob + data[pos % (len(data) + 1) :]
     if cut is not None:
         data = data[:cut]
     ini.write_bytes(data)

@@ -9,6 +9,7 @@
   class"); an AUC left undefined after ITC-only slides are dropped is JSON null, never a bare NaN.
 
 The stand-in pcam-cnn bundles of tests/reading/test_head.py and the TRIDENT-layout cohort of tests/learned_fixture.py."""
+
 from __future__ import annotations
 
 import json
@@ -17,16 +18,20 @@ import shutil
 import jax
 import jax.numpy as jnp
 import pytest
+from learned_fixture import make_cohort
+from test_head import make_dataset
 
 from baselines.reading import head_fit, head_mil_fit, learned_head_fit
 from baselines.reading.fitting import MIN_SLIDES_PER_CLASS
 from baselines.reading.slides import read_spec
 from histojax.reading.heads.learned import LearnedHead, init_params
-from learned_fixture import make_cohort
-from test_head import make_dataset
 
-SCALE = {"encoder": "pcam-cnn", "encoder_mpp": 1.944, "tolerance": 1.5,
-         "slides_out_of_scale": {"train_tumour_00_micro": 0.5, "train_normal_01": 0.5, "x": None}}
+SCALE = {
+    "encoder": "pcam-cnn",
+    "encoder_mpp": 1.944,
+    "tolerance": 1.5,
+    "slides_out_of_scale": {"train_tumour_00_micro": 0.5, "train_normal_01": 0.5, "x": None},
+}
 
 
 def _err(capsys) -> list[str]:
@@ -53,22 +58,58 @@ def enough(tmp_path_factory):
 # ----------------------------------------------------------------------------- head_mil_fit's guards
 def test_mil_fit_refuses_too_few_slides_per_class_before_reading(enough, tmp_path, capsys):
     out, cache = tmp_path / "head", tmp_path / "cache.npz"  # 10 per class, 6 of each held back: 4 < 5 to train on
-    assert head_mil_fit._main()(["--dataset", str(enough), "--cache", str(cache), "--out", str(out),
-                                 "--candidates", "stats", "--seeds", "1", "--val-fraction", "0.6"]) == 2
+    assert (
+        head_mil_fit._main()(
+            [
+                "--dataset",
+                str(enough),
+                "--cache",
+                str(cache),
+                "--out",
+                str(out),
+                "--candidates",
+                "stats",
+                "--seeds",
+                "1",
+                "--val-fraction",
+                "0.6",
+            ]
+        )
+        == 2
+    )
     err = _err(capsys)
     assert len(err) == 1 and "dataset.json" in err[0] and f"at least {MIN_SLIDES_PER_CLASS}" in err[0], err
     assert not out.exists() and not cache.exists()  # refused from dataset.json's labels: no slide read, no cache
 
 
-@pytest.mark.parametrize("full, slope, words", [(0.333, 1.0, "validation AUC is 0.333"),
-                                                 (0.9, -0.2, "slope is -0.200")])
+@pytest.mark.parametrize(
+    "full, slope, words", [(0.333, 1.0, "validation AUC is 0.333"), (0.9, -0.2, "slope is -0.200")]
+)
 def test_mil_fit_refuses_an_inverted_or_backwards_choice(enough, tmp_path, capsys, monkeypatch, full, slope, words):
     def fake(head, slides, shape, fractions=(0.1, 0.2), draws=5, seed=123):  # what validation measured
         return {"full": full, "slope": slope, **{f"read {f:g}": full for f in fractions}}
+
     monkeypatch.setattr(head_mil_fit, "validation_aucs", fake)
     out = tmp_path / "head"
-    assert head_mil_fit._main()(["--dataset", str(enough), "--cache", str(tmp_path / "c.npz"), "--out", str(out),
-                                 "--candidates", "stats", "--seeds", "1", "--val-fraction", "0.3"]) == 2
+    assert (
+        head_mil_fit._main()(
+            [
+                "--dataset",
+                str(enough),
+                "--cache",
+                str(tmp_path / "c.npz"),
+                "--out",
+                str(out),
+                "--candidates",
+                "stats",
+                "--seeds",
+                "1",
+                "--val-fraction",
+                "0.3",
+            ]
+        )
+        == 2
+    )
     err = [line for line in _err(capsys) if not line.startswith("  stats")]
     assert len(err) == 1 and words in err[0] and "nothing saved" in err[0] and "dataset.json" in err[0], err
     assert not out.exists()
@@ -90,8 +131,11 @@ def test_every_head_fit_repeats_the_scale_warning(small, tmp_path, capsys, fit):
     ds = _with_scale(shutil.copytree(small, tmp_path / "ds"))
     out = tmp_path / "head"
     argv = ["--dataset", str(ds), "--out", str(out)]
-    main = {"head_fit": head_fit.main, "head_mil_fit": head_mil_fit._main(),
-            "learned_head_fit": learned_head_fit._main()}[fit]
+    main = {
+        "head_fit": head_fit.main,
+        "head_mil_fit": head_mil_fit._main(),
+        "learned_head_fit": learned_head_fit._main(),
+    }[fit]
     assert main(argv + (["--cache", str(tmp_path / "c.npz")] if fit == "head_mil_fit" else [])) == 2  # too few
     err = _err(capsys)
     warning = [line for line in err if line.startswith("warning:")]
@@ -106,8 +150,23 @@ def test_evaluate_repeats_the_scale_warning(tmp_path, capsys):
 
     c = make_cohort(tmp_path / "ds", tumour=1, normal=1, test_tumour=1, test_normal=1, dim=8)
     ds = _with_scale(c["root"])
-    code = histojax_main(["evaluate", "--env", "HistoJAX-Reading-v0", "--action-mode", "glimpse:1", "--dataset",
-                          str(ds), "--split", "test", "--episodes", "1", "--out", str(tmp_path / "ev")])
+    code = histojax_main(
+        [
+            "evaluate",
+            "--env",
+            "HistoJAX-Reading-v0",
+            "--action-mode",
+            "glimpse:1",
+            "--dataset",
+            str(ds),
+            "--split",
+            "test",
+            "--episodes",
+            "1",
+            "--out",
+            str(tmp_path / "ev"),
+        ]
+    )
     err = _err(capsys)
     assert code == 2  # 3-level bundles under a 5-level id: refused after the warnings, in one line
     warning = [line for line in err if line.startswith("warning:")]
@@ -119,8 +178,13 @@ def test_evaluate_repeats_the_scale_warning(tmp_path, capsys):
 def cohort(tmp_path_factory):
     root = tmp_path_factory.mktemp("one-class")
     c = make_cohort(root / "ds", tumour=1, normal=1, test_tumour=2, test_normal=2, dim=8, seed=3)
-    head = LearnedHead(params=init_params(jax.random.PRNGKey(0), 8, 4, 4, 1), features_dim=8, hidden=4, attention=4,
-                       prior_logit=jnp.float32(0.0))
+    head = LearnedHead(
+        params=init_params(jax.random.PRNGKey(0), 8, 4, 4, 1),
+        features_dim=8,
+        hidden=4,
+        attention=4,
+        prior_logit=jnp.float32(0.0),
+    )
     head.save(root / "head")
     spec = json.loads((c["root"] / "dataset.json").read_text())
     one = shutil.copytree(c["root"], root / "one")
@@ -129,17 +193,28 @@ def cohort(tmp_path_factory):
 
 
 def test_score_refuses_a_split_of_one_class(cohort, capsys):
-    assert learned_head_fit._main()(["--dataset", str(cohort["one"]), "--score", str(cohort["head"]), "--split",
-                                     "test", "--quiet"]) == 2
+    assert (
+        learned_head_fit._main()(
+            ["--dataset", str(cohort["one"]), "--score", str(cohort["head"]), "--split", "test", "--quiet"]
+        )
+        == 2
+    )
     err = _err(capsys)
     assert len(err) == 1 and "undefined: one class" in err[0] and str(cohort["one"] / "dataset.json") in err[0], err
 
 
 def test_score_writes_null_for_an_auc_one_class_leaves_undefined(cohort, capsys, monkeypatch):
-    monkeypatch.setattr(learned_head_fit, "lesion_classes",  # every tumour slide ITC-only: no tumour once they go
-                        lambda slides: ["ITC" if s["label"] else "normal" for s in slides])
-    assert learned_head_fit._main()(["--dataset", str(cohort["ds"]), "--score", str(cohort["head"]), "--split",
-                                     "test", "--quiet"]) == 0
+    monkeypatch.setattr(
+        learned_head_fit,
+        "lesion_classes",  # every tumour slide ITC-only: no tumour once they go
+        lambda slides: ["ITC" if s["label"] else "normal" for s in slides],
+    )
+    assert (
+        learned_head_fit._main()(
+            ["--dataset", str(cohort["ds"]), "--score", str(cohort["head"]), "--split", "test", "--quiet"]
+        )
+        == 0
+    )
     line = capsys.readouterr().out.strip().splitlines()[-1]
     record = json.loads(line, parse_constant=lambda c: pytest.fail(f"bare {c} in the JSON: {line}"))
     assert record["auc_without_itc"] is None and "undefined: one class" in record["auc_without_itc_note"]
@@ -151,8 +226,11 @@ def test_found_above_every_normal_slide_counts_per_class():
     from baselines.reading.learned_head_fit import found_above_normal
 
     classes = ["normal", "normal", "macro", "micro", "micro", "ITC"]
-    assert found_above_normal([0.0, 1.0, 2.0, 1.0, 3.0, -1.0], classes) == {"ITC": "0/1", "micro": "1/2",
-                                                                            "macro": "1/1"}
+    assert found_above_normal([0.0, 1.0, 2.0, 1.0, 3.0, -1.0], classes) == {
+        "ITC": "0/1",
+        "micro": "1/2",
+        "macro": "1/1",
+    }
 
 
 def test_evaluate_refuses_head_rows_on_one_class(cohort):
@@ -162,8 +240,13 @@ def test_evaluate_refuses_head_rows_on_one_class(cohort):
     from data_tools.errors import HistojaxDataError
     from histojax.reading import heads
 
-    config = {"env_id": "HistoJAX-Reading-v0", "action_mode": "glimpse:1", "obs_mode": "features", "hidden": 8,
-              "env_kwargs": {"dataset": str(cohort["one"]), "split": "test", "n_levels": 3, "read_budget": 0.2}}
+    config = {
+        "env_id": "HistoJAX-Reading-v0",
+        "action_mode": "glimpse:1",
+        "obs_mode": "features",
+        "hidden": 8,
+        "env_kwargs": {"dataset": str(cohort["one"]), "split": "test", "n_levels": 3, "read_budget": 0.2},
+    }
     with pytest.raises(HistojaxDataError, match="undefined: one class") as e:
         evaluate(config, None, num_episodes=1, head=heads.load(cohort["head"]))
     assert str(e.value).startswith(str(cohort["one"] / "dataset.json")) and len(str(e.value).splitlines()) == 1
@@ -173,8 +256,25 @@ def test_evaluate_refuses_head_rows_on_one_class(cohort):
 @pytest.mark.slow  # a whole MIL fit (about 25 s on 2 cores); the record's default tests: test_head_provenance.py, test_head.py
 def test_mil_fit_records_the_slides_it_was_fitted_and_chosen_on(enough, tmp_path):
     out = tmp_path / "head"
-    assert head_mil_fit._main()(["--dataset", str(enough), "--cache", str(tmp_path / "c.npz"), "--out", str(out),
-                                 "--candidates", "stats", "--seeds", "1", "--val-fraction", "0.3"]) == 0
+    assert (
+        head_mil_fit._main()(
+            [
+                "--dataset",
+                str(enough),
+                "--cache",
+                str(tmp_path / "c.npz"),
+                "--out",
+                str(out),
+                "--candidates",
+                "stats",
+                "--seeds",
+                "1",
+                "--val-fraction",
+                "0.3",
+            ]
+        )
+        == 0
+    )
     seen = json.loads((out / "config.json").read_text())["slides_seen"]
     spec = json.loads((enough / "dataset.json").read_text())
     assert seen["fitted"] == sorted(e.split("/")[-1] for e in spec["train"]) and len(seen["validation"]) == 6

@@ -1,13 +1,14 @@
 """The logit head fit (baselines.reading.head_fit) refuses, in one line naming dataset.json and saving nothing,
 a chosen head whose validation AUC is below 0.5 or whose calibration slope is not positive, and fewer training
 slides per class than MIN_SLIDES_PER_CLASS (the stand-in pcam-cnn bundles of tests/reading/test_head.py)."""
+
 from __future__ import annotations
 
 import pytest
+from test_head import make_dataset
 
 from baselines.reading import fitting, head_fit
 from baselines.reading.slides import HeadDataError
-from test_head import make_dataset
 
 
 def test_check_head_refuses_inverted_and_negative_slopes(tmp_path):
@@ -37,6 +38,7 @@ def test_an_inverted_choice_is_refused_and_nothing_saved(tmp_path, capsys, monke
     def inverted(train, val, cands):  # the entry read ranks tumour below normal on validation
         best, table = real(train, val, cands)
         return best, [{**r, "validation_auc": 0.333} for r in table]
+
     monkeypatch.setattr(head_fit, "choose", inverted)
     out = tmp_path / "head"
     assert head_fit.main(["--dataset", str(ds), "--out", str(out), "--ks", "1", "--val-fraction", "0.3"]) == 2

@@ -2,6 +2,7 @@
 concurrent and killed cache builds, one-line CLI errors, host memory while loading and building,
 EnvParams validation, and the smaller ones (error naming the right file, TIFF without tile offsets,
 absent tiles). Full-size cases are marked slow (`make test-all`)."""
+
 from __future__ import annotations
 
 import errno
@@ -35,7 +36,9 @@ def _asap(path: Path, polygons: list[list[tuple[float, float]]]) -> Path:
     anns = "".join(
         f'<Annotation Name="A{i}" Type="Polygon" PartOfGroup="metastasis"><Coordinates>'
         + "".join(f'<Coordinate Order="{j}" X="{x!r}" Y="{y!r}" />' for j, (x, y) in enumerate(pts))
-        + "</Coordinates></Annotation>" for i, pts in enumerate(polygons))
+        + "</Coordinates></Annotation>"
+        for i, pts in enumerate(polygons)
+    )
     path.write_text(f"<ASAP_Annotations><Annotations>{anns}</Annotations></ASAP_Annotations>")
     return path
 
@@ -105,8 +108,11 @@ def test_tangled_polygon_is_repaired_or_refused_quickly(tmp_path):
         ann = load_annotations(ok)
     assert ann.tumour.is_valid and ann.tumour.area > 1e7
     bad = _asap(tmp_path / "tangled1000.xml", [_random_polygon(1000)])
-    with pytest.raises(AnnotationError, match=rf"tangled1000\.xml: annotation 0 \('A0'\): 1000 vertices.*"
-                                              rf"{MAX_REPAIR_CROSSINGS:,}"):
+    with pytest.raises(
+        AnnotationError,
+        match=rf"tangled1000\.xml: annotation 0 \('A0'\): 1000 vertices.*"
+        rf"{MAX_REPAIR_CROSSINGS:,}",
+    ):
         load_annotations(bad)
 
 
@@ -148,9 +154,16 @@ def _race(tmp_path: Path, n_procs: int, rounds: int) -> None:
         cache = tmp_path / f"cache{r}"
         env = {**ENV, "HISTOJAX_CACHE": str(cache)}
         start = time.time() + 4.0  # every process imports first, then all build at once
-        procs = [subprocess.Popen([sys.executable, "-c", _RACER, str(slide), str(xml), str(start + 0.05 * i)],
-                                  env=env, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-                 for i in range(n_procs)]
+        procs = [
+            subprocess.Popen(
+                [sys.executable, "-c", _RACER, str(slide), str(xml), str(start + 0.05 * i)],
+                env=env,
+                stdout=subprocess.PIPE,
+                stderr=subprocess.PIPE,
+                text=True,
+            )
+            for i in range(n_procs)
+        ]
         outs = [p.communicate(timeout=300) for p in procs]
         for p, (out, err) in zip(procs, outs):
             assert p.returncode == 0, err
@@ -175,10 +188,16 @@ def test_killed_build_is_cleaned_by_the_next(tmp_path):
     """Was: each SIGKILLed build leaked a hidden .NAME.tmp-* folder that no later run removed."""
     slide = _slide(tmp_path / "big.tif", 3072, tile=128)
     out = tmp_path / "bundles" / "b"
-    code = ("import sys; from data_tools.bundle import build_bundle; "
-            "build_bundle(sys.argv[1], sys.argv[2], tile_size=16, progress=False)")
-    proc = subprocess.Popen([sys.executable, "-c", code, str(slide), str(out)], env=ENV,
-                            stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    code = (
+        "import sys; from data_tools.bundle import build_bundle; "
+        "build_bundle(sys.argv[1], sys.argv[2], tile_size=16, progress=False)"
+    )
+    proc = subprocess.Popen(
+        [sys.executable, "-c", code, str(slide), str(out)],
+        env=ENV,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
+    )
     deadline = time.time() + 120
     while time.time() < deadline and not list(out.parent.glob(".b.tmp-*/*.npy")):
         assert proc.poll() is None, "the build finished before it could be killed"
@@ -198,8 +217,10 @@ def test_build_lock_serialises_and_removes_its_file(tmp_path):
     out = tmp_path / "x"
     with build_lock(out) as lock:
         assert lock.exists()
-        code = ("import sys, fcntl, os; fd = os.open(sys.argv[1], os.O_RDWR); "
-                "fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)")
+        code = (
+            "import sys, fcntl, os; fd = os.open(sys.argv[1], os.O_RDWR); "
+            "fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)"
+        )
         held = subprocess.run([sys.executable, "-c", code, str(lock)], capture_output=True, text=True)
         assert held.returncode != 0 and "BlockingIOError" in held.stderr  # another process cannot take it
     assert not lock.exists()
@@ -209,20 +230,26 @@ def test_build_lock_serialises_and_removes_its_file(tmp_path):
 
 
 def _cli(*args, entry="data_tools"):
-    cmd = [sys.executable, "-m", "data_tools", *map(str, args)] if entry == "data_tools" else \
-        [sys.executable, "-c", "import sys; from histojax.cli import main; sys.exit(main())", *map(str, args)]
+    cmd = (
+        [sys.executable, "-m", "data_tools", *map(str, args)]
+        if entry == "data_tools"
+        else [sys.executable, "-c", "import sys; from histojax.cli import main; sys.exit(main())", *map(str, args)]
+    )
     return subprocess.run(cmd, cwd=ROOT, env=ENV, capture_output=True, text=True, timeout=300)
 
 
-@pytest.mark.parametrize("extra, problem", [
-    (["--region-margin", "inf", "--region-group", "tumour"], "--region-margin: 'inf' is not a finite number"),
-    (["--region-margin", "nan", "--region-group", "tumour"], "--region-margin: 'nan' is not a finite number"),
-    (["--band-mb", "nan", "--storage", "tiled"], "--band-mb: 'nan' is not a finite number"),
-    (["--band-mb", "0"], "--band-mb: '0' must be > 0"),
-    (["--magnification-range", "inf"], "'inf' is not a finite number"),
-    (["--tile-size", "x"], "--tile-size: 'x' is not an integer"),
-    (["--region", "0,0,inf,5"], "--region"),
-])
+@pytest.mark.parametrize(
+    "extra, problem",
+    [
+        (["--region-margin", "inf", "--region-group", "tumour"], "--region-margin: 'inf' is not a finite number"),
+        (["--region-margin", "nan", "--region-group", "tumour"], "--region-margin: 'nan' is not a finite number"),
+        (["--band-mb", "nan", "--storage", "tiled"], "--band-mb: 'nan' is not a finite number"),
+        (["--band-mb", "0"], "--band-mb: '0' must be > 0"),
+        (["--magnification-range", "inf"], "'inf' is not a finite number"),
+        (["--tile-size", "x"], "--tile-size: 'x' is not an integer"),
+        (["--region", "0,0,inf,5"], "--region"),
+    ],
+)
 def test_non_finite_and_invalid_options_are_one_line(extra, problem, tmp_path, capsys):
     from data_tools.__main__ import main
 
@@ -270,7 +297,7 @@ def _without_tile_offsets(path: Path) -> Path:
     data = bytearray(path.read_bytes())
     with tifffile.TiffFile(path) as tif:
         at = tif.pages[0].tags["TileOffsets"].offset
-    data[at:at + 2] = (65000).to_bytes(2, "little")  # the TileOffsets tag renamed away
+    data[at : at + 2] = (65000).to_bytes(2, "little")  # the TileOffsets tag renamed away
     path.write_bytes(data)
     return path
 
@@ -298,12 +325,26 @@ def test_shape_mismatch_names_the_tumour_file(tmp_path):
 # ------------------------------------------------------------------ 7. EnvParams validation
 
 
-@pytest.mark.parametrize("field, value", [
-    ("stride", 0.0), ("stride", -1.0), ("stride", float("nan")), ("stride", 1.68e7), ("stride", 1e-4),
-    ("max_steps_in_episode", 0), ("max_steps_in_episode", 2**31), ("max_steps_in_episode", 2.5),
-    ("success_threshold", 0.0), ("success_threshold", 1.5), ("step_cost", float("inf")),
-    ("success_bonus", float("nan")), ("random_start", 3), ("dense_weight", "a"), ("start_level", 0.5),
-])
+@pytest.mark.parametrize(
+    "field, value",
+    [
+        ("stride", 0.0),
+        ("stride", -1.0),
+        ("stride", float("nan")),
+        ("stride", 1.68e7),
+        ("stride", 1e-4),
+        ("max_steps_in_episode", 0),
+        ("max_steps_in_episode", 2**31),
+        ("max_steps_in_episode", 2.5),
+        ("success_threshold", 0.0),
+        ("success_threshold", 1.5),
+        ("step_cost", float("inf")),
+        ("success_bonus", float("nan")),
+        ("random_start", 3),
+        ("dense_weight", "a"),
+        ("start_level", 0.5),
+    ],
+)
 def test_params_are_validated_naming_the_field(field, value):
     from histojax.registry import validate_params
 
@@ -343,8 +384,9 @@ def test_dense_slide_arrays_host_peak_is_one_flat_array(tmp_path):
     assert peak < 1.5 * device
     ref = np.concatenate([summed_area_table(np.asarray(t)).ravel() for t in bundle.tumour]).astype(np.uint32)
     np.testing.assert_array_equal(np.asarray(arrays.tumour_sat), ref)
-    np.testing.assert_array_equal(np.asarray(arrays.pixels),
-                                  np.concatenate([np.asarray(p).reshape(-1, 3) for p in bundle.pixels]))
+    np.testing.assert_array_equal(
+        np.asarray(arrays.pixels), np.concatenate([np.asarray(p).reshape(-1, 3) for p in bundle.pixels])
+    )
 
 
 def test_tiled_build_of_a_single_level_tiff_reads_bounded_windows(tmp_path, monkeypatch):
@@ -357,8 +399,16 @@ def test_tiled_build_of_a_single_level_tiff_reads_bounded_windows(tmp_path, monk
     monkeypatch.setattr(tiled, "MAX_WINDOW_BYTES", 256 * 2**10)
     level0 = 2048 * 2048 * 3
     tracemalloc.start()
-    out = build_bundle(slide, tmp_path / "t", storage="tiled", share_background=False, band_bytes=64 * 2**10,
-                       tile_size=32, level_sets=(3,), progress=False)
+    out = build_bundle(
+        slide,
+        tmp_path / "t",
+        storage="tiled",
+        share_background=False,
+        band_bytes=64 * 2**10,
+        tile_size=32,
+        level_sets=(3,),
+        progress=False,
+    )
     _, peak = tracemalloc.get_traced_memory()
     tracemalloc.stop()
     print(f"tiled build: host numpy peak {peak / 2**20:.1f} MiB, level 0 is {level0 / 2**20:.1f} MiB")

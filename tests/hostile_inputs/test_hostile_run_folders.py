@@ -2,6 +2,7 @@
 file inside the old run's ``checkpoint/``, ``eval/`` or ``process-N/`` under ``--overwrite``, a lock file that is a
 FIFO or a link, and a FIFO or a link where ``--resume`` reads the checkpoint. Each is one line naming the file; none
 blocks, none deletes or writes outside the folder. No training runs here (the checks come before it)."""
+
 from __future__ import annotations
 
 import contextlib
@@ -27,6 +28,7 @@ class Blocked(Exception):
 @contextlib.contextmanager
 def at_most(seconds: int):
     """Fail (:class:`Blocked`) instead of hanging when the block blocks longer than ``seconds``."""
+
     def _raise(*_):
         raise Blocked(f"blocked for more than {seconds} s")
 
@@ -77,10 +79,19 @@ def test_overwrite_keeps_a_users_file_inside_the_old_runs_folders(tmp_path, sub)
 
 def test_overwrite_still_replaces_what_a_run_and_its_evaluation_wrote(tmp_path):
     out = _finished(tmp_path / "run")
-    for name in ("checkpoint/runner.msgpack", "checkpoint/config.json", "checkpoint/checkpoint.json",
-                 "eval/eval.json", "eval/eval.csv", "eval/trajectory.gif", "eval/trajectory_ppo_greedy.png",
-                 "eval/reading_ppo_greedy_maps.png", "eval/slide0/eval.json", "process-0/params.msgpack",
-                 "checkpoint/.runner.msgpack.tmp-0123abcd"):
+    for name in (
+        "checkpoint/runner.msgpack",
+        "checkpoint/config.json",
+        "checkpoint/checkpoint.json",
+        "eval/eval.json",
+        "eval/eval.csv",
+        "eval/trajectory.gif",
+        "eval/trajectory_ppo_greedy.png",
+        "eval/reading_ppo_greedy_maps.png",
+        "eval/slide0/eval.json",
+        "process-0/params.msgpack",
+        "checkpoint/.runner.msgpack.tmp-0123abcd",
+    ):
         (out / name).parent.mkdir(parents=True, exist_ok=True)
         (out / name).write_text(json.dumps(CONFIG) if name.endswith("config.json") else "x")
     from data_tools.bundle_files.writes import mark_temporary
@@ -127,7 +138,10 @@ def test_resume_reads_no_fifo_and_no_link(tmp_path):
     (killed at 90 s); runner.msgpack linked to another run's checkpoint was resumed from it without a word."""
     run = _unfinished(tmp_path / "run")
     os.mkfifo(run / "checkpoint" / "runner.msgpack")
-    with at_most(10), pytest.raises(HistojaxDataError, match=r"runner\.msgpack: is a FIFO, not the run's own checkpoint"):
+    with (
+        at_most(10),
+        pytest.raises(HistojaxDataError, match=r"runner\.msgpack: is a FIFO, not the run's own checkpoint"),
+    ):
         load_runner(run / "checkpoint", None, 1, 1)
     (run / "checkpoint" / "runner.msgpack").unlink()
     (tmp_path / "other.msgpack").write_bytes(b"\x80")
@@ -151,8 +165,12 @@ def _sealed(folder: Path) -> Path:
     from data_tools.bundle_files.seals import DATASET_DIGEST, metadata_digest
 
     folder.mkdir()
-    spec = {"kind": "histojax dataset of real slides (data_tools dataset)", "train": ["bundles/s1"],
-            "test": ["bundles/s2"], "labels": {"s1": 0, "s2": 1}}
+    spec = {
+        "kind": "histojax dataset of real slides (data_tools dataset)",
+        "train": ["bundles/s1"],
+        "test": ["bundles/s2"],
+        "labels": {"s1": 0, "s2": 1},
+    }
     (folder / "dataset.json").write_text(json.dumps({**spec, DATASET_DIGEST: metadata_digest(spec)}))
     return folder
 

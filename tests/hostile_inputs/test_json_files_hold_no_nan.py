@@ -2,6 +2,7 @@
 ``json.dump`` / ``json.dumps`` of the packages passes ``allow_nan=False``, undefined figures go through
 :func:`data_tools.metrics.json_safe` (``null``), and the readers' ``readers.json`` of a split whose AUC without
 ITC-only slides is undefined holds ``null`` there."""
+
 from __future__ import annotations
 
 import ast
@@ -24,8 +25,13 @@ def _dump_calls(path: Path):
     text = path.read_text()
     lines = text.splitlines()
     for node in ast.walk(ast.parse(text)):
-        if (isinstance(node, ast.Call) and isinstance(node.func, ast.Attribute) and node.func.attr in ("dump", "dumps")
-                and isinstance(node.func.value, ast.Name) and node.func.value.id == "json"):
+        if (
+            isinstance(node, ast.Call)
+            and isinstance(node.func, ast.Attribute)
+            and node.func.attr in ("dump", "dumps")
+            and isinstance(node.func.value, ast.Name)
+            and node.func.value.id == "json"
+        ):
             yield node, lines[node.lineno - 1]
 
 
@@ -47,8 +53,13 @@ def test_every_json_file_written_refuses_nan():
 
 
 def test_json_safe_turns_undefined_figures_into_null():
-    record = {"auc": float("nan"), "rows": [np.float32(np.inf), np.float64(0.5), (1, np.int64(2))],
-              "per_seed": np.asarray([[1.0, np.nan]]), "ok": np.bool_(True), "name": "x"}
+    record = {
+        "auc": float("nan"),
+        "rows": [np.float32(np.inf), np.float64(0.5), (1, np.int64(2))],
+        "per_seed": np.asarray([[1.0, np.nan]]),
+        "ok": np.bool_(True),
+        "name": "x",
+    }
     text = json.dumps(json_safe(record), allow_nan=False)
     back = json.loads(text)
     assert back == {"auc": None, "rows": [None, 0.5, [1, 2]], "per_seed": [[1.0, None]], "ok": True, "name": "x"}

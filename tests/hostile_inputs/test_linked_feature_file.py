@@ -1,6 +1,7 @@
 """Every head fit and bundle reader of ``baselines.reading`` refuses a feature file that is a symbolic link out
 of its bundle, in one line naming the bundle and the entry, through the one checked loader
 (:func:`baselines.reading.slides.read_bundle`)."""
+
 from __future__ import annotations
 
 import json
@@ -8,9 +9,9 @@ import os
 import shutil
 
 import pytest
+from fold_helpers import build_folded
 
 from data_tools.errors import BundleError
-from fold_helpers import build_folded
 
 
 @pytest.fixture(scope="module")
@@ -35,7 +36,8 @@ def _readers():
         "head_mil_fit.load_grid": lambda ds: head_mil_fit.load_grid(ds / "bundles" / "t0", 0, dim=0),
         "learned_head_fit.load_split": lambda ds: learned_head_fit.load_split(ds, ["bundles/t0"], {}, progress=False),
         "pipeline.load_feature_slides (readers, budget curve)": lambda ds: pipeline.load_feature_slides(
-            ds, ["bundles/t0"], slides.read_spec(ds), None, 1),
+            ds, ["bundles/t0"], slides.read_spec(ds), None, 1
+        ),
     }
 
 

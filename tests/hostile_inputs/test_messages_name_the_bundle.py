@@ -1,6 +1,7 @@
 """Messages name the bundle a user will see, never the hidden temporary it is built in (``bundles/.NAME.tmp-XXXXXXXX``
 is renamed to ``bundles/NAME`` when the build is done). Before: ``dataset --encoder pcam-cnn`` warned about
 ``bundles/.Tumor_094.tmp-3e5f6d9c/metadata.json``."""
+
 from __future__ import annotations
 
 import shutil
@@ -13,8 +14,10 @@ from data_tools.cli_output import one_line, without_temporaries
 
 
 def test_paths_inside_a_temporary_are_named_by_the_bundle():
-    assert one_line("bundles/.Tumor_094.tmp-3e5f6d9c/metadata.json: the slide's µm/px is unknown") == \
-        "bundles/Tumor_094/metadata.json: the slide's µm/px is unknown"
+    assert (
+        one_line("bundles/.Tumor_094.tmp-3e5f6d9c/metadata.json: the slide's µm/px is unknown")
+        == "bundles/Tumor_094/metadata.json: the slide's µm/px is unknown"
+    )
     assert without_temporaries("/d/bundles/.a.b.tmp-0123abcd/tissue.npy") == "/d/bundles/a.b/tissue.npy"
     # the temporary itself (a message about it, e.g. a dead build's leftover) keeps its name
     assert one_line("removed bundles/.Tumor.tmp-3e5f6d9c beside it") == "removed bundles/.Tumor.tmp-3e5f6d9c beside it"
@@ -26,7 +29,6 @@ def test_the_encoder_scale_warning_names_the_bundle_not_its_temporary(tmp_path, 
     import tifffile
 
     import data_tools.features.efficientnet as efficientnet
-
     from data_tools.bundle import build_bundle
     from data_tools.errors import BundleError
     from data_tools.features.grid import compute_features

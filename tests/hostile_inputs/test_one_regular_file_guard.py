@@ -1,6 +1,7 @@
 """One regular-file guard for every reader of a user's files: bundles (data_tools.bundle_files.safe_files.own_file) and slide
 head folders (histojax.reading.heads.files.read_regular) both use data_tools.bundle_files.safe_files.not_regular /
 open_regular (the lower floor), so a link, a FIFO or a folder is refused alike, in one line naming the file."""
+
 from __future__ import annotations
 
 import os
@@ -54,9 +55,9 @@ def test_both_head_fits_read_a_bundle_through_one_loader(tmp_path):
     """slides.load_slide and learned_head_fit.load_views share slides.read_bundle (read, verify, feature levels)
     and slides.finest_views (view -> feature cell, tissue views): the same views and vectors."""
     import numpy as np
+    from learned_fixture import make_cohort
 
     from baselines.reading import learned_head_fit, slides
-    from learned_fixture import make_cohort
 
     assert learned_head_fit.read_bundle is slides.read_bundle
     assert learned_head_fit.finest_views is slides.finest_views

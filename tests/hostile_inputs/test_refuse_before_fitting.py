@@ -1,5 +1,6 @@
 """Refuse before working: a head fit whose ``--out`` cannot be written (a read-only file system, which refuses
 root too) is refused in one line before any slide is read or any candidate trained, and leaves nothing behind."""
+
 from __future__ import annotations
 
 import errno
@@ -15,6 +16,7 @@ from histojax.reading.heads import files
 def read_only(monkeypatch):
     """Every probe file :func:`histojax.reading.heads.files.check_writable` makes fails as on a read-only file
     system; reading a dataset or training fails the test."""
+
     def refused(*args, **kwargs):
         raise OSError(errno.EROFS, os.strerror(errno.EROFS))
 

@@ -1,5 +1,6 @@
 """A command that refuses a folder leaves it exactly as it found it: no lock file, no folder it made; and every
 folder histojax writes into a run folder is one of the run's own entries (``--overwrite`` replaces it)."""
+
 from __future__ import annotations
 
 import json
@@ -163,8 +164,9 @@ def test_a_lock_left_by_an_older_refused_train_never_blocks_a_head_refit(tmp_pat
 
     from histojax.reading.heads.learned import LearnedHead, init_params
 
-    head = LearnedHead(params=init_params(jax.random.PRNGKey(0), 4, hidden=4, attention=2), features_dim=4, hidden=4,
-                       attention=2)
+    head = LearnedHead(
+        params=init_params(jax.random.PRNGKey(0), 4, hidden=4, attention=2), features_dim=4, hidden=4, attention=2
+    )
     folder = head.save(tmp_path / "head")
     _leftover_lock(folder)
     head.save(folder)  # the refit: refused before ("holds files the head there did not write")

@@ -7,6 +7,7 @@ different options do not share a folder, an own encoder's overflowing or exiting
 Stand-in slides are small pyramidal TIFFs cut from the real pixels of the embedded CMU-1-Small-Region.svs
 (CC0 1.0, see tests/data/LICENSES.md).
 """
+
 from __future__ import annotations
 
 import json
@@ -16,12 +17,12 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
+from slide_helpers import pyramid
 
 from data_tools.__main__ import main as data_main
 from data_tools.bundle_files.writes import mark_temporary
 from data_tools.datasets.build import build_dataset
 from histojax.sample import SAMPLE_SLIDE
-from slide_helpers import pyramid
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -34,7 +35,7 @@ def pixels():
 
 def crop(pixels, i: int) -> np.ndarray:
     y, x = 320 + (i * 160) % 1920, 768 + (i * 64) % 512
-    return np.ascontiguousarray(pixels[y:y + 640, x:x + 512, :3])
+    return np.ascontiguousarray(pixels[y : y + 640, x : x + 512, :3])
 
 
 @pytest.fixture(scope="module")
@@ -81,8 +82,11 @@ def _users_entries(folder: Path) -> dict[str, str]:
     (folder / ".c.tmp-abcdefgh").write_text("chapter 3")
     (folder / ".notes.old-1").mkdir()
     (folder / ".notes.old-1" / "draft.txt").write_text("chapter 4")
-    return {str(p.relative_to(folder)): (p.read_text() if p.is_file() else "<dir>") for p in folder.rglob("*")
-            if p.name.startswith(".") or p.parent.name.startswith(".")}
+    return {
+        str(p.relative_to(folder)): (p.read_text() if p.is_file() else "<dir>")
+        for p in folder.rglob("*")
+        if p.name.startswith(".") or p.parent.name.startswith(".")
+    }
 
 
 def _same(folder: Path, before: dict[str, str]) -> None:
@@ -149,8 +153,9 @@ def test_build_overwrite_keeps_a_users_file_in_features_partial(cohort, tmp_path
     (out / "features.partial").mkdir()
     (out / "features.partial" / "000000.npy").write_bytes(b"\0" * 10)
     (out / "features.partial" / "thesis.txt").write_text("t")
-    line = _one_error(["build", str(slides / "s1.tif"), "--out", str(out), "--levels", "3", "--overwrite",
-                       "--quiet"], capsys)
+    line = _one_error(
+        ["build", str(slides / "s1.tif"), "--out", str(out), "--levels", "3", "--overwrite", "--quiet"], capsys
+    )
     assert "features.partial/thesis.txt" in line and str(out) in line
     assert (out / "features.partial" / "thesis.txt").read_text() == "t"  # before: deleted, rc 0
 
@@ -214,8 +219,9 @@ def test_a_c16_rerun_rebuilds_a_bundle_whose_checksum_does_not_match(tmp_path):
 
 
 # ------------------------------------------------------------------ 8. two runs of other options, one folder
-def test_a_dataset_run_with_other_options_is_refused_while_the_first_holds_the_folder(cohort, tmp_path, capsys,
-                                                                                      monkeypatch):
+def test_a_dataset_run_with_other_options_is_refused_while_the_first_holds_the_folder(
+    cohort, tmp_path, capsys, monkeypatch
+):
     import data_tools.datasets.build as build_module
     from data_tools.bundle_files.reading import read_metadata
 
@@ -226,9 +232,23 @@ def test_a_dataset_run_with_other_options_is_refused_while_the_first_holds_the_f
     def build_one(job):  # while the first run builds its first slide, the second starts
         if not second:
             second["started"] = True
-            second["code"], _, second["err"] = _run(["dataset", str(slides), "--out", str(out), "--labels",
-                                                     str(labels), "--levels", "3", "--restart", "--tile-size", "64",
-                                                     "--quiet"], capsys)
+            second["code"], _, second["err"] = _run(
+                [
+                    "dataset",
+                    str(slides),
+                    "--out",
+                    str(out),
+                    "--labels",
+                    str(labels),
+                    "--levels",
+                    "3",
+                    "--restart",
+                    "--tile-size",
+                    "64",
+                    "--quiet",
+                ],
+                capsys,
+            )
         return real(job)
 
     monkeypatch.setattr(build_module, "build_one", build_one)
@@ -240,8 +260,9 @@ def test_a_dataset_run_with_other_options_is_refused_while_the_first_holds_the_f
     assert {read_metadata(out / "bundles" / n).tile_size for n in ("s1", "s2", "s3")} == {128}
     assert not list(out.glob("*lock"))  # the run lock goes with the run
     monkeypatch.undo()
-    code, _, err = _run(["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3",
-                         "--quiet"], capsys)  # the same command again: cooperates (resumes)
+    code, _, err = _run(
+        ["dataset", str(slides), "--out", str(out), "--labels", str(labels), "--levels", "3", "--quiet"], capsys
+    )  # the same command again: cooperates (resumes)
     assert code == 0, err
 
 
@@ -271,8 +292,8 @@ def _edit_a_label(work: Path) -> None:
 
 def test_every_reader_of_a_dataset_refuses_an_edited_dataset_json(built, tmp_path):
     import histojax
-    from baselines.reading.slides import read_spec
     from baselines.reading.learned_head_fit import read_spec as learned_read_spec
+    from baselines.reading.slides import read_spec
     from data_tools.errors import BundleError
     from histojax.datasets import dataset_labels, dataset_slides
 
@@ -280,8 +301,13 @@ def test_every_reader_of_a_dataset_refuses_an_edited_dataset_json(built, tmp_pat
     shutil.copytree(built, work)
     assert len(dataset_slides(work, "train")) == 2 and read_spec(work)["labels"]["s1"] == 0  # sealed, unedited
     _edit_a_label(work)
-    for read in (lambda: dataset_slides(work, "train"), lambda: dataset_labels(work), lambda: read_spec(work),
-                 lambda: learned_read_spec(work), lambda: histojax.make("HistoJAX-Easy-v0", dataset=work)):
+    for read in (
+        lambda: dataset_slides(work, "train"),
+        lambda: dataset_labels(work),
+        lambda: read_spec(work),
+        lambda: learned_read_spec(work),
+        lambda: histojax.make("HistoJAX-Easy-v0", dataset=work),
+    ):
         with pytest.raises(BundleError) as e:  # before: the edited label was used
             read()
         line = str(e.value)
@@ -328,7 +354,7 @@ def test_a_validation_split_of_a_sealed_dataset_reads_and_its_labels_are_checked
 
 
 # ------------------------------------------------------------------ 9. your own encoder: overflow, SystemExit
-OWN_ENCODERS = '''
+OWN_ENCODERS = """
 import numpy as np
 
 
@@ -346,7 +372,7 @@ class Stop(BaseException):
 
 def stops(images):
     raise Stop("stop")
-'''
+"""
 
 
 @pytest.fixture()
@@ -375,22 +401,36 @@ def test_an_own_encoder_overflowing_float16_is_refused(own_encoders, one_bundle,
     line = _one_error(["features", str(bundle), "--encoder", f"{own_encoders}:huge", "--quiet"], capsys)
     assert "65504" in line and str(bundle) in line and "own38:huge" in line  # before: rc 0, inf in every cell
     assert read_metadata(bundle).features is None and not list(bundle.glob("features_*.npy"))
-    code, _, err = _run(["features", str(bundle), "--encoder", f"{own_encoders}:huge", "--dtype", "float32",
-                         "--quiet"], capsys)
+    code, _, err = _run(
+        ["features", str(bundle), "--encoder", f"{own_encoders}:huge", "--dtype", "float32", "--quiet"], capsys
+    )
     assert code == 0, err  # float32 holds them
 
 
 @pytest.mark.parametrize("fn", ["exits", "stops"])
-def test_an_own_encoder_raising_systemexit_does_not_end_features_with_status_0(own_encoders, one_bundle, tmp_path,
-                                                                               capsys, fn):
+def test_an_own_encoder_raising_systemexit_does_not_end_features_with_status_0(
+    own_encoders, one_bundle, tmp_path, capsys, fn
+):
     bundle = shutil.copytree(one_bundle, tmp_path / "b")
     line = _one_error(["features", str(bundle), "--encoder", f"{own_encoders}:{fn}", "--quiet"], capsys)
     assert f"{own_encoders}:{fn}" in line  # before: exit 0 (SystemExit) or a traceback, nothing written
 
 
 def test_an_own_encoder_raising_systemexit_does_not_end_c16_with_status_0(own_encoders, tmp_path, capsys):
-    code, _, err = _run(["c16", "--small", "--slides", "Tumor_072", "--encoder", f"{own_encoders}:exits", "--quiet",
-                         "--out", str(tmp_path / "c")], capsys)
+    code, _, err = _run(
+        [
+            "c16",
+            "--small",
+            "--slides",
+            "Tumor_072",
+            "--encoder",
+            f"{own_encoders}:exits",
+            "--quiet",
+            "--out",
+            str(tmp_path / "c"),
+        ],
+        capsys,
+    )
     assert code != 0 and "own38:exits" in err and "SystemExit" in err, (code, err)
 
 
@@ -407,7 +447,7 @@ def test_imported_features_missing_scattered_tissue_warn_and_record_the_coverage
     image = np.full((768, 1024, 3), 244, np.uint8)
     specks = [(y, x) for y in range(40, 740, 96) for x in range(40, 1000, 96)]
     for y, x in specks:
-        image[y:y + 7, x:x + 7] = [120, 30, 110]
+        image[y : y + 7, x : x + 7] = [120, 30, 110]
     image = (image.astype(np.int16) + rng.integers(-4, 5, image.shape)).clip(0, 255).astype(np.uint8)
     tifffile.imwrite(tmp_path / "s.tif", image, photometric="rgb", tile=(64, 64))
     bundle = build_bundle(tmp_path / "s.tif", tmp_path / "b", level_sets=(3,), tile_size=32, progress=False)
@@ -489,8 +529,9 @@ def test_a_full_disk_during_a_bundle_write_says_no_space_left_on_device(cohort, 
         raise OSError("2612862 requested and 2514816 written")
 
     monkeypatch.setattr(numpy.lib.format, "write_array", short_write)
-    line = _one_error(["build", str(slides / "s1.tif"), "--out", str(tmp_path / "b"), "--levels", "3", "--quiet"],
-                      capsys)
+    line = _one_error(
+        ["build", str(slides / "s1.tif"), "--out", str(tmp_path / "b"), "--levels", "3", "--quiet"], capsys
+    )
     assert "No space left on device" in line and str(tmp_path / "b") in line
     assert not (tmp_path / "b").exists() and not list(tmp_path.glob(".b.*"))
 

@@ -16,6 +16,7 @@ before it is ``<!-- docs-check: skip (reason) -->`` — the reason, shown on the
 skip mark without one fails); ``<!-- docs-check: run-slow -->`` blocks run only under ``make test-all``.
 Relative links between pages must resolve, anchors included.
 """
+
 from __future__ import annotations
 
 import argparse
@@ -33,7 +34,7 @@ from pathlib import Path
 import pytest
 
 ROOT = Path(__file__).resolve().parents[2]
-GUIDES = sorted((ROOT / "docs").glob("*.md"))            # guides: short and current (no dated run records)
+GUIDES = sorted((ROOT / "docs").glob("*.md"))  # guides: short and current (no dated run records)
 RESULTS = sorted((ROOT / "docs" / "results").glob("*.md"))  # dated measured figures, one page per topic
 PAGES = [ROOT / "README.md", ROOT / "CONTRIBUTING.md", *GUIDES, *RESULTS]
 GUIDE_MAX_LINES = 300
@@ -104,7 +105,7 @@ def _python_blocks():
                 marks = [pytest.mark.slow]
             elif skip := _SKIP.search(before):
                 marks = [pytest.mark.skip(reason=f"the page says: {skip.group('reason').strip()}")]
-            yield pytest.param("\n".join(lines[i + 1:end]), id=f"{page.relative_to(ROOT)}:{i + 1}", marks=marks)
+            yield pytest.param("\n".join(lines[i + 1 : end]), id=f"{page.relative_to(ROOT)}:{i + 1}", marks=marks)
 
 
 def _words(command: str) -> list[str]:
@@ -194,7 +195,9 @@ def test_command_is_real(page, command):
     elif head == "histojax":
         _dry_parse("histojax", "histojax", args)
     else:
-        pytest.fail(f"{command!r}: not a command tests/project/test_documented_commands_and_links.py can check (make, pip, python, histojax)")
+        pytest.fail(
+            f"{command!r}: not a command tests/project/test_documented_commands_and_links.py can check (make, pip, python, histojax)"
+        )
 
 
 @pytest.mark.parametrize("page, commands", list(_run_blocks()))
@@ -214,9 +217,10 @@ def test_marked_blocks_run(page, commands, tmp_path):
             argv = [sys.executable, "-m", "histojax.cli", *words[1:]]
         else:
             pytest.fail(f"run blocks hold python / histojax commands only: {command!r}")
-        done = subprocess.run(argv, cwd=tmp_path, env={**env, **assigned}, capture_output=True, text=True,
-                              timeout=600)
-        assert done.returncode == 0, f"{command!r} exited {done.returncode}:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
+        done = subprocess.run(argv, cwd=tmp_path, env={**env, **assigned}, capture_output=True, text=True, timeout=600)
+        assert done.returncode == 0, (
+            f"{command!r} exited {done.returncode}:\n{done.stdout[-2000:]}\n{done.stderr[-2000:]}"
+        )
 
 
 @pytest.mark.parametrize("code", list(_python_blocks()))
@@ -225,8 +229,9 @@ def test_python_blocks_run(code, tmp_path):
     script = tmp_path / "snippet.py"
     script.write_text(code + "\n")
     env = {**os.environ, "PYTHONPATH": str(ROOT) + os.pathsep + os.environ.get("PYTHONPATH", "")}
-    done = subprocess.run([sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True,
-                          timeout=600)
+    done = subprocess.run(
+        [sys.executable, str(script)], cwd=tmp_path, env=env, capture_output=True, text=True, timeout=600
+    )
     assert done.returncode == 0, done.stderr[-3000:]
 
 
@@ -295,9 +300,11 @@ def test_links_resolve(page):
 
 def test_checker_refuses_what_is_wrong(tmp_path):
     """The checks can fail: unknown options, subcommands and scripts, and dangling anchors are caught."""
-    for kind, target, args in [("module", "data_tools", ["build", "x.svs", "--no-such-option"]),
-                               ("histojax", "histojax", ["train", "--algo", "ppo", "--bogus", "1"]),
-                               ("script", "benchmarks/throughput.py", ["--batchez", "1"])]:
+    for kind, target, args in [
+        ("module", "data_tools", ["build", "x.svs", "--no-such-option"]),
+        ("histojax", "histojax", ["train", "--algo", "ppo", "--bogus", "1"]),
+        ("script", "benchmarks/throughput.py", ["--batchez", "1"]),
+    ]:
         with pytest.raises(AssertionError, match="refused|exited"):
             _dry_parse(kind, target, args)
     page = tmp_path / "page.md"
@@ -316,7 +323,9 @@ def test_pending_pages_list_is_current():
 def test_guides_are_short(page):
     """A guide page stays readable: at most GUIDE_MAX_LINES lines (dated run records go to docs/results/)."""
     n = len(page.read_text().splitlines())
-    assert n <= GUIDE_MAX_LINES, f"{page.relative_to(ROOT)}: {n} lines, more than {GUIDE_MAX_LINES}; move run records to docs/results/"
+    assert n <= GUIDE_MAX_LINES, (
+        f"{page.relative_to(ROOT)}: {n} lines, more than {GUIDE_MAX_LINES}; move run records to docs/results/"
+    )
 
 
 def test_results_pages_say_where_they_were_measured():
@@ -327,8 +336,9 @@ def test_results_pages_say_where_they_were_measured():
         assert head.count("**Measured on**") == 1, f"{page.relative_to(ROOT)}: no single **Measured on** header"
         for word in ("JAX", "histojax"):
             assert word in head, f"{page.relative_to(ROOT)}: its Measured-on header does not name {word}"
-        assert re.search(r"\bCPU\b|\bGPU\b|NVIDIA|\bTPU\b", head), \
+        assert re.search(r"\bCPU\b|\bGPU\b|NVIDIA|\bTPU\b", head), (
             f"{page.relative_to(ROOT)}: its Measured-on header does not name the machine (CPU or GPU model)"
+        )
         assert re.search(r"20\d\d-\d\d-\d\d", head), f"{page.relative_to(ROOT)}: its header gives no date"
 
 
@@ -351,12 +361,14 @@ _PROCESS_WORDS = re.compile(
     r"(gpu|tpu|device|machine|accelerator)|\ba lent (gpu|tpu|device|machine)|\btime (was )?left\b|\btime (this|the|"
     r"that) \w+ had\b|\bhad no (gpu|tpu|accelerator)\b|\bno (gpu|tpu|accelerator) (was|has been|is) "
     r"(lent|available|given)|\bdevice tool\b|\bengineers?\b|\bdid not fit (this|the) \w+\b",
-    flags=re.IGNORECASE)
+    flags=re.IGNORECASE,
+)
 
 
 def _process_words(text: str) -> list[str]:
-    return [f"{n}: {m.group(0)!r}" for n, line in enumerate(text.splitlines(), 1)
-            for m in _PROCESS_WORDS.finditer(line)]
+    return [
+        f"{n}: {m.group(0)!r}" for n, line in enumerate(text.splitlines(), 1) for m in _PROCESS_WORDS.finditer(line)
+    ]
 
 
 @pytest.mark.parametrize("page", PAGES, ids=lambda p: str(p.relative_to(ROOT)))
@@ -368,12 +380,28 @@ def test_docs_speak_of_the_product_not_the_work(page):
 
 def test_process_words_are_caught():
     """The scan finds the phrases it is for, and leaves product words alone."""
-    for bad in ["the sixth session's agents", "Measured in this session", "the fifth round added",
-                "rounds 3–4", "No GPU was lent.", "on a lent GPU", "the time this session had left",
-                "the time left", "the sessions that wrote this page had no GPU", "six engineers shared the cores",
-                "the device tool reported none", "which did not fit this session"]:
+    for bad in [
+        "the sixth session's agents",
+        "Measured in this session",
+        "the fifth round added",
+        "rounds 3–4",
+        "No GPU was lent.",
+        "on a lent GPU",
+        "the time this session had left",
+        "the time left",
+        "the sessions that wrote this page had no GPU",
+        "six engineers shared the cores",
+        "the device tool reported none",
+        "which did not fit this session",
+    ]:
         assert _process_words(bad), bad
-    for fine in ["the normal slide that lent it its tissue", "round(x / stride)", "dealt round-robin",
-                 "a shared 2-core x86_64 CPU", "the one cache helper", "4 processes × 6 rounds in the slow run",
-                 "Measured 2026-11-24, histojax 0.1.0, JAX 0.10.2"]:
+    for fine in [
+        "the normal slide that lent it its tissue",
+        "round(x / stride)",
+        "dealt round-robin",
+        "a shared 2-core x86_64 CPU",
+        "the one cache helper",
+        "4 processes × 6 rounds in the slow run",
+        "Measured 2026-11-24, histojax 0.1.0, JAX 0.10.2",
+    ]:
         assert not _process_words(fine), fine

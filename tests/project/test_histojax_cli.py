@@ -1,4 +1,5 @@
 """The `histojax` console entry point: dispatch, help, one-line errors."""
+
 from __future__ import annotations
 
 import subprocess
@@ -10,8 +11,9 @@ SVS = ROOT / "histojax" / "data" / "CMU-1-Small-Region.svs"
 
 
 def run(*args):
-    return subprocess.run([sys.executable, "-m", "histojax.cli", *args], cwd=ROOT, capture_output=True, text=True,
-                          timeout=300)
+    return subprocess.run(
+        [sys.executable, "-m", "histojax.cli", *args], cwd=ROOT, capture_output=True, text=True, timeout=300
+    )
 
 
 def test_help_lists_the_subcommands():
@@ -27,8 +29,11 @@ def test_info_dispatches_to_data_tools():
 
 
 def test_user_errors_are_one_line_without_traceback(tmp_path):
-    for args in (["info", str(ROOT / "tests" / "data" / "broken.svs")], ["frobnicate"],
-                 ["demo", "--steps", "notanumber"]):
+    for args in (
+        ["info", str(ROOT / "tests" / "data" / "broken.svs")],
+        ["frobnicate"],
+        ["demo", "--steps", "notanumber"],
+    ):
         out = run(*args)
         assert out.returncode == 2, args
         assert "Traceback" not in out.stderr
@@ -40,7 +45,6 @@ def test_build_then_info_on_the_bundle(tmp_path):
     assert out.returncode == 0, out.stderr
     info = run("info", str(tmp_path / "b"))
     assert info.returncode == 0 and "level 2" in info.stdout
-
 
 
 def test_every_command_is_a_module_with_one_parser():
@@ -56,4 +60,5 @@ def test_every_command_is_a_module_with_one_parser():
         assert COMMANDS[command].startswith("baselines.")
     out = run("rotation", "--seeds", "1")
     assert out.returncode == 2 and out.stderr.strip() == (
-        "error: histojax rotation: --budget-mb is required (--help shows the options)")
+        "error: histojax rotation: --budget-mb is required (--help shows the options)"
+    )

@@ -11,6 +11,7 @@ every package a circle.
 Inside ``histojax``, the env core (``histojax.core``) is a floor under the reading stack (``histojax.reading``):
 no core module imports it, and ``histojax.make`` reaches no reading module on its way to the jitted step.
 """
+
 from __future__ import annotations
 
 import ast
@@ -59,7 +60,7 @@ def import_graph(root: pathlib.Path = ROOT) -> dict[str, dict[str, int]]:
             elif isinstance(node, ast.ImportFrom):
                 if node.level:
                     base = mod.split(".") if is_pkg else mod.split(".")[:-1]
-                    base = base[:len(base) - (node.level - 1)]
+                    base = base[: len(base) - (node.level - 1)]
                     src = ".".join(base + ([node.module] if node.module else []))
                 else:
                     src = node.module or ""
@@ -132,8 +133,12 @@ def test_no_import_circles():
 def test_imports_point_down_the_floors():
     """data_tools → histojax → baselines → benchmarks → experiments: nothing imports a higher floor."""
     modules = _modules()
-    up = [f"{modules[m].relative_to(ROOT)}:{line}: {m} imports {t}"
-          for m, edges in import_graph().items() for t, line in edges.items() if _floor(t) > _floor(m)]
+    up = [
+        f"{modules[m].relative_to(ROOT)}:{line}: {m} imports {t}"
+        for m, edges in import_graph().items()
+        for t, line in edges.items()
+        if _floor(t) > _floor(m)
+    ]
     assert not up, "imports from a higher floor:\n" + "\n".join(up)
 
 
@@ -156,7 +161,12 @@ def test_env_core_imports_nothing_from_the_reading_stack():
     graph = import_graph()
     core = [m for m in graph if m == "histojax.core" or m.startswith("histojax.core.")]
     assert "histojax.core.env" in core and "histojax.core.modes.factory" in core
-    up = [f"{m} imports {t}" for m in core for t in graph[m] if t == "histojax.reading" or t.startswith("histojax.reading.")]
+    up = [
+        f"{m} imports {t}"
+        for m in core
+        for t in graph[m]
+        if t == "histojax.reading" or t.startswith("histojax.reading.")
+    ]
     assert not up, "the env core imports the reading stack:\n" + "\n".join(up)
 
 

@@ -1,4 +1,5 @@
 """One import path per name: the old alias modules are gone, and nothing in the repository names them."""
+
 import ast
 import importlib.util
 import pathlib
@@ -88,23 +89,72 @@ GONE = {
 
 # names that left a module which still exists: old module -> (the one module of the names, the names)
 MOVED_NAMES = {
-    "baselines.common": ("their defining module (baselines.common.config / env / devices, baselines.harness.*)",
-                         ("make_env", "episode_stats", "reset_envs", "params_initialiser", "EnvConfig", "ConfigError",
-                          "batch_mesh", "shard_batch", "Progress", "report", "save_checkpoint", "load_checkpoint",
-                          "seeds_runner", "run_chunked", "run_and_save", "load_runner", "trainer_command",
-                          "parse_args", "config_from_args", "plot_curves", "HistojaxDataError")),
-    "baselines.reading.head_fit": ("baselines.reading.slides (loaders), baselines.reading.fitting (fit rules)",
-                                   ("read_spec", "scale_warning", "warn_scale", "read_bundle", "finest_views",
-                                    "load_slide", "load_slides", "split_bundles", "_label", "logistic_fit",
-                                    "check_classes", "check_head", "MIN_SLIDES_PER_CLASS")),
+    "baselines.common": (
+        "their defining module (baselines.common.config / env / devices, baselines.harness.*)",
+        (
+            "make_env",
+            "episode_stats",
+            "reset_envs",
+            "params_initialiser",
+            "EnvConfig",
+            "ConfigError",
+            "batch_mesh",
+            "shard_batch",
+            "Progress",
+            "report",
+            "save_checkpoint",
+            "load_checkpoint",
+            "seeds_runner",
+            "run_chunked",
+            "run_and_save",
+            "load_runner",
+            "trainer_command",
+            "parse_args",
+            "config_from_args",
+            "plot_curves",
+            "HistojaxDataError",
+        ),
+    ),
+    "baselines.reading.head_fit": (
+        "baselines.reading.slides (loaders), baselines.reading.fitting (fit rules)",
+        (
+            "read_spec",
+            "scale_warning",
+            "warn_scale",
+            "read_bundle",
+            "finest_views",
+            "load_slide",
+            "load_slides",
+            "split_bundles",
+            "_label",
+            "logistic_fit",
+            "check_classes",
+            "check_head",
+            "MIN_SLIDES_PER_CLASS",
+        ),
+    ),
     "baselines.evaluate.checks": ("data_tools.metrics", ("UNDEFINED",)),
     "histojax.reading.heads.logit": ("the same module, named for what it is: LogitHead", ("SlideHead",)),
-    "baselines.networks": ("baselines.cell_set_networks",
-                           ("EpisodeTables", "CellEncoder", "CellSetActorCritic", "RecurrentCellSetActorCritic",
-                            "uses_cell_sets", "NEG", "CELL_CHUNK", "SplitDense", "cell_layers", "gathered_cell_layers",
-                            "cell_logits")),
-    "data_tools.slide_files.tiff": ("data_tools.slide_files.base", ("LevelInfo", "describe", "check_levels",
-                                                                   "_check_levels")),
+    "baselines.networks": (
+        "baselines.cell_set_networks",
+        (
+            "EpisodeTables",
+            "CellEncoder",
+            "CellSetActorCritic",
+            "RecurrentCellSetActorCritic",
+            "uses_cell_sets",
+            "NEG",
+            "CELL_CHUNK",
+            "SplitDense",
+            "cell_layers",
+            "gathered_cell_layers",
+            "cell_logits",
+        ),
+    ),
+    "data_tools.slide_files.tiff": (
+        "data_tools.slide_files.base",
+        ("LevelInfo", "describe", "check_levels", "_check_levels"),
+    ),
 }
 
 
@@ -135,8 +185,10 @@ def test_nothing_imports_a_moved_name_from_its_old_module():
     for old, (_, names) in MOVED_NAMES.items():
         alt = "|".join(re.escape(n) for n in names)
         short = re.escape(old.rsplit(".", 1)[-1])
-        pattern = re.compile(rf"from {re.escape(old)} import [^\n#]*\b({alt})\b|(?<![\w.]){short}\.({alt})\b"
-                             rf"|\b{re.escape(old)}\.({alt})\b")
+        pattern = re.compile(
+            rf"from {re.escape(old)} import [^\n#]*\b({alt})\b|(?<![\w.]){short}\.({alt})\b"
+            rf"|\b{re.escape(old)}\.({alt})\b"
+        )
         for path in _text_files():
             if "results" in path.relative_to(ROOT).parts[:2]:
                 continue
@@ -148,18 +200,26 @@ def test_nothing_imports_a_moved_name_from_its_old_module():
 
 def _text_files() -> list[pathlib.Path]:
     """Code, tests, docs, examples and the Makefile (this file aside)."""
-    files = [p for d in ("histojax", "data_tools", "baselines", "benchmarks", "experiments", "examples", "tests", "docs")
-             if (ROOT / d).is_dir() for p in (ROOT / d).rglob("*")
-             if p.suffix in (".py", ".md", ".ipynb", ".toml", ".cfg", ".txt") and p.name != "test_import_paths.py"]
+    files = [
+        p
+        for d in ("histojax", "data_tools", "baselines", "benchmarks", "experiments", "examples", "tests", "docs")
+        if (ROOT / d).is_dir()
+        for p in (ROOT / d).rglob("*")
+        if p.suffix in (".py", ".md", ".ipynb", ".toml", ".cfg", ".txt") and p.name != "test_import_paths.py"
+    ]
     return files + [ROOT / n for n in ("README.md", "Makefile", "pyproject.toml") if (ROOT / n).is_file()]
 
 
 def test_nothing_names_an_old_path():
     """Code, tests, docs, examples and the Makefile use only the one path of each name."""
     pattern = re.compile(r"\b(" + "|".join(re.escape(o) for o in GONE) + r")\b")
-    files = [p for d in ("histojax", "data_tools", "baselines", "benchmarks", "experiments", "examples", "tests", "docs")
-             if (ROOT / d).is_dir() for p in (ROOT / d).rglob("*")
-             if p.suffix in (".py", ".md", ".ipynb", ".toml", ".cfg", ".txt") and p.name != "test_import_paths.py"]
+    files = [
+        p
+        for d in ("histojax", "data_tools", "baselines", "benchmarks", "experiments", "examples", "tests", "docs")
+        if (ROOT / d).is_dir()
+        for p in (ROOT / d).rglob("*")
+        if p.suffix in (".py", ".md", ".ipynb", ".toml", ".cfg", ".txt") and p.name != "test_import_paths.py"
+    ]
     files += [ROOT / n for n in ("README.md", "Makefile", "pyproject.toml") if (ROOT / n).is_file()]
     hits = []
     for path in files:

@@ -1,6 +1,7 @@
 """The floors pyproject.toml declares are the versions ``make test-min`` installs (requirements-min.txt),
 so a declared floor is a tested one (``jax>=0.4.30`` was once declared but could not
 even be installed with the other floors)."""
+
 from __future__ import annotations
 
 import re

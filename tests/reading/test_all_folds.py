@@ -1,6 +1,7 @@
 """``--all-folds``: the budget curve and ``histojax evaluate`` run their one-fold path (``--fold I``) on every fold of a
 dataset built with ``--folds K`` and report each figure as its mean ± std over folds (per-fold rows kept, a summary
 row added); a dataset without folds is refused in one line, with nothing written."""
+
 from __future__ import annotations
 
 import csv
@@ -9,15 +10,26 @@ import shutil
 
 import numpy as np
 import pytest
+from fold_helpers import build_folded
 
 from baselines import folds
 from baselines.reading import budget_curve
 from data_tools.datasets.build import write_dataset_index
 from histojax.datasets import dataset_slides
-from fold_helpers import build_folded
 
-CURVE = ["--env", "HistoJAX-Easy-v0", "--glimpse-level", "1", "--budgets", "0.25", "0.5", "--seeds", "1",
-         "--steps", "20"]
+CURVE = [
+    "--env",
+    "HistoJAX-Easy-v0",
+    "--glimpse-level",
+    "1",
+    "--budgets",
+    "0.25",
+    "0.5",
+    "--seeds",
+    "1",
+    "--steps",
+    "20",
+]
 
 
 @pytest.fixture(scope="module")
@@ -49,8 +61,12 @@ def test_budget_curve_all_folds_refuses_a_dataset_without_folds(folded, tmp_path
     assert len(err.splitlines()) == 1 and "--all-folds" in err and "dataset.json has no folds" in err, err
     assert "--folds K" in err and not (tmp_path / "o").exists()
     for extra in (["--fold", "0"], ["--folds", "2"]):
-        assert budget_curve.main(["--dataset", str(folded[0]), *CURVE, "--all-folds", *extra,
-                                  "--out", str(tmp_path / "o")]) == 2
+        assert (
+            budget_curve.main(
+                ["--dataset", str(folded[0]), *CURVE, "--all-folds", *extra, "--out", str(tmp_path / "o")]
+            )
+            == 2
+        )
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and f"not with {extra[0]} {extra[1]}" in err, err
         assert not (tmp_path / "o").exists()
@@ -65,13 +81,39 @@ def test_budget_curve_all_folds_is_the_one_fold_path_on_every_fold(folded, tmp_p
     def rows_of_the_fold(train, test, budgets, fold=None, **kw):
         seen.append((fold, len(train[1]), len(test[1]), kw["policies"]))
         auc = 0.6 + 0.2 * fold  # 0.6 on fold 0, 0.8 on fold 1
-        return [{"method": "random reader + MIL", "budget": b, "fraction_read": b, "auc": auc, "accuracy": 0.5,
-                 "slides": len(test[1]), "auc_std": 0.0, "accuracy_std": 0.0, "seeds": 1,
-                 "fields_of_view": float("nan")} for b in budgets]
+        return [
+            {
+                "method": "random reader + MIL",
+                "budget": b,
+                "fraction_read": b,
+                "auc": auc,
+                "accuracy": 0.5,
+                "slides": len(test[1]),
+                "auc_std": 0.0,
+                "accuracy_std": 0.0,
+                "seeds": 1,
+                "fields_of_view": float("nan"),
+            }
+            for b in budgets
+        ]
 
     monkeypatch.setattr(budget_curve, "budget_rows", rows_of_the_fold)
-    assert budget_curve.main(["--dataset", str(out), *CURVE, "--all-folds", "--ppo", "agent", "runs/ppo-fold{fold}",
-                              "--out", str(tmp_path)]) == 0
+    assert (
+        budget_curve.main(
+            [
+                "--dataset",
+                str(out),
+                *CURVE,
+                "--all-folds",
+                "--ppo",
+                "agent",
+                "runs/ppo-fold{fold}",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     sizes = [len(dataset_slides(out, "test", i)) for i in range(2)]
     assert [s[:3] for s in seen] == [(0, 7 - sizes[0], sizes[0]), (1, 7 - sizes[1], sizes[1])]
     assert [s[3] for s in seen] == [[("agent", "runs/ppo-fold0")], [("agent", "runs/ppo-fold1")]]  # a run per fold
@@ -85,9 +127,24 @@ def test_budget_curve_all_folds_is_the_one_fold_path_on_every_fold(folded, tmp_p
 
 
 def test_budget_curve_without_all_folds_writes_no_fold_column(folded, tmp_path, monkeypatch):
-    monkeypatch.setattr(budget_curve, "budget_rows", lambda train, test, budgets, **kw: [
-        {"method": "MIL, read everything", "budget": 1.0, "fraction_read": 1.0, "auc": 1.0, "accuracy": 1.0,
-         "slides": len(test[1]), "auc_std": 0.0, "accuracy_std": 0.0, "seeds": 1, "fields_of_view": float("nan")}])
+    monkeypatch.setattr(
+        budget_curve,
+        "budget_rows",
+        lambda train, test, budgets, **kw: [
+            {
+                "method": "MIL, read everything",
+                "budget": 1.0,
+                "fraction_read": 1.0,
+                "auc": 1.0,
+                "accuracy": 1.0,
+                "slides": len(test[1]),
+                "auc_std": 0.0,
+                "accuracy_std": 0.0,
+                "seeds": 1,
+                "fields_of_view": float("nan"),
+            }
+        ],
+    )
     assert budget_curve.main(["--dataset", str(folded[0]), *CURVE, "--fold", "1", "--out", str(tmp_path)]) == 0
     assert (tmp_path / "budget_curve.csv").read_text().startswith("method,budget,")
 
@@ -103,8 +160,11 @@ def test_budget_curve_all_folds_rows_equal_the_fold_runs(folded, tmp_path):
         one = list(csv.DictReader(f))
     assert [{k: v for k, v in r.items() if k != "fold"} for r in every if r["fold"] == "1"] == one
     for r in (r for r in every if r["fold"] == "mean"):
-        per = [float(x["auc"]) for x in every if x["fold"] in ("0", "1") and x["method"] == r["method"]
-               and x["budget"] == r["budget"]]
+        per = [
+            float(x["auc"])
+            for x in every
+            if x["fold"] in ("0", "1") and x["method"] == r["method"] and x["budget"] == r["budget"]
+        ]
         assert float(r["auc"]) == pytest.approx(np.mean(per), abs=1e-4)
         assert float(r["auc_std"]) == pytest.approx(np.std(per), abs=1e-4)
 
@@ -116,8 +176,12 @@ def test_evaluate_all_folds_refuses_a_dataset_without_folds(folded, tmp_path, ca
     _, plain = folded
     for extra, words in (([], "dataset.json has no folds"), (["--fold", "0"], "not with --fold 0")):
         ds = plain if not extra else folded[0]
-        assert evaluate.main(["--env", "HistoJAX-Easy-v0", "--dataset", str(ds), "--all-folds", *extra,
-                              "--out", str(tmp_path / "o")]) == 2
+        assert (
+            evaluate.main(
+                ["--env", "HistoJAX-Easy-v0", "--dataset", str(ds), "--all-folds", *extra, "--out", str(tmp_path / "o")]
+            )
+            == 2
+        )
         err = capsys.readouterr().err.strip()
         assert len(err.splitlines()) == 1 and "--all-folds" in err and words in err, err
         assert not (tmp_path / "o").exists()
@@ -135,14 +199,38 @@ def test_evaluate_all_folds_is_the_one_fold_run_on_every_fold(folded, tmp_path, 
         env_kwargs = config.env_kwargs
         seen.append((env_kwargs["fold"], env_kwargs["split"], env_kwargs["dataset"], out))
         f = env_kwargs["fold"]
-        return {"random": {"episodes": 4, "success_rate": 0.25 + 0.5 * f, "mean_return": 1.0, "mean_length": 10.0,
-                           "mean_steps_to_success": float("nan"), "mean_fraction_read": 0.5,
-                           "mean_fields_of_view": 3.0, "diagnosis_auc": 0.6 + 0.2 * f,
-                           "diagnosis_tumour_slides": 2, "diagnosis_normal_slides": 3 + f}}
+        return {
+            "random": {
+                "episodes": 4,
+                "success_rate": 0.25 + 0.5 * f,
+                "mean_return": 1.0,
+                "mean_length": 10.0,
+                "mean_steps_to_success": float("nan"),
+                "mean_fraction_read": 0.5,
+                "mean_fields_of_view": 3.0,
+                "diagnosis_auc": 0.6 + 0.2 * f,
+                "diagnosis_tumour_slides": 2,
+                "diagnosis_normal_slides": 3 + f,
+            }
+        }
 
     monkeypatch.setattr(cli, "evaluate", scored)
-    assert cli.main(["--env", "HistoJAX-Easy-v0", "--dataset", str(out), "--all-folds", "--episodes", "4",
-                     "--out", str(tmp_path)]) == 0
+    assert (
+        cli.main(
+            [
+                "--env",
+                "HistoJAX-Easy-v0",
+                "--dataset",
+                str(out),
+                "--all-folds",
+                "--episodes",
+                "4",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     assert [s[:3] for s in seen] == [(0, "test", str(out)), (1, "test", str(out))]
     assert [s[3] for s in seen] == [tmp_path / "fold0", tmp_path / "fold1"]
     assert all((tmp_path / f"fold{i}" / "eval.json").is_file() for i in range(2))  # each fold as --fold I writes it
@@ -182,8 +270,22 @@ def test_evaluate_all_folds_runs_the_reference_policies(folded, tmp_path):
     from baselines import evaluate
 
     out, _ = folded
-    assert evaluate.main(["--env", "HistoJAX-Easy-v0", "--dataset", str(out), "--all-folds", "--episodes", "2",
-                          "--out", str(tmp_path)]) == 0
+    assert (
+        evaluate.main(
+            [
+                "--env",
+                "HistoJAX-Easy-v0",
+                "--dataset",
+                str(out),
+                "--all-folds",
+                "--episodes",
+                "2",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     record = json.loads((tmp_path / "eval.json").read_text())
     for policy in ("random", "scripted"):
         per = [json.loads((tmp_path / f"fold{i}" / "eval.json").read_text())["results"] for i in range(2)]

@@ -3,6 +3,7 @@ diagnosis (baselines.reading.diagnosis, experiments.navigator_ceiling through th
 write_results) and ``histojax evaluate``'s head rows, whose reading maps show the head's per-view scores beside where
 the agent read. On the small TRIDENT-layout cohort of tests/learned_fixture.py (no entry is "the logit"), with a
 learned head whose instance embedding looks along the planted tumour direction (built here, not fitted)."""
+
 from __future__ import annotations
 
 import csv
@@ -12,11 +13,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from learned_fixture import make_cohort
 
 from baselines.evaluate.heads import check_head_features, encoder_family
 from histojax.reading.heads.learned import LearnedHead, init_params
 from histojax.reading.heads.logit import LogitHead
-from learned_fixture import make_cohort
 
 DIM = 16
 
@@ -40,8 +41,13 @@ def _rows(path):
 
 
 def test_head_features_check_reads_any_head():
-    learned = LearnedHead(params=init_params(jax.random.PRNGKey(0), 8, 4, 4, 1), features_dim=8, hidden=4,
-                          attention=4, encoder="imported:a.h5")
+    learned = LearnedHead(
+        params=init_params(jax.random.PRNGKey(0), 8, 4, 4, 1),
+        features_dim=8,
+        hidden=4,
+        attention=4,
+        encoder="imported:a.h5",
+    )
     check_head_features(learned, ["imported:b.h5", "imported:c.h5"], 8)  # imported features: one family
     assert encoder_family("imported:x.h5") == encoder_family("imported:y.h5") == "imported"
     with pytest.raises(ValueError, match="reads 8-d feature vectors; these slides' features have 64 entries"):
@@ -60,8 +66,27 @@ def test_navigator_ceiling_scores_through_a_learned_head(cohort, tmp_path, capsy
     from experiments import navigator_ceiling
 
     out = tmp_path / "ceiling"
-    assert navigator_ceiling.main(["--dataset", str(cohort["root"]), "--head", str(cohort["head"]), "--split", "test",
-                                   "--max-steps", "10000", "--budgets", "0.2", "--seeds", "2", "--out", str(out)]) == 0
+    assert (
+        navigator_ceiling.main(
+            [
+                "--dataset",
+                str(cohort["root"]),
+                "--head",
+                str(cohort["head"]),
+                "--split",
+                "test",
+                "--max-steps",
+                "10000",
+                "--budgets",
+                "0.2",
+                "--seeds",
+                "2",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = _rows(out / "readers.csv")
     assert "score reader, per-slide ceiling" in rows and "logit reader, per-slide ceiling" not in rows
     assert float(rows["read everything"]["auc"]) == 1.0  # 2 + 2 test slides, the head looks along the planted direction
@@ -80,8 +105,12 @@ def test_one_class_split_is_refused_by_the_shared_loop(cohort, tmp_path, capsys)
     shutil.copytree(cohort["root"], one)
     (one / "dataset.json").write_text(json.dumps(spec))
     out = tmp_path / "diag"
-    assert diagnosis.main(["--dataset", str(one), "--head", str(cohort["head"]), "--navigator", "n", str(tmp_path),
-                           "--out", str(out)]) == 2
+    assert (
+        diagnosis.main(
+            ["--dataset", str(one), "--head", str(cohort["head"]), "--navigator", "n", str(tmp_path), "--out", str(out)]
+        )
+        == 2
+    )
     err = [line for line in capsys.readouterr().err.strip().splitlines() if "loaded" not in line]
     assert len(err) == 1 and "undefined: one class" in err[0] and "dataset.json" in err[0], err
     assert not out.exists()
@@ -93,9 +122,21 @@ def navigator(cohort):
     from baselines import ppo
     from baselines.harness.logs import save_checkpoint
 
-    config = dict(env_id="HistoJAX-Reading-v0", obs_mode="features", action_mode="discrete", num_envs=2, num_steps=4,
-                  total_timesteps=8, hidden=8, num_minibatches=1, update_epochs=1, num_seeds=1, print_progress=False,
-                  max_steps_in_episode=20, env_kwargs={"dataset": str(cohort["root"]), "split": "train", "n_levels": 3})
+    config = dict(
+        env_id="HistoJAX-Reading-v0",
+        obs_mode="features",
+        action_mode="discrete",
+        num_envs=2,
+        num_steps=4,
+        total_timesteps=8,
+        hidden=8,
+        num_minibatches=1,
+        update_epochs=1,
+        num_seeds=1,
+        print_progress=False,
+        max_steps_in_episode=20,
+        env_kwargs={"dataset": str(cohort["root"]), "split": "train", "n_levels": 3},
+    )
     train = ppo.make_train(config)
     params = train.init_params(jax.random.key(0), train.env_params)
     run = cohort["tmp"] / "nav"
@@ -114,8 +155,24 @@ def test_evaluate_and_diagnosis_through_a_learned_head(cohort, navigator, tmp_pa
     from baselines.reading import diagnosis
 
     out = tmp_path / "eval"
-    assert evaluate_main([str(navigator), "--dataset", str(cohort["root"]), "--split", "test", "--head",
-                          str(cohort["head"]), "--episodes", "4", "--out", str(out)]) == 0
+    assert (
+        evaluate_main(
+            [
+                str(navigator),
+                "--dataset",
+                str(cohort["root"]),
+                "--split",
+                "test",
+                "--head",
+                str(cohort["head"]),
+                "--episodes",
+                "4",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     record = json.loads((out / "eval.json").read_text())
     assert record["head"]["name"].startswith("learned attention-MIL")
     rows = next(iter(record["results"].values()))
@@ -126,8 +183,26 @@ def test_evaluate_and_diagnosis_through_a_learned_head(cohort, navigator, tmp_pa
                 w, h = im.size
             assert w > 1.6 * h  # the reading map and the per-view score panel side by side
     d_out = tmp_path / "diag"
-    assert diagnosis.main(["--dataset", str(cohort["root"]), "--head", str(cohort["head"]), "--split", "test",
-                           "--navigator", "nav", str(navigator), "--seeds", "2", "--out", str(d_out)]) == 0
+    assert (
+        diagnosis.main(
+            [
+                "--dataset",
+                str(cohort["root"]),
+                "--head",
+                str(cohort["head"]),
+                "--split",
+                "test",
+                "--navigator",
+                "nav",
+                str(navigator),
+                "--seeds",
+                "2",
+                "--out",
+                str(d_out),
+            ]
+        )
+        == 0
+    )
     rows = _rows(d_out / "readers.csv")
     assert "nav (head declares)" in rows and "score reader" in rows
     assert json.loads((d_out / "readers.json").read_text())["head_kind"] == "learned-attention-mil"

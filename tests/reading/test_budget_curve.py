@@ -1,6 +1,7 @@
 """The budget curve (``baselines.reading.budget_curve``): its rows on synthetic cell tables, its slide heads through
 the one head protocol (the MIL is a ``learned-attention-mil`` head, the max-logit head a logit head), the score
 reader of a learned head (``--head``) on the TRIDENT-layout cohort, and a scored split of one class refused."""
+
 from __future__ import annotations
 
 import csv
@@ -25,8 +26,14 @@ def test_budget_rows_csv_and_png(tmp_path):
         if label:
             x[cell == 5] += 3.0  # one cell of "tumour"
         low = np.stack([x[cell == c].mean(0) for c in range(8)])
-        return {"instances": x, "instance_cell": cell, "cells": low, "valid": np.ones(8, bool),
-                "cell_views": np.full(8, 4), "total": 32}
+        return {
+            "instances": x,
+            "instance_cell": cell,
+            "cells": low,
+            "valid": np.ones(8, bool),
+            "cell_views": np.full(8, 4),
+            "total": 32,
+        }
 
     labels = np.array([0, 1] * 6)
     tables = [slide(y) for y in labels]
@@ -42,7 +49,14 @@ def test_max_logit_rows_find_a_small_focus_that_attention_dilutes():
     """The max-pooling rows (a fixed instance logit, as pcam-cnn's ``max l``): one tumour view among 400 sets
     the slide's score; the logit reader reads the cell whose overview logit is highest first, so it finds the
     focus at the smallest budget; the calibration makes scores probabilities without changing their order."""
-    from baselines.reading.budget_curve import MAX_LOGIT_NAMES, bag_scores, bags, budget_rows, fit_max_logit, method_scores
+    from baselines.reading.budget_curve import (
+        MAX_LOGIT_NAMES,
+        bag_scores,
+        bags,
+        budget_rows,
+        fit_max_logit,
+        method_scores,
+    )
     from data_tools.metrics import roc_auc
     from histojax.reading.heads.logit import statistic_batch
 
@@ -55,8 +69,14 @@ def test_max_logit_rows_find_a_small_focus_that_attention_dilutes():
         if label:
             x[k * 20 + 3, 3] = 6.0  # one tumour view in cell k
         low = np.stack([x[cell == c].max(0) for c in range(20)])  # the overview sees the focus, faintly
-        return {"instances": x, "instance_cell": cell, "cells": low, "valid": np.ones(20, bool),
-                "cell_views": np.full(20, 20), "total": 400}
+        return {
+            "instances": x,
+            "instance_cell": cell,
+            "cells": low,
+            "valid": np.ones(20, bool),
+            "cell_views": np.full(20, 20),
+            "total": 400,
+        }
 
     labels = np.array([0, 1] * 8)
     tables = [slide(y, i % 20) for i, y in enumerate(labels)]
@@ -68,8 +88,9 @@ def test_max_logit_rows_find_a_small_focus_that_attention_dilutes():
     assert ((bag_scores(head, x, m) > 0.5) == labels[8:]).all()
     scores = method_scores(head, tables[8:], budgets=(0.05,), seeds=3, names=MAX_LOGIT_NAMES)
     assert roc_auc(scores[(MAX_LOGIT_NAMES[2], 0.05)][0][0], labels[8:]) == 1.0  # one cell read: the right one
-    rows = budget_rows((tables[:8], labels[:8]), (tables[8:], labels[8:]), budgets=(0.05,), seeds=2, steps=30,
-                       max_dim=3)
+    rows = budget_rows(
+        (tables[:8], labels[:8]), (tables[8:], labels[8:]), budgets=(0.05,), seeds=2, steps=30, max_dim=3
+    )
     assert set(MAX_LOGIT_NAMES) <= {r["method"] for r in rows}
 
 
@@ -82,8 +103,16 @@ def test_cross_validation_scores_every_slide_once():
     tables = []
     for y in labels:
         x = rng.normal(size=(8, 2)).astype(np.float32) + 2.0 * y
-        tables.append({"instances": x, "instance_cell": np.arange(8), "cells": x, "valid": np.ones(8, bool),
-                       "cell_views": np.ones(8, int), "total": 8})
+        tables.append(
+            {
+                "instances": x,
+                "instance_cell": np.arange(8),
+                "cells": x,
+                "valid": np.ones(8, bool),
+                "cell_views": np.ones(8, int),
+                "total": 8,
+            }
+        )
     rows = cross_validated_rows(tables, labels, folds=2, budgets=(0.5,), seeds=1, steps=20)
     assert all(r["slides"] == 8 for r in rows) and len(rows) == 3
 
@@ -104,8 +133,10 @@ def test_budget_curve_mil_is_the_heads_gated_attention():
     bags[labels == 1, :3, 2] += 3.0
     head = train_mil(bags, masks, labels, steps=150)
     p = bag_scores(head, bags, masks)
-    alone = [float(jax.nn.sigmoid(attention_pool(head.params, jnp.asarray(b), jnp.asarray(m))[0]))
-             for b, m in zip(bags, masks)]
+    alone = [
+        float(jax.nn.sigmoid(attention_pool(head.params, jnp.asarray(b), jnp.asarray(m))[0]))
+        for b, m in zip(bags, masks)
+    ]
     np.testing.assert_allclose(p, alone, rtol=1e-5, atol=1e-6)
     att = np.asarray(attention_weights(head.params, jnp.asarray(bags[1]), jnp.asarray(masks[1])))
     assert att.sum() == pytest.approx(1.0, abs=1e-5) and np.all(att[~masks[1]] == 0)
@@ -124,9 +155,19 @@ def planted_head(direction: np.ndarray):
 
     d = len(direction)
     q = jnp.asarray(direction, jnp.float32)
-    params = {"mu": jnp.zeros(d), "sd": jnp.ones(d), "w1": jnp.stack([q, -q], 1), "b1": jnp.zeros(2),
-              "V": jnp.zeros((2, 1)), "bV": jnp.zeros(1), "U": jnp.zeros((2, 1)), "bU": jnp.zeros(1),
-              "wa": jnp.ones(1), "wc": jnp.asarray([1.0, -1.0]), "bc": jnp.zeros(())}
+    params = {
+        "mu": jnp.zeros(d),
+        "sd": jnp.ones(d),
+        "w1": jnp.stack([q, -q], 1),
+        "b1": jnp.zeros(2),
+        "V": jnp.zeros((2, 1)),
+        "bV": jnp.zeros(1),
+        "U": jnp.zeros((2, 1)),
+        "bU": jnp.zeros(1),
+        "wa": jnp.ones(1),
+        "wc": jnp.asarray([1.0, -1.0]),
+        "bc": jnp.zeros(()),
+    }
     return LearnedHead(params=params, features_dim=d, hidden=2, attention=1, encoder="imported")
 
 
@@ -134,8 +175,16 @@ def planted_head(direction: np.ndarray):
 def cohort(tmp_path_factory):
     from learned_fixture import make_cohort
 
-    return make_cohort(tmp_path_factory.mktemp("curve-cohort") / "ds", tumour=4, normal=4, test_tumour=3,
-                       test_normal=3, dim=16, signal=4.0, seed=1)
+    return make_cohort(
+        tmp_path_factory.mktemp("curve-cohort") / "ds",
+        tumour=4,
+        normal=4,
+        test_tumour=3,
+        test_normal=3,
+        dim=16,
+        signal=4.0,
+        seed=1,
+    )
 
 
 def _rows(path):
@@ -154,8 +203,23 @@ def test_the_score_reader_is_a_row_of_the_curve_of_a_learned_head(cohort, tmp_pa
     from baselines.reading import budget_curve
 
     out = tmp_path / "curve"
-    assert budget_curve.main(["--dataset", str(cohort["root"]), *CURVE, "--budgets", "0.1", "0.5",
-                              "--head", str(head_dir), "--out", str(out)]) == 0
+    assert (
+        budget_curve.main(
+            [
+                "--dataset",
+                str(cohort["root"]),
+                *CURVE,
+                "--budgets",
+                "0.1",
+                "0.5",
+                "--head",
+                str(head_dir),
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     rows = {(r["method"], float(r["budget"])): r for r in _rows(out / "budget_curve.csv")}
     methods = {m for m, _ in rows}
     assert {"MIL, read everything", "random reader + MIL", "attention reader + MIL"} <= methods
@@ -170,10 +234,33 @@ def test_the_score_reader_is_a_row_of_the_curve_of_a_learned_head(cohort, tmp_pa
     # rows the same figures, to the last digit (tests/reading/test_one_scoring_path.py: more budgets, a non-zero prior)
     from baselines.reading import readers
 
-    assert readers.main(["--dataset", str(cohort["root"]), "--head", str(head_dir), "--split", "test", "--seeds", "2",
-                         "--cell-level", "1", "--budgets", "0.1", "0.5", "--out", str(tmp_path / "readers")]) == 0
+    assert (
+        readers.main(
+            [
+                "--dataset",
+                str(cohort["root"]),
+                "--head",
+                str(head_dir),
+                "--split",
+                "test",
+                "--seeds",
+                "2",
+                "--cell-level",
+                "1",
+                "--budgets",
+                "0.1",
+                "0.5",
+                "--out",
+                str(tmp_path / "readers"),
+            ]
+        )
+        == 0
+    )
     mine = {(r["reader"], float(r["budget"])): r for r in _rows(tmp_path / "readers" / "readers.csv")}
-    for reader, method in (("random reader", "random reader + learned head"), ("score reader", "score reader + learned head")):
+    for reader, method in (
+        ("random reader", "random reader + learned head"),
+        ("score reader", "score reader + learned head"),
+    ):
         for b in (0.1, 0.5):
             for field in ("auc", "auc_std", "auc_low", "auc_high", "fraction_read", "accuracy"):
                 assert mine[(reader, b)][field] == rows[(method, b)][field], (reader, b, field)
@@ -189,8 +276,12 @@ def test_a_head_the_curve_cannot_score_as_a_set_is_one_line(cohort, tmp_path, ca
     other = planted_head(np.eye(8)[0]).save(tmp_path / "other")
     for head, words in ((logit, "pools neighbourhoods"), (other, "8-d features")):
         out = tmp_path / f"out-{head.name}"
-        assert budget_curve.main(["--dataset", str(cohort["root"]), *CURVE, "--budgets", "0.5", "--head", str(head),
-                                  "--out", str(out)]) == 2
+        assert (
+            budget_curve.main(
+                ["--dataset", str(cohort["root"]), *CURVE, "--budgets", "0.5", "--head", str(head), "--out", str(out)]
+            )
+            == 2
+        )
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and str(head / "config.json") in err[0] and words in err[0], err
         assert not out.exists()
@@ -199,8 +290,9 @@ def test_a_head_the_curve_cannot_score_as_a_set_is_one_line(cohort, tmp_path, ca
 def test_the_curve_refuses_a_split_of_one_class(tmp_path, capsys):
     """A test split that ends with one class (here only tumour slides): one line naming dataset.json, AUC undefined,
     exit 2, nothing written; not a curve of AUC 1.000 or nan."""
-    from baselines.reading import budget_curve
     from learned_fixture import make_cohort
+
+    from baselines.reading import budget_curve
 
     root = make_cohort(tmp_path / "ds", tumour=2, normal=2, test_tumour=2, test_normal=0, dim=8)["root"]
     out = tmp_path / "curve"
@@ -210,5 +302,6 @@ def test_the_curve_refuses_a_split_of_one_class(tmp_path, capsys):
     assert "undefined: one class" in err[0] and "only tumour slides (2)" in err[0]
     assert not out.exists()
     # cross-validation over all slides holds both classes: it runs
-    assert budget_curve.main(["--dataset", str(root), *CURVE, "--budgets", "0.5", "--folds", "2", "--out",
-                              str(out)]) == 0
+    assert (
+        budget_curve.main(["--dataset", str(root), *CURVE, "--budgets", "0.5", "--folds", "2", "--out", str(out)]) == 0
+    )

@@ -4,17 +4,18 @@ feature lookup (``modes.view_features``); it is the slide's, fixed through the e
 
 Slides made here: ``data_tools synth`` (2 tumour + 2 normal, 320 × 256 px, 32-px views, 3 levels) with
 ``colour-stats`` features."""
+
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from slide_helpers import synth_feature_dataset
 
 import histojax
 from histojax.core import seen_views
 from histojax.core.modes.base import view_features
-from slide_helpers import synth_feature_dataset
 
 ENTRY = 2
 
@@ -65,8 +66,7 @@ def test_the_map_is_each_blocks_largest_coarse_entry(dataset, level):
 
 
 def test_the_map_is_fixed_through_steps_and_follows_the_slide_across_auto_resets(dataset):
-    env, params = _make(dataset, action_mode="discrete:map", map_feature=ENTRY, start_level=-1,
-                        max_steps_in_episode=3)
+    env, params = _make(dataset, action_mode="discrete:map", map_feature=ENTRY, start_level=-1, max_steps_in_episode=3)
     table = np.asarray(params.mode_data.coarse_map)
     step = jax.jit(env.step)
     obs, state = env.reset(jax.random.key(1), params)
@@ -92,9 +92,12 @@ def test_map_settings_are_checked(dataset):
 def _obs(target=(3, 12), position=(0.5, 0.5, 1.0), visited=None):
     cm = np.zeros((16, 16), np.float32)
     cm[target] = 5.0
-    return {"coarse_map": jnp.asarray(cm), "visited": jnp.asarray(np.zeros((16, 16), np.float32) if visited is None
-                                                                  else visited),
-            "position": jnp.asarray(position, jnp.float32), "features": jnp.zeros(4)}
+    return {
+        "coarse_map": jnp.asarray(cm),
+        "visited": jnp.asarray(np.zeros((16, 16), np.float32) if visited is None else visited),
+        "position": jnp.asarray(position, jnp.float32),
+        "features": jnp.zeros(4),
+    }
 
 
 def test_map_follower_walks_to_the_highest_unread_block():
@@ -104,15 +107,15 @@ def test_map_follower_walks_to_the_highest_unread_block():
         return int(map_follower_policy(jax.random.key(0), _obs(**kw), epsilon=0.0))
 
     # target block (3, 12): centre (12.5 / 16, 3.5 / 16) = (0.78, 0.22)
-    assert act(position=(0.5, 0.5, 1.0)) == histojax.ZOOM_OUT          # finest, far: travel higher up
-    assert act(position=(0.5, 0.5, 0.75)) == histojax.ZOOM_OUT         # still below the travel level
-    assert act(position=(0.5, 0.5, 0.5)) == histojax.RIGHT             # at the travel level: longer axis first
+    assert act(position=(0.5, 0.5, 1.0)) == histojax.ZOOM_OUT  # finest, far: travel higher up
+    assert act(position=(0.5, 0.5, 0.75)) == histojax.ZOOM_OUT  # still below the travel level
+    assert act(position=(0.5, 0.5, 0.5)) == histojax.RIGHT  # at the travel level: longer axis first
     assert act(position=(0.78, 0.6, 0.5)) == histojax.UP
-    assert act(position=(0.78, 0.22, 0.5)) == histojax.ZOOM_IN         # over the block: down to the finest
+    assert act(position=(0.78, 0.22, 0.5)) == histojax.ZOOM_IN  # over the block: down to the finest
     assert act(position=(0.78, 0.22, 1.0)) in (histojax.UP, histojax.DOWN, histojax.LEFT, histojax.RIGHT)  # reads it
-    assert act(position=(0.70, 0.22, 1.0)) == histojax.RIGHT           # finest, near but outside: step towards it
+    assert act(position=(0.70, 0.22, 1.0)) == histojax.RIGHT  # finest, near but outside: step towards it
     read = np.zeros((16, 16), np.float32)
-    read[3, 12] = 0.6                                                  # read enough: the next highest block
+    read[3, 12] = 0.6  # read enough: the next highest block
     cm_next = _obs(position=(0.5, 0.5, 0.5), visited=read)
     cm_next["coarse_map"] = cm_next["coarse_map"].at[14, 1].set(4.0)
     assert int(map_follower_policy(jax.random.key(0), cm_next, epsilon=0.0)) == histojax.LEFT
@@ -124,11 +127,22 @@ def test_evaluate_scores_the_map_follower_through_the_head(dataset):
     from baselines.evaluate import evaluate
     from histojax.reading.heads.logit import LogitHead
 
-    head = LogitHead(cal_a=jnp.float32(1.0), cal_b=jnp.float32(0.0), prior_logit=jnp.float32(0.0), dim=ENTRY, k=1, top=1,
-                     encoder=None)
-    config = {"env_id": "HistoJAX-Easy-v0", "action_mode": "discrete:map", "obs_mode": "features",
-              "max_steps_in_episode": 12,
-              "env_kwargs": {"dataset": str(dataset), "split": "all", "map_feature": ENTRY, "start_level": -1}}
+    head = LogitHead(
+        cal_a=jnp.float32(1.0),
+        cal_b=jnp.float32(0.0),
+        prior_logit=jnp.float32(0.0),
+        dim=ENTRY,
+        k=1,
+        top=1,
+        encoder=None,
+    )
+    config = {
+        "env_id": "HistoJAX-Easy-v0",
+        "action_mode": "discrete:map",
+        "obs_mode": "features",
+        "max_steps_in_episode": 12,
+        "env_kwargs": {"dataset": str(dataset), "split": "all", "map_feature": ENTRY, "start_level": -1},
+    }
     rows = evaluate(config, None, num_episodes=8, head=head, head_reward={"gain": "fidelity", "final": 0.0})
     assert set(rows) == {"random", "scripted"}
     for row in rows.values():

@@ -1,18 +1,19 @@
 """The coarse map of ``discrete:map`` from a slide head's per-view scores (``make(..., map_head=FOLDER)``) instead
 of one feature entry: a logit head's map equals ``map_feature`` of the entry it reads; a learned head's map is
 its per-view scores of the coarse level's feature vectors; bad combinations are one line."""
+
 from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from slide_helpers import synth_feature_dataset
 
 import histojax
 from histojax.reading.coarse_map import coarse_maps
 from histojax.reading.heads.learned import LearnedHead, init_params
 from histojax.reading.heads.logit import LogitHead
-from slide_helpers import synth_feature_dataset
 
 
 @pytest.fixture(scope="module")
@@ -21,13 +22,15 @@ def dataset(tmp_path_factory):
 
 
 def _make(dataset, **kw):
-    return histojax.make("HistoJAX-Easy-v0", dataset=str(dataset), split="train", obs_mode="features",
-                         action_mode="discrete:map", **kw)
+    return histojax.make(
+        "HistoJAX-Easy-v0", dataset=str(dataset), split="train", obs_mode="features", action_mode="discrete:map", **kw
+    )
 
 
 def test_a_logit_heads_map_is_its_entrys_map(dataset, tmp_path):
-    folder = LogitHead(cal_a=jnp.float32(1.0), cal_b=jnp.float32(0.0), prior_logit=jnp.float32(0.0), dim=2, k=1, top=1,
-                       encoder=None).save(tmp_path / "logit-head")
+    folder = LogitHead(
+        cal_a=jnp.float32(1.0), cal_b=jnp.float32(0.0), prior_logit=jnp.float32(0.0), dim=2, k=1, top=1, encoder=None
+    ).save(tmp_path / "logit-head")
     _, by_entry = _make(dataset, map_feature=2)
     _, by_head = _make(dataset, map_head=str(folder))
     np.testing.assert_array_equal(np.asarray(by_head.mode_data.coarse_map), np.asarray(by_entry.mode_data.coarse_map))

@@ -4,6 +4,7 @@ metrics, and the AUC of the diagnosis benchmark.
 One small slide (1024 × 768 px, 32-px views, 3 levels at downsamples 16, 4, 1; glimpse cells at
 the middle level: 6 × 8 cells of 4 × 4 finest views) with the cheap
 ``colour-stats`` feature grid; one jitted rollout per mode, compiled once for the module."""
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -31,18 +32,32 @@ def bundle(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def glimpse(bundle):
-    return histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
-                         task="classification", max_steps_in_episode=STEPS, auto_reset=False)
+    return histojax.make(
+        "HistoJAX-Easy-v0",
+        slide=bundle,
+        obs_mode="features",
+        action_mode=Glimpse(level=1),
+        task="classification",
+        max_steps_in_episode=STEPS,
+        auto_reset=False,
+    )
 
 
 @pytest.fixture(scope="module")
 def zoom(bundle):
-    return histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode="zoom_select", task="classification",
-                         max_steps_in_episode=STEPS, auto_reset=False)
+    return histojax.make(
+        "HistoJAX-Easy-v0",
+        slide=bundle,
+        action_mode="zoom_select",
+        task="classification",
+        max_steps_in_episode=STEPS,
+        auto_reset=False,
+    )
 
 
 def _rollout(env):
     """``rollout(key, actions, params) → (states, infos, obs)`` stacked over the steps (one program)."""
+
     def rollout(key, actions, params):
         obs, state = env.reset(key, params)
 
@@ -53,6 +68,7 @@ def _rollout(env):
             return (state, key), (state, info, obs)
 
         return jax.lax.scan(body, (state, key), actions)[1]
+
     return rollout
 
 
@@ -106,11 +122,11 @@ def _direct_tables(bundle):
 
     b = load_bundle(bundle, verify=False)
     meta = read_metadata(bundle)
-    finest = np.load(bundle / meta["features"]["levels"][0]["file"])   # (gh, gw, D) at 32-px stride
-    coarse = np.load(bundle / meta["features"]["levels"][1]["file"])   # the glimpse cells' own features
+    finest = np.load(bundle / meta["features"]["levels"][0]["file"])  # (gh, gw, D) at 32-px stride
+    coarse = np.load(bundle / meta["features"]["levels"][1]["file"])  # the glimpse cells' own features
     ratio = round(meta["levels"][1]["downsample"] / meta["levels"][0]["downsample"])  # 4 finest px per cell-level px
     mask = round(meta["levels"][-1]["downsample"])
-    assert b.tissue.shape[1] * mask == b.pixels[0].shape[1]             # the tissue mask is at the coarsest level
+    assert b.tissue.shape[1] * mask == b.pixels[0].shape[1]  # the tissue mask is at the coarsest level
     tissue_full = np.kron(b.tissue.astype(float), np.ones((mask, mask)))
     gh, gw = finest.shape[:2]
     frac = tissue_full[: gh * TILE, : gw * TILE].reshape(gh, TILE, gw, TILE).mean(axis=(1, 3))
@@ -142,8 +158,9 @@ def test_revealed_content_equals_a_direct_lookup(glimpse, bundle):
         obs, state, _, _, truncated, info = step(jax.random.key(c), state, c, params)
         n, feats = cells[c]
         read += n
-        np.testing.assert_allclose(np.asarray(obs["summaries"][c]),
-                                   np.concatenate([feats.mean(0), feats.max(0)]), rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose(
+            np.asarray(obs["summaries"][c]), np.concatenate([feats.mean(0), feats.max(0)]), rtol=1e-5, atol=1e-6
+        )
         assert float(obs["revealed"][c]) == 1.0
         assert float(info["fraction_read"]) == pytest.approx(read / total)
     assert bool(truncated)  # the whole slide read: the (full) budget is spent
@@ -161,9 +178,16 @@ def test_glimpse_grid_pins_the_spaces_to_another_dataset(glimpse, bundle):
     env, params = glimpse
     h, w = (int(v) for v in np.asarray(params.mode_data.grid))
     assert h * w == params.mode_data.valid.shape[-1]
-    big_env, big = histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
-                                 task="classification", max_steps_in_episode=STEPS, auto_reset=False,
-                                 glimpse_grid=(h + 1, w + 2))
+    big_env, big = histojax.make(
+        "HistoJAX-Easy-v0",
+        slide=bundle,
+        obs_mode="features",
+        action_mode=Glimpse(level=1),
+        task="classification",
+        max_steps_in_episode=STEPS,
+        auto_reset=False,
+        glimpse_grid=(h + 1, w + 2),
+    )
     assert big_env.num_actions == (h + 1) * (w + 2) + 2
     assert big_env.observation_space(big)["cells"].shape[0] == (h + 1) * (w + 2)
     small_cells = np.asarray(params.mode_data.cells[0]).reshape(h, w, -1)
@@ -171,12 +195,17 @@ def test_glimpse_grid_pins_the_spaces_to_another_dataset(glimpse, bundle):
     np.testing.assert_array_equal(big_cells[:h, :w], small_cells)
     assert not np.asarray(big.mode_data.valid[0]).reshape(h + 1, w + 2)[h:, :].any()
     with pytest.raises(ValueError, match=f"{bundle.name}.*do not fit glimpse_grid"):
-        histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
-                      task="classification", glimpse_grid=(h - 1, w))
+        histojax.make(
+            "HistoJAX-Easy-v0",
+            slide=bundle,
+            obs_mode="features",
+            action_mode=Glimpse(level=1),
+            task="classification",
+            glimpse_grid=(h - 1, w),
+        )
     config = pin_env_shapes({"env_kwargs": {"read_budget": 0.5}}, params)
     assert config["env_kwargs"] == {"read_budget": 0.5, "glimpse_grid": [h, w]}
-    _, zoom_params = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode="zoom_select",
-                                   task="classification")
+    _, zoom_params = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode="zoom_select", task="classification")
     assert pin_env_shapes({"a": 1}, zoom_params) == {"a": 1}
 
 
@@ -203,8 +232,13 @@ def test_reading_budget_is_respected(glimpse, glimpse_rollout, budget, seed):
     ended = np.asarray(infos["truncated"])
     if ended.any():  # the episode ends at the budget (or the step limit) and reads nothing after
         first = int(np.argmax(ended))
-        assert first == STEPS - 2 or bool(states.memory.over_budget[first]) or fraction[first] >= \
-            np.floor(budget * int(params.mode_data.total_views[0]) + 1e-4) / int(params.mode_data.total_views[0]) - 1e-6
+        assert (
+            first == STEPS - 2
+            or bool(states.memory.over_budget[first])
+            or fraction[first]
+            >= np.floor(budget * int(params.mode_data.total_views[0]) + 1e-4) / int(params.mode_data.total_views[0])
+            - 1e-6
+        )
 
 
 def test_diagnosis_gives_a_score(glimpse, zoom):
@@ -222,7 +256,7 @@ def _children(env, params, x, y):
     _, state = env.reset(jax.random.key(0), params)
     state = state.replace(x=jnp.int32(x), y=jnp.int32(y))
     state = state.replace(memory=env.action.init_memory(env, state, params))
-    out = [env.step(jax.random.key(i), state, i, params)[1] for i in range(env.action.k ** 2)]
+    out = [env.step(jax.random.key(i), state, i, params)[1] for i in range(env.action.k**2)]
     assert all(int(c.z) == 1 for c in out)
     return state, out
 
@@ -239,11 +273,13 @@ def test_zoom_select_children(zoom, bundle):
     _, same, *_ = env.step(jax.random.key(9), back, 4, params)  # the coarsest level has no parent
     assert (int(same.z), int(same.x), int(same.y)) == (0, 16, 8)
     # with k equal to the zoom factor the children tile the footprint exactly
-    env4, params4 = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode=ZoomSelect(k=4),
-                                  task="classification", auto_reset=False)
+    env4, params4 = histojax.make(
+        "HistoJAX-Easy-v0", slide=bundle, action_mode=ZoomSelect(k=4), task="classification", auto_reset=False
+    )
     _, children = _children(env4, params4, 16, 8)
     assert sorted((int(c.x), int(c.y)) for c in children) == sorted(
-        (64 + 32 * i, 32 + 32 * j) for i in range(4) for j in range(4))
+        (64 + 32 * i, 32 + 32 * j) for i in range(4) for j in range(4)
+    )
 
 
 def test_zoom_select_counts_finest_views_read(zoom, zoom_rollout):
@@ -285,14 +321,16 @@ def test_navigation_tracks_reading_without_changing_trajectories(bundle):
     total = int(p1.mode_data.total_views[0])
     tissue = np.asarray(p1.mode_data.tissue[0])
     finest = np.asarray(s1.z) == 2
-    views = {(int(y) + TILE // 2) // TILE * 32 + (int(x) + TILE // 2) // TILE
-             for x, y in zip(np.asarray(s1.x)[finest], np.asarray(s1.y)[finest])}
+    views = {
+        (int(y) + TILE // 2) // TILE * 32 + (int(x) + TILE // 2) // TILE
+        for x, y in zip(np.asarray(s1.x)[finest], np.asarray(s1.y)[finest])
+    }
     assert round(fraction[-1] * total) == sum(bool(tissue[v]) for v in views)
 
 
 def test_navigation_memory_observation(bundle):
-    from histojax.core.modes.factory import action_mode
     from histojax.core.modes.base import Continuous, Discrete
+    from histojax.core.modes.factory import action_mode
 
     env, params = histojax.make("HistoJAX-Easy-v0", slide=bundle, action_mode=Discrete(memory=True))
     obs, _ = env.reset(jax.random.key(0), params)
@@ -333,8 +371,15 @@ def test_step_observation_holds_what_the_full_one_does(bundle):
     summaries of the cells read (from the K slots), the read bits, the budget left."""
     from histojax.reading.modes.glimpse import unpack_bits
 
-    kw = dict(slide=bundle, obs_mode="features", action_mode=Glimpse(level=1), task="classification",
-              max_steps_in_episode=STEPS, auto_reset=False, read_budget=0.3)
+    kw = dict(
+        slide=bundle,
+        obs_mode="features",
+        action_mode=Glimpse(level=1),
+        task="classification",
+        max_steps_in_episode=STEPS,
+        auto_reset=False,
+        read_budget=0.3,
+    )
     full, pf = histojax.make("HistoJAX-Easy-v0", **kw)
     step, ps = histojax.make("HistoJAX-Easy-v0", step_obs=True, **kw)
     assert observation_bytes(step, ps) < observation_bytes(full, pf)
@@ -363,8 +408,16 @@ def test_step_observation_holds_what_the_full_one_does(bundle):
 
 def test_read_slots_bound_the_cells_read(bundle):
     """``read_slots=K``: a (K+1)-th new cell reveals nothing and ends the episode, like the budget."""
-    env, params = histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
-                                task="classification", auto_reset=False, step_obs=True, read_slots=2)
+    env, params = histojax.make(
+        "HistoJAX-Easy-v0",
+        slide=bundle,
+        obs_mode="features",
+        action_mode=Glimpse(level=1),
+        task="classification",
+        auto_reset=False,
+        step_obs=True,
+        read_slots=2,
+    )
     valid = np.flatnonzero(np.asarray(params.mode_data.valid[0]))[:3]
     _, state = env.reset(jax.random.key(0), params)
     for j, c in enumerate(valid):
@@ -372,20 +425,34 @@ def test_read_slots_bound_the_cells_read(bundle):
         assert bool(trunc) == (j == 2) and not bool(term)
     assert int(info["fields_of_view"]) == 2 and list(np.asarray(obs["read_cells"])) == list(valid[:2])
     with pytest.raises(ValueError, match="read_slots"):
-        histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode="glimpse:1",
-                      task="classification", step_obs=True, read_slots=0)
+        histojax.make(
+            "HistoJAX-Easy-v0",
+            slide=bundle,
+            obs_mode="features",
+            action_mode="glimpse:1",
+            task="classification",
+            step_obs=True,
+            read_slots=0,
+        )
 
 
 def test_default_slots_hold_every_cell_the_budget_allows(bundle):
     from histojax.reading.modes.glimpse import slots_needed
 
-    env, params = histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=Glimpse(level=1),
-                                task="classification", step_obs=True, read_budget=0.25)
+    env, params = histojax.make(
+        "HistoJAX-Easy-v0",
+        slide=bundle,
+        obs_mode="features",
+        action_mode=Glimpse(level=1),
+        task="classification",
+        step_obs=True,
+        read_budget=0.25,
+    )
     t = params.mode_data
     k = int(t.slots_zero.shape[0])
     views = np.sort(np.asarray(t.cell_views[0])[np.asarray(t.valid[0])])
     budget = int(np.floor(np.float32(0.25) * int(t.total_views[0]) + 1e-4))
-    assert views[:k].sum() <= budget and (k == len(views) or views[:k + 1].sum() > budget)
+    assert views[:k].sum() <= budget and (k == len(views) or views[: k + 1].sum() > budget)
     assert slots_needed(np.asarray(t.cell_views), np.asarray(t.valid), np.asarray(t.total_views), 1.0) == len(views)
 
 

@@ -1,6 +1,7 @@
 """What features a head, a dataset and an agent record, and how every scorer compares them: imported ``.h5`` features
 by their folder and file layout (not one slide's file name), a published agent's training scale and encoder (its
 ``published.json``) against the dataset ``histojax evaluate`` scores."""
+
 from __future__ import annotations
 
 import json
@@ -61,16 +62,26 @@ def test_the_budget_curve_refuses_a_head_of_another_encoder(tmp_path):
 def _dataset(tmp_path, name, mpp, encoder="pcam-cnn") -> Path:
     d = tmp_path / name
     d.mkdir()
-    (d / "dataset.json").write_text(json.dumps({"kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)",
-                                                "scale": {"mpp": mpp}, "encoder": encoder, "train": [], "test": []}))
+    (d / "dataset.json").write_text(
+        json.dumps(
+            {
+                "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)",
+                "scale": {"mpp": mpp},
+                "encoder": encoder,
+                "train": [],
+                "test": [],
+            }
+        )
+    )
     return d
 
 
 def _published(tmp_path, name="agent", **trained_on) -> Path:
     run = tmp_path / name
     run.mkdir()
-    (run / "published.json").write_text(json.dumps({"name": "agent", "trained_on": {"dataset": "c16-full",
-                                                                                    "split": "train", **trained_on}}))
+    (run / "published.json").write_text(
+        json.dumps({"name": "agent", "trained_on": {"dataset": "c16-full", "split": "train", **trained_on}})
+    )
     return run
 
 
@@ -111,7 +122,9 @@ def test_a_dataset_of_your_own_slides_is_compared_by_its_slides_median_scale(tmp
         d = tmp_path / name
         d.mkdir()
         slides = [{"name": f"s{i}", "mpp": m} for i, m in enumerate(mpps)]
-        (d / "dataset.json").write_text(json.dumps({"kind": "histojax dataset", "train": [], "test": [], "slides": slides}))
+        (d / "dataset.json").write_text(
+            json.dumps({"kind": "histojax dataset", "train": [], "test": [], "slides": slides})
+        )
         return str(d)
 
     at20, at40 = own("at20", [0.50, 0.49, 0.51]), own("at40", [0.25, 0.25, 0.26])

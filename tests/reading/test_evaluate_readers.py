@@ -10,6 +10,7 @@ C16 ids' level sets, and a 64-d stand-in for pcam-cnn features (entry 62, the vi
 Training slides 512 × 640 px (h × w); the scored slides 1024 × 2304 px: 8 × 18 glimpse cells at level 1 of
 the 5-level ids, wider than the 16 × 14 grid of the flat c16-v1 glimpse reader.
 """
+
 from __future__ import annotations
 
 import json
@@ -29,10 +30,26 @@ from histojax.cli import main as histojax_main
 from histojax.reading.heads.logit import LogitHead
 
 D, LOGIT, TILE, MPP = 64, 62, 16, 2.0
-READER = {"algo": "ppo", "env_id": "HistoJAX-C16-Diagnosis-v2", "action_mode": "glimpse:1", "obs_mode": "features",
-          "with_position": False, "hidden": 16, "cell_hidden": 8, "obs_norm": None, "num_seeds": 1}
-HEAD = LogitHead(cal_a=jnp.float32(1.0), cal_b=jnp.float32(0.0), prior_logit=jnp.float32(-0.5), dim=LOGIT, k=3, top=1,
-                 encoder="pcam-cnn")
+READER = {
+    "algo": "ppo",
+    "env_id": "HistoJAX-C16-Diagnosis-v2",
+    "action_mode": "glimpse:1",
+    "obs_mode": "features",
+    "with_position": False,
+    "hidden": 16,
+    "cell_hidden": 8,
+    "obs_norm": None,
+    "num_seeds": 1,
+}
+HEAD = LogitHead(
+    cal_a=jnp.float32(1.0),
+    cal_b=jnp.float32(0.0),
+    prior_logit=jnp.float32(-0.5),
+    dim=LOGIT,
+    k=3,
+    top=1,
+    encoder="pcam-cnn",
+)
 
 
 def _features(bundle) -> None:
@@ -55,40 +72,67 @@ def _features(bundle) -> None:
         save_array(Path(bundle) / f"features_{k:02d}.npy", grid)
         written.append(f"features_{k:02d}.npy")
         levels.append({"file": f"features_{k:02d}.npy", "grid": [gh, gw]})
-    update_metadata(bundle, {"encoder": "pcam-cnn", "dim": D, "stride": TILE, "dtype": "float32", "projection": None,
-                             "levels": levels}, written)
+    update_metadata(
+        bundle,
+        {"encoder": "pcam-cnn", "dim": D, "stride": TILE, "dtype": "float32", "projection": None, "levels": levels},
+        written,
+    )
 
 
 def _slide(root: Path, name: str, hw, lesion, seed: int) -> Path:
-    from data_tools.bundle import build_bundle
     from slide_helpers import pyramid
+
+    from data_tools.bundle import build_bundle
 
     h, w = hw
     image = np.full((h, w, 3), 245, np.uint8)
-    image[h // 8: h - h // 8, w // 10: w - w // 10] = [230, 160, 200]
+    image[h // 8 : h - h // 8, w // 10 : w - w // 10] = [230, 160, 200]
     annotations = None
     if lesion is not None:
         y, x, side = lesion
-        image[y:y + side, x:x + side] = [110, 40, 140]
+        image[y : y + side, x : x + side] = [110, 40, 140]
         ring = [[x, y], [x + side, y], [x + side, y + side], [x, y + side], [x, y]]
         annotations = root / "slides" / f"{name}.geojson"
         annotations.parent.mkdir(parents=True, exist_ok=True)
-        annotations.write_text(json.dumps({"type": "FeatureCollection", "features": [
-            {"type": "Feature", "properties": {"classification": {"name": "Tumor"}},
-             "geometry": {"type": "Polygon", "coordinates": [ring]}}]}))
+        annotations.write_text(
+            json.dumps(
+                {
+                    "type": "FeatureCollection",
+                    "features": [
+                        {
+                            "type": "Feature",
+                            "properties": {"classification": {"name": "Tumor"}},
+                            "geometry": {"type": "Polygon", "coordinates": [ring]},
+                        }
+                    ],
+                }
+            )
+        )
     noise = np.random.default_rng(seed).integers(-6, 7, image.shape)
     image = np.clip(image.astype(int) + noise, 0, 255).astype(np.uint8)
     tif = pyramid(root / "slides" / f"{name}.tif", image, mpp=MPP)
-    bundle = build_bundle(tif, root / "bundles" / name, annotations_path=annotations, level_sets=(5, 7),
-                          tile_size=TILE, magnification_range=16, progress=False)
+    bundle = build_bundle(
+        tif,
+        root / "bundles" / name,
+        annotations_path=annotations,
+        level_sets=(5, 7),
+        tile_size=TILE,
+        magnification_range=16,
+        progress=False,
+    )
     _features(bundle)
     return bundle
 
 
 def _dataset(folder: Path, bundles) -> Path:
     folder.mkdir(parents=True)
-    spec = {"kind": "histojax test slides (C16-style)", "format": 2, "encoder": "pcam-cnn",
-            "train": [str(b) for b in bundles], "test": [str(b) for b in bundles]}
+    spec = {
+        "kind": "histojax test slides (C16-style)",
+        "format": 2,
+        "encoder": "pcam-cnn",
+        "train": [str(b) for b in bundles],
+        "test": [str(b) for b in bundles],
+    }
     (folder / "dataset.json").write_text(json.dumps(spec))
     return folder
 
@@ -96,11 +140,16 @@ def _dataset(folder: Path, bundles) -> Path:
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> dict:
     root = tmp_path_factory.mktemp("c16-style")
-    small = [_slide(root, "small_tumour", (512, 640), (200, 260, 120), 0), _slide(root, "small_normal", (512, 640),
-                                                                                   None, 1)]
-    big = [_slide(root, "big_micro", (1024, 2304), (300, 900, 400), 2),  # 0.8 mm side: 1.13 mm diameter
-           _slide(root, "big_itc", (1024, 2304), (500, 1500, 40), 3),  # 0.11 mm diameter
-           _slide(root, "big_normal_a", (1024, 2304), None, 4), _slide(root, "big_normal_b", (1024, 2304), None, 5)]
+    small = [
+        _slide(root, "small_tumour", (512, 640), (200, 260, 120), 0),
+        _slide(root, "small_normal", (512, 640), None, 1),
+    ]
+    big = [
+        _slide(root, "big_micro", (1024, 2304), (300, 900, 400), 2),  # 0.8 mm side: 1.13 mm diameter
+        _slide(root, "big_itc", (1024, 2304), (500, 1500, 40), 3),  # 0.11 mm diameter
+        _slide(root, "big_normal_a", (1024, 2304), None, 4),
+        _slide(root, "big_normal_b", (1024, 2304), None, 5),
+    ]
     return {"small": _dataset(root / "small-set", small), "big": _dataset(root / "big-set", big), "root": root}
 
 
@@ -121,9 +170,18 @@ def reader(data, tmp_path_factory) -> Path:
     save_checkpoint(run, jax.tree.map(lambda a: a[None], params), config)
     (run / "log.csv").write_text("env_steps,mean_return\n0,0.0\n")
     HEAD.save(tmp / "head-fit")
-    (run / "head_reward.json").write_text(json.dumps({"head": str(tmp / "head-fit"), "head_name": HEAD.name,
-                                                      "gain": "log", "final": 1.0, "read_cost": 0.0,
-                                                      "read_budget": 0.2}))
+    (run / "head_reward.json").write_text(
+        json.dumps(
+            {
+                "head": str(tmp / "head-fit"),
+                "head_name": HEAD.name,
+                "gain": "log",
+                "final": 1.0,
+                "read_cost": 0.0,
+                "read_budget": 0.2,
+            }
+        )
+    )
     return publish(run, "tiny-set-reader", root=tmp / "published", chosen_by={"by": "validation (tests)"})
 
 
@@ -137,8 +195,9 @@ def _one_error_line(capsys) -> str:
 def _grid(dataset) -> np.ndarray:
     import histojax
 
-    _, params = histojax.make(READER["env_id"], dataset=str(dataset), split="test", action_mode="glimpse:1",
-                              verify=False)
+    _, params = histojax.make(
+        READER["env_id"], dataset=str(dataset), split="test", action_mode="glimpse:1", verify=False
+    )
     return np.asarray(params.mode_data.slide_grid)
 
 
@@ -155,8 +214,10 @@ def test_set_reader_is_scored_through_its_head_on_wider_and_taller_slides(data, 
     small, big = _grid(data["small"]), _grid(data["big"])
     assert (big[:, 0].min() > small[:, 0].max()) and (big[:, 1].min() > small[:, 1].max())  # wider and taller
     out = tmp_path / "eval"
-    assert histojax_main(["evaluate", str(reader), "--dataset", str(data["big"]), "--episodes", "4",
-                          "--out", str(out)]) == 0
+    assert (
+        histojax_main(["evaluate", str(reader), "--dataset", str(data["big"]), "--episodes", "4", "--out", str(out)])
+        == 0
+    )
     printed = capsys.readouterr().out.splitlines()
     header = next(line for line in printed if line.startswith("policy"))
     assert header.split()[-11:] == ["read", "fields", "AUC", "[95", "%", "interval]", "AUC", "w/o", "ITC", "[95", "%]"]
@@ -167,9 +228,11 @@ def test_set_reader_is_scored_through_its_head_on_wider_and_taller_slides(data, 
     assert set(table) == {"ppo (greedy)", "ppo (sampled)", "random"}
     for name, row in table.items():
         line = next(line for line in printed if line.startswith(name))
-        assert " ".join(line.split()[-6:]) == (f"{row['diagnosis_auc']:.3f} [{row['diagnosis_auc_low']:.3f}, "
-                             f"{row['diagnosis_auc_high']:.3f}] {row['diagnosis_auc_no_itc']:.3f} "
-                             f"[{row['diagnosis_auc_no_itc_low']:.3f}, {row['diagnosis_auc_no_itc_high']:.3f}]"), line
+        assert " ".join(line.split()[-6:]) == (
+            f"{row['diagnosis_auc']:.3f} [{row['diagnosis_auc_low']:.3f}, "
+            f"{row['diagnosis_auc_high']:.3f}] {row['diagnosis_auc_no_itc']:.3f} "
+            f"[{row['diagnosis_auc_no_itc_low']:.3f}, {row['diagnosis_auc_no_itc_high']:.3f}]"
+        ), line
         assert f"{row['mean_fraction_read']:.1%}" in line
         assert 0.0 <= row["diagnosis_auc"] <= 1.0 and 0.0 <= row["diagnosis_auc_no_itc"] <= 1.0
         assert 0.0 <= row["mean_fraction_read"] <= 0.2 + 0.05  # the budget (one cell may overshoot it)
@@ -216,7 +279,9 @@ def _kind(folder: Path) -> str:
 
     if config.get("kind") in HEADS:  # slide heads of every kind
         return "head"
-    if str(config.get("action_mode", "")).startswith("glimpse") and (config.get("env_kwargs") or {}).get("glimpse_grid"):
+    if str(config.get("action_mode", "")).startswith("glimpse") and (config.get("env_kwargs") or {}).get(
+        "glimpse_grid"
+    ):
         return "flat glimpse"
     return "runs"
 
@@ -235,8 +300,9 @@ def test_the_published_folders_are_known():
 def test_published_folder_refused_in_one_line_saying_what_to_use(name, data, tmp_path, capsys):
     folder = PUBLISHED / name
     kind = _kind(folder)
-    code = histojax_main(["evaluate", str(folder), "--dataset", str(data["big"]), "--episodes", "1",
-                          "--out", str(tmp_path / "o")])
+    code = histojax_main(
+        ["evaluate", str(folder), "--dataset", str(data["big"]), "--episodes", "1", "--out", str(tmp_path / "o")]
+    )
     assert code == 2
     line = _one_error_line(capsys)
     set_reader = PUBLISHED / evaluate.SET_READER
@@ -244,8 +310,11 @@ def test_published_folder_refused_in_one_line_saying_what_to_use(name, data, tmp
         assert "a slide head, not an agent" in line and f"--head {folder}" in line
     elif kind == "flat glimpse":
         assert "do not fit glimpse_grid=[16, 14]" in line and "cannot read a slide wider or taller" in line
-        assert (f"histojax evaluate {evaluate.published_path(evaluate.SET_READER)}" in line if set_reader.is_dir()
-                else "baselines.reading.train_readers" in line)
+        assert (
+            f"histojax evaluate {evaluate.published_path(evaluate.SET_READER)}" in line
+            if set_reader.is_dir()
+            else "baselines.reading.train_readers" in line
+        )
     else:
         assert "retired" in line and "docs/results/c16.md" in line and evaluate.SET_READER in line
     assert not (tmp_path / "o").exists()
@@ -267,8 +336,12 @@ def test_a_retired_folder_points_to_the_set_reader(tmp_path, capsys):
 @pytest.mark.parametrize("name", RUNS)
 def test_published_agent_runs_on_wider_slides(name, data, tmp_path, capsys):
     out = tmp_path / "eval"
-    assert histojax_main(["evaluate", str(PUBLISHED / name), "--dataset", str(data["big"]), "--episodes", "2",
-                          "--out", str(out)]) == 0
+    assert (
+        histojax_main(
+            ["evaluate", str(PUBLISHED / name), "--dataset", str(data["big"]), "--episodes", "2", "--out", str(out)]
+        )
+        == 0
+    )
     (table,) = json.loads((out / "eval.json").read_text())["results"].values()
     assert "random" in table and all(np.isfinite(r["mean_fraction_read"]) for r in table.values())
     header = next(line for line in capsys.readouterr().out.splitlines() if line.startswith("policy"))

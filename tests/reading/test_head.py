@@ -5,6 +5,7 @@ A tiny synthetic pcam-cnn-style dataset is written once for the module (no pixel
 grids whose entry 62 is a view logit, a tissue mask, tumour polygons). Normal slides carry isolated
 false-positive views hotter than any tumour view; tumour slides a block of moderately hot views: the plain
 maximum cannot separate them, a neighbourhood mean can."""
+
 from __future__ import annotations
 
 import csv
@@ -17,8 +18,8 @@ import numpy as np
 import pytest
 
 from baselines.reading import head_fit, readers, slides
-from baselines.reading.slides import CLASSES, lesion_class
 from baselines.reading.orders import logit_order, random_order, read_mask, search_order
+from baselines.reading.slides import CLASSES, lesion_class
 from data_tools.bundle_files.format import sha256
 from data_tools.bundle_files.seals import write_metadata
 from histojax.reading.heads import score
@@ -38,13 +39,18 @@ def _write_slide(root, name: str, rng, lesion=None, poly_px=None) -> dict:
     tumour = None
     if lesion is not None:
         y, x, h, w = lesion
-        logit[y:y + h, x:x + w] = 2.0 + 0.3 * rng.random((h, w))
+        logit[y : y + h, x : x + w] = 2.0 + 0.3 * rng.random((h, w))
         side_x, side_y = (poly_px, poly_px) if poly_px else (w * TILE, h * TILE)
-        tumour = [[x * TILE, y * TILE], [x * TILE + side_x, y * TILE], [x * TILE + side_x, y * TILE + side_y],
-                  [x * TILE, y * TILE + side_y], [x * TILE, y * TILE]]
+        tumour = [
+            [x * TILE, y * TILE],
+            [x * TILE + side_x, y * TILE],
+            [x * TILE + side_x, y * TILE + side_y],
+            [x * TILE, y * TILE + side_y],
+            [x * TILE, y * TILE],
+        ]
     levels = []
     for lv in range(3):
-        f = 2 ** lv
+        f = 2**lv
         g = logit.reshape(GH // f, f, GW // f, f).mean((1, 3))
         feats = np.zeros(g.shape + (D,), np.float16)
         feats[..., 62] = g
@@ -53,21 +59,37 @@ def _write_slide(root, name: str, rng, lesion=None, poly_px=None) -> dict:
     tissue = np.ones((GH * 4, GW * 4), bool)  # 4 mask px per view
     tissue[:, :4] = False  # the first view column holds no tissue
     np.save(b / "tissue.npy", tissue)
-    meta = {"tile_size": TILE, "source": {"mpp": MPP},
-            "levels": [{"width": GW * TILE // 2 ** lv, "height": GH * TILE // 2 ** lv, "downsample": 2.0 ** lv}
-                       for lv in range(3)],
-            "tissue": {"file": "tissue.npy"},
-            "features": {"encoder": "pcam-cnn", "dim": D, "stride": TILE, "levels": levels}}
-    feats = [] if tumour is None else [{"type": "Feature", "properties": {"label": "tumour"},
-                                        "geometry": {"type": "Polygon", "coordinates": [tumour]}}]
+    meta = {
+        "tile_size": TILE,
+        "source": {"mpp": MPP},
+        "levels": [
+            {"width": GW * TILE // 2**lv, "height": GH * TILE // 2**lv, "downsample": 2.0**lv} for lv in range(3)
+        ],
+        "tissue": {"file": "tissue.npy"},
+        "features": {"encoder": "pcam-cnn", "dim": D, "stride": TILE, "levels": levels},
+    }
+    feats = (
+        []
+        if tumour is None
+        else [
+            {
+                "type": "Feature",
+                "properties": {"label": "tumour"},
+                "geometry": {"type": "Polygon", "coordinates": [tumour]},
+            }
+        ]
+    )
     (b / "annotations.geojson").write_text(json.dumps({"type": "FeatureCollection", "features": feats}))
     # a feature-only stand-in of a dense bundle: the head tools read features, tissue and annotations only (the
     # pixel arrays it names are never opened), through the checked loader: checksums and the metadata seal
     for k, lv in enumerate(meta["levels"]):
         lv.update(pixels=f"pixels_{k:02d}.npy", tumour=f"tumour_{k:02d}.npy")
-    meta.update(format_version=1, magnification_range=4.0, annotations={"tumour_area_px": 1.0 if tumour else 0.0},
-                checksums={n: sha256(b / n) for n in ("tissue.npy", "annotations.geojson",
-                                                      *(lv["file"] for lv in levels))})
+    meta.update(
+        format_version=1,
+        magnification_range=4.0,
+        annotations={"tumour_area_px": 1.0 if tumour else 0.0},
+        checksums={n: sha256(b / n) for n in ("tissue.npy", "annotations.geojson", *(lv["file"] for lv in levels))},
+    )
     write_metadata(b, meta)
     return {"bundle": f"bundles/{name}", "label": int(lesion is not None)}
 
@@ -121,8 +143,9 @@ def test_score_is_jittable_padding_free_and_empty_gives_the_prior():
     rng = np.random.default_rng(2)
     g = rng.normal(size=(10, 6, 64)).astype(np.float32)
     m = rng.random((10, 6)) < 0.5
-    head = LogitHead(cal_a=jnp.float32(1.5), cal_b=jnp.float32(-2.0), prior_logit=jnp.float32(-0.7), k=3, top=3,
-                     minus_median=True)
+    head = LogitHead(
+        cal_a=jnp.float32(1.5), cal_b=jnp.float32(-2.0), prior_logit=jnp.float32(-0.7), k=3, top=3, minus_median=True
+    )
     plain = float(score(head, g, m))
     assert float(jax.jit(score)(head, g, m)) == pytest.approx(plain, abs=1e-5)
     gp = np.zeros((13, 11, 64), np.float32)
@@ -138,14 +161,20 @@ def test_score_is_jittable_padding_free_and_empty_gives_the_prior():
 
 
 def test_head_saves_and_loads(tmp_path):
-    head = LogitHead(cal_a=jnp.float32(0.8), cal_b=jnp.float32(0.1), prior_logit=jnp.float32(0.2), k=2, top=1,
-                     info=json.dumps({"chosen_on": {"validation_auc": 0.9}}))
+    head = LogitHead(
+        cal_a=jnp.float32(0.8),
+        cal_b=jnp.float32(0.1),
+        prior_logit=jnp.float32(0.2),
+        k=2,
+        top=1,
+        info=json.dumps({"chosen_on": {"validation_auc": 0.9}}),
+    )
     head.save(tmp_path / "h")
     back = LogitHead.load(tmp_path / "h")
     assert (back.k, back.top, back.minus_median, back.dim) == (2, 1, False, 62)
     assert float(back.cal_a) == pytest.approx(0.8) and float(back.prior_logit) == pytest.approx(0.2)
     assert json.loads((tmp_path / "h" / "config.json").read_text())["chosen_on"] == {"validation_auc": 0.9}
-    (tmp_path / "h" / "params.json").write_text("{\"a\": 1}")
+    (tmp_path / "h" / "params.json").write_text('{"a": 1}')
     with pytest.raises(ValueError, match="params.json: lacks 'b'"):
         LogitHead.load(tmp_path / "h")
     with pytest.raises(ValueError, match="config.json: missing"):
@@ -171,6 +200,7 @@ def test_fit_chooses_spatial_context_on_validation(fitted, dataset):
     logits = readers.head_scores(LogitHead.load(out), test, [s["tissue"] for s in test])
     labels = [s["label"] for s in test]
     from data_tools.metrics import roc_auc
+
     assert roc_auc(logits, labels) == 1.0
 
 
@@ -188,11 +218,11 @@ def test_lesion_classes_follow_camelyon_thresholds(dataset):
     for name, (cls, mm) in got.items():
         if "normal" in name:
             assert cls == "normal"
-        elif name.endswith("itc"):   # a 6-px square: 85 µm
+        elif name.endswith("itc"):  # a 6-px square: 85 µm
             assert cls == "ITC" and mm == pytest.approx(6 * np.sqrt(2) * MPP / 1000)
         elif name.endswith("micro"):  # 4 x 4 views of 160 µm: 0.91 mm
             assert cls == "micro" and mm == pytest.approx(4 * TILE * np.sqrt(2) * MPP / 1000)
-        else:                         # 12 x 8 views: 2.31 mm
+        else:  # 12 x 8 views: 2.31 mm
             assert cls == "macro" and mm > 2.0
 
 
@@ -220,12 +250,31 @@ def test_scripted_readers_respect_the_budget_and_follow_the_logits(dataset, fitt
 
 def test_readers_command_writes_the_curve(dataset, fitted, tmp_path, capsys):
     out, head, _ = fitted
-    assert readers.main(["--dataset", str(dataset), "--head", str(out), "--budgets", "0.05", "0.2", "--seeds", "2",
-                         "--cell-level", "1", "--out", str(tmp_path)]) == 0
+    assert (
+        readers.main(
+            [
+                "--dataset",
+                str(dataset),
+                "--head",
+                str(out),
+                "--budgets",
+                "0.05",
+                "0.2",
+                "--seeds",
+                "2",
+                "--cell-level",
+                "1",
+                "--out",
+                str(tmp_path),
+            ]
+        )
+        == 0
+    )
     with open(tmp_path / "readers.csv") as f:
         rows = {(r["reader"], float(r["budget"])): r for r in csv.DictReader(f)}
     assert set(rows) == {("overview only", 0.0), ("read everything", 1.0)} | {
-        (n, b) for n in ("random reader", "logit reader", "search reader") for b in (0.05, 0.2)}
+        (n, b) for n in ("random reader", "logit reader", "search reader") for b in (0.05, 0.2)
+    }
     assert float(rows[("read everything", 1.0)]["auc"]) == 1.0
     assert float(rows[("overview only", 0.0)]["fraction_read"]) == 0.0
     assert int(rows[("random reader", 0.05)]["seeds"]) == 2
@@ -240,8 +289,13 @@ def test_readers_command_writes_the_curve(dataset, fitted, tmp_path, capsys):
     assert (tmp_path / "readers.png").stat().st_size > 10_000
     # a learned reader's masks join the same table, scored by the same head
     test = slides.load_slides(dataset, "test")
-    res = readers.add_reader(readers.new_results(), head, test, "my reader",
-                             {0.1: [[s["tissue"] for s in test], [np.zeros_like(s["tissue"]) for s in test]]})
+    res = readers.add_reader(
+        readers.new_results(),
+        head,
+        test,
+        "my reader",
+        {0.1: [[s["tissue"] for s in test], [np.zeros_like(s["tissue"]) for s in test]]},
+    )
     row = readers.rows_from_results(res, test)[0]
     assert row["seeds"] == 2 and row["fraction_read"] == pytest.approx(0.5) and row["kind"] == "learned"
     assert len(row["auc_per_seed"]) == 2 and np.mean(row["auc_per_seed"]) == pytest.approx(row["auc"], abs=1e-4)

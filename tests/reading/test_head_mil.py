@@ -1,6 +1,7 @@
 """The trained slide heads (histojax.reading.heads.mil) and their training data (baselines.reading.head_mil_fit): jittable,
 vmap equals a loop, unread views do not count, the sparse training path equals the deployed dense one,
 save / load round trip through heads.load, bad folders refused with one line naming the file."""
+
 from __future__ import annotations
 
 import json
@@ -28,14 +29,20 @@ def _grid(seed):
 
 def _mil(inputs="logit", seed=0):
     n_in = 4 + (D if inputs == "features" else 0)
-    p = head_mil_fit.init_mil(jax.random.PRNGKey(seed), n_in, hidden=8, att=4,
-                              mu=np.linspace(-1, 1, n_in), sd=np.linspace(0.5, 2, n_in))
+    p = head_mil_fit.init_mil(
+        jax.random.PRNGKey(seed), n_in, hidden=8, att=4, mu=np.linspace(-1, 1, n_in), sd=np.linspace(0.5, 2, n_in)
+    )
     return MilHead(params=p, prior_logit=jnp.float32(-0.3), dim=2, inputs=inputs, hidden=8, encoder=None)
 
 
 def _stats():
     n = 4 * 2 + 3 + 1
-    p = {"mu": jnp.linspace(-1, 1, n), "sd": jnp.linspace(0.5, 2, n), "w": jnp.linspace(-0.5, 1, n), "b": jnp.float32(0.2)}
+    p = {
+        "mu": jnp.linspace(-1, 1, n),
+        "sd": jnp.linspace(0.5, 2, n),
+        "w": jnp.linspace(-0.5, 1, n),
+        "b": jnp.float32(0.2),
+    }
     return StatsHead(params=p, prior_logit=jnp.float32(-0.3), dim=2, encoder=None)
 
 
@@ -98,7 +105,9 @@ def test_sparse_training_instances_equal_the_dense_ones(inputs):
     for b, s in enumerate(slides):
         m = np.zeros(s["tissue"].shape, bool)
         m[s["tissue"]] = np.asarray(mask)[seg == b]
-        dense = np.asarray(head.instances(jnp.asarray(s["features"][..., 2]), jnp.asarray(s["features"]), jnp.asarray(m)))
+        dense = np.asarray(
+            head.instances(jnp.asarray(s["features"][..., 2]), jnp.asarray(s["features"]), jnp.asarray(m))
+        )
         np.testing.assert_allclose(sparse[seg == b][m[s["tissue"]]], dense[m], rtol=1e-5, atol=1e-5)
 
 
@@ -122,12 +131,15 @@ def test_save_load_round_trip(tmp_path, name):
     assert float(score(back, g, t)) == float(score(head, g, t))
 
 
-@pytest.mark.parametrize("edit, message", [
-    (lambda c: c.update(kind="attention-mil-v9"), "not a slide head"),
-    (lambda c: c.update(format=2), "format 2"),
-    (lambda c: c.update(hidden=9), r"params.npz: array w1 has shape \(4, 8\), the config implies \(4, 9\)"),
-    (lambda c: c.pop("ks"), "lacks 'ks'"),
-])
+@pytest.mark.parametrize(
+    "edit, message",
+    [
+        (lambda c: c.update(kind="attention-mil-v9"), "not a slide head"),
+        (lambda c: c.update(format=2), "format 2"),
+        (lambda c: c.update(hidden=9), r"params.npz: array w1 has shape \(4, 8\), the config implies \(4, 9\)"),
+        (lambda c: c.pop("ks"), "lacks 'ks'"),
+    ],
+)
 def test_bad_config_refused_with_one_line(tmp_path, edit, message):
     folder = _mil().save(tmp_path / "h")
     cfg = json.loads((folder / "config.json").read_text())

@@ -15,11 +15,11 @@ from pathlib import Path
 
 import numpy as np
 import pytest
+from learned_fixture import make_cohort
 
 from baselines.reading import learned_head_fit as fit
 from baselines.reading import provenance
 from baselines.validation import MIN_VALIDATION_PER_CLASS, check_validation_share, split_train
-from learned_fixture import make_cohort
 
 PATIENT = {"s00_tumour": "P1", "s01_tumour": "P1"}
 """The cohort's one patient with two slides (both tumour, both training slides)."""

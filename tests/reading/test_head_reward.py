@@ -5,6 +5,7 @@ trajectory; the wrapped env's states are the unwrapped env's.
 
 One tiny synthetic dataset (made here: 2 tumour + 2 tumour-free slides of 320 × 256 px, 32-px views,
 Easy levels, ``colour-stats`` features; the head reads feature entry 0 as its view logit)."""
+
 from __future__ import annotations
 
 import functools
@@ -15,19 +16,20 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from hypothesis_examples import examples
+from slide_helpers import synth_feature_dataset
 
 import histojax
 from histojax.core import seen_views
 from histojax.reading import tables as reading_tables
+from histojax.reading.head_reward import HeadReward
 from histojax.reading.heads import score_logits
 from histojax.reading.heads.logit import LogitHead
-from histojax.reading.head_reward import HeadReward
-from hypothesis_examples import examples
-from slide_helpers import synth_feature_dataset
 
 STEPS, ENVS = 14, 3
-HEAD = LogitHead(cal_a=jnp.float32(1.5), cal_b=jnp.float32(-0.2), prior_logit=jnp.float32(0.3), dim=0, k=3, top=1,
-                 encoder=None)
+HEAD = LogitHead(
+    cal_a=jnp.float32(1.5), cal_b=jnp.float32(-0.2), prior_logit=jnp.float32(0.3), dim=0, k=3, top=1, encoder=None
+)
 
 
 @pytest.fixture(scope="module")
@@ -36,8 +38,15 @@ def dataset(tmp_path_factory):
 
 
 def _make(dataset, **kw):
-    return histojax.make("HistoJAX-Easy-v0", dataset=str(dataset), split="train", obs_mode="features",
-                         task="classification", max_steps_in_episode=STEPS, **kw)
+    return histojax.make(
+        "HistoJAX-Easy-v0",
+        dataset=str(dataset),
+        split="train",
+        obs_mode="features",
+        task="classification",
+        max_steps_in_episode=STEPS,
+        **kw,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -63,8 +72,12 @@ def _finest(env, params):
     """Per slide, host: (view logits (H, W), tissue (H, W)) — the head's inputs, straight from the bundles."""
     out = []
     for slide, bundle in seen_views.per_slide(params, env.bundles):
-        out.append((reading_tables.finest_view_features(slide, env.tile_size)[..., HEAD.dim],
-                    seen_views.tissue_views(bundle, slide, env.tile_size)))
+        out.append(
+            (
+                reading_tables.finest_view_features(slide, env.tile_size)[..., HEAD.dim],
+                seen_views.tissue_views(bundle, slide, env.tile_size),
+            )
+        )
     return out
 
 
@@ -165,8 +178,9 @@ def test_navigator_reads_are_the_finest_views_it_stood_on(navigation):
         i = int(es.slide_index)
         logits, tissue = finest[i]
         p_before = 1 / (1 + np.exp(-float(state.logit)))
-        obs, state, reward, term, trunc, info = step(jax.random.key(200 + t), state, int(rng.integers(env.num_actions)),
-                                                     params)
+        obs, state, reward, term, trunc, info = step(
+            jax.random.key(200 + t), state, int(rng.integers(env.num_actions)), params
+        )
         done = bool(term | trunc)
         if not done:  # (after an auto-reset the stepped state is not kept: nothing to compare)
             stepped = state.env_state
@@ -208,9 +222,10 @@ def test_vmap_equals_a_loop_and_the_key_fixes_the_trajectory(glimpse):
             singles = [step_1(ks[e], jax.tree.map(lambda a: a[e], st), actions[e], params) for e in range(ENVS)]
             obs, st, r, term, trunc, info = step_v(ks, st, actions, params)
             for e, s in enumerate(singles):
-                for a, b in zip(jax.tree.leaves((s[0], s[1], s[2], s[3], s[4], s[5]["head_score"])),
-                                jax.tree.leaves(jax.tree.map(lambda x: x[e], (obs, st, r, term, trunc,
-                                                                                info["head_score"])))):
+                for a, b in zip(
+                    jax.tree.leaves((s[0], s[1], s[2], s[3], s[4], s[5]["head_score"])),
+                    jax.tree.leaves(jax.tree.map(lambda x: x[e], (obs, st, r, term, trunc, info["head_score"]))),
+                ):
                     np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
             out.append((np.asarray(r), np.asarray(st.logit), np.asarray(st.env_state.memory.revealed)))
         return out
@@ -233,12 +248,17 @@ def test_wrapped_states_are_the_unwrapped_envs(glimpse):
         k = jax.random.key(300 + t)
         obs_w, st_w, *_ = step_w(k, st_w, a, params)
         obs_e, st_e, *_ = step_e(k, st_e, a, params)
+
         # the env's auto-reset leaves the cells-read slots past ``fields`` as they were (they are not the episode's)
         def read(state):
             m = state.memory
             used = jnp.arange(m.slots.shape[-1]) < m.fields
-            return state.replace(memory=m.replace(slots=jnp.where(used, m.slots, c),
-                                                  slot_summaries=jnp.where(used[:, None], m.slot_summaries, 0)))
+            return state.replace(
+                memory=m.replace(
+                    slots=jnp.where(used, m.slots, c), slot_summaries=jnp.where(used[:, None], m.slot_summaries, 0)
+                )
+            )
+
         for x, y in zip(jax.tree.leaves((obs_w, read(st_w.env_state))), jax.tree.leaves((obs_e, read(st_e)))):
             np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
@@ -275,9 +295,21 @@ def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(datase
     from baselines.harness.logs import load_checkpoint, save_checkpoint
     from baselines.reading import diagnosis
 
-    config = dict(env_id="HistoJAX-Easy-v0", obs_mode="features", action_mode="discrete", num_envs=2, num_steps=4,
-                  total_timesteps=8, hidden=8, num_minibatches=1, update_epochs=1, num_seeds=1, print_progress=False,
-                  max_steps_in_episode=30, env_kwargs={"dataset": str(dataset), "task": "classification"})
+    config = dict(
+        env_id="HistoJAX-Easy-v0",
+        obs_mode="features",
+        action_mode="discrete",
+        num_envs=2,
+        num_steps=4,
+        total_timesteps=8,
+        hidden=8,
+        num_minibatches=1,
+        update_epochs=1,
+        num_seeds=1,
+        print_progress=False,
+        max_steps_in_episode=30,
+        env_kwargs={"dataset": str(dataset), "task": "classification"},
+    )
     train = ppo.make_train(config)
     params = train.init_params(jax.random.key(0), train.env_params)
     save_checkpoint(tmp_path / "nav", jax.tree.map(lambda a: a[None], params), train.config)
@@ -287,8 +319,9 @@ def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(datase
     cfg = {**cfg, "env_kwargs": {**cfg["env_kwargs"], "dataset": str(dataset), "split": "train"}}
     cfg, (env, env_params) = evaluate.eval_env(cfg)
     net = evaluate.network_for(cfg, env)
-    policy = evaluate.learned_policy(net, params, "discrete", greedy=False,
-                                     declare=evaluate.diagnosis_actions(env, net, "discrete"))
+    policy = evaluate.learned_policy(
+        net, params, "discrete", greedy=False, declare=evaluate.diagnosis_actions(env, net, "discrete")
+    )
     n = len(env.bundles)
     per, axes = evaluate.per_episode_params(env_params, np.arange(n))
     ep = evaluate.run_episodes(env, per, policy, jax.random.key(0), n, params_axes=axes)
@@ -307,16 +340,23 @@ def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(datase
     assert finest_total > 0  # the untrained sampled navigator reached the finest level somewhere
 
 
-@pytest.fixture(scope="module", params=[("glimpse:1", 2), ("glimpse:2", 3), ("discrete", 3)],
-                ids=lambda p: f"{p[0]}-k{p[1]}")
+@pytest.fixture(
+    scope="module", params=[("glimpse:1", 2), ("glimpse:2", 3), ("discrete", 3)], ids=lambda p: f"{p[0]}-k{p[1]}"
+)
 def incremental_pair(dataset, request):
     """One env (glimpse: read_budget 1, episodes read many cells; a navigator: 60-step episodes) wrapped
     twice, re-scoring the window around each read and scoring the whole grid, and one jitted vmapped
     rollout of both (compiled once)."""
     mode, k = request.param
     if mode == "discrete":
-        env, params = histojax.make("HistoJAX-Easy-v0", dataset=str(dataset), split="train", obs_mode="features",
-                                    task="classification", max_steps_in_episode=60)
+        env, params = histojax.make(
+            "HistoJAX-Easy-v0",
+            dataset=str(dataset),
+            split="train",
+            obs_mode="features",
+            task="classification",
+            max_steps_in_episode=60,
+        )
     else:
         env, params = _make(dataset, action_mode=mode, step_obs=True, read_budget=1.0)
     head = HEAD.replace(k=k)
@@ -335,10 +375,13 @@ def incremental_pair(dataset, request):
             def body(st, xs):
                 k, a = xs
                 _, st, r, term, trunc, info = jax.vmap(w.step, in_axes=(0, 0, 0, None))(
-                    jax.random.split(k, ENVS), st, a, params)
+                    jax.random.split(k, ENVS), st, a, params
+                )
                 return st, (r, st.logit, st.views, info["head_score"], term | trunc)
+
             outs.append(jax.lax.scan(body, st, (jax.random.split(key, actions.shape[0]), actions))[1])
         return outs
+
     return roll, c
 
 

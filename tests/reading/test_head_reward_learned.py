@@ -6,6 +6,7 @@ that rescores the whole set every step (``incremental_score=False``).
 
 The tiny synthetic dataset of tests/reading/test_head_reward.py (2 tumour + 2 tumour-free slides, ``colour-stats``
 features); the head is drawn at random (its arithmetic, not its skill, is what is tested)."""
+
 from __future__ import annotations
 
 import jax
@@ -14,20 +15,27 @@ import numpy as np
 import pytest
 from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
+from slide_helpers import synth_feature_dataset
 
 import histojax
-from histojax.reading.head_reward import HeadReward, pools_views
 from histojax.core import seen_views
 from histojax.reading import tables as reading_tables
+from histojax.reading.head_reward import HeadReward, pools_views
 from histojax.reading.heads.learned import LearnedHead, init_params
-from slide_helpers import synth_feature_dataset
 
 STEPS = 12
 
 
 def _make(dataset, **kw):
-    return histojax.make("HistoJAX-Easy-v0", dataset=str(dataset), split="train", obs_mode="features",
-                         task="classification", max_steps_in_episode=STEPS, **kw)
+    return histojax.make(
+        "HistoJAX-Easy-v0",
+        dataset=str(dataset),
+        split="train",
+        obs_mode="features",
+        task="classification",
+        max_steps_in_episode=STEPS,
+        **kw,
+    )
 
 
 def _head(params, seed=0) -> LearnedHead:
@@ -35,26 +43,44 @@ def _head(params, seed=0) -> LearnedHead:
     f = np.asarray(params.slide.features, np.float32).reshape(-1, d)
     p = init_params(jax.random.key(seed), d, hidden=8, attention=4, layers=2, mu=f.mean(0), sd=f.std(0) + 1e-3)
     p["wa"] = p["wa"] * 4.0  # sharp attention: the running maximum moves often
-    return LearnedHead(params=p, cal_a=jnp.float32(1.3), cal_b=jnp.float32(-0.2), prior_logit=jnp.float32(0.4),
-                       features_dim=d, hidden=8, attention=4, layers=2)
+    return LearnedHead(
+        params=p,
+        cal_a=jnp.float32(1.3),
+        cal_b=jnp.float32(-0.2),
+        prior_logit=jnp.float32(0.4),
+        features_dim=d,
+        hidden=8,
+        attention=4,
+        layers=2,
+    )
 
 
 @pytest.fixture(scope="module")
 def setups(tmp_path_factory):
     ds = synth_feature_dataset(tmp_path_factory.mktemp("head-reward-learned"), n_slides=2, negatives=2)
     out = {}
-    for name, kw in (("glimpse", dict(action_mode="glimpse:1", step_obs=True, read_budget=0.7)),
-                     ("navigator", {})):
+    for name, kw in (("glimpse", dict(action_mode="glimpse:1", step_obs=True, read_budget=0.7)), ("navigator", {})):
         env, params = _make(ds, **kw)
         head = _head(params)
         fast = HeadReward(env, head, gain="fidelity", final=1.0, read_cost=0.01)
         whole = HeadReward(env, head, gain="fidelity", final=1.0, read_cost=0.01, incremental_score=False)
-        grids = [reading_tables.finest_view_features(s, env.tile_size).astype(np.float32)
-                 for s, _ in seen_views.per_slide(params, env.bundles)]
-        out[name] = dict(env=env, params=params, head=head, fast=fast, whole=whole, grids=grids,
-                         fast_step=jax.jit(fast.step), whole_step=jax.jit(whole.step),
-                         fast_reset=jax.jit(fast.reset), whole_reset=jax.jit(whole.reset),
-                         rescore=jax.jit(head.score))
+        grids = [
+            reading_tables.finest_view_features(s, env.tile_size).astype(np.float32)
+            for s, _ in seen_views.per_slide(params, env.bundles)
+        ]
+        out[name] = dict(
+            env=env,
+            params=params,
+            head=head,
+            fast=fast,
+            whole=whole,
+            grids=grids,
+            fast_step=jax.jit(fast.step),
+            whole_step=jax.jit(whole.step),
+            fast_reset=jax.jit(fast.reset),
+            whole_reset=jax.jit(whole.reset),
+            rescore=jax.jit(head.score),
+        )
     return out
 
 

@@ -1,5 +1,6 @@
 """``train_readers`` trains with the head reward by wrapping the env every trainer makes: the ``make_env`` each
 trainer module (and the evaluation roll-out) imports by name from ``baselines.common.env``. Cheap: no env is made."""
+
 from __future__ import annotations
 
 import ast
@@ -28,7 +29,10 @@ def test_every_module_that_imports_make_env_by_name_is_wrapped():
     importers = set()
     for path in (ROOT / "baselines").rglob("*.py"):
         for node in ast.parse(path.read_text(), str(path)).body:  # module-level imports: the name a trainer calls
-            if (isinstance(node, ast.ImportFrom) and node.module == "baselines.common.env"
-                    and any(a.name == "make_env" for a in node.names)):
+            if (
+                isinstance(node, ast.ImportFrom)
+                and node.module == "baselines.common.env"
+                and any(a.name == "make_env" for a in node.names)
+            ):
                 importers.add(".".join(path.relative_to(ROOT).with_suffix("").parts))
     assert importers == set(ENV_MAKERS)

@@ -1,6 +1,7 @@
 """The learned attention-MIL head (histojax.reading.heads.learned), its guarded folder reader / writer
 (histojax.reading.heads.files) and its fit (baselines.reading.learned_head_fit) on a TRIDENT-layout cohort whose
 tumour direction is planted in a random orientation (no entry is the logit: tests/learned_fixture.py)."""
+
 from __future__ import annotations
 
 import io
@@ -16,20 +17,28 @@ import numpy as np
 import pytest
 from hypothesis import given, settings
 from hypothesis import strategies as st
+from learned_fixture import make_cohort
 
 import baselines.reading.learned_head_fit as fit
-from data_tools.metrics import roc_auc
 from baselines.validation import split_train
+from data_tools.metrics import roc_auc
 from histojax.reading.heads import files
 from histojax.reading.heads.learned import KIND, LearnedHead, init_params, param_shapes
-from learned_fixture import make_cohort
 
 
 def small_head(dim=8, hidden=6, attention=4, layers=1, seed=0) -> LearnedHead:
     p = init_params(jax.random.PRNGKey(seed), dim, hidden, attention, layers)
     p["bc"] = jnp.float32(0.3)
-    return LearnedHead(params=p, cal_a=jnp.float32(1.7), cal_b=jnp.float32(-0.4), prior_logit=jnp.float32(-0.9),
-                       features_dim=dim, hidden=hidden, attention=attention, layers=layers)
+    return LearnedHead(
+        params=p,
+        cal_a=jnp.float32(1.7),
+        cal_b=jnp.float32(-0.4),
+        prior_logit=jnp.float32(-0.9),
+        features_dim=dim,
+        hidden=hidden,
+        attention=attention,
+        layers=layers,
+    )
 
 
 # ----------------------------------------------------------------------------- the head's arithmetic
@@ -49,7 +58,7 @@ def test_incremental_state_equals_full_score(seed, p, scale):
     order = rng.permutation(N)  # views read in any order, K at a time
     state = HEAD2.init_state()
     for i in range(0, N, K):
-        idx = order[i:i + K]
+        idx = order[i : i + K]
         state = _add(state, x[idx], mask[idx])
     full = float(_score(x, mask))
     assert np.isclose(float(_logit(state)), full, rtol=1e-4, atol=1e-4)
@@ -64,7 +73,7 @@ def test_the_state_rescales_when_the_maximum_moves():
     a = jnp.asarray([-50.0, 0.0, 40.0, 3.0, 80.0, -5.0])  # a max that moves up twice, by far
     st_ = h.init_state()
     for i in range(6):
-        st_ = h.add(st_, hs[i:i + 1], a[i:i + 1], jnp.ones(1, bool))
+        st_ = h.add(st_, hs[i : i + 1], a[i : i + 1], jnp.ones(1, bool))
     w = jax.nn.softmax(a)
     want = h.calibrate(h.raw_logit((w[:, None] * hs).sum(0)))
     assert np.isfinite(float(st_.s)) and float(st_.m) == 80.0
@@ -81,8 +90,8 @@ def test_vmap_over_padded_slides_equals_a_loop():
     g = np.full((3, H, W, h.features_dim), 1e3, np.float32)  # padding holds junk: it is never read
     m = np.zeros((3, H, W), bool)
     for i, (gi, mi) in enumerate(zip(grids, masks)):
-        g[i, :gi.shape[0], :gi.shape[1]] = gi
-        m[i, :mi.shape[0], :mi.shape[1]] = mi
+        g[i, : gi.shape[0], : gi.shape[1]] = gi
+        m[i, : mi.shape[0], : mi.shape[1]] = mi
     batched = np.asarray(jax.jit(jax.vmap(lambda a, b: h.score(a, b)))(g, m))
     loop = np.asarray([float(h.score(gi, mi)) for gi, mi in zip(grids, masks)])
     np.testing.assert_allclose(batched, loop, rtol=1e-5, atol=1e-5)
@@ -172,9 +181,16 @@ def test_reader_refuses_deep_json_without_recursion_error(tmp_path):
         LearnedHead.load(folder)
 
 
-@pytest.mark.parametrize("key,value,problem", [("layers", "1", "not an int"), ("layers", True, "not an int"),
-                                               ("hidden", 6.0, "not an int"), ("layers", 3, "outside"),
-                                               ("format", 2, "format 2")])
+@pytest.mark.parametrize(
+    "key,value,problem",
+    [
+        ("layers", "1", "not an int"),
+        ("layers", True, "not an int"),
+        ("hidden", 6.0, "not an int"),
+        ("layers", 3, "outside"),
+        ("format", 2, "format 2"),
+    ],
+)
 def test_reader_refuses_wrong_types(tmp_path, key, value, problem):
     folder = _saved(tmp_path)
     cfg = json.loads((folder / "config.json").read_text())
@@ -194,8 +210,7 @@ def test_strict_fields():
     with pytest.raises(ValueError, match="not a finite number"):
         files.field({"f": True}, "f", float, where)
     with pytest.raises(ValueError, match="not valid JSON"):
-        files.read_config(_write(Path(os.environ.get("TMPDIR", "/tmp")) / f"nan-{os.getpid()}.json",
-                                 b'{"a": NaN}'))
+        files.read_config(_write(Path(os.environ.get("TMPDIR", "/tmp")) / f"nan-{os.getpid()}.json", b'{"a": NaN}'))
 
 
 def _write(path: Path, data: bytes) -> Path:
@@ -220,22 +235,30 @@ def test_reader_refuses_bad_params(tmp_path):
     par = folder / "params.npz"
     good = par.read_bytes()
     arrays = dict(np.load(par))
-    cases = [(b"", "empty file"), (good[: len(good) // 2], "not a complete .npz"),
-             (_npz({**arrays, "junk": np.zeros(3)}), "does not use \\(junk\\)"),
-             (_npz({k: v for k, v in arrays.items() if k != "wc"}), "lacks the arrays wc"),
-             (_npz({**arrays, "wc": arrays["wc"].astype(np.complex64)}), "dtype complex64"),
-             (_npz({**arrays, "wc": np.zeros(7, np.float32)}), "shape \\(7,\\), the config implies \\(6,\\)"),
-             (_npz({**arrays, "wc": np.full(6, np.nan, np.float32)}), "non-finite")]
+    cases = [
+        (b"", "empty file"),
+        (good[: len(good) // 2], "not a complete .npz"),
+        (_npz({**arrays, "junk": np.zeros(3)}), "does not use \\(junk\\)"),
+        (_npz({k: v for k, v in arrays.items() if k != "wc"}), "lacks the arrays wc"),
+        (_npz({**arrays, "wc": arrays["wc"].astype(np.complex64)}), "dtype complex64"),
+        (_npz({**arrays, "wc": np.zeros(7, np.float32)}), "shape \\(7,\\), the config implies \\(6,\\)"),
+        (_npz({**arrays, "wc": np.full(6, np.nan, np.float32)}), "non-finite"),
+    ]
     # a member whose header claims 10^12 floats: refused from its header, nothing that size allocated
     header = io.BytesIO()
     np.lib.format.write_array_header_1_0(header, {"descr": "<f4", "fortran_order": False, "shape": (10**12,)})
     cases.append((_npz(arrays, {"huge": header.getvalue() + b"\0" * 64}), "does not use \\(huge\\)"))
-    cases.append((_npz({k: v for k, v in arrays.items() if k != "w1"}, {"w1": header.getvalue() + b"\0" * 64}),
-                  "array w1 has shape \\(1000000000000,\\)"))
+    cases.append(
+        (
+            _npz({k: v for k, v in arrays.items() if k != "w1"}, {"w1": header.getvalue() + b"\0" * 64}),
+            "array w1 has shape \\(1000000000000,\\)",
+        )
+    )
     obj = io.BytesIO()
     np.lib.format.write_array_header_1_0(obj, {"descr": "|O", "fortran_order": False, "shape": (6,)})
-    cases.append((_npz({k: v for k, v in arrays.items() if k != "wc"}, {"wc": obj.getvalue() + b"\0" * 48}),
-                  "dtype object"))
+    cases.append(
+        (_npz({k: v for k, v in arrays.items() if k != "wc"}, {"wc": obj.getvalue() + b"\0" * 48}), "dtype object")
+    )
     for data, problem in cases:
         par.write_bytes(data)
         with pytest.raises(ValueError, match=problem) as e:
@@ -259,8 +282,18 @@ def fitted(cohort):
     tr = fit.load_split(root, kept, spec, progress=False)
     va = fit.load_split(root, held, spec, progress=False)
     te = fit.load_split(root, spec["test"], spec, progress=False)
-    head, curve = fit.train(tr, fit.FlatSet(va), fit.CANDIDATES[1], seed=0, steps=150, batch_size=8, views=128,
-                            eval_every=25, lr=5e-3, progress=False)
+    head, curve = fit.train(
+        tr,
+        fit.FlatSet(va),
+        fit.CANDIDATES[1],
+        seed=0,
+        steps=150,
+        batch_size=8,
+        views=128,
+        eval_every=25,
+        lr=5e-3,
+        progress=False,
+    )
     head, slope = fit.calibrate(head, fit.FlatSet(va))
     return head, slope, te, curve
 
@@ -345,8 +378,21 @@ def test_an_inverted_head_is_refused(cohort, tmp_path, capsys, monkeypatch):
 
     monkeypatch.setattr(fit, "train", inverted)
     out = tmp_path / "head"
-    code = _main(["--dataset", str(cohort["root"]), "--out", str(out), "--quiet", "--hidden", "32", "--batch", "8",
-                  "--views", "64"])
+    code = _main(
+        [
+            "--dataset",
+            str(cohort["root"]),
+            "--out",
+            str(out),
+            "--quiet",
+            "--hidden",
+            "32",
+            "--batch",
+            "8",
+            "--views",
+            "64",
+        ]
+    )
     err = capsys.readouterr().err.strip()
     assert code == 2 and len(err.splitlines()) == 1
     assert "validation AUC is 0." in err and "< 0.5" in err and "nothing saved" in err
@@ -363,8 +409,28 @@ def test_platt_slope_is_negative_for_inverted_scores():
 @pytest.mark.slow
 def test_the_command_fits_saves_and_scores(cohort, tmp_path, capsys):
     out = tmp_path / "head"
-    assert _main(["--dataset", str(cohort["root"]), "--out", str(out), "--quiet", "--steps", "150", "--batch", "8",
-                  "--views", "128", "--eval-every", "25", "--lr", "5e-3"]) == 0
+    assert (
+        _main(
+            [
+                "--dataset",
+                str(cohort["root"]),
+                "--out",
+                str(out),
+                "--quiet",
+                "--steps",
+                "150",
+                "--batch",
+                "8",
+                "--views",
+                "128",
+                "--eval-every",
+                "25",
+                "--lr",
+                "5e-3",
+            ]
+        )
+        == 0
+    )
     assert sorted(os.listdir(out)) == ["config.json", "learning_curve.png", "params.npz"]
     cfg = json.loads((out / "config.json").read_text())
     assert cfg["kind"] == KIND and cfg["chosen_on"]["validation_auc"] >= 0.5 and cfg["calibration"]["slope"] > 0
@@ -376,14 +442,31 @@ def test_the_command_fits_saves_and_scores(cohort, tmp_path, capsys):
     # the AUC's 95 % interval over the 8 slides beside it, and the word that 4 + 4 slides cannot rank heads
     assert res["auc_low"] < res["auc"] <= res["auc_high"] <= 1.0 and res["auc_high"] - res["auc_low"] > 0.2
     shown = re.search(r"AUC (\d\.\d{3}) \[(\d\.\d{3}), (\d\.\d{3})\] reading everything", printed.err)
-    assert shown and np.allclose([float(v) for v in shown.groups()], [res["auc"], res["auc_low"], res["auc_high"]],
-                                 atol=6e-4), printed.err
+    assert shown and np.allclose(
+        [float(v) for v in shown.groups()], [res["auc"], res["auc_low"], res["auc_high"]], atol=6e-4
+    ), printed.err
     assert "holds 4 tumour and 4 normal slides" in printed.err
     # a second fit into the same folder replaces it; into a folder of user files is refused
     (tmp_path / "user").mkdir()
     (tmp_path / "user" / "a.txt").write_text("x")
-    assert _main(["--dataset", str(cohort["root"]), "--out", str(tmp_path / "user"), "--quiet", "--steps", "20",
-                  "--hidden", "32", "--eval-every", "10"]) == 2
+    assert (
+        _main(
+            [
+                "--dataset",
+                str(cohort["root"]),
+                "--out",
+                str(tmp_path / "user"),
+                "--quiet",
+                "--steps",
+                "20",
+                "--hidden",
+                "32",
+                "--eval-every",
+                "10",
+            ]
+        )
+        == 2
+    )
     assert os.listdir(tmp_path / "user") == ["a.txt"]
 
 
@@ -434,7 +517,7 @@ def test_cached_view_terms_score_as_the_features():
     st_ = h.init_terms_state()
     flat_t, flat_m = terms.reshape(-1, 2), m.reshape(-1)
     for i in range(0, 42, 5):
-        st_ = h.add_terms(st_, flat_t[i:i + 5], flat_m[i:i + 5])
+        st_ = h.add_terms(st_, flat_t[i : i + 5], flat_m[i : i + 5])
     assert float(h.logit_terms(st_)) == pytest.approx(float(h.score(g, m)), abs=1e-4)
     assert float(h.score_terms(terms, np.zeros((6, 7), bool))) == pytest.approx(-0.9)
 
@@ -447,8 +530,9 @@ def _with_folds(cohort, tmp_path, k=3) -> Path:
     lists = [sorted(tum[i::k] + nor[i::k]) for i in range(k)]
     ds = tmp_path / "folded"
     ds.mkdir()
-    (ds / "dataset.json").write_text(json.dumps({**spec, "train": train, "test": [], "folds": {
-        "k": k, "pool": "train", "seed": 0, "lists": lists}}))
+    (ds / "dataset.json").write_text(
+        json.dumps({**spec, "train": train, "test": [], "folds": {"k": k, "pool": "train", "seed": 0, "lists": lists}})
+    )
     return ds
 
 

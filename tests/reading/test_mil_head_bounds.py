@@ -1,6 +1,7 @@
 """A MIL head's parameters (the published ``pooled-statistics`` head here; ``attention-mil`` heads alike) are
 bounded on load as the learned and logit heads' are: finite but absurd values are refused in one line naming
 ``params.npz`` and the array."""
+
 from __future__ import annotations
 
 import io

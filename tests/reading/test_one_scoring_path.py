@@ -1,6 +1,7 @@
 """One scoring path: ``readers`` and ``budget-curve`` give a reader the same AUC, to the last digit, for the same head,
 slides, budgets and cells, both say which cells they read, and both write the AUC's 95 % interval; on the small
 TRIDENT-layout cohort of tests/learned_fixture.py (6 test slides) with the planted head of test_budget_curve."""
+
 from __future__ import annotations
 
 import csv
@@ -9,7 +10,6 @@ import json
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from learned_fixture import make_cohort
 from test_budget_curve import planted_head
 
@@ -35,12 +35,52 @@ def both(tmp_path_factory):
     import io
 
     printed = {}
-    for name, call in (("readers", lambda: readers.main([
-            "--dataset", str(cohort["root"]), "--head", str(head), "--split", "test", "--seeds", "3",
-            "--cell-level", "1", "--budgets", *BUDGETS, "--out", str(root / "readers")])),
-            ("curve", lambda: budget_curve.main([
-                "--dataset", str(cohort["root"]), "--env", "HistoJAX-Easy-v0", "--glimpse-level", "1", "--seeds", "3",
-                "--steps", "5", "--budgets", *BUDGETS, "--head", str(head), "--out", str(root / "curve")]))):
+    for name, call in (
+        (
+            "readers",
+            lambda: readers.main(
+                [
+                    "--dataset",
+                    str(cohort["root"]),
+                    "--head",
+                    str(head),
+                    "--split",
+                    "test",
+                    "--seeds",
+                    "3",
+                    "--cell-level",
+                    "1",
+                    "--budgets",
+                    *BUDGETS,
+                    "--out",
+                    str(root / "readers"),
+                ]
+            ),
+        ),
+        (
+            "curve",
+            lambda: budget_curve.main(
+                [
+                    "--dataset",
+                    str(cohort["root"]),
+                    "--env",
+                    "HistoJAX-Easy-v0",
+                    "--glimpse-level",
+                    "1",
+                    "--seeds",
+                    "3",
+                    "--steps",
+                    "5",
+                    "--budgets",
+                    *BUDGETS,
+                    "--head",
+                    str(head),
+                    "--out",
+                    str(root / "curve"),
+                ]
+            ),
+        ),
+    ):
         out, err = io.StringIO(), io.StringIO()
         with contextlib.redirect_stdout(out), contextlib.redirect_stderr(err):
             assert call() == 0, err.getvalue()

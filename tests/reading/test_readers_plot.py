@@ -1,5 +1,6 @@
 """The budget-curve plot labels a learned reader's point once where several budgets read the same
 (a reader that declares at the overview reads 0 % at every budget: one label, not four on top of each other)."""
+
 from __future__ import annotations
 
 from baselines.reading.plots import coincident_points, plot_readers
@@ -16,14 +17,44 @@ def test_plot_writes_one_label_per_spot(tmp_path, monkeypatch):
 
     texts = []
     real = matplotlib.axes.Axes.annotate
-    monkeypatch.setattr(matplotlib.axes.Axes, "annotate",
-                        lambda self, text, *a, **k: (texts.append(text), real(self, text, *a, **k))[1])
-    rows = [{"reader": "overview only", "kind": "overview", "budget": 0.0, "fraction_read": 0.0, "auc": 0.56,
-             "auc_std": 0.0, "auc_no_itc": 0.57, "auc_no_itc_std": 0.0},
-            {"reader": "read everything", "kind": "everything", "budget": 1.0, "fraction_read": 1.0, "auc": 0.84,
-             "auc_std": 0.0, "auc_no_itc": 0.9, "auc_no_itc_std": 0.0}]
-    rows += [{"reader": "lazy", "kind": "learned", "budget": b, "fraction_read": 0.0, "auc": 0.5, "auc_std": 0.0,
-              "auc_no_itc": 0.5, "auc_no_itc_std": 0.0} for b in (0.05, 0.1, 0.2, 0.5)]
+    monkeypatch.setattr(
+        matplotlib.axes.Axes, "annotate", lambda self, text, *a, **k: (texts.append(text), real(self, text, *a, **k))[1]
+    )
+    rows = [
+        {
+            "reader": "overview only",
+            "kind": "overview",
+            "budget": 0.0,
+            "fraction_read": 0.0,
+            "auc": 0.56,
+            "auc_std": 0.0,
+            "auc_no_itc": 0.57,
+            "auc_no_itc_std": 0.0,
+        },
+        {
+            "reader": "read everything",
+            "kind": "everything",
+            "budget": 1.0,
+            "fraction_read": 1.0,
+            "auc": 0.84,
+            "auc_std": 0.0,
+            "auc_no_itc": 0.9,
+            "auc_no_itc_std": 0.0,
+        },
+    ]
+    rows += [
+        {
+            "reader": "lazy",
+            "kind": "learned",
+            "budget": b,
+            "fraction_read": 0.0,
+            "auc": 0.5,
+            "auc_std": 0.0,
+            "auc_no_itc": 0.5,
+            "auc_no_itc_std": 0.0,
+        }
+        for b in (0.05, 0.1, 0.2, 0.5)
+    ]
     out = plot_readers(rows, tmp_path / "readers.png", "t")
     assert out.exists()
     learned = [t for t in texts if "read" in t and "budget" in t]

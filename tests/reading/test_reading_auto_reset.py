@@ -6,6 +6,7 @@ auto-reset many times; an episode that auto-resets starts from a clean memory; v
 
 One small synthetic slide with the cheap ``colour-stats`` feature grid, 32-px views, 3 levels.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -17,9 +18,9 @@ import numpy as np
 import pytest
 
 import histojax
-from histojax.reading.modes.glimpse import Glimpse
 from histojax.core.modes.base import ActionMode
 from histojax.core.seen_views import seen_flags
+from histojax.reading.modes.glimpse import Glimpse
 from histojax.reading.modes.zoom_select import ZoomSelect
 
 TILE, STEPS, ENVS, EPISODE = 32, 30, 6, 7
@@ -47,12 +48,20 @@ def bundle(tmp_path_factory) -> Path:
 
 
 def _make(bundle, mode, **kw):
-    return histojax.make("HistoJAX-Easy-v0", slide=bundle, obs_mode="features", action_mode=mode,
-                         task="classification", max_steps_in_episode=EPISODE, **kw)
+    return histojax.make(
+        "HistoJAX-Easy-v0",
+        slide=bundle,
+        obs_mode="features",
+        action_mode=mode,
+        task="classification",
+        max_steps_in_episode=EPISODE,
+        **kw,
+    )
 
 
 def _rollout(env, params, actions, key):
     """``ENVS`` vmapped auto-resetting envs: per step (obs, reward, terminated, truncated, reading info, state)."""
+
     def run(key, actions):
         _, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, ENVS), params)
 
@@ -60,10 +69,12 @@ def _rollout(env, params, actions, key):
             state, key = carry
             key, sub = jax.random.split(key)
             obs, state, r, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(sub, ENVS), state, a, params)
+                jax.random.split(sub, ENVS), state, a, params
+            )
             return (state, key), (obs, r, term, trunc, info["fraction_read"], info["fields_of_view"], state)
 
         return jax.lax.scan(body, (state, key), actions)[1]
+
     return jax.jit(run)(key, actions)
 
 
@@ -81,8 +92,13 @@ def zoom_runs(bundle):
     env, params = _make(bundle, "zoom_select", read_budget=0.5)
     ref_env, ref_params = _make(bundle, PlainZoom(), read_budget=0.5)
     actions = _actions(env.num_actions)
-    return env, params, _rollout(env, params, actions, jax.random.key(1)), \
-        _rollout(ref_env, ref_params, actions, jax.random.key(1)), actions
+    return (
+        env,
+        params,
+        _rollout(env, params, actions, jax.random.key(1)),
+        _rollout(ref_env, ref_params, actions, jax.random.key(1)),
+        actions,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -90,8 +106,13 @@ def glimpse_runs(bundle):
     env, params = _make(bundle, Glimpse(level=1), read_budget=0.4, step_obs=True)
     ref_env, ref_params = _make(bundle, PlainGlimpse(level=1), read_budget=0.4, step_obs=True)
     actions = _actions(env.num_actions, seed=1)
-    return env, params, _rollout(env, params, actions, jax.random.key(2)), \
-        _rollout(ref_env, ref_params, actions, jax.random.key(2)), actions
+    return (
+        env,
+        params,
+        _rollout(env, params, actions, jax.random.key(2)),
+        _rollout(ref_env, ref_params, actions, jax.random.key(2)),
+        actions,
+    )
 
 
 def test_zoom_select_equals_plain_select(zoom_runs):
@@ -102,8 +123,10 @@ def test_zoom_select_equals_plain_select(zoom_runs):
     assert ends.sum() >= 2 * ENVS, "the rollout must auto-reset many times to test the stamps"
     _assert_same(out, ref_out)  # observations (visited map, view, position), rewards, dones, reading info
     m, r = state.memory, ref_state.memory
-    _assert_same((m.seen, m.block_read, m.views_read, m.fields, m.path_x, m.path_y),
-                 (r.seen, r.block_read, r.views_read, r.fields, r.path_x, r.path_y))
+    _assert_same(
+        (m.seen, m.block_read, m.views_read, m.fields, m.path_x, m.path_y),
+        (r.seen, r.block_read, r.views_read, r.fields, r.path_x, r.path_y),
+    )
     assert int(np.asarray(m.episode).max()) >= 2  # the stamped memory did start episodes by stamp
 
 
@@ -119,8 +142,10 @@ def test_zoom_select_auto_reset_sees_a_clean_memory(zoom_runs):
     for t, e in zip(*np.nonzero(np.asarray(term | trunc))):
         mem = jax.tree.map(lambda a: a[t, e], state.memory)
         start = fresh(jax.tree.map(lambda a: a[t, e], state))
-        _assert_same((mem.seen, mem.block_read, mem.views_read, mem.fields), (start.seen, start.block_read,
-                                                                            start.views_read, start.fields))
+        _assert_same(
+            (mem.seen, mem.block_read, mem.views_read, mem.fields),
+            (start.seen, start.block_read, start.views_read, start.fields),
+        )
         assert int(np.unpackbits(np.asarray(mem.seen).view(np.uint8)).sum()) == 1
         assert np.asarray(obs["visited"][t, e]).sum() == 0
         stale += int(np.unpackbits(np.asarray(mem.words).view(np.uint8)).sum()) > 1
@@ -138,8 +163,9 @@ def test_glimpse_step_obs_equals_plain_select(glimpse_runs):
     assert ends.sum() >= 2 * ENVS
     _assert_same(out, ref_out)  # read_cells / read_summaries show stale slots empty, as a cleared list would
     m, r = state.memory, ref_state.memory
-    _assert_same((m.revealed, m.views_read, m.fields, m.over_budget), (r.revealed, r.views_read, r.fields,
-                                                                        r.over_budget))
+    _assert_same(
+        (m.revealed, m.views_read, m.fields, m.over_budget), (r.revealed, r.views_read, r.fields, r.over_budget)
+    )
     k = np.arange(m.slots.shape[-1])
     used = k[None, None] < np.asarray(m.fields)[..., None]
     np.testing.assert_array_equal(np.asarray(m.slots)[used], np.asarray(r.slots)[used])

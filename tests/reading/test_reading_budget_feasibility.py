@@ -1,6 +1,7 @@
 """A reading budget below the smallest cell of a slide reads nothing there: one line per run names those slides and
 the nearest budget that reads a cell on every slide (histojax.reading.modes.glimpse.unreadable_warning), said by
 ``histojax evaluate`` (a glimpse env's budget), the readers and the budget curve. Host arithmetic only: no env."""
+
 from __future__ import annotations
 
 from types import SimpleNamespace
@@ -25,8 +26,9 @@ def test_smallest_budget_is_the_smallest_cell_over_the_slide():
 
 def test_one_line_names_the_slides_and_the_nearest_budget_that_reads():
     line = unreadable_warning(["a", "b", "c"], VIEWS, VALID, TOTAL, [0.05, 0.2, 0.6], where="runs/x")
-    assert line.startswith("runs/x: nothing can be read at read budgets 5 %, 20 % on 3, 1 of 3 slides "
-                           "(at 5 %: a, b, c)")
+    assert line.startswith(
+        "runs/x: nothing can be read at read budgets 5 %, 20 % on 3, 1 of 3 slides (at 5 %: a, b, c)"
+    )
     assert "the overview alone" in line and "the nearest budget that reads a cell on every slide is 50.0 %" in line
     assert "\n" not in line
     one = unreadable_warning(["a", "b", "c"], VIEWS, VALID, TOTAL, [0.1])
@@ -52,8 +54,9 @@ def test_many_slides_are_named_five_then_a_count():
 
 
 def test_evaluate_says_it_for_a_glimpse_envs_budget_and_not_for_other_modes():
-    params = SimpleNamespace(mode_data=SimpleNamespace(cell_views=VIEWS, valid=VALID, total_views=TOTAL,
-                                                       read_budget=np.float32(0.1)))
+    params = SimpleNamespace(
+        mode_data=SimpleNamespace(cell_views=VIEWS, valid=VALID, total_views=TOTAL, read_budget=np.float32(0.1))
+    )
     assert unreadable_at_budget(params, ["a", "b", "c"]).startswith("nothing can be read at read budget 10 %")
     assert unreadable_at_budget(SimpleNamespace(mode_data=None), ["a"]) is None  # a navigator: no cells, no line
 

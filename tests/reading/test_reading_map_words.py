@@ -1,6 +1,7 @@
 """The words and boxes of the reading-map pictures: the head panel's title is wrapped (no word cut at the
 figure's edge), a view box larger than the head's grid (the overview at reset) is cut at the grid's edge, and
 the legend says how many of the views stood on count as read (only the finest level's)."""
+
 from __future__ import annotations
 
 import numpy as np

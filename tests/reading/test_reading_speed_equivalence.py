@@ -9,6 +9,7 @@ Two small synthetic slides of different sizes (a dataset: padding, slide draws) 
 ``HISTOJAX_RECORD_READING_REFERENCE=1`` (same modes, keys and actions); it holds only numbers made
 here (no third-party data). One jitted rollout per mode, compiled once for the module.
 """
+
 from __future__ import annotations
 
 import os
@@ -45,9 +46,9 @@ def bundles(tmp_path_factory) -> list[Path]:
     out = []
     for name, (h, w), seed in (("a", (768, 1024), 1), ("b", (1024, 640), 2)):
         rng = np.random.default_rng(seed)
-        image = np.full((h, w, 3), 245, np.uint8)                          # glass
-        image[60:h - 60, 50:w - 70] = [230, 160, 200]                       # pink tissue
-        image[h // 4:h // 2, w // 2:w - 150] = [120, 40, 140]               # purple "tumour"
+        image = np.full((h, w, 3), 245, np.uint8)  # glass
+        image[60 : h - 60, 50 : w - 70] = [230, 160, 200]  # pink tissue
+        image[h // 4 : h // 2, w // 2 : w - 150] = [120, 40, 140]  # purple "tumour"
         image = np.clip(image.astype(int) + rng.integers(-8, 9, image.shape), 0, 255).astype(np.uint8)
         tifffile.imwrite(root / f"{name}.tif", image, photometric="rgb")
         path = build_bundle(root / f"{name}.tif", root / name, level_sets=(3,), tile_size=TILE, progress=False)
@@ -58,6 +59,7 @@ def bundles(tmp_path_factory) -> list[Path]:
 
 def _rollout(env, params, actions, key):
     """``ENVS`` vmapped auto-resetting envs for ``len(actions)`` steps: (obs, reward, term, trunc, info)."""
+
     def run(key, actions):
         obs, state = jax.vmap(env.reset, in_axes=(0, None))(jax.random.split(key, ENVS), params)
 
@@ -65,11 +67,13 @@ def _rollout(env, params, actions, key):
             state, key = carry
             key, sub = jax.random.split(key)
             obs, state, r, term, trunc, info = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(sub, ENVS), state, a, params)
+                jax.random.split(sub, ENVS), state, a, params
+            )
             keep = {k: info[k] for k in ("fraction_read", "fields_of_view") if k in info}
             return (state, key), (obs, r, term, trunc, keep)
 
         return obs, jax.lax.scan(body, (state, key), actions)[1]
+
     return jax.jit(run)(key, actions)
 
 
@@ -99,6 +103,7 @@ def _record(name, bundles) -> dict:
 
 
 if RECORD:
+
     def test_record_reference(bundles):
         out = {}
         for name in MODES:
@@ -136,11 +141,27 @@ def set_reader(bundles):
     """``(env, params, network, network parameters, observations of 2 envs after 3 reads each)``."""
     from baselines import ppo
 
-    env, params = histojax.make("HistoJAX-Easy-v0", slides=[bundles[0 if n == "a" else 1] for n in SET_SLIDES],
-                                obs_mode="features", action_mode="glimpse:1", task="classification", step_obs=True,
-                                read_budget=0.5, max_steps_in_episode=EPISODE)
-    net = ppo.make_network({"env_id": "HistoJAX-Easy-v0", "action_mode": "glimpse:1", "obs_mode": "features",
-                            "hidden": 16, "cell_hidden": 8, "obs_norm": None}, env)
+    env, params = histojax.make(
+        "HistoJAX-Easy-v0",
+        slides=[bundles[0 if n == "a" else 1] for n in SET_SLIDES],
+        obs_mode="features",
+        action_mode="glimpse:1",
+        task="classification",
+        step_obs=True,
+        read_budget=0.5,
+        max_steps_in_episode=EPISODE,
+    )
+    net = ppo.make_network(
+        {
+            "env_id": "HistoJAX-Easy-v0",
+            "action_mode": "glimpse:1",
+            "obs_mode": "features",
+            "hidden": 16,
+            "cell_hidden": 8,
+            "obs_norm": None,
+        },
+        env,
+    )
     valid = jnp.asarray(params.mode_data.valid)
 
     @jax.jit
@@ -149,7 +170,8 @@ def set_reader(bundles):
         for t in range(3):
             action = jax.vmap(lambda i: jnp.nonzero(valid[i], size=valid.shape[1])[0][3 * t + 1])(obs["slide"])
             obs, state, *_ = jax.vmap(env.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(jax.random.fold_in(key, t), 2), state, action.astype(jnp.int32), params)
+                jax.random.split(jax.random.fold_in(key, t), 2), state, action.astype(jnp.int32), params
+            )
         return obs
 
     obs = reads(jax.random.key(7))
@@ -169,12 +191,13 @@ def test_set_reader_per_cell_layers_run_over_the_batch_slides_only(set_reader, m
     v = {"params": p["params"]["CellEncoder_0"]}
     slides = jnp.asarray(obs["slide"], jnp.int32)
     (keys, slot_rows, mean, shift), (all_keys, all_slots, all_mean) = jax.jit(  # the batch's; every slide's (N + 1)
-        lambda s: (enc.apply(v, s, method=CellEncoder.batch_tables), enc.apply(v, None)))(slides)
+        lambda s: (enc.apply(v, s, method=CellEncoder.batch_tables), enc.apply(v, None))
+    )(slides)
     t = net.tables
     present = np.unique(np.asarray(slides))
     assert 1 <= len(present) < len(SET_SLIDES)
     flat_slide = np.asarray(t.flat_slide)
-    rows = np.flatnonzero(np.isin(flat_slide, present))                   # the present slides' flat rows
+    rows = np.flatnonzero(np.isin(flat_slide, present))  # the present slides' flat rows
     n = len(rows)
     assert 0 < n < t.num_flat and keys.shape[0] > t.num_flat
     np.testing.assert_allclose(keys[:n], all_keys[rows], rtol=1e-5, atol=1e-6)
@@ -183,7 +206,7 @@ def test_set_reader_per_cell_layers_run_over_the_batch_slides_only(set_reader, m
     absent = np.setdiff1d(np.arange(len(SET_SLIDES)), present)
     np.testing.assert_allclose(mean[present], all_mean[present], rtol=1e-5, atol=1e-6)
     assert not np.asarray(mean[absent]).any()
-    for i in present:                                                     # flat row f of slide i: row f - shift[i]
+    for i in present:  # flat row f of slide i: row f - shift[i]
         f = np.flatnonzero(flat_slide == i)
         np.testing.assert_allclose(keys[f - int(shift[i])], all_keys[f], rtol=1e-5, atol=1e-6)
 
@@ -202,8 +225,11 @@ def test_set_reader_outputs_and_gradients_equal_the_all_slides_path(set_reader, 
     def loss(q, network):
         logits, value = network.apply(q, obs)
         logp = jax.nn.log_softmax(logits)
-        return -jnp.take_along_axis(logp, action[:, None], -1).sum() + (value ** 2).sum() - (jnp.exp(logp) * jnp.where(
-            logits > cell_set_networks.NEG, logp, 0.0)).sum()
+        return (
+            -jnp.take_along_axis(logp, action[:, None], -1).sum()
+            + (value**2).sum()
+            - (jnp.exp(logp) * jnp.where(logits > cell_set_networks.NEG, logp, 0.0)).sum()
+        )
 
     @jax.jit
     def run(q):  # one program: outputs, and gradients vmapped over two parameter sets, by both paths
@@ -217,5 +243,6 @@ def test_set_reader_outputs_and_gradients_equal_the_all_slides_path(set_reader, 
     cell = ("cell_in", "cell_mid", "slot_in")
     assert any(np.abs(np.asarray(g_old["params"]["CellEncoder_0"][k]["kernel"])).max() > 0 for k in cell)
     for (path, a), b in zip(jax.tree_util.tree_leaves_with_path(g_new), jax.tree.leaves(g_old)):
-        np.testing.assert_allclose(a, b, rtol=2e-5, atol=1e-6 * float(np.abs(np.asarray(b)).max() + 1e-6),
-                                   err_msg=jax.tree_util.keystr(path))
+        np.testing.assert_allclose(
+            a, b, rtol=2e-5, atol=1e-6 * float(np.abs(np.asarray(b)).max() + 1e-6), err_msg=jax.tree_util.keystr(path)
+        )

@@ -7,6 +7,7 @@ Two tiny synthetic datasets (made here, no third-party data): training slides of
 800 × 560 px (height × width), and one 1000 × 2000 px slide; 32-px views, 3 levels (downsamples 16, 4, 1),
 ``colour-stats`` features.
 """
+
 from __future__ import annotations
 
 import functools
@@ -18,13 +19,19 @@ import pytest
 
 import histojax
 from baselines import ppo, ppo_rnn
-from baselines.common.env import pin_env_shapes
 from baselines.cell_set_networks import NEG
+from baselines.common.env import pin_env_shapes
 from baselines.networks import ScannedGRU, network_step
 
 TILE, ENVS, STEPS = 32, 4, 6
-CONFIG = {"env_id": "HistoJAX-Easy-v0", "action_mode": "glimpse:1", "obs_mode": "features", "hidden": 32,
-          "cell_hidden": 16, "obs_norm": None}
+CONFIG = {
+    "env_id": "HistoJAX-Easy-v0",
+    "action_mode": "glimpse:1",
+    "obs_mode": "features",
+    "hidden": 32,
+    "cell_hidden": 16,
+    "obs_norm": None,
+}
 
 
 @pytest.fixture(scope="module")
@@ -39,8 +46,8 @@ def slides(tmp_path_factory) -> dict:
     for name, (h, w), seed in (("a", (640, 800), 1), ("b", (800, 560), 2), ("big", (1000, 2000), 3)):
         rng = np.random.default_rng(seed)
         image = np.full((h, w, 3), 245, np.uint8)
-        image[60:h - 60, 50:w - 70] = [230, 160, 200]
-        image[h // 4:h // 2, w // 2:w - 150] = [120, 40, 140]
+        image[60 : h - 60, 50 : w - 70] = [230, 160, 200]
+        image[h // 4 : h // 2, w // 2 : w - 150] = [120, 40, 140]
         image = np.clip(image.astype(int) + rng.integers(-8, 9, image.shape), 0, 255).astype(np.uint8)
         tifffile.imwrite(root / f"{name}.tif", image, photometric="rgb")
         out[name] = build_bundle(root / f"{name}.tif", root / name, level_sets=(3,), tile_size=TILE, progress=False)
@@ -49,9 +56,16 @@ def slides(tmp_path_factory) -> dict:
 
 
 def _make(paths):
-    return histojax.make("HistoJAX-Easy-v0", slides=[str(p) for p in paths], obs_mode="features",
-                         action_mode="glimpse:1", task="classification", step_obs=True, read_budget=0.3,
-                         max_steps_in_episode=STEPS)
+    return histojax.make(
+        "HistoJAX-Easy-v0",
+        slides=[str(p) for p in paths],
+        obs_mode="features",
+        action_mode="glimpse:1",
+        task="classification",
+        step_obs=True,
+        read_budget=0.3,
+        max_steps_in_episode=STEPS,
+    )
 
 
 @pytest.fixture(scope="module")
@@ -117,7 +131,8 @@ def test_parameters_from_one_dataset_read_another(envs, recurrent):
             h, logits, value = policy(h, obs, first)
             action = jax.random.categorical(k, logits)
             obs2, state, r, term, trunc, info = jax.vmap(env_b.step, in_axes=(0, 0, 0, None))(
-                jax.random.split(k, ENVS), state, action, pb)
+                jax.random.split(k, ENVS), state, action, pb
+            )
             return (obs2, state, h, term | trunc), (logits, value, action, obs, info["fraction_read"])
 
         h = ScannedGRU.initial_state(ENVS, CONFIG["hidden"])
@@ -142,9 +157,20 @@ def test_trainers_do_not_pin_the_cell_grid(envs):
 @pytest.mark.slow
 def test_ppo_trains_on_one_dataset_and_reads_another(slides, envs):
     """A few PPO updates on the small slides; the trained parameters then act on the large one."""
-    config = {**CONFIG, "env_kwargs": {"slides": [str(slides["a"]), str(slides["b"])], "task": "classification",
-                                       "step_obs": True, "read_budget": 0.3},
-              "num_envs": 8, "num_steps": 8, "total_timesteps": 128, "num_minibatches": 2, "print_progress": False}
+    config = {
+        **CONFIG,
+        "env_kwargs": {
+            "slides": [str(slides["a"]), str(slides["b"])],
+            "task": "classification",
+            "step_obs": True,
+            "read_budget": 0.3,
+        },
+        "num_envs": 8,
+        "num_steps": 8,
+        "total_timesteps": 128,
+        "num_minibatches": 2,
+        "print_progress": False,
+    }
     train = ppo.make_train(config)
     params = jax.tree.map(lambda a: a[0], train(jax.random.split(jax.random.key(0), 1))["params"])
     assert "glimpse_grid" not in train.config["env_kwargs"]
@@ -184,20 +210,28 @@ def test_pointer_logits_are_every_pickable_cells_key_against_the_query(envs):
     net = ppo.make_network(CONFIG, env_a)
     obs, _ = _batch_reset(env_a, pa, jax.random.key(6))
     params = net.init(jax.random.key(7), obs)
-    (logits, _), inter = net.apply(params, obs, capture_intermediates=lambda m, _: m.name == "query",
-                                   mutable=["intermediates"])
-    query = np.asarray(jax.tree.leaves(inter["intermediates"])[0])             # (B, Hc)
+    (logits, _), inter = net.apply(
+        params, obs, capture_intermediates=lambda m, _: m.name == "query", mutable=["intermediates"]
+    )
+    query = np.asarray(jax.tree.leaves(inter["intermediates"])[0])  # (B, Hc)
     t = env_a.episode_tables(pa)
     enc = params["params"]["CellEncoder_0"]
-    fixed = np.concatenate([np.asarray(t["cells"]), np.asarray(t["valid"])[..., None],
-                            np.asarray(t["cost"])[..., None] * 10.0, np.asarray(t["position"])], -1)
+    fixed = np.concatenate(
+        [
+            np.asarray(t["cells"]),
+            np.asarray(t["valid"])[..., None],
+            np.asarray(t["cost"])[..., None] * 10.0,
+            np.asarray(t["position"]),
+        ],
+        -1,
+    )
     relu = lambda x: np.maximum(x, 0.0)  # noqa: E731
     keys = relu(fixed @ np.asarray(enc["cell_in"]["kernel"]) + np.asarray(enc["cell_in"]["bias"]))
     keys = relu(keys @ np.asarray(enc["cell_mid"]["kernel"]) + np.asarray(enc["cell_mid"]["bias"]))  # (S, C, Hc)
     slide = np.asarray(obs["slide"])
     by_hand = np.einsum("bch,bh->bc", keys[slide], query) / np.sqrt(keys.shape[-1])
     c = keys.shape[1]
-    pickable = np.asarray(t["valid"])[slide] > 0       # nothing read yet at a reset
+    pickable = np.asarray(t["valid"])[slide] > 0  # nothing read yet at a reset
     got = np.asarray(logits)[:, :c]
     assert pickable.sum() > 0
     np.testing.assert_allclose(got[pickable], by_hand[pickable], rtol=1e-4, atol=1e-5)
@@ -219,27 +253,36 @@ def test_read_slots_are_the_dense_layer_over_the_observed_summaries_and_keys(env
         slide = np.asarray(obs["slide"])
         action = jnp.asarray([np.flatnonzero(valid[i])[t] for i in slide], jnp.int32)
         obs, state, *_ = _vstep(env_a)(jax.random.split(jax.random.key(50 + t), ENVS), state, action, pa)
-    _, inter = net.apply(params, obs, capture_intermediates=lambda m, _: isinstance(m, CellEncoder),
-                         mutable=["intermediates"])
+    _, inter = net.apply(
+        params, obs, capture_intermediates=lambda m, _: isinstance(m, CellEncoder), mutable=["intermediates"]
+    )
     context_in = np.asarray(inter["intermediates"]["CellEncoder_0"]["__call__"][0][1])
     enc = jax.tree.map(np.asarray, params["params"]["CellEncoder_0"])
     t = env_a.episode_tables(pa)
-    fixed = np.concatenate([np.asarray(t["cells"]), np.asarray(t["valid"])[..., None],
-                            np.asarray(t["cost"])[..., None] * 10.0, np.asarray(t["position"])], -1)
+    fixed = np.concatenate(
+        [
+            np.asarray(t["cells"]),
+            np.asarray(t["valid"])[..., None],
+            np.asarray(t["cost"])[..., None] * 10.0,
+            np.asarray(t["position"]),
+        ],
+        -1,
+    )
     relu = lambda x: np.maximum(x, 0.0)  # noqa: E731
     keys = relu(fixed @ enc["cell_in"]["kernel"] + enc["cell_in"]["bias"])
-    keys = relu(keys @ enc["cell_mid"]["kernel"] + enc["cell_mid"]["bias"])          # (S, C, Hc)
+    keys = relu(keys @ enc["cell_mid"]["kernel"] + enc["cell_mid"]["bias"])  # (S, C, Hc)
     slide, where = np.asarray(obs["slide"]), np.asarray(obs["read_cells"])
     filled = where < valid.shape[1]
     assert (filled.sum(1) == 3).all()
-    slot_in = np.concatenate([np.asarray(obs["read_summaries"], np.float32),
-                              keys[slide[:, None], np.minimum(where, valid.shape[1] - 1)]], -1)
-    slots = relu(slot_in @ enc["slot_in"]["kernel"] + enc["slot_in"]["bias"])       # (B, K, Hc)
+    slot_in = np.concatenate(
+        [np.asarray(obs["read_summaries"], np.float32), keys[slide[:, None], np.minimum(where, valid.shape[1] - 1)]], -1
+    )
+    slots = relu(slot_in @ enc["slot_in"]["kernel"] + enc["slot_in"]["bias"])  # (B, K, Hc)
     mean = (slots * filled[..., None]).sum(1) / filled.sum(1, keepdims=True)
     top = np.where(filled[..., None], slots, 0.0).max(1)
     hc = keys.shape[-1]
-    np.testing.assert_allclose(context_in[:, hc:2 * hc], mean, rtol=1e-4, atol=1e-5)
-    np.testing.assert_allclose(context_in[:, 2 * hc:3 * hc], top, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(context_in[:, hc : 2 * hc], mean, rtol=1e-4, atol=1e-5)
+    np.testing.assert_allclose(context_in[:, 2 * hc : 3 * hc], top, rtol=1e-4, atol=1e-5)
     on = valid[slide] > 0
     slide_mean = (keys[slide] * on[..., None]).sum(1) / on.sum(1, keepdims=True)
     np.testing.assert_allclose(context_in[:, :hc], slide_mean, rtol=1e-4, atol=1e-5)
@@ -257,8 +300,11 @@ def test_inverse_cdf_sampling_draws_the_softmax_distribution():
     logits[1, :70] = NEG
     logits[2, :] = NEG
     logits[2, -1] = 0.0
-    draws = np.asarray(jax.jit(jax.vmap(lambda k: inverse_cdf_sample(k, jnp.asarray(logits))))(
-        jax.random.split(jax.random.key(0), 40_000)))                              # (draws, 3)
+    draws = np.asarray(
+        jax.jit(jax.vmap(lambda k: inverse_cdf_sample(k, jnp.asarray(logits))))(
+            jax.random.split(jax.random.key(0), 40_000)
+        )
+    )  # (draws, 3)
     p = np.asarray(jax.nn.softmax(jnp.asarray(logits), -1))
     for row in range(3):
         freq = np.bincount(draws[:, row], minlength=77) / draws.shape[0]
@@ -287,8 +333,7 @@ def test_recurrent_rollout_step_computes_the_cell_keys_once_with_the_same_output
             np.testing.assert_allclose(np.asarray(x), np.asarray(y), rtol=1e-6, atol=1e-6)
         h = a[0]
         action = jax.random.randint(jax.random.key(30 + t), (ENVS,), 0, c + 2)
-        obs, state, _, term, trunc, _ = _vstep(env_a)(jax.random.split(jax.random.key(40 + t), ENVS), state, action,
-                                                      pa)
+        obs, state, _, term, trunc, _ = _vstep(env_a)(jax.random.split(jax.random.key(40 + t), ENVS), state, action, pa)
         first = term | trunc
 
 

@@ -1,6 +1,7 @@
 """The small-split warning where a split is written: ``histojax dataset`` says, in one line each, when its test split
 or its smallest fold holds too few slides of a class to rank heads or readers (data_tools.metrics'
 ``SMALL_SPLIT_PER_CLASS``), and nothing for a split large enough."""
+
 from __future__ import annotations
 
 from data_tools.datasets.cli import small_split_lines

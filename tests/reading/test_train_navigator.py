@@ -6,6 +6,7 @@ at each slide's own ceiling.
 
 Slides made here (no third-party data), by the helpers of ``test_evaluate_readers``: 512 × 640 px pyramidal
 TIFFs, a dark lesion on two of them, a 64-d stand-in for pcam-cnn features whose entry 62 is a view logit."""
+
 from __future__ import annotations
 
 import csv
@@ -14,18 +15,31 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-
 from test_evaluate_readers import HEAD, _dataset, _slide
 
-TRAINER = ["--set", "num_steps=8", "--set", "num_minibatches=1", "--set", "update_epochs=1", "--set", "hidden=16",
-           "--set", "print_progress=false"]
+TRAINER = [
+    "--set",
+    "num_steps=8",
+    "--set",
+    "num_minibatches=1",
+    "--set",
+    "update_epochs=1",
+    "--set",
+    "hidden=16",
+    "--set",
+    "print_progress=false",
+]
 
 
 @pytest.fixture(scope="module")
 def data(tmp_path_factory) -> dict:
     root = tmp_path_factory.mktemp("nav-slides")
-    bundles = [_slide(root, "t0", (512, 640), (200, 260, 120), 0), _slide(root, "t1", (512, 640), (100, 100, 160), 1),
-               _slide(root, "n0", (512, 640), None, 2), _slide(root, "n1", (512, 640), None, 3)]
+    bundles = [
+        _slide(root, "t0", (512, 640), (200, 260, 120), 0),
+        _slide(root, "t1", (512, 640), (100, 100, 160), 1),
+        _slide(root, "n0", (512, 640), None, 2),
+        _slide(root, "n1", (512, 640), None, 3),
+    ]
     HEAD.save(root / "head")
     return {"set": _dataset(root / "set", bundles), "head": root / "head", "root": root}
 
@@ -36,9 +50,32 @@ def trained(data, tmp_path_factory) -> Path:
     from baselines.reading import train_readers
 
     out = tmp_path_factory.mktemp("nav-run") / "out"
-    code = train_readers.main(["--dataset", str(data["set"]), "--head", str(data["head"]), "--out", str(out),
-                               "--action-mode", "discrete", "--seeds", "1", "--total-steps", "64", "--num-envs", "2",
-                               "--gain", "fidelity", "--final", "0", "--val-fraction", "0.5", "--", *TRAINER])
+    code = train_readers.main(
+        [
+            "--dataset",
+            str(data["set"]),
+            "--head",
+            str(data["head"]),
+            "--out",
+            str(out),
+            "--action-mode",
+            "discrete",
+            "--seeds",
+            "1",
+            "--total-steps",
+            "64",
+            "--num-envs",
+            "2",
+            "--gain",
+            "fidelity",
+            "--final",
+            "0",
+            "--val-fraction",
+            "0.5",
+            "--",
+            *TRAINER,
+        ]
+    )
     assert code == 0
     return out
 
@@ -77,13 +114,32 @@ def test_compare_navigator_is_scored_beside(trained, data, tmp_path):
     import shutil
 
     shutil.copytree(trained, out)
-    assert train_readers.main(["--dataset", str(data["set"]), "--head", str(data["head"]), "--out", str(out),
-                               "--action-mode", "discrete", "--seeds", "1", "--val-fraction", "0.5",
-                               "--skip-training", "--compare", "twin", str(out / "ppo")]) == 0
+    assert (
+        train_readers.main(
+            [
+                "--dataset",
+                str(data["set"]),
+                "--head",
+                str(data["head"]),
+                "--out",
+                str(out),
+                "--action-mode",
+                "discrete",
+                "--seeds",
+                "1",
+                "--val-fraction",
+                "0.5",
+                "--skip-training",
+                "--compare",
+                "twin",
+                str(out / "ppo"),
+            ]
+        )
+        == 0
+    )
     rows = {r["reader"]: r for r in csv.DictReader((out / "validation" / "readers.csv").open())}
     a, b = rows["navigator (ppo, head reward) (head declares)"], rows["twin (head declares)"]
     assert a["auc"] == b["auc"] and a["fraction_read"] == b["fraction_read"]  # greedy: the same run, the same reads
-
 
 
 @pytest.mark.slow
@@ -98,18 +154,41 @@ def test_head_diagnosis_scores_the_sampled_policy(trained, data, tmp_path, monke
     def spy(*a, **kw):
         calls.append(kw.get("greedy"))
         return reads(*a, **kw)
+
     monkeypatch.setattr(diagnosis, "navigator_reads", spy)
     scoring = trained / "validation-set"
-    assert diagnosis.main(["--dataset", str(scoring), "--head", str(data["head"]), "--navigator", "nav",
-                                str(trained / "ppo"), "--sampled", "--seeds", "2", "--out", str(tmp_path / "s")]) == 0
+    assert (
+        diagnosis.main(
+            [
+                "--dataset",
+                str(scoring),
+                "--head",
+                str(data["head"]),
+                "--navigator",
+                "nav",
+                str(trained / "ppo"),
+                "--sampled",
+                "--seeds",
+                "2",
+                "--out",
+                str(tmp_path / "s"),
+            ]
+        )
+        == 0
+    )
     rows = {r["reader"]: r for r in csv.DictReader((tmp_path / "s" / "readers.csv").open())}
     assert calls == [False] and "nav (head declares, sampled)" in rows
     assert json.loads((tmp_path / "s" / "readers.json").read_text())["sampled"] is True
 
+
 def test_ceiling_fractions():
     from experiments.navigator_ceiling import ceiling_fractions
 
-    slides = [{"tissue": np.ones((10, 40), bool)}, {"tissue": np.ones((5, 5), bool)}, {"tissue": np.zeros((3, 3), bool)}]
+    slides = [
+        {"tissue": np.ones((10, 40), bool)},
+        {"tissue": np.ones((5, 5), bool)},
+        {"tissue": np.zeros((3, 3), bool)},
+    ]
     np.testing.assert_allclose(ceiling_fractions(slides, 200), [0.5, 1.0, 1.0])
     np.testing.assert_allclose(ceiling_fractions(slides, 4), [0.01, 0.16, 1.0])
 
@@ -120,9 +199,27 @@ def test_ceiling_rows(data, tmp_path, capsys):
     from experiments import navigator_ceiling
 
     for steps, out in ((10_000, tmp_path / "all"), (40, tmp_path / "few")):
-        assert navigator_ceiling.main(["--dataset", str(data["set"]), "--head", str(data["head"]), "--split", "train",
-                                       "--max-steps", str(steps), "--budgets", "0.05", "--seeds", "2",
-                                       "--out", str(out)]) == 0
+        assert (
+            navigator_ceiling.main(
+                [
+                    "--dataset",
+                    str(data["set"]),
+                    "--head",
+                    str(data["head"]),
+                    "--split",
+                    "train",
+                    "--max-steps",
+                    str(steps),
+                    "--budgets",
+                    "0.05",
+                    "--seeds",
+                    "2",
+                    "--out",
+                    str(out),
+                ]
+            )
+            == 0
+        )
     full = {r["reader"]: r for r in csv.DictReader((tmp_path / "all" / "readers.csv").open())}
     for name in ("logit reader", "random reader", "search reader"):
         row = full[f"{name}, per-slide ceiling"]
@@ -140,8 +237,12 @@ def test_ceiling_rows(data, tmp_path, capsys):
 def test_ceiling_bad_input_is_one_line(data, tmp_path, capsys):
     from experiments import navigator_ceiling
 
-    assert navigator_ceiling.main(["--dataset", str(tmp_path / "nope"), "--head", str(data["head"]),
-                                   "--out", str(tmp_path / "o")]) == 2
+    assert (
+        navigator_ceiling.main(
+            ["--dataset", str(tmp_path / "nope"), "--head", str(data["head"]), "--out", str(tmp_path / "o")]
+        )
+        == 2
+    )
     err = capsys.readouterr().err
     assert "error:" in err and "Traceback" not in err and not (tmp_path / "o").exists()
 

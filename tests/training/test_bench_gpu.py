@@ -1,5 +1,6 @@
 """``benchmarks/gpu.py`` (``make bench-gpu``) runs on a CPU at tiny sizes and writes every section:
 a positive figure or an explicit reason for skipping it. No speed is asserted."""
+
 from __future__ import annotations
 
 import json
@@ -9,8 +10,16 @@ import pytest
 
 from benchmarks import gpu
 
-SECTIONS = ("copy", "env_pixels", "env_features", "ppo_features", "ppo_pixels", "encoders", "dataset_features",
-            "dataset_pixels")
+SECTIONS = (
+    "copy",
+    "env_pixels",
+    "env_features",
+    "ppo_features",
+    "ppo_pixels",
+    "encoders",
+    "dataset_features",
+    "dataset_pixels",
+)
 
 
 def _numbers(section: dict) -> list[float]:
@@ -60,8 +69,15 @@ def test_every_section_has_figures_or_a_reason(tiny_run):
     assert row["copy_bound_views_per_s"] > 0 and row["of_copy_bound"] > 0
     m = report["machine"]
     assert m["jax"] and m["jaxlib"] and "--tiny" in m["command"] and m["platform"] == "cpu"
-    for title in ("Memory-copy bound", "pixel observations", "feature observations", "PPO end to end", "Encoders",
-                  "C16 dataset, feature mode", "C16 dataset, pixel mode"):
+    for title in (
+        "Memory-copy bound",
+        "pixel observations",
+        "feature observations",
+        "PPO end to end",
+        "Encoders",
+        "C16 dataset, feature mode",
+        "C16 dataset, pixel mode",
+    ):
         assert title in md
 
 

@@ -1,5 +1,6 @@
 """experiments/c16_reference.py on a tiny semi-synthetic dataset: the table, resumable cells, bad
 input; every method end to end (slow)."""
+
 from __future__ import annotations
 
 import json
@@ -17,8 +18,17 @@ def dataset(tmp_path_factory, colour_feature_grid):
     from data_tools.datasets.synth.dataset import make_dataset
 
     root = tmp_path_factory.mktemp("c16ref") / "ds"
-    spec = make_dataset(root, n_slides=4, size=(256, 256), seed=1, tile_size=32, level_sets=(3,), progress=False,
-                        previews=False, test_fraction=0.5)
+    spec = make_dataset(
+        root,
+        n_slides=4,
+        size=(256, 256),
+        seed=1,
+        tile_size=32,
+        level_sets=(3,),
+        progress=False,
+        previews=False,
+        test_fraction=0.5,
+    )
     assert len(spec["test"]) == 2
     for s in spec["slides"]:
         colour_feature_grid(root / s["bundle"])
@@ -26,10 +36,25 @@ def dataset(tmp_path_factory, colour_feature_grid):
 
 
 def _argv(dataset, out, *extra):
-    return ["--dataset", str(dataset), "--out", str(out), "--episodes", "8", "--seeds", "1",
-            "--env", "Easy=HistoJAX-Easy-v0", "--env-kwargs", f"Easy={json.dumps(SHORT)}",
-            "--env", "Diagnosis=HistoJAX-Easy-v0",
-            "--env-kwargs", f"Diagnosis={json.dumps({**SHORT, 'task': 'classification'})}", *extra]
+    return [
+        "--dataset",
+        str(dataset),
+        "--out",
+        str(out),
+        "--episodes",
+        "8",
+        "--seeds",
+        "1",
+        "--env",
+        "Easy=HistoJAX-Easy-v0",
+        "--env-kwargs",
+        f"Easy={json.dumps(SHORT)}",
+        "--env",
+        "Diagnosis=HistoJAX-Easy-v0",
+        "--env-kwargs",
+        f"Diagnosis={json.dumps({**SHORT, 'task': 'classification'})}",
+        *extra,
+    ]
 
 
 def test_reference_rows_are_written_and_kept_on_a_rerun(dataset, tmp_path, monkeypatch):
@@ -45,6 +70,7 @@ def test_reference_rows_are_written_and_kept_on_a_rerun(dataset, tmp_path, monke
         assert c["tumour_slides"]["success_rate"] == c["success_rate"]  # synth: every slide has tumour
     table = (out / "reference.md").read_text()
     assert "| random |" in table and "Easy success" in table and "test split: 2 slides, 2 with tumour" in table
+
     # a rerun with the same budget keeps every cell; another budget recomputes
     def recompute(*args, **kwargs):
         raise RuntimeError("recomputed")
@@ -70,11 +96,20 @@ def test_detection_success_counts_tumour_slides_only():
     labels = c16_reference.slide_labels(spec)
     assert labels == {"T1": 1, "N1": 0}
     assert c16_reference.slide_labels({"labels": {"bundles/A": 0}}) == {"A": 0}
-    row = {"episodes": 10, "success_rate": 0.3, "mean_steps_to_success": 5.0,
-           "by_slide": {"T1": {"episodes": 4, "successes": 3, "steps_to_success_sum": 15.0},
-                        "N1": {"episodes": 6, "successes": 0, "steps_to_success_sum": 0.0}}}
-    assert c16_reference.on_tumour_slides(row, labels) == {"episodes": 4, "success_rate": 0.75,
-                                                           "mean_steps_to_success": 5.0}
+    row = {
+        "episodes": 10,
+        "success_rate": 0.3,
+        "mean_steps_to_success": 5.0,
+        "by_slide": {
+            "T1": {"episodes": 4, "successes": 3, "steps_to_success_sum": 15.0},
+            "N1": {"episodes": 6, "successes": 0, "steps_to_success_sum": 0.0},
+        },
+    }
+    assert c16_reference.on_tumour_slides(row, labels) == {
+        "episodes": 4,
+        "success_rate": 0.75,
+        "mean_steps_to_success": 5.0,
+    }
     # no normal slide among those drawn (or one slide): the row as it is
     assert c16_reference.on_tumour_slides(row, {})["success_rate"] == 0.3
 
@@ -82,8 +117,25 @@ def test_detection_success_counts_tumour_slides_only():
 @pytest.mark.slow
 def test_every_method_end_to_end_on_a_tiny_budget(dataset, tmp_path):
     out = tmp_path / "ref"
-    argv = _argv(dataset, out, "--scenarios", "Easy", "Diagnosis", "--steps", "256", "--set", "num_envs=8",
-                 "--set", "num_steps=16", "--set", "hidden=16", "--set", "num_minibatches=2", "--seeds", "2")
+    argv = _argv(
+        dataset,
+        out,
+        "--scenarios",
+        "Easy",
+        "Diagnosis",
+        "--steps",
+        "256",
+        "--set",
+        "num_envs=8",
+        "--set",
+        "num_steps=16",
+        "--set",
+        "hidden=16",
+        "--set",
+        "num_minibatches=2",
+        "--seeds",
+        "2",
+    )
     assert c16_reference.main(argv) == 0
     cells = json.loads((out / "reference.json").read_text())["cells"]
     expected = {f"{m}/{s}" for m in c16_reference.METHODS for s in ("Easy", "Diagnosis")} - {"scripted/Diagnosis"}
@@ -119,8 +171,9 @@ def test_feature_only_dataset_runs_the_rows_that_need_no_pixels(dataset, tmp_pat
     spec.update(pixels_kept=False, encoder="colour-stats", device_bytes={"pixels": 3 * 2**30, "features": 1})
     (ds / "dataset.json").write_text(json.dumps(spec))
     out = tmp_path / "ref"
-    assert c16_reference.main(_argv(ds, out, "--methods", "random", "scripted", "ppo-pixels",
-                                    "--scenarios", "Easy")) == 0
+    assert (
+        c16_reference.main(_argv(ds, out, "--methods", "random", "scripted", "ppo-pixels", "--scenarios", "Easy")) == 0
+    )
     cells = json.loads((out / "reference.json").read_text())["cells"]
     assert set(cells) == {"random/Easy", "scripted/Easy"}
     table = (out / "reference.md").read_text()

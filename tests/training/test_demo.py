@@ -1,5 +1,6 @@
 """`make demo` (``python -m baselines.demo``) end to end at the ``--quick`` budget: the files it
 lists exist and are valid PNG / GIF / checkpoint, and its summary has numbers in range."""
+
 from __future__ import annotations
 
 import contextlib
@@ -17,8 +18,10 @@ from baselines import demo
 from baselines.harness.logs import load_checkpoint
 
 # --quick trains 3 updates; the last may finish no successful episode (NaN steps to success)
-pytestmark = [pytest.mark.filterwarnings("ignore:Mean of empty slice:RuntimeWarning"),
-              pytest.mark.filterwarnings("ignore:All-NaN slice encountered:RuntimeWarning")]
+pytestmark = [
+    pytest.mark.filterwarnings("ignore:Mean of empty slice:RuntimeWarning"),
+    pytest.mark.filterwarnings("ignore:All-NaN slice encountered:RuntimeWarning"),
+]
 
 
 def _check_image(path: Path, fmt: str, min_frames: int = 1) -> None:
@@ -49,16 +52,30 @@ def test_quick_demo_writes_the_listed_files(quick_run):
     out, printed = quick_run
     summary = json.loads((out / "demo_summary.json").read_text())
     run, ev = out / "ppo-easy", out / "ppo-easy" / "eval"
-    expected = {out / "demo_trajectory.png", out / "demo_trajectory.gif", run / "curve.png",
-                run / "params.msgpack", run / "log.csv", ev / "trajectory_ppo_greedy.png", ev / "trajectory.gif",
-                ev / "trajectory_ppo_sampled.png", ev / "trajectory_random.png"}
+    expected = {
+        out / "demo_trajectory.png",
+        out / "demo_trajectory.gif",
+        run / "curve.png",
+        run / "params.msgpack",
+        run / "log.csv",
+        ev / "trajectory_ppo_greedy.png",
+        ev / "trajectory.gif",
+        ev / "trajectory_ppo_sampled.png",
+        ev / "trajectory_random.png",
+    }
     assert {Path(f) for f in summary["files"]} == expected
     assert "files written:" in printed
     for f in [*expected, out / "demo_summary.json"]:
         assert f.is_file() and f.stat().st_size > 0, f
         assert str(f) in printed, f"{f} not in the printed summary"
-    for png in (out / "demo_trajectory.png", run / "curve.png", ev / "trajectory_ppo_greedy.png",
-                ev / "trajectory_ppo_sampled.png", ev / "trajectory_random.png", ev / "trajectory_scripted.png"):
+    for png in (
+        out / "demo_trajectory.png",
+        run / "curve.png",
+        ev / "trajectory_ppo_greedy.png",
+        ev / "trajectory_ppo_sampled.png",
+        ev / "trajectory_random.png",
+        ev / "trajectory_scripted.png",
+    ):
         _check_image(png, "PNG")
     _check_image(out / "demo_trajectory.gif", "GIF", min_frames=2)  # a random episode moves
     _check_image(ev / "trajectory.gif", "GIF")  # (an untrained policy may stand still: frames merge)

@@ -1,6 +1,7 @@
 """`histojax evaluate`: pictures of the episode's own slide, the start at the start, reading maps, the printed
 table, warnings (unknown config keys, slides that cannot be scored, training split / scale) and one-line
 errors (exit 2) for bad checkpoints and options; `make` refusing bundles that cannot make one dataset."""
+
 from __future__ import annotations
 
 import json
@@ -16,12 +17,17 @@ from PIL import Image
 from baselines import evaluate
 from baselines.common.env import make_env
 from baselines.harness.logs import save_checkpoint
-from histojax.core import actions
 from histojax.cli import main as histojax_main
+from histojax.core import actions
 from histojax.render import _canvas, render_trajectory, slide_name, trajectory_figure
 
-EASY = {"env_id": "HistoJAX-Easy-v0", "action_mode": "discrete", "obs_mode": "pixels", "with_position": False,
-        "hidden": 16}
+EASY = {
+    "env_id": "HistoJAX-Easy-v0",
+    "action_mode": "discrete",
+    "obs_mode": "pixels",
+    "with_position": False,
+    "hidden": 16,
+}
 
 
 @pytest.fixture(scope="module")
@@ -30,8 +36,9 @@ def two_slides(tmp_path_factory):
     from data_tools.datasets.synth.dataset import make_dataset
 
     root = tmp_path_factory.mktemp("two-slides")
-    ds = make_dataset(root, n_slides=2, size=(320, 256), seed=3, tile_size=32, level_sets=(3,), progress=False,
-                      previews=False)
+    ds = make_dataset(
+        root, n_slides=2, size=(320, 256), seed=3, tile_size=32, level_sets=(3,), progress=False, previews=False
+    )
     return [str(root / s["bundle"]) for s in ds["slides"]]
 
 
@@ -64,7 +71,9 @@ def test_pictures_of_a_two_slide_evaluation_show_the_episodes_slide(two_slide_en
     z, x, y = evaluate.trajectory(ep, i)
     picked = evaluate.pictures.picked_words(ep, i)  # how it was picked among the 4 episodes, in the title
     assert picked.endswith("among 4 episodes") if ep["success"][i] else picked.startswith("none of 4 episodes")
-    title = f"HistoJAX-Easy-v0, random, {len(z) - 1} steps, {'success' if ep['success'][i] else 'no success'} ({picked})"
+    title = (
+        f"HistoJAX-Easy-v0, random, {len(z) - 1} steps, {'success' if ep['success'][i] else 'no success'} ({picked})"
+    )
     on = [render_trajectory(env, z, x, y, slide_index=s, title=title) for s in (0, 1)]
     with Image.open(tmp_path / "trajectory_random.png") as im:
         drawn = np.asarray(im.convert("RGB"))
@@ -84,11 +93,19 @@ def test_reading_map_draws_each_view_once_by_first_visit(two_slide_env, tmp_path
     from histojax.render import reading_map_figure, reading_order, render_reading_map
 
     env, params = two_slide_env
-    record = {"z": np.array([0, 1, 2, 2, 1, 2, 9]), "x": np.array([0, 10, 30, 62, 10, 30, 9]),
-              "y": np.array([0, 10, 30, 30, 10, 30, 9]), "length": 5}  # entries past length + 1 are not steps
+    record = {
+        "z": np.array([0, 1, 2, 2, 1, 2, 9]),
+        "x": np.array([0, 10, 30, 62, 10, 30, 9]),
+        "y": np.array([0, 10, 30, 30, 10, 30, 9]),
+        "length": 5,
+    }  # entries past length + 1 are not steps
     views = reading_order(*[record[k][:6] for k in "zxy"])
-    assert [(v, first, n) for v, first, n in views] == [((0, 0, 0), 0, 1), ((1, 10, 10), 1, 2), ((2, 30, 30), 2, 2),
-                                                        ((2, 62, 30), 3, 1)]
+    assert [(v, first, n) for v, first, n in views] == [
+        ((0, 0, 0), 0, 1),
+        ((1, 10, 10), 1, 2),
+        ((2, 30, 30), 2, 2),
+        ((2, 62, 30), 3, 1),
+    ]
     fig = reading_map_figure(env, params, record, slide_index=1, score=0.25, title="scripted")
     ax = fig.axes[0]
     boxes = [p for p in ax.patches if type(p).__name__ == "Rectangle"]
@@ -126,15 +143,27 @@ def test_gif_of_a_feature_only_slide_shows_a_feature_heat_map(two_slides, colour
     with Image.open(animate(env, z, x, y, tmp_path / "t.gif", params=params)) as im:
         im.seek(2)
         frame = np.asarray(im.convert("RGB"))
-    panel = frame[:, frame.shape[1] - frame.shape[0]:]
+    panel = frame[:, frame.shape[1] - frame.shape[0] :]
     assert len(np.unique(panel.reshape(-1, 3), axis=0)) > 8  # a heat map and its caption, not one grey
 
 
 def test_print_table_shows_auc_and_fraction_read(capsys):
-    row = {"episodes": 8, "success_rate": 0.461, "mean_return": 0.1, "mean_length": 2.0, "mean_steps_to_success": 2.0,
-           "mean_fraction_read": 0.1, "mean_fields_of_view": 1.0}
-    evaluate.print_table("t", {"ppo (greedy)": {**row, "diagnosis_auc": 1.0, "diagnosis_auc_low": 0.585,
-                                                "diagnosis_auc_high": 1.0}, "random": row})
+    row = {
+        "episodes": 8,
+        "success_rate": 0.461,
+        "mean_return": 0.1,
+        "mean_length": 2.0,
+        "mean_steps_to_success": 2.0,
+        "mean_fraction_read": 0.1,
+        "mean_fields_of_view": 1.0,
+    }
+    evaluate.print_table(
+        "t",
+        {
+            "ppo (greedy)": {**row, "diagnosis_auc": 1.0, "diagnosis_auc_low": 0.585, "diagnosis_auc_high": 1.0},
+            "random": row,
+        },
+    )
     lines = capsys.readouterr().out.splitlines()
     assert lines[2].split()[-6:] == ["read", "fields", "AUC", "[95", "%", "interval]"]
     assert lines[3].split()[-5:] == ["10.0%", "1.0", "1.000", "[0.585,", "1.000]"] and lines[4].split()[-1] == "-"
@@ -152,8 +181,17 @@ def test_provenance_warnings_training_split_and_scale(tmp_path):
     def dataset(name, mpp):
         d = tmp_path / name
         d.mkdir()
-        (d / "dataset.json").write_text(json.dumps({"kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)",
-                                                    "scale": {"mpp": mpp}, "variant": "small", "train": [], "test": []}))
+        (d / "dataset.json").write_text(
+            json.dumps(
+                {
+                    "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)",
+                    "scale": {"mpp": mpp},
+                    "variant": "small",
+                    "train": [],
+                    "test": [],
+                }
+            )
+        )
         return str(d)
 
     full, small = dataset("full", 1.944), dataset("small", 7.776)
@@ -211,12 +249,18 @@ def test_evaluate_command_table_warnings_and_pictures(tmp_path, capsys):
     assert header[-3:] == ["read", "fields", "AUC"] and greedy[-1] == "undef."  # one class: no AUC, and it says why
     assert "undef.: undefined: one class" in captured.out
     names = {p.name for p in (run / "eval").iterdir()}
-    assert {"eval.json", "eval.csv", "trajectory_ppo_greedy.png", "reading_ppo_greedy_tumour.png",
-            "trajectory.gif"} <= names
+    assert {
+        "eval.json",
+        "eval.csv",
+        "trajectory_ppo_greedy.png",
+        "reading_ppo_greedy_tumour.png",
+        "trajectory.gif",
+    } <= names
     record = json.loads((run / "eval" / "eval.json").read_text(), parse_constant=lambda c: pytest.fail(c))  # no NaN
     assert any("hiden" in w for w in record["warnings"]) and any("AUC is undefined" in w for w in record["warnings"])
-    assert all(r["diagnosis_auc"] is None for rows in record["results"].values() for r in rows.values()
-               if "diagnosis_auc" in r)
+    assert all(
+        r["diagnosis_auc"] is None for rows in record["results"].values() for r in rows.values() if "diagnosis_auc" in r
+    )
 
 
 @pytest.mark.parametrize("argv", [["--episodes", "0"], ["--episodes", "-3"]])
@@ -246,8 +290,11 @@ def test_foreign_msgpack_and_bad_configs(tmp_path, capsys):
     assert histojax_main(["evaluate", str(run), "--episodes", "1"]) == 2
     assert "not a histojax checkpoint" in _one_error_line(capsys)
     good = _checkpoint(tmp_path / "good", EASY)
-    for config, words in (({**EASY, "hidden": -5}, "hidden=-5"), ([EASY], "holds a JSON list"),
-                          ({**EASY, "hidden": "wide"}, "hidden='wide'")):
+    for config, words in (
+        ({**EASY, "hidden": -5}, "hidden=-5"),
+        ([EASY], "holds a JSON list"),
+        ({**EASY, "hidden": "wide"}, "hidden='wide'"),
+    ):
         (good / "config.json").write_text(json.dumps(config))
         assert histojax_main(["evaluate", str(good), "--episodes", "1"]) == 2
         line = _one_error_line(capsys)
@@ -285,8 +332,9 @@ def test_make_names_two_bundles_of_different_tile_sizes(two_slides, tmp_path):
     from data_tools.datasets.synth.dataset import make_dataset
     from data_tools.errors import BundleError
 
-    ds = make_dataset(tmp_path, n_slides=1, size=(640, 512), seed=3, tile_size=64, level_sets=(3,), progress=False,
-                      previews=False)
+    ds = make_dataset(
+        tmp_path, n_slides=1, size=(640, 512), seed=3, tile_size=64, level_sets=(3,), progress=False, previews=False
+    )
     other = str(tmp_path / ds["slides"][0]["bundle"])
     with pytest.raises(BundleError) as e:
         histojax.make("HistoJAX-Easy-v0", slides=[two_slides[0], other])
@@ -297,8 +345,13 @@ def test_glimpse_policy_on_a_slide_wider_than_its_grid_is_one_line(two_slides, c
     """`python -m baselines.evaluate` (before: a ValueError traceback) says it in one line naming the bundle."""
     bundle = colour_feature_grid(two_slides[0], tmp_path / "b")
     run = tmp_path / "run"
-    config = {**EASY, "action_mode": "glimpse:1", "obs_mode": "features", "algo": "ppo",
-              "env_kwargs": {"task": "classification", "slides": [str(bundle)], "glimpse_grid": [1, 1]}}
+    config = {
+        **EASY,
+        "action_mode": "glimpse:1",
+        "obs_mode": "features",
+        "algo": "ppo",
+        "env_kwargs": {"task": "classification", "slides": [str(bundle)], "glimpse_grid": [1, 1]},
+    }
     save_checkpoint(run, {"params": {"w": np.zeros((1, 2), np.float32)}}, config)
     assert evaluate.main([str(run), "--episodes", "1", "--out", str(tmp_path / "o")]) == 2
     line = _one_error_line(capsys)
@@ -310,15 +363,15 @@ def test_pixels_of_a_feature_only_dataset_bundle_point_to_histojax_dataset(two_s
     """A `histojax dataset ... --no-pixels` bundle asked for pixels: the hint names `histojax dataset` (before:
     `data_tools c16 ... --slides`, a command that cannot remake a user's own slides)."""
     import histojax
-    from data_tools.bundle import build_bundle
-    from data_tools.bundle import drop_pixels
+    from data_tools.bundle import build_bundle, drop_pixels
     from data_tools.datasets.build import KIND
     from data_tools.errors import BundleError
     from data_tools.features.grid import compute_features
 
     slide = next((Path(two_slides[0]).parents[1] / "slides").glob("*.tif"))
-    bundle = build_bundle(slide, tmp_path / "ds" / "bundles" / "s1", level_sets=(3,), tile_size=32, progress=False,
-                          storage="tiled")
+    bundle = build_bundle(
+        slide, tmp_path / "ds" / "bundles" / "s1", level_sets=(3,), tile_size=32, progress=False, storage="tiled"
+    )
     compute_features(bundle, encoder_name="colour-stats", image_size=None, progress=False)
     drop_pixels(bundle)
     (tmp_path / "ds" / "dataset.json").write_text(json.dumps({"kind": KIND, "train": ["bundles/s1"], "test": []}))

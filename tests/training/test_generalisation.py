@@ -1,9 +1,10 @@
 """Training that generalises (validation split, schedules, observation normalisation),
 no numpy warnings from windows without episodes, publishing a run and scoring it on any dataset."""
+
 from __future__ import annotations
 
-from pathlib import Path
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -31,8 +32,21 @@ def test_finite_mean_and_extremes_say_nan_without_warnings():
 def test_tiny_hard_run_where_no_episode_ends_writes_its_logs_without_warnings(tmp_path):
     """Hard with a long step limit and a tiny budget: no episode ends in most windows (the run that
     printed "Mean of empty slice" from the logs and the final window); NaN is recorded instead."""
-    config = dict(ppo.DEFAULTS, env_id="HistoJAX-Hard-v0", with_position=True, num_envs=2, seed=0, num_steps=8, total_timesteps=64,
-                  update_epochs=1, num_minibatches=2, hidden=16, num_seeds=2, print_progress=True, log_every=1)
+    config = dict(
+        ppo.DEFAULTS,
+        env_id="HistoJAX-Hard-v0",
+        with_position=True,
+        num_envs=2,
+        seed=0,
+        num_steps=8,
+        total_timesteps=64,
+        update_epochs=1,
+        num_minibatches=2,
+        hidden=16,
+        num_seeds=2,
+        print_progress=True,
+        log_every=1,
+    )
     with warnings.catch_warnings():
         warnings.simplefilter("error", RuntimeWarning)
         _, _, summary = run_and_save("ppo", ppo.make_train, config, tmp_path / "run")
@@ -45,8 +59,13 @@ def _spec():
     """A C16-like dataset.json: 3 tumour slides each lending tissue from a normal slide, 2 lone normals."""
     slides = [{"bundle": f"bundles/T{i}", "label": 1, "tissue_donor": f"N{i}"} for i in range(3)]
     slides += [{"bundle": f"bundles/N{i}", "label": 0, "tissue_donor": None} for i in range(5)]
-    return {"format": 2, "encoder": "pcam-cnn", "slides": slides, "train": sorted(s["bundle"] for s in slides),
-            "test": ["bundles/X"]}
+    return {
+        "format": 2,
+        "encoder": "pcam-cnn",
+        "slides": slides,
+        "train": sorted(s["bundle"] for s in slides),
+        "test": ["bundles/X"],
+    }
 
 
 def test_validation_split_keeps_donor_pairs_and_both_classes_on_both_sides():
@@ -78,12 +97,14 @@ def test_validation_dataset_on_the_small_c16_variant(c16_small, tmp_path):
     folder, version = c16_small
     out = write_validation_dataset(folder, 0.2, 0, tmp_path / "val")
     import json
+
     v = json.loads((out / "dataset.json").read_text())["validation"]
     assert len(v["validation"]) == 2 and len(v["train"]) == 2  # one donor pair held back
     labels = json.loads((folder / "dataset.json").read_text())["labels"]
     assert sorted(labels[n.split("/")[-1]] for n in v["validation"]) == [0, 1]
-    env, params = histojax.make(f"HistoJAX-C16-Diagnosis-{version}", dataset=out, split="test",
-                                obs_mode="features", verify=False)
+    env, params = histojax.make(
+        f"HistoJAX-C16-Diagnosis-{version}", dataset=out, split="test", obs_mode="features", verify=False
+    )
     assert sorted(b.path.name for b in env.bundles) == sorted(n.split("/")[-1] for n in v["validation"])
 
 
@@ -117,6 +138,7 @@ def test_slide_ceiling_pools_view_logits_and_names_the_misses(c16_small, tmp_pat
     bundle = next(folder.glob("bundles/*"))
     (bad / "bundles").mkdir(parents=True)
     import shutil
+
     shutil.copytree(bundle, bad / "bundles" / bundle.name)
     meta = json.loads((bad / "bundles" / bundle.name / "metadata.json").read_text())
     meta["features"]["encoder"] = "colour-stats"
@@ -137,10 +159,22 @@ def test_entropy_anneal_and_dataset_normaliser(c16_small):
     assert float(ppo.entropy_coef(cfg, 0, 5)) == pytest.approx(0.02)
     assert float(ppo.entropy_coef(cfg, jnp.int32(4), 5)) == pytest.approx(0.0)
     folder, version = c16_small
-    config = dict(ppo.DEFAULTS, env_id=f"HistoJAX-C16-Easy-{version}", obs_mode="features", with_position=True,
-                  env_kwargs={"dataset": str(folder), "split": "train", "verify": False}, num_envs=4, num_steps=8,
-                  total_timesteps=64, num_minibatches=2, update_epochs=1, hidden=16, print_progress=False,
-                  obs_norm="dataset", ent_coef_final=0.0)
+    config = dict(
+        ppo.DEFAULTS,
+        env_id=f"HistoJAX-C16-Easy-{version}",
+        obs_mode="features",
+        with_position=True,
+        env_kwargs={"dataset": str(folder), "split": "train", "verify": False},
+        num_envs=4,
+        num_steps=8,
+        total_timesteps=64,
+        num_minibatches=2,
+        update_epochs=1,
+        hidden=16,
+        print_progress=False,
+        obs_norm="dataset",
+        ent_coef_final=0.0,
+    )
     train = ppo.make_train(config)
     norm = train.config["obs_norm"]
     feats = np.asarray(train.env_params.slide.features, np.float64)
@@ -150,6 +184,7 @@ def test_entropy_anneal_and_dataset_normaliser(c16_small):
     assert np.isfinite(np.asarray(out["metrics"]["pg_loss"])).all()
     # the network standardises the features: zero-mean inputs for the dataset's mean vector
     from baselines.networks import normalise_features
+
     x = normalise_features({"features": jnp.asarray([norm["mean"]])}, (tuple(norm["mean"]), tuple(norm["std"])))
     assert np.allclose(np.asarray(x["features"]), 0.0, atol=1e-5)
 
@@ -163,20 +198,36 @@ def test_publish_a_tiny_ppo_and_score_it_on_a_dataset(c16_small, tmp_path):
     from baselines.publish import publish
 
     folder, version = c16_small
-    config = dict(ppo.DEFAULTS, env_id=f"HistoJAX-C16-Easy-{version}", obs_mode="features", with_position=True,
-                  env_kwargs={"dataset": str(folder), "split": "train"}, num_envs=8, num_steps=32,
-                  total_timesteps=2048, num_minibatches=4, update_epochs=1, hidden=32, num_seeds=2, seed=0,
-                  print_progress=False)
+    config = dict(
+        ppo.DEFAULTS,
+        env_id=f"HistoJAX-C16-Easy-{version}",
+        obs_mode="features",
+        with_position=True,
+        env_kwargs={"dataset": str(folder), "split": "train"},
+        num_envs=8,
+        num_steps=32,
+        total_timesteps=2048,
+        num_minibatches=4,
+        update_epochs=1,
+        hidden=32,
+        num_seeds=2,
+        seed=0,
+        print_progress=False,
+    )
     run_and_save("ppo", ppo.make_train, config, tmp_path / "run")
     dest = publish(tmp_path / "run", "tiny-easy", root=tmp_path / "published", seed=1)
     record = json.loads((dest / "published.json").read_text())
     assert record["seeds"] == [1] and record["training_summary"]["seeds"] == 2
     params, cfg = load_checkpoint(dest)
     assert cfg["num_seeds"] == 1 and all(a.shape[0] == 1 for a in __import__("jax").tree.leaves(params))
-    assert evaluate.main([str(dest), "--dataset", str(folder), "--split", "test", "--episodes", "4",
-                          "--out", str(tmp_path / "eval")]) == 0
+    assert (
+        evaluate.main(
+            [str(dest), "--dataset", str(folder), "--split", "test", "--episodes", "4", "--out", str(tmp_path / "eval")]
+        )
+        == 0
+    )
     rows = json.loads((tmp_path / "eval" / "eval.json").read_text())["results"]
-    (name, table), = rows.items()
+    ((name, table),) = rows.items()
     assert "test split" in name and table["ppo (sampled)"]["episodes"] == 4
     assert "scripted" in table  # the feature-scripted reference runs on feature observations
     with pytest.raises(ValueError, match="not a run folder"):

@@ -1,5 +1,6 @@
 """Baselines: a tiny PPO run end to end, DQN targets against a hand calculation, the replay
 buffer's sampling, checkpoint round trip, the evaluation's scripted policy."""
+
 from __future__ import annotations
 
 import jax
@@ -10,8 +11,18 @@ import pytest
 from baselines import dqn, evaluate, networks, ppo
 from baselines.harness.logs import load_checkpoint, save_checkpoint
 
-TINY_PPO = dict(env_id="HistoJAX-Easy-v0", with_position=True, num_envs=4, num_steps=8, total_timesteps=64,
-                update_epochs=1, num_minibatches=2, hidden=32, num_seeds=2, print_progress=False)
+TINY_PPO = dict(
+    env_id="HistoJAX-Easy-v0",
+    with_position=True,
+    num_envs=4,
+    num_steps=8,
+    total_timesteps=64,
+    update_epochs=1,
+    num_minibatches=2,
+    hidden=32,
+    num_seeds=2,
+    print_progress=False,
+)
 
 
 # the default (seeds vmapped) in `make test`; seeds one after another (lax.map) under `make test-all`, whose
@@ -82,15 +93,15 @@ def test_networks_shapes_pooling_vector_and_patch_convolution():
 def test_n_step_double_q_target_matches_hand_calculation():
     gamma = 0.9
     # batch of 3, n = 3: no episode end; an end at step 1; an end at step 0
-    rewards = jnp.array([[1.0, 1.0, 2.0], [2.0, 5.0, 7.0], [3.0, 9.0, 9.0]])      # (n, B)
+    rewards = jnp.array([[1.0, 1.0, 2.0], [2.0, 5.0, 7.0], [3.0, 9.0, 9.0]])  # (n, B)
     dones = jnp.array([[0.0, 0.0, 1.0], [0.0, 1.0, 0.0], [0.0, 0.0, 0.0]])
     q_online_next = jnp.array([[0.0, 3.0, 1.0], [5.0, 0.0, 0.0], [0.0, 0.0, 4.0]])  # argmax 1, 0, 2
     q_target_next = jnp.array([[10.0, 20.0, 30.0], [40.0, 50.0, 60.0], [70.0, 80.0, 90.0]])
     target = dqn.td_targets(rewards, dones, q_online_next, q_target_next, gamma, double_q=True)
     hand = [
         1 + 0.9 * 2 + 0.81 * 3 + 0.729 * 20,  # full 3-step return + γ³ Q_target(s', argmax Q_online) = 20
-        1 + 0.9 * 5,                            # ends at step 1: no bootstrap
-        2.0,                                    # ends at step 0
+        1 + 0.9 * 5,  # ends at step 1: no bootstrap
+        2.0,  # ends at step 0
     ]
     np.testing.assert_allclose(target, hand, rtol=1e-6)
     # plain (not double) DQN bootstraps from max Q_target = 30 for the first
@@ -163,9 +174,19 @@ def test_scripted_features_policy_reads_the_view_logit_not_the_noisy_cell():
 
 @pytest.mark.slow
 def test_tiny_dqn_and_evaluate_cli(tmp_path):
-    config = dict(env_id="HistoJAX-Easy-v0", with_position=True, num_envs=4, total_timesteps=256,
-                  buffer_size=128, batch_size=8, learning_starts=32, iterations_per_log=16, hidden=32,
-                  num_seeds=1, print_progress=False)
+    config = dict(
+        env_id="HistoJAX-Easy-v0",
+        with_position=True,
+        num_envs=4,
+        total_timesteps=256,
+        buffer_size=128,
+        batch_size=8,
+        learning_starts=32,
+        iterations_per_log=16,
+        hidden=32,
+        num_seeds=1,
+        print_progress=False,
+    )
     train = dqn.make_train(config)
     out = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 1)))
     loss = np.asarray(out["metrics"]["loss"])

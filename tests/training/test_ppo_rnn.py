@@ -1,6 +1,7 @@
 """Recurrent PPO (baselines.ppo_rnn): the GRU's reset at episode starts, the network step jitted
 and not, the loss replaying the rollout's log-probabilities, and a short run that beats the random
 agent on Easy (features of the sample slide) evaluated from its checkpoint by baselines.evaluate."""
+
 from __future__ import annotations
 
 import jax
@@ -17,7 +18,8 @@ def _scaled(params, factor):
     """Parameters with every kernel multiplied by ``factor``: a policy far from uniform, so the
     checks below see the hidden state in the action probabilities."""
     return jax.tree_util.tree_map_with_path(
-        lambda path, a: a * factor if "kernel" in jax.tree_util.keystr(path) else a, params)
+        lambda path, a: a * factor if "kernel" in jax.tree_util.keystr(path) else a, params
+    )
 
 
 @pytest.fixture(scope="module")
@@ -25,8 +27,9 @@ def vector_net():
     net = networks.RecurrentActorCritic(action_dim=7, hidden=16)
     t, b = 6, 3
     obs = jax.random.normal(jax.random.PRNGKey(1), (t, b, 5))
-    params = jax.jit(net.init)(jax.random.PRNGKey(0), networks.ScannedGRU.initial_state(b, 16), obs,
-                               jnp.zeros((t, b), bool))
+    params = jax.jit(net.init)(
+        jax.random.PRNGKey(0), networks.ScannedGRU.initial_state(b, 16), obs, jnp.zeros((t, b), bool)
+    )
     return net, _scaled(params, 3.0), obs, jax.jit(net.apply)
 
 
@@ -80,9 +83,16 @@ def test_loss_replays_the_rollouts_log_probs_across_episode_ends():
     env = LogWrapper(env)
     net = ppo_rnn.make_network(config, env)
     n = 2
-    init = params_initialiser(env, net, n, inputs=lambda o: (networks.ScannedGRU.initial_state(n, 16),
-                                                                    jax.tree.map(lambda a: a[None], o),
-                                                                    jnp.ones((1, n), bool)))
+    init = params_initialiser(
+        env,
+        net,
+        n,
+        inputs=lambda o: (
+            networks.ScannedGRU.initial_state(n, 16),
+            jax.tree.map(lambda a: a[None], o),
+            jnp.ones((1, n), bool),
+        ),
+    )
 
     @jax.jit
     def go(key):
@@ -108,9 +118,21 @@ def test_short_run_beats_the_random_agent_and_evaluates_from_its_checkpoint(tmp_
     from histojax.sample import sample_bundle
 
     slide = colour_feature_grid(sample_bundle(), tmp_path / "slide")
-    config = dict(env_id="HistoJAX-Easy-v0", slide=str(slide), obs="features", with_position=True, num_envs=16,
-                  num_steps=32, total_timesteps=4096, hidden=64, lr=1e-3, update_epochs=4, num_minibatches=4,
-                  num_seeds=1, print_progress=False)
+    config = dict(
+        env_id="HistoJAX-Easy-v0",
+        slide=str(slide),
+        obs="features",
+        with_position=True,
+        num_envs=16,
+        num_steps=32,
+        total_timesteps=4096,
+        hidden=64,
+        lr=1e-3,
+        update_epochs=4,
+        num_minibatches=4,
+        num_seeds=1,
+        print_progress=False,
+    )
     train = ppo_rnn.make_train(config)
     out = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 1)))
     assert np.isfinite(np.asarray(out["metrics"]["pg_loss"])).all()

@@ -2,6 +2,7 @@
 dataset in words); one published before recorded its path: kept as provenance, never used unasked. ``histojax evaluate`` of a published agent
 without ``--dataset`` says in one line which dataset it needs and how to build it (exit 2, nothing written), also
 when a folder of the recorded name exists here; with ``--dataset`` it is scored there."""
+
 from __future__ import annotations
 
 import json
@@ -20,8 +21,17 @@ def _one_line(capsys) -> str:
     return err[0]
 
 
-@pytest.mark.parametrize("name", ["c16-v1-diagnosis", "c16-v1-hard-navigator", "c16-v1-zoom-reader",
-                                  "c16-v2-set-reader", "c16-v2-head-navigator", "c16-v2-learned-set-reader"])
+@pytest.mark.parametrize(
+    "name",
+    [
+        "c16-v1-diagnosis",
+        "c16-v1-hard-navigator",
+        "c16-v1-zoom-reader",
+        "c16-v2-set-reader",
+        "c16-v2-head-navigator",
+        "c16-v2-learned-set-reader",
+    ],
+)
 def test_every_published_agent_names_the_dataset_it_needs(name, tmp_path, capsys, monkeypatch):
     monkeypatch.chdir(tmp_path)
     out = tmp_path / "eval"
@@ -58,8 +68,10 @@ def test_a_recorded_dataset_that_exists_here_is_not_used_unasked(tmp_path, capsy
 def test_a_run_of_ones_own_is_not_refused(tmp_path):
     run = tmp_path / "mine"
     run.mkdir()
-    assert published_dataset_refusal(run, {"env_id": "HistoJAX-C16-Hard-v1",
-                                           "env_kwargs": {"dataset": "somewhere"}}) is None
+    assert (
+        published_dataset_refusal(run, {"env_id": "HistoJAX-C16-Hard-v1", "env_kwargs": {"dataset": "somewhere"}})
+        is None
+    )
 
 
 def test_the_published_readme_says_so():

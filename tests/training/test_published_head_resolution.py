@@ -1,6 +1,7 @@
 """A published head named by its package name (``baselines/published/NAME``, as the published agents record theirs)
 resolves to the installed package's copy, never to a folder of that name under the working folder; a working-folder
 copy is used only when named by an explicit path."""
+
 from __future__ import annotations
 
 from pathlib import Path

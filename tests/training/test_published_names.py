@@ -2,6 +2,7 @@
 name on ``histojax evaluate`` reaches the packaged folder from any working folder, and the command's own packages
 are never taken from the working folder (``python -m`` puts it first on the import path). The installed wheel's
 side of this is in tests/project/test_wheel.py (slow)."""
+
 from __future__ import annotations
 
 import json
@@ -21,8 +22,11 @@ def test_every_published_folder_has_a_name_and_what_it_was_trained_on():
     assert {"c16-v2-set-reader", "c16-v2-head", "c16-v1-diagnosis"} <= set(names)
     for name in names:
         d = describe(name)
-        record = (json.loads((PUBLISHED / name / "published.json").read_text())["trained_on"] if d["kind"] == "agent"
-                  else json.loads((PUBLISHED / name / "config.json").read_text())["fitted_on"])
+        record = (
+            json.loads((PUBLISHED / name / "published.json").read_text())["trained_on"]
+            if d["kind"] == "agent"
+            else json.loads((PUBLISHED / name / "config.json").read_text())["fitted_on"]
+        )
         assert d["trained_on"].startswith(f"{record['dataset']}, {record['split']}, {record['slides']} slides"), name
     assert describe("c16-v2-set-reader")["what"].endswith("diagnoses through c16-v2-head")
     assert describe("c16-v2-head")["kind"] == "head"
@@ -52,8 +56,15 @@ def test_a_published_name_is_the_packaged_folder_from_any_working_folder(tmp_pat
     for given in ("c16-v2-set-reader", packaged, packaged + "/"):
         assert published_or_path(given) == str(PUBLISHED / "c16-v2-set-reader"), given
     assert published_or_path("c16-v2-head") == str(PUBLISHED / "c16-v2-head")
-    for given in ("runs/c16-v2-set-reader", "./c16-v2-set-reader", "c16-v9-nothing", "runs/ppo-fold{fold}", "",
-                  "baselines/published/", "c16-v1-glimpse-reader"):  # a path, or no published name: as given
+    for given in (
+        "runs/c16-v2-set-reader",
+        "./c16-v2-set-reader",
+        "c16-v9-nothing",
+        "runs/ppo-fold{fold}",
+        "",
+        "baselines/published/",
+        "c16-v1-glimpse-reader",
+    ):  # a path, or no published name: as given
         assert published_or_path(given) == given
     (tmp_path / "c16-v2-set-reader").mkdir()  # a folder of that name here is not taken for the published agent
     (tmp_path / "c16-v2-set-reader" / "config.json").write_text("{}")
@@ -83,12 +94,15 @@ def test_a_folder_named_like_a_command_package_in_the_working_folder_is_refused(
     package = "baselines"
     (tmp_path / package).mkdir()
     (tmp_path / package / "__init__.py").write_text("raise SystemExit('the user folder was imported')\n")
-    out = subprocess.run([sys.executable, "-m", "histojax.cli", "published"], cwd=tmp_path, capture_output=True,
-                         text=True, timeout=300)
+    out = subprocess.run(
+        [sys.executable, "-m", "histojax.cli", "published"], cwd=tmp_path, capture_output=True, text=True, timeout=300
+    )
     assert out.returncode == 2, out.stderr
-    assert out.stderr.strip() == (f"error: {tmp_path.resolve() / package}: a folder named {package} in the import path "
-                                  f"ahead of histojax's own ({ROOT / package}); python -m puts the working folder "
-                                  "first: run the histojax command, or from another folder")
+    assert out.stderr.strip() == (
+        f"error: {tmp_path.resolve() / package}: a folder named {package} in the import path "
+        f"ahead of histojax's own ({ROOT / package}); python -m puts the working folder "
+        "first: run the histojax command, or from another folder"
+    )
 
 
 def test_bench_outside_a_source_checkout_says_where_it_runs(monkeypatch, tmp_path):
@@ -110,7 +124,8 @@ def test_an_own_encoder_from_the_working_folder_goes_last_on_the_import_path(tmp
     from data_tools.features.custom import load_custom_encoder
 
     (tmp_path / "wf_encoders.py").write_text(
-        "import numpy as np\n\n\ndef enc(images):\n    return np.zeros((len(images), 4), np.float32)\n")
+        "import numpy as np\n\n\ndef enc(images):\n    return np.zeros((len(images), 4), np.float32)\n"
+    )
     monkeypatch.chdir(tmp_path)
     monkeypatch.setattr(sys, "path", [p for p in sys.path if p not in ("", os.getcwd(), str(tmp_path))])
     load_custom_encoder.cache_clear()

@@ -2,6 +2,7 @@
 path and no folder of the training machine (``/work/``, ``scratch/``, ``runs/``); ``python -m baselines.publish``
 writes none into a new folder (the dataset, slides and head by folder name in ``published.json``'s ``trained_on``);
 every published agent still loads, types its config and is scored on the dataset given with ``--dataset``."""
+
 from __future__ import annotations
 
 import json
@@ -14,9 +15,9 @@ import pytest
 from flax import serialization
 
 from baselines import ppo, ppo_rnn
-from baselines.harness.logs import load_checkpoint
 from baselines.evaluate.checks import published_dataset_refusal
 from baselines.evaluate.cli import with_dataset
+from baselines.harness.logs import load_checkpoint
 from baselines.publish import main as publish_main
 from baselines.publish import publish
 from baselines.published_agents import PUBLISHED
@@ -86,7 +87,8 @@ def test_every_published_agent_names_its_dataset_and_reads_its_config(run, tmp_p
     scored = with_dataset(config, ds)  # with --dataset: scored there, its own entries kept
     assert scored["env_kwargs"]["dataset"] == str(ds) and scored["env_kwargs"]["split"] == "test"
     assert {k: v for k, v in scored["env_kwargs"].items() if k not in ("dataset", "split")} == {
-        k: v for k, v in config["env_kwargs"].items() if k not in ("dataset", "split")}
+        k: v for k, v in config["env_kwargs"].items() if k not in ("dataset", "split")
+    }
     typed = CLASSES[config["algo"]].from_dict(json.loads((run / "config.json").read_text()), where=str(run))
     assert typed.env_kwargs["dataset"] is None
     arguments, _ = typed.replace(env_kwargs=scored["env_kwargs"]).make_arguments()
@@ -105,17 +107,32 @@ def run(tmp_path) -> Path:
     cfg["fitted_on"]["dataset"] = str(data)
     (head / "config.json").write_text(json.dumps(cfg))
     run = tmp_path / "work" / "runs" / "r1" / "ppo"
-    config = {**ppo.DEFAULTS, "env_id": "HistoJAX-C16-Diagnosis-v2", "slide": str(tmp_path / "bundle"),
-              "env_kwargs": {"dataset": str(data), "split": "train", "slides": [str(tmp_path / "b1")],
-                             "read_budget": 0.1}, "num_seeds": 2, "seed": 0}
+    config = {
+        **ppo.DEFAULTS,
+        "env_id": "HistoJAX-C16-Diagnosis-v2",
+        "slide": str(tmp_path / "bundle"),
+        "env_kwargs": {"dataset": str(data), "split": "train", "slides": [str(tmp_path / "b1")], "read_budget": 0.1},
+        "num_seeds": 2,
+        "seed": 0,
+    }
     params = {"params": {"w": np.zeros((2, 3), np.float32)}}
     run.mkdir(parents=True)
     (run / "params.msgpack").write_bytes(serialization.msgpack_serialize(params))
     (run / "config.json").write_text(json.dumps(config))
     (run / "log.json").write_text(json.dumps({"summary": {"algo": "ppo", "seeds": 2}}))
     (run / "log.csv").write_text("step,mean_return\n2048,0.5\n")
-    (run / "head_reward.json").write_text(json.dumps({"head": str(head), "head_name": "2x2 mean, max", "gain": "fidelity",
-                                                      "final": 0.0, "read_cost": 0.0, "dataset": str(data)}))
+    (run / "head_reward.json").write_text(
+        json.dumps(
+            {
+                "head": str(head),
+                "head_name": "2x2 mean, max",
+                "gain": "fidelity",
+                "final": 0.0,
+                "read_cost": 0.0,
+                "dataset": str(data),
+            }
+        )
+    )
     return run
 
 
@@ -123,13 +140,24 @@ def run(tmp_path) -> Path:
 def test_publish_writes_no_path_of_this_machine(run, tmp_path, seed):
     """Was: published.json's source_run was the run's absolute path, config.json kept the dataset's, the head's
     head_source and the copied head's fitted_on its own."""
-    dest = publish(run, "mine", root=tmp_path / "published", seed=seed, chosen_by={"by": "validation"},
-                   trained_on="my slides, train split: histojax dataset SLIDES --out DIR")
+    dest = publish(
+        run,
+        "mine",
+        root=tmp_path / "published",
+        seed=seed,
+        chosen_by={"by": "validation"},
+        trained_on="my slides, train split: histojax dataset SLIDES --out DIR",
+    )
     assert machine_paths(dest, also=(str(tmp_path),)) == []
     record = json.loads((dest / "published.json").read_text())
     assert record["source_run"] == "r1/ppo"
-    assert record["trained_on"] == {"dataset": "my-set", "split": "train", "slides": ["b1"], "slide": "bundle",
-                                    "what": "my slides, train split: histojax dataset SLIDES --out DIR"}
+    assert record["trained_on"] == {
+        "dataset": "my-set",
+        "split": "train",
+        "slides": ["b1"],
+        "slide": "bundle",
+        "what": "my slides, train split: histojax dataset SLIDES --out DIR",
+    }
     params, config = load_checkpoint(dest)
     assert config["env_kwargs"] == {"dataset": None, "split": "train", "slides": None, "read_budget": 0.1}
     assert config["slide"] is None and ppo.PPOConfig.from_dict(config).env_kwargs["read_budget"] == 0.1

@@ -1,5 +1,6 @@
 """The C16 results pages state their headline AUCs with the 95 % intervals experiments.results_intervals computes from
 each figure and its split's class counts, and the pages' figures are the ones the script copies."""
+
 from __future__ import annotations
 
 import re

@@ -2,6 +2,7 @@
 parameters, bit for bit, as the same run left alone (the same compiled chunk of updates runs on the same
 saved states); a run's files are written as a whole (a full disk keeps the previous run's files together and
 names the file); resume errors are one line naming the file."""
+
 from __future__ import annotations
 
 import builtins
@@ -15,11 +16,30 @@ import pytest
 from baselines import dqn, outputs, ppo, ppo_rnn
 from baselines.common.config import env_overrides
 from baselines.harness.logs import _tensorboard_scalars, tensorboard_writer
-from baselines.harness.runner import chunk_plan, chunked_runner, finish_run, load_runner, run_and_save, run_chunked, save_runner
+from baselines.harness.runner import (
+    chunk_plan,
+    chunked_runner,
+    finish_run,
+    load_runner,
+    run_and_save,
+    run_chunked,
+    save_runner,
+)
 from data_tools.errors import HistojaxDataError
 
-TINY = dict(env_id="HistoJAX-Easy-v0", with_position=True, num_envs=4, num_steps=8, total_timesteps=4 * 8 * 5,
-            update_epochs=1, num_minibatches=2, hidden=16, num_seeds=2, print_progress=False, checkpoint_every=2)
+TINY = dict(
+    env_id="HistoJAX-Easy-v0",
+    with_position=True,
+    num_envs=4,
+    num_steps=8,
+    total_timesteps=4 * 8 * 5,
+    update_epochs=1,
+    num_minibatches=2,
+    hidden=16,
+    num_seeds=2,
+    print_progress=False,
+    checkpoint_every=2,
+)
 
 
 class Killed(Exception):
@@ -30,12 +50,15 @@ def _kill_after(update: int):
     def hook(done):
         if done >= update:
             raise Killed
+
     return hook
 
 
 def _no_reference(monkeypatch):
     # the random-agent reference of the curves compiles its own rollout; not what is tested here
-    monkeypatch.setattr("baselines.harness.runner.random_agent_reference", lambda *a, **k: {"return": 0.0, "success": 0.0})
+    monkeypatch.setattr(
+        "baselines.harness.runner.random_agent_reference", lambda *a, **k: {"return": 0.0, "success": 0.0}
+    )
 
 
 def _straight_and_resumed(tmp_path, algo: str, make_train, config: dict, kill_at: int):
@@ -61,8 +84,8 @@ def _assert_bitwise_equal(a, b):
 
 def test_chunk_plan_even_chunks_no_more_than_every():
     assert chunk_plan(122, 100) == (61, 2)
-    assert chunk_plan(5, 2) == (2, 3)     # 6 slots, the last skipped
-    assert chunk_plan(10, 0) == (10, 1)   # 0: one chunk, a checkpoint at the end only
+    assert chunk_plan(5, 2) == (2, 3)  # 6 slots, the last skipped
+    assert chunk_plan(10, 0) == (10, 1)  # 0: one chunk, a checkpoint at the end only
     assert chunk_plan(10, None) == (10, 1)
     assert chunk_plan(3, 50) == (3, 1)
     for n in range(1, 40):
@@ -79,8 +102,13 @@ class _Toy:
     def __init__(self, num_updates=7, every=3, seeds=2, vmap_seeds=True):
         import jax.numpy as jnp
 
-        self.config = {"seed": 0, "num_seeds": seeds, "vmap_seeds": vmap_seeds, "checkpoint_every": every,
-                       "algo": "toy"}
+        self.config = {
+            "seed": 0,
+            "num_seeds": seeds,
+            "vmap_seeds": vmap_seeds,
+            "checkpoint_every": every,
+            "algo": "toy",
+        }
         self.num_updates, self.steps_per_update, self.env, self.env_params = num_updates, 10, None, jnp.float32(0.3)
         self.traces = 0
 
@@ -89,10 +117,12 @@ class _Toy:
 
     def init_runner(self, key, p, params):
         import jax.numpy as jnp
+
         return params, key, jnp.zeros((), jnp.int32)
 
     def update(self, runner, i, p):
         import jax.numpy as jnp
+
         self.traces += 1
         params, key, n = runner
         key, k = jax.random.split(key)
@@ -123,8 +153,9 @@ def test_driver_killed_and_resumed_equals_the_uninterrupted_run(tmp_path, vmap_s
             np.testing.assert_array_equal(straight["metrics"][k], resumed["metrics"][k])
     assert toy.traces == traces  # compiled once: neither the kill nor the resume traced the chunk again
     start, _ = toy.chunked
-    runners, done, metrics, _ = load_runner(tmp_path / "straight" / "checkpoint",
-                                                   start.template(jax.random.split(jax.random.PRNGKey(0), 2)), 7, 3)
+    runners, done, metrics, _ = load_runner(
+        tmp_path / "straight" / "checkpoint", start.template(jax.random.split(jax.random.PRNGKey(0), 2)), 7, 3
+    )
     assert done == 7 and np.asarray(runners[2]).tolist() == [7, 7] and metrics["loss"].shape == (2, 7)
     # a different run (not resumed) really differs: the comparison above can fail
     other, _, _ = run_chunked(_Toy(num_updates=6, vmap_seeds=vmap_seeds), tmp_path / "other")
@@ -146,11 +177,19 @@ def test_ppo_killed_and_resumed_equals_the_uninterrupted_run(tmp_path, monkeypat
     assert (a / "log.csv").read_text() == (b / "log.csv").read_text()
     # the parameters really moved (a run that did nothing would also be "equal")
     init = jax.jit(train.init_params)(jax.random.split(jax.random.PRNGKey(0), 2)[0], train.env_params)
-    moved = [not np.array_equal(np.asarray(x)[0], np.asarray(y))
-             for x, y in zip(jax.tree.leaves(straight), jax.tree.leaves(init))]
+    moved = [
+        not np.array_equal(np.asarray(x)[0], np.asarray(y))
+        for x, y in zip(jax.tree.leaves(straight), jax.tree.leaves(init))
+    ]
     assert any(moved)
     assert sorted(p.name for p in b.iterdir() if not p.name.startswith("events.")) == [
-        "checkpoint", "config.json", "curve.png", "log.csv", "log.json", "params.msgpack"]
+        "checkpoint",
+        "config.json",
+        "curve.png",
+        "log.csv",
+        "log.json",
+        "params.msgpack",
+    ]
     if _has_tensorboardx():
         assert any(p.name.startswith("events.out.tfevents") for p in a.iterdir())
 
@@ -164,12 +203,30 @@ def _has_tensorboardx() -> bool:
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("algo, module, config", [
-    ("ppo_rnn", ppo_rnn, {**TINY, "hidden": 16}),
-    ("dqn", dqn, dict(env_id="HistoJAX-Easy-v0", with_position=True, num_envs=4, total_timesteps=4 * 8 * 5,
-                      buffer_size=64, batch_size=8, learning_starts=16, iterations_per_log=8, hidden=16,
-                      num_seeds=2, print_progress=False, checkpoint_every=2)),
-])
+@pytest.mark.parametrize(
+    "algo, module, config",
+    [
+        ("ppo_rnn", ppo_rnn, {**TINY, "hidden": 16}),
+        (
+            "dqn",
+            dqn,
+            dict(
+                env_id="HistoJAX-Easy-v0",
+                with_position=True,
+                num_envs=4,
+                total_timesteps=4 * 8 * 5,
+                buffer_size=64,
+                batch_size=8,
+                learning_starts=16,
+                iterations_per_log=8,
+                hidden=16,
+                num_seeds=2,
+                print_progress=False,
+                checkpoint_every=2,
+            ),
+        ),
+    ],
+)
 def test_recurrent_ppo_and_dqn_resume_equal_the_uninterrupted_run(tmp_path, monkeypatch, algo, module, config):
     """The same for recurrent PPO (GRU states carried) and DQN (replay buffer, target network carried)."""
     _no_reference(monkeypatch)
@@ -189,8 +246,8 @@ def test_tensorboard_events_beside_log_csv(tmp_path):
     assert len(events) == 1
     data, at, scalars = events[0].read_bytes(), 0, {}
     while at < len(data):  # TFRecord: length (8 bytes), its CRC (4), the record, its CRC (4)
-        n = int.from_bytes(data[at:at + 8], "little")
-        event = event_pb2.Event.FromString(data[at + 12:at + 12 + n])
+        n = int.from_bytes(data[at : at + 8], "little")
+        event = event_pb2.Event.FromString(data[at + 12 : at + 12 + n])
         at += 16 + n
         for v in event.summary.value:
             scalars[(v.tag, event.step)] = v.simple_value
@@ -305,7 +362,7 @@ def test_a_run_on_a_full_disk_keeps_the_previous_runs_files_together_and_names_t
 
 
 def test_train_dataset_and_split_options_reach_make():
-    args = ppo.parse_args(["--dataset", "DS", "--split", "test", "--set", "env_kwargs={\"tumour_slides_only\": true}"])
+    args = ppo.parse_args(["--dataset", "DS", "--split", "test", "--set", 'env_kwargs={"tumour_slides_only": true}'])
     config = ppo.config_from_args(args)
     assert config["env_kwargs"] == {"tumour_slides_only": True, "dataset": "DS", "split": "test"}
     assert env_overrides(config)["dataset"] == "DS" and env_overrides(config)["split"] == "test"

@@ -9,6 +9,7 @@ on the device): the bytes of the resident sets' buffers, and the bytes of *every
 on the device — which must not exceed what was there before the first set (the trainer's own
 arrays), the train state and the budget: a third set, or the whole dataset, would not fit.
 """
+
 from __future__ import annotations
 
 import jax
@@ -17,8 +18,17 @@ import pytest
 
 from baselines import rotation
 
-CONFIG = dict(env_id="HistoJAX-Easy-v0", num_envs=4, num_steps=8, total_timesteps=8 * 32, update_epochs=1,
-              num_minibatches=2, hidden=16, num_seeds=1, print_progress=False)
+CONFIG = dict(
+    env_id="HistoJAX-Easy-v0",
+    num_envs=4,
+    num_steps=8,
+    total_timesteps=8 * 32,
+    update_epochs=1,
+    num_minibatches=2,
+    hidden=16,
+    num_seeds=1,
+    print_progress=False,
+)
 
 
 @pytest.fixture(scope="module")
@@ -30,8 +40,13 @@ def store(small_slides):
 def test_rotating_run_stays_under_the_device_budget(small_slides, store):
     dataset = store.nbytes()
     budget = dataset // 3
-    result = rotation.train_rotating({**CONFIG, "env_kwargs": {"slides": small_slides}}, budget_bytes=budget,
-                                     resident=None, rotate_every=1, source="disk")
+    result = rotation.train_rotating(
+        {**CONFIG, "env_kwargs": {"slides": small_slides}},
+        budget_bytes=budget,
+        resident=None,
+        rotate_every=1,
+        source="disk",
+    )
     rot = result["rotation"]
     assert rot["dataset_bytes"] == dataset >= 3 * budget
     assert rot["resident_slides"] == 1  # the most that fit twice in a third of the dataset

@@ -20,6 +20,7 @@ Both compiles use ``--xla_backend_optimization_level=0`` (same flags for both ru
 test at ~25 s on 2 cores. The clear errors (``num_envs`` not divisible, too few devices, DQN)
 run in-process.
 """
+
 from __future__ import annotations
 
 import json
@@ -36,8 +37,18 @@ from baselines.common.devices import batch_mesh
 from baselines.harness.distributed import cpu_child_env
 
 ROOT = Path(__file__).resolve().parents[2]
-TINY = dict(env_id="HistoJAX-Easy-v0", num_envs=8, num_steps=16, total_timesteps=384, update_epochs=1,
-            num_minibatches=2, hidden=32, num_seeds=1, print_progress=True, log_every=1)
+TINY = dict(
+    env_id="HistoJAX-Easy-v0",
+    num_envs=8,
+    num_steps=16,
+    total_timesteps=384,
+    update_epochs=1,
+    num_minibatches=2,
+    hidden=32,
+    num_seeds=1,
+    print_progress=True,
+    log_every=1,
+)
 
 CHILD = r"""
 import json, sys
@@ -75,8 +86,14 @@ np.savez(out, **saved)
 def runs(tmp_path_factory):
     out = tmp_path_factory.mktemp("sharding") / "runs.npz"
     env = cpu_child_env(4, fast_compile=True)
-    proc = subprocess.run([sys.executable, "-c", CHILD, json.dumps(TINY), str(out)], env=env, cwd=ROOT,
-                          capture_output=True, text=True, timeout=900)
+    proc = subprocess.run(
+        [sys.executable, "-c", CHILD, json.dumps(TINY), str(out)],
+        env=env,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=900,
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-5000:]
     return dict(np.load(out)), proc.stdout
 

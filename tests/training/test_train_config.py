@@ -1,6 +1,7 @@
 """The trainers' typed configs (``PPOConfig``, ``DQNConfig``, ``PPORNNConfig``): every published agent's
 ``config.json`` loads and records back the same, an unknown entry or a wrong type is one line naming it, and
 ``make_train`` given a dict builds what it builds from the typed config."""
+
 from __future__ import annotations
 
 import dataclasses
@@ -10,15 +11,25 @@ from pathlib import Path
 import pytest
 
 from baselines import dqn, ppo, ppo_rnn
-from baselines.harness.runner import resume_config
 from baselines.common.config import ConfigError
+from baselines.harness.runner import resume_config
 
 PUBLISHED = Path(__file__).resolve().parents[2] / "baselines" / "published"
 CLASSES = {"ppo": ppo.PPOConfig, "ppo_rnn": ppo_rnn.PPORNNConfig, "dqn": dqn.DQNConfig}
 DEFAULTS = {"ppo": ppo.DEFAULTS, "ppo_rnn": ppo_rnn.DEFAULTS, "dqn": dqn.DEFAULTS}
 TRAINER_CONFIGS = sorted(p for p in PUBLISHED.glob("*/config.json") if "algo" in json.loads(p.read_text()))
-TINY = dict(env_id="HistoJAX-Easy-v0", with_position=True, num_envs=4, num_steps=8, total_timesteps=64,
-            update_epochs=1, num_minibatches=2, hidden=16, num_seeds=1, print_progress=False)
+TINY = dict(
+    env_id="HistoJAX-Easy-v0",
+    with_position=True,
+    num_envs=4,
+    num_steps=8,
+    total_timesteps=64,
+    update_epochs=1,
+    num_minibatches=2,
+    hidden=16,
+    num_seeds=1,
+    print_progress=False,
+)
 
 
 def test_the_published_agents_are_found():
@@ -42,15 +53,21 @@ def test_defaults_and_record_order_are_those_of_before():
     assert list(ppo.DEFAULTS)[:3] == ["algo", "env_id", "slide"] and "seed" not in ppo.DEFAULTS
     assert list(ppo_rnn.DEFAULTS) == [k for k in ppo.DEFAULTS if k != "devices"]
     assert (ppo_rnn.DEFAULTS["algo"], ppo_rnn.DEFAULTS["hidden"], ppo_rnn.DEFAULTS["num_minibatches"]) == (
-        "ppo_rnn", 128, 4)
+        "ppo_rnn",
+        128,
+        4,
+    )
     record = ppo.PPOConfig(seed=3).as_dict()
     assert list(record)[-1] == "seed" and record["seed"] == 3
     assert ppo.PPOConfig.from_dict({"obs": "features"}).obs_mode == "features"  # the older spelling
 
 
 def test_an_unknown_entry_is_refused_in_one_line_naming_it():
-    with pytest.raises(ConfigError, match=r"^run/config\.json: unknown config entry 'lrr' for ppo "
-                                          r"\(did you mean 'lr'\?\); known: ") as e:
+    with pytest.raises(
+        ConfigError,
+        match=r"^run/config\.json: unknown config entry 'lrr' for ppo "
+        r"\(did you mean 'lr'\?\); known: ",
+    ) as e:
         ppo.PPOConfig.from_dict({"lrr": 0.1}, where="run/config.json")
     assert "\n" not in str(e.value)
     with pytest.raises(ConfigError, match="unknown config entry 'num_steps' for dqn"):
@@ -60,14 +77,17 @@ def test_an_unknown_entry_is_refused_in_one_line_naming_it():
     assert ppo.PPOConfig.from_dict({"bogus": 1}, strict=False) == ppo.PPOConfig()  # a record read leniently
 
 
-@pytest.mark.parametrize("entry, value, words", [
-    ("lr", "fast", "lr='fast' must be a number, not a str"),
-    ("num_envs", 4.0, "num_envs=4.0 must be a whole number, not a float"),
-    ("anneal_lr", 1, "anneal_lr=1 must be true or false, not a int"),
-    ("env_kwargs", [1], "env_kwargs=[1] must be an object or null, not a list"),
-    ("devices", "2", "devices='2' must be a whole number or null, not a str"),
-    ("slide", 3, "slide=3 must be a string or a path or null, not a int"),
-])
+@pytest.mark.parametrize(
+    "entry, value, words",
+    [
+        ("lr", "fast", "lr='fast' must be a number, not a str"),
+        ("num_envs", 4.0, "num_envs=4.0 must be a whole number, not a float"),
+        ("anneal_lr", 1, "anneal_lr=1 must be true or false, not a int"),
+        ("env_kwargs", [1], "env_kwargs=[1] must be an object or null, not a list"),
+        ("devices", "2", "devices='2' must be a whole number or null, not a str"),
+        ("slide", 3, "slide=3 must be a string or a path or null, not a int"),
+    ],
+)
 def test_a_wrong_type_is_refused_in_one_line(entry, value, words):
     with pytest.raises(ConfigError) as e:
         ppo.PPOConfig.from_dict({entry: value}, where="the options (--set)")
@@ -81,8 +101,9 @@ def test_a_stopped_runs_notes_load_and_are_not_kept():
 
 
 def test_a_number_where_a_float_goes_and_null_where_allowed_load():
-    config = ppo.PPOConfig.from_dict({"lr": 1, "ent_coef_final": None, "max_steps_in_episode": None, "devices": 2,
-                                      "slide": Path("bundle")})
+    config = ppo.PPOConfig.from_dict(
+        {"lr": 1, "ent_coef_final": None, "max_steps_in_episode": None, "devices": 2, "slide": Path("bundle")}
+    )
     assert config.lr == 1 and config.devices == 2 and config.slide == Path("bundle")  # a slide folder as a Path
 
 
@@ -103,9 +124,14 @@ def test_the_command_line_refuses_a_wrong_type_in_one_line(tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
-@pytest.mark.parametrize("module, extra", [(ppo, {}), (ppo_rnn, {}),
-                                           (dqn, {"buffer_size": 64, "batch_size": 8, "learning_starts": 16,
-                                                  "iterations_per_log": 4})])
+@pytest.mark.parametrize(
+    "module, extra",
+    [
+        (ppo, {}),
+        (ppo_rnn, {}),
+        (dqn, {"buffer_size": 64, "batch_size": 8, "learning_starts": 16, "iterations_per_log": 4}),
+    ],
+)
 def test_make_train_of_a_dict_equals_make_train_of_the_typed_config(module, extra):
     """``make_train`` converts a dict once at its top: the built config (typed and recorded), env and network
     are those of the typed config (no training run)."""
@@ -122,13 +148,24 @@ def test_make_train_of_a_dict_equals_make_train_of_the_typed_config(module, extr
 def test_the_env_is_made_through_make_options():
     """A config's env settings become ``make``'s own arguments and the typed ``MakeOptions``; an ``env_kwargs``
     entry ``make`` has not is ``make``'s one line."""
-    config = ppo.PPOConfig(action_mode="glimpse:1", obs_mode="features", reward="sparse", max_steps_in_episode=9,
-                           env_kwargs={"dataset": "DS", "split": "test", "read_budget": 0.25})
+    config = ppo.PPOConfig(
+        action_mode="glimpse:1",
+        obs_mode="features",
+        reward="sparse",
+        max_steps_in_episode=9,
+        env_kwargs={"dataset": "DS", "split": "test", "read_budget": 0.25},
+    )
     arguments, options = config.make_arguments(auto_reset=False)
     assert arguments == {"slide": None, "dataset": "DS", "split": "test"}
-    assert options.given() == {"action_mode": "glimpse:1", "obs_mode": "features", "with_position": False,
-                               "reward": "sparse", "auto_reset": False, "max_steps_in_episode": 9,
-                               "read_budget": 0.25}
+    assert options.given() == {
+        "action_mode": "glimpse:1",
+        "obs_mode": "features",
+        "with_position": False,
+        "reward": "sparse",
+        "auto_reset": False,
+        "max_steps_in_episode": 9,
+        "read_budget": 0.25,
+    }
     with pytest.raises(TypeError, match=r"make\('HistoJAX-Easy-v0'\) got unknown settings \['bogus'\]"):
         ppo.PPOConfig(env_kwargs={"bogus": 1}).make_arguments()
 
@@ -173,16 +210,27 @@ def test_an_unknown_key_is_a_warning_naming_the_file_not_a_refusal(tmp_path):
     warnings = []
     config = read_run_config(path, warnings=warnings)
     assert config == ppo.PPOConfig()  # read, the unknown keys ignored
-    assert warnings == [f"{path}: unknown key 'hiden' ignored (did you mean 'hidden'?)",
-                        f"{path}: unknown key 'zzz' ignored"]
+    assert warnings == [
+        f"{path}: unknown key 'hiden' ignored (did you mean 'hidden'?)",
+        f"{path}: unknown key 'zzz' ignored",
+    ]
     # another trainer's entries are known (no warning) and ignored by this one
     warnings = []
     assert read_run_config({**ppo.DEFAULTS, "eps_end": 0.1}, "c.json", warnings) == ppo.PPOConfig()
     assert warnings == []
 
 
-@pytest.mark.parametrize("entry, value", [("lr", "fast"), ("num_envs", 2.5), ("with_position", "yes"),
-                                          ("hidden", 0), ("action_mode", 3), ("env_kwargs", [1])])
+@pytest.mark.parametrize(
+    "entry, value",
+    [
+        ("lr", "fast"),
+        ("num_envs", 2.5),
+        ("with_position", "yes"),
+        ("hidden", 0),
+        ("action_mode", 3),
+        ("env_kwargs", [1]),
+    ],
+)
 def test_a_wrong_type_is_one_line_naming_the_file(tmp_path, entry, value):
     path = tmp_path / "config.json"
     path.write_text(json.dumps({**ppo.DEFAULTS, entry: value}))

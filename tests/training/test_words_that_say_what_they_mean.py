@@ -1,12 +1,13 @@
 """Words that say what a number means: the first line of a training (how many seeds, ``--total-steps`` per seed), the
 reader trainer's progress words (the head reward it optimises, the head's success as ``evaluate`` reports it) and a
 trajectory picture's title (how its episode was picked among the others). Host strings only: no env."""
+
 from __future__ import annotations
 
 import numpy as np
 
-from baselines.harness.runner import seeds_line
 from baselines.evaluate.pictures import picked_words
+from baselines.harness.runner import seeds_line
 from baselines.reading.train_readers import progress_words
 
 
@@ -14,8 +15,10 @@ def test_a_training_says_how_many_seeds_and_that_total_steps_is_per_seed():
     """Was: "PPO on HistoJAX-Easy-v0: 32 updates x 2048 env steps x 4 seeds": the 4 seeds a user did not ask for,
     and 4 x the env steps they gave, went unsaid."""
     line = seeds_line("ppo", {"num_seeds": 4, "env_id": "HistoJAX-Easy-v0"}, 32, 2048)
-    assert line == ("PPO on HistoJAX-Easy-v0: 4 seeds (--seeds), 65,536 env steps each (--total-steps is per seed; "
-                    "262,144 in all): 32 updates x 2,048 env steps")
+    assert line == (
+        "PPO on HistoJAX-Easy-v0: 4 seeds (--seeds), 65,536 env steps each (--total-steps is per seed; "
+        "262,144 in all): 32 updates x 2,048 env steps"
+    )
     one = seeds_line("dqn", {"num_seeds": 1, "env_id": "E"}, 10, 100, unit="chunks")
     assert one.startswith("DQN on E: 1 seed (--seeds), 1,000 env steps (--total-steps is per seed; 1,000 in all)")
 

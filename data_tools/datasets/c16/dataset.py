@@ -18,6 +18,7 @@ rebuild (a full disk, a killed feature step) leaves the previous bundle and its 
 made holding ``bundles/.NAME.dataset-lock`` (``flock``, released by the kernel even on SIGKILL) and
 recorded in ``records/NAME.json``; a run first deletes the hidden temporaries of slides nobody is making.
 """
+
 from __future__ import annotations
 
 import json
@@ -32,23 +33,25 @@ from tqdm.auto import tqdm
 from data_tools.bundle_files.format import sha256
 from data_tools.bundle_files.reading import bundle_damage, read_metadata
 from data_tools.bundle_files.writes import atomic_file, write_json
-from data_tools.datasets.c16.layout import C16_MPP, donor_for, layout
 from data_tools.datasets.c16.inputs import check_known_inputs, differing_lines
+from data_tools.datasets.c16.layout import C16_MPP, donor_for, layout
 from data_tools.datasets.c16.mosaic import PIXELS_NOTE, Texture, write_slide_tiff
+from data_tools.datasets.pcam_bank import CITATION, load_bank
 from data_tools.datasets.split import grouped_split as split_slides  # one home for splits (data_tools.datasets)
 from data_tools.errors import HistojaxDataError
-from data_tools.datasets.pcam_bank import CITATION, load_bank
 
-FULL_DOWNSAMPLE = 8.0    # the full benchmark: CAMELYON16 level 0 / 8 = 1.94 µm/px (see docs/c16-benchmark.md)
+FULL_DOWNSAMPLE = 8.0  # the full benchmark: CAMELYON16 level 0 / 8 = 1.94 µm/px (see docs/c16-benchmark.md)
 SMALL_DOWNSAMPLE = 32.0  # the small variant (tests, demo): 7.8 µm/px
-COARSEST = 256.0         # the coarsest env level is CAMELYON16 level 0 / 256 for every downsample
+COARSEST = 256.0  # the coarsest env level is CAMELYON16 level 0 / 256 for every downsample
 SMALL_SLIDES = ("Tumor_072", "Tumor_082", "Tumor_094", "Normal_017", "Normal_042", "Normal_108")
 TILE_SIZE = 128
 LEVEL_SETS = (3, 5, 7)
-DATASET_FORMAT = 2       # 2: train/test slides textured from disjoint PCam patch pools (recorded in dataset.json)
-LICENCE = ("tumour and tissue polygons: CAMELYON16 ground truth (CC0 1.0) as converted to JSON by "
-           "baidu-research/NCRF (Apache-2.0); tissue outlines of tumor_001/013/021/031/051/092: pathml-tutorial; "
-           "pixels: PatchCamelyon patches, CC0 1.0 — " + CITATION)
+DATASET_FORMAT = 2  # 2: train/test slides textured from disjoint PCam patch pools (recorded in dataset.json)
+LICENCE = (
+    "tumour and tissue polygons: CAMELYON16 ground truth (CC0 1.0) as converted to JSON by "
+    "baidu-research/NCRF (Apache-2.0); tissue outlines of tumor_001/013/021/031/051/092: pathml-tutorial; "
+    "pixels: PatchCamelyon patches, CC0 1.0 — " + CITATION
+)
 
 
 def clean_stale(out_dir: Path) -> list[str]:
@@ -58,21 +61,40 @@ def clean_stale(out_dir: Path) -> list[str]:
     whose name a live process is building is left alone."""
     from data_tools.datasets.locks import clean_stale as _clean
 
-    return [f"bundles/{n}" for n in _clean(out_dir / "bundles")] + \
-        [f"slides/{n}" for n in _clean(out_dir / "slides", finished_features=False, lock_folder=out_dir / "bundles")]
+    return [f"bundles/{n}" for n in _clean(out_dir / "bundles")] + [
+        f"slides/{n}" for n in _clean(out_dir / "slides", finished_features=False, lock_folder=out_dir / "bundles")
+    ]
 
 
 def _slide_settings(name, downsample, seed, bank, jpeg_quality, sha, donor=None, pool=None) -> dict:
     from data_tools.datasets.c16 import mosaic as c16_mosaic
 
-    return {"name": name, "downsample": float(downsample), "seed": int(seed), "bank": bank.source,
-            "bank_patches": len(bank), "jpeg_quality": int(jpeg_quality), "polygons_sha256": sha,
-            "colour_match": c16_mosaic.COLOUR_MATCH, "tissue_donor": donor.name if donor is not None else None,
-            "donor_polygons_sha256": donor.sha256 if donor is not None else None, "patch_pool": pool}
+    return {
+        "name": name,
+        "downsample": float(downsample),
+        "seed": int(seed),
+        "bank": bank.source,
+        "bank_patches": len(bank),
+        "jpeg_quality": int(jpeg_quality),
+        "polygons_sha256": sha,
+        "colour_match": c16_mosaic.COLOUR_MATCH,
+        "tissue_donor": donor.name if donor is not None else None,
+        "donor_polygons_sha256": donor.sha256 if donor is not None else None,
+        "patch_pool": pool,
+    }
 
 
-def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, jpeg_quality: int = 85,
-               progress: bool = True, pool: str | None = None) -> dict:
+def make_slide(
+    out_dir: Path,
+    slide,
+    donor,
+    downsample: float,
+    seed: int,
+    bank,
+    jpeg_quality: int = 85,
+    progress: bool = True,
+    pool: str | None = None,
+) -> dict:
     """Write ``slides/NAME.tif`` (+ ``.geojson``, ``.provenance.json``) unless a finished one with the same
     settings (the donor of its tissue and its patch pool included) is there; returns its provenance.
     ``bank``: the patches this slide may draw (its split's pool); ``pool``: that pool's name."""
@@ -93,10 +115,18 @@ def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, 
     t0 = time.perf_counter()
     lay = layout(slide, downsample, donor)
     texture = Texture(bank, downsample, seed)
-    description = (f"histojax true-scale CAMELYON16 slide {slide.name}. {PIXELS_NOTE} Scale: CAMELYON16 level 0 / "
-                   f"{downsample:g} = {lay.mpp:.4g} um/px. Tissue: {lay.provenance['tissue']}. Seed {seed}.")
-    bar = tqdm(total=-(-lay.size[0] // 256) * -(-lay.size[1] // 256), unit="tile", leave=False,
-               desc=f"{slide.name} ({lay.size[0]}×{lay.size[1]} px)", disable=not progress, mininterval=1.0)
+    description = (
+        f"histojax true-scale CAMELYON16 slide {slide.name}. {PIXELS_NOTE} Scale: CAMELYON16 level 0 / "
+        f"{downsample:g} = {lay.mpp:.4g} um/px. Tissue: {lay.provenance['tissue']}. Seed {seed}."
+    )
+    bar = tqdm(
+        total=-(-lay.size[0] // 256) * -(-lay.size[1] // 256),
+        unit="tile",
+        leave=False,
+        desc=f"{slide.name} ({lay.size[0]}×{lay.size[1]} px)",
+        disable=not progress,
+        mininterval=1.0,
+    )
     try:
         with atomic_file(tiff) as tmp:
             info = write_slide_tiff(lay, texture, tmp, description, jpeg_quality, progress=bar.update)
@@ -105,15 +135,25 @@ def make_slide(out_dir: Path, slide, donor, downsample: float, seed: int, bank, 
     summary = f"geometry real CAMELYON16 {slide.name}, pixels real PCam patches arranged by histojax"
     tiff.with_suffix(".geojson").write_text(json.dumps(_geojson(lay.tumour, lay.tissue, summary), allow_nan=False))
     area = float(lay.size[0]) * lay.size[1]
-    prov = {"settings": settings, "note": PIXELS_NOTE, "licence": LICENCE, "summary": summary, **lay.provenance,
-            "stain_od_factors": texture.stain, "patch_pool": pool,
-            "patch_names": {str(lab): names for lab, names in texture.patch_names.items()},
-            "patch_side_px": texture.side, "patch_step_px": texture.step,
-            "tumour_fraction_of_canvas": float(lay.tumour.area) / area,
-            "tumour_fraction_of_tissue": float(lay.tumour.area) / max(float(lay.tissue.area), 1.0),
-            "tissue_fraction_of_canvas": float(lay.tissue.area) / area, **info,
-            "tiff_bytes": tiff.stat().st_size, "tiff_sha256": sha256(tiff),
-            "seconds": round(time.perf_counter() - t0, 2)}
+    prov = {
+        "settings": settings,
+        "note": PIXELS_NOTE,
+        "licence": LICENCE,
+        "summary": summary,
+        **lay.provenance,
+        "stain_od_factors": texture.stain,
+        "patch_pool": pool,
+        "patch_names": {str(lab): names for lab, names in texture.patch_names.items()},
+        "patch_side_px": texture.side,
+        "patch_step_px": texture.step,
+        "tumour_fraction_of_canvas": float(lay.tumour.area) / area,
+        "tumour_fraction_of_tissue": float(lay.tumour.area) / max(float(lay.tissue.area), 1.0),
+        "tissue_fraction_of_canvas": float(lay.tissue.area) / area,
+        **info,
+        "tiff_bytes": tiff.stat().st_size,
+        "tiff_sha256": sha256(tiff),
+        "seconds": round(time.perf_counter() - t0, 2),
+    }
     write_json(prov_file, prov)
     return prov
 
@@ -127,8 +167,15 @@ def has_grid_of(meta, encoder: str) -> bool:
     return have.get("encoder") == want["encoder"] and have.get("encoder_version") == want.get("encoder_version")
 
 
-def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float, progress: bool = False,
-                encoder: str | None = None, into: Path | None = None) -> dict:
+def make_bundle(
+    out_dir: Path,
+    name: str,
+    prov: dict,
+    magnification_range: float,
+    progress: bool = False,
+    encoder: str | None = None,
+    into: Path | None = None,
+) -> dict:
     """Build (unless up to date) the tiled bundle ``bundles/NAME`` of a made slide; returns its metadata.
     Up to date: made from the same TIFF and range, and holding its pixels, or (a feature-only bundle) the
     feature grid of ``encoder`` (the pixels are needed again to embed them with another encoder).
@@ -143,9 +190,12 @@ def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float
         try:
             meta = read_metadata(bundle)
             whole = len(meta.pixel_levels) == len(meta.levels)
-            if meta.source["sha256"] == prov["tiff_sha256"] and meta.magnification_range == magnification_range \
-                    and (whole or (encoder is not None and has_grid_of(meta, encoder))) \
-                    and (target == bundle or bundle_damage(bundle) is None):  # a damaged bundle is built again
+            if (
+                meta.source["sha256"] == prov["tiff_sha256"]
+                and meta.magnification_range == magnification_range
+                and (whole or (encoder is not None and has_grid_of(meta, encoder)))
+                and (target == bundle or bundle_damage(bundle) is None)
+            ):  # a damaged bundle is built again
                 if target == bundle:
                     return meta
                 _link_bundle(bundle, target)
@@ -153,9 +203,17 @@ def make_bundle(out_dir: Path, name: str, prov: dict, magnification_range: float
         except (HistojaxDataError, KeyError):
             pass
     tiff = out_dir / "slides" / f"{name}.tif"
-    build_bundle(tiff, target, annotations_path=tiff.with_suffix(".geojson"), level_sets=LEVEL_SETS,
-                 tile_size=TILE_SIZE, magnification_range=magnification_range, storage="tiled", overwrite=True,
-                 progress=progress)
+    build_bundle(
+        tiff,
+        target,
+        annotations_path=tiff.with_suffix(".geojson"),
+        level_sets=LEVEL_SETS,
+        tile_size=TILE_SIZE,
+        magnification_range=magnification_range,
+        storage="tiled",
+        overwrite=True,
+        progress=progress,
+    )
     return read_metadata(target)
 
 
@@ -237,8 +295,9 @@ def _one_slide(job, bundle: Path) -> dict:
     out_dir, slide, donor, d, seed, jpeg_quality, mag, encoder, no_pixels, side = job
     s0 = time.perf_counter()
     name = slide.name
-    prov = make_slide(out_dir, slide, donor, d, seed, _WORKER["banks"][side], jpeg_quality, _WORKER["progress"],
-                      pool=side)
+    prov = make_slide(
+        out_dir, slide, donor, d, seed, _WORKER["banks"][side], jpeg_quality, _WORKER["progress"], pool=side
+    )
     meta = make_bundle(out_dir, name, prov, mag, encoder=encoder if no_pixels else None, into=bundle)
     if encoder and not has_grid_of(meta, encoder):
         from data_tools.features.grid import compute_features
@@ -254,9 +313,16 @@ def _one_slide(job, bundle: Path) -> dict:
         drop_pixels(bundle)
         meta = read_metadata(bundle)
     return {
-        "name": name, "bundle": f"bundles/{name}", "tiff": f"slides/{name}.tif",
-        "label": int(slide.is_tumour_slide), "split": side, "patch_pool": side, "tissue": prov["tissue"],
-        "tissue_donor": prov.get("tissue_donor"), "canvas": prov["canvas"], "mpp": prov["mpp"],
+        "name": name,
+        "bundle": f"bundles/{name}",
+        "tiff": f"slides/{name}.tif",
+        "label": int(slide.is_tumour_slide),
+        "split": side,
+        "patch_pool": side,
+        "tissue": prov["tissue"],
+        "tissue_donor": prov.get("tissue_donor"),
+        "canvas": prov["canvas"],
+        "mpp": prov["mpp"],
         "tumour_area_level0_px2": prov["tumour_area_level0_px2"],
         "tumour_fraction_of_tissue": round(prov["tumour_fraction_of_tissue"], 6),
         "finest_views_ge50": _views_ge(meta, bundle),
@@ -267,7 +333,8 @@ def _one_slide(job, bundle: Path) -> dict:
         "device_bytes_features": _feature_layout_bytes(meta),
         "pixels_kept": len(meta.pixel_levels) == len(meta.levels),
         "encoder": (meta.features or {}).get("encoder"),
-        "seconds_slide": prov["seconds"], "seconds_total": round(time.perf_counter() - s0, 2),
+        "seconds_slide": prov["seconds"],
+        "seconds_total": round(time.perf_counter() - s0, 2),
         "peak_rss_bytes": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024,
     }
 
@@ -281,8 +348,13 @@ def _locked_slide(job) -> dict:
     from data_tools.datasets.build import run_locked
 
     out_dir, name, set_key = job[0], job[1].name, job[-1]
-    return run_locked(out_dir, name, lambda folder: {**_one_slide(job[:-1], folder), "settings": set_key},
-                      current=lambda rec: rec.get("settings") == set_key, staged=True)
+    return run_locked(
+        out_dir,
+        name,
+        lambda folder: {**_one_slide(job[:-1], folder), "settings": set_key},
+        current=lambda rec: rec.get("settings") == set_key,
+        staged=True,
+    )
 
 
 def _adopt_old_records(out_dir: Path, set_key: dict, universe: list[str]) -> None:
@@ -305,12 +377,27 @@ def _adopt_old_records(out_dir: Path, set_key: dict, universe: list[str]) -> Non
             write_json(record_path(out_dir, name), {**r, "settings": set_key})
 
 
-def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = False, downsample: float | None = None,
-                     names=None, n_tumour: int | None = None, n_normal: int | None = None, seed: int = 0,
-                     test_fraction: float = 0.25, features: bool | str = False, jpeg_quality: int = 85,
-                     progress: bool = True, workers: int = 1, no_pixels: bool = False,
-                     test_patches=None, shard: tuple[int, int] | None = None, merge: bool = False,
-                     folds: int | None = None) -> dict:
+def make_c16_dataset(
+    out_dir,
+    annotations=None,
+    patches=None,
+    small: bool = False,
+    downsample: float | None = None,
+    names=None,
+    n_tumour: int | None = None,
+    n_normal: int | None = None,
+    seed: int = 0,
+    test_fraction: float = 0.25,
+    features: bool | str = False,
+    jpeg_quality: int = 85,
+    progress: bool = True,
+    workers: int = 1,
+    no_pixels: bool = False,
+    test_patches=None,
+    shard: tuple[int, int] | None = None,
+    merge: bool = False,
+    folds: int | None = None,
+) -> dict:
     """Make (or finish) the true-scale CAMELYON16 dataset in ``out_dir`` (see the module doc).
 
     ``annotations``: a folder or ``.tar.gz`` of NCRF JSON files (default: the 6 shipped with the
@@ -344,9 +431,9 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     written and the dict holds only ``dataset_written: False``, ``missing``, ``failed`` and ``run``.
     """
     from data_tools.datasets.c16.layout import OWN_TISSUE
+    from data_tools.datasets.pcam_bank import pool_rule, split_pools
     from data_tools.features import encoder_record
     from data_tools.ncrf import SHIPPED_DIR, read_ncrf
-    from data_tools.datasets.pcam_bank import pool_rule, split_pools
 
     out_dir = Path(out_dir)
     d = float(downsample or (SMALL_DOWNSAMPLE if small else FULL_DOWNSAMPLE))
@@ -360,22 +447,27 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
     inputs = check_known_inputs(annotations=annotations, patches=patches)  # the published tables' bytes?
     for line in differing_lines(inputs):
         print(line, file=sys.stderr)  # a warning, not a refusal: other inputs are allowed
-    every = read_ncrf(source)   # the whole set: its split and donors hold for any subset
+    every = read_ncrf(source)  # the whole set: its split and donors hold for any subset
     universe = [n for n in every if n in SMALL_SLIDES] if small else list(every)
     if small and len(universe) != len(SMALL_SLIDES):
-        raise HistojaxDataError(source, f"the small variant needs {', '.join(SMALL_SLIDES)}; "
-                                f"missing {sorted(set(SMALL_SLIDES) - set(universe))}")
+        raise HistojaxDataError(
+            source,
+            f"the small variant needs {', '.join(SMALL_SLIDES)}; missing {sorted(set(SMALL_SLIDES) - set(universe))}",
+        )
     if names is not None and set(names) - set(universe):
-        raise HistojaxDataError(source, f"no such slide(s) {sorted(set(names) - set(universe))}"
-                                + (" in the small variant" if small else ""))
+        raise HistojaxDataError(
+            source,
+            f"no such slide(s) {sorted(set(names) - set(universe))}" + (" in the small variant" if small else ""),
+        )
     tumours_all = [n for n in universe if every[n].is_tumour_slide]
     normals_all = [n for n in universe if not every[n].is_tumour_slide]
     donors = {}
     for n in tumours_all:
         if n not in OWN_TISSUE:
             if not normals_all:
-                raise HistojaxDataError(source, f"{n} needs a Normal_* slide to lend it tissue; the annotations "
-                                        "hold none")
+                raise HistojaxDataError(
+                    source, f"{n} needs a Normal_* slide to lend it tissue; the annotations hold none"
+                )
             donors[n] = donor_for(n, tumours_all, normals_all)
     train_all, test_all = split_slides(universe, donors, test_fraction, seed)
     chosen = set(names) if names is not None else set(tumours_all[:n_tumour]) | set(normals_all[:n_normal])
@@ -386,39 +478,64 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
         from data_tools.datasets.split import folds_record, kfold_split
 
         group = {n: donors.get(n, n) for n in train_all}
-        fold_plan = folds_record(kfold_split(train_all, {n: int(every[n].is_tumour_slide) for n in train_all}, folds,
-                                             seed, group), folds, seed, "train", "a tumour slide with the normal slide "
-                                 "lending it tissue")
+        fold_plan = folds_record(
+            kfold_split(train_all, {n: int(every[n].is_tumour_slide) for n in train_all}, folds, seed, group),
+            folds,
+            seed,
+            "train",
+            "a tumour slide with the normal slide lending it tissue",
+        )
     bank = load_bank(patches)
     train_pool, test_pool = split_pools(bank)
     test_bank = load_bank(test_patches) if test_patches is not None else test_pool
-    pools = {**pool_rule(), "bank": bank.source,
-             "train": {"source": train_pool.source, "patches": len(train_pool),
-                       "tumour_patches": int(train_pool.labels.sum())},
-             "test": {"source": test_bank.source, "patches": len(test_bank),
-                      "tumour_patches": int(test_bank.labels.sum()), "other_patch_set": test_patches is not None}}
+    pools = {
+        **pool_rule(),
+        "bank": bank.source,
+        "train": {
+            "source": train_pool.source,
+            "patches": len(train_pool),
+            "tumour_patches": int(train_pool.labels.sum()),
+        },
+        "test": {
+            "source": test_bank.source,
+            "patches": len(test_bank),
+            "tumour_patches": int(test_bank.labels.sum()),
+            "other_patch_set": test_patches is not None,
+        },
+    }
     dataset = {
-        "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)", "format": DATASET_FORMAT,
-        "note": PIXELS_NOTE, "licence": LICENCE,
-        "scale": {"downsample_from_camelyon16_level0": d, "mpp": C16_MPP * d,
-                  "view_px": TILE_SIZE, "view_um": TILE_SIZE * C16_MPP * d,
-                  "magnification_range": mag, "coarsest_downsample_from_level0": COARSEST,
-                  "level_sets": list(LEVEL_SETS)},
-        "seed": int(seed), "test_fraction": test_fraction, "tile_size": TILE_SIZE,
-        "annotations": str(source), "slides_in_annotations": len(universe), "patches": bank.source,
+        "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)",
+        "format": DATASET_FORMAT,
+        "note": PIXELS_NOTE,
+        "licence": LICENCE,
+        "scale": {
+            "downsample_from_camelyon16_level0": d,
+            "mpp": C16_MPP * d,
+            "view_px": TILE_SIZE,
+            "view_um": TILE_SIZE * C16_MPP * d,
+            "magnification_range": mag,
+            "coarsest_downsample_from_level0": COARSEST,
+            "level_sets": list(LEVEL_SETS),
+        },
+        "seed": int(seed),
+        "test_fraction": test_fraction,
+        "tile_size": TILE_SIZE,
+        "annotations": str(source),
+        "slides_in_annotations": len(universe),
+        "patches": bank.source,
         "patch_pools": pools,
         "split_rule": "by slide, over every slide of the annotations (a subset keeps the whole set's split); "
-                      "a tumour slide and the normal slide lending it tissue are on the same side; "
-                      f"at most {test_fraction:.0%} of the tumour and of the normal slides in test; "
-                      "train slides are textured from the training patch pool only, test slides from the "
-                      "test pool (or --test-patches) only",
+        "a tumour slide and the normal slide lending it tissue are on the same side; "
+        f"at most {test_fraction:.0%} of the tumour and of the normal slides in test; "
+        "train slides are textured from the training patch pool only, test slides from the "
+        "test pool (or --test-patches) only",
         "inputs": inputs,  # per .tar.gz input given: its sha256 and whether it is the published tables'
-        **encoder_info, "pixels_kept": not no_pixels,  # encoder (its name); your own's version and spec too
+        **encoder_info,
+        "pixels_kept": not no_pixels,  # encoder (its name); your own's version and spec too
     }
     set_key = {k: dataset[k] for k in (*_SAME_SET_KEYS, "encoder_version") if k in dataset}
     from data_tools.datasets.build import collect_records, run_summary, write_dataset_index
-    from data_tools.datasets.split import fold_lists
-    from data_tools.datasets.split import shard_names
+    from data_tools.datasets.split import fold_lists, shard_names
 
     out_dir.mkdir(parents=True, exist_ok=True)
     _adopt_old_records(out_dir, set_key, universe)
@@ -427,8 +544,22 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
         print(f"removed {len(removed)} stale temporaries of an interrupted run: {', '.join(removed[:5])}")
     t0 = time.perf_counter()
     mine = [] if merge else shard_names(todo, shard)
-    jobs = [(out_dir, every[n], every.get(donors.get(n)), d, slide_seed(seed, n), jpeg_quality, mag, encoder,
-             no_pixels, side[n], set_key) for n in mine]
+    jobs = [
+        (
+            out_dir,
+            every[n],
+            every.get(donors.get(n)),
+            d,
+            slide_seed(seed, n),
+            jpeg_quality,
+            mag,
+            encoder,
+            no_pixels,
+            side[n],
+            set_key,
+        )
+        for n in mine
+    ]
     banks = {"train": train_pool, "test": test_bank}
     bar = tqdm(total=len(jobs), desc="c16 slides", unit="slide", disable=not progress or not jobs)
     results = []
@@ -441,8 +572,9 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
         import multiprocessing
         from concurrent.futures import ProcessPoolExecutor
 
-        with ProcessPoolExecutor(workers, mp_context=multiprocessing.get_context("fork"),
-                                 initializer=_init_worker, initargs=(banks, False)) as pool:
+        with ProcessPoolExecutor(
+            workers, mp_context=multiprocessing.get_context("fork"), initializer=_init_worker, initargs=(banks, False)
+        ) as pool:
             for res in pool.map(_locked_slide, jobs):
                 results.append(res)
                 bar.update(1)
@@ -456,32 +588,46 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
 
     # failures (a rebuild that failed keeps the previous bundle, not of this set) may leave the test split
     # unscorable: then the previous dataset.json stays as it was (one line, nothing written)
-    planned = {n: {"split": side[n], "label": int(every[n].is_tumour_slide)} for n in universe
-               if n in chosen or n in found or n in failed}
+    planned = {
+        n: {"split": side[n], "label": int(every[n].is_tumour_slide)}
+        for n in universe
+        if n in chosen or n in found or n in failed
+    }
     check_scorable(out_dir, {"slides": planned}, found, failed)
     if failed and not found:
         why = "; ".join(f"{n}: {failed[n]}" for n in sorted(failed)[:2])[:300]
-        raise HistojaxDataError(out_dir, f"no slide of this set is built: {len(failed)} failed ({why}); dataset.json "
-                                         "not written (previous bundles are kept): fix them and rerun")
+        raise HistojaxDataError(
+            out_dir,
+            f"no slide of this set is built: {len(failed)} failed ({why}); dataset.json "
+            "not written (previous bundles are kept): fix them and rerun",
+        )
     records = [found[n] for n in universe if n in found]
     present = [r["name"] for r in records]
-    dataset.update({
-        "variant": ("small" if small else "full") if set(present) == set(universe) else "subset",
-        "train": [f"bundles/{n}" for n in present if side[n] == "train"],
-        "test": [f"bundles/{n}" for n in present if side[n] == "test"],
-        "labels": {n: int(every[n].is_tumour_slide) for n in present},
-        "failed": dict(sorted(failed.items())),
-        "slides": records,
-        **({"folds": fold_lists(fold_plan, present)} if fold_plan else {}),
-        "seconds_this_run": round(time.perf_counter() - t0, 2),
-        "peak_rss_bytes_this_run": max([resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024]
-                                       + [r.get("peak_rss_bytes", 0) for r in records if r["name"] in mine]),
-        "workers": int(workers),
-        "disk_bytes": {"slides": sum(r["tiff_bytes"] for r in records),
-                       "bundles": sum(r["bundle_bytes"] for r in records)},
-        "device_bytes": {"pixels": sum(r["device_bytes_pixels"] for r in records),
-                         "features": sum(r["device_bytes_features"] or 0 for r in records)},
-    })
+    dataset.update(
+        {
+            "variant": ("small" if small else "full") if set(present) == set(universe) else "subset",
+            "train": [f"bundles/{n}" for n in present if side[n] == "train"],
+            "test": [f"bundles/{n}" for n in present if side[n] == "test"],
+            "labels": {n: int(every[n].is_tumour_slide) for n in present},
+            "failed": dict(sorted(failed.items())),
+            "slides": records,
+            **({"folds": fold_lists(fold_plan, present)} if fold_plan else {}),
+            "seconds_this_run": round(time.perf_counter() - t0, 2),
+            "peak_rss_bytes_this_run": max(
+                [resource.getrusage(resource.RUSAGE_SELF).ru_maxrss * 1024]
+                + [r.get("peak_rss_bytes", 0) for r in records if r["name"] in mine]
+            ),
+            "workers": int(workers),
+            "disk_bytes": {
+                "slides": sum(r["tiff_bytes"] for r in records),
+                "bundles": sum(r["bundle_bytes"] for r in records),
+            },
+            "device_bytes": {
+                "pixels": sum(r["device_bytes_pixels"] for r in records),
+                "features": sum(r["device_bytes_features"] or 0 for r in records),
+            },
+        }
+    )
     write_dataset_index(out_dir, dataset)
     return {**dataset, "missing": [], "run": run}
 
@@ -489,5 +635,12 @@ def make_c16_dataset(out_dir, annotations=None, patches=None, small: bool = Fals
 _SAME_SET_KEYS = ("format", "scale", "seed", "test_fraction", "annotations", "patch_pools", "encoder", "pixels_kept")
 
 
-__all__ = ["FULL_DOWNSAMPLE", "SMALL_DOWNSAMPLE", "SMALL_SLIDES", "clean_stale", "make_c16_dataset", "make_slide",
-           "split_slides"]
+__all__ = [
+    "FULL_DOWNSAMPLE",
+    "SMALL_DOWNSAMPLE",
+    "SMALL_SLIDES",
+    "clean_stale",
+    "make_c16_dataset",
+    "make_slide",
+    "split_slides",
+]

@@ -17,6 +17,7 @@ relative to the tissue and to the view.
 
 The canvas is the tissue's bounding box grown by ``MARGIN`` level-0 px on every side.
 """
+
 from __future__ import annotations
 
 import math
@@ -29,13 +30,18 @@ from shapely.geometry import MultiPolygon
 
 from data_tools.ncrf import NcrfSlide
 
-C16_MPP = 0.243          # µm per CAMELYON16 level-0 px
-MARGIN = 2048            # level-0 px of glass around the tissue's bounding box
-TUMOUR_RIM = 512         # level-0 px of tissue kept around a placed tumour
-SIMPLIFY = 0.25          # simplification tolerance in output px (sub-pixel, keeps topology)
-OWN_TISSUE = {"Tumor_001": "dtd_tumor_001.xml", "Tumor_013": "dtd_tumor_013.xml", "Tumor_021": "bench_tumor_021.xml",
-              "Tumor_031": "bench_tumor_031.xml", "Tumor_051": "bench_tumor_051.xml",
-              "Tumor_092": "bench_tumor_092.xml"}
+C16_MPP = 0.243  # µm per CAMELYON16 level-0 px
+MARGIN = 2048  # level-0 px of glass around the tissue's bounding box
+TUMOUR_RIM = 512  # level-0 px of tissue kept around a placed tumour
+SIMPLIFY = 0.25  # simplification tolerance in output px (sub-pixel, keeps topology)
+OWN_TISSUE = {
+    "Tumor_001": "dtd_tumor_001.xml",
+    "Tumor_013": "dtd_tumor_013.xml",
+    "Tumor_021": "bench_tumor_021.xml",
+    "Tumor_031": "bench_tumor_031.xml",
+    "Tumor_051": "bench_tumor_051.xml",
+    "Tumor_092": "bench_tumor_092.xml",
+}
 
 
 @dataclass(frozen=True)
@@ -90,8 +96,12 @@ def layout(slide: NcrfSlide, downsample: float, donor: NcrfSlide | None = None) 
     """The geometry of ``slide`` at ``downsample`` (output px = level-0 px / downsample), see the module
     doc. A tumour slide without its own tissue outline needs ``donor`` (a normal slide)."""
     tumour0 = _multi(shapely.difference(slide.positive, slide.negative)) if slide.is_tumour_slide else MultiPolygon()
-    prov: dict = {"slide": slide.name, "polygons": slide.source, "polygons_sha256": slide.sha256,
-                  "downsample_from_camelyon16_level0": downsample}
+    prov: dict = {
+        "slide": slide.name,
+        "polygons": slide.source,
+        "polygons_sha256": slide.sha256,
+        "downsample_from_camelyon16_level0": downsample,
+    }
     if not slide.is_tumour_slide:
         tissue0 = slide.negative
         prov["tissue"] = "the slide's own NCRF 'negative' polygons (machine-traced tissue outlines)"
@@ -109,9 +119,11 @@ def layout(slide: NcrfSlide, downsample: float, donor: NcrfSlide | None = None) 
             moved = affinity.translate(tumour0, cx - (minx + maxx) / 2, cy - (miny + maxy) / 2)
             tumour0 = _multi(moved)
             tissue0 = _multi(shapely.union(tis, tumour0.buffer(TUMOUR_RIM, quad_segs=4)))
-            prov["tissue"] = (f"BORROWED: the tissue outline of {donor.name} (NCRF 'negative' polygons), mirrored "
-                              "left-right; the tumour, unscaled, centred on its most interior point; joined with "
-                              f"the tumour grown by {TUMOUR_RIM} level-0 px")
+            prov["tissue"] = (
+                f"BORROWED: the tissue outline of {donor.name} (NCRF 'negative' polygons), mirrored "
+                "left-right; the tumour, unscaled, centred on its most interior point; joined with "
+                f"the tumour grown by {TUMOUR_RIM} level-0 px"
+            )
             prov["tissue_donor"] = donor.name
             prov["tumour_translation_level0"] = [cx - (minx + maxx) / 2, cy - (miny + maxy) / 2]
     if tissue0.is_empty:
@@ -126,11 +138,23 @@ def layout(slide: NcrfSlide, downsample: float, donor: NcrfSlide | None = None) 
         return _multi(shapely.simplify(moved, SIMPLIFY, preserve_topology=True)) if not moved.is_empty else moved
 
     tumour, tissue = out(tumour0), out(tissue0)
-    prov.update({"canvas_origin_level0": [x0, y0], "canvas": list(size),
-                 "tumour_area_level0_px2": float(tumour0.area), "tissue_area_level0_px2": float(tissue0.area),
-                 "mpp": C16_MPP * downsample})
-    return SlideLayout(name=slide.name, tumour=_multi(tumour) if not tumour.is_empty else MultiPolygon(),
-                       tissue=tissue, size=size, downsample=float(downsample), provenance=prov)
+    prov.update(
+        {
+            "canvas_origin_level0": [x0, y0],
+            "canvas": list(size),
+            "tumour_area_level0_px2": float(tumour0.area),
+            "tissue_area_level0_px2": float(tissue0.area),
+            "mpp": C16_MPP * downsample,
+        }
+    )
+    return SlideLayout(
+        name=slide.name,
+        tumour=_multi(tumour) if not tumour.is_empty else MultiPolygon(),
+        tissue=tissue,
+        size=size,
+        downsample=float(downsample),
+        provenance=prov,
+    )
 
 
 def donor_for(tumour_name: str, tumours: list[str], normals: list[str]) -> str:
@@ -142,5 +166,13 @@ def donor_for(tumour_name: str, tumours: list[str], normals: list[str]) -> str:
     return normals[-(1 + j % len(normals))]
 
 
-__all__ = ["C16_MPP", "MARGIN", "OWN_TISSUE", "SlideLayout", "donor_for", "interior_point", "layout",
-           "own_tissue_outline"]
+__all__ = [
+    "C16_MPP",
+    "MARGIN",
+    "OWN_TISSUE",
+    "SlideLayout",
+    "donor_for",
+    "interior_point",
+    "layout",
+    "own_tissue_outline",
+]

@@ -23,8 +23,8 @@ The pyramid (2×, 4×, … until the longer side is ≤ 512 px) is made by 2 × 
 keeps one pending row of tiles, filled by the finer level's tile rows as they are made, so memory is
 a few tile rows per level plus the (encoded) coarser levels.
 """
-from __future__ import annotations
 
+from __future__ import annotations
 
 import numpy as np
 from scipy.ndimage import uniform_filter
@@ -36,13 +36,15 @@ TIFF_TILE = 256
 MIN_LEVEL_SIDE = 512
 GLASS = np.array([255, 255, 255], np.uint8)  # as the blank tile of a tiled bundle
 PER_CLASS = 256
-STAIN_RANGE = (0.85, 1.15)     # per-channel optical-density factor of a slide
-DENSITY_RANGE = (0.8, 1.2)     # whole-slide optical-density factor
-EDGE = 5                       # px over which tumour/tissue edges are blended
-COLOUR_MATCH = 0.7             # fraction of the tumour/normal mean-colour gap removed per slide (see module doc)
-PIXELS_NOTE = ("GEOMETRY IS REAL CAMELYON16 (NCRF polygons at true scale); PIXELS ARE REAL PatchCamelyon "
-               "patches (CC0) ARRANGED BY histojax into a mosaic, NOT A SCANNED SLIDE. For training and testing "
-               "navigation agents only, not for diagnosis.")
+STAIN_RANGE = (0.85, 1.15)  # per-channel optical-density factor of a slide
+DENSITY_RANGE = (0.8, 1.2)  # whole-slide optical-density factor
+EDGE = 5  # px over which tumour/tissue edges are blended
+COLOUR_MATCH = 0.7  # fraction of the tumour/normal mean-colour gap removed per slide (see module doc)
+PIXELS_NOTE = (
+    "GEOMETRY IS REAL CAMELYON16 (NCRF polygons at true scale); PIXELS ARE REAL PatchCamelyon "
+    "patches (CC0) ARRANGED BY histojax into a mosaic, NOT A SCANNED SLIDE. For training and testing "
+    "navigation agents only, not for diagnosis."
+)
 
 
 def _stain(patches: np.ndarray, rng: np.random.Generator) -> tuple[np.ndarray, list[float]]:
@@ -69,11 +71,12 @@ class Texture:
         self.side = max(4, int(round(PATCH * 4 / downsample)))
         self.step = max(3, self.side * 3 // 4)
         self.seed = int(seed)
-        picked = {lab: rng.choice(bank.indices(lab), min(per_class, len(bank.indices(lab))), replace=False)
-                  for lab in (0, 1)}
+        picked = {
+            lab: rng.choice(bank.indices(lab), min(per_class, len(bank.indices(lab))), replace=False) for lab in (0, 1)
+        }
         both = np.concatenate([picked[0], picked[1]])
         stained, self.stain = _stain(_resize(bank.decode(both), self.side), rng)
-        self.normal, self.tumour = stained[:len(picked[0])], stained[len(picked[0]):]
+        self.normal, self.tumour = stained[: len(picked[0])], stained[len(picked[0]) :]
         gain = (self.normal.mean(axis=(0, 1, 2)) / np.maximum(self.tumour.mean(axis=(0, 1, 2)), 1.0)) ** COLOUR_MATCH
         self.tumour = np.clip(self.tumour * gain.astype(np.float32), 0, 255)
         self.patch_names = {lab: [str(bank.names[i]) for i in picked[lab]] for lab in (0, 1)}
@@ -92,7 +95,7 @@ class Texture:
         cy0, cy1 = (y0 - p) // s + 1, (y0 + height - 1) // s
         cx = np.arange(cx0, cx1 + 1, dtype=np.int64)
         cy = np.arange(cy0, cy1 + 1, dtype=np.int64)
-        h = ((cx[None, :] * 73856093) ^ (cy[:, None] * 19349663) ^ (self.seed * 83492791 + (7 if tumour else 3)))
+        h = (cx[None, :] * 73856093) ^ (cy[:, None] * 19349663) ^ (self.seed * 83492791 + (7 if tumour else 3))
         h = (h * 2654435761) & 0xFFFFFFFF
         pick, orient = (h >> 3) % len(bank), h & 7
         for a, yy in enumerate(cy):
@@ -104,9 +107,9 @@ class Texture:
                 if o & 4:
                     patch = patch[:, ::-1]
                 patch = np.rot90(patch, o & 3)
-                acc[oy:oy + p, ox:ox + p] += patch * self.weight
-                wsum[oy:oy + p, ox:ox + p] += self.weight
-        return acc[p:p + height, p:p + width] / np.maximum(wsum[p:p + height, p:p + width], 1e-6)
+                acc[oy : oy + p, ox : ox + p] += patch * self.weight
+                wsum[oy : oy + p, ox : ox + p] += self.weight
+        return acc[p : p + height, p : p + width] / np.maximum(wsum[p : p + height, p : p + width], 1e-6)
 
 
 def _soft_mask(geom, x0: int, y0: int, t: int) -> np.ndarray:
@@ -121,7 +124,7 @@ def _soft_mask(geom, x0: int, y0: int, t: int) -> np.ndarray:
     xs = x0 - e + np.arange(t + 2 * e) + 0.5
     ys = y0 - e + np.arange(t + 2 * e) + 0.5
     m = shapely.contains_xy(part, xs[None, :], ys[:, None]).astype(np.float32)
-    return uniform_filter(m, size=e, mode="nearest")[e:e + t, e:e + t, None]
+    return uniform_filter(m, size=e, mode="nearest")[e : e + t, e : e + t, None]
 
 
 def _halve(img: np.ndarray) -> np.ndarray:
@@ -137,8 +140,9 @@ def level_sizes(size: tuple[int, int]) -> list[tuple[int, int]]:
     return levels
 
 
-def write_slide_tiff(lay: SlideLayout, texture: Texture, out_tiff, description: str, jpeg_quality: int = 85,
-                     progress=None) -> dict:
+def write_slide_tiff(
+    lay: SlideLayout, texture: Texture, out_tiff, description: str, jpeg_quality: int = 85, progress=None
+) -> dict:
     """Write the mosaic of ``lay`` as a pyramidal JPEG-tiled TIFF at ``out_tiff`` (the caller makes it
     atomic); returns tile counts. ``progress(n)`` is called with the number of level-0 tiles done."""
     import imagecodecs
@@ -163,7 +167,7 @@ def write_slide_tiff(lay: SlideLayout, texture: Texture, out_tiff, description: 
     # one pending row of tiles per coarser level: pixels (t, gw*t, 3) and per-tile "all glass" flags
     pending = [np.broadcast_to(GLASS, (t, g[1] * t, 3)).copy() for g in grids[1:]]
     glass_flags = [np.ones(g[1], bool) for g in grids[1:]]
-    filled = [0] * len(pending)   # half-rows received (0, 1 or 2)
+    filled = [0] * len(pending)  # half-rows received (0, 1 or 2)
     rows_done = [0] * len(pending)
 
     def push(k: int, row: np.ndarray, row_glass: np.ndarray, last: bool) -> None:
@@ -178,15 +182,15 @@ def write_slide_tiff(lay: SlideLayout, texture: Texture, out_tiff, description: 
         cols = row_glass.shape[0]
         for c in range(cols):
             if not row_glass[c] and c * t // 2 < n:
-                half[:, c * t // 2:(c + 1) * t // 2] = _halve(row[:, c * t:(c + 1) * t])
+                half[:, c * t // 2 : (c + 1) * t // 2] = _halve(row[:, c * t : (c + 1) * t])
                 hg[c // 2] = False
         r0 = filled[i] * (t // 2)
-        pending[i][r0:r0 + t // 2] = half
+        pending[i][r0 : r0 + t // 2] = half
         glass_flags[i] &= hg
         filled[i] += 1
         if filled[i] == 2 or last:
             for c in range(gw):
-                encoded[i].append(glass_bytes if glass_flags[i][c] else encode(pending[i][:, c * t:(c + 1) * t]))
+                encoded[i].append(glass_bytes if glass_flags[i][c] else encode(pending[i][:, c * t : (c + 1) * t]))
             rows_done[i] += 1
             lastk = rows_done[i] == grids[k][0]
             push(k + 1, pending[i], glass_flags[i].copy(), lastk)
@@ -222,7 +226,7 @@ def write_slide_tiff(lay: SlideLayout, texture: Texture, out_tiff, description: 
                         alpha = np.maximum(_soft_mask(lay.tissue, x0, y0, t), _soft_mask(lay.tumour, x0, y0, t))
                         tile = tile * alpha + GLASS.astype(np.float32) * (1 - alpha)
                 tile = np.clip(np.rint(tile), 0, 255).astype(np.uint8)
-                row[:, x0:x0 + t] = tile
+                row[:, x0 : x0 + t] = tile
                 row_glass[tx] = False
                 out.append(encode(tile))
             # the coarser levels first: tifffile stops pulling after the last tile of the page
@@ -234,15 +238,27 @@ def write_slide_tiff(lay: SlideLayout, texture: Texture, out_tiff, description: 
     px_per_cm = 1e4 / lay.mpp
     options = dict(tile=(t, t), compression="jpeg", photometric="rgb", resolutionunit="CENTIMETER", metadata=None)
     with tifffile.TiffWriter(out_tiff, bigtiff=width * height * 3 > 2**31) as tif:
-        tif.write(level0(), shape=(height, width, 3), dtype=np.uint8, subifds=len(levels) - 1,
-                  description=description.encode("ascii", "replace").decode("ascii"),
-                  resolution=(px_per_cm, px_per_cm), **options)
+        tif.write(
+            level0(),
+            shape=(height, width, 3),
+            dtype=np.uint8,
+            subifds=len(levels) - 1,
+            description=description.encode("ascii", "replace").decode("ascii"),
+            resolution=(px_per_cm, px_per_cm),
+            **options,
+        )
         for k, (w, h) in enumerate(levels[1:], start=1):
             want = grids[k][0] * grids[k][1]
             if len(encoded[k - 1]) != want:
                 raise RuntimeError(f"level {k}: {len(encoded[k - 1])} tiles made, {want} expected")
-            tif.write(iter(encoded[k - 1]), shape=(h, w, 3), dtype=np.uint8, subfiletype=1,
-                      resolution=(px_per_cm / 2**k, px_per_cm / 2**k), **options)
+            tif.write(
+                iter(encoded[k - 1]),
+                shape=(h, w, 3),
+                dtype=np.uint8,
+                subfiletype=1,
+                resolution=(px_per_cm / 2**k, px_per_cm / 2**k),
+                **options,
+            )
             encoded[k - 1] = []
     return {"tiles": counts, "levels": [list(lv) for lv in levels]}
 

@@ -27,6 +27,7 @@ with the tumour (label ``tumour``) and tissue (label ``tissue``) in canvas pixel
 as GeoJSON beside it, and goes into a bundle through :func:`data_tools.bundle.build_bundle`
 like any other slide. Everything is deterministic given the seed.
 """
+
 from __future__ import annotations
 
 import json
@@ -47,8 +48,15 @@ from data_tools.bundle_files.format import sha256
 from data_tools.bundle_files.writes import atomic_file
 from data_tools.errors import AnnotationError
 
-__all__ = ["CAMELYON16_DIR", "CAMELYON16_MPP", "make_dataset", "make_semisynthetic_slide", "save_preview",
-           "tissue_files", "tumour_files"]
+__all__ = [
+    "CAMELYON16_DIR",
+    "CAMELYON16_MPP",
+    "make_dataset",
+    "make_semisynthetic_slide",
+    "save_preview",
+    "tissue_files",
+    "tumour_files",
+]
 
 CAMELYON16_DIR = Path(__file__).resolve().parents[2] / "camelyon16"
 """Bundled CAMELYON16 annotations (see ``LICENSES.md`` there)."""
@@ -56,16 +64,16 @@ CAMELYON16_MPP = 0.243
 """Approximate µm per level-0 px of the CAMELYON16 scans (40×); used to state the canvas µm/px."""
 
 TIFF_TILE = 256
-STRIP = 256          # rows generated at a time (one TIFF tile row)
-HALO = 16            # extra rows each side of a strip: mask blur and nuclei reaching across strips
+STRIP = 256  # rows generated at a time (one TIFF tile row)
+HALO = 16  # extra rows each side of a strip: mask blur and nuclei reaching across strips
 MIN_LEVEL_SIDE = 512
-SIMPLIFY_PX = 0.25   # geometry simplification on the canvas (sub-pixel, keeps topology)
-MARGIN = 0.08        # canvas margin around the tumour, as a fraction of the tumour's longer side
+SIMPLIFY_PX = 0.25  # geometry simplification on the canvas (sub-pixel, keeps topology)
+MARGIN = 0.08  # canvas margin around the tumour, as a fraction of the tumour's longer side
 
 # colours (RGB, 0..255) of the procedural stain
 GLASS = np.array([241.0, 240.0, 244.0], dtype=np.float32)
-EOSIN = np.array([232.0, 168.0, 206.0], dtype=np.float32)          # normal tissue background
-TUMOUR_BASE = np.array([186.0, 128.0, 196.0], dtype=np.float32)    # tumour background: haematoxylin-dense
+EOSIN = np.array([232.0, 168.0, 206.0], dtype=np.float32)  # normal tissue background
+TUMOUR_BASE = np.array([186.0, 128.0, 196.0], dtype=np.float32)  # tumour background: haematoxylin-dense
 NUCLEUS_NORMAL = np.array([104.0, 70.0, 152.0], dtype=np.float32)
 NUCLEUS_TUMOUR = np.array([72.0, 42.0, 128.0], dtype=np.float32)
 # nuclei: (mean area per nucleus in px², min radius, max radius); radii in canvas px
@@ -73,11 +81,15 @@ NUCLEI_NORMAL = (260.0, 1.3, 2.4)
 NUCLEI_TUMOUR = (55.0, 2.6, 5.0)
 MAX_RADIUS = 6
 
-PIXELS_NOTE = ("PIXELS ARE SYNTHETIC (procedural H&E-like texture made with numpy, not a scan); "
-               "GEOMETRY IS REAL (CAMELYON16 annotations, scaled). For training navigation agents only, "
-               "not for diagnosis.")
-LICENCE_NOTE = ("tumour geometry: CAMELYON16 ground truth, CC0 1.0 (as kept in markowetzlab/pathml-tutorial); "
-                "tissue outlines: pathml-tutorial tissue annotations on CAMELYON16 slides")
+PIXELS_NOTE = (
+    "PIXELS ARE SYNTHETIC (procedural H&E-like texture made with numpy, not a scan); "
+    "GEOMETRY IS REAL (CAMELYON16 annotations, scaled). For training navigation agents only, "
+    "not for diagnosis."
+)
+LICENCE_NOTE = (
+    "tumour geometry: CAMELYON16 ground truth, CC0 1.0 (as kept in markowetzlab/pathml-tutorial); "
+    "tissue outlines: pathml-tutorial tissue annotations on CAMELYON16 slides"
+)
 
 
 def tumour_files() -> list[Path]:
@@ -88,9 +100,19 @@ def tumour_files() -> list[Path]:
 def tissue_files() -> list[Path]:
     """The bundled CAMELYON16 tissue annotations (pathml-tutorial), largest tissue area first."""
     # fixed order (largest outlines first) so datasets are reproducible without loading every file
-    preferred = ["bench_tumor_021", "bench_tumor_051", "bench_tumor_031", "dtd_tumor_001", "dtd_tumor_111",
-                 "bench_normal_004", "bench_tumor_092", "dtd_normal_002", "bench_normal_042", "dtd_tumor_013",
-                 "dtd_normal_008"]
+    preferred = [
+        "bench_tumor_021",
+        "bench_tumor_051",
+        "bench_tumor_031",
+        "dtd_tumor_001",
+        "dtd_tumor_111",
+        "bench_normal_004",
+        "bench_tumor_092",
+        "dtd_normal_002",
+        "bench_normal_042",
+        "dtd_tumor_013",
+        "dtd_normal_008",
+    ]
     found = {p.stem: p for p in CAMELYON16_DIR.glob("*.xml") if not p.stem.startswith("tumor_")}
     return [found.pop(s) for s in preferred if s in found] + sorted(found.values())
 
@@ -181,8 +203,11 @@ def _place_geometry(tumour_xml, size, seed, orientation, tissue_xml):
         minx, miny, maxx, maxy = tumour.bounds
         blob = _blob(tumour, 0.8 * MARGIN * max(maxx - minx, maxy - miny), seed)
         tissue = _polygonal(shapely.intersection(shapely.union(blob, rim), canvas))
-        tissue_info = {"kind": "synthetic", "how": "convex hull of the tumour, buffered, with a smooth random "
-                                                   "wobble; joined with a rim around the tumour"}
+        tissue_info = {
+            "kind": "synthetic",
+            "how": "convex hull of the tumour, buffered, with a smooth random "
+            "wobble; joined with a rim around the tumour",
+        }
     else:
         with warnings.catch_warnings(record=True) as caught:
             warnings.simplefilter("always")
@@ -199,14 +224,25 @@ def _place_geometry(tumour_xml, size, seed, orientation, tissue_xml):
             ts, tx, ty = _fit(src_tissue, size, 0.02)
             placed = affinity.affine_transform(src_tissue, [ts, 0, 0, ts, tx, ty])
             placed = shapely.simplify(placed, SIMPLIFY_PX, preserve_topology=True)
-            how = ("tissue outline of ANOTHER CAMELYON16 slide, scaled uniformly to fit the canvas; joined with a "
-                   "rim around the tumour so the tumour lies on tissue")
+            how = (
+                "tissue outline of ANOTHER CAMELYON16 slide, scaled uniformly to fit the canvas; joined with a "
+                "rim around the tumour so the tumour lies on tissue"
+            )
         tissue = _polygonal(shapely.intersection(shapely.union(placed, rim), canvas))
-        tissue_info = {"kind": "camelyon16", "file": Path(tissue_xml).name, "sha256": _sha256(Path(tissue_xml)),
-                       "same_slide_as_tumour": bool(same_slide), "how": how}
-    transform = {"orientation": orientation, "scale": s, "offset": [ox, oy],
-                 "meaning": "canvas = scale * orient(source level-0 px) + offset; orient = rotation by "
-                            "(orientation % 4) * 90 degrees, mirrored in x if orientation % 8 >= 4"}
+        tissue_info = {
+            "kind": "camelyon16",
+            "file": Path(tissue_xml).name,
+            "sha256": _sha256(Path(tissue_xml)),
+            "same_slide_as_tumour": bool(same_slide),
+            "how": how,
+        }
+    transform = {
+        "orientation": orientation,
+        "scale": s,
+        "offset": [ox, oy],
+        "meaning": "canvas = scale * orient(source level-0 px) + offset; orient = rotation by "
+        "(orientation % 4) * 90 degrees, mirrored in x if orientation % 8 >= 4",
+    }
     return _as_multi(tumour), _as_multi(tissue), transform, tissue_info, notes
 
 
@@ -225,7 +261,7 @@ def _rows_mask(parts, width: int, y0: int, y1: int) -> np.ndarray:
             continue
         xs = np.arange(c0, c1) + 0.5
         ys = np.arange(r0, r1) + 0.5
-        mask[r0 - y0:r1 - y0, c0:c1] |= shapely.contains_xy(poly, xs[None, :], ys[:, None])
+        mask[r0 - y0 : r1 - y0, c0:c1] |= shapely.contains_xy(poly, xs[None, :], ys[:, None])
     return mask
 
 
@@ -314,7 +350,7 @@ def _strips(size, seed, tumour, tissue, stats, progress, desc):
     """Yield ``(y0, rgb uint8 strip)`` for every STRIP rows of the canvas; fills ``stats``."""
     width, height = size
     tum_parts, tis_parts = _prepared(tumour), _prepared(tissue)
-    low = _Field(size, 64, 1.5, _rng(seed, 1))          # stain intensity, slow
+    low = _Field(size, 64, 1.5, _rng(seed, 1))  # stain intensity, slow
     fibre = _Field(size, 6, (0.6, 2.5), _rng(seed, 2))  # fibrous stroma, streaky
     n_strips = math.ceil(height / STRIP)
     for s in tqdm(range(n_strips), desc=desc, unit="strip", disable=not progress):
@@ -334,16 +370,21 @@ def _strips(size, seed, tumour, tissue, stats, progress, desc):
         tumour_bg = TUMOUR_BASE + lo * f32(8, 10, 6) + gr * f32(8, 8, 6) + iid * f32(4)
         img = glass * (1 - tis_soft) + tis_soft * (normal * (1 - tum_soft) + tumour_bg * tum_soft)
         img = img.astype(np.float32)
-        for kind, params, colour, where in ((0, NUCLEI_NORMAL, NUCLEUS_NORMAL, tis & ~tum),
-                                            (1, NUCLEI_TUMOUR, NUCLEUS_TUMOUR, tum)):
-            cand = np.concatenate([_nuclei(seed, t, kind, width, params)
-                                   for t in (s - 1, s, s + 1) if 0 <= t < n_strips])
+        for kind, params, colour, where in (
+            (0, NUCLEI_NORMAL, NUCLEUS_NORMAL, tis & ~tum),
+            (1, NUCLEI_TUMOUR, NUCLEUS_TUMOUR, tum),
+        ):
+            cand = np.concatenate(
+                [_nuclei(seed, t, kind, width, params) for t in (s - 1, s, s + 1) if 0 <= t < n_strips]
+            )
             cand = cand[(cand[:, 1] >= a0) & (cand[:, 1] < a1)]
-            keep = where[np.clip(cand[:, 1].astype(np.int64) - a0, 0, a1 - a0 - 1),
-                         np.clip(cand[:, 0].astype(np.int64), 0, width - 1)]
+            keep = where[
+                np.clip(cand[:, 1].astype(np.int64) - a0, 0, a1 - a0 - 1),
+                np.clip(cand[:, 0].astype(np.int64), 0, width - 1),
+            ]
             _draw_nuclei(img, a0, cand[keep], colour)
-        out = np.clip(np.rint(img[HALO:HALO + (y1 - y0)]), 0, 255).astype(np.uint8)
-        core_tum, core_tis = tum[HALO:HALO + (y1 - y0)], tis[HALO:HALO + (y1 - y0)]
+        out = np.clip(np.rint(img[HALO : HALO + (y1 - y0)]), 0, 255).astype(np.uint8)
+        core_tum, core_tis = tum[HALO : HALO + (y1 - y0)], tis[HALO : HALO + (y1 - y0)]
         core_norm = core_tis & ~core_tum
         stats["tumour_px"] += int(core_tum.sum())
         stats["normal_px"] += int(core_norm.sum())
@@ -362,22 +403,32 @@ def _tiles(img: np.ndarray):
     """Full TIFF_TILE × TIFF_TILE tiles of ``img`` in row-major order (edges padded with glass white)."""
     for y in range(0, img.shape[0], TIFF_TILE):
         for x in range(0, img.shape[1], TIFF_TILE):
-            t = img[y:y + TIFF_TILE, x:x + TIFF_TILE]
+            t = img[y : y + TIFF_TILE, x : x + TIFF_TILE]
             if t.shape[:2] != (TIFF_TILE, TIFF_TILE):
-                t = np.pad(t, ((0, TIFF_TILE - t.shape[0]), (0, TIFF_TILE - t.shape[1]), (0, 0)),
-                           constant_values=240)
+                t = np.pad(t, ((0, TIFF_TILE - t.shape[0]), (0, TIFF_TILE - t.shape[1]), (0, 0)), constant_values=240)
             yield t
 
 
 def _geojson(tumour, tissue, provenance_line: str) -> dict:
-    feats = [{"type": "Feature", "properties": {"label": label, "provenance": provenance_line},
-              "geometry": mapping(g)} for label, g in (("tumour", tumour), ("tissue", tissue)) if not g.is_empty]
+    feats = [
+        {"type": "Feature", "properties": {"label": label, "provenance": provenance_line}, "geometry": mapping(g)}
+        for label, g in (("tumour", tumour), ("tissue", tissue))
+        if not g.is_empty
+    ]
     return {"type": "FeatureCollection", "features": feats}
 
 
-def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int = 0, tissue_xml=None,
-                             orientation: int = 0, jpeg_quality: int = 90, progress: bool = True,
-                             negative: bool = False) -> dict:
+def make_semisynthetic_slide(
+    tumour_xml,
+    out_tiff,
+    size=(4096, 4096),
+    seed: int = 0,
+    tissue_xml=None,
+    orientation: int = 0,
+    jpeg_quality: int = 90,
+    progress: bool = True,
+    negative: bool = False,
+) -> dict:
     """Write a semi-synthetic slide: real CAMELYON16 tumour geometry, synthetic H&E-like pixels.
 
     ``tumour_xml``: an ASAP XML with tumour polygons (exclusion holes are subtracted). Its tumour,
@@ -401,8 +452,9 @@ def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int 
     if width < 64 or height < 64:
         raise ValueError(f"canvas {width}x{height} px is too small (minimum 64 a side)")
     out_tiff.parent.mkdir(parents=True, exist_ok=True)
-    tumour, tissue, transform, tissue_info, notes = _place_geometry(tumour_xml, (width, height), seed,
-                                                                    orientation, tissue_xml)
+    tumour, tissue, transform, tissue_info, notes = _place_geometry(
+        tumour_xml, (width, height), seed, orientation, tissue_xml
+    )
     if negative:  # the tumour only shaped the tissue; none is drawn
         tissue, tumour = tissue.union(tumour), MultiPolygon()
         notes = list(notes) + ["negative slide: no tumour drawn (the tumour geometry only placed the tissue)"]
@@ -412,26 +464,31 @@ def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int 
         "kind": "semi-synthetic slide (histojax data_tools.datasets.synth)",
         "pixels": "SYNTHETIC: procedural H&E-like texture (numpy noise fields, random elliptical nuclei), not a scan",
         "geometry": "REAL: CAMELYON16 annotations, transformed to canvas px (uniform scale, 90-degree rotations/"
-                    f"mirroring, simplified by {SIMPLIFY_PX} px)",
+        f"mirroring, simplified by {SIMPLIFY_PX} px)",
         "summary": source_line,
         "note": PIXELS_NOTE,
         "licence": LICENCE_NOTE,
-        "tumour_source": {"file": Path(tumour_xml).name, "sha256": _sha256(Path(tumour_xml)),
-                          "dataset": "CAMELYON16 ground truth (CC0 1.0)"},
+        "tumour_source": {
+            "file": Path(tumour_xml).name,
+            "sha256": _sha256(Path(tumour_xml)),
+            "dataset": "CAMELYON16 ground truth (CC0 1.0)",
+        },
         "tissue_source": tissue_info,
         "transform": transform,
         "seed": int(seed),
         "canvas": [width, height],
         "mpp": mpp,
         "mpp_meaning": f"CAMELYON16 level 0 (~{CAMELYON16_MPP} um/px) divided by the scale: the physical size of "
-                       "the real geometry; the synthetic texture is not drawn to this scale",
+        "the real geometry; the synthetic texture is not drawn to this scale",
         "annotation_warnings": notes,
     }
-    description = (f"histojax semi-synthetic slide. {PIXELS_NOTE} Tumour geometry: CAMELYON16 "
-                   f"{Path(tumour_xml).name} (CC0 1.0), scale {transform['scale']:.6g}, orientation {orientation}. "
-                   f"Tissue: {tissue_info['how']}"
-                   + (f" ({tissue_info['file']})" if "file" in tissue_info else "")
-                   + f". Seed {seed}. mpp {mpp:.4g} (geometry scale; texture not to scale).")
+    description = (
+        f"histojax semi-synthetic slide. {PIXELS_NOTE} Tumour geometry: CAMELYON16 "
+        f"{Path(tumour_xml).name} (CC0 1.0), scale {transform['scale']:.6g}, orientation {orientation}. "
+        f"Tissue: {tissue_info['how']}"
+        + (f" ({tissue_info['file']})" if "file" in tissue_info else "")
+        + f". Seed {seed}. mpp {mpp:.4g} (geometry scale; texture not to scale)."
+    )
     description = description.encode("ascii", "replace").decode("ascii")
 
     stats = {"tumour_px": 0, "normal_px": 0, "tumour_rgb_sum": np.zeros(3), "normal_rgb_sum": np.zeros(3)}
@@ -446,16 +503,29 @@ def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int 
         for y0, strip in _strips((width, height), seed, tumour, tissue, stats, progress, f"synth {out_tiff.stem}"):
             if strip.shape[0] >= 2:
                 hs = _halve(strip)
-                half[y0 // 2:y0 // 2 + hs.shape[0], :hs.shape[1]] = hs
+                half[y0 // 2 : y0 // 2 + hs.shape[0], : hs.shape[1]] = hs
             yield from _tiles(strip)
 
     px_per_cm = 1e4 / mpp
-    options = dict(tile=(TIFF_TILE, TIFF_TILE), compression="jpeg", compressionargs={"level": int(jpeg_quality)},
-                   photometric="rgb", resolutionunit="CENTIMETER", metadata=None)
+    options = dict(
+        tile=(TIFF_TILE, TIFF_TILE),
+        compression="jpeg",
+        compressionargs={"level": int(jpeg_quality)},
+        photometric="rgb",
+        resolutionunit="CENTIMETER",
+        metadata=None,
+    )
     with atomic_file(out_tiff) as tmp:
         with tifffile.TiffWriter(tmp, bigtiff=width * height * 3 > 2**31) as tif:
-            tif.write(level0_tiles(), shape=(height, width, 3), dtype=np.uint8, subifds=n_sub,
-                      description=description, resolution=(px_per_cm, px_per_cm), **options)
+            tif.write(
+                level0_tiles(),
+                shape=(height, width, 3),
+                dtype=np.uint8,
+                subifds=n_sub,
+                description=description,
+                resolution=(px_per_cm, px_per_cm),
+                **options,
+            )
             level, factor = half, 2
             for _ in range(n_sub):
                 tif.write(level, subfiletype=1, resolution=(px_per_cm / factor, px_per_cm / factor), **options)
@@ -465,16 +535,20 @@ def make_semisynthetic_slide(tumour_xml, out_tiff, size=(4096, 4096), seed: int 
     geojson_path.write_text(json.dumps(_geojson(tumour, tissue, source_line), allow_nan=False))
     area = width * height
     mean = lambda key, n: (stats[key] / n).round(1).tolist() if n else None  # noqa: E731
-    provenance.update({
-        "tiff": out_tiff.name, "geojson": geojson_path.name,
-        "levels": [[width >> k, height >> k] for k in range(n_sub + 1)],
-        "tumour_area_px": float(tumour.area), "tumour_fraction": float(tumour.area) / area,
-        "tissue_fraction": float(tissue.area) / area,
-        "tumour_mean_rgb": mean("tumour_rgb_sum", stats["tumour_px"]),
-        "normal_tissue_mean_rgb": mean("normal_rgb_sum", stats["normal_px"]),
-        "seconds": round(time.perf_counter() - t_start, 2),
-        "tiff_bytes": out_tiff.stat().st_size,
-    })
+    provenance.update(
+        {
+            "tiff": out_tiff.name,
+            "geojson": geojson_path.name,
+            "levels": [[width >> k, height >> k] for k in range(n_sub + 1)],
+            "tumour_area_px": float(tumour.area),
+            "tumour_fraction": float(tumour.area) / area,
+            "tissue_fraction": float(tissue.area) / area,
+            "tumour_mean_rgb": mean("tumour_rgb_sum", stats["tumour_px"]),
+            "normal_tissue_mean_rgb": mean("normal_rgb_sum", stats["normal_px"]),
+            "seconds": round(time.perf_counter() - t_start, 2),
+            "tiff_bytes": out_tiff.stat().st_size,
+        }
+    )
     out_tiff.with_suffix(".provenance.json").write_text(json.dumps(provenance, indent=1, allow_nan=False))
     return provenance
 
@@ -492,8 +566,9 @@ def save_preview(tiff, geojson, out_png, max_side: int = 1024) -> Path:
     from data_tools.slide_files.open import open_slide
 
     with open_slide(tiff) as reader:
-        k = next((i for i, lv in enumerate(reader.levels) if max(lv.width, lv.height) <= max_side),
-                 len(reader.levels) - 1)
+        k = next(
+            (i for i, lv in enumerate(reader.levels) if max(lv.width, lv.height) <= max_side), len(reader.levels) - 1
+        )
         rgb, d = reader.read_level(k), reader.levels[k].downsample
     ann = load_annotations(geojson)
     image = Image.fromarray(rgb)
@@ -531,9 +606,20 @@ def _split(names: list[str], groups: list[str], test_fraction: float, seed: int)
     return [n for n in names if n not in test], test
 
 
-def make_dataset(out_dir, n_slides: int = 8, size=(4096, 4096), seed: int = 0, test_fraction: float = 0.25,
-                 tile_size: int = 128, level_sets=(3, 5, 7), tumour_xmls=None, tissue: str = "synthetic",
-                 progress: bool = True, previews: bool = True, negatives: int = 0) -> dict:
+def make_dataset(
+    out_dir,
+    n_slides: int = 8,
+    size=(4096, 4096),
+    seed: int = 0,
+    test_fraction: float = 0.25,
+    tile_size: int = 128,
+    level_sets=(3, 5, 7),
+    tumour_xmls=None,
+    tissue: str = "synthetic",
+    progress: bool = True,
+    previews: bool = True,
+    negatives: int = 0,
+) -> dict:
     """Make ``n_slides`` semi-synthetic slides and their bundles under ``out_dir``.
 
     One slide per tumour file (default: the bundled CAMELYON16 files, :func:`tumour_files`); when more
@@ -568,43 +654,70 @@ def make_dataset(out_dir, n_slides: int = 8, size=(4096, 4096), seed: int = 0, t
         src, cycle = files[i % len(files)], i // len(files)
         orientation = (cycle * 5) % 8  # 0, then mirrored-90, 2 (180), ...: a different view of the same geometry
         slide_seed = int(seed) * 1000 + i
-        name = (f"synth_{i:02d}_{'normal_' if negative else ''}{src.stem}"
-                + (f"_o{orientation}" if orientation else ""))
+        name = f"synth_{i:02d}_{'normal_' if negative else ''}{src.stem}" + (f"_o{orientation}" if orientation else "")
         tiff = out_dir / "slides" / f"{name}.tif"
         tissue_xml = tissues[i % len(tissues)] if tissue == "camelyon16" and tissues else None
-        prov = make_semisynthetic_slide(src, tiff, size=size, seed=slide_seed, tissue_xml=tissue_xml,
-                                        orientation=orientation, progress=False, negative=negative)
+        prov = make_semisynthetic_slide(
+            src,
+            tiff,
+            size=size,
+            seed=slide_seed,
+            tissue_xml=tissue_xml,
+            orientation=orientation,
+            progress=False,
+            negative=negative,
+        )
         t_b = time.perf_counter()
-        bundle = build_bundle(tiff, out_dir / "bundles" / name, annotations_path=tiff.with_suffix(".geojson"),
-                              level_sets=level_sets, tile_size=tile_size, overwrite=True, progress=False)
+        bundle = build_bundle(
+            tiff,
+            out_dir / "bundles" / name,
+            annotations_path=tiff.with_suffix(".geojson"),
+            level_sets=level_sets,
+            tile_size=tile_size,
+            overwrite=True,
+            progress=False,
+        )
         bundle_seconds = time.perf_counter() - t_b
         b = load_bundle(bundle, verify=False, levels=[0])
         finest = b.tumour[0]
         if previews:
             save_preview(tiff, tiff.with_suffix(".geojson"), out_dir / "previews" / f"{name}.png")
-        slides.append({
-            "name": name, "bundle": f"bundles/{name}", "tiff": f"slides/{tiff.name}",
-            "geojson": f"slides/{tiff.with_suffix('.geojson').name}",
-            "provenance": f"slides/{tiff.with_suffix('.provenance.json').name}",
-            "summary": prov["summary"], "tumour_source": prov["tumour_source"]["file"],
-            "tissue_source": prov["tissue_source"].get("file", "synthetic blob"),
-            "seed": slide_seed, "orientation": orientation, "mpp": prov["mpp"],
-            "tumour_fraction": round(prov["tumour_fraction"], 5),
-            "finest_tumour_fraction": round(float(finest.mean()), 5),
-            "finest_views": int((finest.shape[0] // tile_size) * (finest.shape[1] // tile_size)),
-            "finest_views_ge50": _views_over(finest, tile_size, 0.5),
-            "tumour_mean_rgb": prov["tumour_mean_rgb"], "normal_tissue_mean_rgb": prov["normal_tissue_mean_rgb"],
-            "seconds_slide": prov["seconds"], "seconds_bundle": round(bundle_seconds, 2),
-            "tiff_bytes": prov["tiff_bytes"],
-        })
+        slides.append(
+            {
+                "name": name,
+                "bundle": f"bundles/{name}",
+                "tiff": f"slides/{tiff.name}",
+                "geojson": f"slides/{tiff.with_suffix('.geojson').name}",
+                "provenance": f"slides/{tiff.with_suffix('.provenance.json').name}",
+                "summary": prov["summary"],
+                "tumour_source": prov["tumour_source"]["file"],
+                "tissue_source": prov["tissue_source"].get("file", "synthetic blob"),
+                "seed": slide_seed,
+                "orientation": orientation,
+                "mpp": prov["mpp"],
+                "tumour_fraction": round(prov["tumour_fraction"], 5),
+                "finest_tumour_fraction": round(float(finest.mean()), 5),
+                "finest_views": int((finest.shape[0] // tile_size) * (finest.shape[1] // tile_size)),
+                "finest_views_ge50": _views_over(finest, tile_size, 0.5),
+                "tumour_mean_rgb": prov["tumour_mean_rgb"],
+                "normal_tissue_mean_rgb": prov["normal_tissue_mean_rgb"],
+                "seconds_slide": prov["seconds"],
+                "seconds_bundle": round(bundle_seconds, 2),
+                "tiff_bytes": prov["tiff_bytes"],
+            }
+        )
     train, test = _split([s["name"] for s in slides], [s["tumour_source"] for s in slides], test_fraction, seed)
     by_name = {s["name"]: s for s in slides}
     dataset = {
         "kind": "histojax semi-synthetic slide set",
         "provenance": "pixels synthetic, geometry real CAMELYON16: " + PIXELS_NOTE,
         "licence": LICENCE_NOTE,
-        "canvas": list(size), "seed": int(seed), "tile_size": tile_size, "level_sets": list(level_sets),
-        "tissue": tissue, "test_fraction": test_fraction,
+        "canvas": list(size),
+        "seed": int(seed),
+        "tile_size": tile_size,
+        "level_sets": list(level_sets),
+        "tissue": tissue,
+        "test_fraction": test_fraction,
         "split_rule": "by slide; all slides made from the same tumour annotation file are on the same side",
         "train": [by_name[n]["bundle"] for n in train],
         "test": [by_name[n]["bundle"] for n in test],

@@ -12,6 +12,7 @@ pyramid level (2×, 4×, … until the longer side is ≤ 512 px) is drawn the s
 geometry (the texture is not rescaled: it is not to scale at any level). The tumour and tissue are
 written as GeoJSON (level-0 px, labels ``tumour`` / ``tissue``) beside the TIFF.
 """
+
 from __future__ import annotations
 
 import json
@@ -28,8 +29,19 @@ from tqdm.auto import tqdm
 
 from data_tools.bundle_files.format import sha256
 from data_tools.bundle_files.writes import atomic_file
-from data_tools.datasets.synth.dataset import (CAMELYON16_MPP, GLASS, LICENCE_NOTE, MIN_LEVEL_SIDE, PIXELS_NOTE, TIFF_TILE, _geojson,
-                              _polygonal, _strips, tissue_files, tumour_files)
+from data_tools.datasets.synth.dataset import (
+    CAMELYON16_MPP,
+    GLASS,
+    LICENCE_NOTE,
+    MIN_LEVEL_SIDE,
+    PIXELS_NOTE,
+    TIFF_TILE,
+    _geojson,
+    _polygonal,
+    _strips,
+    tissue_files,
+    tumour_files,
+)
 
 __all__ = ["make_large_slide"]
 
@@ -43,11 +55,24 @@ def _texture_bank(seed: int, tumour: bool) -> list[np.ndarray]:
     stats = {"tumour_px": 0, "normal_px": 0, "tumour_rgb_sum": np.zeros(3), "normal_rgb_sum": np.zeros(3)}
     from shapely.geometry import MultiPolygon
 
-    strips = [s for _, s in _strips((side, side), seed, MultiPolygon([everything]) if tumour else MultiPolygon(),
-                                    MultiPolygon([everything]), stats, False, "")]
+    strips = [
+        s
+        for _, s in _strips(
+            (side, side),
+            seed,
+            MultiPolygon([everything]) if tumour else MultiPolygon(),
+            MultiPolygon([everything]),
+            stats,
+            False,
+            "",
+        )
+    ]
     canvas = np.concatenate(strips)
-    return [np.ascontiguousarray(canvas[y:y + TIFF_TILE, x:x + TIFF_TILE])
-            for y in range(0, side, TIFF_TILE) for x in range(0, side, TIFF_TILE)]
+    return [
+        np.ascontiguousarray(canvas[y : y + TIFF_TILE, x : x + TIFF_TILE])
+        for y in range(0, side, TIFF_TILE)
+        for x in range(0, side, TIFF_TILE)
+    ]
 
 
 def _place(size, tissue_fraction: float, tumour_xml, tissue_xml):
@@ -69,8 +94,9 @@ def _place(size, tissue_fraction: float, tumour_xml, tissue_xml):
     minx, miny, maxx, maxy = tis.bounds
     s = math.sqrt(tissue_fraction * width * height / tis.area)
     s = min(s, 0.96 * width / (maxx - minx), 0.96 * height / (maxy - miny))
-    tissue = affinity.affine_transform(tis, [s, 0, 0, s, width / 2 - s * (minx + maxx) / 2,
-                                             height / 2 - s * (miny + maxy) / 2])
+    tissue = affinity.affine_transform(
+        tis, [s, 0, 0, s, width / 2 - s * (minx + maxx) / 2, height / 2 - s * (miny + maxy) / 2]
+    )
     tissue = _polygonal(shapely.simplify(tissue, 1.0, preserve_topology=True))
     largest = max(shapely.get_parts(tissue), key=lambda p: p.area)
     pole = polylabel(largest, tolerance=max(width, height) / 2000)
@@ -79,10 +105,12 @@ def _place(size, tissue_fraction: float, tumour_xml, tissue_xml):
     tminx, tminy, tmaxx, tmaxy = tum.bounds
     pminx, pminy, pmaxx, pmaxy = largest.bounds  # at least 40 % of the tissue piece's shorter side
     ts = max(1.3 * r, 0.4 * min(pmaxx - pminx, pmaxy - pminy)) / max(tmaxx - tminx, tmaxy - tminy)
-    tumour = affinity.affine_transform(tum, [ts, 0, 0, ts, pole.x - ts * (tminx + tmaxx) / 2,
-                                             pole.y - ts * (tminy + tmaxy) / 2])
-    tumour = _polygonal(shapely.intersection(shapely.simplify(tumour, 1.0, preserve_topology=True),
-                                             box(0, 0, width, height)))
+    tumour = affinity.affine_transform(
+        tum, [ts, 0, 0, ts, pole.x - ts * (tminx + tmaxx) / 2, pole.y - ts * (tminy + tmaxy) / 2]
+    )
+    tumour = _polygonal(
+        shapely.intersection(shapely.simplify(tumour, 1.0, preserve_topology=True), box(0, 0, width, height))
+    )
     tissue = _polygonal(shapely.union(tissue, tumour))
     return tumour, tissue, {"tissue_scale": s, "tumour_scale": ts, "tumour_centre": [pole.x, pole.y]}
 
@@ -117,8 +145,16 @@ def _tile_mask(geom, tx: int, ty: int, t: int) -> np.ndarray:
     return shapely.contains_xy(part, xs[None, :], ys[:, None])
 
 
-def make_large_slide(out_tiff, size=100_000, tissue_fraction: float = 0.1, seed: int = 0, tumour_xml=None,
-                     tissue_xml=None, jpeg_quality: int = 85, progress: bool = True) -> dict:
+def make_large_slide(
+    out_tiff,
+    size=100_000,
+    tissue_fraction: float = 0.1,
+    seed: int = 0,
+    tumour_xml=None,
+    tissue_xml=None,
+    jpeg_quality: int = 85,
+    progress: bool = True,
+) -> dict:
     """Write a large semi-synthetic pyramidal TIFF (default geometry: the tissue outline of
     ``bench_tumor_021`` and the tumour of ``tumor_044``) ``out_tiff`` (``size`` px a side, or ``(W, H)``) and its
     ``.geojson``; returns a provenance dict (sizes, fractions, bytes, seconds). Memory stays bounded
@@ -149,13 +185,18 @@ def make_large_slide(out_tiff, size=100_000, tissue_fraction: float = 0.1, seed:
     counts = {"glass": 0, "normal": 0, "tumour": 0, "mixed": 0}
 
     def level_tiles(level: int, w: int, h: int):
-        g = 0.5 ** level
+        g = 0.5**level
         tum = affinity.scale(tumour, g, g, origin=(0, 0))
         tis = affinity.scale(tissue, g, g, origin=(0, 0))
         s_tum, s_tis = _classify(tum, w, h, t), _classify(tis, w, h, t)
         gh, gw = s_tum.shape
-        bar = tqdm(total=gh * gw, desc=f"synth-large level {level} ({w}×{h})", unit="tile", disable=not progress,
-                   mininterval=2.0)
+        bar = tqdm(
+            total=gh * gw,
+            desc=f"synth-large level {level} ({w}×{h})",
+            unit="tile",
+            disable=not progress,
+            mininterval=2.0,
+        )
         for ty in range(gh):
             for tx in range(gw):
                 pick = (tx * 73856093 ^ ty * 19349663 ^ level * 83492791) % BANK
@@ -186,31 +227,53 @@ def make_large_slide(out_tiff, size=100_000, tissue_fraction: float = 0.1, seed:
         levels.append((max(1, levels[-1][0] // 2), max(1, levels[-1][1] // 2)))
     mpp = CAMELYON16_MPP
     px_per_cm = 1e4 / mpp
-    source_line = (f"pixels synthetic, geometry real CAMELYON16: tissue {tissue_xml.name}, tumour {tumour_xml.name}")
-    description = (f"histojax large semi-synthetic slide {width}x{height}. {PIXELS_NOTE} Tissue outline: CAMELYON16 "
-                   f"{tissue_xml.name}; tumour: CAMELYON16 {tumour_xml.name} (CC0 1.0). Seed {seed}.")
+    source_line = f"pixels synthetic, geometry real CAMELYON16: tissue {tissue_xml.name}, tumour {tumour_xml.name}"
+    description = (
+        f"histojax large semi-synthetic slide {width}x{height}. {PIXELS_NOTE} Tissue outline: CAMELYON16 "
+        f"{tissue_xml.name}; tumour: CAMELYON16 {tumour_xml.name} (CC0 1.0). Seed {seed}."
+    )
     options = dict(tile=(t, t), compression="jpeg", photometric="rgb", resolutionunit="CENTIMETER", metadata=None)
     with atomic_file(out_tiff) as tmp:
         with tifffile.TiffWriter(tmp, bigtiff=width * height * 3 > 2**31 or width * height > 2**28) as tif:
-            tif.write(level_tiles(0, width, height), shape=(height, width, 3), dtype=np.uint8,
-                      subifds=len(levels) - 1, description=description.encode("ascii", "replace").decode("ascii"),
-                      resolution=(px_per_cm, px_per_cm), **options)
+            tif.write(
+                level_tiles(0, width, height),
+                shape=(height, width, 3),
+                dtype=np.uint8,
+                subifds=len(levels) - 1,
+                description=description.encode("ascii", "replace").decode("ascii"),
+                resolution=(px_per_cm, px_per_cm),
+                **options,
+            )
             for k, (w, h) in enumerate(levels[1:], start=1):
-                f = 2 ** k
-                tif.write(level_tiles(k, w, h), shape=(h, w, 3), dtype=np.uint8, subfiletype=1,
-                          resolution=(px_per_cm / f, px_per_cm / f), **options)
+                f = 2**k
+                tif.write(
+                    level_tiles(k, w, h),
+                    shape=(h, w, 3),
+                    dtype=np.uint8,
+                    subfiletype=1,
+                    resolution=(px_per_cm / f, px_per_cm / f),
+                    **options,
+                )
     geojson_path = out_tiff.with_suffix(".geojson")
     geojson_path.write_text(json.dumps(_geojson(tumour, tissue, source_line), allow_nan=False))
     area = float(width) * height
     provenance = {
         "kind": "large semi-synthetic slide (histojax data_tools.datasets.synth.large_slide)",
-        "note": PIXELS_NOTE, "licence": LICENCE_NOTE, "summary": source_line,
+        "note": PIXELS_NOTE,
+        "licence": LICENCE_NOTE,
+        "summary": source_line,
         "tumour_source": {"file": tumour_xml.name, "sha256": sha256(tumour_xml)},
         "tissue_source": {"file": tissue_xml.name, "sha256": sha256(tissue_xml)},
-        "placement": placement, "seed": int(seed), "canvas": [width, height], "levels": [list(lv) for lv in levels],
-        "tiff": out_tiff.name, "geojson": geojson_path.name,
-        "tissue_fraction": float(tissue.area) / area, "tumour_fraction": float(tumour.area) / area,
-        "tile_counts": counts, "tiff_bytes": out_tiff.stat().st_size,
+        "placement": placement,
+        "seed": int(seed),
+        "canvas": [width, height],
+        "levels": [list(lv) for lv in levels],
+        "tiff": out_tiff.name,
+        "geojson": geojson_path.name,
+        "tissue_fraction": float(tissue.area) / area,
+        "tumour_fraction": float(tumour.area) / area,
+        "tile_counts": counts,
+        "tiff_bytes": out_tiff.stat().st_size,
         "seconds": round(time.perf_counter() - t_start, 2),
     }
     out_tiff.with_suffix(".provenance.json").write_text(json.dumps(provenance, indent=1, allow_nan=False))

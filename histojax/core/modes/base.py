@@ -15,6 +15,7 @@ frozen, hashable dataclass, so the env stays a valid static argument of ``jax.ji
 :mod:`histojax.core.modes.factory` (:func:`~histojax.core.modes.factory.register_action_mode`), where the strings
 users pass to ``make(..., action_mode="discrete")`` are resolved.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -24,8 +25,7 @@ import jax
 import jax.numpy as jnp
 from jax import lax
 
-from histojax.core import actions, spaces
-from histojax.core import seen_views
+from histojax.core import actions, seen_views, spaces
 from histojax.core import augment as dihedral
 from histojax.core.views import view_pixels
 
@@ -33,12 +33,12 @@ from histojax.core.views import view_pixels
 class Move(NamedTuple):
     """What an action mode's ``apply`` returns (all traced scalars unless said otherwise)."""
 
-    z: jax.Array          # int32 level of the next view (0 = coarsest)
-    x: jax.Array          # int32 top-left corner of the next view, px of level z
-    y: jax.Array          # int32
+    z: jax.Array  # int32 level of the next view (0 = coarsest)
+    x: jax.Array  # int32 top-left corner of the next view, px of level z
+    y: jax.Array  # int32
     diagnosis: jax.Array  # int32: 1 tumour, 0 no tumour, -1 none declared (classification only)
-    score: jax.Array      # float32 in [0, 1]: the declared belief that the slide holds tumour
-    memory: Any = None    # the mode's new memory pytree (None for memory-less modes)
+    score: jax.Array  # float32 in [0, 1]: the declared belief that the slide holds tumour
+    memory: Any = None  # the mode's new memory pytree (None for memory-less modes)
 
 
 # ----------------------------------------------------------------------------- action modes
@@ -47,8 +47,8 @@ class ActionMode:
     """Base of the action modes (see the module doc). Subclasses override what they need."""
 
     name = "base"
-    supports_augment = False       # the 8-orientation augmentation can turn this mode's actions
-    needs_features = False         # make() must load the bundles' feature grids
+    supports_augment = False  # the 8-orientation augmentation can turn this mode's actions
+    needs_features = False  # make() must load the bundles' feature grids
     tasks = ("detection", "classification")
 
     def validate(self, env) -> None:
@@ -119,23 +119,36 @@ class Navigation(ActionMode):
     :mod:`histojax.core.seen_views`). Without either the state and the trajectories are HistoGym's."""
 
     memory: bool = False
-    coarse_map: bool = False   # with memory: the observation also holds ``coarse_map (16, 16)`` (built by the reading stack)
+    coarse_map: bool = (
+        False  # with memory: the observation also holds ``coarse_map (16, 16)`` (built by the reading stack)
+    )
     supports_augment = True
 
     @property
     def needs_features(self) -> bool:
         return self.coarse_map  # the map is built from the slides' feature grids
 
-    def prepare(self, env, params, bundles, track_reading: bool = False, read_budget: float | None = None,
-                map_feature: int | None = None, map_level: int = -3, map_head=None):
+    def prepare(
+        self,
+        env,
+        params,
+        bundles,
+        track_reading: bool = False,
+        read_budget: float | None = None,
+        map_feature: int | None = None,
+        map_level: int = -3,
+        map_head=None,
+    ):
         """``map_feature`` / ``map_head`` / ``map_level`` (``coarse_map=True`` only): the feature entry, or the slide
         head (a folder or a loaded head) whose per-view scores the coarse map shows, and the level of the coarse map
         (:func:`histojax.core.seen_views.coarse_maps`, the builder the reading stack registers)."""
         if map_feature is not None and map_head is not None:
             raise TypeError(f"{self.name}:map shows map_feature=ENTRY or map_head=HEAD, not both")
         if self.coarse_map and map_feature is None and map_head is None:
-            raise TypeError(f"{self.name}:map needs map_feature=ENTRY (the feature entry its coarse map shows) or "
-                            "map_head=HEAD (a slide head's per-view scores)")
+            raise TypeError(
+                f"{self.name}:map needs map_feature=ENTRY (the feature entry its coarse map shows) or "
+                "map_head=HEAD (a slide head's per-view scores)"
+            )
         if not self.coarse_map and (map_feature is not None or map_head is not None):
             given = "map_feature" if map_feature is not None else "map_head=HEAD (a slide head's per-view map)"
             raise TypeError(f"{given} is for {self.name}:map only")
@@ -145,8 +158,11 @@ class Navigation(ActionMode):
             return None
         tables = seen_views.seen_tables(env, params, bundles, 1.0 if read_budget is None else read_budget)
         if self.coarse_map:
-            tables = tables.replace(coarse_map=jnp.asarray(seen_views.coarse_maps(env, params, bundles, map_feature,
-                                                                            map_level, head=map_head)))
+            tables = tables.replace(
+                coarse_map=jnp.asarray(
+                    seen_views.coarse_maps(env, params, bundles, map_feature, map_level, head=map_head)
+                )
+            )
         return tables
 
     def init_memory(self, env, state, params):
@@ -180,7 +196,9 @@ class Navigation(ActionMode):
             return {}
         space = seen_views.visited_space(params)
         if self.coarse_map:
-            space["coarse_map"] = spaces.Box(-jnp.inf, jnp.inf, (seen_views.VISITED_MAP, seen_views.VISITED_MAP), jnp.float32)
+            space["coarse_map"] = spaces.Box(
+                -jnp.inf, jnp.inf, (seen_views.VISITED_MAP, seen_views.VISITED_MAP), jnp.float32
+            )
         return space
 
 
@@ -255,7 +273,7 @@ class ObsMode:
     """Base of the observation modes: ``observe(env, state, params)`` and ``space(env, params)``."""
 
     name = "base"
-    key = "pixels"              # its entry's name in a dict observation
+    key = "pixels"  # its entry's name in a dict observation
     supports_augment = False
     needs_features = False
 
@@ -286,8 +304,9 @@ class Pixels(ObsMode):
 
     def space(self, env, params):
         t = env.tile_size
-        return (spaces.Box(0.0, 1.0, (t, t, 3), jnp.float32) if self.as_float
-                else spaces.Box(0, 255, (t, t, 3), jnp.uint8))
+        return (
+            spaces.Box(0.0, 1.0, (t, t, 3), jnp.float32) if self.as_float else spaces.Box(0, 255, (t, t, 3), jnp.uint8)
+        )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -301,8 +320,10 @@ class Features(ObsMode):
     def observe(self, env, state, params):
         slide = params.slide.select(state.slide_index)
         if slide.features is None:
-            raise ValueError("obs_mode='features' needs a slide with a feature grid: compute one with "
-                             "`python -m data_tools features BUNDLE` and make the env from that bundle")
+            raise ValueError(
+                "obs_mode='features' needs a slide with a feature grid: compute one with "
+                "`python -m data_tools features BUNDLE` and make the env from that bundle"
+            )
         return view_features(slide, state.z, state.x, state.y)
 
     def space(self, env, params):

@@ -9,6 +9,7 @@ so every ``import histojax`` (and so every ``import histojax.core...``, which ru
 never imports ``histojax.reading``; the reading modes import only the core's base classes
 (:mod:`histojax.core.modes.base`), so there is no import circle. A mode of your own is registered the same way.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -20,8 +21,11 @@ from histojax.core.modes.base import ActionMode, Continuous, Discrete, Features,
 # order error messages list the names in
 ACTION_MODES: dict[str, Callable[[str], ActionMode]] = {}
 ACTION_FORMS: list[str] = []  # the ":"-forms of the registered names ("discrete:memory", "glimpse:LEVEL", ...)
-OBS_MODES: dict[str, Callable[[], ObsMode]] = {"pixels": Pixels, "pixels_float": lambda: Pixels(as_float=True),
-                                               "features": Features}
+OBS_MODES: dict[str, Callable[[], ObsMode]] = {
+    "pixels": Pixels,
+    "pixels_float": lambda: Pixels(as_float=True),
+    "features": Features,
+}
 
 
 def register_action_mode(name: str, build: Callable[[str], ActionMode], forms: tuple[str, ...] = ()) -> None:
@@ -36,28 +40,31 @@ def register_action_mode(name: str, build: Callable[[str], ActionMode], forms: t
 def whole_number_arg(cls: type, field: str, name: str) -> Callable[[str], ActionMode]:
     """A builder for :func:`register_action_mode`: ``cls()``, or with ``"name:N"`` ``cls(**{field: N})`` (``N`` a
     whole number)."""
+
     def build(arg: str) -> ActionMode:
         if not arg:
             return cls()
         if not arg.isdigit():
             raise ValueError(f"action_mode {name + ':' + arg!r}: the part after ':' must be a whole number")
         return dataclasses.replace(cls(), **{field: int(arg)})
+
     return build
 
 
 def _navigation(cls: type) -> Callable[[str], ActionMode]:
     """The builder of a pan/zoom mode: ``":memory"`` keeps the coarse visited map and the position in the
     observation, ``":map"`` also a coarse map (``make(..., map_feature=ENTRY)`` or ``map_head=HEAD``)."""
+
     def build(arg: str) -> ActionMode:
         if arg not in ("", "memory", "map"):
             raise _unknown(f"{cls.name}:{arg}")
         return dataclasses.replace(cls(), memory=True, coarse_map=arg == "map") if arg else cls()
+
     return build
 
 
 def _unknown(mode) -> ValueError:
-    return ValueError(f"action_mode must be one of {tuple(ACTION_MODES)} (or {', '.join(ACTION_FORMS)}), "
-                      f"got {mode!r}")
+    return ValueError(f"action_mode must be one of {tuple(ACTION_MODES)} (or {', '.join(ACTION_FORMS)}), got {mode!r}")
 
 
 register_action_mode("discrete", _navigation(Discrete))

@@ -14,6 +14,7 @@ view logit), ``attention-mil`` and ``pooled-statistics`` (:class:`~histojax.read
 :class:`~histojax.reading.heads.mil.StatsHead`, trained heads), ``learned-attention-mil``
 (:class:`~histojax.reading.heads.learned.LearnedHead`, an attention-MIL learned from any encoder's features).
 """
+
 from __future__ import annotations
 
 from pathlib import Path
@@ -50,8 +51,12 @@ class SlideHeadProtocol(Protocol):
         """Read a head of this class's kind; ``ValueError`` naming the file, one line, on anything malformed."""
 
 
-HEADS: dict[str, type] = {logit.KIND: logit.LogitHead, mil.KIND_MIL: mil.MilHead, mil.KIND_STATS: mil.StatsHead,
-                          learned.KIND: learned.LearnedHead}
+HEADS: dict[str, type] = {
+    logit.KIND: logit.LogitHead,
+    mil.KIND_MIL: mil.MilHead,
+    mil.KIND_STATS: mil.StatsHead,
+    learned.KIND: learned.LearnedHead,
+}
 """kind (``config.json``'s ``"kind"``) -> head class."""
 
 

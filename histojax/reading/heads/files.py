@@ -25,6 +25,7 @@ Any problem raises :class:`HeadFileError` (a ``ValueError``): one line naming th
 wrote), then renamed into place in one step (:func:`data_tools.bundle_files.writes.replace_folder`). It never
 replaces a folder that holds anything else: user files, a head of another kind, a link or a plain file.
 """
+
 from __future__ import annotations
 
 import io
@@ -75,13 +76,19 @@ def check_magnitudes(arrays: dict, path, min_sd: float) -> None:
     the head's fit adds to every standard deviation, or less): finite but absurd values that would score every
     slide −inf or NaN (``x / 1e-40``, ``3e38 · s``)."""
     if "sd" in arrays and np.any(arrays["sd"] < min_sd):
-        raise HeadFileError(path, f"array sd holds values below {min_sd:g} (a feature's standard deviation, at "
-                                  f"least {min_sd:g} in a fitted head)")
+        raise HeadFileError(
+            path,
+            f"array sd holds values below {min_sd:g} (a feature's standard deviation, at "
+            f"least {min_sd:g} in a fitted head)",
+        )
     for name, arr in arrays.items():
         top = float(np.max(np.abs(arr))) if np.size(arr) else 0.0
         if top > MAX_ARRAY_VALUE:
-            raise HeadFileError(path, f"array {name} holds values of magnitude up to {top:.3g}, beyond "
-                                      f"{MAX_ARRAY_VALUE:g} (a fitted head's are a few units); refusing it")
+            raise HeadFileError(
+                path,
+                f"array {name} holds values of magnitude up to {top:.3g}, beyond "
+                f"{MAX_ARRAY_VALUE:g} (a fitted head's are a few units); refusing it",
+            )
 
 
 def check_finite_logits(head, logits, what: str = "slide logits"):
@@ -95,8 +102,11 @@ def check_finite_logits(head, logits, what: str = "slide logits"):
         bad = int(np.size(values) - np.count_nonzero(np.isfinite(values)))
         source = getattr(head, "source", None)
         where = Path(source) / PARAMS if source else f"{PARAMS} of the head {getattr(head, 'name', head)!r}"
-        raise HeadFileError(where, f"scores {bad} of {values.size} {what} non-finite (inf or NaN): its parameters "
-                                   "are out of a fitted head's range; refit the head (learned_head_fit)")
+        raise HeadFileError(
+            where,
+            f"scores {bad} of {values.size} {what} non-finite (inf or NaN): its parameters "
+            "are out of a fitted head's range; refit the head (learned_head_fit)",
+        )
     return values
 
 
@@ -116,16 +126,19 @@ def read_regular(path, max_bytes: int, what: str = "file") -> bytes:
     if kind == "a symbolic link":
         raise HeadFileError(path, f"is a symbolic link, not the head's own {what}; refusing to read it")
     if kind is not None:
-        raise HeadFileError(path, f"is not a regular file (a FIFO, device or folder); refusing to read it as the "
-                                  f"head's {what}")
+        raise HeadFileError(
+            path, f"is not a regular file (a FIFO, device or folder); refusing to read it as the head's {what}"
+        )
     if st.st_size > max_bytes:
-        raise HeadFileError(path, f"{st.st_size:,} bytes, more than the {max_bytes:,} a head's {what} may have; "
-                                  "refusing to read it")
+        raise HeadFileError(
+            path, f"{st.st_size:,} bytes, more than the {max_bytes:,} a head's {what} may have; refusing to read it"
+        )
     try:
         f = open_regular(path, st)
     except ChangedFileError:
-        raise HeadFileError(path, "changed while it was opened (not the regular file checked); refusing to read it") \
-            from None
+        raise HeadFileError(
+            path, "changed while it was opened (not the regular file checked); refusing to read it"
+        ) from None
     except OSError as e:
         raise HeadFileError(path, f"cannot be opened ({e.strerror or e})") from None
     with f:
@@ -216,8 +229,13 @@ def field(cfg: dict, key: str, kind: type, where, default=_MISSING, lo=None, hi=
     else:
         ok = isinstance(v, kind)
     if not ok:
-        what = ("a finite number" if kind is float else "an int" if kind is int else
-                f"a {getattr(kind, '__name__', None) or ' or '.join(k.__name__ for k in kind)}")
+        what = (
+            "a finite number"
+            if kind is float
+            else "an int"
+            if kind is int
+            else f"a {getattr(kind, '__name__', None) or ' or '.join(k.__name__ for k in kind)}"
+        )
         raise HeadFileError(where, f"{key!r} is {json.dumps(v)[:60]}, not {what}")
     if (lo is not None and v < lo) or (hi is not None and v > hi):
         raise HeadFileError(where, f"{key!r} is {v}, outside [{lo}, {hi}]")
@@ -252,27 +270,44 @@ def read_arrays(path, shapes: dict, max_bytes: int = MAX_PARAMS_BYTES) -> dict:
         out = {}
         for info, name in zip(infos, names):
             if info.file_size > max_bytes:
-                raise HeadFileError(path, f"array {name} is {info.file_size:,} bytes decompressed, more than "
-                                          f"{max_bytes:,}; refusing it")
+                raise HeadFileError(
+                    path, f"array {name} is {info.file_size:,} bytes decompressed, more than {max_bytes:,}; refusing it"
+                )
             try:
                 with zf.open(info) as f:
                     version = np.lib.format.read_magic(f)
-                    read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0)
-                                   else np.lib.format.read_array_header_2_0)
+                    read_header = (
+                        np.lib.format.read_array_header_1_0
+                        if version == (1, 0)
+                        else np.lib.format.read_array_header_2_0
+                    )
                     shape, fortran, dtype = read_header(f)
                     header = f.tell()
-                    if dtype.hasobject or dtype.fields is not None or dtype.subdtype is not None \
-                            or dtype.name not in FLOAT_DTYPES:
-                        raise HeadFileError(path, f"array {name} has dtype {dtype}; a head's parameters are floats "
-                                                  f"({', '.join(FLOAT_DTYPES)})")
+                    if (
+                        dtype.hasobject
+                        or dtype.fields is not None
+                        or dtype.subdtype is not None
+                        or dtype.name not in FLOAT_DTYPES
+                    ):
+                        raise HeadFileError(
+                            path,
+                            f"array {name} has dtype {dtype}; a head's parameters are floats "
+                            f"({', '.join(FLOAT_DTYPES)})",
+                        )
                     want = tuple(shapes[name])
                     if len(shape) != len(want) or any(w is not None and n != w for n, w in zip(shape, want)):
-                        raise HeadFileError(path, f"array {name} has shape {tuple(shape)}, the config implies "
-                                                  f"{tuple('any' if w is None else w for w in want)}")
+                        raise HeadFileError(
+                            path,
+                            f"array {name} has shape {tuple(shape)}, the config implies "
+                            f"{tuple('any' if w is None else w for w in want)}",
+                        )
                     nbytes = int(np.prod(shape, dtype=np.int64)) * dtype.itemsize
                     if info.file_size != header + nbytes:
-                        raise HeadFileError(path, f"array {name} holds {info.file_size - header:,} data bytes, its "
-                                                  f"header says {nbytes:,} (truncated or padded)")
+                        raise HeadFileError(
+                            path,
+                            f"array {name} holds {info.file_size - header:,} data bytes, its "
+                            f"header says {nbytes:,} (truncated or padded)",
+                        )
                     raw = f.read(nbytes)
                 if len(raw) != nbytes:
                     raise HeadFileError(path, f"array {name} is truncated")
@@ -304,8 +339,11 @@ def check_writable(folder) -> None:
             fd, probe = tempfile.mkstemp(prefix=".histojax-write-check-", dir=place)
         except OSError as e:
             where = "" if place == folder else f" (its folder {place} is not writable)"
-            raise HeadFileError(folder, f"cannot be written: {e.strerror or e}{where}; choose another --out "
-                                        "(checked before fitting: nothing was fitted)") from None
+            raise HeadFileError(
+                folder,
+                f"cannot be written: {e.strerror or e}{where}; choose another --out "
+                "(checked before fitting: nothing was fitted)",
+            ) from None
         os.close(fd)
         os.unlink(probe)
 
@@ -324,23 +362,32 @@ def check_replaceable(folder, kind: str) -> None:
     if not entries:
         return
     if CONFIG not in entries:
-        raise HeadFileError(folder, f"holds files that are not a slide head's (no {CONFIG}: e.g. {entries[0]!r}); "
-                                    "refusing to overwrite it (choose another folder)")
+        raise HeadFileError(
+            folder,
+            f"holds files that are not a slide head's (no {CONFIG}: e.g. {entries[0]!r}); "
+            "refusing to overwrite it (choose another folder)",
+        )
     try:
         cfg = read_config(folder / CONFIG)
     except HeadFileError as e:
-        raise HeadFileError(folder, f"holds a {CONFIG} that is not a slide head's ({e.problem}); refusing to "
-                                    "overwrite it") from None
+        raise HeadFileError(
+            folder, f"holds a {CONFIG} that is not a slide head's ({e.problem}); refusing to overwrite it"
+        ) from None
     other = cfg.get("kind")
     if other != kind:
-        raise HeadFileError(folder, f"holds a head of kind {other!r}; refusing to overwrite it with a {kind!r} head "
-                                    "(choose another folder)")
+        raise HeadFileError(
+            folder,
+            f"holds a head of kind {other!r}; refusing to overwrite it with a {kind!r} head (choose another folder)",
+        )
     listed = cfg.get("files")
     listed = set(listed) if isinstance(listed, list) and all(isinstance(n, str) for n in listed) else {PARAMS}
     foreign = [n for n in entries if n != CONFIG and n not in listed]
     if foreign:
-        raise HeadFileError(folder, f"holds files the head there did not write (e.g. {foreign[0]!r}); refusing to "
-                                    "overwrite it (remove them yourself or choose another folder)")
+        raise HeadFileError(
+            folder,
+            f"holds files the head there did not write (e.g. {foreign[0]!r}); refusing to "
+            "overwrite it (remove them yourself or choose another folder)",
+        )
     links = [n for n in entries if (folder / n).is_symlink() or not (folder / n).is_file()]
     if links:
         raise HeadFileError(folder, f"entry {links[0]!r} is not a regular file; refusing to overwrite the folder")
@@ -358,8 +405,12 @@ def save_folder(folder, config: dict, arrays: dict, extras: dict | None = None) 
         raise ValueError("a head config needs a string 'kind'")
     extras = dict(extras or {})
     for name in extras:
-        if not isinstance(name, str) or name in (CONFIG, PARAMS, TEMP_MARKER) or Path(name).name != name \
-                or name.startswith("."):
+        if (
+            not isinstance(name, str)
+            or name in (CONFIG, PARAMS, TEMP_MARKER)
+            or Path(name).name != name
+            or name.startswith(".")
+        ):
             raise ValueError(f"extra file name {name!r} is not a plain file name a head folder may hold")
     check_replaceable(folder, kind)
     folder.parent.mkdir(parents=True, exist_ok=True)
@@ -420,8 +471,16 @@ class SavedHead:
 
     def config(self) -> dict:
         """The structure as saved in ``config.json``."""
-        return {"kind": self.kind, "format": self.FORMAT, **self.structure(), "encoder": self.encoder,
-                "name": self.name, "input": INPUT, "output": self.OUTPUT, **json.loads(self.info)}
+        return {
+            "kind": self.kind,
+            "format": self.FORMAT,
+            **self.structure(),
+            "encoder": self.encoder,
+            "name": self.name,
+            "input": INPUT,
+            "output": self.OUTPUT,
+            **json.loads(self.info),
+        }
 
     def write(self, folder, params_name: str, params: bytes) -> Path:
         """Write ``folder/params_name`` (``params``) and ``folder/config.json`` (:meth:`config`); returns the

@@ -41,6 +41,7 @@ Fitted by :mod:`baselines.reading.learned_head_fit`. Saved as a folder (:mod:`hi
 ``config.json`` (``kind`` :data:`KIND`, ``format`` :data:`FORMAT`, ``features_dim``, ``hidden``, ``attention``, ``layers``,
 the fit) and ``params.npz`` (the arrays, ``cal_a``, ``cal_b``, ``prior_logit``).
 """
+
 from __future__ import annotations
 
 import json
@@ -82,8 +83,18 @@ def param_shapes(dim: int, hidden: int, attention: int, layers: int) -> dict:
     shapes = {"mu": (dim,), "sd": (dim,), "w1": (dim, hidden), "b1": (hidden,)}
     if layers == 2:
         shapes.update(w2=(hidden, hidden), b2=(hidden,))
-    shapes.update(V=(hidden, attention), bV=(attention,), U=(hidden, attention), bU=(attention,), wa=(attention,),
-                  wc=(hidden,), bc=(), cal_a=(), cal_b=(), prior_logit=())
+    shapes.update(
+        V=(hidden, attention),
+        bV=(attention,),
+        U=(hidden, attention),
+        bU=(attention,),
+        wa=(attention,),
+        wc=(hidden,),
+        bc=(),
+        cal_a=(),
+        cal_b=(),
+        prior_logit=(),
+    )
     return shapes
 
 
@@ -217,8 +228,10 @@ class LearnedHead(files.SavedHead):
 
     def score_logits(self, logits: jax.Array, read_mask: jax.Array) -> jax.Array:
         """Not available: this head reads every feature entry, not a view-logit map (call :meth:`score`)."""
-        raise ValueError(f"this head ({self.name}) reads all feature entries: call score with the feature grid "
-                         "(H, W, D), not score_logits with a logit map")
+        raise ValueError(
+            f"this head ({self.name}) reads all feature entries: call score with the feature grid "
+            "(H, W, D), not score_logits with a logit map"
+        )
 
     # ------------------------------------------------------------------ files
     FORMAT = FORMAT
@@ -226,8 +239,12 @@ class LearnedHead(files.SavedHead):
 
     def structure(self) -> dict:
         """The structure entries of ``config.json`` (:meth:`files.SavedHead.config`)."""
-        return {"features_dim": int(self.features_dim), "hidden": int(self.hidden), "attention": int(self.attention),
-                "layers": int(self.layers)}
+        return {
+            "features_dim": int(self.features_dim),
+            "hidden": int(self.hidden),
+            "attention": int(self.attention),
+            "layers": int(self.layers),
+        }
 
     def arrays(self) -> dict:
         """Every array saved in ``params.npz`` (name -> float32 numpy array)."""
@@ -261,28 +278,60 @@ class LearnedHead(files.SavedHead):
         encoder = files.field(cfg, "encoder", (str, type(None)), cfg_file, default=None)
         arrays = files.read_arrays(folder / files.PARAMS, param_shapes(dim, hidden, att, layers))
         files.check_magnitudes(arrays, folder / files.PARAMS, MIN_SD)  # finite but absurd: refused as well
-        known = {"kind", "format", "features_dim", "hidden", "attention", "layers", "encoder", "name", "input", "output", "files"}
+        known = {
+            "kind",
+            "format",
+            "features_dim",
+            "hidden",
+            "attention",
+            "layers",
+            "encoder",
+            "name",
+            "input",
+            "output",
+            "files",
+        }
         info = json.dumps({k: v for k, v in cfg.items() if k not in known})  # json-not-written: files.save writes it
         params = {k: jnp.asarray(v) for k, v in arrays.items() if k not in SCALARS}
-        return cls(params=params, cal_a=jnp.float32(arrays["cal_a"]), cal_b=jnp.float32(arrays["cal_b"]),
-                   prior_logit=jnp.float32(arrays["prior_logit"]), features_dim=dim, hidden=hidden, attention=att,
-                   layers=layers, encoder=encoder, info=info, source=str(folder))
+        return cls(
+            params=params,
+            cal_a=jnp.float32(arrays["cal_a"]),
+            cal_b=jnp.float32(arrays["cal_b"]),
+            prior_logit=jnp.float32(arrays["prior_logit"]),
+            features_dim=dim,
+            hidden=hidden,
+            attention=att,
+            layers=layers,
+            encoder=encoder,
+            info=info,
+            source=str(folder),
+        )
 
 
-def init_params(key: jax.Array, dim: int, hidden: int = 64, attention: int = 32, layers: int = 1,
-                mu=None, sd=None) -> dict:
+def init_params(
+    key: jax.Array, dim: int, hidden: int = 64, attention: int = 32, layers: int = 1, mu=None, sd=None
+) -> dict:
     """Initial parameters (Glorot-uniform weights, zero biases) of a head with ``dim`` feature entries;
     ``mu`` / ``sd`` ``(dim,)`` the standardisation (default 0 / 1)."""
     ks = jax.random.split(key, 6)
     g = jax.nn.initializers.glorot_uniform()
-    p = {"mu": jnp.zeros(dim) if mu is None else jnp.asarray(mu, jnp.float32),
-         "sd": jnp.ones(dim) if sd is None else jnp.asarray(sd, jnp.float32),
-         "w1": g(ks[0], (dim, hidden)), "b1": jnp.zeros(hidden)}
+    p = {
+        "mu": jnp.zeros(dim) if mu is None else jnp.asarray(mu, jnp.float32),
+        "sd": jnp.ones(dim) if sd is None else jnp.asarray(sd, jnp.float32),
+        "w1": g(ks[0], (dim, hidden)),
+        "b1": jnp.zeros(hidden),
+    }
     if layers == 2:
         p.update(w2=g(ks[5], (hidden, hidden)), b2=jnp.zeros(hidden))
-    p.update(V=g(ks[1], (hidden, attention)), bV=jnp.zeros(attention), U=g(ks[2], (hidden, attention)),
-             bU=jnp.zeros(attention), wa=g(ks[3], (attention, 1))[:, 0], wc=g(ks[4], (hidden, 1))[:, 0],
-             bc=jnp.zeros(()))
+    p.update(
+        V=g(ks[1], (hidden, attention)),
+        bV=jnp.zeros(attention),
+        U=g(ks[2], (hidden, attention)),
+        bU=jnp.zeros(attention),
+        wa=g(ks[3], (attention, 1))[:, 0],
+        wc=g(ks[4], (hidden, 1))[:, 0],
+        bc=jnp.zeros(()),
+    )
     return p
 
 

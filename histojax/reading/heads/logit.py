@@ -22,6 +22,7 @@ simply never read); no host callbacks, no data-dependent Python control flow::
 map directly. Saved as a folder: ``config.json`` (the head's structure and how it was fitted and chosen)
 and ``params.json`` (``a``, ``b``, ``prior_logit``: the calibration's keys in the file are ``a`` and ``b``).
 """
+
 from __future__ import annotations
 
 import json
@@ -72,7 +73,10 @@ class LogitHead(files.SavedHead):
     @property
     def name(self) -> str:
         """A short name of the structure, e.g. ``"3x3 mean, max"`` or ``"2x2 mean, top-3, minus median"``."""
-        parts = [f"{self.k}x{self.k} mean" if self.k > 1 else "view logit", "max" if self.top == 1 else f"top-{self.top}"]
+        parts = [
+            f"{self.k}x{self.k} mean" if self.k > 1 else "view logit",
+            "max" if self.top == 1 else f"top-{self.top}",
+        ]
         return ", ".join(parts + (["minus median"] if self.minus_median else []))
 
     def structure(self) -> dict:
@@ -118,8 +122,9 @@ class LogitHead(files.SavedHead):
         cfg_file, par_file = folder / files.CONFIG, folder / "params.json"
         cfg = files.read_config(cfg_file)
         if cfg.get("kind") != KIND:
-            raise files.HeadFileError(cfg_file, f"not a slide head config (kind {cfg.get('kind')!r}, expected "
-                                                f"{KIND!r})")
+            raise files.HeadFileError(
+                cfg_file, f"not a slide head config (kind {cfg.get('kind')!r}, expected {KIND!r})"
+            )
         fmt = files.field(cfg, "format", int, cfg_file)
         if fmt != FORMAT:
             raise files.HeadFileError(cfg_file, f"{KIND} head format {fmt}; this version reads format {FORMAT}")
@@ -129,16 +134,29 @@ class LogitHead(files.SavedHead):
         minus_median = files.field(cfg, "minus_median", bool, cfg_file, default=False)
         encoder = files.field(cfg, "encoder", (str, type(None)), cfg_file, default=None)
         par = files.read_config(par_file, max_bytes=MAX_PARAMS_JSON_BYTES, what="parameters")
-        a, b, prior = (files.field(par, n, float, par_file, lo=-MAX_PARAM, hi=MAX_PARAM)
-                       for n in ("a", "b", "prior_logit"))
+        a, b, prior = (
+            files.field(par, n, float, par_file, lo=-MAX_PARAM, hi=MAX_PARAM) for n in ("a", "b", "prior_logit")
+        )
         unknown = sorted(set(par) - {"a", "b", "prior_logit"})
         if unknown:  # a typo or another tool's parameter would otherwise be ignored without a word
-            raise files.HeadFileError(par_file, f"unknown entry {unknown[0]!r} (a {KIND} head's parameters are "
-                                                "a, b and prior_logit); remove it or refit the head")
+            raise files.HeadFileError(
+                par_file,
+                f"unknown entry {unknown[0]!r} (a {KIND} head's parameters are "
+                "a, b and prior_logit); remove it or refit the head",
+            )
         known = {"kind", "format", "dim", "k", "top", "minus_median", "encoder", "name", "input", "output"}
         info = json.dumps({key: v for key, v in cfg.items() if key not in known})  # json-not-written: save writes it
-        return cls(cal_a=jnp.float32(a), cal_b=jnp.float32(b), prior_logit=jnp.float32(prior), dim=dim, k=k, top=top,
-                   minus_median=minus_median, encoder=encoder, info=info)
+        return cls(
+            cal_a=jnp.float32(a),
+            cal_b=jnp.float32(b),
+            prior_logit=jnp.float32(prior),
+            dim=dim,
+            k=k,
+            top=top,
+            minus_median=minus_median,
+            encoder=encoder,
+            info=info,
+        )
 
 
 def check_dim(head, d: int) -> None:
@@ -146,9 +164,11 @@ def check_dim(head, d: int) -> None:
     ``head.dim >= d`` (JAX indexing would clamp it to entry ``d - 1`` without a word): a head fitted on another
     encoder's features."""
     if not 0 <= int(head.dim) < int(d):
-        raise ValueError(f"this slide head ({head.kind}, {head.name}) reads feature entry {head.dim} "
-                         f"(its encoder {head.encoder!r}), but the features have {d} entries (0..{d - 1}): it was "
-                         "fitted on another encoder's features; use a head fitted on these features")
+        raise ValueError(
+            f"this slide head ({head.kind}, {head.name}) reads feature entry {head.dim} "
+            f"(its encoder {head.encoder!r}), but the features have {d} entries (0..{d - 1}): it was "
+            "fitted on another encoder's features; use a head fitted on these features"
+        )
 
 
 def neighbourhood_mean(logits: jax.Array, mask: jax.Array, k: int) -> jax.Array:
@@ -164,6 +184,7 @@ def neighbourhood_mean(logits: jax.Array, mask: jax.Array, k: int) -> jax.Array:
     def box(a):  # a k × k box sum, separably: k rows, then k columns (2k adds a view, not k²)
         a = jax.lax.reduce_window(a, 0.0, jax.lax.add, (k, 1), (1, 1), (pad, (0, 0)))
         return jax.lax.reduce_window(a, 0.0, jax.lax.add, (1, k), (1, 1), ((0, 0), pad))
+
     return box(x) / jnp.maximum(box(m), 1.0)
 
 

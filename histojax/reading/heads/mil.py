@@ -30,6 +30,7 @@ grid (padding is never read). Fitted by :mod:`baselines.reading.head_mil_fit` wi
 partial reads. Saved as a folder: ``config.json`` (``kind``, ``format``, structure, the fit) and
 ``params.npz`` (the arrays).
 """
+
 from __future__ import annotations
 
 import io
@@ -48,7 +49,7 @@ KIND_MIL = "attention-mil"
 KIND_STATS = "pooled-statistics"
 KINDS = (KIND_MIL, KIND_STATS)
 FORMAT = 1
-THRESHOLDS = (0.0, 1.0, 2.0)   # view-logit thresholds of the counts in StatsHead's statistics
+THRESHOLDS = (0.0, 1.0, 2.0)  # view-logit thresholds of the counts in StatsHead's statistics
 TOPS = (1, 3)
 MAX_UNITS = 4096
 """The most hidden or attention units a MIL head may have."""
@@ -74,10 +75,13 @@ def feature_means(features: jax.Array, mask: jax.Array, k: int) -> jax.Array:
 
     def box(a):
         extra = ((0, 0),) * (a.ndim - 2)
-        a = jax.lax.reduce_window(a, 0.0, jax.lax.add, (k, 1) + (1,) * (a.ndim - 2), (1,) * a.ndim,
-                                  (pad, (0, 0)) + extra)
-        return jax.lax.reduce_window(a, 0.0, jax.lax.add, (1, k) + (1,) * (a.ndim - 2), (1,) * a.ndim,
-                                     ((0, 0), pad) + extra)
+        a = jax.lax.reduce_window(
+            a, 0.0, jax.lax.add, (k, 1) + (1,) * (a.ndim - 2), (1,) * a.ndim, (pad, (0, 0)) + extra
+        )
+        return jax.lax.reduce_window(
+            a, 0.0, jax.lax.add, (1, k) + (1,) * (a.ndim - 2), (1,) * a.ndim, ((0, 0), pad) + extra
+        )
+
     return box(x) / jnp.maximum(box(m), 1.0)[..., None]
 
 
@@ -94,8 +98,9 @@ def _gated(params: dict, x: jax.Array, mask: jax.Array, seg: jax.Array, num_segm
     return h, e, jax.ops.segment_sum(e, seg, num_segments)
 
 
-def attention_pool(params: dict, x: jax.Array, mask: jax.Array, segments: jax.Array | None = None,
-                   num_segments: int = 1) -> jax.Array:
+def attention_pool(
+    params: dict, x: jax.Array, mask: jax.Array, segments: jax.Array | None = None, num_segments: int = 1
+) -> jax.Array:
     """Gated-attention MIL over instances ``x (N, F)`` read where ``mask (N,)``; ``segments (N,)`` int assigns
     instances to bags (default one bag). Returns ``(num_segments,)`` slide logits (0 for a bag with nothing
     read: the caller substitutes the prior). ``params``: ``mu``, ``sd`` ``(F,)`` (standardisation), ``w1 (F, H)``,
@@ -106,8 +111,9 @@ def attention_pool(params: dict, x: jax.Array, mask: jax.Array, segments: jax.Ar
     return z @ params["wc"] + params["bc"]
 
 
-def attention_weights(params: dict, x: jax.Array, mask: jax.Array, segments: jax.Array | None = None,
-                      num_segments: int = 1) -> jax.Array:
+def attention_weights(
+    params: dict, x: jax.Array, mask: jax.Array, segments: jax.Array | None = None, num_segments: int = 1
+) -> jax.Array:
     """The attention :func:`attention_pool` gives each instance ``(N,)`` (summing to 1 over a bag's read
     instances, 0 where not read)."""
     seg = jnp.zeros(x.shape[0], jnp.int32) if segments is None else segments
@@ -201,27 +207,40 @@ class MilHead(_Saved):
     @property
     def name(self) -> str:
         """A short name, e.g. ``"attention-MIL over 1-4 logit means"``."""
-        what = f"{min(self.ks)}-{max(self.ks)} logit means" if len(self.ks) > 1 else f"{self.ks[0]}x{self.ks[0]} logit mean"
+        what = (
+            f"{min(self.ks)}-{max(self.ks)} logit means"
+            if len(self.ks) > 1
+            else f"{self.ks[0]}x{self.ks[0]} logit mean"
+        )
         if self.inputs == "features":
             what += f" + {self.feature_k}x{self.feature_k} feature means"
         return f"attention-MIL over {what}, {self.hidden} units"
 
     def structure(self) -> dict:
         """The structure entries of ``config.json`` (:meth:`files.SavedHead.config`)."""
-        return {"dim": self.dim, "ks": list(self.ks), "inputs": self.inputs, "feature_k": self.feature_k,
-                "hidden": self.hidden}
+        return {
+            "dim": self.dim,
+            "ks": list(self.ks),
+            "inputs": self.inputs,
+            "feature_k": self.feature_k,
+            "hidden": self.hidden,
+        }
 
     def instances(self, logits, features, mask) -> jax.Array:
         """``(H, W, F)`` the instance vector of each view (meaningful where ``mask``)."""
         x = logit_instances(logits, mask, self.ks)
         if self.inputs == "features":
             if features is None:
-                raise ValueError(f"this head ({self.name}) reads all feature entries: call histojax.reading.heads.score with "
-                                 "the feature grid, not score_logits with the logit map")
+                raise ValueError(
+                    f"this head ({self.name}) reads all feature entries: call histojax.reading.heads.score with "
+                    "the feature grid, not score_logits with the logit map"
+                )
             want = self.params["mu"].shape[0] - len(self.ks)
             if features.shape[-1] != want:
-                raise ValueError(f"this slide head ({self.name}) reads all {want} feature entries, but the features "
-                                 f"have {features.shape[-1]}: it was fitted on another encoder's features")
+                raise ValueError(
+                    f"this slide head ({self.name}) reads all {want} feature entries, but the features "
+                    f"have {features.shape[-1]}: it was fitted on another encoder's features"
+                )
             x = jnp.concatenate([x, feature_means(features, mask, self.feature_k)], -1)
         return x
 
@@ -273,8 +292,20 @@ def param_shapes(kind: str, n_ks: int, hidden: int | None = None, inputs: str = 
         n = n_ks * len(TOPS) + len(THRESHOLDS) + 1
         return {"mu": (n,), "sd": (n,), "w": (n,), "b": (), "prior_logit": ()}
     f = n_ks if inputs == "logit" else None
-    return {"mu": (f,), "sd": (f,), "w1": (f, hidden), "b1": (hidden,), "V": (hidden, None), "bV": (None,),
-            "U": (hidden, None), "bU": (None,), "wa": (None,), "wc": (hidden,), "bc": (), "prior_logit": ()}
+    return {
+        "mu": (f,),
+        "sd": (f,),
+        "w1": (f, hidden),
+        "b1": (hidden,),
+        "V": (hidden, None),
+        "bV": (None,),
+        "U": (hidden, None),
+        "bU": (None,),
+        "wa": (None,),
+        "wc": (hidden,),
+        "bc": (),
+        "prior_logit": (),
+    }
 
 
 def load(folder):
@@ -288,8 +319,9 @@ def load(folder):
     cfg = files.read_config(cfg_file)
     kind = cfg.get("kind")
     if kind not in KINDS:
-        raise files.HeadFileError(cfg_file, f"not a slide head this version reads (kind {kind!r}; known: "
-                                            f"{', '.join(KINDS)})")
+        raise files.HeadFileError(
+            cfg_file, f"not a slide head this version reads (kind {kind!r}; known: {', '.join(KINDS)})"
+        )
     fmt = files.field(cfg, "format", int, cfg_file)
     if fmt != FORMAT:
         raise files.HeadFileError(cfg_file, f"{kind} head format {fmt}; this version reads format {FORMAT}")
@@ -299,22 +331,43 @@ def load(folder):
         raise files.HeadFileError(cfg_file, f"'ks' is {json.dumps(ks)[:60]}, not 1 to {MAX_KS} ints in [1, {MAX_K}]")
     ks = tuple(ks)
     encoder = files.field(cfg, "encoder", (str, type(None)), cfg_file, default=None)
-    known = {"kind", "format", "dim", "ks", "inputs", "feature_k", "hidden", "thresholds", "tops", "encoder",
-             "name", "input", "output"}
+    known = {
+        "kind",
+        "format",
+        "dim",
+        "ks",
+        "inputs",
+        "feature_k",
+        "hidden",
+        "thresholds",
+        "tops",
+        "encoder",
+        "name",
+        "input",
+        "output",
+    }
     info = json.dumps({k: v for k, v in cfg.items() if k not in known})  # json-not-written: save writes it
     if kind == KIND_STATS:
         for key, want in (("thresholds", THRESHOLDS), ("tops", TOPS)):
             got = files.field(cfg, key, list, cfg_file, default=list(want))
             if got != list(want):
-                raise files.HeadFileError(cfg_file, f"{key} {json.dumps(got)[:60]} differ from this version's "
-                                                    f"{list(want)}")
+                raise files.HeadFileError(
+                    cfg_file, f"{key} {json.dumps(got)[:60]} differ from this version's {list(want)}"
+                )
         arrays = files.read_arrays(par_file, param_shapes(kind, len(ks)))
         if not np.all(arrays["sd"] > 0):
             raise files.HeadFileError(par_file, "array sd holds values <= 0 (a standard deviation)")
         files.check_magnitudes(arrays, par_file, MIN_SD)
         params = {k: jnp.asarray(arrays[k]) for k in ("mu", "sd", "w", "b")}
-        return StatsHead(params=params, prior_logit=jnp.float32(arrays["prior_logit"]), dim=dim, ks=ks,
-                         encoder=encoder, info=info, source=str(folder))
+        return StatsHead(
+            params=params,
+            prior_logit=jnp.float32(arrays["prior_logit"]),
+            dim=dim,
+            ks=ks,
+            encoder=encoder,
+            info=info,
+            source=str(folder),
+        )
     inputs = files.field(cfg, "inputs", str, cfg_file)
     if inputs not in ("logit", "features"):
         raise files.HeadFileError(cfg_file, f"'inputs' is {inputs[:40]!r}, not 'logit' or 'features'")
@@ -325,12 +378,25 @@ def load(folder):
     shapes = {"sd": (f,), "w1": (f, hidden), "V": (hidden, att), "bV": (att,), "U": (hidden, att), "bU": (att,)}
     bad = next((n for n, want in shapes.items() if arrays[n].shape != want), None)
     if bad is not None or (inputs == "features" and f <= len(ks)) or att > MAX_UNITS:
-        what = f"array {bad} has shape {arrays[bad].shape}, expected {shapes[bad]}" if bad else \
-            f"{f} instance inputs and {att} attention units do not fit a {inputs} head of {len(ks)} logit means"
+        what = (
+            f"array {bad} has shape {arrays[bad].shape}, expected {shapes[bad]}"
+            if bad
+            else f"{f} instance inputs and {att} attention units do not fit a {inputs} head of {len(ks)} logit means"
+        )
         raise files.HeadFileError(par_file, f"{what} (inputs, hidden and attention units must agree)")
     if not np.all(arrays["sd"] > 0):
         raise files.HeadFileError(par_file, "array sd holds values <= 0 (a standard deviation)")
     files.check_magnitudes(arrays, par_file, MIN_SD)
     params = {k: jnp.asarray(v) for k, v in arrays.items() if k != "prior_logit"}
-    return MilHead(params=params, prior_logit=jnp.float32(arrays["prior_logit"]), dim=dim, ks=ks, inputs=inputs,
-                   feature_k=fk, hidden=hidden, encoder=encoder, info=info, source=str(folder))
+    return MilHead(
+        params=params,
+        prior_logit=jnp.float32(arrays["prior_logit"]),
+        dim=dim,
+        ks=ks,
+        inputs=inputs,
+        feature_k=fk,
+        hidden=hidden,
+        encoder=encoder,
+        info=info,
+        source=str(folder),
+    )

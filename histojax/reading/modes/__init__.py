@@ -8,6 +8,7 @@ names (:func:`histojax.core.modes.factory.register_action_mode`), and plugs the 
 (:func:`histojax.core.seen_views.register_coarse_map`). ``histojax/__init__.py`` imports it, so every
 ``import histojax`` knows every mode name, while the core imports nothing from ``histojax.reading``.
 """
+
 from __future__ import annotations
 
 from histojax.core import seen_views
@@ -25,6 +26,7 @@ def _coarse_maps(env, params, bundles, feature, level=-3, head=None):
 
 
 factory.register_action_mode("glimpse", factory.whole_number_arg(Glimpse, "level", "glimpse"), ("glimpse:LEVEL",))
-factory.register_action_mode("zoom_select", factory.whole_number_arg(ZoomSelect, "k", "zoom_select"),
-                             ("zoom_select:K",))
+factory.register_action_mode(
+    "zoom_select", factory.whole_number_arg(ZoomSelect, "k", "zoom_select"), ("zoom_select:K",)
+)
 seen_views.register_coarse_map(_coarse_maps)

@@ -35,6 +35,7 @@ lets an episode read; a new cell without a free slot ends the episode like the b
 **info** (every step): ``fraction_read`` (read tissue views / all tissue views), ``fields_of_view``
 (distinct cells revealed), ``steps``; with ``score`` / ``declared`` of classification.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -44,8 +45,7 @@ import jax.numpy as jnp
 import numpy as np
 from flax import struct
 
-from histojax.core import spaces
-from histojax.core import seen_views
+from histojax.core import seen_views, spaces
 from histojax.core.modes.base import ActionMode, Move, _declared_score
 from histojax.reading import tables as reading_tables
 
@@ -54,18 +54,18 @@ from histojax.reading import tables as reading_tables
 class GlimpseTables:
     """Per-slide tables of a dataset of ``S`` slides, ``C`` cells (in ``EnvParams.mode_data``)."""
 
-    cells: jnp.ndarray        # (S, C, D) float32 low-resolution features of each cell (0: padding)
-    summaries: jnp.ndarray    # (S, C, 2D) float32 mean ‖ max of the finest tissue views' features under it
-    cell_views: jnp.ndarray   # (S, C) int32 finest-level tissue views under each cell
-    valid: jnp.ndarray        # (S, C) bool: on the slide with ≥ 1 tissue view under it
-    cell_x: jnp.ndarray       # (S, C) int32 top-left of the cell's view, px of the glimpse level
-    cell_y: jnp.ndarray       # (S, C) int32
+    cells: jnp.ndarray  # (S, C, D) float32 low-resolution features of each cell (0: padding)
+    summaries: jnp.ndarray  # (S, C, 2D) float32 mean ‖ max of the finest tissue views' features under it
+    cell_views: jnp.ndarray  # (S, C) int32 finest-level tissue views under each cell
+    valid: jnp.ndarray  # (S, C) bool: on the slide with ≥ 1 tissue view under it
+    cell_x: jnp.ndarray  # (S, C) int32 top-left of the cell's view, px of the glimpse level
+    cell_y: jnp.ndarray  # (S, C) int32
     total_views: jnp.ndarray  # (S,) int32 finest-level tissue views of the slide (≥ 1)
-    inv_total: jnp.ndarray    # (S,) float32 1 / total_views (a product, not a division, is bitwise stable under vmap)
+    inv_total: jnp.ndarray  # (S,) float32 1 / total_views (a product, not a division, is bitwise stable under vmap)
     read_budget: jnp.ndarray  # () float32 fraction of total_views an episode may read, in (0, 1]
-    grid: jnp.ndarray         # (2,) int32 (H, W): the padded cell grid, C = H · W (cell index = row · W + col)
-    slots_zero: jnp.ndarray   # (K,) int32 all C: an empty list of the cells read (K = read_slots, see the module doc)
-    slide_grid: jnp.ndarray   # (S, 2) int32 (gh, gw): each slide's own cell grid, inside the padded one
+    grid: jnp.ndarray  # (2,) int32 (H, W): the padded cell grid, C = H · W (cell index = row · W + col)
+    slots_zero: jnp.ndarray  # (K,) int32 all C: an empty list of the cells read (K = read_slots, see the module doc)
+    slide_grid: jnp.ndarray  # (S, 2) int32 (gh, gw): each slide's own cell grid, inside the padded one
     step_obs: bool = struct.field(pytree_node=False, default=False)  # made for a step_obs env: no policy depends on C
 
 
@@ -73,11 +73,11 @@ class GlimpseTables:
 class GlimpseMemory:
     """What an episode has read (in ``EnvState.memory``)."""
 
-    revealed: jnp.ndarray     # (C,) bool cells revealed so far
-    views_read: jnp.ndarray   # () int32 finest-level tissue views read so far
-    fields: jnp.ndarray       # () int32 distinct cells revealed (fields of view)
+    revealed: jnp.ndarray  # (C,) bool cells revealed so far
+    views_read: jnp.ndarray  # () int32 finest-level tissue views read so far
+    fields: jnp.ndarray  # () int32 distinct cells revealed (fields of view)
     over_budget: jnp.ndarray  # () bool a pick was refused by the budget (the episode ends)
-    slots: jnp.ndarray = None # (K,) int32 the cells revealed, in reading order; step_obs envs only
+    slots: jnp.ndarray = None  # (K,) int32 the cells revealed, in reading order; step_obs envs only
     slot_summaries: jnp.ndarray = None  # (K, 2D) their summaries in the feature bank's dtype; step_obs only
     # only the first ``fields`` slots are this episode's: the auto-reset leaves the others as they were
     # (the observation shows them empty: cell C, summary 0)
@@ -157,16 +157,23 @@ def unreadable_warning(names, cell_views, valid, total, budgets, where: str = ""
     shown = ", ".join(str(names[i]) for i in idx0[:5]) + (f" and {idx0.size - 5} more" if idx0.size > 5 else "")
     need = smallest_budgets(cell_views, valid, total)
     finite = need[np.isfinite(need)]
-    nearest = (f"the nearest budget that reads a cell on every slide is {_percent_up(float(finite.max()))}"
-               if finite.size else "no slide has a cell to read")
+    nearest = (
+        f"the nearest budget that reads a cell on every slide is {_percent_up(float(finite.max()))}"
+        if finite.size
+        else "no slide has a cell to read"
+    )
     if len(empty) == 1:
         said = f"at read budget {_percent(b0)} on {idx0.size} of {cells.size} slides ({shown})"
     else:
-        said = (f"at read budgets {', '.join(_percent(b) for b, _ in empty)} on "
-                f"{', '.join(str(i.size) for _, i in empty)} of {cells.size} slides (at {_percent(b0)}: {shown})")
-    return (f"{where + ': ' if where else ''}nothing can be read {said}: each of their cells holds more tissue views "
-            "than the budget allows, so what is scored there is the overview alone (AUC 0.500 where no slide reads "
-            f"anything); {nearest}")
+        said = (
+            f"at read budgets {', '.join(_percent(b) for b, _ in empty)} on "
+            f"{', '.join(str(i.size) for _, i in empty)} of {cells.size} slides (at {_percent(b0)}: {shown})"
+        )
+    return (
+        f"{where + ': ' if where else ''}nothing can be read {said}: each of their cells holds more tissue views "
+        "than the budget allows, so what is scored there is the overview alone (AUC 0.500 where no slide reads "
+        f"anything); {nearest}"
+    )
 
 
 @dataclasses.dataclass(frozen=True)
@@ -193,8 +200,9 @@ class Glimpse(ActionMode):
     def space(self, env, params):
         return spaces.Discrete(self.num_cells(params) + 2)
 
-    def prepare(self, env, params, bundles, read_budget: float = 1.0, glimpse_grid=None,
-                read_slots: int | None = None) -> GlimpseTables:
+    def prepare(
+        self, env, params, bundles, read_budget: float = 1.0, glimpse_grid=None, read_slots: int | None = None
+    ) -> GlimpseTables:
         """``glimpse_grid=(H, W)``: pad every slide's cells to that grid (default: the largest grid of these
         slides; only the v1 observation, which holds every cell, needs it to match across datasets).
         ``read_slots``: ``K``, the slots of the cells-read list of an ``episode_tables`` observation
@@ -210,13 +218,20 @@ class Glimpse(ActionMode):
         c = cell_views.shape[1]
         k = int(read_slots) if read_slots is not None else slots_needed(cell_views, valid, total, read_budget)
         return GlimpseTables(
-            cells=jnp.asarray(stack("cells")), summaries=jnp.asarray(stack("summaries")),
-            cell_views=jnp.asarray(cell_views), valid=jnp.asarray(valid),
-            cell_x=jnp.asarray(stack("cell_x")), cell_y=jnp.asarray(stack("cell_y")),
+            cells=jnp.asarray(stack("cells")),
+            summaries=jnp.asarray(stack("summaries")),
+            cell_views=jnp.asarray(cell_views),
+            valid=jnp.asarray(valid),
+            cell_x=jnp.asarray(stack("cell_x")),
+            cell_y=jnp.asarray(stack("cell_y")),
             total_views=jnp.asarray(total, jnp.int32),
-            inv_total=jnp.asarray(1.0 / total.astype(np.float64), jnp.float32), read_budget=jnp.float32(read_budget),
-            grid=jnp.asarray(per[0]["grid"], jnp.int32), slots_zero=jnp.full((min(k, c),), c, jnp.int32),
-            slide_grid=jnp.asarray(stack("slide_grid", np.int32)), step_obs=bool(env.step_obs))
+            inv_total=jnp.asarray(1.0 / total.astype(np.float64), jnp.float32),
+            read_budget=jnp.float32(read_budget),
+            grid=jnp.asarray(per[0]["grid"], jnp.int32),
+            slots_zero=jnp.full((min(k, c),), c, jnp.int32),
+            slide_grid=jnp.asarray(stack("slide_grid", np.int32)),
+            step_obs=bool(env.step_obs),
+        )
 
     def host_tables(self, env, params, bundles, grid=None, instances: bool = True) -> list[dict]:
         """Per slide, host numpy: the padded cell tables of :class:`GlimpseTables` (``cells``,
@@ -229,8 +244,9 @@ class Glimpse(ActionMode):
         per = []
         for slide, bundle in seen_views.per_slide(params, bundles):
             if slide.features is None:
-                raise ValueError(f"action_mode='glimpse' needs feature grids: run `python -m data_tools features "
-                                 f"{bundle.path}`")
+                raise ValueError(
+                    f"action_mode='glimpse' needs feature grids: run `python -m data_tools features {bundle.path}`"
+                )
             s = int(np.asarray(slide.feature_stride))
             gw, gh = int(np.asarray(slide.feature_grid_width)[g]), int(np.asarray(slide.feature_grid_height)[g])
             per.append((bundle, s, gh, gw))  # not the slide's view: it is made again below, one at a time
@@ -239,9 +255,11 @@ class Glimpse(ActionMode):
             gh_max, gw_max = (int(v) for v in grid)
             for bundle, _, gh, gw in per:
                 if gh > gh_max or gw > gw_max:
-                    raise ValueError(f"{bundle.path}: its {gh} × {gw} glimpse cells at level {self.level} do not fit "
-                                     f"glimpse_grid={[gh_max, gw_max]} (the grid a policy was trained with); "
-                                     "train on slides that include one this large, or pass a larger glimpse_grid")
+                    raise ValueError(
+                        f"{bundle.path}: its {gh} × {gw} glimpse cells at level {self.level} do not fit "
+                        f"glimpse_grid={[gh_max, gw_max]} (the grid a policy was trained with); "
+                        "train on slides that include one this large, or pass a larger glimpse_grid"
+                    )
             big_h, big_w = gh_max, gw_max
         out = []
         for (slide, _), (bundle, s, gh, gw) in zip(seen_views.per_slide(params, bundles), per):
@@ -254,10 +272,16 @@ class Glimpse(ActionMode):
             gy, gx = np.divmod(np.arange(n), gw)
             pad = lambda a, fill=0: _to_padded(a.reshape(gh, gw, *a.shape[1:]), big_h, big_w, fill)  # noqa: E731
             row = {
-                "cells": pad(low), "summaries": pad(np.concatenate([mean, mx], 1).astype(np.float32)),
-                "cell_views": pad(count.astype(np.int32)), "valid": pad(count > 0, False),
-                "cell_x": pad((gx * s).astype(np.int32)), "cell_y": pad((gy * s).astype(np.int32)),
-                "total": max(1, int(tissue.sum())), "grid": (big_h, big_w), "slide_grid": (gh, gw)}
+                "cells": pad(low),
+                "summaries": pad(np.concatenate([mean, mx], 1).astype(np.float32)),
+                "cell_views": pad(count.astype(np.int32)),
+                "valid": pad(count > 0, False),
+                "cell_x": pad((gx * s).astype(np.int32)),
+                "cell_y": pad((gy * s).astype(np.int32)),
+                "total": max(1, int(tissue.sum())),
+                "grid": (big_h, big_w),
+                "slide_grid": (gh, gw),
+            }
             if instances:
                 cy, cx = np.divmod(cell[tissue], gw)
                 row.update(instances=feats[tissue].astype(np.float32), instance_cell=(cy * big_w + cx).astype(np.int64))
@@ -267,12 +291,20 @@ class Glimpse(ActionMode):
     def init_memory(self, env, state, params) -> GlimpseMemory:
         c = self.num_cells(params)
         zero = jnp.zeros((), jnp.int32)
-        return GlimpseMemory(revealed=jnp.zeros((c,), bool), views_read=zero, fields=zero,
-                             over_budget=jnp.zeros((), bool),
-                             slots=params.mode_data.slots_zero if env.step_obs else None,
-                             slot_summaries=(jnp.zeros(params.mode_data.slots_zero.shape
-                                                       + params.mode_data.summaries.shape[-1:], summary_dtype(params))
-                                             if env.step_obs else None))
+        return GlimpseMemory(
+            revealed=jnp.zeros((c,), bool),
+            views_read=zero,
+            fields=zero,
+            over_budget=jnp.zeros((), bool),
+            slots=params.mode_data.slots_zero if env.step_obs else None,
+            slot_summaries=(
+                jnp.zeros(
+                    params.mode_data.slots_zero.shape + params.mode_data.summaries.shape[-1:], summary_dtype(params)
+                )
+                if env.step_obs
+                else None
+            ),
+        )
 
     def auto_reset_memory(self, env, done, memory, state, params) -> GlimpseMemory:
         """A new episode where ``done``. With ``step_obs`` the cells-read list (``slots``, ``slot_summaries``,
@@ -281,8 +313,12 @@ class Glimpse(ActionMode):
         if not env.step_obs:
             return super().auto_reset_memory(env, done, memory, state, params)
         zero = jnp.zeros((), jnp.int32)
-        return memory.replace(revealed=memory.revealed & ~done, views_read=jnp.where(done, zero, memory.views_read),
-                              fields=jnp.where(done, zero, memory.fields), over_budget=memory.over_budget & ~done)
+        return memory.replace(
+            revealed=memory.revealed & ~done,
+            views_read=jnp.where(done, zero, memory.views_read),
+            fields=jnp.where(done, zero, memory.fields),
+            over_budget=memory.over_budget & ~done,
+        )
 
     def apply(self, env, state, action, params) -> Move:
         tables, mem, i = params.mode_data, state.memory, state.slide_index
@@ -302,12 +338,17 @@ class Glimpse(ActionMode):
             j = jnp.minimum(mem.fields, slots.shape[0] - 1)
             slots = slots.at[mem.fields].set(jnp.where(reveal, cell, slots[j]), mode="drop")
             slot_summaries = slot_summaries.at[mem.fields].set(
-                jnp.where(reveal, tables.summaries[i, cell].astype(slot_summaries.dtype), slot_summaries[j]), mode="drop")
+                jnp.where(reveal, tables.summaries[i, cell].astype(slot_summaries.dtype), slot_summaries[j]),
+                mode="drop",
+            )
         memory = GlimpseMemory(
             revealed=mem.revealed.at[cell].set(mem.revealed[cell] | reveal),
             views_read=mem.views_read + jnp.where(reveal, n, 0),
             fields=mem.fields + reveal.astype(jnp.int32),
-            over_budget=mem.over_budget | (new & ~fits), slots=slots, slot_summaries=slot_summaries)
+            over_budget=mem.over_budget | (new & ~fits),
+            slots=slots,
+            slot_summaries=slot_summaries,
+        )
         z = jnp.where(picked, self.level, state.z).astype(jnp.int32)
         x = jnp.where(picked, tables.cell_x[i, cell], state.x).astype(jnp.int32)
         y = jnp.where(picked, tables.cell_y[i, cell], state.y).astype(jnp.int32)
@@ -343,8 +384,11 @@ class Glimpse(ActionMode):
             "slide": jnp.asarray(i, jnp.int32),
             "read_bits": pack_bits(mem.revealed),
             "read_cells": jnp.where(used, mem.slots, tables.slots_zero),
-            "read_summaries": jnp.where(used[:, None], mem.slot_summaries,  # kept in the memory: no gather per step
-                                        jnp.zeros((), mem.slot_summaries.dtype)),
+            "read_summaries": jnp.where(
+                used[:, None],
+                mem.slot_summaries,  # kept in the memory: no gather per step
+                jnp.zeros((), mem.slot_summaries.dtype),
+            ),
             "budget_left": jnp.clip(tables.read_budget - fraction, 0.0, 1.0).astype(jnp.float32),
         }
 
@@ -364,23 +408,33 @@ class Glimpse(ActionMode):
         gy, gx = jnp.divmod(jnp.arange(c), t.grid[1])
         rows, cols = t.slide_grid[:, 0:1].astype(jnp.float32), t.slide_grid[:, 1:2].astype(jnp.float32)
         pos = jnp.stack([(gx[None] + 0.5) / cols, (gy[None] + 0.5) / rows], -1)
-        return {"cells": t.cells, "valid": t.valid.astype(jnp.float32),
-                "cost": (t.cell_views.astype(jnp.float32) * t.inv_total[:, None]),
-                "position": jnp.clip(pos, 0.0, 1.0).astype(jnp.float32),
-                "summaries": t.summaries.astype(summary_dtype(params))}
+        return {
+            "cells": t.cells,
+            "valid": t.valid.astype(jnp.float32),
+            "cost": (t.cell_views.astype(jnp.float32) * t.inv_total[:, None]),
+            "position": jnp.clip(pos, 0.0, 1.0).astype(jnp.float32),
+            "summaries": t.summaries.astype(summary_dtype(params)),
+        }
 
     def memory_space(self, env, params) -> dict:
         c, d = self.num_cells(params), int(params.mode_data.cells.shape[-1])
         box = lambda shape, lo=-jnp.inf, hi=jnp.inf: spaces.Box(lo, hi, shape, jnp.float32)  # noqa: E731
         if env.step_obs:
             k = int(params.mode_data.slots_zero.shape[0])
-            return {"slide": spaces.Discrete(int(params.mode_data.valid.shape[0])),
-                    "read_bits": spaces.Box(np.uint32(0), np.uint32(2**32 - 1), (bit_words(c),), jnp.uint32),
-                    "read_cells": spaces.Box(0, c, (k,), jnp.int32),
-                    "read_summaries": spaces.Box(-jnp.inf, jnp.inf, (k, 2 * d), summary_dtype(params)),
-                    "budget_left": box((), 0.0, 1.0)}
-        return {"cells": box((c, d)), "valid": box((c,), 0.0, 1.0), "revealed": box((c,), 0.0, 1.0),
-                "summaries": box((c, 2 * d)), "budget_left": box((), 0.0, 1.0)}
+            return {
+                "slide": spaces.Discrete(int(params.mode_data.valid.shape[0])),
+                "read_bits": spaces.Box(np.uint32(0), np.uint32(2**32 - 1), (bit_words(c),), jnp.uint32),
+                "read_cells": spaces.Box(0, c, (k,), jnp.int32),
+                "read_summaries": spaces.Box(-jnp.inf, jnp.inf, (k, 2 * d), summary_dtype(params)),
+                "budget_left": box((), 0.0, 1.0),
+            }
+        return {
+            "cells": box((c, d)),
+            "valid": box((c,), 0.0, 1.0),
+            "revealed": box((c,), 0.0, 1.0),
+            "summaries": box((c, 2 * d)),
+            "budget_left": box((), 0.0, 1.0),
+        }
 
     def reading_info(self, env, state, params) -> dict:
         mem, tables = state.memory, params.mode_data

@@ -24,6 +24,7 @@ read_budget=…)``): the episode is truncated as soon as the read views reach it
 may overshoot it by one view). **info**: ``fraction_read``, ``fields_of_view`` (distinct views seen
 at any level), ``steps``.
 """
+
 from __future__ import annotations
 
 import dataclasses
@@ -32,8 +33,7 @@ import jax
 import jax.numpy as jnp
 from flax import struct
 
-from histojax.core import actions, spaces
-from histojax.core import seen_views
+from histojax.core import actions, seen_views, spaces
 from histojax.core.modes.base import ActionMode, Move, _declared_score
 
 
@@ -47,15 +47,15 @@ class ZoomMemory:
     writes one word and one block whatever the slide's size. Read the bits and counts through
     :attr:`seen` and :attr:`block_read` (they apply the stamps; any leading batch axes are fine)."""
 
-    words: jnp.ndarray        # (⌈V/32⌉,) uint32 raw bits: views of every level's grid seen (histojax.core.seen_views.see)
-    stamp: jnp.ndarray        # (⌈V/32⌉,) int32 the episode that last wrote each word
-    views_read: jnp.ndarray   # () int32 finest-level tissue views seen
-    fields: jnp.ndarray       # () int32 distinct views seen, any level
-    block_raw: jnp.ndarray    # (256,) int32 raw finest tissue views read per block of the visited map
+    words: jnp.ndarray  # (⌈V/32⌉,) uint32 raw bits: views of every level's grid seen (histojax.core.seen_views.see)
+    stamp: jnp.ndarray  # (⌈V/32⌉,) int32 the episode that last wrote each word
+    views_read: jnp.ndarray  # () int32 finest-level tissue views seen
+    fields: jnp.ndarray  # () int32 distinct views seen, any level
+    block_raw: jnp.ndarray  # (256,) int32 raw finest tissue views read per block of the visited map
     block_stamp: jnp.ndarray  # (256,) int32 the episode that last wrote each block
-    path_x: jnp.ndarray       # (n_levels,) int32 x of the view last zoomed in from at each level (the parents)
-    path_y: jnp.ndarray       # (n_levels,) int32
-    episode: jnp.ndarray      # () int32 episodes started by this env's auto-reset since ``reset`` (0 first)
+    path_x: jnp.ndarray  # (n_levels,) int32 x of the view last zoomed in from at each level (the parents)
+    path_y: jnp.ndarray  # (n_levels,) int32
+    episode: jnp.ndarray  # () int32 episodes started by this env's auto-reset since ``reset`` (0 first)
 
     @property
     def seen(self) -> jax.Array:
@@ -94,8 +94,17 @@ class ZoomSelect(ActionMode):
         path = jnp.zeros((env.n_levels,), jnp.int32)
         words = params.mode_data.seen_zero
         blocks = seen_views.block_zero(params.mode_data)
-        memory = ZoomMemory(words=words, stamp=jnp.zeros(words.shape, jnp.int32), views_read=zero, fields=zero,
-                            block_raw=blocks, block_stamp=blocks, path_x=path, path_y=path, episode=zero)
+        memory = ZoomMemory(
+            words=words,
+            stamp=jnp.zeros(words.shape, jnp.int32),
+            views_read=zero,
+            fields=zero,
+            block_raw=blocks,
+            block_stamp=blocks,
+            path_x=path,
+            path_y=path,
+            episode=zero,
+        )
         return seen_views.see(params.mode_data, memory, state.slide_index, state.z, state.x, state.y, env)
 
     def auto_reset_memory(self, env, done, memory, state, params) -> ZoomMemory:
@@ -105,19 +114,27 @@ class ZoomSelect(ActionMode):
         that word and its stamp are written, and nothing where not ``done``."""
         zero = jnp.zeros((), jnp.int32)
         episode = memory.episode + done.astype(jnp.int32)
-        fresh = memory.replace(episode=episode, views_read=jnp.where(done, zero, memory.views_read),
-                               fields=jnp.where(done, zero, memory.fields),
-                               path_x=jnp.where(done, 0, memory.path_x), path_y=jnp.where(done, 0, memory.path_y))
+        fresh = memory.replace(
+            episode=episode,
+            views_read=jnp.where(done, zero, memory.views_read),
+            fields=jnp.where(done, zero, memory.fields),
+            path_x=jnp.where(done, 0, memory.path_x),
+            path_y=jnp.where(done, 0, memory.path_y),
+        )
         if env.n_levels == 1:  # the start view is a finest view: it may be read (a block of the visited map counts it)
-            return jax.tree.map(lambda a, b: jnp.where(done, a, b),
-                                seen_views.see(params.mode_data, fresh, state.slide_index, state.z, state.x, state.y, env),
-                                memory)
+            return jax.tree.map(
+                lambda a, b: jnp.where(done, a, b),
+                seen_views.see(params.mode_data, fresh, state.slide_index, state.z, state.x, state.y, env),
+                memory,
+            )
         index, _ = seen_views._grid_index(params.mode_data, state.slide_index, state.z, state.x, state.y, env.tile_size)
         word = jnp.where(done, index // 32, memory.words.shape[-1])  # out of range where not done: dropped
         bit = jnp.left_shift(jnp.uint32(1), (index % 32).astype(jnp.uint32))
-        return fresh.replace(words=memory.words.at[word].set(bit, mode="drop"),
-                             stamp=memory.stamp.at[word].set(episode, mode="drop"),
-                             fields=jnp.where(done, 1, memory.fields))
+        return fresh.replace(
+            words=memory.words.at[word].set(bit, mode="drop"),
+            stamp=memory.stamp.at[word].set(episode, mode="drop"),
+            fields=jnp.where(done, 1, memory.fields),
+        )
 
     def apply(self, env, state, action, params) -> Move:
         slide = params.slide.select(state.slide_index)
@@ -127,7 +144,7 @@ class ZoomSelect(ActionMode):
         child = (a >= 0) & (a < k * k) & (state.z < finest)
         z1 = jnp.minimum(state.z + 1, finest)
         ratio = slide.downsample[state.z] / slide.downsample[z1]
-        side = t * ratio                                  # footprint side, px of level z + 1
+        side = t * ratio  # footprint side, px of level z + 1
         corner_x = (state.x + t / 2.0) * ratio - side / 2.0
         corner_y = (state.y + t / 2.0) * ratio - side / 2.0
         row, col = jnp.divmod(jnp.clip(a, 0, k * k - 1), k)
@@ -140,8 +157,10 @@ class ZoomSelect(ActionMode):
         z = jnp.where(child, z1, jnp.where(out, parent, state.z)).astype(jnp.int32)
         x = jnp.where(child, cx, jnp.where(out, mem.path_x[parent], state.x)).astype(jnp.int32)
         y = jnp.where(child, cy, jnp.where(out, mem.path_y[parent], state.y)).astype(jnp.int32)
-        mem = mem.replace(path_x=jnp.where(child, mem.path_x.at[state.z].set(state.x), mem.path_x),
-                          path_y=jnp.where(child, mem.path_y.at[state.z].set(state.y), mem.path_y))
+        mem = mem.replace(
+            path_x=jnp.where(child, mem.path_x.at[state.z].set(state.x), mem.path_x),
+            path_y=jnp.where(child, mem.path_y.at[state.z].set(state.y), mem.path_y),
+        )
         d = k * k + 1
         diagnosis = jnp.where(a == d + 1, 1, jnp.where(a == d, 0, -1)).astype(jnp.int32)
         if env.task != "classification":

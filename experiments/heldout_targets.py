@@ -108,9 +108,9 @@ def run_scenario(
         "--out",
         str(run),
         "--set",
-        f"env_kwargs={json.dumps(kwargs)}",
+        f"env_kwargs={json.dumps(kwargs)}",  # json-not-written (an option)
         *extra_args,
-    ]  # json-not-written (an option)
+    ]
     if not (reuse and _same_run(run, env_id, kwargs, steps, seeds)):
         ppo.main(argv)
         previous = None

@@ -55,8 +55,8 @@ def cached_bundle(
 
     level_sets = tuple(sorted(level_sets or LEVEL_SETS))
     if name is None:
-        key = json.dumps(
-            {  # json-not-written (a cache key)
+        key = json.dumps(  # json-not-written (a cache key)
+            {
                 "slide": file_digest(slide),
                 "annotations": None if annotations is None else file_digest(annotations),
                 "tile_size": tile_size,

@@ -215,9 +215,8 @@ def config_digest(config: dict) -> str:
     """SHA-256 of a run config (JSON, keys sorted): ties a checkpoint to the run that wrote it."""
     import hashlib
 
-    return hashlib.sha256(
-        json.dumps(config, sort_keys=True, default=str).encode()
-    ).hexdigest()  # json-not-written (a hash)
+    text = json.dumps(config, sort_keys=True, default=str)  # json-not-written (a hash)
+    return hashlib.sha256(text.encode()).hexdigest()
 
 
 def load_runner(folder: Path, template, num_updates: int, chunk: int, config: dict | None = None):

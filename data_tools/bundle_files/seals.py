@@ -38,10 +38,10 @@ def metadata_digest(metadata: dict) -> str:
     (sorted keys, no spaces; floats as Python writes them, which JSON reads back exactly)."""
     body = {k: v for k, v in metadata.items() if k != METADATA_DIGEST}
     return hashlib.sha256(
-        json.dumps(
+        json.dumps(  # json-not-written (a digest)
             body,
             sort_keys=True,
-            separators=(",", ":"),  # json-not-written (a digest)
+            separators=(",", ":"),
             allow_nan=True,
         ).encode()
     ).hexdigest()

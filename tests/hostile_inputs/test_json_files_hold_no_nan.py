@@ -32,7 +32,8 @@ def _dump_calls(path: Path):
             and isinstance(node.func.value, ast.Name)
             and node.func.value.id == "json"
         ):
-            yield node, lines[node.lineno - 1]
+            # the marker may stand on any line of the call (the formatter wraps long calls)
+            yield node, "\n".join(lines[node.lineno - 1 : node.end_lineno])
 
 
 def _writes(line: str, node) -> bool:
@@ -48,7 +49,7 @@ def test_every_json_file_written_refuses_nan():
                 allow = [k for k in node.keywords if k.arg == "allow_nan"]
                 ok = allow and isinstance(allow[0].value, ast.Constant) and allow[0].value.value is False
                 if not ok and _writes(line, node):
-                    missing.append(f"{path.relative_to(ROOT)}:{node.lineno}: {line.strip()}")
+                    missing.append(f"{path.relative_to(ROOT)}:{node.lineno}: {line.splitlines()[0].strip()}")
     assert not missing, "json.dump without allow_nan=False (use data_tools.metrics.json_safe):\n" + "\n".join(missing)
 
 

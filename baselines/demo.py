@@ -187,13 +187,13 @@ def train_ppo(config: dict, out: Path) -> tuple[dict, object, dict]:
 
 
 def evaluate_policy(config: dict, params, episodes: int, seed: int, out: Path) -> dict:
-    """Rows of :func:`baselines.evaluate.evaluate` (trained policy greedy and sampled, random,
+    """Rows of :func:`baselines.evaluate.scoring.evaluate` (trained policy greedy and sampled, random,
     scripted) on fresh episodes, printed as a table; trajectory PNGs and the GIF go to ``out``."""
-    from baselines import evaluate
+    from baselines.evaluate import cli, scoring
 
     print(f"\nevaluating on {episodes} fresh episodes per policy ...", flush=True)
-    rows = evaluate.evaluate(config, params, num_episodes=episodes, seed=seed, out=out, label="ppo")
-    evaluate.print_table(
+    rows = scoring.evaluate(config, params, num_episodes=episodes, seed=seed, out=out, label="ppo")
+    cli.print_table(
         f"{config['env_id']} on the embedded sample slide, {episodes} episodes per policy "
         f"(success = target reached at the finest level)",
         rows,

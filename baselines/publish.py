@@ -197,7 +197,7 @@ def published_head(run: Path) -> tuple[dict, Path | None]:
     published folder — a head inside ``baselines/published`` named ``baselines/published/HEAD`` (nothing to
     copy); any other named ``head``, to be copied beside the reader (``NAME/head``). The head as the run
     named it is kept as ``head_source``. ``HistojaxDataError`` when the head is not there."""
-    from baselines.evaluate import head_reward_settings, resolve_head
+    from baselines.evaluate.checks import head_reward_settings, resolve_head
 
     record, where = head_reward_settings(run, {})
     head = resolve_head(record["head"], run, where).resolve()

@@ -27,7 +27,7 @@ from pathlib import Path
 import jax
 
 from baselines import dqn, outputs, ppo
-from baselines.evaluate import evaluate
+from baselines.evaluate.scoring import evaluate
 from baselines.harness.logs import load_checkpoint
 from data_tools.cli_output import command_main
 

@@ -30,7 +30,7 @@ policy on ``--episodes`` fresh test episodes per seed (``baselines.evaluate``; t
 kept in the JSON) and reports mean ± std over seeds (``seeds`` in the JSON) and the compiled
 training program's env steps/s. Random and scripted rows come from the same evaluation; the
 scripted policy walks toward the darkest stain on pixels, and on features zooms where the view's
-tumour logit is high (:func:`baselines.evaluate.scripted_features_policy`); it never declares a
+tumour logit is high (:func:`baselines.evaluate.policies.scripted_features_policy`); it never declares a
 diagnosis, so it has no Diagnosis cell. Detection success and steps to success count the episodes
 on test *tumour* slides only (labels from ``dataset.json``); the JSON keeps the rate over all
 slides and per slide too. Success on Diagnosis = a right diagnosis (declaring ends the episode; an
@@ -59,7 +59,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from baselines import outputs, ppo, ppo_rnn  # noqa: E402
-from baselines.evaluate import evaluate  # noqa: E402
+from baselines.evaluate.scoring import evaluate  # noqa: E402
 from baselines.harness.logs import load_checkpoint  # noqa: E402
 from baselines.run_config import read_run_config  # noqa: E402
 from data_tools.metrics import auc_interval, json_safe  # noqa: E402

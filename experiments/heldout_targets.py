@@ -36,7 +36,7 @@ ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
 from baselines import ppo  # noqa: E402
-from baselines.evaluate import evaluate  # noqa: E402
+from baselines.evaluate.scoring import evaluate  # noqa: E402
 from baselines.harness.logs import load_checkpoint  # noqa: E402
 from baselines.run_config import read_run_config  # noqa: E402
 from data_tools.errors import HistojaxDataError  # noqa: E402

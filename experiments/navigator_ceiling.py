@@ -23,7 +23,7 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.reading import readers
+from baselines.reading import reader_scores
 from baselines.reading.diagnosis import score_split, write_results
 from baselines.reading.orders import logit_order, random_order, read_mask, search_order
 from data_tools.cli_output import command_main, print_error
@@ -42,15 +42,15 @@ def at_ceiling(head, slides: list[dict], results: dict, ceilings: np.ndarray, le
     """Add the random (``seeds`` orders), logit (a learned head's: score) and search readers, each reading up to its
     slide's own ``ceilings[i]`` fraction, to ``results`` under the budget ``median(ceilings)``; returns that key."""
     key = float(np.median(ceilings))
-    tables = [readers.cell_table(s, level) for s in slides]
-    tumour = [readers.tumour_views(s) for s in slides]
+    tables = [reader_scores.cell_table(s, level) for s in slides]
+    tumour = [reader_scores.tumour_views(s) for s in slides]
     orders = {
-        readers.score_reader_name(head): [logit_order(c) for c in tables],
+        reader_scores.score_reader_name(head): [logit_order(c) for c in tables],
         "search reader": [search_order(s, c, limit=float(b) + 0.01) for s, c, b in zip(slides, tables, ceilings)],
     }
     for name, ords in orders.items():
         masks = [[read_mask(c, s["tissue"], o, float(b))[0] for s, c, o, b in zip(slides, tables, ords, ceilings)]]
-        readers.add_reader(results, head, slides, f"{name}, per-slide ceiling", {key: masks}, "scripted", tumour)
+        reader_scores.add_reader(results, head, slides, f"{name}, per-slide ceiling", {key: masks}, "scripted", tumour)
     masks = [
         [
             read_mask(c, s["tissue"], random_order(c, np.random.default_rng(1000 * k + i)), float(b))[0]
@@ -58,7 +58,7 @@ def at_ceiling(head, slides: list[dict], results: dict, ceilings: np.ndarray, le
         ]
         for k in range(seeds)
     ]
-    readers.add_reader(results, head, slides, "random reader, per-slide ceiling", {key: masks}, "random", tumour)
+    reader_scores.add_reader(results, head, slides, "random reader, per-slide ceiling", {key: masks}, "random", tumour)
     return key
 
 
@@ -113,7 +113,7 @@ def run(args, parser=None) -> int:
         f"{views.max()}); {args.max_steps} views = {100 * np.median(ceilings):.3f} % of a slide's finest tissue "
         f"(median; min {100 * ceilings.min():.3f} %, max {100 * ceilings.max():.3f} %)"
     )
-    readers.print_tables(rows, [])
+    reader_scores.print_tables(rows, [])
     labels = [int(s["label"]) for s in slides]
     if (warning := small_split_warning(sum(labels), len(labels) - sum(labels), f"split {args.split!r}")) is not None:
         print(warning, file=sys.stderr)

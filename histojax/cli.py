@@ -66,7 +66,7 @@ DATA_COMMANDS = (
 COMMANDS = {  # histojax <command>: the module whose add_arguments and run it is
     **{name: "data_tools.__main__" for name in DATA_COMMANDS},
     "demo": "baselines.demo",
-    "evaluate": "baselines.evaluate",
+    "evaluate": "baselines.evaluate.cli",
     "published": "baselines.published_agents",
     "rotation": "baselines.rotation",
     "budget-curve": "baselines.reading.budget_curve",

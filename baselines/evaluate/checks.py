@@ -12,7 +12,7 @@ import jax
 import numpy as np
 
 from baselines.published_agents import PUBLISHED
-from baselines.run_config import known_config_keys, read_run_config  # noqa: F401  (known_config_keys: evaluate's API)
+from baselines.run_config import read_run_config
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import UNDEFINED
 

@@ -21,6 +21,8 @@ The commands stand on libraries (no command imports another command's module for
   ``finest_views``, ``scale_warning``, ``HeadDataError``) and the CAMELYON lesion classes of a loaded slide.
 - ``pipeline``: the readers and the budget curve as one pipeline (the default reading ``BUDGETS``, the one loader of
   a split's slides, the one run loop over readers × budgets, the one-class refusal, trained readers' roll-outs).
+- ``reader_scores``: read masks scored through one head (cells and read masks, the head's scores, the scripted readers'
+  results, their rows and tables, the split with its head): what ``readers``, ``diagnosis`` and ``budget_curve`` share.
 - ``orders`` (the scripted readers' cell orders and the glimpse env's reading rule), ``plots`` (the figures),
   ``csv_files`` (the tables) and ``provenance`` (what a head was fitted on, and the refusals it implies).
 """

@@ -17,7 +17,7 @@ head protocol of :mod:`histojax.reading.heads`). Methods, scored on the test sli
   score of their coarse features, highest first (the score reader);
 * ``--ppo NAME RUN`` — a trained policy in a ``glimpse`` or ``zoom_select`` mode, feed-forward
   (``baselines.ppo``) or recurrent (``baselines.ppo_rnn``, detected from its ``config.json``),
-  rolled greedily by :func:`baselines.evaluate.run_episodes` at each budget
+  rolled greedily by :func:`baselines.evaluate.rollout.run_episodes` at each budget
   (:func:`baselines.reading.pipeline.policy_reads`): its own diagnosis (``NAME``) and every head on what it read
   (``NAME reader + MIL``, ``+ max logit``, ``+ learned head``).
 
@@ -314,24 +314,24 @@ def cells_words(dataset, env_id: str, level: int, split: str = "test", fold: int
 
 def head_reader_rows(head, slides: list[dict], cell_level: int, budgets=BUDGETS, seeds: int = 5) -> list[dict]:
     """The rows :data:`HEAD_NAMES` of a saved head (``--head``), computed by the readers
-    (:func:`baselines.reading.readers.scripted_results` on ``slides`` of
+    (:func:`baselines.reading.reader_scores.scripted_results` on ``slides`` of
     :func:`baselines.reading.pipeline.load_split` with the head, cells of bundle level ``cell_level``; the same
     random orders, reading rule, head scores and AUC, :func:`~baselines.reading.pipeline.reader_auc`), so ``readers
     --cell-level L`` and the curve print the same figures for the same head, slides, budgets and cells."""
-    from baselines.reading import readers
+    from baselines.reading import reader_scores
 
-    results = readers.scripted_results(
+    results = reader_scores.scripted_results(
         head,
         slides,
         budgets,
         seeds,
         cell_level,
-        only=("read everything", "random reader", readers.score_reader_name(head)),
+        only=("read everything", "random reader", reader_scores.score_reader_name(head)),
     )
     names = {
         "read everything": HEAD_NAMES[0],
         "random reader": HEAD_NAMES[1],
-        readers.score_reader_name(head): HEAD_NAMES[2],
+        reader_scores.score_reader_name(head): HEAD_NAMES[2],
     }
     labels = np.asarray([s["label"] for s in slides])
     return rows_from_scores(
@@ -450,14 +450,14 @@ def policy_rows(
 
 def _read_scores(which: str, head, x, m, reads, reader_slides) -> np.ndarray:
     """A slide head's scores ``(B,)`` of a policy's reads: the learned head's through the readers' scoring (slide
-    logits of :func:`baselines.reading.readers.head_scores` on the read masks) when their slides are given, else
+    logits of :func:`baselines.reading.reader_scores.head_scores` on the read masks) when their slides are given, else
     :func:`bag_scores` (probabilities)."""
     if which != "learned head" or reader_slides is None:
         return bag_scores(head, x, m)
-    from baselines.reading import readers
+    from baselines.reading import reader_scores
 
-    masks = [readers.masks_from_instances(s, r[0]) for s, r in zip(reader_slides, reads)]
-    return np.asarray(readers.head_scores(head, reader_slides, masks), np.float64)
+    masks = [reader_scores.masks_from_instances(s, r[0]) for s, r in zip(reader_slides, reads)]
+    return np.asarray(reader_scores.head_scores(head, reader_slides, masks), np.float64)
 
 
 def compute_missing_features(dataset, encoder: str) -> None:

@@ -5,7 +5,7 @@
 A trained navigator (a run folder of ``python -m baselines.ppo`` / ``ppo_rnn`` in ``discrete`` or
 ``continuous`` mode, e.g. ``baselines/published/c16-v1-diagnosis``) is rolled greedily once per slide
 of the split (each of its first ``--policy-seeds`` seeds; ``--sampled``: its sampled policy) by
-:func:`baselines.evaluate.run_episodes`,
+:func:`baselines.evaluate.rollout.run_episodes`,
 with reading tracked; the **finest-level tissue views it stood on** make its read mask, and the slide
 head scores them: the slide's diagnosis no longer comes from the navigator's own declaring action (which can
 memorise overviews), only from what it read. ``--head`` is any head folder :func:`histojax.reading.heads.load`
@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 
 from baselines import outputs
-from baselines.reading import readers
+from baselines.reading import reader_scores
 from baselines.reading.csv_files import write_csv
 from baselines.reading.pipeline import BUDGETS, check_two_classes, run_seeds
 from baselines.reading.plots import plot_readers
@@ -51,28 +51,28 @@ def score_split(
 ) -> tuple:
     """The scoring every head diagnosis starts from: ``(head, cell level, slides, results)`` with ``head`` any
     head folder (:func:`histojax.reading.heads.load`), ``slides`` the split's slides read for it
-    (:func:`baselines.reading.readers.load_split`) and ``results`` the scripted readers' rows at ``budgets``
-    (fractions of a slide's finest tissue views; ``seeds`` random orders): :func:`baselines.reading.readers.scripted_results`.
+    (:func:`baselines.reading.reader_scores.load_split`) and ``results`` the scripted readers' rows at ``budgets``
+    (fractions of a slide's finest tissue views; ``seeds`` random orders): :func:`baselines.reading.reader_scores.scripted_results`.
     A split without slides of both classes is a ``HistojaxDataError`` naming ``dataset.json``, one line: its AUC is
     undefined: one class (:func:`baselines.reading.pipeline.check_two_classes`, as the readers refuse it); so is a
     head of another encoder's features (:func:`histojax.reading.heads.encoder_mismatch`), naming its ``config.json``."""
-    head, level, slides = readers.load_split(dataset, head_path, split, fold=fold)
+    head, level, slides = reader_scores.load_split(dataset, head_path, split, fold=fold)
     if (problem := encoder_mismatch(head, [s.get("encoder") for s in slides])) is not None:  # as the readers refuse it
         raise HistojaxDataError(
             Path(str(head_path)) / "config.json",
             f"{problem} ({dataset}): fit a head on them (python -m baselines.reading.learned_head_fit)",
         )
     check_two_classes(dataset, split, [int(s["label"]) for s in slides], fold)  # the readers' own refusal
-    return head, level, slides, readers.scripted_results(head, slides, budgets, seeds, level)
+    return head, level, slides, reader_scores.scripted_results(head, slides, budgets, seeds, level)
 
 
 def write_results(out, results: dict, slides: list[dict], record: dict, json_name: str = "readers.json") -> list[dict]:
-    """The rows of ``results`` (:func:`baselines.reading.readers.rows_from_results`) written to ``OUT/readers.csv``
+    """The rows of ``results`` (:func:`baselines.reading.reader_scores.rows_from_results`) written to ``OUT/readers.csv``
     and, with ``record`` (the run's settings), to ``OUT/<json_name>``; returns the rows."""
-    rows = readers.rows_from_results(results, slides)
+    rows = reader_scores.rows_from_results(results, slides)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(readers.csv_rows(rows), out / "readers.csv")
+    write_csv(reader_scores.csv_rows(rows), out / "readers.csv")
     outputs.write_text(out / json_name, json.dumps(json_safe({**record, "rows": rows}), indent=1, allow_nan=False))
     return rows
 
@@ -81,11 +81,11 @@ def navigator_reads(
     run, dataset, split: str = "test", seed: int = 0, greedy: bool = True, fold: int | None = None
 ) -> list[np.ndarray]:
     """Per slide of ``dataset``'s ``split`` (in its order): the indices of the finest tissue views (in the
-    slide's raster order of tissue views, as :func:`baselines.reading.readers.masks_from_instances` takes them)
+    slide's raster order of tissue views, as :func:`baselines.reading.reader_scores.masks_from_instances` takes them)
     that one greedy (``greedy=False``: sampled, key ``seed``) episode of ``run``'s seed ``seed`` stood on."""
     import jax
 
-    from baselines import evaluate
+    from baselines.evaluate import policies, rollout
     from baselines.harness.logs import load_checkpoint
     from histojax.core.seen_views import SeenMemory, seen_flags
 
@@ -105,18 +105,18 @@ def navigator_reads(
     config = config.replace(
         env_kwargs={**kw, "dataset": str(dataset), "split": split, **({"fold": fold} if fold is not None else {})}
     )  # fold: the slides scored
-    config, (env, env_params) = evaluate.eval_env(config)
-    policy = evaluate.learned_policy(
-        evaluate.network_for(config, env),
+    config, (env, env_params) = rollout.eval_env(config)
+    policy = policies.learned_policy(
+        policies.network_for(config, env),
         params,
         config.action_mode,
         greedy=greedy,
-        declare=evaluate.diagnosis_actions(env, evaluate.network_for(config, env), config.action_mode),
+        declare=policies.diagnosis_actions(env, policies.network_for(config, env), config.action_mode),
     )
     n_slides = max(1, len(env.bundles))
     slides = np.arange(n_slides)
-    per_episode, axes = evaluate.per_episode_params(env_params, slides)
-    ep = evaluate.run_episodes(env, per_episode, policy, jax.random.key(seed), n_slides, params_axes=axes, final=True)
+    per_episode, axes = rollout.per_episode_params(env_params, slides)
+    ep = rollout.run_episodes(env, per_episode, policy, jax.random.key(seed), n_slides, params_axes=axes, final=True)
     memory, tables = ep["final_state"].memory, env_params.mode_data
     if not isinstance(memory, SeenMemory):
         raise ValueError(f"{run}: its env does not track the views read")
@@ -134,14 +134,14 @@ def navigator_masks(
     run, dataset, slides: list[dict], split: str = "test", seeds: int = 1, greedy: bool = True, fold: int | None = None
 ) -> dict:
     """``{1.0: [[read mask (H, W) per slide] per seed]}`` of a navigator (no budget: key 1.0), ready for
-    :func:`baselines.reading.readers.add_reader`; ``slides`` are :func:`baselines.reading.slides.load_slides` of the split;
+    :func:`baselines.reading.reader_scores.add_reader`; ``slides`` are :func:`baselines.reading.slides.load_slides` of the split;
     ``greedy=False``: sampled episodes (key = the seed)."""
     per_seed = []
     for seed in range(max(1, min(seeds, run_seeds(run)))):
         reads = navigator_reads(run, dataset, split, seed, greedy=greedy, fold=fold)
         if len(reads) != len(slides):
             raise ValueError(f"{run}: {len(reads)} episodes for {len(slides)} slides of split {split!r}")
-        per_seed.append([readers.masks_from_instances(s, r) for s, r in zip(slides, reads)])
+        per_seed.append([reader_scores.masks_from_instances(s, r) for s, r in zip(slides, reads)])
     return {1.0: per_seed}
 
 
@@ -214,7 +214,7 @@ def run(args, parser=None) -> int:
         except (OSError, ValueError, HistojaxDataError) as e:
             return print_error(f"--navigator {name}: {e}")
         how = ", sampled" if args.sampled else ""
-        readers.add_reader(results, head, slides, f"{name} (head declares{how})", masks, "learned")
+        reader_scores.add_reader(results, head, slides, f"{name} (head declares{how})", masks, "learned")
     out = Path(args.out)
     wall = time.perf_counter() - t0
     rows = write_results(
@@ -235,8 +235,8 @@ def run(args, parser=None) -> int:
     png = plot_readers(
         rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split: navigators through head {head.name}"
     )
-    print(f"cells: {readers.cells_words(slides, level)}")
-    readers.print_tables(rows, [])
+    print(f"cells: {reader_scores.cells_words(slides, level)}")
+    reader_scores.print_tables(rows, [])
     labels = [int(s["label"]) for s in slides]
     warning = small_split_warning(
         sum(labels),

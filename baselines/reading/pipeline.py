@@ -273,7 +273,7 @@ def policy_reads(
     run, dataset, split: str, budgets=BUDGETS, env_id: str | None = None, seed: int = 0, fold: int | None = None
 ) -> dict:
     """Roll a trained policy greedily, once on every slide of ``dataset``'s ``split`` at each of
-    ``budgets``, with :func:`baselines.evaluate.run_episodes` (one jitted program for all slides and
+    ``budgets``, with :func:`baselines.evaluate.rollout.run_episodes` (one jitted program for all slides and
     budgets). ``run``: a run folder of ``python -m baselines.ppo`` (feed-forward) or ``python -m
     baselines.ppo_rnn`` (GRU; ``"algo": "ppo_rnn"`` in its ``config.json``: its hidden state is carried
     through each episode) in a ``glimpse`` or ``zoom_select`` mode; its seed ``seed`` (default the first).
@@ -281,9 +281,9 @@ def policy_reads(
     Returns ``{budget: [(read, own_score, fraction_read, fields_of_view) per slide]}``: the finest tissue views it
     read (indices into the slide's ``host_tables`` instances), its own tumour score
     (``p(tumour) / (p(tumour) + p(no tumour))`` of its policy at the step it declared, or at its last
-    step; see :func:`baselines.evaluate.learned_policy`), the fraction read and the fields of view
+    step; see :func:`baselines.evaluate.policies.learned_policy`), the fraction read and the fields of view
     (env steps that looked at the slide) of the episode."""
-    from baselines import evaluate
+    from baselines.evaluate import policies, rollout
     from baselines.harness.logs import load_checkpoint
     from histojax.core.seen_views import seen_flags  # seen is a bit set
 
@@ -299,7 +299,7 @@ def policy_reads(
     )  # fold: the slides scored
     if env_id:
         config = config.replace(env_id=env_id)
-    config, (env, env_params) = evaluate.eval_env(config)
+    config, (env, env_params) = rollout.eval_env(config)
     if not hasattr(env_params.mode_data, "read_budget") or getattr(env.action, "name", "") not in (
         "glimpse",
         "zoom_select",
@@ -309,14 +309,14 @@ def policy_reads(
             f"glimpse or zoom_select policies"
         )
     n = env.num_actions
-    policy = evaluate.learned_policy(
-        evaluate.network_for(config, env), params, config.action_mode, greedy=True, declare=(n - 2, n - 1)
+    policy = policies.learned_policy(
+        policies.network_for(config, env), params, config.action_mode, greedy=True, declare=(n - 2, n - 1)
     )
     n_slides = len(env.bundles)
     budgets = [float(b) for b in budgets]
     slides = np.tile(np.arange(n_slides), len(budgets))
-    per_episode, axes = evaluate.per_episode_params(env_params, slides, np.repeat(budgets, n_slides))
-    ep = evaluate.run_episodes(env, per_episode, policy, jax.random.key(0), len(slides), params_axes=axes, final=True)
+    per_episode, axes = rollout.per_episode_params(env_params, slides, np.repeat(budgets, n_slides))
+    ep = rollout.run_episodes(env, per_episode, policy, jax.random.key(0), len(slides), params_axes=axes, final=True)
     assert (ep["slide"] == slides).all()
     memory, scores = ep["final_state"].memory, ep["final_memory"][1]
     tables = env.action.host_tables(env, env_params, env.bundles) if hasattr(env.action, "host_tables") else None

@@ -171,13 +171,13 @@ def test_budget_curve_all_folds_rows_equal_the_fold_runs(folded, tmp_path):
 
 # ------------------------------------------------------------------ histojax evaluate --all-folds
 def test_evaluate_all_folds_refuses_a_dataset_without_folds(folded, tmp_path, capsys):
-    from baselines import evaluate
+    from baselines.evaluate import cli
 
     _, plain = folded
     for extra, words in (([], "dataset.json has no folds"), (["--fold", "0"], "not with --fold 0")):
         ds = plain if not extra else folded[0]
         assert (
-            evaluate.main(
+            cli.main(
                 ["--env", "HistoJAX-Easy-v0", "--dataset", str(ds), "--all-folds", *extra, "--out", str(tmp_path / "o")]
             )
             == 2
@@ -267,11 +267,11 @@ def test_evaluate_fold_scores_the_folds_held_out_side(folded):
 
 @pytest.mark.slow  # two folds of real rollouts (random and scripted policies): about 1.5 minutes on 2 cores
 def test_evaluate_all_folds_runs_the_reference_policies(folded, tmp_path):
-    from baselines import evaluate
+    from baselines.evaluate import cli
 
     out, _ = folded
     assert (
-        evaluate.main(
+        cli.main(
             [
                 "--env",
                 "HistoJAX-Easy-v0",

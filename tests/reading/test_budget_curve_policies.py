@@ -1,6 +1,6 @@
 """Trained policies on the budget curve: a tiny recurrent PPO run (``baselines.ppo_rnn``, a few
 hundred steps) in ``glimpse`` mode, and the same GRU policy untrained in ``zoom_select`` mode, is evaluated by ``baselines.reading.budget_curve``
-through ``baselines.evaluate.run_episodes``, its GRU state carried through each episode.
+through ``baselines.evaluate.rollout.run_episodes``, its GRU state carried through each episode.
 
 One tiny dataset (4 tumour + 4 tumour-free slides of 320 × 256 px, 32-px views, Easy levels, the
 ``colour-stats`` feature grid) and the two checkpoints, made once for the module."""
@@ -15,8 +15,9 @@ import numpy as np
 import pytest
 from slide_helpers import synth_feature_dataset
 
-from baselines import evaluate, ppo_rnn
+from baselines import ppo_rnn
 from baselines.common.env import params_initialiser
+from baselines.evaluate import policies, rollout
 from baselines.harness.logs import load_checkpoint, save_checkpoint
 from baselines.networks import ScannedGRU
 from baselines.reading import budget_curve, pipeline
@@ -26,7 +27,7 @@ STEPS = 8
 
 # The whole module runs under `make test-all`: its fixture compiles the recurrent trainer and two reading rollouts
 # (over two minutes on 2 loaded cores before any test). In `make test` the same paths run smaller:
-# a recurrent reader evaluated by baselines.evaluate.learned_policy / run_episodes
+# a recurrent reader evaluated by baselines.evaluate.policies.learned_policy / run_episodes
 # (tests/reading/test_set_policy.py::test_evaluate_runs_a_set_reader_on_a_wider_slide[True]), the GRU state and the recurrent
 # loss (tests/training/test_ppo_rnn.py), a reader's reads scored through a slide head (tests/reading/test_evaluate_readers.py) and
 # the readers command's scripted rows (tests/reading/test_head.py::test_readers_command_writes_the_curve).
@@ -181,13 +182,13 @@ def test_recurrent_policy_carries_its_hidden_state(dataset, runs):
     params, config = load_checkpoint(runs["glimpse:1"])
     params = jax.tree.map(lambda a: a[0], params)
     config = {**config, "env_kwargs": {**config["env_kwargs"], "split": "test"}}
-    _, (env, env_params) = evaluate.eval_env(config)
-    network = evaluate.network_for(config, env)
+    _, (env, env_params) = rollout.eval_env(config)
+    network = policies.network_for(config, env)
     n = env.num_actions
-    policy = evaluate.learned_policy(network, params, config["action_mode"], True, declare=(n - 2, n - 1))
+    policy = policies.learned_policy(network, params, config["action_mode"], True, declare=(n - 2, n - 1))
     slides = np.arange(len(env.bundles))
-    per, axes = evaluate.per_episode_params(env_params, slides)
-    ep = evaluate.run_episodes(env, per, policy, jax.random.key(0), len(slides), params_axes=axes, final=True)
+    per, axes = rollout.per_episode_params(env_params, slides)
+    ep = rollout.run_episodes(env, per, policy, jax.random.key(0), len(slides), params_axes=axes, final=True)
     step = jax.jit(
         lambda h, obs: network_step(
             network, params, h, jax.tree.map(lambda a: a[None], preprocess_obs(obs)), jax.numpy.zeros(1, bool)
@@ -206,9 +207,9 @@ def test_recurrent_policy_carries_its_hidden_state(dataset, runs):
 
 
 def test_a_policy_read_masks_are_scored_by_the_slide_head(dataset, runs, glimpse_reads):
-    """baselines.reading.readers.policy_masks turns a trained reader's reads into finest-level read masks that
+    """baselines.reading.reader_scores.policy_masks turns a trained reader's reads into finest-level read masks that
     count the same views as the env did, and add_reader scores them with one slide head (histojax.reading.heads.logit)."""
-    from baselines.reading import head_fit, readers
+    from baselines.reading import head_fit, reader_scores
     from baselines.reading.slides import load_slides
     from histojax.reading.heads.logit import LogitHead
 
@@ -219,17 +220,17 @@ def test_a_policy_read_masks_are_scored_by_the_slide_head(dataset, runs, glimpse
         np.testing.assert_allclose(t["instances"][:, 0], s["logits"][s["tissue"]], rtol=1e-6)
         pick = np.arange(0, t["total"], 3)
         np.testing.assert_allclose(
-            s["logits"][readers.masks_from_instances(s, pick)], t["instances"][pick, 0], rtol=1e-6
+            s["logits"][reader_scores.masks_from_instances(s, pick)], t["instances"][pick, 0], rtol=1e-6
         )
-    masks = readers.policy_masks(runs["glimpse:1"], dataset, slides, "test", BUDGETS, seeds=1)
+    masks = reader_scores.policy_masks(runs["glimpse:1"], dataset, slides, "test", BUDGETS, seeds=1)
     for b in BUDGETS:
         assert len(masks[b]) == 1 and len(masks[b][0]) == len(slides)
         for m, s, (read, _, fraction, _) in zip(masks[b][0], slides, glimpse_reads[b]):
             assert m.shape == s["tissue"].shape and not (m & ~s["tissue"]).any()
             assert m.sum() == len(read) == pytest.approx(fraction * s["tissue"].sum())
     head = head_fit.calibrated(LogitHead(dim=0, k=3, encoder=None), load_slides(dataset, "train", dim=0))
-    res = readers.add_reader(readers.new_results(), head, slides, "GRU glimpse", masks)
-    rows = readers.rows_from_results(res, slides)
+    res = reader_scores.add_reader(reader_scores.new_results(), head, slides, "GRU glimpse", masks)
+    rows = reader_scores.rows_from_results(res, slides)
     assert [r["budget"] for r in rows] == list(BUDGETS) and all(r["kind"] == "learned" for r in rows)
     for r in rows:
         want = np.mean([read.size / s["tissue"].sum() for (read, *_), s in zip(glimpse_reads[r["budget"]], slides)])
@@ -293,7 +294,7 @@ def test_a_policy_through_a_learned_head_scores_as_in_the_readers(dataset, runs)
     the readers' code, ``reader_slides``) equal the readers' ``--reader NAME RUN`` rows, to the last digit."""
     from test_budget_curve import planted_head
 
-    from baselines.reading import readers
+    from baselines.reading import reader_scores
 
     test = pipeline.load_split(dataset, "test", env_id="HistoJAX-Easy-v0", level=1)
     d = int(test.tables[0]["instances"].shape[1])
@@ -312,10 +313,12 @@ def test_a_policy_through_a_learned_head_scores_as_in_the_readers(dataset, runs)
         reader_slides=mine.slides,
     )
     curve = {r["budget"]: r for r in curve if r["method"] == "GRU reader + learned head"}
-    masks = readers.policy_masks(runs["glimpse:1"], dataset, mine.slides, "test", BUDGETS, seeds=2)
+    masks = reader_scores.policy_masks(runs["glimpse:1"], dataset, mine.slides, "test", BUDGETS, seeds=2)
     theirs = {
         r["budget"]: r
-        for r in readers.rows_from_results(readers.add_reader({}, head, mine.slides, "GRU", masks), mine.slides)
+        for r in reader_scores.rows_from_results(
+            reader_scores.add_reader({}, head, mine.slides, "GRU", masks), mine.slides
+        )
     }
     assert sorted(curve) == sorted(theirs) == list(BUDGETS)
     for b in BUDGETS:

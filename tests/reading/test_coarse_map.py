@@ -101,7 +101,7 @@ def _obs(target=(3, 12), position=(0.5, 0.5, 1.0), visited=None):
 
 
 def test_map_follower_walks_to_the_highest_unread_block():
-    from baselines.evaluate import map_follower_policy
+    from baselines.evaluate.policies import map_follower_policy
 
     def act(**kw):
         return int(map_follower_policy(jax.random.key(0), _obs(**kw), epsilon=0.0))
@@ -124,7 +124,7 @@ def test_map_follower_walks_to_the_highest_unread_block():
 @pytest.mark.slow  # make test-all (keeps make test under 10 min on 2 cores)
 def test_evaluate_scores_the_map_follower_through_the_head(dataset):
     """``evaluate`` through a head: the reference rows (random, the map follower) are scored by the head (AUC)."""
-    from baselines.evaluate import evaluate
+    from baselines.evaluate.scoring import evaluate
     from histojax.reading.heads.logit import LogitHead
 
     head = LogitHead(

@@ -21,8 +21,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines import evaluate
 from baselines.common.env import make_env
+from baselines.evaluate import checks, heads, rollout
 from baselines.harness.logs import save_checkpoint
 from baselines.publish import publish
 from baselines.published_agents import PUBLISHED
@@ -242,18 +242,18 @@ def test_set_reader_is_scored_through_its_head_on_wider_and_taller_slides(data, 
 def test_the_head_scores_what_each_episode_read(data):
     """``head_score`` of an episode is the head on the finest views under the cells it revealed (computed here
     from the final state), not an earlier step's; success is that score's diagnosis; slides in turn."""
-    from baselines.reading.readers import masks_from_instances
+    from baselines.reading.reader_scores import masks_from_instances
     from histojax.reading.heads import score_logits
 
     config = {**READER, "env_kwargs": {"dataset": str(data["big"]), "split": "test", "read_budget": 0.2}}
-    _, (env, env_params) = evaluate.eval_env(config)
-    wrapped, classes = evaluate.head_env(env, env_params, HEAD, {"gain": "log", "final": 1.0, "read_cost": 0.0})
+    _, (env, env_params) = rollout.eval_env(config)
+    wrapped, classes = heads.head_env(env, env_params, HEAD, {"gain": "log", "final": 1.0, "read_cost": 0.0})
     assert classes == ["micro", "ITC", "normal", "normal"]
     n = 8
-    per, axes = evaluate.per_episode_params(env_params, np.arange(n) % 4)
+    per, axes = rollout.per_episode_params(env_params, np.arange(n) % 4)
     rand = lambda k, obs: jax.random.randint(k, (obs["slide"].shape[0],), 0, env.num_actions - 2)  # noqa: E731
-    ep = evaluate.run_episodes(wrapped, per, rand, jax.random.key(5), n, params_axes=axes, final=True)
-    ep = evaluate.head_scored(ep, env_params, classes)
+    ep = rollout.run_episodes(wrapped, per, rand, jax.random.key(5), n, params_axes=axes, final=True)
+    ep = heads.head_scored(ep, env_params, classes)
     assert ep["slide"].tolist() == [0, 1, 2, 3] * 2 and ep["lesion"].tolist() == classes * 2
     host = env.action.host_tables(env, env_params, env.bundles)
     from baselines.reading.slides import load_slide
@@ -286,7 +286,7 @@ def _kind(folder: Path) -> str:
     return "runs"
 
 
-FOLDERS = sorted({p.name for p in PUBLISHED.iterdir() if p.is_dir()} | set(evaluate.RETIRED))
+FOLDERS = sorted({p.name for p in PUBLISHED.iterdir() if p.is_dir()} | set(checks.RETIRED))
 REFUSED = [n for n in FOLDERS if _kind(PUBLISHED / n) != "runs"]
 RUNS = [n for n in FOLDERS if _kind(PUBLISHED / n) == "runs"]
 
@@ -305,18 +305,18 @@ def test_published_folder_refused_in_one_line_saying_what_to_use(name, data, tmp
     )
     assert code == 2
     line = _one_error_line(capsys)
-    set_reader = PUBLISHED / evaluate.SET_READER
+    set_reader = PUBLISHED / checks.SET_READER
     if kind == "head":
         assert "a slide head, not an agent" in line and f"--head {folder}" in line
     elif kind == "flat glimpse":
         assert "do not fit glimpse_grid=[16, 14]" in line and "cannot read a slide wider or taller" in line
         assert (
-            f"histojax evaluate {evaluate.published_path(evaluate.SET_READER)}" in line
+            f"histojax evaluate {checks.published_path(checks.SET_READER)}" in line
             if set_reader.is_dir()
             else "baselines.reading.train_readers" in line
         )
     else:
-        assert "retired" in line and "docs/results/c16.md" in line and evaluate.SET_READER in line
+        assert "retired" in line and "docs/results/c16.md" in line and checks.SET_READER in line
     assert not (tmp_path / "o").exists()
 
 
@@ -326,7 +326,7 @@ def test_a_retired_folder_points_to_the_set_reader(tmp_path, capsys):
     assert histojax_main(["evaluate", str(gone), "--dataset", str(tmp_path)]) == 2
     line = _one_error_line(capsys)
     assert str(gone) in line and "retired" in line and "16 × 14 cell grid" in line
-    assert f"histojax evaluate {evaluate.published_path(evaluate.SET_READER)} --dataset DIR" in line
+    assert f"histojax evaluate {checks.published_path(checks.SET_READER)} --dataset DIR" in line
 
 
 # 10-60 s each on 2 CPU cores (greedy, sampled, random rollouts): all under `make test-all` (the default run stays

@@ -17,7 +17,7 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines.reading import head_fit, readers, slides
+from baselines.reading import head_fit, reader_scores, readers, slides
 from baselines.reading.orders import logit_order, random_order, read_mask, search_order
 from baselines.reading.slides import CLASSES, lesion_class
 from data_tools.bundle_files.format import sha256
@@ -197,7 +197,7 @@ def test_fit_chooses_spatial_context_on_validation(fitted, dataset):
     assert seen["fitted"] == sorted(Path(e).name for e in spec["train"]) and len(seen["validation"]) == 6
     assert set(seen["validation"]) <= set(seen["fitted"]) and seen["fold"] is None and seen["split"] == "train"
     test = slides.load_slides(dataset, "test")
-    logits = readers.head_scores(LogitHead.load(out), test, [s["tissue"] for s in test])
+    logits = reader_scores.head_scores(LogitHead.load(out), test, [s["tissue"] for s in test])
     labels = [s["label"] for s in test]
     from data_tools.metrics import roc_auc
 
@@ -230,7 +230,7 @@ def test_scripted_readers_respect_the_budget_and_follow_the_logits(dataset, fitt
     _, head, _ = fitted
     test = slides.load_slides(dataset, "test", levels=(0, 1))
     for s in test:
-        cells = readers.cell_table(s, 1)
+        cells = reader_scores.cell_table(s, 1)
         assert cells["cell_views"].sum() == s["tissue"].sum() == cells["total"]
         search = search_order(s, cells)
         assert sorted(search) == sorted(np.flatnonzero(cells["valid"]))  # every valid cell once
@@ -241,10 +241,10 @@ def test_scripted_readers_respect_the_budget_and_follow_the_logits(dataset, fitt
                 assert not (mask & ~s["tissue"]).any()
         if s["label"] and lesion_class(s)[0] != "ITC":  # the coarse logits point at the block
             mask, _ = read_mask(cells, s["tissue"], logit_order(cells), 0.05)
-            assert (mask & readers.tumour_views(s)).any()
+            assert (mask & reader_scores.tumour_views(s)).any()
         flat = np.flatnonzero(s["tissue"].reshape(-1))
         pick = np.asarray([0, 5, len(flat) - 1])
-        m = readers.masks_from_instances(s, pick)
+        m = reader_scores.masks_from_instances(s, pick)
         assert m.sum() == 3 and m.reshape(-1)[flat[pick]].all()
 
 
@@ -289,18 +289,18 @@ def test_readers_command_writes_the_curve(dataset, fitted, tmp_path, capsys):
     assert (tmp_path / "readers.png").stat().st_size > 10_000
     # a learned reader's masks join the same table, scored by the same head
     test = slides.load_slides(dataset, "test")
-    res = readers.add_reader(
-        readers.new_results(),
+    res = reader_scores.add_reader(
+        reader_scores.new_results(),
         head,
         test,
         "my reader",
         {0.1: [[s["tissue"] for s in test], [np.zeros_like(s["tissue"]) for s in test]]},
     )
-    row = readers.rows_from_results(res, test)[0]
+    row = reader_scores.rows_from_results(res, test)[0]
     assert row["seeds"] == 2 and row["fraction_read"] == pytest.approx(0.5) and row["kind"] == "learned"
     assert len(row["auc_per_seed"]) == 2 and np.mean(row["auc_per_seed"]) == pytest.approx(row["auc"], abs=1e-4)
     assert row["auc_per_seed"][1] == 0.5  # nothing read: every slide scores the prior
-    assert "auc_per_seed" not in readers.csv_rows([row])[0]  # one number per CSV cell; the list in readers.json
+    assert "auc_per_seed" not in reader_scores.csv_rows([row])[0]  # one number per CSV cell; the list in readers.json
     with open(tmp_path / "readers.csv") as f:
         assert "auc_per_seed" not in next(csv.DictReader(f))
 

@@ -291,7 +291,8 @@ def test_bad_settings_are_refused(glimpse):
 def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(dataset, tmp_path):
     """baselines.reading.diagnosis: the read mask of a (freshly initialised) navigator is the set of finest
     tissue views its (sampled) trajectory stood on, recomputed here from the trajectory's (z, x, y)."""
-    from baselines import evaluate, ppo
+    from baselines import ppo
+    from baselines.evaluate import policies, rollout
     from baselines.harness.logs import load_checkpoint, save_checkpoint
     from baselines.reading import diagnosis
 
@@ -317,14 +318,14 @@ def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(datase
     # the same episodes, by hand: the run's env and policy, the finest views on the trajectory
     _, cfg = load_checkpoint(tmp_path / "nav")
     cfg = {**cfg, "env_kwargs": {**cfg["env_kwargs"], "dataset": str(dataset), "split": "train"}}
-    cfg, (env, env_params) = evaluate.eval_env(cfg)
-    net = evaluate.network_for(cfg, env)
-    policy = evaluate.learned_policy(
-        net, params, "discrete", greedy=False, declare=evaluate.diagnosis_actions(env, net, "discrete")
+    cfg, (env, env_params) = rollout.eval_env(cfg)
+    net = policies.network_for(cfg, env)
+    policy = policies.learned_policy(
+        net, params, "discrete", greedy=False, declare=policies.diagnosis_actions(env, net, "discrete")
     )
     n = len(env.bundles)
-    per, axes = evaluate.per_episode_params(env_params, np.arange(n))
-    ep = evaluate.run_episodes(env, per, policy, jax.random.key(0), n, params_axes=axes)
+    per, axes = rollout.per_episode_params(env_params, np.arange(n))
+    ep = rollout.run_episodes(env, per, policy, jax.random.key(0), n, params_axes=axes)
     f, t = env.n_levels - 1, env.tile_size
     finest_total = 0
     for e, (slide, bundle) in enumerate(seen_views.per_slide(env_params, env.bundles)):

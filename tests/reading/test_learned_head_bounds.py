@@ -67,7 +67,7 @@ def test_non_finite_logits_are_refused_naming_params_npz(tmp_path, saved):
 
 def test_the_readers_and_the_learned_fit_scorers_refuse_them(tmp_path, saved):
     from baselines.reading.learned_head_fit import FlatSet
-    from baselines.reading.readers import terms_scores
+    from baselines.reading.reader_scores import terms_scores
 
     head = LearnedHead.load(_with(tmp_path, saved))
     terms = np.zeros((2, 2, 2), np.float32)

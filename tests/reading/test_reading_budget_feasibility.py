@@ -9,7 +9,7 @@ from types import SimpleNamespace
 import numpy as np
 
 from baselines.evaluate.scoring import unreadable_at_budget
-from baselines.reading.readers import unreadable_line
+from baselines.reading.reader_scores import unreadable_line
 from histojax.reading.modes.glimpse import budget_views, smallest_budgets, unreadable_warning
 
 # slide "a": two cells of 5 views (10 in all): a cell needs 50 %; slide "b": cells of 1 and 9 views: 10 % reads one;

@@ -14,8 +14,8 @@ import numpy as np
 import pytest
 from PIL import Image
 
-from baselines import evaluate
 from baselines.common.env import make_env
+from baselines.evaluate import checks, cli, pictures, rollout
 from baselines.harness.logs import save_checkpoint
 from histojax.cli import main as histojax_main
 from histojax.core import actions
@@ -44,15 +44,15 @@ def two_slides(tmp_path_factory):
 
 @pytest.fixture(scope="module")
 def two_slide_env(two_slides):
-    return evaluate.eval_env({**EASY, "env_kwargs": {"slides": two_slides}})[1]
+    return rollout.eval_env({**EASY, "env_kwargs": {"slides": two_slides}})[1]
 
 
 def test_trajectories_start_with_the_view_at_reset():
     """Entry 0 of a recorded trajectory is the view at reset (Easy starts at the coarsest level, 0), not the
     episode's last view (before: the final state was recorded where the first belongs)."""
-    _, (env, params) = evaluate.eval_env(EASY)
+    _, (env, params) = rollout.eval_env(EASY)
     zoom = lambda k, obs: jnp.full(jax.tree.leaves(obs)[0].shape[0], actions.ZOOM_IN, jnp.int32)  # noqa: E731
-    ep = evaluate.run_episodes(env, params, zoom, jax.random.PRNGKey(0), 4)
+    ep = rollout.run_episodes(env, params, zoom, jax.random.PRNGKey(0), 4)
     assert (ep["z"][0] == 0).all()
     assert (ep["z"][1] == 1).all() and (ep["z"][-1] == env.n_levels - 1).all()
 
@@ -61,15 +61,15 @@ def test_pictures_of_a_two_slide_evaluation_show_the_episodes_slide(two_slide_en
     """Every episode on slide 1: the trajectory picture, reading map and GIF are of slide 1 (before: slide 0)."""
     env, params = two_slide_env
     slides = np.ones(4, int)
-    per, axes = evaluate.per_episode_params(params, slides)
+    per, axes = rollout.per_episode_params(params, slides)
     rand = lambda k, obs: jax.random.randint(k, (jax.tree.leaves(obs)[0].shape[0],), 0, 7)  # noqa: E731
-    ep = evaluate.run_episodes(env, per, rand, jax.random.PRNGKey(1), 4, params_axes=axes)
+    ep = rollout.run_episodes(env, per, rand, jax.random.PRNGKey(1), 4, params_axes=axes)
     assert (ep["slide"] == 1).all()
-    written = evaluate.write_pictures(env, params, {"random": ep}, tmp_path, "HistoJAX-Easy-v0")
+    written = pictures.write_pictures(env, params, {"random": ep}, tmp_path, "HistoJAX-Easy-v0")
     assert {p.name for p in written} == {"trajectory_random.png", "reading_random_tumour.png", "trajectory.gif"}
-    i = evaluate.pictures._shown_episode(ep)
-    z, x, y = evaluate.trajectory(ep, i)
-    picked = evaluate.pictures.picked_words(ep, i)  # how it was picked among the 4 episodes, in the title
+    i = pictures._shown_episode(ep)
+    z, x, y = rollout.trajectory(ep, i)
+    picked = pictures.picked_words(ep, i)  # how it was picked among the 4 episodes, in the title
     assert picked.endswith("among 4 episodes") if ep["success"][i] else picked.startswith("none of 4 episodes")
     title = (
         f"HistoJAX-Easy-v0, random, {len(z) - 1} steps, {'success' if ep['success'][i] else 'no success'} ({picked})"
@@ -126,7 +126,7 @@ def test_gif_of_a_feature_only_slide_shows_a_feature_heat_map(two_slides, colour
     from histojax.render import animate, feature_heatmap
 
     bundle = colour_feature_grid(two_slides[0], tmp_path / "b")
-    _, (env, params) = evaluate.eval_env({**EASY, "obs_mode": "features", "slide": str(bundle)})
+    _, (env, params) = rollout.eval_env({**EASY, "obs_mode": "features", "slide": str(bundle)})
     heat = feature_heatmap(env, params, 0, env.n_levels - 1)
     assert heat is not None and "no tumour logit" in heat[2] and np.isfinite(heat[0]).all()
 
@@ -157,7 +157,7 @@ def test_print_table_shows_auc_and_fraction_read(capsys):
         "mean_fraction_read": 0.1,
         "mean_fields_of_view": 1.0,
     }
-    evaluate.print_table(
+    cli.print_table(
         "t",
         {
             "ppo (greedy)": {**row, "diagnosis_auc": 1.0, "diagnosis_auc_low": 0.585, "diagnosis_auc_high": 1.0},
@@ -171,10 +171,10 @@ def test_print_table_shows_auc_and_fraction_read(capsys):
 
 def test_split_warnings_say_why_a_split_cannot_be_scored():
     params = lambda labels: types.SimpleNamespace(slide=types.SimpleNamespace(slide_label=np.array(labels)))  # noqa: E731
-    assert "AUC is undefined" in evaluate.split_warnings(None, params([1, 1]), "classification", "s")[0]
-    assert "success rate is undefined: one class" in evaluate.split_warnings(None, params([0, 0]), "detection", "s")[0]
-    assert evaluate.split_warnings(None, params([0, 1]), "classification", "s") == []
-    assert evaluate.split_warnings(None, params([0, 1]), "detection", "s") == []
+    assert "AUC is undefined" in checks.split_warnings(None, params([1, 1]), "classification", "s")[0]
+    assert "success rate is undefined: one class" in checks.split_warnings(None, params([0, 0]), "detection", "s")[0]
+    assert checks.split_warnings(None, params([0, 1]), "classification", "s") == []
+    assert checks.split_warnings(None, params([0, 1]), "detection", "s") == []
 
 
 def test_provenance_warnings_training_split_and_scale(tmp_path):
@@ -197,21 +197,21 @@ def test_provenance_warnings_training_split_and_scale(tmp_path):
     full, small = dataset("full", 1.944), dataset("small", 7.776)
     trained = {"env_id": "HistoJAX-C16-Diagnosis-v1", "env_kwargs": {"dataset": full, "split": "train"}}
     scored = lambda ds, split: {"env_kwargs": {"dataset": ds, "split": split}}  # noqa: E731
-    assert evaluate.provenance_warnings(trained, scored(full, "test"), "c.json") == []
-    (same,) = evaluate.provenance_warnings(trained, scored(full, "all"), "c.json")
+    assert checks.provenance_warnings(trained, scored(full, "test"), "c.json") == []
+    (same,) = checks.provenance_warnings(trained, scored(full, "all"), "c.json")
     assert "not held-out" in same and "the same dataset" in same
-    both = evaluate.provenance_warnings(trained, scored(small, "train"), "c.json")
+    both = checks.provenance_warnings(trained, scored(small, "train"), "c.json")
     assert len(both) == 2 and "split is fixed by slide" in both[0] and "another scale" in both[1]
     gone = {**trained, "env_kwargs": {"dataset": str(tmp_path / "gone"), "split": "train"}}
-    (unknown,) = evaluate.provenance_warnings(gone, scored(small, "test"), "c.json")
+    (unknown,) = checks.provenance_warnings(gone, scored(small, "test"), "c.json")
     assert "scale cannot be checked" in unknown and "7.78" in unknown
 
 
 def test_default_output_folder_is_never_inside_the_package(tmp_path):
-    published = Path(evaluate.__file__).parents[1] / "published" / "c16-v1-diagnosis"
-    assert evaluate.default_out(published, "X") == Path("runs/eval-c16-v1-diagnosis")
-    assert evaluate.default_out(tmp_path, "X") == tmp_path / "eval"
-    assert evaluate.default_out(None, "HistoJAX-Easy-v0") == Path("runs/eval-HistoJAX-Easy-v0")
+    published = Path(cli.__file__).parents[1] / "published" / "c16-v1-diagnosis"
+    assert cli.default_out(published, "X") == Path("runs/eval-c16-v1-diagnosis")
+    assert cli.default_out(tmp_path, "X") == tmp_path / "eval"
+    assert cli.default_out(None, "HistoJAX-Easy-v0") == Path("runs/eval-HistoJAX-Easy-v0")
 
 
 # ----------------------------------------------------------------------------- the command, end to end
@@ -353,7 +353,7 @@ def test_glimpse_policy_on_a_slide_wider_than_its_grid_is_one_line(two_slides, c
         "env_kwargs": {"task": "classification", "slides": [str(bundle)], "glimpse_grid": [1, 1]},
     }
     save_checkpoint(run, {"params": {"w": np.zeros((1, 2), np.float32)}}, config)
-    assert evaluate.main([str(run), "--episodes", "1", "--out", str(tmp_path / "o")]) == 2
+    assert cli.main([str(run), "--episodes", "1", "--out", str(tmp_path / "o")]) == 2
     line = _one_error_line(capsys)
     assert str(bundle) in line and "do not fit glimpse_grid=[1, 1]" in line
     assert not (tmp_path / "o").exists()

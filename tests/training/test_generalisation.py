@@ -194,7 +194,7 @@ def test_entropy_anneal_and_dataset_normaliser(c16_small):
 def test_publish_a_tiny_ppo_and_score_it_on_a_dataset(c16_small, tmp_path):
     import json
 
-    from baselines import evaluate
+    from baselines.evaluate import cli
     from baselines.publish import publish
 
     folder, version = c16_small
@@ -221,7 +221,7 @@ def test_publish_a_tiny_ppo_and_score_it_on_a_dataset(c16_small, tmp_path):
     params, cfg = load_checkpoint(dest)
     assert cfg["num_seeds"] == 1 and all(a.shape[0] == 1 for a in __import__("jax").tree.leaves(params))
     assert (
-        evaluate.main(
+        cli.main(
             [str(dest), "--dataset", str(folder), "--split", "test", "--episodes", "4", "--out", str(tmp_path / "eval")]
         )
         == 0

@@ -8,7 +8,8 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines import dqn, evaluate, networks, ppo
+from baselines import dqn, networks, ppo
+from baselines.evaluate import cli, policies, scoring
 from baselines.harness.logs import load_checkpoint, save_checkpoint
 
 TINY_PPO = dict(
@@ -146,12 +147,12 @@ def test_scripted_policy_runs_and_moves_toward_dark_stain():
     # a view whose dark stain is on the right: the policy (without exploration) moves RIGHT
     px = jnp.full((128, 128, 3), 240, jnp.uint8).at[:, 96:, :].set(60)
     obs = {"pixels": px, "position": jnp.array([0.5, 0.5, 0.0])}
-    a = evaluate.scripted_policy(jax.random.PRNGKey(0), obs, epsilon=0.0)
+    a = policies.scripted_policy(jax.random.PRNGKey(0), obs, epsilon=0.0)
     assert int(a) == 3  # RIGHT
     centred = jnp.full((128, 128, 3), 240, jnp.uint8).at[48:80, 48:80, :].set(60)
-    assert int(evaluate.scripted_policy(jax.random.PRNGKey(0), {**obs, "pixels": centred}, epsilon=0.0)) == 4
+    assert int(policies.scripted_policy(jax.random.PRNGKey(0), {**obs, "pixels": centred}, epsilon=0.0)) == 4
     config = {**ppo.DEFAULTS, "with_position": True, "max_steps_in_episode": 20}
-    rows = evaluate.evaluate(config, None, num_episodes=8)
+    rows = scoring.evaluate(config, None, num_episodes=8)
     assert set(rows) == {"random", "scripted"}
     for r in rows.values():
         assert r["episodes"] == 8 and 0.0 <= r["success_rate"] <= 1.0 and r["mean_length"] <= 20
@@ -163,12 +164,12 @@ def test_scripted_features_policy_reads_the_view_logit_not_the_noisy_cell():
 
     feats = jnp.zeros(64).at[62].set(3.0).at[63].set(-5.0)
     obs = {"features": feats, "position": jnp.array([0.5, 0.5, 0.0])}
-    assert int(evaluate.scripted_features_policy(jax.random.PRNGKey(0), obs, epsilon=0.0)) == actions.ZOOM_IN
+    assert int(policies.scripted_features_policy(jax.random.PRNGKey(0), obs, epsilon=0.0)) == actions.ZOOM_IN
     at_finest = {**obs, "position": jnp.array([0.5, 0.5, 1.0])}
-    assert int(evaluate.scripted_features_policy(jax.random.PRNGKey(0), at_finest, epsilon=0.0)) == actions.STAY
+    assert int(policies.scripted_features_policy(jax.random.PRNGKey(0), at_finest, epsilon=0.0)) == actions.STAY
     # a hot cell in a cold view (63 high, 62 low) is not a reason to zoom in
     cold = {**obs, "features": jnp.zeros(64).at[62].set(-3.0).at[63].set(5.0)}
-    moves = {int(evaluate.scripted_features_policy(jax.random.PRNGKey(k), cold, epsilon=0.0)) for k in range(20)}
+    moves = {int(policies.scripted_features_policy(jax.random.PRNGKey(k), cold, epsilon=0.0)) for k in range(20)}
     assert actions.ZOOM_IN not in moves and moves <= {0, 1, 2, 3}
 
 
@@ -192,7 +193,7 @@ def test_tiny_dqn_and_evaluate_cli(tmp_path):
     loss = np.asarray(out["metrics"]["loss"])
     assert loss.shape == (1, 4) and np.isfinite(loss).all() and loss[0, -1] > 0
     save_checkpoint(tmp_path, out["params"], train.config)
-    assert evaluate.main([str(tmp_path), "--episodes", "4", "--out", str(tmp_path / "eval")]) == 0
+    assert cli.main([str(tmp_path), "--episodes", "4", "--out", str(tmp_path / "eval")]) == 0
     assert (tmp_path / "eval" / "eval.json").is_file() and (tmp_path / "eval" / "trajectory.gif").is_file()
 
 
@@ -215,7 +216,7 @@ def test_random_agent_reference_row():
 def test_evaluate_resolves_held_out_slides_from_the_training_dataset(tmp_path):
     import json as _json
 
-    from baselines.evaluate import resolve_slides
+    from baselines.evaluate.cli import resolve_slides
 
     (tmp_path / "dataset.json").write_text(_json.dumps({"train": ["bundles/a"], "test": ["bundles/b", "bundles/c"]}))
     config = {"env_kwargs": {"dataset": str(tmp_path), "split": "train", "augment": True}}

@@ -9,8 +9,9 @@ import jax.numpy as jnp
 import numpy as np
 import pytest
 
-from baselines import evaluate, networks, ppo_rnn
+from baselines import networks, ppo_rnn
 from baselines.common.env import make_env, params_initialiser, reset_envs
+from baselines.evaluate import scoring
 from baselines.harness.logs import load_checkpoint, save_checkpoint
 
 
@@ -139,7 +140,7 @@ def test_short_run_beats_the_random_agent_and_evaluates_from_its_checkpoint(tmp_
     save_checkpoint(tmp_path / "run", out["params"], train.config)
     params, loaded = load_checkpoint(tmp_path / "run")
     assert loaded["algo"] == "ppo_rnn"
-    rows = evaluate.evaluate(loaded, params, num_episodes=64, label="ppo_rnn")
+    rows = scoring.evaluate(loaded, params, num_episodes=64, label="ppo_rnn")
     learned, rand = rows["ppo_rnn (sampled)"], rows["random"]
     assert learned["success_rate"] >= rand["success_rate"] + 0.2, rows
     assert learned["mean_steps_to_success"] < rand["mean_steps_to_success"], rows

@@ -246,7 +246,9 @@ def test_evaluate_command_table_warnings_and_pictures(tmp_path, capsys):
     assert "AUC is undefined" in captured.err
     assert "evaluating HistoJAX-Easy-v0 on embedded sample slide" in captured.err and "ppo (greedy): 2" in captured.err
     header, greedy = [line.split() for line in captured.out.splitlines() if line.startswith(("policy", "ppo (gr"))]
-    assert header[-3:] == ["read", "fields", "AUC"] and greedy[-1] == "undef."  # one class: no AUC, and it says why
+    assert (
+        header[-6:] == ["read", "fields", "AUC", "[95", "%", "interval]"] and greedy[-1] == "undef."
+    )  # one class: no AUC, and it says why
     assert "undef.: undefined: one class" in captured.out
     names = {p.name for p in (run / "eval").iterdir()}
     assert {

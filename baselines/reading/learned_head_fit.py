@@ -61,6 +61,7 @@ import numpy as np
 import optax
 from tqdm import tqdm
 
+from baselines.reading.fitting import MIN_SLIDES_PER_CLASS  # the same minimum as the logit and MIL fits
 from baselines.reading.provenance import RECORD, add_flag, check_scored, fit_record, head_for_fold
 from baselines.reading.slides import HeadDataError, finest_views, lesion_of, read_bundle, warn_scale
 from baselines.reading.slides import read_spec as read_sealed_spec
@@ -82,8 +83,6 @@ from histojax.core.slide import slide_label_from_metadata
 from histojax.reading.heads import encoder_mismatch, files
 from histojax.reading.heads.learned import KIND, LearnedHead, init_params
 
-MIN_SLIDES_PER_CLASS = 5
-"""Fewest training slides of each class (after the validation share is held out) a fit accepts."""
 CELL = 4  # random reads pick cells of CELL × CELL views (a reader's cell is about 4 × 4 views)
 P_FULL = 0.25  # share of training reads that read all tissue
 MIN_READ = 0.02  # smallest random read fraction

@@ -1,0 +1,224 @@
+"""The v3 gate: do the same CAMELYON16 slides read at PCam's own scale (downsample 4, 0.97 µm/px, ``pcam-cnn96``)
+diagnose better than at the v1/v2 scale (downsample 8, 1.94 µm/px, ``pcam-cnn``)?
+
+Give two ``data_tools c16`` datasets of the **same slides** (e.g. the 52 validation slides), each built with
+``--folds K``. For each scale, every slide is scored reading everything by
+
+* ``encoder top1`` / ``encoder top3``: the encoder's own view logit (feature entry 62 of both encoders), its largest
+  value / the mean of its 3 largest over the slide's tissue views — nothing fitted;
+* ``logit head``: :mod:`baselines.reading.head_fit` fitted per fold on the other ``K - 1`` folds (one fit per
+  validation-split seed);
+* ``learned head``: :mod:`baselines.reading.learned_head_fit` per fold (one fit per training seed),
+
+a slide only ever by the heads of its own fold, which never fitted or validated on it (checked through
+:func:`baselines.reading.provenance.check_scored`). Per method and scale: the AUC over the pooled slides (mean ± std
+over seeds) with its 95 % interval over slides, and per lesion class the tumour slides above every normal slide
+(mean over seeds); per method, the paired difference (downsample 4 − downsample 8) with a 95 % interval from a
+bootstrap of slides (stratified by class, the same resample at both scales).
+
+The rule it reports: the native scale goes ahead if a head (logit or learned) lifts the mean AUC by ≥ 0.03 or finds
+≥ 2 more micrometastases above every normal slide; otherwise v1/v2 stay the benchmark.
+
+    python -m experiments.c16_scale_gate --coarse runs/gate/val52-d8 --native runs/gate/val52-d4 \\
+        --heads runs/gate/heads --seeds 3 --json runs/gate/gate.json
+
+Heads already in ``--heads`` (a ``config.json``) are kept: a rerun resumes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+from data_tools.errors import HistojaxDataError
+from data_tools.metrics import auc_over_runs, format_auc_runs, json_safe, roc_auc
+
+AUC_LIFT = 0.03  # the gate's AUC rule
+MICRO_LIFT = 2  # the gate's micrometastasis rule
+CLASSES = ("ITC", "micro", "macro")
+
+
+def folds_of(dataset: Path) -> int:
+    """The number of folds ``dataset/dataset.json`` records (``--folds K``); ``HistojaxDataError`` naming it if none."""
+    spec = json.loads((dataset / "dataset.json").read_text())
+    lists = (spec.get("folds") or {}).get("lists")
+    if not isinstance(lists, list) or len(lists) < 2:
+        raise HistojaxDataError(dataset / "dataset.json", "records no folds: build it with `c16 ... --folds K`")
+    return len(lists)
+
+
+def fit_heads(dataset: Path, heads: Path, seeds: int, val_fraction: float, log) -> dict[str, list[Path]]:
+    """Fit (or keep) the logit heads ``heads/logit-s{seed}/fold{i}`` and learned heads ``heads/learned-s{seed}/fold{i}``
+    of every fold; returns ``{"logit head": [seed folders], "learned head": [seed folders]}``."""
+    py = sys.executable
+    k = folds_of(dataset)
+    out = {"logit head": [], "learned head": []}
+    for s in range(seeds):
+        logit = heads / f"logit-s{s}"
+        for i in range(k):
+            if not (logit / f"fold{i}" / "config.json").exists():
+                cmd = [py, "-m", "baselines.reading.head_fit", "--dataset", str(dataset), "--out",
+                       str(logit / f"fold{i}"), "--fold", str(i), "--seed", str(s),
+                       "--val-fraction", str(val_fraction)]  # fmt: skip
+                run(cmd, log)
+        out["logit head"].append(logit)
+        learned = heads / f"learned-s{s}"
+        if not all((learned / f"fold{i}" / "config.json").exists() for i in range(k)):
+            cmd = [py, "-m", "baselines.reading.learned_head_fit", "--dataset", str(dataset), "--out", str(learned),
+                   "--all-folds", "--seed", str(s), "--val-fraction", str(val_fraction), "--quiet"]  # fmt: skip
+            run(cmd, log)
+        out["learned head"].append(learned)
+    return out
+
+
+def run(cmd: list[str], log) -> None:
+    """Run one fit, its output appended to ``log``; ``RuntimeError`` with its last line when it fails."""
+    print("$ " + " ".join(cmd), file=log, flush=True)
+    t0 = time.perf_counter()
+    done = subprocess.run(cmd, stdout=log, stderr=subprocess.PIPE, text=True)
+    log.write(done.stderr[-4000:])
+    print(f"# {time.perf_counter() - t0:.0f} s, rc {done.returncode}", file=log, flush=True)
+    if done.returncode != 0:
+        last = (done.stderr.strip().splitlines() or ["(no output)"])[-1]
+        raise RuntimeError(f"{' '.join(cmd[2:4])} failed: {last}")
+
+
+def head_logits(dataset: Path, seed_folder: Path, k: int) -> dict[str, float]:
+    """``{slide name: logit}`` of every slide of ``dataset``'s folds, each read everything (its tissue views) by the
+    head of its own fold ``seed_folder/fold{i}``, refused if that head saw it."""
+    from baselines.reading.provenance import check_scored
+    from baselines.reading.reader_scores import head_scores, load_split
+    from histojax.datasets import with_fold
+    from histojax.reading import heads
+
+    spec = json.loads((dataset / "dataset.json").read_text())
+    out = {}
+    for i in range(k):
+        folder = seed_folder / f"fold{i}"
+        head = heads.load(folder)
+        check_scored(head, folder, dataset, with_fold(spec, i)["validation"])
+        head, _, slides = load_split(dataset, head, "validation", fold=i)
+        scores = head_scores(head, slides, [s["tissue"] for s in slides])
+        out.update({s["name"]: float(v) for s, v in zip(slides, scores)})
+    return out
+
+
+def encoder_logits(dataset: Path, top: int) -> tuple[dict[str, float], dict[str, int], dict[str, str]]:
+    """``({slide: mean of its top-``top`` view logits}, {slide: label}, {slide: lesion class})`` over every slide
+    of ``dataset``'s folds (the encoder's own logit, nothing fitted)."""
+    from baselines.reading.learned_head_fit import lesion_classes
+    from baselines.reading.slides import load_slide
+
+    spec = json.loads((dataset / "dataset.json").read_text())
+    names = [n for lst in spec["folds"]["lists"] for n in lst]
+    slides = [load_slide(dataset / n, spec["labels"][Path(n).name]) for n in names]
+    scores = {s["name"]: float(np.sort(s["logits"][s["tissue"]])[::-1][:top].mean()) for s in slides}
+    labels = {s["name"]: int(s["label"]) for s in slides}
+    classes = dict(zip((s["name"] for s in slides), lesion_classes(slides)))
+    return scores, labels, classes
+
+
+def found(scores: np.ndarray, classes: list[str]) -> dict[str, int]:
+    """Per lesion class, the tumour slides scoring above every normal slide (``scores (B,)``)."""
+    top = max(v for v, c in zip(scores, classes) if c == "normal")
+    return {c: int(sum(v > top for v, k in zip(scores, classes) if k == c)) for c in CLASSES}
+
+
+def paired_difference(a: np.ndarray, b: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 0) -> dict:
+    """Mean over seeds of AUC(``b``) − AUC(``a``) for per-seed scores ``a, b (S, B)`` of the same ``B`` slides,
+    with a 95 % interval from ``reps`` bootstrap resamples of slides (stratified by label ``y (B,)``, the same slides
+    for both)."""
+    rng = np.random.default_rng(seed)
+    pos, neg = np.flatnonzero(y == 1), np.flatnonzero(y == 0)
+
+    def diff(idx):
+        return float(np.mean([roc_auc(b[s][idx], y[idx]) - roc_auc(a[s][idx], y[idx]) for s in range(len(a))]))
+
+    boots = [diff(np.concatenate([rng.choice(pos, len(pos)), rng.choice(neg, len(neg))])) for _ in range(reps)]
+    lo, hi = np.percentile(boots, [2.5, 97.5])
+    return {"diff": diff(np.arange(len(y))), "low": float(lo), "high": float(hi)}
+
+
+def main(argv=None) -> int:
+    p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    p.add_argument("--coarse", type=Path, required=True, help="the slides at downsample 8 with pcam-cnn (--folds K)")
+    p.add_argument("--native", type=Path, required=True, help="the same slides at downsample 4 with pcam-cnn96")
+    p.add_argument("--heads", type=Path, required=True, help="folder for the fitted heads (kept; a rerun resumes)")
+    p.add_argument("--seeds", type=int, default=3, help="fits per head and fold (default 3)")
+    p.add_argument("--val-fraction", type=float, default=0.25, help="share of a fold's train side held to choose")
+    p.add_argument("--json", type=Path, help="write every figure here")
+    args = p.parse_args(argv)
+    t0 = time.perf_counter()
+    scales = {"coarse": args.coarse, "native": args.native}
+    per = {}
+    try:
+        for key, ds in scales.items():
+            k = folds_of(ds)
+            args.heads.mkdir(parents=True, exist_ok=True)
+            with open(args.heads / f"fits-{key}.log", "a") as log:
+                fitted = fit_heads(ds, args.heads / key, args.seeds, args.val_fraction, log)
+            enc1, labels, classes = encoder_logits(ds, 1)
+            enc3, _, _ = encoder_logits(ds, 3)
+            methods = {"encoder top1": [enc1], "encoder top3": [enc3]}
+            for name, folders in fitted.items():
+                methods[name] = [head_logits(ds, f, k) for f in folders]
+            per[key] = {"labels": labels, "classes": classes, "methods": methods, "folds": k}
+    except (HistojaxDataError, RuntimeError, OSError, ValueError, KeyError) as e:
+        print(f"error: {e}", file=sys.stderr)
+        return 2
+    names = sorted(per["coarse"]["labels"])
+    if sorted(per["native"]["labels"]) != names:
+        print("error: the two datasets do not hold the same slides", file=sys.stderr)
+        return 2
+    y = np.asarray([per["coarse"]["labels"][n] for n in names])
+    classes = [per["coarse"]["classes"][n] for n in names]
+    counts = {c: classes.count(c) for c in CLASSES}
+    result = {"slides": len(names), "tumour": int(y.sum()), "normal": int(len(y) - y.sum()), "classes": counts,
+              "folds": per["coarse"]["folds"], "seeds": args.seeds, "methods": {}}  # fmt: skip
+    print(f"{len(names)} slides ({int(y.sum())} tumour: {counts}; {int(len(y) - y.sum())} normal), "
+          f"{per['coarse']['folds']} folds, reading everything")  # fmt: skip
+    print("| method | downsample 8, pcam-cnn | downsample 4, pcam-cnn96 | difference [95 % bootstrap] | "
+          "micro found (8 → 4) | macro | ITC |\n|---|---|---|---|---|---|---|")  # fmt: skip
+    verdict = []
+    for m in per["coarse"]["methods"]:
+        row = {}
+        arrays = {}
+        for key in scales:
+            runs = np.asarray([[r[n] for n in names] for r in per[key]["methods"][m]])
+            arrays[key] = runs
+            auc = auc_over_runs(runs, y)
+            f = [found(r, classes) for r in runs]
+            row[key] = {**auc, "found_mean": {c: float(np.mean([x[c] for x in f])) for c in CLASSES},
+                        "found_per_run": f, "scores": {n: runs[:, j].tolist() for j, n in enumerate(names)}}  # fmt: skip
+        d = paired_difference(arrays["coarse"], arrays["native"], y)
+        row["difference"] = d
+        result["methods"][m] = row
+        fc, fn = row["coarse"]["found_mean"], row["native"]["found_mean"]
+        cells = [format_auc_runs(row[k]["auc"], row[k]["auc_std"], row[k]["auc_low"], row[k]["auc_high"],
+                                 len(arrays[k])) for k in scales]  # fmt: skip
+        print(f"| {m} | {cells[0]} | {cells[1]} | {d['diff']:+.3f} [{d['low']:+.3f}, {d['high']:+.3f}] | "
+              f"{fc['micro']:.1f} → {fn['micro']:.1f} of {counts['micro']} | {fc['macro']:.1f} → {fn['macro']:.1f} "
+              f"of {counts['macro']} | {fc['ITC']:.1f} → {fn['ITC']:.1f} of {counts['ITC']} |")  # fmt: skip
+        if m.endswith("head"):
+            verdict.append(d["diff"] >= AUC_LIFT or fn["micro"] - fc["micro"] >= MICRO_LIFT)
+    go = any(verdict)
+    result["go"] = go
+    result["seconds"] = round(time.perf_counter() - t0, 1)
+    print(
+        f"\ngate: {'PASSED' if go else 'NOT PASSED'} (a head lifting the AUC by >= {AUC_LIFT} or finding >= "
+        f"{MICRO_LIFT} more micrometastases); {result['seconds']:.0f} s"
+    )
+    if args.json:
+        args.json.parent.mkdir(parents=True, exist_ok=True)
+        args.json.write_text(json.dumps(json_safe(result), indent=1, allow_nan=False))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,35 @@
+"""The figures of the scale gate (experiments/c16_scale_gate.py): lesions found above every normal slide, the paired
+AUC difference of two scales over the same slides, and the view-logit entry of the pcam-cnn family."""
+
+import json
+
+import numpy as np
+import pytest
+
+from baselines.reading.budget_curve import PCAM_CNN_VIEW_LOGIT, view_logit_dim
+from experiments.c16_scale_gate import found, paired_difference
+
+
+def test_found_counts_tumour_slides_above_the_highest_normal_slide():
+    scores = np.array([0.9, 0.2, 0.5, 0.6, 0.1, 0.55])
+    classes = ["macro", "micro", "micro", "normal", "normal", "ITC"]
+    assert found(scores, classes) == {"ITC": 0, "micro": 0, "macro": 1}
+    assert found(scores + np.array([0, 0, 0.2, 0, 0, 0.1]), classes) == {"ITC": 1, "micro": 1, "macro": 1}
+
+
+def test_paired_difference_of_identical_scales_is_zero_and_a_better_scale_is_positive():
+    rng = np.random.default_rng(0)
+    y = np.array([1] * 12 + [0] * 18)
+    weak = rng.normal(size=(3, 30)) + 0.5 * y
+    same = paired_difference(weak, weak, y, reps=200)
+    assert same == {"diff": 0.0, "low": 0.0, "high": 0.0}
+    strong = weak + 3.0 * y
+    lift = paired_difference(weak, strong, y, reps=200)
+    assert lift["diff"] > 0.1 and 0.0 < lift["low"] <= lift["diff"] <= lift["high"]
+
+
+@pytest.mark.parametrize("encoder, dim", [("pcam-cnn", PCAM_CNN_VIEW_LOGIT), ("pcam-cnn96", PCAM_CNN_VIEW_LOGIT),
+                                          ("colour-stats", None)])  # fmt: skip
+def test_view_logit_entry_is_known_for_the_pcam_cnn_family_only(tmp_path, encoder, dim):
+    (tmp_path / "dataset.json").write_text(json.dumps({"encoder": encoder}))
+    assert view_logit_dim(tmp_path) == dim

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from baselines.reading.budget_curve import PCAM_CNN_VIEW_LOGIT, view_logit_dim
-from experiments.c16_scale_gate import found, paired_difference
+from experiments.c16_scale_gate import ceiling_rule, found, paired_difference
 
 
 def test_found_counts_tumour_slides_above_the_highest_normal_slide():
@@ -33,3 +33,18 @@ def test_paired_difference_of_identical_scales_is_zero_and_a_better_scale_is_pos
 def test_view_logit_entry_is_known_for_the_pcam_cnn_family_only(tmp_path, encoder, dim):
     (tmp_path / "dataset.json").write_text(json.dumps({"encoder": encoder}))
     assert view_logit_dim(tmp_path) == dim
+
+
+def _methods(rows):
+    return {m: {k: {"auc": a, "found_mean": {"micro": f}} for k, (a, f) in zip(("coarse", "native"), pair)}
+            for m, pair in rows.items()}  # fmt: skip
+
+
+def test_gate_is_on_the_best_head_of_each_scale_not_a_weak_head_catching_up():
+    # the learned head gains 0.07 but stays under the logit head, whose best is not lifted: the ceiling is unchanged
+    weak_catches_up = _methods({"logit head": ((0.94, 9), (0.93, 9)), "learned head": ((0.79, 3), (0.86, 4)),
+                                "encoder top3": ((0.90, 5), (0.99, 12))})  # fmt: skip
+    ceiling, lift, micro, go = ceiling_rule(weak_catches_up)
+    assert not go and ceiling["native"]["head"] == "logit head" and lift == pytest.approx(-0.01) and micro == 0
+    assert ceiling_rule(_methods({"logit head": ((0.90, 9), (0.935, 9))}))[3]  # +0.035 AUC
+    assert ceiling_rule(_methods({"logit head": ((0.94, 9), (0.93, 11))}))[3]  # two more micrometastases

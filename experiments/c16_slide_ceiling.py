@@ -35,7 +35,7 @@ import numpy as np
 
 from baselines.validation import split_train
 from data_tools.errors import HistojaxDataError
-from data_tools.features import pcam_cnn
+from data_tools.features import pcam_cnn, pcam_cnn96
 from data_tools.metrics import auc_interval, format_auc, json_safe, roc_auc
 
 STATS = ("top1", "top3", "top10", "n>2")
@@ -56,7 +56,7 @@ def slide_grids(dataset: Path, split: str, meta: dict | None = None) -> list[dic
         name = Path(rel).name
         m = json.loads((bundle / "metadata.json").read_text())
         feats = m.get("features") or {}
-        if feats.get("encoder") != pcam_cnn.NAME:
+        if feats.get("encoder") not in (pcam_cnn.NAME, pcam_cnn96.NAME):  # the family: the same entries
             raise CeilingError(
                 bundle / "metadata.json",
                 f"features are {feats.get('encoder')!r}, not pcam-cnn; "

@@ -72,7 +72,7 @@ from baselines.reading.provenance import add_flag, check_scored, head_for_fold
 from baselines.reading.slides import read_spec
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
-from data_tools.features import pcam_cnn
+from data_tools.features import pcam_cnn, pcam_cnn96
 from data_tools.metrics import accuracy, auc_interval, format_auc_runs, small_split_warning
 from histojax.reading import heads
 from histojax.reading.head_reward import pools_views
@@ -198,14 +198,15 @@ that of ``mean l`` 0.865 — a cell's logit is too noisy to take a maximum over 
 
 
 def view_logit_dim(dataset) -> int | None:
-    """:data:`PCAM_CNN_VIEW_LOGIT` when ``dataset``'s feature grids are pcam-cnn's (``dataset.json``), else None."""
+    """:data:`PCAM_CNN_VIEW_LOGIT` when ``dataset``'s feature grids are the pcam-cnn family's (``pcam-cnn`` or
+    ``pcam-cnn96``, which hold their view logit at the same entry; ``dataset.json``), else None."""
     import json
 
     try:
         ds = json.loads((Path(dataset) / "dataset.json").read_text())
     except (OSError, ValueError, TypeError):
         return None
-    return PCAM_CNN_VIEW_LOGIT if ds.get("encoder") == pcam_cnn.NAME else None
+    return PCAM_CNN_VIEW_LOGIT if ds.get("encoder") in (pcam_cnn.NAME, pcam_cnn96.NAME) else None
 
 
 def bags(tables: list[dict], read: list[np.ndarray] | None = None):

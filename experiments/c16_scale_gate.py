@@ -23,7 +23,7 @@ up with the other is not a higher ceiling). Also printed: each scale's median an
 median tumour-slide score of the encoder's top-1 view logit (how the maxima move with 4× as many views).
 
     python -m experiments.c16_scale_gate --coarse runs/gate/val52-d8 --native runs/gate/val52-d4 \\
-        --heads runs/gate/heads --seeds 3 --json runs/gate/gate.json
+        --heads runs/gate/heads --seeds 3 --json runs/gate/gate.json --plot runs/gate/gate.png
 
 Heads already in ``--heads`` (a ``config.json``) are kept: a rerun resumes.
 """
@@ -168,6 +168,39 @@ def ceiling_rule(methods: dict) -> tuple[dict, float, float, bool]:
     return ceiling, lift_auc, lift_micro, bool(lift_auc >= AUC_LIFT or lift_micro >= MICRO_LIFT)
 
 
+def plot_scales(result: dict, names: list[str], classes: list[str], path: Path) -> None:
+    """A PNG of every slide's score at both scales, one panel per method (the mean over its fits): downsample 8 across,
+    downsample 4 up, normal slides grey, micrometastases orange, macrometastases red; the dashed lines are each
+    scale's highest normal slide, so a tumour slide above and right of both is found at both."""
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    colours = {"normal": "0.6", "ITC": "tab:purple", "micro": "tab:orange", "macro": "tab:red"}
+    methods = list(result["methods"])
+    fig = Figure(figsize=(3.2 * len(methods), 3.4))
+    FigureCanvasAgg(fig)
+    for i, m in enumerate(methods):
+        ax = fig.add_subplot(1, len(methods), i + 1)
+        xy = {k: np.asarray([np.mean(result["methods"][m][k]["scores"][n]) for n in names]) for k in ("coarse", "native")}
+        for c in colours:
+            sel = np.asarray([k == c for k in classes])
+            if sel.any():
+                ax.scatter(xy["coarse"][sel], xy["native"][sel], s=14, c=colours[c], label=c)
+        normal = np.asarray([k == "normal" for k in classes])
+        ax.axvline(xy["coarse"][normal].max(), ls="--", lw=0.8, c="0.3")
+        ax.axhline(xy["native"][normal].max(), ls="--", lw=0.8, c="0.3")
+        ax.set_title(m, fontsize=9)
+        ax.set_xlabel("downsample 8, pcam-cnn", fontsize=8)
+        if i == 0:
+            ax.set_ylabel("downsample 4, pcam-cnn96", fontsize=8)
+            ax.legend(fontsize=7, loc="upper left")
+        ax.tick_params(labelsize=7)
+    fig.suptitle(f"{len(names)} C16 validation slides read everything: each slide's score at both scales", fontsize=9)
+    fig.tight_layout()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(path, dpi=110)
+
+
 def main(argv=None) -> int:
     p = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     p.add_argument("--coarse", type=Path, required=True, help="the slides at downsample 8 with pcam-cnn (--folds K)")
@@ -176,6 +209,7 @@ def main(argv=None) -> int:
     p.add_argument("--seeds", type=int, default=3, help="fits per head and fold (default 3)")
     p.add_argument("--val-fraction", type=float, default=0.25, help="share of a fold's train side held to choose")
     p.add_argument("--json", type=Path, help="write every figure here")
+    p.add_argument("--plot", type=Path, help="write a PNG of every slide's score at both scales here")
     args = p.parse_args(argv)
     t0 = time.perf_counter()
     scales = {"coarse": args.coarse, "native": args.native}
@@ -203,7 +237,8 @@ def main(argv=None) -> int:
     classes = [per["coarse"]["classes"][n] for n in names]
     counts = {c: classes.count(c) for c in CLASSES}
     result = {"slides": len(names), "tumour": int(y.sum()), "normal": int(len(y) - y.sum()), "classes": counts,
-              "folds": per["coarse"]["folds"], "seeds": args.seeds, "methods": {}}  # fmt: skip
+              "folds": per["coarse"]["folds"], "seeds": args.seeds, "lesion_class": dict(zip(names, classes)),
+              "methods": {}}  # fmt: skip
     print(f"{len(names)} slides ({int(y.sum())} tumour: {counts}; {int(len(y) - y.sum())} normal), "
           f"{per['coarse']['folds']} folds, reading everything")  # fmt: skip
     print("| method | downsample 8, pcam-cnn | downsample 4, pcam-cnn96 | difference [95 % bootstrap] | "
@@ -244,6 +279,8 @@ def main(argv=None) -> int:
         f"\ngate: {'PASSED' if go else 'NOT PASSED'}: the best head's AUC {lift_auc:+.3f} (rule: >= +{AUC_LIFT}), its "
         f"micrometastases found {lift_micro:+.1f} (rule: >= +{MICRO_LIFT}); {result['seconds']:.0f} s"
     )
+    if args.plot:
+        plot_scales(result, names, classes, args.plot)
     if args.json:
         args.json.parent.mkdir(parents=True, exist_ok=True)
         args.json.write_text(json.dumps(json_safe(result), indent=1, allow_nan=False))

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from baselines.reading.budget_curve import PCAM_CNN_VIEW_LOGIT, view_logit_dim
-from experiments.c16_scale_gate import ceiling_rule, found, paired_difference
+from experiments.c16_scale_gate import ceiling_rule, found, paired_difference, plot_scales
 
 
 def test_found_counts_tumour_slides_above_the_highest_normal_slide():
@@ -48,3 +48,10 @@ def test_gate_is_on_the_best_head_of_each_scale_not_a_weak_head_catching_up():
     assert not go and ceiling["native"]["head"] == "logit head" and lift == pytest.approx(-0.01) and micro == 0
     assert ceiling_rule(_methods({"logit head": ((0.90, 9), (0.935, 9))}))[3]  # +0.035 AUC
     assert ceiling_rule(_methods({"logit head": ((0.94, 9), (0.93, 11))}))[3]  # two more micrometastases
+
+
+def test_plot_of_both_scales_is_written(tmp_path):
+    names, classes = ["Normal_001", "Normal_002", "Tumor_001"], ["normal", "normal", "micro"]
+    scores = {k: {"scores": {n: [float(i)] for i, n in enumerate(names)}} for k in ("coarse", "native")}
+    plot_scales({"methods": {"logit head": scores}}, names, classes, tmp_path / "gate.png")
+    assert (tmp_path / "gate.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"

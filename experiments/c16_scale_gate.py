@@ -181,7 +181,9 @@ def plot_scales(result: dict, names: list[str], classes: list[str], path: Path) 
     FigureCanvasAgg(fig)
     for i, m in enumerate(methods):
         ax = fig.add_subplot(1, len(methods), i + 1)
-        xy = {k: np.asarray([np.mean(result["methods"][m][k]["scores"][n]) for n in names]) for k in ("coarse", "native")}
+        xy = {
+            k: np.asarray([np.mean(result["methods"][m][k]["scores"][n]) for n in names]) for k in ("coarse", "native")
+        }
         for c in colours:
             sel = np.asarray([k == c for k in classes])
             if sel.any():

@@ -39,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from baselines.folds import dataset_folds
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import auc_over_runs, format_auc_runs, json_safe, roc_auc
 
@@ -47,20 +48,11 @@ MICRO_LIFT = 2  # the gate's micrometastasis rule
 CLASSES = ("ITC", "micro", "macro")
 
 
-def folds_of(dataset: Path) -> int:
-    """The number of folds ``dataset/dataset.json`` records (``--folds K``); ``HistojaxDataError`` naming it if none."""
-    spec = json.loads((dataset / "dataset.json").read_text())
-    lists = (spec.get("folds") or {}).get("lists")
-    if not isinstance(lists, list) or len(lists) < 2:
-        raise HistojaxDataError(dataset / "dataset.json", "records no folds: build it with `c16 ... --folds K`")
-    return len(lists)
-
-
 def fit_heads(dataset: Path, heads: Path, seeds: int, val_fraction: float, log) -> dict[str, list[Path]]:
     """Fit (or keep) the logit heads ``heads/logit-s{seed}/fold{i}`` and learned heads ``heads/learned-s{seed}/fold{i}``
     of every fold; returns ``{"logit head": [seed folders], "learned head": [seed folders]}``."""
     py = sys.executable
-    k = folds_of(dataset)
+    k, _ = dataset_folds(dataset, "the scale gate")
     out = {"logit head": [], "learned head": []}
     for s in range(seeds):
         logit = heads / f"logit-s{s}"
@@ -92,7 +84,7 @@ def run(cmd: list[str], log) -> None:
         raise RuntimeError(f"{' '.join(cmd[2:4])} failed: {last}")
 
 
-def head_logits(dataset: Path, seed_folder: Path, k: int) -> dict[str, float]:
+def head_logits(dataset: Path, seed_folder: Path) -> dict[str, float]:
     """``{slide name: logit}`` of every slide of ``dataset``'s folds, each read everything (its tissue views) by the
     head of its own fold ``seed_folder/fold{i}``, refused if that head saw it."""
     from baselines.reading.provenance import check_scored
@@ -100,37 +92,42 @@ def head_logits(dataset: Path, seed_folder: Path, k: int) -> dict[str, float]:
     from histojax.datasets import with_fold
     from histojax.reading import heads
 
+    k, side = dataset_folds(dataset, "the scale gate")  # side: where fold i's held-out slides are
     spec = json.loads((dataset / "dataset.json").read_text())
     out = {}
     for i in range(k):
         folder = seed_folder / f"fold{i}"
         head = heads.load(folder)
-        check_scored(head, folder, dataset, with_fold(spec, i)["validation"])
-        head, _, slides = load_split(dataset, head, "validation", fold=i)
+        check_scored(head, folder, dataset, with_fold(spec, i)[side])
+        head, _, slides = load_split(dataset, head, side, fold=i)
         scores = head_scores(head, slides, [s["tissue"] for s in slides])
         out.update({s["name"]: float(v) for s, v in zip(slides, scores)})
     return out
 
 
-def encoder_logits(dataset: Path, top: int) -> tuple[dict[str, float], dict[str, int], dict[str, str]]:
-    """``({slide: mean of its top-``top`` view logits}, {slide: label}, {slide: lesion class})`` over every slide
-    of ``dataset``'s folds (the encoder's own logit, nothing fitted)."""
+def encoder_logits(dataset: Path, tops=(1, 3)) -> tuple[dict[int, dict[str, float]], dict[str, int], dict[str, str]]:
+    """``({top: {slide: mean of its ``top`` largest view logits}}, {slide: label}, {slide: lesion class})`` over
+    every slide of ``dataset``'s folds, each slide read once (the encoder's own logit, nothing fitted)."""
     from baselines.reading.learned_head_fit import lesion_classes
     from baselines.reading.slides import load_slide
 
     spec = json.loads((dataset / "dataset.json").read_text())
     names = [n for lst in spec["folds"]["lists"] for n in lst]
     slides = [load_slide(dataset / n, spec["labels"][Path(n).name]) for n in names]
-    scores = {s["name"]: float(np.sort(s["logits"][s["tissue"]])[::-1][:top].mean()) for s in slides}
+    ranked = {s["name"]: np.sort(s["logits"][s["tissue"]])[::-1] for s in slides}
+    scores = {top: {n: float(v[:top].mean()) for n, v in ranked.items()} for top in tops}
     labels = {s["name"]: int(s["label"]) for s in slides}
     classes = dict(zip((s["name"] for s in slides), lesion_classes(slides)))
     return scores, labels, classes
 
 
 def found(scores: np.ndarray, classes: list[str]) -> dict[str, int]:
-    """Per lesion class, the tumour slides scoring above every normal slide (``scores (B,)``)."""
-    top = max(v for v, c in zip(scores, classes) if c == "normal")
-    return {c: int(sum(v > top for v, k in zip(scores, classes) if k == c)) for c in CLASSES}
+    """Per lesion class of :data:`CLASSES` (0 where absent), the tumour slides scoring above every normal slide
+    (``scores (B,)``; :func:`baselines.reading.learned_head_fit.found_counts`)."""
+    from baselines.reading.learned_head_fit import found_counts
+
+    counts = found_counts(scores, classes)
+    return {c: counts.get(c, 0) for c in CLASSES}
 
 
 def paired_difference(a: np.ndarray, b: np.ndarray, y: np.ndarray, reps: int = 2000, seed: int = 0) -> dict:
@@ -218,16 +215,19 @@ def main(argv=None) -> int:
     per = {}
     try:
         for key, ds in scales.items():
-            k = folds_of(ds)
             args.heads.mkdir(parents=True, exist_ok=True)
             with open(args.heads / f"fits-{key}.log", "a") as log:
                 fitted = fit_heads(ds, args.heads / key, args.seeds, args.val_fraction, log)
-            enc1, labels, classes = encoder_logits(ds, 1)
-            enc3, _, _ = encoder_logits(ds, 3)
-            methods = {"encoder top1": [enc1], "encoder top3": [enc3]}
+            enc, labels, classes = encoder_logits(ds, (1, 3))
+            methods = {"encoder top1": [enc[1]], "encoder top3": [enc[3]]}
             for name, folders in fitted.items():
-                methods[name] = [head_logits(ds, f, k) for f in folders]
-            per[key] = {"labels": labels, "classes": classes, "methods": methods, "folds": k}
+                methods[name] = [head_logits(ds, f) for f in folders]
+            per[key] = {
+                "labels": labels,
+                "classes": classes,
+                "methods": methods,
+                "folds": dataset_folds(ds, "the scale gate")[0],
+            }
     except (HistojaxDataError, RuntimeError, OSError, ValueError, KeyError) as e:
         print(f"error: {e}", file=sys.stderr)
         return 2

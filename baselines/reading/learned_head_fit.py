@@ -786,18 +786,23 @@ def lesion_classes(slides: list[dict]) -> list[str]:
     return out
 
 
-def found_above_normal(logits, classes: list[str]) -> dict[str, str]:
-    """Per lesion class (``ITC``, ``micro``, ``macro``, ``unknown``): ``"k/n"``, how many of its ``n`` tumour slides
-    score above every normal slide of the split (the readers' lesion table: a slide the head finds at any
-    threshold that flags no normal slide). ``logits`` ``(N,)``, ``classes`` as :func:`lesion_classes`."""
+def found_counts(logits, classes: list[str]) -> dict[str, int]:
+    """Per lesion class present (``ITC``, ``micro``, ``macro``, ``unknown``): how many of its tumour slides score
+    above every normal slide of the split (a slide the head finds at any threshold that flags no normal slide).
+    ``logits`` ``(N,)``, ``classes`` as :func:`lesion_classes`."""
     logits = np.asarray(logits, float)
     normal = [v for v, c in zip(logits, classes) if c == "normal"]
     top = max(normal) if normal else -np.inf
     return {
-        c: f"{sum(v > top for v, k in zip(logits, classes) if k == c)}/{classes.count(c)}"
+        c: int(sum(v > top for v, k in zip(logits, classes) if k == c))
         for c in ("ITC", "micro", "macro", "unknown")
         if c in classes
     }
+
+
+def found_above_normal(logits, classes: list[str]) -> dict[str, str]:
+    """:func:`found_counts` as ``"k/n"`` per lesion class, ``n`` its tumour slides (the readers' lesion table)."""
+    return {c: f"{k}/{classes.count(c)}" for c, k in found_counts(logits, classes).items()}
 
 
 def score_command(args) -> int:

@@ -62,3 +62,18 @@ def synth_feature_dataset(root: Path, n_slides: int, negatives: int) -> Path:
     )
     compute_missing_features(root, "colour-stats")
     return root
+
+
+def sample_pixels() -> np.ndarray:
+    """Level 0 of the embedded sample slide (CMU-1-Small-Region.svs, CC0 1.0): the real pixels stand-in slides are
+    cut from."""
+    from histojax.sample import SAMPLE_SLIDE
+
+    with tifffile.TiffFile(SAMPLE_SLIDE) as tif:
+        return tif.pages[0].asarray()
+
+
+def crop(pixels, i: int) -> np.ndarray:
+    """The ``i``-th 640 × 512 RGB crop of ``pixels`` (:func:`sample_pixels`), a different piece of tissue per ``i``."""
+    y, x = 320 + (i * 160) % 1920, 768 + (i * 64) % 512
+    return np.ascontiguousarray(pixels[y : y + 640, x : x + 512, :3])

@@ -17,25 +17,18 @@ from pathlib import Path
 import numpy as np
 import pytest
 import tifffile
-from slide_helpers import pyramid
+from slide_helpers import crop, pyramid, sample_pixels
 
 from data_tools.__main__ import main as data_main
 from data_tools.bundle_files.writes import mark_temporary
 from data_tools.datasets.build import build_dataset
-from histojax.sample import SAMPLE_SLIDE
 
 ROOT = Path(__file__).resolve().parents[2]
 
 
 @pytest.fixture(scope="module")
 def pixels():
-    with tifffile.TiffFile(SAMPLE_SLIDE) as tif:
-        return tif.pages[0].asarray()
-
-
-def crop(pixels, i: int) -> np.ndarray:
-    y, x = 320 + (i * 160) % 1920, 768 + (i * 64) % 512
-    return np.ascontiguousarray(pixels[y : y + 640, x : x + 512, :3])
+    return sample_pixels()
 
 
 @pytest.fixture(scope="module")

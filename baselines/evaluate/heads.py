@@ -76,6 +76,29 @@ def head_env(env, env_params, head, settings: dict | None = None):
     return wrapped, lesion_classes(env, env_params)
 
 
+def dataset_labelled(env, env_params, config, slide=None):
+    """``env_params`` with each slide's label from its dataset's ``dataset.json`` ``labels`` (``config``: the run's
+    typed config or record, whose ``env_kwargs`` name the dataset scored), for scoring through a head: a cohort
+    labelled by a table without tumour annotated (the TCGA case) keeps the labels the table gave it, where the
+    bundles alone would make every slide normal. Unchanged for a single ``slide``, a dataset without labels, or a
+    slide the labels do not name."""
+    from histojax.datasets import dataset_labels, label_of
+
+    kw = read_run_config(config).env_kwargs or {}
+    if slide is not None or not kw.get("dataset"):
+        return env_params
+    labels = dataset_labels(kw["dataset"])
+    if not labels:
+        return env_params
+    try:
+        given = [label_of(b, labels) for b in env.bundles]
+    except HistojaxDataError:  # a slide the table does not name: the bundles' own labels stand
+        return env_params
+    old = np.asarray(jax.device_get(env_params.slide.slide_label))
+    new = np.asarray(given, old.dtype).reshape(old.shape) if old.ndim else np.asarray(given[0], old.dtype)
+    return env_params.replace(slide=env_params.slide.replace(slide_label=jax.numpy.asarray(new)))
+
+
 def refuse_one_class(config, env_params, slide=None) -> None:
     """Refuse (``HistojaxDataError``, one line naming the dataset's ``dataset.json`` or the slide) to score through a
     head slides that are all of one class: what the head declares is scored by an AUC, and one class leaves it

@@ -9,7 +9,7 @@ import jax
 import numpy as np
 
 from baselines.evaluate.checks import one_class, split_warnings, undefined_figures
-from baselines.evaluate.heads import head_env, head_scored, refuse_one_class
+from baselines.evaluate.heads import dataset_labelled, head_env, head_scored, refuse_one_class
 from baselines.evaluate.pictures import write_pictures
 from baselines.evaluate.policies import (
     diagnosis_actions,
@@ -96,7 +96,8 @@ def evaluate(
     config, (env, env_params) = eval_env(config, slide, augment)
     names = [Path(b.path).name for b in env.bundles]
     picture_env, classes = env, None
-    if head is not None:
+    if head is not None:  # the head's diagnosis is scored against the dataset's labels (a label table's too)
+        env_params = dataset_labelled(env, env_params, config, slide)
         env, classes = head_env(env, env_params, head, head_reward)
         refuse_one_class(config, env_params, slide)
     mode = config.action_mode

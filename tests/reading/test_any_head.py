@@ -206,3 +206,24 @@ def test_evaluate_and_diagnosis_through_a_learned_head(cohort, navigator, tmp_pa
     rows = _rows(d_out / "readers.csv")
     assert "nav (head declares)" in rows and "score reader" in rows
     assert json.loads((d_out / "readers.json").read_text())["head_kind"] == "learned-attention-mil"
+
+
+def test_a_detection_policy_scored_through_a_head_keeps_the_dataset_labels(cohort):
+    """A cohort labelled by its table with no tumour annotated (the TCGA case): a detection env's bundles make every
+    slide normal, so through a head the dataset's own labels are the ones scored (the head's AUC is defined)."""
+    import histojax
+    from baselines.evaluate.checks import one_class
+    from baselines.evaluate.heads import dataset_labelled, refuse_one_class
+    from data_tools.errors import HistojaxDataError
+
+    kwargs = {"dataset": str(cohort["root"]), "split": "test"}
+    env, params = histojax.make("HistoJAX-Easy-v0", obs_mode="features", **kwargs)
+    assert one_class(params) == 0  # the bundles alone: no tumour annotated anywhere
+    config = {"env_id": "HistoJAX-Easy-v0", "obs_mode": "features", "env_kwargs": kwargs}
+    with pytest.raises(HistojaxDataError, match="only normal"):
+        refuse_one_class(config, params)
+    labelled = dataset_labelled(env, params, config)
+    want = [1 if "tumour" in name else 0 for name in cohort["names"]["test"]]
+    assert np.asarray(labelled.slide.slide_label).tolist() == want
+    refuse_one_class(config, labelled)  # both classes: scored
+    assert dataset_labelled(env, params, config, slide="one.bundle") is params  # one given slide: its own label

@@ -1,28 +1,80 @@
-"""Slide-level diagnosis metrics: ROC AUC and accuracy of per-slide scores in ``[0, 1]``."""
+"""Slide-level diagnosis metrics: ROC AUC and accuracy of per-slide scores in ``[0, 1]``.
+
+Inputs no figure can be measured on are refused (:class:`MetricInputError`, one line naming the problem):
+scores and labels of different lengths or not 1-D, NaN or infinite scores, labels other than 0/1. Slides of
+one class (or none) are not refused: their AUC is *undefined*, returned as NaN, which every caller prints as
+:data:`UNDEFINED` (or ``"AUC undefined (one class)"``, :func:`format_auc`) and writes as JSON ``null``."""
 
 from __future__ import annotations
 
 import numpy as np
 
 
+class MetricInputError(ValueError):
+    """Scores or labels that no metric can be measured on (lengths differ, NaN / infinite scores, labels
+    other than 0/1); the message is one line naming the problem."""
+
+
+def _first_bad(values: np.ndarray, bad: np.ndarray) -> str:
+    """``"3 of 10 (first at index 7: nan)"`` for the ``bad`` entries of ``values``."""
+    i = int(np.flatnonzero(bad)[0])
+    return f"{int(bad.sum())} of {values.size} (first at index {i}: {values[i]!r})"
+
+
+def checked_scores_labels(scores, labels) -> tuple[np.ndarray, np.ndarray]:
+    """``scores`` as 1-D float64 and ``labels`` as 1-D bool, refused (:class:`MetricInputError`) when their
+    lengths differ, either is not 1-D, a score is NaN or infinite, or a label is not 0/1."""
+    try:
+        s = np.asarray(scores, np.float64)
+    except (TypeError, ValueError) as e:
+        raise MetricInputError(f"scores are not numbers: {e}") from None
+    y = np.asarray(labels)
+    if s.ndim != 1 or y.ndim != 1:
+        raise MetricInputError(f"scores and labels must be 1-D, not of shapes {s.shape} and {y.shape}")
+    if s.shape != y.shape:
+        raise MetricInputError(f"{s.size} scores but {y.size} labels: one label per score")
+    bad = ~np.isfinite(s)
+    if bad.any():
+        raise MetricInputError(f"NaN or infinite scores: {_first_bad(s, bad)}")
+    if y.dtype != bool:
+        try:
+            yf = y.astype(np.float64)
+        except (TypeError, ValueError):
+            raise MetricInputError(f"labels are not 0/1 numbers (dtype {y.dtype})") from None
+        bad = (yf != 0) & (yf != 1)
+        if bad.any():
+            raise MetricInputError(f"labels other than 0/1: {_first_bad(y, bad)}")
+        y = yf == 1
+    return s, y
+
+
 def roc_auc(scores, labels) -> float:
     """Area under the ROC curve of ``scores`` (higher = more likely tumour) for 0/1 ``labels``: the
     probability that a random positive scores above a random negative, ties counting one half
-    (Mann–Whitney U / (n⁺ n⁻)). NaN when only one class is present."""
-    s = np.asarray(scores, np.float64)
-    y = np.asarray(labels).astype(bool)
-    pos, neg = s[y], s[~y]
+    (Mann–Whitney U / (n⁺ n⁻)). NaN (undefined) when only one class, or no slide, is present.
+
+    Counted by sorting, not pairwise: O(n log n) time and O(n) memory (10⁶ scores in well under a
+    second), and exactly equal to the pairwise count. Refuses (:class:`MetricInputError`) scores and
+    labels of different lengths, NaN or infinite scores and labels other than 0/1
+    (:func:`checked_scores_labels`)."""
+    s, y = checked_scores_labels(scores, labels)
+    pos, neg = s[y], np.sort(s[~y])
     if pos.size == 0 or neg.size == 0:
         return float("nan")
-    greater = (pos[:, None] > neg[None, :]).sum()
-    ties = (pos[:, None] == neg[None, :]).sum()
-    return float((greater + 0.5 * ties) / (pos.size * neg.size))
+    below = np.searchsorted(neg, pos, side="left")  # negatives strictly below each positive
+    upto = np.searchsorted(neg, pos, side="right")  # ... plus those tied with it
+    # 2 U = 2 (greater + ties / 2) = below + upto, an exact integer; one rounding in the division
+    twice_u = int(below.sum(dtype=np.int64)) + int(upto.sum(dtype=np.int64))
+    return float(twice_u / (2 * pos.size * neg.size))
 
 
 def accuracy(scores, labels, threshold: float = 0.5) -> float:
-    """Fraction of slides whose ``score >= threshold`` equals their 0/1 label."""
-    s = np.asarray(scores, np.float64)
-    return float(np.mean((s >= threshold) == np.asarray(labels).astype(bool)))
+    """Fraction of slides whose ``score >= threshold`` equals their 0/1 label; NaN when there is no slide.
+    Refuses what :func:`roc_auc` refuses (:func:`checked_scores_labels`)."""
+    s, y = checked_scores_labels(scores, labels)
+    if s.size == 0:
+        return float("nan")
+    return float(np.mean((s >= threshold) == y))
 
 
 #: The confidence level of every AUC interval histojax prints (two-sided).
@@ -45,12 +97,20 @@ def auc_interval(auc: float, n_pos: int, n_neg: int, level: float = INTERVAL_LEV
     25:559, method 5): every θ in [0, 1] with |AUC − θ| ≤ z·√V(θ), V the Hanley–McNeil variance at θ
     (not at the estimate). Unlike a percentile bootstrap or DeLong's interval, it stays wide when the
     estimate is 1.0 on a few slides: AUC 1.0 on 2 tumour and 4 normal slides gives [0.556, 1.0].
-    Returns ``(nan, nan)`` when either class is empty or ``auc`` is NaN. Only the 95 % level is tabled.
+    Returns ``(nan, nan)`` (undefined) when either class is empty or ``auc`` is NaN. Refuses
+    (:class:`MetricInputError`) an ``auc`` outside [0, 1] or infinite and a negative or fractional count.
+    Only the 95 % level is tabled.
     """
     if level != INTERVAL_LEVEL:
         raise ValueError(f"only the {INTERVAL_LEVEL:.0%} interval is supported, not {level}")
-    if n_pos <= 0 or n_neg <= 0 or not np.isfinite(auc):
+    for name, n in (("n_pos", n_pos), ("n_neg", n_neg)):
+        if not float(n).is_integer() or n < 0:
+            raise MetricInputError(f"{name} must be a count of slides (0, 1, 2, ...), not {n!r}")
+    auc = float(auc)
+    if np.isnan(auc) or n_pos == 0 or n_neg == 0:
         return float("nan"), float("nan")
+    if not 0.0 <= auc <= 1.0:
+        raise MetricInputError(f"an AUC lies in [0, 1], not {auc!r}")
     z2 = _Z95**2
 
     def inside(theta: float) -> bool:
@@ -72,8 +132,9 @@ def roc_auc_with_interval(scores, labels) -> dict:
     """AUC of ``scores`` for 0/1 ``labels`` with its 95 % interval over slides (:func:`auc_interval`).
 
     Returns ``{"auc", "auc_low", "auc_high", "n_tumour", "n_normal"}``; the three AUC fields are NaN
-    when a class is missing (write them with :func:`json_number` so no JSON file holds ``NaN``)."""
-    y = np.asarray(labels).astype(bool)
+    when a class is missing (write them with :func:`json_number` so no JSON file holds ``NaN``); refuses what
+    :func:`roc_auc` refuses."""
+    _, y = checked_scores_labels(scores, labels)
     auc = roc_auc(scores, y)
     n_pos, n_neg = int(y.sum()), int((~y).sum())
     low, high = auc_interval(auc, n_pos, n_neg)
@@ -129,9 +190,11 @@ def auc_over_runs(scores, labels) -> dict:
     ``(B,)`` is one run). Returns ``{"auc": mean over runs, "auc_std": std over runs, "auc_low", "auc_high",
     "auc_per_run": [R], "n_tumour", "n_normal"}``: the interval is :func:`auc_interval` of the mean AUC over the
     ``B`` slides, each counted once (the runs share their slides, so they add no slides; the std says how much
-    the runs differ). NaN fields when a class is missing."""
+    the runs differ). NaN fields when a class is missing; each run refused as :func:`roc_auc` refuses."""
     s = np.atleast_2d(np.asarray(scores, np.float64))
-    y = np.asarray(labels).astype(bool)
+    if s.ndim != 2:
+        raise MetricInputError(f"scores of several runs must be (runs, slides), not of shape {s.shape}")
+    _, y = checked_scores_labels(s[0], labels) if len(s) else (None, np.asarray(labels).astype(bool))
     aucs = np.asarray([roc_auc(row, y) for row in s])
     auc = float(aucs.mean())
     n_pos, n_neg = int(y.sum()), int((~y).sum())

@@ -61,6 +61,8 @@ from baselines.reading.pipeline import (
     BUDGETS,
     check_two_classes,
     load_split,
+    nothing_entries,
+    nothing_line,
     policy_reads,
     random_orders,
     read_all,
@@ -251,17 +253,26 @@ def method_scores(head, tables, budgets=BUDGETS, seeds: int = 5, names=MIL_NAMES
     out = {(names[0], 1.0): (bag_scores(head, x, m)[None], np.ones((1, len(tables))))}
     readers = {names[1]: random_orders(tables, seeds), names[2]: [[order(t, head) for t in tables]]}
     read = read_all(tables, readers, budgets, lambda cells: {"scores": bag_scores(head, *bags(tables, cells))})
-    out.update({key: (r["scores"], r["fractions"]) for key, r in read.items()})
+    out.update({key: (r["scores"], r["fractions"], r["nothing"]) for key, r in read.items()})
     return out
 
 
-def rows_from_scores(scores: dict, labels, logits: bool = False) -> list[dict]:
-    """One row per ``(method, budget)`` of ``{(method, budget): (scores (seeds, B), fractions (seeds, B))}``: mean
+def rows_from_scores(scores: dict, labels, logits: bool = False, names=None) -> list[dict]:
+    """One row per ``(method, budget)`` of ``{(method, budget): (scores (seeds, B), fractions (seeds, B)[, nothing])}``
+    (``nothing``: ``{slide index: why it read nothing}``, :func:`baselines.reading.pipeline.read_all`'s): mean
     fraction read, AUC (:func:`baselines.reading.pipeline.reader_auc`, the readers' one AUC: mean and std over seeds,
     ``auc_low`` / ``auc_high`` its 95 % interval over the slides) and accuracy at 0.5 (mean and std over seeds; one
-    seed for a deterministic reader). ``logits``: the scores are slide logits (accuracy of their sigmoid)."""
+    seed for a deterministic reader). ``logits``: the scores are slide logits (accuracy of their sigmoid).
+    ``read_nothing``: the slides (``names``, default their index) read nothing on, and why
+    (:func:`baselines.reading.pipeline.nothing_entries`)."""
     rows = []
-    for (method, b), (s, f) in scores.items():
+    for (method, b), (s, f, *why) in scores.items():
+        f = np.asarray(f, np.float64)
+        nothing = (
+            nothing_entries(names if names is not None else range(f.shape[-1]), f, why[0] if why else {})
+            if f.ndim == 2
+            else []
+        )
         auc = reader_auc(s, labels)
         probs = 1 / (1 + np.exp(-np.asarray(s, np.float64))) if logits else s
         accs = np.asarray([accuracy(row, labels) for row in probs])
@@ -280,6 +291,7 @@ def rows_from_scores(scores: dict, labels, logits: bool = False) -> list[dict]:
                 "auc_low": auc["auc_low"],
                 "auc_high": auc["auc_high"],
                 "tumour_slides": auc["n_tumour"],
+                "read_nothing": nothing,
             }
         )
     return rows
@@ -336,7 +348,10 @@ def head_reader_rows(head, slides: list[dict], cell_level: int, budgets=BUDGETS,
     }
     labels = np.asarray([s["label"] for s in slides])
     return rows_from_scores(
-        {(names[n], b): (r["scores"], r["fractions"]) for (n, b), r in results.items()}, labels, logits=True
+        {(names[n], b): (r["scores"], r["fractions"], r.get("nothing", {})) for (n, b), r in results.items()},
+        labels,
+        logits=True,
+        names=[s.get("name", i) for i, s in enumerate(slides)],
     )
 
 
@@ -361,11 +376,12 @@ def budget_rows(
     ``head_cells = (the readers' slides of the scored side, bundle level of the cells)``);
     ``policies``: ``(name, run folder)`` of trained PPO policies, rolled on ``dataset``'s test split."""
     mil = train_mil(*bags(train[0]), train[1], steps=steps)
-    rows = rows_from_scores(method_scores(mil, test[0], budgets, seeds), test[1])
+    names = [t.get("name", i) for i, t in enumerate(test[0])]
+    rows = rows_from_scores(method_scores(mil, test[0], budgets, seeds), test[1], names=names)
     curve_heads = {"MIL": mil}
     if max_dim is not None:
         top = fit_max_logit(*bags(train[0]), train[1], max_dim)
-        rows += rows_from_scores(method_scores(top, test[0], budgets, seeds, MAX_LOGIT_NAMES), test[1])
+        rows += rows_from_scores(method_scores(top, test[0], budgets, seeds, MAX_LOGIT_NAMES), test[1], names=names)
         curve_heads["max logit"] = top
     reader_slides = None
     if head is not None:
@@ -400,11 +416,15 @@ def cross_validated_rows(tables, labels, folds: int, budgets=BUDGETS, seeds: int
         train = [t for t, f in zip(tables, fold) if f != k]
         head = train_mil(*bags(train), labels[fold != k], steps=steps)
         part = method_scores(head, [t for t, f in zip(tables, fold) if f == k], budgets, seeds)
-        for key, (s, f) in part.items():
+        for key, (s, f, *why) in part.items():
             prev = pooled.get(key)
-            pooled[key] = (s, f) if prev is None else (np.concatenate([prev[0], s], 1), np.concatenate([prev[1], f], 1))
+            if prev is None:
+                pooled[key] = (s, f, dict(why[0]) if why else {})
+            else:  # the slides of fold k follow those of the folds before: their reasons shift by as many
+                moved = {prev[0].shape[1] + i: r for i, r in (why[0] if why else {}).items()}
+                pooled[key] = (np.concatenate([prev[0], s], 1), np.concatenate([prev[1], f], 1), {**prev[2], **moved})
     order = np.concatenate([np.flatnonzero(fold == k) for k in range(folds)])
-    return rows_from_scores(pooled, labels[order])
+    return rows_from_scores(pooled, labels[order], names=[tables[i].get("name", int(i)) for i in order])
 
 
 def policy_rows(
@@ -427,8 +447,14 @@ def policy_rows(
     side, :func:`head_reader_rows`): the learned head scores the reads as the readers' ``--reader`` rows do."""
     seeds = max(1, min(policy_seeds, run_seeds(run)))
     per = {}  # (method, budget) -> [(scores (B,), fraction, fields)] per seed
+    per_slide, why = {}, {}  # budget -> [fractions (B,) per seed]; (budget, slide) -> why it read nothing
     for seed in range(seeds):
-        for b, reads in policy_reads(run, dataset, scored_side(dataset, fold), budgets, seed=seed, fold=fold).items():
+        reasons = {}
+        rolled = policy_reads(run, dataset, scored_side(dataset, fold), budgets, seed=seed, fold=fold, why=reasons)
+        for key, reason in reasons.items():
+            why.setdefault(key, reason)
+        for b, reads in rolled.items():
+            per_slide.setdefault(float(b), []).append(np.asarray([r[2] for r in reads], np.float64))
             x, m = bags([{**t, "instance_cell": np.arange(len(t["instances"]))} for t in tables], [r[0] for r in reads])
             fraction = float(np.mean([r[2] for r in reads]))
             fields = float(np.mean([r[3] for r in reads]))
@@ -445,7 +471,10 @@ def policy_rows(
         fractions = np.asarray([f for _, f, _ in v], np.float64)
         logits = reader_slides is not None and method.endswith(" + learned head")  # the readers' slide logits
         row = rows_from_scores({(method, b): (scores, fractions)}, labels, logits=logits)[0]
-        rows.append({**row, "fields_of_view": float(np.mean([fv for _, _, fv in v]))})
+        names = [t.get("name", i) for i, t in enumerate(tables)]
+        reasons = {i: r for (bb, i), r in why.items() if bb == b}
+        nothing = nothing_entries(names, np.stack(per_slide[b]), reasons)
+        rows.append({**row, "fields_of_view": float(np.mean([fv for _, _, fv in v])), "read_nothing": nothing})
     return rows
 
 
@@ -808,6 +837,11 @@ def run(args, parser=None) -> int:
             f"{r['method']:32s} {r['budget']:6.2f} {r['fraction_read']:6.3f} {auc:>44s} "
             f"{r['accuracy']:6.3f} ± {r['accuracy_std']:5.3f}" + (f" {r['fields_of_view']:6.1f}" if fields else "")
         )
+    for r in rows:  # a row that read nothing on some slides: which, and why
+        line = nothing_line(r["method"], r["budget"], r.get("read_nothing") or [])
+        if line:
+            where = "" if r.get("fold", SUMMARY) == SUMMARY else f"fold {r['fold']}: "
+            print(f"warning: {where}{line}")
     print(f"wrote {csv_path} and {png}")
     return 0
 

@@ -153,6 +153,63 @@ def reader_auc(scores, labels) -> dict:
     return auc_over_runs(scores, labels)
 
 
+def nothing_reason(table: dict, order, budget: float) -> str:
+    """Why a reader picking ``order`` (cell indices) under ``budget`` reads nothing on the slide of cell ``table``
+    (:func:`~baselines.reading.orders.read_cells`' rule): its first pick holds more tissue views than the budget
+    allows (and whether a smaller cell would have fit), or the slide has no cell to read."""
+    total = int(table["total"])
+    limit = int(np.floor(budget * total + 1e-4))
+    valid, views = np.asarray(table["valid"], bool).reshape(-1), np.asarray(table["cell_views"]).reshape(-1)
+    first = next((int(c) for c in np.asarray(order).reshape(-1) if valid[int(c)]), None)
+    if first is None:
+        return "it has no cell to read"
+    return first_pick_words(int(views[first]), limit, total, views, valid)
+
+
+def first_pick_words(pick: int | None, limit: int, total: int, cell_views, valid) -> str:
+    """``"its first pick (N tissue views) is larger than the budget (M of T views)"`` and whether the slide's smallest
+    cell fits; ``pick=None``: the size of the pick refused is unknown (a trained reader's roll-out)."""
+    views = np.asarray(cell_views)[np.asarray(valid, bool)]
+    smallest = int(views.min()) if views.size else None
+    said = f"its first pick{f' ({pick} tissue views)' if pick is not None else ''} is larger than the budget "
+    said += f"({limit} of {total} views)"
+    if smallest is None:
+        return "it has no cell to read"
+    if smallest > limit:
+        return said + f"; so is every cell of it (the smallest holds {smallest})"
+    return said + f", though its smallest cell ({smallest} view{'' if smallest == 1 else 's'}) fits"
+
+
+def nothing_entries(names, fractions, reasons: dict) -> list[dict]:
+    """The slides a row (a reader at one budget) read nothing on: ``[{"slide", "reason"[, "seeds"]}]`` for each slide
+    whose fraction read is 0 in some seed of ``fractions (seeds, B)``; ``reasons``: ``{slide index: reason}`` (a
+    missing one: ``"it read no view"``); ``seeds``: ``"k of n"`` when there are several seeds."""
+    f = np.atleast_2d(np.asarray(fractions, np.float64))
+    out = []
+    for i in np.flatnonzero((f <= 0).any(0)):
+        k = int((f[:, i] <= 0).sum())
+        entry = {"slide": str(names[i]), "reason": reasons.get(int(i), "it read no view")}
+        if len(f) > 1:
+            entry["seeds"] = f"{k} of {len(f)}"
+        out.append(entry)
+    return out
+
+
+def nothing_line(reader: str, budget: float, entries: list[dict], shown: int = 5) -> str | None:
+    """One line naming the slides ``reader`` read nothing on at ``budget`` (:func:`nothing_entries`) and why (five
+    named, then a count); ``None`` when it read something on every slide."""
+    if not entries:
+        return None
+    parts = [
+        f"{e['slide']}{' (' + e['seeds'] + ' seeds)' if 'seeds' in e else ''}: {e['reason']}" for e in entries[:shown]
+    ]
+    more = f"; and {len(entries) - shown} more" if len(entries) > shown else ""
+    return (
+        f"{reader} at budget {budget * 100:.3g} % read nothing on {len(entries)} slide"
+        f"{'s' if len(entries) > 1 else ''} (scored by the overview alone there): " + "; ".join(parts) + more
+    )
+
+
 def random_orders(tables: list[dict], seeds: int) -> list[list[np.ndarray]]:
     """``seeds`` × slides random cell orders: seed ``k`` of slide ``i`` drawn from ``default_rng(1000 k + i)`` (the
     random reader of both the readers and the budget curve)."""
@@ -168,16 +225,20 @@ def read_all(
     ``readers``: ``{name: [orders per slide] per seed}`` (an order: cell indices ``(C',)`` int); ``score``: called
     with the cells read per slide (a list of ``(c,)`` int arrays), returns ``{"scores": (B,), ...}`` (any other
     per-slide arrays are kept too); ``kinds``: ``{name: kind}`` (plot colour family). Returns ``{(name, budget):
-    {"kind", "fractions" (seeds, B), "scores" (seeds, B), ...}}`` in budget-then-reader order (the rows' order)."""
+    {"kind", "fractions" (seeds, B), "scores" (seeds, B), "nothing", ...}}`` in budget-then-reader order (the rows'
+    order); ``nothing``: ``{slide index: why it read nothing}`` (:func:`nothing_reason`) where some seed read nothing."""
     out = {}
     for b in budgets:
         for name, per_seed in readers.items():
-            fractions, parts = [], []
+            fractions, parts, why = [], [], {}
             for orders in per_seed:
                 reads = [read_cells(t, o, b) for t, o in zip(tables, orders)]
                 fractions.append(np.asarray([r[1] for r in reads]))
                 parts.append(score([r[0] for r in reads]))
-            entry = {"kind": (kinds or {}).get(name, "scripted"), "fractions": np.stack(fractions)}
+                for i, (t, o, r) in enumerate(zip(tables, orders, reads)):
+                    if not len(r[0]) and i not in why:  # read nothing: why, from the first seed that did
+                        why[i] = nothing_reason(t, o, b)
+            entry = {"kind": (kinds or {}).get(name, "scripted"), "fractions": np.stack(fractions), "nothing": why}
             entry.update({k: np.stack([p[k] for p in parts]) for k in parts[0]})
             out[(name, float(b))] = entry
         if progress:
@@ -270,7 +331,14 @@ def load_feature_slides(dataset, split, spec: dict, head, cell_level: int, progr
 
 # ----------------------------------------------------------------------------- trained readers
 def policy_reads(
-    run, dataset, split: str, budgets=BUDGETS, env_id: str | None = None, seed: int = 0, fold: int | None = None
+    run,
+    dataset,
+    split: str,
+    budgets=BUDGETS,
+    env_id: str | None = None,
+    seed: int = 0,
+    fold: int | None = None,
+    why: dict | None = None,
 ) -> dict:
     """Roll a trained policy greedily, once on every slide of ``dataset``'s ``split`` at each of
     ``budgets``, with :func:`baselines.evaluate.rollout.run_episodes` (one jitted program for all slides and
@@ -282,7 +350,9 @@ def policy_reads(
     read (indices into the slide's ``host_tables`` instances), its own tumour score
     (``p(tumour) / (p(tumour) + p(no tumour))`` of its policy at the step it declared, or at its last
     step; see :func:`baselines.evaluate.policies.learned_policy`), the fraction read and the fields of view
-    (env steps that looked at the slide) of the episode."""
+    (env steps that looked at the slide) of the episode. ``why`` (a dict): filled with ``{(budget, slide index):
+    reason}`` for each episode that read nothing (:func:`first_pick_words`: its first pick larger than the budget,
+    or it declared before reading)."""
     from baselines.evaluate import policies, rollout
     from baselines.harness.logs import load_checkpoint
     from histojax.core.seen_views import seen_flags  # seen is a bit set
@@ -331,6 +401,10 @@ def policy_reads(
             size = int(seen_tables.grid_width[i, f] * seen_tables.grid_height[i, f])
             seen = seen_flags(memory.seen[e], start, size)
             read = seen[np.asarray(seen_tables.tissue[i])[:size]]
+        if why is not None and not read.any():
+            why[(budgets[e // n_slides], int(i))] = _nothing_episode(
+                ep["final_state"], e, i, tables, budgets[e // n_slides]
+            )
         out[budgets[e // n_slides]].append(
             (np.flatnonzero(read), float(scores[e]), float(ep["fraction_read"][e]), float(ep["fields_of_view"][e]))
         )
@@ -342,3 +416,18 @@ def run_seeds(run) -> int:
     from baselines.harness.logs import load_checkpoint
 
     return int(jax.tree.leaves(load_checkpoint(run)[0])[0].shape[0])
+
+
+def _nothing_episode(state, e: int, i: int, tables, budget: float) -> str:
+    """Why episode ``e`` (on slide ``i``) of a trained reader read nothing: a glimpse pick refused by the budget (the
+    cell it picked, where the final view stands, and its size) or a declaration before any read."""
+    if tables is None:  # zoom_select: no cells
+        return "it read no finest view"
+    t = tables[i]
+    limit = int(np.floor(np.float32(budget) * np.float32(t["total"]) + np.float32(1e-4)))
+    if not bool(np.asarray(state.memory.over_budget[e])):
+        return "it declared before reading a cell"
+    x, y = int(np.asarray(state.x[e])), int(np.asarray(state.y[e]))
+    hit = np.flatnonzero(((t["cell_x"] == x) & (t["cell_y"] == y) & t["valid"]).reshape(-1))
+    pick = int(np.asarray(t["cell_views"]).reshape(-1)[hit[0]]) if hit.size else None
+    return first_pick_words(pick, limit, int(t["total"]), t["cell_views"], t["valid"])

@@ -84,17 +84,29 @@ def masks_from_instances(slide: dict, instances) -> np.ndarray:
 
 
 def policy_masks(
-    run, dataset, slides: list[dict], split: str = "test", budgets=BUDGETS, seeds: int = 3, fold: int | None = None
+    run,
+    dataset,
+    slides: list[dict],
+    split: str = "test",
+    budgets=BUDGETS,
+    seeds: int = 3,
+    fold: int | None = None,
+    why: dict | None = None,
 ) -> dict:
     """A trained ``glimpse`` / ``zoom_select`` policy's read masks, ``{budget: [masks per slide] per seed}``
     (its first ``seeds`` seeds, rolled greedily by :func:`baselines.reading.pipeline.policy_reads` on
-    ``dataset``'s ``split``, whose slides ``slides`` are, in the same order): ready for :func:`add_reader`."""
+    ``dataset``'s ``split``, whose slides ``slides`` are, in the same order): ready for :func:`add_reader`.
+    ``why`` (a dict): filled with ``{budget: {slide index: why it read nothing}}`` (``add_reader``'s ``nothing``)."""
     out = {float(b): [] for b in budgets}
     for seed in range(max(1, min(seeds, pipeline.run_seeds(run)))):
-        for b, reads in pipeline.policy_reads(run, dataset, split, budgets, seed=seed, fold=fold).items():
+        reasons = {}
+        for b, reads in pipeline.policy_reads(run, dataset, split, budgets, seed=seed, fold=fold, why=reasons).items():
             if len(reads) != len(slides):
                 raise ValueError(f"{run}: {len(reads)} episodes for {len(slides)} slides of split {split!r}")
             out[float(b)].append([masks_from_instances(s, r[0]) for s, r in zip(slides, reads)])
+        if why is not None:  # the first seed that read nothing on a slide says why
+            for (b, i), reason in reasons.items():
+                why.setdefault(float(b), {}).setdefault(i, reason)
     return out
 
 
@@ -151,12 +163,14 @@ def add_reader(
     masks_by_budget: dict,
     kind: str = "learned",
     tumour: list[np.ndarray] | None = None,
+    nothing: dict | None = None,
 ) -> dict:
     """Score a reader's read masks with ``head`` and add its rows to ``results``.
 
     ``masks_by_budget``: ``{budget: [masks of seed 0, masks of seed 1, ...]}``, each a list of ``(H, W)``
     bool read masks, one per slide of ``slides`` (a learned reader: one list per training seed or rollout);
-    ``kind``: one of ``KINDS`` (colour family of the plot). The fraction read is measured from the masks."""
+    ``kind``: one of ``KINDS`` (colour family of the plot). The fraction read is measured from the masks.
+    ``nothing``: ``{budget: {slide index: why it read nothing}}`` (:func:`policy_masks`' ``why``)."""
     tumour = tumour if tumour is not None else [tumour_views(s) for s in slides]
     total = np.asarray([max(1, int(s["tissue"].sum())) for s in slides])
     for budget, per_seed in masks_by_budget.items():
@@ -172,6 +186,7 @@ def add_reader(
             "scores": np.stack(scores),
             "fractions": np.stack(fractions),
             "tumour_read": np.stack(found),
+            "nothing": dict((nothing or {}).get(float(budget), {})),
         }
     return results
 
@@ -245,9 +260,12 @@ def scripted_results(
 def rows_from_results(results: dict, slides: list[dict]) -> list[dict]:
     """One row per ``(reader, budget)``: fraction read (mean, min, 10/50/90th percentiles, max over episodes),
     AUC over all slides and without ITC-only slides, accuracy at 0.5 (mean ± std over seeds; ``auc_per_seed``
-    each seed's AUC, kept in ``readers.json``: what a seed is chosen by on validation), and per lesion
-    class the slides on which the reader read tumour and those the head found (mean over seeds)."""
+    each seed's AUC, kept in ``readers.json``: what a seed is chosen by on validation), ``read_nothing`` the slides
+    it read nothing on and why (:func:`baselines.reading.pipeline.nothing_entries`; the overview reads nothing by
+    design), and per lesion class the slides on which the reader read tumour and those the head found (mean over
+    seeds)."""
     labels = np.asarray([s["label"] for s in slides])
+    names = [s.get("name", i) for i, s in enumerate(slides)]
     classes = [lesion_class(s)[0] for s in slides]
     no_itc = np.asarray([c != "ITC" for c in classes])
     rows = []
@@ -278,6 +296,7 @@ def rows_from_results(results: dict, slides: list[dict]) -> list[dict]:
             "accuracy": float(accs.mean()),
             "accuracy_std": float(accs.std()),
             "auc_per_seed": [round(float(a), 4) for a in every["auc_per_run"]],
+            "read_nothing": [] if r["kind"] == "overview" else pipeline.nothing_entries(names, f, r.get("nothing", {})),
         }
         for c in CLASSES:
             idx = np.asarray([k == c for k in classes])
@@ -293,8 +312,15 @@ def rows_from_results(results: dict, slides: list[dict]) -> list[dict]:
 
 def csv_rows(rows: list[dict]) -> list[dict]:
     """``rows`` (:func:`rows_from_results`) as ``readers.csv`` holds them: one number per cell (the per-seed
-    lists stay in ``readers.json``)."""
-    return [{k: v for k, v in r.items() if k != "auc_per_seed"} for r in rows]
+    lists and the slides read nothing on stay in ``readers.json``)."""
+    return [{k: v for k, v in r.items() if k not in ("auc_per_seed", "read_nothing")} for r in rows]
+
+
+def nothing_lines(rows: list[dict]) -> list[str]:
+    """One line per row (:func:`rows_from_results`) that read nothing on some slides, naming them and why
+    (:func:`baselines.reading.pipeline.nothing_line`)."""
+    lines = (pipeline.nothing_line(r["reader"], r["budget"], r.get("read_nothing") or []) for r in rows)
+    return [line for line in lines if line]
 
 
 def cells_words(slides: list[dict], level: int) -> str:

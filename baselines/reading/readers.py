@@ -61,6 +61,7 @@ from baselines.reading.reader_scores import (
     cells_words,
     csv_rows,
     load_split,
+    nothing_lines,
     policy_masks,
     print_tables,
     rows_from_results,
@@ -240,13 +241,14 @@ def run(args, parser=None) -> int:
     results = scripted_results(head, slides, args.budgets, args.seeds, args.cell_level, progress=True)
     maps = {}
     for name, run_dir in args.reader:
+        why = {}
         try:
             masks = policy_masks(
-                run_dir, args.dataset, slides, args.split, args.budgets, args.policy_seeds, fold=args.fold
+                run_dir, args.dataset, slides, args.split, args.budgets, args.policy_seeds, fold=args.fold, why=why
             )
         except (OSError, ValueError, HistojaxDataError) as e:
             return print_error(f"--reader {name}: {e}")
-        add_reader(results, head, slides, name, masks, "learned")
+        add_reader(results, head, slides, name, masks, "learned", nothing=why)
         maps[name] = masks
     rows = rows_from_results(results, slides)
     lesions = lesion_rows(slides, results)
@@ -294,6 +296,8 @@ def run(args, parser=None) -> int:
     )
     print(f"cells: {cells}")
     print_tables(rows, lesions)
+    for line in nothing_lines(rows):  # a row that read nothing on some slides: which, and why
+        print(f"warning: {line}")
     print(f"wrote {out}/readers.csv, lesions.csv, readers.json and {png} in {wall:.0f} s")
     return 0
 

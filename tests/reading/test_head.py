@@ -303,6 +303,10 @@ def test_readers_command_writes_the_curve(dataset, fitted, tmp_path, capsys):
     assert "auc_per_seed" not in reader_scores.csv_rows([row])[0]  # one number per CSV cell; the list in readers.json
     with open(tmp_path / "readers.csv") as f:
         assert "auc_per_seed" not in next(csv.DictReader(f))
+    saved = json.loads((tmp_path / "readers.json").read_text())["rows"]
+    assert all(isinstance(r["read_nothing"], list) for r in saved)  # the slides a row read nothing on, and why
+    assert len(row["read_nothing"]) == len(test)  # seed 1 read nothing: every slide named, in 1 of the 2 seeds
+    assert {(e["reason"], e["seeds"]) for e in row["read_nothing"]} == {("it read no view", "1 of 2")}
 
 
 def test_readers_command_refuses_a_bad_head(dataset, tmp_path, capsys):

@@ -454,7 +454,13 @@ def reading_map_figure(
             1,
             facecolor=(0.5, 0.5, 0.5, 0.45),
             edgecolor="grey",
-            label=visited_words(views, len(z) - 1, env.n_levels),
+            label=visited_words(
+                views,
+                len(z) - 1,
+                env.n_levels,
+                record.get("fraction_read") if isinstance(record, dict) else None,
+                getattr(getattr(env, "action", None), "name", "") == "glimpse",
+            ),
         )
     )
     ax.legend(handles=handles, loc="upper left", bbox_to_anchor=(0.0, -0.12), fontsize="small", frameon=False)
@@ -469,16 +475,25 @@ def _count(n: int, noun: str) -> str:
     return f"{n} {noun}{'' if n == 1 else 's'}"
 
 
-def visited_words(views, steps: int, n_levels: int) -> str:
+def visited_words(views, steps: int, n_levels: int, fraction_read=None, reveals: bool = False) -> str:
     """The reading map's legend for the views an episode stood on (``views``: :func:`reading_order`'s
     ``((z, x, y), first step, ...)``) in ``steps`` steps, with how many lie at the finest level ``n_levels − 1``:
-    only those count as read (the fraction read is of the finest level's tissue views), so a map of coarse views
-    says why it stands beside "0 % read"."""
+    only finest views count as read (the fraction read is of the finest level's tissue views), so a map of coarse
+    views says why it stands beside "0 % read". ``reveals`` (a set reader, ``glimpse``): the cells it picks at a
+    coarser level reveal the finest views under them, so the legend says so and gives ``fraction_read`` (the
+    episode's fraction of the tissue read), the figure its table prints."""
     levels = sorted({int(v[0][0]) for v in views})
     finest = sum(int(v[0][0]) == n_levels - 1 for v in views)
-    return (
-        f"{_count(len(views), 'view')} stood on in {_count(steps, 'step')} (levels {levels}; fill: darker at "
-        f"finer levels)\n{finest} of them at the finest level ({n_levels - 1}), the only views counted as read"
+    head = f"{_count(len(views), 'view')} stood on in {_count(steps, 'step')} (levels {levels}; fill: darker at finer levels)"
+    known = fraction_read is not None and np.isfinite(float(fraction_read))
+    said = f"{float(fraction_read):.1%} of the tissue's finest views read" if known else ""
+    if reveals:
+        return (
+            f"{head}\neach cell picked reveals the finest views (level {n_levels - 1}) under it, which count as read"
+            + (f": {said}" if said else "")
+        )
+    return f"{head}\n{finest} of them at the finest level ({n_levels - 1}), the only views counted as read" + (
+        f" ({said})" if said else ""
     )
 
 

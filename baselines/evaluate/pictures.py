@@ -149,6 +149,8 @@ def write_pictures(env, env_params, episodes: dict, out: Path, env_id: str, head
             )
             path = out / f"reading_{_tag(name)}_{kind}.png"
             record = {"z": ep["z"][:, j], "x": ep["x"][:, j], "y": ep["y"][:, j], "length": ep["length"][j]}
+            if "fraction_read" in ep:  # the legend's figure: what the table says it read
+                record["fraction_read"] = float(np.asarray(ep["fraction_read"]).reshape(-1)[j])
             if head is not None:
                 reading_with_scores(
                     env, env_params, head, record, int(ep["slide"][j]), score, path, f"{env_id}, {name}"

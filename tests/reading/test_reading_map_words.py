@@ -26,6 +26,17 @@ def test_the_legend_says_how_many_views_count_as_read():
     assert "0 of them at the finest level (4), the only views counted as read" in words
 
 
+def test_a_set_readers_legend_says_its_cells_reveal_the_finest_views_it_read():
+    """Was: a glimpse reader's map said "0 of them at the finest level (4), the only views counted as read" beside a
+    table that said it read 9.5 %: its cells, picked at a coarser level, reveal the finest views under them."""
+    views = [((0, 0, 0), 0, 0), ((2, 4, 4), 1, 1), ((2, 8, 4), 2, 1)]  # the overview and two cells of level 2
+    words = visited_words(views, 2, 5, fraction_read=0.095, reveals=True)
+    assert "0 of them" not in words and "the only views counted as read" not in words
+    assert "each cell picked reveals the finest views (level 4) under it, which count as read: 9.5% of the" in words
+    plain = visited_words(views, 2, 5, fraction_read=0.0)  # a navigator: its finest views only, and the figure
+    assert "0 of them at the finest level (4), the only views counted as read (0.0% of the tissue" in plain
+
+
 def test_a_view_box_larger_than_the_grid_is_cut_at_its_edge(monkeypatch, tmp_path):
     import histojax
 

@@ -17,13 +17,22 @@ import configparser
 import math
 import os
 import re
+import stat
 from pathlib import Path
 
 from data_tools.errors import SlideError
 from data_tools.slide_files.base import LevelInfo, check_levels
 from data_tools.slide_files.limits import MAX_LEVELS, MAX_TILES, check_size
 
-__all__ = ["MAX_DATA_FILES", "MAX_IMAGE_PIXELS", "SLIDEDAT_MAX_BYTES", "check_mirax", "data_folder"]
+__all__ = [
+    "MAX_DATA_FILES",
+    "MAX_IMAGE_PIXELS",
+    "SLIDEDAT_MAX_BYTES",
+    "check_mirax",
+    "check_mirax_files",
+    "data_folder",
+    "slide_files",
+]
 
 SLIDEDAT_MAX_BYTES = 1 << 20
 """OpenSlide reads at most 1 MiB of ``Slidedat.ini``."""
@@ -73,10 +82,101 @@ def _float(cfg, group: str, key: str) -> float | None:
     return None
 
 
+def _named_files(cfg) -> list[tuple[str, str]]:
+    """``(key, file name)`` of every file ``Slidedat.ini`` names for OpenSlide to open: ``INDEXFILE`` and each
+    ``FILE_<n>`` of ``[DATAFILE]``."""
+    named = []
+    if cfg.has_option("HIERARCHICAL", "INDEXFILE"):
+        named.append(("INDEXFILE", cfg.get("HIERARCHICAL", "INDEXFILE")))
+    if cfg.has_section("DATAFILE"):
+        named += [(k, v) for k, v in cfg.items("DATAFILE") if re.fullmatch(r"FILE_\d+", k)]
+    return named
+
+
+def slide_files(mrxs) -> list[Path]:
+    """Every file of the MIRAX slide ``mrxs``: the ``.mrxs`` itself, then the regular files of its data folder
+    (``Slidedat.ini``, ``Index.dat``, the ``Data*.dat`` files ...), sorted; [the .mrxs] when the folder is missing.
+    What a cohort fingerprints, so that a changed ``Data0000.dat`` is not "already done"."""
+    mrxs = Path(mrxs)
+    folder = data_folder(mrxs)
+    files = [mrxs]
+    try:
+        with os.scandir(folder) as it:
+            files += sorted(Path(e.path) for e in it if e.is_file(follow_symlinks=False))
+    except OSError:
+        pass
+    return files
+
+
+def check_mirax_files(path) -> None:
+    """Refuse the MIRAX slide ``path`` (the ``.mrxs``) in one :class:`SlideError` line naming it and the entry when
+    an entry of its data folder is a FIFO, device or socket (opening a FIFO blocks for ever), a symbolic link that
+    leads outside the folder or to anything but a regular file, or when ``Slidedat.ini`` names a file
+    (``INDEXFILE``, ``FILE_<n>``) that is not a plain name inside the folder. Every entry is only ``lstat``-ed:
+    nothing is opened. Run before anything reads the folder (this module's ``Slidedat.ini`` read, OpenSlide's child
+    process), so neither ever opens a FIFO."""
+    from data_tools.bundle_files.safe_files import not_regular
+
+    path = os.fspath(path)
+    folder = data_folder(path)
+    real = Path(os.path.realpath(folder))
+    try:
+        with os.scandir(folder) as it:
+            entries = []
+            for e in it:
+                entries.append(e)
+                if len(entries) > MAX_DATA_FILES + 16:
+                    raise SlideError(
+                        path,
+                        f"its data folder {folder.name}/ holds over {MAX_DATA_FILES + 16:,} entries: not a MIRAX slide",
+                    )
+    except OSError as exc:
+        raise SlideError(path, f"cannot list its data folder {folder.name}/: {exc.strerror or exc}") from None
+    for e in sorted(entries, key=lambda e: e.name):
+        where = f"{folder.name}/{e.name}"
+        try:
+            st = e.stat(follow_symlinks=False)
+        except OSError:
+            continue  # gone since listed: OpenSlide says so if it needs it
+        what = not_regular(st)
+        if what in (None, "a folder"):
+            continue  # a subfolder is not read by OpenSlide
+        if what == "a symbolic link":
+            target = Path(os.path.realpath(e.path))
+            if target.parent != real and real not in target.parents:
+                raise SlideError(
+                    path, f"{where} in its data folder is a symbolic link leading outside the folder: refused"
+                )
+            try:
+                st = os.stat(target)
+            except OSError:
+                continue  # a broken link: OpenSlide refuses the file it names
+            what = not_regular(st)
+            if what is None or what == "a folder":
+                continue
+            what = f"a symbolic link to {what}"
+        raise SlideError(
+            path,
+            f"{where} in its data folder is {what}, not a regular file: refused before opening (a FIFO "
+            "would block the open)",
+        )
+    ini = folder / "Slidedat.ini"
+    cfg = _read(ini) if ini.is_file() else None
+    for key, name in _named_files(cfg) if cfg is not None else ():
+        name = name.strip()
+        if not name or name in (".", "..") or "/" in name or "\\" in name or "\0" in name:
+            raise SlideError(
+                path, f"its Slidedat.ini names {key}={name!r}: not a file name inside its data folder, refused"
+            )
+
+
 def _read(ini: Path):
     """``Slidedat.ini`` parsed as a GLib key file, or None when it is not one (OpenSlide refuses it then)."""
-    try:
-        with open(ini, "rb") as f:
+    try:  # never blocks: O_NONBLOCK, and only a regular file is read
+        fd = os.open(ini, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0))
+        with os.fdopen(fd, "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                return None
             data = f.read(SLIDEDAT_MAX_BYTES + 1)
     except OSError:
         return None  # OpenSlide says why
@@ -99,7 +199,8 @@ def _read(ini: Path):
 
 def check_mirax(path) -> None:
     """Refuse the MIRAX slide ``path`` (the ``.mrxs`` file) in one :class:`SlideError` line naming it when its
-    data folder or ``Slidedat.ini`` is missing, or ``Slidedat.ini`` declares sizes beyond the shared limits:
+    data folder or ``Slidedat.ini`` is missing, an entry of the folder is a FIFO, device or outside link
+    (:func:`check_mirax_files`), or ``Slidedat.ini`` declares sizes beyond the shared limits:
     camera images (``IMAGENUMBER_X × IMAGENUMBER_Y``) over ``MAX_TILES``, zoom levels (``HIER_0_COUNT``) over
     ``MAX_LEVELS``, ``FILE_COUNT`` over :data:`MAX_DATA_FILES`, a camera image (``DIGITIZER_WIDTH`` ×
     ``DIGITIZER_HEIGHT``) with a side over ``MAX_SIDE`` or over :data:`MAX_IMAGE_PIXELS`, overlaps that are not
@@ -115,6 +216,7 @@ def check_mirax(path) -> None:
             "folder of the same name beside it, holding Slidedat.ini, Index.dat and the Data*.dat "
             "files: copy both)",
         )
+    check_mirax_files(path)  # no FIFO, device or outside link in the folder: nothing below blocks in open
     ini = folder / "Slidedat.ini"
     if not ini.is_file():
         raise SlideError(path, f"its data folder {folder.name}/ has no Slidedat.ini: not a whole MIRAX slide")

@@ -165,8 +165,10 @@ class OpenSlideReader(SlideReader):
         return _on_white(rgba[y0 - gy :, x0 - gx :])
 
 
-PROBE_TIMEOUT_S = 300
-"""Seconds the child process that first opens a slide with OpenSlide may take."""
+PROBE_TIMEOUT_S = 60
+"""Seconds the child process that first opens a slide with OpenSlide (and reads one pixel) may take before it is
+stopped and the slide refused, saying so: opening a slide reads its index, not its pixels (a few seconds on a
+large slide); a file that makes OpenSlide wait longer is refused rather than holding a cohort up."""
 PROBE_MEMORY_BYTES = 8 << 30
 """Address space of that child (bytes): a file that makes OpenSlide allocate more is refused, not swapped in."""
 
@@ -248,8 +250,8 @@ def _probe(path: str) -> None:
     except subprocess.TimeoutExpired:
         raise SlideError(
             path,
-            f"OpenSlide did not open it within {PROBE_TIMEOUT_S} s (in a separate process, now "
-            "stopped): a corrupt or hostile file",
+            f"OpenSlide did not open it within the {PROBE_TIMEOUT_S} s time limit of the separate process "
+            "that opens a slide first (now stopped): a corrupt or hostile file, or one on a stalled disk",
         ) from None
     except OSError:
         return  # no child process here: open it in this one, as before

@@ -35,13 +35,14 @@ def level_on_scale(slide_mpp: float, encoder_mpp: float, downsamples) -> tuple[i
     return None if best is None else best[1:]
 
 
-def encoder_scale(encoder: str, slide_mpp, downsamples=None) -> dict | None:
+def encoder_scale(encoder: str, slide_mpp, downsamples=None, remedy: str | None = None) -> dict | None:
     """How a slide's scale ``slide_mpp`` (µm/px, None or not positive: unknown) sits against the scale the built-in
     ``encoder`` was trained at (:data:`ENCODER_MPP`): ``{"encoder_mpp", "slide_mpp", "factor", "tolerance", "ok",
     "warning", "level_on_scale"}`` (``warning``: one sentence, or None when within :data:`SCALE_TOLERANCE`); None for
     an encoder without a training scale (colour statistics, ImageNet models, your own). ``downsamples``: the bundle's
     levels (finest first); when level 0 is off scale but one of them is on it (:func:`level_on_scale`), the warning
-    names that level and says to use its features, and ``level_on_scale`` is its index (else None)."""
+    names that level and says to use its features, and ``level_on_scale`` is its index (else None). ``remedy``: what
+    the warning offers instead of ``--mpp`` (a command without that option, e.g. ``c16``, whose µm/px is known)."""
     want = ENCODER_MPP.get(str(encoder))
     if want is None:
         return None
@@ -61,19 +62,19 @@ def encoder_scale(encoder: str, slide_mpp, downsamples=None) -> dict | None:
             f"the slide's level 0 is at {mpp:.3g} µm/px, {factor:.2g}x from the {want} µm/px {encoder} was "
             f"trained at (tolerance {SCALE_TOLERANCE}x), but its level {k} (downsample {d:.3g}) is at "
             f"{mpp * d:.3g} µm/px, on that scale: use the features of level {k} (and the coarser ones within "
-            f"{SCALE_TOLERANCE}x), not those of the finer levels; if the file's µm/px is wrong, give the true "
-            "one with --mpp"
+            f"{SCALE_TOLERANCE}x), not those of the finer levels; "
+            + (remedy or "if the file's µm/px is wrong, give the true one with --mpp")
         )
     elif known:
         warning = (
             f"the slide is at {mpp:.3g} µm/px, {factor:.2g}x from the {want} µm/px {encoder} was trained at "
-            f"(tolerance {SCALE_TOLERANCE}x): its features may not mean what they mean at its own scale; if "
-            "the file's µm/px is wrong, give the true one with --mpp"
+            f"(tolerance {SCALE_TOLERANCE}x): its features may not mean what they mean at its own scale; "
+            + (remedy or "if the file's µm/px is wrong, give the true one with --mpp")
         )
     else:
         warning = (
             f"the slide's µm/px is unknown; {encoder} was trained at {want} µm/px: its features may not mean "
-            "what they mean at its own scale; give the slide's µm/px with --mpp"
+            "what they mean at its own scale; " + (remedy or "give the slide's µm/px with --mpp")
         )
     return {
         "encoder_mpp": want,

@@ -130,6 +130,7 @@ def compute_features(
     progress: bool = True,
     max_chunks: int | None = None,
     verify: bool = True,
+    scale_remedy: str | None = None,
 ) -> dict | None:
     """Compute the feature grid of the bundle at ``bundle`` (see the module doc) and return the new
     ``metadata["features"]``. ``stride`` defaults to the tile size; ``image_size`` is the encoder's
@@ -149,8 +150,11 @@ def compute_features(
         raise BundleError(bundle, f"dtype must be float16 or float32, got {dtype!r}")
     encoder = load_encoder(encoder_name, image_size=image_size)
     scale = encoder_scale(
-        encoder.name, (metadata.get("source") or {}).get("mpp"), [lv.downsample for lv in metadata.levels]
-    )
+        encoder.name,
+        (metadata.get("source") or {}).get("mpp"),
+        [lv.downsample for lv in metadata.levels],
+        scale_remedy,
+    )  # scale_remedy: what a command without --mpp offers instead (c16)
     if scale is not None and scale["warning"]:  # one line naming the bundle; recorded in features.encoder_scale
         from data_tools.cli_output import without_temporaries  # the bundle, not the folder it is built in
 

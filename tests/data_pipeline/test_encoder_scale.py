@@ -67,3 +67,16 @@ def test_dataset_json_records_the_encoder_scale(tmp_path):
     ds = write_dataset_json(tmp_path, plan, {"a": {"name": "a"}, "b": {"name": "b"}}, {})
     assert ds["encoder_scale"]["slides_out_of_scale"] == {"a": 0.5}
     assert (tmp_path / "dataset.json").read_text().count("encoder_scale") == 1
+
+
+def test_the_c16_scale_warning_offers_its_downsample_not_mpp():
+    """Was: the scale warning of a ``c16 --small`` slide (downsample 32: 7.78 µm/px) offered ``--mpp``, an option c16
+    does not have (its µm/px is CAMELYON16's times --downsample, known): it offers the --downsample on scale."""
+    from data_tools.datasets.c16.dataset import scale_remedy
+    from data_tools.datasets.c16.layout import C16_MPP
+
+    said = encoder_scale("pcam-cnn", C16_MPP * 32, [1.0, 4.0], scale_remedy("pcam-cnn", 32))["warning"]
+    assert "--mpp" not in said and "build them with --downsample 8 for pcam-cnn's 1.944 µm/px" in said
+    unknown = encoder_scale("pcam-cnn", None, remedy=scale_remedy("pcam-cnn", 32))["warning"]
+    assert "--mpp" not in unknown
+    assert "--mpp" in encoder_scale("pcam-cnn", 0.5)["warning"]  # a file's scale: --mpp stays the remedy

@@ -289,6 +289,18 @@ def _init_worker(banks: dict, progress: bool) -> None:
     _WORKER.update(banks=banks, progress=progress)
 
 
+def scale_remedy(encoder: str, downsample: float) -> str:
+    """What the scale warning of a c16 slide offers (c16 has no ``--mpp``: its µm/px is CAMELYON16's times
+    ``--downsample``, known, not a file's to correct): the ``--downsample`` at the encoder's training scale."""
+    from data_tools.features.encoders import ENCODER_MPP
+
+    want = ENCODER_MPP.get(str(encoder))
+    at = f"the c16 slides are at CAMELYON16's {C16_MPP} µm/px × --downsample {downsample:g}"
+    if want is None:
+        return at
+    return f"{at}: build them with --downsample {want / C16_MPP:.3g} for {encoder}'s {want} µm/px"
+
+
 def _one_slide(job, bundle: Path) -> dict:
     """Make one slide and its bundle (skipping what is done) into ``bundle`` (a hidden temporary folder, not
     there yet, swapped onto ``bundles/NAME`` by the caller once whole); its record for ``dataset.json``."""
@@ -302,7 +314,13 @@ def _one_slide(job, bundle: Path) -> dict:
     if encoder and not has_grid_of(meta, encoder):
         from data_tools.features.grid import compute_features
 
-        compute_features(bundle, encoder_name=encoder, progress=_WORKER["progress"], verify=False)
+        compute_features(
+            bundle,
+            encoder_name=encoder,
+            progress=_WORKER["progress"],
+            verify=False,
+            scale_remedy=scale_remedy(encoder, d),
+        )
         meta = read_metadata(bundle)
     from data_tools.datasets.locks import clean_partial_features
 

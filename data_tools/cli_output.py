@@ -146,6 +146,21 @@ def build_parser(
     return parser
 
 
+_ROLE = re.compile(r":[a-z]+(?::[a-z]+)?:`(~?)([^`<]+?)(?:\s*<[^>]+>)?`")
+_LITERAL = re.compile(r"``([^`]+)``")
+
+
+def plain_text(doc: str | None) -> str:
+    """``doc`` (a module's reST docstring) as a terminal shows help: roles (``:func:`~a.b``` → ``b``,
+    ``:mod:`a.b``` → ``a.b``) and double backticks (````x```` → ``x``) written plain, the rest as it is."""
+
+    def role(m: re.Match) -> str:
+        target = m.group(2).strip()
+        return target.rsplit(".", 1)[-1] if m.group(1) else target
+
+    return _LITERAL.sub(r"\1", _ROLE.sub(role, doc or ""))
+
+
 def run_command(
     add_arguments, run, argv=None, prog: str | None = None, doc: str | None = None, one_line: bool = True
 ) -> int:
@@ -154,7 +169,7 @@ def run_command(
     (default ``sys.argv[1:]``) with :func:`build_parser`, described by the first paragraph of ``doc``
     (the command module's doc); returns the exit status. Every command module's ``main`` and the
     ``histojax`` command call it with the module's two functions."""
-    description = (doc or "").split("\n\n")[0] or None
+    description = plain_text((doc or "").split("\n\n")[0]) or None  # no reST markup on the terminal
     parser = build_parser(add_arguments, prog, description, one_line)
     return int(run(parser.parse_args(argv), parser) or 0)
 

@@ -84,7 +84,9 @@ def main(argv=None) -> int:
     """Dispatch ``argv`` (default ``sys.argv[1:]``) to a subcommand; returns the exit status."""
     argv = compile_cache.setup(sys.argv[1:] if argv is None else argv)  # --no-compile-cache: removed here
     if not argv or argv[0] in ("-h", "--help"):
-        print(__doc__)
+        from data_tools.cli_output import plain_text
+
+        print(plain_text(__doc__))  # no reST markup on the terminal
         return 0 if argv else 2
     command, rest = argv[0], argv[1:]
     with one_line_messages():

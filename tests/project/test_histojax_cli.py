@@ -23,6 +23,23 @@ def test_help_lists_the_subcommands():
         assert f"histojax {command}" in out.stdout
 
 
+def test_help_is_plain_text_without_rest_markup(capsys):
+    """Was: ``histojax --help`` printed its docstring's reST (double backticks, :func: roles) as it is."""
+    import pytest
+
+    from baselines.reading import readers
+    from histojax.cli import main
+
+    assert main(["--help"]) == 0
+    text = capsys.readouterr().out
+    assert "python -m data_tools <command>" in text and "own_package_refusal" in text
+    with pytest.raises(SystemExit):
+        readers.main(["--help"])  # a command's description: its module doc's first paragraph
+    text += capsys.readouterr().out
+    for markup in ("``", ":func:", ":mod:", ":class:", ":meth:"):
+        assert markup not in text
+
+
 def test_info_dispatches_to_data_tools():
     out = run("info", str(SVS))
     assert out.returncode == 0 and "2220×2967" in out.stdout

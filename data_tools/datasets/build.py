@@ -68,8 +68,18 @@ MPP_TOLERANCE = 0.05  # relative: slides within 5 % µm/px share one --magnifica
 
 
 def _fingerprint(path: Path) -> dict:
-    """Cheap identity of a slide file or DICOM folder: size in bytes and mtime (ns) of its files."""
-    files = sorted(path.rglob("*")) if path.is_dir() else [path]
+    """Cheap identity of a slide file or DICOM folder: size in bytes and mtime (ns) of its files. A MIRAX ``.mrxs``
+    counts every file of its data folder too (``Slidedat.ini``, ``Index.dat``, ``Data*.dat``:
+    :func:`~data_tools.slide_files.mirax.slide_files`), so a slide whose pixels changed is rebuilt, not "already
+    done"."""
+    from data_tools.slide_files.mirax import slide_files
+
+    if path.is_dir():
+        files = sorted(path.rglob("*"))
+    elif path.suffix.lower() == ".mrxs":
+        files = slide_files(path)
+    else:
+        files = [path]
     stats = [f.stat() for f in files if f.is_file()]
     return {
         "bytes": int(sum(s.st_size for s in stats)),

@@ -102,7 +102,7 @@ def slide_files(mrxs) -> list[Path]:
     files = [mrxs]
     try:
         with os.scandir(folder) as it:
-            files += sorted(Path(e.path) for e in it if e.is_file(follow_symlinks=False))
+            files += sorted(Path(e.path) for e in it if e.is_file())  # a link to a file counts
     except OSError:
         pass
     return files

@@ -97,13 +97,22 @@ def add_arguments(p, defaults: dict) -> None:
         "--out",
         default=None,
         help="run folder (default runs/<algo>-<env>, or the next free runs/<algo>-<env>-N when that one "
-        "is used); a folder holding anything but an unfinished run of this config is refused",
+        "is used). The same command rerun continues the unfinished run of this config there from its last "
+        "checkpoint (a finished one: nothing to train); a folder holding another config's run or other files "
+        "is refused",
     )
     p.add_argument(
         "--overwrite",
         action="store_true",
-        help="replace the run in --out (only the files histojax wrote there; its final files stay until "
-        "the new run's are written)",
+        help="replace a finished run or another config's run in --out (only the files histojax wrote there; "
+        "its final files stay until the new run's are written); an unfinished run of this config still "
+        "continues",
+    )
+    p.add_argument(
+        "--restart",
+        action="store_true",
+        help="start again in --out: the run there (finished or not, any config) is moved aside whole into "
+        "OUT/previous-N/, never deleted",
     )
     if "checkpoint_every" in defaults:
         p.add_argument(
@@ -183,7 +192,10 @@ def train_and_save(algo: str, make_train_fn, args, config_class: type[EnvConfig]
     """The command of a baseline (shared by every algorithm file), on ``args`` parsed with
     :func:`add_arguments`: the typed config (``config_class``, e.g. :class:`~baselines.ppo.PPOConfig`) made once
     from the options (an entry of the wrong type is one line, exit 2), then compile, train all seeds in one program,
-    and write logs, curve and checkpoint with :func:`finish_run`."""
+    and write logs, curve and checkpoint with :func:`finish_run`. The run folder is claimed with
+    :func:`~baselines.harness.run_folder.claim_run`: the same command rerun after a kill continues the unfinished
+    run of its config from the last checkpoint (``--resume RUN`` does the same for a named folder, with the run's
+    own config), ``--restart`` moves the old run aside and starts again."""
     defaults = config_class.defaults()
     if getattr(args, "resume", None) is not None:
         run = Path(args.resume)
@@ -207,16 +219,24 @@ def train_and_save(algo: str, make_train_fn, args, config_class: type[EnvConfig]
     if (args.coordinator is not None or args.distributed) and "devices" not in defaults:
         raise SystemExit("several processes (--coordinator / --distributed) are supported by the PPO baseline only")
     distributed.from_args(args)
-    out = Path(args.out or f"runs/{algo}-{config.env_id}")
+    out, state = Path(args.out or f"runs/{algo}-{config.env_id}"), "new"
     if jax.process_index() == 0:  # the process that writes the run's files holds its folder
         try:
-            out = run_folder.claim(
-                out, config.as_dict(), overwrite=getattr(args, "overwrite", False), default=args.out is None
+            out, state = run_folder.claim_run(
+                out,
+                config.as_dict(),
+                overwrite=getattr(args, "overwrite", False),
+                default=args.out is None,
+                restart=getattr(args, "restart", False),
             )
+            if state == "resume":  # a rerun of the command after a kill: continue with the run's own config
+                config = resume_config(out, algo, config_class)
         except HistojaxDataError as e:
+            run_folder.release(out)  # a refusal leaves the folder as it was (no lock file)
             return print_error(e)
     try:
-        run_and_save(algo, make_train_fn, config, out, unit)
+        if state != "done":  # a finished run of this config: nothing to train
+            run_and_save(algo, make_train_fn, config, out, unit, resume=state == "resume")
     finally:
         run_folder.release(out)
     return 0

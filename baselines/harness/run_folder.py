@@ -2,25 +2,34 @@
 
 A run folder holds only what histojax wrote there (:data:`RUN_ENTRIES`): ``log.csv``, ``log.json``,
 ``curve.png``, ``params.msgpack``, ``config.json``, ``checkpoint/``, TensorBoard events, ``process-N/``,
-``eval/`` and the lock file. :func:`claim` decides, before anything is written:
+``eval/``, ``previous-N/`` (a run moved aside by ``--restart``) and the lock file. :func:`claim_run` decides,
+before anything is written:
 
-* an absent or empty folder: the run starts there;
-* the folder of an *unfinished* run (``checkpoint/`` but no ``params.msgpack``) of the same config: the run starts
-  again there (``--resume`` continues it instead);
-* anything else (a finished run, another config's unfinished run, a user's file, a slide head folder) is refused in
-  one line naming the folder and what it holds, suggesting ``--overwrite``. ``--overwrite`` replaces only entries
-  histojax wrote (a user's file there is still refused); the previous run's final files stay until the new run's
-  are written as a whole;
-* the default folder ``runs/<algo>-<env>`` is never overwritten: when it holds something, the run goes to the first
-  free ``runs/<algo>-<env>-2``, ``-3``, ... (as Stable-Baselines3 numbers its log folders ``PPO_1``, ``PPO_2``).
+* an absent or empty folder (or one holding only ``previous-N/``): the run starts there;
+* the folder of an *unfinished* run (``checkpoint/`` but no ``params.msgpack``) of the same config: the run
+  *continues* from its last checkpoint (``checkpoint/runner.msgpack``), so the same command rerun after a kill
+  (a scheduler's requeue) loses nothing; a run killed before its first checkpoint starts again;
+* the folder of a *finished* run of the same config (an explicit ``--out``): nothing to do;
+* anything else (a finished run or an unfinished run of another config, a user's file, a slide head folder) is
+  refused in one line naming the folder, what it holds and the first entries its config differs in, suggesting
+  ``--restart`` or ``--overwrite``;
+* ``--restart``: the run there (finished or not, of any config) is moved aside whole into the folder's next
+  ``previous-N/`` (never deleted) and the run starts again;
+* ``--overwrite`` replaces a finished run or another config's run: only entries histojax wrote (a user's file
+  there is still refused), the previous run's final files staying until the new run's are written as a whole.
+  An unfinished run of the same config still continues (a job script with ``--overwrite`` rerun by a scheduler
+  must not lose its run); ``--restart`` starts it again;
+* the default folder ``runs/<algo>-<env>`` is never overwritten: when it holds something but an unfinished run
+  of this config, the run goes to the first free ``runs/<algo>-<env>-2``, ``-3``, ... (as Stable-Baselines3
+  numbers its log folders ``PPO_1``, ``PPO_2``).
 
-One writer per run folder: :func:`claim` takes an exclusive ``fcntl.flock`` on ``RUN/.histojax-run.lock`` and
-holds it until :func:`release` (or the process's end: the operating system drops the lock of a killed process, so
-a killed run never leaves its folder locked). A second ``train --out RUN`` or ``--resume RUN`` while one holds it
-is refused in one line.
+One writer per run folder: :func:`claim_run` takes an exclusive ``fcntl.flock`` on ``RUN/.histojax-run.lock``
+and holds it until :func:`release` (or the process's end: the operating system drops the lock of a killed
+process, so a killed run never leaves its folder locked). A second ``train --out RUN`` or ``--resume RUN`` while
+one holds it is refused in one line.
 
-A refused command leaves the folder as it found it: :func:`claim` checks the folder before it creates it or the
-lock, :func:`release` removes the lock file, and removes the folder too when this process made it and it is
+A refused command leaves the folder as it found it: :func:`claim_run` checks the folder before it creates it or
+the lock, :func:`release` removes the lock file, and removes the folder too when this process made it and it is
 still empty (a run refused after its claim, e.g. for a mistyped ``--fold``).
 """
 
@@ -46,11 +55,14 @@ FINAL = ("log.csv", "log.json", "curve.png", "params.msgpack", "config.json")
 RUN_ENTRIES = re.compile(
     r"^(log\.csv|log\.json|curve\.png|params\.msgpack|config\.json|checkpoint|eval|"
     r"eval-all-folds|head_reward\.json|curve-seeds\.png|curve-seeds\.csv|"
-    r"process-\d+|events\.out\.tfevents\..+|\.histojax-run\.lock|\..+\.tmp-[0-9a-f]{8})$"
+    r"process-\d+|previous-\d+|events\.out\.tfevents\..+|\.histojax-run\.lock|\..+\.tmp-[0-9a-f]{8})$"
 )
 """Names histojax writes in a run folder (temporaries of an atomic write included): a trainer's files,
 ``eval/`` and ``eval-all-folds/`` (``histojax evaluate RUN`` and ``--all-folds``), ``head_reward.json`` and
-``curve-seeds.*`` (``baselines.reading.train_readers``)."""
+``curve-seeds.*`` (``baselines.reading.train_readers``), ``previous-N/`` (a run ``--restart`` moved aside, kept
+whole and never looked into)."""
+PREVIOUS = re.compile(r"^previous-(\d+)$")
+"""A run folder's ``previous-N/``: the run that ``--restart`` moved aside (N = 1, 2, ...)."""
 STATE = ("checkpoint", "eval", "eval-all-folds", "head_reward.json", "curve-seeds.png", "curve-seeds.csv")
 """What ``--overwrite`` removes before the new run (the old run's state and what was derived from it); its final
 files (:data:`FINAL`) stay until the new run's are written."""
@@ -152,22 +164,67 @@ def foreign_entries(out: Path) -> list[str]:
             foreign.append(name)
     if (out / "checkpoint").exists() and not (out / "checkpoint").is_dir():
         foreign.append("checkpoint")
+    foreign += [n for n in os.listdir(out) if PREVIOUS.match(n) and not (out / n).is_dir()]  # a run moved aside
     return sorted(set(foreign))
 
 
-def _checkpoint_config(out: Path) -> dict | None:
+def _read_config(path: Path) -> dict | None:
+    """The JSON object in the run's own file ``path`` (``config.json``); None when it is absent or unreadable."""
     try:
-        config = json.loads(read_own(out / "checkpoint" / "config.json", "config", MAX_CONFIG_BYTES))
+        config = json.loads(read_own(path, "config", MAX_CONFIG_BYTES))
     except (OSError, ValueError, HistojaxDataError):
         return None
     return config if isinstance(config, dict) else None
 
 
+def _checkpoint_config(out: Path) -> dict | None:
+    return _read_config(out / "checkpoint" / "config.json")
+
+
+def _shown(value) -> str:
+    return json.dumps(value, sort_keys=True, default=str)  # json-not-written (a message)
+
+
+def difference(saved: dict | None, config: dict, most: int = 2) -> str:
+    """How the saved run config ``saved`` differs from the command's ``config`` (the first ``most`` entries of
+    ``config`` that differ, in its order), for a refusal: e.g. ``whose lr is 0.0003, not 0.001``; ``saved`` None:
+    its config cannot be read."""
+    if saved is None:
+        return "whose config.json cannot be read"
+    parts = [
+        f"{k} is {_shown(saved[k])}, not {_shown(v)}"
+        if k in saved
+        else f"config has no {k} (this command's: {_shown(v)})"
+        for k, v in config.items()
+        if k not in saved or not _entry_same(k, saved[k], v)
+    ]
+    if not parts:
+        return "of this config"
+    more = f" (and {len(parts) - most} more)" if len(parts) > most else ""
+    return "whose " + "; ".join(parts[:most]) + more
+
+
+COMPLETED = {"obs_norm": "dataset"}
+"""Command values a trainer replaces with what it computed (``obs_norm="dataset"``: the training slides'
+normaliser, :func:`baselines.ppo.resolve_obs_norm`): a saved config holding the computed value is of that command."""
+PINNED = {"env_kwargs": ("glimpse_grid",)}
+"""Entries a trainer adds inside a config's entry (:func:`baselines.common.env.pin_env_shapes`): a saved config
+holding them where the command has none is of that command."""
+
+
+def _entry_same(key: str, saved_value, value) -> bool:
+    """Whether the saved config's entry ``key`` (``saved_value``) is what the command's ``value`` makes."""
+    if key in COMPLETED and value == COMPLETED[key] and not isinstance(saved_value, str):
+        return True
+    if key in PINNED and isinstance(saved_value, dict) and isinstance(value, dict):
+        saved_value = {k: v for k, v in saved_value.items() if k not in PINNED[key] or k in value}
+    return _shown(saved_value) == _shown(value)
+
+
 def _same(saved: dict, config: dict) -> bool:
     """Whether the checkpoint's full config ``saved`` is a run of ``config`` (the command's entries, which the
-    trainer completes with its own): every entry of ``config`` equal in ``saved``."""
-    norm = lambda v: json.dumps(v, sort_keys=True, default=str)  # noqa: E731  # json-not-written (compared)
-    return all(k in saved and norm(saved[k]) == norm(v) for k, v in config.items())
+    trainer completes with its own): every entry of ``config`` equal in ``saved`` (:func:`_entry_same`)."""
+    return all(k in saved and _entry_same(k, saved[k], v) for k, v in config.items())
 
 
 def lock(out: Path) -> None:
@@ -272,42 +329,55 @@ def release(out: Path) -> None:
     _remove_made(folder, made)
 
 
+def _names(out: Path) -> list[str]:
+    """The entries of ``out`` that are its run (all but the lock file and the runs moved aside, ``previous-N/``)."""
+    return [n for n in os.listdir(out) if n != LOCK and not (PREVIOUS.match(n) and (out / n).is_dir())]
+
+
 def _state(out: Path, config: dict) -> str:
-    """``"empty"``, ``"unfinished-same"`` (a checkpoint of ``config``, no final params), ``"finished"``,
+    """``"empty"`` (nothing but the lock and ``previous-N/``), ``"unfinished-same"`` (a checkpoint of ``config``,
+    no final params), ``"finished-same"`` (final params, ``config.json`` of ``config``), ``"finished"``,
     ``"unfinished-other"`` or ``"foreign"`` (entries histojax does not write)."""
-    names = [n for n in os.listdir(out) if n != LOCK]
-    if not names:
+    if not _names(out):
         return "empty"
     if foreign_entries(out):
         return "foreign"
     if (out / "params.msgpack").exists():
-        return "finished"
+        saved = _read_config(out / "config.json")
+        return "finished-same" if saved is not None and _same(saved, config) else "finished"
     saved = _checkpoint_config(out)
     if saved is not None and _same(saved, config):
         return "unfinished-same"
     return "unfinished-other"
 
 
-def _check(out: Path, config: dict, overwrite: bool) -> str:
+def _check(out: Path, config: dict, overwrite: bool, restart: bool = False) -> str:
     """The state of the existing folder ``out`` (:func:`_state`) when a run of ``config`` may be written there
-    (with ``overwrite``: a finished run or another config's replaced); ``RunFolderError`` naming it otherwise.
-    Writes nothing."""
+    (``restart``: whatever run is there, moved aside; ``overwrite``: a finished run or another config's replaced);
+    ``RunFolderError`` naming it otherwise. Writes nothing."""
     state = _state(out, config)
-    if state in ("empty", "unfinished-same"):
+    if state == "empty":
         return state
     foreign = foreign_entries(out)
     if foreign:
         raise RunFolderError(
             out,
             f"holds files histojax did not write (e.g. {foreign[0]!r}); refusing to train "
-            "into it (choose another --out; --overwrite replaces only a run's own files)",
+            "into it (choose another --out; --overwrite and --restart touch only a run's own files)",
         )
+    if restart or state == "unfinished-same" or (state == "finished-same" and not overwrite):
+        return state  # moved aside whole (nothing removed), continued, or nothing to do
     if not overwrite:
-        what = "a finished run (params.msgpack)" if state == "finished" else "an unfinished run of another config"
+        if state == "finished":
+            what = f"a finished run (params.msgpack) {difference(_read_config(out / 'config.json'), config)}"
+            keep = "choose another --out"
+        else:
+            what = f"an unfinished run of another config, {difference(_checkpoint_config(out), config)}"
+            keep = f"continue it with --resume {out} (its own config), choose another --out"
         raise RunFolderError(
             out,
-            f"holds {what}; refusing to overwrite it: choose another --out, continue an "
-            "unfinished run with --resume, or replace it with --overwrite",
+            f"holds {what}; refusing to overwrite it: {keep}, start again with --restart (moves it to "
+            f"{out}/previous-N), or replace it with --overwrite",
         )
     inside = []  # a user's file inside the old run's folders: never removed (refused before anything is)
     for name in sorted(os.listdir(out)):
@@ -318,15 +388,50 @@ def _check(out: Path, config: dict, overwrite: bool) -> str:
         raise RunFolderError(
             out,
             f"holds files histojax did not write (e.g. {inside[0]!r}) in the old run's "
-            "folders, which --overwrite would remove; move them out first or choose another --out",
+            "folders, which --overwrite would remove; move them out first, use --restart (moves the run aside "
+            "whole), or choose another --out",
         )
     return state
 
 
-def claim(out, config: dict, overwrite: bool = False, default: bool = False) -> Path:
-    """The folder a new run of ``config`` writes, locked (:func:`lock`) and checked (module doc). ``default``:
-    ``out`` is the default ``runs/<algo>-<env>``, so a used one moves the run to the next free numbered folder.
-    ``RunFolderError`` naming the folder, one line, when it may not be written. Returns the folder."""
+def _progress(out: Path) -> str:
+    """``update k/N`` of the unfinished run in ``out`` (its ``checkpoint/checkpoint.json``), or ``its last
+    checkpoint`` when that summary cannot be read."""
+    try:
+        saved = json.loads(read_own(out / "checkpoint" / "checkpoint.json", "checkpoint summary", MAX_CONFIG_BYTES))
+        return f"update {int(saved['update'])}/{int(saved['num_updates'])}"
+    except (OSError, ValueError, TypeError, KeyError, HistojaxDataError):
+        return "its last checkpoint"
+
+
+def move_aside(out: Path) -> Path:
+    """Move the run in ``out`` (every entry but the lock and the earlier ``previous-N/``) into a new
+    ``out/previous-N/`` (N one more than the largest there) by renames, its ``checkpoint/`` first: nothing is
+    deleted, and a move killed midway leaves no half of a run that would be continued. Returns the folder."""
+    out = Path(out)
+    taken = [int(m.group(1)) for n in os.listdir(out) if (m := PREVIOUS.match(n))]
+    dest = out / f"previous-{max(taken, default=0) + 1}"
+    dest.mkdir()
+    for name in sorted(_names(out), key=lambda n: (n != "checkpoint", n)):
+        os.rename(out / name, dest / name)
+    return dest
+
+
+def claim(out, config: dict, overwrite: bool = False, default: bool = False, restart: bool = False) -> Path:
+    """The folder a run of ``config`` writes, locked and checked: :func:`claim_run`'s folder."""
+    return claim_run(out, config, overwrite=overwrite, default=default, restart=restart)[0]
+
+
+def claim_run(
+    out, config: dict, overwrite: bool = False, default: bool = False, restart: bool = False
+) -> tuple[Path, str]:
+    """The folder a run of ``config`` writes, locked (:func:`lock`) and checked (module doc), and what the run
+    does there: ``"new"`` (an empty folder), ``"resume"`` (continue the unfinished run of this config from
+    ``checkpoint/``), ``"again"`` (a run of this config killed before its first checkpoint: start it again),
+    ``"done"`` (a finished run of this config: nothing to train), ``"restarted"`` (the run there moved aside,
+    :func:`move_aside`) or ``"replaced"`` (``overwrite``). What it decided is printed in one line (but for
+    ``"new"``). ``default``: ``out`` is the default ``runs/<algo>-<env>``, so a used one moves the run to the next
+    free numbered folder. ``RunFolderError`` naming the folder, one line, when it may not be written."""
     out = Path(out)
     if default and not overwrite:
         for n in range(1, MAX_NUMBERED + 1):
@@ -340,28 +445,42 @@ def claim(out, config: dict, overwrite: bool = False, default: bool = False) -> 
             if candidate.exists() and not candidate.is_dir():
                 continue
             try:
-                return claim(candidate, config)
+                return claim_run(candidate, config, restart=restart)
             except RunFolderError:
                 continue  # held by another run: the next number
         raise RunFolderError(out, f"{out}-2 ... {out}-{MAX_NUMBERED} are all used; choose a folder with --out")
     if out.is_symlink() or (out.exists() and not out.is_dir()):
         raise RunFolderError(out, "is a file or a link, not a run folder; choose another --out")
     if out.is_dir():
-        _check(out, config, overwrite)  # refused before the lock is taken: the folder stays as it was
+        _check(out, config, overwrite, restart)  # refused before the lock is taken: the folder stays as it was
     lock(out)
     try:
-        state = _check(out, config, overwrite)  # again under the lock: another process may have written meanwhile
+        state = _check(out, config, overwrite, restart)  # again under the lock: another process may have written
     except RunFolderError:
         release(out)
         raise
-    if state in ("empty", "unfinished-same"):
-        if state == "unfinished-same":
+    if state == "empty":
+        return out, "new"
+    if restart:
+        dest = move_aside(out)
+        print(f"{out}: moved the run there aside to {dest} (--restart); starting again", flush=True)
+        return out, "restarted"
+    if state == "unfinished-same":
+        if os.path.lexists(out / "checkpoint" / "runner.msgpack"):
             print(
-                f"{out} holds an unfinished run of this config: starting it again (histojax train --resume {out} "
-                "would continue it)",
+                f"{out} holds an unfinished run of this config at {_progress(out)}: continuing it "
+                "(--restart starts again)",
                 flush=True,
             )
-        return out
+            return out, "resume"
+        print(f"{out} holds a run of this config killed before its first checkpoint: starting it again", flush=True)
+        return out, "again"
+    if state == "finished-same" and not overwrite:
+        print(
+            f"{out} holds a finished run of this config (params.msgpack): nothing to train (--restart trains it again)",
+            flush=True,
+        )
+        return out, "done"
     for name in STATE:  # the old run's state: replaced; its final files stay until the new ones
         path = out / name
         if path.is_dir() and not path.is_symlink():
@@ -372,4 +491,4 @@ def claim(out, config: dict, overwrite: bool = False, default: bool = False) -> 
         if name.startswith(("events.out.tfevents.", "process-")):
             path = out / name
             shutil.rmtree(path) if path.is_dir() and not path.is_symlink() else path.unlink()
-    return out
+    return out, "replaced"

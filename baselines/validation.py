@@ -31,8 +31,12 @@ def _name(path: str) -> str:
 
 
 def units(spec: dict) -> list[list[str]]:
-    """The training slides (entries of ``spec["train"]``) grouped into units that stay on one side:
-    a tumour slide with its tissue donor when the donor is a training slide too, else one slide."""
+    """The training slides (entries of ``spec["train"]``) grouped into units that stay on one side: the slides
+    of one patient (``dataset.json``'s ``patients``, else a TCGA barcode's patient; grouped by
+    :func:`data_tools.datasets.split.patient_groups`, the grouping of the default split and the folds) and a
+    tumour slide with its tissue donor when the donor is a training slide too; else one slide."""
+    from data_tools.datasets.split import patient_groups
+
     train = list(spec.get("train", []))
     by_name = {_name(t): t for t in train}
     donor = {
@@ -47,6 +51,16 @@ def units(spec: dict) -> list[list[str]]:
             n = parent[n]
         return n
 
+    def join(a, b):
+        a, b = find(a), find(b)
+        if a != b:
+            parent[max(a, b)] = min(a, b)
+
+    recorded = spec.get("patients") if isinstance(spec.get("patients"), dict) else None
+    first: dict[str, str] = {}
+    for n, g in patient_groups(sorted(by_name), recorded)[0].items():
+        if g.startswith("patient:"):
+            join(first.setdefault(g, n), n)
     for n in by_name:
         d = donor.get(n)
         if d and d in by_name:
@@ -116,26 +130,156 @@ def _known_label(spec: dict, name: str) -> int | None:
     return None
 
 
+def share_counts(spec: dict, fraction: float, seed: int) -> tuple[int, int, int, int] | None:
+    """``(fitting tumour, fitting normal, validation tumour, validation normal)`` slides of :func:`split_train`
+    (``fraction``, ``seed``) by ``dataset.json``'s labels; None when it does not label every training slide, or
+    the fraction leaves a side empty (counted as nothing on that side)."""
+    labels = {_name(e): _known_label(spec, _name(e)) for e in spec.get("train", [])}
+    if not labels or None in labels.values():
+        return None
+    try:
+        kept, held = split_train(spec, fraction, seed)
+    except ValueError:
+        return (0, 0, 0, 0)
+    k = [labels[_name(e)] for e in kept]
+    h = [labels[_name(e)] for e in held]
+    return sum(k), len(k) - sum(k), sum(h), len(h) - sum(h)
+
+
+def share_works(counts, least: int, fitting: int) -> bool:
+    """Whether :func:`share_counts` ``counts`` give ``least`` validation and ``fitting`` fitting slides a class."""
+    return counts is None or (min(counts[2:]) >= least and min(counts[:2]) >= fitting)
+
+
+def working_fraction(specs, seed: int, least: int = MIN_VALIDATION_PER_CLASS, fitting: int = 0) -> float | None:
+    """The smallest ``--val-fraction`` (a hundredth: 0.01 … 0.99) whose share (:func:`split_train`, ``seed``) of
+    every spec in ``specs`` (a dataset's train side, or each fold's) holds ``least`` validation and ``fitting``
+    fitting slides of each class; None when none does."""
+    for f in range(1, 100):
+        if all(share_works(share_counts(spec, f / 100, seed), least, fitting) for spec in specs):
+            return f / 100
+    return None
+
+
+def _counts_text(counts) -> str:
+    ft, fn, vt, vn = counts
+    return f"{vt} tumour and {vn} normal validation slides, leaving {ft} tumour and {fn} normal to fit on"
+
+
 def check_validation_share(
-    spec: dict, held, where, fraction: float, fold: int | None = None, least: int = MIN_VALIDATION_PER_CLASS
+    spec: dict,
+    held,
+    where,
+    fraction: float,
+    fold: int | None = None,
+    least: int = MIN_VALIDATION_PER_CLASS,
+    seed: int | None = None,
+    fitting: int = 0,
 ) -> None:
     """Refuse, before any slide is read or any training, a validation share (``held``: entries of ``spec["train"]``)
-    with fewer than ``least`` slides of a class: ``ValueError`` in one line naming ``where`` (the ``dataset.json``),
-    the counts and the options (``--val-fraction``, more slides, ``--folds`` with fewer folds). Labels come from
-    ``dataset.json``; a share whose labels it does not give is left to the fit's own checks."""
+    with fewer than ``least`` slides of a class, or (``seed``: the share's seed, ``fitting``: the fit's
+    :data:`~baselines.reading.fitting.MIN_SLIDES_PER_CLASS`) one that leaves fewer than ``fitting`` slides of a class
+    to fit on: ``ValueError`` in one line naming ``where`` (the ``dataset.json``), the counts and what would work
+    (the smallest ``--val-fraction`` that does, or, when none does, that no fraction works and what to do instead).
+    Labels come from ``dataset.json``; a share whose labels it does not give is left to the fit's own checks."""
     labels = [_known_label(spec, _name(e)) for e in held]
     if None in labels:
         return
     n_t, n_n = sum(labels), len(labels) - sum(labels)
-    if min(n_t, n_n) >= least:
+    counts = share_counts(spec, fraction, seed) if seed is not None else None
+    if min(n_t, n_n) >= least and (counts is None or min(counts[:2]) >= fitting):
         return
     side = f"fold {fold}'s train side" if fold is not None else "the train split"
+    needs = f"at least {least} validation" + (f" and {fitting} fitting" if fitting else "") + " slides of each class"
+    what = _counts_text(counts) if counts is not None else f"{n_t} tumour and {n_n} normal validation slides"
+    works = working_fraction([spec], seed, least, fitting) if seed is not None else None
+    if works is not None:
+        remedy = f"use --val-fraction {works:.2f}" + (" (the smallest that does)" if works > fraction else "")
+    elif seed is not None:
+        remedy = f"no --val-fraction does ({side} holds {_class_counts(spec)}); " + (
+            "build the dataset with fewer --folds K (each fold's train side is larger), or add slides"
+            if fold is not None
+            else "add slides"
+        )
+    else:
+        remedy = (
+            "give a larger --val-fraction, or build the dataset with fewer --folds K (each fold's train side is "
+            "larger), or add slides"
+        )
     raise ValueError(
-        f"{where}: the validation share ({fraction:g} of {side}) holds {n_t} tumour and {n_n} normal "
-        f"slides; choosing a head or checkpoint and calibrating it needs at least {least} of each (a "
-        f"random head scores validation AUC 1.0 on fewer as often as 1 in 6): give a larger --val-fraction, "
-        "or build the dataset with fewer --folds K (each fold's train side is larger), or add slides. "
-        "Nothing was trained"
+        f"{where}: the validation share ({fraction:g} of {side}) gives {what}; choosing a head or checkpoint and "
+        f"calibrating it needs {needs} (a random head scores validation AUC 1.0 on 2 of each as often as 1 in 6): "
+        f"{remedy}. Nothing was trained"
+    )
+
+
+def _class_counts(spec: dict) -> str:
+    got = [_known_label(spec, _name(e)) for e in spec.get("train", [])]
+    return f"{sum(v == 1 for v in got)} tumour and {sum(v == 0 for v in got)} normal slides"
+
+
+def fewer_folds(spec: dict, k: int, seed: int, least: int, fitting: int) -> tuple[int, float] | None:
+    """``(K', fraction)``: the most folds below ``k`` (≥ 2) that the dataset's folded slides (``spec``: the whole
+    ``dataset.json``, its ``folds`` record) would be dealt into (:func:`data_tools.datasets.split.kfold_split`, the
+    folds' seed and patient grouping) with a ``--val-fraction`` (the smallest, ``seed``) that works on every fold
+    (:func:`working_fraction`); None when no fold count does."""
+    from data_tools.datasets.split import kfold_split, patient_groups
+    from data_tools.errors import HistojaxDataError
+
+    folds = spec.get("folds") or {}
+    pool = [_name(e) for lst in folds.get("lists") or [] for e in lst]
+    labels = {n: _known_label(spec, n) for n in pool}
+    if not pool or None in labels.values():
+        return None
+    groups = patient_groups(pool, spec.get("patients") if isinstance(spec.get("patients"), dict) else None)[0]
+    entry = {_name(e): e for lst in folds["lists"] for e in lst}
+    for kk in range(k - 1, 1, -1):
+        try:
+            fold = kfold_split(pool, labels, kk, int(folds.get("seed", 0)), groups)
+        except HistojaxDataError:
+            continue
+        sides = [{**spec, "train": [entry[n] for n in pool if fold[n] != i]} for i in range(kk)]
+        if (f := working_fraction(sides, seed, least, fitting)) is not None:
+            return kk, f
+    return None
+
+
+def check_all_folds(
+    dataset, fraction: float, seed: int, least: int = MIN_VALIDATION_PER_CLASS, fitting: int = 0
+) -> None:
+    """Refuse, before any fold is trained, an ``--all-folds`` fit one of whose folds the validation share
+    (``fraction``, ``seed``) leaves with fewer than ``least`` validation or ``fitting`` fitting slides of a class:
+    ``ValueError`` in one line naming ``DATASET/dataset.json``, the first fold that fails and its counts, and the
+    smallest ``--val-fraction`` that works on every fold, or (none does) the most ``--folds K`` that would work,
+    or that none does. A dataset whose labels ``dataset.json`` does not give is left to each fold's checks."""
+    from data_tools.bundle_files.seals import read_dataset_json
+    from histojax.datasets import with_fold
+
+    where = Path(dataset) / "dataset.json"
+    spec = read_dataset_json(dataset)
+    k = len(spec["folds"]["lists"])
+    sides = [with_fold(spec, i, where) for i in range(k)]
+    bad = [
+        (i, c)
+        for i, side in enumerate(sides)
+        if not share_works(c := share_counts(side, fraction, seed), least, fitting)
+    ]
+    if not bad:
+        return
+    i, counts = bad[0]
+    others = f"; fold(s) {', '.join(str(j) for j, _ in bad[1:])} too" if bad[1:] else ""
+    needs = f"{least} validation" + (f" and {fitting} fitting" if fitting else "") + " slides of each class"
+    if (works := working_fraction(sides, seed, least, fitting)) is not None:
+        remedy = f"--val-fraction {works:.2f} works on every fold"
+    else:
+        remedy = f"no --val-fraction works on every fold (fold {i}'s train side holds {_class_counts(sides[i])}); " + (
+            f"build the dataset with --folds {kf[0]} (--val-fraction {kf[1]:.2f} then works on every fold)"
+            if (kf := fewer_folds(spec, k, seed, least, fitting)) is not None
+            else "no fold count works either: use the dataset's train / test split without folds, or add slides"
+        )
+    raise ValueError(
+        f"{where}: --all-folds: the validation share ({fraction:g} of fold {i}'s train side{others}) gives "
+        f"{_counts_text(counts)}; a fit needs {needs}: {remedy}. Nothing was trained"
     )
 
 

@@ -59,3 +59,20 @@ def check_head(dataset, validation_auc: float, slope: float) -> None:
             f"the chosen head's calibration slope is {slope:.3f} (not > 0: more evidence "
             "would mean less tumour); nothing saved",
         )
+
+
+CHANCE_FLAG = "validation_interval_contains_chance"
+"""The ``chosen_on`` key of a head's ``config.json`` set (true) when its validation AUC's 95 % interval reaches 0.5."""
+
+
+def chance_warning(auc: float, low: float, high: float, where: str) -> str | None:
+    """One warning line when the chosen head's validation AUC interval (``low``, ``high``: 95 %,
+    :func:`data_tools.metrics.auc_interval`) reaches 0.5: its validation slides cannot tell it from a head that ranks
+    at random. ``where`` names the share (``"the validation share of fold 1"``). None otherwise (or undefined)."""
+    if not (low == low and low <= 0.5):
+        return None
+    return (
+        f"warning: {where} gives the chosen head validation AUC {auc:.3f} [{low:.3f}, {high:.3f}] (95 % interval), "
+        f"which contains 0.5: these validation slides cannot tell it from a head ranking at random; saved with "
+        f"{CHANCE_FLAG}: true in config.json; validate it on more slides before relying on it"
+    )

@@ -28,7 +28,14 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.reading.fitting import check_classes, check_head, logistic_fit
+from baselines.reading.fitting import (
+    CHANCE_FLAG,
+    MIN_SLIDES_PER_CLASS,
+    chance_warning,
+    check_classes,
+    check_head,
+    logistic_fit,
+)
 from baselines.reading.slides import HeadDataError, load_slides, padded, read_spec, spec_label, warn_scale
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
@@ -152,7 +159,9 @@ def fit(
             "dataset whose training slides hold both",
         )
     kept, held = split_train(spec, val_fraction, seed)
-    check_validation_share(spec, held, Path(dataset) / "dataset.json", val_fraction, fold)  # before any slide is read
+    check_validation_share(
+        spec, held, Path(dataset) / "dataset.json", val_fraction, fold, seed=seed, fitting=MIN_SLIDES_PER_CLASS
+    )  # before any slide is read
     train = load_slides(dataset, spec["train"], spec, dim, progress=progress)
     by_name = {s["name"]: s for s in train}
     tr = [by_name[Path(n).name] for n in kept]
@@ -171,6 +180,10 @@ def fit(
         )
     ) is not None:
         print(warning, file=sys.stderr)  # the candidate was chosen on it (after the refusals: those stay one line)
+    low, high = auc_interval(chosen["validation_auc"], n_tumour, len(va) - n_tumour)
+    share = "the validation share" + (f" of fold {fold}" if fold is not None else "")
+    if (chance := chance_warning(chosen["validation_auc"], low, high, share)) is not None:
+        print(chance, file=sys.stderr)
     info = {
         "fitted_on": {
             "dataset": str(Path(dataset).resolve()),
@@ -185,6 +198,7 @@ def fit(
             "train_slides": len(tr),
             "validation_slides": len(va),
             "validation_auc": chosen["validation_auc"],
+            **({CHANCE_FLAG: True} if chance is not None else {}),
         },
         # re-calibrated on the whole train side: every train slide is a fitting slide, the share validated too
         RECORD: fit_record(dataset, spec, fold, spec["train"], held),

@@ -34,7 +34,14 @@ from pathlib import Path
 
 import numpy as np
 
-from baselines.reading.fitting import MIN_SLIDES_PER_CLASS, check_classes, check_head, logistic_fit
+from baselines.reading.fitting import (
+    CHANCE_FLAG,
+    MIN_SLIDES_PER_CLASS,
+    chance_warning,
+    check_classes,
+    check_head,
+    logistic_fit,
+)
 from baselines.reading.slides import HeadDataError, load_slide, read_spec, spec_label, warn_scale
 from data_tools.features import pcam_cnn
 from data_tools.metrics import json_safe
@@ -426,7 +433,15 @@ def run(args, parser=None) -> int:
         spec = read_spec(args.dataset, args.fold)
         warn_scale(args.dataset, spec)  # the encoder-scale warning dataset.json records, repeated
         kept, held = split_train(spec, args.val_fraction, args.seed)
-        check_validation_share(spec, held, Path(args.dataset) / "dataset.json", args.val_fraction, args.fold)
+        check_validation_share(
+            spec,
+            held,
+            Path(args.dataset) / "dataset.json",
+            args.val_fraction,
+            args.fold,
+            seed=args.seed,
+            fitting=MIN_SLIDES_PER_CLASS,
+        )
         known = [spec_label(spec, Path(n).name) for n in kept]
         if None not in known:  # labels in dataset.json: too few of a class refused before any slide is read
             check_classes(args.dataset, [{"label": v} for v in known], MIN_SLIDES_PER_CLASS)
@@ -490,6 +505,12 @@ def run(args, parser=None) -> int:
         )
     ) is not None:
         print(warning, file=sys.stderr)  # the candidate was chosen on it (a refusal above stays one line)
+    share = "the validation share" + (f" of fold {args.fold}" if args.fold is not None else "")
+    chance = chance_warning(
+        summary[best]["full"][0], *auc_interval(summary[best]["full"][0], n_tumour, n_normal), share
+    )
+    if chance is not None:
+        print(chance, file=sys.stderr)
     name = best.split(",")[0]
     head = candidate_head(name, slides, shape, 0, args.steps)
     info = {
@@ -515,6 +536,7 @@ def run(args, parser=None) -> int:
                 )
             ),
             "reference_validation_auc": summary[ref]["full"][0],
+            **({CHANCE_FLAG: True} if chance is not None else {}),
         },
         # refitted on the whole train side: every train slide is a fitting slide, the share validated too
         RECORD: fit_record(args.dataset, spec, args.fold, spec["train"], held),

@@ -59,16 +59,19 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
-from tqdm import tqdm
 
-from baselines.reading.fitting import MIN_SLIDES_PER_CLASS  # the same minimum as the logit and MIL fits
+from baselines.reading.fitting import (  # the same minimum as the logit and MIL fits
+    CHANCE_FLAG,
+    MIN_SLIDES_PER_CLASS,
+    chance_warning,
+)
 from baselines.reading.provenance import RECORD, add_flag, check_scored, fit_record, head_for_fold
 from baselines.reading.slides import HeadDataError, finest_views, lesion_of, read_bundle, warn_scale
 from baselines.reading.slides import read_spec as read_sealed_spec
-from baselines.validation import check_validation_share, split_train
+from baselines.validation import check_all_folds, check_validation_share, split_train
 from data_tools.annotations import load_annotations
 from data_tools.bundle_files.safe_files import own_file
-from data_tools.cli_output import command_main, print_error
+from data_tools.cli_output import command_main, print_error, progress_bar
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import (
     UNDEFINED,
@@ -155,7 +158,7 @@ def load_views(bundle, label: int | None = None, spec: dict | None = None, verif
 def load_split(dataset, entries, spec: dict, progress: bool = True, desc: str = "loading") -> list[dict]:
     """:func:`load_views` of every entry of ``entries`` (paths relative to ``dataset`` or absolute)."""
     out = []
-    for rel in tqdm(entries, desc=desc, disable=not progress, file=sys.stderr, leave=False):
+    for rel in progress_bar(entries, desc=desc, disable=not progress, file=sys.stderr, leave=False):
         bundle = Path(rel) if Path(rel).is_absolute() else Path(dataset) / rel
         out.append(load_views(bundle, spec=spec))
     return out
@@ -411,7 +414,7 @@ def train(
     curve, losses, best, checkpoints = [], [], head0, []
     attention = None
     flat = np.concatenate([np.asarray(s["features"]) for s in train_slides]) if top_share > 0 else None
-    bar = tqdm(
+    bar = progress_bar(  # a log (not a terminal): a line each tenth, no carriage returns
         range(steps),
         desc=f"{structure['hidden']} units, seed {seed}",
         disable=not progress,
@@ -589,7 +592,15 @@ def run(args, parser=None) -> int:
             kept, held = split_train(spec, args.val_fraction, args.split_seed)
         except ValueError as e:
             raise FitError(Path(args.dataset) / "dataset.json", str(e)) from None
-        check_validation_share(spec, held, Path(args.dataset) / "dataset.json", args.val_fraction, args.fold)
+        check_validation_share(
+            spec,
+            held,
+            Path(args.dataset) / "dataset.json",
+            args.val_fraction,
+            args.fold,
+            seed=args.split_seed,
+            fitting=MIN_SLIDES_PER_CLASS,
+        )
         train_slides = load_split(args.dataset, kept, spec, progress, "training slides")
         val_slides = load_split(args.dataset, held, spec, progress, "validation slides")
         check_classes(args.dataset, train_slides, val_slides)
@@ -653,6 +664,9 @@ def run(args, parser=None) -> int:
         )
     ) is not None:
         print(warning, file=sys.stderr)  # the checkpoint and calibration were chosen on it (a refusal stays one line)
+    share = "the validation share" + (f" of fold {args.fold}" if args.fold is not None else "")
+    if (chance := chance_warning(final["full"], *val_interval(val, final["full"]), share)) is not None:
+        print(chance, file=sys.stderr)
     wall = time.perf_counter() - t0
     info = {
         "fitted_on": {
@@ -676,6 +690,7 @@ def run(args, parser=None) -> int:
                 )
             ),
             "validation_auc_read_0.1": round(final["read 0.1"], 4),
+            **({CHANCE_FLAG: True} if chance is not None else {}),
         },
         "calibration": {
             "slope": round(float(head.cal_a), 5),
@@ -890,7 +905,10 @@ def all_folds_command(args, parser=None) -> int:
         return print_error(f"--all-folds fits every fold the dataset records; not with --fold {args.fold}")
     try:
         k, _ = dataset_folds(args.dataset)
-    except HistojaxDataError as e:
+        if not 0.0 < args.val_fraction < 1.0:
+            raise FitError(Path(args.dataset) / "dataset.json", f"--val-fraction {args.val_fraction} is not in (0, 1)")
+        check_all_folds(args.dataset, args.val_fraction, args.split_seed, fitting=MIN_SLIDES_PER_CLASS)  # before any
+    except (HistojaxDataError, ValueError, OSError) as e:  # fold is trained: every fold's share is checked now
         return print_error(e)
     for i in range(k):
         one = copy.copy(args)

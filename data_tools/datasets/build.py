@@ -191,6 +191,8 @@ def make_plan(
     }
     plan = {"kind": KIND, "options": options, "split_rule": rule, "slides": slides}
     plan["split_grouped_by"] = grouped_by  # a plan written before it (no such key) is still agreed to: _agree
+    if several:  # slide -> patient, for the validation shares cut from the train side (baselines.validation.units)
+        plan["patients"] = {n: g.split(":", 1)[1] for n, g in sorted(every.items()) if g.startswith("patient:")}
     if folds is not None:
         pool = [n for n in slides if not fixed or split[n] == "train"]
         groups, grouped_by = patient_groups(pool, patients)
@@ -266,6 +268,8 @@ def _agree(out: Path, plan: dict, restart: bool = False) -> None:
         old = read_plan(out)
         if "split_grouped_by" not in old:  # written before splits were grouped by patient: the same split agrees
             old = {**old, "split_grouped_by": plan.get("split_grouped_by")}
+        if "patients" not in old and "patients" in plan:  # written before the patients were recorded: the same
+            old = {**old, "patients": plan["patients"]}  # labels and names give the same patients
         if not restart and old != plan and plan.get("folds") and {**old, "folds": plan["folds"]} == plan:
             # only the folds are new: they depend on the labels and patients alone, so no bundle is rebuilt
             print(
@@ -624,6 +628,7 @@ def write_dataset_json(out, plan: dict, records: dict[str, dict], failed: dict[s
         "failed": dict(sorted(failed.items())),
         "slides": [records[n] for n in names],
         **({"folds": fold_lists(plan["folds"], names)} if plan.get("folds") else {}),
+        **({"patients": {n: p for n, p in plan["patients"].items() if n in records}} if plan.get("patients") else {}),
         **(extra or {}),
     }
     scale, _ = dataset_scale(dataset["encoder"], {n: plan["slides"][n].get("mpp") for n in names})

@@ -225,6 +225,8 @@ def _report(out: Path, dataset: dict, failed: dict, summary: dict) -> int:
             + ")"
         )
     labels = {Path(str(k)).name: v for k, v in (dataset.get("labels") or {}).items()}
+    for line in one_class_fold_lines(dataset, labels, failed):
+        print(line)
     for side in ("train", "test"):
         classes = {labels.get(Path(str(e)).name) for e in dataset[side]} - {None}
         if dataset[side] and len(classes) == 1:
@@ -245,6 +247,30 @@ def _report(out: Path, dataset: dict, failed: dict, summary: dict) -> int:
     for line in small_split_lines(dataset, labels):
         print(line)
     return 1 if failed or kept else 0
+
+
+def one_class_fold_lines(dataset: dict, labels: dict, failed: dict) -> list[str]:
+    """A warning line for each fold of ``dataset.json`` whose slides (those built) hold one class or none: its
+    held-out AUC is undefined and every command scoring it refuses it. Names the fold, its counts and, when slides
+    failed, that they are why (the folds were dealt before the build, with every class in every fold)."""
+    lines = []
+    for i, lst in enumerate((dataset.get("folds") or {}).get("lists") or []):
+        got = [labels.get(Path(str(e)).name) for e in lst]
+        n_t, n_n = sum(v == 1 for v in got), sum(v == 0 for v in got)
+        if n_t and n_n:
+            continue
+        lines.append(
+            f"warning: fold {i} holds {n_t} tumour and {n_n} normal slides"
+            + (f" after {len(failed)} failed slide(s) were left out" if failed else "")
+            + f": its AUC is undefined and --fold {i} / --all-folds refuse it; "
+            + (
+                "rebuild the failed slides (or drop them from the label table and build again with --restart) so "
+                "every fold holds both classes"
+                if failed
+                else "give fewer --folds or more slides of each class"
+            )
+        )
+    return lines
 
 
 def small_split_lines(dataset: dict, labels: dict) -> list[str]:

@@ -182,20 +182,8 @@ def read_label_table(path) -> tuple[dict[str, int], dict[str, str]]:
     return labels, splits
 
 
-def seeded_split(
-    names, labels: dict[str, int], test_fraction: float, seed: int, groups: dict[str, str] | None = None
-) -> tuple[list[str], list[str]]:
-    """Train/test by slide, stratified by label: for each label, ``floor(test_fraction · n)`` slides (at
-    least one while the label has two or more) go to test in a seeded order. ``groups`` (name → group
-    key) keeps slides of one group (e.g. a patient) on one side. Deterministic given ``seed`` and the
-    set of names (not their order)."""
-    if not 0 <= test_fraction < 1:
-        raise HistojaxDataError(None, f"--test-fraction {test_fraction} must be in [0, 1)")
-    names = sorted(names)
-    groups = groups or {}
-    members: dict[str, list[str]] = {}
-    for n in names:
-        members.setdefault(groups.get(n, n), []).append(n)
+def _seeded_test(names, labels: dict[str, int], test_fraction: float, seed: int, members: dict[str, list[str]]):
+    """The test side of :func:`seeded_split` (a set of names), ``members``: group key -> its sorted names."""
     keys = sorted(members)
     order = [keys[i] for i in np.random.default_rng([int(seed), 22]).permutation(len(keys))]
     test: set[str] = set()
@@ -212,6 +200,49 @@ def seeded_split(
             if taken + size <= cap:
                 test.update(members[g])
                 taken += size
+    return test
+
+
+def seeded_split(
+    names, labels: dict[str, int], test_fraction: float, seed: int, groups: dict[str, str] | None = None
+) -> tuple[list[str], list[str]]:
+    """Train/test by slide, stratified by label: for each label, ``floor(test_fraction · n)`` slides (at
+    least one while the label has two or more) go to test in a seeded order. ``groups`` (name → group
+    key) keeps slides of one group (e.g. a patient) on one side. Deterministic given ``seed`` and the
+    set of names (not their order). A ``test_fraction > 0`` whose grouped split leaves a side empty (every
+    patient holds more slides than the fraction of a label) is refused in one line with the counts and the
+    smallest ``--test-fraction`` that would give both sides slides."""
+    if not 0 <= test_fraction < 1:
+        raise HistojaxDataError(None, f"--test-fraction {test_fraction} must be in [0, 1)")
+    names = sorted(names)
+    groups = groups or {}
+    members: dict[str, list[str]] = {}
+    for n in names:
+        members.setdefault(groups.get(n, n), []).append(n)
+    test = _seeded_test(names, labels, test_fraction, seed, members)
+    biggest = max((len(m) for m in members.values()), default=1)
+    if test_fraction > 0 and biggest > 1 and len(members) >= 2 and (not test or len(test) == len(names)):
+        works = next(
+            (
+                f / 100
+                for f in range(1, 100)
+                if 0 < len(_seeded_test(names, labels, f / 100, seed, members)) < len(names)
+            ),
+            None,
+        )
+        side = "test" if not test else "train"
+        raise HistojaxDataError(
+            None,
+            f"--test-fraction {test_fraction:g}: {len(names)} slides in {len(members)} patients (up to "
+            f"{biggest} slides each; the slides of one patient stay on one side): the seeded split leaves the "
+            f"{side} side empty (a {test_fraction:g} share of each label is fewer slides than a whole patient "
+            "holds); "
+            + (
+                f"use --test-fraction {works:.2f} or more, or give a split column"
+                if works is not None
+                else "no --test-fraction gives both sides slides: give a split column, or use --folds K"
+            ),
+        )
     return [n for n in names if n not in test], [n for n in names if n in test]
 
 
@@ -289,21 +320,37 @@ def read_patient_column(path) -> dict[str, str]:
     return out
 
 
+def patient_key(text: str) -> str:
+    """A patient id as the grouping compares it: surrounding whitespace stripped, inner runs of whitespace one
+    space, case folded, and a TCGA barcode (``TCGA-A1-A0SB-01Z-...``, in a patient cell or a slide name) cut to its
+    patient (``tcga-a1-a0sb``): ``"P1 "``, ``"p1"`` and ``"P1"`` are one patient."""
+    text = " ".join(str(text).split())
+    if m := TCGA_BARCODE.match(text):
+        text = m.group(1)
+    return text.casefold()
+
+
 def patient_groups(names, patients: dict[str, str] | None = None) -> tuple[dict[str, str], str]:
     """``(name → patient, how)``: the label table's patient column (``patients``, matched ignoring case) where it
     names the slide, else the patient of a TCGA barcode (``TCGA-XX-XXXX``), else the slide itself; ``how`` says
-    which rule grouped the slides (for ``dataset.json``)."""
+    which rule grouped the slides (for ``dataset.json``). The one grouping of every split (the default split, the
+    folds, the head fits' and readers' validation shares: :func:`baselines.validation.units`): ids are compared
+    as :func:`patient_key` gives them (case and whitespace ignored), and each group is named by its first
+    spelling (slides in sorted order), so a cohort spelled consistently keeps the keys (and splits) it had."""
     given = {k.lower(): v for k, v in (patients or {}).items()}
-    out, used = {}, set()
-    for n in names:
+    out, used, spelling = {}, set(), {}
+    for n in sorted(names):
         if n.lower() in given:
-            out[n], rule = f"patient:{given[n.lower()]}", "the label table's patient column"
-        elif m := TCGA_BARCODE.match(n):
-            out[n], rule = f"patient:{m.group(1).upper()}", "the TCGA barcode's patient (TCGA-XX-XXXX)"
+            pid, rule = " ".join(str(given[n.lower()]).split()), "the label table's patient column"
+        elif m := TCGA_BARCODE.match(n.strip()):
+            pid, rule = m.group(1).upper(), "the TCGA barcode's patient (TCGA-XX-XXXX)"
         else:
             out[n], rule = f"slide:{n}", "one slide per patient"
+            used.add(rule)
+            continue
+        out[n] = "patient:" + spelling.setdefault(patient_key(pid), pid)
         used.add(rule)
-    return out, "; ".join(sorted(used)) or "one slide per patient"
+    return {n: out[n] for n in names}, "; ".join(sorted(used)) or "one slide per patient"
 
 
 def patients_on_both_sides(split: dict[str, str], groups: dict[str, str]) -> dict[str, dict[str, list[str]]]:
@@ -412,6 +459,7 @@ __all__ = [
     "parse_label",
     "parse_shard",
     "patient_groups",
+    "patient_key",
     "patients_on_both_sides",
     "read_label_table",
     "read_patient_column",

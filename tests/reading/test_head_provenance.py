@@ -99,7 +99,8 @@ def test_a_validation_share_too_small_is_refused_before_any_slide_is_read(small,
     assert _main(["--dataset", str(root), "--out", str(tmp_path / "h"), "--quiet"]) == 2  # 0.2 of 9 + 9: 2 + 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1, err
-    assert "2 tumour and 2 normal" in err and "--val-fraction" in err and "--folds" in err and str(root) in err
+    assert "2 tumour and 2 normal validation slides" in err and str(root) in err
+    assert "use --val-fraction 0.28 (the smallest that does)" in err  # what works, not merely "larger"
     assert not (tmp_path / "h").exists()
     assert _main(["--dataset", str(root), "--out", str(tmp_path / "h"), "--fold", "0", "--quiet"]) == 2
     assert "fold 0's train side" in capsys.readouterr().err
@@ -108,7 +109,7 @@ def test_a_validation_share_too_small_is_refused_before_any_slide_is_read(small,
 def test_the_logit_and_mil_fits_refuse_the_same_share(small):
     from baselines.reading import head_fit
 
-    with pytest.raises(ValueError, match="holds 2 tumour and 2 normal"):
+    with pytest.raises(ValueError, match="gives 2 tumour and 2 normal validation slides"):
         head_fit.fit(small["root"], None, val_fraction=0.2)
     spec = json.loads((small["root"] / "dataset.json").read_text())
     kept, held = split_train(spec, 0.4, 0)

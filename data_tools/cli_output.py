@@ -12,6 +12,7 @@ import logging
 import math
 import re
 import sys
+import time
 import warnings
 
 USER_ERROR = 2
@@ -195,3 +196,68 @@ def add_reader_argument(p) -> None:
         "VMS / VMU, SVSlide and Philips TIFF), native, or openslide (any slide through OpenSlide 4; "
         "pip install 'histojax[openslide]')",
     )
+
+
+class LineProgress:
+    """A progress bar for a stream that is not a terminal (a log file, a pipe): a full line at every tenth of
+    ``total`` (and at the end), never carriage-return updates; :func:`progress_bar`'s. The tqdm calls the tools
+    make: iteration, ``update``, ``set_postfix``, ``close`` (and ``with``)."""
+
+    def __init__(self, iterable=None, desc: str = "", total=None, file=None, initial: int = 0, unit: str = "it"):
+        self.iterable, self.desc, self.file, self.unit = iterable, desc, file or sys.stderr, unit
+        if total is None and iterable is not None and hasattr(iterable, "__len__"):
+            total = len(iterable)
+        self.total, self.n, self.postfix, self.shown = total, int(initial), "", -1
+        self.t0 = time.perf_counter()
+
+    def __iter__(self):
+        for item in self.iterable:
+            yield item
+            self.update(1)
+        self.close()
+
+    def __enter__(self):
+        return self
+
+    def __exit__(self, *exc) -> None:
+        self.close()
+
+    def set_postfix(self, ordered_dict=None, refresh: bool = True, **kwargs) -> None:
+        """Shown at the end of the next line (as tqdm's postfix: ``key=value``)."""
+        items = {**(ordered_dict or {}), **kwargs}
+        self.postfix = ", ".join(f"{k}={v}" for k, v in items.items())
+
+    def update(self, n: int = 1) -> None:
+        """``n`` more done: a line when a new tenth of ``total`` is reached (unknown total: every 10 % of a
+        power of ten)."""
+        self.n += int(n)
+        tenth = int(10 * self.n / self.total) if self.total else int(math.log10(max(self.n, 1)) * 10)
+        if tenth > self.shown:
+            self.shown = tenth
+            self._line()
+
+    def close(self) -> None:
+        """The last line, once (when the last update did not print it)."""
+        if self.shown < 10 and self.total and self.n >= self.total:
+            self.shown = 10
+            self._line()
+        self.shown = max(self.shown, 10)
+
+    def _line(self) -> None:
+        of = f"/{self.total}" if self.total else ""
+        pct = f" ({100 * self.n / self.total:.0f} %)" if self.total else ""
+        took = time.perf_counter() - self.t0
+        tail = f", {self.postfix}" if self.postfix else ""
+        print(f"{self.desc}: {self.n}{of} {self.unit}{pct}{tail}, {took:.0f} s", file=self.file, flush=True)
+
+
+def progress_bar(iterable=None, desc: str = "", total=None, disable: bool = False, file=None, **kwargs):
+    """tqdm on a terminal; on any other stream (a log, a pipe) a :class:`LineProgress` (a full line at every tenth,
+    no carriage returns filling the log). ``disable``: tqdm's silent bar. Other keywords go to tqdm (``unit``,
+    ``initial`` are kept by both)."""
+    file = file if file is not None else sys.stderr
+    if disable or (hasattr(file, "isatty") and file.isatty()):
+        from tqdm import tqdm
+
+        return tqdm(iterable, desc=desc, total=total, disable=disable, file=file, **kwargs)
+    return LineProgress(iterable, desc, total, file, kwargs.get("initial", 0), kwargs.get("unit", "it"))

@@ -21,10 +21,10 @@ import warnings
 from pathlib import Path
 
 import numpy as np
-from tqdm.auto import tqdm
 
 from data_tools.bundle_files.reading import load_bundle, load_tiled_level, read_metadata
 from data_tools.bundle_files.writes import remove_partial
+from data_tools.cli_output import progress_bar
 from data_tools.errors import BundleError
 from data_tools.features.encoders import encoder_scale
 from data_tools.features.store import level_grids, save_array, update_metadata
@@ -188,7 +188,9 @@ def compute_features(
         return partial / f"{chunk:06d}.npy"
 
     done = sum(chunk_file(c).is_file() for c in range(n_chunks))
-    bar = tqdm(total=n_chunks, initial=done, desc=f"embedding {bundle.name}", unit="batch", disable=not progress)
+    bar = progress_bar(
+        total=n_chunks, initial=done, desc=f"embedding {bundle.name}", unit="batch", disable=not progress
+    )
     new = 0
     try:
         for c in range(n_chunks):

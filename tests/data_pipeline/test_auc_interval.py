@@ -76,3 +76,11 @@ def test_small_split_warning_names_counts_and_remedy():
 def test_other_levels_are_refused():
     with pytest.raises(ValueError):
         auc_interval(0.8, 10, 10, level=0.9)
+
+
+def test_the_small_split_warning_states_the_interval_computed_at_its_counts():
+    """It quotes the interval auc_interval gives at the split's own counts and its half-width, not an AUC measured."""
+    low, high = auc_interval(0.85, 5, 7)
+    line = small_split_warning(5, 7, "fold 1's validation share")
+    assert f"[{low:.2f}, {high:.2f}]" in line and f"±{(high - low) / 2:.2f}" in line
+    assert "near 0.85" in line and "an AUC of 0.85 on it" not in line

@@ -144,10 +144,10 @@ def check_scored(head, head_dir, dataset, scored, allow: bool = False, what: str
         if source == "recorded"
         else " (it records no slides: taken as fitted on this dataset's train split, as published and older heads were)"
     )
+    on_fold = f"; it was fitted on fold {fold}'s train side" if fold is not None else ""
     problem = (
         f"the head was {' and '.join(parts)} of the {n} slides it {what} (e.g. {', '.join(seen[:3])})"
-        f"{how}{f'; it was fitted on fold {fold}' if fold is not None else ''}: figures on them are not held "
-        "out"
+        f"{how}{on_fold}: figures on them are not held out"
     )
     where = Path(head_dir) / "config.json" if head_dir is not None else None
     if not allow:
@@ -181,8 +181,17 @@ def head_for_fold(head, fold: int) -> str:
     if "{fold}" in text:
         return text.replace("{fold}", str(fold))
     folder = Path(text)
-    if not (folder / "config.json").exists() and (folder / f"fold{fold}" / "config.json").exists():
-        return str(folder / f"fold{fold}")
+    if not (folder / "config.json").exists():
+        if (folder / f"fold{fold}" / "config.json").exists():
+            return str(folder / f"fold{fold}")
+        present = sorted(p.name for p in folder.glob("fold*") if (p / "config.json").is_file())
+        if present:  # an --all-folds folder without this fold's head (e.g. a run that stopped early)
+            raise HistojaxDataError(
+                folder / f"fold{fold}",
+                f"missing: {folder} holds the heads of {', '.join(present)} only; fit fold {fold}'s with "
+                f"python -m baselines.reading.learned_head_fit --all-folds --out {folder} (or --fold {fold} --out "
+                f"{folder / f'fold{fold}'})",
+            )
     return text
 
 

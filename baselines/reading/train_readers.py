@@ -25,7 +25,9 @@ still trains on a C16 set as before), its zoom levels the most the bundles were 
    ``OUT/<algo>`` (``log.csv``, ``curve.png``,
    ``params.msgpack``, ``config.json``) plus ``OUT/<algo>/head_reward.json`` (the reward's settings) and
    ``OUT/<algo>/curve-seeds.png`` / ``.csv`` (the learning curve as mean ± std over seeds: :func:`seed_curve`).
-   ``--resume`` continues a stopped run of the same ``OUT`` from its last checkpoint (``OUT/<algo>/checkpoint``).
+   The same command rerun after a kill continues the trainer's run in ``OUT/<algo>`` from its last checkpoint (a
+   finished one is not trained again, its ``head_reward.json`` kept, and the scoring runs); ``--resume`` does so
+   with the stopped run's own config; ``--restart`` moves the old run aside into ``OUT/<algo>/previous-N/``.
 3. Scores the trained seeds with :mod:`baselines.reading.readers` on the **validation** split at 5/10/20/50 %
    (overview only, random, scripted, the learned reader, read everything; the same head for every row):
    ``OUT/validation/readers.csv``, ``readers.png``, ``readers.json``. A head fitted on the training split saw these
@@ -141,6 +143,31 @@ def split_dataset(dataset: Path, out: Path, fraction: float, seed: int, fold: in
     return out
 
 
+def same_split(out: Path, run_dir: Path, dataset: Path, fraction: float, seed: int, fold: int | None) -> None:
+    """Refuse (``HistojaxDataError`` naming ``out/dataset.json``, one line) to split ``out`` again with other
+    settings than the run in ``run_dir`` (a checkpoint or final params) trained on: a rerun would continue that
+    run on other slides. Nothing to check when no run is there or ``out/dataset.json`` is absent."""
+    path = out / "dataset.json"
+    if not path.is_file() or not ((run_dir / "checkpoint").is_dir() or (run_dir / "params.msgpack").is_file()):
+        return
+    try:
+        old = json.loads(path.read_text())
+    except (OSError, ValueError):
+        return  # not readable: split_dataset writes it again (and the trainer's config still guards its run)
+    was = old.get("validation_split") if isinstance(old, dict) else None
+    if not isinstance(was, dict):
+        return
+    now = {"fraction": fraction, "seed": seed, **({"fold": fold} if fold is not None else {})}
+    then = {k: was.get(k) for k in ("fraction", "seed", "fold") if k in was}
+    source = old.get("derived_from")
+    if then != now or (isinstance(source, str) and source != str(Path(dataset).resolve())):
+        raise HistojaxDataError(
+            path,
+            f"the run in {run_dir} trained on the split of {source} with {then}, not of {Path(dataset).resolve()} "
+            f"with {now}; rerun with those options, --restart (moves the run aside), or choose another --out",
+        )
+
+
 def with_head_reward(head, gain, final: float, read_cost: float):
     """Make the trainers' and the evaluation roll-out's :func:`~baselines.common.env.make_env` (the name each of
     :data:`ENV_MAKERS` calls) return the env wrapped in :class:`~histojax.reading.head_reward.HeadReward`; returns
@@ -228,6 +255,18 @@ def seed_curve(run_dir: Path, png: Path, csv_path: Path, smooth: int = 8) -> tup
     return png, csv_path
 
 
+def _params_stamp(run_dir: Path):
+    """``(inode, size, mtime)`` of ``run_dir/params.msgpack`` beside a ``head_reward.json`` (a finished run's
+    record), None otherwise: unchanged after the trainer ran, the run was not trained again."""
+    try:
+        if not (run_dir / "head_reward.json").is_file():
+            return None
+        st = (run_dir / "params.msgpack").stat()
+    except OSError:
+        return None
+    return st.st_ino, st.st_size, st.st_mtime_ns
+
+
 def main(argv=None) -> int:
     from baselines.published_agents import published_or_path
 
@@ -260,7 +299,13 @@ def main(argv=None) -> int:
     p.add_argument(
         "--resume",
         action="store_true",
-        help="continue the stopped run in OUT/<algo> from its last checkpoint (its own config)",
+        help="continue the stopped run in OUT/<algo> from its last checkpoint (its own config; the same command "
+        "rerun without --resume continues it too)",
+    )
+    p.add_argument(
+        "--restart",
+        action="store_true",
+        help="train again: the run in OUT/<algo> (finished or not) is moved aside into OUT/<algo>/previous-N/",
     )
     p.add_argument("--action-mode", default="glimpse:1")
     p.add_argument("--seeds", type=int, default=3)
@@ -303,6 +348,8 @@ def main(argv=None) -> int:
         if args.resume and (args.out / "dataset.json").is_file():
             data = args.out  # the split the stopped run trained on
         else:
+            if not args.restart and not args.skip_training:
+                same_split(args.out, run_dir, args.dataset, args.val_fraction, args.split_seed, args.fold)
             data = split_dataset(args.dataset, args.out, args.val_fraction, args.split_seed, args.fold)
         spec = json.loads((data / "dataset.json").read_text())
         levels = args.levels or dataset_levels(args.dataset, spec)
@@ -348,14 +395,18 @@ def main(argv=None) -> int:
                     f"env_kwargs={json.dumps(env_kwargs)}",  # json-not-written (an option)
                     "--out",
                     str(run_dir),
+                    *(["--restart"] if args.restart else []),
                     *extra,
                 ]
             )
+            before = _params_stamp(run_dir)
             code = module.main(trainer_argv)
         finally:
             restore()
         if code:
             return code
+    if not args.skip_training and not (before is not None and _params_stamp(run_dir) == before):
+        # written when the trainer trained; a finished run it did not train again keeps its record (and wall time)
         (run_dir / "head_reward.json").write_text(
             json.dumps(
                 {

@@ -276,3 +276,69 @@ def test_a_ppo_run_killed_with_sigkill_and_rerun_ends_bitwise_as_the_run_left_al
     assert (killed / "params.msgpack").read_bytes() == (straight / "params.msgpack").read_bytes()
     params = np.frombuffer((straight / "params.msgpack").read_bytes(), np.uint8)
     assert params.size > 1000  # a real network's parameters, not an empty file
+
+
+# ----------------------------------------------------------------------------- train_readers on a rerun
+HEAD = ROOT / "baselines" / "published" / "c16-v2-head"
+
+
+def _readers_command(tmp_path, monkeypatch, trained: list):
+    """``train_readers.main`` with its trainer, dataset split and scoring stood in for: the trainer (it is
+    ``histojax train``, tested above) records its options and writes ``params.msgpack`` unless its run there is
+    finished; what is tested is what ``train_readers`` does around it."""
+    import baselines.ppo
+    from baselines.reading import readers, train_readers
+
+    def split(dataset, out, fraction, seed, fold=None):
+        (out / "validation-set").mkdir(parents=True, exist_ok=True)
+        spec = {"train": [], "validation_split": {"fraction": fraction, "seed": seed}, "derived_from": str(dataset)}
+        (out / "dataset.json").write_text(json.dumps(spec))
+        return out
+
+    def trainer(argv):
+        trained.append(argv)
+        run = Path(argv[argv.index("--out") + 1])
+        if "--restart" in argv or not (run / "params.msgpack").exists():
+            run.mkdir(parents=True, exist_ok=True)
+            (run / "params.msgpack").write_bytes(os.urandom(8))
+        return 0
+
+    monkeypatch.setattr(train_readers, "split_dataset", split)
+    monkeypatch.setattr(train_readers, "dataset_levels", lambda *a, **k: 3)
+    monkeypatch.setattr(baselines.ppo, "main", trainer)
+    monkeypatch.setattr(readers, "main", lambda argv: 0)
+    (tmp_path / "data").mkdir(exist_ok=True)
+    base = ["--dataset", str(tmp_path / "data"), "--head", str(HEAD), "--out", str(tmp_path / "o")]
+    return lambda *more: train_readers.main([*base, *more])
+
+
+def test_train_readers_rerun_keeps_a_finished_runs_record_and_passes_restart(tmp_path, monkeypatch):
+    """Was: a rerun after a kill during the scoring rewrote head_reward.json with the wall time of a run that
+    trained nothing; now the record stays until the trainer really trains (here: with --restart)."""
+    trained = []
+    train = _readers_command(tmp_path, monkeypatch, trained)
+    record = tmp_path / "o" / "ppo" / "head_reward.json"
+    assert train() == 0 and "--restart" not in trained[-1]
+    first = record.read_bytes()
+    record.write_text(json.dumps({**json.loads(first), "train_wall_s": 1234.5}))  # the first run's real time
+    assert train() == 0  # the same command again: the trainer's finished run, not trained again
+    assert json.loads(record.read_text())["train_wall_s"] == 1234.5
+    assert train("--restart") == 0 and "--restart" in trained[-1]  # the trainer moves its run aside
+    assert json.loads(record.read_text())["train_wall_s"] != 1234.5
+
+
+def test_train_readers_rerun_with_another_split_is_refused_while_a_run_trained_on_the_old_one(
+    tmp_path, monkeypatch, capsys
+):
+    """Was: the rerun wrote OUT/dataset.json with the new split and the trainer (whose config names only the
+    folder) continued the old run on other slides."""
+    trained = []
+    train = _readers_command(tmp_path, monkeypatch, trained)
+    assert train("--val-fraction", "0.3") == 0 and len(trained) == 1
+    split = (tmp_path / "o" / "dataset.json").read_bytes()
+    capsys.readouterr()
+    assert train("--val-fraction", "0.5") == 2 and len(trained) == 1
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and str(tmp_path / "o" / "dataset.json") in err[0] and "'fraction': 0.3" in err[0], err
+    assert (tmp_path / "o" / "dataset.json").read_bytes() == split  # refused before the split is written again
+    assert train("--val-fraction", "0.5", "--restart") == 0 and len(trained) == 2

@@ -54,6 +54,46 @@ def unreadable_at_budget(env_params, names) -> str | None:
     )
 
 
+def read_nothing_episodes(ep: dict, env_params, names) -> list[dict]:
+    """The slides on which some of a row's episodes ``ep`` (``slide``, ``fraction_read`` per episode) read nothing in a
+    glimpse env (``env_params.mode_data``: its cells and ``read_budget``): ``[{"slide", "reason", "episodes": "k of
+    n"}]``; the reason from the slide's cells and the budget (:func:`baselines.reading.pipeline.first_pick_words`:
+    every cell larger than the budget, or a first pick larger than it or a stop before reading). ``[]`` for other
+    modes."""
+    from baselines.reading.pipeline import first_pick_words
+
+    tables = getattr(env_params, "mode_data", None)
+    if "fraction_read" not in ep or not all(
+        hasattr(tables, k) for k in ("cell_views", "valid", "total_views", "read_budget")
+    ):
+        return []
+    fraction, slide = np.asarray(ep["fraction_read"]).reshape(-1), np.asarray(ep["slide"]).reshape(-1)
+    budget = np.float32(np.asarray(tables.read_budget))
+    views, valid = np.asarray(tables.cell_views), np.asarray(tables.valid, bool)
+    total = np.atleast_1d(np.asarray(tables.total_views)).reshape(-1)
+    out = []
+    for i in np.unique(slide[fraction <= 0]):
+        i = int(i)
+        limit = int(np.floor(budget * np.float32(total[i]) + np.float32(1e-4)))
+        smallest = views[i][valid[i]].min() if valid[i].any() else None
+        if smallest is not None and smallest <= limit:  # a cell fits: the policy picked too big or stopped first
+            reason = (
+                f"its first pick is larger than the budget ({limit} of {int(total[i])} views), or it stopped before "
+                f"reading, though its smallest cell ({int(smallest)} view{'' if smallest == 1 else 's'}) fits"
+            )
+        else:
+            reason = first_pick_words(None, limit, int(total[i]), views[i], valid[i])
+        on = slide == i
+        out.append(
+            {
+                "slide": str(names[i]),
+                "reason": reason,
+                "episodes": f"{int((fraction[on] <= 0).sum())} of {int(on.sum())}",
+            }
+        )
+    return out
+
+
 def evaluate(
     config,
     params,
@@ -163,7 +203,20 @@ def evaluate(
             row["per_seed"] = [summarise(e, names) for e in per_seed]
             rows[f"{label} ({name})"] = row
             episodes[f"{label} ({name})"] = pooled
+
+    def said_nothing():  # a row whose episodes read nothing on some slides: which, and why (JSON and a line)
+        from baselines.reading.pipeline import nothing_line
+
+        for name, row in rows.items():
+            if name in episodes and (nothing := read_nothing_episodes(episodes[name], env_params, names)):
+                row["read_nothing"] = nothing
+                w = nothing_line(name, float(np.asarray(env_params.mode_data.read_budget)), nothing)
+                say(f"warning: {w}")
+                if warnings is not None:
+                    warnings.append(w)
+
     if not references:
+        said_nothing()
         return undefined_figures(rows, task, one_class(env_params))
     say(f"  random: {num_episodes} episodes ...")
     space = env.action_space()
@@ -197,4 +250,5 @@ def evaluate(
     if out is not None:
         say(f"  pictures to {out} ...")
         write_pictures(picture_env, env_params, episodes, Path(out), config.env_id, head=head)
+    said_nothing()
     return undefined_figures(rows, task, one_class(env_params))

@@ -133,6 +133,28 @@ def one_class_problem(split: str, labels, fold: int | None = None) -> str | None
     )
 
 
+def split_words(dataset, split: str, fold: int | None = None) -> str:
+    """How a command names the slides it scores (warnings, titles): ``"fold I's held-out slides"`` for a fold's
+    held-out side, ``"the validation share of the train split"`` (or ``"of fold I's train side"``) for the
+    ``validation-set`` folder :mod:`baselines.reading.train_readers` scores (its ``"test"`` list is the validation
+    share), else ``"the SPLIT split"``. ``dataset``: the dataset folder (its ``dataset.json`` read plainly; an
+    unreadable one is named by ``split``)."""
+    import json
+
+    if fold is not None and split in ("test", "validation", "val"):
+        return f"fold {fold}'s held-out slides"
+    if fold is not None:
+        return f"fold {fold}'s {split} side"
+    try:
+        spec = json.loads((Path(dataset) / "dataset.json").read_text())
+    except (OSError, ValueError):
+        spec = {}
+    if split == "test" and isinstance(spec, dict) and spec.get("note_split") == "test = the validation slides":
+        cut = (spec.get("validation_split") or {}).get("fold")
+        return "the validation share of " + ("the train split" if cut is None else f"fold {cut}'s train side")
+    return f"the {split} split"
+
+
 def check_two_classes(dataset, split: str, labels, fold: int | None = None) -> None:
     """Refuse a scored split that holds one class: :class:`~baselines.reading.slides.HeadDataError`, one line
     naming ``dataset.json`` (:func:`one_class_problem`)."""
@@ -206,7 +228,7 @@ def nothing_line(reader: str, budget: float, entries: list[dict], shown: int = 5
     more = f"; and {len(entries) - shown} more" if len(entries) > shown else ""
     return (
         f"{reader} at budget {budget * 100:.3g} % read nothing on {len(entries)} slide"
-        f"{'s' if len(entries) > 1 else ''} (scored by the overview alone there): " + "; ".join(parts) + more
+        f"{'s' if len(entries) > 1 else ''} (scored there on nothing read): " + "; ".join(parts) + more
     )
 
 

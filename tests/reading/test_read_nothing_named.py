@@ -85,7 +85,7 @@ def test_the_readers_rows_hold_the_slides_read_nothing_on_for_readers_json():
         {"slide": "b", "reason": "its first pick (9 tissue views) is larger than the budget (0 of 10 views)"}
     ]
     (line,) = nothing_lines(rows)
-    assert line.startswith("my reader at budget 5 % read nothing on 1 slide (scored by the overview alone there): b:")
+    assert line.startswith("my reader at budget 5 % read nothing on 1 slide (scored there on nothing read): b:")
 
 
 def test_the_budget_curves_rows_hold_them_too():
@@ -98,3 +98,25 @@ def test_the_budget_curves_rows_hold_them_too():
         names=list("abc"),
     )
     assert [e["slide"] for e in rows[0]["read_nothing"]] == ["a", "b"]
+
+
+def test_evaluates_episodes_that_read_nothing_name_their_slides():
+    """A set reader's episodes in ``histojax evaluate``: the slides some episode read nothing on, and why."""
+    from types import SimpleNamespace
+
+    from baselines.evaluate.scoring import read_nothing_episodes
+
+    params = SimpleNamespace(
+        mode_data=SimpleNamespace(
+            cell_views=np.asarray([[5, 5], [1, 9], [1, 1]]),
+            valid=np.ones((3, 2), bool),
+            total_views=np.asarray([10, 10, 2]),
+            read_budget=np.float32(0.1),
+        )
+    )
+    ep = {"slide": np.asarray([0, 1, 2, 0, 1, 2]), "fraction_read": np.asarray([0.0, 0.0, 0.5, 0.0, 0.1, 0.5])}
+    named = read_nothing_episodes(ep, params, ["Tumor_072", "Normal_001", "c"])
+    assert [(e["slide"], e["episodes"]) for e in named] == [("Tumor_072", "2 of 2"), ("Normal_001", "1 of 2")]
+    assert "so is every cell of it (the smallest holds 5)" in named[0]["reason"]
+    assert named[1]["reason"].startswith("its first pick is larger than the budget (1 of 10 views), or it stopped")
+    assert read_nothing_episodes(ep, SimpleNamespace(mode_data=None), ["a", "b", "c"]) == []  # not a set reader

@@ -86,6 +86,9 @@ def publish(
     for f in ("log.csv", "curve.png"):  # the learning curve, when the run has one
         if (run / f).is_file():
             outputs.write_bytes(dest / f, (run / f).read_bytes())
+    seen = portable_slides_seen(run)
+    if seen is not None:  # the slides it trained and validated on, its dataset by folder name
+        outputs.write_text(dest / "slides_seen.json", json.dumps(json_safe(seen), indent=1, allow_nan=False) + "\n")
     if head is not None:
         record, copy = head
         if copy is not None:
@@ -177,6 +180,21 @@ def portable_config(config: dict) -> tuple[dict, dict]:
     return config, where
 
 
+def portable_slides_seen(run: Path) -> dict | None:
+    """The slides run folder ``run`` trained and validated on (:func:`baselines.reading.provenance.run_record`: its
+    ``slides_seen.json``, or what its ``config.json`` names), the dataset named by folder name; None when it
+    records none."""
+    from baselines.reading.provenance import run_record
+
+    record, _ = run_record(run)
+    if record is None:
+        return None
+    dataset = dict(record.get("dataset") or {})
+    if isinstance(dataset.get("folder"), str):
+        dataset["folder"] = folder_name(dataset["folder"])
+    return {**record, "dataset": dataset}
+
+
 def portable_head_config(config):
     """A slide head's ``config.json`` object with the dataset it was fitted on (``fitted_on.dataset``, written
     by the head fits as an absolute path) reduced to its folder name."""
@@ -189,6 +207,14 @@ def portable_head_config(config):
             **config,
             "fitted_on": {**config["fitted_on"], "dataset": folder_name(config["fitted_on"]["dataset"])},
         }
+    seen = config.get("slides_seen") if isinstance(config, dict) else None
+    if (
+        isinstance(seen, dict)
+        and isinstance(seen.get("dataset"), dict)
+        and isinstance(seen["dataset"].get("folder"), str)
+    ):
+        folder = folder_name(seen["dataset"]["folder"])
+        config = {**config, "slides_seen": {**seen, "dataset": {**seen["dataset"], "folder": folder}}}
     return config
 
 

@@ -90,6 +90,11 @@ def _finite(value):
     return None if isinstance(value, float) and value != value else value
 
 
+def _seen_words(seen: dict | None) -> str:
+    """``eval.csv``'s ``scored_on_seen_slides`` cell of a fold: ``"policy: A B; head: C"``, or ``""``."""
+    return "; ".join(f"{who}: {' '.join(names)}" for who, names in (seen or {}).items())
+
+
 def trained_fold(checkpoint) -> int | None:
     """The fold whose train side ``checkpoint`` (a run folder or its ``params.msgpack``) trained on, as its
     ``config.json`` records it (``env_kwargs.fold``), or None."""
@@ -155,6 +160,8 @@ def run_all_folds(args, parser, run_one, default_out) -> int:
         per_fold.append(rows)
         records.append({"fold": i, "checkpoint": checkpoint, "out": str(out / f"fold{i}"), **record})
     summary = summarise_folds(per_fold)
+    # folds whose policy or head scored slides it saw (--allow-fitting-slides): the summary says so too
+    seen = {str(r["fold"]): r["scored_on_seen_slides"] for r in records if r.get("scored_on_seen_slides")}
     outputs.write_text(
         out / "eval.json",
         json.dumps(
@@ -166,6 +173,7 @@ def run_all_folds(args, parser, run_one, default_out) -> int:
                     "folds": k,
                     "summary": summary,
                     "warnings": warnings,
+                    **({"self_scored": True, "scored_on_seen_slides": seen} if seen else {}),
                     "per_fold": records,
                 }
             ),
@@ -175,13 +183,19 @@ def run_all_folds(args, parser, run_one, default_out) -> int:
     )
     with outputs.open_text(out / "eval.csv") as f:
         w = csv.writer(f)
-        w.writerow(["fold", "policy", "episodes", *FIGURES, *INTERVAL])
+        w.writerow(["fold", "policy", "episodes", *FIGURES, *INTERVAL, "scored_on_seen_slides"])
+        marks = {i: _seen_words(seen.get(str(i))) for i in range(k)}
         for i, rows in enumerate(per_fold):
             for policy, r in rows.items():
-                w.writerow([i, policy, r.get("episodes", ""), *(_number(r.get(x)) for x in FIGURES + INTERVAL)])
+                w.writerow(
+                    [i, policy, r.get("episodes", ""), *(_number(r.get(x)) for x in FIGURES + INTERVAL), marks[i]]
+                )
+        every = "; ".join(f"fold {i}: {m}" for i, m in marks.items() if m)
         for policy, s in summary.items():
-            w.writerow([SUMMARY, policy, s["episodes"], *(_number(s.get(x)) for x in FIGURES + INTERVAL)])
-            w.writerow(["std", policy, "", *(_number(s.get(f"{x}_std")) for x in FIGURES), *([""] * len(INTERVAL))])
+            w.writerow([SUMMARY, policy, s["episodes"], *(_number(s.get(x)) for x in FIGURES + INTERVAL), every])
+            w.writerow(
+                ["std", policy, "", *(_number(s.get(f"{x}_std")) for x in FIGURES), *([""] * len(INTERVAL)), every]
+            )
     print(f"\nmean ± std over {k} folds ({split} side of each fold of {dataset}):")
     for policy, s in summary.items():
         shown = [

@@ -423,25 +423,29 @@ def head_reward_settings(run: Path, config: dict) -> tuple[dict | None, Path | N
 
 
 def resolve_head(recorded: str, run: Path, where) -> Path:
-    """The slide head folder a run names (``recorded``): as given when absolute; a published head's own name
-    (``baselines/published/NAME``, as the published agents record theirs) is the installed package's copy first,
-    so a folder of that name under the working folder is never taken for it (name it ``./baselines/published/NAME``
-    or by an absolute path to use it); else beside the run, in the working folder, in the repository, or a
-    published head of that name. ``HistojaxDataError`` naming ``where`` (the file that names it) when none holds a
-    ``config.json``."""
+    """The slide head folder a run names (``recorded``), as ``histojax evaluate --head`` resolves a head's name
+    (:func:`baselines.published_agents.published_or_path`): a published head's bare name or its package name
+    (``baselines/published/NAME``, as the published agents record theirs) is the installed package's copy first, so
+    a folder of that name under the working folder is never taken for it (name it ``./baselines/published/NAME`` or
+    by an absolute path to use it); any other name is the folder as given when absolute, else beside the run, in the
+    working folder or in the repository. A folder that is in none of these is refused (``HistojaxDataError`` naming
+    ``where``, the file that names it, and the missing folder), never replaced by a published head that merely
+    shares its folder name."""
+    from baselines.published_agents import published_or_path
+
     p = Path(recorded)
-    tries = [p] if p.is_absolute() else [run / p, p, Path(__file__).resolve().parents[2] / p]
-    if str(recorded).startswith("baselines/published/"):  # the package's own name for a shipped head
-        tries.insert(0, PUBLISHED / Path(str(recorded)[len("baselines/published/") :]))
-    tries.append(PUBLISHED / p.name)
+    published = Path(published_or_path(str(recorded)))
+    tries = [published] if published != p else []
+    tries += [p] if p.is_absolute() else [run / p, p, Path(__file__).resolve().parents[2] / p]
     for c in tries:
         if (c / "config.json").is_file():
             return c
+    missing = p if p.is_absolute() else run / p
     raise HistojaxDataError(
         where,
-        f"names the slide head {recorded!r}, which is not here (looked beside the run, in "
-        "the working folder and in baselines/published); give --head DIR, e.g. --head "
-        f"{published_path('c16-v2-head')}",
+        f"names the slide head {recorded!r}, which is not here (no {missing / 'config.json'}; looked beside the "
+        "run, in the working folder and the repository; a published head is named by its own name); give "
+        f"--head DIR, e.g. --head {published_path('c16-v2-head')}",
     )
 
 

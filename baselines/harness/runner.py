@@ -369,6 +369,9 @@ def finish_run(
                 reference={"mean return": ref["return"], "success rate": ref["success"]},
             )
         save_checkpoint(out, params, config, stage=stage)
+    from baselines.reading.provenance import write_run_record
+
+    write_run_record(out, config)  # the slides it trained and validated on: every scorer refuses them unasked
     print(
         f"\n{algo} {config['env_id']}: {steps[-1]:,} env steps/seed x {summary['seeds']} seeds in "
         f"{train_seconds:.0f} s (+{compile_seconds:.0f} s compile), "
@@ -379,7 +382,7 @@ def finish_run(
         f"mean length {final['length']:.1f}  steps to success {final['steps_to_success']:.1f}"
     )
     print(f"random agent: return {ref['return']:.3f}  success {ref['success']:.1%}")
-    print(f"wrote {out}/log.csv, log.json, curve.png, params.msgpack, config.json")
+    print(f"wrote {out}/log.csv, log.json, curve.png, params.msgpack, config.json, slides_seen.json")
     return summary
 
 

@@ -61,23 +61,67 @@ def dataset_identity(dataset, spec: dict | None = None) -> dict:
     }
 
 
+C16_KIND = "CAMELYON16"
+"""A ``dataset.json`` ``kind`` holding this word is a CAMELYON16 set: its slides are CAMELYON16's, by name."""
+
+
+def slide_identity(dataset, entry, kind=None) -> str | None:
+    """What identifies the slide of ``entry`` (a ``dataset.json`` entry ``bundles/NAME`` or a bundle path) of
+    ``dataset`` whatever its name or dataset: ``"camelyon16:NAME"`` in a CAMELYON16 set (``kind``; every C16 set,
+    at any scale or encoder, holds CAMELYON16's slides under their own names), else ``"sha256:HEX"``, the SHA-256 of
+    the slide file the bundle was built from (its ``metadata.json``'s ``source.sha256``); None when neither is
+    known (no ``metadata.json``, or one that records no hash)."""
+    name = _name(entry)
+    if C16_KIND in str(kind or ""):
+        return f"camelyon16:{name}"
+    folder = Path(str(entry))
+    if not folder.is_absolute() and dataset is not None:
+        folder = Path(dataset) / folder
+        if len(Path(str(entry)).parts) == 1 and not folder.is_dir():  # a bare name: the dataset's bundles/NAME
+            folder = Path(dataset) / "bundles" / name
+    try:
+        meta = json.loads((folder / "metadata.json").read_text())
+        digest = (meta.get("source") or {}).get("sha256")
+    except (OSError, ValueError, AttributeError):
+        return None
+    return f"sha256:{digest}" if isinstance(digest, str) and digest else None
+
+
+def identities(dataset, entries, kind=None) -> dict[str, str]:
+    """``{name: identity}`` (:func:`slide_identity`) of the ``entries`` of ``dataset`` whose identity is known and
+    is theirs alone (two bundles built from one slide file are told apart by name only)."""
+    out = {}
+    for e in entries:
+        ident = slide_identity(dataset, e, kind)
+        if ident is not None:
+            out[_name(e)] = ident
+    counts: dict[str, int] = {}
+    for ident in out.values():
+        counts[ident] = counts.get(ident, 0) + 1
+    return {n: i for n, i in out.items() if counts[i] == 1}
+
+
 def fit_record(dataset, spec: dict, fold: int | None, fitted, validation, split: str = "train") -> dict:
-    """The :data:`RECORD` entry of a head's ``config.json``: the dataset's identity (:func:`dataset_identity`, the seal
-    of its ``dataset.json`` as read without a fold), ``split`` and ``fold`` fitted on, and the sorted slide names of
-    ``fitted`` (the slides whose labels trained or calibrated it) and ``validation`` (the slides that chose its
-    candidate or checkpoint, or calibrated it), each a list of ``dataset.json`` entries or names."""
+    """The :data:`RECORD` entry of a head's ``config.json`` (or a run's ``slides_seen.json``): the dataset's
+    identity (:func:`dataset_identity`, the seal of its ``dataset.json`` as read without a fold), ``split`` and
+    ``fold`` fitted on, the sorted slide names of ``fitted`` (the slides whose labels trained or calibrated it) and
+    ``validation`` (the slides that chose its candidate or checkpoint, or calibrated it), each a list of
+    ``dataset.json`` entries or names, and ``identities`` (name → :func:`slide_identity`), by which a slide is known
+    in another dataset or under another name."""
     from data_tools.bundle_files.seals import read_dataset_json
 
     try:
         base = read_dataset_json(dataset)  # the index itself (spec may be a fold's sides)
     except (OSError, ValueError):
         base = spec
+    ident = dataset_identity(dataset, base)
     return {
-        "dataset": dataset_identity(dataset, base),
+        "dataset": ident,
         "split": split,
         "fold": fold,
         "fitted": sorted({_name(e) for e in fitted}),
         "validation": sorted({_name(e) for e in validation}),
+        "identities": dict(sorted(identities(dataset, [*fitted, *validation], ident["kind"]).items())),
     }
 
 
@@ -91,24 +135,34 @@ def head_config(head) -> dict:
     return info if isinstance(info, dict) else {}
 
 
-def slides_seen(head, dataset) -> tuple[set[str], set[str], str]:
-    """``(fitted, validation, source)``: the slide names ``head`` was fitted and validated on and where that comes
-    from: its :data:`RECORD` (``"recorded"``), else, for a head recording a fit but no slides (published or older
-    heads), the train split of ``dataset``'s ``dataset.json`` read without a fold (``"assumed"``), else nothing
-    (``"none"``: a head built in code)."""
-    info = head_config(head)
-    rec = info.get(RECORD)
-    if isinstance(rec, dict):
-        return set(map(str, rec.get("fitted") or [])), set(map(str, rec.get("validation") or [])), "recorded"
-    if "fitted_on" not in info or dataset is None:  # no dataset named (bundle folders given): nothing to assume
-        return set(), set(), "none"
+def _spec(dataset) -> dict | None:
     from data_tools.bundle_files.seals import read_dataset_json
 
     try:
         spec = read_dataset_json(dataset)
     except (OSError, ValueError):
-        return set(), set(), "none"
-    fold = (info.get("fitted_on") or {}).get("fold") if isinstance(info.get("fitted_on"), dict) else None
+        return None
+    return spec if isinstance(spec, dict) else None
+
+
+def _assumed(info: dict, dataset) -> tuple[dict | None, str]:
+    """The record a head without one is taken to have (:func:`slides_seen`): ``(record, source)``."""
+    if "fitted_on" not in info or dataset is None:  # no dataset named (bundle folders given): nothing to assume
+        return None, "none"
+    fitted_on = info.get("fitted_on") if isinstance(info.get("fitted_on"), dict) else {}
+    named = fitted_on.get("dataset")
+    named_other = isinstance(named, str) and bool(named) and not _same_folder(named, dataset)
+    if named_other:
+        # fitted on another dataset: its own train split, when it is here (matched by identity), else unknown
+        other = _spec(named)
+        if other is None:
+            return None, "unknown"
+        dataset, spec = named, other
+    else:
+        spec = _spec(dataset)
+        if spec is None:
+            return None, "none"
+    fold = fitted_on.get("fold")
     if isinstance(fold, int) and not isinstance(fold, bool):  # an older fold fit: the other folds' slides
         from histojax.datasets import with_fold
 
@@ -116,50 +170,236 @@ def slides_seen(head, dataset) -> tuple[set[str], set[str], str]:
             spec = with_fold(spec, fold)
         except (HistojaxDataError, ValueError):
             pass  # the dataset has no such fold: its train split, as for any older head
-    return {_name(e) for e in spec.get("train") or []}, set(), "assumed"
+    train = list(spec.get("train") or [])
+    ident = dataset_identity(dataset, spec)
+    record = {"dataset": ident, "fitted": sorted({_name(e) for e in train}), "validation": []}
+    if named_other:  # another dataset's slides: known by identity in the scored one
+        record["identities"] = identities(dataset, train, ident["kind"])
+    return record, "assumed"
+
+
+def _same_folder(a, b) -> bool:
+    """Whether two dataset folders (a path, or a folder name as published records keep it) are one: the same
+    resolved path, or the same folder name when either is a bare name."""
+    pa, pb = Path(str(a)), Path(str(b))
+    try:
+        if pa.resolve() == pb.resolve():
+            return True
+    except OSError:
+        pass
+    bare = lambda p: len(p.parts) == 1  # noqa: E731
+    return (bare(pa) or bare(pb)) and pa.name == pb.name
+
+
+def slides_seen(head, dataset) -> tuple[set[str], set[str], str]:
+    """``(fitted, validation, source)``: the slide names ``head`` was fitted and validated on and where that comes
+    from: its :data:`RECORD` (``"recorded"``), else, for a head recording a fit but no slides (older heads), the
+    train split of the dataset its ``fitted_on`` names when that is here (else of ``dataset``'s ``dataset.json``
+    read without a fold: ``"assumed"``; ``"unknown"`` when it names another dataset that is not here), else nothing
+    (``"none"``: a head built in code)."""
+    record, source = record_of(head_config(head), dataset)
+    if record is None:
+        return set(), set(), source
+    return set(map(str, record.get("fitted") or [])), set(map(str, record.get("validation") or [])), source
+
+
+def record_of(info: dict, dataset) -> tuple[dict | None, str]:
+    """``(record, source)`` of a head's ``config.json`` object ``info``: its :data:`RECORD` (``"recorded"``), else
+    the one assumed for it (:func:`slides_seen`)."""
+    rec = info.get(RECORD)
+    if isinstance(rec, dict):
+        return rec, "recorded"
+    return _assumed(info, dataset)
+
+
+def seen_among(record: dict | None, dataset, scored) -> tuple[list[str], list[str], dict[str, str]]:
+    """``(fitted, validated, renamed)``: the names among ``scored`` (``dataset.json`` entries of ``dataset``, paths or
+    names) that ``record`` (a :data:`RECORD` entry) saw in fitting, those it saw in validation only, and
+    ``{scored name: recorded name}`` of those it knew by another name. A slide is seen when its identity
+    (:func:`slide_identity`) is one the record holds, whatever its name; by its **name** only when the names can be
+    trusted: the scored dataset has the record's seal, or the record holds no identities (written before them), or
+    the scored slide's identity cannot be known. A slide of another dataset (another seal) that merely shares a
+    name with a seen one is not seen."""
+    if not isinstance(record, dict):
+        return [], [], {}
+    fitted = set(map(str, record.get("fitted") or []))
+    validation = set(map(str, record.get("validation") or [])) - fitted
+    ids = record.get("identities") if isinstance(record.get("identities"), dict) else {}
+    by_id = {str(v): str(k) for k, v in ids.items()}
+    spec = _spec(dataset) if dataset is not None else None
+    here = dataset_identity(dataset, spec or {}) if dataset is not None else {"seal": None, "kind": None}
+    rec_seal = (record.get("dataset") or {}).get("seal") if isinstance(record.get("dataset"), dict) else None
+    trust = not ids or (rec_seal is not None and rec_seal == here["seal"])
+    out_f, out_v, renamed = [], [], {}
+    entries = sorted({str(e) for e in scored}, key=_name)
+    known = identities(dataset, entries, here["kind"]) if ids else {}
+    for e in entries:
+        name = _name(e)
+        ident = known.get(name)
+        seen = by_id.get(ident) if ident is not None else None
+        if seen is None and (trust or ident is None) and name in fitted | validation:
+            seen = name
+        if seen is None:
+            continue
+        if seen != name:
+            renamed[name] = seen
+        (out_f if seen in fitted else out_v).append(name)
+    return sorted(set(out_f)), sorted(set(out_v) - set(out_f)), renamed
 
 
 def overlap(head, dataset, scored) -> tuple[list[str], list[str], str]:
     """``(fitted, validated, source)``: the names among ``scored`` (``dataset.json`` entries, paths or names) the head
-    was fitted on, those it was validated on only, and :func:`slides_seen`'s source."""
-    fitted, validation, source = slides_seen(head, dataset)
-    names = sorted({_name(e) for e in scored})
-    return [n for n in names if n in fitted], [n for n in names if n in validation and n not in fitted], source
+    was fitted on, those it was validated on only (:func:`seen_among`), and :func:`slides_seen`'s source."""
+    record, source = record_of(head_config(head), dataset)
+    fitted, validated, _ = seen_among(record, dataset, scored)
+    return fitted, validated, source
 
 
 def check_scored(head, head_dir, dataset, scored, allow: bool = False, what: str = "scores") -> str | None:
     """Refuse (:class:`FittingSlidesError`, one line naming ``HEAD_DIR/config.json``) scoring ``scored`` slides with a
     head fitted or validated on some of them; with ``allow``, print the same as one ``warning:`` line on stderr and
-    return it. ``None`` when no scored slide was seen in fitting."""
-    fitted, validated, source = overlap(head, dataset, scored)
+    return it. ``None`` when no scored slide was seen in fitting. A head that records no slides and names a
+    dataset that is not here: a warning that they cannot be checked (returned too)."""
+    info = head_config(head)
+    record, source = record_of(info, dataset)
+    where = Path(head_dir) / "config.json" if head_dir is not None else None
+    if source == "unknown":
+        named = (info.get("fitted_on") or {}).get("dataset")
+        line = (
+            (f"{where}: " if where else "")
+            + f"records no slides and was fitted on {named}, which is not here: which of the scored slides it saw cannot be checked"
+        )
+        print(f"warning: {line}", file=sys.stderr, flush=True)
+        return None
+    how = (
+        ""
+        if source == "recorded"
+        else " (it records no slides: taken as fitted on this dataset's train split, as older heads were)"
+    )
+    return check_record(record, where, dataset, scored, allow, what, "head", how)
+
+
+def check_record(
+    record: dict | None,
+    where,
+    dataset,
+    scored,
+    allow: bool = False,
+    what: str = "scores",
+    who: str = "head",
+    how: str = "",
+) -> str | None:
+    """The refusal of :func:`check_scored` for any :data:`RECORD` entry (a head's, or a policy's: a run's
+    ``slides_seen.json``, :func:`run_record`); ``who`` names it in the line (``"head"``, ``"policy"``), ``where``
+    the file that records it."""
+    fitted, validated, renamed = seen_among(record, dataset, scored)
     if not fitted and not validated:
         return None
     seen = fitted + validated
     n = len({_name(e) for e in scored})
-    parts = ([f"fitted on {len(fitted)}"] if fitted else []) + ([f"validated on {len(validated)}"] if validated else [])
-    rec = head_config(head).get(RECORD) or {}
-    fold = rec.get("fold") if isinstance(rec, dict) else None
-    how = (
-        ""
-        if source == "recorded"
-        else " (it records no slides: taken as fitted on this dataset's train split, as published and older heads were)"
-    )
-    on_fold = f"; it was fitted on fold {fold}'s train side" if fold is not None else ""
+    verb = "fitted" if who == "head" else "trained"
+    parts = ([f"{verb} on {len(fitted)}"] if fitted else []) + ([f"validated on {len(validated)}"] if validated else [])
+    fold = (record or {}).get("fold")
+    shown = [f"{s} (recorded as {renamed[s]})" if s in renamed else s for s in seen[:3]]
+    on_fold = f"; it was {verb} on fold {fold}'s train side" if fold is not None else ""
     problem = (
-        f"the head was {' and '.join(parts)} of the {n} slides it {what} (e.g. {', '.join(seen[:3])})"
+        f"the {who} was {' and '.join(parts)} of the {n} slides it {what} (e.g. {', '.join(shown)})"
         f"{how}{on_fold}: figures on them are not held out"
     )
-    where = Path(head_dir) / "config.json" if head_dir is not None else None
     if not allow:
         raise FittingSlidesError(
             where,
             f"{problem}; score slides it has not seen (the test split, or the held-out "
-            f"fold of the head fitted on that fold), or pass {FLAG} to score them with a "
+            f"fold of the {who} {verb} on that fold), or pass {FLAG} to score them with a "
             "warning",
         )
     line = f"{where}: {problem} ({FLAG} given)" if where else f"{problem} ({FLAG} given)"
     print(f"warning: {line}", file=sys.stderr, flush=True)
     return line
+
+
+def seen_slides(record: dict | None, dataset, scored) -> list[str]:
+    """The names among ``scored`` that ``record`` saw (fitted, trained or validated on: :func:`seen_among`), sorted:
+    what a scorer writes as ``scored_on_seen_slides`` when :data:`FLAG` let it score them."""
+    fitted, validated, _ = seen_among(record, dataset, scored)
+    return sorted(fitted + validated)
+
+
+RUN_RECORD = "slides_seen.json"
+"""The file of a training run's folder (and a published agent's) recording the slides it trained and validated on
+(:func:`write_run_record`, the :data:`RECORD` entry of a head)."""
+
+
+def validation_entries(spec: dict) -> list:
+    """The validation slides a dataset holds back from its train split (``validation``: a list, as
+    ``train_readers`` writes it, or :mod:`baselines.validation`'s record with its ``validation`` list)."""
+    v = spec.get("validation")
+    if isinstance(v, dict):
+        v = v.get("validation")
+    return list(v) if isinstance(v, list) else []
+
+
+def run_slides(config) -> dict | None:
+    """The :data:`RECORD` of a run trained on a dataset (``config``: its ``env_kwargs`` ``dataset``, ``split``,
+    ``fold``): the dataset's seal and the names and identities of the side it trained on and of the validation
+    slides it held back; None when it trained on no dataset (or one that cannot be read)."""
+    from baselines.reading.slides import read_spec
+    from baselines.run_config import read_run_config
+
+    try:
+        kw = dict(read_run_config(config).env_kwargs or {})
+    except HistojaxDataError:
+        return None
+    dataset = kw.get("dataset")
+    if not isinstance(dataset, str) or not dataset:
+        return None
+    try:
+        spec = read_spec(dataset, kw.get("fold"))
+    except (HistojaxDataError, OSError, ValueError):
+        return None
+    split = kw.get("split", "train")
+    side = (spec.get("train") or []) + (spec.get("test") or []) if split == "all" else spec.get(split) or []
+    # a fold's "validation" is its held-out side, not slides held back from training: none for a fold run
+    held = validation_entries(spec) if kw.get("fold") is None else []
+    return fit_record(dataset, spec, kw.get("fold"), side, held, split=split)
+
+
+def write_run_record(out, config) -> Path | None:
+    """Write ``OUT/slides_seen.json`` (:data:`RUN_RECORD`: :func:`run_slides` of the run's ``config``); None, and
+    nothing written, for a run on no dataset."""
+    from baselines import outputs
+
+    record = run_slides(config)
+    if record is None:
+        return None
+    path = Path(out) / RUN_RECORD
+    outputs.write_text(path, json.dumps(record, indent=1) + "\n")
+    return path
+
+
+def run_record(run) -> tuple[dict | None, Path | None]:
+    """``(record, file)``: the slides a run (or published agent) folder ``run`` trained and validated on, from its
+    ``slides_seen.json``; else from what its ``config.json`` names (the dataset, split and fold, when that dataset
+    is here: an older run); ``(None, None)`` when neither says (a run on one slide, a published folder without the
+    record)."""
+    run = Path(run)
+    path = run / RUN_RECORD
+    if path.is_file():
+        try:
+            record = json.loads(path.read_text())
+        except (OSError, ValueError) as e:
+            raise HistojaxDataError(path, f"unreadable ({type(e).__name__}: {e})") from None
+        if not isinstance(record, dict):
+            raise HistojaxDataError(path, "not an object (fitted, validation, dataset, identities)")
+        return record, path
+    config = run / "config.json"
+    if not config.is_file():
+        return None, None
+    try:
+        record = run_slides(config)
+    except HistojaxDataError:
+        return None, None
+    return (record, config) if record is not None else (None, None)
 
 
 def add_flag(p) -> None:
@@ -201,8 +441,19 @@ __all__ = [
     "FittingSlidesError",
     "add_flag",
     "check_scored",
+    "RUN_RECORD",
+    "check_record",
     "dataset_identity",
     "fit_record",
+    "identities",
+    "record_of",
+    "run_record",
+    "run_slides",
+    "seen_among",
+    "seen_slides",
+    "slide_identity",
+    "validation_entries",
+    "write_run_record",
     "head_config",
     "head_for_fold",
     "overlap",

@@ -338,7 +338,7 @@ def test_published_agent_runs_on_wider_slides(name, data, tmp_path, capsys):
     out = tmp_path / "eval"
     assert (
         histojax_main(
-            # the published heads record no slides: taken as fitted on a train split, which this set's slides are
+            # the published heads and agents record c16-full's slides by CAMELYON16 name: not these (the flag is moot)
             ["evaluate", str(PUBLISHED / name), "--dataset", str(data["big"]), "--episodes", "2", "--out", str(out)]
             + ["--allow-fitting-slides"]
         )

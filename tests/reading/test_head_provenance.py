@@ -193,16 +193,23 @@ class _Head:
 
 
 def test_a_head_without_a_record_is_taken_as_fitted_on_the_train_split(small, capsys):
-    """Published and older heads record a fit (``fitted_on``) but no slides: the scored dataset's train split (as the
-    published C16 heads were fitted on c16-full's) counts as fitted; a head built in code has seen nothing."""
+    """Older heads record a fit (``fitted_on``) but no slides: the train split of the dataset they name, when that
+    is the scored one (or they name none), counts as fitted; one naming another dataset that is not here is scored
+    with a warning that its slides cannot be checked (before: taken as fitted on the train split of whatever
+    dataset it scored); a head built in code has seen nothing."""
     root = small["root"]
-    legacy = _Head({"fitted_on": {"dataset": "c16-full", "split": "train"}})
+    legacy = _Head({"fitted_on": {"dataset": str(root), "split": "train"}})
     fitted, validated, source = provenance.overlap(legacy, root, small["names"]["train"][:3] + small["names"]["test"])
     assert source == "assumed" and fitted == sorted(small["names"]["train"][:3]) and validated == []
     provenance.check_scored(legacy, "h", root, small["names"]["test"])  # the test split: scored as before
     with pytest.raises(provenance.FittingSlidesError, match="records no slides"):
         provenance.check_scored(legacy, "h", root, small["names"]["train"][:1])
     assert provenance.overlap(_Head({}), root, small["names"]["train"])[:2] == ([], [])
+    elsewhere = _Head({"fitted_on": {"dataset": "c16-full", "split": "train"}})  # another dataset, not here
+    assert provenance.overlap(elsewhere, root, small["names"]["train"]) == ([], [], "unknown")
+    capsys.readouterr()
+    assert provenance.check_scored(elsewhere, "h", root, small["names"]["train"]) is None
+    assert "records no slides and was fitted on c16-full, which is not here" in capsys.readouterr().err
     older_fold_head = _Head({"fitted_on": {"split": "train", "fold": 0}})  # fitted on folds 1 and 2, test slides too
     lists = json.loads((root / "dataset.json").read_text())["folds"]["lists"]
     seen = provenance.overlap(older_fold_head, root, small["names"]["test"])[0]
@@ -214,17 +221,20 @@ def test_the_published_c16_heads_score_the_c16_test_split_but_not_its_train_spli
     from baselines.published_agents import PUBLISHED
     from histojax.reading import heads
 
+    """The published heads record c16-full's train slides by their CAMELYON16 names: any C16 set's train slides
+    are refused, its test slides scored."""
     spec = {
-        "kind": "c16 stand-in",
-        "train": ["bundles/tumor_001", "bundles/normal_001"],
-        "test": ["bundles/test_001"],
+        "kind": "histojax true-scale CAMELYON16 benchmark (data_tools c16)",
+        "train": ["bundles/Tumor_001", "bundles/Normal_001"],
+        "test": ["bundles/Test_001"],
         "labels": {},
     }
     (tmp_path / "dataset.json").write_text(json.dumps(spec))
-    h = heads.load(PUBLISHED / "c16-v2-learned-head")
-    provenance.check_scored(h, "h", tmp_path, spec["test"])
-    with pytest.raises(provenance.FittingSlidesError):
-        provenance.check_scored(h, "h", tmp_path, spec["train"])
+    for name in ("c16-v2-learned-head", "c16-v2-head", "c16-v2-head-mil"):
+        h = heads.load(PUBLISHED / name)
+        provenance.check_scored(h, "h", tmp_path, spec["test"])
+        with pytest.raises(provenance.FittingSlidesError, match="fitted on 2 of the 2"):
+            provenance.check_scored(h, "h", tmp_path, spec["train"])
 
 
 def test_each_fold_resolves_its_own_head(tmp_path):

@@ -36,7 +36,7 @@ import numpy as np
 from baselines import outputs
 from baselines.reading import reader_scores
 from baselines.reading.csv_files import write_csv
-from baselines.reading.pipeline import BUDGETS, check_two_classes, run_seeds
+from baselines.reading.pipeline import BUDGETS, check_two_classes, run_seeds, split_words
 from baselines.reading.plots import plot_readers
 from baselines.reading.provenance import add_flag, check_scored
 from baselines.run_config import read_run_config
@@ -233,7 +233,10 @@ def run(args, parser=None) -> int:
         },
     )
     png = plot_readers(
-        rows, out / "readers.png", f"{Path(args.dataset).name}, {args.split} split: navigators through head {head.name}"
+        rows,
+        out / "readers.png",
+        f"{Path(args.dataset).name}, {split_words(args.dataset, args.split, args.fold)}: navigators through head "
+        f"{head.name}",
     )
     print(f"cells: {reader_scores.cells_words(slides, level)}")
     reader_scores.print_tables(rows, [])
@@ -241,7 +244,7 @@ def run(args, parser=None) -> int:
     warning = small_split_warning(
         sum(labels),
         len(labels) - sum(labels),
-        f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else ""),
+        split_words(args.dataset, args.split, args.fold),
     )
     if warning:
         print(warning, file=sys.stderr)

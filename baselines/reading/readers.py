@@ -255,7 +255,7 @@ def run(args, parser=None) -> int:
     warning = small_split_warning(
         int(sum(s["label"] for s in slides)),
         int(sum(1 - s["label"] for s in slides)),
-        f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else ""),
+        pipeline.split_words(args.dataset, args.split, args.fold),
     )
     if warning:  # once scored: a refusal above stays one line
         print(warning, file=sys.stderr)
@@ -292,7 +292,8 @@ def run(args, parser=None) -> int:
     png = plot_readers(
         rows,
         out / "readers.png",
-        f"{Path(args.dataset).name}, {args.split} split ({len(slides)} slides): head {head.name}",
+        f"{Path(args.dataset).name}, {pipeline.split_words(args.dataset, args.split, args.fold)} ({len(slides)} "
+        f"slides): head {head.name}",
     )
     print(f"cells: {cells}")
     print_tables(rows, lesions)

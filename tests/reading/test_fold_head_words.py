@@ -19,3 +19,25 @@ def test_a_missing_fold_head_names_the_fold_folder_and_how_to_fit_it(tmp_path):
     line = str(err.value)
     assert "\n" not in line and line.startswith(f"{runs / 'fold1'}: missing")
     assert "learned_head_fit --all-folds" in line and "fold0" in line and "config.json: missing" not in line
+
+
+def test_the_scored_side_is_named_as_what_it_holds(tmp_path):
+    """A fold's held-out side is "fold I's held-out slides" (not "the test split"); the validation-set folder of
+    train_readers, whose "test" list is the validation share, is named the validation share."""
+    import json
+
+    from baselines.evaluate.cli import scored_words
+    from baselines.reading.pipeline import split_words
+
+    assert scored_words({"dataset": "d", "split": "test", "fold": 0}) == "fold 0's held-out slides"
+    assert scored_words({"dataset": "d", "split": "test"}) == "the test split"
+    assert split_words(tmp_path, "test", 2) == "fold 2's held-out slides"
+    assert split_words(tmp_path, "test") == "the test split"  # no dataset.json here: named by its split
+    (tmp_path / "dataset.json").write_text(
+        json.dumps({"train": [], "test": [], "note_split": "test = the validation slides", "validation_split": {}})
+    )
+    assert split_words(tmp_path, "test") == "the validation share of the train split"
+    (tmp_path / "dataset.json").write_text(
+        json.dumps({"note_split": "test = the validation slides", "validation_split": {"fold": 1}})
+    )
+    assert split_words(tmp_path, "test") == "the validation share of fold 1's train side"

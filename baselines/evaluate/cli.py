@@ -59,7 +59,16 @@ from baselines.evaluate.scoring import evaluate
 from baselines.folds import scored_side
 from baselines.harness.logs import load_checkpoint
 from baselines.published_agents import published_or_path
-from baselines.reading.provenance import add_flag, check_scored, head_for_fold
+from baselines.reading.provenance import (
+    add_flag,
+    check_record,
+    check_scored,
+    head_config,
+    head_for_fold,
+    record_of,
+    run_record,
+    seen_slides,
+)
 from baselines.reading.slides import scale_warning
 from baselines.run_config import read_record, read_run_config
 from data_tools.cli_output import positive_int
@@ -301,9 +310,15 @@ def scored_names(config, slides=None) -> list[str]:
     """The names of the slides ``evaluate`` scores: the bundle folders of ``slides`` (``--slides``), else the side
     of the dataset ``config.env_kwargs`` names (``split``, ``fold``; ``"all"``: train and test); ``[]`` without a
     dataset or when it cannot be read (the env's own loading says why)."""
+    return [Path(str(e)).name for e in scored_entries(config, slides)]
+
+
+def scored_entries(config, slides=None) -> list[str]:
+    """The slides ``evaluate`` scores as paths: the bundle folders of ``slides`` (``--slides``), else the
+    ``dataset.json`` entries of the side :func:`scored_names` reads (``bundles/NAME``, relative to the dataset)."""
     kw = dict(config.env_kwargs or {})
     if slides and "held-out" not in [str(s) for s in slides]:
-        return [Path(str(s)).name for s in slides]
+        return [str(s) for s in slides]
     if slides:  # held-out: the test split of the dataset it trained on
         kw["split"] = "test"
     dataset = kw.get("dataset")
@@ -317,7 +332,7 @@ def scored_names(config, slides=None) -> list[str]:
         return []
     split = kw.get("split", "train")
     entries = (spec.get("train") or []) + (spec.get("test") or []) if split == "all" else spec.get(split) or []
-    return [Path(str(e)).name for e in entries]
+    return [str(e) for e in entries]
 
 
 def default_out(run: Path | None, env_id: str) -> Path:
@@ -405,6 +420,16 @@ def run(args, parser) -> int:
     scored = (config.env_kwargs or {}).get("dataset")
     if isinstance(scored, str) and (line := scale_warning(scored)):
         warnings.append(line)  # the encoder-scale warning the dataset's dataset.json records, repeated
+    allow = getattr(args, "allow_fitting_slides", False)
+    scored_dataset = (config.env_kwargs or {}).get("dataset")
+    entries = scored_entries(config, args.slide)
+    seen: dict[str, list[str]] = {}  # who saw which scored slides (scored with the flag): written with the figures
+    if run is not None and params is not None and entries:  # the policy's own slides: refused (or warned, the flag)
+        record, record_file = run_record(run)
+        if record is not None:
+            check_record(record, record_file, scored_dataset, entries, allow, who="policy")
+            if names := seen_slides(record, scored_dataset, entries):
+                seen["policy"] = names
     head, head_dir = None, None
     if getattr(args, "head", None) or settings:
         from histojax.reading import heads
@@ -414,15 +439,10 @@ def run(args, parser) -> int:
         else:
             head_dir = resolve_head(settings["head"], run, where)
         head = heads.load(head_dir)  # ValueError naming the file: one line
-        scored = scored_names(config, args.slide)  # a slide the head was fitted on: refused (or warned, the flag)
-        if scored:
-            check_scored(
-                head,
-                head_dir,
-                (config.env_kwargs or {}).get("dataset"),
-                scored,
-                getattr(args, "allow_fitting_slides", False),
-            )
+        if entries:  # a slide the head was fitted on: refused (or warned, the flag)
+            check_scored(head, head_dir, scored_dataset, entries, allow)
+            if names := seen_slides(record_of(head_config(head), scored_dataset)[0], scored_dataset, entries):
+                seen["head"] = names
         recorded = (settings or {}).get("head_name")
         if recorded and not getattr(args, "head", None) and recorded != head.name:
             warnings.append(
@@ -471,6 +491,9 @@ def run(args, parser) -> int:
         results[name] = rows
     out.mkdir(parents=True, exist_ok=True)
     record = {"env_id": config.env_id, "results": results, "warnings": warnings}
+    if seen:  # --allow-fitting-slides let the policy or the head score slides it saw: the figures say so
+        record["self_scored"] = True
+        record["scored_on_seen_slides"] = seen
     if head is not None:
         record["head"] = {"folder": str(head_dir), "name": head.name, "reward": settings}
     outputs.write_text(out / "eval.json", json.dumps(json_safe(record), indent=2, allow_nan=False))  # NaN: null
@@ -493,8 +516,10 @@ def run(args, parser) -> int:
                 "diagnosis_auc_high",
                 "diagnosis_auc_no_itc_low",
                 "diagnosis_auc_no_itc_high",
+                "scored_on_seen_slides",
             ]
         )
+        marked = "; ".join(f"{who}: {' '.join(names)}" for who, names in seen.items())
         for slide, rows in results.items():
             for name, r in rows.items():
                 w.writerow(
@@ -516,6 +541,7 @@ def run(args, parser) -> int:
                             r.get("diagnosis_auc_high", ""),
                             r.get("diagnosis_auc_no_itc_low", ""),
                             r.get("diagnosis_auc_no_itc_high", ""),
+                            marked,
                         )
                     ]
                 )

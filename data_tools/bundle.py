@@ -56,7 +56,7 @@ from data_tools.bundle_files.format import (  # noqa: F401  (re-exported: the fo
 from data_tools.bundle_files.reading import Bundle, load_bundle, read_metadata
 from data_tools.bundle_files.seals import write_metadata
 from data_tools.bundle_files.writes import TEMP_MARKER, as_disk_full, atomic_folder, check_replaceable
-from data_tools.errors import BundleError
+from data_tools.errors import BundleError, SlideError
 from data_tools.raster import pad, resample
 
 
@@ -206,6 +206,7 @@ def build_bundle(
     band_bytes: int | None = None,
     reader: str | None = None,
     mpp: float | None = None,
+    stated_scale_checked: bool = True,
 ) -> Path:
     """Build a slide bundle at ``out_dir`` from a slide file and an optional annotation file.
 
@@ -233,6 +234,9 @@ def build_bundle(
 
     ``mpp``: the slide's µm per level-0 px, for a file that states none or a wrong one (``--mpp``); recorded in
     ``metadata["source"]`` as ``mpp`` with ``mpp_from`` ``"given"`` and the file's own value as ``mpp_in_file``.
+    Without it the file's own µm/px must lie in :data:`MPP_RANGE` (:func:`check_stated_mpp`);
+    ``stated_scale_checked=False`` only for the project's own semi-synthetic slides
+    (:mod:`data_tools.datasets.synth`), whose µm/px is a geometry scale that may pass 100 on a small canvas.
     """
     slide_path, out_dir = Path(slide_path), Path(out_dir)
     check_mpp(out_dir, mpp)
@@ -290,6 +294,7 @@ def build_bundle(
                 reader,
                 mpp,
                 peak,
+                stated_scale_checked=stated_scale_checked,
             )
         return out_dir
     except OSError as e:
@@ -320,6 +325,7 @@ def _build_into(
     reader=None,
     mpp=None,
     peak=None,
+    stated_scale_checked: bool = True,
 ) -> None:
     """The body of :func:`build_bundle`: write the bundle into ``tmp`` (called with the build lock held, inside
     :func:`data_tools.bundle_files.writes.atomic_folder`, which renames it to ``out_dir`` or removes it)."""
@@ -334,6 +340,8 @@ def _build_into(
         mpp_in_file = reader.mpp
         if mpp is not None:  # the user's µm/px for a file that states none or a wrong one
             reader.mpp = float(mpp)
+        elif stated_scale_checked:  # the file's own µm/px: within the range a given --mpp must be in
+            check_stated_mpp(slide_path, reader.mpp)
         width0, height0 = reader.dimensions
         ann = None
         if annotations_path is not None:
@@ -623,6 +631,23 @@ def check_mpp(where, mpp) -> None:
         )
 
 
+def check_stated_mpp(slide_path, mpp) -> None:
+    """Refuse (:class:`~data_tools.errors.SlideError` naming the slide file, one line) a µm/px the slide file
+    itself states (TIFF resolution, SVS ``MPP``, OME ``PhysicalSizeX``, OpenSlide's ``mpp-x``, DICOM pixel
+    spacing) outside :data:`MPP_RANGE`, the range a given ``--mpp`` must lie in; None (the file states none)
+    passes. The way out is the true scale given with ``--mpp``, which replaces the file's (so this is checked
+    only when none is given)."""
+    if mpp is None:
+        return
+    value = float(mpp)
+    if not (math.isfinite(value) and MPP_RANGE[0] <= value <= MPP_RANGE[1]):
+        raise SlideError(
+            slide_path,
+            f"the file states {value:g} µm per level-0 px, not between {MPP_RANGE[0]:g} and {MPP_RANGE[1]:g} "
+            "(0.25 at 40x, 0.5 at 20x): a wrong scale in the file (nm or mm?); give the true one with --mpp",
+        )
+
+
 def set_mpp(bundle, mpp: float) -> dict:
     """Record ``mpp`` (µm per level-0 px, given by the user) as the bundle's scale: ``source.mpp`` (the file's own
     value kept as ``source.mpp_in_file``, ``mpp_from`` ``"given"``) and each level's ``mpp`` (``mpp × downsample``);
@@ -645,6 +670,7 @@ def set_mpp(bundle, mpp: float) -> dict:
 
 __all__ = [
     "check_mpp",
+    "check_stated_mpp",
     "set_mpp",
     "check_zoom",
     "Bundle",

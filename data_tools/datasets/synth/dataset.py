@@ -676,6 +676,7 @@ def make_dataset(
             tile_size=tile_size,
             overwrite=True,
             progress=False,
+            stated_scale_checked=False,  # its µm/px is a geometry scale: over 100 on a small canvas
         )
         bundle_seconds = time.perf_counter() - t_b
         b = load_bundle(bundle, verify=False, levels=[0])

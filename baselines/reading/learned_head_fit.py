@@ -60,12 +60,22 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from baselines.published_agents import published_or_path
 from baselines.reading.fitting import (  # the same minimum as the logit and MIL fits
     CHANCE_FLAG,
     MIN_SLIDES_PER_CLASS,
     chance_warning,
 )
-from baselines.reading.provenance import RECORD, add_flag, check_scored, fit_record, head_for_fold
+from baselines.reading.provenance import (
+    RECORD,
+    add_flag,
+    check_scored,
+    fit_record,
+    head_config,
+    head_for_fold,
+    record_of,
+    seen_slides,
+)
 from baselines.reading.slides import HeadDataError, finest_views, lesion_of, read_bundle, warn_scale
 from baselines.reading.slides import read_spec as read_sealed_spec
 from baselines.validation import check_all_folds, check_validation_share, split_train
@@ -556,7 +566,12 @@ def add_arguments(p) -> None:
         help="multiply the features by a fixed random orthogonal matrix drawn from SEED",
     )
     p.add_argument(
-        "--score", default=None, metavar="HEAD", help="score the saved head HEAD on --split instead of fitting"
+        "--score",
+        default=None,
+        metavar="HEAD",
+        type=published_or_path,  # a published head's name: the package's copy first, as histojax evaluate --head
+        help="score the saved head HEAD (a folder, or a published head's name: c16-v2-learned-head) on --split "
+        "instead of fitting",
     )
     p.add_argument("--split", default="test", help="split --score reads (default test)")
     p.add_argument(
@@ -852,7 +867,7 @@ def score_command(args) -> int:
             )
         if (problem := encoder_mismatch(head, [s.get("encoder") for s in slides])) is not None:
             raise FitError(Path(args.score) / "config.json", f"{problem} ({args.dataset}): fit a head on them")
-        check_scored(head, args.score, args.dataset, entries, getattr(args, "allow_fitting_slides", False))
+        allowed = check_scored(head, args.score, args.dataset, entries, getattr(args, "allow_fitting_slides", False))
     except (HistojaxDataError, ValueError, OSError) as e:
         return print_error(e)
     q = rotation(args.rotate, head.features_dim) if args.rotate is not None else None
@@ -880,6 +895,11 @@ def score_command(args) -> int:
         "accuracy": round(float(np.mean((logits > 0) == (y > 0))), 4),
         "found": found_above_normal(logits, classes),
     }
+    if allowed:  # --allow-fitting-slides scored slides the head saw: the figure says so
+        record["self_scored"] = True
+        record["scored_on_seen_slides"] = seen_slides(
+            record_of(head_config(head), args.dataset)[0], args.dataset, entries
+        )
     if not no_itc:
         record["auc_without_itc_note"] = f"{UNDEFINED} (every tumour slide of the split is ITC-only)"
     where = f"split {args.split!r}" + (f" (fold {args.fold})" if args.fold is not None else "")

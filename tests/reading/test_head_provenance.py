@@ -139,9 +139,14 @@ def test_score_refuses_the_heads_own_slides_and_warns_with_the_flag(small, head,
         _main(["--dataset", root, "--score", str(head), "--split", "train", "--allow-fitting-slides", "--quiet"]) == 0
     )
     out, err = capsys.readouterr()
-    assert json.loads(out.strip().splitlines()[-1])["slides"] == 18 and "warning:" in err and "not held out" in err
+    figure = json.loads(out.strip().splitlines()[-1])
+    assert figure["slides"] == 18 and "warning:" in err and "not held out" in err
+    # the figure written says it was scored on the head's own slides (before: no mark in what was written)
+    assert figure["self_scored"] is True and figure["scored_on_seen_slides"] == sorted(small["names"]["train"])
     assert _main(["--dataset", root, "--score", str(head), "--split", "test", "--quiet"]) == 0
-    assert "not held out" not in capsys.readouterr().err  # (the small-split warning may be there)
+    out, err = capsys.readouterr()
+    assert "not held out" not in err  # (the small-split warning may be there)
+    assert "self_scored" not in json.loads(out.strip().splitlines()[-1])
     # a fold's held-out side holding training slides of the head: refused too
     assert _main(["--dataset", root, "--score", str(head), "--fold", "1", "--quiet"]) == 2
     assert "not held out" in capsys.readouterr().err

@@ -895,7 +895,7 @@ _mirax_case = collections.Counter()
 
 # 0.26 s a case measured (HISTOJAX_FUZZ_EXAMPLES=20: 5.2 s, =60: 15.4 s; 2-core CPU shared, load average ~7,
 # 2026-12-02), a case that reaches OpenSlide ~0.3 s (its child process); the 10,000-case `make fuzz` was reported
-# at ~1.5 s a case (longer Slidedat.ini edits, more cases reaching OpenSlide), not measured again here.
+# at ~1.5 s a case; that figure was not measured again here (the 10,000 cases are not run by hand).
 @settings(FUZZ, max_examples=EXAMPLES if "HISTOJAX_FUZZ_EXAMPLES" in os.environ else 12)
 @given(
     edits=st.lists(

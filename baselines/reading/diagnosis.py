@@ -38,7 +38,7 @@ from baselines.reading import reader_scores
 from baselines.reading.csv_files import write_csv
 from baselines.reading.pipeline import BUDGETS, check_two_classes, run_seeds, split_words
 from baselines.reading.plots import plot_readers
-from baselines.reading.provenance import add_flag, check_scored
+from baselines.reading.provenance import add_flag, check_scored, mark_words, seen_mark
 from baselines.run_config import read_run_config
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
@@ -66,13 +66,19 @@ def score_split(
     return head, level, slides, reader_scores.scripted_results(head, slides, budgets, seeds, level)
 
 
-def write_results(out, results: dict, slides: list[dict], record: dict, json_name: str = "readers.json") -> list[dict]:
+def write_results(
+    out, results: dict, slides: list[dict], record: dict, json_name: str = "readers.json", mark: dict | None = None
+) -> list[dict]:
     """The rows of ``results`` (:func:`baselines.reading.reader_scores.rows_from_results`) written to ``OUT/readers.csv``
-    and, with ``record`` (the run's settings), to ``OUT/<json_name>``; returns the rows."""
+    and, with ``record`` (the run's settings), to ``OUT/<json_name>``; returns the rows. ``mark``
+    (:func:`baselines.reading.provenance.seen_mark`): slides the head saw, scored with ``--allow-fitting-slides``,
+    said in both files."""
     rows = reader_scores.rows_from_results(results, slides)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    write_csv(reader_scores.csv_rows(rows), out / "readers.csv")
+    seen = {"scored_on_seen_slides": mark_words(mark)} if mark else {}
+    write_csv([{**r, **seen} for r in reader_scores.csv_rows(rows)], out / "readers.csv")
+    record = {**record, **(mark or {})}
     outputs.write_text(out / json_name, json.dumps(json_safe({**record, "rows": rows}), indent=1, allow_nan=False))
     return rows
 
@@ -201,6 +207,7 @@ def run(args, parser=None) -> int:
             read_spec(args.dataset, args.fold).get(args.split) or [],
             getattr(args, "allow_fitting_slides", False),
         )
+        mark = seen_mark(heads.load(args.head), args.dataset, read_spec(args.dataset, args.fold).get(args.split) or [])
         head, level, slides, results = score_split(
             args.dataset, args.head, args.split, seeds=args.seeds, fold=args.fold
         )
@@ -231,6 +238,7 @@ def run(args, parser=None) -> int:
             "sampled": bool(args.sampled),
             "wall_s": round(wall, 1),
         },
+        mark=mark,
     )
     png = plot_readers(
         rows,

@@ -325,6 +325,20 @@ def seen_slides(record: dict | None, dataset, scored) -> list[str]:
     return sorted(fitted + validated)
 
 
+def seen_mark(head, dataset, scored) -> dict:
+    """What a scorer adds to the figures it writes (its JSON object; ``scored_on_seen_slides`` also as a CSV
+    column) when :data:`FLAG` let ``head`` score slides it was fitted or validated on: ``{"self_scored": True,
+    "scored_on_seen_slides": {"head": [names]}}``; ``{}`` when it saw none of ``scored``."""
+    names = seen_slides(record_of(head_config(head), dataset)[0], dataset, scored)
+    return {"self_scored": True, "scored_on_seen_slides": {"head": names}} if names else {}
+
+
+def mark_words(mark: dict) -> str:
+    """A :func:`seen_mark` as one CSV cell: ``"head: A B; policy: C"`` (``""`` for none)."""
+    seen = mark.get("scored_on_seen_slides") or {}
+    return "; ".join(f"{who}: {' '.join(names)}" for who, names in seen.items())
+
+
 RUN_RECORD = "slides_seen.json"
 """The file of a training run's folder (and a published agent's) recording the slides it trained and validated on
 (:func:`write_run_record`, the :data:`RECORD` entry of a head)."""
@@ -446,10 +460,12 @@ __all__ = [
     "dataset_identity",
     "fit_record",
     "identities",
+    "mark_words",
     "record_of",
     "run_record",
     "run_slides",
     "seen_among",
+    "seen_mark",
     "seen_slides",
     "slide_identity",
     "validation_entries",

@@ -55,7 +55,7 @@ from baselines.reading import pipeline
 from baselines.reading.csv_files import write_csv
 from baselines.reading.pipeline import BUDGETS
 from baselines.reading.plots import plot_readers
-from baselines.reading.provenance import add_flag, check_scored, head_for_fold
+from baselines.reading.provenance import add_flag, check_scored, head_for_fold, mark_words, seen_mark
 from baselines.reading.reader_scores import (
     add_reader,
     cells_words,
@@ -225,6 +225,7 @@ def run(args, parser=None) -> int:
             pipeline.read_spec(args.dataset, args.fold).get(args.split) or [],
             getattr(args, "allow_fitting_slides", False),
         )
+        mark = seen_mark(head, args.dataset, pipeline.read_spec(args.dataset, args.fold).get(args.split) or [])
         head, args.cell_level, slides = load_split(args.dataset, head, args.split, args.cell_level, args.fold)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
@@ -264,7 +265,8 @@ def run(args, parser=None) -> int:
     b = min(args.budgets, key=lambda v: abs(v - 0.1))  # reading maps at the budget nearest 10 %
     for name, masks in maps.items():  # a trained reader's first seed: where it read beside the head's scores
         write_reading_maps(out, slides, name, masks[float(b)][0], head.name, b)
-    write_csv(csv_rows(rows), out / "readers.csv")
+    seen = {"scored_on_seen_slides": mark_words(mark)} if mark else {}  # --allow-fitting-slides: marked
+    write_csv([{**r, **seen} for r in csv_rows(rows)], out / "readers.csv")
     write_csv(lesions, out / "lesions.csv")
     wall = time.perf_counter() - t0
     outputs.write_text(
@@ -277,6 +279,7 @@ def run(args, parser=None) -> int:
                     **({"fold": args.fold} if args.fold is not None else {}),
                     "head": str(args.head),
                     "head_name": head.name,
+                    **mark,  # self_scored, scored_on_seen_slides: slides the head saw (--allow-fitting-slides)
                     "cell_level": args.cell_level,
                     "cells": cells,
                     "seeds": args.seeds,

@@ -10,6 +10,7 @@ dealt by the folds' own patient grouping)."""
 
 from __future__ import annotations
 
+import csv
 import json
 from pathlib import Path
 
@@ -172,6 +173,13 @@ def test_readers_refuse_the_heads_own_slides(small, head, tmp_path, capsys):
     assert readers.main(argv) == 2
     err = capsys.readouterr().err.strip()
     assert len(err.splitlines()) == 1 and "--allow-fitting-slides" in err and not (tmp_path / "r").exists(), err
+    # with the flag: scored, and what is written says on which of the head's own slides
+    assert readers.main([*argv, "--allow-fitting-slides"]) == 0
+    record = json.loads((tmp_path / "r" / "readers.json").read_text())
+    assert record["self_scored"] is True and record["scored_on_seen_slides"]["head"] == sorted(small["names"]["train"])
+    with open(tmp_path / "r" / "readers.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert rows and all(r["scored_on_seen_slides"].startswith("head: ") for r in rows)
 
 
 def test_every_scorer_takes_the_flag():

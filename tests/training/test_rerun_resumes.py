@@ -245,7 +245,7 @@ def _env() -> dict:
     return {**os.environ, "PYTHONPATH": str(ROOT), "HISTOJAX_NO_COMPILE_CACHE": "1", "JAX_PLATFORMS": "cpu"}
 
 
-@pytest.mark.slow  # three PPO processes, each compiling its chunk (about a minute on a shared 2-core CPU)
+@pytest.mark.slow  # three PPO processes, each compiling its chunk: about two minutes on a shared 2-core CPU
 def test_a_ppo_run_killed_with_sigkill_and_rerun_ends_bitwise_as_the_run_left_alone(tmp_path):
     """A real ``python -m baselines.ppo ... --out RUN`` killed with SIGKILL once its checkpoint says update >= 1
     (while it trains the next updates), then the same command rerun: its ``params.msgpack`` equals the

@@ -9,16 +9,23 @@ calibrating). Every scorer (``histojax evaluate --head``, ``readers``, ``budget-
 fitted or validated on is refused (one line naming the head's ``config.json``, the slides and the way out), or, with
 ``--allow-fitting-slides``, warned about on stderr and scored.
 
-Slides are matched **by name** (the bundle's folder name), whatever dataset folder they are read from: a rebuilt
-dataset (another encoder, another scale, the C16 small set) holds the same slides under the same names.
+Training runs record the same for their **policy** (:func:`write_run_record`: ``RUN/slides_seen.json``, the side
+of the dataset trained on and the validation slides it held back); ``histojax evaluate`` checks it with
+:func:`check_record` (:func:`run_record`: an older run is checked from what its ``config.json`` names). With
+:data:`FLAG`, what a scorer writes carries ``self_scored`` and ``scored_on_seen_slides`` (:func:`seen_mark`).
 
-**Heads without the record** (published heads, heads fitted before it): a head whose ``config.json`` records a fit
-(``fitted_on``) is taken to have been fitted on the scored dataset's **train split** (the whole one, without folds;
-an older fold fit whose ``fitted_on`` records its ``fold``: that fold's train side, the other folds):
-how every head fit worked before, and how the published C16 heads were fitted (on ``c16-full``'s train split, which
-every C16 set shares). So scoring their test split works as before, and a fold's held-out side that lies in the
-train split is refused like any other fitting slide. A head that records no fit at all (built in code, uncalibrated)
-has seen no slide.
+Slides are matched **by identity** (:func:`slide_identity`: ``camelyon16:NAME`` in a CAMELYON16 set, whose slides are
+CAMELYON16's by name at any scale or encoder; else the SHA-256 of the slide file the bundle was built from), so a
+renamed slide is still the slide seen; by **name** only where names can be trusted (:func:`seen_among`: the same
+seal, a record without identities, a slide whose identity is unknown).
+
+**Heads without the record** (heads fitted before it): a head whose ``config.json`` records a fit (``fitted_on``) is
+taken to have been fitted on the **train split** of the dataset its ``fitted_on`` names when that is the scored one
+or names none (the whole split, without folds; an older fold fit whose ``fitted_on`` records its ``fold``: that
+fold's train side, the other folds); a head naming another dataset: that one's train split when it is here, by
+identity, else a warning that its slides cannot be checked. The published heads and agents carry the record
+(c16-full's train slides by CAMELYON16 name). A head that records no fit at all (built in code, uncalibrated) has
+seen no slide.
 """
 
 from __future__ import annotations

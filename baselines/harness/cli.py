@@ -229,6 +229,12 @@ def train_and_save(algo: str, make_train_fn, args, config_class: type[EnvConfig]
                 default=args.out is None,
                 restart=getattr(args, "restart", False),
             )
+            if state in ("resume", "done") and jax.process_count() > 1:  # no checkpoints along the way there
+                raise run_folder.RunFolderError(
+                    out,
+                    "holds a run of this config, which runs on several processes cannot continue; "
+                    "--restart moves it aside, or choose another --out",
+                )
             if state == "resume":  # a rerun of the command after a kill: continue with the run's own config
                 config = resume_config(out, algo, config_class)
         except HistojaxDataError as e:

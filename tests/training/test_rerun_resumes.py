@@ -22,7 +22,7 @@ import pytest
 
 from baselines import ppo
 from baselines.harness import cli
-from baselines.harness.run_folder import RunFolderError, claim_run, foreign_entries, release
+from baselines.harness.run_folder import LOCK, RunFolderError, claim_run, foreign_entries, release
 from baselines.harness.runner import run_and_save
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -342,3 +342,17 @@ def test_train_readers_rerun_with_another_split_is_refused_while_a_run_trained_o
     assert len(err) == 1 and str(tmp_path / "o" / "dataset.json") in err[0] and "'fraction': 0.3" in err[0], err
     assert (tmp_path / "o" / "dataset.json").read_bytes() == split  # refused before the split is written again
     assert train("--val-fraction", "0.5", "--restart") == 0 and len(trained) == 2
+
+
+def test_a_rerun_on_several_processes_is_refused_not_continued(tmp_path, monkeypatch, capsys, no_reference):
+    """Runs on several processes keep no checkpoints along the way: the rerun is one line, not a traceback."""
+    out = tmp_path / "run"
+    with pytest.raises(Killed):
+        _train(["--out", str(out)], monkeypatch, kill_at=2)
+    release(out)
+    monkeypatch.setattr(jax, "process_count", lambda: 2)
+    capsys.readouterr()
+    assert _train(["--out", str(out)], monkeypatch) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "runs on several processes cannot continue" in err[0] and str(out) in err[0], err
+    assert not (out / LOCK).exists() and not (out / "params.msgpack").exists()

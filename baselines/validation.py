@@ -197,13 +197,13 @@ def check_validation_share(
         remedy = f"use --val-fraction {works:.2f}" + (" (the smallest that does)" if works > fraction else "")
     elif seed is not None:
         remedy = f"no --val-fraction does ({side} holds {_class_counts(spec)}); " + (
-            "build the dataset with fewer --folds K (each fold's train side is larger), or add slides"
+            "build the dataset with more --folds K (each fold's train side is larger), or add slides"
             if fold is not None
             else "add slides"
         )
     else:
         remedy = (
-            "give a larger --val-fraction, or build the dataset with fewer --folds K (each fold's train side is "
+            "give a larger --val-fraction, or build the dataset with more --folds K (each fold's train side is "
             "larger), or add slides"
         )
     raise ValueError(
@@ -218,10 +218,11 @@ def _class_counts(spec: dict) -> str:
     return f"{sum(v == 1 for v in got)} tumour and {sum(v == 0 for v in got)} normal slides"
 
 
-def fewer_folds(spec: dict, k: int, seed: int, least: int, fitting: int) -> tuple[int, float] | None:
-    """``(K', fraction)``: the most folds below ``k`` (≥ 2) that the dataset's folded slides (``spec``: the whole
-    ``dataset.json``, its ``folds`` record) would be dealt into (:func:`data_tools.datasets.split.kfold_split`, the
-    folds' seed and patient grouping) with a ``--val-fraction`` (the smallest, ``seed``) that works on every fold
+def folds_that_work(spec: dict, k: int, seed: int, least: int, fitting: int) -> tuple[int, float] | None:
+    """``(K', fraction)``: the fold count nearest ``k`` (more folds first: each train side is then larger, up to one
+    patient of a class a fold) into which the dataset's folded slides (``spec``: the whole ``dataset.json``, its
+    ``folds`` record) would be dealt (:func:`data_tools.datasets.split.kfold_split`, the folds' seed and patient
+    grouping) with a ``--val-fraction`` (the smallest, ``seed``) that works on every fold
     (:func:`working_fraction`); None when no fold count does."""
     from data_tools.datasets.split import kfold_split, patient_groups
     from data_tools.errors import HistojaxDataError
@@ -233,7 +234,8 @@ def fewer_folds(spec: dict, k: int, seed: int, least: int, fitting: int) -> tupl
         return None
     groups = patient_groups(pool, spec.get("patients") if isinstance(spec.get("patients"), dict) else None)[0]
     entry = {_name(e): e for lst in folds["lists"] for e in lst}
-    for kk in range(k - 1, 1, -1):
+    most = min(len({groups[n] for n in pool if labels[n] == c}) for c in (0, 1))  # patients of the rarer class
+    for kk in [*range(k + 1, most + 1), *range(k - 1, 1, -1)]:
         try:
             fold = kfold_split(pool, labels, kk, int(folds.get("seed", 0)), groups)
         except HistojaxDataError:
@@ -272,10 +274,21 @@ def check_all_folds(
     if (works := working_fraction(sides, seed, least, fitting)) is not None:
         remedy = f"--val-fraction {works:.2f} works on every fold"
     else:
-        remedy = f"no --val-fraction works on every fold (fold {i}'s train side holds {_class_counts(sides[i])}); " + (
-            f"build the dataset with --folds {kf[0]} (--val-fraction {kf[1]:.2f} then works on every fold)"
-            if (kf := fewer_folds(spec, k, seed, least, fitting)) is not None
-            else "no fold count works either: use the dataset's train / test split without folds, or add slides"
+        never = next((j for j, side in enumerate(sides) if working_fraction([side], seed, least, fitting) is None), i)
+        remedy = (
+            f"no --val-fraction works on every fold (fold {never}'s train side holds {_class_counts(sides[never])}, "
+            f"and a fit needs {least + fitting} of each class there); "
+            + (
+                f"build the dataset with --folds {kf[0]} (--val-fraction {kf[1]:.2f} then works on every fold: "
+                f"each fold's train side holds {kf[0] - 1}/{kf[0]} of the slides, its held-out side 1/{kf[0]})"
+                if (kf := folds_that_work(spec, k, seed, least, fitting)) is not None
+                else "no fold count works either: "
+                + (
+                    f"fit one head on the train split (drop --all-folds; --val-fraction {tf:.2f} works there)"
+                    if (tf := working_fraction([spec], seed, least, fitting)) is not None
+                    else "nor does the train split: add slides"
+                )
+            )
         )
     raise ValueError(
         f"{where}: --all-folds: the validation share ({fraction:g} of fold {i}'s train side{others}) gives "

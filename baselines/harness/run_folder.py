@@ -185,6 +185,11 @@ def _shown(value) -> str:
     return json.dumps(value, sort_keys=True, default=str)  # json-not-written (a message)
 
 
+def _brief(value, most: int = 80) -> str:
+    text = _shown(value)
+    return text if len(text) <= most else text[: most - 3] + "..."
+
+
 def difference(saved: dict | None, config: dict, most: int = 2) -> str:
     """How the saved run config ``saved`` differs from the command's ``config`` (the first ``most`` entries of
     ``config`` that differ, in its order), for a refusal: e.g. ``whose lr is 0.0003, not 0.001``; ``saved`` None:
@@ -192,9 +197,9 @@ def difference(saved: dict | None, config: dict, most: int = 2) -> str:
     if saved is None:
         return "whose config.json cannot be read"
     parts = [
-        f"{k} is {_shown(saved[k])}, not {_shown(v)}"
+        f"{k} is {_brief(saved[k])}, not {_brief(v)}"
         if k in saved
-        else f"config has no {k} (this command's: {_shown(v)})"
+        else f"config has no {k} (this command's: {_brief(v)})"
         for k, v in config.items()
         if k not in saved or not _entry_same(k, saved[k], v)
     ]

@@ -15,13 +15,14 @@ AUC ≤ 0.80 on our slides (real PCam: ~0.79) and clearly more with EfficientNet
 from __future__ import annotations
 
 import argparse
-import json
 import time
 from pathlib import Path
 
 import numpy as np
 from scipy.optimize import minimize
 from scipy.stats import rankdata
+
+from experiments import read_dataset
 
 T = 128
 
@@ -83,7 +84,7 @@ def dataset_views(folder: Path, per_class: int, seed: int = 0, min_tissue: float
     from data_tools.annotations import load_annotations
     from data_tools.bundle import load_bundle
 
-    ds = json.loads((folder / "dataset.json").read_text())
+    ds = read_dataset(folder, ("slides",))
     rng = np.random.default_rng(seed)
     views, labels, groups = [], [], []
     for rec in ds["slides"]:
@@ -123,7 +124,7 @@ def tiff_views(folder: Path, split: str, per_class: int, seed: int = 0, min_tiss
     from data_tools.annotations import load_annotations
     from data_tools.slide_files.open import open_slide
 
-    ds = json.loads((folder / "dataset.json").read_text())
+    ds = read_dataset(folder, ("train", "test", "slides") if split == "all" else (split, "slides"))
     wanted = {Path(b).name for b in (ds["train"] + ds["test"] if split == "all" else ds[split])}
     rng = np.random.default_rng(seed)
     views, labels, groups = [], [], []
@@ -304,5 +305,17 @@ def main(argv=None) -> int:
     return 0
 
 
+def run_main(argv=None) -> int:
+    """:func:`main`, a dataset it cannot read (a malformed or incomplete ``dataset.json``, a bundle, an annotation)
+    one line naming the file, exit 2."""
+    from data_tools.cli_output import print_error
+    from data_tools.errors import HistojaxDataError
+
+    try:
+        return main(argv)
+    except HistojaxDataError as e:
+        return print_error(e)
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main())

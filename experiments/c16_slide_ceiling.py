@@ -37,6 +37,7 @@ from baselines.validation import split_train
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn, pcam_cnn96
 from data_tools.metrics import auc_interval, format_auc, json_safe, roc_auc
+from experiments import read_dataset
 
 STATS = ("top1", "top3", "top10", "n>2")
 ENTRIES = {"mean l": pcam_cnn.VIEW_LOGIT, "max l": pcam_cnn.MAX_CELL_LOGIT}
@@ -49,7 +50,7 @@ class CeilingError(HistojaxDataError):
 def slide_grids(dataset: Path, split: str, meta: dict | None = None) -> list[dict]:
     """``[{name, label, bundle, mpp, tumour_area_px, grids: {level: (gh, gw, D) float32}}]`` of ``split``
     (``meta``: the dataset's ``dataset.json``, read when not given)."""
-    meta = meta or json.loads((dataset / "dataset.json").read_text())
+    meta = meta or read_dataset(dataset, (split,))
     out = []
     for rel in meta[split]:
         bundle = dataset / rel
@@ -277,7 +278,7 @@ def main(argv=None) -> int:
         print("error: --dataset is required (or --lesions ANNOTATIONS alone)", file=sys.stderr)
         return 2
     try:
-        spec = json.loads((args.dataset / "dataset.json").read_text())
+        spec = read_dataset(args.dataset, ("train", "test"))  # its lists checked: one line naming it
         train, test = slide_grids(args.dataset, "train", spec), slide_grids(args.dataset, "test", spec)
     except (OSError, KeyError, ValueError, HistojaxDataError) as e:
         print(f"error: {e}", file=sys.stderr)

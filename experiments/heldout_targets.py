@@ -39,8 +39,10 @@ from baselines import ppo  # noqa: E402
 from baselines.evaluate.scoring import evaluate  # noqa: E402
 from baselines.harness.logs import load_checkpoint  # noqa: E402
 from baselines.run_config import read_run_config  # noqa: E402
+from data_tools.cli_output import print_error  # noqa: E402
 from data_tools.errors import HistojaxDataError  # noqa: E402
 from data_tools.metrics import json_safe  # noqa: E402
+from experiments import read_dataset  # noqa: E402
 
 TARGETS = {"Easy": 0.90, "Medium": 0.70, "Hard": 0.50}
 DEFAULT_STEPS = {"Easy": 262_144, "Medium": 786_432, "Hard": 1_048_576}
@@ -66,7 +68,7 @@ def ensure_dataset(path: Path, slides: int, size: int) -> dict:
             check=True,
             cwd=ROOT,
         )
-    return json.loads((path / "dataset.json").read_text())
+    return read_dataset(path, ("train", "test"))
 
 
 def heldout_slides(dataset: Path, spec: dict, extra: list[Path]) -> list[tuple[str, Path]]:
@@ -74,8 +76,8 @@ def heldout_slides(dataset: Path, spec: dict, extra: list[Path]) -> list[tuple[s
     each ``extra`` dataset (made from tumour annotations the training slides never used)."""
     slides = [("test split", dataset / rel) for rel in spec["test"]]
     for ds in extra:
-        other = json.loads((ds / "dataset.json").read_text())
-        slides += [("unseen geometry", ds / s["bundle"]) for s in other["slides"]]
+        other = read_dataset(ds, ("slides",))
+        slides += [("unseen geometry", ds / s["bundle"]) for s in other["slides"] if "bundle" in s]
     return slides
 
 
@@ -244,11 +246,14 @@ def main(argv=None) -> int:
         (Path(args.out) / "targets.md").write_text(text + "\n")
         print(text)
         return 0
-    spec = ensure_dataset(dataset, args.slides, args.size)
+    try:  # a malformed dataset.json: one line naming it
+        spec = ensure_dataset(dataset, args.slides, args.size)
+        heldout = heldout_slides(dataset, spec, [Path(d) for d in args.extra_dataset])
+    except HistojaxDataError as e:
+        return print_error(e)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     extra = [a for s in args.set for a in ("--set", s)]
-    heldout = heldout_slides(dataset, spec, [Path(d) for d in args.extra_dataset])
     previous = {}
     if args.reuse and (out / "targets.json").exists():
         previous = json.loads((out / "targets.json").read_text())

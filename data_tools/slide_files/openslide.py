@@ -216,7 +216,7 @@ def _identity(path: str) -> tuple:
         try:
             st = os.stat(f)
             out.append((f, st.st_ino, st.st_size, st.st_mtime_ns))
-            if f.endswith("Slidedat.ini") and st.st_size <= 1 << 20:  # what sizes it all: its bytes, not only mtime
+            if f.endswith("Slidedat.ini") and stat.S_ISREG(st.st_mode) and st.st_size <= 1 << 20:  # its bytes too
                 with open(f, "rb") as fh:
                     out.append(hashlib.sha256(fh.read()).hexdigest())
         except OSError:

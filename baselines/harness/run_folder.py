@@ -54,18 +54,28 @@ FINAL = ("log.csv", "log.json", "curve.png", "params.msgpack", "config.json")
 """A finished run's files (written as a whole at its end)."""
 RUN_ENTRIES = re.compile(
     r"^(log\.csv|log\.json|curve\.png|params\.msgpack|config\.json|checkpoint|eval|"
-    r"eval-all-folds|head_reward\.json|curve-seeds\.png|curve-seeds\.csv|"
+    r"eval-all-folds|head_reward\.json|curve-seeds\.png|curve-seeds\.csv|slides_seen\.json|"
     r"process-\d+|previous-\d+|events\.out\.tfevents\..+|\.histojax-run\.lock|\..+\.tmp-[0-9a-f]{8})$"
 )
 """Names histojax writes in a run folder (temporaries of an atomic write included): a trainer's files,
 ``eval/`` and ``eval-all-folds/`` (``histojax evaluate RUN`` and ``--all-folds``), ``head_reward.json`` and
-``curve-seeds.*`` (``baselines.reading.train_readers``), ``previous-N/`` (a run ``--restart`` moved aside, kept
+``curve-seeds.*`` (``baselines.reading.train_readers``), ``slides_seen.json`` (the slides a dataset run trained
+on: :func:`baselines.reading.provenance.write_run_record`), ``previous-N/`` (a run ``--restart`` moved aside, kept
 whole and never looked into)."""
 PREVIOUS = re.compile(r"^previous-(\d+)$")
 """A run folder's ``previous-N/``: the run that ``--restart`` moved aside (N = 1, 2, ...)."""
-STATE = ("checkpoint", "eval", "eval-all-folds", "head_reward.json", "curve-seeds.png", "curve-seeds.csv")
-"""What ``--overwrite`` removes before the new run (the old run's state and what was derived from it); its final
-files (:data:`FINAL`) stay until the new run's are written."""
+STATE = (
+    "checkpoint",
+    "eval",
+    "eval-all-folds",
+    "head_reward.json",
+    "curve-seeds.png",
+    "curve-seeds.csv",
+    "slides_seen.json",
+)
+"""What ``--overwrite`` removes before the new run (the old run's state and what was derived from it;
+``slides_seen.json`` too: a new run on no dataset writes none, and the old one would name slides it never saw);
+its final files (:data:`FINAL`) stay until the new run's are written."""
 MAX_NUMBERED = 1000
 """The most numbered default folders (``runs/<algo>-<env>-N``) tried."""
 

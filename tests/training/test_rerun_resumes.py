@@ -356,3 +356,24 @@ def test_a_rerun_on_several_processes_is_refused_not_continued(tmp_path, monkeyp
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "runs on several processes cannot continue" in err[0] and str(out) in err[0], err
     assert not (out / LOCK).exists() and not (out / "params.msgpack").exists()
+
+
+def test_a_finished_dataset_runs_slides_seen_json_is_its_own_file(tmp_path, capsys):
+    """Was: ``slides_seen.json`` (written beside a dataset run's params) counted as a user's file, so the run's
+    rerun and its ``--overwrite`` were refused. Now the rerun is nothing to train, ``--overwrite`` removes the old
+    record (a new run on no dataset writes none) and ``--restart`` moves it aside with its run."""
+    out = tmp_path / "run"
+    out.mkdir()
+    (out / "params.msgpack").write_bytes(b"params")
+    (out / "config.json").write_text(json.dumps(CONFIG))
+    (out / "slides_seen.json").write_text("{}")
+    assert foreign_entries(out) == []
+    assert claim_run(out, CONFIG)[1] == "done"
+    release(out)
+    assert claim_run(out, {**CONFIG, "seed": 3}, overwrite=True)[1] == "replaced"
+    release(out)
+    assert not (out / "slides_seen.json").exists() and (out / "params.msgpack").is_file()
+    (out / "slides_seen.json").write_text("{}")
+    assert claim_run(out, CONFIG, restart=True)[1] == "restarted"
+    release(out)
+    assert (out / "previous-1" / "slides_seen.json").is_file() and not (out / "slides_seen.json").exists()

@@ -190,7 +190,11 @@ def check_validation_share(
     if min(n_t, n_n) >= least and (counts is None or min(counts[:2]) >= fitting):
         return
     side = f"fold {fold}'s train side" if fold is not None else "the train split"
-    needs = f"at least {least} validation" + (f" and {fitting} fitting" if fitting else "") + " slides of each class"
+    needs = (
+        f"at least {least} validation"
+        + (f" and at least {fitting} fitting" if fitting else "")
+        + " slides of each class"
+    )
     what = _counts_text(counts) if counts is not None else f"{n_t} tumour and {n_n} normal validation slides"
     works = working_fraction([spec], seed, least, fitting) if seed is not None else None
     if works is not None:

@@ -29,7 +29,10 @@ success or the step limit. Also writes, on each episode's own slide, ``trajector
 histojax.render.render_reading_map) and ``trajectory.gif`` (histojax.render.animate) of one episode of
 the first policy. Warns when the slides cannot be scored (no tumour slide; one class only for an AUC), when
 the checkpoint is scored on its own training split or at another scale, and on config.json keys no
-trainer writes."""
+trainer writes. Refuses, in one line naming the run's ``slides_seen.json`` (or its ``config.json`` for an older run),
+to score the policy on slides it trained or was validated on, and the head on slides it was fitted or validated on
+(:mod:`baselines.reading.provenance`); ``--allow-fitting-slides`` scores them with a warning, and ``eval.json`` /
+``eval.csv`` then say on which (``self_scored``, ``scored_on_seen_slides``)."""
 
 from __future__ import annotations
 

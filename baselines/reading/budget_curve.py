@@ -70,7 +70,7 @@ from baselines.reading.pipeline import (
     run_seeds,
 )
 from baselines.reading.plots import plot_curve
-from baselines.reading.provenance import add_flag, check_scored, head_for_fold
+from baselines.reading.provenance import add_flag, check_scored, head_for_fold, mark_words, seen_mark
 from baselines.reading.slides import read_spec
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
@@ -679,14 +679,13 @@ def fold_rows(args, level: int, fold: int | None):
         head_dir = head_for_fold(
             head_dir, fold
         )  # --head DIR of learned_head_fit --all-folds, or RUN{fold}: fold's head
+    mark = {}
     if head_dir is not None:  # a head fitted or validated on a scored slide: refused before any slide is read
+        scored = read_spec(args.dataset, fold).get(side) or []
         check_scored(
-            heads.load(head_dir),
-            head_dir,
-            args.dataset,
-            read_spec(args.dataset, fold).get(side) or [],
-            getattr(args, "allow_fitting_slides", False),
-        )  # --allow-fitting-slides: a warning
+            heads.load(head_dir), head_dir, args.dataset, scored, getattr(args, "allow_fitting_slides", False)
+        )  # --allow-fitting-slides: a warning, and the rows say so (scored_on_seen_slides)
+        mark = seen_mark(heads.load(head_dir), args.dataset, scored)
     test = load_split(args.dataset, side, env_id=args.env, level=level, fold=fold)
     check_two_classes(args.dataset, side, test.labels, fold)
     if (
@@ -726,6 +725,8 @@ def fold_rows(args, level: int, fold: int | None):
         head=head,
         head_cells=head_cells,
     )
+    if mark:  # scored with --allow-fitting-slides on slides the head saw: each row says which
+        rows = [{**r, "scored_on_seen_slides": mark_words(mark)} for r in rows]
     if not getattr(args, "all_folds", False):  # once scored (a refusal stays one line); --all-folds: curve_rows warns
         warn_small(test.labels, f"split {side!r}" + (f" (fold {fold})" if fold is not None else ""))
     return rows, (train.tables, train.labels), (test.tables, test.labels)

@@ -54,9 +54,12 @@ def write_csv(rows: list[dict], path, columns: list[str] | None = None, blank_na
 def write_curve_csv(rows: list[dict], path) -> Path:
     """The budget curve's CSV: one line per method × budget (:data:`CURVE_COLUMNS`; with ``--all-folds`` a ``fold``
     column first: the fold, or ``mean``), NaN (no fields of view for a scripted reader) empty; the fields-of-view
-    column only when some row has one (a trained policy's), never a column that is always empty."""
+    column only when some row has one (a trained policy's), never a column that is always empty; a
+    ``scored_on_seen_slides`` column when some row was scored on slides its head saw (``--allow-fitting-slides``)."""
     folds = ["fold"] if any("fold" in r for r in rows) else []
     columns = [c for c in CURVE_COLUMNS if c != "fields_of_view" or any(_defined(r.get(c)) for r in rows)]
+    if any(r.get("scored_on_seen_slides") for r in rows):  # --allow-fitting-slides scored slides the head saw
+        columns.append("scored_on_seen_slides")
     return write_csv(
         [{k: v for k, v in r.items() if k in columns or k == "fold"} for r in rows],
         path,

@@ -329,6 +329,37 @@ def test_budget_curve_refuses_one_head_over_folds_it_was_fitted_on(small, head, 
     assert len(err) == 1 and "--allow-fitting-slides" in err[0] and str(head / "config.json") in err[0], err
 
 
+def test_budget_curve_with_the_flag_marks_the_rows_scored_on_the_heads_slides(small, head, tmp_path, monkeypatch):
+    """``budget-curve --fold 1 --head H --allow-fitting-slides``: each row of budget_curve.csv names the slides of
+    fold 1 the head saw (the rows stubbed: the curve's own training is the slow tests')."""
+    from baselines.reading import budget_curve
+
+    def stub(train, test, budgets, **kw):
+        return [
+            {
+                "method": "stub",
+                "budget": b,
+                "fraction_read": b,
+                "auc": 0.5,
+                "accuracy": 0.5,
+                "slides": 1,
+                "auc_std": 0.0,
+                "accuracy_std": 0.0,
+                "seeds": 1,
+            }
+            for b in budgets
+        ]
+
+    monkeypatch.setattr(budget_curve, "budget_rows", stub)
+    out = tmp_path / "bc"
+    argv = ["--dataset", str(small["root"]), "--head", str(head), "--fold", "1", "--budgets", "0.5", "--out", str(out)]
+    argv += ["--env", "HistoJAX-Easy-v0", "--glimpse-level", "1", "--seeds", "1", "--steps", "20"]
+    assert budget_curve.main([*argv, "--allow-fitting-slides"]) == 0
+    with open(out / "budget_curve.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert rows and all(r["scored_on_seen_slides"].startswith("head: ") for r in rows), rows
+
+
 def test_diagnosis_refuses_the_heads_own_slides(small, head, tmp_path, capsys):
     from baselines.reading import diagnosis
 

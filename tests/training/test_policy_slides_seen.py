@@ -173,3 +173,22 @@ def test_a_slide_of_another_dataset_sharing_only_a_name_is_not_seen(folded, tmp_
     assert name not in fitted and set(fitted) == set(record["fitted"]) - {name}
     # the same dataset (its seal): names are trusted
     assert provenance.seen_among(record, folded, entries)[0] == record["fitted"]
+
+
+def test_all_folds_refuses_a_fold_the_policy_trained_on_and_marks_it_with_the_flag(folded, tmp_path, stubbed, capsys):
+    """One run (trained on fold 0's train side) for every fold: fold 1's held-out side is its training slides."""
+    run = _run(tmp_path / "run", folded)
+    argv = [str(run), "--dataset", str(folded), "--all-folds", "--out", str(tmp_path / "o")]
+    assert cli.main(argv) == 2
+    assert str(run / "slides_seen.json") in _one_line(capsys)
+    assert cli.main([*argv, "--allow-fitting-slides"]) == 0
+    record = json.loads((tmp_path / "o" / "eval.json").read_text())
+    trained = json.loads((run / "slides_seen.json").read_text())["fitted"]
+    assert record["self_scored"] is True and record["scored_on_seen_slides"] == {"1": {"policy": trained}}
+    with open(tmp_path / "o" / "eval.csv") as f:
+        rows = list(csv.DictReader(f))
+    assert {r["fold"]: r["scored_on_seen_slides"] for r in rows if r["fold"] in ("0", "1")} == {
+        "0": "",
+        "1": "policy: " + " ".join(trained),
+    }
+    assert all(r["scored_on_seen_slides"].startswith("fold 1: policy: ") for r in rows if r["fold"] == "mean")

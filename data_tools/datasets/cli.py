@@ -238,7 +238,7 @@ def _report(out: Path, dataset: dict, failed: dict, summary: dict) -> int:
         if not dataset[side]:
             print(
                 f"note: the {side} split is empty (split rule: {dataset.get('split_rule')}"
-                + ("; its slides failed" if failed else "")
+                + (f"; {len(failed)} slide(s) failed to build and were left out" if failed else "")
                 + "): no policy can be "
                 + ("trained" if side == "train" else "scored")
                 + " on it; give more slides, --test-fraction or a "

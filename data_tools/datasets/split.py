@@ -308,7 +308,7 @@ def read_patient_column(path) -> dict[str, str]:
             continue
         if name.lower() in first:
             j, was = first[name.lower()]
-            if out[was] != patient:
+            if patient_key(out[was]) != patient_key(patient):  # "P1" and "p1 " are one patient
                 raise HistojaxDataError(
                     path,
                     f"rows {j} and {i} list slide {name!r} with two patients ({out[was]!r} "

@@ -132,3 +132,11 @@ def test_a_fold_left_with_one_class_is_warned_naming_the_fold_and_its_counts():
     assert "1 failed slide(s)" in lines[0] and "\n" not in lines[0]
     both = {"folds": {"lists": [["bundles/a", "bundles/b"], ["bundles/c", "bundles/e"]]}}
     assert one_class_fold_lines(both, {**labels, "e": 0}, {}) == []
+
+
+def test_a_slide_listed_twice_with_one_patient_spelled_twice_is_one_patient(tmp_path):
+    from data_tools.datasets.split import read_patient_column
+
+    table = tmp_path / "labels.csv"
+    table.write_text("slide,label,patient\nA,1,P1\nB,0,P2\nA,1, p1 \n")
+    assert read_patient_column(table) == {"A": "P1", "B": "P2"}

@@ -271,5 +271,14 @@ def main(argv=None) -> int:
     return 0
 
 
+def run_main(argv=None) -> int:
+    """:func:`main`, a slide set it cannot read (a missing or malformed bundle found while training or scoring) one
+    line naming the file, exit 2."""
+    try:
+        return main(argv)
+    except HistojaxDataError as e:
+        return print_error(e)
+
+
 if __name__ == "__main__":
-    raise SystemExit(main())
+    raise SystemExit(run_main())

@@ -49,6 +49,16 @@ def test_read_dataset_names_what_is_missing(tmp_path):
         read_dataset(tmp_path, ("slides",))
 
 
+def test_a_missing_bundle_found_while_training_is_one_line(tmp_path, capsys, monkeypatch):
+    (tmp_path / "dataset.json").write_text(json.dumps({"train": ["b"], "test": ["b"]}))
+    from data_tools.bundle_files.reading import read_metadata
+
+    monkeypatch.setattr(heldout_targets, "run_scenario", lambda *a, **k: read_metadata(tmp_path / "b"))  # as training
+    assert heldout_targets.run_main(["--dataset", str(tmp_path), "--out", str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and err[0].startswith("error: ") and "metadata.json" in err[0], err
+
+
 def test_in_a_real_process_there_is_no_traceback(tmp_path):
     (tmp_path / "dataset.json").write_text(json.dumps({"train": 5}))
     proc = subprocess.run(

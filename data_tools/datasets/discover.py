@@ -289,8 +289,13 @@ def discover(
     the CLI prints as one ``warning:`` line."""
     root = Path(root)
     skipped = [] if skipped is None else skipped
-    if not root.is_dir():
-        raise HistojaxDataError(root, "no such folder of slides")
+    if not root.is_dir():  # a file is not a folder of slides: say which it is
+        raise HistojaxDataError(
+            root,
+            "a file, not a folder of slides (give the folder that holds them)"
+            if root.exists()
+            else "no such folder of slides",
+        )
     slide_paths, ann_paths = _walk(root, list(skip), skipped)
     if annotations_dir is not None:
         if not Path(annotations_dir).is_dir():

@@ -256,6 +256,7 @@ PLAN_PARTS = {
     "slides": "another cohort of slides",
     "split_rule": "another split rule",
     "folds": "other folds (or none)",
+    "patients": "other patients (the label table's patient column)",
 }
 """How a refusal names each part of ``plan.json`` that differs from the command's."""
 
@@ -278,7 +279,7 @@ def _agree(out: Path, plan: dict, restart: bool = False) -> None:
                 flush=True,
             )
         elif not restart and old != plan:
-            what = [PLAN_PARTS[k] for k in ("options", "slides", "split_rule", "folds") if old.get(k) != plan.get(k)]
+            what = [PLAN_PARTS[k] for k in PLAN_PARTS if old.get(k) != plan.get(k)]
             detail = ""
             if old.get("options") != plan.get("options"):
                 diff = sorted(

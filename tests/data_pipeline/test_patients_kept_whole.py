@@ -140,3 +140,33 @@ def test_a_slide_listed_twice_with_one_patient_spelled_twice_is_one_patient(tmp_
     table = tmp_path / "labels.csv"
     table.write_text("slide,label,patient\nA,1,P1\nB,0,P2\nA,1, p1 \n")
     assert read_patient_column(table) == {"A": "P1", "B": "P2"}
+
+
+def test_a_built_dataset_records_its_patients_and_resumes_a_plan_written_before_them(tmp_path, capsys):
+    """``histojax dataset --labels`` (a patient column; t0 and t1 one patient) writes ``patients`` in dataset.json;
+    a plan.json written before the patients were recorded is agreed to (same labels, same patients)."""
+    import json
+
+    from fold_helpers import build_folded
+
+    from data_tools.__main__ import main as data_main
+
+    ds = build_folded(tmp_path, folds=2)
+    spec = json.loads((ds / "dataset.json").read_text())
+    assert spec["patients"]["t0"] == spec["patients"]["t1"] == "PT"
+    kept, held = split_train(spec, 0.5, 0)
+    assert len(_sides_of_names({"kept": kept, "validation": held}, ("t0", "t1"))) == 1
+    plan = json.loads((ds / "plan.json").read_text())
+    del plan["patients"]
+    (ds / "plan.json").write_text(json.dumps(plan))
+    argv = ["dataset", str(tmp_path / "S"), "--out", str(ds), "--labels", str(tmp_path / "labels.csv")]
+    argv += ["--levels", "3", "--tile-size", "64", "--quiet", "--folds", "2"]
+    assert data_main(argv) == 0  # resumed: not refused as another cohort
+    plan = json.loads((ds / "plan.json").read_text())
+    (ds / "plan.json").write_text(json.dumps({**plan, "patients": {**plan["patients"], "t1": "OTHER"}}))
+    assert data_main(argv) == 2  # started with other patients: refused, saying so
+    assert "started with other patients" in capsys.readouterr().err
+
+
+def _sides_of_names(entries_by_side: dict[str, list[str]], names) -> set[str]:
+    return {side for side, entries in entries_by_side.items() for e in entries if Path(e).name in names}

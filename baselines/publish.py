@@ -182,8 +182,9 @@ def portable_config(config: dict) -> tuple[dict, dict]:
 
 def portable_slides_seen(run: Path) -> dict | None:
     """The slides run folder ``run`` trained and validated on (:func:`baselines.reading.provenance.run_record`: its
-    ``slides_seen.json``, or what its ``config.json`` names), the dataset named by folder name; None when it
-    records none."""
+    ``slides_seen.json``, or what its ``config.json`` names), the dataset named by folder name; the validation slides
+    its dataset held back (``held_back``) are recorded as ``validation``: a published run was chosen on them. None
+    when it records none."""
     from baselines.reading.provenance import run_record
 
     record, _ = run_record(run)
@@ -192,7 +193,9 @@ def portable_slides_seen(run: Path) -> dict | None:
     dataset = dict(record.get("dataset") or {})
     if isinstance(dataset.get("folder"), str):
         dataset["folder"] = folder_name(dataset["folder"])
-    return {**record, "dataset": dataset}
+    validation = sorted(set(record.get("validation") or []) | set(record.get("held_back") or []))
+    record = {k: v for k, v in record.items() if k != "held_back"}
+    return {**record, "dataset": dataset, "validation": validation}
 
 
 def portable_head_config(config):

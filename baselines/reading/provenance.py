@@ -246,7 +246,7 @@ def seen_among(record: dict | None, dataset, scored) -> tuple[list[str], list[st
         seen = by_id.get(ident) if ident is not None else None
         if seen is None and (trust or ident is None) and name in fitted | validation:
             seen = name
-        if seen is None:
+        if seen is None or seen not in fitted | validation:  # (an identity of a slide only held back: not seen)
             continue
         if seen != name:
             renamed[name] = seen
@@ -355,15 +355,22 @@ def validation_entries(spec: dict) -> list:
     """The validation slides a dataset holds back from its train split (``validation``: a list, as
     ``train_readers`` writes it, or :mod:`baselines.validation`'s record with its ``validation`` list)."""
     v = spec.get("validation")
-    if isinstance(v, dict):
-        v = v.get("validation")
-    return list(v) if isinstance(v, list) else []
+    source = None
+    if isinstance(v, dict):  # baselines.validation's record: entries of its source dataset
+        source, v = v.get("source"), v.get("validation")
+    if not isinstance(v, list):
+        return []
+    if isinstance(source, str) and source:
+        return [str(Path(source) / str(e)) for e in v]
+    return list(v)
 
 
 def run_slides(config) -> dict | None:
     """The :data:`RECORD` of a run trained on a dataset (``config``: its ``env_kwargs`` ``dataset``, ``split``,
-    ``fold``): the dataset's seal and the names and identities of the side it trained on and of the validation
-    slides it held back; None when it trained on no dataset (or one that cannot be read)."""
+    ``fold``): the dataset's seal and the names and identities of the side it trained on (``fitted``), and the
+    validation slides its dataset holds back (``held_back``: scoring them is the validation that chooses among runs,
+    so they are not refused; a published agent records those it was chosen on as ``validation``); None when it
+    trained on no dataset (or one that cannot be read)."""
     from baselines.reading.slides import read_spec
     from baselines.run_config import read_run_config
 
@@ -382,7 +389,12 @@ def run_slides(config) -> dict | None:
     side = (spec.get("train") or []) + (spec.get("test") or []) if split == "all" else spec.get(split) or []
     # a fold's "validation" is its held-out side, not slides held back from training: none for a fold run
     held = validation_entries(spec) if kw.get("fold") is None else []
-    return fit_record(dataset, spec, kw.get("fold"), side, held, split=split)
+    record = fit_record(dataset, spec, kw.get("fold"), side, [], split=split)
+    if held:  # scoring them is the validation that chooses the run: named, not refused (a chosen agent's are)
+        record["held_back"] = sorted({_name(e) for e in held})
+        both = identities(dataset, [*side, *held], record["dataset"]["kind"])
+        record["identities"] = dict(sorted(both.items()))
+    return record
 
 
 def write_run_record(out, config) -> Path | None:

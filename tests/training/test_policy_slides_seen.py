@@ -192,3 +192,26 @@ def test_all_folds_refuses_a_fold_the_policy_trained_on_and_marks_it_with_the_fl
         "1": "policy: " + " ".join(trained),
     }
     assert all(r["scored_on_seen_slides"].startswith("fold 1: policy: ") for r in rows if r["fold"] == "mean")
+
+
+def test_the_validation_slides_held_back_are_scored_and_a_published_run_records_them(folded, tmp_path, stubbed):
+    """A run on a ``baselines.validation`` split: scoring its held-back slides is the validation (not refused);
+    published, the run was chosen on them: its record names them as ``validation``, refused like trained ones."""
+    from baselines.publish import publish
+    from baselines.validation import write_validation_dataset
+
+    val = tmp_path / "val"
+    write_validation_dataset(folded, 0.4, 0, val)
+    run = _run(tmp_path / "run", val, fold=None)
+    record = json.loads((run / "slides_seen.json").read_text())
+    held = record["held_back"]
+    assert held and record["validation"] == [] and set(held) <= set(record["identities"])
+    assert cli.main([str(run), "--dataset", str(val), "--split", "test", "--out", str(tmp_path / "o")]) == 0
+    dest = publish(run, "agent", root=tmp_path / "published")
+    published = json.loads((dest / "slides_seen.json").read_text())
+    assert published["validation"] == held and "held_back" not in published
+    assert published["dataset"]["folder"] == "val"  # no path of this machine
+    with pytest.raises(provenance.FittingSlidesError, match="validated on"):
+        provenance.check_record(
+            published, dest, val, json.loads((val / "dataset.json").read_text())["test"], who="policy"
+        )

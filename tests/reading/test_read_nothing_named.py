@@ -120,3 +120,25 @@ def test_evaluates_episodes_that_read_nothing_name_their_slides():
     assert "so is every cell of it (the smallest holds 5)" in named[0]["reason"]
     assert named[1]["reason"].startswith("its first pick is larger than the budget (1 of 10 views), or it stopped")
     assert read_nothing_episodes(ep, SimpleNamespace(mode_data=None), ["a", "b", "c"]) == []  # not a set reader
+
+
+def test_a_trained_readers_refused_pick_is_found_where_its_view_stands():
+    """A glimpse policy's episode that read nothing: the cell its refused pick moved the view to, and its size."""
+    from types import SimpleNamespace
+
+    table = {
+        "cell_views": np.asarray([[1, 9]]),
+        "valid": np.ones((1, 2), bool),
+        "cell_x": np.asarray([[0, 4]]),
+        "cell_y": np.zeros((1, 2), int),
+        "total": 10,
+    }
+    refused = SimpleNamespace(memory=SimpleNamespace(over_budget=np.asarray([True])), x=np.asarray([4]), y=[0])
+    said = pipeline._nothing_episode(refused, 0, 0, [table], 0.1)
+    assert said == (
+        "its first pick (9 tissue views) is larger than the budget (1 of 10 views), though its smallest cell (1 view) "
+        "fits"
+    )
+    declared = SimpleNamespace(memory=SimpleNamespace(over_budget=np.asarray([False])), x=np.asarray([0]), y=[0])
+    assert pipeline._nothing_episode(declared, 0, 0, [table], 0.1) == "it declared before reading a cell"
+    assert pipeline._nothing_episode(declared, 0, 0, None, 0.1) == "it read no finest view"  # zoom_select

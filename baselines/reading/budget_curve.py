@@ -68,6 +68,7 @@ from baselines.reading.pipeline import (
     read_all,
     reader_auc,
     run_seeds,
+    split_words,
 )
 from baselines.reading.plots import plot_curve
 from baselines.reading.provenance import add_flag, check_scored, head_for_fold, mark_words, seen_mark
@@ -728,7 +729,7 @@ def fold_rows(args, level: int, fold: int | None):
     if mark:  # scored with --allow-fitting-slides on slides the head saw: each row says which
         rows = [{**r, "scored_on_seen_slides": mark_words(mark)} for r in rows]
     if not getattr(args, "all_folds", False):  # once scored (a refusal stays one line); --all-folds: curve_rows warns
-        warn_small(test.labels, f"split {side!r}" + (f" (fold {fold})" if fold is not None else ""))
+        warn_small(test.labels, split_words(args.dataset, side, fold))  # fold I's held-out slides, or the split
     return rows, (train.tables, train.labels), (test.tables, test.labels)
 
 

@@ -126,6 +126,8 @@ def one_class_problem(split: str, labels, fold: int | None = None) -> str | None
     if len(labels) and len(set(labels.tolist())) > 1:
         return None
     which = f"split {split!r}" + (f" (fold {fold})" if fold is not None else "")
+    if fold is not None and split in ("test", "validation"):
+        which = f"fold {fold}'s held-out side"
     held = f"only {'tumour' if labels[0] else 'normal'} slides ({len(labels)})" if len(labels) else "no slides"
     return (
         f"{which} holds {held}: its AUC is undefined: one class; scoring needs tumour and normal slides "
@@ -134,7 +136,7 @@ def one_class_problem(split: str, labels, fold: int | None = None) -> str | None
 
 
 def split_words(dataset, split: str, fold: int | None = None) -> str:
-    """How a command names the slides it scores (warnings, titles): ``"fold I's held-out slides"`` for a fold's
+    """How a command names the slides it scores (warnings, titles): ``"fold I's held-out side"`` for a fold's
     held-out side, ``"the validation share of the train split"`` (or ``"of fold I's train side"``) for the
     ``validation-set`` folder :mod:`baselines.reading.train_readers` scores (its ``"test"`` list is the validation
     share), else ``"the SPLIT split"``. ``dataset``: the dataset folder (its ``dataset.json`` read plainly; an
@@ -142,7 +144,7 @@ def split_words(dataset, split: str, fold: int | None = None) -> str:
     import json
 
     if fold is not None and split in ("test", "validation", "val"):
-        return f"fold {fold}'s held-out slides"
+        return f"fold {fold}'s held-out side"
     if fold is not None:
         return f"fold {fold}'s {split} side"
     try:

@@ -22,7 +22,7 @@ def test_a_missing_fold_head_names_the_fold_folder_and_how_to_fit_it(tmp_path):
 
 
 def test_the_scored_side_is_named_as_what_it_holds(tmp_path):
-    """A fold's held-out side is "fold I's held-out slides" (not "the test split"); the validation-set folder of
+    """A fold's held-out side is "fold I's held-out slides" / "side" (not "the test split"); the validation-set folder of
     train_readers, whose "test" list is the validation share, is named the validation share."""
     import json
 
@@ -31,7 +31,7 @@ def test_the_scored_side_is_named_as_what_it_holds(tmp_path):
 
     assert scored_words({"dataset": "d", "split": "test", "fold": 0}) == "fold 0's held-out slides"
     assert scored_words({"dataset": "d", "split": "test"}) == "the test split"
-    assert split_words(tmp_path, "test", 2) == "fold 2's held-out slides"
+    assert split_words(tmp_path, "test", 2) == "fold 2's held-out side"
     assert split_words(tmp_path, "test") == "the test split"  # no dataset.json here: named by its split
     (tmp_path / "dataset.json").write_text(
         json.dumps({"train": [], "test": [], "note_split": "test = the validation slides", "validation_split": {}})
@@ -41,3 +41,11 @@ def test_the_scored_side_is_named_as_what_it_holds(tmp_path):
         json.dumps({"note_split": "test = the validation slides", "validation_split": {"fold": 1}})
     )
     assert split_words(tmp_path, "test") == "the validation share of fold 1's train side"
+
+
+def test_a_fold_of_one_class_is_named_as_that_folds_held_out_slides():
+    from baselines.reading.pipeline import one_class_problem
+
+    assert one_class_problem("test", [1, 1], 0).startswith("fold 0's held-out side holds only tumour slides (2)")
+    assert one_class_problem("train", [0], 1).startswith("split 'train' (fold 1) holds only normal")
+    assert one_class_problem("test", [0, 1], 0) is None

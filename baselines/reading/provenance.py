@@ -365,6 +365,23 @@ def validation_entries(spec: dict) -> list:
     return list(v)
 
 
+def _env_kwargs(config) -> dict | None:
+    """The ``env_kwargs`` of a run's config (typed, its dict, or its ``config.json`` / run folder: the run's own regular
+    file, never a link or FIFO); None when it cannot be read or holds none that is an object. Read here, not through
+    :mod:`baselines.run_config` (which imports the trainers, whose harness writes this record)."""
+    if isinstance(config, (str, Path)):
+        from baselines.harness.run_folder import MAX_CONFIG_BYTES, read_own
+
+        path = Path(config)
+        path = path / "config.json" if path.is_dir() else path
+        try:
+            config = json.loads(read_own(path, "config", MAX_CONFIG_BYTES))
+        except (OSError, ValueError, HistojaxDataError):
+            return None
+    kw = config.get("env_kwargs") if isinstance(config, dict) else getattr(config, "env_kwargs", None)
+    return dict(kw) if isinstance(kw, dict) else ({} if kw is None else None)
+
+
 def run_slides(config) -> dict | None:
     """The :data:`RECORD` of a run trained on a dataset (``config``: its ``env_kwargs`` ``dataset``, ``split``,
     ``fold``): the dataset's seal and the names and identities of the side it trained on (``fitted``), and the
@@ -372,11 +389,9 @@ def run_slides(config) -> dict | None:
     so they are not refused; a published agent records those it was chosen on as ``validation``); None when it
     trained on no dataset (or one that cannot be read)."""
     from baselines.reading.slides import read_spec
-    from baselines.run_config import read_run_config
 
-    try:
-        kw = dict(read_run_config(config).env_kwargs or {})
-    except HistojaxDataError:
+    kw = _env_kwargs(config)
+    if kw is None:
         return None
     dataset = kw.get("dataset")
     if not isinstance(dataset, str) or not dataset:

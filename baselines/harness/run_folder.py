@@ -123,8 +123,8 @@ def _is_run_config(path: Path) -> bool:
     which would block the read) holding a JSON object that names its ``env_id``."""
     try:
         config = json.loads(read_own(path, "config", MAX_CONFIG_BYTES))
-    except (OSError, ValueError, HistojaxDataError):  # not a regular file, too large, not JSON: not a run's config
-        return False
+    except (OSError, ValueError, RecursionError, HistojaxDataError):  # not a regular file, too large, not JSON
+        return False  # (or nested deeper than the parser recurses): not a run's config
     return isinstance(config, dict) and isinstance(config.get("env_id"), str)
 
 
@@ -182,7 +182,7 @@ def _read_config(path: Path) -> dict | None:
     """The JSON object in the run's own file ``path`` (``config.json``); None when it is absent or unreadable."""
     try:
         config = json.loads(read_own(path, "config", MAX_CONFIG_BYTES))
-    except (OSError, ValueError, HistojaxDataError):
+    except (OSError, ValueError, RecursionError, HistojaxDataError):
         return None
     return config if isinstance(config, dict) else None
 
@@ -200,6 +200,23 @@ def _brief(value, most: int = 80) -> str:
     return text if len(text) <= most else text[: most - 3] + "..."
 
 
+def _nested_difference(key: str, saved_value, value) -> str:
+    """How the saved entry ``key`` differs from the command's: for two objects (``env_kwargs``) the first inner
+    entry that differs, named ``key.inner`` (an 80-character cut of the whole objects would hide it), e.g.
+    ``env_kwargs.read_budget is 0.2, not 0.3``; else both values."""
+    if isinstance(saved_value, dict) and isinstance(value, dict):
+        if key in PINNED:
+            saved_value = {k: v for k, v in saved_value.items() if k not in PINNED[key] or k in value}
+        for k in sorted(set(saved_value) | set(value), key=str):
+            if k not in saved_value:
+                return f"{key} has no {k} (this command's: {_brief(value[k])})"
+            if k not in value:
+                return f"{key}.{k} is {_brief(saved_value[k])} (this command has none)"
+            if _shown(saved_value[k]) != _shown(value[k]):
+                return _nested_difference(f"{key}.{k}", saved_value[k], value[k])
+    return f"{key} is {_brief(saved_value)}, not {_brief(value)}"
+
+
 def difference(saved: dict | None, config: dict, most: int = 2) -> str:
     """How the saved run config ``saved`` differs from the command's ``config`` (the first ``most`` entries of
     ``config`` that differ, in its order), for a refusal: e.g. ``whose lr is 0.0003, not 0.001``; ``saved`` None:
@@ -207,9 +224,7 @@ def difference(saved: dict | None, config: dict, most: int = 2) -> str:
     if saved is None:
         return "whose config.json cannot be read"
     parts = [
-        f"{k} is {_brief(saved[k])}, not {_brief(v)}"
-        if k in saved
-        else f"config has no {k} (this command's: {_brief(v)})"
+        _nested_difference(k, saved[k], v) if k in saved else f"config has no {k} (this command's: {_brief(v)})"
         for k, v in config.items()
         if k not in saved or not _entry_same(k, saved[k], v)
     ]
@@ -414,9 +429,12 @@ def _progress(out: Path) -> str:
     checkpoint`` when that summary cannot be read."""
     try:
         saved = json.loads(read_own(out / "checkpoint" / "checkpoint.json", "checkpoint summary", MAX_CONFIG_BYTES))
-        return f"update {int(saved['update'])}/{int(saved['num_updates'])}"
-    except (OSError, ValueError, TypeError, KeyError, HistojaxDataError):
+        update, total = saved["update"], saved["num_updates"]
+    except (OSError, ValueError, RecursionError, TypeError, KeyError, HistojaxDataError):
         return "its last checkpoint"
+    if type(update) is int and type(total) is int and 0 <= update <= total:  # not Infinity, NaN, true, "3", -5
+        return f"update {update}/{total}"
+    return "its last checkpoint"
 
 
 def move_aside(out: Path) -> Path:

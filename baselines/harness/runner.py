@@ -399,8 +399,8 @@ def resume_config(run: Path, algo: str, config_class=None):
             path,
             f"cannot read the run's config ({e.strerror or e}): not a run started with checkpoints, nothing to resume",
         ) from e
-    except ValueError as e:
-        raise HistojaxDataError(path, f"not valid JSON, truncated or corrupt ({e})") from e
+    except (ValueError, RecursionError) as e:  # RecursionError: arrays nested deeper than the parser recurses
+        raise HistojaxDataError(path, f"not valid JSON, truncated or corrupt ({e})") from None
     if not isinstance(config, dict):
         raise HistojaxDataError(path, "not a run config (a JSON object)")
     if config.get("algo", algo) != algo:

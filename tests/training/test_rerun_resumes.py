@@ -205,7 +205,7 @@ def test_a_trainers_completions_of_the_config_are_the_same_command(tmp_path, cap
     out, state = claim_run(_unfinished(tmp_path / "a", saved, runner=True), command)
     release(out)
     assert state == "resume"
-    with pytest.raises(RunFolderError, match=r'whose env_kwargs is .*, not {"read_budget": 0.5}'):
+    with pytest.raises(RunFolderError, match=r"whose env_kwargs\.read_budget is 0\.2, not 0\.5"):
         claim_run(out, {**command, "env_kwargs": {"read_budget": 0.5}})
     with pytest.raises(RunFolderError, match=r'whose obs_norm is .*, not "none"'):
         claim_run(out, {**command, "obs_norm": "none"})

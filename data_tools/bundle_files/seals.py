@@ -67,6 +67,32 @@ _UNSEALED_WARNED: set[str] = set()
 
 
 def read_dataset_json(folder, _depth: int = 0) -> dict:
+    """:func:`_read_dataset_json` (its doc), then its ``patients`` record checked: an object naming each slide's
+    patient by a non-empty string (a BundleError naming the file otherwise, not a grouping by ``str(None)`` or
+    ``"[1]"``, nor every slide of an empty id made one patient)."""
+    spec = _read_dataset_json(folder, _depth)
+    patients = spec.get("patients")
+    if patients is not None:
+        path = Path(folder) / "dataset.json"
+        if not isinstance(patients, dict):
+            raise BundleError(
+                path, f"its patients record is a JSON {type(patients).__name__}, not an object of slide name to patient"
+            )
+        from data_tools.datasets.split import patient_key  # the grouping's own comparison (no import cycle here)
+
+        for name, patient in patients.items():
+            if not isinstance(patient, str) or not patient_key(patient):
+                shown = json.dumps(patient)  # json-not-written (a message)
+                raise BundleError(
+                    path,
+                    f"its patients record gives slide {name[:80]!r} the patient "
+                    f"{shown if len(shown) <= 80 else shown[:77] + '...'}, not a patient id (a non-empty string); "
+                    "rebuild the dataset",
+                )
+    return spec
+
+
+def _read_dataset_json(folder, _depth: int = 0) -> dict:
     """``FOLDER/dataset.json`` read with its seal checked: the one reader of a dataset's index for ``make``, the head
     fits and ``histojax evaluate --dataset``. A file that carries a seal (:data:`DATASET_DIGEST`) must match it: an
     edit since histojax wrote it (a label, a split) is a ``BundleError`` naming the file. A split derived from a
@@ -98,7 +124,14 @@ def read_dataset_json(folder, _depth: int = 0) -> dict:
         data = f.read(MAX_DATASET_JSON_BYTES + 1)
     if len(data) > MAX_DATASET_JSON_BYTES:
         raise BundleError(path, f"grew past {MAX_DATASET_JSON_BYTES // 2**20} MiB while it was read; refusing it")
-    spec = json.loads(data.decode("utf-8"))
+    try:
+        spec = json.loads(data.decode("utf-8"))
+    except UnicodeDecodeError as e:  # a ValueError the callers' JSONDecodeError misses
+        raise BundleError(
+            path, f"is not UTF-8 text (byte {data[e.start]:#04x} at offset {e.start}); not a dataset.json"
+        ) from None
+    except RecursionError:  # arrays or objects nested deeper than the parser recurses
+        raise BundleError(path, "nests its JSON deeper than Python's parser reads; not a dataset index") from None
     if not isinstance(spec, dict):
         raise BundleError(
             path,

@@ -5,6 +5,7 @@ from __future__ import annotations
 import csv
 import math
 import re
+import unicodedata
 from pathlib import Path
 
 import numpy as np
@@ -285,7 +286,10 @@ def read_patient_column(path) -> dict[str, str]:
     ``submitter_id``); ``{}`` when the table has no such column. Names as :func:`read_label_table` reads
     them; a row with an empty patient cell is an error naming the file and row."""
     path = Path(path)
-    rows = [r for r in csv.reader(_label_table_text(path).splitlines()) if r and any(c.strip() for c in r)]
+    try:
+        rows = [r for r in csv.reader(_label_table_text(path).splitlines()) if r and any(c.strip() for c in r)]
+    except csv.Error as e:  # e.g. a cell over the csv module's field limit
+        raise HistojaxDataError(path, f"not a readable CSV table ({e})") from None
     if not rows:
         return {}
     head = [c.strip().lower() for c in rows[0]]
@@ -298,7 +302,7 @@ def read_patient_column(path) -> dict[str, str]:
     for i, row in enumerate(rows[1:], start=2):
         name = slide_key(row[name_col]) if len(row) > name_col else ""
         patient = row[patient_col].strip() if len(row) > patient_col else ""
-        if name and not patient:
+        if name and not patient_key(patient):  # empty, or only invisible characters (a zero-width space)
             raise HistojaxDataError(
                 path,
                 f"row {i}: the {rows[0][patient_col].strip()} cell of {name!r} is empty; "
@@ -311,8 +315,8 @@ def read_patient_column(path) -> dict[str, str]:
             if patient_key(out[was]) != patient_key(patient):  # "P1" and "p1 " are one patient
                 raise HistojaxDataError(
                     path,
-                    f"rows {j} and {i} list slide {name!r} with two patients ({out[was]!r} "
-                    f"and {patient!r}); a slide belongs to one patient: keep one row",
+                    f"rows {j} and {i} list slide {name!r} with two patients ({_cut(out[was])} "
+                    f"and {_cut(patient)}); a slide belongs to one patient: keep one row",
                 )
             continue
         first[name.lower()] = (i, name)
@@ -320,11 +324,21 @@ def read_patient_column(path) -> dict[str, str]:
     return out
 
 
+def _cut(text: str, most: int = 80) -> str:
+    """``repr(text)`` cut to ``most`` characters (a refusal quoting a patient id stays one short line)."""
+    shown = repr(text)
+    return shown if len(shown) <= most else shown[: most - 3] + "..."
+
+
 def patient_key(text: str) -> str:
     """A patient id as the grouping compares it: surrounding whitespace stripped, inner runs of whitespace one
     space, case folded, and a TCGA barcode (``TCGA-A1-A0SB-01Z-...``, in a patient cell or a slide name) cut to its
-    patient (``tcga-a1-a0sb``): ``"P1 "``, ``"p1"`` and ``"P1"`` are one patient."""
-    text = " ".join(str(text).split())
+    patient (``tcga-a1-a0sb``): ``"P1 "``, ``"p1"`` and ``"P1"`` are one patient. Unicode is compared in its NFKC
+    form with its invisible format characters (zero-width spaces and joiners, a BOM, a soft hyphen) dropped: a cell
+    pasted from a web page or typed on another system is the same patient; ``ß`` folds to ``ss``, while the
+    dotted capital ``İ`` stays apart from ``i`` and ``I`` (Python's case folding)."""
+    text = unicodedata.normalize("NFKC", str(text))  # "é" composed or not, a full-width "Ｐ１" are one spelling
+    text = " ".join("".join(c for c in text if unicodedata.category(c) != "Cf").split())  # zero-width, BOM
     if m := TCGA_BARCODE.match(text):
         text = m.group(1)
     return text.casefold()

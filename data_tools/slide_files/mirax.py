@@ -134,6 +134,8 @@ def check_mirax_files(path) -> None:
         raise SlideError(path, f"cannot list its data folder {folder.name}/: {exc.strerror or exc}") from None
     for e in sorted(entries, key=lambda e: e.name):
         where = f"{folder.name}/{e.name}"
+        if not where.isprintable():  # a newline or another control character in a name: the refusal stays one line
+            where = repr(where)
         try:
             st = e.stat(follow_symlinks=False)
         except OSError:
@@ -186,6 +188,10 @@ def _read(ini: Path):
         text = data.decode("utf-8-sig")
     except UnicodeDecodeError:
         return None
+    # GLib strips each line's leading whitespace (a line is a key, a group or a comment, never the continuation
+    # configparser makes of an indented line): "  [HIERARCHICAL]" then "INDEXFILE=../x" is a group and its key to
+    # OpenSlide, and must be so here, or a name or a size checked below hides in another key's value
+    text = "\n".join(line.lstrip(" \t\r\v\f") for line in text.split("\n"))
     cfg = configparser.RawConfigParser(
         strict=False, interpolation=None, delimiters=("=",), comment_prefixes=("#",), inline_comment_prefixes=None
     )

@@ -87,27 +87,61 @@ def save_checkpoint(out: Path, params, config: dict, name: str = "params.msgpack
     return path
 
 
+MAX_RUN_CONFIG_BYTES = 16 << 20
+"""A run's ``config.json`` larger than this (16 MiB; a trainer writes about 1 KB) is not read."""
+
+
+def _read_regular(path: Path, what: str, max_bytes: int | None = None) -> bytes:
+    """The bytes of ``path`` (a link to a regular file is followed: the user's choice), refused in one line naming
+    it when it is not a regular file (a FIFO would block the read for ever), larger than ``max_bytes`` when given,
+    or changed into one while it was opened. ``OSError`` (e.g. missing) as ``open`` raises it."""
+    import os
+    import stat
+
+    from data_tools.bundle_files.safe_files import not_regular
+
+    st = os.stat(path)
+    if not stat.S_ISREG(st.st_mode):
+        raise HistojaxDataError(path, f"is {not_regular(st)}, not a {what}; refusing to read it")
+    if max_bytes is not None and st.st_size > max_bytes:
+        raise HistojaxDataError(path, f"{st.st_size:,} bytes, more than a {what} holds ({max_bytes:,}); not read")
+    with os.fdopen(os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0)), "rb") as f:  # never blocks
+        if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+            raise HistojaxDataError(path, f"changed while it was opened (not a regular file now), not a {what}")
+        return f.read() if max_bytes is None else f.read(max_bytes + 1)
+
+
 def load_checkpoint(path) -> tuple[dict, dict]:
-    """``(params, config)`` from a checkpoint file or its run folder. A missing, truncated or corrupt
-    file raises HistojaxDataError naming it."""
+    """``(params, config)`` from a checkpoint file or its run folder. A missing, truncated or corrupt file, one
+    that is not a regular file (a FIFO: never waited on), parameters holding NaN or infinite values (a run that
+    diverged: every score it gives would be NaN) or a ``config.json`` that is not a JSON object raise
+    HistojaxDataError naming it."""
     path = Path(path)
     if path.is_dir():
         path = path / "params.msgpack"
     try:
-        data = path.read_bytes()
+        data = _read_regular(path, "checkpoint")
     except OSError as e:
         raise HistojaxDataError(path, f"cannot read the checkpoint ({e.strerror or e})") from e
     try:
         params = serialization.msgpack_restore(data)
     except Exception as e:  # msgpack's errors (ExtraData, ValueError "incomplete input", ...) share no base
         raise HistojaxDataError(path, f"not a readable checkpoint, truncated or corrupt ({e}); train again") from e
+    for leaf in jax.tree.leaves(params):
+        arr = np.asarray(leaf)
+        if arr.dtype.kind in "fc" and not np.all(np.isfinite(arr)):
+            raise HistojaxDataError(
+                path, "holds NaN or infinite parameters (a run that diverged?); every score would be NaN: train again"
+            )
     config_path = path.parent / "config.json"
     try:
-        config = json.loads(config_path.read_text())
+        config = json.loads(_read_regular(config_path, "run's config", MAX_RUN_CONFIG_BYTES))
     except OSError as e:
         raise HistojaxDataError(config_path, f"cannot read the run's config ({e.strerror or e})") from e
-    except ValueError as e:
-        raise HistojaxDataError(config_path, f"not valid JSON, truncated or corrupt ({e})") from e
+    except (ValueError, RecursionError) as e:  # RecursionError: nested deeper than the parser recurses
+        raise HistojaxDataError(config_path, f"not valid JSON, truncated or corrupt ({e})") from None
+    if not isinstance(config, dict):
+        raise HistojaxDataError(config_path, f"holds a JSON {type(config).__name__}, not a run's config (an object)")
     return jax.tree.map(jnp.asarray, params), canonical_config(config)  # older runs spelled obs_mode "obs"
 
 

@@ -178,17 +178,20 @@ def run_command(
 def command_main(add_arguments, run, prog: str, doc: str | None = None, one_line: bool = False):
     """A command module's ``main(argv=None) -> int`` (``python -m MODULE``): :func:`run_command` with
     the module's ``add_arguments`` and ``run``; ``histojax <command>`` calls the same two functions. A
-    ``HistojaxDataError`` that reaches it (a malformed file found where the command does not catch it) is one
-    line, exit 2, as ``histojax`` says it (``HISTOJAX_DEBUG=1``: the traceback)."""
+    ``HistojaxDataError`` that reaches it (a malformed file found where the command does not catch it) or a
+    :class:`~data_tools.metrics.MetricInputError` (NaN or infinite scores given to an AUC) is one line, exit 2, as
+    ``histojax`` says it (``HISTOJAX_DEBUG=1``: the traceback)."""
 
     def main(argv=None) -> int:
         import os
 
         from data_tools.errors import HistojaxDataError
+        from data_tools.metrics import MetricInputError
 
         try:
             return run_command(add_arguments, run, argv, prog=prog, doc=doc, one_line=one_line)
-        except HistojaxDataError as e:  # a bad file found deep inside (a dataset.json, a bundle): one line, exit 2
+        except (HistojaxDataError, MetricInputError) as e:  # a bad file found deep inside (a dataset.json, a
+            # bundle), or scores no figure can be measured on (NaN from a policy): one line, exit 2
             if os.environ.get("HISTOJAX_DEBUG"):
                 raise
             return print_error(e)

@@ -205,12 +205,27 @@ def read_plan(out) -> dict:
     """``OUT/plan.json`` of a ``histojax dataset`` build, checked: a JSON object of this tool's kind with an
     ``options`` record and a ``slides`` record of slide records. Anything else (absent, malformed, another
     tool's ``plan.json``) is a ``HistojaxDataError`` naming the file."""
+    import stat
+
+    from data_tools.bundle_files.safe_files import not_regular
+    from data_tools.bundle_files.seals import MAX_DATASET_JSON_BYTES
+
     path = Path(out) / "plan.json"
     try:
-        plan = json.loads(path.read_text(encoding="utf-8"))
+        st = os.stat(path)  # a link to a regular file is read, as before
+        if not stat.S_ISREG(st.st_mode) or st.st_size > MAX_DATASET_JSON_BYTES:
+            what = f"{st.st_size:,} bytes" if stat.S_ISREG(st.st_mode) else not_regular(st)
+            raise HistojaxDataError(  # a FIFO would block the read for ever
+                path, f"is {what}, not a histojax dataset plan; refusing to touch it: choose another --out"
+            )
+        with os.fdopen(os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0)), "rb") as f:
+            if not stat.S_ISREG(os.fstat(f.fileno()).st_mode):
+                raise HistojaxDataError(path, "changed while it was opened (not a regular file now); refusing it")
+            plan = json.loads(f.read(MAX_DATASET_JSON_BYTES + 1).decode("utf-8"))
     except FileNotFoundError:
         raise HistojaxDataError(out, "no plan.json: not a dataset started by `histojax dataset`") from None
-    except (OSError, UnicodeDecodeError, json.JSONDecodeError) as e:
+    except (OSError, UnicodeDecodeError, json.JSONDecodeError, RecursionError) as e:  # RecursionError: nested
+        # deeper than the parser recurses
         raise HistojaxDataError(
             path,
             f"unreadable ({_one_line(e)}); not a histojax dataset plan, refusing to touch it: choose another --out",

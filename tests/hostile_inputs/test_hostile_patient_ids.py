@@ -8,6 +8,7 @@ UTF-8 is one line naming it (both were tracebacks)."""
 from __future__ import annotations
 
 import json
+import os
 import re
 from pathlib import Path
 
@@ -155,3 +156,35 @@ def test_a_built_dataset_groups_hostile_spellings_of_one_patient_and_keeps_them_
     assert side["t0"] == side["t1"] == side["t2"]
     folds = {Path(e).name: i for i, lst in enumerate(spec["folds"]["lists"]) for e in lst}
     assert folds["t0"] == folds["t1"] == folds["t2"]
+
+
+@pytest.mark.parametrize("kind", ["fifo", "deep", "folder"])
+def test_histojax_dataset_over_a_fifo_or_nested_plan_json_is_one_line_nothing_written(tmp_path, capsys, kind):
+    """Was: ``plan.json`` a FIFO blocked ``histojax dataset --out DS`` for ever (``read_text``); one nested past the
+    parser was a RecursionError traceback. The plan (where the patients are recorded) is read before anything is
+    written."""
+    import signal
+
+    from data_tools.__main__ import main as data_main
+
+    slides, out = tmp_path / "S", tmp_path / "ds"
+    slides.mkdir()
+    (slides / "a.tif").write_bytes(b"")  # never opened: the plan is refused first
+    out.mkdir()
+    plan = out / "plan.json"
+    if kind == "fifo":
+        os.mkfifo(plan)
+    elif kind == "deep":
+        plan.write_text("[" * 100_000 + "]" * 100_000)
+    else:
+        plan.mkdir()
+    old = signal.signal(signal.SIGALRM, lambda *_: pytest.fail("blocked on plan.json"))
+    signal.alarm(30)
+    try:
+        code = data_main(["dataset", str(slides), "--out", str(out), "--quiet"])
+    finally:
+        signal.alarm(0)
+        signal.signal(signal.SIGALRM, old)
+    err = capsys.readouterr().err.strip().splitlines()
+    assert code == 2 and len(err) == 1 and "plan.json" in err[0], err
+    assert sorted(p.name for p in out.iterdir()) == ["plan.json"]

@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import functools
 import json
+import math
 import time
 from pathlib import Path
 
@@ -235,6 +236,20 @@ def load_runner(folder: Path, template, num_updates: int, chunk: int, config: di
         raise HistojaxDataError(path, f"not a readable checkpoint, truncated or corrupt ({e})") from e
     if not isinstance(state, dict) or state.get("format") != RUNNER_FORMAT or "leaves" not in state:
         raise HistojaxDataError(path, f"not a histojax training checkpoint (no runner state of format {RUNNER_FORMAT})")
+    ints = {k: state.get(k) for k in ("update", "num_updates", "chunk")}
+    seconds, leaves, metrics = state.get("train_seconds"), state["leaves"], state.get("metrics")
+    if (
+        any(type(v) is not int for v in ints.values())
+        or not 0 <= ints["update"] <= ints["num_updates"]
+        or type(seconds) not in (int, float)
+        or not math.isfinite(seconds)
+        or not isinstance(leaves, dict)
+        or not isinstance(metrics, dict)
+        or any(np.ndim(v) != 2 or np.shape(v)[1] != ints["update"] for v in metrics.values())
+    ):  # a crafted or damaged file: never a KeyError or a NumPy shape error further on
+        raise HistojaxDataError(
+            path, "its update counts, time, arrays or metrics are missing or of the wrong kind (damaged); train again"
+        )
     if config is not None and state.get("config_sha256") != config_digest(config):
         raise HistojaxDataError(
             path,

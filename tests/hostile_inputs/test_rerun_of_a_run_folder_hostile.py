@@ -14,7 +14,9 @@ import subprocess
 import sys
 from pathlib import Path
 
+import jax
 import jax.numpy as jnp
+import numpy as np
 import pytest
 
 from baselines import ppo
@@ -218,3 +220,44 @@ def test_a_second_rerun_while_one_holds_the_lock_is_refused_and_touches_nothing(
     out_, state = claim_run(out, CONFIG)  # the holder gone: the rerun continues
     release(out_)
     assert state == "resume"
+
+
+@pytest.mark.parametrize(
+    "edit",
+    [
+        {"num_updates": None},  # was: KeyError traceback
+        {"leaves": [1, 2]},  # was: AttributeError traceback (list.get)
+        {"update": 1.5},  # was: continued, a traceback further on
+        {"update": 9},  # past num_updates: was continued, a traceback further on
+        {"train_seconds": float("nan")},  # was: a ValueError writing the NaN into the logs
+        {"metrics": {"return": np.zeros((1, 5), np.float32)}},  # 5 columns for 2 updates: was a traceback further on
+    ],
+    ids=["no-num_updates", "leaves-list", "update-float", "update-past", "seconds-nan", "metrics-shape"],
+)
+def test_a_crafted_runner_state_of_this_config_is_one_line(tmp_path, capsys, edit):
+    """A ``runner.msgpack`` of this config's digest and arrays with one field damaged; ``edit={}`` continues."""
+    from flax import serialization
+
+    from baselines.harness.runner import RUNNER_FORMAT, chunked_runner, config_digest
+
+    args = ppo.parse_args(["--seeds", "1", "--checkpoint-every", "2", "--out", str(tmp_path / "run")])
+    config = ppo.PPOConfig.from_dict(cli.config_from_args(args, defaults=ppo.PPOConfig.defaults()), where="test")
+    train = _Toy(config)
+    toy, (start, _) = train.config, chunked_runner(train)
+    template = jax.tree.leaves(start.template(jax.random.split(jax.random.PRNGKey(0), 1)))
+    state = {
+        "format": RUNNER_FORMAT,
+        "update": 2,
+        "num_updates": 4,
+        "chunk": 2,
+        "config_sha256": config_digest(toy),
+        "train_seconds": 1.0,
+        "leaves": {str(i): np.zeros(t.shape, t.dtype) for i, t in enumerate(template)},  # the toy's own arrays
+        "metrics": {"return": np.zeros((1, 2), np.float32)},
+    }
+    state = {k: v for k, v in {**state, **edit}.items() if v is not None}
+    out = _unfinished(tmp_path / "run", config=toy, runner=serialization.msgpack_serialize(state))
+    before = _tree(out)
+    with pytest.raises(HistojaxDataError, match=r"runner\.msgpack: ") as e:
+        cli.train_and_save("ppo", _Toy, args, ppo.PPOConfig, "updates")
+    assert "\n" not in str(e.value) and _tree(out) == before and not (out / LOCK).exists()

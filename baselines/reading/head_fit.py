@@ -16,6 +16,12 @@ The test split is never read. ``config.json`` records what the head was fitted o
 chosen head whose validation AUC is below 0.5 or whose calibration slope is not positive
 (:func:`baselines.reading.fitting.check_head`).
 
+**A rerun keeps the head** (:func:`baselines.reading.fitting.claim_head`, before any slide is read): ``--out``
+holding a finished head of this command (``config.json``'s ``fit_options``: the dataset and its seal, ``--fold`` and
+the fit's options) fits nothing, in one line; a head of other options is refused naming the first difference;
+``--restart`` moves it aside to ``OUT.previous-N`` (never deleted) and fits again. A fit killed before its head was
+written is fitted again from the start (a fit's progress within one fit is not kept).
+
 The slides are read by the loaders every head-based tool shares (:mod:`baselines.reading.slides`).
 """
 
@@ -31,9 +37,13 @@ import numpy as np
 from baselines.reading.fitting import (
     CHANCE_FLAG,
     MIN_SLIDES_PER_CLASS,
+    OPTIONS,
+    add_restart,
     chance_warning,
     check_classes,
     check_head,
+    claim_head,
+    fit_options,
     logistic_fit,
 )
 from baselines.reading.slides import HeadDataError, load_slides, padded, read_spec, spec_label, warn_scale
@@ -132,9 +142,11 @@ def fit(
     progress: bool = False,
     minus_median: bool = False,
     fold: int | None = None,
+    options: dict | None = None,
 ):
     """Choose and fit the head of ``dataset`` (see the module doc); saved to ``out`` when given. ``fold=i``: on
-    fold i's train side (the other folds) of a dataset built with ``--folds K``.
+    fold i's train side (the other folds) of a dataset built with ``--folds K``. ``options``: the command's
+    (:func:`command_options`), recorded in ``config.json`` so that its rerun keeps the head.
     Returns ``(head, table of candidates)``."""
     import datetime
 
@@ -203,6 +215,7 @@ def fit(
         # re-calibrated on the whole train side: every train slide is a fitting slide, the share validated too
         RECORD: fit_record(dataset, spec, fold, spec["train"], held),
         "candidates": table,
+        **({OPTIONS: options} if options is not None else {}),
         "date": datetime.date.today().isoformat(),
         "jax": jax.__version__,
     }
@@ -243,14 +256,36 @@ def add_arguments(p) -> None:
         default=pcam_cnn.VIEW_LOGIT,
         help=f"feature entry holding the view tumour logit (default {pcam_cnn.VIEW_LOGIT}: pcam-cnn's)",
     )
+    add_restart(p)
+
+
+def command_options(args) -> dict:
+    """What the command fits (:func:`baselines.reading.fitting.fit_options`): compared with a finished head's."""
+    return fit_options(
+        args.dataset,
+        args.fold,
+        **{
+            "--val-fraction": args.val_fraction,
+            "--seed": args.seed,
+            "--ks": list(args.ks),
+            "--minus-median": bool(args.minus_median),
+            "--dim": args.dim,
+        },
+    )
 
 
 def run(args, parser=None) -> int:
-    """Fit, save and print the candidates' table."""
+    """Fit, save and print the candidates' table; a finished head of this command in ``--out``: nothing to fit
+    (:func:`baselines.reading.fitting.claim_head`)."""
     if any(k < 1 for k in args.ks):
         return print_error(f"--ks: neighbourhood sides must be ≥ 1, got {args.ks}")
+    from histojax.reading.heads.logit import KIND as LOGIT_KIND
+
     t0 = time.perf_counter()
     try:
+        options = command_options(args)
+        if claim_head(args.out, LOGIT_KIND, options, getattr(args, "restart", False)) == "done":
+            return 0
         head, table = fit(
             args.dataset,
             args.out,
@@ -261,6 +296,7 @@ def run(args, parser=None) -> int:
             progress=True,
             minus_median=args.minus_median,
             fold=args.fold,
+            options=options,
         )
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)

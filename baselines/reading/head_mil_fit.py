@@ -14,6 +14,9 @@ and ``mil-features`` (:class:`histojax.reading.heads.mil.MilHead`, :func:`train_
 everything and reading random cells (10 %, 20 %); the best mean validation AUC (reading everything) is refitted on
 the whole training split (seed 0) and saved to ``--out`` (``config.json`` records every candidate's figures beside
 the 2 × 2-mean head's). ``--table FILE`` keeps the validation figures, so a re-run only fits what is missing.
+A rerun over a finished head of the same command fits nothing (:func:`baselines.reading.fitting.claim_head`: one
+line; a head of other options is refused naming the first difference; ``--restart`` moves it aside to
+``OUT.previous-N``).
 
 **Guards**, as :mod:`baselines.reading.head_fit` and :mod:`baselines.reading.learned_head_fit` have them (one line
 naming ``dataset.json``, exit 2, no head saved): a validation share with fewer than
@@ -37,9 +40,13 @@ import numpy as np
 from baselines.reading.fitting import (
     CHANCE_FLAG,
     MIN_SLIDES_PER_CLASS,
+    OPTIONS,
+    add_restart,
     chance_warning,
     check_classes,
     check_head,
+    claim_head,
+    fit_options,
     logistic_fit,
 )
 from baselines.reading.slides import HeadDataError, load_slide, read_spec, spec_label, warn_scale
@@ -410,6 +417,23 @@ def add_arguments(p) -> None:
         metavar="I",
         help="a dataset built with --folds K: fit on fold I's train side (the other K - 1 folds)",
     )
+    add_restart(p)
+
+
+def command_options(args) -> dict:
+    """What the command fits (:func:`baselines.reading.fitting.fit_options`): compared with a finished head's on a
+    rerun (``--cache`` and ``--table`` only keep work: not compared)."""
+    return fit_options(
+        args.dataset,
+        args.fold,
+        **{
+            "--candidates": list(args.candidates),
+            "--seeds": args.seeds,
+            "--steps": args.steps,
+            "--val-fraction": args.val_fraction,
+            "--seed": args.seed,
+        },
+    )
 
 
 def run(args, parser=None) -> int:
@@ -426,9 +450,13 @@ def run(args, parser=None) -> int:
     from data_tools.cli_output import print_error
     from histojax.reading.heads.files import check_writable
     from histojax.reading.heads.logit import LogitHead
+    from histojax.reading.heads.mil import KINDS
 
     t0 = time.perf_counter()
     try:
+        options = command_options(args)
+        if claim_head(args.out, KINDS, options, getattr(args, "restart", False)) == "done":
+            return 0  # a finished head of this command: kept
         check_writable(args.out)  # a folder that cannot be written: refused before any slide is read
         spec = read_spec(args.dataset, args.fold)
         warn_scale(args.dataset, spec)  # the encoder-scale warning dataset.json records, repeated
@@ -541,6 +569,7 @@ def run(args, parser=None) -> int:
         # refitted on the whole train side: every train slide is a fitting slide, the share validated too
         RECORD: fit_record(args.dataset, spec, args.fold, spec["train"], held),
         "candidates": summary,
+        OPTIONS: options,
         "date": datetime.date.today().isoformat(),
         "jax": jax.__version__,
     }

@@ -39,6 +39,13 @@ Saved to ``--out`` (:meth:`LearnedHead.save`, atomic; never over a folder of oth
 ``params.npz`` and ``learning_curve.png``. ``--all-folds`` (a dataset built with ``--folds K``): one head per fold,
 ``OUT/fold0`` … ``OUT/fold{K-1}``, each fitted on the other folds (as ``--fold I --out OUT/foldI``).
 
+**A rerun keeps finished heads** (:func:`baselines.reading.fitting.claim_head`, before any slide is read): ``--out``
+holding a finished head of this command (``config.json``'s ``fit_options``) fits nothing, in one line; with
+``--all-folds`` each fold's finished head is kept (``fold I: finished, kept``) and only the missing folds are fitted,
+so a kill during fold 2 loses only fold 2's fit (a fit's progress within one fit is not kept). A head of other
+options is refused naming the first difference (every fold checked before any is fitted); ``--restart`` moves the
+head (with ``--all-folds``: the whole ``OUT``) aside to ``OUT.previous-N``, never deleted, and fits again.
+
 ``--score HEAD --split test`` scores a saved head on a split reading everything: AUC over all slides and
 without ITC-only slides (lesion classes as :mod:`baselines.reading.readers` defines them). A split holding slides
 the head was fitted or validated on is refused (``--allow-fitting-slides``: scored, with a warning). ``--rotate SEED``
@@ -64,7 +71,14 @@ from baselines.published_agents import published_or_path
 from baselines.reading.fitting import (  # the same minimum as the logit and MIL fits
     CHANCE_FLAG,
     MIN_SLIDES_PER_CLASS,
+    OPTIONS,
+    add_restart,
     chance_warning,
+    claim_head,
+    fit_options,
+    head_state,
+    move_head_aside,
+    refusal,
 )
 from baselines.reading.provenance import (
     RECORD,
@@ -581,7 +595,32 @@ def add_arguments(p) -> None:
         "--fold I --out OUT/foldI)",
     )
     add_flag(p)
+    add_restart(p)
     p.add_argument("--quiet", action="store_true", help="no progress bars")
+
+
+def command_options(args, fold: int | None = None) -> dict:
+    """What the command fits (:func:`baselines.reading.fitting.fit_options`; ``fold``: fold I of ``--all-folds``,
+    else ``--fold``): compared with a finished head's on a rerun."""
+    return fit_options(
+        args.dataset,
+        args.fold if fold is None else fold,
+        **{
+            "--seed": args.seed,
+            "--val-fraction": args.val_fraction,
+            "--split-seed": args.split_seed,
+            "--hidden": sorted(args.hidden),
+            "--steps": args.steps,
+            "--batch": args.batch,
+            "--views": args.views,
+            "--top-share": args.top_share,
+            "--instance-weight": args.instance_weight,
+            "--lr": args.lr,
+            "--weight-decay": args.weight_decay,
+            "--eval-every": args.eval_every,
+            "--rotate": args.rotate,
+        },
+    )
 
 
 def run(args, parser=None) -> int:
@@ -598,6 +637,9 @@ def run(args, parser=None) -> int:
     t0 = time.perf_counter()
     progress = not args.quiet
     try:
+        options = command_options(args)
+        if claim_head(args.out, KIND, options, getattr(args, "restart", False)) == "done":
+            return 0  # a finished head of this command: kept
         files.check_replaceable(args.out, KIND)  # before any work: a folder of other files is refused now
         spec = read_spec(args.dataset, args.fold)
         warn_scale(args.dataset, spec)  # the encoder-scale warning dataset.json records, repeated
@@ -725,6 +767,7 @@ def run(args, parser=None) -> int:
         },
         RECORD: fit_record(args.dataset, spec, args.fold, kept, held),
         "candidates": results,
+        OPTIONS: options,
         "wall_seconds": round(wall, 1),
         "load_seconds": round(t_load, 1),
         "date": datetime.date.today().isoformat(),
@@ -930,16 +973,32 @@ def all_folds_command(args, parser=None) -> int:
         check_all_folds(args.dataset, args.val_fraction, args.split_seed, fitting=MIN_SLIDES_PER_CLASS)  # before any
     except (HistojaxDataError, ValueError, OSError) as e:  # fold is trained: every fold's share is checked now
         return print_error(e)
+    out = Path(args.out)
+    if getattr(args, "restart", False) and out.is_dir() and not out.is_symlink() and any(out.iterdir()):
+        dest = move_head_aside(out)  # the whole set of fold heads, kept together
+        print(f"{out}: moved the fold heads there aside to {dest} (--restart); fitting every fold again", flush=True)
+    try:
+        states = [head_state(out / f"fold{i}", KIND, command_options(args, i)) for i in range(k)]
+    except (HistojaxDataError, ValueError, OSError) as e:
+        return print_error(e)
+    for i, (state, what) in enumerate(states):  # a fold head of another fit: refused before any fold is fitted
+        if state == "other":
+            return print_error(refusal(out / f"fold{i}", what))
     for i in range(k):
         one = copy.copy(args)
-        one.all_folds, one.fold, one.out = False, i, str(Path(args.out) / f"fold{i}")
+        one.all_folds, one.fold, one.out, one.restart = False, i, str(out / f"fold{i}"), False
+        if states[i][0] == "done":
+            print(f"fold {i}: finished, kept ({one.out})", flush=True)
+            continue
         print(f"fold {i} of {k}: fitting on the other {k - 1} folds -> {one.out}", flush=True)
         code = run(one, parser)
         if code:
             return code
+    kept = sum(state == "done" for state, _ in states)
     print(
-        f"fitted {k} heads, one per fold: {args.out}/fold0 ... fold{k - 1} (budget-curve / evaluate --all-folds "
-        f"--head {args.out} use fold I's head on fold I)"
+        f"{'fitted' if not kept else f'kept {kept} finished, fitted {k - kept} of'} {k} heads, one per fold: "
+        f"{args.out}/fold0 ... fold{k - 1} (budget-curve / evaluate --all-folds --head {args.out} use fold I's head "
+        "on fold I)"
     )
     return 0
 

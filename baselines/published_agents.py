@@ -52,7 +52,9 @@ def describe(name: str) -> dict:
     (``"agent"`` or ``"head"``); ``what`` (an agent's trainer, env id, action and observation modes and the head it
     reads through; a head's kind, structure and encoder); ``trained_on`` (dataset, split and number of slides:
     ``published.json``'s ``trained_on`` of an agent, ``config.json``'s ``fitted_on`` of a head); ``detail`` (the
-    ``[(label, text)]`` of the slides it trained on, how to build them and how it was chosen, as recorded);
+    ``[(label, text)]`` of the slides it trained on, how to build them and how it was chosen, as recorded, and how
+    many slides it records having seen: ``slides_seen.json`` of an agent, ``config.json``'s ``slides_seen`` of a
+    head);
     ``folder`` (its path in the installed package)."""
     folder = PUBLISHED / name
     config = _json(folder / "config.json")
@@ -81,6 +83,17 @@ def describe(name: str) -> dict:
             )
             if text
         ]
+    seen = _json(folder / "slides_seen.json") if kind == "agent" else config.get("slides_seen")
+    if isinstance(seen, dict) and (seen.get("fitted") or seen.get("validation")):  # what every scorer refuses
+        fit, val = ({str(n) for n in seen.get(k) or []} for k in ("fitted", "validation"))
+        verb = "trained" if kind == "agent" else "fitted"
+        detail.append(
+            (
+                "slides seen",
+                f"{len(fit | val)} ({len(fit)} {verb} on, {len(val)} validated on): every scorer refuses them "
+                "(--allow-fitting-slides: warned)",
+            )
+        )
     fitted = fitted if isinstance(fitted, dict) else {}
     trained_on = ", ".join(
         str(v)

@@ -12,7 +12,9 @@ random reader over ``--seeds`` orders, logit reader — a learned head's score r
 everything) at ``--budgets``, and each reader at **each slide's own ceiling** (``max_steps`` views of that slide: the
 row ``budget = median ceiling``). Writes ``OUT/readers.csv`` and ``OUT/ceiling.json``. ``--head``: any head folder
 :func:`histojax.reading.heads.load` reads; the split is scored by the loop :mod:`baselines.reading.diagnosis` shares
-(:func:`~baselines.reading.diagnosis.score_split`: a split of one class refused, its AUC undefined).
+(:func:`~baselines.reading.diagnosis.score_split`: a split of one class refused, its AUC undefined). A head fitted
+or validated on a scored slide is refused, as by every scorer (``--allow-fitting-slides``: warned, and the files
+written say on which).
 """
 
 from __future__ import annotations
@@ -26,6 +28,7 @@ import numpy as np
 from baselines.reading import reader_scores
 from baselines.reading.diagnosis import score_split, write_results
 from baselines.reading.orders import logit_order, random_order, read_mask, search_order
+from baselines.reading.provenance import add_flag, check_scored, seen_mark
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import small_split_warning
@@ -71,6 +74,7 @@ def add_arguments(p) -> None:
     p.add_argument("--budgets", type=float, nargs="+", default=[0.005, 0.01, 0.02], help="fractions read")
     p.add_argument("--seeds", type=int, default=5, help="random reader orders (default 5)")
     p.add_argument("--out", default="runs/navigator-ceiling", help="output folder")
+    add_flag(p)
 
 
 def run(args, parser=None) -> int:
@@ -79,6 +83,12 @@ def run(args, parser=None) -> int:
         return print_error("--max-steps and --seeds must be ≥ 1 and --budgets in (0, 1]")
     t0 = time.perf_counter()
     try:
+        from baselines.reading.slides import read_spec
+        from histojax.reading import heads
+
+        scored = read_spec(args.dataset, None).get(args.split) or []
+        check_scored(heads.load(args.head), args.head, args.dataset, scored, args.allow_fitting_slides)
+        mark = seen_mark(heads.load(args.head), args.dataset, scored)  # the flag: the written files say so
         head, level, slides, results = score_split(args.dataset, args.head, args.split, args.budgets, args.seeds)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
@@ -107,6 +117,7 @@ def run(args, parser=None) -> int:
             "wall_s": round(wall, 1),
         },
         "ceiling.json",
+        mark=mark,
     )
     print(
         f"{len(slides)} slides: finest tissue views median {np.median(views):.0f} (min {views.min()}, max "

@@ -64,12 +64,11 @@ from baselines.harness.logs import load_checkpoint
 from baselines.published_agents import published_or_path
 from baselines.reading.provenance import (
     add_flag,
-    check_record,
+    check_policy,
     check_scored,
     head_config,
     head_for_fold,
     record_of,
-    run_record,
     seen_slides,
 )
 from baselines.reading.slides import scale_warning
@@ -428,11 +427,8 @@ def run(args, parser) -> int:
     entries = scored_entries(config, args.slide)
     seen: dict[str, list[str]] = {}  # who saw which scored slides (scored with the flag): written with the figures
     if run is not None and params is not None and entries:  # the policy's own slides: refused (or warned, the flag)
-        record, record_file = run_record(run)
-        if record is not None:
-            check_record(record, record_file, scored_dataset, entries, allow, who="policy")
-            if names := seen_slides(record, scored_dataset, entries):
-                seen["policy"] = names
+        if names := check_policy(run, scored_dataset, entries, allow):  # the same guard as every policy scorer
+            seen["policy"] = names
     head, head_dir = None, None
     if getattr(args, "head", None) or settings:
         from histojax.reading import heads

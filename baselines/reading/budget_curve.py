@@ -71,7 +71,15 @@ from baselines.reading.pipeline import (
     split_words,
 )
 from baselines.reading.plots import plot_curve
-from baselines.reading.provenance import add_flag, check_scored, head_for_fold, mark_words, seen_mark
+from baselines.reading.provenance import (
+    add_flag,
+    check_policy,
+    check_scored,
+    head_for_fold,
+    mark_words,
+    seen_mark,
+    with_seen,
+)
 from baselines.reading.slides import read_spec
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
@@ -687,6 +695,14 @@ def fold_rows(args, level: int, fold: int | None):
             heads.load(head_dir), head_dir, args.dataset, scored, getattr(args, "allow_fitting_slides", False)
         )  # --allow-fitting-slides: a warning, and the rows say so (scored_on_seen_slides)
         mark = seen_mark(heads.load(head_dir), args.dataset, scored)
+    policies = [(name, run if fold is None else with_fold(run, fold)) for name, run in args.ppo]
+    if policies:  # a policy trained on a scored slide: refused too, before any slide is read
+        scored = read_spec(args.dataset, fold).get(side) or []
+        for name, run in policies:
+            names = check_policy(
+                run, args.dataset, scored, getattr(args, "allow_fitting_slides", False), option=f"--ppo {name}"
+            )
+            mark = with_seen(mark, f"policy {name}", names)
     test = load_split(args.dataset, side, env_id=args.env, level=level, fold=fold)
     check_two_classes(args.dataset, side, test.labels, fold)
     if (
@@ -702,7 +718,6 @@ def fold_rows(args, level: int, fold: int | None):
         print(f"warning: {line}", file=sys.stderr, flush=True)  # a budget below every cell: the overview alone
     train = load_split(args.dataset, "train", env_id=args.env, level=level, fold=fold)
     head = load_head(head_dir, test.tables)
-    policies = [(name, run if fold is None else with_fold(run, fold)) for name, run in args.ppo]
     head_cells = None
     if head is not None:  # the head's rows come from the readers, on the same cells (the glimpse level's bundle level)
         cell_level = glimpse_bundle_level(args.dataset, args.env, level, side, fold)[0]
@@ -726,7 +741,7 @@ def fold_rows(args, level: int, fold: int | None):
         head=head,
         head_cells=head_cells,
     )
-    if mark:  # scored with --allow-fitting-slides on slides the head saw: each row says which
+    if mark:  # scored with --allow-fitting-slides on slides the head or a policy saw: each row says which
         rows = [{**r, "scored_on_seen_slides": mark_words(mark)} for r in rows]
     if not getattr(args, "all_folds", False):  # once scored (a refusal stays one line); --all-folds: curve_rows warns
         warn_small(test.labels, split_words(args.dataset, side, fold))  # fold I's held-out slides, or the split

@@ -38,7 +38,7 @@ from baselines.reading import reader_scores
 from baselines.reading.csv_files import write_csv
 from baselines.reading.pipeline import BUDGETS, check_two_classes, run_seeds, split_words
 from baselines.reading.plots import plot_readers
-from baselines.reading.provenance import add_flag, check_scored, mark_words, seen_mark
+from baselines.reading.provenance import add_flag, check_policy, check_scored, mark_words, seen_mark, with_seen
 from baselines.run_config import read_run_config
 from data_tools.cli_output import command_main, print_error
 from data_tools.errors import HistojaxDataError
@@ -71,8 +71,8 @@ def write_results(
 ) -> list[dict]:
     """The rows of ``results`` (:func:`baselines.reading.reader_scores.rows_from_results`) written to ``OUT/readers.csv``
     and, with ``record`` (the run's settings), to ``OUT/<json_name>``; returns the rows. ``mark``
-    (:func:`baselines.reading.provenance.seen_mark`): slides the head saw, scored with ``--allow-fitting-slides``,
-    said in both files."""
+    (:func:`baselines.reading.provenance.seen_mark`, :func:`~baselines.reading.provenance.with_seen`): slides the head
+    or a navigator saw, scored with ``--allow-fitting-slides``, said in both files."""
     rows = reader_scores.rows_from_results(results, slides)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
@@ -200,14 +200,13 @@ def run(args, parser=None) -> int:
 
         if args.fold is not None:  # the folder of learned_head_fit --all-folds (or DIR{fold}): fold I's head
             args.head = head_for_fold(args.head, args.fold)
-        check_scored(
-            heads.load(args.head),
-            args.head,
-            args.dataset,  # fitted on them: refused before any is read
-            read_spec(args.dataset, args.fold).get(args.split) or [],
-            getattr(args, "allow_fitting_slides", False),
-        )
-        mark = seen_mark(heads.load(args.head), args.dataset, read_spec(args.dataset, args.fold).get(args.split) or [])
+        scored = read_spec(args.dataset, args.fold).get(args.split) or []
+        allow = getattr(args, "allow_fitting_slides", False)
+        check_scored(heads.load(args.head), args.head, args.dataset, scored, allow)  # fitted on them: refused
+        mark = seen_mark(heads.load(args.head), args.dataset, scored)
+        for name, run_dir in args.navigator:  # a navigator trained on them: refused too, before any is read
+            names = check_policy(run_dir, args.dataset, scored, allow, option=f"--navigator {name}")
+            mark = with_seen(mark, f"policy {name}", names)
         head, level, slides, results = score_split(
             args.dataset, args.head, args.split, seeds=args.seeds, fold=args.fold
         )

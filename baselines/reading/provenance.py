@@ -10,8 +10,9 @@ fitted or validated on is refused (one line naming the head's ``config.json``, t
 ``--allow-fitting-slides``, warned about on stderr and scored.
 
 Training runs record the same for their **policy** (:func:`write_run_record`: ``RUN/slides_seen.json``, the side
-of the dataset trained on and the validation slides it held back); ``histojax evaluate`` checks it with
-:func:`check_record` (:func:`run_record`: an older run is checked from what its ``config.json`` names). With
+of the dataset trained on and the validation slides it held back); every scorer of a policy (``histojax evaluate``,
+``readers --reader``, ``budget-curve --ppo``, ``diagnosis --navigator``) checks it with :func:`check_policy`
+(:func:`check_record` of :func:`run_record`: an older run is checked from what its ``config.json`` names). With
 :data:`FLAG`, what a scorer writes carries ``self_scored`` and ``scored_on_seen_slides`` (:func:`seen_mark`).
 
 Slides are matched **by identity** (:func:`slide_identity`: ``camelyon16:NAME`` in a CAMELYON16 set, whose slides are
@@ -450,14 +451,46 @@ def run_record(run) -> tuple[dict | None, Path | None]:
     return (record, config) if record is not None else (None, None)
 
 
+def check_policy(run, dataset, scored, allow: bool = False, what: str = "scores", option: str = "") -> list[str]:
+    """The guard of every scorer of a trained policy (``histojax evaluate``, ``readers --reader``, ``budget-curve
+    --ppo``, ``diagnosis --navigator``): :func:`check_record` of the run's record (:func:`run_record` of its folder;
+    ``run`` may name its ``params.msgpack``) on the ``scored`` slides of ``dataset``, refused
+    (:class:`FittingSlidesError`, one line naming ``RUN/slides_seen.json``) or, with ``allow``, warned about. Returns
+    the names among ``scored`` it trained or was validated on (what :func:`with_seen` marks); ``[]`` for a run that
+    records none (its ``held_back`` validation slides are not seen: scoring them is how runs are chosen).
+    ``option`` (e.g. ``"--reader NAME"``): said first in the refusal, naming which of the scored policies it is."""
+    folder = Path(run).parent if Path(run).is_file() else Path(run)  # RUN, or RUN/params.msgpack
+    try:
+        record, where = run_record(folder)
+        if record is None:
+            return []
+        check_record(record, where, dataset, scored, allow, what, "policy")
+    except HistojaxDataError as e:
+        if not option:
+            raise
+        cls = FittingSlidesError if isinstance(e, FittingSlidesError) else HistojaxDataError
+        raise cls(None, f"{option}: {e}") from None
+    return seen_slides(record, dataset, scored)
+
+
+def with_seen(mark: dict, who: str, names) -> dict:
+    """``mark`` (:func:`seen_mark`, ``{}`` for none) with ``who``'s seen slide ``names`` added (``"policy NAME"``: a
+    policy a scorer scored with :data:`FLAG` on slides it trained on, :func:`check_policy`); ``mark`` itself when
+    ``names`` is empty."""
+    if not names:
+        return mark
+    seen = {**(mark.get("scored_on_seen_slides") or {}), who: sorted(map(str, names))}
+    return {"self_scored": True, "scored_on_seen_slides": seen}
+
+
 def add_flag(p) -> None:
     """Add :data:`FLAG` to a scorer's argument parser."""
     p.add_argument(
         FLAG,
         dest="allow_fitting_slides",
         action="store_true",
-        help="score slides the head was fitted or validated on, with a warning (refused by default: "
-        "figures on them are not held out)",
+        help="score slides the head (or a policy) was fitted, trained or validated on, with a warning (refused by "
+        "default: figures on them are not held out)",
     )
 
 
@@ -488,6 +521,7 @@ __all__ = [
     "RECORD",
     "FittingSlidesError",
     "add_flag",
+    "check_policy",
     "check_scored",
     "RUN_RECORD",
     "check_record",
@@ -503,6 +537,7 @@ __all__ = [
     "seen_slides",
     "slide_identity",
     "validation_entries",
+    "with_seen",
     "write_run_record",
     "head_config",
     "head_for_fold",

@@ -55,7 +55,15 @@ from baselines.reading import pipeline
 from baselines.reading.csv_files import write_csv
 from baselines.reading.pipeline import BUDGETS
 from baselines.reading.plots import plot_readers
-from baselines.reading.provenance import add_flag, check_scored, head_for_fold, mark_words, seen_mark
+from baselines.reading.provenance import (
+    add_flag,
+    check_policy,
+    check_scored,
+    head_for_fold,
+    mark_words,
+    seen_mark,
+    with_seen,
+)
 from baselines.reading.reader_scores import (
     add_reader,
     cells_words,
@@ -218,14 +226,13 @@ def run(args, parser=None) -> int:
         if args.fold is not None:  # the folder of learned_head_fit --all-folds (or DIR{fold}): fold I's head
             args.head = head_for_fold(args.head, args.fold)
         head = heads.load(args.head)  # a head fitted on the scored slides: refused before they are read
-        check_scored(
-            head,
-            args.head,
-            args.dataset,
-            pipeline.read_spec(args.dataset, args.fold).get(args.split) or [],
-            getattr(args, "allow_fitting_slides", False),
-        )
-        mark = seen_mark(head, args.dataset, pipeline.read_spec(args.dataset, args.fold).get(args.split) or [])
+        scored = pipeline.read_spec(args.dataset, args.fold).get(args.split) or []
+        allow = getattr(args, "allow_fitting_slides", False)
+        check_scored(head, args.head, args.dataset, scored, allow)
+        mark = seen_mark(head, args.dataset, scored)
+        for name, run_dir in args.reader:  # a trained reader's own slides: refused too, before any is read
+            names = check_policy(run_dir, args.dataset, scored, allow, option=f"--reader {name}")
+            mark = with_seen(mark, f"policy {name}", names)
         head, args.cell_level, slides = load_split(args.dataset, head, args.split, args.cell_level, args.fold)
     except (HistojaxDataError, ValueError) as e:
         return print_error(e)
@@ -279,7 +286,7 @@ def run(args, parser=None) -> int:
                     **({"fold": args.fold} if args.fold is not None else {}),
                     "head": str(args.head),
                     "head_name": head.name,
-                    **mark,  # self_scored, scored_on_seen_slides: slides the head saw (--allow-fitting-slides)
+                    **mark,  # self_scored, scored_on_seen_slides: slides the head or a reader saw (--allow-fitting-slides)
                     "cell_level": args.cell_level,
                     "cells": cells,
                     "seeds": args.seeds,

@@ -43,6 +43,18 @@ def test_histojax_published_lists_them_and_shows_one_in_full(capsys):
     assert "trained on: c16-full, train, 128 slides" in out and "chosen by: validation AUC" in out
 
 
+def test_histojax_published_shows_the_slides_each_records_having_seen(capsys):
+    """An agent's ``slides_seen.json`` and a head's ``config.json`` ``slides_seen``: how many slides every scorer
+    refuses it (those it trained or was fitted on, and those it was validated on)."""
+    assert cli.main(["published", "c16-v2-set-reader"]) == 0
+    seen = json.loads((PUBLISHED / "c16-v2-set-reader" / "slides_seen.json").read_text())
+    n = len(set(seen["fitted"]) | set(seen["validation"]))
+    line = f"slides seen: {n} ({len(seen['fitted'])} trained on, {len(seen['validation'])} validated on)"
+    assert line in capsys.readouterr().out
+    assert cli.main(["published", "c16-v2-head"]) == 0
+    assert "slides seen: 180 (180 fitted on, 35 validated on)" in capsys.readouterr().out
+
+
 def test_an_unknown_published_name_is_one_line(capsys):
     assert cli.main(["published", "c16-v9-nothing"]) == 2
     err = capsys.readouterr().err.strip()

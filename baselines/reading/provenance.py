@@ -32,6 +32,8 @@ seen no slide.
 from __future__ import annotations
 
 import json
+import os
+import stat
 import sys
 from pathlib import Path
 
@@ -426,6 +428,42 @@ def write_run_record(out, config) -> Path | None:
     return path
 
 
+MAX_RECORD_BYTES = 64 << 20
+"""A ``slides_seen.json`` larger than this (64 MiB; 180 slides take about 30 KB) is not read."""
+
+
+def _read_run_record(path: Path) -> dict:
+    """The JSON object of a run's ``slides_seen.json`` at ``path``: a regular file (a link to one is followed; a FIFO,
+    folder or device is refused, never taken for no record, which would skip the guard), at most
+    :data:`MAX_RECORD_BYTES`, whose ``fitted`` / ``validation`` / ``held_back`` are lists when present (entries that
+    are not strings name no slide). ``HistojaxDataError`` naming it, one line, otherwise."""
+    try:
+        st = os.stat(path)
+    except OSError as e:
+        raise HistojaxDataError(path, f"unreadable ({e.strerror or e}); restore the record or train again") from None
+    if not stat.S_ISREG(st.st_mode):
+        raise HistojaxDataError(
+            path, "not a regular file (a FIFO, folder or device): not the run's record of its slides"
+        )
+    if st.st_size > MAX_RECORD_BYTES:
+        raise HistojaxDataError(
+            path, f"{st.st_size:,} bytes, more than a record of slides holds ({MAX_RECORD_BYTES:,})"
+        )
+    try:
+        fd = os.open(path, os.O_RDONLY | getattr(os, "O_NONBLOCK", 0) | os.O_CLOEXEC)
+        with os.fdopen(fd, "rb") as f:
+            record = json.loads(f.read(MAX_RECORD_BYTES + 1))
+    except (OSError, ValueError, RecursionError) as e:
+        words = "nested too deeply" if isinstance(e, RecursionError) else f"{type(e).__name__}: {e}"
+        raise HistojaxDataError(path, f"unreadable ({words})") from None
+    if not isinstance(record, dict):
+        raise HistojaxDataError(path, "not an object (fitted, validation, dataset, identities)")
+    for key in ("fitted", "validation", "held_back"):
+        if key in record and record[key] is not None and not isinstance(record[key], list):
+            raise HistojaxDataError(path, f"its {key!r} is {type(record[key]).__name__}, not a list of slide names")
+    return record
+
+
 def run_record(run) -> tuple[dict | None, Path | None]:
     """``(record, file)``: the slides a run (or published agent) folder ``run`` trained and validated on, from its
     ``slides_seen.json``; else from what its ``config.json`` names (the dataset, split and fold, when that dataset
@@ -433,14 +471,8 @@ def run_record(run) -> tuple[dict | None, Path | None]:
     record)."""
     run = Path(run)
     path = run / RUN_RECORD
-    if path.is_file():
-        try:
-            record = json.loads(path.read_text())
-        except (OSError, ValueError) as e:
-            raise HistojaxDataError(path, f"unreadable ({type(e).__name__}: {e})") from None
-        if not isinstance(record, dict):
-            raise HistojaxDataError(path, "not an object (fitted, validation, dataset, identities)")
-        return record, path
+    if os.path.lexists(path):
+        return _read_run_record(path), path
     config = run / "config.json"
     if not config.is_file():
         return None, None

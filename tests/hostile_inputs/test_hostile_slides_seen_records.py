@@ -2,10 +2,9 @@
 :func:`baselines.reading.provenance.check_policy`, the guard of every scorer of a trained policy): a slide renamed
 in another dataset is still known by its identity; a run copied to another dataset whose slide merely shares a
 name is not refused; identities that are not strings, NaN in the lists, a link to a regular file and garbage JSON
-are handled. The cases marked ``xfail`` are defects found in this pass and left to the owner of provenance.py
-(being edited at the time): a ``slides_seen.json`` that is a FIFO or a folder is taken for no record (the guard
-skipped), one nested past the parser or with ``fitted`` not a list is a traceback, a string ``fitted`` is read
-letter by letter."""
+are handled; a ``slides_seen.json`` that is a FIFO or a folder is refused (never taken for no record, which would
+skip the guard), and one nested past the parser or with ``fitted`` not a list is one line (a string ``fitted`` is
+not read letter by letter)."""
 
 from __future__ import annotations
 
@@ -93,7 +92,6 @@ def test_a_link_to_a_regular_record_is_read_and_garbage_is_one_line(tmp_path):
     assert "\n" not in str(e.value)
 
 
-@pytest.mark.xfail(strict=True, reason="defect: a FIFO or folder slides_seen.json is taken for no record")
 @pytest.mark.parametrize("kind", ["fifo", "folder"])
 def test_a_record_that_is_a_fifo_or_a_folder_is_refused_not_taken_for_none(tmp_path, kind):
     ds = _dataset(tmp_path / "other", {"a": "AAA"})
@@ -104,13 +102,12 @@ def test_a_record_that_is_a_fifo_or_a_folder_is_refused_not_taken_for_none(tmp_p
         check_policy(run, ds, ["bundles/a"])
 
 
-@pytest.mark.xfail(strict=True, reason="defect: RecursionError / TypeError tracebacks, a string read letter by letter")
 @pytest.mark.parametrize(
     "record",
     ["[" * 100_000 + "]" * 100_000, '{"fitted": 5}', '{"fitted": "ab", "identities": {}}'],
 )
 def test_a_record_nested_past_the_parser_or_of_wrong_types_is_one_line(tmp_path, record):
-    """``"fitted": "ab"``: now the letters a and b, so slide ab, the one it names, passes the guard."""
+    """``"fitted": "ab"`` would be the letters a and b, so slide ab, the one it names, would pass the guard."""
     ds = _dataset(tmp_path / "other", {"ab": "ABAB"})
     run = _run(tmp_path / "run", record)
     with pytest.raises(HistojaxDataError, match=r"slides_seen\.json") as e:

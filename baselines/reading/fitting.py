@@ -165,7 +165,8 @@ def head_state(out, kind, options: dict) -> tuple[str, str]:
     for key, value in options.items():
         if key not in recorded:
             return "other", f"whose config.json records no {key} (this command's: {_value(value)})"
-        if json.dumps(recorded[key], sort_keys=True) != json.dumps(value, sort_keys=True):
+        same = json.dumps(recorded[key], sort_keys=True) == json.dumps(value, sort_keys=True)  # json-not-written
+        if not same:
             return "other", f"fitted with {key} {_value(recorded[key])}, not {_value(value)}"
     return "done", ""
 

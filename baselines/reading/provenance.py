@@ -38,6 +38,7 @@ import sys
 from pathlib import Path
 
 from data_tools.errors import HistojaxDataError
+from data_tools.metrics import json_safe
 
 RECORD = "slides_seen"
 """Key of the fit record in a head's ``config.json`` (:func:`fit_record`)."""
@@ -424,7 +425,7 @@ def write_run_record(out, config) -> Path | None:
     if record is None:
         return None
     path = Path(out) / RUN_RECORD
-    outputs.write_text(path, json.dumps(record, indent=1) + "\n")
+    outputs.write_text(path, json.dumps(json_safe(record), indent=1, allow_nan=False) + "\n")
     return path
 
 

@@ -240,7 +240,8 @@ def test_a_policy_read_masks_are_scored_by_the_slide_head(dataset, runs, glimpse
 
 def test_readers_command_adds_a_trained_reader(dataset, runs, tmp_path):
     """`python -m baselines.reading.readers --reader NAME RUN`: the trained reader's rows beside the scripted ones,
-    scored by the same head (here on the training split, which holds both classes)."""
+    scored by the same head (here on the training split, which holds both classes: the policy's own slides, so
+    scored only with --allow-fitting-slides, and marked so in readers.csv)."""
     from baselines.reading import head_fit, readers
     from baselines.reading.slides import load_slides
     from histojax.reading.heads.logit import LogitHead
@@ -267,6 +268,7 @@ def test_readers_command_adds_a_trained_reader(dataset, runs, tmp_path):
                 str(runs["glimpse:1"]),
                 "--policy-seeds",
                 "2",
+                "--allow-fitting-slides",
                 "--out",
                 str(tmp_path / "out"),
             ]
@@ -275,6 +277,7 @@ def test_readers_command_adds_a_trained_reader(dataset, runs, tmp_path):
     )
     with open(tmp_path / "out" / "readers.csv") as f:
         rows = list(csv.DictReader(f))
+    assert all("policy GRU glimpse:" in r["scored_on_seen_slides"] for r in rows)
     mine = [r for r in rows if r["reader"] == "GRU glimpse"]
     assert sorted(float(r["budget"]) for r in mine) == [0.25, 0.5]
     assert all(

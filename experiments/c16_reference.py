@@ -30,7 +30,7 @@ policy on ``--episodes`` fresh test episodes per seed (``baselines.evaluate``; t
 kept in the JSON) and reports mean ± std over seeds (``seeds`` in the JSON) and the compiled
 training program's env steps/s. Random and scripted rows come from the same evaluation; the
 scripted policy walks toward the darkest stain on pixels, and on features zooms where the view's
-tumour logit is high (:func:`baselines.evaluate.policies.scripted_features_policy`); it never declares a
+tumour logit is high (:func:`baselines.episodes.policies.scripted_features_policy`); it never declares a
 diagnosis, so it has no Diagnosis cell. Detection success and steps to success count the episodes
 on test *tumour* slides only (labels from ``dataset.json``); the JSON keeps the rate over all
 slides and per slide too. Success on Diagnosis = a right diagnosis (declaring ends the episode; an

@@ -9,8 +9,8 @@ from pathlib import Path
 import jax
 import numpy as np
 
+from baselines.episodes.rollout import episode_labels
 from baselines.evaluate.checks import one_class
-from baselines.evaluate.rollout import episode_labels
 from baselines.run_config import read_run_config
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import UNDEFINED

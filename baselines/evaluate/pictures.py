@@ -10,7 +10,7 @@ from pathlib import Path
 import numpy as np
 
 from baselines import outputs
-from baselines.evaluate.rollout import episode_labels, trajectory
+from baselines.episodes.rollout import episode_labels, trajectory
 from histojax.render import animate, bundle_of, render_reading_map, render_trajectory, tumour_rings, view_box_level0
 
 

@@ -8,10 +8,7 @@ from pathlib import Path
 import jax
 import numpy as np
 
-from baselines.evaluate.checks import one_class, split_warnings, undefined_figures
-from baselines.evaluate.heads import dataset_labelled, head_env, head_scored, refuse_one_class
-from baselines.evaluate.pictures import write_pictures
-from baselines.evaluate.policies import (
+from baselines.episodes.policies import (
     diagnosis_actions,
     learned_policy,
     map_follower_policy,
@@ -20,7 +17,10 @@ from baselines.evaluate.policies import (
     scripted_policy,
     seeds_policy,
 )
-from baselines.evaluate.rollout import check_fits, episode_labels, eval_env, per_episode_params, run_episodes, summarise
+from baselines.episodes.rollout import check_fits, episode_labels, eval_env, per_episode_params, run_episodes, summarise
+from baselines.evaluate.checks import one_class, split_warnings, undefined_figures
+from baselines.evaluate.heads import dataset_labelled, head_env, head_scored, refuse_one_class
+from baselines.evaluate.pictures import write_pictures
 from baselines.networks import QNetwork
 from baselines.networks import is_discrete as policy_is_discrete
 

@@ -17,7 +17,7 @@ head protocol of :mod:`histojax.reading.heads`). Methods, scored on the test sli
   score of their coarse features, highest first (the score reader);
 * ``--ppo NAME RUN`` — a trained policy in a ``glimpse`` or ``zoom_select`` mode, feed-forward
   (``baselines.ppo``) or recurrent (``baselines.ppo_rnn``, detected from its ``config.json``),
-  rolled greedily by :func:`baselines.evaluate.rollout.run_episodes` at each budget
+  rolled greedily by :func:`baselines.episodes.rollout.run_episodes` at each budget
   (:func:`baselines.reading.pipeline.policy_reads`): its own diagnosis (``NAME``) and every head on what it read
   (``NAME reader + MIL``, ``+ max logit``, ``+ learned head``).
 

@@ -5,7 +5,7 @@
 A trained navigator (a run folder of ``python -m baselines.ppo`` / ``ppo_rnn`` in ``discrete`` or
 ``continuous`` mode, e.g. ``baselines/published/c16-v1-diagnosis``) is rolled greedily once per slide
 of the split (each of its first ``--policy-seeds`` seeds; ``--sampled``: its sampled policy) by
-:func:`baselines.evaluate.rollout.run_episodes`,
+:func:`baselines.episodes.rollout.run_episodes`,
 with reading tracked; the **finest-level tissue views it stood on** make its read mask, and the slide
 head scores them: the slide's diagnosis no longer comes from the navigator's own declaring action (which can
 memorise overviews), only from what it read. ``--head`` is any head folder :func:`histojax.reading.heads.load`
@@ -91,7 +91,7 @@ def navigator_reads(
     that one greedy (``greedy=False``: sampled, key ``seed``) episode of ``run``'s seed ``seed`` stood on."""
     import jax
 
-    from baselines.evaluate import policies, rollout
+    from baselines.episodes import policies, rollout
     from baselines.harness.logs import load_checkpoint
     from histojax.core.seen_views import SeenMemory, seen_flags
 

@@ -365,7 +365,7 @@ def policy_reads(
     why: dict | None = None,
 ) -> dict:
     """Roll a trained policy greedily, once on every slide of ``dataset``'s ``split`` at each of
-    ``budgets``, with :func:`baselines.evaluate.rollout.run_episodes` (one jitted program for all slides and
+    ``budgets``, with :func:`baselines.episodes.rollout.run_episodes` (one jitted program for all slides and
     budgets). ``run``: a run folder of ``python -m baselines.ppo`` (feed-forward) or ``python -m
     baselines.ppo_rnn`` (GRU; ``"algo": "ppo_rnn"`` in its ``config.json``: its hidden state is carried
     through each episode) in a ``glimpse`` or ``zoom_select`` mode; its seed ``seed`` (default the first).
@@ -373,11 +373,11 @@ def policy_reads(
     Returns ``{budget: [(read, own_score, fraction_read, fields_of_view) per slide]}``: the finest tissue views it
     read (indices into the slide's ``host_tables`` instances), its own tumour score
     (``p(tumour) / (p(tumour) + p(no tumour))`` of its policy at the step it declared, or at its last
-    step; see :func:`baselines.evaluate.policies.learned_policy`), the fraction read and the fields of view
+    step; see :func:`baselines.episodes.policies.learned_policy`), the fraction read and the fields of view
     (env steps that looked at the slide) of the episode. ``why`` (a dict): filled with ``{(budget, slide index):
     reason}`` for each episode that read nothing (:func:`first_pick_words`: its first pick larger than the budget,
     or it declared before reading)."""
-    from baselines.evaluate import policies, rollout
+    from baselines.episodes import policies, rollout
     from baselines.harness.logs import load_checkpoint
     from histojax.core.seen_views import seen_flags  # seen is a bit set
 

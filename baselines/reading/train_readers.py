@@ -192,7 +192,7 @@ def with_head_reward(head, gain, final: float, read_cost: float):
     return restore
 
 
-ENV_MAKERS = ("baselines.ppo", "baselines.ppo_rnn", "baselines.dqn", "baselines.evaluate.rollout")
+ENV_MAKERS = ("baselines.ppo", "baselines.ppo_rnn", "baselines.dqn", "baselines.episodes.rollout")
 """The modules whose ``make_env`` (:func:`baselines.common.env.make_env`, imported by name) makes a trainer's or a
 roll-out's env: :func:`with_head_reward` wraps it in each."""
 

@@ -79,7 +79,7 @@ def test_checked_reset_and_step_catch_it(easy, checked_fns, case):
 
 def test_trainer_and_evaluate_refuse_bad_params(easy):
     """The entry points that take params from the user check them on the host before compiling."""
-    from baselines.evaluate.rollout import run_episodes
+    from baselines.episodes.rollout import run_episodes
 
     env, params = easy
     with pytest.raises(ValueError, match="evaluate: env params: stride="):

@@ -85,6 +85,9 @@ GONE = {
     "data_tools.datasets.c16_inputs": "data_tools.datasets.c16.inputs",
     "data_tools.datasets.c16_layout": "data_tools.datasets.c16.layout",
     "data_tools.datasets.c16_mosaic": "data_tools.datasets.c16.mosaic",
+    # a policy's episodes: a floor under evaluate and reading, which both run them
+    "baselines.evaluate.policies": "baselines.episodes.policies",
+    "baselines.evaluate.rollout": "baselines.episodes.rollout",
 }
 
 # names that left a module which still exists: old module -> (the one module of the names, the names)
@@ -134,7 +137,7 @@ MOVED_NAMES = {
         ),
     ),
     "baselines.evaluate": (
-        "their defining module (baselines.evaluate.checks / cli / heads / pictures / policies / rollout / scoring)",
+        "their defining module (baselines.evaluate.checks / cli / heads / pictures / scoring, baselines.episodes.*)",
         (
             "RETIRED",
             "SET_READER",

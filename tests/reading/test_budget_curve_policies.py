@@ -1,6 +1,6 @@
 """Trained policies on the budget curve: a tiny recurrent PPO run (``baselines.ppo_rnn``, a few
 hundred steps) in ``glimpse`` mode, and the same GRU policy untrained in ``zoom_select`` mode, is evaluated by ``baselines.reading.budget_curve``
-through ``baselines.evaluate.rollout.run_episodes``, its GRU state carried through each episode.
+through ``baselines.episodes.rollout.run_episodes``, its GRU state carried through each episode.
 
 One tiny dataset (4 tumour + 4 tumour-free slides of 320 × 256 px, 32-px views, Easy levels, the
 ``colour-stats`` feature grid) and the two checkpoints, made once for the module."""
@@ -17,7 +17,7 @@ from slide_helpers import synth_feature_dataset
 
 from baselines import ppo_rnn
 from baselines.common.env import params_initialiser
-from baselines.evaluate import policies, rollout
+from baselines.episodes import policies, rollout
 from baselines.harness.logs import load_checkpoint, save_checkpoint
 from baselines.networks import ScannedGRU
 from baselines.reading import budget_curve, pipeline
@@ -27,7 +27,7 @@ STEPS = 8
 
 # The whole module runs under `make test-all`: its fixture compiles the recurrent trainer and two reading rollouts
 # (over two minutes on 2 loaded cores before any test). In `make test` the same paths run smaller:
-# a recurrent reader evaluated by baselines.evaluate.policies.learned_policy / run_episodes
+# a recurrent reader evaluated by baselines.episodes.policies.learned_policy / run_episodes
 # (tests/reading/test_set_policy.py::test_evaluate_runs_a_set_reader_on_a_wider_slide[True]), the GRU state and the recurrent
 # loss (tests/training/test_ppo_rnn.py), a reader's reads scored through a slide head (tests/reading/test_evaluate_readers.py) and
 # the readers command's scripted rows (tests/reading/test_head.py::test_readers_command_writes_the_curve).

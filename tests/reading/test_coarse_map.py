@@ -101,7 +101,7 @@ def _obs(target=(3, 12), position=(0.5, 0.5, 1.0), visited=None):
 
 
 def test_map_follower_walks_to_the_highest_unread_block():
-    from baselines.evaluate.policies import map_follower_policy
+    from baselines.episodes.policies import map_follower_policy
 
     def act(**kw):
         return int(map_follower_policy(jax.random.key(0), _obs(**kw), epsilon=0.0))

@@ -22,7 +22,8 @@ import numpy as np
 import pytest
 
 from baselines.common.env import make_env
-from baselines.evaluate import checks, heads, rollout
+from baselines.episodes import rollout
+from baselines.evaluate import checks, heads
 from baselines.harness.logs import save_checkpoint
 from baselines.publish import publish
 from baselines.published_agents import PUBLISHED

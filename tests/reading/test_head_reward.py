@@ -292,7 +292,7 @@ def test_a_navigators_reads_are_the_finest_tissue_views_of_its_trajectory(datase
     """baselines.reading.diagnosis: the read mask of a (freshly initialised) navigator is the set of finest
     tissue views its (sampled) trajectory stood on, recomputed here from the trajectory's (z, x, y)."""
     from baselines import ppo
-    from baselines.evaluate import policies, rollout
+    from baselines.episodes import policies, rollout
     from baselines.harness.logs import load_checkpoint, save_checkpoint
     from baselines.reading import diagnosis
 

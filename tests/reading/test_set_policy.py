@@ -339,10 +339,10 @@ def test_recurrent_rollout_step_computes_the_cell_keys_once_with_the_same_output
 
 @pytest.mark.parametrize("recurrent", [False, True])
 def test_evaluate_runs_a_set_reader_on_a_wider_slide(envs, recurrent):
-    """``baselines.evaluate.policies.learned_policy`` (cell keys once per rollout) runs a feed-forward or recurrent
+    """``baselines.episodes.policies.learned_policy`` (cell keys once per rollout) runs a feed-forward or recurrent
     set reader made on one dataset on the wider slide (sampled: an untrained reader), and it reads."""
-    from baselines.evaluate.policies import learned_policy
-    from baselines.evaluate.rollout import run_episodes
+    from baselines.episodes.policies import learned_policy
+    from baselines.episodes.rollout import run_episodes
 
     env_b, pb = envs[1]
     net_b, params = _reader_for_the_wider_slide(envs, recurrent)

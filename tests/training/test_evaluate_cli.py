@@ -15,7 +15,8 @@ import pytest
 from PIL import Image
 
 from baselines.common.env import make_env
-from baselines.evaluate import checks, cli, pictures, rollout
+from baselines.episodes import rollout
+from baselines.evaluate import checks, cli, pictures
 from baselines.harness.logs import save_checkpoint
 from histojax.cli import main as histojax_main
 from histojax.core import actions

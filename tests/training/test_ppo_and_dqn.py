@@ -9,7 +9,8 @@ import numpy as np
 import pytest
 
 from baselines import dqn, networks, ppo
-from baselines.evaluate import cli, policies, scoring
+from baselines.episodes import policies
+from baselines.evaluate import cli, scoring
 from baselines.harness.logs import load_checkpoint, save_checkpoint
 
 TINY_PPO = dict(

@@ -1,4 +1,4 @@
-"""The policies an evaluation scores: the reference policies (scripted coarse-to-fine on pixels or features,
+"""The policies an evaluation scores and the reading commands roll: the reference policies (scripted coarse-to-fine on pixels or features,
 the coarse-map follower) and a checkpoint's learned policy (greedy or sampled, pooled over its seeds), each a
 ``policy(key, obs)`` (or ``policy(key, obs, memory)`` for a recurrent one) of a batch of observations."""
 

@@ -333,8 +333,8 @@ def _build_into(
 
     from data_tools.annotations import annotations_to_geojson, load_annotations
     from data_tools.masks import rasterize, tissue_mask
+    from data_tools.slide_files.base import MAX_DECODE_BYTES
     from data_tools.slide_files.open import open_slide
-    from data_tools.slide_files.tiff import MAX_DECODE_BYTES
 
     with open_slide(slide_path, reader) as reader:
         mpp_in_file = reader.mpp

@@ -1,6 +1,6 @@
 """Read DICOM whole-slide images (VL Whole Slide Microscopy) as 8-bit RGB, through wsidicom.
 
-This module's one job: give a DICOM WSI the interface of :class:`data_tools.slide_files.tiff.SlideReader`
+This module's one job: give a DICOM WSI the interface of :class:`data_tools.slide_files.base.SlideReader`
 (``levels``, ``mpp``, ``read_level``, ``read_region``), so that ``data_tools info`` / ``build``
 (dense and tiled) read it like a TIFF. wsidicom (Apache-2.0, the optional extra ``dicom``:
 ``pip install 'histojax[dicom]'``) parses the instances and decodes the frames (JPEG, JPEG 2000,
@@ -29,9 +29,8 @@ import warnings
 import numpy as np
 
 from data_tools.errors import SlideError
-from data_tools.slide_files.base import LevelInfo, check_levels
+from data_tools.slide_files.base import LevelInfo, SlideReader, check_levels
 from data_tools.slide_files.limits import MAX_TILES, check_size
-from data_tools.slide_files.tiff import SlideReader
 
 __all__ = ["DicomSlideReader", "is_dicom", "INSTALL_HINT"]
 
@@ -117,14 +116,14 @@ def _series_files(path: str) -> list[str]:
 class DicomSlideReader(SlideReader):
     """An open DICOM WSI (a folder of instances, or one instance file and its series).
 
-    Attributes as :class:`data_tools.slide_files.tiff.SlideReader`; ``format`` is ``"dicom-wsi"``; ``levels``
+    Attributes as :class:`data_tools.slide_files.base.SlideReader`; ``format`` is ``"dicom-wsi"``; ``levels``
     are the levels of the first pyramid, finest first, ``tile_size`` their frame size and
     ``compression`` named from the transfer syntax (``"JPEG"``, ``"JPEG2000"``, ``"NONE"`` ...).
     """
 
-    def __init__(self, path: str | os.PathLike):  # noqa: D107 (replaces the TIFF opening)
+    def __init__(self, path: str | os.PathLike):  # noqa: D107 (opens the file)
         self.path = os.fspath(path)
-        self._tif = None  # the open wsidicom.WsiDicom (SlideReader's name for the open handle)
+        self._handle = None  # the open wsidicom.WsiDicom (SlideReader's name for the open handle)
         self.format = "dicom-wsi"
         try:
             from wsidicom import WsiDicom
@@ -146,11 +145,11 @@ class DicomSlideReader(SlideReader):
         if not files:
             raise SlideError(self.path, "no DICOM file in the folder")
         try:
-            self._tif = WsiDicom.open(files)
-            self._levels = sorted(self._tif.levels, key=lambda lv: lv.size.width, reverse=True)
+            self._handle = WsiDicom.open(files)
+            self._levels = sorted(self._handle.levels, key=lambda lv: lv.size.width, reverse=True)
             self.levels = _level_infos(self._levels)
             check_levels(self.path, self.levels)
-            self.mpp = _mpp(self._tif)
+            self.mpp = _mpp(self._handle)
             for k, lv in enumerate(self.levels):  # the last frame of a TILED_FULL instance: catches truncation
                 self._decode_window(k, lv.width - 1, lv.height - 1, lv.width, lv.height)
         except SlideError:
@@ -186,7 +185,7 @@ class DicomSlideReader(SlideReader):
                 "instances)",
             ) from exc
         why = sorted({w for lv in levels for w in lv.why})
-        self._tif = _FrameLevels(levels)  # the open handle, as SlideReader expects one
+        self._handle = _FrameLevels(levels)  # the open handle, as SlideReader expects one
         w0, h0 = levels[0].width, levels[0].height
         self.levels = [
             LevelInfo(
@@ -213,11 +212,11 @@ class DicomSlideReader(SlideReader):
 
     def _decode_window(self, level: int, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
         """RGB pixels of the in-bounds window [y0:y1, x0:x1] of ``level``: (y1-y0, x1-x0, 3) uint8."""
-        if isinstance(self._tif, _FrameLevels):
-            return self._tif.levels[level].window(x0, y0, x1, y1)
+        if isinstance(self._handle, _FrameLevels):
+            return self._handle.levels[level].window(x0, y0, x1, y1)
         lv = self._levels[level]
         try:
-            pixels = self._tif.read_region((x0, y0), lv.level, (x1 - x0, y1 - y0), as_array=True)
+            pixels = self._handle.read_region((x0, y0), lv.level, (x1 - x0, y1 - y0), as_array=True)
         except Exception as exc:  # wsidicom / codec / OS errors (e.g. a truncated file)
             raise SlideError(
                 self.path,

@@ -1,6 +1,6 @@
 """Which reader opens a slide: :func:`open_slide` picks the native TIFF reader (:mod:`data_tools.slide_files.tiff`), the DICOM
 WSI reader (:mod:`data_tools.slide_files.dicom`) or OpenSlide (:mod:`data_tools.slide_files.openslide`), all behind
-:class:`data_tools.slide_files.tiff.SlideReader`'s interface. Kept apart from the readers so that they import only their
+:class:`data_tools.slide_files.base.SlideReader`'s interface. Kept apart from the readers so that they import only their
 base class (no import circle)."""
 
 from __future__ import annotations
@@ -9,6 +9,7 @@ import os
 import stat
 
 from data_tools.errors import SlideError
+from data_tools.slide_files.base import SlideReader
 from data_tools.slide_files.dicom import DicomSlideReader, is_dicom
 from data_tools.slide_files.openslide import (
     OPENSLIDE_EXTENSIONS,
@@ -16,7 +17,7 @@ from data_tools.slide_files.openslide import (
     openslide_available,
     openslide_module,
 )
-from data_tools.slide_files.tiff import SlideReader
+from data_tools.slide_files.tiff import TiffSlideReader
 
 READERS = ("auto", "native", "openslide")
 """What :func:`open_slide` may read a slide with (``--reader``): ``auto`` (the native readers, OpenSlide for the
@@ -36,7 +37,7 @@ def open_slide(path: str | os.PathLike, reader: str | None = "auto") -> SlideRea
     try:
         mode = os.stat(path).st_mode
     except OSError:
-        mode = None  # missing or unreadable: SlideReader names the reason
+        mode = None  # missing or unreadable: the reader names the reason
     if mode is not None and not (stat.S_ISREG(mode) or stat.S_ISDIR(mode)):  # never open() a FIFO: it blocks
         raise SlideError(path, "not a regular file (a FIFO, socket or device): not a slide")
     if reader == "openslide":
@@ -47,7 +48,7 @@ def open_slide(path: str | os.PathLike, reader: str | None = "auto") -> SlideRea
     if is_dicom(path):
         return DicomSlideReader(path)
     try:
-        native = SlideReader(path)
+        native = TiffSlideReader(path)
     except SlideError:
         if reader == "auto" and _openslide_vendor(path) not in (None, "generic-tiff"):
             try:  # a scanner's TIFF the native reader refuses (Philips, Leica, Ventana): OpenSlide's reading

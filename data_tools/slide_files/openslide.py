@@ -1,5 +1,5 @@
 """Read whole-slide images through OpenSlide 4 (the optional extra ``openslide``), behind the interface of
-:class:`data_tools.slide_files.tiff.SlideReader` (``levels``, ``mpp``, ``read_level``, ``read_region``).
+:class:`data_tools.slide_files.base.SlideReader` (``levels``, ``mpp``, ``read_level``, ``read_region``).
 
 This module's one job: give the formats the native readers do not read (3DHISTECH MIRAX ``.mrxs``, Leica
 ``.scn``, Ventana ``.bif``, Hamamatsu ``.vms`` / ``.vmu``, Sakura ``.svslide``, Philips TIFF) the same
@@ -38,11 +38,10 @@ import sys
 import numpy as np
 
 from data_tools.errors import SlideError
-from data_tools.slide_files.base import LevelInfo, check_levels
+from data_tools.slide_files.base import LevelInfo, SlideReader, check_levels
 from data_tools.slide_files.dicom import _dicom_files, is_dicom
 from data_tools.slide_files.limits import MAX_LEVELS, MAX_PIXELS, MAX_SIDE
 from data_tools.slide_files.mirax import check_mirax
-from data_tools.slide_files.tiff import SlideReader
 
 __all__ = ["INSTALL_HINT", "OPENSLIDE_EXTENSIONS", "OpenSlideReader", "openslide_available", "openslide_module"]
 
@@ -81,16 +80,16 @@ def _one_line(exc: BaseException) -> str:
 class OpenSlideReader(SlideReader):
     """An open slide read by OpenSlide.
 
-    Attributes as :class:`data_tools.slide_files.tiff.SlideReader`; ``format`` is ``"openslide-"`` + OpenSlide's
+    Attributes as :class:`data_tools.slide_files.base.SlideReader`; ``format`` is ``"openslide-"`` + OpenSlide's
     vendor (``"openslide-mirax"``, ``"openslide-aperio"``, ``"openslide-generic-tiff"`` ...); ``levels``
     are OpenSlide's, finest first, with its tile size where it reports one and ``compression``
     ``"openslide"`` (OpenSlide does not say); ``associated`` maps each associated image's name (``"label"``,
     ``"macro"``, ``"thumbnail"`` ...) to its ``(width, height)`` in px.
     """
 
-    def __init__(self, path: str | os.PathLike):  # noqa: D107 (replaces the TIFF opening)
+    def __init__(self, path: str | os.PathLike):  # noqa: D107 (opens the file)
         self.path = os.fspath(path)
-        self._tif = None  # the open openslide.OpenSlide (SlideReader's name for the open handle)
+        self._handle = None  # the open openslide.OpenSlide (SlideReader's name for the open handle)
         self.format = "openslide"
         self.associated: dict[str, tuple[int, int]] = {}
         openslide = openslide_module()
@@ -122,14 +121,14 @@ class OpenSlideReader(SlideReader):
                     "Sakura, Ventana, DICOM WSI and tiled TIFF",
                 )
             _probe(self.path)  # in a child process first: a file that makes OpenSlide abort takes only the child
-            self._tif = openslide.OpenSlide(self.path)
+            self._handle = openslide.OpenSlide(self.path)
             self.format = f"openslide-{vendor}"
-            props = self._tif.properties
-            self.levels = _level_infos(self._tif, props)
+            props = self._handle.properties
+            self.levels = _level_infos(self._handle, props)
             check_levels(self.path, self.levels)
             self.mpp = _mpp(props)
             self.associated = {
-                name: tuple(int(v) for v in img.size) for name, img in self._tif.associated_images.items()
+                name: tuple(int(v) for v in img.size) for name, img in self._handle.associated_images.items()
             }
             last = self.levels[-1]  # one pixel of the coarsest level: catches a broken file at open
             self._decode_window(len(self.levels) - 1, last.width - 1, last.height - 1, last.width, last.height)
@@ -154,7 +153,7 @@ class OpenSlideReader(SlideReader):
         ds = self.levels[level].downsample
         (sx, gx), (sy, gy) = _aligned_start(x0, ds), _aligned_start(y0, ds)
         try:
-            region = self._tif.read_region((sx, sy), level, (x1 - gx, y1 - gy))
+            region = self._handle.read_region((sx, sy), level, (x1 - gx, y1 - gy))
             rgba = np.asarray(region, dtype=np.uint8)
         except Exception as exc:  # OpenSlideError (a corrupt tile), OS errors
             raise SlideError(

@@ -8,7 +8,7 @@ JPEG 2000 incl. Aperio's 33003/33005 variants, LZW, Deflate, ...).
 
 Units used throughout:
   * sizes and coordinates are in pixels; ``x``/``y``/``width``/``height`` given to
-    :meth:`SlideReader.read_region` are pixels *of the level read*;
+    :meth:`~data_tools.slide_files.base.SlideReader.read_region` are pixels *of the level read*;
   * ``downsample`` is level-0 pixels per pixel of the level (level 0 = 1.0);
   * ``mpp`` is micrometres per level-0 pixel;
   * byte budgets (``max_bytes``) are bytes of decoded RGB output (H * W * 3).
@@ -31,13 +31,10 @@ import numpy as np
 import tifffile
 
 from data_tools.errors import SlideError
-from data_tools.slide_files.base import LevelInfo, check_levels
+from data_tools.slide_files.base import MAX_DECODE_BYTES, LevelInfo, SlideReader, check_levels
 from data_tools.slide_files.limits import MAX_SIDE, check_size
 
-__all__ = ["MAX_DECODE_BYTES", "SlideReader"]
-
-MAX_DECODE_BYTES = 4 * 1024**3
-"""Default limit (bytes of decoded RGB, H * W * 3) for :meth:`SlideReader.read_level`."""
+__all__ = ["TiffSlideReader"]
 
 _SUPPORTED = (
     "histojax reads Aperio SVS, pyramidal TIFF and BigTIFF, OME-TIFF, Akoya QPTIFF, Hamamatsu NDPI and DICOM WSI"
@@ -66,29 +63,27 @@ _OME_UNIT_UM = {
 }
 
 
-class SlideReader:
-    """An open slide file; a context manager wrapping ``tifffile.TiffFile``.
+class TiffSlideReader(SlideReader):
+    """An open SVS, pyramidal TIFF or OME-TIFF file; a :class:`~data_tools.slide_files.base.SlideReader` wrapping
+    ``tifffile.TiffFile``.
 
-    Attributes:
-        path: the file path as given (``str``).
-        format: ``"aperio-svs"``, ``"ome-tiff"``, ``"philips-tiff"`` or ``"tiff"``.
-        levels: pyramid levels only, finest (level 0) first. SVS thumbnail,
-            label and macro images are not levels.
-        mpp: micrometres per level-0 pixel when the file says so, else ``None``.
+    Attributes as :class:`~data_tools.slide_files.base.SlideReader`; ``format`` is ``"aperio-svs"``,
+    ``"ome-tiff"``, ``"philips-tiff"`` or ``"tiff"``; ``levels`` are pyramid levels only (SVS thumbnail, label
+    and macro images are not levels).
     """
 
     def __init__(self, path: str | os.PathLike):
         self.path = os.fspath(path)
-        self._tif: tifffile.TiffFile | None = None
+        self._handle: tifffile.TiffFile | None = None
         self._warned_missing: set[int] = set()
         _check_signature(self.path)
         try:
-            self._tif = tifffile.TiffFile(self.path)
-            self.format = _detect_format(self._tif)
-            self._pages = _pyramid_pages(self.path, self._tif)
+            self._handle = tifffile.TiffFile(self.path)
+            self.format = _detect_format(self._handle)
+            self._pages = _pyramid_pages(self.path, self._handle)
             self.levels = _level_infos(self._pages)
             check_levels(self.path, self.levels)
-            self.mpp = _find_mpp(self._tif, self.format, self._pages[0])
+            self.mpp = _find_mpp(self._handle, self.format, self._pages[0])
         except SlideError:
             self.close()
             raise
@@ -98,85 +93,6 @@ class SlideReader:
                 self.path,
                 f"format not recognised or file corrupt ({type(exc).__name__}: {exc}); {_SUPPORTED}",
             ) from exc
-
-    # -- context manager -------------------------------------------------
-    def __enter__(self) -> SlideReader:
-        return self
-
-    def __exit__(self, *exc_info) -> None:
-        self.close()
-
-    def close(self) -> None:
-        """Close the underlying file. Safe to call more than once."""
-        if self._tif is not None:
-            try:
-                self._tif.close()
-            finally:
-                self._tif = None
-
-    def __repr__(self) -> str:
-        return f"SlideReader({self.path!r}, format={self.format!r}, levels={len(self.levels)})"
-
-    # -- geometry --------------------------------------------------------
-    @property
-    def dimensions(self) -> tuple[int, int]:
-        """Level-0 ``(width, height)`` in pixels."""
-        return self.levels[0].width, self.levels[0].height
-
-    # -- pixels ----------------------------------------------------------
-    def read_level(self, level: int, max_bytes: int = MAX_DECODE_BYTES) -> np.ndarray:
-        """Decode a whole level as an ``(height, width, 3)`` ``uint8`` RGB array.
-
-        Refuses (``SlideError``, before decoding anything) when the output would
-        need more than ``max_bytes`` bytes (height * width * 3).
-        """
-        info = self._level(level)
-        needed = info.width * info.height * 3
-        if needed > max_bytes:
-            raise SlideError(
-                self.path,
-                f"level {level} is {info.width}×{info.height} px = {needed} bytes as RGB, "
-                f"over the decode limit of {max_bytes} bytes; read a coarser level or regions",
-            )
-        return self.read_region(level, 0, 0, info.width, info.height)
-
-    def read_region(self, level: int, x: int, y: int, width: int, height: int) -> np.ndarray:
-        """Decode a rectangle of one level as a ``(height, width, 3)`` ``uint8`` RGB array.
-
-        ``x``, ``y`` (top-left corner) and ``width``, ``height`` are in pixels of
-        ``level``. Only the tiles (or strips) under the rectangle are read and
-        decoded. Parts of the rectangle outside the level are white (255).
-        """
-        info = self._level(level)
-        x, y, width, height = int(x), int(y), int(width), int(height)
-        if width < 0 or height < 0:
-            raise ValueError(f"region size must be >= 0, got width={width}, height={height}")
-        needed = width * height * 3
-        if needed > MAX_DECODE_BYTES:
-            raise SlideError(
-                self.path,
-                f"region {width}×{height} px = {needed} bytes as RGB, "
-                f"over the decode limit of {MAX_DECODE_BYTES} bytes",
-            )
-        out = np.full((height, width, 3), 255, dtype=np.uint8)
-        # intersection with the level, in level pixels
-        x0, y0 = max(x, 0), max(y, 0)
-        x1, y1 = min(x + width, info.width), min(y + height, info.height)
-        if x0 >= x1 or y0 >= y1:
-            return out
-        rgb = self._decode_window(level, x0, y0, x1, y1)
-        out[y0 - y : y1 - y, x0 - x : x1 - x] = rgb
-        return out
-
-    # -- internals -------------------------------------------------------
-    def _level(self, level: int) -> LevelInfo:
-        if self._tif is None:
-            raise ValueError(f"{self.path}: slide is closed")
-        if isinstance(level, bool) or not isinstance(level, (int, np.integer)):
-            raise ValueError(f"level must be an int, got {level!r}")
-        if not 0 <= level < len(self.levels):
-            raise ValueError(f"level {level} out of range: {self.path} has {len(self.levels)} level(s)")
-        return self.levels[int(level)]
 
     def _decode_window(self, level: int, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
         """RGB pixels of the in-bounds window [y0:y1, x0:x1] of ``level``."""
@@ -201,7 +117,7 @@ class SlideReader:
         kwargs = {}
         if page.compression in _JPEG_COMPRESSIONS:
             kwargs = {"jpegtables": page.jpegtables, "jpegheader": page.jpegheader}
-        fh = self._tif.filehandle
+        fh = self._handle.filehandle
         filesize = fh.size
         for s in range(nsep):
             for ty in range(y0 // seg_h, (y1 - 1) // seg_h + 1):
@@ -274,7 +190,7 @@ def _check_signature(path: str) -> None:
     except OSError as exc:
         raise SlideError(path, f"cannot read file: {exc}") from exc
     if head[128:132] == b"DICM":
-        raise SlideError(path, "is DICOM: open it with data_tools.slide_files.open.open_slide, not SlideReader")
+        raise SlideError(path, "is DICOM: open it with data_tools.slide_files.open.open_slide, not TiffSlideReader")
     if head[:4] not in _TIFF_MAGICS:
         raise SlideError(path, f"format not recognised (not a TIFF file); {_SUPPORTED}")
 

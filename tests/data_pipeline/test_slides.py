@@ -12,9 +12,9 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 from data_tools.errors import SlideError
-from data_tools.slide_files.base import LevelInfo, describe
+from data_tools.slide_files.base import MAX_DECODE_BYTES, LevelInfo, SlideReader, describe
 from data_tools.slide_files.open import open_slide
-from data_tools.slide_files.tiff import MAX_DECODE_BYTES, SlideReader
+from data_tools.slide_files.tiff import TiffSlideReader
 
 ROOT = Path(__file__).resolve().parents[2]
 SVS = ROOT / "histojax" / "data" / "CMU-1-Small-Region.svs"
@@ -77,7 +77,7 @@ def zlib_pyramid(tmp_path_factory) -> tuple[Path, np.ndarray]:
 
 def test_svs_metadata():
     with open_slide(SVS) as r:
-        assert isinstance(r, SlideReader)
+        assert isinstance(r, TiffSlideReader) and isinstance(r, SlideReader)  # the TIFF reader, one subclass
         assert r.path == str(SVS)
         assert r.format == "aperio-svs"
         assert len(r.levels) == 1  # thumbnail / label / macro are not levels

@@ -226,8 +226,8 @@ MOVED_NAMES = {
         ),
     ),
     "data_tools.slide_files.tiff": (
-        "data_tools.slide_files.base",
-        ("LevelInfo", "describe", "check_levels", "_check_levels"),
+        "data_tools.slide_files.base (the TIFF reader is data_tools.slide_files.tiff.TiffSlideReader)",
+        ("LevelInfo", "describe", "check_levels", "_check_levels", "SlideReader", "MAX_DECODE_BYTES"),
     ),
 }
 

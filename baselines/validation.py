@@ -258,7 +258,7 @@ def check_all_folds(
     ``ValueError`` in one line naming ``DATASET/dataset.json``, the first fold that fails and its counts, and the
     smallest ``--val-fraction`` that works on every fold, or (none does) the most ``--folds K`` that would work,
     or that none does. A dataset whose labels ``dataset.json`` does not give is left to each fold's checks."""
-    from data_tools.bundle_files.seals import read_dataset_json
+    from data_tools.datasets.index import read_dataset_json
     from histojax.datasets import with_fold
 
     where = Path(dataset) / "dataset.json"

@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from data_tools.bundle_files.seals import read_dataset_json
+from data_tools.datasets.index import read_dataset_json
 from data_tools.errors import BundleError
 
 C16_DATASET_VARIABLE = "HISTOJAX_C16_DATASET"

@@ -57,7 +57,8 @@ def _name(entry) -> str:
 def dataset_identity(dataset, spec: dict | None = None) -> dict:
     """``{"folder", "kind", "seal"}`` of a dataset: its resolved folder, ``dataset.json``'s ``kind`` and seal
     (``dataset_sha256``, None for an unsealed index; a derived validation split: its source's seal)."""
-    from data_tools.bundle_files.seals import DATASET_DIGEST, read_dataset_json
+    from data_tools.bundle_files.seals import DATASET_DIGEST
+    from data_tools.datasets.index import read_dataset_json
 
     if spec is None:
         try:
@@ -119,7 +120,7 @@ def fit_record(dataset, spec: dict, fold: int | None, fitted, validation, split:
     ``validation`` (the slides that chose its candidate or checkpoint, or calibrated it), each a list of
     ``dataset.json`` entries or names, and ``identities`` (name → :func:`slide_identity`), by which a slide is known
     in another dataset or under another name."""
-    from data_tools.bundle_files.seals import read_dataset_json
+    from data_tools.datasets.index import read_dataset_json
 
     try:
         base = read_dataset_json(dataset)  # the index itself (spec may be a fold's sides)
@@ -147,7 +148,7 @@ def head_config(head) -> dict:
 
 
 def _spec(dataset) -> dict | None:
-    from data_tools.bundle_files.seals import read_dataset_json
+    from data_tools.datasets.index import read_dataset_json
 
     try:
         spec = read_dataset_json(dataset)

@@ -22,7 +22,8 @@ import numpy as np
 from data_tools.bundle_files.format import ANNOTATIONS
 from data_tools.bundle_files.reading import load_array, load_feature_levels, read_metadata
 from data_tools.bundle_files.safe_files import own_file, stable_read
-from data_tools.bundle_files.seals import read_dataset_json, verify_metadata
+from data_tools.bundle_files.seals import verify_metadata
+from data_tools.datasets.index import read_dataset_json
 from data_tools.errors import HistojaxDataError
 from data_tools.features import pcam_cnn
 
@@ -33,7 +34,7 @@ class HeadDataError(HistojaxDataError):
 
 def read_spec(dataset, fold: int | None = None) -> dict:
     """The dataset's ``dataset.json`` (``HeadDataError`` naming it when missing or malformed; a ``BundleError``
-    naming it when it does not match its seal, :func:`data_tools.bundle_files.seals.read_dataset_json`). ``fold=i``
+    naming it when it does not match its seal, :func:`data_tools.datasets.index.read_dataset_json`). ``fold=i``
     (a dataset built with ``--folds K``): its ``train`` / ``validation`` / ``test`` lists are fold i's sides
     (:func:`histojax.datasets.with_fold`: train = the other folds); no folds or a fold out of range is a
     ``HeadDataError`` naming the file."""

@@ -16,7 +16,8 @@ import pytest
 
 from baselines.reading.slides import read_spec
 from baselines.validation import split_train, units
-from data_tools.bundle_files.seals import DATASET_DIGEST, metadata_digest, read_dataset_json
+from data_tools.bundle_files.seals import DATASET_DIGEST, metadata_digest
+from data_tools.datasets.index import read_dataset_json
 from data_tools.datasets.split import patient_groups, patient_key, read_patient_column
 from data_tools.errors import HistojaxDataError
 

@@ -178,7 +178,7 @@ def _sealed(folder: Path) -> Path:
 def test_a_dataset_json_that_is_a_fifo_a_folder_or_not_an_object_is_one_line(tmp_path):
     """Was: a FIFO dataset.json blocked make, the head fits and evaluate --dataset for ever (killed at 40 s); a folder
     gave IsADirectoryError and a JSON list AttributeError ('list' object has no attribute 'get') from make."""
-    from data_tools.bundle_files.seals import read_dataset_json
+    from data_tools.datasets.index import read_dataset_json
     from data_tools.errors import BundleError
     from histojax.datasets import dataset_slides
 
@@ -200,7 +200,7 @@ def test_a_dataset_json_that_is_a_fifo_a_folder_or_not_an_object_is_one_line(tmp
 
 
 def test_a_dataset_json_linked_to_a_regular_file_is_read_with_its_seal_checked(tmp_path):
-    from data_tools.bundle_files.seals import read_dataset_json
+    from data_tools.datasets.index import read_dataset_json
     from data_tools.errors import BundleError
 
     other = _sealed(tmp_path / "other")

@@ -312,7 +312,7 @@ def test_a_seal_removed_by_hand_is_said(built, tmp_path):
     older unsealed index without a word: now one warning naming the file, once per file."""
     import warnings as _warnings
 
-    from data_tools.bundle_files import seals
+    from data_tools.datasets import index as dataset_index
     from histojax.datasets import dataset_labels
 
     work = tmp_path / "unsealed"
@@ -322,7 +322,7 @@ def test_a_seal_removed_by_hand_is_said(built, tmp_path):
     ds.pop("dataset_sha256")
     ds["labels"]["s1"] = 1
     index.write_text(json.dumps(ds))
-    seals._UNSEALED_WARNED.discard(str(index.resolve()))
+    dataset_index._UNSEALED_WARNED.discard(str(index.resolve()))
     with pytest.warns(UserWarning, match="carries no seal") as caught:
         dataset_labels(work)
     line = str(caught[0].message)
@@ -334,7 +334,7 @@ def test_a_seal_removed_by_hand_is_said(built, tmp_path):
 
 def test_a_validation_split_of_a_sealed_dataset_reads_and_its_labels_are_checked(built, tmp_path):
     from baselines.validation import write_validation_dataset
-    from data_tools.bundle_files.seals import read_dataset_json
+    from data_tools.datasets.index import read_dataset_json
     from data_tools.errors import BundleError
 
     val = write_validation_dataset(built, 0.5, 0, tmp_path / "val")

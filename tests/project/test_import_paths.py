@@ -225,6 +225,10 @@ MOVED_NAMES = {
             "cell_logits",
         ),
     ),
+    "data_tools.bundle_files.seals": (
+        "data_tools.datasets.index (the one reader of dataset.json, beside the dataset code)",
+        ("read_dataset_json", "_read_dataset_json", "_UNSEALED_WARNED"),
+    ),
     "data_tools.slide_files.tiff": (
         "data_tools.slide_files.base (the TIFF reader is data_tools.slide_files.tiff.TiffSlideReader)",
         ("LevelInfo", "describe", "check_levels", "_check_levels", "SlideReader", "MAX_DECODE_BYTES"),

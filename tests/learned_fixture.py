@@ -97,3 +97,30 @@ def make_cohort(
         "tumour": masks,
         "names": {s: [Path(e).name for e in spec[s]] for s in ("train", "test")},
     }
+
+
+def untrained_fit(train_slides, val, structure, seed=0, **kwargs):
+    """``baselines.reading.learned_head_fit.train`` without the training, to monkeypatch in its place: the initial
+    head (its standardisation from ``train_slides``) and a one-row curve, so a test sees the fit's bookkeeping (what
+    the command records and refuses) cheaply."""
+    import jax
+    import jax.numpy as jnp
+
+    from baselines.reading import learned_head_fit as fit
+    from histojax.reading.heads.learned import LearnedHead, init_params
+
+    d = int(train_slides[0]["features"].shape[1])
+    mu, sd = fit.standardisation(train_slides)
+    params = init_params(
+        jax.random.PRNGKey(seed), d, structure["hidden"], structure["attention"], structure["layers"], mu, sd
+    )
+    head = LearnedHead(
+        params=params,
+        prior_logit=jnp.float32(0.0),
+        features_dim=d,
+        hidden=structure["hidden"],
+        attention=structure["attention"],
+        layers=structure["layers"],
+        encoder=train_slides[0].get("encoder"),
+    )
+    return head, [{"step": 1, "loss": 0.7, "full": 0.5, "read 0.1": 0.5, "validation_loss": 0.7, "smoothed": 0.5}]

@@ -5,13 +5,12 @@ blocks, none deletes or writes outside the folder. No training runs here (the ch
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import signal
 from pathlib import Path
 
 import pytest
+from blocking_helpers import at_most
 
 from baselines.harness import run_folder
 from baselines.harness.run_folder import RunFolderError, claim, release
@@ -19,26 +18,6 @@ from baselines.harness.runner import load_runner, resume_config
 from data_tools.errors import HistojaxDataError
 
 CONFIG = {"algo": "ppo", "env_id": "HistoJAX-Easy-v0"}
-
-
-class Blocked(Exception):
-    """Raised in a block that blocked too long (not an ``OSError``: no ``except OSError`` swallows it)."""
-
-
-@contextlib.contextmanager
-def at_most(seconds: int):
-    """Fail (:class:`Blocked`) instead of hanging when the block blocks longer than ``seconds``."""
-
-    def _raise(*_):
-        raise Blocked(f"blocked for more than {seconds} s")
-
-    old = signal.signal(signal.SIGALRM, _raise)
-    signal.alarm(seconds)
-    try:
-        yield
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, old)
 
 
 def _finished(out: Path) -> Path:

@@ -6,14 +6,13 @@ past the parser or not an object is one line naming it (were a RecursionError / 
 
 from __future__ import annotations
 
-import contextlib
 import json
 import os
-import signal
 from pathlib import Path
 
 import numpy as np
 import pytest
+from blocking_helpers import at_most
 from flax import serialization
 
 from baselines.harness.logs import load_checkpoint
@@ -21,24 +20,6 @@ from data_tools.errors import HistojaxDataError
 
 pytestmark = pytest.mark.skipif(not hasattr(os, "mkfifo"), reason="FIFOs need a POSIX system")
 CONFIG = {"algo": "ppo", "env_id": "HistoJAX-Easy-v0"}
-
-
-class Blocked(Exception):
-    """A read that blocked (not an OSError: nothing swallows it)."""
-
-
-@contextlib.contextmanager
-def at_most(seconds: int):
-    def _raise(*_):
-        raise Blocked(f"blocked for more than {seconds} s")
-
-    old = signal.signal(signal.SIGALRM, _raise)
-    signal.alarm(seconds)
-    try:
-        yield
-    finally:
-        signal.alarm(0)
-        signal.signal(signal.SIGALRM, old)
 
 
 def _run(tmp_path: Path, w=(0.0, 1.0), config: str | None = None) -> Path:

@@ -16,7 +16,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from learned_fixture import make_cohort
+from learned_fixture import make_cohort, untrained_fit
 
 from baselines.reading import learned_head_fit as fit
 from baselines.reading import provenance
@@ -54,37 +54,14 @@ def small(tmp_path_factory):
     return c
 
 
-def _untrained(train_slides, val, structure, seed=0, **kwargs):
-    """:func:`fit.train` without the training (its initial head and a one-row curve): the fit's bookkeeping, cheaply."""
-    import jax
-    import jax.numpy as jnp
-
-    from histojax.reading.heads.learned import LearnedHead, init_params
-
-    d = int(train_slides[0]["features"].shape[1])
-    mu, sd = fit.standardisation(train_slides)
-    params = init_params(
-        jax.random.PRNGKey(seed), d, structure["hidden"], structure["attention"], structure["layers"], mu, sd
-    )
-    head = LearnedHead(
-        params=params,
-        prior_logit=jnp.float32(0.0),
-        features_dim=d,
-        hidden=structure["hidden"],
-        attention=structure["attention"],
-        layers=structure["layers"],
-        encoder=train_slides[0].get("encoder"),
-    )
-    return head, [{"step": 1, "loss": 0.7, "full": 0.5, "read 0.1": 0.5, "validation_loss": 0.7, "smoothed": 0.5}]
-
-
 @pytest.fixture(scope="module")
 def head(small, tmp_path_factory):
-    """A learned head "fitted" (untrained: :func:`_untrained`, the guards on its figures off) by the command on the
-    train split with a validation share of 0.4 (4 + 4 slides): what the command records, without its training."""
+    """A learned head "fitted" (untrained: :func:`learned_fixture.untrained_fit`, the guards on its figures off) by
+    the command on the train split with a validation share of 0.4 (4 + 4 slides): what the command records, without
+    its training."""
     out = tmp_path_factory.mktemp("provenance-head") / "h"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(fit, "train", _untrained)
+        mp.setattr(fit, "train", untrained_fit)
         mp.setattr(fit, "check_head", lambda *a, **k: None)
         assert _main(["--dataset", str(small["root"]), "--out", str(out), "--val-fraction", "0.4", *FAST]) == 0
     return out
@@ -275,7 +252,7 @@ def test_smoothed_choice_passes_over_a_lucky_check():
 
 
 def test_all_folds_fits_one_head_per_fold_and_each_scores_only_its_fold(small, tmp_path, capsys, monkeypatch):
-    monkeypatch.setattr(fit, "train", _untrained)  # the per-fold bookkeeping, not the learning
+    monkeypatch.setattr(fit, "train", untrained_fit)  # the per-fold bookkeeping, not the learning
     monkeypatch.setattr(fit, "check_head", lambda *a, **k: None)
     root, out = str(small["root"]), tmp_path / "heads"
     assert _main(["--dataset", root, "--out", str(out), "--all-folds", "--val-fraction", "0.4", *FAST]) == 0
@@ -415,7 +392,7 @@ def test_the_patients_two_slides_share_a_fold_and_a_fold_head_refuses_both(small
     home = [i for i, lst in enumerate(lists) if "bundles/s00_tumour" in lst]
     assert len(home) == 1 and "bundles/s01_tumour" in lists[home[0]]
     other = (home[0] + 1) % 3  # a head fitted on fold `other`'s train side saw both of the patient's slides
-    monkeypatch.setattr(fit, "train", _untrained)
+    monkeypatch.setattr(fit, "train", untrained_fit)
     monkeypatch.setattr(fit, "check_head", lambda *a, **k: None)
     root, out = str(small["root"]), tmp_path / "h"
     assert _main(["--dataset", root, "--out", str(out), "--fold", str(other), "--val-fraction", "0.4", *FAST]) == 0

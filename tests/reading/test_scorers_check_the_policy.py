@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 import pytest
-from learned_fixture import make_cohort
+from learned_fixture import make_cohort, untrained_fit
 
 from baselines.harness.logs import save_checkpoint
 from baselines.reading import budget_curve, diagnosis, provenance, readers
@@ -143,31 +143,6 @@ def test_the_flag_warns_and_marks_the_policy_beside_the_head(cohort, tmp_path, c
 
 
 # ----------------------------------------------------------------------------- through a head (slow)
-def _untrained(train_slides, val, structure, seed=0, **kwargs):
-    """The learned head fit without its training (its initial head): what the command records, cheaply."""
-    import jax
-    import jax.numpy as jnp
-
-    from baselines.reading import learned_head_fit as fit
-    from histojax.reading.heads.learned import LearnedHead, init_params
-
-    d = int(train_slides[0]["features"].shape[1])
-    mu, sd = fit.standardisation(train_slides)
-    params = init_params(
-        jax.random.PRNGKey(seed), d, structure["hidden"], structure["attention"], structure["layers"], mu, sd
-    )
-    head = LearnedHead(
-        params=params,
-        prior_logit=jnp.float32(0.0),
-        features_dim=d,
-        hidden=structure["hidden"],
-        attention=structure["attention"],
-        layers=structure["layers"],
-        encoder=train_slides[0].get("encoder"),
-    )
-    return head, [{"step": 1, "loss": 0.7, "full": 0.5, "read 0.1": 0.5, "validation_loss": 0.7, "smoothed": 0.5}]
-
-
 @pytest.fixture(scope="module")
 def head(cohort, tmp_path_factory):
     """A learned head "fitted" on the train split (untrained), recording it: it may score the test split."""
@@ -175,7 +150,7 @@ def head(cohort, tmp_path_factory):
 
     out = tmp_path_factory.mktemp("policy-scorers-head") / "h"
     with pytest.MonkeyPatch.context() as mp:
-        mp.setattr(fit, "train", _untrained)
+        mp.setattr(fit, "train", untrained_fit)
         mp.setattr(fit, "check_head", lambda *a, **k: None)
         assert fit._main()(["--dataset", str(cohort["root"]), "--out", str(out), "--val-fraction", "0.4", *FAST]) == 0
     return out

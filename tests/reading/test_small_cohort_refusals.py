@@ -120,30 +120,12 @@ def test_a_head_whose_validation_interval_contains_chance_is_saved_with_a_warnin
 ):
     """The learned fit on 8 + 8 training slides (3 + 3 validate): the fit itself is stubbed (an untrained head) and
     the interval is the issue's 0.611 [0.278, 0.861]; the head is saved, the warning printed, the flag recorded."""
-    from learned_fixture import make_cohort
+    from learned_fixture import make_cohort, untrained_fit
 
     c = make_cohort(tmp_path / "ds", tumour=8, normal=8, test_tumour=2, test_normal=2, dim=16, signal=4.0)
 
-    def untrained(train_slides, val, structure, seed=0, **kwargs):
-        import jax
-        import jax.numpy as jnp
-
-        from histojax.reading.heads.learned import LearnedHead, init_params
-
-        d = int(train_slides[0]["features"].shape[1])
-        mu, sd = fit.standardisation(train_slides)
-        params = init_params(
-            jax.random.PRNGKey(seed), d, structure["hidden"], structure["attention"], structure["layers"], mu, sd
-        )
-        head = LearnedHead(
-            params=params,
-            prior_logit=jnp.float32(0.0),
-            features_dim=d,
-            hidden=structure["hidden"],
-            attention=structure["attention"],
-            layers=structure["layers"],
-            encoder=train_slides[0].get("encoder"),
-        )
+    def untrained(*args, **kwargs):  # the untrained head, with this test's curve
+        head, _ = untrained_fit(*args, **kwargs)
         return head, [{"step": 1, "loss": 0.7, "full": 0.6, "read 0.1": 0.5, "validation_loss": 0.7, "smoothed": 0.6}]
 
     monkeypatch.setattr(fit, "train", untrained)

@@ -10,7 +10,7 @@ How it works (:func:`train_rotating`):
   set is built (a first pass reads every bundle once to learn the array shapes).
 * **Sets.** The slides, shuffled once (``seed``), are cut into sets of ``K`` (the last wraps around
   to the first slides); phase ``r`` trains on set ``r mod n_sets``. Every set is packed
-  (:func:`histojax.core.slide.stack_slides`) and padded to one *capacity* shape — the largest over the
+  (:func:`histojax.loading.stack_slides`) and padded to one *capacity* shape — the largest over the
   sets — so the jitted phase compiles once.
 * **Device bound.** At most two sets are on the device: the one training and the next one. The
   bound is ``2 × set bytes`` (the capacity's bytes), checked against ``budget_bytes`` before any
@@ -45,7 +45,8 @@ from baselines import ppo
 from baselines.common.config import ConfigError, env_overrides
 from baselines.harness.runner import finish_run
 from data_tools.cli_output import command_main, print_error
-from histojax.core.slide import SlideArrays, stack_slides
+from histojax.core.slide import SlideArrays
+from histojax.loading import stack_slides
 from histojax.registry import make, slide_paths
 from histojax.sharding import PER_SLIDE, host_leaves, on_host, pad_leaf
 

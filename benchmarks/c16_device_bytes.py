@@ -14,9 +14,8 @@ import argparse
 import json
 from pathlib import Path
 
-from data_tools.bundle_files.format import level_grids
+from data_tools.bundle_files.format import level_grids, select_levels, slide_device_bytes
 from data_tools.bundle_files.reading import read_metadata
-from histojax.core.slide import select_levels, slide_device_bytes
 
 
 def feature_grid_bytes(meta: dict, chosen: list[int], dim: int, itemsize: int = 2) -> int:

@@ -288,8 +288,8 @@ def device_memory(info: dict) -> int | None:
 
 def dataset_item(folder: Path, obs_mode: str, args, budget: Budget, memory: int | None) -> dict:
     """Env steps/s and device bytes of ``folder``'s train split in ``obs_mode``."""
+    from data_tools.bundle_files.format import select_levels, slide_device_bytes
     from data_tools.bundle_files.reading import read_metadata
-    from histojax.core.slide import select_levels, slide_device_bytes
 
     ds = json.loads((folder / "dataset.json").read_text())
     env_id = f"HistoJAX-C16-{args.c16_level}-v0"

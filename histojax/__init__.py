@@ -9,7 +9,8 @@ import histojax.reading.modes  # noqa: F401  (registers the reading modes in the
 from histojax.adapters.jax import GymnaxV0Wrapper, LogWrapper
 from histojax.core.actions import ACTION_NAMES, DOWN, LEFT, RIGHT, STAY, UP, ZOOM_IN, ZOOM_OUT
 from histojax.core.env import EnvParams, EnvState, HistoEnv
-from histojax.core.slide import SlideArrays, load_slide
+from histojax.core.slide import SlideArrays
+from histojax.loading import load_slide
 from histojax.registry import make, register, registered_envs
 from histojax.scenarios import Scenario, load_scenario, register_scenario
 

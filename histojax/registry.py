@@ -41,8 +41,9 @@ import numpy as np
 from histojax.core.env import EnvParams, HistoEnv
 from histojax.core.modes import factory
 from histojax.core.modes.base import Navigation
-from histojax.core.slide import DEFAULT_MAX_DEVICE_BYTES, check_alike, load_slide, stack_slides, start_cdf
+from histojax.core.slide import start_cdf
 from histojax.datasets import c16_dataset, dataset_labels, label_of, resolve_slides, tumour_slide_weights
+from histojax.loading import DEFAULT_MAX_DEVICE_BYTES, check_alike, load_slide, stack_slides
 from histojax.make_options import DATASET, MODE, PARAMS, STATIC, MakeOptions
 
 # the names of make's options by where they go, derived from the one typed set (histojax.make_options.MakeOptions):
@@ -226,7 +227,7 @@ def make(
     The slide's arrays are put on the device once and returned inside ``params``; a slide
     needing more than ``max_device_bytes`` (default 4 GiB) is refused with a clear error. It bounds the
     arrays put on the device, not the process's host memory (on the CPU backend, where they are host
-    memory, ``make`` peaks at about 1.6× them; see :func:`histojax.core.slide.load_slide`).
+    memory, ``make`` peaks at about 1.6× them; see :func:`histojax.loading.load_slide`).
     ``verify`` checks every array's SHA-256 against the bundle metadata.
 
     Datasets: ``slides=[bundle, ...]`` (any sizes, same tile size) or ``dataset=FOLDER`` holding a

@@ -2,7 +2,7 @@
 
 A *sharded dataset* is a ``SlideArrays`` whose every leaf has a leading device axis ``G`` (the
 mesh size) split over the mesh axis (``"batch"`` by default): row ``d`` is the stacked dataset
-(:func:`histojax.core.slide.stack_slides`) of the slides of device ``d``, with offsets local to it, so
+(:func:`histojax.loading.stack_slides`) of the slides of device ``d``, with offsets local to it, so
 device ``d`` stores only its slides' pixels / pools / tables / feature grids and memory per device
 falls as ``1 / G``. Groups are padded to one shape: flat arrays with zeros at the end (never
 read: the offsets stay inside each group's data), per-slide arrays by repeating the group's last

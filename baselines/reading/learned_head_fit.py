@@ -106,7 +106,7 @@ from data_tools.metrics import (
     roc_auc_with_interval,
     small_split_warning,
 )
-from histojax.core.slide import slide_label_from_metadata
+from histojax.loading import slide_label_from_metadata
 from histojax.reading.heads import encoder_mismatch, files
 from histojax.reading.heads.learned import KIND, LearnedHead, init_params
 

@@ -178,7 +178,7 @@ def load_slide(
     try:
         meta, grids, stride, tissue_mask = read_bundle(bundle, sorted({0, *levels}))
         if label is None:
-            from histojax.core.slide import slide_label_from_metadata
+            from histojax.loading import slide_label_from_metadata
 
             label = int(slide_label_from_metadata(meta))
         feats = meta["features"]

@@ -6,7 +6,7 @@ Why here, in ``data_tools`` (the lower layer, numpy only): data flows one way. `
 *reads* them. Both need the format, and the reading side must not pull in the writer nor the writer
 JAX, so the format is its own package of the lower layer (:mod:`data_tools.bundle_files`), imported by the writer
 (:mod:`data_tools.bundle`, :mod:`data_tools.tiled`, :mod:`data_tools.features`) and by every
-reader (:mod:`histojax.core.slide`, :mod:`histojax.render`, :mod:`histojax.cache`); it imports nothing
+reader (:mod:`histojax.loading`, :mod:`histojax.render`, :mod:`histojax.cache`); it imports nothing
 of either (only the leaf module of error types). Nothing else reads ``metadata.json`` or checks a
 checksum.
 

@@ -1,7 +1,8 @@
 """The verified read of every kind of bundle (dense, tiled, feature grids): ``metadata.json`` read and its fields
 checked (:func:`read_metadata`, :func:`check_fields`), every array checked against its recorded SHA-256 and shape
 (:func:`load_array`) and read with ``allow_pickle=False``, and the host-side :class:`Bundle` returned
-(:func:`load_bundle`); :func:`bundle_damage` says what is wrong with a bundle without raising.
+(:func:`load_bundle`); :func:`read_slide` is the one verified read of a scenario's levels that
+``histojax.loading`` packs onto the device; :func:`bundle_damage` says what is wrong with a bundle without raising.
 """
 
 from __future__ import annotations
@@ -13,6 +14,7 @@ import os
 import warnings
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -23,6 +25,7 @@ from data_tools.bundle_files.format import (
     TILED_FORMAT_VERSION,
     BundleMetadata,
     level_grids,
+    select_levels,
 )
 from data_tools.bundle_files.safe_files import own_file, safe_name, stable_read
 from data_tools.bundle_files.seals import verify_metadata
@@ -40,6 +43,9 @@ __all__ = [
     "load_feature_levels",
     "load_tiled_level",
     "read_metadata",
+    "read_slide",
+    "SlideRead",
+    "check_levels",
 ]
 
 
@@ -431,3 +437,120 @@ def load_feature_levels(bundle, metadata: dict, levels: list[int], verify: bool 
             )
         arrays.append(array)
     return arrays, stride
+
+
+def check_levels(path, metadata, chosen: list[int]) -> None:
+    """Refuse scenario levels (bundle indices, coarsest first) between which zooming does nothing: the same
+    bundle level twice (a bundle built with magnification range 1) or two levels of the same size."""
+    t = int(metadata["tile_size"])
+    sizes = [
+        (max(t, int(metadata["levels"][k]["width"])), max(t, int(metadata["levels"][k]["height"]))) for k in chosen
+    ]
+    for a, b, size0, size in zip(chosen, chosen[1:], sizes, sizes[1:]):
+        if a == b or size0 == size:
+            raise BundleError(
+                path,
+                f"{len(chosen)} zoom levels would show bundle levels of the same size "
+                f"({size[0]}×{size[1]} px, magnification range {metadata['magnification_range']:g}, "
+                f"tile {t} px): zooming would do nothing; rebuild it with a larger "
+                "--magnification-range or a smaller --tile-size",
+            )
+
+
+def _pixels_hint(path: Path) -> str:
+    """How the feature-only bundle at ``path`` was made and how to make it again with its pixels: from the
+    ``kind`` of the ``dataset.json`` of the dataset holding it (``histojax dataset`` or ``data_tools c16``)."""
+    try:
+        kind = str(json.loads((path.parent.parent / "dataset.json").read_text()).get("kind", ""))
+    except (OSError, ValueError, AttributeError):
+        kind = ""
+    if "data_tools dataset" in kind:
+        return (
+            "with `histojax dataset ... --no-pixels`): use obs_mode='features', or build the dataset again with "
+            f"its pixels (the same `histojax dataset SLIDES --out {path.parent.parent}` command and options, "
+            "without --no-pixels)"
+        )
+    if "data_tools c16" in kind:
+        return (
+            "with `python -m data_tools c16 --no-pixels`): use obs_mode='features', or make these slides "
+            "again with their pixels (the same `data_tools c16` command without --no-pixels, "
+            f"--slides {path.name})"
+        )
+    return (
+        "with --no-pixels): use obs_mode='features', or build the bundle again with its pixels (the same "
+        "command without --no-pixels)"
+    )
+
+
+@dataclass(frozen=True)
+class SlideRead:
+    """One verified read of a scenario's levels of a bundle (:func:`read_slide`): ``bundle`` holds the chosen levels
+    coarsest first (its metadata reordered to match; dense level arrays memory-mapped, read-only), ``chosen`` their
+    bundle level indices (coarsest first), ``load_features`` whether the feature grid is to be read."""
+
+    bundle: Bundle
+    metadata: BundleMetadata  # the bundle's own metadata (all levels, finest first)
+    chosen: list[int]
+    load_features: bool
+    verify: bool
+
+    def feature_levels(self) -> tuple[list[np.ndarray], int]:
+        """The verified feature grids ``[(gh, gw, D) floats]`` of the chosen levels (coarsest first) and the grid
+        stride (px of a level); read on demand, so a caller packing the pixels first holds one copy at a time."""
+        return load_feature_levels(self.bundle.path, self.metadata, self.chosen, verify=self.verify)
+
+
+def read_slide(
+    path,
+    n_levels: int,
+    *,
+    verify: bool = True,
+    pixels: bool = True,
+    features: bool | None = None,
+    check: Callable[[BundleMetadata, list[int], bool], None] | None = None,
+    use: Callable[[SlideRead], object] | None = None,
+):
+    """The verified read of ``n_levels`` zoom levels of the bundle at ``path``: ``metadata.json`` read and checked
+    (digest too with ``verify``), the levels chosen (:func:`~data_tools.bundle_files.format.select_levels`, coarsest
+    first) and refused when zooming between them would do nothing (:func:`check_levels`) or when ``pixels`` is
+    asked of a feature-only bundle, ``check(metadata, chosen, load_features)`` called before any array is read (a
+    caller's budget: it raises to refuse), then the level arrays read (checksums verified with ``verify``;
+    memory-mapped). ``features``: ``None`` reads the feature grid if the bundle has one, ``True`` requires it,
+    ``False`` skips it (``pixels=False`` always reads it). The whole read, and ``use(read)`` if given, is repeated
+    when a rebuild swaps the folder meanwhile (:func:`stable_read`). Returns ``use(read)``, or the
+    :class:`SlideRead` without ``use``."""
+    path = Path(path)
+
+    def attempt():
+        metadata = read_metadata(path)
+        if verify:
+            verify_metadata(path, metadata)
+        chosen = select_levels(metadata, n_levels, path)
+        check_levels(path, metadata, chosen)
+        load_features = bool(features) or (features is None and bool(metadata.features)) or not pixels
+        missing = [k for k in chosen if k not in metadata.pixel_levels]
+        if pixels and missing:
+            raise BundleError(
+                path,
+                f"keeps no pixels at bundle levels {sorted(missing)} (a feature-only bundle, made {_pixels_hint(path)}",
+            )
+        if check is not None:
+            check(metadata, chosen, load_features)
+        coarsest = len(metadata.levels) - 1
+        if chosen[0] != coarsest:
+            raise BundleError(path, "the scenario's coarsest level is not the bundle's coarsest; rebuild the bundle")
+        bundle = load_bundle(path, verify=verify, levels=chosen, mmap=True, metadata=metadata)
+        ordered = Bundle(
+            path=bundle.path,
+            metadata=metadata.with_levels(chosen),
+            pixels=bundle.pixels,
+            tumour=bundle.tumour,
+            tissue=bundle.tissue,
+            region=bundle.region,
+        )
+        read = SlideRead(
+            bundle=ordered, metadata=metadata, chosen=list(chosen), load_features=load_features, verify=verify
+        )
+        return read if use is None else use(read)
+
+    return stable_read(path, attempt)

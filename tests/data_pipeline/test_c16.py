@@ -156,7 +156,7 @@ def test_feature_mode_holds_no_pixels(small, tmp_path):
 
     import histojax
     from data_tools.bundle import read_metadata
-    from histojax.core.slide import select_levels, slide_device_bytes
+    from data_tools.bundle_files.format import select_levels, slide_device_bytes
 
     ds = tmp_path / "ds"
     shutil.copytree(small, ds)

@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 import histojax
-from histojax.core.slide import stack_slides
+from histojax.loading import stack_slides
 
 
 @pytest.fixture(scope="module")

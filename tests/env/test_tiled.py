@@ -21,8 +21,8 @@ from hypothesis_examples import examples
 import histojax
 from data_tools.bundle import FORMAT_VERSION, TILED_FORMAT_VERSION, build_bundle, load_bundle, read_metadata
 from data_tools.errors import BundleError
-from histojax.core.slide import stack_slides
 from histojax.core.views import view_pixels, view_tumour_fraction
+from histojax.loading import stack_slides
 
 DATA = Path(histojax.__file__).parent / "data"
 SVS, XML = DATA / "CMU-1-Small-Region.svs", DATA / "CMU-1-Small-Region.target.xml"

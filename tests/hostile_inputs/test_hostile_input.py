@@ -372,7 +372,8 @@ def test_make_refuses_a_wrapping_stride_and_a_valid_huge_one_does_not_wrap(sampl
 def test_dense_slide_arrays_host_peak_is_one_flat_array(tmp_path):
     """Was: `make` on a dense bundle peaked at ~4.3× the device bytes (all levels read, int64 SATs,
     concatenations). The host (numpy) allocations while packing are now one flat array at a time."""
-    from histojax.core.slide import load_slide, summed_area_table
+    from histojax.core.slide import summed_area_table
+    from histojax.loading import load_slide
 
     out = build_bundle(_slide(tmp_path / "s.tif", 1024), tmp_path / "b", tile_size=32, progress=False)
     tracemalloc.start()
@@ -423,7 +424,8 @@ def test_budget_checks_what_is_really_allocated(tmp_path):
     """The metadata estimate leaves out the start weights (4 B per start position of the coarsest level):
     a budget of exactly the estimate is now refused after loading, naming the bytes really allocated."""
     from data_tools.bundle import level_device_bytes, read_metadata
-    from histojax.core.slide import load_slide, select_levels
+    from data_tools.bundle_files.format import select_levels
+    from histojax.loading import load_slide
 
     out = build_bundle(_slide(tmp_path / "s.tif", 512), tmp_path / "b", tile_size=32, level_sets=(3,), progress=False)
     meta = read_metadata(out)

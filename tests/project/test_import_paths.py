@@ -229,6 +229,27 @@ MOVED_NAMES = {
         "data_tools.datasets.index (the one reader of dataset.json, beside the dataset code)",
         ("read_dataset_json", "_read_dataset_json", "_UNSEALED_WARNED"),
     ),
+    # loading out of the core: the core reads no file (histojax.loading reads bundles; the format keeps its own names)
+    "histojax.core.slide": (
+        "histojax.loading (check_levels: data_tools.bundle_files.reading; select_levels, *_bytes: .format)",
+        (
+            "load_slide",
+            "stack_slides",
+            "check_alike",
+            "check_levels",
+            "slide_arrays_from_bundle",
+            "tiled_slide_arrays",
+            "with_features",
+            "slide_label_from_metadata",
+            "release_heap",
+            "DEFAULT_MAX_DEVICE_BYTES",
+            "HOST_PEAK_FACTOR",
+            "select_levels",
+            "slide_device_bytes",
+            "feature_bytes",
+            "tumour_table_bytes",
+        ),
+    ),
     "data_tools.slide_files.tiff": (
         "data_tools.slide_files.base (the TIFF reader is data_tools.slide_files.tiff.TiffSlideReader)",
         ("LevelInfo", "describe", "check_levels", "_check_levels", "SlideReader", "MAX_DECODE_BYTES"),

@@ -23,7 +23,6 @@ import importlib
 import importlib.machinery
 import importlib.util
 import sys
-from pathlib import Path
 from types import ModuleType
 
 _PACKAGE = "gymnax"
@@ -56,10 +55,9 @@ def _submodule_file(parent: ModuleType, locations: list[str], name: str) -> Modu
     if name in sys.modules:
         return sys.modules[name]
     short = name.rpartition(".")[2]
-    path = Path(locations[0]) / f"{short}.py"
-    spec = importlib.util.spec_from_file_location(name, path)
+    spec = importlib.machinery.PathFinder.find_spec(name, locations)  # the file in locations; no parent runs
     if spec is None or spec.loader is None:
-        raise ImportError(f"cannot load {name!r} from {path}")
+        raise ImportError(f"cannot load {name!r} from {locations}")
     module = importlib.util.module_from_spec(spec)
     sys.modules[name] = module
     try:

@@ -9,7 +9,10 @@ of the repository, else to ``pkg`` itself. The implicit import of a parent packa
 every package a circle.
 
 Inside ``histojax``, the env core (``histojax.core``) is a floor under the reading stack (``histojax.reading``):
-no core module imports it, and ``histojax.make`` reaches no reading module on its way to the jitted step.
+no core module imports it, and ``histojax.make`` reaches no reading module on its way to the jitted step. The core
+touches no file either: it imports no module of the repository outside ``histojax.core`` (not ``data_tools``, not
+``histojax.loading`` nor the front door), no module that reads or writes files (``pathlib``, ``os``, ``mmap``,
+``ctypes``, ``json``, ``tifffile``, ...) and calls no ``open`` or ``np.load``; loading a bundle is ``histojax.loading``.
 """
 
 from __future__ import annotations
@@ -225,3 +228,111 @@ def test_baselines_folders_import_one_way(upper, lower):
     assert any(m.startswith(lower + ".") for m in graph), f"{lower} has no modules"
     back = _folder_edges(graph, lower, upper)
     assert not back, f"{lower} imports {upper}, which imports it:\n" + "\n".join(back)
+
+
+# modules that read or write files (or the process's memory mappings): no module of the env core imports one
+FILE_MODULES = (
+    "pathlib", "os", "io", "mmap", "ctypes", "json", "shutil", "tempfile", "glob", "pickle", "gzip", "tarfile",
+    "zipfile", "csv", "sqlite3", "fcntl", "tifffile", "h5py", "PIL", "openslide", "pydicom", "zarr",
+)  # fmt: skip
+# the one host-side helper of the core that reaches a file-touching module: ``HistoEnv.render`` (gymnax's render API,
+# never called by the step) imports the renderer inside the method, when a picture is asked for
+HOST_HELPERS = {("histojax.core.env", "histojax.render")}
+# calls that open a file: the builtin ``open`` and numpy's file readers and writers
+FILE_CALLS = ("open", "load", "save", "savez", "savez_compressed", "memmap", "fromfile", "tofile", "loadtxt")
+
+
+def _core_files(root: pathlib.Path = ROOT) -> dict[str, pathlib.Path]:
+    """``{module: file}`` of every module of ``histojax.core`` under ``root``."""
+    return {m: p for m, p in _modules(root).items() if m == "histojax.core" or m.startswith("histojax.core.")}
+
+
+def core_file_access(root: pathlib.Path = ROOT) -> list[str]:
+    """Every import or call of a ``histojax.core`` module under ``root`` that can touch a file, one
+    ``"file:line: what"`` each: a repository module outside the core (``data_tools``, ``histojax.loading``,
+    ``histojax.registry``, ...), a module of :data:`FILE_MODULES` (``os.path`` counts as ``os``), a call of the
+    builtin ``open`` or of ``np.load``-like :data:`FILE_CALLS` on ``np`` / ``numpy`` / ``jnp``; imports inside
+    functions count (but for the one host-side helper of :data:`HOST_HELPERS`, which may import its module inside a
+    function, not at the top of the file)."""
+    modules = _modules(root)
+    graph = import_graph(root)
+    out = []
+    for mod, path in _core_files(root).items():
+        rel = path.relative_to(root)
+        tree = ast.parse(path.read_text(), str(path))
+        top_level = {n.lineno for n in tree.body if isinstance(n, (ast.Import, ast.ImportFrom))}
+        for t, line in graph[mod].items():
+            if (mod, t) in HOST_HELPERS and line not in top_level:
+                continue  # imported inside the host-side helper only
+            if not (t == "histojax.core" or t.startswith("histojax.core.")):
+                out.append(f"{rel}:{line}: imports {t} (outside the core)")
+        for node in ast.walk(tree):
+            names = []
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif isinstance(node, ast.ImportFrom) and not node.level and node.module:
+                names = [node.module]
+            for name in names:
+                if name.split(".")[0] in FILE_MODULES or (
+                    name.split(".")[0] in ("data_tools",) and name not in modules
+                ):
+                    out.append(f"{rel}:{node.lineno}: imports {name}")
+            if isinstance(node, ast.Call):
+                f = node.func
+                if isinstance(f, ast.Name) and f.id == "open":
+                    out.append(f"{rel}:{node.lineno}: calls open")
+                elif (
+                    isinstance(f, ast.Attribute)
+                    and f.attr in FILE_CALLS
+                    and isinstance(f.value, ast.Name)
+                    and f.value.id in ("np", "numpy", "jnp")
+                ):
+                    out.append(f"{rel}:{node.lineno}: calls {f.value.id}.{f.attr}")
+    return out
+
+
+def test_env_core_touches_no_file():
+    """Nothing under ``histojax/core/`` imports ``data_tools``, ``histojax.loading``, the front door or any other
+    repository module outside the core, nor a file-touching module, nor opens a file: the core is the pure step and
+    ``SlideArrays``; reading bundles from disk is :mod:`histojax.loading` (on main before this rule,
+    ``histojax/core/slide.py`` imported ``data_tools.bundle_files`` and ``pathlib`` and memory-mapped bundles)."""
+    assert "histojax.core.slide" in _core_files()
+    bad = core_file_access()
+    assert not bad, "the env core touches files:\n" + "\n".join(bad)
+
+
+def test_the_file_rule_can_fail(tmp_path):
+    """Each kind of file access the rule names is seen, inside functions too, so the test above can fail."""
+    for top in FLOORS:
+        (tmp_path / top).mkdir()
+    core = tmp_path / "histojax" / "core"
+    core.mkdir()
+    for d in (tmp_path / "histojax", core, tmp_path / "data_tools"):
+        (d / "__init__.py").write_text("")
+    (tmp_path / "histojax" / "loading.py").write_text("")
+    (tmp_path / "data_tools" / "errors.py").write_text("")
+    (core / "slide.py").write_text(
+        "import numpy as np\n"
+        "from data_tools.errors import E\n"
+        "def f(p):\n"
+        "    import mmap, os.path\n"
+        "    from pathlib import Path\n"
+        "    from histojax import loading\n"
+        "    return open(p), np.load(p), mmap, os, Path, loading, E\n"
+    )
+    (tmp_path / "histojax" / "render.py").write_text("")
+    (core / "env.py").write_text("from histojax.core import slide\ndef render():\n    from histojax import render\n")
+    (core / "views.py").write_text("from histojax import render\n")
+    found = "\n".join(core_file_access(tmp_path))
+    for what in (
+        "imports data_tools.errors (outside",
+        "imports mmap",
+        "imports os.path",
+        "imports pathlib",
+        "imports histojax.loading (outside",
+        "calls open",
+        "calls np.load",
+    ):
+        assert what in found, what
+    assert "env.py" not in found  # its render helper imports the renderer inside the method
+    assert "views.py:1: imports histojax.render (outside" in found  # a top-level import of it is not exempt

@@ -1,5 +1,6 @@
 """DQN in pure JAX: many vectorised actors feed one replay buffer; double-Q, n-step returns and a
-target network. The whole run is one jitted ``lax.scan``, vmapped over seeds.
+target network. ``make_train`` returns a :class:`~baselines.harness.trainer.Trainer` whose update is one log
+block (a ``lax.scan`` of iterations); the harness runs the updates and the seeds in one jitted program.
 
     python -m baselines.dqn --env HistoJAX-Easy-v0 --with-position --seeds 2 --total-steps 200000 --out runs/dqn-easy
 
@@ -28,7 +29,7 @@ from baselines.common.config import EnvConfig
 from baselines.common.env import episode_stats, make_env, params_initialiser, reset_envs
 from baselines.harness.cli import trainer_command
 from baselines.harness.logs import Progress, report
-from baselines.harness.runner import seeds_runner
+from baselines.harness.trainer import EPISODE_METRICS, Trainer
 from baselines.networks import QNetwork, preprocess_obs
 from histojax import compile_cache
 from histojax.adapters.jax import LogWrapper
@@ -148,10 +149,16 @@ def buffer_sample(buf: Buffer, key, batch_size: int, n: int):
 
 
 # ----------------------------------------------------------------------------- training
-def make_train(config):
-    """A jitted ``train(keys)`` (vmapped over seeds) like :func:`baselines.ppo.make_train`. ``config``: a
-    :class:`DQNConfig`, or a dict made into one (:meth:`DQNConfig.from_dict`); ``train.train_config`` is it,
-    ``train.config`` its record (``config.json``)."""
+METRIC_KEYS = (*EPISODE_METRICS, "loss", "q", "epsilon")  # a log block's metrics
+
+
+def make_train(config) -> Trainer:
+    """DQN's :class:`~baselines.harness.trainer.Trainer` (as :func:`baselines.ppo.make_train`'s; one update is one
+    log block of ``iterations_per_log`` iterations, runner state ``(params, target params, optimizer state,
+    replay buffer, env states, observations, key, gradient steps)``), run by the harness
+    (:func:`baselines.harness.runner.run_seeds`, :func:`~baselines.harness.runner.run_chunked`). ``config``: a
+    :class:`DQNConfig`, or a dict made into one (:meth:`DQNConfig.from_dict`); ``trainer.train_config`` is it,
+    ``trainer.config`` its record (``config.json``)."""
     if isinstance(config, dict) and config.get("devices") is not None:
         raise ValueError("DQN does not shard over devices (devices / --devices is PPO only)")
     config = DQNConfig.coerce(config, where="dqn.make_train")
@@ -261,28 +268,21 @@ def make_train(config):
             metrics = {**metrics, "episodes": metrics["episodes"] + ack}
         return carry, metrics
 
-    def train(key, env_params, params):
-        carry = init_runner(key, env_params, params)
-        carry, metrics = jax.lax.scan(lambda c, b: update(c, b, env_params), carry, jnp.arange(num_logs))
-        return {"params": carry[0], "metrics": metrics}
-
-    run = seeds_runner(train, init_params, env_params, config, progress, env=env)
-    run.env, run.env_params, run.network, run.train_config, run.config = (
-        env,
-        env_params,
-        network,
-        config,
-        config.as_dict(),
+    return Trainer(
+        init_params=init_params,
+        init_runner=init_runner,
+        update=update,
+        runner_params=lambda runner: runner[0],
+        env=env,
+        env_params=env_params,
+        network=network,
+        num_updates=num_logs,
+        steps_per_update=per_log * num_envs,
+        train_config=config,
+        config=config.as_dict(),
+        progress=progress,
+        metric_keys=METRIC_KEYS,
     )
-    run.num_updates, run.steps_per_update = num_logs, per_log * num_envs
-    # the pieces of a run in chunks with checkpoints (baselines.harness.runner.run_chunked)
-    run.init_params, run.init_runner, run.update, run.runner_params = (
-        init_params,
-        init_runner,
-        update,
-        lambda runner: runner[0],
-    )
-    return run
 
 
 # python -m baselines.dqn and histojax train --algo dqn: options, command, entry point

@@ -10,7 +10,8 @@ parameters of every seed, flax msgpack; ``python -m baselines.evaluate runs/ppo-
 ``checkpoint/``: the whole training state every ``checkpoint_every`` updates, from which ``--resume
 runs/ppo-easy`` continues a killed run to the uninterrupted result (:func:`baselines.harness.runner.run_chunked`).
 
-Seeds: ``make_train`` returns one jitted program for all seeds: ``jax.vmap`` over the keys
+Seeds: ``make_train`` returns a :class:`~baselines.harness.trainer.Trainer` (one seed's pieces); the harness
+runs it as one jitted program for all seeds (:func:`baselines.harness.runner.run_seeds`): ``jax.vmap`` over the keys
 (default), or ``vmap_seeds=False`` to run them one after another with ``lax.map`` in the same
 program (same results up to float rounding; on the 2-core CPU the two ran at 1,737 and 1,549 env
 steps/s for 2 seeds). Initial parameters are always made with ``lax.map``: ``jit(vmap(init))`` of
@@ -51,7 +52,7 @@ from baselines.common.env import env_vmap, episode_stats, make_env, params_initi
 from baselines.harness import cli
 from baselines.harness.cli import trainer_command
 from baselines.harness.logs import Progress, report
-from baselines.harness.runner import seeds_runner
+from baselines.harness.trainer import EPISODE_METRICS, Trainer
 from baselines.networks import (
     ActorCritic,
     RecurrentActorCritic,
@@ -111,6 +112,7 @@ def settings(config) -> PPOConfig:
 
 
 LOG_KEYS = ("returned_episode", "returned_episode_returns", "returned_episode_lengths", "returned_episode_success")
+METRIC_KEYS = (*EPISODE_METRICS, "pg_loss", "v_loss", "entropy", "approx_kl")  # an update's metrics
 
 
 class Transition(NamedTuple):
@@ -275,21 +277,19 @@ def update_metrics(info: dict, aux, progress, update_index, config) -> dict:
     return metrics
 
 
-def make_train(config):
-    """A jitted ``train(keys)`` running ``len(keys)`` seeds in one program (``jax.vmap`` over keys,
-    or ``lax.map`` with ``vmap_seeds=False``) and
-    returning ``{"params": seeds-stacked params, "metrics": {name: (seeds, updates)}}``.
-    The env's params (slide arrays) are an argument of the jitted function, not a constant;
-    ``train.env``, ``train.env_params``, ``train.network`` and ``train.num_updates`` are attached,
-    and the pieces of ``train`` for trainers that run it in phases (:mod:`baselines.rotation`):
-    ``train.init_params(key, env_params)``, ``train.init_state(params)`` and
-    ``train.run_updates(state, key, env_params, first_update, n_updates)`` (unjitted, one seed).
-    ``devices = N`` shards the env batch over ``N`` devices (``train.mesh``).
+def make_train(config) -> Trainer:
+    """PPO's :class:`~baselines.harness.trainer.Trainer`: one seed's ``init_params``, ``init_runner`` (runner state
+    ``(train state, env states, observations, key)``) and ``update`` (``num_steps`` steps of every env, GAE,
+    ``update_epochs`` epochs of ``num_minibatches`` minibatches), with the env, its params (slide arrays, an
+    argument of the jitted program, not a constant), the network and ``num_updates``. The harness runs it:
+    :func:`baselines.harness.runner.run_seeds` (all seeds in one jitted program, ``jax.vmap`` over keys or
+    ``lax.map`` with ``vmap_seeds=False``), :func:`~baselines.harness.runner.run_chunked` (in chunks with
+    checkpoints). ``devices = N`` shards the env batch over ``N`` devices (``trainer.mesh``).
 
     ``config``: a :class:`PPOConfig`, or a dict made into one with :meth:`PPOConfig.from_dict` (an unknown entry
     or a wrong type is refused in one line). It stays typed until the env and the network are built;
-    ``train.train_config`` is the config as trained (``obs_norm`` resolved, the env's shapes pinned) and
-    ``train.config`` its record, the ``config.json`` the run writes (:meth:`PPOConfig.as_dict`)."""
+    ``trainer.train_config`` is the config as trained (``obs_norm`` resolved, the env's shapes pinned) and
+    ``trainer.config`` its record, the ``config.json`` the run writes (:meth:`PPOConfig.as_dict`)."""
     config = PPOConfig.coerce(config, where="ppo.make_train")
     num_envs, num_steps = config.num_envs, config.num_steps
     mesh = batch_mesh(config.devices, num_envs)
@@ -320,16 +320,12 @@ def make_train(config):
 
     tx = make_optimizer(config, num_updates)
 
-    def init_state(params) -> TrainState:
-        """Network parameters → the train state (optimizer state fresh, step 0)."""
-        return TrainState.create(apply_fn=network.apply, params=params, tx=tx)
-
     def init_runner(key, env_params, params):
         """One seed's runner state before the first update: ``(train state, env states, observations, key)``
         with the envs freshly reset."""
         key, _, obs0, env_state = reset_envs(env, key, env_params, num_envs, reset_all)
         obs0, env_state = shard((obs0, env_state))
-        return init_state(params), env_state, obs0, key
+        return TrainState.create(apply_fn=network.apply, params=params, tx=tx), env_state, obs0, key
 
     def update(carry, update_index, env_params):
         """One PPO update (``num_steps`` steps of every env, GAE, minibatch epochs) of a runner state
@@ -370,27 +366,22 @@ def make_train(config):
         metrics = update_metrics(traj.info, aux, progress, update_index, config)
         return (state, env_state, obs, key), metrics
 
-    def run_updates(state, key, env_params, first_update, n_updates: int):
-        """``n_updates`` PPO updates from freshly reset envs: ``(state, key, metrics)``;
-        ``first_update`` (the index of the first, for progress) may be traced."""
-        _, env_state, obs0, key = init_runner(key, env_params, state.params)
-        carry = (state, env_state, obs0, key)
-        (state, _, _, key), metrics = jax.lax.scan(
-            lambda c, i: update(c, i, env_params), carry, first_update + jnp.arange(n_updates)
-        )
-        return state, key, metrics
-
-    def train(key, env_params, params):
-        state, _, metrics = run_updates(init_state(params), key, env_params, 0, num_updates)
-        return {"params": state.params, "metrics": metrics}
-
-    run = seeds_runner(train, init_params, env_params, config, progress, mesh, env=env)
-    run.init_params, run.init_state, run.run_updates, run.progress = init_params, init_state, run_updates, progress
-    # the pieces of a run in chunks with checkpoints (baselines.harness.runner.run_chunked)
-    run.init_runner, run.update, run.runner_params = init_runner, update, lambda runner: runner[0].params
-    run.env, run.env_params, run.network, run.num_updates = env, env_params, network, num_updates
-    run.train_config, run.config, run.steps_per_update = config, config.as_dict(), batch
-    return run
+    return Trainer(
+        init_params=init_params,
+        init_runner=init_runner,
+        update=update,
+        runner_params=lambda runner: runner[0].params,
+        env=env,
+        env_params=env_params,
+        network=network,
+        num_updates=num_updates,
+        steps_per_update=batch,
+        train_config=config,
+        config=config.as_dict(),
+        progress=progress,
+        mesh=mesh,
+        metric_keys=METRIC_KEYS,
+    )
 
 
 def parse_args(argv=None, defaults=DEFAULTS, description=__doc__):

@@ -1,7 +1,8 @@
 """Recurrent PPO in the PureJaxRL ``ppo_rnn`` style: a GRU policy
 (:class:`baselines.networks.RecurrentActorCritic`) whose hidden state is carried through the
 rollout and reset at episode starts; the whole run — rollouts, GAE, minibatch epochs over whole
-env sequences — is one jitted function, vmapped over seeds (as :mod:`baselines.ppo`).
+env sequences — is one jitted program, vmapped over seeds, run by the harness from the
+:class:`~baselines.harness.trainer.Trainer` ``make_train`` returns (as :mod:`baselines.ppo`).
 
     python -m baselines.ppo_rnn --env HistoJAX-Easy-v0 --with-position --seeds 2 --total-steps 500000 --out runs/ppo-rnn-easy
 
@@ -33,7 +34,7 @@ from baselines.common.devices import check_rollout_memory
 from baselines.common.env import make_env, params_initialiser, pin_env_shapes, reset_envs
 from baselines.harness.cli import trainer_command
 from baselines.harness.logs import Progress
-from baselines.harness.runner import seeds_runner
+from baselines.harness.trainer import Trainer
 from baselines.networks import (
     RecurrentActorCritic,
     ScannedGRU,
@@ -104,10 +105,10 @@ def replay(network, params, h_start, traj: ppo.Transition):
     return pi, value
 
 
-def make_train(config):
-    """A jitted ``train(keys)`` for ``len(keys)`` seeds, returning ``{"params": seeds-stacked params,
-    "metrics": {name: (seeds, updates)}}`` as :func:`baselines.ppo.make_train` (same attributes:
-    ``env``, ``env_params``, ``network``, ``num_updates``, ``config``, ``train_config``, ``steps_per_update``).
+def make_train(config) -> Trainer:
+    """Recurrent PPO's :class:`~baselines.harness.trainer.Trainer` (as :func:`baselines.ppo.make_train`'s; runner
+    state ``(train state, env states, observations, first flags, GRU states, key)``), run by the harness
+    (:func:`baselines.harness.runner.run_seeds`, :func:`~baselines.harness.runner.run_chunked`).
     ``config``: a :class:`PPORNNConfig`, or a dict made into one (:meth:`~PPORNNConfig.from_dict`)."""
     config = PPORNNConfig.coerce(config, where="ppo_rnn.make_train")
     if config.devices is not None:
@@ -176,22 +177,21 @@ def make_train(config):
         metrics = ppo.update_metrics(traj.info, aux, progress, update_index, config)
         return (state, env_state, obs, first, h, key), metrics
 
-    def train(key, env_params, params):
-        carry = init_runner(key, env_params, params)
-        (state, *_), metrics = jax.lax.scan(lambda c, i: update(c, i, env_params), carry, jnp.arange(num_updates))
-        return {"params": state.params, "metrics": metrics}
-
-    run = seeds_runner(train, init_params, env_params, config, progress, env=env)
-    run.env, run.env_params, run.network, run.num_updates = env, env_params, network, num_updates
-    run.train_config, run.config, run.steps_per_update = config, config.as_dict(), batch
-    # the pieces of a run in chunks with checkpoints (baselines.harness.runner.run_chunked)
-    run.init_params, run.init_runner, run.update, run.runner_params = (
-        init_params,
-        init_runner,
-        update,
-        lambda runner: runner[0].params,
+    return Trainer(
+        init_params=init_params,
+        init_runner=init_runner,
+        update=update,
+        runner_params=lambda runner: runner[0].params,
+        env=env,
+        env_params=env_params,
+        network=network,
+        num_updates=num_updates,
+        steps_per_update=batch,
+        train_config=config,
+        config=config.as_dict(),
+        progress=progress,
+        metric_keys=ppo.METRIC_KEYS,
     )
-    return run
 
 
 # python -m baselines.ppo_rnn and histojax train --algo ppo_rnn: options, command, entry point

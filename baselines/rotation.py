@@ -21,8 +21,8 @@ How it works (:func:`train_rotating`):
   ``r + 1`` (host load, pack, ``jax.device_put``) while it runs; the loop waits for phase ``r``
   before the next prefetch, so a third set is never allocated.
 * **Phases.** Each phase resets the envs on its set (episodes in progress at a rotation are
-  dropped, like time limits) and runs ``rotate_every`` PPO updates
-  (:func:`baselines.ppo.make_train`'s ``run_updates``); parameters, optimizer state and the
+  dropped, like time limits) and runs ``rotate_every`` PPO updates (the trainer's ``update`` in the
+  harness's loop, :func:`baselines.harness.runner.scan_updates`); parameters, optimizer state and the
   learning-rate schedule carry over. ``total_timesteps`` is rounded up to whole phases.
 
 One device only (no ``devices`` / ``shard_slides``); every seed trains on the same sets.
@@ -43,7 +43,7 @@ import numpy as np
 
 from baselines import ppo
 from baselines.common.config import ConfigError, env_overrides
-from baselines.harness.runner import finish_run
+from baselines.harness.runner import finish_run, scan_updates
 from data_tools.cli_output import command_main, print_error
 from histojax.core.slide import SlideArrays
 from histojax.loading import stack_slides
@@ -200,11 +200,20 @@ def train_rotating(
     @jax.jit
     def init_states(keys, env_params):
         params = jax.lax.map(lambda kk: train.init_params(kk, env_params), keys)
-        return jax.vmap(train.init_state)(params)
+        return jax.vmap(lambda kk, p: train.init_runner(kk, env_params, p)[0])(keys, params)  # the train states
+
+    def run_phase(state, key, env_params, first_update):
+        """``rotate_every`` updates of one seed's train state from freshly reset envs (the harness's loop,
+        :func:`~baselines.harness.runner.scan_updates`): ``(state, key, metrics)``."""
+        _, env_state, obs0, key = train.init_runner(key, env_params, state.params)
+        runner, metrics = scan_updates(
+            lambda c, i: train.update(c, i, env_params), (state, env_state, obs0, key), first_update, rotate_every, None
+        )
+        return runner[0], runner[3], metrics
 
     @jax.jit
     def phase(states, keys, env_params, first_update):
-        return jax.vmap(lambda s, kk: train.run_updates(s, kk, env_params, first_update, rotate_every))(states, keys)
+        return jax.vmap(lambda s, kk: run_phase(s, kk, env_params, first_update))(states, keys)
 
     # before any set: the trainer's own arrays (on a CPU-only machine also make_train's one slide, which
     # on an accelerator stays on the host)

@@ -12,7 +12,7 @@ with the cache the first process left.
 
 Each fresh process makes the trainer from those options exactly as ``python -m baselines.ppo`` does, with the
 cache turned on as the command line turns it on, and compiles its whole training program ahead of time
-(``train.compile``) without running it: compile seconds are that call, whole-process seconds include the
+(:func:`baselines.harness.runner.compile_seeds`) without running it: compile seconds are that call, whole-process seconds include the
 imports and building the env. The cache lives in a temporary folder (``HISTOJAX_COMPILE_CACHE``), so the
 user's cache is not touched. Prints a table.
 """
@@ -32,6 +32,7 @@ from pathlib import Path
 import jax
 
 from baselines import ppo
+from baselines.harness.runner import compile_seeds
 from data_tools.datasets.synth.dataset import make_dataset
 from data_tools.features.grid import compute_features
 from histojax import compile_cache
@@ -91,7 +92,7 @@ def child(argv: list[str]) -> None:
     make_s = time.perf_counter() - t0
     keys = jax.random.split(jax.random.PRNGKey(0), config.num_seeds)
     t0 = time.perf_counter()
-    train.compile(keys)
+    compile_seeds(train, keys)
     print(json.dumps({"compile_seconds": time.perf_counter() - t0, "make_seconds": make_s}))
 
 

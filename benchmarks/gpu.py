@@ -15,7 +15,7 @@ Sections, in the order they run (each is measured, or says why it was skipped):
    runs out of device memory (XLA ``RESOURCE_EXHAUSTED``) stops the growth, and the table says so.
    Pixel rows stand beside the copy bound (a pixel step writes at least one view).
 4. ``ppo``: PPO end-to-end env steps/s (:func:`baselines.ppo.make_train`, ``HistoJAX-Easy-v0``) on
-   features and on pixels; compile time measured apart (``run.compile``), not in the rate.
+   features and on pixels; compile time measured apart (:func:`baselines.harness.runner.compile_seeds`), not in the rate.
 5. ``encoders``: embedding views/s of every encoder :func:`encoder_names` lists (128-px views,
    uint8); an encoder whose optional dependency or weights are missing is skipped with the reason.
 6. ``dataset``: a C16 dataset (``--dataset DIR``, or the small variant built into ``OUT/c16-small``

@@ -71,6 +71,7 @@ import jax
 import histojax
 from histojax import registry
 from baselines import ppo
+from baselines.harness.runner import compile_seeds
 mark("imports (jax, histojax, baselines.ppo)")
 loads = []
 load_slide, stack_slides = registry.load_slide, registry.stack_slides
@@ -94,7 +95,7 @@ mark("make_train (make: mode tables; network)", nbytes(p))
 print(json.dumps({"slide_arrays_gb": nbytes(p.slide) / 2**30, "mode_tables_gb": nbytes(p.mode_data) / 2**30,
                   "slides": int(p.slide.num_slides)}), file=sys.stderr, flush=True)
 keys = jax.random.split(jax.random.key(0), 1)
-call = train.compile(keys)
+call = compile_seeds(train, keys)
 mark("compiled")
 jax.block_until_ready(call(keys))
 mark(f"trained ({num_envs} envs x {steps} steps x {updates} updates)")

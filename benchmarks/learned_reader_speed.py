@@ -43,6 +43,7 @@ def compiled_row(
     import jax
 
     from baselines import ppo
+    from baselines.harness.runner import compile_seeds
     from baselines.reading.train_readers import is_navigator
     from histojax.reading.head_reward import HeadReward
     from histojax.registry import READING_ID
@@ -77,7 +78,7 @@ def compiled_row(
         train = ppo.make_train(config)
         keys = jax.random.split(jax.random.key(0), 1)
         t0 = time.perf_counter()
-        compiled = train.compile(keys)
+        compiled = compile_seeds(train, keys)
         compile_s = time.perf_counter() - t0
     finally:
         ppo.make_env, ppo.make_network = original, original_network

@@ -42,6 +42,7 @@ def one_row(
     import jax
 
     from baselines import ppo
+    from baselines.harness.runner import compile_seeds
     from histojax.reading import heads
     from histojax.reading.head_reward import HeadReward
 
@@ -76,7 +77,7 @@ def one_row(
         t_make = time.perf_counter() - t0
         keys = jax.random.split(jax.random.key(0), 1)
         t0 = time.perf_counter()
-        compiled = train.compile(keys)
+        compiled = compile_seeds(train, keys)
         t_compile = time.perf_counter() - t0
         t0 = time.perf_counter()
         jax.block_until_ready(compiled(keys))

@@ -137,6 +137,7 @@ def one_ppo(dataset, mode: str, batch: int, steps: int, updates: int, budget: fl
     import jax
 
     from baselines import ppo
+    from baselines.harness.runner import compile_seeds
 
     paths = dataset_bundles(dataset)
     ov = _overrides(mode, budget)
@@ -155,7 +156,7 @@ def one_ppo(dataset, mode: str, batch: int, steps: int, updates: int, budget: fl
     }
     t0 = time.perf_counter()
     train = ppo.make_train(config)
-    call = train.compile(jax.random.split(jax.random.key(0), 1))
+    call = compile_seeds(train, jax.random.split(jax.random.key(0), 1))
     compiled = time.perf_counter() - t0
     t0 = time.perf_counter()
     jax.block_until_ready(call(jax.random.split(jax.random.key(0), 1)))

@@ -35,6 +35,7 @@ def main(argv=None) -> int:
 
     import histojax
     from baselines import ppo
+    from baselines.harness.runner import compile_seeds
     from histojax import sharding
     from histojax.datasets import dataset_slides
 
@@ -87,7 +88,7 @@ def main(argv=None) -> int:
     keys = jax.random.split(jax.random.PRNGKey(0), 1)
     for shard in (False, True):
         train = ppo.make_train({**config, "shard_slides": shard})
-        stats = train.compile(keys).exe.memory_analysis()
+        stats = compile_seeds(train, keys).exe.memory_analysis()
         print(
             f"PPO --devices {n}{' --shard-slides' if shard else ''}: compiled program's arguments per device "
             f"{stats.argument_size_in_bytes:,} bytes, temporaries {stats.temp_size_in_bytes:,}"

@@ -5,7 +5,9 @@ Modules (import each name from its module; this package re-exports nothing):
 
 - ``cli``: the trainers' shared command line (options, ``--set``, ``--resume``) and their entry point.
 - ``run_folder``: which folder a run may write, and one writer per folder (the run lock).
-- ``runner``: seeds vmapped or sharded, updates in chunks with a runner checkpoint after each, resume, the outputs.
+- ``trainer``: ``Trainer``, what a trainer's ``make_train`` returns (one seed's pieces, the env, the config).
+- ``runner``: the one loop over updates (``scan_updates``), seeds vmapped or sharded (``run_seeds``,
+  ``compile_seeds``), updates in chunks with a runner checkpoint after each, resume, the outputs.
 - ``logs``: progress lines, parameter checkpoints (flax msgpack), ``log.csv`` / ``log.json``, TensorBoard scalars.
 - ``curves``: the learning-curve PNG (``curve.png``).
 - ``distributed``: several processes (hosts) training one program (``jax.distributed`` from the command line).

@@ -7,13 +7,13 @@ import functools
 import json
 import math
 import time
+import weakref
 from pathlib import Path
 
 import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import serialization
-from jax.sharding import Mesh
 
 from baselines import outputs
 from baselines.common.config import ConfigError, canonical_config
@@ -22,7 +22,6 @@ from baselines.common.env import random_agent_reference
 from baselines.harness import run_folder
 from baselines.harness.curves import plot_curves
 from baselines.harness.logs import (
-    Progress,
     _count,
     _tensorboard_scalars,
     finite_mean,
@@ -34,56 +33,88 @@ from baselines.harness.logs import (
 from data_tools.errors import HistojaxDataError
 from data_tools.metrics import json_safe
 
+_PROGRAMS = weakref.WeakKeyDictionary()  # trainer -> its jitted programs, made once (each compiles once)
 
-def seeds_runner(train, init_params, env_params, config, progress: Progress, mesh: Mesh | None = None, env=None):
-    """One jitted program over all seeds: ``run(keys, params=None)`` trains ``len(keys)`` seeds
-    (``jax.vmap`` over keys, or ``lax.map`` with ``config.vmap_seeds = False``; ``config`` the trainer's typed
-    config, :class:`~baselines.common.config.EnvConfig`) on
-    ``env_params`` (or ``params``); ``run.compile(keys)`` compiles ahead of time and returns the
-    same call. With a ``mesh`` (:func:`batch_mesh`) the keys and env params (slide arrays) are
-    placed replicated on its devices; ``train`` shards the env batch itself (:func:`shard_batch`).
-    Shared by PPO and DQN. With ``env`` the env params given are checked first
-    (:func:`histojax.registry.check_params`: a ``stride`` or step limit changed after ``make`` is named,
-    not trained on)."""
+
+def _programs(trainer) -> dict:
+    """The cache of ``trainer``'s jitted programs (``"seeds"``: :func:`run_seeds`'s; ``"chunked"``:
+    :func:`chunked_runner`'s), kept as long as the trainer is."""
+    return _PROGRAMS.setdefault(trainer, {})
+
+
+def _place(trainer):
+    """Arrays replicated on ``trainer.mesh``'s devices (a no-op without a mesh, and for arrays already placed
+    there; slides sharded over the mesh, see histojax.sharding, stay as they are)."""
+    mesh = getattr(trainer, "mesh", None)
+    return (lambda x: x) if mesh is None else functools.partial(replicate_on, mesh)
+
+
+def _checked(trainer, env_params):
+    """``env_params`` (or the trainer's own when ``None``) checked against the trainer's env
+    (:func:`histojax.registry.check_params`: a ``stride`` or step limit changed after ``make`` is named, not
+    trained on)."""
     from histojax.registry import check_params
 
-    def checked(p):
-        if env is not None:
-            check_params(env, p, where="train: env params")
-        return p
+    p = trainer.env_params if env_params is None else env_params
+    if getattr(trainer, "env", None) is not None:
+        check_params(trainer.env, p, where="train: env params")
+    return p
 
-    def all_seeds(keys, p):
-        # Initial parameters always via lax.map: jit(vmap(init)) of the orthogonal initialisers
-        # (batched QR) never finished on jaxlib 0.10's CPU backend.
-        params = jax.lax.map(lambda k: init_params(k, p), keys)
-        if config.vmap_seeds:
-            return jax.vmap(train, in_axes=(0, None, 0))(keys, p, params)
-        return jax.lax.map(lambda kp: train(kp[0], p, kp[1]), (keys, params))
 
-    jitted = jax.jit(all_seeds)
-    # replicated on the mesh's devices (a no-op for arrays already placed there; slides sharded
-    # over the mesh, see histojax.sharding, stay as they are)
-    place = (lambda x: x) if mesh is None else functools.partial(replicate_on, mesh)
+def train_seed(trainer, key, env_params, params) -> dict:
+    """One seed's whole run (unjitted): the runner state of ``params`` and every update of it
+    (:func:`scan_updates`): ``{"params", "metrics": {name: (num_updates,)}}``."""
+    runner = trainer.init_runner(key, env_params, params)
+    runner, metrics = scan_updates(
+        lambda c, i: trainer.update(c, i, env_params), runner, 0, trainer.num_updates, trainer.num_updates
+    )
+    return {"params": trainer.runner_params(runner), "metrics": metrics}
 
-    def run(keys, params=None):
-        progress.t0 = time.perf_counter()
-        return jitted(place(keys), place(checked(env_params if params is None else params)))
 
-    def compile_(keys, params=None):
-        """Compile ahead of time; returns ``compiled(keys, params=None)`` (``.exe``: the
-        ``jax.stages.Compiled``, e.g. for ``.as_text()``)."""
-        params = place(checked(env_params if params is None else params))
-        exe = jitted.lower(place(keys), params).compile()
+def _seeds_program(trainer):
+    """The jitted program of all seeds' runs: ``(keys, env_params) -> {"params", "metrics"}`` with the seeds on
+    axis 0 (``jax.vmap`` over keys, or ``lax.map`` with ``config["vmap_seeds"] = False``)."""
+    cache = _programs(trainer)
+    if "seeds" not in cache:
+        vmap_seeds = trainer.config["vmap_seeds"]
 
-        def call(keys, p=None):
-            progress.t0 = time.perf_counter()
-            return exe(place(keys), params if p is None else place(checked(p)))
+        def all_seeds(keys, p):
+            # Initial parameters always via lax.map: jit(vmap(init)) of the orthogonal initialisers
+            # (batched QR) never finished on jaxlib 0.10's CPU backend.
+            params = jax.lax.map(lambda k: trainer.init_params(k, p), keys)
+            one = functools.partial(train_seed, trainer)
+            if vmap_seeds:
+                return jax.vmap(one, in_axes=(0, None, 0))(keys, p, params)
+            return jax.lax.map(lambda kq: one(kq[0], p, kq[1]), (keys, params))
 
-        call.exe = exe
-        return call
+        cache["seeds"] = jax.jit(all_seeds)
+    return cache["seeds"]
 
-    run.compile, run.raw, run.mesh = compile_, train, mesh
-    return run
+
+def run_seeds(trainer, keys, env_params=None) -> dict:
+    """Train ``len(keys)`` seeds of ``trainer`` (a :class:`~baselines.harness.trainer.Trainer`) in one jitted
+    program on ``env_params`` (default: the trainer's): ``{"params": seeds-stacked params, "metrics": {name:
+    (seeds, num_updates)}}``. With a mesh (``devices=N``) the keys and env params are placed replicated on its
+    devices; the trainer shards the env batch itself."""
+    place = _place(trainer)
+    trainer.progress.t0 = time.perf_counter()
+    return _seeds_program(trainer)(place(keys), place(_checked(trainer, env_params)))
+
+
+def compile_seeds(trainer, keys, env_params=None):
+    """:func:`run_seeds`'s program compiled ahead of time for ``keys``: ``call(keys, env_params=None)`` runs it
+    (``call.exe``: the ``jax.stages.Compiled``, e.g. for ``.as_text()`` or ``.memory_analysis()``)."""
+    place = _place(trainer)
+    params = place(_checked(trainer, env_params))
+    exe = _seeds_program(trainer).lower(place(keys), params).compile()
+
+    def call(keys, p=None):
+        """Run the compiled program for ``keys`` on ``p`` (default: the env params it was compiled with)."""
+        trainer.progress.t0 = time.perf_counter()
+        return exe(place(keys), params if p is None else place(_checked(trainer, p)))
+
+    call.exe = exe
+    return call
 
 
 # ----------------------------------------------------------------------------- chunks, checkpoints, resume
@@ -102,10 +133,12 @@ def chunk_plan(num_updates: int, every: int | None) -> tuple[int, int]:
     return -(-num_updates // n_chunks), n_chunks
 
 
-def scan_updates(update, carry, first_update, n_updates: int, num_updates: int):
-    """``lax.scan`` of ``update(carry, i) -> (carry, metrics)`` over ``i = first_update + arange(n_updates)``;
-    an ``i ≥ num_updates`` is skipped (``lax.cond``: the carry is kept, its metrics are NaN), so the last,
-    shorter chunk of a run runs in the same compiled program as the others."""
+def scan_updates(update, carry, first_update, n_updates: int, num_updates: int | None):
+    """The one loop over updates: ``lax.scan`` of ``update(carry, i) -> (carry, metrics)`` over
+    ``i = first_update + arange(n_updates)``. An ``i ≥ num_updates`` is skipped (``lax.cond``: the carry is
+    kept, its metrics are NaN), so the last, shorter chunk of a run runs in the same compiled program as the
+    others; when no ``i`` can reach ``num_updates`` (``first_update`` a Python int and ``first_update +
+    n_updates ≤ num_updates``, or ``num_updates=None``) each update runs unconditioned."""
 
     def skip(c, i):
         shapes = jax.eval_shape(update, c, i)[1]
@@ -116,28 +149,28 @@ def scan_updates(update, carry, first_update, n_updates: int, num_updates: int):
     def body(c, i):
         return jax.lax.cond(i < num_updates, update, skip, c, i)
 
-    return jax.lax.scan(body, carry, first_update + jnp.arange(n_updates))
+    never_skips = num_updates is None or (isinstance(first_update, int) and first_update + n_updates <= num_updates)
+    return jax.lax.scan(update if never_skips else body, carry, first_update + jnp.arange(n_updates))
 
 
 def chunked_runner(train):
-    """The run of ``train`` (a ``make_train`` runner with ``init_runner(key, env_params, params)``,
-    ``update(runner, update_index, env_params) -> (runner, metrics)`` and ``runner_params(runner)``, each
-    for one seed) in chunks of ``config["checkpoint_every"]`` updates (:func:`chunk_plan`): ``start(keys)``
+    """The run of ``train`` (a :class:`~baselines.harness.trainer.Trainer`, or any object with its
+    ``init_params``, ``init_runner``, ``update``, ``runner_params``, ``config``, ``num_updates`` and
+    ``env_params``) in chunks of ``config["checkpoint_every"]`` updates (:func:`chunk_plan`): ``start(keys)``
     → the seeds' runner states (params, optimizer state, env state, observation, key; seeds on axis 0);
     ``chunk(runners, first_update)`` → ``(runners, metrics (seeds, chunk))``, compiled once (ahead of time,
     on the first call; ``chunk.compile_seconds``). Seeds are vmapped (or ``lax.map``-ed with
-    ``vmap_seeds=False``) as in :func:`seeds_runner`."""
-    from histojax.registry import check_params
-
-    config, env_params, mesh = train.config, train.env_params, getattr(train, "mesh", None)
+    ``vmap_seeds=False``) as in :func:`run_seeds`. Made once per trainer (the same pair back again)."""
+    cache = _programs(train)
+    if "chunked" in cache:
+        return cache["chunked"]
+    config = train.config
     size, _ = chunk_plan(train.num_updates, config.get("checkpoint_every"))
-    place = (lambda x: x) if mesh is None else functools.partial(replicate_on, mesh)
-    if getattr(train, "env", None) is not None:
-        check_params(train.env, env_params, where="train: env params")
-    env_params = place(env_params)
+    place = _place(train)
+    env_params = place(_checked(train, None))
 
     def start_all(keys, p):
-        params = jax.lax.map(lambda k: train.init_params(k, p), keys)  # lax.map: see seeds_runner
+        params = jax.lax.map(lambda k: train.init_params(k, p), keys)  # lax.map: see run_seeds
         if config["vmap_seeds"]:
             return jax.vmap(train.init_runner, in_axes=(0, None, 0))(keys, p, params)
         return jax.lax.map(lambda kp: train.init_runner(kp[0], p, kp[1]), (keys, params))
@@ -170,6 +203,7 @@ def chunked_runner(train):
 
     chunk.compile_seconds = 0.0  # the compile of the first call, seconds
     start.template, start.size = template, size
+    cache["chunked"] = start, chunk
     return start, chunk
 
 
@@ -290,9 +324,7 @@ def run_chunked(train, out: Path, keys=None, resume: bool = False, on_checkpoint
     out, config, num_updates = Path(out), train.config, train.num_updates
     folder = out / CHECKPOINT_DIR
     keys = jax.random.split(jax.random.PRNGKey(config.get("seed", 0)), config["num_seeds"]) if keys is None else keys
-    if getattr(train, "chunked", None) is None:  # made once per trainer: the chunk compiles once
-        train.chunked = chunked_runner(train)
-    start, chunk = train.chunked
+    start, chunk = chunked_runner(train)  # made once per trainer: the chunk compiles once
     if resume:
         runners, done, metrics, train_s = load_runner(folder, start.template(keys), num_updates, start.size, config)
         print(f"resuming {out} at update {done}/{num_updates}", flush=True)
@@ -429,10 +461,11 @@ def resume_config(run: Path, algo: str, config_class=None):
 
 
 def compile_and_run(train, keys) -> tuple[dict, float, float]:
-    """Compile ``train`` (a ``make_train`` runner) ahead of time for ``keys`` and run it once:
-    ``(result, compile seconds, run seconds)``, the run timed to completion (``block_until_ready``)."""
+    """Compile ``train`` (a :class:`~baselines.harness.trainer.Trainer`) ahead of time for ``keys``
+    (:func:`compile_seeds`) and run it once: ``(result, compile seconds, run seconds)``, the run timed to
+    completion (``block_until_ready``)."""
     t0 = time.perf_counter()
-    compiled = train.compile(keys)
+    compiled = compile_seeds(train, keys)
     compile_s = time.perf_counter() - t0
     t0 = time.perf_counter()
     result = jax.block_until_ready(compiled(keys))
@@ -456,9 +489,9 @@ def run_and_save(
     algo: str, make_train_fn, config, out: Path, unit: str = "updates", resume: bool = False, on_checkpoint=None
 ):
     """Make, compile and run the trainer for ``config`` (its typed config, or a dict ``make_train_fn`` makes one of;
-    all seeds in one program, compile time measured apart), then :func:`finish_run` into ``out``. A trainer that runs in chunks (PPO,
-    recurrent PPO, DQN: ``train.init_runner``) saves its whole state to ``out/checkpoint/`` every
-    ``checkpoint_every`` updates (:func:`run_chunked`); ``resume`` continues from there.
+    all seeds in one program, compile time measured apart), then :func:`finish_run` into ``out``. On one process
+    the run goes in chunks and saves its whole state to ``out/checkpoint/`` every ``checkpoint_every`` updates
+    (:func:`run_chunked`); ``resume`` continues from there. On several it is one program (:func:`compile_seeds`).
     Returns ``(config, params, summary)`` with the trainer's full config (its record, ``config.json``'s dict)."""
     train = make_train_fn(config)
     config = train.config
@@ -473,7 +506,7 @@ def run_and_save(
             flush=True,
         )
     keys = jax.random.split(jax.random.PRNGKey(config.get("seed", 0)), config["num_seeds"])
-    chunked = hasattr(train, "init_runner") and jax.process_count() == 1
+    chunked = jax.process_count() == 1
     if resume and not chunked:
         raise ValueError(f"{algo} runs on several processes cannot resume (no checkpoints along the way)")
     if chunked:

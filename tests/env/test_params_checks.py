@@ -104,6 +104,7 @@ def test_gymnasium_adapter_refuses_bad_params(easy):
 def test_ppo_trainer_refuses_bad_params():
     """``run(keys, params)`` of a trainer checks params given after make before compiling anything."""
     from baselines import ppo
+    from baselines.harness.runner import run_seeds
 
     train = ppo.make_train(
         dict(
@@ -120,4 +121,4 @@ def test_ppo_trainer_refuses_bad_params():
     )
     keys = jax.random.split(jax.random.key(0), 1)
     with pytest.raises(ValueError, match="train: env params: stride="):
-        train(keys, train.env_params.replace(stride=float("nan")))
+        run_seeds(train, keys, train.env_params.replace(stride=float("nan")))

@@ -38,6 +38,7 @@ from jax.sharding import Mesh
 import histojax
 from histojax import sharding
 from baselines import ppo
+from baselines.harness.runner import compile_seeds
 
 paths, out = json.loads(sys.argv[1]), sys.argv[2]
 assert len(jax.devices()) == 4, jax.devices()
@@ -92,7 +93,7 @@ config = dict(env_id="HistoJAX-Easy-v0", num_envs=8, num_steps=16, total_timeste
               env_kwargs={"slides": paths})
 train = ppo.make_train(config)
 keys = jax.random.split(jax.random.PRNGKey(0), 1)
-compiled = train.compile(keys)
+compiled = compile_seeds(train, keys)
 saved["ppo_argument_bytes"] = int(compiled.exe.memory_analysis().argument_size_in_bytes)
 result = jax.block_until_ready(compiled(keys))
 leaf = jax.tree.leaves(result["params"])[0]

@@ -19,6 +19,7 @@ from baselines import ppo_rnn
 from baselines.common.env import params_initialiser
 from baselines.episodes import policies, rollout
 from baselines.harness.logs import load_checkpoint, save_checkpoint
+from baselines.harness.runner import run_seeds
 from baselines.networks import ScannedGRU
 from baselines.reading import budget_curve, pipeline
 
@@ -63,7 +64,7 @@ def runs(dataset, tmp_path_factory):
     initialised (one compile of the trainer, not two: the reading checks need no training)."""
     root = tmp_path_factory.mktemp("runs")
     train = ppo_rnn.make_train({**_config(dataset, "glimpse:1"), "num_seeds": 3})
-    result = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 3)))
+    result = jax.block_until_ready(run_seeds(train, jax.random.split(jax.random.PRNGKey(0), 3)))
     save_checkpoint(root / "glimpse", result["params"], train.config)
     zoom = ppo_rnn.make_train(_config(dataset, "zoom_select"))
     init = params_initialiser(

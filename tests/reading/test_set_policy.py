@@ -21,6 +21,7 @@ import histojax
 from baselines import ppo, ppo_rnn
 from baselines.cell_set_networks import NEG
 from baselines.common.env import pin_env_shapes
+from baselines.harness.runner import run_seeds
 from baselines.networks import ScannedGRU, network_step
 
 TILE, ENVS, STEPS = 32, 4, 6
@@ -172,7 +173,7 @@ def test_ppo_trains_on_one_dataset_and_reads_another(slides, envs):
         "print_progress": False,
     }
     train = ppo.make_train(config)
-    params = jax.tree.map(lambda a: a[0], train(jax.random.split(jax.random.key(0), 1))["params"])
+    params = jax.tree.map(lambda a: a[0], run_seeds(train, jax.random.split(jax.random.key(0), 1))["params"])
     assert "glimpse_grid" not in train.config["env_kwargs"]
     _, (env_b, pb) = envs
     net_b = ppo.make_network(train.config, env_b)

@@ -11,7 +11,7 @@ import pytest
 
 from baselines import ppo
 from baselines.harness.logs import finite_extreme, finite_mean, load_checkpoint, smooth
-from baselines.harness.runner import run_and_save
+from baselines.harness.runner import run_and_save, run_seeds
 
 
 def test_finite_mean_and_extremes_say_nan_without_warnings():
@@ -180,7 +180,7 @@ def test_entropy_anneal_and_dataset_normaliser(c16_small):
     feats = np.asarray(train.env_params.slide.features, np.float64)
     d = feats.shape[-1]
     assert len(norm["mean"]) == d and len(norm["std"]) == d and min(norm["std"]) > 0
-    out = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 1)))
+    out = jax.block_until_ready(run_seeds(train, jax.random.split(jax.random.PRNGKey(0), 1)))
     assert np.isfinite(np.asarray(out["metrics"]["pg_loss"])).all()
     # the network standardises the features: zero-mean inputs for the dataset's mean vector
     from baselines.networks import normalise_features

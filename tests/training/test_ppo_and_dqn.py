@@ -12,6 +12,7 @@ from baselines import dqn, networks, ppo
 from baselines.episodes import policies
 from baselines.evaluate import cli, scoring
 from baselines.harness.logs import load_checkpoint, save_checkpoint
+from baselines.harness.runner import run_seeds
 
 TINY_PPO = dict(
     env_id="HistoJAX-Easy-v0",
@@ -33,7 +34,7 @@ TINY_PPO = dict(
 def test_tiny_ppo_runs_jitted_with_finite_losses(vmap_seeds):
     train = ppo.make_train({**TINY_PPO, "vmap_seeds": vmap_seeds})
     keys = jax.random.split(jax.random.PRNGKey(0), 2)
-    out = jax.block_until_ready(train(keys))
+    out = jax.block_until_ready(run_seeds(train, keys))
     m = out["metrics"]
     assert train.num_updates == 2
     for k in ("return", "success", "length", "steps_to_success", "pg_loss", "v_loss", "entropy", "approx_kl"):
@@ -190,7 +191,7 @@ def test_tiny_dqn_and_evaluate_cli(tmp_path):
         print_progress=False,
     )
     train = dqn.make_train(config)
-    out = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 1)))
+    out = jax.block_until_ready(run_seeds(train, jax.random.split(jax.random.PRNGKey(0), 1)))
     loss = np.asarray(out["metrics"]["loss"])
     assert loss.shape == (1, 4) and np.isfinite(loss).all() and loss[0, -1] > 0
     save_checkpoint(tmp_path, out["params"], train.config)
@@ -201,7 +202,7 @@ def test_tiny_dqn_and_evaluate_cli(tmp_path):
 @pytest.mark.slow
 def test_tiny_ppo_continuous_actions():
     train = ppo.make_train({**TINY_PPO, "action_mode": "continuous", "num_seeds": 1})
-    out = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(1), 1)))
+    out = jax.block_until_ready(run_seeds(train, jax.random.split(jax.random.PRNGKey(1), 1)))
     assert np.isfinite(np.asarray(out["metrics"]["pg_loss"])).all()
     assert out["params"]["params"]["log_std"].shape == (1, 3)
 

@@ -13,6 +13,7 @@ from baselines import networks, ppo_rnn
 from baselines.common.env import make_env, params_initialiser, reset_envs
 from baselines.evaluate import scoring
 from baselines.harness.logs import load_checkpoint, save_checkpoint
+from baselines.harness.runner import run_seeds
 
 
 def _scaled(params, factor):
@@ -135,7 +136,7 @@ def test_short_run_beats_the_random_agent_and_evaluates_from_its_checkpoint(tmp_
         print_progress=False,
     )
     train = ppo_rnn.make_train(config)
-    out = jax.block_until_ready(train(jax.random.split(jax.random.PRNGKey(0), 1)))
+    out = jax.block_until_ready(run_seeds(train, jax.random.split(jax.random.PRNGKey(0), 1)))
     assert np.isfinite(np.asarray(out["metrics"]["pg_loss"])).all()
     save_checkpoint(tmp_path / "run", out["params"], train.config)
     params, loaded = load_checkpoint(tmp_path / "run")

@@ -152,7 +152,7 @@ def test_driver_killed_and_resumed_equals_the_uninterrupted_run(tmp_path, vmap_s
         for k in straight["metrics"]:
             np.testing.assert_array_equal(straight["metrics"][k], resumed["metrics"][k])
     assert toy.traces == traces  # compiled once: neither the kill nor the resume traced the chunk again
-    start, _ = toy.chunked
+    start, _ = chunked_runner(toy)  # the pair run_chunked made and ran
     runners, done, metrics, _ = load_runner(
         tmp_path / "straight" / "checkpoint", start.template(jax.random.split(jax.random.PRNGKey(0), 2)), 7, 3
     )

@@ -54,6 +54,7 @@ CHILD = r"""
 import json, sys
 import jax, numpy as np
 from baselines import ppo
+from baselines.harness.runner import compile_seeds
 
 config, out = json.loads(sys.argv[1]), sys.argv[2]
 assert len(jax.devices()) == 4, jax.devices()
@@ -62,7 +63,7 @@ saved = {}
 for name, devices in (("one", None), ("four", 4)):
     train = ppo.make_train({**config, "devices": devices})
     view = jax.eval_shape(lambda k: train.env.reset(k, train.env_params)[0], keys[0]).shape
-    compiled = train.compile(keys)
+    compiled = compile_seeds(train, keys)
     hlo = compiled.exe.as_text()
     result = jax.block_until_ready(compiled(keys))
     leaves = jax.tree.leaves(result["params"])

@@ -14,8 +14,9 @@ import shutil
 from pathlib import Path
 
 import pytest
+from learned_fixture import untrained_fit
 from test_head import make_dataset
-from test_head_provenance import FAST, _untrained
+from test_head_provenance import FAST
 from test_head_provenance import small as small  # noqa: F401  (the module fixture: the cohort with three folds)
 
 from baselines.reading import head_fit, head_mil_fit
@@ -118,7 +119,7 @@ def test_learned_all_folds_rerun_fits_only_the_unfinished_fold(small, tmp_path, 
 
     def counted(train_slides, val, *a, **k):
         fitted.append(len(train_slides))
-        return _untrained(train_slides, val, *a, **k)
+        return untrained_fit(train_slides, val, *a, **k)
 
     monkeypatch.setattr(learned, "train", counted)
     monkeypatch.setattr(learned, "check_head", lambda *a, **k: None)
@@ -145,7 +146,7 @@ def test_learned_all_folds_rerun_fits_only_the_unfinished_fold(small, tmp_path, 
 
 
 def test_a_learned_head_rerun_fits_nothing_refuses_another_config_and_restarts(small, tmp_path, capsys, monkeypatch):  # noqa: F811
-    monkeypatch.setattr(learned, "train", _untrained)
+    monkeypatch.setattr(learned, "train", untrained_fit)
     monkeypatch.setattr(learned, "check_head", lambda *a, **k: None)
     out = tmp_path / "h"
     argv = ["--dataset", str(small["root"]), "--out", str(out), "--val-fraction", "0.4", *FAST]
@@ -172,7 +173,7 @@ def test_a_learned_head_rerun_fits_nothing_refuses_another_config_and_restarts(s
 
 def test_all_folds_keeps_finished_folds_and_fits_the_rest(small, tmp_path, capsys, monkeypatch):  # noqa: F811
     """The fold loop of ``--all-folds`` (each fold's fit replaced by writing its head from one fitted head)."""
-    monkeypatch.setattr(learned, "train", _untrained)
+    monkeypatch.setattr(learned, "train", untrained_fit)
     monkeypatch.setattr(learned, "check_head", lambda *a, **k: None)
     argv = ["--dataset", str(small["root"]), "--val-fraction", "0.4", *FAST]
     assert learned._main()([*argv, "--out", str(tmp_path / "one"), "--fold", "0"]) == 0

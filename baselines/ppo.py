@@ -79,6 +79,8 @@ class PPOConfig(EnvConfig):
     total_timesteps: int = 500_000  # env steps per seed
     update_epochs: int = 2
     num_minibatches: int = 8
+    minibatch_by: str = "sample"  # "sample": each minibatch a shuffle of all samples; "env": whole env sequences
+    # (num_envs must divide by num_minibatches), so a minibatch holds only its envs' episodes and slides
     lr: float = 3e-4  # Adam learning rate
     anneal_lr: bool = True  # linear decay to 0
     gamma: float = 0.99  # discount
@@ -245,6 +247,23 @@ def clipped_loss(pi, value, traj, adv, target, config, ent_coef=None):
     return total, (pg_loss, v_loss, entropy, approx_kl)
 
 
+def split_minibatches(key, data, num_minibatches: int, by_env: bool = False):
+    """One epoch's minibatches of an update's time-major rollout ``data`` (a pytree of ``(num_steps, num_envs,
+    ...)`` arrays), shuffled with ``key``: a pytree of ``(num_minibatches, num_steps * num_envs / num_minibatches,
+    ...)`` arrays. ``by_env=False`` (PPO's ``minibatch_by="sample"``): every sample shuffled; ``by_env=True``
+    (``"env"``): the envs shuffled, each minibatch the whole ``num_steps``-step sequences of ``num_envs /
+    num_minibatches`` envs (so it holds only those envs' episodes, and their slides)."""
+    num_steps, num_envs = jax.tree.leaves(data)[0].shape[:2]
+    batch = num_steps * num_envs
+    if by_env:
+        perm = jax.random.permutation(key, num_envs)
+        flat = jax.tree.map(lambda a: jnp.swapaxes(a, 0, 1)[perm].reshape(batch, *a.shape[2:]), data)
+    else:
+        perm = jax.random.permutation(key, batch)
+        flat = jax.tree.map(lambda a: a.reshape(batch, *a.shape[2:])[perm], data)
+    return jax.tree.map(lambda a: a.reshape(num_minibatches, batch // num_minibatches, *a.shape[1:]), flat)
+
+
 def run_epochs(state, key, loss_fn, minibatches, epochs: int):
     """``epochs`` passes over one update's data: each pass splits ``key`` once, takes the minibatches
     ``minibatches(k)`` (a pytree with a leading minibatch axis, shuffled with ``k``) and one gradient
@@ -309,6 +328,13 @@ def make_train(config) -> Trainer:
     batch = num_envs * num_steps
     minibatch = batch // config.num_minibatches
     assert minibatch * config.num_minibatches == batch, "num_envs * num_steps must divide by num_minibatches"
+    if config.minibatch_by not in ("sample", "env"):
+        raise ValueError(f"minibatch_by={config.minibatch_by!r}: 'sample' or 'env'")
+    by_env = config.minibatch_by == "env"
+    if by_env and num_envs % config.num_minibatches:
+        raise ValueError(
+            f"minibatch_by='env': num_envs={num_envs} must divide by num_minibatches={config.num_minibatches}"
+        )
     if mesh is not None and minibatch % mesh.size:
         raise ValueError(
             f"the minibatch ({minibatch} = num_envs * num_steps / num_minibatches) must divide by devices={mesh.size}"
@@ -357,9 +383,7 @@ def make_train(config) -> Trainer:
             return clipped_loss(pi, value, traj, adv, target, config, entropy_coef(config, update_index, num_updates))
 
         def minibatches(k_perm):
-            flat = jax.tree.map(lambda a: a.reshape(batch, *a.shape[2:]), (traj, advantages, targets))
-            perm = jax.random.permutation(k_perm, batch)
-            mbs = jax.tree.map(lambda a: a[perm].reshape(config.num_minibatches, minibatch, *a.shape[1:]), flat)
+            mbs = split_minibatches(k_perm, (traj, advantages, targets), config.num_minibatches, by_env)
             return shard(mbs, axis=1)  # each minibatch split over the devices
 
         state, key, aux = run_epochs(state, key, loss_fn, minibatches, config.update_epochs)

@@ -52,13 +52,14 @@ from histojax.adapters.jax import LogWrapper
 class PPORNNConfig(ppo.PPOConfig):
     """Recurrent PPO's settings: :class:`baselines.ppo.PPOConfig`'s with its own defaults (``hidden``: the GRU's
     width; ``num_minibatches`` splits the ``num_envs`` env sequences). ``devices`` is refused (one device) and not
-    recorded in ``config.json``."""
+    recorded in ``config.json``; ``minibatch_by`` is always ``"env"`` and not recorded."""
 
     algo: str = "ppo_rnn"  # the trainer (recorded in config.json)
     num_minibatches: int = 4  # minibatches of whole env sequences (num_envs must divide by it)
+    minibatch_by: str = "env"  # always whole env sequences (the GRU replays them); not recorded
     hidden: int = 128  # GRU and dense width
 
-    RECORDED_WITHOUT = ("devices",)
+    RECORDED_WITHOUT = ("devices", "minibatch_by")
 
 
 DEFAULTS = PPORNNConfig.defaults()  # the record of the default config (config.json's entries)
@@ -113,6 +114,8 @@ def make_train(config) -> Trainer:
     config = PPORNNConfig.coerce(config, where="ppo_rnn.make_train")
     if config.devices is not None:
         raise ValueError("ppo_rnn does not shard over devices; drop devices (use baselines.ppo for that)")
+    if config.minibatch_by != "env":
+        raise ValueError(f"ppo_rnn's minibatches are whole env sequences; minibatch_by={config.minibatch_by!r} is not")
     env, env_params = make_env(config)
     config = pin_env_shapes(ppo.resolve_obs_norm(config, env_params), env_params)
     check_rollout_memory(env, env_params, config)

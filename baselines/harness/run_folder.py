@@ -224,9 +224,11 @@ def difference(saved: dict | None, config: dict, most: int = 2) -> str:
     if saved is None:
         return "whose config.json cannot be read"
     parts = [
-        _nested_difference(k, saved[k], v) if k in saved else f"config has no {k} (this command's: {_brief(v)})"
+        _nested_difference(k, _saved_entry(saved, k), v)
+        if _has(saved, k)
+        else f"config has no {k} (this command's: {_brief(v)})"
         for k, v in config.items()
-        if k not in saved or not _entry_same(k, saved[k], v)
+        if not _has(saved, k) or not _entry_same(k, _saved_entry(saved, k), v)
     ]
     if not parts:
         return "of this config"
@@ -242,6 +244,21 @@ PINNED = {"env_kwargs": ("glimpse_grid",)}
 holding them where the command has none is of that command."""
 
 
+ADDED = {"minibatch_by": "sample"}
+"""Entries trainers recorded only from a later version, with the value runs had before: a saved config without the
+entry is of a command giving that value (a run started before the entry existed still continues)."""
+
+
+def _saved_entry(saved: dict, key: str):
+    """The saved config's entry ``key``, or the value it had before it was recorded (:data:`ADDED`); KeyError if
+    neither."""
+    return saved[key] if key in saved else ADDED[key]
+
+
+def _has(saved: dict, key: str) -> bool:
+    return key in saved or key in ADDED
+
+
 def _entry_same(key: str, saved_value, value) -> bool:
     """Whether the saved config's entry ``key`` (``saved_value``) is what the command's ``value`` makes."""
     if key in COMPLETED and value == COMPLETED[key] and not isinstance(saved_value, str):
@@ -254,7 +271,7 @@ def _entry_same(key: str, saved_value, value) -> bool:
 def _same(saved: dict, config: dict) -> bool:
     """Whether the checkpoint's full config ``saved`` is a run of ``config`` (the command's entries, which the
     trainer completes with its own): every entry of ``config`` equal in ``saved`` (:func:`_entry_same`)."""
-    return all(k in saved and _entry_same(k, saved[k], v) for k, v in config.items())
+    return all(_has(saved, k) and _entry_same(k, _saved_entry(saved, k), v) for k, v in config.items())
 
 
 def lock(out: Path) -> None:

@@ -49,9 +49,10 @@ def test_every_published_config_round_trips(path):
 
 def test_defaults_and_record_order_are_those_of_before():
     """``DEFAULTS`` is the default config's record: the fields in order, no ``seed`` (recorded last, when set);
-    recurrent PPO's lacks ``devices`` and has its own ``algo``, ``hidden`` and ``num_minibatches``."""
+    recurrent PPO's lacks ``devices`` and ``minibatch_by`` (always whole env sequences) and has its own ``algo``,
+    ``hidden`` and ``num_minibatches``."""
     assert list(ppo.DEFAULTS)[:3] == ["algo", "env_id", "slide"] and "seed" not in ppo.DEFAULTS
-    assert list(ppo_rnn.DEFAULTS) == [k for k in ppo.DEFAULTS if k != "devices"]
+    assert list(ppo_rnn.DEFAULTS) == [k for k in ppo.DEFAULTS if k not in ("devices", "minibatch_by")]
     assert (ppo_rnn.DEFAULTS["algo"], ppo_rnn.DEFAULTS["hidden"], ppo_rnn.DEFAULTS["num_minibatches"]) == (
         "ppo_rnn",
         128,

@@ -4,14 +4,17 @@ in one process: env steps/s of each (and their ratio), the env wrapped in
 ``HistoJAX-Reading-v0`` (any dataset, any encoder's features; the levels the bundles were built for)::
 
     python -m benchmarks.learned_reader_speed --dataset DIR --head HEAD [--reader glimpse:1] [--num-envs 32]
-        [--updates 3] [--repeats 3] [--all-cells] [--json out.json]
+        [--updates 3] [--repeats 3] [--all-cells] [--by-env] [--json out.json]
 
 With the learned attention-MIL head the reward is running sums (a step adds the views it newly read). Each
 setting is compiled once, then ``--updates`` PPO updates of 1 seed are timed ``--repeats`` times, the two
 settings interleaved; the median of each is printed with the ratio reader / navigator (the target is ≥ 0.5).
 ``--all-cells`` adds a third row, the set reader with its per-cell layers over the valid cells of all training
 slides in every minibatch (``batch_cells=False``: how it trained before they ran over the minibatch's slides only;
-the same parameters and outputs), so the two are compared in one process. ``benchmarks.synthetic_reading_set``
+the same parameters and outputs), so the two are compared in one process. ``--by-env`` adds the set reader
+with PPO's minibatches drawn by env (``minibatch_by="env"``: each minibatch whole env sequences, so it holds only
+those envs' episodes and slides; how PPO samples changes, see docs/results/readers.md for its training check).
+``benchmarks.synthetic_reading_set``
 builds a set of any number of slides to run it on.
 """
 
@@ -36,10 +39,12 @@ def compiled_row(
     budget: float,
     levels: int,
     all_cells: bool = False,
+    minibatch_by: str = "sample",
 ):
     """``(run, steps, compile_s)``: a compiled PPO program (1 seed, ``updates`` updates of ``num_envs`` × 64 steps)
     of ``action_mode`` on ``dataset``'s train split through ``head``'s reward, the env steps one run takes and the
-    compile time. ``all_cells``: a set reader's per-cell layers over all slides' cells (``batch_cells=False``)."""
+    compile time. ``all_cells``: a set reader's per-cell layers over all slides' cells (``batch_cells=False``);
+    ``minibatch_by``: PPO's ``minibatch_by`` ("sample": shuffled samples, its default; "env": whole env sequences)."""
     import jax
 
     from baselines import ppo
@@ -73,6 +78,7 @@ def compiled_row(
             "total_timesteps": num_envs * 64 * updates,
             "print_progress": False,
             "num_seeds": 1,
+            "minibatch_by": minibatch_by,
             "env_kwargs": kw,
         }
         train = ppo.make_train(config)
@@ -111,6 +117,11 @@ def main(argv=None) -> int:
         action="store_true",
         help="also time the set reader with its per-cell layers over all slides' cells in every minibatch",
     )
+    p.add_argument(
+        "--by-env",
+        action="store_true",
+        help="also time the set reader with PPO's minibatches drawn by env (minibatch_by='env')",
+    )
     p.add_argument("--json", type=Path)
     args = p.parse_args(argv)
     from baselines.reading.slides import read_spec
@@ -127,12 +138,14 @@ def main(argv=None) -> int:
     import jax
 
     rows = {}
-    settings = [("navigator", args.navigator, False), ("set reader", args.reader, False)]
+    settings = [("navigator", args.navigator, False, "sample"), ("set reader", args.reader, False, "sample")]
     if args.all_cells:
-        settings.append(("set reader, all cells", args.reader, True))
-    for name, mode, all_cells in settings:
+        settings.append(("set reader, all cells", args.reader, True, "sample"))
+    if args.by_env:
+        settings.append(("set reader, by env", args.reader, False, "env"))
+    for name, mode, all_cells, by in settings:
         run, steps, compile_s = compiled_row(
-            args.dataset, head, mode, args.num_envs, args.updates, args.budget, levels, all_cells
+            args.dataset, head, mode, args.num_envs, args.updates, args.budget, levels, all_cells, by
         )
         rows[name] = {
             "action_mode": mode,
@@ -141,6 +154,7 @@ def main(argv=None) -> int:
             "compile_s": round(compile_s, 1),
             "walls": [],
             "cells": ("all slides'" if all_cells else "the minibatch's slides'") if name != "navigator" else None,
+            "minibatch_by": by,
         }
     for _ in range(args.repeats):  # interleaved: all see the same machine load
         for r in rows.values():
@@ -161,6 +175,7 @@ def main(argv=None) -> int:
             "num_envs": args.num_envs,
             "env_steps": r["steps"],
             **({"per_cell_layers_over": r["cells"] + " cells"} if r["cells"] else {}),
+            "minibatch_by": r["minibatch_by"],
             "median_steps_per_s": round(statistics.median(rates)),
             "steps_per_s": [round(x) for x in rates],
             "compile_s": r["compile_s"],
@@ -198,6 +213,15 @@ def main(argv=None) -> int:
             out[2]["median_steps_per_cpu_s"] / max(1, out[0]["median_steps_per_cpu_s"]), 3
         )
         print(f"set reader over all slides' cells / navigator: {meta['all_cells_reader_over_navigator']:.2f}")
+    by_env = next((r for r in out if r["policy"] == "set reader, by env"), None)
+    if by_env is not None:
+        meta["by_env_reader_over_navigator"] = round(
+            by_env["median_steps_per_s"] / max(1, out[0]["median_steps_per_s"]), 3
+        )
+        meta["by_env_reader_over_navigator_cpu"] = round(
+            by_env["median_steps_per_cpu_s"] / max(1, out[0]["median_steps_per_cpu_s"]), 3
+        )
+        print(f"set reader, minibatches by env / navigator: {meta['by_env_reader_over_navigator']:.2f}")
     print(json.dumps(meta))
     if args.json:
         args.json.write_text(json.dumps({"meta": meta, "rows": out}, indent=1) + "\n")

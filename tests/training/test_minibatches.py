@@ -6,6 +6,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from ppo_configs import TINY
 
 from baselines import ppo, ppo_rnn
 from baselines.harness.run_folder import _same, difference
@@ -48,20 +49,6 @@ def test_minibatches_by_sample_mix_the_envs():
     """The default shuffles every sample: a minibatch of 12 of these 48 samples draws from more than 2 envs."""
     mbs = ppo.split_minibatches(jax.random.PRNGKey(5), _rollout(), 4, by_env=False)
     assert all(len(set(np.asarray(mbs["env"][i]).tolist())) > NUM_ENVS // 4 for i in range(4))
-
-
-TINY = dict(
-    env_id="HistoJAX-Easy-v0",
-    with_position=True,
-    num_envs=4,
-    num_steps=8,
-    total_timesteps=64,
-    update_epochs=1,
-    num_minibatches=2,
-    hidden=16,
-    num_seeds=1,
-    print_progress=False,
-)
 
 
 def test_with_one_minibatch_both_ways_make_the_same_update():

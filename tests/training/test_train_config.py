@@ -9,6 +9,7 @@ import json
 from pathlib import Path
 
 import pytest
+from ppo_configs import TINY
 
 from baselines import dqn, ppo, ppo_rnn
 from baselines.common.config import ConfigError
@@ -18,18 +19,6 @@ PUBLISHED = Path(__file__).resolve().parents[2] / "baselines" / "published"
 CLASSES = {"ppo": ppo.PPOConfig, "ppo_rnn": ppo_rnn.PPORNNConfig, "dqn": dqn.DQNConfig}
 DEFAULTS = {"ppo": ppo.DEFAULTS, "ppo_rnn": ppo_rnn.DEFAULTS, "dqn": dqn.DEFAULTS}
 TRAINER_CONFIGS = sorted(p for p in PUBLISHED.glob("*/config.json") if "algo" in json.loads(p.read_text()))
-TINY = dict(
-    env_id="HistoJAX-Easy-v0",
-    with_position=True,
-    num_envs=4,
-    num_steps=8,
-    total_timesteps=64,
-    update_epochs=1,
-    num_minibatches=2,
-    hidden=16,
-    num_seeds=1,
-    print_progress=False,
-)
 
 
 def test_the_published_agents_are_found():

@@ -7,6 +7,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from ppo_configs import TINY
 
 from baselines import dqn, networks, ppo
 from baselines.episodes import policies
@@ -14,18 +15,7 @@ from baselines.evaluate import cli, scoring
 from baselines.harness.logs import load_checkpoint, save_checkpoint
 from baselines.harness.runner import run_seeds
 
-TINY_PPO = dict(
-    env_id="HistoJAX-Easy-v0",
-    with_position=True,
-    num_envs=4,
-    num_steps=8,
-    total_timesteps=64,
-    update_epochs=1,
-    num_minibatches=2,
-    hidden=32,
-    num_seeds=2,
-    print_progress=False,
-)
+TINY_PPO = {**TINY, "hidden": 32, "num_seeds": 2}
 
 
 # the default (seeds vmapped) in `make test`; seeds one after another (lax.map) under `make test-all`, whose

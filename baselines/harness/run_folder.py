@@ -223,12 +223,11 @@ def difference(saved: dict | None, config: dict, most: int = 2) -> str:
     its config cannot be read."""
     if saved is None:
         return "whose config.json cannot be read"
+    saved = {**ADDED, **saved}
     parts = [
-        _nested_difference(k, _saved_entry(saved, k), v)
-        if _has(saved, k)
-        else f"config has no {k} (this command's: {_brief(v)})"
+        _nested_difference(k, saved[k], v) if k in saved else f"config has no {k} (this command's: {_brief(v)})"
         for k, v in config.items()
-        if not _has(saved, k) or not _entry_same(k, _saved_entry(saved, k), v)
+        if k not in saved or not _entry_same(k, saved[k], v)
     ]
     if not parts:
         return "of this config"
@@ -249,16 +248,6 @@ ADDED = {"minibatch_by": "sample"}
 entry is of a command giving that value (a run started before the entry existed still continues)."""
 
 
-def _saved_entry(saved: dict, key: str):
-    """The saved config's entry ``key``, or the value it had before it was recorded (:data:`ADDED`); KeyError if
-    neither."""
-    return saved[key] if key in saved else ADDED[key]
-
-
-def _has(saved: dict, key: str) -> bool:
-    return key in saved or key in ADDED
-
-
 def _entry_same(key: str, saved_value, value) -> bool:
     """Whether the saved config's entry ``key`` (``saved_value``) is what the command's ``value`` makes."""
     if key in COMPLETED and value == COMPLETED[key] and not isinstance(saved_value, str):
@@ -271,7 +260,8 @@ def _entry_same(key: str, saved_value, value) -> bool:
 def _same(saved: dict, config: dict) -> bool:
     """Whether the checkpoint's full config ``saved`` is a run of ``config`` (the command's entries, which the
     trainer completes with its own): every entry of ``config`` equal in ``saved`` (:func:`_entry_same`)."""
-    return all(_has(saved, k) and _entry_same(k, _saved_entry(saved, k), v) for k, v in config.items())
+    saved = {**ADDED, **saved}  # entries recorded only later, at the value runs had before
+    return all(k in saved and _entry_same(k, saved[k], v) for k, v in config.items())
 
 
 def lock(out: Path) -> None:

@@ -7,6 +7,7 @@ from pathlib import Path
 
 import jax
 import numpy as np
+import ppo_configs
 import pytest
 
 from baselines import dqn, ppo, ppo_rnn
@@ -14,19 +15,7 @@ from baselines.harness.runner import compile_seeds, run_chunked, run_seeds
 from baselines.harness.trainer import Trainer
 
 ROOT = Path(__file__).resolve().parents[2]
-TINY = dict(
-    env_id="HistoJAX-Easy-v0",
-    with_position=True,
-    num_envs=4,
-    num_steps=8,
-    total_timesteps=96,
-    update_epochs=1,
-    num_minibatches=2,
-    hidden=16,
-    num_seeds=2,
-    print_progress=False,
-    checkpoint_every=2,
-)
+TINY = {**ppo_configs.TINY, "total_timesteps": 96, "num_seeds": 2, "checkpoint_every": 2}
 TINY_DQN = dict(
     env_id="HistoJAX-Easy-v0",
     with_position=True,

@@ -205,23 +205,15 @@ def main(argv=None) -> int:
         ),
     }
     print(f"set reader / navigator: {ratio:.2f} (target >= 0.5)")
-    if args.all_cells:
-        meta["all_cells_reader_over_navigator"] = round(
-            out[2]["median_steps_per_s"] / max(1, out[0]["median_steps_per_s"]), 3
-        )
-        meta["all_cells_reader_over_navigator_cpu"] = round(
-            out[2]["median_steps_per_cpu_s"] / max(1, out[0]["median_steps_per_cpu_s"]), 3
-        )
-        print(f"set reader over all slides' cells / navigator: {meta['all_cells_reader_over_navigator']:.2f}")
-    by_env = next((r for r in out if r["policy"] == "set reader, by env"), None)
-    if by_env is not None:
-        meta["by_env_reader_over_navigator"] = round(
-            by_env["median_steps_per_s"] / max(1, out[0]["median_steps_per_s"]), 3
-        )
-        meta["by_env_reader_over_navigator_cpu"] = round(
-            by_env["median_steps_per_cpu_s"] / max(1, out[0]["median_steps_per_cpu_s"]), 3
-        )
-        print(f"set reader, minibatches by env / navigator: {meta['by_env_reader_over_navigator']:.2f}")
+    extra = {  # the optional rows: their meta prefix and their words
+        "set reader, all cells": ("all_cells_", "set reader over all slides' cells"),
+        "set reader, by env": ("by_env_", "set reader, minibatches by env"),
+    }
+    for row in out[2:]:
+        prefix, words = extra[row["policy"]]
+        for suffix, rate in (("", "median_steps_per_s"), ("_cpu", "median_steps_per_cpu_s")):
+            meta[f"{prefix}reader_over_navigator{suffix}"] = round(row[rate] / max(1, out[0][rate]), 3)
+        print(f"{words} / navigator: {meta[prefix + 'reader_over_navigator']:.2f}")
     print(json.dumps(meta))
     if args.json:
         args.json.write_text(json.dumps({"meta": meta, "rows": out}, indent=1) + "\n")
